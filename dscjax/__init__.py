@@ -1,0 +1,36 @@
+"""dscjax: a differentiable JAX simulator of adaptive dynamic surface control (DSC) for
+uncertain strict-feedback plants driven through backlash-like hysteresis.
+
+    import jax; jax.config.update("jax_enable_x64", True)   # float64 references
+    import dscjax
+    traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
+"""
+
+from dscjax import metrics, params
+from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
+from dscjax.controllers import DSC, Controller, DSCState
+from dscjax.examples import order_n_example, paper_example
+from dscjax.hysteresis import Backlash, closed_form
+from dscjax.integrate import Status, integrate, rk4_step
+from dscjax.params import cast
+from dscjax.plant import CustomPlant, Plant, StrictFeedback, check_strict_feedback
+from dscjax.reference import InitialOffset, MultiSine, Reference, Sine, SmoothStep
+from dscjax.simulate import (
+    DivergenceError,
+    Trajectory,
+    divergence_report,
+    simulate,
+    simulate_batch,
+)
+from dscjax.validation import ConfigError, validate_setup
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Backlash", "ConfigError", "Controller", "CustomPlant", "DSC", "DSCState", "DivergenceError",
+    "InitialOffset", "MultiSine", "Observation", "Plant", "Reference", "Setup", "Sine",
+    "SmoothStep", "State", "Status", "StrictFeedback", "Trajectory", "cast",
+    "check_strict_feedback", "closed_form", "divergence_report", "initial_state", "integrate",
+    "metrics", "order_n_example", "paper_example", "params", "prepared", "rk4_step", "simulate",
+    "simulate_batch", "validate_setup", "vector_field",
+]

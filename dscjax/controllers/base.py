@@ -1,0 +1,57 @@
+"""The small interface every controller of the closed loop implements.
+
+A controller is a frozen, registered dataclass: its gains are traced fields, its structural
+choices (variant, robust term, initialisation) are static fields. It owns a state (filters,
+estimates) and gives:
+
+    prepare(plant, reference)            -> (controller, reference)  initialisation rules
+    init_state(plant, reference)         -> state at t = 0
+    law(state, x, t, plant, reference)   -> (u, info)   u as a function of (state, x, t) only
+    state_rate(state, x, t, info, plant, reference) -> d(state)/dt
+
+`law` never sees w or the true plant parameters: only the known f_i, rho_i and the plant
+state. Because u is a function of (state, x, t) only, the closed loop gets u' exactly by a jvp
+of `law` along the vector field (no algebraic loop, NOTES.md).
+"""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, NamedTuple
+
+import jax
+
+
+class ControlInfo(NamedTuple):
+    """What every control law reports besides u (all at the current time).
+
+    Attributes:
+        yr: () the reference y_r(t) the law used.
+        S: (n,) the surface / tracking errors, S_1 = x_1 - y_r first.
+        extra: controller-specific intermediates needed by `state_rate` (any pytree).
+    """
+
+    yr: jax.Array
+    S: jax.Array
+    extra: Any
+
+
+class Controller(abc.ABC):
+    kind: str
+
+    def prepare(self, plant, reference):
+        """Apply initialisation rules that depend on the plant's initial state; default: none."""
+        return self, reference
+
+    @abc.abstractmethod
+    def init_state(self, plant, reference) -> Any: ...
+
+    @abc.abstractmethod
+    def law(self, state, x, t, plant, reference) -> tuple[jax.Array, ControlInfo]: ...
+
+    @abc.abstractmethod
+    def state_rate(self, state, x, t, info, plant, reference) -> Any: ...
+
+    @abc.abstractmethod
+    def expected_shapes(self, n: int) -> dict[str, tuple[int, ...]]:
+        """Shape of every array field for a plant of order n (used by validation)."""

@@ -1,0 +1,246 @@
+"""Adaptive dynamic surface control of order n, Section 2 of the paper, eqs. (13)-(32).
+
+Per stage i the law forms a surface S_i, a virtual control x_(i+1)d and passes it through a
+first-order filter tau_(i+1) z_(i+1)' + z_(i+1) = x_(i+1)d (18), (24). The filter derivative
+z_i' = (x_id - z_i)/tau_i replaces the derivative of the virtual control, so no derivative of a
+virtual control is ever taken: this is what removes backstepping's explosion of complexity.
+
+Index conventions (0-based arrays, paper indices in the comments):
+    k (n,)          k_1..k_n
+    tau (n-1,)      tau_2..tau_n
+    c (n-1,)        c_2..c_n
+    gamma_g, eta (n,)       gamma_g1..gamma_g(n-1), gamma_gn; eta_1..eta_n     (17), (23), (31)
+    gamma_phi, sigma (n-1,) gamma_phi1..gamma_phi(n-1); sigma_1..sigma_(n-1) (17), (23)
+    state.z (n-1,)  z_2..z_n
+    state.theta_hat (n,)    theta_hat_g1..theta_hat_g(n-1), theta_hat_n
+    state.phi_hat (n-1,)    phi_hat_1..phi_hat_(n-1)
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from dscjax import validation as v
+from dscjax._smooth import sat, smooth_abs, smooth_sat
+from dscjax.controllers.base import ControlInfo, Controller
+from dscjax.reference import InitialOffset
+
+VARIANTS = ("full", "no_dhat", "no_dhat_no_zeta")
+ROBUST_TERMS = ("sat", "sgn", "smooth")
+INIT_MODES = ("paper", "linf", "zero_surfaces")
+
+
+class DSCState(NamedTuple):
+    """Controller state of the DSC (see the module docstring for the index conventions)."""
+
+    z: jax.Array  # (n-1,) filter outputs z_2..z_n
+    theta_hat: jax.Array  # (n,) estimates of theta_i/g_i (i<n) and theta_n
+    phi_hat: jax.Array  # (n-1,) estimates of 1/g_i
+    zeta_hat: jax.Array  # () estimate of 1/beta = 1/(lam g_n), eq. (27)
+    d_hat: jax.Array  # () estimate of the bound d of d_n, eq. (12)
+
+
+class DSCExtra(NamedTuple):
+    ubar: jax.Array  # () eq. (30)
+    f: jax.Array  # (n,) f_i(xbar_i)
+    phi_signal: jax.Array  # (n-1,) the signal multiplying phi_hat: y_r' then z_2'..z_(n-1)'
+    z_dot: jax.Array  # (n-1,) filter derivatives z_2'..z_n'
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class DSC(Controller):
+    """Adaptive DSC with hysteresis compensation, eqs. (13)-(32).
+
+    Traced gains (shapes for order n): k (n,), tau (n-1,), c (n-1,), gamma_g (n,), eta (n,),
+    gamma_phi (n-1,), sigma (n-1,), scalars gamma_zeta, eta_zeta, gamma_d, eta_d, eps (the
+    epsilon of (16), (22), (30)), g_min (Assumption 4), sat_width (the boundary layer of
+    sat(S_n/width) that replaces sgn(S_n)), smooth_delta (corner width of the smooth
+    saturation, relative to sat_width), linf_decay_time (how fast the reference offset of the
+    L-infinity initialisation fades). Initial estimates theta_hat0 (n,), phi_hat0 (n-1,),
+    zeta_hat0, d_hat0.
+
+    Static choices:
+        variant: "full"; "no_dhat" = no hysteresis compensation, the robust term and d_hat are
+            dropped (d_hat = 0); "no_dhat_no_zeta" = additionally zeta_hat = 1, so u = ubar.
+        robust_term: "sat" (sat(S_n/sat_width), the paper's simulation), "sgn" (eq. 30 as
+            printed), or "smooth" (a C-infinity saturation and a smooth |S_n| in (32), for
+            fourth-order RK4 and clean gradients; bias <= smooth_delta/2 in the saturation and
+            <= smooth_delta * sat_width in |S_n|).
+        init: "paper" (c and initial estimates as given), "linf" (eqs. 67-68: all estimates 0,
+            c_i = x_i(0), y_r shifted so that y_r(0) = x_1(0) by an offset decaying in
+            linf_decay_time; then S_i(0) = 0 for all i), or "zero_surfaces" (estimates as given,
+            c_i chosen so that S_i(0) = 0 for i >= 2).
+    """
+
+    k: jax.Array
+    tau: jax.Array
+    c: jax.Array
+    gamma_g: jax.Array
+    eta: jax.Array
+    gamma_phi: jax.Array
+    sigma: jax.Array
+    gamma_zeta: jax.Array
+    eta_zeta: jax.Array
+    gamma_d: jax.Array
+    eta_d: jax.Array
+    eps: jax.Array
+    g_min: jax.Array
+    theta_hat0: jax.Array
+    phi_hat0: jax.Array
+    zeta_hat0: jax.Array
+    d_hat0: jax.Array
+    sat_width: jax.Array = 0.01
+    smooth_delta: jax.Array = 0.1
+    linf_decay_time: jax.Array = 0.5
+    variant: str = dataclasses.field(default="full", metadata=dict(static=True))
+    robust_term: str = dataclasses.field(default="sat", metadata=dict(static=True))
+    init: str = dataclasses.field(default="paper", metadata=dict(static=True))
+
+    kind: ClassVar[str] = "dsc"
+
+    def expected_shapes(self, n):
+        m = n - 1
+        return dict(
+            k=(n,), tau=(m,), c=(m,), gamma_g=(n,), eta=(n,), gamma_phi=(m,), sigma=(m,),
+            gamma_zeta=(), eta_zeta=(), gamma_d=(), eta_d=(), eps=(), g_min=(),
+            theta_hat0=(n,), phi_hat0=(m,), zeta_hat0=(), d_hat0=(), sat_width=(),
+            smooth_delta=(), linf_decay_time=(),
+        )
+
+    def validate(self, prefix):
+        v.one_of(self.variant, f"{prefix}.variant", VARIANTS)
+        v.one_of(self.robust_term, f"{prefix}.robust_term", ROBUST_TERMS)
+        v.one_of(self.init, f"{prefix}.init", INIT_MODES)
+        for name in ("k", "tau", "gamma_g", "gamma_phi", "gamma_zeta", "gamma_d", "eps", "g_min",
+                     "sat_width", "smooth_delta", "linf_decay_time"):
+            v.positive(getattr(self, name), f"{prefix}.{name}")
+        for name in ("eta", "sigma", "eta_zeta", "eta_d"):
+            v.nonnegative(getattr(self, name), f"{prefix}.{name}")
+
+    # -- structural switches -------------------------------------------------------------
+    @property
+    def compensates(self) -> bool:
+        return self.variant == "full"
+
+    @property
+    def adapts_zeta(self) -> bool:
+        return self.variant != "no_dhat_no_zeta"
+
+    def _robust(self, s_n):
+        """The robust term's switching function: sgn(S_n) or its saturated replacement."""
+        if self.robust_term == "sgn":
+            return jnp.sign(s_n)
+        if self.robust_term == "smooth":
+            return smooth_sat(s_n / self.sat_width, self.smooth_delta)
+        return sat(s_n / self.sat_width)
+
+    def _abs_sn(self, s_n):
+        if self.robust_term == "smooth":
+            return smooth_abs(s_n, self.smooth_delta * self.sat_width)
+        return jnp.abs(s_n)
+
+    # -- initialisation --------------------------------------------------------------------
+    def prepare(self, plant, reference):
+        x0 = jnp.asarray(plant.x0)
+        if self.init == "linf":
+            zero = jnp.zeros_like
+            ctrl = dataclasses.replace(
+                self,
+                theta_hat0=zero(self.theta_hat0), phi_hat0=zero(self.phi_hat0),
+                zeta_hat0=zero(self.zeta_hat0), d_hat0=zero(self.d_hat0), c=x0[1:],
+            )
+            ref = InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
+                                self.linf_decay_time)
+            return ctrl, ref
+        if self.init == "zero_surfaces":
+            _, x_d0 = self._initial_filters(plant, reference, choose_c=True)
+            return dataclasses.replace(self, c=x0[1:] - x_d0), reference
+        return self, reference
+
+    def _initial_filters(self, plant, reference, choose_c=False):
+        """z(0) = x_d(0) of (18), (24), computed stage by stage; returns (S(0), x_d(0)).
+
+        With z_i(0) = x_id(0) the filter derivatives are zero at t = 0, so x_(i+1)d(0) needs
+        only S_i(0). With choose_c, c_i is taken so that S_i(0) = 0 for i >= 2.
+        """
+        x = jnp.asarray(plant.x0)
+        n = x.shape[0]
+        t0 = jnp.zeros_like(x[0])
+        yr, yr_dot = reference.derivatives(t0, 1)
+        f, rho = plant.f(x), plant.rho(x)
+        theta_hat, phi_hat = self._initial_estimates()[1:3]
+        s = [x[0] - yr]
+        x_d = [self._virtual(0, s[0], f, rho, theta_hat, phi_hat, yr_dot)]
+        for i in range(1, n - 1):
+            s_i = jnp.zeros_like(x[0]) if choose_c else x[i] - x_d[i - 1] - self.c[i - 1]
+            s.append(s_i)
+            x_d.append(self._virtual(i, s_i, f, rho, theta_hat, phi_hat, jnp.zeros_like(s_i)))
+        return jnp.stack(s), jnp.stack(x_d)
+
+    def _initial_estimates(self):
+        zeta0 = self.zeta_hat0 if self.adapts_zeta else jnp.ones_like(self.zeta_hat0)
+        d0 = self.d_hat0 if self.compensates else jnp.zeros_like(self.d_hat0)
+        return None, self.theta_hat0, self.phi_hat0, zeta0, d0
+
+    def init_state(self, plant, reference):
+        _, theta_hat, phi_hat, zeta_hat, d_hat = self._initial_estimates()
+        _, x_d0 = self._initial_filters(plant, reference)
+        return DSCState(z=x_d0, theta_hat=theta_hat, phi_hat=phi_hat, zeta_hat=zeta_hat,
+                        d_hat=d_hat)
+
+    # -- the law -----------------------------------------------------------------------------
+    def _virtual(self, i, s_i, f, rho, theta_hat, phi_hat, v_i):
+        """Virtual control x_(i+2)d (0-based stage i), eqs. (16) and (22).
+
+        v_i is y_r' at the first stage and the filter derivative z_(i+1)' after it.
+        """
+        robust = s_i * rho[i] ** 2 / (2.0 * self.eps * self.g_min)
+        return -theta_hat[i] * f[i] - robust - self.k[i] * s_i + phi_hat[i] * v_i
+
+    def law(self, state, x, t, plant, reference):
+        """u = zeta_hat ubar, eqs. (13)-(30). Returns (u, ControlInfo)."""
+        n = x.shape[0]
+        yr, yr_dot = reference.derivatives(t, 1)
+        f, rho = plant.f(x), plant.rho(x)
+        theta_hat, phi_hat = state.theta_hat, state.phi_hat
+
+        s = [x[0] - yr]  # (13)
+        v = [yr_dot]  # signals multiplying phi_hat in (16), (22)
+        z_dot = []
+        x_d = self._virtual(0, s[0], f, rho, theta_hat, phi_hat, yr_dot)  # (16)
+        for i in range(1, n):
+            z_dot.append((x_d - state.z[i - 1]) / self.tau[i - 1])  # (18), (24), (42)
+            s.append(x[i] - state.z[i - 1] - self.c[i - 1])  # (19), (25)
+            if i < n - 1:
+                v.append(z_dot[-1])
+                x_d = self._virtual(i, s[i], f, rho, theta_hat, phi_hat, z_dot[-1])  # (22)
+
+        s_n = s[-1]
+        d_hat = state.d_hat if self.compensates else jnp.zeros_like(state.d_hat)
+        ubar = (-self.k[n - 1] * s_n - theta_hat[n - 1] * f[n - 1]
+                - s_n * rho[n - 1] ** 2 / (2.0 * self.eps) + z_dot[-1]
+                - self._robust(s_n) * d_hat)  # (30), no 1/g_min in the rho_n term
+        u = state.zeta_hat * ubar  # (28)
+        extra = DSCExtra(ubar=ubar, f=f, phi_signal=jnp.stack(v), z_dot=jnp.stack(z_dot))
+        return u, ControlInfo(yr=yr, S=jnp.stack(s), extra=extra)
+
+    def state_rate(self, state, x, t, info, plant, reference):
+        """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
+        e = info.extra
+        s = info.S
+        s_n = s[-1]
+        theta_dot = self.gamma_g * (e.f * s - self.eta * state.theta_hat)
+        phi_dot = -self.gamma_phi * (e.phi_signal * s[:-1] + self.sigma * state.phi_hat)
+        zeta_dot = -self.gamma_zeta * (e.ubar * s_n + self.eta_zeta * state.zeta_hat)
+        d_dot = self.gamma_d * (self._abs_sn(s_n) - self.eta_d * state.d_hat)
+        if not self.adapts_zeta:
+            zeta_dot = jnp.zeros_like(zeta_dot)
+        if not self.compensates:
+            d_dot = jnp.zeros_like(d_dot)
+        return DSCState(z=e.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
+                        d_hat=d_dot)

@@ -1,0 +1,103 @@
+"""Built-in setups: the paper's simulation example (Section 4, eq. 73) and an order-n family.
+
+Every reading of the paper that had to be made is listed here and in docs/paper-readings.md;
+each is a setting, and the defaults follow ../shared/paper/NOTES.md exactly.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dscjax.closed_loop import Setup
+from dscjax.controllers.dsc import DSC
+from dscjax.hysteresis import Backlash
+from dscjax.params import cast
+from dscjax.plant import StrictFeedback
+from dscjax.reference import Sine
+
+
+def paper_plant() -> StrictFeedback:
+    """Eq. (73): g = (1, 1), theta = (0.1, 0), f_1 = x_1^2, f_2 = 0, Delta_1 = 0.2 sin(x_2),
+    Delta_2 = 0.1 (x_1^2 + x_2^2) sin^3(t), rho = (0.2, 0.1 (x_1^2 + x_2^2)), x(0) = (0.08, 0.1)."""
+    return StrictFeedback.zeros(
+        2, g=[1.0, 1.0], theta=[0.1, 0.0], x0=[0.08, 0.1], f_quad=[1.0, 0.0],
+        rho_const=[0.2, 0.0], rho_quad=[0.0, 0.1], delta_sin=[0.2, 0.0], delta_quad=[0.0, 0.1])
+
+
+def paper_hysteresis() -> Backlash:
+    """alpha = 1, lam = 1.432, psi = 0.105; w(0) = 0 (not given in the paper)."""
+    return Backlash(alpha=1.0, lam=1.432, psi=0.105, w0=0.0)
+
+
+def paper_controller(variant: str = "full", robust_term: str = "sat", init: str = "paper") -> DSC:
+    """Section 4's gains. The text prints "k_1 = 10, k_1 = 0.45": read k_2 = 0.45 (= 1/4 + alpha_0
+    with alpha_0 = 0.2, eq. 55). gamma_g2, eta_2, theta_hat_2(0) are not given and irrelevant
+    (f_2 = 0): 8, 0.01, 0. c_2 = x_2(0) = 0.1; sat width 0.01."""
+    return DSC(
+        k=np.array([10.0, 0.45]), tau=np.array([0.01]), c=np.array([0.1]),
+        gamma_g=np.array([8.0, 8.0]), eta=np.array([0.01, 0.01]),
+        gamma_phi=np.array([8.0]), sigma=np.array([0.01]),
+        gamma_zeta=8.0, eta_zeta=0.01, gamma_d=8.0, eta_d=0.01, eps=0.01, g_min=1.0,
+        theta_hat0=np.array([0.05, 0.0]), phi_hat0=np.array([1.0]), zeta_hat0=0.5, d_hat0=1.0,
+        sat_width=0.01, variant=variant, robust_term=robust_term, init=init)
+
+
+def paper_example(variant: str = "full", robust_term: str = "sat", init: str = "paper",
+                  dtype=None) -> Setup:
+    """The closed loop of the paper's Section 4 with y_r = sin t.
+
+    Args:
+        variant: "full", "no_dhat" or "no_dhat_no_zeta" (the two readings of "without
+            considering hysteresis" in Fig. 2).
+        robust_term: "sat" (the paper's sat(S_2/0.01)), "sgn" or "smooth".
+        init: "paper" (Section 4's initial values), "linf" (67-68), "zero_surfaces".
+        dtype: dtype of every number (default: JAX's default float, float64 when x64 is on).
+
+    Example:
+        >>> import dscjax
+        >>> setup = dscjax.paper_example()
+        >>> setup.order
+        2
+    """
+    setup = Setup(plant=paper_plant(), hysteresis=paper_hysteresis(),
+                  controller=paper_controller(variant, robust_term, init), reference=Sine())
+    return cast(setup, dtype if dtype is not None else _default_float())
+
+
+def _default_float():
+    import jax.numpy as jnp
+
+    return jnp.zeros(()).dtype
+
+
+def order_n_example(n: int, tau: float = 0.05, dtype=None, **controller_changes) -> Setup:
+    """A stable, tracking example of any order n >= 2 from the StrictFeedback family.
+
+    f_i = 0.1 x_i^2 + 0.1 sin(x_i) (+ 0.05 x_(i-1) x_i for i >= 2), rho_i = 0.1 + 0.05 q_i,
+    Delta_i = 0.1 sin(x_(i+1)) + 0.05 q_i sin^3 t, the paper's hysteresis and y_r = sin t.
+    Following NOTES.md, it starts on the surfaces (init "zero_surfaces" with all estimates 0
+    except zeta_hat(0)) and uses tau = 0.05 for every filter: order n >= 3 is stiff.
+    """
+    if n < 2:
+        raise ValueError(f"order n must be >= 2 (got {n})")
+    ones = np.ones(n)
+    cross = np.full(n, 0.05)
+    cross[0] = 0.0
+    plant = StrictFeedback.zeros(
+        n, g=ones, theta=np.full(n, 0.2), x0=np.zeros(n), f_quad=np.full(n, 0.5),
+        f_sin=np.full(n, 0.5), f_cross=cross, rho_const=np.full(n, 0.1),
+        rho_quad=np.full(n, 0.05), delta_sin=np.full(n, 0.1), delta_quad=np.full(n, 0.05))
+    m = n - 1
+    k = np.full(n, 3.0)
+    ctrl = DSC(
+        k=k, tau=np.full(m, tau), c=np.zeros(m), gamma_g=np.full(n, 2.0),
+        eta=np.full(n, 0.01), gamma_phi=np.full(m, 2.0), sigma=np.full(m, 0.01),
+        gamma_zeta=2.0, eta_zeta=0.01, gamma_d=2.0, eta_d=0.01, eps=0.5, g_min=1.0,
+        theta_hat0=np.zeros(n), phi_hat0=np.zeros(m), zeta_hat0=0.5, d_hat0=0.0,
+        sat_width=0.05, init="zero_surfaces")
+    if controller_changes:
+        import dataclasses
+
+        ctrl = dataclasses.replace(ctrl, **controller_changes)
+    setup = Setup(plant=plant, hysteresis=paper_hysteresis(), controller=ctrl, reference=Sine())
+    return cast(setup, dtype if dtype is not None else _default_float())

@@ -1,0 +1,92 @@
+"""Backlash-like hysteresis, eq. (4)-(8) of the paper (Su et al. 2000).
+
+    w' = alpha |u'| (lam u - w) + psi u',      lam > psi, alpha > 0.
+
+In the closed loop w is a state; u' is supplied by the closed loop (a forward-mode derivative
+of the control law along the vector field, see `closed_loop.py`). On a segment where u is
+monotone the equation is linear in u and has the closed form (5)-(6), implemented in
+`closed_form` as the test oracle.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation as v
+from dscjax._smooth import smooth_abs
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Backlash:
+    """Backlash-like hysteresis w = P(u), eq. (4).
+
+    Attributes:
+        alpha: () rate at which w switches between its asymptotes, alpha > 0.
+        lam: () slope lambda of the asymptotes, lam > psi.
+        psi: () slope psi of the branches at reversal.
+        w0: () initial output w(0); the paper does not give it, the default is 0.
+        smooth_delta: () width of the smooth |u'| used when `smooth` is True (units of u').
+        smooth: static; replace |u'| by sqrt(u'^2 + delta^2) - delta (bias <= delta in |u'|).
+    """
+
+    alpha: jax.Array
+    lam: jax.Array
+    psi: jax.Array
+    w0: jax.Array = 0.0
+    smooth_delta: jax.Array = 1e-2
+    smooth: bool = dataclasses.field(default=False, metadata=dict(static=True))
+
+    kind: ClassVar[str] = "backlash"
+
+    def expected_shapes(self, n):
+        return dict(alpha=(), lam=(), psi=(), w0=(), smooth_delta=())
+
+    def validate(self, prefix):
+        v.positive(self.alpha, f"{prefix}.alpha")
+        v.positive(self.lam, f"{prefix}.lam")
+        lam, psi = np.asarray(self.lam, float), np.asarray(self.psi, float)
+        if not np.all(lam > psi):
+            raise v.ConfigError(
+                f"{prefix}.lam must be > {prefix}.psi (got lam={v._fmt(lam)}, psi={v._fmt(psi)})")
+        v.positive(self.smooth_delta, f"{prefix}.smooth_delta")
+
+    def rate(self, u, du, w):
+        """w' of eq. (4) given u, u' and w."""
+        abs_du = smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
+        return self.alpha * abs_du * (self.lam * u - w) + self.psi * du
+
+    def d1_limits(self):
+        """The limits (7)-(8): d_1 -> +(lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""
+        bound = (self.lam - self.psi) / self.alpha
+        return bound, -bound
+
+
+def closed_form(u, u0, w0, alpha, lam, psi, direction):
+    """Solution (5)-(6) of eq. (4) on a monotone segment of u.
+
+    With s = sgn(u') constant on the segment, (4) reads dw/du = alpha s (lam u - w) + psi, a linear
+    ODE in u. Writing d_1 = w - lam u (eq. 5):
+
+        d_1(u) = (w0 - lam u0) e^{-alpha s (u - u0)} + (psi - lam)/(alpha s) (1 - e^{-alpha s (u - u0)}),
+
+    which is (6) with the paper's sgn(u) read as sgn(u') (NOTES.md).
+
+    Args:
+        u: input values on the segment (any shape).
+        u0, w0: start of the segment.
+        alpha, lam, psi: hysteresis parameters.
+        direction: +1 on a rising segment, -1 on a falling one.
+
+    Returns:
+        w(u), same shape as u.
+    """
+    s = direction
+    decay = jnp.exp(-alpha * s * (u - u0))
+    d1 = (w0 - lam * u0) * decay + (psi - lam) / (alpha * s) * (1.0 - decay)
+    return lam * u + d1

@@ -1,0 +1,137 @@
+"""Tracking and control-effort metrics, all differentiable (max and |.| a.e.).
+
+Two implementations of the same definitions:
+- functions of saved arrays (`linf`, `l2`, ...), for post-processing a trajectory;
+- a running accumulator updated at every RK4 step inside the scan (`RunningMetrics`), so that
+  sweeps and tuning get exact step-grid metrics without storing the trajectory.
+With save_every = 1 the two agree (tested).
+
+Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
+    L_inf  = max_{k in W} |e_k|
+    L2     = sqrt( trapezoid_W(e^2) )           (trapezoid rule over the samples in W)
+    RMS    = sqrt( trapezoid_W(e^2) / (T - t_first) ),  t_first the first sample time in W
+    max|u| = max_k |u_k|, TV(u) = sum_k |u_(k+1) - u_k|, L2(u) = sqrt(trapezoid(u^2))
+where e = y - y_r = x_1 - y_r.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+# -- on arrays -------------------------------------------------------------------------------
+
+
+def _window(t, t0):
+    return t >= t0
+
+
+def _trapezoid_weights(t, mask):
+    """Trapezoid weights over the samples selected by mask (a contiguous tail of t)."""
+    dt = jnp.diff(t)
+    left = jnp.concatenate([dt, jnp.zeros((1,), t.dtype)])  # interval to the right
+    right = jnp.concatenate([jnp.zeros((1,), t.dtype), dt])  # interval to the left
+    m = mask.astype(t.dtype)
+    m_prev = jnp.concatenate([jnp.zeros((1,), t.dtype), m[:-1]])
+    m_next = jnp.concatenate([m[1:], jnp.zeros((1,), t.dtype)])
+    return 0.5 * m * (left * m_next + right * m_prev)
+
+
+def linf(e, t=None, t0=None):
+    """max |e| over the samples with t >= t0 (all samples if t0 is None)."""
+    a = jnp.abs(e)
+    if t0 is None:
+        return jnp.max(a)
+    return jnp.max(jnp.where(_window(t, t0), a, 0.0))
+
+
+def l2(e, t, t0=None):
+    """sqrt of the trapezoid integral of e^2 over [t0, T] (whole horizon if t0 is None)."""
+    mask = jnp.ones_like(t, dtype=bool) if t0 is None else _window(t, t0)
+    return jnp.sqrt(jnp.sum(_trapezoid_weights(t, mask) * e * e))
+
+
+def rms(e, t, t0=None):
+    """L2 / sqrt(length of the window)."""
+    mask = jnp.ones_like(t, dtype=bool) if t0 is None else _window(t, t0)
+    t_first = jnp.min(jnp.where(mask, t, jnp.inf))
+    return l2(e, t, t0) / jnp.sqrt(t[-1] - t_first)
+
+
+def max_abs(u):
+    return jnp.max(jnp.abs(u))
+
+
+def total_variation(u):
+    return jnp.sum(jnp.abs(jnp.diff(u)))
+
+
+# -- running, inside the scan -----------------------------------------------------------------
+
+
+class RunningMetrics(NamedTuple):
+    """Reductions accumulated at every step k = 0..N (all scalars)."""
+
+    e_max: jax.Array  # max |e| over the horizon
+    e_max_win: jax.Array  # max |e| over t >= t0
+    e_sq: jax.Array  # trapezoid integral of e^2 over the horizon
+    e_sq_win: jax.Array  # trapezoid integral of e^2 over t >= t0
+    t_first_win: jax.Array  # first sample time in the window
+    u_max: jax.Array  # max |u|
+    u_sq: jax.Array  # trapezoid integral of u^2
+    u_tv: jax.Array  # total variation of u
+    u_prev: jax.Array  # u at the previous step
+    w_max: jax.Array  # max |w|
+
+
+def running_init(dtype) -> RunningMetrics:
+    z = jnp.zeros((), dtype)
+    return RunningMetrics(z, z, z, z, jnp.asarray(jnp.inf, dtype), z, z, z, z, z)
+
+
+def running_update(acc: RunningMetrics, k, t, e, u, w, dt, t0, n_steps: int) -> RunningMetrics:
+    """Fold the sample (t_k, e_k, u_k, w_k) into the running metrics."""
+    in_win = t >= t0
+    t_prev = (k - 1).astype(t.dtype) * dt  # the grid time before t_k, formed as t_k is
+    first_win = in_win & (t_prev < t0)
+    ends = (k == 0) | (k == n_steps)
+    w_all = jnp.where(ends, 0.5 * dt, dt)
+    w_win = jnp.where(in_win, jnp.where(first_win | (k == n_steps), 0.5 * dt, dt), 0.0)
+    ae, au = jnp.abs(e), jnp.abs(u)
+    return RunningMetrics(
+        e_max=jnp.maximum(acc.e_max, ae),
+        e_max_win=jnp.where(in_win, jnp.maximum(acc.e_max_win, ae), acc.e_max_win),
+        e_sq=acc.e_sq + w_all * e * e,
+        e_sq_win=acc.e_sq_win + w_win * e * e,
+        t_first_win=jnp.where(first_win, t, acc.t_first_win),
+        u_max=jnp.maximum(acc.u_max, au),
+        u_sq=acc.u_sq + w_all * u * u,
+        u_tv=acc.u_tv + jnp.where(k > 0, jnp.abs(u - acc.u_prev), 0.0),
+        u_prev=u,
+        w_max=jnp.maximum(acc.w_max, jnp.abs(w)),
+    )
+
+
+def finalize(acc: RunningMetrics, t_final) -> dict[str, jax.Array]:
+    """The named metrics from the running accumulator (differentiable)."""
+    span_win = jnp.maximum(t_final - acc.t_first_win, jnp.finfo(acc.e_sq.dtype).tiny)
+    return {
+        "linf_error": acc.e_max,
+        "linf_error_window": acc.e_max_win,
+        "l2_error": _safe_sqrt(acc.e_sq),
+        "l2_error_window": _safe_sqrt(acc.e_sq_win),
+        "rms_error": _safe_sqrt(acc.e_sq / t_final),
+        "rms_error_window": _safe_sqrt(acc.e_sq_win / span_win),
+        "max_abs_u": acc.u_max,
+        "l2_u": _safe_sqrt(acc.u_sq),
+        "tv_u": acc.u_tv,
+        "max_abs_w": acc.w_max,
+    }
+
+
+def _safe_sqrt(x):
+    """sqrt with a finite gradient at 0 (double-where trick)."""
+    pos = x > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, x, 1.0)), 0.0)

@@ -1,0 +1,75 @@
+"""Address the numbers of a Setup by dotted path, the same names the TOML config uses.
+
+    get(setup, "hysteresis.alpha"); set(setup, "controller.k", jnp.array([5.0, 1.0]))
+
+Tuning selects the parameters it differentiates by path, sweeps the ones they vmap over.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+
+
+def _child(obj, name: str, path: str):
+    if dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}:
+        return getattr(obj, name)
+    if isinstance(obj, Mapping) and name in obj:
+        return obj[name]
+    raise KeyError(f"no parameter '{path}' ('{name}' is not a field of {type(obj).__name__})")
+
+
+def get(setup, path: str) -> Any:
+    """The value at a dotted path, e.g. "controller.k"."""
+    obj = setup
+    for name in path.split("."):
+        obj = _child(obj, name, path)
+    return obj
+
+
+def set(setup, path: str, value) -> Any:  # noqa: A001 - mirrors `get`
+    """A copy of setup with the value at `path` replaced (shape and static fields untouched)."""
+    head, _, rest = path.partition(".")
+    old = _child(setup, head, path)
+    new = value if not rest else set(old, rest, value)
+    if dataclasses.is_dataclass(setup):
+        return dataclasses.replace(setup, **{head: new})
+    return {**setup, head: new}
+
+
+def set_many(setup, values: Mapping[str, Any]):
+    for path, value in values.items():
+        setup = set(setup, path, value)
+    return setup
+
+
+def numeric_paths(obj, prefix: str = "") -> list[str]:
+    """Every path to a traced leaf (array or float) below obj, in field order."""
+    out = []
+    if dataclasses.is_dataclass(obj):
+        for f in dataclasses.fields(obj):
+            if f.metadata.get("static"):
+                continue
+            out += numeric_paths(getattr(obj, f.name), f"{prefix}{f.name}.")
+    elif isinstance(obj, Mapping):
+        for k, v in obj.items():
+            out += numeric_paths(v, f"{prefix}{k}.")
+    else:
+        out.append(prefix[:-1])
+    return out
+
+
+def cast(setup, dtype):
+    """Every floating leaf of setup as an array of `dtype` (e.g. jnp.float32 for sweeps)."""
+
+    def conv(x):
+        a = jnp.asarray(x)
+        if jnp.issubdtype(a.dtype, jnp.floating) or isinstance(x, float | int):
+            return a.astype(dtype)
+        return a
+
+    return jax.tree.map(conv, setup)

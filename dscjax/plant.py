@@ -1,0 +1,221 @@
+"""Strict-feedback plants of order n >= 2, eq. (1):
+
+    x_i' = g_i x_{i+1} + theta_i f_i(xbar_i) + Delta_i(x, t),        i = 1..n-1
+    x_n' = g_n w     + theta_n f_n(x)      + Delta_n(x, t) + dbar(t),  y = x_1
+
+with |Delta_i| <= rho_i(xbar_i), rho_i known to the designer (Assumption 2). A plant is a pytree:
+its numbers are traced leaves (tunable, sweepable), its functional form is the class.
+
+Every plant gives, for a state x of shape (n,):
+    f(x)        (n,)  the known nonlinearities f_i(xbar_i)
+    rho(x)      (n,)  the known bounds rho_i(xbar_i)
+    delta(x, t) (n,)  the (unknown to the controller) perturbations Delta_i(x, t)
+    dbar(t)     ()    the external disturbance on the last equation
+f_i and rho_i must depend on x_1..x_i only (strict feedback); `check_strict_feedback` tests it.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from collections.abc import Callable
+from typing import Any, ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation as v
+
+
+class Plant(abc.ABC):
+    """Interface of a strict-feedback plant. Subclasses are frozen, registered dataclasses
+    with at least the traced fields `g` (n,), `theta` (n,) and `x0` (n,) (the initial state)."""
+
+    g: jax.Array
+    theta: jax.Array
+    x0: jax.Array
+
+    @property
+    def order(self) -> int:
+        return int(np.shape(self.g)[-1])
+
+    @abc.abstractmethod
+    def f(self, x): ...
+
+    @abc.abstractmethod
+    def rho(self, x): ...
+
+    @abc.abstractmethod
+    def delta(self, x, t): ...
+
+    @abc.abstractmethod
+    def dbar(self, t): ...
+
+    def expected_shapes(self, n):
+        return dict(g=(n,), theta=(n,), x0=(n,))
+
+    def validate(self, prefix):
+        v.positive(self.g, f"{prefix}.g")  # Assumption 4: the signs of g_i are known, g_i > 0
+
+    def rhs(self, x, w, t):
+        """x' of eq. (1) given the state x (n,), the hysteresis output w and the time t."""
+        drive = jnp.concatenate([x[1:], jnp.reshape(w, (1,))])
+        dx = self.g * drive + self.theta * self.f(x) + self.delta(x, t)
+        return dx.at[-1].add(self.dbar(t))
+
+    def nominal_rhs(self, x, w):
+        """The part of (1) the designer knows the form of: g_i x_{i+1} + theta_i f_i."""
+        drive = jnp.concatenate([x[1:], jnp.reshape(w, (1,))])
+        return self.g * drive + self.theta * self.f(x)
+
+
+def _cumulative_sq(x):
+    """sum_{j<=i} x_j^2 for every i, shape (n,)."""
+    return jnp.cumsum(x * x)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class StrictFeedback(Plant):
+    """A family of strict-feedback plants of any order whose coefficients a config file can set.
+
+    With x_0 = 0, x_{n+1} = x_n and q_i = sum_{j<=i} x_j^2:
+        f_i(xbar_i)  = f_quad_i x_i^2 + f_sin_i sin(x_i) + f_cross_i x_{i-1} x_i
+        rho_i(xbar_i) = rho_const_i + rho_quad_i q_i
+        Delta_i(x,t) = delta_sin_i sin(x_{i+1}) + delta_quad_i q_i sin^3(delta_freq t)
+        dbar(t)      = dbar_amp sin(dbar_freq t) + dbar_bias
+    The paper's example (73) is f_quad = (1, 0), rho_const = (0.2, 0), rho_quad = (0, 0.1),
+    delta_sin = (0.2, 0), delta_quad = (0, 0.1), delta_freq = 1, no dbar. |Delta_i| <= rho_i holds
+    when |delta_sin_i| <= rho_const_i and |delta_quad_i| <= rho_quad_i; it is not enforced, so a
+    wrong bound (a designer's mistake) can be studied.
+
+    All fields are traced; shapes (n,) except the scalars delta_freq, dbar_*. x0 (n,) is the
+    initial state x(0).
+    """
+
+    g: jax.Array
+    theta: jax.Array
+    x0: jax.Array
+    f_quad: jax.Array
+    f_sin: jax.Array
+    f_cross: jax.Array
+    rho_const: jax.Array
+    rho_quad: jax.Array
+    delta_sin: jax.Array
+    delta_quad: jax.Array
+    delta_freq: jax.Array = 1.0
+    dbar_amp: jax.Array = 0.0
+    dbar_freq: jax.Array = 1.0
+    dbar_bias: jax.Array = 0.0
+
+    kind: ClassVar[str] = "strict_feedback"
+    vector_fields: ClassVar[tuple[str, ...]] = (
+        "g", "theta", "x0", "f_quad", "f_sin", "f_cross", "rho_const", "rho_quad", "delta_sin",
+        "delta_quad",
+    )
+
+    def expected_shapes(self, n):
+        shapes = {name: (n,) for name in self.vector_fields}
+        return shapes | dict(delta_freq=(), dbar_amp=(), dbar_freq=(), dbar_bias=())
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        v.nonnegative(self.rho_const, f"{prefix}.rho_const")
+        v.nonnegative(self.rho_quad, f"{prefix}.rho_quad")
+
+    def f(self, x):
+        x_prev = jnp.concatenate([jnp.zeros((1,), x.dtype), x[:-1]])
+        return self.f_quad * x * x + self.f_sin * jnp.sin(x) + self.f_cross * x_prev * x
+
+    def rho(self, x):
+        return self.rho_const + self.rho_quad * _cumulative_sq(x)
+
+    def delta(self, x, t):
+        x_next = jnp.concatenate([x[1:], x[-1:]])
+        s = jnp.sin(self.delta_freq * t)
+        return self.delta_sin * jnp.sin(x_next) + self.delta_quad * _cumulative_sq(x) * s * s * s
+
+    def dbar(self, t):
+        return self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias
+
+    @classmethod
+    def zeros(cls, n: int, **values: Any) -> StrictFeedback:
+        """A plant of order n with g = 1 and every other coefficient 0, then `values` applied."""
+        base = {name: np.zeros(n) for name in cls.vector_fields}
+        base["g"] = np.ones(n)
+        base.update({k: np.asarray(v, dtype=float) for k, v in values.items()})
+        return cls(**base)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class CustomPlant(Plant):
+    """A plant given by JAX-traceable Python functions (Python API only, never from config).
+
+    Args:
+        g, theta, x0: (n,) traced; x0 is the initial state.
+        params: any pytree of traced numbers handed to the functions (tunable, sweepable).
+        f_fn(x, params) -> (n,), rho_fn(x, params) -> (n,), delta_fn(x, t, params) -> (n,),
+        dbar_fn(t, params) -> (): static callables. Use module-level functions (not lambdas made
+        anew per call) so that equal plants hash equal and do not recompile.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> def f(x, p): return jnp.stack([x[0] ** 2, p["a"] * jnp.sin(x[1])])
+        >>> def rho(x, p): return jnp.stack([0.2, 0.1 * (x[0] ** 2 + x[1] ** 2)])
+        >>> def delta(x, t, p): return jnp.zeros(2)
+        >>> def dbar(t, p): return 0.0
+        >>> plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]),
+        ...                     {"a": 1.0}, f, rho, delta, dbar)
+    """
+
+    g: jax.Array
+    theta: jax.Array
+    x0: jax.Array
+    params: Any
+    f_fn: Callable = dataclasses.field(metadata=dict(static=True))
+    rho_fn: Callable = dataclasses.field(metadata=dict(static=True))
+    delta_fn: Callable = dataclasses.field(metadata=dict(static=True))
+    dbar_fn: Callable = dataclasses.field(metadata=dict(static=True))
+
+    kind: ClassVar[str] = "custom"
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        try:
+            check_strict_feedback(self)
+        except ValueError as err:
+            raise v.ConfigError(f"{prefix}: {err}") from None
+
+    def f(self, x):
+        return jnp.asarray(self.f_fn(x, self.params))
+
+    def rho(self, x):
+        return jnp.asarray(self.rho_fn(x, self.params))
+
+    def delta(self, x, t):
+        return jnp.asarray(self.delta_fn(x, t, self.params))
+
+    def dbar(self, t):
+        return jnp.asarray(self.dbar_fn(t, self.params))
+
+
+def check_strict_feedback(plant: Plant, x=None, atol: float = 0.0) -> None:
+    """Raise ValueError if f_i or rho_i depend on x_j for some j > i (at a probe state x).
+
+    The Jacobians of f and rho must be lower triangular. Checked at a random-looking probe
+    state unless `x` is given.
+    """
+    n = plant.order
+    if x is None:
+        x = jnp.asarray(np.linspace(0.3, 1.1, n) * np.array([1.0, -1.0] * n)[:n])
+    for name in ("f", "rho"):
+        jac = np.asarray(jax.jacfwd(getattr(plant, name))(x))
+        upper = np.triu(jac, k=1)
+        if np.any(np.abs(upper) > atol):
+            i, j = np.argwhere(np.abs(upper) > atol)[0]
+            raise ValueError(
+                f"plant.{name}: {name}_{i + 1} depends on x_{j + 1}, but a strict-feedback plant's "
+                f"{name}_i may only depend on x_1..x_i"
+            )

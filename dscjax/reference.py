@@ -1,0 +1,133 @@
+"""Reference trajectories y_r(t) and their time derivatives.
+
+A reference is one scalar function of t; every derivative a controller needs (y_r' for DSC, up
+to y_r^(n) for backstepping) is taken from it by nested forward-mode autodiff, so a new
+reference is one method.
+"""
+
+from __future__ import annotations
+
+import abc
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation as v
+
+
+class Reference(abc.ABC):
+    """Interface: `__call__(t)` gives y_r(t) for a scalar t."""
+
+    def expected_shapes(self, n):
+        """Every field is a scalar unless a subclass says otherwise."""
+        return {f.name: () for f in dataclasses.fields(self) if not f.metadata.get("static")}
+
+    def validate(self, prefix):
+        """Range checks; none by default."""
+
+    @abc.abstractmethod
+    def __call__(self, t): ...
+
+    def derivatives(self, t, order: int):
+        """(y_r, y_r', ..., y_r^(order)) at t, as a tuple of scalars, by nested jvp."""
+        out = [self(t)]
+        fn = self.__call__
+        for _ in range(order):
+            fn = _time_derivative(fn)
+            out.append(fn(t))
+        return tuple(out)
+
+
+def _time_derivative(fn):
+    def d(t):
+        return jax.jvp(fn, (t,), (jnp.ones_like(t),))[1]
+
+    return d
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Sine(Reference):
+    """y_r = amplitude sin(frequency t + phase) + offset. The paper uses sin t."""
+
+    amplitude: jax.Array = 1.0
+    frequency: jax.Array = 1.0
+    phase: jax.Array = 0.0
+    offset: jax.Array = 0.0
+
+    kind: ClassVar[str] = "sine"
+
+    def __call__(self, t):
+        return self.amplitude * jnp.sin(self.frequency * t + self.phase) + self.offset
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class SmoothStep(Reference):
+    """A C-infinity step: y_r = initial + height (1 + tanh((t - t_step)/rise_time)) / 2.
+
+    About 96 % of the step is made within t_step +- rise_time.
+    """
+
+    height: jax.Array = 1.0
+    t_step: jax.Array = 1.0
+    rise_time: jax.Array = 0.5
+    initial: jax.Array = 0.0
+
+    kind: ClassVar[str] = "smooth_step"
+
+    def validate(self, prefix):
+        v.positive(self.rise_time, f"{prefix}.rise_time")
+
+    def __call__(self, t):
+        return self.initial + 0.5 * self.height * (1.0 + jnp.tanh((t - self.t_step) / self.rise_time))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class MultiSine(Reference):
+    """y_r = sum_j amplitudes_j sin(frequencies_j t + phases_j) + offset; arrays of shape (m,)."""
+
+    amplitudes: jax.Array
+    frequencies: jax.Array
+    phases: jax.Array
+    offset: jax.Array = 0.0
+
+    kind: ClassVar[str] = "multisine"
+
+    def expected_shapes(self, n):
+        m = np.shape(self.amplitudes)
+        return dict(amplitudes=m, frequencies=m, phases=m, offset=())
+
+    def __call__(self, t):
+        return jnp.sum(self.amplitudes * jnp.sin(self.frequencies * t + self.phases)) + self.offset
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class InitialOffset(Reference):
+    """base(t) + offset exp(-t / decay_time): a reference moved to start at a chosen y_r(0).
+
+    Used by the L-infinity initialisation (68), which needs y_r(0) = x_1(0) (Assumption 3 puts
+    y_r(0) at the designer's disposal); the offset fades so the tracking task is unchanged after
+    a few decay times.
+    """
+
+    base: Reference
+    offset: jax.Array
+    decay_time: jax.Array
+
+    kind: ClassVar[str] = "initial_offset"
+
+    def expected_shapes(self, n):
+        return dict(offset=(), decay_time=())
+
+    def validate(self, prefix):
+        self.base.validate(prefix)
+        v.positive(self.decay_time, f"{prefix}.decay_time")
+
+    def __call__(self, t):
+        return self.base(t) + self.offset * jnp.exp(-t / self.decay_time)

@@ -1,0 +1,249 @@
+"""The public entry points: `simulate` (one trajectory) and `simulate_batch` (vmapped).
+
+Both are jitted once per static structure (model classes and their static fields, the order n,
+the number of steps, the save stride, the unroll factor); every number in the Setup, dt, the
+metric window and the state bound are traced, so changing a gain never recompiles.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import metrics as m
+from dscjax import params, validation
+from dscjax.closed_loop import Setup, State, initial_state, prepared, vector_field
+from dscjax.integrate import STATUS_BOUND, STATUS_NONFINITE, STATUS_OK, Status, integrate
+
+DEFAULT_UNROLL = 4
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Trajectory:
+    """A simulated closed loop, saved every `save_every` steps (leading axis T).
+
+    Attributes:
+        t: (T,) save times t_j = j * save_every * dt.
+        x: (T, n) plant state; y = x[:, 0].
+        w: (T,) hysteresis output.
+        u: (T,) control input; u_dot (T,) its exact derivative.
+        yr: (T,) reference (as used by the controller, e.g. shifted by the L-inf initialisation).
+        S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
+        ctrl: controller state with a leading T axis (for DSC: z, theta_hat, phi_hat, zeta_hat,
+            d_hat).
+        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`.
+        status: integration status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
+        dt: the step.
+    Under `simulate_batch` every field gains a leading batch axis.
+    """
+
+    t: jax.Array
+    x: jax.Array
+    w: jax.Array
+    u: jax.Array
+    u_dot: jax.Array
+    yr: jax.Array
+    S: jax.Array
+    ctrl: Any
+    metrics: dict
+    status: Status
+    dt: jax.Array
+
+    @property
+    def y(self):
+        return self.x[..., 0]
+
+    @property
+    def e(self):
+        """Tracking error e = y - y_r."""
+        return self.x[..., 0] - self.yr
+
+    @property
+    def diverged(self):
+        return self.status.code != STATUS_OK
+
+    @property
+    def t_diverged(self):
+        """Time at which the state first went bad, +inf if it never did."""
+        step = self.status.step
+        return jnp.where(step >= 0, step * self.dt, jnp.inf)
+
+    def __getattr__(self, name):
+        # Controller states by name: traj.z, traj.theta_hat, traj.zeta_hat, ...
+        ctrl = object.__getattribute__(self, "ctrl")
+        if hasattr(ctrl, "_fields") and name in ctrl._fields:
+            return getattr(ctrl, name)
+        raise AttributeError(name)
+
+
+class DivergenceError(RuntimeError):
+    """A simulation left the state bound or went non-finite. `.trajectory` holds the run,
+    frozen at its last good state."""
+
+    def __init__(self, message: str, trajectory: Trajectory):
+        super().__init__(message)
+        self.trajectory = trajectory
+
+
+def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
+         unroll: int) -> Trajectory:
+    """The pure simulation (not jitted): compose it freely with vmap, grad, checkpoint."""
+    setup = prepared(setup)
+    y0 = initial_state(setup)
+    dtype = y0.x.dtype
+    dt = jnp.asarray(dt, dtype)
+    window_start = jnp.asarray(window_start, dtype)
+    t_final = jnp.asarray(n_steps, dtype) * dt
+
+    def accumulate(acc, k, t, y: State, obs):
+        return m.running_update(acc, k, t, y.x[0] - obs.yr, obs.u, y.w, dt, window_start, n_steps)
+
+    res = integrate(vector_field, y0, dt, n_steps, setup, save_every=save_every,
+                    accumulate=accumulate, acc0=m.running_init(dtype),
+                    state_bound=jnp.asarray(state_bound, dtype), unroll=unroll)
+    n_saved = n_steps // save_every + 1
+    t = (jnp.arange(n_saved, dtype=jnp.int32) * save_every).astype(dtype) * dt
+    return Trajectory(
+        t=t, x=res.ys.x, w=res.ys.w, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
+        S=res.obs.S, ctrl=res.ys.ctrl, metrics=m.finalize(res.acc, t_final), status=res.status,
+        dt=dt,
+    )
+
+
+_simulate = jax.jit(_run, static_argnames=("n_steps", "save_every", "unroll"))
+
+
+def _window(t_final, window_start):
+    if window_start is None:
+        return 1.0 if t_final > 1.0 else 0.0
+    return window_start
+
+
+def simulate(
+    setup: Setup,
+    t_final: float = 20.0,
+    dt: float = 1e-3,
+    *,
+    save_every: int = 1,
+    window_start: float | None = None,
+    state_bound: float = 1e6,
+    unroll: int = DEFAULT_UNROLL,
+    throw: bool = True,
+) -> Trajectory:
+    """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
+
+    Args:
+        setup: the plant, hysteresis, controller and reference (see `paper_example`).
+        t_final: horizon T in seconds; must be a whole number of steps.
+        dt: RK4 step. Validated against the fastest filter (dt/tau <= 2.785).
+        save_every: keep every s-th step in the returned arrays (metrics still use every step).
+        window_start: t0 of the windowed metrics [t0, T]; default 1 s (0 if T <= 1 s).
+        state_bound: a state component beyond it in magnitude counts as divergence.
+        unroll: inner scan unroll factor (speed only, results are identical).
+        throw: raise DivergenceError if the run diverged (set False to inspect `status`).
+            Under an outer jit/vmap no exception can be raised; `status` is always returned.
+
+    Returns:
+        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics.
+
+    Example:
+        >>> import dscjax
+        >>> traj = dscjax.simulate(dscjax.paper_example(), t_final=2.0, dt=1e-3, save_every=100)
+        >>> traj.x.shape
+        (21, 2)
+    """
+    window_start = _window(t_final, window_start)
+    n_steps = _check(setup, t_final, dt, save_every, window_start)
+    traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
+                     save_every=save_every, unroll=unroll)
+    if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
+        raise DivergenceError(divergence_report(traj, state_bound)[0], traj)
+    return traj
+
+
+def _check(setup, t_final, dt, save_every, window_start, batched=False) -> int:
+    if validation.is_concrete(setup) and not batched:
+        validation.validate_setup(setup)
+    return validation.validate_run(setup, t_final, dt, save_every, window_start)
+
+
+def simulate_batch(
+    setup: Setup,
+    overrides: Mapping[str, Any],
+    t_final: float = 20.0,
+    dt: float = 1e-3,
+    *,
+    save_every: int | None = None,
+    window_start: float | None = None,
+    state_bound: float = 1e6,
+    unroll: int = DEFAULT_UNROLL,
+) -> Trajectory:
+    """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
+    the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
+
+    Only the overridden leaves are batched; the rest of the setup is shared, not copied. Never
+    raises on divergence: inspect `traj.status` (per trajectory) or `divergence_report(traj)`.
+
+    Args:
+        overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
+        save_every: default t_final/dt, i.e. only the first and last points plus the metrics.
+
+    Example:
+        >>> import dscjax, jax.numpy as jnp
+        >>> setup = dscjax.paper_example()
+        >>> traj = dscjax.simulate_batch(setup, {"hysteresis.alpha": jnp.array([0.8, 1.0, 1.2])},
+        ...                              t_final=1.0, dt=1e-3)
+        >>> traj.metrics["linf_error"].shape
+        (3,)
+    """
+    sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
+    if len(set(sizes.values())) != 1:
+        raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
+    window_start = _window(t_final, window_start)
+    n_total = int(round(t_final / dt))
+    save_every = n_total if save_every is None else save_every
+    if validation.is_concrete(setup):
+        validation.validate_setup(setup)
+        if validation.is_concrete(overrides):
+            validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
+            for p, val in overrides.items():
+                validation.shape(val[0], p, np.shape(params.get(setup, p)))
+    n_steps = _check(setup, t_final, dt, save_every, window_start, batched=True)
+    return _simulate_batch(setup, dict(overrides), dt, window_start, state_bound,
+                           n_steps=n_steps, save_every=save_every, unroll=unroll)
+
+
+@functools.partial(jax.jit, static_argnames=("n_steps", "save_every", "unroll"))
+def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
+                    unroll):
+    def one(values):
+        return _run(params.set_many(setup, values), dt, window_start,
+                                     state_bound, n_steps=n_steps, save_every=save_every,
+                                     unroll=unroll)
+
+    return jax.vmap(one)(overrides)
+
+
+def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:
+    """One line per diverged trajectory: which one (batch index), when, and how."""
+    code = np.atleast_1d(np.asarray(traj.status.code))
+    t_bad = np.atleast_1d(np.asarray(traj.t_diverged))
+    lines = []
+    batched = np.ndim(traj.status.code) > 0
+    for i in np.flatnonzero(code != STATUS_OK):
+        who = f"trajectory {i}" if batched else "the trajectory"
+        how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
+               STATUS_BOUND: "a state exceeded the state bound"
+               + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
+        lines.append(
+            f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time hold the "
+            f"last good state. Reduce dt (RK4 stability) or revise the gains."
+        )
+    return lines

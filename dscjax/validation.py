@@ -1,0 +1,135 @@
+"""Host-side validation of setups and run settings, before anything is traced.
+
+Every failure is a `ConfigError` naming the field by its config path, the allowed range and the
+value received, e.g. ``hysteresis.lam must be > hysteresis.psi (got lam=0.1, psi=0.5)``. Arrays
+with a leading batch axis are checked elementwise.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import numpy as np
+
+# RK4's stability interval on the negative real axis is about [-2.785, 0].
+RK4_REAL_STABILITY = 2.785
+
+
+class ConfigError(ValueError):
+    """A setting out of its allowed range; the message names the field."""
+
+
+def _fmt(v) -> str:
+    a = np.asarray(v)
+    if a.ndim == 0:
+        return f"{float(a):.6g}"
+    if a.size <= 8:
+        return "[" + ", ".join(f"{float(x):.6g}" for x in a.ravel()) + "]"
+    return f"array of shape {a.shape}"
+
+
+def is_concrete(tree) -> bool:
+    """False if any leaf is a tracer (then validation is the caller's job)."""
+    return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
+
+
+def positive(value, field: str) -> None:
+    a = np.asarray(value, dtype=float)
+    if not np.all(a > 0):
+        raise ConfigError(f"{field} must be > 0 (got {_fmt(value)})")
+
+
+def nonnegative(value, field: str) -> None:
+    a = np.asarray(value, dtype=float)
+    if not np.all(a >= 0):
+        raise ConfigError(f"{field} must be >= 0 (got {_fmt(value)})")
+
+
+def finite(value, field: str) -> None:
+    a = np.asarray(value, dtype=float)
+    if not np.all(np.isfinite(a)):
+        raise ConfigError(f"{field} must be finite (got {_fmt(value)})")
+
+
+def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
+    got = tuple(np.shape(value))
+    if got != tuple(expected):
+        hint = f" {why}" if why else ""
+        raise ConfigError(f"{field} must have shape {tuple(expected)}{hint} (got shape {got})")
+
+
+def one_of(value, field: str, allowed) -> None:
+    if value not in allowed:
+        raise ConfigError(f"{field} must be one of {', '.join(map(repr, allowed))} (got {value!r})")
+
+
+def validate_setup(setup, check_shapes: bool = True) -> None:
+    """Check every model of a Setup; raise ConfigError on the first bad field.
+
+    Range checks are elementwise, so a setup whose leaves carry a leading batch axis can be
+    checked with check_shapes=False (its unbatched template checked with shapes).
+    """
+    n = setup.plant.order
+    if n < 2:
+        raise ConfigError(f"plant.g must have length n >= 2 (the order; got n={n})")
+    if check_shapes:
+        validate_shapes(setup)
+    setup.plant.validate("plant")
+    setup.hysteresis.validate("hysteresis")
+    setup.controller.validate("controller")
+    setup.reference.validate("reference")
+    for f in dataclasses.fields(setup):
+        finite_tree(getattr(setup, f.name), f.name)
+
+
+def validate_shapes(setup) -> None:
+    """Every array field has the shape its model expects for the plant's order n."""
+    n = setup.plant.order
+    for section in ("plant", "hysteresis", "controller", "reference"):
+        model = getattr(setup, section)
+        why = f"for a plant of order n={n}" if section == "controller" else ""
+        for name, expected in model.expected_shapes(n).items():
+            shape(getattr(model, name), f"{section}.{name}", expected, why)
+
+
+def finite_tree(obj, prefix: str) -> None:
+    from dscjax import params
+
+    for path in params.numeric_paths(obj):
+        finite(params.get(obj, path), f"{prefix}.{path}")
+
+
+def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
+    """Check the run settings against the setup; returns the number of steps N = t_final/dt."""
+    positive(dt, "simulation.dt")
+    positive(t_final, "simulation.t_final")
+    n_steps = int(round(float(t_final) / float(dt)))
+    if n_steps < 1 or abs(n_steps * float(dt) - float(t_final)) > 1e-9 * max(1.0, float(t_final)):
+        raise ConfigError(
+            f"simulation.t_final must be a whole number of steps of simulation.dt "
+            f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, ratio {float(t_final) / float(dt):.6g})"
+        )
+    if not isinstance(save_every, int | np.integer) or save_every < 1:
+        raise ConfigError(f"simulation.save_every must be an integer >= 1 (got {save_every!r})")
+    if n_steps % save_every:
+        raise ConfigError(
+            f"simulation.save_every must divide the number of steps t_final/dt = {n_steps} "
+            f"(got save_every={save_every})"
+        )
+    if window_start is not None and not (0 <= float(window_start) < float(t_final)):
+        raise ConfigError(
+            f"simulation.window_start must be in [0, t_final) = [0, {float(t_final):.6g}) "
+            f"(got {float(window_start):.6g})"
+        )
+    tau = getattr(setup.controller, "tau", None)
+    if tau is not None and np.size(tau):
+        ratio = float(dt) / np.min(np.asarray(tau, dtype=float))
+        if ratio > RK4_REAL_STABILITY:
+            raise ConfigError(
+                f"simulation.dt = {float(dt):.6g} is too large for RK4 on the fastest filter: "
+                f"dt / min(controller.tau) must be <= {RK4_REAL_STABILITY} "
+                f"(got min tau = {float(np.min(tau)):.6g}, ratio {ratio:.3g}); use dt <= "
+                f"{RK4_REAL_STABILITY * float(np.min(tau)):.3g}"
+            )
+    return n_steps
