@@ -13,7 +13,7 @@ from dscjax.examples import order_n_example, paper_example
 from dscjax.hysteresis import Backlash, closed_form
 from dscjax.integrate import Status, integrate, rk4_step
 from dscjax.params import cast
-from dscjax.plant import CustomPlant, Plant, StrictFeedback, check_strict_feedback
+from dscjax.plant import CustomPlant, PaperPlant, Plant, StrictFeedback, check_strict_feedback
 from dscjax.reference import InitialOffset, MultiSine, Reference, Sine, SmoothStep
 from dscjax.simulate import (
     DivergenceError,
@@ -28,7 +28,7 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Backlash", "ConfigError", "Controller", "CustomPlant", "DSC", "DSCState", "DivergenceError",
-    "InitialOffset", "MultiSine", "Observation", "Plant", "Reference", "Setup", "Sine",
+    "InitialOffset", "MultiSine", "Observation", "PaperPlant", "Plant", "Reference", "Setup", "Sine",
     "SmoothStep", "State", "Status", "StrictFeedback", "Trajectory", "cast",
     "check_strict_feedback", "closed_form", "divergence_report", "initial_state", "integrate",
     "metrics", "order_n_example", "paper_example", "params", "prepared", "rk4_step", "simulate",

@@ -13,6 +13,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 
 def _child(obj, name: str, path: str):
@@ -64,11 +65,17 @@ def numeric_paths(obj, prefix: str = "") -> list[str]:
 
 
 def cast(setup, dtype):
-    """Every floating leaf of setup as an array of `dtype` (e.g. jnp.float32 for sweeps)."""
+    """Every floating leaf of setup converted to `dtype` (e.g. jnp.float32 for sweeps).
+
+    Concrete leaves become NumPy arrays (host data, exact whatever JAX's x64 setting; JAX
+    converts them when a jitted function is called); traced leaves are cast with jnp.
+    """
 
     def conv(x):
-        a = jnp.asarray(x)
-        if jnp.issubdtype(a.dtype, jnp.floating) or isinstance(x, float | int):
+        if isinstance(x, jax.core.Tracer):
+            return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
+        a = np.asarray(x)
+        if np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
             return a.astype(dtype)
         return a
 

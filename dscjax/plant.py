@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
+from dscjax.reference import time_signal
 
 
 class Plant(abc.ABC):
@@ -60,19 +61,26 @@ class Plant(abc.ABC):
 
     def rhs(self, x, w, t):
         """x' of eq. (1) given the state x (n,), the hysteresis output w and the time t."""
-        drive = jnp.concatenate([x[1:], jnp.reshape(w, (1,))])
-        dx = self.g * drive + self.theta * self.f(x) + self.delta(x, t)
-        return dx.at[-1].add(self.dbar(t))
-
-    def nominal_rhs(self, x, w):
-        """The part of (1) the designer knows the form of: g_i x_{i+1} + theta_i f_i."""
-        drive = jnp.concatenate([x[1:], jnp.reshape(w, (1,))])
-        return self.g * drive + self.theta * self.f(x)
+        n = x.shape[0]
+        f, delta = jax.lax.optimization_barrier((self.f(x), self.delta(x, t)))
+        dx = [self.g[i] * (x[i + 1] if i < n - 1 else w) + self.theta[i] * f[i] + delta[i]
+              for i in range(n)]
+        dx[-1] = dx[-1] + self.dbar(t)
+        return jnp.stack(dx)
 
 
 def _cumulative_sq(x):
-    """sum_{j<=i} x_j^2 for every i, shape (n,)."""
-    return jnp.cumsum(x * x)
+    """[q_1, ..., q_n] with q_i = sum_{j<=i} x_j^2, as a list of per-stage scalars.
+
+    Per-stage code (index, elementwise, stack once) rather than whole-array ops such as cumsum
+    or concatenate along the stage axis: those make vmap move the batch axis around (one
+    transpose per op), which cost 5x in batched throughput.
+    """
+    q, out = 0.0, []
+    for i in range(x.shape[0]):
+        q = q + x[i] * x[i]
+        out.append(q)
+    return out
 
 
 @jax.tree_util.register_dataclass
@@ -125,19 +133,27 @@ class StrictFeedback(Plant):
         v.nonnegative(self.rho_quad, f"{prefix}.rho_quad")
 
     def f(self, x):
-        x_prev = jnp.concatenate([jnp.zeros((1,), x.dtype), x[:-1]])
-        return self.f_quad * x * x + self.f_sin * jnp.sin(x) + self.f_cross * x_prev * x
+        n = x.shape[0]
+        return jnp.stack([
+            self.f_quad[i] * x[i] * x[i] + self.f_sin[i] * jnp.sin(x[i])
+            + (self.f_cross[i] * x[i - 1] * x[i] if i > 0 else 0.0 * x[i])
+            for i in range(n)])
 
     def rho(self, x):
-        return self.rho_const + self.rho_quad * _cumulative_sq(x)
+        q = _cumulative_sq(x)
+        return jnp.stack([self.rho_const[i] + self.rho_quad[i] * q[i] for i in range(x.shape[0])])
 
     def delta(self, x, t):
-        x_next = jnp.concatenate([x[1:], x[-1:]])
+        n = x.shape[0]
+        q = _cumulative_sq(x)
         s = jnp.sin(self.delta_freq * t)
-        return self.delta_sin * jnp.sin(x_next) + self.delta_quad * _cumulative_sq(x) * s * s * s
+        s3 = time_signal(s * s * s)
+        return jnp.stack([
+            self.delta_sin[i] * jnp.sin(x[min(i + 1, n - 1)]) + self.delta_quad[i] * q[i] * s3
+            for i in range(n)])
 
     def dbar(self, t):
-        return self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias
+        return time_signal(self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias)
 
     @classmethod
     def zeros(cls, n: int, **values: Any) -> StrictFeedback:
@@ -146,6 +162,59 @@ class StrictFeedback(Plant):
         base["g"] = np.ones(n)
         base.update({k: np.asarray(v, dtype=float) for k, v in values.items()})
         return cls(**base)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PaperPlant(Plant):
+    """The second-order plant of the paper's simulation, eq. (73), with exactly its terms:
+
+        f_1 = x_1^2, f_2 = 0, rho_1 = rho1, rho_2 = rho2 (x_1^2 + x_2^2),
+        Delta_1 = delta1 sin(x_2), Delta_2 = delta2 (x_1^2 + x_2^2) sin^3(delta_freq t),
+        dbar = dbar_amp sin(dbar_freq t) + dbar_bias.
+
+    The paper's values: g = (1, 1), theta = (0.1, 0), rho1 = delta1 = 0.2, rho2 = delta2 = 0.1,
+    delta_freq = 1, no dbar, x(0) = (0.08, 0.1). The same plant is `StrictFeedback` with the
+    coefficients of `paper_family_plant()` (tested equal); this class computes only the terms
+    (73) has, which makes batched sweeps 2-4x faster (fewer sines per step).
+    """
+
+    g: jax.Array
+    theta: jax.Array
+    x0: jax.Array
+    rho1: jax.Array = 0.2
+    rho2: jax.Array = 0.1
+    delta1: jax.Array = 0.2
+    delta2: jax.Array = 0.1
+    delta_freq: jax.Array = 1.0
+    dbar_amp: jax.Array = 0.0
+    dbar_freq: jax.Array = 1.0
+    dbar_bias: jax.Array = 0.0
+
+    kind: ClassVar[str] = "paper"
+
+    def expected_shapes(self, n):
+        shapes = {f.name: () for f in dataclasses.fields(self)}
+        return shapes | dict(g=(2,), theta=(2,), x0=(2,))
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        v.nonnegative(self.rho1, f"{prefix}.rho1")
+        v.nonnegative(self.rho2, f"{prefix}.rho2")
+
+    def f(self, x):
+        return jnp.stack([x[0] * x[0], 0.0 * x[1]])
+
+    def rho(self, x):
+        return jnp.stack([self.rho1 + 0.0 * x[0], self.rho2 * (x[0] * x[0] + x[1] * x[1])])
+
+    def delta(self, x, t):
+        s = jnp.sin(self.delta_freq * t)
+        s3 = time_signal(s * s * s)
+        return jnp.stack([self.delta1 * jnp.sin(x[1]), self.delta2 * (x[0] * x[0] + x[1] * x[1]) * s3])
+
+    def dbar(self, t):
+        return time_signal(self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias)
 
 
 @jax.tree_util.register_dataclass

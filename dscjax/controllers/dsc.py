@@ -206,7 +206,7 @@ class DSC(Controller):
         """u = zeta_hat ubar, eqs. (13)-(30). Returns (u, ControlInfo)."""
         n = x.shape[0]
         yr, yr_dot = reference.derivatives(t, 1)
-        f, rho = plant.f(x), plant.rho(x)
+        f, rho = jax.lax.optimization_barrier((plant.f(x), plant.rho(x)))
         theta_hat, phi_hat = state.theta_hat, state.phi_hat
 
         s = [x[0] - yr]  # (13)

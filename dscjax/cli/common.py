@@ -1,0 +1,61 @@
+"""Helpers shared by the subcommands: config loading with command-line overrides, output."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+
+
+def add_config_args(p, *, t_final=True):
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
+                   "example; see `dscjax simulate --print-config`")
+    if t_final:
+        p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
+        p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
+    p.add_argument("--float32", action="store_true", help="run in float32 (default float64)")
+
+
+def load_setup(args):
+    """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype."""
+    from dscjax import config
+    from dscjax.params import cast
+
+    if args.config:
+        setup, options = config.load(args.config)
+    else:
+        setup, options = config.from_dict({})
+    changes = {}
+    for name in ("t_final", "dt"):
+        value = getattr(args, name, None)
+        if value is not None:
+            changes[name] = value
+    if getattr(args, "float32", False):
+        changes["dtype"] = "float32"
+    if getattr(args, "variant", None):
+        setup = setup.replace(controller=dataclasses.replace(setup.controller, variant=args.variant))
+    options = dataclasses.replace(options, **changes)
+    options.validate()
+    return cast(setup, np.dtype(options.dtype)), options
+
+
+def to_jsonable(obj):
+    """Arrays and NumPy scalars to plain Python; non-finite floats to None (strict JSON)."""
+    if isinstance(obj, dict):
+        return {k: to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [to_jsonable(v) for v in obj]
+    a = np.asarray(obj) if not isinstance(obj, str | bool | type(None)) else obj
+    if isinstance(a, np.ndarray):
+        if a.ndim == 0:
+            v = a.item()
+            return None if isinstance(v, float) and not math.isfinite(v) else v
+        return to_jsonable(a.tolist())
+    return a
+
+
+def write_json(path: Path, obj) -> None:
+    path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")

@@ -1,0 +1,78 @@
+"""Entry point of the `dscjax` command.
+
+Errors a user can fix (bad settings, unreadable files) print one line and exit 2 without a
+traceback; a diverged simulation prints when it diverged and exits 3; Ctrl-C exits 130.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import sys
+
+# Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
+COMMANDS = {
+    "simulate": "dscjax.cli.simulate",
+    "reproduce": "dscjax.cli.reproduce",
+    "tune": "dscjax.cli.tune",
+    "sweep": "dscjax.cli.sweep",
+}
+
+EXIT_USAGE = 2
+EXIT_DIVERGED = 3
+
+
+class CLIError(Exception):
+    """A user-fixable problem: printed as one line, exit code 2."""
+
+
+def _available_commands():
+    out = {}
+    for name, module in COMMANDS.items():
+        try:
+            out[name] = importlib.import_module(module)
+        except ModuleNotFoundError as err:
+            if err.name != module:
+                raise
+    return out
+
+
+def build_parser(commands) -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="dscjax",
+        description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for module in commands.values():
+        module.add_parser(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    commands = _available_commands()
+    parser = build_parser(commands)
+    args = parser.parse_args(argv)
+    # Float64 is the default everywhere in the CLI; --float32 casts the setup instead.
+    os.environ.setdefault("JAX_ENABLE_X64", "1")
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    from dscjax.simulate import DivergenceError
+    from dscjax.validation import ConfigError
+
+    try:
+        return int(commands[args.command].run(args) or 0)
+    except (ConfigError, CLIError) as err:
+        print(f"dscjax {args.command}: error: {err}", file=sys.stderr)
+        return EXIT_USAGE
+    except DivergenceError as err:
+        print(f"dscjax {args.command}: simulation diverged: {err}", file=sys.stderr)
+        return EXIT_DIVERGED
+    except KeyboardInterrupt:
+        print(f"\ndscjax {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())
