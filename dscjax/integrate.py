@@ -174,6 +174,7 @@ def integrate(
     acc0: Pytree = None,
     state_bound=jnp.inf,
     unroll: int = 1,
+    checkpoint_every: int | None = None,
 ) -> Integration:
     """Integrate y' = f(t, y, args) by RK4 on t_k = k dt, k = 0..n_steps.
 
@@ -191,12 +192,20 @@ def integrate(
         acc0: initial accumulator (with `batch`: leading batch axis).
         state_bound: a state with any |component| above it counts as diverged (traced).
         unroll: scan unroll factor of the inner loop when save_every > 1 (static).
+        checkpoint_every: None, or a segment length L (a multiple of save_every dividing
+            n_steps): the loop is split into segments of L steps, each under `jax.checkpoint`,
+            so reverse-mode differentiation stores O(N/L + L) states instead of O(N) and
+            recomputes each segment once on the way back. Results are identical.
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
     """
     if n_steps % save_every:
         raise ValueError(f"n_steps={n_steps} must be a multiple of save_every={save_every}")
+    if checkpoint_every is not None and (checkpoint_every % save_every
+                                         or n_steps % checkpoint_every):
+        raise ValueError(f"checkpoint_every={checkpoint_every} must be a multiple of "
+                         f"save_every={save_every} and divide n_steps={n_steps}")
     n_blocks = n_steps // save_every
     dt = jnp.asarray(dt)
     batched = batch is not None
@@ -296,7 +305,18 @@ def integrate(
     init = (jnp.zeros((), jnp.int32), y_init, acc_init,
             jnp.full(batch_shape, STATUS_OK, jnp.int32), jnp.full(batch_shape, -1, jnp.int32))
     chunk = next((c for c in _ROW_CHUNKS if n_steps % c == 0), 1)
-    if save_every == 1:
+    if checkpoint_every is not None:
+        blocks_per_segment = checkpoint_every // save_every
+
+        @jax.checkpoint
+        def segment(carry, _):
+            return jax.lax.scan(block, carry, None, length=blocks_per_segment)
+
+        carry, (ys, obs) = jax.lax.scan(segment, init, None,
+                                        length=n_steps // checkpoint_every)
+        ys = ys.reshape(n_blocks, *ys.shape[2:])
+        obs = obs.reshape(n_blocks, *obs.shape[2:])
+    elif save_every == 1:
         def rows(carry, _):
             return jax.lax.scan(save_step, carry, None, length=chunk)
 

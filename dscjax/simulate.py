@@ -93,7 +93,8 @@ class DivergenceError(RuntimeError):
 
 
 def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
-         unroll: int, overrides=None) -> Trajectory:
+         unroll: int = DEFAULT_UNROLL, overrides=None,
+         checkpoint_every: int | None = None) -> Trajectory:
     """The pure simulation (not jitted): compose it freely with vmap, grad, checkpoint.
 
     With `overrides` ({path: (B, ...)}), simulates the batch of setups with those leaves
@@ -108,7 +109,7 @@ def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_ever
         return m.running_update(acc, k, t, y.x[0] - obs.yr, obs.u, y.w, dt, window_start, n_steps)
 
     common = dict(save_every=save_every, accumulate=accumulate, state_bound=jnp.asarray(
-        state_bound, dtype), unroll=unroll)
+        state_bound, dtype), unroll=unroll, checkpoint_every=checkpoint_every)
     if overrides is None:
         setup = prepared(setup)
         y0 = initial_state(setup)
@@ -176,7 +177,7 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
     return [is_dep(v) for v in jaxpr.outvars]
 
 
-_simulate = jax.jit(_run, static_argnames=("n_steps", "save_every", "unroll"))
+_simulate = jax.jit(_run, static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 
 
 def _window(t_final, window_start):
@@ -194,6 +195,7 @@ def simulate(
     window_start: float | None = None,
     state_bound: float = 1e6,
     unroll: int = DEFAULT_UNROLL,
+    checkpoint_every: int | None = None,
     throw: bool = True,
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
@@ -206,6 +208,9 @@ def simulate(
         window_start: t0 of the windowed metrics [t0, T]; default 1 s (0 if T <= 1 s).
         state_bound: a state component beyond it in magnitude counts as divergence.
         unroll: inner scan unroll factor (speed only, results are identical).
+        checkpoint_every: segment length (steps) for `jax.checkpoint` under reverse-mode
+            differentiation (a multiple of save_every dividing the step count); None: no
+            checkpointing. Memory of a gradient falls from O(N) to O(N/L + L) states.
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
             Under an outer jit/vmap no exception can be raised; `status` is always returned.
 
@@ -220,11 +225,20 @@ def simulate(
     """
     window_start = _window(t_final, window_start)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
+    _check_checkpoint(checkpoint_every, save_every, n_steps)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every, unroll=unroll)
+                     save_every=save_every, unroll=unroll, checkpoint_every=checkpoint_every)
     if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
         raise DivergenceError(divergence_report(traj, state_bound)[0], traj)
     return traj
+
+
+def _check_checkpoint(checkpoint_every, save_every, n_steps):
+    if checkpoint_every is not None and (
+            checkpoint_every < 1 or checkpoint_every % save_every or n_steps % checkpoint_every):
+        raise validation.ConfigError(
+            f"checkpoint_every must be a multiple of save_every={save_every} that divides the "
+            f"number of steps {n_steps} (got {checkpoint_every})")
 
 
 def _check(setup, t_final, dt, save_every, window_start, batched=False) -> int:
@@ -243,6 +257,7 @@ def simulate_batch(
     window_start: float | None = None,
     state_bound: float = 1e6,
     unroll: int = DEFAULT_UNROLL,
+    checkpoint_every: int | None = None,
 ) -> Trajectory:
     """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
     the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
@@ -275,15 +290,18 @@ def simulate_batch(
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     n_steps = _check(setup, t_final, dt, save_every, window_start, batched=True)
+    _check_checkpoint(checkpoint_every, save_every, n_steps)
     return _simulate_batch(setup, dict(overrides), dt, window_start, state_bound,
-                           n_steps=n_steps, save_every=save_every, unroll=unroll)
+                           n_steps=n_steps, save_every=save_every, unroll=unroll,
+                           checkpoint_every=checkpoint_every)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "save_every", "unroll"))
+@functools.partial(jax.jit,
+                   static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
-                    unroll):
+                    unroll=DEFAULT_UNROLL, checkpoint_every=None):
     return _run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-                unroll=unroll, overrides=overrides)
+                unroll=unroll, overrides=overrides, checkpoint_every=checkpoint_every)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:
