@@ -6,7 +6,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
     traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
 """
 
-from dscjax import metrics, params
+from dscjax import metrics, params, stability
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.controllers import DSC, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
@@ -32,5 +32,5 @@ __all__ = [
     "SmoothStep", "State", "Status", "StrictFeedback", "Trajectory", "cast",
     "check_strict_feedback", "closed_form", "divergence_report", "initial_state", "integrate",
     "metrics", "order_n_example", "paper_example", "params", "prepared", "rk4_step", "simulate",
-    "simulate_batch", "validate_setup", "vector_field",
+    "simulate_batch", "stability", "validate_setup", "vector_field",
 ]

@@ -224,13 +224,30 @@ def simulate(
         (21, 2)
     """
     window_start = _window(t_final, window_start)
+    setup = canonical(setup)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
     _check_checkpoint(checkpoint_every, save_every, n_steps)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
                      save_every=save_every, unroll=unroll, checkpoint_every=checkpoint_every)
     if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
-        raise DivergenceError(divergence_report(traj, state_bound)[0], traj)
+        from dscjax.stability import diagnose
+
+        raise DivergenceError(divergence_report(traj, state_bound)[0] + diagnose(setup, traj),
+                              traj)
     return traj
+
+
+def _dtype(setup):
+    return jnp.result_type(setup.plant.x0)
+
+
+def canonical(setup: Setup) -> Setup:
+    """Every floating leaf in the setup's dtype (that of `plant.x0`), strongly typed.
+
+    Python floats and `jnp.asarray(0.5)` are weakly typed, and weak types are part of jit's
+    cache key: without this, setting a gain from a Python float would recompile.
+    """
+    return params.cast(setup, _dtype(setup))
 
 
 def _check_checkpoint(checkpoint_every, save_every, n_steps):
@@ -277,6 +294,9 @@ def simulate_batch(
         >>> traj.metrics["linf_error"].shape
         (3,)
     """
+    setup = canonical(setup)
+    dtype = _dtype(setup)
+    overrides = {p: params.cast(v, dtype) for p, v in overrides.items()}
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")

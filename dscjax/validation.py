@@ -29,6 +29,14 @@ def _fmt(v) -> str:
     return f"array of shape {a.shape}"
 
 
+def floor_sig(x: float, digits: int = 3) -> str:
+    """x rounded DOWN to `digits` significant digits (a safe upper bound to print)."""
+    if x <= 0 or not np.isfinite(x):
+        return f"{x:g}"
+    scale = 10.0 ** (np.floor(np.log10(x)) - digits + 1)
+    return f"{np.floor(x / scale) * scale:.{digits}g}"
+
+
 def is_concrete(tree) -> bool:
     """False if any leaf is a tracer (then validation is the caller's job)."""
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
@@ -130,6 +138,6 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
                 f"simulation.dt = {float(dt):.6g} is too large for RK4 on the fastest filter: "
                 f"dt / min(controller.tau) must be <= {RK4_REAL_STABILITY} "
                 f"(got min tau = {float(np.min(tau)):.6g}, ratio {ratio:.3g}); use dt <= "
-                f"{RK4_REAL_STABILITY * float(np.min(tau)):.3g}"
+                f"{floor_sig(RK4_REAL_STABILITY * float(np.min(tau)))}"
             )
     return n_steps

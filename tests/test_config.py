@@ -1,0 +1,68 @@
+"""TOML config: round trip, overlay on the default, JSON, dtype."""
+
+import json
+import tomllib
+
+import numpy as np
+
+import dscjax
+from dscjax import config
+
+
+def _same(a, b):
+    da, db = config.to_dict(a), config.to_dict(b)
+    return da == db
+
+
+def test_default_toml_round_trips():
+    text = config.default_toml()
+    setup, options = config.from_dict(tomllib.loads(text))
+    assert _same(setup, dscjax.paper_example(dtype=np.float64))
+    assert options == config.SimOptions()
+    # and writing it again gives the same text body
+    assert config.dumps_toml(config.to_dict(setup, options)) in text
+
+
+def test_partial_config_overlays_the_default():
+    setup, opts = config.from_dict({"hysteresis": {"alpha": 2.5}, "controller": {"k": [8, 0.5]},
+                                    "simulation": {"dt": 5e-4}})
+    assert float(setup.hysteresis.alpha) == 2.5
+    np.testing.assert_array_equal(setup.controller.k, [8.0, 0.5])
+    assert float(setup.hysteresis.lam) == 1.432 and opts.dt == 5e-4 and opts.t_final == 20.0
+
+
+def test_kind_change_starts_from_the_new_class():
+    setup, _ = config.from_dict({"reference": {"kind": "smooth_step", "height": 0.5}})
+    assert type(setup.reference).__name__ == "SmoothStep"
+    assert float(setup.reference.height) == 0.5 and float(setup.reference.rise_time) == 0.5
+
+
+def test_every_paper_parameter_is_settable():
+    names = set(dscjax.params.numeric_paths(dscjax.paper_example()))
+    for path in ("plant.g", "plant.theta", "plant.x0", "plant.rho1", "plant.delta2",
+                 "hysteresis.alpha", "hysteresis.lam", "hysteresis.psi", "hysteresis.w0",
+                 "controller.k", "controller.tau", "controller.c", "controller.gamma_g",
+                 "controller.gamma_phi", "controller.gamma_zeta", "controller.gamma_d",
+                 "controller.eta", "controller.sigma", "controller.eta_zeta", "controller.eta_d",
+                 "controller.eps", "controller.g_min", "controller.sat_width",
+                 "controller.theta_hat0", "controller.phi_hat0", "controller.zeta_hat0",
+                 "controller.d_hat0", "reference.amplitude", "reference.frequency"):
+        assert path in names, path
+
+
+def test_json_config_loads(tmp_path):
+    d = config.to_dict(dscjax.paper_example(dtype=np.float64))
+    d["controller"]["k"] = [7.0, 0.5]
+    path = tmp_path / "gains.json"
+    path.write_text(json.dumps({"controller": {"k": [7.0, 0.5]}}))
+    setup, _ = config.load(path)
+    np.testing.assert_array_equal(setup.controller.k, [7.0, 0.5])
+
+
+def test_order_n_family_from_config_simulates():
+    n3 = dscjax.order_n_example(3, dtype=np.float64)
+    d = config.to_dict(n3)
+    setup, _ = config.from_dict(json.loads(json.dumps(d)))
+    a = dscjax.simulate(dscjax.cast(setup, np.float64), 1.0, 1e-3, save_every=100)
+    b = dscjax.simulate(n3, 1.0, 1e-3, save_every=100)
+    np.testing.assert_allclose(np.asarray(a.x), np.asarray(b.x), atol=1e-13)
