@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from dscjax.closed_loop import Setup
+from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
 from dscjax.hysteresis import Backlash
 from dscjax.plant import PaperPlant, StrictFeedback
@@ -32,7 +33,7 @@ from dscjax.validation import ConfigError
 REGISTRY: dict[str, dict[str, type]] = {
     "plant": {PaperPlant.kind: PaperPlant, StrictFeedback.kind: StrictFeedback},
     "hysteresis": {Backlash.kind: Backlash},
-    "controller": {DSC.kind: DSC},
+    "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
 KIND_KEY = {"plant": "family", "hysteresis": "model", "controller": "kind", "reference": "kind"}

@@ -1,0 +1,363 @@
+"""Adaptive backstepping of order n: the baseline the paper compares the DSC with (Remark 6).
+
+The paper's backstepping law (79) is garbled (it uses g_hat_1 and theta_hat_1, which are never
+defined, and its brackets do not match the adaptive laws; ../shared/paper/NOTES.md). This module
+implements standard adaptive backstepping with the DSC's parameterisation and robust terms,
+so that the two controllers differ in ONE thing only: where the DSC passes the virtual control
+through a filter and uses the filter derivative z_i' = (x_id - z_i)/tau_i (18), (24),
+backstepping uses the exact time derivative alpha_(i-1)' of the virtual control.
+
+Design (0-based arrays, paper indices in the text), for i = 1..n-1:
+
+    z_1 = x_1 - y_r                                                      as (13)
+    z_i = x_i - alpha_(i-1)       (i >= 2; no filter, no constant c_i)     cf. (19), (25)
+    alpha_0 = y_r
+    alpha_i = -theta_hat_gi f_i - z_i rho_i^2 / (2 eps g_min) - k_i z_i
+              + phi_hat_i alpha_(i-1)'                                    as (16), (22)
+    u = zeta_hat ubar                                                     (28)
+    ubar = -k_n z_n - theta_hat_n f_n - z_n rho_n^2 / (2 eps) + alpha_(n-1)'
+           - sat(z_n / sat_width) d_hat                                   as (30)
+
+with the DSC's adaptive laws, z_i in place of S_i and alpha_(i-1)' in place of z_i':
+
+    theta_hat_gi' = gamma_gi (f_i z_i - eta_i theta_hat_gi)               (17), (23), (31)
+    phi_hat_i'    = -gamma_phi_i (alpha_(i-1)' z_i + sigma_i phi_hat_i)  (17), (23)
+    zeta_hat'     = -gamma_zeta (ubar z_n + eta_zeta zeta_hat)           (29)
+    d_hat'        = gamma_d (|z_n| - eta_d d_hat)                         (32)
+
+alpha_(i-1)' is the derivative of alpha_(i-1)(estimates, xbar_(i-1), t) by the chain rule along
+the NOMINAL closed loop: the adaptive laws above for the estimates, y_r^(k+1) for the reference,
+and for the plant the model without its unknown perturbations,
+
+    x_j' = g_nom_j (x_(j+1) + theta_hat_gj f_j(xbar_j)),   j = 1..i-1,
+
+i.e. eq. (1) with Delta_j dropped, g_j replaced by the designer's nominal value g_nom_j
+(default g_min, Assumption 4) and theta_j = g_j theta_gj by its certainty-equivalent estimate
+g_nom_j theta_hat_gj. These are the g_hat_1 and theta_hat_1 of (79). Because alpha_i contains
+alpha_(i-1)', alpha_(n-1)' holds derivatives of order n-1 of f, rho and the adaptive laws: it is
+computed by n-1 nested forward-mode derivatives (`jax.linearize`, i.e. jvp with the primal
+reused), never written out. That growth is the "explosion of complexity" the DSC avoids;
+`dscjax.complexity` measures it.
+
+Choices not fixed by the paper (documented in docs/reproduction.md):
+- No cross term -g_(i-1) z_(i-1) in alpha_i: (79) has none, and the DSC's proof dominates the
+  cross products S_i S_(i+1) by Young's inequality (53) with k_i >= 3 1/4 (55) instead of
+  cancelling them; the same argument applies here, so both controllers share the same law.
+- The mismatch between the nominal and the true x_j' (Delta_j, g_j - g_nom_j, theta_j -
+  g_nom_j theta_hat_gj) enters z_i' through d alpha_(i-1)/d x_j and is not dominated by an
+  extra damping term (a rigorous design would add one); (79) has none either.
+- In the rho_n term of ubar there is no 1/g_min, as in (30).
+
+`derivative="hand"` (order 2 only) uses `law_order2_by_hand`, the same law with alpha_1' written
+out term by term: the oracle for the automatic version in the tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation as v
+from dscjax._smooth import sat, smooth_abs, smooth_sat
+from dscjax.controllers.base import ControlInfo, Controller
+
+ROBUST_TERMS = ("sat", "sgn", "smooth")
+DERIVATIVES = ("autodiff", "hand")
+
+
+class BacksteppingState(NamedTuple):
+    """Controller state: the adaptive estimates only (no filters)."""
+
+    theta_hat: jax.Array  # (n,) estimates of theta_i/g_i (i<n) and theta_n
+    phi_hat: jax.Array  # (n-1,) estimates of 1/g_i
+    zeta_hat: jax.Array  # () estimate of 1/beta = 1/(lam g_n), eq. (27)
+    d_hat: jax.Array  # () estimate of the bound d of d_n, eq. (12)
+
+
+class BacksteppingExtra(NamedTuple):
+    ubar: jax.Array  # () as eq. (30)
+    f: jax.Array  # (n,) f_i(xbar_i)
+    phi_signal: jax.Array  # (n-1,) signals multiplying phi_hat: alpha_0' = y_r', ..., alpha_(n-2)'
+    alpha: jax.Array  # (n-1,) virtual controls alpha_1..alpha_(n-1)
+    alpha_dot: jax.Array  # () alpha_(n-1)', the exact derivative used in ubar
+
+
+class _Chain(NamedTuple):
+    """Per-stage values at one point (lists of scalars, stage order)."""
+
+    z: list  # z_1..z_m
+    alpha: list  # alpha_1..alpha_m
+    alpha_dot: list  # alpha_0'..alpha_(m-1)' (the signals multiplying phi_hat_1..phi_hat_m)
+    f: jax.Array  # (n,)
+    rho: jax.Array  # (n,)
+    yr: jax.Array  # () y_r(t)
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Backstepping(Controller):
+    """Adaptive backstepping of any order n with hysteresis compensation (module docstring).
+
+    Traced gains (shapes for order n), with the DSC's names and meanings: k (n,), gamma_g (n,),
+    eta (n,), gamma_phi (n-1,), sigma (n-1,), scalars gamma_zeta, eta_zeta, gamma_d, eta_d, eps,
+    g_min, sat_width, smooth_delta; g_nom (n-1,) the nominal g_j of the chain rule; initial
+    estimates theta_hat0 (n,), phi_hat0 (n-1,), zeta_hat0, d_hat0. There are no filters, so no
+    tau and no c_i.
+
+    Static choices:
+        robust_term: "sat" (sat(z_n/sat_width), as the paper's simulation), "sgn" or "smooth"
+            (as `DSC.robust_term`).
+        derivative: "autodiff" (alpha_i' by nested forward-mode derivatives, any n) or "hand"
+            (n = 2 only: `law_order2_by_hand`).
+
+    Example:
+        >>> import dscjax
+        >>> from dscjax.controllers.backstepping import with_backstepping
+        >>> setup = with_backstepping(dscjax.paper_example())
+        >>> setup.controller.kind
+        'backstepping'
+    """
+
+    k: jax.Array
+    gamma_g: jax.Array
+    eta: jax.Array
+    gamma_phi: jax.Array
+    sigma: jax.Array
+    gamma_zeta: jax.Array
+    eta_zeta: jax.Array
+    gamma_d: jax.Array
+    eta_d: jax.Array
+    eps: jax.Array
+    g_min: jax.Array
+    g_nom: jax.Array
+    theta_hat0: jax.Array
+    phi_hat0: jax.Array
+    zeta_hat0: jax.Array
+    d_hat0: jax.Array
+    sat_width: jax.Array = 0.01
+    smooth_delta: jax.Array = 0.1
+    robust_term: str = dataclasses.field(default="sat", metadata=dict(static=True))
+    derivative: str = dataclasses.field(default="autodiff", metadata=dict(static=True))
+
+    kind: ClassVar[str] = "backstepping"
+
+    @classmethod
+    def from_dsc(cls, dsc, **changes) -> Backstepping:
+        """The backstepping controller with a DSC's gains and initial estimates.
+
+        The filter constants tau and the surface constants c have no counterpart and are
+        dropped; g_nom defaults to g_min for every stage.
+        """
+        m = np.shape(dsc.phi_hat0)[0]
+        values = dict(
+            k=dsc.k, gamma_g=dsc.gamma_g, eta=dsc.eta, gamma_phi=dsc.gamma_phi, sigma=dsc.sigma,
+            gamma_zeta=dsc.gamma_zeta, eta_zeta=dsc.eta_zeta, gamma_d=dsc.gamma_d,
+            eta_d=dsc.eta_d, eps=dsc.eps, g_min=dsc.g_min,
+            g_nom=np.full(m, np.asarray(dsc.g_min)).astype(np.asarray(dsc.k).dtype),
+            theta_hat0=dsc.theta_hat0, phi_hat0=dsc.phi_hat0, zeta_hat0=dsc.zeta_hat0,
+            d_hat0=dsc.d_hat0, sat_width=dsc.sat_width, smooth_delta=dsc.smooth_delta,
+            robust_term=dsc.robust_term)
+        values.update(changes)
+        return cls(**values)
+
+    def expected_shapes(self, n):
+        m = n - 1
+        return dict(
+            k=(n,), gamma_g=(n,), eta=(n,), gamma_phi=(m,), sigma=(m,), gamma_zeta=(),
+            eta_zeta=(), gamma_d=(), eta_d=(), eps=(), g_min=(), g_nom=(m,), theta_hat0=(n,),
+            phi_hat0=(m,), zeta_hat0=(), d_hat0=(), sat_width=(), smooth_delta=(),
+        )
+
+    def validate(self, prefix):
+        v.one_of(self.robust_term, f"{prefix}.robust_term", ROBUST_TERMS)
+        v.one_of(self.derivative, f"{prefix}.derivative", DERIVATIVES)
+        n = int(np.shape(self.k)[-1]) if np.ndim(self.k) else 0
+        if self.derivative == "hand" and n != 2:
+            raise v.ConfigError(
+                f"{prefix}.derivative = 'hand' is written for order n = 2 only (got n={n}); "
+                f"use 'autodiff'")
+        for name in ("k", "gamma_g", "gamma_phi", "gamma_zeta", "gamma_d", "eps", "g_min",
+                     "g_nom", "sat_width", "smooth_delta"):
+            v.positive(getattr(self, name), f"{prefix}.{name}")
+        for name in ("eta", "sigma", "eta_zeta", "eta_d"):
+            v.nonnegative(getattr(self, name), f"{prefix}.{name}")
+
+    def init_state(self, plant, reference):
+        return BacksteppingState(theta_hat=self.theta_hat0, phi_hat=self.phi_hat0,
+                                 zeta_hat=self.zeta_hat0, d_hat=self.d_hat0)
+
+    # -- pieces shared by the law, its derivative and the adaptive laws ------------------------
+    def _robust(self, z_n):
+        if self.robust_term == "sgn":
+            return jnp.sign(z_n)
+        if self.robust_term == "smooth":
+            return smooth_sat(z_n / self.sat_width, self.smooth_delta)
+        return sat(z_n / self.sat_width)
+
+    def _abs_zn(self, z_n):
+        if self.robust_term == "smooth":
+            return smooth_abs(z_n, self.smooth_delta * self.sat_width)
+        return jnp.abs(z_n)
+
+    def _virtual(self, i, z_i, f, rho, theta_hat, phi_hat, v_i):
+        """alpha_(i+1) (0-based stage i), as eqs. (16) and (22) with v_i = alpha_i'."""
+        robust = z_i * rho[i] ** 2 / (2.0 * self.eps * self.g_min)
+        return -theta_hat[i] * f[i] - robust - self.k[i] * z_i + phi_hat[i] * v_i
+
+    def _theta_rate(self, i, f_i, z_i, theta_hat_i):
+        return self.gamma_g[i] * (f_i * z_i - self.eta[i] * theta_hat_i)  # (17), (23), (31)
+
+    def _phi_rate(self, i, v_i, z_i, phi_hat_i):
+        return -self.gamma_phi[i] * (v_i * z_i + self.sigma[i] * phi_hat_i)  # (17), (23)
+
+    # -- the chain of virtual controls and their exact derivatives ----------------------------
+    # Inside the nested derivatives every per-stage quantity is a scalar of a tuple (per-stage
+    # code): alpha_m is differentiated with respect to the estimates of stages 1..m, x_1..x_m
+    # and t only; the other estimates and states are closed over. (f and rho are still
+    # evaluated for all n stages once, at the innermost level, through the plant's interface.)
+    def _alpha(self, m, th, ph, xs, t, x_rest, plant, reference):
+        """alpha_m and the chain below it (m >= 1), from per-stage scalars.
+
+        th, ph, xs: the first m estimates theta_hat_g, phi_hat and states x; x_rest the states
+        x_(m+1)..x_n (constants here: f_i and rho_i for i <= m do not depend on them).
+        """
+        if m == 1:
+            x = jnp.stack(list(xs) + list(x_rest))
+            f, rho = plant.f(x), plant.rho(x)
+            yr, yr_dot = jax.jvp(reference.__call__, (t,), (jnp.ones_like(t),))
+            chain = _Chain(z=[], alpha=[], alpha_dot=[yr_dot], f=f, rho=rho, yr=yr)
+            prev = yr
+        else:
+            prev, prev_dot, chain = self._alpha_and_rate(
+                m - 1, th[:-1], ph[:-1], xs[:-1], t, (xs[-1],) + tuple(x_rest), plant, reference)
+            chain = chain._replace(alpha_dot=chain.alpha_dot + [prev_dot])
+        z_m = xs[m - 1] - prev  # (13), and z_i = x_i - alpha_(i-1)
+        a_m = self._virtual(m - 1, z_m, chain.f, chain.rho, th, ph, chain.alpha_dot[-1])
+        return a_m, chain._replace(z=chain.z + [z_m], alpha=chain.alpha + [a_m])
+
+    def _alpha_and_rate(self, m, th, ph, xs, t, x_rest, plant, reference):
+        """(alpha_m, alpha_m', chain): alpha_m' exact along the nominal closed loop.
+
+        One forward-mode derivative of alpha_m, which itself holds alpha_(m-1)': m nested
+        derivatives in all. `jax.linearize` is a jvp whose primal pass also yields the chain,
+        from which the tangent (the nominal rates of the estimates and states) is built.
+        """
+
+        def alpha_m(th_, ph_, xs_, t_):
+            return self._alpha(m, th_, ph_, xs_, t_, x_rest, plant, reference)
+
+        a_m, lin, chain = jax.linearize(alpha_m, th, ph, xs, t, has_aux=True)
+        f, z, v = chain.f, chain.z, chain.alpha_dot
+        th_dot = tuple(self._theta_rate(i, f[i], z[i], th[i]) for i in range(m))
+        ph_dot = tuple(self._phi_rate(i, v[i], z[i], ph[i]) for i in range(m))
+        x_next = tuple(xs[1:]) + (x_rest[0],)
+        xs_dot = tuple(self.g_nom[j] * (x_next[j] + th[j] * f[j]) for j in range(m))
+        a_dot = lin(th_dot, ph_dot, xs_dot, jnp.ones_like(t))
+        return a_m, a_dot, chain
+
+    # -- the law ------------------------------------------------------------------------------
+    def law(self, state, x, t, plant, reference):
+        """u = zeta_hat ubar with alpha_(n-1)' exact, as eqs. (28), (30). Returns (u, ControlInfo).
+
+        The automatic law is wrapped in `jax.jit` (departing from "jit at the top only"): the
+        closed loop traces the law at every RK4 stage (7 times per `simulate`), and tracing n-1
+        nested linearisations in Python dominated the build time (order 4: 11.3 s to lower the
+        simulation, 1.4 s with the inner jit, which JAX traces once and whose derivatives it
+        caches; XLA inlines it, so results and run time are unchanged). It composes with vmap,
+        grad and checkpoint like the plain function `plain_law`.
+        """
+        if self.derivative == "hand":
+            return law_order2_by_hand(self, state, x, t, plant, reference)
+        return _law_jit(self, state, x, t, plant, reference)
+
+    def plain_law(self, state, x, t, plant, reference):
+        """The automatic law without the inner jit (same values as `law`)."""
+        n = x.shape[0]
+        m = n - 1
+        th = tuple(state.theta_hat[i] for i in range(m))
+        ph = tuple(state.phi_hat[i] for i in range(m))
+        xs = tuple(x[i] for i in range(n))
+        a_prev, a_dot, chain = self._alpha_and_rate(m, th, ph, xs[:m], t, xs[m:], plant,
+                                                    reference)
+        z_n = x[n - 1] - a_prev
+        return self._last_stage(state, z_n, a_dot, chain)
+
+    def _last_stage(self, state, z_n, a_dot, chain):
+        n = chain.f.shape[0]
+        f, rho = chain.f, chain.rho
+        ubar = (-self.k[n - 1] * z_n - state.theta_hat[n - 1] * f[n - 1]
+                - z_n * rho[n - 1] ** 2 / (2.0 * self.eps) + a_dot
+                - self._robust(z_n) * state.d_hat)  # as (30)
+        u = state.zeta_hat * ubar  # (28)
+        z = jnp.stack(chain.z + [z_n])
+        extra = BacksteppingExtra(ubar=ubar, f=f, phi_signal=jnp.stack(chain.alpha_dot),
+                                  alpha=jnp.stack(chain.alpha), alpha_dot=a_dot)
+        return u, ControlInfo(yr=chain.yr, S=z, extra=extra)
+
+    def state_rate(self, state, x, t, info, plant, reference):
+        """Adaptive laws (17), (23), (29), (31), (32) with z_i for S_i, alpha_(i-1)' for z_i'."""
+        e = info.extra
+        z = info.S
+        z_n = z[-1]
+        theta_dot = self.gamma_g * (e.f * z - self.eta * state.theta_hat)
+        phi_dot = -self.gamma_phi * (e.phi_signal * z[:-1] + self.sigma * state.phi_hat)
+        zeta_dot = -self.gamma_zeta * (e.ubar * z_n + self.eta_zeta * state.zeta_hat)
+        d_dot = self.gamma_d * (self._abs_zn(z_n) - self.eta_d * state.d_hat)
+        return BacksteppingState(theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
+                                 d_hat=d_dot)
+
+
+def law_order2_by_hand(ctrl: Backstepping, state, x, t, plant, reference):
+    """The order-2 backstepping law with alpha_1' written out by the chain rule.
+
+    alpha_1 = -theta_hat_g1 f_1 - z_1 rho_1^2 / (2 eps g_min) - k_1 z_1 + phi_hat_1 y_r',
+    z_1 = x_1 - y_r. Its derivative along the nominal closed loop is
+
+        alpha_1' = dalpha_1/dx_1 * g_nom_1 (x_2 + theta_hat_g1 f_1)     (nominal x_1')
+                 - f_1 * theta_hat_g1' + y_r' * phi_hat_1'              (adaptive laws)
+                 + (k_1 + rho_1^2 / (2 eps g_min)) y_r' + phi_hat_1 y_r''  (reference)
+        dalpha_1/dx_1 = -theta_hat_g1 f_1' - (rho_1^2 + 2 z_1 rho_1 rho_1') / (2 eps g_min) - k_1
+        theta_hat_g1' = gamma_g1 (f_1 z_1 - eta_1 theta_hat_g1)               (17)
+        phi_hat_1' = -gamma_phi1 (y_r' z_1 + sigma_1 phi_hat_1)               (17)
+
+    where f_1' and rho_1' are the derivatives in x_1 of the known scalar functions f_1 and rho_1
+    (taken by `jax.grad` of the plant's functions: the only derivatives not written here).
+    """
+    if x.shape[0] != 2:
+        raise ValueError(f"law_order2_by_hand is for order n = 2 (got n={x.shape[0]})")
+    eps_g = ctrl.eps * ctrl.g_min
+    yr, yr_dot, yr_ddot = reference.derivatives(t, 2)
+    f, rho = plant.f(x), plant.rho(x)
+    f1, rho1 = f[0], rho[0]
+
+    def stage1(name):
+        return lambda x1: getattr(plant, name)(jnp.stack([x1, x[1]]))[0]
+
+    df1 = jax.grad(stage1("f"))(x[0])
+    drho1 = jax.grad(stage1("rho"))(x[0])
+    th1, ph1 = state.theta_hat[0], state.phi_hat[0]
+    k1 = ctrl.k[0]
+
+    z1 = x[0] - yr
+    alpha1 = -th1 * f1 - z1 * rho1**2 / (2.0 * eps_g) - k1 * z1 + ph1 * yr_dot
+    dalpha_dx1 = -th1 * df1 - (rho1**2 + 2.0 * z1 * rho1 * drho1) / (2.0 * eps_g) - k1
+    x1_dot_nominal = ctrl.g_nom[0] * (x[1] + th1 * f1)
+    th1_dot = ctrl.gamma_g[0] * (f1 * z1 - ctrl.eta[0] * th1)
+    ph1_dot = -ctrl.gamma_phi[0] * (yr_dot * z1 + ctrl.sigma[0] * ph1)
+    alpha1_dot = (dalpha_dx1 * x1_dot_nominal - f1 * th1_dot + yr_dot * ph1_dot
+                  + (k1 + rho1**2 / (2.0 * eps_g)) * yr_dot + ph1 * yr_ddot)
+    z2 = x[1] - alpha1
+    chain = _Chain(z=[z1], alpha=[alpha1], alpha_dot=[yr_dot], f=f, rho=rho, yr=yr)
+    return ctrl._last_stage(state, z2, alpha1_dot, chain)
+
+
+def with_backstepping(setup, **changes):
+    """The setup with its DSC replaced by backstepping with the same gains (`from_dsc`)."""
+    return setup.replace(controller=Backstepping.from_dsc(setup.controller, **changes))
+
+
+_law_jit = jax.jit(Backstepping.plain_law)
