@@ -16,6 +16,7 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 
+from dscjax._fusion import barrier
 from dscjax.controllers.base import Controller
 from dscjax.hysteresis import Backlash
 from dscjax.plant import Plant
@@ -81,17 +82,6 @@ def initial_state(setup: Setup) -> State:
     return State(x=x0, w=w0, ctrl=setup.controller.init_state(setup.plant, setup.reference))
 
 
-def _barrier(tree):
-    """Materialise intermediates that many later ops use.
-
-    XLA:CPU otherwise fuses such producers into each of their consumers and recomputes them
-    there: in a batch, one RK4 step of the paper's loop ended up with ~10x the sines and
-    multiplies of the model itself (counted in the optimised HLO). The barriers cost nothing
-    in results and little in memory traffic.
-    """
-    return jax.lax.optimization_barrier(tree)
-
-
 def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
     """X' = F(t, X) of the whole closed loop, and the observation at (t, X).
 
@@ -106,11 +96,11 @@ def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
 
     # The law is evaluated once; its linearisation gives u' = du/dX . X' + du/dt below.
     u, u_lin, info = jax.linearize(control, X.ctrl, X.x, t, has_aux=True)
-    u, info = _barrier((u, info))
+    u, info = barrier((u, info))
     dx = plant.rhs(X.x, X.w, t)
     dctrl = ctrl.state_rate(X.ctrl, X.x, t, info, plant, ref)
-    dx, dctrl = _barrier((dx, dctrl))
-    du = _barrier(u_lin(dctrl, dx, jnp.ones_like(t)))  # u' exactly, along the vector field
+    dx, dctrl = barrier((dx, dctrl))
+    du = barrier(u_lin(dctrl, dx, jnp.ones_like(t)))  # u' exactly, along the vector field
     dw = hyst.rate(u, du, X.w)
     return State(x=dx, w=dw, ctrl=dctrl), Observation(u=u, u_dot=du, yr=info.yr, S=info.S)
 

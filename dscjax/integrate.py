@@ -24,6 +24,8 @@ import jax
 import jax.numpy as jnp
 from jax.flatten_util import ravel_pytree
 
+from dscjax._fusion import barriers
+
 Pytree = Any
 
 STATUS_OK = 0
@@ -302,6 +304,15 @@ def integrate(
                                                 unroll=min(unroll, save_every))
         return carry, (ys_c.stack(y_start), obs_c.stack(obs_first))
 
+    with barriers(batched):
+        return _loop(step, save_step, block, f_obs, acc_update, ys_c, obs_c, acc_c, y_init,
+                     acc_init, batch_shape, n_steps, save_every, n_blocks, checkpoint_every, dt,
+                     batched, accumulate)
+
+
+def _loop(step, save_step, block, f_obs, acc_update, ys_c, obs_c, acc_c, y_init, acc_init,
+          batch_shape, n_steps, save_every, n_blocks, checkpoint_every, dt, batched, accumulate):
+    """The time loop proper (traced inside the barrier context chosen by `integrate`)."""
     init = (jnp.zeros((), jnp.int32), y_init, acc_init,
             jnp.full(batch_shape, STATUS_OK, jnp.int32), jnp.full(batch_shape, -1, jnp.int32))
     chunk = next((c for c in _ROW_CHUNKS if n_steps % c == 0), 1)

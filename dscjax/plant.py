@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
+from dscjax._fusion import barrier
 from dscjax.reference import time_signal
 
 
@@ -62,7 +63,7 @@ class Plant(abc.ABC):
     def rhs(self, x, w, t):
         """x' of eq. (1) given the state x (n,), the hysteresis output w and the time t."""
         n = x.shape[0]
-        f, delta = jax.lax.optimization_barrier((self.f(x), self.delta(x, t)))
+        f, delta = barrier((self.f(x), self.delta(x, t)))
         dx = [self.g[i] * (x[i + 1] if i < n - 1 else w) + self.theta[i] * f[i] + delta[i]
               for i in range(n)]
         dx[-1] = dx[-1] + self.dbar(t)

@@ -16,6 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
+from dscjax._fusion import barrier
 
 
 class Reference(abc.ABC):
@@ -47,7 +48,7 @@ def time_signal(tree):
     In a batch XLA:CPU would otherwise fuse such a scalar into every per-trajectory kernel and
     evaluate it once per trajectory (the reference's sin and cos were, 8192 times per stage).
     """
-    return jax.lax.optimization_barrier(tree)
+    return barrier(tree)
 
 
 def _time_derivative(fn):

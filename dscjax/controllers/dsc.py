@@ -25,6 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from dscjax import validation as v
+from dscjax._fusion import barrier
 from dscjax._smooth import sat, smooth_abs, smooth_sat
 from dscjax.controllers.base import ControlInfo, Controller
 from dscjax.reference import InitialOffset
@@ -206,7 +207,7 @@ class DSC(Controller):
         """u = zeta_hat ubar, eqs. (13)-(30). Returns (u, ControlInfo)."""
         n = x.shape[0]
         yr, yr_dot = reference.derivatives(t, 1)
-        f, rho = jax.lax.optimization_barrier((plant.f(x), plant.rho(x)))
+        f, rho = barrier((plant.f(x), plant.rho(x)))
         theta_hat, phi_hat = state.theta_hat, state.phi_hat
 
         s = [x[0] - yr]  # (13)
