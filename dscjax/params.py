@@ -32,8 +32,26 @@ def get(setup, path: str) -> Any:
     return obj
 
 
+def _as_leaf(value):
+    """Lists and tuples of numbers become one array leaf (not a pytree of scalars)."""
+    if isinstance(value, list | tuple):
+        try:
+            return np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            return jnp.asarray(value)  # numbers mixed with tracers
+    return value
+
+
 def set(setup, path: str, value) -> Any:  # noqa: A001 - mirrors `get`
-    """A copy of setup with the value at `path` replaced (shape and static fields untouched)."""
+    """A copy of setup with the value at `path` replaced (shape and static fields untouched).
+
+    Example:
+        >>> import dscjax
+        >>> s = set(dscjax.paper_example(), "controller.k", [12.0, 0.5])
+        >>> get(s, "controller.k").tolist()
+        [12.0, 0.5]
+    """
+    value = _as_leaf(value)
     head, _, rest = path.partition(".")
     old = _child(setup, head, path)
     new = value if not rest else set(old, rest, value)
