@@ -1,0 +1,265 @@
+"""Figures of a sweep: histogram and heatmap of the windowed L-inf error, worst-case traces.
+
+matplotlib with the Agg backend (no display needed); every function writes one PNG.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib.colors import LogNorm, Normalize  # noqa: E402
+from matplotlib.lines import Line2D  # noqa: E402
+from matplotlib.patches import Patch  # noqa: E402
+
+_SYMBOLS = {
+    "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
+    "hysteresis.w0": "w(0)", "plant.dbar_amp": "disturbance amplitude",
+    "plant.dbar_bias": "disturbance bias", "plant.dbar_freq": "disturbance frequency [rad/s]",
+    "plant.delta_freq": "Δ frequency [rad/s]",
+}
+_VECTOR = {"plant.g": "g_{}", "plant.theta": "θ_{}", "plant.x0": "x_{}(0)",
+           "controller.k": "k_{}"}
+
+
+def param_label(name: str) -> str:
+    """'α (hysteresis.alpha)', 'g_2 (plant.g[1])', ..."""
+    m = re.match(r"^(.*)\[(\d+)\]$", name)
+    if m and m.group(1) in _VECTOR:
+        sym = _VECTOR[m.group(1)].format(int(m.group(2)) + 1)
+    else:
+        sym = _SYMBOLS.get(name)
+    return f"{sym}  ({name})" if sym else name
+
+
+def error_label(t0: float, t_final: float) -> str:
+    return f"windowed L∞ error  max |y − y_r| over [{t0:g} s, {t_final:g} s]"
+
+
+def _use_log(v) -> bool:
+    v = v[np.isfinite(v) & (v > 0)]
+    return v.size > 1 and v.max() / v.min() > 20
+
+
+def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=None,
+                   title="") -> None:
+    """Histogram of the windowed L-inf error of the samples that did not diverge."""
+    err = np.asarray(err, np.float64)
+    div = np.asarray(diverged, bool)
+    v = err[~div & np.isfinite(err)]
+    fig, ax = plt.subplots(figsize=(8, 4.8), constrained_layout=True)
+    if v.size:
+        log = _use_log(v)
+        lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
+        if hi <= lo:
+            hi = lo * 1.01 + 1e-12
+        bins = (np.geomspace(lo, hi, 61) if log else np.linspace(lo, hi, 61))
+        ax.hist(v, bins=bins, color="#1f77b4", alpha=0.85,
+                label=f"samples that track ({v.size:,})")
+        if log:
+            ax.set_xscale("log")
+        ax.axvline(np.median(v), color="#444444", lw=1.2, ls="-",
+                   label=f"median {np.median(v):.3g}")
+    if nominal is not None and np.isfinite(nominal):
+        ax.axvline(nominal, color="black", lw=1.5, ls="--", label=f"nominal setup {nominal:.3g}")
+    if threshold is not None:
+        n_deg = int(np.sum(v > threshold))
+        ax.axvline(threshold, color="#d62728", lw=1.5, ls=":",
+                   label=f"degraded above {threshold:.3g} ({n_deg:,} samples)")
+    ax.set_xlabel(error_label(t0, t_final))
+    ax.set_ylabel("number of samples")
+    n = err.size
+    ax.set_title((title + "\n" if title else "")
+                 + f"{n:,} samples, {int(div.sum()):,} diverged ({100 * div.mean():.2f} %, "
+                 f"not shown)", fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8, loc="upper right")
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def _cells(x, edges_x, y, edges_y):
+    ix = np.clip(np.searchsorted(edges_x, x, side="right") - 1, 0, len(edges_x) - 2)
+    iy = np.clip(np.searchsorted(edges_y, y, side="right") - 1, 0, len(edges_y) - 2)
+    return ix, iy
+
+
+def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
+    """Median windowed error per cell (diverged samples count as +inf) and the edges.
+
+    With grid_x/grid_y (the grid's axis values) each grid point is one cell; otherwise the
+    box is cut into bins x bins cells.
+    """
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    e = np.where(np.asarray(diverged, bool), np.inf, np.asarray(err, np.float64))
+    if grid_x is not None and grid_y is not None:
+        ex, ey = _edges_of(grid_x), _edges_of(grid_y)
+    else:
+        b = bins or int(np.clip(np.sqrt(x.size / 8.0), 4, 40))
+        ex = np.linspace(x.min(), x.max(), b + 1)
+        ey = np.linspace(y.min(), y.max(), b + 1)
+    ix, iy = _cells(x, ex, y, ey)
+    nx, ny = len(ex) - 1, len(ey) - 1
+    flat = ix * ny + iy
+    order = np.argsort(flat, kind="stable")
+    med = np.full(nx * ny, np.nan)
+    count = np.bincount(flat, minlength=nx * ny)
+    starts = np.concatenate([[0], np.cumsum(count)])
+    es = e[order]
+    for c in np.flatnonzero(count):
+        med[c] = np.median(es[starts[c]:starts[c + 1]])
+    return med.reshape(nx, ny), ex, ey, count.reshape(nx, ny)
+
+
+def _edges_of(values):
+    v = np.unique(np.asarray(values, np.float64))
+    if v.size == 1:
+        return np.array([v[0] - 0.5, v[0] + 0.5])
+    mid = 0.5 * (v[1:] + v[:-1])
+    return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
+
+
+def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=None,
+                 nominal_xy=None, grid_x=None, grid_y=None, title="") -> dict:
+    """Heatmap of the median windowed L-inf error over two parameters; cells whose median is
+    above `threshold` (or diverged) are hatched and outlined in red; diverged samples are
+    marked. Returns the cell statistics (for tests and summary.json)."""
+    med, ex, ey, count = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
+    div = np.asarray(diverged, bool)
+    finite = med[np.isfinite(med)]
+    fig, ax = plt.subplots(figsize=(8, 6.6), constrained_layout=True)
+    if finite.size:
+        norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
+                else Normalize(finite.min(), finite.max() if finite.max() > finite.min()
+                               else finite.min() + 1e-12))
+    else:
+        norm = Normalize(0, 1)
+    shown = np.where(np.isfinite(med), med, np.nan)
+    cmap = plt.get_cmap("viridis").with_extremes(bad="#dddddd")
+    mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
+    cb = fig.colorbar(mesh, ax=ax, pad=0.02)
+    cb.set_label("median over the cell of " + error_label(t0, t_final).replace(
+        "windowed L∞ error  ", ""), fontsize=9)
+    handles = []
+    if threshold is not None:
+        bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
+        if bad.any():
+            ax.pcolor(ex, ey, np.ma.masked_where(~bad.T, np.ones_like(med.T)), hatch="///",
+                      alpha=0.0, shading="flat", edgecolor="#d62728", lw=0)
+            xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
+            if len(xc) > 1 and len(yc) > 1:
+                ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728",
+                           linewidths=1.8)
+        handles.append(Patch(facecolor="none", edgecolor="#d62728", hatch="///",
+                             label=f"tracking degraded: cell median > {threshold:.3g}"
+                             f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+    if div.any():
+        idx = np.flatnonzero(div)
+        if idx.size > 2000:
+            idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
+        ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], marker="x", s=14, c="#d62728",
+                   lw=0.8)
+        handles.append(Line2D([], [], marker="x", ls="", color="#d62728",
+                              label=f"diverged sample ({int(div.sum()):,})"))
+    if nominal_xy is not None:
+        ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
+        handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",
+                              label="nominal setup"))
+    ax.set_xlim(ex[0], ex[-1])
+    ax.set_ylim(ey[0], ey[-1])
+    ax.set_xlabel(param_label(names[0]))
+    ax.set_ylabel(param_label(names[1]))
+    kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
+    ax.set_title((title + "\n" if title else "") + f"windowed L∞ error over {kind}; other "
+                 "swept parameters pooled", fontsize=10)
+    if handles:
+        ax.legend(handles=handles, fontsize=8, loc="upper center",
+                  bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
+            "median": np.where(np.isfinite(med), med, None).tolist(),
+            "count": count.tolist()}
+
+
+def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nominal_x=None,
+              title="") -> None:
+    """One swept parameter: the windowed L-inf error against it (the 1-D 'heatmap')."""
+    x, err = np.asarray(x), np.asarray(err, np.float64)
+    div = np.asarray(diverged, bool)
+    fig, ax = plt.subplots(figsize=(8, 4.8), constrained_layout=True)
+    ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
+    if div.any():
+        top = np.nanmax(err[~div]) if (~div).any() else 1.0
+        ax.plot(x[div], np.full(div.sum(), top), "x", color="#d62728",
+                label=f"diverged ({int(div.sum())}), drawn at the top")
+    if threshold is not None:
+        ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
+    if nominal_x is not None:
+        ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
+    if _use_log(err[~div]):
+        ax.set_yscale("log")
+    ax.set_xlabel(param_label(name))
+    ax.set_ylabel(error_label(t0, t_final).replace("windowed L∞ error  ", "L∞ error "))
+    ax.set_title(title, fontsize=10)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
+                nominal=None, t0=None, title="") -> None:
+    """Tracking error e(t) and control u(t) of the worst samples (colour) and a random
+    handful (grey), with the nominal setup (black dashed)."""
+    fig, ax = plt.subplots(2, 1, figsize=(11, 7), sharex=True, constrained_layout=True)
+    colors = plt.get_cmap("tab10").colors
+    k = 0
+    for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
+        t = np.asarray(tr.t)
+        if kind == "worst":
+            style = dict(color=colors[k % 10], lw=1.1)
+            k += 1
+        else:
+            style = dict(color="#999999", lw=0.8, alpha=0.8)
+        ax[0].plot(t, np.asarray(tr.e), label=lab, **style)
+        ax[1].plot(t, np.asarray(tr.u), **style)
+    if nominal is not None:
+        ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2,
+                   label="nominal setup")
+        ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
+    if t0 is not None:
+        for a in ax:
+            a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
+        ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
+                       xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
+    ax[0].set_ylabel("tracking error  e = y − y_r")
+    ax[1].set_ylabel("control input  u")
+    ax[1].set_xlabel("time  t [s]")
+    for a in ax:
+        a.grid(alpha=0.3)
+    ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+    if title:
+        fig.suptitle(title, fontsize=11)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
+    """'worst #123: α=0.81 λ=1.2 ψ=0.09 | L∞w 0.012' (short, for the legend)."""
+    parts = []
+    for n in names[:4]:
+        sym = param_label(n).split("  (")[0]
+        parts.append(f"{sym}={record['params'][n]:.3g}")
+    tail = (f"diverged at {record['t_diverged']:.3g} s" if record["diverged"]
+            else f"L∞ on window {record['metrics']['linf_error_window']:.3g}")
+    return f"{kind} #{record['sample']}: " + " ".join(parts) + f" | {tail}"
+
+
+__all__ = ["heatmap_grid", "param_label", "plot_heatmap", "plot_histogram", "plot_scan",
+           "plot_traces", "trace_label"]
