@@ -1,0 +1,353 @@
+"""`dscjax sweep`: Monte-Carlo or grid robustness sweep with fixed gains.
+
+Writes into DIR: sweep.json (what was run), chunks/chunk_*.npz (one per finished block),
+results.npz (one row per sample: parameters and metrics), summary.json, hist_linf_window.png,
+heatmap_linf_window.png (or scan_linf_window.png for one parameter), traces.npz and
+traces.png (the worst samples and a random handful, re-simulated with full trajectories).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import sys
+import time
+import tomllib
+from pathlib import Path
+
+import numpy as np
+
+from dscjax.cli.common import write_json
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
+        description="Simulate many plants with the gains fixed and report how well they track. "
+        "Default: the paper's example and gains, alpha, lam, psi each uniform within +-30 %% of "
+        "the paper's values, 10,000 samples, 20 s at dt = 1e-3, float32, seed 0. Settings may "
+        "also come from a [sweep] table in the config (see docs/sweeps.md); the command line "
+        "wins.")
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
+                   "example; may hold a [sweep] table")
+    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config with the gains, e.g. "
+                   "gains.json written by `dscjax tune`, laid over --config")
+    mode = p.add_mutually_exclusive_group()
+    mode.add_argument("--samples", type=int, metavar="N", help="number of sampled plants "
+                      "(default 10000)")
+    mode.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
+                      help="full-factorial grid axis (repeat for more axes), e.g. "
+                      "hysteresis.alpha=0.7:1.3:41")
+    p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
+                   help="a sampled parameter (repeat; replaces the default alpha, lam, psi), "
+                   "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
+    p.add_argument("--method", choices=("uniform", "lhs"), help="sampling: i.i.d. uniform "
+                   "(default) or Latin hypercube")
+    p.add_argument("--seed", type=int, help="seed of the samples (default 0)")
+    p.add_argument("--chunk", type=int, metavar="C", help="samples per block and device "
+                   "(default: about 16384)")
+    p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds (default 20)")
+    p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds (default 1e-3)")
+    p.add_argument("--t0", type=float, metavar="S", help="start of the metric window [t0, T] "
+                   "(default 1 s)")
+    prec = p.add_mutually_exclusive_group()
+    prec.add_argument("--float64", action="store_true", help="run in float64 (default float32)")
+    prec.add_argument("--float32", action="store_true", help="run in float32 (the default)")
+    p.add_argument("--out", default="results/sweep", metavar="DIR",
+                   help="output directory (default: results/sweep)")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue a sweep in DIR: skip "
+                       "the blocks already written")
+    again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
+                       "start afresh")
+    p.add_argument("--worst", type=int, metavar="K", help="full traces of the K worst samples "
+                   "(default 6)")
+    p.add_argument("--random", type=int, metavar="R", help="full traces of R random samples "
+                   "(default 3)")
+    p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap "
+                   "(default: the first two swept)")
+    p.add_argument("--threshold", type=float, metavar="E", help="windowed L-inf error above "
+                   "which tracking counts as degraded (default: 2 x the nominal setup's)")
+    p.add_argument("--parallel", choices=("per_device", "spmd"), help="per_device (default; "
+                   "results bitwise independent of the device count) or spmd (one shard_map "
+                   "program)")
+    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the effective [sweep] table as TOML and exit")
+    return p
+
+
+def load(args):
+    """(setup, options, settings) from --config, --gains and the command line."""
+    from dscjax import config
+    from dscjax.sweep import SweepSettings, parse_range, settings_from_dict
+    from dscjax.validation import ConfigError
+
+    raw = _read(args.config) if args.config else {}
+    sweep_table = raw.pop("sweep", {})
+    if not isinstance(sweep_table, dict):
+        raise ConfigError("'sweep' must be a table ([sweep])")
+    setup, options = config.from_dict(raw)
+    if args.gains:
+        gains = _read(args.gains)
+        if "sweep" in gains:
+            raise ConfigError(f"{args.gains}: a gains file may not hold a [sweep] table")
+        setup, options = config.from_dict(gains, base=setup, base_options=options)
+    settings = settings_from_dict(sweep_table, SweepSettings())
+    changes = {}
+    if args.grid:
+        if args.ranges:
+            raise ConfigError("--range is for sampled sweeps; a grid takes its ranges from "
+                              "--grid")
+        changes |= dict(method="grid", ranges=tuple(parse_range(g, grid=True)
+                                                    for g in args.grid))
+    elif args.samples is not None or args.ranges or args.method:
+        if settings.method == "grid":
+            changes |= dict(method="uniform", ranges=())
+    if args.samples is not None:
+        changes["samples"] = args.samples
+    if args.ranges:
+        changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
+    for name in ("method", "seed", "chunk", "worst", "random", "threshold", "parallel"):
+        value = getattr(args, name)
+        if value is not None:
+            changes[name] = value
+    if args.float64:
+        changes["dtype"] = "float64"
+    elif args.float32:
+        changes["dtype"] = "float32"
+    if args.heatmap:
+        names = [h.strip() for h in args.heatmap.split(",")]
+        if len(names) != 2:
+            raise ConfigError(f"--heatmap must be two parameter names P1,P2 (got "
+                              f"{args.heatmap!r})")
+        changes["heatmap"] = tuple(names)
+    settings = dataclasses.replace(settings, **changes)
+    opt = {}
+    if args.t_final is not None:
+        opt["t_final"] = args.t_final
+    if args.dt is not None:
+        opt["dt"] = args.dt
+    if args.t0 is not None:
+        opt["window_start"] = args.t0
+    options = dataclasses.replace(options, **opt)
+    options.validate()
+    return setup, options, settings
+
+
+def _read(path) -> dict:
+    from dscjax.validation import ConfigError
+
+    p = Path(path)
+    try:
+        text = p.read_text()
+    except OSError as err:
+        raise ConfigError(f"cannot read config file {str(p)!r}: {err.strerror}") from None
+    try:
+        d = json.loads(text) if p.suffix.lower() == ".json" else tomllib.loads(text)
+    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
+        kind = "JSON" if p.suffix.lower() == ".json" else "TOML"
+        raise ConfigError(f"{p}: not valid {kind}: {err}") from None
+    if not isinstance(d, dict):
+        raise ConfigError(f"{p}: the top level must be a table of sections")
+    return d
+
+
+def sweep_toml(settings, setup) -> str:
+    """The effective [sweep] table as TOML (ranges resolved to absolute bounds)."""
+    from dscjax.config import _toml_value
+
+    lines = ["[sweep]"]
+    for f in dataclasses.fields(settings):
+        v = getattr(settings, f.name)
+        if f.name == "ranges" or v is None:
+            continue
+        if f.name == "samples" and settings.method == "grid":
+            continue
+        lines.append(f"{f.name} = {_toml_value(list(v) if isinstance(v, tuple) else v)}")
+    table = "grid" if settings.method == "grid" else "ranges"
+    lines += ["", f"[sweep.{table}]"]
+    for r in settings.resolved_ranges(setup):
+        vals = [r.low, r.high] + ([r.num] if r.num is not None else [])
+        lines.append(f"{json.dumps(r.name)} = {_toml_value(vals)}")
+    return "\n".join(lines) + "\n"
+
+
+def run(args) -> int:
+    import jax
+
+    from dscjax import params, sweep
+    from dscjax.simulate import _window, simulate
+
+    setup, options, settings = load(args)
+    t_final, dt, state_bound = options.t_final, options.dt, options.state_bound
+    window_start = _window(t_final, options.window_start)
+    dtype = np.dtype(settings.dtype)
+    setup = params.cast(setup, dtype)
+    ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
+    if args.print_config:
+        sys.stdout.write(sweep_toml(settings, setup))
+        return 0
+    out = Path(args.out)
+    main = jax.process_index() == 0
+    n = settings.n_samples()
+    if main:
+        desc = ", ".join(
+            f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
+            for r in ranges)
+        print(f"dscjax sweep: {n:,} {'grid points' if settings.method == 'grid' else 'samples'}"
+              f" ({settings.method}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
+              f"dt={dt:g} s, {settings.dtype}, {jax.device_count()} device(s) "
+              f"({jax.devices()[0].platform}), {jax.process_count()} process(es)",
+              file=sys.stderr)
+    tty = sys.stderr.isatty()
+    last = [0.0]
+
+    def progress(p):
+        if args.quiet or not main:
+            return
+        now = time.perf_counter()
+        final = p["done"] >= p["total"]
+        if tty:
+            print("\r" + sweep.format_progress(p), end="\n" if final else "", file=sys.stderr,
+                  flush=True)
+        elif final or now - last[0] >= 5.0:
+            print(sweep.format_progress(p), file=sys.stderr, flush=True)
+            last[0] = now
+
+    result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
+                             state_bound=state_bound, out_dir=out, resume=args.resume,
+                             overwrite=args.overwrite, progress=progress)
+    if not main:
+        return 0
+    info = result.info
+    if info["samples_resumed"]:
+        print(f"  resumed: {info['samples_resumed']:,} samples were already done",
+              file=sys.stderr)
+    c = result.columns
+    every = _save_every(info["n_steps"])
+    nominal = simulate(setup, t_final, dt, save_every=every, window_start=window_start,
+                       state_bound=state_bound, throw=False)
+    nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
+    threshold, rule = settings.threshold, "given"
+    if threshold is None:
+        if not bool(nominal.diverged) and nominal_metrics["linf_error_window"] > 0:
+            threshold, rule = 2.0 * nominal_metrics["linf_error_window"], "2 x nominal"
+        else:
+            ok = ~c["diverged"]
+            threshold = 2.0 * float(np.median(c["linf_error_window"][ok])) if ok.any() else 1.0
+            rule = "2 x median (the nominal setup diverged)"
+    summary = sweep.summarize(result, nominal_metrics, threshold, worst=max(settings.worst, 1))
+    summary["degraded"]["rule"] = rule
+    summary["nominal"]["diverged"] = bool(nominal.diverged)
+    nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
+    summary["nominal_params"] = nominal_params
+    summary["run"] = info
+
+    worst_rows = sweep.rank_worst(c, settings.worst)
+    rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
+    rows = list(worst_rows) + list(rand_rows)
+    kinds = ["worst"] * len(worst_rows) + ["random"] * len(rand_rows)
+    trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
+                                ranges_params=[r.param for r in ranges])
+    records = [sweep.sample_record(c, result.param_names, i) for i in rows]
+    check = _recheck(trajs, records, settings.dtype)
+    summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
+                         "max_rel_diff_resimulated_vs_sweep": check}
+    _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
+
+    figures = []
+    if not args.no_plot:
+        figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
+                         nominal_params, trajs, records, kinds, window_start, t_final, summary)
+    write_json(out / "summary.json", summary)
+
+    q = summary["quantiles"]["linf_error_window"]
+    print(f"  wrote {out}/results.npz, summary.json, traces.npz"
+          + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
+          + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
+             else "nothing left to run)"), file=sys.stderr)
+    if q is not None:
+        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s: median "
+              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} (nominal "
+              f"{nominal_metrics['linf_error_window']:.4g})", file=sys.stderr)
+    print(f"  diverged: {summary['n_diverged']:,} of {result.n:,} "
+          f"({100 * summary['divergence_rate']:.2f} %); degraded (above {threshold:.4g}, "
+          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
+          file=sys.stderr)
+    return 0
+
+
+def _save_every(n_steps: int) -> int:
+    """About 2000 saved points per trace."""
+    every = max(1, n_steps // 2000)
+    while n_steps % every:
+        every -= 1
+    return every
+
+
+def _recheck(trajs, records, dtype) -> float | None:
+    """Largest relative difference between the re-simulated and the swept metrics."""
+    worst = 0.0
+    for tr, rec in zip(trajs, records, strict=True):
+        for m, v in rec["metrics"].items():
+            a = float(tr.metrics[m])
+            if np.isfinite(a) and np.isfinite(v):
+                worst = max(worst, abs(a - v) / max(abs(v), 1e-30))
+    return worst if trajs else None
+
+
+def _write_traces(path, trajs, records, kinds, nominal):
+    from dscjax.sweep import write_npz
+
+    arrays = {"nominal_t": nominal.t, "nominal_e": nominal.e, "nominal_u": nominal.u}
+    if trajs:
+        arrays |= {
+            "sample": np.array([r["sample"] for r in records], dtype=np.int64),
+            "kind": np.array(kinds),
+            "t": np.stack([np.asarray(t.t) for t in trajs]),
+            "x": np.stack([np.asarray(t.x) for t in trajs]),
+            "e": np.stack([np.asarray(t.e) for t in trajs]),
+            "u": np.stack([np.asarray(t.u) for t in trajs]),
+            "w": np.stack([np.asarray(t.w) for t in trajs]),
+            "diverged": np.array([bool(t.diverged) for t in trajs]),
+        }
+    write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
+
+
+def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,
+           trajs, records, kinds, t0, t_final, summary):
+    from dscjax import sweep_plots as sp
+
+    c = result.columns
+    title = (f"{result.n:,} {'grid points' if settings.method == 'grid' else 'samples'}, "
+             f"T = {t_final:g} s, dt = {result.info['dt']:g} s, {settings.dtype}")
+    figures = ["hist_linf_window.png"]
+    sp.plot_histogram(c["linf_error_window"], c["diverged"], out / figures[0], t0=t0,
+                      t_final=t_final, nominal=nominal_metrics["linf_error_window"],
+                      threshold=threshold, title=title)
+    names = [r.name for r in ranges]
+    if len(names) >= 2:
+        pair = settings.heatmap or (names[0], names[1])
+        grid = {}
+        if settings.method == "grid":
+            grid = dict(grid_x=c[pair[0]], grid_y=c[pair[1]])
+        figures.append("heatmap_linf_window.png")
+        summary["heatmap"] = sp.plot_heatmap(
+            c[pair[0]], c[pair[1]], c["linf_error_window"], c["diverged"], out / figures[-1],
+            names=pair, t0=t0, t_final=t_final, threshold=threshold,
+            nominal_xy=(nominal_params[pair[0]], nominal_params[pair[1]]), title=title, **grid)
+    else:
+        figures.append("scan_linf_window.png")
+        sp.plot_scan(c[names[0]], c["linf_error_window"], c["diverged"], out / figures[-1],
+                     name=names[0], t0=t0, t_final=t_final, threshold=threshold,
+                     nominal_x=nominal_params[names[0]], title=title)
+    if trajs:
+        figures.append("traces.png")
+        labels = [sp.trace_label(r, result.param_names, k) for r, k in zip(records, kinds,
+                                                                           strict=True)]
+        sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal, t0=t0,
+                       title=f"worst {kinds.count('worst')} and {kinds.count('random')} random "
+                       f"samples of the sweep, re-simulated ({settings.dtype})")
+    return figures
