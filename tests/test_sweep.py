@@ -1,0 +1,244 @@
+"""Sweeps (issue 5): equal to single runs, independent of chunk size and device count,
+resumable to the same file, and clear about bad settings.
+
+Short horizons (0.5 s) and a few dozen samples; the compiled block program is shared between
+the tests through identical shapes and settings (float64, chunk 8, alpha/lam/psi).
+"""
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import numpy as np
+import pytest
+
+import dscjax
+from dscjax import sweep
+from dscjax.cli.main import main as cli
+from dscjax.sweep import Param, Range, SweepSettings, run_sweep
+
+T, DT = 0.5, 1e-3
+BASE = SweepSettings(samples=24, chunk=8, dtype="float64")  # alpha, lam, psi +-30 %
+
+
+@pytest.fixture(scope="module")
+def base_result(paper_setup):
+    return run_sweep(paper_setup, BASE, T, DT)
+
+
+def _same(a, b):
+    assert set(a) == set(b)
+    for k in a:
+        np.testing.assert_array_equal(a[k], b[k], err_msg=k)
+
+
+def test_sweep_equals_single_simulations(paper_setup):
+    ranges = (Range(Param("hysteresis.alpha"), rel=0.3), Range(Param("plant.g", 1), 0.8, 1.2),
+              Range(Param("plant.theta", 0), 0.0, 0.2), Range(Param("plant.x0", 0), 0.05, 0.1),
+              Range(Param("plant.dbar_amp"), 0.0, 0.5))
+    settings = SweepSettings(samples=12, chunk=8, dtype="float64", method="lhs", ranges=ranges)
+    res = run_sweep(paper_setup, settings, T, DT)
+    rows = [0, 5, 11]
+    trajs = sweep.simulate_rows(paper_setup, res, rows, save_every=1)
+    for i, tr in zip(rows, trajs, strict=True):
+        for m in sweep.METRICS:
+            np.testing.assert_allclose(res.columns[m][i], float(tr.metrics[m]), rtol=1e-9,
+                                       atol=1e-15, err_msg=m)
+        assert bool(res.columns["diverged"][i]) == bool(tr.diverged)
+    # an independent single run (not through simulate_rows) for one sample
+    i = 5
+    g = np.array([1.0, res.columns["plant.g[1]"][i]])
+    theta = np.array([res.columns["plant.theta[0]"][i], 0.0])
+    x0 = np.array([res.columns["plant.x0[0]"][i], 0.1])
+    s = dscjax.params.set_many(paper_setup, {
+        "hysteresis.alpha": res.columns["hysteresis.alpha"][i], "plant.g": g,
+        "plant.theta": theta, "plant.x0": x0, "plant.dbar_amp": res.columns["plant.dbar_amp"][i]})
+    tr = dscjax.simulate(s, T, DT, throw=False)
+    np.testing.assert_allclose(res.columns["linf_error_window"][i],
+                               float(tr.metrics["linf_error_window"]), rtol=1e-9)
+    # the table is a product of the ranges: every column stays inside its range
+    for r in ranges:
+        q = r.resolve(paper_setup)
+        v = res.columns[r.name]
+        assert v.min() >= q.low and v.max() <= q.high
+
+
+def test_chunk_size_does_not_change_results(paper_setup, base_result):
+    for chunk in (16,):  # 16: two blocks, the second padded
+        other = run_sweep(paper_setup, SweepSettings(samples=24, chunk=chunk, dtype="float64"),
+                          T, DT)
+        _same(base_result.columns, other.columns)
+
+
+def test_resume_after_interrupt_gives_the_same_file(paper_setup, tmp_path):
+    full = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "a")
+
+    def stop(p):
+        if p["round"] == 1:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", progress=stop)
+    assert len(list((tmp_path / "b" / "chunks").glob("*.npz"))) == 1
+    assert not (tmp_path / "b" / "results.npz").exists()
+    # a half-written chunk (e.g. killed while writing) is not trusted
+    (tmp_path / "b" / "chunks" / "chunk_000001.npz").write_bytes(b"PK\x03\x04 truncated")
+    res = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", resume=True)
+    assert res.info["samples_resumed"] == 8 and res.info["samples_run"] == 16
+    a = (tmp_path / "a" / "results.npz").read_bytes()
+    assert a == (tmp_path / "b" / "results.npz").read_bytes()
+    _same(full.columns, res.columns)
+    # resuming a finished sweep runs nothing and rewrites the same file
+    again = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", resume=True)
+    assert again.info["samples_run"] == 0
+    assert a == (tmp_path / "b" / "results.npz").read_bytes()
+
+
+def test_resume_refuses_other_settings_and_existing_dirs(paper_setup, tmp_path):
+    out = tmp_path / "s"
+    run_sweep(paper_setup, BASE, T, DT, out_dir=out)
+    with pytest.raises(dscjax.ConfigError, match="other settings.*seed"):
+        run_sweep(paper_setup, SweepSettings(samples=24, chunk=8, dtype="float64", seed=1),
+                  T, DT, out_dir=out, resume=True)
+    with pytest.raises(dscjax.ConfigError, match="--resume.*--overwrite"):
+        run_sweep(paper_setup, BASE, T, DT, out_dir=out)
+
+
+def test_one_and_four_devices_give_identical_float64_metrics(base_result, tmp_path):
+    script = textwrap.dedent(f"""
+        import jax
+        jax.config.update("jax_enable_x64", True)
+        import numpy as np, dscjax
+        from dscjax.sweep import SweepSettings, run_sweep
+        assert jax.device_count() == 4, jax.devices()
+        res = run_sweep(dscjax.paper_example(), SweepSettings(samples=24, chunk=8,
+                        dtype="float64"), {T}, {DT})
+        assert res.info["devices"] == 4
+        np.savez({str(tmp_path / "four.npz")!r}, **res.columns)
+    """)
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+               JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True,
+                          text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    with np.load(tmp_path / "four.npz") as z:
+        four = {k: z[k] for k in z.files}
+    _same(base_result.columns, four)
+
+
+def test_sample_tables():
+    ranges = (Range(Param("a"), 0.0, 1.0, num=3), Range(Param("b"), 10.0, 20.0, num=2))
+    grid = sweep.sample_table(ranges, "grid", 0, 0)
+    np.testing.assert_array_equal(grid, [[0, 10], [0, 20], [0.5, 10], [0.5, 20], [1, 10],
+                                         [1, 20]])
+    r2 = (Range(Param("a"), 0.0, 1.0), Range(Param("b"), -2.0, 2.0))
+    lhs = sweep.sample_table(r2, "lhs", 50, 3)
+    for j, (lo, hi) in enumerate([(0, 1), (-2, 2)]):  # one sample in each of the 50 strata
+        strata = np.floor((lhs[:, j] - lo) / (hi - lo) * 50).astype(int)
+        assert sorted(strata) == list(range(50))
+    np.testing.assert_array_equal(lhs, sweep.sample_table(r2, "lhs", 50, 3))  # seeded
+    assert not np.array_equal(lhs, sweep.sample_table(r2, "lhs", 50, 4))
+    assert sweep.auto_chunk(100_000) == 14336 and sweep.auto_chunk(24) == 24
+
+
+def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
+    out = tmp_path / "cli"
+    code = cli(["sweep", "--samples", "24", "--chunk", "8", "--float64", "--t-final", str(T),
+                "--t0", "0.25", "--worst", "2", "--random", "1", "--out", str(out)])
+    err = capsys.readouterr().err
+    assert code == 0, err
+    assert "24/24 samples" in err and "steps/s" in err
+    for f in ("results.npz", "summary.json", "traces.npz", "hist_linf_window.png",
+              "heatmap_linf_window.png", "traces.png", "sweep.json"):
+        assert (out / f).exists(), f
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_samples"] == 24
+    assert set(summary["quantiles"]) == set(sweep.METRICS)
+    assert summary["quantiles"]["linf_error_window"]["p50"] > 0
+    assert len(summary["worst"]) == 2 and "hysteresis.lam" in summary["worst"][0]["params"]
+    assert summary["traces"]["max_rel_diff_resimulated_vs_sweep"] < 1e-9
+    assert summary["run"]["window_start"] == 0.25
+    with np.load(out / "results.npz") as z:
+        assert z["linf_error_window"].shape == (24,)
+        assert np.all(z["hysteresis.lam"] > z["hysteresis.psi"])
+
+
+def _cli_error(args, capsys, tmp_path):
+    code = cli(["sweep", "--out", str(tmp_path / "never"), *args])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    assert not (tmp_path / "never" / "chunks").exists()
+    return err
+
+
+@pytest.mark.parametrize("args, field", [
+    (["--samples", "0"], "sweep.samples must be an integer >= 1"),
+    (["--samples=-5"], "sweep.samples"),
+    (["--chunk", "0"], "sweep.chunk must be an integer >= 1"),
+    (["--range", "hysteresis.alpha=1.3:0.7"], "hysteresis.alpha: lower bound > upper bound"),
+    (["--range", "hysteresis.alpha=1:1"], "hysteresis.alpha is an empty range"),
+    (["--range", "hysteresis.alpha=0%"], "empty range"),
+    (["--range", "hysteresis.lam=0.05:0.2"], "hysteresis.lam must stay > hysteresis.psi"),
+    (["--range", "hysteresis.lam=1.0:1.4", "--range", "hysteresis.psi=0.5:1.1"],
+     "hysteresis.lam must stay > hysteresis.psi"),
+    (["--range", "hysteresis.alpha=-0.5:1"], "hysteresis.alpha must be > 0"),
+    (["--range", "hysteresis.alhpa=0.5:1"], "no parameter 'hysteresis.alhpa'"),
+    (["--range", "plant.g=0.5:1"], "sweep one element, e.g. plant.g[0]"),
+    (["--range", "plant.g[2]=0.5:1"], "index 2 is out of range"),
+    (["--range", "hysteresis.alpha"], "--range must be PATH=LOW:HIGH"),
+    (["--grid", "hysteresis.alpha=0.7:1.3:1"], "number of grid points must be >= 2"),
+    (["--grid", "hysteresis.alpha=0.7:1.3"], "--grid hysteresis.alpha must be PATH=LOW:HIGH:NUM"),
+    (["--heatmap", "hysteresis.alpha,plant.g[0]"], "sweep.heatmap: 'plant.g[0]' is not swept"),
+])
+def test_bad_settings_give_one_clear_line(args, field, capsys, tmp_path):
+    err = _cli_error(args, capsys, tmp_path)
+    assert field in err, err
+
+
+@pytest.mark.parametrize("table, field", [
+    ("samples = 10\nfoo = 1", "unknown key 'sweep.foo'"),
+    ("samples = 0", "sweep.samples must be an integer >= 1"),
+    ("chunk = 0", "sweep.chunk must be an integer >= 1"),
+    ("samples = 1.5", "sweep.samples must be an integer"),
+    ("[sweep.ranges]\n\"hysteresis.alpha\" = [1.2, 0.8]", "lower bound > upper bound"),
+    ("[sweep.ranges]\nhysteresis.psi = [0.1, 2.0]", "hysteresis.lam must stay >"),
+    ("[sweep.ranges]\n\"plant.g[1]\" = [0.5]", "sweep.ranges.plant.g[1] must be [low, high]"),
+    ("[sweep.grid]\n\"hysteresis.alpha\" = [0.7, 1.3, 0]", "must be >= 2"),
+])
+def test_bad_sweep_tables_name_the_field(table, field, capsys, tmp_path):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[sweep]\n" + table + "\n")
+    err = _cli_error(["--config", str(cfg)], capsys, tmp_path)
+    assert field in err, err
+
+
+def test_config_sweep_table_and_gains_file(tmp_path, capsys):
+    cfg = tmp_path / "sweep.toml"
+    cfg.write_text(textwrap.dedent("""
+        [simulation]
+        t_final = 0.5
+        [sweep]
+        seed = 3
+        method = "lhs"
+        [sweep.ranges]
+        "plant.g[1]" = [0.8, 1.2]
+        hysteresis.alpha = "20%"
+    """))
+    gains = tmp_path / "gains.json"
+    gains.write_text(json.dumps({"controller": {"k": [8.0, 0.5]}}))
+    code = cli(["sweep", "--config", str(cfg), "--gains", str(gains), "--print-config"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert 'seed = 3' in out and '"plant.g[1]" = [0.8, 1.2]' in out
+    assert '"hysteresis.alpha" = [0.8, 1.2]' in out
+    from dscjax.cli.main import _available_commands, build_parser
+    from dscjax.cli.sweep import load
+
+    args = build_parser(_available_commands()).parse_args(
+        ["sweep", "--config", str(cfg), "--gains", str(gains)])
+    setup, options, settings = load(args)
+    assert options.t_final == 0.5 and settings.seed == 3 and settings.method == "lhs"
+    np.testing.assert_array_equal(setup.controller.k, [8.0, 0.5])
