@@ -881,20 +881,36 @@ QUANTILES = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
 
 
 def rank_worst(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
-    """Indices (rows) of the k worst samples: diverged ones first (earliest divergence first),
-    then by windowed L-inf error, largest first."""
-    div = np.asarray(columns["diverged"], bool)
-    lw = np.asarray(columns["linf_error_window"], np.float64)
-    key_err = np.where(div, np.inf, np.nan_to_num(lw, nan=np.inf))
-    key_t = np.where(div, np.asarray(columns["t_diverged"], np.float64), np.inf)
-    order = np.lexsort((-key_err, key_t))  # by divergence time, then by error, descending
-    return order[:k]
+    """Rows of the k worst samples that did not diverge, largest windowed L-inf error first."""
+    ok = ~np.asarray(columns["diverged"], bool)
+    lw = np.nan_to_num(np.asarray(columns["linf_error_window"], np.float64), nan=np.inf)
+    rows = np.flatnonzero(ok)
+    return rows[np.argsort(-lw[rows], kind="stable")][:k]
+
+
+def rank_diverged(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
+    """Rows of the first k samples to diverge (earliest divergence time first)."""
+    rows = np.flatnonzero(np.asarray(columns["diverged"], bool))
+    t = np.asarray(columns["t_diverged"], np.float64)[rows]
+    return rows[np.argsort(t, kind="stable")][:k]
+
+
+def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, list[str]]:
+    """k rows worth a full trace: about a third the earliest diverged (if any), the rest
+    the worst that track; either kind fills in for the other if there are too few."""
+    n_div = int(np.sum(columns["diverged"]))
+    want_div = min(n_div, -(-k // 3)) if n_div else 0
+    worst = rank_worst(columns, k - want_div)
+    div = rank_diverged(columns, k - len(worst))
+    return (np.concatenate([worst, div]).astype(np.int64),
+            ["worst"] * len(worst) + ["diverged"] * len(div))
 
 
 def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
               threshold: float | None = None, worst: int = 6) -> dict[str, Any]:
     """Quantiles of every metric (over the samples that did not diverge), the divergence and
-    degradation rates, and the worst samples with their parameters."""
+    degradation rates, the worst samples that track and the first to diverge, with their
+    parameters."""
     c = result.columns
     div = np.asarray(c["diverged"], bool)
     ok = ~div
@@ -925,8 +941,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
-    rows = rank_worst(c, worst)
-    out["worst"] = [sample_record(c, result.param_names, i) for i in rows]
+    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_worst(c, worst)]
+    out["first_diverged"] = [sample_record(c, result.param_names, i)
+                             for i in rank_diverged(c, worst)]
     return out
 
 
@@ -974,5 +991,5 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
 
 __all__ = ["DEFAULT_PATHS", "METRICS", "Param", "Range", "SweepResult", "SweepSettings",
            "auto_chunk", "check_settings", "default_ranges", "format_progress", "parse_range",
-           "rank_worst", "run_sweep", "sample_table", "settings_from_dict", "simulate_rows",
-           "summarize", "write_npz"]
+           "rank_diverged", "rank_worst", "run_sweep", "sample_table", "settings_from_dict", "simulate_rows",
+           "summarize", "trace_rows", "write_npz"]

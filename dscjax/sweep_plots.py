@@ -52,7 +52,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     err = np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
     v = err[~div & np.isfinite(err)]
-    fig, ax = plt.subplots(figsize=(8, 4.8), constrained_layout=True)
+    fig, ax = plt.subplots(figsize=(8, 5.4), constrained_layout=True)
     if v.size:
         log = _use_log(v)
         lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
@@ -69,16 +69,20 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
         ax.axvline(nominal, color="black", lw=1.5, ls="--", label=f"nominal setup {nominal:.3g}")
     if threshold is not None:
         n_deg = int(np.sum(v > threshold))
-        ax.axvline(threshold, color="#d62728", lw=1.5, ls=":",
-                   label=f"degraded above {threshold:.3g} ({n_deg:,} samples)")
+        label = f"degraded above {threshold:.3g} ({n_deg:,} samples)"
+        if v.size and threshold > v.max() + 0.5 * (v.max() - v.min()):
+            # far to the right of every sample: say so instead of squashing the histogram
+            ax.plot([], [], color="#d62728", lw=1.5, ls=":", label=label + ", off the axis")
+        else:
+            ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
     ax.set_xlabel(error_label(t0, t_final))
     ax.set_ylabel("number of samples")
-    n = err.size
     ax.set_title((title + "\n" if title else "")
-                 + f"{n:,} samples, {int(div.sum()):,} diverged ({100 * div.mean():.2f} %, "
-                 f"not shown)", fontsize=10)
+                 + f"{int(div.sum()):,} diverged ({100 * div.mean():.2f} %, not shown)",
+                 fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper right")
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
+              frameon=False)
     fig.savefig(path, dpi=110)
     plt.close(fig)
 
@@ -149,8 +153,14 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     if threshold is not None:
         bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
         if bad.any():
-            ax.pcolor(ex, ey, np.ma.masked_where(~bad.T, np.ones_like(med.T)), hatch="///",
-                      alpha=0.0, shading="flat", edgecolor="#d62728", lw=0)
+            # hatch exactly the degraded cells, outline the region
+            hx = np.repeat(ex, 2)[1:-1]
+            hy = np.repeat(ey, 2)[1:-1]
+            z = np.repeat(np.repeat(bad.astype(float), 2, axis=0), 2, axis=1)
+            hatch = ax.contourf(hx, hy, z.T, levels=[0.5, 1.5], colors="none",
+                                hatches=["////"])
+            hatch.set_edgecolor("#d62728")
+            hatch.set_linewidth(0.0)
             xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
             if len(xc) > 1 and len(yc) > 1:
                 ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728",
@@ -215,20 +225,27 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
 
 def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
                 nominal=None, t0=None, title="") -> None:
-    """Tracking error e(t) and control u(t) of the worst samples (colour) and a random
-    handful (grey), with the nominal setup (black dashed)."""
+    """Tracking error e(t) and control u(t) of the worst samples (colour; dotted and ending
+    in x where they diverged) and a random handful (grey), with the nominal setup (black
+    dashed)."""
     fig, ax = plt.subplots(2, 1, figsize=(11, 7), sharex=True, constrained_layout=True)
     colors = plt.get_cmap("tab10").colors
     k = 0
     for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
         t = np.asarray(tr.t)
-        if kind == "worst":
-            style = dict(color=colors[k % 10], lw=1.1)
-            k += 1
-        else:
+        e, u = np.array(tr.e, np.float64), np.array(tr.u, np.float64)
+        if bool(tr.diverged):  # after divergence the state is frozen: nothing to show
+            after = t > float(tr.t_diverged)
+            e[after], u[after] = np.nan, np.nan
+        if kind == "random":
             style = dict(color="#999999", lw=0.8, alpha=0.8)
-        ax[0].plot(t, np.asarray(tr.e), label=lab, **style)
-        ax[1].plot(t, np.asarray(tr.u), **style)
+        else:
+            style = dict(color=colors[k % 10], lw=1.1, ls="-" if kind == "worst" else ":")
+            k += 1
+        ax[0].plot(t, e, label=lab, **style)
+        ax[1].plot(t, u, **style)
+        if bool(tr.diverged):
+            ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
     if nominal is not None:
         ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2,
                    label="nominal setup")

@@ -245,10 +245,10 @@ def run(args) -> int:
     summary["nominal_params"] = nominal_params
     summary["run"] = info
 
-    worst_rows = sweep.rank_worst(c, settings.worst)
+    worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
     rows = list(worst_rows) + list(rand_rows)
-    kinds = ["worst"] * len(worst_rows) + ["random"] * len(rand_rows)
+    kinds = kinds + ["random"] * len(rand_rows)
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
                                 ranges_params=[r.param for r in ranges])
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
@@ -277,6 +277,13 @@ def run(args) -> int:
           f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
           file=sys.stderr)
     return 0
+
+
+def _traces_title(kinds, dtype) -> str:
+    parts = [f"{kinds.count(k)} {name}" for k, name in (
+        ("worst", "worst tracking"), ("diverged", "first diverged"), ("random", "random"))
+        if kinds.count(k)]
+    return ", ".join(parts) + f" samples of the sweep, re-simulated ({dtype})"
 
 
 def _save_every(n_steps: int) -> int:
@@ -348,6 +355,5 @@ def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, n
         labels = [sp.trace_label(r, result.param_names, k) for r, k in zip(records, kinds,
                                                                            strict=True)]
         sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal, t0=t0,
-                       title=f"worst {kinds.count('worst')} and {kinds.count('random')} random "
-                       f"samples of the sweep, re-simulated ({settings.dtype})")
+                       title=_traces_title(kinds, settings.dtype))
     return figures
