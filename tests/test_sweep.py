@@ -128,6 +128,30 @@ def test_one_and_four_devices_give_identical_float64_metrics(base_result, tmp_pa
     _same(base_result.columns, four)
 
 
+def test_two_processes_write_the_same_file(tmp_path, capsys):
+    """The multi-host path (jax.distributed, global arrays, process_allgather) on localhost."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("localhost", 0))
+        port = sock.getsockname()[1]
+    args = ["sweep", "--samples", "24", "--chunk", "8", "--float64", "--t-final", str(T),
+            "--worst", "0", "--random", "0", "--no-plot", "--quiet"]
+    env = dict(os.environ, JAX_PLATFORMS="cpu")
+    env.pop("XLA_FLAGS", None)
+    procs = [subprocess.Popen(
+        [sys.executable, "-m", "dscjax.cli.main", *args, "--out", str(tmp_path / "two"),
+         "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
+        env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True) for i in (0, 1)]
+    errs = [p.communicate(timeout=600)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    assert "2 device(s) (cpu), 2 process(es)" in errs[0]
+    assert cli([*args, "--out", str(tmp_path / "one")]) == 0
+    capsys.readouterr()
+    one = (tmp_path / "one" / "results.npz").read_bytes()
+    assert one == (tmp_path / "two" / "results.npz").read_bytes()
+
+
 def test_sample_tables():
     ranges = (Range(Param("a"), 0.0, 1.0, num=3), Range(Param("b"), 10.0, 20.0, num=2))
     grid = sweep.sample_table(ranges, "grid", 0, 0)

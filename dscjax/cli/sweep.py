@@ -71,6 +71,14 @@ def add_parser(sub):
     p.add_argument("--parallel", choices=("per_device", "spmd"), help="per_device (default; "
                    "results bitwise independent of the device count) or spmd (one shard_map "
                    "program)")
+    dist = p.add_argument_group("several hosts (run the same command on every host)")
+    dist.add_argument("--distributed", action="store_true", help="call "
+                      "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
+                      "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
+    dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
+                      "(implies --distributed)")
+    dist.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
+    dist.add_argument("--process-id", type=int, metavar="I", help="this process's index")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     p.add_argument("--print-config", action="store_true",
@@ -177,6 +185,10 @@ def sweep_toml(settings, setup) -> str:
 def run(args) -> int:
     import jax
 
+    if args.distributed or args.coordinator:
+        # before anything touches a JAX backend
+        jax.distributed.initialize(coordinator_address=args.coordinator,
+                                   num_processes=args.num_processes, process_id=args.process_id)
     from dscjax import params, sweep
     from dscjax.simulate import _window, simulate
 
