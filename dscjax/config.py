@@ -91,6 +91,65 @@ def to_dict(setup: Setup, options: SimOptions | None = None) -> dict[str, Any]:
     return d
 
 
+# One line per key of the printed config: meaning, equation, allowed range.
+DOCS: dict[str, str] = {
+    "simulation.t_final": "horizon T [s] (the paper does not give it)",
+    "simulation.dt": "RK4 step [s]; dt/min(tau) <= 2.785",
+    "simulation.save_every": "keep every k-th step in trajectory.npz (metrics use every step)",
+    "simulation.window_start": "t0 [s] of the windowed metrics on [t0, T] (default 1 s)",
+    "simulation.state_bound": "a state beyond this magnitude counts as divergence",
+    "simulation.dtype": "float64 or float32",
+    "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
+    "plant.g": "g_i > 0, eq. (1) (unknown to the controller)",
+    "plant.theta": "theta_i, eq. (1) (unknown to the controller)",
+    "plant.x0": "initial state x(0)",
+    "plant.rho1": "rho_1 = rho1 (known bound of |Delta_1|)",
+    "plant.rho2": "rho_2 = rho2 (x_1^2 + x_2^2)",
+    "plant.delta1": "Delta_1 = delta1 sin(x_2)",
+    "plant.delta2": "Delta_2 = delta2 (x_1^2 + x_2^2) sin^3(delta_freq t)",
+    "plant.delta_freq": "frequency of the sin^3 factor of Delta",
+    "plant.dbar_amp": "disturbance dbar = dbar_amp sin(dbar_freq t) + dbar_bias",
+    "plant.f_quad": "f_i += f_quad_i x_i^2",
+    "plant.f_sin": "f_i += f_sin_i sin(x_i)",
+    "plant.f_cross": "f_i += f_cross_i x_(i-1) x_i",
+    "plant.rho_const": "rho_i = rho_const_i + rho_quad_i (x_1^2 + ... + x_i^2)",
+    "plant.delta_sin": "Delta_i += delta_sin_i sin(x_(i+1))",
+    "plant.delta_quad": "Delta_i += delta_quad_i (x_1^2 + ... + x_i^2) sin^3(delta_freq t)",
+    "hysteresis.model": "backlash: w' = alpha |u'| (lam u - w) + psi u', eq. (4)",
+    "hysteresis.alpha": "alpha > 0",
+    "hysteresis.lam": "lambda > psi",
+    "hysteresis.psi": "psi",
+    "hysteresis.w0": "w(0) (not given in the paper)",
+    "hysteresis.smooth_delta": "width of the smooth |u'| when smooth = true",
+    "hysteresis.smooth": "replace |u'| by sqrt(u'^2 + delta^2) - delta",
+    "controller.kind": "dsc (Section 2) or backstepping (baseline)",
+    "controller.k": "gains k_1..k_n > 0, eqs. (16), (22), (30)",
+    "controller.tau": "filter time constants tau_2..tau_n > 0, eqs. (18), (24)",
+    "controller.c": "surface offsets c_2..c_n, eqs. (19), (25)",
+    "controller.gamma_g": "adaptation rates gamma_g1..gamma_gn > 0, eqs. (17), (23), (31)",
+    "controller.eta": "leakages eta_1..eta_n >= 0, eqs. (17), (23), (31)",
+    "controller.gamma_phi": "adaptation rates gamma_phi1..gamma_phi(n-1) > 0",
+    "controller.sigma": "leakages sigma_1..sigma_(n-1) >= 0",
+    "controller.gamma_zeta": "adaptation rate of zeta_hat > 0, eq. (29)",
+    "controller.eta_zeta": "leakage of zeta_hat >= 0, eq. (29)",
+    "controller.gamma_d": "adaptation rate of d_hat > 0, eq. (32)",
+    "controller.eta_d": "leakage of d_hat >= 0, eq. (32)",
+    "controller.eps": "epsilon > 0 of the rho^2/(2 eps) terms",
+    "controller.g_min": "known lower bound of g_i (Assumption 4)",
+    "controller.theta_hat0": "initial theta_hat_g1..theta_hat_g(n-1), theta_hat_n",
+    "controller.phi_hat0": "initial phi_hat_1..phi_hat_(n-1)",
+    "controller.zeta_hat0": "initial zeta_hat",
+    "controller.d_hat0": "initial d_hat",
+    "controller.sat_width": "sgn(S_n) -> sat(S_n / sat_width)",
+    "controller.smooth_delta": "corner width of the smooth saturation (robust_term = smooth)",
+    "controller.linf_decay_time": "decay time [s] of the y_r offset of init = linf",
+    "controller.variant": "full | no_dhat | no_dhat_no_zeta (no hysteresis compensation)",
+    "controller.robust_term": "sat | sgn | smooth",
+    "controller.init": "paper | linf (eqs. 67-68) | zero_surfaces",
+    "reference.kind": "sine | smooth_step | multisine",
+}
+
+
 def _toml_value(v) -> str:
     if isinstance(v, bool):
         return "true" if v else "false"
@@ -108,10 +167,14 @@ def _toml_value(v) -> str:
 
 
 def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
+    """TOML text of a config dict, each key with its one-line description from DOCS."""
     lines = [f"# {line}" for line in header.splitlines()]
     for section, table in d.items():
         lines += ["", f"[{section}]"] if lines else [f"[{section}]"]
-        lines += [f"{k} = {_toml_value(v)}" for k, v in table.items()]
+        for k, v in table.items():
+            line = f"{k} = {_toml_value(v)}"
+            doc = DOCS.get(f"{section}.{k}")
+            lines.append(f"{line:<38s} # {doc}" if doc else line)
     return "\n".join(lines) + "\n"
 
 
