@@ -1,0 +1,255 @@
+"""The "explosion of complexity", measured: size and cost of the control law against the order n.
+
+The paper's case for the DSC (Introduction, Remark 4, Remark 6) is that backstepping's control
+law grows explosively with the order because every virtual control must be differentiated, while
+the DSC's filters keep it simple. The paper never measures this. Here both laws are built by the
+same code for one family of plants (`order_n_example(n)`: nonlinear f_i and rho_i of every stage)
+and measured as compiled programs:
+
+- eqns: equations in the jaxpr of the control law (sub-jaxprs inlined and counted);
+- flops: floating-point operations of the compiled law, from XLA's cost analysis (after XLA's
+  simplification and common-subexpression elimination, so smaller than the jaxpr suggests);
+- trace_s: time to trace the law to a jaxpr (Python, including the nested differentiation);
+- compile_s: XLA lowering and compilation time; build_s = trace + compile, the JIT time a
+  user waits for;
+- eval_s: time per evaluation, measured inside one compiled loop of evaluations (so the
+  microseconds of Python dispatch per call do not hide the law's own cost), which is how a
+  simulation evaluates the law;
+- call_s: wall time of one call of the compiled law from Python (dispatch included).
+
+Timings are medians over `repeats` fresh builds (new function objects, so no cache is reused).
+The law measured is what the closed loop needs: (u, info), i.e. u and every signal the adaptive
+laws read, at the example's initial closed-loop state.
+
+Growth is fitted by least squares on log(value): `ratio_per_order` = exp(slope of log v against
+n) (geometric growth, v ~ r^n) and `exponent` = slope of log v against log n (power law,
+v ~ n^p). Both are reported for both controllers; which model fits is visible from `r2`.
+"""
+
+from __future__ import annotations
+
+import statistics
+import time
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+CONTROLLERS = ("dsc", "backstepping")
+
+
+def law_setup(controller: str, n: int):
+    """The prepared order-n example with the given controller ("dsc" or "backstepping")."""
+    from dscjax.closed_loop import prepared
+    from dscjax.controllers.backstepping import with_backstepping
+    from dscjax.examples import order_n_example
+
+    setup = order_n_example(n, dtype=jnp.float64)
+    if controller == "backstepping":
+        setup = with_backstepping(setup)
+    elif controller != "dsc":
+        raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
+    return prepared(setup)
+
+
+def law_function(setup) -> tuple[Callable, tuple]:
+    """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it at.
+
+    For backstepping the function without the inner jit (`plain_law`) is used, so tracing is
+    measured in full every time.
+    """
+    from dscjax.closed_loop import initial_state
+
+    ctrl, plant, ref = setup.controller, setup.plant, setup.reference
+    impl = getattr(ctrl, "plain_law", ctrl.law)
+
+    def law(state, x, t):
+        return impl(state, x, t, plant, ref)
+
+    X = initial_state(setup)
+    return law, (X.ctrl, X.x, jnp.zeros((), X.x.dtype))
+
+
+def count_eqns(jaxpr) -> int:
+    """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
+    total = 0
+    for eqn in jaxpr.eqns:
+        subs = [_as_jaxpr(p) for value in eqn.params.values()
+                for p in (value if isinstance(value, list | tuple) else (value,))]
+        subs = [s for s in subs if s is not None]
+        total += sum(count_eqns(s) for s in subs) if subs else 1
+    return total
+
+
+def _as_jaxpr(p):
+    if hasattr(p, "eqns"):
+        return p
+    inner = getattr(p, "jaxpr", None)
+    return inner if hasattr(inner, "eqns") else None
+
+
+def _flops(compiled) -> float:
+    cost = compiled.cost_analysis()
+    if isinstance(cost, list | tuple):
+        cost = cost[0] if cost else {}
+    return float(cost.get("flops", float("nan"))) if cost else float("nan")
+
+
+def _eval_loop(law):
+    """A jitted loop of k law evaluations at moving (x, t), k traced; returns a checksum.
+
+    Every output leaf is summed so that XLA cannot drop what the closed loop would use, and
+    the outputs pass an optimisation barrier, as the law's outputs do in the closed loop
+    (`closed_loop.vector_field`).
+    """
+
+    def run(state, x, t0, k):
+        def body(i, acc):
+            t = t0 + i * 1e-3
+            out = jax.lax.optimization_barrier(law(state, x + 1e-3 * t, t))
+            return acc + sum(jnp.sum(leaf) for leaf in jax.tree.leaves(out))
+
+        return jax.lax.fori_loop(jnp.zeros((), k.dtype), k, body, jnp.zeros((), x.dtype))
+
+    return jax.jit(run)
+
+
+def _median_time(fn, runs: int) -> float:
+    times = []
+    for _ in range(runs):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
+            eval_budget_s: float = 0.25) -> dict:
+    """Size and cost of one control law (see the module docstring for the fields).
+
+    The in-loop evaluation count is `evals`, reduced so that one timing loop takes about
+    `eval_budget_s` (at least 10 evaluations) when the law is slow.
+    """
+    setup = law_setup(controller, n)
+    trace_s, compile_s, eqns, flops = [], [], None, None
+    for _ in range(repeats):
+        law, args = law_function(setup)  # a new function object: nothing cached
+        t0 = time.perf_counter()
+        closed = jax.make_jaxpr(law)(*args)
+        t1 = time.perf_counter()
+        compiled = jax.jit(law).trace(*args).lower().compile()
+        t2 = time.perf_counter()
+        eqns = count_eqns(closed.jaxpr)
+        flops = _flops(compiled)
+        trace_s.append(t1 - t0)
+        compile_s.append(t2 - t1)
+    jax.block_until_ready(compiled(*args))
+    call_s = _median_time(lambda: compiled(*args), 21)
+    loop = _eval_loop(law_function(setup)[0])
+    count = jnp.asarray(10)
+    jax.block_until_ready(loop(*args, count))
+    per = _median_time(lambda: loop(*args, count), 3) / 10
+    k = int(np.clip(eval_budget_s / max(per, 1e-12), 10, evals))
+    count = jnp.asarray(k)
+    eval_s = _median_time(lambda: loop(*args, count), max(repeats, 5)) / k
+    build_s = [a + b for a, b in zip(trace_s, compile_s, strict=True)]
+    return dict(controller=controller, n=n, eqns=eqns, flops=flops,
+                trace_s=statistics.median(trace_s), compile_s=statistics.median(compile_s),
+                build_s=statistics.median(build_s), eval_s=eval_s, call_s=call_s,
+                repeats=repeats, evals=k)
+
+
+def fit_growth(ns: Sequence[int], values: Sequence[float]) -> dict:
+    """Least-squares growth of positive values against the order n (module docstring)."""
+    n = np.asarray(ns, float)
+    v = np.asarray(values, float)
+    ok = np.isfinite(v) & (v > 0)
+    n, logv = n[ok], np.log(v[ok])
+    if n.size < 2:
+        return dict(ratio_per_order=None, r2_geometric=None, exponent=None, r2_power=None)
+
+    def fit(xs):
+        slope, icept = np.polyfit(xs, logv, 1)
+        resid = logv - (slope * xs + icept)
+        ss = np.sum((logv - logv.mean()) ** 2)
+        return float(slope), float(1.0 - np.sum(resid**2) / ss) if ss > 0 else 1.0
+
+    slope_n, r2_n = fit(n)
+    slope_log, r2_log = fit(np.log(n))
+    return dict(ratio_per_order=float(np.exp(slope_n)), r2_geometric=r2_n,
+                exponent=slope_log, r2_power=r2_log)
+
+
+METRICS = ("eqns", "flops", "trace_s", "compile_s", "build_s", "eval_s", "call_s")
+
+
+def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: int = 2000,
+          controllers: Sequence[str] = CONTROLLERS,
+          log: Callable[[str], None] | None = print) -> dict:
+    """Measure every controller at every order; returns rows, fits and the machine context."""
+    rows = []
+    t_start = time.perf_counter()
+    for n in orders:
+        for c in controllers:
+            row = measure(c, n, repeats=repeats, evals=evals)
+            rows.append(row)
+            if log:
+                log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, {row['flops']:>9.0f} "
+                    f"flops, trace {row['trace_s']:.3g} s, compile {row['compile_s']:.3g} s, "
+                    f"eval {row['eval_s'] * 1e6:.3g} us (call {row['call_s'] * 1e6:.3g} us)  "
+                    f"[{time.perf_counter() - t_start:.0f} s]")
+    fits = {}
+    for c in controllers:
+        mine = [r for r in rows if r["controller"] == c]
+        fits[c] = {m: fit_growth([r["n"] for r in mine], [r[m] for r in mine]) for m in METRICS}
+    return dict(rows=rows, fits=fits, orders=list(orders), repeats=repeats, evals=evals,
+                plant="dscjax.order_n_example(n): f_i = 0.2 x_i^2 + 0.2 sin x_i + 0.05 x_(i-1) "
+                      "x_i, rho_i = 0.05 + 0.02 (x_1^2 + ... + x_i^2)",
+                jax_version=jax.__version__, backend=jax.default_backend(),
+                wall_time_s=time.perf_counter() - t_start)
+
+
+def growth_label(fit: dict) -> str:
+    """": x3.1 per order" or ": ~ n^1.0", whichever model fits log(value) better."""
+    if not fit.get("ratio_per_order"):
+        return ""
+    if fit["r2_geometric"] >= fit["r2_power"]:
+        return f": x{fit['ratio_per_order']:.2f} per order"
+    return f": ~ $n^{{{fit['exponent']:.2f}}}$"
+
+
+LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)",
+          "trace_s": "trace time [s]", "compile_s": "XLA compile time [s]",
+          "build_s": "JIT time: trace + compile [s]",
+          "eval_s": "time per evaluation in a loop [s]",
+          "call_s": "time per call from Python [s]"}
+
+
+def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
+    """Log-scale panels of every metric against n, one line per controller, fitted growth in
+    the legend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
+    names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
+    panels = ("eqns", "flops", "build_s", "eval_s")
+    fig, axes = plt.subplots(2, 2, figsize=(9, 6.4), constrained_layout=True)
+    for ax, metric in zip(axes.ravel(), panels, strict=True):
+        for c in result["fits"]:
+            rows = [r for r in result["rows"] if r["controller"] == c]
+            ns = [r["n"] for r in rows]
+            ys = [r[metric] for r in rows]
+            label = names.get(c, c) + growth_label(result["fits"][c][metric])
+            ax.semilogy(ns, ys, "o-", color=colors.get(c), lw=1.5, ms=4, label=label)
+        ax.set_xlabel("plant order $n$")
+        ax.set_ylabel(LABELS[metric])
+        ax.set_xticks(result["orders"])
+        ax.grid(alpha=0.3, which="both")
+        ax.legend(fontsize=8, loc="upper left")
+    fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
