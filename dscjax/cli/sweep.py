@@ -264,7 +264,7 @@ def run(args) -> int:
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
                                 ranges_params=[r.param for r in ranges])
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
-    check = _recheck(trajs, records, settings.dtype)
+    check = _recheck(trajs, records)
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
                          "max_rel_diff_resimulated_vs_sweep": check}
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
@@ -306,15 +306,20 @@ def _save_every(n_steps: int) -> int:
     return every
 
 
-def _recheck(trajs, records, dtype) -> float | None:
-    """Largest relative difference between the re-simulated and the swept metrics."""
-    worst = 0.0
-    for tr, rec in zip(trajs, records, strict=True):
-        for m, v in rec["metrics"].items():
-            a = float(tr.metrics[m])
+def _recheck(trajs, records) -> dict[str, float] | None:
+    """Per metric, the largest relative difference between the re-simulated and the swept
+    values (float64: round-off; float32: a few sensitive plants amplify rounding)."""
+    if not trajs:
+        return None
+    out = {}
+    for m in records[0]["metrics"]:
+        worst = 0.0
+        for tr, rec in zip(trajs, records, strict=True):
+            a, v = float(tr.metrics[m]), rec["metrics"][m]
             if np.isfinite(a) and np.isfinite(v):
                 worst = max(worst, abs(a - v) / max(abs(v), 1e-30))
-    return worst if trajs else None
+        out[m] = worst
+    return out
 
 
 def _write_traces(path, trajs, records, kinds, nominal):
