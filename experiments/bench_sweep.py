@@ -108,7 +108,7 @@ def bench_scipy(n_plants, horizon):
                 equivalent_steps_per_s=horizon / DT / t_med)
 
 
-def _rss_run(args):
+def _rss_run(args, host_devices=1):
     """`dscjax ARGS` in a fresh process: wall time, the time inside main(), and the child's
     own peak RSS (MiB)."""
     code = textwrap.dedent(f"""
@@ -121,8 +121,12 @@ def _rss_run(args):
               file=sys.stderr)
         sys.exit(rc)
     """)
+    env = dict(os.environ)
+    if host_devices > 1:
+        env["XLA_FLAGS"] = (env.get("XLA_FLAGS", "") + " --xla_force_host_platform_device_count="
+                            f"{host_devices}").strip()
     t0 = time.perf_counter()
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     wall = time.perf_counter() - t0
     line = [ln for ln in proc.stderr.splitlines() if ln.startswith("BENCH")]
     if proc.returncode != 0 or not line:
@@ -131,13 +135,13 @@ def _rss_run(args):
     return wall, float(inner_wall), float(rss), proc.stderr
 
 
-def bench_end_to_end(samples, horizon, repeats, tmp):
+def bench_end_to_end(samples, horizon, repeats, tmp, host_devices=1):
     rows = []
     for i in range(repeats):
         out = Path(tmp) / f"e2e_{samples}_{horizon:g}_{i}"
         wall, inner, rss, err = _rss_run(
             ["sweep", "--samples", str(samples), "--t-final", str(horizon), "--out", str(out),
-             "--quiet", "--overwrite"])
+             "--quiet", "--overwrite"], host_devices)
         summary = json.loads((out / "summary.json").read_text())
         rows.append(dict(wall_s=wall, main_s=inner, sweep_s=summary["run"]["wall_s"],
                          sweep_steps_per_s=summary["run"]["steps_per_s"], peak_rss_mib=rss,
@@ -147,7 +151,8 @@ def bench_end_to_end(samples, horizon, repeats, tmp):
               f"sweep loop {summary['run']['wall_s']:.1f} s), peak RSS {rss:.0f} MiB",
               flush=True)
     med = {k: float(np.median([r[k] for r in rows])) for k in rows[0]}
-    return dict(samples=samples, horizon=horizon, runs=rows, median=med)
+    return dict(samples=samples, horizon=horizon, host_devices=host_devices, runs=rows,
+                median=med)
 
 
 def bench_devices(horizon, samples=64, chunk=16):
@@ -215,6 +220,8 @@ def main(argv=None):
     p.add_argument("--out", default=str(ROOT / "results" / "bench_sweep.json"))
     p.add_argument("--repeats", type=int, default=None, help="timed runs per batch size")
     p.add_argument("--e2e-repeats", type=int, default=None, help="end-to-end runs")
+    p.add_argument("--e2e-host-devices", type=int, default=1, metavar="N",
+                   help="end to end with N forced host devices (XLA_FLAGS), e.g. one per core")
     p.add_argument("--skip", nargs="*", default=(), choices=("throughput", "scipy", "e2e",
                                                               "rss", "devices"))
     a = p.parse_args(argv)
@@ -244,7 +251,8 @@ def main(argv=None):
     with tempfile.TemporaryDirectory() as tmp:
         if "e2e" not in a.skip:
             print("end to end (fresh process, compilation included):", flush=True)
-            result["end_to_end"] = bench_end_to_end(e2e_samples, e2e_horizon, e2e_rep, tmp)
+            result["end_to_end"] = bench_end_to_end(e2e_samples, e2e_horizon, e2e_rep, tmp,
+                                                    a.e2e_host_devices)
         if "rss" not in a.skip:
             print(f"peak RSS, T = {rss_horizon:g} s:", flush=True)
             result["rss"] = {str(n): bench_end_to_end(n, rss_horizon, 1, tmp)["median"]

@@ -24,7 +24,7 @@ def add_parser(sub):
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
         description="Simulate many plants with the gains fixed and report how well they track. "
-        "Default: the paper's example and gains, alpha, lam, psi each uniform within +-30 %% of "
+        "Default: the paper's example and gains, alpha, lam, psi each uniform within +-30 % of "
         "the paper's values, 10,000 samples, 20 s at dt = 1e-3, float32, seed 0. Settings may "
         "also come from a [sweep] table in the config (see docs/sweeps.md); the command line "
         "wins.")
