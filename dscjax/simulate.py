@@ -94,11 +94,17 @@ class DivergenceError(RuntimeError):
 
 def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
          unroll: int = DEFAULT_UNROLL, overrides=None,
-         checkpoint_every: int | None = None) -> Trajectory:
+         checkpoint_every: int | None = None, extra=None) -> Trajectory:
     """The pure simulation (not jitted): compose it freely with vmap, grad, checkpoint.
 
     With `overrides` ({path: (B, ...)}), simulates the batch of setups with those leaves
     replaced, stored batch-last inside the loop (see integrate.py).
+
+    `extra` adds running reductions of the caller's own (tuning uses it for its smooth L-inf
+    surrogate and requirement penalties): a pytree (traced leaves) with methods
+    `init(dtype) -> acc` (a pytree of scalars), `update(acc, k, t, y, obs, dt) -> acc` (called
+    at every step k = 0..N, like `metrics.running_update`) and `finalize(acc, t_final) -> dict`,
+    whose entries are added to `metrics`. None (the default) costs nothing.
     """
     dtype = jnp.result_type(setup.plant.x0)
     dt = jnp.asarray(dt, dtype)
@@ -106,25 +112,36 @@ def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_ever
     t_final = jnp.asarray(n_steps, dtype) * dt
 
     def accumulate(acc, k, t, y: State, obs):
-        return m.running_update(acc, k, t, y.x[0] - obs.yr, obs.u, y.w, dt, window_start, n_steps)
+        base = acc if extra is None else acc[0]
+        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, y.w, dt, window_start,
+                                n_steps)
+        return base if extra is None else (base, extra.update(acc[1], k, t, y, obs, dt))
+
+    def acc_init():
+        base = m.running_init(dtype)
+        return base if extra is None else (base, extra.init(dtype))
+
+    def finalize_one(acc, t_end):
+        if extra is None:
+            return m.finalize(acc, t_end)
+        return {**m.finalize(acc[0], t_end), **extra.finalize(acc[1], t_end)}
 
     common = dict(save_every=save_every, accumulate=accumulate, state_bound=jnp.asarray(
         state_bound, dtype), unroll=unroll, checkpoint_every=checkpoint_every)
     if overrides is None:
         setup = prepared(setup)
         y0 = initial_state(setup)
-        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=m.running_init(dtype),
-                        **common)
+        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=acc_init(), **common)
     else:
         shared, batched, rebuild = _split_members(setup, overrides)
         y0 = jax.vmap(lambda b: initial_state(rebuild(shared, b)))(batched)
         n_batch = jax.tree.leaves(overrides)[0].shape[0]
-        acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), m.running_init(dtype))
+        acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), acc_init())
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, **common)
     n_saved = n_steps // save_every + 1
     t = (jnp.arange(n_saved, dtype=jnp.int32) * save_every).astype(dtype) * dt
-    finalize = m.finalize if overrides is None else jax.vmap(m.finalize, in_axes=(0, None))
+    finalize = finalize_one if overrides is None else jax.vmap(finalize_one, in_axes=(0, None))
     if overrides is not None:
         t = jnp.broadcast_to(t, (n_batch, n_saved))
         dt = jnp.broadcast_to(dt, (n_batch,))
