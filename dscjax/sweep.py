@@ -122,7 +122,8 @@ class Range:
 
     def spec(self) -> str:
         """The range as written on the command line."""
-        body = f"{self.rel * 100:g}%" if self.rel is not None else f"{self.low:.10g}:{self.high:.10g}"
+        body = (f"{self.rel * 100:g}%" if self.rel is not None
+                else f"{self.low:.10g}:{self.high:.10g}")
         return f"{self.name}={body}" + (f":{self.num}" if self.num is not None else "")
 
 
@@ -991,5 +992,5 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
 
 __all__ = ["DEFAULT_PATHS", "METRICS", "Param", "Range", "SweepResult", "SweepSettings",
            "auto_chunk", "check_settings", "default_ranges", "format_progress", "parse_range",
-           "rank_diverged", "rank_worst", "run_sweep", "sample_table", "settings_from_dict", "simulate_rows",
-           "summarize", "trace_rows", "write_npz"]
+           "rank_diverged", "rank_worst", "run_sweep", "sample_table", "settings_from_dict",
+           "simulate_rows", "summarize", "trace_rows", "write_npz"]

@@ -228,9 +228,17 @@ def run(args) -> int:
             print(sweep.format_progress(p), file=sys.stderr, flush=True)
             last[0] = now
 
-    result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
-                             state_bound=state_bound, out_dir=out, resume=args.resume,
-                             overwrite=args.overwrite, progress=progress)
+    try:
+        result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
+                                 state_bound=state_bound, out_dir=out, resume=args.resume,
+                                 overwrite=args.overwrite, progress=progress)
+    except KeyboardInterrupt:
+        if main:
+            n_done = len(list((out / "chunks").glob("chunk_*.npz")))
+            print(("\n" if tty else "") + f"dscjax sweep: {n_done} finished block(s) are "
+                  f"kept in {out}/chunks; continue with the same command and --resume",
+                  file=sys.stderr)
+        raise
     if not main:
         return 0
     info = result.info
