@@ -252,7 +252,10 @@ def test_config_sweep_table_and_gains_file(tmp_path, capsys):
         hysteresis.alpha = "20%"
     """))
     gains = tmp_path / "gains.json"
-    gains.write_text(json.dumps({"controller": {"k": [8.0, 0.5]}}))
+    # a whole config, as `dscjax tune` writes it: only its gains count
+    gains.write_text(json.dumps({"controller": {"k": [8.0, 0.5]},
+                                 "simulation": {"t_final": 3.0, "dt": 5e-4},
+                                 "hysteresis": {"alpha": 2.0}}))
     code = cli(["sweep", "--config", str(cfg), "--gains", str(gains), "--print-config"])
     out = capsys.readouterr().out
     assert code == 0
@@ -266,3 +269,7 @@ def test_config_sweep_table_and_gains_file(tmp_path, capsys):
     setup, options, settings = load(args)
     assert options.t_final == 0.5 and settings.seed == 3 and settings.method == "lhs"
     np.testing.assert_array_equal(setup.controller.k, [8.0, 0.5])
+    assert options.dt == 1e-3 and float(setup.hysteresis.alpha) == 1.0
+    gains.write_text(json.dumps({"plant": {"g": [1.0, 1.0]}}))
+    with pytest.raises(dscjax.ConfigError, match="no \\[controller\\] table"):
+        load(args)

@@ -30,8 +30,9 @@ def add_parser(sub):
         "wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [sweep] table")
-    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config with the gains, e.g. "
-                   "gains.json written by `dscjax tune`, laid over --config")
+    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
+                   "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
+                   "tune`; its other sections are ignored")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--samples", type=int, metavar="N", help="number of sampled plants "
                       "(default 10000)")
@@ -98,10 +99,14 @@ def load(args):
         raise ConfigError("'sweep' must be a table ([sweep])")
     setup, options = config.from_dict(raw)
     if args.gains:
+        # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
+        # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.
         gains = _read(args.gains)
-        if "sweep" in gains:
-            raise ConfigError(f"{args.gains}: a gains file may not hold a [sweep] table")
-        setup, options = config.from_dict(gains, base=setup, base_options=options)
+        if not isinstance(gains.get("controller"), dict):
+            raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains "
+                              f"file")
+        setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
+                                    base_options=options)
     settings = settings_from_dict(sweep_table, SweepSettings())
     changes = {}
     if args.grid:
