@@ -55,7 +55,7 @@ def test_summary_fields_are_finite(reproduced):
             "dsc_and_backstepping_track_alike", "dsc_smaller_control_amplitude",
             "signals_bounded", "dsc_removes_explosion_of_complexity"} <= ids
     for c in summary["claims"]:
-        assert isinstance(c["holds"], bool) and c["measured"] and c["paper"]
+        assert isinstance(c["holds"], bool) and c["measured"] and c["paper"] and c["verdict"]
     assert summary["wall_time_s"] > 0
 
 
