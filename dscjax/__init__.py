@@ -8,7 +8,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
 
 from dscjax import metrics, params, stability
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
-from dscjax.controllers import DSC, Controller, DSCState
+from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
 from dscjax.hysteresis import Backlash, closed_form
 from dscjax.integrate import Status, integrate, rk4_step
@@ -27,7 +27,8 @@ from dscjax.validation import ConfigError, validate_setup
 __version__ = "0.1.0"
 
 __all__ = [
-    "Backlash", "ConfigError", "Controller", "CustomPlant", "DSC", "DSCState", "DivergenceError",
+    "Backlash", "Backstepping", "BacksteppingState", "ConfigError", "Controller", "CustomPlant",
+    "DSC", "DSCState", "DivergenceError",
     "InitialOffset", "MultiSine", "Observation", "PaperPlant", "Plant", "Reference", "Setup", "Sine",
     "SmoothStep", "State", "Status", "StrictFeedback", "Trajectory", "cast",
     "check_strict_feedback", "closed_form", "divergence_report", "initial_state", "integrate",
