@@ -1,0 +1,282 @@
+"""The [tuning] table of a config file -> `TuningConfig` (validated, naming the bad field).
+
+    [tuning]
+    params = ["controller.k", "controller.tau", ...]   # tuned; everything else is frozen
+    freeze = ["controller.gamma_g[1]"]                  # elements or leaves left out of params
+    [tuning.bounds]                                     # on values, [lower, upper]
+    "controller.tau" = [0.002, 0.1]
+    [tuning.transforms]                                 # "log" (default) or "linear"
+    [tuning.objective]                                  # weights, u_max bound, smoothness
+    [tuning.optimizer]                                  # optax settings, steps, time limit
+    [tuning.robust]                                     # training batch of plants
+    batch = 8
+    aggregate = "cvar"
+    cvar_level = 0.25
+    [tuning.robust.ranges]                              # same syntax as [sweep.ranges]
+    "hysteresis.alpha" = "30%"
+    [tuning.heldout]                                    # evaluation batch of the report
+    [tuning.requirements.envelope]                      # time-domain requirements
+    b0 = 0.1
+    ...
+
+Unknown keys are errors that name the field; so are bad values.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+from dscjax.validation import ConfigError
+from tuning.objective import AGGREGATES, ObjectiveSpec
+from tuning.optimize import OptimizerSpec
+from tuning.params import DSC_GAINS
+
+METHODS = ("uniform", "lhs")
+
+
+def _default_ranges():
+    from dscjax.sweep import default_ranges
+
+    return default_ranges()
+
+
+@dataclasses.dataclass(frozen=True)
+class BatchSpec:
+    """A batch of plants drawn from ranges with a seed ([tuning.robust] or [tuning.heldout]).
+
+    batch = 0 means the nominal plant only (no sampling). The default ranges are alpha, lam
+    and psi of the hysteresis each within +-30 % of the setup's values.
+    """
+
+    batch: int = 0
+    seed: int = 0
+    method: str = "uniform"
+    ranges: tuple = dataclasses.field(default_factory=_default_ranges)
+    aggregate: str = "mean"
+    cvar_level: float = 0.2
+
+    def validate(self, field: str) -> None:
+        if isinstance(self.batch, bool) or not isinstance(self.batch, int) or self.batch < 0:
+            raise ConfigError(f"{field}.batch must be an integer >= 0 (got {self.batch!r})")
+        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
+            raise ConfigError(f"{field}.seed must be an integer >= 0 (got {self.seed!r})")
+        if self.method not in METHODS:
+            raise ConfigError(f"{field}.method must be one of {', '.join(map(repr, METHODS))} "
+                              f"(got {self.method!r})")
+        if self.aggregate not in AGGREGATES:
+            raise ConfigError(f"{field}.aggregate must be one of "
+                              f"{', '.join(map(repr, AGGREGATES))} (got {self.aggregate!r})")
+        lv = self.cvar_level
+        if isinstance(lv, bool) or not isinstance(lv, int | float) or not (0 < lv <= 1):
+            raise ConfigError(f"{field}.cvar_level must be in (0, 1] (got {lv!r}); 1 is the "
+                              f"mean, small levels average only the worst plants")
+
+
+@dataclasses.dataclass(frozen=True)
+class TuningConfig:
+    """Everything `dscjax tune` needs beyond the Setup and [simulation]."""
+
+    params: tuple[str, ...] = DSC_GAINS
+    freeze: tuple[str, ...] | None = None  # None: the default for the plant (see `freeze_for`)
+    bounds: Mapping[str, Any] = dataclasses.field(default_factory=dict)
+    transforms: Mapping[str, str] = dataclasses.field(default_factory=dict)
+    objective: ObjectiveSpec = ObjectiveSpec()
+    optimizer: OptimizerSpec = OptimizerSpec()
+    robust: BatchSpec = BatchSpec()
+    heldout: BatchSpec = BatchSpec(batch=256, seed=12345)
+    requirements: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
+
+    def validate(self) -> None:
+        self.objective.validate()
+        self.optimizer.validate()
+        self.robust.validate("tuning.robust")
+        self.heldout.validate("tuning.heldout")
+
+
+TOP_KEYS = ("params", "freeze", "bounds", "transforms", "objective", "optimizer", "robust",
+            "heldout", "requirements")
+REQUIREMENT_KEYS = {
+    "envelope": ("b0", "b_inf", "decay", "weight"),
+    "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
+    "u_bound": ("max", "weight"),
+    "u_rate": ("max", "weight"),
+}
+REQUIRED = {"envelope": ("b0", "b_inf", "decay"), "step": (), "u_bound": ("max",),
+            "u_rate": ("max",)}
+
+
+def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:
+    """The [tuning] table laid over `base` (default: `TuningConfig()`)."""
+    from dscjax.sweep import _flatten
+
+    cfg = base or TuningConfig()
+    if not isinstance(table, Mapping):
+        raise ConfigError("'tuning' must be a table ([tuning])")
+    _known(table, TOP_KEYS, "tuning")
+    changes: dict[str, Any] = {}
+    for key in ("params", "freeze"):
+        if key in table:
+            v = table[key]
+            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
+                raise ConfigError(f"tuning.{key} must be a list of parameter paths (got {v!r})")
+            changes[key] = tuple(v)
+    for key in ("bounds", "transforms"):
+        if key in table:
+            sub = _table(table[key], f"tuning.{key}")
+            changes[key] = dict(_flatten(sub))
+    if "objective" in table:
+        changes["objective"] = _spec(cfg.objective, table["objective"], "tuning.objective",
+                                     _objective_value)
+    if "optimizer" in table:
+        changes["optimizer"] = _spec(cfg.optimizer, table["optimizer"], "tuning.optimizer",
+                                     _optimizer_value)
+    for key in ("robust", "heldout"):
+        if key in table:
+            changes[key] = _batch(getattr(cfg, key), table[key], f"tuning.{key}")
+    if "requirements" in table:
+        changes["requirements"] = _requirements(table["requirements"])
+    cfg = dataclasses.replace(cfg, **changes)
+    cfg.validate()
+    return cfg
+
+
+def _known(table, allowed, field):
+    for key in table:
+        if key not in allowed:
+            raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
+
+
+def _table(v, field):
+    if not isinstance(v, Mapping):
+        raise ConfigError(f"{field} must be a table ([{field}])")
+    return v
+
+
+def _number(v, field):
+    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
+        raise ConfigError(f"{field} must be a number (got {v!r})")
+    return float(v)
+
+
+def _objective_value(name, v, field):
+    if name == "u_max":
+        if isinstance(v, str):
+            if v.lower() == "none":
+                return None
+            if v == "start":
+                return v
+            raise ConfigError(f"{field} must be a number > 0, \"start\" or \"none\" (got {v!r})")
+        return _number(v, field)
+    return _number(v, field)
+
+
+def _optimizer_value(name, v, field):
+    if name in ("name", "schedule", "gradient"):
+        if not isinstance(v, str):
+            raise ConfigError(f"{field} must be a string (got {v!r})")
+        return v
+    if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
+                "decay_steps"):
+        if isinstance(v, bool) or not isinstance(v, int):
+            raise ConfigError(f"{field} must be an integer (got {v!r})")
+        return v
+    if name in ("clip_norm", "time_limit") and isinstance(v, str) and v.lower() == "none":
+        return None
+    return _number(v, field)
+
+
+def _spec(base, table, field, convert):
+    table = _table(table, field)
+    names = [f.name for f in dataclasses.fields(base)]
+    _known(table, names, field)
+    return dataclasses.replace(base, **{k: convert(k, v, f"{field}.{k}")
+                                        for k, v in table.items()})
+
+
+def _batch(base: BatchSpec, table, field) -> BatchSpec:
+    from dscjax.sweep import Param, _flatten, _range_from_value
+
+    table = _table(table, field)
+    _known(table, [f.name for f in dataclasses.fields(BatchSpec)], field)
+    changes = {}
+    for k, v in table.items():
+        if k == "ranges":
+            sub = _flatten(_table(v, f"{field}.ranges"))
+            if not sub:
+                raise ConfigError(f"{field}.ranges is empty")
+            changes[k] = tuple(_range_from_value(Param.parse(name, f"{field}.ranges"), value,
+                                                 False, f"{field}.ranges.{name}")
+                               for name, value in sub.items())
+        elif k in ("batch", "seed"):
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ConfigError(f"{field}.{k} must be an integer (got {v!r})")
+            changes[k] = v
+        elif k in ("method", "aggregate"):
+            if not isinstance(v, str):
+                raise ConfigError(f"{field}.{k} must be a string (got {v!r})")
+            changes[k] = v
+        else:
+            changes[k] = _number(v, f"{field}.{k}")
+    return dataclasses.replace(base, **changes)
+
+
+def _requirements(table) -> dict[str, dict[str, float]]:
+    table = _table(table, "tuning.requirements")
+    _known(table, tuple(REQUIREMENT_KEYS), "tuning.requirements")
+    out = {}
+    for name, sub in table.items():
+        field = f"tuning.requirements.{name}"
+        sub = _table(sub, field)
+        _known(sub, REQUIREMENT_KEYS[name], field)
+        for key in REQUIRED[name]:
+            if key not in sub:
+                raise ConfigError(f"{field}.{key} is required")
+        values = {k: _number(v, f"{field}.{k}") for k, v in sub.items()}
+        for k, v in values.items():
+            if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
+                raise ConfigError(f"{field}.{k} must be > 0 (got {v:g})")
+            if k in ("weight", "overshoot") and v < 0:
+                raise ConfigError(f"{field}.{k} must be >= 0 (got {v:g})")
+        out[name] = values
+    return out
+
+
+def to_toml(cfg: TuningConfig, setup=None) -> str:
+    """The effective [tuning] table as TOML (ranges resolved against `setup` if given)."""
+    from dscjax.config import _toml_value
+
+    def val(v):
+        if v is None:
+            return '"none"'
+        return _toml_value(list(v) if isinstance(v, tuple) else v)
+
+    lines = ["[tuning]", f"params = {val(cfg.params)}"]
+    if cfg.freeze is not None:
+        lines.append(f"freeze = {val(cfg.freeze)}")
+    for key in ("bounds", "transforms"):
+        d = getattr(cfg, key)
+        if d:
+            lines += ["", f"[tuning.{key}]"]
+            lines += [f'"{k}" = {val(list(v) if isinstance(v, list | tuple) else v)}'
+                      for k, v in d.items()]
+    for key in ("objective", "optimizer"):
+        spec = getattr(cfg, key)
+        lines += ["", f"[tuning.{key}]"]
+        lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)]
+    for key in ("robust", "heldout"):
+        spec = getattr(cfg, key)
+        lines += ["", f"[tuning.{key}]"]
+        lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)
+                  if f.name != "ranges"]
+        lines += ["", f"[tuning.{key}.ranges]"]
+        for r in spec.ranges:
+            r = r.resolve(setup) if setup is not None else r
+            body = f'"{r.rel * 100:g}%"' if r.rel is not None else val([r.low, r.high])
+            lines.append(f'"{r.name}" = {body}')
+    for name, values in cfg.requirements.items():
+        lines += ["", f"[tuning.requirements.{name}]"]
+        lines += [f"{k} = {val(v)}" for k, v in values.items()]
+    return "\n".join(lines) + "\n"

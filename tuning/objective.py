@@ -1,0 +1,344 @@
+"""The tuning objective: a weighted sum of normalised tracking, effort and penalty terms per
+plant, aggregated over a batch of plants, as one pure, differentiable function of the tuned
+coordinates z.
+
+Per plant (window W = [t0, T], every RK4 step, see `TuningMetrics`):
+
+    J = w_linf  Linf~(e on W) / Linf(start)       smooth L-inf surrogate (log-sum-exp)
+      + w_l2    L2(e on W)    / L2(start)
+      + w_effort_l2  L2(u)    / L2(u)(start)
+      + w_effort_max max~|u|  / max|u|(start)
+      + w_u     relu(max~|u| / u_max - 1)^2       hard-ish bound on max|u|
+      + sum of requirement penalties (requirements.py)
+    J = divergence_penalty                        if the trajectory diverged (finite, no NaN)
+
+where "(start)" is the value for the start gains on the nominal plant, so that weights are
+dimensionless and J(start) is about the sum of the active weights. Over a batch of plants the
+loss is the mean, the CVaR at level a (the mean of the worst ceil(a B) values) or the max.
+
+Smooth surrogates (both running log-sum-exp accumulators, stable by a running max):
+
+    Linf~ = (1/s) log( (1/|W|) integral_W exp(s |e|) dt ),   s = sharpness / Linf(start)
+    max~|u| = (1/r) log( sum_k exp(r |u_k|) ),               r = u_sharpness / u_max
+
+Linf~ lies between the mean and the max of |e| on W: its gradient is the softmax-weighted
+gradient of the largest errors (the exact max's gradient goes to one sample only). max~|u|
+is >= max|u| (by at most log(#samples near the peak)/r), so penalising it keeps the exact
+max|u| below the bound.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import params
+from dscjax.closed_loop import Setup
+from dscjax.simulate import _run
+from dscjax.validation import ConfigError
+
+AGGREGATES = ("mean", "cvar", "max")
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class TuningMetrics:
+    """Running reductions tuning needs beyond `dscjax.metrics` (the `extra` of `_run`).
+
+    Attributes:
+        window_start: () t0 of the window [t0, T].
+        e_sharpness: () s of the smooth L-inf (1/units of e).
+        u_sharpness: () r of the smooth max|u| (1/units of u).
+        requirements: tuple of `Requirement`s (their number and kinds are static).
+        n_steps: static, N (for the trapezoid end weights).
+    """
+
+    window_start: jax.Array
+    e_sharpness: jax.Array
+    u_sharpness: jax.Array
+    requirements: tuple = ()
+    n_steps: int = dataclasses.field(default=1, metadata=dict(static=True))
+
+    def init(self, dtype):
+        z = jnp.zeros((), dtype)
+        return {"e_m": z, "e_s": z, "e_w": z, "u_m": z, "u_s": z,
+                "req": tuple(r.init(dtype) for r in self.requirements)}
+
+    def update(self, acc, k, t, y, obs, dt):
+        e = y.x[0] - obs.yr
+        ends = (k == 0) | (k == self.n_steps)
+        w = jnp.where(ends, 0.5 * dt, dt)
+        in_win = t >= self.window_start
+        t_prev = (k - 1).astype(t.dtype) * dt
+        first = in_win & (t_prev < self.window_start)
+        w_win = jnp.where(in_win, jnp.where(first | (k == self.n_steps), 0.5 * dt, dt), 0.0)
+        # Log-sum-exp with a running max m: s = sum w exp(x - m); invariant to the choice of m.
+        xe = self.e_sharpness * jnp.abs(e)
+        me = jnp.where(in_win, jnp.maximum(acc["e_m"], xe), acc["e_m"])
+        se = acc["e_s"] * jnp.exp(acc["e_m"] - me) + w_win * jnp.exp(xe - me)
+        xu = self.u_sharpness * jnp.abs(obs.u)
+        mu = jnp.maximum(acc["u_m"], xu)
+        su = acc["u_s"] * jnp.exp(acc["u_m"] - mu) + jnp.exp(xu - mu)
+        req = tuple(r.update(a, k, t, e, y, obs, w)
+                    for r, a in zip(self.requirements, acc["req"], strict=True))
+        return {"e_m": me, "e_s": se, "e_w": acc["e_w"] + w_win, "u_m": mu, "u_s": su,
+                "req": req}
+
+    def finalize(self, acc, t_final):
+        out = {
+            "smooth_linf_window": (acc["e_m"] + _safe_log(acc["e_s"] / _pos(acc["e_w"])))
+            / self.e_sharpness,
+            "smooth_max_abs_u": (acc["u_m"] + _safe_log(acc["u_s"])) / self.u_sharpness,
+        }
+        for i, (r, a) in enumerate(zip(self.requirements, acc["req"], strict=True)):
+            out[f"req{i}_penalty"] = r.penalty(a, t_final)
+            out |= {f"req{i}_{k}": v for k, v in r.check(a, t_final).items()}
+        return out
+
+
+def _pos(x):
+    return jnp.maximum(x, jnp.finfo(jnp.result_type(x)).tiny)
+
+
+def _safe_log(x):
+    ok = x > 0
+    return jnp.where(ok, jnp.log(jnp.where(ok, x, 1.0)), -jnp.inf)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectiveSpec:
+    """Weights and settings of the per-plant objective (the [tuning.objective] table)."""
+
+    linf: float = 1.0
+    l2: float = 0.0
+    effort_l2: float = 0.0
+    effort_max: float = 0.0
+    u_max: float | str | None = "start"
+    u_max_weight: float = 100.0
+    sharpness: float = 50.0
+    u_sharpness: float = 300.0
+    divergence_penalty: float = 1000.0
+    window_start: float | None = None
+
+    def validate(self, field: str = "tuning.objective") -> None:
+        for name in ("linf", "l2", "effort_l2", "effort_max", "u_max_weight"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
+                raise ConfigError(f"{field}.{name} must be a number >= 0 (got {v!r})")
+        if self.linf + self.l2 + self.effort_l2 + self.effort_max == 0:
+            raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2 or "
+                              f"effort_max > 0)")
+        for name in ("sharpness", "u_sharpness", "divergence_penalty"):
+            v = getattr(self, name)
+            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
+                raise ConfigError(f"{field}.{name} must be a number > 0 (got {v!r})")
+        u = self.u_max
+        if not (u is None or u == "start" or (isinstance(u, int | float) and not isinstance(
+                u, bool) and math.isfinite(u) and u > 0)):
+            raise ConfigError(f"{field}.u_max must be a number > 0, \"start\" (the start gains' "
+                              f"max|u| on the nominal plant) or \"none\" (got {u!r})")
+
+
+@dataclasses.dataclass(frozen=True)
+class SimSpec:
+    """Run settings of every simulation of the objective (static: they fix array sizes)."""
+
+    t_final: float = 20.0
+    dt: float = 1e-3
+    window_start: float = 1.0
+    state_bound: float = 1e6
+    checkpoint_every: int | None = None
+
+    @property
+    def n_steps(self) -> int:
+        return int(round(self.t_final / self.dt))
+
+    @property
+    def save_every(self) -> int:
+        return self.checkpoint_every or self.n_steps
+
+
+@dataclasses.dataclass(frozen=True)
+class Scales:
+    """The start gains' figures on the nominal plant, used to normalise the terms."""
+
+    linf: float
+    l2: float
+    l2_u: float
+    max_u: float
+    u_max: float | None  # the bound on max|u| (None: no bound)
+
+
+def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
+                     overrides: Mapping[str, Any] | None = None,
+                     checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
+    """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
+    ce = checkpoint_every
+    traj = _run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
+                save_every=ce or sim.n_steps, overrides=dict(overrides) if overrides else None,
+                checkpoint_every=ce, extra=extra)
+    return traj.metrics, traj.diverged
+
+
+def extra_for(spec: ObjectiveSpec, scales: Scales, sim: SimSpec, requirements=(),
+              dtype=jnp.float64) -> TuningMetrics:
+    u_ref = scales.u_max if scales.u_max is not None else scales.max_u
+    return TuningMetrics(
+        window_start=jnp.asarray(sim.window_start, dtype),
+        e_sharpness=jnp.asarray(spec.sharpness / scales.linf, dtype),
+        u_sharpness=jnp.asarray(spec.u_sharpness / u_ref, dtype),
+        requirements=tuple(requirements), n_steps=sim.n_steps)
+
+
+def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
+               n_requirements: int) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """J of one plant (or elementwise over a batch) and its weighted terms."""
+    terms = {}
+    if spec.linf:
+        terms["linf"] = spec.linf * metrics["smooth_linf_window"] / scales.linf
+    if spec.l2:
+        terms["l2"] = spec.l2 * metrics["l2_error_window"] / scales.l2
+    if spec.effort_l2:
+        terms["effort_l2"] = spec.effort_l2 * metrics["l2_u"] / scales.l2_u
+    if spec.effort_max:
+        terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
+    if scales.u_max is not None and spec.u_max_weight:
+        terms["u_bound"] = spec.u_max_weight * jnp.maximum(
+            metrics["smooth_max_abs_u"] / scales.u_max - 1.0, 0.0) ** 2
+    for i in range(n_requirements):
+        terms[f"req{i}"] = metrics[f"req{i}_penalty"]
+    total = sum(terms.values())
+    # A diverged plant costs a large constant: finite, so that means and CVaRs stay usable
+    # (a non-finite gradient is the optimiser guard's business, see optimize.py).
+    total = jnp.where(diverged | ~jnp.isfinite(total), spec.divergence_penalty, total)
+    return total, terms
+
+
+def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
+    """Mean, CVaR at `level` (mean of the worst ceil(level B) values) or max over axis 0."""
+    if values.ndim == 0:
+        return values
+    if how == "mean":
+        return jnp.mean(values)
+    if how == "max":
+        return jnp.max(values)
+    if how == "cvar":
+        k = max(1, int(math.ceil(level * values.shape[0] - 1e-9)))
+        return jnp.mean(jax.lax.top_k(values, k)[0])
+    raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
+
+
+def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
+    """Figures of the start gains on the nominal plant (raises if they diverge there)."""
+    metrics, diverged = jax.jit(lambda s: simulate_metrics(s, sim, None))(setup)
+    if bool(diverged):
+        raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
+                          "stable start (revise the gains, dt or tau)")
+    m = {k: float(v) for k, v in metrics.items()}
+    u_max = spec.u_max
+    if u_max == "start":
+        u_max = m["max_abs_u"]
+    for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
+                      ("effort_l2", "l2_u"), ("effort_max", "max_abs_u")):
+        if getattr(spec, name) and not m[key] > 0:
+            raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
+                              f"{m[key]:g}, which cannot normalise the term")
+    tiny = 1e-300
+    return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
+                  l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
+                  u_max=None if u_max is None else float(u_max))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Objective:
+    """loss(z) for a Selection over a fixed setup and (optional) batch of plants.
+
+    Hashable by identity: it is a static argument of the jitted tuning step. Every number in
+    it that changes between runs (setup, batch) is a closed-over constant of that step.
+    """
+
+    setup: Setup
+    selection: Any
+    spec: ObjectiveSpec
+    sim: SimSpec
+    scales: Scales
+    requirements: tuple = ()
+    overrides: Mapping[str, Any] | None = None  # the training batch, {path: (B, ...)}
+    aggregate: str = "mean"
+    cvar_level: float = 1.0
+
+    @property
+    def batch_size(self) -> int:
+        return 1 if not self.overrides else int(np.shape(next(iter(self.overrides.values())))[0])
+
+    def extra(self) -> TuningMetrics:
+        dtype = jnp.result_type(self.setup.plant.x0)
+        return extra_for(self.spec, self.scales, self.sim, self.requirements, dtype)
+
+    def evaluate(self, z, overrides=None, checkpoint_every=None):
+        """(loss, aux) at z; aux has the terms (aggregated as the loss is), the exact metrics
+        and the feasibility of the bounds (all plants)."""
+        setup = self.selection.apply(self.setup, z)
+        ov = self.overrides if overrides is None else overrides
+        metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov,
+                                             checkpoint_every)
+        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
+                                      len(self.requirements))
+        loss = aggregate(per_plant, self.aggregate, self.cvar_level)
+        feasible = ~diverged
+        if self.scales.u_max is not None:
+            feasible = feasible & (metrics["max_abs_u"] <= self.scales.u_max)
+        for i in range(len(self.requirements)):
+            feasible = feasible & (metrics[f"req{i}_met"] > 0)
+        aux = {
+            "terms": {k: aggregate(jnp.where(diverged, 0.0, v), self.aggregate,
+                                   self.cvar_level) for k, v in terms.items()},
+            "linf_window": jnp.max(metrics["linf_error_window"]),
+            "max_abs_u": jnp.max(metrics["max_abs_u"]),
+            "n_diverged": jnp.sum(jnp.asarray(diverged, jnp.int32)),
+            "feasible": jnp.all(feasible),
+        }
+        return loss, aux
+
+    def __call__(self, z):
+        return self.evaluate(z)
+
+    def per_plant(self, z, overrides=None):
+        """Every plant's J, divergence flag and metrics (exact and smooth) at z: leaves of
+        shape (B,) with a batch, () without."""
+        setup = self.selection.apply(self.setup, z)
+        ov = self.overrides if overrides is None else overrides
+        metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov)
+        per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
+                                  len(self.requirements))
+        return {"loss": per_plant, "diverged": diverged, **metrics}
+
+
+def sample_overrides(setup: Setup, ranges, n: int, seed: int, method: str = "uniform"
+                     ) -> dict[str, np.ndarray]:
+    """{path: (n, ...)} plants drawn from `ranges` (dscjax.sweep.Range, resolved) with a seed.
+
+    Element ranges (plant.g[1]) fill one element of a vector leaf, the others keep the
+    setup's values.
+    """
+    from dscjax.sweep import sample_table
+
+    ranges = [r.resolve(setup) for r in ranges]
+    table = sample_table(ranges, method, n, seed)
+    out: dict[str, np.ndarray] = {}
+    for j, r in enumerate(ranges):
+        p = r.param
+        if p.index is None:
+            out[p.path] = table[:, j].copy()
+        else:
+            if p.path not in out:
+                leaf = np.asarray(params.get(setup, p.path), dtype=float)
+                out[p.path] = np.broadcast_to(leaf, (n, *leaf.shape)).copy()
+            out[p.path][:, p.index] = table[:, j]
+    return out

@@ -1,0 +1,264 @@
+"""The optimisation loop: optax (Adam by default), a guard against bad steps, early stopping.
+
+One iteration is ONE jitted call of `tune_step`: the objective, its exact gradient (forward
+or reverse mode) and the optax update, with no host round trip in between. The state is a
+NamedTuple of arrays (`TuneState`), so it checkpoints as plain arrays.
+
+Guard. A step whose loss or gradient is not finite, or at which more plants diverge than at
+the last accepted point, is rejected: the state goes back to the last accepted point, the
+learning rate is multiplied by `shrink` (default 0.5), and a shorter step is taken from there
+with the gradient of that point. Nothing non-finite ever enters the optimiser state, and the
+best point is only ever replaced by a better finite one.
+
+Best point. Points are ranked first by feasibility (no divergence, max|u| within the bound,
+every requirement met, exactly, on all training plants), then by loss. So a run that has
+found a feasible point never returns an infeasible one.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+
+from dscjax.validation import ConfigError
+
+OPTIMIZERS = ("adam", "adamw", "sgd", "lion")
+SCHEDULES = ("constant", "cosine", "exponential")
+GRADIENTS = ("auto", "forward", "reverse")
+# Forward mode costs about one extra pass per tuned scalar, reverse mode a fixed multiple of
+# the forward run (measured, see docs/tuning.md): forward wins below this many scalars.
+FORWARD_MAX_PARAMS = 64
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerSpec:
+    """The [tuning.optimizer] table.
+
+    Attributes:
+        name: "adam" (default), "adamw", "sgd" (with momentum 0.9) or "lion".
+        learning_rate: initial step size, in the units of z (log-space: 0.05 = 5 % per step).
+        schedule: "cosine" (decay to final_lr_fraction over decay_steps), "exponential"
+            (same end point) or "constant".
+        final_lr_fraction: learning rate at the end of the schedule, relative.
+        decay_steps: length of the schedule in accepted steps; default: `steps`.
+        clip_norm: gradient clipping by global norm (None: off).
+        shrink: learning-rate factor applied at every rejected step.
+        regrow: factor applied after every accepted step, up to the schedule's rate (so one
+            bad step early on does not slow the whole run down).
+        max_rejections: stop after this many consecutive rejected steps.
+        patience, min_delta: stop when the best loss has not improved by more than min_delta
+            (relative) for `patience` iterations (0: never).
+        steps: maximum number of iterations (evaluations of loss and gradient).
+        time_limit: stop after this many seconds of wall time in this invocation, compilation
+            included (None: no limit).
+        gradient: "forward" (jvp over a batch of tangents), "reverse" (checkpointed) or "auto".
+        checkpoint_every: segment length in steps of `jax.checkpoint` in reverse mode.
+        save_interval: write the checkpoint files every this many iterations.
+    """
+
+    name: str = "adam"
+    learning_rate: float = 0.1
+    schedule: str = "cosine"
+    final_lr_fraction: float = 0.1
+    decay_steps: int | None = None
+    clip_norm: float | None = 1.0
+    shrink: float = 0.5
+    regrow: float = 1.1
+    max_rejections: int = 20
+    patience: int = 60
+    min_delta: float = 1e-4
+    steps: int = 300
+    time_limit: float | None = 100.0
+    gradient: str = "auto"
+    checkpoint_every: int = 1000
+    save_interval: int = 10
+
+    def validate(self, field: str = "tuning.optimizer") -> None:
+        if self.name not in OPTIMIZERS:
+            raise ConfigError(f"{field}.name must be one of {', '.join(map(repr, OPTIMIZERS))} "
+                              f"(got {self.name!r})")
+        if self.schedule not in SCHEDULES:
+            raise ConfigError(f"{field}.schedule must be one of "
+                              f"{', '.join(map(repr, SCHEDULES))} (got {self.schedule!r})")
+        if self.gradient not in GRADIENTS:
+            raise ConfigError(f"{field}.gradient must be one of "
+                              f"{', '.join(map(repr, GRADIENTS))} (got {self.gradient!r})")
+        _positive(self.learning_rate, f"{field}.learning_rate")
+        if not 0 < self.final_lr_fraction <= 1:
+            raise ConfigError(f"{field}.final_lr_fraction must be in (0, 1] (got "
+                              f"{self.final_lr_fraction!r})")
+        if self.clip_norm is not None:
+            _positive(self.clip_norm, f"{field}.clip_norm")
+        if not 0 < self.shrink < 1:
+            raise ConfigError(f"{field}.shrink must be in (0, 1) (got {self.shrink!r})")
+        if not self.regrow >= 1:
+            raise ConfigError(f"{field}.regrow must be >= 1 (got {self.regrow!r})")
+        for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
+                          ("checkpoint_every", 1), ("save_interval", 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < low:
+                raise ConfigError(f"{field}.{name} must be an integer >= {low} (got {v!r})")
+        if self.decay_steps is not None and (not isinstance(self.decay_steps, int)
+                                             or self.decay_steps < 1):
+            raise ConfigError(f"{field}.decay_steps must be an integer >= 1 (got "
+                              f"{self.decay_steps!r})")
+        if self.min_delta < 0:
+            raise ConfigError(f"{field}.min_delta must be >= 0 (got {self.min_delta!r})")
+        if self.time_limit is not None:
+            _positive(self.time_limit, f"{field}.time_limit")
+
+    def schedule_fn(self):
+        lr, steps = self.learning_rate, self.decay_steps or self.steps
+        if self.schedule == "cosine":
+            return optax.cosine_decay_schedule(lr, steps, alpha=self.final_lr_fraction)
+        if self.schedule == "exponential":
+            return optax.exponential_decay(lr, steps, self.final_lr_fraction)
+        return optax.constant_schedule(lr)
+
+    def make(self) -> optax.GradientTransformation:
+        lr = self.schedule_fn()
+        core = {"adam": lambda: optax.adam(lr), "adamw": lambda: optax.adamw(lr),
+                "sgd": lambda: optax.sgd(lr, momentum=0.9), "lion": lambda: optax.lion(lr)}
+        parts = [optax.clip_by_global_norm(self.clip_norm)] if self.clip_norm else []
+        return optax.chain(*parts, core[self.name]())
+
+
+def _positive(v, field):
+    if isinstance(v, bool) or not isinstance(v, int | float) or not (math.isfinite(v) and v > 0):
+        raise ConfigError(f"{field} must be a number > 0 (got {v!r})")
+
+
+class TuneState(NamedTuple):
+    """Everything the loop carries (all arrays; z-pytrees are {name: value in z-space})."""
+
+    iteration: jax.Array  # () int32: evaluations done so far (accepted + rejected)
+    z: Any  # the point evaluated by the next step
+    opt_state: Any  # optimiser state that produced z
+    good_z: Any  # last accepted point ...
+    good_opt_state: Any  # ... the optimiser state there ...
+    good_grads: Any  # ... and its gradient (a rejected step retries from there)
+    good_n_diverged: jax.Array  # () int32: diverged training plants at the last accepted point
+    lr_scale: jax.Array  # () learning-rate multiplier, shrunk at every rejection
+    n_rejected: jax.Array  # () int32: rejected steps so far
+    streak: jax.Array  # () int32: consecutive rejections
+    best_z: Any  # best point so far (feasible first, then lowest loss)
+    best_loss: jax.Array  # () its loss (+inf before any accepted evaluation)
+    best_feasible: jax.Array  # () bool
+    best_iteration: jax.Array  # () int32, -1 before any
+    stall: jax.Array  # () int32: iterations since the best improved by more than min_delta
+
+
+def init_state(z0, optimizer: optax.GradientTransformation) -> TuneState:
+    dtype = jnp.result_type(*jax.tree.leaves(z0))
+    i32 = functools.partial(jnp.asarray, dtype=jnp.int32)
+    opt_state = optimizer.init(z0)
+    return TuneState(
+        iteration=i32(0), z=z0, opt_state=opt_state, good_z=z0, good_opt_state=opt_state,
+        good_grads=jax.tree.map(jnp.zeros_like, z0), good_n_diverged=i32(2**30),
+        lr_scale=jnp.asarray(1.0, dtype), n_rejected=i32(0), streak=i32(0), best_z=z0,
+        best_loss=jnp.asarray(jnp.inf, dtype), best_feasible=jnp.asarray(False),
+        best_iteration=i32(-1), stall=i32(0))
+
+
+def choose_gradient(mode: str, n_params: int) -> str:
+    if mode != "auto":
+        return mode
+    return "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
+
+
+def value_and_grad(objective, z, mode: str, checkpoint_every: int | None = None):
+    """((loss, aux), grads) of objective.evaluate at z, exactly, in the given AD mode.
+
+    forward: one jvp per tuned scalar, all of them in one pass (jacfwd vmaps the tangents);
+    reverse: one vjp through the scan, with `jax.checkpoint` segments of checkpoint_every
+    steps (memory O(N/L + L) states instead of O(N)).
+    """
+    if mode == "forward":
+        def f(z_):
+            loss, aux = objective.evaluate(z_)
+            return loss, (loss, aux)
+
+        grads, (loss, aux) = jax.jacfwd(f, has_aux=True)(z)
+        return (loss, aux), grads
+    if mode == "reverse":
+        return jax.value_and_grad(
+            lambda z_: objective.evaluate(z_, checkpoint_every=checkpoint_every),
+            has_aux=True)(z)
+    raise ValueError(f"unknown gradient mode {mode!r}")
+
+
+def _finite_tree(tree):
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree.leaves(tree)]))
+
+
+def _where(c, a, b):
+    return jax.tree.map(lambda x, y: jnp.where(c, x, y), a, b)
+
+
+def tune_step(state: TuneState, objective, optimizer: optax.GradientTransformation,
+              project, mode: str, checkpoint_every: int | None, shrink, min_delta,
+              regrow=1.0):
+    """One iteration (pure; jit it whole, see `make_step`). Returns (state, report)."""
+    (loss, aux), grads = value_and_grad(objective, state.z, mode, checkpoint_every)
+    return guarded_update(state, loss, aux, grads, optimizer, project, shrink, min_delta,
+                          regrow)
+
+
+def guarded_update(state: TuneState, loss, aux, grads, optimizer, project, shrink, min_delta,
+                   regrow=1.0):
+    """The guard, best-point bookkeeping and optax update for an evaluation (loss, grads) at
+    state.z (split from `tune_step` so that it can be tested on forced bad values)."""
+    n_div = jnp.asarray(aux["n_diverged"], jnp.int32)
+    ok = jnp.isfinite(loss) & _finite_tree(grads) & (n_div <= state.good_n_diverged)
+    # Accepted: step from z with its gradient. Rejected: from the last accepted point with
+    # its gradient and state, at a smaller learning rate.
+    lr_used = jnp.where(ok, state.lr_scale, state.lr_scale * shrink)
+    z_in = _where(ok, state.z, state.good_z)
+    g_in = _where(ok, grads, state.good_grads)
+    o_in = _where(ok, state.opt_state, state.good_opt_state)
+    updates, opt_new = optimizer.update(g_in, o_in, z_in)
+    z_new = project(jax.tree.map(lambda z, u: z + lr_used * u, z_in, updates))
+
+    feasible = ok & aux["feasible"]
+    better = ok & ((feasible & ~state.best_feasible)
+                   | ((feasible == state.best_feasible) & (loss < state.best_loss)))
+    margin = jnp.where(jnp.isfinite(state.best_loss), min_delta * jnp.abs(state.best_loss), 0.0)
+    improved = better & ((feasible & ~state.best_feasible) | (loss < state.best_loss - margin))
+    new = TuneState(
+        iteration=state.iteration + 1,
+        z=z_new,
+        opt_state=opt_new,
+        good_z=_where(ok, state.z, state.good_z),
+        good_opt_state=_where(ok, state.opt_state, state.good_opt_state),
+        good_grads=_where(ok, grads, state.good_grads),
+        good_n_diverged=jnp.where(ok, n_div, state.good_n_diverged),
+        lr_scale=jnp.where(ok, jnp.minimum(1.0, lr_used * regrow), lr_used),
+        n_rejected=state.n_rejected + (~ok).astype(jnp.int32),
+        streak=jnp.where(ok, 0, state.streak + 1),
+        best_z=_where(better, state.z, state.best_z),
+        best_loss=jnp.where(better, loss, state.best_loss),
+        best_feasible=jnp.where(better, feasible, state.best_feasible),
+        best_iteration=jnp.where(better, state.iteration, state.best_iteration),
+        stall=jnp.where(improved, 0, state.stall + 1),
+    )
+    finite_grads = jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), grads)
+    report = {"loss": loss, "accepted": ok, "feasible": feasible, "lr_scale": lr_used,
+              "grad_norm": optax.tree.norm(finite_grads), **aux}
+    return new, report
+
+
+def make_step(objective, optimizer, selection, mode: str, checkpoint_every: int | None):
+    """The jitted iteration state -> (state, report): loss, gradient and update in one call."""
+
+    @jax.jit
+    def step(state, shrink, min_delta, regrow):
+        return tune_step(state, objective, optimizer, selection.project, mode,
+                         checkpoint_every, shrink, min_delta, regrow)
+
+    return step

@@ -1,0 +1,303 @@
+"""Which numbers of a Setup are tuned, and in which coordinates.
+
+A tuned parameter is a leaf of the Setup addressed by its config path (``controller.k``) or one
+element of a vector leaf (``controller.gamma_g[0]``), the same names `dscjax sweep` uses.
+Everything not selected is frozen. The optimiser works on unconstrained coordinates z:
+
+- ``"log"`` (default for gains, which must stay positive): value = exp(z). A step of the
+  optimiser is then a relative change of the gain, whatever its scale (k_1 = 10 and
+  eps = 0.01 move alike), and positivity can never be lost.
+- ``"linear"`` (for signed numbers such as initial estimates theta_hat0): value = z.
+
+Optional box bounds [lower, upper] are enforced by projecting z onto the box after every step
+(projected gradient descent), so the bounds hold exactly and do not distort the landscape
+inside the box.
+
+    sel = Selection.build(setup, ["controller.k", "controller.tau"],
+                          bounds={"controller.tau": (1e-3, 0.1)})
+    z = sel.init(setup)                 # {"controller.k": log k, "controller.tau": log tau}
+    setup2 = sel.apply(setup, z)        # traced: differentiate through it
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import re
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import params
+from dscjax.validation import ConfigError
+
+TRANSFORMS = ("log", "linear")
+_NAME_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\])?$")
+
+# The design parameters of the DSC (Section 2 of the paper) tuned by default.
+DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
+             "controller.gamma_zeta", "controller.gamma_d", "controller.eta", "controller.sigma",
+             "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
+# Initial estimates: optional ("and optionally the initial estimates"). theta_hat0 is signed.
+DSC_INITIAL_ESTIMATES = ("controller.theta_hat0", "controller.phi_hat0",
+                         "controller.zeta_hat0", "controller.d_hat0")
+SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
+
+
+@dataclasses.dataclass(frozen=True)
+class Tuned:
+    """One tuned number or leaf.
+
+    Attributes:
+        path: config path of the leaf, e.g. "controller.k".
+        index: element of a vector leaf, or None for the whole leaf.
+        transform: "log" or "linear".
+        lower, upper: box bounds on the VALUE (not on z); None for none.
+    """
+
+    path: str
+    index: int | None = None
+    transform: str = "log"
+    lower: float | None = None
+    upper: float | None = None
+
+    @property
+    def name(self) -> str:
+        return self.path if self.index is None else f"{self.path}[{self.index}]"
+
+    def to_z(self, value):
+        return jnp.log(value) if self.transform == "log" else value
+
+    def from_z(self, z):
+        return jnp.exp(z) if self.transform == "log" else z
+
+    def z_bounds(self) -> tuple[float, float]:
+        lo = -math.inf if self.lower is None else self.lower
+        hi = math.inf if self.upper is None else self.upper
+        if self.transform == "log":
+            return (math.log(lo) if lo > 0 else -math.inf, math.log(hi) if hi < math.inf
+                    else math.inf)
+        return lo, hi
+
+
+def parse_name(text: str, field: str = "tuning.params") -> tuple[str, int | None]:
+    m = _NAME_RE.match(str(text).strip())
+    if not m:
+        raise ConfigError(f"{field}: {text!r} is not a parameter path (e.g. 'controller.k' or "
+                          f"'controller.gamma_g[0]')")
+    return m.group(1), None if m.group(2) is None else int(m.group(2))
+
+
+@dataclasses.dataclass(frozen=True)
+class Selection:
+    """An ordered set of tuned parameters (hashable: it is static in the jitted step)."""
+
+    items: tuple[Tuned, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(t.name for t in self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def size(self, setup) -> int:
+        """Number of scalars tuned."""
+        return sum(int(np.size(self._value(setup, t))) for t in self.items)
+
+    # -- construction ------------------------------------------------------------------------
+    @classmethod
+    def build(cls, setup, tune: Sequence[str], freeze: Sequence[str] = (),
+              bounds: Mapping[str, Sequence[float]] | None = None,
+              transforms: Mapping[str, str] | None = None, field: str = "tuning") -> Selection:
+        """Validate the names against the setup and expand frozen elements.
+
+        Args:
+            tune: paths (whole leaves or single elements) to tune.
+            freeze: paths or elements to leave out of `tune` (e.g. "controller.gamma_g[1]").
+            bounds: {name: (lower, upper)} on values; either end may be None. A bound given
+                for a whole leaf applies to each of its tuned elements.
+            transforms: {name: "log" | "linear"}; default "log", except for signed numbers
+                (initial estimates theta_hat0, c, x0, w0), which default to "linear".
+
+        Raises:
+            ConfigError naming the field: unknown path, index out of range, a bound on a
+            parameter that is not tuned, a log-parameter with a non-positive value or bound,
+            lower >= upper, or a start value outside its bounds.
+        """
+        bounds = dict(bounds or {})
+        transforms = dict(transforms or {})
+        order: list[tuple[str, int | None]] = []
+        for text in tune:
+            path, index = parse_name(text, f"{field}.params")
+            value = _get(setup, path, f"{field}.params")
+            _check_index(value, path, index, f"{field}.params")
+            if (path, index) in order:
+                raise ConfigError(f"{field}.params lists {text!r} twice")
+            order.append((path, index))
+        frozen = set()
+        for text in freeze:
+            path, index = parse_name(text, f"{field}.freeze")
+            value = _get(setup, path, f"{field}.freeze")
+            _check_index(value, path, index, f"{field}.freeze")
+            frozen.add((path, index))
+        expanded: list[tuple[str, int | None]] = []
+        for path, index in order:
+            value = np.asarray(params.get(setup, path), dtype=float)
+            if index is None and (path, None) not in frozen:
+                idx = [i for i in range(value.size) if (path, i) in frozen] if value.ndim else []
+                if idx:
+                    expanded += [(path, i) for i in range(value.size) if (path, i) not in frozen]
+                else:
+                    expanded.append((path, None))
+            elif index is not None and (path, index) not in frozen and (path, None) not in frozen:
+                expanded.append((path, index))
+        for key in frozen:
+            if not any(p == key[0] for p, _ in order):
+                name = key[0] if key[1] is None else f"{key[0]}[{key[1]}]"
+                raise ConfigError(f"{field}.freeze: {name!r} is not among the tuned parameters "
+                                  f"({', '.join(_fmt_name(p, i) for p, i in order)})")
+        if not expanded:
+            raise ConfigError(f"{field}: nothing left to tune (every parameter is frozen)")
+        names_tuned = {p for p, _ in order}
+        for text in list(bounds) + list(transforms):
+            path, index = parse_name(text, f"{field}.bounds")
+            if path not in names_tuned:
+                raise ConfigError(f"{field}: {text!r} has a bound or transform but is not tuned "
+                                  f"(add it to {field}.params)")
+        items = []
+        for path, index in expanded:
+            name = _fmt_name(path, index)
+            transform = transforms.get(name, transforms.get(path, "linear" if path in SIGNED
+                                                            else "log"))
+            if transform not in TRANSFORMS:
+                raise ConfigError(f"{field}.transform.{name} must be one of "
+                                  f"{', '.join(map(repr, TRANSFORMS))} (got {transform!r})")
+            lo, hi = _bound_pair(bounds.get(name, bounds.get(path)), f"{field}.bounds.{name}")
+            item = Tuned(path, index, transform, lo, hi)
+            _check_item(item, setup, field)
+            items.append(item)
+        return cls(tuple(items))
+
+    # -- coordinates ---------------------------------------------------------------------------
+    @staticmethod
+    def _value(setup, t: Tuned):
+        value = params.get(setup, t.path)
+        return value if t.index is None else jnp.asarray(value)[t.index]
+
+    def init(self, setup) -> dict[str, jax.Array]:
+        """Unconstrained coordinates z of the setup's current values."""
+        return {t.name: t.to_z(jnp.asarray(self._value(setup, t))) for t in self.items}
+
+    def values(self, z: Mapping[str, Any]) -> dict[str, Any]:
+        """Constrained values by name."""
+        return {t.name: t.from_z(z[t.name]) for t in self.items}
+
+    def apply(self, setup, z: Mapping[str, Any]):
+        """The setup with the tuned numbers taken from z (traceable)."""
+        new: dict[str, Any] = {}
+        for t in self.items:
+            v = t.from_z(z[t.name])
+            if t.index is None:
+                new[t.path] = v
+            else:
+                leaf = new.get(t.path)
+                if leaf is None:
+                    leaf = jnp.asarray(params.get(setup, t.path))
+                new[t.path] = leaf.at[t.index].set(v.astype(leaf.dtype))
+        dtype = jnp.result_type(setup.plant.x0)
+        return params.set_many(setup, {p: jnp.asarray(v, dtype) for p, v in new.items()})
+
+    def project(self, z: Mapping[str, Any]) -> dict[str, Any]:
+        """z clipped onto the box (identity for unbounded parameters)."""
+        out = {}
+        for t in self.items:
+            lo, hi = t.z_bounds()
+            out[t.name] = z[t.name] if (lo, hi) == (-math.inf, math.inf) else jnp.clip(
+                z[t.name], lo, hi)
+        return out
+
+    def describe(self, setup) -> list[str]:
+        rows = []
+        for t in self.items:
+            v = np.asarray(self._value(setup, t), dtype=float)
+            b = "" if t.lower is None and t.upper is None else (
+                f" in [{'-inf' if t.lower is None else f'{t.lower:g}'}, "
+                f"{'inf' if t.upper is None else f'{t.upper:g}'}]")
+            rows.append(f"{t.name} = {np.array2string(v, precision=4)} ({t.transform}{b})")
+        return rows
+
+
+def _fmt_name(path, index):
+    return path if index is None else f"{path}[{index}]"
+
+
+def _get(setup, path, field):
+    try:
+        value = params.get(setup, path)
+    except KeyError:
+        raise ConfigError(f"{field}: unknown parameter {path!r} (the numbers of the setup are: "
+                          f"{', '.join(_all_paths(setup))})") from None
+    leaves = jax.tree.leaves(value)
+    if len(leaves) != 1 or not np.issubdtype(np.asarray(leaves[0]).dtype, np.floating):
+        raise ConfigError(f"{field}: {path!r} is not a number or vector of numbers")
+    return value
+
+
+def _all_paths(setup) -> list[str]:
+    out = []
+    for section in ("plant", "hysteresis", "controller", "reference"):
+        out += [f"{section}.{p}" for p in params.numeric_paths(getattr(setup, section))]
+    return out
+
+
+def _check_index(value, path, index, field):
+    shape = np.shape(value)
+    if index is None:
+        return
+    if len(shape) != 1:
+        raise ConfigError(f"{field}: {path!r} is a scalar; write it without an index")
+    if not 0 <= index < shape[0]:
+        raise ConfigError(f"{field}: index {index} of {path!r} is out of range (it has "
+                          f"{shape[0]} elements, indices 0..{shape[0] - 1})")
+
+
+def _bound_pair(b, field) -> tuple[float | None, float | None]:
+    if b is None:
+        return None, None
+    if not isinstance(b, list | tuple) or len(b) != 2:
+        raise ConfigError(f"{field} must be [lower, upper] (got {b!r})")
+    out = []
+    for x in b:
+        if x is None or (isinstance(x, str) and x.lower() in ("none", "")):
+            out.append(None)
+            continue
+        if isinstance(x, bool) or not isinstance(x, int | float):
+            raise ConfigError(f"{field} must be [lower, upper] with numbers (got {b!r})")
+        out.append(float(x))
+    lo, hi = out
+    if lo is not None and hi is not None and not lo < hi:
+        raise ConfigError(f"{field}: lower must be < upper (got [{lo:g}, {hi:g}])")
+    return lo, hi
+
+
+def _check_item(t: Tuned, setup, field):
+    v = np.asarray(Selection._value(setup, t), dtype=float)
+    where = f"{field}.bounds.{t.name}"
+    if t.transform == "log":
+        if not np.all(v > 0):
+            raise ConfigError(f"{field}: {t.name} is tuned in log-space and must start > 0 "
+                              f"(got {np.array2string(v, precision=6)}); give it a positive "
+                              f"start or transform = \"linear\"")
+        for side, b in (("lower", t.lower), ("upper", t.upper)):
+            if b is not None and not b > 0:
+                raise ConfigError(f"{where}: the {side} bound of a log-space (positive) "
+                                  f"parameter must be > 0 (got {b:g})")
+    for side, b, bad in (("lower", t.lower, lambda b: np.any(v < b)),
+                         ("upper", t.upper, lambda b: np.any(v > b))):
+        if b is not None and bad(b):
+            raise ConfigError(f"{where}: the start value {np.array2string(v, precision=6)} is "
+                              f"outside the bounds ({side} bound {b:g})")

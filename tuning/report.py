@@ -1,0 +1,331 @@
+"""The evidence of a tuning run: start against tuned gains on the nominal plant, on the
+training batch and on a fresh held-out batch; report.md, report.json and PNG figures."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tuning import checkpoint as ck
+
+STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
+LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
+          "max_abs_u": "max |u|", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
+          "loss": "objective J"}
+
+
+def evaluate(problem, z0, z1) -> dict[str, Any]:
+    """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train, held-out."""
+    obj = problem.objective
+    per_plant = jax.jit(obj.per_plant)
+    out = {"nominal": {}, "train": None, "heldout": None}
+    for tag, z in (("start", z0), ("tuned", z1)):
+        out["nominal"][tag] = _host(per_plant(z, {}))
+    if obj.overrides:
+        out["train"] = {tag: _host(per_plant(z)) for tag, z in (("start", z0), ("tuned", z1))}
+    if problem.heldout:
+        ov = {k: jnp.asarray(v) for k, v in problem.heldout.items()}
+        out["heldout"] = {tag: _host(per_plant(z, ov)) for tag, z in (("start", z0),
+                                                                      ("tuned", z1))}
+    return out
+
+
+def _host(d):
+    return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
+
+
+def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
+    ok = ~m["diverged"].astype(bool)
+    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_diverged": int((~ok).sum())}
+    for key in STATS_METRICS + ("loss",):
+        v = m[key][ok] if key != "loss" else m[key]
+        out[key] = None if v.size == 0 else {
+            "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
+            "max": float(np.max(v)), "mean": float(np.mean(v))}
+    return out
+
+
+def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]]:
+    rows = []
+    for i, r in enumerate(problem.objective.requirements):
+        met = np.asarray(m[f"req{i}_met"]) > 0
+        row = {"name": r.name, "met_fraction": float(np.mean(met)),
+               "worst_margin": float(np.max(m[f"req{i}_margin"]))}
+        for k in ("overshoot", "settling_time", "peak"):
+            if f"req{i}_{k}" in m:
+                row[k] = float(np.max(m[f"req{i}_{k}"]))
+        rows.append(row)
+    return rows
+
+
+def trajectories(problem, z0, z1, save_every: int = 10):
+    from dscjax.simulate import simulate
+
+    sim = problem.objective.sim
+    out = {}
+    for tag, z in (("start", z0), ("tuned", z1)):
+        setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
+        out[tag] = simulate(setup, sim.t_final, sim.dt, save_every=save_every,
+                            window_start=sim.window_start, state_bound=sim.state_bound,
+                            throw=False)
+    return out
+
+
+def write(out: Path, result, *, plots: bool = True, wall_total_s: float | None = None) -> dict:
+    """Evaluate, then write report.json, report.md and (with plots) the PNGs. Returns the
+    summary dict (report.json's content)."""
+    problem = result.problem
+    z0 = problem.z0
+    z1 = jax.device_get(result.state.best_z)
+    ev = evaluate(problem, z0, z1)
+    sim = problem.objective.sim
+    nom = {tag: {k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
+                 if np.ndim(v) == 0} for tag in ("start", "tuned")}
+    summary: dict[str, Any] = {
+        "nominal": nom,
+        "bound_max_abs_u": problem.objective.scales.u_max,
+        "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
+                         for tag in ("start", "tuned")},
+        "run": {
+            "iterations": int(result.state.iteration), "resumed_from": result.resumed_from,
+            "rejected": int(result.state.n_rejected), "stop_reason": result.stop_reason,
+            "best_iteration": int(result.state.best_iteration),
+            "best_loss": float(result.state.best_loss),
+            "best_feasible": bool(result.state.best_feasible),
+            "wall_s": result.wall_s, "compile_s": result.compile_s,
+            "wall_total_s": wall_total_s, "gradient": problem.mode,
+            "n_params": problem.n_params,
+        },
+        "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
+        "settings": problem.describe(),
+        "notes": list(problem.notes),
+    }
+    for key in ("train", "heldout"):
+        if ev[key] is not None:
+            summary[key] = {tag: batch_stats(ev[key][tag]) for tag in ("start", "tuned")}
+            summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
+                                            for tag in ("start", "tuned")}
+    out = Path(out)
+    figures = []
+    trajs = None
+    if plots:
+        trajs = trajectories(problem, z0, z1)
+        figures = _plots(out, result, ev, trajs, sim, problem)
+    summary["figures"] = figures
+    ck.write_json(out / "report.json", summary)
+    (out / "report.md").write_text(_markdown(summary, problem, figures))
+    return summary
+
+
+def _values(problem, z):
+    return {k: np.asarray(v).tolist() for k, v in
+            jax.device_get(problem.selection.values(z)).items()}
+
+
+# -- markdown -------------------------------------------------------------------------------------
+
+
+def _f(v, digits=4):
+    return "-" if v is None else f"{v:.{digits}g}"
+
+
+def _ratio(a, b):
+    return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
+
+
+def _markdown(s: dict, problem, figures) -> str:
+    sim = problem.objective.sim
+    run = s["run"]
+    nom = s["nominal"]
+    cfg = problem.cfg
+    lines = ["# dscjax tune: report", ""]
+    lines += [
+        f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
+        f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
+        f"[{sim.window_start:g}, {sim.t_final:g}] s.",
+        f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}), "
+        f"{run['gradient']}-mode exact gradients, {cfg.optimizer.name} "
+        f"(lr {cfg.optimizer.learning_rate:g}, {cfg.optimizer.schedule}).",
+        f"Objective per plant: " + ", ".join(
+            f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
+                                                          "effort_max")
+            if getattr(cfg.objective, k)) + (
+            f"; max|u| <= {s['bound_max_abs_u']:.4g} (penalty weight "
+            f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
+        + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
+           + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
+           + ")" if cfg.robust.batch else "; nominal plant only") + ".",
+        "",
+        f"Run: {run['iterations']} iterations"
+        + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
+        + f", {run['rejected']} rejected; stopped: {run['stop_reason']}. Best at iteration "
+        f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
+        f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
+        f"{run['wall_s']:.1f} s in this invocation, of which compilation {run['compile_s']:.1f} s"
+        + (f"; whole command {run['wall_total_s']:.1f} s" if run["wall_total_s"] else "") + ".",
+    ]
+    for note in s["notes"]:
+        lines.append(f"Note: {note}.")
+    lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
+              "|---|---|---|---|"]
+    for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u"):
+        a, b = nom["start"][key], nom["tuned"][key]
+        lines.append(f"| {LABELS[key]} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+    lines.append(f"| diverged | {bool(nom['start']['diverged'])} | "
+                 f"{bool(nom['tuned']['diverged'])} | |")
+    if s["bound_max_abs_u"]:
+        ok = nom["tuned"]["max_abs_u"] <= s["bound_max_abs_u"]
+        lines += ["", f"Bound max|u| <= {s['bound_max_abs_u']:.6g}: "
+                  f"**{'met' if ok else 'violated'}** by the tuned gains "
+                  f"(max|u| = {nom['tuned']['max_abs_u']:.6g})."]
+    if s["requirements"]["tuned"]:
+        lines += ["", "## Requirements (nominal plant)", "",
+                  "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]
+        for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"], strict=True):
+            extra = "".join(f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
+                            if k in b)
+            lines.append(f"| {b['name']} | {'met' if a['met_fraction'] == 1 else 'violated'} | "
+                         f"{'met' if b['met_fraction'] == 1 else 'violated'} | "
+                         f"{b['worst_margin']:.4g}{extra} |")
+    for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
+        if key not in s:
+            continue
+        b = cfg.robust if key == "train" else cfg.heldout
+        rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
+        st, tu = s[key]["start"], s[key]["tuned"]
+        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method}, seed {b.seed})", "",
+                  "| | start median | tuned median | start p95 | tuned p95 | start max | "
+                  "tuned max |", "|---|---|---|---|---|---|---|"]
+        for m in STATS_METRICS:
+            a, c = st[m], tu[m]
+            if a is None or c is None:
+                continue
+            lines.append(f"| {LABELS[m]} | {_f(a['median'])} | {_f(c['median'])} | "
+                         f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
+        lines.append(f"| diverged | {st['n_diverged']} | {tu['n_diverged']} | | | | |")
+        reqs = s[key]["requirements"]["tuned"]
+        if reqs:
+            lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
+                             f"plants with the tuned gains (start: "
+                             f"{100 * a['met_fraction']:.1f} %)"
+                             for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
+    lines += ["", "## Gains", "", "| parameter | start | tuned |", "|---|---|---|"]
+    for name in s["gains"]["start"]:
+        lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
+                     f"{_fmt_val(s['gains']['tuned'][name])} |")
+    lines += ["", "Load the tuned closed loop with `dscjax simulate --config gains.json`.", ""]
+    if figures:
+        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    return "\n".join(lines)
+
+
+def _fmt_val(v):
+    a = np.atleast_1d(np.asarray(v, dtype=float))
+    return ", ".join(f"{x:.5g}" for x in a)
+
+
+# -- figures --------------------------------------------------------------------------------------
+
+
+def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figures = []
+    h = result.history
+    if h:
+        it = np.array([r["iteration"] for r in h])
+        loss = np.array([r["loss"] for r in h], dtype=float)
+        best = np.array([r["best_loss"] for r in h], dtype=float)
+        acc = np.array([bool(r["accepted"]) for r in h])
+        linf = np.array([r["linf_window"] for r in h], dtype=float)
+        umax = np.array([r["max_abs_u"] for r in h], dtype=float)
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+        ax[0].semilogy(it, loss, lw=1, label="loss")
+        ax[0].semilogy(it, best, lw=1.5, label="best")
+        if (~acc).any():
+            ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected")
+        ax[0].set_xlabel("iteration")
+        ax[0].set_ylabel("objective J")
+        ax[0].legend()
+        ax[0].grid(alpha=0.3)
+        ax[0].set_title("loss")
+        ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
+        ax[1].set_xlabel("iteration")
+        ax[1].set_ylabel("L-inf error (training)")
+        ax[1].grid(alpha=0.3)
+        a2 = ax[1].twinx()
+        a2.plot(it, umax, color="#2ca02c", lw=1, label="max|u|")
+        if problem.objective.scales.u_max:
+            a2.axhline(problem.objective.scales.u_max, color="#2ca02c", ls=":", lw=1)
+        a2.set_ylabel("max|u|", color="#2ca02c")
+        ax[1].set_title("tracking error and max|u| per iteration")
+        fig.savefig(out / "loss_curve.png", dpi=110)
+        plt.close(fig)
+        figures.append("loss_curve.png")
+
+    fig, ax = plt.subplots(3, 1, figsize=(10, 8.5), constrained_layout=True)
+    for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+        tr = trajs[tag]
+        t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
+        label = f"{tag} (L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g})"
+        ax[0].plot(t, e, color=color, lw=0.9, label=label)
+        win = t >= sim.window_start
+        ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
+        ax[2].plot(t, u, color="#2ca02c" if tag == "tuned" else color, lw=0.9,
+                   label=f"{tag} (max|u| {float(tr.metrics['max_abs_u']):.3g})")
+    if problem.objective.scales.u_max:
+        for sgn in (1, -1):
+            ax[2].axhline(sgn * problem.objective.scales.u_max, color="k", ls=":", lw=0.8)
+    ax[0].set_ylabel("e = y - y_r")
+    ax[0].set_title("tracking error, whole horizon")
+    ax[1].set_ylabel("e on [t0, T]")
+    ax[1].set_title(f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
+    ax[2].set_ylabel("u")
+    ax[2].set_title("control input (dotted: the bound on max|u|)")
+    ax[2].set_xlabel("time t [s]")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="upper right", fontsize=8)
+    fig.savefig(out / "before_after.png", dpi=110)
+    plt.close(fig)
+    figures.append("before_after.png")
+
+    if ev["heldout"] is not None:
+        fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+        for i, key in enumerate(("linf_error_window", "max_abs_u")):
+            vals = {tag: ev["heldout"][tag][key][~ev["heldout"][tag]["diverged"].astype(bool)]
+                    for tag in ("start", "tuned")}
+            allv = np.concatenate([v for v in vals.values() if v.size])
+            if allv.size == 0:
+                continue
+            lo, hi = np.min(allv), np.max(allv)
+            if not hi > lo:
+                lo, hi = lo * 0.9 - 1e-12, hi * 1.1 + 1e-12
+            bins = (np.geomspace(lo, hi, 40) if key == "linf_error_window" and lo > 0
+                    else np.linspace(lo, hi, 40))
+            for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+                v = vals[tag]
+                if v.size:
+                    ax[i].hist(v, bins=bins, color=color, alpha=0.6,
+                               label=f"{tag}: median {np.median(v):.3g}, p95 "
+                               f"{np.percentile(v, 95):.3g}")
+                    ax[i].axvline(np.median(v), color=color, lw=1.2)
+            if key == "linf_error_window" and lo > 0:
+                ax[i].set_xscale("log")
+            ax[i].set_xlabel(LABELS[key])
+            ax[i].set_ylabel("plants")
+            ax[i].legend(fontsize=8)
+            ax[i].grid(alpha=0.3)
+        n = ev["heldout"]["start"]["diverged"].size
+        fig.suptitle(f"held-out batch of {n} plants, start against tuned gains")
+        fig.savefig(out / "heldout.png", dpi=110)
+        plt.close(fig)
+        figures.append("heldout.png")
+    return figures

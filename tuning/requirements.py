@@ -1,0 +1,166 @@
+"""Time-domain requirements as differentiable penalties (requirement-based tuning).
+
+Each requirement is a pytree (its numbers traced, so changing a bound never recompiles) that
+keeps a few running reductions inside the simulation loop, at every RK4 step:
+
+- a **penalty**: weight x (1/T) x integral of relu(violation)^2 dt, zero when the requirement
+  is met, smooth (C^1) in the trajectory, and growing with how much and how long it is
+  violated, so that its gradient pulls on every violating sample, not only the worst one;
+- an exact **check** on the step grid (met / violated, with a margin), for the report.
+
+    Envelope     |e(t)| <= b(t) = b_inf + (b0 - b_inf) exp(-t / decay)
+    StepResponse overshoot <= overshoot and |y - y_final| <= band |height| for t >= settling_time
+    UBound       |u(t)| <= max
+    URate        |u'(t)| <= max          (u' is the exact derivative the loop computes)
+
+Violations are relative (divided by the bound), so weights are dimensionless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import ClassVar
+
+import jax
+import jax.numpy as jnp
+
+
+def _relu(x):
+    return jnp.maximum(x, 0.0)
+
+
+class Requirement:
+    """Interface. `update` sees the tracking error e, the state y, the observation obs and the
+    weight w of step k in the time integrals (trapezoid: dt, dt/2 at both ends)."""
+
+    name: ClassVar[str]
+
+    def init(self, dtype) -> dict: ...
+
+    def update(self, acc, k, t, e, y, obs, w) -> dict: ...
+
+    def penalty(self, acc, t_final): ...
+
+    def check(self, acc, t_final) -> dict:
+        """Exact figures on the step grid; always contains 'met' (1.0 or 0.0) and 'margin'
+        (<= 0 when met, in the units of the bound)."""
+
+
+def _zeros(dtype, *names):
+    return {n: jnp.zeros((), dtype) for n in names}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Envelope(Requirement):
+    """|e(t)| <= b(t) = b_inf + (b0 - b_inf) exp(-t/decay) for all t (a decaying tube)."""
+
+    b0: jax.Array
+    b_inf: jax.Array
+    decay: jax.Array
+    weight: jax.Array = 1.0
+    name: ClassVar[str] = "envelope"
+
+    def bound(self, t):
+        return self.b_inf + (self.b0 - self.b_inf) * jnp.exp(-t / self.decay)
+
+    def init(self, dtype):
+        return _zeros(dtype, "viol") | {"margin": jnp.asarray(-jnp.inf, dtype)}
+
+    def update(self, acc, k, t, e, y, obs, w):
+        b = self.bound(t)
+        a = jnp.abs(e)
+        return {"viol": acc["viol"] + w * _relu(a / b - 1.0) ** 2,
+                "margin": jnp.maximum(acc["margin"], a - b)}
+
+    def penalty(self, acc, t_final):
+        return self.weight * acc["viol"] / t_final
+
+    def check(self, acc, t_final):
+        return {"met": (acc["margin"] <= 0).astype(acc["margin"].dtype), "margin": acc["margin"]}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class StepResponse(Requirement):
+    """Overshoot and settling of a step reference from `initial` to `final` = initial + height.
+
+    overshoot: largest allowed excursion beyond `final`, as a fraction of |height|;
+    settling_time, band: |y - final| <= band |height| for every t >= settling_time.
+    Reports the measured overshoot (fraction) and settling time (the last grid time at which
+    |y - final| > band |height|; 0 if never).
+    """
+
+    final: jax.Array
+    height: jax.Array
+    overshoot: jax.Array = 0.05
+    settling_time: jax.Array = 5.0
+    band: jax.Array = 0.02
+    weight: jax.Array = 1.0
+    name: ClassVar[str] = "step"
+
+    def init(self, dtype):
+        return _zeros(dtype, "os_viol", "set_viol", "os_max", "set_max", "t_settle")
+
+    def update(self, acc, k, t, e, y, obs, w):
+        h = jnp.abs(self.height)
+        dev = jnp.sign(self.height) * (y.x[0] - self.final) / h
+        rel = jnp.abs(y.x[0] - self.final) / h
+        late = t >= self.settling_time
+        return {
+            "os_viol": acc["os_viol"] + w * _relu(dev - self.overshoot) ** 2,
+            "set_viol": acc["set_viol"] + jnp.where(late, w * _relu(rel - self.band) ** 2, 0.0),
+            "os_max": jnp.maximum(acc["os_max"], dev),
+            "set_max": jnp.where(late, jnp.maximum(acc["set_max"], rel), acc["set_max"]),
+            "t_settle": jnp.where(rel > self.band, t, acc["t_settle"]),
+        }
+
+    def penalty(self, acc, t_final):
+        return self.weight * (acc["os_viol"] + acc["set_viol"]) / t_final
+
+    def check(self, acc, t_final):
+        margin = jnp.maximum(acc["os_max"] - self.overshoot, acc["set_max"] - self.band)
+        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin,
+                "overshoot": acc["os_max"], "settling_time": acc["t_settle"]}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class UBound(Requirement):
+    """|u(t)| <= max at every step."""
+
+    max: jax.Array
+    weight: jax.Array = 1.0
+    name: ClassVar[str] = "u_bound"
+
+    def _signal(self, obs):
+        return obs.u
+
+    def init(self, dtype):
+        return _zeros(dtype, "viol", "peak")
+
+    def update(self, acc, k, t, e, y, obs, w):
+        a = jnp.abs(self._signal(obs))
+        return {"viol": acc["viol"] + w * _relu(a / self.max - 1.0) ** 2,
+                "peak": jnp.maximum(acc["peak"], a)}
+
+    def penalty(self, acc, t_final):
+        return self.weight * acc["viol"] / t_final
+
+    def check(self, acc, t_final):
+        margin = acc["peak"] - self.max
+        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, "peak": acc["peak"]}
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class URate(UBound):
+    """|u'(t)| <= max at every step (u' exact: the loop's forward-mode derivative of the law)."""
+
+    name: ClassVar[str] = "u_rate"
+
+    def _signal(self, obs):
+        return obs.u_dot
+
+
+KINDS = {cls.name: cls for cls in (Envelope, StepResponse, UBound, URate)}
