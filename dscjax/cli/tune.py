@@ -1,0 +1,200 @@
+"""`dscjax tune`: tune controller gains by gradient descent through the closed loop.
+
+Writes into DIR: gains.json (the tuned closed loop as a config: `dscjax simulate --config
+DIR/gains.json` loads it), history.csv (one row per iteration), report.md and report.json
+(start against tuned gains: nominal plant, training batch, held-out batch), loss_curve.png,
+before_after.png, heldout.png, and the checkpoint files checkpoint.npz/.json and best.json
+(`--resume` continues from them).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+import time
+from pathlib import Path
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "tune", help="tune the controller gains by gradient descent (exact gradients, optax)",
+        description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
+        "starting from the paper's gains) to minimise the L-inf tracking error on [t0, T] "
+        "with max|u| kept at or below the start gains' max|u|, using exact gradients through "
+        "the RK4 closed loop and Adam. Settings come from a [tuning] table in the config (see "
+        "docs/tuning.md); the command line wins.")
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
+                   "example; may hold a [tuning] table")
+    p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
+                   "(laid over the one in --config)")
+    p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
+                   "the gains.json of an earlier run (laid over --config)")
+    p.add_argument("--out", default="results/tune", metavar="DIR",
+                   help="output directory (default: results/tune)")
+    p.add_argument("--steps", type=int, metavar="N", help="maximum number of iterations "
+                   "(default 300)")
+    p.add_argument("--time-limit", type=float, metavar="S", help="stop after S seconds of wall "
+                   "time, compilation included (default 100; 0 = no limit)")
+    p.add_argument("--lr", type=float, metavar="LR", help="learning rate (default 0.05, "
+                   "log-space)")
+    p.add_argument("--batch", type=int, metavar="B", help="training batch of B plants sampled "
+                   "from [tuning.robust] ranges (default 0: the nominal plant only)")
+    p.add_argument("--aggregate", choices=("mean", "cvar", "max"), help="objective over the "
+                   "training batch (default mean)")
+    p.add_argument("--cvar-level", type=float, metavar="A", help="CVaR level in (0, 1]: the "
+                   "mean of the worst ceil(A B) plants")
+    p.add_argument("--seed", type=int, help="seed of the training batch (default 0)")
+    p.add_argument("--heldout", type=int, metavar="N", help="held-out evaluation batch size "
+                   "(default 256; 0 = skip)")
+    p.add_argument("--gradient", choices=("auto", "forward", "reverse"),
+                   help="AD mode (default auto: forward for up to 64 tuned numbers)")
+    p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
+    p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
+                       "its checkpoint (iteration count, optimiser state and best point)")
+    again.add_argument("--overwrite", action="store_true", help="discard a run in DIR and "
+                       "start afresh")
+    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
+    p.add_argument("--quiet", action="store_true", help="no progress line")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the effective [tuning] table as TOML and exit")
+    return p
+
+
+def load(args):
+    """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
+    from dscjax import config
+    from dscjax.cli.sweep import _read
+    from dscjax.validation import ConfigError
+    from tuning.config import TuningConfig
+    from tuning.config import from_dict as tuning_from_dict
+
+    raw = _read(args.config) if args.config else {}
+    table = raw.pop("tuning", {})
+    raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
+    setup, options = config.from_dict(raw)
+    cfg = tuning_from_dict(table, TuningConfig())
+    if args.tuning:
+        extra = _read(args.tuning)
+        unknown = set(extra) - {"tuning"}
+        if unknown:
+            raise ConfigError(f"{args.tuning}: a --tuning file holds only a [tuning] table "
+                              f"(got {', '.join(sorted(unknown))})")
+        cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
+    if args.gains:
+        gains = _read(args.gains)
+        for key in ("tuning", "sweep"):
+            gains.pop(key, None)
+        setup, options = config.from_dict(gains, base=setup, base_options=options)
+    opt, rob, held = {}, {}, {}
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ConfigError(f"--steps must be >= 1 (got {args.steps})")
+        opt["steps"] = args.steps
+    if args.time_limit is not None:
+        if args.time_limit < 0:
+            raise ConfigError(f"--time-limit must be >= 0 (got {args.time_limit:g})")
+        opt["time_limit"] = args.time_limit or None
+    if args.lr is not None:
+        opt["learning_rate"] = args.lr
+    if args.gradient:
+        opt["gradient"] = args.gradient
+    for name in ("batch", "aggregate", "cvar_level", "seed"):
+        value = getattr(args, name)
+        if value is not None:
+            rob[name] = value
+    if args.heldout is not None:
+        held["batch"] = args.heldout
+    cfg = dataclasses.replace(
+        cfg, optimizer=dataclasses.replace(cfg.optimizer, **opt),
+        robust=dataclasses.replace(cfg.robust, **rob),
+        heldout=dataclasses.replace(cfg.heldout, **held))
+    cfg.validate()
+    changes = {}
+    if args.t_final is not None:
+        changes["t_final"] = args.t_final
+    if args.dt is not None:
+        changes["dt"] = args.dt
+    options = dataclasses.replace(options, **changes)
+    options.validate()
+    if options.dtype != "float64":
+        raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
+                          "sweeps)")
+    return setup, options, cfg
+
+
+def run(args) -> int:
+    t_start = time.perf_counter()
+    import numpy as np
+
+    from dscjax.params import cast
+    from tuning import report
+    from tuning.config import to_toml
+    from tuning.runner import build_problem, check_out_dir, format_progress
+    from tuning.runner import run as run_tuning
+
+    setup, options, cfg = load(args)
+    setup = cast(setup, np.float64)
+    if args.print_config:
+        sys.stdout.write(to_toml(cfg, setup))
+        return 0
+    out = Path(args.out)
+    check_out_dir(out, args.resume, args.overwrite)
+    problem = build_problem(setup, options, cfg)
+    oc = cfg.optimizer
+    print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
+          f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} "
+          f"({oc.schedule}); T={options.t_final:g} s, dt={options.dt:g} s, window "
+          f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
+          + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
+             if cfg.robust.batch else "nominal plant")
+          + f"; at most {oc.steps} iterations"
+          + (f" or {oc.time_limit:g} s" if oc.time_limit else ""), file=sys.stderr)
+    for note in problem.notes:
+        print(f"  note: {note}", file=sys.stderr)
+    sc = problem.objective.scales
+    print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
+          + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
+    tty = sys.stderr.isatty()
+    last = [0.0]
+
+    def progress(row):
+        if args.quiet:
+            return
+        now = time.perf_counter()
+        if tty:
+            print("\r" + format_progress(row) + "\x1b[K", end="", file=sys.stderr, flush=True)
+        elif now - last[0] >= 5.0 or row["iteration"] == 0:
+            print(format_progress(row), file=sys.stderr, flush=True)
+            last[0] = now
+
+    try:
+        result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
+                            progress=progress)
+    finally:
+        if tty and not args.quiet:
+            print(file=sys.stderr)
+    print(f"  stopped: {result.stop_reason}; {int(result.state.iteration)} iterations"
+          + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
+          + f", {int(result.state.n_rejected)} rejected, best at iteration "
+          f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
+          f"{result.compile_s:.1f} s)", file=sys.stderr)
+    summary = report.write(out, result, plots=not args.no_plot,
+                           wall_total_s=time.perf_counter() - t_start)
+    n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
+    a, b = n0["linf_error_window"], n1["linf_error_window"]
+    print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
+          f"{options.t_final:g}] s {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower), max|u| "
+          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}", file=sys.stderr)
+    if "heldout" in summary:
+        h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
+        if h0["linf_error_window"] and h1["linf_error_window"]:
+            a, b = h0["linf_error_window"], h1["linf_error_window"]
+            print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
+                  f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
+                  f"{h0['n_diverged']} -> {h1['n_diverged']}", file=sys.stderr)
+    print(f"  wrote {out}/gains.json, history.csv, report.md, report.json"
+          + "".join(f", {f}" for f in summary["figures"])
+          + f" ({time.perf_counter() - t_start:.1f} s in all)", file=sys.stderr)
+    return 0

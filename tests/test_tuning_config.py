@@ -1,0 +1,181 @@
+"""Tuning settings: selection and transforms, clear errors for bad settings, aggregates,
+requirement penalties and checks."""
+
+import dataclasses
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscjax
+import tuning
+from dscjax.cli.main import main
+from dscjax.config import SimOptions
+from dscjax.validation import ConfigError
+from tuning.config import from_dict
+from tuning.objective import simulate_metrics
+
+
+@pytest.fixture(scope="module")
+def setup():
+    return dscjax.paper_example()
+
+
+def test_selection_freezes_elements_and_round_trips(setup):
+    sel = tuning.Selection.build(setup, ["controller.k", "controller.gamma_g", "controller.c"],
+                                 freeze=["controller.gamma_g[1]"],
+                                 bounds={"controller.k": (0.1, 50.0)})
+    assert sel.names == ("controller.k", "controller.gamma_g[0]", "controller.c")
+    assert [t.transform for t in sel.items] == ["log", "log", "linear"]
+    z = sel.init(setup)
+    np.testing.assert_allclose(z["controller.k"], np.log([10.0, 0.45]))
+    z = {**z, "controller.gamma_g[0]": jnp.log(3.0), "controller.c": jnp.array([-0.2])}
+    s2 = sel.apply(setup, z)
+    np.testing.assert_allclose(s2.controller.gamma_g, [3.0, 8.0])
+    np.testing.assert_allclose(s2.controller.c, [-0.2])
+    np.testing.assert_allclose(s2.controller.k, setup.controller.k)
+    clipped = sel.project({**z, "controller.k": jnp.log(jnp.array([100.0, 0.01]))})
+    np.testing.assert_allclose(jnp.exp(clipped["controller.k"]), [50.0, 0.1])
+    assert sel.size(setup) == 4
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(tune=["controller.kk"]), "unknown parameter 'controller.kk'"),
+    (dict(tune=["controller.k[2]"]), r"index 2 of 'controller.k' is out of range"),
+    (dict(tune=["controller.k"], bounds={"controller.k": (-1.0, 5.0)}),
+     "lower bound of a log-space .* must be > 0"),
+    (dict(tune=["controller.k"], bounds={"controller.k": (5.0, 1.0)}), "lower must be < upper"),
+    (dict(tune=["controller.k"], bounds={"controller.k": (20.0, 30.0)}), "outside the bounds"),
+    (dict(tune=["controller.k"], bounds={"controller.tau": (0.001, 0.1)}), "is not tuned"),
+    (dict(tune=["controller.k"], freeze=["controller.tau"]), "not among the tuned"),
+    (dict(tune=["controller.theta_hat0"], transforms={"controller.theta_hat0": "log"}),
+     "must start > 0"),
+    (dict(tune=["controller.k"], transforms={"controller.k": "exp"}), "must be one of"),
+    (dict(tune=["controller.k"], freeze=["controller.k"]), "nothing left to tune"),
+])
+def test_bad_selection_is_a_clear_error(setup, kwargs, match):
+    with pytest.raises(ConfigError, match=match):
+        tuning.Selection.build(setup, **kwargs)
+
+
+@pytest.mark.parametrize("table, match", [
+    ({"parms": []}, "unknown key 'tuning.parms'"),
+    ({"objective": {"linff": 1.0}}, "unknown key 'tuning.objective.linff'"),
+    ({"objective": {"linf": -1.0}}, "tuning.objective.linf must be a number >= 0"),
+    ({"objective": {"u_max": "sometimes"}}, "tuning.objective.u_max"),
+    ({"optimizer": {"name": "newton"}}, "tuning.optimizer.name must be one of"),
+    ({"optimizer": {"steps": 0}}, "tuning.optimizer.steps must be an integer >= 1"),
+    ({"optimizer": {"learning_rate": "fast"}}, "tuning.optimizer.learning_rate must be a number"),
+    ({"robust": {"aggregate": "cvar", "cvar_level": 0.0}}, r"cvar_level must be in \(0, 1\]"),
+    ({"robust": {"cvar_level": 1.5}}, r"tuning.robust.cvar_level must be in \(0, 1\]"),
+    ({"robust": {"ranges": {"hysteresis.alpha": "lots"}}}, "tuning.robust.ranges"),
+    ({"requirements": {"envelope": {"b0": 0.1}}}, "tuning.requirements.envelope.b_inf is "
+                                                  "required"),
+    ({"requirements": {"u_bound": {"max": -1.0}}}, "tuning.requirements.u_bound.max must be"),
+    ({"requirements": {"tube": {}}}, "unknown key 'tuning.requirements.tube'"),
+])
+def test_bad_tuning_table_is_a_clear_error(table, match):
+    with pytest.raises(ConfigError, match=match):
+        from_dict(table)
+
+
+def test_tuning_table_parses_nested_ranges_and_bounds():
+    cfg = from_dict({"params": ["controller.k"], "bounds": {"controller": {"k": [1, 100]}},
+                     "robust": {"batch": 4, "aggregate": "cvar", "cvar_level": 0.25,
+                                "ranges": {"hysteresis": {"alpha": "20%"},
+                                           "plant.g[1]": [0.8, 1.2]}},
+                     "objective": {"u_max": "none", "l2": 0.5}})
+    assert cfg.bounds == {"controller.k": [1, 100]}
+    assert [r.name for r in cfg.robust.ranges] == ["hysteresis.alpha", "plant.g[1]"]
+    assert cfg.objective.u_max is None and cfg.objective.l2 == 0.5
+
+
+def test_unknown_range_path_is_a_clear_error(setup):
+    cfg = from_dict({"robust": {"batch": 2, "ranges": {"plant.gg": [0.8, 1.2]}}})
+    with pytest.raises(ConfigError, match="gg"):
+        tuning.build_problem(setup, SimOptions(t_final=1.0), cfg)
+
+
+def test_cli_bad_setting_exits_2_with_one_line(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[tuning.robust]\ncvar_level = 2.0\n")
+    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "cvar_level must be in (0, 1]" in err[0]
+    cfg.write_text('[tuning]\nparams = ["controller.nope"]\n')
+    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "unknown parameter 'controller.nope'" in err[0]
+
+
+def test_aggregates():
+    v = jnp.array([1.0, 5.0, 2.0, 4.0, 3.0])
+    assert float(tuning.aggregate(v, "mean")) == 3.0
+    assert float(tuning.aggregate(v, "max")) == 5.0
+    assert float(tuning.aggregate(v, "cvar", 0.4)) == 4.5  # worst 2 of 5
+    assert float(tuning.aggregate(v, "cvar", 1.0)) == 3.0
+    assert float(tuning.aggregate(v, "cvar", 0.01)) == 5.0
+    g = jax.grad(lambda x: tuning.aggregate(x, "cvar", 0.4))(v)
+    np.testing.assert_allclose(g, [0, 0.5, 0, 0.5, 0])
+
+
+def test_requirements_penalties_and_checks():
+    """Loose bounds: zero penalty and met; tight bounds: positive penalty and violated, with
+    the exact figures (overshoot, settling time, peaks) read off the step grid."""
+    setup = dscjax.paper_example().replace(reference=dscjax.SmoothStep(
+        height=1.0, t_step=0.5, rise_time=0.1))
+    setup = dscjax.cast(setup, np.float64)
+    T = 2.0
+    sim = tuning.SimSpec(t_final=T, dt=1e-3, window_start=1.0)
+    tr = dscjax.simulate(setup, T, 1e-3, save_every=1, window_start=1.0)
+    y, t = np.asarray(tr.x[:, 0]), np.asarray(tr.t)
+    u, du, e = np.abs(np.asarray(tr.u)), np.abs(np.asarray(tr.u_dot)), np.abs(np.asarray(tr.e))
+
+    def run(reqs):
+        extra = tuning.TuningMetrics(window_start=jnp.asarray(1.0), e_sharpness=jnp.asarray(100.),
+                                     u_sharpness=jnp.asarray(10.0), requirements=tuple(reqs),
+                                     n_steps=sim.n_steps)
+        m, _ = jax.jit(lambda s: simulate_metrics(s, sim, extra))(setup)
+        return {k: float(v) for k, v in m.items()}
+
+    over = max(0.0, float(np.max(y - 1.0)))
+    loose = [tuning.Envelope(b0=10.0, b_inf=10.0, decay=1.0),
+             tuning.StepResponse(final=1.0, height=1.0, overshoot=over + 0.1,
+                                 settling_time=1.9, band=0.5),
+             tuning.UBound(max=2 * u.max()), tuning.URate(max=2 * du.max())]
+    m = run(loose)
+    for i in range(4):
+        assert m[f"req{i}_penalty"] == 0.0 and m[f"req{i}_met"] == 1.0
+    assert m["req1_overshoot"] == pytest.approx(float(np.max(y - 1.0)), abs=1e-12)
+    assert m["req2_peak"] == pytest.approx(u.max(), rel=1e-12)
+    assert m["req3_peak"] == pytest.approx(du.max(), rel=1e-12)
+    tight = [tuning.Envelope(b0=1e-3, b_inf=1e-3, decay=1.0),
+             tuning.StepResponse(final=1.0, height=1.0, overshoot=0.0, settling_time=0.6,
+                                 band=1e-4),
+             tuning.UBound(max=0.5 * u.max()), tuning.URate(max=0.5 * du.max())]
+    m = run(tight)
+    for i in range(4):
+        assert m[f"req{i}_penalty"] > 0 and m[f"req{i}_met"] == 0.0
+    assert m["req0_margin"] == pytest.approx(float(np.max(e - 1e-3)), rel=1e-12)
+    outside = t[np.abs(y - 1.0) > 1e-4]
+    assert m["req1_settling_time"] == pytest.approx(float(outside.max()), abs=1e-12)
+    # the smooth surrogates bracket the exact figures as documented
+    assert m["smooth_max_abs_u"] >= u.max()
+    win = t >= 1.0
+    assert e[win].mean() <= m["smooth_linf_window"] <= e[win].max()
+
+
+def test_requirements_from_config_build_into_the_objective(setup):
+    cfg = from_dict({"params": ["controller.k"],
+                     "requirements": {"u_rate": {"max": 1e4, "weight": 2.0},
+                                      "envelope": {"b0": 0.1, "b_inf": 0.03, "decay": 0.5}}})
+    problem = tuning.build_problem(setup, SimOptions(t_final=1.0), cfg)
+    kinds = [type(r).__name__ for r in problem.objective.requirements]
+    assert kinds == ["URate", "Envelope"]
+    assert float(problem.objective.requirements[0].weight) == 2.0
+    with pytest.raises(ConfigError, match="step reference"):
+        tuning.build_problem(setup, SimOptions(t_final=1.0),
+                             dataclasses.replace(cfg, requirements={"step": {}}))
+    assert math.isfinite(problem.objective.scales.linf)

@@ -1,0 +1,197 @@
+"""The tuning loop: a short run lowers the objective and writes every file, `--resume`
+continues where a run stopped (also after Ctrl-C), a forced NaN is rejected without corrupting
+the state, gains.json loads back into `dscjax simulate`.
+
+Small problems (2 s horizon, k_1 and k_2 tuned, 4 held-out plants) keep this file fast; the
+problem objects are shared so that each jitted function compiles once.
+"""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscjax
+import tuning
+from dscjax.cli.main import main
+from dscjax.config import SimOptions
+from tuning import checkpoint as ck
+from tuning.runner import run
+
+TINY = """
+[simulation]
+t_final = 2.0
+
+[tuning]
+params = ["controller.k"]
+
+[tuning.optimizer]
+steps = 5
+learning_rate = 0.1
+save_interval = 2
+
+[tuning.heldout]
+batch = 4
+"""
+
+FILES = ("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
+         "before_after.png", "heldout.png", "checkpoint.npz", "checkpoint.json", "best.json")
+
+
+@pytest.fixture(scope="module")
+def cli_run(tmp_path_factory):
+    d = tmp_path_factory.mktemp("tune")
+    cfg = d / "tiny.toml"
+    cfg.write_text(TINY)
+    out = d / "out"
+    code = main(["tune", "--config", str(cfg), "--out", str(out), "--quiet"])
+    return code, out, cfg
+
+
+def test_short_run_lowers_the_objective_and_writes_every_file(cli_run):
+    code, out, _ = cli_run
+    assert code == 0
+    for name in FILES:
+        assert (out / name).stat().st_size > 0, name
+    hist = ck.read_history(out / "history.csv")
+    assert [r["iteration"] for r in hist] == list(range(5))
+    assert min(r["loss"] for r in hist) < hist[0]["loss"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["run"]["best_loss"] < hist[0]["loss"]
+    assert report["nominal"]["tuned"]["smooth_linf_window"] < \
+        report["nominal"]["start"]["smooth_linf_window"]
+    assert "## Held-out batch: 4 plants" in (out / "report.md").read_text()
+
+
+def test_gains_json_loads_back_into_simulate(cli_run, tmp_path):
+    _, out, _ = cli_run
+    code = main(["simulate", "--config", str(out / "gains.json"), "--out", str(tmp_path),
+                 "--no-plot"])
+    assert code == 0
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    report = json.loads((out / "report.json").read_text())
+    tuned = report["nominal"]["tuned"]
+    for key in ("linf_error_window", "l2_error", "max_abs_u"):
+        assert metrics[key] == pytest.approx(tuned[key], rel=1e-12), key
+    gains = json.loads((out / "gains.json").read_text())
+    best = json.loads((out / "best.json").read_text())
+    assert gains["controller"]["k"] == pytest.approx(best["values"]["controller.k"], rel=1e-15)
+
+
+def test_existing_run_needs_resume_or_overwrite(cli_run, capsys):
+    _, out, cfg = cli_run
+    code = main(["tune", "--config", str(cfg), "--out", str(out), "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--resume" in err[0] and "Traceback" not in err[0]
+
+
+@pytest.fixture(scope="module")
+def small_problem():
+    cfg = tuning.TuningConfig(
+        params=("controller.k",),
+        optimizer=tuning.OptimizerSpec(steps=4, learning_rate=0.1, save_interval=2,
+                                       decay_steps=20),
+        heldout=tuning.BatchSpec(batch=0))
+    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=2.0), cfg)
+
+
+def _with_steps(problem, steps):
+    import dataclasses
+
+    cfg = problem.cfg
+    new_cfg = dataclasses.replace(cfg, optimizer=dataclasses.replace(cfg.optimizer,
+                                                                     steps=steps))
+    return dataclasses.replace(problem, cfg=new_cfg)
+
+
+def test_resume_continues_iterations_and_best(small_problem, tmp_path):
+    first = run(small_problem, tmp_path)
+    assert int(first.state.iteration) == 4
+    best_first = float(first.state.best_loss)
+    again = run(_with_steps(small_problem, 7), tmp_path, resume=True)
+    assert again.resumed_from == 4
+    assert int(again.state.iteration) == 7
+    assert float(again.state.best_loss) <= best_first
+    hist = ck.read_history(tmp_path / "history.csv")
+    assert [r["iteration"] for r in hist] == list(range(7))
+    # the uninterrupted run takes the very same steps
+    straight = run(_with_steps(small_problem, 7), tmp_path / "straight")
+    np.testing.assert_array_equal(np.asarray(straight.state.z["controller.k"]),
+                                  np.asarray(again.state.z["controller.k"]))
+
+
+def test_interrupted_run_keeps_its_best_and_resumes(small_problem, tmp_path):
+    def interrupt(row):
+        if row["iteration"] == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run(_with_steps(small_problem, 10), tmp_path, progress=interrupt)
+    meta = json.loads((tmp_path / "checkpoint.json").read_text())
+    assert meta["iteration"] == 3 and meta["stop_reason"] == "interrupted"
+    best = json.loads((tmp_path / "best.json").read_text())
+    assert best["loss"] == meta["best_loss"]
+    again = run(_with_steps(small_problem, 5), tmp_path, resume=True)
+    assert again.resumed_from == 3 and int(again.state.iteration) == 5
+    assert float(again.state.best_loss) <= best["loss"]
+
+
+def test_resume_refuses_a_different_problem(small_problem, tmp_path):
+    import dataclasses
+
+    run(_with_steps(small_problem, 2), tmp_path)
+    other = dataclasses.replace(small_problem, mode="reverse")
+    with pytest.raises(dscjax.ConfigError, match="different problem"):
+        run(other, tmp_path, resume=True)
+
+
+def test_forced_nan_is_rejected_without_corrupting_the_state(small_problem):
+    problem = small_problem
+    opt = problem.cfg.optimizer.make()
+    state = tuning.init_state(problem.z0, opt)
+    project = problem.selection.project
+    aux = {"n_diverged": jnp.asarray(0), "feasible": jnp.asarray(True)}
+    grads = {"controller.k": jnp.array([0.3, -0.2])}
+    state, rep = tuning.guarded_update(state, jnp.asarray(1.0), aux, grads, opt, project,
+                                       0.5, 0.0)
+    assert bool(rep["accepted"])
+    good = state
+    # the next evaluation is NaN (loss and gradient): rejected
+    nan_grads = {"controller.k": jnp.array([jnp.nan, 1.0])}
+    bad, rep = tuning.guarded_update(good, jnp.asarray(jnp.nan), aux, nan_grads, opt, project,
+                                     0.5, 0.0)
+    assert not bool(rep["accepted"])
+    for tree in (bad.z, bad.good_z, bad.good_grads, bad.best_z, bad.opt_state,
+                 bad.good_opt_state):
+        for x in jax.tree.leaves(tree):
+            assert np.all(np.isfinite(np.asarray(x)))
+    assert float(bad.lr_scale) == 0.5
+    assert int(bad.n_rejected) == 1 and int(bad.streak) == 1
+    assert float(bad.best_loss) == 1.0
+    np.testing.assert_array_equal(bad.best_z["controller.k"], good.best_z["controller.k"])
+    np.testing.assert_array_equal(bad.good_z["controller.k"], good.good_z["controller.k"])
+    # the retried step goes from the last good point along its gradient, half as far
+    step_good = np.asarray(good.z["controller.k"] - good.good_z["controller.k"])
+    step_bad = np.asarray(bad.z["controller.k"] - good.good_z["controller.k"])
+    assert np.all(np.isfinite(step_bad))
+    np.testing.assert_allclose(step_bad, 0.5 * step_good, rtol=1e-12)
+    # a later good evaluation is accepted again
+    state, rep = tuning.guarded_update(bad, jnp.asarray(0.9), aux, grads, opt, project, 0.5,
+                                       0.0)
+    assert bool(rep["accepted"]) and float(state.best_loss) == 0.9
+
+
+def test_more_divergence_is_rejected(small_problem):
+    opt = small_problem.cfg.optimizer.make()
+    state = tuning.init_state(small_problem.z0, opt)
+    grads = {"controller.k": jnp.array([0.3, -0.2])}
+    ok = {"n_diverged": jnp.asarray(0), "feasible": jnp.asarray(True)}
+    state, _ = tuning.guarded_update(state, jnp.asarray(1.0), ok, grads, opt,
+                                     small_problem.selection.project, 0.5, 0.0)
+    worse = {"n_diverged": jnp.asarray(1), "feasible": jnp.asarray(False)}
+    state, rep = tuning.guarded_update(state, jnp.asarray(0.5), worse, grads, opt,
+                                       small_problem.selection.project, 0.5, 0.0)
+    assert not bool(rep["accepted"]) and float(state.best_loss) == 1.0
