@@ -92,6 +92,22 @@ def test_tuning_table_parses_nested_ranges_and_bounds():
     assert cfg.objective.u_max is None and cfg.objective.l2 == 0.5
 
 
+def test_printed_config_reads_back():
+    import tomllib
+
+    from tuning.config import to_toml
+
+    cfg = from_dict({"params": ["controller.k"], "freeze": ["controller.k[1]"],
+                     "bounds": {"controller.k": [1.0, 100.0]},
+                     "robust": {"batch": 3, "ranges": {"hysteresis.alpha": [0.5, 1.5]}},
+                     "requirements": {"u_bound": {"max": 7.0}}})
+    again = from_dict(tomllib.loads(to_toml(cfg))["tuning"])
+    assert again == cfg
+    default = from_dict(tomllib.loads(to_toml(from_dict({})))["tuning"])
+    assert default.objective == from_dict({}).objective
+    assert default.optimizer == from_dict({}).optimizer
+
+
 def test_unknown_range_path_is_a_clear_error(setup):
     cfg = from_dict({"robust": {"batch": 2, "ranges": {"plant.gg": [0.8, 1.2]}}})
     with pytest.raises(ConfigError, match="gg"):

@@ -162,6 +162,8 @@ def _number(v, field):
 
 
 def _objective_value(name, v, field):
+    if name == "window_start" and isinstance(v, str) and v.lower() == "none":
+        return None
     if name == "u_max":
         if isinstance(v, str):
             if v.lower() == "none":
@@ -178,6 +180,8 @@ def _optimizer_value(name, v, field):
         if not isinstance(v, str):
             raise ConfigError(f"{field} must be a string (got {v!r})")
         return v
+    if name == "decay_steps" and isinstance(v, str) and v.lower() == "none":
+        return None
     if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
                 "decay_steps"):
         if isinstance(v, bool) or not isinstance(v, int):

@@ -8,6 +8,7 @@ Per plant (window W = [t0, T], every RK4 step, see `TuningMetrics`):
       + w_l2    L2(e on W)    / L2(start)
       + w_effort_l2  L2(u)    / L2(u)(start)
       + w_effort_max max~|u|  / max|u|(start)
+      + w_effort_tv  TV(u)    / TV(u)(start)      total variation: ringing and chattering of u
       + w_u     relu(max~|u| / u_max - 1)^2       hard-ish bound on max|u|
       + sum of requirement penalties (requirements.py)
     J = divergence_penalty                        if the trajectory diverged (finite, no NaN)
@@ -119,6 +120,7 @@ class ObjectiveSpec:
     l2: float = 0.0
     effort_l2: float = 0.0
     effort_max: float = 0.0
+    effort_tv: float = 0.0
     u_max: float | str | None = "start"
     u_max_weight: float = 100.0
     sharpness: float = 50.0
@@ -127,13 +129,13 @@ class ObjectiveSpec:
     window_start: float | None = None
 
     def validate(self, field: str = "tuning.objective") -> None:
-        for name in ("linf", "l2", "effort_l2", "effort_max", "u_max_weight"):
+        for name in ("linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{field}.{name} must be a number >= 0 (got {v!r})")
-        if self.linf + self.l2 + self.effort_l2 + self.effort_max == 0:
-            raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2 or "
-                              f"effort_max > 0)")
+        if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
+            raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2, "
+                              f"effort_max or effort_tv > 0)")
         for name in ("sharpness", "u_sharpness", "divergence_penalty"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
@@ -173,6 +175,7 @@ class Scales:
     l2_u: float
     max_u: float
     u_max: float | None  # the bound on max|u| (None: no bound)
+    tv_u: float = 1.0
 
 
 def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
@@ -208,6 +211,8 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
         terms["effort_l2"] = spec.effort_l2 * metrics["l2_u"] / scales.l2_u
     if spec.effort_max:
         terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
+    if spec.effort_tv:
+        terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
     if scales.u_max is not None and spec.u_max_weight:
         terms["u_bound"] = spec.u_max_weight * jnp.maximum(
             metrics["smooth_max_abs_u"] / scales.u_max - 1.0, 0.0) ** 2
@@ -245,14 +250,14 @@ def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
     if u_max == "start":
         u_max = m["max_abs_u"]
     for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
-                      ("effort_l2", "l2_u"), ("effort_max", "max_abs_u")):
+                      ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
         if getattr(spec, name) and not m[key] > 0:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
     tiny = 1e-300
     return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
                   l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
-                  u_max=None if u_max is None else float(u_max))
+                  u_max=None if u_max is None else float(u_max), tv_u=max(m["tv_u"], tiny))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

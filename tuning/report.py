@@ -15,7 +15,12 @@ from tuning import checkpoint as ck
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
           "max_abs_u": "max |u|", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
-          "loss": "objective J"}
+          "tv_u": "total variation of u", "loss": "objective J"}
+
+
+def _md(text: str) -> str:
+    """A label for a markdown table cell (a bare | would split the cell)."""
+    return text.replace("|", "\\|")
 
 
 def evaluate(problem, z0, z1) -> dict[str, Any]:
@@ -75,9 +80,12 @@ def trajectories(problem, z0, z1, save_every: int = 10):
     return out
 
 
-def write(out: Path, result, *, plots: bool = True, wall_total_s: float | None = None) -> dict:
+def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
     """Evaluate, then write report.json, report.md and (with plots) the PNGs. Returns the
-    summary dict (report.json's content)."""
+    summary dict (report.json's content). `t_start` (perf_counter at the start of the
+    command) lets the report state the whole command's wall time."""
+    import time
+
     problem = result.problem
     z0 = problem.z0
     z1 = jax.device_get(result.state.best_z)
@@ -97,7 +105,7 @@ def write(out: Path, result, *, plots: bool = True, wall_total_s: float | None =
             "best_loss": float(result.state.best_loss),
             "best_feasible": bool(result.state.best_feasible),
             "wall_s": result.wall_s, "compile_s": result.compile_s,
-            "wall_total_s": wall_total_s, "gradient": problem.mode,
+            "wall_total_s": None, "gradient": problem.mode,
             "n_params": problem.n_params,
         },
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
@@ -116,14 +124,16 @@ def write(out: Path, result, *, plots: bool = True, wall_total_s: float | None =
         trajs = trajectories(problem, z0, z1)
         figures = _plots(out, result, ev, trajs, sim, problem)
     summary["figures"] = figures
+    if t_start is not None:
+        summary["run"]["wall_total_s"] = time.perf_counter() - t_start
     ck.write_json(out / "report.json", summary)
     (out / "report.md").write_text(_markdown(summary, problem, figures))
     return summary
 
 
 def _values(problem, z):
-    return {k: np.asarray(v).tolist() for k, v in
-            jax.device_get(problem.selection.values(z)).items()}
+    values = jax.device_get(problem.selection.values(z))
+    return {name: np.asarray(values[name]).tolist() for name in problem.selection.names}
 
 
 # -- markdown -------------------------------------------------------------------------------------
@@ -150,9 +160,9 @@ def _markdown(s: dict, problem, figures) -> str:
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}), "
         f"{run['gradient']}-mode exact gradients, {cfg.optimizer.name} "
         f"(lr {cfg.optimizer.learning_rate:g}, {cfg.optimizer.schedule}).",
-        f"Objective per plant: " + ", ".join(
+        "Objective per plant: " + ", ".join(
             f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
-                                                          "effort_max")
+                                                          "effort_max", "effort_tv")
             if getattr(cfg.objective, k)) + (
             f"; max|u| <= {s['bound_max_abs_u']:.4g} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
@@ -166,15 +176,17 @@ def _markdown(s: dict, problem, figures) -> str:
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
         f"{run['wall_s']:.1f} s in this invocation, of which compilation {run['compile_s']:.1f} s"
-        + (f"; whole command {run['wall_total_s']:.1f} s" if run["wall_total_s"] else "") + ".",
+        + (f"; the whole command up to this report {run['wall_total_s']:.1f} s"
+           if run["wall_total_s"] else "") + ".",
     ]
     for note in s["notes"]:
         lines.append(f"Note: {note}.")
     lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
               "|---|---|---|---|"]
-    for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u"):
+    for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u",
+                "tv_u"):
         a, b = nom["start"][key], nom["tuned"][key]
-        lines.append(f"| {LABELS[key]} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+        lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
     lines.append(f"| diverged | {bool(nom['start']['diverged'])} | "
                  f"{bool(nom['tuned']['diverged'])} | |")
     if s["bound_max_abs_u"]:
@@ -204,7 +216,7 @@ def _markdown(s: dict, problem, figures) -> str:
             a, c = st[m], tu[m]
             if a is None or c is None:
                 continue
-            lines.append(f"| {LABELS[m]} | {_f(a['median'])} | {_f(c['median'])} | "
+            lines.append(f"| {_md(LABELS[m])} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
         lines.append(f"| diverged | {st['n_diverged']} | {tu['n_diverged']} | | | | |")
         reqs = s[key]["requirements"]["tuned"]
@@ -300,31 +312,29 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     if ev["heldout"] is not None:
         fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
         for i, key in enumerate(("linf_error_window", "max_abs_u")):
-            vals = {tag: ev["heldout"][tag][key][~ev["heldout"][tag]["diverged"].astype(bool)]
-                    for tag in ("start", "tuned")}
-            allv = np.concatenate([v for v in vals.values() if v.size])
-            if allv.size == 0:
-                continue
-            lo, hi = np.min(allv), np.max(allv)
-            if not hi > lo:
-                lo, hi = lo * 0.9 - 1e-12, hi * 1.1 + 1e-12
-            bins = (np.geomspace(lo, hi, 40) if key == "linf_error_window" and lo > 0
-                    else np.linspace(lo, hi, 40))
             for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
-                v = vals[tag]
-                if v.size:
-                    ax[i].hist(v, bins=bins, color=color, alpha=0.6,
-                               label=f"{tag}: median {np.median(v):.3g}, p95 "
-                               f"{np.percentile(v, 95):.3g}")
-                    ax[i].axvline(np.median(v), color=color, lw=1.2)
-            if key == "linf_error_window" and lo > 0:
+                m = ev["heldout"][tag]
+                v = np.sort(m[key][~m["diverged"].astype(bool)])
+                if not v.size:
+                    continue
+                frac = np.arange(1, v.size + 1) / v.size
+                ax[i].step(v, frac, where="post", color=color, lw=1.5,
+                           label=f"{tag}: median {np.median(v):.3g}, p95 "
+                           f"{np.percentile(v, 95):.3g}")
+                for q, ls in ((50, "-"), (95, "--")):
+                    ax[i].axvline(np.percentile(v, q), color=color, lw=0.8, ls=ls)
+            if key == "linf_error_window":
                 ax[i].set_xscale("log")
+            elif problem.objective.scales.u_max:
+                ax[i].axvline(problem.objective.scales.u_max, color="k", ls=":", lw=1,
+                              label="bound (nominal plant)")
             ax[i].set_xlabel(LABELS[key])
-            ax[i].set_ylabel("plants")
-            ax[i].legend(fontsize=8)
-            ax[i].grid(alpha=0.3)
+            ax[i].set_ylabel("fraction of plants")
+            ax[i].legend(fontsize=8, loc="lower right")
+            ax[i].grid(alpha=0.3, which="both")
         n = ev["heldout"]["start"]["diverged"].size
-        fig.suptitle(f"held-out batch of {n} plants, start against tuned gains")
+        fig.suptitle(f"held-out batch of {n} plants: distribution (ECDF) with the start and the "
+                     f"tuned gains (solid: median, dashed: p95)")
         fig.savefig(out / "heldout.png", dpi=110)
         plt.close(fig)
         figures.append("heldout.png")

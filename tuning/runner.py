@@ -211,7 +211,8 @@ def history_columns(problem: Problem) -> list[str]:
 
 def _term_names(problem):
     spec, obj = problem.cfg.objective, problem.objective
-    names = [n for n in ("linf", "l2", "effort_l2", "effort_max") if getattr(spec, n)]
+    names = [n for n in ("linf", "l2", "effort_l2", "effort_max", "effort_tv")
+             if getattr(spec, n)]
     if obj.scales.u_max is not None and spec.u_max_weight:
         names.append("u_bound")
     names += [f"req{i}" for i in range(len(obj.requirements))]
@@ -281,9 +282,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     shrink = jnp.asarray(spec.shrink, state.lr_scale.dtype)
     min_delta = jnp.asarray(spec.min_delta, state.lr_scale.dtype)
     regrow = jnp.asarray(spec.regrow, state.lr_scale.dtype)
-    t0 = time.perf_counter()
-    compiled = step.compiled(state, shrink, min_delta, regrow)
-    compile_s = time.perf_counter() - t0
+    compiled, compile_s = None, 0.0
     schedule = spec.schedule_fn()
     columns = history_columns(problem)
     terms = _term_names(problem)
@@ -315,6 +314,10 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             if spec.time_limit is not None and elapsed + last_iter_s > spec.time_limit:
                 reason = f"time limit {spec.time_limit:g} s"
                 break
+            if compiled is None:  # compiled on first use: a finished run resumes instantly
+                t0 = time.perf_counter()
+                compiled = step.compiled(state, shrink, min_delta, regrow)
+                compile_s = time.perf_counter() - t0
             t_it = time.perf_counter()
             prev_best = float(state.best_loss)
             state, rep = compiled(state, shrink, min_delta, regrow)

@@ -180,8 +180,7 @@ def run(args) -> int:
           + f", {int(result.state.n_rejected)} rejected, best at iteration "
           f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
           f"{result.compile_s:.1f} s)", file=sys.stderr)
-    summary = report.write(out, result, plots=not args.no_plot,
-                           wall_total_s=time.perf_counter() - t_start)
+    summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
     print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
