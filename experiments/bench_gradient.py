@@ -168,13 +168,16 @@ def child(args) -> None:
     t0 = time.perf_counter()
     jax.block_until_ready(compiled(problem.z0))
     run_s = time.perf_counter() - t0
-    print(json.dumps({"rss_peak_mib": _rss_peak_mib(), "rss_before_mib": rss_base,
+    print(json.dumps({"rss_peak_mib": _hwm_mib() if not reset else max(rss_compile, _hwm_mib()),
+                      "rss_before_mib": rss_base,
                       "rss_peak_compile_mib": rss_compile,
                       "rss_peak_run_mib": _hwm_mib() if reset else None,
                       "compile_s": compile_s, "run_s": run_s}))
 
 
 def _rss_peak_mib() -> float:
+    # ru_maxrss survives exec (a child started from a big parent inherits its peak): only a
+    # fallback where /proc is missing.
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
@@ -249,6 +252,7 @@ def main():
     p.add_argument("--memory-batch", type=int, default=None)
     p.add_argument("--memory-limit-gib", type=float, default=8.0)
     p.add_argument("--skip-memory", action="store_true")
+    p.add_argument("--skip-costs", action="store_true")
     p.add_argument("--out", default="results/bench_gradient.json")
     # child mode
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -268,7 +272,8 @@ def main():
           f"{load[0]:.2f} at start", file=sys.stderr)
     result = {"quick": args.quick, "machine": platform.platform(), "cpus": os.cpu_count(),
               "load_average_start": load}
-    result["costs"] = costs(t_final, repeats)
+    if not args.skip_costs:
+        result["costs"] = costs(t_final, repeats)
     if not args.skip_memory:
         result["memory"] = memory(t_final, batch, args.memory_limit_gib)
     result["load_average_end"] = os.getloadavg()
@@ -280,7 +285,13 @@ def main():
 
 
 def _print(r):
-    c = r["costs"]
+    if "costs" in r:
+        _print_costs(r["costs"])
+    if "memory" in r:
+        _print_memory(r["memory"])
+
+
+def _print_costs(c):
     print(f"\nOne gradient of the {c['t_final']:g} s objective ({c['n_steps']} RK4 steps) with "
           f"respect to {c['n_params']} tuned numbers, against one forward simulation")
     print(f"{'method':<34} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
@@ -301,19 +312,23 @@ def _print(r):
     for row in a["fd"]:
         print(f"{'central' if row['central'] else 'forward':<20} {row['h']:>8.0e} "
               f"{row['max_rel_error']:>24.2e}")
-    if "memory" in r:
-        m0 = r["memory"][0]
+
+
+def _print_memory(memory):
+    if memory:
+        m0 = memory[0]
         print(f"\nPeak RSS [MiB] of one evaluation, batch of {m0['batch']} plants, T = "
-              f"{m0['t_final']:g} s (fresh process each; 'run' = after compilation, VmHWM reset)")
-        print(f"{'configuration':<52} {'process':>8} {'compile':>8} {'run':>8} {'run [s]':>8}")
-        for m in r["memory"]:
+              f"{m0['t_final']:g} s (fresh process each: peak RSS after\n"
+              f"building the problem, during compilation, and during the run alone)")
+        print(f"{'configuration':<52} {'setup':>8} {'compile':>8} {'run':>8} {'run [s]':>8}")
+        for m in memory:
             if m.get("rss_peak_mib") is None:
                 what = (f"> {m['exceeded_limit_gib']:g} GiB (stopped)"
                         if "exceeded_limit_gib" in m else f"error: {m.get('error')}")
                 print(f"{m['config']:<52} {what}")
                 continue
             run = m.get("rss_peak_run_mib")
-            print(f"{m['config']:<52} {m['rss_peak_mib']:>8.0f} "
+            print(f"{m['config']:<52} {m['rss_before_mib']:>8.0f} "
                   f"{m['rss_peak_compile_mib']:>8.0f} {run if run is None else f'{run:.0f}':>8} "
                   f"{m['run_s']:>8.2f}")
 

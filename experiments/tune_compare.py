@@ -42,8 +42,11 @@ def final_figures(problem, flat_z):
 
     z = ravel_pytree(problem.z0)[1](flat_z)
     m = jax.jit(problem.objective.per_plant)(z, {})
+    values = jax.device_get(problem.selection.values(z))
     return {"linf_error_window": float(m["linf_error_window"]),
-            "max_abs_u": float(m["max_abs_u"]), "diverged": bool(m["diverged"])}
+            "max_abs_u": float(m["max_abs_u"]), "tv_u": float(m["tv_u"]),
+            "diverged": bool(m["diverged"]),
+            "gains": {k: np.asarray(values[k]).tolist() for k in problem.selection.names}}
 
 
 def main():
