@@ -82,7 +82,10 @@ class TuningMetrics:
         # Log-sum-exp with a running max m: s = sum w exp(x - m); invariant to the choice of m.
         xe = self.e_sharpness * jnp.abs(e)
         me = jnp.where(in_win, jnp.maximum(acc["e_m"], xe), acc["e_m"])
-        se = acc["e_s"] * jnp.exp(acc["e_m"] - me) + w_win * jnp.exp(xe - me)
+        # Before the window the exponent is masked, not just its weight: exp of a large error
+        # before t0 would overflow and 0 * inf is NaN (double where).
+        arg = jnp.where(in_win, xe - me, 0.0)
+        se = acc["e_s"] * jnp.exp(acc["e_m"] - me) + jnp.where(in_win, w_win * jnp.exp(arg), 0.0)
         xu = self.u_sharpness * jnp.abs(obs.u)
         mu = jnp.maximum(acc["u_m"], xu)
         su = acc["u_s"] * jnp.exp(acc["u_m"] - mu) + jnp.exp(xu - mu)
@@ -219,9 +222,10 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     total = sum(terms.values())
-    # A diverged plant costs a large constant: finite, so that means and CVaRs stay usable
-    # (a non-finite gradient is the optimiser guard's business, see optimize.py).
-    total = jnp.where(diverged | ~jnp.isfinite(total), spec.divergence_penalty, total)
+    # A diverged plant costs a large constant: finite, so that means and CVaRs stay usable.
+    # Anything else non-finite stays NaN/inf, so that the optimiser's guard rejects the step
+    # instead of silently seeing a flat penalty (see optimize.py).
+    total = jnp.where(diverged, spec.divergence_penalty, total)
     return total, terms
 
 
