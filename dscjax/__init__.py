@@ -18,7 +18,10 @@ from dscjax.reference import InitialOffset, MultiSine, Reference, Sine, SmoothSt
 from dscjax.simulate import (
     DivergenceError,
     Trajectory,
+    canonical,
+    default_window,
     divergence_report,
+    run,
     simulate,
     simulate_batch,
 )
@@ -28,10 +31,10 @@ __version__ = "0.1.0"
 
 __all__ = [
     "Backlash", "Backstepping", "BacksteppingState", "ConfigError", "Controller", "CustomPlant",
-    "DSC", "DSCState", "DivergenceError",
-    "InitialOffset", "MultiSine", "Observation", "PaperPlant", "Plant", "Reference", "Setup", "Sine",
-    "SmoothStep", "State", "Status", "StrictFeedback", "Trajectory", "cast",
-    "check_strict_feedback", "closed_form", "divergence_report", "initial_state", "integrate",
-    "metrics", "order_n_example", "paper_example", "params", "prepared", "rk4_step", "simulate",
+    "DSC", "DSCState", "DivergenceError", "InitialOffset", "MultiSine", "Observation",
+    "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
+    "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
+    "default_window", "divergence_report", "initial_state", "integrate", "metrics",
+    "order_n_example", "paper_example", "params", "prepared", "rk4_step", "run", "simulate",
     "simulate_batch", "stability", "validate_setup", "vector_field",
 ]

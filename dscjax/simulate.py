@@ -92,10 +92,14 @@ class DivergenceError(RuntimeError):
         self.trajectory = trajectory
 
 
-def _run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
-         unroll: int = DEFAULT_UNROLL, overrides=None,
-         checkpoint_every: int | None = None, extra=None) -> Trajectory:
-    """The pure simulation (not jitted): compose it freely with vmap, grad, checkpoint.
+def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
+        unroll: int = DEFAULT_UNROLL, overrides=None,
+        checkpoint_every: int | None = None, extra=None) -> Trajectory:
+    """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
+
+    Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do).
+    The caller validates (`validation.validate_setup`, `validate_run`) and passes the number
+    of steps. All arguments but the keyword-only ones may be traced.
 
     With `overrides` ({path: (B, ...)}), simulates the batch of setups with those leaves
     replaced, stored batch-last inside the loop (see integrate.py).
@@ -194,13 +198,18 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
     return [is_dep(v) for v in jaxpr.outvars]
 
 
-_simulate = jax.jit(_run, static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
+_run = run  # private alias kept for old call sites
+_simulate = jax.jit(run, static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 
 
-def _window(t_final, window_start):
+def default_window(t_final, window_start=None):
+    """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less)."""
     if window_start is None:
         return 1.0 if t_final > 1.0 else 0.0
     return window_start
+
+
+_window = default_window
 
 
 def simulate(
@@ -337,7 +346,7 @@ def simulate_batch(
                    static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
                     unroll=DEFAULT_UNROLL, checkpoint_every=None):
-    return _run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
+    return run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
                 unroll=unroll, overrides=overrides, checkpoint_every=checkpoint_every)
 
 

@@ -482,9 +482,9 @@ def _overrides(setup, columns: Sequence[Param], table):
 
 
 def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps):
-    from dscjax.simulate import _run
+    from dscjax.simulate import run
 
-    traj = _run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
+    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
                 overrides=_overrides(setup, columns, table))
     return {**{k: traj.metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
@@ -698,9 +698,9 @@ def run_sweep(
         >>> res.columns["linf_error_window"].shape
         (8,)
     """
-    from dscjax.simulate import _window
+    from dscjax.simulate import default_window
 
-    window_start = _window(t_final, window_start)
+    window_start = default_window(t_final, window_start)
     validation.one_of(settings.dtype, "sweep.dtype", ("float32", "float64"))
     dtype = np.dtype(settings.dtype)
     if dtype == np.float64 and not jax.config.jax_enable_x64:

@@ -131,7 +131,8 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
             f"(got {float(window_start):.6g})"
         )
     tau = getattr(setup.controller, "tau", None)
-    if tau is not None and np.size(tau):
+    # a traced tau (e.g. differentiated by tuning) cannot be checked here: its caller does
+    if tau is not None and np.size(tau) and is_concrete(tau):
         ratio = float(dt) / np.min(np.asarray(tau, dtype=float))
         if ratio > RK4_REAL_STABILITY:
             raise ConfigError(

@@ -169,11 +169,11 @@ def bench_plain_vmap(dtype, b, repeats, horizon):
     setup = dscjax.paper_example(dtype=dtype)
     n = int(round(horizon / DT))
     alphas = jnp.asarray(np.linspace(0.7, 1.3, b), dtype)
-    from dscjax.simulate import _run
+    from dscjax.simulate import run
 
     @jax.jit
     def run(alphas):
-        return jax.vmap(lambda a: _run(params.set(setup, "hysteresis.alpha", a), DT, 1.0, 1e6,
+        return jax.vmap(lambda a: run(params.set(setup, "hysteresis.alpha", a), DT, 1.0, 1e6,
                                        n_steps=n, save_every=n).metrics)(alphas)
 
     t_med, _ = median_time(lambda: run(alphas), repeats)

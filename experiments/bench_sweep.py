@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax import sweep  # noqa: E402
-from dscjax.simulate import _window  # noqa: E402
+from dscjax.simulate import default_window  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -66,7 +66,7 @@ def bench_throughput(dtype, sizes, repeats, horizon):
     rows, outputs = [], {}
     for b in sizes:
         ranges, table = _table(b)
-        runner = sweep._Runner(setup, [r.param for r in ranges], n, DT, _window(horizon, None),
+        runner = sweep._Runner(setup, [r.param for r in ranges], n, DT, default_window(horizon, None),
                                1e6, b, devices=jax.devices()[:1])
         t0 = time.perf_counter()
         out = runner(table, 1)

@@ -41,7 +41,7 @@ import numpy as np
 
 from dscjax import params
 from dscjax.closed_loop import Setup
-from dscjax.simulate import _run
+from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
@@ -186,7 +186,7 @@ def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
                      checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
     """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
     ce = checkpoint_every
-    traj = _run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
+    traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
                 save_every=ce or sim.n_steps, overrides=dict(overrides) if overrides else None,
                 checkpoint_every=ce, extra=extra)
     return traj.metrics, traj.diverged

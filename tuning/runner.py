@@ -94,7 +94,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
 
     Raises ConfigError (naming the field) on any bad setting.
     """
-    from dscjax.simulate import _window
+    from dscjax.simulate import default_window
     from dscjax.validation import validate_run, validate_setup
 
     cfg.validate()
@@ -102,7 +102,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     notes = []
     window = cfg.objective.window_start
     if window is None:
-        window = _window(options.t_final, options.window_start)
+        window = default_window(options.t_final, options.window_start)
     n_steps = validate_run(setup, options.t_final, options.dt, 1, window)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
