@@ -172,11 +172,11 @@ def bench_plain_vmap(dtype, b, repeats, horizon):
     from dscjax.simulate import run
 
     @jax.jit
-    def run(alphas):
+    def batched(alphas):
         return jax.vmap(lambda a: run(params.set(setup, "hysteresis.alpha", a), DT, 1.0, 1e6,
-                                       n_steps=n, save_every=n).metrics)(alphas)
+                                      n_steps=n, save_every=n).metrics)(alphas)
 
-    t_med, _ = median_time(lambda: run(alphas), repeats)
+    t_med, _ = median_time(lambda: batched(alphas), repeats)
     return b * n / t_med
 
 
