@@ -28,9 +28,12 @@ v ~ n^p). Both are reported for both controllers; which model fits is visible fr
 
 from __future__ import annotations
 
+import json
+import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -189,21 +192,63 @@ def fit_growth(ns: Sequence[int], values: Sequence[float]) -> dict:
 METRICS = ("eqns", "flops", "trace_s", "compile_s", "build_s", "eval_s", "call_s")
 
 
+def _settings(repeats: int, evals: int) -> dict:
+    """What a saved measurement must have been made with to be reused by a resumed study."""
+    return dict(repeats=repeats, evals=evals, jax_version=jax.__version__,
+                backend=jax.default_backend())
+
+
+def _load_rows(path: Path, settings: dict, log) -> dict:
+    try:
+        saved = json.loads(path.read_text())
+        ok = saved.get("settings") == settings
+        rows = {(r["controller"], int(r["n"])): r for r in saved["rows"]} if ok else {}
+    except (OSError, ValueError, KeyError, TypeError):
+        ok, rows = False, {}
+    if log:
+        log(f"  resumed: {len(rows)} measurement(s) kept from {path}" if ok else
+            f"  not resuming from {path}: unreadable or measured with other settings "
+            f"({settings})")
+    return rows
+
+
+def _save_rows(path: Path, settings: dict, rows: dict) -> None:
+    """Atomic write: an interruption leaves the previous file or the new one, never half."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(dict(settings=settings, rows=list(rows.values())), indent=1)
+                   + "\n")
+    os.replace(tmp, path)
+
+
 def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: int = 2000,
           controllers: Sequence[str] = CONTROLLERS,
-          log: Callable[[str], None] | None = print) -> dict:
-    """Measure every controller at every order; returns rows, fits and the machine context."""
+          log: Callable[[str], None] | None = print, rows_path=None,
+          resume: bool = False) -> dict:
+    """Measure every controller at every order; returns rows, fits and the machine context.
+
+    With `rows_path`, every finished measurement is saved there at once (JSON, atomically),
+    so an interrupted study loses at most the law being measured; `resume=True` reuses the
+    saved measurements made with the same repeats, evals, jax version and backend.
+    """
+    settings = _settings(repeats, evals)
+    path = None if rows_path is None else Path(rows_path)
+    saved = _load_rows(path, settings, log) if (resume and path and path.exists()) else {}
     rows = []
     t_start = time.perf_counter()
     for n in orders:
         for c in controllers:
-            row = measure(c, n, repeats=repeats, evals=evals)
+            kept = (c, int(n)) in saved
+            row = saved[(c, int(n))] if kept else measure(c, n, repeats=repeats, evals=evals)
             rows.append(row)
+            if path is not None and not kept:
+                saved[(c, int(n))] = row
+                _save_rows(path, settings, saved)
             if log:
                 log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, {row['flops']:>9.0f} "
                     f"flops, trace {row['trace_s']:.3g} s, compile {row['compile_s']:.3g} s, "
                     f"eval {row['eval_s'] * 1e6:.3g} us (call {row['call_s'] * 1e6:.3g} us)  "
-                    f"[{time.perf_counter() - t_start:.0f} s]")
+                    + ("[kept from the interrupted run]" if kept else
+                       f"[{time.perf_counter() - t_start:.0f} s]"))
     fits = {}
     for c in controllers:
         mine = [r for r in rows if r["controller"] == c]

@@ -491,7 +491,8 @@ def _jsonable(obj):
 def reproduce(out="results/paper", fmt: str = "png", t_final: float = 20.0, dt: float = 1e-3,
               dpi: int = 150, complexity: bool = False,
               complexity_orders: Sequence[int] = tuple(range(2, 9)),
-              complexity_repeats: int = 3, log: Callable[[str], None] | None = None) -> dict:
+              complexity_repeats: int = 3, log: Callable[[str], None] | None = None,
+              resume: bool = False) -> dict:
     """Run the study and write every figure, summary.json and summary.md to `out`.
 
     Args:
@@ -502,6 +503,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = 20.0, dt: 
         complexity: also measure the control laws for n in complexity_orders
             (`dscjax.complexity`), writing complexity.json and fig_complexity.
         log: progress callback (default: print to stderr with elapsed time).
+        resume: with complexity, reuse the control-law measurements an interrupted run saved
+            in `out/complexity_rows.json` (each is saved as soon as it is made).
 
     Returns:
         The summary (as written to summary.json).
@@ -526,7 +529,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = 20.0, dt: 
 
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")
-        result = cx.study(complexity_orders, repeats=complexity_repeats, log=log)
+        result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
+                          rows_path=out / "complexity_rows.json", resume=resume)
         (out / "complexity.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
         path = out / f"{FIGURES['complexity']}.{fmt}"
         cx.plot(result, path, colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")},

@@ -133,3 +133,40 @@ def test_count_eqns_inlines_sub_jaxprs():
 def test_bad_orders_is_a_usage_error(tmp_path, capsys):
     assert main(["reproduce", "--out", str(tmp_path), "--orders", "1-3"]) == 2
     assert "--orders" in capsys.readouterr().err
+
+
+def test_complexity_study_resumes_after_interruption(tmp_path, monkeypatch):
+    """Each finished measurement is saved at once; a resumed study measures only the rest."""
+    calls = []
+    real = complexity.measure
+
+    def measure(c, n, **kw):
+        if len(calls) == 2:  # the third law is interrupted (Ctrl-C)
+            raise KeyboardInterrupt
+        calls.append((c, n))
+        return real(c, n, **kw)
+
+    monkeypatch.setattr(complexity, "measure", measure)
+    path = tmp_path / "complexity_rows.json"
+    with pytest.raises(KeyboardInterrupt):
+        complexity.study((2, 3), repeats=1, evals=20, log=None, rows_path=path)
+    saved = json.loads(path.read_text())
+    assert [(r["controller"], r["n"]) for r in saved["rows"]] == [("dsc", 2), ("backstepping", 2)]
+
+    def counted(c, n, **kw):
+        calls.append((c, n))
+        return real(c, n, **kw)
+
+    calls.clear()
+    monkeypatch.setattr(complexity, "measure", counted)
+    result = complexity.study((2, 3), repeats=1, evals=20, log=None, rows_path=path,
+                              resume=True)
+    assert calls == [("dsc", 3), ("backstepping", 3)]  # only the unfinished ones
+    kept = {(r["controller"], r["n"]): r for r in saved["rows"]}
+    for r in result["rows"][:2]:
+        assert r == kept[(r["controller"], r["n"])]
+    assert len(json.loads(path.read_text())["rows"]) == 4
+    # other settings: nothing reused
+    calls.clear()
+    complexity.study((2,), repeats=2, evals=20, log=None, rows_path=path, resume=True)
+    assert calls == [("dsc", 2), ("backstepping", 2)]

@@ -43,6 +43,10 @@ def add_parser(sub):
                    help="orders for --complexity, e.g. 2-8 or 2,4,6 (default 2-8)")
     p.add_argument("--repeats", type=int, default=3, metavar="R",
                    help="builds per law for --complexity; timings are medians (default 3)")
+    p.add_argument("--resume", action="store_true",
+                   help="with --complexity: keep the control-law measurements an interrupted "
+                   "run saved in DIR/complexity_rows.json (same --repeats) and measure only "
+                   "the rest")
     return p
 
 
@@ -58,7 +62,17 @@ def run(args) -> int:
     from dscjax.reproduce import setups
 
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
-    reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
-              complexity=args.complexity, complexity_orders=orders,
-              complexity_repeats=args.repeats)
+    try:
+        reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
+                  complexity=args.complexity, complexity_orders=orders,
+                  complexity_repeats=args.repeats, resume=args.resume)
+    except KeyboardInterrupt:
+        import sys
+        from pathlib import Path
+
+        rows = Path(args.out) / "complexity_rows.json"
+        if args.complexity and rows.exists():
+            print(f"dscjax reproduce: the finished control-law measurements are kept in {rows}; "
+                  "continue with the same command and --resume", file=sys.stderr)
+        raise
     return 0
