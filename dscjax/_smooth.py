@@ -30,4 +30,5 @@ def smooth_sat(s, delta):
     Equal to (|s+1| - |s-1|)/2 = sat(s) when delta = 0; odd; |smooth_sat - sat| <= delta/2,
     the largest bias being at the corners s = +-1.
     """
-    return 0.5 * (jnp.sqrt((s + 1.0) ** 2 + delta * delta) - jnp.sqrt((s - 1.0) ** 2 + delta * delta))
+    d2 = delta * delta
+    return 0.5 * (jnp.sqrt((s + 1.0) ** 2 + d2) - jnp.sqrt((s - 1.0) ** 2 + d2))

@@ -57,7 +57,8 @@ class SimOptions:
 
     def validate(self) -> None:
         if self.dtype not in ("float64", "float32"):
-            raise ConfigError(f"simulation.dtype must be one of 'float64', 'float32' (got {self.dtype!r})")
+            raise ConfigError("simulation.dtype must be one of 'float64', 'float32' "
+                              f"(got {self.dtype!r})")
         if not (self.state_bound > 0):
             raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
 
@@ -194,7 +195,8 @@ def _coerce(section: str, name: str, value, static: bool, default):
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
-        raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})") from None
+        raise ConfigError(
+            f"{field} must be a number or a list of numbers (got {value!r})") from None
     if isinstance(value, bool) or a.dtype == object:
         raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})")
     return float(a) if a.ndim == 0 else a
@@ -278,7 +280,8 @@ def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, SimOptions
     try:
         d = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        raise ConfigError(f"{path}: not valid {'JSON' if path.suffix == '.json' else 'TOML'}: {err}") from None
+        kind = 'JSON' if path.suffix == '.json' else 'TOML'
+        raise ConfigError(f"{path}: not valid {kind}: {err}") from None
     return from_dict(d, base)
 
 
@@ -287,6 +290,6 @@ def default_toml() -> str:
 
     return dumps_toml(
         to_dict(paper_example(dtype=np.float64)),
-        header="dscjax configuration: the paper's example (Section 4, eq. 73) with the readings of\n"
-        "NOTES.md. Every key may be omitted; omitted keys take these values.",
+        header="dscjax configuration: the paper's example (Section 4, eq. 73) with the "
+        "readings of\nNOTES.md. Every key may be omitted; omitted keys take these values.",
     )

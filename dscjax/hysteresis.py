@@ -62,7 +62,7 @@ class Backlash:
         return self.alpha * abs_du * (self.lam * u - w) + self.psi * du
 
     def d1_limits(self):
-        """The limits (7)-(8): d_1 -> +(lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""
+        """Limits (7)-(8) of d_1: (lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""
         bound = (self.lam - self.psi) / self.alpha
         return bound, -bound
 
@@ -73,7 +73,7 @@ def closed_form(u, u0, w0, alpha, lam, psi, direction):
     With s = sgn(u') constant on the segment, (4) reads dw/du = alpha s (lam u - w) + psi, a linear
     ODE in u. Writing d_1 = w - lam u (eq. 5):
 
-        d_1(u) = (w0 - lam u0) e^{-alpha s (u - u0)} + (psi - lam)/(alpha s) (1 - e^{-alpha s (u - u0)}),
+        d_1(u) = (w0 - lam u0) E + (psi - lam)/(alpha s) (1 - E),  E = e^{-alpha s (u - u0)},
 
     which is (6) with the paper's sgn(u) read as sgn(u') (NOTES.md).
 

@@ -343,7 +343,8 @@ def _loop(step, save_step, block, f_obs, acc_update, ys_c, obs_c, acc_c, y_init,
     ys = ys_c.unstack(jnp.concatenate([ys, ys_c.stack(y_end)[None]]))
     obs = obs_c.unstack(jnp.concatenate([obs, obs_c.stack(obs_end)[None]]))
     if batched:
-        acc = jax.vmap(acc_c.unravel, in_axes=-1)(jnp.stack(acc)) if accumulate is not None else None
+        acc = (jax.vmap(acc_c.unravel, in_axes=-1)(jnp.stack(acc))
+               if accumulate is not None else None)
     else:
         acc = acc_c.unpack(acc) if accumulate is not None else None
     return Integration(ys=ys, obs=obs, acc=acc, status=Status(code=code, step=bad_step))

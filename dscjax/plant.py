@@ -212,7 +212,8 @@ class PaperPlant(Plant):
     def delta(self, x, t):
         s = jnp.sin(self.delta_freq * t)
         s3 = time_signal(s * s * s)
-        return jnp.stack([self.delta1 * jnp.sin(x[1]), self.delta2 * (x[0] * x[0] + x[1] * x[1]) * s3])
+        return jnp.stack([self.delta1 * jnp.sin(x[1]),
+                          self.delta2 * (x[0] * x[0] + x[1] * x[1]) * s3])
 
     def dbar(self, t):
         return time_signal(self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias)

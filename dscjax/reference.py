@@ -26,7 +26,7 @@ class Reference(abc.ABC):
         """Every field is a scalar unless a subclass says otherwise."""
         return {f.name: () for f in dataclasses.fields(self) if not f.metadata.get("static")}
 
-    def validate(self, prefix):
+    def validate(self, prefix):  # noqa: B027 (optional hook, not abstract)
         """Range checks; none by default."""
 
     @abc.abstractmethod
@@ -93,7 +93,8 @@ class SmoothStep(Reference):
         v.positive(self.rise_time, f"{prefix}.rise_time")
 
     def __call__(self, t):
-        return self.initial + 0.5 * self.height * (1.0 + jnp.tanh((t - self.t_step) / self.rise_time))
+        rise = jnp.tanh((t - self.t_step) / self.rise_time)
+        return self.initial + 0.5 * self.height * (1.0 + rise)
 
 
 @jax.tree_util.register_dataclass

@@ -116,7 +116,8 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
     if n_steps < 1 or abs(n_steps * float(dt) - float(t_final)) > 1e-9 * max(1.0, float(t_final)):
         raise ConfigError(
             f"simulation.t_final must be a whole number of steps of simulation.dt "
-            f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, ratio {float(t_final) / float(dt):.6g})"
+            f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, "
+            f"ratio {float(t_final) / float(dt):.6g})"
         )
     if not isinstance(save_every, int | np.integer) or save_every < 1:
         raise ConfigError(f"simulation.save_every must be an integer >= 1 (got {save_every!r})")

@@ -134,7 +134,7 @@ def costs(t_final: float, repeats: int) -> dict:
                                                               1e-5), pts, repeats=repeats)
         res[name]["members"] = int(pts.shape[0])
     base = res["forward"]["median_s"]
-    for k, v in res.items():
+    for v in res.values():
         if isinstance(v, dict) and "median_s" in v:
             v["ratio_to_forward"] = v["median_s"] / base
     # accuracy
@@ -320,7 +320,8 @@ def _print_costs(c):
         print(f"{label + extra:<34} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
               f"{v['compile_s']:>12.1f}")
     a = c["accuracy"]
-    print(f"\nforward (both) vs reverse mode: max rel. difference {a['forward_vs_reverse_max_rel']:.2e}; "
+    print("\nforward (both) vs reverse mode: max rel. difference "
+          f"{a['forward_vs_reverse_max_rel']:.2e}; "
           f"checkpointed vs plain reverse: {a['ckpt_vs_plain_reverse_max_rel']:.2e}")
     print(f"{'finite differences':<20} {'h':>8} {'max rel. error vs exact':>24}")
     for row in a["fd"]:

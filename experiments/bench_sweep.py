@@ -66,8 +66,9 @@ def bench_throughput(dtype, sizes, repeats, horizon):
     rows, outputs = [], {}
     for b in sizes:
         ranges, table = _table(b)
-        runner = sweep._Runner(setup, [r.param for r in ranges], n, DT, default_window(horizon, None),
-                               1e6, b, devices=jax.devices()[:1])
+        runner = sweep._Runner(setup, [r.param for r in ranges], n, DT,
+                               default_window(horizon, None), 1e6, b,
+                               devices=jax.devices()[:1])
         t0 = time.perf_counter()
         out = runner(table, 1)
         first = time.perf_counter() - t0

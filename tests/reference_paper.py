@@ -22,7 +22,8 @@ P = dict(
 
 def x2d_of(x1, th1h, ph1, t, p=P):
     s1 = x1 - math.sin(t)
-    return -th1h * x1 * x1 - s1 * 0.2**2 / (2 * p["eps"] * p["gmin"]) - p["k1"] * s1 + ph1 * math.cos(t)
+    return (-th1h * x1 * x1 - s1 * 0.2**2 / (2 * p["eps"] * p["gmin"]) - p["k1"] * s1
+            + ph1 * math.cos(t))
 
 
 def initial_state(p=P, x0=(0.08, 0.1), w0=0.0, est=(0.05, 0.0, 1.0, 0.5, 1.0)):

@@ -112,7 +112,7 @@ def test_virtual_control_derivatives_match_finite_differences(n):
         d_st, dx = _nominal_direction(setup, st, x, t)
         h = 1e-3
 
-        def at(s):
+        def at(s, st=st, d_st=d_st, x=x, dx=dx, t=t):
             moved = jax.tree.map(lambda a, b: a + s * b, st, d_st)
             return alphas(moved, x + s * dx, t + s)
 

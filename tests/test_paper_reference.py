@@ -9,10 +9,10 @@ import dataclasses
 
 import numpy as np
 import pytest
+import reference_paper as ref
 from scipy.integrate import solve_ivp
 
 import dscjax
-import reference_paper as ref
 
 
 def _stack(traj):

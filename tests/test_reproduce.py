@@ -51,7 +51,8 @@ def test_summary_fields_are_finite(reproduced):
         for est in run["estimates"].values():
             assert all(math.isfinite(est[k]) for k in ("min", "max", "final"))
     ids = {c["id"] for c in summary["claims"]}
-    assert {"compensation_improves_tracking_no_dhat", "compensation_improves_tracking_no_dhat_no_zeta",
+    assert {"compensation_improves_tracking_no_dhat",
+            "compensation_improves_tracking_no_dhat_no_zeta",
             "dsc_and_backstepping_track_alike", "dsc_smaller_control_amplitude",
             "signals_bounded", "dsc_removes_explosion_of_complexity"} <= ids
     for c in summary["claims"]:

@@ -17,7 +17,8 @@ def _set(setup, path, value):
 
 
 @pytest.mark.parametrize("path,value,pattern", [
-    ("hysteresis.lam", 0.05, r"hysteresis.lam must be > hysteresis.psi \(got lam=0.05, psi=0.105\)"),
+    ("hysteresis.lam", 0.05,
+     r"hysteresis.lam must be > hysteresis.psi \(got lam=0.05, psi=0.105\)"),
     ("hysteresis.alpha", 0.0, r"hysteresis.alpha must be > 0 \(got 0\)"),
     ("hysteresis.alpha", -1.0, r"hysteresis.alpha must be > 0 \(got -1\)"),
     ("controller.k", [10.0, -0.45], r"controller.k must be > 0 \(got \[10, -0.45\]\)"),
@@ -26,7 +27,8 @@ def _set(setup, path, value):
     ("controller.eps", -0.01, r"controller.eps must be > 0"),
     ("controller.eta", [0.01, -1.0], r"controller.eta must be >= 0"),
     ("plant.g", [1.0, -1.0], r"plant.g must be > 0"),
-    ("controller.k", [10.0, 0.45, 1.0], r"controller.k must have shape \(2,\) for a plant of order n=2 \(got shape \(3,\)\)"),
+    ("controller.k", [10.0, 0.45, 1.0],
+     r"controller.k must have shape \(2,\) for a plant of order n=2 \(got shape \(3,\)\)"),
     ("hysteresis.alpha", np.nan, r"hysteresis.alpha must be"),
 ])
 def test_bad_setup_values(paper_setup, path, value, pattern):
@@ -46,7 +48,8 @@ def test_bad_static_choice(paper_setup):
     (dict(dt=0.0), r"simulation.dt must be > 0"),
     (dict(dt=-1e-3), r"simulation.dt must be > 0"),
     (dict(t_final=0.0), r"simulation.t_final must be > 0"),
-    (dict(dt=0.03, t_final=0.9), r"simulation.dt = 0.03 is too large for RK4 on the fastest filter: dt / "
+    (dict(dt=0.03, t_final=0.9),
+     r"simulation.dt = 0.03 is too large for RK4 on the fastest filter: dt / "
                     r"min\(controller.tau\) must be <= 2.785 \(got min tau = 0.01, ratio 3\); "
                     r"use dt <= 0.0278$"),
     (dict(t_final=1.0005), r"simulation.t_final must be a whole number of steps"),

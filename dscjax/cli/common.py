@@ -36,7 +36,8 @@ def load_setup(args):
     if getattr(args, "float32", False):
         changes["dtype"] = "float32"
     if getattr(args, "variant", None):
-        setup = setup.replace(controller=dataclasses.replace(setup.controller, variant=args.variant))
+        setup = setup.replace(
+            controller=dataclasses.replace(setup.controller, variant=args.variant))
     options = dataclasses.replace(options, **changes)
     options.validate()
     return cast(setup, np.dtype(options.dtype)), options

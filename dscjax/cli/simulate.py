@@ -85,7 +85,8 @@ def run(args) -> int:
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)", file=sys.stderr)
-    print(f"  L-inf error {metrics['linf_error']:.4g} (after t0: {metrics['linf_error_window']:.4g}),"
+    print(f"  L-inf error {metrics['linf_error']:.4g} "
+          f"(after t0: {metrics['linf_error_window']:.4g}),"
           f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}",
           file=sys.stderr)
     if diverged is not None:
