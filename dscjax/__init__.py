@@ -6,6 +6,8 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
     traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
 """
 
+# First: dscjax._xla sets XLA_FLAGS on import, before any computation creates the CPU backend.
+from dscjax import _xla  # noqa: F401  isort: skip
 from dscjax import metrics, params, stability
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
