@@ -190,7 +190,8 @@ def main(argv=None):
     setup = dscjax.paper_example()
 
     print(f"dscjax core benchmark: paper example, T = {T_FINAL} s, dt = {DT}, "
-          f"{N_STEPS} RK4 steps; {os.cpu_count()} CPUs, jax {jax.__version__}", flush=True)
+          f"{N_STEPS} RK4 steps; {os.cpu_count()} CPUs, jax {jax.__version__}; XLA_FLAGS "
+          f"{os.environ.get('XLA_FLAGS', '')!r}", flush=True)
     compile_s, recompiled = bench_compile(setup)
     full, only = bench_single(setup, repeats)
     sc, nfev = bench_scipy(max(3, repeats // 2))
@@ -212,7 +213,8 @@ def main(argv=None):
             for d in ("float32", "float64")}
     result = dict(
         machine=dict(cpus=os.cpu_count(), platform=platform.platform(), jax=jax.__version__,
-                     python=platform.python_version()),
+                     python=platform.python_version(),
+                     xla_flags=os.environ.get("XLA_FLAGS", "")),
         settings=dict(t_final=T_FINAL, dt=DT, steps=N_STEPS, repeats=repeats, quick=a.quick,
                       batch_horizon_s=horizon),
         single=dict(dscjax_full_s=full, dscjax_metrics_only_s=only, scipy_rk45_s=sc,

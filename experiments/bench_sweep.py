@@ -235,11 +235,13 @@ def main(argv=None):
     rss_horizon = 0.2 if quick else 2.0
     load0 = os.getloadavg()
     result = dict(quick=quick, machine=dict(cpus=os.cpu_count(), platform=platform.platform(),
-                                            jax=jax.__version__, load_avg_start=load0),
+                                            jax=jax.__version__, load_avg_start=load0,
+                                            xla_flags=os.environ.get("XLA_FLAGS", "")),
                   dt=DT, horizon=horizon)
     print(f"dscjax sweep benchmark ({'quick' if quick else 'full'}): paper example, dt = {DT}, "
           f"{os.cpu_count()} CPUs, jax {jax.__version__}, load average "
-          f"{load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}", flush=True)
+          f"{load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}; XLA_FLAGS "
+          f"{os.environ.get('XLA_FLAGS', '')!r}", flush=True)
     if "throughput" not in a.skip:
         print(f"throughput of the block program, T = {horizon:g} s:", flush=True)
         r32, o32 = bench_throughput(np.float32, sizes, repeats, horizon)
