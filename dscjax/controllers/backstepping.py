@@ -62,7 +62,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
-from dscjax._smooth import sat, smooth_abs, smooth_sat
+from dscjax.controllers.adaptive import AdaptiveLaws
 from dscjax.controllers.base import ControlInfo, Controller
 
 ROBUST_TERMS = ("sat", "sgn", "smooth")
@@ -99,7 +99,7 @@ class _Chain(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class Backstepping(Controller):
+class Backstepping(AdaptiveLaws, Controller):
     """Adaptive backstepping of any order n with hysteresis compensation (module docstring).
 
     Traced gains (shapes for order n), with the DSC's names and meanings: k (n,), gamma_g (n,),
@@ -190,29 +190,8 @@ class Backstepping(Controller):
         return BacksteppingState(theta_hat=self.theta_hat0, phi_hat=self.phi_hat0,
                                  zeta_hat=self.zeta_hat0, d_hat=self.d_hat0)
 
-    # -- pieces shared by the law, its derivative and the adaptive laws ------------------------
-    def _robust(self, z_n):
-        if self.robust_term == "sgn":
-            return jnp.sign(z_n)
-        if self.robust_term == "smooth":
-            return smooth_sat(z_n / self.sat_width, self.smooth_delta)
-        return sat(z_n / self.sat_width)
-
-    def _abs_zn(self, z_n):
-        if self.robust_term == "smooth":
-            return smooth_abs(z_n, self.smooth_delta * self.sat_width)
-        return jnp.abs(z_n)
-
-    def _virtual(self, i, z_i, f, rho, theta_hat, phi_hat, v_i):
-        """alpha_(i+1) (0-based stage i), as eqs. (16) and (22) with v_i = alpha_i'."""
-        robust = z_i * rho[i] ** 2 / (2.0 * self.eps * self.g_min)
-        return -theta_hat[i] * f[i] - robust - self.k[i] * z_i + phi_hat[i] * v_i
-
-    def _theta_rate(self, i, f_i, z_i, theta_hat_i):
-        return self.gamma_g[i] * (f_i * z_i - self.eta[i] * theta_hat_i)  # (17), (23), (31)
-
-    def _phi_rate(self, i, v_i, z_i, phi_hat_i):
-        return -self.gamma_phi[i] * (v_i * z_i + self.sigma[i] * phi_hat_i)  # (17), (23)
+    # The virtual controls (alpha_(i+1) = _virtual with v_i = alpha_i'), ubar and the adaptive
+    # laws are the DSC's (`AdaptiveLaws`), with z_i in place of S_i.
 
     # -- the chain of virtual controls and their exact derivatives ----------------------------
     # Inside the nested derivatives every per-stage quantity is a scalar of a tuple (per-stage
@@ -287,11 +266,8 @@ class Backstepping(Controller):
         return self._last_stage(state, z_n, a_dot, chain)
 
     def _last_stage(self, state, z_n, a_dot, chain):
-        n = chain.f.shape[0]
         f, rho = chain.f, chain.rho
-        ubar = (-self.k[n - 1] * z_n - state.theta_hat[n - 1] * f[n - 1]
-                - z_n * rho[n - 1] ** 2 / (2.0 * self.eps) + a_dot
-                - self._robust(z_n) * state.d_hat)  # as (30)
+        ubar = self._ubar(z_n, state.theta_hat, f, rho, a_dot, state.d_hat)  # as (30)
         u = state.zeta_hat * ubar  # (28)
         z = jnp.stack(chain.z + [z_n])
         extra = BacksteppingExtra(ubar=ubar, f=f, phi_signal=jnp.stack(chain.alpha_dot),
@@ -301,12 +277,8 @@ class Backstepping(Controller):
     def state_rate(self, state, x, t, info, plant, reference):
         """Adaptive laws (17), (23), (29), (31), (32) with z_i for S_i, alpha_(i-1)' for z_i'."""
         e = info.extra
-        z = info.S
-        z_n = z[-1]
-        theta_dot = self.gamma_g * (e.f * z - self.eta * state.theta_hat)
-        phi_dot = -self.gamma_phi * (e.phi_signal * z[:-1] + self.sigma * state.phi_hat)
-        zeta_dot = -self.gamma_zeta * (e.ubar * z_n + self.eta_zeta * state.zeta_hat)
-        d_dot = self.gamma_d * (self._abs_zn(z_n) - self.eta_d * state.d_hat)
+        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info.S, e.f, e.phi_signal,
+                                                          e.ubar)
         return BacksteppingState(theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
                                  d_hat=d_dot)
 

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 
 from dscjax import validation as v
 from dscjax._fusion import barrier
-from dscjax._smooth import sat, smooth_abs, smooth_sat
+from dscjax.controllers.adaptive import AdaptiveLaws
 from dscjax.controllers.base import ControlInfo, Controller
 from dscjax.reference import InitialOffset
 
@@ -54,7 +54,7 @@ class DSCExtra(NamedTuple):
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
-class DSC(Controller):
+class DSC(AdaptiveLaws, Controller):
     """Adaptive DSC with hysteresis compensation, eqs. (13)-(32).
 
     Traced gains (shapes for order n): k (n,), tau (n-1,), c (n-1,), gamma_g (n,), eta (n,),
@@ -132,19 +132,6 @@ class DSC(Controller):
     def adapts_zeta(self) -> bool:
         return self.variant != "no_dhat_no_zeta"
 
-    def _robust(self, s_n):
-        """The robust term's switching function: sgn(S_n) or its saturated replacement."""
-        if self.robust_term == "sgn":
-            return jnp.sign(s_n)
-        if self.robust_term == "smooth":
-            return smooth_sat(s_n / self.sat_width, self.smooth_delta)
-        return sat(s_n / self.sat_width)
-
-    def _abs_sn(self, s_n):
-        if self.robust_term == "smooth":
-            return smooth_abs(s_n, self.smooth_delta * self.sat_width)
-        return jnp.abs(s_n)
-
     # -- initialisation --------------------------------------------------------------------
     def prepare(self, plant, reference):
         x0 = jnp.asarray(plant.x0)
@@ -195,14 +182,6 @@ class DSC(Controller):
                         d_hat=d_hat)
 
     # -- the law -----------------------------------------------------------------------------
-    def _virtual(self, i, s_i, f, rho, theta_hat, phi_hat, v_i):
-        """Virtual control x_(i+2)d (0-based stage i), eqs. (16) and (22).
-
-        v_i is y_r' at the first stage and the filter derivative z_(i+1)' after it.
-        """
-        robust = s_i * rho[i] ** 2 / (2.0 * self.eps * self.g_min)
-        return -theta_hat[i] * f[i] - robust - self.k[i] * s_i + phi_hat[i] * v_i
-
     def law(self, state, x, t, plant, reference):
         """u = zeta_hat ubar, eqs. (13)-(30). Returns (u, ControlInfo)."""
         n = x.shape[0]
@@ -223,9 +202,7 @@ class DSC(Controller):
 
         s_n = s[-1]
         d_hat = state.d_hat if self.compensates else jnp.zeros_like(state.d_hat)
-        ubar = (-self.k[n - 1] * s_n - theta_hat[n - 1] * f[n - 1]
-                - s_n * rho[n - 1] ** 2 / (2.0 * self.eps) + z_dot[-1]
-                - self._robust(s_n) * d_hat)  # (30), no 1/g_min in the rho_n term
+        ubar = self._ubar(s_n, theta_hat, f, rho, z_dot[-1], d_hat)  # (30)
         u = state.zeta_hat * ubar  # (28)
         extra = DSCExtra(ubar=ubar, f=f, phi_signal=jnp.stack(v), z_dot=jnp.stack(z_dot))
         return u, ControlInfo(yr=yr, S=jnp.stack(s), extra=extra)
@@ -233,12 +210,8 @@ class DSC(Controller):
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
         e = info.extra
-        s = info.S
-        s_n = s[-1]
-        theta_dot = self.gamma_g * (e.f * s - self.eta * state.theta_hat)
-        phi_dot = -self.gamma_phi * (e.phi_signal * s[:-1] + self.sigma * state.phi_hat)
-        zeta_dot = -self.gamma_zeta * (e.ubar * s_n + self.eta_zeta * state.zeta_hat)
-        d_dot = self.gamma_d * (self._abs_sn(s_n) - self.eta_d * state.d_hat)
+        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info.S, e.f, e.phi_signal,
+                                                          e.ubar)
         if not self.adapts_zeta:
             zeta_dot = jnp.zeros_like(zeta_dot)
         if not self.compensates:

@@ -1,0 +1,62 @@
+"""The parameterisation and adaptive laws the DSC and the backstepping baseline share.
+
+Both controllers carry the same gains (k, eps, g_min, gamma_g, eta, gamma_phi, sigma,
+gamma_zeta, eta_zeta, gamma_d, eta_d, sat_width, smooth_delta, robust_term) and differ only in
+their surfaces: S_i for the DSC, z_i = x_i - alpha_(i-1) for backstepping (`s` below), and in the
+signal v_i that multiplies phi_hat_i (a filter derivative, or alpha_i'). `AdaptiveLaws` holds
+the formulas once; each controller mixes it in.
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from dscjax._smooth import sat, smooth_abs, smooth_sat
+
+ALL = slice(None)  # stage index selecting every stage at once (the vectorised laws)
+
+
+class AdaptiveLaws:
+    """Formulas (16), (22), (30) and the adaptive laws (17), (23), (29), (31), (32)."""
+
+    def _robust(self, s_n):
+        """The robust term's switching function: sgn(s_n) or its saturated replacement."""
+        if self.robust_term == "sgn":
+            return jnp.sign(s_n)
+        if self.robust_term == "smooth":
+            return smooth_sat(s_n / self.sat_width, self.smooth_delta)
+        return sat(s_n / self.sat_width)
+
+    def _abs_surface(self, s_n):
+        """|s_n| in the d_hat law (32), smoothed along with the robust term."""
+        if self.robust_term == "smooth":
+            return smooth_abs(s_n, self.smooth_delta * self.sat_width)
+        return jnp.abs(s_n)
+
+    def _virtual(self, i, s_i, f, rho, theta_hat, phi_hat, v_i):
+        """Virtual control of (0-based) stage i, eqs. (16) and (22)."""
+        robust = s_i * rho[i] ** 2 / (2.0 * self.eps * self.g_min)
+        return -theta_hat[i] * f[i] - robust - self.k[i] * s_i + phi_hat[i] * v_i
+
+    def _ubar(self, s_n, theta_hat, f, rho, v_n, d_hat):
+        """ubar of eq. (30), with no 1/g_min in the rho_n term (as printed)."""
+        n = f.shape[0]
+        return (-self.k[n - 1] * s_n - theta_hat[n - 1] * f[n - 1]
+                - s_n * rho[n - 1] ** 2 / (2.0 * self.eps) + v_n
+                - self._robust(s_n) * d_hat)
+
+    def _theta_rate(self, i, f_i, s_i, theta_hat_i):
+        """theta_hat_i' of (17), (23), (31); i = ALL gives every stage."""
+        return self.gamma_g[i] * (f_i * s_i - self.eta[i] * theta_hat_i)
+
+    def _phi_rate(self, i, v_i, s_i, phi_hat_i):
+        """phi_hat_i' of (17), (23); i = ALL gives every stage."""
+        return -self.gamma_phi[i] * (v_i * s_i + self.sigma[i] * phi_hat_i)
+
+    def _rates(self, state, s, f, phi_signal, ubar):
+        """(theta_hat', phi_hat', zeta_hat', d_hat') of every stage."""
+        s_n = s[-1]
+        return (self._theta_rate(ALL, f, s, state.theta_hat),
+                self._phi_rate(ALL, phi_signal, s[:-1], state.phi_hat),
+                -self.gamma_zeta * (ubar * s_n + self.eta_zeta * state.zeta_hat),  # (29)
+                self.gamma_d * (self._abs_surface(s_n) - self.eta_d * state.d_hat))  # (32)
