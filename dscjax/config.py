@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from dscjax import validation
 from dscjax.closed_loop import Setup
 from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
@@ -56,9 +57,7 @@ class SimOptions:
     dtype: str = "float64"
 
     def validate(self) -> None:
-        if self.dtype not in ("float64", "float32"):
-            raise ConfigError("simulation.dtype must be one of 'float64', 'float32' "
-                              f"(got {self.dtype!r})")
+        validation.one_of(self.dtype, "simulation.dtype", ("float64", "float32"))
         if not (self.state_bound > 0):
             raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
 
@@ -207,9 +206,7 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     kinds = REGISTRY[section]
     kind_key = KIND_KEY[section]
     kind = table.get(kind_key, type(base).kind if base is not None else None)
-    if kind not in kinds:
-        raise ConfigError(f"{section}.{kind_key} must be one of {', '.join(map(repr, kinds))} "
-                          f"(got {kind!r})")
+    validation.one_of(kind, f"{section}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
         base = None

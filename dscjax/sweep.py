@@ -320,13 +320,12 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     validation.one_of(s.method, "sweep.method", METHODS)
     validation.one_of(s.dtype, "sweep.dtype", ("float32", "float64"))
     validation.one_of(s.parallel, "sweep.parallel", PARALLEL)
-    if s.method != "grid" and s.samples < 1:
-        raise ConfigError(f"sweep.samples must be an integer >= 1 (got {s.samples})")
-    if s.chunk is not None and s.chunk < 1:
-        raise ConfigError(f"sweep.chunk must be an integer >= 1 (got {s.chunk})")
+    if s.method != "grid":
+        validation.integer(s.samples, "sweep.samples", 1)
+    if s.chunk is not None:
+        validation.integer(s.chunk, "sweep.chunk", 1)
     for key in ("worst", "random"):
-        if getattr(s, key) < 0:
-            raise ConfigError(f"sweep.{key} must be an integer >= 0 (got {getattr(s, key)})")
+        validation.integer(getattr(s, key), f"sweep.{key}", 0)
     if s.threshold is not None and not (s.threshold > 0 and math.isfinite(s.threshold)):
         raise ConfigError(f"sweep.threshold must be > 0 (got {s.threshold})")
     if s.method == "grid" and not s.ranges:

@@ -67,6 +67,12 @@ def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
         raise ConfigError(f"{field} must have shape {tuple(expected)}{hint} (got shape {got})")
 
 
+def integer(value, field: str, low: int) -> None:
+    """An int (not a bool, not a float) >= low."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
+        raise ConfigError(f"{field} must be an integer >= {low} (got {value!r})")
+
+
 def one_of(value, field: str, allowed) -> None:
     if value not in allowed:
         raise ConfigError(f"{field} must be one of {', '.join(map(repr, allowed))} (got {value!r})")
@@ -119,8 +125,7 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
             f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, "
             f"ratio {float(t_final) / float(dt):.6g})"
         )
-    if not isinstance(save_every, int | np.integer) or save_every < 1:
-        raise ConfigError(f"simulation.save_every must be an integer >= 1 (got {save_every!r})")
+    integer(save_every, "simulation.save_every", 1)
     if n_steps % save_every:
         raise ConfigError(
             f"simulation.save_every must divide the number of steps t_final/dt = {n_steps} "

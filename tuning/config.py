@@ -29,6 +29,7 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+from dscjax import validation
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
 from tuning.optimize import OptimizerSpec
@@ -59,16 +60,10 @@ class BatchSpec:
     cvar_level: float = 0.2
 
     def validate(self, field: str) -> None:
-        if isinstance(self.batch, bool) or not isinstance(self.batch, int) or self.batch < 0:
-            raise ConfigError(f"{field}.batch must be an integer >= 0 (got {self.batch!r})")
-        if isinstance(self.seed, bool) or not isinstance(self.seed, int) or self.seed < 0:
-            raise ConfigError(f"{field}.seed must be an integer >= 0 (got {self.seed!r})")
-        if self.method not in METHODS:
-            raise ConfigError(f"{field}.method must be one of {', '.join(map(repr, METHODS))} "
-                              f"(got {self.method!r})")
-        if self.aggregate not in AGGREGATES:
-            raise ConfigError(f"{field}.aggregate must be one of "
-                              f"{', '.join(map(repr, AGGREGATES))} (got {self.aggregate!r})")
+        validation.integer(self.batch, f"{field}.batch", 0)
+        validation.integer(self.seed, f"{field}.seed", 0)
+        validation.one_of(self.method, f"{field}.method", METHODS)
+        validation.one_of(self.aggregate, f"{field}.aggregate", AGGREGATES)
         lv = self.cvar_level
         if isinstance(lv, bool) or not isinstance(lv, int | float) or not (0 < lv <= 1):
             raise ConfigError(f"{field}.cvar_level must be in (0, 1] (got {lv!r}); 1 is the "

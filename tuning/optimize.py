@@ -26,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import optax
 
+from dscjax import validation
 from dscjax.validation import ConfigError
 
 OPTIMIZERS = ("adam", "adamw", "sgd", "lion")
@@ -82,15 +83,9 @@ class OptimizerSpec:
     save_interval: int = 10
 
     def validate(self, field: str = "tuning.optimizer") -> None:
-        if self.name not in OPTIMIZERS:
-            raise ConfigError(f"{field}.name must be one of {', '.join(map(repr, OPTIMIZERS))} "
-                              f"(got {self.name!r})")
-        if self.schedule not in SCHEDULES:
-            raise ConfigError(f"{field}.schedule must be one of "
-                              f"{', '.join(map(repr, SCHEDULES))} (got {self.schedule!r})")
-        if self.gradient not in GRADIENTS:
-            raise ConfigError(f"{field}.gradient must be one of "
-                              f"{', '.join(map(repr, GRADIENTS))} (got {self.gradient!r})")
+        validation.one_of(self.name, f"{field}.name", OPTIMIZERS)
+        validation.one_of(self.schedule, f"{field}.schedule", SCHEDULES)
+        validation.one_of(self.gradient, f"{field}.gradient", GRADIENTS)
         _positive(self.learning_rate, f"{field}.learning_rate")
         if not 0 < self.final_lr_fraction <= 1:
             raise ConfigError(f"{field}.final_lr_fraction must be in (0, 1] (got "
@@ -103,13 +98,9 @@ class OptimizerSpec:
             raise ConfigError(f"{field}.regrow must be >= 1 (got {self.regrow!r})")
         for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
                           ("checkpoint_every", 1), ("save_interval", 1)):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < low:
-                raise ConfigError(f"{field}.{name} must be an integer >= {low} (got {v!r})")
-        if self.decay_steps is not None and (not isinstance(self.decay_steps, int)
-                                             or self.decay_steps < 1):
-            raise ConfigError(f"{field}.decay_steps must be an integer >= 1 (got "
-                              f"{self.decay_steps!r})")
+            validation.integer(getattr(self, name), f"{field}.{name}", low)
+        if self.decay_steps is not None:
+            validation.integer(self.decay_steps, f"{field}.decay_steps", 1)
         if self.min_delta < 0:
             raise ConfigError(f"{field}.min_delta must be >= 0 (got {self.min_delta!r})")
         if self.time_limit is not None:

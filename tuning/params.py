@@ -31,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import params
+from dscjax import params, validation
 from dscjax.validation import ConfigError
 
 TRANSFORMS = ("log", "linear")
@@ -173,9 +173,7 @@ class Selection:
             name = _fmt_name(path, index)
             transform = transforms.get(name, transforms.get(path, "linear" if path in SIGNED
                                                             else "log"))
-            if transform not in TRANSFORMS:
-                raise ConfigError(f"{field}.transform.{name} must be one of "
-                                  f"{', '.join(map(repr, TRANSFORMS))} (got {transform!r})")
+            validation.one_of(transform, f"{field}.transform.{name}", TRANSFORMS)
             lo, hi = _bound_pair(bounds.get(name, bounds.get(path)), f"{field}.bounds.{name}")
             item = Tuned(path, index, transform, lo, hi)
             _check_item(item, setup, field)

@@ -34,10 +34,10 @@ def run(args) -> int:
     from dscjax import config
     from dscjax.simulate import DivergenceError, divergence_report, simulate
 
-    if args.save_every is not None and args.save_every < 1:
-        from dscjax.validation import ConfigError
+    if args.save_every is not None:
+        from dscjax import validation
 
-        raise ConfigError(f"--save-every must be an integer >= 1 (got {args.save_every})")
+        validation.integer(args.save_every, "--save-every", 1)
     setup, options = load_setup(args)
     if args.save_every is not None:
         import dataclasses
