@@ -267,19 +267,26 @@ def _options_from_dict(table: Mapping[str, Any], base: SimOptions) -> SimOptions
     return options
 
 
-def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, SimOptions]:
-    """Read a .toml (or .json) config file laid over the default; ConfigError if it is bad."""
+def read(path: str | Path) -> dict:
+    """The tables of a .toml (or .json) file, not yet interpreted; ConfigError if unreadable."""
     path = Path(path)
     try:
         text = path.read_text()
     except OSError as err:
         raise ConfigError(f"cannot read config file {str(path)!r}: {err.strerror}") from None
+    is_json = path.suffix.lower() == ".json"
     try:
-        d = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+        d = json.loads(text) if is_json else tomllib.loads(text)
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        kind = 'JSON' if path.suffix == '.json' else 'TOML'
-        raise ConfigError(f"{path}: not valid {kind}: {err}") from None
-    return from_dict(d, base)
+        raise ConfigError(f"{path}: not valid {'JSON' if is_json else 'TOML'}: {err}") from None
+    if not isinstance(d, dict):
+        raise ConfigError(f"{path}: the top level must be a table of sections")
+    return d
+
+
+def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, SimOptions]:
+    """Read a .toml (or .json) config file laid over the default; ConfigError if it is bad."""
+    return from_dict(read(path), base)
 
 
 def default_toml() -> str:

@@ -12,7 +12,6 @@ import dataclasses
 import json
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -93,7 +92,7 @@ def load(args):
     from dscjax.sweep import SweepSettings, parse_range, settings_from_dict
     from dscjax.validation import ConfigError
 
-    raw = _read(args.config) if args.config else {}
+    raw = config.read(args.config) if args.config else {}
     sweep_table = raw.pop("sweep", {})
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
@@ -101,7 +100,7 @@ def load(args):
     if args.gains:
         # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
         # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.
-        gains = _read(args.gains)
+        gains = config.read(args.gains)
         if not isinstance(gains.get("controller"), dict):
             raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains "
                               f"file")
@@ -147,24 +146,6 @@ def load(args):
     options = dataclasses.replace(options, **opt)
     options.validate()
     return setup, options, settings
-
-
-def _read(path) -> dict:
-    from dscjax.validation import ConfigError
-
-    p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as err:
-        raise ConfigError(f"cannot read config file {str(p)!r}: {err.strerror}") from None
-    try:
-        d = json.loads(text) if p.suffix.lower() == ".json" else tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        kind = "JSON" if p.suffix.lower() == ".json" else "TOML"
-        raise ConfigError(f"{p}: not valid {kind}: {err}") from None
-    if not isinstance(d, dict):
-        raise ConfigError(f"{p}: the top level must be a table of sections")
-    return d
 
 
 def sweep_toml(settings, setup) -> str:

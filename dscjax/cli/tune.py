@@ -65,25 +65,24 @@ def add_parser(sub):
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config
-    from dscjax.cli.sweep import _read
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
-    raw = _read(args.config) if args.config else {}
+    raw = config.read(args.config) if args.config else {}
     table = raw.pop("tuning", {})
     raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
     setup, options = config.from_dict(raw)
     cfg = tuning_from_dict(table, TuningConfig())
     if args.tuning:
-        extra = _read(args.tuning)
+        extra = config.read(args.tuning)
         unknown = set(extra) - {"tuning"}
         if unknown:
             raise ConfigError(f"{args.tuning}: a --tuning file holds only a [tuning] table "
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
     if args.gains:
-        gains = _read(args.gains)
+        gains = config.read(args.gains)
         for key in ("tuning", "sweep"):
             gains.pop(key, None)
         setup, options = config.from_dict(gains, base=setup, base_options=options)
