@@ -62,10 +62,9 @@ def main():
     p.add_argument("--out", default="results/tune_compare")
     args = p.parse_args()
     try:  # fail before spending the gradient method's budget, not after
-        import cma  # noqa: F401
-    except ModuleNotFoundError:
-        sys.exit("tune_compare: CMA-ES needs the optional `cma` package: "
-                 "pip install -e '.[cma]'")
+        baselines.require_cma()
+    except ModuleNotFoundError as err:
+        sys.exit(f"tune_compare: {err}")
     t_final = 5.0 if args.quick else 20.0
     budget = args.budget or (20.0 if args.quick else 100.0)
     print(f"tune_compare: T = {t_final:g} s, {budget:g} s per method; load average "

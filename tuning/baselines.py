@@ -111,15 +111,21 @@ def random_search(problem, budget_s: float, batch: int = 32, spread: float = mat
             return trace
 
 
-def cma_es(problem, budget_s: float, sigma0: float = 0.3, popsize: int | None = None,
-           seed: int = 0) -> Trace:
-    """CMA-ES (`cma` package) in the tuner's coordinates z, started at the start gains with
-    step sigma0 (log-space: about 30 %), one batched simulation per generation."""
+def require_cma():
+    """The optional `cma` module, or ModuleNotFoundError saying how to install it."""
     try:
         import cma
     except ModuleNotFoundError:
         raise ModuleNotFoundError("CMA-ES needs the optional `cma` package: pip install "
                                   "'dscjax[cma]'") from None
+    return cma
+
+
+def cma_es(problem, budget_s: float, sigma0: float = 0.3, popsize: int | None = None,
+           seed: int = 0) -> Trace:
+    """CMA-ES (`cma` package) in the tuner's coordinates z, started at the start gains with
+    step sigma0 (log-space: about 30 %), one batched simulation per generation."""
+    cma = require_cma()
     t0 = time.perf_counter()
     run, flat0, _ = batch_loss_fn(problem)
     lo, hi = _bounds(problem, flat0.size)
