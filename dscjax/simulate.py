@@ -1,7 +1,7 @@
 """The public entry points: `simulate` (one trajectory) and `simulate_batch` (vmapped).
 
 Both are jitted once per static structure (model classes and their static fields, the order n,
-the number of steps, the save stride, the unroll factor); every number in the Setup, dt, the
+the number of steps, the save stride); every number in the Setup, dt, the
 metric window and the state bound are traced, so changing a gain never recompiles.
 """
 
@@ -19,9 +19,14 @@ import numpy as np
 from dscjax import metrics as m
 from dscjax import params, validation
 from dscjax.closed_loop import Setup, State, initial_state, prepared, vector_field
-from dscjax.integrate import STATUS_BOUND, STATUS_NONFINITE, STATUS_OK, Status, integrate
-
-DEFAULT_UNROLL = 1
+from dscjax.integrate import (
+    DEFAULT_CHECKPOINT_EVERY,
+    STATUS_BOUND,
+    STATUS_NONFINITE,
+    STATUS_OK,
+    Status,
+    integrate,
+)
 
 
 @jax.tree_util.register_dataclass
@@ -92,9 +97,38 @@ class DivergenceError(RuntimeError):
         self.trajectory = trajectory
 
 
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class LoopMetrics:
+    """The running reductions of a simulation (an `integrate.Reduction`): `metrics.py`'s, plus
+    the caller's own `extra` ones (tuning's smooth L-inf and requirement penalties)."""
+
+    dt: jax.Array
+    window_start: jax.Array
+    extra: Any = None
+    n_steps: int = dataclasses.field(default=1, metadata=dict(static=True))
+
+    def init(self, dtype):
+        base = m.running_init(dtype)
+        return base if self.extra is None else (base, self.extra.init(dtype))
+
+    def update(self, acc, k, t, y: State, obs):
+        base = acc if self.extra is None else acc[0]
+        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, y.w, self.dt,
+                                self.window_start, self.n_steps)
+        if self.extra is None:
+            return base
+        return base, self.extra.update(acc[1], k, t, y, obs, self.dt)
+
+    def finalize(self, acc, t_final):
+        if self.extra is None:
+            return m.finalize(acc, t_final)
+        return {**m.finalize(acc[0], t_final), **self.extra.finalize(acc[1], t_final)}
+
+
 def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
-        unroll: int = DEFAULT_UNROLL, overrides=None,
-        checkpoint_every: int | None = None, extra=None) -> Trajectory:
+        overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
+        extra=None) -> Trajectory:
     """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
 
     Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do).
@@ -114,38 +148,24 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     dt = jnp.asarray(dt, dtype)
     window_start = jnp.asarray(window_start, dtype)
     t_final = jnp.asarray(n_steps, dtype) * dt
-
-    def accumulate(acc, k, t, y: State, obs):
-        base = acc if extra is None else acc[0]
-        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, y.w, dt, window_start,
-                                n_steps)
-        return base if extra is None else (base, extra.update(acc[1], k, t, y, obs, dt))
-
-    def acc_init():
-        base = m.running_init(dtype)
-        return base if extra is None else (base, extra.init(dtype))
-
-    def finalize_one(acc, t_end):
-        if extra is None:
-            return m.finalize(acc, t_end)
-        return {**m.finalize(acc[0], t_end), **extra.finalize(acc[1], t_end)}
-
-    common = dict(save_every=save_every, accumulate=accumulate, state_bound=jnp.asarray(
-        state_bound, dtype), unroll=unroll, checkpoint_every=checkpoint_every)
+    red = LoopMetrics(dt=dt, window_start=window_start, extra=extra, n_steps=n_steps)
+    common = dict(save_every=save_every, reduction=red,
+                  state_bound=jnp.asarray(state_bound, dtype))
     if overrides is None:
         setup = prepared(setup)
         y0 = initial_state(setup)
-        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=acc_init(), **common)
+        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype), **common)
     else:
         shared, batched, rebuild = _split_members(setup, overrides)
         y0 = jax.vmap(lambda b: initial_state(rebuild(shared, b)))(batched)
         n_batch = jax.tree.leaves(overrides)[0].shape[0]
-        acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), acc_init())
+        acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), red.init(dtype))
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
-                        shared, batch=batched, acc0=acc0, **common)
+                        shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
+                        **common)
     n_saved = n_steps // save_every + 1
     t = (jnp.arange(n_saved, dtype=jnp.int32) * save_every).astype(dtype) * dt
-    finalize = finalize_one if overrides is None else jax.vmap(finalize_one, in_axes=(0, None))
+    finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
     if overrides is not None:
         t = jnp.broadcast_to(t, (n_batch, n_saved))
         dt = jnp.broadcast_to(dt, (n_batch,))
@@ -198,8 +218,7 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
     return [is_dep(v) for v in jaxpr.outvars]
 
 
-_run = run  # private alias kept for old call sites
-_simulate = jax.jit(run, static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
+_simulate = jax.jit(run, static_argnames=("n_steps", "save_every", "checkpoint_every"))
 
 
 def default_window(t_final, window_start=None):
@@ -208,8 +227,6 @@ def default_window(t_final, window_start=None):
         return 1.0 if t_final > 1.0 else 0.0
     return window_start
 
-
-_window = default_window
 
 
 def simulate(
@@ -220,8 +237,6 @@ def simulate(
     save_every: int = 1,
     window_start: float | None = None,
     state_bound: float = 1e6,
-    unroll: int = DEFAULT_UNROLL,
-    checkpoint_every: int | None = None,
     throw: bool = True,
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
@@ -233,10 +248,6 @@ def simulate(
         save_every: keep every s-th step in the returned arrays (metrics still use every step).
         window_start: t0 of the windowed metrics [t0, T]; default 1 s (0 if T <= 1 s).
         state_bound: a state component beyond it in magnitude counts as divergence.
-        unroll: inner scan unroll factor (speed only, results are identical).
-        checkpoint_every: segment length (steps) for `jax.checkpoint` under reverse-mode
-            differentiation (a multiple of save_every dividing the step count); None: no
-            checkpointing. Memory of a gradient falls from O(N) to O(N/L + L) states.
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
             Under an outer jit/vmap no exception can be raised; `status` is always returned.
 
@@ -249,12 +260,11 @@ def simulate(
         >>> traj.x.shape
         (21, 2)
     """
-    window_start = _window(t_final, window_start)
+    window_start = default_window(t_final, window_start)
     setup = canonical(setup)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
-    _check_checkpoint(checkpoint_every, save_every, n_steps)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every, unroll=unroll, checkpoint_every=checkpoint_every)
+                     save_every=save_every)
     if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
         from dscjax.stability import diagnose
 
@@ -276,12 +286,9 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, _dtype(setup))
 
 
-def _check_checkpoint(checkpoint_every, save_every, n_steps):
-    if checkpoint_every is not None and (
-            checkpoint_every < 1 or checkpoint_every % save_every or n_steps % checkpoint_every):
-        raise validation.ConfigError(
-            f"checkpoint_every must be a multiple of save_every={save_every} that divides the "
-            f"number of steps {n_steps} (got {checkpoint_every})")
+def _check_checkpoint(checkpoint_every):
+    if checkpoint_every is not None:
+        validation.integer(checkpoint_every, "checkpoint_every", 1)
 
 
 def _check(setup, t_final, dt, save_every, window_start, batched=False) -> int:
@@ -299,8 +306,7 @@ def simulate_batch(
     save_every: int | None = None,
     window_start: float | None = None,
     state_bound: float = 1e6,
-    unroll: int = DEFAULT_UNROLL,
-    checkpoint_every: int | None = None,
+    checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
 ) -> Trajectory:
     """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
     the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
@@ -326,7 +332,7 @@ def simulate_batch(
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
-    window_start = _window(t_final, window_start)
+    window_start = default_window(t_final, window_start)
     n_total = int(round(t_final / dt))
     save_every = n_total if save_every is None else save_every
     if validation.is_concrete(setup):
@@ -336,18 +342,18 @@ def simulate_batch(
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     n_steps = _check(setup, t_final, dt, save_every, window_start, batched=True)
-    _check_checkpoint(checkpoint_every, save_every, n_steps)
+    _check_checkpoint(checkpoint_every)
     return _simulate_batch(setup, dict(overrides), dt, window_start, state_bound,
-                           n_steps=n_steps, save_every=save_every, unroll=unroll,
+                           n_steps=n_steps, save_every=save_every,
                            checkpoint_every=checkpoint_every)
 
 
 @functools.partial(jax.jit,
-                   static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
+                   static_argnames=("n_steps", "save_every", "checkpoint_every"))
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
-                    unroll=DEFAULT_UNROLL, checkpoint_every=None):
+                    checkpoint_every=DEFAULT_CHECKPOINT_EVERY):
     return run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-                unroll=unroll, overrides=overrides, checkpoint_every=checkpoint_every)
+               overrides=overrides, checkpoint_every=checkpoint_every)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

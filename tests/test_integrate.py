@@ -57,12 +57,19 @@ def test_save_stride_and_times():
     np.testing.assert_allclose(np.asarray(strided.ys["p"]), p_exact, atol=1e-6)
 
 
-def test_running_accumulator_sees_every_step():
-    def acc(a, k, t, y, obs):
-        return a + 1.0
+class _Count:
+    """A reduction that counts the samples it sees."""
 
+    def update(self, acc, k, t, y, obs):
+        return acc + 1.0
+
+
+jax.tree_util.register_pytree_node(_Count, lambda r: ((), None), lambda _, __: _Count())
+
+
+def test_running_accumulator_sees_every_step():
     res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.01, 100,
-                    jnp.array(3.0), save_every=50, accumulate=acc, acc0=jnp.array(0.0))
+                    jnp.array(3.0), save_every=50, reduction=_Count(), acc0=jnp.array(0.0))
     assert float(res.acc) == 101.0  # k = 0..N
 
 
@@ -86,20 +93,35 @@ def test_healthy_run_has_ok_status():
     assert int(res.status.code) == STATUS_OK and int(res.status.step) == -1
 
 
-def test_checkpointed_gradient_equals_plain():
-    def loss(w, ck):
-        n = 400
-        res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.005, n, w,
-                        save_every=10, checkpoint_every=ck)
-        return jnp.sum(res.ys["p"] ** 2)
+def test_time_parallel_gradient_equals_autodiff_and_finite_differences():
+    def loss(w, time_parallel):
+        res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.005, 400, w,
+                        save_every=10, time_parallel=time_parallel)
+        return jnp.sum(res.ys["p"] ** 2) + jnp.sum(res.obs)
 
-    g_plain = jax.grad(loss)(jnp.array(3.0), None)
-    g_ckpt = jax.grad(loss)(jnp.array(3.0), 100)
-    assert float(g_plain) == pytest.approx(float(g_ckpt), rel=1e-13)
+    g_tp = jax.grad(loss)(jnp.array(3.0), True)
+    g_ad = jax.grad(loss)(jnp.array(3.0), False)
+    assert float(g_tp) == pytest.approx(float(g_ad), rel=1e-12)
+    assert float(jax.jacfwd(loss)(jnp.array(3.0), True)) == pytest.approx(float(g_ad), rel=1e-12)
     # and both equal central finite differences of the same discrete map
     h = 1e-6
-    fd = (loss(jnp.array(3.0 + h), None) - loss(jnp.array(3.0 - h), None)) / (2 * h)
-    assert float(g_plain) == pytest.approx(float(fd), rel=1e-6)
+    fd = (loss(jnp.array(3.0 + h), True) - loss(jnp.array(3.0 - h), True)) / (2 * h)
+    assert float(g_tp) == pytest.approx(float(fd), rel=1e-6)
+
+
+def test_checkpointed_batch_gradient_equals_plain():
+    def loss(ws, ck):
+        def f(t, y, args, w):
+            return _oscillator(t, y, w)
+
+        y0 = {"p": jnp.ones(2), "q": jnp.zeros(2)}
+        res = integrate(f, y0, 0.005, 400, (), batch=ws, save_every=400, checkpoint_every=ck)
+        return jnp.sum(res.ys["p"] ** 2)
+
+    ws = jnp.array([2.0, 3.0])
+    g_plain = jax.grad(loss)(ws, None)
+    g_ckpt = jax.grad(loss)(ws, 100)
+    np.testing.assert_allclose(np.asarray(g_ckpt), np.asarray(g_plain), rtol=1e-13)
 
 
 def test_batched_layout_equals_single_runs():

@@ -176,11 +176,11 @@ def run(args) -> int:
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
     from dscjax import params, sweep
-    from dscjax.simulate import _window, simulate
+    from dscjax.simulate import default_window, simulate
 
     setup, options, settings = load(args)
     t_final, dt, state_bound = options.t_final, options.dt, options.state_bound
-    window_start = _window(t_final, options.window_start)
+    window_start = default_window(t_final, options.window_start)
     dtype = np.dtype(settings.dtype)
     setup = params.cast(setup, dtype)
     ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
