@@ -23,6 +23,7 @@ from dscjax.simulate import (
     canonical,
     default_window,
     divergence_report,
+    nan_if_diverged,
     run,
     simulate,
     simulate_batch,
@@ -37,6 +38,6 @@ __all__ = [
     "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
     "default_window", "divergence_report", "initial_state", "integrate", "metrics",
-    "order_n_example", "paper_example", "params", "prepared", "rk4_step", "run", "simulate",
-    "simulate_batch", "stability", "validate_setup", "vector_field",
+    "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared", "rk4_step",
+    "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field",
 ]

@@ -38,7 +38,9 @@ class Trajectory:
         S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
         ctrl: controller state with a leading T axis (for DSC: z, theta_hat, phi_hat, zeta_hat,
             d_hat).
-        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`.
+        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`;
+            all NaN if the trajectory diverged (from `simulate` and `simulate_batch`; see
+            `nan_if_diverged`).
         status: integration status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
         dt: the step.
     Under `simulate_batch` every field gains a leading batch axis.
@@ -199,7 +201,34 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
 
 
 _run = run  # private alias kept for old call sites
-_simulate = jax.jit(run, static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
+
+
+def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
+    """The metrics as the public entry points report them: NaN for a diverged trajectory.
+
+    The integrator freezes a diverged trajectory at its last good state, so its running
+    metrics cover only the time before the divergence; a windowed metric whose window starts
+    later saw nothing at all and reads 0. Such numbers were not measured over the horizon they
+    name, so every metric of a diverged trajectory becomes NaN (elementwise over a batch);
+    `diverged` and `t_diverged` say what happened. Differentiable: the gradient of a diverged
+    trajectory's metric is 0, never NaN. Tuning reads `run`'s raw metrics instead, with its own
+    finite divergence penalty.
+    """
+    return {k: jnp.where(diverged, jnp.nan, v) for k, v in metrics.items()}
+
+
+def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
+                  unroll: int = DEFAULT_UNROLL, overrides=None,
+                  checkpoint_every: int | None = None, extra=None) -> Trajectory:
+    """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
+    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
+               unroll=unroll, overrides=overrides, checkpoint_every=checkpoint_every,
+               extra=extra)
+    return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
+
+
+_simulate = jax.jit(_run_reported,
+                    static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 
 
 def default_window(t_final, window_start=None):
@@ -241,7 +270,8 @@ def simulate(
             Under an outer jit/vmap no exception can be raised; `status` is always returned.
 
     Returns:
-        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics.
+        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics (NaN if
+        the run diverged: `traj.diverged`, `traj.t_diverged` say when).
 
     Example:
         >>> import dscjax
@@ -307,6 +337,7 @@ def simulate_batch(
 
     Only the overridden leaves are batched; the rest of the setup is shared, not copied. Never
     raises on divergence: inspect `traj.status` (per trajectory) or `divergence_report(traj)`.
+    The metrics of a diverged trajectory are NaN.
 
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
@@ -346,8 +377,9 @@ def simulate_batch(
                    static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
                     unroll=DEFAULT_UNROLL, checkpoint_every=None):
-    return run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-                unroll=unroll, overrides=overrides, checkpoint_every=checkpoint_every)
+    return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
+                         save_every=save_every, unroll=unroll, overrides=overrides,
+                         checkpoint_every=checkpoint_every)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

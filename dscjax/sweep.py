@@ -29,8 +29,9 @@ What a sweep does:
   ``chunks/chunk_000123.npz`` (atomically); `resume=True` skips the blocks already there and
   the final ``results.npz`` is byte-identical to that of an uninterrupted run.
 
-Nothing here raises for a bad sample: a diverged trajectory is a row with `diverged = True`
-and the time it left the state bound or went non-finite.
+Nothing here raises for a bad sample: a diverged trajectory is a row with `diverged = True`,
+the time it left the state bound or went non-finite, and NaN for every metric (they were not
+measured over the horizon they name; `dscjax.simulate.nan_if_diverged`).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ PARALLEL = ("per_device", "spmd")
 DEFAULT_PATHS = ("hysteresis.alpha", "hysteresis.lam", "hysteresis.psi")
 DEFAULT_REL = 0.30
 AUTO_BLOCK = 16384  # samples per block and device when chunk = None (best measured on CPU)
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the metrics of diverged rows are NaN (were the frozen values)
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
            "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 STATUS_COLUMNS = ("diverged", "t_diverged", "status")
@@ -481,11 +482,12 @@ def _overrides(setup, columns: Sequence[Param], table):
 
 
 def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps):
-    from dscjax.simulate import run
+    from dscjax.simulate import nan_if_diverged, run
 
     traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
                 overrides=_overrides(setup, columns, table))
-    return {**{k: traj.metrics[k] for k in METRICS}, "status": traj.status.code,
+    metrics = nan_if_diverged(traj.metrics, traj.diverged)
+    return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
 
 

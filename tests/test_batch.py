@@ -83,3 +83,30 @@ def test_batch_divergence_is_per_trajectory(paper_setup):
     assert np.all(np.isfinite(np.asarray(batch.x)))
     report = dscjax.divergence_report(batch)
     assert len(report) == 1 and report[0].startswith("trajectory 1 diverged at t = ")
+
+
+def test_diverged_trajectories_report_nan_metrics(paper_setup):
+    # alpha 10 / lam 0.15 diverges within milliseconds at dt = 1e-3; the window [1, 2] s
+    # starts after that, and used to read 0 ("perfect tracking")
+    batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": jnp.array([1.0, 10.0]),
+                                                "hysteresis.lam": jnp.array([1.432, 0.15])},
+                                  2.0, 1e-3)
+    assert np.asarray(batch.diverged).tolist() == [False, True]
+    assert float(batch.t_diverged[1]) < 0.1
+    for k, v in batch.metrics.items():
+        assert np.isfinite(float(v[0])) and np.isnan(float(v[1])), k
+    one = dscjax.simulate(params.set_many(paper_setup, {"hysteresis.alpha": 10.0,
+                                                        "hysteresis.lam": 0.15}),
+                          2.0, 1e-3, save_every=1000, throw=False)
+    assert bool(one.diverged)
+    assert all(np.isnan(float(v)) for v in one.metrics.values())
+
+
+def test_forward_gradient_of_a_public_metric_stays_finite_when_the_run_diverges(paper_setup):
+    def l2(k):
+        s = params.set(paper_setup, "controller.k", k)
+        return dscjax.simulate(s, 1.0, 1e-3, save_every=1000, throw=False).metrics["l2_error"]
+
+    # diverges: the value is NaN, its forward-mode derivative 0 (the NaN is a constant branch)
+    assert np.all(np.asarray(jax.jacfwd(l2)(jnp.array([1e4, 0.45]))) == 0.0)
+    assert np.all(np.isfinite(np.asarray(jax.grad(l2)(jnp.array([10.0, 0.45])))))

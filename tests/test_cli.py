@@ -3,6 +3,7 @@
 import json
 
 import numpy as np
+import pytest
 
 from dscjax.cli.main import main
 
@@ -40,3 +41,17 @@ def test_variant_and_float32_flags(tmp_path):
     assert data["x"].dtype == np.float32 and data["x"].shape == (101, 2)
     assert np.all(data["d_hat"] == 0.0)
     assert json.loads((out / "metrics.json").read_text())["dtype"] == "float32"
+
+
+def test_diverged_simulation_writes_null_metrics_not_zeros(tmp_path, capsys):
+    # dt = 0.02 diverges at t = 0.04 s, before the window [1, 2] s starts
+    out = tmp_path / "div"
+    assert main(["simulate", "--t-final", "2", "--dt", "0.02", "--no-plot",
+                 "--out", str(out)]) == 3
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["diverged"] is True and m["t_diverged"] == pytest.approx(0.04)
+    for key in ("linf_error", "linf_error_window", "l2_error_window", "max_abs_u"):
+        assert m[key] is None, key
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert "after t0: 0" not in text and "diverged at t = 0.04 s" in text

@@ -91,8 +91,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     z1 = jax.device_get(result.state.best_z)
     ev = evaluate(problem, z0, z1)
     sim = problem.objective.sim
-    nom = {tag: {k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
-                 if np.ndim(v) == 0} for tag in ("start", "tuned")}
+    nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
+                           if np.ndim(v) == 0}) for tag in ("start", "tuned")}
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": problem.objective.scales.u_max,
@@ -131,6 +131,14 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     return summary
 
 
+def _measured(m: dict[str, float]) -> dict[str, float]:
+    """A diverged plant's metrics as NaN (null in report.json): they were not measured over
+    the horizon they name. Its loss (the finite divergence penalty) stays."""
+    if not m.get("diverged"):
+        return m
+    return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
+
+
 def _values(problem, z):
     values = jax.device_get(problem.selection.values(z))
     return {name: np.asarray(values[name]).tolist() for name in problem.selection.names}
@@ -140,7 +148,7 @@ def _values(problem, z):
 
 
 def _f(v, digits=4):
-    return "-" if v is None else f"{v:.{digits}g}"
+    return "-" if v is None or v != v else f"{v:.{digits}g}"  # None or NaN: not measured
 
 
 def _ratio(a, b):
@@ -286,7 +294,9 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
-        label = f"{tag} (L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g})"
+        label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
+                              else f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}"
+                              ) + ")"
         ax[0].plot(t, e, color=color, lw=0.9, label=label)
         win = t >= sim.window_start
         ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)

@@ -275,9 +275,11 @@ def run(args) -> int:
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
              else "nothing left to run)"), file=sys.stderr)
     if q is not None:
-        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s: median "
-              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} (nominal "
-              f"{nominal_metrics['linf_error_window']:.4g})", file=sys.stderr)
+        nom = ("the nominal setup diverged" if bool(nominal.diverged)
+               else f"nominal {nominal_metrics['linf_error_window']:.4g}")
+        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
+              f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
+              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})", file=sys.stderr)
     print(f"  diverged: {summary['n_diverged']:,} of {result.n:,} "
           f"({100 * summary['divergence_rate']:.2f} %); degraded (above {threshold:.4g}, "
           f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
