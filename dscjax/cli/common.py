@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -60,3 +62,22 @@ def to_jsonable(obj):
 
 def write_json(path: Path, obj) -> None:
     path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
+
+
+def prepare_out(path, option: str = "--out") -> Path:
+    """Create the output directory and check that a file can be written in it, before any
+    work is done; ConfigError (one line, exit 2) naming the option and the path if not."""
+    from dscjax.validation import ConfigError
+
+    out = Path(path)
+    try:
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(0, "it is a file, not a directory")
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=out, prefix=".dscjax-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise ConfigError(f"{option} {str(path)!r}: cannot write the output there "
+                          f"({err.strerror or err}); give a writable directory") from None
+    return out

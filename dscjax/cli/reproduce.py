@@ -51,6 +51,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
+    from dscjax.cli.common import prepare_out
     from dscjax.reproduce import reproduce
     from dscjax.validation import ConfigError, validate_run
 
@@ -62,6 +63,7 @@ def run(args) -> int:
     from dscjax.reproduce import setups
 
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
+    prepare_out(args.out)
     try:
         reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
                   complexity=args.complexity, complexity_orders=orders,

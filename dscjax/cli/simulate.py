@@ -4,11 +4,10 @@ from __future__ import annotations
 
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, write_json
+from dscjax.cli.common import add_config_args, load_setup, prepare_out, write_json
 
 
 def add_parser(sub):
@@ -47,7 +46,7 @@ def run(args) -> int:
         sys.stdout.write(config.dumps_toml(config.to_dict(setup, options)))
         return 0
 
-    out = Path(args.out)
+    out = prepare_out(args.out)
     n = setup.order
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
@@ -60,7 +59,6 @@ def run(args) -> int:
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
     elapsed = time.perf_counter() - t0
-    out.mkdir(parents=True, exist_ok=True)
 
     arrays = {"t": traj.t, "x": traj.x, "u": traj.u, "w": traj.w, "yr": traj.yr, "e": traj.e,
               "S": traj.S, "u_dot": traj.u_dot}

@@ -12,11 +12,10 @@ import dataclasses
 import json
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import write_json
+from dscjax.cli.common import prepare_out, write_json
 
 
 def add_parser(sub):
@@ -187,7 +186,7 @@ def run(args) -> int:
     if args.print_config:
         sys.stdout.write(sweep_toml(settings, setup))
         return 0
-    out = Path(args.out)
+    out = prepare_out(args.out)
     main = jax.process_index() == 0
     n = settings.n_samples()
     if main:

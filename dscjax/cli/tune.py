@@ -127,6 +127,7 @@ def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
 
+    from dscjax.cli.common import prepare_out
     from dscjax.params import cast
     from tuning import report
     from tuning.config import to_toml
@@ -140,6 +141,7 @@ def run(args) -> int:
         return 0
     out = Path(args.out)
     check_out_dir(out, args.resume, args.overwrite)
+    prepare_out(out)
     problem = build_problem(setup, options, cfg)
     oc = cfg.optimizer
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
