@@ -191,14 +191,39 @@ def _coerce(section: str, name: str, value, static: bool, default):
         if not isinstance(value, str):
             raise ConfigError(f"{field} must be a string (got {value!r})")
         return value
+    where = find_bool(value)
+    if where is not None:
+        raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
+                          f"{'true' if _at(value, where) else 'false'})")
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ConfigError(
             f"{field} must be a number or a list of numbers (got {value!r})") from None
-    if isinstance(value, bool) or a.dtype == object:
+    if a.dtype == object:
         raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})")
     return float(a) if a.ndim == 0 else a
+
+
+def find_bool(value, where: str = "") -> str | None:
+    """The index ("" for the value itself, "[1]", "[0][2]") of the first boolean in a value
+    read from TOML or JSON, or None. NumPy would read `true` as the number 1.0: a config that
+    says `k = [10.0, true]` is a mistake, not k_2 = 1."""
+    if isinstance(value, bool | np.bool_):
+        return where
+    if isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            found = find_bool(v, f"{where}[{i}]")
+            if found is not None:
+                return found
+    return None
+
+
+def _at(value, where: str):
+    for i in where.strip("[]").split("]["):
+        if i:
+            value = value[int(i)]
+    return value
 
 
 def model_from_dict(section: str, table: Mapping[str, Any], base=None):
