@@ -33,6 +33,13 @@ from dscjax.integrate import rk4_step
 from dscjax.simulate import divergence_report, simulate
 
 RUNS = ("dsc", "dsc_no_dhat", "dsc_no_dhat_no_zeta", "backstepping")
+# Defaults of `reproduce` (and of `dscjax reproduce`): 20 s horizon, RK4 step 1 ms (the paper
+# gives neither), PNG figures at 150 dpi, complexity study n = 2..8 with 3 builds per law.
+T_FINAL = 20.0
+DT = 1e-3
+DPI = 150
+COMPLEXITY_ORDERS = tuple(range(2, 9))
+COMPLEXITY_REPEATS = 3
 LABELS = {
     "dsc": "DSC with hysteresis compensation",
     "dsc_no_dhat": r"DSC without compensation, reading A: $\hat d \equiv 0$",
@@ -488,11 +495,11 @@ def _jsonable(obj):
     return obj
 
 
-def reproduce(out="results/paper", fmt: str = "png", t_final: float = 20.0, dt: float = 1e-3,
-              dpi: int = 150, complexity: bool = False,
-              complexity_orders: Sequence[int] = tuple(range(2, 9)),
-              complexity_repeats: int = 3, log: Callable[[str], None] | None = None,
-              resume: bool = False) -> dict:
+def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, dt: float = DT,
+              dpi: int = DPI, complexity: bool = False,
+              complexity_orders: Sequence[int] = COMPLEXITY_ORDERS,
+              complexity_repeats: int = COMPLEXITY_REPEATS,
+              log: Callable[[str], None] | None = None, resume: bool = False) -> dict:
     """Run the study and write every figure, summary.json and summary.md to `out`.
 
     Args:

@@ -231,10 +231,13 @@ _simulate = jax.jit(_run_reported,
                     static_argnames=("n_steps", "save_every", "unroll", "checkpoint_every"))
 
 
+DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
+
+
 def default_window(t_final, window_start=None):
     """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less)."""
     if window_start is None:
-        return 1.0 if t_final > 1.0 else 0.0
+        return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
     return window_start
 
 

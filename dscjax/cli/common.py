@@ -12,13 +12,26 @@ from pathlib import Path
 import numpy as np
 
 
+def add_horizon_args(p):
+    """--t-final and --dt, their help stating SimOptions' defaults (a config may change them)."""
+    from dscjax.config import SimOptions
+
+    d = SimOptions()
+    p.add_argument("--t-final", type=float, metavar="S", help=f"horizon in seconds (default "
+                   f"{d.t_final:g}, or the config's simulation.t_final)")
+    p.add_argument("--dt", type=float, metavar="S", help=f"RK4 step in seconds (default "
+                   f"{d.dt:g}, or the config's simulation.dt)")
+
+
 def add_config_args(p, *, t_final=True):
+    from dscjax.config import SimOptions
+
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; see `dscjax simulate --print-config`")
     if t_final:
-        p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
-        p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
-    p.add_argument("--float32", action="store_true", help="run in float32 (default float64)")
+        add_horizon_args(p)
+    p.add_argument("--float32", action="store_true",
+                   help=f"run in float32 (default {SimOptions().dtype})")
 
 
 def load_setup(args):

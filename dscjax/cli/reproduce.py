@@ -21,28 +21,33 @@ def _orders(text: str) -> list[int]:
 
 
 def add_parser(sub):
+    from dscjax import reproduce as r
+
+    orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
         "reproduce", help="reproduce the paper's simulation study (Figs. 1-6, claims)",
         description="Simulate the paper's Section 4 example with the DSC (with and without "
         "hysteresis compensation, both readings) and adaptive backstepping, and write Figs. 1-6, "
         "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
-        "With --complexity also measure the size and cost of both control laws for orders "
-        "n = 2..8 (takes minutes).")
+        f"With --complexity also measure the size and cost of both control laws for orders "
+        f"n = {orders.replace('-', '..')} (takes minutes).")
     p.add_argument("--out", default="results/paper", metavar="DIR",
                    help="output directory (default: results/paper)")
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
-    p.add_argument("--dpi", type=int, default=150, help="resolution of PNG figures (default 150)")
-    p.add_argument("--t-final", type=float, default=20.0, metavar="S",
-                   help="horizon of the closed-loop runs in seconds (default 20)")
-    p.add_argument("--dt", type=float, default=1e-3, metavar="S",
-                   help="RK4 step in seconds (default 0.001)")
+    p.add_argument("--dpi", type=int, default=r.DPI,
+                   help="resolution of PNG figures (default %(default)s)")
+    p.add_argument("--t-final", type=float, default=r.T_FINAL, metavar="S",
+                   help="horizon of the closed-loop runs in seconds (default %(default)g)")
+    p.add_argument("--dt", type=float, default=r.DT, metavar="S",
+                   help="RK4 step in seconds (default %(default)g)")
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
-    p.add_argument("--orders", default="2-8", metavar="N-M",
-                   help="orders for --complexity, e.g. 2-8 or 2,4,6 (default 2-8)")
-    p.add_argument("--repeats", type=int, default=3, metavar="R",
-                   help="builds per law for --complexity; timings are medians (default 3)")
+    p.add_argument("--orders", default=orders, metavar="N-M",
+                   help="orders for --complexity, e.g. 2-8 or 2,4,6 (default %(default)s)")
+    p.add_argument("--repeats", type=int, default=r.COMPLEXITY_REPEATS, metavar="R",
+                   help="builds per law for --complexity; timings are medians (default "
+                   "%(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="with --complexity: keep the control-law measurements an interrupted "
                    "run saved in DIR/complexity_rows.json (same --repeats) and measure only "

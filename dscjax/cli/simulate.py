@@ -10,7 +10,17 @@ import numpy as np
 from dscjax.cli.common import add_config_args, load_setup, prepare_out, write_json
 
 
+def _default_variant() -> str:
+    import dataclasses
+
+    from dscjax.controllers.dsc import DSC
+
+    return {f.name: f.default for f in dataclasses.fields(DSC)}["variant"]
+
+
 def add_parser(sub):
+    from dscjax.controllers.dsc import VARIANTS
+
     p = sub.add_parser(
         "simulate", help="simulate one closed loop (default: the paper's example)",
         description="Simulate the closed loop of a config (default: the paper's Section 4 "
@@ -20,9 +30,10 @@ def add_parser(sub):
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
     p.add_argument("--save-every", type=int, metavar="K", help="keep every K-th step")
-    p.add_argument("--variant", choices=("full", "no_dhat", "no_dhat_no_zeta"),
+    p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
-                   "also zeta_hat = 1)")
+                   f"also zeta_hat = 1) (default: the config's controller.variant, "
+                   f"{_default_variant()})")
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     p.add_argument("--print-config", action="store_true",
                    help="print the effective config as TOML and exit")

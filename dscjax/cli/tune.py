@@ -16,6 +16,13 @@ from pathlib import Path
 
 
 def add_parser(sub):
+    from dscjax.cli.common import add_horizon_args
+    from tuning.config import TuningConfig
+    from tuning.objective import AGGREGATES
+    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS
+
+    d = TuningConfig()
+    opt, rob = d.optimizer, d.robust
     p = sub.add_parser(
         "tune", help="tune the controller gains by gradient descent (exact gradients, optax)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
@@ -31,25 +38,29 @@ def add_parser(sub):
                    "the gains.json of an earlier run (laid over --config)")
     p.add_argument("--out", default="results/tune", metavar="DIR",
                    help="output directory (default: results/tune)")
-    p.add_argument("--steps", type=int, metavar="N", help="maximum number of iterations "
-                   "(default 300)")
-    p.add_argument("--time-limit", type=float, metavar="S", help="stop after S seconds of wall "
-                   "time, compilation included (default 100; 0 = no limit)")
-    p.add_argument("--lr", type=float, metavar="LR", help="learning rate (default 0.05, "
-                   "log-space)")
-    p.add_argument("--batch", type=int, metavar="B", help="training batch of B plants sampled "
-                   "from [tuning.robust] ranges (default 0: the nominal plant only)")
-    p.add_argument("--aggregate", choices=("mean", "cvar", "max"), help="objective over the "
-                   "training batch (default mean)")
-    p.add_argument("--cvar-level", type=float, metavar="A", help="CVaR level in (0, 1]: the "
-                   "mean of the worst ceil(A B) plants")
-    p.add_argument("--seed", type=int, help="seed of the training batch (default 0)")
-    p.add_argument("--heldout", type=int, metavar="N", help="held-out evaluation batch size "
-                   "(default 256; 0 = skip)")
-    p.add_argument("--gradient", choices=("auto", "forward", "reverse"),
-                   help="AD mode (default auto: forward for up to 64 tuned numbers)")
-    p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
-    p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
+    limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
+    p.add_argument("--steps", type=int, metavar="N", help=f"maximum number of iterations "
+                   f"(default {opt.steps})")
+    p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
+                   f"time, compilation included (default {limit}; 0 = no limit)")
+    p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
+                   f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
+                   f"{100 * opt.learning_rate:g} %% per step)")
+    p.add_argument("--batch", type=int, metavar="B", help=f"training batch of B plants sampled "
+                   f"from [tuning.robust] ranges (default {rob.batch}"
+                   + (": the nominal plant only)" if rob.batch == 0 else ")"))
+    p.add_argument("--aggregate", choices=AGGREGATES, help=f"objective over the "
+                   f"training batch (default {rob.aggregate})")
+    p.add_argument("--cvar-level", type=float, metavar="A", help=f"CVaR level in (0, 1]: the "
+                   f"mean of the worst ceil(A B) plants (default {rob.cvar_level:g})")
+    p.add_argument("--seed", type=int, help=f"seed of the training batch (default {rob.seed})")
+    p.add_argument("--heldout", type=int, metavar="N", help=f"held-out evaluation batch size "
+                   f"(default {d.heldout.batch}; 0 = skip)")
+    p.add_argument("--gradient", choices=GRADIENTS,
+                   help=f"AD mode (default {opt.gradient}"
+                   + (f": forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
+                      if opt.gradient == "auto" else ")"))
+    add_horizon_args(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
                        "its checkpoint (iteration count, optimiser state and best point)")
