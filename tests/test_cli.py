@@ -55,3 +55,36 @@ def test_diverged_simulation_writes_null_metrics_not_zeros(tmp_path, capsys):
     captured = capsys.readouterr()
     text = captured.out + captured.err
     assert "after t0: 0" not in text and "diverged at t = 0.04 s" in text
+
+
+def test_tiny_dt_saves_a_bounded_trajectory_and_says_so(tmp_path, capsys):
+    out = tmp_path / "tiny"
+    assert main(["simulate", "--t-final", "0.1", "--dt", "1e-6", "--no-plot",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "saving every 5th step: 20,001 points" in err
+    data = np.load(out / "trajectory.npz")
+    assert data["t"].shape == (20_001,) and data["t"][1] == pytest.approx(5e-6)
+    assert json.loads((out / "metrics.json").read_text())["save_every"] == 5
+
+
+def test_a_trajectory_that_cannot_fit_is_refused_before_any_work(tmp_path, capsys,
+                                                                  monkeypatch):
+    import dscjax.cli.simulate as cli_simulate
+
+    monkeypatch.setattr(cli_simulate, "_available_memory", lambda: 100_000)
+    out = tmp_path / "big"
+    assert main(["simulate", "--t-final", "2", "--save-every", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "simulation.save_every = 1 keeps 2,001 points" in err[0]
+    assert "available" in err[0] and "--save-every" in err[0]
+    assert not out.exists()
+
+
+def test_long_runs_show_progress(tmp_path, capsys, monkeypatch):
+    import dscjax.cli.simulate as cli_simulate
+
+    monkeypatch.setattr(cli_simulate, "PROGRESS_MIN_STEPS", 100)
+    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert "simulated   0 %" in err and "simulated 100 % (t = 0.5 of 0.5 s)" in err
