@@ -137,7 +137,8 @@ def parse_range(text: str, grid: bool = False, field: str | None = None) -> Rang
     if not eq:
         raise ConfigError(f"{field} must be {form} (got {text!r})")
     param = Param.parse(path, field)
-    return _range_from_value(param, _split_body(body), grid, f"{field} {param.name}", form)
+    return _range_from_value(param, _split_body(body), grid, f"{field} {param.name}", form,
+                             got=repr(text))
 
 
 def _split_body(body: str):
@@ -147,25 +148,27 @@ def _split_body(body: str):
     return body.split(":")
 
 
-def _range_from_value(param: Param, value, grid: bool, field: str, form: str | None = None
-                      ) -> Range:
-    """Range from a TOML value ([low, high], [low, high, num] or "30%") or split CLI text."""
+def _range_from_value(param: Param, value, grid: bool, field: str, form: str | None = None,
+                      got: str | None = None) -> Range:
+    """Range from a TOML value ([low, high], [low, high, num] or "30%") or split CLI text
+    (then `got` is the text as the user wrote it, which messages quote)."""
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
+    got = got or repr(value)
     if isinstance(value, str):
         if grid:
-            raise ConfigError(f"{field} must be {form} (got {value!r})")
+            raise ConfigError(f"{field} must be {form} (got {got})")
         text = value.strip().lstrip("±+")
         try:
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan
         except ValueError:
             rel = math.nan
         if not math.isfinite(rel):
-            raise ConfigError(f"{field} must be {form} (got {value!r})")
+            raise ConfigError(f"{field} must be {form} (got {got})")
         if rel <= 0:
-            raise ConfigError(f"{field} is an empty range ({value!r}); give a percentage > 0")
+            raise ConfigError(f"{field} is an empty range ({got}); give a percentage > 0")
         return Range(param, rel=rel)
     if not isinstance(value, list | tuple) or len(value) != (3 if grid else 2):
-        raise ConfigError(f"{field} must be {form} (got {value!r})")
+        raise ConfigError(f"{field} must be {form} (got {got})")
     for i, v in enumerate(value[:2]):
         if isinstance(v, bool):
             raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
@@ -173,7 +176,7 @@ def _range_from_value(param: Param, value, grid: bool, field: str, form: str | N
     try:
         low, high = (float(v) for v in value[:2])
     except (TypeError, ValueError):
-        raise ConfigError(f"{field} must be {form} with numbers (got {value!r})") from None
+        raise ConfigError(f"{field} must be {form} with numbers (got {got})") from None
     num = None
     if grid:
         num = value[2]
@@ -322,6 +325,8 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     ranges that allow lam <= psi, and values outside a model's allowed range at either end.
     """
     s = settings
+    # the run settings first: a bad window or dt is not the fault of a range
+    validation.validate_run(setup, t_final, dt, 1, window_start)
     validation.one_of(s.method, "sweep.method", METHODS)
     validation.one_of(s.dtype, "sweep.dtype", ("float32", "float64"))
     validation.one_of(s.parallel, "sweep.parallel", PARALLEL)

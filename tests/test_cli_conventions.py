@@ -72,3 +72,27 @@ def test_help_states_the_defaults_the_code_uses(command):
     helps = _help(command)
     for option, value in _expected_defaults()[command].items():
         assert f"default {value}" in helps[option], (option, helps[option])
+
+
+@pytest.mark.parametrize("argv, wanted, unwanted", [
+    (["sweep", "--t0", "30"], "simulation.window_start must be in [0, t_final) = [0, 20)",
+     "alpha"),
+    (["reproduce", "--complexity", "--orders", "8-2"], "did you mean 2-8?", "n >= 2"),
+    (["sweep", "--range", "hysteresis.alpha=0.5-1.5"], "(got 'hysteresis.alpha=0.5-1.5')",
+     "['"),
+    (["sweep", "--grid", "hysteresis.alpha=0.5:1.5"], "(got 'hysteresis.alpha=0.5:1.5')",
+     "['"),
+])
+def test_messages_blame_what_is_wrong(argv, wanted, unwanted, tmp_path, capsys):
+    line = _one_line_error(capsys, main([*argv, "--out", str(tmp_path / "o")]))
+    assert wanted in line and unwanted not in line, line
+
+
+def test_params_set_with_an_unknown_path_raises_config_error():
+    import dscjax
+
+    setup = dscjax.paper_example()
+    with pytest.raises(dscjax.ConfigError, match=r"no parameter 'controller\.kk'.*allowed: k,"):
+        dscjax.params.set(setup, "controller.kk", 1.0)
+    with pytest.raises(KeyError):  # and still a KeyError for code that catches lookups
+        dscjax.params.get(setup, "plant.nope")

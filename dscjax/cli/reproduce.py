@@ -8,15 +8,22 @@ def _orders(text: str) -> list[int]:
     from dscjax.validation import ConfigError
 
     try:
-        if "-" in text:
+        if "-" in text.strip().lstrip("-"):
             lo, hi = (int(p) for p in text.split("-", 1))
             orders = list(range(lo, hi + 1))
         else:
+            lo = hi = None
             orders = [int(p) for p in text.split(",") if p.strip()]
     except ValueError:
         raise ConfigError(f"--orders must look like '2-8' or '2,3,4' (got {text!r})") from None
-    if not orders or min(orders) < 2:
-        raise ConfigError(f"--orders must be orders n >= 2 (got {text!r})")
+    if lo is not None and lo > hi:
+        raise ConfigError(f"--orders: a range N-M needs N <= M (got {text!r}; did you mean "
+                          f"{hi}-{lo}?)")
+    if not orders:
+        raise ConfigError(f"--orders must name at least one order n >= 2 (got {text!r})")
+    if min(orders) < 2:
+        raise ConfigError(f"--orders must be orders n >= 2 (got {text!r}, which includes "
+                          f"n = {min(orders)})")
     return orders
 
 
