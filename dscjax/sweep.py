@@ -798,9 +798,18 @@ def run_sweep(
     return SweepResult(columns=columns_out, param_names=names, info=info)
 
 
+def check_resumable(out: str | Path) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json)."""
+    if not (Path(out) / "sweep.json").exists():
+        raise ConfigError(f"--resume: nothing to resume in {out} (sweep.json is missing); run "
+                          f"without --resume to start afresh")
+
+
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
     manifest = out / "sweep.json"
     done = np.zeros(n_blocks, dtype=bool)
+    if resume:
+        check_resumable(out)
     if main:
         (out / "chunks").mkdir(parents=True, exist_ok=True)
         old = None
@@ -1001,6 +1010,7 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
 
 
 __all__ = ["DEFAULT_PATHS", "METRICS", "Param", "Range", "SweepResult", "SweepSettings",
-           "auto_chunk", "check_settings", "default_ranges", "format_progress", "parse_range",
-           "rank_diverged", "rank_worst", "run_sweep", "sample_table", "settings_from_dict",
-           "simulate_rows", "summarize", "trace_rows", "write_npz"]
+           "auto_chunk", "check_resumable", "check_settings", "default_ranges",
+           "format_progress", "parse_range", "rank_diverged", "rank_worst", "run_sweep",
+           "sample_table", "settings_from_dict", "simulate_rows", "summarize", "trace_rows",
+           "write_npz"]

@@ -96,3 +96,86 @@ def test_params_set_with_an_unknown_path_raises_config_error():
         dscjax.params.set(setup, "controller.kk", 1.0)
     with pytest.raises(KeyError):  # and still a KeyError for code that catches lookups
         dscjax.params.get(setup, "plant.nope")
+
+
+@pytest.mark.parametrize("argv, missing", [
+    (["sweep", "--resume"], "sweep.json"),
+    (["tune", "--resume"], "checkpoint.json"),
+    (["reproduce", "--complexity", "--resume"], "complexity_rows.json"),
+])
+def test_resuming_nothing_is_an_error_naming_the_directory(argv, missing, tmp_path, capsys):
+    out = tmp_path / "new"
+    line = _one_line_error(capsys, main([*argv, "--out", str(out)]))
+    assert f"nothing to resume in {out} ({missing} is missing)" in line, line
+
+
+def test_reproduce_resume_needs_complexity(tmp_path, capsys):
+    line = _one_line_error(capsys, main(["reproduce", "--resume", "--out", str(tmp_path)]))
+    assert "--complexity" in line
+
+
+def _interrupted(capsys, argv):
+    import shlex
+
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"dscjax {argv[0]}: interrupted; "), err
+    command = last.split("continue with: ", 1)[1] if "continue with: " in last else None
+    return last, command and shlex.split(command)
+
+
+def test_sweep_interrupt_prints_the_resume_command_that_finishes_it(tmp_path, capsys,
+                                                                     monkeypatch):
+    from dscjax import sweep
+
+    def stop(p):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "s"
+    argv = ["sweep", "--samples", "16", "--chunk", "8", "--t-final", "0.2", "--float64",
+            "--worst", "0", "--random", "0", "--no-plot", "--out", str(out)]
+    monkeypatch.setattr(sweep, "format_progress", stop)
+    last, command = _interrupted(capsys, argv)
+    assert "1 finished block(s) are kept" in last
+    assert command == ["dscjax", *argv, "--resume"]
+    monkeypatch.undo()
+    assert main(command[1:]) == 0
+    assert (out / "results.npz").exists()
+
+
+def test_tune_interrupt_prints_the_resume_command(tmp_path, capsys, monkeypatch):
+    import json
+
+    import tuning.runner
+
+    out = tmp_path / "t"
+
+    def interrupted_run(problem, out_dir, **kw):  # as the real loop does on Ctrl-C
+        (out_dir / "checkpoint.json").write_text(json.dumps({"iteration": 3, "best_loss": 0.5}))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tuning.runner, "run", interrupted_run)
+    argv = ["tune", "--t-final", "0.2", "--heldout", "0", "--overwrite", "--out", str(out)]
+    last, command = _interrupted(capsys, argv)
+    assert "checkpoint (iteration 3, best loss 0.5) is kept" in last
+    assert command == ["dscjax", "tune", "--t-final", "0.2", "--heldout", "0", "--out",
+                       str(out), "--resume"]
+
+
+def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
+    import dscjax.reproduce
+
+    def stop(*a, **k):
+        (tmp_path / "c" / "complexity_rows.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dscjax.reproduce, "hysteresis_loops", stop)
+    argv = ["reproduce", "--out", str(tmp_path / "p")]
+    (tmp_path / "c").mkdir()
+    last, command = _interrupted(capsys, argv)
+    assert command is None and last.endswith(f"run the same command again: dscjax "
+                                             f"reproduce --out {tmp_path / 'p'}")
+    argv = ["reproduce", "--complexity", "--out", str(tmp_path / "c")]
+    last, command = _interrupted(capsys, argv)
+    assert command == ["dscjax", *argv, "--resume"]

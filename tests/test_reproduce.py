@@ -167,7 +167,11 @@ def test_complexity_study_resumes_after_interruption(tmp_path, monkeypatch):
     for r in result["rows"][:2]:
         assert r == kept[(r["controller"], r["n"])]
     assert len(json.loads(path.read_text())["rows"]) == 4
-    # other settings: nothing reused
+    # other settings, or nothing saved: an error, not a silent fresh start
     calls.clear()
-    complexity.study((2,), repeats=2, evals=20, log=None, rows_path=path, resume=True)
-    assert calls == [("dsc", 2), ("backstepping", 2)]
+    with pytest.raises(dscjax.ConfigError, match=r"other settings \(repeats 1 \(now 2\)\)"):
+        complexity.study((2,), repeats=2, evals=20, log=None, rows_path=path, resume=True)
+    with pytest.raises(dscjax.ConfigError, match="nothing to resume"):
+        complexity.study((2,), repeats=1, evals=20, log=None, rows_path=tmp_path / "no.json",
+                         resume=True)
+    assert calls == []

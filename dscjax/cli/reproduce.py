@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
+
 
 def _orders(text: str) -> list[int]:
     """"2-8" or "2,3,5" -> list of orders >= 2."""
@@ -75,18 +79,25 @@ def run(args) -> int:
     from dscjax.reproduce import setups
 
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
+    if args.resume and not args.complexity:
+        raise ConfigError("--resume continues an interrupted --complexity study (the "
+                          "closed-loop runs take seconds and are not kept); add --complexity")
+    rows = Path(args.out) / ROWS
+    if args.resume and not rows.exists():
+        raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
+                          f"run without --resume to start afresh")
     prepare_out(args.out)
-    try:
-        reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
-                  complexity=args.complexity, complexity_orders=orders,
-                  complexity_repeats=args.repeats, resume=args.resume)
-    except KeyboardInterrupt:
-        import sys
-        from pathlib import Path
-
-        rows = Path(args.out) / "complexity_rows.json"
-        if args.complexity and rows.exists():
-            print(f"dscjax reproduce: the finished control-law measurements are kept in {rows}; "
-                  "continue with the same command and --resume", file=sys.stderr)
-        raise
+    reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
+              complexity=args.complexity, complexity_orders=orders,
+              complexity_repeats=args.repeats, resume=args.resume)
     return 0
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command, resume_command
+
+    rows = Path(args.out) / ROWS
+    if args.complexity and rows.exists():
+        return (f"the finished control-law measurements are kept in {rows}; continue with: "
+                f"{resume_command(args.argv)}")
+    return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"

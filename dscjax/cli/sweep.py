@@ -12,6 +12,7 @@ import dataclasses
 import json
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -198,6 +199,8 @@ def run(args) -> int:
     if args.print_config:
         sys.stdout.write(sweep_toml(settings, setup))
         return 0
+    if args.resume:
+        sweep.check_resumable(args.out)
     out = prepare_out(args.out)
     main = jax.process_index() == 0
     n = settings.n_samples()
@@ -225,17 +228,9 @@ def run(args) -> int:
             print(sweep.format_progress(p), file=sys.stderr, flush=True)
             last[0] = now
 
-    try:
-        result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
-                                 state_bound=state_bound, out_dir=out, resume=args.resume,
-                                 overwrite=args.overwrite, progress=progress)
-    except KeyboardInterrupt:
-        if main:
-            n_done = len(list((out / "chunks").glob("chunk_*.npz")))
-            print(("\n" if tty else "") + f"dscjax sweep: {n_done} finished block(s) are "
-                  f"kept in {out}/chunks; continue with the same command and --resume",
-                  file=sys.stderr)
-        raise
+    result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
+                             state_bound=state_bound, out_dir=out, resume=args.resume,
+                             overwrite=args.overwrite, progress=progress)
     if not main:
         return 0
     info = result.info
@@ -298,6 +293,21 @@ def run(args) -> int:
           f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
           file=sys.stderr)
     return 0
+
+
+def interrupt_hint(args) -> str | None:
+    import jax
+
+    from dscjax.cli.main import rerun_command, resume_command
+
+    if jax.process_index() != 0:
+        return None
+    out = Path(args.out)
+    if not (out / "sweep.json").exists():
+        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    n_done = len(list((out / "chunks").glob("chunk_*.npz")))
+    return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
+            f"{resume_command(args.argv)}")
 
 
 def _traces_title(kinds, dtype) -> str:

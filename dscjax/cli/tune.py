@@ -73,6 +73,21 @@ def add_parser(sub):
     return p
 
 
+def interrupt_hint(args) -> str:
+    import json
+
+    from dscjax.cli.main import rerun_command, resume_command
+
+    path = Path(args.out) / "checkpoint.json"
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
+            f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
+            f"{resume_command(args.argv)}")
+
+
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config
