@@ -397,6 +397,23 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     return ranges
 
 
+def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep.ranges"
+                        ) -> list[str]:
+    """`validation.assumption_warnings` of the setup and of every end of every (resolved)
+    range: a violation only some samples see is reported with the range that reaches it."""
+    out = list(validation.assumption_warnings(setup))
+    for r in ranges:
+        for end in (r.low, r.high):
+            for w in validation.assumption_warnings(_set_values(setup, [r.param],
+                                                                np.array([end]))):
+                w = w.split(";")[0] + (f" for part of {field}.{r.name} = [{r.low:.6g}, "
+                                       f"{r.high:.6g}]; the design's guarantees (Theorem 1) "
+                                       f"do not apply there")
+                if not any(o.split(":")[0] == w.split(":")[0] for o in out) and w not in out:
+                    out.append(w)
+    return out
+
+
 def _check_lam_psi(ranges, setup, field):
     """lam > psi must hold on the whole box: lam's lower end above psi's upper end."""
     by = {r.param.path: r for r in ranges if r.param.index is None}

@@ -88,3 +88,25 @@ def test_long_runs_show_progress(tmp_path, capsys, monkeypatch):
     assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
     err = capsys.readouterr().err
     assert "simulated   0 %" in err and "simulated 100 % (t = 0.5 of 0.5 s)" in err
+
+
+def test_assumption_4_violated_is_a_warning_recorded_in_metrics(tmp_path, capsys):
+    cfg = tmp_path / "g.toml"
+    cfg.write_text("[plant]\ng = [0.5, 0.5]\n\n[controller]\ng_min = 1.0\n")
+    out = tmp_path / "o"
+    assert main(["simulate", "--config", str(cfg), "--t-final", "0.5", "--no-plot",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: Assumption 4 (g_min <= |g_i|) does not hold" in err
+    warnings = json.loads((out / "metrics.json").read_text())["warnings"]
+    assert len(warnings) == 1 and "controller.g_min = 1 but plant.g has |g_1| = 0.5" in warnings[0]
+
+
+def test_assumption_4_in_a_sweep_range_is_recorded_in_the_summary(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["sweep", "--range", "plant.g[1]=0.5:1.5", "--samples", "8", "--chunk", "8",
+                 "--float64", "--t-final", "0.1", "--worst", "0", "--random", "0", "--no-plot",
+                 "--out", str(out)]) == 0
+    assert "warning: Assumption 4" in capsys.readouterr().err
+    (w,) = json.loads((out / "summary.json").read_text())["warnings"]
+    assert "|g_2| = 0.5 for part of sweep.ranges.plant.g[1] = [0.5, 1.5]" in w

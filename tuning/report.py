@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import validation
 from tuning import checkpoint as ck
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -111,6 +112,9 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
         "settings": problem.describe(),
         "notes": list(problem.notes),
+        "warnings": assumption_warnings(problem)
+        + [f"tuned gains: {w}" for w in validation.assumption_warnings(result.best_setup)
+           if w not in validation.assumption_warnings(problem.setup)],
     }
     for key in ("train", "heldout"):
         if ev[key] is not None:
@@ -137,6 +141,21 @@ def _measured(m: dict[str, float]) -> dict[str, float]:
     if not m.get("diverged"):
         return m
     return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
+
+
+def assumption_warnings(problem) -> list[str]:
+    """The paper's assumptions the start setup violates, at the nominal plant or at an end of
+    the training or held-out ranges (`dscjax.sweep.assumption_warnings`)."""
+    from dscjax.sweep import assumption_warnings as with_ranges
+
+    out = []
+    cfg = problem.cfg
+    for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):
+        ranges = [r.resolve(problem.setup) for r in b.ranges] if b.batch else []
+        for w in with_ranges(problem.setup, ranges, f"tuning.{key}.ranges"):
+            if w not in out:
+                out.append(w)
+    return out
 
 
 def _values(problem, z):
@@ -189,6 +208,8 @@ def _markdown(s: dict, problem, figures) -> str:
     ]
     for note in s["notes"]:
         lines.append(f"Note: {note}.")
+    for w in s["warnings"]:
+        lines.append(f"**Warning:** {w}.")
     lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
               "|---|---|---|---|"]
     for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u",

@@ -67,12 +67,15 @@ def run(args) -> int:
     every = options.save_stride(n_steps)
     validation.validate_run(setup, options.t_final, options.dt, every, options.window_start)
     nbytes = _check_memory(setup, options, every, n_steps)
+    warnings = validation.assumption_warnings(setup)
 
     out = prepare_out(args.out)
     n = setup.order
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
           f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}", file=sys.stderr)
+    for w in warnings:
+        print(f"dscjax simulate: warning: {w}", file=sys.stderr)
     if options.save_every is None and every > 1:
         print(f"  saving every {_ordinal(every)} step: {n_steps // every + 1:,} points (at most "
               f"{config.MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
@@ -113,6 +116,7 @@ def run(args) -> int:
         "window_start": float(options.window_start if options.window_start is not None
                               else (1.0 if options.t_final > 1.0 else 0.0)),
         "wall_time_s": elapsed,
+        "warnings": warnings,
     })
     if not args.no_plot:
         from dscjax.plotting import plot_trajectory

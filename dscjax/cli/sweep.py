@@ -213,6 +213,11 @@ def run(args) -> int:
               f"dt={dt:g} s, {settings.dtype}, {jax.device_count()} device(s) "
               f"({jax.devices()[0].platform}), {jax.process_count()} process(es)",
               file=sys.stderr)
+    warnings = sweep.assumption_warnings(setup, ranges,
+                                         "sweep.grid" if settings.method == "grid"
+                                         else "sweep.ranges")
+    for w in warnings if main else ():
+        print(f"dscjax sweep: warning: {w}", file=sys.stderr)
     tty = sys.stderr.isatty()
     last = [0.0]
 
@@ -258,6 +263,7 @@ def run(args) -> int:
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
     summary["nominal_params"] = nominal_params
     summary["run"] = info
+    summary["warnings"] = warnings
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)

@@ -180,6 +180,8 @@ def run(args) -> int:
           + (f" or {oc.time_limit:g} s" if oc.time_limit else ""), file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
+    for w in report.assumption_warnings(problem):
+        print(f"dscjax tune: warning: {w}", file=sys.stderr)
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
