@@ -30,7 +30,7 @@ from dscjax.simulate import (
 )
 from dscjax.validation import ConfigError, validate_setup
 
-__version__ = "0.1.0"
+__version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
 
 __all__ = [
     "Backlash", "Backstepping", "BacksteppingState", "ConfigError", "Controller", "CustomPlant",

@@ -514,7 +514,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
             in `out/complexity_rows.json` (each is saved as soon as it is made).
 
     Returns:
-        The summary (as written to summary.json).
+        The summary (as written to summary.json); `claim_lines(summary)` states each claim's
+        verdict in one line.
     """
     if fmt not in ("png", "pdf"):
         raise ValueError(f"fmt must be 'png' or 'pdf' (got {fmt!r})")
@@ -550,13 +551,16 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     summary["wall_time_s"] = time.perf_counter() - t_start
     (out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
     (out / "summary.md").write_text(summary_markdown(summary))
-    for c in summary["claims"]:
-        word = c["verdict"].upper() if c["holds"] else "FAILS"
-        log(f"claim {word}: {c['claim']}: {c['measured']}")
     log(f"wrote {len(paths)} figures, summary.json and summary.md to {out}/ "
         f"({summary['wall_time_s']:.1f} s)")
     return summary
 
 
-__all__ = ["reproduce", "setups", "run_all", "summarize", "check_claims", "figures",
+def claim_lines(summary: dict) -> list[str]:
+    """One line per claim of the paper: the verdict, the claim, what we measured."""
+    return [f"claim {c['verdict'].upper() if c['holds'] else 'FAILS'}: {c['claim']}: "
+            f"{c['measured']}" for c in summary["claims"]]
+
+
+__all__ = ["claim_lines", "reproduce", "setups", "run_all", "summarize", "check_claims", "figures",
            "hysteresis_loops", "summary_markdown", "RUNS", "LABELS", "STYLE", "FIGURES"]

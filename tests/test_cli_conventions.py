@@ -179,3 +179,34 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
     argv = ["reproduce", "--complexity", "--out", str(tmp_path / "c")]
     last, command = _interrupted(capsys, argv)
     assert command == ["dscjax", *argv, "--resume"]
+
+
+def test_version_comes_from_one_place(capsys):
+    import importlib.metadata
+    import tomllib
+    from pathlib import Path
+
+    import dscjax
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"dscjax {dscjax.__version__}"
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "dscjax.__version__"}
+    assert importlib.metadata.version("dscjax") == dscjax.__version__
+
+
+def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
+    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    captured = capsys.readouterr()
+    assert "wrote" in captured.out and "L-inf error" in captured.out
+    assert "dscjax simulate: order n=2" in captured.err
+    assert "wrote" not in captured.err and "order n=2" not in captured.out
+
+
+def test_print_config_lists_window_start(capsys):
+    assert main(["simulate", "--print-config"]) == 0
+    out = capsys.readouterr().out
+    assert "# window_start = 1.0 " in out and "# save_every = 1 " in out

@@ -40,10 +40,15 @@ def _available_commands():
 
 
 def build_parser(commands) -> argparse.ArgumentParser:
+    from dscjax import __version__
+
     parser = argparse.ArgumentParser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
+        epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
+        "stderr. Exit codes: 0 ok, 2 bad input, 3 a simulation diverged, 130 interrupted.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in commands.values():
         module.add_parser(sub)

@@ -68,7 +68,7 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax.cli.common import prepare_out
-    from dscjax.reproduce import reproduce
+    from dscjax.reproduce import claim_lines, reproduce
     from dscjax.validation import ConfigError, validate_run
 
     orders = _orders(args.orders)
@@ -87,9 +87,14 @@ def run(args) -> int:
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
     prepare_out(args.out)
-    reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
-              complexity=args.complexity, complexity_orders=orders,
-              complexity_repeats=args.repeats, resume=args.resume)
+    summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
+                        dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
+                        complexity_repeats=args.repeats, resume=args.resume)
+    # the results on stdout (progress went to stderr)
+    for line in claim_lines(summary):
+        print(line)
+    print(f"wrote {len(summary['figures'])} figures, summary.json and summary.md to "
+          f"{args.out}/")
     return 0
 
 

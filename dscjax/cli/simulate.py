@@ -123,15 +123,14 @@ def run(args) -> int:
 
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
-          + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)", file=sys.stderr)
+          + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if diverged is None:
         print(f"  L-inf error {metrics['linf_error']:.4g} "
               f"(after t0: {metrics['linf_error_window']:.4g}),"
-              f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}",
-              file=sys.stderr)
+              f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
     else:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
-              f"were not measured (null in metrics.json)", file=sys.stderr)
+              f"were not measured (null in metrics.json)")
     if diverged is not None:
         raise diverged
     return 0

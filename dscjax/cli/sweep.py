@@ -287,17 +287,16 @@ def run(args) -> int:
     print(f"  wrote {out}/results.npz, summary.json, traces.npz"
           + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
-             else "nothing left to run)"), file=sys.stderr)
+             else "nothing left to run)"))
     if q is not None:
         nom = ("the nominal setup diverged" if bool(nominal.diverged)
                else f"nominal {nominal_metrics['linf_error_window']:.4g}")
         print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
               f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
-              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})", file=sys.stderr)
+              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
     print(f"  diverged: {summary['n_diverged']:,} of {result.n:,} "
           f"({100 * summary['divergence_rate']:.2f} %); degraded (above {threshold:.4g}, "
-          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
-          file=sys.stderr)
+          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     return 0
 
 

@@ -208,21 +208,21 @@ def run(args) -> int:
           + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
           + f", {int(result.state.n_rejected)} rejected, best at iteration "
           f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
-          f"{result.compile_s:.1f} s)", file=sys.stderr)
+          f"{result.compile_s:.1f} s)")
     summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
     print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
           f"{options.t_final:g}] s {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower), max|u| "
-          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}", file=sys.stderr)
+          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         if h0["linf_error_window"] and h1["linf_error_window"]:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
             print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
                   f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
-                  f"{h0['n_diverged']} -> {h1['n_diverged']}", file=sys.stderr)
+                  f"{h0['n_diverged']} -> {h1['n_diverged']}")
     print(f"  wrote {out}/gains.json, history.csv, report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
-          + f" ({time.perf_counter() - t_start:.1f} s in all)", file=sys.stderr)
+          + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
