@@ -316,6 +316,26 @@ def _time_axes(plt, title: str, ylabel: str):
     return fig, ax
 
 
+def _time_axes_after(plt, title: str, ylabel: str, t_after: float):
+    """Two panels: the whole horizon, and t >= t_after, where the first second's peak no
+    longer sets the scale."""
+    fig, (ax, zoom) = plt.subplots(2, 1, figsize=(6.4, 5.6), layout="constrained")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    zoom.set_xlabel("time $t$ [s]")
+    zoom.set_ylabel(ylabel)
+    zoom.set_title(f"after the first {t_after:g} s (the initial peak left out)", fontsize=9)
+    return fig, ax, zoom
+
+
+def _line_after(ax, traj, signal, name, t_after, **over):
+    t = np.asarray(traj.t)
+    keep = t >= t_after
+    y = np.asarray(traj.e if signal == "e" else getattr(traj, signal))
+    ax.plot(t[keep], y[keep], **(STYLE[name] | over))
+    ax.set_xlim(t_after, t[-1])
+
+
 def _legend_below(fig, ax, ncol=1):
     """Legend outside the axes, under them: it can never hide a curve."""
     handles, labels = ax.get_legend_handles_labels()
@@ -363,16 +383,18 @@ def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 15
     _legend_below(fig, ax)
     paths["fig2"] = _finish(fig, out, FIGURES["fig2"], fmt, dpi)
 
-    fig, ax = _time_axes(plt, "Fig. 3  Control signal of the DSC", "control input $u$ [-]")
-    _line(ax, trajs["dsc"], "u", "dsc")
-    _legend_below(fig, ax)
-    paths["fig3"] = _finish(fig, out, FIGURES["fig3"], fmt, dpi)
-
-    fig, ax = _time_axes(plt, "Fig. 4  Hysteresis output of the DSC loop",
-                         "hysteresis output $w$ [-]")
-    _line(ax, trajs["dsc"], "w", "dsc")
-    _legend_below(fig, ax)
-    paths["fig4"] = _finish(fig, out, FIGURES["fig4"], fmt, dpi)
+    t_after = 1.0 if float(np.asarray(trajs["dsc"].t)[-1]) > 1.0 else 0.0
+    for key, signal, title, ylabel in (
+            ("fig3", "u", "Fig. 3  Control signal of the DSC", "control input $u$ [-]"),
+            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
+             "hysteresis output $w$ [-]")):
+        fig, ax, zoom = _time_axes_after(plt, title, ylabel, t_after)
+        _line(ax, trajs["dsc"], signal, "dsc")
+        ax.axvspan(t_after, float(np.asarray(trajs["dsc"].t)[-1]), color="#999999",
+                   alpha=0.08, lw=0, label=f"shown below: $t \\geq$ {t_after:g} s")
+        _line_after(zoom, trajs["dsc"], signal, "dsc", t_after)
+        _legend_below(fig, ax, ncol=2)
+        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
     faint = dict(lw=0.9, alpha=0.55)
     fig, ax = _time_axes(plt, "Fig. 5  Tracking error of adaptive backstepping",

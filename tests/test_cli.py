@@ -1,6 +1,7 @@
 """`dscjax simulate`: the files a user gets, --print-config, variants, float32."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -110,3 +111,43 @@ def test_assumption_4_in_a_sweep_range_is_recorded_in_the_summary(tmp_path, caps
     assert "warning: Assumption 4" in capsys.readouterr().err
     (w,) = json.loads((out / "summary.json").read_text())["warnings"]
     assert "|g_2| = 0.5 for part of sweep.ranges.plant.g[1] = [0.5, 1.5]" in w
+
+
+def test_trajectory_figure_legend_outside_and_units_on_every_axis(tmp_path, paper_setup):
+    import dscjax
+    from dscjax.plotting import plot_trajectory
+
+    traj = dscjax.simulate(paper_setup, 1.0, 1e-3, save_every=10)
+    fig = plot_trajectory(traj, tmp_path / "t.png")
+    assert len(fig.legends) == 1  # one legend for the figure, under the panels
+    for ax in fig.axes:
+        assert ax.get_legend() is None  # none inside a panel, over the curves
+        assert ax.get_ylabel().endswith("[-]"), ax.get_ylabel()  # dimensionless model
+    assert all(ax.get_xlabel() == "time $t$ [s]" for ax in fig.axes[2:])
+
+
+def test_loss_curve_has_one_axis_per_quantity_and_a_labelled_bound(tmp_path):
+    from tuning.report import plot_loss_curve
+
+    rows = [dict(iteration=i, loss=1.0 / (i + 1), best_loss=1.0 / (i + 1), accepted=i != 2,
+                 linf_window=0.02 / (i + 1), max_abs_u=6.0 + 0.01 * i) for i in range(5)]
+    fig = plot_loss_curve(rows, tmp_path / "l.png", u_max=6.13)
+    assert len(fig.axes) == 3  # no twin axes
+    boxes = {tuple(ax.get_position().bounds) for ax in fig.axes}
+    assert len(boxes) == 3
+    for ax in fig.axes:
+        assert ax.get_legend() is not None and ax.get_ylabel()
+    labels = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
+    assert "bound on max|u| (6.13)" in labels
+
+
+def test_heatmap_states_how_narrow_its_colour_scale_is(tmp_path):
+    from dscjax.sweep_plots import plot_heatmap
+
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0.7, 1.3, 400), rng.uniform(1.0, 1.8, 400)
+    err = 0.0221 + 0.0005 * (x - 0.7) / 0.6  # a 2 % spread
+    stats = plot_heatmap(x, y, err, np.zeros(400, bool), tmp_path / "h.png",
+                         names=("hysteresis.alpha", "hysteresis.lam"), t0=1.0, t_final=20.0)
+    assert re.fullmatch(r"colours span 0\.022\d* to 0\.022\d* = 2(\.\d)? % of the median",
+                        stats["colour_scale"]), stats["colour_scale"]

@@ -40,6 +40,17 @@ def test_writes_every_file(reproduced):
     assert set(summary["figures"]) == set(FIGURES)
 
 
+def test_figs_3_and_4_have_a_panel_after_the_first_second(reproduced):
+    # the initial peak (u ~ 6, w ~ 8 within 0.1 s) set the scale of the whole figure: a
+    # second panel shows t >= 1 s, so both figures are two panels tall
+    import matplotlib.image
+
+    out, _ = reproduced
+    for key in ("fig3", "fig4"):
+        h, w = matplotlib.image.imread(out / f"{FIGURES[key]}.png").shape[:2]
+        assert h > 0.8 * w, (key, h, w)
+
+
 def test_summary_fields_are_finite(reproduced):
     _, summary = reproduced
     assert summary["t_final"] == T_SHORT and summary["window_start"] == 1.0

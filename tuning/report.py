@@ -272,6 +272,44 @@ def _fmt_val(v):
 # -- figures --------------------------------------------------------------------------------------
 
 
+def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = False):
+    """loss_curve.png: the loss (and best loss, rejected steps marked), the L-inf error and
+    max|u| per iteration, each in its own panel with its own axis and legend; the bound on
+    max|u| is a labelled line. Returns the Figure (already saved)."""
+    from matplotlib.figure import Figure
+
+    it = np.array([r["iteration"] for r in history])
+    loss = np.array([r["loss"] for r in history], dtype=float)
+    best = np.array([r["best_loss"] for r in history], dtype=float)
+    acc = np.array([bool(r["accepted"]) for r in history])
+    linf = np.array([r["linf_window"] for r in history], dtype=float)
+    umax = np.array([r["max_abs_u"] for r in history], dtype=float)
+    # three panels, one quantity and one y-axis each (no twin axes)
+    fig = Figure(figsize=(14, 4), layout="constrained")
+    ax = fig.subplots(1, 3)
+    ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
+    ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
+    if (~acc).any():
+        ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected step")
+    ax[0].set_ylabel("objective J [-] (about 1 at the start gains)")
+    ax[0].set_title("loss")
+    ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
+    ax[1].set_ylabel("L-inf tracking error on [t0, T] [-]")
+    worst = " (worst training plant)" if batch else ""
+    ax[1].set_title("tracking error" + worst)
+    ax[2].plot(it, umax, color="#2ca02c", lw=1, label="max|u|" + worst)
+    if u_max:
+        ax[2].axhline(u_max, color="k", ls=":", lw=1, label=f"bound on max|u| ({u_max:.4g})")
+    ax[2].set_ylabel("max|u| [-]")
+    ax[2].set_title("control amplitude")
+    for a in ax:
+        a.set_xlabel("iteration")
+        a.grid(alpha=0.3, which="both")
+        a.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return fig
+
+
 def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     import matplotlib
 
@@ -279,36 +317,10 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     import matplotlib.pyplot as plt
 
     figures = []
-    h = result.history
-    if h:
-        it = np.array([r["iteration"] for r in h])
-        loss = np.array([r["loss"] for r in h], dtype=float)
-        best = np.array([r["best_loss"] for r in h], dtype=float)
-        acc = np.array([bool(r["accepted"]) for r in h])
-        linf = np.array([r["linf_window"] for r in h], dtype=float)
-        umax = np.array([r["max_abs_u"] for r in h], dtype=float)
-        fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-        ax[0].semilogy(it, loss, lw=1, label="loss")
-        ax[0].semilogy(it, best, lw=1.5, label="best")
-        if (~acc).any():
-            ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected")
-        ax[0].set_xlabel("iteration")
-        ax[0].set_ylabel("objective J")
-        ax[0].legend()
-        ax[0].grid(alpha=0.3)
-        ax[0].set_title("loss")
-        ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
-        ax[1].set_xlabel("iteration")
-        ax[1].set_ylabel("L-inf error (training)")
-        ax[1].grid(alpha=0.3)
-        a2 = ax[1].twinx()
-        a2.plot(it, umax, color="#2ca02c", lw=1, label="max|u|")
-        if problem.objective.scales.u_max:
-            a2.axhline(problem.objective.scales.u_max, color="#2ca02c", ls=":", lw=1)
-        a2.set_ylabel("max|u|", color="#2ca02c")
-        ax[1].set_title("tracking error and max|u| per iteration")
-        fig.savefig(out / "loss_curve.png", dpi=110)
-        plt.close(fig)
+    if result.history:
+        plot_loss_curve(result.history, out / "loss_curve.png",
+                        u_max=problem.objective.scales.u_max,
+                        batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
     fig, ax = plt.subplots(3, 1, figsize=(10, 8.5), constrained_layout=True)
@@ -326,11 +338,11 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     if problem.objective.scales.u_max:
         for sgn in (1, -1):
             ax[2].axhline(sgn * problem.objective.scales.u_max, color="k", ls=":", lw=0.8)
-    ax[0].set_ylabel("e = y - y_r")
+    ax[0].set_ylabel("e = y - y_r [-]")
     ax[0].set_title("tracking error, whole horizon")
-    ax[1].set_ylabel("e on [t0, T]")
+    ax[1].set_ylabel("e on [t0, T] [-]")
     ax[1].set_title(f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
-    ax[2].set_ylabel("u")
+    ax[2].set_ylabel("u [-]")
     ax[2].set_title("control input (dotted: the bound on max|u|)")
     ax[2].set_xlabel("time t [s]")
     for a in ax:
