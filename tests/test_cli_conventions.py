@@ -133,7 +133,8 @@ def test_sweep_interrupt_prints_the_resume_command_that_finishes_it(tmp_path, ca
         raise KeyboardInterrupt
 
     out = tmp_path / "s"
-    argv = ["sweep", "--samples", "16", "--chunk", "8", "--t-final", "0.2", "--float64",
+    # the block shape and horizon of tests/test_sweep.py: one compiled program serves both
+    argv = ["sweep", "--samples", "16", "--chunk", "8", "--t-final", "0.5", "--float64",
             "--worst", "0", "--random", "0", "--no-plot", "--out", str(out)]
     monkeypatch.setattr(sweep, "format_progress", stop)
     last, command = _interrupted(capsys, argv)

@@ -46,12 +46,10 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import config
-    from dscjax.simulate import DivergenceError, divergence_report, simulate
+    from dscjax import config, validation
+    from dscjax.simulate import DivergenceError, default_window, divergence_report, simulate
 
     if args.save_every is not None:
-        from dscjax import validation
-
         validation.integer(args.save_every, "--save-every", 1)
     setup, options = load_setup(args)
     if args.save_every is not None:
@@ -61,7 +59,6 @@ def run(args) -> int:
     if args.print_config:
         sys.stdout.write(config.to_toml(setup, options))
         return 0
-    from dscjax import validation
 
     n_steps = validation.validate_run(setup, options.t_final, options.dt, 1, None)
     every = options.save_stride(n_steps)
@@ -113,8 +110,7 @@ def run(args) -> int:
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
         "save_every": every,
-        "window_start": float(options.window_start if options.window_start is not None
-                              else (1.0 if options.t_final > 1.0 else 0.0)),
+        "window_start": float(default_window(options.t_final, options.window_start)),
         "wall_time_s": elapsed,
         "warnings": warnings,
     })
@@ -190,6 +186,7 @@ def _trajectory_bytes(setup, options, every: int) -> int:
 
 def _check_memory(setup, options, every: int, n_steps: int) -> int:
     """The trajectory's size in bytes; ConfigError before any work if it cannot fit."""
+    from dscjax.config import MAX_SAVED_POINTS
     from dscjax.validation import ConfigError
 
     nbytes = _trajectory_bytes(setup, options, every)
@@ -200,14 +197,8 @@ def _check_memory(setup, options, every: int, n_steps: int) -> int:
             f"trajectory ({_size(nbytes)}, about {_size(need)} in memory while writing "
             f"trajectory.npz), more than the {_size(avail)} available; use a larger "
             f"--save-every, or omit it for the automatic stride (at most "
-            f"{_max_points():,} points), or a shorter --t-final")
+            f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     return nbytes
-
-
-def _max_points() -> int:
-    from dscjax.config import MAX_SAVED_POINTS
-
-    return MAX_SAVED_POINTS
 
 
 class _progress_printer:
