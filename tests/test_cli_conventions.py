@@ -164,6 +164,21 @@ def test_tune_interrupt_prints_the_resume_command(tmp_path, capsys, monkeypatch)
                        str(out), "--resume"]
 
 
+def test_simulate_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
+    import importlib
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+
+    # the module, not the function dscjax.simulate that dscjax/__init__.py exports
+    monkeypatch.setattr(importlib.import_module("dscjax.simulate"), "simulate", stop)
+    argv = ["simulate", "--t-final", "0.5", "--out", str(tmp_path)]
+    last, command = _interrupted(capsys, argv)
+    assert command is None
+    assert last.endswith(f"run the same command again: dscjax simulate --t-final 0.5 --out "
+                         f"{tmp_path}")
+
+
 def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
     import dscjax.reproduce
 

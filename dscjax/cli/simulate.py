@@ -234,6 +234,13 @@ class _progress_printer:
             print(file=sys.stderr)
 
 
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command
+
+    return (f"nothing is kept (the files are written when the run ends); run the same command "
+            f"again: {rerun_command(args.argv)}")
+
+
 def _title(setup, options):
     c = setup.controller
     return (f"{c.kind.upper()} ({getattr(c, 'variant', '')}), n={setup.order}, "
