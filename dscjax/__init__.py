@@ -23,13 +23,14 @@ from dscjax.simulate import (
     canonical,
     default_window,
     divergence_report,
+    nan_if_diverged,
     run,
     simulate,
     simulate_batch,
 )
 from dscjax.validation import ConfigError, validate_setup
 
-__version__ = "0.1.0"
+__version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
 
 __all__ = [
     "Backlash", "Backstepping", "BacksteppingState", "ConfigError", "Controller", "CustomPlant",
@@ -37,6 +38,6 @@ __all__ = [
     "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
     "default_window", "divergence_report", "initial_state", "integrate", "metrics",
-    "order_n_example", "paper_example", "params", "prepared", "rk4_step", "run", "simulate",
-    "simulate_batch", "stability", "validate_setup", "vector_field",
+    "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared", "rk4_step",
+    "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field",
 ]

@@ -199,16 +199,28 @@ def _settings(repeats: int, evals: int) -> dict:
 
 
 def _load_rows(path: Path, settings: dict, log) -> dict:
+    """The saved measurements; ConfigError if there is nothing to resume (missing, unreadable,
+    or made with other settings: resuming them would mix two studies)."""
+    from dscjax.validation import ConfigError
+
+    if not path.exists():
+        raise ConfigError(f"--resume: nothing to resume in {path.parent} ({path.name} is "
+                          f"missing); run without --resume to start afresh")
     try:
         saved = json.loads(path.read_text())
-        ok = saved.get("settings") == settings
-        rows = {(r["controller"], int(r["n"])): r for r in saved["rows"]} if ok else {}
-    except (OSError, ValueError, KeyError, TypeError):
-        ok, rows = False, {}
+        old = saved.get("settings")
+        rows = {(r["controller"], int(r["n"])): r for r in saved["rows"]}
+    except (OSError, ValueError, KeyError, TypeError, AttributeError):
+        raise ConfigError(f"--resume: {path} is unreadable; run without --resume to measure "
+                          f"afresh") from None
+    if old != settings:
+        diff = ", ".join(f"{k} {old.get(k) if isinstance(old, dict) else None!r} (now "
+                         f"{v!r})" for k, v in settings.items()
+                         if not isinstance(old, dict) or old.get(k) != v)
+        raise ConfigError(f"--resume: {path} was measured with other settings ({diff}); use "
+                          f"the same ones, or run without --resume to measure afresh")
     if log:
-        log(f"  resumed: {len(rows)} measurement(s) kept from {path}" if ok else
-            f"  not resuming from {path}: unreadable or measured with other settings "
-            f"({settings})")
+        log(f"  resumed: {len(rows)} measurement(s) kept from {path}")
     return rows
 
 
@@ -232,7 +244,7 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
     """
     settings = _settings(repeats, evals)
     path = None if rows_path is None else Path(rows_path)
-    saved = _load_rows(path, settings, log) if (resume and path and path.exists()) else {}
+    saved = _load_rows(path, settings, log) if (resume and path) else {}
     rows = []
     t_start = time.perf_counter()
     for n in orders:

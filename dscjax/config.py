@@ -45,13 +45,18 @@ def register(section: str, cls: type) -> None:
     REGISTRY[section][cls.kind] = cls
 
 
+# A saved trajectory keeps at most this many points unless simulation.save_every says otherwise
+# (20 s at the default dt = 1e-3 is 20,001 points: every step).
+MAX_SAVED_POINTS = 20_001
+
+
 @dataclasses.dataclass(frozen=True)
 class SimOptions:
     """The [simulation] table: run settings that are not part of the Setup pytree."""
 
     t_final: float = 20.0
     dt: float = 1e-3
-    save_every: int = 1
+    save_every: int | None = None  # None: automatic, see `save_stride`
     window_start: float | None = None  # default: 1 s (0 if t_final <= 1 s)
     state_bound: float = 1e6
     dtype: str = "float64"
@@ -60,6 +65,15 @@ class SimOptions:
         validation.one_of(self.dtype, "simulation.dtype", ("float64", "float32"))
         if not (self.state_bound > 0):
             raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
+
+    def save_stride(self, n_steps: int) -> int:
+        """`save_every` if given; else every step while that keeps at most MAX_SAVED_POINTS
+        points, otherwise the smallest stride that divides the N steps and keeps them within
+        (a tiny dt must not fill the memory with a trajectory nobody asked for)."""
+        if self.save_every is not None:
+            return self.save_every
+        lo = -(-n_steps // (MAX_SAVED_POINTS - 1))
+        return next(s for s in range(max(lo, 1), n_steps + 1) if n_steps % s == 0)
 
 
 # -- Setup -> dict -> TOML ----------------------------------------------------------------------
@@ -95,8 +109,10 @@ def to_dict(setup: Setup, options: SimOptions | None = None) -> dict[str, Any]:
 DOCS: dict[str, str] = {
     "simulation.t_final": "horizon T [s] (the paper does not give it)",
     "simulation.dt": "RK4 step [s]; dt/min(tau) <= 2.785",
-    "simulation.save_every": "keep every k-th step in trajectory.npz (metrics use every step)",
-    "simulation.window_start": "t0 [s] of the windowed metrics on [t0, T] (default 1 s)",
+    "simulation.save_every": "keep every k-th step in trajectory.npz (metrics use every step); "
+                             f"omitted: automatic, at most {MAX_SAVED_POINTS:,} points",
+    "simulation.window_start": "t0 [s] of the windowed metrics on [t0, T]; omitted: 1 s (0 s "
+                               "if t_final <= 1 s)",
     "simulation.state_bound": "a state beyond this magnitude counts as divergence",
     "simulation.dtype": "float64 or float32",
     "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
@@ -166,13 +182,24 @@ def _toml_value(v) -> str:
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
+@dataclasses.dataclass(frozen=True)
+class Omitted:
+    """A key left out of the config, printed commented out with the value it takes."""
+
+    value: Any
+
+
 def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
-    """TOML text of a config dict, each key with its one-line description from DOCS."""
+    """TOML text of a config dict, each key with its one-line description from DOCS. A value
+    wrapped in `Omitted` is printed as a comment: the key is valid, its default is a rule."""
     lines = [f"# {line}" for line in header.splitlines()]
     for section, table in d.items():
         lines += ["", f"[{section}]"] if lines else [f"[{section}]"]
         for k, v in table.items():
-            line = f"{k} = {_toml_value(v)}"
+            if isinstance(v, Omitted):
+                line = f"# {k} = {_toml_value(v.value)}"
+            else:
+                line = f"{k} = {_toml_value(v)}"
             doc = DOCS.get(f"{section}.{k}")
             lines.append(f"{line:<38s} # {doc}" if doc else line)
     return "\n".join(lines) + "\n"
@@ -191,14 +218,39 @@ def _coerce(section: str, name: str, value, static: bool, default):
         if not isinstance(value, str):
             raise ConfigError(f"{field} must be a string (got {value!r})")
         return value
+    where = find_bool(value)
+    if where is not None:
+        raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
+                          f"{'true' if _at(value, where) else 'false'})")
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
         raise ConfigError(
             f"{field} must be a number or a list of numbers (got {value!r})") from None
-    if isinstance(value, bool) or a.dtype == object:
+    if a.dtype == object:
         raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})")
     return float(a) if a.ndim == 0 else a
+
+
+def find_bool(value, where: str = "") -> str | None:
+    """The index ("" for the value itself, "[1]", "[0][2]") of the first boolean in a value
+    read from TOML or JSON, or None. NumPy would read `true` as the number 1.0: a config that
+    says `k = [10.0, true]` is a mistake, not k_2 = 1."""
+    if isinstance(value, bool | np.bool_):
+        return where
+    if isinstance(value, list | tuple):
+        for i, v in enumerate(value):
+            found = find_bool(v, f"{where}[{i}]")
+            if found is not None:
+                return found
+    return None
+
+
+def _at(value, where: str):
+    for i in where.strip("[]").split("]["):
+        if i:
+            value = value[int(i)]
+    return value
 
 
 def model_from_dict(section: str, table: Mapping[str, Any], base=None):
@@ -289,11 +341,30 @@ def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, SimOptions
     return from_dict(read(path), base)
 
 
+def to_toml(setup: Setup, options: SimOptions | None = None, header: str = "") -> str:
+    """The config as TOML with every key, each described (`--print-config`). [simulation] keys
+    whose default is a rule (window_start, save_every) are printed commented out, with the
+    value the rule gives for this horizon and step."""
+    from dscjax.simulate import default_window
+
+    options = options or SimOptions()
+    d = to_dict(setup, options)
+    sim = {}
+    n_steps = max(int(round(options.t_final / options.dt)), 1)
+    rules = {"window_start": lambda: float(default_window(options.t_final)),
+             "save_every": lambda: options.save_stride(n_steps)}
+    for f in dataclasses.fields(SimOptions):
+        v = getattr(options, f.name)
+        sim[f.name] = Omitted(rules[f.name]()) if v is None else d["simulation"][f.name]
+    d["simulation"] = sim
+    return dumps_toml(d, header=header)
+
+
 def default_toml() -> str:
     from dscjax.examples import paper_example
 
-    return dumps_toml(
-        to_dict(paper_example(dtype=np.float64)),
+    return to_toml(
+        paper_example(dtype=np.float64),
         header="dscjax configuration: the paper's example (Section 4, eq. 73) with the "
         "readings of\nNOTES.md. Every key may be omitted; omitted keys take these values.",
     )

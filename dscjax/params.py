@@ -15,13 +15,30 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax.validation import ConfigError
+
+
+class UnknownParameter(ConfigError, KeyError):
+    """A path that names no parameter: a `ConfigError` (as bad settings are), and a `KeyError`
+    for code that catches lookups."""
+
+    __str__ = ConfigError.__str__  # KeyError would quote the message
+
 
 def _child(obj, name: str, path: str):
     if dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}:
         return getattr(obj, name)
     if isinstance(obj, Mapping) and name in obj:
         return obj[name]
-    raise KeyError(f"no parameter '{path}' ('{name}' is not a field of {type(obj).__name__})")
+    if dataclasses.is_dataclass(obj):
+        allowed = [f.name for f in dataclasses.fields(obj)]
+    elif isinstance(obj, Mapping):
+        allowed = list(obj)
+    else:
+        allowed = []
+    raise UnknownParameter(
+        f"no parameter '{path}': '{name}' is not a field of {type(obj).__name__}"
+        + (f" (allowed: {', '.join(allowed)})" if allowed else " (a number has no fields)"))
 
 
 def get(setup, path: str) -> Any:
@@ -51,13 +68,15 @@ def set(setup, path: str, value) -> Any:  # noqa: A001 - mirrors `get`
         >>> get(s, "controller.k").tolist()
         [12.0, 0.5]
     """
-    value = _as_leaf(value)
-    head, _, rest = path.partition(".")
-    old = _child(setup, head, path)
-    new = value if not rest else set(old, rest, value)
-    if dataclasses.is_dataclass(setup):
-        return dataclasses.replace(setup, **{head: new})
-    return {**setup, head: new}
+    return _set(setup, path.split("."), _as_leaf(value), path)
+
+
+def _set(obj, names, value, path):
+    old = _child(obj, names[0], path)
+    new = value if len(names) == 1 else _set(old, names[1:], value, path)
+    if dataclasses.is_dataclass(obj):
+        return dataclasses.replace(obj, **{names[0]: new})
+    return {**obj, names[0]: new}
 
 
 def set_many(setup, values: Mapping[str, Any]):

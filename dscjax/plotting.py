@@ -1,14 +1,10 @@
-"""Plots of trajectories (matplotlib, Agg backend: no display needed)."""
+"""Plots of trajectories (matplotlib's object API: no pyplot, no backend is chosen or changed)."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
+import numpy as np
 
 # One colour per signal across every figure of the project.
 COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": "#9467bd",
@@ -16,36 +12,57 @@ COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": 
                 "#aec7e8")}
 
 
-def plot_trajectory(traj, path: Path | str, title: str = "") -> None:
-    """Four panels: output against reference, tracking error, control u, hysteresis output w."""
+def plot_trajectory(traj, path: Path | str, title: str = ""):
+    """Four panels: states against the reference, tracking error, control u, hysteresis
+    output w. The legend sits under the panels (it never hides a curve); the model's
+    quantities are dimensionless, hence [-]. A diverged run is drawn up to its divergence,
+    which is marked. Returns the matplotlib Figure (already saved to `path`)."""
+    from matplotlib.figure import Figure
+
     t = np.asarray(traj.t)
-    x = np.asarray(traj.x)
-    fig, ax = plt.subplots(2, 2, figsize=(10, 6.5), sharex=True, constrained_layout=True)
+    signals = {k: np.array(v, dtype=float) for k, v in (
+        ("x", traj.x), ("yr", traj.yr), ("e", traj.e), ("u", traj.u), ("w", traj.w))}
+    diverged = bool(np.asarray(traj.diverged))
+    if diverged:  # after the divergence the state is frozen: nothing to show
+        t_bad = float(np.asarray(traj.t_diverged))
+        for v in signals.values():
+            v[t > t_bad] = np.nan
+    x = signals["x"]
+    fig = Figure(figsize=(10, 7), layout="constrained")
+    ax = fig.subplots(2, 2, sharex=True)
     a = ax[0, 0]
-    a.plot(t, np.asarray(traj.yr), color=COLORS["yr"], lw=1.2, ls="--", label="$y_r$")
+    a.plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--", label="reference $y_r$")
     for i in range(x.shape[1]):
         a.plot(t, x[:, i], color=COLORS["x"][i % len(COLORS["x"])], lw=1.0,
-               label=f"$x_{i + 1}$" + (" = y" if i == 0 else ""))
-    a.set_ylabel("state")
-    a.legend(loc="upper right", ncol=2, fontsize=8)
+               label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
+    a.set_ylabel("state $x_i$, reference $y_r$ [-]")
     a.set_title("states against the reference")
     a = ax[0, 1]
-    a.plot(t, np.asarray(traj.e), color=COLORS["e"], lw=1.0)
-    a.set_ylabel("$e = y - y_r$")
+    a.plot(t, signals["e"], color=COLORS["e"], lw=1.0)
+    a.set_ylabel("tracking error $e = y - y_r$ [-]")
     a.set_title("tracking error")
     a = ax[1, 0]
-    a.plot(t, np.asarray(traj.u), color=COLORS["u"], lw=1.0)
-    a.set_ylabel("$u$")
+    a.plot(t, signals["u"], color=COLORS["u"], lw=1.0)
+    a.set_ylabel("control input $u$ [-]")
     a.set_title("control input")
     a = ax[1, 1]
-    a.plot(t, np.asarray(traj.w), color=COLORS["w"], lw=1.0)
-    a.set_ylabel("$w$")
+    a.plot(t, signals["w"], color=COLORS["w"], lw=1.0)
+    a.set_ylabel("hysteresis output $w$ [-]")
     a.set_title("hysteresis output")
     for a in ax[1]:
         a.set_xlabel("time $t$ [s]")
     for a in ax.ravel():
         a.grid(alpha=0.3)
+        a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
+        if diverged:
+            a.axvline(t_bad, color="#d62728", lw=1.0, ls=":")
+    handles, labels = ax[0, 0].get_legend_handles_labels()
+    if diverged:
+        handles.append(ax[0, 1].lines[-1])
+        labels.append(f"diverged at t = {t_bad:.4g} s (frozen afterwards, not drawn)")
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), frameon=False,
+               fontsize=9)
     if title:
         fig.suptitle(title)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
+    return fig

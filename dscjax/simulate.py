@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import jax
@@ -43,7 +43,9 @@ class Trajectory:
         S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
         ctrl: controller state with a leading T axis (for DSC: z, theta_hat, phi_hat, zeta_hat,
             d_hat).
-        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`.
+        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`;
+            all NaN if the trajectory diverged (from `simulate` and `simulate_batch`; see
+            `nan_if_diverged`).
         status: integration status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
         dt: the step.
     Under `simulate_batch` every field gains a leading batch axis.
@@ -218,13 +220,39 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
     return [is_dep(v) for v in jaxpr.outvars]
 
 
-_simulate = jax.jit(run, static_argnames=("n_steps", "save_every", "checkpoint_every"))
+def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
+    """The metrics as the public entry points report them: NaN for a diverged trajectory.
+
+    The integrator freezes a diverged trajectory at its last good state, so its running
+    metrics cover only the time before the divergence; a windowed metric whose window starts
+    later saw nothing at all and reads 0. Such numbers were not measured over the horizon they
+    name, so every metric of a diverged trajectory becomes NaN (elementwise over a batch);
+    `diverged` and `t_diverged` say what happened. Differentiable: the gradient of a diverged
+    trajectory's metric is 0, never NaN. Tuning reads `run`'s raw metrics instead, with its own
+    finite divergence penalty.
+    """
+    return {k: jnp.where(diverged, jnp.nan, v) for k, v in metrics.items()}
+
+
+def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
+                  overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
+                  extra=None) -> Trajectory:
+    """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
+    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
+               overrides=overrides, checkpoint_every=checkpoint_every, extra=extra)
+    return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
+
+
+_simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every"))
+
+
+DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
 
 
 def default_window(t_final, window_start=None):
     """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less)."""
     if window_start is None:
-        return 1.0 if t_final > 1.0 else 0.0
+        return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
     return window_start
 
 
@@ -238,6 +266,7 @@ def simulate(
     window_start: float | None = None,
     state_bound: float = 1e6,
     throw: bool = True,
+    progress: Callable[[float], None] | None = None,
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
 
@@ -250,9 +279,14 @@ def simulate(
         state_bound: a state component beyond it in magnitude counts as divergence.
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
             Under an outer jit/vmap no exception can be raised; `status` is always returned.
+        progress: called on the host with the fraction of the steps done, 0.0, 0.01, ...,
+            1.0, while the compiled loop runs (a `jax.debug.callback` every 1 % of the steps;
+            about 2 % slower). It is part of the compiled program: pass the same callable to
+            avoid recompiling. None (the default) costs nothing.
 
     Returns:
-        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics.
+        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics (NaN if
+        the run diverged: `traj.diverged`, `traj.t_diverged` say when).
 
     Example:
         >>> import dscjax
@@ -263,14 +297,38 @@ def simulate(
     window_start = default_window(t_final, window_start)
     setup = canonical(setup)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
+    extra = None if progress is None else _Progress(n_steps, progress)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every)
+                     save_every=save_every, extra=extra)
     if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
         from dscjax.stability import diagnose
 
         raise DivergenceError(divergence_report(traj, state_bound)[0] + diagnose(setup, traj),
                               traj)
     return traj
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class _Progress:
+    """An `extra` reduction of `run` that reports progress to the host and reduces nothing."""
+
+    n_steps: int = dataclasses.field(metadata=dict(static=True))
+    report: Callable[[float], None] = dataclasses.field(metadata=dict(static=True))
+
+    def init(self, dtype):
+        return jnp.zeros((), jnp.int32)
+
+    def update(self, acc, k, t, y, obs, dt):
+        every = max(self.n_steps // 100, 1)
+        jax.lax.cond(k % every == 0, lambda: jax.debug.callback(self._call, k), lambda: None)
+        return acc
+
+    def _call(self, k):
+        self.report(min(int(k) / self.n_steps, 1.0))
+
+    def finalize(self, acc, t_final):
+        return {}
 
 
 def _dtype(setup):
@@ -313,6 +371,7 @@ def simulate_batch(
 
     Only the overridden leaves are batched; the rest of the setup is shared, not copied. Never
     raises on divergence: inspect `traj.status` (per trajectory) or `divergence_report(traj)`.
+    The metrics of a diverged trajectory are NaN.
 
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
@@ -352,8 +411,9 @@ def simulate_batch(
                    static_argnames=("n_steps", "save_every", "checkpoint_every"))
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
                     checkpoint_every=DEFAULT_CHECKPOINT_EVERY):
-    return run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-               overrides=overrides, checkpoint_every=checkpoint_every)
+    return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
+                         save_every=save_every, overrides=overrides,
+                         checkpoint_every=checkpoint_every)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

@@ -29,8 +29,9 @@ What a sweep does:
   ``chunks/chunk_000123.npz`` (atomically); `resume=True` skips the blocks already there and
   the final ``results.npz`` is byte-identical to that of an uninterrupted run.
 
-Nothing here raises for a bad sample: a diverged trajectory is a row with `diverged = True`
-and the time it left the state bound or went non-finite.
+Nothing here raises for a bad sample: a diverged trajectory is a row with `diverged = True`,
+the time it left the state bound or went non-finite, and NaN for every metric (they were not
+measured over the horizon they name; `dscjax.simulate.nan_if_diverged`).
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ PARALLEL = ("per_device", "spmd")
 DEFAULT_PATHS = ("hysteresis.alpha", "hysteresis.lam", "hysteresis.psi")
 DEFAULT_REL = 0.30
 AUTO_BLOCK = 16384  # samples per block and device when chunk = None (best measured on CPU)
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2  # 2: the metrics of diverged rows are NaN (were the frozen values)
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
            "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 STATUS_COLUMNS = ("diverged", "t_diverged", "status")
@@ -136,7 +137,8 @@ def parse_range(text: str, grid: bool = False, field: str | None = None) -> Rang
     if not eq:
         raise ConfigError(f"{field} must be {form} (got {text!r})")
     param = Param.parse(path, field)
-    return _range_from_value(param, _split_body(body), grid, f"{field} {param.name}", form)
+    return _range_from_value(param, _split_body(body), grid, f"{field} {param.name}", form,
+                             got=repr(text))
 
 
 def _split_body(body: str):
@@ -146,29 +148,35 @@ def _split_body(body: str):
     return body.split(":")
 
 
-def _range_from_value(param: Param, value, grid: bool, field: str, form: str | None = None
-                      ) -> Range:
-    """Range from a TOML value ([low, high], [low, high, num] or "30%") or split CLI text."""
+def _range_from_value(param: Param, value, grid: bool, field: str, form: str | None = None,
+                      got: str | None = None) -> Range:
+    """Range from a TOML value ([low, high], [low, high, num] or "30%") or split CLI text
+    (then `got` is the text as the user wrote it, which messages quote)."""
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
+    got = got or repr(value)
     if isinstance(value, str):
         if grid:
-            raise ConfigError(f"{field} must be {form} (got {value!r})")
+            raise ConfigError(f"{field} must be {form} (got {got})")
         text = value.strip().lstrip("±+")
         try:
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan
         except ValueError:
             rel = math.nan
         if not math.isfinite(rel):
-            raise ConfigError(f"{field} must be {form} (got {value!r})")
+            raise ConfigError(f"{field} must be {form} (got {got})")
         if rel <= 0:
-            raise ConfigError(f"{field} is an empty range ({value!r}); give a percentage > 0")
+            raise ConfigError(f"{field} is an empty range ({got}); give a percentage > 0")
         return Range(param, rel=rel)
     if not isinstance(value, list | tuple) or len(value) != (3 if grid else 2):
-        raise ConfigError(f"{field} must be {form} (got {value!r})")
+        raise ConfigError(f"{field} must be {form} (got {got})")
+    for i, v in enumerate(value[:2]):
+        if isinstance(v, bool):
+            raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
+                              f"{'true' if v else 'false'})")
     try:
         low, high = (float(v) for v in value[:2])
     except (TypeError, ValueError):
-        raise ConfigError(f"{field} must be {form} with numbers (got {value!r})") from None
+        raise ConfigError(f"{field} must be {form} with numbers (got {got})") from None
     num = None
     if grid:
         num = value[2]
@@ -317,6 +325,8 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     ranges that allow lam <= psi, and values outside a model's allowed range at either end.
     """
     s = settings
+    # the run settings first: a bad window or dt is not the fault of a range
+    validation.validate_run(setup, t_final, dt, 1, window_start)
     validation.one_of(s.method, "sweep.method", METHODS)
     validation.one_of(s.dtype, "sweep.dtype", ("float32", "float64"))
     validation.one_of(s.parallel, "sweep.parallel", PARALLEL)
@@ -385,6 +395,23 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     if s.n_samples() > 2**40:
         raise ConfigError(f"sweep size {s.n_samples()} is too large")
     return ranges
+
+
+def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep.ranges"
+                        ) -> list[str]:
+    """`validation.assumption_warnings` of the setup and of every end of every (resolved)
+    range: a violation only some samples see is reported with the range that reaches it."""
+    out = list(validation.assumption_warnings(setup))
+    for r in ranges:
+        for end in (r.low, r.high):
+            for w in validation.assumption_warnings(_set_values(setup, [r.param],
+                                                                np.array([end]))):
+                w = w.split(";")[0] + (f" for part of {field}.{r.name} = [{r.low:.6g}, "
+                                       f"{r.high:.6g}]; the design's guarantees (Theorem 1) "
+                                       f"do not apply there")
+                if not any(o.split(":")[0] == w.split(":")[0] for o in out) and w not in out:
+                    out.append(w)
+    return out
 
 
 def _check_lam_psi(ranges, setup, field):
@@ -481,11 +508,12 @@ def _overrides(setup, columns: Sequence[Param], table):
 
 
 def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps):
-    from dscjax.simulate import run
+    from dscjax.simulate import nan_if_diverged, run
 
     traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
                 overrides=_overrides(setup, columns, table))
-    return {**{k: traj.metrics[k] for k in METRICS}, "status": traj.status.code,
+    metrics = nan_if_diverged(traj.metrics, traj.diverged)
+    return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
 
 
@@ -787,9 +815,18 @@ def run_sweep(
     return SweepResult(columns=columns_out, param_names=names, info=info)
 
 
+def check_resumable(out: str | Path) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json)."""
+    if not (Path(out) / "sweep.json").exists():
+        raise ConfigError(f"--resume: nothing to resume in {out} (sweep.json is missing); run "
+                          f"without --resume to start afresh")
+
+
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
     manifest = out / "sweep.json"
     done = np.zeros(n_blocks, dtype=bool)
+    if resume:
+        check_resumable(out)
     if main:
         (out / "chunks").mkdir(parents=True, exist_ok=True)
         old = None
@@ -990,6 +1027,7 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
 
 
 __all__ = ["DEFAULT_PATHS", "METRICS", "Param", "Range", "SweepResult", "SweepSettings",
-           "auto_chunk", "check_settings", "default_ranges", "format_progress", "parse_range",
-           "rank_diverged", "rank_worst", "run_sweep", "sample_table", "settings_from_dict",
-           "simulate_rows", "summarize", "trace_rows", "write_npz"]
+           "auto_chunk", "check_resumable", "check_settings", "default_ranges",
+           "format_progress", "parse_range", "rank_diverged", "rank_worst", "run_sweep",
+           "sample_table", "settings_from_dict", "simulate_rows", "summarize", "trace_rows",
+           "write_npz"]

@@ -41,6 +41,23 @@ def error_label(t0: float, t_final: float) -> str:
     return f"windowed L∞ error  max |y − y_r| over [{t0:g} s, {t_final:g} s]"
 
 
+# A colour scale whose span is below this fraction of the median is called out in the title.
+NARROW = 0.1
+
+
+def spread_text(v) -> str:
+    """How wide the colour scale is, relative to the values' median: a narrow scale (say
+    0.0221-0.0226) paints 2 % differences as the whole colour range."""
+    v = np.asarray(v, np.float64)
+    v = v[np.isfinite(v)]
+    lo, hi, med = v.min(), v.max(), np.median(v)
+    if med <= 0 or hi <= lo:
+        return f"colours span {lo:.3g} to {hi:.3g}"
+    rel = (hi - lo) / med
+    return (f"colours span {lo:.3g} to {hi:.3g} = "
+            + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"))
+
+
 def _use_log(v) -> bool:
     v = v[np.isfinite(v) & (v > 0)]
     return v.size > 1 and v.max() / v.min() > 20
@@ -147,8 +164,8 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     cmap = plt.get_cmap("viridis").with_extremes(bad="#dddddd")
     mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
     cb = fig.colorbar(mesh, ax=ax, pad=0.02)
-    cb.set_label("median over the cell of " + error_label(t0, t_final).replace(
-        "windowed L∞ error  ", ""), fontsize=9)
+    cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
+                 + ("\n" + spread_text(finite) if finite.size else ""), fontsize=9)
     handles = []
     if threshold is not None:
         bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
@@ -185,8 +202,14 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     ax.set_xlabel(param_label(names[0]))
     ax.set_ylabel(param_label(names[1]))
     kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
+    narrow = ""
+    if finite.size and np.median(finite) > 0:
+        rel = (finite.max() - finite.min()) / np.median(finite)
+        if rel < NARROW:
+            narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: "
+                      f"the cells differ little")
     ax.set_title((title + "\n" if title else "") + f"windowed L∞ error over {kind}; other "
-                 "swept parameters pooled", fontsize=10)
+                 "swept parameters pooled" + narrow, fontsize=10)
     if handles:
         ax.legend(handles=handles, fontsize=8, loc="upper center",
                   bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
@@ -194,7 +217,8 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     plt.close(fig)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
-            "count": count.tolist()}
+            "count": count.tolist(),
+            "colour_scale": spread_text(finite) if finite.size else None}
 
 
 def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nominal_x=None,
@@ -279,4 +303,4 @@ def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
 
 
 __all__ = ["heatmap_grid", "param_label", "plot_heatmap", "plot_histogram", "plot_scan",
-           "plot_traces", "trace_label"]
+           "plot_traces", "spread_text", "trace_label"]

@@ -97,6 +97,27 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         finite_tree(getattr(setup, f.name), f.name)
 
 
+def assumption_warnings(setup) -> list[str]:
+    """The paper's assumptions a (valid) setup violates, one sentence each; [] if none.
+
+    Not errors: a controller may be tried outside its design assumptions on purpose, but its
+    guarantees (Theorem 1) then do not apply. Checked: Assumption 4, g_min <= |g_i| for every
+    i (the controller's known lower bound of the plant's unknown gains).
+    """
+    g_min = getattr(setup.controller, "g_min", None)
+    g = getattr(setup.plant, "g", None)
+    if g_min is None or g is None or not is_concrete((g_min, g)):
+        return []
+    g_abs = np.abs(np.asarray(g, dtype=float))
+    g_min = float(np.max(np.asarray(g_min, dtype=float)))
+    below = np.flatnonzero(g_abs < g_min)
+    if not below.size:
+        return []
+    which = ", ".join(f"|g_{i + 1}| = {g_abs[i]:.6g}" for i in below)
+    return [f"Assumption 4 (g_min <= |g_i|) does not hold: controller.g_min = {g_min:.6g} but "
+            f"plant.g has {which}; the design's guarantees (Theorem 1) do not apply"]
+
+
 def validate_shapes(setup) -> None:
     """Every array field has the shape its model expects for the plant's order n."""
     n = setup.plant.order

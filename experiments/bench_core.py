@@ -113,10 +113,10 @@ def bench_diffrax(setup, repeats):
 
 
 def bench_single(setup, repeats):
-    full, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=N_STEPS, save_every=1,
-                                            unroll=1), repeats)
+    full, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=N_STEPS,
+                                            save_every=1), repeats)
     only, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=N_STEPS,
-                                            save_every=N_STEPS, unroll=1), repeats)
+                                            save_every=N_STEPS), repeats)
     return full, only
 
 
@@ -124,10 +124,9 @@ def bench_compile(setup):
     """Wall time of a first call (trace + compile + run) at a step count not used before."""
     n = N_STEPS - 1000
     t0 = time.perf_counter()
-    jax.block_until_ready(_simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n, unroll=1))
+    jax.block_until_ready(_simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n))
     first = time.perf_counter() - t0
-    run, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n,
-                                           unroll=1), 3)
+    run, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n), 3)
     jax.block_until_ready(dscjax.simulate(setup, T_FINAL - 1.0, DT, save_every=n).x)
     size = _simulate._cache_size()
     for k1 in (8.0, 9.0, 11.0):

@@ -83,3 +83,39 @@ def test_batch_divergence_is_per_trajectory(paper_setup):
     assert np.all(np.isfinite(np.asarray(batch.x)))
     report = dscjax.divergence_report(batch)
     assert len(report) == 1 and report[0].startswith("trajectory 1 diverged at t = ")
+
+
+def test_diverged_trajectories_report_nan_metrics(paper_setup):
+    # alpha 10 / lam 0.15 diverges within milliseconds at dt = 1e-3; the window [1, 2] s
+    # starts after that, and used to read 0 ("perfect tracking"). Same shapes as the first
+    # test of this file: nothing compiles again.
+    alphas, lams = jnp.array([0.7, 10.0, 1.3]), jnp.array([1.2, 0.15, 1.7])
+    batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": alphas,
+                                                "hysteresis.lam": lams}, 2.0, 1e-3,
+                                  save_every=100)
+    assert np.asarray(batch.diverged).tolist() == [False, True, False]
+    assert float(batch.t_diverged[1]) < 0.1
+    for k, v in batch.metrics.items():
+        v = np.asarray(v)
+        assert np.all(np.isfinite(v[[0, 2]])) and np.isnan(v[1]), k
+    one = dscjax.simulate(params.set_many(paper_setup, {"hysteresis.alpha": alphas[1],
+                                                        "hysteresis.lam": lams[1]}),
+                          2.0, 1e-3, save_every=100, throw=False)
+    assert bool(one.diverged)
+    assert all(np.isnan(float(v)) for v in one.metrics.values())
+
+
+def test_forward_derivative_of_a_public_metric_stays_finite_when_the_run_diverges(paper_setup):
+    @jax.jit
+    def l2_and_derivative(k, dk):
+        def l2(k_):
+            s = params.set(paper_setup, "controller.k", k_)
+            return dscjax.simulate(s, 1.0, 1e-3, save_every=1000, throw=False).metrics["l2_error"]
+
+        return jax.jvp(l2, (k,), (dk,))
+
+    dk = jnp.array([1.0, 1.0])
+    value, slope = l2_and_derivative(jnp.array([1e4, 0.45]), dk)  # diverges
+    assert np.isnan(float(value)) and float(slope) == 0.0  # the NaN is a constant branch
+    value, slope = l2_and_derivative(jnp.array([10.0, 0.45]), dk)
+    assert np.isfinite(float(value)) and np.isfinite(float(slope)) and float(slope) != 0.0

@@ -1,8 +1,10 @@
 """`dscjax simulate`: the files a user gets, --print-config, variants, float32."""
 
 import json
+import re
 
 import numpy as np
+import pytest
 
 from dscjax.cli.main import main
 
@@ -40,3 +42,112 @@ def test_variant_and_float32_flags(tmp_path):
     assert data["x"].dtype == np.float32 and data["x"].shape == (101, 2)
     assert np.all(data["d_hat"] == 0.0)
     assert json.loads((out / "metrics.json").read_text())["dtype"] == "float32"
+
+
+def test_diverged_simulation_writes_null_metrics_not_zeros(tmp_path, capsys):
+    # dt = 0.02 diverges at t = 0.04 s, before the window [1, 2] s starts
+    out = tmp_path / "div"
+    assert main(["simulate", "--t-final", "2", "--dt", "0.02", "--no-plot",
+                 "--out", str(out)]) == 3
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["diverged"] is True and m["t_diverged"] == pytest.approx(0.04)
+    for key in ("linf_error", "linf_error_window", "l2_error_window", "max_abs_u"):
+        assert m[key] is None, key
+    captured = capsys.readouterr()
+    text = captured.out + captured.err
+    assert "after t0: 0" not in text and "diverged at t = 0.04 s" in text
+
+
+def test_tiny_dt_saves_a_bounded_trajectory_and_says_so(tmp_path, capsys):
+    out = tmp_path / "tiny"
+    assert main(["simulate", "--t-final", "0.1", "--dt", "1e-6", "--no-plot",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "saving every 5th step: 20,001 points" in err
+    data = np.load(out / "trajectory.npz")
+    assert data["t"].shape == (20_001,) and data["t"][1] == pytest.approx(5e-6)
+    assert json.loads((out / "metrics.json").read_text())["save_every"] == 5
+
+
+def test_a_trajectory_that_cannot_fit_is_refused_before_any_work(tmp_path, capsys,
+                                                                  monkeypatch):
+    import dscjax.cli.simulate as cli_simulate
+
+    monkeypatch.setattr(cli_simulate, "_available_memory", lambda: 100_000)
+    out = tmp_path / "big"
+    assert main(["simulate", "--t-final", "2", "--save-every", "1", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "simulation.save_every = 1 keeps 2,001 points" in err[0]
+    assert "available" in err[0] and "--save-every" in err[0]
+    assert not out.exists()
+
+
+def test_long_runs_show_progress(tmp_path, capsys, monkeypatch):
+    import dscjax.cli.simulate as cli_simulate
+
+    monkeypatch.setattr(cli_simulate, "PROGRESS_MIN_STEPS", 100)
+    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    err = capsys.readouterr().err
+    assert "simulated   0 %" in err and "simulated 100 % (t = 0.5 of 0.5 s)" in err
+
+
+def test_assumption_4_violated_is_a_warning_recorded_in_metrics(tmp_path, capsys):
+    cfg = tmp_path / "g.toml"
+    cfg.write_text("[plant]\ng = [0.5, 0.5]\n\n[controller]\ng_min = 1.0\n")
+    out = tmp_path / "o"
+    assert main(["simulate", "--config", str(cfg), "--t-final", "0.5", "--no-plot",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "warning: Assumption 4 (g_min <= |g_i|) does not hold" in err
+    warnings = json.loads((out / "metrics.json").read_text())["warnings"]
+    assert len(warnings) == 1 and "controller.g_min = 1 but plant.g has |g_1| = 0.5" in warnings[0]
+
+
+def test_assumption_4_in_a_sweep_range_is_recorded_in_the_summary(tmp_path, capsys):
+    out = tmp_path / "s"
+    assert main(["sweep", "--range", "plant.g[1]=0.5:1.5", "--samples", "8", "--chunk", "8",
+                 "--float64", "--t-final", "0.1", "--worst", "0", "--random", "0", "--no-plot",
+                 "--out", str(out)]) == 0
+    assert "warning: Assumption 4" in capsys.readouterr().err
+    (w,) = json.loads((out / "summary.json").read_text())["warnings"]
+    assert "|g_2| = 0.5 for part of sweep.ranges.plant.g[1] = [0.5, 1.5]" in w
+
+
+def test_trajectory_figure_legend_outside_and_units_on_every_axis(tmp_path, paper_setup):
+    import dscjax
+    from dscjax.plotting import plot_trajectory
+
+    traj = dscjax.simulate(paper_setup, 1.0, 1e-3, save_every=10)
+    fig = plot_trajectory(traj, tmp_path / "t.png")
+    assert len(fig.legends) == 1  # one legend for the figure, under the panels
+    for ax in fig.axes:
+        assert ax.get_legend() is None  # none inside a panel, over the curves
+        assert ax.get_ylabel().endswith("[-]"), ax.get_ylabel()  # dimensionless model
+    assert all(ax.get_xlabel() == "time $t$ [s]" for ax in fig.axes[2:])
+
+
+def test_loss_curve_has_one_axis_per_quantity_and_a_labelled_bound(tmp_path):
+    from tuning.report import plot_loss_curve
+
+    rows = [dict(iteration=i, loss=1.0 / (i + 1), best_loss=1.0 / (i + 1), accepted=i != 2,
+                 linf_window=0.02 / (i + 1), max_abs_u=6.0 + 0.01 * i) for i in range(5)]
+    fig = plot_loss_curve(rows, tmp_path / "l.png", u_max=6.13)
+    assert len(fig.axes) == 3  # no twin axes
+    boxes = {tuple(ax.get_position().bounds) for ax in fig.axes}
+    assert len(boxes) == 3
+    for ax in fig.axes:
+        assert ax.get_legend() is not None and ax.get_ylabel()
+    labels = [t.get_text() for t in fig.axes[2].get_legend().get_texts()]
+    assert "bound on max|u| (6.13)" in labels
+
+
+def test_heatmap_states_how_narrow_its_colour_scale_is(tmp_path):
+    from dscjax.sweep_plots import plot_heatmap
+
+    rng = np.random.default_rng(0)
+    x, y = rng.uniform(0.7, 1.3, 400), rng.uniform(1.0, 1.8, 400)
+    err = 0.0221 + 0.0005 * (x - 0.7) / 0.6  # a 2 % spread
+    stats = plot_heatmap(x, y, err, np.zeros(400, bool), tmp_path / "h.png",
+                         names=("hysteresis.alpha", "hysteresis.lam"), t0=1.0, t_final=20.0)
+    assert re.fullmatch(r"colours span 0\.022\d* to 0\.022\d* = 2(\.\d)? % of the median",
+                        stats["colour_scale"]), stats["colour_scale"]

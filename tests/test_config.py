@@ -4,6 +4,7 @@ import json
 import tomllib
 
 import numpy as np
+import pytest
 
 import dscjax
 from dscjax import config
@@ -20,7 +21,9 @@ def test_default_toml_round_trips():
     assert _same(setup, dscjax.paper_example(dtype=np.float64))
     assert options == config.SimOptions()
     # and writing it again gives the same text body
-    assert config.dumps_toml(config.to_dict(setup, options)) in text
+    assert config.to_toml(setup, options) in text
+    # keys whose default is a rule are shown, commented out with the value they take
+    assert "\n# window_start = 1.0 " in text and "\n# save_every = 1 " in text
 
 
 def test_partial_config_overlays_the_default():
@@ -66,3 +69,27 @@ def test_order_n_family_from_config_simulates():
     a = dscjax.simulate(dscjax.cast(setup, np.float64), 1.0, 1e-3, save_every=100)
     b = dscjax.simulate(n3, 1.0, 1e-3, save_every=100)
     np.testing.assert_allclose(np.asarray(a.x), np.asarray(b.x), atol=1e-13)
+
+
+@pytest.mark.parametrize("suffix, text, field", [
+    (".toml", "[controller]\nk = [10.0, true]\n", "controller.k[1]"),
+    (".json", '{"controller": {"k": [10.0, true]}}', "controller.k[1]"),
+    (".toml", "[hysteresis]\nalpha = false\n", "hysteresis.alpha"),
+    (".json", '{"plant": {"x0": [true, 0.0]}}', "plant.x0[0]"),
+    (".toml", '[sweep.ranges]\n"hysteresis.alpha" = [0.5, true]\n',
+     "sweep.ranges.hysteresis.alpha[1]"),
+    (".toml", "[tuning.bounds]\n\"controller.k\" = [true, 100.0]\n", "controller.k"),
+])
+def test_booleans_are_not_numbers(suffix, text, field, tmp_path, capsys):
+    from dscjax.cli.main import main
+
+    cfg = tmp_path / f"c{suffix}"
+    cfg.write_text(text)
+    command = "sweep" if "sweep" in text else "tune" if "tuning" in text else "simulate"
+    # tune checks its bounds when it builds the problem, after --print-config
+    tail = ["--out", str(tmp_path / "out")] if command == "tune" else ["--print-config"]
+    code = main([command, "--config", str(cfg), *tail])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert field in err and ("boolean" in err or "number" in err), err

@@ -40,6 +40,17 @@ def test_writes_every_file(reproduced):
     assert set(summary["figures"]) == set(FIGURES)
 
 
+def test_figs_3_and_4_have_a_panel_after_the_first_second(reproduced):
+    # the initial peak (u ~ 6, w ~ 8 within 0.1 s) set the scale of the whole figure: a
+    # second panel shows t >= 1 s, so both figures are two panels tall
+    import matplotlib.image
+
+    out, _ = reproduced
+    for key in ("fig3", "fig4"):
+        h, w = matplotlib.image.imread(out / f"{FIGURES[key]}.png").shape[:2]
+        assert h > 0.8 * w, (key, h, w)
+
+
 def test_summary_fields_are_finite(reproduced):
     _, summary = reproduced
     assert summary["t_final"] == T_SHORT and summary["window_start"] == 1.0
@@ -167,7 +178,11 @@ def test_complexity_study_resumes_after_interruption(tmp_path, monkeypatch):
     for r in result["rows"][:2]:
         assert r == kept[(r["controller"], r["n"])]
     assert len(json.loads(path.read_text())["rows"]) == 4
-    # other settings: nothing reused
+    # other settings, or nothing saved: an error, not a silent fresh start
     calls.clear()
-    complexity.study((2,), repeats=2, evals=20, log=None, rows_path=path, resume=True)
-    assert calls == [("dsc", 2), ("backstepping", 2)]
+    with pytest.raises(dscjax.ConfigError, match=r"other settings \(repeats 1 \(now 2\)\)"):
+        complexity.study((2,), repeats=2, evals=20, log=None, rows_path=path, resume=True)
+    with pytest.raises(dscjax.ConfigError, match="nothing to resume"):
+        complexity.study((2,), repeats=1, evals=20, log=None, rows_path=tmp_path / "no.json",
+                         resume=True)
+    assert calls == []

@@ -273,3 +273,25 @@ def test_config_sweep_table_and_gains_file(tmp_path, capsys):
     gains.write_text(json.dumps({"plant": {"g": [1.0, 1.0]}}))
     with pytest.raises(dscjax.ConfigError, match="no \\[controller\\] table"):
         load(args)
+
+
+def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
+    # alpha 10 with lam 0.15 diverges within milliseconds, before the window [0.25, 0.5] s:
+    # its windowed error used to read 0.0
+    out = tmp_path / "div"
+    code = cli(["sweep", "--grid", "hysteresis.alpha=1:10:2", "--grid", "hysteresis.lam=0.15:3:2",
+                "--float64", "--t-final", str(T), "--t0", "0.25", "--worst", "1", "--random", "0",
+                "--no-plot", "--out", str(out)])
+    captured = capsys.readouterr()
+    assert code == 0, captured.err
+    with np.load(out / "results.npz") as z:
+        div = z["diverged"]
+        assert div.any() and not div.all()
+        for m in sweep.METRICS:
+            assert np.all(np.isnan(z[m][div])) and np.all(np.isfinite(z[m][~div])), m
+        assert np.all(np.isfinite(z["t_diverged"][div]))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_diverged"] == int(div.sum())
+    assert all(r["metrics"]["linf_error_window"] is None for r in summary["first_diverged"])
+    assert summary["quantiles"]["linf_error_window"]["min"] > 0
+    assert f"diverged: {int(div.sum())} of 4" in captured.out  # a result: stdout

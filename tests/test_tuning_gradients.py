@@ -108,3 +108,19 @@ def test_checkpointed_and_plain_reverse_gradients_agree(problem, points, jacobia
     assert np.max(np.abs(ckpt - plain)) <= 1e-13 * scale  # same numbers, rounding only
     # and reverse mode agrees with forward mode (row 0 of the Jacobian: the same L2 error)
     assert np.max(np.abs(jacobians[2, 0] - plain)) <= 1e-10 * scale
+
+
+def test_loss_and_gradient_stay_finite_through_a_diverging_trajectory(problem):
+    # k_1 = 1e4 makes the loop diverge within a step or two: the loss is the finite
+    # divergence penalty, and the NaN of the public API's metrics (nan_if_diverged) reaches
+    # neither the loss nor tuning's default forward-mode gradient
+    from tuning.optimize import value_and_grad
+
+    z = dict(problem.z0)
+    z["controller.k"] = jnp.log(jnp.array([1e4, 0.45]))
+    (loss, aux), grads = jax.jit(lambda z_: value_and_grad(problem.objective, z_, "forward"))(z)
+    assert int(aux["n_diverged"]) == 1
+    assert float(loss) == problem.cfg.objective.divergence_penalty
+    for g in jax.tree.leaves(grads):
+        assert np.all(np.isfinite(np.asarray(g)))
+    assert np.isnan(float(aux["linf_window"]))  # reported only: no plant was measured

@@ -229,6 +229,12 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     return total, terms
 
 
+def _max_measured(values: jax.Array, diverged) -> jax.Array:
+    """max over the plants that did not diverge; NaN if every one did."""
+    top = jnp.max(jnp.where(diverged, -jnp.inf, values))
+    return jnp.where(jnp.all(diverged), jnp.nan, top)
+
+
 def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     """Mean, CVaR at `level` (mean of the worst ceil(level B) values) or max over axis 0."""
     if values.ndim == 0:
@@ -308,8 +314,10 @@ class Objective:
         aux = {
             "terms": {k: aggregate(jnp.where(diverged, 0.0, v), self.aggregate,
                                    self.cvar_level) for k, v in terms.items()},
-            "linf_window": jnp.max(metrics["linf_error_window"]),
-            "max_abs_u": jnp.max(metrics["max_abs_u"]),
+            # reported, not differentiated: over the plants that did not diverge (a diverged
+            # plant's metrics were not measured), NaN if none did
+            "linf_window": _max_measured(metrics["linf_error_window"], diverged),
+            "max_abs_u": _max_measured(metrics["max_abs_u"], diverged),
             "n_diverged": jnp.sum(jnp.asarray(diverged, jnp.int32)),
             "feasible": jnp.all(feasible),
         }

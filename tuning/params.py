@@ -269,11 +269,14 @@ def _bound_pair(b, field) -> tuple[float | None, float | None]:
     if not isinstance(b, list | tuple) or len(b) != 2:
         raise ConfigError(f"{field} must be [lower, upper] (got {b!r})")
     out = []
-    for x in b:
+    for i, x in enumerate(b):
         if x is None or (isinstance(x, str) and x.lower() in ("none", "")):
             out.append(None)
             continue
-        if isinstance(x, bool) or not isinstance(x, int | float):
+        if isinstance(x, bool):
+            raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
+                              f"{'true' if x else 'false'})")
+        if not isinstance(x, int | float):
             raise ConfigError(f"{field} must be [lower, upper] with numbers (got {b!r})")
         out.append(float(x))
     lo, hi = out

@@ -10,6 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import validation
 from tuning import checkpoint as ck
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -91,8 +92,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     z1 = jax.device_get(result.state.best_z)
     ev = evaluate(problem, z0, z1)
     sim = problem.objective.sim
-    nom = {tag: {k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
-                 if np.ndim(v) == 0} for tag in ("start", "tuned")}
+    nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
+                           if np.ndim(v) == 0}) for tag in ("start", "tuned")}
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": problem.objective.scales.u_max,
@@ -111,6 +112,9 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
         "settings": problem.describe(),
         "notes": list(problem.notes),
+        "warnings": assumption_warnings(problem)
+        + [f"tuned gains: {w}" for w in validation.assumption_warnings(result.best_setup)
+           if w not in validation.assumption_warnings(problem.setup)],
     }
     for key in ("train", "heldout"):
         if ev[key] is not None:
@@ -131,6 +135,29 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     return summary
 
 
+def _measured(m: dict[str, float]) -> dict[str, float]:
+    """A diverged plant's metrics as NaN (null in report.json): they were not measured over
+    the horizon they name. Its loss (the finite divergence penalty) stays."""
+    if not m.get("diverged"):
+        return m
+    return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
+
+
+def assumption_warnings(problem) -> list[str]:
+    """The paper's assumptions the start setup violates, at the nominal plant or at an end of
+    the training or held-out ranges (`dscjax.sweep.assumption_warnings`)."""
+    from dscjax.sweep import assumption_warnings as with_ranges
+
+    out = []
+    cfg = problem.cfg
+    for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):
+        ranges = [r.resolve(problem.setup) for r in b.ranges] if b.batch else []
+        for w in with_ranges(problem.setup, ranges, f"tuning.{key}.ranges"):
+            if w not in out:
+                out.append(w)
+    return out
+
+
 def _values(problem, z):
     values = jax.device_get(problem.selection.values(z))
     return {name: np.asarray(values[name]).tolist() for name in problem.selection.names}
@@ -140,7 +167,7 @@ def _values(problem, z):
 
 
 def _f(v, digits=4):
-    return "-" if v is None else f"{v:.{digits}g}"
+    return "-" if v is None or v != v else f"{v:.{digits}g}"  # None or NaN: not measured
 
 
 def _ratio(a, b):
@@ -181,6 +208,8 @@ def _markdown(s: dict, problem, figures) -> str:
     ]
     for note in s["notes"]:
         lines.append(f"Note: {note}.")
+    for w in s["warnings"]:
+        lines.append(f"**Warning:** {w}.")
     lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
               "|---|---|---|---|"]
     for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u",
@@ -243,6 +272,44 @@ def _fmt_val(v):
 # -- figures --------------------------------------------------------------------------------------
 
 
+def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = False):
+    """loss_curve.png: the loss (and best loss, rejected steps marked), the L-inf error and
+    max|u| per iteration, each in its own panel with its own axis and legend; the bound on
+    max|u| is a labelled line. Returns the Figure (already saved)."""
+    from matplotlib.figure import Figure
+
+    it = np.array([r["iteration"] for r in history])
+    loss = np.array([r["loss"] for r in history], dtype=float)
+    best = np.array([r["best_loss"] for r in history], dtype=float)
+    acc = np.array([bool(r["accepted"]) for r in history])
+    linf = np.array([r["linf_window"] for r in history], dtype=float)
+    umax = np.array([r["max_abs_u"] for r in history], dtype=float)
+    # three panels, one quantity and one y-axis each (no twin axes)
+    fig = Figure(figsize=(14, 4), layout="constrained")
+    ax = fig.subplots(1, 3)
+    ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
+    ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
+    if (~acc).any():
+        ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected step")
+    ax[0].set_ylabel("objective J [-] (about 1 at the start gains)")
+    ax[0].set_title("loss")
+    ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
+    ax[1].set_ylabel("L-inf tracking error on [t0, T] [-]")
+    worst = " (worst training plant)" if batch else ""
+    ax[1].set_title("tracking error" + worst)
+    ax[2].plot(it, umax, color="#2ca02c", lw=1, label="max|u|" + worst)
+    if u_max:
+        ax[2].axhline(u_max, color="k", ls=":", lw=1, label=f"bound on max|u| ({u_max:.4g})")
+    ax[2].set_ylabel("max|u| [-]")
+    ax[2].set_title("control amplitude")
+    for a in ax:
+        a.set_xlabel("iteration")
+        a.grid(alpha=0.3, which="both")
+        a.legend(fontsize=8)
+    fig.savefig(path, dpi=110)
+    return fig
+
+
 def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     import matplotlib
 
@@ -250,43 +317,19 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     import matplotlib.pyplot as plt
 
     figures = []
-    h = result.history
-    if h:
-        it = np.array([r["iteration"] for r in h])
-        loss = np.array([r["loss"] for r in h], dtype=float)
-        best = np.array([r["best_loss"] for r in h], dtype=float)
-        acc = np.array([bool(r["accepted"]) for r in h])
-        linf = np.array([r["linf_window"] for r in h], dtype=float)
-        umax = np.array([r["max_abs_u"] for r in h], dtype=float)
-        fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-        ax[0].semilogy(it, loss, lw=1, label="loss")
-        ax[0].semilogy(it, best, lw=1.5, label="best")
-        if (~acc).any():
-            ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected")
-        ax[0].set_xlabel("iteration")
-        ax[0].set_ylabel("objective J")
-        ax[0].legend()
-        ax[0].grid(alpha=0.3)
-        ax[0].set_title("loss")
-        ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
-        ax[1].set_xlabel("iteration")
-        ax[1].set_ylabel("L-inf error (training)")
-        ax[1].grid(alpha=0.3)
-        a2 = ax[1].twinx()
-        a2.plot(it, umax, color="#2ca02c", lw=1, label="max|u|")
-        if problem.objective.scales.u_max:
-            a2.axhline(problem.objective.scales.u_max, color="#2ca02c", ls=":", lw=1)
-        a2.set_ylabel("max|u|", color="#2ca02c")
-        ax[1].set_title("tracking error and max|u| per iteration")
-        fig.savefig(out / "loss_curve.png", dpi=110)
-        plt.close(fig)
+    if result.history:
+        plot_loss_curve(result.history, out / "loss_curve.png",
+                        u_max=problem.objective.scales.u_max,
+                        batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
     fig, ax = plt.subplots(3, 1, figsize=(10, 8.5), constrained_layout=True)
     for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
-        label = f"{tag} (L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g})"
+        label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
+                              else f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}"
+                              ) + ")"
         ax[0].plot(t, e, color=color, lw=0.9, label=label)
         win = t >= sim.window_start
         ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
@@ -295,11 +338,11 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     if problem.objective.scales.u_max:
         for sgn in (1, -1):
             ax[2].axhline(sgn * problem.objective.scales.u_max, color="k", ls=":", lw=0.8)
-    ax[0].set_ylabel("e = y - y_r")
+    ax[0].set_ylabel("e = y - y_r [-]")
     ax[0].set_title("tracking error, whole horizon")
-    ax[1].set_ylabel("e on [t0, T]")
+    ax[1].set_ylabel("e on [t0, T] [-]")
     ax[1].set_title(f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
-    ax[2].set_ylabel("u")
+    ax[2].set_ylabel("u [-]")
     ax[2].set_title("control input (dotted: the bound on max|u|)")
     ax[2].set_xlabel("time t [s]")
     for a in ax:

@@ -225,7 +225,8 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
     out = Path(out)
     has = (out / "checkpoint.json").exists()
     if resume and not has:
-        raise ConfigError(f"--resume: no checkpoint in {out} (checkpoint.json is missing)")
+        raise ConfigError(f"--resume: nothing to resume in {out} (checkpoint.json is missing); "
+                          f"run without --resume to start afresh")
     if has and not resume and not overwrite:
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")

@@ -5,18 +5,33 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 
+def add_horizon_args(p):
+    """--t-final and --dt, their help stating SimOptions' defaults (a config may change them)."""
+    from dscjax.config import SimOptions
+
+    d = SimOptions()
+    p.add_argument("--t-final", type=float, metavar="S", help=f"horizon in seconds (default "
+                   f"{d.t_final:g}, or the config's simulation.t_final)")
+    p.add_argument("--dt", type=float, metavar="S", help=f"RK4 step in seconds (default "
+                   f"{d.dt:g}, or the config's simulation.dt)")
+
+
 def add_config_args(p, *, t_final=True):
+    from dscjax.config import SimOptions
+
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; see `dscjax simulate --print-config`")
     if t_final:
-        p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
-        p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
-    p.add_argument("--float32", action="store_true", help="run in float32 (default float64)")
+        add_horizon_args(p)
+    p.add_argument("--float32", action="store_true",
+                   help=f"run in float32 (default {SimOptions().dtype})")
 
 
 def load_setup(args):
@@ -60,3 +75,22 @@ def to_jsonable(obj):
 
 def write_json(path: Path, obj) -> None:
     path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
+
+
+def prepare_out(path, option: str = "--out") -> Path:
+    """Create the output directory and check that a file can be written in it, before any
+    work is done; ConfigError (one line, exit 2) naming the option and the path if not."""
+    from dscjax.validation import ConfigError
+
+    out = Path(path)
+    try:
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(0, "it is a file, not a directory")
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=out, prefix=".dscjax-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise ConfigError(f"{option} {str(path)!r}: cannot write the output there "
+                          f"({err.strerror or err}); give a writable directory") from None
+    return out

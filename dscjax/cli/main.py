@@ -1,7 +1,8 @@
 """Entry point of the `dscjax` command.
 
 Errors a user can fix (bad settings, unreadable files) print one line and exit 2 without a
-traceback; a diverged simulation prints when it diverged and exits 3; Ctrl-C exits 130.
+traceback; a diverged simulation prints when it diverged and exits 3; Ctrl-C exits 130 and
+says what was kept and the command that continues (a subcommand's `interrupt_hint(args)`).
 """
 
 from __future__ import annotations
@@ -39,20 +40,44 @@ def _available_commands():
 
 
 def build_parser(commands) -> argparse.ArgumentParser:
+    from dscjax import __version__
+
     parser = argparse.ArgumentParser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
+        epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
+        "stderr. Exit codes: 0 ok, 2 bad input, 3 a simulation diverged, 130 interrupted.",
     )
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in commands.values():
         module.add_parser(sub)
     return parser
 
 
+def resume_command(argv) -> str:
+    """The command line that continues an interrupted run: the same arguments, --resume
+    instead of --overwrite."""
+    import shlex
+
+    args = [a for a in argv if a != "--overwrite"]
+    if "--resume" not in args:
+        args.append("--resume")
+    return shlex.join(["dscjax", *args])
+
+
+def rerun_command(argv) -> str:
+    import shlex
+
+    return shlex.join(["dscjax", *argv])
+
+
 def main(argv=None) -> int:
     commands = _available_commands()
     parser = build_parser(commands)
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
+    args.argv = argv
     # Float64 is the default everywhere in the CLI; --float32 casts the setup instead.
     os.environ.setdefault("JAX_ENABLE_X64", "1")
     import jax
@@ -70,7 +95,10 @@ def main(argv=None) -> int:
         print(f"dscjax {args.command}: simulation diverged: {err}", file=sys.stderr)
         return EXIT_DIVERGED
     except KeyboardInterrupt:
-        print(f"\ndscjax {args.command}: interrupted", file=sys.stderr)
+        hint = getattr(commands[args.command], "interrupt_hint", None)
+        note = hint(args) if hint is not None else None
+        print(f"\ndscjax {args.command}: interrupted" + (f"; {note}" if note else ""),
+              file=sys.stderr)
         return 130
 
 

@@ -2,47 +2,63 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
+ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
+
 
 def _orders(text: str) -> list[int]:
     """"2-8" or "2,3,5" -> list of orders >= 2."""
     from dscjax.validation import ConfigError
 
     try:
-        if "-" in text:
+        if "-" in text.strip().lstrip("-"):
             lo, hi = (int(p) for p in text.split("-", 1))
             orders = list(range(lo, hi + 1))
         else:
+            lo = hi = None
             orders = [int(p) for p in text.split(",") if p.strip()]
     except ValueError:
         raise ConfigError(f"--orders must look like '2-8' or '2,3,4' (got {text!r})") from None
-    if not orders or min(orders) < 2:
-        raise ConfigError(f"--orders must be orders n >= 2 (got {text!r})")
+    if lo is not None and lo > hi:
+        raise ConfigError(f"--orders: a range N-M needs N <= M (got {text!r}; did you mean "
+                          f"{hi}-{lo}?)")
+    if not orders:
+        raise ConfigError(f"--orders must name at least one order n >= 2 (got {text!r})")
+    if min(orders) < 2:
+        raise ConfigError(f"--orders must be orders n >= 2 (got {text!r}, which includes "
+                          f"n = {min(orders)})")
     return orders
 
 
 def add_parser(sub):
+    from dscjax import reproduce as r
+
+    orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
         "reproduce", help="reproduce the paper's simulation study (Figs. 1-6, claims)",
         description="Simulate the paper's Section 4 example with the DSC (with and without "
         "hysteresis compensation, both readings) and adaptive backstepping, and write Figs. 1-6, "
         "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
-        "With --complexity also measure the size and cost of both control laws for orders "
-        "n = 2..8 (takes minutes).")
+        f"With --complexity also measure the size and cost of both control laws for orders "
+        f"n = {orders.replace('-', '..')} (takes minutes).")
     p.add_argument("--out", default="results/paper", metavar="DIR",
                    help="output directory (default: results/paper)")
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
-    p.add_argument("--dpi", type=int, default=150, help="resolution of PNG figures (default 150)")
-    p.add_argument("--t-final", type=float, default=20.0, metavar="S",
-                   help="horizon of the closed-loop runs in seconds (default 20)")
-    p.add_argument("--dt", type=float, default=1e-3, metavar="S",
-                   help="RK4 step in seconds (default 0.001)")
+    p.add_argument("--dpi", type=int, default=r.DPI,
+                   help="resolution of PNG figures (default %(default)s)")
+    p.add_argument("--t-final", type=float, default=r.T_FINAL, metavar="S",
+                   help="horizon of the closed-loop runs in seconds (default %(default)g)")
+    p.add_argument("--dt", type=float, default=r.DT, metavar="S",
+                   help="RK4 step in seconds (default %(default)g)")
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
-    p.add_argument("--orders", default="2-8", metavar="N-M",
-                   help="orders for --complexity, e.g. 2-8 or 2,4,6 (default 2-8)")
-    p.add_argument("--repeats", type=int, default=3, metavar="R",
-                   help="builds per law for --complexity; timings are medians (default 3)")
+    p.add_argument("--orders", default=orders, metavar="N-M",
+                   help="orders for --complexity, e.g. 2-8 or 2,4,6 (default %(default)s)")
+    p.add_argument("--repeats", type=int, default=r.COMPLEXITY_REPEATS, metavar="R",
+                   help="builds per law for --complexity; timings are medians (default "
+                   "%(default)s)")
     p.add_argument("--resume", action="store_true",
                    help="with --complexity: keep the control-law measurements an interrupted "
                    "run saved in DIR/complexity_rows.json (same --repeats) and measure only "
@@ -51,7 +67,8 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax.reproduce import reproduce
+    from dscjax.cli.common import prepare_out
+    from dscjax.reproduce import claim_lines, reproduce
     from dscjax.validation import ConfigError, validate_run
 
     orders = _orders(args.orders)
@@ -62,17 +79,30 @@ def run(args) -> int:
     from dscjax.reproduce import setups
 
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
-    try:
-        reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt, dpi=args.dpi,
-                  complexity=args.complexity, complexity_orders=orders,
-                  complexity_repeats=args.repeats, resume=args.resume)
-    except KeyboardInterrupt:
-        import sys
-        from pathlib import Path
-
-        rows = Path(args.out) / "complexity_rows.json"
-        if args.complexity and rows.exists():
-            print(f"dscjax reproduce: the finished control-law measurements are kept in {rows}; "
-                  "continue with the same command and --resume", file=sys.stderr)
-        raise
+    if args.resume and not args.complexity:
+        raise ConfigError("--resume continues an interrupted --complexity study (the "
+                          "closed-loop runs take seconds and are not kept); add --complexity")
+    rows = Path(args.out) / ROWS
+    if args.resume and not rows.exists():
+        raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
+                          f"run without --resume to start afresh")
+    prepare_out(args.out)
+    summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
+                        dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
+                        complexity_repeats=args.repeats, resume=args.resume)
+    # the results on stdout (progress went to stderr)
+    for line in claim_lines(summary):
+        print(line)
+    print(f"wrote {len(summary['figures'])} figures, summary.json and summary.md to "
+          f"{args.out}/")
     return 0
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command, resume_command
+
+    rows = Path(args.out) / ROWS
+    if args.complexity and rows.exists():
+        return (f"the finished control-law measurements are kept in {rows}; continue with: "
+                f"{resume_command(args.argv)}")
+    return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"

@@ -2,16 +2,27 @@
 
 from __future__ import annotations
 
+import os
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, write_json
+from dscjax.cli.common import add_config_args, load_setup, prepare_out, write_json
+
+
+def _default_variant() -> str:
+    import dataclasses
+
+    from dscjax.controllers.dsc import DSC
+
+    return {f.name: f.default for f in dataclasses.fields(DSC)}["variant"]
 
 
 def add_parser(sub):
+    from dscjax.config import MAX_SAVED_POINTS
+    from dscjax.controllers.dsc import VARIANTS
+
     p = sub.add_parser(
         "simulate", help="simulate one closed loop (default: the paper's example)",
         description="Simulate the closed loop of a config (default: the paper's Section 4 "
@@ -20,10 +31,14 @@ def add_parser(sub):
     add_config_args(p)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
-    p.add_argument("--save-every", type=int, metavar="K", help="keep every K-th step")
-    p.add_argument("--variant", choices=("full", "no_dhat", "no_dhat_no_zeta"),
+    p.add_argument("--save-every", type=int, metavar="K", help=f"keep every K-th step in "
+                   f"trajectory.npz (default: the config's simulation.save_every, else every "
+                   f"step up to {MAX_SAVED_POINTS:,} points and the smallest stride that keeps "
+                   f"at most that many beyond; the metrics use every step)")
+    p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
-                   "also zeta_hat = 1)")
+                   f"also zeta_hat = 1) (default: the config's controller.variant, "
+                   f"{_default_variant()})")
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     p.add_argument("--print-config", action="store_true",
                    help="print the effective config as TOML and exit")
@@ -31,12 +46,10 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import config
-    from dscjax.simulate import DivergenceError, divergence_report, simulate
+    from dscjax import config, validation
+    from dscjax.simulate import DivergenceError, default_window, divergence_report, simulate
 
     if args.save_every is not None:
-        from dscjax import validation
-
         validation.integer(args.save_every, "--save-every", 1)
     setup, options = load_setup(args)
     if args.save_every is not None:
@@ -44,23 +57,44 @@ def run(args) -> int:
 
         options = dataclasses.replace(options, save_every=args.save_every)
     if args.print_config:
-        sys.stdout.write(config.dumps_toml(config.to_dict(setup, options)))
+        sys.stdout.write(config.to_toml(setup, options))
         return 0
 
-    out = Path(args.out)
+    n_steps = validation.validate_run(setup, options.t_final, options.dt, 1, None)
+    every = options.save_stride(n_steps)
+    validation.validate_run(setup, options.t_final, options.dt, every, options.window_start)
+    nbytes = _check_memory(setup, options, every, n_steps)
+    warnings = validation.assumption_warnings(setup)
+
+    out = prepare_out(args.out)
     n = setup.order
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
-          f"dt={options.dt:g} s, {options.dtype}", file=sys.stderr)
+          f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}", file=sys.stderr)
+    for w in warnings:
+        print(f"dscjax simulate: warning: {w}", file=sys.stderr)
+    if options.save_every is None and every > 1:
+        print(f"  saving every {_ordinal(every)} step: {n_steps // every + 1:,} points (at most "
+              f"{config.MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
+              f"otherwise); the metrics use every step", file=sys.stderr)
+    if nbytes > BIG_FILE:
+        print(f"  trajectory.npz will take about {_size(nbytes)} ({n_steps // every + 1:,} "
+              f"points)", file=sys.stderr)
+    progress = None
+    if n_steps >= PROGRESS_MIN_STEPS:
+        progress = _progress_printer(options.t_final)
     t0 = time.perf_counter()
     diverged = None
     try:
-        traj = simulate(setup, options.t_final, options.dt, save_every=options.save_every,
-                        window_start=options.window_start, state_bound=options.state_bound)
+        traj = simulate(setup, options.t_final, options.dt, save_every=every,
+                        window_start=options.window_start, state_bound=options.state_bound,
+                        progress=progress)
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
+    finally:
+        if progress is not None:
+            progress.close()
     elapsed = time.perf_counter() - t0
-    out.mkdir(parents=True, exist_ok=True)
 
     arrays = {"t": traj.t, "x": traj.x, "u": traj.u, "w": traj.w, "yr": traj.yr, "e": traj.e,
               "S": traj.S, "u_dot": traj.u_dot}
@@ -75,23 +109,136 @@ def run(args) -> int:
         "t_diverged": float(traj.t_diverged) if bool(traj.diverged) else None,
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
-        "window_start": float(options.window_start if options.window_start is not None
-                              else (1.0 if options.t_final > 1.0 else 0.0)),
+        "save_every": every,
+        "window_start": float(default_window(options.t_final, options.window_start)),
         "wall_time_s": elapsed,
+        "warnings": warnings,
     })
     if not args.no_plot:
         from dscjax.plotting import plot_trajectory
 
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
-          + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)", file=sys.stderr)
-    print(f"  L-inf error {metrics['linf_error']:.4g} "
-          f"(after t0: {metrics['linf_error_window']:.4g}),"
-          f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}",
-          file=sys.stderr)
+          + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
+    if diverged is None:
+        print(f"  L-inf error {metrics['linf_error']:.4g} "
+              f"(after t0: {metrics['linf_error_window']:.4g}),"
+              f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
+    else:
+        print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
+              f"were not measured (null in metrics.json)")
     if diverged is not None:
         raise diverged
     return 0
+
+
+# A run of at least this many steps shows progress (about 1 s of simulation on this CPU).
+PROGRESS_MIN_STEPS = 1_000_000
+# A trajectory.npz above this size is announced before the run.
+BIG_FILE = 256 * 2**20
+# Peak memory of a saved trajectory, in multiples of its size: the result, its host copy and
+# the npz being written (measured 2.8x at dt = 1e-6: 7.1 GB for a 2.56 GB file).
+MEMORY_FACTOR = 3
+
+
+def _available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable), None if unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def _size(nbytes: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB"):
+        if nbytes < 1024 or unit == "GiB":
+            return f"{nbytes:.3g} {unit}" if unit != "B" else f"{int(nbytes)} B"
+        nbytes /= 1024
+    raise AssertionError
+
+
+def _ordinal(k: int) -> str:
+    suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
+    return f"{k:,}{suffix}"
+
+
+def _trajectory_bytes(setup, options, every: int) -> int:
+    """Bytes of the Trajectory `simulate` would return: shapes only, nothing is run."""
+    import functools
+    import math
+
+    import jax
+
+    from dscjax.simulate import simulate
+
+    shapes = jax.eval_shape(functools.partial(
+        simulate, t_final=options.t_final, dt=options.dt, save_every=every,
+        window_start=options.window_start, state_bound=options.state_bound, throw=False), setup)
+    return sum(math.prod(s.shape) * s.dtype.itemsize for s in jax.tree.leaves(shapes))
+
+
+def _check_memory(setup, options, every: int, n_steps: int) -> int:
+    """The trajectory's size in bytes; ConfigError before any work if it cannot fit."""
+    from dscjax.config import MAX_SAVED_POINTS
+    from dscjax.validation import ConfigError
+
+    nbytes = _trajectory_bytes(setup, options, every)
+    need, avail = MEMORY_FACTOR * nbytes, _available_memory()
+    if avail is not None and need > avail:
+        raise ConfigError(
+            f"simulation.save_every = {every} keeps {n_steps // every + 1:,} points of the "
+            f"trajectory ({_size(nbytes)}, about {_size(need)} in memory while writing "
+            f"trajectory.npz), more than the {_size(avail)} available; use a larger "
+            f"--save-every, or omit it for the automatic stride (at most "
+            f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
+    return nbytes
+
+
+class _progress_printer:
+    """Progress of one long run on stderr: the line rewritten in place on a terminal, else a
+    line every 5 s."""
+
+    def __init__(self, t_final: float):
+        self.t_final = t_final
+        self.tty = sys.stderr.isatty()
+        self.start = time.perf_counter()
+        self.last = -1e9
+        self.shown = False
+
+    def __call__(self, frac: float) -> None:
+        now = time.perf_counter()
+        if not (self.tty or frac >= 1.0 or now - self.last >= 5.0):
+            return
+        if frac == 0.0:
+            self.start = now  # the loop starts now: compilation is over
+        elapsed = now - self.start
+        eta = elapsed * (1 - frac) / frac if frac > 0 else float("nan")
+        text = (f"  simulated {100 * frac:3.0f} % (t = {frac * self.t_final:.4g} of "
+                f"{self.t_final:g} s), elapsed {elapsed:.0f} s"
+                + (f", ETA {eta:.0f} s" if 0 < frac < 1 else ""))
+        if self.tty:
+            print("\r" + text + "\x1b[K", end="", file=sys.stderr, flush=True)
+        else:
+            print(text, file=sys.stderr, flush=True)
+        self.last, self.shown = now, True
+
+    def close(self) -> None:
+        if self.tty and self.shown:
+            print(file=sys.stderr)
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command
+
+    return (f"nothing is kept (the files are written when the run ends); run the same command "
+            f"again: {rerun_command(args.argv)}")
 
 
 def _title(setup, options):

@@ -16,43 +16,54 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import write_json
+from dscjax.cli.common import add_horizon_args, prepare_out, write_json
+
+# Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
+DEGRADED_FACTOR = 2.0
 
 
 def add_parser(sub):
+    from dscjax.config import SimOptions
+    from dscjax.simulate import DEFAULT_WINDOW_START
+    from dscjax.sweep import AUTO_BLOCK, DEFAULT_PATHS, DEFAULT_REL, PARALLEL, SweepSettings
+
+    d, sim = SweepSettings(), SimOptions()
+    names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description="Simulate many plants with the gains fixed and report how well they track. "
-        "Default: the paper's example and gains, alpha, lam, psi each uniform within +-30 % of "
-        "the paper's values, 10,000 samples, 20 s at dt = 1e-3, float32, seed 0. Settings may "
-        "also come from a [sweep] table in the config (see docs/sweeps.md); the command line "
-        "wins.")
+        description=f"Simulate many plants with the gains fixed and report how well they track. "
+        f"Default: the paper's example and gains, {names} each {d.method} within "
+        f"+-{100 * DEFAULT_REL:g} % of the paper's values, {d.samples:,} samples, "
+        f"{sim.t_final:g} s at dt = {sim.dt:g}, {d.dtype}, seed {d.seed}. Settings may also "
+        f"come from a [sweep] table in the config (see docs/sweeps.md); the command line "
+        f"wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [sweep] table")
     p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
                    "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
                    "tune`; its other sections are ignored")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--samples", type=int, metavar="N", help="number of sampled plants "
-                      "(default 10000)")
+    mode.add_argument("--samples", type=int, metavar="N", help=f"number of sampled plants "
+                      f"(default {d.samples})")
     mode.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "
                       "hysteresis.alpha=0.7:1.3:41")
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
-                   help="a sampled parameter (repeat; replaces the default alpha, lam, psi), "
+                   help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
-    p.add_argument("--method", choices=("uniform", "lhs"), help="sampling: i.i.d. uniform "
-                   "(default) or Latin hypercube")
-    p.add_argument("--seed", type=int, help="seed of the samples (default 0)")
-    p.add_argument("--chunk", type=int, metavar="C", help="samples per block and device "
-                   "(default: about 16384)")
-    p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds (default 20)")
-    p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds (default 1e-3)")
-    p.add_argument("--t0", type=float, metavar="S", help="start of the metric window [t0, T] "
-                   "(default 1 s)")
+    p.add_argument("--method", choices=("uniform", "lhs"), help=f"sampling: i.i.d. uniform "
+                   f"or Latin hypercube (default {d.method})")
+    p.add_argument("--seed", type=int, help=f"seed of the samples (default {d.seed})")
+    p.add_argument("--chunk", type=int, metavar="C", help=f"samples per block and device "
+                   f"(default: about {AUTO_BLOCK})")
+    add_horizon_args(p)
+    p.add_argument("--t0", type=float, metavar="S", help=f"start of the metric window [t0, T] "
+                   f"(default {DEFAULT_WINDOW_START:g} s, 0 if T <= {DEFAULT_WINDOW_START:g} s)")
     prec = p.add_mutually_exclusive_group()
-    prec.add_argument("--float64", action="store_true", help="run in float64 (default float32)")
-    prec.add_argument("--float32", action="store_true", help="run in float32 (the default)")
+    prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
+                      f"{d.dtype})")
+    prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
+                      f"{d.dtype})")
     p.add_argument("--out", default="results/sweep", metavar="DIR",
                    help="output directory (default: results/sweep)")
     again = p.add_mutually_exclusive_group()
@@ -60,17 +71,18 @@ def add_parser(sub):
                        "the blocks already written")
     again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
                        "start afresh")
-    p.add_argument("--worst", type=int, metavar="K", help="full traces of the K worst samples "
-                   "(default 6)")
-    p.add_argument("--random", type=int, metavar="R", help="full traces of R random samples "
-                   "(default 3)")
+    p.add_argument("--worst", type=int, metavar="K", help=f"full traces of the K worst samples "
+                   f"(default {d.worst})")
+    p.add_argument("--random", type=int, metavar="R", help=f"full traces of R random samples "
+                   f"(default {d.random})")
     p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap "
                    "(default: the first two swept)")
-    p.add_argument("--threshold", type=float, metavar="E", help="windowed L-inf error above "
-                   "which tracking counts as degraded (default: 2 x the nominal setup's)")
-    p.add_argument("--parallel", choices=("per_device", "spmd"), help="per_device (default; "
-                   "results bitwise independent of the device count) or spmd (one shard_map "
-                   "program)")
+    p.add_argument("--threshold", type=float, metavar="E", help=f"windowed L-inf error above "
+                   f"which tracking counts as degraded (default: {DEGRADED_FACTOR:g} x the "
+                   f"nominal setup's)")
+    p.add_argument("--parallel", choices=PARALLEL, help=f"per_device (results bitwise "
+                   f"independent of the device count) or spmd (one shard_map program; default "
+                   f"{d.parallel})")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
@@ -187,7 +199,9 @@ def run(args) -> int:
     if args.print_config:
         sys.stdout.write(sweep_toml(settings, setup))
         return 0
-    out = Path(args.out)
+    if args.resume:
+        sweep.check_resumable(args.out)
+    out = prepare_out(args.out)
     main = jax.process_index() == 0
     n = settings.n_samples()
     if main:
@@ -199,6 +213,11 @@ def run(args) -> int:
               f"dt={dt:g} s, {settings.dtype}, {jax.device_count()} device(s) "
               f"({jax.devices()[0].platform}), {jax.process_count()} process(es)",
               file=sys.stderr)
+    warnings = sweep.assumption_warnings(setup, ranges,
+                                         "sweep.grid" if settings.method == "grid"
+                                         else "sweep.ranges")
+    for w in warnings if main else ():
+        print(f"dscjax sweep: warning: {w}", file=sys.stderr)
     tty = sys.stderr.isatty()
     last = [0.0]
 
@@ -214,17 +233,9 @@ def run(args) -> int:
             print(sweep.format_progress(p), file=sys.stderr, flush=True)
             last[0] = now
 
-    try:
-        result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
-                                 state_bound=state_bound, out_dir=out, resume=args.resume,
-                                 overwrite=args.overwrite, progress=progress)
-    except KeyboardInterrupt:
-        if main:
-            n_done = len(list((out / "chunks").glob("chunk_*.npz")))
-            print(("\n" if tty else "") + f"dscjax sweep: {n_done} finished block(s) are "
-                  f"kept in {out}/chunks; continue with the same command and --resume",
-                  file=sys.stderr)
-        raise
+    result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
+                             state_bound=state_bound, out_dir=out, resume=args.resume,
+                             overwrite=args.overwrite, progress=progress)
     if not main:
         return 0
     info = result.info
@@ -239,17 +250,20 @@ def run(args) -> int:
     threshold, rule = settings.threshold, "given"
     if threshold is None:
         if not bool(nominal.diverged) and nominal_metrics["linf_error_window"] > 0:
-            threshold, rule = 2.0 * nominal_metrics["linf_error_window"], "2 x nominal"
+            threshold = DEGRADED_FACTOR * nominal_metrics["linf_error_window"]
+            rule = f"{DEGRADED_FACTOR:g} x nominal"
         else:
             ok = ~c["diverged"]
-            threshold = 2.0 * float(np.median(c["linf_error_window"][ok])) if ok.any() else 1.0
-            rule = "2 x median (the nominal setup diverged)"
+            threshold = (DEGRADED_FACTOR * float(np.median(c["linf_error_window"][ok]))
+                         if ok.any() else 1.0)
+            rule = f"{DEGRADED_FACTOR:g} x median (the nominal setup diverged)"
     summary = sweep.summarize(result, nominal_metrics, threshold, worst=max(settings.worst, 1))
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
     summary["nominal_params"] = nominal_params
     summary["run"] = info
+    summary["warnings"] = warnings
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
@@ -273,16 +287,32 @@ def run(args) -> int:
     print(f"  wrote {out}/results.npz, summary.json, traces.npz"
           + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
-             else "nothing left to run)"), file=sys.stderr)
+             else "nothing left to run)"))
     if q is not None:
-        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s: median "
-              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} (nominal "
-              f"{nominal_metrics['linf_error_window']:.4g})", file=sys.stderr)
+        nom = ("the nominal setup diverged" if bool(nominal.diverged)
+               else f"nominal {nominal_metrics['linf_error_window']:.4g}")
+        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
+              f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
+              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
     print(f"  diverged: {summary['n_diverged']:,} of {result.n:,} "
           f"({100 * summary['divergence_rate']:.2f} %); degraded (above {threshold:.4g}, "
-          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)",
-          file=sys.stderr)
+          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     return 0
+
+
+def interrupt_hint(args) -> str | None:
+    import jax
+
+    from dscjax.cli.main import rerun_command, resume_command
+
+    if jax.process_index() != 0:
+        return None
+    out = Path(args.out)
+    if not (out / "sweep.json").exists():
+        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    n_done = len(list((out / "chunks").glob("chunk_*.npz")))
+    return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
+            f"{resume_command(args.argv)}")
 
 
 def _traces_title(kinds, dtype) -> str:

@@ -16,6 +16,13 @@ from pathlib import Path
 
 
 def add_parser(sub):
+    from dscjax.cli.common import add_horizon_args
+    from tuning.config import TuningConfig
+    from tuning.objective import AGGREGATES
+    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS
+
+    d = TuningConfig()
+    opt, rob = d.optimizer, d.robust
     p = sub.add_parser(
         "tune", help="tune the controller gains by gradient descent (exact gradients, optax)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
@@ -31,25 +38,29 @@ def add_parser(sub):
                    "the gains.json of an earlier run (laid over --config)")
     p.add_argument("--out", default="results/tune", metavar="DIR",
                    help="output directory (default: results/tune)")
-    p.add_argument("--steps", type=int, metavar="N", help="maximum number of iterations "
-                   "(default 300)")
-    p.add_argument("--time-limit", type=float, metavar="S", help="stop after S seconds of wall "
-                   "time, compilation included (default 100; 0 = no limit)")
-    p.add_argument("--lr", type=float, metavar="LR", help="learning rate (default 0.05, "
-                   "log-space)")
-    p.add_argument("--batch", type=int, metavar="B", help="training batch of B plants sampled "
-                   "from [tuning.robust] ranges (default 0: the nominal plant only)")
-    p.add_argument("--aggregate", choices=("mean", "cvar", "max"), help="objective over the "
-                   "training batch (default mean)")
-    p.add_argument("--cvar-level", type=float, metavar="A", help="CVaR level in (0, 1]: the "
-                   "mean of the worst ceil(A B) plants")
-    p.add_argument("--seed", type=int, help="seed of the training batch (default 0)")
-    p.add_argument("--heldout", type=int, metavar="N", help="held-out evaluation batch size "
-                   "(default 256; 0 = skip)")
-    p.add_argument("--gradient", choices=("auto", "forward", "reverse"),
-                   help="AD mode (default auto: forward for up to 64 tuned numbers)")
-    p.add_argument("--t-final", type=float, metavar="S", help="horizon in seconds")
-    p.add_argument("--dt", type=float, metavar="S", help="RK4 step in seconds")
+    limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
+    p.add_argument("--steps", type=int, metavar="N", help=f"maximum number of iterations "
+                   f"(default {opt.steps})")
+    p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
+                   f"time, compilation included (default {limit}; 0 = no limit)")
+    p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
+                   f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
+                   f"{100 * opt.learning_rate:g} %% per step)")
+    p.add_argument("--batch", type=int, metavar="B", help=f"training batch of B plants sampled "
+                   f"from [tuning.robust] ranges (default {rob.batch}"
+                   + (": the nominal plant only)" if rob.batch == 0 else ")"))
+    p.add_argument("--aggregate", choices=AGGREGATES, help=f"objective over the "
+                   f"training batch (default {rob.aggregate})")
+    p.add_argument("--cvar-level", type=float, metavar="A", help=f"CVaR level in (0, 1]: the "
+                   f"mean of the worst ceil(A B) plants (default {rob.cvar_level:g})")
+    p.add_argument("--seed", type=int, help=f"seed of the training batch (default {rob.seed})")
+    p.add_argument("--heldout", type=int, metavar="N", help=f"held-out evaluation batch size "
+                   f"(default {d.heldout.batch}; 0 = skip)")
+    p.add_argument("--gradient", choices=GRADIENTS,
+                   help=f"AD mode (default {opt.gradient}"
+                   + (f": forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
+                      if opt.gradient == "auto" else ")"))
+    add_horizon_args(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
                        "its checkpoint (iteration count, optimiser state and best point)")
@@ -60,6 +71,21 @@ def add_parser(sub):
     p.add_argument("--print-config", action="store_true",
                    help="print the effective [tuning] table as TOML and exit")
     return p
+
+
+def interrupt_hint(args) -> str:
+    import json
+
+    from dscjax.cli.main import rerun_command, resume_command
+
+    path = Path(args.out) / "checkpoint.json"
+    try:
+        meta = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
+            f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
+            f"{resume_command(args.argv)}")
 
 
 def load(args):
@@ -127,6 +153,7 @@ def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
 
+    from dscjax.cli.common import prepare_out
     from dscjax.params import cast
     from tuning import report
     from tuning.config import to_toml
@@ -140,6 +167,7 @@ def run(args) -> int:
         return 0
     out = Path(args.out)
     check_out_dir(out, args.resume, args.overwrite)
+    prepare_out(out)
     problem = build_problem(setup, options, cfg)
     oc = cfg.optimizer
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
@@ -152,6 +180,8 @@ def run(args) -> int:
           + (f" or {oc.time_limit:g} s" if oc.time_limit else ""), file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
+    for w in report.assumption_warnings(problem):
+        print(f"dscjax tune: warning: {w}", file=sys.stderr)
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
@@ -178,21 +208,21 @@ def run(args) -> int:
           + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
           + f", {int(result.state.n_rejected)} rejected, best at iteration "
           f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
-          f"{result.compile_s:.1f} s)", file=sys.stderr)
+          f"{result.compile_s:.1f} s)")
     summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
     print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
           f"{options.t_final:g}] s {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower), max|u| "
-          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}", file=sys.stderr)
+          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         if h0["linf_error_window"] and h1["linf_error_window"]:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
             print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
                   f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
-                  f"{h0['n_diverged']} -> {h1['n_diverged']}", file=sys.stderr)
+                  f"{h0['n_diverged']} -> {h1['n_diverged']}")
     print(f"  wrote {out}/gains.json, history.csv, report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
-          + f" ({time.perf_counter() - t_start:.1f} s in all)", file=sys.stderr)
+          + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0

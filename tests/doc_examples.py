@@ -1,0 +1,150 @@
+"""Run the shell examples of README.md and docs/*.md, in order, with small sizes.
+
+    python tests/doc_examples.py WORKDIR      # prints a JSON report; exit 1 if any failed
+
+Used by tests/test_docs.py (in a subprocess, with JAX's persistent compilation cache, so that
+a program compiled by one command is not compiled again by the next). Every `dscjax ...` line
+of a shell block (```, ```bash) of README.md, then of docs/*.md, runs through
+`dscjax.cli.main.main` in ONE working directory, as a user who follows the documents in
+order would type it (so the docs may use what the README's examples wrote: `my.toml`,
+`results/tune/gains.json`), with these changes only:
+
+- sizes: 300 RK4 steps (--t-final 300 dt), --samples 8, grid axes of 2 points, --steps 1 (2
+  to resume), --batch 2, --heldout 0, --dpi 30, --complexity for n = 2..3 with 1 build,
+  sweeps re-simulate 1 worst sample, no figures for tune and sweep (--no-plot; their figures
+  are tested in test_tuning_loop.py and test_sweep.py);
+- `> FILE` redirects stdout to FILE;
+- a command printed twice (the docs repeat the README) runs once;
+- multi-host lines (--coordinator, --distributed) are skipped: they need several processes
+  (tests/test_sweep.py runs two).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import shlex
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+SHELL = ("", "bash", "sh", "shell", "console")
+SKIP = ("--coordinator", "--distributed")
+N_STEPS = 300
+
+
+def documents() -> list[Path]:
+    return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+
+
+def commands(text: str) -> list[list[str]]:
+    """The argv (after `dscjax`) of every dscjax command in the shell blocks, in order; a
+    redirect stays in the list as '>' FILE."""
+    out, block, lang = [], False, ""
+    for line in text.splitlines():
+        if line.startswith("```"):
+            block, lang = not block, line[3:].strip()
+            continue
+        if not block or lang not in SHELL:
+            continue
+        for part in line.split("&&"):
+            words = shlex.split(part, comments=True)
+            if words and words[0] in (".venv/bin/dscjax", "dscjax"):
+                out.append(words[1:])
+    return out
+
+
+def _set(argv: list[str], option: str, value: str, add: bool = True) -> None:
+    if option in argv:
+        argv[argv.index(option) + 1] = value
+    elif add:
+        argv += [option, value]
+
+
+def shrink(argv: list[str]) -> list[str]:
+    """The same command with small sizes (see the module docstring)."""
+    a = list(argv)
+    command = a[0]
+    if "--print-config" not in a or command == "simulate":
+        # the same number of steps whatever dt: one compiled program serves every command
+        dt = float(a[a.index("--dt") + 1]) if "--dt" in a else 1e-3
+        _set(a, "--t-final", f"{N_STEPS * dt:g}")
+    if command == "sweep":
+        if "--grid" in a:
+            a = [f"{w.rsplit(':', 1)[0]}:2" if i and a[i - 1] == "--grid" else w
+                 for i, w in enumerate(a)]
+        else:
+            _set(a, "--samples", "8")
+        _set(a, "--worst", "1")
+        _set(a, "--random", "0")
+        a.append("--no-plot")
+    elif command == "tune":
+        _set(a, "--steps", "2" if "--steps" in a else "1")
+        _set(a, "--batch", "2", add=False)
+        _set(a, "--heldout", "0")
+        a.append("--no-plot")
+    elif command == "reproduce":
+        _set(a, "--dpi", "30")
+        if "--complexity" in a:
+            _set(a, "--orders", "2-3")
+            _set(a, "--repeats", "1")
+    return a
+
+
+def redirect(argv: list[str]) -> tuple[list[str], str | None]:
+    """(the command, the file after '>' or None)."""
+    if ">" in argv:
+        i = argv.index(">")
+        return argv[:i], argv[i + 1]
+    return argv, None
+
+
+def run_one(argv: list[str], target: str | None) -> tuple[int, str]:
+    """(exit code, the last lines of stderr) of one command; its stdout to `target`."""
+    from dscjax.cli.main import main
+
+    out, err = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
+        try:
+            code = main(argv)
+        except SystemExit as stop:
+            code = stop.code
+    if target is not None:
+        Path(target).write_text(out.getvalue())
+    return int(code or 0), "\n".join(err.getvalue().strip().splitlines()[-3:])
+
+
+def _join(words: list[str]) -> str:
+    """The command line as a shell would take it (a redirect stays unquoted)."""
+    return " ".join(w if w == ">" else shlex.quote(w) for w in words)
+
+
+def main(work: Path) -> int:
+    report, failed, done = [], 0, set()
+    work.mkdir(parents=True, exist_ok=True)
+    os.chdir(work)
+    for doc in documents():
+        for argv in commands(doc.read_text()):
+            if any(s in argv for s in SKIP):
+                continue
+            command, target = redirect(argv)
+            small = shrink(command)
+            ran = _join(["dscjax", *small] + ([">", target] if target else []))
+            if ran in done:
+                continue
+            done.add(ran)
+            t0 = time.perf_counter()
+            code, err = run_one(small, target)
+            failed += code != 0
+            report.append(dict(doc=doc.name, printed=_join(["dscjax", *argv]), ran=ran,
+                               code=code, seconds=round(time.perf_counter() - t0, 1),
+                               stderr=err if code else ""))
+    print(json.dumps(report, indent=1))
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main(Path(sys.argv[1]).resolve()))

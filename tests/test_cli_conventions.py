@@ -1,0 +1,228 @@
+"""What every subcommand does alike (issue 9): unwritable output directories, help defaults
+that match the code's, interrupt and resume, stdout against stderr, --version."""
+
+import pytest
+
+from dscjax.cli.main import main
+
+COMMANDS = ("simulate", "sweep", "tune", "reproduce")
+
+
+def _one_line_error(capsys, code):
+    captured = capsys.readouterr()
+    assert code == 2, captured.err
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1 and "Traceback" not in captured.err, captured.err
+    return lines[0]
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+@pytest.mark.parametrize("where", ["under_a_file", "proc"])
+def test_unwritable_out_is_one_line_and_exit_2(command, where, tmp_path, capsys):
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    out = str(afile / "sub") if where == "under_a_file" else "/proc/dscjax-test/x"
+    line = _one_line_error(capsys, main([command, "--out", out]))
+    assert f"--out {out!r}" in line and "cannot write" in line
+
+
+def _help(command) -> dict[str, str]:
+    """{option: its help text, whitespace collapsed, %-formatted as --help prints it}."""
+    import argparse
+    import importlib
+
+    sub = argparse.ArgumentParser(prog="dscjax").add_subparsers()
+    p = importlib.import_module(f"dscjax.cli.{command}").add_parser(sub)
+    fmt = p._get_formatter()
+    return {a.option_strings[-1]: " ".join(fmt._expand_help(a).split())
+            for a in p._actions if a.option_strings and a.help}
+
+
+def _expected_defaults():
+    import dataclasses
+
+    from dscjax import reproduce
+    from dscjax.config import SimOptions
+    from dscjax.sweep import SweepSettings
+    from tuning.config import TuningConfig
+
+    sim, sw, tu = SimOptions(), SweepSettings(), TuningConfig()
+    horizon = {"--t-final": f"{sim.t_final:g}", "--dt": f"{sim.dt:g}"}
+    assert dataclasses.is_dataclass(tu.optimizer)
+    return {
+        "simulate": horizon,
+        "tune": horizon | {
+            "--lr": f"{tu.optimizer.learning_rate:g}", "--steps": str(tu.optimizer.steps),
+            "--time-limit": f"{tu.optimizer.time_limit:g}", "--batch": str(tu.robust.batch),
+            "--aggregate": tu.robust.aggregate, "--cvar-level": f"{tu.robust.cvar_level:g}",
+            "--seed": str(tu.robust.seed), "--heldout": str(tu.heldout.batch),
+            "--gradient": tu.optimizer.gradient},
+        "sweep": horizon | {
+            "--samples": str(sw.samples), "--seed": str(sw.seed), "--worst": str(sw.worst),
+            "--random": str(sw.random), "--method": sw.method, "--parallel": sw.parallel,
+            "--float64": sw.dtype},
+        "reproduce": {"--t-final": f"{reproduce.T_FINAL:g}", "--dt": f"{reproduce.DT:g}",
+                      "--dpi": str(reproduce.DPI),
+                      "--repeats": str(reproduce.COMPLEXITY_REPEATS)},
+    }
+
+
+@pytest.mark.parametrize("command", COMMANDS)
+def test_help_states_the_defaults_the_code_uses(command):
+    helps = _help(command)
+    for option, value in _expected_defaults()[command].items():
+        assert f"default {value}" in helps[option], (option, helps[option])
+
+
+@pytest.mark.parametrize("argv, wanted, unwanted", [
+    (["sweep", "--t0", "30"], "simulation.window_start must be in [0, t_final) = [0, 20)",
+     "alpha"),
+    (["reproduce", "--complexity", "--orders", "8-2"], "did you mean 2-8?", "n >= 2"),
+    (["sweep", "--range", "hysteresis.alpha=0.5-1.5"], "(got 'hysteresis.alpha=0.5-1.5')",
+     "['"),
+    (["sweep", "--grid", "hysteresis.alpha=0.5:1.5"], "(got 'hysteresis.alpha=0.5:1.5')",
+     "['"),
+])
+def test_messages_blame_what_is_wrong(argv, wanted, unwanted, tmp_path, capsys):
+    line = _one_line_error(capsys, main([*argv, "--out", str(tmp_path / "o")]))
+    assert wanted in line and unwanted not in line, line
+
+
+def test_params_set_with_an_unknown_path_raises_config_error():
+    import dscjax
+
+    setup = dscjax.paper_example()
+    with pytest.raises(dscjax.ConfigError, match=r"no parameter 'controller\.kk'.*allowed: k,"):
+        dscjax.params.set(setup, "controller.kk", 1.0)
+    with pytest.raises(KeyError):  # and still a KeyError for code that catches lookups
+        dscjax.params.get(setup, "plant.nope")
+
+
+@pytest.mark.parametrize("argv, missing", [
+    (["sweep", "--resume"], "sweep.json"),
+    (["tune", "--resume"], "checkpoint.json"),
+    (["reproduce", "--complexity", "--resume"], "complexity_rows.json"),
+])
+def test_resuming_nothing_is_an_error_naming_the_directory(argv, missing, tmp_path, capsys):
+    out = tmp_path / "new"
+    line = _one_line_error(capsys, main([*argv, "--out", str(out)]))
+    assert f"nothing to resume in {out} ({missing} is missing)" in line, line
+
+
+def test_reproduce_resume_needs_complexity(tmp_path, capsys):
+    line = _one_line_error(capsys, main(["reproduce", "--resume", "--out", str(tmp_path)]))
+    assert "--complexity" in line
+
+
+def _interrupted(capsys, argv):
+    import shlex
+
+    assert main(argv) == 130
+    err = capsys.readouterr().err
+    last = err.strip().splitlines()[-1]
+    assert last.startswith(f"dscjax {argv[0]}: interrupted; "), err
+    command = last.split("continue with: ", 1)[1] if "continue with: " in last else None
+    return last, command and shlex.split(command)
+
+
+def test_sweep_interrupt_prints_the_resume_command_that_finishes_it(tmp_path, capsys,
+                                                                     monkeypatch):
+    from dscjax import sweep
+
+    def stop(p):
+        raise KeyboardInterrupt
+
+    out = tmp_path / "s"
+    # the block shape and horizon of tests/test_sweep.py: one compiled program serves both
+    argv = ["sweep", "--samples", "16", "--chunk", "8", "--t-final", "0.5", "--float64",
+            "--worst", "0", "--random", "0", "--no-plot", "--out", str(out)]
+    monkeypatch.setattr(sweep, "format_progress", stop)
+    last, command = _interrupted(capsys, argv)
+    assert "1 finished block(s) are kept" in last
+    assert command == ["dscjax", *argv, "--resume"]
+    monkeypatch.undo()
+    assert main(command[1:]) == 0
+    assert (out / "results.npz").exists()
+
+
+def test_tune_interrupt_prints_the_resume_command(tmp_path, capsys, monkeypatch):
+    import json
+
+    import tuning.runner
+
+    out = tmp_path / "t"
+
+    def interrupted_run(problem, out_dir, **kw):  # as the real loop does on Ctrl-C
+        (out_dir / "checkpoint.json").write_text(json.dumps({"iteration": 3, "best_loss": 0.5}))
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tuning.runner, "run", interrupted_run)
+    argv = ["tune", "--t-final", "0.2", "--heldout", "0", "--overwrite", "--out", str(out)]
+    last, command = _interrupted(capsys, argv)
+    assert "checkpoint (iteration 3, best loss 0.5) is kept" in last
+    assert command == ["dscjax", "tune", "--t-final", "0.2", "--heldout", "0", "--out",
+                       str(out), "--resume"]
+
+
+def test_simulate_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
+    import importlib
+
+    def stop(*a, **k):
+        raise KeyboardInterrupt
+
+    # the module, not the function dscjax.simulate that dscjax/__init__.py exports
+    monkeypatch.setattr(importlib.import_module("dscjax.simulate"), "simulate", stop)
+    argv = ["simulate", "--t-final", "0.5", "--out", str(tmp_path)]
+    last, command = _interrupted(capsys, argv)
+    assert command is None
+    assert last.endswith(f"run the same command again: dscjax simulate --t-final 0.5 --out "
+                         f"{tmp_path}")
+
+
+def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
+    import dscjax.reproduce
+
+    def stop(*a, **k):
+        (tmp_path / "c" / "complexity_rows.json").write_text("{}")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dscjax.reproduce, "hysteresis_loops", stop)
+    argv = ["reproduce", "--out", str(tmp_path / "p")]
+    (tmp_path / "c").mkdir()
+    last, command = _interrupted(capsys, argv)
+    assert command is None and last.endswith(f"run the same command again: dscjax "
+                                             f"reproduce --out {tmp_path / 'p'}")
+    argv = ["reproduce", "--complexity", "--out", str(tmp_path / "c")]
+    last, command = _interrupted(capsys, argv)
+    assert command == ["dscjax", *argv, "--resume"]
+
+
+def test_version_comes_from_one_place(capsys):
+    import importlib.metadata
+    import tomllib
+    from pathlib import Path
+
+    import dscjax
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    assert capsys.readouterr().out.strip() == f"dscjax {dscjax.__version__}"
+    project = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())
+    assert "version" not in project["project"] and "version" in project["project"]["dynamic"]
+    assert project["tool"]["setuptools"]["dynamic"]["version"] == {"attr": "dscjax.__version__"}
+    assert importlib.metadata.version("dscjax") == dscjax.__version__
+
+
+def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
+    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    captured = capsys.readouterr()
+    assert "wrote" in captured.out and "L-inf error" in captured.out
+    assert "dscjax simulate: order n=2" in captured.err
+    assert "wrote" not in captured.err and "order n=2" not in captured.out
+
+
+def test_print_config_lists_window_start(capsys):
+    assert main(["simulate", "--print-config"]) == 0
+    out = capsys.readouterr().out
+    assert "# window_start = 1.0 " in out and "# save_every = 1 " in out
