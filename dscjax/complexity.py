@@ -29,7 +29,6 @@ v ~ n^p). Both are reported for both controllers; which model fits is visible fr
 from __future__ import annotations
 
 import json
-import os
 import statistics
 import time
 from collections.abc import Callable, Sequence
@@ -38,6 +37,8 @@ from pathlib import Path
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from dscjax import files
 
 CONTROLLERS = ("dsc", "backstepping")
 
@@ -213,23 +214,16 @@ def _load_rows(path: Path, settings: dict, log) -> dict:
     except (OSError, ValueError, KeyError, TypeError, AttributeError):
         raise ConfigError(f"--resume: {path} is unreadable; run without --resume to measure "
                           f"afresh") from None
-    if old != settings:
-        diff = ", ".join(f"{k} {old.get(k) if isinstance(old, dict) else None!r} (now "
-                         f"{v!r})" for k, v in settings.items()
-                         if not isinstance(old, dict) or old.get(k) != v)
-        raise ConfigError(f"--resume: {path} was measured with other settings ({diff}); use "
-                          f"the same ones, or run without --resume to measure afresh")
+    files.check_same(old, settings, where=f"--resume: {path}",
+                     fix="use the same ones, or run without --resume to measure afresh")
     if log:
         log(f"  resumed: {len(rows)} measurement(s) kept from {path}")
     return rows
 
 
 def _save_rows(path: Path, settings: dict, rows: dict) -> None:
-    """Atomic write: an interruption leaves the previous file or the new one, never half."""
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(dict(settings=settings, rows=list(rows.values())), indent=1)
-                   + "\n")
-    os.replace(tmp, path)
+    """Written atomically: an interruption leaves the previous file or the new one."""
+    files.write_json(path, dict(settings=settings, rows=list(rows.values())))
 
 
 def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: int = 2000,

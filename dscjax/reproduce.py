@@ -16,7 +16,6 @@ controller, uses the hysteresis output's colour of `plotting.COLORS`.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 import time
@@ -27,6 +26,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import files
 from dscjax.controllers.backstepping import with_backstepping
 from dscjax.examples import paper_example
 from dscjax.integrate import rk4_step
@@ -502,21 +502,6 @@ def summary_markdown(summary: dict) -> str:
 # -- the whole study ---------------------------------------------------------------------------
 
 
-def _jsonable(obj):
-    if isinstance(obj, dict):
-        return {k: _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, float | np.floating):
-        v = float(obj)
-        return v if math.isfinite(v) else None
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, Path):
-        return str(obj)
-    return obj
-
-
 def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, dt: float = DT,
               dpi: int = DPI, complexity: bool = False,
               complexity_orders: Sequence[int] = COMPLEXITY_ORDERS,
@@ -561,7 +546,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
             f"({complexity_repeats} builds each; this takes minutes)")
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
                           rows_path=out / "complexity_rows.json", resume=resume)
-        (out / "complexity.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
+        files.write_json(out / "complexity.json", result)
         path = out / f"{FIGURES['complexity']}.{fmt}"
         cx.plot(result, path, colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")},
                 dpi=dpi)
@@ -571,8 +556,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     summary["figures"] = {k: str(p) for k, p in paths.items()}
     summary["jax_version"] = jax.__version__
     summary["wall_time_s"] = time.perf_counter() - t_start
-    (out / "summary.json").write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
-    (out / "summary.md").write_text(summary_markdown(summary))
+    files.write_json(out / "summary.json", summary)
+    files.write_text(out / "summary.md", summary_markdown(summary))
     log(f"wrote {len(paths)} figures, summary.json and summary.md to {out}/ "
         f"({summary['wall_time_s']:.1f} s)")
     return summary

@@ -37,13 +37,9 @@ measured over the horizon they name; `dscjax.simulate.nan_if_diverged`).
 from __future__ import annotations
 
 import dataclasses
-import hashlib
-import json
 import math
-import os
 import re
 import time
-import zipfile
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -53,7 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import params, validation
+from dscjax import files, params, validation
 from dscjax.validation import ConfigError
 
 METHODS = ("uniform", "lhs", "grid")
@@ -609,27 +605,10 @@ def _to_host(a) -> np.ndarray:
 # -- files ---------------------------------------------------------------------------------------
 
 
-def write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
-    """np.savez with fixed zip timestamps (equal arrays give equal bytes), written atomically."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    with zipfile.ZipFile(tmp, "w", zipfile.ZIP_STORED, allowZip64=True) as zf:
-        for name, a in arrays.items():
-            info = zipfile.ZipInfo(name + ".npy", date_time=(1980, 1, 1, 0, 0, 0))
-            info.external_attr = 0o644 << 16
-            with zf.open(info, "w", force_zip64=True) as f:
-                np.lib.format.write_array(f, np.asarray(a), allow_pickle=False)
-    os.replace(tmp, path)
-
-
 def _read_chunk(path: Path, fingerprint: str) -> dict[str, np.ndarray] | None:
     """A finished chunk file, or None if missing, unreadable or from another sweep."""
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            data = {k: z[k] for k in z.files}
-    except (OSError, ValueError, zipfile.BadZipFile, EOFError):
-        return None
-    if str(data.pop("_fingerprint", "")) != fingerprint:
+    data = files.read_npz(path)
+    if data is None or str(data.pop("_fingerprint", "")) != fingerprint:
         return None
     return data
 
@@ -676,15 +655,6 @@ def fingerprint(setup, settings: SweepSettings, ranges, t_final, dt, window_star
         "window_start": float(window_start), "state_bound": float(state_bound),
         "chunk": int(chunk),
     }
-
-
-def _digest(d) -> str:
-    return hashlib.sha256(_dumps(d).encode()).hexdigest()
-
-
-def _dumps(d) -> str:
-    # static callables (CustomPlant) by qualified name, so that the digest is reproducible
-    return json.dumps(d, sort_keys=True, default=lambda o: getattr(o, "__qualname__", repr(o)))
 
 
 def run_sweep(
@@ -748,7 +718,7 @@ def run_sweep(
     table = table.astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
     fp = fingerprint(setup, settings, ranges, t_final, dt, window_start, state_bound, chunk)
-    digest = _digest(fp)
+    digest = files.digest(fp)
 
     out = Path(out_dir) if out_dir is not None else None
     main = jax.process_index() == 0
@@ -776,7 +746,7 @@ def run_sweep(
                             table[lo:lo + m], part, dt)
             if out is not None:
                 if main:
-                    write_npz(_chunk_path(out, b), {**data, "_fingerprint": np.array(digest)})
+                    files.write_npz(_chunk_path(out, b), {**data, "_fingerprint": np.array(digest)})
             else:
                 kept[b] = data
             n_run += m
@@ -802,7 +772,7 @@ def run_sweep(
     columns_out = ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
                    if parts and parts[0] is not None else {})
     if out is not None and main:
-        write_npz(out / "results.npz", columns_out)
+        files.write_npz(out / "results.npz", columns_out)
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, parallel=settings.parallel,
@@ -829,21 +799,11 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
         check_resumable(out)
     if main:
         (out / "chunks").mkdir(parents=True, exist_ok=True)
-        old = None
-        if manifest.exists():
-            try:
-                old = json.loads(manifest.read_text())
-            except (OSError, json.JSONDecodeError):
-                old = None
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
-            fp = json.loads(_dumps(fp))  # as stored
-            if old is not None and old.get("fingerprint") != fp:
-                diff = [k for k in sorted(set(fp) | set(old.get("fingerprint", {})))
-                        if fp.get(k) != old.get("fingerprint", {}).get(k)]
-                raise ConfigError(f"--resume: {manifest} was written by a sweep with other "
-                                  f"settings (differing: {', '.join(diff)}); use the same "
-                                  f"settings, or --overwrite to start afresh")
+            files.check_same(files.read_json(manifest).get("fingerprint"), fp,
+                             where=f"--resume: {manifest}",
+                             fix="use the same settings, or --overwrite to start afresh")
             for b in range(n_blocks):
                 done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
         elif existing and not overwrite:
@@ -853,7 +813,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
             for f in existing:
                 f.unlink()
             (out / "results.npz").unlink(missing_ok=True)
-        manifest.write_text(_dumps({"fingerprint": fp, "digest": digest}) + "\n")
+        files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
@@ -1029,5 +989,4 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
 __all__ = ["DEFAULT_PATHS", "METRICS", "Param", "Range", "SweepResult", "SweepSettings",
            "auto_chunk", "check_resumable", "check_settings", "default_ranges",
            "format_progress", "parse_range", "rank_diverged", "rank_worst", "run_sweep",
-           "sample_table", "settings_from_dict", "simulate_rows", "summarize", "trace_rows",
-           "write_npz"]
+           "sample_table", "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]

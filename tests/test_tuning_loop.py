@@ -144,7 +144,8 @@ def test_resume_refuses_a_different_problem(small_problem, tmp_path):
 
     run(_with_steps(small_problem, 2), tmp_path)
     other = dataclasses.replace(small_problem, mode="reverse")
-    with pytest.raises(dscjax.ConfigError, match="different problem"):
+    with pytest.raises(dscjax.ConfigError,
+                       match=r"other settings \(mode .forward. \(now .reverse.\)\)"):
         run(other, tmp_path, resume=True)
 
 

@@ -6,17 +6,14 @@
     gains.json       the best gains as a dscjax config (loadable by `dscjax simulate --config`)
     history.csv      one row per iteration
 
-A file is written to a temporary name and renamed over the old one, so a run killed in the
-middle of a write leaves the previous complete file behind.
+Every file is written atomically (`dscjax.files`): a run killed in the middle of a write
+leaves the previous complete file behind.
 """
 
 from __future__ import annotations
 
 import csv
-import hashlib
 import io
-import json
-import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -24,41 +21,16 @@ from typing import Any
 import jax
 import numpy as np
 
+from dscjax import files
 from dscjax.validation import ConfigError
 
 FORMAT_VERSION = 1
 FILES = ("checkpoint.npz", "checkpoint.json", "best.json", "gains.json", "history.csv")
 
 
-def atomic_write(path: Path, data: bytes) -> None:
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
-
-
-def write_json(path: Path, obj) -> None:
-    from dscjax.cli.common import to_jsonable
-
-    atomic_write(path, (json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n").encode())
-
-
-def read_json(path: Path) -> dict:
-    try:
-        return json.loads(Path(path).read_text())
-    except (OSError, json.JSONDecodeError) as err:
-        raise ConfigError(f"cannot read {path}: {err}") from None
-
-
-def fingerprint(obj) -> str:
-    """sha256 of a JSON-able description of the problem (what must match to resume)."""
-    from dscjax.cli.common import to_jsonable
-
-    text = json.dumps(to_jsonable(obj), sort_keys=True, default=str)
-    return hashlib.sha256(text.encode()).hexdigest()[:16]
+def fingerprint(desc) -> str:
+    """Short digest of the problem's description (stored in checkpoint.json beside it)."""
+    return files.digest(desc)[:16]
 
 
 def save_state(path: Path, state) -> dict:
@@ -67,7 +39,7 @@ def save_state(path: Path, state) -> dict:
     arrays = {f"leaf_{i:04d}": np.asarray(x) for i, x in enumerate(leaves)}
     buf = io.BytesIO()
     np.savez(buf, **arrays)
-    atomic_write(path, buf.getvalue())
+    files.atomic_write(path, buf.getvalue())
     return {"n_leaves": len(leaves), "treedef": str(treedef),
             "shapes": [list(a.shape) for a in arrays.values()]}
 
@@ -95,7 +67,7 @@ def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequen
     w.writeheader()
     for r in rows:
         w.writerow({k: _fmt(r.get(k)) for k in columns})
-    atomic_write(path, buf.getvalue().encode())
+    files.write_text(path, buf.getvalue())
 
 
 def read_history(path: Path) -> list[dict[str, Any]]:

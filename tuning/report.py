@@ -10,8 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation
-from tuning import checkpoint as ck
+from dscjax import files, validation
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -130,8 +129,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     summary["figures"] = figures
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
-    ck.write_json(out / "report.json", summary)
-    (out / "report.md").write_text(_markdown(summary, problem, figures))
+    files.write_json(out / "report.json", summary)
+    files.write_text(out / "report.md", _markdown(summary, problem, figures))
     return summary
 
 

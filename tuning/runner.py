@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config as dconfig
+from dscjax import files
 from dscjax.config import SimOptions
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
@@ -264,11 +265,9 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         _prepare_dir(out, resume, overwrite)
     if resume:
-        meta = ck.read_json(out / "checkpoint.json")
-        if meta.get("fingerprint") != fp:
-            raise ConfigError(f"the checkpoint in {out} was made for a different problem "
-                              f"(setup, parameters, objective or optimiser differ); start "
-                              f"afresh with --overwrite or another --out")
+        meta = files.read_json(out / "checkpoint.json")
+        files.check_same(meta.get("problem"), desc, where=f"the checkpoint in {out}",
+                         fix="start afresh with --overwrite or another --out")
         decay_steps = int(meta["decay_steps"])
     spec = dataclasses.replace(opt_spec, decay_steps=decay_steps)
     optimizer, step = _step_for(problem, spec)
@@ -298,7 +297,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
         meta_state = ck.save_state(out / "checkpoint.npz", state)
         _write_best(out, problem, state)
         ck.write_history(out / "history.csv", history, columns)
-        ck.write_json(out / "checkpoint.json", {
+        files.write_json(out / "checkpoint.json", {
             "version": ck.FORMAT_VERSION, "fingerprint": fp, "iteration": int(state.iteration),
             "best_loss": float(state.best_loss), "best_iteration": int(state.best_iteration),
             "best_feasible": bool(state.best_feasible), "decay_steps": decay_steps,
@@ -414,13 +413,13 @@ def _write_best(out: Path, problem: Problem, state) -> None:
         return
     z = jax.device_get(state.best_z)
     values = jax.device_get(problem.selection.values(z))
-    ck.write_json(out / "best.json", {
+    files.write_json(out / "best.json", {
         "iteration": int(state.best_iteration), "loss": float(state.best_loss),
         "feasible": bool(state.best_feasible),
         "values": {k: np.asarray(v).tolist() for k, v in values.items()},
         "z": {k: np.asarray(v).tolist() for k, v in z.items()},
     })
-    ck.write_json(out / "gains.json", gains_config(problem, z))
+    files.write_json(out / "gains.json", gains_config(problem, z))
 
 
 def _best_from_file(out: Path, state, problem: Problem):
@@ -428,7 +427,7 @@ def _best_from_file(out: Path, state, problem: Problem):
     path = out / "best.json"
     if not path.exists():
         return state
-    b = ck.read_json(path)
+    b = files.read_json(path)
     loss, feas = float(b["loss"]), bool(b["feasible"])
     better = (feas and not bool(state.best_feasible)) or (
         feas == bool(state.best_feasible) and loss < float(state.best_loss))

@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import dataclasses
-import json
-import math
 import os
 import tempfile
 from pathlib import Path
@@ -56,25 +54,6 @@ def load_setup(args):
     options = dataclasses.replace(options, **changes)
     options.validate()
     return cast(setup, np.dtype(options.dtype)), options
-
-
-def to_jsonable(obj):
-    """Arrays and NumPy scalars to plain Python; non-finite floats to None (strict JSON)."""
-    if isinstance(obj, dict):
-        return {k: to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [to_jsonable(v) for v in obj]
-    a = np.asarray(obj) if not isinstance(obj, str | bool | type(None)) else obj
-    if isinstance(a, np.ndarray):
-        if a.ndim == 0:
-            v = a.item()
-            return None if isinstance(v, float) and not math.isfinite(v) else v
-        return to_jsonable(a.tolist())
-    return a
-
-
-def write_json(path: Path, obj) -> None:
-    path.write_text(json.dumps(to_jsonable(obj), indent=2, allow_nan=False) + "\n")
 
 
 def prepare_out(path, option: str = "--out") -> Path:

@@ -8,7 +8,8 @@ import time
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, prepare_out, write_json
+from dscjax.cli.common import add_config_args, load_setup, prepare_out
+from dscjax.files import write_json, write_npz
 
 
 def _default_variant() -> str:
@@ -100,7 +101,7 @@ def run(args) -> int:
               "S": traj.S, "u_dot": traj.u_dot}
     if hasattr(traj.ctrl, "_fields"):
         arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
-    np.savez(out / "trajectory.npz", **{k: np.asarray(v) for k, v in arrays.items()})
+    write_npz(out / "trajectory.npz", {k: np.asarray(v) for k, v in arrays.items()})
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     report = divergence_report(traj, options.state_bound)
     write_json(out / "metrics.json", {

@@ -16,7 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import add_horizon_args, prepare_out, write_json
+from dscjax.cli.common import add_horizon_args, prepare_out
+from dscjax.files import write_json
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
@@ -347,7 +348,7 @@ def _recheck(trajs, records) -> dict[str, float] | None:
 
 
 def _write_traces(path, trajs, records, kinds, nominal):
-    from dscjax.sweep import write_npz
+    from dscjax.files import write_npz
 
     arrays = {"nominal_t": nominal.t, "nominal_e": nominal.e, "nominal_u": nominal.u}
     if trajs:
