@@ -21,6 +21,19 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 
+DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
+
+
+def default_window(t_final, window_start=None):
+    """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less).
+
+    Every feature takes its default window from here (simulate, sweeps, tuning, reproduce).
+    """
+    if window_start is None:
+        return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
+    return window_start
+
+
 # -- on arrays -------------------------------------------------------------------------------
 
 

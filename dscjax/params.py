@@ -1,14 +1,18 @@
 """Address the numbers of a Setup by dotted path, the same names the TOML config uses.
 
     get(setup, "hysteresis.alpha"); set(setup, "controller.k", jnp.array([5.0, 1.0]))
+    Param.parse("plant.g[1]")             # one element of a vector leaf
+    overrides(setup, columns, table)      # a (B, d) table of numbers -> {path: (B, ...)}
 
-Tuning selects the parameters it differentiates by path, sweeps the ones they vmap over.
+Every feature names numbers this way: tuning the parameters it differentiates, sweeps (and
+the training and held-out batches of tuning) the ones they vary (`dscjax.ranges`).
 """
 
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Mapping
+import re
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import jax
@@ -23,6 +27,94 @@ class UnknownParameter(ConfigError, KeyError):
     for code that catches lookups."""
 
     __str__ = ConfigError.__str__  # KeyError would quote the message
+
+
+# A dotted path of identifiers, optionally with one element index: "plant.g[1]".
+_PARAM_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\])?$")
+
+
+@dataclasses.dataclass(frozen=True)
+class Param:
+    """One number or leaf of a Setup: the leaf at `path`, or its element `index`."""
+
+    path: str
+    index: int | None = None
+
+    @property
+    def name(self) -> str:
+        return self.path if self.index is None else f"{self.path}[{self.index}]"
+
+    @classmethod
+    def parse(cls, text: str, field: str = "parameter") -> Param:
+        """`Param` from its name, e.g. "hysteresis.alpha" or "plant.g[1]"."""
+        m = _PARAM_RE.match(str(text).strip())
+        if not m:
+            raise ConfigError(f"{field}: {text!r} is not a parameter path (e.g. "
+                              f"'hysteresis.alpha' or 'plant.g[1]')")
+        return cls(m.group(1), None if m.group(2) is None else int(m.group(2)))
+
+    def value(self, setup):
+        """The leaf, or its element."""
+        leaf = get(setup, self.path)
+        return leaf if self.index is None else leaf[self.index]
+
+    def nominal(self, setup) -> float:
+        """The (scalar) value in `setup`, as a float."""
+        return float(np.asarray(self.value(setup), dtype=float))
+
+    def check(self, setup, field: str):
+        """The value named, after checking that the path names a number or a vector of
+        numbers of `setup` and that the index exists; ConfigError naming `field` if not."""
+        try:
+            leaf = get(setup, self.path)
+        except KeyError:
+            raise ConfigError(f"{field}: unknown parameter {self.path!r} (the numbers of the "
+                              f"setup are: {', '.join(numeric_paths(setup))})") from None
+        leaves = jax.tree.leaves(leaf)
+        if len(leaves) != 1 or not np.issubdtype(np.asarray(leaves[0]).dtype, np.floating):
+            raise ConfigError(f"{field}: {self.path!r} is not a number or vector of numbers")
+        shape = np.shape(leaf)
+        if self.index is None:
+            return leaf
+        if len(shape) != 1:
+            raise ConfigError(f"{field}: {self.path!r} is a scalar; write it without an index")
+        if not 0 <= self.index < shape[0]:
+            raise ConfigError(f"{field}: index {self.index} of {self.path!r} is out of range (it "
+                              f"has {shape[0]} elements, indices 0..{shape[0] - 1})")
+        return leaf[self.index]
+
+
+def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
+    """{path: (B, ...)} for `simulate_batch`/`run` from a (B, d) table whose column j holds
+    the values of columns[j]; the elements of a vector leaf that no column names keep their
+    values in `setup`, and every leaf keeps its dtype. NumPy in, NumPy out; traced in, traced
+    out (the sweep builds its overrides inside its compiled block)."""
+    host = isinstance(table, np.ndarray)
+    xp = np if host else jnp
+    b = table.shape[0]
+    out: dict[str, Any] = {}
+    for j, p in enumerate(columns):
+        leaf = get(setup, p.path)
+        dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
+        col = table[:, j].astype(dtype)
+        if p.index is None:
+            out[p.path] = col
+            continue
+        if p.path not in out:
+            leaf = xp.asarray(leaf, dtype)
+            out[p.path] = xp.broadcast_to(leaf, (b, *leaf.shape))
+        if host:
+            out[p.path] = np.array(out[p.path])
+            out[p.path][:, p.index] = col
+        else:
+            out[p.path] = out[p.path].at[:, p.index].set(col)
+    return out
+
+
+def set_row(setup, columns: Sequence[Param], row):
+    """`setup` with the numbers of one row of such a table put in (host side)."""
+    values = overrides(setup, columns, np.asarray(row, dtype=np.float64)[None, :])
+    return set_many(setup, {path: v[0] for path, v in values.items()})
 
 
 def _child(obj, name: str, path: str):

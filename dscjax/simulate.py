@@ -27,6 +27,7 @@ from dscjax.integrate import (
     Status,
     integrate,
 )
+from dscjax.metrics import DEFAULT_WINDOW_START, default_window  # noqa: F401 (public here too)
 
 
 @jax.tree_util.register_dataclass
@@ -244,17 +245,6 @@ def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_ev
 
 
 _simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every"))
-
-
-DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
-
-
-def default_window(t_final, window_start=None):
-    """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less)."""
-    if window_start is None:
-        return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
-    return window_start
-
 
 
 def simulate(

@@ -67,10 +67,28 @@ def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
         raise ConfigError(f"{field} must have shape {tuple(expected)}{hint} (got shape {got})")
 
 
-def integer(value, field: str, low: int) -> None:
-    """An int (not a bool, not a float) >= low."""
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < low:
-        raise ConfigError(f"{field} must be an integer >= {low} (got {value!r})")
+def integer(value, field: str, low: int | None = None) -> int:
+    """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
+    if (isinstance(value, bool) or not isinstance(value, int | np.integer)
+            or (low is not None and value < low)):
+        bound = "" if low is None else f" >= {low}"
+        raise ConfigError(f"{field} must be an integer{bound} (got {value!r})")
+    return int(value)
+
+
+def number(value, field: str) -> float:
+    """`value` as a float if it is a finite number (not a bool, not a string); else ConfigError."""
+    if (isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating)
+            or not np.isfinite(value)):
+        raise ConfigError(f"{field} must be a number (got {value!r})")
+    return float(value)
+
+
+def string(value, field: str) -> str:
+    """`value` if it is a string; else ConfigError."""
+    if not isinstance(value, str):
+        raise ConfigError(f"{field} must be a string (got {value!r})")
+    return value
 
 
 def one_of(value, field: str, allowed) -> None:

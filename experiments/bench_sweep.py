@@ -39,8 +39,9 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import dscjax  # noqa: E402
-from dscjax import sweep  # noqa: E402
+from dscjax import ranges as rg  # noqa: E402
 from dscjax.simulate import default_window  # noqa: E402
+from dscjax.sweep.device import METRICS, Runner  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
@@ -55,8 +56,8 @@ def _table(b, seed=0):
     """The default sweep's parameters, rounded to float32 so that float32 and float64 runs
     simulate the same plants."""
     setup = dscjax.paper_example()
-    ranges = [r.resolve(setup) for r in sweep.default_ranges()]
-    table = sweep.sample_table(ranges, "uniform", b, seed)
+    ranges = [r.resolve(setup) for r in rg.default_ranges()]
+    table = rg.sample_table(ranges, "uniform", b, seed)
     return ranges, table.astype(np.float32).astype(np.float64)
 
 
@@ -66,9 +67,8 @@ def bench_throughput(dtype, sizes, repeats, horizon):
     rows, outputs = [], {}
     for b in sizes:
         ranges, table = _table(b)
-        runner = sweep._Runner(setup, [r.param for r in ranges], n, DT,
-                               default_window(horizon, None), 1e6, b,
-                               devices=jax.devices()[:1])
+        runner = Runner(setup, [r.param for r in ranges], n, DT,
+                        default_window(horizon, None), 1e6, b, devices=jax.devices()[:1])
         t0 = time.perf_counter()
         out = runner(table, 1)
         first = time.perf_counter() - t0
@@ -186,7 +186,7 @@ def bench_devices(horizon, samples=64, chunk=16):
         same = all(np.array_equal(one[k], other[k]) for k in keys)
         rel = max(float(np.max(np.abs(one[k].astype(float) - other[k].astype(float))
                                / np.maximum(np.abs(one[k].astype(float)), 1e-300)))
-                  for k in sweep.METRICS)
+                  for k in METRICS)
         return same, rel
 
     same4, rel4 = compare(out["four"])

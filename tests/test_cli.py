@@ -142,7 +142,7 @@ def test_loss_curve_has_one_axis_per_quantity_and_a_labelled_bound(tmp_path):
 
 
 def test_heatmap_states_how_narrow_its_colour_scale_is(tmp_path):
-    from dscjax.sweep_plots import plot_heatmap
+    from dscjax.sweep.plots import plot_heatmap
 
     rng = np.random.default_rng(0)
     x, y = rng.uniform(0.7, 1.3, 400), rng.uniform(1.0, 1.8, 400)

@@ -17,7 +17,9 @@ import pytest
 import dscjax
 from dscjax import sweep
 from dscjax.cli.main import main as cli
-from dscjax.sweep import Param, Range, SweepSettings, run_sweep
+from dscjax.params import Param
+from dscjax.ranges import Range, sample_table
+from dscjax.sweep import SweepSettings, run_sweep
 
 T, DT = 0.5, 1e-3
 BASE = SweepSettings(samples=24, chunk=8, dtype="float64")  # alpha, lam, psi +-30 %
@@ -154,16 +156,16 @@ def test_two_processes_write_the_same_file(tmp_path, capsys):
 
 def test_sample_tables():
     ranges = (Range(Param("a"), 0.0, 1.0, num=3), Range(Param("b"), 10.0, 20.0, num=2))
-    grid = sweep.sample_table(ranges, "grid", 0, 0)
+    grid = sample_table(ranges, "grid", 0, 0)
     np.testing.assert_array_equal(grid, [[0, 10], [0, 20], [0.5, 10], [0.5, 20], [1, 10],
                                          [1, 20]])
     r2 = (Range(Param("a"), 0.0, 1.0), Range(Param("b"), -2.0, 2.0))
-    lhs = sweep.sample_table(r2, "lhs", 50, 3)
+    lhs = sample_table(r2, "lhs", 50, 3)
     for j, (lo, hi) in enumerate([(0, 1), (-2, 2)]):  # one sample in each of the 50 strata
         strata = np.floor((lhs[:, j] - lo) / (hi - lo) * 50).astype(int)
         assert sorted(strata) == list(range(50))
-    np.testing.assert_array_equal(lhs, sweep.sample_table(r2, "lhs", 50, 3))  # seeded
-    assert not np.array_equal(lhs, sweep.sample_table(r2, "lhs", 50, 4))
+    np.testing.assert_array_equal(lhs, sample_table(r2, "lhs", 50, 3))  # seeded
+    assert not np.array_equal(lhs, sample_table(r2, "lhs", 50, 4))
     assert sweep.auto_chunk(100_000) == 14336 and sweep.auto_chunk(24) == 24
 
 
@@ -209,9 +211,9 @@ def _cli_error(args, capsys, tmp_path):
     (["--range", "hysteresis.lam=1.0:1.4", "--range", "hysteresis.psi=0.5:1.1"],
      "hysteresis.lam must stay > hysteresis.psi"),
     (["--range", "hysteresis.alpha=-0.5:1"], "hysteresis.alpha must be > 0"),
-    (["--range", "hysteresis.alhpa=0.5:1"], "no parameter 'hysteresis.alhpa'"),
-    (["--range", "plant.g=0.5:1"], "sweep one element, e.g. plant.g[0]"),
-    (["--range", "plant.g[2]=0.5:1"], "index 2 is out of range"),
+    (["--range", "hysteresis.alhpa=0.5:1"], "unknown parameter 'hysteresis.alhpa'"),
+    (["--range", "plant.g=0.5:1"], "vary one element, e.g. plant.g[0]"),
+    (["--range", "plant.g[2]=0.5:1"], "index 2 of 'plant.g' is out of range"),
     (["--range", "hysteresis.alpha"], "--range must be PATH=LOW:HIGH"),
     (["--grid", "hysteresis.alpha=0.7:1.3:1"], "number of grid points must be >= 2"),
     (["--grid", "hysteresis.alpha=0.7:1.3"], "--grid hysteresis.alpha must be PATH=LOW:HIGH:NUM"),

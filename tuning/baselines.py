@@ -56,15 +56,15 @@ def batch_loss_fn(problem):
     minimises (J of the nominal plant, or the aggregate over the training batch)."""
     obj = problem.objective
     flat0, unravel = ravel_pytree(problem.z0)
-    paths = sorted({t.path for t in obj.selection.items})
+    columns = obj.selection.columns(obj.setup)
     train = obj.overrides or {}
     n_train = obj.batch_size if train else 1
 
     @jax.jit
     def run(flat_pts):
-        setups = jax.vmap(lambda p: obj.selection.apply(obj.setup, unravel(p)))(flat_pts)
+        table = jax.vmap(lambda p: obj.selection.row(unravel(p)))(flat_pts)
         b = flat_pts.shape[0]
-        ov = {p: params.get(setups, p) for p in paths}
+        ov = params.overrides(obj.setup, columns, table)
         if train:  # every candidate on every training plant: (B * n_train) members
             ov = {p: jnp.repeat(v, n_train, axis=0) for p, v in ov.items()}
             ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))

@@ -25,23 +25,17 @@ Unknown keys are errors that name the field; so are bad values.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from typing import Any
 
 from dscjax import validation
+from dscjax.ranges import default_ranges, flatten, from_table
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
 from tuning.optimize import OptimizerSpec
 from tuning.params import DSC_GAINS
 
-METHODS = ("uniform", "lhs")
-
-
-def _default_ranges():
-    from dscjax.sweep import default_ranges
-
-    return default_ranges()
+METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,7 +49,7 @@ class BatchSpec:
     batch: int = 0
     seed: int = 0
     method: str = "uniform"
-    ranges: tuple = dataclasses.field(default_factory=_default_ranges)
+    ranges: tuple = dataclasses.field(default_factory=default_ranges)
     aggregate: str = "mean"
     cvar_level: float = 0.2
 
@@ -105,8 +99,6 @@ REQUIRED = {"envelope": ("b0", "b_inf", "decay"), "step": (), "u_bound": ("max",
 
 def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:
     """The [tuning] table laid over `base` (default: `TuningConfig()`)."""
-    from dscjax.sweep import _flatten
-
     cfg = base or TuningConfig()
     if not isinstance(table, Mapping):
         raise ConfigError("'tuning' must be a table ([tuning])")
@@ -121,7 +113,7 @@ def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> Tun
     for key in ("bounds", "transforms"):
         if key in table:
             sub = _table(table[key], f"tuning.{key}")
-            changes[key] = dict(_flatten(sub))
+            changes[key] = dict(flatten(sub))
     if "objective" in table:
         changes["objective"] = _spec(cfg.objective, table["objective"], "tuning.objective",
                                      _objective_value)
@@ -150,12 +142,6 @@ def _table(v, field):
     return v
 
 
-def _number(v, field):
-    if isinstance(v, bool) or not isinstance(v, int | float) or not math.isfinite(v):
-        raise ConfigError(f"{field} must be a number (got {v!r})")
-    return float(v)
-
-
 def _objective_value(name, v, field):
     if name == "window_start" and isinstance(v, str) and v.lower() == "none":
         return None
@@ -166,25 +152,21 @@ def _objective_value(name, v, field):
             if v == "start":
                 return v
             raise ConfigError(f"{field} must be a number > 0, \"start\" or \"none\" (got {v!r})")
-        return _number(v, field)
-    return _number(v, field)
+        return validation.number(v, field)
+    return validation.number(v, field)
 
 
 def _optimizer_value(name, v, field):
     if name in ("name", "schedule", "gradient"):
-        if not isinstance(v, str):
-            raise ConfigError(f"{field} must be a string (got {v!r})")
-        return v
+        return validation.string(v, field)
     if name == "decay_steps" and isinstance(v, str) and v.lower() == "none":
         return None
     if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
                 "decay_steps"):
-        if isinstance(v, bool) or not isinstance(v, int):
-            raise ConfigError(f"{field} must be an integer (got {v!r})")
-        return v
+        return validation.integer(v, field)
     if name in ("clip_norm", "time_limit") and isinstance(v, str) and v.lower() == "none":
         return None
-    return _number(v, field)
+    return validation.number(v, field)
 
 
 def _spec(base, table, field, convert):
@@ -196,29 +178,20 @@ def _spec(base, table, field, convert):
 
 
 def _batch(base: BatchSpec, table, field) -> BatchSpec:
-    from dscjax.sweep import Param, _flatten, _range_from_value
-
     table = _table(table, field)
     _known(table, [f.name for f in dataclasses.fields(BatchSpec)], field)
     changes = {}
     for k, v in table.items():
         if k == "ranges":
-            sub = _flatten(_table(v, f"{field}.ranges"))
-            if not sub:
+            changes[k] = from_table(v, f"{field}.ranges")
+            if not changes[k]:
                 raise ConfigError(f"{field}.ranges is empty")
-            changes[k] = tuple(_range_from_value(Param.parse(name, f"{field}.ranges"), value,
-                                                 False, f"{field}.ranges.{name}")
-                               for name, value in sub.items())
         elif k in ("batch", "seed"):
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise ConfigError(f"{field}.{k} must be an integer (got {v!r})")
-            changes[k] = v
+            changes[k] = validation.integer(v, f"{field}.{k}")
         elif k in ("method", "aggregate"):
-            if not isinstance(v, str):
-                raise ConfigError(f"{field}.{k} must be a string (got {v!r})")
-            changes[k] = v
+            changes[k] = validation.string(v, f"{field}.{k}")
         else:
-            changes[k] = _number(v, f"{field}.{k}")
+            changes[k] = validation.number(v, f"{field}.{k}")
     return dataclasses.replace(base, **changes)
 
 
@@ -233,7 +206,7 @@ def _requirements(table) -> dict[str, dict[str, float]]:
         for key in REQUIRED[name]:
             if key not in sub:
                 raise ConfigError(f"{field}.{key} is required")
-        values = {k: _number(v, f"{field}.{k}") for k, v in sub.items()}
+        values = {k: validation.number(v, f"{field}.{k}") for k, v in sub.items()}
         for k, v in values.items():
             if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
                 raise ConfigError(f"{field}.{k} must be > 0 (got {v:g})")

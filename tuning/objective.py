@@ -39,7 +39,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import params
 from dscjax.closed_loop import Setup
 from dscjax.simulate import run
 from dscjax.validation import ConfigError
@@ -335,27 +334,3 @@ class Objective:
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
                                   len(self.requirements))
         return {"loss": per_plant, "diverged": diverged, **metrics}
-
-
-def sample_overrides(setup: Setup, ranges, n: int, seed: int, method: str = "uniform"
-                     ) -> dict[str, np.ndarray]:
-    """{path: (n, ...)} plants drawn from `ranges` (dscjax.sweep.Range, resolved) with a seed.
-
-    Element ranges (plant.g[1]) fill one element of a vector leaf, the others keep the
-    setup's values.
-    """
-    from dscjax.sweep import sample_table
-
-    ranges = [r.resolve(setup) for r in ranges]
-    table = sample_table(ranges, method, n, seed)
-    out: dict[str, np.ndarray] = {}
-    for j, r in enumerate(ranges):
-        p = r.param
-        if p.index is None:
-            out[p.path] = table[:, j].copy()
-        else:
-            if p.path not in out:
-                leaf = np.asarray(params.get(setup, p.path), dtype=float)
-                out[p.path] = np.broadcast_to(leaf, (n, *leaf.shape)).copy()
-            out[p.path][:, p.index] = table[:, j]
-    return out

@@ -23,19 +23,19 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from collections.abc import Mapping, Sequence
-from typing import Any
+from typing import Any, Literal, get_args
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dscjax import params, validation
+from dscjax.params import Param
 from dscjax.validation import ConfigError
 
-TRANSFORMS = ("log", "linear")
-_NAME_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\])?$")
+Transform = Literal["log", "linear"]
+TRANSFORMS: tuple[str, ...] = get_args(Transform)
 
 # The design parameters of the DSC (Section 2 of the paper) tuned by default.
 DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
@@ -60,13 +60,13 @@ class Tuned:
 
     path: str
     index: int | None = None
-    transform: str = "log"
+    transform: Transform = "log"
     lower: float | None = None
     upper: float | None = None
 
     @property
     def name(self) -> str:
-        return self.path if self.index is None else f"{self.path}[{self.index}]"
+        return Param(self.path, self.index).name
 
     def to_z(self, value):
         return jnp.log(value) if self.transform == "log" else value
@@ -81,14 +81,6 @@ class Tuned:
             return (math.log(lo) if lo > 0 else -math.inf, math.log(hi) if hi < math.inf
                     else math.inf)
         return lo, hi
-
-
-def parse_name(text: str, field: str = "tuning.params") -> tuple[str, int | None]:
-    m = _NAME_RE.match(str(text).strip())
-    if not m:
-        raise ConfigError(f"{field}: {text!r} is not a parameter path (e.g. 'controller.k' or "
-                          f"'controller.gamma_g[0]')")
-    return m.group(1), None if m.group(2) is None else int(m.group(2))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -132,18 +124,17 @@ class Selection:
         transforms = dict(transforms or {})
         order: list[tuple[str, int | None]] = []
         for text in tune:
-            path, index = parse_name(text, f"{field}.params")
-            value = _get(setup, path, f"{field}.params")
-            _check_index(value, path, index, f"{field}.params")
+            p = Param.parse(text, f"{field}.params")
+            p.check(setup, f"{field}.params")
+            path, index = p.path, p.index
             if (path, index) in order:
                 raise ConfigError(f"{field}.params lists {text!r} twice")
             order.append((path, index))
         frozen = set()
         for text in freeze:
-            path, index = parse_name(text, f"{field}.freeze")
-            value = _get(setup, path, f"{field}.freeze")
-            _check_index(value, path, index, f"{field}.freeze")
-            frozen.add((path, index))
+            p = Param.parse(text, f"{field}.freeze")
+            p.check(setup, f"{field}.freeze")
+            frozen.add((p.path, p.index))
         expanded: list[tuple[str, int | None]] = []
         for path, index in order:
             value = np.asarray(params.get(setup, path), dtype=float)
@@ -159,18 +150,18 @@ class Selection:
             if not any(p == key[0] for p, _ in order):
                 name = key[0] if key[1] is None else f"{key[0]}[{key[1]}]"
                 raise ConfigError(f"{field}.freeze: {name!r} is not among the tuned parameters "
-                                  f"({', '.join(_fmt_name(p, i) for p, i in order)})")
+                                  f"({', '.join(Param(p, i).name for p, i in order)})")
         if not expanded:
             raise ConfigError(f"{field}: nothing left to tune (every parameter is frozen)")
         names_tuned = {p for p, _ in order}
         for text in list(bounds) + list(transforms):
-            path, index = parse_name(text, f"{field}.bounds")
+            path = Param.parse(text, f"{field}.bounds").path
             if path not in names_tuned:
                 raise ConfigError(f"{field}: {text!r} has a bound or transform but is not tuned "
                                   f"(add it to {field}.params)")
         items = []
         for path, index in expanded:
-            name = _fmt_name(path, index)
+            name = Param(path, index).name
             transform = transforms.get(name, transforms.get(path, "linear" if path in SIGNED
                                                             else "log"))
             validation.one_of(transform, f"{field}.transform.{name}", TRANSFORMS)
@@ -209,6 +200,22 @@ class Selection:
         dtype = jnp.result_type(setup.plant.x0)
         return params.set_many(setup, {p: jnp.asarray(v, dtype) for p, v in new.items()})
 
+    def columns(self, setup) -> tuple[Param, ...]:
+        """One `Param` per tuned number, in the order of `row` (whole vector leaves by
+        element): the columns of a table of candidates for `dscjax.params.overrides`."""
+        out: list[Param] = []
+        for t in self.items:
+            shape = np.shape(params.get(setup, t.path))
+            if t.index is None and shape:
+                out += [Param(t.path, i) for i in range(shape[0])]
+            else:
+                out.append(Param(t.path, t.index))
+        return tuple(out)
+
+    def row(self, z: Mapping[str, Any]) -> jax.Array:
+        """The tuned values at z as one vector, in the order of `columns` (traceable)."""
+        return jnp.concatenate([jnp.ravel(t.from_z(z[t.name])) for t in self.items])
+
     def project(self, z: Mapping[str, Any]) -> dict[str, Any]:
         """z clipped onto the box (identity for unbounded parameters)."""
         out = {}
@@ -227,40 +234,6 @@ class Selection:
                 f"{'inf' if t.upper is None else f'{t.upper:g}'}]")
             rows.append(f"{t.name} = {np.array2string(v, precision=4)} ({t.transform}{b})")
         return rows
-
-
-def _fmt_name(path, index):
-    return path if index is None else f"{path}[{index}]"
-
-
-def _get(setup, path, field):
-    try:
-        value = params.get(setup, path)
-    except KeyError:
-        raise ConfigError(f"{field}: unknown parameter {path!r} (the numbers of the setup are: "
-                          f"{', '.join(_all_paths(setup))})") from None
-    leaves = jax.tree.leaves(value)
-    if len(leaves) != 1 or not np.issubdtype(np.asarray(leaves[0]).dtype, np.floating):
-        raise ConfigError(f"{field}: {path!r} is not a number or vector of numbers")
-    return value
-
-
-def _all_paths(setup) -> list[str]:
-    out = []
-    for section in ("plant", "hysteresis", "controller", "reference"):
-        out += [f"{section}.{p}" for p in params.numeric_paths(getattr(setup, section))]
-    return out
-
-
-def _check_index(value, path, index, field):
-    shape = np.shape(value)
-    if index is None:
-        return
-    if len(shape) != 1:
-        raise ConfigError(f"{field}: {path!r} is a scalar; write it without an index")
-    if not 0 <= index < shape[0]:
-        raise ConfigError(f"{field}: index {index} of {path!r} is out of range (it has "
-                          f"{shape[0]} elements, indices 0..{shape[0] - 1})")
 
 
 def _bound_pair(b, field) -> tuple[float | None, float | None]:

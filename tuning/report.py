@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import files, validation
+from dscjax.ranges import assumption_warnings as with_ranges
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -144,9 +145,7 @@ def _measured(m: dict[str, float]) -> dict[str, float]:
 
 def assumption_warnings(problem) -> list[str]:
     """The paper's assumptions the start setup violates, at the nominal plant or at an end of
-    the training or held-out ranges (`dscjax.sweep.assumption_warnings`)."""
-    from dscjax.sweep import assumption_warnings as with_ranges
-
+    the training or held-out ranges (`dscjax.ranges.assumption_warnings`)."""
     out = []
     cfg = problem.cfg
     for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):

@@ -24,13 +24,14 @@ import numpy as np
 
 from dscjax import config as dconfig
 from dscjax import files
+from dscjax import ranges as rg
 from dscjax.config import SimOptions
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Objective, SimSpec, sample_overrides, start_scales
+from tuning.objective import Objective, SimSpec, start_scales
 from tuning.optimize import choose_gradient, init_state, make_step
 from tuning.params import Selection
 from tuning.requirements import KINDS
@@ -130,7 +131,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
         if b.batch > 0:
-            batches[key] = _sample(setup, b, f"tuning.{key}.ranges")
+            batches[key] = _sample(setup, b, f"tuning.{key}.ranges", options)
     train, heldout = batches.get("robust"), batches.get("heldout")
     requirements = build_requirements(setup, cfg.requirements)
     scales = start_scales(setup, sim, cfg.objective)
@@ -143,23 +144,10 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                    z0=selection.init(setup), notes=tuple(notes))
 
 
-def _sample(setup, b, field) -> dict:
-    from dscjax.sweep import _check_lam_psi
-
-    ranges = []
-    for r in b.ranges:
-        try:
-            ranges.append(r.resolve(setup))
-            r.param.nominal(setup)
-        except KeyError:
-            raise ConfigError(f"{field}: unknown parameter {r.param.path!r}") from None
-        except IndexError:
-            raise ConfigError(f"{field}: index of {r.name!r} out of range") from None
-        if not ranges[-1].low < ranges[-1].high:
-            raise ConfigError(f"{field}.{r.name}: empty range [{ranges[-1].low:g}, "
-                              f"{ranges[-1].high:g}]")
-    _check_lam_psi(ranges, setup, field)
-    return sample_overrides(setup, ranges, b.batch, b.seed, b.method)
+def _sample(setup, b, field, options) -> dict:
+    """{path: (batch, ...)}: the plants of a [tuning.robust] or [tuning.heldout] table."""
+    ranges = rg.check(b.ranges, setup, field, t_final=options.t_final, dt=options.dt)
+    return rg.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
 
 def build_requirements(setup, table) -> tuple:

@@ -25,8 +25,9 @@ DEGRADED_FACTOR = 2.0
 
 def add_parser(sub):
     from dscjax.config import SimOptions
+    from dscjax.ranges import DEFAULT_PATHS, DEFAULT_REL
     from dscjax.simulate import DEFAULT_WINDOW_START
-    from dscjax.sweep import AUTO_BLOCK, DEFAULT_PATHS, DEFAULT_REL, PARALLEL, SweepSettings
+    from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
 
     d, sim = SweepSettings(), SimOptions()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
@@ -102,7 +103,8 @@ def add_parser(sub):
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
     from dscjax import config
-    from dscjax.sweep import SweepSettings, parse_range, settings_from_dict
+    from dscjax.ranges import parse_range
+    from dscjax.sweep import SweepSettings, settings_from_dict
     from dscjax.validation import ConfigError
 
     raw = config.read(args.config) if args.config else {}
@@ -189,6 +191,7 @@ def run(args) -> int:
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
     from dscjax import params, sweep
+    from dscjax.ranges import assumption_warnings
     from dscjax.simulate import default_window, simulate
 
     setup, options, settings = load(args)
@@ -214,9 +217,8 @@ def run(args) -> int:
               f"dt={dt:g} s, {settings.dtype}, {jax.device_count()} device(s) "
               f"({jax.devices()[0].platform}), {jax.process_count()} process(es)",
               file=sys.stderr)
-    warnings = sweep.assumption_warnings(setup, ranges,
-                                         "sweep.grid" if settings.method == "grid"
-                                         else "sweep.ranges")
+    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
+                                   else "sweep.ranges")
     for w in warnings if main else ():
         print(f"dscjax sweep: warning: {w}", file=sys.stderr)
     tty = sys.stderr.isatty()
@@ -367,7 +369,7 @@ def _write_traces(path, trajs, records, kinds, nominal):
 
 def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,
            trajs, records, kinds, t0, t_final, summary):
-    from dscjax import sweep_plots as sp
+    from dscjax.sweep import plots as sp
 
     c = result.columns
     title = (f"{result.n:,} {'grid points' if settings.method == 'grid' else 'samples'}, "

@@ -1,0 +1,114 @@
+"""Running blocks of a sweep on the devices: one compiled single-device program per device,
+each on its own block of a globally sharded table (see the package docstring)."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+
+import jax
+import numpy as np
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
+
+from dscjax import params
+from dscjax.simulate import nan_if_diverged, run
+
+METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
+           "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
+
+
+def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps):
+    """The metrics and status of every row of a (chunk, d) table of parameter values."""
+    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
+               overrides=params.overrides(setup, columns, table))
+    metrics = nan_if_diverged(traj.metrics, traj.diverged)
+    return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
+            "bad_step": traj.status.step}
+
+
+_block = jax.jit(_block_body, static_argnames=("columns", "n_steps"))
+
+
+class Runner:
+    """Runs rounds of blocks, one block per device of the mesh, and returns host arrays."""
+
+    AXIS = "batch"
+
+    def __init__(self, setup, columns, n_steps, dt, window_start, state_bound, chunk,
+                 parallel="per_device", devices=None):
+        self.devices = list(devices if devices is not None else jax.devices())
+        self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
+        self.n_dev = len(self.devices)
+        self.chunk = chunk
+        self.columns = tuple(columns)
+        self.n_steps = n_steps
+        self.dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
+        self.scalars = tuple(np.asarray(v, self.dtype) for v in (dt, window_start, state_bound))
+        self.in_sharding = NamedSharding(self.mesh, P(self.AXIS, None))
+        self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
+        self.parallel = parallel
+        self._compiled = False
+        me = jax.process_index()
+        self.local = [d for d in self.devices if d.process_index == me]
+        if parallel == "spmd":
+            body = jax.shard_map(
+                lambda s, t, *a: _block_body(s, t, *a, columns=self.columns, n_steps=n_steps),
+                mesh=self.mesh, in_specs=(P(), P(self.AXIS, None), P(), P(), P()),
+                out_specs=P(self.AXIS), check_vma=False)
+            self._spmd = jax.jit(body)
+            self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
+        else:
+            self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
+
+    @property
+    def round_size(self) -> int:
+        return self.n_dev * self.chunk
+
+    def __call__(self, table: np.ndarray, n_real: int) -> dict[str, np.ndarray]:
+        """table: (n_dev * chunk, d) host array, identical on every process; its first
+        `n_real` blocks are real (the others pad the round and their rows are garbage)."""
+        table = np.asarray(table, self.dtype)
+        arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
+        if self.parallel == "spmd":
+            out = self._spmd(self.setup, arr, *self.scalars)
+            return {k: _to_host(v) for k, v in out.items()}
+        single = jax.process_count() == 1
+        jobs = {}
+        for shard in arr.addressable_shards:
+            block = (shard.index[0].start or 0) // self.chunk
+            if not (single and block >= n_real):  # one process: padding blocks need not run
+                jobs[block] = shard
+
+        def dispatch(shard):
+            return shard.device, _block(self.setup_on[shard.device], shard.data, *self.scalars,
+                                        columns=self.columns, n_steps=self.n_steps)
+
+        if self._compiled or len(jobs) == 1:
+            per_dev = {b: dispatch(sh) for b, sh in jobs.items()}  # asynchronous: devices overlap
+        else:
+            # The first call compiles the program once per device: do that concurrently.
+            with ThreadPoolExecutor(len(jobs)) as pool:
+                per_dev = dict(zip(jobs, pool.map(dispatch, jobs.values()), strict=True))
+        self._compiled = True
+        if single:
+            keys = per_dev[0][1].keys()
+            return {k: np.concatenate([np.asarray(per_dev[b][1][k]) for b in sorted(per_dev)]
+                                      + [np.zeros(self.chunk * (self.n_dev - len(per_dev)),
+                                                  per_dev[0][1][k].dtype)])
+                    for k in keys}
+        by_device = {dev: res for dev, res in per_dev.values()}
+        keys = next(iter(by_device.values())).keys()
+        out = {k: jax.make_array_from_single_device_arrays(
+            (table.shape[0],), self.out_sharding, [by_device[d][k] for d in self.local])
+            for k in keys}
+        return {k: _to_host(v) for k, v in out.items()}
+
+
+def _to_host(a) -> np.ndarray:
+    if a.is_fully_addressable:
+        return np.asarray(a)
+    from jax.experimental import multihost_utils  # only with several processes
+
+    return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+
+

@@ -1,0 +1,289 @@
+"""One sweep end to end: the table of samples, rounds of blocks over the devices, chunk files
+written as blocks finish, resume, and the columns of the result."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from dscjax import config, files, params, validation
+from dscjax.metrics import default_window
+from dscjax.ranges import sample_table
+from dscjax.sweep.device import METRICS, Runner
+from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
+from dscjax.validation import ConfigError
+
+FORMAT_VERSION = 2  # 2: the metrics of diverged rows are NaN (were the frozen values)
+STATUS_COLUMNS = ("diverged", "t_diverged", "status")
+
+
+@dataclasses.dataclass
+class SweepResult:
+    """A finished sweep.
+
+    columns: one array per column, one row per sample (in sample order): "sample", the
+        parameter columns (names as `Range.name`), the metrics (`METRICS`), "diverged",
+        "t_diverged" (+inf if not) and "status" (0 ok, 1 non-finite, 2 state bound).
+    param_names: the parameter columns, in table order.
+    info: sizes, timing and settings (what `summary.json` reports under "run").
+    """
+
+    columns: dict[str, np.ndarray]
+    param_names: tuple[str, ...]
+    info: dict[str, Any]
+
+    @property
+    def n(self) -> int:
+        return int(self.columns["sample"].shape[0])
+
+
+def fingerprint(setup, settings: SweepSettings, ranges, t_final, dt, window_start,
+                state_bound, chunk) -> dict[str, Any]:
+    """Everything that determines the rows of a sweep (and how they are split into files)."""
+    setup_dict = config.to_dict(setup)
+    setup_dict.pop("simulation", None)
+    return {
+        "format": FORMAT_VERSION, "setup": setup_dict,
+        "ranges": [[r.name, r.low, r.high, r.num] for r in ranges],
+        "method": settings.method, "samples": settings.n_samples(), "seed": settings.seed,
+        "dtype": settings.dtype, "t_final": float(t_final), "dt": float(dt),
+        "window_start": float(window_start), "state_bound": float(state_bound),
+        "chunk": int(chunk),
+    }
+
+
+def run_sweep(
+    setup,
+    settings: SweepSettings | None = None,
+    t_final: float = 20.0,
+    dt: float = 1e-3,
+    *,
+    window_start: float | None = None,
+    state_bound: float = 1e6,
+    out_dir: str | Path | None = None,
+    resume: bool = False,
+    overwrite: bool = False,
+    progress: Callable[[dict[str, Any]], None] | None = None,
+    devices=None,
+) -> SweepResult:
+    """Run a sweep of `setup` (gains fixed) over `settings`; see the module docstring.
+
+    Args:
+        setup: the nominal Setup; it is cast to `settings.dtype`.
+        settings: what to sample and how (validated here; ConfigError names the field);
+            default `SweepSettings()`.
+        t_final, dt, window_start, state_bound: as in `simulate` (window default 1 s).
+        out_dir: write chunk files and results.npz there (None: keep everything in memory).
+        resume: skip the blocks already in out_dir (written by the same settings).
+        overwrite: start afresh even if out_dir holds chunk files of a sweep.
+        progress: called after every round with a dict (done, total, elapsed_s,
+            steps_per_s, eta_s, ...).
+        devices: the devices to use (default: all, over every host).
+
+    Returns:
+        SweepResult; nothing is raised for diverged samples.
+
+    Example:
+        >>> import dscjax, numpy as np
+        >>> from dscjax.sweep import SweepSettings, run_sweep
+        >>> res = run_sweep(dscjax.paper_example(dtype=np.float32), SweepSettings(samples=8),
+        ...                 t_final=0.5, dt=1e-3)
+        >>> res.columns["linf_error_window"].shape
+        (8,)
+    """
+    settings = settings or SweepSettings()
+    window_start = default_window(t_final, window_start)
+    validation.one_of(settings.dtype, "sweep.dtype", DTYPES)
+    dtype = np.dtype(settings.dtype)
+    if dtype == np.float64 and not jax.config.jax_enable_x64:
+        raise ConfigError("sweep.dtype = 'float64' needs JAX's x64 mode: "
+                          "jax.config.update('jax_enable_x64', True) before anything else")
+    setup = params.cast(setup, dtype)
+    ranges = check_settings(settings, setup, t_final, dt, window_start)
+    n_steps = validation.validate_run(setup, t_final, dt, 1, window_start)
+    validation.validate_setup(setup)
+    if not (state_bound > 0):
+        raise ConfigError(f"simulation.state_bound must be > 0 (got {state_bound})")
+    n = settings.n_samples()
+    chunk = settings.chunk or auto_chunk(n)
+    columns = tuple(r.param for r in ranges)
+    names = tuple(r.name for r in ranges)
+    table = sample_table(ranges, settings.method, n, settings.seed)
+    # the values actually simulated: rounded to the sweep's dtype
+    table = table.astype(dtype).astype(np.float64)
+    n_blocks = -(-n // chunk)
+    fp = fingerprint(setup, settings, ranges, t_final, dt, window_start, state_bound, chunk)
+    digest = files.digest(fp)
+
+    out = Path(out_dir) if out_dir is not None else None
+    main = jax.process_index() == 0
+    done = np.zeros(n_blocks, dtype=bool)
+    if out is not None:
+        done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
+    kept: dict[int, dict[str, np.ndarray]] = {}
+
+    runner = Runner(setup, columns, n_steps, dt, window_start, state_bound, chunk,
+                    settings.parallel, devices)
+    todo = [b for b in range(n_blocks) if not done[b]]
+    t_start = time.perf_counter()
+    n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))
+    n_run, t_first_round = 0, None
+    for r in range(0, len(todo), runner.n_dev):
+        group = todo[r:r + runner.n_dev]
+        padded = group + [group[-1]] * (runner.n_dev - len(group))
+        rows = np.concatenate([_block_rows(table, b, chunk) for b in padded])
+        host = runner(rows, len(group))
+        for k, b in enumerate(group):
+            lo = b * chunk
+            m = _block_len(b, chunk, n)
+            part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
+            data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
+                            table[lo:lo + m], part, dt)
+            if out is not None:
+                if main:
+                    files.write_npz(_chunk_path(out, b),
+                                    {**data, "_fingerprint": np.array(digest)})
+            else:
+                kept[b] = data
+            n_run += m
+        now = time.perf_counter()
+        if t_first_round is None:
+            t_first_round = (now, n_run)
+        if progress is not None:
+            progress(_progress(n_done_before + n_run, n, n_run, now - t_start, t_first_round,
+                               t_start, n_steps, r // runner.n_dev + 1,
+                               -(-len(todo) // runner.n_dev)))
+    elapsed = time.perf_counter() - t_start
+
+    if out is not None:
+        parts = []
+        for b in range(n_blocks):
+            data = _read_chunk(_chunk_path(out, b), digest) if main else None
+            if main and data is None:
+                raise ConfigError(f"{_chunk_path(out, b)} is missing or unreadable after the "
+                                  f"sweep; run again with --resume")
+            parts.append(data)
+    else:
+        parts = [kept[b] for b in range(n_blocks)]
+    columns_out = ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+                   if parts and parts[0] is not None else {})
+    if out is not None and main:
+        files.write_npz(out / "results.npz", columns_out)
+    info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
+                devices=runner.n_dev, processes=jax.process_count(),
+                platform=runner.devices[0].platform, parallel=settings.parallel,
+                n_steps=n_steps, dtype=settings.dtype, t_final=float(t_final), dt=float(dt),
+                window_start=float(window_start), state_bound=float(state_bound),
+                method=settings.method, seed=settings.seed,
+                ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
+                samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
+                steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)
+    return SweepResult(columns=columns_out, param_names=names, info=info)
+
+
+def check_resumable(out: str | Path) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json)."""
+    if not (Path(out) / "sweep.json").exists():
+        raise ConfigError(f"--resume: nothing to resume in {out} (sweep.json is missing); run "
+                          f"without --resume to start afresh")
+
+
+def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
+    manifest = out / "sweep.json"
+    done = np.zeros(n_blocks, dtype=bool)
+    if resume:
+        check_resumable(out)
+    if main:
+        (out / "chunks").mkdir(parents=True, exist_ok=True)
+        existing = sorted((out / "chunks").glob("chunk_*.npz"))
+        if resume:
+            files.check_same(files.read_json(manifest).get("fingerprint"), fp,
+                             where=f"--resume: {manifest}",
+                             fix="use the same settings, or --overwrite to start afresh")
+            for b in range(n_blocks):
+                done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
+        elif existing and not overwrite:
+            raise ConfigError(f"{out} already holds a sweep ({len(existing)} chunk files); "
+                              f"use --resume to continue it or --overwrite to start afresh")
+        else:
+            for f in existing:
+                f.unlink()
+            (out / "results.npz").unlink(missing_ok=True)
+        files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        done = np.asarray(multihost_utils.broadcast_one_to_all(done))
+    return done
+
+
+def _block_len(b, chunk, n):
+    return min(chunk, n - b * chunk)
+
+
+def _block_rows(table, b, chunk):
+    rows = table[b * chunk:(b + 1) * chunk]
+    if rows.shape[0] < chunk:  # pad the last block with its first row (a valid sample)
+        rows = np.concatenate([rows, np.repeat(rows[:1], chunk - rows.shape[0], axis=0)])
+    return rows
+
+
+def _columns(sample, names, values, part, dt) -> dict[str, np.ndarray]:
+    code = part["status"].astype(np.int8)
+    step = part["bad_step"].astype(np.int64)
+    out = {"sample": sample}
+    out |= {name: values[:, j] for j, name in enumerate(names)}
+    out |= {k: part[k] for k in METRICS}
+    out["diverged"] = code != 0
+    out["t_diverged"] = np.where(step >= 0, step * float(dt), np.inf)
+    out["status"] = code
+    return out
+
+
+def _read_chunk(path: Path, fingerprint: str) -> dict[str, np.ndarray] | None:
+    """A finished chunk file, or None if missing, unreadable or from another sweep."""
+    data = files.read_npz(path)
+    if data is None or str(data.pop("_fingerprint", "")) != fingerprint:
+        return None
+    return data
+
+
+def _chunk_path(out_dir: Path, b: int) -> Path:
+    return out_dir / "chunks" / f"chunk_{b:06d}.npz"
+
+
+def _progress(done, total, n_run, elapsed, first, t_start, n_steps, round_i, rounds):
+    # The rate after the first round excludes compilation; the ETA uses it once known.
+    t_first, n_first = first
+    if n_run > n_first and (t_start + elapsed) > t_first:
+        rate = (n_run - n_first) / (t_start + elapsed - t_first)
+    else:
+        rate = n_run / elapsed if elapsed > 0 else 0.0
+    eta = (total - done) / rate if rate > 0 else math.inf
+    return dict(done=done, total=total, elapsed_s=elapsed, samples_per_s=rate,
+                steps_per_s=rate * n_steps, eta_s=eta, round=round_i, rounds=rounds)
+
+
+def format_progress(p: Mapping[str, Any]) -> str:
+    """One line: samples done, throughput and ETA."""
+    frac = p["done"] / p["total"] if p["total"] else 1.0
+    return (f"  {p['done']:,}/{p['total']:,} samples ({100 * frac:5.1f} %)  "
+            f"{p['steps_per_s']:.3g} steps/s  elapsed {_hms(p['elapsed_s'])}  "
+            f"ETA {_hms(p['eta_s'])}")
+
+
+def _hms(s: float) -> str:
+    if not math.isfinite(s):
+        return "--"
+    s = int(round(s))
+    return f"{s // 3600}h{s // 60 % 60:02d}m{s % 60:02d}s" if s >= 3600 else (
+        f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s")
+
+
