@@ -6,9 +6,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
     traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
 """
 
-# First: dscjax._xla sets XLA_FLAGS on import, before any computation creates the CPU backend.
-from dscjax import _xla  # noqa: F401  isort: skip
-from dscjax import metrics, params, stability
+from dscjax import metrics, params, stability, xla
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
@@ -39,5 +37,5 @@ __all__ = [
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
     "default_window", "divergence_report", "initial_state", "integrate", "metrics",
     "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared", "rk4_step",
-    "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field",
+    "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field", "xla",
 ]

@@ -285,15 +285,12 @@ LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)"
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
     """Log-scale panels of every metric against n, one line per controller, fitted growth in
     the legend."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dscjax.plotting import subplots
 
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
     panels = ("eqns", "flops", "build_s", "eval_s")
-    fig, axes = plt.subplots(2, 2, figsize=(9, 6.4), constrained_layout=True)
+    fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
     for ax, metric in zip(axes.ravel(), panels, strict=True):
         for c in result["fits"]:
             rows = [r for r in result["rows"] if r["controller"] == c]
@@ -318,4 +315,3 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
         ax.legend(fontsize=8, loc="upper left")
     fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)
     fig.savefig(path, dpi=dpi)
-    plt.close(fig)

@@ -1,4 +1,9 @@
-"""Plots of trajectories (matplotlib's object API: no pyplot, no backend is chosen or changed)."""
+"""Plots of trajectories, and the one way dscjax makes a figure.
+
+Every figure of the project is a `matplotlib.figure.Figure` made by `subplots` below: the
+object API, never pyplot, so no backend is chosen or changed and no global state (a notebook's
+display backend, its rcParams) is touched; styles apply through `matplotlib.rc_context`.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +15,15 @@ import numpy as np
 COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": "#9467bd",
           "x": ("#1f77b4", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f",
                 "#aec7e8")}
+
+
+def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", **kwargs):
+    """(Figure, axes) like `pyplot.subplots`, but a Figure no pyplot state knows about: it is
+    saved with `fig.savefig` and freed with it, and needs no backend."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout=layout)
+    return fig, fig.subplots(nrows, ncols, **kwargs)
 
 
 def plot_trajectory(traj, path: Path | str, title: str = ""):

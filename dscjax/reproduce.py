@@ -30,6 +30,7 @@ from dscjax import files
 from dscjax.controllers.backstepping import with_backstepping
 from dscjax.examples import paper_example
 from dscjax.integrate import rk4_step
+from dscjax.plotting import COLORS, subplots
 from dscjax.simulate import divergence_report, simulate
 
 RUNS = ("dsc", "dsc_no_dhat", "dsc_no_dhat_no_zeta", "backstepping")
@@ -288,38 +289,29 @@ def complexity_claim(result: dict) -> dict:
 # -- figures -----------------------------------------------------------------------------------
 
 
-def _plt():
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    plt.rcParams.update({"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5,
-                         "axes.grid": True, "grid.alpha": 0.3})
-    return plt
+# The style of the paper's figures, applied with matplotlib.rc_context (never globally).
+RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid": True,
+      "grid.alpha": 0.3}
 
 
 def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
     path = out / f"{stem}.{fmt}"
     fig.savefig(path, dpi=dpi)
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
     return path
 
 
-def _time_axes(plt, title: str, ylabel: str):
-    fig, ax = plt.subplots(figsize=(6.4, 3.8), layout="constrained")
+def _time_axes(title: str, ylabel: str):
+    fig, ax = subplots(figsize=(6.4, 3.8), layout="constrained")
     ax.set_xlabel("time $t$ [s]")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     return fig, ax
 
 
-def _time_axes_after(plt, title: str, ylabel: str, t_after: float):
+def _time_axes_after(title: str, ylabel: str, t_after: float):
     """Two panels: the whole horizon, and t >= t_after, where the first second's peak no
     longer sets the scale."""
-    fig, (ax, zoom) = plt.subplots(2, 1, figsize=(6.4, 5.6), layout="constrained")
+    fig, (ax, zoom) = subplots(2, 1, figsize=(6.4, 5.6), layout="constrained")
     ax.set_ylabel(ylabel)
     ax.set_title(title)
     zoom.set_xlabel("time $t$ [s]")
@@ -350,15 +342,19 @@ def _line(ax, traj, signal, name, **over):
 
 def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150) -> dict:
     """Write Figs. 1-6 and the estimates figure; returns {figure id: path}."""
-    from dscjax.plotting import COLORS
+    import matplotlib
 
-    plt = _plt()
+    with matplotlib.rc_context(RC):
+        return _figures(trajs, loops, out, fmt, dpi)
+
+
+def _figures(trajs, loops, out, fmt, dpi):
     paths = {}
     hyst = paper_example().hysteresis
     lam, psi, alpha = (float(hyst.lam), float(hyst.psi), float(hyst.alpha))
 
     loop_colors = ("#8c564b", COLORS["w"])  # small loop brown, large loop the colour of w
-    fig, axes = plt.subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
+    fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
     axes = np.atleast_1d(axes)
     umax = max(float(np.max(np.abs(u))) for _, u, _ in loops.values())
     ug = np.linspace(-umax, umax, 2)
@@ -376,7 +372,7 @@ def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 15
                  f"$\\lambda$ = {lam:g}, $\\psi$ = {psi:g}")
     paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
 
-    fig, ax = _time_axes(plt, "Fig. 2  Tracking error of the DSC with and without hysteresis "
+    fig, ax = _time_axes("Fig. 2  Tracking error of the DSC with and without hysteresis "
                          "compensation", "tracking error $e = y - y_r$ [-]")
     for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc"):
         _line(ax, trajs[name], "e", name)
@@ -388,7 +384,7 @@ def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 15
             ("fig3", "u", "Fig. 3  Control signal of the DSC", "control input $u$ [-]"),
             ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
              "hysteresis output $w$ [-]")):
-        fig, ax, zoom = _time_axes_after(plt, title, ylabel, t_after)
+        fig, ax, zoom = _time_axes_after(title, ylabel, t_after)
         _line(ax, trajs["dsc"], signal, "dsc")
         ax.axvspan(t_after, float(np.asarray(trajs["dsc"].t)[-1]), color="#999999",
                    alpha=0.08, lw=0, label=f"shown below: $t \\geq$ {t_after:g} s")
@@ -397,25 +393,25 @@ def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 15
         paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
     faint = dict(lw=0.9, alpha=0.55)
-    fig, ax = _time_axes(plt, "Fig. 5  Tracking error of adaptive backstepping",
+    fig, ax = _time_axes("Fig. 5  Tracking error of adaptive backstepping",
                          "tracking error $e = y - y_r$ [-]")
     _line(ax, trajs["dsc"], "e", "dsc", **faint)
     _line(ax, trajs["backstepping"], "e", "backstepping")
     _legend_below(fig, ax, ncol=2)
     paths["fig5"] = _finish(fig, out, FIGURES["fig5"], fmt, dpi)
 
-    fig, ax = _time_axes(plt, "Fig. 6  Control signal of adaptive backstepping",
+    fig, ax = _time_axes("Fig. 6  Control signal of adaptive backstepping",
                          "control input $u$ [-]")
     _line(ax, trajs["dsc"], "u", "dsc", **faint)
     _line(ax, trajs["backstepping"], "u", "backstepping")
     _legend_below(fig, ax, ncol=2)
     paths["fig6"] = _finish(fig, out, FIGURES["fig6"], fmt, dpi)
 
-    paths["estimates"] = _estimates_figure(plt, trajs, out, fmt, dpi)
+    paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
     return paths
 
 
-def _estimates_figure(plt, trajs, out, fmt, dpi):
+def _estimates_figure(trajs, out, fmt, dpi):
     setup = paper_example()
     g, theta = np.asarray(setup.plant.g, float), np.asarray(setup.plant.theta, float)
     lam = float(setup.hysteresis.lam)
@@ -424,7 +420,7 @@ def _estimates_figure(plt, trajs, out, fmt, dpi):
             "zeta_hat": (1.0 / (lam * g[1]), r"$1/(\lambda g_2)$")}
     panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]"), ("phi_hat_1", r"$\hat\phi_1$ [-]"),
               ("zeta_hat", r"$\hat\zeta$ [-]"), ("d_hat", r"$\hat d$ [-]"))
-    fig, axes = plt.subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")
+    fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")
     for ax, (key, ylabel) in zip(axes.ravel(), panels, strict=True):
         for name in ("dsc", "backstepping"):
             traj = trajs[name]

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import metrics as m
-from dscjax import params, validation
+from dscjax import params, validation, xla
 from dscjax.closed_loop import Setup, State, initial_state, prepared, vector_field
 from dscjax.integrate import (
     DEFAULT_CHECKPOINT_EVERY,
@@ -397,8 +397,8 @@ def simulate_batch(
                            checkpoint_every=checkpoint_every)
 
 
-@functools.partial(jax.jit,
-                   static_argnames=("n_steps", "save_every", "checkpoint_every"))
+@functools.partial(jax.jit, static_argnames=("n_steps", "save_every", "checkpoint_every"),
+                   compiler_options=xla.compiler_options())
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
                     checkpoint_every=DEFAULT_CHECKPOINT_EVERY):
     return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,

@@ -1,13 +1,13 @@
-"""Batched throughput with and without XLA:CPU's 512-bit vectors (`dscjax/_xla.py`).
+"""Batched throughput with and without XLA:CPU's 512-bit vectors (`dscjax/xla.py`).
 
     python experiments/bench_vector_width.py [--horizon 3] [--repeats 5] [--rounds 2]
 
-Each configuration runs in a fresh process (XLA reads its flags once per process): the default
-(dscjax adds `--xla_cpu_prefer_vector_width=512` on AVX-512 CPUs) against
-`DSCJAX_NO_XLA_FLAGS=1`, interleaved for --rounds rounds. Paper's example, batch-last
-`simulate_batch` over alpha, lam, psi (+-30 %), metrics only; float32 and float64. Prints a
-table of steps/s and the ratio, checks that both modes give bitwise equal metrics, and writes
-results/bench_vector_width.json.
+Each configuration runs in a fresh process: the batched simulation compiled with
+`compiler_options=dscjax.xla.WIDE` (what `simulate_batch` and sweeps use on AVX-512 CPUs)
+against the same program compiled without it, interleaved for --rounds rounds. Paper's
+example, batch-last `simulate_batch` over alpha, lam, psi (+-30 %), metrics only; float32
+and float64. Prints a table of steps/s and the ratio, checks that both modes give bitwise
+equal metrics, and writes results/bench_vector_width.json.
 """
 
 from __future__ import annotations
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SIZES = (512, 4096, 16384)
 
 
-def child(horizon: float, repeats: int) -> dict:
+def child(mode: str, horizon: float, repeats: int) -> dict:
     import time
 
     import jax
@@ -34,22 +34,26 @@ def child(horizon: float, repeats: int) -> dict:
     import jax.numpy as jnp
 
     import dscjax
-    from dscjax.simulate import _simulate_batch
+    from dscjax import xla
+    from dscjax.simulate import _run_reported
 
+    batch = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every"),
+                    compiler_options=xla.WIDE if mode == "wide" else None)
     dt = 1e-3
     n = int(round(horizon / dt))
-    res = {"xla_flags": os.environ.get("XLA_FLAGS", "")}
+    res = {}
     for dtype in (np.float32, np.float64):
-        setup = dscjax.paper_example(dtype=dtype)
+        setup = dscjax.canonical(dscjax.paper_example(dtype=dtype))
         for b in SIZES:
             rng = np.random.default_rng(0)
             over = {"hysteresis.alpha": jnp.asarray(rng.uniform(0.7, 1.3, b), dtype),
                     "hysteresis.lam": jnp.asarray(rng.uniform(1.0, 1.86, b), dtype),
                     "hysteresis.psi": jnp.asarray(rng.uniform(0.0735, 0.1365, b), dtype)}
 
-            def run(over=over, setup=setup):
-                return _simulate_batch(setup, over, dt, 1.0, 1e6, n_steps=n,
-                                       save_every=n).metrics
+            def run(over=over, setup=setup, dtype=dtype):
+                return batch(setup, jnp.asarray(dt, dtype), jnp.asarray(1.0, dtype),
+                             jnp.asarray(1e6, dtype), n_steps=n, save_every=n,
+                             overrides=over).metrics
 
             m = jax.block_until_ready(run())
             ts = []
@@ -69,22 +73,20 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--rounds", type=int, default=2)
     p.add_argument("--out", default=str(ROOT / "results" / "bench_vector_width.json"))
-    p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    p.add_argument("--child", choices=("wide", "narrow"), help=argparse.SUPPRESS)
     a = p.parse_args(argv)
     if a.child:
-        print(json.dumps(child(a.horizon, a.repeats)))
+        print(json.dumps(child(a.child, a.horizon, a.repeats)))
         return 0
     runs = {"wide": [], "narrow": []}
-    base = {k: v for k, v in os.environ.items() if k not in ("XLA_FLAGS", "DSCJAX_NO_XLA_FLAGS")}
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
     for r in range(a.rounds):
         for mode in ("narrow", "wide"):
-            env = dict(base, **({"DSCJAX_NO_XLA_FLAGS": "1"} if mode == "narrow" else {}))
             print(f"  round {r + 1}/{a.rounds}: {mode} ...", file=sys.stderr, flush=True)
-            out = subprocess.run([sys.executable, __file__, "--child", "--horizon",
+            out = subprocess.run([sys.executable, __file__, "--child", mode, "--horizon",
                                   str(a.horizon), "--repeats", str(a.repeats)], env=env,
                                  capture_output=True, text=True, check=True)
             runs[mode].append(json.loads(out.stdout.strip().splitlines()[-1]))
-    print(f"\nXLA_FLAGS of the default: {runs['wide'][0]['xla_flags']!r}")
     print(f"paper's example, {a.horizon:g} s at dt = 1e-3, median of {a.repeats} per process, "
           f"median over {a.rounds} process(es) per mode; load average {os.getloadavg()[0]:.2f}")
     print(f"{'dtype':8} {'batch':>6} {'256-bit [steps/s]':>18} {'512-bit [steps/s]':>18} "
@@ -103,7 +105,7 @@ def main(argv=None) -> int:
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(dict(horizon=a.horizon, repeats=a.repeats, rounds=a.rounds,
-                                   xla_flags=runs["wide"][0]["xla_flags"], table=table),
+                                   table=table),
                               indent=1) + "\n")
     print(f"wrote {out}")
     return 0

@@ -114,14 +114,11 @@ def _table(r):
 
 
 def _plot(r, path):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from dscjax.plotting import subplots
 
     probs = list(r["problems"])
-    fig, ax = plt.subplots(1, len(probs), figsize=(5.5 * len(probs), 4), squeeze=False,
-                           constrained_layout=True)
+    fig, ax = subplots(1, len(probs), figsize=(5.5 * len(probs), 4), squeeze=False,
+                           layout="constrained")
     colors = {"gradient": "#d62728", "cma_es": "#1f77b4", "random_search": "#7f7f7f"}
     for a, name in zip(ax[0], probs, strict=True):
         for key, m in r["problems"][name]["methods"].items():
@@ -135,7 +132,6 @@ def _plot(r, path):
         a.grid(alpha=0.3, which="both")
         a.legend()
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -4,6 +4,7 @@ pieces (hysteresis loops, growth fits, equation counts) match their references."
 
 import json
 import math
+import time
 
 import jax
 import jax.numpy as jnp
@@ -19,13 +20,23 @@ from dscjax.reproduce import FIGURES, METRIC_FIELDS, RUNS, hysteresis_loops
 T_SHORT = 2.0
 
 
+def _rc():
+    import matplotlib
+
+    return {k: repr(v) for k, v in dict.items(matplotlib.rcParams)}
+
+
 @pytest.fixture(scope="module")
 def reproduced(tmp_path_factory):
     out = tmp_path_factory.mktemp("paper")
+    rc, t0 = _rc(), time.perf_counter()
     code = main(["reproduce", "--out", str(out), "--t-final", str(T_SHORT), "--dpi", "40",
                  "--complexity", "--orders", "2-3", "--repeats", "1"])
+    elapsed = time.perf_counter() - t0
     assert code == 0
-    return out, json.loads((out / "summary.json").read_text())
+    assert _rc() == rc  # the figures' style is applied with rc_context, never globally
+    summary = json.loads((out / "summary.json").read_text())
+    return out, summary | {"_elapsed": elapsed}
 
 
 def test_writes_every_file(reproduced):
@@ -68,7 +79,8 @@ def test_summary_fields_are_finite(reproduced):
             "signals_bounded", "dsc_removes_explosion_of_complexity"} <= ids
     for c in summary["claims"]:
         assert isinstance(c["holds"], bool) and c["measured"] and c["paper"] and c["verdict"]
-    assert summary["wall_time_s"] > 0
+    # the whole study, timed inside the command: less than the call took, more than its parts
+    assert 0 < summary["complexity"]["wall_time_s"] < summary["wall_time_s"] < summary["_elapsed"]
 
 
 def test_summary_numbers_match_an_independent_computation(reproduced):

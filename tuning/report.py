@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import files, validation
+from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -274,8 +275,6 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     """loss_curve.png: the loss (and best loss, rejected steps marked), the L-inf error and
     max|u| per iteration, each in its own panel with its own axis and legend; the bound on
     max|u| is a labelled line. Returns the Figure (already saved)."""
-    from matplotlib.figure import Figure
-
     it = np.array([r["iteration"] for r in history])
     loss = np.array([r["loss"] for r in history], dtype=float)
     best = np.array([r["best_loss"] for r in history], dtype=float)
@@ -283,8 +282,7 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     linf = np.array([r["linf_window"] for r in history], dtype=float)
     umax = np.array([r["max_abs_u"] for r in history], dtype=float)
     # three panels, one quantity and one y-axis each (no twin axes)
-    fig = Figure(figsize=(14, 4), layout="constrained")
-    ax = fig.subplots(1, 3)
+    fig, ax = subplots(1, 3, figsize=(14, 4))
     ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
     ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
     if (~acc).any():
@@ -309,11 +307,6 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
 
 
 def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     figures = []
     if result.history:
         plot_loss_curve(result.history, out / "loss_curve.png",
@@ -321,7 +314,7 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
-    fig, ax = plt.subplots(3, 1, figsize=(10, 8.5), constrained_layout=True)
+    fig, ax = subplots(3, 1, figsize=(10, 8.5), layout="constrained")
     for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
@@ -347,11 +340,10 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
         a.grid(alpha=0.3)
         a.legend(loc="upper right", fontsize=8)
     fig.savefig(out / "before_after.png", dpi=110)
-    plt.close(fig)
     figures.append("before_after.png")
 
     if ev["heldout"] is not None:
-        fig, ax = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
+        fig, ax = subplots(1, 2, figsize=(11, 4), layout="constrained")
         for i, key in enumerate(("linf_error_window", "max_abs_u")):
             for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
                 m = ev["heldout"][tag]
@@ -377,6 +369,5 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
         fig.suptitle(f"held-out batch of {n} plants: distribution (ECDF) with the start and the "
                      f"tuned gains (solid: median, dashed: p95)")
         fig.savefig(out / "heldout.png", dpi=110)
-        plt.close(fig)
         figures.append("heldout.png")
     return figures

@@ -10,7 +10,7 @@ import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
-from dscjax import params
+from dscjax import params, xla
 from dscjax.simulate import nan_if_diverged, run
 
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
@@ -26,7 +26,9 @@ def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps
             "bad_step": traj.status.step}
 
 
-_block = jax.jit(_block_body, static_argnames=("columns", "n_steps"))
+# One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
+_block = jax.jit(_block_body, static_argnames=("columns", "n_steps"),
+                 compiler_options=xla.compiler_options())
 
 
 class Runner:
@@ -55,7 +57,7 @@ class Runner:
                 lambda s, t, *a: _block_body(s, t, *a, columns=self.columns, n_steps=n_steps),
                 mesh=self.mesh, in_specs=(P(), P(self.AXIS, None), P(), P(), P()),
                 out_specs=P(self.AXIS), check_vma=False)
-            self._spmd = jax.jit(body)
+            self._spmd = jax.jit(body, compiler_options=xla.compiler_options())
             self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
         else:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}

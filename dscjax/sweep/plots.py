@@ -1,6 +1,6 @@
 """Figures of a sweep: histogram and heatmap of the windowed L-inf error, worst-case traces.
 
-matplotlib with the Agg backend (no display needed); every function writes one PNG.
+Every function writes one PNG (`dscjax.plotting.subplots`: no backend is chosen or changed).
 """
 
 from __future__ import annotations
@@ -9,13 +9,12 @@ import re
 from collections.abc import Sequence
 
 import matplotlib
+import numpy as np
+from matplotlib.colors import LogNorm, Normalize
+from matplotlib.lines import Line2D
+from matplotlib.patches import Patch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.colors import LogNorm, Normalize  # noqa: E402
-from matplotlib.lines import Line2D  # noqa: E402
-from matplotlib.patches import Patch  # noqa: E402
+from dscjax.plotting import subplots
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -69,7 +68,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     err = np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
     v = err[~div & np.isfinite(err)]
-    fig, ax = plt.subplots(figsize=(8, 5.4), constrained_layout=True)
+    fig, ax = subplots(figsize=(8, 5.4), layout="constrained")
     if v.size:
         log = _use_log(v)
         lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
@@ -101,7 +100,6 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
               frameon=False)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def _cells(x, edges_x, y, edges_y):
@@ -153,7 +151,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     med, ex, ey, count = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
     div = np.asarray(diverged, bool)
     finite = med[np.isfinite(med)]
-    fig, ax = plt.subplots(figsize=(8, 6.6), constrained_layout=True)
+    fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
         norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
                 else Normalize(finite.min(), finite.max() if finite.max() > finite.min()
@@ -161,7 +159,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     else:
         norm = Normalize(0, 1)
     shown = np.where(np.isfinite(med), med, np.nan)
-    cmap = plt.get_cmap("viridis").with_extremes(bad="#dddddd")
+    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="#dddddd")
     mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
     cb = fig.colorbar(mesh, ax=ax, pad=0.02)
     cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
@@ -214,7 +212,6 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
         ax.legend(handles=handles, fontsize=8, loc="upper center",
                   bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
             "count": count.tolist(),
@@ -226,7 +223,7 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
     """One swept parameter: the windowed L-inf error against it (the 1-D 'heatmap')."""
     x, err = np.asarray(x), np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
-    fig, ax = plt.subplots(figsize=(8, 4.8), constrained_layout=True)
+    fig, ax = subplots(figsize=(8, 4.8), layout="constrained")
     ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
     if div.any():
         top = np.nanmax(err[~div]) if (~div).any() else 1.0
@@ -244,7 +241,6 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
@@ -252,8 +248,8 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     """Tracking error e(t) and control u(t) of the worst samples (colour; dotted and ending
     in x where they diverged) and a random handful (grey), with the nominal setup (black
     dashed)."""
-    fig, ax = plt.subplots(2, 1, figsize=(11, 7), sharex=True, constrained_layout=True)
-    colors = plt.get_cmap("tab10").colors
+    fig, ax = subplots(2, 1, figsize=(11, 7), sharex=True, layout="constrained")
+    colors = matplotlib.colormaps["tab10"].colors
     k = 0
     for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
         t = np.asarray(tr.t)
@@ -288,7 +284,6 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     if title:
         fig.suptitle(title, fontsize=11)
     fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
