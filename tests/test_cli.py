@@ -88,7 +88,8 @@ def test_long_runs_show_progress(tmp_path, capsys, monkeypatch):
     monkeypatch.setattr(cli_simulate, "PROGRESS_MIN_STEPS", 100)
     assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
     err = capsys.readouterr().err
-    assert "simulated   0 %" in err and "simulated 100 % (t = 0.5 of 0.5 s)" in err
+    assert "simulated   0 % (0/500 steps)" in err
+    assert "simulated 100 % (500/500 steps)" in err and "t = 0.5 of 0.5 s" in err
 
 
 def test_assumption_4_violated_is_a_warning_recorded_in_metrics(tmp_path, capsys):

@@ -127,16 +127,16 @@ def _interrupted(capsys, argv):
 
 def test_sweep_interrupt_prints_the_resume_command_that_finishes_it(tmp_path, capsys,
                                                                      monkeypatch):
-    from dscjax import sweep
+    from dscjax.progress import Progress
 
-    def stop(p):
+    def stop(*args):  # Ctrl-C after the first round
         raise KeyboardInterrupt
 
     out = tmp_path / "s"
     # the block shape and horizon of tests/test_sweep.py: one compiled program serves both
     argv = ["sweep", "--samples", "16", "--chunk", "8", "--t-final", "0.5", "--float64",
             "--worst", "0", "--random", "0", "--no-plot", "--out", str(out)]
-    monkeypatch.setattr(sweep, "format_progress", stop)
+    monkeypatch.setattr(Progress, "update_to", stop)
     last, command = _interrupted(capsys, argv)
     assert "1 finished block(s) are kept" in last
     assert command == ["dscjax", *argv, "--resume"]

@@ -430,8 +430,8 @@ def _best_from_file(out: Path, state, problem: Problem):
 
 
 def format_progress(row: dict) -> str:
+    """The figures of one iteration's row, for a progress display (dscjax.progress)."""
     terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
-    return (f"iter {row['iteration'] + 1:>4}/{row['steps']}  loss {row['loss']:.4g}"
-            f"{'' if row['accepted'] else ' (rejected)'}  best {row['best_loss']:.4g}  "
-            f"[{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| {row['max_abs_u']:.4g}  "
-            f"lr {row['lr']:.3g}  {row['wall_s']:.1f} s")
+    return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
+            f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "
+            f"{row['max_abs_u']:.4g}  lr {row['lr']:.3g}")

@@ -10,6 +10,7 @@ import numpy as np
 
 from dscjax.cli.common import add_config_args, load_setup, prepare_out
 from dscjax.files import write_json, write_npz
+from dscjax.progress import Progress
 
 
 def _default_variant() -> str:
@@ -81,9 +82,15 @@ def run(args) -> int:
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {_size(nbytes)} ({n_steps // every + 1:,} "
               f"points)", file=sys.stderr)
-    progress = None
+    bar, progress = None, None
     if n_steps >= PROGRESS_MIN_STEPS:
-        progress = _progress_printer(options.t_final)
+        bar = Progress(n_steps, desc="  simulated", unit="step")
+
+        def progress(frac: float) -> None:
+            if frac == 0.0:
+                bar.restart_clock()  # the loop starts now: compilation is over
+            bar.update_to(round(frac * n_steps),
+                          f"t = {frac * options.t_final:.4g} of {options.t_final:g} s")
     t0 = time.perf_counter()
     diverged = None
     try:
@@ -93,8 +100,8 @@ def run(args) -> int:
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
     finally:
-        if progress is not None:
-            progress.close()
+        if bar is not None:
+            bar.close()
     elapsed = time.perf_counter() - t0
 
     arrays = {"t": traj.t, "x": traj.x, "u": traj.u, "w": traj.w, "yr": traj.yr, "e": traj.e,
@@ -200,39 +207,6 @@ def _check_memory(setup, options, every: int, n_steps: int) -> int:
             f"--save-every, or omit it for the automatic stride (at most "
             f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     return nbytes
-
-
-class _progress_printer:
-    """Progress of one long run on stderr: the line rewritten in place on a terminal, else a
-    line every 5 s."""
-
-    def __init__(self, t_final: float):
-        self.t_final = t_final
-        self.tty = sys.stderr.isatty()
-        self.start = time.perf_counter()
-        self.last = -1e9
-        self.shown = False
-
-    def __call__(self, frac: float) -> None:
-        now = time.perf_counter()
-        if not (self.tty or frac >= 1.0 or now - self.last >= 5.0):
-            return
-        if frac == 0.0:
-            self.start = now  # the loop starts now: compilation is over
-        elapsed = now - self.start
-        eta = elapsed * (1 - frac) / frac if frac > 0 else float("nan")
-        text = (f"  simulated {100 * frac:3.0f} % (t = {frac * self.t_final:.4g} of "
-                f"{self.t_final:g} s), elapsed {elapsed:.0f} s"
-                + (f", ETA {eta:.0f} s" if 0 < frac < 1 else ""))
-        if self.tty:
-            print("\r" + text + "\x1b[K", end="", file=sys.stderr, flush=True)
-        else:
-            print(text, file=sys.stderr, flush=True)
-        self.last, self.shown = now, True
-
-    def close(self) -> None:
-        if self.tty and self.shown:
-            print(file=sys.stderr)
 
 
 def interrupt_hint(args) -> str:

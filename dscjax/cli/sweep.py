@@ -11,13 +11,13 @@ from __future__ import annotations
 import dataclasses
 import json
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from dscjax.cli.common import add_horizon_args, prepare_out
 from dscjax.files import write_json
+from dscjax.progress import Progress
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
@@ -221,24 +221,22 @@ def run(args) -> int:
                                    else "sweep.ranges")
     for w in warnings if main else ():
         print(f"dscjax sweep: warning: {w}", file=sys.stderr)
-    tty = sys.stderr.isatty()
-    last = [0.0]
+    bar = None
 
     def progress(p):
-        if args.quiet or not main:
-            return
-        now = time.perf_counter()
-        final = p["done"] >= p["total"]
-        if tty:
-            print("\r" + sweep.format_progress(p), end="\n" if final else "", file=sys.stderr,
-                  flush=True)
-        elif final or now - last[0] >= 5.0:
-            print(sweep.format_progress(p), file=sys.stderr, flush=True)
-            last[0] = now
+        nonlocal bar
+        if bar is None:  # after the first round: its time (compilation included) counts
+            bar = Progress(p["total"], desc="  sweep", unit="sample", initial=p["resumed"],
+                           elapsed=p["elapsed_s"], enabled=main and not args.quiet)
+        bar.update_to(p["done"], f"{p['steps_per_s']:.3g} steps/s")
 
-    result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
-                             state_bound=state_bound, out_dir=out, resume=args.resume,
-                             overwrite=args.overwrite, progress=progress)
+    try:
+        result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
+                                 state_bound=state_bound, out_dir=out, resume=args.resume,
+                                 overwrite=args.overwrite, progress=progress)
+    finally:
+        if bar is not None:
+            bar.close()
     if not main:
         return 0
     info = result.info

@@ -155,6 +155,7 @@ def run(args) -> int:
 
     from dscjax.cli.common import prepare_out
     from dscjax.params import cast
+    from dscjax.progress import Progress
     from tuning import report
     from tuning.config import to_toml
     from tuning.runner import build_problem, check_out_dir, format_progress
@@ -185,25 +186,21 @@ def run(args) -> int:
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
-    tty = sys.stderr.isatty()
-    last = [0.0]
+    bar = None
 
     def progress(row):
-        if args.quiet:
-            return
-        now = time.perf_counter()
-        if tty:
-            print("\r" + format_progress(row) + "\x1b[K", end="", file=sys.stderr, flush=True)
-        elif now - last[0] >= 5.0 or row["iteration"] == 0:
-            print(format_progress(row), file=sys.stderr, flush=True)
-            last[0] = now
+        nonlocal bar
+        if bar is None:
+            bar = Progress(row["steps"], desc="  tune", unit="iteration",
+                           initial=row["iteration"], enabled=not args.quiet)
+        bar.update_to(row["iteration"] + 1, format_progress(row))
 
     try:
         result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
                             progress=progress)
     finally:
-        if tty and not args.quiet:
-            print(file=sys.stderr)
+        if bar is not None:
+            bar.close()
     print(f"  stopped: {result.stop_reason}; {int(result.state.iteration)} iterations"
           + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
           + f", {int(result.state.n_rejected)} rejected, best at iteration "

@@ -35,7 +35,7 @@ measured over the horizon they name; `dscjax.simulate.nan_if_diverged`).
 """
 
 from dscjax.sweep.device import METRICS
-from dscjax.sweep.run import SweepResult, check_resumable, format_progress, run_sweep
+from dscjax.sweep.run import SweepResult, check_resumable, run_sweep
 from dscjax.sweep.settings import (
     AUTO_BLOCK,
     PARALLEL,
@@ -55,6 +55,6 @@ from dscjax.sweep.summary import (
 )
 
 __all__ = ["AUTO_BLOCK", "METRICS", "PARALLEL", "SweepResult", "SweepSettings", "auto_chunk",
-           "check_resumable", "check_settings", "format_progress", "random_rows",
+           "check_resumable", "check_settings", "random_rows",
            "rank_diverged", "rank_worst", "run_sweep", "sample_record", "settings_from_dict",
            "simulate_rows", "summarize", "trace_rows"]

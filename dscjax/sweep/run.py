@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -83,8 +83,9 @@ def run_sweep(
         out_dir: write chunk files and results.npz there (None: keep everything in memory).
         resume: skip the blocks already in out_dir (written by the same settings).
         overwrite: start afresh even if out_dir holds chunk files of a sweep.
-        progress: called after every round with a dict (done, total, elapsed_s,
-            steps_per_s, eta_s, ...).
+        progress: called after every round with a dict: done (samples, resumed ones
+            included), total, resumed, elapsed_s, samples_per_s and steps_per_s (after the
+            first round: without compilation), eta_s, round, rounds.
         devices: the devices to use (default: all, over every host).
 
     Returns:
@@ -159,7 +160,7 @@ def run_sweep(
         if progress is not None:
             progress(_progress(n_done_before + n_run, n, n_run, now - t_start, t_first_round,
                                t_start, n_steps, r // runner.n_dev + 1,
-                               -(-len(todo) // runner.n_dev)))
+                               -(-len(todo) // runner.n_dev)) | {"resumed": n_done_before})
     elapsed = time.perf_counter() - t_start
 
     if out is not None:
@@ -269,21 +270,3 @@ def _progress(done, total, n_run, elapsed, first, t_start, n_steps, round_i, rou
     eta = (total - done) / rate if rate > 0 else math.inf
     return dict(done=done, total=total, elapsed_s=elapsed, samples_per_s=rate,
                 steps_per_s=rate * n_steps, eta_s=eta, round=round_i, rounds=rounds)
-
-
-def format_progress(p: Mapping[str, Any]) -> str:
-    """One line: samples done, throughput and ETA."""
-    frac = p["done"] / p["total"] if p["total"] else 1.0
-    return (f"  {p['done']:,}/{p['total']:,} samples ({100 * frac:5.1f} %)  "
-            f"{p['steps_per_s']:.3g} steps/s  elapsed {_hms(p['elapsed_s'])}  "
-            f"ETA {_hms(p['eta_s'])}")
-
-
-def _hms(s: float) -> str:
-    if not math.isfinite(s):
-        return "--"
-    s = int(round(s))
-    return f"{s // 3600}h{s // 60 % 60:02d}m{s % 60:02d}s" if s >= 3600 else (
-        f"{s // 60}m{s % 60:02d}s" if s >= 60 else f"{s}s")
-
-
