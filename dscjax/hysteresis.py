@@ -10,7 +10,6 @@ monotone the equation is linear in u and has the closed form (5)-(6), implemente
 
 from __future__ import annotations
 
-import dataclasses
 from typing import ClassVar
 
 import jax
@@ -19,11 +18,10 @@ import numpy as np
 
 from dscjax import validation as v
 from dscjax._smooth import smooth_abs
+from dscjax.model import Model, option, positive
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Backlash:
+class Backlash(Model):
     """Backlash-like hysteresis w = P(u), eq. (4).
 
     Attributes:
@@ -35,26 +33,21 @@ class Backlash:
         smooth: static; replace |u'| by sqrt(u'^2 + delta^2) - delta (bias <= delta in |u'|).
     """
 
-    alpha: jax.Array
-    lam: jax.Array
+    alpha: jax.Array = positive()
+    lam: jax.Array = positive()
     psi: jax.Array
     w0: jax.Array = 0.0
-    smooth_delta: jax.Array = 1e-2
-    smooth: bool = dataclasses.field(default=False, metadata=dict(static=True))
+    smooth_delta: jax.Array = positive(default=1e-2)
+    smooth: bool = option(False)
 
     kind: ClassVar[str] = "backlash"
 
-    def expected_shapes(self, n):
-        return dict(alpha=(), lam=(), psi=(), w0=(), smooth_delta=())
-
     def validate(self, prefix):
-        v.positive(self.alpha, f"{prefix}.alpha")
-        v.positive(self.lam, f"{prefix}.lam")
+        super().validate(prefix)
         lam, psi = np.asarray(self.lam, float), np.asarray(self.psi, float)
         if not np.all(lam > psi):
-            raise v.ConfigError(
-                f"{prefix}.lam must be > {prefix}.psi (got lam={v._fmt(lam)}, psi={v._fmt(psi)})")
-        v.positive(self.smooth_delta, f"{prefix}.smooth_delta")
+            raise v.ConfigError(f"{prefix}.lam must be > {prefix}.psi (got lam={v.fmt(lam)}, "
+                                f"psi={v.fmt(psi)})")
 
     def rate(self, u, du, w):
         """w' of eq. (4) given u, u' and w."""

@@ -8,26 +8,21 @@ reference is one method.
 from __future__ import annotations
 
 import abc
-import dataclasses
 from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation as v
 from dscjax._fusion import barrier
+from dscjax.model import Model, positive
 
 
-class Reference(abc.ABC):
-    """Interface: `__call__(t)` gives y_r(t) for a scalar t."""
+class Reference(Model):
+    """Interface: `__call__(t)` gives y_r(t) for a scalar t. Every field is a scalar unless
+    a subclass's `expected_shapes` says otherwise."""
 
-    def expected_shapes(self, n):
-        """Every field is a scalar unless a subclass says otherwise."""
-        return {f.name: () for f in dataclasses.fields(self) if not f.metadata.get("static")}
-
-    def validate(self, prefix):  # noqa: B027 (optional hook, not abstract)
-        """Range checks; none by default."""
+    kind: ClassVar[str]
 
     @abc.abstractmethod
     def __call__(self, t): ...
@@ -58,8 +53,6 @@ def _time_derivative(fn):
     return d
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class Sine(Reference):
     """y_r = amplitude sin(frequency t + phase) + offset. The paper uses sin t."""
 
@@ -74,8 +67,6 @@ class Sine(Reference):
         return self.amplitude * jnp.sin(self.frequency * t + self.phase) + self.offset
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class SmoothStep(Reference):
     """A C-infinity step: y_r = initial + height (1 + tanh((t - t_step)/rise_time)) / 2.
 
@@ -84,21 +75,16 @@ class SmoothStep(Reference):
 
     height: jax.Array = 1.0
     t_step: jax.Array = 1.0
-    rise_time: jax.Array = 0.5
+    rise_time: jax.Array = positive(default=0.5)
     initial: jax.Array = 0.0
 
     kind: ClassVar[str] = "smooth_step"
-
-    def validate(self, prefix):
-        v.positive(self.rise_time, f"{prefix}.rise_time")
 
     def __call__(self, t):
         rise = jnp.tanh((t - self.t_step) / self.rise_time)
         return self.initial + 0.5 * self.height * (1.0 + rise)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class MultiSine(Reference):
     """y_r = sum_j amplitudes_j sin(frequencies_j t + phases_j) + offset; arrays of shape (m,)."""
 
@@ -117,8 +103,6 @@ class MultiSine(Reference):
         return jnp.sum(self.amplitudes * jnp.sin(self.frequencies * t + self.phases)) + self.offset
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class InitialOffset(Reference):
     """base(t) + offset exp(-t / decay_time): a reference moved to start at a chosen y_r(0).
 
@@ -129,7 +113,7 @@ class InitialOffset(Reference):
 
     base: Reference
     offset: jax.Array
-    decay_time: jax.Array
+    decay_time: jax.Array = positive()
 
     kind: ClassVar[str] = "initial_offset"
 
@@ -138,7 +122,7 @@ class InitialOffset(Reference):
 
     def validate(self, prefix):
         self.base.validate(prefix)
-        v.positive(self.decay_time, f"{prefix}.decay_time")
+        super().validate(prefix)
 
     def __call__(self, t):
         return self.base(t) + self.offset * jnp.exp(-t / self.decay_time)

@@ -12,6 +12,7 @@ import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -30,9 +31,7 @@ from dscjax.integrate import (
 from dscjax.metrics import DEFAULT_WINDOW_START, default_window  # noqa: F401 (public here too)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Trajectory:
+class Trajectory(eqx.Module):
     """A simulated closed loop, saved every `save_every` steps (leading axis T).
 
     Attributes:
@@ -298,13 +297,12 @@ def simulate(
     return traj
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class _Progress:
-    """An `extra` reduction of `run` that reports progress to the host and reduces nothing."""
+class _Progress(eqx.Module):
+    """An `extra` reduction of `run` (a `metrics.Running`) that reports progress to the host
+    and reduces nothing."""
 
-    n_steps: int = dataclasses.field(metadata=dict(static=True))
-    report: Callable[[float], None] = dataclasses.field(metadata=dict(static=True))
+    n_steps: int = eqx.field(static=True)
+    report: Callable[[float], None] = eqx.field(static=True)
 
     def init(self, dtype):
         return jnp.zeros((), jnp.int32)

@@ -20,7 +20,8 @@ class ConfigError(ValueError):
     """A setting out of its allowed range; the message names the field."""
 
 
-def _fmt(v) -> str:
+def fmt(v) -> str:
+    """A value for a message: a number, a short list, or the shape of a large array."""
     a = np.asarray(v)
     if a.ndim == 0:
         return f"{float(a):.6g}"
@@ -45,19 +46,19 @@ def is_concrete(tree) -> bool:
 def positive(value, field: str) -> None:
     a = np.asarray(value, dtype=float)
     if not np.all(a > 0):
-        raise ConfigError(f"{field} must be > 0 (got {_fmt(value)})")
+        raise ConfigError(f"{field} must be > 0 (got {fmt(value)})")
 
 
 def nonnegative(value, field: str) -> None:
     a = np.asarray(value, dtype=float)
     if not np.all(a >= 0):
-        raise ConfigError(f"{field} must be >= 0 (got {_fmt(value)})")
+        raise ConfigError(f"{field} must be >= 0 (got {fmt(value)})")
 
 
 def finite(value, field: str) -> None:
     a = np.asarray(value, dtype=float)
     if not np.all(np.isfinite(a)):
-        raise ConfigError(f"{field} must be finite (got {_fmt(value)})")
+        raise ConfigError(f"{field} must be finite (got {fmt(value)})")
 
 
 def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:

@@ -1,23 +1,70 @@
 """The parameterisation and adaptive laws the DSC and the backstepping baseline share.
 
-Both controllers carry the same gains (k, eps, g_min, gamma_g, eta, gamma_phi, sigma,
-gamma_zeta, eta_zeta, gamma_d, eta_d, sat_width, smooth_delta, robust_term) and differ only in
-their surfaces: S_i for the DSC, z_i = x_i - alpha_(i-1) for backstepping (`s` below), and in the
-signal v_i that multiplies phi_hat_i (a filter derivative, or alpha_i'). `AdaptiveLaws` holds
-the formulas once; each controller mixes it in.
+Both controllers carry the same gains and initial estimates (the fields of `AdaptiveLaws`)
+and the same robust term, and differ only in their surfaces: S_i for the DSC, z_i = x_i -
+alpha_(i-1) for backstepping (`s` below), and in the signal v_i that multiplies phi_hat_i (a
+filter derivative, or alpha_i'). `AdaptiveLaws` holds the gains and the formulas once; each
+controller derives from it.
 """
 
-from __future__ import annotations
+from typing import Literal, get_args
 
+import equinox as eqx
+import jax
 import jax.numpy as jnp
 
 from dscjax._smooth import sat, smooth_abs, smooth_sat
+from dscjax.controllers.base import Controller
+from dscjax.model import nonnegative, positive
 
 ALL = slice(None)  # stage index selecting every stage at once (the vectorised laws)
+# The switching function of the robust term: sgn(s_n) as printed in (30), sat(s_n/width) as
+# in the paper's simulation, or a smooth saturation (C-infinity, for RK4's order and gradients).
+RobustTerm = Literal["sat", "sgn", "smooth"]
+ROBUST_TERMS: tuple[str, ...] = get_args(RobustTerm)
 
 
-class AdaptiveLaws:
-    """Formulas (16), (22), (30) and the adaptive laws (17), (23), (29), (31), (32)."""
+class AdaptiveLaws(Controller):
+    """Formulas (16), (22), (30) and the adaptive laws (17), (23), (29), (31), (32), with the
+    gains and initial estimates they read (shapes for order n; paper indices).
+
+    Attributes:
+        k: (n,) gains k_1..k_n of (16), (22), (30).
+        gamma_g, eta: (n,) rates and leakages of theta_hat, (17), (23), (31).
+        gamma_phi, sigma: (n-1,) rates and leakages of phi_hat, (17), (23).
+        gamma_zeta, eta_zeta: () rate and leakage of zeta_hat, (29).
+        gamma_d, eta_d: () rate and leakage of d_hat, (32).
+        eps: () the epsilon of the rho^2/(2 eps) terms; g_min: () Assumption 4's bound.
+        theta_hat0 (n,), phi_hat0 (n-1,), zeta_hat0 (), d_hat0 (): initial estimates.
+    Each controller also declares (with defaults, so after its own fields) the robust term's
+    `sat_width`, `smooth_delta` and the static choice `robust_term`.
+    """
+
+    k: jax.Array = positive()
+    gamma_g: jax.Array = positive()
+    eta: jax.Array = nonnegative()
+    gamma_phi: jax.Array = positive()
+    sigma: jax.Array = nonnegative()
+    gamma_zeta: jax.Array = positive()
+    eta_zeta: jax.Array = nonnegative()
+    gamma_d: jax.Array = positive()
+    eta_d: jax.Array = nonnegative()
+    eps: jax.Array = positive()
+    g_min: jax.Array = positive()
+    theta_hat0: jax.Array
+    phi_hat0: jax.Array
+    zeta_hat0: jax.Array
+    d_hat0: jax.Array
+    sat_width: eqx.AbstractVar[jax.Array]
+    smooth_delta: eqx.AbstractVar[jax.Array]
+    robust_term: eqx.AbstractVar[RobustTerm]
+
+    def law_shapes(self, n: int) -> dict[str, tuple[int, ...]]:
+        """Shapes of the shared fields for order n (`expected_shapes` adds the others)."""
+        m = n - 1
+        return dict(k=(n,), gamma_g=(n,), eta=(n,), gamma_phi=(m,), sigma=(m,), gamma_zeta=(),
+                    eta_zeta=(), gamma_d=(), eta_d=(), eps=(), g_min=(), theta_hat0=(n,),
+                    phi_hat0=(m,), zeta_hat0=(), d_hat0=(), sat_width=(), smooth_delta=())
 
     def _robust(self, s_n):
         """The robust term's switching function: sgn(s_n) or its saturated replacement."""

@@ -1,7 +1,7 @@
 """Adaptive backstepping of order n: the baseline the paper compares the DSC with (Remark 6).
 
 The paper's backstepping law (79) is garbled (it uses g_hat_1 and theta_hat_1, which are never
-defined, and its brackets do not match the adaptive laws; ../shared/paper/NOTES.md). This module
+defined, and its brackets do not match the adaptive laws; docs/paper-readings.md). This module
 implements standard adaptive backstepping with the DSC's parameterisation and robust terms,
 so that the two controllers differ in ONE thing only: where the DSC passes the virtual control
 through a filter and uses the filter derivative z_i' = (x_id - z_i)/tau_i (18), (24),
@@ -54,19 +54,20 @@ out term by term: the oracle for the automatic version in the tests.
 
 from __future__ import annotations
 
-import dataclasses
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
-from dscjax.controllers.adaptive import AdaptiveLaws
-from dscjax.controllers.base import ControlInfo, Controller
+from dscjax.controllers.adaptive import AdaptiveLaws, RobustTerm
+from dscjax.controllers.base import ControlInfo
+from dscjax.model import option, positive
 
-ROBUST_TERMS = ("sat", "sgn", "smooth")
-DERIVATIVES = ("autodiff", "hand")
+# alpha_(n-1)' by nested forward-mode derivatives (any n), or written out (n = 2 only)
+Derivative = Literal["autodiff", "hand"]
+DERIVATIVES: tuple[str, ...] = get_args(Derivative)
 
 
 class BacksteppingState(NamedTuple):
@@ -97,9 +98,7 @@ class _Chain(NamedTuple):
     yr: jax.Array  # () y_r(t)
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class Backstepping(AdaptiveLaws, Controller):
+class Backstepping(AdaptiveLaws):
     """Adaptive backstepping of any order n with hysteresis compensation (module docstring).
 
     Traced gains (shapes for order n), with the DSC's names and meanings: k (n,), gamma_g (n,),
@@ -122,26 +121,12 @@ class Backstepping(AdaptiveLaws, Controller):
         'backstepping'
     """
 
-    k: jax.Array
-    gamma_g: jax.Array
-    eta: jax.Array
-    gamma_phi: jax.Array
-    sigma: jax.Array
-    gamma_zeta: jax.Array
-    eta_zeta: jax.Array
-    gamma_d: jax.Array
-    eta_d: jax.Array
-    eps: jax.Array
-    g_min: jax.Array
-    g_nom: jax.Array
-    theta_hat0: jax.Array
-    phi_hat0: jax.Array
-    zeta_hat0: jax.Array
-    d_hat0: jax.Array
-    sat_width: jax.Array = 0.01
-    smooth_delta: jax.Array = 0.1
-    robust_term: str = dataclasses.field(default="sat", metadata=dict(static=True))
-    derivative: str = dataclasses.field(default="autodiff", metadata=dict(static=True))
+    # The gains and initial estimates of `AdaptiveLaws` come first, then:
+    g_nom: jax.Array = positive()
+    sat_width: jax.Array = positive(default=0.01)
+    smooth_delta: jax.Array = positive(default=0.1)
+    robust_term: RobustTerm = option("sat")
+    derivative: Derivative = option("autodiff")
 
     kind: ClassVar[str] = "backstepping"
 
@@ -165,26 +150,15 @@ class Backstepping(AdaptiveLaws, Controller):
         return cls(**values)
 
     def expected_shapes(self, n):
-        m = n - 1
-        return dict(
-            k=(n,), gamma_g=(n,), eta=(n,), gamma_phi=(m,), sigma=(m,), gamma_zeta=(),
-            eta_zeta=(), gamma_d=(), eta_d=(), eps=(), g_min=(), g_nom=(m,), theta_hat0=(n,),
-            phi_hat0=(m,), zeta_hat0=(), d_hat0=(), sat_width=(), smooth_delta=(),
-        )
+        return self.law_shapes(n) | dict(g_nom=(n - 1,))
 
     def validate(self, prefix):
-        v.one_of(self.robust_term, f"{prefix}.robust_term", ROBUST_TERMS)
-        v.one_of(self.derivative, f"{prefix}.derivative", DERIVATIVES)
+        super().validate(prefix)
         n = int(np.shape(self.k)[-1]) if np.ndim(self.k) else 0
         if self.derivative == "hand" and n != 2:
             raise v.ConfigError(
                 f"{prefix}.derivative = 'hand' is written for order n = 2 only (got n={n}); "
                 f"use 'autodiff'")
-        for name in ("k", "gamma_g", "gamma_phi", "gamma_zeta", "gamma_d", "eps", "g_min",
-                     "g_nom", "sat_width", "smooth_delta"):
-            v.positive(getattr(self, name), f"{prefix}.{name}")
-        for name in ("eta", "sigma", "eta_zeta", "eta_d"):
-            v.nonnegative(getattr(self, name), f"{prefix}.{name}")
 
     def init_state(self, plant, reference):
         return BacksteppingState(theta_hat=self.theta_hat0, phi_hat=self.phi_hat0,

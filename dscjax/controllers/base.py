@@ -1,7 +1,7 @@
 """The small interface every controller of the closed loop implements.
 
-A controller is a frozen, registered dataclass: its gains are traced fields, its structural
-choices (variant, robust term, initialisation) are static fields. It owns a state (filters,
+A controller is a `dscjax.model.Model`: its gains are traced fields, its structural choices
+(variant, robust term, initialisation) are static `Literal` fields. It owns a state (filters,
 estimates) and gives:
 
     prepare(plant, reference)            -> (controller, reference)  initialisation rules
@@ -11,15 +11,17 @@ estimates) and gives:
 
 `law` never sees w or the true plant parameters: only the known f_i, rho_i and the plant
 state. Because u is a function of (state, x, t) only, the closed loop gets u' exactly by a jvp
-of `law` along the vector field (no algebraic loop, NOTES.md).
+of `law` along the vector field (no algebraic loop, see `closed_loop.py`).
 """
 
 from __future__ import annotations
 
 import abc
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import jax
+
+from dscjax.model import Model
 
 
 class ControlInfo(NamedTuple):
@@ -36,8 +38,10 @@ class ControlInfo(NamedTuple):
     extra: Any
 
 
-class Controller(abc.ABC):
-    kind: str
+class Controller(Model):
+    """The interface every controller implements (module docstring)."""
+
+    kind: ClassVar[str]
 
     def prepare(self, plant, reference):
         """Apply initialisation rules that depend on the plant's initial state; default: none."""

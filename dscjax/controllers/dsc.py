@@ -19,20 +19,21 @@ Index conventions (0-based arrays, paper indices in the comments):
 from __future__ import annotations
 
 import dataclasses
-from typing import ClassVar, NamedTuple
+from typing import ClassVar, Literal, NamedTuple, get_args
 
 import jax
 import jax.numpy as jnp
 
-from dscjax import validation as v
 from dscjax._fusion import barrier
-from dscjax.controllers.adaptive import AdaptiveLaws
-from dscjax.controllers.base import ControlInfo, Controller
+from dscjax.controllers.adaptive import AdaptiveLaws, RobustTerm
+from dscjax.controllers.base import ControlInfo
+from dscjax.model import option, positive
 from dscjax.reference import InitialOffset
 
-VARIANTS = ("full", "no_dhat", "no_dhat_no_zeta")
-ROBUST_TERMS = ("sat", "sgn", "smooth")
-INIT_MODES = ("paper", "linf", "zero_surfaces")
+Variant = Literal["full", "no_dhat", "no_dhat_no_zeta"]
+VARIANTS: tuple[str, ...] = get_args(Variant)
+InitMode = Literal["paper", "linf", "zero_surfaces"]
+INIT_MODES: tuple[str, ...] = get_args(InitMode)
 
 
 class DSCState(NamedTuple):
@@ -52,9 +53,7 @@ class DSCExtra(NamedTuple):
     z_dot: jax.Array  # (n-1,) filter derivatives z_2'..z_n'
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class DSC(AdaptiveLaws, Controller):
+class DSC(AdaptiveLaws):
     """Adaptive DSC with hysteresis compensation, eqs. (13)-(32).
 
     Traced gains (shapes for order n): k (n,), tau (n-1,), c (n-1,), gamma_g (n,), eta (n,),
@@ -78,50 +77,20 @@ class DSC(AdaptiveLaws, Controller):
             c_i chosen so that S_i(0) = 0 for i >= 2).
     """
 
-    k: jax.Array
-    tau: jax.Array
+    # The gains and initial estimates of `AdaptiveLaws` come first, then:
+    tau: jax.Array = positive()
     c: jax.Array
-    gamma_g: jax.Array
-    eta: jax.Array
-    gamma_phi: jax.Array
-    sigma: jax.Array
-    gamma_zeta: jax.Array
-    eta_zeta: jax.Array
-    gamma_d: jax.Array
-    eta_d: jax.Array
-    eps: jax.Array
-    g_min: jax.Array
-    theta_hat0: jax.Array
-    phi_hat0: jax.Array
-    zeta_hat0: jax.Array
-    d_hat0: jax.Array
-    sat_width: jax.Array = 0.01
-    smooth_delta: jax.Array = 0.1
-    linf_decay_time: jax.Array = 0.5
-    variant: str = dataclasses.field(default="full", metadata=dict(static=True))
-    robust_term: str = dataclasses.field(default="sat", metadata=dict(static=True))
-    init: str = dataclasses.field(default="paper", metadata=dict(static=True))
+    sat_width: jax.Array = positive(default=0.01)
+    smooth_delta: jax.Array = positive(default=0.1)
+    linf_decay_time: jax.Array = positive(default=0.5)
+    variant: Variant = option("full")
+    robust_term: RobustTerm = option("sat")
+    init: InitMode = option("paper")
 
     kind: ClassVar[str] = "dsc"
 
     def expected_shapes(self, n):
-        m = n - 1
-        return dict(
-            k=(n,), tau=(m,), c=(m,), gamma_g=(n,), eta=(n,), gamma_phi=(m,), sigma=(m,),
-            gamma_zeta=(), eta_zeta=(), gamma_d=(), eta_d=(), eps=(), g_min=(),
-            theta_hat0=(n,), phi_hat0=(m,), zeta_hat0=(), d_hat0=(), sat_width=(),
-            smooth_delta=(), linf_decay_time=(),
-        )
-
-    def validate(self, prefix):
-        v.one_of(self.variant, f"{prefix}.variant", VARIANTS)
-        v.one_of(self.robust_term, f"{prefix}.robust_term", ROBUST_TERMS)
-        v.one_of(self.init, f"{prefix}.init", INIT_MODES)
-        for name in ("k", "tau", "gamma_g", "gamma_phi", "gamma_zeta", "gamma_d", "eps", "g_min",
-                     "sat_width", "smooth_delta", "linf_decay_time"):
-            v.positive(getattr(self, name), f"{prefix}.{name}")
-        for name in ("eta", "sigma", "eta_zeta", "eta_d"):
-            v.nonnegative(getattr(self, name), f"{prefix}.{name}")
+        return self.law_shapes(n) | dict(tau=(n - 1,), c=(n - 1,), linf_decay_time=())
 
     # -- structural switches -------------------------------------------------------------
     @property
@@ -161,7 +130,7 @@ class DSC(AdaptiveLaws, Controller):
         t0 = jnp.zeros_like(x[0])
         yr, yr_dot = reference.derivatives(t0, 1)
         f, rho = plant.f(x), plant.rho(x)
-        theta_hat, phi_hat = self._initial_estimates()[1:3]
+        theta_hat, phi_hat = self._initial_estimates()[:2]
         s = [x[0] - yr]
         x_d = [self._virtual(0, s[0], f, rho, theta_hat, phi_hat, yr_dot)]
         for i in range(1, n - 1):
@@ -171,12 +140,13 @@ class DSC(AdaptiveLaws, Controller):
         return jnp.stack(s), jnp.stack(x_d)
 
     def _initial_estimates(self):
+        """(theta_hat, phi_hat, zeta_hat, d_hat) at t = 0, as the variant fixes them."""
         zeta0 = self.zeta_hat0 if self.adapts_zeta else jnp.ones_like(self.zeta_hat0)
         d0 = self.d_hat0 if self.compensates else jnp.zeros_like(self.d_hat0)
-        return None, self.theta_hat0, self.phi_hat0, zeta0, d0
+        return self.theta_hat0, self.phi_hat0, zeta0, d0
 
     def init_state(self, plant, reference):
-        _, theta_hat, phi_hat, zeta_hat, d_hat = self._initial_estimates()
+        theta_hat, phi_hat, zeta_hat, d_hat = self._initial_estimates()
         _, x_d0 = self._initial_filters(plant, reference)
         return DSCState(z=x_d0, theta_hat=theta_hat, phi_hat=phi_hat, zeta_hat=zeta_hat,
                         d_hat=d_hat)

@@ -1,0 +1,82 @@
+"""The one base of every model class: plants, hysteresis, controllers, references, the Setup
+that holds them, and the objects tuning and the integrator carry.
+
+A model is an `equinox.Module`: a frozen dataclass registered as a JAX pytree. Its numbers are
+typed fields (`jax.Array`), traced leaves a user may tune, sweep or differentiate; its choices
+are static fields (`option(...)`, typed `Literal[...]`), part of the pytree's structure, so
+changing one recompiles and changing a number never does. Range rules live on the fields:
+
+    class Backlash(Model):
+        alpha: jax.Array = positive()   # validate(): "hysteresis.alpha must be > 0 (got -1)"
+        smooth: bool = option(False)    # static
+
+    class DSC(Model):
+        variant: Variant = option("full")   # Variant = Literal["full", "no_dhat", ...]
+
+`validate(prefix)` checks every rule and every `Literal` option and names the field by its
+config path; a model adds the rules that tie two fields together (lam > psi) by overriding it
+and calling `super().validate(prefix)`. Validation is explicit (`validation.validate_setup`),
+not in `__init__` or `__check_init__`: models are also built inside traced code (a batch of
+setups under vmap, tuning's parameters), where the numbers are tracers and cannot be checked,
+and only the Setup knows the config path ("hysteresis") a message must name.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import typing
+
+import equinox as eqx
+
+from dscjax import validation as v
+
+_CHECKS = {"positive": v.positive, "nonnegative": v.nonnegative}
+
+
+def positive(**kwargs):
+    """A number field whose every element must be > 0."""
+    return eqx.field(metadata={"check": "positive"}, **kwargs)
+
+
+def nonnegative(**kwargs):
+    """A number field whose every element must be >= 0."""
+    return eqx.field(metadata={"check": "nonnegative"}, **kwargs)
+
+
+def option(default):
+    """A static field: a structural choice (a `Literal[...]` of strings, or a bool)."""
+    return eqx.field(default=default, static=True)
+
+
+def is_static(f: dataclasses.Field) -> bool:
+    """True for a static (structural) field, False for a traced number."""
+    return bool(f.metadata.get("static"))
+
+
+@functools.cache
+def options_of(cls: type) -> dict[str, tuple]:
+    """{field: allowed values} of the `Literal`-typed fields of a model class."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: typing.get_args(hints[f.name]) for f in dataclasses.fields(cls)
+            if typing.get_origin(hints.get(f.name)) is typing.Literal}
+
+
+class Model(eqx.Module):
+    """Base of every model: see the module docstring."""
+
+    def validate(self, prefix: str) -> None:
+        """Check every option and every field's range rule; ConfigError names the field."""
+        for name, allowed in options_of(type(self)).items():
+            v.one_of(getattr(self, name), f"{prefix}.{name}", allowed)
+        for f in dataclasses.fields(self):
+            check = f.metadata.get("check")
+            if check is not None:
+                _CHECKS[check](getattr(self, f.name), f"{prefix}.{f.name}")
+
+    def expected_shapes(self, n: int) -> dict[str, tuple[int, ...]]:
+        """Shape of every number field for a plant of order n; default: all scalars."""
+        return {f.name: () for f in dataclasses.fields(self) if not is_static(f)}
+
+
+__all__ = ["Model", "is_static", "nonnegative", "option", "options_of", "positive"]
