@@ -6,6 +6,10 @@ Two implementations of the same definitions:
   sweeps and tuning get exact step-grid metrics without storing the trajectory.
 With save_every = 1 the two agree (tested).
 
+Every running reduction of a simulation follows one protocol, `Running` (optax-style
+init/update/finalize): these metrics (through `simulate.LoopMetrics`), tuning's smooth terms
+and requirements, and progress reports. `run(extra=...)` folds one in beside these metrics.
+
 Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
     L_inf  = max_{k in W} |e_k|
     L2     = sqrt( trapezoid_W(e^2) )           (trapezoid rule over the samples in W)
@@ -16,10 +20,44 @@ where e = y - y_r = x_1 - y_r.
 
 from __future__ import annotations
 
-from typing import NamedTuple
+from typing import Any, NamedTuple, Protocol
 
 import jax
 import jax.numpy as jnp
+
+
+class Running(Protocol):
+    """A running reduction over every step k = 0..N of a simulation, while it is healthy.
+
+    A pytree (its numbers are traced leaves, differentiable like any parameter) with
+        init(dtype) -> acc                         a pytree of scalars
+        update(acc, k, t, y, obs, dt) -> acc       at step k: time t_k, state y_k (a
+                                                   `closed_loop.State`), observation obs_k
+        finalize(acc, t_final) -> {name: value}    the named results
+    `simulate.run(extra=...)` takes one and adds its results to the trajectory's metrics.
+    """
+
+    def init(self, dtype) -> Any: ...
+
+    def update(self, acc, k, t, y, obs, dt) -> Any: ...
+
+    def finalize(self, acc, t_final) -> dict[str, jax.Array]: ...
+
+
+def trapezoid_weight(k, dt, n_steps):
+    """Weight of sample k = 0..N in a trapezoid integral over the horizon: dt, dt/2 at ends."""
+    return jnp.where((k == 0) | (k == n_steps), 0.5 * dt, dt)
+
+
+def step_weights(k, t, dt, t0, n_steps):
+    """Trapezoid weights of sample k: (over the horizon, over the window t >= t0, whether
+    t_k is in the window, whether it is the window's first sample)."""
+    in_win = t >= t0
+    t_prev = (k - 1).astype(t.dtype) * dt  # the grid time before t_k, formed as t_k is
+    first_win = in_win & (t_prev < t0)
+    w_all = trapezoid_weight(k, dt, n_steps)
+    w_win = jnp.where(in_win, jnp.where(first_win | (k == n_steps), 0.5 * dt, dt), 0.0)
+    return w_all, w_win, in_win, first_win
 
 DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
 
@@ -106,12 +144,7 @@ def running_init(dtype) -> RunningMetrics:
 
 def running_update(acc: RunningMetrics, k, t, e, u, w, dt, t0, n_steps: int) -> RunningMetrics:
     """Fold the sample (t_k, e_k, u_k, w_k) into the running metrics."""
-    in_win = t >= t0
-    t_prev = (k - 1).astype(t.dtype) * dt  # the grid time before t_k, formed as t_k is
-    first_win = in_win & (t_prev < t0)
-    ends = (k == 0) | (k == n_steps)
-    w_all = jnp.where(ends, 0.5 * dt, dt)
-    w_win = jnp.where(in_win, jnp.where(first_win | (k == n_steps), 0.5 * dt, dt), 0.0)
+    w_all, w_win, in_win, first_win = step_weights(k, t, dt, t0, n_steps)
     ae, au = jnp.abs(e), jnp.abs(u)
     return RunningMetrics(
         e_max=jnp.maximum(acc.e_max, ae),

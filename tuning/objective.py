@@ -35,21 +35,70 @@ import math
 from collections.abc import Mapping
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dscjax.closed_loop import Setup
+from dscjax.metrics import step_weights
 from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class TuningMetrics:
-    """Running reductions tuning needs beyond `dscjax.metrics` (the `extra` of `_run`).
+class SmoothLinf(eqx.Module):
+    """Linf~ of the tracking error on the window [t0, T] (module docstring), as a
+    `dscjax.metrics.Running` reduction: a log-sum-exp with a running max m, s = sum w
+    exp(x - m), invariant to the choice of m."""
+
+    window_start: jax.Array  # () t0
+    sharpness: jax.Array  # () s (1/units of e)
+    n_steps: int = eqx.field(static=True)
+
+    def init(self, dtype):
+        z = jnp.zeros((), dtype)
+        return {"m": z, "s": z, "w": z}
+
+    def update(self, acc, k, t, y, obs, dt):
+        e = y.x[0] - obs.yr
+        _, w_win, in_win, _ = step_weights(k, t, dt, self.window_start, self.n_steps)
+        x = self.sharpness * jnp.abs(e)
+        m = jnp.where(in_win, jnp.maximum(acc["m"], x), acc["m"])
+        # Before the window the exponent is masked, not just its weight: exp of a large error
+        # before t0 would overflow and 0 * inf is NaN (double where).
+        arg = jnp.where(in_win, x - m, 0.0)
+        s = acc["s"] * jnp.exp(acc["m"] - m) + jnp.where(in_win, w_win * jnp.exp(arg), 0.0)
+        return {"m": m, "s": s, "w": acc["w"] + w_win}
+
+    def finalize(self, acc, t_final):
+        return {"smooth_linf_window": (acc["m"] + _safe_log(acc["s"] / _pos(acc["w"])))
+                / self.sharpness}
+
+
+class SmoothMaxU(eqx.Module):
+    """max~|u| (module docstring), as a `dscjax.metrics.Running` reduction."""
+
+    sharpness: jax.Array  # () r (1/units of u)
+
+    def init(self, dtype):
+        z = jnp.zeros((), dtype)
+        return {"m": z, "s": z}
+
+    def update(self, acc, k, t, y, obs, dt):
+        x = self.sharpness * jnp.abs(obs.u)
+        m = jnp.maximum(acc["m"], x)
+        return {"m": m, "s": acc["s"] * jnp.exp(acc["m"] - m) + jnp.exp(x - m)}
+
+    def finalize(self, acc, t_final):
+        return {"smooth_max_abs_u": (acc["m"] + _safe_log(acc["s"])) / self.sharpness}
+
+
+class TuningMetrics(eqx.Module):
+    """The running reductions tuning needs beyond `dscjax.metrics` (the `extra` of `run`): a
+    `dscjax.metrics.Running` made of other ones, the smooth terms `SmoothLinf` and
+    `SmoothMaxU` and every requirement, whose results are named req0_penalty, req0_met, ...
 
     Attributes:
         window_start: () t0 of the window [t0, T].
@@ -63,45 +112,26 @@ class TuningMetrics:
     e_sharpness: jax.Array
     u_sharpness: jax.Array
     requirements: tuple = ()
-    n_steps: int = dataclasses.field(default=1, metadata=dict(static=True))
+    n_steps: int = eqx.field(static=True, default=1)
+
+    def parts(self) -> tuple[tuple[str, Any], ...]:
+        """(prefix of the result names, reduction) of every part."""
+        reqs = tuple((f"req{i}_", dataclasses.replace(r, n_steps=self.n_steps))
+                     for i, r in enumerate(self.requirements))
+        return (("", SmoothLinf(self.window_start, self.e_sharpness, self.n_steps)),
+                ("", SmoothMaxU(self.u_sharpness))) + reqs
 
     def init(self, dtype):
-        z = jnp.zeros((), dtype)
-        return {"e_m": z, "e_s": z, "e_w": z, "u_m": z, "u_s": z,
-                "req": tuple(r.init(dtype) for r in self.requirements)}
+        return tuple(p.init(dtype) for _, p in self.parts())
 
     def update(self, acc, k, t, y, obs, dt):
-        e = y.x[0] - obs.yr
-        ends = (k == 0) | (k == self.n_steps)
-        w = jnp.where(ends, 0.5 * dt, dt)
-        in_win = t >= self.window_start
-        t_prev = (k - 1).astype(t.dtype) * dt
-        first = in_win & (t_prev < self.window_start)
-        w_win = jnp.where(in_win, jnp.where(first | (k == self.n_steps), 0.5 * dt, dt), 0.0)
-        # Log-sum-exp with a running max m: s = sum w exp(x - m); invariant to the choice of m.
-        xe = self.e_sharpness * jnp.abs(e)
-        me = jnp.where(in_win, jnp.maximum(acc["e_m"], xe), acc["e_m"])
-        # Before the window the exponent is masked, not just its weight: exp of a large error
-        # before t0 would overflow and 0 * inf is NaN (double where).
-        arg = jnp.where(in_win, xe - me, 0.0)
-        se = acc["e_s"] * jnp.exp(acc["e_m"] - me) + jnp.where(in_win, w_win * jnp.exp(arg), 0.0)
-        xu = self.u_sharpness * jnp.abs(obs.u)
-        mu = jnp.maximum(acc["u_m"], xu)
-        su = acc["u_s"] * jnp.exp(acc["u_m"] - mu) + jnp.exp(xu - mu)
-        req = tuple(r.update(a, k, t, e, y, obs, w)
-                    for r, a in zip(self.requirements, acc["req"], strict=True))
-        return {"e_m": me, "e_s": se, "e_w": acc["e_w"] + w_win, "u_m": mu, "u_s": su,
-                "req": req}
+        return tuple(p.update(a, k, t, y, obs, dt)
+                     for (_, p), a in zip(self.parts(), acc, strict=True))
 
     def finalize(self, acc, t_final):
-        out = {
-            "smooth_linf_window": (acc["e_m"] + _safe_log(acc["e_s"] / _pos(acc["e_w"])))
-            / self.e_sharpness,
-            "smooth_max_abs_u": (acc["u_m"] + _safe_log(acc["u_s"])) / self.u_sharpness,
-        }
-        for i, (r, a) in enumerate(zip(self.requirements, acc["req"], strict=True)):
-            out[f"req{i}_penalty"] = r.penalty(a, t_final)
-            out |= {f"req{i}_{k}": v for k, v in r.check(a, t_final).items()}
+        out = {}
+        for (prefix, p), a in zip(self.parts(), acc, strict=True):
+            out |= {prefix + k: v for k, v in p.finalize(a, t_final).items()}
         return out
 
 

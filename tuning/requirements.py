@@ -1,7 +1,8 @@
 """Time-domain requirements as differentiable penalties (requirement-based tuning).
 
-Each requirement is a pytree (its numbers traced, so changing a bound never recompiles) that
-keeps a few running reductions inside the simulation loop, at every RK4 step:
+Each requirement is a `dscjax.metrics.Running` reduction (init/update/finalize; its numbers
+traced, so changing a bound never recompiles) that keeps a few running sums and maxima
+inside the simulation loop, at every RK4 step:
 
 - a **penalty**: weight x (1/T) x integral of relu(violation)^2 dt, zero when the requirement
   is met, smooth (C^1) in the trajectory, and growing with how much and how long it is
@@ -16,42 +17,56 @@ keeps a few running reductions inside the simulation loop, at every RK4 step:
 Violations are relative (divided by the bound), so weights are dimensionless.
 """
 
-from __future__ import annotations
 
-import dataclasses
+import abc
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
+
+from dscjax.metrics import trapezoid_weight
 
 
 def _relu(x):
     return jnp.maximum(x, 0.0)
 
 
-class Requirement:
-    """Interface. `update` sees the tracking error e, the state y, the observation obs and the
-    weight w of step k in the time integrals (trapezoid: dt, dt/2 at both ends)."""
+class Requirement(eqx.Module):
+    """A `dscjax.metrics.Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or
+    0.0), 'margin' (<= 0 when met, in the units of the bound) and the requirement's own exact
+    figures. A subclass gives `init`, `sample(acc, k, t, e, y, obs, w)` (one step, with the
+    tracking error e and the trapezoid weight w of step k: dt, dt/2 at both ends), `penalty`
+    and `check`. `n_steps` (static, for the end weights) is set by the objective that holds
+    the requirement (`tuning.objective.TuningMetrics`)."""
 
+    n_steps: eqx.AbstractVar[int]
     name: ClassVar[str]
 
+    @abc.abstractmethod
     def init(self, dtype) -> dict: ...
 
-    def update(self, acc, k, t, e, y, obs, w) -> dict: ...
+    def update(self, acc, k, t, y, obs, dt) -> dict:
+        w = trapezoid_weight(k, dt, self.n_steps)
+        return self.sample(acc, k, t, y.x[0] - obs.yr, y, obs, w)
 
+    @abc.abstractmethod
+    def sample(self, acc, k, t, e, y, obs, w) -> dict: ...
+
+    @abc.abstractmethod
     def penalty(self, acc, t_final): ...
 
-    def check(self, acc, t_final) -> dict:
-        """Exact figures on the step grid; always contains 'met' (1.0 or 0.0) and 'margin'
-        (<= 0 when met, in the units of the bound)."""
+    @abc.abstractmethod
+    def check(self, acc, t_final) -> dict: ...
+
+    def finalize(self, acc, t_final) -> dict:
+        return {"penalty": self.penalty(acc, t_final), **self.check(acc, t_final)}
 
 
 def _zeros(dtype, *names):
     return {n: jnp.zeros((), dtype) for n in names}
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class Envelope(Requirement):
     """|e(t)| <= b(t) = b_inf + (b0 - b_inf) exp(-t/decay) for all t (a decaying tube)."""
 
@@ -59,6 +74,7 @@ class Envelope(Requirement):
     b_inf: jax.Array
     decay: jax.Array
     weight: jax.Array = 1.0
+    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "envelope"
 
     def bound(self, t):
@@ -67,7 +83,7 @@ class Envelope(Requirement):
     def init(self, dtype):
         return _zeros(dtype, "viol") | {"margin": jnp.asarray(-jnp.inf, dtype)}
 
-    def update(self, acc, k, t, e, y, obs, w):
+    def sample(self, acc, k, t, e, y, obs, w):
         b = self.bound(t)
         a = jnp.abs(e)
         return {"viol": acc["viol"] + w * _relu(a / b - 1.0) ** 2,
@@ -80,8 +96,6 @@ class Envelope(Requirement):
         return {"met": (acc["margin"] <= 0).astype(acc["margin"].dtype), "margin": acc["margin"]}
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class StepResponse(Requirement):
     """Overshoot and settling of a step reference from `initial` to `final` = initial + height.
 
@@ -97,12 +111,13 @@ class StepResponse(Requirement):
     settling_time: jax.Array = 5.0
     band: jax.Array = 0.02
     weight: jax.Array = 1.0
+    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "step"
 
     def init(self, dtype):
         return _zeros(dtype, "os_viol", "set_viol", "os_max", "set_max", "t_settle")
 
-    def update(self, acc, k, t, e, y, obs, w):
+    def sample(self, acc, k, t, e, y, obs, w):
         h = jnp.abs(self.height)
         dev = jnp.sign(self.height) * (y.x[0] - self.final) / h
         rel = jnp.abs(y.x[0] - self.final) / h
@@ -124,13 +139,12 @@ class StepResponse(Requirement):
                 "overshoot": acc["os_max"], "settling_time": acc["t_settle"]}
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class UBound(Requirement):
     """|u(t)| <= max at every step."""
 
     max: jax.Array
     weight: jax.Array = 1.0
+    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "u_bound"
 
     def _signal(self, obs):
@@ -139,7 +153,7 @@ class UBound(Requirement):
     def init(self, dtype):
         return _zeros(dtype, "viol", "peak")
 
-    def update(self, acc, k, t, e, y, obs, w):
+    def sample(self, acc, k, t, e, y, obs, w):
         a = jnp.abs(self._signal(obs))
         return {"viol": acc["viol"] + w * _relu(a / self.max - 1.0) ** 2,
                 "peak": jnp.maximum(acc["peak"], a)}
@@ -152,8 +166,6 @@ class UBound(Requirement):
         return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, "peak": acc["peak"]}
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
 class URate(UBound):
     """|u'(t)| <= max at every step (u' exact: the loop's forward-mode derivative of the law)."""
 
