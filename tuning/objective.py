@@ -316,6 +316,10 @@ class Objective:
     overrides: Mapping[str, Any] | None = None  # the training batch, {path: (B, ...)}
     aggregate: str = "mean"
     cvar_level: float = 1.0
+    # Programs compiled for this objective (the tuning step per update rule: `runner`); they
+    # live and die with it.
+    compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                       compare=False)
 
     @property
     def batch_size(self) -> int:

@@ -13,6 +13,7 @@ best point written before it stopped.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -241,152 +242,206 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
         progress: called with each iteration's row (dict) for a progress display.
         step_hook: test hook, (state, report) -> report, applied to every report on the host.
     """
-    t_start = time.perf_counter()
-    opt_spec = problem.cfg.optimizer
-    out = Path(out_dir) if out_dir is not None else None
-    desc = problem.describe()
-    fp = ck.fingerprint(desc)
-    decay_steps = opt_spec.decay_steps or opt_spec.steps
-    history: list[dict] = []
-    resumed_from = 0
-    elapsed_before = 0.0
-    if out is not None:
-        _prepare_dir(out, resume, overwrite)
-    if resume:
-        meta = files.read_json(out / "checkpoint.json")
-        files.check_same(meta.get("problem"), desc, where=f"the checkpoint in {out}",
-                         fix="start afresh with --overwrite or another --out")
-        decay_steps = int(meta["decay_steps"])
-    spec = dataclasses.replace(opt_spec, decay_steps=decay_steps)
-    optimizer, step = _step_for(problem, spec)
-    state = init_state(problem.z0, optimizer)
-    if resume:
-        state = ck.load_state(out / "checkpoint.npz", state, meta["state"])
-        history = ck.read_history(out / "history.csv")
-        history = [r for r in history if r["iteration"] < int(state.iteration)]
-        state = _best_from_file(out, state, problem)
-        resumed_from = int(state.iteration)
-        elapsed_before = float(meta.get("elapsed_total_s", 0.0))
-    shrink = jnp.asarray(spec.shrink, state.lr_scale.dtype)
-    min_delta = jnp.asarray(spec.min_delta, state.lr_scale.dtype)
-    regrow = jnp.asarray(spec.regrow, state.lr_scale.dtype)
-    compiled, compile_s = None, 0.0
-    schedule = spec.schedule_fn()
-    columns = history_columns(problem)
-    terms = _term_names(problem)
-    last_best_write = 0.0
-    last_iter_s = 0.0
-    reason = "steps"
-
-    def save(final=False):
-        if out is None:
-            return
-        elapsed_total = elapsed_before + time.perf_counter() - t_start
-        meta_state = ck.save_state(out / "checkpoint.npz", state)
-        _write_best(out, problem, state)
-        ck.write_history(out / "history.csv", history, columns)
-        files.write_json(out / "checkpoint.json", {
-            "version": ck.FORMAT_VERSION, "fingerprint": fp, "iteration": int(state.iteration),
-            "best_loss": float(state.best_loss), "best_iteration": int(state.best_iteration),
-            "best_feasible": bool(state.best_feasible), "decay_steps": decay_steps,
-            "elapsed_total_s": elapsed_total, "stop_reason": reason if final else None,
-            "state": meta_state, "problem": desc})
-
+    loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite)
     try:
-        while True:
-            it = int(state.iteration)
-            elapsed = time.perf_counter() - t_start
-            if it >= spec.steps:
-                reason = f"reached {spec.steps} iterations"
-                break
-            if spec.time_limit is not None and elapsed + last_iter_s > spec.time_limit:
-                reason = f"time limit {spec.time_limit:g} s"
-                break
-            if compiled is None:  # compiled on first use: a finished run resumes instantly
-                t0 = time.perf_counter()
-                compiled = step.compiled(state, shrink, min_delta, regrow)
-                compile_s = time.perf_counter() - t0
-            t_it = time.perf_counter()
-            prev_best = float(state.best_loss)
-            state, rep = compiled(state, shrink, min_delta, regrow)
-            rep = jax.device_get(rep)
-            if step_hook is not None:
-                rep = step_hook(state, rep)
-            last_iter_s = time.perf_counter() - t_it
-            accepted_steps = int(state.iteration) - int(state.n_rejected)
-            row = {
-                "iteration": it, "loss": float(rep["loss"]), "accepted": bool(rep["accepted"]),
-                "feasible": bool(rep["feasible"]), "best_loss": float(state.best_loss),
-                "lr": float(schedule(max(accepted_steps - 1, 0))) * float(rep["lr_scale"]),
-                "grad_norm": float(rep["grad_norm"]),
-                "linf_window": float(rep["linf_window"]), "max_abs_u": float(rep["max_abs_u"]),
-                "n_diverged": int(rep["n_diverged"]),
-                **{k: float(rep["terms"][k]) for k in terms},
-                "wall_s": elapsed_before + time.perf_counter() - t_start,
-                "best_iteration": int(state.best_iteration),
-            }
-            history.append(row)
+        while (reason := loop.limit_reached()) is None:
+            row = loop.iterate(step_hook)
             if progress is not None:
-                progress(row | {"steps": spec.steps, "terms": terms, "n_rejected":
-                                int(state.n_rejected)})
-            now = time.perf_counter()
-            improved = float(state.best_loss) != prev_best
-            if out is not None and improved and now - last_best_write > 1:
-                _write_best(out, problem, state)
-                last_best_write = now
-            if (it + 1) % spec.save_interval == 0:
-                save()
-            if int(state.streak) >= spec.max_rejections:
-                reason = (f"{spec.max_rejections} rejected steps in a row (non-finite or "
-                          f"diverging); the learning rate is now x{float(state.lr_scale):.3g}")
-                break
-            if spec.patience and int(state.stall) >= spec.patience:
-                reason = (f"no improvement of the best loss by more than {spec.min_delta:g} "
-                          f"(relative) in {spec.patience} iterations")
+                progress(row | {"steps": loop.spec.steps, "terms": loop.terms,
+                                "n_rejected": int(loop.state.n_rejected)})
+            loop.checkpoint(every=loop.spec.save_interval)
+            if (reason := loop.stalled()) is not None:
                 break
     except KeyboardInterrupt:
-        reason = "interrupted"
-        save(final=True)
+        loop.save(stop_reason="interrupted")
         raise
-    save(final=True)
-    if not np.isfinite(float(state.best_loss)):
+    loop.save(stop_reason=reason)
+    if not np.isfinite(float(loop.state.best_loss)):
         raise ConfigError("no iteration produced a finite loss: the start point is not usable "
                           "(see the divergence report of `dscjax simulate`)")
-    return Result(problem=problem, state=state, history=history, stop_reason=reason,
-                  wall_s=time.perf_counter() - t_start, compile_s=compile_s,
-                  resumed_from=resumed_from)
+    return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
+                  wall_s=time.perf_counter() - loop.t_start, compile_s=loop.compile_s,
+                  resumed_from=loop.resumed_from)
 
 
-_STEPS: dict = {}  # (problem, update rule) -> (optimizer, jitted step): one compile per process
+@dataclasses.dataclass
+class _Loop:
+    """One invocation of the tuning loop: the state, its history and its files."""
+
+    problem: Problem
+    out: Path | None
+    spec: Any  # OptimizerSpec with the run's decay_steps (kept from the first invocation)
+    step: Any  # the jitted step (compiled on first use)
+    state: Any  # TuneState
+    history: list[dict]
+    resumed_from: int = 0
+    elapsed_before: float = 0.0  # wall time of earlier invocations of the same run
+    t_start: float = dataclasses.field(default_factory=time.perf_counter)
+    compile_s: float = 0.0
+    last_iter_s: float = 0.0
+    last_best_write: float = 0.0
+
+    @classmethod
+    def open(cls, problem: Problem, out: Path | None, resume: bool, overwrite: bool) -> _Loop:
+        """A fresh start, or the state, history and schedule of the checkpoint in `out`."""
+        t_start = time.perf_counter()
+        spec = problem.cfg.optimizer
+        meta = None
+        if out is not None:
+            _prepare_dir(out, resume, overwrite)
+        if resume:
+            meta = files.read_json(out / "checkpoint.json")
+            files.check_same(meta.get("problem"), problem.describe(),
+                             where=f"the checkpoint in {out}",
+                             fix="start afresh with --overwrite or another --out")
+        decay_steps = int(meta["decay_steps"]) if meta else spec.decay_steps or spec.steps
+        spec = dataclasses.replace(spec, decay_steps=decay_steps)
+        optimizer, step = compiled_step(problem, spec)
+        loop = cls(problem, out, spec, step, init_state(problem.z0, optimizer), [],
+                   t_start=t_start)
+        if meta:
+            state = ck.load_state(out / "checkpoint.npz", loop.state, meta["state"])
+            loop.history = [r for r in ck.read_history(out / "history.csv")
+                            if r["iteration"] < int(state.iteration)]
+            loop.state = _best_from_file(out, state, problem)
+            loop.resumed_from = int(loop.state.iteration)
+            loop.elapsed_before = float(meta.get("elapsed_total_s", 0.0))
+        return loop
+
+    @functools.cached_property
+    def terms(self) -> list[str]:
+        return _term_names(self.problem)
+
+    @functools.cached_property
+    def schedule(self):
+        return self.spec.schedule_fn()
+
+    @functools.cached_property
+    def desc(self) -> dict:
+        return self.problem.describe()
+
+    @functools.cached_property
+    def rates(self) -> tuple:
+        """(shrink, min_delta, regrow) as arrays: traced arguments of the step."""
+        dtype = self.state.lr_scale.dtype
+        return tuple(jnp.asarray(getattr(self.spec, k), dtype)
+                     for k in ("shrink", "min_delta", "regrow"))
+
+    # -- stopping ---------------------------------------------------------------------------
+    def limit_reached(self) -> str | None:
+        """Why to stop before the next iteration (steps, time limit), or None."""
+        spec, elapsed = self.spec, time.perf_counter() - self.t_start
+        if int(self.state.iteration) >= spec.steps:
+            return f"reached {spec.steps} iterations"
+        if spec.time_limit is not None and elapsed + self.last_iter_s > spec.time_limit:
+            return f"time limit {spec.time_limit:g} s"
+        return None
+
+    def stalled(self) -> str | None:
+        """Why to stop after an iteration (rejections, no improvement), or None."""
+        spec, state = self.spec, self.state
+        if int(state.streak) >= spec.max_rejections:
+            return (f"{spec.max_rejections} rejected steps in a row (non-finite or "
+                    f"diverging); the learning rate is now x{float(state.lr_scale):.3g}")
+        if spec.patience and int(state.stall) >= spec.patience:
+            return (f"no improvement of the best loss by more than {spec.min_delta:g} "
+                    f"(relative) in {spec.patience} iterations")
+        return None
+
+    # -- one iteration ------------------------------------------------------------------------
+    def iterate(self, step_hook=None) -> dict:
+        """One jitted step (compiled on first use: a finished run resumes at once); returns
+        its row of the history."""
+        if self.step.executable is None:
+            t0 = time.perf_counter()
+            self.step.compile(self.state, *self.rates)
+            self.compile_s = time.perf_counter() - t0
+        t_it = time.perf_counter()
+        before = self.state
+        self.state, rep = self.step.executable(self.state, *self.rates)
+        rep = jax.device_get(rep)
+        if step_hook is not None:
+            rep = step_hook(self.state, rep)
+        self.last_iter_s = time.perf_counter() - t_it
+        row = self._row(int(before.iteration), rep)
+        self.history.append(row)
+        if float(self.state.best_loss) != float(before.best_loss):
+            self._best_improved()
+        return row
+
+    def _row(self, it: int, rep: dict) -> dict:
+        state = self.state
+        accepted_steps = int(state.iteration) - int(state.n_rejected)
+        lr = float(self.schedule(max(accepted_steps - 1, 0))) * float(rep["lr_scale"])
+        return {
+            "iteration": it, "loss": float(rep["loss"]), "accepted": bool(rep["accepted"]),
+            "feasible": bool(rep["feasible"]), "best_loss": float(state.best_loss), "lr": lr,
+            "grad_norm": float(rep["grad_norm"]),
+            "linf_window": float(rep["linf_window"]), "max_abs_u": float(rep["max_abs_u"]),
+            "n_diverged": int(rep["n_diverged"]),
+            **{k: float(rep["terms"][k]) for k in self.terms},
+            "wall_s": self.elapsed_before + time.perf_counter() - self.t_start,
+            "best_iteration": int(state.best_iteration),
+        }
+
+    # -- files --------------------------------------------------------------------------------
+    def _best_improved(self) -> None:
+        """Write the new best point at once (at most once a second): a run killed before its
+        next checkpoint keeps it."""
+        now = time.perf_counter()
+        if self.out is not None and now - self.last_best_write > 1:
+            _write_best(self.out, self.problem, self.state)
+            self.last_best_write = now
+
+    def checkpoint(self, every: int) -> None:
+        """The checkpoint files, after every `every`-th iteration."""
+        if int(self.state.iteration) % every == 0:
+            self.save()
+
+    def save(self, stop_reason: str | None = None) -> None:
+        """Write every checkpoint file (stop_reason: the run ends here)."""
+        if self.out is None:
+            return
+        out, state, desc = self.out, self.state, self.desc
+        meta_state = ck.save_state(out / "checkpoint.npz", state)
+        _write_best(out, self.problem, state)
+        ck.write_history(out / "history.csv", self.history, history_columns(self.problem))
+        files.write_json(out / "checkpoint.json", {
+            "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
+            "iteration": int(state.iteration), "best_loss": float(state.best_loss),
+            "best_iteration": int(state.best_iteration),
+            "best_feasible": bool(state.best_feasible), "decay_steps": self.spec.decay_steps,
+            "elapsed_total_s": self.elapsed_before + time.perf_counter() - self.t_start,
+            "stop_reason": stop_reason, "state": meta_state, "problem": desc})
 
 
-def _step_for(problem: Problem, spec):
-    """The optax transformation and the jitted step, cached so that a run resumed in the same
-    process (tests, experiments) does not compile again."""
+def compiled_step(problem: Problem, spec):
+    """The optax transformation and the jitted step for the problem and update rule.
+
+    Kept in the objective's cache (`Objective.compiled`), so that a run resumed in the same
+    process (tests, experiments) does not compile again; it lives as long as the objective.
+    """
     rule = (spec.name, spec.learning_rate, spec.schedule, spec.final_lr_fraction,
             spec.decay_steps, spec.clip_norm)
-    key = (id(problem.objective), problem.mode, rule)
-    if key not in _STEPS:
-        if len(_STEPS) >= 8:
-            _STEPS.pop(next(iter(_STEPS)))
+    key = ("tuning step", problem.mode, rule)
+    cache = problem.objective.compiled
+    if key not in cache:
         optimizer = spec.make()
-        _STEPS[key] = (problem.objective, optimizer, _Compiled(make_step(
+        cache[key] = (optimizer, _AheadOfTime(make_step(
             problem.objective, optimizer, problem.selection, problem.mode,
             problem.objective.sim.checkpoint_every)))
-    return _STEPS[key][1:]
+    return cache[key]
 
 
-class _Compiled:
+class _AheadOfTime:
     """A jitted step compiled ahead of time once (so compilation can be timed apart)."""
 
     def __init__(self, step):
         self.step = step
-        self._compiled = None
+        self.executable = None
 
-    def compiled(self, *args):
-        if self._compiled is None:
-            self._compiled = self.step.lower(*args).compile()
-        return self._compiled
+    def compile(self, *args) -> None:
+        self.executable = self.step.lower(*args).compile()
 
 
 def gains_config(problem: Problem, z) -> dict:
