@@ -40,11 +40,6 @@ REGISTRY: dict[str, dict[str, type]] = {
 KIND_KEY = {"plant": "family", "hysteresis": "model", "controller": "kind", "reference": "kind"}
 
 
-def register(section: str, cls: type) -> None:
-    """Make a model class selectable from config as `<section>.<kind key> = cls.kind`."""
-    REGISTRY[section][cls.kind] = cls
-
-
 # A saved trajectory keeps at most this many points unless simulation.save_every says otherwise
 # (20 s at the default dt = 1e-3 is 20,001 points: every step).
 MAX_SAVED_POINTS = 20_001
@@ -166,7 +161,8 @@ DOCS: dict[str, str] = {
 }
 
 
-def _toml_value(v) -> str:
+def toml_value(v) -> str:
+    """A Python value as TOML text (bools, numbers, strings, lists)."""
     if isinstance(v, bool):
         return "true" if v else "false"
     if isinstance(v, int):
@@ -178,7 +174,7 @@ def _toml_value(v) -> str:
     if isinstance(v, str):
         return json.dumps(v)
     if isinstance(v, list | tuple):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+        return "[" + ", ".join(toml_value(x) for x in v) + "]"
     raise TypeError(f"cannot write {type(v).__name__} to TOML")
 
 
@@ -197,9 +193,9 @@ def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
         lines += ["", f"[{section}]"] if lines else [f"[{section}]"]
         for k, v in table.items():
             if isinstance(v, Omitted):
-                line = f"# {k} = {_toml_value(v.value)}"
+                line = f"# {k} = {toml_value(v.value)}"
             else:
-                line = f"{k} = {_toml_value(v)}"
+                line = f"{k} = {toml_value(v)}"
             doc = DOCS.get(f"{section}.{k}")
             lines.append(f"{line:<38s} # {doc}" if doc else line)
     return "\n".join(lines) + "\n"
@@ -366,5 +362,6 @@ def default_toml() -> str:
     return to_toml(
         paper_example(dtype=np.float64),
         header="dscjax configuration: the paper's example (Section 4, eq. 73) with the "
-        "readings of\nNOTES.md. Every key may be omitted; omitted keys take these values.",
+        "readings of\ndocs/paper-readings.md. Every key may be omitted; omitted keys take "
+        "these values.",
     )

@@ -1,7 +1,7 @@
 """Built-in setups: the paper's simulation example (Section 4, eq. 73) and an order-n family.
 
 Every reading of the paper that had to be made is listed here and in docs/paper-readings.md;
-each is a setting, and the defaults follow ../shared/paper/NOTES.md exactly.
+each is a setting (docs/paper-readings.md lists them and the alternatives).
 """
 
 from __future__ import annotations
@@ -87,7 +87,7 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
     (+ 0.05 x_(i-1) x_i for i >= 2), rho_i = 0.05 + 0.02 q_i, Delta_i = 0.05 sin(x_(i+1)) +
     0.02 q_i sin^3 t; the paper's hysteresis; y_r = sin t.
 
-    Following NOTES.md (order n >= 3 is stiff: u'(0) grows like 1/tau^(n-1)), the plant starts
+    Order n >= 3 is stiff (u'(0) grows like 1/tau^(n-1); docs/numerics.md), so the plant starts
     on the reference's derivative chain, x_i(0) = y_r^(i-1)(0) = (0, 1, 0, -1, ...), the
     designer's estimates start at their nominal values (phi_hat = 1/g = 1, zeta_hat =
     1/lam = 0.7, theta_hat = d_hat = 0), c_i is chosen so that S_i(0) = 0 ("zero_surfaces"),

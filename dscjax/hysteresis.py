@@ -68,7 +68,7 @@ def closed_form(u, u0, w0, alpha, lam, psi, direction):
 
         d_1(u) = (w0 - lam u0) E + (psi - lam)/(alpha s) (1 - E),  E = e^{-alpha s (u - u0)},
 
-    which is (6) with the paper's sgn(u) read as sgn(u') (NOTES.md).
+    which is (6) with the paper's sgn(u) read as sgn(u') (docs/paper-readings.md).
 
     Args:
         u: input values on the segment (any shape).

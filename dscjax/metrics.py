@@ -111,10 +111,6 @@ def rms(e, t, t0=None):
     return l2(e, t, t0) / jnp.sqrt(t[-1] - t_first)
 
 
-def max_abs(u):
-    return jnp.max(jnp.abs(u))
-
-
 def total_variation(u):
     return jnp.sum(jnp.abs(jnp.diff(u)))
 

@@ -4,7 +4,7 @@ summary of every run and a check of each claim the paper makes from its figures.
     import dscjax.reproduce
     summary = dscjax.reproduce.reproduce("results/paper")
 
-Runs (all on the paper's example, eq. 73, with the readings of ../shared/paper/NOTES.md):
+Runs (all on the paper's example, eq. 73, with the readings of docs/paper-readings.md):
     dsc                  the DSC with hysteresis compensation, eqs. (13)-(32)
     dsc_no_dhat          "without considering hysteresis", reading A: d_hat = 0 (no robust term)
     dsc_no_dhat_no_zeta  reading B: also zeta_hat = 1, so u = ubar

@@ -50,7 +50,7 @@ def test_same_grid_rk4_agrees_to_roundoff(traj20):
 def test_scipy_reference_over_20s(traj20):
     """Against DOP853 (rtol 1e-12): RK4 at dt = 1e-3 on this non-smooth loop is accurate to
     ~1e-5 in x_1 over the horizon, its largest errors in w and u sitting in the first second's
-    bursts (NOTES.md); after 1 s everything agrees to ~1e-3 of its range or better."""
+    bursts (docs/numerics.md); after 1 s everything agrees to ~1e-3 of its range or better."""
     t = np.asarray(traj20.t)[::10]
     sol = solve_ivp(ref.rhs, (0.0, 20.0), ref.initial_state(), method="DOP853", rtol=1e-12,
                     atol=1e-13, t_eval=t)

@@ -218,12 +218,12 @@ def _requirements(table) -> dict[str, dict[str, float]]:
 
 def to_toml(cfg: TuningConfig, setup=None) -> str:
     """The effective [tuning] table as TOML (ranges resolved against `setup` if given)."""
-    from dscjax.config import _toml_value
+    from dscjax.config import toml_value
 
     def val(v):
         if v is None:
             return '"none"'
-        return _toml_value(list(v) if isinstance(v, tuple) else v)
+        return toml_value(list(v) if isinstance(v, tuple) else v)
 
     lines = ["[tuning]", f"params = {val(cfg.params)}"]
     if cfg.freeze is not None:

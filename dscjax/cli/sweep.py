@@ -165,7 +165,7 @@ def load(args):
 
 def sweep_toml(settings, setup) -> str:
     """The effective [sweep] table as TOML (ranges resolved to absolute bounds)."""
-    from dscjax.config import _toml_value
+    from dscjax.config import toml_value
 
     lines = ["[sweep]"]
     for f in dataclasses.fields(settings):
@@ -174,12 +174,12 @@ def sweep_toml(settings, setup) -> str:
             continue
         if f.name == "samples" and settings.method == "grid":
             continue
-        lines.append(f"{f.name} = {_toml_value(list(v) if isinstance(v, tuple) else v)}")
+        lines.append(f"{f.name} = {toml_value(list(v) if isinstance(v, tuple) else v)}")
     table = "grid" if settings.method == "grid" else "ranges"
     lines += ["", f"[sweep.{table}]"]
     for r in settings.resolved_ranges(setup):
         vals = [r.low, r.high] + ([r.num] if r.num is not None else [])
-        lines.append(f"{json.dumps(r.name)} = {_toml_value(vals)}")
+        lines.append(f"{json.dumps(r.name)} = {toml_value(vals)}")
     return "\n".join(lines) + "\n"
 
 
