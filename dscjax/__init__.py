@@ -24,6 +24,7 @@ from dscjax.simulate import (
     default_window,
     divergence_report,
     nan_if_diverged,
+    refinement_level,
     run,
     simulate,
     simulate_batch,
@@ -38,6 +39,7 @@ __all__ = [
     "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
     "default_window", "divergence_report", "initial_state", "integrate", "metrics",
-    "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared", "rk4_step",
+    "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared",
+    "refinement_level", "rk4_step",
     "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field",
 ]

@@ -105,5 +105,13 @@ def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
     return State(x=dx, w=dw, ctrl=dctrl), Observation(u=u, u_dot=du, yr=info.yr, S=info.S)
 
 
+def decay_rates(t, X: State, setup: Setup, obs: Observation) -> State:
+    """Rates >= 0 of the stiff linear decays in the loop, per state component, at (t, X):
+    the hysteresis rate (alpha |u'| for eq. 4) and the controller's filters (1/tau). The
+    exponential step (`integrate._etdrk4`) integrates -rate * X exactly over a step."""
+    return State(x=jnp.zeros_like(X.x), w=setup.hysteresis.decay_rate(obs.u, obs.u_dot, X.w),
+                 ctrl=setup.controller.decay_rates(X.ctrl))
+
+
 __all__ = ["Setup", "State", "Observation", "prepared", "initial_state", "vector_field",
-           "Controller"]
+           "decay_rates", "Controller"]

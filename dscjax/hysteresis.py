@@ -61,6 +61,11 @@ class Backlash:
         abs_du = smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
         return self.alpha * abs_du * (self.lam * u - w) + self.psi * du
 
+    def decay_rate(self, u, du, w):
+        """The rate a >= 0 of the linear decay -a w in eq. (4): alpha |u'|. It makes the loop
+        stiff where |u'| is large; the exponential step integrates it exactly."""
+        return self.alpha * (smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du))
+
     def d1_limits(self):
         """Limits (7)-(8) of d_1: (lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""
         bound = (self.lam - self.psi) / self.alpha
