@@ -42,10 +42,17 @@ def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, floa
     """The mu that makes (72) smallest for fixed gains: (mu, certified alpha_0).
 
     alpha_0(mu) = `certified_alpha0` (the tau rule (60) allows more as mu grows) and
-    C(mu) = C0 + (n-1) mu/2; minimised over a log grid of mu in [1e-4, 1e4].
+    C(mu) = C0 + (n-1) mu/2; minimised over a log grid of mu in [1e-4, 1e4] and the mu at
+    which the tau rule stops being the binding one.
     """
+    # mu* where the tau rule (60) stops binding: the optimum unless the grid finds better
+    _, allows = theory.certified_alpha0(controller, M, 1.0)
+    others = min(v for k, v in allows.items() if not k.startswith("tau_"))
+    c = controller
+    candidates = [float(np.asarray(M)[i]) ** 2 / (2 * (1 / float(c.tau[i]) - 0.25 - others))
+                  for i in range(n - 1) if 1 / float(c.tau[i]) - 0.25 - others > 0]
     best = (math.inf, None, None)
-    for mu in np.geomspace(1e-4, 1e4, 801):
+    for mu in [*np.geomspace(1e-4, 1e4, 801), *(m * (1 + 1e-12) for m in candidates)]:
         a0, _ = theory.certified_alpha0(controller, M, float(mu))
         if a0 > 0:
             b = theory.bound_72(C0 + (n - 1) * mu / 2, a0, g_max)
@@ -155,7 +162,7 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
     t = arrays["t"]
     parts = [np.sum(np.reshape(arrays[k], (len(t), -1)), axis=1) for k, _, _ in GROUPS]
     with _rc():
-        fig = Figure(figsize=(7.2, 6.4), layout="constrained")
+        fig = Figure(figsize=(8.8, 6.4), layout="constrained")
         top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
         top.stackplot(t, *parts, labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
@@ -163,7 +170,7 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
         top.set_ylabel("$V$ and its terms [-]")
         top.set_title("Lyapunov function (44) along the paper's example (its own gains and "
                       "initialisation)")
-        top.legend(loc="upper right", ncol=2, frameon=False)
+        top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         bottom.semilogy(t, arrays["V"], color="k", lw=1.0, label="$V(t)$")
         bottom.semilogy(t, arrays["bound_65"], color="#d62728", ls="--", lw=1.0,
                         label="bound (65)")
@@ -174,7 +181,7 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
         bottom.set_title(f"against Theorem 1 with the certified $\\alpha_0$ = "
                          f"{summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
                          "(data-driven $M$)")
-        bottom.legend(loc="center right", frameon=False)
+        bottom.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         path = Path(path)
         fig.savefig(path, dpi=dpi)
     return path

@@ -256,7 +256,7 @@ def disturbance_at(setup, t, X: State, u):
 
 
 class LyapunovTerms(NamedTuple):
-    """V(t) of (44) and its terms at a trajectory's saved times (leading axis T).
+    """V(t) of (44) and its terms at a trajectory's saved times (leading axis T), NumPy arrays.
 
     t: (T,); V: (T,) the sum of every term; surface (T, n), filter (T, n-1), theta (T, n),
     phi (T, n-1), zeta (T,), d (T,): see `Terms`; y: (T, n-1) the filter errors (33);
@@ -337,9 +337,9 @@ def lyapunov(setup, traj, d=None) -> LyapunovTerms:
     s = _prepared_dsc(setup)
     X = _states(traj)
     tr = truth(s, d, traj.t)
-    t = jnp.asarray(traj.t)
+    t = np.asarray(traj.t)
     terms, (y, _) = _chunked(_terms_and_y, (s, tr), t, X)
-    return LyapunovTerms(t=t, V=terms.total(), y=y, truth=tr, **terms._asdict())
+    return LyapunovTerms(t=t, V=np.asarray(terms.total()), y=y, truth=tr, **terms._asdict())
 
 
 def _terms_and_y(setup, tr, t, X):

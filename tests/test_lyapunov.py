@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dscjax
-from dscjax import alpha0_study, theory
+from dscjax import theory
 from dscjax.validation import ConfigError
 
 LAM, PSI, ALPHA = 1.432, 0.105, 1.0
@@ -33,7 +33,7 @@ def _family_f_rho(p, x):
     return f, p["rho_const"] + p["rho_quad"] * q
 
 
-def _numpy_v(traj, c_offsets, ctrl, plant, d, f_rho, yr_dot):
+def _numpy_v(traj, c_offsets, ctrl, plant, d, f_rho, yr_dot, yr=np.sin):
     """V of (44) at every saved point, from the definitions, in plain NumPy."""
     g, theta = np.asarray(plant.g), np.asarray(plant.theta)
     k, tau = np.asarray(ctrl.k), np.asarray(ctrl.tau)
@@ -50,7 +50,7 @@ def _numpy_v(traj, c_offsets, ctrl, plant, d, f_rho, yr_dot):
     for j in range(t.shape[0]):
         f, rho = f_rho(x[j])
         s = np.empty(n)
-        s[0] = x[j, 0] - np.sin(t[j])  # (13), y_r = sin t
+        s[0] = x[j, 0] - yr(t[j])  # (13)
         v_sig = yr_dot(t[j])  # the signal phi_hat multiplies: y_r', then z_i'
         ys = []
         for i in range(n - 1):
@@ -73,7 +73,7 @@ def _numpy_v(traj, c_offsets, ctrl, plant, d, f_rho, yr_dot):
 
 def test_v_of_the_paper_example_matches_numpy():
     setup = dscjax.paper_example()
-    traj = dscjax.simulate(setup, 3.0, 1e-3, save_every=10)
+    traj = dscjax.simulate(setup, 1.0, 1e-3)  # the compilation the reproduce test reuses
     lv = dscjax.lyapunov(setup, traj)
 
     def f_rho(x):
@@ -84,20 +84,32 @@ def test_v_of_the_paper_example_matches_numpy():
     total = sum(np.sum(np.reshape(getattr(lv, k), (len(lv.t), -1)), axis=1)
                 for k in theory.TERM_NAMES)
     np.testing.assert_allclose(total, lv.V, rtol=1e-14)
-    assert lv.surface.shape == (301, 2) and lv.filter.shape == (301, 1)
+    assert lv.surface.shape == (1001, 2) and lv.filter.shape == (1001, 1)
 
 
 @pytest.mark.parametrize("n", [3, 4])
-def test_v_of_order_n_matches_numpy(n):
-    setup = dscjax.order_n_example(n)
+def test_v_of_order_n_under_linf_matches_numpy_and_69(n):
+    """Order n with the L-inf initialisation (67)-(68): the reference is shifted to start at
+    x_1(0) (docs/paper-readings.md #9), c_i = x_i(0), every estimate starts at 0."""
+    setup = dscjax.order_n_example(n, init="linf")
     traj = dscjax.simulate(setup, 1.0, 1e-3, save_every=10)
     lv = dscjax.lyapunov(setup, traj, d=0.9)
     p = {k: np.asarray(getattr(setup.plant, k)) for k in setup.plant.vector_fields}
-    c = np.asarray(dscjax.prepared(setup).controller.c)  # "zero_surfaces" picks the c_i
-    ref = _numpy_v(traj, c, setup.controller, setup.plant, 0.9,
-                   lambda x: _family_f_rho(p, x), np.cos)
+    x0 = np.asarray(setup.plant.x0)
+    off, decay = x0[0] - 0.0, float(setup.controller.linf_decay_time)  # y_r(0) = sin 0 = 0
+
+    def yr_dot(t):
+        return np.cos(t) - off / decay * np.exp(-t / decay)
+
+    ref = _numpy_v(traj, x0[1:], setup.controller, setup.plant, 0.9,
+                   lambda x: _family_f_rho(p, x), yr_dot,
+                   yr=lambda t: np.sin(t) + off * np.exp(-t / decay))
     np.testing.assert_allclose(lv.V, ref, rtol=1e-10)
     assert float(lv.truth.d) == 0.9
+    # (69) by hand: g = 1, theta = 0.1 (theta_g = 0.1), phi = 1, gamma = 1, zeta = 1/lam
+    by_hand = 0.5 * (n * 0.1 ** 2 + (n - 1) * 1.0 + LAM / LAM ** 2 + 0.9 ** 2)
+    np.testing.assert_allclose(lv.V[0], by_hand, rtol=1e-14)
+    assert np.all(lv.surface[0] == 0.0) and np.all(np.abs(lv.filter[0]) < 1e-30)
 
 
 # -- (67)-(68) and (69) ------------------------------------------------------------------------
@@ -105,7 +117,7 @@ def test_v_of_order_n_matches_numpy(n):
 
 def test_v0_under_linf_initialisation_is_69_by_hand():
     setup = dscjax.paper_example(init="linf")
-    traj = dscjax.simulate(setup, 0.1, 1e-3, save_every=100)
+    traj = dscjax.simulate(setup, 1.0, 1e-3)
     lv = dscjax.lyapunov(setup, traj)
     # (69) with gamma = 8: theta_g1 = 0.1, theta_2 = 0, phi_1 = 1, zeta = 1/1.432, beta = 1.432
     assert lv.surface[0].tolist() == [0.0, 0.0] and abs(lv.filter[0, 0]) < 1e-30
@@ -117,16 +129,6 @@ def test_v0_under_linf_initialisation_is_69_by_hand():
     np.testing.assert_allclose(lv.V[0], by_hand, rtol=1e-14)
     s = dscjax.prepared(setup)
     np.testing.assert_allclose(theory.v0_69(s.controller, lv.truth), by_hand, rtol=1e-14)
-
-
-def test_v0_under_linf_initialisation_order_3():
-    setup = dscjax.order_n_example(3, init="linf")
-    traj = dscjax.simulate(setup, 0.05, 1e-3, save_every=50)
-    lv = dscjax.lyapunov(setup, traj)
-    # g = 1, theta = 0.1 (so theta_g = 0.1), phi = 1, gamma = 1, d = (lam - psi)/alpha
-    by_hand = 0.5 * (3 * 0.1 ** 2 + 2 * 1.0 + LAM / LAM ** 2 + D_PAPER ** 2)
-    np.testing.assert_allclose(lv.V[0], by_hand, rtol=1e-14)
-    assert np.all(lv.surface[0] == 0.0) and np.all(np.abs(lv.filter[0]) < 1e-30)
 
 
 # -- dV/dt -----------------------------------------------------------------------------------
@@ -232,27 +234,8 @@ def test_lyapunov_rejects_backstepping():
     from dscjax.controllers.backstepping import with_backstepping
 
     setup = with_backstepping(dscjax.paper_example())
-    traj = dscjax.simulate(setup, 0.01, 1e-3)
     with pytest.raises(ConfigError, match="dsc"):
-        dscjax.lyapunov(setup, traj)
-
-
-# -- the theorem along a run -----------------------------------------------------------------
-
-
-def test_check_on_a_short_linf_run():
-    opts = alpha0_study.StudyOptions(alpha0=(1.0,), t_final=2.0, verify_dt=False)
-    row = alpha0_study.study_one(alpha0_study.base_setup(2), 1.0, opts)
-    assert row["converged"] and row["all_hold"]
-    assert row["k"] == pytest.approx([4.0, 1.25])
-    # (60) with the M that was used
-    assert row["tau"][0] == pytest.approx(1 / (0.25 + row["M"][0] ** 2 / (2 * 0.1) + 1.0))
-    assert row["M_measured"][0] <= row["M"][0]
-    assert row["V0"] == pytest.approx(row["v0_69"], rel=1e-12)  # (69)
-    assert row["bound_72"] == pytest.approx(math.sqrt(row["C"] / 1.0))  # g_max = 1
-    assert row["bound_71"] == pytest.approx(row["C"] / 2.0)
-    assert row["S1_inf"] <= row["bound_72"] and row["V_max"] <= row["bound_71"]
-    assert 0.0 <= row["slack"] <= 0.01 / 4 * 2.0  # sat(S_2/0.01): <= width * max d_hat / 4
+        dscjax.lyapunov(setup, None)  # refused before the trajectory is looked at
 
 
 # -- the CLI ---------------------------------------------------------------------------------
@@ -279,7 +262,7 @@ def test_reproduce_theory_writes_lyapunov_npz_and_summary(tmp_path):
 
     out = tmp_path / "paper"
     assert main(["reproduce", "--out", str(out), "--t-final", "1", "--dpi", "40", "--theory",
-                 "--alpha0", "0.5,2"]) == 0
+                 "--alpha0", "0.3"]) == 0
     data = np.load(out / "theory" / "lyapunov.npz")
     for key in ("t", "V", "surface", "filter", "theta", "phi", "zeta", "d", "y", "V_dot",
                 "bound_65", "B"):
@@ -294,8 +277,19 @@ def test_reproduce_theory_writes_lyapunov_npz_and_summary(tmp_path):
     assert th["paper"]["V0"] == pytest.approx(float(data["V"][0]))
     assert not th["paper"]["init"]["uses_67"] and not th["paper"]["init"]["uses_68"]
     rows = th["studies"][0]["rows"]
-    assert [r["alpha0"] for r in rows] == [0.5, 2.0]
-    assert all(r["all_hold"] for r in rows)
+    assert [r["alpha0"] for r in rows] == [0.3]
+    for row, a in zip(rows, (0.3,), strict=True):
+        assert row["converged"] and row["all_hold"] and row["assumptions"]["(59)"]
+        assert row["k"] == pytest.approx([3 + a, 0.25 + a])  # (55), g_min = 1
+        assert row["gamma_g"] == pytest.approx([2 * a / 0.01] * 2)
+        # (60) with the M that was used, and (59) on the run
+        assert row["tau"][0] == pytest.approx(1 / (0.25 + row["M"][0] ** 2 / (2 * 0.1) + a))
+        assert row["M_measured"][0] <= row["M"][0]
+        assert row["V0"] == pytest.approx(row["v0_69"], rel=1e-12)  # (69)
+        assert row["bound_72"] == pytest.approx(math.sqrt(row["C"] / a))  # g_max = 1
+        assert row["bound_71"] == pytest.approx(row["C"] / (2 * a))
+        assert row["C"] == pytest.approx(row["e_M"] + 0.1 / 2 + row["slack"])
+        assert row["S1_inf"] <= row["bound_72"] and row["V_max"] <= row["bound_71"]
     for name in ("fig_lyapunov.png", "fig_alpha0.png", "alpha0_n2.json", "theory.json"):
         assert (out / "theory" / name).stat().st_size > 1000, name
     md = (out / "summary.md").read_text()
