@@ -63,6 +63,8 @@ class StudyOptions:
         tighten: when the first run is already consistent, try once more with
             M = (1 + margin) * measured (slower filters, closer to the fixed point of (60));
             keep it if it does not diverge, needs no smaller dt and still satisfies (59).
+        max_steps: a run that would need more RK4 steps than this (t_final/dt; every step is
+            saved) is not made: the alpha_0 is reported as skipped, with the dt it needed.
     """
 
     alpha0: tuple[float, ...] = DEFAULT_ALPHA0
@@ -77,6 +79,7 @@ class StudyOptions:
     tau_start: float = 1e-3
     max_halvings: int = 6
     tighten: bool = True
+    max_steps: int = 2_000_000
 
     def validate(self):
         if not self.alpha0 or min(self.alpha0) <= 0:
@@ -96,14 +99,20 @@ def default_options(n: int, **changes) -> StudyOptions:
     """The study's settings for order n, with `changes` (None values ignored) applied.
 
     n = 2: the 10 values of `DEFAULT_ALPHA0` (0.1 to 10), mu = 0.1, 20 s.
-    n >= 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s. Order n >= 3 is much stiffer: u' grows
-    like M/tau in bursts, and the hysteresis rate alpha |u'| then needs dt down to 1e-5 s or
-    below (alpha_0 = 1, n = 3: 1.6e-5 s); a larger mu keeps tau_start consistent with (60),
-    and larger alpha_0 cost minutes per value on a CPU.
+    n = 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s. n >= 4: alpha_0 in (0.1, 0.3), mu = 50,
+    5 s. Order n >= 3 is much stiffer: u' carries z_n'' and grows in bursts, and the
+    hysteresis rate alpha |u'| then needs dt down to 1e-5 s or below (n = 3, alpha_0 = 1:
+    1.6e-5 s; n = 4, alpha_0 = 0.3: 4.9e-7 s). A larger mu keeps tau_start consistent with
+    (60) (measured M_n: 81 for n = 3, alpha_0 = 1; 277 for n = 4, alpha_0 = 0.1), at the
+    price of (n-1) mu/2 in the bound.
     """
-    base = (StudyOptions() if n == 2 else
-            StudyOptions(alpha0=ALPHA0_HIGH_ORDER, mu=10.0, t_final=T_HIGH_ORDER))
-    changes = {k: (tuple(v) if k == "alpha0" else v) for k, v in changes.items()
+    if n == 2:
+        base = StudyOptions()
+    elif n == 3:
+        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER, mu=10.0, t_final=T_HIGH_ORDER)
+    else:
+        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER[:2], mu=50.0, t_final=T_HIGH_ORDER / 2)
+    changes = {k: (tuple(float(a) for a in v) if k == "alpha0" else v) for k, v in changes.items()
                if v is not None}
     return dataclasses.replace(base, **changes)
 
@@ -144,12 +153,27 @@ def _hysteresis_stiffness(setup, traj) -> float:
     return float(setup.hysteresis.alpha) * float(np.max(np.abs(np.asarray(traj.u_dot))))
 
 
+class TooStiff(Exception):
+    """A run would need more than `max_steps` steps; `dt` is the step it needed."""
+
+    def __init__(self, dt: float, steps: int):
+        super().__init__(f"needs dt <= {dt:.3g} s: {steps} steps")
+        self.dt, self.steps = dt, steps
+
+
+def _simulate(setup, t_final, dt, opts: StudyOptions):
+    steps = int(round(t_final / dt))
+    if steps > opts.max_steps:
+        raise TooStiff(dt, steps)
+    return simulate(setup, t_final, dt, save_every=1, throw=False)
+
+
 def _run(setup, t_final, dt, opts: StudyOptions):
     """Simulate at dt, then halve dt while the run diverges or the hysteresis state's rate
     alpha max |u'| (measured on the run) puts it beyond dt_safety times RK4's limit (at most
     `max_halvings` times). Returns (trajectory, dt); the trajectory may still have diverged."""
     for _ in range(opts.max_halvings + 1):
-        traj = simulate(setup, t_final, dt, save_every=1, throw=False)
+        traj = _simulate(setup, t_final, dt, opts)
         if bool(traj.diverged):
             dt /= 2
             continue
@@ -195,7 +219,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
         # one run with M = (1 + margin) * measured, kept if (59) still holds on it.
         setup, tau = _with(base, alpha0, M_tight, opts)
         dt = min(_dt_for(tau, opts), last[2])
-        traj = simulate(setup, opts.t_final, dt, save_every=1, throw=False)
+        traj = _simulate(setup, opts.t_final, dt, opts)
         why = ("diverged" if bool(traj.diverged) else
                "needs a smaller dt" if _hysteresis_stiffness(setup, traj) * dt
                > opts.dt_safety * RK4_REAL_STABILITY else None)
@@ -210,7 +234,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
             last = (setup, tau, dt, res)
     setup, tau, dt, res = last
     row = _row(alpha0, setup, tau, dt, res, converged, history)
-    if opts.verify_dt:
+    if opts.verify_dt and opts.t_final / (dt / 2) <= opts.max_steps:
         traj2 = simulate(setup, opts.t_final, dt / 2, save_every=1, throw=False)
         lv = theory.lyapunov(setup, traj2)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
@@ -245,7 +269,8 @@ def study(base, opts: StudyOptions | None = None,
           log: Callable[[str], None] = lambda s: None) -> dict:
     """Run the study on `base` (a DSC setup with init="linf", see `base_setup`).
 
-    Returns {"n", "options", "rows": [one dict per alpha_0], "wall_s"}.
+    Returns {"n", "options", "rows": [one dict per alpha_0], "wall_s"}. A row whose runs would
+    need more than `max_steps` steps has only alpha0, skipped=True, dt_needed and steps.
     """
     opts = opts or StudyOptions()
     opts.validate()
@@ -255,7 +280,15 @@ def study(base, opts: StudyOptions | None = None,
     t0 = time.perf_counter()
     rows = []
     for a in opts.alpha0:
-        rows.append(study_one(base, a, opts, log))
+        t1 = time.perf_counter()
+        try:
+            rows.append(study_one(base, a, opts, log))
+        except TooStiff as err:
+            rows.append(dict(alpha0=float(a), skipped=True, dt_needed=err.dt, steps=err.steps,
+                             wall_s=time.perf_counter() - t1))
+            log(f"n = {base.order}, alpha_0 = {a:g}: skipped, {err} > max_steps = "
+                f"{opts.max_steps} ({rows[-1]['wall_s']:.1f} s)")
+            continue
         r = rows[-1]
         log(f"n = {base.order}, alpha_0 = {a:g}: ||S_1|| = {r['S1_inf']:.4g} <= "
             f"{r['bound_72']:.4g} (72): {r['holds']['(72)']}; max V = {r['V_max']:.4g} <= "
@@ -271,6 +304,10 @@ def table_markdown(result: dict) -> str:
              "measured | max V | (71) bound | V(0) | C | max abs d_n / d | (63), (65), (70)-(72) "
              "hold |", "|---|" + "---|" * 13]
     for r in result["rows"]:
+        if r.get("skipped"):
+            lines.append(f"| {r['alpha0']:g} | skipped: needs dt <= {r['dt_needed']:.3g} s, "
+                         f"{r['steps']} steps (more than max_steps) |" + " |" * 12)
+            continue
         fmt = ", ".join
         failed = [k for k, v in r["holds"].items() if not v]
         lines.append(
@@ -296,25 +333,26 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
     path = Path(path)
     with matplotlib.rc_context({"font.size": 10, "axes.grid": True, "grid.alpha": 0.3,
                                 "legend.fontsize": 8.5}):
-        fig = Figure(figsize=(6.4, 4.4), layout="constrained")
+        fig = Figure(figsize=(8.6, 4.4), layout="constrained")
         ax = fig.add_subplot()
         for res in results:
             n = res["n"]
-            a = [r["alpha0"] for r in res["rows"]]
+            rows = [r for r in res["rows"] if not r.get("skipped")]
+            a = [r["alpha0"] for r in rows]
             color = COLORS.get(n, None)
             mu = res["options"]["mu"]
-            ax.loglog(a, [r["bound_72"] for r in res["rows"]], "--", color=color, marker="^",
+            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=color, marker="^",
                       ms=4, label=f"n = {n}: bound (72), data-driven M, $\\mu$ = {mu:g}")
-            ax.loglog(a, [r["S1_inf"] for r in res["rows"]], "-", color=color, marker="o",
+            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=color, marker="o",
                       ms=4, label=f"n = {n}: measured $\\|S_1\\|_\\infty$")
         ax.set_xlabel(r"$\alpha_0$ (gains by (55), $\tau$ by (60))")
         ax.set_ylabel(r"$\|S_1\|_\infty$ [-]")
-        ax.set_title("Theorem 1 with the L-inf initialisation (67)-(68): bound (72) against "
-                     "the measured error", fontsize=9.5)
-        ax.legend(loc="best", frameon=False)
+        ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
+                     "measured error", fontsize=9.5)
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         fig.savefig(path, dpi=dpi)
     return path
 
 
-__all__ = ["ALPHA0_HIGH_ORDER", "DEFAULT_ALPHA0", "StudyOptions", "base_setup",
+__all__ = ["ALPHA0_HIGH_ORDER", "DEFAULT_ALPHA0", "StudyOptions", "TooStiff", "base_setup",
            "default_options", "plot", "study", "study_one", "table_markdown"]

@@ -302,3 +302,17 @@ def test_bad_alpha0_is_a_usage_error(tmp_path, capsys):
 
     assert main(["reproduce", "--out", str(tmp_path), "--theory", "--alpha0", "0,1"]) == 2
     assert "--alpha0" in capsys.readouterr().err
+
+
+def test_study_skips_an_alpha0_that_needs_too_many_steps():
+    from dscjax import alpha0_study
+
+    opts = alpha0_study.StudyOptions(alpha0=(1.0,), t_final=1.0, max_steps=10)
+    res = alpha0_study.study(alpha0_study.base_setup(2), opts)
+    (row,) = res["rows"]
+    assert row["skipped"] and row["steps"] == 1000 and row["dt_needed"] == 1e-3
+    assert "skipped: needs dt <= 0.001 s, 1000 steps" in alpha0_study.table_markdown(res)
+    with pytest.raises(ConfigError, match="controller.init"):
+        alpha0_study.study(dscjax.paper_example(), opts)
+    with pytest.raises(ConfigError, match="mu"):
+        alpha0_study.study(alpha0_study.base_setup(2), dataclasses.replace(opts, mu=0.0))
