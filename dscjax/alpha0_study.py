@@ -11,8 +11,14 @@ form. It is estimated along the trajectory, and the gains and M are iterated to 
     M <- (1 + margin) max_t |B(t)| under tau(M),   until max_t |B(t)| <= M (then (59) holds
     on the run with the M the gains were built from).
 
-The bounds computed with that M are DATA-DRIVEN ESTIMATES of the theorem's constants, not the
-constants themselves (those are maxima over a set that contains the run, so at least as large).
+It starts from fast filters (tau = tau_start); if that first run is already consistent, one
+more run at M = (1 + margin) * measured is tried and kept if still consistent. The bounds
+computed with that M are DATA-DRIVEN ESTIMATES of the theorem's constants, not the constants
+themselves (those are maxima over a set that contains the run, so at least as large).
+
+The RK4 step is chosen per run: stable on the fastest filter and on the hysteresis state
+(rate alpha |u'|, measured), halved on divergence; an alpha_0 whose runs would need more than
+`max_steps` steps is reported as skipped, with the dt it needed.
 
     result = dscjax.alpha0_study.study(dscjax.alpha0_study.base_setup(2))
     print(dscjax.alpha0_study.table_markdown(result))
