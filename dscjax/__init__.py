@@ -8,7 +8,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
 
 # First: dscjax._xla sets XLA_FLAGS on import, before any computation creates the CPU backend.
 from dscjax import _xla  # noqa: F401  isort: skip
-from dscjax import metrics, params, stability
+from dscjax import metrics, params, stability, theory
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
@@ -29,6 +29,7 @@ from dscjax.simulate import (
     simulate,
     simulate_batch,
 )
+from dscjax.theory import lyapunov
 from dscjax.validation import ConfigError, validate_setup
 
 __version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
@@ -38,8 +39,8 @@ __all__ = [
     "DSC", "DSCState", "DivergenceError", "InitialOffset", "MultiSine", "Observation",
     "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
-    "default_window", "divergence_report", "initial_state", "integrate", "metrics",
+    "default_window", "divergence_report", "initial_state", "integrate", "lyapunov", "metrics",
     "nan_if_diverged", "order_n_example", "paper_example", "params", "prepared",
-    "refinement_level", "rk4_step",
-    "run", "simulate", "simulate_batch", "stability", "validate_setup", "vector_field",
+    "refinement_level", "rk4_step", "run", "simulate", "simulate_batch", "stability", "theory",
+    "validate_setup", "vector_field",
 ]

@@ -27,7 +27,9 @@ def add_parser(sub):
         "simulate", help="simulate one closed loop (default: the paper's example)",
         description="Simulate the closed loop of a config (default: the paper's Section 4 "
         "example) by fixed-step RK4 and write DIR/trajectory.npz, DIR/metrics.json and "
-        "DIR/trajectory.png.")
+        "DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function "
+        "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
+        "V_zeta, V_d, V_y (the filter errors).")
     add_config_args(p)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
@@ -100,6 +102,12 @@ def run(args) -> int:
               "S": traj.S, "u_dot": traj.u_dot}
     if hasattr(traj.ctrl, "_fields"):
         arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
+    if setup.controller.kind == "dsc":
+        from dscjax.theory import lyapunov
+
+        lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
+        arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()
+                                 if k not in ("t", "V")}
     np.savez(out / "trajectory.npz", **{k: np.asarray(v) for k, v in arrays.items()})
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     report = divergence_report(traj, options.state_bound)
@@ -111,6 +119,8 @@ def run(args) -> int:
         "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
         "save_every": every,
         "window_start": float(default_window(options.t_final, options.window_start)),
+        **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
+           if "V" in arrays else {}),
         "wall_time_s": elapsed,
         "warnings": warnings,
     })
