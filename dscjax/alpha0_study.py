@@ -171,7 +171,7 @@ def _simulate(setup, t_final, dt, opts: StudyOptions):
     steps = int(round(t_final / dt))
     if steps > opts.max_steps:
         raise TooStiff(dt, steps)
-    return simulate(setup, t_final, dt, save_every=1, throw=False)
+    return simulate(setup, t_final, dt, save_every=1, throw=False, refine=0)
 
 
 def _run(setup, t_final, dt, opts: StudyOptions):
@@ -241,7 +241,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     setup, tau, dt, res = last
     row = _row(alpha0, setup, tau, dt, res, converged, history)
     if opts.verify_dt and opts.t_final / (dt / 2) <= opts.max_steps:
-        traj2 = simulate(setup, opts.t_final, dt / 2, save_every=1, throw=False)
+        traj2 = simulate(setup, opts.t_final, dt / 2, save_every=1, throw=False, refine=0)
         lv = theory.lyapunov(setup, traj2)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
         row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=float(np.max(lv.V)),

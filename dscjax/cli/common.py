@@ -23,11 +23,26 @@ def add_horizon_args(p):
                    f"{d.dt:g}, or the config's simulation.dt)")
 
 
+def add_example_arg(p):
+    p.add_argument("--example", default="paper", metavar="NAME",
+                   help="the built-in closed loop a --config is laid over: paper (default), "
+                   "backstepping (the paper's plant, backstepping baseline) or order-N (the "
+                   "order-n family, N >= 2, e.g. order-4); --print-config shows it whole")
+
+
+def example_setup(args):
+    """The Setup of --example (float64), the base every config is laid over."""
+    from dscjax.examples import example
+
+    return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
+
+
 def add_config_args(p, *, t_final=True):
     from dscjax.config import SimOptions
 
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
-                   "example; see `dscjax simulate --print-config`")
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the "
+                   "--example (default: the paper's); see `dscjax simulate --print-config`")
+    add_example_arg(p)
     if t_final:
         add_horizon_args(p)
     p.add_argument("--float32", action="store_true",
@@ -39,10 +54,11 @@ def load_setup(args):
     from dscjax import config
     from dscjax.params import cast
 
+    base = example_setup(args)
     if args.config:
-        setup, options = config.load(args.config)
+        setup, options = config.load(args.config, base=base)
     else:
-        setup, options = config.from_dict({})
+        setup, options = config.from_dict({}, base=base)
     changes = {}
     for name in ("t_final", "dt"):
         value = getattr(args, name, None)

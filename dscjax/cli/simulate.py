@@ -49,7 +49,13 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax import config, validation
-    from dscjax.simulate import DivergenceError, default_window, divergence_report, simulate
+    from dscjax.simulate import (
+        DivergenceError,
+        default_window,
+        divergence_report,
+        refinement_level,
+        simulate,
+    )
 
     if args.save_every is not None:
         validation.integer(args.save_every, "--save-every", 1)
@@ -90,7 +96,7 @@ def run(args) -> int:
     try:
         traj = simulate(setup, options.t_final, options.dt, save_every=every,
                         window_start=options.window_start, state_bound=options.state_bound,
-                        progress=progress)
+                        progress=progress, solver=options.solver, refine=options.refine)
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
     finally:
@@ -118,6 +124,10 @@ def run(args) -> int:
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
         "save_every": every,
+        "solver": options.solver,
+        "refinements": int(traj.refinements),
+        "solver_used": refinement_level(int(traj.refinements), options.solver)[0],
+        "dt_used": float(traj.dt),
         "window_start": float(default_window(options.t_final, options.window_start)),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
            if "V" in arrays else {}),
@@ -130,6 +140,14 @@ def run(args) -> int:
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
+    if int(traj.refinements):
+        used, _ = refinement_level(int(traj.refinements), options.solver)
+        what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
+                if diverged is not None else
+                f"the reported run is {used} at dt = {float(traj.dt):g} s")
+        print(f"  {options.solver} at dt = {options.dt:g} s diverged (a stiff loop: the "
+              f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
+              file=sys.stderr)
     if diverged is None:
         print(f"  L-inf error {metrics['linf_error']:.4g} "
               f"(after t0: {metrics['linf_error_window']:.4g}),"
