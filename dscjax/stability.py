@@ -76,6 +76,7 @@ class StabilityMap(NamedTuple):
     stable: np.ndarray  # (S, D) bool: RK4 finite over the whole horizon
     t_diverged: np.ndarray  # (S, D) divergence time [s] (inf if stable)
     largest_stable_dt: float  # at the config's own tau: the largest stable dt (bisected)
+    beyond_grid: bool  # no step tried diverged at the config's tau: a lower bound only
     linear_dt: float  # 2.785 / max spectral radius along the nominal run (the linear guide)
     t_peak: float  # where that radius peaks [s]
     requested_dt: float  # the config's dt
@@ -135,7 +136,7 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
     return StabilityMap(
         dt=dts, tau_scale=scales,
         tau=scales * (tau0.min() if has_tau and tau0.size else np.nan), stable=stable,
-        t_diverged=t_div, largest_stable_dt=largest,
+        t_diverged=t_div, largest_stable_dt=largest, beyond_grid=hi is None and lo is not None,
         linear_dt=float(prof.suggested_dt) if prof is not None else float("nan"),
         t_peak=float(prof.t_peak) if prof is not None else float("nan"), requested_dt=dt)
 

@@ -55,8 +55,11 @@ def run(args) -> int:
           f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)
     m = stability_map(setup, options.t_final, options.dt, tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
-    print(f"largest stable dt for classical RK4 at this config's tau: {m.largest_stable_dt:.4g} s"
-          f" (requested {m.requested_dt:g} s: "
+    bound = ">= " if m.beyond_grid else ""
+    print(f"largest stable dt for classical RK4 at this config's tau: {bound}"
+          f"{m.largest_stable_dt:.4g} s"
+          + (" (every step tried was stable)" if m.beyond_grid else "")
+          + f" (requested {m.requested_dt:g} s: "
           f"{'stable' if m.requested_dt <= m.largest_stable_dt else 'UNSTABLE'})")
     print(f"linear guide 2.785 / max spectral radius along the nominal run: {m.linear_dt:.4g} s "
           f"(the radius peaks at t = {m.t_peak:.4g} s; conservative: short bursts beyond it "
@@ -68,7 +71,8 @@ def run(args) -> int:
         print(f"{label:>14} " + " ".join(f"{'ok' if ok else 'div':>9}" for ok in m.stable[i]))
     write_json(out / "stability.json", {
         "t_final": options.t_final, "requested_dt": m.requested_dt,
-        "largest_stable_dt": m.largest_stable_dt, "linear_dt": m.linear_dt,
+        "largest_stable_dt": m.largest_stable_dt, "beyond_grid": m.beyond_grid,
+        "linear_dt": m.linear_dt,
         "t_peak": m.t_peak, "dt": m.dt, "tau_scale": m.tau_scale, "tau_min": m.tau,
         "stable": m.stable, "t_diverged": m.t_diverged})
     if not args.no_plot:
@@ -83,7 +87,7 @@ def _plot(m, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(6.4, 4.2))
+    fig, ax = plt.subplots(figsize=(6.4, 5.0))
     has_tau = np.isfinite(m.tau).any()
     y = m.tau if has_tau else np.ones(1)
     for i in range(len(y)):
@@ -96,7 +100,8 @@ def _plot(m, path):
                label=f"this config (dt = {m.requested_dt:g} s)")
     if np.isfinite(m.largest_stable_dt):
         ax.axvline(m.largest_stable_dt, color="tab:green", ls="--", lw=1,
-                   label=f"largest stable dt {m.largest_stable_dt:.3g} s (bisected)")
+                   label=f"largest stable dt {'>= ' if m.beyond_grid else ''}"
+                   f"{m.largest_stable_dt:.3g} s" + ("" if m.beyond_grid else " (bisected)"))
     if np.isfinite(m.linear_dt):
         ax.axvline(m.linear_dt, color="tab:blue", ls=":", lw=1,
                    label=f"linear guide 2.785/max rho = {m.linear_dt:.3g} s")
@@ -108,7 +113,7 @@ def _plot(m, path):
         ax.set_yticks([])
     ax.set_xlabel("RK4 step dt [s]")
     ax.set_title("Where classical RK4 stays finite over the horizon")
-    ax.legend(fontsize=7, loc="best")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
