@@ -56,6 +56,14 @@ class Backlash:
                 f"{prefix}.lam must be > {prefix}.psi (got lam={v._fmt(lam)}, psi={v._fmt(psi)})")
         v.positive(self.smooth_delta, f"{prefix}.smooth_delta")
 
+    def init_state(self):
+        """The model's state at t = 0: for (4) the output itself, w(0) = w0."""
+        return self.w0
+
+    def output(self, u, w):
+        """The output w = P(u): for (4) the state itself."""
+        return w
+
     def rate(self, u, du, w):
         """w' of eq. (4) given u, u' and w."""
         abs_du = smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)

@@ -45,7 +45,8 @@ class Trajectory:
     Attributes:
         t: (T,) save times t_j = j * save_every * dt.
         x: (T, n) plant state; y = x[:, 0].
-        w: (T,) hysteresis output.
+        w: (T,) hysteresis output w = P(u).
+        h: the hysteresis model's state (for the backlash-like model (4): w itself).
         u: (T,) control input; u_dot (T,) its exact derivative.
         yr: (T,) reference (as used by the controller, e.g. shifted by the L-inf initialisation).
         S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
@@ -66,6 +67,7 @@ class Trajectory:
     t: jax.Array
     x: jax.Array
     w: jax.Array
+    h: Any
     u: jax.Array
     u_dot: jax.Array
     yr: jax.Array
@@ -134,7 +136,7 @@ class LoopMetrics:
 
     def update(self, acc, k, t, y: State, obs):
         base = acc if self.extra is None else acc[0]
-        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, y.w, self.dt,
+        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, obs.w, self.dt,
                                 self.window_start, self.n_steps)
         if self.extra is None:
             return base
@@ -199,7 +201,7 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
         t = jnp.broadcast_to(t, (n_batch, n_saved))
         dt = jnp.broadcast_to(dt, (n_batch,))
     return Trajectory(
-        t=t, x=res.ys.x, w=res.ys.w, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
+        t=t, x=res.ys.x, w=res.obs.w, h=res.ys.h, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
         S=res.obs.S, ctrl=res.ys.ctrl, metrics=finalize(res.acc, t_final), status=res.status,
         dt=dt, refinements=jnp.zeros_like(res.status.code),
     )

@@ -143,7 +143,7 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
 def _states_of(traj):
     from dscjax.closed_loop import State
 
-    return State(x=traj.x, w=traj.w, ctrl=traj.ctrl)
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
 
 def diagnose(setup, traj) -> str:
     """One sentence on the local stiffness at the last good state of a diverged single run."""

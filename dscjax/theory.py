@@ -249,7 +249,7 @@ def disturbance_at(setup, t, X: State, u):
     """d_n = g_n d_1(u) + dbar(t) = g_n (w - lam u) + dbar(t) (5), (11) at one state."""
     g_n = jnp.asarray(setup.plant.g)[-1]
     lam = hysteresis_slope(setup.hysteresis)
-    return g_n * (X.w - lam * u) + setup.plant.dbar(t)
+    return g_n * (setup.hysteresis.output(u, X.h) - lam * u) + setup.plant.dbar(t)
 
 
 # -- along a trajectory ------------------------------------------------------------------------
@@ -286,7 +286,7 @@ def _states(traj) -> State:
     if np.ndim(traj.t) != 1:
         raise ConfigError("expected a single trajectory (traj.t of shape (T,)); for a batch, "
                           "index one member first")
-    return State(x=traj.x, w=traj.w, ctrl=traj.ctrl)
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
 
 
 def _chunked(fn, args, t, X, chunk=_CHUNK):

@@ -164,9 +164,6 @@ class SimSpec:
     def n_steps(self) -> int:
         return int(round(self.t_final / self.dt))
 
-    @property
-    def save_every(self) -> int:
-        return self.checkpoint_every or self.n_steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -185,10 +182,9 @@ def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
                      overrides: Mapping[str, Any] | None = None,
                      checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
     """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
-    ce = checkpoint_every
     traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
-                save_every=ce or sim.n_steps, overrides=dict(overrides) if overrides else None,
-                checkpoint_every=ce, extra=extra)
+               save_every=sim.n_steps, overrides=dict(overrides) if overrides else None,
+               checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra)
     return traj.metrics, traj.diverged
 
 
