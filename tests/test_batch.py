@@ -100,7 +100,7 @@ def test_diverged_trajectories_report_nan_metrics(paper_setup):
         assert np.all(np.isfinite(v[[0, 2]])) and np.isnan(v[1]), k
     one = dscjax.simulate(params.set_many(paper_setup, {"hysteresis.alpha": alphas[1],
                                                         "hysteresis.lam": lams[1]}),
-                          2.0, 1e-3, save_every=100, throw=False)
+                          2.0, 1e-3, save_every=100, throw=False, refine=0)
     assert bool(one.diverged)
     assert all(np.isnan(float(v)) for v in one.metrics.values())
 

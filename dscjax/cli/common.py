@@ -23,6 +23,20 @@ def add_horizon_args(p):
                    f"{d.dt:g}, or the config's simulation.dt)")
 
 
+def add_integration_args(p):
+    """--solver and --refine, their help stating SimOptions' defaults."""
+    from dscjax.config import SimOptions
+    from dscjax.integrate import SOLVERS
+
+    d = SimOptions()
+    p.add_argument("--solver", choices=SOLVERS, help=f"integrator: rk4 (classical RK4) or "
+                   f"etdrk4 (exponential RK4, exact on the stiff linear decays) (default "
+                   f"{d.solver}, or the config's simulation.solver)")
+    p.add_argument("--refine", type=int, metavar="J", help=f"if the run diverges, levels "
+                   f"tried before it counts as diverged: ETDRK4 at dt, dt/2, ... (0: none; "
+                   f"default {d.refine}, or the config's simulation.refine)")
+
+
 def add_example_arg(p):
     p.add_argument("--example", default="paper", metavar="NAME",
                    help="the built-in closed loop a --config is laid over: paper (default), "
@@ -60,7 +74,7 @@ def load_setup(args):
     else:
         setup, options = config.from_dict({}, base=base)
     changes = {}
-    for name in ("t_final", "dt"):
+    for name in ("t_final", "dt", "solver", "refine"):
         value = getattr(args, name, None)
         if value is not None:
             changes[name] = value

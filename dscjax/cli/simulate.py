@@ -8,7 +8,13 @@ import time
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, prepare_out, write_json
+from dscjax.cli.common import (
+    add_config_args,
+    add_integration_args,
+    load_setup,
+    prepare_out,
+    write_json,
+)
 
 
 def _default_variant() -> str:
@@ -31,6 +37,7 @@ def add_parser(sub):
         "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
         "V_zeta, V_d, V_y (the filter errors).")
     add_config_args(p)
+    add_integration_args(p)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
     p.add_argument("--save-every", type=int, metavar="K", help=f"keep every K-th step in "
