@@ -150,7 +150,7 @@ class LoopMetrics:
 
 def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
         overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-        extra=None, solver: str = "rk4") -> Trajectory:
+        extra=None, solver: str = "rk4", gradient: str = "time_parallel") -> Trajectory:
     """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
 
     Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do).
@@ -168,8 +168,15 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
 
     `solver`: "rk4" (classical RK4, the default) or "etdrk4" (the exponential RK4, ETDRK4, that
     integrates the stiff linear decays of `closed_loop.decay_rates` exactly).
+
+    `gradient` (one trajectory only): how jax.grad / jvp / jacfwd differentiate the loop:
+    "time_parallel" (the default: the Jacobians of all steps in one batched program, then a
+    small recurrence; memory O(N m^2) for N steps and m states) or "autodiff" (JAX's own
+    differentiation of the scan: the same numbers, several times slower in reverse mode; a
+    reference). A batch is always differentiated through its checkpointed scan.
     """
     validation.one_of(solver, "solver", SOLVERS)
+    validation.one_of(gradient, "gradient", GRADIENTS)
     dtype = jnp.result_type(setup.plant.x0)
     dt = jnp.asarray(dt, dtype)
     window_start = jnp.asarray(window_start, dtype)
@@ -183,7 +190,8 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
             common["rates"] = decay_rates
         setup = prepared(setup)
         y0 = initial_state(setup)
-        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype), **common)
+        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
+                        time_parallel=gradient == "time_parallel", **common)
     else:
         shared, batched, rebuild = _split_members(setup, overrides)
         y0 = jax.vmap(lambda b: initial_state(rebuild(shared, b)))(batched)
@@ -265,16 +273,17 @@ def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
 
 def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
                   overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-                  extra=None, solver: str = "rk4") -> Trajectory:
+                  extra=None, solver: str = "rk4",
+                  gradient: str = "time_parallel") -> Trajectory:
     """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
     traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
                overrides=overrides, checkpoint_every=checkpoint_every, extra=extra,
-               solver=solver)
+               solver=solver, gradient=gradient)
     return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
 
 
 _simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every",
-                                                   "solver"))
+                                                   "solver", "gradient"))
 
 
 def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
@@ -288,6 +297,7 @@ def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
 
 
 DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
+GRADIENTS = ("time_parallel", "autodiff")
 DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
 
 
@@ -311,6 +321,7 @@ def simulate(
     progress: Callable[[float], None] | None = None,
     refine: int = DEFAULT_REFINE,
     solver: str = "rk4",
+    gradient: str = "time_parallel",
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
 
@@ -353,15 +364,17 @@ def simulate(
     extra = None if progress is None else _Progress(n_steps, progress)
     _check_refine(refine)
     validation.one_of(solver, "solver", SOLVERS)
+    validation.one_of(gradient, "gradient", GRADIENTS)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every, extra=extra, solver=solver)
+                     save_every=save_every, extra=extra, solver=solver, gradient=gradient)
     concrete = validation.is_concrete(traj.status)
     for j in range(1, refine + 1):
         if not (concrete and bool(traj.diverged)):
             break
         level_solver, m = refinement_level(j, solver)
         finer = _simulate(setup, dt / 2**m, window_start, state_bound, n_steps=n_steps * 2**m,
-                          save_every=save_every * 2**m, extra=extra, solver=level_solver)
+                          save_every=save_every * 2**m, extra=extra, solver=level_solver,
+                          gradient=gradient)
         traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
     if throw and concrete and bool(traj.diverged):
         from dscjax.stability import diagnose

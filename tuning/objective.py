@@ -159,6 +159,7 @@ class SimSpec:
     window_start: float = 1.0
     state_bound: float = 1e6
     checkpoint_every: int | None = None
+    gradient: str = "time_parallel"  # one plant: see dscjax.simulate.run; "autodiff" = JAX's own
 
     @property
     def n_steps(self) -> int:
@@ -184,7 +185,8 @@ def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
     """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
     traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
                save_every=sim.n_steps, overrides=dict(overrides) if overrides else None,
-               checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra)
+               checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra,
+               gradient=sim.gradient)
     return traj.metrics, traj.diverged
 
 

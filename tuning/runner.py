@@ -116,7 +116,8 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                      f"s by default (RK4 stability of the filters)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
     n_params = selection.size(setup)
-    mode = choose_gradient(cfg.optimizer.gradient, n_params)
+    mode = choose_gradient(cfg.optimizer.gradient, n_params,
+                           cfg.robust.batch if cfg.robust.batch > 0 else 1)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
                   state_bound=options.state_bound, checkpoint_every=ce)
