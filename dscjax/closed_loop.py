@@ -1,9 +1,10 @@
 """The closed loop as ONE vector field: plant (1), hysteresis (4), controller filters and
 adaptive laws, integrated together.
 
-    X = (x, w, controller state),   X' = F(t, X; setup)
+    X = (x, h, controller state),   X' = F(t, X; setup)
 
-u is an algebraic function of (controller state, x, t); X' does not depend on w' (only on w),
+h is the hysteresis model's state and w = P(u, h) its output (for the backlash-like model (4),
+h = w). u is an algebraic function of (controller state, x, t); X' does not depend on w',
 so u' = du/dX . X' + du/dt is one forward-mode derivative (jvp) of the control law along F:
 exact, at every RK4 stage, with no algebraic loop (NOTES.md).
 """
@@ -56,7 +57,7 @@ class State(NamedTuple):
     """State of the closed loop."""
 
     x: jax.Array  # (n,) plant state
-    w: jax.Array  # () hysteresis output
+    h: Any  # the hysteresis model's state (for the backlash-like model (4): its output w)
     ctrl: Any  # controller state (filters, estimates)
 
 
@@ -67,6 +68,7 @@ class Observation(NamedTuple):
     u_dot: jax.Array  # () its exact time derivative
     yr: jax.Array  # () reference
     S: jax.Array  # (n,) surfaces; S_1 = x_1 - y_r is the tracking error
+    w: jax.Array  # () hysteresis output w = P(u), the plant's input
 
 
 def prepared(setup: Setup) -> Setup:
@@ -76,10 +78,10 @@ def prepared(setup: Setup) -> Setup:
 
 
 def initial_state(setup: Setup) -> State:
-    """X(0) for a prepared setup: x(0), w(0) and the controller's initial state."""
+    """X(0) for a prepared setup: x(0), the hysteresis state and the controller's state."""
     x0 = jnp.asarray(setup.plant.x0)
-    w0 = jnp.asarray(setup.hysteresis.w0, dtype=x0.dtype)
-    return State(x=x0, w=w0, ctrl=setup.controller.init_state(setup.plant, setup.reference))
+    h0 = jax.tree.map(lambda v: jnp.asarray(v, dtype=x0.dtype), setup.hysteresis.init_state())
+    return State(x=x0, h=h0, ctrl=setup.controller.init_state(setup.plant, setup.reference))
 
 
 def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
@@ -97,13 +99,23 @@ def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
     # The law is evaluated once; its linearisation gives u' = du/dX . X' + du/dt below.
     u, u_lin, info = jax.linearize(control, X.ctrl, X.x, t, has_aux=True)
     u, info = barrier((u, info))
-    dx = plant.rhs(X.x, X.w, t)
+    w = hyst.output(u, X.h)  # the actuator's output drives the plant
+    dx = plant.rhs(X.x, w, t)
     dctrl = ctrl.state_rate(X.ctrl, X.x, t, info, plant, ref)
     dx, dctrl = barrier((dx, dctrl))
     du = barrier(u_lin(dctrl, dx, jnp.ones_like(t)))  # u' exactly, along the vector field
-    dw = hyst.rate(u, du, X.w)
-    return State(x=dx, w=dw, ctrl=dctrl), Observation(u=u, u_dot=du, yr=info.yr, S=info.S)
+    dh = hyst.rate(u, du, X.h)
+    return State(x=dx, h=dh, ctrl=dctrl), Observation(u=u, u_dot=du, yr=info.yr, S=info.S,
+                                                       w=w)
+
+
+def decay_rates(t, X: State, setup: Setup, obs: Observation) -> State:
+    """Rates >= 0 of the stiff linear decays in the loop, per state component, at (t, X):
+    the hysteresis rate (alpha |u'| for eq. 4) and the controller's filters (1/tau). The
+    exponential step (`integrate._etdrk4`) integrates -rate * X exactly over a step."""
+    return State(x=jnp.zeros_like(X.x), h=setup.hysteresis.decay_rate(obs.u, obs.u_dot, X.h),
+                 ctrl=setup.controller.decay_rates(X.ctrl))
 
 
 __all__ = ["Setup", "State", "Observation", "prepared", "initial_state", "vector_field",
-           "Controller"]
+           "decay_rates", "Controller"]

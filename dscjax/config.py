@@ -55,9 +55,13 @@ class SimOptions:
     window_start: float | None = None  # default: 1 s (0 if t_final <= 1 s)
     state_bound: float = 1e6
     dtype: str = "float64"
+    solver: str = "rk4"  # "rk4" (classical) or "etdrk4" (exponential, for stiff loops)
+    refine: int = 6  # refinement levels tried before a run counts as diverged (0: none)
 
     def validate(self) -> None:
         validation.one_of(self.dtype, "simulation.dtype", ("float64", "float32"))
+        validation.one_of(self.solver, "simulation.solver", ("rk4", "etdrk4"))
+        validation.integer(self.refine, "simulation.refine", 0)
         if not (self.state_bound > 0):
             raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
 
@@ -110,6 +114,10 @@ DOCS: dict[str, str] = {
                                "if t_final <= 1 s)",
     "simulation.state_bound": "a state beyond this magnitude counts as divergence",
     "simulation.dtype": "float64 or float32",
+    "simulation.solver": "rk4 (classical RK4, the paper's method) or etdrk4 (exponential RK4: "
+                         "integrates the stiff decays alpha |u'| and 1/tau exactly)",
+    "simulation.refine": "if RK4 diverges: levels tried (ETDRK4 at dt, dt/2, ...) before the "
+                         "run counts as diverged; 0: report the divergence at once",
     "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
     "plant.g": "g_i > 0, eq. (1) (unknown to the controller)",
     "plant.theta": "theta_i, eq. (1) (unknown to the controller)",
@@ -120,10 +128,13 @@ DOCS: dict[str, str] = {
     "plant.delta2": "Delta_2 = delta2 (x_1^2 + x_2^2) sin^3(delta_freq t)",
     "plant.delta_freq": "frequency of the sin^3 factor of Delta",
     "plant.dbar_amp": "disturbance dbar = dbar_amp sin(dbar_freq t) + dbar_bias",
+    "plant.dbar_freq": "frequency [rad/s] of the disturbance dbar",
+    "plant.dbar_bias": "constant part of the disturbance dbar",
     "plant.f_quad": "f_i += f_quad_i x_i^2",
     "plant.f_sin": "f_i += f_sin_i sin(x_i)",
     "plant.f_cross": "f_i += f_cross_i x_(i-1) x_i",
     "plant.rho_const": "rho_i = rho_const_i + rho_quad_i (x_1^2 + ... + x_i^2)",
+    "plant.rho_quad": "see rho_const: the known bounds rho_i of |Delta_i| (Assumption 2)",
     "plant.delta_sin": "Delta_i += delta_sin_i sin(x_(i+1))",
     "plant.delta_quad": "Delta_i += delta_quad_i (x_1^2 + ... + x_i^2) sin^3(delta_freq t)",
     "hysteresis.model": "backlash: w' = alpha |u'| (lam u - w) + psi u', eq. (4)",
@@ -157,7 +168,20 @@ DOCS: dict[str, str] = {
     "controller.variant": "full | no_dhat | no_dhat_no_zeta (no hysteresis compensation)",
     "controller.robust_term": "sat | sgn | smooth",
     "controller.init": "paper | linf (eqs. 67-68) | zero_surfaces",
+    "controller.g_nom": "backstepping: nominal g_j of the chain rule for alpha_i' (> 0)",
+    "controller.derivative": "backstepping: autodiff (any n) | hand (n = 2 only)",
     "reference.kind": "sine | smooth_step | multisine",
+    "reference.amplitude": "y_r = amplitude sin(frequency t + phase) + offset",
+    "reference.frequency": "[rad/s]",
+    "reference.phase": "[rad]",
+    "reference.offset": "constant added to y_r",
+    "reference.height": "smooth step: y_r = initial + height (1 + tanh((t - t_step)/rise_time))/2",
+    "reference.t_step": "smooth step: time [s] of the middle of the step",
+    "reference.rise_time": "smooth step: rise time [s] > 0",
+    "reference.initial": "smooth step: y_r before the step",
+    "reference.amplitudes": "multisine: y_r = sum_j amplitudes_j sin(frequencies_j t + phases_j)",
+    "reference.frequencies": "multisine: [rad/s]",
+    "reference.phases": "multisine: [rad]",
 }
 
 
@@ -257,7 +281,11 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     validation.one_of(kind, f"{section}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
-        base = None
+        # a controller of another kind lends the gains the two share (the DSC's k, gamma_*,
+        # eta, ... for backstepping); a model with nothing in common starts from nothing
+        convert = getattr(cls, "from_dsc", None)
+        base = convert(base) if convert is not None and getattr(base, "kind", "") == "dsc" \
+            else None
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for key in table:
         if key != kind_key and key not in fields:
@@ -301,12 +329,12 @@ def _options_from_dict(table: Mapping[str, Any], base: SimOptions) -> SimOptions
             raise ConfigError(f"unknown key 'simulation.{key}' (allowed: {', '.join(fields)})")
     values = dataclasses.asdict(base)
     for key, value in table.items():
-        if key == "dtype":
+        if key in ("dtype", "solver"):
             if not isinstance(value, str):
-                raise ConfigError(f"simulation.dtype must be a string (got {value!r})")
-        elif key == "save_every":
+                raise ConfigError(f"simulation.{key} must be a string (got {value!r})")
+        elif key in ("save_every", "refine"):
             if isinstance(value, bool) or not isinstance(value, int):
-                raise ConfigError(f"simulation.save_every must be an integer (got {value!r})")
+                raise ConfigError(f"simulation.{key} must be an integer (got {value!r})")
         elif isinstance(value, bool) or not isinstance(value, int | float):
             raise ConfigError(f"simulation.{key} must be a number (got {value!r})")
         values[key] = value

@@ -118,3 +118,33 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
         ctrl = dataclasses.replace(ctrl, **controller_changes)
     setup = Setup(plant=plant, hysteresis=paper_hysteresis(), controller=ctrl, reference=Sine())
     return cast(setup, dtype if dtype is not None else _default_float())
+
+
+EXAMPLES = ("paper", "backstepping", "order-N")  # order-N: the order-n family, N >= 2
+
+
+def example(name: str, dtype=None) -> Setup:
+    """A built-in closed loop by name, as `--example NAME` selects it.
+
+    - "paper": the paper's Section 4 (`paper_example`), the default;
+    - "backstepping": the paper's plant with the adaptive backstepping baseline (the DSC's
+      gains, `Backstepping.from_dsc`);
+    - "order-N" (N >= 2): the order-n family of `order_n_example` (S_i(0) = 0, tau = 0.05).
+
+    Example:
+        >>> import dscjax
+        >>> dscjax.examples.example("order-3").order
+        3
+    """
+    from dscjax.validation import ConfigError
+
+    if name == "paper":
+        return paper_example(dtype=dtype)
+    if name == "backstepping":
+        from dscjax.controllers.backstepping import with_backstepping
+
+        return with_backstepping(paper_example(dtype=dtype))
+    if name.startswith("order-") and name[6:].isdigit() and int(name[6:]) >= 2:
+        return order_n_example(int(name[6:]), dtype=dtype)
+    raise ConfigError(f"--example must be paper, backstepping or order-N with N >= 2, e.g. "
+                      f"order-4 (got {name!r})")

@@ -49,10 +49,23 @@ class Backlash(Model):
             raise v.ConfigError(f"{prefix}.lam must be > {prefix}.psi (got lam={v.fmt(lam)}, "
                                 f"psi={v.fmt(psi)})")
 
+    def init_state(self):
+        """The model's state at t = 0: for (4) the output itself, w(0) = w0."""
+        return self.w0
+
+    def output(self, u, w):
+        """The output w = P(u): for (4) the state itself."""
+        return w
+
     def rate(self, u, du, w):
         """w' of eq. (4) given u, u' and w."""
         abs_du = smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
         return self.alpha * abs_du * (self.lam * u - w) + self.psi * du
+
+    def decay_rate(self, u, du, w):
+        """The rate a >= 0 of the linear decay -a w in eq. (4): alpha |u'|. It makes the loop
+        stiff where |u'| is large; the exponential step integrates it exactly."""
+        return self.alpha * (smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du))
 
     def d1_limits(self):
         """Limits (7)-(8) of d_1: (lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""

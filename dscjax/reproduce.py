@@ -489,6 +489,10 @@ def summary_markdown(summary: dict) -> str:
             parts = [f"{m}: x{f['ratio_per_order']:.2f}/order, n^{f['exponent']:.2f}"
                      for m, f in fits.items() if f["ratio_per_order"]]
             lines.append(f"- {c}: " + "; ".join(parts))
+    if "theory" in summary:
+        from dscjax.reproduce_theory import markdown
+
+        lines += ["", markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
     lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
                                           for p in summary["figures"].values()), ""]
@@ -502,7 +506,10 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
               dpi: int = DPI, complexity: bool = False,
               complexity_orders: Sequence[int] = COMPLEXITY_ORDERS,
               complexity_repeats: int = COMPLEXITY_REPEATS,
-              log: Callable[[str], None] | None = None, resume: bool = False) -> dict:
+              log: Callable[[str], None] | None = None, resume: bool = False,
+              theory: bool = False, theory_orders: Sequence[int] = (2,),
+              theory_alpha0: Sequence[float] | None = None,
+              theory_mu: float | None = None) -> dict:
     """Run the study and write every figure, summary.json and summary.md to `out`.
 
     Args:
@@ -515,6 +522,10 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
         log: progress callback (default: print to stderr with elapsed time).
         resume: with complexity, reuse the control-law measurements an interrupted run saved
             in `out/complexity_rows.json` (each is saved as soon as it is made).
+        theory: also check Theorem 1 (`dscjax.reproduce_theory`): V(t) of (44) on the DSC
+            run, written to `out/theory/lyapunov.npz`, and the alpha_0 study for each order in
+            theory_orders (alpha_0 values theory_alpha0, mu theory_mu; defaults in
+            `reproduce_theory.run`), with a section in summary.md.
 
     Returns:
         The summary (as written to summary.json); `claim_lines(summary)` states each claim's
@@ -549,6 +560,12 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
         paths["complexity"] = path
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
+    if theory:
+        from dscjax import reproduce_theory
+
+        summary["theory"] = reproduce_theory.run(
+            out / "theory", setups()["dsc"], trajs["dsc"], orders=theory_orders,
+            alpha0=theory_alpha0, mu=theory_mu, t_final=t_final, fmt=fmt, dpi=dpi, log=log)
     summary["figures"] = {k: str(p) for k, p in paths.items()}
     summary["jax_version"] = jax.__version__
     summary["wall_time_s"] = time.perf_counter() - t_start

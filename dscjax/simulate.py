@@ -19,9 +19,17 @@ import numpy as np
 
 from dscjax import metrics as m
 from dscjax import params, validation, xla
-from dscjax.closed_loop import Setup, State, initial_state, prepared, vector_field
+from dscjax.closed_loop import (
+    Setup,
+    State,
+    decay_rates,
+    initial_state,
+    prepared,
+    vector_field,
+)
 from dscjax.integrate import (
     DEFAULT_CHECKPOINT_EVERY,
+    SOLVERS,
     STATUS_BOUND,
     STATUS_NONFINITE,
     STATUS_OK,
@@ -37,7 +45,8 @@ class Trajectory(eqx.Module):
     Attributes:
         t: (T,) save times t_j = j * save_every * dt.
         x: (T, n) plant state; y = x[:, 0].
-        w: (T,) hysteresis output.
+        w: (T,) hysteresis output w = P(u).
+        h: the hysteresis model's state (for the backlash-like model (4): w itself).
         u: (T,) control input; u_dot (T,) its exact derivative.
         yr: (T,) reference (as used by the controller, e.g. shifted by the L-inf initialisation).
         S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
@@ -47,13 +56,18 @@ class Trajectory(eqx.Module):
             all NaN if the trajectory diverged (from `simulate` and `simulate_batch`; see
             `nan_if_diverged`).
         status: integration status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
-        dt: the step.
+        dt: the step of the run reported (the requested one unless it was refined).
+        refinements: int, the refinement level of this run (`refinement_level`): 0 = classical
+            RK4 at the requested dt; j >= 1 = RK4 diverged there and this is the exponential
+            step ETDRK4 at dt/2^(j-1) (`refine` in `simulate`). For a trajectory still
+            diverged, dt is the smallest step tried: it diverged at every level.
     Under `simulate_batch` every field gains a leading batch axis.
     """
 
     t: jax.Array
     x: jax.Array
     w: jax.Array
+    h: Any
     u: jax.Array
     u_dot: jax.Array
     yr: jax.Array
@@ -62,6 +76,12 @@ class Trajectory(eqx.Module):
     metrics: dict
     status: Status
     dt: jax.Array
+    refinements: jax.Array = 0
+
+    @property
+    def refined(self):
+        """True where the run needed a smaller step than requested to stay finite."""
+        return jnp.asarray(self.refinements) > 0
 
     @property
     def y(self):
@@ -116,7 +136,7 @@ class LoopMetrics:
 
     def update(self, acc, k, t, y: State, obs):
         base = acc if self.extra is None else acc[0]
-        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, y.w, self.dt,
+        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, obs.w, self.dt,
                                 self.window_start, self.n_steps)
         if self.extra is None:
             return base
@@ -130,7 +150,7 @@ class LoopMetrics:
 
 def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
         overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-        extra=None) -> Trajectory:
+        extra=None, solver: str = "rk4", gradient: str = "time_parallel") -> Trajectory:
     """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
 
     Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do).
@@ -145,7 +165,18 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     `init(dtype) -> acc` (a pytree of scalars), `update(acc, k, t, y, obs, dt) -> acc` (called
     at every step k = 0..N, like `metrics.running_update`) and `finalize(acc, t_final) -> dict`,
     whose entries are added to `metrics`. None (the default) costs nothing.
+
+    `solver`: "rk4" (classical RK4, the default) or "etdrk4" (the exponential RK4, ETDRK4, that
+    integrates the stiff linear decays of `closed_loop.decay_rates` exactly).
+
+    `gradient` (one trajectory only): how jax.grad / jvp / jacfwd differentiate the loop:
+    "time_parallel" (the default: the Jacobians of all steps in one batched program, then a
+    small recurrence; memory O(N m^2) for N steps and m states) or "autodiff" (JAX's own
+    differentiation of the scan: the same numbers, several times slower in reverse mode; a
+    reference). A batch is always differentiated through its checkpointed scan.
     """
+    validation.one_of(solver, "solver", SOLVERS)
+    validation.one_of(gradient, "gradient", GRADIENTS)
     dtype = jnp.result_type(setup.plant.x0)
     dt = jnp.asarray(dt, dtype)
     window_start = jnp.asarray(window_start, dtype)
@@ -153,15 +184,21 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     red = LoopMetrics(dt=dt, window_start=window_start, extra=extra, n_steps=n_steps)
     common = dict(save_every=save_every, reduction=red,
                   state_bound=jnp.asarray(state_bound, dtype))
+    exponential = solver == "etdrk4"
     if overrides is None:
+        if exponential:
+            common["rates"] = decay_rates
         setup = prepared(setup)
         y0 = initial_state(setup)
-        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype), **common)
+        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
+                        time_parallel=gradient == "time_parallel", **common)
     else:
         shared, batched, rebuild = _split_members(setup, overrides)
         y0 = jax.vmap(lambda b: initial_state(rebuild(shared, b)))(batched)
         n_batch = jax.tree.leaves(overrides)[0].shape[0]
         acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), red.init(dtype))
+        if exponential:
+            common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)
@@ -172,9 +209,9 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
         t = jnp.broadcast_to(t, (n_batch, n_saved))
         dt = jnp.broadcast_to(dt, (n_batch,))
     return Trajectory(
-        t=t, x=res.ys.x, w=res.ys.w, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
+        t=t, x=res.ys.x, w=res.obs.w, h=res.ys.h, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
         S=res.obs.S, ctrl=res.ys.ctrl, metrics=finalize(res.acc, t_final), status=res.status,
-        dt=dt,
+        dt=dt, refinements=jnp.zeros_like(res.status.code),
     )
 
 
@@ -236,14 +273,31 @@ def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
 
 def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
                   overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-                  extra=None) -> Trajectory:
+                  extra=None, solver: str = "rk4",
+                  gradient: str = "time_parallel") -> Trajectory:
     """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
     traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-               overrides=overrides, checkpoint_every=checkpoint_every, extra=extra)
+               overrides=overrides, checkpoint_every=checkpoint_every, extra=extra,
+               solver=solver, gradient=gradient)
     return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
 
 
-_simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every"))
+_simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every",
+                                                   "solver", "gradient"))
+
+
+def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
+    """(solver, halvings of dt) of refinement level j: level 0 is the requested solver at the
+    requested dt; then the exponential ETDRK4 step, which integrates the stiff decays
+    (hysteresis rate alpha |u'|, filters 1/tau) exactly: at dt (after classical RK4), then
+    at dt/2, dt/4, ..."""
+    if j == 0:
+        return solver, 0
+    return "etdrk4", (j - 1 if solver == "rk4" else j)
+
+
+GRADIENTS = ("time_parallel", "autodiff")
+DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
 
 
 def simulate(
@@ -256,6 +310,9 @@ def simulate(
     state_bound: float = 1e6,
     throw: bool = True,
     progress: Callable[[float], None] | None = None,
+    refine: int = DEFAULT_REFINE,
+    solver: str = "rk4",
+    gradient: str = "time_parallel",
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
 
@@ -268,6 +325,15 @@ def simulate(
         state_bound: a state component beyond it in magnitude counts as divergence.
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
             Under an outer jit/vmap no exception can be raised; `status` is always returned.
+        refine: if classical RK4 diverges, run again with the exponential step ETDRK4 (which
+            integrates the stiff decays, the hysteresis rate alpha |u'| and the filters 1/tau,
+            exactly) at dt, then dt/2, ..., dt/2^(refine-1), on the same save times, and
+            report the first run that stays finite; `traj.refinements` says which level it
+            took (`refinement_level`), `traj.dt` the step. A run that diverges at every level
+            is reported diverged, with `traj.dt` the smallest step tried. RK4 at a fixed dt can
+            blow up where u moves fast although the loop itself does not; where RK4 stays
+            finite its result is returned unchanged. 0 disables it. Needs concrete inputs
+            (under an outer jit nothing is refined).
         progress: called on the host with the fraction of the steps done, 0.0, 0.01, ...,
             1.0, while the compiled loop runs (a `jax.debug.callback` every 1 % of the steps;
             about 2 % slower). It is part of the compiled program: pass the same callable to
@@ -287,9 +353,21 @@ def simulate(
     setup = canonical(setup)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
     extra = None if progress is None else _Progress(n_steps, progress)
+    _check_refine(refine)
+    validation.one_of(solver, "solver", SOLVERS)
+    validation.one_of(gradient, "gradient", GRADIENTS)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every, extra=extra)
-    if throw and validation.is_concrete(traj.status) and bool(traj.diverged):
+                     save_every=save_every, extra=extra, solver=solver, gradient=gradient)
+    concrete = validation.is_concrete(traj.status)
+    for j in range(1, refine + 1):
+        if not (concrete and bool(traj.diverged)):
+            break
+        level_solver, m = refinement_level(j, solver)
+        finer = _simulate(setup, dt / 2**m, window_start, state_bound, n_steps=n_steps * 2**m,
+                          save_every=save_every * 2**m, extra=extra, solver=level_solver,
+                          gradient=gradient)
+        traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
+    if throw and concrete and bool(traj.diverged):
         from dscjax.stability import diagnose
 
         raise DivergenceError(divergence_report(traj, state_bound)[0] + diagnose(setup, traj),
@@ -332,6 +410,10 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, _dtype(setup))
 
 
+def _check_refine(refine):
+    validation.integer(refine, "refine", 0)
+
+
 def _check_checkpoint(checkpoint_every):
     if checkpoint_every is not None:
         validation.integer(checkpoint_every, "checkpoint_every", 1)
@@ -353,6 +435,8 @@ def simulate_batch(
     window_start: float | None = None,
     state_bound: float = 1e6,
     checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
+    refine: int = DEFAULT_REFINE,
+    solver: str = "rk4",
 ) -> Trajectory:
     """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
     the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
@@ -364,6 +448,10 @@ def simulate_batch(
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
         save_every: default t_final/dt, i.e. only the first and last points plus the metrics.
+        checkpoint_every: reverse-mode differentiation keeps the batch's state every this many
+            steps and recomputes the steps between (memory O(N/L + L) states per member).
+        refine: as for `simulate`, per trajectory: only the diverged ones are run again, as a
+            batch of their own, at dt/2, dt/4, ... (`traj.refinements` per trajectory).
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -390,18 +478,62 @@ def simulate_batch(
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     n_steps = _check(setup, t_final, dt, save_every, window_start, batched=True)
     _check_checkpoint(checkpoint_every)
-    return _simulate_batch(setup, dict(overrides), dt, window_start, state_bound,
-                           n_steps=n_steps, save_every=save_every,
-                           checkpoint_every=checkpoint_every)
+    _check_refine(refine)
+    validation.one_of(solver, "solver", SOLVERS)
+    overrides = dict(overrides)
+
+    def level(j, ov):
+        level_solver, m = refinement_level(j, solver)
+        return _simulate_batch(setup, ov, dt / 2**m, window_start, state_bound,
+                               n_steps=n_steps * 2**m, save_every=save_every * 2**m,
+                               checkpoint_every=checkpoint_every, solver=level_solver)
+
+    traj = level(0, overrides)
+    if refine and validation.is_concrete(traj.status) and validation.is_concrete(overrides):
+        traj = refine_diverged(traj, overrides, level, refine)
+    return traj
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps", "save_every", "checkpoint_every"),
+def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
+                    refine: int) -> Trajectory:
+    """Re-run the diverged members of a batch at the refinement levels 1..refine.
+
+    `level(j, overrides_subset)` simulates a sub-batch at level j (`refinement_level`) with
+    the same save times.
+    Each level runs only the members still diverged, as a batch of their own (padded to a
+    power of two so that sub-batches of similar sizes share one compiled program), and its
+    rows replace theirs. Host-side (concrete arrays in, NumPy arrays in the result).
+    """
+    out = jax.tree.map(np.array, traj)
+    out = dataclasses.replace(out, refinements=np.zeros(np.shape(out.status.code), np.int32))
+    todo = np.flatnonzero(np.asarray(out.status.code) != STATUS_OK)
+    for j in range(1, refine + 1):
+        if todo.size == 0:
+            break
+        size = 1 << int(np.ceil(np.log2(todo.size)))
+        idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
+        sub = jax.tree.map(np.asarray, level(j, {p: np.asarray(v)[idx]
+                                                 for p, v in overrides.items()}))
+        sub = dataclasses.replace(sub, refinements=np.full(size, j, np.int32))
+        take = np.arange(todo.size)
+
+        def put(dst, src, todo=todo, take=take):
+            dst[todo] = src[take]
+            return dst
+
+        out = jax.tree.map(put, out, sub)
+        todo = todo[np.asarray(sub.status.code)[take] != STATUS_OK]
+    return jax.tree.map(jnp.asarray, out)
+
+
+@functools.partial(jax.jit,
+                   static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"),
                    compiler_options=xla.compiler_options())
 def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
-                    checkpoint_every=DEFAULT_CHECKPOINT_EVERY):
+                    checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
     return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
                          save_every=save_every, overrides=overrides,
-                         checkpoint_every=checkpoint_every)
+                         checkpoint_every=checkpoint_every, solver=solver)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

@@ -13,6 +13,7 @@ conservative step (short bursts above it are often survived, since they last a f
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -66,11 +67,83 @@ def spectrum_along(setup, traj, every: int = 1) -> SpectrumProfile:
                            suggested_dt=float(RK4_REAL_STABILITY / radius[i]))
 
 
+class StabilityMap(NamedTuple):
+    """Where classical RK4 stays finite, measured by running the loop (see `stability_map`)."""
+
+    dt: np.ndarray  # (D,) steps tried [s]
+    tau_scale: np.ndarray  # (S,) factors applied to every filter constant tau_i
+    tau: np.ndarray  # (S,) the smallest tau_i at each factor (nan without filters)
+    stable: np.ndarray  # (S, D) bool: RK4 finite over the whole horizon
+    t_diverged: np.ndarray  # (S, D) divergence time [s] (inf if stable)
+    largest_stable_dt: float  # at the config's own tau: the largest stable dt (bisected)
+    beyond_grid: bool  # no step tried diverged at the config's tau: a lower bound only
+    linear_dt: float  # 2.785 / max spectral radius along the nominal run (the linear guide)
+    t_peak: float  # where that radius peaks [s]
+    requested_dt: float  # the config's dt
+
+
+def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 2.0, 4.0),
+                  factors=tuple(2.0 ** k for k in range(-4, 5)), bisections: int = 4,
+                  log=lambda s: None) -> StabilityMap:
+    """Which dt does classical RK4 need for this loop, and how does it depend on tau?
+
+    Runs the loop (metrics only, no refinement) for every dt = dt * factor, each dt one batch
+    over the filter constants tau * scale (the horizon rounded to a whole number of steps),
+    then bisects (in log dt) between the largest stable and the smallest unstable step at the
+    config's own tau. The linear guide 2.785 / max rho(t) along the nominal run is reported
+    beside it: rho is the spectral radius of the closed loop's Jacobian, computed on a run
+    that stays finite (refined if it had to be).
+    """
+
+    from dscjax.simulate import simulate, simulate_batch
+
+    has_tau = hasattr(setup.controller, "tau")
+    scales = np.asarray(tau_scales if has_tau else (1.0,), float)
+    tau0 = np.asarray(setup.controller.tau, float) if has_tau else None
+    dts = np.sort(np.asarray([dt * f for f in factors], float))
+
+    def runs(step):
+        n = max(int(round(t_final / step)), 1)
+        if has_tau:
+            ov = {"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])}
+        else:
+            ov = {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]}
+        b = simulate_batch(setup, ov, n * step, step, refine=0)
+        return ~np.asarray(b.diverged), np.asarray(b.t_diverged)
+
+    stable = np.zeros((scales.size, dts.size), bool)
+    t_div = np.full((scales.size, dts.size), np.inf)
+    for j, step in enumerate(dts):
+        log(f"  dt = {step:.4g} s ...")
+        stable[:, j], t_div[:, j] = runs(step)
+    own = int(np.argmin(np.abs(scales - 1.0)))
+    ok = np.flatnonzero(stable[own])
+    bad = np.flatnonzero(~stable[own])
+    lo = dts[ok[-1]] if ok.size else None
+    hi = next((dts[b] for b in bad if lo is None or dts[b] > lo), None)
+    if lo is not None and hi is not None:
+        for _ in range(bisections):
+            mid = math.sqrt(lo * hi)
+            log(f"  bisecting: dt = {mid:.4g} s ...")
+            if runs(mid)[0][own]:
+                lo = mid
+            else:
+                hi = mid
+    largest = float(lo) if lo is not None else float("nan")
+    nominal = simulate(setup, t_final, dt, save_every=max(int(round(t_final / dt)) // 2000, 1),
+                       throw=False)
+    prof = spectrum_along(setup, nominal) if not bool(nominal.diverged) else None
+    return StabilityMap(
+        dt=dts, tau_scale=scales,
+        tau=scales * (tau0.min() if has_tau and tau0.size else np.nan), stable=stable,
+        t_diverged=t_div, largest_stable_dt=largest, beyond_grid=hi is None and lo is not None,
+        linear_dt=float(prof.suggested_dt) if prof is not None else float("nan"),
+        t_peak=float(prof.t_peak) if prof is not None else float("nan"), requested_dt=dt)
+
 def _states_of(traj):
     from dscjax.closed_loop import State
 
-    return State(x=traj.x, w=traj.w, ctrl=traj.ctrl)
-
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
 
 def diagnose(setup, traj) -> str:
     """One sentence on the local stiffness at the last good state of a diverged single run."""

@@ -12,7 +12,6 @@ shows in those, so run it on a quiet machine and report medians.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -29,15 +28,15 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     jax.config.update("jax_enable_x64", True)
-    from dscjax import complexity
+    from dscjax import complexity, files
     from dscjax.cli.reproduce import _orders
-    from dscjax.reproduce import STYLE, _jsonable
+    from dscjax.reproduce import STYLE
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     result = complexity.study(_orders(args.orders), repeats=args.repeats, evals=args.evals,
                               log=lambda msg: print(msg, file=sys.stderr, flush=True))
-    (out / "complexity.json").write_text(json.dumps(_jsonable(result), indent=2) + "\n")
+    files.write_json(out / "complexity.json", result)
     complexity.plot(result, out / "complexity.png", dpi=args.dpi,
                     colors={c: STYLE[c]["color"] for c in ("dsc", "backstepping")})
     for c, fits in result["fits"].items():

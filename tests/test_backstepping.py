@@ -73,7 +73,7 @@ def test_closed_loop_derivative_equals_hand_derived_order2():
     rng = np.random.default_rng(3)
     for _ in range(10):
         st, x, t = _random_point(rng, setup)
-        X = initial_state(setup)._replace(x=x, ctrl=st, w=jnp.asarray(rng.normal()))
+        X = initial_state(setup)._replace(x=x, ctrl=st, h=jnp.asarray(rng.normal()))
         dX_a, obs_a = field(t, X, setup)
         dX_h, obs_h = field(t, X, hand_setup)
         np.testing.assert_allclose(obs_a.u_dot, obs_h.u_dot, rtol=1e-12, atol=1e-11)

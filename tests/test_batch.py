@@ -77,7 +77,7 @@ def test_float32_setup_stays_float32(paper_setup):
 def test_batch_divergence_is_per_trajectory(paper_setup):
     # alpha = 200 makes the hysteresis rate alpha |u'| far too stiff for RK4 at this dt
     batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": jnp.array([1.0, 200.0])},
-                                  2.0, 2e-3)
+                                  2.0, 2e-3, refine=0)
     diverged = np.asarray(batch.diverged)
     assert diverged.tolist() == [False, True]
     assert np.all(np.isfinite(np.asarray(batch.x)))
@@ -92,7 +92,7 @@ def test_diverged_trajectories_report_nan_metrics(paper_setup):
     alphas, lams = jnp.array([0.7, 10.0, 1.3]), jnp.array([1.2, 0.15, 1.7])
     batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": alphas,
                                                 "hysteresis.lam": lams}, 2.0, 1e-3,
-                                  save_every=100)
+                                  save_every=100, refine=0)
     assert np.asarray(batch.diverged).tolist() == [False, True, False]
     assert float(batch.t_diverged[1]) < 0.1
     for k, v in batch.metrics.items():
@@ -100,7 +100,7 @@ def test_diverged_trajectories_report_nan_metrics(paper_setup):
         assert np.all(np.isfinite(v[[0, 2]])) and np.isnan(v[1]), k
     one = dscjax.simulate(params.set_many(paper_setup, {"hysteresis.alpha": alphas[1],
                                                         "hysteresis.lam": lams[1]}),
-                          2.0, 1e-3, save_every=100, throw=False)
+                          2.0, 1e-3, save_every=100, throw=False, refine=0)
     assert bool(one.diverged)
     assert all(np.isnan(float(v)) for v in one.metrics.values())
 

@@ -47,7 +47,7 @@ def test_variant_and_float32_flags(tmp_path):
 def test_diverged_simulation_writes_null_metrics_not_zeros(tmp_path, capsys):
     # dt = 0.02 diverges at t = 0.04 s, before the window [1, 2] s starts
     out = tmp_path / "div"
-    assert main(["simulate", "--t-final", "2", "--dt", "0.02", "--no-plot",
+    assert main(["simulate", "--t-final", "2", "--dt", "0.02", "--no-plot", "--refine", "0",
                  "--out", str(out)]) == 3
     m = json.loads((out / "metrics.json").read_text())
     assert m["diverged"] is True and m["t_diverged"] == pytest.approx(0.04)

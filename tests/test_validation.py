@@ -113,8 +113,9 @@ def test_cli_unreadable_config_and_bad_dt(tmp_path):
 def test_cli_divergence_exits_3_with_time(tmp_path):
     # dt = 0.02 passes the filter check (dt/tau = 2 < 2.785) but not the loop's initial
     # transient (local spectral radius ~490 at t = 0): RK4 diverges at t = 0.04 s
+    # --refine 0: no ETDRK4 re-run at smaller steps (which would track)
     r = _cli("simulate", "--dt", "0.02", "--t-final", "4", "--out", str(tmp_path / "o"),
-             "--no-plot", cwd=tmp_path)
+             "--no-plot", "--refine", "0", cwd=tmp_path)
     assert r.returncode == 3, r.stderr
     assert "diverged at t = " in r.stderr and "Traceback" not in r.stderr
     import json
@@ -128,7 +129,7 @@ def test_cli_divergence_exits_3_with_time(tmp_path):
 def test_library_divergence_error_carries_the_trajectory(paper_setup):
     with pytest.raises(dscjax.DivergenceError, match=r"diverged at t = 0.04 s.*spectral radius "
                                                       r"4[0-9][0-9]") as info:
-        dscjax.simulate(paper_setup, 4.0, 0.02)
+        dscjax.simulate(paper_setup, 4.0, 0.02, refine=0)
     tr = info.value.trajectory
     assert bool(tr.diverged) and np.all(np.isfinite(np.asarray(tr.x)))
 

@@ -188,14 +188,12 @@ class SimSpec:
     window_start: float = 1.0
     state_bound: float = 1e6
     checkpoint_every: int | None = None
+    gradient: str = "time_parallel"  # one plant: see dscjax.simulate.run; "autodiff" = JAX's own
 
     @property
     def n_steps(self) -> int:
         return int(round(self.t_final / self.dt))
 
-    @property
-    def save_every(self) -> int:
-        return self.checkpoint_every or self.n_steps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,10 +212,10 @@ def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
                      overrides: Mapping[str, Any] | None = None,
                      checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
     """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
-    ce = checkpoint_every
     traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
-                save_every=ce or sim.n_steps, overrides=dict(overrides) if overrides else None,
-                checkpoint_every=ce, extra=extra)
+               save_every=sim.n_steps, overrides=dict(overrides) if overrides else None,
+               checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra,
+               gradient=sim.gradient)
     return traj.metrics, traj.diverged
 
 

@@ -32,8 +32,10 @@ from dscjax.validation import ConfigError
 OPTIMIZERS = ("adam", "adamw", "sgd", "lion")
 SCHEDULES = ("constant", "cosine", "exponential")
 GRADIENTS = ("auto", "forward", "reverse")
-# Forward mode costs about one extra pass per tuned scalar, reverse mode a fixed multiple of
-# the forward run (measured, see docs/tuning.md): forward wins below this many scalars.
+# One trajectory: reverse mode (the time-parallel linearisation) costs a fixed ~8x the forward
+# run whatever the number of tuned scalars, forward mode ~16x for 13 (experiments/
+# bench_gradient.py). A batch of plants: reverse mode runs the transposed step over the batch,
+# ~20x the step's flops, so forward mode wins up to this many scalars.
 FORWARD_MAX_PARAMS = 64
 
 
@@ -58,7 +60,8 @@ class OptimizerSpec:
         steps: maximum number of iterations (evaluations of loss and gradient).
         time_limit: stop after this many seconds of wall time in this invocation, compilation
             included (None: no limit).
-        gradient: "forward" (jvp over a batch of tangents), "reverse" (checkpointed) or "auto".
+        gradient: "forward" (jvp over a batch of tangents), "reverse" or "auto" (reverse for
+            one plant, forward for a robust batch with at most 64 tuned scalars).
         checkpoint_every: segment length in steps of `jax.checkpoint` in reverse mode (100:
             near sqrt(N) for 20,000 steps, which minimises the O(N/L + L) states kept; it was
             both smaller and faster than 1000 for 256 plants over 20 s, measured).
@@ -159,9 +162,13 @@ def init_state(z0, optimizer: optax.GradientTransformation) -> TuneState:
         best_iteration=i32(-1), stall=i32(0))
 
 
-def choose_gradient(mode: str, n_params: int) -> str:
+def choose_gradient(mode: str, n_params: int, batch: int = 1) -> str:
+    """The AD mode for "auto": reverse for one plant, forward for a batch of plants with at
+    most FORWARD_MAX_PARAMS tuned scalars (measured, see the comment above)."""
     if mode != "auto":
         return mode
+    if batch <= 1:
+        return "reverse"
     return "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
 
 

@@ -106,7 +106,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     window = cfg.objective.window_start
     if window is None:
         window = default_window(options.t_final, options.window_start)
-    n_steps = validate_run(setup, options.t_final, options.dt, 1, window)
+    validate_run(setup, options.t_final, options.dt, 1, window)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
@@ -119,13 +119,9 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                      f"s by default (RK4 stability of the filters)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
     n_params = selection.size(setup)
-    mode = choose_gradient(cfg.optimizer.gradient, n_params)
-    ce = None
-    if mode == "reverse":
-        ce = cfg.optimizer.checkpoint_every
-        if n_steps % ce:
-            raise ConfigError(f"tuning.optimizer.checkpoint_every must divide the number of "
-                              f"steps t_final/dt = {n_steps} (got {ce})")
+    mode = choose_gradient(cfg.optimizer.gradient, n_params,
+                           cfg.robust.batch if cfg.robust.batch > 0 else 1)
+    ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
                   state_bound=options.state_bound, checkpoint_every=ce)
     batches = {}

@@ -21,11 +21,40 @@ def add_horizon_args(p):
                    f"{d.dt:g}, or the config's simulation.dt)")
 
 
+def add_integration_args(p):
+    """--solver and --refine, their help stating SimOptions' defaults."""
+    from dscjax.config import SimOptions
+    from dscjax.integrate import SOLVERS
+
+    d = SimOptions()
+    p.add_argument("--solver", choices=SOLVERS, help=f"integrator: rk4 (classical RK4) or "
+                   f"etdrk4 (exponential RK4, exact on the stiff linear decays) (default "
+                   f"{d.solver}, or the config's simulation.solver)")
+    p.add_argument("--refine", type=int, metavar="J", help=f"if the run diverges, levels "
+                   f"tried before it counts as diverged: ETDRK4 at dt, dt/2, ... (0: none; "
+                   f"default {d.refine}, or the config's simulation.refine)")
+
+
+def add_example_arg(p):
+    p.add_argument("--example", default="paper", metavar="NAME",
+                   help="the built-in closed loop a --config is laid over: paper (default), "
+                   "backstepping (the paper's plant, backstepping baseline) or order-N (the "
+                   "order-n family, N >= 2, e.g. order-4); --print-config shows it whole")
+
+
+def example_setup(args):
+    """The Setup of --example (float64), the base every config is laid over."""
+    from dscjax.examples import example
+
+    return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
+
+
 def add_config_args(p, *, t_final=True):
     from dscjax.config import SimOptions
 
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
-                   "example; see `dscjax simulate --print-config`")
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the "
+                   "--example (default: the paper's); see `dscjax simulate --print-config`")
+    add_example_arg(p)
     if t_final:
         add_horizon_args(p)
     p.add_argument("--float32", action="store_true",
@@ -37,12 +66,13 @@ def load_setup(args):
     from dscjax import config
     from dscjax.params import cast
 
+    base = example_setup(args)
     if args.config:
-        setup, options = config.load(args.config)
+        setup, options = config.load(args.config, base=base)
     else:
-        setup, options = config.from_dict({})
+        setup, options = config.from_dict({}, base=base)
     changes = {}
-    for name in ("t_final", "dt"):
+    for name in ("t_final", "dt", "solver", "refine"):
         value = getattr(args, name, None)
         if value is not None:
             changes[name] = value

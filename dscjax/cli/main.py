@@ -18,6 +18,7 @@ COMMANDS = {
     "reproduce": "dscjax.cli.reproduce",
     "tune": "dscjax.cli.tune",
     "sweep": "dscjax.cli.sweep",
+    "stability": "dscjax.cli.stability",
 }
 
 EXIT_USAGE = 2

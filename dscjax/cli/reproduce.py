@@ -63,7 +63,34 @@ def add_parser(sub):
                    help="with --complexity: keep the control-law measurements an interrupted "
                    "run saved in DIR/complexity_rows.json (same --repeats) and measure only "
                    "the rest")
+    p.add_argument("--theory", action="store_true",
+                   help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
+                   "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
+                   "(55), tau by (60), L-inf initialisation (67)-(68)); about a minute for n = 2, "
+                   "several for n = 3 and 4")
+    p.add_argument("--theory-orders", default="2", metavar="N,M",
+                   help="orders of the alpha_0 study for --theory, e.g. 2,3,4 (default 2)")
+    p.add_argument("--alpha0", metavar="A,B,...",
+                   help="alpha_0 values of the study (default: 10 values from 0.1 to 10, "
+                   "log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
+    p.add_argument("--mu", type=float, metavar="MU",
+                   help="mu of (59)-(60) for the study (default 0.1 for n = 2, 10 for n >= 3)")
     return p
+
+
+def _alpha0(text: str | None) -> list[float] | None:
+    from dscjax.validation import ConfigError
+
+    if text is None:
+        return None
+    error = ConfigError(f"--alpha0 must be positive numbers like 0.5,1,2 (got {text!r})")
+    try:
+        values = [float(p) for p in text.split(",") if p.strip()]
+    except ValueError:
+        raise error from None
+    if not values or min(values) <= 0:
+        raise error
+    return values
 
 
 def run(args) -> int:
@@ -72,6 +99,10 @@ def run(args) -> int:
     from dscjax.validation import ConfigError, validate_run
 
     orders = _orders(args.orders)
+    theory_orders = _orders(args.theory_orders)
+    alpha0 = _alpha0(args.alpha0)
+    if args.mu is not None and not args.mu > 0:
+        raise ConfigError(f"--mu must be > 0 (got {args.mu})")
     if args.repeats < 1:
         raise ConfigError(f"--repeats must be >= 1 (got {args.repeats})")
     if args.dpi < 10:
@@ -89,7 +120,9 @@ def run(args) -> int:
     prepare_out(args.out)
     summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
                         dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
-                        complexity_repeats=args.repeats, resume=args.resume)
+                        complexity_repeats=args.repeats, resume=args.resume,
+                        theory=args.theory, theory_orders=theory_orders,
+                        theory_alpha0=alpha0, theory_mu=args.mu)
     # the results on stdout (progress went to stderr)
     for line in claim_lines(summary):
         print(line)

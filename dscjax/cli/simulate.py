@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, prepare_out
+from dscjax.cli.common import add_config_args, add_integration_args, load_setup, prepare_out
 from dscjax.files import write_json, write_npz
 from dscjax.progress import Progress
 
@@ -29,8 +29,11 @@ def add_parser(sub):
         "simulate", help="simulate one closed loop (default: the paper's example)",
         description="Simulate the closed loop of a config (default: the paper's Section 4 "
         "example) by fixed-step RK4 and write DIR/trajectory.npz, DIR/metrics.json and "
-        "DIR/trajectory.png.")
+        "DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function "
+        "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
+        "V_zeta, V_d, V_y (the filter errors).")
     add_config_args(p)
+    add_integration_args(p)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
     p.add_argument("--save-every", type=int, metavar="K", help=f"keep every K-th step in "
@@ -49,7 +52,13 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax import config, validation
-    from dscjax.simulate import DivergenceError, default_window, divergence_report, simulate
+    from dscjax.simulate import (
+        DivergenceError,
+        default_window,
+        divergence_report,
+        refinement_level,
+        simulate,
+    )
 
     if args.save_every is not None:
         validation.integer(args.save_every, "--save-every", 1)
@@ -96,7 +105,7 @@ def run(args) -> int:
     try:
         traj = simulate(setup, options.t_final, options.dt, save_every=every,
                         window_start=options.window_start, state_bound=options.state_bound,
-                        progress=progress)
+                        progress=progress, solver=options.solver, refine=options.refine)
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
     finally:
@@ -108,6 +117,12 @@ def run(args) -> int:
               "S": traj.S, "u_dot": traj.u_dot}
     if hasattr(traj.ctrl, "_fields"):
         arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
+    if setup.controller.kind == "dsc":
+        from dscjax.theory import lyapunov
+
+        lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
+        arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()
+                                 if k not in ("t", "V")}
     write_npz(out / "trajectory.npz", {k: np.asarray(v) for k, v in arrays.items()})
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     report = divergence_report(traj, options.state_bound)
@@ -118,7 +133,13 @@ def run(args) -> int:
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
         "save_every": every,
+        "solver": options.solver,
+        "refinements": int(traj.refinements),
+        "solver_used": refinement_level(int(traj.refinements), options.solver)[0],
+        "dt_used": float(traj.dt),
         "window_start": float(default_window(options.t_final, options.window_start)),
+        **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
+           if "V" in arrays else {}),
         "wall_time_s": elapsed,
         "warnings": warnings,
     })
@@ -128,6 +149,14 @@ def run(args) -> int:
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
+    if int(traj.refinements):
+        used, _ = refinement_level(int(traj.refinements), options.solver)
+        what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
+                if diverged is not None else
+                f"the reported run is {used} at dt = {float(traj.dt):g} s")
+        print(f"  {options.solver} at dt = {options.dt:g} s diverged (a stiff loop: the "
+              f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
+              file=sys.stderr)
     if diverged is None:
         print(f"  L-inf error {metrics['linf_error']:.4g} "
               f"(after t0: {metrics['linf_error_window']:.4g}),"

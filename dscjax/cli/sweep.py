@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import add_horizon_args, prepare_out
+from dscjax.cli.common import add_example_arg, add_horizon_args, example_setup, prepare_out
 from dscjax.files import write_json
 from dscjax.progress import Progress
 
@@ -59,6 +59,7 @@ def add_parser(sub):
     p.add_argument("--chunk", type=int, metavar="C", help=f"samples per block and device "
                    f"(default: about {AUTO_BLOCK})")
     add_horizon_args(p)
+    add_example_arg(p)
     p.add_argument("--t0", type=float, metavar="S", help=f"start of the metric window [t0, T] "
                    f"(default {DEFAULT_WINDOW_START:g} s, 0 if T <= {DEFAULT_WINDOW_START:g} s)")
     prec = p.add_mutually_exclusive_group()
@@ -111,7 +112,7 @@ def load(args):
     sweep_table = raw.pop("sweep", {})
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
-    setup, options = config.from_dict(raw)
+    setup, options = config.from_dict(raw, base=example_setup(args))
     if args.gains:
         # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
         # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.

@@ -16,7 +16,7 @@ from pathlib import Path
 
 
 def add_parser(sub):
-    from dscjax.cli.common import add_horizon_args
+    from dscjax.cli.common import add_example_arg, add_horizon_args
     from tuning.config import TuningConfig
     from tuning.objective import AGGREGATES
     from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS
@@ -61,6 +61,7 @@ def add_parser(sub):
                    + (f": forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
                       if opt.gradient == "auto" else ")"))
     add_horizon_args(p)
+    add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
                        "its checkpoint (iteration count, optimiser state and best point)")
@@ -91,6 +92,7 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config
+    from dscjax.cli.common import example_setup
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -98,7 +100,7 @@ def load(args):
     raw = config.read(args.config) if args.config else {}
     table = raw.pop("tuning", {})
     raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
-    setup, options = config.from_dict(raw)
+    setup, options = config.from_dict(raw, base=example_setup(args))
     cfg = tuning_from_dict(table, TuningConfig())
     if args.tuning:
         extra = config.read(args.tuning)

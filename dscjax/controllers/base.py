@@ -20,6 +20,7 @@ import abc
 from typing import Any, ClassVar, NamedTuple
 
 import jax
+import jax.numpy as jnp
 
 from dscjax.model import Model
 
@@ -55,6 +56,12 @@ class Controller(Model):
 
     @abc.abstractmethod
     def state_rate(self, state, x, t, info, plant, reference) -> Any: ...
+
+    def decay_rates(self, state) -> Any:
+        """Rates >= 0 of the linear decays -rate * state in `state_rate` that can make the loop
+        stiff (a state-shaped pytree; the exponential step integrates them exactly).
+        Default: none."""
+        return jax.tree.map(jnp.zeros_like, state)
 
     @abc.abstractmethod
     def expected_shapes(self, n: int) -> dict[str, tuple[int, ...]]:

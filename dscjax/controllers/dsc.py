@@ -177,6 +177,11 @@ class DSC(AdaptiveLaws):
         extra = DSCExtra(ubar=ubar, f=f, phi_signal=jnp.stack(v), z_dot=jnp.stack(z_dot))
         return u, ControlInfo(yr=yr, S=jnp.stack(s), extra=extra)
 
+    def decay_rates(self, state):
+        """The filters (18), (24) decay at 1/tau_i."""
+        zero = jax.tree.map(jnp.zeros_like, state)
+        return zero._replace(z=jnp.ones_like(state.z) / self.tau)
+
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
         e = info.extra

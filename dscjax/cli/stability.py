@@ -1,0 +1,117 @@
+"""`dscjax stability`: which dt does classical RK4 need for a config, before a run.
+
+Writes DIR/stability.json and DIR/stability.png (the (tau, dt) region where RK4 stays finite,
+the config's point, and the linear guide 2.785 / max rho along the nominal run) and prints the
+table.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import numpy as np
+
+from dscjax.cli.common import add_config_args, load_setup, prepare_out
+from dscjax.files import write_json
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "stability", help="the largest stable RK4 step of a config and its (tau, dt) region",
+        description="Run the loop at steps dt * 2^k (k = -4..4) for filter constants tau * "
+        "scale, report where classical RK4 stays finite, bisect the largest stable dt at the "
+        "config's tau, and compare with the linear guide 2.785 / max spectral radius of the "
+        "closed loop's Jacobian along the nominal run.")
+    add_config_args(p)
+    p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
+                   help="factors applied to every filter constant tau_i (default "
+                   "0.25,0.5,1,2,4)")
+    p.add_argument("--out", default="results/stability", metavar="DIR",
+                   help="output directory (default results/stability)")
+    p.add_argument("--no-plot", action="store_true", help="skip stability.png")
+    return p
+
+
+def _scales(text: str) -> list[float]:
+    from dscjax.validation import ConfigError
+
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) <= 0:
+        raise ConfigError(f"--tau-scales must be positive numbers like 0.5,1,2 (got {text!r})")
+    return sorted(values)
+
+
+def run(args) -> int:
+    from dscjax import validation
+    from dscjax.stability import stability_map
+
+    setup, options = load_setup(args)
+    scales = _scales(args.tau_scales)
+    validation.validate_run(setup, options.t_final, options.dt, 1, None)
+    out = prepare_out(args.out)
+    print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
+          f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)
+    m = stability_map(setup, options.t_final, options.dt, tau_scales=scales,
+                      log=lambda s: print(s, file=sys.stderr))
+    bound = ">= " if m.beyond_grid else ""
+    print(f"largest stable dt for classical RK4 at this config's tau: {bound}"
+          f"{m.largest_stable_dt:.4g} s"
+          + (" (every step tried was stable)" if m.beyond_grid else "")
+          + f" (requested {m.requested_dt:g} s: "
+          f"{'stable' if m.requested_dt <= m.largest_stable_dt else 'UNSTABLE'})")
+    print(f"linear guide 2.785 / max spectral radius along the nominal run: {m.linear_dt:.4g} s "
+          f"(the radius peaks at t = {m.t_peak:.4g} s; conservative: short bursts beyond it "
+          f"are often survived)")
+    head = "tau_min \\ dt" if np.isfinite(m.tau).any() else "dt"
+    print(f"{head:>14} " + " ".join(f"{d:>9.3g}" for d in m.dt))
+    for i in range(len(m.tau_scale)):
+        label = f"{m.tau[i]:.4g}" if np.isfinite(m.tau[i]) else "-"
+        print(f"{label:>14} " + " ".join(f"{'ok' if ok else 'div':>9}" for ok in m.stable[i]))
+    write_json(out / "stability.json", {
+        "t_final": options.t_final, "requested_dt": m.requested_dt,
+        "largest_stable_dt": m.largest_stable_dt, "beyond_grid": m.beyond_grid,
+        "linear_dt": m.linear_dt,
+        "t_peak": m.t_peak, "dt": m.dt, "tau_scale": m.tau_scale, "tau_min": m.tau,
+        "stable": m.stable, "t_diverged": m.t_diverged})
+    if not args.no_plot:
+        _plot(m, out / "stability.png")
+    print(f"wrote {out}/stability.json" + ("" if args.no_plot else ", stability.png"))
+    return 0
+
+
+def _plot(m, path):
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(6.4, 5.0))
+    ax = fig.subplots()
+    has_tau = np.isfinite(m.tau).any()
+    y = m.tau if has_tau else np.ones(1)
+    for i in range(len(y)):
+        ax.scatter(m.dt[m.stable[i]], np.full(m.stable[i].sum(), y[i]), marker="o",
+                   color="tab:green", label="RK4 stays finite" if i == 0 else None)
+        ax.scatter(m.dt[~m.stable[i]], np.full((~m.stable[i]).sum(), y[i]), marker="x",
+                   color="tab:red", label="RK4 diverges" if i == 0 else None)
+    own = y[int(np.argmin(np.abs(m.tau_scale - 1.0)))]
+    ax.scatter([m.requested_dt], [own], s=140, facecolors="none", edgecolors="k",
+               label=f"this config (dt = {m.requested_dt:g} s)")
+    if np.isfinite(m.largest_stable_dt):
+        ax.axvline(m.largest_stable_dt, color="tab:green", ls="--", lw=1,
+                   label=f"largest stable dt {'>= ' if m.beyond_grid else ''}"
+                   f"{m.largest_stable_dt:.3g} s" + ("" if m.beyond_grid else " (bisected)"))
+    if np.isfinite(m.linear_dt):
+        ax.axvline(m.linear_dt, color="tab:blue", ls=":", lw=1,
+                   label=f"linear guide 2.785/max rho = {m.linear_dt:.3g} s")
+    ax.set_xscale("log")
+    if has_tau:
+        ax.set_yscale("log")
+        ax.set_ylabel("smallest filter constant tau [s]")
+    else:
+        ax.set_yticks([])
+    ax.set_xlabel("RK4 step dt [s]")
+    ax.set_title("Where classical RK4 stays finite over the horizon")
+    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)

@@ -1,0 +1,579 @@
+"""Theorem 1 of the paper along trajectories: the Lyapunov function (44), the gain rules (55) and
+(60), the constant e_M (61) and the bounds (65), (71) and (72).
+
+    traj = dscjax.simulate(setup, 20.0, 1e-3)
+    lv = dscjax.lyapunov(setup, traj)          # V(t) of (44) and its terms
+    lv.V, lv.surface, lv.filter, lv.theta, lv.phi, lv.zeta, lv.d
+
+V of eq. (44), for a DSC of order n, is (all sums over i = 1..n-1)
+
+    V = 1/2 sum_i ( S_i^2 / g_i + theta~_gi^2 / gamma_gi + phi~_i^2 / gamma_phi_i + y_(i+1)^2 )
+      + 1/2 ( beta zeta~^2 / gamma_zeta + theta~_n^2 / gamma_gn + d~^2 / gamma_d + S_n^2 )
+
+with the estimation errors (34)-(38) against the TRUE plant: theta~_gi = theta_hat_gi -
+theta_i/g_i, phi~_i = phi_hat_i - 1/g_i, theta~_n = theta_hat_n - theta_n, zeta~ = zeta_hat -
+1/beta, beta = lam g_n (10), d~ = d_hat - d with d a bound of |d_n| (12), and the filter errors
+y_(i+1) = z_(i+1) - x_(i+1)d (33). `docs/theory.md` lists every reading of the garbled text.
+
+Everything that is a function of one closed-loop state is a pure function of (setup, truth, t, X)
+(`terms_at`, `filter_errors_at`, `b_at`, `lyapunov_rate_at`): it composes with vmap and jvp. The
+host functions (`lyapunov`, `lyapunov_rate`, `filter_rates`, `check`) evaluate them at every
+saved point of a `Trajectory`, in fixed-size chunks so that trajectories of different lengths
+share one compilation.
+
+Where the theorem's constants are not computable (M_(i+1), the maximum of |B_(i+1)| over a
+compact set, eq. (59)), `check` uses the maximum measured along the trajectory. A bound built
+from it is a data-driven estimate, not the theorem's constant, and is labelled so.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+from typing import Literal, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.closed_loop import State, prepared, vector_field
+from dscjax.validation import ConfigError
+
+HOLD = ("eta", "gamma")
+"""What (55) keeps fixed when alpha_0 changes: the leakages eta, sigma (gamma = 2 alpha_0/eta, as
+the paper suggests after (72), so that e_M does not depend on alpha_0) or the adaptation rates
+gamma (eta = 2 alpha_0/gamma)."""
+
+_CHUNK = 2048  # points per vmapped chunk when evaluating along a trajectory
+
+
+# -- the true plant ---------------------------------------------------------------------------
+
+
+class Truth(NamedTuple):
+    """The true values the DSC's estimates estimate, and the constants of Assumption 4.
+
+    theta: (n,) theta_i/g_i for i < n (15), (21), then theta_n (36): what `theta_hat` estimates.
+    phi: (n-1,) 1/g_i, what `phi_hat` estimates (15), (21).
+    beta: () lam g_n (10), lam the hysteresis's slope (5).
+    zeta: () 1/beta (27), what `zeta_hat` estimates.
+    d: () the bound d of |d_n| (12), what `d_hat` estimates.
+    g: (n,) the true g_i.
+    g_min, g_max: () the bounds of Assumption 4; g_min as the designer set it in the controller,
+        g_max = max g_i.
+    """
+
+    theta: jax.Array
+    phi: jax.Array
+    beta: jax.Array
+    zeta: jax.Array
+    d: jax.Array
+    g: jax.Array
+    g_min: jax.Array
+    g_max: jax.Array
+
+
+def hysteresis_slope(hysteresis) -> jax.Array:
+    """The slope lam of w = lam u + d_1(u) (5): the hysteresis's effective gain in beta (10).
+
+    Only the backlash-like model (4) exists; a new hysteresis model must provide `lam` (its
+    effective slope) and `d1_limits()` to be usable here.
+    """
+    if not hasattr(hysteresis, "lam"):
+        raise ConfigError(f"the Lyapunov function (44) needs the hysteresis's effective slope "
+                          f"(lam of eq. 5); {type(hysteresis).__name__} has none")
+    return jnp.asarray(hysteresis.lam)
+
+
+def max_abs_dbar(plant, t=None) -> jax.Array:
+    """max_t |dbar(t)|: exact for the built-in plants (|dbar_amp| + |dbar_bias|); for other
+    plants the maximum over the times `t` (e.g. a trajectory's saved times)."""
+    if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
+        return jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+    if t is None:
+        raise ConfigError(f"{type(plant).__name__}: max |dbar| is not known in closed form; pass "
+                          "the times to take it over, or give d explicitly")
+    return jnp.max(jnp.abs(jax.vmap(plant.dbar)(jnp.asarray(t))))
+
+
+def default_d(setup, t=None) -> jax.Array:
+    """The default bound of |d_n| = |g_n d_1(u) + dbar| (11)-(12): g_n (lam - psi)/alpha +
+    max |dbar|, from the limits (7)-(8) of d_1.
+
+    It bounds |d_n| once d_1 has settled between its asymptotes; if w(0) - lam u(0) lies outside
+    [-(lam-psi)/alpha, (lam-psi)/alpha] the early |d_1| can exceed it. `check` measures
+    max |d_n| along the run and says whether (12) held.
+    """
+    g_n = jnp.asarray(setup.plant.g)[-1]
+    return g_n * setup.hysteresis.d1_limits()[0] + max_abs_dbar(setup.plant, t)
+
+
+def truth(setup, d=None, t=None) -> Truth:
+    """The true parameters of `setup`'s plant and hysteresis, in the controller's
+    parameterisation (15), (21), (27), with d = `default_d` unless given."""
+    plant = setup.plant
+    g = jnp.asarray(plant.g)
+    theta = jnp.asarray(plant.theta)
+    theta_g = jnp.concatenate([theta[:-1] / g[:-1], theta[-1:]])
+    beta = hysteresis_slope(setup.hysteresis) * g[-1]
+    d = default_d(setup, t) if d is None else jnp.asarray(d, g.dtype)
+    g_min = getattr(setup.controller, "g_min", jnp.min(g))
+    return Truth(theta=theta_g, phi=1.0 / g[:-1], beta=beta, zeta=1.0 / beta,
+                 d=jnp.asarray(d, g.dtype), g=g, g_min=jnp.asarray(g_min, g.dtype),
+                 g_max=jnp.max(g))
+
+
+# -- V of (44) at one state --------------------------------------------------------------------
+
+
+class Terms(NamedTuple):
+    """The terms of V (44) at one state (add a leading time axis along a trajectory).
+
+    surface: (n,) S_i^2/(2 g_i) for i < n, S_n^2/2 for i = n.
+    filter: (n-1,) y_(i+1)^2/2, the filter errors (33).
+    theta: (n,) theta~_gi^2/(2 gamma_gi) for i < n, theta~_n^2/(2 gamma_gn).
+    phi: (n-1,) phi~_i^2/(2 gamma_phi_i).
+    zeta: () beta zeta~^2/(2 gamma_zeta).
+    d: () d~^2/(2 gamma_d).
+    """
+
+    surface: jax.Array
+    filter: jax.Array
+    theta: jax.Array
+    phi: jax.Array
+    zeta: jax.Array
+    d: jax.Array
+
+    def total(self):
+        return (jnp.sum(self.surface, -1) + jnp.sum(self.filter, -1) + jnp.sum(self.theta, -1)
+                + jnp.sum(self.phi, -1) + self.zeta + self.d)
+
+
+TERM_NAMES = Terms._fields
+
+
+def _over_rate(err, gamma):
+    """err^2 / (2 gamma), and 0 where gamma = 0.
+
+    An estimate that does not adapt (gamma = 0) makes its term of (44) infinite; it is a
+    constant then, so it is left out and V of the other terms stays usable (its derivative is
+    unchanged). Double `where`: no NaN in gradients from the branch not taken.
+    """
+    on = gamma > 0
+    return jnp.where(on, 0.5 * err * err / jnp.where(on, gamma, 1.0), 0.0)
+
+
+def _require_dsc(controller):
+    if getattr(controller, "kind", None) != "dsc":
+        raise ConfigError(f"the Lyapunov function (44) is the DSC's: controller.kind must be "
+                          f"'dsc' (got {getattr(controller, 'kind', type(controller).__name__)!r})")
+
+
+def filter_errors_at(setup, t, X: State):
+    """y_(i+1) = z_(i+1) - x_(i+1)d, i = 1..n-1 (33), at one state of a prepared setup.
+
+    The law's filter derivative is z_(i+1)' = (x_(i+1)d - z_(i+1))/tau_(i+1) (18), (24), so
+    y_(i+1) = -tau_(i+1) z_(i+1)' (42). Returns (y (n-1,), S (n,)).
+    """
+    ctrl = setup.controller
+    _, info = ctrl.law(X.ctrl, X.x, t, setup.plant, setup.reference)
+    return -ctrl.tau * info.extra.z_dot, info.S
+
+
+def _terms(setup, tr: Truth, X: State, y, s) -> Terms:
+    ctrl, c = setup.controller, X.ctrl
+    n = s.shape[0]
+    surface = jnp.stack([0.5 * s[i] * s[i] / tr.g[i] for i in range(n - 1)]
+                        + [0.5 * s[n - 1] * s[n - 1]])
+    return Terms(
+        surface=surface,
+        filter=0.5 * y * y,
+        theta=_over_rate(c.theta_hat - tr.theta, ctrl.gamma_g),
+        phi=_over_rate(c.phi_hat - tr.phi, ctrl.gamma_phi),
+        zeta=tr.beta * _over_rate(c.zeta_hat - tr.zeta, ctrl.gamma_zeta),
+        d=_over_rate(c.d_hat - tr.d, ctrl.gamma_d),
+    )
+
+
+def terms_at(setup, tr: Truth, t, X: State) -> Terms:
+    """The terms of V (44) at time t and closed-loop state X of a prepared setup."""
+    y, s = filter_errors_at(setup, t, X)
+    return _terms(setup, tr, X, y, s)
+
+
+def lyapunov_at(setup, tr: Truth, t, X: State):
+    """V of (44) at one state of a prepared setup."""
+    return terms_at(setup, tr, t, X).total()
+
+
+def lyapunov_rate_at(setup, tr: Truth, t, X: State):
+    """(V, dV/dt) at one state: the exact derivative of (44) along the closed-loop vector field
+    (a forward-mode derivative, so it includes every term the proof bounds in (45)-(63))."""
+    dX, _ = vector_field(t, X, setup)
+    return jax.jvp(lambda tt, XX: lyapunov_at(setup, tr, tt, XX), (t, X), (jnp.ones_like(t), dX))
+
+
+def b_at(setup, t, X: State):
+    """B_(i+1) of (43), i = 1..n-1: y_(i+1)' = -y_(i+1)/tau_(i+1) + B_(i+1).
+
+    Since y = z - x_d and z' = -y/tau (42), B_(i+1) = -x_(i+1)d' (the virtual control's
+    derivative along the closed loop). Computed as y' + y/tau with y' by one jvp.
+    """
+    dX, _ = vector_field(t, X, setup)
+    y, y_dot = jax.jvp(lambda tt, XX: filter_errors_at(setup, tt, XX)[0], (t, X),
+                       (jnp.ones_like(t), dX))
+    return y_dot + y / setup.controller.tau
+
+
+def robust_slack_at(setup, tr: Truth, t, X: State):
+    """What the robust term in use leaves over in the proof's step (48)-(49).
+
+    With sgn(S_n) in (30) and |S_n| in (32), S_n d_n - S_n sgn(S_n) d_hat + d~ |S_n| <= 0
+    (using (12)). With the switching function r and the |.| surrogate a of the controller
+    (sat(S_n/w) and |S_n| by default) the same sum is <= d (|S_n| - a(S_n)) + d_hat (a(S_n) -
+    S_n r(S_n)), which this returns (>= 0; 0 for sgn; <= d_hat w/4 for sat, d_hat >= 0).
+    """
+    ctrl = setup.controller
+    _, info = ctrl.law(X.ctrl, X.x, t, setup.plant, setup.reference)
+    return _slack(ctrl, tr, info.S[-1], X.ctrl.d_hat)
+
+
+def _slack(ctrl, tr, s_n, d_hat):
+    # the controller's own switching function and |.| (one copy of the formulas)
+    a = ctrl._abs_surface(s_n)
+    return tr.d * (jnp.abs(s_n) - a) + d_hat * (a - s_n * ctrl._robust(s_n))
+
+
+def disturbance_at(setup, t, X: State, u):
+    """d_n = g_n d_1(u) + dbar(t) = g_n (w - lam u) + dbar(t) (5), (11) at one state."""
+    g_n = jnp.asarray(setup.plant.g)[-1]
+    lam = hysteresis_slope(setup.hysteresis)
+    return g_n * (setup.hysteresis.output(u, X.h) - lam * u) + setup.plant.dbar(t)
+
+
+# -- along a trajectory ------------------------------------------------------------------------
+
+
+class LyapunovTerms(NamedTuple):
+    """V(t) of (44) and its terms at a trajectory's saved times (leading axis T), NumPy arrays.
+
+    t: (T,); V: (T,) the sum of every term; surface (T, n), filter (T, n-1), theta (T, n),
+    phi (T, n-1), zeta (T,), d (T,): see `Terms`; y: (T, n-1) the filter errors (33);
+    truth: the true parameters used (`Truth`).
+    """
+
+    t: jax.Array
+    V: jax.Array
+    surface: jax.Array
+    filter: jax.Array
+    theta: jax.Array
+    phi: jax.Array
+    zeta: jax.Array
+    d: jax.Array
+    y: jax.Array
+    truth: Truth
+
+    def terms(self) -> Terms:
+        return Terms(*(getattr(self, k) for k in TERM_NAMES))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """{'t', 'V', and one array per term}, the keys of `lyapunov.npz`."""
+        return {k: np.asarray(getattr(self, k)) for k in ("t", "V", *TERM_NAMES, "y")}
+
+
+def _states(traj) -> State:
+    if np.ndim(traj.t) != 1:
+        raise ConfigError("expected a single trajectory (traj.t of shape (T,)); for a batch, "
+                          "index one member first")
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
+
+
+def _chunked(fn, args, t, X, chunk=_CHUNK):
+    """fn(*args, t_j, X_j) at every point j, vmapped over fixed-size chunks (the last one
+    padded): one compilation per chunk size, whatever the trajectory's length."""
+    n_pts = int(np.shape(t)[0])
+    pad = (-n_pts) % chunk
+    t, X = jax.tree.map(lambda a: np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:],
+                                                                            pad, 0)]), (t, X))
+    outs = [_chunk_eval(fn, args, *jax.tree.map(lambda a, j=j: a[j:j + chunk], (t, X)))
+            for j in range(0, n_pts + pad, chunk)]
+    return jax.tree.map(lambda *a: np.concatenate(a)[:n_pts], *outs)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _chunk_eval(fn, args, t, X):
+    return jax.vmap(lambda tt, XX: fn(*args, tt, XX))(t, X)
+
+
+def _prepared_dsc(setup):
+    _require_dsc(setup.controller)
+    from dscjax.simulate import canonical
+
+    return prepared(canonical(setup))
+
+
+def lyapunov(setup, traj, d=None) -> LyapunovTerms:
+    """V(t) of eq. (44) and its terms along a DSC trajectory of any order n.
+
+    Args:
+        setup: the setup `traj` was simulated from (not yet prepared: the initialisation rule,
+            e.g. (67)-(68), is applied here as in `simulate`).
+        traj: a single `Trajectory` (saved at any stride).
+        d: the bound of |d_n| used in d~ = d_hat - d (38); default `default_d`:
+            g_n (lam - psi)/alpha + max |dbar|.
+
+    Returns:
+        `LyapunovTerms` with V and every term at the saved times.
+
+    Example:
+        >>> import dscjax
+        >>> setup = dscjax.paper_example()
+        >>> traj = dscjax.simulate(setup, t_final=1.0, dt=1e-3, save_every=100)
+        >>> lv = dscjax.lyapunov(setup, traj)
+        >>> lv.V.shape, lv.surface.shape
+        ((11,), (11, 2))
+    """
+    s = _prepared_dsc(setup)
+    X = _states(traj)
+    tr = truth(s, d, traj.t)
+    t = np.asarray(traj.t)
+    terms, (y, _) = _chunked(_terms_and_y, (s, tr), t, X)
+    return LyapunovTerms(t=t, V=np.asarray(terms.total()), y=y, truth=tr, **terms._asdict())
+
+
+def _terms_and_y(setup, tr, t, X):
+    return terms_at(setup, tr, t, X), filter_errors_at(setup, t, X)
+
+
+def lyapunov_rate(setup, traj, d=None):
+    """(V, dV/dt) at the saved points: the exact derivative of (44) along the vector field."""
+    s = _prepared_dsc(setup)
+    tr = truth(s, d, traj.t)
+    return _chunked(lyapunov_rate_at, (s, tr), jnp.asarray(traj.t), _states(traj))
+
+
+def filter_rates(setup, traj):
+    """B_(i+1)(t) of (43) at the saved points, shape (T, n-1)."""
+    s = _prepared_dsc(setup)
+    return _chunked(b_at, (s,), jnp.asarray(traj.t), _states(traj))
+
+
+# -- gain rules and bounds ---------------------------------------------------------------------
+
+
+def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
+    """The controller with k and the leakage/adaptation pairs chosen by eq. (55) for alpha_0.
+
+        k_1 = 3 + alpha_0/g_min, k_i = 3 1/4 + alpha_0/g_min (2 <= i <= n-1), k_n = 1/4 + alpha_0,
+        eta_i gamma_gi = sigma_i gamma_phi_i = eta_zeta gamma_zeta = eta_d gamma_d = 2 alpha_0.
+
+    hold="eta" keeps eta, sigma, eta_zeta, eta_d and sets gamma = 2 alpha_0/eta (the paper's
+    remark after (72): then e_M (61) does not depend on alpha_0); hold="gamma" keeps the gammas
+    and sets eta = 2 alpha_0/gamma. tau is left alone: see `tau_60`.
+    """
+    if hold not in HOLD:
+        raise ConfigError(f"hold must be one of {HOLD} (got {hold!r})")
+    _require_dsc(controller)
+    n = np.shape(controller.k)[0]
+    a = jnp.asarray(alpha0, jnp.result_type(controller.k))
+    g_min = controller.g_min
+    k = jnp.stack([3.0 + a / g_min] + [3.25 + a / g_min] * (n - 2) + [0.25 + a])
+    pairs = (("gamma_g", "eta"), ("gamma_phi", "sigma"), ("gamma_zeta", "eta_zeta"),
+             ("gamma_d", "eta_d"))
+    changes = {"k": k}
+    for gamma, eta in pairs:
+        if hold == "eta":
+            changes[gamma] = 2.0 * a / jnp.asarray(getattr(controller, eta))
+        else:
+            changes[eta] = 2.0 * a / jnp.asarray(getattr(controller, gamma))
+    return dataclasses.replace(controller, **changes)
+
+
+def tau_60(alpha0, M, mu):
+    """Filter time constants of eq. (60): 1/tau_(i+1) = 1/4 + M_(i+1)^2/(2 mu) + alpha_0."""
+    M = jnp.asarray(M)
+    return 1.0 / (0.25 + M * M / (2.0 * mu) + alpha0)
+
+
+def e_M(controller, tr: Truth):
+    """The constant e_M of eq. (61) (printed "M"), without the mu term:
+
+        sum_(i<n) (eta_i theta_gi^2/2 + sigma_i phi_i^2/2 + c_(i+1)^2/4) + eta_n theta_n^2/2
+        + eta_zeta beta zeta^2/2 + eta_d d^2/2 + (n-1) eps/(2 g_min) + eps/2
+
+    c_(i+1) is the PREPARED controller's offset (x_(i+1)(0) under (68)).
+    """
+    c = controller
+    n = np.shape(c.k)[0]
+    return (jnp.sum(c.eta * tr.theta ** 2) / 2 + jnp.sum(c.sigma * tr.phi ** 2) / 2
+            + jnp.sum(c.c ** 2) / 4 + c.eta_zeta * tr.beta * tr.zeta ** 2 / 2
+            + c.eta_d * tr.d ** 2 / 2 + (n - 1) * c.eps / (2 * c.g_min) + c.eps / 2)
+
+
+def v0_69(controller, tr: Truth):
+    """V(0) of eq. (69): V under the L-inf initialisation (67)-(68), where S_i(0) = 0,
+    y_(i+1)(0) = 0 and every estimate is 0, so only the estimation errors remain."""
+    c = controller
+    return 0.5 * (jnp.sum(tr.theta ** 2 / c.gamma_g) + jnp.sum(tr.phi ** 2 / c.gamma_phi)
+                  + tr.beta * tr.zeta ** 2 / c.gamma_zeta + tr.d ** 2 / c.gamma_d)
+
+
+def bound_65(t, V0, C, alpha0):
+    """Eq. (65): V(t) <= C/(2 alpha_0) + (V(0) - C/(2 alpha_0)) exp(-2 alpha_0 t),
+    C = e_M + (n-1) mu/2 (+ the data-driven slacks of `check`)."""
+    ss = C / (2.0 * alpha0)
+    return ss + (V0 - ss) * np.exp(-2.0 * alpha0 * np.asarray(t))
+
+
+def bound_71(C, alpha0):
+    """Eq. (71): V(t) <= C/(2 alpha_0), valid when (70) V(0) < C/(2 alpha_0) holds."""
+    return C / (2.0 * alpha0)
+
+
+def bound_72(C, alpha0, g_max):
+    """Eq. (72): ||S_1||_inf <= sqrt(g_max C/alpha_0) (from S_1^2/(2 g_1) <= V and (71))."""
+    return math.sqrt(g_max * C / alpha0)
+
+
+def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
+    """The largest alpha_0 for which the controller's gains satisfy (55) and (60) as the
+    inequalities the proof uses (k_1 >= 3 + alpha_0/g_min, ..., eta_i gamma_gi >= 2 alpha_0,
+    1/tau_(i+1) >= 1/4 + M_(i+1)^2/(2 mu) + alpha_0), and the alpha_0 each gain allows.
+
+    Returns (alpha_0, {gain name: the alpha_0 it allows}).
+    """
+    c = jax.tree.map(np.asarray, controller)
+    n = np.shape(c.k)[0]
+    g_min = float(c.g_min)
+    allows = {"k_1": (float(c.k[0]) - 3.0) * g_min}
+    for i in range(1, n - 1):
+        allows[f"k_{i + 1}"] = (float(c.k[i]) - 3.25) * g_min
+    allows[f"k_{n}"] = float(c.k[n - 1]) - 0.25
+    for i in range(n):
+        name = f"g{i + 1}" if i < n - 1 else f"g{n}"
+        allows[f"eta_{i + 1} gamma_{name}"] = float(c.eta[i] * c.gamma_g[i]) / 2
+    for i in range(n - 1):
+        allows[f"sigma_{i + 1} gamma_phi{i + 1}"] = float(c.sigma[i] * c.gamma_phi[i]) / 2
+    allows["eta_zeta gamma_zeta"] = float(c.eta_zeta * c.gamma_zeta) / 2
+    allows["eta_d gamma_d"] = float(c.eta_d * c.gamma_d) / 2
+    M = np.asarray(M, float)
+    for i in range(n - 1):
+        allows[f"tau_{i + 2}"] = float(1.0 / c.tau[i] - 0.25 - M[i] ** 2 / (2.0 * mu))
+    return min(allows.values()), allows
+
+
+# -- the theorem along one trajectory ----------------------------------------------------------
+
+
+def _v_y_s(setup, tr, t, X):
+    """(V, y, S) at one state, from one evaluation of the law."""
+    y, s = filter_errors_at(setup, t, X)
+    return _terms(setup, tr, X, y, s).total(), y, s
+
+
+def _point_checks(setup, tr, t, X):
+    """Everything `check` needs at one state: one vector field, one jvp of (V, y)."""
+    dX, obs = vector_field(t, X, setup)
+    (v, y, s), (v_dot, y_dot, _) = jax.jvp(lambda tt, XX: _v_y_s(setup, tr, tt, XX), (t, X),
+                                           (jnp.ones_like(t), dX))
+    ctrl = setup.controller
+    return dict(V=v, V_dot=v_dot, B=y_dot + y / ctrl.tau,
+                slack=_slack(ctrl, tr, s[-1], X.ctrl.d_hat),
+                d_n=disturbance_at(setup, t, X, obs.u))
+
+
+STATEMENTS = {
+    "(63)": "V' <= -2 alpha_0 V + C at every step",
+    "(65)": "V(t) <= C/(2 alpha_0) + (V(0) - C/(2 alpha_0)) exp(-2 alpha_0 t)",
+    "(70)": "V(0) < C/(2 alpha_0)",
+    "(71)": "V(t) <= C/(2 alpha_0)",
+    "(72)": "||S_1||_inf <= sqrt(g_max C/alpha_0)",
+}
+"""The conclusions of Theorem 1 that `check` tests, by equation number."""
+
+ASSUMPTIONS = {
+    "(12)": "|d_n(t)| <= d",
+    "(59)": "|B_(i+1)(t)| <= M_(i+1)",
+}
+"""Hypotheses of the proof that `check` tests on the run (Delta_i <= rho_i and g_i >= g_min
+hold by construction for the built-in plants and are not re-checked)."""
+
+
+def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
+    """Every statement of Theorem 1 along one DSC trajectory, with the numbers.
+
+    The constant of (63)-(72) is C = e_M + (n-1) mu/2 + slack: e_M from (61) with the true
+    parameters and the prepared controller; slack = the maximum along the run of
+    `robust_slack_at` (0 for sgn(S_n), the term the proof assumes; <= d_hat w/4 with
+    sat(S_n/w)). M_(i+1) (59) defaults to max_t |B_(i+1)| measured on this run, so that (59)
+    holds on the run by construction: the bounds are then DATA-DRIVEN ESTIMATES, not the
+    theorem's constants.
+
+    Args:
+        setup, traj: the setup (unprepared) and a single trajectory from it; save every step
+            for max |B| and max V to be the maxima over every step.
+        alpha0: the alpha_0 the gains were chosen for (or certify, `certified_alpha0`).
+        mu: the mu of (59)-(60).
+        M: (n-1,) bounds of |B_(i+1)|; default measured.
+        d: the bound of |d_n|; default `default_d`.
+
+    Returns:
+        A dict of plain floats/arrays: V0, V_max, S1_inf, e_M, C, slack, M, M_measured,
+        d, d_n_max, bound_71, bound_72, bound_65 (T,), V and V' (T,), the worst margins of (63)
+        and (65) (max over t of V' + 2 alpha_0 V - C and of V - bound_65: <= 0 when they hold),
+        `holds`: {equation of a conclusion (`STATEMENTS`): bool} and `assumptions`:
+        {equation of a hypothesis the proof uses (`ASSUMPTIONS`), checked on the run: bool}.
+    """
+    s = _prepared_dsc(setup)
+    X = _states(traj)
+    t = jnp.asarray(traj.t)
+    tr = truth(s, d, t)
+    pts = _chunked(_point_checks, (s, tr), t, X)
+    pts = {k: np.asarray(v) for k, v in pts.items()}
+    n = setup.order
+    M_meas = np.max(np.abs(pts["B"]), axis=0)
+    M_used = M_meas if M is None else np.asarray(M, float)
+    slack = float(np.max(pts["slack"]))
+    eM = float(e_M(s.controller, tr))
+    C = eM + (n - 1) * mu / 2 + slack
+    V = pts["V"]
+    V0 = float(V[0])
+    S1 = float(np.max(np.abs(np.asarray(traj.S)[:, 0])))
+    g_max = float(tr.g_max)
+    b65 = bound_65(np.asarray(t), V0, C, alpha0)
+    b71 = bound_71(C, alpha0)
+    b72 = bound_72(C, alpha0, g_max)
+    # (63): V' <= -2 alpha_0 V + C; relative to the size of the terms compared
+    r63 = pts["V_dot"] + 2 * alpha0 * V - C
+    scale63 = np.abs(pts["V_dot"]) + 2 * alpha0 * V + C
+    d_n_max = float(np.max(np.abs(pts["d_n"])))
+    dval = float(tr.d)
+    assumptions = {
+        "(12)": d_n_max <= dval,
+        "(59)": bool(np.all(M_meas <= M_used * (1 + 1e-12))),
+    }
+    holds = {
+        "(63)": bool(np.all(r63 <= 1e-9 * scale63)),
+        "(65)": bool(np.all(V <= b65 * (1 + 1e-9))),
+        "(70)": V0 < b71,
+        "(71)": float(V.max()) <= b71,
+        "(72)": S1 <= b72,
+    }
+    return dict(
+        alpha0=float(alpha0), mu=float(mu), V0=V0, V_max=float(V.max()), S1_inf=S1, e_M=eM,
+        C=C, slack=slack, M=M_used, M_measured=M_meas, d=dval, d_n_max=d_n_max,
+        bound_71=b71, bound_72=b72, bound_65=b65, V=V, V_dot=pts["V_dot"],
+        margin_63=float(np.max(r63)), margin_65=float(np.max(V - b65)),
+        v0_69=float(v0_69(s.controller, tr)), holds=holds, assumptions=assumptions,
+    )
+
+
+__all__ = [
+    "ASSUMPTIONS", "HOLD", "LyapunovTerms", "STATEMENTS", "Terms", "Truth", "b_at", "bound_65",
+    "bound_71", "bound_72",
+    "certified_alpha0", "check", "default_d", "disturbance_at", "e_M", "filter_errors_at",
+    "filter_rates", "gains_55", "hysteresis_slope", "lyapunov", "lyapunov_at", "lyapunov_rate",
+    "lyapunov_rate_at", "max_abs_dbar", "robust_slack_at", "tau_60", "terms_at", "truth",
+    "v0_69",
+]

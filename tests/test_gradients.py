@@ -1,0 +1,96 @@
+"""Exact gradients through the closed loop (issue 10): the time-parallel linearisation of one
+trajectory (reverse and forward mode) and the checkpointed batch equal JAX's own
+differentiation of the scan and central finite differences of the tuning objective; they stay
+finite through a divergence. (The batch gradient's memory against the horizon is measured by
+experiments/bench_gradient.py.)"""
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+import dscjax
+import tuning
+from dscjax.config import SimOptions
+
+T = 0.4  # short horizons: the tests check numbers, not speed
+
+
+def _problem(batch: int = 0):
+    """Every term of the objective at once: smooth L-inf, L2, the requirement envelope and the
+    control-rate limit (the envelope and u_rate terms read u' and the windowed error)."""
+    cfg = tuning.TuningConfig(
+        objective=tuning.ObjectiveSpec(window_start=0.1, linf=1.0, l2=1.0, u_max=None),
+        requirements={"envelope": {"b0": 0.1, "b_inf": 0.005, "decay": 0.1},
+                      "u_rate": {"max": 40.0}},
+        robust=tuning.BatchSpec(batch=batch, seed=1), heldout=tuning.BatchSpec(batch=0))
+    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=T), cfg)
+
+
+def _with(objective, **changes):
+    return dataclasses.replace(objective, sim=dataclasses.replace(objective.sim, **changes))
+
+
+def _points(problem, n, seed=0):
+    flat0, unravel = ravel_pytree(problem.z0)
+    rng = np.random.default_rng(seed)
+    return [unravel(flat0 + 0.15 * rng.standard_normal(flat0.shape)) for _ in range(n)], unravel
+
+
+def _close(a, b):
+    a, b = np.asarray(ravel_pytree(a)[0]), np.asarray(ravel_pytree(b)[0])
+    np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.max(np.abs(b)))
+
+
+def test_one_trajectory_gradient_equals_autodiff_and_finite_differences():
+    obj = _problem().objective
+    loss = lambda z: obj.evaluate(z)[0]  # noqa: E731
+    ref_obj = _with(obj, gradient="autodiff")
+    ref = jax.jit(jax.jacfwd(lambda z: ref_obj.evaluate(z)[0]))  # JAX's forward mode of the scan
+    grad, fwd, value = jax.jit(jax.grad(loss)), jax.jit(jax.jacfwd(loss)), jax.jit(loss)
+    points, unravel = _points(_problem(), 2)
+    for z in points:
+        g_ref = ref(z)
+        _close(grad(z), g_ref)
+        _close(fwd(z), g_ref)
+        # central differences of the same discrete map, every coordinate
+        flat = ravel_pytree(z)[0]
+        h = 1e-6
+        fd = np.array([(value(unravel(flat + h * e)) - value(unravel(flat - h * e))) / (2 * h)
+                       for e in np.eye(flat.size)])
+        g = np.asarray(ravel_pytree(grad(z))[0])
+        assert np.max(np.abs(g - fd)) < 1e-4 * np.max(np.abs(fd)), (g, fd)
+
+
+def test_batch_gradient_equals_the_mean_of_single_plant_gradients():
+    obj = _problem(batch=3).objective
+    z = _points(_problem(), 1, seed=3)[0][0]
+    g_batch = jax.jit(jax.grad(lambda z: obj.evaluate(z)[0]))(z)
+
+    # independent: each plant simulated alone (time-parallel rule), then the mean
+    @jax.jit
+    def single(z, setup):
+        return jax.grad(lambda z: dataclasses.replace(
+            obj, setup=setup, overrides=None, aggregate="mean").evaluate(z)[0])(z)
+
+    singles = [ravel_pytree(single(z, dscjax.params.set_many(
+        obj.setup, {p: v[i] for p, v in obj.overrides.items()})))[0] for i in range(3)]
+    _close(g_batch, np.mean(singles, axis=0))
+
+
+def test_gradient_through_a_diverging_trajectory_is_finite():
+    setup = dscjax.paper_example()
+
+    def loss(k, gradient):
+        s = dscjax.params.set(setup, "controller.k", k)
+        traj = dscjax.run(s, 0.02, 0.0, 1e6, n_steps=100, save_every=10, gradient=gradient)
+        return traj.metrics["l2_error"] + jnp.sum(traj.x ** 2), traj.status.code
+
+    k = jnp.asarray(setup.controller.k)
+    assert int(jax.jit(loss, static_argnums=1)(k, "time_parallel")[1]) != 0  # it diverges
+    g = jax.jit(jax.grad(lambda k: loss(k, "time_parallel")[0]))(k)
+    g_ref = jax.jit(jax.jacfwd(lambda k: loss(k, "autodiff")[0]))(k)
+    assert np.all(np.isfinite(np.asarray(g)))
+    np.testing.assert_allclose(g, g_ref, rtol=1e-10)

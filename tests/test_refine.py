@@ -1,0 +1,91 @@
+"""Stiff loops: the exponential (ETDRK4) step on a stiff problem with a known solution, and
+per-trajectory refinement (a divergence of RK4 that a stiffness-aware or smaller step removes is
+not reported)."""
+
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscjax
+from dscjax.hysteresis import closed_form
+from dscjax.integrate import STATUS_OK, integrate
+
+ALPHA, LAM, PSI = 2.0e4, 1.432, 0.105
+
+
+def _hysteresis_driven_by_sine(t, w, args):
+    """Eq. (4) driven open-loop by v = sin t (rising on [0, pi/2])."""
+    dv = jnp.cos(t)
+    return ALPHA * jnp.abs(dv) * (LAM * jnp.sin(t) - w) + PSI * dv, dv
+
+
+def _rate(t, w, args, dv):
+    return ALPHA * jnp.abs(dv)
+
+
+def test_exponential_step_solves_a_stiff_hysteresis_where_rk4_blows_up():
+    # alpha |v'| dt = 20 at t = 0: ten times RK4's stability limit (2.785)
+    dt, n = 1e-3, 1500
+    rk4 = integrate(_hysteresis_driven_by_sine, jnp.array(0.0), dt, n, ())
+    assert int(rk4.status.code) != STATUS_OK
+    res = integrate(_hysteresis_driven_by_sine, jnp.array(0.0), dt, n, (), rates=_rate)
+    assert int(res.status.code) == STATUS_OK
+    t = np.arange(n + 1) * dt
+    exact = np.asarray(closed_form(np.sin(t), 0.0, 0.0, ALPHA, LAM, PSI, 1))
+    # exact for the frozen linear decay; the rate's change within a step costs ~1e-8 here
+    err = np.max(np.abs(np.asarray(res.ys) - exact))
+    assert err < 1e-6, err
+
+
+def test_refinement_leaves_healthy_members_bitwise_and_matches_a_finer_run(paper_setup):
+    ov = {"hysteresis.alpha": jnp.array([0.7, 10.0, 1.3]),
+          "hysteresis.lam": jnp.array([1.2, 0.15, 1.7])}
+    plain = dscjax.simulate_batch(paper_setup, ov, 2.0, 1e-3, save_every=100, refine=0)
+    refined = dscjax.simulate_batch(paper_setup, ov, 2.0, 1e-3, save_every=100)
+    assert np.asarray(plain.diverged).tolist() == [False, True, False]
+    assert np.asarray(refined.diverged).tolist() == [False, False, False]
+    j = int(refined.refinements[1])
+    assert np.asarray(refined.refinements).tolist() == [0, j, 0] and j >= 1
+    for a, b in zip(jax_leaves(plain), jax_leaves(refined), strict=True):
+        np.testing.assert_array_equal(np.asarray(a)[[0, 2]], np.asarray(b)[[0, 2]])
+    # the refined member is exactly the exponential step's run at its level, same save times
+    solver, m = dscjax.refinement_level(j)
+    assert solver == "etdrk4"
+    one = dscjax.simulate(dscjax.params.set_many(paper_setup, {
+        "hysteresis.alpha": 10.0, "hysteresis.lam": 0.15}), 2.0, 1e-3 / 2**m,
+        save_every=100 * 2**m, refine=0, solver=solver)
+    np.testing.assert_array_equal(np.asarray(refined.t[1]), np.asarray(one.t))
+    np.testing.assert_allclose(np.asarray(refined.x[1]), np.asarray(one.x), rtol=0, atol=1e-12)
+    assert float(refined.dt[1]) == 1e-3 / 2**m
+    # and tracks like a fine classical RK4 run (dt = 1e-4) of the same plant
+    fine = dscjax.simulate(dscjax.params.set_many(paper_setup, {
+        "hysteresis.alpha": 10.0, "hysteresis.lam": 0.15}), 2.0, 1e-4, save_every=1000)
+    assert int(fine.refinements) == 0
+    np.testing.assert_allclose(np.asarray(refined.x[1, :, 0]), np.asarray(fine.x[:, 0]), atol=2e-5)
+    assert abs(float(refined.metrics["linf_error_window"][1])
+               - float(fine.metrics["linf_error_window"])) < 3e-4
+
+
+def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_setup):
+    # x1' = x2 + 50 x1^2 from x1(0) = 3 blows up within ~7 ms, whatever the step
+    batch = dscjax.simulate_batch(paper_setup, {
+        "plant.theta": jnp.array([[0.1, 0.0], [50.0, 0.0]]),
+        "plant.x0": jnp.array([[0.08, 0.1], [3.0, 0.1]])}, 2.0, 2e-3, refine=2)
+    assert np.asarray(batch.diverged).tolist() == [False, True]
+    assert np.asarray(batch.refinements).tolist() == [0, 2]
+    assert float(batch.dt[1]) == pytest.approx(1e-3)  # level 2: ETDRK4 at dt / 2
+    assert np.isnan(float(batch.metrics["linf_error"][1]))
+
+
+def test_single_run_is_refined_and_says_so(paper_setup):
+    traj = dscjax.simulate(paper_setup, 2.0, 2e-2, save_every=5)
+    assert not bool(traj.diverged) and int(traj.refinements) >= 1
+    solver, m = dscjax.refinement_level(int(traj.refinements))
+    assert float(traj.dt) == 2e-2 / 2**m
+    np.testing.assert_allclose(np.asarray(traj.t), np.arange(21) * 0.1, atol=1e-12)
+
+
+def jax_leaves(traj):
+    import jax
+
+    return [x for x in jax.tree.leaves(traj) if np.ndim(x) > 0]
