@@ -145,7 +145,7 @@ def _table(v, field):
 def _objective_value(name, v, field):
     if name == "window_start" and isinstance(v, str) and v.lower() == "none":
         return None
-    if name == "u_max":
+    if name in ("u_max", "tv_max"):
         if isinstance(v, str):
             if v.lower() == "none":
                 return None
@@ -159,10 +159,14 @@ def _objective_value(name, v, field):
 def _optimizer_value(name, v, field):
     if name in ("name", "schedule", "gradient"):
         return validation.string(v, field)
+    if name == "background_compile":
+        if not isinstance(v, bool):
+            raise ConfigError(f"{field} must be true or false (got {v!r})")
+        return v
     if name == "decay_steps" and isinstance(v, str) and v.lower() == "none":
         return None
     if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
-                "decay_steps"):
+                "decay_steps", "popsize", "seed", "grad_every", "line_points"):
         return validation.integer(v, field)
     if name in ("clip_norm", "time_limit") and isinstance(v, str) and v.lower() == "none":
         return None

@@ -10,6 +10,7 @@ Per plant (window W = [t0, T], every RK4 step, see `TuningMetrics`):
       + w_effort_max max~|u|  / max|u|(start)
       + w_effort_tv  TV(u)    / TV(u)(start)      total variation: ringing and chattering of u
       + w_u     relu(max~|u| / u_max - 1)^2       hard-ish bound on max|u|
+      + w_tv    relu(TV(u) / tv_max - 1)^2         hard-ish bound on TV(u) = sum_k |u_(k+1) - u_k|
       + sum of requirement penalties (requirements.py)
     J = divergence_penalty                        if the trajectory diverged (finite, no NaN)
 
@@ -46,6 +47,10 @@ from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
+# A bound "start" is the start gains' own figure, computed by another compiled program (the
+# nominal one, not the batched one): rounding may put the start a few ulps over its own bound.
+# Bounds are met within this relative tolerance; the report prints the exact margin.
+BOUND_RTOL = 1e-9
 
 
 class SmoothLinf(eqx.Module):
@@ -155,20 +160,26 @@ class ObjectiveSpec:
     effort_tv: float = 0.0
     u_max: float | str | None = "start"
     u_max_weight: float = 100.0
+    # The deployable default: TV(u) <= tv_max_factor x the start gains' TV(u) on the nominal
+    # plant ("start"), an absolute number, or "none" (the old tracking-only problem).
+    tv_max: float | str | None = "start"
+    tv_max_factor: float = 1.5
+    tv_max_weight: float = 100.0
     sharpness: float = 50.0
     u_sharpness: float = 300.0
     divergence_penalty: float = 1000.0
     window_start: float | None = None
 
     def validate(self, field: str = "tuning.objective") -> None:
-        for name in ("linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max_weight"):
+        for name in ("linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max_weight",
+                     "tv_max_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{field}.{name} must be a number >= 0 (got {v!r})")
         if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
             raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2, "
                               f"effort_max or effort_tv > 0)")
-        for name in ("sharpness", "u_sharpness", "divergence_penalty"):
+        for name in ("sharpness", "u_sharpness", "divergence_penalty", "tv_max_factor"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{field}.{name} must be a number > 0 (got {v!r})")
@@ -177,6 +188,12 @@ class ObjectiveSpec:
                 u, bool) and math.isfinite(u) and u > 0)):
             raise ConfigError(f"{field}.u_max must be a number > 0, \"start\" (the start gains' "
                               f"max|u| on the nominal plant) or \"none\" (got {u!r})")
+        v = self.tv_max
+        if not (v is None or v == "start" or (isinstance(v, int | float) and not isinstance(
+                v, bool) and math.isfinite(v) and v > 0)):
+            raise ConfigError(f"{field}.tv_max must be a number > 0, \"start\" (tv_max_factor "
+                              f"x the start gains' TV(u) on the nominal plant) or \"none\" "
+                              f"(got {v!r})")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -206,6 +223,7 @@ class Scales:
     max_u: float
     u_max: float | None  # the bound on max|u| (None: no bound)
     tv_u: float = 1.0
+    tv_max: float | None = None  # the bound on TV(u) (None: no bound)
 
 
 def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
@@ -246,6 +264,9 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     if scales.u_max is not None and spec.u_max_weight:
         terms["u_bound"] = spec.u_max_weight * jnp.maximum(
             metrics["smooth_max_abs_u"] / scales.u_max - 1.0, 0.0) ** 2
+    if scales.tv_max is not None and spec.tv_max_weight:
+        terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
+            metrics["tv_u"] / scales.tv_max - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     total = sum(terms.values())
@@ -254,6 +275,11 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     # instead of silently seeing a flat penalty (see optimize.py).
     total = jnp.where(diverged, spec.divergence_penalty, total)
     return total, terms
+
+
+def within(value, bound):
+    """value <= bound, up to BOUND_RTOL (relative)."""
+    return value <= bound * (1.0 + BOUND_RTOL)
 
 
 def _max_measured(values: jax.Array, diverged) -> jax.Array:
@@ -286,6 +312,9 @@ def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
     u_max = spec.u_max
     if u_max == "start":
         u_max = m["max_abs_u"]
+    tv_max = spec.tv_max
+    if tv_max == "start":
+        tv_max = spec.tv_max_factor * m["tv_u"]
     for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
                       ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
         if getattr(spec, name) and not m[key] > 0:
@@ -294,7 +323,8 @@ def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
     tiny = 1e-300
     return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
                   l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
-                  u_max=None if u_max is None else float(u_max), tv_u=max(m["tv_u"], tiny))
+                  u_max=None if u_max is None else float(u_max), tv_u=max(m["tv_u"], tiny),
+                  tv_max=None if tv_max is None else float(tv_max))
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -339,7 +369,9 @@ class Objective:
         loss = aggregate(per_plant, self.aggregate, self.cvar_level)
         feasible = ~diverged
         if self.scales.u_max is not None:
-            feasible = feasible & (metrics["max_abs_u"] <= self.scales.u_max)
+            feasible = feasible & within(metrics["max_abs_u"], self.scales.u_max)
+        if self.scales.tv_max is not None:
+            feasible = feasible & within(metrics["tv_u"], self.scales.tv_max)
         for i in range(len(self.requirements)):
             feasible = feasible & (metrics[f"req{i}_met"] > 0)
         aux = {
@@ -349,6 +381,7 @@ class Objective:
             # plant's metrics were not measured), NaN if none did
             "linf_window": _max_measured(metrics["linf_error_window"], diverged),
             "max_abs_u": _max_measured(metrics["max_abs_u"], diverged),
+            "tv_u": _max_measured(metrics["tv_u"], diverged),
             "n_diverged": jnp.sum(jnp.asarray(diverged, jnp.int32)),
             "feasible": jnp.all(feasible),
         }

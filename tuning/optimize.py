@@ -29,7 +29,7 @@ import optax
 from dscjax import validation
 from dscjax.validation import ConfigError
 
-OPTIMIZERS = ("adam", "adamw", "sgd", "lion")
+OPTIMIZERS = ("cma_grad", "adam", "adamw", "sgd", "lion")  # cma_grad: tuning/search.py
 SCHEDULES = ("constant", "cosine", "exponential")
 GRADIENTS = ("auto", "forward", "reverse")
 # One trajectory: reverse mode (the time-parallel linearisation) costs a fixed ~8x the forward
@@ -66,6 +66,17 @@ class OptimizerSpec:
             near sqrt(N) for 20,000 steps, which minimises the O(N/L + L) states kept; it was
             both smaller and faster than 1000 for 256 plants over 20 s, measured).
         save_interval: write the checkpoint files every this many iterations.
+        sigma0, popsize, seed: CMA-ES of "cma_grad" (step in z, population (0: cma's default
+            4 + 3 ln n), seed of its random stream).
+        grad_every: "cma_grad": the line search follows -C grad (exact gradient at the
+            incumbent) every this many generations, a random direction otherwise; 0 switches
+            the gradient off (the ablation: same batch, random directions only, no gradient
+            evaluated or compiled).
+        line_points, line_min, line_max: "cma_grad": the line search's step sizes,
+            sigma sqrt(n) x geomspace(line_min, line_max, line_points); line_points = 0 with
+            grad_every = 0 is plain CMA-ES.
+        background_compile: "cma_grad": compile the gradient in a thread while the first
+            generations run (their line points take random directions meanwhile).
     """
 
     name: str = "adam"
@@ -84,6 +95,14 @@ class OptimizerSpec:
     gradient: str = "auto"
     checkpoint_every: int = 100
     save_interval: int = 10
+    sigma0: float = 0.3
+    popsize: int = 0
+    seed: int = 0
+    grad_every: int = 1
+    line_points: int = 6
+    line_min: float = 0.02
+    line_max: float = 1.0
+    background_compile: bool = True
 
     def validate(self, field: str = "tuning.optimizer") -> None:
         validation.one_of(self.name, f"{field}.name", OPTIMIZERS)
@@ -100,7 +119,8 @@ class OptimizerSpec:
         if not self.regrow >= 1:
             raise ConfigError(f"{field}.regrow must be >= 1 (got {self.regrow!r})")
         for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
-                          ("checkpoint_every", 1), ("save_interval", 1)):
+                          ("checkpoint_every", 1), ("save_interval", 1), ("popsize", 0),
+                          ("seed", 0), ("grad_every", 0), ("line_points", 0)):
             validation.integer(getattr(self, name), f"{field}.{name}", low)
         if self.decay_steps is not None:
             validation.integer(self.decay_steps, f"{field}.decay_steps", 1)
@@ -108,6 +128,11 @@ class OptimizerSpec:
             raise ConfigError(f"{field}.min_delta must be >= 0 (got {self.min_delta!r})")
         if self.time_limit is not None:
             _positive(self.time_limit, f"{field}.time_limit")
+        for name in ("sigma0", "line_min", "line_max"):
+            _positive(getattr(self, name), f"{field}.{name}")
+        if self.line_min > self.line_max:
+            raise ConfigError(f"{field}.line_min must be <= line_max (got {self.line_min!r} > "
+                              f"{self.line_max!r})")
 
     def schedule_fn(self):
         lr, steps = self.learning_rate, self.decay_steps or self.steps

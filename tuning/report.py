@@ -13,6 +13,7 @@ import numpy as np
 from dscjax import files, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
+from tuning.objective import BOUND_RTOL
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -69,6 +70,52 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
     return rows
 
 
+def constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
+    """The bounds of the problem checked exactly on one plant's metrics `m` (max_abs_u, tv_u:
+    every RK4 step, TV = sum_k |u_(k+1) - u_k|): name, value, bound, margin = bound - value
+    and met (value <= bound within BOUND_RTOL = 1e-9 relative: a bound taken from the start
+    gains may sit a few ulps under the start's own figure in another compiled program). A
+    diverged plant meets nothing (its metrics were not measured)."""
+    rows = []
+    diverged = bool(np.asarray(m.get("diverged", False)))
+    for name, key, bound in (("max|u|", "max_abs_u", scales.u_max),
+                             ("TV(u)", "tv_u", scales.tv_max)):
+        if bound is None:
+            continue
+        value = float(np.asarray(m[key]))
+        margin = float(bound) - value
+        rows.append({"name": name, "value": value, "bound": float(bound), "margin": margin,
+                     "relative_margin": margin / float(bound),
+                     "met": bool(not diverged and np.isfinite(value)
+                                 and value <= float(bound) * (1 + BOUND_RTOL))})
+    return rows
+
+
+def problem_sentence(problem) -> str:
+    """The problem in one sentence (report.md's first line)."""
+    cfg, sc, sim = problem.cfg, problem.objective.scales, problem.objective.sim
+    what = {"linf": "the L-inf tracking error", "l2": "the L2 tracking error",
+            "effort_l2": "L2(u)", "effort_max": "max|u|", "effort_tv": "TV(u)"}
+    terms = [what[k] for k in what if getattr(cfg.objective, k)]
+    where = ("the nominal plant" if not cfg.robust.batch else
+             f"the {cfg.robust.aggregate}"
+             + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
+             + f" over {cfg.robust.batch} training plants")
+    cons = []
+    if sc.u_max is not None:
+        cons.append(f"max|u| <= {sc.u_max:.4g}"
+                    + (" (the start gains')" if cfg.objective.u_max == "start" else ""))
+    if sc.tv_max is not None:
+        cons.append(f"TV(u) <= {sc.tv_max:.4g}"
+                    + (f" ({cfg.objective.tv_max_factor:g} x the start gains')"
+                       if cfg.objective.tv_max == "start" else ""))
+    return (f"Minimise {' + '.join(terms)} on [{sim.window_start:g}, {sim.t_final:g}] s over "
+            f"{problem.n_params} design numbers on {where}"
+            + (f", subject to {' and '.join(cons)} on "
+               + ("the nominal plant" if not cfg.robust.batch else "every training plant")
+               if cons else ", unconstrained") + ".")
+
+
 def trajectories(problem, z0, z1, save_every: int = 10):
     from dscjax.simulate import simulate
 
@@ -98,6 +145,10 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": problem.objective.scales.u_max,
+        "bound_tv_u": problem.objective.scales.tv_max,
+        "problem": problem_sentence(problem),
+        "constraints": {tag: constraint_checks(problem.objective.scales, ev["nominal"][tag])
+                        for tag in ("start", "tuned")},
         "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
                          for tag in ("start", "tuned")},
         "run": {
@@ -108,6 +159,12 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             "best_feasible": bool(result.state.best_feasible),
             "wall_s": result.wall_s, "compile_s": result.compile_s,
             "wall_total_s": None, "gradient": problem.mode,
+            "method": problem.cfg.optimizer.name,
+            "evaluations": (result.evaluations if result.evaluations is not None
+                            else int(result.state.iteration)),
+            "gradient_evaluations": (result.gradient_evaluations
+                                     if result.gradient_evaluations is not None
+                                     else int(result.state.iteration)),
             "n_params": problem.n_params,
         },
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
@@ -178,14 +235,13 @@ def _markdown(s: dict, problem, figures) -> str:
     run = s["run"]
     nom = s["nominal"]
     cfg = problem.cfg
-    lines = ["# dscjax tune: report", ""]
+    lines = ["# dscjax tune: report", "", f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
-        f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}), "
-        f"{run['gradient']}-mode exact gradients, {cfg.optimizer.name} "
-        f"(lr {cfg.optimizer.learning_rate:g}, {cfg.optimizer.schedule}).",
+        f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
+        f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
         "Objective per plant: " + ", ".join(
             f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
                                                           "effort_max", "effort_tv")
@@ -196,7 +252,8 @@ def _markdown(s: dict, problem, figures) -> str:
            + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
            + ")" if cfg.robust.batch else "; nominal plant only") + ".",
         "",
-        f"Run: {run['iterations']} iterations"
+        f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
+        f"of which {run['gradient_evaluations']} with an exact gradient"
         + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
         + f", {run['rejected']} rejected; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
@@ -217,11 +274,15 @@ def _markdown(s: dict, problem, figures) -> str:
         lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
     lines.append(f"| diverged | {bool(nom['start']['diverged'])} | "
                  f"{bool(nom['tuned']['diverged'])} | |")
-    if s["bound_max_abs_u"]:
-        ok = nom["tuned"]["max_abs_u"] <= s["bound_max_abs_u"]
-        lines += ["", f"Bound max|u| <= {s['bound_max_abs_u']:.6g}: "
-                  f"**{'met' if ok else 'violated'}** by the tuned gains "
-                  f"(max|u| = {nom['tuned']['max_abs_u']:.6g})."]
+    if s["constraints"]["tuned"]:
+        lines += ["", "## Constraints (nominal plant, checked exactly on every RK4 step)", "",
+                  "| constraint | bound | start | tuned | margin (bound - tuned) | tuned |",
+                  "|---|---|---|---|---|---|"]
+        for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"], strict=True):
+            lines.append(f"| {_md(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
+                         f"{b['value']:.6g} | {b['margin']:.4g} "
+                         f"({100 * b['relative_margin']:.2f} %) | "
+                         f"**{'met' if b['met'] else 'violated'}** |")
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
                   "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]
@@ -261,6 +322,19 @@ def _markdown(s: dict, problem, figures) -> str:
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def method_sentence(opt, mode: str) -> str:
+    if opt.name == "cma_grad":
+        grad = ("off (ablation: CMA-ES alone)" if opt.grad_every == 0 else
+                f"{mode}-mode exact gradient at the best point every {opt.grad_every} "
+                f"generation(s), {opt.line_points} step sizes along -C grad evaluated in the "
+                f"same batch, the best injected")
+        return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
+                f"{opt.popsize or 'default'}, one batched simulation per generation) with "
+                f"gradient line search: {grad}.")
+    return (f"{mode}-mode exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
+            f"{opt.schedule}).")
 
 
 def _fmt_val(v):
@@ -314,7 +388,7 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
-    fig, ax = subplots(3, 1, figsize=(10, 8.5), layout="constrained")
+    fig, ax = subplots(4, 1, figsize=(10, 11), layout="constrained")
     for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
@@ -324,6 +398,9 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
         ax[0].plot(t, e, color=color, lw=0.9, label=label)
         win = t >= sim.window_start
         ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
+        tv = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(u)))])
+        ax[3].plot(t, tv, color=color, lw=1.2,
+                   label=f"{tag} (TV(u) on every step {float(tr.metrics['tv_u']):.4g})")
         ax[2].plot(t, u, color="#2ca02c" if tag == "tuned" else color, lw=0.9,
                    label=f"{tag} (max|u| {float(tr.metrics['max_abs_u']):.3g})")
     if problem.objective.scales.u_max:
@@ -335,7 +412,13 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     ax[1].set_title(f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
     ax[2].set_ylabel("u [-]")
     ax[2].set_title("control input (dotted: the bound on max|u|)")
-    ax[2].set_xlabel("time t [s]")
+    if problem.objective.scales.tv_max:
+        ax[3].axhline(problem.objective.scales.tv_max, color="k", ls=":", lw=0.8,
+                      label=f"bound on TV(u) ({problem.objective.scales.tv_max:.4g})")
+    ax[3].set_ylabel("sum |du| [-]")
+    ax[3].set_title("total variation of u up to t (curves: on the saved grid, a lower bound; "
+                    "labels: exact)")
+    ax[3].set_xlabel("time t [s]")
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="upper right", fontsize=8)

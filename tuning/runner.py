@@ -179,6 +179,9 @@ class Result:
     wall_s: float  # this invocation
     compile_s: float
     resumed_from: int
+    method: str = "optax"
+    evaluations: int | None = None  # loss evaluations (None: one per iteration)
+    gradient_evaluations: int | None = None
 
     @property
     def best_z(self):
@@ -201,6 +204,8 @@ def _term_names(problem):
              if getattr(spec, n)]
     if obj.scales.u_max is not None and spec.u_max_weight:
         names.append("u_bound")
+    if obj.scales.tv_max is not None and spec.tv_max_weight:
+        names.append("tv_bound")
     names += [f"req{i}" for i in range(len(obj.requirements))]
     return names
 
@@ -238,6 +243,9 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
         progress: called with each iteration's row (dict) for a progress display.
         step_hook: test hook, (state, report) -> report, applied to every report on the host.
     """
+    if problem.cfg.optimizer.name == "cma_grad":
+        return _run_search(problem, None if out_dir is None else Path(out_dir), resume,
+                           overwrite, progress)
     loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite)
     try:
         while (reason := loop.limit_reached()) is None:
@@ -258,6 +266,56 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
                   wall_s=time.perf_counter() - loop.t_start, compile_s=loop.compile_s,
                   resumed_from=loop.resumed_from)
+
+
+def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: bool,
+                progress) -> Result:
+    """The cma_grad loop (tuning/search.py) under the same stopping rules and files."""
+    from tuning.search import STATE_FILE, Search
+
+    t_start = time.perf_counter()
+    if out is not None:
+        _prepare_dir(out, resume, overwrite)
+        if overwrite:
+            (out / STATE_FILE).unlink(missing_ok=True)
+    loop = Search.open(problem, out, resume, t_start)
+    spec = loop.spec
+    loop.compile()
+    reason = None
+    try:
+        while True:
+            elapsed = time.perf_counter() - t_start
+            if loop.state.iteration >= spec.steps:
+                reason = f"reached {spec.steps} generations"
+                break
+            if spec.time_limit is not None and elapsed + loop.last_iter_s > spec.time_limit:
+                reason = f"time limit {spec.time_limit:g} s"
+                break
+            row = loop.generation()
+            if progress is not None:
+                progress(row | {"steps": spec.steps, "terms": _term_names(problem),
+                                "n_rejected": 0})
+            if loop.state.iteration % spec.save_interval == 0:
+                loop.save()
+            if spec.patience and loop.state.stall >= spec.patience:
+                reason = (f"no improvement of the best loss by more than {spec.min_delta:g} "
+                          f"(relative) in {spec.patience} generations")
+                break
+            if loop.state.es.stop():
+                reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
+                break
+    except KeyboardInterrupt:
+        loop.save(stop_reason="interrupted")
+        raise
+    loop.save(stop_reason=reason)
+    if not np.isfinite(loop.state.best_loss):
+        raise ConfigError("no generation produced a finite loss: the start point is not usable "
+                          "(see the divergence report of `dscjax simulate`)")
+    return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
+                  wall_s=time.perf_counter() - t_start, compile_s=loop.compile_s,
+                  resumed_from=loop.resumed_from, method="cma_grad",
+                  evaluations=loop.state.evaluations,
+                  gradient_evaluations=loop.state.gradient_evaluations)
 
 
 @dataclasses.dataclass

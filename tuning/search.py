@@ -1,0 +1,376 @@
+"""CMA-ES with gradient line searches ("cma_grad"): a population method that the exact
+gradient steers, one batched simulation per generation.
+
+Every generation:
+
+1. CMA-ES (the `cma` package, in the tuner's coordinates z) asks for its population.
+2. Gradient component (every `grad_every` generations; 0 switches it off, the ablation): the
+   exact gradient g of the loss at the incumbent (the best point so far, feasible first) in
+   the AD mode of the problem, and `line_points` candidates x_best + a_j d along the
+   direction d = -C g / sqrt(g' C g) preconditioned by CMA-ES's own covariance C (the metric
+   CMA-ES has learnt; unit Mahalanobis length), with step sizes a_j = sigma sqrt(n) x
+   geomspace(line_min, line_max): a line search whose points are simulated in the same batch
+   as the population, so it costs about one extra slice of the batch, not one run each.
+3. The population and the line points: ONE batched simulation (`batch_fn`).
+4. CMA-ES is told its population; the best line point, when it beats the incumbent, is
+   injected into the next generation (so CMA-ES moves its mean towards it).
+
+Why this shape (measured, docs/tuning.md): one exact gradient costs about as much as one
+CMA-ES generation, and on this kinked landscape (sat, |u'|, the running max, two active
+constraints) a plain gradient step often raises the loss a short way off; evaluating many step
+sizes at once and keeping the best makes the gradient's information safe to use, and CMA-ES
+keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
+
+State (`SearchState`) is the CMA-ES object with its own random stream, the incumbent and the
+counters; it is pickled to `search.pkl` beside checkpoint.json, so a resumed run continues
+exactly where it stopped.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import pickle
+import time
+from pathlib import Path
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from dscjax import files, params
+from tuning import checkpoint as ck
+from tuning.objective import aggregate, plant_loss, simulate_metrics, within
+from tuning.optimize import value_and_grad
+
+STATE_FILE = "search.pkl"
+
+
+def batch_fn(problem):
+    """Jitted (B, n) flat z -> per-candidate loss, feasibility, exact figures and terms: the
+    same loss as the gradient method's (J of the nominal plant or the aggregate over the
+    training batch), every candidate (x every training plant) as one batched simulation."""
+    obj = problem.objective
+    _, unravel = ravel_pytree(problem.z0)
+    columns = obj.selection.columns(obj.setup)
+    train = obj.overrides or {}
+    n_train = obj.batch_size if train else 1
+    sc = obj.scales
+
+    @jax.jit
+    def run(flat_pts):
+        table = jax.vmap(lambda p: obj.selection.row(unravel(p)))(flat_pts)
+        b = flat_pts.shape[0]
+        ov = params.overrides(obj.setup, columns, table)
+        if train:
+            ov = {p: jnp.repeat(v, n_train, axis=0) for p, v in ov.items()}
+            ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
+                   for p, v in train.items()}
+        m, div = simulate_metrics(obj.setup, obj.sim, obj.extra(), ov)
+        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements))
+        feas = ~div
+        if sc.u_max is not None:
+            feas = feas & within(m["max_abs_u"], sc.u_max)
+        if sc.tv_max is not None:
+            feas = feas & within(m["tv_u"], sc.tv_max)
+        for i in range(len(obj.requirements)):
+            feas = feas & (m[f"req{i}_met"] > 0)
+
+        def per(v, how):
+            v = v.reshape(b, n_train)
+            return jax.vmap(lambda r: aggregate(r, how, obj.cvar_level))(v) if train \
+                else v[:, 0]
+
+        def worst(v):  # max over the plants that did not diverge (NaN: none)
+            v = jnp.where(div, -jnp.inf, v).reshape(b, n_train).max(axis=1)
+            return jnp.where(jnp.isfinite(v), v, jnp.nan)
+
+        return {"loss": per(loss, obj.aggregate),
+                "feasible": feas.reshape(b, n_train).all(axis=1),
+                "n_diverged": div.reshape(b, n_train).sum(axis=1),
+                "linf_window": worst(m["linf_error_window"]),
+                "max_abs_u": worst(m["max_abs_u"]), "tv_u": worst(m["tv_u"]),
+                "terms": {k: per(jnp.where(div, 0.0, v), obj.aggregate)
+                          for k, v in terms.items()}}
+
+    return run
+
+
+def grad_fn(problem):
+    """Jitted flat z -> (loss, feasible, flat gradient), exact, in the problem's AD mode."""
+    obj = problem.objective
+    _, unravel = ravel_pytree(problem.z0)
+
+    @jax.jit
+    def run(flat):
+        (loss, aux), g = value_and_grad(obj, unravel(flat), problem.mode,
+                                        obj.sim.checkpoint_every)
+        return loss, aux["feasible"], ravel_pytree(g)[0]
+
+    return run
+
+
+def z_box(problem) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = [], []
+    for t in problem.objective.selection.items:
+        size = int(np.size(problem.z0[t.name]))
+        a, b = t.z_bounds()
+        lo += [a] * size
+        hi += [b] * size
+    return np.asarray(lo, float), np.asarray(hi, float)
+
+
+def better(feas_a, loss_a, feas_b, loss_b) -> bool:
+    """Is (feas_a, loss_a) better than (feas_b, loss_b)? Feasible first, then loss."""
+    if not np.isfinite(loss_a):
+        return False
+    return bool((feas_a and not feas_b) or (feas_a == feas_b and loss_a < loss_b))
+
+
+@dataclasses.dataclass
+class SearchState:
+    """What the loop carries; the report reads the same names as a `TuneState`'s."""
+
+    es: Any  # cma.CMAEvolutionStrategy (its random stream inside: opts["randn"])
+    best_flat: np.ndarray  # (n,) incumbent in flat z
+    best_loss: float = math.inf
+    best_feasible: bool = False
+    best_iteration: int = -1
+    iteration: int = 0  # generations done
+    evaluations: int = 0  # loss evaluations (candidates), the gradient's own included
+    gradient_evaluations: int = 0
+    line_wins: int = 0  # generations whose best line point beat the incumbent
+    first_grad: int = -1  # generation of the first gradient (-1: none yet)
+    start_loss: float = math.nan  # the loss at the start point
+    rng: Any = None  # np.random.Generator of the random line directions
+    stall: int = 0
+    n_rejected: int = 0  # (no steps are rejected; kept for the report)
+    unravel: Any = None
+
+    @property
+    def best_z(self):
+        return jax.tree.map(np.asarray, self.unravel(jnp.asarray(self.best_flat)))
+
+
+def new_state(problem, spec) -> SearchState:
+    from tuning.baselines import require_cma
+
+    cma = require_cma()
+    flat0, unravel = ravel_pytree(problem.z0)
+    flat0 = np.asarray(flat0, float)
+    lo, hi = z_box(problem)
+    opts = {"seed": spec.seed + 1, "verbose": -9,
+            "randn": np.random.RandomState(spec.seed + 1).randn,
+            "bounds": [[x if np.isfinite(x) else None for x in lo],
+                       [x if np.isfinite(x) else None for x in hi]]}
+    if spec.popsize:
+        opts["popsize"] = spec.popsize
+    es = cma.CMAEvolutionStrategy(flat0, spec.sigma0, opts)
+    return SearchState(es=es, best_flat=flat0, unravel=unravel,
+                       rng=np.random.default_rng(spec.seed + 2))
+
+
+@dataclasses.dataclass
+class Search:
+    """One invocation of the cma_grad loop (the counterpart of runner._Loop)."""
+
+    problem: Any
+    spec: Any  # OptimizerSpec
+    state: SearchState
+    history: list[dict]
+    out: Path | None
+    t_start: float
+    elapsed_before: float = 0.0
+    resumed_from: int = 0
+    compile_s: float = 0.0
+    last_iter_s: float = 0.0
+    batch: Any = None
+    grad: Any = None
+
+    def __post_init__(self):
+        self.batch = batch_fn(self.problem)
+        self.grad = grad_fn(self.problem) if self.spec.grad_every and self.spec.line_points \
+            else None
+        self.lo, self.hi = z_box(self.problem)
+        n = self.state.best_flat.size
+        self.steps = math.sqrt(n) * np.geomspace(self.spec.line_min, self.spec.line_max,
+                                                 self.spec.line_points) \
+            if self.spec.line_points else np.zeros(0)
+
+    @property
+    def width(self) -> int:
+        return self.state.es.popsize + self.steps.size
+
+    def compile(self) -> None:
+        """Compile the batched simulation now and the gradient now or, with
+        `background_compile`, in a thread while the first generations run (their line
+        points then take random directions, as in the ablation). Both count in wall time.
+        Compiled programs are kept in the objective's cache (`Objective.compiled`), so that a
+        run resumed in the same process does not compile again."""
+        t0 = time.perf_counter()
+        cache = self.problem.objective.compiled
+        key = ("cma_grad batch", self.width)
+        if key not in cache:
+            x = jnp.asarray(np.tile(self.state.best_flat, (self.width, 1)))
+            cache[key] = self.batch.lower(x).compile()
+        self.batch = cache[key]
+        if self.grad is not None:
+            key = ("cma_grad gradient", self.problem.mode)
+            if key in cache:
+                self.grad = cache[key]
+            elif self.spec.background_compile and self.state.first_grad < 0:
+                # (A resumed run that already used the gradient compiles it at once, so that
+                # it continues exactly as the uninterrupted run did.)
+                import concurrent.futures
+
+                lowered = self.grad.lower(jnp.asarray(self.state.best_flat))
+                self._pool = concurrent.futures.ThreadPoolExecutor(1)
+                self.grad = self._pool.submit(lowered.compile)
+            else:
+                cache[key] = self.grad.lower(jnp.asarray(self.state.best_flat)).compile()
+                self.grad = cache[key]
+        self.compile_s = time.perf_counter() - t0
+
+    def _gradient(self):
+        """The compiled gradient, or None while it is still compiling."""
+        g = self.grad
+        if g is None:
+            return None
+        if hasattr(g, "done"):
+            if not g.done():
+                return None
+            self.grad = g = g.result()
+            self.problem.objective.compiled[("cma_grad gradient", self.problem.mode)] = g
+            self._pool.shutdown()
+        return g
+
+    def generation(self) -> dict:
+        st, es, spec = self.state, self.state.es, self.spec
+        t_it = time.perf_counter()
+        if st.iteration == 0 and st.evaluations == 0:
+            # The start point is part of every method's history: evaluated once, padded to
+            # the batch width so that no other program is compiled.
+            res = self._eval(np.tile(st.best_flat, (self.width, 1)), 1)
+            st.start_loss = float(res[0][0])
+            self._take(st.best_flat[None, :], *res)
+        pop = np.asarray(es.ask())
+        pts = [pop]
+        base = st.best_flat
+        grad_norm = float("nan")
+        if self.steps.size:
+            cov = es.sm.covariance_matrix
+            d = None
+            grad = self._gradient() if st.iteration % max(spec.grad_every, 1) == 0 else None
+            if grad is not None:
+                if st.first_grad < 0:
+                    st.first_grad = st.iteration
+                _, _, g = grad(jnp.asarray(base))
+                g = np.asarray(g, float)
+                st.gradient_evaluations += 1
+                st.evaluations += 1
+                grad_norm = float(np.linalg.norm(g))
+                cg = cov @ g
+                scale = math.sqrt(max(float(g @ cg), 0.0))
+                if np.all(np.isfinite(g)) and scale > 0:  # never a non-finite direction
+                    d = -cg / scale
+            if d is None:  # no gradient (off, compiling, skipped): a random direction of
+                # unit Mahalanobis length under CMA-ES's covariance
+                xi = st.rng.standard_normal(base.size)
+                d = np.linalg.cholesky(cov + 1e-300 * np.eye(base.size)) @ (
+                    xi / np.linalg.norm(xi))
+            line = base[None, :] + es.sigma * self.steps[:, None] * d[None, :]
+            pts.append(np.clip(line, self.lo, self.hi))
+        x = np.concatenate(pts)
+        res = self._eval(x, x.shape[0])
+        loss = res[0]
+        k = pop.shape[0]
+        es.tell(list(pop), list(np.where(np.isfinite(loss[:k]), loss[:k], 1e30)))
+        improved = self._take(x, *res)
+        if self.steps.size and improved and improved[0] >= k:
+            st.line_wins += 1
+            es.inject([st.best_flat])
+        i = int(np.argmin(np.where(np.isfinite(loss), loss, np.inf)))
+        terms = {name: float(v[i]) for name, v in res[-1].items()}
+        st.iteration += 1
+        st.stall = 0 if improved else st.stall + 1
+        self.last_iter_s = time.perf_counter() - t_it
+        row = {"iteration": st.iteration - 1, "loss": float(loss[i]), "accepted": True,
+               "feasible": bool(res[1][i]), "best_loss": st.best_loss, "lr": float(es.sigma),
+               "grad_norm": grad_norm, "linf_window": float(res[3][i]),
+               "max_abs_u": float(res[4][i]), "n_diverged": int(res[2][i]), **terms,
+               "wall_s": self.elapsed_before + time.perf_counter() - self.t_start,
+               "best_iteration": st.best_iteration}
+        self.history.append(row)
+        return row
+
+    def _eval(self, x, n_used):
+        r = jax.device_get(self.batch(jnp.asarray(x)))
+        self.state.evaluations += n_used
+        return (np.asarray(r["loss"], float)[:n_used], np.asarray(r["feasible"])[:n_used],
+                np.asarray(r["n_diverged"])[:n_used], np.asarray(r["linf_window"])[:n_used],
+                np.asarray(r["max_abs_u"])[:n_used],
+                {k: np.asarray(v)[:n_used] for k, v in r["terms"].items()})
+
+    def _take(self, x, loss, feas, *_):
+        """Replace the incumbent by the best of x if better; returns [index] or []."""
+        st = self.state
+        best = None
+        for i in range(loss.shape[0]):
+            cur = (st.best_feasible, st.best_loss) if best is None else (feas[best],
+                                                                           loss[best])
+            if better(bool(feas[i]), float(loss[i]), bool(cur[0]), float(cur[1])):
+                best = i
+        if best is None:
+            return []
+        margin = self.spec.min_delta * abs(st.best_loss) if np.isfinite(st.best_loss) else 0
+        real = (bool(feas[best]) and not st.best_feasible) or loss[best] < st.best_loss - margin
+        st.best_flat = np.array(x[best], float)
+        st.best_loss, st.best_feasible = float(loss[best]), bool(feas[best])
+        st.best_iteration = st.iteration
+        return [best] if real else []
+
+    # -- files -----------------------------------------------------------------------------
+    def save(self, stop_reason: str | None = None) -> None:
+        from tuning.runner import _write_best, history_columns
+
+        if self.out is None:
+            return
+        st = self.state
+        blob = pickle.dumps({k: v for k, v in dataclasses.asdict(st).items()
+                             if k not in ("es", "unravel")} | {"es": st.es})
+        files.atomic_write(self.out / STATE_FILE, blob)
+        _write_best(self.out, self.problem, st)
+        ck.write_history(self.out / "history.csv", self.history,
+                         history_columns(self.problem))
+        desc = self.problem.describe()
+        files.write_json(self.out / "checkpoint.json", {
+            "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
+            "iteration": st.iteration, "best_loss": st.best_loss,
+            "best_iteration": st.best_iteration, "best_feasible": st.best_feasible,
+            "evaluations": st.evaluations, "gradient_evaluations": st.gradient_evaluations,
+            "elapsed_total_s": self.elapsed_before + time.perf_counter() - self.t_start,
+            "stop_reason": stop_reason, "state": {"kind": "cma_grad", "file": STATE_FILE},
+            "problem": desc})
+
+    @classmethod
+    def open(cls, problem, out: Path | None, resume: bool, t_start: float) -> Search:
+        spec = problem.cfg.optimizer
+        state = new_state(problem, spec)
+        history: list[dict] = []
+        elapsed = 0.0
+        resumed = 0
+        if resume:
+            meta = files.read_json(out / "checkpoint.json")
+            files.check_same(meta.get("problem"), problem.describe(),
+                             where=f"the checkpoint in {out}",
+                             fix="start afresh with --overwrite or another --out")
+            saved = pickle.loads((out / STATE_FILE).read_bytes())
+            state = SearchState(unravel=state.unravel, **saved)
+            history = [r for r in ck.read_history(out / "history.csv")
+                       if r["iteration"] < state.iteration]
+            elapsed = float(meta.get("elapsed_total_s", 0.0))
+            resumed = state.iteration
+        return cls(problem, spec, state, history, out, t_start, elapsed, resumed)
+
