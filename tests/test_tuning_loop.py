@@ -28,6 +28,7 @@ t_final = 2.0
 params = ["controller.k"]
 
 [tuning.optimizer]
+name = "adam"
 steps = 5
 learning_rate = 0.1
 save_interval = 2
@@ -92,7 +93,7 @@ def test_existing_run_needs_resume_or_overwrite(cli_run, capsys):
 def small_problem():
     cfg = tuning.TuningConfig(
         params=("controller.k",),
-        optimizer=tuning.OptimizerSpec(steps=4, learning_rate=0.1, save_interval=2,
+        optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1, save_interval=2,
                                        decay_steps=20),
         heldout=tuning.BatchSpec(batch=0))
     return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=2.0), cfg)

@@ -325,6 +325,10 @@ def _markdown(s: dict, problem, figures) -> str:
 
 
 def method_sentence(opt, mode: str) -> str:
+    if opt.name == "cma":
+        return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
+                f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "
+                f"simulation per generation; no gradient).")
     if opt.name == "cma_grad":
         grad = ("off (ablation: CMA-ES alone)" if opt.grad_every == 0 else
                 f"{mode}-mode exact gradient at the best point every {opt.grad_every} "

@@ -33,7 +33,7 @@ from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
 from tuning.objective import Objective, SimSpec, start_scales
-from tuning.optimize import choose_gradient, init_state, make_step
+from tuning.optimize import SEARCHES, choose_gradient, init_state, make_step
 from tuning.params import Selection
 from tuning.requirements import KINDS
 
@@ -243,7 +243,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
         progress: called with each iteration's row (dict) for a progress display.
         step_hook: test hook, (state, report) -> report, applied to every report on the host.
     """
-    if problem.cfg.optimizer.name == "cma_grad":
+    if problem.cfg.optimizer.name in SEARCHES:
         return _run_search(problem, None if out_dir is None else Path(out_dir), resume,
                            overwrite, progress)
     loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite)
@@ -270,7 +270,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
 
 def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: bool,
                 progress) -> Result:
-    """The cma_grad loop (tuning/search.py) under the same stopping rules and files."""
+    """The cma / cma_grad loop (tuning/search.py) under the same stopping rules and files."""
     from tuning.search import STATE_FILE, Search
 
     t_start = time.perf_counter()
@@ -313,7 +313,7 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
                           "(see the divergence report of `dscjax simulate`)")
     return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
                   wall_s=time.perf_counter() - t_start, compile_s=loop.compile_s,
-                  resumed_from=loop.resumed_from, method="cma_grad",
+                  resumed_from=loop.resumed_from, method=spec.name,
                   evaluations=loop.state.evaluations,
                   gradient_evaluations=loop.state.gradient_evaluations)
 
@@ -436,6 +436,7 @@ class _Loop:
             **{k: float(rep["terms"][k]) for k in self.terms},
             "wall_s": self.elapsed_before + time.perf_counter() - self.t_start,
             "best_iteration": int(state.best_iteration),
+            "best_feasible": bool(state.best_feasible),
         }
 
     # -- files --------------------------------------------------------------------------------

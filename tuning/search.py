@@ -1,5 +1,8 @@
-"""CMA-ES with gradient line searches ("cma_grad"): a population method that the exact
-gradient steers, one batched simulation per generation.
+"""CMA-ES ("cma", the default of `dscjax tune`) and CMA-ES with exact-gradient line
+searches ("cma_grad"), one batched simulation per generation.
+
+"cma" is step 1 and 3 below alone: the `cma` package's CMA-ES in the tuner's coordinates z,
+the population simulated as one batch, the best point ranked feasible first, then by loss.
 
 Every generation:
 
@@ -191,13 +194,12 @@ class Search:
 
     def __post_init__(self):
         self.batch = batch_fn(self.problem)
-        self.grad = grad_fn(self.problem) if self.spec.grad_every and self.spec.line_points \
-            else None
+        points = self.spec.line_points if self.spec.name == "cma_grad" else 0  # cma: none
+        self.grad = grad_fn(self.problem) if self.spec.grad_every and points else None
         self.lo, self.hi = z_box(self.problem)
         n = self.state.best_flat.size
         self.steps = math.sqrt(n) * np.geomspace(self.spec.line_min, self.spec.line_max,
-                                                 self.spec.line_points) \
-            if self.spec.line_points else np.zeros(0)
+                                                 points) if points else np.zeros(0)
 
     @property
     def width(self) -> int:
@@ -301,7 +303,7 @@ class Search:
                "grad_norm": grad_norm, "linf_window": float(res[3][i]),
                "max_abs_u": float(res[4][i]), "n_diverged": int(res[2][i]), **terms,
                "wall_s": self.elapsed_before + time.perf_counter() - self.t_start,
-               "best_iteration": st.best_iteration}
+               "best_iteration": st.best_iteration, "best_feasible": st.best_feasible}
         self.history.append(row)
         return row
 

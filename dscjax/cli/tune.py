@@ -1,4 +1,5 @@
-"""`dscjax tune`: tune controller gains by gradient descent through the closed loop.
+"""`dscjax tune`: tune controller gains through the closed loop (CMA-ES by default, or
+exact gradients).
 
 Writes into DIR: gains.json (the tuned closed loop as a config: `dscjax simulate --config
 DIR/gains.json` loads it), history.csv (one row per iteration), report.md and report.json
@@ -19,16 +20,17 @@ def add_parser(sub):
     from dscjax.cli.common import add_example_arg, add_horizon_args
     from tuning.config import TuningConfig
     from tuning.objective import AGGREGATES
-    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS
+    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS, OPTIMIZERS
 
     d = TuningConfig()
     opt, rob = d.optimizer, d.robust
     p = sub.add_parser(
-        "tune", help="tune the controller gains by gradient descent (exact gradients, optax)",
+        "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
         "starting from the paper's gains) to minimise the L-inf tracking error on [t0, T] "
-        "with max|u| kept at or below the start gains' max|u|, using exact gradients through "
-        "the RK4 closed loop and Adam. Settings come from a [tuning] table in the config (see "
+        "with max|u| kept at or below the start gains' max|u| and TV(u) at or below 1.5x "
+        "the start gains' TV(u), by CMA-ES (default) or exact gradients through the RK4 "
+        "closed loop. Settings come from a [tuning] table in the config (see "
         "docs/tuning.md); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
@@ -43,6 +45,10 @@ def add_parser(sub):
                    f"(default {opt.steps})")
     p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
+    p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
+                   "CMA-ES, the fastest at equal wall time as measured, docs/tuning.md; "
+                   "cma_grad adds exact-gradient line searches; adam ... are optax rules "
+                   "with exact gradients)")
     p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
@@ -127,6 +133,8 @@ def load(args):
         opt["learning_rate"] = args.lr
     if args.gradient:
         opt["gradient"] = args.gradient
+    if args.method:
+        opt["name"] = args.method
     for name in ("batch", "aggregate", "cvar_level", "seed"):
         value = getattr(args, name)
         if value is not None:
@@ -173,9 +181,14 @@ def run(args) -> int:
     prepare_out(out)
     problem = build_problem(setup, options, cfg)
     oc = cfg.optimizer
+    from tuning.optimize import SEARCHES
+
+    how = (f"{oc.name} (sigma0 {oc.sigma0:g})" + (f", {problem.mode}-mode gradients"
+                                                    if oc.name == "cma_grad" else "")
+           if oc.name in SEARCHES else
+           f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} ({oc.schedule})")
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-          f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} "
-          f"({oc.schedule}); T={options.t_final:g} s, dt={options.dt:g} s, window "
+          f"{how}; T={options.t_final:g} s, dt={options.dt:g} s, window "
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
@@ -187,7 +200,8 @@ def run(args) -> int:
         print(f"dscjax tune: warning: {w}", file=sys.stderr)
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
-          + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
+          + (f" (bound {sc.u_max:.4g})" if sc.u_max else "") + f", TV(u) {sc.tv_u:.4g}"
+          + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else ""), file=sys.stderr)
     bar = None
 
     def progress(row):
@@ -213,7 +227,11 @@ def run(args) -> int:
     a, b = n0["linf_error_window"], n1["linf_error_window"]
     print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
           f"{options.t_final:g}] s {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower), max|u| "
-          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}")
+          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}, TV(u) {n0['tv_u']:.4g} -> "
+          f"{n1['tv_u']:.4g}")
+    for c in summary["constraints"]["tuned"]:
+        print(f"  constraint {c['name']} <= {c['bound']:.6g}: {'met' if c['met'] else 'VIOLATED'}"
+              f" (tuned {c['value']:.6g}, margin {c['margin']:.4g})")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         if h0["linf_error_window"] and h1["linf_error_window"]:
