@@ -1,136 +1,264 @@
-"""Gradient tuning against CMA-ES and random search at equal wall-clock budget.
+"""Tuning methods at equal wall time on the deployable problem, with an ablation of the
+gradient: what do the exact gradients add?
 
-    python experiments/tune_compare.py            # 2 problems x 3 methods x 100 s, T = 20 s
-    python experiments/tune_compare.py --quick    # T = 5 s, 20 s budget each
+    python experiments/tune_compare.py                 # 2 problems x 5 methods x 100 s, T = 20 s
+    python experiments/tune_compare.py --quick         # T = 5 s, 30 s each, 32 held-out plants
+    python experiments/tune_compare.py --rounds 3      # medians over 3 interleaved rounds
 
-Problems (both: the paper's example, the default tuned set, the default objective = smooth
-L-inf error on [1 s, T] with max|u| <= the start gains' max|u|, start = the paper's gains):
+Problems (the paper's example, the default tuned set and objective: smooth L-inf error on
+[1 s, T] subject to max|u| <= the start gains' and TV(u) <= 1.5 x the start gains', start =
+the paper's gains):
   nominal  the nominal plant (what `dscjax tune` does by default)
-  robust   CVaR at level 0.25 over a training batch of 8 plants, hysteresis +-30 %
+  robust   CVaR at level 0.25 over a training batch of 8 plants, hysteresis alpha, lam, psi
+           +-30 %
 
-Every method's budget includes its own compilation. CMA-ES and random search evaluate a
-whole population as one batched simulation. Writes results/tune_compare.json and
-results/tune_compare.png (best loss so far against wall time).
+Methods (every budget includes the method's own compilation; all but adam simulate a whole
+population as one batched program):
+  cma          CMA-ES (sigma0 = 0.3 in log-space, default population): `dscjax tune`'s default
+  cma_grad     CMA-ES + a line search along -C grad (exact gradient) in the same batch
+  cma_grad_off the same with its gradient switched off (random directions; no gradient is
+               compiled or evaluated: the ablation)
+  adam         exact gradients and Adam (the old default)
+  random       uniform in the box z0 +- ln 10, 32 per batch
+
+Rounds run every method in turn (interleaved, so that they share the machine's load); the
+table reports medians over rounds and the load average beside each run. Held-out figures of
+each method's best gains come from the tuner's own held-out batch (256 plants, seed 12345).
+Writes OUT.json and OUT_<problem>.png (best feasible objective against wall time).
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
+import math
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
 
+METHODS = ("cma", "cma_grad", "cma_grad_off", "adam", "random")
+LABELS = {"cma": "CMA-ES (default)", "cma_grad": "CMA-ES + gradient line search",
+          "cma_grad_off": "same, gradient off", "adam": "Adam (exact gradients)",
+          "random": "random search"}
 
-def build(name: str, t_final: float):
+
+def build(name: str, t_final: float, heldout: int):
     import dscjax
     import tuning
     from dscjax.config import SimOptions
 
     robust = tuning.BatchSpec(batch=8, seed=0, aggregate="cvar", cvar_level=0.25) \
         if name == "robust" else tuning.BatchSpec(batch=0)
-    cfg = tuning.TuningConfig(robust=robust, heldout=tuning.BatchSpec(batch=0))
+    cfg = tuning.TuningConfig(robust=robust,
+                              heldout=tuning.BatchSpec(batch=heldout, seed=12345))
     return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
 
 
-def final_figures(problem, flat_z):
-    """Exact L-inf error on the window and max|u| of a point, on the nominal plant."""
+def with_method(problem, method: str, budget: float, seed: int):
+    opt = {"cma": dict(name="cma"), "cma_grad": dict(name="cma_grad"),
+           "cma_grad_off": dict(name="cma_grad", grad_every=0),
+           "adam": dict(name="adam")}[method]
+    cfg = problem.cfg
+    spec = dataclasses.replace(cfg.optimizer, time_limit=budget, steps=10**7, patience=0,
+                               seed=seed, decay_steps=cfg.optimizer.steps, **opt)
+    return dataclasses.replace(problem, cfg=dataclasses.replace(cfg, optimizer=spec))
+
+
+def random_search(problem, budget: float, seed: int, batch: int = 32):
+    """Uniform in z0 +- ln 10 (clipped to the bounds), best ranked feasible first."""
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+
+    from tuning import search
+
+    t0 = time.perf_counter()
+    run = search.batch_fn(problem)
+    flat0 = np.asarray(ravel_pytree(problem.z0)[0], float)
+    lo, hi = search.z_box(problem)
+    rng = np.random.default_rng(seed)
+    best, best_loss, best_feas, curve, n = flat0, math.inf, False, [], 0
+    while True:
+        zs = np.clip(flat0 + rng.uniform(-math.log(10), math.log(10), (batch, flat0.size)),
+                     lo, hi)
+        if n == 0:
+            zs[0] = flat0
+        r = run(jnp.asarray(zs))
+        loss, feas = np.asarray(r["loss"]), np.asarray(r["feasible"])
+        for i in range(batch):
+            if search.better(bool(feas[i]), float(loss[i]), best_feas, best_loss):
+                best, best_loss, best_feas = zs[i], float(loss[i]), bool(feas[i])
+        n += batch
+        now = time.perf_counter() - t0
+        curve.append((now, best_loss if best_feas else math.inf))
+        if now >= budget:
+            return {"best_flat": best, "best_loss": best_loss, "best_feasible": best_feas,
+                    "evaluations": n, "gradient_evaluations": 0, "iterations": len(curve),
+                    "compile_s": None, "curve": curve}
+
+
+def run_method(problem, method, budget, seed):
+    from jax.flatten_util import ravel_pytree
+
+    import tuning
+
+    if method == "random":
+        return random_search(problem, budget, seed)
+    res = tuning.run(with_method(problem, method, budget, seed), None)
+    z = res.state.best_z
+    return {"best_flat": np.asarray(ravel_pytree(z)[0], float),
+            "best_loss": float(res.state.best_loss),
+            "best_feasible": bool(res.state.best_feasible),
+            "evaluations": res.evaluations if res.evaluations is not None else int(
+                res.state.iteration),
+            "gradient_evaluations": res.gradient_evaluations
+            if res.gradient_evaluations is not None else int(res.state.iteration),
+            "iterations": int(res.state.iteration), "compile_s": res.compile_s,
+            "line_wins": getattr(res.state, "line_wins", None),
+            "first_gradient_generation": getattr(res.state, "first_grad", None),
+            "curve": [(r["wall_s"], r["best_loss"] if r["best_feasible"] else math.inf)
+                      for r in res.history]}
+
+
+def figures(problem, flat):
+    """Nominal figures with the exact constraint checks, and held-out statistics."""
     import jax
     from jax.flatten_util import ravel_pytree
 
-    z = ravel_pytree(problem.z0)[1](flat_z)
-    m = jax.jit(problem.objective.per_plant)(z, {})
-    values = jax.device_get(problem.selection.values(z))
-    return {"linf_error_window": float(m["linf_error_window"]),
-            "max_abs_u": float(m["max_abs_u"]), "tv_u": float(m["tv_u"]),
-            "diverged": bool(m["diverged"]),
-            "gains": {k: np.asarray(values[k]).tolist() for k in problem.selection.names}}
+    from tuning import report
+
+    z = ravel_pytree(problem.z0)[1](flat)
+    per_plant = jax.jit(problem.objective.per_plant)
+    m = {k: np.asarray(v) for k, v in jax.device_get(per_plant(z, {})).items()}
+    out = {"nominal": {k: float(m[k]) for k in ("linf_error_window", "max_abs_u", "tv_u")}
+           | {"diverged": bool(m["diverged"])},
+           "constraints": report.constraint_checks(problem.objective.scales, m),
+           "gains": {k: np.asarray(v).tolist() for k, v in jax.device_get(
+               problem.selection.values(z)).items()}}
+    if problem.heldout:
+        h = {k: np.asarray(v) for k, v in jax.device_get(per_plant(z, problem.heldout)).items()}
+        ok = ~h["diverged"].astype(bool)
+        out["heldout"] = {"n": int(ok.size), "n_diverged": int((~ok).sum())} | {
+            k: {"median": float(np.median(h[k][ok])), "p95": float(np.percentile(h[k][ok], 95)),
+                "max": float(np.max(h[k][ok]))} if ok.any() else None
+            for k in ("linf_error_window", "max_abs_u", "tv_u")}
+    return out
 
 
 def main():
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from jax.flatten_util import ravel_pytree
+
     from tuning import baselines
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
-    p.add_argument("--budget", type=float, default=None, help="seconds per method")
+    p.add_argument("--budget", type=float, default=None, help="seconds per method and round")
+    p.add_argument("--rounds", type=int, default=1)
     p.add_argument("--problems", default="nominal,robust")
+    p.add_argument("--methods", default=",".join(METHODS))
+    p.add_argument("--heldout", type=int, default=None)
     p.add_argument("--out", default="results/tune_compare")
     args = p.parse_args()
-    try:  # fail before spending the gradient method's budget, not after
+    try:
         baselines.require_cma()
     except ModuleNotFoundError as err:
         sys.exit(f"tune_compare: {err}")
     t_final = 5.0 if args.quick else 20.0
-    budget = args.budget or (20.0 if args.quick else 100.0)
-    print(f"tune_compare: T = {t_final:g} s, {budget:g} s per method; load average "
-          f"{os.getloadavg()[0]:.2f}", file=sys.stderr)
-    results = {"t_final": t_final, "budget_s": budget, "quick": args.quick,
+    budget = args.budget or (30.0 if args.quick else 100.0)
+    heldout = args.heldout if args.heldout is not None else (32 if args.quick else 256)
+    methods = args.methods.split(",")
+    print(f"tune_compare: T = {t_final:g} s, {budget:g} s per method, {args.rounds} round(s); "
+          f"load average {os.getloadavg()[0]:.2f}", file=sys.stderr)
+    results = {"t_final": t_final, "budget_s": budget, "rounds": args.rounds,
                "load_average_start": os.getloadavg(), "problems": {}}
-    for name in args.problems.split(","):
-        problem = build(name, t_final)
-        start = final_figures(problem, np.asarray(
-            jax.flatten_util.ravel_pytree(problem.z0)[0]))
-        entry = {"n_params": problem.n_params, "start": start, "methods": {}}
-        for method in ("gradient", "cma_es", "random_search"):
-            print(f"  {name}: {method} ...", file=sys.stderr, flush=True)
-            trace = getattr(baselines, method)(problem, budget)
-            t, best = trace.best_curve()
-            fig = final_figures(problem, trace.best_z) if trace.best_z is not None else None
-            entry["methods"][method] = {
-                "label": trace.method, "evaluations": trace.evaluations,
-                "best_loss": trace.best_loss, "t": t.tolist(), "best_curve": best.tolist(),
-                "info": trace.info, "best_point_nominal": fig}
-            print(f"    best loss {trace.best_loss:.4g} after {trace.evaluations} evaluations"
-                  + (f"; nominal L-inf {fig['linf_error_window']:.4g}, max|u| "
-                     f"{fig['max_abs_u']:.4g}" if fig else ""), file=sys.stderr, flush=True)
-        results["problems"][name] = entry
-    results["load_average_end"] = os.getloadavg()
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    Path(f"{out}.json").write_text(json.dumps(results, indent=2) + "\n")
-    _plot(results, Path(f"{out}.png"))
+    for name in args.problems.split(","):
+        problem = build(name, t_final, heldout)
+        entry = {"n_params": problem.n_params,
+                 "start": figures(problem, np.asarray(ravel_pytree(problem.z0)[0], float)),
+                 "runs": {m: [] for m in methods}}
+        for r in range(args.rounds):
+            for m in methods:
+                load = os.getloadavg()[0]
+                res = run_method(problem, m, budget, seed=r)
+                res["load"] = load
+                res["figures"] = figures(problem, res.pop("best_flat"))
+                entry["runs"][m].append(res)
+                f = res["figures"]["nominal"]
+                print(f"  {name} round {r} {m}: best {res['best_loss']:.4g} "
+                      f"({'feasible' if res['best_feasible'] else 'infeasible'}), "
+                      f"{res['evaluations']} evaluations, {res['gradient_evaluations']} "
+                      f"gradients; L-inf {f['linf_error_window']:.4g}; load {load:.1f}",
+                      file=sys.stderr, flush=True)
+                Path(f"{out}.json").write_text(json.dumps(results | {"problems": {
+                    **results["problems"], name: entry}}, indent=1) + "\n")
+        results["problems"][name] = entry
+    results["load_average_end"] = os.getloadavg()
+    Path(f"{out}.json").write_text(json.dumps(results, indent=1) + "\n")
+    for name in results["problems"]:
+        _plot(results, name, Path(f"{out}_{name}.png"))
     _table(results)
-    print(f"wrote {out}.json, {out}.png", file=sys.stderr)
+    print(f"wrote {out}.json, {out}_<problem>.png", file=sys.stderr)
+
+
+def _med(values):
+    v = [x for x in values if x is not None]
+    return float(np.median(v)) if v else float("nan")
 
 
 def _table(r):
-    print(f"\nBest loss at equal wall-clock budget ({r['budget_s']:g} s each, T = "
-          f"{r['t_final']:g} s; loss 1 ~ the start gains)")
-    print(f"{'problem':<9} {'method':<24} {'evals':>7} {'best loss':>10} {'L-inf [t0,T]':>13} "
-          f"{'max|u|':>8}")
+    print(f"\nBest feasible objective at equal wall time ({r['budget_s']:g} s each, T = "
+          f"{r['t_final']:g} s; medians over {r['rounds']} round(s); loss ~1 at the start)")
+    print(f"{'problem':<8} {'method':<30} {'evals':>7} {'grads':>6} {'best loss':>10} "
+          f"{'L-inf nom.':>10} {'x lower':>8} {'TV(u)':>7} {'max|u|':>7} {'held-out med/p95':>18}"
+          f" {'div':>4} {'load':>5}")
     for name, e in r["problems"].items():
-        print(f"{name:<9} {'(start gains)':<24} {'':>7} {'':>10} "
-              f"{e['start']['linf_error_window']:>13.4g} {e['start']['max_abs_u']:>8.4g}")
-        for m in e["methods"].values():
-            f = m["best_point_nominal"] or {}
-            print(f"{name:<9} {m['label']:<24} {m['evaluations']:>7} {m['best_loss']:>10.4g} "
-                  f"{f.get('linf_error_window', float('nan')):>13.4g} "
-                  f"{f.get('max_abs_u', float('nan')):>8.4g}")
+        s = e["start"]
+        print(f"{name:<8} {'(start gains)':<30} {'':>7} {'':>6} {'':>10} "
+              f"{s['nominal']['linf_error_window']:>10.4g} {'':>8} {s['nominal']['tv_u']:>7.4g} "
+              f"{s['nominal']['max_abs_u']:>7.4g}")
+        for m, runs in e["runs"].items():
+            if not runs:
+                continue
+            best = [x["best_loss"] if x["best_feasible"] else float("inf") for x in runs]
+            i = int(np.argsort(best)[len(best) // 2])  # the median run's figures
+            f = runs[i]["figures"]
+            h = f.get("heldout") or {}
+            hl = h.get("linf_error_window") or {}
+            print(f"{name:<8} {LABELS[m]:<30} {_med([x['evaluations'] for x in runs]):>7.0f} "
+                  f"{_med([x['gradient_evaluations'] for x in runs]):>6.0f} "
+                  f"{_med(best):>10.4g} {f['nominal']['linf_error_window']:>10.4g} "
+                  f"{s['nominal']['linf_error_window'] / f['nominal']['linf_error_window']:>8.3g}"
+                  f" {f['nominal']['tv_u']:>7.4g} {f['nominal']['max_abs_u']:>7.4g} "
+                  f"{hl.get('median', float('nan')):>9.4g}/{hl.get('p95', float('nan')):<8.4g}"
+                  f" {h.get('n_diverged', 0):>4} {_med([x['load'] for x in runs]):>5.1f}")
 
 
-def _plot(r, path):
+def _plot(r, name, path):
     from dscjax.plotting import subplots
 
-    probs = list(r["problems"])
-    fig, ax = subplots(1, len(probs), figsize=(5.5 * len(probs), 4), squeeze=False,
-                           layout="constrained")
-    colors = {"gradient": "#d62728", "cma_es": "#1f77b4", "random_search": "#7f7f7f"}
-    for a, name in zip(ax[0], probs, strict=True):
-        for key, m in r["problems"][name]["methods"].items():
-            t, b = np.asarray(m["t"]), np.asarray(m["best_curve"])
-            ok = np.isfinite(b)
-            a.step(t[ok], b[ok], where="post", color=colors[key], label=m["label"])
-        a.set_yscale("log")
-        a.set_xlabel("wall time [s] (compilation included)")
-        a.set_ylabel("best loss so far")
-        a.set_title(f"{name} (T = {r['t_final']:g} s)")
-        a.grid(alpha=0.3, which="both")
-        a.legend()
+    colors = {"cma": "#1f77b4", "cma_grad": "#d62728", "cma_grad_off": "#ff9896",
+              "adam": "#9467bd", "random": "#7f7f7f"}
+    fig, ax = subplots(1, 1, figsize=(7, 4.5), layout="constrained")
+    for m, runs in r["problems"][name]["runs"].items():
+        for i, run in enumerate(runs):
+            c = np.asarray(run["curve"], float).reshape(-1, 2)
+            ok = np.isfinite(c[:, 1])
+            ax.step(c[ok, 0], c[ok, 1], where="post", color=colors[m], lw=1.2,
+                    alpha=1.0 if i == 0 else 0.5, label=LABELS[m] if i == 0 else None)
+    ax.set_yscale("log")
+    ax.set_xlabel("wall time [s] (compilation included)")
+    ax.set_ylabel("best feasible objective so far")
+    ax.set_title(f"{name}: T = {r['t_final']:g} s, {r['rounds']} round(s)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
     fig.savefig(path, dpi=110)
 
 
