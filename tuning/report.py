@@ -329,8 +329,9 @@ def method_sentence(opt, mode: str) -> str:
         return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "
                 f"simulation per generation; no gradient).")
-    if opt.name == "cma_grad":
-        grad = ("off (ablation: CMA-ES alone)" if opt.grad_every == 0 else
+    if opt.name in ("cma_grad", "cma_line"):
+        grad = ("random directions (no gradient)" if opt.grad_every == 0
+                or opt.name == "cma_line" else
                 f"{mode}-mode exact gradient at the best point every {opt.grad_every} "
                 f"generation(s), {opt.line_points} step sizes along -C grad evaluated in the "
                 f"same batch, the best injected")

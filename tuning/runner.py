@@ -288,7 +288,9 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
             if loop.state.iteration >= spec.steps:
                 reason = f"reached {spec.steps} generations"
                 break
-            if spec.time_limit is not None and elapsed + loop.last_iter_s > spec.time_limit:
+            # at least one generation, so that a slow compilation never leaves no result
+            if (spec.time_limit is not None and loop.state.iteration > loop.resumed_from
+                    and elapsed + loop.last_iter_s > spec.time_limit):
                 reason = f"time limit {spec.time_limit:g} s"
                 break
             row = loop.generation()

@@ -1,8 +1,10 @@
-"""CMA-ES ("cma", the default of `dscjax tune`) and CMA-ES with exact-gradient line
-searches ("cma_grad"), one batched simulation per generation.
+"""CMA-ES ("cma"), CMA-ES with a line search from the incumbent along random directions
+("cma_line", the default of `dscjax tune`) or along the exact gradient ("cma_grad"), one
+batched simulation per generation.
 
-"cma" is step 1 and 3 below alone: the `cma` package's CMA-ES in the tuner's coordinates z,
+"cma" is steps 1 and 3 below alone: the `cma` package's CMA-ES in the tuner's coordinates z,
 the population simulated as one batch, the best point ranked feasible first, then by loss.
+"cma_line" is "cma_grad" with the gradient switched off (random directions in step 2).
 
 Every generation:
 
@@ -194,8 +196,9 @@ class Search:
 
     def __post_init__(self):
         self.batch = batch_fn(self.problem)
-        points = self.spec.line_points if self.spec.name == "cma_grad" else 0  # cma: none
-        self.grad = grad_fn(self.problem) if self.spec.grad_every and points else None
+        points = self.spec.line_points if self.spec.name != "cma" else 0  # cma: no line
+        self.grad = grad_fn(self.problem) if (self.spec.name == "cma_grad"
+                                               and self.spec.grad_every and points) else None
         self.lo, self.hi = z_box(self.problem)
         n = self.state.best_flat.size
         self.steps = math.sqrt(n) * np.geomspace(self.spec.line_min, self.spec.line_max,

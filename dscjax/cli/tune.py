@@ -29,8 +29,8 @@ def add_parser(sub):
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
         "starting from the paper's gains) to minimise the L-inf tracking error on [t0, T] "
         "with max|u| kept at or below the start gains' max|u| and TV(u) at or below 1.5x "
-        "the start gains' TV(u), by CMA-ES (default) or exact gradients through the RK4 "
-        "closed loop. Settings come from a [tuning] table in the config (see "
+        "the start gains' TV(u), by CMA-ES with a line search (default) or exact gradients "
+        "through the RK4 closed loop. Settings come from a [tuning] table in the config (see "
         "docs/tuning.md); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
@@ -46,9 +46,10 @@ def add_parser(sub):
     p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
-                   "CMA-ES, the fastest at equal wall time as measured, docs/tuning.md; "
-                   "cma_grad adds exact-gradient line searches; adam ... are optax rules "
-                   "with exact gradients)")
+                   "CMA-ES with a line search from the best point along random directions, "
+                   "the best at equal wall time on the default problem, docs/tuning.md; cma: "
+                   "CMA-ES alone; cma_grad: the line search along the exact gradient; adam "
+                   "... : optax rules with exact gradients)")
     p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
