@@ -248,6 +248,8 @@ def _markdown(s: dict, problem, figures) -> str:
             if getattr(cfg.objective, k)) + (
             f"; max|u| <= {s['bound_max_abs_u']:.4g} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
+        + (f"; TV(u) <= {s['bound_tv_u']:.4g} (penalty weight "
+           f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
         + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
            + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
            + ")" if cfg.robust.batch else "; nominal plant only") + ".",
@@ -330,14 +332,15 @@ def method_sentence(opt, mode: str) -> str:
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "
                 f"simulation per generation; no gradient).")
     if opt.name in ("cma_grad", "cma_line"):
-        grad = ("random directions (no gradient)" if opt.grad_every == 0
-                or opt.name == "cma_line" else
-                f"{mode}-mode exact gradient at the best point every {opt.grad_every} "
-                f"generation(s), {opt.line_points} step sizes along -C grad evaluated in the "
-                f"same batch, the best injected")
-        return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
-                f"{opt.popsize or 'default'}, one batched simulation per generation) with "
-                f"gradient line search: {grad}.")
+        along = ("a random direction (no gradient)" if opt.grad_every == 0
+                 or opt.name == "cma_line" else
+                 f"-C grad ({mode}-mode exact gradient at the best point, every "
+                 f"{opt.grad_every} generation(s); random directions otherwise)")
+        return (f"{opt.name}: CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
+                f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
+                f"of {opt.line_points} step sizes from the best point along {along}, "
+                f"simulated in the same batch as the population, the best injected into "
+                f"CMA-ES.")
     return (f"{mode}-mode exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
             f"{opt.schedule}).")
 
