@@ -35,7 +35,7 @@ CORNERS = [(0.1, 0.15), (0.1, 3.0), (10.0, 0.15), (10.0, 3.0)]
 
 def sweep_once(refine: int, out: Path) -> float:
     cmd = [sys.executable, "-m", "dscjax.cli.main", "sweep", *GRID, "--refine", str(refine),
-           "--out", str(out), "--no-plot", "--quiet"]
+           "--out", str(out), "--no-plot", "--quiet", "--overwrite"]
     t0 = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True)
     return time.perf_counter() - t0
