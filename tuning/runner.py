@@ -123,7 +123,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                            cfg.robust.batch if cfg.robust.batch > 0 else 1)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
-                  state_bound=options.state_bound, checkpoint_every=ce)
+                  state_bound=options.state_bound, checkpoint_every=ce, solver=options.solver)
     batches = {}
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
