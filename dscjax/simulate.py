@@ -8,7 +8,6 @@ metric window and the state bound are traced, so changing a gain never recompile
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -489,7 +488,7 @@ def simulate_batch(
                                checkpoint_every=checkpoint_every, solver=level_solver)
 
     traj = level(0, overrides)
-    if refine and validation.is_concrete(traj.status) and validation.is_concrete(overrides):
+    if refine and validation.is_concrete((traj, overrides)):  # refinement is host-side
         traj = refine_diverged(traj, overrides, level, refine)
     return traj
 
@@ -526,14 +525,26 @@ def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Calla
     return jax.tree.map(jnp.asarray, out)
 
 
-@functools.partial(jax.jit,
-                   static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"),
-                   compiler_options=xla.compiler_options())
-def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
-                    checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
+def _simulate_batch_body(setup, overrides, dt, window_start, state_bound, *, n_steps,
+                         save_every, checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
     return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
                          save_every=save_every, overrides=overrides,
                          checkpoint_every=checkpoint_every, solver=solver)
+
+
+_BATCH_STATIC = ("n_steps", "save_every", "checkpoint_every", "solver")
+# Called at the top level: 512-bit vectors on AVX-512 CPUs (dscjax.xla). Inside a user's jit,
+# grad or vmap JAX refuses compiler options on a nested jit: the plain one is traced into the
+# user's program instead.
+_simulate_batch_top = jax.jit(_simulate_batch_body, static_argnames=_BATCH_STATIC,
+                              compiler_options=xla.compiler_options())
+_simulate_batch_nested = jax.jit(_simulate_batch_body, static_argnames=_BATCH_STATIC)
+
+
+def _simulate_batch(setup, overrides, *args, **kwargs):
+    top = validation.is_concrete((setup, overrides, args))
+    fn = _simulate_batch_top if top else _simulate_batch_nested
+    return fn(setup, overrides, *args, **kwargs)
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:
