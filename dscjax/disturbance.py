@@ -191,9 +191,15 @@ def half_step_grid(t_final: float, dt: float, dtype=np.float64) -> np.ndarray:
     return (np.arange(2 * n + 1) * (dt / 2)).astype(dtype)
 
 
+@jax.jit
+def _sample(dist, t):
+    return jax.vmap(dist)(t)
+
+
 def sample(dist: Disturbance, t) -> jax.Array:
-    """dbar on an array of times (the same code the simulation runs, vmapped)."""
-    return jax.vmap(dist)(jnp.asarray(t))
+    """dbar on an array of times (the same code the simulation runs, vmapped; compiled once
+    per waveform structure)."""
+    return _sample(dist, jnp.asarray(t))
 
 
 def project(dist: Disturbance, bound: float, t_grid) -> Disturbance:

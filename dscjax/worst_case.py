@@ -31,6 +31,7 @@ killed at any point continues with `resume=True` losing only the iteration in pr
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import time
 from collections.abc import Callable, Sequence
@@ -57,6 +58,7 @@ DEFAULT_METRIC = "linf_error_window"
 DEFAULT_STARTS = 8  # measured: see docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
+DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md
 STATE_VERSION = 1
 
 
@@ -161,18 +163,15 @@ class Problem:
         return (np.array([r.low for r in self.ranges], dtype=np.float64),
                 np.array([r.high for r in self.ranges], dtype=np.float64))
 
+    def static(self) -> _Static:
+        return _Static(tuple(self.columns), self.coef_path if self.m else None, self.metric,
+                       self.n_steps, self.solver)
+
     def overrides(self, z):
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
-        xp = np if isinstance(z, np.ndarray) else jnp
         lo, hi = self.lows_highs()
-        out = {}
-        if self.d:
-            table = lo + z[:, :self.d] * (hi - lo)
-            out = params.overrides(self.setup, self.columns, table)
-        if self.m:
-            out[self.coef_path] = xp.asarray(self.disturbance.bound * z[:, self.d:],
-                                             dtype=_dtype(self.setup))
-        return out
+        return _overrides(self.setup, self.static(), z, lo, hi,
+                          self.disturbance.bound if self.m else 0.0)
 
     def setup_at(self, z) -> Setup:
         """The concrete setup of one normalised point."""
@@ -206,7 +205,7 @@ class Problem:
 
 
 def _dtype(setup):
-    return np.result_type(np.asarray(setup.plant.x0))
+    return jnp.result_type(setup.plant.x0)
 
 
 def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
@@ -256,68 +255,144 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
 GRADIENTS = ("time_parallel", "batch")
 
 
-class Programs:
-    """The jitted programs of a search: projection, rescaling, batch values, and batch values
-    with gradients. Built by `for_problem`; one compile per batch size.
+@dataclasses.dataclass(frozen=True)
+class _Static:
+    """The static (hashable) part of a problem's compiled programs; the setup, the box and
+    the bound are traced, so problems that differ only in numbers share one compilation."""
 
-    Generic over the objective, so a search can be checked on a problem with a known answer:
-    d box coordinates in [0, 1], m waveform coefficients whose waveform on a grid is
-    `c @ basis.T` (G, m), `project_coef` the waveform's projection onto max |.| <= 1,
-    `values(z) -> (v, diverged)` on a (B, d + m) batch and `single(z1) -> (v, diverged)` on
-    one point (differentiated per start when gradient = "time_parallel").
+    columns: tuple[params.Param, ...]
+    coef_path: str | None
+    metric: str
+    n_steps: int
+    solver: str
+
+
+def _overrides(setup, st: _Static, z, lo, hi, bound):
+    d = len(st.columns)
+    out = {}
+    if d:
+        out = params.overrides(setup, list(st.columns), lo + z[:, :d] * (hi - lo))
+    if st.coef_path is not None:
+        xp = np if isinstance(z, np.ndarray) else jnp
+        out[st.coef_path] = xp.asarray(bound * z[:, d:], dtype=_dtype(setup))
+    return out
+
+
+def _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, st: _Static):
+    from dscjax.simulate import run
+
+    traj = run(setup, dt, window_start, state_bound, n_steps=st.n_steps, save_every=st.n_steps,
+               overrides=_overrides(setup, st, z, lo, hi, bound), solver=st.solver)
+    return traj.metrics[st.metric], traj.diverged
+
+
+def _problem_single(setup, z1, lo, hi, bound, dt, window_start, state_bound, st: _Static):
+    from dscjax.simulate import run
+
+    one = {p: v[0] for p, v in _overrides(setup, st, z1[None, :], lo, hi, bound).items()}
+    traj = run(params.set_many(setup, one), dt, window_start, state_bound, n_steps=st.n_steps,
+               save_every=st.n_steps, solver=st.solver, gradient="time_parallel")
+    return traj.metrics[st.metric], traj.diverged
+
+
+def _masked_total(values, z, *args):
+    v, bad = values(z, *args)
+    return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
+
+
+def _value_and_grad(values, single, gradient, z, *args):
+    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0."""
+    if gradient == "batch" or single is None:
+        (_, (v, bad)), g = jax.value_and_grad(
+            lambda z_: _masked_total(values, z_, *args), has_aux=True)(z)
+    else:  # each start's own time-parallel gradient, vmapped over the starts
+        def one(z1):
+            v1, bad1 = single(z1, *args)
+            return jnp.where(bad1, 0.0, v1), (v1, bad1)
+
+        (_, (v, bad)), g = jax.vmap(jax.value_and_grad(one, has_aux=True))(z)
+    return v, bad, g
+
+
+_STATIC_PROBLEM = ("st",)
+_problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
+
+
+@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bound, *,
+                            st: _Static, gradient: str):
+    def values(z_, *a):
+        return _problem_values(*a[:1], z_, *a[1:], st=st)
+
+    def single(z1, *a):
+        return _problem_single(*a[:1], z1, *a[1:], st=st)
+
+    return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, dt,
+                           window_start, state_bound)
+
+
+@functools.partial(jax.jit, static_argnames=("d", "project_coef"))
+def _project(z, basis, *, d, project_coef):
+    u = jnp.clip(z[:, :d], 0.0, 1.0)
+    if project_coef is None:
+        return u
+    c = z[:, d:]
+    return jnp.concatenate([u, project_coef(c, 1.0, c @ basis.T)], axis=1)
+
+
+@functools.partial(jax.jit, static_argnames=("d",))
+def _rescale(z, basis, *, d):
+    """Random points: the waveform scaled so that max |dbar| = D exactly."""
+    if z.shape[1] == d:
+        return z
+    c = z[:, d:]
+    peak = jnp.max(jnp.abs(c @ basis.T), axis=1, keepdims=True)
+    c = jnp.where(peak > 0, c / jnp.where(peak > 0, peak, 1.0), c)
+    return jnp.concatenate([z[:, :d], c], axis=1)
+
+
+class Programs:
+    """The compiled programs of a search on (B, d + m) batches of normalised points:
+    `project`, `rescale`, `values(z) -> (v, diverged)` and `value_and_grad(z) -> (v,
+    diverged, g)`. `for_problem` builds them for a `Problem` (module-level jitted functions,
+    shared by every problem of the same structure); `from_functions` for any objective, so
+    that a search can be checked on a problem with a known answer.
+
+    d box coordinates in [0, 1]; m waveform coefficients whose waveform on a grid is
+    `c @ basis.T` (basis (G, m)); `project_coef` the waveform's projection onto max|.| <= 1.
     """
 
     def __init__(self, d: int, m: int, basis, project_coef, values: Callable,
-                 single: Callable | None = None, gradient: str = "time_parallel",
-                 nominal_u: np.ndarray | None = None):
-        validation.one_of(gradient, "gradient", GRADIENTS)
+                 value_and_grad: Callable, nominal_u: np.ndarray | None = None):
         self.d, self.m, self.nominal_u = d, m, nominal_u
         self.basis = jnp.asarray(basis)
-
-        def project(z):
-            u = jnp.clip(z[:, :d], 0.0, 1.0)
-            if not m:
-                return u
-            c = z[:, d:]
-            c = project_coef(c, 1.0, c @ self.basis.T)
-            return jnp.concatenate([u, c], axis=1)
-
-        def rescale(z):  # random points: the waveform scaled so that max |dbar| = D exactly
-            if not m:
-                return z
-            c = z[:, d:]
-            peak = jnp.max(jnp.abs(c @ self.basis.T), axis=1, keepdims=True)
-            c = jnp.where(peak > 0, c / jnp.where(peak > 0, peak, 1.0), c)
-            return jnp.concatenate([z[:, :d], c], axis=1)
-
-        def total(z):
-            v, bad = values(z)
-            return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
-
-        def one(z1):
-            v, bad = single(z1)
-            return jnp.where(bad, 0.0, v), (v, bad)
-
-        if gradient == "batch" or single is None:
-            grad = jax.value_and_grad(total, has_aux=True)
-        else:  # each start's own time-parallel gradient, vmapped over the starts
-            grad = jax.vmap(jax.value_and_grad(one, has_aux=True))
-
-        def value_and_grad(z):
-            (_, (v, bad)), g = grad(z)
-            return v, bad, g
-
-        self.project = jax.jit(project)
-        self.rescale = jax.jit(rescale)
-        self.values = jax.jit(values)
-        self.value_and_grad = jax.jit(value_and_grad)
+        self.values, self.value_and_grad = values, value_and_grad
+        pc = project_coef if m else None
+        self.project = lambda z: _project(z, self.basis, d=d, project_coef=pc)
+        self.rescale = lambda z: _rescale(z, self.basis, d=d)
 
     @classmethod
-    def for_problem(cls, problem: Problem, gradient: str = "time_parallel") -> Programs:
-        from dscjax.simulate import run
+    def from_functions(cls, d: int, m: int, basis, project_coef, values: Callable,
+                       single: Callable | None = None, gradient: str = "time_parallel",
+                       nominal_u=None) -> Programs:
+        """From a batch objective `values(z) -> (v, diverged)` and optionally its one-point
+        version `single(z1)` (differentiated per start when gradient = "time_parallel")."""
+        validation.one_of(gradient, "gradient", GRADIENTS)
+        vg = jax.jit(lambda z: _value_and_grad(values, single, gradient, z))
+        return cls(d, m, basis, project_coef, jax.jit(values), vg, nominal_u)
 
+    @classmethod
+    def for_problem(cls, problem: Problem, gradient: str = "time_parallel",
+                    coarsening: int = 1) -> Programs:
+        """The programs of `problem`. With `coarsening` F > 1 the gradients are those of the
+        same loop simulated at F dt (F times cheaper: a search direction only), while every
+        value (what the search compares and reports) is simulated at dt."""
+        validation.one_of(gradient, "gradient", GRADIENTS)
+        validation.integer(coarsening, "--gradient-coarsening", 1)
         p = problem
-        n = p.n_steps
+        if p.n_steps % coarsening:
+            raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                              f"steps t_final/dt = {p.n_steps}")
         basis, project_coef = np.zeros((1, 0)), None
         if p.m:
             grid = dist_mod.half_step_grid(p.t_final, p.dt)
@@ -326,24 +401,32 @@ class Programs:
                 dataclasses.replace(model, **{model.coefficients_name: e}), grid))
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
+        lo, hi = p.lows_highs()
+        args = (p.setup, lo, hi, p.disturbance.bound if p.m else 0.0, p.dt, p.window_start,
+                p.state_bound)
+        st = p.static()
 
         def values(z):
-            traj = run(p.setup, p.dt, p.window_start, p.state_bound, n_steps=n, save_every=n,
-                       overrides=p.overrides(z), solver=p.solver)
-            return traj.metrics[p.metric], traj.diverged
+            return _problem_values_jit(args[0], z, *args[1:], st=st)
 
-        def single(z1):
-            one = {path: v[0] for path, v in p.overrides(z1[None, :]).items()}
-            traj = run(params.set_many(p.setup, one), p.dt, p.window_start, p.state_bound,
-                       n_steps=n, save_every=n, solver=p.solver, gradient="time_parallel")
-            return traj.metrics[p.metric], traj.diverged
+        if coarsening == 1:
+            def value_and_grad(z):
+                return _problem_value_and_grad(args[0], z, *args[1:], st=st, gradient=gradient)
+        else:
+            st_g = dataclasses.replace(st, n_steps=st.n_steps // coarsening)
+            args_g = args[:4] + (p.dt * coarsening,) + args[5:]
+
+            def value_and_grad(z):
+                v, bad = values(z)
+                _, bad_g, g = _problem_value_and_grad(args_g[0], z, *args_g[1:], st=st_g,
+                                                      gradient=gradient)
+                return v, bad, jnp.where(bad_g[:, None], 0.0, g)
 
         nominal_u = None
         if p.d:
-            lo, hi = p.lows_highs()
             nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])
             nominal_u = np.clip((nominal - lo) / (hi - lo), 0.0, 1.0)
-        return cls(p.d, p.m, basis, project_coef, values, single, gradient, nominal_u)
+        return cls(p.d, p.m, basis, project_coef, values, value_and_grad, nominal_u)
 
 
 # -- the methods' states (resumable) -------------------------------------------------------------
@@ -418,7 +501,7 @@ def _random_points(prog: Programs, rng: np.random.Generator, b: int) -> np.ndarr
     return np.array(prog.rescale(jnp.asarray(z)))
 
 
-def _gradient_step(prog, tr, seed, starts, lr0):
+def _gradient_step(prog, tr, seed, starts, lr0, batch):
     """One iteration of projected gradient ascent for all starts: (z, values, diverged).
 
     The box coordinates u take Adam steps (per coordinate, lr box widths at most); the
@@ -427,12 +510,18 @@ def _gradient_step(prog, tr, seed, starts, lr0):
     by 1.2 after an improvement and halves after a loss."""
     d = prog.d
     x = tr.extra
-    if "z" not in x:  # the first iteration: the nominal point (with a waveform) and random starts
-        z = _random_points(prog, _rng(seed, "gradient", 0), starts)
+    if "z" not in x:
+        # the first iteration screens a batch of random points (the nominal box point among
+        # them) by value alone and starts the ascent from the M best
+        pool = _random_points(prog, _rng(seed, "gradient", 0), max(batch, starts))
         if prog.nominal_u is not None:
-            z[0, :d] = prog.nominal_u
+            pool[0, :d] = prog.nominal_u
+        v, bad = (np.asarray(a) for a in prog.values(jnp.asarray(pool)))
+        order = np.argsort(np.where(bad, -np.inf, v))[::-1]
+        z = pool[order[:starts]]
         x.update(z=z, m1=np.zeros_like(z[:, :d]), m2=np.zeros_like(z[:, :d]),
                  lr=np.full(starts, lr0), prev=np.full(starts, -np.inf), k=np.zeros(starts))
+        return pool, v, bad
     z = x["z"]
     v, bad, g = (np.array(a) for a in prog.value_and_grad(jnp.asarray(z)))
     v = np.asarray(v, dtype=np.float64)
@@ -546,7 +635,8 @@ def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int,
 def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
                lr: float = DEFAULT_LR, gradient: str = "time_parallel",
-               out_dir: str | Path | None = None, resume: bool = False,
+               coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
+               resume: bool = False,
                progress: Callable[[str, Trace, float], None] | None = None) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds.
 
@@ -560,6 +650,8 @@ def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFA
         lr: the initial step (in box widths and units of D) of the gradient method.
         gradient: "time_parallel" (each start's own time-parallel gradient, vmapped) or
             "batch" (reverse mode through the batch's checkpointed scan).
+        coarsening: F, gradients taken on the loop simulated at F dt (values always at dt);
+            1: exact gradients of the values.
         out_dir: where each method's state is saved after every iteration (for `resume`).
         progress: called with (method, trace, time_limit) after every iteration.
 
@@ -581,12 +673,31 @@ def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFA
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
     fp = files.digest({"problem": problem.fingerprint(), "seed": seed, "starts": starts,
-                       "batch": batch, "lr": lr, "gradient": gradient})
-    prog = Programs.for_problem(problem, gradient)
+                       "batch": batch, "lr": lr, "gradient": gradient,
+                       "coarsening": coarsening})
+    prog = Programs.for_problem(problem, gradient, coarsening)
     traces = search(prog, time_limit=time_limit, starts=starts, methods=methods, seed=seed,
                     batch=batch, lr=lr, out_dir=out_dir, resume=resume, fingerprint=fp,
                     progress=progress)
     return _finish(problem, traces)
+
+
+def _warm_up(prog: Programs, method: str, starts: int, batch: int) -> float:
+    """Compile the method's programs before its clock starts: the seconds of compilation (a
+    first call less a second one)."""
+    z0 = np.zeros((max(batch, starts) if method == "gradient" else batch, prog.d + prog.m))
+    calls = [lambda: prog.values(jnp.asarray(z0)), lambda: prog.project(jnp.asarray(z0)),
+             lambda: prog.rescale(jnp.asarray(z0))]
+    if method == "gradient":
+        calls.append(lambda: prog.value_and_grad(jnp.asarray(z0[:starts])))
+    total = 0.0
+    for call in calls:
+        t0 = time.perf_counter()
+        jax.block_until_ready(call())
+        t1 = time.perf_counter()
+        jax.block_until_ready(call())
+        total += max((t1 - t0) - (time.perf_counter() - t1), 0.0)
+    return total
 
 
 def search(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
@@ -601,25 +712,17 @@ def search(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
         tr = Trace.load(path, mth, fingerprint) if (resume and path is not None) else None
         tr = tr or Trace(mth)
         cma_es = _CMA(prog, seed, batch, tr.extra) if mth == "cma" else None
-        first = True
+        if tr.elapsed < time_limit:
+            tr.compile_s += _warm_up(prog, mth, starts, batch)
         while tr.elapsed < time_limit:
             t0 = time.perf_counter()
             if mth == "gradient":
-                z, v, bad = _gradient_step(prog, tr, seed, starts, lr)
+                z, v, bad = _gradient_step(prog, tr, seed, starts, lr, batch)
             elif mth == "random":
                 z, v, bad = _random_step(prog, tr, seed, batch)
             else:
                 z, v, bad = cma_es.step(prog)
             seconds = time.perf_counter() - t0
-            if first:
-                # the first call of a session compiles: time the same call again
-                t1 = time.perf_counter()
-                jax.block_until_ready(prog.value_and_grad(jnp.asarray(z)) if mth == "gradient"
-                                      else prog.values(jnp.asarray(z)))
-                again = time.perf_counter() - t1
-                tr.compile_s += max(seconds - again, 0.0)
-                seconds = again
-            first = False
             tr.record(z, v, bad, seconds)
             if path is not None:
                 tr.save(path, fingerprint)
