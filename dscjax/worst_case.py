@@ -55,7 +55,7 @@ METHODS: tuple[str, ...] = get_args(Method)
 METRICS = ("linf_error_window", "linf_error", "l2_error_window", "rms_error_window",
            "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 DEFAULT_METRIC = "linf_error_window"
-DEFAULT_STARTS = 8  # measured: see docs/worst-case.md
+DEFAULT_STARTS = 4  # measured: see docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md

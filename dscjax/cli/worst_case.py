@@ -107,6 +107,9 @@ def run(args) -> int:
           + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
           + f"; {', '.join(methods)}, {args.time_limit:g} s each; T={problem.t_final:g} s, "
           f"dt={problem.dt:g} s", file=sys.stderr)
+    if not args.quiet:
+        print("  each method compiles its programs first (a minute or two on a small CPU; not "
+              "counted in --time-limit)", file=sys.stderr)
     bars = {}
 
     def progress(method, tr, limit):
