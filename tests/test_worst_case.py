@@ -17,7 +17,7 @@ import dscjax
 from dscjax import config
 from dscjax import disturbance as dm
 from dscjax.cli.main import main
-from dscjax.worst_case import DisturbanceSpec, Programs, Trace, search
+from dscjax.worst import DisturbanceSpec, Programs, Trace, search
 
 # -- waveforms ----------------------------------------------------------------------------------
 

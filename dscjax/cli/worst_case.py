@@ -15,7 +15,7 @@ from dscjax.cli.common import add_config_args, load_setup, prepare_out
 
 
 def add_parser(sub):
-    from dscjax.worst_case import (
+    from dscjax.worst import (
         DEFAULT_BATCH,
         DEFAULT_COARSENING,
         DEFAULT_METRIC,
@@ -73,8 +73,8 @@ def run(args) -> int:
     from dscjax.progress import Progress
     from dscjax.ranges import parse_range
     from dscjax.validation import ConfigError
-    from dscjax.worst_case import make_problem, worst_case
-    from dscjax.worst_case_report import write
+    from dscjax.worst import make_problem, worst_case
+    from dscjax.worst_report import write
 
     setup, options = load_setup(args)
     ranges = [parse_range(text) for text in (args.ranges or [])]

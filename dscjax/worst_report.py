@@ -17,7 +17,7 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
-from dscjax.worst_case import Result
+from dscjax.worst import Result
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
 

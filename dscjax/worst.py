@@ -632,16 +632,20 @@ def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int,
     return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
 
 
-def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
+def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str] = (),
+               disturbance: DisturbanceSpec | str | None = None, *,
+               time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
                lr: float = DEFAULT_LR, gradient: str = "time_parallel",
                coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
                resume: bool = False,
-               progress: Callable[[str, Trace, float], None] | None = None) -> Result:
+               progress: Callable[[str, Trace, float], None] | None = None,
+               **problem_options) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds.
 
     Args:
-        problem: from `make_problem`.
+        problem: from `make_problem`; or a Setup, then `make_problem(problem, ranges,
+            disturbance, **problem_options)` (ranges may be given as text, "PATH=30%").
         time_limit: search seconds per method (compilation excluded, reported apart).
         starts: M, the starts of the gradient method, advanced together as one batch.
         methods: any of "gradient", "random", "cma" (the last two are the baselines).
@@ -660,12 +664,16 @@ def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFA
 
     Example:
         >>> import dscjax
-        >>> from dscjax.ranges import parse_range
-        >>> from dscjax.worst_case import make_problem, worst_case
-        >>> pb = make_problem(dscjax.paper_example(), [parse_range("hysteresis.alpha=30%")],
-        ...                   "fourier:2:0.5", t_final=0.5, dt=1e-3)
-        >>> res = worst_case(pb, time_limit=1.0, starts=2, batch=4)  # doctest: +SKIP
+        >>> res = dscjax.worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"],
+        ...                         "fourier:2:0.5", t_final=2.0, time_limit=5.0)  # doctest: +SKIP
+        >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
     """
+    if not isinstance(problem, Problem):
+        problem = make_problem(problem, [ranges_mod.parse_range(r) if isinstance(r, str) else r
+                                         for r in ranges], disturbance, **problem_options)
+    elif ranges or disturbance is not None or problem_options:
+        raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
+                          "make_problem, not with a Problem")
     for mth in methods:
         validation.one_of(mth, "--methods", METHODS)
     validation.integer(starts, "--starts", 1)
