@@ -87,10 +87,15 @@ def hysteresis_slope(hysteresis) -> jax.Array:
 
 
 def max_abs_dbar(plant, t=None) -> jax.Array:
-    """max_t |dbar(t)|: exact for the built-in plants (|dbar_amp| + |dbar_bias|); for other
-    plants the maximum over the times `t` (e.g. a trajectory's saved times)."""
+    """max_t |dbar(t)|: exact for the built-in plants' sinusoid (|dbar_amp| + |dbar_bias|),
+    plus the waveform's bound if the plant has one (`Disturbance.max_abs`: exact for a spline,
+    the sum of |coefficients| for a Fourier series); for other plants the maximum over the
+    times `t` (e.g. a trajectory's saved times)."""
     if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
-        return jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+        out = jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+        if getattr(plant, "disturbance", None) is not None:
+            out = out + plant.disturbance.max_abs()
+        return out
     if t is None:
         raise ConfigError(f"{type(plant).__name__}: max |dbar| is not known in closed form; pass "
                           "the times to take it over, or give d explicitly")

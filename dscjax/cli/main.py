@@ -19,6 +19,7 @@ COMMANDS = {
     "tune": "dscjax.cli.tune",
     "sweep": "dscjax.cli.sweep",
     "stability": "dscjax.cli.stability",
+    "worst-case": "dscjax.cli.worst_case",
 }
 
 EXIT_USAGE = 2
