@@ -125,20 +125,17 @@ def _figures(trajs, loops, out, fmt, dpi):
         _legend_below(fig, ax, ncol=2)
         paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
-    faint = dict(lw=0.9, alpha=0.55)
-    fig, ax = _time_axes("Fig. 5  Tracking error of adaptive backstepping",
-                         "tracking error $e = y - y_r$ [-]")
-    _line(ax, trajs["dsc"], "e", "dsc", **faint)
-    _line(ax, trajs["backstepping"], "e", "backstepping")
-    _legend_below(fig, ax, ncol=2)
-    paths["fig5"] = _finish(fig, out, FIGURES["fig5"], fmt, dpi)
-
-    fig, ax = _time_axes("Fig. 6  Control signal of adaptive backstepping",
-                         "control input $u$ [-]")
-    _line(ax, trajs["dsc"], "u", "dsc", **faint)
-    _line(ax, trajs["backstepping"], "u", "backstepping")
-    _legend_below(fig, ax, ncol=2)
-    paths["fig6"] = _finish(fig, out, FIGURES["fig6"], fmt, dpi)
+    faint = dict(lw=0.9, alpha=0.55)  # the DSC, for comparison
+    for key, signal, title, ylabel in (
+            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping",
+             "tracking error $e = y - y_r$ [-]"),
+            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping",
+             "control input $u$ [-]")):
+        fig, ax = _time_axes(title, ylabel)
+        _line(ax, trajs["dsc"], signal, "dsc", **faint)
+        _line(ax, trajs["backstepping"], signal, "backstepping")
+        _legend_below(fig, ax, ncol=2)
+        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
     paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
     return paths
