@@ -6,7 +6,7 @@ adaptive laws, integrated together.
 h is the hysteresis model's state and w = P(u, h) its output (for the backlash-like model (4),
 h = w). u is an algebraic function of (controller state, x, t); X' does not depend on w',
 so u' = du/dX . X' + du/dt is one forward-mode derivative (jvp) of the control law along F:
-exact, at every RK4 stage, with no algebraic loop (NOTES.md).
+exact, at every RK4 stage, with no algebraic loop (docs/numerics.md).
 """
 
 from __future__ import annotations

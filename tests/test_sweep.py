@@ -74,6 +74,17 @@ def test_chunk_size_does_not_change_results(paper_setup, base_result):
         _same(base_result.columns, other.columns)
 
 
+def test_spmd_program_agrees_with_the_per_device_programs(paper_setup, base_result):
+    # parallel="spmd" is one shard_map program: equal to round-off, not bitwise (package doc)
+    spmd = run_sweep(paper_setup, SweepSettings(samples=24, chunk=8, dtype="float64",
+                                                parallel="spmd"), T, DT)
+    assert spmd.info["parallel"] == "spmd"
+    np.testing.assert_array_equal(spmd.columns["diverged"], base_result.columns["diverged"])
+    for m in sweep.METRICS:
+        np.testing.assert_allclose(spmd.columns[m], base_result.columns[m], rtol=1e-9,
+                                   atol=1e-15, err_msg=m)
+
+
 def test_resume_after_interrupt_gives_the_same_file(paper_setup, tmp_path):
     full = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "a")
 
