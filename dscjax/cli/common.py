@@ -65,6 +65,7 @@ def load_setup(args):
     """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype."""
     from dscjax import config
     from dscjax.params import cast
+    from dscjax.validation import validate_setup
 
     base = example_setup(args)
     if args.config:
@@ -83,6 +84,9 @@ def load_setup(args):
             controller=dataclasses.replace(setup.controller, variant=args.variant))
     options = dataclasses.replace(options, **changes)
     options.validate()
+    # before anything traces the setup (a shape mismatch would otherwise surface as a JAX
+    # broadcasting error from inside an eval_shape)
+    validate_setup(setup)
     return cast(setup, np.dtype(options.dtype)), options
 
 
