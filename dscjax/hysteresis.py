@@ -463,29 +463,55 @@ def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: floa
         >>> w.shape
         (1001,)
     """
-    from dscjax.integrate import integrate
+    n_steps = max(int(round(t_final / dt)), 1)
+    u, w = jax.jit(_open_loop, static_argnums=(1, 3))(
+        _as_float(hysteresis), lambda t, _: u_of_t(t), (), n_steps,
+        jnp.asarray(dt, jnp.result_type(float)))
+    return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
 
+
+def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float, dt: float):
+    """The model driven by u = A sin(omega t) for each amplitude A (one program, vmapped).
+
+    Returns:
+        (t (N+1,), u (K, N+1), w (K, N+1)) on the step grid, K = len(amplitudes).
+    """
     n_steps = max(int(round(t_final / dt)), 1)
     dtype = jnp.result_type(float)
 
-    def field(t, h, model):
-        u, du = jax.jvp(u_of_t, (t,), (jnp.ones_like(t),))
+    def u_of_t(t, amp_omega):
+        amplitude, om = amp_omega
+        return amplitude * jnp.sin(om * t)
+
+    def run(model, amps, om, dt_):
+        return jax.vmap(lambda a: _open_loop(model, u_of_t, (a, om), n_steps, dt_))(amps)
+
+    u, w = jax.jit(run)(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),
+                        jnp.asarray(omega, dtype), jnp.asarray(dt, dtype))
+    return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
+
+
+def _as_float(model):
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(float)), model)
+
+
+def _open_loop(model, u_of_t, args, n_steps, dt):
+    """(u, w) on the step grid for u = u_of_t(t, args), by `integrate` (and its clamp hook)."""
+    from dscjax.integrate import integrate
+
+    def field(t, h, a):
+        u, du = jax.jvp(lambda tt: u_of_t(tt, a), (t,), (jnp.ones_like(t),))
         return model.rate(u, du, h), (u, model.output(u, h))
 
-    def project(t, h, model):
-        return model.project(u_of_t(t), h)
+    def project(t, h, a):
+        return model.project(u_of_t(t, a), h)
 
-    model = jax.tree.map(lambda x: jnp.asarray(x, dtype), hysteresis)
-    h0 = jax.tree.map(lambda x: jnp.asarray(x, dtype),
-                      model.init_state(u_of_t(jnp.zeros((), dtype))))
-    project = project if hysteresis.projects else None
-    run = jax.jit(lambda m, h, dt_: integrate(field, h, dt_, n_steps, m, project=project,
-                                              time_parallel=False))
-    res = run(model, h0, jnp.asarray(dt, dtype))
-    u, w = res.obs
-    t = np.arange(n_steps + 1) * float(dt)
-    return t, np.asarray(u), np.asarray(w)
+    h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
+                      model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
+    res = integrate(field, h0, dt, n_steps, args, time_parallel=False,
+                    project=project if model.projects else None)
+    return res.obs
 
 
 __all__ = ["Backlash", "BoucWen", "GeneralizedPI", "Hysteresis", "MODELS",
-           "PrandtlIshlinskii", "closed_form", "envelope", "open_loop", "play"]
+           "PrandtlIshlinskii", "closed_form", "envelope", "open_loop", "play", "sine_loops"]

@@ -19,6 +19,7 @@ COMMANDS = {
     "tune": "dscjax.cli.tune",
     "sweep": "dscjax.cli.sweep",
     "stability": "dscjax.cli.stability",
+    "hysteresis": "dscjax.cli.hysteresis",
 }
 
 EXIT_USAGE = 2
