@@ -38,8 +38,9 @@ def add_integration_args(p):
 def add_example_arg(p):
     p.add_argument("--example", default="paper", metavar="NAME",
                    help="the built-in closed loop a --config is laid over: paper (default), "
-                   "backstepping (the paper's plant, backstepping baseline) or order-N (the "
-                   "order-n family, N >= 2, e.g. order-4); --print-config shows it whole")
+                   "backstepping (the paper's plant, backstepping baseline), order-N (the "
+                   "order-n family, N >= 2, e.g. order-4), or pi, gpi, bouc_wen (the paper's "
+                   "loop behind that hysteresis model); --print-config shows it whole")
 
 
 def example_setup(args):
