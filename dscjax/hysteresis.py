@@ -57,6 +57,8 @@ class Hysteresis(Model):
     kind: ClassVar[str]
     # True if `project` does something: the integrator then applies it after every step.
     projects: ClassVar[bool] = False
+    # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
+    default_sweep: ClassVar[tuple[str, ...]] = ()
 
     def init_state(self, u0):
         raise NotImplementedError
@@ -108,6 +110,7 @@ class Backlash(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "backlash"
+    default_sweep: ClassVar[tuple[str, ...]] = ("alpha", "lam", "psi")
 
     def validate(self, prefix):
         super().validate(prefix)
@@ -269,6 +272,8 @@ class PrandtlIshlinskii(_Plays):
     z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "pi"
+    # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
+    default_sweep: ClassVar[tuple[str, ...]] = ("p0", "p[0]", "r[0]", "p[9]")
 
     def band(self, u):
         r = jnp.asarray(self.r)
@@ -311,6 +316,8 @@ class GeneralizedPI(_Plays):
     z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "gpi"
+    default_sweep: ClassVar[tuple[str, ...]] = ("p0", "envelope_left[0]", "envelope_right[0]",
+                                                "p[0]")
 
     def expected_shapes(self, n):
         return {**super().expected_shapes(n), "envelope_left": (4,), "envelope_right": (4,)}
@@ -396,6 +403,7 @@ class BoucWen(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "bouc_wen"
+    default_sweep: ClassVar[tuple[str, ...]] = ("a", "b", "beta", "gamma")
 
     def validate(self, prefix):
         super().validate(prefix)
