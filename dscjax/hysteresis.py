@@ -347,8 +347,9 @@ class GeneralizedPI(_Plays):
         return jnp.asarray(self.p0)
 
     def d1_limits(self):
-        """sum p_j (gamma_r(-inf) + r_j) as u -> -inf, sum p_j (gamma_l(+inf) - r_j) as
-        u -> +inf, with gamma(-+inf) = d -+ |a| sgn(b)... i.e. d -+ a for b > 0."""
+        """sum p_j (gamma_r(-inf) + r_j) as u -> -inf (the plays dragged down along gamma_r
+        + r_j) and sum p_j (gamma_l(+inf) - r_j) as u -> +inf, with gamma(+-inf) =
+        d +- a sgn(b)."""
         el, er = jnp.asarray(self.envelope_left), jnp.asarray(self.envelope_right)
         p, r = jnp.asarray(self.p), jnp.asarray(self.r)
         right_low = er[..., 3] - er[..., 0] * jnp.sign(er[..., 1])
@@ -443,7 +444,7 @@ class BoucWen(Hysteresis):
         return jnp.asarray(self.a)
 
     def d1_limits(self):
-        """b h_max as u -> -inf... with sign: h -> -h_max as u -> -inf, +h_max as u -> +inf."""
+        """-b h_max as u -> -inf and +b h_max as u -> +inf (h tends to -+h_max)."""
         bound = self.b * self.h_max()
         return -bound, bound
 
