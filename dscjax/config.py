@@ -15,6 +15,7 @@ import dataclasses
 import json
 import math
 import tomllib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -25,7 +26,7 @@ from dscjax import disturbance, validation
 from dscjax.closed_loop import Setup
 from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
-from dscjax.hysteresis import Backlash
+from dscjax.hysteresis import Backlash, BoucWen, GeneralizedPI, PrandtlIshlinskii
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
 from dscjax.validation import ConfigError
@@ -33,11 +34,13 @@ from dscjax.validation import ConfigError
 # kind name -> class, per section; the key that selects the kind.
 REGISTRY: dict[str, dict[str, type]] = {
     "plant": {PaperPlant.kind: PaperPlant, StrictFeedback.kind: StrictFeedback},
-    "hysteresis": {Backlash.kind: Backlash},
+    "hysteresis": {c.kind: c for c in (Backlash, PrandtlIshlinskii, GeneralizedPI, BoucWen)},
     "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
-KIND_KEY = {"plant": "family", "hysteresis": "model", "controller": "kind", "reference": "kind"}
+KIND_KEY = {"plant": "family", "hysteresis": "kind", "controller": "kind", "reference": "kind"}
+# The kind key's earlier spelling, still read (with a FutureWarning), never written.
+OLD_KIND_KEY = {"hysteresis": "model"}
 # Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
 # "kind" key; absent (None) unless the config gives the table.
 SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
@@ -151,13 +154,26 @@ DOCS: dict[str, str] = {
     "plant.rho_quad": "see rho_const: the known bounds rho_i of |Delta_i| (Assumption 2)",
     "plant.delta_sin": "Delta_i += delta_sin_i sin(x_(i+1))",
     "plant.delta_quad": "Delta_i += delta_quad_i (x_1^2 + ... + x_i^2) sin^3(delta_freq t)",
-    "hysteresis.model": "backlash: w' = alpha |u'| (lam u - w) + psi u', eq. (4)",
+    "hysteresis.kind": "backlash (eq. 4) | pi | gpi | bouc_wen (docs/hysteresis.md)",
     "hysteresis.alpha": "alpha > 0",
     "hysteresis.lam": "lambda > psi",
     "hysteresis.psi": "psi",
     "hysteresis.w0": "w(0) (not given in the paper)",
     "hysteresis.smooth_delta": "width of the smooth |u'| when smooth = true",
     "hysteresis.smooth": "replace |u'| by sqrt(u'^2 + delta^2) - delta",
+    "hysteresis.p0": "w = p0 u + sum_j p_j z_j; p0 >= 0",
+    "hysteresis.r": "play thresholds r_1 < ... < r_N, >= 0",
+    "hysteresis.p": "play weights p_1..p_N >= 0",
+    "hysteresis.z0": "plays' outputs before t = 0: one number or N",
+    "hysteresis.envelope_left": "gpi: [a, b, c, d] of gamma_l = a tanh(b u + c) + d (u rising)",
+    "hysteresis.envelope_right": "gpi: [a, b, c, d] of gamma_r (u falling)",
+    "hysteresis.a": "bouc_wen: w = a u + b h; a > 0",
+    "hysteresis.b": "bouc_wen: weight of h",
+    "hysteresis.A": "bouc_wen: h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n",
+    "hysteresis.beta": "bouc_wen: beta + gamma > 0",
+    "hysteresis.gamma": "bouc_wen",
+    "hysteresis.n": "bouc_wen: exponent n >= 1",
+    "hysteresis.h0": "bouc_wen: h(0)",
     "controller.kind": "dsc (Section 2) or backstepping (baseline)",
     "controller.k": "gains k_1..k_n > 0, eqs. (16), (22), (30)",
     "controller.tau": "filter time constants tau_2..tau_n > 0, eqs. (18), (24)",
@@ -297,6 +313,14 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     """Build one model from its table, over `base` (a model of the same kind) if given."""
     kinds = REGISTRY[section]
     kind_key = KIND_KEY[section]
+    old = OLD_KIND_KEY.get(section)
+    if old in table:
+        if kind_key in table:
+            raise ConfigError(f"{section}.{old} is the old name of {section}.{kind_key}: give "
+                              f"only {section}.{kind_key}")
+        warnings.warn(f"{section}.{old} is deprecated: write {section}.{kind_key}",
+                      FutureWarning, stacklevel=2)
+        table = {(kind_key if k == old else k): val for k, val in table.items()}
     kind = table.get(kind_key, type(base).kind if base is not None else None)
     validation.one_of(kind, f"{section}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
@@ -324,7 +348,7 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
             values[name] = _coerce(section, name, table[name], static, default)
         elif base is not None:
             values[name] = default
-        elif f.default is dataclasses.MISSING:
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(f"{section}.{name} is required for {section}.{kind_key} = {kind!r}")
     return cls(**values)
 

@@ -24,6 +24,7 @@ from dscjax.closed_loop import (
     decay_rates,
     initial_state,
     prepared,
+    project,
     vector_field,
 )
 from dscjax.integrate import (
@@ -187,6 +188,8 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     if overrides is None:
         if exponential:
             common["rates"] = decay_rates
+        if type(setup.hysteresis).projects:
+            common["project"] = project
         setup = prepared(setup)
         y0 = initial_state(setup)
         res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
@@ -198,6 +201,8 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
         acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), red.init(dtype))
         if exponential:
             common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
+        if type(setup.hysteresis).projects:
+            common["project"] = lambda t, y, args: project(t, y, rebuild(*args))
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)

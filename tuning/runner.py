@@ -92,6 +92,19 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
     return ()
 
 
+def _model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
+    """Batches left at the default ranges vary the setup's own hysteresis model's numbers
+    (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
+    from dscjax.ranges import default_ranges
+
+    for key in ("robust", "heldout"):
+        b = getattr(cfg, key)
+        if b.ranges == default_ranges():
+            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(
+                b, ranges=default_ranges(setup))})
+    return cfg
+
+
 def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     """Validate the tuning settings against the setup and build the objective.
 
@@ -102,6 +115,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
 
     cfg.validate()
     validate_setup(setup)
+    cfg = _model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
     if window is None:

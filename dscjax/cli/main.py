@@ -20,6 +20,7 @@ COMMANDS = {
     "sweep": "dscjax.cli.sweep",
     "stability": "dscjax.cli.stability",
     "worst-case": "dscjax.cli.worst_case",
+    "hysteresis": "dscjax.cli.hysteresis",
 }
 
 EXIT_USAGE = 2
