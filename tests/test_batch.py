@@ -7,7 +7,8 @@ import pytest
 
 import dscjax
 from dscjax import params
-from dscjax.simulate import _simulate, _simulate_batch
+from dscjax.simulate import _simulate
+from dscjax.simulate import _simulate_batch_top as _simulate_batch
 
 ALPHAS = jnp.array([0.7, 1.0, 1.3])
 LAMS = jnp.array([1.2, 1.432, 1.7])

@@ -1,8 +1,8 @@
 """Exact gradients through the closed loop (issue 10): the time-parallel linearisation of one
 trajectory (reverse and forward mode) and the checkpointed batch equal JAX's own
-differentiation of the scan and central finite differences of the tuning objective; they stay
-finite through a divergence. (The batch gradient's memory against the horizon is measured by
-experiments/bench_gradient.py.)"""
+differentiation of the scan and central finite differences of the tuning objective.
+(Finite gradients through a divergence: tests/test_tuning_gradients.py; the batch gradient's
+memory against the horizon: experiments/bench_gradient.py.)"""
 
 import dataclasses
 
@@ -86,19 +86,3 @@ def test_batch_gradient_through_the_public_api_equals_single_plant_gradients():
     k = jnp.asarray(setup.controller.k) * 1.1
     g = jax.jit(jax.grad(batch_loss))(k)
     _close(g, np.mean([single_grad(k, a) for a in alphas], axis=0))
-
-
-def test_gradient_through_a_diverging_trajectory_is_finite():
-    setup = dscjax.paper_example()
-
-    def loss(k, gradient):
-        s = dscjax.params.set(setup, "controller.k", k)
-        traj = dscjax.run(s, 0.02, 0.0, 1e6, n_steps=100, save_every=10, gradient=gradient)
-        return traj.metrics["l2_error"] + jnp.sum(traj.x ** 2), traj.status.code
-
-    k = jnp.asarray(setup.controller.k)
-    assert int(jax.jit(loss, static_argnums=1)(k, "time_parallel")[1]) != 0  # it diverges
-    g = jax.jit(jax.grad(lambda k: loss(k, "time_parallel")[0]))(k)
-    g_ref = jax.jit(jax.jacfwd(lambda k: loss(k, "autodiff")[0]))(k)
-    assert np.all(np.isfinite(np.asarray(g)))
-    np.testing.assert_allclose(g, g_ref, rtol=1e-10)
