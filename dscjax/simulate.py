@@ -498,36 +498,47 @@ def simulate_batch(
     return traj
 
 
-def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
-                    refine: int) -> Trajectory:
-    """Re-run the diverged members of a batch at the refinement levels 1..refine.
+def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):
+    """Re-run the failed rows of a batch at the refinement levels 1..refine, host-side.
 
-    `level(j, overrides_subset)` simulates a sub-batch at level j (`refinement_level`) with
-    the same save times.
-    Each level runs only the members still diverged, as a batch of their own (padded to a
-    power of two so that sub-batches of similar sizes share one compiled program), and its
-    rows replace theirs. Host-side (concrete arrays in, NumPy arrays in the result).
+    `rows`: a pytree of arrays whose leading axis is the batch; `failed(tree)`: its rows that
+    diverged (bool); `level(j, idx)`: the rows `idx` re-run at level j (`refinement_level`), the
+    same pytree. Each level runs only the rows still diverged, as a batch of their own padded to
+    a power of two (sub-batches of similar sizes share one compiled program), and its rows
+    replace theirs. Returns (rows as NumPy arrays, the level of each row's run: 0 = unrefined).
+    Used by `simulate_batch` and by sweeps.
     """
-    out = jax.tree.map(np.array, traj)
-    out = dataclasses.replace(out, refinements=np.zeros(np.shape(out.status.code), np.int32))
-    todo = np.flatnonzero(np.asarray(out.status.code) != STATUS_OK)
+    out = jax.tree.map(np.array, rows)
+    todo = np.flatnonzero(failed(out))
+    levels = np.zeros(len(failed(out)), np.int32)
     for j in range(1, refine + 1):
         if todo.size == 0:
             break
         size = 1 << int(np.ceil(np.log2(todo.size)))
         idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
-        sub = jax.tree.map(np.asarray, level(j, {p: np.asarray(v)[idx]
-                                                 for p, v in overrides.items()}))
-        sub = dataclasses.replace(sub, refinements=np.full(size, j, np.int32))
-        take = np.arange(todo.size)
+        sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
 
-        def put(dst, src, todo=todo, take=take):
-            dst[todo] = src[take]
+        def put(dst, src, todo=todo):
+            dst[todo] = src
             return dst
 
         out = jax.tree.map(put, out, sub)
-        todo = todo[np.asarray(sub.status.code)[take] != STATUS_OK]
-    return jax.tree.map(jnp.asarray, out)
+        levels[todo] = j
+        todo = todo[failed(sub)]
+    return out, levels
+
+
+def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
+                    refine: int) -> Trajectory:
+    """`refine_rows` for a batch Trajectory: `level(j, overrides_subset)` simulates a
+    sub-batch at level j with the same save times; `refinements` says each member's level."""
+    def rows(j, idx):
+        sub = level(j, {p: np.asarray(v)[idx] for p, v in overrides.items()})
+        return dataclasses.replace(sub, refinements=None)
+
+    out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
+                              lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
+    return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
 
 
 def _simulate_batch_body(setup, overrides, dt, window_start, state_bound, *, n_steps,
@@ -537,19 +548,9 @@ def _simulate_batch_body(setup, overrides, dt, window_start, state_bound, *, n_s
                          checkpoint_every=checkpoint_every, solver=solver)
 
 
-_BATCH_STATIC = ("n_steps", "save_every", "checkpoint_every", "solver")
-# Called at the top level: 512-bit vectors on AVX-512 CPUs (dscjax.xla). Inside a user's jit,
-# grad or vmap JAX refuses compiler options on a nested jit: the plain one is traced into the
-# user's program instead.
-_simulate_batch_top = jax.jit(_simulate_batch_body, static_argnames=_BATCH_STATIC,
-                              compiler_options=xla.compiler_options())
-_simulate_batch_nested = jax.jit(_simulate_batch_body, static_argnames=_BATCH_STATIC)
-
-
-def _simulate_batch(setup, overrides, *args, **kwargs):
-    top = validation.is_concrete((setup, overrides, args))
-    fn = _simulate_batch_top if top else _simulate_batch_nested
-    return fn(setup, overrides, *args, **kwargs)
+# 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
+_simulate_batch = xla.jit(_simulate_batch_body,
+                          static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"))
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

@@ -7,8 +7,7 @@ import pytest
 
 import dscjax
 from dscjax import params
-from dscjax.simulate import _simulate
-from dscjax.simulate import _simulate_batch_top as _simulate_batch
+from dscjax.simulate import _simulate, _simulate_batch
 
 ALPHAS = jnp.array([0.7, 1.0, 1.3])
 LAMS = jnp.array([1.2, 1.432, 1.7])
@@ -61,9 +60,9 @@ def test_changing_numbers_does_not_recompile(paper_setup):
     assert _simulate._cache_size() == before + 1
 
     dscjax.simulate_batch(paper_setup, {"controller.k": jnp.ones((4, 2))}, 0.5, 1e-3)
-    b_before = _simulate_batch._cache_size()
+    b_before = _simulate_batch.top._cache_size()
     dscjax.simulate_batch(paper_setup, {"controller.k": 2 * jnp.ones((4, 2))}, 0.5, 1e-3)
-    assert _simulate_batch._cache_size() == b_before
+    assert _simulate_batch.top._cache_size() == b_before
 
 
 def test_float32_setup_stays_float32(paper_setup):

@@ -11,7 +11,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from dscjax import params, xla
-from dscjax.simulate import nan_if_diverged, refinement_level, run
+from dscjax.simulate import nan_if_diverged, refine_rows, refinement_level, run
 
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
            "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
@@ -28,8 +28,7 @@ def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps
 
 
 # One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
-_block = jax.jit(_block_body, static_argnames=("columns", "n_steps", "solver"),
-                 compiler_options=xla.compiler_options())
+_block = xla.jit(_block_body, static_argnames=("columns", "n_steps", "solver"))
 
 
 class Runner:
@@ -114,37 +113,27 @@ class Runner:
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
                ) -> dict[str, np.ndarray]:
         """Re-run the rows of `table` whose run in `part` diverged, at the refinement levels
-        1..levels of `dscjax.simulate.refinement_level` (ETDRK4 at dt, dt/2, ...), each level
-        only the rows still diverged, as a batch of its own on the first local device (padded
-        to a power of two, so that sub-batches of similar sizes share one compiled program).
-
-        Returns `part` with those rows replaced and two columns added: "refinements" (the
-        level of the reported run: 0 the requested solver at dt) and "dt_used". Every process
-        computes the same rows (deterministic), so no gather is needed."""
-        n = len(next(iter(part.values())))
+        1..levels (`dscjax.simulate.refine_rows`: ETDRK4 at dt, dt/2, ...), on the first local
+        device. Returns `part` with those rows replaced and two columns added: "refinements"
+        (the level of the reported run: 0 the requested solver at dt) and "dt_used". Every
+        process computes the same rows (deterministic), so no gather is needed."""
         dt = float(self.scalars[0])
-        out = {k: np.array(v) for k, v in part.items()}
-        out["refinements"] = np.zeros(n, np.int8)
-        out["dt_used"] = np.full(n, dt)
-        todo = np.flatnonzero(out["status"] != 0)
         device = self.local[0] if self.local else self.devices[0]
         setup = jax.device_put(self._setup, device)
-        for j in range(1, levels + 1):
-            if todo.size == 0:
-                break
+        rows = np.asarray(table, self.dtype)
+
+        def level(j, idx):
             solver, m = refinement_level(j, self.solver)
-            size = 1 << int(np.ceil(np.log2(todo.size)))
-            rows = np.asarray(table, self.dtype)[np.concatenate(
-                [todo, np.full(size - todo.size, todo[0])])]
-            scalars = (np.asarray(dt / 2**m, self.dtype), *self.scalars[1:])
-            sub = _block(setup, jax.device_put(rows, device), *scalars, columns=self.columns,
-                         n_steps=self.n_steps * 2**m, solver=solver)
-            sub = {k: np.asarray(v)[:todo.size] for k, v in sub.items()}
-            for k, v in sub.items():
-                out[k][todo] = v
-            out["refinements"][todo] = j
-            out["dt_used"][todo] = dt / 2**m
-            todo = todo[sub["status"] != 0]
+            return _block(setup, jax.device_put(rows[idx], device),
+                          np.asarray(dt / 2**m, self.dtype), *self.scalars[1:],
+                          columns=self.columns, n_steps=self.n_steps * 2**m, solver=solver)
+
+        out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
+        halvings = np.zeros(level_of.shape, np.int64)
+        for j in np.unique(level_of):
+            halvings[level_of == j] = refinement_level(int(j), self.solver)[1]
+        out["refinements"] = level_of.astype(np.int8)
+        out["dt_used"] = dt / 2.0**halvings
         return out
 
 
