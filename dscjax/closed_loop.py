@@ -6,7 +6,7 @@ adaptive laws, integrated together.
 h is the hysteresis model's state and w = P(u, h) its output (for the backlash-like model (4),
 h = w). u is an algebraic function of (controller state, x, t); X' does not depend on w',
 so u' = du/dX . X' + du/dt is one forward-mode derivative (jvp) of the control law along F:
-exact, at every RK4 stage, with no algebraic loop (NOTES.md).
+exact, at every RK4 stage, with no algebraic loop (docs/numerics.md).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import jax.numpy as jnp
 
 from dscjax._fusion import barrier
 from dscjax.controllers.base import Controller
-from dscjax.hysteresis import Backlash
+from dscjax.hysteresis import Hysteresis
 from dscjax.plant import Plant
 from dscjax.reference import Reference
 
@@ -35,13 +35,13 @@ class Setup:
 
     Attributes:
         plant: a `Plant` (its `x0` is the initial state x(0)).
-        hysteresis: a hysteresis model (its `w0` is w(0)).
+        hysteresis: a `Hysteresis` model (its initial state, e.g. w0 or z0, is part of it).
         controller: a `Controller` (its initial estimates are part of it).
         reference: a `Reference` y_r(t).
     """
 
     plant: Plant
-    hysteresis: Backlash
+    hysteresis: Hysteresis
     controller: Controller
     reference: Reference
 
@@ -78,10 +78,15 @@ def prepared(setup: Setup) -> Setup:
 
 
 def initial_state(setup: Setup) -> State:
-    """X(0) for a prepared setup: x(0), the hysteresis state and the controller's state."""
+    """X(0) for a prepared setup: x(0), the hysteresis state and the controller's state.
+
+    The hysteresis state may depend on u(0) (a play's output z(0) = max(u0 - r, min(u0 + r,
+    z0))), which is the control law at (x(0), controller state, t = 0)."""
     x0 = jnp.asarray(setup.plant.x0)
-    h0 = jax.tree.map(lambda v: jnp.asarray(v, dtype=x0.dtype), setup.hysteresis.init_state())
-    return State(x=x0, h=h0, ctrl=setup.controller.init_state(setup.plant, setup.reference))
+    c0 = setup.controller.init_state(setup.plant, setup.reference)
+    u0, _ = setup.controller.law(c0, x0, jnp.zeros((), x0.dtype), setup.plant, setup.reference)
+    h0 = jax.tree.map(lambda v: jnp.asarray(v, dtype=x0.dtype), setup.hysteresis.init_state(u0))
+    return State(x=x0, h=h0, ctrl=c0)
 
 
 def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
@@ -117,5 +122,13 @@ def decay_rates(t, X: State, setup: Setup, obs: Observation) -> State:
                  ctrl=setup.controller.decay_rates(X.ctrl))
 
 
+def project(t, X: State, setup: Setup) -> State:
+    """The discrete update after every step, at its end (t, X): the hysteresis's `project`, the
+    play operators' exact clamp at u(t) = the control law at X; the rest of X is an ODE state.
+    The setup must be `prepared`."""
+    u, _ = setup.controller.law(X.ctrl, X.x, t, setup.plant, setup.reference)
+    return X._replace(h=setup.hysteresis.project(u, X.h))
+
+
 __all__ = ["Setup", "State", "Observation", "prepared", "initial_state", "vector_field",
-           "decay_rates", "Controller"]
+           "decay_rates", "project", "Controller"]

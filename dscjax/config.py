@@ -15,17 +15,18 @@ import dataclasses
 import json
 import math
 import tomllib
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from dscjax import validation
+from dscjax import disturbance, validation
 from dscjax.closed_loop import Setup
 from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
-from dscjax.hysteresis import Backlash
+from dscjax.hysteresis import Backlash, BoucWen, GeneralizedPI, PrandtlIshlinskii
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
 from dscjax.validation import ConfigError
@@ -33,11 +34,16 @@ from dscjax.validation import ConfigError
 # kind name -> class, per section; the key that selects the kind.
 REGISTRY: dict[str, dict[str, type]] = {
     "plant": {PaperPlant.kind: PaperPlant, StrictFeedback.kind: StrictFeedback},
-    "hysteresis": {Backlash.kind: Backlash},
+    "hysteresis": {c.kind: c for c in (Backlash, PrandtlIshlinskii, GeneralizedPI, BoucWen)},
     "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
-KIND_KEY = {"plant": "family", "hysteresis": "model", "controller": "kind", "reference": "kind"}
+KIND_KEY = {"plant": "family", "hysteresis": "kind", "controller": "kind", "reference": "kind"}
+# The kind key's earlier spelling, still read (with a FutureWarning), never written.
+OLD_KIND_KEY = {"hysteresis": "model"}
+# Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
+# "kind" key; absent (None) unless the config gives the table.
+SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
 
 
 # A saved trajectory keeps at most this many points unless simulation.save_every says otherwise
@@ -87,10 +93,14 @@ def _plain(value):
     return [float(x) for x in a.ravel()] if a.ndim == 1 else a.tolist()
 
 
-def model_to_dict(section: str, model) -> dict[str, Any]:
-    out: dict[str, Any] = {KIND_KEY[section]: type(model).kind}
+def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str, Any]:
+    out: dict[str, Any] = {kind_key or KIND_KEY[section]: type(model).kind}
     for f in dataclasses.fields(model):
         value = getattr(model, f.name)
+        if (section, f.name) in SUBMODELS:
+            if value is not None:  # a sub-table; TOML has no null, so None is left out
+                out[f.name] = model_to_dict(f"{section}.{f.name}", value, "kind")
+            continue
         out[f.name] = value if f.metadata.get("static") else _plain(value)
     return out
 
@@ -130,6 +140,13 @@ DOCS: dict[str, str] = {
     "plant.dbar_amp": "disturbance dbar = dbar_amp sin(dbar_freq t) + dbar_bias",
     "plant.dbar_freq": "frequency [rad/s] of the disturbance dbar",
     "plant.dbar_bias": "constant part of the disturbance dbar",
+    "plant.disturbance.kind": "waveform added to dbar: fourier | spline (dscjax.disturbance)",
+    "plant.disturbance.coefficients": "fourier: [c_0, a_1..a_K, b_1..b_K], dbar += c_0 + "
+                                      "sum a_j cos(2 pi j t/P) + b_j sin(2 pi j t/P)",
+    "plant.disturbance.period": "fourier: period P [s] > 0",
+    "plant.disturbance.knots": "spline: values at K equally spaced times on [0, horizon] "
+                               "(monotone cubic, stays within the knots)",
+    "plant.disturbance.horizon": "spline: time [s] of the last knot > 0",
     "plant.f_quad": "f_i += f_quad_i x_i^2",
     "plant.f_sin": "f_i += f_sin_i sin(x_i)",
     "plant.f_cross": "f_i += f_cross_i x_(i-1) x_i",
@@ -137,13 +154,26 @@ DOCS: dict[str, str] = {
     "plant.rho_quad": "see rho_const: the known bounds rho_i of |Delta_i| (Assumption 2)",
     "plant.delta_sin": "Delta_i += delta_sin_i sin(x_(i+1))",
     "plant.delta_quad": "Delta_i += delta_quad_i (x_1^2 + ... + x_i^2) sin^3(delta_freq t)",
-    "hysteresis.model": "backlash: w' = alpha |u'| (lam u - w) + psi u', eq. (4)",
+    "hysteresis.kind": "backlash (eq. 4) | pi | gpi | bouc_wen (docs/hysteresis.md)",
     "hysteresis.alpha": "alpha > 0",
     "hysteresis.lam": "lambda > psi",
     "hysteresis.psi": "psi",
     "hysteresis.w0": "w(0) (not given in the paper)",
     "hysteresis.smooth_delta": "width of the smooth |u'| when smooth = true",
     "hysteresis.smooth": "replace |u'| by sqrt(u'^2 + delta^2) - delta",
+    "hysteresis.p0": "w = p0 u + sum_j p_j z_j; p0 >= 0",
+    "hysteresis.r": "play thresholds r_1 < ... < r_N, >= 0",
+    "hysteresis.p": "play weights p_1..p_N >= 0",
+    "hysteresis.z0": "plays' outputs before t = 0: one number or N",
+    "hysteresis.envelope_left": "gpi: [a, b, c, d] of gamma_l = a tanh(b u + c) + d (u rising)",
+    "hysteresis.envelope_right": "gpi: [a, b, c, d] of gamma_r (u falling)",
+    "hysteresis.a": "bouc_wen: w = a u + b h; a > 0",
+    "hysteresis.b": "bouc_wen: weight of h",
+    "hysteresis.A": "bouc_wen: h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n",
+    "hysteresis.beta": "bouc_wen: beta + gamma > 0",
+    "hysteresis.gamma": "bouc_wen",
+    "hysteresis.n": "bouc_wen: exponent n >= 1",
+    "hysteresis.h0": "bouc_wen: h(0)",
     "controller.kind": "dsc (Section 2) or backstepping (baseline)",
     "controller.k": "gains k_1..k_n > 0, eqs. (16), (22), (30)",
     "controller.tau": "filter time constants tau_2..tau_n > 0, eqs. (18), (24)",
@@ -215,13 +245,19 @@ def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
     lines = [f"# {line}" for line in header.splitlines()]
     for section, table in d.items():
         lines += ["", f"[{section}]"] if lines else [f"[{section}]"]
+        subtables = {}
         for k, v in table.items():
+            if isinstance(v, Mapping):
+                subtables[f"{section}.{k}"] = v
+                continue
             if isinstance(v, Omitted):
                 line = f"# {k} = {toml_value(v.value)}"
             else:
                 line = f"{k} = {toml_value(v)}"
             doc = DOCS.get(f"{section}.{k}")
             lines.append(f"{line:<38s} # {doc}" if doc else line)
+        if subtables:
+            lines += ["", dumps_toml(subtables).rstrip("\n")]
     return "\n".join(lines) + "\n"
 
 
@@ -277,6 +313,14 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     """Build one model from its table, over `base` (a model of the same kind) if given."""
     kinds = REGISTRY[section]
     kind_key = KIND_KEY[section]
+    old = OLD_KIND_KEY.get(section)
+    if old in table:
+        if kind_key in table:
+            raise ConfigError(f"{section}.{old} is the old name of {section}.{kind_key}: give "
+                              f"only {section}.{kind_key}")
+        warnings.warn(f"{section}.{old} is deprecated: write {section}.{kind_key}",
+                      FutureWarning, stacklevel=2)
+        table = {(kind_key if k == old else k): val for k, val in table.items()}
     kind = table.get(kind_key, type(base).kind if base is not None else None)
     validation.one_of(kind, f"{section}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
@@ -295,12 +339,42 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     for name, f in fields.items():
         static = bool(f.metadata.get("static"))
         default = getattr(base, name) if base is not None else f.default
-        if name in table:
+        if (section, name) in SUBMODELS:
+            values[name] = default
+            if name in table:
+                values[name] = _submodel(f"{section}.{name}", table[name],
+                                         SUBMODELS[section, name], default)
+        elif name in table:
             values[name] = _coerce(section, name, table[name], static, default)
         elif base is not None:
             values[name] = default
-        elif f.default is dataclasses.MISSING:
+        elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
             raise ConfigError(f"{section}.{name} is required for {section}.{kind_key} = {kind!r}")
+    return cls(**values)
+
+
+def _submodel(field: str, table, kinds: Mapping[str, type], base):
+    """A model held by a field (`SUBMODELS`) from its sub-table, over `base` if the same kind."""
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"'{field}' must be a table ([{field}]) with a 'kind' key")
+    kind = table.get("kind", type(base).kind if base is not None else None)
+    validation.one_of(kind, f"{field}.kind", tuple(kinds))
+    cls = kinds[kind]
+    base = base if type(base) is cls else None
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    for key in table:
+        if key != "kind" and key not in fields:
+            raise ConfigError(f"unknown key '{field}.{key}' (allowed: kind, "
+                              f"{', '.join(fields)})")
+    values = {}
+    for name, f in fields.items():
+        if name in table:
+            value = _coerce(field, name, table[name], False, None)
+            values[name] = np.atleast_1d(value) if name == cls.coefficients_name else value
+        elif base is not None:
+            values[name] = getattr(base, name)
+        elif f.default is dataclasses.MISSING:
+            raise ConfigError(f"{field}.{name} is required for {field}.kind = {kind!r}")
     return cls(**values)
 
 

@@ -120,7 +120,19 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
     return cast(setup, dtype if dtype is not None else _default_float())
 
 
-EXAMPLES = ("paper", "backstepping", "order-N")  # order-N: the order-n family, N >= 2
+# order-N: the order-n family, N >= 2; pi, gpi, bouc_wen: the paper's loop on another actuator
+EXAMPLES = ("paper", "backstepping", "order-N", "pi", "gpi", "bouc_wen")
+
+
+def hysteresis_example(kind: str, dtype=None) -> Setup:
+    """The paper's loop (plant, DSC gains, reference) with the `kind` hysteresis model at its
+    class defaults, whose large-amplitude slope and offset are close to the paper's
+    (docs/hysteresis.md): "pi", "gpi" or "bouc_wen" ("backlash" is `paper_example`)."""
+    from dscjax.config import REGISTRY
+
+    setup = paper_example(dtype=np.float64)
+    setup = setup.replace(hysteresis=REGISTRY["hysteresis"][kind]())
+    return cast(setup, dtype if dtype is not None else _default_float())
 
 
 def example(name: str, dtype=None) -> Setup:
@@ -129,7 +141,8 @@ def example(name: str, dtype=None) -> Setup:
     - "paper": the paper's Section 4 (`paper_example`), the default;
     - "backstepping": the paper's plant with the adaptive backstepping baseline (the DSC's
       gains, `Backstepping.from_dsc`);
-    - "order-N" (N >= 2): the order-n family of `order_n_example` (S_i(0) = 0, tau = 0.05).
+    - "order-N" (N >= 2): the order-n family of `order_n_example` (S_i(0) = 0, tau = 0.05);
+    - "pi", "gpi", "bouc_wen": the paper's loop behind another actuator (`hysteresis_example`).
 
     Example:
         >>> import dscjax
@@ -146,5 +159,7 @@ def example(name: str, dtype=None) -> Setup:
         return with_backstepping(paper_example(dtype=dtype))
     if name.startswith("order-") and name[6:].isdigit() and int(name[6:]) >= 2:
         return order_n_example(int(name[6:]), dtype=dtype)
-    raise ConfigError(f"--example must be paper, backstepping or order-N with N >= 2, e.g. "
-                      f"order-4 (got {name!r})")
+    if name in ("pi", "gpi", "bouc_wen"):
+        return hysteresis_example(name, dtype=dtype)
+    raise ConfigError(f"--example must be paper, backstepping, order-N with N >= 2 (e.g. "
+                      f"order-4), pi, gpi or bouc_wen (got {name!r})")

@@ -1,27 +1,96 @@
-"""Backlash-like hysteresis, eq. (4)-(8) of the paper (Su et al. 2000).
+"""Hysteresis actuators w = P[u] behind the DSC: the backlash-like model (4) of the paper (Su et
+al. 2000, the default), Prandtl-Ishlinskii, generalized Prandtl-Ishlinskii and Bouc-Wen.
 
-    w' = alpha |u'| (lam u - w) + psi u',      lam > psi, alpha > 0.
+Every model is a `Hysteresis` (numbers traced, the class and its options static) with one
+interface, used by the closed loop (`closed_loop.py`) and by the open-loop driver `open_loop`:
 
-In the closed loop w is a state; u' is supplied by the closed loop (a forward-mode derivative
-of the control law along the vector field, see `closed_loop.py`). On a segment where u is
-monotone the equation is linear in u and has the closed form (5)-(6), implemented in
-`closed_form` as the test oracle.
+    init_state(u0)        -> h(0), the model's state (a pytree), given u(0) = u0
+    output(u, h)          -> w, the actuator's output, which drives the plant
+    rate(u, du, h)        -> h', given u and its exact derivative u' = du
+    decay_rate(u, du, h)  -> rates >= 0 (like h) of the stiff linear decays in `rate`, which the
+                             exponential step (ETDRK4) integrates exactly
+    project(u, h)         -> h after a step, u at its end: the plays' exact clamp (else h)
+    effective_slope()     -> lam of w = lam u + d_1(u) with d_1 bounded, eq. (5)
+    d1_limits()           -> limits of d_1 as u -> -inf and u -> +inf, eqs. (7)-(8)
+
+The models (docs/hysteresis.md):
+
+- `Backlash` ("backlash"): w' = alpha |u'| (lam u - w) + psi u', eq. (4); h = w. On a monotone
+  segment of u it has the closed form (5)-(6), `closed_form`, the test oracle.
+- `PrandtlIshlinskii` ("pi"): w = p0 u + sum_j p_j F_(r_j)[u], with the play operator
+  z(t) = max(u(t) - r, min(u(t) + r, z(t-))).
+- `GeneralizedPI` ("gpi"): G_r[u](t) = max(gamma_l(u) - r, min(gamma_r(u) + r, G_r(t-))),
+  gamma(u) = a tanh(b u + c) + d; w = p0 u + sum_j p_j G_(r_j)[u].
+- `BoucWen` ("bouc_wen"): w = a u + b h, h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n.
+
+How a play operator is advanced (measured in docs/hysteresis.md). A play is rate-independent
+and non-smooth, so it is not written as an ODE. Its state z (N,) holds the plays' outputs at the
+start of the step; inside the step z is frozen and every RK4 stage reads the output through the
+exact clamp max(lo(u), min(hi(u), z)) at that stage's u. After the step, `project(u, z)` applies
+the clamp at the step's end, with u the control law at the new state (the integrator's
+`project` hook; one extra evaluation of the law per step). This is the exact recursion on the
+step grid. The ODE form z' = u' [on the active branch] instead lets RK4's intermediate stages
+pick the branch from perturbed states and keeps an error of a fraction of one step's input
+change from every reversal (experiments/hysteresis_play_numerics.py). Carrying u in the state
+(v' = u') instead of re-evaluating the law drifted by 7e-3 in the paper's loop, where u' jumps
+when the robust term saturates.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
 from dscjax._smooth import smooth_abs
-from dscjax.model import Model, option, positive
+from dscjax.model import Model, nonnegative, option, positive
 
 
-class Backlash(Model):
+class Hysteresis(Model):
+    """The interface every hysteresis model provides (see the module docstring)."""
+
+    kind: ClassVar[str]
+    # True if `project` does something: the integrator then applies it after every step.
+    projects: ClassVar[bool] = False
+    # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
+    default_sweep: ClassVar[tuple[str, ...]] = ()
+
+    def init_state(self, u0):
+        raise NotImplementedError
+
+    def output(self, u, h):
+        raise NotImplementedError
+
+    def rate(self, u, du, h):
+        raise NotImplementedError
+
+    def decay_rate(self, u, du, h):
+        return jax.tree.map(jnp.zeros_like, h)
+
+    def project(self, u, h):
+        return h
+
+    def effective_slope(self):
+        raise NotImplementedError
+
+    def d1_limits(self):
+        raise NotImplementedError
+
+    def d1_bound(self):
+        """A bound of |d_1| once it has settled: the larger limit (7)-(8) in magnitude."""
+        lo, hi = self.d1_limits()
+        return jnp.maximum(jnp.abs(lo), jnp.abs(hi))
+
+
+# -- backlash-like hysteresis (4) -----------------------------------------------------------------
+
+
+class Backlash(Hysteresis):
     """Backlash-like hysteresis w = P(u), eq. (4).
 
     Attributes:
@@ -41,6 +110,7 @@ class Backlash(Model):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "backlash"
+    default_sweep: ClassVar[tuple[str, ...]] = ("alpha", "lam", "psi")
 
     def validate(self, prefix):
         super().validate(prefix)
@@ -49,8 +119,8 @@ class Backlash(Model):
             raise v.ConfigError(f"{prefix}.lam must be > {prefix}.psi (got lam={v.fmt(lam)}, "
                                 f"psi={v.fmt(psi)})")
 
-    def init_state(self):
-        """The model's state at t = 0: for (4) the output itself, w(0) = w0."""
+    def init_state(self, u0=None):
+        """The model's state at t = 0: for (4) the output itself, w(0) = w0 (u0 unused)."""
         return self.w0
 
     def output(self, u, w):
@@ -66,6 +136,10 @@ class Backlash(Model):
         """The rate a >= 0 of the linear decay -a w in eq. (4): alpha |u'|. It makes the loop
         stiff where |u'| is large; the exponential step integrates it exactly."""
         return self.alpha * (smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du))
+
+    def effective_slope(self):
+        """lam of (5): w = lam u + d_1(u)."""
+        return jnp.asarray(self.lam)
 
     def d1_limits(self):
         """Limits (7)-(8) of d_1: (lam-psi)/alpha as u -> -inf, -(lam-psi)/alpha as u -> +inf."""
@@ -96,3 +170,357 @@ def closed_form(u, u0, w0, alpha, lam, psi, direction):
     decay = jnp.exp(-alpha * s * (u - u0))
     d1 = (w0 - lam * u0) * decay + (psi - lam) / (alpha * s) * (1.0 - decay)
     return lam * u + d1
+
+
+# -- play operators --------------------------------------------------------------------------------
+
+
+def play(z, lo, hi):
+    """The play's clamp max(lo, min(hi, z)), exactly as defined (lo wins if lo > hi)."""
+    return jnp.maximum(lo, jnp.minimum(hi, z))
+
+
+def envelope(e, u):
+    """gamma(u) = a tanh(b u + c) + d for e = [a, b, c, d] (last axis)."""
+    return e[..., 0] * jnp.tanh(e[..., 1] * u + e[..., 2]) + e[..., 3]
+
+
+def _pi_r():
+    return 0.2 * np.arange(1, 11)
+
+
+def _pi_p():
+    return 0.137 * np.exp(-0.3 * _pi_r())
+
+
+class _Plays(Hysteresis):
+    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own."""
+
+    p0: eqx.AbstractVar[jax.Array]
+    r: eqx.AbstractVar[jax.Array]
+    p: eqx.AbstractVar[jax.Array]
+    z0: eqx.AbstractVar[jax.Array]
+
+    projects: ClassVar[bool] = True
+
+    def band(self, u):
+        """The clamp's bounds (lo, hi), each (N,), at input u."""
+        raise NotImplementedError
+
+    def expected_shapes(self, n):
+        # r, p (N,) and z0 (() or (N,)) are checked against each other in `validate`
+        return {k: s for k, s in super().expected_shapes(n).items() if k not in ("r", "p", "z0")}
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        r, p, z0 = (np.asarray(x, float) for x in (self.r, self.p, self.z0))
+        # last axis: a batch of models (leading axes, `simulate_batch`) is checked elementwise
+        if r.ndim == 0 or r.shape[-1] < 1:
+            raise v.ConfigError(f"{prefix}.r must be a list of N >= 1 thresholds (got "
+                                f"{v.fmt(r)})")
+        n = r.shape[-1]
+        if p.ndim == 0 or p.shape[-1] != n:
+            raise v.ConfigError(f"{prefix}.p must have one weight per threshold of {prefix}.r: "
+                                f"length {n} (got {'a scalar' if p.ndim == 0 else p.shape[-1]})")
+        if z0.ndim > 0 and z0.shape[-1] != n:
+            raise v.ConfigError(f"{prefix}.z0 must be one number or one per threshold of "
+                                f"{prefix}.r: length {n} (got length {z0.shape[-1]})")
+        if np.any(r < 0):
+            raise v.ConfigError(f"{prefix}.r must be >= 0: play thresholds (got {v.fmt(r)})")
+        if n > 1 and not np.all(np.diff(r, axis=-1) > 0):
+            raise v.ConfigError(f"{prefix}.r must be strictly increasing (got {v.fmt(r)})")
+
+    def init_state(self, u0):
+        """z(0) = max(lo(u0), min(hi(u0), z0)): the plays' outputs at t = 0 (N,)."""
+        lo, hi = self.band(jnp.asarray(u0))
+        return play(jnp.broadcast_to(jnp.asarray(self.z0, lo.dtype), lo.shape), lo, hi)
+
+    def plays(self, u, z):
+        """The plays' outputs (N,) at input u, from their outputs z at the step's start."""
+        lo, hi = self.band(u)
+        return play(z, lo, hi)
+
+    def output(self, u, z):
+        return self.p0 * u + jnp.sum(self.p * self.plays(u, z), axis=-1)
+
+    def rate(self, u, du, z):
+        """0: z is frozen inside a step (the stages read it through the clamp)."""
+        return jnp.zeros_like(z)
+
+    def project(self, u, z):
+        """The exact clamp at the step's end: z <- max(lo(u), min(hi(u), z))."""
+        return self.plays(u, z)
+
+
+class PrandtlIshlinskii(_Plays):
+    """Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j F_(r_j)[u] (N play operators).
+
+    The defaults are the issue's example: r_j = 0.2 j (j = 1..10), p_j = 0.137 exp(-0.3 r_j),
+    p0 = 0.432: large-amplitude slope p0 + sum p_j = 1.43 and offset sum p_j r_j = 1.00,
+    against the paper's lam = 1.432 and (lam - psi)/alpha = 1.33.
+
+    Attributes:
+        p0: () weight of the linear term, >= 0.
+        r: (N,) thresholds, >= 0 and strictly increasing.
+        p: (N,) weights, >= 0.
+        z0: () or (N,) the plays' outputs before t = 0: z(0) = max(u0 - r, min(u0 + r, z0)).
+    """
+
+    p0: jax.Array = nonnegative(default=0.432)
+    r: jax.Array = eqx.field(default_factory=_pi_r)
+    p: jax.Array = nonnegative(default_factory=_pi_p)
+    z0: jax.Array = 0.0
+
+    kind: ClassVar[str] = "pi"
+    # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
+    default_sweep: ClassVar[tuple[str, ...]] = ("p0", "p[0]", "r[0]", "p[9]")
+
+    def band(self, u):
+        r = jnp.asarray(self.r)
+        u = jnp.asarray(u)[..., None]
+        return u - r, u + r
+
+    def effective_slope(self):
+        """lam = p0 + sum p_j: w = lam u + d_1 with d_1 = sum p_j (z_j - u), |z_j - u| <= r_j."""
+        return self.p0 + jnp.sum(jnp.asarray(self.p), axis=-1)
+
+    def d1_limits(self):
+        """sum p_j r_j as u -> -inf (z_j = u + r_j), -sum p_j r_j as u -> +inf."""
+        bound = jnp.sum(jnp.asarray(self.p) * jnp.asarray(self.r), axis=-1)
+        return bound, -bound
+
+
+_GPI_LEFT = (8.0, 0.125, -0.02, 0.0)
+_GPI_RIGHT = (8.0, 0.125, 0.02, 0.0)
+
+
+class GeneralizedPI(_Plays):
+    """Generalized Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j G_(r_j)[u], each play
+    clamped between gamma_l(u) - r_j and gamma_r(u) + r_j, gamma(u) = a tanh(b u + c) + d.
+
+    The defaults: the P-I example's p0, r, p with envelopes 8 tanh(0.125 u -+ 0.02), close to
+    u - +0.16 for |u| <= 3 and saturating at +-8 (a magnetostrictive actuator's shape).
+
+    Attributes:
+        envelope_left: (4,) [a, b, c, d] of gamma_l, which drags the plays while u rises;
+            increasing (a b > 0).
+        envelope_right: (4,) [a, b, c, d] of gamma_r (u falling); increasing.
+        p0, r, p, z0: as for `PrandtlIshlinskii`.
+    """
+
+    envelope_left: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_LEFT))
+    envelope_right: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_RIGHT))
+    p0: jax.Array = nonnegative(default=0.432)
+    r: jax.Array = eqx.field(default_factory=_pi_r)
+    p: jax.Array = nonnegative(default_factory=_pi_p)
+    z0: jax.Array = 0.0
+
+    kind: ClassVar[str] = "gpi"
+    default_sweep: ClassVar[tuple[str, ...]] = ("p0", "envelope_left[0]", "envelope_right[0]",
+                                                "p[0]")
+
+    def expected_shapes(self, n):
+        return {**super().expected_shapes(n), "envelope_left": (4,), "envelope_right": (4,)}
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        for side in ("left", "right"):
+            e = np.asarray(getattr(self, f"envelope_{side}"), float)
+            if e.ndim == 0 or e.shape[-1] != 4:
+                raise v.ConfigError(f"{prefix}.envelope_{side} must be [a, b, c, d] (got "
+                                    f"{v.fmt(e)})")
+            if not np.all(e[..., 0] * e[..., 1] > 0):
+                raise v.ConfigError(
+                    f"{prefix}.envelope_{side} = [a, b, c, d] must be increasing: a*b > 0 (got "
+                    f"a={v.fmt(e[..., 0])}, b={v.fmt(e[..., 1])})")
+
+    def band(self, u):
+        r = jnp.asarray(self.r)
+        u = jnp.asarray(u)[..., None]
+        return (envelope(jnp.asarray(self.envelope_left), u) - r,
+                envelope(jnp.asarray(self.envelope_right), u) + r)
+
+    def effective_slope(self):
+        """p0: the envelopes saturate, so w = p0 u + d_1 with d_1 = sum p_j G_j bounded is the
+        decomposition (5) that holds for every u. Near u = 0 the loop is steeper:
+        p0 + sum p_j gamma'(0)."""
+        return jnp.asarray(self.p0)
+
+    def d1_limits(self):
+        """sum p_j (gamma_r(-inf) + r_j) as u -> -inf (the plays dragged down along gamma_r
+        + r_j) and sum p_j (gamma_l(+inf) - r_j) as u -> +inf, with gamma(+-inf) =
+        d +- a sgn(b)."""
+        el, er = jnp.asarray(self.envelope_left), jnp.asarray(self.envelope_right)
+        p, r = jnp.asarray(self.p), jnp.asarray(self.r)
+        right_low = er[..., 3] - er[..., 0] * jnp.sign(er[..., 1])
+        left_high = el[..., 3] + el[..., 0] * jnp.sign(el[..., 1])
+        return (jnp.sum(p * (right_low[..., None] + r), axis=-1),
+                jnp.sum(p * (left_high[..., None] - r), axis=-1))
+
+
+# -- Bouc-Wen --------------------------------------------------------------------------------------
+
+
+def _pow_abs(h, n):
+    """|h|^n with finite derivatives at h = 0 (double where)."""
+    zero = h == 0
+    safe = jnp.where(zero, 1.0, jnp.abs(h))
+    return jnp.where(zero, 0.0, safe ** n)
+
+
+def _pow_abs_m1(h, n):
+    """|h|^(n-1) for n >= 1, finite at h = 0 (1 there for n = 1, 0 for n > 1)."""
+    zero = h == 0
+    safe = jnp.where(zero, 1.0, jnp.abs(h))
+    return jnp.where(zero, jnp.where(n == 1, 1.0, 0.0), safe ** (n - 1.0))
+
+
+class BoucWen(Hysteresis):
+    """Bouc-Wen hysteresis: w = a u + b h, h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n.
+
+    For beta >= |gamma| and |h0| <= h_max = (A / (beta + gamma))^(1/n), |h| <= h_max, so
+    w = a u + d_1 with |d_1| = |b h| <= |b| h_max. The defaults: a = 1.432, b = 1, A = 1,
+    beta = 0.6, gamma = 0.15, n = 1 (h_max = 4/3): the paper's slope lam = 1.432 and nearly its
+    offset (lam - psi)/alpha = 1.33.
+
+    Attributes:
+        a: () slope of the elastic part, > 0 (the effective slope).
+        b: () weight of the hysteretic part.
+        A: () > 0.
+        beta, gamma: () with beta + gamma > 0.
+        n: () exponent, >= 1 (below 1, |h|^(n-1) h is not Lipschitz at h = 0).
+        h0: () h(0).
+        smooth_delta, smooth: as for `Backlash`: |u'| -> sqrt(u'^2 + delta^2) - delta.
+    """
+
+    a: jax.Array = positive(default=1.432)
+    b: jax.Array = 1.0
+    A: jax.Array = positive(default=1.0)
+    beta: jax.Array = 0.6
+    gamma: jax.Array = 0.15
+    n: jax.Array = 1.0
+    h0: jax.Array = 0.0
+    smooth_delta: jax.Array = positive(default=1e-2)
+    smooth: bool = option(False)
+
+    kind: ClassVar[str] = "bouc_wen"
+    default_sweep: ClassVar[tuple[str, ...]] = ("a", "b", "beta", "gamma")
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        beta, gamma = np.asarray(self.beta, float), np.asarray(self.gamma, float)
+        if not np.all(beta + gamma > 0):
+            raise v.ConfigError(f"{prefix}.beta + {prefix}.gamma must be > 0 (got "
+                                f"beta={v.fmt(beta)}, gamma={v.fmt(gamma)})")
+        if not np.all(np.asarray(self.n, float) >= 1):
+            raise v.ConfigError(f"{prefix}.n must be >= 1 (got {v.fmt(self.n)}): below 1, "
+                                f"|h|^(n-1) h is not Lipschitz at h = 0")
+
+    def _abs_du(self, du):
+        return smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
+
+    def init_state(self, u0=None):
+        return self.h0
+
+    def output(self, u, h):
+        return self.a * u + self.b * h
+
+    def rate(self, u, du, h):
+        hn = _pow_abs(h, self.n)
+        return self.A * du - self.beta * self._abs_du(du) * jnp.sign(h) * hn \
+            - self.gamma * du * hn
+
+    def decay_rate(self, u, du, h):
+        """(beta |u'| + gamma u' sgn h) |h|^(n-1) where >= 0: the decay -(...) h in `rate`."""
+        k = (self.beta * self._abs_du(du) + self.gamma * du * jnp.sign(h)) \
+            * _pow_abs_m1(h, self.n)
+        return jnp.maximum(k, 0.0)
+
+    def h_max(self):
+        """(A / (beta + gamma))^(1/n): the bound of |h| for beta >= |gamma|."""
+        return (self.A / (self.beta + self.gamma)) ** (1.0 / self.n)
+
+    def effective_slope(self):
+        return jnp.asarray(self.a)
+
+    def d1_limits(self):
+        """-b h_max as u -> -inf and +b h_max as u -> +inf (h tends to -+h_max)."""
+        bound = self.b * self.h_max()
+        return -bound, bound
+
+
+MODELS = (Backlash, PrandtlIshlinskii, GeneralizedPI, BoucWen)
+
+
+# -- the model alone ------------------------------------------------------------------------------
+
+
+def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: float):
+    """Drive a model alone by u(t) (u' by forward-mode AD) with the loop's RK4 and clamp.
+
+    Args:
+        hysteresis: a model.
+        u_of_t: t -> u(t), a JAX function of a scalar.
+        t_final, dt: horizon and step; round(t_final / dt) steps.
+
+    Returns:
+        (t, u, w) on the step grid t_k = k dt, as NumPy arrays.
+
+    Example:
+        >>> import jax.numpy as jnp
+        >>> t, u, w = open_loop(PrandtlIshlinskii(), lambda t: 3.5 * jnp.sin(2.3 * t), 1.0, 1e-3)
+        >>> w.shape
+        (1001,)
+    """
+    n_steps = max(int(round(t_final / dt)), 1)
+    u, w = jax.jit(_open_loop, static_argnums=(1, 3))(
+        _as_float(hysteresis), lambda t, _: u_of_t(t), (), n_steps,
+        jnp.asarray(dt, jnp.result_type(float)))
+    return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
+
+
+def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float, dt: float):
+    """The model driven by u = A sin(omega t) for each amplitude A (one program, vmapped).
+
+    Returns:
+        (t (N+1,), u (K, N+1), w (K, N+1)) on the step grid, K = len(amplitudes).
+    """
+    n_steps = max(int(round(t_final / dt)), 1)
+    dtype = jnp.result_type(float)
+
+    def u_of_t(t, amp_omega):
+        amplitude, om = amp_omega
+        return amplitude * jnp.sin(om * t)
+
+    def run(model, amps, om, dt_):
+        return jax.vmap(lambda a: _open_loop(model, u_of_t, (a, om), n_steps, dt_))(amps)
+
+    u, w = jax.jit(run)(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),
+                        jnp.asarray(omega, dtype), jnp.asarray(dt, dtype))
+    return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
+
+
+def _as_float(model):
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(float)), model)
+
+
+def _open_loop(model, u_of_t, args, n_steps, dt):
+    """(u, w) on the step grid for u = u_of_t(t, args), by `integrate` (and its clamp hook)."""
+    from dscjax.integrate import integrate
+
+    def field(t, h, a):
+        u, du = jax.jvp(lambda tt: u_of_t(tt, a), (t,), (jnp.ones_like(t),))
+        return model.rate(u, du, h), (u, model.output(u, h))
+
+    def project(t, h, a):
+        return model.project(u_of_t(t, a), h)
+
+    h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
+                      model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
+    res = integrate(field, h0, dt, n_steps, args, time_parallel=False,
+                    project=project if model.projects else None)
+    return res.obs
+
+
+__all__ = ["Backlash", "BoucWen", "GeneralizedPI", "Hysteresis", "MODELS",
+           "PrandtlIshlinskii", "closed_form", "envelope", "open_loop", "play", "sine_loops"]

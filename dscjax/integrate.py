@@ -346,9 +346,11 @@ class Carry(NamedTuple):
 class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
-    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, rates=None):
+    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, rates=None,
+                 project=None):
         self.f, self.reduction_is_none = f, reduction is None
         self.rates = rates  # None: classical RK4; else ETDRK4 with these decay rates
+        self.project = project  # None, or the map applied to the state after every step
         self.n, self.s = n_steps, save_every
         self.yp = _Packer(y0)
         self.ap = _Packer(args)
@@ -371,15 +373,18 @@ class _Problem:
         def f_obs(tt, yy):
             return self.field(tt, yy, a, packed)
 
+        args = self.ap.unpack(a) if packed else a
         if self.rates is not None:
-            args = self.ap.unpack(a) if packed else a
-
             def rates(tt, yy, obs):
                 return self.yp.pack(self.rates(tt, self.yp.unpack(yy), args,
                                                self.op.unpack(obs)))
 
-            return _etdrk4(f_obs, rates, t, y, dt, h)
-        return (_rk4_scanned if scanned else _rk4)(f_obs, t, y, dt, h)
+            y_next, obs = _etdrk4(f_obs, rates, t, y, dt, h)
+        else:
+            y_next, obs = (_rk4_scanned if scanned else _rk4)(f_obs, t, y, dt, h)
+        if self.project is not None:
+            y_next = self.yp.pack(self.project(t + dt, self.yp.unpack(y_next), args))
+        return y_next, obs
 
     def update(self, red, acc, k, t, y, obs):
         if self.reduction_is_none:
@@ -580,8 +585,8 @@ def _matvec(rows, v):
 
 
 def _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
-                      time_parallel: bool, rates=None):
-    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, rates)
+                      time_parallel: bool, rates=None, project=None):
+    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, rates, project)
 
     def primal(y0c, ac, red, acc0c, dtv, bound):
         return prob.forward(y0c, ac, red, acc0c, dtv, bound)
@@ -658,7 +663,7 @@ def _segment_length(save_every: int, target: int | None) -> int | None:
 
 
 def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                     state_bound, checkpoint_every, rates=None):
+                     state_bound, checkpoint_every, rates=None, project=None):
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = _first(y0), _first(batch)
     acc_one = _first(acc0) if reduction is not None else ()
@@ -684,6 +689,13 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
     def rates_rows(t, y, obs):
         return jax.vmap(rates_member, in_axes=(None, 0, 0, -1), out_axes=0)(t, y, obs, b_flat)
 
+    def project_member(t, y_row, b_col):
+        return _scalars(project(t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
+                                                            unravel_b(b_col))))
+
+    def project_rows(t, y):
+        return jax.vmap(project_member, in_axes=(None, 0, -1), out_axes=0)(t, y, b_flat)
+
     def acc_member(acc_row, k, t, y_row, obs_row):
         new = reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
                                obs_c.unpack_one(obs_row))
@@ -708,6 +720,8 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
             y_next, obs = _rk4(f_obs, t, y, dt)
         else:
             y_next, obs = _etdrk4(f_obs, rates_rows, t, y, dt)
+        if project is not None:
+            y_next = project_rows(t + dt, y_next)
         ok_now = code == STATUS_OK
         acc = acc_update(acc, k, t, y, obs, ok_now)
         finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in y_next])
@@ -800,6 +814,7 @@ def integrate(
     checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
     time_parallel: bool = True,
     rates: Callable | None = None,
+    project: Callable | None = None,
 ) -> Integration:
     """Integrate y' = f(t, y, args) by RK4 on t_k = k dt, k = 0..n_steps.
 
@@ -827,6 +842,9 @@ def integrate(
             (`_etdrk4`): rates(t, y, args, obs) gives a decay rate >= 0 for every state
             component (a pytree like y; with `batch`, args is (args, b)) whose linear part
             -rate * y is integrated exactly: stable for stiff linear decays.
+        project: None, or project(t, y, args) -> y (with `batch`, args is (args, b)), applied
+            to the state after every step, at the step's end time t: a discrete update that
+            is no ODE, such as the play operators' clamp (`hysteresis.PrandtlIshlinskii`).
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
@@ -841,9 +859,9 @@ def integrate(
         raise ValueError("a reduction needs its initial accumulator acc0")
     if batch is None:
         return _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
-                                 state_bound, time_parallel, rates)
+                                 state_bound, time_parallel, rates, project)
     return _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                            state_bound, checkpoint_every, rates)
+                            state_bound, checkpoint_every, rates, project)
 
 
 __all__ = ["STATUS_BOUND", "STATUS_NONFINITE", "STATUS_OK", "Carry", "Integration",

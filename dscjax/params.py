@@ -178,8 +178,11 @@ def set_many(setup, values: Mapping[str, Any]):
 
 
 def numeric_paths(obj, prefix: str = "") -> list[str]:
-    """Every path to a traced leaf (array or float) below obj, in field order."""
+    """Every path to a traced leaf (array or float) below obj, in field order (an absent
+    optional model, None, has none)."""
     out = []
+    if obj is None:
+        return out
     if dataclasses.is_dataclass(obj):
         for f in dataclasses.fields(obj):
             if f.metadata.get("static"):

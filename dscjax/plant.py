@@ -26,6 +26,7 @@ import numpy as np
 
 from dscjax import validation as v
 from dscjax._fusion import barrier
+from dscjax.disturbance import Disturbance
 from dscjax.model import Model, nonnegative, positive
 from dscjax.reference import time_signal
 
@@ -69,6 +70,26 @@ class Plant(Model):
         return jnp.stack(dx)
 
 
+def _dbar(plant, t):
+    """dbar_amp sin(dbar_freq t) + dbar_bias, plus the plant's waveform if it has one
+    (`dscjax.disturbance`); without one the sinusoid is computed exactly as it always was."""
+    d = plant.dbar_amp * jnp.sin(plant.dbar_freq * t) + plant.dbar_bias
+    if plant.disturbance is not None:
+        d = d + plant.disturbance(t)
+    return time_signal(d)
+
+
+def _validate_disturbance(plant, prefix):
+    if plant.disturbance is None:
+        return
+    if not isinstance(plant.disturbance, Disturbance):
+        raise v.ConfigError(f"{prefix}.disturbance must be a dscjax.disturbance waveform (got "
+                            f"{type(plant.disturbance).__name__})")
+    plant.disturbance.validate(f"{prefix}.disturbance")
+    for name, expected in plant.disturbance.expected_shapes(plant.order).items():
+        v.shape(getattr(plant.disturbance, name), f"{prefix}.disturbance.{name}", expected)
+
+
 def _cumulative_sq(x):
     """[q_1, ..., q_n] with q_i = sum_{j<=i} x_j^2, as a list of per-stage scalars.
 
@@ -90,14 +111,15 @@ class StrictFeedback(Plant):
         f_i(xbar_i)  = f_quad_i x_i^2 + f_sin_i sin(x_i) + f_cross_i x_{i-1} x_i
         rho_i(xbar_i) = rho_const_i + rho_quad_i q_i
         Delta_i(x,t) = delta_sin_i sin(x_{i+1}) + delta_quad_i q_i sin^3(delta_freq t)
-        dbar(t)      = dbar_amp sin(dbar_freq t) + dbar_bias
+        dbar(t)      = dbar_amp sin(dbar_freq t) + dbar_bias (+ disturbance(t), if given)
     The paper's example (73) is f_quad = (1, 0), rho_const = (0.2, 0), rho_quad = (0, 0.1),
     delta_sin = (0.2, 0), delta_quad = (0, 0.1), delta_freq = 1, no dbar. |Delta_i| <= rho_i holds
     when |delta_sin_i| <= rho_const_i and |delta_quad_i| <= rho_quad_i; it is not enforced, so a
     wrong bound (a designer's mistake) can be studied.
 
     All fields are traced; shapes (n,) except the scalars delta_freq, dbar_*. x0 (n,) is the
-    initial state x(0).
+    initial state x(0). `disturbance` (None by default) is an optional waveform added to dbar
+    (`dscjax.disturbance`: Fourier series or spline).
     """
 
     g: jax.Array = positive()
@@ -114,6 +136,7 @@ class StrictFeedback(Plant):
     dbar_amp: jax.Array = 0.0
     dbar_freq: jax.Array = 1.0
     dbar_bias: jax.Array = 0.0
+    disturbance: Disturbance | None = None
 
     kind: ClassVar[str] = "strict_feedback"
     vector_fields: ClassVar[tuple[str, ...]] = (
@@ -124,6 +147,10 @@ class StrictFeedback(Plant):
     def expected_shapes(self, n):
         shapes = {name: (n,) for name in self.vector_fields}
         return shapes | dict(delta_freq=(), dbar_amp=(), dbar_freq=(), dbar_bias=())
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        _validate_disturbance(self, prefix)
 
     def f(self, x):
         n = x.shape[0]
@@ -146,7 +173,7 @@ class StrictFeedback(Plant):
             for i in range(n)])
 
     def dbar(self, t):
-        return time_signal(self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias)
+        return _dbar(self, t)
 
     @classmethod
     def zeros(cls, n: int, **values: Any) -> "StrictFeedback":
@@ -162,10 +189,11 @@ class PaperPlant(Plant):
 
         f_1 = x_1^2, f_2 = 0, rho_1 = rho1, rho_2 = rho2 (x_1^2 + x_2^2),
         Delta_1 = delta1 sin(x_2), Delta_2 = delta2 (x_1^2 + x_2^2) sin^3(delta_freq t),
-        dbar = dbar_amp sin(dbar_freq t) + dbar_bias.
+        dbar = dbar_amp sin(dbar_freq t) + dbar_bias (+ disturbance(t), if given).
 
     The paper's values: g = (1, 1), theta = (0.1, 0), rho1 = delta1 = 0.2, rho2 = delta2 = 0.1,
-    delta_freq = 1, no dbar, x(0) = (0.08, 0.1). The same plant is `StrictFeedback` with the
+    delta_freq = 1, no dbar, x(0) = (0.08, 0.1). `disturbance` (None by default) is an optional
+    waveform added to dbar (`dscjax.disturbance`). The same plant is `StrictFeedback` with the
     coefficients of `paper_family_plant()` (tested equal); this class computes only the terms
     (73) has, which makes batched sweeps 2-4x faster (fewer sines per step).
     """
@@ -181,12 +209,17 @@ class PaperPlant(Plant):
     dbar_amp: jax.Array = 0.0
     dbar_freq: jax.Array = 1.0
     dbar_bias: jax.Array = 0.0
+    disturbance: Disturbance | None = None
 
     kind: ClassVar[str] = "paper"
 
     def expected_shapes(self, n):
-        shapes = {f.name: () for f in dataclasses.fields(self)}
+        shapes = {f.name: () for f in dataclasses.fields(self) if f.name != "disturbance"}
         return shapes | dict(g=(2,), theta=(2,), x0=(2,))
+
+    def validate(self, prefix):
+        super().validate(prefix)
+        _validate_disturbance(self, prefix)
 
     def f(self, x):
         return jnp.stack([x[0] * x[0], 0.0 * x[1]])
@@ -201,7 +234,7 @@ class PaperPlant(Plant):
                           self.delta2 * (x[0] * x[0] + x[1] * x[1]) * s3])
 
     def dbar(self, t):
-        return time_signal(self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias)
+        return _dbar(self, t)
 
 
 class CustomPlant(Plant):

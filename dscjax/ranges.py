@@ -63,9 +63,12 @@ class Range:
         return f"{self.name}={body}" + (f":{self.num}" if self.num is not None else "")
 
 
-def default_ranges() -> tuple[Range, ...]:
-    """alpha, lam and psi each within +-30 % of the setup's values."""
-    return tuple(Range(Param(p), rel=DEFAULT_REL) for p in DEFAULT_PATHS)
+def default_ranges(setup=None) -> tuple[Range, ...]:
+    """The hysteresis model's `default_sweep` numbers (alpha, lam and psi for the backlash-like
+    model (4), the default without a setup) each within +-30 % of the setup's values."""
+    paths = (DEFAULT_PATHS if setup is None else
+             tuple(f"hysteresis.{name}" for name in type(setup.hysteresis).default_sweep))
+    return tuple(Range(Param.parse(p), rel=DEFAULT_REL) for p in paths)
 
 
 # -- the syntax ---------------------------------------------------------------------------------

@@ -35,7 +35,7 @@ GROUPS = (  # (term of (44), label, colour) in stacking order
     ("zeta", r"$\beta\tilde\zeta^2/(2\gamma_\zeta)$", "#8c564b"),
     ("d", r"$\tilde d^2/(2\gamma_d)$", "#e377c2"),
 )
-ALPHA0_PAPER = 0.2  # what k_2 = 0.45 = 1/4 + alpha_0 suggests (NOTES.md)
+ALPHA0_PAPER = 0.2  # what k_2 = 0.45 = 1/4 + alpha_0 suggests (docs/paper-readings.md)
 
 
 def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, float]:

@@ -8,7 +8,6 @@ metric window and the state bound are traced, so changing a gain never recompile
 from __future__ import annotations
 
 import dataclasses
-import functools
 from collections.abc import Callable, Mapping
 from typing import Any
 
@@ -25,6 +24,7 @@ from dscjax.closed_loop import (
     decay_rates,
     initial_state,
     prepared,
+    project,
     vector_field,
 )
 from dscjax.integrate import (
@@ -188,6 +188,8 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     if overrides is None:
         if exponential:
             common["rates"] = decay_rates
+        if type(setup.hysteresis).projects:
+            common["project"] = project
         setup = prepared(setup)
         y0 = initial_state(setup)
         res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
@@ -199,6 +201,8 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
         acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), red.init(dtype))
         if exponential:
             common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
+        if type(setup.hysteresis).projects:
+            common["project"] = lambda t, y, args: project(t, y, rebuild(*args))
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)
@@ -489,51 +493,64 @@ def simulate_batch(
                                checkpoint_every=checkpoint_every, solver=level_solver)
 
     traj = level(0, overrides)
-    if refine and validation.is_concrete(traj.status) and validation.is_concrete(overrides):
+    if refine and validation.is_concrete((traj, overrides)):  # refinement is host-side
         traj = refine_diverged(traj, overrides, level, refine)
     return traj
 
 
-def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
-                    refine: int) -> Trajectory:
-    """Re-run the diverged members of a batch at the refinement levels 1..refine.
+def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):
+    """Re-run the failed rows of a batch at the refinement levels 1..refine, host-side.
 
-    `level(j, overrides_subset)` simulates a sub-batch at level j (`refinement_level`) with
-    the same save times.
-    Each level runs only the members still diverged, as a batch of their own (padded to a
-    power of two so that sub-batches of similar sizes share one compiled program), and its
-    rows replace theirs. Host-side (concrete arrays in, NumPy arrays in the result).
+    `rows`: a pytree of arrays whose leading axis is the batch; `failed(tree)`: its rows that
+    diverged (bool); `level(j, idx)`: the rows `idx` re-run at level j (`refinement_level`), the
+    same pytree. Each level runs only the rows still diverged, as a batch of their own padded to
+    a power of two (sub-batches of similar sizes share one compiled program), and its rows
+    replace theirs. Returns (rows as NumPy arrays, the level of each row's run: 0 = unrefined).
+    Used by `simulate_batch` and by sweeps.
     """
-    out = jax.tree.map(np.array, traj)
-    out = dataclasses.replace(out, refinements=np.zeros(np.shape(out.status.code), np.int32))
-    todo = np.flatnonzero(np.asarray(out.status.code) != STATUS_OK)
+    out = jax.tree.map(np.array, rows)
+    todo = np.flatnonzero(failed(out))
+    levels = np.zeros(len(failed(out)), np.int32)
     for j in range(1, refine + 1):
         if todo.size == 0:
             break
         size = 1 << int(np.ceil(np.log2(todo.size)))
         idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
-        sub = jax.tree.map(np.asarray, level(j, {p: np.asarray(v)[idx]
-                                                 for p, v in overrides.items()}))
-        sub = dataclasses.replace(sub, refinements=np.full(size, j, np.int32))
-        take = np.arange(todo.size)
+        sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
 
-        def put(dst, src, todo=todo, take=take):
-            dst[todo] = src[take]
+        def put(dst, src, todo=todo):
+            dst[todo] = src
             return dst
 
         out = jax.tree.map(put, out, sub)
-        todo = todo[np.asarray(sub.status.code)[take] != STATUS_OK]
-    return jax.tree.map(jnp.asarray, out)
+        levels[todo] = j
+        todo = todo[failed(sub)]
+    return out, levels
 
 
-@functools.partial(jax.jit,
-                   static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"),
-                   compiler_options=xla.compiler_options())
-def _simulate_batch(setup, overrides, dt, window_start, state_bound, *, n_steps, save_every,
-                    checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
+def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
+                    refine: int) -> Trajectory:
+    """`refine_rows` for a batch Trajectory: `level(j, overrides_subset)` simulates a
+    sub-batch at level j with the same save times; `refinements` says each member's level."""
+    def rows(j, idx):
+        sub = level(j, {p: np.asarray(v)[idx] for p, v in overrides.items()})
+        return dataclasses.replace(sub, refinements=None)
+
+    out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
+                              lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
+    return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
+
+
+def _simulate_batch_body(setup, overrides, dt, window_start, state_bound, *, n_steps,
+                         save_every, checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
     return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
                          save_every=save_every, overrides=overrides,
                          checkpoint_every=checkpoint_every, solver=solver)
+
+
+# 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
+_simulate_batch = xla.jit(_simulate_batch_body,
+                          static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"))
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

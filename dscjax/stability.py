@@ -82,8 +82,12 @@ class StabilityMap(NamedTuple):
     requested_dt: float  # the config's dt
 
 
+# The steps a stability map tries: dt * 2^k, k = -4..4.
+DT_FACTORS = tuple(2.0 ** k for k in range(-4, 5))
+
+
 def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 2.0, 4.0),
-                  factors=tuple(2.0 ** k for k in range(-4, 5)), bisections: int = 4,
+                  factors=DT_FACTORS, bisections: int = 4,
                   log=lambda s: None) -> StabilityMap:
     """Which dt does classical RK4 need for this loop, and how does it depend on tau?
 

@@ -77,20 +77,22 @@ class Truth(NamedTuple):
 def hysteresis_slope(hysteresis) -> jax.Array:
     """The slope lam of w = lam u + d_1(u) (5): the hysteresis's effective gain in beta (10).
 
-    Only the backlash-like model (4) exists; a new hysteresis model must provide `lam` (its
-    effective slope) and `d1_limits()` to be usable here.
+    Every `hysteresis.Hysteresis` provides it (`effective_slope()`): lam for (4), p0 + sum p_j
+    for Prandtl-Ishlinskii, p0 for the generalized model (saturating envelopes), a for Bouc-Wen.
     """
-    if not hasattr(hysteresis, "lam"):
-        raise ConfigError(f"the Lyapunov function (44) needs the hysteresis's effective slope "
-                          f"(lam of eq. 5); {type(hysteresis).__name__} has none")
-    return jnp.asarray(hysteresis.lam)
+    return jnp.asarray(hysteresis.effective_slope())
 
 
 def max_abs_dbar(plant, t=None) -> jax.Array:
-    """max_t |dbar(t)|: exact for the built-in plants (|dbar_amp| + |dbar_bias|); for other
-    plants the maximum over the times `t` (e.g. a trajectory's saved times)."""
+    """max_t |dbar(t)|: exact for the built-in plants' sinusoid (|dbar_amp| + |dbar_bias|),
+    plus the waveform's bound if the plant has one (`Disturbance.max_abs`: exact for a spline,
+    the sum of |coefficients| for a Fourier series); for other plants the maximum over the
+    times `t` (e.g. a trajectory's saved times)."""
     if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
-        return jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+        out = jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+        if getattr(plant, "disturbance", None) is not None:
+            out = out + plant.disturbance.max_abs()
+        return out
     if t is None:
         raise ConfigError(f"{type(plant).__name__}: max |dbar| is not known in closed form; pass "
                           "the times to take it over, or give d explicitly")
@@ -106,7 +108,7 @@ def default_d(setup, t=None) -> jax.Array:
     max |d_n| along the run and says whether (12) held.
     """
     g_n = jnp.asarray(setup.plant.g)[-1]
-    return g_n * setup.hysteresis.d1_limits()[0] + max_abs_dbar(setup.plant, t)
+    return g_n * setup.hysteresis.d1_bound() + max_abs_dbar(setup.plant, t)
 
 
 def truth(setup, d=None, t=None) -> Truth:

@@ -19,9 +19,12 @@ same preference:
 
 from __future__ import annotations
 
+import functools
 import os
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
+
+import jax
 
 OPTION = "xla_cpu_prefer_vector_width"
 WIDE = {OPTION: 512}
@@ -53,4 +56,22 @@ def compiler_options(environ: Mapping[str, str] = os.environ,
     return dict(WIDE)
 
 
-__all__ = ["OPTION", "WIDE", "compiler_options", "cpu_has_avx512"]
+def jit(fn: Callable, **kwargs) -> Callable:
+    """`jax.jit(fn, **kwargs)` carrying `compiler_options()` when called at the top level.
+
+    JAX refuses compiler options on a jit nested in a trace (a user's jit, grad or vmap), so
+    there the plain jit is traced into the caller's program instead. `.top` is the top-level
+    compiled function (its cache, e.g. for tests)."""
+    top = jax.jit(fn, compiler_options=compiler_options(), **kwargs)
+    nested = jax.jit(fn, **kwargs)
+
+    @functools.wraps(fn)
+    def call(*args, **kw):
+        traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((args, kw)))
+        return (nested if traced else top)(*args, **kw)
+
+    call.top = top
+    return call
+
+
+__all__ = ["OPTION", "WIDE", "compiler_options", "cpu_has_avx512", "jit"]

@@ -33,7 +33,7 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from dscjax import alpha0_study, files
-    from dscjax.cli.reproduce import _alpha0, _orders
+    from dscjax.cli.reproduce import parse_alpha0, parse_orders
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -43,8 +43,8 @@ def main(argv=None) -> int:
         print(f"[{time.perf_counter() - t0:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
     results = []
-    for n in _orders(args.orders):
-        opts = alpha0_study.default_options(n, alpha0=_alpha0(args.alpha0), mu=args.mu,
+    for n in parse_orders(args.orders):
+        opts = alpha0_study.default_options(n, alpha0=parse_alpha0(args.alpha0), mu=args.mu,
                                             t_final=args.t_final)
         res = alpha0_study.study(alpha0_study.base_setup(n), opts, log=log)
         files.write_json(out / f"alpha0_n{n}.json", res)

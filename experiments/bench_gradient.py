@@ -1,21 +1,27 @@
-"""Cost, accuracy and memory of the exact gradient of the tuning objective.
+"""Cost, accuracy and memory of exact gradients through the public API, with default arguments.
 
-    python experiments/bench_gradient.py            # full: 20 s horizon, batch of 256 plants
+    python experiments/bench_gradient.py            # 20 s horizon, batch of 256 plants
     python experiments/bench_gradient.py --quick    # 5 s horizon, batch of 16 (a smoke test)
 
-1. Cost of one gradient of the default objective (the paper's example, the default tuned set)
-   with respect to all tuned numbers, relative to one forward simulation of the same
-   objective: forward mode (jacfwd: one jvp per tuned number, all in one pass), reverse mode
-   without and with checkpointing, and finite differences run as ONE batched simulation
-   (forward differences: P+1 members; central: 2P members). Medians of --repeats runs;
-   compilation is timed apart.
-2. Accuracy: forward against reverse mode, and finite differences at several steps h against
-   the exact gradient.
-3. Peak memory (RSS) of the gradient for a batch of plants (hysteresis +-30 %) over the whole
-   horizon, with and without checkpointing, each configuration in a fresh subprocess
-   (a configuration that grows past --memory-limit-gib is stopped and reported as such).
+The objective (issue 10): J = L-inf + L2 of the tracking error on [1 s, T], through
+`dscjax.simulate` (save_every = 1000, everything else default) for the nominal plant, and the
+mean of J over a batch of plants (alpha, lambda, psi +-30 %) through `dscjax.simulate_batch`,
+differentiated with respect to the 13 DSC design numbers the tuner tunes (log-space).
 
-Prints tables and writes results/bench_gradient.json (or --out).
+1. Cost, relative to the jitted forward run of the same objective (medians of --repeats runs,
+   interleaved so that load hits every method alike; compilation timed apart):
+   - value_and_grad (reverse mode; the default time-parallel linearisation for one trajectory,
+     the checkpointed scan for a batch),
+   - jacfwd (forward mode),
+   - value_and_grad with gradient="autodiff" (JAX's own reverse mode of the scan: the
+     "today" of issue 10, one trajectory only),
+   - finite differences as ONE batched simulation (forward: P+1 members, central: 2P).
+2. Accuracy: forward against reverse mode; finite differences at several steps h.
+3. Where the time goes: HLO instruction counts of the loop bodies and XLA's flop counts of one
+   RK4 step, its jvp (one direction) and its vjp.
+4. Peak RSS of the batch gradient (fresh process per configuration).
+
+Prints the tables and writes results/bench_gradient.json (or --out).
 """
 
 from __future__ import annotations
@@ -24,7 +30,7 @@ import argparse
 import json
 import os
 import platform
-import resource
+import re
 import subprocess
 import sys
 import time
@@ -40,38 +46,64 @@ def _setup_jax():
     return jax
 
 
-def build(t_final: float, batch: int = 0, params=None):
-    """The default tuning problem (paper example, default gains tuned) at horizon t_final."""
-    import dataclasses
+def problem(t_final: float, batch: int = 0, seed: int = 0):
+    """(J(z) of one plant, J(z) mean over a batch or None, z0, names)."""
+    jax = _setup_jax()
+    import jax.numpy as jnp
 
     import dscjax
     import tuning
-    from dscjax.config import SimOptions
+    from tuning.runner import PAPER_PLANT_FREEZE
 
-    cfg = tuning.TuningConfig(robust=tuning.BatchSpec(batch=batch, seed=0),
-                              heldout=tuning.BatchSpec(batch=0))
-    if params:
-        cfg = dataclasses.replace(cfg, params=tuple(params))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
+    setup = dscjax.paper_example()
+    sel = tuning.Selection.build(setup, tuning.DSC_GAINS, freeze=PAPER_PLANT_FREEZE)
+    z0 = sel.init(setup)
+    n = int(round(t_final / 1e-3))
+    save = 1000 if n % 1000 == 0 else n
+
+    def objective(m):
+        return m["linf_error_window"] + m["l2_error_window"]
+
+    def J(z, gradient="time_parallel"):
+        traj = dscjax.simulate(sel.apply(setup, z), t_final, 1e-3, save_every=save,
+                               throw=False, gradient=gradient)
+        return objective(traj.metrics)
+
+    Jb = None
+    if batch:
+        rng = np.random.default_rng(seed)
+        h = setup.hysteresis
+        ov = {f"hysteresis.{k}": jnp.asarray(float(getattr(h, k)) * rng.uniform(0.7, 1.3, batch))
+              for k in ("alpha", "lam", "psi")}
+
+        def Jb(z):
+            traj = dscjax.simulate_batch(sel.apply(setup, z), ov, t_final, 1e-3)
+            return jnp.mean(objective(traj.metrics))
+
+    del jax
+    return J, Jb, z0, list(sel.names), sel, setup
 
 
-def timed(fn, *args, repeats=5):
+def interleaved(fns: dict, arg, repeats: int) -> dict:
+    """Compile each, then time all of them round-robin (load hits every method alike)."""
     jax = _setup_jax()
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    runs = []
-    for _ in range(repeats):
+    out = {}
+    for name, fn in fns.items():
         t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(*args))
-        runs.append(time.perf_counter() - t0)
-    return {"compile_s": max(first - float(np.median(runs)), 0.0), "first_call_s": first,
-            "median_s": float(np.median(runs)), "min_s": float(np.min(runs)),
-            "runs_s": runs}, out
+        jax.block_until_ready(fn(arg))
+        out[name] = {"first_call_s": time.perf_counter() - t0, "runs_s": []}
+    for _ in range(repeats):
+        for name, fn in fns.items():
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(arg))
+            out[name]["runs_s"].append(time.perf_counter() - t0)
+    for v in out.values():
+        v["median_s"] = float(np.median(v["runs_s"]))
+        v["compile_s"] = max(v["first_call_s"] - v["median_s"], 0.0)
+    return out
 
 
 def fd_points(flat0: np.ndarray, central: bool, h: float) -> np.ndarray:
-    """The members of a finite-difference gradient: P+1 (forward) or 2P (central) points."""
     steps = np.eye(flat0.size) * h
     if central:
         return np.concatenate([flat0 + steps, flat0 - steps])
@@ -85,121 +117,162 @@ def fd_gradient(values: np.ndarray, central: bool, h: float) -> np.ndarray:
     return (values[1:] - values[0]) / h
 
 
-def costs(t_final: float, repeats: int) -> dict:
+def batched_J(sel, setup, t_final):
+    """J at many points z (rows of a flat array) as ONE batched simulation."""
     jax = _setup_jax()
-    import tuning
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
 
-    problem = build(t_final)
-    obj = problem.objective
-    z = problem.z0
-    P = problem.n_params
-    res = {"t_final": t_final, "n_steps": obj.sim.n_steps, "n_params": P,
-           "params": list(problem.selection.names)}
-    fwd = jax.jit(lambda z: obj.evaluate(z)[0])
-    res["forward"], _ = timed(fwd, z, repeats=repeats)
-    configs = {
-        "grad_forward_mode": lambda z: tuning.value_and_grad(obj, z, "forward"),
-        "grad_reverse_mode": lambda z: tuning.value_and_grad(obj, z, "reverse", None),
-        "grad_reverse_mode_ckpt100": lambda z: tuning.value_and_grad(obj, z, "reverse", 100),
-        "grad_reverse_mode_ckpt1000": lambda z: tuning.value_and_grad(obj, z, "reverse",
-                                                                      1000),
+    import dscjax
+    from dscjax import params
+
+    _, unravel = ravel_pytree(sel.init(setup))
+    paths = sorted({t.path for t in sel.items})
+
+    def run(pts):
+        setups = jax.vmap(lambda p: sel.apply(setup, unravel(p)))(pts)
+        ov = {p: params.get(setups, p) for p in paths}
+        traj = dscjax.simulate_batch(setup, ov, t_final, 1e-3, refine=0)
+        m = traj.metrics
+        return m["linf_error_window"] + m["l2_error_window"]
+
+    return lambda pts: run(jnp.asarray(pts))
+
+
+def costs(t_final: float, repeats: int, batch: int) -> dict:
+    jax = _setup_jax()
+    from jax.flatten_util import ravel_pytree
+
+    J, Jb, z0, names, sel, setup = problem(t_final, batch)
+    res = {"t_final": t_final, "n_steps": int(round(t_final / 1e-3)), "params": names,
+           "n_params": len(ravel_pytree(z0)[0])}
+    single = {
+        "forward": jax.jit(J),
+        "value_and_grad": jax.jit(jax.value_and_grad(J)),
+        "jacfwd": jax.jit(jax.jacfwd(J)),
+        "value_and_grad_autodiff": jax.jit(jax.value_and_grad(lambda z: J(z, "autodiff"))),
     }
-    # Forward mode in the batch-last rows layout the sweeps use: P identical members, member j
-    # carrying the tangent e_j (one jvp of the batched program gives the whole gradient).
+    print("  timing one trajectory ...", file=sys.stderr, flush=True)
+    res["single"] = interleaved(single, z0, repeats)
+    grads = {k: np.asarray(ravel_pytree(single[k](z0)[1] if k != "jacfwd" else single[k](z0))[0])
+             for k in ("value_and_grad", "jacfwd", "value_and_grad_autodiff")}
+    # finite differences: all members in one batched simulation
+    flat0 = np.asarray(ravel_pytree(z0)[0])
+    run = batched_J(sel, setup, t_final)
+    fd = {}
+    for central in (False, True):
+        pts = fd_points(flat0, central, 1e-5)
+        key = f"fd_{'central' if central else 'forward'}_batched"
+        fd[key] = lambda _z, pts=pts, c=central: fd_gradient(np.asarray(run(pts)), c, 1e-5)
+    fd_t = interleaved(fd, z0, repeats)
+    for k, v in fd_t.items():
+        v["members"] = int(fd_points(flat0, "central" in k, 1e-5).shape[0])
+    res["single"] |= fd_t
+    base = res["single"]["forward"]["median_s"]
+    for v in res["single"].values():
+        v["ratio_to_forward"] = v["median_s"] / base
+    ref = grads["value_and_grad_autodiff"]
+    scale = np.max(np.abs(ref))
+    acc = {"time_parallel_vs_autodiff_max_rel": float(np.max(np.abs(grads["value_and_grad"] - ref))
+                                                      / scale),
+           "jacfwd_vs_autodiff_max_rel": float(np.max(np.abs(grads["jacfwd"] - ref)) / scale),
+           "fd": []}
+    for central in (False, True):
+        for h in (1e-3, 1e-4, 1e-5, 1e-6, 1e-7):
+            g = fd_gradient(np.asarray(run(fd_points(flat0, central, h))), central, h)
+            acc["fd"].append({"central": central, "h": h,
+                              "max_rel_error": float(np.max(np.abs(g - ref)) / scale)})
+    res["accuracy"] = acc
+    if Jb is not None:
+        print(f"  timing a batch of {batch} ...", file=sys.stderr, flush=True)
+        b = interleaved({"forward": jax.jit(Jb), "value_and_grad": jax.jit(jax.value_and_grad(Jb)),
+                         "jacfwd": jax.jit(jax.jacfwd(Jb))}, z0, max(repeats // 2, 2))
+        for v in b.values():
+            v["ratio_to_forward"] = v["median_s"] / b["forward"]["median_s"]
+        res["batch"] = {"size": batch} | b
+    return res
+
+
+# -- where the time goes --------------------------------------------------------------------------
+
+
+def _while_bodies(hlo: str) -> list[int]:
+    comps = {}
+    for comp in re.split(r"\n(?=\S)", hlo):
+        m = re.match(r"(?:ENTRY )?%?([\w.\-]+)", comp.split("\n")[0])
+        if m:
+            comps[m.group(1)] = comp
+    bodies = re.findall(r"while\(.*?body=%?([\w.\-]+)", hlo)
+    return [sum(1 for line in comps.get(b, "").split("\n")[1:] if " = " in line) for b in bodies]
+
+
+def anatomy(t_final: float) -> dict:
+    """HLO instruction counts of the loop bodies; XLA's flops of one step, its jvp and vjp."""
+    jax = _setup_jax()
     import jax.numpy as jnp
 
-    from tuning.baselines import batch_loss_fn
+    import dscjax
+    from dscjax.closed_loop import initial_state, prepared, vector_field
+    from dscjax.integrate import _Packer, _rk4
 
-    batch_loss, flat0, unravel = batch_loss_fn(problem)
-    eye = jnp.eye(flat0.size, dtype=flat0.dtype)
+    J, _, z0, _, _, _ = problem(t_final)
+    out = {"loop_bodies": {}}
+    for name, fn in (("forward", J), ("value_and_grad", jax.value_and_grad(J)),
+                     ("value_and_grad_autodiff", jax.value_and_grad(lambda z: J(z, "autodiff")))):
+        hlo = jax.jit(fn).lower(z0).compile().as_text()
+        out["loop_bodies"][name] = sorted(_while_bodies(hlo), reverse=True)
+    s = prepared(dscjax.canonical(dscjax.paper_example()))
+    yp, ap = _Packer(initial_state(s)), _Packer(s)
+    y, a = yp.pack(initial_state(s)), ap.pack(s)
 
-    def members(z):
-        pts = jnp.broadcast_to(jax.flatten_util.ravel_pytree(z)[0], eye.shape)
-        value, grad = jax.jvp(batch_loss, (pts,), (eye,))
-        return value[0], unravel(grad)
+    def step(y, a):
+        def f_obs(t, yy):
+            dy, obs = vector_field(t, yp.unpack(yy), ap.unpack(a))
+            return yp.pack(dy), obs
 
-    configs["grad_forward_members"] = members
-    grads = {}
-    for name, fn in configs.items():
-        print(f"  timing {name} ...", file=sys.stderr, flush=True)
-        res[name], out = timed(jax.jit(fn), z, repeats=repeats)
-        grads[name] = np.asarray(jax.flatten_util.ravel_pytree(out[1])[0])
-    # Finite differences: ALL members in one batched simulation (batch-last rows layout),
-    # the objective evaluated by the same code the gradient-free baselines use.
-    for central in (False, True):
-        name = f"fd_{'central' if central else 'forward'}_batched"
-        print(f"  timing {name} ...", file=sys.stderr, flush=True)
-        pts = jnp.asarray(fd_points(flat0, central, 1e-5))
-        res[name], _ = timed(lambda p, c=central: fd_gradient(np.asarray(batch_loss(p)), c,
-                                                              1e-5), pts, repeats=repeats)
-        res[name]["members"] = int(pts.shape[0])
-    base = res["forward"]["median_s"]
-    for v in res.values():
-        if isinstance(v, dict) and "median_s" in v:
-            v["ratio_to_forward"] = v["median_s"] / base
-    # accuracy
-    ref = grads["grad_reverse_mode"]
-    scale = np.max(np.abs(ref))
-    acc = {"forward_vs_reverse_max_rel": float(max(np.max(np.abs(grads[k] - ref)) for k in (
-               "grad_forward_mode", "grad_forward_members")) / scale),
-           "ckpt_vs_plain_reverse_max_rel": float(max(np.max(np.abs(
-               grads[k] - ref)) for k in ("grad_reverse_mode_ckpt100",
-                                          "grad_reverse_mode_ckpt1000")) / scale), "fd": []}
-    for central in (False, True):
-        for h in (1e-2, 1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8):
-            pts = jnp.asarray(fd_points(flat0, central, h))
-            g = fd_gradient(np.asarray(batch_loss(pts)), central, h)
-            err = float(np.max(np.abs(g - ref)) / scale)
-            acc["fd"].append({"central": central, "h": h, "max_rel_error": err})
-    res["accuracy"] = acc
-    return res
+        return _rk4(f_obs, jnp.asarray(0.3), y, jnp.asarray(1e-3))[0]
+
+    def flops(fn, *args):
+        ca = jax.jit(fn).lower(*args).compile().cost_analysis()
+        ca = ca[0] if isinstance(ca, list) else ca
+        return {"flops": float(ca.get("flops", 0)),
+                "transcendentals": float(ca.get("transcendentals", 0))}
+
+    out["one_step"] = {
+        "step": flops(step, y, a),
+        "jvp_one_direction": flops(lambda y, a: jax.jvp(step, (y, a), (y, a))[1], y, a),
+        "vjp_state_and_params": flops(lambda y, a: jax.vjp(step, y, a)[1](step(y, a)), y, a),
+    }
+    return out
 
 
 # -- memory: one subprocess per configuration -----------------------------------------------------
 
 
 def child(args) -> None:
-    """Run one gradient configuration and print its peak RSS as JSON (child process)."""
     jax = _setup_jax()
-    import tuning
-
-    problem = build(args.t_final, batch=args.batch)
-    obj = problem.objective
+    J, Jb, z0, _, _, _ = problem(args.t_final, batch=args.batch)
+    fn = {"forward": Jb, "value_and_grad": jax.value_and_grad(Jb),
+          "jacfwd": jax.jacfwd(Jb)}[args.mode]
     rss_base = _hwm_mib()
-    if args.mode == "simulate":
-        fn = jax.jit(lambda z: obj.evaluate(z)[0])
-    else:
-        ce = None if args.ckpt == 0 else args.ckpt
-        mode = "forward" if args.mode == "forward" else "reverse"
-        fn = jax.jit(lambda z: tuning.value_and_grad(obj, z, mode, ce))
     t0 = time.perf_counter()
-    compiled = fn.lower(problem.z0).compile()
+    compiled = jax.jit(fn).lower(z0).compile()
     compile_s = time.perf_counter() - t0
     rss_compile = _hwm_mib()
-    reset = _reset_hwm()  # from here on VmHWM is the peak of the run alone
+    reset = _reset_hwm()
     t0 = time.perf_counter()
-    jax.block_until_ready(compiled(problem.z0))
-    run_s = time.perf_counter() - t0
-    print(json.dumps({"rss_peak_mib": _hwm_mib() if not reset else max(rss_compile, _hwm_mib()),
-                      "rss_before_mib": rss_base,
-                      "rss_peak_compile_mib": rss_compile,
+    jax.block_until_ready(compiled(z0))
+    print(json.dumps({"rss_before_mib": rss_base, "rss_peak_compile_mib": rss_compile,
                       "rss_peak_run_mib": _hwm_mib() if reset else None,
-                      "compile_s": compile_s, "run_s": run_s}))
-
-
-def _rss_peak_mib() -> float:
-    # ru_maxrss survives exec (a child started from a big parent inherits its peak): only a
-    # fallback where /proc is missing.
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+                      "compile_s": compile_s, "run_s": time.perf_counter() - t0}))
 
 
 def _hwm_mib() -> float:
-    """VmHWM of this process (peak RSS since start or since the last reset)."""
     with open("/proc/self/status") as f:
         for line in f:
             if line.startswith("VmHWM:"):
                 return float(line.split()[1]) / 1024.0
-    return _rss_peak_mib()
+    return float("nan")
 
 
 def _reset_hwm() -> bool:
@@ -224,18 +297,11 @@ def _rss_now_mib(pid: int) -> float:
 
 def memory(t_final: float, batch: int, limit_gib: float) -> list[dict]:
     rows = []
-    configs = [("simulate", 0), ("reverse", 0), ("reverse", 1000), ("reverse", 100),
-               ("forward", 0)]
-    for mode, ckpt in configs:
-        cmd = [sys.executable, __file__, "--child", "--mode", mode, "--ckpt", str(ckpt),
-               "--t-final", str(t_final), "--batch", str(batch)]
-        ck_text = "no checkpointing" if not ckpt else f"checkpoint every {ckpt} steps"
-        label = {"simulate": "forward simulation (no gradient)",
-                 "forward": "gradient, forward mode",
-                 "reverse": f"gradient, reverse mode, {ck_text}"}[mode]
-        print(f"  memory: {label} ...", file=sys.stderr, flush=True)
-        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                                env=os.environ | {"JAX_ENABLE_X64": "1"})
+    for mode in ("forward", "value_and_grad", "jacfwd"):
+        cmd = [sys.executable, __file__, "--child", "--mode", mode, "--t-final", str(t_final),
+               "--batch", str(batch)]
+        print(f"  memory: {mode}, batch {batch} ...", file=sys.stderr, flush=True)
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         peak, killed = 0.0, False
         while proc.poll() is None:
             peak = max(peak, _rss_now_mib(proc.pid))
@@ -245,12 +311,11 @@ def memory(t_final: float, batch: int, limit_gib: float) -> list[dict]:
                 break
             time.sleep(0.05)
         out, err = proc.communicate()
-        row = {"config": label, "mode": mode, "checkpoint_every": ckpt or None,
-               "batch": batch, "t_final": t_final}
+        row = {"mode": mode, "batch": batch, "t_final": t_final, "rss_peak_sampled_mib": peak}
         if killed:
-            row |= {"rss_peak_mib": None, "exceeded_limit_gib": limit_gib}
+            row |= {"exceeded_limit_gib": limit_gib}
         elif proc.returncode != 0:
-            row |= {"rss_peak_mib": None, "error": err.strip().splitlines()[-1:]}
+            row |= {"error": err.strip().splitlines()[-1:]}
         else:
             row |= json.loads(out.strip().splitlines()[-1])
         rows.append(row)
@@ -261,31 +326,32 @@ def main():
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="5 s horizon, batch 16, 3 repeats")
     p.add_argument("--repeats", type=int, default=None)
-    p.add_argument("--memory-batch", type=int, default=None)
+    p.add_argument("--batch", type=int, default=None)
     p.add_argument("--memory-limit-gib", type=float, default=8.0)
     p.add_argument("--skip-memory", action="store_true")
-    p.add_argument("--skip-costs", action="store_true")
+    p.add_argument("--skip-anatomy", action="store_true")
     p.add_argument("--out", default="results/bench_gradient.json")
-    # child mode
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
-    p.add_argument("--mode", default="reverse", help=argparse.SUPPRESS)
-    p.add_argument("--ckpt", type=int, default=0, help=argparse.SUPPRESS)
+    p.add_argument("--mode", default="value_and_grad", help=argparse.SUPPRESS)
     p.add_argument("--t-final", type=float, default=20.0, help=argparse.SUPPRESS)
-    p.add_argument("--batch", type=int, default=256, help=argparse.SUPPRESS)
     args = p.parse_args()
     if args.child:
+        args.batch = args.batch or 256
         child(args)
         return
     t_final = 5.0 if args.quick else 20.0
     repeats = args.repeats or (3 if args.quick else 7)
-    batch = args.memory_batch or (16 if args.quick else 256)
+    batch = args.batch or (16 if args.quick else 256)
     load = os.getloadavg()
-    print(f"bench_gradient: T = {t_final:g} s, dt = 1e-3, {repeats} repeats; load average "
-          f"{load[0]:.2f} at start", file=sys.stderr)
+    print(f"bench_gradient: T = {t_final:g} s, dt = 1e-3, batch {batch}, {repeats} repeats; "
+          f"load average {load[0]:.2f} at start", file=sys.stderr)
+    import jax
+
     result = {"quick": args.quick, "machine": platform.platform(), "cpus": os.cpu_count(),
-              "load_average_start": load}
-    if not args.skip_costs:
-        result["costs"] = costs(t_final, repeats)
+              "device": str(jax.devices()[0]), "load_average_start": load}
+    result["costs"] = costs(t_final, repeats, batch)
+    if not args.skip_anatomy:
+        result["anatomy"] = anatomy(t_final)
     if not args.skip_memory:
         result["memory"] = memory(t_final, batch, args.memory_limit_gib)
     result["load_average_end"] = os.getloadavg()
@@ -297,55 +363,57 @@ def main():
 
 
 def _print(r):
-    if "costs" in r:
-        _print_costs(r["costs"])
-    if "memory" in r:
-        _print_memory(r["memory"])
-
-
-def _print_costs(c):
-    print(f"\nOne gradient of the {c['t_final']:g} s objective ({c['n_steps']} RK4 steps) with "
-          f"respect to {c['n_params']} tuned numbers, against one forward simulation")
-    print(f"{'method':<34} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
-    names = [("forward", "forward simulation"), ("grad_forward_mode", "exact, forward mode (jvp)"),
-             ("grad_forward_members", "exact, forward, members layout"),
-             ("grad_reverse_mode", "exact, reverse mode"),
-             ("grad_reverse_mode_ckpt100", "exact, reverse, checkpoint 100"),
-             ("grad_reverse_mode_ckpt1000", "exact, reverse, checkpoint 1000"),
-             ("fd_forward_batched", "FD forward, one batch"),
-             ("fd_central_batched", "FD central, one batch")]
-    for key, label in names:
-        v = c[key]
-        extra = f" ({v['members']} members)" if "members" in v else ""
-        print(f"{label + extra:<34} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
+    c = r["costs"]
+    print(f"\nGradient of J (L-inf + L2 of e on [1 s, {c['t_final']:g} s], {c['n_steps']} RK4 "
+          f"steps) w.r.t. {c['n_params']} design numbers, public API, default arguments "
+          f"({r['device']}; load {r['load_average_start'][0]:.1f} -> "
+          f"{r['load_average_end'][0]:.1f})")
+    print(f"{'one trajectory':<44} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
+    labels = {"forward": "forward run (jit)",
+              "value_and_grad": "value_and_grad (time-parallel, default)",
+              "jacfwd": "jacfwd (forward mode)",
+              "value_and_grad_autodiff": "value_and_grad, gradient=\"autodiff\"",
+              "fd_forward_batched": "finite differences, forward, one batch",
+              "fd_central_batched": "finite differences, central, one batch"}
+    for k, label in labels.items():
+        v = c["single"][k]
+        print(f"{label:<44} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
               f"{v['compile_s']:>12.1f}")
+    if "batch" in c:
+        b = c["batch"]
+        print(f"\nmean J over a batch of {b['size']} plants (alpha, lam, psi +-30 %)")
+        for k in ("forward", "value_and_grad", "jacfwd"):
+            v = b[k]
+            print(f"{labels.get(k, k).split(' (')[0]:<44} {v['median_s']:>11.4f} "
+                  f"{v['ratio_to_forward']:>10.2f} {v['compile_s']:>12.1f}")
     a = c["accuracy"]
-    print("\nforward (both) vs reverse mode: max rel. difference "
-          f"{a['forward_vs_reverse_max_rel']:.2e}; "
-          f"checkpointed vs plain reverse: {a['ckpt_vs_plain_reverse_max_rel']:.2e}")
-    print(f"{'finite differences':<20} {'h':>8} {'max rel. error vs exact':>24}")
+    print(f"\ntime-parallel vs autodiff reverse mode: max rel. difference "
+          f"{a['time_parallel_vs_autodiff_max_rel']:.2e}; jacfwd vs autodiff: "
+          f"{a['jacfwd_vs_autodiff_max_rel']:.2e}")
     for row in a["fd"]:
-        print(f"{'central' if row['central'] else 'forward':<20} {row['h']:>8.0e} "
-              f"{row['max_rel_error']:>24.2e}")
-
-
-def _print_memory(memory):
-    if memory:
-        m0 = memory[0]
-        print(f"\nPeak RSS [MiB] of one evaluation, batch of {m0['batch']} plants, T = "
-              f"{m0['t_final']:g} s (fresh process each: peak RSS after\n"
-              f"building the problem, during compilation, and during the run alone)")
-        print(f"{'configuration':<52} {'setup':>8} {'compile':>8} {'run':>8} {'run [s]':>8}")
-        for m in memory:
-            if m.get("rss_peak_mib") is None:
-                what = (f"> {m['exceeded_limit_gib']:g} GiB (stopped)"
-                        if "exceeded_limit_gib" in m else f"error: {m.get('error')}")
-                print(f"{m['config']:<52} {what}")
-                continue
-            run = m.get("rss_peak_run_mib")
-            print(f"{m['config']:<52} {m['rss_before_mib']:>8.0f} "
-                  f"{m['rss_peak_compile_mib']:>8.0f} {run if run is None else f'{run:.0f}':>8} "
-                  f"{m['run_s']:>8.2f}")
+        print(f"  finite differences {'central' if row['central'] else 'forward':<8} "
+              f"h = {row['h']:.0e}: max rel. error {row['max_rel_error']:.2e}")
+    if "anatomy" in r:
+        an = r["anatomy"]
+        print("\nwhere the time goes: HLO instructions per loop body (largest first)")
+        for k, v in an["loop_bodies"].items():
+            print(f"  {labels.get(k, k):<42} {v}")
+        s0 = an["one_step"]["step"]["flops"]
+        print("XLA flops of one RK4 step of the paper's loop")
+        for k, v in an["one_step"].items():
+            print(f"  {k:<26} {v['flops']:>8.0f} flops ({v['flops'] / s0:5.1f}x), "
+                  f"{v['transcendentals']:.0f} transcendental")
+    if "memory" in r:
+        print("\npeak RSS of the batch gradient [MiB] (fresh process each)")
+        for m in r["memory"]:
+            if "exceeded_limit_gib" in m:
+                print(f"  {m['mode']:<16} > {m['exceeded_limit_gib']:g} GiB (stopped)")
+            elif "error" in m:
+                print(f"  {m['mode']:<16} error: {m['error']}")
+            else:
+                print(f"  {m['mode']:<16} setup {m['rss_before_mib']:.0f}, compile "
+                      f"{m['rss_peak_compile_mib']:.0f}, run {m['rss_peak_run_mib']:.0f}, "
+                      f"run {m['run_s']:.1f} s")
 
 
 if __name__ == "__main__":

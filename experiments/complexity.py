@@ -29,12 +29,12 @@ def main(argv=None) -> int:
 
     jax.config.update("jax_enable_x64", True)
     from dscjax import complexity, files
-    from dscjax.cli.reproduce import _orders
+    from dscjax.cli.reproduce import parse_orders
     from dscjax.reproduce import STYLE
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    result = complexity.study(_orders(args.orders), repeats=args.repeats, evals=args.evals,
+    result = complexity.study(parse_orders(args.orders), repeats=args.repeats, evals=args.evals,
                               log=lambda msg: print(msg, file=sys.stderr, flush=True))
     files.write_json(out / "complexity.json", result)
     complexity.plot(result, out / "complexity.png", dpi=args.dpi,

@@ -11,8 +11,9 @@ order would type it (so the docs may use what the README's examples wrote: `my.t
 
 - sizes: 300 RK4 steps (--t-final 300 dt), --samples 8, grid axes of 2 points, --steps 1 (2
   to resume), --batch 2, --heldout 0, --dpi 30, --complexity for n = 2..3 with 1 build,
-  sweeps re-simulate 1 worst sample, no figures for tune and sweep (--no-plot; their figures
-  are tested in test_tuning_loop.py and test_sweep.py);
+  sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
+  (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
+  figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
 - `> FILE` redirects stdout to FILE;
 - a command printed twice (the docs repeat the README) runs once;
 - multi-host lines (--coordinator, --distributed) are skipped: they need several processes
@@ -85,6 +86,11 @@ def shrink(argv: list[str]) -> list[str]:
         _set(a, "--steps", "2" if "--steps" in a else "1")
         _set(a, "--batch", "2", add=False)
         _set(a, "--heldout", "0")
+        a.append("--no-plot")
+    elif command == "worst-case":
+        _set(a, "--time-limit", "0.2")
+        _set(a, "--methods", "random")
+        _set(a, "--batch", "2")
         a.append("--no-plot")
     elif command == "reproduce":
         _set(a, "--dpi", "30")

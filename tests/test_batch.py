@@ -60,9 +60,9 @@ def test_changing_numbers_does_not_recompile(paper_setup):
     assert _simulate._cache_size() == before + 1
 
     dscjax.simulate_batch(paper_setup, {"controller.k": jnp.ones((4, 2))}, 0.5, 1e-3)
-    b_before = _simulate_batch._cache_size()
+    b_before = _simulate_batch.top._cache_size()
     dscjax.simulate_batch(paper_setup, {"controller.k": 2 * jnp.ones((4, 2))}, 0.5, 1e-3)
-    assert _simulate_batch._cache_size() == b_before
+    assert _simulate_batch.top._cache_size() == b_before
 
 
 def test_float32_setup_stays_float32(paper_setup):

@@ -93,3 +93,21 @@ def test_booleans_are_not_numbers(suffix, text, field, tmp_path, capsys):
     assert code == 2, err
     assert len(err.strip().splitlines()) == 1 and "Traceback" not in err
     assert field in err and ("boolean" in err or "number" in err), err
+
+
+@pytest.mark.parametrize("name", ["paper", "backstepping", "order-3", "order-4"])
+def test_every_examples_printed_config_round_trips(name, tmp_path, capsys):
+    # `--print-config` prints the COMPLETE config of the example: laid over the DEFAULT
+    # (paper) example it gives the same setup; two of them also run (compiling is slow)
+    from dscjax.cli.main import main
+
+    assert main(["simulate", "--example", name, "--print-config"]) == 0
+    text = capsys.readouterr().out
+    setup, _ = config.from_dict(tomllib.loads(text))
+    assert _same(setup, dscjax.examples.example(name, dtype=np.float64))
+    if name in ("backstepping", "order-3"):
+        (tmp_path / "c.toml").write_text(text)
+        assert main(["simulate", "--config", str(tmp_path / "c.toml"), "--t-final", "0.05",
+                     "--no-plot", "--out", str(tmp_path / "o")]) == 0
+        m = json.loads((tmp_path / "o" / "metrics.json").read_text())
+        assert m["diverged"] is False and m["linf_error"] > 0

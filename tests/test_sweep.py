@@ -74,6 +74,17 @@ def test_chunk_size_does_not_change_results(paper_setup, base_result):
         _same(base_result.columns, other.columns)
 
 
+def test_spmd_program_agrees_with_the_per_device_programs(paper_setup, base_result):
+    # parallel="spmd" is one shard_map program: equal to round-off, not bitwise (package doc)
+    spmd = run_sweep(paper_setup, SweepSettings(samples=24, chunk=8, dtype="float64",
+                                                parallel="spmd"), T, DT)
+    assert spmd.info["parallel"] == "spmd"
+    np.testing.assert_array_equal(spmd.columns["diverged"], base_result.columns["diverged"])
+    for m in sweep.METRICS:
+        np.testing.assert_allclose(spmd.columns[m], base_result.columns[m], rtol=1e-9,
+                                   atol=1e-15, err_msg=m)
+
+
 def test_resume_after_interrupt_gives_the_same_file(paper_setup, tmp_path):
     full = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "a")
 
@@ -278,22 +289,45 @@ def test_config_sweep_table_and_gains_file(tmp_path, capsys):
 
 
 def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
-    # alpha 10 with lam 0.15 diverges within milliseconds, before the window [0.25, 0.5] s:
-    # its windowed error used to read 0.0
+    # alpha 10 with lam 0.15: classical RK4 at dt = 1e-3 diverges within milliseconds, before
+    # the window [0.25, 0.5] s (its windowed error used to read 0.0). With --refine 0 it is
+    # reported diverged; by default it is re-run with ETDRK4 and tracks.
+    grid = ["sweep", "--grid", "hysteresis.alpha=1:10:2", "--grid", "hysteresis.lam=0.15:3:2",
+            "--float64", "--t-final", str(T), "--t0", "0.25", "--worst", "1", "--random", "0",
+            "--no-plot"]
     out = tmp_path / "div"
-    code = cli(["sweep", "--grid", "hysteresis.alpha=1:10:2", "--grid", "hysteresis.lam=0.15:3:2",
-                "--float64", "--t-final", str(T), "--t0", "0.25", "--worst", "1", "--random", "0",
-                "--no-plot", "--out", str(out)])
+    code = cli([*grid, "--refine", "0", "--out", str(out)])
     captured = capsys.readouterr()
     assert code == 0, captured.err
     with np.load(out / "results.npz") as z:
         div = z["diverged"]
-        assert div.any() and not div.all()
+        assert div.tolist() == [False, False, True, False]  # alpha 10, lam 0.15
         for m in sweep.METRICS:
             assert np.all(np.isnan(z[m][div])) and np.all(np.isfinite(z[m][~div])), m
         assert np.all(np.isfinite(z["t_diverged"][div]))
+        assert z["refinements"].tolist() == [0, 0, 0, 0] and np.all(z["dt_used"] == 1e-3)
     summary = json.loads((out / "summary.json").read_text())
-    assert summary["n_diverged"] == int(div.sum())
+    assert summary["n_diverged"] == 1 and summary["smallest_dt_tried"] == 1e-3
     assert all(r["metrics"]["linf_error_window"] is None for r in summary["first_diverged"])
     assert summary["quantiles"]["linf_error_window"]["min"] > 0
-    assert f"diverged: {int(div.sum())} of 4" in captured.out  # a result: stdout
+    assert "diverged at every step tried: 1 of 4" in captured.out  # a result: stdout
+
+    out = tmp_path / "refined"
+    assert cli([*grid, "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    with np.load(out / "results.npz") as z:
+        assert not z["diverged"].any()
+        assert z["refinements"].tolist() == [0, 0, 1, 0]  # ETDRK4 at the same dt
+        stiff = z["linf_error_window"][2]
+        plain = z["linf_error_window"][[0, 1, 3]]
+    # the refined row is the ETDRK4 run of that plant; the others are unchanged, bit for bit
+    with np.load(tmp_path / "div" / "results.npz") as z:
+        np.testing.assert_array_equal(plain, z["linf_error_window"][[0, 1, 3]])
+    one = dscjax.simulate(dscjax.params.set_many(
+        dscjax.paper_example(), {"hysteresis.alpha": 10.0, "hysteresis.lam": 0.15}), T, 1e-3,
+        window_start=0.25, solver="etdrk4", refine=0)
+    assert stiff == pytest.approx(float(one.metrics["linf_error_window"]), rel=1e-12)
+    summary = json.loads((out / "summary.json").read_text())
+    assert (summary["n_tracked"], summary["n_refined"], summary["n_diverged"]) == (3, 1, 0)
+    assert "after refinement (a numerically stiff run re-done with ETDRK4 at a smaller step): 1"\
+        in captured.out

@@ -144,9 +144,10 @@ def test_resume_refuses_a_different_problem(small_problem, tmp_path):
     import dataclasses
 
     run(_with_steps(small_problem, 2), tmp_path)
-    other = dataclasses.replace(small_problem, mode="reverse")
+    assert small_problem.mode == "reverse"  # one plant: the time-parallel reverse mode
+    other = dataclasses.replace(small_problem, mode="forward")
     with pytest.raises(dscjax.ConfigError,
-                       match=r"other settings \(mode .forward. \(now .reverse.\)\)"):
+                       match=r"other settings \(mode .reverse. \(now .forward.\)\)"):
         run(other, tmp_path, resume=True)
 
 

@@ -75,7 +75,7 @@ def test_order_mismatch_from_config():
 
 
 @pytest.mark.parametrize("d,pattern", [
-    ({"hysteresis": {"alpah": 1.0}}, r"unknown key 'hysteresis.alpah' \(allowed: model, alpha"),
+    ({"hysteresis": {"alpah": 1.0}}, r"unknown key 'hysteresis.alpah' \(allowed: kind, alpha"),
     ({"plants": {}}, r"unknown section 'plants'"),
     ({"simulation": {"dtt": 1.0}}, r"unknown key 'simulation.dtt'"),
     ({"controller": {"k": "ten"}}, r"controller.k must be a number or a list of numbers"),

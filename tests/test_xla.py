@@ -2,6 +2,7 @@
 programs (dscjax/xla.py) is asked for only when wanted and changes no result."""
 
 import json
+import os
 import subprocess
 import sys
 
@@ -34,11 +35,45 @@ def test_cpuinfo_parsing(tmp_path):
     assert not xla.cpu_has_avx512(str(tmp_path / "missing"))
 
 
-@pytest.mark.skipif(not xla.cpu_has_avx512() or jax.default_backend() != "cpu",
-                    reason="512-bit vectors change the code only on a CPU with AVX-512")
+# Without AVX-512 (or with a width already set in XLA_FLAGS) both compilations below are the
+# same program, and comparing their results would prove nothing.
+wide_differs = pytest.mark.skipif(
+    not xla.cpu_has_avx512() or jax.default_backend() != "cpu"
+    or xla.OPTION in os.environ.get("XLA_FLAGS", ""),
+    reason="512-bit vectors change the code only on a CPU with AVX-512 and no width set in "
+           "XLA_FLAGS")
+
+_DUMP = f"""
+import jax, jax.numpy as jnp
+x = jnp.ones(4096, jnp.float32)
+jax.jit(lambda x: jnp.sin(x) * x + 1.0, compiler_options={xla.WIDE!r}).lower(x).compile()
+jax.jit(lambda x: jnp.sin(x) * x + 2.0).lower(x).compile()
+"""
+
+
+@wide_differs
+def test_the_option_reaches_the_code_generator(tmp_path):
+    """The premise of the next test: compiled with the option, XLA:CPU emits 16-float vectors
+    (512 bits), without it 8-float ones, for the same elementwise kernel (LLVM IR dumps)."""
+    env = dict(os.environ, XLA_FLAGS=f"--xla_dump_to={tmp_path}", JAX_PLATFORMS="cpu")
+    subprocess.run([sys.executable, "-c", _DUMP], env=env, check=True, capture_output=True,
+                   timeout=300)
+
+    def widths(module):
+        ir = "".join(f.read_text() for f in tmp_path.glob(f"{module}.*ir-with-opt.ll"))
+        return "<16 x float>" in ir, "<8 x float>" in ir
+
+    # the two lambdas, in the order compiled (module numbers grow)
+    modules = sorted({f.name.split(".")[0] for f in tmp_path.glob("*lambda*ir-with-opt.ll")})
+    assert len(modules) == 2, sorted(f.name for f in tmp_path.iterdir())
+    wide, narrow = (widths(m) for m in modules)
+    assert wide == (True, False) and narrow == (False, True)
+
+
+@wide_differs
 def test_wide_vectors_change_no_result(paper_setup):
     """The same float64 batch compiled with and without 512-bit vectors (different machine
-    code on this CPU): bitwise equal trajectories and metrics."""
+    code on this CPU, see above): bitwise equal trajectories and metrics."""
     setup = dscjax.canonical(paper_setup)
     overrides = {"hysteresis.alpha": jnp.linspace(0.7, 1.3, 64),
                  "hysteresis.lam": jnp.linspace(1.0, 1.8, 64)}

@@ -206,6 +206,7 @@ class SimSpec:
     state_bound: float = 1e6
     checkpoint_every: int | None = None
     gradient: str = "time_parallel"  # one plant: see dscjax.simulate.run; "autodiff" = JAX's own
+    solver: str = "rk4"  # "etdrk4" for stiff loops (simulation.solver); gradients stay exact
 
     @property
     def n_steps(self) -> int:
@@ -233,7 +234,7 @@ def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
     traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
                save_every=sim.n_steps, overrides=dict(overrides) if overrides else None,
                checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra,
-               gradient=sim.gradient)
+               gradient=sim.gradient, solver=sim.solver)
     return traj.metrics, traj.diverged
 
 

@@ -125,7 +125,7 @@ def trajectories(problem, z0, z1, save_every: int = 10):
         setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
         out[tag] = simulate(setup, sim.t_final, sim.dt, save_every=save_every,
                             window_start=sim.window_start, state_bound=sim.state_bound,
-                            throw=False)
+                            throw=False, solver=sim.solver, refine=0)
     return out
 
 

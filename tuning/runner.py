@@ -92,6 +92,19 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
     return ()
 
 
+def _model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
+    """Batches left at the default ranges vary the setup's own hysteresis model's numbers
+    (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
+    from dscjax.ranges import default_ranges
+
+    for key in ("robust", "heldout"):
+        b = getattr(cfg, key)
+        if b.ranges == default_ranges():
+            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(
+                b, ranges=default_ranges(setup))})
+    return cfg
+
+
 def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     """Validate the tuning settings against the setup and build the objective.
 
@@ -102,6 +115,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
 
     cfg.validate()
     validate_setup(setup)
+    cfg = _model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
     if window is None:
@@ -123,7 +137,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                            cfg.robust.batch if cfg.robust.batch > 0 else 1)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
-                  state_bound=options.state_bound, checkpoint_every=ce)
+                  state_bound=options.state_bound, checkpoint_every=ce, solver=options.solver)
     batches = {}
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)

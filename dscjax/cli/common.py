@@ -38,8 +38,9 @@ def add_integration_args(p):
 def add_example_arg(p):
     p.add_argument("--example", default="paper", metavar="NAME",
                    help="the built-in closed loop a --config is laid over: paper (default), "
-                   "backstepping (the paper's plant, backstepping baseline) or order-N (the "
-                   "order-n family, N >= 2, e.g. order-4); --print-config shows it whole")
+                   "backstepping (the paper's plant, backstepping baseline), order-N (the "
+                   "order-n family, N >= 2, e.g. order-4), or pi, gpi, bouc_wen (the paper's "
+                   "loop behind that hysteresis model); --print-config shows it whole")
 
 
 def example_setup(args):
@@ -65,6 +66,7 @@ def load_setup(args):
     """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype."""
     from dscjax import config
     from dscjax.params import cast
+    from dscjax.validation import validate_setup
 
     base = example_setup(args)
     if args.config:
@@ -83,6 +85,9 @@ def load_setup(args):
             controller=dataclasses.replace(setup.controller, variant=args.variant))
     options = dataclasses.replace(options, **changes)
     options.validate()
+    # before anything traces the setup (a shape mismatch would otherwise surface as a JAX
+    # broadcasting error from inside an eval_shape)
+    validate_setup(setup)
     return cast(setup, np.dtype(options.dtype)), options
 
 

@@ -19,6 +19,8 @@ COMMANDS = {
     "tune": "dscjax.cli.tune",
     "sweep": "dscjax.cli.sweep",
     "stability": "dscjax.cli.stability",
+    "worst-case": "dscjax.cli.worst_case",
+    "hysteresis": "dscjax.cli.hysteresis",
 }
 
 EXIT_USAGE = 2

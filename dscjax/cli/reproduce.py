@@ -7,7 +7,7 @@ from pathlib import Path
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
 
 
-def _orders(text: str) -> list[int]:
+def parse_orders(text: str) -> list[int]:
     """"2-8" or "2,3,5" -> list of orders >= 2."""
     from dscjax.validation import ConfigError
 
@@ -78,7 +78,8 @@ def add_parser(sub):
     return p
 
 
-def _alpha0(text: str | None) -> list[float] | None:
+def parse_alpha0(text: str | None) -> list[float] | None:
+    """"0.5,1,2" -> list of positive alpha_0 values (None stays None)."""
     from dscjax.validation import ConfigError
 
     if text is None:
@@ -98,9 +99,9 @@ def run(args) -> int:
     from dscjax.reproduce import claim_lines, reproduce
     from dscjax.validation import ConfigError, validate_run
 
-    orders = _orders(args.orders)
-    theory_orders = _orders(args.theory_orders)
-    alpha0 = _alpha0(args.alpha0)
+    orders = parse_orders(args.orders)
+    theory_orders = parse_orders(args.theory_orders)
+    alpha0 = parse_alpha0(args.alpha0)
     if args.mu is not None and not args.mu > 0:
         raise ConfigError(f"--mu must be > 0 (got {args.mu})")
     if args.repeats < 1:

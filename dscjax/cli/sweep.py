@@ -15,7 +15,13 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.cli.common import add_example_arg, add_horizon_args, example_setup, prepare_out
+from dscjax.cli.common import (
+    add_example_arg,
+    add_horizon_args,
+    add_integration_args,
+    example_setup,
+    prepare_out,
+)
 from dscjax.files import write_json
 from dscjax.progress import Progress
 
@@ -59,6 +65,7 @@ def add_parser(sub):
     p.add_argument("--chunk", type=int, metavar="C", help=f"samples per block and device "
                    f"(default: about {AUTO_BLOCK})")
     add_horizon_args(p)
+    add_integration_args(p)
     add_example_arg(p)
     p.add_argument("--t0", type=float, metavar="S", help=f"start of the metric window [t0, T] "
                    f"(default {DEFAULT_WINDOW_START:g} s, 0 if T <= {DEFAULT_WINDOW_START:g} s)")
@@ -159,6 +166,9 @@ def load(args):
         opt["dt"] = args.dt
     if args.t0 is not None:
         opt["window_start"] = args.t0
+    for name in ("solver", "refine"):
+        if getattr(args, name, None) is not None:
+            opt[name] = getattr(args, name)
     options = dataclasses.replace(options, **opt)
     options.validate()
     return setup, options, settings
@@ -234,7 +244,8 @@ def run(args) -> int:
     try:
         result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
                                  state_bound=state_bound, out_dir=out, resume=args.resume,
-                                 overwrite=args.overwrite, progress=progress)
+                                 overwrite=args.overwrite, progress=progress,
+                                 solver=options.solver, refine=options.refine)
     finally:
         if bar is not None:
             bar.close()
@@ -247,7 +258,8 @@ def run(args) -> int:
     c = result.columns
     every = _save_every(info["n_steps"])
     nominal = simulate(setup, t_final, dt, save_every=every, window_start=window_start,
-                       state_bound=state_bound, throw=False)
+                       state_bound=state_bound, throw=False, solver=options.solver,
+                       refine=options.refine)
     nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
     threshold, rule = settings.threshold, "given"
     if threshold is None:
@@ -296,9 +308,14 @@ def run(args) -> int:
         print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
               f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
               f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
-    print(f"  diverged: {summary['n_diverged']:,} of {result.n:,} "
-          f"({100 * summary['divergence_rate']:.2f} %); degraded (above {threshold:.4g}, "
-          f"{rule}): {summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
+    smallest = summary["smallest_dt_tried"]
+    print(f"  tracked: {summary['n_tracked']:,}; tracked after refinement (a numerically stiff "
+          f"run re-done with ETDRK4 at a smaller step): {summary['n_refined']:,}; diverged "
+          f"at every step tried: {summary['n_diverged']:,} of {result.n:,} "
+          f"({100 * summary['divergence_rate']:.2f} %"
+          + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")")
+    print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
+          f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     return 0
 
 
@@ -376,7 +393,7 @@ def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, n
     figures = ["hist_linf_window.png"]
     sp.plot_histogram(c["linf_error_window"], c["diverged"], out / figures[0], t0=t0,
                       t_final=t_final, nominal=nominal_metrics["linf_error_window"],
-                      threshold=threshold, title=title)
+                      threshold=threshold, title=title, refined=c["refinements"] > 0)
     names = [r.name for r in ranges]
     if len(names) >= 2:
         pair = settings.heatmap or (names[0], names[1])
@@ -387,7 +404,8 @@ def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, n
         summary["heatmap"] = sp.plot_heatmap(
             c[pair[0]], c[pair[1]], c["linf_error_window"], c["diverged"], out / figures[-1],
             names=pair, t0=t0, t_final=t_final, threshold=threshold,
-            nominal_xy=(nominal_params[pair[0]], nominal_params[pair[1]]), title=title, **grid)
+            nominal_xy=(nominal_params[pair[0]], nominal_params[pair[1]]), title=title,
+            refined=c["refinements"] > 0, **grid)
     else:
         figures.append("scan_linf_window.png")
         sp.plot_scan(c[names[0]], c["linf_error_window"], c["diverged"], out / figures[-1],

@@ -11,24 +11,24 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from dscjax import params, xla
-from dscjax.simulate import nan_if_diverged, run
+from dscjax.simulate import nan_if_diverged, refine_rows, refinement_level, run
 
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
            "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 
 
-def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps):
+def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps,
+                solver="rk4"):
     """The metrics and status of every row of a (chunk, d) table of parameter values."""
     traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
-               overrides=params.overrides(setup, columns, table))
+               overrides=params.overrides(setup, columns, table), solver=solver)
     metrics = nan_if_diverged(traj.metrics, traj.diverged)
     return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
 
 
 # One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
-_block = jax.jit(_block_body, static_argnames=("columns", "n_steps"),
-                 compiler_options=xla.compiler_options())
+_block = xla.jit(_block_body, static_argnames=("columns", "n_steps", "solver"))
 
 
 class Runner:
@@ -37,13 +37,14 @@ class Runner:
     AXIS = "batch"
 
     def __init__(self, setup, columns, n_steps, dt, window_start, state_bound, chunk,
-                 parallel="per_device", devices=None):
+                 parallel="per_device", devices=None, solver="rk4"):
         self.devices = list(devices if devices is not None else jax.devices())
         self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
         self.n_dev = len(self.devices)
         self.chunk = chunk
         self.columns = tuple(columns)
         self.n_steps = n_steps
+        self.solver = solver
         self.dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
         self.scalars = tuple(np.asarray(v, self.dtype) for v in (dt, window_start, state_bound))
         self.in_sharding = NamedSharding(self.mesh, P(self.AXIS, None))
@@ -54,13 +55,15 @@ class Runner:
         self.local = [d for d in self.devices if d.process_index == me]
         if parallel == "spmd":
             body = jax.shard_map(
-                lambda s, t, *a: _block_body(s, t, *a, columns=self.columns, n_steps=n_steps),
+                lambda s, t, *a: _block_body(s, t, *a, columns=self.columns, n_steps=n_steps,
+                                             solver=solver),
                 mesh=self.mesh, in_specs=(P(), P(self.AXIS, None), P(), P(), P()),
                 out_specs=P(self.AXIS), check_vma=False)
             self._spmd = jax.jit(body, compiler_options=xla.compiler_options())
             self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
         else:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
+        self._setup = setup
 
     @property
     def round_size(self) -> int:
@@ -83,7 +86,8 @@ class Runner:
 
         def dispatch(shard):
             return shard.device, _block(self.setup_on[shard.device], shard.data, *self.scalars,
-                                        columns=self.columns, n_steps=self.n_steps)
+                                        columns=self.columns, n_steps=self.n_steps,
+                                        solver=self.solver)
 
         if self._compiled or len(jobs) == 1:
             per_dev = {b: dispatch(sh) for b, sh in jobs.items()}  # asynchronous: devices overlap
@@ -104,6 +108,33 @@ class Runner:
             (table.shape[0],), self.out_sharding, [by_device[d][k] for d in self.local])
             for k in keys}
         return {k: _to_host(v) for k, v in out.items()}
+
+
+    def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
+               ) -> dict[str, np.ndarray]:
+        """Re-run the rows of `table` whose run in `part` diverged, at the refinement levels
+        1..levels (`dscjax.simulate.refine_rows`: ETDRK4 at dt, dt/2, ...), on the first local
+        device. Returns `part` with those rows replaced and two columns added: "refinements"
+        (the level of the reported run: 0 the requested solver at dt) and "dt_used". Every
+        process computes the same rows (deterministic), so no gather is needed."""
+        dt = float(self.scalars[0])
+        device = self.local[0] if self.local else self.devices[0]
+        setup = jax.device_put(self._setup, device)
+        rows = np.asarray(table, self.dtype)
+
+        def level(j, idx):
+            solver, m = refinement_level(j, self.solver)
+            return _block(setup, jax.device_put(rows[idx], device),
+                          np.asarray(dt / 2**m, self.dtype), *self.scalars[1:],
+                          columns=self.columns, n_steps=self.n_steps * 2**m, solver=solver)
+
+        out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
+        halvings = np.zeros(level_of.shape, np.int64)
+        for j in np.unique(level_of):
+            halvings[level_of == j] = refinement_level(int(j), self.solver)[1]
+        out["refinements"] = level_of.astype(np.int8)
+        out["dt_used"] = dt / 2.0**halvings
+        return out
 
 
 def _to_host(a) -> np.ndarray:

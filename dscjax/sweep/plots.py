@@ -63,10 +63,12 @@ def _use_log(v) -> bool:
 
 
 def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=None,
-                   title="") -> None:
-    """Histogram of the windowed L-inf error of the samples that did not diverge."""
+                   title="", refined=None) -> None:
+    """Histogram of the windowed L-inf error of the samples that did not diverge; those that
+    tracked only after refinement (`refined`: a smaller step / ETDRK4) stacked in orange."""
     err = np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
+    ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
     v = err[~div & np.isfinite(err)]
     fig, ax = subplots(figsize=(8, 5.4), layout="constrained")
     if v.size:
@@ -75,8 +77,11 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
         if hi <= lo:
             hi = lo * 1.01 + 1e-12
         bins = (np.geomspace(lo, hi, 61) if log else np.linspace(lo, hi, 61))
-        ax.hist(v, bins=bins, color="#1f77b4", alpha=0.85,
-                label=f"samples that track ({v.size:,})")
+        keep = ~div & np.isfinite(err)
+        plain, after = err[keep & ~ref], err[keep & ref]
+        ax.hist([plain, after], bins=bins, color=["#1f77b4", "#ff7f0e"], alpha=0.85,
+                stacked=True, label=[f"samples that track ({plain.size:,})",
+                                     f"tracked after refinement ({after.size:,})"])
         if log:
             ax.set_xscale("log")
         ax.axvline(np.median(v), color="#444444", lw=1.2, ls="-",
@@ -94,7 +99,8 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     ax.set_xlabel(error_label(t0, t_final))
     ax.set_ylabel("number of samples")
     ax.set_title((title + "\n" if title else "")
-                 + f"{int(div.sum()):,} diverged ({100 * div.mean():.2f} %, not shown)",
+                 + f"{int(div.sum()):,} diverged at every step tried ({100 * div.mean():.2f} %,"
+                 " not shown)",
                  fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
@@ -144,12 +150,18 @@ def _edges_of(values):
 
 
 def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=None,
-                 nominal_xy=None, grid_x=None, grid_y=None, title="") -> dict:
-    """Heatmap of the median windowed L-inf error over two parameters; cells whose median is
-    above `threshold` (or diverged) are hatched and outlined in red; diverged samples are
-    marked. Returns the cell statistics (for tests and summary.json)."""
+                 nominal_xy=None, grid_x=None, grid_y=None, title="", refined=None) -> dict:
+    """Heatmap of the median windowed L-inf error over two parameters. Hatched: only the
+    cells with a sample that diverged at every step tried; outlined in red: the cells whose
+    median is above `threshold`; diverged samples are marked x, samples that tracked only
+    after refinement (`refined`) o. Returns the cell statistics (for tests and
+    summary.json)."""
     med, ex, ey, count = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
     div = np.asarray(diverged, bool)
+    ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
+    ix, iy = _cells(np.asarray(x, np.float64), ex, np.asarray(y, np.float64), ey)
+    div_cells = np.zeros(med.shape, bool)
+    div_cells[ix[div], iy[div]] = True
     finite = med[np.isfinite(med)]
     fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
@@ -165,24 +177,35 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
                  + ("\n" + spread_text(finite) if finite.size else ""), fontsize=9)
     handles = []
+    hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
+    xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
+    bad = np.zeros(med.shape, bool)
     if threshold is not None:
         bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
-        if bad.any():
-            # hatch exactly the degraded cells, outline the region
-            hx = np.repeat(ex, 2)[1:-1]
-            hy = np.repeat(ey, 2)[1:-1]
-            z = np.repeat(np.repeat(bad.astype(float), 2, axis=0), 2, axis=1)
-            hatch = ax.contourf(hx, hy, z.T, levels=[0.5, 1.5], colors="none",
-                                hatches=["////"])
-            hatch.set_edgecolor("#d62728")
-            hatch.set_linewidth(0.0)
-            xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
-            if len(xc) > 1 and len(yc) > 1:
-                ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728",
-                           linewidths=1.8)
-        handles.append(Patch(facecolor="none", edgecolor="#d62728", hatch="///",
-                             label=f"tracking degraded: cell median > {threshold:.3g}"
-                             f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+        if bad.any() and len(xc) > 1 and len(yc) > 1:
+            ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728",
+                       linewidths=1.8)
+        handles.append(Line2D([], [], color="#d62728", lw=1.8,
+                              label=f"tracking degraded: cell median > {threshold:.3g}"
+                              f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+    if div_cells.any():
+        # hatch exactly the cells where a sample diverged at every step tried
+        z = np.repeat(np.repeat(div_cells.astype(float), 2, axis=0), 2, axis=1)
+        hatch = ax.contourf(hx, hy, z.T, levels=[0.5, 1.5], colors="none", hatches=["////"])
+        hatch.set_edgecolor("#7f0000")
+        hatch.set_linewidth(0.0)
+        handles.append(Patch(facecolor="none", edgecolor="#7f0000", hatch="///",
+                             label=f"diverged at every step tried ({int(div_cells.sum())} "
+                             f"cells)"))
+    if ref.any():
+        idx = np.flatnonzero(ref)
+        if idx.size > 2000:
+            idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
+        ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], marker="o", s=10,
+                   facecolors="none", edgecolors="#ff7f0e", lw=0.7)
+        handles.append(Line2D([], [], marker="o", ls="", mfc="none", color="#ff7f0e",
+                              label=f"tracked after refinement ({int(ref.sum()):,} samples: "
+                              "stiff at dt, re-run with ETDRK4)"))
     if div.any():
         idx = np.flatnonzero(div)
         if idx.size > 2000:
@@ -214,7 +237,8 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     fig.savefig(path, dpi=110)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
-            "count": count.tolist(),
+            "count": count.tolist(), "degraded_cells": int(bad.sum()),
+            "diverged_cells": int(div_cells.sum()), "refined_samples": int(ref.sum()),
             "colour_scale": spread_text(finite) if finite.size else None}
 
 

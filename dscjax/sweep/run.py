@@ -14,14 +14,18 @@ import jax
 import numpy as np
 
 from dscjax import config, files, params, validation
+from dscjax.integrate import SOLVERS
 from dscjax.metrics import default_window
 from dscjax.ranges import sample_table
+from dscjax.simulate import DEFAULT_REFINE
 from dscjax.sweep.device import METRICS, Runner
 from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
 from dscjax.validation import ConfigError
 
-FORMAT_VERSION = 2  # 2: the metrics of diverged rows are NaN (were the frozen values)
-STATUS_COLUMNS = ("diverged", "t_diverged", "status")
+# 2: the metrics of diverged rows are NaN (were the frozen values); 3: rows that diverged are
+# re-run with ETDRK4 at smaller steps ("refinements", "dt_used")
+FORMAT_VERSION = 3
+STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
 
 
 @dataclasses.dataclass
@@ -29,8 +33,12 @@ class SweepResult:
     """A finished sweep.
 
     columns: one array per column, one row per sample (in sample order): "sample", the
-        parameter columns (names as `Range.name`), the metrics (`METRICS`), "diverged",
-        "t_diverged" (+inf if not) and "status" (0 ok, 1 non-finite, 2 state bound).
+        parameter columns (names as `Range.name`), the metrics (`METRICS`), "diverged"
+        (still diverged after every refinement level), "t_diverged" (+inf if not), "status"
+        (0 ok, 1 non-finite, 2 state bound), "refinements" (0: tracked with the requested
+        solver at dt; j >= 1: the refinement level of the reported run, see
+        `dscjax.simulate.refinement_level`) and "dt_used" (the step of the reported run: for a
+        diverged row, the smallest step tried).
     param_names: the parameter columns, in table order.
     info: sizes, timing and settings (what `summary.json` reports under "run").
     """
@@ -45,7 +53,7 @@ class SweepResult:
 
 
 def fingerprint(setup, settings: SweepSettings, ranges, t_final, dt, window_start,
-                state_bound, chunk) -> dict[str, Any]:
+                state_bound, chunk, solver="rk4", refine=0) -> dict[str, Any]:
     """Everything that determines the rows of a sweep (and how they are split into files)."""
     setup_dict = config.to_dict(setup)
     setup_dict.pop("simulation", None)
@@ -55,7 +63,7 @@ def fingerprint(setup, settings: SweepSettings, ranges, t_final, dt, window_star
         "method": settings.method, "samples": settings.n_samples(), "seed": settings.seed,
         "dtype": settings.dtype, "t_final": float(t_final), "dt": float(dt),
         "window_start": float(window_start), "state_bound": float(state_bound),
-        "chunk": int(chunk),
+        "chunk": int(chunk), "solver": solver, "refine": int(refine),
     }
 
 
@@ -72,6 +80,8 @@ def run_sweep(
     overwrite: bool = False,
     progress: Callable[[dict[str, Any]], None] | None = None,
     devices=None,
+    solver: str = "rk4",
+    refine: int = DEFAULT_REFINE,
 ) -> SweepResult:
     """Run a sweep of `setup` (gains fixed) over `settings`; see the module docstring.
 
@@ -87,6 +97,9 @@ def run_sweep(
             included), total, resumed, elapsed_s, samples_per_s and steps_per_s (after the
             first round: without compilation), eta_s, round, rounds.
         devices: the devices to use (default: all, over every host).
+        solver, refine: as in `simulate`: the integrator ("rk4" or "etdrk4") and the number
+            of refinement levels (ETDRK4 at dt, dt/2, ...) a diverged row is re-run at, only
+            those rows, before it counts as diverged (0: none).
 
     Returns:
         SweepResult; nothing is raised for diverged samples.
@@ -102,6 +115,8 @@ def run_sweep(
     settings = settings or SweepSettings()
     window_start = default_window(t_final, window_start)
     validation.one_of(settings.dtype, "sweep.dtype", DTYPES)
+    validation.one_of(solver, "simulation.solver", SOLVERS)
+    validation.integer(refine, "simulation.refine", 0)
     dtype = np.dtype(settings.dtype)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
         raise ConfigError("sweep.dtype = 'float64' needs JAX's x64 mode: "
@@ -120,7 +135,8 @@ def run_sweep(
     # the values actually simulated: rounded to the sweep's dtype
     table = table.astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
-    fp = fingerprint(setup, settings, ranges, t_final, dt, window_start, state_bound, chunk)
+    fp = fingerprint(setup, settings, ranges, t_final, dt, window_start, state_bound, chunk,
+                     solver, refine)
     digest = files.digest(fp)
 
     out = Path(out_dir) if out_dir is not None else None
@@ -131,7 +147,7 @@ def run_sweep(
     kept: dict[int, dict[str, np.ndarray]] = {}
 
     runner = Runner(setup, columns, n_steps, dt, window_start, state_bound, chunk,
-                    settings.parallel, devices)
+                    settings.parallel, devices, solver)
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
     n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))
@@ -145,8 +161,9 @@ def run_sweep(
             lo = b * chunk
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
+            part = runner.refine(table[lo:lo + m], part, refine)
             data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
-                            table[lo:lo + m], part, dt)
+                            table[lo:lo + m], part)
             if out is not None:
                 if main:
                     files.write_npz(_chunk_path(out, b),
@@ -182,7 +199,7 @@ def run_sweep(
                 platform=runner.devices[0].platform, parallel=settings.parallel,
                 n_steps=n_steps, dtype=settings.dtype, t_final=float(t_final), dt=float(dt),
                 window_start=float(window_start), state_bound=float(state_bound),
-                method=settings.method, seed=settings.seed,
+                method=settings.method, seed=settings.seed, solver=solver, refine=int(refine),
                 ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
                 samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
                 steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)
@@ -236,15 +253,17 @@ def _block_rows(table, b, chunk):
     return rows
 
 
-def _columns(sample, names, values, part, dt) -> dict[str, np.ndarray]:
+def _columns(sample, names, values, part) -> dict[str, np.ndarray]:
     code = part["status"].astype(np.int8)
     step = part["bad_step"].astype(np.int64)
     out = {"sample": sample}
     out |= {name: values[:, j] for j, name in enumerate(names)}
     out |= {k: part[k] for k in METRICS}
     out["diverged"] = code != 0
-    out["t_diverged"] = np.where(step >= 0, step * float(dt), np.inf)
+    out["t_diverged"] = np.where(step >= 0, step * part["dt_used"], np.inf)
     out["status"] = code
+    out["refinements"] = part["refinements"].astype(np.int8)
+    out["dt_used"] = part["dt_used"].astype(np.float64)
     return out
 
 

@@ -30,7 +30,8 @@ class SweepSettings:
         samples: number of sampled plants (ignored for a grid, whose size is the product).
         method: "uniform" (i.i.d.), "lhs" (Latin hypercube) or "grid" (full factorial over
             the ranges' `num` points, first range slowest).
-        ranges: what varies; empty means `default_ranges()` (alpha, lam, psi +-30 %).
+        ranges: what varies; empty means `default_ranges(setup)` (the hysteresis model's
+            `default_sweep`, e.g. alpha, lam, psi, each +-30 %).
         seed: seed of the samples (and of the random handful of traces).
         chunk: samples per block and device; None picks about 16384, evenly split.
         dtype: "float32" (default for sweeps) or "float64".
@@ -54,7 +55,7 @@ class SweepSettings:
     parallel: Parallel = "per_device"
 
     def resolved_ranges(self, setup) -> tuple[Range, ...]:
-        return tuple(r.resolve(setup) for r in (self.ranges or default_ranges()))
+        return tuple(r.resolve(setup) for r in (self.ranges or default_ranges(setup)))
 
     def n_samples(self) -> int:
         if self.method == "grid":
@@ -136,7 +137,7 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     if s.method == "grid" and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method == "grid" else "sweep.ranges"
-    ranges = rg.check(s.ranges or default_ranges(), setup, field, grid=s.method == "grid",
+    ranges = rg.check(s.ranges or default_ranges(setup), setup, field, grid=s.method == "grid",
                       t_final=t_final, dt=dt, window_start=window_start)
     if s.method != "grid" and len(ranges) == 0:
         raise ConfigError("sweep.ranges is empty")

@@ -64,10 +64,15 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         else:
             quant[m] = None
     lw = np.asarray(c["linf_error_window"], np.float64)
+    refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
         "n_samples": n,
+        "n_tracked": int((~div & ~refined).sum()),
+        "n_refined": int((~div & refined).sum()),
         "n_diverged": int(div.sum()),
         "divergence_rate": float(div.mean()) if n else 0.0,
+        "smallest_dt_tried": (float(np.min(c["dt_used"][div])) if div.any() and "dt_used" in c
+                              else None),
         "quantiles_over": "samples that did not diverge",
         "quantiles": quant,
     }
@@ -91,6 +96,8 @@ def sample_record(columns, param_names, i) -> dict[str, Any]:
         "metrics": {m: float(columns[m][i]) for m in METRICS},
         "diverged": bool(columns["diverged"][i]),
         "t_diverged": (float(columns["t_diverged"][i]) if columns["diverged"][i] else None),
+        "refinements": int(columns["refinements"][i]) if "refinements" in columns else 0,
+        "dt_used": float(columns["dt_used"][i]) if "dt_used" in columns else None,
     }
 
 
@@ -106,7 +113,8 @@ def random_rows(n: int, k: int, seed: int, exclude: Iterable[int] = ()) -> np.nd
 def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every: int = 10,
                   ranges_params: Sequence[Param] | None = None) -> list:
     """Full trajectories of chosen rows, re-simulated one at a time with `dscjax.simulate`
-    (throw=False: diverged ones come back frozen at their last good state)."""
+    with the sweep's solver and refinement (throw=False: diverged ones come back frozen at
+    their last good state)."""
     info = result.info
     setup = params.cast(setup, np.dtype(info["dtype"]))
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
@@ -120,7 +128,8 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
         s = params.set_row(setup, cols, row)
         out.append(simulate(s, info["t_final"], info["dt"], save_every=every,
                             window_start=info["window_start"],
-                            state_bound=info["state_bound"], throw=False))
+                            state_bound=info["state_bound"], throw=False,
+                            solver=info.get("solver", "rk4"), refine=info.get("refine", 0)))
     return out
 
 

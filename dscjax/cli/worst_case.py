@@ -1,0 +1,151 @@
+"""`dscjax worst-case`: the worst plant and disturbance waveform in a box, by projected
+gradient ascent from many starts, against random sampling and CMA-ES at equal search time.
+
+Writes into DIR: worst.json, worst_config.toml, worst_trajectory.npz, report.md, the figures
+worst_vs_nominal.png, worst_disturbance.png, search_progress.png, and each method's state
+(state_<method>.npz, saved after every iteration; --resume continues from them).
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from dscjax.cli.common import add_config_args, load_setup, prepare_out
+
+
+def add_parser(sub):
+    from dscjax.worst import (
+        DEFAULT_BATCH,
+        DEFAULT_COARSENING,
+        DEFAULT_METRIC,
+        DEFAULT_STARTS,
+        METHODS,
+        METRICS,
+    )
+
+    p = sub.add_parser(
+        "worst-case", help="worst-case search over parameter boxes and disturbance waveforms",
+        description="Maximise a metric of the closed loop (default: the windowed L-inf of the "
+        "tracking error) over boxes of parameters (--range, as in sweeps) and a bounded "
+        "disturbance waveform (--disturbance), by projected gradient ascent from M starts "
+        "advanced together, with random sampling and CMA-ES given the same search time as "
+        "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
+        "before it is reported; a divergence of the loop itself is reported with its time.")
+    add_config_args(p)
+    p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
+                   help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
+                   "hysteresis.alpha=30%%")
+    p.add_argument("--disturbance", metavar="KIND:K:D", help="a searched waveform added to "
+                   "dbar with max|dbar| <= D: fourier:K:D (K harmonics, 2K+1 coefficients) or "
+                   "spline:K:D (K knots over the horizon)")
+    p.add_argument("--period", type=float, metavar="P", help="period of a fourier waveform "
+                   "(default: the horizon)")
+    p.add_argument("--metric", choices=METRICS, default=DEFAULT_METRIC,
+                   help=f"the metric maximised (default {DEFAULT_METRIC})")
+    p.add_argument("--time-limit", type=float, default=60.0, metavar="S",
+                   help="search seconds per method, compilation excluded (default 60)")
+    p.add_argument("--starts", type=int, default=DEFAULT_STARTS, metavar="M",
+                   help=f"starts of the gradient search, one batch (default {DEFAULT_STARTS})")
+    p.add_argument("--batch", type=int, default=DEFAULT_BATCH, metavar="B",
+                   help=f"candidates per batch of random sampling and CMA-ES (default "
+                   f"{DEFAULT_BATCH})")
+    p.add_argument("--gradient-coarsening", type=int, default=DEFAULT_COARSENING, metavar="F",
+                   help=f"take the gradient method's gradients on the loop simulated at F dt "
+                   f"(F times cheaper; every value is still simulated at dt; 1: exact "
+                   f"gradients; default {DEFAULT_COARSENING})")
+    p.add_argument("--methods", default=",".join(METHODS), metavar="LIST",
+                   help=f"comma-separated, of {', '.join(METHODS)} (default all)")
+    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    p.add_argument("--out", default="results/worst-case", metavar="DIR",
+                   help="output directory (default: results/worst-case)")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true", help="continue a search in DIR "
+                       "(each method from its last finished iteration)")
+    again.add_argument("--overwrite", action="store_true", help="discard a search in DIR")
+    p.add_argument("--no-plot", action="store_true", help="skip the figures")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    return p
+
+
+def run(args) -> int:
+    from dscjax import files
+    from dscjax.progress import Progress
+    from dscjax.ranges import parse_range
+    from dscjax.validation import ConfigError
+    from dscjax.worst import make_problem, worst_case
+    from dscjax.worst_report import write
+
+    setup, options = load_setup(args)
+    ranges = [parse_range(text) for text in (args.ranges or [])]
+    problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
+                           t_final=options.t_final, dt=options.dt,
+                           window_start=options.window_start, state_bound=options.state_bound,
+                           solver=options.solver, refine=options.refine, period=args.period)
+    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    out = Path(args.out)
+    manifest = out / "worst_case.json"
+    fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
+                   "batch": args.batch, "methods": methods,
+                   "coarsening": args.gradient_coarsening}
+    if args.resume:
+        if not manifest.exists():
+            raise ConfigError(f"--resume: {manifest} does not exist; run without --resume")
+        files.check_same(files.read_json(manifest).get("fingerprint"), fingerprint,
+                         where=f"--resume: {manifest}", fix="use the same settings, or "
+                         "--overwrite to start afresh")
+    elif manifest.exists() and not args.overwrite:
+        raise ConfigError(f"--out {str(out)!r} holds a search already; --resume to continue "
+                          f"it or --overwrite to start afresh")
+    out = prepare_out(out)
+    if args.overwrite:
+        for f in out.glob("state_*.npz"):
+            f.unlink()
+    files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
+    print(f"dscjax worst-case: {problem.metric} over "
+          + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
+          + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
+          + f"; {', '.join(methods)}, {args.time_limit:g} s each; T={problem.t_final:g} s, "
+          f"dt={problem.dt:g} s", file=sys.stderr)
+    if not args.quiet:
+        print("  each method compiles its programs first (a minute or two on a small CPU; not "
+              "counted in --time-limit)", file=sys.stderr)
+    bars = {}
+
+    def progress(method, tr, limit):
+        bar = bars.get(method)
+        if bar is None:
+            bar = bars[method] = Progress(int(round(limit)), desc=f"  {method:8s}", unit="second",
+                                          enabled=not args.quiet)
+        bar.update_to(min(int(tr.elapsed), int(round(limit))),
+                      f"best {tr.best_value:.5g}, {tr.evaluations} evaluations")
+
+    try:
+        result = worst_case(problem, time_limit=args.time_limit, starts=args.starts,
+                            methods=methods, seed=args.seed, batch=args.batch,
+                            coarsening=args.gradient_coarsening, out_dir=out,
+                            resume=args.resume, progress=progress)
+    finally:
+        for bar in bars.values():
+            bar.close()
+    names = write(result, out, plots=not args.no_plot)
+    what = (f"the loop diverges (t = {result.t_diverged:.6g} s at every refinement level)"
+            if result.diverged else f"{result.value:.6g}")
+    print(f"  worst {problem.metric}: {what} by {result.method} (nominal "
+          f"{result.nominal_value:.6g})")
+    for m, tr in result.traces.items():
+        print(f"  {m:8s} best {tr.best_value:.6g} in {tr.elapsed:.1f} s ({tr.evaluations} "
+              f"evaluations, compile {tr.compile_s:.1f} s)")
+    print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
+    return 0
+
+
+def interrupt_hint(args) -> str | None:
+    from dscjax.cli.main import rerun_command, resume_command
+
+    out = Path(args.out)
+    states = sorted(out.glob("state_*.npz"))
+    if not states:
+        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
+            f"continue with: {resume_command(args.argv)}")

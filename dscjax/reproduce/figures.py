@@ -1,0 +1,176 @@
+"""Figures 1-6 of the paper and the adaptive estimates, in the paper's style (applied with
+`matplotlib.rc_context`, never globally); colours identify the run (`runs.STYLE`)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dscjax.examples import paper_example
+from dscjax.plotting import COLORS, subplots
+from dscjax.reproduce.runs import LABELS, STYLE, estimates
+
+FIGURES = {
+    "fig1": "fig1_hysteresis",
+    "fig2": "fig2_compensation",
+    "fig3": "fig3_dsc_control",
+    "fig4": "fig4_dsc_hysteresis_output",
+    "fig5": "fig5_backstepping_error",
+    "fig6": "fig6_backstepping_control",
+    "estimates": "fig_estimates",
+    "complexity": "fig_complexity",
+}
+
+# The style of the paper's figures, applied with matplotlib.rc_context (never globally).
+RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid": True,
+      "grid.alpha": 0.3}
+
+
+def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
+    path = out / f"{stem}.{fmt}"
+    fig.savefig(path, dpi=dpi)
+    return path
+
+
+def _time_axes(title: str, ylabel: str):
+    fig, ax = subplots(figsize=(6.4, 3.8), layout="constrained")
+    ax.set_xlabel("time $t$ [s]")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    return fig, ax
+
+
+def _time_axes_after(title: str, ylabel: str, t_after: float):
+    """Two panels: the whole horizon, and t >= t_after, where the first second's peak no
+    longer sets the scale."""
+    fig, (ax, zoom) = subplots(2, 1, figsize=(6.4, 5.6), layout="constrained")
+    ax.set_ylabel(ylabel)
+    ax.set_title(title)
+    zoom.set_xlabel("time $t$ [s]")
+    zoom.set_ylabel(ylabel)
+    zoom.set_title(f"after the first {t_after:g} s (the initial peak left out)", fontsize=9)
+    return fig, ax, zoom
+
+
+def _line_after(ax, traj, signal, name, t_after, **over):
+    t = np.asarray(traj.t)
+    keep = t >= t_after
+    y = np.asarray(traj.e if signal == "e" else getattr(traj, signal))
+    ax.plot(t[keep], y[keep], **(STYLE[name] | over))
+    ax.set_xlim(t_after, t[-1])
+
+
+def _legend_below(fig, ax, ncol=1):
+    """Legend outside the axes, under them: it can never hide a curve."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, frameon=False)
+
+
+def _line(ax, traj, signal, name, **over):
+    t = np.asarray(traj.t)
+    y = np.asarray(traj.e if signal == "e" else getattr(traj, signal))
+    ax.plot(t, y, label=LABELS[name], **(STYLE[name] | over))
+
+
+def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150) -> dict:
+    """Write Figs. 1-6 and the estimates figure; returns {figure id: path}."""
+    import matplotlib
+
+    with matplotlib.rc_context(RC):
+        return _figures(trajs, loops, out, fmt, dpi)
+
+
+def _figures(trajs, loops, out, fmt, dpi):
+    paths = {}
+    hyst = paper_example().hysteresis
+    lam, psi, alpha = (float(hyst.lam), float(hyst.psi), float(hyst.alpha))
+
+    loop_colors = ("#8c564b", COLORS["w"])  # small loop brown, large loop the colour of w
+    fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
+    axes = np.atleast_1d(axes)
+    umax = max(float(np.max(np.abs(u))) for _, u, _ in loops.values())
+    ug = np.linspace(-umax, umax, 2)
+    b = (lam - psi) / alpha
+    for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), loop_colors, strict=False):
+        ax.plot(ug, lam * ug + b, color="#999999", lw=0.8, ls=":",
+                label=r"asymptotes $w = \lambda u \pm (\lambda-\psi)/\alpha$")
+        ax.plot(ug, lam * ug - b, color="#999999", lw=0.8, ls=":")
+        ax.plot(u, w, color=color, lw=1.4, label=f"$w(u)$, $u = {k:g}\\,\\sin(2.3t)$")
+        ax.set_xlabel("control input $u$ [-]")
+        ax.set_title(f"$k$ = {k:g}")
+        ax.legend(loc="upper left", framealpha=0.95)
+    axes[0].set_ylabel("hysteresis output $w$ [-]")
+    fig.suptitle(f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = {alpha:g}, "
+                 f"$\\lambda$ = {lam:g}, $\\psi$ = {psi:g}")
+    paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
+
+    fig, ax = _time_axes("Fig. 2  Tracking error of the DSC with and without hysteresis "
+                         "compensation", "tracking error $e = y - y_r$ [-]")
+    for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc"):
+        _line(ax, trajs[name], "e", name)
+    _legend_below(fig, ax)
+    paths["fig2"] = _finish(fig, out, FIGURES["fig2"], fmt, dpi)
+
+    t_after = 1.0 if float(np.asarray(trajs["dsc"].t)[-1]) > 1.0 else 0.0
+    for key, signal, title, ylabel in (
+            ("fig3", "u", "Fig. 3  Control signal of the DSC", "control input $u$ [-]"),
+            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
+             "hysteresis output $w$ [-]")):
+        fig, ax, zoom = _time_axes_after(title, ylabel, t_after)
+        _line(ax, trajs["dsc"], signal, "dsc")
+        ax.axvspan(t_after, float(np.asarray(trajs["dsc"].t)[-1]), color="#999999",
+                   alpha=0.08, lw=0, label=f"shown below: $t \\geq$ {t_after:g} s")
+        _line_after(zoom, trajs["dsc"], signal, "dsc", t_after)
+        _legend_below(fig, ax, ncol=2)
+        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
+
+    faint = dict(lw=0.9, alpha=0.55)  # the DSC, for comparison
+    for key, signal, title, ylabel in (
+            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping",
+             "tracking error $e = y - y_r$ [-]"),
+            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping",
+             "control input $u$ [-]")):
+        fig, ax = _time_axes(title, ylabel)
+        _line(ax, trajs["dsc"], signal, "dsc", **faint)
+        _line(ax, trajs["backstepping"], signal, "backstepping")
+        _legend_below(fig, ax, ncol=2)
+        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
+
+    paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
+    return paths
+
+
+def _estimates_figure(trajs, out, fmt, dpi):
+    setup = paper_example()
+    g, theta = np.asarray(setup.plant.g, float), np.asarray(setup.plant.theta, float)
+    lam = float(setup.hysteresis.lam)
+    true = {"theta_hat_g1": (theta[0] / g[0], r"$\theta_1/g_1$"),
+            "phi_hat_1": (1.0 / g[0], r"$1/g_1$"),
+            "zeta_hat": (1.0 / (lam * g[1]), r"$1/(\lambda g_2)$")}
+    panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]"), ("phi_hat_1", r"$\hat\phi_1$ [-]"),
+              ("zeta_hat", r"$\hat\zeta$ [-]"), ("d_hat", r"$\hat d$ [-]"))
+    fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")
+    for ax, (key, ylabel) in zip(axes.ravel(), panels, strict=True):
+        for name in ("dsc", "backstepping"):
+            traj = trajs[name]
+            ax.plot(np.asarray(traj.t), estimates(traj)[key], label=LABELS[name], **STYLE[name])
+        if key in true:
+            value, sym = true[key]
+            ax.axhline(value, color="#444444", lw=0.9, ls=":", label="true value")
+            ax.annotate(f"{sym} = {value:.3g}", xy=(1.0, value), xycoords=("axes fraction", "data"),
+                        xytext=(-4, 3), textcoords="offset points", ha="right", va="bottom",
+                        fontsize=8, color="#444444")
+        ax.set_ylabel(ylabel)
+        ax.margins(y=0.12)
+    for ax in axes[1]:
+        ax.set_xlabel("time $t$ [s]")
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3, frameon=False)
+    fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
+                 r"because $f_2 = 0$; not shown)")
+    return _finish(fig, out, FIGURES["estimates"], fmt, dpi)
+
+
+
+__all__ = ["FIGURES", "RC", "figures"]

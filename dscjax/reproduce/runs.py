@@ -1,0 +1,115 @@
+"""The runs of the study: the four closed loops on the paper's example, Fig. 1's hysteresis
+loops, and what is read off each trajectory (metrics, adaptive estimates)."""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.controllers.backstepping import with_backstepping
+from dscjax.examples import paper_example
+from dscjax.integrate import rk4_step
+from dscjax.simulate import divergence_report, simulate
+
+RUNS = ("dsc", "dsc_no_dhat", "dsc_no_dhat_no_zeta", "backstepping")
+LABELS = {
+    "dsc": "DSC with hysteresis compensation",
+    "dsc_no_dhat": r"DSC without compensation, reading A: $\hat d \equiv 0$",
+    "dsc_no_dhat_no_zeta": r"DSC without compensation, reading B: $\hat d \equiv 0$, "
+                           r"$\hat\zeta \equiv 1$",
+    "backstepping": "adaptive backstepping",
+}
+STYLE = {
+    "dsc": dict(color="#1f77b4", ls="-", lw=1.3),
+    "dsc_no_dhat": dict(color="#ff7f0e", ls="--", lw=1.3),
+    "dsc_no_dhat_no_zeta": dict(color="#7f7f7f", ls="-.", lw=1.3),
+    "backstepping": dict(color="#d62728", ls="-", lw=1.3),
+}
+METRIC_FIELDS = ("linf_error", "linf_error_after_1s", "l2_error", "l2_error_after_1s",
+                 "max_abs_u", "max_abs_u_after_1s", "max_abs_w", "tv_u")
+ESTIMATES = ("theta_hat_g1", "theta_hat_2", "phi_hat_1", "zeta_hat", "d_hat")
+
+
+def setups(dtype=None) -> dict:
+    """The four closed loops of the study, by run name."""
+    return {
+        "dsc": paper_example(dtype=dtype),
+        "dsc_no_dhat": paper_example(variant="no_dhat", dtype=dtype),
+        "dsc_no_dhat_no_zeta": paper_example(variant="no_dhat_no_zeta", dtype=dtype),
+        "backstepping": with_backstepping(paper_example(dtype=dtype)),
+    }
+
+
+# -- Fig. 1 ------------------------------------------------------------------------------------
+
+
+def hysteresis_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.3,
+                     t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
+    """w(t) of eq. (4) for u = k sin(omega t), integrated by RK4 from w(0) = 0 (Fig. 1).
+
+    Returns {k: (t, u, w)} as NumPy arrays.
+    """
+    hyst = paper_example().hysteresis
+    n_steps = int(round(t_final / dt))
+
+    def rate(t, w, k):
+        u, du = k * jnp.sin(omega * t), k * omega * jnp.cos(omega * t)
+        return hyst.rate(u, du, w)
+
+    @jax.jit
+    def loop(k):
+        def step(w, i):
+            t = i * dt
+            return rk4_step(rate, t, w, dt, k), w
+
+        w_end, ws = jax.lax.scan(step, jnp.zeros(()), jnp.arange(n_steps))
+        return jnp.append(ws, w_end)
+
+    t = np.arange(n_steps + 1) * dt
+    return {k: (t, k * np.sin(omega * t), np.asarray(loop(jnp.asarray(k)))) for k in amplitudes}
+
+
+
+def run_metrics(traj, window_start: float) -> dict:
+    """The metrics of `METRIC_FIELDS` of one run (window: t >= window_start)."""
+    m = {k: float(v) for k, v in traj.metrics.items()}
+    t, u = np.asarray(traj.t), np.asarray(traj.u)
+    return dict(
+        linf_error=m["linf_error"], linf_error_after_1s=m["linf_error_window"],
+        l2_error=m["l2_error"], l2_error_after_1s=m["l2_error_window"],
+        max_abs_u=m["max_abs_u"], max_abs_u_after_1s=float(np.max(np.abs(u[t >= window_start]))),
+        max_abs_w=m["max_abs_w"], tv_u=m["tv_u"],
+    )
+
+
+def estimates(traj) -> dict[str, np.ndarray]:
+    """The adaptive estimates of `ESTIMATES` along one run."""
+    c = traj.ctrl
+    return {
+        "theta_hat_g1": np.asarray(c.theta_hat[:, 0]), "theta_hat_2": np.asarray(c.theta_hat[:, 1]),
+        "phi_hat_1": np.asarray(c.phi_hat[:, 0]), "zeta_hat": np.asarray(c.zeta_hat),
+        "d_hat": np.asarray(c.d_hat),
+    }
+
+
+def run_all(t_final: float = 20.0, dt: float = 1e-3, log: Callable[[str], None] = print) -> dict:
+    """Simulate the four runs; returns {name: Trajectory} (saved at every step)."""
+    trajs = {}
+    for name, setup in setups().items():
+        t0 = time.perf_counter()
+        traj = simulate(setup, t_final, dt, save_every=1, throw=False)
+        jax.block_until_ready(traj.x)
+        note = "" if not bool(traj.diverged) else "  DIVERGED: " + divergence_report(traj)[0]
+        log(f"simulated {name:<20} ({time.perf_counter() - t0:.1f} s){note}")
+        trajs[name] = traj
+    return trajs
+
+
+
+__all__ = ["ESTIMATES", "LABELS", "METRIC_FIELDS", "RUNS", "STYLE", "estimates",
+           "hysteresis_loops", "run_all", "run_metrics", "setups"]

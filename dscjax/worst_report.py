@@ -1,0 +1,175 @@
+"""The files of a worst-case search (`dscjax worst-case`, `dscjax.worst_case`):
+
+    worst.json            the metric, its value, the parameters by config path, the waveform
+    worst_config.toml     a complete config of the worst case (`dscjax simulate --config`)
+    worst_trajectory.npz  t, x, u, w, e at every step; t_half = k dt/2 and dbar on that grid
+    report.md             each method's best value against search time
+    worst_vs_nominal.png, worst_disturbance.png, search_progress.png
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from dscjax import config, files
+from dscjax.disturbance import half_step_grid
+from dscjax.worst import Result
+
+FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
+
+
+def options_of(result: Result) -> config.SimOptions:
+    p = result.problem
+    return config.SimOptions(t_final=p.t_final, dt=p.dt, window_start=p.window_start,
+                             state_bound=p.state_bound, solver=p.solver, refine=p.refine,
+                             dtype=str(np.result_type(np.asarray(result.setup.plant.x0))))
+
+
+def summary(result: Result) -> dict:
+    """The content of worst.json."""
+    p = result.problem
+    values, dist = p.values_at(result.z)
+    return {
+        "metric": p.metric,
+        "value": result.value,  # +inf (null in strict JSON) if the loop diverges
+        "diverged": result.diverged,
+        "t_diverged": result.t_diverged,
+        "refinements": result.refinements,
+        "method": result.method,
+        "parameters": values,
+        "disturbance": dist,
+        "nominal_value": result.nominal_value,
+        "ranges": {r.name: [r.low, r.high] for r in p.ranges},
+        "simulation": {"t_final": p.t_final, "dt": p.dt, "window_start": p.window_start,
+                       "solver": p.solver, "refine": p.refine},
+        "methods": {m: {"best_value": (tr.best_value if np.isfinite(tr.best_value) else None),
+                        "evaluations": tr.evaluations, "iterations": tr.iterations,
+                        "search_s": tr.elapsed, "compile_s": tr.compile_s,
+                        "diverged_candidates": len(tr.diverged_z)}
+                    for m, tr in result.traces.items()},
+        "info": result.info,
+    }
+
+
+def write(result: Result, out: Path, plots: bool = True) -> list[str]:
+    """Write every file of the module docstring into `out`; the names written."""
+    from dscjax.simulate import simulate
+
+    out = Path(out)
+    p = result.problem
+    files.write_json(out / "worst.json", summary(result))
+    found = (f"the loop diverges at t = {result.t_diverged:.6g} s" if result.diverged
+             else repr(result.value))
+    header = (f"dscjax worst-case: the worst case of {p.metric} found: {found}\n"
+              f"Reproduce: dscjax simulate --config worst_config.toml")
+    files.write_text(out / "worst_config.toml",
+                     config.to_toml(result.setup, options_of(result), header=header))
+    worst = simulate(result.setup, p.t_final, p.dt, window_start=p.window_start,
+                     state_bound=p.state_bound, throw=False, refine=p.refine, solver=p.solver)
+    dt_used = float(np.asarray(worst.dt))
+    t_half = half_step_grid(p.t_final, dt_used)
+    dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
+    files.write_npz(out / "worst_trajectory.npz", {
+        "t": np.asarray(worst.t), "x": np.asarray(worst.x), "u": np.asarray(worst.u),
+        "w": np.asarray(worst.w), "e": np.asarray(worst.e), "t_half": t_half, "dbar": dbar,
+        "dt": np.asarray(dt_used)})
+    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz"]
+    files.write_text(out / "report.md", report_md(result))
+    names.append("report.md")
+    if plots:
+        nominal_setup = p.setup.replace(plant=dataclasses.replace(
+            p.setup.plant, disturbance=None)) if p.m else p.setup
+        nominal = simulate(nominal_setup, p.t_final, p.dt, window_start=p.window_start,
+                           state_bound=p.state_bound, throw=False, refine=p.refine,
+                           solver=p.solver)
+        _plot_worst(out / FIGURES[0], worst, nominal, result)
+        _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
+        _plot_progress(out / FIGURES[2], result)
+        names += list(FIGURES)
+    return names
+
+
+def report_md(result: Result) -> str:
+    p = result.problem
+    lines = [f"# Worst case of {p.metric}", ""]
+    verdict = (f"the loop DIVERGES (at t = {result.t_diverged:.6g} s, at every refinement "
+               f"level)" if result.diverged else f"{result.value:.6g}")
+    lines += [f"Worst value: **{verdict}**, found by {result.method}; nominal: "
+              f"{result.nominal_value:.6g}.", "",
+              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{p.window_start:g}, "
+              f"{p.t_final:g}] s. Searched: "
+              + (", ".join(r.spec() for r in p.ranges) or "no parameter")
+              + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
+              "## Methods (equal search time; compilation apart)", "",
+              "| method | best value | evaluations | iterations | search s | compile s |",
+              "|---|---|---|---|---|---|"]
+    for m, tr in result.traces.items():
+        lines.append(f"| {m} | {tr.best_value:.6g} | {tr.evaluations} | {tr.iterations} | "
+                     f"{tr.elapsed:.1f} | {tr.compile_s:.1f} |")
+    lines += ["", "## Best value against search time", "",
+              "| method | " + " | ".join(f"{f:.0%} of time" for f in (0.1, 0.25, 0.5, 1.0))
+              + " |", "|---|---|---|---|---|"]
+    for m, tr in result.traces.items():
+        t, best = np.asarray(tr.t), np.asarray(tr.best)
+        cells = []
+        for f in (0.1, 0.25, 0.5, 1.0):
+            i = np.searchsorted(t, f * (t[-1] if t.size else 0.0), side="right") - 1
+            cells.append(f"{best[i]:.6g}" if i >= 0 else "-")
+        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+    lines += ["", "Values in the tables are those of the search's batch runs; the worst value "
+              "above is re-checked by `simulate` (with refinement) on the worst setup and is "
+              "what `dscjax simulate --config worst_config.toml` reproduces.", ""]
+    return "\n".join(lines)
+
+
+def _plot_worst(path, worst, nominal, result):
+    from dscjax.plotting import COLORS, subplots
+
+    fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
+    for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
+        t = np.asarray(traj.t)
+        ax[0].plot(t, np.asarray(traj.e), ls=style, lw=1.0, label=name,
+                   color=COLORS["e"] if name == "worst case" else "#444444")
+        ax[1].plot(t, np.asarray(traj.u), ls=style, lw=1.0, label=name,
+                   color=COLORS["u"] if name == "worst case" else "#444444")
+    ax[0].set_ylabel("tracking error e [-]")
+    ax[1].set_ylabel("control u [-]")
+    ax[1].set_xlabel("t [s]")
+    ax[0].legend(loc="upper right")
+    ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
+                    f"(nominal {result.nominal_value:.4g})")
+    fig.savefig(path, dpi=110)
+
+
+def _plot_disturbance(path, t_half, dbar, result):
+    from dscjax.plotting import subplots
+
+    fig, ax = subplots(figsize=(9, 3.2))
+    ax.plot(t_half, dbar, lw=1.0, color="#d62728")
+    spec = result.problem.disturbance
+    if spec is not None:
+        for s in (-1, 1):
+            ax.axhline(s * spec.bound, color="#444444", ls=":", lw=0.8)
+    ax.set_xlabel("t [s]")
+    ax.set_ylabel(r"$\bar d(t)$ [-]")
+    ax.set_title("worst disturbance" + (f" ({spec.spec()})" if spec else ""))
+    fig.savefig(path, dpi=110)
+
+
+def _plot_progress(path, result):
+    from dscjax.plotting import subplots
+
+    fig, ax = subplots(figsize=(7, 4))
+    for m, tr in result.traces.items():
+        ax.step(tr.t, tr.best, where="post", label=m)
+    ax.set_xlabel("search time [s]")
+    ax.set_ylabel(f"best {result.problem.metric}")
+    ax.legend()
+    fig.savefig(path, dpi=110)
+
+
+__all__ = ["FIGURES", "options_of", "report_md", "summary", "write"]

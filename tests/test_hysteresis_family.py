@@ -1,0 +1,194 @@
+"""Prandtl-Ishlinskii, generalized P-I and Bouc-Wen (issue 15) against independent references.
+
+Short horizons and one compiled program per model (vmapped over amplitudes) keep this fast.
+"""
+
+import numpy as np
+import pytest
+from scipy.integrate import solve_ivp
+
+import dscjax
+from dscjax import config, params
+from dscjax.cli.main import main
+from dscjax.examples import example
+from dscjax.hysteresis import BoucWen, GeneralizedPI, PrandtlIshlinskii, open_loop, sine_loops
+from dscjax.validation import ConfigError, validate_setup
+
+DT = 1e-3
+
+
+def play_recursion(u, lo, hi, z0):
+    """The play operator z_k = max(lo_k, min(hi_k, z_(k-1))) over samples, in NumPy."""
+    z, out = np.asarray(z0, float), []
+    for k in range(len(u)):
+        z = np.maximum(lo[k], np.minimum(hi[k], z))
+        out.append(z)
+    return np.array(out)
+
+
+# A monotone-piecewise input whose knots lie on the step grid: there the sampled recursion is
+# the continuous operator, so the model must match it to round-off.
+KNOTS_T = np.array([0.0, 0.3, 0.5, 0.9, 1.0, 1.4, 1.5])
+KNOTS_U = np.array([0.0, 2.0, 0.7, 2.6, 1.9, -1.2, -0.4])
+
+
+def knot_input(t):
+    import jax.numpy as jnp
+
+    return jnp.interp(t, jnp.asarray(KNOTS_T), jnp.asarray(KNOTS_U))
+
+
+@pytest.mark.parametrize("model", [
+    PrandtlIshlinskii(p0=0.3, r=np.array([0.0, 0.25, 0.6, 1.1]),
+                      p=np.array([0.2, 0.5, 0.3, 0.8]), z0=np.array([0.1, -0.4, 0.9, 0.0])),
+    GeneralizedPI(envelope_left=np.array([3.0, 0.4, -0.1, 0.05]),
+                  envelope_right=np.array([2.5, 0.5, 0.2, -0.1]), p0=0.3,
+                  r=np.array([0.1, 0.4, 0.9]), p=np.array([0.5, 0.3, 0.8]), z0=0.2),
+], ids=["pi", "gpi"])
+def test_plays_equal_the_recursion_on_a_monotone_piecewise_input(model):
+    t, u, w = open_loop(model, knot_input, KNOTS_T[-1], DT)
+    u_np = np.interp(t, KNOTS_T, KNOTS_U)
+    r = np.asarray(model.r)
+    if model.kind == "pi":
+        lo, hi = u_np[:, None] - r, u_np[:, None] + r
+    else:
+        def g(e, x):
+            return e[0] * np.tanh(e[1] * x + e[2]) + e[3]
+        lo = g(np.asarray(model.envelope_left), u_np[:, None]) - r
+        hi = g(np.asarray(model.envelope_right), u_np[:, None]) + r
+    z = play_recursion(u_np, lo, hi, np.broadcast_to(model.z0, r.shape))
+    w_ref = float(model.p0) * u_np + z @ np.asarray(model.p)
+    np.testing.assert_allclose(u, u_np, atol=1e-12)
+    np.testing.assert_allclose(w, w_ref, atol=1e-12)
+
+
+def test_one_play_with_zero_threshold_is_linear():
+    model = PrandtlIshlinskii(p0=0.4, r=np.array([0.0]), p=np.array([1.1]))
+    _, u, w = open_loop(model, knot_input, KNOTS_T[-1], DT)
+    np.testing.assert_allclose(w, 1.5 * u, atol=1e-13)
+
+
+def bouc_wen_reference(m, amplitude, omega, t):
+    """scipy DOP853 at 1e-12, restarted at every reversal of u (|u'| has a kink there)."""
+    a, b, A, beta, gamma, n = (float(x) for x in (m.a, m.b, m.A, m.beta, m.gamma, m.n))
+
+    def rhs(tt, y):
+        du = amplitude * omega * np.cos(omega * tt)
+        h = y[0]
+        return [A * du - beta * abs(du) * abs(h) ** (n - 1) * h - gamma * du * abs(h) ** n]
+
+    rev = (np.pi / 2 + np.pi * np.arange(10)) / omega
+    edges = np.concatenate([[0.0], rev[rev < t[-1]], [t[-1]]])
+    h, out = float(m.h0), np.empty_like(t)
+    for lo, hi in zip(edges[:-1], edges[1:], strict=True):
+        sel = (t >= lo) & (t <= hi)
+        sol = solve_ivp(rhs, (lo, hi), [h], method="DOP853", rtol=1e-12, atol=1e-12,
+                        dense_output=True)
+        out[sel], h = sol.sol(t[sel])[0], sol.y[0, -1]
+    return a * amplitude * np.sin(omega * t) + b * out
+
+
+AMPLITUDES = (1.0, 3.5, 12.0)
+BOUC_WEN = {
+    "n1": BoucWen(),  # the example: beta = 0.6, gamma = 0.15, n = 1
+    "n2_gamma_negative": BoucWen(a=0.8, b=-0.7, A=2.0, beta=0.5, gamma=-0.3, n=2.0, h0=0.5),
+    "beta_equals_gamma": BoucWen(A=1.5, beta=0.4, gamma=0.4, n=1.5, h0=-0.2),
+}
+
+
+@pytest.fixture(scope="module")
+def bouc_wen_loops():
+    return {k: sine_loops(m, AMPLITUDES, 2.3, 3.0, DT) for k, m in BOUC_WEN.items()}
+
+
+@pytest.mark.parametrize("name", list(BOUC_WEN))
+def test_bouc_wen_matches_scipy_and_stays_within_its_bound(name, bouc_wen_loops):
+    m = BOUC_WEN[name]
+    t, u, w = bouc_wen_loops[name]
+    for k, amplitude in enumerate(AMPLITUDES):
+        w_ref = bouc_wen_reference(m, amplitude, 2.3, t)
+        assert np.max(np.abs(w[k] - w_ref)) <= 1e-6 * np.max(np.abs(w_ref))
+        h = (w[k] - float(m.a) * u[k]) / float(m.b)
+        assert np.max(np.abs(h)) <= float(m.h_max()) * (1 + 1e-9)
+
+
+def test_closed_loop_plays_are_the_exact_recursion_and_stay_in_their_band():
+    """Along the DSC loop (a batch sweeping p[3]: the batch layout's clamp hook; the single
+    trajectory's is `open_loop`'s): every step's play outputs are the recursion of the step
+    grid's u, and |z - u| <= r."""
+    setup = example("pi")
+    p3 = np.array([[0.6], [1.0], [1.4]]) * float(setup.hysteresis.p[3])
+    ov = params.overrides(setup, [params.Param.parse("hysteresis.p[3]")], p3)
+    batch = dscjax.simulate_batch(setup, ov, t_final=0.5, dt=DT, refine=0, save_every=1)
+    r = np.asarray(setup.hysteresis.r)
+    for i in range(3):
+        z, u = np.asarray(batch.h[i]), np.asarray(batch.u[i])
+        assert np.all(np.abs(z - u[:, None]) <= r + 1e-12)
+        expect = np.maximum(u[1:, None] - r, np.minimum(u[1:, None] + r, z[:-1]))
+        np.testing.assert_allclose(z[1:], expect, atol=1e-13)
+    assert not np.any(np.asarray(batch.diverged))
+
+
+BAD = [
+    ({"kind": "pi", "r": [0.4, 0.2], "p": [1.0, 1.0]}, "hysteresis.r must be strictly increasing"),
+    ({"kind": "pi", "r": [-0.1, 0.2], "p": [1.0, 1.0]}, "hysteresis.r must be >= 0"),
+    ({"kind": "pi", "r": [0.1, 0.2], "p": [1.0, 1.0, 1.0]}, "hysteresis.p must have one weight"),
+    ({"kind": "pi", "r": [0.1, 0.2], "p": [1.0, 1.0], "z0": [0.0, 0.0, 0.0]},
+     "hysteresis.z0 must be one number or one per threshold"),
+    ({"kind": "pi", "p0": -0.1}, r"hysteresis.p0 must be >= 0"),
+    ({"kind": "pi", "r": 0.3}, "hysteresis.r must be a list"),
+    ({"kind": "gpi", "envelope_left": [1.0, -1.0, 0.0, 0.0]},
+     "hysteresis.envelope_left = .* must be increasing"),
+    ({"kind": "gpi", "envelope_right": [1.0, 1.0, 0.0]}, "hysteresis.envelope_right must"),
+    ({"kind": "bouc_wen", "beta": -0.5, "gamma": 0.2},
+     r"hysteresis.beta \+ hysteresis.gamma must be > 0 \(got beta=-0.5, gamma=0.2\)"),
+    ({"kind": "bouc_wen", "n": 0.5}, "hysteresis.n must be >= 1"),
+    ({"kind": "bouc_wen", "A": 0.0}, "hysteresis.A must be > 0"),
+    ({"kind": "bouc_wen", "alpha": 1.0}, "unknown key 'hysteresis.alpha'"),
+    ({"kind": "prandtl"}, "hysteresis.kind"),
+]
+
+
+@pytest.mark.parametrize("table, message", BAD)
+def test_bad_hysteresis_configs_name_the_field(table, message):
+    with pytest.raises(ConfigError, match=message) as err:
+        validate_setup(config.from_dict({"hysteresis": table})[0])
+    assert "\n" not in str(err.value)
+
+
+@pytest.mark.parametrize("kind", ["backlash", "pi", "gpi", "bouc_wen"])
+def test_toml_round_trip_of_every_kind(kind):
+    import tomllib
+
+    setup, options = config.from_dict({"hysteresis": {"kind": kind}})
+    back, _ = config.from_dict(tomllib.loads(config.to_toml(setup, options)))
+    assert type(back.hysteresis) is type(setup.hysteresis)
+    for f in ("r", "p", "envelope_left", "beta", "lam"):
+        if hasattr(setup.hysteresis, f):
+            np.testing.assert_array_equal(getattr(back.hysteresis, f),
+                                          getattr(setup.hysteresis, f))
+
+
+def test_old_kind_key_still_reads_with_a_warning():
+    with pytest.warns(FutureWarning, match="hysteresis.model is deprecated"):
+        setup, _ = config.from_dict({"hysteresis": {"model": "bouc_wen"}})
+    assert setup.hysteresis.kind == "bouc_wen"
+
+
+def test_hysteresis_command_writes_the_loop_and_refuses_bad_input(tmp_path, capsys):
+    cfg = tmp_path / "pi.toml"
+    cfg.write_text('[hysteresis]\nkind = "pi"\n')
+    out = tmp_path / "loop"
+    assert main(["hysteresis", "--config", str(cfg), "--amplitude", "3.5", "--t-final", "0.5",
+                 "--out", str(out)]) == 0
+    with np.load(out / "loop.npz") as f:
+        assert f["t"].shape == (501,) and f["u"].shape == f["w"].shape == (1, 501)
+        assert str(f["kind"]) == "pi"
+    assert (out / "loop.png").stat().st_size > 0
+    capsys.readouterr()
+    assert main(["hysteresis", "--omega", "0", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "--omega must be > 0" in err and "Traceback" not in err
+    cfg.write_text('[hysteresis]\nkind = "pi"\nr = [0.5, 0.1]\np = [1.0, 1.0]\n')
+    assert main(["hysteresis", "--config", str(cfg), "--out", str(out)]) == 2
+    assert "hysteresis.r must be strictly increasing" in capsys.readouterr().err

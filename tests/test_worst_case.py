@@ -1,0 +1,220 @@
+"""Disturbance waveforms and the worst-case search (issue 14).
+
+Kept fast: the search engine is checked on a linear oscillator with a known worst case (its
+programs compile in about a second); the DSC loop runs only forward (random sampling) over a
+1.5 s horizon, compiled once for the module.
+"""
+
+import json
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import dscjax
+from dscjax import config
+from dscjax import disturbance as dm
+from dscjax.cli.main import main
+from dscjax.worst import DisturbanceSpec, Programs, Trace, search
+
+# -- waveforms ----------------------------------------------------------------------------------
+
+
+def test_fourier_matches_its_closed_form():
+    coef = np.array([0.1, 0.2, -0.3, 0.05, 0.4, 0.0, -0.1])  # K = 3
+    period = 2.5
+    t = np.linspace(0.0, 5.0, 101)
+    w = 2 * np.pi / period
+    ref = coef[0] + sum(coef[j] * np.cos(j * w * t) + coef[3 + j] * np.sin(j * w * t)
+                        for j in (1, 2, 3))
+    got = np.asarray(dm.sample(dm.Fourier(coef, np.array(period)), t))
+    np.testing.assert_allclose(got, ref, rtol=0, atol=1e-13)
+
+
+def test_spline_interpolates_and_stays_within_its_knots():
+    rng = np.random.default_rng(0)
+    knots = rng.uniform(-1, 1, 9)
+    spline = dm.Spline(knots, np.array(4.0))
+    np.testing.assert_allclose(np.asarray(dm.sample(spline, np.linspace(0, 4, 9))), knots,
+                               atol=1e-14)
+    fine = np.asarray(dm.sample(spline, np.linspace(0, 4, 4001)))
+    assert fine.max() <= knots.max() + 1e-14 and fine.min() >= knots.min() - 1e-14
+    assert spline.max_abs() == np.max(np.abs(knots))
+
+
+def test_fourier_projection_meets_the_bound_on_the_half_step_grid():
+    grid = dm.half_step_grid(2.0, 1e-2)
+    big = dm.Fourier(np.array([0.5, 1.0, 0.0, 0.0, 2.0]), np.array(2.0))
+    small = dm.project(big, 0.5, grid)
+    peak = np.max(np.abs(np.asarray(dm.sample(small, grid))))
+    assert peak == pytest.approx(0.5, rel=1e-12)
+    inside = dm.Fourier(np.array([0.1, 0.1, 0.0]), np.array(2.0))
+    np.testing.assert_array_equal(dm.project(inside, 0.5, grid).coefficients, inside.coefficients)
+
+
+def test_disturbance_config_round_trip(tmp_path):
+    setup = dscjax.paper_example()
+    plant = setup.plant.__class__(**{**{f: getattr(setup.plant, f) for f in (
+        "g", "theta", "x0", "rho1", "rho2", "delta1", "delta2", "delta_freq", "dbar_amp",
+        "dbar_freq", "dbar_bias")}, "disturbance": dm.Spline(np.array([0.1, -0.2, 0.3]),
+                                                          np.array(20.0))})
+    setup = setup.replace(plant=plant)
+    path = tmp_path / "c.toml"
+    path.write_text(config.to_toml(setup))
+    back, _ = config.load(path)
+    np.testing.assert_array_equal(back.plant.disturbance.knots, [0.1, -0.2, 0.3])
+    assert float(back.plant.disturbance.horizon) == 20.0
+    # no waveform: none written, none read
+    assert "[plant.disturbance]" not in config.to_toml(dscjax.paper_example())
+
+
+def test_disturbance_spec_errors():
+    assert DisturbanceSpec.parse("fourier:16:0.5").size == 33
+    assert DisturbanceSpec.parse("spline:8:1").size == 8
+    for bad, word in (("fourier:0:0.5", "K"), ("spline:3:-1", "D"), ("sine:3:1", "kind"),
+                      ("fourier:3", "fourier:K:D")):
+        with pytest.raises(dscjax.ConfigError, match=word):
+            DisturbanceSpec.parse(bad)
+
+
+# -- the search on a problem with a known worst case --------------------------------------------
+
+W, ZETA, T, DT, D, K = 2.0, 0.1, 6.0, 1e-2, 0.5, 25
+
+
+@pytest.fixture(scope="module")
+def oscillator():
+    """x'' + 2 zeta w x' + w^2 x = dbar(t), x(0) = x'(0) = 0, metric x(T), |dbar| <= D: the
+    worst disturbance is bang-bang, dbar(t) = D sign(h(T - t)) with h the impulse response,
+    and the worst value is D int_0^T |h|. A spline of K knots cannot switch instantly: it gets
+    within 2 % (the best spline on these knots reaches 0.9893 of it)."""
+    n = int(round(T / DT))
+    grid = dm.half_step_grid(T, DT)
+    basis = np.stack([np.asarray(dm.sample(dm.Spline(e, np.array(T)), grid))
+                      for e in np.eye(K)], axis=1)
+
+    def one(c):
+        dv = jnp.asarray(basis) @ (D * c)
+
+        def f(y, d):
+            return jnp.stack([y[1], -2 * ZETA * W * y[1] - W * W * y[0] + d])
+
+        def step(y, k):
+            d0, dh, d1 = dv[2 * k], dv[2 * k + 1], dv[2 * k + 2]
+            k1 = f(y, d0)
+            k2 = f(y + DT / 2 * k1, dh)
+            k3 = f(y + DT / 2 * k2, dh)
+            k4 = f(y + DT * k3, d1)
+            return y + DT / 6 * (k1 + 2 * k2 + 2 * k3 + k4), None
+
+        y, _ = jax.lax.scan(step, jnp.zeros(2), jnp.arange(n))
+        return y[0], jnp.asarray(False)
+
+    prog = Programs.from_functions(0, K, basis, dm.Spline.project_coefficients,
+                                   jax.vmap(one), one)
+    wd = W * math.sqrt(1 - ZETA ** 2)
+    s = np.linspace(0, T, 200_001)
+    exact = D * np.trapezoid(np.abs(np.exp(-ZETA * W * s) * np.sin(wd * s) / wd), s)
+    return prog, exact
+
+
+def test_gradient_search_finds_the_bang_bang_worst_case(oscillator):
+    prog, exact = oscillator
+    traces = search(prog, time_limit=1.5, starts=4, methods=("gradient", "random"), batch=16)
+    grad, rand = traces["gradient"], traces["random"]
+    assert exact * 0.98 <= grad.best_value <= exact * 1.001
+    assert grad.best_value > 1.3 * rand.best_value  # sampling is far off in 25 dimensions
+    # the worst spline is bang-bang: its knots sit on the bound
+    assert np.mean(np.abs(grad.best_z) > 0.99) > 0.7
+
+
+def test_search_resumes_losing_nothing_finished(oscillator, tmp_path):
+    prog, _ = oscillator
+
+    class Stop(Exception):
+        pass
+
+    def stop_at(n):
+        def progress(method, tr, limit):
+            if tr.iterations == n:
+                raise Stop
+
+        return progress
+
+    with pytest.raises(Stop):
+        search(prog, time_limit=60.0, starts=2, methods=("gradient",), out_dir=tmp_path,
+               fingerprint="fp", progress=stop_at(3))
+    saved = Trace.load(tmp_path / "state_gradient.npz", "gradient", "fp")
+    assert saved.iterations == 3
+    assert Trace.load(tmp_path / "state_gradient.npz", "gradient", "other") is None
+    resumed = search(prog, time_limit=saved.elapsed + 0.2, starts=2, methods=("gradient",),
+                     out_dir=tmp_path, resume=True, fingerprint="fp")["gradient"]
+    assert resumed.iterations > 3 and resumed.best[:3] == saved.best
+    # the same iterates as a run that was never interrupted
+    (tmp_path / "fresh").mkdir()
+    with pytest.raises(Stop):
+        search(prog, time_limit=60.0, starts=2, methods=("gradient",),
+               out_dir=tmp_path / "fresh", fingerprint="fp",
+               progress=stop_at(resumed.iterations))
+    fresh = Trace.load(tmp_path / "fresh" / "state_gradient.npz", "gradient", "fp")
+    assert fresh.best == resumed.best
+    np.testing.assert_array_equal(fresh.best_z, resumed.best_z)
+
+
+# -- the command --------------------------------------------------------------------------------
+
+ARGS = ["worst-case", "--t-final", "1.5", "--range", "hysteresis.alpha=30%",
+        "--range", "plant.g[1]=0.7:1.3", "--disturbance", "fourier:2:0.3",
+        "--methods", "random", "--batch", "4", "--time-limit", "0.3", "--no-plot", "--quiet"]
+
+
+@pytest.fixture(scope="module")
+def searched(tmp_path_factory):
+    out = tmp_path_factory.mktemp("worst")
+    assert main([*ARGS, "--out", str(out)]) == 0
+    return out
+
+
+def test_worst_case_outputs_and_exact_reproduction(searched, tmp_path):
+    worst = json.loads((searched / "worst.json").read_text())
+    assert worst["metric"] == "linf_error_window"
+    assert set(worst["parameters"]) == {"hysteresis.alpha", "plant.g[1]"}
+    assert worst["disturbance"]["kind"] == "fourier" and worst["disturbance"]["K"] == 2
+    assert len(worst["disturbance"]["coefficients"]) == 5
+    assert worst["disturbance"]["period"] == 1.5
+    with np.load(searched / "worst_trajectory.npz") as z:
+        assert z["t_half"].shape == (2 * 1500 + 1,) and z["dbar"].shape == z["t_half"].shape
+        assert np.max(np.abs(z["dbar"])) <= 0.3 * (1 + 1e-12)
+        np.testing.assert_allclose(z["e"], z["x"][:, 0] - (z["x"][:, 0] - z["e"]))
+        assert z["t"].shape == z["u"].shape == z["w"].shape == z["e"].shape
+    assert "| random |" in (searched / "report.md").read_text()
+    out = tmp_path / "sim"
+    assert main(["simulate", "--config", str(searched / "worst_config.toml"), "--out", str(out),
+                 "--no-plot"]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["linf_error_window"] == worst["value"]  # exactly
+
+
+def test_worst_case_refuses_to_mix_runs_and_resumes(searched, capsys):
+    assert main([*ARGS, "--out", str(searched)]) == 2
+    assert "--resume" in capsys.readouterr().err
+    assert main([*ARGS, "--out", str(searched), "--resume", "--seed", "3"]) == 2
+    assert "seed" in capsys.readouterr().err
+    before = json.loads((searched / "worst.json").read_text())["methods"]["random"]
+    assert main([*ARGS, "--out", str(searched), "--resume"]) == 0
+    after = json.loads((searched / "worst.json").read_text())["methods"]["random"]
+    assert after["evaluations"] == before["evaluations"]  # its time was spent: nothing redone
+
+
+@pytest.mark.parametrize("extra, field", [
+    (["--range", "hysteresis.alpha=2:1"], "lower bound > upper bound"),
+    (["--range", "plant.nope=1:2"], "plant.nope"),
+    (["--disturbance", "fourier:0:0.5"], "K must be"),
+    (["--disturbance", "spline:4:-0.5"], "D must be"),
+])
+def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
+    assert main(["worst-case", "--t-final", "1", "--out", str(tmp_path), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
