@@ -573,33 +573,29 @@ class _CMA:
     generation."""
 
     def __init__(self, prog, seed, popsize, x):
-        from tuning.baselines import require_cma
+        from tuning.baselines import ReplayCMA
 
-        cma = require_cma()
         lower = [0.0] * prog.d + [-1.0] * prog.m
         upper = [1.0] * prog.d + [1.0] * prog.m
         x0 = np.concatenate([np.full(prog.d, 0.5), np.zeros(prog.m)])
-        self.es = cma.CMAEvolutionStrategy(x0, 0.3, {"seed": seed + 1, "verbose": -9,
-                                                     "popsize": popsize,
-                                                     "bounds": [lower, upper]})
-        hist = x.get("fitness", np.zeros((0, popsize)))
-        for f in hist:
-            asked = np.asarray(self.es.ask())
-            self.es.tell(list(asked), list(f))
-        if len(hist) and "last_x" in x and not np.array_equal(asked, x["last_x"]):
-            raise ConfigError("--resume: CMA-ES could not replay its stored generations; use "
-                              "--overwrite")
+        self.es = ReplayCMA(x0, 0.3, {"seed": seed + 1, "verbose": -9, "popsize": popsize,
+                                      "bounds": [lower, upper]})
+        if len(x.get("fitness", ())):
+            try:
+                self.es.replay({"fitness": x["fitness"], "asked": x["last_x"]})
+            except ValueError:
+                raise ConfigError("--resume: CMA-ES could not replay its stored generations; "
+                                  "use --overwrite") from None
         self.x = x
-        self.x.setdefault("fitness", np.zeros((0, popsize)))
 
     def step(self, prog):
-        asked = np.asarray(self.es.ask())
+        asked = self.es.ask()
         z = np.asarray(prog.project(jnp.asarray(asked)))
         v, bad = (np.asarray(a) for a in prog.values(jnp.asarray(z)))
         f = np.where(bad | ~np.isfinite(v), -1e30, np.asarray(v, dtype=np.float64))
-        self.es.tell(list(asked), list(-f))  # cma minimises
-        self.x["fitness"] = np.concatenate([self.x["fitness"], -f[None, :]])
-        self.x["last_x"] = asked
+        self.es.tell(asked, -f)  # cma minimises
+        saved = self.es.arrays()
+        self.x["fitness"], self.x["last_x"] = saved["fitness"], saved["asked"]
         return z, v, bad
 
 

@@ -26,16 +26,20 @@ constraints) a plain gradient step often raises the loss a short way off; evalua
 sizes at once and keeping the best makes the gradient's information safe to use, and CMA-ES
 keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
 
-State (`SearchState`) is the CMA-ES object with its own random stream, the incumbent and the
-counters; it is pickled to `search.pkl` beside checkpoint.json, so a resumed run continues
-exactly where it stopped.
+State (`SearchState`): the CMA-ES (`tuning.baselines.ReplayCMA`, which records the fitness
+told and the point injected per generation), the incumbent, the counters and the generator of
+the random line directions. No pickle: `search.npz` holds the recorded fitness and injections,
+the last population and the incumbent (float64, bitwise); checkpoint.json holds the counters
+and the generator's state (integers). A resumed run rebuilds CMA-ES with the same seed and
+options and replays ask/tell/inject with the stored values (no simulation), so it continues
+exactly where it stopped (tested: resumed == uninterrupted, bitwise).
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
-import pickle
 import time
 from pathlib import Path
 from typing import Any
@@ -45,12 +49,18 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax import files, params
+from dscjax import files, params, xla
 from tuning import checkpoint as ck
+from tuning.baselines import ReplayCMA
 from tuning.objective import aggregate, plant_loss, simulate_metrics, within
 from tuning.optimize import value_and_grad
 
-STATE_FILE = "search.pkl"
+STATE_FILE = "search.npz"
+# the counters of SearchState kept in checkpoint.json; floats (possibly inf/NaN) and arrays go
+# to STATE_FILE, bitwise
+_COUNTERS = ("best_feasible", "best_iteration", "iteration", "evaluations",
+             "gradient_evaluations", "line_wins", "first_grad", "stall")
+_FLOATS = ("best_loss", "start_loss")
 
 
 def batch_fn(problem):
@@ -64,7 +74,8 @@ def batch_fn(problem):
     n_train = obj.batch_size if train else 1
     sc = obj.scales
 
-    @jax.jit
+    # one top-level batched program: 512-bit vectors where the CPU has them (dscjax.xla)
+    @functools.partial(jax.jit, compiler_options=xla.compiler_options())
     def run(flat_pts):
         table = jax.vmap(lambda p: obj.selection.row(unravel(p)))(flat_pts)
         b = flat_pts.shape[0]
@@ -138,7 +149,7 @@ def better(feas_a, loss_a, feas_b, loss_b) -> bool:
 class SearchState:
     """What the loop carries; the report reads the same names as a `TuneState`'s."""
 
-    es: Any  # cma.CMAEvolutionStrategy (its random stream inside: opts["randn"])
+    cma: ReplayCMA  # CMA-ES and what it was told (its random stream: opts["randn"])
     best_flat: np.ndarray  # (n,) incumbent in flat z
     best_loss: float = math.inf
     best_feasible: bool = False
@@ -155,14 +166,15 @@ class SearchState:
     unravel: Any = None
 
     @property
+    def es(self):  # the cma.CMAEvolutionStrategy
+        return self.cma.es
+
+    @property
     def best_z(self):
         return jax.tree.map(np.asarray, self.unravel(jnp.asarray(self.best_flat)))
 
 
 def new_state(problem, spec) -> SearchState:
-    from tuning.baselines import require_cma
-
-    cma = require_cma()
     flat0, unravel = ravel_pytree(problem.z0)
     flat0 = np.asarray(flat0, float)
     lo, hi = z_box(problem)
@@ -172,8 +184,7 @@ def new_state(problem, spec) -> SearchState:
                        [x if np.isfinite(x) else None for x in hi]]}
     if spec.popsize:
         opts["popsize"] = spec.popsize
-    es = cma.CMAEvolutionStrategy(flat0, spec.sigma0, opts)
-    return SearchState(es=es, best_flat=flat0, unravel=unravel,
+    return SearchState(cma=ReplayCMA(flat0, spec.sigma0, opts), best_flat=flat0, unravel=unravel,
                        rng=np.random.default_rng(spec.seed + 2))
 
 
@@ -260,7 +271,7 @@ class Search:
             res = self._eval(np.tile(st.best_flat, (self.width, 1)), 1)
             st.start_loss = float(res[0][0])
             self._take(st.best_flat[None, :], *res)
-        pop = np.asarray(es.ask())
+        pop = st.cma.ask()
         pts = [pop]
         base = st.best_flat
         grad_norm = float("nan")
@@ -291,11 +302,11 @@ class Search:
         res = self._eval(x, x.shape[0])
         loss = res[0]
         k = pop.shape[0]
-        es.tell(list(pop), list(np.where(np.isfinite(loss[:k]), loss[:k], 1e30)))
+        st.cma.tell(pop, np.where(np.isfinite(loss[:k]), loss[:k], 1e30))
         improved = self._take(x, *res)
         if self.steps.size and improved and improved[0] >= k:
             st.line_wins += 1
-            es.inject([st.best_flat])
+            st.cma.inject(st.best_flat)
         i = int(np.argmin(np.where(np.isfinite(loss), loss, np.inf)))
         terms = {name: float(v[i]) for name, v in res[-1].items()}
         st.iteration += 1
@@ -343,9 +354,8 @@ class Search:
         if self.out is None:
             return
         st = self.state
-        blob = pickle.dumps({k: v for k, v in dataclasses.asdict(st).items()
-                             if k not in ("es", "unravel")} | {"es": st.es})
-        files.atomic_write(self.out / STATE_FILE, blob)
+        files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {"best_flat": st.best_flat}
+                        | {k: np.float64(getattr(st, k)) for k in _FLOATS})
         _write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -356,7 +366,11 @@ class Search:
             "best_iteration": st.best_iteration, "best_feasible": st.best_feasible,
             "evaluations": st.evaluations, "gradient_evaluations": st.gradient_evaluations,
             "elapsed_total_s": self.elapsed_before + time.perf_counter() - self.t_start,
-            "stop_reason": stop_reason, "state": {"kind": "cma_grad", "file": STATE_FILE},
+            "stop_reason": stop_reason,
+            "state": {"kind": "cma_grad", "file": STATE_FILE,
+                      "counters": {k: getattr(st, k) for k in _COUNTERS},
+                      # PCG64's 128-bit integers as decimal strings (JSON numbers are doubles)
+                      "line_rng": _rng_state(st.rng, str)},
             "problem": desc})
 
     @classmethod
@@ -371,11 +385,37 @@ class Search:
             files.check_same(meta.get("problem"), problem.describe(),
                              where=f"the checkpoint in {out}",
                              fix="start afresh with --overwrite or another --out")
-            saved = pickle.loads((out / STATE_FILE).read_bytes())
-            state = SearchState(unravel=state.unravel, **saved)
+            _restore(state, meta.get("state", {}), files.read_npz(out / STATE_FILE), out)
             history = [r for r in ck.read_history(out / "history.csv")
                        if r["iteration"] < state.iteration]
             elapsed = float(meta.get("elapsed_total_s", 0.0))
             resumed = state.iteration
         return cls(problem, spec, state, history, out, t_start, elapsed, resumed)
 
+
+
+def _restore(state: SearchState, meta: dict, arrays: dict | None, out: Path) -> None:
+    """Bring a fresh state to the saved one: replay CMA-ES, set counters and generators."""
+    from dscjax.validation import ConfigError
+
+    fix = "start afresh with --overwrite or another --out"
+    if arrays is None or "counters" not in meta:
+        raise ConfigError(f"--resume: {out / STATE_FILE} or the state in checkpoint.json is "
+                          f"missing or unreadable; {fix}")
+    try:
+        state.cma.replay(arrays)
+    except ValueError as e:
+        raise ConfigError(f"--resume: {e} (another cma version?); {fix}") from None
+    for k in _COUNTERS:
+        setattr(state, k, type(getattr(state, k))(meta["counters"][k]))
+    for k in _FLOATS:
+        setattr(state, k, float(arrays[k]))
+    state.best_flat = np.array(arrays["best_flat"], float)
+    state.rng.bit_generator.state = _rng_state(meta["line_rng"], int)
+
+
+def _rng_state(rng_or_saved, conv):
+    """PCG64's state dict with its two 128-bit integers converted by conv (str to save, int to
+    load)."""
+    st = rng_or_saved.bit_generator.state if conv is str else dict(rng_or_saved)
+    return st | {"state": {k: conv(v) for k, v in st["state"].items()}}
