@@ -1,9 +1,12 @@
-"""The deployable problem and the cma_grad tuner: the TV(u) and max|u| bounds are exact in
-the report (a hand-made u with known figures), the ablation switch removes every gradient
-evaluation (counted), each path lowers the objective on a short horizon and resumes from a
-checkpoint to the very same result, and a NaN never becomes the best point nor a direction.
+"""The deployable problem and the search tuners (cma, cma_line, cma_grad): the TV(u) and
+max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
+removes every gradient evaluation (counted), each path lowers the objective on a short horizon
+and resumes from a pickle-free checkpoint to the very same result, and a NaN never becomes the
+best point nor a direction.
 
-One small problem (1.5 s horizon, k_1 and k_2 tuned), shared, so each program compiles once.
+One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
+path's batch has the same width (cma: population 7; cma_line, cma_grad: 4 + 3 line points), so
+ONE batched program and one gradient are compiled for the whole module.
 """
 
 import dataclasses
@@ -20,8 +23,11 @@ import tuning.runner
 from dscjax import metrics
 from dscjax.config import SimOptions
 from tuning import report, search
+from tuning.baselines import ReplayCMA
 from tuning.objective import Scales
 from tuning.runner import run
+
+STEPS = 4  # generations of an uninterrupted run; the interrupted one stops at 2
 
 
 def test_constraints_are_exact_on_a_hand_made_trajectory():
@@ -61,22 +67,48 @@ def test_tv_bound_defaults_to_one_and_a_half_start_and_is_one_line_away():
         tuning.config.from_dict({"objective": {"tv_max": -1.0}})
 
 
-def _problem(**opt):
+def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option():
+    cfg = tuning.TuningConfig()
+    stats = {"start": {"n": 256, "n_diverged": 0}, "tuned": {"n": 256, "n_diverged": 38}}
+    w = report.heldout_warning({"heldout": stats}, cfg)
+    assert "38 of 256 held-out plants" in w and "--batch" in w and "nominal plant only" in w
+    ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0}}
+    assert report.heldout_warning({"heldout": ok}, cfg) is None
+    assert report.heldout_warning({}, cfg) is None
+
+
+def test_replayed_cma_es_continues_exactly_without_pickles():
+    # ask/tell/inject on a quadratic; a fresh strategy replaying the stored arrays (plain
+    # floats, as in search.npz) asks for the very same next population
+    def make():
+        return ReplayCMA(np.ones(3), 0.5, {"seed": 3, "verbose": -9, "popsize": 5,
+                                           "randn": np.random.RandomState(3).randn})
+
+    a = make()
+    for g in range(4):
+        x = a.ask()
+        a.tell(x, (x ** 2).sum(axis=1))
+        if g % 2:
+            a.inject(0.5 * x[0])
+    saved = {k: np.array(v) for k, v in a.arrays().items()}
+    assert saved["fitness"].shape == (4, 5) and np.isnan(saved["injected"][0]).all()
+    b = make()
+    b.replay(saved)
+    np.testing.assert_array_equal(b.ask(), a.ask())
+    c = make()
+    with pytest.raises(ValueError, match="replay"):
+        c.replay(saved | {"asked": saved["asked"] + 1.0})
+
+
+def _problem():
     # forward mode: 2 tangents, the cheapest gradient to compile for two numbers
-    spec = tuning.OptimizerSpec(name="cma_grad", steps=4, save_interval=2, popsize=4,
+    spec = tuning.OptimizerSpec(name="cma_grad", steps=STEPS, save_interval=2, popsize=4,
                                 line_points=3, background_compile=False, time_limit=None,
-                                gradient="forward", **opt)
+                                gradient="forward")
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
                               heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=1.5), cfg)
-
-
-@pytest.fixture(scope="module")
-def problems():
-    # one objective, so both paths share its compiled programs (the batch has the same width)
-    p = _problem()
-    return {"gradient": p, "ablation": _with(p, grad_every=0)}
+    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=1.0, dt=2e-3), cfg)
 
 
 def _with(problem, **opt):
@@ -85,15 +117,29 @@ def _with(problem, **opt):
     return dataclasses.replace(problem, cfg=new)
 
 
+@pytest.fixture(scope="module")
+def problems():
+    # one objective, so every path shares its compiled programs (the batches have one width)
+    p = _problem()
+    return {"cma_grad": p, "cma_line": _with(p, name="cma_line"),
+            "ablation": _with(p, grad_every=0), "cma": _with(p, name="cma", popsize=7)}
+
+
+@pytest.fixture(scope="module")
+def straight(problems, tmp_path_factory):
+    """{path: the uninterrupted run of STEPS generations, with its files}."""
+    return {k: run(p, tmp_path_factory.mktemp(k)) for k, p in problems.items()}
+
+
 def test_problem_bounds_are_the_start_gains(problems):
-    p = problems["gradient"]
+    p = problems["cma_grad"]
     sc = p.objective.scales
     assert sc.tv_max == pytest.approx(1.5 * sc.tv_u, rel=1e-12)
     assert sc.u_max == pytest.approx(sc.max_u, rel=1e-12)
     assert "tv_bound" in tuning.runner.history_columns(p)
 
 
-def test_ablation_switch_removes_every_gradient_evaluation(problems, monkeypatch):
+def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, monkeypatch):
     calls = []
     real = search.value_and_grad
 
@@ -102,43 +148,51 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, monkeypatch
         return real(*a, **k)
 
     monkeypatch.setattr(search, "value_and_grad", counting)
-    off = run(problems["ablation"], None)
-    assert off.gradient_evaluations == 0 and calls == []  # never traced, never run
-    assert off.state.best_feasible  # the start meets its own bounds, at least
-    assert off.evaluations == 1 + 4 * (4 + 3)  # the start, then population + line points
-    on = run(_with(problems["gradient"], steps=2), None)
-    assert on.gradient_evaluations == 2  # one per generation
-    assert on.evaluations == 1 + 2 * (4 + 3 + 1)
+    for off in ("ablation", "cma_line", "cma"):
+        s = search.Search.open(problems[off], None, False, 0.0)
+        assert s.grad is None  # nothing to trace or compile
+        assert straight[off].gradient_evaluations == 0
+    assert calls == []  # never traced, never run
+    # the start, then population + line points (+ the gradient's own evaluation)
+    assert straight["ablation"].evaluations == 1 + STEPS * (4 + 3)
+    assert straight["cma"].evaluations == 1 + STEPS * 7
+    on = straight["cma_grad"]
+    assert on.gradient_evaluations == STEPS  # one per generation
+    assert on.evaluations == 1 + STEPS * (4 + 3 + 1)
 
 
-@pytest.mark.parametrize("which", ["gradient", "ablation"])
-def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems, which,
-                                                                        tmp_path):
-    p = problems[which]
-    straight = run(_with(p, steps=4), tmp_path / "straight")
-    assert straight.state.best_loss < straight.state.start_loss
-    first = run(_with(p, steps=2), tmp_path / "resumed")
+@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma"])
+def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems, straight,
+                                                                        which, tmp_path):
+    p, full = problems[which], straight[which]
+    assert full.state.best_feasible  # the start meets its own bounds, at least
+    assert full.state.best_loss < full.state.start_loss
+    out = tmp_path / "run"
+    first = run(_with(p, steps=2), out)
     assert first.state.iteration == 2
-    again = run(_with(p, steps=4), tmp_path / "resumed", resume=True)
-    assert again.resumed_from == 2 and again.state.iteration == 4
-    np.testing.assert_array_equal(again.state.best_flat, straight.state.best_flat)
-    assert again.state.best_loss == straight.state.best_loss
-    assert again.state.evaluations == straight.state.evaluations
-    meta = json.loads((tmp_path / "resumed" / "checkpoint.json").read_text())
-    assert meta["iteration"] == 4 and meta["gradient_evaluations"] == (
-        0 if which == "ablation" else 4)
+    # the checkpoint is plain arrays and JSON: nothing that would need a pickle to load
+    with np.load(out / search.STATE_FILE, allow_pickle=False) as z:
+        assert all(z[k].dtype.kind in "fb" for k in z.files)
+    again = run(p, out, resume=True)
+    assert again.resumed_from == 2 and again.state.iteration == STEPS
+    np.testing.assert_array_equal(again.state.best_flat, full.state.best_flat)
+    assert again.state.best_loss == full.state.best_loss
+    assert again.state.evaluations == full.state.evaluations
+    assert again.state.line_wins == full.state.line_wins
+    meta = json.loads((out / "checkpoint.json").read_text())
+    assert meta["iteration"] == STEPS
+    assert meta["gradient_evaluations"] == (STEPS if which == "cma_grad" else 0)
 
 
-def test_a_nan_is_never_the_best_point_nor_a_direction(problems, monkeypatch):
+def test_a_nan_is_never_the_best_point_nor_a_direction(problems, straight):
     assert not search.better(True, float("nan"), False, 1.0)
     assert not search.better(False, float("inf"), False, float("inf"))
-    p = problems["gradient"]
+    s = search.Search.open(_with(problems["cma_grad"], steps=2), None, False, 0.0)
+    s.compile()  # from the objective's cache: `straight` compiled it
     # every gradient is NaN: the line search falls back to random directions, the run goes on
-    s = search.Search.open(_with(p, steps=2), None, False, 0.0)
-    s.compile()
     real = s.grad
     s.grad = lambda x: (lambda r: (r[0], r[1], jnp.full_like(r[2], jnp.nan)))(real(x))
-    # and one candidate of each batch is NaN
+    # and one candidate of each batch, the start point's included, is NaN
     real_batch = s.batch
 
     def nan_batch(x):
@@ -150,3 +204,4 @@ def test_a_nan_is_never_the_best_point_nor_a_direction(problems, monkeypatch):
         s.generation()
     assert np.isfinite(s.state.best_loss) and np.all(np.isfinite(s.state.best_flat))
     assert s.state.gradient_evaluations == 2
+    assert np.all(np.isfinite(s.state.cma.arrays()["fitness"]))  # CMA-ES was told no NaN
