@@ -179,6 +179,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key] = {tag: batch_stats(ev[key][tag]) for tag in ("start", "tuned")}
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
+    summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
     out = Path(out)
     figures = []
     trajs = None
@@ -191,6 +192,23 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", _markdown(summary, problem, figures))
     return summary
+
+
+def heldout_warning(summary: dict, cfg) -> str | None:
+    """The sentence to put first when the tuned gains diverge on held-out plants (None if
+    they diverge on none or there is no held-out batch). The nominal problem rewards nothing
+    but the nominal plant, and its best gains have diverged on up to 245 of 256 held-out
+    plants (docs/tuning.md), so this must not hide in a table."""
+    h = summary.get("heldout")
+    if not h or not h["tuned"]["n_diverged"]:
+        return None
+    k, n, k0 = h["tuned"]["n_diverged"], h["tuned"]["n"], h["start"]["n_diverged"]
+    where = (f"a training batch of {cfg.robust.batch} plants" if cfg.robust.batch
+             else "the nominal plant only")
+    return (f"the tuned gains DIVERGE on {k} of {n} held-out plants (start gains: {k0}); "
+            f"they were tuned on {where}: do not deploy them as they are; tune robustly, e.g. "
+            f"`dscjax tune --batch 8 --aggregate cvar --cvar-level 0.25` ([tuning.robust] in a "
+            f"config), or with a batch covering the held-out ranges")
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
@@ -235,7 +253,10 @@ def _markdown(s: dict, problem, figures) -> str:
     run = s["run"]
     nom = s["nominal"]
     cfg = problem.cfg
-    lines = ["# dscjax tune: report", "", f"**Problem.** {s['problem']}", ""]
+    lines = ["# dscjax tune: report", ""]
+    if s.get("heldout_warning"):
+        lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
+    lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
