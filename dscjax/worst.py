@@ -573,7 +573,7 @@ class _CMA:
     generation."""
 
     def __init__(self, prog, seed, popsize, x):
-        from tuning.baselines import ReplayCMA
+        from dscjax.cmaes import ReplayCMA
 
         lower = [0.0] * prog.d + [-1.0] * prog.m
         upper = [1.0] * prog.d + [1.0] * prog.m

@@ -21,9 +21,9 @@ import dscjax
 import tuning
 import tuning.runner
 from dscjax import metrics
+from dscjax.cmaes import ReplayCMA
 from dscjax.config import SimOptions
 from tuning import report, search
-from tuning.baselines import ReplayCMA
 from tuning.objective import Scales
 from tuning.runner import run
 

@@ -130,35 +130,36 @@ def test_gradient_search_finds_the_bang_bang_worst_case(oscillator):
     assert np.mean(np.abs(grad.best_z) > 0.99) > 0.7
 
 
-def test_search_resumes_losing_nothing_finished(oscillator, tmp_path):
+@pytest.mark.parametrize("method", ["gradient", "cma"])  # cma: replayed from its fitness
+def test_search_resumes_losing_nothing_finished(oscillator, tmp_path, method):
     prog, _ = oscillator
 
     class Stop(Exception):
         pass
 
     def stop_at(n):
-        def progress(method, tr, limit):
+        def progress(_method, tr, limit):
             if tr.iterations == n:
                 raise Stop
 
         return progress
 
     with pytest.raises(Stop):
-        search(prog, time_limit=60.0, starts=2, methods=("gradient",), out_dir=tmp_path,
+        search(prog, time_limit=60.0, starts=2, methods=(method,), out_dir=tmp_path,
                fingerprint="fp", progress=stop_at(3))
-    saved = Trace.load(tmp_path / "state_gradient.npz", "gradient", "fp")
+    saved = Trace.load(tmp_path / f"state_{method}.npz", method, "fp")
     assert saved.iterations == 3
-    assert Trace.load(tmp_path / "state_gradient.npz", "gradient", "other") is None
-    resumed = search(prog, time_limit=saved.elapsed + 0.2, starts=2, methods=("gradient",),
-                     out_dir=tmp_path, resume=True, fingerprint="fp")["gradient"]
+    assert Trace.load(tmp_path / f"state_{method}.npz", method, "other") is None
+    resumed = search(prog, time_limit=saved.elapsed + 0.2, starts=2, methods=(method,),
+                     out_dir=tmp_path, resume=True, fingerprint="fp")[method]
     assert resumed.iterations > 3 and resumed.best[:3] == saved.best
     # the same iterates as a run that was never interrupted
     (tmp_path / "fresh").mkdir()
     with pytest.raises(Stop):
-        search(prog, time_limit=60.0, starts=2, methods=("gradient",),
+        search(prog, time_limit=60.0, starts=2, methods=(method,),
                out_dir=tmp_path / "fresh", fingerprint="fp",
                progress=stop_at(resumed.iterations))
-    fresh = Trace.load(tmp_path / "fresh" / "state_gradient.npz", "gradient", "fp")
+    fresh = Trace.load(tmp_path / "fresh" / f"state_{method}.npz", method, "fp")
     assert fresh.best == resumed.best
     np.testing.assert_array_equal(fresh.best_z, resumed.best_z)
 

@@ -20,6 +20,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from dscjax import params
+from dscjax.cmaes import ReplayCMA, require_cma  # noqa: F401  (tuning.baselines.require_cma)
 from tuning.objective import aggregate, plant_loss, simulate_metrics
 
 
@@ -109,75 +110,6 @@ def random_search(problem, budget_s: float, batch: int = 32, spread: float = mat
         trace.add(now, losses, zs)
         if now >= budget_s:
             return trace
-
-
-def require_cma():
-    """The optional `cma` module, or ModuleNotFoundError saying how to install it."""
-    try:
-        import cma
-    except ModuleNotFoundError:
-        raise ModuleNotFoundError("CMA-ES needs the optional `cma` package: pip install "
-                                  "'dscjax[cma]'") from None
-    return cma
-
-
-class ReplayCMA:
-    """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
-
-    It records what it was told: the fitness values of every generation and the point
-    injected after it (if any). `replay` rebuilds the same strategy from a fresh one with the
-    same x0, sigma0 and options (so the same seed: cma's samples come from the `randn` option
-    or NumPy's generator seeded by `seed`) by repeating ask/tell/inject with the stored values,
-    no simulation needed, and checks the last population against the stored one.
-
-        es = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9})
-        x = es.ask(); es.tell(x, f(x)); es.inject(best)     # as with cma
-        saved = es.arrays()                                 # plain float arrays (npz)
-        again = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9}); again.replay(saved)
-    """
-
-    def __init__(self, x0, sigma0: float, opts: dict):
-        cma = require_cma()
-        self.es = cma.CMAEvolutionStrategy(x0, sigma0, opts)
-        self.n = int(np.size(x0))
-        self.fitness: list[np.ndarray] = []  # (popsize,) per generation, as told
-        self.injected: list[np.ndarray] = []  # (n,) per generation, NaN: none
-        self.asked = np.zeros((0, self.n))  # the last population
-
-    def ask(self) -> np.ndarray:
-        self.asked = np.asarray(self.es.ask(), dtype=float)
-        return self.asked
-
-    def tell(self, x, fitness) -> None:
-        f = np.asarray(fitness, dtype=float)
-        self.es.tell(list(x), list(f))
-        self.fitness.append(f)
-        self.injected.append(np.full(self.n, np.nan))
-
-    def inject(self, x) -> None:
-        """Inject x into the next generation (after this generation's tell)."""
-        self.es.inject([np.asarray(x, dtype=float)])
-        self.injected[-1] = np.asarray(x, dtype=float)
-
-    def arrays(self) -> dict[str, np.ndarray]:
-        """{"fitness": (G, popsize), "injected": (G, n), "asked": (popsize, n)}."""
-        pop = self.es.popsize
-        return {"fitness": np.asarray(self.fitness).reshape(-1, pop),
-                "injected": np.asarray(self.injected).reshape(-1, self.n),
-                "asked": self.asked}
-
-    def replay(self, arrays: dict[str, np.ndarray]) -> None:
-        """Repeat the stored generations (`arrays()`; "injected" may be left out: none).
-        ValueError if the replay does not meet the stored last population (another cma
-        version or other options)."""
-        fitness = np.asarray(arrays["fitness"])
-        injected = arrays.get("injected", np.full((len(fitness), self.n), np.nan))
-        for f, x in zip(fitness, injected, strict=True):
-            self.tell(self.ask(), f)
-            if np.all(np.isfinite(x)):
-                self.inject(x)
-        if len(fitness) and not np.array_equal(self.asked, arrays["asked"]):
-            raise ValueError("CMA-ES could not replay its stored generations")
 
 
 def cma_es(problem, budget_s: float, sigma0: float = 0.3, popsize: int | None = None,

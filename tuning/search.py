@@ -26,7 +26,7 @@ constraints) a plain gradient step often raises the loss a short way off; evalua
 sizes at once and keeping the best makes the gradient's information safe to use, and CMA-ES
 keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
 
-State (`SearchState`): the CMA-ES (`tuning.baselines.ReplayCMA`, which records the fitness
+State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness
 told and the point injected per generation), the incumbent, the counters and the generator of
 the random line directions. No pickle: `search.npz` holds the recorded fitness and injections,
 the last population and the incumbent (float64, bitwise); checkpoint.json holds the counters
@@ -50,8 +50,8 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from dscjax import files, params, xla
+from dscjax.cmaes import ReplayCMA
 from tuning import checkpoint as ck
-from tuning.baselines import ReplayCMA
 from tuning.objective import aggregate, plant_loss, simulate_metrics, within
 from tuning.optimize import value_and_grad
 
