@@ -4,9 +4,15 @@ x64 is switched on here, once, before any test module imports jax.numpy arrays; 
 need float32 say so and cast their setups (dscjax.cast) instead of flipping the flag.
 """
 
+import os
+
 import jax
 
 jax.config.update("jax_enable_x64", True)
+# Commands run through dscjax.cli.main.main in this process must not switch JAX's persistent
+# cache on in the user's home for the rest of the session (test_cli tests the cache itself in
+# a subprocess; test_docs gives its subprocess a cache of its own).
+os.environ.setdefault("DSCJAX_NO_COMPILATION_CACHE", "1")
 
 import pytest  # noqa: E402
 

@@ -152,3 +152,28 @@ def test_heatmap_states_how_narrow_its_colour_scale_is(tmp_path):
                          names=("hysteresis.alpha", "hysteresis.lam"), t0=1.0, t_final=20.0)
     assert re.fullmatch(r"colours span 0\.022\d* to 0\.022\d* = 2(\.\d)? % of the median",
                         stats["colour_scale"]), stats["colour_scale"]
+
+
+def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(tmp_path):
+    # in a fresh process: the cache is JAX's global configuration (conftest opts this
+    # process out); XDG_CACHE_HOME points the default directory into tmp_path
+    import os
+    import subprocess
+    import sys
+
+    code = ("import jax, contextlib, io\n"
+            "from dscjax.cli.main import main\n"
+            "for argv in (['--no-compilation-cache', 'simulate', '--print-config'],\n"
+            "             ['simulate', '--print-config']):\n"
+            "    with contextlib.redirect_stdout(io.StringIO()):\n"
+            "        assert main(argv) == 0\n"
+            "    print(repr(jax.config.jax_compilation_cache_dir))\n")
+    env = {k: v for k, v in os.environ.items()
+           if k not in ("DSCJAX_NO_COMPILATION_CACHE", "JAX_COMPILATION_CACHE_DIR")}
+    env["XDG_CACHE_HOME"] = str(tmp_path)
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
+                         text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    off, on = out.stdout.split()
+    assert off in ("None", "''") and on == repr(str(tmp_path / "dscjax" / "jax"))
+    assert (tmp_path / "dscjax" / "jax").is_dir()

@@ -52,6 +52,10 @@ def build_parser(commands) -> argparse.ArgumentParser:
         "stderr. Exit codes: 0 ok, 2 bad input, 3 a simulation diverged, 130 interrupted.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--no-compilation-cache", action="store_true",
+                        help="do not keep compiled programs in JAX's persistent cache "
+                        "($XDG_CACHE_HOME/dscjax/jax or ~/.cache/dscjax/jax; also "
+                        "DSCJAX_NO_COMPILATION_CACHE=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in commands.values():
         module.add_parser(sub)
@@ -86,6 +90,11 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from dscjax import compilation_cache
+
+    if not (args.no_compilation_cache or compilation_cache.opted_out()):
+        compilation_cache.enable()  # compiled programs survive the process (an entry point's
+        # choice: the library never changes JAX's configuration by itself)
     from dscjax.simulate import DivergenceError
     from dscjax.validation import ConfigError
 
