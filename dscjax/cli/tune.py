@@ -65,7 +65,8 @@ def add_parser(sub):
                    f"(default {d.heldout.batch}; 0 = skip)")
     p.add_argument("--gradient", choices=GRADIENTS,
                    help=f"AD mode (default {opt.gradient}"
-                   + (f": forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
+                   + (f": reverse mode (time-parallel) for one plant; with a training batch, "
+                      f"forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
                       if opt.gradient == "auto" else ")"))
     add_horizon_args(p)
     add_example_arg(p)
