@@ -100,6 +100,27 @@ def test_replayed_cma_es_continues_exactly_without_pickles():
         c.replay(saved | {"asked": saved["asked"] + 1.0})
 
 
+def test_the_box_follows_the_order_of_the_flat_z():
+    # ravel_pytree orders z by name, not in the order the parameters were listed: the box of
+    # CMA-ES and of the line search must bound tau where tau sits in the flat vector
+    from jax.flatten_util import ravel_pytree
+
+    from tuning.params import Selection
+
+    setup = dscjax.paper_example()
+    sel = Selection.build(setup, ("controller.tau", "controller.k", "controller.eps"),
+                          bounds={"controller.tau": (0.002, 0.5)})
+    z = sel.init(setup)
+    lo, hi = sel.z_box(z)
+    flat, unravel = ravel_pytree(z)
+    assert lo.shape == hi.shape == flat.shape
+    lo_t, hi_t = unravel(jnp.asarray(lo)), unravel(jnp.asarray(hi))
+    np.testing.assert_allclose(lo_t["controller.tau"], np.log(0.002), rtol=1e-15)
+    np.testing.assert_allclose(hi_t["controller.tau"], np.log(0.5), rtol=1e-15)
+    for name in ("controller.k", "controller.eps"):
+        assert np.all(np.isneginf(lo_t[name])) and np.all(np.isposinf(hi_t[name]))
+
+
 def _problem():
     # forward mode: 2 tangents, the cheapest gradient to compile for two numbers
     spec = tuning.OptimizerSpec(name="cma_grad", steps=STEPS, save_interval=2, popsize=4,

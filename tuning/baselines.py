@@ -79,23 +79,13 @@ def batch_loss_fn(problem):
     return run, np.asarray(flat0), unravel
 
 
-def _bounds(problem, n):
-    lo, hi = [], []
-    for t in problem.objective.selection.items:
-        size = int(np.size(problem.z0[t.name]))
-        a, b = t.z_bounds()
-        lo += [a] * size
-        hi += [b] * size
-    return np.asarray(lo), np.asarray(hi)
-
-
 def random_search(problem, budget_s: float, batch: int = 32, spread: float = math.log(10.0),
                   seed: int = 0) -> Trace:
     """Uniform samples in the box z0 +- spread (log-space: a factor of 10 either way), clipped
     to the bounds, evaluated `batch` at a time until the budget is spent."""
     t0 = time.perf_counter()
     run, flat0, _ = batch_loss_fn(problem)
-    lo, hi = _bounds(problem, flat0.size)
+    lo, hi = problem.selection.z_box(problem.z0)
     rng = np.random.default_rng(seed)
     trace = Trace("random search", info={"batch": batch, "spread": spread})
     first = True
@@ -119,7 +109,7 @@ def cma_es(problem, budget_s: float, sigma0: float = 0.3, popsize: int | None = 
     cma = require_cma()
     t0 = time.perf_counter()
     run, flat0, _ = batch_loss_fn(problem)
-    lo, hi = _bounds(problem, flat0.size)
+    lo, hi = problem.selection.z_box(problem.z0)
     opts = {"seed": seed + 1, "verbose": -9, "bounds": [
         [x if np.isfinite(x) else None for x in lo], [x if np.isfinite(x) else None for x in hi]]}
     if popsize:

@@ -225,6 +225,16 @@ class Selection:
                 z[t.name], lo, hi)
         return out
 
+    def z_box(self, z: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
+        """(lower, upper) bounds of the flat vector `jax.flatten_util.ravel_pytree(z)[0]`,
+        element by element. Its order is the pytree's (names sorted), not the order of
+        `items`: the box is built as a pytree like z and raveled the same way."""
+        from jax.flatten_util import ravel_pytree
+
+        box = [{t.name: np.full(np.shape(z[t.name]), t.z_bounds()[k], dtype=float)
+                for t in self.items} for k in (0, 1)]
+        return tuple(np.asarray(ravel_pytree(b)[0], dtype=float) for b in box)
+
     def describe(self, setup) -> list[str]:
         rows = []
         for t in self.items:

@@ -129,13 +129,8 @@ def grad_fn(problem):
 
 
 def z_box(problem) -> tuple[np.ndarray, np.ndarray]:
-    lo, hi = [], []
-    for t in problem.objective.selection.items:
-        size = int(np.size(problem.z0[t.name]))
-        a, b = t.z_bounds()
-        lo += [a] * size
-        hi += [b] * size
-    return np.asarray(lo, float), np.asarray(hi, float)
+    """The box of the flat z (the order of `ravel_pytree(problem.z0)`)."""
+    return problem.selection.z_box(problem.z0)
 
 
 def better(feas_a, loss_a, feas_b, loss_b) -> bool:
