@@ -4,8 +4,8 @@ exact gradients).
 Writes into DIR: gains.json (the tuned closed loop as a config: `dscjax simulate --config
 DIR/gains.json` loads it), history.csv (one row per iteration), report.md and report.json
 (start against tuned gains: nominal plant, training batch, held-out batch), loss_curve.png,
-before_after.png, heldout.png, and the checkpoint files checkpoint.npz/.json and best.json
-(`--resume` continues from them).
+before_after.png, heldout.png, and the checkpoint files (checkpoint.npz, or search.npz for
+the CMA-ES methods; checkpoint.json; best.json: `--resume` continues from them).
 """
 
 from __future__ import annotations
