@@ -160,6 +160,34 @@ def test_problem_bounds_are_the_start_gains(problems):
     assert "tv_bound" in tuning.runner.history_columns(p)
 
 
+def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems,
+                                                                       monkeypatch):
+    # simulation.solver and the time-parallel gradient reach the batch and the gradient of
+    # the search methods (spied at the call of dscjax's run while tracing: nothing compiles)
+    from jax.flatten_util import ravel_pytree
+
+    import tuning.objective
+
+    class Seen(Exception):
+        pass
+
+    seen = []
+
+    def spy(*args, **kwargs):
+        seen.append((kwargs["solver"], kwargs["gradient"]))
+        raise Seen
+
+    monkeypatch.setattr(tuning.objective, "run", spy)
+    p = problems["cma_grad"]
+    sim = dataclasses.replace(p.objective.sim, solver="etdrk4")
+    q = dataclasses.replace(p, objective=dataclasses.replace(p.objective, sim=sim))
+    flat = jnp.asarray(ravel_pytree(q.z0)[0])
+    for program, x in ((search.batch_fn(q), flat[None]), (search.grad_fn(q), flat)):
+        with pytest.raises(Seen):
+            program.lower(x)
+    assert seen == [("etdrk4", "time_parallel")] * 2
+
+
 def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, monkeypatch):
     calls = []
     real = search.value_and_grad
