@@ -14,7 +14,7 @@ def require_cma():
         import cma
     except ModuleNotFoundError:
         raise ModuleNotFoundError("CMA-ES needs the `cma` package, a dependency of dscjax: "
-                                  "pip install 'cma>=3.3'") from None
+                                  "pip install 'cma>=3.4'") from None
     return cma
 
 
