@@ -28,9 +28,9 @@ keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablati
 
 State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness
 told and the point injected per generation), the incumbent, the counters and the generator of
-the random line directions. No pickle: `search.npz` holds the recorded fitness and injections,
-the last population and the incumbent (float64, bitwise); checkpoint.json holds the counters
-and the generator's state (integers). A resumed run rebuilds CMA-ES with the same seed and
+the random line directions. No pickle: ONE atomic `search.npz` holds the recorded fitness and
+injections, the last population, the incumbent (float64, bitwise), the counters and the
+generator's state (uint64 words). A resumed run rebuilds CMA-ES with the same seed and
 options and replays ask/tell/inject with the stored values (no simulation), so it continues
 exactly where it stopped (tested: resumed == uninterrupted, bitwise).
 """
@@ -56,8 +56,8 @@ from tuning.objective import aggregate, plant_loss, simulate_metrics, within
 from tuning.optimize import value_and_grad
 
 STATE_FILE = "search.npz"
-# the counters of SearchState kept in checkpoint.json; floats (possibly inf/NaN) and arrays go
-# to STATE_FILE, bitwise
+# SearchState's numbers in STATE_FILE beside the CMA-ES record (one atomic file: the whole
+# state or the previous one, never a mix)
 _COUNTERS = ("best_feasible", "best_iteration", "iteration", "evaluations",
              "gradient_evaluations", "line_wins", "first_grad", "stall")
 _FLOATS = ("best_loss", "start_loss")
@@ -349,8 +349,10 @@ class Search:
         if self.out is None:
             return
         st = self.state
-        files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {"best_flat": st.best_flat}
-                        | {k: np.float64(getattr(st, k)) for k in _FLOATS})
+        files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {
+            "best_flat": st.best_flat, "line_rng": _rng_words(st.rng)}
+            | {k: np.float64(getattr(st, k)) for k in _FLOATS}
+            | {k: np.int64(getattr(st, k)) for k in _COUNTERS})
         _write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -362,10 +364,7 @@ class Search:
             "evaluations": st.evaluations, "gradient_evaluations": st.gradient_evaluations,
             "elapsed_total_s": self.elapsed_before + time.perf_counter() - self.t_start,
             "stop_reason": stop_reason,
-            "state": {"kind": "cma_grad", "file": STATE_FILE,
-                      "counters": {k: getattr(st, k) for k in _COUNTERS},
-                      # PCG64's 128-bit integers as decimal strings (JSON numbers are doubles)
-                      "line_rng": _rng_state(st.rng, str)},
+            "state": {"kind": "cma_grad", "file": STATE_FILE},
             "problem": desc})
 
     @classmethod
@@ -380,7 +379,7 @@ class Search:
             files.check_same(meta.get("problem"), problem.describe(),
                              where=f"the checkpoint in {out}",
                              fix="start afresh with --overwrite or another --out")
-            _restore(state, meta.get("state", {}), files.read_npz(out / STATE_FILE), out)
+            _restore(state, files.read_npz(out / STATE_FILE), out)
             history = [r for r in ck.read_history(out / "history.csv")
                        if r["iteration"] < state.iteration]
             elapsed = float(meta.get("elapsed_total_s", 0.0))
@@ -388,29 +387,39 @@ class Search:
         return cls(problem, spec, state, history, out, t_start, elapsed, resumed)
 
 
-
-def _restore(state: SearchState, meta: dict, arrays: dict | None, out: Path) -> None:
-    """Bring a fresh state to the saved one: replay CMA-ES, set counters and generators."""
+def _restore(state: SearchState, arrays: dict | None, out: Path) -> None:
+    """Bring a fresh state to the saved one: replay CMA-ES, set counters and generator."""
     from dscjax.validation import ConfigError
 
     fix = "start afresh with --overwrite or another --out"
-    if arrays is None or "counters" not in meta:
-        raise ConfigError(f"--resume: {out / STATE_FILE} or the state in checkpoint.json is "
-                          f"missing or unreadable; {fix}")
+    if arrays is None or any(k not in arrays for k in _COUNTERS + _FLOATS):
+        raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
     try:
         state.cma.replay(arrays)
     except ValueError as e:
         raise ConfigError(f"--resume: {e} (another cma version?); {fix}") from None
     for k in _COUNTERS:
-        setattr(state, k, type(getattr(state, k))(meta["counters"][k]))
+        setattr(state, k, type(getattr(state, k))(arrays[k]))
     for k in _FLOATS:
         setattr(state, k, float(arrays[k]))
     state.best_flat = np.array(arrays["best_flat"], float)
-    state.rng.bit_generator.state = _rng_state(meta["line_rng"], int)
+    _set_rng_words(state.rng, arrays["line_rng"])
 
 
-def _rng_state(rng_or_saved, conv):
-    """PCG64's state dict with its two 128-bit integers converted by conv (str to save, int to
-    load)."""
-    st = rng_or_saved.bit_generator.state if conv is str else dict(rng_or_saved)
-    return st | {"state": {k: conv(v) for k, v in st["state"].items()}}
+def _rng_words(rng: np.random.Generator) -> np.ndarray:
+    """PCG64's state as uint64 words: state and increment (128 bits each, high word first),
+    has_uint32, uinteger."""
+    st = rng.bit_generator.state
+    words = []
+    for k in ("state", "inc"):
+        v = int(st["state"][k])
+        words += [v >> 64, v & (2**64 - 1)]
+    return np.asarray(words + [st["has_uint32"], st["uinteger"]], dtype=np.uint64)
+
+
+def _set_rng_words(rng: np.random.Generator, words) -> None:
+    w = [int(x) for x in words]
+    st = rng.bit_generator.state
+    rng.bit_generator.state = st | {
+        "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
+        "has_uint32": w[4], "uinteger": w[5]}
