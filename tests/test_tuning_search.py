@@ -72,6 +72,9 @@ def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option(
     stats = {"start": {"n": 256, "n_diverged": 0}, "tuned": {"n": 256, "n_diverged": 38}}
     w = report.heldout_warning({"heldout": stats}, cfg)
     assert "38 of 256 held-out plants" in w and "--batch" in w and "nominal plant only" in w
+    robust = dataclasses.replace(cfg, robust=tuning.BatchSpec(batch=8))
+    w = report.heldout_warning({"heldout": stats}, robust)
+    assert "38 of 256" in w and "training batch of 8 plants" in w and "--batch 32" in w
     ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0}}
     assert report.heldout_warning({"heldout": ok}, cfg) is None
     assert report.heldout_warning({}, cfg) is None

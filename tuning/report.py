@@ -203,12 +203,16 @@ def heldout_warning(summary: dict, cfg) -> str | None:
     if not h or not h["tuned"]["n_diverged"]:
         return None
     k, n, k0 = h["tuned"]["n_diverged"], h["tuned"]["n"], h["start"]["n_diverged"]
-    where = (f"a training batch of {cfg.robust.batch} plants" if cfg.robust.batch
-             else "the nominal plant only")
+    if cfg.robust.batch:
+        where = f"a training batch of {cfg.robust.batch} plants"
+        fix = (f"train on more plants (e.g. `--batch {4 * cfg.robust.batch}`) or with "
+               f"`--aggregate max`, over ranges covering the held-out ones")
+    else:
+        where = "the nominal plant only"
+        fix = ("tune robustly, e.g. `dscjax tune --batch 8 --aggregate cvar --cvar-level "
+               "0.25` ([tuning.robust] in a config)")
     return (f"the tuned gains DIVERGE on {k} of {n} held-out plants (start gains: {k0}); "
-            f"they were tuned on {where}: do not deploy them as they are; tune robustly, e.g. "
-            f"`dscjax tune --batch 8 --aggregate cvar --cvar-level 0.25` ([tuning.robust] in a "
-            f"config), or with a batch covering the held-out ranges")
+            f"they were tuned on {where}: do not deploy them as they are; {fix}")
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
