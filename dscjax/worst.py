@@ -66,6 +66,7 @@ DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md
 STATE_VERSION = 1
+TOP = 8  # best distinct points a trace keeps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -499,6 +500,13 @@ class Trace:
             self.best_value, self.best_z = float(v[i]), np.array(z[i])
         for j in np.flatnonzero(bad)[:max(0, 8 - len(self.diverged_z))]:
             self.diverged_z.append(np.array(z[j]))
+        # the TOP best distinct points so far (worst cases for adversarial tuning)
+        zs = np.concatenate([self.extra.get("top_z", np.zeros((0, z.shape[1]))), z])
+        vs = np.concatenate([self.extra.get("top_v", np.zeros(0)), v])
+        _, first = np.unique(zs, axis=0, return_index=True)
+        keep = first[np.argsort(-vs[first], kind="stable")][:TOP]
+        keep = keep[np.isfinite(vs[keep])]
+        self.extra["top_z"], self.extra["top_v"] = zs[keep], vs[keep]
         self.evaluations += len(v)
         self.iterations += 1
         self.elapsed += seconds

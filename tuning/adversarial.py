@@ -76,16 +76,34 @@ def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Probl
                               refine=options.refine, field="tuning.adversarial.ranges")
 
 
+def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
+                 out_dir: Path | None = None) -> worst.Result:
+    """The worst case of [tuning.adversarial] for the gains of `setup`: a search of
+    `search_time` seconds by `method` with `seed` (resumed from `out_dir` if it holds one)."""
+    spec = cfg.adversarial
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    return worst.worst_case(search_problem(setup, options, cfg), time_limit=spec.search_time,
+                            seed=seed, out_dir=out_dir, resume=out_dir is not None,
+                            starts=spec.starts, methods=(spec.method,), batch=spec.batch)
+
+
+def record(res: worst.Result) -> dict:
+    """The worst case of a search as report.json gives it."""
+    from dscjax.worst_report import summary
+
+    s = summary(res)
+    return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",
+                              "parameters", "disturbance", "nominal_value")} | {
+        "evaluations": sum(tr.evaluations for tr in res.traces.values())}
+
+
 def _worst_points(res: worst.Result, add: int) -> np.ndarray:
-    """Up to `add` distinct worst points of a search, worst first: each method's best point,
-    and the gradient method's other starts (their last accepted points)."""
+    """Up to `add` distinct worst points of a search, worst first: the re-checked worst case,
+    then the best points each method kept (`Trace`'s top points)."""
     cands = []
     for tr in res.traces.values():
-        if tr.best_z is not None:
-            cands.append((tr.best_value, tr.best_z))
-        prev, zprev = tr.extra.get("prev"), tr.extra.get("zprev")
-        if prev is not None and zprev is not None:
-            cands += [(float(v), z) for v, z in zip(prev, zprev, strict=True) if np.isfinite(v)]
+        cands += zip(tr.extra.get("top_v", ()), tr.extra.get("top_z", ()), strict=True)
     cands.sort(key=lambda c: -c[0])
     out: list[np.ndarray] = [np.asarray(res.z)]
     for _, z in cands:
@@ -94,15 +112,6 @@ def _worst_points(res: worst.Result, add: int) -> np.ndarray:
         if not any(np.array_equal(z, o) for o in out):
             out.append(np.asarray(z))
     return np.stack(out)
-
-
-def _record(res: worst.Result) -> dict:
-    from dscjax.worst_report import summary
-
-    s = summary(res)
-    return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",
-                              "parameters", "disturbance", "nominal_value")} | {
-        "evaluations": sum(tr.evaluations for tr in res.traces.values())}
 
 
 def _gains(problem: runner.Problem, z) -> Any:
@@ -163,20 +172,15 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
                        spec, rounds=0, ranges=[r.resolve(setup).spec() for r in (
                            spec.ranges if spec.ranges is not None else cfg.robust.ranges)]))}
     meta = _manifest(out, fingerprint, resume, overwrite)
-    search_opts = dict(starts=spec.starts, methods=(spec.method,), batch=spec.batch)
 
     def save():
         if out is not None:
             files.write_json(out / MANIFEST, meta)
 
     def search(z, seed: int, where: str, label: str) -> worst.Result:
-        problem = search_problem(_gains(base, z), options, cfg)
         say(f"{label}: {spec.method} search for {spec.search_time:g} s (seed {seed})")
-        if out is not None:
-            (out / where).mkdir(parents=True, exist_ok=True)
-        return worst.worst_case(problem, time_limit=spec.search_time, seed=seed,
-                                out_dir=None if out is None else out / where,
-                                resume=out is not None, **search_opts)
+        return search_worst(_gains(base, z), options, cfg, seed,
+                            None if out is None else out / where)
 
     z, plants, result = base.z0, None, None
     for r in range(1, spec.rounds + 1):
@@ -204,7 +208,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             result = runner.run(problem, rdir, z_init=z, progress=row_cb,
                                 resume=rdir is not None and (rdir / "checkpoint.json").exists())
             meta["rounds"].append({
-                "round": r, "search": _record(res), "added": len(zw),
+                "round": r, "search": record(res), "added": len(zw),
                 "train_size": problem.n_train, "iterations": int(result.state.iteration),
                 "stop_reason": result.stop_reason, "best_loss": float(result.state.best_loss)})
             save()
@@ -215,7 +219,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
                                    ("tuned", z, f"fresh_tuned_R{spec.rounds}", spec.rounds)):
         if tag in fresh and fresh[tag]["rounds"] == rounds:
             continue  # done (the start gains' search does not depend on the rounds)
-        fresh[tag] = _record(search(zz, seed, where, f"fresh search, {tag} gains")) | {
+        fresh[tag] = record(search(zz, seed, where, f"fresh search, {tag} gains")) | {
             "seed": seed, "rounds": rounds}
         save()
     if out is not None:
