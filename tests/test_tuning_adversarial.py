@@ -42,14 +42,9 @@ batch = 4
 
 
 @pytest.fixture(scope="module")
-def adv_run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("adv")
-    cfg = d / "adv.toml"
-    cfg.write_text(TOML)
-    out = d / "out"
-    code = main(["tune", "--config", str(cfg), "--adversarial", "1", "--out", str(out),
-                 "--quiet", "--no-plot"])
-    return code, out
+def adv_run(tmp_path_factory, run_with_config):
+    return run_with_config(tmp_path_factory.mktemp("adv"), TOML, "tune", "--adversarial", "1",
+                           "--quiet", "--no-plot")
 
 
 def test_one_round_writes_fresh_worst_cases_of_start_and_tuned_gains(adv_run):

@@ -38,6 +38,7 @@ import numpy as np
 from dscjax import files, worst
 from dscjax.config import SimOptions
 from dscjax.validation import ConfigError
+from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
 
@@ -136,8 +137,11 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
                               f"or --overwrite to start afresh")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
-    path.unlink(missing_ok=True)
-    return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+    for name in ck.FILES:
+        (out / name).unlink(missing_ok=True)
+    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+    files.write_json(path, meta)  # at once: a run killed in its first round resumes
+    return meta
 
 
 def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | None = None, *,

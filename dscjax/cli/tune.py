@@ -297,7 +297,9 @@ def run(args) -> int:
             print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
                   f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
                   f"{h0['n_diverged']} -> {h1['n_diverged']}")
-    print(f"  wrote {out}/gains.json, history.csv, report.md, report.json"
+    print(f"  wrote {out}/gains.json, "
+          + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
+             if outcome is not None else "history.csv, ") + "report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
