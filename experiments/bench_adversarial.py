@@ -114,12 +114,12 @@ def main(argv=None) -> int:
           f"T = {t_final:g} s; tuned {args.params}; {args.rounds} rounds x {round_time:g} s "
           f"against one run of {args.rounds * round_time:g} s; load average "
           f"{load[0]:.2f} at the start, {load_end[0]:.2f} at the end; {os.cpu_count()} CPUs")
-    print(f"{'gains':30s} {'fresh worst':>12s} {'nominal':>10s} {'iterations':>10s} "
-          f"{'train plants':>12s}")
+    print(f"{'gains':30s} {'fresh worst':>12s} {'evaluations':>11s} {'nominal':>10s} "
+          f"{'iterations':>10s} {'train plants':>12s}")
     for name, f, it, n in rows:
         v = "diverges" if f["diverged"] else f"{f['value']:.6g}"
-        print(f"{name:30s} {v:>12s} {f['nominal_value']:10.6g} {'' if it is None else it:>10} "
-              f"{'' if n is None else n:>12}")
+        print(f"{name:30s} {v:>12s} {f['evaluations']:11d} {f['nominal_value']:10.6g} "
+              f"{'' if it is None else it:>10} {'' if n is None else n:>12}")
     worst_of = {k: (np.inf if f["diverged"] else f["value"]) for k, f, _, _ in rows}
     adv = worst_of["adversarial (min-max)"]
     met = adv < worst_of["paper's gains (start)"] and adv < worst_of[
