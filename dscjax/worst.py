@@ -813,9 +813,9 @@ def _finish(problem: Problem, traces: dict[str, Trace]) -> Result:
         if best is None or score > best[0]:
             best = (score, mth, z, setup, value, bad, t_bad, level)
     _, mth, z, setup, value, bad, t_bad, level = best
-    nominal = problem.setup if problem.m == 0 else problem.setup.replace(
-        plant=dataclasses.replace(problem.setup.plant, disturbance=None))
-    nominal_value = _check_run(problem, nominal)[0]
+    # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
+    # the program of the candidates' re-check serves it
+    nominal_value = _check_run(problem, problem.setup)[0]
     return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
                   nominal_value, {"rechecked": len(checked)})
 
