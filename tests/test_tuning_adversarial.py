@@ -4,6 +4,7 @@ then what it wrote, a resume that redoes nothing, and the errors of bad values."
 
 import dataclasses
 import json
+import shutil
 import tomllib
 
 import numpy as np
@@ -86,27 +87,50 @@ def test_the_round_adds_its_worst_cases_to_the_training_set(adv_run):
         assert plants[name][0] == value
 
 
-def test_resume_after_finished_rounds_redoes_nothing(adv_run, monkeypatch):
-    _, out = adv_run
-    before = {p: p.read_bytes() for p in (out / "adversarial.json",
-                                          out / "round_1" / "history.csv")}
+def _inputs():
     raw = tomllib.loads(TOML)
     table = raw.pop("tuning")
     setup, options = config.from_dict(raw)
     cfg = tuning.config_from_dict(table)
-    cfg = dataclasses.replace(cfg, adversarial=dataclasses.replace(cfg.adversarial, rounds=1))
+    return setup, options, dataclasses.replace(
+        cfg, adversarial=dataclasses.replace(cfg.adversarial, rounds=1))
 
-    def never(*a, **k):
-        raise AssertionError("a finished phase ran again")
 
+def never(*a, **k):
+    raise AssertionError("a finished phase ran again")
+
+
+def test_resume_after_finished_rounds_redoes_nothing(adv_run, monkeypatch):
+    _, out = adv_run
+    before = {p: p.read_bytes() for p in (out / "adversarial.json",
+                                          out / "round_1" / "history.csv")}
     monkeypatch.setattr(worst, "worst_case", never)
     monkeypatch.setattr(runner, "run", never)
-    outcome = adversarial.run(setup, options, cfg, out, resume=True)
+    outcome = adversarial.run(*_inputs(), out, resume=True)
     for p, b in before.items():
         assert p.read_bytes() == b
     saved = json.loads((out / "adversarial.json").read_text())
     assert outcome.fresh == saved["fresh"]
     assert int(outcome.result.state.iteration) == saved["rounds"][0]["iterations"]
+
+
+def test_killed_during_the_last_search_resumes_to_the_same_result(adv_run, tmp_path,
+                                                                  monkeypatch):
+    """A run killed while the tuned gains' fresh search ran (its state saved, the manifest
+    not yet updated) reruns that search only, from its state, to the same worst case."""
+    _, done = adv_run
+    out = tmp_path / "out"
+    shutil.copytree(done, out)
+    meta = json.loads((out / "adversarial.json").read_text())
+    expected = meta["fresh"].pop("tuned")
+    (out / "adversarial.json").write_text(json.dumps(meta))
+    calls = []
+    search = worst.worst_case
+    monkeypatch.setattr(worst, "worst_case", lambda *a, **k: calls.append(1) or search(*a, **k))
+    monkeypatch.setattr(runner, "run", never)
+    outcome = adversarial.run(*_inputs(), out, resume=True)
+    assert len(calls) == 1
+    assert outcome.fresh["tuned"] == expected
 
 
 @pytest.mark.parametrize("value", ["-1", "1.5", "two"])
