@@ -64,7 +64,8 @@ class Outcome:
 def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Problem:
     """The worst-case problem of [tuning.adversarial] at the gains of `setup`."""
     spec = cfg.adversarial
-    ranges = spec.ranges if spec.ranges is not None else cfg.robust.ranges
+    ranges = (spec.ranges if spec.ranges is not None
+              else runner.model_default_ranges(cfg, setup).robust.ranges)
     tuned = set(cfg.params)
     for r in ranges:
         if r.param.path in tuned:
@@ -173,8 +174,8 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
     desc = base.describe()
     fingerprint = {"problem": files.digest(desc),
                    "adversarial": dataclasses.asdict(dataclasses.replace(
-                       spec, rounds=0, ranges=[r.resolve(setup).spec() for r in (
-                           spec.ranges if spec.ranges is not None else cfg.robust.ranges)]))}
+                       spec, rounds=0, ranges=[r.spec() for r in search_problem(
+                           setup, options, cfg).ranges]))}
     meta = _manifest(out, fingerprint, resume, overwrite)
 
     def save():

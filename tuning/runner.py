@@ -100,7 +100,7 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
     return ()
 
 
-def _model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
+def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     """Batches left at the default ranges vary the setup's own hysteresis model's numbers
     (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
     from dscjax.ranges import default_ranges
@@ -126,7 +126,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
 
     cfg.validate()
     validate_setup(setup)
-    cfg = _model_default_ranges(cfg, setup)
+    cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
     if window is None:

@@ -153,6 +153,10 @@ def load(args):
     adv = {}
     if args.adversarial is not None:
         adv["rounds"] = _rounds(args.adversarial)
+    for name in ("disturbance", "search_time", "search_method"):
+        if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
+            raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
+                              f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
     if args.disturbance is not None:
         adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
     if args.search_time is not None:
@@ -200,13 +204,18 @@ def run(args) -> int:
     from dscjax.progress import Progress
     from tuning import report
     from tuning.config import to_toml
-    from tuning.runner import build_problem, check_out_dir, format_progress
+    from tuning.runner import (
+        build_problem,
+        check_out_dir,
+        format_progress,
+        model_default_ranges,
+    )
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        sys.stdout.write(to_toml(cfg, setup))
+        sys.stdout.write(to_toml(model_default_ranges(cfg, setup), setup))
         return 0
     out = Path(args.out)
     adv = cfg.adversarial
@@ -229,7 +238,8 @@ def run(args) -> int:
           + f"; at most {oc.steps} iterations"
           + (f" or {oc.time_limit:g} s" if oc.time_limit else "")
           + (f" per round; {adv.rounds} adversarial rounds over "
-             + ", ".join(r.spec() for r in (adv.ranges or cfg.robust.ranges))
+             + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
+                                                                      cfg).ranges)
              + (f" and {adv.disturbance}" if adv.disturbance else "")
              + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else ""),
           file=sys.stderr)
