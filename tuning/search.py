@@ -169,8 +169,11 @@ class SearchState:
         return jax.tree.map(np.asarray, self.unravel(jnp.asarray(self.best_flat)))
 
 
-def new_state(problem, spec) -> SearchState:
+def new_state(problem, spec, z_init=None) -> SearchState:
+    """A fresh search from z_init (default problem.z0): CMA-ES's mean and the incumbent."""
     flat0, unravel = ravel_pytree(problem.z0)
+    if z_init is not None:
+        flat0 = ravel_pytree({k: jnp.asarray(z_init[k]) for k in problem.z0})[0]
     flat0 = np.asarray(flat0, float)
     lo, hi = z_box(problem)
     opts = {"seed": spec.seed + 1, "verbose": -9,
@@ -344,7 +347,7 @@ class Search:
 
     # -- files -----------------------------------------------------------------------------
     def save(self, stop_reason: str | None = None) -> None:
-        from tuning.runner import _write_best, history_columns
+        from tuning.runner import history_columns, write_best
 
         if self.out is None:
             return
@@ -353,7 +356,7 @@ class Search:
             "best_flat": st.best_flat, "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
             | {k: np.int64(getattr(st, k)) for k in _COUNTERS})
-        _write_best(self.out, self.problem, st)
+        write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
         desc = self.problem.describe()
@@ -368,9 +371,11 @@ class Search:
             "problem": desc})
 
     @classmethod
-    def open(cls, problem, out: Path | None, resume: bool, t_start: float) -> Search:
+    def open(cls, problem, out: Path | None, resume: bool, t_start: float,
+             z_init=None) -> Search:
+        """A fresh search from z_init (default the start gains), or the one saved in out."""
         spec = problem.cfg.optimizer
-        state = new_state(problem, spec)
+        state = new_state(problem, spec, None if resume else z_init)
         history: list[dict] = []
         elapsed = 0.0
         resumed = 0
