@@ -70,7 +70,9 @@ class Problem:
             opt.pop(k)
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
-            "params": [dataclasses.asdict(t) for t in self.selection.items],
+            # `scale` only when set: fingerprints of runs without scales stay as they were
+            "params": [{k: v for k, v in dataclasses.asdict(t).items() if k != "scale" or v}
+                       for t in self.selection.items],
             "objective": dataclasses.asdict(self.cfg.objective),
             "optimizer": opt,
             "robust": _batch_desc(self.cfg.robust, self.setup),
