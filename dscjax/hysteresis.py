@@ -55,6 +55,7 @@ class Hysteresis(Model):
     """The interface every hysteresis model provides (see the module docstring)."""
 
     kind: ClassVar[str]
+    title: ClassVar[str]  # the model's name in figures
     # True if `project` does something: the integrator then applies it after every step.
     projects: ClassVar[bool] = False
     # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
@@ -110,6 +111,7 @@ class Backlash(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "backlash"
+    title: ClassVar[str] = "Backlash-like hysteresis (4)"
     default_sweep: ClassVar[tuple[str, ...]] = ("alpha", "lam", "psi")
 
     def validate(self, prefix):
@@ -272,6 +274,7 @@ class PrandtlIshlinskii(_Plays):
     z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "pi"
+    title: ClassVar[str] = "Prandtl-Ishlinskii"
     # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
     default_sweep: ClassVar[tuple[str, ...]] = ("p0", "p[0]", "r[0]", "p[9]")
 
@@ -316,6 +319,7 @@ class GeneralizedPI(_Plays):
     z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "gpi"
+    title: ClassVar[str] = "Generalized Prandtl-Ishlinskii"
     default_sweep: ClassVar[tuple[str, ...]] = ("p0", "envelope_left[0]", "envelope_right[0]",
                                                 "p[0]")
 
@@ -404,6 +408,7 @@ class BoucWen(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "bouc_wen"
+    title: ClassVar[str] = "Bouc-Wen"
     default_sweep: ClassVar[tuple[str, ...]] = ("a", "b", "beta", "gamma")
 
     def validate(self, prefix):
