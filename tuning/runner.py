@@ -32,7 +32,7 @@ from dscjax.reference import SmoothStep
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Objective, SimSpec, start_scales
+from tuning.objective import Combined, Objective, SimSpec, start_scales
 from tuning.optimize import choose_gradient, init_state, make_step
 from tuning.params import Selection
 from tuning.requirements import KINDS
@@ -57,6 +57,8 @@ class Problem:
     mode: str
     z0: dict
     notes: tuple[str, ...] = ()
+    members: tuple[Problem, ...] = ()  # the problems a `combine`d one is made of
+
 
     @property
     def n_params(self) -> int:
@@ -79,7 +81,8 @@ class Problem:
             "requirements": dict(self.cfg.requirements),
             "sim": dataclasses.asdict(self.objective.sim),
             "mode": self.mode,
-        }
+        } | ({"members": [m.describe() for m in self.members],
+              "combine": self.objective.how} if self.members else {})
 
 
 def _batch_desc(b, setup):
@@ -155,6 +158,32 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
     return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
                    objective=objective, heldout=heldout, mode=mode,
                    z0=selection.init(setup), notes=tuple(notes))
+
+
+def combine(problems, how: str = "mean") -> Problem:
+    """One problem whose loss is the mean (or max) of the problems' losses (`Combined`): the
+    same tuned gains over setups of different structure, e.g. `build_problem` once per
+    hysteresis kind, each with its own robust batch. The problems must tune the same
+    parameters (same names and sizes) with the same settings, and start from the same
+    values; the result's setup, gains.json and report are the first problem's.
+
+        probs = [build_problem(hysteresis_example(k), options, cfg) for k in ("pi", "gpi")]
+        result = run(combine(probs, "max"))
+    """
+    first = problems[0]
+    for p in problems[1:]:
+        if (p.selection.names != first.selection.names or p.cfg.optimizer != first.cfg.optimizer
+                or p.objective.sim != first.objective.sim or p.n_params != first.n_params):
+            raise ConfigError("combine: every problem must tune the same parameters with the "
+                              "same optimizer and simulation settings")
+        for k in first.z0:
+            if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
+                raise ConfigError(f"combine: the problems start from different values of {k}")
+    objective = Combined(tuple(p.objective for p in problems), how)
+    mode = choose_gradient(first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
+    return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
+                               members=tuple(problems),
+                               notes=first.notes + (f"{how} of {len(problems)} objectives",))
 
 
 def _sample(setup, b, field, options) -> dict:
