@@ -180,7 +180,10 @@ def combine(problems, how: str = "mean") -> Problem:
             if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
                 raise ConfigError(f"combine: the problems start from different values of {k}")
     objective = Combined(tuple(p.objective for p in problems), how)
-    mode = choose_gradient(first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
+    # each member's own choice (forward over a batch, reverse for one plant) if they agree
+    modes = {p.mode for p in problems}
+    mode = modes.pop() if len(modes) == 1 else choose_gradient(
+        first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
     return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
                                members=tuple(problems),
                                notes=first.notes + (f"{how} of {len(problems)} objectives",))
