@@ -317,6 +317,7 @@ def simulate(
     refine: int = DEFAULT_REFINE,
     solver: str = "rk4",
     gradient: str = "time_parallel",
+    extra=None,
 ) -> Trajectory:
     """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
 
@@ -342,6 +343,9 @@ def simulate(
             1.0, while the compiled loop runs (a `jax.debug.callback` every 1 % of the steps;
             about 2 % slower). It is part of the compiled program: pass the same callable to
             avoid recompiling. None (the default) costs nothing.
+        extra: running reductions of the caller's own, as `run`'s (e.g. a requirement of
+            `tuning.requirements`, whose margin `dscjax worst-case` maximises); their results
+            are added to `metrics`. Not together with `progress`.
 
     Returns:
         Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics (NaN if
@@ -356,7 +360,10 @@ def simulate(
     window_start = default_window(t_final, window_start)
     setup = canonical(setup)
     n_steps = _check(setup, t_final, dt, save_every, window_start)
-    extra = None if progress is None else _Progress(n_steps, progress)
+    if progress is not None:
+        if extra is not None:
+            raise ValueError("simulate: give progress or extra, not both")
+        extra = _Progress(n_steps, progress)
     _check_refine(refine)
     validation.one_of(solver, "solver", SOLVERS)
     validation.one_of(gradient, "gradient", GRADIENTS)

@@ -260,24 +260,22 @@ def disturbance_at(setup, t, X: State, u):
 class LyapunovTerms(NamedTuple):
     """V(t) of (44) and its terms at a trajectory's saved times (leading axis T), NumPy arrays.
 
-    t: (T,); V: (T,) the sum of every term; surface (T, n), filter (T, n-1), theta (T, n),
-    phi (T, n-1), zeta (T,), d (T,): see `Terms`; y: (T, n-1) the filter errors (33);
-    truth: the true parameters used (`Truth`).
+    t: (T,); V: (T,) the sum of every term; terms: the `Terms` with a leading time axis,
+    also read as attributes: surface (T, n), filter (T, n-1), theta (T, n), phi (T, n-1),
+    zeta (T,), d (T,); y: (T, n-1) the filter errors (33); truth: the true parameters used
+    (`Truth`).
     """
 
     t: jax.Array
     V: jax.Array
-    surface: jax.Array
-    filter: jax.Array
-    theta: jax.Array
-    phi: jax.Array
-    zeta: jax.Array
-    d: jax.Array
+    terms: Terms
     y: jax.Array
     truth: Truth
 
-    def terms(self) -> Terms:
-        return Terms(*(getattr(self, k) for k in TERM_NAMES))
+    def __getattr__(self, name):  # lv.surface, lv.theta, ...: the terms' fields
+        if name in TERM_NAMES:
+            return getattr(self.terms, name)
+        raise AttributeError(name)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """{'t', 'V', and one array per term}, the keys of `lyapunov.npz`."""
@@ -341,7 +339,7 @@ def lyapunov(setup, traj, d=None) -> LyapunovTerms:
     tr = truth(s, d, traj.t)
     t = np.asarray(traj.t)
     terms, (y, _) = _chunked(_terms_and_y, (s, tr), t, X)
-    return LyapunovTerms(t=t, V=np.asarray(terms.total()), y=y, truth=tr, **terms._asdict())
+    return LyapunovTerms(t=t, V=np.asarray(terms.total()), terms=terms, y=y, truth=tr)
 
 
 def _terms_and_y(setup, tr, t, X):

@@ -58,11 +58,15 @@ METHODS: tuple[str, ...] = get_args(Method)
 METRICS = ("linf_error_window", "linf_error", "l2_error_window", "rms_error_window",
            "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 DEFAULT_METRIC = "linf_error_window"
+# "requirement:NAME" maximises the violation margin of a requirement (a `metrics.Running`
+# reduction whose results include "margin", e.g. `tuning.Envelope`): > 0 when it is violated
+REQUIREMENT = "requirement:"
 DEFAULT_STARTS = 4  # measured: see docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md
 STATE_VERSION = 1
+TOP = 8  # best distinct points a trace keeps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,6 +141,12 @@ class Problem:
     state_bound: float = 1e6
     solver: str = "rk4"
     refine: int = 6
+    requirement: Any = None  # the reduction of a "requirement:NAME" metric, else None
+
+    @property
+    def metric_key(self) -> str:
+        """The entry of the run's metrics that is maximised."""
+        return "margin" if self.requirement is not None else self.metric
 
     @property
     def n_steps(self) -> int:
@@ -167,8 +177,8 @@ class Problem:
                 np.array([r.high for r in self.ranges], dtype=np.float64))
 
     def static(self) -> _Static:
-        return _Static(tuple(self.columns), self.coef_path if self.m else None, self.metric,
-                       self.n_steps, self.solver)
+        return _Static(tuple(self.columns), self.coef_path if self.m else None,
+                       self.metric_key, self.n_steps, self.solver)
 
     def overrides(self, z):
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
@@ -204,7 +214,17 @@ class Problem:
                 dataclasses.asdict(self.disturbance),
                 "metric": self.metric, "t_final": self.t_final, "dt": self.dt,
                 "window_start": self.window_start, "state_bound": self.state_bound,
-                "solver": self.solver, "refine": self.refine}
+                "solver": self.solver, "refine": self.refine,
+                "requirement": _describe(self.requirement)}
+
+
+def _describe(reduction) -> dict | None:
+    """The kind and numbers of a requirement (for fingerprints)."""
+    if reduction is None:
+        return None
+    return {"kind": type(reduction).__name__,
+            **{f.name: np.asarray(getattr(reduction, f.name)).tolist()
+               for f in dataclasses.fields(reduction)}}
 
 
 def _dtype(setup):
@@ -215,17 +235,30 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
                  disturbance: DisturbanceSpec | str | None = None, *, metric: str = DEFAULT_METRIC,
                  t_final: float = 20.0, dt: float = 1e-3, window_start: float | None = None,
                  state_bound: float = 1e6, solver: str = "rk4", refine: int = 6,
-                 period: float | None = None, field: str = "--range") -> Problem:
+                 period: float | None = None, field: str = "--range",
+                 requirement: Any = None) -> Problem:
     """Validate and build a `Problem`; ConfigError (one line, naming the field) if bad.
 
     Args:
         setup: the closed loop (its values are the nominal point).
         ranges: boxes of parameters, by config path (`dscjax.ranges`).
         disturbance: "fourier:K:D", "spline:K:D" or a `DisturbanceSpec`; None: no waveform.
-        metric: one of `METRICS` (default the windowed L-inf of the tracking error).
+        metric: one of `METRICS` (default the windowed L-inf of the tracking error), or
+            "requirement:NAME": the violation margin of `requirement` (> 0: violated).
         period: the Fourier period (default: the horizon).
+        requirement: with metric "requirement:NAME", a `dscjax.metrics.Running` reduction
+            whose results include "margin" (in the bound's units, <= 0 when met), such as
+            `tuning.Envelope`, `tuning.UBound`, `tuning.URate`, `tuning.StepResponse`.
     """
-    validation.one_of(metric, "--metric", METRICS)
+    if str(metric).startswith(REQUIREMENT):
+        if requirement is None:
+            raise ConfigError(f"--metric {metric}: no requirement given (the [tuning."
+                              f"requirements.{metric[len(REQUIREMENT):]}] table of --config)")
+    else:
+        validation.one_of(metric, "--metric", METRICS + (REQUIREMENT + "NAME",))
+        if requirement is not None:
+            raise ConfigError(f"a requirement is maximised with --metric {REQUIREMENT}NAME "
+                              f"(got --metric {metric})")
     if isinstance(disturbance, str):
         disturbance = DisturbanceSpec.parse(disturbance, period)
     elif disturbance is not None:
@@ -248,8 +281,10 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
                           f"not by a range")
     resolved = ranges_mod.check(list(ranges), setup, field, t_final=t_final, dt=dt,
                                 window_start=window_start)
+    if requirement is not None and hasattr(requirement, "n_steps"):
+        requirement = dataclasses.replace(requirement, n_steps=int(round(t_final / dt)))
     return Problem(setup, resolved, disturbance, metric, float(t_final), float(dt),
-                   float(window_start), float(state_bound), solver, int(refine))
+                   float(window_start), float(state_bound), solver, int(refine), requirement)
 
 
 # -- the compiled programs ----------------------------------------------------------------------
@@ -281,20 +316,22 @@ def _overrides(setup, st: _Static, z, lo, hi, bound):
     return out
 
 
-def _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, st: _Static):
+def _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, extra=None, *,
+                    st: _Static):
     from dscjax.simulate import run
 
     traj = run(setup, dt, window_start, state_bound, n_steps=st.n_steps, save_every=st.n_steps,
-               overrides=_overrides(setup, st, z, lo, hi, bound), solver=st.solver)
+               overrides=_overrides(setup, st, z, lo, hi, bound), solver=st.solver, extra=extra)
     return traj.metrics[st.metric], traj.diverged
 
 
-def _problem_single(setup, z1, lo, hi, bound, dt, window_start, state_bound, st: _Static):
+def _problem_single(setup, z1, lo, hi, bound, dt, window_start, state_bound, extra=None, *,
+                    st: _Static):
     from dscjax.simulate import run
 
     one = {p: v[0] for p, v in _overrides(setup, st, z1[None, :], lo, hi, bound).items()}
     traj = run(params.set_many(setup, one), dt, window_start, state_bound, n_steps=st.n_steps,
-               save_every=st.n_steps, solver=st.solver, gradient="time_parallel")
+               save_every=st.n_steps, solver=st.solver, gradient="time_parallel", extra=extra)
     return traj.metrics[st.metric], traj.diverged
 
 
@@ -322,7 +359,7 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
 
 
 @functools.partial(jax.jit, static_argnames=("st", "gradient"))
-def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bound, *,
+def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bound, extra, *,
                             st: _Static, gradient: str):
     def values(z_, *a):
         return _problem_values(*a[:1], z_, *a[1:], st=st)
@@ -331,7 +368,7 @@ def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bou
         return _problem_single(*a[:1], z1, *a[1:], st=st)
 
     return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, dt,
-                           window_start, state_bound)
+                           window_start, state_bound, extra)
 
 
 @functools.partial(jax.jit, static_argnames=("d", "project_coef"))
@@ -406,7 +443,7 @@ class Programs:
             project_coef = type(model).project_coefficients
         lo, hi = p.lows_highs()
         args = (p.setup, lo, hi, p.disturbance.bound if p.m else 0.0, p.dt, p.window_start,
-                p.state_bound)
+                p.state_bound, p.requirement)
         st = p.static()
 
         def values(z):
@@ -417,7 +454,10 @@ class Programs:
                 return _problem_value_and_grad(args[0], z, *args[1:], st=st, gradient=gradient)
         else:
             st_g = dataclasses.replace(st, n_steps=st.n_steps // coarsening)
-            args_g = args[:4] + (p.dt * coarsening,) + args[5:]
+            extra_g = p.requirement
+            if extra_g is not None and hasattr(extra_g, "n_steps"):
+                extra_g = dataclasses.replace(extra_g, n_steps=st_g.n_steps)
+            args_g = args[:4] + (p.dt * coarsening,) + args[5:7] + (extra_g,)
 
             def value_and_grad(z):
                 v, bad = values(z)
@@ -460,6 +500,13 @@ class Trace:
             self.best_value, self.best_z = float(v[i]), np.array(z[i])
         for j in np.flatnonzero(bad)[:max(0, 8 - len(self.diverged_z))]:
             self.diverged_z.append(np.array(z[j]))
+        # the TOP best distinct points so far (worst cases for adversarial tuning)
+        zs = np.concatenate([self.extra.get("top_z", np.zeros((0, z.shape[1]))), z])
+        vs = np.concatenate([self.extra.get("top_v", np.zeros(0)), v])
+        _, first = np.unique(zs, axis=0, return_index=True)
+        keep = first[np.argsort(-vs[first], kind="stable")][:TOP]
+        keep = keep[np.isfinite(vs[keep])]
+        self.extra["top_z"], self.extra["top_v"] = zs[keep], vs[keep]
         self.evaluations += len(v)
         self.iterations += 1
         self.elapsed += seconds
@@ -629,9 +676,9 @@ def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int,
 
     traj = simulate(setup, problem.t_final, problem.dt, window_start=problem.window_start,
                     state_bound=problem.state_bound, throw=False, refine=problem.refine,
-                    solver=problem.solver)
+                    solver=problem.solver, extra=problem.requirement)
     bad = bool(traj.diverged)
-    value = math.inf if bad else float(traj.metrics[problem.metric])
+    value = math.inf if bad else float(traj.metrics[problem.metric_key])
     return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
 
 
@@ -766,12 +813,13 @@ def _finish(problem: Problem, traces: dict[str, Trace]) -> Result:
         if best is None or score > best[0]:
             best = (score, mth, z, setup, value, bad, t_bad, level)
     _, mth, z, setup, value, bad, t_bad, level = best
-    nominal = problem.setup if problem.m == 0 else problem.setup.replace(
-        plant=dataclasses.replace(problem.setup.plant, disturbance=None))
-    nominal_value = _check_run(problem, nominal)[0]
+    # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
+    # the program of the candidates' re-check serves it
+    nominal_value = _check_run(problem, problem.setup)[0]
     return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
                   nominal_value, {"rechecked": len(checked)})
 
 
-__all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "DisturbanceSpec",
+__all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
+           "DisturbanceSpec",
            "Problem", "Programs", "Result", "Trace", "make_problem", "worst_case"]

@@ -19,6 +19,11 @@ import platform
 import time
 from pathlib import Path
 
+# the box and waveform (shared with bench_adversarial.py)
+BOX = ("hysteresis.alpha=30%", "hysteresis.lam=30%", "hysteresis.psi=30%", "plant.g[0]=30%",
+       "plant.g[1]=30%", "plant.theta[0]=50%")
+DISTURBANCE = "fourier:16:0.5"
+
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -47,10 +52,8 @@ def main(argv=None) -> int:
     starts = args.starts or DEFAULT_STARTS
     coarsening = args.coarsening or DEFAULT_COARSENING
     methods = args.methods.split(",")
-    ranges = [parse_range(s) for s in (
-        "hysteresis.alpha=30%", "hysteresis.lam=30%", "hysteresis.psi=30%", "plant.g[0]=30%",
-        "plant.g[1]=30%", "plant.theta[0]=50%")]
-    problem = make_problem(dscjax.paper_example(), ranges, "fourier:16:0.5", t_final=t_final,
+    ranges = [parse_range(s) for s in BOX]
+    problem = make_problem(dscjax.paper_example(), ranges, DISTURBANCE, t_final=t_final,
                            dt=1e-3)
     load = os.getloadavg()
     t0 = time.perf_counter()

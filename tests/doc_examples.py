@@ -10,11 +10,15 @@ order would type it (so the docs may use what the README's examples wrote: `my.t
 `results/tune/gains.json`), with these changes only:
 
 - sizes: 300 RK4 steps (--t-final 300 dt), --samples 8, grid axes of 2 points, --steps 1 (2
-  to resume), --batch 2, --heldout 0, --dpi 30, --complexity for n = 2..3 with 1 build,
+  to resume), --batch 2, --heldout 0, --adversarial 1 with searches by random sampling for
+  0.2 s, --dpi 30, --complexity for n = 2..3 with 1 build, --theory-orders without the orders
+  above 3,
   sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
   (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
   figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
 - `> FILE` redirects stdout to FILE;
+- a ```toml block whose first line is `# file: NAME` is written to NAME where it stands (a
+  config the commands after it read);
 - a command printed twice (the docs repeat the README) runs once;
 - multi-host lines (--coordinator, --distributed) are skipped: they need several processes
   (tests/test_sweep.py runs two).
@@ -41,13 +45,23 @@ def documents() -> list[Path]:
     return [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 
+FILE = "# file: "
+
+
 def commands(text: str) -> list[list[str]]:
     """The argv (after `dscjax`) of every dscjax command in the shell blocks, in order; a
-    redirect stays in the list as '>' FILE."""
-    out, block, lang = [], False, ""
+    redirect stays in the list as '>' FILE; a TOML block that names a file is the entry
+    [FILE, NAME, its text]."""
+    out, block, lang, toml = [], False, "", None
     for line in text.splitlines():
         if line.startswith("```"):
+            if toml is not None:
+                out.append([FILE, toml[0], "\n".join(toml[1:]) + "\n"])
+                toml = None
             block, lang = not block, line[3:].strip()
+            continue
+        if block and lang == "toml" and (toml is not None or line.startswith(FILE)):
+            toml = [line[len(FILE):].strip()] if toml is None else [*toml, line]
             continue
         if not block or lang not in SHELL:
             continue
@@ -86,6 +100,10 @@ def shrink(argv: list[str]) -> list[str]:
         _set(a, "--steps", "2" if "--steps" in a else "1")
         _set(a, "--batch", "2", add=False)
         _set(a, "--heldout", "0")
+        if "--adversarial" in a:  # one round, searches by random sampling for 0.2 s
+            _set(a, "--adversarial", "1")
+            _set(a, "--search-time", "0.2")
+            _set(a, "--search-method", "random")
         a.append("--no-plot")
     elif command == "worst-case":
         _set(a, "--time-limit", "0.2")
@@ -97,6 +115,9 @@ def shrink(argv: list[str]) -> list[str]:
         if "--complexity" in a:
             _set(a, "--orders", "2-3")
             _set(a, "--repeats", "1")
+        if "--theory-orders" in a:  # n = 4 compiles ~40 s (its V: test_lyapunov)
+            orders = [o for o in a[a.index("--theory-orders") + 1].split(",") if int(o) <= 3]
+            _set(a, "--theory-orders", ",".join(orders) or "2")
     return a
 
 
@@ -134,6 +155,9 @@ def main(work: Path) -> int:
     os.chdir(work)
     for doc in documents():
         for argv in commands(doc.read_text()):
+            if argv[0] == FILE:
+                Path(argv[1]).write_text(argv[2])
+                continue
             if any(s in argv for s in SKIP):
                 continue
             command, target = redirect(argv)

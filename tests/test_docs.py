@@ -30,7 +30,12 @@ def test_shell_examples_of_readme_and_docs_run(tmp_path, request):
     for example in ("dscjax simulate --print-config > my.toml",
                     "dscjax tune --resume --steps 600 --time-limit 0",
                     "dscjax reproduce --complexity --resume",
-                    "dscjax sweep --resume --samples 100000 --out results/big"):
+                    "dscjax sweep --resume --samples 100000 --out results/big",
+                    "dscjax worst-case --config envelope.toml --metric requirement:envelope "
+                    "--range hysteresis.alpha=30% --disturbance fourier:4:0.5 --out "
+                    "results/worst-envelope",
+                    "dscjax tune --adversarial 2 --disturbance fourier:16:0.5 --batch 8 "
+                    "--aggregate cvar --cvar-level 0.25 --out results/adversarial --resume"):
         assert example in printed, example
     assert {r["doc"] for r in report} >= {"README.md", "reproduction.md", "sweeps.md",
                                          "tuning.md"}

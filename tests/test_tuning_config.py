@@ -100,9 +100,12 @@ def test_printed_config_reads_back():
     cfg = from_dict({"params": ["controller.k"], "freeze": ["controller.k[1]"],
                      "bounds": {"controller.k": [1.0, 100.0]},
                      "robust": {"batch": 3, "ranges": {"hysteresis.alpha": [0.5, 1.5]}},
-                     "requirements": {"u_bound": {"max": 7.0}}})
+                     "requirements": {"u_bound": {"max": 7.0}},
+                     "adversarial": {"rounds": 2, "disturbance": "spline:4:0.2",
+                                     "ranges": {"plant.g[1]": "30%"}, "method": "cma"}})
     again = from_dict(tomllib.loads(to_toml(cfg))["tuning"])
     assert again == cfg
+    assert cfg.adversarial.rounds == 2 and cfg.adversarial.disturbance == "spline:4:0.2"
     default = from_dict(tomllib.loads(to_toml(from_dict({})))["tuning"])
     assert default.objective == from_dict({}).objective
     assert default.optimizer == from_dict({}).optimizer

@@ -41,13 +41,9 @@ FILES = ("gains.json", "history.csv", "report.md", "report.json", "loss_curve.pn
 
 
 @pytest.fixture(scope="module")
-def cli_run(tmp_path_factory):
-    d = tmp_path_factory.mktemp("tune")
-    cfg = d / "tiny.toml"
-    cfg.write_text(TINY)
-    out = d / "out"
-    code = main(["tune", "--config", str(cfg), "--out", str(out), "--quiet"])
-    return code, out, cfg
+def cli_run(tmp_path_factory, run_with_config):
+    code, out = run_with_config(tmp_path_factory.mktemp("tune"), TINY, "tune", "--quiet")
+    return code, out, out.parent / "config.toml"
 
 
 def test_short_run_lowers_the_objective_and_writes_every_file(cli_run):

@@ -218,3 +218,26 @@ def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
     assert main(["worst-case", "--t-final", "1", "--out", str(tmp_path), *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
+
+
+def test_requirement_margin_metric_matches_a_hand_computed_margin(tmp_path):
+    """--metric requirement:envelope maximises max_t (|e(t)| - b(t)); the value reported for
+    the worst setup is recomputed here from its trajectory at every step, by NumPy."""
+    cfg = tmp_path / "req.toml"
+    cfg.write_text("[tuning.requirements.envelope]\nb0 = 0.05\nb_inf = 0.01\ndecay = 0.3\n")
+    out = tmp_path / "w"
+    assert main(["worst-case", "--config", str(cfg), "--t-final", "1.5",
+                 "--metric", "requirement:envelope", "--range", "hysteresis.alpha=30%",
+                 "--methods", "random", "--batch", "4", "--time-limit", "0.3", "--no-plot",
+                 "--quiet", "--out", str(out)]) == 0
+    worst = json.loads((out / "worst.json").read_text())
+    assert worst["metric"] == "requirement:envelope"
+    setup, options = config.load(out / "worst_config.toml")
+    traj = dscjax.simulate(setup, options.t_final, options.dt)
+    t, e = np.asarray(traj.t), np.asarray(traj.e)
+    b = 0.01 + (0.05 - 0.01) * np.exp(-t / 0.3)
+    assert worst["value"] == pytest.approx(np.max(np.abs(e) - b), rel=1e-12, abs=1e-15)
+    # a requirement the config does not hold: one line naming it
+    assert main(["worst-case", "--config", str(cfg), "--t-final", "1",
+                 "--metric", "requirement:u_rate", "--range", "hysteresis.alpha=30%",
+                 "--out", str(tmp_path / "x")]) == 2

@@ -5,11 +5,12 @@
     problem = tuning.build_problem(setup, dscjax.config.SimOptions(), tuning.TuningConfig())
     result = tuning.run(problem, out_dir="results/tune")
     result.best_setup
+    tuning.adversarial.run(setup, options, config_with_rounds, out_dir)   # min-max tuning
 
 See docs/tuning.md for the objective, the settings and measured figures.
 """
 
-from tuning.config import BatchSpec, TuningConfig
+from tuning.config import AdversarialSpec, BatchSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
 from tuning.objective import (
     Combined,
@@ -26,9 +27,9 @@ from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, combine, run
 
 __all__ = [
-    "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES", "Envelope", "Objective",
-    "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales", "Selection", "SimSpec",
-    "StepResponse", "TuneState", "Tuned", "TuningConfig", "TuningMetrics", "UBound", "URate",
-    "aggregate", "build_problem", "combine", "config_from_dict", "guarded_update",
-    "init_state", "run", "value_and_grad",
+    "AdversarialSpec", "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
+    "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
+    "Selection", "SimSpec", "StepResponse", "TuneState", "Tuned", "TuningConfig",
+    "TuningMetrics", "UBound", "URate", "aggregate", "build_problem", "combine",
+    "config_from_dict", "guarded_update", "init_state", "run", "value_and_grad",
 ]

@@ -65,6 +65,44 @@ class BatchSpec:
 
 
 @dataclasses.dataclass(frozen=True)
+class AdversarialSpec:
+    """Min-max tuning ([tuning.adversarial], `dscjax tune --adversarial R`): R rounds of a
+    worst-case search for the current gains, whose worst cases join the training set, then
+    tuning again (`tuning.adversarial`). rounds = 0: off.
+
+    The box is `ranges` (None: those of [tuning.robust]); `disturbance` ("fourier:K:D",
+    "spline:K:D" or None) the searched waveform; each search runs `method` for
+    `search_time` seconds (compilation apart) and adds its `add` worst points."""
+
+    rounds: int = 0
+    disturbance: str | None = None
+    ranges: tuple | None = None
+    method: str = "gradient"
+    metric: str = "linf_error_window"
+    search_time: float = 30.0
+    starts: int = 4
+    batch: int = 32
+    add: int = 4
+    seed: int = 0
+
+    def validate(self, field: str = "tuning.adversarial") -> None:
+        from dscjax.worst import METHODS, METRICS, DisturbanceSpec
+
+        validation.integer(self.rounds, f"{field}.rounds", 0)
+        for key in ("starts", "batch", "add"):
+            validation.integer(getattr(self, key), f"{field}.{key}", 1)
+        validation.integer(self.seed, f"{field}.seed", 0)
+        validation.one_of(self.method, f"{field}.method", METHODS)
+        validation.one_of(self.metric, f"{field}.metric", METRICS)
+        t = self.search_time
+        if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t < float("inf")):
+            raise ConfigError(f"{field}.search_time must be a number of seconds > 0 (got "
+                              f"{t!r})")
+        if self.disturbance is not None:
+            DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
+
+
+@dataclasses.dataclass(frozen=True)
 class TuningConfig:
     """Everything `dscjax tune` needs beyond the Setup and [simulation]."""
 
@@ -77,16 +115,18 @@ class TuningConfig:
     robust: BatchSpec = BatchSpec()
     heldout: BatchSpec = BatchSpec(batch=256, seed=12345)
     requirements: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
+    adversarial: AdversarialSpec = AdversarialSpec()
 
     def validate(self) -> None:
         self.objective.validate()
         self.optimizer.validate()
         self.robust.validate("tuning.robust")
         self.heldout.validate("tuning.heldout")
+        self.adversarial.validate()
 
 
 TOP_KEYS = ("params", "freeze", "bounds", "transforms", "objective", "optimizer", "robust",
-            "heldout", "requirements")
+            "heldout", "requirements", "adversarial")
 REQUIREMENT_KEYS = {
     "envelope": ("b0", "b_inf", "decay", "weight"),
     "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
@@ -125,6 +165,8 @@ def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> Tun
             changes[key] = _batch(getattr(cfg, key), table[key], f"tuning.{key}")
     if "requirements" in table:
         changes["requirements"] = _requirements(table["requirements"])
+    if "adversarial" in table:
+        changes["adversarial"] = _adversarial(cfg.adversarial, table["adversarial"])
     cfg = dataclasses.replace(cfg, **changes)
     cfg.validate()
     return cfg
@@ -195,6 +237,26 @@ def _batch(base: BatchSpec, table, field) -> BatchSpec:
     return dataclasses.replace(base, **changes)
 
 
+def _adversarial(base: AdversarialSpec, table) -> AdversarialSpec:
+    field = "tuning.adversarial"
+    table = _table(table, field)
+    _known(table, [f.name for f in dataclasses.fields(AdversarialSpec)], field)
+    changes: dict[str, Any] = {}
+    for k, v in table.items():
+        if k == "ranges":
+            changes[k] = from_table(v, f"{field}.ranges") or None
+        elif k == "disturbance":
+            text = validation.string(v, f"{field}.{k}")
+            changes[k] = None if text.lower() == "none" else text
+        elif k in ("method", "metric"):
+            changes[k] = validation.string(v, f"{field}.{k}")
+        elif k == "search_time":
+            changes[k] = validation.number(v, f"{field}.{k}")
+        else:
+            changes[k] = validation.integer(v, f"{field}.{k}")
+    return dataclasses.replace(base, **changes)
+
+
 def _requirements(table) -> dict[str, dict[str, float]]:
     table = _table(table, "tuning.requirements")
     _known(table, tuple(REQUIREMENT_KEYS), "tuning.requirements")
@@ -244,11 +306,23 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
         lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)
                   if f.name != "ranges"]
         lines += ["", f"[tuning.{key}.ranges]"]
-        for r in spec.ranges:
-            r = r.resolve(setup) if setup is not None else r
-            body = f'"{r.rel * 100:g}%"' if r.rel is not None else val([r.low, r.high])
-            lines.append(f'"{r.name}" = {body}')
+        lines += [_range_line(r, setup) for r in spec.ranges]
+    adv = cfg.adversarial
+    lines += ["", "[tuning.adversarial]"]
+    lines += [f"{f.name} = {val(getattr(adv, f.name))}" for f in dataclasses.fields(adv)
+              if f.name != "ranges"]
+    if adv.ranges:
+        lines += ["", "[tuning.adversarial.ranges]"]
+        lines += [_range_line(r, setup) for r in adv.ranges]
     for name, values in cfg.requirements.items():
         lines += ["", f"[tuning.requirements.{name}]"]
         lines += [f"{k} = {val(v)}" for k, v in values.items()]
     return "\n".join(lines) + "\n"
+
+
+def _range_line(r, setup) -> str:
+    from dscjax.config import toml_value
+
+    r = r.resolve(setup) if setup is not None else r
+    body = f'"{r.rel * 100:g}%"' if r.rel is not None else toml_value([r.low, r.high])
+    return f'"{r.name}" = {body}'

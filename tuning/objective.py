@@ -31,6 +31,7 @@ max|u| below the bound.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping
 from typing import Any
@@ -277,9 +278,14 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
+# one compilation per setup structure and SimSpec (adversarial tuning builds a problem a round)
+_start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None),
+                         static_argnames=("sim",))
+
+
 def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
     """Figures of the start gains on the nominal plant (raises if they diverge there)."""
-    metrics, diverged = jax.jit(lambda s: simulate_metrics(s, sim, None))(setup)
+    metrics, diverged = _start_metrics(setup, sim=sim)
     if bool(diverged):
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
                           "stable start (revise the gains, dt or tau)")

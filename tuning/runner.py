@@ -57,8 +57,14 @@ class Problem:
     mode: str
     z0: dict
     notes: tuple[str, ...] = ()
+    extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
     members: tuple[Problem, ...] = ()  # the problems a `combine`d one is made of
 
+    @property
+    def n_train(self) -> int:
+        """Plants of the training set (1: the nominal plant alone)."""
+        ov = self.objective.overrides
+        return len(next(iter(ov.values()))) if ov else 1
 
     @property
     def n_params(self) -> int:
@@ -81,8 +87,10 @@ class Problem:
             "requirements": dict(self.cfg.requirements),
             "sim": dataclasses.asdict(self.objective.sim),
             "mode": self.mode,
-        } | ({"members": [m.describe() for m in self.members],
-              "combine": self.objective.how} if self.members else {})
+        } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
+             if self.extra_plants else {}) | (
+            {"members": [m.describe() for m in self.members], "combine": self.objective.how}
+            if self.members else {})
 
 
 def _batch_desc(b, setup):
@@ -97,7 +105,7 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
     return ()
 
 
-def _model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
+def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     """Batches left at the default ranges vary the setup's own hysteresis model's numbers
     (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
     from dscjax.ranges import default_ranges
@@ -110,17 +118,20 @@ def _model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     return cfg
 
 
-def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
+def build_problem(setup, options: SimOptions, cfg: TuningConfig,
+                  extra_plants: dict | None = None) -> Problem:
     """Validate the tuning settings against the setup and build the objective.
 
-    Raises ConfigError (naming the field) on any bad setting.
+    `extra_plants` ({path: (k, ...)}, e.g. the worst cases of `tuning.adversarial`) join the
+    training batch (or the nominal plant, without one). Raises ConfigError (naming the field)
+    on any bad setting.
     """
     from dscjax.simulate import default_window
     from dscjax.validation import validate_run, validate_setup
 
     cfg.validate()
     validate_setup(setup)
-    cfg = _model_default_ranges(cfg, setup)
+    cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
     if window is None:
@@ -138,8 +149,9 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                      f"s by default (RK4 stability of the filters)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
     n_params = selection.size(setup)
+    n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
     mode = choose_gradient(cfg.optimizer.gradient, n_params,
-                           cfg.robust.batch if cfg.robust.batch > 0 else 1)
+                           (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
                   state_bound=options.state_bound, checkpoint_every=ce, solver=options.solver)
@@ -149,6 +161,8 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
         if b.batch > 0:
             batches[key] = _sample(setup, b, f"tuning.{key}.ranges", options)
     train, heldout = batches.get("robust"), batches.get("heldout")
+    if extra_plants:
+        train = join_plants(setup, train, extra_plants)
     requirements = build_requirements(setup, cfg.requirements)
     scales = start_scales(setup, sim, cfg.objective)
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
@@ -157,7 +171,24 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig) -> Problem:
                           cvar_level=cfg.robust.cvar_level)
     return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
                    objective=objective, heldout=heldout, mode=mode,
-                   z0=selection.init(setup), notes=tuple(notes))
+                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants)
+
+
+def join_plants(setup, first: dict | None, then: dict) -> dict:
+    """{path: (n1 + n2, ...)}: the plants of `first` (None: the nominal plant alone), then
+    those of `then`; where one side does not vary a leaf, its plants keep the setup's value."""
+    from dscjax import params
+
+    def size(d):
+        return len(next(iter(d.values()))) if d else 1
+
+    out = {}
+    for path in dict.fromkeys([*(first or {}), *then]):
+        leaf = np.asarray(params.get(setup, path))
+        cols = [np.asarray(d[path]) if d and path in d
+                else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
+        out[path] = np.concatenate(cols).astype(leaf.dtype)
+    return out
 
 
 def combine(problems, how: str = "mean") -> Problem:
@@ -185,7 +216,7 @@ def combine(problems, how: str = "mean") -> Problem:
     mode = modes.pop() if len(modes) == 1 else choose_gradient(
         first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
     return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
-                               members=tuple(problems),
+                               members=tuple(problems), extra_plants=None,
                                notes=first.notes + (f"{how} of {len(problems)} objectives",))
 
 
@@ -276,17 +307,20 @@ def _prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
 
 def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = False,
         overwrite: bool = False, progress: Callable[[dict], None] | None = None,
-        step_hook: Callable | None = None) -> Result:
+        step_hook: Callable | None = None, z_init: dict | None = None) -> Result:
     """Iterate until steps, time limit, early stopping or too many rejections.
 
     Args:
         out_dir: where checkpoints go (None: nothing is written).
         resume: continue from the checkpoint in out_dir (the problem must be the same; the
             stopping settings steps/time_limit/patience may differ).
+        z_init: the first point (default `problem.z0`, the start gains; the report still
+            compares against `problem.z0`); ignored on resume.
         progress: called with each iteration's row (dict) for a progress display.
         step_hook: test hook, (state, report) -> report, applied to every report on the host.
     """
-    loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite)
+    loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite,
+                      z_init)
     try:
         while (reason := loop.limit_reached()) is None:
             row = loop.iterate(step_hook)
@@ -308,6 +342,17 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
                   resumed_from=loop.resumed_from)
 
 
+def finished(problem: Problem, out_dir: str | Path) -> Result:
+    """The `Result` of the run whose checkpoint is in `out_dir`, without iterating (a phase
+    of `tuning.adversarial` that has finished)."""
+    out = Path(out_dir)
+    loop = _Loop.open(problem, out, True, False)
+    meta = files.read_json(out / "checkpoint.json")
+    return Result(problem=problem, state=loop.state, history=loop.history,
+                  stop_reason=meta.get("stop_reason") or "finished", wall_s=0.0,
+                  compile_s=0.0, resumed_from=loop.resumed_from)
+
+
 @dataclasses.dataclass
 class _Loop:
     """One invocation of the tuning loop: the state, its history and its files."""
@@ -326,7 +371,8 @@ class _Loop:
     last_best_write: float = 0.0
 
     @classmethod
-    def open(cls, problem: Problem, out: Path | None, resume: bool, overwrite: bool) -> _Loop:
+    def open(cls, problem: Problem, out: Path | None, resume: bool, overwrite: bool,
+             z_init: dict | None = None) -> _Loop:
         """A fresh start, or the state, history and schedule of the checkpoint in `out`."""
         t_start = time.perf_counter()
         spec = problem.cfg.optimizer
@@ -341,7 +387,8 @@ class _Loop:
         decay_steps = int(meta["decay_steps"]) if meta else spec.decay_steps or spec.steps
         spec = dataclasses.replace(spec, decay_steps=decay_steps)
         optimizer, step = compiled_step(problem, spec)
-        loop = cls(problem, out, spec, step, init_state(problem.z0, optimizer), [],
+        z_init = problem.z0 if z_init is None else jax.tree.map(jnp.asarray, z_init)
+        loop = cls(problem, out, spec, step, init_state(z_init, optimizer), [],
                    t_start=t_start)
         if meta:
             state = ck.load_state(out / "checkpoint.npz", loop.state, meta["state"])
@@ -434,7 +481,7 @@ class _Loop:
         next checkpoint keeps it."""
         now = time.perf_counter()
         if self.out is not None and now - self.last_best_write > 1:
-            _write_best(self.out, self.problem, self.state)
+            write_best(self.out, self.problem, self.state)
             self.last_best_write = now
 
     def checkpoint(self, every: int) -> None:
@@ -448,7 +495,7 @@ class _Loop:
             return
         out, state, desc = self.out, self.state, self.desc
         meta_state = ck.save_state(out / "checkpoint.npz", state)
-        _write_best(out, self.problem, state)
+        write_best(out, self.problem, state)
         ck.write_history(out / "history.csv", self.history, history_columns(self.problem))
         files.write_json(out / "checkpoint.json", {
             "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
@@ -495,7 +542,8 @@ def gains_config(problem: Problem, z) -> dict:
     return dconfig.to_dict(setup, problem.options)
 
 
-def _write_best(out: Path, problem: Problem, state) -> None:
+def write_best(out: Path, problem: Problem, state) -> None:
+    """best.json and gains.json of the state's best point (nothing before a finite loss)."""
     if not np.isfinite(float(state.best_loss)):
         return
     z = jax.device_get(state.best_z)

@@ -62,15 +62,20 @@ def add_config_args(p, *, t_final=True):
                    help=f"run in float32 (default {SimOptions().dtype})")
 
 
-def load_setup(args):
-    """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype."""
+def load_setup(args, ignore: tuple[str, ...] = ()):
+    """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype.
+
+    `ignore`: tables of the file that belong to another command (e.g. "tuning"), skipped."""
     from dscjax import config
     from dscjax.params import cast
     from dscjax.validation import validate_setup
 
     base = example_setup(args)
     if args.config:
-        setup, options = config.load(args.config, base=base)
+        raw = config.read(args.config)
+        for name in ignore:
+            raw.pop(name, None)
+        setup, options = config.from_dict(raw, base=base)
     else:
         setup, options = config.from_dict({}, base=base)
     changes = {}

@@ -17,6 +17,7 @@ from pathlib import Path
 
 def add_parser(sub):
     from dscjax.cli.common import add_example_arg, add_horizon_args
+    from dscjax.worst import METHODS
     from tuning.config import TuningConfig
     from tuning.objective import AGGREGATES
     from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS
@@ -60,6 +61,19 @@ def add_parser(sub):
                    help=f"AD mode (default {opt.gradient}"
                    + (f": forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
                       if opt.gradient == "auto" else ")"))
+    adv = d.adversarial
+    p.add_argument("--adversarial", metavar="R", help="min-max tuning: R rounds of (search "
+                   "the worst cases of the current gains, add them to the training set, tune "
+                   "again), then a fresh search for the start and tuned gains (default "
+                   f"{adv.rounds}: off; the box and the rest: [tuning.adversarial])")
+    p.add_argument("--disturbance", metavar="KIND:K:D", help="with --adversarial: the "
+                   "searched waveform added to dbar, fourier:K:D or spline:K:D, max|dbar| <= D "
+                   "(as dscjax worst-case's; default: none)")
+    p.add_argument("--search-time", type=float, metavar="S", help=f"with --adversarial: "
+                   f"seconds of each worst-case search, compilation apart (default "
+                   f"{adv.search_time:g})")
+    p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
+                   f"method (default {adv.method})")
     add_horizon_args(p)
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
@@ -79,6 +93,9 @@ def interrupt_hint(args) -> str:
 
     from dscjax.cli.main import rerun_command, resume_command
 
+    if (Path(args.out) / "adversarial.json").exists():
+        return (f"the finished rounds and searches are kept in {args.out}; continue with: "
+                f"{resume_command(args.argv)}")
     path = Path(args.out) / "checkpoint.json"
     try:
         meta = json.loads(path.read_text())
@@ -133,10 +150,24 @@ def load(args):
             rob[name] = value
     if args.heldout is not None:
         held["batch"] = args.heldout
+    adv = {}
+    if args.adversarial is not None:
+        adv["rounds"] = _rounds(args.adversarial)
+    for name in ("disturbance", "search_time", "search_method"):
+        if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
+            raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
+                              f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
+    if args.disturbance is not None:
+        adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
+    if args.search_time is not None:
+        adv["search_time"] = args.search_time
+    if args.search_method is not None:
+        adv["method"] = args.search_method
     cfg = dataclasses.replace(
         cfg, optimizer=dataclasses.replace(cfg.optimizer, **opt),
         robust=dataclasses.replace(cfg.robust, **rob),
-        heldout=dataclasses.replace(cfg.heldout, **held))
+        heldout=dataclasses.replace(cfg.heldout, **held),
+        adversarial=dataclasses.replace(cfg.adversarial, **adv))
     cfg.validate()
     changes = {}
     if args.t_final is not None:
@@ -151,6 +182,19 @@ def load(args):
     return setup, options, cfg
 
 
+def _rounds(text: str) -> int:
+    """R of --adversarial R: an integer >= 0 (one-line error naming the option otherwise)."""
+    from dscjax.validation import ConfigError
+
+    try:
+        rounds = int(text)
+    except ValueError:
+        rounds = -1
+    if rounds < 0 or str(rounds) != text.strip().lstrip("+"):
+        raise ConfigError(f"--adversarial must be an integer >= 0 (got {text!r})")
+    return rounds
+
+
 def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
@@ -160,16 +204,28 @@ def run(args) -> int:
     from dscjax.progress import Progress
     from tuning import report
     from tuning.config import to_toml
-    from tuning.runner import build_problem, check_out_dir, format_progress
+    from tuning.runner import (
+        build_problem,
+        check_out_dir,
+        format_progress,
+        model_default_ranges,
+    )
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        sys.stdout.write(to_toml(cfg, setup))
+        sys.stdout.write(to_toml(model_default_ranges(cfg, setup), setup))
         return 0
     out = Path(args.out)
-    check_out_dir(out, args.resume, args.overwrite)
+    adv = cfg.adversarial
+    if adv.rounds:
+        from tuning import adversarial
+
+        # the zero waveform the training plants' disturbances replace (one compiled structure)
+        setup = adversarial.search_problem(setup, options, cfg).setup
+    else:
+        check_out_dir(out, args.resume, args.overwrite)
     prepare_out(out)
     problem = build_problem(setup, options, cfg)
     oc = cfg.optimizer
@@ -180,7 +236,13 @@ def run(args) -> int:
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
           + f"; at most {oc.steps} iterations"
-          + (f" or {oc.time_limit:g} s" if oc.time_limit else ""), file=sys.stderr)
+          + (f" or {oc.time_limit:g} s" if oc.time_limit else "")
+          + (f" per round; {adv.rounds} adversarial rounds over "
+             + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
+                                                                      cfg).ranges)
+             + (f" and {adv.disturbance}" if adv.disturbance else "")
+             + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else ""),
+          file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
     for w in report.assumption_warnings(problem):
@@ -188,18 +250,36 @@ def run(args) -> int:
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else ""), file=sys.stderr)
-    bar = None
+    bar, bar_round = None, None
 
     def progress(row):
-        nonlocal bar
+        nonlocal bar, bar_round
+        if bar is not None and row.get("round") != bar_round:
+            bar.close()
+            bar = None
         if bar is None:
-            bar = Progress(row["steps"], desc="  tune", unit="iteration",
+            bar_round = row.get("round")
+            bar = Progress(row["steps"], desc="  tune" if bar_round is None else
+                           f"  round {bar_round} tune", unit="iteration",
                            initial=row["iteration"], enabled=not args.quiet)
         bar.update_to(row["iteration"] + 1, format_progress(row))
 
+    def say(text):
+        nonlocal bar
+        if bar is not None:
+            bar.close()
+            bar = None
+        print(f"  {text}", file=sys.stderr)
+
+    outcome = None
     try:
-        result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
-                            progress=progress)
+        if adv.rounds:
+            outcome = adversarial.run(setup, options, cfg, out, resume=args.resume,
+                                      overwrite=args.overwrite, progress=progress, say=say)
+            result = outcome.result
+        else:
+            result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
+                                progress=progress)
     finally:
         if bar is not None:
             bar.close()
@@ -209,6 +289,12 @@ def run(args) -> int:
           f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
           f"{result.compile_s:.1f} s)")
     summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
+    if outcome is not None:
+        adversarial.add_to_report(out, summary, outcome)
+        f0, f1 = outcome.fresh["start"], outcome.fresh["tuned"]
+        print(f"  fresh worst-case search (seed {f0['seed']}): worst {f0['metric']} "
+              f"{_worst(f0)} (start gains) -> {_worst(f1)} (tuned gains); training set "
+              f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
     print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
@@ -221,7 +307,14 @@ def run(args) -> int:
             print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
                   f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
                   f"{h0['n_diverged']} -> {h1['n_diverged']}")
-    print(f"  wrote {out}/gains.json, history.csv, report.md, report.json"
+    print(f"  wrote {out}/gains.json, "
+          + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
+             if outcome is not None else "history.csv, ") + "report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
+
+
+def _worst(record: dict) -> str:
+    return (f"diverges at t = {record['t_diverged']:.4g} s" if record["diverged"]
+            else f"{record['value']:.4g}")

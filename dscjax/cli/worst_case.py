@@ -22,6 +22,7 @@ def add_parser(sub):
         DEFAULT_STARTS,
         METHODS,
         METRICS,
+        REQUIREMENT,
     )
 
     p = sub.add_parser(
@@ -41,8 +42,11 @@ def add_parser(sub):
                    "spline:K:D (K knots over the horizon)")
     p.add_argument("--period", type=float, metavar="P", help="period of a fourier waveform "
                    "(default: the horizon)")
-    p.add_argument("--metric", choices=METRICS, default=DEFAULT_METRIC,
-                   help=f"the metric maximised (default {DEFAULT_METRIC})")
+    p.add_argument("--metric", default=DEFAULT_METRIC, metavar="METRIC",
+                   help=f"the metric maximised: one of {', '.join(METRICS)} (default "
+                   f"{DEFAULT_METRIC}), or {REQUIREMENT}NAME: the violation margin of the "
+                   f"[tuning.requirements.NAME] table of --config (envelope, step, u_bound, "
+                   f"u_rate; > 0: violated)")
     p.add_argument("--time-limit", type=float, default=60.0, metavar="S",
                    help="search seconds per method, compilation excluded (default 60)")
     p.add_argument("--starts", type=int, default=DEFAULT_STARTS, metavar="M",
@@ -76,9 +80,10 @@ def run(args) -> int:
     from dscjax.worst import make_problem, worst_case
     from dscjax.worst_report import write
 
-    setup, options = load_setup(args)
+    setup, options = load_setup(args, ignore=("tuning", "sweep"))
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
+                           requirement=requirement_of(args, setup),
                            t_final=options.t_final, dt=options.dt,
                            window_start=options.window_start, state_bound=options.state_bound,
                            solver=options.solver, refine=options.refine, period=args.period)
@@ -138,6 +143,27 @@ def run(args) -> int:
               f"evaluations, compile {tr.compile_s:.1f} s)")
     print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
     return 0
+
+
+def requirement_of(args, setup):
+    """The requirement of `--metric requirement:NAME`: [tuning.requirements.NAME] of --config
+    (built as the tuner builds it), or None for any other metric."""
+    from dscjax import config
+    from dscjax.validation import ConfigError
+    from dscjax.worst import REQUIREMENT
+
+    if not args.metric.startswith(REQUIREMENT):
+        return None
+    name = args.metric[len(REQUIREMENT):]
+    from tuning.config import from_dict
+    from tuning.runner import build_requirements
+
+    raw = config.read(args.config) if args.config else {}
+    table = from_dict(raw.get("tuning", {})).requirements
+    if name not in table:
+        raise ConfigError(f"--metric {args.metric}: --config has no [tuning.requirements."
+                          f"{name}] table (has: {', '.join(table) or 'none'})")
+    return build_requirements(setup, {name: table[name]})[0]
 
 
 def interrupt_hint(args) -> str | None:

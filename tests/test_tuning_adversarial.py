@@ -1,0 +1,150 @@
+"""Min-max tuning (`dscjax tune --adversarial R`, issue 14): one round on a 0.4 s horizon with
+one tuned gain and random-sampling searches of 0.3 s, run once for the module through the CLI;
+then what it wrote, a resume that redoes nothing, and the errors of bad values."""
+
+import dataclasses
+import json
+import shutil
+import tomllib
+
+import numpy as np
+import pytest
+
+import dscjax
+import tuning
+from dscjax import config, files, worst
+from dscjax.cli.main import main
+from tuning import adversarial, runner
+
+TOML = """
+[simulation]
+t_final = 0.4
+window_start = 0.2
+
+[tuning]
+params = ["controller.k"]
+
+[tuning.optimizer]
+steps = 2
+
+[tuning.robust]
+batch = 2
+aggregate = "max"
+
+[tuning.heldout]
+batch = 0
+
+[tuning.adversarial]
+disturbance = "fourier:2:0.3"
+method = "random"
+search_time = 0.3
+batch = 4
+"""
+
+
+@pytest.fixture(scope="module")
+def adv_run(tmp_path_factory, run_with_config):
+    return run_with_config(tmp_path_factory.mktemp("adv"), TOML, "tune", "--adversarial", "1",
+                           "--quiet", "--no-plot")
+
+
+def test_one_round_writes_fresh_worst_cases_of_start_and_tuned_gains(adv_run):
+    code, out = adv_run
+    assert code == 0
+    rep = json.loads((out / "report.json").read_text())
+    adv = rep["adversarial"]
+    assert [r["round"] for r in adv["rounds"]] == [1]
+    fresh = adv["fresh"]
+    assert fresh["start"]["seed"] == fresh["tuned"]["seed"] == adversarial.FRESH_SEED
+    assert "Fresh worst-case search" in (out / "report.md").read_text()
+    # each fresh worst value is that of `simulate` on its gains, plant and waveform
+    for tag, gains in (("start", None), ("tuned", out / "gains.json")):
+        f = fresh[tag]
+        setup = dscjax.paper_example()
+        if gains is not None:
+            setup, _ = config.load(gains)
+        spec = worst.DisturbanceSpec.parse("fourier:2:0.3")
+        setup = setup.replace(plant=dataclasses.replace(
+            setup.plant, disturbance=spec.model(f["disturbance"]["coefficients"], 0.4)))
+        setup = dscjax.params.set_many(setup, f["parameters"])
+        traj = dscjax.simulate(setup, 0.4, 1e-3, window_start=0.2)
+        assert f["value"] == pytest.approx(float(traj.metrics["linf_error_window"]), rel=1e-12)
+        assert abs(f["disturbance"]["coefficients"][0]) <= 0.3
+
+
+def test_the_round_adds_its_worst_cases_to_the_training_set(adv_run):
+    _, out = adv_run
+    rep = json.loads((out / "report.json").read_text())
+    rnd = rep["adversarial"]["rounds"][0]
+    assert rnd["added"] >= 1
+    assert rnd["train_size"] == 2 + rnd["added"] == rep["train"]["start"]["n"]
+    plants = files.read_npz(out / "round_1" / "plants.npz")
+    coef = plants["plant.disturbance.coefficients"]
+    assert coef.shape == (rnd["added"], 5)
+    # the worst case found is the first plant added: its waveform and box values
+    np.testing.assert_array_equal(coef[0], rnd["search"]["disturbance"]["coefficients"])
+    for name, value in rnd["search"]["parameters"].items():
+        assert plants[name][0] == value
+
+
+def _inputs():
+    raw = tomllib.loads(TOML)
+    table = raw.pop("tuning")
+    setup, options = config.from_dict(raw)
+    cfg = tuning.config_from_dict(table)
+    return setup, options, dataclasses.replace(
+        cfg, adversarial=dataclasses.replace(cfg.adversarial, rounds=1))
+
+
+def never(*a, **k):
+    raise AssertionError("a finished phase ran again")
+
+
+def test_resume_after_finished_rounds_redoes_nothing(adv_run, monkeypatch):
+    _, out = adv_run
+    before = {p: p.read_bytes() for p in (out / "adversarial.json",
+                                          out / "round_1" / "history.csv")}
+    monkeypatch.setattr(worst, "worst_case", never)
+    monkeypatch.setattr(runner, "run", never)
+    outcome = adversarial.run(*_inputs(), out, resume=True)
+    for p, b in before.items():
+        assert p.read_bytes() == b
+    saved = json.loads((out / "adversarial.json").read_text())
+    assert outcome.fresh == saved["fresh"]
+    assert int(outcome.result.state.iteration) == saved["rounds"][0]["iterations"]
+
+
+def test_killed_during_the_last_search_resumes_to_the_same_result(adv_run, tmp_path,
+                                                                  monkeypatch):
+    """A run killed while the tuned gains' fresh search ran (its state saved, the manifest
+    not yet updated) reruns that search only, from its state, to the same worst case."""
+    _, done = adv_run
+    out = tmp_path / "out"
+    shutil.copytree(done, out)
+    meta = json.loads((out / "adversarial.json").read_text())
+    expected = meta["fresh"].pop("tuned")
+    (out / "adversarial.json").write_text(json.dumps(meta))
+    calls = []
+    search = worst.worst_case
+    monkeypatch.setattr(worst, "worst_case", lambda *a, **k: calls.append(1) or search(*a, **k))
+    monkeypatch.setattr(runner, "run", never)
+    outcome = adversarial.run(*_inputs(), out, resume=True)
+    assert len(calls) == 1
+    assert outcome.fresh["tuned"] == expected
+
+
+@pytest.mark.parametrize("value", ["-1", "1.5", "two"])
+def test_bad_adversarial_rounds_give_one_line_and_exit_2(value, tmp_path, capsys):
+    assert main(["tune", "--adversarial", value, "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "--adversarial" in err and ">= 0" in err and repr(value) in err
+
+
+def test_bad_adversarial_table_names_the_field(tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text("[tuning.adversarial]\nrounds = -2\n")
+    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert "tuning.adversarial.rounds must be an integer >= 0 (got -2)" in err

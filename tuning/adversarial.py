@@ -1,0 +1,272 @@
+"""Min-max (adversarial) robust tuning: `dscjax tune --adversarial R`, [tuning.adversarial].
+
+R rounds of: search the worst cases of the current gains over a box of plant parameters and
+a bounded disturbance waveform (`dscjax.worst_case`), add them to the training set, tune
+again from the current gains. Then a FRESH search (another seed, never trained on) for the
+start gains and for the tuned gains gives the evidence:
+
+    cfg = TuningConfig(robust=BatchSpec(batch=8), adversarial=AdversarialSpec(
+        rounds=2, disturbance="fourier:16:0.5"))
+    out = tuning.adversarial.run(setup, SimOptions(), cfg, out_dir="results/adv")
+    out.result.best_setup, out.fresh["start"]["value"], out.fresh["tuned"]["value"]
+
+Round r searches with seed `seed + r`; the fresh searches with `seed + FRESH_SEED`, the same
+for start and tuned gains (a paired comparison). A worst case joins the training set as a
+plant: its box values and its waveform's coefficients (`plant.disturbance`); every other
+plant of the set gets a zero waveform. The size of the training set is a static shape, so
+each round compiles its tuning step again.
+
+Files in `out_dir`: adversarial.json (the settings' fingerprint and every finished phase),
+round_<r>/ (round r's tuning run, as `tuning.run` writes it; plants.npz, the plants added so
+far), round_<r>/search/, fresh_start/, fresh_tuned_R<R>/ (the searches' states). A finished
+phase is never redone on resume; an unfinished one continues from its own checkpoint. A
+finished run may be resumed with more rounds: only the new rounds and the fresh search of the
+new tuned gains run.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import jax
+import numpy as np
+
+from dscjax import files, worst
+from dscjax.config import SimOptions
+from dscjax.validation import ConfigError
+from tuning import checkpoint as ck
+from tuning import runner
+from tuning.config import TuningConfig
+
+FRESH_SEED = 10_000  # added to the seed of the fresh searches: never a round's seed
+MANIFEST = "adversarial.json"
+
+
+@dataclasses.dataclass
+class Outcome:
+    """The last round's tuning run (its problem holds the final training set), each round's
+    record and the fresh searches' worst cases ("start", "tuned")."""
+
+    result: runner.Result
+    rounds: list[dict]
+    fresh: dict[str, dict]
+
+    def summary(self) -> dict:
+        """The "adversarial" section of report.json."""
+        return {"rounds": self.rounds, "fresh": self.fresh,
+                "train_sizes": [r["train_size"] for r in self.rounds]}
+
+
+def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Problem:
+    """The worst-case problem of [tuning.adversarial] at the gains of `setup`."""
+    spec = cfg.adversarial
+    ranges = (spec.ranges if spec.ranges is not None
+              else runner.model_default_ranges(cfg, setup).robust.ranges)
+    tuned = set(cfg.params)
+    for r in ranges:
+        if r.param.path in tuned:
+            raise ConfigError(f"tuning.adversarial.ranges: {r.param.path} is tuned, it cannot "
+                              f"be searched too")
+    return worst.make_problem(setup, list(ranges), spec.disturbance, metric=spec.metric,
+                              t_final=options.t_final, dt=options.dt,
+                              window_start=options.window_start,
+                              state_bound=options.state_bound, solver=options.solver,
+                              refine=options.refine, field="tuning.adversarial.ranges")
+
+
+def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
+                 out_dir: Path | None = None) -> worst.Result:
+    """The worst case of [tuning.adversarial] for the gains of `setup`: a search of
+    `search_time` seconds by `method` with `seed` (resumed from `out_dir` if it holds one)."""
+    spec = cfg.adversarial
+    if out_dir is not None:
+        Path(out_dir).mkdir(parents=True, exist_ok=True)
+    return worst.worst_case(search_problem(setup, options, cfg), time_limit=spec.search_time,
+                            seed=seed, out_dir=out_dir, resume=out_dir is not None,
+                            starts=spec.starts, methods=(spec.method,), batch=spec.batch)
+
+
+def record(res: worst.Result) -> dict:
+    """The worst case of a search as report.json gives it."""
+    from dscjax.worst_report import summary
+
+    s = summary(res)
+    return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",
+                              "parameters", "disturbance", "nominal_value")} | {
+        "evaluations": sum(tr.evaluations for tr in res.traces.values())}
+
+
+def _worst_points(res: worst.Result, add: int) -> np.ndarray:
+    """Up to `add` distinct worst points of a search, worst first: the re-checked worst case,
+    then the best points each method kept (`Trace`'s top points)."""
+    cands = []
+    for tr in res.traces.values():
+        cands += zip(tr.extra.get("top_v", ()), tr.extra.get("top_z", ()), strict=True)
+    cands.sort(key=lambda c: -c[0])
+    out: list[np.ndarray] = [np.asarray(res.z)]
+    for _, z in cands:
+        if len(out) >= add:
+            break
+        if not any(np.array_equal(z, o) for o in out):
+            out.append(np.asarray(z))
+    return np.stack(out)
+
+
+def _gains(problem: runner.Problem, z) -> Any:
+    return jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
+
+
+def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
+    if out is None:
+        return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+    path = out / MANIFEST
+    if resume:
+        if not path.exists():
+            raise ConfigError(f"--resume: nothing to resume in {out} ({MANIFEST} is missing); "
+                              f"run without --resume to start afresh")
+        meta = files.read_json(path)
+        files.check_same(meta.get("fingerprint"), fingerprint, where=f"--resume: {path}",
+                         fix="use the same settings, or --overwrite to start afresh")
+        return meta
+    if path.exists() or (out / "checkpoint.json").exists():
+        if not overwrite:
+            raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it "
+                              f"or --overwrite to start afresh")
+    for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
+        shutil.rmtree(old)
+    for name in ck.FILES:
+        (out / name).unlink(missing_ok=True)
+    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+    files.write_json(path, meta)  # at once: a run killed in its first round resumes
+    return meta
+
+
+def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | None = None, *,
+        resume: bool = False, overwrite: bool = False,
+        progress: Callable[[dict], None] | None = None,
+        say: Callable[[str], None] | None = None) -> Outcome:
+    """Adversarial tuning with `cfg.adversarial.rounds` >= 1 rounds (see the module doc).
+
+    Args:
+        setup, options, cfg: as `tuning.build_problem`'s; `cfg.optimizer`'s steps and time
+            limit are those of each round's tuning, `cfg.adversarial.search_time` that of
+            each search (compilation apart).
+        out_dir: where every phase is saved (None: nothing is written, nothing resumes).
+        progress: called with each tuning iteration's row (with "round" added).
+        say: called with one line when a phase starts or ends.
+    """
+    spec = cfg.adversarial
+    cfg.validate()
+    if spec.rounds < 1:
+        raise ConfigError(f"tuning.adversarial.rounds must be >= 1 for adversarial tuning (got "
+                          f"{spec.rounds})")
+    say = say or (lambda text: None)
+    out = None if out_dir is None else Path(out_dir)
+    if out is not None:
+        out.mkdir(parents=True, exist_ok=True)
+    # the training plants need the waveform's coefficients as a leaf: a zero waveform
+    setup = search_problem(setup, options, cfg).setup
+    base = runner.build_problem(setup, options, cfg)
+    desc = base.describe()
+    fingerprint = {"problem": files.digest(desc),
+                   "adversarial": dataclasses.asdict(dataclasses.replace(
+                       spec, rounds=0, ranges=[r.spec() for r in search_problem(
+                           setup, options, cfg).ranges]))}
+    meta = _manifest(out, fingerprint, resume, overwrite)
+
+    def save():
+        if out is not None:
+            files.write_json(out / MANIFEST, meta)
+
+    def search(z, seed: int, where: str, label: str) -> worst.Result:
+        say(f"{label}: {spec.method} search for {spec.search_time:g} s (seed {seed})")
+        return search_worst(_gains(base, z), options, cfg, seed,
+                            None if out is None else out / where)
+
+    z, plants, result = base.z0, None, None
+    for r in range(1, spec.rounds + 1):
+        rdir = None if out is None else out / f"round_{r}"
+        done = r <= len(meta["rounds"])
+        if done:
+            plants = files.read_npz(rdir / "plants.npz")
+        else:
+            res = search(z, spec.seed + r, f"round_{r}/search", f"round {r}/{spec.rounds}")
+            zw = _worst_points(res, spec.add)
+            new = {k: np.asarray(v) for k, v in res.problem.overrides(zw).items()}
+            plants = new if plants is None else runner.join_plants(setup, plants, new)
+            if rdir is not None:
+                rdir.mkdir(parents=True, exist_ok=True)
+                files.write_npz(rdir / "plants.npz", plants)
+            say(f"round {r}/{spec.rounds}: worst {spec.metric} {res.value:.6g} for the current "
+                f"gains; {len(zw)} worst cases join the training set")
+        problem = runner.build_problem(setup, options, cfg, extra_plants=plants)
+        if done:
+            result = runner.finished(problem, rdir)
+        else:
+            say(f"round {r}/{spec.rounds}: tuning on {problem.n_train} plants (compiles again:"
+                f" the training set grew)")
+            row_cb = None if progress is None else (lambda row, r=r: progress(row | {"round": r}))
+            result = runner.run(problem, rdir, z_init=z, progress=row_cb,
+                                resume=rdir is not None and (rdir / "checkpoint.json").exists())
+            meta["rounds"].append({
+                "round": r, "search": record(res), "added": len(zw),
+                "train_size": problem.n_train, "iterations": int(result.state.iteration),
+                "stop_reason": result.stop_reason, "best_loss": float(result.state.best_loss)})
+            save()
+        z = jax.device_get(result.best_z)
+    fresh = meta.setdefault("fresh", {})
+    seed = spec.seed + FRESH_SEED
+    for tag, zz, where, rounds in (("start", base.z0, "fresh_start", None),
+                                   ("tuned", z, f"fresh_tuned_R{spec.rounds}", spec.rounds)):
+        if tag in fresh and fresh[tag]["rounds"] == rounds:
+            continue  # done (the start gains' search does not depend on the rounds)
+        fresh[tag] = record(search(zz, seed, where, f"fresh search, {tag} gains")) | {
+            "seed": seed, "rounds": rounds}
+        save()
+    if out is not None:
+        runner.write_best(out, result.problem, result.state)
+    return Outcome(result=result, rounds=meta["rounds"], fresh=fresh)
+
+
+def markdown(summary: dict) -> str:
+    """The report.md section of an adversarial run."""
+    f = summary["fresh"]
+    lines = ["", "## Adversarial rounds (min-max)", "",
+             "| round | worst case of the current gains | method | added | training plants "
+             "| iterations | stopped |", "|---|---|---|---|---|---|---|"]
+    for r in summary["rounds"]:
+        s = r["search"]
+        lines.append(f"| {r['round']} | {_value(s)} | {s['method']} | {r['added']} | "
+                     f"{r['train_size']} | {r['iterations']} | {r['stop_reason']} |")
+    a, b = f["start"], f["tuned"]
+    lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
+              "| | start gains | tuned gains |", "|---|---|---|",
+              f"| worst {a['metric']} | {_value(a)} | {_value(b)} |",
+              f"| nominal {a['metric']} | {a['nominal_value']:.6g} | "
+              f"{b['nominal_value']:.6g} |",
+              f"| evaluations | {a['evaluations']} | {b['evaluations']} |", "",
+              "Worst values are re-checked by `simulate` on the worst setup (see "
+              "docs/worst-case.md); the worst parameters and waveforms are in report.json "
+              "(`adversarial.fresh`).", ""]
+    return "\n".join(lines)
+
+
+def _value(s: dict) -> str:
+    if s["diverged"]:
+        return f"diverges at t = {s['t_diverged']:.4g} s"
+    return f"{s['value']:.6g}"
+
+
+def add_to_report(out: str | Path, summary: dict, outcome: Outcome) -> dict:
+    """Add the adversarial section to report.json and report.md (written by
+    `tuning.report.write`)."""
+    out = Path(out)
+    summary["adversarial"] = outcome.summary()
+    files.write_json(out / "report.json", summary)
+    md = (out / "report.md").read_text()
+    files.write_text(out / "report.md", md.rstrip("\n") + "\n" + markdown(summary["adversarial"]))
+    return summary
