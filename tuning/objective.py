@@ -401,21 +401,11 @@ class Combined:
         if not self.members:
             raise ConfigError("combine needs at least one objective")
 
-    @property
-    def sim(self) -> SimSpec:
-        return self.members[0].sim
-
-    @property
-    def spec(self) -> ObjectiveSpec:
-        return self.members[0].spec
-
-    @property
-    def scales(self) -> Scales:
-        return self.members[0].scales
-
-    @property
-    def requirements(self) -> tuple:
-        return self.members[0].requirements
+    # the members share the tuning settings (`runner.combine`): read off the first one
+    sim = property(lambda self: self.members[0].sim)
+    spec = property(lambda self: self.members[0].spec)
+    scales = property(lambda self: self.members[0].scales)
+    requirements = property(lambda self: self.members[0].requirements)
 
     @property
     def batch_size(self) -> int:
