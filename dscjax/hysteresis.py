@@ -196,12 +196,15 @@ def _pi_p():
 
 
 class _Plays(Hysteresis):
-    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own."""
+    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own.
 
-    p0: eqx.AbstractVar[jax.Array]
-    r: eqx.AbstractVar[jax.Array]
-    p: eqx.AbstractVar[jax.Array]
-    z0: eqx.AbstractVar[jax.Array]
+    The fields shared by P-I and generalized P-I (defaults: the P-I example of the issue);
+    a subclass adds its own (the envelopes) after them."""
+
+    p0: jax.Array = nonnegative(default=0.432)
+    r: jax.Array = eqx.field(default_factory=_pi_r)
+    p: jax.Array = nonnegative(default_factory=_pi_p)
+    z0: jax.Array = 0.0
 
     projects: ClassVar[bool] = True
 
@@ -268,11 +271,6 @@ class PrandtlIshlinskii(_Plays):
         z0: () or (N,) the plays' outputs before t = 0: z(0) = max(u0 - r, min(u0 + r, z0)).
     """
 
-    p0: jax.Array = nonnegative(default=0.432)
-    r: jax.Array = eqx.field(default_factory=_pi_r)
-    p: jax.Array = nonnegative(default_factory=_pi_p)
-    z0: jax.Array = 0.0
-
     kind: ClassVar[str] = "pi"
     title: ClassVar[str] = "Prandtl-Ishlinskii"
     # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
@@ -313,10 +311,6 @@ class GeneralizedPI(_Plays):
 
     envelope_left: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_LEFT))
     envelope_right: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_RIGHT))
-    p0: jax.Array = nonnegative(default=0.432)
-    r: jax.Array = eqx.field(default_factory=_pi_r)
-    p: jax.Array = nonnegative(default_factory=_pi_p)
-    z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "gpi"
     title: ClassVar[str] = "Generalized Prandtl-Ishlinskii"
