@@ -55,6 +55,7 @@ class Hysteresis(Model):
     """The interface every hysteresis model provides (see the module docstring)."""
 
     kind: ClassVar[str]
+    title: ClassVar[str]  # the model's name in figures
     # True if `project` does something: the integrator then applies it after every step.
     projects: ClassVar[bool] = False
     # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
@@ -110,6 +111,7 @@ class Backlash(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "backlash"
+    title: ClassVar[str] = "Backlash-like hysteresis (4)"
     default_sweep: ClassVar[tuple[str, ...]] = ("alpha", "lam", "psi")
 
     def validate(self, prefix):
@@ -194,12 +196,15 @@ def _pi_p():
 
 
 class _Plays(Hysteresis):
-    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own."""
+    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own.
 
-    p0: eqx.AbstractVar[jax.Array]
-    r: eqx.AbstractVar[jax.Array]
-    p: eqx.AbstractVar[jax.Array]
-    z0: eqx.AbstractVar[jax.Array]
+    The fields shared by P-I and generalized P-I (defaults: the P-I example of the issue);
+    a subclass adds its own (the envelopes) after them."""
+
+    p0: jax.Array = nonnegative(default=0.432)
+    r: jax.Array = eqx.field(default_factory=_pi_r)
+    p: jax.Array = nonnegative(default_factory=_pi_p)
+    z0: jax.Array = 0.0
 
     projects: ClassVar[bool] = True
 
@@ -266,12 +271,8 @@ class PrandtlIshlinskii(_Plays):
         z0: () or (N,) the plays' outputs before t = 0: z(0) = max(u0 - r, min(u0 + r, z0)).
     """
 
-    p0: jax.Array = nonnegative(default=0.432)
-    r: jax.Array = eqx.field(default_factory=_pi_r)
-    p: jax.Array = nonnegative(default_factory=_pi_p)
-    z0: jax.Array = 0.0
-
     kind: ClassVar[str] = "pi"
+    title: ClassVar[str] = "Prandtl-Ishlinskii"
     # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
     default_sweep: ClassVar[tuple[str, ...]] = ("p0", "p[0]", "r[0]", "p[9]")
 
@@ -310,12 +311,9 @@ class GeneralizedPI(_Plays):
 
     envelope_left: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_LEFT))
     envelope_right: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_RIGHT))
-    p0: jax.Array = nonnegative(default=0.432)
-    r: jax.Array = eqx.field(default_factory=_pi_r)
-    p: jax.Array = nonnegative(default_factory=_pi_p)
-    z0: jax.Array = 0.0
 
     kind: ClassVar[str] = "gpi"
+    title: ClassVar[str] = "Generalized Prandtl-Ishlinskii"
     default_sweep: ClassVar[tuple[str, ...]] = ("p0", "envelope_left[0]", "envelope_right[0]",
                                                 "p[0]")
 
@@ -404,6 +402,7 @@ class BoucWen(Hysteresis):
     smooth: bool = option(False)
 
     kind: ClassVar[str] = "bouc_wen"
+    title: ClassVar[str] = "Bouc-Wen"
     default_sweep: ClassVar[tuple[str, ...]] = ("a", "b", "beta", "gamma")
 
     def validate(self, prefix):

@@ -2,6 +2,7 @@
 
     get(setup, "hysteresis.alpha"); set(setup, "controller.k", jnp.array([5.0, 1.0]))
     Param.parse("plant.g[1]")             # one element of a vector leaf
+    Param.parse("hysteresis.p*")          # one factor s scaling a whole vector leaf: p -> s p
     overrides(setup, columns, table)      # a (B, d) table of numbers -> {path: (B, ...)}
 
 Every feature names numbers this way: tuning the parameters it differentiates, sweeps (and
@@ -29,33 +30,43 @@ class UnknownParameter(ConfigError, KeyError):
     __str__ = ConfigError.__str__  # KeyError would quote the message
 
 
-# A dotted path of identifiers, optionally with one element index: "plant.g[1]".
-_PARAM_RE = re.compile(r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\])?$")
+# A dotted path of identifiers, optionally with one element index ("plant.g[1]") or a star
+# ("hysteresis.p*": a scale of the whole vector).
+_PARAM_RE = re.compile(
+    r"^([A-Za-z_][A-Za-z0-9_]*(?:\.[A-Za-z_][A-Za-z0-9_]*)*)(?:\[(\d+)\]|(\*))?$")
 
 
 @dataclasses.dataclass(frozen=True)
 class Param:
-    """One number or leaf of a Setup: the leaf at `path`, or its element `index`."""
+    """One number or leaf of a Setup: the leaf at `path`, its element `index`, or (`scale`)
+    one factor s that multiplies the whole vector leaf: its value is s, nominal 1, and the
+    setup gets s * (the vector in the setup)."""
 
     path: str
     index: int | None = None
+    scale: bool = False
 
     @property
     def name(self) -> str:
+        if self.scale:
+            return f"{self.path}*"
         return self.path if self.index is None else f"{self.path}[{self.index}]"
 
     @classmethod
     def parse(cls, text: str, field: str = "parameter") -> Param:
-        """`Param` from its name, e.g. "hysteresis.alpha" or "plant.g[1]"."""
+        """`Param` from its name, e.g. "hysteresis.alpha", "plant.g[1]" or "hysteresis.p*"."""
         m = _PARAM_RE.match(str(text).strip())
         if not m:
             raise ConfigError(f"{field}: {text!r} is not a parameter path (e.g. "
-                              f"'hysteresis.alpha' or 'plant.g[1]')")
-        return cls(m.group(1), None if m.group(2) is None else int(m.group(2)))
+                              f"'hysteresis.alpha', 'plant.g[1]' or 'hysteresis.p*')")
+        return cls(m.group(1), None if m.group(2) is None else int(m.group(2)),
+                   m.group(3) is not None)
 
     def value(self, setup):
-        """The leaf, or its element."""
+        """The leaf, its element, or the scale (1 in the leaf's dtype: the setup as it is)."""
         leaf = get(setup, self.path)
+        if self.scale:
+            return np.ones((), np.asarray(leaf).dtype)
         return leaf if self.index is None else leaf[self.index]
 
     def nominal(self, setup) -> float:
@@ -74,6 +85,11 @@ class Param:
         if len(leaves) != 1 or not np.issubdtype(np.asarray(leaves[0]).dtype, np.floating):
             raise ConfigError(f"{field}: {self.path!r} is not a number or vector of numbers")
         shape = np.shape(leaf)
+        if self.scale:
+            if len(shape) != 1:
+                raise ConfigError(f"{field}: {self.name!r} scales a vector, but {self.path!r} "
+                                  f"is a scalar; vary it directly (e.g. {self.path}=30%)")
+            return self.value(setup)
         if self.index is None:
             return leaf
         if len(shape) != 1:
@@ -84,11 +100,22 @@ class Param:
         return leaf[self.index]
 
 
+def check_columns(columns: Sequence[Param], field: str) -> None:
+    """ConfigError naming `field` if a vector is both scaled and set (by leaf or element):
+    which would win depends on the order of the columns."""
+    scaled = {p.path for p in columns if p.scale}
+    for p in columns:
+        if p.path in scaled and not p.scale:
+            raise ConfigError(f"{field}: {p.name!r} and {p.path + '*'!r} both change "
+                              f"{p.path!r}; give one of them")
+
+
 def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
     """{path: (B, ...)} for `simulate_batch`/`run` from a (B, d) table whose column j holds
     the values of columns[j]; the elements of a vector leaf that no column names keep their
-    values in `setup`, and every leaf keeps its dtype. NumPy in, NumPy out; traced in, traced
-    out (the sweep builds its overrides inside its compiled block)."""
+    values in `setup`, a scale column s gives s * (the vector in `setup`), and every leaf
+    keeps its dtype. NumPy in, NumPy out; traced in, traced out (the sweep builds its
+    overrides inside its compiled block)."""
     host = isinstance(table, np.ndarray)
     xp = np if host else jnp
     b = table.shape[0]
@@ -97,6 +124,9 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
         leaf = get(setup, p.path)
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         col = table[:, j].astype(dtype)
+        if p.scale:
+            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
+            continue
         if p.index is None:
             out[p.path] = col
             continue

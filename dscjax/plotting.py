@@ -26,6 +26,22 @@ def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", *
     return fig, fig.subplots(nrows, ncols, **kwargs)
 
 
+def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
+                    lines: bool = True) -> None:
+    """One w(u) loop of a hysteresis model on `ax` (`dscjax hysteresis`, `dscjax reproduce`'s
+    Fig. 1 of every model), with, if `lines`, the lines w = lam_eff u + d_1 limits between
+    which the model's decomposition (eqs. 5, 9-12) keeps it for large |u|."""
+    if lines:
+        lam = float(hysteresis.effective_slope())
+        lo, hi = (float(x) for x in hysteresis.d1_limits())
+        ug = np.linspace(-np.max(np.abs(u)), np.max(np.abs(u)), 2)
+        ax.plot(ug, lam * ug + lo, color="#999999", lw=0.8, ls=":",
+                label=f"$w = {lam:.3g}\\,u + d_1$ limits")
+        ax.plot(ug, lam * ug + hi, color="#999999", lw=0.8, ls=":")
+    ax.plot(u, w, color=color, lw=1.4, label=label)
+    ax.set_xlabel("control input $u$ [-]")
+
+
 def plot_trajectory(traj, path: Path | str, title: str = ""):
     """Four panels: states against the reference, tracking error, control u, hysteresis
     output w. The legend sits under the panels (it never hides a curve); the model's

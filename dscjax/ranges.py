@@ -1,6 +1,7 @@
 """Ranges of parameters and the tables of values drawn from them.
 
     r = parse_range("plant.g[1]=0.8:1.2")             # or "hysteresis.alpha=30%" (+-30 %)
+    r = parse_range("hysteresis.p*=0.7:1.3")          # the whole vector p times s in [0.7, 1.3]
     r = from_value(Param.parse("hysteresis.alpha"), "30%", grid=False, field="...")   # TOML
     ranges = check([r], setup, "sweep.ranges")         # resolved, validated against the setup
     table = sample_table(ranges, "lhs", n=1000, seed=0)   # (n, d), row i = sample i
@@ -165,6 +166,7 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
     lam <= psi, and values outside a model's allowed range (or, with t_final and dt, outside
     what RK4 can integrate) at either end.
     """
+    params.check_columns([r.param for r in ranges], field)
     seen = set()
     for r in ranges:
         f = f"{field}.{r.name}"
@@ -206,7 +208,7 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
 def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     """lam > psi must hold on the whole box: lam's lower end above psi's upper end (the
     ends of a single range are checked by `check`; this is the one check of two)."""
-    by = {r.param.path: r for r in ranges if r.param.index is None}
+    by = {r.param.path: r for r in ranges if r.param.index is None and not r.param.scale}
     if "hysteresis.lam" not in by and "hysteresis.psi" not in by:
         return
     try:

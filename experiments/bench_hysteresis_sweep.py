@@ -8,12 +8,14 @@ runner is called once, then the models are timed in turn, `--repeats` rounds, so
 from other processes on the machine hits them alike; medians are reported.
 
     python experiments/bench_hysteresis_sweep.py [--plants 4096] [--t-final 2] [--repeats 3]
+        [--examples paper,pi]
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import time
 
 import jax
@@ -33,10 +35,13 @@ def main():
     ap.add_argument("--t-final", type=float, default=2.0)
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--json", default=None, help="write the figures here")
+    ap.add_argument("--examples", default="paper,pi,gpi,bouc_wen",
+                    help="comma-separated examples to time (the first one is the baseline)")
     args = ap.parse_args()
     n = int(round(args.t_final / DT))
     runners = {}
-    for name in ("paper", "pi", "gpi", "bouc_wen"):
+    names = args.examples.split(",")
+    for name in names:
         setup = example(name, dtype=np.float32)
         ranges = [r.resolve(setup) for r in rg.default_ranges(setup)]
         table = rg.sample_table(ranges, "uniform", args.plants, 0)
@@ -53,8 +58,8 @@ def main():
             t0 = time.perf_counter()
             runner(table, 1)
             times[name].append(time.perf_counter() - t0)
-    base = min(times["paper"]) / args.plants
-    base_med = float(np.median(times["paper"])) / args.plants
+    base = min(times[names[0]]) / args.plants
+    base_med = float(np.median(times[names[0]])) / args.plants
     rows = {}
     for name, ts in times.items():
         per_plant, med = min(ts) / args.plants, float(np.median(ts)) / args.plants
@@ -66,8 +71,8 @@ def main():
               f"{med / base_med:5.2f} x)  {n / per_plant:9.3g} plant-steps/s", flush=True)
     if args.json:
         with open(args.json, "w") as f:
-            json.dump({"plants": args.plants, "t_final": args.t_final, "rows": rows}, f,
-                      indent=1)
+            json.dump({"plants": args.plants, "t_final": args.t_final, "rows": rows,
+                       "loadavg": os.getloadavg()}, f, indent=1)
 
 
 if __name__ == "__main__":

@@ -192,3 +192,64 @@ def test_hysteresis_command_writes_the_loop_and_refuses_bad_input(tmp_path, caps
     cfg.write_text('[hysteresis]\nkind = "pi"\nr = [0.5, 0.1]\np = [1.0, 1.0]\n')
     assert main(["hysteresis", "--config", str(cfg), "--out", str(out)]) == 2
     assert "hysteresis.r must be strictly increasing" in capsys.readouterr().err
+
+
+@pytest.fixture(scope="module")
+def pi_sweep():
+    """One float64 grid over a scale of the whole weight vector p and one element r[3]."""
+    from dscjax.ranges import parse_range
+    from dscjax.sweep import SweepSettings, run_sweep
+
+    setup = example("pi")
+    ranges = (parse_range("hysteresis.p*=0.7:1.3:2", grid=True),
+              parse_range("hysteresis.r[3]=0.7:0.9:2", grid=True))
+    settings = SweepSettings(method="grid", ranges=ranges, dtype="float64", worst=0, random=0)
+    return setup, run_sweep(setup, settings, 0.4, DT, window_start=0.1)
+
+
+def test_sweeping_a_scale_or_an_element_equals_setting_it(pi_sweep):
+    setup, res = pi_sweep
+    cols = res.columns
+    assert list(cols["hysteresis.p*"]) == [0.7, 0.7, 1.3, 1.3]
+    assert list(cols["hysteresis.r[3]"]) == [0.7, 0.9, 0.7, 0.9]
+    p, r = np.asarray(setup.hysteresis.p), np.asarray(setup.hysteresis.r)
+    for i in (0, 3):  # (0.7, r3 = 0.7) and (1.3, r3 = 0.9)
+        s, r3 = float(cols["hysteresis.p*"][i]), float(cols["hysteresis.r[3]"][i])
+        one = params.set_many(setup, {"hysteresis.p": s * p,
+                                      "hysteresis.r": np.where(np.arange(r.size) == 3, r3, r)})
+        ref = dscjax.simulate(one, 0.4, DT, window_start=0.1).metrics
+        for name in ("linf_error_window", "l2_error", "max_abs_u", "max_abs_w"):
+            assert cols[name][i] == pytest.approx(float(ref[name]), rel=1e-12, abs=0), name
+
+
+def test_scale_syntax_is_checked_by_the_one_parser(tmp_path, capsys):
+    from dscjax.params import Param
+    from dscjax.ranges import check, parse_range
+
+    assert Param.parse("hysteresis.p*") == Param("hysteresis.p", scale=True)
+    assert parse_range("hysteresis.p*=30%").resolve(example("pi")).low == pytest.approx(0.7)
+    for ranges, message in (
+            (["hysteresis.p0*=0.7:1.3"], "'hysteresis.p0' is a scalar"),
+            (["hysteresis.p*=0.7:1.3", "hysteresis.p[3]=10%"], "both change 'hysteresis.p'"),
+            (["hysteresis.p*=-1:1.3"], "hysteresis.p must be >= 0")):
+        with pytest.raises(ConfigError, match=message):
+            check([parse_range(r) for r in ranges], example("pi"), "--range")
+    assert main(["sweep", "--example", "pi", "--range", "hysteresis.p0*=0.7:1.3",
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "'hysteresis.p0' is a scalar" in err and "Traceback" not in err
+
+
+def test_a_tuned_scale_multiplies_the_vector():
+    import jax.numpy as jnp
+
+    from tuning.params import Selection
+
+    setup = example("pi")
+    sel = Selection.build(setup, ["controller.tau", "controller.k*"])
+    assert sel.names == ("controller.tau", "controller.k*") and sel.size(setup) == 2
+    z = sel.init(setup)
+    assert float(z["controller.k*"]) == 0.0
+    tuned = sel.apply(setup, {**z, "controller.k*": jnp.log(2.5)})
+    np.testing.assert_allclose(tuned.controller.k, 2.5 * np.asarray(setup.controller.k),
+                               rtol=1e-15)

@@ -15,7 +15,7 @@ import dscjax
 from dscjax import complexity, metrics
 from dscjax.cli.main import main
 from dscjax.hysteresis import closed_form
-from dscjax.reproduce import FIGURES, METRIC_FIELDS, RUNS, hysteresis_loops
+from dscjax.reproduce import FAMILY, FIGURES, METRIC_FIELDS, RUNS, family_loops, hysteresis_loops
 
 T_SHORT = 2.0
 
@@ -133,6 +133,33 @@ def test_hysteresis_loops_match_the_closed_form():
     rising = t <= (math.pi / 2) / 2.3
     ref = closed_form(jnp.asarray(u[rising]), 0.0, 0.0, 1.0, 1.432, 0.105, +1)
     np.testing.assert_allclose(w[rising], np.asarray(ref), atol=1e-9)
+
+
+def test_fig1_family_loops_meet_closed_forms_at_the_first_peak():
+    """The loops of `reproduce`'s Fig. 1 of every model: rising from u = 0 to the peak k = 6.5
+    drags every play (r_j < k), so there w = p0 u + sum p_j (gamma_l(u) - r_j) (gamma_l(u) = u
+    for P-I); the backlash model follows (5)-(6); Bouc-Wen's h stays within its bound."""
+    fam = family_loops(amplitudes=(6.5,), t_final=1.0)
+    assert tuple(fam) == FAMILY
+    for kind, (model, t, u, w) in fam.items():
+        k = int(np.argmax(u[0]))
+        assert 0 < k < len(t) - 1 and u[0, k] > 6.49
+        uk, wk = float(u[0, k]), float(w[0, k])
+        tol = 1e-12  # the plays are the exact recursion; backlash (4) is RK4's ODE solution
+        if kind == "backlash":
+            ref = float(closed_form(jnp.asarray(uk), 0.0, 0.0, 1.0, 1.432, 0.105, +1))
+            tol = 1e-6
+        elif kind == "bouc_wen":
+            ref = wk
+            assert abs(wk - float(model.a) * uk) <= float(model.b * model.h_max())
+        else:
+            r, p = np.asarray(model.r), np.asarray(model.p)
+            g = uk
+            if kind == "gpi":
+                a, b, c, d = np.asarray(model.envelope_left)
+                g = a * np.tanh(b * uk + c) + d
+            ref = float(model.p0) * uk + float(np.sum(p * (g - r)))
+        assert wk == pytest.approx(ref, rel=tol), kind
 
 
 def test_growth_fit_recovers_known_laws():

@@ -194,3 +194,42 @@ def test_more_divergence_is_rejected(small_problem):
     state, rep = tuning.guarded_update(state, jnp.asarray(0.5), worse, grads, opt,
                                        small_problem.selection.project, 0.5, 0.0)
     assert not bool(rep["accepted"]) and float(state.best_loss) == 1.0
+
+
+class _Member:
+    """An objective with known losses and aux (no simulation): what `Combined` reduces."""
+
+    def __init__(self, loss, linf, n_div, feasible, batch):
+        self.loss, self.linf, self.n_div, self.feasible, self.batch_size = (
+            loss, linf, n_div, feasible, batch)
+
+    def evaluate(self, z, overrides=None, checkpoint_every=None):
+        return jnp.asarray(self.loss * z), {
+            "terms": {"linf": jnp.asarray(2 * self.loss)}, "linf_window": jnp.asarray(self.linf),
+            "max_abs_u": jnp.asarray(self.linf + 1), "n_diverged": jnp.asarray(self.n_div),
+            "feasible": jnp.asarray(self.feasible)}
+
+
+def test_combined_objective_is_the_mean_or_max_of_its_members():
+    members = (_Member(1.0, 0.5, 0, True, 3), _Member(4.0, jnp.nan, 2, False, 5))
+    for how, expect in (("mean", 2.5), ("max", 4.0)):
+        obj = tuning.Combined(members, how)
+        loss, aux = obj.evaluate(jnp.asarray(2.0))
+        assert float(loss) == 2 * expect and float(aux["terms"]["linf"]) == 2 * expect
+        assert float(aux["linf_window"]) == 0.5 and float(aux["max_abs_u"]) == 1.5
+        assert int(aux["n_diverged"]) == 2 and not bool(aux["feasible"])
+        assert obj.batch_size == 8
+    with pytest.raises(dscjax.validation.ConfigError, match="combine must be one of"):
+        tuning.Combined(members, "sum")
+
+
+def test_combine_refuses_problems_that_tune_other_parameters(small_problem):
+    import dataclasses
+
+    other = dataclasses.replace(small_problem, selection=tuning.Selection.build(
+        small_problem.setup, ["controller.tau"]))
+    with pytest.raises(dscjax.validation.ConfigError, match="same parameters"):
+        tuning.combine([small_problem, other])
+    both = tuning.combine([small_problem, small_problem], "max")
+    assert both.members == (small_problem, small_problem)
+    assert both.describe()["combine"] == "max" and len(both.describe()["members"]) == 2

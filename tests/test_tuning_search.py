@@ -191,6 +191,11 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
     assert seen == [("etdrk4", "time_parallel")] * 2
 
 
+def test_combining_problems_of_a_search_method_is_refused_naming_the_field(problems):
+    with pytest.raises(dscjax.ConfigError, match="tuning.optimizer.name"):
+        tuning.combine([problems["cma_line"], problems["cma_line"]])
+
+
 def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, monkeypatch):
     calls = []
     real = search.value_and_grad

@@ -12,17 +12,24 @@ See docs/tuning.md for the objective, the settings and measured figures.
 
 from tuning.config import AdversarialSpec, BatchSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
-from tuning.objective import Objective, ObjectiveSpec, Scales, SimSpec, TuningMetrics, aggregate
+from tuning.objective import (
+    Combined,
+    Objective,
+    ObjectiveSpec,
+    Scales,
+    SimSpec,
+    TuningMetrics,
+    aggregate,
+)
 from tuning.optimize import OptimizerSpec, TuneState, guarded_update, init_state, value_and_grad
 from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
 from tuning.requirements import Envelope, StepResponse, UBound, URate
-from tuning.runner import Problem, Result, build_problem, run
+from tuning.runner import Problem, Result, build_problem, combine, run
 
 __all__ = [
-    "AdversarialSpec", "BatchSpec", "DSC_GAINS", "DSC_INITIAL_ESTIMATES", "Envelope",
-    "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales", "Selection",
-    "SimSpec", "StepResponse",
-    "TuneState", "Tuned", "TuningConfig", "TuningMetrics", "UBound", "URate", "aggregate",
-    "build_problem", "config_from_dict", "guarded_update", "init_state", "run",
-    "value_and_grad",
+    "AdversarialSpec", "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
+    "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
+    "Selection", "SimSpec", "StepResponse", "TuneState", "Tuned", "TuningConfig",
+    "TuningMetrics", "UBound", "URate", "aggregate", "build_problem", "combine",
+    "config_from_dict", "guarded_update", "init_state", "run", "value_and_grad",
 ]

@@ -406,3 +406,64 @@ class Objective:
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
                                   len(self.requirements))
         return {"loss": per_plant, "diverged": diverged, **metrics}
+
+
+COMBINE = ("mean", "max")
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Combined:
+    """loss(z) = mean or max over several `Objective`s of their losses, for one tuned
+    `Selection`: robust tuning over plants whose STRUCTURE differs (e.g. one batch per
+    hysteresis kind: a kind is a class, static, so one batch cannot mix them). Each member
+    keeps its own setup, batch, aggregate and start scales, so each member's loss is about 1
+    at the start gains and the members weigh alike. Evaluated in one traced function (one
+    jitted step); its gradient is the members' (for "max": the worst member's).
+
+    Hashable by identity, like `Objective`; `sim`, `spec`, `scales` and `requirements` are
+    the first member's (the members share the tuning settings: see `runner.combine`)."""
+
+    members: tuple[Objective, ...]
+    how: str = "mean"
+    compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
+                                       compare=False)
+
+    def __post_init__(self):
+        if self.how not in COMBINE:
+            raise ConfigError(f"combine must be one of {', '.join(COMBINE)} (got {self.how!r})")
+        if not self.members:
+            raise ConfigError("combine needs at least one objective")
+
+    # the members share the tuning settings (`runner.combine`): read off the first one
+    sim = property(lambda self: self.members[0].sim)
+    spec = property(lambda self: self.members[0].spec)
+    scales = property(lambda self: self.members[0].scales)
+    requirements = property(lambda self: self.members[0].requirements)
+
+    @property
+    def batch_size(self) -> int:
+        return sum(m.batch_size for m in self.members)
+
+    def _reduce(self, values):
+        v = jnp.stack(values)
+        return jnp.mean(v) if self.how == "mean" else jnp.max(v)
+
+    def evaluate(self, z, overrides=None, checkpoint_every=None):
+        """(loss, aux) as `Objective.evaluate`'s: terms combined as the loss is, the largest
+        L-inf and max|u| measured, the diverged plants summed, feasible if every member is."""
+        if overrides is not None:
+            raise ValueError("a combined objective evaluates its members' own batches")
+        out = [m.evaluate(z, checkpoint_every=checkpoint_every) for m in self.members]
+        auxes = [a for _, a in out]
+        aux = {
+            "terms": {k: self._reduce([a["terms"][k] for a in auxes]) for k in auxes[0]["terms"]},
+            "linf_window": jnp.nanmax(jnp.stack([a["linf_window"] for a in auxes])),
+            "max_abs_u": jnp.nanmax(jnp.stack([a["max_abs_u"] for a in auxes])),
+            "n_diverged": sum(a["n_diverged"] for a in auxes),
+            "feasible": jnp.all(jnp.stack([a["feasible"] for a in auxes])),
+        }
+        return self._reduce([loss for loss, _ in out]), aux
+
+    def __call__(self, z):
+        return self.evaluate(z)
+

@@ -56,6 +56,7 @@ class Tuned:
         index: element of a vector leaf, or None for the whole leaf.
         transform: "log" or "linear".
         lower, upper: box bounds on the VALUE (not on z); None for none.
+        scale: one factor s (start 1) multiplying the whole vector leaf ("path*").
     """
 
     path: str
@@ -63,10 +64,15 @@ class Tuned:
     transform: Transform = "log"
     lower: float | None = None
     upper: float | None = None
+    scale: bool = False
+
+    @property
+    def param(self) -> Param:
+        return Param(self.path, self.index, self.scale)
 
     @property
     def name(self) -> str:
-        return Param(self.path, self.index).name
+        return self.param.name
 
     def to_z(self, value):
         return jnp.log(value) if self.transform == "log" else value
@@ -108,7 +114,8 @@ class Selection:
         """Validate the names against the setup and expand frozen elements.
 
         Args:
-            tune: paths (whole leaves or single elements) to tune.
+            tune: paths (whole leaves, single elements, or "path*": one factor scaling a
+                whole vector) to tune.
             freeze: paths or elements to leave out of `tune` (e.g. "controller.gamma_g[1]").
             bounds: {name: (lower, upper)} on values; either end may be None. A bound given
                 for a whole leaf applies to each of its tuned elements.
@@ -122,14 +129,15 @@ class Selection:
         """
         bounds = dict(bounds or {})
         transforms = dict(transforms or {})
-        order: list[tuple[str, int | None]] = []
+        order: list[tuple[str, int | str | None]] = []  # index "*": a scale of the vector
         for text in tune:
             p = Param.parse(text, f"{field}.params")
             p.check(setup, f"{field}.params")
-            path, index = p.path, p.index
-            if (path, index) in order:
+            key = (p.path, "*" if p.scale else p.index)
+            if key in order:
                 raise ConfigError(f"{field}.params lists {text!r} twice")
-            order.append((path, index))
+            order.append(key)
+        params.check_columns([_param(p, i) for p, i in order], f"{field}.params")
         frozen = set()
         for text in freeze:
             p = Param.parse(text, f"{field}.freeze")
@@ -138,7 +146,12 @@ class Selection:
         expanded: list[tuple[str, int | None]] = []
         for path, index in order:
             value = np.asarray(params.get(setup, path), dtype=float)
-            if index is None and (path, None) not in frozen:
+            if index == "*":
+                if any(p == path for p, _ in frozen):
+                    raise ConfigError(f"{field}.freeze: {path + '*'!r} is one number; it "
+                                      f"cannot be frozen in part")
+                expanded.append((path, index))
+            elif index is None and (path, None) not in frozen:
                 idx = [i for i in range(value.size) if (path, i) in frozen] if value.ndim else []
                 if idx:
                     expanded += [(path, i) for i in range(value.size) if (path, i) not in frozen]
@@ -150,7 +163,7 @@ class Selection:
             if not any(p == key[0] for p, _ in order):
                 name = key[0] if key[1] is None else f"{key[0]}[{key[1]}]"
                 raise ConfigError(f"{field}.freeze: {name!r} is not among the tuned parameters "
-                                  f"({', '.join(Param(p, i).name for p, i in order)})")
+                                  f"({', '.join(_param(p, i).name for p, i in order)})")
         if not expanded:
             raise ConfigError(f"{field}: nothing left to tune (every parameter is frozen)")
         names_tuned = {p for p, _ in order}
@@ -161,12 +174,15 @@ class Selection:
                                   f"(add it to {field}.params)")
         items = []
         for path, index in expanded:
-            name = Param(path, index).name
-            transform = transforms.get(name, transforms.get(path, "linear" if path in SIGNED
-                                                            else "log"))
+            p = _param(path, index)
+            name = p.name
+            default = "linear" if path in SIGNED and not p.scale else "log"
+            # a scale reads only its own entries: the leaf's bound is on values, not factors
+            leaf = None if p.scale else path
+            transform = transforms.get(name, transforms.get(leaf, default))
             validation.one_of(transform, f"{field}.transform.{name}", TRANSFORMS)
-            lo, hi = _bound_pair(bounds.get(name, bounds.get(path)), f"{field}.bounds.{name}")
-            item = Tuned(path, index, transform, lo, hi)
+            lo, hi = _bound_pair(bounds.get(name, bounds.get(leaf)), f"{field}.bounds.{name}")
+            item = Tuned(p.path, p.index, transform, lo, hi, p.scale)
             _check_item(item, setup, field)
             items.append(item)
         return cls(tuple(items))
@@ -174,6 +190,8 @@ class Selection:
     # -- coordinates ---------------------------------------------------------------------------
     @staticmethod
     def _value(setup, t: Tuned):
+        if t.scale:
+            return jnp.ones((), jnp.result_type(setup.plant.x0))
         value = params.get(setup, t.path)
         return value if t.index is None else jnp.asarray(value)[t.index]
 
@@ -190,7 +208,9 @@ class Selection:
         new: dict[str, Any] = {}
         for t in self.items:
             v = t.from_z(z[t.name])
-            if t.index is None:
+            if t.scale:
+                new[t.path] = v * jnp.asarray(params.get(setup, t.path))
+            elif t.index is None:
                 new[t.path] = v
             else:
                 leaf = new.get(t.path)
@@ -206,10 +226,10 @@ class Selection:
         out: list[Param] = []
         for t in self.items:
             shape = np.shape(params.get(setup, t.path))
-            if t.index is None and shape:
+            if t.index is None and shape and not t.scale:
                 out += [Param(t.path, i) for i in range(shape[0])]
             else:
-                out.append(Param(t.path, t.index))
+                out.append(t.param)
         return tuple(out)
 
     def row(self, z: Mapping[str, Any]) -> jax.Array:
@@ -244,6 +264,11 @@ class Selection:
                 f"{'inf' if t.upper is None else f'{t.upper:g}'}]")
             rows.append(f"{t.name} = {np.array2string(v, precision=4)} ({t.transform}{b})")
         return rows
+
+
+def _param(path: str, index) -> Param:
+    """The Param of an entry of `Selection.build`'s list: index "*" is a scale."""
+    return Param(path, scale=True) if index == "*" else Param(path, index)
 
 
 def _bound_pair(b, field) -> tuple[float | None, float | None]:

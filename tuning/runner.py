@@ -32,7 +32,7 @@ from dscjax.reference import SmoothStep
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Objective, SimSpec, start_scales
+from tuning.objective import Combined, Objective, SimSpec, start_scales
 from tuning.optimize import SEARCHES, choose_gradient, init_state, make_step
 from tuning.params import Selection
 from tuning.requirements import KINDS
@@ -58,6 +58,7 @@ class Problem:
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
+    members: tuple[Problem, ...] = ()  # the problems a `combine`d one is made of
 
     @property
     def n_train(self) -> int:
@@ -77,7 +78,9 @@ class Problem:
             opt.pop(k)
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
-            "params": [dataclasses.asdict(t) for t in self.selection.items],
+            # `scale` only when set: fingerprints of runs without scales stay as they were
+            "params": [{k: v for k, v in dataclasses.asdict(t).items() if k != "scale" or v}
+                       for t in self.selection.items],
             "objective": dataclasses.asdict(self.cfg.objective),
             "optimizer": opt,
             "robust": _batch_desc(self.cfg.robust, self.setup),
@@ -85,7 +88,9 @@ class Problem:
             "sim": dataclasses.asdict(self.objective.sim),
             "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
-             if self.extra_plants else {})
+             if self.extra_plants else {}) | (
+            {"members": [m.describe() for m in self.members], "combine": self.objective.how}
+            if self.members else {})
 
 
 def _batch_desc(b, setup):
@@ -184,6 +189,40 @@ def join_plants(setup, first: dict | None, then: dict) -> dict:
                 else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
+
+
+def combine(problems, how: str = "mean") -> Problem:
+    """One problem whose loss is the mean (or max) of the problems' losses (`Combined`): the
+    same tuned gains over setups of different structure, e.g. `build_problem` once per
+    hysteresis kind, each with its own robust batch. The problems must tune the same
+    parameters (same names and sizes) with the same settings, and start from the same
+    values; the result's setup, gains.json and report are the first problem's.
+
+        probs = [build_problem(hysteresis_example(k), options, cfg) for k in ("pi", "gpi")]
+        result = run(combine(probs, "max"))
+    """
+    first = problems[0]
+    if first.cfg.optimizer.name in SEARCHES:
+        # (the search methods simulate one batch of one structure per generation)
+        raise ConfigError(f"combine: tuning.optimizer.name must be one of the gradient rules "
+                          f"(adam, adamw, sgd, lion), not the search method "
+                          f"{first.cfg.optimizer.name!r}; e.g. name = \"adam\"")
+    for p in problems[1:]:
+        if (p.selection.names != first.selection.names or p.cfg.optimizer != first.cfg.optimizer
+                or p.objective.sim != first.objective.sim or p.n_params != first.n_params):
+            raise ConfigError("combine: every problem must tune the same parameters with the "
+                              "same optimizer and simulation settings")
+        for k in first.z0:
+            if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
+                raise ConfigError(f"combine: the problems start from different values of {k}")
+    objective = Combined(tuple(p.objective for p in problems), how)
+    # each member's own choice (forward over a batch, reverse for one plant) if they agree
+    modes = {p.mode for p in problems}
+    mode = modes.pop() if len(modes) == 1 else choose_gradient(
+        first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
+    return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
+                               members=tuple(problems), extra_plants=None,
+                               notes=first.notes + (f"{how} of {len(problems)} objectives",))
 
 
 def _sample(setup, b, field, options) -> dict:

@@ -85,32 +85,20 @@ def run(args) -> int:
     return 0
 
 
-TITLES = {"backlash": "Backlash-like hysteresis (4)", "pi": "Prandtl-Ishlinskii",
-          "gpi": "Generalized Prandtl-Ishlinskii", "bouc_wen": "Bouc-Wen"}
-
-
 def _plot(hyst, amplitudes, omega, u, w, path):
     import matplotlib
 
-    from dscjax.plotting import COLORS, subplots
+    from dscjax.plotting import hysteresis_loop, subplots
     from dscjax.reproduce import RC
 
-    lam = float(hyst.effective_slope())
-    lo, hi = (float(x) for x in hyst.d1_limits())
     with matplotlib.rc_context(RC):
         fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),
                              sharey=True)
         axes = np.atleast_1d(axes)
         for ax, a, uk, wk in zip(axes, amplitudes, u, w, strict=True):
-            ug = np.linspace(-abs(a), abs(a), 2)
-            ax.plot(ug, lam * ug + lo, color="#999999", lw=0.8, ls=":",
-                    label=f"$w = {lam:.3g}\\,u + d_1$ limits")
-            ax.plot(ug, lam * ug + hi, color="#999999", lw=0.8, ls=":")
-            ax.plot(uk, wk, color=COLORS["w"], lw=1.4,
-                    label=f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$")
-            ax.set_xlabel("control input $u$ [-]")
+            hysteresis_loop(ax, hyst, uk, wk, f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$")
             ax.set_title(f"amplitude {a:g}")
             ax.legend(loc="upper left", framealpha=0.95, fontsize=8)
         axes[0].set_ylabel("hysteresis output $w$ [-]")
-        fig.suptitle(TITLES.get(hyst.kind, hyst.kind))
+        fig.suptitle(hyst.title)
         fig.savefig(path, dpi=120)

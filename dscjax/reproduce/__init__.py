@@ -1,5 +1,6 @@
-"""The paper's simulation study (Section 4) in one call: Figures 1-6, the adaptive estimates, a
-summary of every run and a check of each claim the paper makes from its figures.
+"""The paper's simulation study (Section 4) in one call: Figures 1-6, Fig. 1 for every
+hysteresis model of dscjax, the adaptive estimates, a summary of every run and a check of each
+claim the paper makes from its figures.
 
     import dscjax.reproduce
     summary = dscjax.reproduce.reproduce("results/paper")
@@ -41,11 +42,13 @@ from dscjax.reproduce.figures import FIGURES, RC, figures
 from dscjax.reproduce.markdown import summary_markdown
 from dscjax.reproduce.runs import (
     ESTIMATES,
+    FAMILY,
     LABELS,
     METRIC_FIELDS,
     RUNS,
     STYLE,
     estimates,
+    family_loops,
     hysteresis_loops,
     run_all,
     run_metrics,
@@ -100,11 +103,12 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     out.mkdir(parents=True, exist_ok=True)
     log(f"reproducing Section 4 of the paper: T = {t_final:g} s, dt = {dt:g} s -> {out}/")
     loops = hysteresis_loops()
-    log("Fig. 1 hysteresis loops integrated")
+    family = family_loops()
+    log(f"Fig. 1 hysteresis loops integrated (and for {', '.join(family)})")
     trajs = run_all(t_final, dt, log)
     summary = summarize(trajs, t_final, dt)
     log("writing figures")
-    paths = figures(trajs, loops, out, fmt, dpi)
+    paths = figures(trajs, loops, out, fmt, dpi, family)
     if complexity:
         from dscjax import complexity as cx
 
@@ -136,7 +140,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
 
 
 __all__ = ["ALIKE_FACTOR", "AMPLITUDE_MARGIN", "COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI",
-           "DT", "ESTIMATES", "FIGURES", "INTERPRETATIONS", "LABELS", "METRIC_FIELDS", "RC",
-           "RUNS", "STYLE", "T_FINAL", "check_claims", "claim_lines", "complexity_claim",
-           "estimates", "figures", "hysteresis_loops", "reproduce", "run_all", "run_metrics",
-           "setups", "summarize", "summary_markdown"]
+           "DT", "ESTIMATES", "FAMILY", "FIGURES", "INTERPRETATIONS", "LABELS",
+           "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "check_claims", "claim_lines",
+           "complexity_claim", "estimates", "family_loops", "figures", "hysteresis_loops",
+           "reproduce", "run_all", "run_metrics", "setups", "summarize", "summary_markdown"]

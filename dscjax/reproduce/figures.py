@@ -8,11 +8,12 @@ from pathlib import Path
 import numpy as np
 
 from dscjax.examples import paper_example
-from dscjax.plotting import COLORS, subplots
+from dscjax.plotting import COLORS, hysteresis_loop, subplots
 from dscjax.reproduce.runs import LABELS, STYLE, estimates
 
 FIGURES = {
     "fig1": "fig1_hysteresis",
+    "fig1_family": "fig1_hysteresis_family",
     "fig2": "fig2_compensation",
     "fig3": "fig3_dsc_control",
     "fig4": "fig4_dsc_hysteresis_output",
@@ -73,12 +74,38 @@ def _line(ax, traj, signal, name, **over):
     ax.plot(t, y, label=LABELS[name], **(STYLE[name] | over))
 
 
-def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150) -> dict:
-    """Write Figs. 1-6 and the estimates figure; returns {figure id: path}."""
+def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150,
+            family: dict | None = None) -> dict:
+    """Write Figs. 1-6 and the estimates figure, and with `family` (`runs.family_loops`) Fig.
+    1 of every hysteresis model; returns {figure id: path}."""
     import matplotlib
 
     with matplotlib.rc_context(RC):
-        return _figures(trajs, loops, out, fmt, dpi)
+        paths = _figures(trajs, loops, out, fmt, dpi)
+        if family is not None:
+            paths["fig1_family"] = _family_figure(family, out, fmt, dpi)
+        return paths
+
+
+def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
+    """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
+    both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
+    hysteresis` draws one model)."""
+    loop_colors = ("#8c564b", COLORS["w"])  # as Fig. 1: small loop brown, large loop w's
+    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
+                         layout="constrained")
+    for ax, (model, _, u, w) in zip(np.atleast_1d(axes), family.values(), strict=True):
+        big = int(np.argmax(np.max(np.abs(u), axis=1)))
+        for i in range(len(u)):
+            k = float(np.max(np.abs(u[i])))
+            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}", loop_colors[i % 2],
+                            lines=i == big)
+        ax.set_title(model.title, fontsize=9)
+        ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
+    np.atleast_1d(axes)[0].set_ylabel("hysteresis output $w$ [-]")
+    fig.suptitle(r"Fig. 1 for every actuator model: $w(u)$ for $u = k\,\sin(2.3t)$, "
+                 r"examples' parameters (docs/hysteresis.md)")
+    return _finish(fig, out, FIGURES["fig1_family"], fmt, dpi)
 
 
 def _figures(trajs, loops, out, fmt, dpi):

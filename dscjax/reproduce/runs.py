@@ -8,12 +8,11 @@ import time
 from collections.abc import Callable, Sequence
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dscjax.controllers.backstepping import with_backstepping
-from dscjax.examples import paper_example
-from dscjax.integrate import rk4_step
+from dscjax.examples import hysteresis_example, paper_example
+from dscjax.hysteresis import sine_loops
 from dscjax.simulate import divergence_report, simulate
 
 RUNS = ("dsc", "dsc_no_dhat", "dsc_no_dhat_no_zeta", "backstepping")
@@ -32,6 +31,7 @@ STYLE = {
 }
 METRIC_FIELDS = ("linf_error", "linf_error_after_1s", "l2_error", "l2_error_after_1s",
                  "max_abs_u", "max_abs_u_after_1s", "max_abs_w", "tv_u")
+FAMILY = ("backlash", "pi", "gpi", "bouc_wen")  # the hysteresis models of the Fig. 1 family
 ESTIMATES = ("theta_hat_g1", "theta_hat_2", "phi_hat_1", "zeta_hat", "d_hat")
 
 
@@ -54,25 +54,22 @@ def hysteresis_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.
 
     Returns {k: (t, u, w)} as NumPy arrays.
     """
-    hyst = paper_example().hysteresis
-    n_steps = int(round(t_final / dt))
+    t, u, w = sine_loops(paper_example().hysteresis, amplitudes, omega, t_final, dt)
+    return {k: (t, u[i], w[i]) for i, k in enumerate(amplitudes)}
 
-    def rate(t, w, k):
-        u, du = k * jnp.sin(omega * t), k * omega * jnp.cos(omega * t)
-        return hyst.rate(u, du, w)
 
-    @jax.jit
-    def loop(k):
-        def step(w, i):
-            t = i * dt
-            return rk4_step(rate, t, w, dt, k), w
+def family_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.3,
+                 t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
+    """Fig. 1's input applied to every hysteresis model of dscjax at its example's values
+    (`hysteresis_example`; the paper's (4) for backlash), as `dscjax hysteresis` drives one.
 
-        w_end, ws = jax.lax.scan(step, jnp.zeros(()), jnp.arange(n_steps))
-        return jnp.append(ws, w_end)
-
-    t = np.arange(n_steps + 1) * dt
-    return {k: (t, k * np.sin(omega * t), np.asarray(loop(jnp.asarray(k)))) for k in amplitudes}
-
+    Returns {kind: (model, t (N+1,), u (K, N+1), w (K, N+1))}, K = len(amplitudes).
+    """
+    out = {}
+    for kind in FAMILY:
+        model = (paper_example() if kind == "backlash" else hysteresis_example(kind)).hysteresis
+        out[kind] = (model, *sine_loops(model, amplitudes, omega, t_final, dt))
+    return out
 
 
 def run_metrics(traj, window_start: float) -> dict:
@@ -111,5 +108,5 @@ def run_all(t_final: float = 20.0, dt: float = 1e-3, log: Callable[[str], None] 
 
 
 
-__all__ = ["ESTIMATES", "LABELS", "METRIC_FIELDS", "RUNS", "STYLE", "estimates",
-           "hysteresis_loops", "run_all", "run_metrics", "setups"]
+__all__ = ["ESTIMATES", "FAMILY", "LABELS", "METRIC_FIELDS", "RUNS", "STYLE", "estimates",
+           "family_loops", "hysteresis_loops", "run_all", "run_metrics", "setups"]
