@@ -18,6 +18,8 @@ P = dict(
     k1=10.0, k2=0.45, gam=8.0, eta1=0.01, eta2=0.01, eta_z=0.01, eta_d=0.01, sigma=0.01,
     eps=0.01, gmin=1.0, tau=0.01, c2=0.1, width=0.01,
 )
+# Each adaptive law may have its own rate (a tuner's gains do); unset, every law uses `gam`.
+RATES = ("gam_g1", "gam_g2", "gam_phi", "gam_z", "gam_d")
 
 
 def x2d_of(x1, th1h, ph1, t, p=P):
@@ -34,7 +36,8 @@ def initial_state(p=P, x0=(0.08, 0.1), w0=0.0, est=(0.05, 0.0, 1.0, 0.5, 1.0)):
 
 def rhs(t, X, p=P, full=False):
     x1, x2, w, z2, th1h, th2h, ph1, zeta, dh = (float(v) for v in X)
-    eps, gam = p["eps"], p["gam"]
+    eps = p["eps"]
+    g_g1, g_g2, g_phi, g_z, g_d = (p.get(r, p["gam"]) for r in RATES)
     yr, yr1, yr2 = math.sin(t), math.cos(t), -math.sin(t)
 
     # control law, eqs. (74)-(78)
@@ -56,11 +59,11 @@ def rhs(t, X, p=P, full=False):
     x2dot = p["g2"] * w + p["th2"] * f2 + 0.1 * (x1 * x1 + x2 * x2) * math.sin(t) ** 3
 
     # adaptive laws
-    th1dot = gam * (f1 * s1 - p["eta1"] * th1h)
-    th2dot = gam * (f2 * s2 - p["eta2"] * th2h)
-    ph1dot = -gam * (yr1 * s1 + p["sigma"] * ph1)
-    zetadot = -gam * (ubar * s2 + p["eta_z"] * zeta)
-    dhdot = gam * (abs(s2) - p["eta_d"] * dh)
+    th1dot = g_g1 * (f1 * s1 - p["eta1"] * th1h)
+    th2dot = g_g2 * (f2 * s2 - p["eta2"] * th2h)
+    ph1dot = -g_phi * (yr1 * s1 + p["sigma"] * ph1)
+    zetadot = -g_z * (ubar * s2 + p["eta_z"] * zeta)
+    dhdot = g_d * (abs(s2) - p["eta_d"] * dh)
 
     # u' by the chain rule
     s1dot = x1dot - yr1

@@ -89,3 +89,36 @@ def jax_leaves(traj):
     import jax
 
     return [x for x in jax.tree.leaves(traj) if np.ndim(x) > 0]
+
+
+def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setup):
+    """The tuner's held-out (and training) figures: a plant whose classical RK4 run diverges
+    at the tuning's step but tracks once refined is counted as refined, not diverged, with
+    the figures of the refined run; the other plants are left as they were."""
+    import tuning
+    from dscjax.config import SimOptions
+    from tuning import report
+
+    problem = tuning.build_problem(paper_setup, SimOptions(t_final=2.0), tuning.TuningConfig())
+    ov = {"hysteresis.alpha": np.array([0.7, 10.0, 1.3]),
+          "hysteresis.lam": np.array([1.2, 0.15, 1.7])}
+    z = problem.z0
+    before = report._host(problem.objective.per_plant(z, {k: jnp.asarray(v)
+                                                          for k, v in ov.items()}))
+    assert np.asarray(before["diverged"]).astype(bool).tolist() == [False, True, False]
+    after = report.refined(problem, z, ov, before)
+    assert np.asarray(after["diverged"]).astype(bool).tolist() == [False, False, False]
+    j = int(after["refined"][1])
+    assert after["refined"].tolist() == [0, j, 0] and j >= 1
+    for key in report.STATS_METRICS + ("loss",):
+        np.testing.assert_array_equal(after[key][[0, 2]], np.asarray(before[key])[[0, 2]])
+    np.testing.assert_array_equal(after["loss"], before["loss"])  # the objective's, at dt
+    solver, m = dscjax.refinement_level(j)
+    one = dscjax.simulate(dscjax.params.set_many(paper_setup, {
+        "hysteresis.alpha": 10.0, "hysteresis.lam": 0.15}), 2.0, 1e-3 / 2**m, refine=0,
+        solver=solver)
+    for key in ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u", "tv_u"):
+        # a sum over 2**m * 2000 steps, batched or not: round-off of the summation order
+        assert after[key][1] == pytest.approx(float(one.metrics[key]), rel=1e-9), key
+    stats = report.batch_stats(after)
+    assert (stats["n_diverged"], stats["n_refined"]) == (0, 1)

@@ -13,6 +13,7 @@ import numpy as np
 from dscjax import files, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
+from dscjax.simulate import simulate_batch
 from tuning.objective import BOUND_RTOL
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -34,12 +35,41 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     for tag, z in (("start", z0), ("tuned", z1)):
         out["nominal"][tag] = _host(per_plant(z, {}))
     if obj.overrides:
-        out["train"] = {tag: _host(per_plant(z)) for tag, z in (("start", z0), ("tuned", z1))}
+        out["train"] = {tag: refined(problem, z, obj.overrides, _host(per_plant(z)))
+                        for tag, z in (("start", z0), ("tuned", z1))}
     if problem.heldout:
         ov = {k: jnp.asarray(v) for k, v in problem.heldout.items()}
-        out["heldout"] = {tag: _host(per_plant(z, ov)) for tag, z in (("start", z0),
-                                                                      ("tuned", z1))}
+        out["heldout"] = {tag: refined(problem, z, ov, _host(per_plant(z, ov)))
+                          for tag, z in (("start", z0), ("tuned", z1))}
     return out
+
+
+def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+    """A batch's per-plant figures with its plants that diverged at the tuning's step re-run
+    as `simulate_batch` refines them (ETDRK4 at dt, dt/2, ..., `simulation.refine` levels):
+    a numerical divergence of the integrator is not a divergence of the loop (issue 11).
+    Adds `refined` (the level that tracked, 0 = the tuning's own step); the exact metrics
+    (those `simulate` reports) and `diverged` of the refined plants are those of the refined
+    runs; their loss and smooth surrogates stay the objective's at the tuning's step (the
+    finite divergence penalty)."""
+    m = dict(m)
+    bad = np.flatnonzero(np.asarray(m["diverged"]).astype(bool))
+    m["refined"] = np.zeros(np.shape(m["diverged"]), np.int32)
+    opts = problem.options
+    if bad.size == 0 or not opts.refine:
+        return m
+    setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
+    traj = simulate_batch(setup, {k: np.asarray(v)[bad] for k, v in overrides.items()},
+                          opts.t_final, opts.dt, window_start=opts.window_start,
+                          state_bound=opts.state_bound, refine=opts.refine, solver=opts.solver)
+    still = np.asarray(traj.diverged).astype(bool)
+    for key in traj.metrics.keys() & m.keys():  # the exact metrics (not J, not smooth ones)
+        m[key] = np.array(m[key], dtype=float)
+        m[key][bad] = np.asarray(traj.metrics[key])
+    m["diverged"] = np.array(m["diverged"])
+    m["diverged"][bad] = still
+    m["refined"][bad] = np.where(still, 0, np.asarray(traj.refinements))
+    return m
 
 
 def _host(d):
@@ -48,7 +78,8 @@ def _host(d):
 
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     ok = ~m["diverged"].astype(bool)
-    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_diverged": int((~ok).sum())}
+    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_diverged": int((~ok).sum()),
+                           "n_refined": int(np.sum(np.asarray(m.get("refined", 0)) > 0))}
     for key in STATS_METRICS + ("loss",):
         v = m[key][ok] if key != "loss" else m[key]
         out[key] = None if v.size == 0 else {
@@ -180,6 +211,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
+    summary["heldout_stiff"] = stiff_note(summary, problem.options)
     out = Path(out)
     figures = []
     trajs = None
@@ -213,6 +245,18 @@ def heldout_warning(summary: dict, cfg) -> str | None:
                "0.25` ([tuning.robust] in a config)")
     return (f"the tuned gains DIVERGE on {k} of {n} held-out plants (start gains: {k0}); "
             f"they were tuned on {where}: do not deploy them as they are; {fix}")
+
+
+def stiff_note(summary: dict, options) -> str | None:
+    """The sentence saying that held-out plants diverged only numerically with the tuned gains
+    (they track once refined), or None."""
+    h = summary.get("heldout")
+    if not h or not h["tuned"]["n_refined"]:
+        return None
+    return (f"{h['tuned']['n_refined']} of {h['tuned']['n']} held-out plants diverge with the "
+            f"tuned gains at dt = {options.dt:g} s with the {options.solver} solver, and track "
+            f"once refined (ETDRK4, smaller steps): the loop is numerically stiff there, not "
+            f"unstable; simulate or sweep these gains with `--solver etdrk4` or a smaller dt")
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
@@ -260,6 +304,8 @@ def _markdown(s: dict, problem, figures) -> str:
     lines = ["# dscjax tune: report", ""]
     if s.get("heldout_warning"):
         lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
+    if s.get("heldout_stiff"):
+        lines += [f"> Note: {s['heldout_stiff']}.", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -334,7 +380,10 @@ def _markdown(s: dict, problem, figures) -> str:
                 continue
             lines.append(f"| {_md(LABELS[m])} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
-        lines.append(f"| diverged | {st['n_diverged']} | {tu['n_diverged']} | | | | |")
+        lines.append(f"| diverged at every step tried | {st['n_diverged']} | "
+                     f"{tu['n_diverged']} | | | | |")
+        lines.append(f"| tracked after refinement (numerically stiff at dt) | "
+                     f"{st['n_refined']} | {tu['n_refined']} | | | | |")
         reqs = s[key]["requirements"]["tuned"]
         if reqs:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "

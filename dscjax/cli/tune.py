@@ -326,9 +326,12 @@ def run(args) -> int:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
             print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
                   f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
-                  f"{h0['n_diverged']} -> {h1['n_diverged']}")
+                  f"{h0['n_diverged']} -> {h1['n_diverged']}; tracked only after refinement "
+                  f"(numerically stiff at dt) {h0['n_refined']} -> {h1['n_refined']}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
+    if summary.get("heldout_stiff"):
+        print(f"  note: {summary['heldout_stiff']}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
              if outcome is not None else "history.csv, ") + "report.md, report.json"
