@@ -9,7 +9,9 @@ sharing no code with dscjax) by classical RK4 on the same grid. Prints and write
 confirm_tuned.json: the windowed L-inf tracking error on [window_start, T], max|u| and
 TV(u) = sum_k |u_(k+1) - u_k| over the step grid, from the reference and from the tuner's
 report, and the reference's figures against the deployable problem's bounds (max|u| <= the
-start's, TV(u) <= tv_max_factor x the start's).
+start's, TV(u) <= tv_max_factor x the start's). With --corners, the tuned gains also run on
+the 8 corners of the held-out box (hysteresis alpha, lam, psi +-30 %) at dt and at dt/10: a
+plant that blows up at dt and tracks at dt/10 is numerically stiff at dt, not unstable.
 """
 
 from __future__ import annotations
@@ -61,10 +63,37 @@ def figures(p: dict, cfg: dict, t_final: float, dt: float, window_start: float) 
                 finite=bool(np.all(np.isfinite(X))))
 
 
+def _blown_up_or(f, *args) -> dict:
+    """f(*args), or {"finite": False} when the plain-Python run overflows (math raises)."""
+    try:
+        with np.errstate(all="ignore"):
+            return f(*args)
+    except (ValueError, OverflowError):
+        return {"finite": False}
+
+
+def corners(cfg: dict, t_final: float, dt: float, window_start: float) -> list[dict]:
+    h = cfg["hysteresis"]
+    rows = []
+    for a in (0.7, 1.3):
+        for lam in (0.7, 1.3):
+            for psi in (0.7, 1.3):
+                c = json.loads(json.dumps(cfg))
+                c["hysteresis"].update(alpha=a * h["alpha"], lam=lam * h["lam"],
+                                       psi=psi * h["psi"])
+                p = reference_params(c)
+                runs = [dict(dt=d, **_blown_up_or(figures, p, c, t_final, d, window_start))
+                        for d in (dt, dt / 10)]
+                rows.append(dict(alpha=c["hysteresis"]["alpha"], lam=c["hysteresis"]["lam"],
+                                 psi=c["hysteresis"]["psi"], runs=runs))
+    return rows
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("tune_dir", help="the --out directory of a `dscjax tune` run")
     ap.add_argument("--out", default="results/confirm_tuned")
+    ap.add_argument("--corners", action="store_true", help="also the held-out box's corners")
     args = ap.parse_args(argv)
     d = Path(args.tune_dir)
     tuned = json.loads((d / "gains.json").read_text())
@@ -99,6 +128,13 @@ def main(argv=None) -> int:
     print(f"reference: L-inf {result['improvement']:.2f}x lower with the tuned gains; max|u| "
           f"{r['max_abs_u']:.4f} <= {bound_u:.4f}: {result['max_abs_u_met']}; TV(u) "
           f"{r['tv_u']:.3f} <= {bound_tv:.3f}: {result['tv_u_met']}")
+    if args.corners:
+        result["corners"] = corners(tuned, t_final, dt, window_start)
+        for c in result["corners"]:
+            print(f"corner alpha {c['alpha']:.4g} lam {c['lam']:.4g} psi {c['psi']:.4g}: "
+                  + ", ".join(f"dt {r['dt']:g}: " + (f"L-inf {r['linf_error_window']:.4g}"
+                                                    if r["finite"] else "blows up")
+                              for r in c["runs"]))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "confirm_tuned.json").write_text(json.dumps(result, indent=1))
