@@ -227,10 +227,9 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
 
 
 def heldout_warning(summary: dict, cfg) -> str | None:
-    """The sentence to put first when the tuned gains diverge on held-out plants (None if
-    they diverge on none or there is no held-out batch). The nominal problem rewards nothing
-    but the nominal plant, and its best gains have diverged on up to 245 of 256 held-out
-    plants (docs/tuning.md), so this must not hide in a table."""
+    """The sentence to put first when the tuned gains diverge on held-out plants at every
+    step tried (None if on none, or there is no held-out batch): a loop that loses plants
+    must not hide in a table. Plants that track once refined are `stiff_note`'s."""
     h = summary.get("heldout")
     if not h or not h["tuned"]["n_diverged"]:
         return None
