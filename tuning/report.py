@@ -10,10 +10,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, validation
+from dscjax import files, metrics, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
-from dscjax.simulate import simulate_batch
+from dscjax.simulate import refine_rows, refinement_level, simulate_batch
 from tuning.objective import BOUND_RTOL
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -46,29 +46,36 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A batch's per-plant figures with its plants that diverged at the tuning's step re-run
-    as `simulate_batch` refines them (ETDRK4 at dt, dt/2, ..., `simulation.refine` levels):
-    a numerical divergence of the integrator is not a divergence of the loop (issue 11).
+    at the refinement levels of `simulate` (ETDRK4 at dt, dt/2, ..., `simulation.refine`
+    levels; `simulate.refine_rows`: only the rows still diverged, padded batches): a
+    numerical divergence of the integrator is not a divergence of the loop (issue 11).
     Adds `refined` (the level that tracked, 0 = the tuning's own step); the exact metrics
     (those `simulate` reports) and `diverged` of the refined plants are those of the refined
     runs; their loss and smooth surrogates stay the objective's at the tuning's step (the
     finite divergence penalty)."""
     m = dict(m)
-    bad = np.flatnonzero(np.asarray(m["diverged"]).astype(bool))
     m["refined"] = np.zeros(np.shape(m["diverged"]), np.int32)
     opts = problem.options
-    if bad.size == 0 or not opts.refine:
+    if not np.any(m["diverged"]) or not opts.refine:
         return m
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-    traj = simulate_batch(setup, {k: np.asarray(v)[bad] for k, v in overrides.items()},
-                          opts.t_final, opts.dt, window_start=opts.window_start,
-                          state_bound=opts.state_bound, refine=opts.refine, solver=opts.solver)
-    still = np.asarray(traj.diverged).astype(bool)
-    for key in traj.metrics.keys() & m.keys():  # the exact metrics (not J, not smooth ones)
-        m[key] = np.array(m[key], dtype=float)
-        m[key][bad] = np.asarray(traj.metrics[key])
-    m["diverged"] = np.array(m["diverged"])
-    m["diverged"][bad] = still
-    m["refined"][bad] = np.where(still, 0, np.asarray(traj.refinements))
+    ov = {k: np.asarray(v) for k, v in overrides.items()}
+
+    def level(j, idx):  # rows idx at refinement level j (level 0, the tuning's step, is m)
+        solver, halvings = refinement_level(j, opts.solver)
+        traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, opts.t_final,
+                              opts.dt / 2**halvings, window_start=opts.window_start,
+                              state_bound=opts.state_bound, refine=0, solver=solver)
+        return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys}}
+
+    # the exact metrics, those `simulate` reports (not J, not the smooth surrogates)
+    names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
+    keys = sorted(names.keys() & m.keys())
+    rows = {"diverged": np.asarray(m["diverged"]).astype(bool),
+            **{k: np.asarray(m[k], dtype=float) for k in keys}}
+    rows, levels = refine_rows(rows, lambda r: r["diverged"], level, opts.refine)
+    m.update(rows)
+    m["refined"] = np.where(rows["diverged"], 0, levels).astype(np.int32)
     return m
 
 
