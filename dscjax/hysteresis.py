@@ -38,6 +38,8 @@ when the robust term saturates.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 from collections.abc import Callable
 from typing import ClassVar
 
@@ -472,10 +474,30 @@ def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: floa
         (1001,)
     """
     n_steps = max(int(round(t_final / dt)), 1)
-    u, w = jax.jit(_open_loop, static_argnums=(1, 3))(
-        _as_float(hysteresis), lambda t, _: u_of_t(t), (), n_steps,
-        jnp.asarray(dt, jnp.result_type(float)))
+    u, w = _open_loop_jit(_as_float(hysteresis), _OfT(u_of_t), (), n_steps,
+                          jnp.asarray(dt, jnp.result_type(float)))
     return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
+
+
+@dataclasses.dataclass(frozen=True)
+class _OfT:
+    """u_of_t(t) as the (t, args) function `_open_loop` takes; equal for the same u_of_t, so
+    the compiled program is reused (a new lambda per call would compile again)."""
+
+    u_of_t: Callable
+
+    def __call__(self, t, _):
+        return self.u_of_t(t)
+
+
+def _sine(t, amp_omega):
+    amplitude, om = amp_omega
+    return amplitude * jnp.sin(om * t)
+
+
+@functools.partial(jax.jit, static_argnames=("n_steps",))
+def _sine_loops(model, amps, om, dt, n_steps):
+    return jax.vmap(lambda a: _open_loop(model, _sine, (a, om), n_steps, dt))(amps)
 
 
 def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float, dt: float):
@@ -486,16 +508,8 @@ def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float,
     """
     n_steps = max(int(round(t_final / dt)), 1)
     dtype = jnp.result_type(float)
-
-    def u_of_t(t, amp_omega):
-        amplitude, om = amp_omega
-        return amplitude * jnp.sin(om * t)
-
-    def run(model, amps, om, dt_):
-        return jax.vmap(lambda a: _open_loop(model, u_of_t, (a, om), n_steps, dt_))(amps)
-
-    u, w = jax.jit(run)(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),
-                        jnp.asarray(omega, dtype), jnp.asarray(dt, dtype))
+    u, w = _sine_loops(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),
+                       jnp.asarray(omega, dtype), jnp.asarray(dt, dtype), n_steps=n_steps)
     return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
 
 
@@ -520,6 +534,8 @@ def _open_loop(model, u_of_t, args, n_steps, dt):
                     project=project if model.projects else None)
     return res.obs
 
+
+_open_loop_jit = jax.jit(_open_loop, static_argnums=(1, 3))
 
 __all__ = ["Backlash", "BoucWen", "GeneralizedPI", "Hysteresis", "MODELS",
            "PrandtlIshlinskii", "closed_form", "envelope", "open_loop", "play", "sine_loops"]
