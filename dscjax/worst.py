@@ -742,8 +742,10 @@ def _warm_up(prog: Programs, method: str, starts: int, batch: int) -> float:
     z0 = np.zeros((max(batch, starts) if method == "gradient" else batch, prog.d + prog.m))
     calls = [lambda: prog.values(jnp.asarray(z0)), lambda: prog.project(jnp.asarray(z0)),
              lambda: prog.rescale(jnp.asarray(z0))]
-    if method == "gradient":
-        calls.append(lambda: prog.value_and_grad(jnp.asarray(z0[:starts])))
+    if method == "gradient":  # its iterations project and restart M = `starts` points
+        calls += [lambda: prog.value_and_grad(jnp.asarray(z0[:starts])),
+                  lambda: prog.project(jnp.asarray(z0[:starts])),
+                  lambda: prog.rescale(jnp.asarray(z0[:starts]))]
     total = 0.0
     for call in calls:
         t0 = time.perf_counter()

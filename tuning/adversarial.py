@@ -169,13 +169,13 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
     if out is not None:
         out.mkdir(parents=True, exist_ok=True)
     # the training plants need the waveform's coefficients as a leaf: a zero waveform
-    setup = search_problem(setup, options, cfg).setup
+    searched = search_problem(setup, options, cfg)
+    setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
     desc = base.describe()
     fingerprint = {"problem": files.digest(desc),
                    "adversarial": dataclasses.asdict(dataclasses.replace(
-                       spec, rounds=0, ranges=[r.spec() for r in search_problem(
-                           setup, options, cfg).ranges]))}
+                       spec, rounds=0, ranges=[r.spec() for r in searched.ranges]))}
     meta = _manifest(out, fingerprint, resume, overwrite)
 
     def save():

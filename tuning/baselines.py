@@ -20,7 +20,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from dscjax import params
-from dscjax.cmaes import ReplayCMA, require_cma  # noqa: F401  (tuning.baselines.require_cma)
+from dscjax.cmaes import require_cma
 from tuning.objective import aggregate, plant_loss, simulate_metrics
 
 
