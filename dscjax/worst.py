@@ -664,6 +664,8 @@ class Result:
     traces: dict[str, Trace]
     nominal_value: float
     info: dict
+    trajectory: Any = None  # `simulate`'s run of `setup` (kept for the report's files)
+    nominal: Any = None  # and of the nominal point (zero waveform: the same values exactly)
 
 
 def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int, Any]:
@@ -805,17 +807,17 @@ def _finish(problem: Problem, traces: dict[str, Trace]) -> Result:
         if key in checked:
             continue
         setup = problem.setup_at(z)
-        value, bad, t_bad, level, _ = _check_run(problem, setup)
+        value, bad, t_bad, level, traj = _check_run(problem, setup)
         checked[key] = value
         score = (math.inf, -t_bad) if bad else (value, 0.0)
         if best is None or score > best[0]:
-            best = (score, mth, z, setup, value, bad, t_bad, level)
-    _, mth, z, setup, value, bad, t_bad, level = best
+            best = (score, mth, z, setup, value, bad, t_bad, level, traj)
+    _, mth, z, setup, value, bad, t_bad, level, traj = best
     # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
     # the program of the candidates' re-check serves it
-    nominal_value = _check_run(problem, problem.setup)[0]
+    nominal_value, *_, nominal = _check_run(problem, problem.setup)
     return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
-                  nominal_value, {"rechecked": len(checked)})
+                  nominal_value, {"rechecked": len(checked)}, traj, nominal)
 
 
 __all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",

@@ -9,7 +9,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import jax
@@ -68,8 +67,9 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
               f"Reproduce: dscjax simulate --config worst_config.toml")
     files.write_text(out / "worst_config.toml",
                      config.to_toml(result.setup, options_of(result), header=header))
-    worst = simulate(result.setup, p.t_final, p.dt, window_start=p.window_start,
-                     state_bound=p.state_bound, throw=False, refine=p.refine, solver=p.solver)
+    worst = result.trajectory if result.trajectory is not None else simulate(
+        result.setup, p.t_final, p.dt, window_start=p.window_start, state_bound=p.state_bound,
+        throw=False, refine=p.refine, solver=p.solver)
     dt_used = float(np.asarray(worst.dt))
     t_half = half_step_grid(p.t_final, dt_used)
     dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
@@ -81,11 +81,9 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     files.write_text(out / "report.md", report_md(result))
     names.append("report.md")
     if plots:
-        nominal_setup = p.setup.replace(plant=dataclasses.replace(
-            p.setup.plant, disturbance=None)) if p.m else p.setup
-        nominal = simulate(nominal_setup, p.t_final, p.dt, window_start=p.window_start,
-                           state_bound=p.state_bound, throw=False, refine=p.refine,
-                           solver=p.solver)
+        nominal = result.nominal if result.nominal is not None else simulate(
+            p.setup, p.t_final, p.dt, window_start=p.window_start, state_bound=p.state_bound,
+            throw=False, refine=p.refine, solver=p.solver)
         _plot_worst(out / FIGURES[0], worst, nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
         _plot_progress(out / FIGURES[2], result)
