@@ -127,10 +127,12 @@ EXAMPLES = ("paper", "backstepping", "order-N", "pi", "gpi", "bouc_wen")
 def hysteresis_example(kind: str, dtype=None) -> Setup:
     """The paper's loop (plant, DSC gains, reference) with the `kind` hysteresis model at its
     class defaults, whose large-amplitude slope and offset are close to the paper's
-    (docs/hysteresis.md): "pi", "gpi" or "bouc_wen" ("backlash" is `paper_example`)."""
+    (docs/hysteresis.md): "pi", "gpi" or "bouc_wen"; "backlash" is `paper_example` itself."""
     from dscjax.config import REGISTRY
 
     setup = paper_example(dtype=np.float64)
+    if kind == "backlash":
+        return cast(setup, dtype if dtype is not None else _default_float())
     setup = setup.replace(hysteresis=REGISTRY["hysteresis"][kind]())
     return cast(setup, dtype if dtype is not None else _default_float())
 

@@ -66,7 +66,7 @@ class Param:
         """The leaf, its element, or the scale (1 in the leaf's dtype: the setup as it is)."""
         leaf = get(setup, self.path)
         if self.scale:
-            return np.ones((), np.asarray(leaf).dtype)
+            return np.ones((), jnp.result_type(leaf))  # result_type: also of a tracer
         return leaf if self.index is None else leaf[self.index]
 
     def nominal(self, setup) -> float:

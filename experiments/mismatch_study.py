@@ -51,9 +51,9 @@ METRIC = "linf_error_window"
 
 
 def plant(kind: str):
-    from dscjax.examples import hysteresis_example, paper_example
+    from dscjax.examples import hysteresis_example
 
-    return paper_example() if kind == "backlash" else hysteresis_example(kind)
+    return hysteresis_example(kind)
 
 
 def ranges(kind: str):

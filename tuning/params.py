@@ -104,7 +104,7 @@ class Selection:
 
     def size(self, setup) -> int:
         """Number of scalars tuned."""
-        return sum(int(np.size(self._value(setup, t))) for t in self.items)
+        return sum(int(np.size(t.param.value(setup))) for t in self.items)
 
     # -- construction ------------------------------------------------------------------------
     @classmethod
@@ -188,16 +188,9 @@ class Selection:
         return cls(tuple(items))
 
     # -- coordinates ---------------------------------------------------------------------------
-    @staticmethod
-    def _value(setup, t: Tuned):
-        if t.scale:
-            return jnp.ones((), jnp.result_type(setup.plant.x0))
-        value = params.get(setup, t.path)
-        return value if t.index is None else jnp.asarray(value)[t.index]
-
     def init(self, setup) -> dict[str, jax.Array]:
         """Unconstrained coordinates z of the setup's current values."""
-        return {t.name: t.to_z(jnp.asarray(self._value(setup, t))) for t in self.items}
+        return {t.name: t.to_z(jnp.asarray(t.param.value(setup))) for t in self.items}
 
     def values(self, z: Mapping[str, Any]) -> dict[str, Any]:
         """Constrained values by name."""
@@ -258,7 +251,7 @@ class Selection:
     def describe(self, setup) -> list[str]:
         rows = []
         for t in self.items:
-            v = np.asarray(self._value(setup, t), dtype=float)
+            v = np.asarray(t.param.value(setup), dtype=float)
             b = "" if t.lower is None and t.upper is None else (
                 f" in [{'-inf' if t.lower is None else f'{t.lower:g}'}, "
                 f"{'inf' if t.upper is None else f'{t.upper:g}'}]")
@@ -294,7 +287,7 @@ def _bound_pair(b, field) -> tuple[float | None, float | None]:
 
 
 def _check_item(t: Tuned, setup, field):
-    v = np.asarray(Selection._value(setup, t), dtype=float)
+    v = np.asarray(t.param.value(setup), dtype=float)
     where = f"{field}.bounds.{t.name}"
     if t.transform == "log":
         if not np.all(v > 0):

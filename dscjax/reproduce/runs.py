@@ -67,7 +67,7 @@ def family_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.3,
     """
     out = {}
     for kind in FAMILY:
-        model = (paper_example() if kind == "backlash" else hysteresis_example(kind)).hysteresis
+        model = hysteresis_example(kind).hysteresis
         out[kind] = (model, *sine_loops(model, amplitudes, omega, t_final, dt))
     return out
 
