@@ -154,17 +154,24 @@ def finite_tree(obj, prefix: str) -> None:
         finite(params.get(obj, path), f"{prefix}.{path}")
 
 
-def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
-    """Check the run settings against the setup; returns the number of steps N = t_final/dt."""
-    positive(dt, "simulation.dt")
-    positive(t_final, "simulation.t_final")
+def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:
+    """The number of steps N = t_final / dt, both positive; ConfigError naming the fields if
+    the horizon is not a whole number of steps."""
+    positive(dt, dt_field)
+    positive(t_final, t_field)
     n_steps = int(round(float(t_final) / float(dt)))
     if n_steps < 1 or abs(n_steps * float(dt) - float(t_final)) > 1e-9 * max(1.0, float(t_final)):
         raise ConfigError(
-            f"simulation.t_final must be a whole number of steps of simulation.dt "
+            f"{t_field} must be a whole number of steps of {dt_field} "
             f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, "
             f"ratio {float(t_final) / float(dt):.6g})"
         )
+    return n_steps
+
+
+def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
+    """Check the run settings against the setup; returns the number of steps N = t_final/dt."""
+    n_steps = whole_steps(t_final, dt)
     integer(save_every, "simulation.save_every", 1)
     if n_steps % save_every:
         raise ConfigError(

@@ -64,12 +64,8 @@ def run(args) -> int:
         t_final = max(round(6 * math.pi / args.omega / args.dt), 1) * args.dt
     else:
         validation.finite(args.t_final, "--t-final")
-        validation.positive(args.t_final, "--t-final")
         t_final = args.t_final
-        n = round(t_final / args.dt)
-        if n < 1 or abs(n * args.dt - t_final) > 1e-9 * max(1.0, t_final):
-            raise validation.ConfigError(f"--t-final must be a whole number of steps of --dt "
-                                         f"(got t_final={t_final:g}, dt={args.dt:g})")
+        validation.whole_steps(t_final, args.dt, "--t-final", "--dt")
     out = prepare_out(args.out)
     print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
           f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {args.dt:g} s",
