@@ -551,7 +551,7 @@ def _open_loop(model, u_of_t, args, n_steps, dt):
     h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
                       model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
     res = integrate(field, h0, dt, n_steps, args, time_parallel=False,
-                    project=project if model.projects else None)
+                    project=project if model.projects else None, frozen=model.projects)
     return res.obs
 
 
