@@ -122,6 +122,13 @@ def decay_rates(t, X: State, setup: Setup, obs: Observation) -> State:
                  ctrl=setup.controller.decay_rates(X.ctrl))
 
 
+def frozen(setup: Setup) -> State:
+    """Which parts of X are held constant inside a step (static bools, a prefix of X's tree for
+    `integrate(frozen=...)`): the hysteresis state of a model that `projects` (the plays),
+    which only `project` changes."""
+    return State(x=False, h=type(setup.hysteresis).projects, ctrl=False)
+
+
 def project(t, X: State, setup: Setup) -> State:
     """The discrete update after every step, at its end (t, X): the hysteresis's `project`, the
     play operators' exact clamp at u(t) = the control law at X; the rest of X is an ODE state.
@@ -131,4 +138,4 @@ def project(t, X: State, setup: Setup) -> State:
 
 
 __all__ = ["Setup", "State", "Observation", "prepared", "initial_state", "vector_field",
-           "decay_rates", "project", "Controller"]
+           "decay_rates", "frozen", "project", "Controller"]

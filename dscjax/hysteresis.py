@@ -58,7 +58,9 @@ class Hysteresis(Model):
 
     kind: ClassVar[str]
     title: ClassVar[str]  # the model's name in figures
-    # True if `project` does something: the integrator then applies it after every step.
+    # True if h is a discrete state (the plays): the integrator holds it constant inside a step
+    # (`integrate(frozen=...)`: its rate is never integrated) and applies `project` after
+    # every step.
     projects: ClassVar[bool] = False
     # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
     default_sweep: ClassVar[tuple[str, ...]] = ()
@@ -210,9 +212,16 @@ class _Plays(Hysteresis):
 
     projects: ClassVar[bool] = True
 
+    def envelopes(self, u):
+        """(g_lo, g_hi) at input u (shaped like u): play j is clamped between g_lo - r_j and
+        g_hi + r_j."""
+        raise NotImplementedError
+
     def band(self, u):
         """The clamp's bounds (lo, hi), each (N,), at input u."""
-        raise NotImplementedError
+        g_lo, g_hi = self.envelopes(jnp.asarray(u)[..., None])
+        r = jnp.asarray(self.r)
+        return g_lo - r, g_hi + r
 
     def expected_shapes(self, n):
         # r, p (N,) and z0 (() or (N,)) are checked against each other in `validate`
@@ -242,16 +251,31 @@ class _Plays(Hysteresis):
         lo, hi = self.band(jnp.asarray(u0))
         return play(jnp.broadcast_to(jnp.asarray(self.z0, lo.dtype), lo.shape), lo, hi)
 
+    def each_play(self, u, z):
+        """The plays' outputs at input u, one array shaped like u per play, from their
+        outputs z (..., N) at the step's start.
+
+        Per play, not as one (..., N) array: in a batch every play is then a row of its own
+        (see `integrate`'s rows layout), and XLA:CPU computes the clamps, the weighted sum and
+        the end-of-step update row by row. On (B, N) arrays it copied the N rows into one
+        array at every stage, summed them by a library call and, for the end-of-step update,
+        transposed the result and recomputed the control law's last operations once per row
+        (docs/hysteresis.md)."""
+        g_lo, g_hi = self.envelopes(jnp.asarray(u))
+        r = jnp.asarray(self.r)
+        return [play(z[..., j], g_lo - r[..., j], g_hi + r[..., j]) for j in range(z.shape[-1])]
+
     def plays(self, u, z):
         """The plays' outputs (N,) at input u, from their outputs z at the step's start."""
-        lo, hi = self.band(u)
-        return play(z, lo, hi)
+        return jnp.stack(self.each_play(u, z), axis=-1)
 
     def output(self, u, z):
-        return self.p0 * u + jnp.sum(self.p * self.plays(u, z), axis=-1)
+        p = jnp.asarray(self.p)
+        weighted = [p[..., j] * zj for j, zj in enumerate(self.each_play(u, z))]
+        return self.p0 * u + functools.reduce(jnp.add, weighted)
 
     def rate(self, u, du, z):
-        """0: z is frozen inside a step (the stages read it through the clamp)."""
+        """0: z is held inside a step (`projects`; the stages read it through the clamp)."""
         return jnp.zeros_like(z)
 
     def project(self, u, z):
@@ -278,10 +302,8 @@ class PrandtlIshlinskii(_Plays):
     # the linear weight, the narrowest play (weight and threshold) and the widest play's weight
     default_sweep: ClassVar[tuple[str, ...]] = ("p0", "p[0]", "r[0]", "p[9]")
 
-    def band(self, u):
-        r = jnp.asarray(self.r)
-        u = jnp.asarray(u)[..., None]
-        return u - r, u + r
+    def envelopes(self, u):
+        return u, u
 
     def effective_slope(self):
         """lam = p0 + sum p_j: w = lam u + d_1 with d_1 = sum p_j (z_j - u), |z_j - u| <= r_j."""
@@ -334,11 +356,9 @@ class GeneralizedPI(_Plays):
                     f"{prefix}.envelope_{side} = [a, b, c, d] must be increasing: a*b > 0 (got "
                     f"a={v.fmt(e[..., 0])}, b={v.fmt(e[..., 1])})")
 
-    def band(self, u):
-        r = jnp.asarray(self.r)
-        u = jnp.asarray(u)[..., None]
-        return (envelope(jnp.asarray(self.envelope_left), u) - r,
-                envelope(jnp.asarray(self.envelope_right), u) + r)
+    def envelopes(self, u):
+        return (envelope(jnp.asarray(self.envelope_left), u),
+                envelope(jnp.asarray(self.envelope_right), u))
 
     def effective_slope(self):
         """p0: the envelopes saturate, so w = p0 u + d_1 with d_1 = sum p_j G_j bounded is the
@@ -531,7 +551,7 @@ def _open_loop(model, u_of_t, args, n_steps, dt):
     h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
                       model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
     res = integrate(field, h0, dt, n_steps, args, time_parallel=False,
-                    project=project if model.projects else None)
+                    project=project if model.projects else None, frozen=model.projects)
     return res.obs
 
 

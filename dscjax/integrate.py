@@ -63,6 +63,23 @@ def _axpy(a, x, y):
     return jax.tree.map(lambda xi, yi: yi + a * xi, x, y)
 
 
+def _hold(new, y, frozen):
+    """`new` with the frozen components of the state taken from y unchanged.
+
+    `frozen` (static) is None (nothing frozen) or a tree like y whose leaves are Python bools
+    (one per row of a batch) or NumPy bool arrays (one per element of a packed chunk). A frozen
+    component's increments are then never formed: XLA drops them as dead code."""
+    if frozen is None:
+        return new
+
+    def pick(n, old, m):
+        if not np.any(m):
+            return n
+        return old if np.all(m) else jnp.where(m, old, n)
+
+    return jax.tree.map(pick, new, y, frozen)
+
+
 def rk4_step(f: Callable, t, y: Pytree, dt, args) -> Pytree:
     """One classical RK4 step of y' = f(t, y, args) (f returns the derivative only).
 
@@ -75,20 +92,22 @@ def rk4_step(f: Callable, t, y: Pytree, dt, args) -> Pytree:
     return _rk4(lambda tt, yy: (f(tt, yy, args), None), t, y, dt)[0]
 
 
-def _rk4(f_obs, t, y, dt, h=None):
+def _rk4(f_obs, t, y, dt, h=None, frozen=None):
     """RK4 step for f_obs(t, y) -> (dy, obs); returns (y_next, obs at (t, y)).
 
     `h` (default dt) scales the increments only: h = 0 gives y_next = y exactly, with the
     stages still evaluated at finite points (how frozen steps are linearised safely).
+    `frozen` (see `_hold`): components that every stage reads unchanged and that the step
+    leaves as they are (a discrete state that only `integrate`'s `project` updates).
     """
     h = dt if h is None else h
     half = 0.5 * h
     k1, obs = f_obs(t, y)
-    k2, _ = f_obs(t + 0.5 * dt, _axpy(half, k1, y))
-    k3, _ = f_obs(t + 0.5 * dt, _axpy(half, k2, y))
-    k4, _ = f_obs(t + dt, _axpy(h, k3, y))
+    k2, _ = f_obs(t + 0.5 * dt, _hold(_axpy(half, k1, y), y, frozen))
+    k3, _ = f_obs(t + 0.5 * dt, _hold(_axpy(half, k2, y), y, frozen))
+    k4, _ = f_obs(t + dt, _hold(_axpy(h, k3, y), y, frozen))
     incr = jax.tree.map(lambda a, b, c, d: (a + 2.0 * (b + c) + d) * (h / 6.0), k1, k2, k3, k4)
-    return jax.tree.map(jnp.add, y, incr), obs
+    return _hold(jax.tree.map(jnp.add, y, incr), y, frozen), obs
 
 
 def _taylor(poly, q, terms=20):
@@ -123,14 +142,15 @@ def _weight(z, coeffs, direct):
     return jnp.where(small, series, direct(zd))
 
 
-def _etdrk4(f_obs, rates, t, y, dt, h=None):
+def _etdrk4(f_obs, rates, t, y, dt, h=None, frozen=None):
     """One exponential RK4 step (ETDRK4, Cox & Matthews 2002) of y' = -lam y + N(t, y), with
     lam = rates(t_k, y_k, obs_k) >= 0 frozen over the step (a pytree like y).
 
     The rates are the stiff linear decays the model knows of (the hysteresis rate alpha |u'|,
     the filters 1/tau): they are integrated exactly, and the rest N = F + lam y with
     exponential weights, so the step stays stable however large lam h is; fourth order, and
-    exactly classical RK4 where lam = 0. Returns (y_next, obs at (t, y)).
+    exactly classical RK4 where lam = 0. `frozen` as for `_rk4`. Returns (y_next, obs at
+    (t, y)).
     """
     h = dt if h is None else h
     k1, obs = f_obs(t, y)
@@ -154,23 +174,23 @@ def _etdrk4(f_obs, rates, t, y, dt, h=None):
         return each(lambda kk, r, v: kk + r * v, k, lam, yy)
 
     n_u = rest(k1, y)
-    a = each(lambda eh, ph, v, n: eh * v + ph * n, e_half, p_half, y, n_u)
+    a = _hold(each(lambda eh, ph, v, n: eh * v + ph * n, e_half, p_half, y, n_u), y, frozen)
     n_a = rest(f_obs(t + 0.5 * dt, a)[0], a)
-    b = each(lambda eh, ph, v, n: eh * v + ph * n, e_half, p_half, y, n_a)
+    b = _hold(each(lambda eh, ph, v, n: eh * v + ph * n, e_half, p_half, y, n_a), y, frozen)
     n_b = rest(f_obs(t + 0.5 * dt, b)[0], b)
-    c = each(lambda eh, ph, v, nb, nu: eh * v + ph * (2.0 * nb - nu), e_half, p_half, a, n_b,
-             n_u)
+    c = _hold(each(lambda eh, ph, v, nb, nu: eh * v + ph * (2.0 * nb - nu), e_half, p_half, a,
+                   n_b, n_u), y, frozen)
     n_c = rest(f_obs(t + dt, c)[0], c)
     y_next = each(lambda ef, w1, w2, w3, v, nu, na, nb, nc:
                   ef * v + h * (w1 * nu + 2.0 * w2 * (na + nb) + w3 * nc),
                   e_full, f1, f2, f3, y, n_u, n_a, n_b, n_c)
-    return y_next, obs
+    return _hold(y_next, y, frozen), obs
 
 
 SOLVERS = ("rk4", "etdrk4")
 
 
-def _rk4_scanned(f_obs, t, y, dt, h):
+def _rk4_scanned(f_obs, t, y, dt, h, frozen=None):
     """The same step as `_rk4`, its four stages a `lax.scan` over one copy of f_obs.
 
     Used where the step is differentiated in bulk (the time-parallel Jacobians): one copy of
@@ -183,12 +203,12 @@ def _rk4_scanned(f_obs, t, y, dt, h):
     def stage(carry, cw):
         k_prev, total = carry
         ci, wi = cw
-        ki, obs = f_obs(t + ci * dt, _axpy(ci * h, k_prev, y))
+        ki, obs = f_obs(t + ci * dt, _hold(_axpy(ci * h, k_prev, y), y, frozen))
         return (ki, _axpy(wi, ki, total)), obs
 
     zero = jax.tree.map(jnp.zeros_like, y)
     (_, total), obs = jax.lax.scan(stage, (zero, zero), (c, w))
-    return _axpy(h / 6.0, total, y), jax.tree.map(lambda o: o[0], obs)
+    return _hold(_axpy(h / 6.0, total, y), y, frozen), jax.tree.map(lambda o: o[0], obs)
 
 
 # -- public types ---------------------------------------------------------------------------------
@@ -278,6 +298,14 @@ class _Packer:
     def zeros(self, dtype) -> tuple:
         return tuple(jnp.zeros((s,), dtype) for s in self.sizes)
 
+    def pack_mask(self, mask) -> tuple:
+        """A static tree of bool arrays like the packed tree -> one NumPy bool array per chunk."""
+        leaves = jax.tree.leaves(mask)
+        parts = [np.zeros((s,), bool) for s in self.sizes]
+        for i, chunk, off, size, _ in self.slots:
+            parts[chunk][off:off + size] = np.ravel(leaves[i])
+        return tuple(parts)
+
 
 def _first(tree):
     return jax.tree.map(lambda x: x[0], tree)
@@ -290,6 +318,16 @@ def _scalars(tree) -> tuple:
 
 def _zeros(shape_tree):
     return jax.tree.map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shape_tree)
+
+
+def _full_mask(frozen, y):
+    """`frozen`, a tree of bools that is a prefix of y's, as NumPy bool arrays shaped like
+    every leaf of y (None if nothing is frozen)."""
+    if frozen is None:
+        return None
+    mask = jax.tree.map(lambda m, sub: jax.tree.map(lambda x: np.full(np.shape(x), bool(m)), sub),
+                        frozen, y)
+    return mask if any(np.any(m) for m in jax.tree.leaves(mask)) else None
 
 
 def _all_finite_small(chunks, bound):
@@ -347,12 +385,14 @@ class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
     def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, rates=None,
-                 project=None):
+                 project=None, frozen=None):
         self.f, self.reduction_is_none = f, reduction is None
         self.rates = rates  # None: classical RK4; else ETDRK4 with these decay rates
         self.project = project  # None, or the map applied to the state after every step
         self.n, self.s = n_steps, save_every
         self.yp = _Packer(y0)
+        mask = _full_mask(frozen, y0)  # components held inside a step, per packed chunk
+        self.frozen = None if mask is None else self.yp.pack_mask(mask)
         self.ap = _Packer(args)
         self.accp = _Packer(acc0 if reduction is not None else ())
         dtype = jnp.result_type(*jax.tree.leaves(y0))
@@ -379,9 +419,9 @@ class _Problem:
                 return self.yp.pack(self.rates(tt, self.yp.unpack(yy), args,
                                                self.op.unpack(obs)))
 
-            y_next, obs = _etdrk4(f_obs, rates, t, y, dt, h)
+            y_next, obs = _etdrk4(f_obs, rates, t, y, dt, h, self.frozen)
         else:
-            y_next, obs = (_rk4_scanned if scanned else _rk4)(f_obs, t, y, dt, h)
+            y_next, obs = (_rk4_scanned if scanned else _rk4)(f_obs, t, y, dt, h, self.frozen)
         if self.project is not None:
             y_next = self.yp.pack(self.project(t + dt, self.yp.unpack(y_next), args))
         return y_next, obs
@@ -585,8 +625,8 @@ def _matvec(rows, v):
 
 
 def _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
-                      time_parallel: bool, rates=None, project=None):
-    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, rates, project)
+                      time_parallel: bool, rates=None, project=None, frozen=None):
+    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, rates, project, frozen)
 
     def primal(y0c, ac, red, acc0c, dtv, bound):
         return prob.forward(y0c, ac, red, acc0c, dtv, bound)
@@ -663,9 +703,12 @@ def _segment_length(save_every: int, target: int | None) -> int | None:
 
 
 def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                     state_bound, checkpoint_every, rates=None, project=None):
+                     state_bound, checkpoint_every, rates=None, project=None, frozen=None):
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = _first(y0), _first(batch)
+    mask = _full_mask(frozen, y_one)  # one Python bool per row: held inside a step
+    frozen_rows = (None if mask is None else
+                   tuple(bool(m) for leaf in jax.tree.leaves(mask) for m in np.ravel(leaf)))
     acc_one = _first(acc0) if reduction is not None else ()
     _, unravel_b = _ravel_floats(b_one)
     b_flat = jax.vmap(lambda b: _ravel_floats(b)[0], out_axes=-1)(batch)  # (p, B)
@@ -717,9 +760,9 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
         k, y, acc, code, bad = carry
         t = k.astype(dt.dtype) * dt
         if rates is None:
-            y_next, obs = _rk4(f_obs, t, y, dt)
+            y_next, obs = _rk4(f_obs, t, y, dt, frozen=frozen_rows)
         else:
-            y_next, obs = _etdrk4(f_obs, rates_rows, t, y, dt)
+            y_next, obs = _etdrk4(f_obs, rates_rows, t, y, dt, frozen=frozen_rows)
         if project is not None:
             y_next = project_rows(t + dt, y_next)
         ok_now = code == STATUS_OK
@@ -815,6 +858,7 @@ def integrate(
     time_parallel: bool = True,
     rates: Callable | None = None,
     project: Callable | None = None,
+    frozen: Pytree = None,
 ) -> Integration:
     """Integrate y' = f(t, y, args) by RK4 on t_k = k dt, k = 0..n_steps.
 
@@ -845,6 +889,11 @@ def integrate(
         project: None, or project(t, y, args) -> y (with `batch`, args is (args, b)), applied
             to the state after every step, at the step's end time t: a discrete update that
             is no ODE, such as the play operators' clamp (`hysteresis.PrandtlIshlinskii`).
+        frozen: None, or a tree of Python bools, a prefix of y's structure (static; for a
+            batch, of one member's): True marks components held constant inside a step. Every
+            stage reads them unchanged and the step leaves them as they are, whatever f gives
+            for their rate (their increments are never formed); only `project` changes them.
+            They are still checked against `state_bound` after the step.
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
@@ -859,9 +908,9 @@ def integrate(
         raise ValueError("a reduction needs its initial accumulator acc0")
     if batch is None:
         return _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
-                                 state_bound, time_parallel, rates, project)
+                                 state_bound, time_parallel, rates, project, frozen)
     return _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                            state_bound, checkpoint_every, rates, project)
+                            state_bound, checkpoint_every, rates, project, frozen)
 
 
 __all__ = ["STATUS_BOUND", "STATUS_NONFINITE", "STATUS_OK", "Carry", "Integration",

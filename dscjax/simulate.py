@@ -22,6 +22,7 @@ from dscjax.closed_loop import (
     Setup,
     State,
     decay_rates,
+    frozen,
     initial_state,
     prepared,
     project,
@@ -190,6 +191,7 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
             common["rates"] = decay_rates
         if type(setup.hysteresis).projects:
             common["project"] = project
+        common["frozen"] = frozen(setup)
         setup = prepared(setup)
         y0 = initial_state(setup)
         res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
@@ -203,6 +205,7 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
             common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
         if type(setup.hysteresis).projects:
             common["project"] = lambda t, y, args: project(t, y, rebuild(*args))
+        common["frozen"] = frozen(setup)
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)

@@ -129,6 +129,33 @@ def test_closed_loop_plays_are_the_exact_recursion_and_stay_in_their_band():
     assert not np.any(np.asarray(batch.diverged))
 
 
+def numpy_band(model, u):
+    """The clamp's bounds of every play at the inputs u (T,), in NumPy: (T, N) each."""
+    r = np.asarray(model.r)
+    if model.kind == "pi":
+        return u[:, None] - r, u[:, None] + r
+
+    def g(e, x):
+        return e[0] * np.tanh(e[1] * x + e[2]) + e[3]
+
+    return (g(np.asarray(model.envelope_left), u[:, None]) - r,
+            g(np.asarray(model.envelope_right), u[:, None]) + r)
+
+
+@pytest.mark.parametrize("kind,solver", [("pi", "rk4"), ("gpi", "rk4"), ("pi", "etdrk4")])
+def test_single_run_plays_are_the_exact_recursion(kind, solver):
+    """One trajectory (the packed layout, plays held inside each step): every step's play
+    outputs are the recursion of the step grid's u, and w is p0 u + sum p_j z_j."""
+    setup = example(kind)
+    traj = dscjax.simulate(setup, t_final=0.5, dt=DT, solver=solver)
+    z, u, w = np.asarray(traj.h), np.asarray(traj.u), np.asarray(traj.w)
+    lo, hi = numpy_band(setup.hysteresis, u)
+    np.testing.assert_allclose(z[1:], np.maximum(lo[1:], np.minimum(hi[1:], z[:-1])),
+                               rtol=0, atol=1e-13)
+    np.testing.assert_allclose(w, float(setup.hysteresis.p0) * u
+                               + z @ np.asarray(setup.hysteresis.p), rtol=0, atol=1e-14)
+
+
 BAD = [
     ({"kind": "pi", "r": [0.4, 0.2], "p": [1.0, 1.0]}, "hysteresis.r must be strictly increasing"),
     ({"kind": "pi", "r": [-0.1, 0.2], "p": [1.0, 1.0]}, "hysteresis.r must be >= 0"),
