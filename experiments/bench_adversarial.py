@@ -18,8 +18,13 @@ simulates exactly the same plants and waveforms for the three gain sets, whateve
 The rounds' searches run --search-time seconds, or --search-evals evaluations if given.
 
 Target: the fresh worst case of the adversarial gains is lower than that of the paper's gains
-and of the random-only gains. Prints a table (with the load average) and writes
-results/bench_adversarial.json (or --out).
+and of the random-only gains. Met with the tracking-only objective (`--u-max none --tv-max none`),
+not with the default one (docs/tuning.md, "Min-max tuning"):
+
+    nice -n 5 python experiments/bench_adversarial.py --round-steps 150 --search-evals 512 \
+        --u-max none --tv-max none
+
+Prints a table (with the load average) and writes results/bench_adversarial.json (or --out).
 """
 
 from __future__ import annotations
