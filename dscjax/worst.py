@@ -686,10 +686,11 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
                lr: float = DEFAULT_LR, gradient: str = "time_parallel",
                coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
-               resume: bool = False,
+               resume: bool = False, max_evals: int | None = None,
                progress: Callable[[str, Trace, float], None] | None = None,
                **problem_options) -> Result:
-    """Search the worst case of `problem` with each method for `time_limit` seconds.
+    """Search the worst case of `problem` with each method for `time_limit` seconds (or
+    `max_evals` evaluations, whichever comes first).
 
     Args:
         problem: from `make_problem`; or a Setup, then `make_problem(problem, ranges,
@@ -705,6 +706,10 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
         coarsening: F, gradients taken on the loop simulated at F dt (values always at dt);
             1: exact gradients of the values.
         out_dir: where each method's state is saved after every iteration (for `resume`).
+        max_evals: stop a method once it has evaluated this many candidates (its last batch
+            is finished, so it may evaluate up to a batch more); None: the time limit alone.
+            A count, unlike a time, makes searches of different gains or under different
+            loads see the same points (random sampling with the same seed: exactly the same).
         progress: called with (method, trace, time_limit) after every iteration.
 
     Returns:
@@ -728,13 +733,15 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
     validation.integer(batch, "batch", 1)
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
+    if max_evals is not None:
+        validation.integer(max_evals, "--max-evals", 1)
     fp = files.digest({"problem": problem.fingerprint(), "seed": seed, "starts": starts,
                        "batch": batch, "lr": lr, "gradient": gradient,
                        "coarsening": coarsening})
     prog = Programs.for_problem(problem, gradient, coarsening)
     traces = search(prog, time_limit=time_limit, starts=starts, methods=methods, seed=seed,
                     batch=batch, lr=lr, out_dir=out_dir, resume=resume, fingerprint=fp,
-                    progress=progress)
+                    progress=progress, max_evals=max_evals)
     return _finish(problem, traces)
 
 
@@ -761,18 +768,25 @@ def _warm_up(prog: Programs, method: str, starts: int, batch: int) -> float:
 def search(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
            methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
            lr: float = DEFAULT_LR, out_dir: str | Path | None = None, resume: bool = False,
-           fingerprint: str = "", progress: Callable | None = None) -> dict[str, Trace]:
-    """Run each method on the programs for `time_limit` search seconds; {method: Trace}."""
+           fingerprint: str = "", progress: Callable | None = None,
+           max_evals: int | None = None) -> dict[str, Trace]:
+    """Run each method on the programs for `time_limit` search seconds or `max_evals`
+    evaluations, whichever comes first; {method: Trace}."""
     out = Path(out_dir) if out_dir is not None else None
     traces: dict[str, Trace] = {}
+    cap = math.inf if max_evals is None else max_evals
+
+    def running(tr: Trace) -> bool:
+        return tr.elapsed < time_limit and tr.evaluations < cap
+
     for mth in methods:
         path = out / f"state_{mth}.npz" if out is not None else None
         tr = Trace.load(path, mth, fingerprint) if (resume and path is not None) else None
         tr = tr or Trace(mth)
         cma_es = _CMA(prog, seed, batch, tr.extra) if mth == "cma" else None
-        if tr.elapsed < time_limit:
+        if running(tr):
             tr.compile_s += _warm_up(prog, mth, starts, batch)
-        while tr.elapsed < time_limit:
+        while running(tr):
             t0 = time.perf_counter()
             if mth == "gradient":
                 z, v, bad = _gradient_step(prog, tr, seed, starts, lr, batch)

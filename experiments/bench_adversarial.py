@@ -12,11 +12,19 @@ of --batch plants drawn from the box (no waveform), CVaR at level 0.25, the same
 --rounds rounds of --round-time seconds, each after a worst-case search of --search-time
 seconds whose worst cases (plant and waveform) join the training set; the random-only run in
 one piece of rounds x round-time seconds. Then ONE fresh search (the same seed, never trained
-on) for each of: the paper's gains, the random-only tuned gains, the adversarial gains.
+on) for each of: the paper's gains, the random-only tuned gains, the adversarial gains, of
+--fresh-evals evaluations (a count, not a time: with the same seed, random sampling then
+simulates exactly the same plants and waveforms for the three gain sets, whatever the load).
+The rounds' searches run --search-time seconds, or --search-evals evaluations if given.
 
 Target: the fresh worst case of the adversarial gains is lower than that of the paper's gains
-and of the random-only gains. Prints a table (with the load average) and writes
-results/bench_adversarial.json (or --out).
+and of the random-only gains. Met with the tracking-only objective (`--u-max none --tv-max none`),
+not with the default one (docs/tuning.md, "Min-max tuning"):
+
+    nice -n 5 python experiments/bench_adversarial.py --round-steps 150 --search-evals 512 \
+        --u-max none --tv-max none
+
+Prints a table (with the load average) and writes results/bench_adversarial.json (or --out).
 """
 
 from __future__ import annotations
@@ -39,7 +47,21 @@ def main(argv=None) -> int:
     ap.add_argument("--t-final", type=float, default=None)
     ap.add_argument("--rounds", type=int, default=2)
     ap.add_argument("--round-time", type=float, default=None, help="tuning s per round")
+    ap.add_argument("--round-steps", type=int, default=None,
+                    help="a budget of tuning iterations per round instead of --round-time "
+                    "(the random-only run gets rounds x round-steps): independent of the load")
+    ap.add_argument("--aggregate", default="cvar", help="the training set's aggregate: cvar "
+                    "(at --cvar-level), max or mean; the same for both tunings")
+    ap.add_argument("--cvar-level", type=float, default=0.25)
+    ap.add_argument("--u-max", default="start", help='the objective\'s max|u| bound: "start" '
+                    '(the default objective) or "none"')
+    ap.add_argument("--tv-max", default="start", help='the TV(u) bound: "start" or "none"')
+    ap.add_argument("--add", type=int, default=4, help="worst cases added per round")
     ap.add_argument("--search-time", type=float, default=None, help="s per search")
+    ap.add_argument("--search-evals", type=int, default=None,
+                    help="evaluations per round search (default: --search-time alone)")
+    ap.add_argument("--fresh-evals", type=int, default=None,
+                    help="evaluations of each fresh search (default 4096; --quick 512)")
     ap.add_argument("--method", default="random", help="search method (gradient, random, cma)")
     ap.add_argument("--batch", type=int, default=8, help="random plants of the training batch")
     ap.add_argument("--params", default="controller.k,controller.tau,controller.eps")
@@ -62,18 +84,31 @@ def main(argv=None) -> int:
     t_final = args.t_final or (2.0 if args.quick else 20.0)
     round_time = args.round_time or (20.0 if args.quick else 120.0)
     search_time = args.search_time or (3.0 if args.quick else 15.0)
+    fresh_evals = args.fresh_evals or (512 if args.quick else 4096)
     box = tuple(parse_range(s) for s in BOX)
     setup = dscjax.paper_example(dtype=np.float64)
     options = SimOptions(t_final=t_final, dt=1e-3)
+    bound = {"start": "start", "none": None}
+    steps = args.round_steps or 10_000
     cfg = tuning.TuningConfig(
         params=tuple(args.params.split(",")),
-        optimizer=tuning.OptimizerSpec(steps=10_000, time_limit=round_time, patience=0),
+        objective=tuning.ObjectiveSpec(u_max=bound[args.u_max], tv_max=bound[args.tv_max]),
+        optimizer=tuning.OptimizerSpec(steps=steps, time_limit=(
+            1e6 if args.round_steps else round_time), patience=0),
         robust=tuning.BatchSpec(batch=args.batch, seed=args.seed, ranges=box,
-                                aggregate="cvar", cvar_level=0.25),
+                                aggregate=args.aggregate, cvar_level=args.cvar_level),
         heldout=tuning.BatchSpec(batch=0),
         adversarial=tuning.AdversarialSpec(rounds=args.rounds, disturbance=DISTURBANCE,
                                            method=args.method, search_time=search_time,
-                                           seed=args.seed))
+                                           search_evals=args.search_evals, seed=args.seed,
+                                           add=args.add))
+    # the fresh searches: a count of evaluations, the time only a safety cap
+    cfg_fresh = dataclasses.replace(cfg, adversarial=dataclasses.replace(
+        cfg.adversarial, search_time=3600.0, search_evals=fresh_evals))
+    per_round = (f"{args.round_steps} iterations" if args.round_steps
+                 else f"{round_time:g} s")
+    total = (f"{args.rounds * args.round_steps} iterations" if args.round_steps
+             else f"{args.rounds * round_time:g} s")
     load = os.getloadavg()
     t0 = time.perf_counter()
 
@@ -89,30 +124,36 @@ def main(argv=None) -> int:
     t_adv = time.perf_counter() - t0
     adv_iters = [r["iterations"] for r in outcome.rounds]
 
-    say(f"random plants only: one tuning run of {args.rounds * round_time:g} s")
+    say(f"random plants only: one tuning run of {total}")
     t1 = time.perf_counter()
     base_setup = adversarial.search_problem(setup, options, cfg).setup
     cfg_random = dataclasses.replace(
-        cfg, optimizer=dataclasses.replace(cfg.optimizer, time_limit=args.rounds * round_time),
+        cfg, optimizer=dataclasses.replace(
+            cfg.optimizer, time_limit=cfg.optimizer.time_limit * (1 if args.round_steps
+                                                                  else args.rounds),
+            steps=steps * (args.rounds if args.round_steps else 1)),
         adversarial=dataclasses.replace(cfg.adversarial, rounds=0))
     res_random = tuning.run(tuning.build_problem(base_setup, options, cfg_random),
                             progress=progress)
-    say("fresh search, random-only gains")
-    fresh_random = adversarial.record(adversarial.search_worst(
-        jax.tree.map(np.asarray, res_random.best_setup), options, cfg,
-        args.seed + adversarial.FRESH_SEED))
     t_random = time.perf_counter() - t1
 
-    rows = [("paper's gains (start)", outcome.fresh["start"], None, None),
-            ("tuned on random plants only", fresh_random, int(res_random.state.iteration),
-             args.batch),
-            ("adversarial (min-max)", outcome.fresh["tuned"], sum(adv_iters),
-             outcome.rounds[-1]["train_size"])]
+    def fresh(gains, label):
+        say(f"fresh search of {fresh_evals} evaluations, {label}")
+        return adversarial.record(adversarial.search_worst(
+            jax.tree.map(np.asarray, gains), options, cfg_fresh,
+            args.seed + adversarial.FRESH_SEED))
+
+    rows = [("paper's gains (start)", fresh(base_setup, "paper's gains"), None, None),
+            ("tuned on random plants only", fresh(res_random.best_setup, "random-only gains"),
+             int(res_random.state.iteration), args.batch),
+            ("adversarial (min-max)", fresh(outcome.result.best_setup, "adversarial gains"),
+             sum(adv_iters), outcome.rounds[-1]["train_size"])]
     load_end = os.getloadavg()
-    print(f"\nfresh worst case of {outcome.fresh['start']['metric']} (seed "
-          f"{args.seed + adversarial.FRESH_SEED}, {args.method} search of {search_time:g} s), "
-          f"T = {t_final:g} s; tuned {args.params}; {args.rounds} rounds x {round_time:g} s "
-          f"against one run of {args.rounds * round_time:g} s; load average "
+    print(f"\nfresh worst case of {rows[0][1]['metric']} (seed "
+          f"{args.seed + adversarial.FRESH_SEED}, {args.method} search of {fresh_evals} "
+          f"evaluations), "
+          f"T = {t_final:g} s; tuned {args.params}; {args.aggregate} aggregate; "
+          f"{args.rounds} rounds x {per_round} against one run of {total}; load average "
           f"{load[0]:.2f} at the start, {load_end[0]:.2f} at the end; {os.cpu_count()} CPUs")
     print(f"{'gains':30s} {'fresh worst':>12s} {'evaluations':>11s} {'nominal':>10s} "
           f"{'iterations':>10s} {'train plants':>12s}")
@@ -135,8 +176,12 @@ def main(argv=None) -> int:
                  for name, f, it, n in rows],
         "target_met": bool(met), "adversarial": outcome.summary(),
         "settings": {"t_final": t_final, "rounds": args.rounds, "round_time": round_time,
-                     "search_time": search_time, "method": args.method, "batch": args.batch,
+                     "search_time": search_time, "search_evals": args.search_evals,
+                     "fresh_evals": fresh_evals, "method": args.method, "batch": args.batch,
                      "params": args.params, "seed": args.seed, "box": list(BOX),
+                     "round_steps": args.round_steps, "aggregate": args.aggregate,
+                     "cvar_level": args.cvar_level, "u_max": args.u_max, "tv_max": args.tv_max,
+                     "add": args.add,
                      "disturbance": DISTURBANCE},
         "gains": {"random_only": {k: np.asarray(v).tolist() for k, v in jax.device_get(
                       res_random.problem.selection.values(res_random.best_z)).items()},

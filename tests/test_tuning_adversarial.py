@@ -148,3 +148,35 @@ def test_bad_adversarial_table_names_the_field(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1
     assert "tuning.adversarial.rounds must be an integer >= 0 (got -2)" in err
+
+
+@pytest.mark.parametrize("value", ["0", "2.5", '"many"'])
+def test_bad_search_evals_names_the_field(value, tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f"[tuning.adversarial]\nrounds = 1\nsearch_evals = {value}\n")
+    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert "tuning.adversarial.search_evals must be" in err and "got" in err
+
+
+def test_search_evals_option_needs_adversarial_and_a_positive_count(tmp_path, capsys):
+    assert main(["tune", "--search-evals", "8", "--out", str(tmp_path)]) == 2
+    assert "--search-evals applies to adversarial tuning" in capsys.readouterr().err
+    assert main(["tune", "--adversarial", "1", "--search-evals", "-3",
+                 "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.endswith("tuning.adversarial.search_evals must be an integer >= 1 (got -3)")
+
+
+def test_search_evals_ends_each_search_at_that_count(adv_run):
+    """A count-capped search evaluates whole batches until it reaches the count, whatever
+    time is left, and is the same search each time (same seed: same points, same worst)."""
+    setup, options, cfg = _inputs()
+    cfg = dataclasses.replace(cfg, adversarial=dataclasses.replace(
+        cfg.adversarial, search_time=600.0, search_evals=6))
+    runs = [adversarial.record(adversarial.search_worst(setup, options, cfg, seed=3))
+            for _ in range(2)]
+    assert runs[0]["evaluations"] == 8  # two batches of 4
+    assert runs[0] == runs[1]
+    assert "search_evals = \"none\"" in tuning.config.to_toml(_inputs()[2])

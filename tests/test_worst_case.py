@@ -164,6 +164,37 @@ def test_search_resumes_losing_nothing_finished(oscillator, tmp_path, method):
     np.testing.assert_array_equal(fresh.best_z, resumed.best_z)
 
 
+@pytest.mark.parametrize("method, first, per", [("random", 16, 16), ("gradient", 16, 4)])
+def test_max_evals_ends_a_search_after_that_many_evaluations(oscillator, method, first, per):
+    """The count is the batches' sizes summed until it reaches max_evals (gradient: a
+    screening batch, then M starts per iteration), whatever time is left; and a count-capped
+    search is a function of its seed alone."""
+    prog, _ = oscillator
+    runs = [search(prog, time_limit=600.0, max_evals=50, starts=4, methods=(method,), batch=16,
+                   seed=5)[method] for _ in range(2)]
+    expected, n = first, 1
+    while expected < 50:
+        expected, n = expected + per, n + 1
+    for tr in runs:
+        assert (tr.evaluations, tr.iterations) == (expected, n)
+        assert tr.elapsed < 600.0
+    assert runs[0].best == runs[1].best
+    np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
+
+
+def test_a_count_capped_search_resumes_to_the_uninterrupted_one(oscillator, tmp_path):
+    prog, _ = oscillator
+    short = search(prog, time_limit=600.0, max_evals=32, methods=("random",), batch=16,
+                   out_dir=tmp_path, fingerprint="fp")["random"]
+    assert short.evaluations == 32
+    longer = search(prog, time_limit=600.0, max_evals=80, methods=("random",), batch=16,
+                    out_dir=tmp_path, resume=True, fingerprint="fp")["random"]
+    whole = search(prog, time_limit=600.0, max_evals=80, methods=("random",),
+                   batch=16)["random"]
+    assert longer.evaluations == whole.evaluations == 80
+    assert longer.best[:2] == short.best and longer.best == whole.best
+
+
 # -- the command --------------------------------------------------------------------------------
 
 ARGS = ["worst-case", "--t-final", "1.5", "--range", "hysteresis.alpha=30%",
@@ -210,11 +241,19 @@ def test_worst_case_refuses_to_mix_runs_and_resumes(searched, capsys):
     assert after["evaluations"] == before["evaluations"]  # its time was spent: nothing redone
 
 
+def test_max_evals_option_caps_each_method(tmp_path):
+    args = [a for a in ARGS if a not in ("--time-limit", "0.3")]
+    assert main([*args, "--time-limit", "600", "--max-evals", "6", "--out", str(tmp_path)]) == 0
+    worst = json.loads((tmp_path / "worst.json").read_text())
+    assert worst["methods"]["random"]["evaluations"] == 8  # two batches of 4
+
+
 @pytest.mark.parametrize("extra, field", [
     (["--range", "hysteresis.alpha=2:1"], "lower bound > upper bound"),
     (["--range", "plant.nope=1:2"], "plant.nope"),
     (["--disturbance", "fourier:0:0.5"], "K must be"),
     (["--disturbance", "spline:4:-0.5"], "D must be"),
+    (["--max-evals", "0"], "--max-evals must be an integer >= 1 (got 0)"),
 ])
 def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
     assert main(["worst-case", "--t-final", "1", "--out", str(tmp_path), *extra]) == 2

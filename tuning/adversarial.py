@@ -87,7 +87,8 @@ def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
         Path(out_dir).mkdir(parents=True, exist_ok=True)
     return worst.worst_case(search_problem(setup, options, cfg), time_limit=spec.search_time,
                             seed=seed, out_dir=out_dir, resume=out_dir is not None,
-                            starts=spec.starts, methods=(spec.method,), batch=spec.batch)
+                            starts=spec.starts, methods=(spec.method,), batch=spec.batch,
+                            max_evals=spec.search_evals)
 
 
 def record(res: worst.Result) -> dict:
@@ -173,9 +174,11 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
     desc = base.describe()
-    fingerprint = {"problem": files.digest(desc),
-                   "adversarial": dataclasses.asdict(dataclasses.replace(
-                       spec, rounds=0, ranges=[r.spec() for r in searched.ranges]))}
+    adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
+                                                 ranges=[r.spec() for r in searched.ranges]))
+    if adv["search_evals"] is None:
+        del adv["search_evals"]  # runs from before the option resume
+    fingerprint = {"problem": files.digest(desc), "adversarial": adv}
     meta = _manifest(out, fingerprint, resume, overwrite)
 
     def save():
@@ -183,7 +186,8 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             files.write_json(out / MANIFEST, meta)
 
     def search(z, seed: int, where: str, label: str) -> worst.Result:
-        say(f"{label}: {spec.method} search for {spec.search_time:g} s (seed {seed})")
+        cap = f" or {spec.search_evals} evaluations" if spec.search_evals else ""
+        say(f"{label}: {spec.method} search for {spec.search_time:g} s{cap} (seed {seed})")
         return search_worst(_gains(base, z), options, cfg, seed,
                             None if out is None else out / where)
 

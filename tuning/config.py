@@ -72,7 +72,8 @@ class AdversarialSpec:
 
     The box is `ranges` (None: those of [tuning.robust]); `disturbance` ("fourier:K:D",
     "spline:K:D" or None) the searched waveform; each search runs `method` for
-    `search_time` seconds (compilation apart) and adds its `add` worst points."""
+    `search_time` seconds (compilation apart), or `search_evals` evaluations if that comes
+    first, and adds its `add` worst points."""
 
     rounds: int = 0
     disturbance: str | None = None
@@ -84,6 +85,7 @@ class AdversarialSpec:
     batch: int = 32
     add: int = 4
     seed: int = 0
+    search_evals: int | None = None  # None: search_time alone ends a search
 
     def validate(self, field: str = "tuning.adversarial") -> None:
         from dscjax.worst import METHODS, METRICS, DisturbanceSpec
@@ -92,6 +94,8 @@ class AdversarialSpec:
         for key in ("starts", "batch", "add"):
             validation.integer(getattr(self, key), f"{field}.{key}", 1)
         validation.integer(self.seed, f"{field}.seed", 0)
+        if self.search_evals is not None:
+            validation.integer(self.search_evals, f"{field}.search_evals", 1)
         validation.one_of(self.method, f"{field}.method", METHODS)
         validation.one_of(self.metric, f"{field}.metric", METRICS)
         t = self.search_time
@@ -256,6 +260,8 @@ def _adversarial(base: AdversarialSpec, table) -> AdversarialSpec:
             changes[k] = validation.string(v, f"{field}.{k}")
         elif k == "search_time":
             changes[k] = validation.number(v, f"{field}.{k}")
+        elif k == "search_evals" and isinstance(v, str) and v.lower() == "none":
+            changes[k] = None
         else:
             changes[k] = validation.integer(v, f"{field}.{k}")
     return dataclasses.replace(base, **changes)

@@ -80,6 +80,9 @@ def add_parser(sub):
     p.add_argument("--search-time", type=float, metavar="S", help=f"with --adversarial: "
                    f"seconds of each worst-case search, compilation apart (default "
                    f"{adv.search_time:g})")
+    p.add_argument("--search-evals", type=int, metavar="N", help="with --adversarial: end "
+                   "each worst-case search after N evaluations, or at --search-time, whichever "
+                   "comes first (default: the time alone)")
     p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
                    f"method (default {adv.method})")
     add_horizon_args(p)
@@ -163,7 +166,7 @@ def load(args):
     adv = {}
     if args.adversarial is not None:
         adv["rounds"] = _rounds(args.adversarial)
-    for name in ("disturbance", "search_time", "search_method"):
+    for name in ("disturbance", "search_time", "search_evals", "search_method"):
         if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
             raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
                               f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
@@ -171,6 +174,8 @@ def load(args):
         adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
     if args.search_time is not None:
         adv["search_time"] = args.search_time
+    if args.search_evals is not None:
+        adv["search_evals"] = args.search_evals
     if args.search_method is not None:
         adv["method"] = args.search_method
     cfg = dataclasses.replace(

@@ -49,6 +49,10 @@ def add_parser(sub):
                    f"u_rate; > 0: violated)")
     p.add_argument("--time-limit", type=float, default=60.0, metavar="S",
                    help="search seconds per method, compilation excluded (default 60)")
+    p.add_argument("--max-evals", type=int, metavar="N",
+                   help="stop each method after N evaluations (its last batch finished), or "
+                   "at --time-limit, whichever comes first: a count makes searches under "
+                   "different loads comparable (default: the time limit alone)")
     p.add_argument("--starts", type=int, default=DEFAULT_STARTS, metavar="M",
                    help=f"starts of the gradient search, one batch (default {DEFAULT_STARTS})")
     p.add_argument("--batch", type=int, default=DEFAULT_BATCH, metavar="B",
@@ -73,13 +77,15 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import files
+    from dscjax import files, validation
     from dscjax.progress import Progress
     from dscjax.ranges import parse_range
     from dscjax.validation import ConfigError
     from dscjax.worst import make_problem, worst_case
     from dscjax.worst_report import write
 
+    if args.max_evals is not None:
+        validation.integer(args.max_evals, "--max-evals", 1)
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
@@ -110,8 +116,9 @@ def run(args) -> int:
     print(f"dscjax worst-case: {problem.metric} over "
           + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
           + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
-          + f"; {', '.join(methods)}, {args.time_limit:g} s each; T={problem.t_final:g} s, "
-          f"dt={problem.dt:g} s", file=sys.stderr)
+          + f"; {', '.join(methods)}, {args.time_limit:g} s each"
+          + (f" (at most {args.max_evals} evaluations)" if args.max_evals else "")
+          + f"; T={problem.t_final:g} s, dt={problem.dt:g} s", file=sys.stderr)
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)
@@ -129,7 +136,8 @@ def run(args) -> int:
         result = worst_case(problem, time_limit=args.time_limit, starts=args.starts,
                             methods=methods, seed=args.seed, batch=args.batch,
                             coarsening=args.gradient_coarsening, out_dir=out,
-                            resume=args.resume, progress=progress)
+                            resume=args.resume, max_evals=args.max_evals,
+                            progress=progress)
     finally:
         for bar in bars.values():
             bar.close()
