@@ -172,12 +172,10 @@ def load(args):
                               f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
     if args.disturbance is not None:
         adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
-    if args.search_time is not None:
-        adv["search_time"] = args.search_time
-    if args.search_evals is not None:
-        adv["search_evals"] = args.search_evals
-    if args.search_method is not None:
-        adv["method"] = args.search_method
+    for key, value in (("search_time", args.search_time), ("search_evals", args.search_evals),
+                       ("method", args.search_method)):
+        if value is not None:
+            adv[key] = value
     cfg = dataclasses.replace(
         cfg, optimizer=dataclasses.replace(cfg.optimizer, **opt),
         robust=dataclasses.replace(cfg.robust, **rob),
