@@ -1,7 +1,7 @@
 """Tuning methods at equal wall time on the deployable problem, with an ablation of the
 gradient: what do the exact gradients add?
 
-    python experiments/tune_compare.py                 # 2 problems x 5 methods x 100 s, T = 20 s
+    python experiments/tune_compare.py                 # 2 problems x 6 methods x 100 s, T = 20 s
     python experiments/tune_compare.py --quick         # T = 5 s, 30 s each, 32 held-out plants
     python experiments/tune_compare.py --rounds 3      # medians over 3 interleaved rounds
 
@@ -15,10 +15,12 @@ the paper's gains):
 Methods (every budget includes the method's own compilation; all but adam simulate a whole
 population as one batched program):
   cma          CMA-ES (sigma0 = 0.3 in log-space, default population)
+  cma_path     CMA-ES + a line search along its own evolution path in the same batch:
+               `dscjax tune`'s default (it won on the robust problem)
   cma_grad     CMA-ES + a line search along -C grad (exact gradient) in the same batch
   cma_grad_off the same with its gradient switched off (grad_every = 0: random directions; no
-               gradient is compiled or evaluated: the ablation). It is `dscjax tune`'s
-               default, "cma_line", which won on the nominal problem
+               gradient is compiled or evaluated: the ablation). It is "cma_line", the
+               default before cma_path
   adam         exact gradients and Adam (the old default)
   random       uniform in the box z0 +- ln 10, 32 per batch
 
@@ -43,9 +45,10 @@ from pathlib import Path
 
 import numpy as np
 
-METHODS = ("cma", "cma_grad", "cma_grad_off", "adam", "random")
-LABELS = {"cma": "CMA-ES", "cma_grad": "CMA-ES + gradient line search",
-          "cma_grad_off": "same, gradient off (default)", "adam": "Adam (exact gradients)",
+METHODS = ("cma", "cma_path", "cma_grad", "cma_grad_off", "adam", "random")
+LABELS = {"cma": "CMA-ES", "cma_path": "CMA-ES + path line (default)",
+          "cma_grad": "CMA-ES + gradient line search",
+          "cma_grad_off": "same, gradient off (cma_line)", "adam": "Adam (exact gradients)",
           "random": "random search"}
 
 
@@ -62,7 +65,8 @@ def build(name: str, t_final: float, heldout: int):
 
 
 def with_method(problem, method: str, budget: float, seed: int):
-    opt = {"cma": dict(name="cma"), "cma_grad": dict(name="cma_grad"),
+    opt = {"cma": dict(name="cma"), "cma_path": dict(name="cma_path"),
+           "cma_grad": dict(name="cma_grad"),
            "cma_grad_off": dict(name="cma_grad", grad_every=0),
            "adam": dict(name="adam")}[method]
     cfg = problem.cfg
@@ -254,8 +258,8 @@ def _table(r):
 def _plot(r, name, path):
     from dscjax.plotting import subplots
 
-    colors = {"cma": "#1f77b4", "cma_grad": "#d62728", "cma_grad_off": "#ff9896",
-              "adam": "#9467bd", "random": "#7f7f7f"}
+    colors = {"cma": "#1f77b4", "cma_path": "#2ca02c", "cma_grad": "#d62728",
+              "cma_grad_off": "#ff9896", "adam": "#9467bd", "random": "#7f7f7f"}
     fig, ax = subplots(1, 1, figsize=(7, 4.5), layout="constrained")
     for m, runs in r["problems"][name]["runs"].items():
         for i, run in enumerate(runs):

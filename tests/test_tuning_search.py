@@ -1,12 +1,12 @@
-"""The deployable problem and the search tuners (cma, cma_line, cma_grad): the TV(u) and
-max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
+"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad): the TV(u)
+and max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
 removes every gradient evaluation (counted), each path lowers the objective on a short horizon
 and resumes from a pickle-free checkpoint to the very same result, and a NaN never becomes the
 best point nor a direction.
 
 One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
-path's batch has the same width (cma: population 7; cma_line, cma_grad: 4 + 3 line points), so
-ONE batched program and one gradient are compiled for the whole module.
+path's batch has the same width (cma: population 7; cma_line, cma_path, cma_grad: 4 + 3 line
+points), so ONE batched program and one gradient are compiled for the whole module.
 """
 
 import dataclasses
@@ -146,7 +146,8 @@ def problems():
     # one objective, so every path shares its compiled programs (the batches have one width)
     p = _problem()
     return {"cma_grad": p, "cma_line": _with(p, name="cma_line"),
-            "ablation": _with(p, grad_every=0), "cma": _with(p, name="cma", popsize=7)}
+            "cma_path": _with(p, name="cma_path"), "ablation": _with(p, grad_every=0),
+            "cma": _with(p, name="cma", popsize=7)}
 
 
 @pytest.fixture(scope="module")
@@ -205,20 +206,21 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, m
         return real(*a, **k)
 
     monkeypatch.setattr(search, "value_and_grad", counting)
-    for off in ("ablation", "cma_line", "cma"):
+    for off in ("ablation", "cma_line", "cma_path", "cma"):
         s = search.Search.open(problems[off], None, False, 0.0)
         assert s.grad is None  # nothing to trace or compile
         assert straight[off].gradient_evaluations == 0
     assert calls == []  # never traced, never run
     # the start, then population + line points (+ the gradient's own evaluation)
     assert straight["ablation"].evaluations == 1 + STEPS * (4 + 3)
+    assert straight["cma_path"].evaluations == 1 + STEPS * (4 + 3)
     assert straight["cma"].evaluations == 1 + STEPS * 7
     on = straight["cma_grad"]
     assert on.gradient_evaluations == STEPS  # one per generation
     assert on.evaluations == 1 + STEPS * (4 + 3 + 1)
 
 
-@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma"])
+@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma_path", "cma"])
 def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems, straight,
                                                                         which, tmp_path):
     p, full = problems[which], straight[which]
@@ -262,3 +264,21 @@ def test_a_nan_is_never_the_best_point_nor_a_direction(problems, straight):
     assert np.isfinite(s.state.best_loss) and np.all(np.isfinite(s.state.best_flat))
     assert s.state.gradient_evaluations == 2
     assert np.all(np.isfinite(s.state.cma.arrays()["fitness"]))  # CMA-ES was told no NaN
+
+
+def test_the_path_direction_has_unit_mahalanobis_length_and_never_a_nan():
+    # cma_path's line follows CMA-ES's evolution path p_c, scaled to d' C^-1 d = 1 (checked
+    # against an explicit inverse); a zero or non-finite path gives no direction (random then)
+    rng = np.random.default_rng(3)
+    a = rng.standard_normal((4, 4))
+    cov = a @ a.T + np.eye(4)
+    es = type("Es", (), {})()
+    es.pc = rng.standard_normal(4)
+    d = search._path_direction(es, cov)
+    assert d @ np.linalg.inv(cov) @ d == pytest.approx(1.0, rel=1e-12)
+    c = d / es.pc
+    np.testing.assert_allclose(c, c[0], rtol=1e-12)
+    assert c[0] > 0
+    for bad in (np.zeros(4), np.array([1.0, np.nan, 0.0, 0.0]), np.full(4, np.inf)):
+        es.pc = bad
+        assert search._path_direction(es, cov) is None

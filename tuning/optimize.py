@@ -29,12 +29,12 @@ import optax
 from dscjax import validation
 from dscjax.validation import ConfigError
 
-# cma (CMA-ES), cma_line (CMA-ES + a line search from the incumbent along random directions,
-# the default: the best at equal wall time on the default problem, docs/tuning.md) and
-# cma_grad (the same line search along the exact gradient) run tuning/search.py; the others
-# are optax rules with exact gradients.
-OPTIMIZERS = ("cma_line", "cma", "cma_grad", "adam", "adamw", "sgd", "lion")
-SEARCHES = ("cma", "cma_line", "cma_grad")
+# cma (CMA-ES), cma_path (CMA-ES + a line search from the incumbent along CMA-ES's evolution
+# path, the default: the best at equal wall time on the nominal and the robust problem,
+# docs/tuning.md), cma_line (the same line along random directions) and cma_grad (along the
+# exact gradient) run tuning/search.py; the others are optax rules with exact gradients.
+OPTIMIZERS = ("cma_path", "cma_line", "cma", "cma_grad", "adam", "adamw", "sgd", "lion")
+SEARCHES = ("cma", "cma_line", "cma_grad", "cma_path")
 SCHEDULES = ("constant", "cosine", "exponential")
 GRADIENTS = ("auto", "forward", "reverse")
 # One trajectory: reverse mode (the time-parallel linearisation) costs a fixed ~8x the forward
@@ -49,12 +49,12 @@ class OptimizerSpec:
     """The [tuning.optimizer] table.
 
     Attributes:
-        name: "cma_line" (default: CMA-ES + line search along random directions), "cma"
-            (CMA-ES alone), "cma_grad" (CMA-ES + line search along the exact gradient; all
-            three: one batched simulation per generation, tuning/search.py), or an optax rule:
-            "adam",
-            "adamw", "sgd" (with momentum 0.9) or "lion". For cma and cma_grad an iteration
-            is a generation; learning_rate, schedule and the rejection settings do not apply.
+        name: "cma_path" (default: CMA-ES + line search along its evolution path),
+            "cma_line" (the same along random directions), "cma" (CMA-ES alone),
+            "cma_grad" (CMA-ES + line search along the exact gradient; all four: one batched
+            simulation per generation, tuning/search.py), or an optax rule: "adam", "adamw",
+            "sgd" (with momentum 0.9) or "lion". For the four searches an iteration is a
+            generation; learning_rate, schedule and the rejection settings do not apply.
         learning_rate: initial step size, in the units of z (log-space: 0.05 = 5 % per step).
         schedule: "cosine" (decay to final_lr_fraction over decay_steps), "exponential"
             (same end point) or "constant".
@@ -82,13 +82,13 @@ class OptimizerSpec:
             incumbent) every this many generations, a random direction otherwise; 0 switches
             the gradient off (the ablation: then cma_grad is cma_line, no gradient evaluated
             or compiled).
-        line_points, line_min, line_max: "cma_line", "cma_grad": the line search's step
-            sizes, sigma sqrt(n) x geomspace(line_min, line_max, line_points).
+        line_points, line_min, line_max: "cma_line", "cma_path", "cma_grad": the line
+            search's step sizes, sigma sqrt(n) x geomspace(line_min, line_max, line_points).
         background_compile: "cma_grad": compile the gradient in a thread while the first
             generations run (their line points take random directions meanwhile).
     """
 
-    name: str = "cma_line"
+    name: str = "cma_path"
     learning_rate: float = 0.1
     schedule: str = "cosine"
     final_lr_fraction: float = 0.1

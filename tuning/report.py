@@ -411,8 +411,9 @@ def method_sentence(opt, mode: str) -> str:
         return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "
                 f"simulation per generation; no gradient).")
-    if opt.name in ("cma_grad", "cma_line"):
-        along = ("a random direction (no gradient)" if opt.grad_every == 0
+    if opt.name in ("cma_grad", "cma_line", "cma_path"):
+        along = ("CMA-ES's evolution path (no gradient)" if opt.name == "cma_path" else
+                 "a random direction (no gradient)" if opt.grad_every == 0
                  or opt.name == "cma_line" else
                  f"-C grad ({mode}-mode exact gradient at the best point, every "
                  f"{opt.grad_every} generation(s); random directions otherwise)")

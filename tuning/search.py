@@ -1,10 +1,16 @@
-"""CMA-ES ("cma"), CMA-ES with a line search from the incumbent along random directions
-("cma_line", the default of `dscjax tune`) or along the exact gradient ("cma_grad"), one
-batched simulation per generation.
+"""CMA-ES ("cma"), CMA-ES with a line search from the incumbent along CMA-ES's own evolution
+path ("cma_path", the default of `dscjax tune`), along random directions ("cma_line") or along
+the exact gradient ("cma_grad"), one batched simulation per generation.
 
 "cma" is steps 1 and 3 below alone: the `cma` package's CMA-ES in the tuner's coordinates z,
 the population simulated as one batch, the best point ranked feasible first, then by loss.
 "cma_line" is "cma_grad" with the gradient switched off (random directions in step 2).
+"cma_path" takes, in step 2, the direction of CMA-ES's evolution path p_c (the smoothed
+shift of its mean over recent generations, which CMA-ES keeps for its rank-one update), scaled
+to unit Mahalanobis length: the line extrapolates the progress CMA-ES has been making, up to
+sigma sqrt(n) beyond the incumbent, and a winner injected into CMA-ES lengthens the path in
+turn (a momentum). No extra state: p_c is part of the replayed CMA-ES. While p_c is zero
+(the first generation) or not finite, the direction is random, as in cma_line.
 
 Every generation:
 
@@ -289,6 +295,8 @@ class Search:
                 scale = math.sqrt(max(float(g @ cg), 0.0))
                 if np.all(np.isfinite(g)) and scale > 0:  # never a non-finite direction
                     d = -cg / scale
+            if d is None and spec.name == "cma_path":
+                d = _path_direction(es, cov)
             if d is None:  # no gradient (off, compiling, skipped): a random direction of
                 # unit Mahalanobis length under CMA-ES's covariance
                 xi = st.rng.standard_normal(base.size)
@@ -390,6 +398,14 @@ class Search:
             elapsed = float(meta.get("elapsed_total_s", 0.0))
             resumed = state.iteration
         return cls(problem, spec, state, history, out, t_start, elapsed, resumed)
+
+
+def _path_direction(es, cov) -> np.ndarray | None:
+    """CMA-ES's evolution path p_c (its smoothed recent mean shift), scaled to unit
+    Mahalanobis length under C; None while it is still zero or not finite."""
+    pc = np.asarray(es.pc, float)
+    q = float(pc @ np.linalg.solve(cov, pc)) if np.all(np.isfinite(pc)) else 0.0
+    return pc / math.sqrt(q) if np.isfinite(q) and q > 0 else None
 
 
 def _restore(state: SearchState, arrays: dict | None, out: Path) -> None:

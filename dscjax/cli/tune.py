@@ -47,9 +47,10 @@ def add_parser(sub):
     p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
-                   "CMA-ES with a line search from the best point along random directions, "
-                   "the best at equal wall time on the default problem, docs/tuning.md; cma: "
-                   "CMA-ES alone; cma_grad: the line search along the exact gradient; adam "
+                   "CMA-ES with a line search from the best point along its evolution path, "
+                   "the best at equal wall time on the nominal and robust problems, "
+                   "docs/tuning.md; cma: CMA-ES alone; cma_line: the line search along random "
+                   "directions; cma_grad: along the exact gradient; adam "
                    "... : optax rules with exact gradients)")
     p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
