@@ -67,8 +67,10 @@ def _hold(new, y, frozen):
     """`new` with the frozen components of the state taken from y unchanged.
 
     `frozen` (static) is None (nothing frozen) or a tree like y whose leaves are Python bools
-    (one per row of a batch) or NumPy bool arrays (one per element of a packed chunk). A frozen
-    component's increments are then never formed: XLA drops them as dead code."""
+    (one per row of a batch) or NumPy bool arrays (one per element of a packed chunk). In the
+    batched rows layout a frozen row's increments are never formed (XLA drops them as dead
+    code); in a packed chunk that mixes frozen and live elements they are computed with the
+    chunk and discarded by the select."""
     if frozen is None:
         return new
 
@@ -892,7 +894,8 @@ def integrate(
         frozen: None, or a tree of Python bools, a prefix of y's structure (static; for a
             batch, of one member's): True marks components held constant inside a step. Every
             stage reads them unchanged and the step leaves them as they are, whatever f gives
-            for their rate (their increments are never formed); only `project` changes them.
+            for their rate (their increments are discarded; in the rows layout never formed);
+            only `project` changes them.
             They are still checked against `state_bound` after the step.
 
     Returns:

@@ -184,14 +184,13 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
     t_final = jnp.asarray(n_steps, dtype) * dt
     red = LoopMetrics(dt=dt, window_start=window_start, extra=extra, n_steps=n_steps)
     common = dict(save_every=save_every, reduction=red,
-                  state_bound=jnp.asarray(state_bound, dtype))
+                  state_bound=jnp.asarray(state_bound, dtype), frozen=frozen(setup))
     exponential = solver == "etdrk4"
     if overrides is None:
         if exponential:
             common["rates"] = decay_rates
         if type(setup.hysteresis).projects:
             common["project"] = project
-        common["frozen"] = frozen(setup)
         setup = prepared(setup)
         y0 = initial_state(setup)
         res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
@@ -205,7 +204,6 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
             common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
         if type(setup.hysteresis).projects:
             common["project"] = lambda t, y, args: project(t, y, rebuild(*args))
-        common["frozen"] = frozen(setup)
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)

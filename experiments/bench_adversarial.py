@@ -174,8 +174,12 @@ def main(argv=None) -> int:
     write_json(out, {
         "rows": [{"gains": name, "fresh": f, "iterations": it, "train_plants": n}
                  for name, f, it, n in rows],
-        "target_met": bool(met), "adversarial": outcome.summary(),
-        "settings": {"t_final": t_final, "rounds": args.rounds, "round_time": round_time,
+        "target_met": bool(met),
+        # the run's own rounds and fresh searches (capped by --search-time/--search-evals);
+        # the table's fresh figures are the count-capped searches of "rows"
+        "adversarial_run": outcome.summary(),
+        "settings": {"t_final": t_final, "rounds": args.rounds,
+                     "round_time": None if args.round_steps else round_time,
                      "search_time": search_time, "search_evals": args.search_evals,
                      "fresh_evals": fresh_evals, "method": args.method, "batch": args.batch,
                      "params": args.params, "seed": args.seed, "box": list(BOX),

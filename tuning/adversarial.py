@@ -81,7 +81,8 @@ def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Probl
 def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
                  out_dir: Path | None = None) -> worst.Result:
     """The worst case of [tuning.adversarial] for the gains of `setup`: a search of
-    `search_time` seconds by `method` with `seed` (resumed from `out_dir` if it holds one)."""
+    `search_time` seconds (or `search_evals` evaluations, if that comes first) by `method`
+    with `seed` (resumed from `out_dir` if it holds one)."""
     spec = cfg.adversarial
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)

@@ -260,8 +260,12 @@ def _adversarial(base: AdversarialSpec, table) -> AdversarialSpec:
             changes[k] = validation.string(v, f"{field}.{k}")
         elif k == "search_time":
             changes[k] = validation.number(v, f"{field}.{k}")
-        elif k == "search_evals" and isinstance(v, str) and v.lower() == "none":
-            changes[k] = None
+        elif k == "search_evals":
+            none = isinstance(v, str) and v.lower() == "none"
+            if not none and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+                raise validation.ConfigError(f"{field}.{k} must be an integer >= 1 or \"none\" "
+                                             f"(got {v!r})")
+            changes[k] = None if none else v
         else:
             changes[k] = validation.integer(v, f"{field}.{k}")
     return dataclasses.replace(base, **changes)

@@ -30,9 +30,10 @@ from dscjax import validation
 from dscjax.validation import ConfigError
 
 # cma (CMA-ES), cma_path (CMA-ES + a line search from the incumbent along CMA-ES's evolution
-# path, the default: the best at equal wall time on the nominal and the robust problem,
-# docs/tuning.md), cma_line (the same line along random directions) and cma_grad (along the
-# exact gradient) run tuning/search.py; the others are optax rules with exact gradients.
+# path, the default: ahead of CMA-ES at equal wall time on the nominal problem and of
+# cma_line on both, not of CMA-ES on the robust problem; docs/tuning.md), cma_line (the
+# same line along random directions) and cma_grad (along the exact gradient) run
+# tuning/search.py; the others are optax rules with exact gradients.
 OPTIMIZERS = ("cma_path", "cma_line", "cma", "cma_grad", "adam", "adamw", "sgd", "lion")
 SEARCHES = ("cma", "cma_line", "cma_grad", "cma_path")
 SCHEDULES = ("constant", "cosine", "exponential")

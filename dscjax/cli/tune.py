@@ -48,9 +48,9 @@ def add_parser(sub):
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
                    "CMA-ES with a line search from the best point along its evolution path, "
-                   "the best at equal wall time on the nominal and robust problems, "
-                   "docs/tuning.md; cma: CMA-ES alone; cma_line: the line search along random "
-                   "directions; cma_grad: along the exact gradient; adam "
+                   "ahead of CMA-ES at equal wall time on the nominal problem (not on "
+                   "the robust one), docs/tuning.md; cma: CMA-ES alone; cma_line: the line "
+                   "search along random directions; cma_grad: along the exact gradient; adam "
                    "... : optax rules with exact gradients)")
     p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
@@ -120,7 +120,7 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax import config
+    from dscjax import config, validation
     from dscjax.cli.common import example_setup
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
@@ -171,6 +171,8 @@ def load(args):
         if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
             raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
                               f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
+    if args.search_evals is not None:
+        validation.integer(args.search_evals, "--search-evals", 1)
     if args.disturbance is not None:
         adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
     for key, value in (("search_time", args.search_time), ("search_evals", args.search_evals),
