@@ -282,3 +282,23 @@ def test_the_path_direction_has_unit_mahalanobis_length_and_never_a_nan():
     for bad in (np.zeros(4), np.array([1.0, np.nan, 0.0, 0.0]), np.full(4, np.inf)):
         es.pc = bad
         assert search._path_direction(es, cov) is None
+
+
+def test_cma_path_draws_its_line_along_the_evolution_path(problems, monkeypatch):
+    """cma_path asks for the path's direction in every generation and takes it once p_c is
+    non-zero (CMA-ES leaves p_c at zero while its hsig test fails, early on); cma_line never
+    asks for it."""
+    used = {"calls": 0, "directions": 0}
+    real = search._path_direction
+
+    def counting(es, cov):
+        d = real(es, cov)
+        used["calls"] += 1
+        used["directions"] += d is not None
+        return d
+
+    monkeypatch.setattr(search, "_path_direction", counting)
+    run(problems["cma_line"], None)
+    assert used == {"calls": 0, "directions": 0}
+    run(problems["cma_path"], None)
+    assert used["calls"] == STEPS and used["directions"] >= 1
