@@ -131,9 +131,8 @@ def hysteresis_example(kind: str, dtype=None) -> Setup:
     from dscjax.config import REGISTRY
 
     setup = paper_example(dtype=np.float64)
-    if kind == "backlash":
-        return cast(setup, dtype if dtype is not None else _default_float())
-    setup = setup.replace(hysteresis=REGISTRY["hysteresis"][kind]())
+    if kind != "backlash":
+        setup = setup.replace(hysteresis=REGISTRY["hysteresis"][kind]())
     return cast(setup, dtype if dtype is not None else _default_float())
 
 

@@ -200,7 +200,8 @@ def _pi_p():
 
 
 class _Plays(Hysteresis):
-    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds `band(u)` of its own.
+    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds g_lo(u) - r_j and g_hi(u) + r_j
+    (`envelopes`).
 
     The fields shared by P-I and generalized P-I (defaults: the P-I example of the issue);
     a subclass adds its own (the envelopes) after them."""
@@ -216,12 +217,6 @@ class _Plays(Hysteresis):
         """(g_lo, g_hi) at input u (shaped like u): play j is clamped between g_lo - r_j and
         g_hi + r_j."""
         raise NotImplementedError
-
-    def band(self, u):
-        """The clamp's bounds (lo, hi), each (N,), at input u."""
-        g_lo, g_hi = self.envelopes(jnp.asarray(u)[..., None])
-        r = jnp.asarray(self.r)
-        return g_lo - r, g_hi + r
 
     def expected_shapes(self, n):
         # r, p (N,) and z0 (() or (N,)) are checked against each other in `validate`
@@ -248,8 +243,9 @@ class _Plays(Hysteresis):
 
     def init_state(self, u0):
         """z(0) = max(lo(u0), min(hi(u0), z0)): the plays' outputs at t = 0 (N,)."""
-        lo, hi = self.band(jnp.asarray(u0))
-        return play(jnp.broadcast_to(jnp.asarray(self.z0, lo.dtype), lo.shape), lo, hi)
+        u0 = jnp.asarray(u0)
+        z0 = jnp.asarray(self.z0, jnp.result_type(u0, self.r))
+        return self.plays(u0, jnp.broadcast_to(z0, jnp.shape(self.r)))
 
     def each_play(self, u, z):
         """The plays' outputs at input u, one array shaped like u per play, from their

@@ -664,8 +664,8 @@ class Result:
     traces: dict[str, Trace]
     nominal_value: float
     info: dict
-    trajectory: Any = None  # `simulate`'s run of `setup` (kept for the report's files)
-    nominal: Any = None  # and of the nominal point (zero waveform: the same values exactly)
+    trajectory: Any  # `simulate`'s run of `setup` (kept for the report's files)
+    nominal: Any  # and of the nominal point (zero waveform: the same values exactly)
 
 
 def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int, Any]:

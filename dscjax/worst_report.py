@@ -56,7 +56,6 @@ def summary(result: Result) -> dict:
 
 def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     """Write every file of the module docstring into `out`; the names written."""
-    from dscjax.simulate import simulate
 
     out = Path(out)
     p = result.problem
@@ -67,9 +66,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
               f"Reproduce: dscjax simulate --config worst_config.toml")
     files.write_text(out / "worst_config.toml",
                      config.to_toml(result.setup, options_of(result), header=header))
-    worst = result.trajectory if result.trajectory is not None else simulate(
-        result.setup, p.t_final, p.dt, window_start=p.window_start, state_bound=p.state_bound,
-        throw=False, refine=p.refine, solver=p.solver)
+    worst = result.trajectory
     dt_used = float(np.asarray(worst.dt))
     t_half = half_step_grid(p.t_final, dt_used)
     dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
@@ -81,10 +78,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     files.write_text(out / "report.md", report_md(result))
     names.append("report.md")
     if plots:
-        nominal = result.nominal if result.nominal is not None else simulate(
-            p.setup, p.t_final, p.dt, window_start=p.window_start, state_bound=p.state_bound,
-            throw=False, refine=p.refine, solver=p.solver)
-        _plot_worst(out / FIGURES[0], worst, nominal, result)
+        _plot_worst(out / FIGURES[0], worst, result.nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
         _plot_progress(out / FIGURES[2], result)
         names += list(FIGURES)

@@ -18,6 +18,7 @@ import tuning
 from dscjax.cli.main import main
 from dscjax.config import SimOptions
 from tuning import checkpoint as ck
+from tuning import report as tuning_report
 from tuning.runner import run
 
 TINY = """
@@ -233,3 +234,6 @@ def test_combine_refuses_problems_that_tune_other_parameters(small_problem):
     both = tuning.combine([small_problem, small_problem], "max")
     assert both.members == (small_problem, small_problem)
     assert both.describe()["combine"] == "max" and len(both.describe()["members"]) == 2
+    z = both.selection.init(both.setup)
+    with pytest.raises(dscjax.validation.ConfigError, match="combined problem"):
+        tuning_report.evaluate(both, z, z)  # one line, not an AttributeError

@@ -177,7 +177,6 @@ def test_max_evals_ends_a_search_after_that_many_evaluations(oscillator, method,
         expected, n = expected + per, n + 1
     for tr in runs:
         assert (tr.evaluations, tr.iterations) == (expected, n)
-        assert tr.elapsed < 600.0
     assert runs[0].best == runs[1].best
     np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
 
