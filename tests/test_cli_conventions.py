@@ -186,7 +186,7 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
         (tmp_path / "c" / "complexity_rows.json").write_text("{}")
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(dscjax.reproduce, "hysteresis_loops", stop)
+    monkeypatch.setattr(dscjax.reproduce, "family_loops", stop)
     argv = ["reproduce", "--out", str(tmp_path / "p")]
     (tmp_path / "c").mkdir()
     last, command = _interrupted(capsys, argv)

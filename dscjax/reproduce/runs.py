@@ -31,6 +31,7 @@ STYLE = {
 }
 METRIC_FIELDS = ("linf_error", "linf_error_after_1s", "l2_error", "l2_error_after_1s",
                  "max_abs_u", "max_abs_u_after_1s", "max_abs_w", "tv_u")
+FIG1_AMPLITUDES = (3.5, 6.5)  # Fig. 1's two loops: u = k sin(2.3 t) for these k
 FAMILY = ("backlash", "pi", "gpi", "bouc_wen")  # the hysteresis models of the Fig. 1 family
 ESTIMATES = ("theta_hat_g1", "theta_hat_2", "phi_hat_1", "zeta_hat", "d_hat")
 
@@ -48,17 +49,23 @@ def setups(dtype=None) -> dict:
 # -- Fig. 1 ------------------------------------------------------------------------------------
 
 
-def hysteresis_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.3,
+def hysteresis_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
                      t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
     """w(t) of eq. (4) for u = k sin(omega t), integrated by RK4 from w(0) = 0 (Fig. 1).
 
     Returns {k: (t, u, w)} as NumPy arrays.
     """
-    t, u, w = sine_loops(paper_example().hysteresis, amplitudes, omega, t_final, dt)
+    return by_amplitude(amplitudes, *sine_loops(paper_example().hysteresis, amplitudes, omega,
+                                                t_final, dt))
+
+
+def by_amplitude(amplitudes: Sequence[float], t, u, w) -> dict:
+    """{k: (t, u, w)} of one model's loops (u, w of shape (K, N+1)), as `hysteresis_loops`
+    returns them."""
     return {k: (t, u[i], w[i]) for i, k in enumerate(amplitudes)}
 
 
-def family_loops(amplitudes: Sequence[float] = (3.5, 6.5), omega: float = 2.3,
+def family_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
                  t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
     """Fig. 1's input applied to every hysteresis model of dscjax at its example's values
     (`hysteresis_example`; the paper's (4) for backlash), as `dscjax hysteresis` drives one.
@@ -108,5 +115,6 @@ def run_all(t_final: float = 20.0, dt: float = 1e-3, log: Callable[[str], None] 
 
 
 
-__all__ = ["ESTIMATES", "FAMILY", "LABELS", "METRIC_FIELDS", "RUNS", "STYLE", "estimates",
-           "family_loops", "hysteresis_loops", "run_all", "run_metrics", "setups"]
+__all__ = ["ESTIMATES", "FAMILY", "FIG1_AMPLITUDES", "LABELS", "METRIC_FIELDS", "RUNS",
+           "STYLE", "by_amplitude", "estimates", "family_loops", "hysteresis_loops", "run_all",
+           "run_metrics", "setups"]
