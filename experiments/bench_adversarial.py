@@ -18,11 +18,16 @@ simulates exactly the same plants and waveforms for the three gain sets, whateve
 The rounds' searches run --search-time seconds, or --search-evals evaluations if given.
 
 Target: the fresh worst case of the adversarial gains is lower than that of the paper's gains
-and of the random-only gains. Met with the tracking-only objective (`--u-max none --tv-max none`),
-not with the default one (docs/tuning.md, "Min-max tuning"):
+and of the random-only gains. Met with the tracking-only objective (`--u-max none --tv-max none`)
+and with the TV(u) bound alone measured per training plant (`--u-max none --effort-bounds
+per_plant`); not with the default one, with nominal or per-plant bounds (`--effort-bounds
+per_plant`: the max|u| bound at the start's own peak binds on a worst case; docs/tuning.md,
+"Min-max tuning"):
 
     nice -n 5 python experiments/bench_adversarial.py --round-steps 150 --search-evals 512 \
         --u-max none --tv-max none
+    nice -n 5 python experiments/bench_adversarial.py --round-steps 150 --search-evals 512 \
+        --effort-bounds per_plant
 
 Prints a table (with the load average) and writes results/bench_adversarial.json (or --out).
 """
