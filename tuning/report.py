@@ -191,11 +191,11 @@ def problem_sentence(problem) -> str:
         cons.append(f"TV(u) <= {sc.tv_max:.4g}"
                     + (f" ({cfg.objective.tv_max_factor:g} x the start gains' on the nominal "
                        f"plant)" if cfg.objective.tv_max == "start" else ""))
+    on = "" if sc.per_plant else " on " + (
+        "the nominal plant" if not cfg.robust.batch else "every training plant")
     return (f"Minimise {' + '.join(terms)} on [{sim.window_start:g}, {sim.t_final:g}] s over "
             f"{problem.n_params} design numbers on {where}"
-            + (f", subject to {' and '.join(cons)} on "
-               + ("the nominal plant" if not cfg.robust.batch else "every training plant")
-               if cons else ", unconstrained") + ".")
+            + (f", subject to {' and '.join(cons)}{on}" if cons else ", unconstrained") + ".")
 
 
 def trajectories(problem, z0, z1, save_every: int = 10):
@@ -363,6 +363,12 @@ def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
 
+def own(s: dict, key: str) -> str:
+    """" on the nominal plant, each training plant its own" where that bound is per plant."""
+    per = s.get("bounds_train") or {}
+    return " on the nominal plant, each training plant its own" if per.get(key) else ""
+
+
 def _markdown(s: dict, problem, figures) -> str:
     sim = problem.objective.sim
     run = s["run"]
@@ -384,9 +390,9 @@ def _markdown(s: dict, problem, figures) -> str:
             f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
                                                           "effort_max", "effort_tv")
             if getattr(cfg.objective, k)) + (
-            f"; max|u| <= {s['bound_max_abs_u']:.4g} (penalty weight "
+            f"; max|u| <= {s['bound_max_abs_u']:.4g}{own(s, 'max_abs_u')} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
-        + (f"; TV(u) <= {s['bound_tv_u']:.4g} (penalty weight "
+        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{own(s, 'tv_u')} (penalty weight "
            f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
         + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
            + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")

@@ -336,6 +336,14 @@ def run(args) -> int:
     for c in summary["constraints"]["tuned"]:
         print(f"  constraint {c['name']} <= {c['bound']:.6g}: {'met' if c['met'] else 'VIOLATED'}"
               f" (tuned {c['value']:.6g}, margin {c['margin']:.4g})")
+    if summary["effort_bounds"] == "per_plant":
+        for c in summary.get("train_constraints", {}).get("tuned", []):
+            worst = ("diverged" if c["worst_margin"] is None else
+                     f"margin {c['worst_margin']:.4g} ({100 * c['worst_relative_margin']:.2f} %)")
+            factor = f"{cfg.objective.tv_max_factor:g} x " if c["name"] == "TV(u)" else ""
+            print(f"  constraint {c['name']} <= {factor}the start gains' own, per training "
+                  f"plant: met on {c['n_met']} of {c['n']}; worst plant {c['worst_plant']}: "
+                  f"{worst}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         if h0["linf_error_window"] and h1["linf_error_window"]:
