@@ -276,3 +276,28 @@ def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config)
     assert tv["worst_relative_margin"] == pytest.approx(1 - 1 / 1.5, rel=1e-6)
     md = (out / "report.md").read_text()
     assert "Constraints per training plant" in md and "on each training plant" in md
+
+
+def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
+    """The batched programs of the search methods (every candidate x every training plant)
+    lay the per-plant bounds out as the plants: their loss and feasibility are those of the
+    objective evaluated at each candidate alone."""
+    from jax.flatten_util import ravel_pytree
+
+    from tuning import baselines, search
+
+    _, out = adv_run
+    _, problem = _per_plant_problem(out)
+    flat0, unravel = ravel_pytree(problem.z0)
+    # the start, and k_2 x 3: more effort than the start's on some plants
+    pts = np.stack([np.asarray(flat0), np.asarray(flat0) + np.log([1.0, 3.0])])
+    got = search.batch_fn(problem)(pts)
+    losses = baselines.batch_loss_fn(problem)[0](pts)
+    terms = []
+    for i, p in enumerate(pts):
+        loss, aux = problem.objective.evaluate(unravel(p))
+        assert float(got["loss"][i]) == pytest.approx(float(loss), rel=1e-9)
+        assert float(losses[i]) == pytest.approx(float(loss), rel=1e-9)
+        assert bool(got["feasible"][i]) == bool(aux["feasible"])
+        terms.append(float(aux["terms"]["u_bound"]))
+    assert terms[1] > 0  # the bounds were in play
