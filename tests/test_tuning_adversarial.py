@@ -181,3 +181,123 @@ def test_search_evals_ends_each_search_at_that_count(adv_run):
     assert runs[0]["evaluations"] == 8  # two batches of 4
     assert runs[0] == runs[1]
     assert "search_evals = \"none\"" in tuning.config.to_toml(_inputs()[2])
+
+
+# -- effort bounds per training plant (tuning.objective.effort_bounds = "per_plant") ----------
+
+
+def _per_plant_problem(out):
+    """The adversarial run's final training set (its random plants and the worst cases the
+    round added, waveforms included) with effort_bounds = "per_plant"."""
+    setup, options, cfg = _inputs()
+    cfg = dataclasses.replace(cfg, objective=dataclasses.replace(
+        cfg.objective, effort_bounds="per_plant"))
+    setup = adversarial.search_problem(setup, options, cfg).setup
+    plants = files.read_npz(out / "round_1" / "plants.npz")
+    return setup, runner.build_problem(setup, options, cfg, extra_plants=plants)
+
+
+def test_per_plant_bounds_are_the_start_gains_own_figures_on_each_plant(adv_run):
+    """Each training plant's bounds equal the start gains simulated on that plant by
+    `simulate`, with max|u| and TV(u) = sum |u_(k+1) - u_k| computed here by numpy over the
+    step grid; the nominal bounds stay those of the nominal plant."""
+    _, out = adv_run
+    setup, problem = _per_plant_problem(out)
+    sc, spec = problem.objective.scales, problem.cfg.objective
+    ov = problem.objective.overrides
+    n = problem.n_train
+    assert n == 2 + len(files.read_npz(out / "round_1" / "plants.npz")["hysteresis.alpha"])
+    assert sc.u_max_train.shape == sc.tv_max_train.shape == (n,)
+    assert sc.u_max_train.dtype == sc.tv_max_train.dtype == np.float64
+
+    def figures(s):
+        traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2)  # saves every step
+        u = np.asarray(traj.u, np.float64)
+        return np.max(np.abs(u)), np.sum(np.abs(np.diff(u)))
+
+    for i in range(n):
+        u_max, tv = figures(dscjax.params.set_many(
+            setup, {k: np.asarray(v)[i] for k, v in ov.items()}))
+        assert sc.u_max_train[i] == pytest.approx(u_max, rel=1e-9)
+        assert sc.tv_max_train[i] == pytest.approx(spec.tv_max_factor * tv, rel=1e-9)
+    u_max, tv = figures(setup)
+    assert sc.u_max == pytest.approx(u_max, rel=1e-9)
+    assert sc.tv_max == pytest.approx(spec.tv_max_factor * tv, rel=1e-9)
+    # the objective applies them: the start gains meet their own bounds on every plant, and
+    # the per-plant terms are those of each plant's own bound
+    loss, aux = problem.objective.evaluate(problem.z0)
+    assert bool(aux["feasible"])
+    m = problem.objective.per_plant(problem.z0)
+    tv_term = spec.tv_max_weight * np.maximum(np.asarray(m["tv_u"]) / sc.tv_max_train - 1, 0)**2
+    assert np.all(tv_term == 0)
+
+
+def test_effort_bounds_enter_the_fingerprint_only_when_per_plant(adv_run):
+    """Runs from before the option (nominal bounds, the default) keep their fingerprint and
+    resume; per_plant is another problem."""
+    _, out = adv_run
+    setup, options, cfg = _inputs()
+    nominal = runner.build_problem(setup, options, cfg).describe()
+    assert "effort_bounds" not in nominal["objective"]
+    _, per = _per_plant_problem(out)
+    assert per.describe()["objective"]["effort_bounds"] == "per_plant"
+    assert 'effort_bounds = "nominal"' in tuning.config.to_toml(cfg)
+    again = tuning.config_from_dict(tomllib.loads(tuning.config.to_toml(per.cfg))["tuning"])
+    assert again.objective.effort_bounds == "per_plant"
+
+
+@pytest.mark.parametrize(("value", "got"), [('"everywhere"', "'everywhere'"), ("1", "1")])
+def test_bad_effort_bounds_give_one_line_and_exit_2(value, got, tmp_path, capsys):
+    cfg = tmp_path / "bad.toml"
+    cfg.write_text(f"[tuning.objective]\neffort_bounds = {value}\n")
+    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err
+    assert err.endswith("tuning.objective.effort_bounds must be one of 'nominal', "
+                        f"'per_plant' (got {got})")
+
+
+def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config):
+    """report.json and report.md state the bounds used and check them on each training
+    plant: the start gains meet their own bounds on every plant."""
+    toml = TOML.split("[tuning.adversarial]")[0]
+    code, out = run_with_config(tmp_path, toml, "tune", "--effort-bounds", "per_plant",
+                                "--quiet", "--no-plot")
+    assert code == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["effort_bounds"] == "per_plant"
+    assert len(rep["bounds_train"]["max_abs_u"]) == len(rep["bounds_train"]["tv_u"]) == 2
+    for tag in ("start", "tuned"):
+        rows = rep["train_constraints"][tag]
+        assert [r["name"] for r in rows] == ["max|u|", "TV(u)"]
+        assert all(r["bounds"] == "per_plant" and r["n"] == 2 for r in rows)
+    assert all(r["n_met"] == 2 for r in rep["train_constraints"]["start"])
+    tv = rep["train_constraints"]["start"][1]
+    assert tv["worst_relative_margin"] == pytest.approx(1 - 1 / 1.5, rel=1e-6)
+    md = (out / "report.md").read_text()
+    assert "Constraints per training plant" in md and "on each training plant" in md
+
+
+def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
+    """The batched programs of the search methods (every candidate x every training plant)
+    lay the per-plant bounds out as the plants: their loss and feasibility are those of the
+    objective evaluated at each candidate alone."""
+    from jax.flatten_util import ravel_pytree
+
+    from tuning import baselines, search
+
+    _, out = adv_run
+    _, problem = _per_plant_problem(out)
+    flat0, unravel = ravel_pytree(problem.z0)
+    # the start, and k_2 x 3: more effort than the start's on some plants
+    pts = np.stack([np.asarray(flat0), np.asarray(flat0) + np.log([1.0, 3.0])])
+    got = search.batch_fn(problem)(pts)
+    losses = baselines.batch_loss_fn(problem)[0](pts)
+    terms = []
+    for i, p in enumerate(pts):
+        loss, aux = problem.objective.evaluate(unravel(p))
+        assert float(got["loss"][i]) == pytest.approx(float(loss), rel=1e-9)
+        assert float(losses[i]) == pytest.approx(float(loss), rel=1e-9)
+        assert bool(got["feasible"][i]) == bool(aux["feasible"])
+        terms.append(float(aux["terms"]["u_bound"]))
+    assert terms[1] > 0  # the bounds were in play

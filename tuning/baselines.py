@@ -71,7 +71,8 @@ def batch_loss_fn(problem):
             ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
                    for p, v in train.items()}
         metrics, diverged = simulate_metrics(obj.setup, obj.sim, obj.extra(), ov)
-        loss, _ = plant_loss(metrics, diverged, obj.spec, obj.scales, len(obj.requirements))
+        loss, _ = plant_loss(metrics, diverged, obj.spec, obj.scales, len(obj.requirements),
+                             obj.scales.bounds(train=bool(train), tile=b))
         loss = loss.reshape(b, n_train)
         return jax.vmap(lambda v: aggregate(v, obj.aggregate, obj.cvar_level))(loss) \
             if train else loss[:, 0]

@@ -189,6 +189,8 @@ def _table(v, field):
 
 
 def _objective_value(name, v, field):
+    if name == "effort_bounds":
+        return v  # checked with its allowed values by ObjectiveSpec.validate
     if name == "window_start" and isinstance(v, str) and v.lower() == "none":
         return None
     if name in ("u_max", "tv_max"):

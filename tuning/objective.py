@@ -15,8 +15,12 @@ Per plant (window W = [t0, T], every RK4 step, see `TuningMetrics`):
     J = divergence_penalty                        if the trajectory diverged (finite, no NaN)
 
 where "(start)" is the value for the start gains on the nominal plant, so that weights are
-dimensionless and J(start) is about the sum of the active weights. Over a batch of plants the
-loss is the mean, the CVaR at level a (the mean of the worst ceil(a B) values) or the max.
+dimensionless and J(start) is about the sum of the active weights. The bounds u_max and
+tv_max given as "start" are the start gains' figures on the nominal plant for every plant
+(effort_bounds = "nominal"), or on each training plant its own (effort_bounds = "per_plant":
+the start gains' max|u| and tv_max_factor x TV(u) simulated on that plant, see
+`start_scales`). Over a batch of plants the loss is the mean, the CVaR at level a (the mean of
+the worst ceil(a B) values) or the max.
 
 Smooth surrogates (both running log-sum-exp accumulators, stable by a running max):
 
@@ -42,12 +46,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import validation
 from dscjax.closed_loop import Setup
 from dscjax.metrics import step_weights
 from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
+# Where the "start" bounds on max|u| and TV(u) are measured: on the nominal plant (one bound
+# for every plant) or on each training plant (its own bound).
+EFFORT_BOUNDS = ("nominal", "per_plant")
 # A bound "start" is the start gains' own figure, computed by another compiled program (the
 # nominal one, not the batched one): rounding may put the start a few ulps over its own bound.
 # Bounds are met within this relative tolerance; the report prints the exact margin.
@@ -166,6 +174,11 @@ class ObjectiveSpec:
     tv_max: float | str | None = "start"
     tv_max_factor: float = 1.5
     tv_max_weight: float = 100.0
+    # "nominal": the "start" bounds are the start gains' figures on the nominal plant, for
+    # every plant; "per_plant": each training plant's own (a plant that needs more effort than
+    # the nominal one, e.g. a worst case with its disturbance, is bounded by what the start
+    # gains spend on it)
+    effort_bounds: str = "nominal"
     sharpness: float = 50.0
     u_sharpness: float = 300.0
     divergence_penalty: float = 1000.0
@@ -195,6 +208,7 @@ class ObjectiveSpec:
             raise ConfigError(f"{field}.tv_max must be a number > 0, \"start\" (tv_max_factor "
                               f"x the start gains' TV(u) on the nominal plant) or \"none\" "
                               f"(got {v!r})")
+        validation.one_of(self.effort_bounds, f"{field}.effort_bounds", EFFORT_BOUNDS)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -217,7 +231,9 @@ class SimSpec:
 
 @dataclasses.dataclass(frozen=True)
 class Scales:
-    """The start gains' figures on the nominal plant, used to normalise the terms."""
+    """The start gains' figures on the nominal plant, used to normalise the terms, and the
+    bounds: on the nominal plant (u_max, tv_max) and, with effort_bounds = "per_plant", on
+    each plant of the objective's training batch (u_max_train, tv_max_train: (B,) float64)."""
 
     linf: float
     l2: float
@@ -226,6 +242,25 @@ class Scales:
     u_max: float | None  # the bound on max|u| (None: no bound)
     tv_u: float = 1.0
     tv_max: float | None = None  # the bound on TV(u) (None: no bound)
+    # per training plant (None: u_max / tv_max for every plant); only for the objective's own
+    # training batch: any other batch (held-out plants, the nominal plant) gets the nominal ones
+    u_max_train: np.ndarray | None = dataclasses.field(default=None, compare=False)
+    tv_max_train: np.ndarray | None = dataclasses.field(default=None, compare=False)
+    # training plants on which the start gains diverge: they keep the nominal bounds
+    n_train_fallback: int = 0
+
+    @property
+    def per_plant(self) -> bool:
+        return self.u_max_train is not None or self.tv_max_train is not None
+
+    def bounds(self, train: bool, tile: int = 1) -> tuple:
+        """(bound on max|u|, bound on TV(u)) of a batch: the training batch's own per plant
+        if `train` (repeated `tile` times, as a batch of candidates x training plants lays
+        them out), else the nominal ones; None where there is no bound."""
+        out = []
+        for nominal, per in ((self.u_max, self.u_max_train), (self.tv_max, self.tv_max_train)):
+            out.append(np.tile(per, tile) if train and per is not None else nominal)
+        return tuple(out)
 
 
 def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
@@ -250,8 +285,12 @@ def extra_for(spec: ObjectiveSpec, scales: Scales, sim: SimSpec, requirements=()
 
 
 def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
-               n_requirements: int) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """J of one plant (or elementwise over a batch) and its weighted terms."""
+               n_requirements: int, bounds: tuple | None = None
+               ) -> tuple[jax.Array, dict[str, jax.Array]]:
+    """J of one plant (or elementwise over a batch) and its weighted terms. `bounds`: (bound
+    on max|u|, bound on TV(u)), scalars or one per plant (`Scales.bounds`); default the
+    nominal ones."""
+    u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
     terms = {}
     if spec.linf:
         terms["linf"] = spec.linf * metrics["smooth_linf_window"] / scales.linf
@@ -263,12 +302,12 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
         terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
     if spec.effort_tv:
         terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
-    if scales.u_max is not None and spec.u_max_weight:
+    if u_bound is not None and spec.u_max_weight:
         terms["u_bound"] = spec.u_max_weight * jnp.maximum(
-            metrics["smooth_max_abs_u"] / scales.u_max - 1.0, 0.0) ** 2
-    if scales.tv_max is not None and spec.tv_max_weight:
+            metrics["smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
+    if tv_bound is not None and spec.tv_max_weight:
         terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
-            metrics["tv_u"] / scales.tv_max - 1.0, 0.0) ** 2
+            metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     total = sum(terms.values())
@@ -282,6 +321,15 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
 def within(value, bound):
     """value <= bound, up to BOUND_RTOL (relative)."""
     return value <= bound * (1.0 + BOUND_RTOL)
+
+
+def within_bounds(metrics: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
+    """Every effort bound of `bounds` (`Scales.bounds`) met by each plant's exact figures."""
+    ok = jnp.ones(jnp.shape(metrics["max_abs_u"]), bool)
+    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
+        if bound is not None:
+            ok = ok & within(metrics[key], bound)
+    return ok
 
 
 def _max_measured(values: jax.Array, diverged) -> jax.Array:
@@ -309,8 +357,13 @@ _start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None),
                          static_argnames=("sim",))
 
 
-def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
-    """Figures of the start gains on the nominal plant (raises if they diverge there)."""
+def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec,
+                 train: Mapping[str, Any] | None = None) -> Scales:
+    """Figures of the start gains on the nominal plant (raises if they diverge there); with
+    effort_bounds = "per_plant" and a training batch `train`, also the "start" bounds of
+    each training plant: the start gains' exact max|u| and tv_max_factor x TV(u) (every RK4
+    step) simulated on that plant, once (a plant on which the start diverges keeps the
+    nominal bounds)."""
     metrics, diverged = _start_metrics(setup, sim=sim)
     if bool(diverged):
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
@@ -328,10 +381,22 @@ def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec) -> Scales:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
     tiny = 1e-300
+    u_max = None if u_max is None else float(u_max)
+    tv_max = None if tv_max is None else float(tv_max)
+    per: dict[str, Any] = {}
+    if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
+        mb, div = jax.device_get(_start_metrics(setup, sim=sim, overrides=dict(train)))
+        div = np.asarray(div, bool)
+        for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
+                                           ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
+            if getattr(spec, name) == "start":
+                v = factor * np.asarray(mb[key], np.float64)
+                # a figure of 0 (no effort at all on that plant) would leave no room at all
+                per[f"{name}_train"] = np.where(div | ~(v > 0), nominal, v)
+        per["n_train_fallback"] = int(div.sum())
     return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
                   l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
-                  u_max=None if u_max is None else float(u_max), tv_u=max(m["tv_u"], tiny),
-                  tv_max=None if tv_max is None else float(tv_max))
+                  u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, **per)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -364,6 +429,11 @@ class Objective:
         dtype = jnp.result_type(self.setup.plant.x0)
         return extra_for(self.spec, self.scales, self.sim, self.requirements, dtype)
 
+    def bounds(self, overrides=None) -> tuple:
+        """(bound on max|u|, bound on TV(u)) of the plants of `overrides` (None: the training
+        batch, with its per-plant bounds if it has them)."""
+        return self.scales.bounds(train=overrides is None and bool(self.overrides))
+
     def evaluate(self, z, overrides=None, checkpoint_every=None):
         """(loss, aux) at z; aux has the terms (aggregated as the loss is), the exact metrics
         and the feasibility of the bounds (all plants)."""
@@ -371,14 +441,11 @@ class Objective:
         ov = self.overrides if overrides is None else overrides
         metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov,
                                              checkpoint_every)
+        bounds = self.bounds(overrides)
         per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
-                                      len(self.requirements))
+                                      len(self.requirements), bounds)
         loss = aggregate(per_plant, self.aggregate, self.cvar_level)
-        feasible = ~diverged
-        if self.scales.u_max is not None:
-            feasible = feasible & within(metrics["max_abs_u"], self.scales.u_max)
-        if self.scales.tv_max is not None:
-            feasible = feasible & within(metrics["tv_u"], self.scales.tv_max)
+        feasible = ~diverged & within_bounds(metrics, bounds)
         for i in range(len(self.requirements)):
             feasible = feasible & (metrics[f"req{i}_met"] > 0)
         aux = {
@@ -404,7 +471,7 @@ class Objective:
         ov = self.overrides if overrides is None else overrides
         metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov)
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
-                                  len(self.requirements))
+                                  len(self.requirements), self.bounds(overrides))
         return {"loss": per_plant, "diverged": diverged, **metrics}
 
 

@@ -135,6 +135,35 @@ def constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
+def train_constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
+    """The bounds checked exactly on every plant of the training batch (`m`: its per-plant
+    figures, as `evaluate` gives them): each plant against its own bound (per_plant) or the
+    nominal one; how many meet it, and the worst plant (the smallest relative margin; a plant
+    that diverged at every step tried meets nothing and is the worst)."""
+    diverged = np.asarray(m["diverged"]).astype(bool)
+    n = diverged.size
+    rows = []
+    for name, key, bound, per in (("max|u|", "max_abs_u", scales.u_max, scales.u_max_train),
+                                  ("TV(u)", "tv_u", scales.tv_max, scales.tv_max_train)):
+        if bound is None:
+            continue
+        b = np.broadcast_to(np.asarray(per if per is not None else bound, float), (n,))
+        v = np.asarray(m[key], float).reshape(n)
+        with np.errstate(invalid="ignore"):
+            met = ~diverged & np.isfinite(v) & (v <= b * (1 + BOUND_RTOL))
+            rel = np.where(diverged | ~np.isfinite(v), -np.inf, (b - v) / b)
+        worst = int(np.argmin(rel))
+        measured = bool(np.isfinite(rel[worst]))
+        rows.append({"name": name, "bounds": "per_plant" if per is not None else "nominal",
+                     "n": n, "n_met": int(met.sum()), "worst_plant": worst,
+                     "worst_value": float(v[worst]) if measured else None,
+                     "worst_bound": float(b[worst]),
+                     "worst_margin": float(b[worst] - v[worst]) if measured else None,
+                     "worst_relative_margin": float(rel[worst]) if measured else None,
+                     "bound_min": float(b.min()), "bound_max": float(b.max())})
+    return rows
+
+
 def problem_sentence(problem) -> str:
     """The problem in one sentence (report.md's first line)."""
     cfg, sc, sim = problem.cfg, problem.objective.scales, problem.objective.sim
@@ -146,18 +175,27 @@ def problem_sentence(problem) -> str:
              + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
              + f" over {cfg.robust.batch} training plants")
     cons = []
-    if sc.u_max is not None:
+    if sc.u_max_train is not None:
+        cons.append(f"max|u| <= the start gains' max|u| on each training plant "
+                    f"({sc.u_max_train.min():.4g} to {sc.u_max_train.max():.4g}; nominal "
+                    f"plant {sc.u_max:.4g})")
+    elif sc.u_max is not None:
         cons.append(f"max|u| <= {sc.u_max:.4g}"
-                    + (" (the start gains')" if cfg.objective.u_max == "start" else ""))
-    if sc.tv_max is not None:
+                    + (" (the start gains' on the nominal plant)"
+                       if cfg.objective.u_max == "start" else ""))
+    if sc.tv_max_train is not None:
+        cons.append(f"TV(u) <= {cfg.objective.tv_max_factor:g} x the start gains' TV(u) on "
+                    f"each training plant ({sc.tv_max_train.min():.4g} to "
+                    f"{sc.tv_max_train.max():.4g}; nominal plant {sc.tv_max:.4g})")
+    elif sc.tv_max is not None:
         cons.append(f"TV(u) <= {sc.tv_max:.4g}"
-                    + (f" ({cfg.objective.tv_max_factor:g} x the start gains')"
-                       if cfg.objective.tv_max == "start" else ""))
+                    + (f" ({cfg.objective.tv_max_factor:g} x the start gains' on the nominal "
+                       f"plant)" if cfg.objective.tv_max == "start" else ""))
+    on = "" if sc.per_plant else " on " + (
+        "the nominal plant" if not cfg.robust.batch else "every training plant")
     return (f"Minimise {' + '.join(terms)} on [{sim.window_start:g}, {sim.t_final:g}] s over "
             f"{problem.n_params} design numbers on {where}"
-            + (f", subject to {' and '.join(cons)} on "
-               + ("the nominal plant" if not cfg.robust.batch else "every training plant")
-               if cons else ", unconstrained") + ".")
+            + (f", subject to {' and '.join(cons)}{on}" if cons else ", unconstrained") + ".")
 
 
 def trajectories(problem, z0, z1, save_every: int = 10):
@@ -190,6 +228,10 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "nominal": nom,
         "bound_max_abs_u": problem.objective.scales.u_max,
         "bound_tv_u": problem.objective.scales.tv_max,
+        # where the "start" bounds were measured: "nominal" (one bound for every plant) or
+        # "per_plant" (each training plant's own: bounds_train)
+        "effort_bounds": problem.cfg.objective.effort_bounds,
+        "bounds_train": _bounds_train(problem.objective.scales),
         "problem": problem_sentence(problem),
         "constraints": {tag: constraint_checks(problem.objective.scales, ev["nominal"][tag])
                         for tag in ("start", "tuned")},
@@ -218,6 +260,10 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         + [f"tuned gains: {w}" for w in validation.assumption_warnings(result.best_setup)
            if w not in validation.assumption_warnings(problem.setup)],
     }
+    sc = problem.objective.scales
+    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None):
+        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag])
+                                        for tag in ("start", "tuned")}
     for key in ("train", "heldout"):
         if ev[key] is not None:
             summary[key] = {tag: batch_stats(ev[key][tag]) for tag in ("start", "tuned")}
@@ -237,6 +283,15 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", _markdown(summary, problem, figures))
     return summary
+
+
+def _bounds_train(sc) -> dict[str, Any] | None:
+    """The per-plant bounds of the training batch (None: the nominal ones for every plant)."""
+    if not sc.per_plant:
+        return None
+    return {"max_abs_u": None if sc.u_max_train is None else sc.u_max_train.tolist(),
+            "tv_u": None if sc.tv_max_train is None else sc.tv_max_train.tolist(),
+            "n_start_diverged": sc.n_train_fallback}
 
 
 def heldout_warning(summary: dict, cfg) -> str | None:
@@ -308,6 +363,12 @@ def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
 
+def own(s: dict, key: str) -> str:
+    """" on the nominal plant, each training plant its own" where that bound is per plant."""
+    per = s.get("bounds_train") or {}
+    return " on the nominal plant, each training plant its own" if per.get(key) else ""
+
+
 def _markdown(s: dict, problem, figures) -> str:
     sim = problem.objective.sim
     run = s["run"]
@@ -329,9 +390,9 @@ def _markdown(s: dict, problem, figures) -> str:
             f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
                                                           "effort_max", "effort_tv")
             if getattr(cfg.objective, k)) + (
-            f"; max|u| <= {s['bound_max_abs_u']:.4g} (penalty weight "
+            f"; max|u| <= {s['bound_max_abs_u']:.4g}{own(s, 'max_abs_u')} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
-        + (f"; TV(u) <= {s['bound_tv_u']:.4g} (penalty weight "
+        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{own(s, 'tv_u')} (penalty weight "
            f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
         + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
            + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
@@ -368,6 +429,26 @@ def _markdown(s: dict, problem, figures) -> str:
                          f"{b['value']:.6g} | {b['margin']:.4g} "
                          f"({100 * b['relative_margin']:.2f} %) | "
                          f"**{'met' if b['met'] else 'violated'}** |")
+    if s.get("train_constraints"):
+        per = s["effort_bounds"] == "per_plant"
+        lines += ["", "## Constraints per training plant (checked exactly on every RK4 step)",
+                  "", ("Bounds: per plant, the start gains' own figures on each training plant "
+                       "(`effort_bounds = \"per_plant\"`)." if per else
+                       "Bounds: the nominal plant's, for every training plant "
+                       "(`effort_bounds = \"nominal\"`)."), "",
+                  "| constraint | bounds | met (start) | met (tuned) | worst plant (tuned) | "
+                  "its value / bound | margin (bound - value) |", "|---|---|---|---|---|---|---|"]
+        for a, b in zip(s["train_constraints"]["start"], s["train_constraints"]["tuned"],
+                        strict=True):
+            rng = (f"{b['bound_min']:.4g} to {b['bound_max']:.4g}" if b["bounds"] == "per_plant"
+                   else f"{b['bound_min']:.4g}")
+            worst = ("diverged" if b["worst_value"] is None else
+                     f"{b['worst_value']:.6g} / {b['worst_bound']:.6g}")
+            margin = ("-" if b["worst_margin"] is None else
+                      f"{b['worst_margin']:.4g} ({100 * b['worst_relative_margin']:.2f} %)")
+            lines.append(f"| {_md(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
+                         f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
+                         f"{margin} |")
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
                   "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]

@@ -81,7 +81,7 @@ class Problem:
             # `scale` only when set: fingerprints of runs without scales stay as they were
             "params": [{k: v for k, v in dataclasses.asdict(t).items() if k != "scale" or v}
                        for t in self.selection.items],
-            "objective": dataclasses.asdict(self.cfg.objective),
+            "objective": _objective_desc(self.cfg.objective),
             "optimizer": opt,
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
@@ -91,6 +91,13 @@ class Problem:
              if self.extra_plants else {}) | (
             {"members": [m.describe() for m in self.members], "combine": self.objective.how}
             if self.members else {})
+
+
+def _objective_desc(spec) -> dict:
+    d = dataclasses.asdict(spec)
+    if d["effort_bounds"] == "nominal":
+        del d["effort_bounds"]  # the default: runs from before the option resume
+    return d
 
 
 def _batch_desc(b, setup):
@@ -164,7 +171,13 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
     requirements = build_requirements(setup, cfg.requirements)
-    scales = start_scales(setup, sim, cfg.objective)
+    scales = start_scales(setup, sim, cfg.objective, train)
+    if scales.per_plant:
+        n = len(next(iter(train.values())))
+        notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
+                     f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
+                     + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
+                        f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",

@@ -58,7 +58,7 @@ from jax.flatten_util import ravel_pytree
 from dscjax import files, params, xla
 from dscjax.cmaes import ReplayCMA
 from tuning import checkpoint as ck
-from tuning.objective import aggregate, plant_loss, simulate_metrics, within
+from tuning.objective import aggregate, plant_loss, simulate_metrics, within_bounds
 from tuning.optimize import value_and_grad
 
 STATE_FILE = "search.npz"
@@ -91,12 +91,10 @@ def batch_fn(problem):
             ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
                    for p, v in train.items()}
         m, div = simulate_metrics(obj.setup, obj.sim, obj.extra(), ov)
-        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements))
-        feas = ~div
-        if sc.u_max is not None:
-            feas = feas & within(m["max_abs_u"], sc.u_max)
-        if sc.tv_max is not None:
-            feas = feas & within(m["tv_u"], sc.tv_max)
+        # the training plants' own bounds (per_plant), laid out as the plants are: tiled
+        bounds = sc.bounds(train=bool(train), tile=b)
+        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements), bounds)
+        feas = ~div & within_bounds(m, bounds)
         for i in range(len(obj.requirements)):
             feas = feas & (m[f"req{i}_met"] > 0)
 

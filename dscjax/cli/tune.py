@@ -20,7 +20,7 @@ def add_parser(sub):
     from dscjax.cli.common import add_example_arg, add_horizon_args
     from dscjax.worst import METHODS
     from tuning.config import TuningConfig
-    from tuning.objective import AGGREGATES
+    from tuning.objective import AGGREGATES, EFFORT_BOUNDS
     from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS, OPTIMIZERS
 
     d = TuningConfig()
@@ -63,6 +63,11 @@ def add_parser(sub):
     p.add_argument("--cvar-level", type=float, metavar="A", help=f"CVaR level in (0, 1]: the "
                    f"mean of the worst ceil(A B) plants (default {rob.cvar_level:g})")
     p.add_argument("--seed", type=int, help=f"seed of the training batch (default {rob.seed})")
+    p.add_argument("--effort-bounds", choices=EFFORT_BOUNDS, help="where the \"start\" "
+                   "bounds on max|u| and TV(u) are measured: on the nominal plant, for every "
+                   "plant, or on each training plant its own (per_plant: the start gains' "
+                   "max|u| and tv_max_factor x TV(u) on that plant, the worst cases of "
+                   f"--adversarial included; default {d.objective.effort_bounds})")
     p.add_argument("--heldout", type=int, metavar="N", help=f"held-out evaluation batch size "
                    f"(default {d.heldout.batch}; 0 = skip)")
     p.add_argument("--gradient", choices=GRADIENTS,
@@ -143,7 +148,9 @@ def load(args):
         for key in ("tuning", "sweep"):
             gains.pop(key, None)
         setup, options = config.from_dict(gains, base=setup, base_options=options)
-    opt, rob, held = {}, {}, {}
+    opt, rob, held, obj = {}, {}, {}, {}
+    if args.effort_bounds is not None:
+        obj["effort_bounds"] = args.effort_bounds
     if args.steps is not None:
         if args.steps < 1:
             raise ConfigError(f"--steps must be >= 1 (got {args.steps})")
@@ -180,7 +187,8 @@ def load(args):
         if value is not None:
             adv[key] = value
     cfg = dataclasses.replace(
-        cfg, optimizer=dataclasses.replace(cfg.optimizer, **opt),
+        cfg, objective=dataclasses.replace(cfg.objective, **obj),
+        optimizer=dataclasses.replace(cfg.optimizer, **opt),
         robust=dataclasses.replace(cfg.robust, **rob),
         heldout=dataclasses.replace(cfg.heldout, **held),
         adversarial=dataclasses.replace(cfg.adversarial, **adv))
@@ -271,7 +279,9 @@ def run(args) -> int:
     sc = problem.objective.scales
     print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else "") + f", TV(u) {sc.tv_u:.4g}"
-          + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else ""), file=sys.stderr)
+          + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else "")
+          + ("; bounds per training plant" if cfg.objective.effort_bounds == "per_plant"
+             else ""), file=sys.stderr)
     bar, bar_round = None, None
 
     def progress(row):
@@ -326,6 +336,14 @@ def run(args) -> int:
     for c in summary["constraints"]["tuned"]:
         print(f"  constraint {c['name']} <= {c['bound']:.6g}: {'met' if c['met'] else 'VIOLATED'}"
               f" (tuned {c['value']:.6g}, margin {c['margin']:.4g})")
+    if summary["effort_bounds"] == "per_plant":
+        for c in summary.get("train_constraints", {}).get("tuned", []):
+            worst = ("diverged" if c["worst_margin"] is None else
+                     f"margin {c['worst_margin']:.4g} ({100 * c['worst_relative_margin']:.2f} %)")
+            factor = f"{cfg.objective.tv_max_factor:g} x " if c["name"] == "TV(u)" else ""
+            print(f"  constraint {c['name']} <= {factor}the start gains' own, per training "
+                  f"plant: met on {c['n_met']} of {c['n']}; worst plant {c['worst_plant']}: "
+                  f"{worst}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         if h0["linf_error_window"] and h1["linf_error_window"]:
