@@ -94,9 +94,14 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
     and every filter uses tau = 0.05 with k_i = 4.
 
     Measured at dt = 1e-3 over 20 s: n = 3 and n = 4 track (L-inf error on [1, 20] s of 0.027
-    and 0.037). For n >= 5 no (tau, k) we tried with these gains survives at dt = 1e-3: the
-    hysteresis rate alpha |u'| exceeds RK4's stability limit 2.8/dt; the divergence report says
-    when. Such orders are still fine for measuring the control law (complexity study).
+    and 0.037). For n >= 5 no uniform (tau, k) we tried with these gains survives, at any step
+    or solver: the loop diverges, not the integrator. At n = 6, tau = 0.05, k = 4 the loop's
+    Jacobian at rest (x = 0, y_r = 0, estimates frozen) has eigenvalues 2.8 +- 3.6j (2.9 +-
+    9.2j with a nearly linear actuator, psi = 1.4), and the start on the derivative chain
+    kicks u'(0) to -3.9e5 (~1/tau^5).
+    Such orders are still fine for measuring the control law (complexity study). Order 6 does
+    track with non-uniform k_i, tau_i and adaptation rates (passed as `controller_changes`):
+    `experiments/tune_scaling.py`'s STARTS[6], found by CMA-ES (docs/tuning.md).
     """
     if n < 2:
         raise ValueError(f"order n must be >= 2 (got {n})")
