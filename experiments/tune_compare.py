@@ -203,6 +203,8 @@ def main():
     p.add_argument("--quick", action="store_true")
     p.add_argument("--budget", type=float, default=None, help="seconds per method and round")
     p.add_argument("--rounds", type=int, default=1)
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="round r uses seed FIRST_SEED + r (default 0), for more paired rounds")
     p.add_argument("--problems", default="nominal,robust")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--heldout", type=int, default=None)
@@ -233,7 +235,8 @@ def main():
                 # every method compiles its own programs (the objective caches them, and
                 # cma_grad and its ablation have the same batch width)
                 problem.objective.compiled.clear()
-                res = run_method(problem, m, budget, seed=r)
+                res = run_method(problem, m, budget, seed=args.first_seed + r)
+                res["seed"] = args.first_seed + r
                 res["load"] = load
                 res["figures"] = figures(problem, res.pop("best_flat"))
                 entry["runs"][m].append(res)
