@@ -352,3 +352,7 @@ def test_line_backoff_is_a_whole_number_checked_in_one_line():
     with pytest.raises(dscjax.ConfigError,
                        match=r"^tuning.optimizer.line_backoff must be .*>= 0.*-1"):
         tuning.config.from_dict({"optimizer": {"line_backoff": -1}})
+    # and the report's method sentence says so (only when it is on)
+    on = report.method_sentence(cfg.optimizer, "forward")
+    assert "skipped for min(2^(k-1), 8) generations" in on
+    assert "skipped" not in report.method_sentence(tuning.OptimizerSpec(), "forward")
