@@ -346,12 +346,16 @@ def test_line_backoff_skips_a_losing_line_for_doubling_generations(problems, lin
     assert s.state.evaluations == 1 + 9 * 4 + 3 * len(taken)
 
 
-def test_line_backoff_is_a_whole_number_checked_in_one_line():
+def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):
     cfg = tuning.config.from_dict({"optimizer": {"line_backoff": 8}})
     assert cfg.optimizer.line_backoff == 8
     with pytest.raises(dscjax.ConfigError,
                        match=r"^tuning.optimizer.line_backoff must be .*>= 0.*-1"):
         tuning.config.from_dict({"optimizer": {"line_backoff": -1}})
+    # in the resume fingerprint only when on, so that runs from before it still resume
+    problem = problems["cma_path"]
+    assert "line_backoff" not in problem.describe()["optimizer"]
+    assert _with(problem, line_backoff=8).describe()["optimizer"]["line_backoff"] == 8
     # and the report's method sentence says so (only when it is on)
     on = report.method_sentence(cfg.optimizer, "forward")
     assert "skipped for min(2^(k-1), 8) generations" in on
