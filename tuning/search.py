@@ -26,19 +26,26 @@ Every generation:
 4. CMA-ES is told its population; the best line point, when it beats the incumbent, is
    injected into the next generation (so CMA-ES moves its mean towards it).
 
+`line_backoff = m` (0: off, the default) skips the line while it keeps losing: after k
+consecutive generations whose line did not win, the next min(2^(k-1), m) generations are
+steps 1, 3 and 4 alone, CMA-ES's population in a second compiled program of that width; a
+winning line resets k. Measured on the robust problem (docs/tuning.md, round 4): it keeps
+most of the line's wins at about half its cost, but did not beat CMA-ES at equal wall time.
+
 Why this shape (measured, docs/tuning.md): one exact gradient costs about as much as one
 CMA-ES generation, and on this kinked landscape (sat, |u'|, the running max, two active
 constraints) a plain gradient step often raises the loss a short way off; evaluating many step
 sizes at once and keeping the best makes the gradient's information safe to use, and CMA-ES
 keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
 
-State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness
-told and the point injected per generation), the incumbent, the counters and the generator of
-the random line directions. No pickle: ONE atomic `search.npz` holds the recorded fitness and
-injections, the last population, the incumbent (float64, bitwise), the counters and the
-generator's state (uint64 words). A resumed run rebuilds CMA-ES with the same seed and
-options and replays ask/tell/inject with the stored values (no simulation), so it continues
-exactly where it stopped (tested: resumed == uninterrupted, bitwise).
+State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness told
+and the point injected per generation), the incumbent, the counters (the back-off's
+included) and the generator of the random line directions. No pickle: ONE atomic
+`search.npz` holds the recorded fitness and injections, the last population, the incumbent
+(float64, bitwise), the counters and the generator's state (uint64 words). A resumed run
+rebuilds CMA-ES with the same seed and options and replays ask/tell/inject with the stored
+values (no simulation), so it continues exactly where it stopped (tested: resumed ==
+uninterrupted, bitwise).
 """
 
 from __future__ import annotations
