@@ -1,4 +1,5 @@
-"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad): the TV(u)
+"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad, and the
+line's back-off): the TV(u)
 and max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
 removes every gradient evaluation (counted), each path lowers the objective on a short horizon
 and resumes from a pickle-free checkpoint to the very same result, and a NaN never becomes the
@@ -6,7 +7,8 @@ best point nor a direction.
 
 One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
 path's batch has the same width (cma: population 7; cma_line, cma_path, cma_grad: 4 + 3 line
-points), so ONE batched program and one gradient are compiled for the whole module.
+points), so ONE batched program and one gradient are compiled for the whole module (and one
+of width 4 for the line back-off's generations without the line).
 """
 
 import dataclasses
