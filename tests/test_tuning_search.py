@@ -1,9 +1,8 @@
-"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad, and the
-line's back-off): the TV(u)
-and max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
-removes every gradient evaluation (counted), each path lowers the objective on a short horizon
-and resumes from a pickle-free checkpoint to the very same result, and a NaN never becomes the
-best point nor a direction.
+"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad, and the line's
+back-off): the TV(u) and max|u| bounds are exact in the report (a hand-made u with known
+figures), the ablation switch removes every gradient evaluation (counted), each path lowers the
+objective on a short horizon and resumes from a pickle-free checkpoint to the very same result,
+and a NaN never becomes the best point nor a direction.
 
 One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
 path's batch has the same width (cma: population 7; cma_line, cma_path, cma_grad: 4 + 3 line
