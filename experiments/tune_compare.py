@@ -25,6 +25,11 @@ population as one batched program):
   adam         exact gradients and Adam (the old default)
   random       uniform in the box z0 +- ln 10, 32 per batch
 
+A method may carry [tuning.optimizer] options after colons, e.g. `cma_path:line_points=2` or
+`cma_path:line_points=3:line_min=0.1` (integers, floats, true/false), to compare variants.
+The search methods also report, per line step size (index 0 = the shortest), how many
+generations it won (`line_step_wins`).
+
 Rounds run every method in turn (interleaved, so that they share the machine's load); the
 table reports medians over rounds and the load average beside each run. Held-out figures of
 each method's best gains come from the tuner's own held-out batch (256 plants, seed 12345),
@@ -65,11 +70,22 @@ def build(name: str, t_final: float, heldout: int):
     return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
 
 
+def _option(text: str):
+    key, _, value = text.partition("=")
+    if value.lower() in ("true", "false"):
+        return key, value.lower() == "true"
+    try:
+        return key, int(value)
+    except ValueError:
+        return key, float(value)
+
+
 def with_method(problem, method: str, budget: float, seed: int):
+    base, *extra = method.split(":")
     opt = {"cma": dict(name="cma"), "cma_path": dict(name="cma_path"),
            "cma_grad": dict(name="cma_grad"),
            "cma_grad_off": dict(name="cma_grad", grad_every=0),
-           "adam": dict(name="adam")}[method]
+           "adam": dict(name="adam")}[base] | dict(_option(x) for x in extra)
     cfg = problem.cfg
     spec = dataclasses.replace(cfg.optimizer, time_limit=budget, steps=10**7, patience=0,
                                seed=seed, decay_steps=cfg.optimizer.steps, **opt)
@@ -112,10 +128,25 @@ def run_method(problem, method, budget, seed):
     from jax.flatten_util import ravel_pytree
 
     import tuning
+    from tuning import search
 
     if method == "random":
         return random_search(problem, budget, seed)
-    res = tuning.run(with_method(problem, method, budget, seed), None)
+    wins: dict[int, int] = {}
+    take = search.Search._take
+
+    def counting(self, x, *rest):  # which line step won (the generation's own batch only)
+        out = take(self, x, *rest)
+        k = self.state.es.popsize
+        if out and x.shape[0] > k and out[0] >= k:
+            wins[out[0] - k] = wins.get(out[0] - k, 0) + 1
+        return out
+
+    search.Search._take = counting
+    try:
+        res = tuning.run(with_method(problem, method, budget, seed), None)
+    finally:
+        search.Search._take = take
     z = res.state.best_z
     return {"best_flat": np.asarray(ravel_pytree(z)[0], float),
             "best_loss": float(res.state.best_loss),
@@ -126,6 +157,7 @@ def run_method(problem, method, budget, seed):
             if res.gradient_evaluations is not None else int(res.state.iteration),
             "iterations": int(res.state.iteration), "compile_s": res.compile_s,
             "line_wins": getattr(res.state, "line_wins", None),
+            "line_step_wins": [wins.get(i, 0) for i in range(max(wins, default=-1) + 1)],
             "first_gradient_generation": getattr(res.state, "first_grad", None),
             "curve": [(r["wall_s"], r["best_loss"] if r["best_feasible"] else math.inf)
                       for r in res.history]}
@@ -171,6 +203,8 @@ def main():
     p.add_argument("--quick", action="store_true")
     p.add_argument("--budget", type=float, default=None, help="seconds per method and round")
     p.add_argument("--rounds", type=int, default=1)
+    p.add_argument("--first-seed", type=int, default=0,
+                   help="round r uses seed FIRST_SEED + r (default 0), for more paired rounds")
     p.add_argument("--problems", default="nominal,robust")
     p.add_argument("--methods", default=",".join(METHODS))
     p.add_argument("--heldout", type=int, default=None)
@@ -201,7 +235,8 @@ def main():
                 # every method compiles its own programs (the objective caches them, and
                 # cma_grad and its ablation have the same batch width)
                 problem.objective.compiled.clear()
-                res = run_method(problem, m, budget, seed=r)
+                res = run_method(problem, m, budget, seed=args.first_seed + r)
+                res["seed"] = args.first_seed + r
                 res["load"] = load
                 res["figures"] = figures(problem, res.pop("best_flat"))
                 entry["runs"][m].append(res)
@@ -209,7 +244,9 @@ def main():
                 print(f"  {name} round {r} {m}: best {res['best_loss']:.4g} "
                       f"({'feasible' if res['best_feasible'] else 'infeasible'}), "
                       f"{res['evaluations']} evaluations, {res['gradient_evaluations']} "
-                      f"gradients; L-inf {f['linf_error_window']:.4g}; load {load:.1f}",
+                      f"gradients; {res['iterations']} generations, line wins "
+                      f"{res.get('line_wins')} {res.get('line_step_wins')}; "
+                      f"L-inf {f['linf_error_window']:.4g}; load {load:.1f}",
                       file=sys.stderr, flush=True)
                 Path(f"{out}.json").write_text(json.dumps(results | {"problems": {
                     **results["problems"], name: entry}}, indent=1) + "\n")
@@ -246,7 +283,8 @@ def _table(r):
             f = runs[i]["figures"]
             h = f.get("heldout") or {}
             hl = h.get("linf_error_window") or {}
-            print(f"{name:<8} {LABELS[m]:<30} {_med([x['evaluations'] for x in runs]):>7.0f} "
+            label = LABELS.get(m, m)[:30]
+            print(f"{name:<8} {label:<30} {_med([x['evaluations'] for x in runs]):>7.0f} "
                   f"{_med([x['gradient_evaluations'] for x in runs]):>6.0f} "
                   f"{_med(best):>10.4g} {f['nominal']['linf_error_window']:>10.4g} "
                   f"{s['nominal']['linf_error_window'] / f['nominal']['linf_error_window']:>8.3g}"
@@ -266,8 +304,8 @@ def _plot(r, name, path):
         for i, run in enumerate(runs):
             c = np.asarray(run["curve"], float).reshape(-1, 2)
             ok = np.isfinite(c[:, 1])
-            ax.step(c[ok, 0], c[ok, 1], where="post", color=colors[m], lw=1.2,
-                    alpha=1.0 if i == 0 else 0.5, label=LABELS[m] if i == 0 else None)
+            ax.step(c[ok, 0], c[ok, 1], where="post", color=colors.get(m, None), lw=1.2,
+                    alpha=1.0 if i == 0 else 0.5, label=LABELS.get(m, m) if i == 0 else None)
     ax.set_yscale("log")
     ax.set_xlabel("wall time [s] (compilation included)")
     ax.set_ylabel("best feasible objective so far")

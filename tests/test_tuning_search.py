@@ -1,12 +1,13 @@
-"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad): the TV(u)
-and max|u| bounds are exact in the report (a hand-made u with known figures), the ablation switch
-removes every gradient evaluation (counted), each path lowers the objective on a short horizon
-and resumes from a pickle-free checkpoint to the very same result, and a NaN never becomes the
-best point nor a direction.
+"""The deployable problem and the search tuners (cma, cma_line, cma_path, cma_grad, and the line's
+back-off): the TV(u) and max|u| bounds are exact in the report (a hand-made u with known
+figures), the ablation switch removes every gradient evaluation (counted), each path lowers the
+objective on a short horizon and resumes from a pickle-free checkpoint to the very same result,
+and a NaN never becomes the best point nor a direction.
 
 One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
 path's batch has the same width (cma: population 7; cma_line, cma_path, cma_grad: 4 + 3 line
-points), so ONE batched program and one gradient are compiled for the whole module.
+points), so ONE batched program and one gradient are compiled for the whole module (and one
+of width 4 for the line back-off's generations without the line).
 """
 
 import dataclasses
@@ -147,7 +148,9 @@ def problems():
     p = _problem()
     return {"cma_grad": p, "cma_line": _with(p, name="cma_line"),
             "cma_path": _with(p, name="cma_path"), "ablation": _with(p, grad_every=0),
-            "cma": _with(p, name="cma", popsize=7)}
+            "cma": _with(p, name="cma", popsize=7),
+            # far steps, which lose here: the back-off is under way where a run stops at 2
+            "backoff": _with(p, name="cma_path", line_backoff=2, line_min=3.0, line_max=5.0)}
 
 
 @pytest.fixture(scope="module")
@@ -206,7 +209,7 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, m
         return real(*a, **k)
 
     monkeypatch.setattr(search, "value_and_grad", counting)
-    for off in ("ablation", "cma_line", "cma_path", "cma"):
+    for off in ("ablation", "cma_line", "cma_path", "cma", "backoff"):
         s = search.Search.open(problems[off], None, False, 0.0)
         assert s.grad is None  # nothing to trace or compile
         assert straight[off].gradient_evaluations == 0
@@ -220,7 +223,7 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, m
     assert on.evaluations == 1 + STEPS * (4 + 3 + 1)
 
 
-@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma_path", "cma"])
+@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma_path", "cma", "backoff"])
 def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems, straight,
                                                                         which, tmp_path):
     p, full = problems[which], straight[which]
@@ -238,6 +241,11 @@ def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems,
     assert again.state.best_loss == full.state.best_loss
     assert again.state.evaluations == full.state.evaluations
     assert again.state.line_wins == full.state.line_wins
+    assert (again.state.line_losses, again.state.line_skip) == (full.state.line_losses,
+                                                                full.state.line_skip)
+    if which == "backoff":  # the back-off was under way where the first run stopped,
+        assert first.state.line_losses > 0  # and it skipped lines (4 candidates, not 7)
+        assert full.state.evaluations < 1 + STEPS * (4 + 3)
     meta = json.loads((out / "checkpoint.json").read_text())
     assert meta["iteration"] == STEPS
     assert meta["gradient_evaluations"] == (STEPS if which == "cma_grad" else 0)
@@ -302,3 +310,54 @@ def test_cma_path_draws_its_line_along_the_evolution_path(problems, monkeypatch)
     assert used == {"calls": 0, "directions": 0}
     run(problems["cma_path"], None)
     assert used["calls"] == STEPS and used["directions"] >= 1
+
+
+@pytest.mark.parametrize("line_wins, taken", [
+    # a line that always loses is skipped 1, 2, then min(4, line_backoff = 2) generations
+    (False, [0, 2, 5, 8]),
+    (True, list(range(9))),  # one that always wins is never skipped
+])
+def test_line_backoff_skips_a_losing_line_for_doubling_generations(problems, line_wins,
+                                                                    taken):
+    """line_backoff = 2: which generations simulate the line (population 4 + 3 line points)
+    and which CMA-ES's population alone (4), when every line point loses or wins; counted
+    on the batches simulated, with the losses forced on the real programs' output."""
+    s = search.Search.open(_with(problems["backoff"], steps=9), None, False, 0.0)
+    s.compile()  # from the objective's cache: `straight` compiled both widths
+    widths = []
+
+    def forced(program):
+        def run_(x):
+            widths.append(x.shape[0])
+            r = program(x)
+            if x.shape[0] == 7:  # the line rows: a new best each time, or never one
+                step = -1.0 - len(widths) if line_wins else 1e9
+                r = r | {"loss": r["loss"].at[4:].set(step),
+                         "feasible": r["feasible"].at[4:].set(line_wins)}
+            return r
+        return run_
+
+    s.batch, s.pop_batch = forced(s.batch), forced(s.pop_batch)
+    for _ in range(9):
+        s.generation()
+    assert widths[0] == 4  # the start point, padded to the narrower batch
+    assert [g for g, w in enumerate(widths[1:]) if w == 7] == taken
+    assert set(widths[1:]) <= {4, 7}
+    assert s.state.line_wins == (len(taken) if line_wins else 0)
+    assert s.state.evaluations == 1 + 9 * 4 + 3 * len(taken)
+
+
+def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):
+    cfg = tuning.config.from_dict({"optimizer": {"line_backoff": 8}})
+    assert cfg.optimizer.line_backoff == 8
+    with pytest.raises(dscjax.ConfigError,
+                       match=r"^tuning.optimizer.line_backoff must be .*>= 0.*-1"):
+        tuning.config.from_dict({"optimizer": {"line_backoff": -1}})
+    # in the resume fingerprint only when on, so that runs from before it still resume
+    problem = problems["cma_path"]
+    assert "line_backoff" not in problem.describe()["optimizer"]
+    assert _with(problem, line_backoff=8).describe()["optimizer"]["line_backoff"] == 8
+    # and the report's method sentence says so (only when it is on)
+    on = report.method_sentence(cfg.optimizer, "forward")
+    assert "skipped for min(2^(k-1), 8) generations" in on
+    assert "skipped" not in report.method_sentence(tuning.OptimizerSpec(), "forward")

@@ -85,6 +85,10 @@ class OptimizerSpec:
             or compiled).
         line_points, line_min, line_max: "cma_line", "cma_path", "cma_grad": the line
             search's step sizes, sigma sqrt(n) x geomspace(line_min, line_max, line_points).
+        line_backoff: "cma_line", "cma_path", "cma_grad": 0 takes the line in every
+            generation; m > 0 skips it, after k consecutive generations whose line did not
+            win, for min(2^(k-1), m) generations (CMA-ES's population alone, a second
+            compiled batch width), until a line wins again.
         background_compile: "cma_grad": compile the gradient in a thread while the first
             generations run (their line points take random directions meanwhile).
     """
@@ -112,6 +116,7 @@ class OptimizerSpec:
     line_points: int = 6
     line_min: float = 0.02
     line_max: float = 1.0
+    line_backoff: int = 0
     background_compile: bool = True
 
     def validate(self, field: str = "tuning.optimizer") -> None:
@@ -130,7 +135,8 @@ class OptimizerSpec:
             raise ConfigError(f"{field}.regrow must be >= 1 (got {self.regrow!r})")
         for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
                           ("checkpoint_every", 1), ("save_interval", 1), ("popsize", 0),
-                          ("seed", 0), ("grad_every", 0), ("line_points", 0)):
+                          ("seed", 0), ("grad_every", 0), ("line_points", 0),
+                          ("line_backoff", 0)):
             validation.integer(getattr(self, name), f"{field}.{name}", low)
         if self.decay_steps is not None:
             validation.integer(self.decay_steps, f"{field}.decay_steps", 1)

@@ -508,7 +508,9 @@ def method_sentence(opt, mode: str) -> str:
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
                 f"of {opt.line_points} step sizes from the best point along {along}, "
                 f"simulated in the same batch as the population, the best injected into "
-                f"CMA-ES.")
+                f"CMA-ES." + (f" After k consecutive losing lines the line is skipped for "
+                              f"min(2^(k-1), {opt.line_backoff}) generations."
+                              if opt.line_backoff and opt.line_points else ""))
     return (f"{mode}-mode exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
             f"{opt.schedule}).")
 

@@ -76,6 +76,8 @@ class Problem:
         for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
                   "decay_steps", "regrow", "shrink", "min_delta"):
             opt.pop(k)
+        if not opt["line_backoff"]:  # only when on: runs from before it still resume
+            opt.pop("line_backoff")
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
             # `scale` only when set: fingerprints of runs without scales stay as they were

@@ -26,19 +26,26 @@ Every generation:
 4. CMA-ES is told its population; the best line point, when it beats the incumbent, is
    injected into the next generation (so CMA-ES moves its mean towards it).
 
+`line_backoff = m` (0: off, the default) skips the line while it keeps losing: after k
+consecutive generations whose line did not win, the next min(2^(k-1), m) generations are
+steps 1, 3 and 4 alone, CMA-ES's population in a second compiled program of that width; a
+winning line resets k. Measured on the robust problem (docs/tuning.md, round 4): it keeps
+most of the line's wins at about half its cost, but did not beat CMA-ES at equal wall time.
+
 Why this shape (measured, docs/tuning.md): one exact gradient costs about as much as one
 CMA-ES generation, and on this kinked landscape (sat, |u'|, the running max, two active
 constraints) a plain gradient step often raises the loss a short way off; evaluating many step
 sizes at once and keeping the best makes the gradient's information safe to use, and CMA-ES
 keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
 
-State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness
-told and the point injected per generation), the incumbent, the counters and the generator of
-the random line directions. No pickle: ONE atomic `search.npz` holds the recorded fitness and
-injections, the last population, the incumbent (float64, bitwise), the counters and the
-generator's state (uint64 words). A resumed run rebuilds CMA-ES with the same seed and
-options and replays ask/tell/inject with the stored values (no simulation), so it continues
-exactly where it stopped (tested: resumed == uninterrupted, bitwise).
+State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness told
+and the point injected per generation), the incumbent, the counters (the back-off's
+included) and the generator of the random line directions. No pickle: ONE atomic
+`search.npz` holds the recorded fitness and injections, the last population, the incumbent
+(float64, bitwise), the counters and the generator's state (uint64 words). A resumed run
+rebuilds CMA-ES with the same seed and options and replays ask/tell/inject with the stored
+values (no simulation), so it continues exactly where it stopped (tested: resumed ==
+uninterrupted, bitwise).
 """
 
 from __future__ import annotations
@@ -66,6 +73,8 @@ STATE_FILE = "search.npz"
 # state or the previous one, never a mix)
 _COUNTERS = ("best_feasible", "best_iteration", "iteration", "evaluations",
              "gradient_evaluations", "line_wins", "first_grad", "stall")
+# the line's back-off (`line_backoff`); absent from the files of older runs, which had none
+_BACKOFF = ("line_losses", "line_skip")
 _FLOATS = ("best_loss", "start_loss")
 
 
@@ -161,6 +170,8 @@ class SearchState:
     start_loss: float = math.nan  # the loss at the start point
     rng: Any = None  # np.random.Generator of the random line directions
     stall: int = 0
+    line_losses: int = 0  # consecutive generations whose line did not win (line_backoff)
+    line_skip: int = 0  # generations left before the line is taken again (line_backoff)
     n_rejected: int = 0  # (no steps are rejected; kept for the report)
     unravel: Any = None
 
@@ -204,7 +215,8 @@ class Search:
     resumed_from: int = 0
     compile_s: float = 0.0
     last_iter_s: float = 0.0
-    batch: Any = None
+    batch: Any = None  # the compiled batch of `width` candidates
+    pop_batch: Any = None  # line_backoff: the one of CMA-ES's population alone
     grad: Any = None
 
     def __post_init__(self):
@@ -221,6 +233,30 @@ class Search:
     def width(self) -> int:
         return self.state.es.popsize + self.steps.size
 
+    @property
+    def _backoff(self) -> bool:
+        return bool(self.spec.line_backoff and self.steps.size)
+
+    def _line_now(self) -> bool:
+        """Is the line taken in this generation? Always, unless `line_backoff` skips it
+        after lines that lost (see `_after_line`)."""
+        return bool(self.steps.size) and self.state.line_skip == 0
+
+    def _after_line(self, taken: bool, won: bool) -> None:
+        """line_backoff = m > 0: after k consecutive losing lines the line is skipped for
+        min(2^(k-1), m) generations (CMA-ES's population alone, its own batch width); a
+        win resets k. A skipped generation counts down."""
+        st, m = self.state, self.spec.line_backoff
+        if not self._backoff:
+            return
+        if not taken:
+            st.line_skip -= 1
+        elif won:
+            st.line_losses = 0
+        else:
+            st.line_losses += 1
+            st.line_skip = min(2 ** (st.line_losses - 1), m)
+
     def compile(self) -> None:
         """Compile the batched simulation now and the gradient now or, with
         `background_compile`, in a thread while the first generations run (their line
@@ -229,11 +265,15 @@ class Search:
         run resumed in the same process does not compile again."""
         t0 = time.perf_counter()
         cache = self.problem.objective.compiled
-        key = ("cma_grad batch", self.width)
-        if key not in cache:
-            x = jnp.asarray(np.tile(self.state.best_flat, (self.width, 1)))
-            cache[key] = self.batch.lower(x).compile()
-        self.batch = cache[key]
+        programs = []
+        # line_backoff: a second width for the generations without the line
+        for w in (self.width, self.state.es.popsize if self._backoff else 0):
+            key = ("cma_grad batch", w)
+            if w and key not in cache:
+                x = jnp.asarray(np.tile(self.state.best_flat, (w, 1)))
+                cache[key] = self.batch.lower(x).compile()
+            programs.append(cache.get(key))
+        self.batch, self.pop_batch = programs
         if self.grad is not None:
             key = ("cma_grad gradient", self.problem.mode)
             if key in cache:
@@ -270,14 +310,16 @@ class Search:
         if st.iteration == 0 and st.evaluations == 0:
             # The start point is part of every method's history: evaluated once, padded to
             # the batch width so that no other program is compiled.
-            res = self._eval(np.tile(st.best_flat, (self.width, 1)), 1)
+            n = es.popsize if self._backoff else self.width
+            res = self._eval(np.tile(st.best_flat, (n, 1)), 1)
             st.start_loss = float(res[0][0])
             self._take(st.best_flat[None, :], *res)
         pop = st.cma.ask()
         pts = [pop]
         base = st.best_flat
         grad_norm = float("nan")
-        if self.steps.size:
+        take_line = self._line_now()
+        if take_line:
             cov = es.sm.covariance_matrix
             d = None
             grad = self._gradient() if st.iteration % max(spec.grad_every, 1) == 0 else None
@@ -308,9 +350,11 @@ class Search:
         k = pop.shape[0]
         st.cma.tell(pop, np.where(np.isfinite(loss[:k]), loss[:k], 1e30))
         improved = self._take(x, *res)
-        if self.steps.size and improved and improved[0] >= k:
+        won = bool(take_line and improved and improved[0] >= k)
+        if won:
             st.line_wins += 1
             st.cma.inject(st.best_flat)
+        self._after_line(take_line, won)
         i = int(np.argmin(np.where(np.isfinite(loss), loss, np.inf)))
         terms = {name: float(v[i]) for name, v in res[-1].items()}
         st.iteration += 1
@@ -326,7 +370,8 @@ class Search:
         return row
 
     def _eval(self, x, n_used):
-        r = jax.device_get(self.batch(jnp.asarray(x)))
+        program = self.batch if x.shape[0] == self.width else self.pop_batch
+        r = jax.device_get(program(jnp.asarray(x)))
         self.state.evaluations += n_used
         return (np.asarray(r["loss"], float)[:n_used], np.asarray(r["feasible"])[:n_used],
                 np.asarray(r["n_diverged"])[:n_used], np.asarray(r["linf_window"])[:n_used],
@@ -361,7 +406,7 @@ class Search:
         files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {
             "best_flat": st.best_flat, "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
-            | {k: np.int64(getattr(st, k)) for k in _COUNTERS})
+            | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF})
         write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -419,6 +464,8 @@ def _restore(state: SearchState, arrays: dict | None, out: Path) -> None:
         raise ConfigError(f"--resume: {e} (another cma version?); {fix}") from None
     for k in _COUNTERS:
         setattr(state, k, type(getattr(state, k))(arrays[k]))
+    for k in _BACKOFF:  # (0 in the files of runs from before line_backoff)
+        setattr(state, k, int(arrays.get(k, 0)))
     for k in _FLOATS:
         setattr(state, k, float(arrays[k]))
     state.best_flat = np.array(arrays["best_flat"], float)
