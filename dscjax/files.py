@@ -98,9 +98,10 @@ def canonical(obj: Any) -> Any:
     return json.loads(dumps(obj))
 
 
-def differences(old: Any, new: Mapping[str, Any]) -> list[str]:
-    """The keys of the fingerprint `new` whose values differ in `old`, each as `key` (for
-    tables and lists) or `key OLD (now NEW)` (for single values)."""
+def differences(old: Any, new: Mapping[str, Any], prefix: str = "") -> list[str]:
+    """The keys of the fingerprint `new` whose values differ in `old`, each as `key OLD (now
+    NEW)` for single values (a key missing on one side reads None), `key` for lists; nested
+    tables are compared key by key (`adversarial.search_evals None (now 8)`)."""
     new = canonical(new)
     old = old if isinstance(old, Mapping) else {}
     out = []
@@ -108,8 +109,11 @@ def differences(old: Any, new: Mapping[str, Any]) -> list[str]:
         a, b = old.get(k), new.get(k)
         if a == b:
             continue
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += differences(a, b, f"{prefix}{k}.")
+            continue
         simple = not isinstance(a, dict | list) and not isinstance(b, dict | list)
-        out.append(f"{k} {a!r} (now {b!r})" if simple else k)
+        out.append(f"{prefix}{k} {a!r} (now {b!r})" if simple else f"{prefix}{k}")
     return out
 
 

@@ -170,6 +170,20 @@ def test_search_evals_option_needs_adversarial_and_a_positive_count(tmp_path, ca
     assert err.endswith("--search-evals must be an integer >= 1 (got -3)")
 
 
+def test_resume_refuses_another_search_evals(adv_run, run_with_config, capsys):
+    """A run made without a cap does not resume with one: the cap changes which points each
+    search sees, so it is part of the fingerprint once set (one line, exit 2, naming it)."""
+    _, out = adv_run
+    capsys.readouterr()
+    code, _ = run_with_config(out.parent, TOML, "tune", "--adversarial", "1", "--search-evals",
+                              "8", "--resume", "--quiet", "--no-plot")
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and "Traceback" not in err
+    assert err.splitlines()[-1].endswith("was made with other settings (adversarial."
+                                         "search_evals None (now 8)); use the same settings, "
+                                         "or --overwrite to start afresh")
+
+
 def test_search_evals_ends_each_search_at_that_count(adv_run):
     """A count-capped search evaluates whole batches until it reaches the count, whatever
     time is left, and is the same search each time (same seed: same points, same worst)."""
