@@ -197,6 +197,22 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
     assert command == ["dscjax", *argv, "--resume"]
 
 
+@pytest.mark.parametrize(("argv", "wanted"), [
+    (["tune", "--effort-bounds", "everywhere"],
+     "dscjax tune: error: argument --effort-bounds: invalid choice: 'everywhere' (choose from "
+     "'nominal', 'per_plant')"),
+    (["sweep", "--samples", "many"],
+     "dscjax sweep: error: argument --samples: invalid int value: 'many'"),
+    (["frobnicate"], "dscjax: error: argument COMMAND: invalid choice: 'frobnicate'"),
+])
+def test_argparse_errors_are_one_line_and_exit_2(argv, wanted, capsys):
+    with pytest.raises(SystemExit) as stop:
+        main(argv)
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and len(err.strip().splitlines()) == 1
+    assert err.strip().startswith(wanted) and "usage" not in err
+
+
 def test_version_comes_from_one_place(capsys):
     import importlib.metadata
     import tomllib

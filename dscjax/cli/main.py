@@ -31,6 +31,15 @@ class CLIError(Exception):
     """A user-fixable problem: printed as one line, exit code 2."""
 
 
+class _Parser(argparse.ArgumentParser):
+    """argparse's own errors (an unknown choice, a missing or malformed value) as one line
+    and exit 2, like every other bad input, instead of a usage block first; `--help` still
+    gives the usage. Subcommands' parsers are of this class too (argparse's default)."""
+
+    def error(self, message):
+        self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
+
+
 def _available_commands():
     out = {}
     for name, module in COMMANDS.items():
@@ -45,7 +54,7 @@ def _available_commands():
 def build_parser(commands) -> argparse.ArgumentParser:
     from dscjax import __version__
 
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
         epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
