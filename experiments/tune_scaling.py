@@ -79,7 +79,15 @@ def main():
     p.add_argument("--methods", default="cma,cma_path,cma_grad")
     p.add_argument("--solver", default="rk4", choices=("rk4", "etdrk4"))
     p.add_argument("--out", default="results/tune_scaling")
+    p.add_argument("--compilation-cache", metavar="DIR", default=None,
+                   help="keep compiled programs in JAX's persistent cache in DIR, as the "
+                   "`dscjax` command does: a second run finds its programs compiled (a warm "
+                   "cache), so a gradient that compiles longer than the budget can arrive")
     args = p.parse_args()
+    if args.compilation_cache:
+        from dscjax import compilation_cache
+
+        compilation_cache.enable(args.compilation_cache)
     methods = args.methods.split(",")
     rows = []
     for n in (int(x) for x in args.orders.split(",")):
