@@ -150,15 +150,24 @@ def test_bad_adversarial_table_names_the_field(tmp_path, capsys):
     assert "tuning.adversarial.rounds must be an integer >= 0 (got -2)" in err
 
 
-@pytest.mark.parametrize(("value", "got"), [("0", "0"), ("2.5", "2.5"), ('"many"', "'many'")])
-def test_bad_search_evals_names_the_field(value, got, tmp_path, capsys):
+SEARCH_EVALS = 'tuning.adversarial.search_evals must be an integer >= 1 or "none"'
+EFFORT_BOUNDS = "tuning.objective.effort_bounds must be one of 'nominal', 'per_plant'"
+
+
+@pytest.mark.parametrize(("toml", "wanted"), [
+    ("[tuning.adversarial]\nrounds = 1\nsearch_evals = 0", f"{SEARCH_EVALS} (got 0)"),
+    ("[tuning.adversarial]\nrounds = 1\nsearch_evals = 2.5", f"{SEARCH_EVALS} (got 2.5)"),
+    ('[tuning.adversarial]\nrounds = 1\nsearch_evals = "many"', f"{SEARCH_EVALS} (got 'many')"),
+    ('[tuning.objective]\neffort_bounds = "everywhere"', f"{EFFORT_BOUNDS} (got 'everywhere')"),
+    ("[tuning.objective]\neffort_bounds = 1", f"{EFFORT_BOUNDS} (got 1)"),
+])
+def test_bad_config_values_name_the_field(toml, wanted, tmp_path, capsys):
     cfg = tmp_path / "bad.toml"
-    cfg.write_text(f"[tuning.adversarial]\nrounds = 1\nsearch_evals = {value}\n")
+    cfg.write_text(toml + "\n")
     assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert err.endswith(f'tuning.adversarial.search_evals must be an integer >= 1 or "none" '
-                        f"(got {got})")
+    assert err.endswith(wanted)
 
 
 def test_search_evals_option_needs_adversarial_and_a_positive_count(tmp_path, capsys):
@@ -258,17 +267,6 @@ def test_effort_bounds_enter_the_fingerprint_only_when_per_plant(adv_run):
     assert 'effort_bounds = "nominal"' in tuning.config.to_toml(cfg)
     again = tuning.config_from_dict(tomllib.loads(tuning.config.to_toml(per.cfg))["tuning"])
     assert again.objective.effort_bounds == "per_plant"
-
-
-@pytest.mark.parametrize(("value", "got"), [('"everywhere"', "'everywhere'"), ("1", "1")])
-def test_bad_effort_bounds_give_one_line_and_exit_2(value, got, tmp_path, capsys):
-    cfg = tmp_path / "bad.toml"
-    cfg.write_text(f"[tuning.objective]\neffort_bounds = {value}\n")
-    assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
-    err = capsys.readouterr().err.strip()
-    assert len(err.splitlines()) == 1 and "Traceback" not in err
-    assert err.endswith("tuning.objective.effort_bounds must be one of 'nominal', "
-                        f"'per_plant' (got {got})")
 
 
 def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config):
