@@ -14,7 +14,7 @@ from dscjax import files, metrics, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
 from dscjax.simulate import refine_rows, refinement_level, simulate_batch
-from tuning.objective import BOUND_RTOL
+from tuning.objective import within
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -31,11 +31,10 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train, held-out."""
     obj = problem.objective
     if not hasattr(obj, "per_plant"):  # a `tuning.combine` of several structures
-        from dscjax.validation import ConfigError
-
-        raise ConfigError("report: a combined problem (tuning.combine) has no single plant to "
-                          "report on; evaluate its gains per member (e.g. by sweeps, as "
-                          "experiments/mismatch_study.py does)")
+        raise validation.ConfigError(
+            "report: a combined problem (tuning.combine) has no single plant to report on; "
+            "evaluate its gains per member (e.g. by sweeps, as experiments/mismatch_study.py "
+            "does)")
     per_plant = jax.jit(obj.per_plant)
     out = {"nominal": {}, "train": None, "heldout": None}
     for tag, z in (("start", z0), ("tuned", z1)):
@@ -131,7 +130,7 @@ def constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
         rows.append({"name": name, "value": value, "bound": float(bound), "margin": margin,
                      "relative_margin": margin / float(bound),
                      "met": bool(not diverged and np.isfinite(value)
-                                 and value <= float(bound) * (1 + BOUND_RTOL))})
+                                 and bool(within(value, float(bound))))})
     return rows
 
 
@@ -150,7 +149,7 @@ def train_constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
         b = np.broadcast_to(np.asarray(per if per is not None else bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         with np.errstate(invalid="ignore"):
-            met = ~diverged & np.isfinite(v) & (v <= b * (1 + BOUND_RTOL))
+            met = ~diverged & np.isfinite(v) & within(v, b)
             rel = np.where(diverged | ~np.isfinite(v), -np.inf, (b - v) / b)
         worst = int(np.argmin(rel))
         measured = bool(np.isfinite(rel[worst]))
@@ -363,7 +362,7 @@ def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
 
-def own(s: dict, key: str) -> str:
+def _own(s: dict, key: str) -> str:
     """" on the nominal plant, each training plant its own" where that bound is per plant."""
     per = s.get("bounds_train") or {}
     return " on the nominal plant, each training plant its own" if per.get(key) else ""
@@ -390,9 +389,9 @@ def _markdown(s: dict, problem, figures) -> str:
             f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
                                                           "effort_max", "effort_tv")
             if getattr(cfg.objective, k)) + (
-            f"; max|u| <= {s['bound_max_abs_u']:.4g}{own(s, 'max_abs_u')} (penalty weight "
+            f"; max|u| <= {s['bound_max_abs_u']:.4g}{_own(s, 'max_abs_u')} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
-        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{own(s, 'tv_u')} (penalty weight "
+        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
            f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
         + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
            + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
