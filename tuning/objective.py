@@ -291,6 +291,7 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     on max|u|, bound on TV(u)), scalars or one per plant (`Scales.bounds`); default the
     nominal ones."""
     u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
+    u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
     terms = {}
     if spec.linf:
         terms["linf"] = spec.linf * metrics["smooth_linf_window"] / scales.linf
@@ -328,8 +329,16 @@ def within_bounds(metrics: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
     ok = jnp.ones(jnp.shape(metrics["max_abs_u"]), bool)
     for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
         if bound is not None:
-            ok = ok & within(metrics[key], bound)
+            ok = ok & within(metrics[key], _like(bound, metrics[key]))
     return ok
+
+
+def _like(bound, x):
+    """A per-plant bound (a float64 array) in the dtype of the figures `x` it bounds, as a
+    scalar bound (a weakly typed Python float) is: float32 runs stay float32."""
+    if bound is None or np.ndim(bound) == 0:
+        return bound
+    return jnp.asarray(bound, jnp.result_type(x))
 
 
 def _max_measured(values: jax.Array, diverged) -> jax.Array:
