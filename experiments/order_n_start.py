@@ -3,13 +3,13 @@ STARTS[6] was found): CMA-ES over the log of k_i, tau_i, gamma_g, gamma_phi, gam
 gamma_d, sat_width and eps, every population one batched simulation (ETDRK4, dt = 1e-3).
 
 Score: a member that diverges at t_d < T costs 10 + 100 (T - t_d)/T (so living longer is
-better); one that survives costs its L-inf error on [1 s, T]. The horizon T grows 2, 5, 10,
-20 s: as soon as the best member of a generation survives T, the search restarts around it
-(sigma 0.3) at the next horizon. At 20 s one more generation (sigma 0.2) is drawn around the
-first survivor and the best survivor printed. Run as is (n = 6, 2026-11-24) it prints the
-design of L-inf 0.389 with k = (1.191, 1.222, 2.420, 3.043, 1.742, 0.763). STARTS[6] is the best
-member of a later generation of that last stage in the interactive run this script was written
-from (not kept exactly), rounded to 4 digits; both track over 20 s.
+better); one that survives costs its L-inf error over the whole horizon [0, T]. The horizon T
+grows 2, 5, 10, 20 s: as soon as the best member of a generation survives T, the search
+restarts around it (sigma 0.3) at the next horizon. At 20 s one more generation (sigma 0.2) is
+drawn around the first survivor and the best survivor printed. Run as is (n = 6, 2026-11-24) it
+prints the design of L-inf 0.389 with k = (1.191, 1.222, 2.420, 3.043, 1.742, 0.763). STARTS[6]
+is the best member of a later generation of that last stage in the interactive run this script
+was written from (not kept exactly), rounded to 4 digits; both track over 20 s.
 
     python experiments/order_n_start.py            # n = 6, from k_i = 1, tau_i = 0.1
 """
