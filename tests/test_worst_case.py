@@ -164,19 +164,20 @@ def test_search_resumes_losing_nothing_finished(oscillator, tmp_path, method):
     np.testing.assert_array_equal(fresh.best_z, resumed.best_z)
 
 
-@pytest.mark.parametrize("method, first, per", [("random", 16, 16), ("gradient", 16, 4)])
-def test_max_evals_ends_a_search_after_that_many_evaluations(oscillator, method, first, per):
+@pytest.mark.parametrize("method, evaluations, iterations",
+                         [("random", 64, 4),      # batches of 16: 16, 32, 48, 64 >= 50
+                          ("gradient", 52, 10)])  # a screening batch of 16, then 4 starts
+                                                  # per step: 16 + 9 x 4 = 52 >= 50
+def test_max_evals_ends_a_search_after_that_many_evaluations(oscillator, method, evaluations,
+                                                             iterations):
     """The count is the batches' sizes summed until it reaches max_evals (gradient: a
     screening batch, then M starts per iteration), whatever time is left; and a count-capped
     search is a function of its seed alone."""
     prog, _ = oscillator
     runs = [search(prog, time_limit=600.0, max_evals=50, starts=4, methods=(method,), batch=16,
                    seed=5)[method] for _ in range(2)]
-    expected, n = first, 1
-    while expected < 50:
-        expected, n = expected + per, n + 1
     for tr in runs:
-        assert (tr.evaluations, tr.iterations) == (expected, n)
+        assert (tr.evaluations, tr.iterations) == (evaluations, iterations)
     assert runs[0].best == runs[1].best
     np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
 
