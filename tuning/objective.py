@@ -46,7 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation
+from dscjax import params, validation
 from dscjax.closed_loop import Setup
 from dscjax.metrics import step_weights
 from dscjax.simulate import run
@@ -347,6 +347,11 @@ def _max_measured(values: jax.Array, diverged) -> jax.Array:
     return jnp.where(jnp.all(diverged), jnp.nan, top)
 
 
+def n_worst(level: float, n: int) -> int:
+    """How many of n plants CVaR at `level` averages: the worst ceil(level n), at least 1."""
+    return max(1, int(math.ceil(level * n - 1e-9)))
+
+
 def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     """Mean, CVaR at `level` (mean of the worst ceil(level B) values) or max over axis 0."""
     if values.ndim == 0:
@@ -356,8 +361,7 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     if how == "max":
         return jnp.max(values)
     if how == "cvar":
-        k = max(1, int(math.ceil(level * values.shape[0] - 1e-9)))
-        return jnp.mean(jax.lax.top_k(values, k)[0])
+        return jnp.mean(jax.lax.top_k(values, n_worst(level, values.shape[0]))[0])
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
@@ -446,6 +450,11 @@ class Objective:
     def evaluate(self, z, overrides=None, checkpoint_every=None):
         """(loss, aux) at z; aux has the terms (aggregated as the loss is), the exact metrics
         and the feasibility of the bounds (all plants)."""
+        loss, aux, _ = self._evaluate(z, overrides, checkpoint_every)
+        return loss, aux
+
+    def _evaluate(self, z, overrides=None, checkpoint_every=None):
+        """(loss, aux, every plant's J)."""
         setup = self.selection.apply(self.setup, z)
         ov = self.overrides if overrides is None else overrides
         metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov,
@@ -468,7 +477,37 @@ class Objective:
             "n_diverged": jnp.sum(jnp.asarray(diverged, jnp.int32)),
             "feasible": jnp.all(feasible),
         }
-        return loss, aux
+        return loss, aux, per_plant
+
+    def value_and_grad_plants(self, z):
+        """((loss, aux), d loss / d z) over the training batch, the gradient taken plant by
+        plant (`gradient = "plants"`): the aggregate's gradient is the mean of the gradients
+        of the plants it weighs (mean: all B; cvar: the worst ceil(level B), as `top_k` picks
+        them; max: the worst), so only those are simulated again, each alone, and
+        differentiated by the one-trajectory time-parallel linearisation (vmapped over them).
+        Exact, as `jax.grad` of `evaluate` is (where the worst plants are not tied); the loss
+        and aux are `evaluate`'s, from one batched forward run of all the plants."""
+        loss, aux, per = self._evaluate(jax.lax.stop_gradient(z))
+        n = self.batch_size
+        if self.aggregate == "mean" or not self.overrides:
+            idx = jnp.arange(n)
+        else:
+            k = 1 if self.aggregate == "max" else n_worst(self.cvar_level, n)
+            idx = jax.lax.top_k(per, k)[1]
+        train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
+        bounds = self.bounds()
+        n_req = len(self.requirements)
+
+        def one(z_, i):
+            setup = params.set_many(self.selection.apply(self.setup, z_),
+                                    {p: v[i] for p, v in train.items()})
+            metrics, diverged = simulate_metrics(setup, self.sim, self.extra())
+            b = tuple(None if v is None else jnp.asarray(v)[i] if np.ndim(v) else v
+                      for v in bounds)
+            return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b)[0]
+
+        grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
+        return (loss, aux), jax.tree.map(lambda g: jnp.mean(g, axis=0), grads)
 
     def __call__(self, z):
         return self.evaluate(z)

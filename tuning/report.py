@@ -492,6 +492,10 @@ def _markdown(s: dict, problem, figures) -> str:
     return "\n".join(lines)
 
 
+def _mode_words(mode: str) -> str:
+    return "plant-by-plant (the aggregate's worst plants)" if mode == "plants" else f"{mode}-mode"
+
+
 def method_sentence(opt, mode: str) -> str:
     if opt.name == "cma":
         return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
@@ -501,7 +505,7 @@ def method_sentence(opt, mode: str) -> str:
         along = ("CMA-ES's evolution path (no gradient)" if opt.name == "cma_path" else
                  "a random direction (no gradient)" if opt.grad_every == 0
                  or opt.name == "cma_line" else
-                 f"-C grad ({mode}-mode exact gradient at the best point, every "
+                 f"-C grad ({_mode_words(mode)} exact gradient at the best point, every "
                  f"{opt.grad_every} generation(s); random directions otherwise)")
         return (f"{opt.name}: CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
@@ -510,7 +514,7 @@ def method_sentence(opt, mode: str) -> str:
                 f"CMA-ES." + (f" After k consecutive losing lines the line is skipped for "
                               f"min(2^(k-1), {opt.line_backoff}) generations."
                               if opt.line_backoff and opt.line_points else ""))
-    return (f"{mode}-mode exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
+    return (f"{_mode_words(mode)} exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
             f"{opt.schedule}).")
 
 

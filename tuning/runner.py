@@ -160,7 +160,8 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
     mode = choose_gradient(cfg.optimizer.gradient, n_params,
-                           (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra)
+                           (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra,
+                           cfg.robust.aggregate, cfg.robust.cvar_level)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
     sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
                   state_bound=options.state_bound, checkpoint_every=ce, solver=options.solver)
@@ -233,8 +234,14 @@ def combine(problems, how: str = "mean") -> Problem:
     objective = Combined(tuple(p.objective for p in problems), how)
     # each member's own choice (forward over a batch, reverse for one plant) if they agree
     modes = {p.mode for p in problems}
-    mode = modes.pop() if len(modes) == 1 else choose_gradient(
-        first.cfg.optimizer.gradient, first.n_params, objective.batch_size)
+    mode = modes.pop() if len(modes) == 1 else None
+    if mode is None or (mode == "plants" and first.cfg.optimizer.gradient == "auto"):
+        mode = choose_gradient(first.cfg.optimizer.gradient, first.n_params,
+                               objective.batch_size)
+    if mode == "plants":
+        raise ConfigError("tuning.optimizer.gradient = \"plants\" differentiates one batch "
+                          "plant by plant; combine objectives with \"auto\", \"forward\" or "
+                          "\"reverse\"")
     return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
                                members=tuple(problems), extra_plants=None,
                                notes=first.notes + (f"{how} of {len(problems)} objectives",))

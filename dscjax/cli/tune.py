@@ -72,8 +72,10 @@ def add_parser(sub):
                    f"(default {d.heldout.batch}; 0 = skip)")
     p.add_argument("--gradient", choices=GRADIENTS,
                    help=f"AD mode (default {opt.gradient}"
-                   + (f": reverse mode (time-parallel) for one plant; with a training batch, "
-                      f"forward for up to {FORWARD_MAX_PARAMS} tuned numbers)"
+                   + (f": reverse mode (time-parallel) for one plant; with a training batch "
+                      f"whose aggregate weighs at most a quarter of its plants (CVaR 0.25), "
+                      f"those plants one by one (plants); else forward for up to "
+                      f"{FORWARD_MAX_PARAMS} tuned numbers)"
                       if opt.gradient == "auto" else ")"))
     adv = d.adversarial
     p.add_argument("--adversarial", metavar="R", help="min-max tuning: R rounds of (search "
