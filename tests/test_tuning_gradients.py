@@ -150,3 +150,19 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     g, g_f = ravel_pytree(g)[0], ravel_pytree(g_f)[0]
     assert np.max(np.abs(np.asarray(g - g_f))) <= 1e-10 * np.max(np.abs(np.asarray(g_f)))
     assert bool(aux["feasible"]) == bool(aux_f["feasible"])
+
+
+@pytest.mark.parametrize("batch, aggregate, level, n_params, expected", [
+    (1, "mean", 1.0, 13, "reverse"),      # one plant
+    (8, "cvar", 0.25, 13, "plants"),      # ceil(0.25 x 8) = 2 <= 8 / 4
+    (8, "cvar", 0.3, 13, "forward"),      # ceil(2.4) = 3 > 2
+    (8, "max", 1.0, 13, "plants"),        # 1 plant
+    (8, "mean", 1.0, 13, "forward"),      # all 8
+    (8, "mean", 1.0, 65, "reverse"),      # more than FORWARD_MAX_PARAMS = 64
+    (3, "max", 1.0, 13, "forward"),       # 1 > 3 / 4
+])
+def test_auto_gradient_mode(batch, aggregate, level, n_params, expected):
+    from tuning.optimize import choose_gradient
+
+    assert choose_gradient("auto", n_params, batch, aggregate, level) == expected
+    assert choose_gradient("forward", n_params, batch, aggregate, level) == "forward"
