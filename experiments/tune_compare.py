@@ -128,25 +128,10 @@ def run_method(problem, method, budget, seed):
     from jax.flatten_util import ravel_pytree
 
     import tuning
-    from tuning import search
 
     if method == "random":
         return random_search(problem, budget, seed)
-    wins: dict[int, int] = {}
-    take = search.Search._take
-
-    def counting(self, x, *rest):  # which line step won (the generation's own batch only)
-        out = take(self, x, *rest)
-        k = self.state.es.popsize
-        if out and x.shape[0] > k and out[0] >= k:
-            wins[out[0] - k] = wins.get(out[0] - k, 0) + 1
-        return out
-
-    search.Search._take = counting
-    try:
-        res = tuning.run(with_method(problem, method, budget, seed), None)
-    finally:
-        search.Search._take = take
+    res = tuning.run(with_method(problem, method, budget, seed), None)
     z = res.state.best_z
     return {"best_flat": np.asarray(ravel_pytree(z)[0], float),
             "best_loss": float(res.state.best_loss),
@@ -157,7 +142,8 @@ def run_method(problem, method, budget, seed):
             if res.gradient_evaluations is not None else int(res.state.iteration),
             "iterations": int(res.state.iteration), "compile_s": res.compile_s,
             "line_wins": getattr(res.state, "line_wins", None),
-            "line_step_wins": [wins.get(i, 0) for i in range(max(wins, default=-1) + 1)],
+            "line_step_wins": (res.state.line_step_wins.tolist()
+                               if hasattr(res.state, "line_step_wins") else None),
             "first_gradient_generation": getattr(res.state, "first_grad", None),
             "curve": [(r["wall_s"], r["best_loss"] if r["best_feasible"] else math.inf)
                       for r in res.history]}

@@ -244,6 +244,46 @@ def test_per_plant_bounds_are_the_start_gains_own_figures_on_each_plant(adv_run)
     assert bool(aux["feasible"])
 
 
+def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
+    """A training plant on which the start gains diverge (theta_1 = 1000: x_1' = 1000 x_1^2
+    blows up from x_1(0) = 0.08 within about 1 / 80 s) keeps the nominal plant's bounds,
+    exactly; the others get the start gains' own figures on them, computed here by
+    `simulate` on each plant alone (max|u| and TV(u) = sum |u_(k+1) - u_k| by numpy)."""
+    from dscjax.config import SimOptions
+
+    setup = dscjax.paper_example()
+    cfg = tuning.TuningConfig(params=("controller.k",),
+                              objective=tuning.ObjectiveSpec(effort_bounds="per_plant"),
+                              robust=tuning.BatchSpec(batch=0),
+                              heldout=tuning.BatchSpec(batch=0))
+    theta = np.array([[0.2, 0.0], [1000.0, 0.0], [0.05, 0.0]])
+    problem = runner.build_problem(setup, SimOptions(t_final=0.4, window_start=0.2), cfg,
+                                   extra_plants={"plant.theta": theta})
+    sc = problem.objective.scales
+    assert problem.n_train == 4  # the nominal plant, then the three added
+
+    def figures(s):
+        traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2, throw=False, refine=0)
+        u = np.asarray(traj.u, np.float64)
+        return bool(traj.diverged), np.max(np.abs(u)), 1.5 * np.sum(np.abs(np.diff(u)))
+
+    plants = [setup] + [dscjax.params.set_many(setup, {"plant.theta": t}) for t in theta]
+    runs = [figures(s) for s in plants]
+    assert [d for d, _, _ in runs] == [False, False, True, False]
+    assert sc.n_train_fallback == 1
+    assert sc.u_max == pytest.approx(runs[0][1], rel=1e-9)
+    assert sc.tv_max == pytest.approx(runs[0][2], rel=1e-9)
+    assert sc.u_max_train[2] == sc.u_max and sc.tv_max_train[2] == sc.tv_max
+    for i in (0, 1, 3):
+        assert sc.u_max_train[i] == pytest.approx(runs[i][1], rel=1e-9)
+        assert sc.tv_max_train[i] == pytest.approx(runs[i][2], rel=1e-9)
+    # the plants that did not diverge have bounds of their own, not the nominal ones
+    assert abs(sc.u_max_train[1] / sc.u_max - 1) > 1e-3
+    assert abs(sc.tv_max_train[3] / sc.tv_max - 1) > 1e-3
+    assert any("(1 on which the start gains diverge keep the nominal plant's)" in n
+               for n in problem.notes)
+
+
 def test_effort_bounds_enter_the_fingerprint_only_when_per_plant(adv_run):
     """Runs from before the option (nominal bounds, the default) keep their fingerprint and
     resume; per_plant is another problem."""

@@ -148,6 +148,64 @@ def test_resume_refuses_a_different_problem(small_problem, tmp_path):
         run(other, tmp_path, resume=True)
 
 
+def test_drop_defaults_leaves_out_only_the_keys_at_the_value_given():
+    d = {"a": 0, "b": None, "c": "nominal", "d": 3}
+    assert ck.drop_defaults(d, {"a": 0, "b": None, "c": "per_plant", "e": 1}) == {
+        "c": "nominal", "d": 3}
+    assert ck.drop_defaults(d, {}) == d
+    assert d == {"a": 0, "b": None, "c": "nominal", "d": 3}  # a new dict: d is left alone
+
+
+# The keys of each resume fingerprint, written out: an option added later is in it only when
+# set away from what older runs did (runs saved before it keep their fingerprint and resume)
+OPTIMIZER_KEYS = {"name", "learning_rate", "schedule", "final_lr_fraction", "clip_norm",
+                  "gradient", "checkpoint_every", "sigma0", "popsize", "seed", "grad_every",
+                  "line_points", "line_min", "line_max", "background_compile"}
+OBJECTIVE_KEYS = {"linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max",
+                  "u_max_weight", "tv_max", "tv_max_factor", "tv_max_weight", "sharpness",
+                  "u_sharpness", "divergence_penalty", "window_start"}
+ADVERSARIAL_KEYS = {"rounds", "disturbance", "ranges", "method", "metric", "search_time",
+                    "starts", "batch", "add", "seed"}
+
+
+def test_fingerprints_carry_a_later_option_only_away_from_its_old_value(small_problem):
+    import dataclasses
+
+    from tuning import adversarial
+    from tuning.params import Selection
+
+    p, cfg = small_problem, small_problem.cfg
+
+    def described(optimizer=None, objective=None, tune=("controller.k",)):
+        new = dataclasses.replace(
+            cfg, optimizer=dataclasses.replace(cfg.optimizer, **(optimizer or {})),
+            objective=dataclasses.replace(cfg.objective, **(objective or {})))
+        return dataclasses.replace(p, cfg=new, selection=Selection.build(p.setup, tune)
+                                   ).describe()
+
+    d = described()
+    assert set(d["optimizer"]) == OPTIMIZER_KEYS
+    assert set(d["objective"]) == OBJECTIVE_KEYS
+    k = {"path": "controller.k", "index": None, "transform": "log", "lower": None,
+         "upper": None}
+    assert d["params"] == [k]
+    on = described({"line_backoff": 2}, {"effort_bounds": "per_plant"}, ("controller.k*",))
+    assert set(on["optimizer"]) == OPTIMIZER_KEYS | {"line_backoff"}
+    assert on["optimizer"]["line_backoff"] == 2
+    assert set(on["objective"]) == OBJECTIVE_KEYS | {"effort_bounds"}
+    assert on["objective"]["effort_bounds"] == "per_plant"
+    assert on["params"] == [k | {"scale": True}]
+    for evals, keys in ((None, ADVERSARIAL_KEYS), (8, ADVERSARIAL_KEYS | {"search_evals"})):
+        spec = dataclasses.replace(cfg.adversarial, rounds=3, search_evals=evals)
+        searched = adversarial.search_problem(
+            p.setup, p.options, dataclasses.replace(cfg, adversarial=spec))
+        fp = adversarial.run_fingerprint(spec, searched, d)
+        assert set(fp) == {"problem", "adversarial"}
+        assert set(fp["adversarial"]) == keys
+        assert fp["adversarial"]["rounds"] == 0  # more rounds continue the same run
+        assert fp["adversarial"].get("search_evals") == evals
+
+
 def test_forced_nan_is_rejected_without_corrupting_the_state(small_problem):
     problem = small_problem
     opt = problem.cfg.optimizer.make()

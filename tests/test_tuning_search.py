@@ -2,7 +2,8 @@
 back-off): the TV(u) and max|u| bounds are exact in the report (a hand-made u with known
 figures), the ablation switch removes every gradient evaluation (counted), each path lowers the
 objective on a short horizon and resumes from a pickle-free checkpoint to the very same result,
-and a NaN never becomes the best point nor a direction.
+the line's wins are counted per step size (forced wins), and a NaN never becomes the best point
+nor a direction.
 
 One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: each
 path's batch has the same width (cma: population 7; cma_line, cma_path, cma_grad: 4 + 3 line
@@ -241,6 +242,10 @@ def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems,
     assert again.state.best_loss == full.state.best_loss
     assert again.state.evaluations == full.state.evaluations
     assert again.state.line_wins == full.state.line_wins
+    # the line's wins per step size: one count per line point, summing to its wins
+    assert full.state.line_step_wins.shape == ((0,) if which == "cma" else (3,))
+    assert full.state.line_step_wins.sum() == full.state.line_wins
+    np.testing.assert_array_equal(again.state.line_step_wins, full.state.line_step_wins)
     assert (again.state.line_losses, again.state.line_skip) == (full.state.line_losses,
                                                                 full.state.line_skip)
     if which == "backoff":  # the back-off was under way where the first run stopped,
@@ -345,6 +350,55 @@ def test_line_backoff_skips_a_losing_line_for_doubling_generations(problems, lin
     assert set(widths[1:]) <= {4, 7}
     assert s.state.line_wins == (len(taken) if line_wins else 0)
     assert s.state.evaluations == 1 + 9 * 4 + 3 * len(taken)
+
+
+@pytest.mark.parametrize("winners, counts", [
+    # the line point that wins each of 6 generations (None: none does), and the counts by
+    # step size, shortest first
+    ([2, 0, 2, None, 1, 2], [1, 1, 3]),
+    ([None, None, 1, 1, 1, None], [0, 3, 0]),
+])
+def test_line_wins_are_counted_per_step_size_and_resume(problems, winners, counts,
+                                                        tmp_path):
+    """cma_path with 3 line points (population 4): the loss and feasibility of the line rows
+    are forced on the real program's output so that one chosen step size wins, or none."""
+    p = _with(problems["cma_path"], steps=len(winners), save_interval=1)
+    s = search.Search.open(p, tmp_path, False, 0.0)
+    s.compile()  # from the objective's cache: `straight` compiled it
+    calls = []
+    real = s.batch
+
+    def forced(x):
+        r = real(x)
+        g = len(calls) - 1  # the generation (-1: the start point's evaluation)
+        calls.append(g)
+        if g < 0:
+            return r
+        loss = r["loss"].at[4:].set(1e9)  # infeasible, far worse: the line loses
+        feas = r["feasible"].at[4:].set(False)
+        if winners[g] is not None:  # a new best, feasible, at that step size
+            loss = loss.at[4 + winners[g]].set(-1.0 - g)
+            feas = feas.at[4 + winners[g]].set(True)
+        return r | {"loss": loss, "feasible": feas}
+
+    s.batch = forced
+    for _ in winners:
+        s.generation()
+    assert len(calls) == 1 + len(winners)
+    assert s.state.line_step_wins.dtype == np.int64
+    assert s.state.line_step_wins.tolist() == counts
+    assert s.state.line_wins == sum(w is not None for w in winners)
+    s.save()
+    again = search.Search.open(p, tmp_path, True, 0.0)
+    assert again.state.iteration == len(winners)
+    assert again.state.line_step_wins.tolist() == counts
+    # a file from before the count (no line_step_wins in it) resumes with zeros
+    arrays = np.load(tmp_path / search.STATE_FILE)
+    old = {k: arrays[k] for k in arrays.files if k != "line_step_wins"}
+    dscjax.files.write_npz(tmp_path / search.STATE_FILE, old)
+    before = search.Search.open(p, tmp_path, True, 0.0)
+    assert before.state.line_step_wins.tolist() == [0, 0, 0]
+    assert before.state.line_wins == sum(w is not None for w in winners)
 
 
 def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):

@@ -122,6 +122,16 @@ def _gains(problem: runner.Problem, z) -> Any:
     return jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
 
 
+def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
+    """What adversarial.json stores to resume: the digest of the tuning problem's
+    description `desc` and the [tuning.adversarial] settings (the rounds apart, the box as
+    searched; `search_evals` only when set, so that runs from before it still resume)."""
+    adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
+                                                 ranges=[r.spec() for r in searched.ranges]))
+    return {"problem": files.digest(desc),
+            "adversarial": ck.drop_defaults(adv, {"search_evals": None})}
+
+
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
     if out is None:
         return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
@@ -175,12 +185,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
     desc = base.describe()
-    adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
-                                                 ranges=[r.spec() for r in searched.ranges]))
-    if adv["search_evals"] is None:
-        del adv["search_evals"]  # runs from before the option resume
-    fingerprint = {"problem": files.digest(desc), "adversarial": adv}
-    meta = _manifest(out, fingerprint, resume, overwrite)
+    meta = _manifest(out, run_fingerprint(spec, searched, desc), resume, overwrite)
 
     def save():
         if out is not None:

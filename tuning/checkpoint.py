@@ -33,6 +33,19 @@ def fingerprint(desc) -> str:
     return files.digest(desc)[:16]
 
 
+def drop_defaults(d: Mapping[str, Any], defaults: Mapping[str, Any]) -> dict:
+    """`d` without the keys of `defaults` whose value equals the one given there.
+
+    For the descriptions that fingerprint a run: an option added after runs were saved is
+    left out at the value that does what those runs did, so their fingerprints stay as they
+    were and they still resume; set to anything else, it is part of the fingerprint.
+
+        >>> drop_defaults({"line_backoff": 0, "seed": 1}, {"line_backoff": 0})
+        {'seed': 1}
+    """
+    return {k: v for k, v in d.items() if not (k in defaults and v == defaults[k])}
+
+
 def save_state(path: Path, state) -> dict:
     """Write the state's leaves to an npz; return a description (for checkpoint.json)."""
     leaves, treedef = jax.tree.flatten(state)

@@ -42,6 +42,10 @@ from tuning.requirements import KINDS
 # cost a tangent each for a zero gradient.
 PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
+# Options added after runs were saved, per part of `Problem.describe`: left out of the
+# fingerprint at these values (what the older runs did), so that those runs still resume
+NEW_OPTIONS = {"params": {"scale": False}, "objective": {"effort_bounds": "nominal"},
+               "optimizer": {"line_backoff": 0}}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -76,15 +80,13 @@ class Problem:
         for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
                   "decay_steps", "regrow", "shrink", "min_delta"):
             opt.pop(k)
-        if not opt["line_backoff"]:  # only when on: runs from before it still resume
-            opt.pop("line_backoff")
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
-            # `scale` only when set: fingerprints of runs without scales stay as they were
-            "params": [{k: v for k, v in dataclasses.asdict(t).items() if k != "scale" or v}
+            "params": [ck.drop_defaults(dataclasses.asdict(t), NEW_OPTIONS["params"])
                        for t in self.selection.items],
-            "objective": _objective_desc(self.cfg.objective),
-            "optimizer": opt,
+            "objective": ck.drop_defaults(dataclasses.asdict(self.cfg.objective),
+                                          NEW_OPTIONS["objective"]),
+            "optimizer": ck.drop_defaults(opt, NEW_OPTIONS["optimizer"]),
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
             "sim": dataclasses.asdict(self.objective.sim),
@@ -93,13 +95,6 @@ class Problem:
              if self.extra_plants else {}) | (
             {"members": [m.describe() for m in self.members], "combine": self.objective.how}
             if self.members else {})
-
-
-def _objective_desc(spec) -> dict:
-    d = dataclasses.asdict(spec)
-    if d["effort_bounds"] == "nominal":
-        del d["effort_bounds"]  # the default: runs from before the option resume
-    return d
 
 
 def _batch_desc(b, setup):

@@ -39,13 +39,13 @@ sizes at once and keeping the best makes the gradient's information safe to use,
 keeps exploring. With the gradient off the same loop is CMA-ES alone (the ablation).
 
 State (`SearchState`): the CMA-ES (`dscjax.cmaes.ReplayCMA`, which records the fitness told
-and the point injected per generation), the incumbent, the counters (the back-off's
-included) and the generator of the random line directions. No pickle: ONE atomic
-`search.npz` holds the recorded fitness and injections, the last population, the incumbent
-(float64, bitwise), the counters and the generator's state (uint64 words). A resumed run
-rebuilds CMA-ES with the same seed and options and replays ask/tell/inject with the stored
-values (no simulation), so it continues exactly where it stopped (tested: resumed ==
-uninterrupted, bitwise).
+and the point injected per generation), the incumbent, the counters (the back-off's and the
+line's wins per step size included) and the generator of the random line directions. No
+pickle: ONE atomic `search.npz` holds the recorded fitness and injections, the last
+population, the incumbent (float64, bitwise), the counters and the generator's state
+(uint64 words). A resumed run rebuilds CMA-ES with the same seed and options and replays
+ask/tell/inject with the stored values (no simulation), so it continues exactly where it
+stopped (tested: resumed == uninterrupted, bitwise).
 """
 
 from __future__ import annotations
@@ -75,6 +75,8 @@ _COUNTERS = ("best_feasible", "best_iteration", "iteration", "evaluations",
              "gradient_evaluations", "line_wins", "first_grad", "stall")
 # the line's back-off (`line_backoff`); absent from the files of older runs, which had none
 _BACKOFF = ("line_losses", "line_skip")
+# SearchState.line_step_wins, (line_points,) int64; absent from older files (zeros then)
+_STEP_WINS = "line_step_wins"
 _FLOATS = ("best_loss", "start_loss")
 
 
@@ -166,6 +168,9 @@ class SearchState:
     evaluations: int = 0  # loss evaluations (candidates), the gradient's own included
     gradient_evaluations: int = 0
     line_wins: int = 0  # generations whose best line point beat the incumbent
+    # (line_points,) int64: of those, the generations each step size won (0: the shortest)
+    line_step_wins: np.ndarray = dataclasses.field(
+        default_factory=lambda: np.zeros(0, np.int64))
     first_grad: int = -1  # generation of the first gradient (-1: none yet)
     start_loss: float = math.nan  # the loss at the start point
     rng: Any = None  # np.random.Generator of the random line directions
@@ -198,7 +203,13 @@ def new_state(problem, spec, z_init=None) -> SearchState:
     if spec.popsize:
         opts["popsize"] = spec.popsize
     return SearchState(cma=ReplayCMA(flat0, spec.sigma0, opts), best_flat=flat0, unravel=unravel,
-                       rng=np.random.default_rng(spec.seed + 2))
+                       rng=np.random.default_rng(spec.seed + 2),
+                       line_step_wins=np.zeros(line_points(spec), np.int64))
+
+
+def line_points(spec) -> int:
+    """Points of the line search per generation: `line_points`, none for "cma"."""
+    return spec.line_points if spec.name != "cma" else 0
 
 
 @dataclasses.dataclass
@@ -221,7 +232,7 @@ class Search:
 
     def __post_init__(self):
         self.batch = batch_fn(self.problem)
-        points = self.spec.line_points if self.spec.name != "cma" else 0  # cma: no line
+        points = line_points(self.spec)
         self.grad = grad_fn(self.problem) if (self.spec.name == "cma_grad"
                                                and self.spec.grad_every and points) else None
         self.lo, self.hi = z_box(self.problem)
@@ -353,6 +364,7 @@ class Search:
         won = bool(take_line and improved and improved[0] >= k)
         if won:
             st.line_wins += 1
+            st.line_step_wins[improved[0] - k] += 1
             st.cma.inject(st.best_flat)
         self._after_line(take_line, won)
         i = int(np.argmin(np.where(np.isfinite(loss), loss, np.inf)))
@@ -406,7 +418,8 @@ class Search:
         files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {
             "best_flat": st.best_flat, "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
-            | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF})
+            | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF}
+            | {_STEP_WINS: st.line_step_wins})
         write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -466,6 +479,8 @@ def _restore(state: SearchState, arrays: dict | None, out: Path) -> None:
         setattr(state, k, type(getattr(state, k))(arrays[k]))
     for k in _BACKOFF:  # (0 in the files of runs from before line_backoff)
         setattr(state, k, int(arrays.get(k, 0)))
+    # (zeros in the files of runs from before the count)
+    state.line_step_wins = np.array(arrays.get(_STEP_WINS, state.line_step_wins), np.int64)
     for k in _FLOATS:
         setattr(state, k, float(arrays[k]))
     state.best_flat = np.array(arrays["best_flat"], float)
