@@ -20,6 +20,8 @@ differentiated with respect to the 13 DSC design numbers the tuner tunes (log-sp
 3. Where the time goes: HLO instruction counts of the loop bodies and XLA's flop counts of one
    RK4 step, its jvp (one direction) and its vjp.
 4. Peak RSS of the batch gradient (fresh process per configuration).
+5. The robust tuning objective (CVaR 0.25 over 8 plants): its gradient in each tuner mode
+   (forward over the batch, reverse, "plants") against its forward run (--skip-tuning: not).
 
 Prints the tables and writes results/bench_gradient.json (or --out).
 """
@@ -193,6 +195,44 @@ def costs(t_final: float, repeats: int, batch: int) -> dict:
     return res
 
 
+def tuning_modes(t_final: float, repeats: int, batch: int = 8, level: float = 0.25) -> dict:
+    """The robust tuning objective (`dscjax tune`'s: CVaR at `level` over `batch` plants,
+    alpha, lam, psi +-30 %, the default terms and bounds): one batched forward run against
+    its exact gradient in each tuner mode (`tuning.optimize.value_and_grad`): forward over
+    the batch, reverse through the checkpointed batch, and "plants" (only the worst
+    ceil(level B) plants, each by the time-parallel linearisation)."""
+    jax = _setup_jax()
+    from jax.flatten_util import ravel_pytree
+
+    import dscjax
+    import tuning
+    from dscjax.config import SimOptions
+    from tuning.optimize import value_and_grad
+
+    cfg = tuning.TuningConfig(robust=tuning.BatchSpec(batch=batch, seed=0, aggregate="cvar",
+                                                      cvar_level=level),
+                              heldout=tuning.BatchSpec(batch=0))
+    prob = tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
+    obj = prob.objective
+    ce = cfg.optimizer.checkpoint_every
+    fns = {"forward_run": jax.jit(lambda z: obj.evaluate(z)[0])}
+    for mode in ("forward", "reverse", "plants"):
+        fns[mode] = jax.jit(lambda z, m=mode: value_and_grad(obj, z, m, ce))
+    print(f"  timing the robust tuning objective (CVaR {level:g} of {batch} plants) ...",
+          file=sys.stderr, flush=True)
+    res = interleaved(fns, prob.z0, repeats)
+    for v in res.values():
+        v["ratio_to_forward"] = v["median_s"] / res["forward_run"]["median_s"]
+    g = {m: np.asarray(ravel_pytree(fns[m](prob.z0)[1])[0]) for m in ("forward", "reverse",
+                                                                      "plants")}
+    scale = np.max(np.abs(g["forward"]))
+    return {"batch": batch, "cvar_level": level, "n_params": prob.n_params,
+            "auto_mode": prob.mode, "modes": res,
+            "plants_vs_forward_max_rel": float(np.max(np.abs(g["plants"] - g["forward"])) / scale),
+            "reverse_vs_forward_max_rel": float(np.max(np.abs(g["reverse"] - g["forward"]))
+                                                / scale)}
+
+
 # -- where the time goes --------------------------------------------------------------------------
 
 
@@ -330,6 +370,10 @@ def main():
     p.add_argument("--memory-limit-gib", type=float, default=8.0)
     p.add_argument("--skip-memory", action="store_true")
     p.add_argument("--skip-anatomy", action="store_true")
+    p.add_argument("--skip-tuning", action="store_true",
+                   help="skip the robust tuning objective's gradient modes")
+    p.add_argument("--only-tuning", action="store_true",
+                   help="only the robust tuning objective's gradient modes (section 5)")
     p.add_argument("--out", default="results/bench_gradient.json")
     p.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     p.add_argument("--mode", default="value_and_grad", help=argparse.SUPPRESS)
@@ -349,10 +393,13 @@ def main():
 
     result = {"quick": args.quick, "machine": platform.platform(), "cpus": os.cpu_count(),
               "device": str(jax.devices()[0]), "load_average_start": load}
-    result["costs"] = costs(t_final, repeats, batch)
-    if not args.skip_anatomy:
+    if not args.only_tuning:
+        result["costs"] = costs(t_final, repeats, batch)
+    if not args.skip_tuning:
+        result["tuning"] = tuning_modes(t_final, repeats)
+    if not (args.skip_anatomy or args.only_tuning):
         result["anatomy"] = anatomy(t_final)
-    if not args.skip_memory:
+    if not (args.skip_memory or args.only_tuning):
         result["memory"] = memory(t_final, batch, args.memory_limit_gib)
     result["load_average_end"] = os.getloadavg()
     _print(result)
@@ -362,19 +409,44 @@ def main():
     print(f"wrote {out}", file=sys.stderr)
 
 
+LABELS = {"forward": "forward run (jit)",
+          "value_and_grad": "value_and_grad (time-parallel, default)",
+          "jacfwd": "jacfwd (forward mode)",
+          "value_and_grad_autodiff": "value_and_grad, gradient=\"autodiff\"",
+          "fd_forward_batched": "finite differences, forward, one batch",
+          "fd_central_batched": "finite differences, central, one batch"}
+
+
 def _print(r):
+    if "costs" in r:
+        _print_costs(r)
+    if "tuning" in r:
+        tu = r["tuning"]
+        print(f"\nrobust tuning objective: CVaR {tu['cvar_level']:g} over {tu['batch']} plants, "
+              f"{tu['n_params']} numbers (auto picks {tu['auto_mode']!r}; load "
+              f"{r['load_average_start'][0]:.1f} -> {r['load_average_end'][0]:.1f})")
+        print(f"{'':<44} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
+        for k, label in (("forward_run", "forward run of the batch"),
+                         ("forward", "value_and_grad, forward mode over the batch"),
+                         ("reverse", "value_and_grad, reverse mode (checkpointed)"),
+                         ("plants", "value_and_grad, plants (worst ones alone)")):
+            v = tu["modes"][k]
+            print(f"{label:<44} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
+                  f"{v['compile_s']:>12.1f}")
+        print(f"  plants vs forward mode: max rel. difference "
+              f"{tu['plants_vs_forward_max_rel']:.1e}; reverse vs forward: "
+              f"{tu['reverse_vs_forward_max_rel']:.1e}")
+    _print_rest(r)
+
+
+def _print_costs(r):
     c = r["costs"]
     print(f"\nGradient of J (L-inf + L2 of e on [1 s, {c['t_final']:g} s], {c['n_steps']} RK4 "
           f"steps) w.r.t. {c['n_params']} design numbers, public API, default arguments "
           f"({r['device']}; load {r['load_average_start'][0]:.1f} -> "
           f"{r['load_average_end'][0]:.1f})")
     print(f"{'one trajectory':<44} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
-    labels = {"forward": "forward run (jit)",
-              "value_and_grad": "value_and_grad (time-parallel, default)",
-              "jacfwd": "jacfwd (forward mode)",
-              "value_and_grad_autodiff": "value_and_grad, gradient=\"autodiff\"",
-              "fd_forward_batched": "finite differences, forward, one batch",
-              "fd_central_batched": "finite differences, central, one batch"}
+    labels = LABELS
     for k, label in labels.items():
         v = c["single"][k]
         print(f"{label:<44} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
@@ -393,11 +465,14 @@ def _print(r):
     for row in a["fd"]:
         print(f"  finite differences {'central' if row['central'] else 'forward':<8} "
               f"h = {row['h']:.0e}: max rel. error {row['max_rel_error']:.2e}")
+
+
+def _print_rest(r):
     if "anatomy" in r:
         an = r["anatomy"]
         print("\nwhere the time goes: HLO instructions per loop body (largest first)")
         for k, v in an["loop_bodies"].items():
-            print(f"  {labels.get(k, k):<42} {v}")
+            print(f"  {LABELS.get(k, k):<42} {v}")
         s0 = an["one_step"]["step"]["flops"]
         print("XLA flops of one RK4 step of the paper's loop")
         for k, v in an["one_step"].items():

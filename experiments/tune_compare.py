@@ -285,8 +285,11 @@ def _plot(r, name, path):
 
     colors = {"cma": "#1f77b4", "cma_path": "#2ca02c", "cma_grad": "#d62728",
               "cma_grad_off": "#ff9896", "adam": "#9467bd", "random": "#7f7f7f"}
+    extra = iter(("#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#000000"))
     fig, ax = subplots(1, 1, figsize=(7, 4.5), layout="constrained")
     for m, runs in r["problems"][name]["runs"].items():
+        # a variant ("cma_path:line_points=2") gets a colour of its own, the same for its rounds
+        colors.setdefault(m, next(extra, None))
         for i, run in enumerate(runs):
             c = np.asarray(run["curve"], float).reshape(-1, 2)
             ok = np.isfinite(c[:, 1])

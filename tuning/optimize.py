@@ -44,8 +44,9 @@ GRADIENTS = ("auto", "forward", "reverse", "plants")
 # bench_gradient.py). A batch of plants: reverse mode runs the transposed step over the batch,
 # ~20x the step's flops, so forward mode wins up to this many scalars. A CVaR (or max) weighs
 # only its worst plants: differentiating those alone ("plants") beat forward mode over the
-# batch 1.7x for the default robust problem (2 of 8 plants, 13 scalars, 20 s: 1.29 s vs 2.15
-# s) and lost 3.4x when all 8 were weighed (a mean: 7.3 s), so "auto" takes it up to B/4.
+# batch 1.8x for the default robust problem (2 of 8 plants, 13 scalars, 20 s: 0.84 s vs 1.54
+# s, bench_gradient.py --only-tuning) and lost 3.4x when all 8 were weighed (a mean), so
+# "auto" takes it up to B/4.
 FORWARD_MAX_PARAMS = 64
 
 
