@@ -45,7 +45,7 @@ GRADIENTS = ("auto", "forward", "reverse", "plants")
 # ~20x the step's flops, so forward mode wins up to this many scalars. A CVaR (or max) weighs
 # only its worst plants: differentiating those alone ("plants") beat forward mode over the
 # batch 1.8x for the default robust problem (2 of 8 plants, 13 scalars, 20 s: 0.84 s vs 1.54
-# s, bench_gradient.py --only-tuning) and lost 3.4x when all 8 were weighed (a mean), so
+# s, bench_gradient.py --only-tuning) and lost 3.5x when all 8 were weighed (a mean), so
 # "auto" takes it up to B/4.
 FORWARD_MAX_PARAMS = 64
 
