@@ -415,3 +415,52 @@ def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):
     on = report.method_sentence(cfg.optimizer, "forward")
     assert "skipped for min(2^(k-1), 8) generations" in on
     assert "skipped" not in report.method_sentence(tuning.OptimizerSpec(), "forward")
+
+
+@pytest.mark.parametrize("inject", [True, False])
+def test_line_inject_off_leaves_cma_es_as_told(problems, inject, tmp_path):
+    """cma_path with its line forced to win every generation: injected (the default) the
+    winners enter CMA-ES's populations; with line_inject = false the populations are those
+    of a plain `cma.CMAEvolutionStrategy` (same x0, sigma0, options) told the same fitness."""
+    import cma
+    from jax.flatten_util import ravel_pytree
+
+    p = _with(problems["cma_path"], line_inject=inject)
+    s = search.Search.open(p, tmp_path, False, 0.0)
+    s.compile()
+    real = s.batch
+
+    def line_wins(x):
+        r = real(x)
+        if np.all(x == x[:1]):  # the start point's evaluation (one point, tiled)
+            return r
+        return r | {"loss": r["loss"].at[4].set(-1.0 - len(asked)),
+                    "feasible": r["feasible"].at[4].set(True)}
+
+    s.batch = line_wins
+    asked = []
+    for _ in range(4):
+        s.generation()
+        asked.append(s.state.cma.asked.copy())
+    assert s.state.line_wins == 4
+    fitness = s.state.cma.arrays()["fitness"]
+    es = s.state.cma.es
+    # the tuner's CMA-ES, as docs/tuning.md states it: sigma0 0.3 from z0, seed + 1, the box
+    spec = p.cfg.optimizer
+    lo, hi = search.z_box(p)
+    plain = cma.CMAEvolutionStrategy(
+        np.asarray(ravel_pytree(p.z0)[0], float), spec.sigma0,
+        {"seed": spec.seed + 1, "verbose": -9, "popsize": es.popsize,
+         "randn": np.random.RandomState(spec.seed + 1).randn,
+         "bounds": [[x if np.isfinite(x) else None for x in lo],
+                    [x if np.isfinite(x) else None for x in hi]]})
+    same = []
+    for g in range(4):
+        x = np.asarray(plain.ask(), float)
+        same.append(np.array_equal(x, asked[g]))
+        plain.tell(list(x), list(fitness[g]))
+    assert es.popsize == 4
+    # generation 0 is asked before any injection; from generation 1 on they differ only if
+    # winners were injected
+    assert same == [True, True, True, True] if not inject else same == [True, False, False,
+                                                                        False]

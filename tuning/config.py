@@ -207,7 +207,7 @@ def _objective_value(name, v, field):
 def _optimizer_value(name, v, field):
     if name in ("name", "schedule", "gradient"):
         return validation.string(v, field)
-    if name == "background_compile":
+    if name in ("background_compile", "line_inject"):
         if not isinstance(v, bool):
             raise ConfigError(f"{field} must be true or false (got {v!r})")
         return v

@@ -96,6 +96,9 @@ class OptimizerSpec:
             generation; m > 0 skips it, after k consecutive generations whose line did not
             win, for min(2^(k-1), m) generations (CMA-ES's population alone, a second
             compiled batch width), until a line wins again.
+        line_inject: the line methods inject a winning line point into CMA-ES's next
+            generation (true); false leaves CMA-ES's own ask/tell sequence untouched (the same
+            as "cma" with the same seed) and the line only moves the incumbent.
         background_compile: "cma_grad": compile the gradient in a thread while the first
             generations run (their line points take random directions meanwhile).
     """
@@ -124,6 +127,7 @@ class OptimizerSpec:
     line_min: float = 0.02
     line_max: float = 1.0
     line_backoff: int = 0
+    line_inject: bool = True
     background_compile: bool = True
 
     def validate(self, field: str = "tuning.optimizer") -> None:

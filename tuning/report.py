@@ -507,13 +507,15 @@ def method_sentence(opt, mode: str) -> str:
                  or opt.name == "cma_line" else
                  f"-C grad ({_mode_words(mode)} exact gradient at the best point, every "
                  f"{opt.grad_every} generation(s); random directions otherwise)")
+        kept = ("the best injected into CMA-ES." if opt.line_inject else
+                "the best kept as the incumbent only (not injected into CMA-ES).")
+        backoff = (f" After k consecutive losing lines the line is skipped for "
+                   f"min(2^(k-1), {opt.line_backoff}) generations."
+                   if opt.line_backoff and opt.line_points else "")
         return (f"{opt.name}: CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
                 f"of {opt.line_points} step sizes from the best point along {along}, "
-                f"simulated in the same batch as the population, the best injected into "
-                f"CMA-ES." + (f" After k consecutive losing lines the line is skipped for "
-                              f"min(2^(k-1), {opt.line_backoff}) generations."
-                              if opt.line_backoff and opt.line_points else ""))
+                f"simulated in the same batch as the population, {kept}{backoff}")
     return (f"{_mode_words(mode)} exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
             f"{opt.schedule}).")
 

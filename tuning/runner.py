@@ -45,7 +45,7 @@ TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/ta
 # Options added after runs were saved, per part of `Problem.describe`: left out of the
 # fingerprint at these values (what the older runs did), so that those runs still resume
 NEW_OPTIONS = {"params": {"scale": False}, "objective": {"effort_bounds": "nominal"},
-               "optimizer": {"line_backoff": 0}}
+               "optimizer": {"line_backoff": 0, "line_inject": True}}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)

@@ -365,7 +365,8 @@ class Search:
         if won:
             st.line_wins += 1
             st.line_step_wins[improved[0] - k] += 1
-            st.cma.inject(st.best_flat)
+            if spec.line_inject:
+                st.cma.inject(st.best_flat)
         self._after_line(take_line, won)
         i = int(np.argmin(np.where(np.isfinite(loss), loss, np.inf)))
         terms = {name: float(v[i]) for name, v in res[-1].items()}
