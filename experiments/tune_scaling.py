@@ -100,8 +100,11 @@ def main():
         row = {"n": n, "n_params": problem.n_params, "start": start,
                "start_linf": float(problem.objective.scales.linf), "methods": {}}
         for m in methods:
+            # the CMA-ES baseline is plain CMA-ES: no restart when its own criteria stop it
             spec = dataclasses.replace(problem.cfg.optimizer, name=m, time_limit=args.budget,
-                                       steps=10**7, patience=0)
+                                       steps=10**7, patience=0,
+                                       restarts=0 if m == "cma" else
+                                       problem.cfg.optimizer.restarts)
             pm = dataclasses.replace(problem, cfg=dataclasses.replace(problem.cfg,
                                                                       optimizer=spec))
             load = os.getloadavg()[0]

@@ -464,3 +464,41 @@ def test_line_inject_off_leaves_cma_es_as_told(problems, inject, tmp_path):
     # winners were injected
     assert same == [True, True, True, True] if not inject else same == [True, False, False,
                                                                         False]
+
+
+def _stop_after(n):
+    """A cma `stop` that fires once an instance has been told n generations."""
+    def stop(self, *a, **k):
+        return {"forced": n} if self.countiter >= n else {}
+    return stop
+
+
+def test_cma_es_restarts_from_the_incumbent_when_its_own_criteria_stop_it(problems, tmp_path,
+                                                                          monkeypatch):
+    """CMA-ES's criteria forced to fire after 3 generations of each instance: 8 generations
+    are 3 + 3 + 2 (two restarts, each from the incumbent); with restarts = 0 the run ends at
+    3; a run stopped at 5 and resumed to 8 equals the uninterrupted one bitwise."""
+    import cma
+
+    monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
+    p = _with(problems["cma_path"], steps=8, save_interval=1)
+    full = run(p, tmp_path / "full")
+    assert full.state.iteration == 8 and full.state.restarts == 2
+    assert full.state.es.countiter == 2  # the second restart's instance: generations 7, 8
+    assert full.stop_reason == "reached 8 generations"
+    # the second restart came after generation 6 from the incumbent of that moment (what a
+    # run of 6 generations ends with), with sigma0
+    six = run(_with(p, steps=6), tmp_path / "six")
+    np.testing.assert_array_equal(full.state.cma_x0, six.state.best_flat)
+    np.testing.assert_array_equal(np.asarray(full.state.es.x0, float), six.state.best_flat)
+    assert full.state.es.sigma0 == p.cfg.optimizer.sigma0
+    plain = run(_with(p, restarts=0), tmp_path / "plain")
+    assert plain.state.iteration == 3 and plain.state.restarts == 0
+    assert plain.stop_reason.startswith("CMA-ES stopped")
+    part = run(_with(p, steps=5), tmp_path / "part")
+    assert part.state.restarts == 1
+    again = run(p, tmp_path / "part", resume=True)
+    assert again.state.restarts == 2 and again.state.iteration == 8
+    np.testing.assert_array_equal(again.state.best_flat, full.state.best_flat)
+    np.testing.assert_array_equal(again.state.cma_x0, full.state.cma_x0)
+    np.testing.assert_array_equal(again.state.cma.asked, full.state.cma.asked)

@@ -15,6 +15,7 @@ from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
 from dscjax.simulate import refine_rows, refinement_level, simulate_batch
 from tuning.objective import within
+from tuning.optimize import SEARCHES
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -239,6 +240,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "run": {
             "iterations": int(result.state.iteration), "resumed_from": result.resumed_from,
             "rejected": int(result.state.n_rejected), "stop_reason": result.stop_reason,
+            "restarts": int(getattr(result.state, "restarts", 0)),
             "best_iteration": int(result.state.best_iteration),
             "best_loss": float(result.state.best_loss),
             "best_feasible": bool(result.state.best_feasible),
@@ -400,7 +402,10 @@ def _markdown(s: dict, problem, figures) -> str:
         f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
         f"of which {run['gradient_evaluations']} with an exact gradient"
         + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
-        + f", {run['rejected']} rejected; stopped: {run['stop_reason']}. Best at iteration "
+        + f", {run['rejected']} rejected"
+        + (f"; CMA-ES restarted from the best point {run['restarts']} time(s) after its own "
+           f"criteria stopped it" if run.get("restarts") else "")
+        + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
         f"{run['wall_s']:.1f} s in this invocation, of which compilation {run['compile_s']:.1f} s"
@@ -497,6 +502,13 @@ def _mode_words(mode: str) -> str:
 
 
 def method_sentence(opt, mode: str) -> str:
+    restarts = (f" When CMA-ES's own criteria stop it before the budget ends, it restarts "
+                f"from the best point (at most {opt.restarts} times)."
+                if opt.name in SEARCHES and opt.restarts else "")
+    return _method(opt, mode) + restarts
+
+
+def _method(opt, mode: str) -> str:
     if opt.name == "cma":
         return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "

@@ -78,7 +78,7 @@ class Problem:
         """JSON-able description; its fingerprint must match to resume."""
         opt = dataclasses.asdict(self.cfg.optimizer)
         for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
-                  "decay_steps", "regrow", "shrink", "min_delta"):
+                  "decay_steps", "regrow", "shrink", "min_delta", "restarts"):
             opt.pop(k)
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
@@ -408,6 +408,9 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
                           f"(relative) in {spec.patience} generations")
                 break
             if loop.state.es.stop():
+                if loop.state.restarts < spec.restarts:
+                    loop.restart()  # budget left: CMA-ES again, from the incumbent
+                    continue
                 reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
                 break
     except KeyboardInterrupt:

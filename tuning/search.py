@@ -177,6 +177,8 @@ class SearchState:
     stall: int = 0
     line_losses: int = 0  # consecutive generations whose line did not win (line_backoff)
     line_skip: int = 0  # generations left before the line is taken again (line_backoff)
+    restarts: int = 0  # CMA-ES restarted from the incumbent after its own criteria stopped it
+    cma_x0: np.ndarray | None = None  # the x0 of the current CMA-ES (None: the start point)
     n_rejected: int = 0  # (no steps are rejected; kept for the report)
     unravel: Any = None
 
@@ -195,16 +197,22 @@ def new_state(problem, spec, z_init=None) -> SearchState:
     if z_init is not None:
         flat0 = ravel_pytree({k: jnp.asarray(z_init[k]) for k in problem.z0})[0]
     flat0 = np.asarray(flat0, float)
+    return SearchState(cma=new_cma(problem, spec, flat0), best_flat=flat0, unravel=unravel,
+                       rng=np.random.default_rng(spec.seed + 2),
+                       line_step_wins=np.zeros(line_points(spec), np.int64))
+
+
+def new_cma(problem, spec, x0, restart: int = 0) -> ReplayCMA:
+    """CMA-ES from x0: sigma0, the box, the population, and the seed spec.seed + 1 (restart
+    r > 0: spec.seed + 1 + r, a stream of its own)."""
     lo, hi = z_box(problem)
-    opts = {"seed": spec.seed + 1, "verbose": -9,
-            "randn": np.random.RandomState(spec.seed + 1).randn,
+    seed = spec.seed + 1 + restart
+    opts = {"seed": seed, "verbose": -9, "randn": np.random.RandomState(seed).randn,
             "bounds": [[x if np.isfinite(x) else None for x in lo],
                        [x if np.isfinite(x) else None for x in hi]]}
     if spec.popsize:
         opts["popsize"] = spec.popsize
-    return SearchState(cma=ReplayCMA(flat0, spec.sigma0, opts), best_flat=flat0, unravel=unravel,
-                       rng=np.random.default_rng(spec.seed + 2),
-                       line_step_wins=np.zeros(line_points(spec), np.int64))
+    return ReplayCMA(np.asarray(x0, float), spec.sigma0, opts)
 
 
 def line_points(spec) -> int:
@@ -247,6 +255,15 @@ class Search:
     @property
     def _backoff(self) -> bool:
         return bool(self.spec.line_backoff and self.steps.size)
+
+    def restart(self) -> None:
+        """CMA-ES's own termination criteria fired (`es.stop()`: converged or stuck) with
+        budget left: a fresh CMA-ES from the incumbent (sigma0, default population, a seed of
+        its own). The incumbent, counters and history carry on."""
+        st = self.state
+        st.restarts += 1
+        st.cma = new_cma(self.problem, self.spec, st.best_flat, st.restarts)
+        st.cma_x0 = st.best_flat.copy()
 
     def _line_now(self) -> bool:
         """Is the line taken in this generation? Always, unless `line_backoff` skips it
@@ -420,7 +437,8 @@ class Search:
             "best_flat": st.best_flat, "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
             | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF}
-            | {_STEP_WINS: st.line_step_wins})
+            | {_STEP_WINS: st.line_step_wins}
+            | ({"restarts": np.int64(st.restarts), "cma_x0": st.cma_x0} if st.restarts else {}))
         write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -449,7 +467,8 @@ class Search:
             files.check_same(meta.get("problem"), problem.describe(),
                              where=f"the checkpoint in {out}",
                              fix="start afresh with --overwrite or another --out")
-            _restore(state, files.read_npz(out / STATE_FILE), out)
+            _restore(state, files.read_npz(out / STATE_FILE), out,
+                     functools.partial(new_cma, problem, spec))
             history = [r for r in ck.read_history(out / "history.csv")
                        if r["iteration"] < state.iteration]
             elapsed = float(meta.get("elapsed_total_s", 0.0))
@@ -465,13 +484,18 @@ def _path_direction(es, cov) -> np.ndarray | None:
     return pc / math.sqrt(q) if np.isfinite(q) and q > 0 else None
 
 
-def _restore(state: SearchState, arrays: dict | None, out: Path) -> None:
-    """Bring a fresh state to the saved one: replay CMA-ES, set counters and generator."""
+def _restore(state: SearchState, arrays: dict | None, out: Path, cma=None) -> None:
+    """Bring a fresh state to the saved one: replay CMA-ES (after a restart, the restarted
+    one, built by `cma(x0, restart)`), set counters and generator."""
     from dscjax.validation import ConfigError
 
     fix = "start afresh with --overwrite or another --out"
     if arrays is None or any(k not in arrays for k in _COUNTERS + _FLOATS):
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
+    state.restarts = int(arrays.get("restarts", 0))  # (0 in files from before restarts)
+    if state.restarts:
+        state.cma_x0 = np.array(arrays["cma_x0"], float)
+        state.cma = cma(state.cma_x0, state.restarts)
     try:
         state.cma.replay(arrays)
     except ValueError as e:
