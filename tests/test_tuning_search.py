@@ -479,6 +479,7 @@ def test_cma_es_restarts_from_the_incumbent_when_its_own_criteria_stop_it(proble
     are 3 + 3 + 2 (two restarts, each from the incumbent); with restarts = 0 the run ends at
     3; a run stopped at 5 and resumed to 8 equals the uninterrupted one bitwise."""
     import cma
+    from jax.flatten_util import ravel_pytree
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
     p = _with(problems["cma_path"], steps=8, save_interval=1)
@@ -486,12 +487,14 @@ def test_cma_es_restarts_from_the_incumbent_when_its_own_criteria_stop_it(proble
     assert full.state.iteration == 8 and full.state.restarts == 2
     assert full.state.es.countiter == 2  # the second restart's instance: generations 7, 8
     assert full.stop_reason == "reached 8 generations"
-    # the second restart came after generation 6 from the incumbent of that moment (what a
-    # run of 6 generations ends with), with sigma0
-    six = run(_with(p, steps=6), tmp_path / "six")
-    np.testing.assert_array_equal(full.state.cma_x0, six.state.best_flat)
-    np.testing.assert_array_equal(np.asarray(full.state.es.x0, float), six.state.best_flat)
+    # each restart is a fresh CMA-ES from the start point (the start gains' z), sigma0, seed
+    # + 1 + 2 for the second; the incumbent is the best over all three instances
+    start = np.asarray(ravel_pytree(p.z0)[0], float)
+    np.testing.assert_array_equal(full.state.cma_x0, start)
+    np.testing.assert_array_equal(np.asarray(full.state.es.x0, float), start)
     assert full.state.es.sigma0 == p.cfg.optimizer.sigma0
+    assert full.state.es.opts["seed"] == p.cfg.optimizer.seed + 3
+    assert full.state.best_loss == min(r["best_loss"] for r in full.history)
     plain = run(_with(p, restarts=0), tmp_path / "plain")
     assert plain.state.iteration == 3 and plain.state.restarts == 0
     assert plain.stop_reason.startswith("CMA-ES stopped")

@@ -101,7 +101,8 @@ class OptimizerSpec:
             as "cma" with the same seed) and the line only moves the incumbent.
         restarts: the CMA-ES methods: when CMA-ES's own termination criteria stop it
             (converged or stuck) before `steps` or `time_limit`, start a fresh CMA-ES from
-            the incumbent (sigma0, a seed of its own), at most this many times (0: stop).
+            the start point (sigma0, a seed of its own; the incumbent is kept), at most this
+            many times (0: stop).
         background_compile: "cma_grad": compile the gradient in a thread while the first
             generations run (their line points take random directions meanwhile).
     """

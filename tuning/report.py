@@ -403,8 +403,8 @@ def _markdown(s: dict, problem, figures) -> str:
         f"of which {run['gradient_evaluations']} with an exact gradient"
         + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
         + f", {run['rejected']} rejected"
-        + (f"; CMA-ES restarted from the best point {run['restarts']} time(s) after its own "
-           f"criteria stopped it" if run.get("restarts") else "")
+        + (f"; CMA-ES restarted afresh from the start point {run['restarts']} time(s) after "
+           f"its own criteria stopped it" if run.get("restarts") else "")
         + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
@@ -502,8 +502,9 @@ def _mode_words(mode: str) -> str:
 
 
 def method_sentence(opt, mode: str) -> str:
-    restarts = (f" When CMA-ES's own criteria stop it before the budget ends, it restarts "
-                f"from the best point (at most {opt.restarts} times)."
+    restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
+                f"starts from the start point (at most {opt.restarts} times; the best point "
+                f"is kept)."
                 if opt.name in SEARCHES and opt.restarts else "")
     return _method(opt, mode) + restarts
 

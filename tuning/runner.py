@@ -409,7 +409,7 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
                 break
             if loop.state.es.stop():
                 if loop.state.restarts < spec.restarts:
-                    loop.restart()  # budget left: CMA-ES again, from the incumbent
+                    loop.restart()  # budget left: a fresh CMA-ES from the start point
                     continue
                 reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
                 break
