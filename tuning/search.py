@@ -267,6 +267,7 @@ class Search:
         history carry on, so the best point of all the restarts is the result."""
         st = self.state
         st.restarts += 1
+        st.stall = 0  # `patience` generations for the fresh CMA-ES to beat the incumbent
         st.cma_x0 = st.start_flat.copy()
         st.cma = new_cma(self.problem, self.spec, st.cma_x0, st.restarts)
 
