@@ -18,6 +18,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 import dscjax
 import tuning
@@ -473,11 +474,11 @@ def _stop_after(n):
     return stop
 
 
-def test_cma_es_restarts_from_the_incumbent_when_its_own_criteria_stop_it(problems, tmp_path,
-                                                                          monkeypatch):
+def test_cma_es_restarts_afresh_when_its_own_criteria_stop_it(problems, tmp_path, monkeypatch):
     """CMA-ES's criteria forced to fire after 3 generations of each instance: 8 generations
-    are 3 + 3 + 2 (two restarts, each from the incumbent); with restarts = 0 the run ends at
-    3; a run stopped at 5 and resumed to 8 equals the uninterrupted one bitwise."""
+    are 3 + 3 + 2 (two restarts, each a fresh CMA-ES from the start point); with restarts = 0
+    the run ends at 3; runs stopped at 5 and at 6 (the generation of a restart, its
+    checkpoint written there) and resumed to 8 equal the uninterrupted one bitwise."""
     import cma
     from jax.flatten_util import ravel_pytree
 
@@ -493,15 +494,34 @@ def test_cma_es_restarts_from_the_incumbent_when_its_own_criteria_stop_it(proble
     np.testing.assert_array_equal(full.state.cma_x0, start)
     np.testing.assert_array_equal(np.asarray(full.state.es.x0, float), start)
     assert full.state.es.sigma0 == p.cfg.optimizer.sigma0
-    assert full.state.es.opts["seed"] == p.cfg.optimizer.seed + 3
+    # restart r's seed: SeedSequence([seed, r]), not seed + 1 + r (another run's stream)
+    assert full.state.es.opts["seed"] == int(
+        np.random.SeedSequence([p.cfg.optimizer.seed, 2]).generate_state(1)[0])
     assert full.state.best_loss == min(r["best_loss"] for r in full.history)
     plain = run(_with(p, restarts=0), tmp_path / "plain")
     assert plain.state.iteration == 3 and plain.state.restarts == 0
     assert plain.stop_reason.startswith("CMA-ES stopped")
-    part = run(_with(p, steps=5), tmp_path / "part")
-    assert part.state.restarts == 1
-    again = run(p, tmp_path / "part", resume=True)
-    assert again.state.restarts == 2 and again.state.iteration == 8
+    for stop_at in (5, 6):
+        part = run(_with(p, steps=stop_at), tmp_path / f"part{stop_at}")
+        assert part.state.restarts == (1 if stop_at == 5 else 2)
+        again = run(p, tmp_path / f"part{stop_at}", resume=True)
+        assert again.state.restarts == 2 and again.state.iteration == 8
+        np.testing.assert_array_equal(again.state.best_flat, full.state.best_flat)
+        np.testing.assert_array_equal(again.state.cma_x0, full.state.cma_x0)
+        np.testing.assert_array_equal(again.state.cma.asked, full.state.cma.asked)
+
+
+def test_a_run_started_from_z_init_resumes_without_it(problems, tmp_path):
+    """The start point is saved (search.npz `start_flat`): a run started from other gains
+    (as adversarial rounds start from the last round's) resumes bitwise without the caller
+    passing them again; before, CMA-ES was rebuilt from the problem's z0 and the replay was
+    refused."""
+    p = problems["cma_path"]
+    z = {k: np.asarray(v) + 0.1 for k, v in p.z0.items()}
+    full = run(_with(p, steps=4), tmp_path / "full", z_init=z)
+    run(_with(p, steps=2, save_interval=1), tmp_path / "part", z_init=z)
+    again = run(_with(p, steps=4), tmp_path / "part", resume=True)
     np.testing.assert_array_equal(again.state.best_flat, full.state.best_flat)
-    np.testing.assert_array_equal(again.state.cma_x0, full.state.cma_x0)
     np.testing.assert_array_equal(again.state.cma.asked, full.state.cma.asked)
+    np.testing.assert_array_equal(again.state.start_flat,
+                                  np.asarray(ravel_pytree(z)[0], float))

@@ -496,13 +496,14 @@ class Objective:
             idx = jax.lax.top_k(per, k)[1]
         train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
         bounds = self.bounds()
+        dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `_like` casts them
         n_req = len(self.requirements)
 
         def one(z_, i):
             setup = params.set_many(self.selection.apply(self.setup, z_),
                                     {p: v[i] for p, v in train.items()})
             metrics, diverged = simulate_metrics(setup, self.sim, self.extra())
-            b = tuple(None if v is None else jnp.asarray(v)[i] if np.ndim(v) else v
+            b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
                       for v in bounds)
             return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b)[0]
 

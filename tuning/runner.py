@@ -74,6 +74,13 @@ class Problem:
     def n_params(self) -> int:
         return self.selection.size(self.setup)
 
+    def _mode_desc(self) -> str:
+        # "auto" now picks "plants" where it picked forward or reverse mode before: same
+        # numbers, so the fingerprint keeps the older choice (older runs still resume)
+        if self.mode == "plants" and self.cfg.optimizer.gradient == "auto":
+            return choose_gradient("auto", self.n_params, self.objective.batch_size)
+        return self.mode
+
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         opt = dataclasses.asdict(self.cfg.optimizer)
@@ -90,7 +97,7 @@ class Problem:
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
             "sim": dataclasses.asdict(self.objective.sim),
-            "mode": self.mode,
+            "mode": self._mode_desc(),
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
              if self.extra_plants else {}) | (
             {"members": [m.describe() for m in self.members], "combine": self.objective.how}
@@ -401,17 +408,17 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
             if progress is not None:
                 progress(row | {"steps": spec.steps, "terms": _term_names(problem),
                                 "n_rejected": 0})
+            # before the checkpoint: a file written at this generation holds the restart
+            if loop.state.es.stop():
+                if loop.state.restarts >= spec.restarts:
+                    reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
+                    break
+                loop.restart()  # budget left: a fresh CMA-ES from the start point
             if loop.state.iteration % spec.save_interval == 0:
                 loop.save()
             if spec.patience and loop.state.stall >= spec.patience:
                 reason = (f"no improvement of the best loss by more than {spec.min_delta:g} "
                           f"(relative) in {spec.patience} generations")
-                break
-            if loop.state.es.stop():
-                if loop.state.restarts < spec.restarts:
-                    loop.restart()  # budget left: a fresh CMA-ES from the start point
-                    continue
-                reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
                 break
     except KeyboardInterrupt:
         loop.save(stop_reason="interrupted")

@@ -206,9 +206,11 @@ def new_state(problem, spec, z_init=None) -> SearchState:
 
 def new_cma(problem, spec, x0, restart: int = 0) -> ReplayCMA:
     """CMA-ES from x0: sigma0, the box, the population, and the seed spec.seed + 1 (restart
-    r > 0: spec.seed + 1 + r, a stream of its own)."""
+    r > 0: a seed drawn from SeedSequence([seed, r]), so that no restart replays the stream
+    of a run with another seed)."""
     lo, hi = z_box(problem)
-    seed = spec.seed + 1 + restart
+    seed = (spec.seed + 1 if not restart else
+            int(np.random.SeedSequence([spec.seed, restart]).generate_state(1)[0]))
     opts = {"seed": seed, "verbose": -9, "randn": np.random.RandomState(seed).randn,
             "bounds": [[x if np.isfinite(x) else None for x in lo],
                        [x if np.isfinite(x) else None for x in hi]]}
@@ -260,7 +262,7 @@ class Search:
 
     def restart(self) -> None:
         """CMA-ES's own termination criteria fired (`es.stop()`: converged or stuck) with
-        budget left: a fresh, independent CMA-ES from the start point (sigma0, default
+        budget left: a fresh, independent CMA-ES from the start point (sigma0, the same
         population, a seed of its own). Not from the incumbent: where CMA-ES stops early the
         incumbent is typically on a cliff edge, every sample around it diverging alike
         (flat fitness; measured: 9 of 11 points 1e-4 away in z). The incumbent, counters and
@@ -465,7 +467,7 @@ class Search:
              z_init=None) -> Search:
         """A fresh search from z_init (default the start gains), or the one saved in out."""
         spec = problem.cfg.optimizer
-        state = new_state(problem, spec, None if resume else z_init)
+        state = new_state(problem, spec, z_init)
         history: list[dict] = []
         elapsed = 0.0
         resumed = 0
@@ -500,8 +502,9 @@ def _restore(state: SearchState, arrays: dict | None, out: Path, cma=None) -> No
     if arrays is None or any(k not in arrays for k in _COUNTERS + _FLOATS):
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
     state.restarts = int(arrays.get("restarts", 0))  # (0 in files from before restarts)
-    if "start_flat" in arrays:  # (files from before restarts: problem.z0, as new_state has it)
+    if "start_flat" in arrays:  # (older files: the z_init or z0 new_state was given)
         state.start_flat = np.array(arrays["start_flat"], float)
+        state.cma = cma(state.start_flat, 0)
     if state.restarts:
         state.cma_x0 = np.array(arrays["cma_x0"], float)
         state.cma = cma(state.cma_x0, state.restarts)
