@@ -178,8 +178,7 @@ class SearchState:
     line_losses: int = 0  # consecutive generations whose line did not win (line_backoff)
     line_skip: int = 0  # generations left before the line is taken again (line_backoff)
     restarts: int = 0  # fresh CMA-ES instances started after cma's own criteria stopped one
-    cma_x0: np.ndarray | None = None  # the x0 of the current CMA-ES (None: the start point)
-    start_flat: np.ndarray | None = None  # (n,) the start point (the restarts' x0)
+    start_flat: np.ndarray | None = None  # (n,) the start point: every CMA-ES instance's x0
     n_rejected: int = 0  # (no steps are rejected; kept for the report)
     unravel: Any = None
 
@@ -270,8 +269,7 @@ class Search:
         st = self.state
         st.restarts += 1
         st.stall = 0  # `patience` generations for the fresh CMA-ES to beat the incumbent
-        st.cma_x0 = st.start_flat.copy()
-        st.cma = new_cma(self.problem, self.spec, st.cma_x0, st.restarts)
+        st.cma = new_cma(self.problem, self.spec, st.start_flat, st.restarts)
 
     def _line_now(self) -> bool:
         """Is the line taken in this generation? Always, unless `line_backoff` skips it
@@ -447,7 +445,7 @@ class Search:
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
             | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF}
             | {_STEP_WINS: st.line_step_wins}
-            | ({"restarts": np.int64(st.restarts), "cma_x0": st.cma_x0} if st.restarts else {}))
+            | ({"restarts": np.int64(st.restarts)} if st.restarts else {}))
         write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
@@ -494,8 +492,8 @@ def _path_direction(es, cov) -> np.ndarray | None:
 
 
 def _restore(state: SearchState, arrays: dict | None, out: Path, cma=None) -> None:
-    """Bring a fresh state to the saved one: replay CMA-ES (after a restart, the restarted
-    one, built by `cma(x0, restart)`), set counters and generator."""
+    """Bring a fresh state to the saved one: replay CMA-ES (the instance of the last restart,
+    built by `cma(x0, restart)` from the saved start point), set counters and generator."""
     from dscjax.validation import ConfigError
 
     fix = "start afresh with --overwrite or another --out"
@@ -504,10 +502,7 @@ def _restore(state: SearchState, arrays: dict | None, out: Path, cma=None) -> No
     state.restarts = int(arrays.get("restarts", 0))  # (0 in files from before restarts)
     if "start_flat" in arrays:  # (older files: the z_init or z0 new_state was given)
         state.start_flat = np.array(arrays["start_flat"], float)
-        state.cma = cma(state.start_flat, 0)
-    if state.restarts:
-        state.cma_x0 = np.array(arrays["cma_x0"], float)
-        state.cma = cma(state.cma_x0, state.restarts)
+        state.cma = cma(state.start_flat, state.restarts)
     try:
         state.cma.replay(arrays)
     except ValueError as e:
