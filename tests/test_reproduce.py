@@ -15,13 +15,13 @@ from test_hysteresis_family import bouc_wen_reference
 import dscjax
 from dscjax import complexity, metrics
 from dscjax.cli.main import main
+from dscjax.examples import hysteresis_example
 from dscjax.hysteresis import closed_form
 from dscjax.reproduce import (
     FAMILY,
     FIGURES,
     METRIC_FIELDS,
     RUNS,
-    by_amplitude,
     family_loops,
     hysteresis_loops,
 )
@@ -146,13 +146,16 @@ def test_hysteresis_loops_match_the_closed_form():
 
 def test_fig1_is_the_family_backlash_entry():
     """`reproduce` draws Fig. 1 from the family's backlash loops instead of integrating (4)
-    twice: they must be the paper's loops, bitwise (closed form checked above)."""
-    kw = dict(amplitudes=(3.5, 6.5), t_final=1.0)
-    fig1 = hysteresis_loops(**kw)
-    _, t, u, w = family_loops(**kw)["backlash"]
-    for k, got in by_amplitude(kw["amplitudes"], t, u, w).items():
-        for a, b in zip(got, fig1[k], strict=True):
-            np.testing.assert_array_equal(a, b)
+    twice; both go through `sine_loops`, so they are the paper's loops exactly when the
+    family's backlash model is the paper's (4) (its loops' closed form is checked above)."""
+    family = hysteresis_example("backlash").hysteresis
+    paper = dscjax.paper_example().hysteresis
+    assert type(family) is type(paper)
+    a, b = jax.tree.leaves(family), jax.tree.leaves(paper)
+    assert len(a) == len(b) > 0
+    for x, y in zip(a, b, strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert jax.tree.structure(family) == jax.tree.structure(paper)
 
 
 def test_fig1_family_loops_meet_closed_forms_at_the_first_peak():

@@ -213,6 +213,14 @@ def _per_plant_problem(out):
     return setup, runner.build_problem(setup, options, cfg, extra_plants=plants)
 
 
+def _effort_figures(s):
+    """(diverged, max|u|, TV(u) = sum |u_(k+1) - u_k|) of `s` over 0.4 s by `simulate`
+    (every step saved) and numpy: the start bounds' independent reference."""
+    traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2, throw=False, refine=0)
+    u = np.asarray(traj.u, np.float64)
+    return bool(traj.diverged), np.max(np.abs(u)), np.sum(np.abs(np.diff(u)))
+
+
 def test_per_plant_bounds_are_the_start_gains_own_figures_on_each_plant(adv_run):
     """Each training plant's bounds equal the start gains simulated on that plant by
     `simulate`, with max|u| and TV(u) = sum |u_(k+1) - u_k| computed here by numpy over the
@@ -227,9 +235,8 @@ def test_per_plant_bounds_are_the_start_gains_own_figures_on_each_plant(adv_run)
     assert sc.u_max_train.dtype == sc.tv_max_train.dtype == np.float64
 
     def figures(s):
-        traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2)  # saves every step
-        u = np.asarray(traj.u, np.float64)
-        return np.max(np.abs(u)), np.sum(np.abs(np.diff(u)))
+        _, u_max, tv = _effort_figures(s)
+        return u_max, tv
 
     for i in range(n):
         u_max, tv = figures(dscjax.params.set_many(
@@ -262,10 +269,11 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
     sc = problem.objective.scales
     assert problem.n_train == 4  # the nominal plant, then the three added
 
+    factor = cfg.objective.tv_max_factor
+
     def figures(s):
-        traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2, throw=False, refine=0)
-        u = np.asarray(traj.u, np.float64)
-        return bool(traj.diverged), np.max(np.abs(u)), 1.5 * np.sum(np.abs(np.diff(u)))
+        diverged, u_max, tv = _effort_figures(s)
+        return diverged, u_max, factor * tv
 
     plants = [setup] + [dscjax.params.set_many(setup, {"plant.theta": t}) for t in theta]
     runs = [figures(s) for s in plants]

@@ -153,8 +153,7 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     def both(z_):
         return value_and_grad(obj, z_, "plants"), value_and_grad(obj, z_, "forward")
 
-    ((loss, aux), g), ((loss_f, aux_f), g_f) = jax.jit(both)(z)
-    assert float(loss) == float(loss_f)  # both evaluate's batched forward run
+    ((_, aux), g), ((_, aux_f), g_f) = jax.jit(both)(z)
     g, g_f = ravel_pytree(g)[0], ravel_pytree(g_f)[0]
     assert np.max(np.abs(np.asarray(g - g_f))) <= 1e-10 * np.max(np.abs(np.asarray(g_f)))
     assert bool(aux["feasible"]) == bool(aux_f["feasible"])
@@ -173,4 +172,3 @@ def test_auto_gradient_mode(batch, aggregate, level, n_params, expected):
     from tuning.optimize import choose_gradient
 
     assert choose_gradient("auto", n_params, batch, aggregate, level) == expected
-    assert choose_gradient("forward", n_params, batch, aggregate, level) == "forward"

@@ -109,8 +109,6 @@ def test_replayed_cma_es_continues_exactly_without_pickles():
 def test_the_box_follows_the_order_of_the_flat_z():
     # ravel_pytree orders z by name, not in the order the parameters were listed: the box of
     # CMA-ES and of the line search must bound tau where tau sits in the flat vector
-    from jax.flatten_util import ravel_pytree
-
     from tuning.params import Selection
 
     setup = dscjax.paper_example()
@@ -173,8 +171,6 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
                                                                        monkeypatch):
     # simulation.solver and the time-parallel gradient reach the batch and the gradient of
     # the search methods (spied at the call of dscjax's run while tracing: nothing compiles)
-    from jax.flatten_util import ravel_pytree
-
     import tuning.objective
 
     class Seen(Exception):
@@ -424,7 +420,6 @@ def test_line_inject_off_leaves_cma_es_as_told(problems, inject, tmp_path):
     winners enter CMA-ES's populations; with line_inject = false the populations are those
     of a plain `cma.CMAEvolutionStrategy` (same x0, sigma0, options) told the same fitness."""
     import cma
-    from jax.flatten_util import ravel_pytree
 
     p = _with(problems["cma_path"], line_inject=inject)
     s = search.Search.open(p, tmp_path, False, 0.0)
@@ -480,7 +475,6 @@ def test_cma_es_restarts_afresh_when_its_own_criteria_stop_it(problems, tmp_path
     the run ends at 3; runs stopped at 5 and at 6 (the generation of a restart, its
     checkpoint written there) and resumed to 8 equal the uninterrupted one bitwise."""
     import cma
-    from jax.flatten_util import ravel_pytree
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
     p = _with(problems["cma_path"], steps=8, save_interval=1)
@@ -488,8 +482,8 @@ def test_cma_es_restarts_afresh_when_its_own_criteria_stop_it(problems, tmp_path
     assert full.state.iteration == 8 and full.state.restarts == 2
     assert full.state.es.countiter == 2  # the second restart's instance: generations 7, 8
     assert full.stop_reason == "reached 8 generations"
-    # each restart is a fresh CMA-ES from the start point (the start gains' z), sigma0, seed
-    # + 1 + 2 for the second; the incumbent is the best over all three instances
+    # each restart is a fresh CMA-ES from the start point (the start gains' z), sigma0 and a
+    # seed of its own; the incumbent is the best over all three instances
     start = np.asarray(ravel_pytree(p.z0)[0], float)
     np.testing.assert_array_equal(np.asarray(full.state.es.x0, float), start)
     assert full.state.es.sigma0 == p.cfg.optimizer.sigma0
