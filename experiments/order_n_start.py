@@ -61,8 +61,8 @@ def main():
             X = np.array(es.ask())
             traj = dscjax.simulate_batch(base, unpack(n, X), t_final=t_final, dt=1e-3,
                                          refine=0, solver="etdrk4")
-            div = np.asarray(traj.status.code) != 0
-            t_div = np.where(div, np.asarray(traj.status.step) * 1e-3, t_final)
+            div = np.asarray(traj.diverged)
+            t_div = np.where(div, np.asarray(traj.t_diverged), t_final)
             score = np.where(div, 10.0 + 100.0 * (t_final - t_div) / t_final,
                              np.minimum(np.asarray(traj.metrics["linf_error"]), 10.0))
             es.tell(list(X), list(score))
