@@ -19,9 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax import params
 from dscjax.cmaes import require_cma
-from tuning.objective import aggregate, plant_loss, simulate_metrics
 
 
 @dataclasses.dataclass
@@ -53,31 +51,14 @@ class Trace:
 
 
 def batch_loss_fn(problem):
-    """Jitted (B, n) flat z -> (B,) objective values, each the same loss the gradient method
-    minimises (J of the nominal plant, or the aggregate over the training batch)."""
-    obj = problem.objective
+    """(Jitted (B, n) flat z -> (B,) objective values, flat z0, unravel): each value the same
+    loss the gradient method minimises (J of the nominal plant, or the aggregate over the
+    training batch), from the search methods' batched program (`search.batch_fn`)."""
+    from tuning.search import batch_fn
+
+    run = batch_fn(problem)
     flat0, unravel = ravel_pytree(problem.z0)
-    columns = obj.selection.columns(obj.setup)
-    train = obj.overrides or {}
-    n_train = obj.batch_size if train else 1
-
-    @jax.jit
-    def run(flat_pts):
-        table = jax.vmap(lambda p: obj.selection.row(unravel(p)))(flat_pts)
-        b = flat_pts.shape[0]
-        ov = params.overrides(obj.setup, columns, table)
-        if train:  # every candidate on every training plant: (B * n_train) members
-            ov = {p: jnp.repeat(v, n_train, axis=0) for p, v in ov.items()}
-            ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
-                   for p, v in train.items()}
-        metrics, diverged = simulate_metrics(obj.setup, obj.sim, obj.extra(), ov)
-        loss, _ = plant_loss(metrics, diverged, obj.spec, obj.scales, len(obj.requirements),
-                             obj.scales.bounds(train=bool(train), tile=b))
-        loss = loss.reshape(b, n_train)
-        return jax.vmap(lambda v: aggregate(v, obj.aggregate, obj.cvar_level))(loss) \
-            if train else loss[:, 0]
-
-    return run, np.asarray(flat0), unravel
+    return (lambda pts: run(pts)["loss"]), np.asarray(flat0), unravel
 
 
 def random_search(problem, budget_s: float, batch: int = 32, spread: float = math.log(10.0),

@@ -143,18 +143,18 @@ def train_constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
     diverged = np.asarray(m["diverged"]).astype(bool)
     n = diverged.size
     rows = []
-    for name, key, bound, per in (("max|u|", "max_abs_u", scales.u_max, scales.u_max_train),
-                                  ("TV(u)", "tv_u", scales.tv_max, scales.tv_max_train)):
+    for name, key, bound in zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"),
+                                scales.bounds(train=True), strict=True):
         if bound is None:
             continue
-        b = np.broadcast_to(np.asarray(per if per is not None else bound, float), (n,))
+        b = np.broadcast_to(np.asarray(bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         with np.errstate(invalid="ignore"):
             met = ~diverged & np.isfinite(v) & within(v, b)
             rel = np.where(diverged | ~np.isfinite(v), -np.inf, (b - v) / b)
         worst = int(np.argmin(rel))
         measured = bool(np.isfinite(rel[worst]))
-        rows.append({"name": name, "bounds": "per_plant" if per is not None else "nominal",
+        rows.append({"name": name, "bounds": "per_plant" if np.ndim(bound) else "nominal",
                      "n": n, "n_met": int(met.sum()), "worst_plant": worst,
                      "worst_value": float(v[worst]) if measured else None,
                      "worst_bound": float(b[worst]),

@@ -234,16 +234,16 @@ def combine(problems, how: str = "mean") -> Problem:
             if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
                 raise ConfigError(f"combine: the problems start from different values of {k}")
     objective = Combined(tuple(p.objective for p in problems), how)
-    # each member's own choice (forward over a batch, reverse for one plant) if they agree
-    modes = {p.mode for p in problems}
-    mode = modes.pop() if len(modes) == 1 else None
-    if mode is None or (mode == "plants" and first.cfg.optimizer.gradient == "auto"):
-        mode = choose_gradient(first.cfg.optimizer.gradient, first.n_params,
-                               objective.batch_size)
-    if mode == "plants":
+    gradient = first.cfg.optimizer.gradient
+    if gradient == "plants":
         raise ConfigError("tuning.optimizer.gradient = \"plants\" differentiates one batch "
                           "plant by plant; combine objectives with \"auto\", \"forward\" or "
                           "\"reverse\"")
+    # each member's own choice (forward over a batch, reverse for one plant) if they agree;
+    # not "plants" (the members' batches differ): then the choice for the whole
+    modes = {p.mode for p in problems}
+    mode = (next(iter(modes)) if len(modes) == 1 and "plants" not in modes else
+            choose_gradient(gradient, first.n_params, objective.batch_size))
     return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
                                members=tuple(problems), extra_plants=None,
                                notes=first.notes + (f"{how} of {len(problems)} objectives",))
