@@ -189,6 +189,13 @@ def test_fingerprints_carry_a_later_option_only_away_from_its_old_value(small_pr
     k = {"path": "controller.k", "index": None, "transform": "log", "lower": None,
          "upper": None}
     assert d["params"] == [k]
+    # line_generations came with a default (50) away from its old behaviour (0: the line in
+    # every generation): in the fingerprint of the line methods only, and left out at 0, so
+    # that runs saved before it resume with line_generations = 0
+    assert described({"name": "cma_path"})["optimizer"]["line_generations"] == 50
+    assert "line_generations" not in described({"name": "cma_path", "line_generations": 0}
+                                                )["optimizer"]
+    assert "line_generations" not in described({"name": "cma"})["optimizer"]
     on = described({"line_backoff": 2}, {"effort_bounds": "per_plant"}, ("controller.k*",))
     assert set(on["optimizer"]) == OPTIMIZER_KEYS | {"line_backoff"}
     assert on["optimizer"]["line_backoff"] == 2

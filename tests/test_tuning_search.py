@@ -150,7 +150,9 @@ def problems():
             "cma_path": _with(p, name="cma_path"), "ablation": _with(p, grad_every=0),
             "cma": _with(p, name="cma", popsize=7),
             # far steps, which lose here: the back-off is under way where a run stops at 2
-            "backoff": _with(p, name="cma_path", line_backoff=2, line_min=3.0, line_max=5.0)}
+            "backoff": _with(p, name="cma_path", line_backoff=2, line_min=3.0, line_max=5.0),
+            # the line in generations 0-2 only: an interrupted run stops before the switch
+            "early": _with(p, name="cma_path", line_generations=3)}
 
 
 @pytest.fixture(scope="module")
@@ -207,7 +209,7 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, m
         return real(*a, **k)
 
     monkeypatch.setattr(search, "value_and_grad", counting)
-    for off in ("ablation", "cma_line", "cma_path", "cma", "backoff"):
+    for off in ("ablation", "cma_line", "cma_path", "cma", "backoff", "early"):
         s = search.Search.open(problems[off], None, False, 0.0)
         assert s.grad is None  # nothing to trace or compile
         assert straight[off].gradient_evaluations == 0
@@ -216,12 +218,15 @@ def test_ablation_switch_removes_every_gradient_evaluation(problems, straight, m
     assert straight["ablation"].evaluations == 1 + STEPS * (4 + 3)
     assert straight["cma_path"].evaluations == 1 + STEPS * (4 + 3)
     assert straight["cma"].evaluations == 1 + STEPS * 7
+    # line_generations = 3: the line in the first 3 generations, the population alone after
+    assert straight["early"].evaluations == 1 + 3 * (4 + 3) + (STEPS - 3) * 4
     on = straight["cma_grad"]
     assert on.gradient_evaluations == STEPS  # one per generation
     assert on.evaluations == 1 + STEPS * (4 + 3 + 1)
 
 
-@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma_path", "cma", "backoff"])
+@pytest.mark.parametrize("which", ["cma_grad", "cma_line", "cma_path", "cma", "backoff",
+                                   "early"])
 def test_each_path_lowers_the_objective_and_resumes_to_the_same_result(problems, straight,
                                                                         which, tmp_path):
     p, full = problems[which], straight[which]
@@ -412,6 +417,18 @@ def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):
     on = report.method_sentence(cfg.optimizer, "forward")
     assert "skipped for min(2^(k-1), 8) generations" in on
     assert "skipped" not in report.method_sentence(tuning.OptimizerSpec(), "forward")
+
+
+def test_line_generations_is_a_whole_number_checked_in_one_line():
+    cfg = tuning.config.from_dict({"optimizer": {"line_generations": 20}})
+    assert cfg.optimizer.line_generations == 20
+    with pytest.raises(dscjax.ConfigError,
+                       match=r"^tuning.optimizer.line_generations must be .*>= 0.*-2"):
+        tuning.config.from_dict({"optimizer": {"line_generations": -2}})
+    # the report's method sentence says when the line stops (not at 0: every generation)
+    assert "first 20 generations only" in report.method_sentence(cfg.optimizer, "forward")
+    off = tuning.OptimizerSpec(line_generations=0)
+    assert "generations only" not in report.method_sentence(off, "forward")
 
 
 @pytest.mark.parametrize("inject", [True, False])

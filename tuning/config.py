@@ -215,7 +215,7 @@ def _optimizer_value(name, v, field):
         return None
     if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
                 "decay_steps", "popsize", "seed", "grad_every", "line_points",
-                "line_backoff", "restarts"):
+                "line_backoff", "line_generations", "restarts"):
         return validation.integer(v, field)
     if name in ("clip_norm", "time_limit") and isinstance(v, str) and v.lower() == "none":
         return None

@@ -99,6 +99,9 @@ class OptimizerSpec:
         line_inject: the line methods inject a winning line point into CMA-ES's next
             generation (true); false leaves CMA-ES's own ask/tell sequence untouched (the same
             as "cma" with the same seed) and the line only moves the incumbent.
+        line_generations: the line methods take the line in the first this many generations
+            only (default 50), CMA-ES's population alone after them (a second batch width,
+            compiled when first needed); 0: in every generation (the line methods before it).
         restarts: the CMA-ES methods: when CMA-ES's own termination criteria stop it
             (converged or stuck) before `steps` or `time_limit`, start a fresh CMA-ES from
             the start point (sigma0, a seed of its own; the incumbent is kept), at most this
@@ -132,6 +135,7 @@ class OptimizerSpec:
     line_max: float = 1.0
     line_backoff: int = 0
     line_inject: bool = True
+    line_generations: int = 50
     restarts: int = 9
     background_compile: bool = True
 
@@ -152,7 +156,7 @@ class OptimizerSpec:
         for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
                           ("checkpoint_every", 1), ("save_interval", 1), ("popsize", 0),
                           ("seed", 0), ("grad_every", 0), ("line_points", 0),
-                          ("line_backoff", 0), ("restarts", 0)):
+                          ("line_backoff", 0), ("line_generations", 0), ("restarts", 0)):
             validation.integer(getattr(self, name), f"{field}.{name}", low)
         if self.decay_steps is not None:
             validation.integer(self.decay_steps, f"{field}.decay_steps", 1)

@@ -45,7 +45,8 @@ TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/ta
 # Options added after runs were saved, per part of `Problem.describe`: left out of the
 # fingerprint at these values (what the older runs did), so that those runs still resume
 NEW_OPTIONS = {"params": {"scale": False}, "objective": {"effort_bounds": "nominal"},
-               "optimizer": {"line_backoff": 0, "line_inject": True}}
+               "optimizer": {"line_backoff": 0, "line_inject": True,
+                             "line_generations": 0}}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -87,6 +88,8 @@ class Problem:
         for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
                   "decay_steps", "regrow", "shrink", "min_delta", "restarts"):
             opt.pop(k)
+        if opt["name"] not in SEARCHES or opt["name"] == "cma" or not opt["line_points"]:
+            opt.pop("line_generations")  # no line: it changes nothing
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
             "params": [ck.drop_defaults(dataclasses.asdict(t), NEW_OPTIONS["params"])

@@ -32,6 +32,13 @@ steps 1, 3 and 4 alone, CMA-ES's population in a second compiled program of that
 winning line resets k. Measured on the robust problem (docs/tuning.md, round 4): it keeps
 most of the line's wins at about half its cost, but did not beat CMA-ES at equal wall time.
 
+`line_generations = N` (0: every generation) takes the line in the first N generations only
+and leaves CMA-ES alone after them (steps 1, 3 and 4, its population in a second program of
+that width, compiled when first needed). Measured on the robust problem (docs/tuning.md,
+round 6): the injected line speeds up CMA-ES's first generations and then keeps it from
+converging as deep as its own updates do; switched off after N = 50 generations, it keeps
+the early lead.
+
 Why this shape (measured, docs/tuning.md): one exact gradient costs about as much as one
 CMA-ES generation, and on this kinked landscape (sat, |u'|, the running max, two active
 constraints) a plain gradient step often raises the loss a short way off; evaluating many step
@@ -273,8 +280,10 @@ class Search:
 
     def _line_now(self) -> bool:
         """Is the line taken in this generation? Always, unless `line_backoff` skips it
-        after lines that lost (see `_after_line`)."""
-        return bool(self.steps.size) and self.state.line_skip == 0
+        after lines that lost (see `_after_line`) or `line_generations` have passed."""
+        n = self.spec.line_generations
+        return (bool(self.steps.size) and self.state.line_skip == 0
+                and (not n or self.state.iteration < n))
 
     def _after_line(self, taken: bool, won: bool) -> None:
         """line_backoff = m > 0: after k consecutive losing lines the line is skipped for
@@ -406,7 +415,17 @@ class Search:
         return row
 
     def _eval(self, x, n_used):
-        program = self.batch if x.shape[0] == self.width else self.pop_batch
+        if x.shape[0] == self.width:
+            program = self.batch
+        else:  # the population alone: compiled now if not yet (line_generations; its
+            # compilation counts in the wall time as the first one's does)
+            if self.pop_batch is None:
+                key = ("cma_grad batch", x.shape[0])
+                cache = self.problem.objective.compiled
+                if key not in cache:
+                    cache[key] = batch_fn(self.problem).lower(jnp.asarray(x)).compile()
+                self.pop_batch = cache[key]
+            program = self.pop_batch
         r = jax.device_get(program(jnp.asarray(x)))
         self.state.evaluations += n_used
         return (np.asarray(r["loss"], float)[:n_used], np.asarray(r["feasible"])[:n_used],
