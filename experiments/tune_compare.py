@@ -15,9 +15,10 @@ the paper's gains):
 Methods (every budget includes the method's own compilation; all but adam simulate a whole
 population as one batched program):
   cma          CMA-ES (sigma0 = 0.3 in log-space, default population)
-  cma_path     CMA-ES + a line search along its own evolution path in the same batch:
-               `dscjax tune`'s default (it beat cma_line on the robust problem;
-               CMA-ES alone still won there)
+  cma_path     CMA-ES + a line search along its own evolution path in the same batch, in
+               the first 50 generations (`line_generations`): `dscjax tune`'s default
+               (`cma_path:line_generations=0`: the line in every generation, the default
+               before round 6)
   cma_grad     CMA-ES + a line search along -C grad (exact gradient) in the same batch
   cma_grad_off the same with its gradient switched off (grad_every = 0: random directions; no
                gradient is compiled or evaluated: the ablation). It is "cma_line", the
