@@ -319,17 +319,21 @@ def test_cma_path_draws_its_line_along_the_evolution_path(problems, monkeypatch)
     assert used["calls"] == STEPS and used["directions"] >= 1
 
 
-@pytest.mark.parametrize("line_wins, taken", [
+@pytest.mark.parametrize("line_wins, generations, taken", [
     # a line that always loses is skipped 1, 2, then min(4, line_backoff = 2) generations
-    (False, [0, 2, 5, 8]),
-    (True, list(range(9))),  # one that always wins is never skipped
+    (False, 0, [0, 2, 5, 8]),
+    (True, 0, list(range(9))),  # one that always wins is never skipped
+    # line_generations = 6 ends both: no line from generation 6 on
+    (False, 6, [0, 2, 5]),
+    (True, 6, list(range(6))),
 ])
 def test_line_backoff_skips_a_losing_line_for_doubling_generations(problems, line_wins,
-                                                                    taken):
+                                                                    generations, taken):
     """line_backoff = 2: which generations simulate the line (population 4 + 3 line points)
     and which CMA-ES's population alone (4), when every line point loses or wins; counted
     on the batches simulated, with the losses forced on the real programs' output."""
-    s = search.Search.open(_with(problems["backoff"], steps=9), None, False, 0.0)
+    p = _with(problems["backoff"], steps=9, line_generations=generations)
+    s = search.Search.open(p, None, False, 0.0)
     s.compile()  # from the objective's cache: `straight` compiled both widths
     widths = []
 
@@ -352,6 +356,7 @@ def test_line_backoff_skips_a_losing_line_for_doubling_generations(problems, lin
     assert set(widths[1:]) <= {4, 7}
     assert s.state.line_wins == (len(taken) if line_wins else 0)
     assert s.state.evaluations == 1 + 9 * 4 + 3 * len(taken)
+    assert s.state.line_skip >= 0  # a countdown, never below 0
 
 
 @pytest.mark.parametrize("winners, counts", [
