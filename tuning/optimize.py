@@ -102,6 +102,7 @@ class OptimizerSpec:
         line_generations: the line methods take the line in the first this many generations
             only (default 50), CMA-ES's population alone after them (a second batch width,
             compiled when first needed); 0: in every generation (the line methods before it).
+            Generations of the whole run: a restart before N still takes the line until N.
         restarts: the CMA-ES methods: when CMA-ES's own termination criteria stop it
             (converged or stuck) before `steps` or `time_limit`, start a fresh CMA-ES from
             the start point (sigma0, a seed of its own; the incumbent is kept), at most this

@@ -36,6 +36,7 @@ from tuning.objective import Combined, Objective, SimSpec, start_scales
 from tuning.optimize import SEARCHES, choose_gradient, init_state, make_step
 from tuning.params import Selection
 from tuning.requirements import KINDS
+from tuning.search import line_points
 
 # Elements with no effect on the paper's plant (f_2 = 0 in eq. 73): gamma_g2 and eta_2 only
 # act on theta_hat_2, which multiplies f_2. Frozen by default on that plant: tuning them would
@@ -88,7 +89,7 @@ class Problem:
         for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
                   "decay_steps", "regrow", "shrink", "min_delta", "restarts"):
             opt.pop(k)
-        if opt["name"] not in SEARCHES or opt["name"] == "cma" or not opt["line_points"]:
+        if opt["name"] not in SEARCHES or not line_points(self.cfg.optimizer):
             opt.pop("line_generations")  # no line: it changes nothing
         return {
             "setup": dconfig.to_dict(self.setup, self.options),

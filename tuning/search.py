@@ -244,12 +244,14 @@ class Search:
     resumed_from: int = 0
     compile_s: float = 0.0
     last_iter_s: float = 0.0
+    _late_compile_s: float = 0.0  # compilation inside the current generation (`_eval`)
     batch: Any = None  # the compiled batch of `width` candidates
-    pop_batch: Any = None  # line_backoff: the one of CMA-ES's population alone
+    # the one of CMA-ES's population alone (line_backoff, line_generations)
+    pop_batch: Any = None
     grad: Any = None
 
     def __post_init__(self):
-        self.batch = batch_fn(self.problem)
+        self._jitted = batch_fn(self.problem)
         points = line_points(self.spec)
         self.grad = grad_fn(self.problem) if (self.spec.name == "cma_grad"
                                                and self.spec.grad_every and points) else None
@@ -292,8 +294,8 @@ class Search:
         st, m = self.state, self.spec.line_backoff
         if not self._backoff:
             return
-        if not taken and st.line_skip > 0:  # (not after line_generations: skipped for good)
-            st.line_skip -= 1
+        if not taken:  # (after line_generations: for good, the countdown stays at 0)
+            st.line_skip = max(st.line_skip - 1, 0)
         elif won:
             st.line_losses = 0
         else:
@@ -308,15 +310,10 @@ class Search:
         run resumed in the same process does not compile again."""
         t0 = time.perf_counter()
         cache = self.problem.objective.compiled
-        programs = []
-        # line_backoff: a second width for the generations without the line
-        for w in (self.width, self.state.es.popsize if self._backoff else 0):
-            key = ("cma_grad batch", w)
-            if w and key not in cache:
-                x = jnp.asarray(np.tile(self.state.best_flat, (w, 1)))
-                cache[key] = self.batch.lower(x).compile()
-            programs.append(cache.get(key))
-        self.batch, self.pop_batch = programs
+        self.batch = self._program(self.width)
+        # line_backoff: a second width for the generations without the line now
+        # (line_generations: when first needed, see `_eval`)
+        self.pop_batch = self._program(self.state.es.popsize) if self._backoff else None
         if self.grad is not None:
             key = ("cma_grad gradient", self.problem.mode)
             if key in cache:
@@ -350,6 +347,7 @@ class Search:
     def generation(self) -> dict:
         st, es, spec = self.state, self.state.es, self.spec
         t_it = time.perf_counter()
+        self._late_compile_s = 0.0
         if st.iteration == 0 and st.evaluations == 0:
             # The start point is part of every method's history: evaluated once, padded to
             # the batch width so that no other program is compiled.
@@ -404,7 +402,8 @@ class Search:
         terms = {name: float(v[i]) for name, v in res[-1].items()}
         st.iteration += 1
         st.stall = 0 if improved else st.stall + 1
-        self.last_iter_s = time.perf_counter() - t_it
+        self.compile_s += self._late_compile_s
+        self.last_iter_s = time.perf_counter() - t_it - self._late_compile_s
         row = {"iteration": st.iteration - 1, "loss": float(loss[i]), "accepted": True,
                "feasible": bool(res[1][i]), "best_loss": st.best_loss, "lr": float(es.sigma),
                "grad_norm": grad_norm, "linf_window": float(res[3][i]),
@@ -414,17 +413,24 @@ class Search:
         self.history.append(row)
         return row
 
+    def _program(self, w: int):
+        """The batch of w candidates, compiled once per objective (`Objective.compiled`)."""
+        cache = self.problem.objective.compiled
+        key = ("cma_grad batch", w)
+        if key not in cache:
+            x = jnp.asarray(np.tile(self.state.best_flat, (w, 1)))
+            cache[key] = self._jitted.lower(x).compile()
+        return cache[key]
+
     def _eval(self, x, n_used):
         if x.shape[0] == self.width:
             program = self.batch
-        else:  # the population alone: compiled now if not yet (line_generations; its
-            # compilation counts in the wall time as the first one's does)
-            if self.pop_batch is None:
-                key = ("cma_grad batch", x.shape[0])
-                cache = self.problem.objective.compiled
-                if key not in cache:
-                    cache[key] = batch_fn(self.problem).lower(jnp.asarray(x)).compile()
-                self.pop_batch = cache[key]
+        else:
+            if self.pop_batch is None:  # line_generations: compiled when first needed; it
+                # counts as compilation (wall time, compile_s), not as the generation's own
+                t0 = time.perf_counter()
+                self.pop_batch = self._program(x.shape[0])
+                self._late_compile_s += time.perf_counter() - t0
             program = self.pop_batch
         r = jax.device_get(program(jnp.asarray(x)))
         self.state.evaluations += n_used
