@@ -14,9 +14,10 @@ The robust problem of tune_compare (CVaR at level 0.25 over 8 training plants, T
    report refines (ETDRK4 at dt, dt/2, ...): an integrator's cliff ("stiff") or the loop's.
 3. From x, for B s: L-BFGS (two-loop recursion, 10 pairs; each iteration one batched line
    search over 12 step sizes along its direction, the best feasible point taken when it is
-   better, then one exact gradient there), against CMA-ES with the same seed run for A + B
-   s (its best at A s and at A + B s; the two runs share the seed, not their wall-clock
-   pace).
+   better, then one exact gradient there; it stops early when a steepest-descent step
+   (no curvature pairs) finds no better feasible point at any step size), against CMA-ES
+   with the same seed run for A + B s (its best at A s and where it ended; the two runs
+   share the seed, not their wall-clock pace).
 Prints a table; writes OUT.json. Float64 throughout.
 """
 
@@ -43,11 +44,14 @@ def probe(problem, x, hs):
 
     from tuning import report, search
 
-    loss0, _, g = search.grad_fn(problem)(jnp.asarray(x))
-    g = np.asarray(g, float)
+    g = np.asarray(search.grad_fn(problem)(jnp.asarray(x))[2], float)
     d = g / np.linalg.norm(g)
-    pts = np.concatenate([x[None] - hs[:, None] * d[None], x[None] + hs[:, None] * d[None]])
-    r = jax.device_get(search.batch_fn(problem)(jnp.asarray(pts)))
+    lo, hi = search.z_box(problem)
+    pts = np.clip(np.concatenate([x[None] - hs[:, None] * d[None],
+                                  x[None] + hs[:, None] * d[None]]), lo, hi)
+    # x itself in the same batch: the changes are differences within one program
+    r = jax.device_get(search.batch_fn(problem)(jnp.asarray(np.vstack([pts, x[None]]))))
+    loss0 = r["loss"][-1]
     unravel = ravel_pytree(problem.z0)[1]
     per_plant = jax.jit(problem.objective.per_plant)
     ov = problem.objective.overrides
@@ -81,7 +85,8 @@ def lbfgs(problem, x, loss, budget, width=12, memory=10):
     def gradient(p):
         return np.asarray(grad(jnp.asarray(p))[2], float)
 
-    g, pairs, curve, n_grad = gradient(x), [], [(time.perf_counter() - t0, loss)], 1
+    g, pairs, curve, better = gradient(x), [], [(time.perf_counter() - t0, loss)], 0
+    stop = "time"
     steps = np.geomspace(1e-4, 3.0, width)  # x the L-BFGS step (initially 0.05 in z)
     while time.perf_counter() - t0 < budget:
         q, alphas = g.copy(), []
@@ -100,15 +105,19 @@ def lbfgs(problem, x, loss, budget, width=12, memory=10):
         j = int(np.argmin(f))
         if f[j] < loss:
             g_new = gradient(pts[j])
-            n_grad += 1
+            better += 1
             s, y = pts[j] - x, g_new - g
             if y @ s > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):
                 pairs = (pairs + [(s, y)])[-memory:]
             x, loss, g = pts[j], float(f[j]), g_new
-        else:  # no step size helped: forget the curvature pairs (steepest descent next)
+        elif pairs:  # no step size helped: forget the curvature pairs (steepest descent next)
             pairs = []
+        else:  # steepest descent found nothing better either: it would repeat itself
+            curve.append((time.perf_counter() - t0, loss))
+            stop = "steepest descent found no better feasible point"
+            break
         curve.append((time.perf_counter() - t0, loss))
-    return curve, n_grad
+    return curve, better, stop
 
 
 def main():
@@ -132,7 +141,7 @@ def main():
     x = cma_a["best_flat"]
     hs = np.geomspace(1e-9, 1e-1, 9)
     loss0, gnorm, rows = probe(problem, x, hs)
-    curve, n_grad = lbfgs(problem, x, cma_a["best_loss"], b)
+    curve, better, stop = lbfgs(problem, x, cma_a["best_loss"], b)
     problem.objective.compiled.clear()
     cma_ab = tc.run_method(problem, "cma", a + b, args.seed)
     at = [c for t, c in cma_ab["curve"] if t <= a]
@@ -141,9 +150,10 @@ def main():
            "cma_first": {"best": cma_a["best_loss"], "generations": cma_a["iterations"]},
            "gradient_norm": gnorm, "probe": rows,
            "lbfgs": {"start": cma_a["best_loss"], "end": curve[-1][1],
-                     "iterations": len(curve) - 1, "gradients": n_grad, "curve": curve},
+                     "iterations": len(curve) - 1, "better_steps": better,
+                     "gradients": better + 1, "stop": stop, "curve": curve},
            "cma_continued": {"at_first": at[-1] if at else math.inf,
-                             "end": cma_ab["best_loss"],
+                             "end": cma_ab["best_loss"], "end_s": cma_ab["curve"][-1][0],
                              "generations": cma_ab["iterations"]}}
     print(f"\nrobust problem, seed {args.seed}: CMA-ES {a:g} s -> incumbent loss {loss0:.5g} "
           f"({cma_a['iterations']} generations), |grad| {gnorm:.3g} ({problem.mode} mode)")
@@ -155,9 +165,10 @@ def main():
               f"{str(r['diverged_refined']):>15}")
     lb, cc = out["lbfgs"], out["cma_continued"]
     print(f"\nnext {b:g} s from the incumbent: L-BFGS {lb['start']:.4g} -> {lb['end']:.4g} "
-          f"({lb['iterations']} iterations, {lb['gradients']} gradients); CMA-ES with the same "
-          f"seed for {a + b:g} s: {cc['at_first']:.4g} at {a:g} s -> {cc['end']:.4g} "
-          f"({cc['generations']} generations); load {load0:.1f}-{os.getloadavg()[0]:.1f}")
+          f"({lb['iterations']} iterations, {lb['better_steps']} better; stopped: {stop}, "
+          f"{lb['curve'][-1][0]:.1f} s); CMA-ES with the same seed: {cc['at_first']:.4g} at "
+          f"{a:g} s -> {cc['end']:.4g} at {cc['end_s']:.1f} s ({cc['generations']} "
+          f"generations); load {load0:.1f}-{os.getloadavg()[0]:.1f}")
     path = Path(f"{args.out}.json")
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(out, indent=1) + "\n")
