@@ -20,13 +20,15 @@ from tqdm import tqdm
 
 # A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s"
 LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}s) {elapsed} elapsed, ETA {remaining}"
+# ... and without a total (work that stops on a time limit or a criterion, not a count)
+OPEN_LINE = "{desc} {n_fmt} {unit}s, {elapsed} elapsed"
 
 
 class Progress:
     """A progress display of `total` units of work (see the module docstring).
 
     Args:
-        total: units of work in all.
+        total: units of work in all (None: not known in advance; no percentage or ETA).
         desc: what is being done, the start of the line.
         unit: the unit's name ("sample", "step", "iteration"), pluralised with an s.
         initial: units done before this display started (a resumed run).
@@ -36,7 +38,7 @@ class Progress:
         enabled: False shows nothing (--quiet).
     """
 
-    def __init__(self, total: int, *, desc: str, unit: str, initial: int = 0,
+    def __init__(self, total: int | None, *, desc: str, unit: str, initial: int = 0,
                  elapsed: float = 0.0, file: TextIO | None = None, every_s: float = 5.0,
                  enabled: bool = True):
         self.file = file if file is not None else sys.stderr
@@ -72,7 +74,7 @@ class Progress:
             self.bar.update(n - self.bar.n)
             return
         now = time.perf_counter()
-        if n >= self.total or now - self.last >= self.every_s:
+        if (self.total is not None and n >= self.total) or now - self.last >= self.every_s:
             self._line(now)
 
     def _line(self, now: float) -> None:
@@ -81,7 +83,8 @@ class Progress:
         done = self.n - self.initial
         rate = done / elapsed if elapsed > 0 and done > 0 else None
         text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=self.unit,
-                                 rate=rate, initial=self.initial, bar_format=LINE)
+                                 rate=rate, initial=self.initial,
+                                 bar_format=LINE if self.total is not None else OPEN_LINE)
         print(text + (f"; {self.postfix}" if self.postfix else ""), file=self.file,
               flush=True)
 

@@ -91,7 +91,7 @@ def with_method(problem, method: str, budget: float, seed: int):
            "adam": dict(name="adam")}[base] | dict(_option(x) for x in extra)
     cfg = problem.cfg
     spec = dataclasses.replace(cfg.optimizer, time_limit=budget, steps=10**7, patience=0,
-                               seed=seed, decay_steps=cfg.optimizer.steps, **opt)
+                               seed=seed, decay_steps=cfg.optimizer.schedule_steps, **opt)
     return dataclasses.replace(problem, cfg=dataclasses.replace(cfg, optimizer=spec))
 
 

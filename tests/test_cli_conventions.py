@@ -45,6 +45,7 @@ def _expected_defaults():
     from dscjax.config import SimOptions
     from dscjax.sweep import SweepSettings
     from tuning.config import TuningConfig
+    from tuning.optimize import OPTAX_STEPS
 
     sim, sw, tu = SimOptions(), SweepSettings(), TuningConfig()
     horizon = {"--t-final": f"{sim.t_final:g}", "--dt": f"{sim.dt:g}"}
@@ -52,7 +53,8 @@ def _expected_defaults():
     return {
         "simulate": horizon,
         "tune": horizon | {
-            "--lr": f"{tu.optimizer.learning_rate:g}", "--steps": str(tu.optimizer.steps),
+            "--lr": f"{tu.optimizer.learning_rate:g}",
+            "--steps": f"{OPTAX_STEPS} for the optax methods",
             "--time-limit": f"{tu.optimizer.time_limit:g}", "--batch": str(tu.robust.batch),
             "--aggregate": tu.robust.aggregate, "--cvar-level": f"{tu.robust.cvar_level:g}",
             "--seed": str(tu.robust.seed), "--heldout": str(tu.heldout.batch),

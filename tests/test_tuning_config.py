@@ -81,6 +81,24 @@ def test_bad_tuning_table_is_a_clear_error(table, match):
         from_dict(table)
 
 
+def test_steps_default_to_300_for_optax_rules_and_no_limit_for_searches():
+    """`steps` not given: the optax rules stop after OPTAX_STEPS = 300 iterations, the
+    length of their schedule; the searches have no count limit. Given (or "none"), it is the
+    limit for both, and the schedule's length unless decay_steps is given."""
+    from tuning.optimize import OPTAX_STEPS
+
+    assert OPTAX_STEPS == 300
+    search, adam = from_dict({}).optimizer, from_dict({"optimizer": {"name": "adam"}}).optimizer
+    assert search.name == "cma_path" and search.steps is None and search.max_steps is None
+    assert adam.max_steps == 300 and adam.schedule_steps == 300
+    for name in ("cma_path", "adam"):
+        spec = from_dict({"optimizer": {"name": name, "steps": 50}}).optimizer
+        assert spec.max_steps == 50 and spec.schedule_steps == 50
+    spec = from_dict({"optimizer": {"name": "adam", "steps": 50, "decay_steps": 20}}).optimizer
+    assert spec.max_steps == 50 and spec.schedule_steps == 20
+    assert from_dict({"optimizer": {"steps": "none"}}).optimizer.steps is None
+
+
 def test_tuning_table_parses_nested_ranges_and_bounds():
     cfg = from_dict({"params": ["controller.k"], "bounds": {"controller": {"k": [1, 100]}},
                      "robust": {"batch": 4, "aggregate": "cvar", "cvar_level": 0.25,

@@ -529,6 +529,22 @@ def test_cma_es_restarts_afresh_when_its_own_criteria_stop_it(problems, tmp_path
         np.testing.assert_array_equal(again.state.cma.asked, full.state.cma.asked)
 
 
+def test_a_search_without_a_step_limit_runs_until_its_own_criteria(problems, tmp_path,
+                                                                     monkeypatch):
+    """steps = None (the default) sets no generation limit on a search: with CMA-ES's
+    criteria forced to fire after 3 generations and 2 restarts allowed, the run ends after
+    3 x (1 + 2) = 9 generations, stopped by CMA-ES, not by a count (the optax rules' default
+    of 300 iterations does not apply to it)."""
+    import cma
+
+    monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
+    p = _with(problems["cma_path"], steps=None, restarts=2, patience=0)
+    assert p.cfg.optimizer.max_steps is None
+    res = run(p, tmp_path / "open")
+    assert res.state.iteration == 9 and res.state.restarts == 2
+    assert res.stop_reason.startswith("CMA-ES stopped")
+
+
 def test_a_run_started_from_z_init_resumes_without_it(problems, tmp_path):
     """The start point is saved (search.npz `start_flat`): a run started from other gains
     (as adversarial rounds start from the last round's) resumes bitwise without the caller

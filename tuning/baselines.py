@@ -116,7 +116,7 @@ def gradient(problem, budget_s: float, steps: int = 100000) -> Trace:
 
     cfg = problem.cfg
     opt = dataclasses.replace(cfg.optimizer, time_limit=budget_s, steps=steps,
-                              decay_steps=cfg.optimizer.decay_steps or cfg.optimizer.steps,
+                              decay_steps=cfg.optimizer.schedule_steps,
                               patience=0)
     p = dataclasses.replace(problem, cfg=dataclasses.replace(cfg, optimizer=opt))
     result = run(p, None)

@@ -211,7 +211,7 @@ def _optimizer_value(name, v, field):
         if not isinstance(v, bool):
             raise ConfigError(f"{field} must be true or false (got {v!r})")
         return v
-    if name == "decay_steps" and isinstance(v, str) and v.lower() == "none":
+    if name in ("steps", "decay_steps") and isinstance(v, str) and v.lower() == "none":
         return None
     if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
                 "decay_steps", "popsize", "seed", "grad_every", "line_points",

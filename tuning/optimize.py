@@ -48,6 +48,8 @@ GRADIENTS = ("auto", "forward", "reverse", "plants")
 # s, bench_gradient.py --only-tuning) and lost 3.5x when all 8 were weighed (a mean), so
 # "auto" takes it up to B/4.
 FORWARD_MAX_PARAMS = 64
+# The optax methods' iterations when `steps` is not given: their schedule's length too.
+OPTAX_STEPS = 300
 
 
 @dataclasses.dataclass(frozen=True)
@@ -65,7 +67,8 @@ class OptimizerSpec:
         schedule: "cosine" (decay to final_lr_fraction over decay_steps), "exponential"
             (same end point) or "constant".
         final_lr_fraction: learning rate at the end of the schedule, relative.
-        decay_steps: length of the schedule in accepted steps; default: `steps`.
+        decay_steps: length of the schedule in accepted steps; default: `steps` (or
+            OPTAX_STEPS when `steps` is not given).
         clip_norm: gradient clipping by global norm (None: off).
         shrink: learning-rate factor applied at every rejected step.
         regrow: factor applied after every accepted step, up to the schedule's rate (so one
@@ -73,7 +76,11 @@ class OptimizerSpec:
         max_rejections: stop after this many consecutive rejected steps.
         patience, min_delta: stop when the best loss has not improved by more than min_delta
             (relative) for `patience` iterations (0: never).
-        steps: maximum number of iterations (evaluations of loss and gradient).
+        steps: maximum number of iterations (evaluations of loss and gradient; for the
+            searches, generations). None (the default): OPTAX_STEPS = 300 for the optax
+            rules (the schedule's length), no limit for the four searches, which stop at
+            `time_limit`, by `patience` or by CMA-ES's own criteria after its `restarts`
+            (`max_steps`).
         time_limit: stop after this many seconds of wall time in this invocation, compilation
             included (None: no limit).
         gradient: "forward" (jvp over a batch of tangents), "reverse", "plants" (only the
@@ -122,7 +129,7 @@ class OptimizerSpec:
     max_rejections: int = 20
     patience: int = 60
     min_delta: float = 1e-4
-    steps: int = 300
+    steps: int | None = None
     time_limit: float | None = 100.0
     gradient: str = "auto"
     checkpoint_every: int = 100
@@ -154,13 +161,14 @@ class OptimizerSpec:
             raise ConfigError(f"{field}.shrink must be in (0, 1) (got {self.shrink!r})")
         if not self.regrow >= 1:
             raise ConfigError(f"{field}.regrow must be >= 1 (got {self.regrow!r})")
-        for name, low in (("max_rejections", 1), ("patience", 0), ("steps", 1),
+        for name, low in (("max_rejections", 1), ("patience", 0),
                           ("checkpoint_every", 1), ("save_interval", 1), ("popsize", 0),
                           ("seed", 0), ("grad_every", 0), ("line_points", 0),
                           ("line_backoff", 0), ("line_generations", 0), ("restarts", 0)):
             validation.integer(getattr(self, name), f"{field}.{name}", low)
-        if self.decay_steps is not None:
-            validation.integer(self.decay_steps, f"{field}.decay_steps", 1)
+        for name in ("steps", "decay_steps"):
+            if getattr(self, name) is not None:
+                validation.integer(getattr(self, name), f"{field}.{name}", 1)
         if self.min_delta < 0:
             raise ConfigError(f"{field}.min_delta must be >= 0 (got {self.min_delta!r})")
         if self.time_limit is not None:
@@ -171,8 +179,21 @@ class OptimizerSpec:
             raise ConfigError(f"{field}.line_min must be <= line_max (got {self.line_min!r} > "
                               f"{self.line_max!r})")
 
+    @property
+    def max_steps(self) -> int | None:
+        """The iteration limit: `steps`, or by default OPTAX_STEPS for the optax rules and
+        none (None) for the searches."""
+        if self.steps is not None:
+            return self.steps
+        return None if self.name in SEARCHES else OPTAX_STEPS
+
+    @property
+    def schedule_steps(self) -> int:
+        """The optax schedule's length: `decay_steps`, else `steps`, else OPTAX_STEPS."""
+        return self.decay_steps or self.steps or OPTAX_STEPS
+
     def schedule_fn(self):
-        lr, steps = self.learning_rate, self.decay_steps or self.steps
+        lr, steps = self.learning_rate, self.schedule_steps
         if self.schedule == "cosine":
             return optax.cosine_decay_schedule(lr, steps, alpha=self.final_lr_fraction)
         if self.schedule == "exponential":

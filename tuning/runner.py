@@ -366,7 +366,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
         while (reason := loop.limit_reached()) is None:
             row = loop.iterate(step_hook)
             if progress is not None:
-                progress(row | {"steps": loop.spec.steps, "terms": loop.terms,
+                progress(row | {"steps": loop.spec.max_steps, "terms": loop.terms,
                                 "n_rejected": int(loop.state.n_rejected)})
             loop.checkpoint(every=loop.spec.save_interval)
             if (reason := loop.stalled()) is not None:
@@ -400,8 +400,8 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
     try:
         while True:
             elapsed = time.perf_counter() - t_start
-            if loop.state.iteration >= spec.steps:
-                reason = f"reached {spec.steps} generations"
+            if spec.max_steps is not None and loop.state.iteration >= spec.max_steps:
+                reason = f"reached {spec.max_steps} generations"
                 break
             # at least one generation, so that a slow compilation never leaves no result
             if (spec.time_limit is not None and loop.state.iteration > loop.resumed_from
@@ -410,7 +410,7 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
                 break
             row = loop.generation()
             if progress is not None:
-                progress(row | {"steps": spec.steps, "terms": _term_names(problem),
+                progress(row | {"steps": spec.max_steps, "terms": _term_names(problem),
                                 "n_rejected": 0})
             # before the checkpoint: a file written at this generation holds the restart
             if loop.state.es.stop():
@@ -491,7 +491,7 @@ class _Loop:
             files.check_same(meta.get("problem"), problem.describe(),
                              where=f"the checkpoint in {out}",
                              fix="start afresh with --overwrite or another --out")
-        decay_steps = int(meta["decay_steps"]) if meta else spec.decay_steps or spec.steps
+        decay_steps = int(meta["decay_steps"]) if meta else spec.schedule_steps
         spec = dataclasses.replace(spec, decay_steps=decay_steps)
         optimizer, step = compiled_step(problem, spec)
         z_init = problem.z0 if z_init is None else jax.tree.map(jnp.asarray, z_init)
@@ -529,8 +529,8 @@ class _Loop:
     def limit_reached(self) -> str | None:
         """Why to stop before the next iteration (steps, time limit), or None."""
         spec, elapsed = self.spec, time.perf_counter() - self.t_start
-        if int(self.state.iteration) >= spec.steps:
-            return f"reached {spec.steps} iterations"
+        if spec.max_steps is not None and int(self.state.iteration) >= spec.max_steps:
+            return f"reached {spec.max_steps} iterations"
         if spec.time_limit is not None and elapsed + self.last_iter_s > spec.time_limit:
             return f"time limit {spec.time_limit:g} s"
         return None

@@ -21,7 +21,7 @@ def add_parser(sub):
     from dscjax.worst import METHODS
     from tuning.config import TuningConfig
     from tuning.objective import AGGREGATES, EFFORT_BOUNDS
-    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS, OPTIMIZERS
+    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS, OPTAX_STEPS, OPTIMIZERS
 
     d = TuningConfig()
     opt, rob = d.optimizer, d.robust
@@ -42,8 +42,10 @@ def add_parser(sub):
     p.add_argument("--out", default="results/tune", metavar="DIR",
                    help="output directory (default: results/tune)")
     limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
-    p.add_argument("--steps", type=int, metavar="N", help=f"maximum number of iterations "
-                   f"(default {opt.steps})")
+    steps = (f"{opt.steps}" if opt.steps is not None else
+             f"{OPTAX_STEPS} for the optax methods, none for the CMA-ES methods")
+    p.add_argument("--steps", type=int, metavar="N", help=f"maximum number of iterations, "
+                   f"generations for the CMA-ES methods (default {steps})")
     p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
@@ -266,8 +268,10 @@ def run(args) -> int:
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
-          + f"; at most {oc.steps} iterations"
-          + (f" or {oc.time_limit:g} s" if oc.time_limit else "")
+          + "; " + (" or ".join(([f"at most {oc.max_steps} iterations"]
+                                  if oc.max_steps is not None else [])
+                                 + ([f"{oc.time_limit:g} s"] if oc.time_limit else []))
+                      or "no iteration or time limit")
           + (f" per round; {adv.rounds} adversarial rounds over "
              + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
                                                                       cfg).ranges)
