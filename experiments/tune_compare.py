@@ -86,6 +86,7 @@ def with_method(problem, method: str, budget: float, seed: int):
     # the baseline is plain CMA-ES (issue 13: the cma package, sigma0 0.3, its default
     # population): it ends where cma's own criteria stop it, no restart
     opt = {"cma": dict(name="cma", restarts=0), "cma_path": dict(name="cma_path"),
+           "cma_line": dict(name="cma_line"),
            "cma_grad": dict(name="cma_grad"),
            "cma_grad_off": dict(name="cma_grad", grad_every=0),
            "adam": dict(name="adam")}[base] | dict(_option(x) for x in extra)

@@ -4,6 +4,12 @@ gradient method (cma_grad) against CMA-ES at equal wall time, on the deployable 
 
     python experiments/tune_scaling.py                       # n = 2, 4, 6, 100 s per method
     python experiments/tune_scaling.py --orders 2,4 --budget 60
+    python experiments/tune_scaling.py --methods cma,cma_grad,lbfgs --compilation-cache DIR
+
+Methods: the tuner's (cma, cma_path, cma_line, cma_grad) through `tuning.run`, and "lbfgs":
+descent on exact gradients alone from the start, tune_landscape.py's L-BFGS (two-loop
+recursion, each iteration one batched line search over 12 step sizes, then one exact
+gradient), in the same budget, compilation included.
 
 A start must not diverge: for each n the script first tries the design of STARTS (if any;
 n = 6 has one, as no uniform (tau, k) survives), then (tau, k, T) in the order of START_TRIES
@@ -19,6 +25,7 @@ import argparse
 import json
 import os
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -65,12 +72,37 @@ def start_problem(n: int, method: str, t_final: float = 20.0, solver: str = "rk4
     return None, tried
 
 
+def run_lbfgs(problem, budget: float) -> dict:
+    """tune_landscape.py's L-BFGS from the start for `budget` s, in the row format."""
+    import jax.numpy as jnp
+    from jax.flatten_util import ravel_pytree
+    from tune_landscape import lbfgs
+
+    from tuning import search
+
+    problem.objective.compiled.clear()
+    load = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    x = np.asarray(ravel_pytree(problem.z0)[0], float)
+    start = search.batch_fn(problem)(jnp.asarray(x[None]))  # (compiled again by lbfgs)
+    curve, better, stop = lbfgs(problem, x, float(start["loss"][0]),
+                                budget - (time.perf_counter() - t0))
+    load_after = os.getloadavg()[0]
+    print(f"  lbfgs: best {curve[-1][1]:.4g} (feasible), {len(curve) - 1} iterations, "
+          f"{better + 1} gradients ({stop}), load {load:.1f}-{load_after:.1f}",
+          file=sys.stderr, flush=True)
+    return {"best_loss": float(curve[-1][1]), "feasible": True, "generations": len(curve) - 1,
+            "gradient_evaluations": better + 1, "stop": stop,
+            "curve": [[float(t), float(v)] for t, v in curve], "load": [load, load_after]}
+
+
 def main():
-    import dataclasses
 
     import jax
 
     jax.config.update("jax_enable_x64", True)
+    from tune_compare import with_method
+
     import tuning
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -100,13 +132,11 @@ def main():
         row = {"n": n, "n_params": problem.n_params, "start": start,
                "start_linf": float(problem.objective.scales.linf), "methods": {}}
         for m in methods:
-            # the CMA-ES baseline is plain CMA-ES: no restart when its own criteria stop it
-            spec = dataclasses.replace(problem.cfg.optimizer, name=m, time_limit=args.budget,
-                                       steps=10**7, patience=0,
-                                       restarts=0 if m == "cma" else
-                                       problem.cfg.optimizer.restarts)
-            pm = dataclasses.replace(problem, cfg=dataclasses.replace(problem.cfg,
-                                                                      optimizer=spec))
+            if m == "lbfgs":
+                row["methods"][m] = run_lbfgs(problem, args.budget)
+                continue
+            # tune_compare's methods: the CMA-ES baseline is plain CMA-ES (no restart)
+            pm = with_method(problem, m, args.budget, seed=problem.cfg.optimizer.seed)
             load = os.getloadavg()[0]
             # every method compiles its own programs: cma_path and cma_grad have one batch
             # width, and compilation is part of each method's budget
