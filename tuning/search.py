@@ -469,8 +469,7 @@ class Search:
             "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
             | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF}
-            | {_STEP_WINS: st.line_step_wins}
-            | ({"restarts": np.int64(st.restarts)} if st.restarts else {}))
+            | {_STEP_WINS: st.line_step_wins, "restarts": np.int64(st.restarts)})
         write_best(self.out, self.problem, st)
         ck.write_history(self.out / "history.csv", self.history,
                          history_columns(self.problem))
