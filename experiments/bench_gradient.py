@@ -446,8 +446,7 @@ def _print_costs(r):
           f"({r['device']}; load {r['load_average_start'][0]:.1f} -> "
           f"{r['load_average_end'][0]:.1f})")
     print(f"{'one trajectory':<44} {'median [s]':>11} {'x forward':>10} {'compile [s]':>12}")
-    labels = LABELS
-    for k, label in labels.items():
+    for k, label in LABELS.items():
         v = c["single"][k]
         print(f"{label:<44} {v['median_s']:>11.4f} {v['ratio_to_forward']:>10.2f} "
               f"{v['compile_s']:>12.1f}")
@@ -456,7 +455,7 @@ def _print_costs(r):
         print(f"\nmean J over a batch of {b['size']} plants (alpha, lam, psi +-30 %)")
         for k in ("forward", "value_and_grad", "jacfwd"):
             v = b[k]
-            print(f"{labels.get(k, k).split(' (')[0]:<44} {v['median_s']:>11.4f} "
+            print(f"{LABELS.get(k, k).split(' (')[0]:<44} {v['median_s']:>11.4f} "
                   f"{v['ratio_to_forward']:>10.2f} {v['compile_s']:>12.1f}")
     a = c["accuracy"]
     print(f"\ntime-parallel vs autodiff reverse mode: max rel. difference "
