@@ -71,8 +71,9 @@ def probe(problem, x, hs):
     return float(loss0), float(np.linalg.norm(g)), rows
 
 
-def lbfgs(problem, x, loss, budget, width=12, memory=10):
-    """L-BFGS from x for `budget` s (compilation included); returns the curve (s, best)."""
+def lbfgs(problem, x, loss, budget, width=12, memory=10, steps=(1e-4, 3.0)):
+    """L-BFGS from x for `budget` s (compilation included); returns the curve (s, best).
+    Its line search tries geomspace(*steps, width) x the L-BFGS step."""
     import jax.numpy as jnp
 
     from tuning import search
@@ -87,7 +88,7 @@ def lbfgs(problem, x, loss, budget, width=12, memory=10):
 
     g, pairs, curve, better = gradient(x), [], [(time.perf_counter() - t0, loss)], 0
     stop = "time"
-    steps = np.geomspace(1e-4, 3.0, width)  # x the L-BFGS step (initially 0.05 in z)
+    steps = np.geomspace(*steps, width)  # x the L-BFGS step (initially 0.05 in z)
     while time.perf_counter() - t0 < budget:
         q, alphas = g.copy(), []
         for s, y in reversed(pairs):

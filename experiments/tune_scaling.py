@@ -72,8 +72,9 @@ def start_problem(n: int, method: str, t_final: float = 20.0, solver: str = "rk4
     return None, tried
 
 
-def run_lbfgs(problem, budget: float) -> dict:
-    """tune_landscape.py's L-BFGS from the start for `budget` s, in the row format."""
+def run_lbfgs(problem, budget: float, steps=(1e-4, 3.0)) -> dict:
+    """tune_landscape.py's L-BFGS from the start for `budget` s, in the row format; its line
+    search tries geomspace(*steps, 12) x the L-BFGS step."""
     import jax.numpy as jnp
     from jax.flatten_util import ravel_pytree
     from tune_landscape import lbfgs
@@ -86,7 +87,7 @@ def run_lbfgs(problem, budget: float) -> dict:
     x = np.asarray(ravel_pytree(problem.z0)[0], float)
     start = search.batch_fn(problem)(jnp.asarray(x[None]))  # (compiled again by lbfgs)
     curve, better, stop = lbfgs(problem, x, float(start["loss"][0]),
-                                budget - (time.perf_counter() - t0))
+                                budget - (time.perf_counter() - t0), steps=steps)
     load_after = os.getloadavg()[0]
     print(f"  lbfgs: best {curve[-1][1]:.4g} (feasible), {len(curve) - 1} iterations, "
           f"{better + 1} gradients ({stop}), load {load:.1f}-{load_after:.1f}",
@@ -111,6 +112,10 @@ def main():
     p.add_argument("--methods", default="cma,cma_path,cma_grad")
     p.add_argument("--solver", default="etdrk4", choices=("rk4", "etdrk4"),
                    help="the study's solver (default etdrk4: the order-6 start needs it)")
+    p.add_argument("--lbfgs-steps", type=lambda t: tuple(float(x) for x in t.split(",")),
+                   default=(1e-4, 3.0), metavar="LO,HI",
+                   help="lbfgs: its line search's step sizes, geomspace(LO, HI, 12) x the "
+                   "L-BFGS step (initially 0.05 in z; default 1e-4,3)")
     p.add_argument("--out", default="results/tune_scaling")
     p.add_argument("--compilation-cache", metavar="DIR", default=None,
                    help="keep compiled programs in JAX's persistent cache in DIR, as the "
@@ -133,7 +138,7 @@ def main():
                "start_linf": float(problem.objective.scales.linf), "methods": {}}
         for m in methods:
             if m == "lbfgs":
-                row["methods"][m] = run_lbfgs(problem, args.budget)
+                row["methods"][m] = run_lbfgs(problem, args.budget, args.lbfgs_steps)
                 continue
             # tune_compare's methods: the CMA-ES baseline is plain CMA-ES (no restart)
             pm = with_method(problem, m, args.budget, seed=problem.cfg.optimizer.seed)
@@ -156,6 +161,7 @@ def main():
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps({"budget_s": args.budget, "solver": args.solver,
+                                               "lbfgs_steps": args.lbfgs_steps,
                                                "rows": rows}, indent=1) + "\n")
     print(f"\nBest feasible objective at equal wall time ({args.budget:g} s per method; inf = "
           f"none feasible; the start scores 1 on L-inf). Load: before-after each method")
