@@ -268,10 +268,10 @@ def run(args) -> int:
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
-          + "; " + (" or ".join(([f"at most {oc.max_steps} iterations"]
-                                  if oc.max_steps is not None else [])
-                                 + ([f"{oc.time_limit:g} s"] if oc.time_limit else []))
-                      or "no iteration or time limit")
+          + "; " + ("at most " + " or ".join(
+              ([f"{oc.max_steps} iterations"] if oc.max_steps is not None else [])
+              + ([f"{oc.time_limit:g} s"] if oc.time_limit else []))
+              if oc.max_steps is not None or oc.time_limit else "no iteration or time limit")
           + (f" per round; {adv.rounds} adversarial rounds over "
              + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
                                                                       cfg).ranges)
