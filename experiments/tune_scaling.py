@@ -98,7 +98,6 @@ def run_lbfgs(problem, budget: float, steps=(1e-4, 3.0)) -> dict:
 
 
 def main():
-
     import jax
 
     jax.config.update("jax_enable_x64", True)
