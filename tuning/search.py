@@ -244,7 +244,6 @@ class Search:
     resumed_from: int = 0
     compile_s: float = 0.0
     last_iter_s: float = 0.0
-    _late_compile_s: float = 0.0  # compilation inside the current generation (`_eval`)
     batch: Any = None  # the compiled batch of `width` candidates
     # the one of CMA-ES's population alone (line_backoff, line_generations)
     pop_batch: Any = None
@@ -268,6 +267,12 @@ class Search:
     def _backoff(self) -> bool:
         return bool(self.spec.line_backoff and self.steps.size)
 
+    @property
+    def _line_over(self) -> bool:
+        """Has a line method passed its `line_generations` (no line from here on)?"""
+        n = self.spec.line_generations
+        return bool(self.steps.size and n and self.state.iteration >= n)
+
     def restart(self) -> None:
         """CMA-ES's own termination criteria fired (`es.stop()`: converged or stuck) with
         budget left: a fresh, independent CMA-ES from the start point (sigma0, the same
@@ -283,9 +288,7 @@ class Search:
     def _line_now(self) -> bool:
         """Is the line taken in this generation? Always, unless `line_backoff` skips it
         after lines that lost (see `_after_line`) or `line_generations` have passed."""
-        n = self.spec.line_generations
-        return (bool(self.steps.size) and self.state.line_skip == 0
-                and (not n or self.state.iteration < n))
+        return bool(self.steps.size) and self.state.line_skip == 0 and not self._line_over
 
     def _after_line(self, taken: bool, won: bool) -> None:
         """line_backoff = m > 0: after k consecutive losing lines the line is skipped for
@@ -310,10 +313,15 @@ class Search:
         run resumed in the same process does not compile again."""
         t0 = time.perf_counter()
         cache = self.problem.objective.compiled
-        self.batch = self._program(self.width)
-        # line_backoff: a second width for the generations without the line now
-        # (line_generations: when first needed, see `_eval`)
-        self.pop_batch = self._program(self.state.es.popsize) if self._backoff else None
+        # a run resumed after line_generations needs neither the line's width nor the
+        # gradient; line_backoff needs the population's width now (line_generations: when
+        # first needed, see `generation`)
+        over = self._line_over
+        self.batch = None if over else self._program(self.width)
+        self.pop_batch = (self._program(self.state.es.popsize) if self._backoff or over
+                          else None)
+        if over:
+            self.grad = None
         if self.grad is not None:
             key = ("cma_grad gradient", self.problem.mode)
             if key in cache:
@@ -347,7 +355,6 @@ class Search:
     def generation(self) -> dict:
         st, es, spec = self.state, self.state.es, self.spec
         t_it = time.perf_counter()
-        self._late_compile_s = 0.0
         if st.iteration == 0 and st.evaluations == 0:
             # The start point is part of every method's history: evaluated once, padded to
             # the batch width so that no other program is compiled.
@@ -360,6 +367,14 @@ class Search:
         base = st.best_flat
         grad_norm = float("nan")
         take_line = self._line_now()
+        compiled_s = 0.0
+        if not take_line and self.pop_batch is None and self.width != es.popsize:
+            # line_generations: the population's program, compiled when first needed; its
+            # time is compilation (compile_s), not the generation's own (last_iter_s)
+            t0 = time.perf_counter()
+            self.pop_batch = self._program(es.popsize)
+            compiled_s = time.perf_counter() - t0
+            self.compile_s += compiled_s
         if take_line:
             cov = es.sm.covariance_matrix
             d = None
@@ -402,8 +417,7 @@ class Search:
         terms = {name: float(v[i]) for name, v in res[-1].items()}
         st.iteration += 1
         st.stall = 0 if improved else st.stall + 1
-        self.compile_s += self._late_compile_s
-        self.last_iter_s = time.perf_counter() - t_it - self._late_compile_s
+        self.last_iter_s = time.perf_counter() - t_it - compiled_s
         row = {"iteration": st.iteration - 1, "loss": float(loss[i]), "accepted": True,
                "feasible": bool(res[1][i]), "best_loss": st.best_loss, "lr": float(es.sigma),
                "grad_norm": grad_norm, "linf_window": float(res[3][i]),
@@ -423,15 +437,7 @@ class Search:
         return cache[key]
 
     def _eval(self, x, n_used):
-        if x.shape[0] == self.width:
-            program = self.batch
-        else:
-            if self.pop_batch is None:  # line_generations: compiled when first needed; it
-                # counts as compilation (wall time, compile_s), not as the generation's own
-                t0 = time.perf_counter()
-                self.pop_batch = self._program(x.shape[0])
-                self._late_compile_s += time.perf_counter() - t0
-            program = self.pop_batch
+        program = self.batch if x.shape[0] == self.width else self.pop_batch
         r = jax.device_get(program(jnp.asarray(x)))
         self.state.evaluations += n_used
         return (np.asarray(r["loss"], float)[:n_used], np.asarray(r["feasible"])[:n_used],
