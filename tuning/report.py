@@ -525,13 +525,13 @@ def _method(opt, mode: str) -> str:
         backoff = (f" After k consecutive losing lines the line is skipped for "
                    f"min(2^(k-1), {opt.line_backoff}) generations."
                    if opt.line_backoff and opt.line_points else "")
-        if opt.line_generations and opt.line_points:
-            backoff += (f" The line is taken in the first {opt.line_generations} generations "
-                        f"only; CMA-ES alone after them.")
+        early = (f" The line is taken in the first {opt.line_generations} generations "
+                 f"only; CMA-ES alone after them."
+                 if opt.line_generations and opt.line_points else "")
         return (f"{opt.name}: CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
                 f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
                 f"of {opt.line_points} step sizes from the best point along {along}, "
-                f"simulated in the same batch as the population, {kept}{backoff}")
+                f"simulated in the same batch as the population, {kept}{backoff}{early}")
     return (f"{_mode_words(mode)} exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
             f"{opt.schedule}).")
 

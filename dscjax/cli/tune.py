@@ -263,15 +263,15 @@ def run(args) -> int:
                                                     if oc.name == "cma_grad" else "")
            if oc.name in SEARCHES else
            f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} ({oc.schedule})")
+    limits = ([f"{oc.max_steps} iterations"] if oc.max_steps is not None else []) + (
+        [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
           f"{how}; T={options.t_final:g} s, dt={options.dt:g} s, window "
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
-          + "; " + ("at most " + " or ".join(
-              ([f"{oc.max_steps} iterations"] if oc.max_steps is not None else [])
-              + ([f"{oc.time_limit:g} s"] if oc.time_limit else []))
-              if oc.max_steps is not None or oc.time_limit else "no iteration or time limit")
+          + "; " + ("at most " + " or ".join(limits) if limits
+                    else "no iteration or time limit")
           + (f" per round; {adv.rounds} adversarial rounds over "
              + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
                                                                       cfg).ranges)
