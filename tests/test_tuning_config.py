@@ -82,9 +82,9 @@ def test_bad_tuning_table_is_a_clear_error(table, match):
 
 
 def test_steps_default_to_300_for_optax_rules_and_no_limit_for_searches():
-    """`steps` not given: the optax rules stop after OPTAX_STEPS = 300 iterations, the
-    length of their schedule; the searches have no count limit. Given (or "none"), it is the
-    limit for both, and the schedule's length unless decay_steps is given."""
+    """`steps` not given (or "none"): the optax rules stop after OPTAX_STEPS = 300
+    iterations, the length of their schedule; the searches have no count limit. Given, it is
+    the limit for both, and the schedule's length unless decay_steps is given."""
     from tuning.optimize import OPTAX_STEPS
 
     assert OPTAX_STEPS == 300
@@ -96,7 +96,9 @@ def test_steps_default_to_300_for_optax_rules_and_no_limit_for_searches():
         assert spec.max_steps == 50 and spec.schedule_steps == 50
     spec = from_dict({"optimizer": {"name": "adam", "steps": 50, "decay_steps": 20}}).optimizer
     assert spec.max_steps == 50 and spec.schedule_steps == 20
-    assert from_dict({"optimizer": {"steps": "none"}}).optimizer.steps is None
+    for name, limit in (("cma_path", None), ("adam", 300)):
+        spec = from_dict({"optimizer": {"name": name, "steps": "none"}}).optimizer
+        assert spec.steps is None and spec.max_steps == limit
 
 
 def test_tuning_table_parses_nested_ranges_and_bounds():

@@ -430,9 +430,11 @@ def test_line_backoff_is_a_whole_number_checked_in_one_line(problems):
 def test_line_generations_is_a_whole_number_checked_in_one_line():
     cfg = tuning.config.from_dict({"optimizer": {"line_generations": 20}})
     assert cfg.optimizer.line_generations == 20
-    with pytest.raises(dscjax.ConfigError,
-                       match=r"^tuning.optimizer.line_generations must be .*>= 0.*-2"):
-        tuning.config.from_dict({"optimizer": {"line_generations": -2}})
+    for bad in (-2, 2.5):
+        with pytest.raises(dscjax.ConfigError,
+                           match=rf"^tuning.optimizer.line_generations must be an integer.*"
+                           rf"\(got {bad}\)$"):
+            tuning.config.from_dict({"optimizer": {"line_generations": bad}})
     # the report's method sentence says when the line stops (not at 0: every generation)
     assert "first 20 generations only" in report.method_sentence(cfg.optimizer, "forward")
     off = tuning.OptimizerSpec(line_generations=0)
@@ -533,11 +535,14 @@ def test_a_search_without_a_step_limit_runs_until_its_own_criteria(problems, tmp
                                                                      monkeypatch):
     """steps = None (the default) sets no generation limit on a search: with CMA-ES's
     criteria forced to fire after 3 generations and 2 restarts allowed, the run ends after
-    3 x (1 + 2) = 9 generations, stopped by CMA-ES, not by a count (the optax rules' default
-    of 300 iterations does not apply to it)."""
+    3 x (1 + 2) = 9 generations, stopped by CMA-ES, not by a count (the optax rules' default,
+    set to 5 here, does not apply to it)."""
     import cma
 
+    import tuning.optimize
+
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
+    monkeypatch.setattr(tuning.optimize, "OPTAX_STEPS", 5)
     p = _with(problems["cma_path"], steps=None, restarts=2, patience=0)
     assert p.cfg.optimizer.max_steps is None
     res = run(p, tmp_path / "open")
