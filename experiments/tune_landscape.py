@@ -71,9 +71,15 @@ def probe(problem, x, hs):
     return float(loss0), float(np.linalg.norm(g)), rows
 
 
-def lbfgs(problem, x, loss, budget, width=12, memory=10, steps=(1e-4, 3.0)):
-    """L-BFGS from x for `budget` s (compilation included); returns the curve (s, best).
-    Its line search tries geomspace(*steps, width) x the L-BFGS step."""
+LBFGS_STEP_RANGE = (1e-4, 3.0)  # the line search's step sizes, x the L-BFGS step
+
+
+def lbfgs(problem, x, loss, budget, width=12, memory=10, step_range=LBFGS_STEP_RANGE):
+    """L-BFGS from x for `budget` s, compilation included. `loss`: the loss at x, a feasible
+    point's; None: the first gradient's own evaluation of x (inf if x is infeasible, so that
+    any feasible point improves on it). Its line search tries geomspace(*step_range, width)
+    x the L-BFGS step. Returns (curve [(s, best feasible loss)], the number of steps that
+    improved, why it stopped)."""
     import jax.numpy as jnp
 
     from tuning import search
@@ -84,11 +90,16 @@ def lbfgs(problem, x, loss, budget, width=12, memory=10, steps=(1e-4, 3.0)):
     grad = search.grad_fn(problem).lower(jnp.asarray(x)).compile()
 
     def gradient(p):
-        return np.asarray(grad(jnp.asarray(p))[2], float)
+        loss_p, feasible, g_p = grad(jnp.asarray(p))
+        loss_p = float(loss_p)
+        return (loss_p if bool(feasible) and math.isfinite(loss_p) else math.inf,
+                np.asarray(g_p, float))
 
-    g, pairs, curve, better = gradient(x), [], [(time.perf_counter() - t0, loss)], 0
+    loss_x, g = gradient(x)
+    loss = loss_x if loss is None else loss
+    pairs, curve, better = [], [(time.perf_counter() - t0, loss)], 0
     stop = "time"
-    steps = np.geomspace(*steps, width)  # x the L-BFGS step (initially 0.05 in z)
+    steps = np.geomspace(*step_range, width)  # x the L-BFGS step (initially 0.05 in z)
     while time.perf_counter() - t0 < budget:
         q, alphas = g.copy(), []
         for s, y in reversed(pairs):
@@ -105,7 +116,7 @@ def lbfgs(problem, x, loss, budget, width=12, memory=10, steps=(1e-4, 3.0)):
                      np.asarray(r["loss"], float), np.inf)
         j = int(np.argmin(f))
         if f[j] < loss:
-            g_new = gradient(pts[j])
+            g_new = gradient(pts[j])[1]
             better += 1
             s, y = pts[j] - x, g_new - g
             if y @ s > 1e-12 * np.linalg.norm(s) * np.linalg.norm(y):

@@ -25,7 +25,6 @@ import argparse
 import json
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -72,38 +71,27 @@ def start_problem(n: int, method: str, t_final: float = 20.0, solver: str = "rk4
     return None, tried
 
 
-def run_lbfgs(problem, budget: float, steps=(1e-4, 3.0)) -> dict:
-    """tune_landscape.py's L-BFGS from the start for `budget` s, in the row format; its line
-    search tries geomspace(*steps, 12) x the L-BFGS step."""
-    import jax.numpy as jnp
+def run_lbfgs(problem, budget: float, step_range=None) -> dict:
+    """tune_landscape.py's L-BFGS from the start for `budget` s, in the format of
+    tune_compare.run_method (feasible: a finite best, as lbfgs keeps feasible points only)."""
     from jax.flatten_util import ravel_pytree
-    from tune_landscape import lbfgs
+    from tune_landscape import LBFGS_STEP_RANGE, lbfgs
 
-    from tuning import search
-
-    problem.objective.compiled.clear()
-    load = os.getloadavg()[0]
-    t0 = time.perf_counter()
     x = np.asarray(ravel_pytree(problem.z0)[0], float)
-    start = search.batch_fn(problem)(jnp.asarray(x[None]))  # (compiled again by lbfgs)
-    curve, better, stop = lbfgs(problem, x, float(start["loss"][0]),
-                                budget - (time.perf_counter() - t0), steps=steps)
-    load_after = os.getloadavg()[0]
-    print(f"  lbfgs: best {curve[-1][1]:.4g} (feasible), {len(curve) - 1} iterations, "
-          f"{better + 1} gradients ({stop}), load {load:.1f}-{load_after:.1f}",
-          file=sys.stderr, flush=True)
-    return {"best_loss": float(curve[-1][1]), "feasible": True, "generations": len(curve) - 1,
-            "gradient_evaluations": better + 1, "stop": stop,
-            "curve": [[float(t), float(v)] for t, v in curve], "load": [load, load_after]}
+    curve, better, stop = lbfgs(problem, x, None, budget,
+                                step_range=step_range or LBFGS_STEP_RANGE)
+    best = float(curve[-1][1])
+    return {"best_loss": best, "best_feasible": bool(np.isfinite(best)),
+            "iterations": len(curve) - 1, "gradient_evaluations": better + 1,
+            "compile_s": None, "stop": stop, "curve": curve}
 
 
 def main():
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from tune_compare import with_method
+    from tune_compare import run_method
 
-    import tuning
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--orders", default="2,4,6")
@@ -111,10 +99,10 @@ def main():
     p.add_argument("--methods", default="cma,cma_path,cma_grad")
     p.add_argument("--solver", default="etdrk4", choices=("rk4", "etdrk4"),
                    help="the study's solver (default etdrk4: the order-6 start needs it)")
-    p.add_argument("--lbfgs-steps", type=lambda t: tuple(float(x) for x in t.split(",")),
-                   default=(1e-4, 3.0), metavar="LO,HI",
+    p.add_argument("--lbfgs-step-range", type=lambda t: tuple(float(x) for x in t.split(",")),
+                   default=None, metavar="LO,HI",
                    help="lbfgs: its line search's step sizes, geomspace(LO, HI, 12) x the "
-                   "L-BFGS step (initially 0.05 in z; default 1e-4,3)")
+                   "L-BFGS step (initially 0.05 in z; default tune_landscape's 1e-4,3)")
     p.add_argument("--out", default="results/tune_scaling")
     p.add_argument("--compilation-cache", metavar="DIR", default=None,
                    help="keep compiled programs in JAX's persistent cache in DIR, as the "
@@ -136,31 +124,28 @@ def main():
         row = {"n": n, "n_params": problem.n_params, "start": start,
                "start_linf": float(problem.objective.scales.linf), "methods": {}}
         for m in methods:
-            if m == "lbfgs":
-                row["methods"][m] = run_lbfgs(problem, args.budget, args.lbfgs_steps)
-                continue
-            # tune_compare's methods: the CMA-ES baseline is plain CMA-ES (no restart)
-            pm = with_method(problem, m, args.budget, seed=problem.cfg.optimizer.seed)
             load = os.getloadavg()[0]
-            # every method compiles its own programs: cma_path and cma_grad have one batch
-            # width, and compilation is part of each method's budget
+            # every method compiles its own programs: compilation is part of its budget
             problem.objective.compiled.clear()
-            res = tuning.run(pm, None)
+            if m == "lbfgs":
+                res = run_lbfgs(problem, args.budget, args.lbfgs_step_range)
+            else:  # tune_compare's: the CMA-ES baseline is plain CMA-ES (no restart)
+                res = run_method(problem, m, args.budget, problem.cfg.optimizer.seed)
             load_after = os.getloadavg()[0]
-            row["methods"][m] = {"best_loss": float(res.state.best_loss),
-                                 "feasible": bool(res.state.best_feasible),
-                                 "generations": int(res.state.iteration),
-                                 "gradient_evaluations": res.gradient_evaluations,
-                                 "compile_s": res.compile_s, "load": [load, load_after]}
-            print(f"  n = {n} ({problem.n_params} numbers) {m}: best {res.state.best_loss:.4g} "
-                  f"({'feasible' if res.state.best_feasible else 'infeasible'}), "
-                  f"{int(res.state.iteration)} iterations, load {load:.1f}-{load_after:.1f}",
-                  file=sys.stderr, flush=True)
+            row["methods"][m] = {"best_loss": res["best_loss"], "feasible": res["best_feasible"],
+                                 "generations": res["iterations"],
+                                 "gradient_evaluations": res["gradient_evaluations"],
+                                 "compile_s": res["compile_s"], "load": [load, load_after]} | (
+                {"stop": res["stop"]} if "stop" in res else {})
+            print(f"  n = {n} ({problem.n_params} numbers) {m}: best {res['best_loss']:.4g} "
+                  f"({'feasible' if res['best_feasible'] else 'infeasible'}), "
+                  f"{res['iterations']} iterations, {res['gradient_evaluations']} gradients, "
+                  f"load {load:.1f}-{load_after:.1f}", file=sys.stderr, flush=True)
         rows.append(row)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     Path(f"{out}.json").write_text(json.dumps({"budget_s": args.budget, "solver": args.solver,
-                                               "lbfgs_steps": args.lbfgs_steps,
+                                               "lbfgs_step_range": args.lbfgs_step_range,
                                                "rows": rows}, indent=1) + "\n")
     print(f"\nBest feasible objective at equal wall time ({args.budget:g} s per method; inf = "
           f"none feasible; the start scores 1 on L-inf). Load: before-after each method")
