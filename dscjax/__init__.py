@@ -6,7 +6,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
     traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
 """
 
-from dscjax import disturbance, metrics, params, stability, theory, worst, xla
+from dscjax import closed_loop, disturbance, metrics, params, xla
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
@@ -27,9 +27,7 @@ from dscjax.simulate import (
     simulate,
     simulate_batch,
 )
-from dscjax.theory import lyapunov
 from dscjax.validation import ConfigError, validate_setup
-from dscjax.worst import worst_case
 
 __version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
 
@@ -38,9 +36,8 @@ __all__ = [
     "DSC", "DSCState", "DivergenceError", "InitialOffset", "MultiSine", "Observation",
     "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
-    "default_window", "disturbance", "divergence_report", "initial_state", "integrate",
-    "lyapunov", "metrics", "nan_if_diverged", "order_n_example", "paper_example", "params",
-    "prepared",
-    "refinement_level", "rk4_step", "run", "simulate", "simulate_batch", "stability", "theory",
-    "validate_setup", "vector_field", "worst", "worst_case", "xla",
+    "closed_loop", "default_window", "disturbance", "divergence_report", "initial_state",
+    "integrate", "metrics", "nan_if_diverged", "order_n_example", "paper_example", "params",
+    "prepared", "refinement_level", "rk4_step", "run", "simulate", "simulate_batch",
+    "validate_setup", "vector_field", "xla",
 ]

@@ -16,12 +16,15 @@ from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
 
-from dscjax._fusion import barrier
 from dscjax.controllers.base import Controller
 from dscjax.hysteresis import Hysteresis
 from dscjax.plant import Plant
 from dscjax.reference import Reference
+from dscjax.validation import RK4_REAL_STABILITY, floor_sig
+from dscjax.xla import barrier
 
 
 @jax.tree_util.register_dataclass
@@ -137,5 +140,81 @@ def project(t, X: State, setup: Setup) -> State:
     return X._replace(h=setup.hysteresis.project(u, X.h))
 
 
-__all__ = ["Setup", "State", "Observation", "prepared", "initial_state", "vector_field",
-           "decay_rates", "frozen", "project", "Controller"]
+# -- the loop's local spectrum: how stiff it is for RK4 --------------------------------------------
+# Fixed-step RK4 is stable for a linear mode lambda while lambda dt lies in its stability region
+# (about -2.785 on the negative real axis, +-2.83i on the imaginary one). The loop is nonlinear
+# and non-smooth, so the spectral radius rho(t) of dF/dX along a run is a local guide, not a
+# proof; 2.785 / max rho is a conservative step.
+
+
+class SpectrumProfile(NamedTuple):
+    t: np.ndarray  # (T,) times
+    radius: np.ndarray  # (T,) spectral radius of dF/dX
+    max_real: np.ndarray  # (T,) largest real part (positive: locally unstable)
+    t_peak: float  # time of the largest radius
+    suggested_dt: float  # 2.785 / max radius
+
+
+def _flat_field(setup):
+    s = prepared(setup)
+    _, unravel = ravel_pytree(initial_state(s))
+
+    def field(y, t):
+        return ravel_pytree(vector_field(t, unravel(y), s)[0])[0]
+
+    return field
+
+
+def local_eigenvalues(setup: Setup, t, state: State) -> np.ndarray:
+    """Eigenvalues of the closed loop's Jacobian dF/dX at one time and state."""
+    field = _flat_field(setup)
+    y = ravel_pytree(state)[0]
+    jac = jax.jit(jax.jacfwd(field))(y, jnp.asarray(t, y.dtype))
+    return np.linalg.eigvals(np.asarray(jac))
+
+
+def states_of(traj) -> State:
+    """The saved closed-loop states of a trajectory (`simulate.Trajectory`) as a `State`."""
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
+
+
+def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
+    """The local spectrum at every `every`-th saved point of a single trajectory.
+
+        traj = dscjax.simulate(setup, 20.0, 1e-3)
+        prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
+    """
+    field = _flat_field(setup)
+    states = jax.tree.map(lambda a: a[::every], states_of(traj))
+    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states)
+    ts = jnp.asarray(traj.t)[::every]
+    jacs = jax.jit(jax.vmap(jax.jacfwd(field)))(ys, ts)
+    ev = np.linalg.eigvals(np.asarray(jacs))
+    radius = np.abs(ev).max(axis=1)
+    max_real = ev.real.max(axis=1)
+    i = int(np.argmax(radius))
+    t = np.asarray(ts)
+    return SpectrumProfile(t=t, radius=radius, max_real=max_real, t_peak=float(t[i]),
+                           suggested_dt=float(RK4_REAL_STABILITY / radius[i]))
+
+
+def diagnose(setup: Setup, traj) -> str:
+    """One sentence on the local stiffness at the last good state of a diverged single run
+    ("" if it cannot be computed: a diagnosis never hides the divergence report itself)."""
+    try:
+        # after divergence the state is frozen at its last good value: the last saved point
+        t_last = float(traj.t_diverged) - float(traj.dt)
+        last = jax.tree.map(lambda a: a[-1], states_of(traj))
+        ev = local_eigenvalues(setup, t_last, last)
+    except Exception:
+        return ""
+    rho = float(np.abs(ev).max())
+    dt = float(traj.dt)
+    return (f" Just before, the closed loop's local Jacobian had spectral radius {rho:.3g}: "
+            f"dt * radius = {dt * rho:.3g} (RK4 is stable up to about {RK4_REAL_STABILITY} on the "
+            f"real axis); dt <= {floor_sig(RK4_REAL_STABILITY / rho, 2)} would resolve that mode.")
+
+
+__all__ = ["Controller", "Observation", "Setup", "SpectrumProfile", "State", "decay_rates",
+           "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared", "project",
+           "spectrum_along", "states_of", "vector_field"]

@@ -49,8 +49,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
-from dscjax._smooth import smooth_abs
-from dscjax.model import Model, nonnegative, option, positive
+from dscjax.model import Model, nonnegative, option, positive, smooth_abs
 
 
 class Hysteresis(Model):

@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax._fusion import barriers
+from dscjax.xla import barriers
 
 Pytree = Any
 

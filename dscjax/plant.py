@@ -25,10 +25,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
-from dscjax._fusion import barrier
 from dscjax.disturbance import Disturbance
 from dscjax.model import Model, nonnegative, positive
 from dscjax.reference import time_signal
+from dscjax.xla import barrier
 
 
 class Plant(Model):

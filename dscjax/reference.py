@@ -14,8 +14,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax._fusion import barrier
 from dscjax.model import Model, positive
+from dscjax.xla import barrier
 
 
 class Reference(Model):

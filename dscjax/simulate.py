@@ -22,6 +22,7 @@ from dscjax.closed_loop import (
     Setup,
     State,
     decay_rates,
+    diagnose,
     frozen,
     initial_state,
     prepared,
@@ -380,8 +381,6 @@ def simulate(
                           gradient=gradient)
         traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
     if throw and concrete and bool(traj.diverged):
-        from dscjax.stability import diagnose
-
         raise DivergenceError(divergence_report(traj, state_bound)[0] + diagnose(setup, traj),
                               traj)
     return traj

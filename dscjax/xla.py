@@ -1,28 +1,28 @@
-"""XLA:CPU code generation for the batched programs: 512-bit vectors on CPUs with AVX-512.
+"""How dscjax's programs are compiled: vector width, fusion barriers, the persistent cache.
 
-XLA:CPU vectorises elementwise kernels for 256-bit registers by default. The batch-last rows
-layout of `simulate_batch` and of sweeps is exactly such kernels, and on an AVX-512 CPU (the
-project's AMD EPYC) XLA's `xla_cpu_prefer_vector_width = 512` makes it 1.1-1.5x faster in
-float32 and float64 with bitwise identical results (`experiments/bench_vector_width.py`; a test
-compares the results). Single runs are bound by kernel dispatch and do not change.
+- `compiler_options()`: 512-bit vectors for the batched programs on CPUs with AVX-512, given
+  per compiled function (`jax.jit(f, compiler_options=...)`), never through the environment;
+  a width the user sets in `XLA_FLAGS` wins. `jit` carries them at the top level.
+- `barrier` / `barriers`: optimisation barriers, active only while the batched layout is
+  traced, so that XLA:CPU computes a shared intermediate once instead of re-fusing it into
+  every consumer (docs/architecture.md).
+- `enable_compilation_cache()`: JAX's persistent compilation cache in a per-user directory
+  ($XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax). The `dscjax` command calls it;
+  the library never does (opt out: DSCJAX_NO_COMPILATION_CACHE=1 or --no-compilation-cache;
+  a JAX_COMPILATION_CACHE_DIR set beforehand wins).
 
-The option is given per compiled function (`jax.jit(..., compiler_options=...)`), never
-through the environment: dscjax's batched programs carry it, and nothing global changes on
-`import dscjax` or when they run (no `XLA_FLAGS`, no other program affected). It produces the
-same machine code as `XLA_FLAGS=--xla_cpu_prefer_vector_width=512` (compared byte for byte in
-XLA's dumps of the batched simulation). Opt out, or choose another width, by setting that flag
-in `XLA_FLAGS` yourself: the user's choice wins. To give your own jitted batched functions the
-same preference:
-
-    jax.jit(f, compiler_options=dscjax.xla.compiler_options())
+Nothing here changes JAX's global state on import.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import functools
 import os
 import sys
 from collections.abc import Callable, Mapping
+from pathlib import Path
 
 import jax
 
@@ -74,4 +74,63 @@ def jit(fn: Callable, **kwargs) -> Callable:
     return call
 
 
-__all__ = ["OPTION", "WIDE", "compiler_options", "cpu_has_avx512", "jit"]
+# -- fusion barriers ------------------------------------------------------------------------------
+
+_BARRIERS = contextvars.ContextVar("dscjax_fusion_barriers", default=False)
+
+
+def barrier(tree):
+    """Materialise `tree` (computed once, not re-fused into consumers) in batched traces."""
+    return jax.lax.optimization_barrier(tree) if _BARRIERS.get() else tree
+
+
+@contextlib.contextmanager
+def barriers(enabled: bool = True):
+    """Within this block (a trace-time context), `barrier` is active."""
+    token = _BARRIERS.set(enabled)
+    try:
+        yield
+    finally:
+        _BARRIERS.reset(token)
+
+
+# -- the persistent compilation cache -------------------------------------------------------------
+
+CACHE_OPT_OUT = "DSCJAX_NO_COMPILATION_CACHE"
+# programs that compile faster than this are not written (JAX's own default: 1 s)
+MIN_COMPILE_TIME_S = 1.0
+
+
+def default_cache_dir(environ: Mapping[str, str] = os.environ) -> Path:
+    """$XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax."""
+    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    return Path(base) / "dscjax" / "jax"
+
+
+def cache_opted_out(environ: Mapping[str, str] = os.environ) -> bool:
+    """True if DSCJAX_NO_COMPILATION_CACHE is set to anything but "", 0, false or no."""
+    return environ.get(CACHE_OPT_OUT, "").strip().lower() not in ("", "0", "false", "no")
+
+
+def enable_compilation_cache(directory: str | Path | None = None,
+                             min_compile_time_s: float = MIN_COMPILE_TIME_S) -> Path | None:
+    """Turn on JAX's persistent compilation cache in `directory` (default
+    `default_cache_dir()`) and return it. A cache directory already configured
+    (JAX_COMPILATION_CACHE_DIR) is kept and returned. None if the directory cannot be created
+    (nothing is changed then). This sets JAX's global configuration for the whole process."""
+    current = jax.config.jax_compilation_cache_dir
+    if current:
+        return Path(current)
+    path = Path(directory) if directory is not None else default_cache_dir()
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    return path
+
+
+__all__ = ["CACHE_OPT_OUT", "MIN_COMPILE_TIME_S", "OPTION", "WIDE", "barrier", "barriers",
+           "cache_opted_out", "compiler_options", "cpu_has_avx512", "default_cache_dir",
+           "enable_compilation_cache", "jit"]

@@ -32,8 +32,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     jax.config.update("jax_enable_x64", True)
-    from dscjax import alpha0_study, files
+    from dscjax import files
     from dscjax.cli.reproduce import parse_alpha0, parse_orders
+    from dscjax.reproduce import alpha0 as alpha0_study
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,9 +28,9 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     jax.config.update("jax_enable_x64", True)
-    from dscjax import complexity, files
+    from dscjax import files
     from dscjax.cli.reproduce import parse_orders
-    from dscjax.reproduce import STYLE
+    from dscjax.reproduce import STYLE, complexity
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

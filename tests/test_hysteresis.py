@@ -4,9 +4,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dscjax._smooth import sat, smooth_abs, smooth_sat
 from dscjax.hysteresis import Backlash, closed_form
 from dscjax.integrate import integrate
+from dscjax.model import sat, smooth_abs, smooth_sat
 
 ALPHA, LAM, PSI = 1.0, 1.432, 0.105
 

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 import dscjax
-from dscjax import theory
+from dscjax.reproduce import theory
 from dscjax.validation import ConfigError
 
 LAM, PSI, ALPHA = 1.432, 0.105, 1.0
@@ -74,7 +74,7 @@ def _numpy_v(traj, c_offsets, ctrl, plant, d, f_rho, yr_dot, yr=np.sin):
 def test_v_of_the_paper_example_matches_numpy():
     setup = dscjax.paper_example()
     traj = dscjax.simulate(setup, 1.0, 1e-3)  # the compilation the reproduce test reuses
-    lv = dscjax.lyapunov(setup, traj)
+    lv = theory.lyapunov(setup, traj)
 
     def f_rho(x):
         return np.array([x[0] ** 2, 0.0]), np.array([0.2, 0.1 * (x[0] ** 2 + x[1] ** 2)])
@@ -93,7 +93,7 @@ def test_v_of_order_n_under_linf_matches_numpy_and_69(n):
     x_1(0) (docs/paper-readings.md #9), c_i = x_i(0), every estimate starts at 0."""
     setup = dscjax.order_n_example(n, init="linf")
     traj = dscjax.simulate(setup, 1.0, 1e-3, save_every=10)
-    lv = dscjax.lyapunov(setup, traj, d=0.9)
+    lv = theory.lyapunov(setup, traj, d=0.9)
     p = {k: np.asarray(getattr(setup.plant, k)) for k in setup.plant.vector_fields}
     x0 = np.asarray(setup.plant.x0)
     off, decay = x0[0] - 0.0, float(setup.controller.linf_decay_time)  # y_r(0) = sin 0 = 0
@@ -118,7 +118,7 @@ def test_v_of_order_n_under_linf_matches_numpy_and_69(n):
 def test_v0_under_linf_initialisation_is_69_by_hand():
     setup = dscjax.paper_example(init="linf")
     traj = dscjax.simulate(setup, 1.0, 1e-3)
-    lv = dscjax.lyapunov(setup, traj)
+    lv = theory.lyapunov(setup, traj)
     # (69) with gamma = 8: theta_g1 = 0.1, theta_2 = 0, phi_1 = 1, zeta = 1/1.432, beta = 1.432
     assert lv.surface[0].tolist() == [0.0, 0.0] and abs(lv.filter[0, 0]) < 1e-30
     np.testing.assert_allclose(lv.theta[0], [0.1 ** 2 / 16, 0.0], rtol=1e-14)
@@ -160,7 +160,7 @@ def test_dvdt_along_the_vector_field_matches_finite_differences():
     the jvp of (44) along the vector field at second order."""
     setup = _frozen_unperturbed(dscjax.paper_example())
     err, traj, V = _fd_error(setup, 1e-4)
-    lv = dscjax.lyapunov(setup, traj)
+    lv = theory.lyapunov(setup, traj)
     # frozen estimates: their terms of (44) are left out (gamma = 0)
     assert np.all(lv.theta == 0) and np.all(lv.phi == 0) and np.all(lv.zeta == 0)
     assert np.all(lv.d == 0)
@@ -235,7 +235,7 @@ def test_lyapunov_rejects_backstepping():
 
     setup = with_backstepping(dscjax.paper_example())
     with pytest.raises(ConfigError, match="dsc"):
-        dscjax.lyapunov(setup, None)  # refused before the trajectory is looked at
+        theory.lyapunov(setup, None)  # refused before the trajectory is looked at
 
 
 # -- the CLI ---------------------------------------------------------------------------------
@@ -270,7 +270,7 @@ def test_reproduce_theory_writes_lyapunov_npz_and_summary(tmp_path):
     assert data["t"].shape == (1001,) and data["surface"].shape == (1001, 2)
     setup = dscjax.paper_example()
     traj = dscjax.simulate(setup, 1.0, 1e-3)
-    np.testing.assert_allclose(data["V"], dscjax.lyapunov(setup, traj).V, rtol=1e-12)
+    np.testing.assert_allclose(data["V"], theory.lyapunov(setup, traj).V, rtol=1e-12)
     summary = json.loads((out / "summary.json").read_text())
     th = summary["theory"]
     assert th["paper"]["alpha0"] == pytest.approx(0.04)  # eta_i gamma_i / 2 binds
@@ -305,7 +305,7 @@ def test_bad_alpha0_is_a_usage_error(tmp_path, capsys):
 
 
 def test_study_skips_an_alpha0_that_needs_too_many_steps():
-    from dscjax import alpha0_study
+    from dscjax.reproduce import alpha0 as alpha0_study
 
     opts = alpha0_study.StudyOptions(alpha0=(1.0,), t_final=1.0, max_steps=10)
     res = alpha0_study.study(alpha0_study.base_setup(2), opts)

@@ -13,7 +13,7 @@ import pytest
 from test_hysteresis_family import bouc_wen_reference
 
 import dscjax
-from dscjax import complexity, metrics
+from dscjax import metrics
 from dscjax.cli.main import main
 from dscjax.examples import hysteresis_example
 from dscjax.hysteresis import closed_form
@@ -22,6 +22,7 @@ from dscjax.reproduce import (
     FIGURES,
     METRIC_FIELDS,
     RUNS,
+    complexity,
     family_loops,
     hysteresis_loops,
 )

@@ -136,7 +136,7 @@ def test_library_divergence_error_carries_the_trajectory(paper_setup):
 
 def test_stability_profile_of_the_paper_example(paper_setup):
     tr = dscjax.simulate(paper_setup, 2.0, 1e-3, save_every=10)
-    prof = dscjax.stability.spectrum_along(paper_setup, tr)
+    prof = dscjax.closed_loop.spectrum_along(paper_setup, tr)
     # the filter mode -1/tau = -100 is always there; the initial transient peaks near 490
     assert prof.radius.min() > 70.0
     assert 400 < prof.radius.max() < 600 and prof.t_peak < 0.05

@@ -94,7 +94,7 @@ env = dict(os.environ)
 # read without resolving: rcParams["backend"] would import pyplot and pick a backend
 backend = repr(dict.__getitem__(matplotlib.rcParams, "backend"))
 rc = {k: repr(v) for k, v in dict.items(matplotlib.rcParams)}
-import dscjax, dscjax.cli.main, dscjax.complexity, dscjax.plotting, dscjax.reproduce
+import dscjax, dscjax.cli.main, dscjax.reproduce.complexity, dscjax.plotting, dscjax.reproduce
 import dscjax.sweep, dscjax.sweep.plots, tuning, tuning.report
 fig, ax = dscjax.plotting.subplots(figsize=(2, 2))
 fig.savefig(os.devnull, format="png")

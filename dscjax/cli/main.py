@@ -99,11 +99,11 @@ def main(argv=None) -> int:
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from dscjax import compilation_cache
+    from dscjax import xla
 
-    if not (args.no_compilation_cache or compilation_cache.opted_out()):
-        compilation_cache.enable()  # compiled programs survive the process (an entry point's
-        # choice: the library never changes JAX's configuration by itself)
+    if not (args.no_compilation_cache or xla.cache_opted_out()):
+        xla.enable_compilation_cache()  # compiled programs survive the process (an entry
+        # point's choice: the library never changes JAX's configuration by itself)
     from dscjax.simulate import DivergenceError
     from dscjax.validation import ConfigError
 

@@ -118,7 +118,7 @@ def run(args) -> int:
     if hasattr(traj.ctrl, "_fields"):
         arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
     if setup.controller.kind == "dsc":
-        from dscjax.theory import lyapunov
+        from dscjax.reproduce.theory import lyapunov
 
         lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
         arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()

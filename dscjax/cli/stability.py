@@ -46,7 +46,7 @@ def _scales(text: str) -> list[float]:
 
 def run(args) -> int:
     from dscjax import validation
-    from dscjax.stability import stability_map
+    from dscjax.step_size import stability_map
 
     setup, options = load_setup(args)
     scales = _scales(args.tau_scales)

@@ -13,9 +13,8 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from dscjax._smooth import sat, smooth_abs, smooth_sat
 from dscjax.controllers.base import Controller
-from dscjax.model import nonnegative, positive
+from dscjax.model import nonnegative, positive, sat, smooth_abs, smooth_sat
 
 ALL = slice(None)  # stage index selecting every stage at once (the vectorised laws)
 # The switching function of the robust term: sgn(s_n) as printed in (30), sat(s_n/width) as

@@ -24,11 +24,11 @@ from typing import ClassVar, Literal, NamedTuple, get_args
 import jax
 import jax.numpy as jnp
 
-from dscjax._fusion import barrier
 from dscjax.controllers.adaptive import AdaptiveLaws, RobustTerm
 from dscjax.controllers.base import ControlInfo
 from dscjax.model import option, positive
 from dscjax.reference import InitialOffset
+from dscjax.xla import barrier
 
 Variant = Literal["full", "no_dhat", "no_dhat_no_zeta"]
 VARIANTS: tuple[str, ...] = get_args(Variant)

@@ -29,6 +29,8 @@ from pathlib import Path
 import jax
 
 from dscjax import files
+from dscjax.reproduce import complexity as cx
+from dscjax.reproduce import theory_section
 from dscjax.reproduce.claims import (
     ALIKE_FACTOR,
     AMPLITUDE_MARGIN,
@@ -113,8 +115,6 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     log("writing figures")
     paths = figures(trajs, loops, out, fmt, dpi, family)
     if complexity:
-        from dscjax import complexity as cx
-
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
@@ -127,9 +127,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
     if theory:
-        from dscjax import reproduce_theory
-
-        summary["theory"] = reproduce_theory.run(
+        summary["theory"] = theory_section.run(
             out / "theory", setups()["dsc"], trajs["dsc"], orders=theory_orders,
             alpha0=theory_alpha0, mu=theory_mu, t_final=t_final, fmt=fmt, dpi=dpi, log=log)
     summary["figures"] = {k: str(p) for k, p in paths.items()}

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from dscjax.reproduce.runs import ESTIMATES, METRIC_FIELDS
+from dscjax.reproduce.theory_section import markdown as theory_markdown
 
 
 def _cell(text: str) -> str:
@@ -52,9 +53,7 @@ def summary_markdown(summary: dict) -> str:
                      for m, f in fits.items() if f["ratio_per_order"]]
             lines.append(f"- {c}: " + "; ".join(parts))
     if "theory" in summary:
-        from dscjax.reproduce_theory import markdown
-
-        lines += ["", markdown(summary["theory"])]
+        lines += ["", theory_markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
     lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
                                           for p in summary["figures"].values()), ""]

@@ -39,15 +39,17 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import files
+from dscjax.closed_loop import initial_state, prepared
+from dscjax.controllers.backstepping import with_backstepping
+from dscjax.examples import order_n_example
+from dscjax.plotting import subplots
+from dscjax.validation import ConfigError
 
 CONTROLLERS = ("dsc", "backstepping")
 
 
 def law_setup(controller: str, n: int):
     """The prepared order-n example with the given controller ("dsc" or "backstepping")."""
-    from dscjax.closed_loop import prepared
-    from dscjax.controllers.backstepping import with_backstepping
-    from dscjax.examples import order_n_example
 
     setup = order_n_example(n, dtype=jnp.float64)
     if controller == "backstepping":
@@ -63,7 +65,6 @@ def law_function(setup) -> tuple[Callable, tuple]:
     For backstepping the function without the inner jit (`plain_law`) is used, so tracing is
     measured in full every time.
     """
-    from dscjax.closed_loop import initial_state
 
     ctrl, plant, ref = setup.controller, setup.plant, setup.reference
     impl = getattr(ctrl, "plain_law", ctrl.law)
@@ -202,7 +203,6 @@ def _settings(repeats: int, evals: int) -> dict:
 def _load_rows(path: Path, settings: dict, log) -> dict:
     """The saved measurements; ConfigError if there is nothing to resume (missing, unreadable,
     or made with other settings: resuming them would mix two studies)."""
-    from dscjax.validation import ConfigError
 
     if not path.exists():
         raise ConfigError(f"--resume: nothing to resume in {path.parent} ({path.name} is "
@@ -285,7 +285,6 @@ LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)"
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
     """Log-scale panels of every metric against n, one line per controller, fitted growth in
     the legend."""
-    from dscjax.plotting import subplots
 
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}

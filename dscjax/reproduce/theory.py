@@ -2,7 +2,7 @@
 (60), the constant e_M (61) and the bounds (65), (71) and (72).
 
     traj = dscjax.simulate(setup, 20.0, 1e-3)
-    lv = dscjax.lyapunov(setup, traj)          # V(t) of (44) and its terms
+    lv = theory.lyapunov(setup, traj)          # V(t) of (44) and its terms
     lv.V, lv.surface, lv.filter, lv.theta, lv.phi, lv.zeta, lv.d
 
 V of eq. (44), for a DSC of order n, is (all sums over i = 1..n-1)
@@ -38,6 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax.closed_loop import State, prepared, vector_field
+from dscjax.simulate import canonical
 from dscjax.validation import ConfigError
 
 HOLD = ("eta", "gamma")
@@ -308,7 +309,6 @@ def _chunk_eval(fn, args, t, X):
 
 def _prepared_dsc(setup):
     _require_dsc(setup.controller)
-    from dscjax.simulate import canonical
 
     return prepared(canonical(setup))
 
@@ -328,9 +328,10 @@ def lyapunov(setup, traj, d=None) -> LyapunovTerms:
 
     Example:
         >>> import dscjax
+        >>> from dscjax.reproduce import theory
         >>> setup = dscjax.paper_example()
         >>> traj = dscjax.simulate(setup, t_final=1.0, dt=1e-3, save_every=100)
-        >>> lv = dscjax.lyapunov(setup, traj)
+        >>> lv = theory.lyapunov(setup, traj)
         >>> lv.V.shape, lv.surface.shape
         ((11,), (11, 2))
     """

@@ -25,7 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax import alpha0_study, files, theory
+from dscjax import files
+from dscjax.reproduce import alpha0 as alpha0_study
+from dscjax.reproduce import theory
 
 GROUPS = (  # (term of (44), label, colour) in stacking order
     ("surface", r"$S_i^2/(2g_i)$, $S_n^2/2$", "#1f77b4"),

@@ -35,9 +35,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from dscjax import theory
+from dscjax.closed_loop import initial_state, prepared
 from dscjax.examples import order_n_example, paper_example
-from dscjax.simulate import simulate
+from dscjax.reproduce import theory
+from dscjax.simulate import canonical, simulate
 from dscjax.validation import RK4_REAL_STABILITY, ConfigError
 
 DEFAULT_ALPHA0 = tuple(float(a) for a in np.round(np.geomspace(0.1, 10.0, 10), 4))
@@ -133,8 +134,6 @@ def base_setup(n: int = 2):
 
 def _initial_M(setup):
     """|B_(i+1)(0)| at the initial state: the fixed point's starting guess."""
-    from dscjax.closed_loop import initial_state, prepared
-    from dscjax.simulate import canonical
 
     s = prepared(canonical(setup))
     X = initial_state(s)
