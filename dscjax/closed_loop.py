@@ -14,6 +14,7 @@ from __future__ import annotations
 import dataclasses
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -215,6 +216,105 @@ def diagnose(setup: Setup, traj) -> str:
             f"real axis); dt <= {floor_sig(RK4_REAL_STABILITY / rho, 2)} would resolve that mode.")
 
 
-__all__ = ["Controller", "Observation", "Setup", "SpectrumProfile", "State", "decay_rates",
-           "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared", "project",
-           "spectrum_along", "states_of", "vector_field"]
+# -- the digital controller: sampled at Ts, its input held (zero-order hold) ---------------
+
+
+class Sampling(eqx.Module):
+    """A controller that runs at the sample times t_k = k Ts, Ts = `every` dt.
+
+    At t_k it reads the plant's state x(t_k) (plus seeded Gaussian measurement noise of std
+    `noise`, when given), computes u_k and advances its own states (filters, estimates) once,
+    by the exponential Euler step c <- c + Ts phi(-lam Ts) c', lam the states' decay rates
+    (`Controller.decay_rates`: 1/tau for the filters, exact for their linear part; 0 for the
+    estimates: forward Euler), phi(z) = (e^z - 1)/z. The actuator holds u_(k-delay) until
+    t_(k+1) (zero-order hold; the first input is held during the first `delay` samples); when
+    the held input changes, the hysteresis moves along its own curve (`Hysteresis.jump`).
+    The plant integrates continuously in between.
+    """
+
+    every: int = eqx.field(static=True)  # dt steps per sample: Ts = every dt
+    delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
+    noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
+    seed: Any = 0  # seed of the noise
+
+
+class SampledState(NamedTuple):
+    """State of the sampled loop: the continuous loop's, the held input and the delay line."""
+
+    x: jax.Array  # (n,) plant state
+    h: Any  # hysteresis state
+    ctrl: Any  # controller state after the last sample
+    u: jax.Array  # () the input the actuator holds
+    past: jax.Array  # (delay,) inputs computed but not applied yet, the newest first
+
+
+def _phi(z):
+    """(e^z - 1)/z, 1 at z = 0 (double where)."""
+    small = jnp.abs(z) < 1e-8
+    zs = jnp.where(small, 1.0, z)
+    return jnp.where(small, 1.0 + 0.5 * z, jnp.expm1(zs) / zs)
+
+
+def _sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
+    """The controller's step at sample index k (time t): read x, compute u, advance."""
+    plant, ctrl, ref = setup.plant, setup.controller, setup.reference
+    x = X.x
+    if sampling.noise is not None:
+        key = jax.random.fold_in(jax.random.PRNGKey(sampling.seed), k)
+        x = x + jnp.asarray(sampling.noise, x.dtype) * jax.random.normal(key, x.shape, x.dtype)
+    u_new, info = ctrl.law(X.ctrl, x, t, plant, ref)
+    rate = ctrl.state_rate(X.ctrl, x, t, info, plant, ref)
+    ts = sampling.every * dt
+    lam = ctrl.decay_rates(X.ctrl)
+    c_next = jax.tree.map(lambda c, r, l: c + ts * _phi(-l * ts) * r, X.ctrl, rate, lam)
+    if sampling.delay:
+        applied, past = X.past[-1], jnp.concatenate([u_new[None], X.past[:-1]])
+    else:
+        applied, past = u_new, X.past
+    h = setup.hysteresis.jump(X.u, applied, X.h)
+    return SampledState(x=X.x, h=h, ctrl=c_next, u=applied, past=past)
+
+
+def sampled_initial_state(setup: Setup, sampling: Sampling, dt) -> SampledState:
+    """X(0) of the sampled loop (setup `prepared`): the first sample taken at t = 0."""
+    X0 = initial_state(setup)
+    u0, _ = setup.controller.law(X0.ctrl, X0.x, jnp.zeros((), X0.x.dtype), setup.plant,
+                                 setup.reference)
+    u0 = jnp.asarray(u0, X0.x.dtype)
+    start = SampledState(x=X0.x, h=X0.h, ctrl=X0.ctrl, u=u0,
+                         past=jnp.full((sampling.delay,), u0, X0.x.dtype))
+    return _sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), X0.x.dtype), start, setup,
+                          sampling, jnp.asarray(dt, X0.x.dtype))
+
+
+def sampled_vector_field(t, X: SampledState, setup: Setup) -> tuple[SampledState, Observation]:
+    """The plant alone between samples (the input held, the rest frozen), and the
+    observation at (t, X): the held u, u' = 0, and y_r and the surfaces the law would see."""
+    plant, ctrl, hyst = setup.plant, setup.controller, setup.hysteresis
+    w = hyst.output(X.u, X.h)
+    dx = plant.rhs(X.x, w, t)
+    _, info = ctrl.law(X.ctrl, X.x, t, plant, setup.reference)
+    zero = jax.tree.map(jnp.zeros_like, X)
+    return zero._replace(x=dx), Observation(u=X.u, u_dot=jnp.zeros_like(X.u), yr=info.yr,
+                                            S=info.S, w=w)
+
+
+def sampled_frozen(setup: Setup) -> SampledState:
+    """Everything but the plant is held inside a step (a prefix of SampledState's tree)."""
+    return SampledState(x=False, h=True, ctrl=True, u=True, past=True)
+
+
+def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampling, dt):
+    """After the step that ends at t = t_(k_next): the controller's sample if k_next is a
+    multiple of `every`, else X unchanged."""
+    new = _sample_update(k_next // sampling.every, t, X, setup, sampling, dt)
+    if sampling.every == 1:
+        return new
+    due = k_next % sampling.every == 0
+    return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
+
+
+__all__ = ["Controller", "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile",
+           "State", "decay_rates", "diagnose", "frozen", "initial_state", "local_eigenvalues",
+           "prepared", "project", "sample_after_step", "sampled_frozen", "sampled_initial_state",
+           "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]

@@ -10,6 +10,8 @@ interface, used by the closed loop (`closed_loop.py`) and by the open-loop drive
     decay_rate(u, du, h)  -> rates >= 0 (like h) of the stiff linear decays in `rate`, which the
                              exponential step (ETDRK4) integrates exactly
     project(u, h)         -> h after a step, u at its end: the plays' exact clamp (else h)
+    jump(u_from, u_to, h) -> h after u steps from u_from to u_to (a held input of a sampled
+                             controller): the model moves along its own rate-independent curve
     effective_slope()     -> lam of w = lam u + d_1(u) with d_1 bounded, eq. (5)
     d1_limits()           -> limits of d_1 as u -> -inf and u -> +inf, eqs. (7)-(8)
 
@@ -79,6 +81,9 @@ class Hysteresis(Model):
     def project(self, u, h):
         return h
 
+    def jump(self, u_from, u_to, h):
+        raise NotImplementedError
+
     def effective_slope(self):
         raise NotImplementedError
 
@@ -141,6 +146,12 @@ class Backlash(Hysteresis):
         """The rate a >= 0 of the linear decay -a w in eq. (4): alpha |u'|. It makes the loop
         stiff where |u'| is large; the exponential step integrates it exactly."""
         return self.alpha * (smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du))
+
+    def jump(self, u_from, u_to, w):
+        """w after u steps from u_from to u_to: the closed form (5)-(6) along the step (the
+        exact |u'|, whatever `smooth` says: a step has no rate)."""
+        direction = jnp.where(u_to >= u_from, 1.0, -1.0)
+        return closed_form(u_to, u_from, w, self.alpha, self.lam, self.psi, direction)
 
     def effective_slope(self):
         """lam of (5): w = lam u + d_1(u)."""
@@ -277,6 +288,11 @@ class _Plays(Hysteresis):
         """The exact clamp at the step's end: z <- max(lo(u), min(hi(u), z))."""
         return self.plays(u, z)
 
+    def jump(self, u_from, u_to, z):
+        """The plays after a step of u: the clamp at u_to (the envelopes are monotone, so the
+        clamp at the end of a monotone segment is the play's output exactly)."""
+        return self.plays(u_to, z)
+
 
 class PrandtlIshlinskii(_Plays):
     """Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j F_(r_j)[u] (N play operators).
@@ -390,6 +406,11 @@ def _pow_abs_m1(h, n):
     return jnp.where(zero, jnp.where(n == 1, 1.0, 0.0), safe ** (n - 1.0))
 
 
+# RK4 substeps in u of a Bouc-Wen jump: a sampled controller's input moves by |u'| Ts per
+# sample, a short segment of the curve
+JUMP_SUBSTEPS = 16
+
+
 class BoucWen(Hysteresis):
     """Bouc-Wen hysteresis: w = a u + b h, h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n.
 
@@ -451,6 +472,24 @@ class BoucWen(Hysteresis):
         k = (self.beta * self._abs_du(du) + self.gamma * du * jnp.sign(h)) \
             * _pow_abs_m1(h, self.n)
         return jnp.maximum(k, 0.0)
+
+    def jump(self, u_from, u_to, h):
+        """h after a step of u: dh/du = A - beta s |h|^(n-1) h - gamma |h|^n, s = sgn(u_to -
+        u_from), integrated by RK4 in u over JUMP_SUBSTEPS substeps (the exact |u'|)."""
+        s = jnp.where(u_to >= u_from, 1.0, -1.0)
+        du = (u_to - u_from) / JUMP_SUBSTEPS
+
+        def slope(hh):
+            hn = _pow_abs(hh, self.n)
+            return self.A - self.beta * s * jnp.sign(hh) * hn - self.gamma * hn
+
+        for _ in range(JUMP_SUBSTEPS):
+            k1 = slope(h)
+            k2 = slope(h + 0.5 * du * k1)
+            k3 = slope(h + 0.5 * du * k2)
+            k4 = slope(h + du * k3)
+            h = h + du / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
+        return h
 
     def h_max(self):
         """(A / (beta + gamma))^(1/n): the bound of |h| for beta >= |gamma|."""

@@ -101,3 +101,79 @@ def rk4(X0, dt, n_steps, p=P):
         X = X + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
         out[k + 1] = X
     return out
+
+
+# -- the sampled (digital) controller, sample by sample ------------------------------------------
+
+
+def _law(t, X, p=P):
+    """u and the controller states' derivatives at (t, X), the plant read exactly."""
+    x1, x2, w, z2, th1h, th2h, ph1, zeta, dh = (float(v) for v in X)
+    eps = p["eps"]
+    g_g1, g_g2, g_phi, g_z, g_d = (p.get(r, p["gam"]) for r in RATES)
+    yr, yr1 = math.sin(t), math.cos(t)
+    s1 = x1 - yr
+    f1 = x1 * x1
+    x2d = -th1h * f1 - s1 * 0.2**2 / (2 * eps * p["gmin"]) - p["k1"] * s1 + ph1 * yr1
+    z2dot = (x2d - z2) / p["tau"]
+    s2 = x2 - z2 - p["c2"]
+    rho2 = 0.1 * (x1 * x1 + x2 * x2)
+    sat = max(-1.0, min(1.0, s2 / p["width"]))
+    ubar = -p["k2"] * s2 - s2 * rho2**2 / (2 * eps) + z2dot - sat * dh
+    rates = dict(
+        th1=g_g1 * (f1 * s1 - p["eta1"] * th1h), th2=g_g2 * (0.0 - p["eta2"] * th2h),
+        ph1=-g_phi * (yr1 * s1 + p["sigma"] * ph1), zeta=-g_z * (ubar * s2 + p["eta_z"] * zeta),
+        dh=g_d * (abs(s2) - p["eta_d"] * dh), x2d=x2d)
+    return zeta * ubar, rates
+
+
+def _backlash_step(w, u_from, u_to, p=P):
+    """w after u moves monotonically from u_from to u_to: dw/du = s alpha (lam u - w) + psi."""
+    if u_to == u_from:
+        return w
+    s = 1.0 if u_to > u_from else -1.0
+    a, lam, psi = p["alpha"], p["lam"], p["psi"]
+    # the linear ODE's solution: w = lam u - s (lam - psi)/a + C e^(-s a u)
+    c = (w - lam * u_from + s * (lam - psi) / a) * math.exp(s * a * u_from)
+    return lam * u_to - s * (lam - psi) / a + c * math.exp(-s * a * u_to)
+
+
+def sampled_rk4(X0, dt, n_steps, every, p=P):
+    """The loop with the controller sampled every `every` steps (Ts = every dt): at each
+    sample the law reads x, u is held until the next one (the hysteresis jumps along its
+    curve when u changes), the filter advances by its exact response to the held x2d
+    (z <- x2d + (z - x2d) e^(-Ts/tau)) and the estimates by forward Euler; the plant is
+    integrated by RK4 with w held. Returns (states (N+1, 9), held u (N+1,))."""
+    X = np.array(X0, dtype=float)
+    ts = every * dt
+    u_held, _ = _law(0.0, X, p)
+    out = np.empty((n_steps + 1, X.size))
+    us = np.empty(n_steps + 1)
+    for k in range(n_steps + 1):
+        t = k * dt
+        if k % every == 0:  # the controller's sample at t_k
+            u_new, r = _law(t, X, p)
+            X[2] = _backlash_step(X[2], u_held, u_new, p)
+            X[3] = r["x2d"] + (X[3] - r["x2d"]) * math.exp(-ts / p["tau"])
+            X[4] += ts * r["th1"]
+            X[5] += ts * r["th2"]
+            X[6] += ts * r["ph1"]
+            X[7] += ts * r["zeta"]
+            X[8] += ts * r["dh"]
+            u_held = u_new
+        out[k], us[k] = X, u_held
+        if k == n_steps:
+            break
+
+        def plant(tt, x, w=X[2]):
+            x1, x2 = x
+            return np.array([p["g1"] * x2 + p["th1"] * x1 * x1 + 0.2 * math.sin(x2),
+                             p["g2"] * w + 0.1 * (x1 * x1 + x2 * x2) * math.sin(tt) ** 3])
+
+        x = X[:2]
+        k1 = plant(t, x)
+        k2 = plant(t + 0.5 * dt, x + 0.5 * dt * k1)
+        k3 = plant(t + 0.5 * dt, x + 0.5 * dt * k2)
+        k4 = plant(t + dt, x + dt * k3)
+        X[:2] = x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
+    return out, us
