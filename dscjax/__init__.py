@@ -11,15 +11,16 @@ from dscjax.closed_loop import Observation, Setup, State, initial_state, prepare
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
 from dscjax.examples import order_n_example, paper_example
 from dscjax.hysteresis import Backlash, closed_form
-from dscjax.integrate import Status, integrate, rk4_step
+from dscjax.integrate import ETDRK4, RK4, Checkpointed, Status, TimeParallel, integrate, rk4_step
+from dscjax.metrics import default_window
 from dscjax.params import cast
 from dscjax.plant import CustomPlant, PaperPlant, Plant, StrictFeedback, check_strict_feedback
 from dscjax.reference import InitialOffset, MultiSine, Reference, Sine, SmoothStep
+from dscjax.runspec import RunSpec
 from dscjax.simulate import (
     DivergenceError,
     Trajectory,
     canonical,
-    default_window,
     divergence_report,
     nan_if_diverged,
     refinement_level,
@@ -32,12 +33,12 @@ from dscjax.validation import ConfigError, validate_setup
 __version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
 
 __all__ = [
-    "Backlash", "Backstepping", "BacksteppingState", "ConfigError", "Controller", "CustomPlant",
-    "DSC", "DSCState", "DivergenceError", "InitialOffset", "MultiSine", "Observation",
-    "PaperPlant", "Plant", "Reference", "Setup", "Sine", "SmoothStep", "State", "Status",
-    "StrictFeedback", "Trajectory", "canonical", "cast", "check_strict_feedback", "closed_form",
-    "closed_loop", "default_window", "disturbance", "divergence_report", "initial_state",
-    "integrate", "metrics", "nan_if_diverged", "order_n_example", "paper_example", "params",
-    "prepared", "refinement_level", "rk4_step", "run", "simulate", "simulate_batch",
-    "validate_setup", "vector_field", "xla",
+    "Backlash", "Backstepping", "BacksteppingState", "canonical", "cast", "check_strict_feedback",
+    "Checkpointed", "closed_form", "closed_loop", "ConfigError", "Controller", "CustomPlant",
+    "default_window", "disturbance", "divergence_report", "DivergenceError", "DSC", "DSCState",
+    "ETDRK4", "initial_state", "InitialOffset", "integrate", "metrics", "MultiSine",
+    "nan_if_diverged", "Observation", "order_n_example", "paper_example", "PaperPlant", "params",
+    "Plant", "prepared", "Reference", "refinement_level", "RK4", "rk4_step", "run", "RunSpec",
+    "Setup", "simulate", "simulate_batch", "Sine", "SmoothStep", "State", "Status",
+    "StrictFeedback", "TimeParallel", "Trajectory", "validate_setup", "vector_field", "xla"
 ]

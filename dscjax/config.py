@@ -1,4 +1,4 @@
-"""TOML (or JSON) configuration <-> (Setup, SimOptions).
+"""TOML (or JSON) configuration <-> (Setup, RunSpec).
 
 A config file maps onto the same dataclasses the Python API takes: one table per model
 ([plant], [hysteresis], [controller], [reference]) whose keys are the model's field names, plus
@@ -29,6 +29,7 @@ from dscjax.controllers.dsc import DSC
 from dscjax.hysteresis import Backlash, BoucWen, GeneralizedPI, PrandtlIshlinskii
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
+from dscjax.runspec import OPTIONS, RunSpec
 from dscjax.validation import ConfigError
 
 # kind name -> class, per section; the key that selects the kind.
@@ -44,41 +45,6 @@ OLD_KIND_KEY = {"hysteresis": "model"}
 # Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
 # "kind" key; absent (None) unless the config gives the table.
 SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
-
-
-# A saved trajectory keeps at most this many points unless simulation.save_every says otherwise
-# (20 s at the default dt = 1e-3 is 20,001 points: every step).
-MAX_SAVED_POINTS = 20_001
-
-
-@dataclasses.dataclass(frozen=True)
-class SimOptions:
-    """The [simulation] table: run settings that are not part of the Setup pytree."""
-
-    t_final: float = 20.0
-    dt: float = 1e-3
-    save_every: int | None = None  # None: automatic, see `save_stride`
-    window_start: float | None = None  # default: 1 s (0 if t_final <= 1 s)
-    state_bound: float = 1e6
-    dtype: str = "float64"
-    solver: str = "rk4"  # "rk4" (classical) or "etdrk4" (exponential, for stiff loops)
-    refine: int = 6  # refinement levels tried before a run counts as diverged (0: none)
-
-    def validate(self) -> None:
-        validation.one_of(self.dtype, "simulation.dtype", ("float64", "float32"))
-        validation.one_of(self.solver, "simulation.solver", ("rk4", "etdrk4"))
-        validation.integer(self.refine, "simulation.refine", 0)
-        if not (self.state_bound > 0):
-            raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
-
-    def save_stride(self, n_steps: int) -> int:
-        """`save_every` if given; else the smallest stride s that keeps at most
-        MAX_SAVED_POINTS points: the steps 0, s, 2s, ... and always the last one, N (s need
-        not divide N), so a tiny dt does not fill the memory with a trajectory nobody asked
-        for and any N keeps about MAX_SAVED_POINTS of them."""
-        if self.save_every is not None:
-            return self.save_every
-        return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
 # -- Setup -> dict -> TOML ----------------------------------------------------------------------
@@ -105,9 +71,10 @@ def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str,
     return out
 
 
-def to_dict(setup: Setup, options: SimOptions | None = None) -> dict[str, Any]:
-    options = options or SimOptions()
-    sim = {k: v for k, v in dataclasses.asdict(options).items() if v is not None}
+def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
+    """The config of a setup and run as plain data (keys left to a rule or absent omitted)."""
+    spec = spec or RunSpec.make()
+    sim = {k: v for k, v in spec.to_table().items() if v is not None}
     d = {"simulation": sim}
     for section in ("plant", "hysteresis", "controller", "reference"):
         d[section] = model_to_dict(section, getattr(setup, section))
@@ -115,19 +82,7 @@ def to_dict(setup: Setup, options: SimOptions | None = None) -> dict[str, Any]:
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
-DOCS: dict[str, str] = {
-    "simulation.t_final": "horizon T [s] (the paper does not give it)",
-    "simulation.dt": "RK4 step [s]; dt/min(tau) <= 2.785",
-    "simulation.save_every": "keep every k-th step in trajectory.npz (metrics use every step); "
-                             f"omitted: automatic, at most {MAX_SAVED_POINTS:,} points",
-    "simulation.window_start": "t0 [s] of the windowed metrics on [t0, T]; omitted: 1 s (0 s "
-                               "if t_final <= 1 s)",
-    "simulation.state_bound": "a state beyond this magnitude counts as divergence",
-    "simulation.dtype": "float64 or float32",
-    "simulation.solver": "rk4 (classical RK4, the paper's method) or etdrk4 (exponential RK4: "
-                         "integrates the stiff decays alpha |u'| and 1/tau exactly)",
-    "simulation.refine": "if RK4 diverges: levels tried (ETDRK4 at dt, dt/2, ...) before the "
-                         "run counts as diverged; 0: report the divergence at once",
+DOCS: dict[str, str] = {f"simulation.{k}": doc for k, (_, doc) in OPTIONS.items()} | {
     "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
     "plant.g": "g_i > 0, eq. (1) (unknown to the controller)",
     "plant.theta": "theta_i, eq. (1) (unknown to the controller)",
@@ -251,7 +206,7 @@ def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
                 subtables[f"{section}.{k}"] = v
                 continue
             if isinstance(v, Omitted):
-                line = f"# {k} = {toml_value(v.value)}"
+                line = f"# {k} = {toml_value(v.value)}" if v.value is not None else f"# {k}"
             else:
                 line = f"{k} = {toml_value(v)}"
             doc = DOCS.get(f"{section}.{k}")
@@ -379,8 +334,9 @@ def _submodel(field: str, table, kinds: Mapping[str, type], base):
 
 
 def from_dict(d: Mapping[str, Any], base: Setup | None = None,
-              base_options: SimOptions | None = None) -> tuple[Setup, SimOptions]:
-    """(Setup, SimOptions) from a config dict laid over `base` (default: the paper's example)."""
+              base_spec: RunSpec | None = None) -> tuple[Setup, RunSpec]:
+    """(Setup, RunSpec) from a config dict laid over `base` (default: the paper's example) and
+    `base_spec` (default: the defaults of [simulation])."""
     from dscjax.examples import paper_example
 
     if base is None:
@@ -392,29 +348,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
         if not isinstance(value, Mapping):
             raise ConfigError(f"'{key}' must be a table ([{key}])")
     models = {s: model_from_dict(s, d.get(s, {}), getattr(base, s)) for s in allowed[1:]}
-    options = _options_from_dict(d.get("simulation", {}), base_options or SimOptions())
-    return Setup(**models), options
-
-
-def _options_from_dict(table: Mapping[str, Any], base: SimOptions) -> SimOptions:
-    fields = {f.name for f in dataclasses.fields(SimOptions)}
-    for key in table:
-        if key not in fields:
-            raise ConfigError(f"unknown key 'simulation.{key}' (allowed: {', '.join(fields)})")
-    values = dataclasses.asdict(base)
-    for key, value in table.items():
-        if key in ("dtype", "solver"):
-            if not isinstance(value, str):
-                raise ConfigError(f"simulation.{key} must be a string (got {value!r})")
-        elif key in ("save_every", "refine"):
-            if isinstance(value, bool) or not isinstance(value, int):
-                raise ConfigError(f"simulation.{key} must be an integer (got {value!r})")
-        elif isinstance(value, bool) or not isinstance(value, int | float):
-            raise ConfigError(f"simulation.{key} must be a number (got {value!r})")
-        values[key] = value
-    options = SimOptions(**values)
-    options.validate()
-    return options
+    return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
 
 
 def read(path: str | Path) -> dict:
@@ -434,28 +368,31 @@ def read(path: str | Path) -> dict:
     return d
 
 
-def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, SimOptions]:
+def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, RunSpec]:
     """Read a .toml (or .json) config file laid over the default; ConfigError if it is bad."""
     return from_dict(read(path), base)
 
 
-def to_toml(setup: Setup, options: SimOptions | None = None, header: str = "") -> str:
+def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=None) -> str:
     """The config as TOML with every key, each described (`--print-config`). [simulation] keys
-    whose default is a rule (window_start, save_every) are printed commented out, with the
-    value the rule gives for this horizon and step."""
-    from dscjax.simulate import default_window
-
-    options = options or SimOptions()
-    d = to_dict(setup, options)
+    whose default is a rule (window_start, save_every) are printed commented out with the
+    value the rule gives for this horizon and step; optional keys left out, commented out.
+    `extra`: further tables ({name: table}, e.g. a command's [sweep]) printed after these."""
+    spec = spec or RunSpec.make()
+    d = to_dict(setup, spec)
+    table = spec.to_table()
     sim = {}
-    n_steps = max(int(round(options.t_final / options.dt)), 1)
-    rules = {"window_start": lambda: float(default_window(options.t_final)),
-             "save_every": lambda: options.save_stride(n_steps)}
-    for f in dataclasses.fields(SimOptions):
-        v = getattr(options, f.name)
-        sim[f.name] = Omitted(rules[f.name]()) if v is None else d["simulation"][f.name]
+    for key in OPTIONS:
+        value = table[key]
+        if key in spec.rules:
+            sim[key] = Omitted(getattr(spec, key) if key == "save_every"
+                               else float(spec.window_start))
+        elif value is None:
+            sim[key] = Omitted(None)
+        else:
+            sim[key] = value
     d["simulation"] = sim
-    return dumps_toml(d, header=header)
+    return dumps_toml({**d, **(extra or {})}, header=header)
 
 
 def default_toml() -> str:

@@ -51,6 +51,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation as v
+from dscjax.integrate import Checkpointed, integrate
 from dscjax.model import Model, nonnegative, option, positive, smooth_abs
 
 
@@ -573,18 +574,16 @@ def _as_float(model):
 
 def _open_loop(model, u_of_t, args, n_steps, dt):
     """(u, w) on the step grid for u = u_of_t(t, args), by `integrate` (and its clamp hook)."""
-    from dscjax.integrate import integrate
-
     def field(t, h, a):
         u, du = jax.jvp(lambda tt: u_of_t(tt, a), (t,), (jnp.ones_like(t),))
         return model.rate(u, du, h), (u, model.output(u, h))
 
-    def project(t, h, a):
+    def project(k, t, h, a):
         return model.project(u_of_t(t, a), h)
 
     h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
                       model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
-    res = integrate(field, h0, dt, n_steps, args, time_parallel=False,
+    res = integrate(field, h0, dt, n_steps, args, gradient=Checkpointed(),
                     project=project if model.projects else None, frozen=model.projects)
     return res.obs
 

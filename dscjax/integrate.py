@@ -1,38 +1,27 @@
-"""Fixed-step RK4 over pytrees: the time loop is a `jax.lax.scan`, its derivative (for one
-trajectory) a time-parallel linearisation.
+"""Fixed-step integration over pytrees: the time loop is a `jax.lax.scan`, its derivative (for
+one trajectory) a time-parallel linearisation. Nothing here knows about DSC.
 
-Nothing here knows about DSC: `integrate` takes any f(t, y, args) -> (dy, obs), where obs is
-an observation of the state at (t, y) read off for saving and for running reductions.
+`integrate(f, y0, dt, n_steps, ...)` takes any f(t, y, args) -> (dy, obs), obs an observation
+at (t, y) read off for saving and for the running reductions (`Running`, one protocol). Step
+times are t_k = k dt exactly (an integer counter times dt). Strategies are objects, as in
+diffrax: the solver (`RK4()`, `ETDRK4()`: exponential RK4, exact on the stiff linear decays
+the model reports) and the gradient (`TimeParallel()`: one trajectory's derivative as all N
+step Jacobians at once, then a small recurrence, transposed by JAX for reverse mode;
+`Checkpointed(every)`: JAX's own differentiation of the scan). A batch is always
+differentiated through its scan, in checkpointed segments of `every` steps.
 
-Step times are t_k = k dt exactly (an integer counter times dt, never a running sum), so
-trajectories agree to round-off with any other implementation that uses the same grid.
-
-How XLA:CPU runs a loop body decides the speed here (measured, see docs/architecture.md):
-- a body whose buffers are all <= 512 bytes runs its kernels one after the other in the
-  calling thread; one larger buffer anywhere in it (a stacked output, a (13, 9) tangent) makes
-  the runtime schedule every kernel on a thread pool, which costs 5-10x for small kernels.
-  Hence `SMALL`: states, parameters and stored blocks are kept in arrays of at most 64 floats;
-- every kernel costs ~25 ns of dispatch, so one trajectory is bound by the number of kernels
-  per step, not by arithmetic. A reverse-mode body has ~10x the kernels of the forward one.
-
-Layouts. One trajectory carries its state as one flat vector (m,) and reads its parameters
-from a few flat vectors of <= 64 floats. A batch is stored batch-LAST: the state is a tuple of m
-rows of shape (B,), each a contiguous vector over the batch that XLA vectorises.
-
-Gradients. Through one trajectory, `integrate` is a `jax.custom_jvp` whose rule is a
-time-parallel linearisation (`_time_parallel_jvp`): the Jacobians of all N steps are computed
-at once as one batched program over the stored states, then a small linear recurrence carries
-the tangent through time. Reverse mode is JAX's transpose of that rule, so `jax.grad`,
-`jax.jvp` and `jax.jacfwd` all get it, exactly (the derivative of the discrete RK4 map). A batch
-is differentiated by JAX through the scan, in checkpointed segments (`checkpoint_every`).
+Layouts, chosen for XLA:CPU (docs/architecture.md): one trajectory carries its state as flat
+vectors of at most `SMALL` floats (XLA:CPU runs such a loop body sequentially, without a
+thread pool); a batch is stored batch-last, one (B,) row per state component.
 """
 
 from __future__ import annotations
 
 import functools
 from collections.abc import Callable
-from typing import Any, NamedTuple, Protocol
+from typing import Any, ClassVar, NamedTuple, Protocol
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -189,9 +178,6 @@ def _etdrk4(f_obs, rates, t, y, dt, h=None, frozen=None):
     return _hold(y_next, y, frozen), obs
 
 
-SOLVERS = ("rk4", "etdrk4")
-
-
 def _rk4_scanned(f_obs, t, y, dt, h, frozen=None):
     """The same step as `_rk4`, its four stages a `lax.scan` over one copy of f_obs.
 
@@ -236,15 +222,103 @@ class Integration(NamedTuple):
     status: Status
 
 
-class Reduction(Protocol):
-    """A running reduction folded over every step k = 0..N while the trajectory is healthy.
+class Running(Protocol):
+    """A running reduction over every step k = 0..N of an integration, while it is healthy:
+    the one protocol of the metrics, tuning's terms and requirements, and progress reports.
 
     A pytree (its numbers are traced leaves, differentiable like any parameter) with
-        update(acc, k, t, y, obs) -> acc
-    `acc` is a pytree of floating scalars; `integrate` takes its initial value as `acc0`.
+        init(dtype) -> acc                         a pytree of scalars
+        update(acc, k, t, y, obs, dt) -> acc       at step k: time t_k, state y_k, obs_k
+        finalize(acc, t_final) -> {name: value}    the named results (the caller's)
     """
 
-    def update(self, acc, k, t, y, obs): ...
+    def init(self, dtype) -> Any: ...
+
+    def update(self, acc, k, t, y, obs, dt) -> Any: ...
+
+    def finalize(self, acc, t_final) -> dict[str, jax.Array]: ...
+
+
+# -- strategies: solvers and gradients (adding one is a class here) -------------------------------
+
+
+class Solver(eqx.Module):
+    """A one-step method: `step(f_obs, rates, t, y, dt, h, frozen) -> (y_next, obs at (t, y))`.
+    `rates(t, y, obs)` gives the stiff linear decays the model knows of (ETDRK4 uses them)."""
+
+    name: ClassVar[str]
+
+    def step(self, f_obs, rates, t, y, dt, h=None, frozen=None):
+        raise NotImplementedError
+
+    def step_scanned(self, f_obs, rates, t, y, dt, h=None, frozen=None):
+        """The same step, written for bulk differentiation (the time-parallel Jacobians)."""
+        return self.step(f_obs, rates, t, y, dt, h, frozen)
+
+
+class RK4(Solver):
+    """Classical fourth-order Runge-Kutta (the paper's method)."""
+
+    name: ClassVar[str] = "rk4"
+
+    def step(self, f_obs, rates, t, y, dt, h=None, frozen=None):
+        return _rk4(f_obs, t, y, dt, h, frozen)
+
+    def step_scanned(self, f_obs, rates, t, y, dt, h=None, frozen=None):
+        return _rk4_scanned(f_obs, t, y, dt, dt if h is None else h, frozen)
+
+
+class ETDRK4(Solver):
+    """Exponential RK4 (Cox & Matthews 2002): the decays `rates` integrated exactly, the rest
+    with exponential weights; stable however stiff those decays are, and RK4 where they are 0."""
+
+    name: ClassVar[str] = "etdrk4"
+
+    def step(self, f_obs, rates, t, y, dt, h=None, frozen=None):
+        if rates is None:
+            raise ValueError("ETDRK4 needs the model's decay rates (integrate(rates=...))")
+        return _etdrk4(f_obs, rates, t, y, dt, h, frozen)
+
+
+SOLVERS: dict[str, type[Solver]] = {c.name: c for c in (RK4, ETDRK4)}
+
+
+def solver(spec: str | Solver) -> Solver:
+    """A Solver from its name ("rk4", "etdrk4") or itself."""
+    if isinstance(spec, Solver):
+        return spec
+    if spec not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)} (got {spec!r})")
+    return SOLVERS[spec]()
+
+
+DEFAULT_CHECKPOINT_EVERY = 100
+
+
+class Gradient(eqx.Module):
+    """How jax.grad, jvp and jacfwd differentiate an integration. `every`: a batch's scan keeps
+    its state every this many steps and recomputes the rest (memory O(N/L + L) states per
+    member; None keeps every step's residuals)."""
+
+    name: ClassVar[str]
+    every: int | None = DEFAULT_CHECKPOINT_EVERY
+
+
+class TimeParallel(Gradient):
+    """One trajectory: the Jacobians of all N steps in one batched program, then a small linear
+    recurrence (exact: the derivative of the discrete map; memory O(N m^2))."""
+
+    name: ClassVar[str] = "time_parallel"
+
+
+class Checkpointed(Gradient):
+    """JAX's own differentiation of the scan (one trajectory: every residual kept; a reference
+    for tests)."""
+
+    name: ClassVar[str] = "checkpointed"
+
+
+GRADIENTS: dict[str, type[Gradient]] = {c.name: c for c in (TimeParallel, Checkpointed)}
 
 
 # -- flat packing ---------------------------------------------------------------------------------
@@ -386,10 +460,10 @@ class Carry(NamedTuple):
 class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
-    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, rates=None,
+    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
                  project=None, frozen=None):
         self.f, self.reduction_is_none = f, reduction is None
-        self.rates = rates  # None: classical RK4; else ETDRK4 with these decay rates
+        self.solver, self.rates = solver, rates  # rates: the decays ETDRK4 integrates exactly
         self.project = project  # None, or the map applied to the state after every step
         self.n, self.s = n_steps, save_every
         self.yp = _Packer(y0)
@@ -408,7 +482,7 @@ class _Problem:
         return self.yp.pack(dy), self.op.pack(obs)
 
     def step(self, k, y, a, dt, h=None, scanned=False, packed=True):
-        """(y_(k+1), obs_k) by RK4 (or ETDRK4) from y_k (unguarded)."""
+        """(y_(k+1), obs_k) by the solver from y_k (unguarded)."""
         t = k.astype(dt.dtype) * dt
         h = dt if h is None else h
 
@@ -416,22 +490,23 @@ class _Problem:
             return self.field(tt, yy, a, packed)
 
         args = self.ap.unpack(a) if packed else a
+        rates = None
         if self.rates is not None:
             def rates(tt, yy, obs):
                 return self.yp.pack(self.rates(tt, self.yp.unpack(yy), args,
                                                self.op.unpack(obs)))
 
-            y_next, obs = _etdrk4(f_obs, rates, t, y, dt, h, self.frozen)
-        else:
-            y_next, obs = (_rk4_scanned if scanned else _rk4)(f_obs, t, y, dt, h, self.frozen)
+        method = self.solver.step_scanned if scanned else self.solver.step
+        y_next, obs = method(f_obs, rates, t, y, dt, h, self.frozen)
         if self.project is not None:
-            y_next = self.yp.pack(self.project(t + dt, self.yp.unpack(y_next), args))
+            y_next = self.yp.pack(self.project(k + 1, t + dt, self.yp.unpack(y_next), args))
         return y_next, obs
 
-    def update(self, red, acc, k, t, y, obs):
+    def update(self, red, acc, k, t, y, obs, dt):
         if self.reduction_is_none:
             return acc
-        new = red.update(self.accp.unpack(acc), k, t, self.yp.unpack(y), self.op.unpack(obs))
+        new = red.update(self.accp.unpack(acc), k, t, self.yp.unpack(y), self.op.unpack(obs),
+                         dt)
         return self.accp.pack(new)
 
     def guarded(self, c: Carry, a, red, dt, bound):
@@ -440,7 +515,7 @@ class _Problem:
         y_next, obs = self.step(c.k, c.y, a, dt)
         ok_now = c.code == STATUS_OK
         acc = jax.tree.map(lambda old, new: jnp.where(ok_now, new, old), c.acc,
-                           self.update(red, c.acc, c.k, t, c.y, obs))
+                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
         finite, small = _all_finite_small(y_next, bound)
         bad_now = ok_now & ~(finite & small)
         code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), c.code)
@@ -458,7 +533,7 @@ class _Problem:
         t = c.k.astype(dt.dtype) * dt
         _, obs = self.field(t, c.y, a)
         acc = jax.tree.map(lambda old, new: jnp.where(c.code == STATUS_OK, new, old), c.acc,
-                           self.update(red, c.acc, c.k, t, c.y, obs))
+                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
         return acc, obs
 
     # -- the primal loop: saves every s-th state, never stores the others ----------------------
@@ -595,15 +670,16 @@ def _time_parallel_jvp(prob: _Problem, primals, tangents):
         def acc_step(dacc, inp):
             k, live, acc_k, y_k, o_k, dy_k, do_k = inp
             t_k, dt_k = k.astype(dt.dtype) * dt, k.astype(dt.dtype) * ddt
-            _, d_new = jax.jvp(lambda r, ac, t_, y_, o_: prob.update(r, ac, k, t_, y_, o_),
-                               (red, acc_k, t_k, y_k, o_k), (dred, dacc, dt_k, dy_k, do_k))
+            _, d_new = jax.jvp(
+                lambda r, ac, t_, y_, o_, h_: prob.update(r, ac, k, t_, y_, o_, h_),
+                (red, acc_k, t_k, y_k, o_k, dt), (dred, dacc, dt_k, dy_k, do_k, ddt))
             return jax.tree.map(lambda new, old: jnp.where(live, new, old), d_new, dacc), None
 
         width = max(prob.yp.sizes + prob.accp.sizes + prob.op.sizes, default=1)
         dacc_n, _ = _blocked_scan(acc_step, dacc0, (ks, live_acc, A, Y, O, dY, dO), n, width)
-        _, dacc_last = jax.jvp(lambda r, ac, t_, y_, o_: prob.update(r, ac, c.k, t_, y_, o_),
-                               (red, c.acc, t_end, c.y, obs_end),
-                               (dred, dacc_n, dt_end, dy_end, dobs_end))
+        _, dacc_last = jax.jvp(
+            lambda r, ac, t_, y_, o_, h_: prob.update(r, ac, c.k, t_, y_, o_, h_),
+            (red, c.acc, t_end, c.y, obs_end, dt), (dred, dacc_n, dt_end, dy_end, dobs_end, ddt))
         dacc_end = jax.tree.map(lambda new, old: jnp.where(no_bad, new, old), dacc_last, dacc_n)
 
     out = (_saved(Y, c.y, s), _saved(O, obs_end, s), acc_end, c.code, c.bad)
@@ -637,13 +713,14 @@ def _matvec(rows, v):
 
 
 def _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
-                      time_parallel: bool, rates=None, project=None, frozen=None):
-    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, rates, project, frozen)
+                      solver, gradient, rates=None, project=None, frozen=None):
+    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
+                    frozen)
 
     def primal(y0c, ac, red, acc0c, dtv, bound):
         return prob.forward(y0c, ac, red, acc0c, dtv, bound)
 
-    if time_parallel:
+    if isinstance(gradient, TimeParallel):
         primal = jax.custom_jvp(primal)
         primal.defjvp(lambda p, t: _time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
@@ -715,7 +792,8 @@ def _segment_length(save_every: int, target: int | None) -> int | None:
 
 
 def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                     state_bound, checkpoint_every, rates=None, project=None, frozen=None):
+                     state_bound, solver, gradient, rates=None, project=None, frozen=None):
+    checkpoint_every = gradient.every
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = _first(y0), _first(batch)
     mask = _full_mask(frozen, y_one)  # one Python bool per row: held inside a step
@@ -744,16 +822,16 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
     def rates_rows(t, y, obs):
         return jax.vmap(rates_member, in_axes=(None, 0, 0, -1), out_axes=0)(t, y, obs, b_flat)
 
-    def project_member(t, y_row, b_col):
-        return _scalars(project(t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
-                                                            unravel_b(b_col))))
+    def project_member(k, t, y_row, b_col):
+        return _scalars(project(k, t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
+                                                               unravel_b(b_col))))
 
-    def project_rows(t, y):
-        return jax.vmap(project_member, in_axes=(None, 0, -1), out_axes=0)(t, y, b_flat)
+    def project_rows(k, t, y):
+        return jax.vmap(project_member, in_axes=(None, None, 0, -1), out_axes=0)(k, t, y, b_flat)
 
     def acc_member(acc_row, k, t, y_row, obs_row):
         new = reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
-                               obs_c.unpack_one(obs_row))
+                               obs_c.unpack_one(obs_row), dt)
         return _scalars(new)
 
     acc_fn = jax.vmap(acc_member, in_axes=(0, None, None, 0, 0), out_axes=0)
@@ -771,12 +849,10 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
     def step(carry):
         k, y, acc, code, bad = carry
         t = k.astype(dt.dtype) * dt
-        if rates is None:
-            y_next, obs = _rk4(f_obs, t, y, dt, frozen=frozen_rows)
-        else:
-            y_next, obs = _etdrk4(f_obs, rates_rows, t, y, dt, frozen=frozen_rows)
+        y_next, obs = solver.step(f_obs, rates_rows if rates is not None else None, t, y, dt,
+                                  frozen=frozen_rows)
         if project is not None:
-            y_next = project_rows(t + dt, y_next)
+            y_next = project_rows(k + 1, t + dt, y_next)
         ok_now = code == STATUS_OK
         acc = acc_update(acc, k, t, y, obs, ok_now)
         finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in y_next])
@@ -856,8 +932,6 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
 
 # -- the entry point ------------------------------------------------------------------------------
 
-DEFAULT_CHECKPOINT_EVERY = 100
-
 
 def integrate(
     f: Callable,
@@ -868,16 +942,15 @@ def integrate(
     *,
     batch: Pytree = None,
     save_every: int = 1,
-    reduction: Reduction | None = None,
-    acc0: Pytree = None,
+    reduction: Running | None = None,
     state_bound=jnp.inf,
-    checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-    time_parallel: bool = True,
+    solver: Solver | None = None,
+    gradient: Gradient | None = None,
     rates: Callable | None = None,
     project: Callable | None = None,
     frozen: Pytree = None,
 ) -> Integration:
-    """Integrate y' = f(t, y, args) by RK4 on t_k = k dt, k = 0..n_steps.
+    """Integrate y' = f(t, y, args) on t_k = k dt, k = 0..n_steps.
 
     Args:
         f: f(t, y, args) -> (dy, obs); obs is an observation at (t, y). With `batch`, f is called
@@ -889,46 +962,46 @@ def integrate(
         batch: None, or a pytree whose leaves have a leading batch axis B: per-member arguments.
         save_every: keep the states and observations at the steps 0, s, 2s, ... and always
             at N (`saved_steps`; s need not divide N) (static); memory is O(N/s).
-        reduction: None, or a `Reduction` pytree: acc <- reduction.update(acc, k, t_k, y_k,
-            obs_k) for every k = 0..N while the trajectory is healthy (running metrics).
-        acc0: initial accumulator (with `batch`: leading batch axis).
+        reduction: None, or a `Running` reduction: acc <- update(acc, k, t_k, y_k, obs_k, dt)
+            for every k = 0..N while the trajectory is healthy, from init(dtype) (every member
+            of a batch alike); `Integration.acc` is its raw accumulator.
         state_bound: a state with any |component| above it counts as diverged (traced).
-        checkpoint_every: batches only: reverse-mode differentiation keeps the state every this
-            many steps (a divisor of save_every is used) and recomputes the steps in between,
-            so memory is O(N / L + L) states per member; None keeps every step's residuals.
-            One trajectory is differentiated by the time-parallel linearisation instead.
-        time_parallel: one trajectory only: differentiate by the time-parallel linearisation
-            (default; exact, memory O(N m^2) for m state components). False: JAX's own
-            differentiation of the scan (a reference for tests).
-        rates: None for classical RK4 (the default). Else the exponential RK4 step
-            (`_etdrk4`): rates(t, y, args, obs) gives a decay rate >= 0 for every state
-            component (a pytree like y; with `batch`, args is (args, b)) whose linear part
-            -rate * y is integrated exactly: stable for stiff linear decays.
-        project: None, or project(t, y, args) -> y (with `batch`, args is (args, b)), applied
-            to the state after every step, at the step's end time t: a discrete update that
-            is no ODE, such as the play operators' clamp (`hysteresis.PrandtlIshlinskii`).
+        solver: `RK4()` (None: the default) or `ETDRK4()` (needs `rates`).
+        gradient: `TimeParallel()` (None: the default) or `Checkpointed()`; its `every` is the
+            checkpoint segment of a batch's scan.
+        rates: rates(t, y, args, obs) -> a decay rate >= 0 per state component (a pytree like
+            y; with `batch`, args is (args, b)), whose linear part -rate * y ETDRK4 integrates
+            exactly. Ignored by RK4.
+        project: None, or project(k, t, y, args) -> y (with `batch`, args is (args, b)),
+            applied to the state after every step, at its end (step index k, time t): a
+            discrete update that is no ODE (the plays' clamp, a sampled controller).
         frozen: None, or a tree of Python bools, a prefix of y's structure (static; for a
-            batch, of one member's): True marks components held constant inside a step. Every
-            stage reads them unchanged and the step leaves them as they are, whatever f gives
-            for their rate (their increments are discarded; in the rows layout never formed);
-            only `project` changes them.
-            They are still checked against `state_bound` after the step.
+            batch, of one member's): True marks components held constant inside a step; only
+            `project` changes them. They are still checked against `state_bound`.
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
     """
+    solver = RK4() if solver is None else solver
+    gradient = TimeParallel() if gradient is None else gradient
     dt = jnp.asarray(dt)
     if not jnp.issubdtype(dt.dtype, jnp.floating):
         dt = dt.astype(jnp.result_type(*jax.tree.leaves(y0)))
     state_bound = jnp.asarray(state_bound, dt.dtype)
-    if reduction is not None and acc0 is None:
-        raise ValueError("a reduction needs its initial accumulator acc0")
+    acc0 = None
+    if reduction is not None:
+        acc0 = reduction.init(dt.dtype)
+        if batch is not None:
+            n_batch = jax.tree.leaves(y0)[0].shape[0]
+            acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch, *jnp.shape(a))), acc0)
     if batch is None:
         return _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
-                                 state_bound, time_parallel, rates, project, frozen)
+                                 state_bound, solver, gradient, rates, project, frozen)
     return _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                            state_bound, checkpoint_every, rates, project, frozen)
+                            state_bound, solver, gradient, rates, project, frozen)
 
 
-__all__ = ["STATUS_BOUND", "STATUS_NONFINITE", "STATUS_OK", "Carry", "Integration",
-           "Reduction", "SMALL", "Status", "integrate", "rk4_step", "saved_steps"]
+__all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "GRADIENTS", "RK4", "SOLVERS", "STATUS_BOUND",
+           "STATUS_NONFINITE", "STATUS_OK", "Carry", "Checkpointed", "Gradient", "Integration",
+           "Running", "SMALL", "Solver", "Status", "TimeParallel", "integrate", "rk4_step",
+           "saved_steps", "solver"]

@@ -1,14 +1,10 @@
 """Tracking and control-effort metrics, all differentiable (max and |.| a.e.).
 
-Two implementations of the same definitions:
-- functions of saved arrays (`linf`, `l2`, ...), for post-processing a trajectory;
-- a running accumulator updated at every RK4 step inside the scan (`RunningMetrics`), so that
-  sweeps and tuning get exact step-grid metrics without storing the trajectory.
-With save_every = 1 the two agree (tested).
-
-Every running reduction of a simulation follows one protocol, `Running` (optax-style
-init/update/finalize): these metrics (through `simulate.LoopMetrics`), tuning's smooth terms
-and requirements, and progress reports. `run(extra=...)` folds one in beside these metrics.
+Two implementations of the same definitions: functions of saved arrays (`linf`, `l2`, ...)
+for post-processing, and `Tracking`, a running reduction (the `integrate.Running` protocol)
+updated at every step inside the scan, so that sweeps and tuning get exact step-grid metrics
+without storing the trajectory (with save_every = 1 the two agree; tested). `Combined` folds
+several reductions into one (a run's metrics beside tuning's terms and requirements).
 
 Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
     L_inf  = max_{k in W} |e_k|
@@ -20,28 +16,11 @@ where e = y - y_r = x_1 - y_r.
 
 from __future__ import annotations
 
-from typing import Any, NamedTuple, Protocol
+from typing import Any, NamedTuple
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
-
-
-class Running(Protocol):
-    """A running reduction over every step k = 0..N of a simulation, while it is healthy.
-
-    A pytree (its numbers are traced leaves, differentiable like any parameter) with
-        init(dtype) -> acc                         a pytree of scalars
-        update(acc, k, t, y, obs, dt) -> acc       at step k: time t_k, state y_k (a
-                                                   `closed_loop.State`), observation obs_k
-        finalize(acc, t_final) -> {name: value}    the named results
-    `simulate.run(extra=...)` takes one and adds its results to the trajectory's metrics.
-    """
-
-    def init(self, dtype) -> Any: ...
-
-    def update(self, acc, k, t, y, obs, dt) -> Any: ...
-
-    def finalize(self, acc, t_final) -> dict[str, jax.Array]: ...
 
 
 def trapezoid_weight(k, dt, n_steps):
@@ -171,6 +150,43 @@ def finalize(acc: RunningMetrics, t_final) -> dict[str, jax.Array]:
         "tv_u": acc.u_tv,
         "max_abs_w": acc.w_max,
     }
+
+
+class Tracking(eqx.Module):
+    """The metrics of every run as a running reduction (`integrate.Running`): it reads
+    e = x_1 - y_r, u and w off a closed-loop state y (`y.x`) and its observation."""
+
+    window_start: jax.Array  # () t0 of the window [t0, T]
+    n_steps: int = eqx.field(static=True, default=1)
+
+    def init(self, dtype) -> RunningMetrics:
+        return running_init(dtype)
+
+    def update(self, acc, k, t, y, obs, dt):
+        return running_update(acc, k, t, y.x[0] - obs.yr, obs.u, obs.w, dt, self.window_start,
+                              self.n_steps)
+
+    def finalize(self, acc, t_final):
+        return finalize(acc, t_final)
+
+
+class Combined(eqx.Module):
+    """Several running reductions as one; their results are merged (each name prefixed)."""
+
+    parts: tuple  # ((prefix, reduction), ...)
+
+    def init(self, dtype):
+        return tuple(r.init(dtype) for _, r in self.parts)
+
+    def update(self, acc, k, t, y, obs, dt):
+        return tuple(r.update(a, k, t, y, obs, dt)
+                     for (_, r), a in zip(self.parts, acc, strict=True))
+
+    def finalize(self, acc, t_final) -> dict[str, Any]:
+        out = {}
+        for (prefix, r), a in zip(self.parts, acc, strict=True):
+            out |= {prefix + k: v for k, v in r.finalize(a, t_final).items()}
+        return out
 
 
 def _safe_sqrt(x):

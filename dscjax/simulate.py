@@ -1,15 +1,18 @@
-"""The public entry points: `simulate` (one trajectory) and `simulate_batch` (vmapped).
+"""The public entry points: `simulate` (one trajectory) and `simulate_batch` (vmapped), and
+`run`, the pure function under them that tuning, sweeps and the worst-case search compose.
 
-Both are jitted once per static structure (model classes and their static fields, the order n,
-the number of steps, the save stride); every number in the Setup, dt, the
-metric window and the state bound are traced, so changing a gain never recompiles.
+A run is a `Setup` (every number traced) and a `RunSpec` (how it is simulated: the number of
+steps, the save stride, the solver and the controller's sampling are static). Both entry points
+are jitted once per static structure: changing a gain, dt or the metric window never
+recompiles. A run that diverges is run again refined (ETDRK4, smaller steps) before it counts
+as diverged; a diverged trajectory's metrics are NaN, beside its status and time.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -19,27 +22,31 @@ import numpy as np
 from dscjax import metrics as m
 from dscjax import params, validation, xla
 from dscjax.closed_loop import (
+    Sampling,
     Setup,
-    State,
     decay_rates,
     diagnose,
     frozen,
     initial_state,
     prepared,
     project,
+    sample_after_step,
+    sampled_frozen,
+    sampled_initial_state,
+    sampled_vector_field,
     vector_field,
 )
 from dscjax.integrate import (
     DEFAULT_CHECKPOINT_EVERY,
-    SOLVERS,
     STATUS_BOUND,
     STATUS_NONFINITE,
     STATUS_OK,
     Status,
+    TimeParallel,
     integrate,
     saved_steps,
 )
-from dscjax.metrics import DEFAULT_WINDOW_START, default_window  # noqa: F401 (public here too)
+from dscjax.runspec import DEFAULT_REFINE, RunSpec
 
 
 class Trajectory(eqx.Module):
@@ -123,99 +130,77 @@ class DivergenceError(RuntimeError):
         self.trajectory = trajectory
 
 
-@jax.tree_util.register_dataclass
-@dataclasses.dataclass(frozen=True)
-class LoopMetrics:
-    """The running reductions of a simulation (an `integrate.Reduction`): `metrics.py`'s, plus
-    the caller's own `extra` ones (tuning's smooth L-inf and requirement penalties)."""
+class _Loop(NamedTuple):
+    """The functions `integrate` needs for one kind of loop (continuous or sampled)."""
 
-    dt: jax.Array
-    window_start: jax.Array
-    extra: Any = None
-    n_steps: int = dataclasses.field(default=1, metadata=dict(static=True))
-
-    def init(self, dtype):
-        base = m.running_init(dtype)
-        return base if self.extra is None else (base, self.extra.init(dtype))
-
-    def update(self, acc, k, t, y: State, obs):
-        base = acc if self.extra is None else acc[0]
-        base = m.running_update(base, k, t, y.x[0] - obs.yr, obs.u, obs.w, self.dt,
-                                self.window_start, self.n_steps)
-        if self.extra is None:
-            return base
-        return base, self.extra.update(acc[1], k, t, y, obs, self.dt)
-
-    def finalize(self, acc, t_final):
-        if self.extra is None:
-            return m.finalize(acc, t_final)
-        return {**m.finalize(acc[0], t_final), **self.extra.finalize(acc[1], t_final)}
+    field: Callable  # (t, y, setup) -> (dy, obs)
+    init: Callable  # setup -> y0
+    rates: Callable  # (t, y, setup, obs) -> decay rates like y
+    project: Callable | None  # (k, t, y, setup) -> y after a step
+    frozen: Any
 
 
-def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
-        overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-        extra=None, solver: str = "rk4", gradient: str = "time_parallel") -> Trajectory:
+def _loop(setup: Setup, spec: RunSpec) -> _Loop:
+    if not spec.sampled:
+        proj = None
+        if type(setup.hysteresis).projects:
+            def proj(k, t, y, s):
+                return project(t, y, s)
+
+        return _Loop(vector_field, initial_state, decay_rates, proj, frozen(setup))
+    sampling = Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
+                        seed=spec.noise_seed)
+    return _Loop(
+        sampled_vector_field,
+        lambda s: sampled_initial_state(s, sampling, spec.dt),
+        lambda t, y, s, obs: jax.tree.map(jnp.zeros_like, y),
+        lambda k, t, y, s: sample_after_step(k, t, y, s, sampling, spec.dt),
+        sampled_frozen(setup))
+
+
+def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
     """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
 
-    Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do).
-    The caller validates (`validation.validate_setup`, `validate_run`) and passes the number
-    of steps. All arguments but the keyword-only ones may be traced.
+    Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do); the
+    caller validates (`check`). `spec`'s traced fields may be traced.
 
     With `overrides` ({path: (B, ...)}), simulates the batch of setups with those leaves
-    replaced, stored batch-last inside the loop (see integrate.py).
-
-    `extra` adds running reductions of the caller's own (tuning uses it for its smooth L-inf
-    surrogate and requirement penalties): a pytree (traced leaves) with methods
-    `init(dtype) -> acc` (a pytree of scalars), `update(acc, k, t, y, obs, dt) -> acc` (called
-    at every step k = 0..N, like `metrics.running_update`) and `finalize(acc, t_final) -> dict`,
-    whose entries are added to `metrics`. None (the default) costs nothing.
-
-    `solver`: "rk4" (classical RK4, the default) or "etdrk4" (the exponential RK4, ETDRK4, that
-    integrates the stiff linear decays of `closed_loop.decay_rates` exactly).
-
-    `gradient` (one trajectory only): how jax.grad / jvp / jacfwd differentiate the loop:
-    "time_parallel" (the default: the Jacobians of all steps in one batched program, then a
-    small recurrence; memory O(N m^2) for N steps and m states) or "autodiff" (JAX's own
-    differentiation of the scan: the same numbers, several times slower in reverse mode; a
-    reference). A batch is always differentiated through its checkpointed scan.
+    replaced, stored batch-last inside the loop (see integrate.py). `extra` adds running
+    reductions of the caller's own (a `integrate.Running`, e.g. tuning's smooth terms and
+    requirements), whose results are added to `metrics`.
     """
-    validation.one_of(solver, "solver", SOLVERS)
-    validation.one_of(gradient, "gradient", GRADIENTS)
     dtype = jnp.result_type(setup.plant.x0)
-    dt = jnp.asarray(dt, dtype)
-    window_start = jnp.asarray(window_start, dtype)
-    t_final = jnp.asarray(n_steps, dtype) * dt
-    red = LoopMetrics(dt=dt, window_start=window_start, extra=extra, n_steps=n_steps)
-    common = dict(save_every=save_every, reduction=red,
-                  state_bound=jnp.asarray(state_bound, dtype), frozen=frozen(setup))
-    exponential = solver == "etdrk4"
+    spec = spec.for_dtype(dtype)
+    red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
+    if extra is not None:
+        red = m.Combined((("", red), ("", extra)))
+    common = dict(save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
+                  solver=spec.solver, gradient=spec.gradient)
     if overrides is None:
-        if exponential:
-            common["rates"] = decay_rates
-        if type(setup.hysteresis).projects:
-            common["project"] = project
         setup = prepared(setup)
-        y0 = initial_state(setup)
-        res = integrate(vector_field, y0, dt, n_steps, setup, acc0=red.init(dtype),
-                        time_parallel=gradient == "time_parallel", **common)
+        loop = _loop(setup, spec)
+        res = integrate(loop.field, loop.init(setup), spec.dt, spec.n_steps, setup,
+                        rates=loop.rates, project=loop.project, frozen=loop.frozen, **common)
     else:
         shared, batched, rebuild = _split_members(setup, overrides)
-        y0 = jax.vmap(lambda b: initial_state(rebuild(shared, b)))(batched)
-        n_batch = jax.tree.leaves(overrides)[0].shape[0]
-        acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch,)), red.init(dtype))
-        if exponential:
-            common["rates"] = lambda t, y, args, obs: decay_rates(t, y, rebuild(*args), obs)
-        if type(setup.hysteresis).projects:
-            common["project"] = lambda t, y, args: project(t, y, rebuild(*args))
-        res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
-                        shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
-                        **common)
-    steps = saved_steps(n_steps, save_every)
-    n_saved = steps.size
-    t = jnp.asarray(steps, jnp.int32).astype(dtype) * dt
+        loop = _loop(setup, spec)
+        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b)))(batched)
+        proj = None
+        if loop.project is not None:
+            def proj(k, t, y, args):
+                return loop.project(k, t, y, rebuild(*args))
+
+        res = integrate(lambda t, y, sh, b: loop.field(t, y, rebuild(sh, b)), y0, spec.dt,
+                        spec.n_steps, shared, batch=batched,
+                        rates=lambda t, y, args, obs: loop.rates(t, y, rebuild(*args), obs),
+                        project=proj, frozen=loop.frozen, **common)
+    t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
+    t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
     finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
+    dt = spec.dt
     if overrides is not None:
-        t = jnp.broadcast_to(t, (n_batch, n_saved))
+        n_batch = jax.tree.leaves(overrides)[0].shape[0]
+        t = jnp.broadcast_to(t, (n_batch, t.shape[0]))
         dt = jnp.broadcast_to(dt, (n_batch,))
     return Trajectory(
         t=t, x=res.ys.x, w=res.obs.w, h=res.ys.h, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
@@ -280,19 +265,15 @@ def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
     return {k: jnp.where(diverged, jnp.nan, v) for k, v in metrics.items()}
 
 
-def _run_reported(setup, dt, window_start, state_bound, *, n_steps: int, save_every: int,
-                  overrides=None, checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-                  extra=None, solver: str = "rk4",
-                  gradient: str = "time_parallel") -> Trajectory:
+def _run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
     """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
-    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=save_every,
-               overrides=overrides, checkpoint_every=checkpoint_every, extra=extra,
-               solver=solver, gradient=gradient)
+    traj = run(setup, spec, overrides=overrides, extra=extra)
     return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
 
 
-_simulate = jax.jit(_run_reported, static_argnames=("n_steps", "save_every", "checkpoint_every",
-                                                   "solver", "gradient"))
+_simulate = jax.jit(_run_reported)
+# 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
+_simulate_batch = xla.jit(_run_reported)
 
 
 def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
@@ -305,8 +286,10 @@ def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
     return "etdrk4", (j - 1 if solver == "rk4" else j)
 
 
-GRADIENTS = ("time_parallel", "autodiff")
-DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
+def level_spec(spec: RunSpec, j: int) -> RunSpec:
+    """The spec of refinement level j (`refinement_level`) of a run."""
+    name, halvings = refinement_level(j, spec.solver.name)
+    return spec.refined(halvings, name) if j else spec
 
 
 def simulate(
@@ -314,48 +297,35 @@ def simulate(
     t_final: float = 20.0,
     dt: float = 1e-3,
     *,
+    spec: RunSpec | None = None,
     save_every: int = 1,
     window_start: float | None = None,
     state_bound: float = 1e6,
+    solver: str = "rk4",
+    refine: int = DEFAULT_REFINE,
+    sample_time: float | None = None,
     throw: bool = True,
     progress: Callable[[float], None] | None = None,
-    refine: int = DEFAULT_REFINE,
-    solver: str = "rk4",
-    gradient: str = "time_parallel",
     extra=None,
 ) -> Trajectory:
-    """Simulate the closed loop by fixed-step RK4 on t_k = k dt, k = 0..t_final/dt.
+    """Simulate the closed loop on t_k = k dt, k = 0..t_final/dt.
 
     Args:
         setup: the plant, hysteresis, controller and reference (see `paper_example`).
-        t_final: horizon T in seconds; must be a whole number of steps.
-        dt: RK4 step. Validated against the fastest filter (dt/tau <= 2.785).
-        save_every: keep every s-th step in the returned arrays, and always the last one, at
-            t_final (s need not divide the number of steps; the metrics use every step).
-        window_start: t0 of the windowed metrics [t0, T]; default 1 s (0 if T <= 1 s).
-        state_bound: a state component beyond it in magnitude counts as divergence.
+        t_final, dt, save_every, window_start, state_bound, solver, refine, sample_time: the
+            run (`RunSpec.make`'s arguments; checked, ConfigError naming the field), unless
+            `spec` gives it whole. save_every: every s-th step is kept in the returned arrays,
+            and always the last one (the metrics use every step). refine: if the run diverges,
+            it is run again with ETDRK4 at dt, dt/2, ..., and the first run that stays finite
+            is reported (`traj.refinements`, `traj.dt`); 0 disables it (concrete inputs only).
+            sample_time: the controller sampled at Ts with a zero-order hold (`Sampling`).
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
-            Under an outer jit/vmap no exception can be raised; `status` is always returned.
-        refine: if classical RK4 diverges, run again with the exponential step ETDRK4 (which
-            integrates the stiff decays, the hysteresis rate alpha |u'| and the filters 1/tau,
-            exactly) at dt, then dt/2, ..., dt/2^(refine-1), on the same save times, and
-            report the first run that stays finite; `traj.refinements` says which level it
-            took (`refinement_level`), `traj.dt` the step. A run that diverges at every level
-            is reported diverged, with `traj.dt` the smallest step tried. RK4 at a fixed dt can
-            blow up where u moves fast although the loop itself does not; where RK4 stays
-            finite its result is returned unchanged. 0 disables it. Needs concrete inputs
-            (under an outer jit nothing is refined).
-        progress: called on the host with the fraction of the steps done, 0.0, 0.01, ...,
-            1.0, while the compiled loop runs (a `jax.debug.callback` every 1 % of the steps;
-            about 2 % slower). It is part of the compiled program: pass the same callable to
-            avoid recompiling. None (the default) costs nothing.
-        extra: running reductions of the caller's own, as `run`'s (e.g. a requirement of
-            `tuning.requirements`, whose margin `dscjax worst-case` maximises); their results
-            are added to `metrics`. Not together with `progress`.
+        progress: called on the host with the fraction of the steps done (every 1 %) while
+            the compiled loop runs; pass the same callable to avoid recompiling.
+        extra: running reductions of the caller's own (`integrate.Running`), as `run`'s.
 
     Returns:
-        Trajectory with arrays of length ceil(N / save_every) + 1 (N = t_final/dt) and the
-        metrics (NaN if the run diverged: `traj.diverged`, `traj.t_diverged` say when).
+        Trajectory (metrics NaN if the run diverged: `traj.diverged`, `traj.t_diverged`).
 
     Example:
         >>> import dscjax
@@ -363,36 +333,32 @@ def simulate(
         >>> traj.x.shape
         (21, 2)
     """
-    window_start = default_window(t_final, window_start)
+    if spec is None:
+        spec = RunSpec.make(t_final, dt, save_every=save_every, window_start=window_start,
+                            state_bound=state_bound, solver=solver, refine=refine,
+                            sample_time=sample_time, prefix="")
     setup = canonical(setup)
-    n_steps = _check(setup, t_final, dt, save_every, window_start)
+    check(setup, spec)
     if progress is not None:
         if extra is not None:
             raise ValueError("simulate: give progress or extra, not both")
-        extra = _Progress(n_steps, progress)
-    _check_refine(refine)
-    validation.one_of(solver, "solver", SOLVERS)
-    validation.one_of(gradient, "gradient", GRADIENTS)
-    traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
-                     save_every=save_every, extra=extra, solver=solver, gradient=gradient)
+        extra = _Progress(spec.n_steps, progress)
+    traj = _simulate(setup, spec, None, extra)
     concrete = validation.is_concrete(traj.status)
-    for j in range(1, refine + 1):
+    for j in range(1, spec.refine + 1):
         if not (concrete and bool(traj.diverged)):
             break
-        level_solver, m = refinement_level(j, solver)
-        finer = _simulate(setup, dt / 2**m, window_start, state_bound, n_steps=n_steps * 2**m,
-                          save_every=save_every * 2**m, extra=extra, solver=level_solver,
-                          gradient=gradient)
+        finer = _simulate(setup, level_spec(spec, j), None, extra)
         traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
     if throw and concrete and bool(traj.diverged):
-        raise DivergenceError(divergence_report(traj, state_bound)[0] + diagnose(setup, traj),
-                              traj)
+        why = "" if spec.sampled else diagnose(setup, traj)
+        raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
     return traj
 
 
 class _Progress(eqx.Module):
-    """An `extra` reduction of `run` (a `metrics.Running`) that reports progress to the host
-    and reduces nothing."""
+    """An `extra` reduction of `run` (an `integrate.Running`) that reports progress to the
+    host and reduces nothing."""
 
     n_steps: int = eqx.field(static=True)
     report: Callable[[float], None] = eqx.field(static=True)
@@ -425,19 +391,14 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, _dtype(setup))
 
 
-def _check_refine(refine):
-    validation.integer(refine, "refine", 0)
-
-
-def _check_checkpoint(checkpoint_every):
-    if checkpoint_every is not None:
-        validation.integer(checkpoint_every, "checkpoint_every", 1)
-
-
-def _check(setup, t_final, dt, save_every, window_start, batched=False) -> int:
+def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
+    """Host-side checks of a setup against a run (ConfigError naming the field): the setup's
+    models (unless `batched`: their rows are checked by the caller) and, for a continuous loop
+    integrated by RK4, the fastest filter against the step."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
-    return validation.validate_run(setup, t_final, dt, save_every, window_start)
+    if not spec.sampled and spec.solver.name == "rk4":
+        validation.check_filters(setup, float(spec.dt))
 
 
 def simulate_batch(
@@ -446,12 +407,14 @@ def simulate_batch(
     t_final: float = 20.0,
     dt: float = 1e-3,
     *,
+    spec: RunSpec | None = None,
     save_every: int | None = None,
     window_start: float | None = None,
     state_bound: float = 1e6,
     checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
     refine: int = DEFAULT_REFINE,
     solver: str = "rk4",
+    sample_time: float | None = None,
 ) -> Trajectory:
     """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
     the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
@@ -462,11 +425,11 @@ def simulate_batch(
 
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
-        save_every: default t_final/dt, i.e. only the first and last points plus the metrics.
+        t_final, dt, window_start, state_bound, solver, refine, sample_time: as `simulate`'s
+            (or `spec`); refinement re-runs only the diverged rows, as a batch of their own.
+        save_every: default t_final/dt: only the first and last points, and the metrics.
         checkpoint_every: reverse-mode differentiation keeps the batch's state every this many
             steps and recomputes the steps between (memory O(N/L + L) states per member).
-        refine: as for `simulate`, per trajectory: only the diverged ones are run again, as a
-            batch of their own, at dt/2, dt/4, ... (`traj.refinements` per trajectory).
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -476,36 +439,35 @@ def simulate_batch(
         >>> traj.metrics["linf_error"].shape
         (3,)
     """
+    if spec is None:
+        if checkpoint_every is not None:
+            validation.integer(checkpoint_every, "checkpoint_every", 1)
+        n_total = validation.whole_steps(t_final, dt, "t_final", "dt")
+        spec = RunSpec.make(t_final, dt, save_every=n_total if save_every is None else save_every,
+                            window_start=window_start, state_bound=state_bound, solver=solver,
+                            refine=refine, sample_time=sample_time, prefix="",
+                            gradient=TimeParallel(every=checkpoint_every))
     setup = canonical(setup)
     dtype = _dtype(setup)
     overrides = {p: params.cast(v, dtype) for p, v in overrides.items()}
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
-    window_start = default_window(t_final, window_start)
-    n_total = int(round(t_final / dt))
-    save_every = n_total if save_every is None else save_every
     if validation.is_concrete(setup):
         validation.validate_setup(setup)
         if validation.is_concrete(overrides):
             validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
-    n_steps = _check(setup, t_final, dt, save_every, window_start, batched=True)
-    _check_checkpoint(checkpoint_every)
-    _check_refine(refine)
-    validation.one_of(solver, "solver", SOLVERS)
+    check(setup, spec, batched=True)
     overrides = dict(overrides)
 
     def level(j, ov):
-        level_solver, m = refinement_level(j, solver)
-        return _simulate_batch(setup, ov, dt / 2**m, window_start, state_bound,
-                               n_steps=n_steps * 2**m, save_every=save_every * 2**m,
-                               checkpoint_every=checkpoint_every, solver=level_solver)
+        return _simulate_batch(setup, level_spec(spec, j), ov)
 
     traj = level(0, overrides)
-    if refine and validation.is_concrete((traj, overrides)):  # refinement is host-side
-        traj = refine_diverged(traj, overrides, level, refine)
+    if spec.refine and validation.is_concrete((traj, overrides)):  # refinement is host-side
+        traj = refine_diverged(traj, overrides, level, spec.refine)
     return traj
 
 
@@ -550,18 +512,6 @@ def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Calla
     out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
                               lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
     return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
-
-
-def _simulate_batch_body(setup, overrides, dt, window_start, state_bound, *, n_steps,
-                         save_every, checkpoint_every=DEFAULT_CHECKPOINT_EVERY, solver="rk4"):
-    return _run_reported(setup, dt, window_start, state_bound, n_steps=n_steps,
-                         save_every=save_every, overrides=overrides,
-                         checkpoint_every=checkpoint_every, solver=solver)
-
-
-# 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
-_simulate_batch = xla.jit(_simulate_batch_body,
-                          static_argnames=("n_steps", "save_every", "checkpoint_every", "solver"))
 
 
 def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:

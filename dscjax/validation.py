@@ -169,16 +169,9 @@ def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.
     return n_steps
 
 
-def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
-    """Check the run settings against the setup; returns the number of steps N = t_final/dt.
-    The save stride need not divide N (the last saved point is always t_final)."""
-    n_steps = whole_steps(t_final, dt)
-    integer(save_every, "simulation.save_every", 1)
-    if window_start is not None and not (0 <= float(window_start) < float(t_final)):
-        raise ConfigError(
-            f"simulation.window_start must be in [0, t_final) = [0, {float(t_final):.6g}) "
-            f"(got {float(window_start):.6g})"
-        )
+def check_filters(setup, dt) -> None:
+    """RK4 on the fastest filter: dt / min(controller.tau) <= 2.785 (a continuous loop
+    integrated by classical RK4); ConfigError with the largest dt that passes."""
     tau = getattr(setup.controller, "tau", None)
     # a traced tau (e.g. differentiated by tuning) cannot be checked here: its caller does
     if tau is not None and np.size(tau) and is_concrete(tau):
@@ -190,4 +183,17 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
                 f"(got min tau = {float(np.min(tau)):.6g}, ratio {ratio:.3g}); use dt <= "
                 f"{floor_sig(RK4_REAL_STABILITY * float(np.min(tau)))}"
             )
+
+
+def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
+    """Check the run settings against the setup; returns the number of steps N = t_final/dt.
+    The save stride need not divide N (the last saved point is always t_final)."""
+    n_steps = whole_steps(t_final, dt)
+    integer(save_every, "simulation.save_every", 1)
+    if window_start is not None and not (0 <= float(window_start) < float(t_final)):
+        raise ConfigError(
+            f"simulation.window_start must be in [0, t_final) = [0, {float(t_final):.6g}) "
+            f"(got {float(window_start):.6g})"
+        )
+    check_filters(setup, dt)
     return n_steps

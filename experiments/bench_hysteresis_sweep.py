@@ -23,7 +23,7 @@ import numpy as np
 
 from dscjax import ranges as rg
 from dscjax.examples import example
-from dscjax.simulate import default_window
+from dscjax.metrics import default_window
 from dscjax.sweep.device import Runner
 
 DT = 1e-3

@@ -40,7 +40,7 @@ import numpy as np  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax import ranges as rg  # noqa: E402
-from dscjax.simulate import default_window  # noqa: E402
+from dscjax.metrics import default_window  # noqa: E402
 from dscjax.sweep.device import METRICS, Runner  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -5,7 +5,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dscjax.integrate import STATUS_OK, integrate, rk4_step, saved_steps
+from dscjax.integrate import (
+    SOLVERS,
+    STATUS_OK,
+    Checkpointed,
+    TimeParallel,
+    integrate,
+    rk4_step,
+    saved_steps,
+)
 
 
 def _oscillator(t, y, args):
@@ -78,7 +86,7 @@ def test_a_stride_that_does_not_divide_the_steps_keeps_every_s_th_step_and_the_l
     for checkpoint_every in (None, 7):
         batch = integrate(f, {"p": jnp.array([1.0, 0.5]), "q": jnp.zeros(2)}, dt, n, (),
                           batch=jnp.array([3.0, 2.0]), save_every=s,
-                          checkpoint_every=checkpoint_every)
+                          gradient=TimeParallel(every=checkpoint_every))
         assert batch.ys["p"].shape == (2, k.size)
         np.testing.assert_allclose(np.asarray(batch.ys["p"][0]), np.asarray(strided.ys["p"]),
                                    rtol=1e-13)
@@ -89,7 +97,7 @@ def test_a_stride_that_does_not_divide_the_steps_keeps_every_s_th_step_and_the_l
 def test_gradient_through_a_stride_that_does_not_divide_the_steps():
     def loss(w, time_parallel):
         res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.005, 397, w,
-                        save_every=10, time_parallel=time_parallel)
+                        save_every=10, gradient=TimeParallel() if time_parallel else Checkpointed())
         return jnp.sum(res.ys["p"] ** 2) + jnp.sum(res.obs)
 
     g_tp = jax.grad(loss)(jnp.array(3.0), True)
@@ -103,7 +111,7 @@ def test_gradient_through_a_stride_that_does_not_divide_the_steps():
             return _oscillator(t, y, w)
 
         res = integrate(f, {"p": jnp.ones(2), "q": jnp.zeros(2)}, 0.005, 397, (), batch=ws,
-                        save_every=10, checkpoint_every=checkpoint_every)
+                        save_every=10, gradient=TimeParallel(every=checkpoint_every))
         return jnp.sum(res.ys["p"] ** 2)
 
     ws = jnp.array([2.0, 3.0])
@@ -114,8 +122,14 @@ def test_gradient_through_a_stride_that_does_not_divide_the_steps():
 class _Count:
     """A reduction that counts the samples it sees."""
 
-    def update(self, acc, k, t, y, obs):
+    def init(self, dtype):
+        return jnp.zeros((), dtype)
+
+    def update(self, acc, k, t, y, obs, dt):
         return acc + 1.0
+
+    def finalize(self, acc, t_final):
+        return {"count": acc}
 
 
 jax.tree_util.register_pytree_node(_Count, lambda r: ((), None), lambda _, __: _Count())
@@ -123,7 +137,7 @@ jax.tree_util.register_pytree_node(_Count, lambda r: ((), None), lambda _, __: _
 
 def test_running_accumulator_sees_every_step():
     res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.01, 100,
-                    jnp.array(3.0), save_every=50, reduction=_Count(), acc0=jnp.array(0.0))
+                    jnp.array(3.0), save_every=50, reduction=_Count())
     assert float(res.acc) == 101.0  # k = 0..N
 
 
@@ -150,7 +164,7 @@ def test_healthy_run_has_ok_status():
 def test_time_parallel_gradient_equals_autodiff_and_finite_differences():
     def loss(w, time_parallel):
         res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.005, 400, w,
-                        save_every=10, time_parallel=time_parallel)
+                        save_every=10, gradient=TimeParallel() if time_parallel else Checkpointed())
         return jnp.sum(res.ys["p"] ** 2) + jnp.sum(res.obs)
 
     g_tp = jax.grad(loss)(jnp.array(3.0), True)
@@ -169,7 +183,8 @@ def test_checkpointed_batch_gradient_equals_plain():
             return _oscillator(t, y, w)
 
         y0 = {"p": jnp.ones(2), "q": jnp.zeros(2)}
-        res = integrate(f, y0, 0.005, 400, (), batch=ws, save_every=400, checkpoint_every=ck)
+        res = integrate(f, y0, 0.005, 400, (), batch=ws, save_every=400,
+                        gradient=TimeParallel(every=ck))
         return jnp.sum(res.ys["p"] ** 2)
 
     ws = jnp.array([2.0, 3.0])
@@ -205,7 +220,7 @@ def _held_field(t, y, args):
     return {"x": dx, "z": jnp.full_like(y["z"], 100.0)}, y["x"]
 
 
-def _held_project(t, y, args):
+def _held_project(k, t, y, args):
     return {"x": y["x"], "z": jnp.maximum(y["x"] - R, jnp.minimum(y["x"] + R, y["z"]))}
 
 
@@ -237,7 +252,7 @@ def _held_run(x0, z0, a, solver="rk4", **kw):
 
     y0 = {"x": jnp.asarray(x0), "z": jnp.asarray(z0)}
     return integrate(_held_field, y0, 0.01, 300, jnp.asarray(a), project=_held_project,
-                     frozen={"x": False, "z": True}, rates=None if solver == "rk4" else rates,
+                     frozen={"x": False, "z": True}, rates=rates, solver=SOLVERS[solver](),
                      **kw)
 
 
@@ -252,8 +267,8 @@ def test_held_components_follow_the_reference_recursion():
     def f(t, y, args, a):
         return _held_field(t, y, a)
 
-    def proj(t, y, args):
-        return _held_project(t, y, args[1])
+    def proj(k, t, y, args):
+        return _held_project(k, t, y, args[1])
 
     y0 = {"x": jnp.array([0.2, -0.4]), "z": jnp.array([[0.0, 0.5], [0.1, -0.2]])}
     batched = integrate(f, y0, 0.01, 300, (), batch=jnp.array([0.7, 1.3]), project=proj,
@@ -276,8 +291,8 @@ def test_held_components_under_the_exponential_step_and_gradients():
 
     for solver in ("rk4", "etdrk4"):
         def loss(a, time_parallel, solver=solver):
-            return jnp.sum(_held_run(0.2, [0.0, 0.5], a, solver,
-                                     time_parallel=time_parallel).ys["x"] ** 2)
+            grad = TimeParallel() if time_parallel else Checkpointed()
+            return jnp.sum(_held_run(0.2, [0.0, 0.5], a, solver, gradient=grad).ys["x"] ** 2)
 
         g_tp = jax.grad(loss)(0.7, True)
         g_ad = jax.grad(loss)(0.7, False)

@@ -141,7 +141,7 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     training batch (or the nominal plant, without one). Raises ConfigError (naming the field)
     on any bad setting.
     """
-    from dscjax.simulate import default_window
+    from dscjax.metrics import default_window
     from dscjax.validation import validate_run, validate_setup
 
     cfg.validate()

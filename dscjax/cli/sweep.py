@@ -31,8 +31,8 @@ DEGRADED_FACTOR = 2.0
 
 def add_parser(sub):
     from dscjax.config import SimOptions
+    from dscjax.metrics import DEFAULT_WINDOW_START
     from dscjax.ranges import DEFAULT_PATHS, DEFAULT_REL
-    from dscjax.simulate import DEFAULT_WINDOW_START
     from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
 
     d, sim = SweepSettings(), SimOptions()
@@ -202,8 +202,9 @@ def run(args) -> int:
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
     from dscjax import params, sweep
+    from dscjax.metrics import default_window
     from dscjax.ranges import assumption_warnings
-    from dscjax.simulate import default_window, simulate
+    from dscjax.simulate import simulate
 
     setup, options, settings = load(args)
     t_final, dt, state_bound = options.t_final, options.dt, options.state_bound

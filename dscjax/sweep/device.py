@@ -11,24 +11,23 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 from dscjax import params, xla
-from dscjax.simulate import nan_if_diverged, refine_rows, refinement_level, run
+from dscjax.runspec import RunSpec
+from dscjax.simulate import level_spec, nan_if_diverged, refine_rows, refinement_level, run
 
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
            "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 
 
-def _block_body(setup, table, dt, window_start, state_bound, *, columns, n_steps,
-                solver="rk4"):
+def _block_body(setup, spec, table, *, columns):
     """The metrics and status of every row of a (chunk, d) table of parameter values."""
-    traj = run(setup, dt, window_start, state_bound, n_steps=n_steps, save_every=n_steps,
-               overrides=params.overrides(setup, columns, table), solver=solver)
+    traj = run(setup, spec, overrides=params.overrides(setup, columns, table))
     metrics = nan_if_diverged(traj.metrics, traj.diverged)
     return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
 
 
 # One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
-_block = xla.jit(_block_body, static_argnames=("columns", "n_steps", "solver"))
+_block = xla.jit(_block_body, static_argnames=("columns",))
 
 
 class Runner:
@@ -36,17 +35,16 @@ class Runner:
 
     AXIS = "batch"
 
-    def __init__(self, setup, columns, n_steps, dt, window_start, state_bound, chunk,
-                 parallel="per_device", devices=None, solver="rk4"):
+    def __init__(self, setup, columns, spec: RunSpec, chunk, parallel="per_device",
+                 devices=None):
         self.devices = list(devices if devices is not None else jax.devices())
         self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
         self.n_dev = len(self.devices)
         self.chunk = chunk
         self.columns = tuple(columns)
-        self.n_steps = n_steps
-        self.solver = solver
         self.dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
-        self.scalars = tuple(np.asarray(v, self.dtype) for v in (dt, window_start, state_bound))
+        # metrics only: the first and last points saved
+        self.spec = spec.replace(save_every=spec.n_steps).for_dtype(self.dtype)
         self.in_sharding = NamedSharding(self.mesh, P(self.AXIS, None))
         self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
         self.parallel = parallel
@@ -55,9 +53,8 @@ class Runner:
         self.local = [d for d in self.devices if d.process_index == me]
         if parallel == "spmd":
             body = jax.shard_map(
-                lambda s, t, *a: _block_body(s, t, *a, columns=self.columns, n_steps=n_steps,
-                                             solver=solver),
-                mesh=self.mesh, in_specs=(P(), P(self.AXIS, None), P(), P(), P()),
+                lambda s, sp, t: _block_body(s, sp, t, columns=self.columns),
+                mesh=self.mesh, in_specs=(P(), P(), P(self.AXIS, None)),
                 out_specs=P(self.AXIS), check_vma=False)
             self._spmd = jax.jit(body, compiler_options=xla.compiler_options())
             self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
@@ -75,7 +72,7 @@ class Runner:
         table = np.asarray(table, self.dtype)
         arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
         if self.parallel == "spmd":
-            out = self._spmd(self.setup, arr, *self.scalars)
+            out = self._spmd(self.setup, self.spec, arr)
             return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1
         jobs = {}
@@ -85,9 +82,8 @@ class Runner:
                 jobs[block] = shard
 
         def dispatch(shard):
-            return shard.device, _block(self.setup_on[shard.device], shard.data, *self.scalars,
-                                        columns=self.columns, n_steps=self.n_steps,
-                                        solver=self.solver)
+            return shard.device, _block(self.setup_on[shard.device], self.spec, shard.data,
+                                        columns=self.columns)
 
         if self._compiled or len(jobs) == 1:
             per_dev = {b: dispatch(sh) for b, sh in jobs.items()}  # asynchronous: devices overlap
@@ -117,21 +113,19 @@ class Runner:
         device. Returns `part` with those rows replaced and two columns added: "refinements"
         (the level of the reported run: 0 the requested solver at dt) and "dt_used". Every
         process computes the same rows (deterministic), so no gather is needed."""
-        dt = float(self.scalars[0])
+        dt = float(self.spec.dt)
         device = self.local[0] if self.local else self.devices[0]
         setup = jax.device_put(self._setup, device)
         rows = np.asarray(table, self.dtype)
 
         def level(j, idx):
-            solver, m = refinement_level(j, self.solver)
-            return _block(setup, jax.device_put(rows[idx], device),
-                          np.asarray(dt / 2**m, self.dtype), *self.scalars[1:],
-                          columns=self.columns, n_steps=self.n_steps * 2**m, solver=solver)
+            return _block(setup, level_spec(self.spec, j), jax.device_put(rows[idx], device),
+                          columns=self.columns)
 
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
         halvings = np.zeros(level_of.shape, np.int64)
         for j in np.unique(level_of):
-            halvings[level_of == j] = refinement_level(int(j), self.solver)[1]
+            halvings[level_of == j] = refinement_level(int(j), self.spec.solver.name)[1]
         out["refinements"] = level_of.astype(np.int8)
         out["dt_used"] = dt / 2.0**halvings
         return out

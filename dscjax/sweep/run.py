@@ -14,10 +14,9 @@ import jax
 import numpy as np
 
 from dscjax import config, files, params, validation
-from dscjax.integrate import SOLVERS
-from dscjax.metrics import default_window
 from dscjax.ranges import sample_table
-from dscjax.simulate import DEFAULT_REFINE
+from dscjax.runspec import RunSpec
+from dscjax.simulate import check
 from dscjax.sweep.device import METRICS, Runner
 from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
 from dscjax.validation import ConfigError
@@ -52,36 +51,33 @@ class SweepResult:
         return int(self.columns["sample"].shape[0])
 
 
-def fingerprint(setup, settings: SweepSettings, ranges, t_final, dt, window_start,
-                state_bound, chunk, solver="rk4", refine=0) -> dict[str, Any]:
+def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
+                chunk: int) -> dict[str, Any]:
     """Everything that determines the rows of a sweep (and how they are split into files)."""
     setup_dict = config.to_dict(setup)
     setup_dict.pop("simulation", None)
+    run = spec.describe()
+    run.pop("dtype")  # the sweep's own
+    run.pop("save_every")  # metrics only
     return {
         "format": FORMAT_VERSION, "setup": setup_dict,
         "ranges": [[r.name, r.low, r.high, r.num] for r in ranges],
         "method": settings.method, "samples": settings.n_samples(), "seed": settings.seed,
-        "dtype": settings.dtype, "t_final": float(t_final), "dt": float(dt),
-        "window_start": float(window_start), "state_bound": float(state_bound),
-        "chunk": int(chunk), "solver": solver, "refine": int(refine),
+        "dtype": settings.dtype, "run": run, "chunk": int(chunk),
     }
 
 
 def run_sweep(
     setup,
     settings: SweepSettings | None = None,
-    t_final: float = 20.0,
-    dt: float = 1e-3,
+    spec: RunSpec | None = None,
     *,
-    window_start: float | None = None,
-    state_bound: float = 1e6,
     out_dir: str | Path | None = None,
     resume: bool = False,
     overwrite: bool = False,
     progress: Callable[[dict[str, Any]], None] | None = None,
     devices=None,
-    solver: str = "rk4",
-    refine: int = DEFAULT_REFINE,
+    **run,
 ) -> SweepResult:
     """Run a sweep of `setup` (gains fixed) over `settings`; see the module docstring.
 
@@ -89,7 +85,8 @@ def run_sweep(
         setup: the nominal Setup; it is cast to `settings.dtype`.
         settings: what to sample and how (validated here; ConfigError names the field);
             default `SweepSettings()`.
-        t_final, dt, window_start, state_bound: as in `simulate` (window default 1 s).
+        spec: how each plant is simulated (`RunSpec`); or its fields as keywords (`run`:
+            t_final, dt, window_start, state_bound, solver, refine, sample_time, ...).
         out_dir: write chunk files and results.npz there (None: keep everything in memory).
         resume: skip the blocks already in out_dir (written by the same settings).
         overwrite: start afresh even if out_dir holds chunk files of a sweep.
@@ -97,9 +94,6 @@ def run_sweep(
             included), total, resumed, elapsed_s, samples_per_s and steps_per_s (after the
             first round: without compilation), eta_s, round, rounds.
         devices: the devices to use (default: all, over every host).
-        solver, refine: as in `simulate`: the integrator ("rk4" or "etdrk4") and the number
-            of refinement levels (ETDRK4 at dt, dt/2, ...) a diverged row is re-run at, only
-            those rows, before it counts as diverged (0: none).
 
     Returns:
         SweepResult; nothing is raised for diverged samples.
@@ -113,20 +107,19 @@ def run_sweep(
         (8,)
     """
     settings = settings or SweepSettings()
-    window_start = default_window(t_final, window_start)
+    if spec is None:
+        spec = RunSpec.make(**run, prefix="")
+    elif run:
+        raise TypeError("run_sweep: give spec or its fields, not both")
     validation.one_of(settings.dtype, "sweep.dtype", DTYPES)
-    validation.one_of(solver, "simulation.solver", SOLVERS)
-    validation.integer(refine, "simulation.refine", 0)
     dtype = np.dtype(settings.dtype)
     if dtype == np.float64 and not jax.config.jax_enable_x64:
         raise ConfigError("sweep.dtype = 'float64' needs JAX's x64 mode: "
                           "jax.config.update('jax_enable_x64', True) before anything else")
     setup = params.cast(setup, dtype)
-    ranges = check_settings(settings, setup, t_final, dt, window_start)
-    n_steps = validation.validate_run(setup, t_final, dt, 1, window_start)
-    validation.validate_setup(setup)
-    if not (state_bound > 0):
-        raise ConfigError(f"simulation.state_bound must be > 0 (got {state_bound})")
+    t_final, dt, n_steps = spec.t_final, float(spec.dt), spec.n_steps
+    ranges = check_settings(settings, setup, t_final, dt, float(spec.window_start))
+    check(setup, spec)
     n = settings.n_samples()
     chunk = settings.chunk or auto_chunk(n)
     columns = tuple(r.param for r in ranges)
@@ -135,8 +128,7 @@ def run_sweep(
     # the values actually simulated: rounded to the sweep's dtype
     table = table.astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
-    fp = fingerprint(setup, settings, ranges, t_final, dt, window_start, state_bound, chunk,
-                     solver, refine)
+    fp = fingerprint(setup, settings, ranges, spec, chunk)
     digest = files.digest(fp)
 
     out = Path(out_dir) if out_dir is not None else None
@@ -146,8 +138,7 @@ def run_sweep(
         done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, n_steps, dt, window_start, state_bound, chunk,
-                    settings.parallel, devices, solver)
+    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices)
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
     n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))
@@ -161,7 +152,7 @@ def run_sweep(
             lo = b * chunk
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
-            part = runner.refine(table[lo:lo + m], part, refine)
+            part = runner.refine(table[lo:lo + m], part, spec.refine)
             data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
                             table[lo:lo + m], part)
             if out is not None:
@@ -197,9 +188,10 @@ def run_sweep(
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, parallel=settings.parallel,
-                n_steps=n_steps, dtype=settings.dtype, t_final=float(t_final), dt=float(dt),
-                window_start=float(window_start), state_bound=float(state_bound),
-                method=settings.method, seed=settings.seed, solver=solver, refine=int(refine),
+                n_steps=n_steps, dtype=settings.dtype, t_final=t_final, dt=dt,
+                window_start=float(spec.window_start), state_bound=float(spec.state_bound),
+                method=settings.method, seed=settings.seed, solver=spec.solver.name,
+                refine=spec.refine, sample_time=spec.sample_time,
                 ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
                 samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
                 steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)

@@ -1,0 +1,265 @@
+"""The one run specification: how a closed loop is simulated, as one `eqx.Module`.
+
+    spec = RunSpec.make(t_final=20.0, dt=1e-3)                      # every default rule applied
+    spec = RunSpec.from_table({"dt": 5e-4, "sample_time": 1e-3})     # the [simulation] table
+    traj = dscjax.simulate(setup, spec=spec)
+
+Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
+`sample_every` (the controller sampled every this many steps; 0: continuous) and `delay`.
+Traced fields change without recompiling: `dt`, `window_start`, `state_bound`, `noise` and
+`noise_seed`. `refine`, `dtype` and `device` are host-side settings. The [simulation] table
+(`from_table`, `to_table`), the command-line flags (`OPTIONS`, read by dscjax.cli.common) and a
+resumable run's fingerprint (`describe`) all derive from it. Every check names the field, the
+allowed range and the value (`ConfigError`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation
+from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
+from dscjax.integrate import solver as as_solver
+from dscjax.metrics import default_window
+from dscjax.validation import ConfigError
+
+# A saved trajectory keeps at most this many points unless save_every says otherwise (20 s at
+# the default dt = 1e-3 is 20,001 points: every step).
+MAX_SAVED_POINTS = 20_001
+DTYPES = ("float64", "float32")
+DEVICES = ("auto", "cpu", "gpu")
+DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
+
+# The [simulation] table: key -> (default, one-line description). The keys are RunSpec.make's
+# arguments; the command-line flag of a key is --key-with-dashes.
+OPTIONS: dict[str, tuple[Any, str]] = {
+    "t_final": (20.0, "horizon T [s] (the paper does not give it)"),
+    "dt": (1e-3, "integration step [s]; RK4 needs dt/min(tau) <= 2.785"),
+    "save_every": (None, "keep every k-th step in saved trajectories (metrics use every "
+                   f"step); omitted: automatic, at most {MAX_SAVED_POINTS:,} points"),
+    "window_start": (None, "t0 [s] of the windowed metrics on [t0, T]; omitted: 1 s (0 s if "
+                     "t_final <= 1 s)"),
+    "state_bound": (1e6, "a state beyond this magnitude counts as divergence"),
+    "dtype": ("float64", "float64 or float32"),
+    "solver": ("rk4", "rk4 (classical RK4, the paper's method) or etdrk4 (exponential RK4: "
+               "integrates the stiff decays alpha |u'| and 1/tau exactly)"),
+    "refine": (DEFAULT_REFINE, "if the run diverges: levels tried (ETDRK4 at dt, dt/2, ...) "
+               "before it counts as diverged; 0: report the divergence at once"),
+    "sample_time": (None, "the controller sampled every Ts seconds, its input held in between "
+                    "(zero-order hold), a whole multiple of dt; omitted: continuous"),
+    "delay": (0, "sampled controller: input delay in whole samples"),
+    "noise": (None, "sampled controller: std of Gaussian measurement noise on x, one number "
+              "or one per state; omitted: none"),
+    "noise_seed": (0, "sampled controller: seed of the measurement noise"),
+    "device": ("auto", "auto (one trajectory and small batches on the CPU, large batches on an "
+               "accelerator), cpu or gpu"),
+}
+
+
+class RunSpec(eqx.Module):
+    """How a closed loop is simulated (see the module docstring). Build it with `make` or
+    `from_table`, which check every field; the constructor checks nothing."""
+
+    dt: Any
+    window_start: Any
+    state_bound: Any = 1e6
+    noise: Any = None  # () or (n,) std of the sampled controller's measurement noise
+    noise_seed: Any = 0
+    n_steps: int = eqx.field(static=True, default=20_000)
+    save_every: int = eqx.field(static=True, default=1)
+    solver: Solver = eqx.field(static=True, default_factory=lambda: SOLVERS["rk4"]())
+    gradient: Gradient = eqx.field(static=True, default_factory=TimeParallel)
+    sample_every: int = eqx.field(static=True, default=0)
+    delay: int = eqx.field(static=True, default=0)
+    refine: int = eqx.field(static=True, default=DEFAULT_REFINE)
+    dtype: str = eqx.field(static=True, default="float64")
+    device: str = eqx.field(static=True, default="auto")
+    rules: tuple[str, ...] = eqx.field(static=True, default=())  # fields set by a default rule
+
+    # -- building ---------------------------------------------------------------------------
+    @classmethod
+    def make(cls, t_final: float = 20.0, dt: float = 1e-3, *, save_every: int | None = None,
+             window_start: float | None = None, state_bound: float = 1e6,
+             dtype: str = "float64", solver: str | Solver = "rk4", refine: int = DEFAULT_REFINE,
+             sample_time: float | None = None, delay: int = 0, noise=None, noise_seed: int = 0,
+             device: str = "auto", gradient: Gradient | None = None,
+             prefix: str = "simulation.") -> RunSpec:
+        """A checked RunSpec; `prefix` is how the fields are named in messages."""
+        f = prefix
+        n_steps = validation.whole_steps(t_final, dt, f"{f}t_final", f"{f}dt")
+        t_final, dt = float(t_final), float(dt)
+        rules = []
+        if save_every is None:
+            rules.append("save_every")
+            save_every = auto_stride(n_steps)
+        validation.integer(save_every, f"{f}save_every", 1)
+        if window_start is None:
+            rules.append("window_start")
+            window_start = default_window(t_final)
+        window_start = validation.number(window_start, f"{f}window_start")
+        if not 0 <= window_start < t_final:
+            raise ConfigError(f"{f}window_start must be in [0, t_final) = [0, {t_final:.6g}) "
+                              f"(got {window_start:.6g})")
+        state_bound = validation.number(state_bound, f"{f}state_bound")
+        if not state_bound > 0:
+            raise ConfigError(f"{f}state_bound must be > 0 (got {state_bound:g})")
+        validation.one_of(dtype, f"{f}dtype", DTYPES)
+        validation.one_of(getattr(solver, "name", solver), f"{f}solver", tuple(SOLVERS))
+        validation.integer(refine, f"{f}refine", 0)
+        validation.one_of(device, f"{f}device", DEVICES)
+        validation.integer(delay, f"{f}delay", 0)
+        validation.integer(noise_seed, f"{f}noise_seed", 0)
+        every = 0
+        if sample_time is not None:
+            sample_time = validation.number(sample_time, f"{f}sample_time")
+            every = int(round(sample_time / dt))
+            if not (sample_time > 0 and every >= 1
+                    and abs(every * dt - sample_time) <= 1e-9 * sample_time):
+                raise ConfigError(
+                    f"{f}sample_time must be a whole multiple > 0 of {f}dt (got sample_time="
+                    f"{sample_time:.6g}, dt={dt:.6g}, ratio {sample_time / dt:.6g})")
+            if every > n_steps:
+                raise ConfigError(f"{f}sample_time must be <= {f}t_final = {t_final:.6g} "
+                                  f"(got {sample_time:.6g})")
+        elif delay or noise is not None:
+            which = "delay" if delay else "noise"
+            raise ConfigError(f"{f}{which} applies to a sampled controller: give "
+                              f"{f}sample_time too")
+        if noise is not None:
+            a = np.asarray(noise, dtype=float)
+            if a.ndim > 1 or not np.all(np.isfinite(a)) or not np.all(a >= 0):
+                raise ConfigError(f"{f}noise must be one number or a list of numbers >= 0 "
+                                  f"(got {validation.fmt(a)})")
+            noise = a
+        return cls(dt=dt, window_start=float(window_start), state_bound=state_bound,
+                   noise=noise, noise_seed=int(noise_seed), n_steps=n_steps,
+                   save_every=int(save_every), solver=as_solver(solver),
+                   gradient=gradient if gradient is not None else TimeParallel(),
+                   sample_every=every, delay=int(delay), refine=int(refine), dtype=dtype,
+                   device=device, rules=tuple(rules))
+
+    @classmethod
+    def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
+                   prefix: str = "simulation.") -> RunSpec:
+        """The [simulation] table laid over `base` (default: the defaults). A key of the
+        table replaces the base's value; a rule-derived value of the base (save_every,
+        window_start) is derived again from the new horizon and step."""
+        unknown = [k for k in table if k not in OPTIONS]
+        if unknown:
+            raise ConfigError(f"unknown key '{prefix}{unknown[0]}' (allowed: "
+                              f"{', '.join(OPTIONS)})")
+        values = (base.to_table() if base is not None else
+                  {k: d for k, (d, _) in OPTIONS.items()})
+        for key, value in table.items():
+            values[key] = _coerce(key, value, prefix)
+        return cls.make(**values, prefix=prefix,
+                        gradient=base.gradient if base is not None else None)
+
+    def replace(self, **table) -> RunSpec:
+        """This spec with some [simulation] keys changed (checked again)."""
+        return type(self).from_table(table, base=self)
+
+    # -- reading --------------------------------------------------------------------------------
+    @property
+    def t_final(self) -> float:
+        return self.n_steps * float(self.dt)
+
+    @property
+    def sample_time(self) -> float | None:
+        return self.sample_every * float(self.dt) if self.sample_every else None
+
+    @property
+    def sampled(self) -> bool:
+        return self.sample_every > 0
+
+    @property
+    def n_saved(self) -> int:
+        """Points of a saved trajectory: steps 0, s, 2s, ... below N, and N."""
+        return -(-self.n_steps // self.save_every) + 1
+
+    def to_table(self) -> dict[str, Any]:
+        """The [simulation] table of this spec (rule-derived keys given as None)."""
+        noise = None if self.noise is None else np.asarray(self.noise, float).tolist()
+        out = {"t_final": _clean(self.t_final), "dt": _clean(float(self.dt)),
+               "save_every": self.save_every, "window_start": _clean(float(self.window_start)),
+               "state_bound": _clean(float(self.state_bound)), "dtype": self.dtype,
+               "solver": self.solver.name, "refine": self.refine,
+               "sample_time": None if not self.sampled else _clean(self.sample_time),
+               "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
+               "device": self.device}
+        for key in self.rules:
+            out[key] = None
+        return out
+
+    def describe(self) -> dict[str, Any]:
+        """What determines a run's numbers (a resumable run's fingerprint): the table with
+        every rule applied, without the host-side device."""
+        out = self.to_table()
+        out.update(save_every=self.save_every, window_start=_clean(float(self.window_start)))
+        out.pop("device")
+        if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
+            out["gradient"] = [self.gradient.name, self.gradient.every]
+        return out
+
+    def for_dtype(self, dtype) -> RunSpec:
+        """The traced fields as arrays of `dtype` (the setup's), strongly typed, so that
+        jit's cache does not depend on how they were written."""
+        noise = None if self.noise is None else jnp.asarray(self.noise, dtype)
+        return dataclasses.replace(
+            self, dt=jnp.asarray(self.dt, dtype), window_start=jnp.asarray(self.window_start,
+                                                                           dtype),
+            state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
+            noise_seed=jnp.asarray(self.noise_seed, jnp.uint32))
+
+    def refined(self, halvings: int, solver_name: str) -> RunSpec:
+        """The same run at dt / 2^halvings with another solver, on the same saved times and
+        the same controller sample time (a refinement level of `simulate`)."""
+        m = 2 ** halvings
+        return dataclasses.replace(
+            self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
+            sample_every=self.sample_every * m, solver=as_solver(solver_name))
+
+
+def auto_stride(n_steps: int) -> int:
+    """The smallest stride s that keeps at most MAX_SAVED_POINTS points of N steps: the steps
+    0, s, 2s, ... and always N (s need not divide N)."""
+    return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
+
+
+def _clean(x: float) -> float:
+    """The shortest decimal that reads back as the same float64 (no 0.6000000000000001 made by
+    arithmetic on a value written as 0.6)."""
+    for digits in range(1, 18):
+        y = float(f"{x:.{digits}g}")
+        if abs(y - x) <= 4 * np.finfo(float).eps * abs(x):
+            return y
+    return x
+
+
+def _coerce(key: str, value, prefix: str):
+    """A value of the [simulation] table of the type its key takes; ConfigError otherwise."""
+    field = f"{prefix}{key}"
+    if isinstance(value, str) and value.lower() == "none" and OPTIONS[key][0] is None:
+        return None
+    if key in ("dtype", "solver", "device"):
+        return validation.string(value, field)
+    if key in ("save_every", "refine", "delay", "noise_seed"):
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{field} must be an integer (got {value!r})")
+        return value
+    if key == "noise":
+        return value
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ConfigError(f"{field} must be a finite number (got {value!r})")
+    return value
+
+
+__all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "MAX_SAVED_POINTS", "OPTIONS",
+           "RunSpec", "auto_stride"]

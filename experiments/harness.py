@@ -1,0 +1,162 @@
+"""The benchmark suite's one harness: interleaved timings, the machine and its load, a printed
+table, a JSON file and the benchmark's section of docs/benchmarks.md.
+
+    bench = Bench("core", "The simulator core", quick=args.quick)
+    times = bench.interleaved({"dscjax": run_a, "scipy": run_b}, repeats=5)  # A B A B ...
+    bench.add(case="one trajectory", dscjax_ms=1e3 * median(times["dscjax"]), ...)
+    bench.finish()      # table on stdout, results/bench/core.json, docs/benchmarks.md
+
+Cases are run in turn (A B C A B C ...) after one warm-up call each (compilation), so a drift
+of the shared machine's speed hits every case alike; ratios against a baseline are taken from
+medians measured in the same run. The load average is read before and after and written beside
+every figure. `quick` (the suite's CI mode) marks the results as a smoke run: they are printed
+and written to JSON but never to docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import statistics
+import sys
+import time
+from collections.abc import Callable, Mapping
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "benchmarks.md"
+RESULTS = ROOT / "results" / "bench"
+
+
+def median(values) -> float:
+    return float(statistics.median(values))
+
+
+def _block(result):
+    """Wait for JAX's asynchronous results (any pytree; other values pass through)."""
+    try:
+        import jax
+
+        return jax.block_until_ready(result)
+    except (ImportError, TypeError):
+        return result
+
+
+def cpu_model() -> str:
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def machine() -> dict:
+    """What the figures were measured on."""
+    import jax
+
+    devices = jax.devices()
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
+            "jax": jax.__version__, "backend": jax.default_backend(),
+            "devices": [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in devices]}
+
+
+def load() -> float:
+    return os.getloadavg()[0]
+
+
+class Bench:
+    """One benchmark's results (see the module docstring)."""
+
+    def __init__(self, name: str, title: str, *, quick: bool = False,
+                 command: str | None = None):
+        self.name, self.title, self.quick = name, title, quick
+        self.command = command or "python " + " ".join(
+            [f"experiments/{Path(sys.argv[0]).name}", *sys.argv[1:]])
+        self.rows: list[dict] = []
+        self.notes: list[str] = []
+        self.loads = [load()]
+        self.started = datetime.datetime.now().astimezone()
+
+    def interleaved(self, cases: Mapping[str, Callable[[], object]], repeats: int = 5,
+                    warmup: int = 1) -> dict[str, list[float]]:
+        """{case: seconds of each of `repeats` calls}, the cases called in turn after `warmup`
+        calls each that are not counted."""
+        for fn in cases.values():
+            for _ in range(warmup):
+                _block(fn())
+        times: dict[str, list[float]] = {k: [] for k in cases}
+        for _ in range(repeats):
+            for k, fn in cases.items():
+                t0 = time.perf_counter()
+                _block(fn())
+                times[k].append(time.perf_counter() - t0)
+        self.loads.append(load())
+        return times
+
+    def add(self, **row) -> None:
+        """One row of the table (its keys are the columns, in order)."""
+        self.rows.append(row)
+
+    def note(self, text: str) -> None:
+        """A sentence printed and written under the table."""
+        self.notes.append(text)
+
+    def table(self) -> str:
+        """The rows as a Markdown table."""
+        if not self.rows:
+            return ""
+        cols = list(dict.fromkeys(k for r in self.rows for k in r))
+        lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        for r in self.rows:
+            lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
+        return "\n".join(lines)
+
+    def header(self) -> str:
+        m = machine()
+        loads = f"{min(self.loads):.1f}-{max(self.loads):.1f}"
+        return (f"Measured {self.started:%Y-%m-%d} on {m['cpu']} ({m['cores']} cores, "
+                f"{m['backend']}: {', '.join(m['devices'])}), load average {loads}, jax "
+                f"{m['jax']}: `{self.command}`")
+
+    def finish(self) -> dict:
+        """Print the table, write results/bench/NAME.json and (unless quick) the section of
+        docs/benchmarks.md. Returns the JSON record."""
+        self.loads.append(load())
+        record = {"name": self.name, "title": self.title, "date": self.started.isoformat(),
+                  "machine": machine(), "load": self.loads, "command": self.command,
+                  "quick": self.quick, "rows": self.rows, "notes": self.notes}
+        text = "\n\n".join(x for x in (self.header(), self.table(), "\n".join(
+            f"- {n}" for n in self.notes)) if x)
+        print(f"\n## {self.title}" + (" (quick: not written to docs)" if self.quick else ""))
+        print(text)
+        RESULTS.mkdir(parents=True, exist_ok=True)
+        path = RESULTS / f"{self.name}{'-quick' if self.quick else ''}.json"
+        path.write_text(json.dumps(record, indent=2, default=str) + "\n")
+        print(f"wrote {path.relative_to(ROOT)}")
+        if not self.quick:
+            write_section(self.name, self.title, text)
+            print(f"updated {DOC.relative_to(ROOT)}")
+        return record
+
+
+def write_section(name: str, title: str, text: str, doc: Path = DOC) -> None:
+    """Replace (or append) the benchmark's section of docs/benchmarks.md, between its markers."""
+    begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
+    body = f"{begin}\n## {title}\n\n{text}\n{end}"
+    old = doc.read_text() if doc.exists() else "# Benchmarks\n"
+    if begin in old and end in old:
+        new = old[:old.index(begin)] + body + old[old.index(end) + len(end):]
+    else:
+        new = old.rstrip("\n") + "\n\n" + body + "\n"
+    doc.write_text(new)
+
+
+def _fmt(v) -> str:
+    if isinstance(v, float):
+        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.3e}"
+    return str(v)
