@@ -235,7 +235,7 @@ class Sampling(eqx.Module):
     every: int = eqx.field(static=True)  # dt steps per sample: Ts = every dt
     delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
     noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
-    seed: Any = 0  # seed of the noise
+    seed: Any = 0  # seed of the noise (a float holding an integer: no integer leaf is traced)
 
 
 class SampledState(NamedTuple):
@@ -260,7 +260,8 @@ def _sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
     plant, ctrl, ref = setup.plant, setup.controller, setup.reference
     x = X.x
     if sampling.noise is not None:
-        key = jax.random.fold_in(jax.random.PRNGKey(sampling.seed), k)
+        key = jax.random.fold_in(jax.random.PRNGKey(jnp.asarray(sampling.seed).astype(jnp.uint32)),
+                                 k)
         x = x + jnp.asarray(sampling.noise, x.dtype) * jax.random.normal(key, x.shape, x.dtype)
     u_new, info = ctrl.law(X.ctrl, x, t, plant, ref)
     rate = ctrl.state_rate(X.ctrl, x, t, info, plant, ref)

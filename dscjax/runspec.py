@@ -210,13 +210,14 @@ class RunSpec(eqx.Module):
 
     def for_dtype(self, dtype) -> RunSpec:
         """The traced fields as arrays of `dtype` (the setup's), strongly typed, so that
-        jit's cache does not depend on how they were written."""
+        jit's cache does not depend on how they were written (the noise seed too: an integer
+        leaf would be a constant of the time-parallel derivative's trace; None without noise)."""
         noise = None if self.noise is None else jnp.asarray(self.noise, dtype)
         return dataclasses.replace(
             self, dt=jnp.asarray(self.dt, dtype), window_start=jnp.asarray(self.window_start,
                                                                            dtype),
             state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
-            noise_seed=jnp.asarray(self.noise_seed, jnp.uint32))
+            noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype))
 
     def refined(self, halvings: int, solver_name: str) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and

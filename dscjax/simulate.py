@@ -131,31 +131,33 @@ class DivergenceError(RuntimeError):
 
 
 class _Loop(NamedTuple):
-    """The functions `integrate` needs for one kind of loop (continuous or sampled)."""
+    """The functions `integrate` needs for one kind of loop (continuous or sampled), each
+    taking the setup and the sampled controller's numbers (a `Sampling` and dt, or None) as
+    arguments, never closing over traced values."""
 
-    field: Callable  # (t, y, setup) -> (dy, obs)
-    init: Callable  # setup -> y0
-    rates: Callable  # (t, y, setup, obs) -> decay rates like y
-    project: Callable | None  # (k, t, y, setup) -> y after a step
+    field: Callable  # (t, y, setup, samp) -> (dy, obs)
+    init: Callable  # (setup, samp) -> y0
+    rates: Callable  # (t, y, setup, samp, obs) -> decay rates like y
+    project: Callable | None  # (k, t, y, setup, samp) -> y after a step
     frozen: Any
+
+
+def _continuous_project(k, t, y, s, samp):
+    return project(t, y, s)
 
 
 def _loop(setup: Setup, spec: RunSpec) -> _Loop:
     if not spec.sampled:
-        proj = None
-        if type(setup.hysteresis).projects:
-            def proj(k, t, y, s):
-                return project(t, y, s)
-
-        return _Loop(vector_field, initial_state, decay_rates, proj, frozen(setup))
-    sampling = Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
-                        seed=spec.noise_seed)
-    return _Loop(
-        sampled_vector_field,
-        lambda s: sampled_initial_state(s, sampling, spec.dt),
-        lambda t, y, s, obs: jax.tree.map(jnp.zeros_like, y),
-        lambda k, t, y, s: sample_after_step(k, t, y, s, sampling, spec.dt),
-        sampled_frozen(setup))
+        return _Loop(lambda t, y, s, samp: vector_field(t, y, s),
+                     lambda s, samp: initial_state(s),
+                     lambda t, y, s, samp, obs: decay_rates(t, y, s, obs),
+                     _continuous_project if type(setup.hysteresis).projects else None,
+                     frozen(setup))
+    return _Loop(lambda t, y, s, samp: sampled_vector_field(t, y, s),
+                 lambda s, samp: sampled_initial_state(s, samp[0], samp[1]),
+                 lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
+                 lambda k, t, y, s, samp: sample_after_step(k, t, y, s, samp[0], samp[1]),
+                 sampled_frozen(setup))
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
@@ -174,26 +176,40 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
     if extra is not None:
         red = m.Combined((("", red), ("", extra)))
+    samp = None
+    if spec.sampled:
+        samp = (Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
+                         seed=spec.noise_seed), spec.dt)
+    loop = _loop(setup, spec)
     common = dict(save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
-                  solver=spec.solver, gradient=spec.gradient)
+                  solver=spec.solver, gradient=spec.gradient, frozen=loop.frozen)
     if overrides is None:
         setup = prepared(setup)
-        loop = _loop(setup, spec)
-        res = integrate(loop.field, loop.init(setup), spec.dt, spec.n_steps, setup,
-                        rates=loop.rates, project=loop.project, frozen=loop.frozen, **common)
-    else:
-        shared, batched, rebuild = _split_members(setup, overrides)
-        loop = _loop(setup, spec)
-        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b)))(batched)
         proj = None
         if loop.project is not None:
             def proj(k, t, y, args):
-                return loop.project(k, t, y, rebuild(*args))
+                return loop.project(k, t, y, *args)
 
-        res = integrate(lambda t, y, sh, b: loop.field(t, y, rebuild(sh, b)), y0, spec.dt,
-                        spec.n_steps, shared, batch=batched,
-                        rates=lambda t, y, args, obs: loop.rates(t, y, rebuild(*args), obs),
-                        project=proj, frozen=loop.frozen, **common)
+        res = integrate(lambda t, y, args: loop.field(t, y, *args), loop.init(setup, samp),
+                        spec.dt, spec.n_steps, (setup, samp),
+                        rates=lambda t, y, args, obs: loop.rates(t, y, *args, obs),
+                        project=proj, **common)
+    else:
+        shared, batched, rebuild = _split_members(setup, overrides)
+        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b), samp))(batched)
+        proj = None
+        if loop.project is not None:
+            def proj(k, t, y, args):
+                (sh, sa), b = args
+                return loop.project(k, t, y, rebuild(sh, b), sa)
+
+        def rates(t, y, args, obs):
+            (sh, sa), b = args
+            return loop.rates(t, y, rebuild(sh, b), sa, obs)
+
+        res = integrate(lambda t, y, a, b: loop.field(t, y, rebuild(a[0], b), a[1]), y0,
+                        spec.dt, spec.n_steps, (shared, samp), batch=batched, rates=rates,
+                        project=proj, **common)
     t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
     t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
     finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
