@@ -10,12 +10,12 @@ process, writes past RLIMIT_FSIZE in a subprocess (EFBIG, SIGXFSZ ignored).
 
 import json
 import os
-import resource
 import shlex
 import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -182,19 +182,21 @@ def test_a_dead_holder_never_blocks(tmp_path, capsys):
 # -- a full disk ------------------------------------------------------------------------------
 
 
-def _limited(limit: int):
-    def preexec():  # writes past `limit` bytes fail with EFBIG instead of killing the process
-        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
-        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
-    return preexec
+# runs ARGV with files limited to LIMIT bytes; SIGXFSZ ignored, so that a write past it fails
+# with EFBIG instead of killing the process (both survive the exec; no fork of this process,
+# whose JAX threads a fork would copy)
+LIMITED = ("import os, resource, signal, sys\n"
+           "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+           "resource.setrlimit(resource.RLIMIT_FSIZE, (int(sys.argv[1]),) * 2)\n"
+           "os.execv(sys.argv[2], sys.argv[2:])\n")
 
 
 def _full_disk_then_resume(argv, out: Path, limit: int, written: str, kept) -> None:
     """Run `dscjax ARGV` with files limited to `limit` bytes: exit 4, one line naming
     `written` and the command to continue, no temporary file, `kept(out)` holds; then that
     command, unlimited, finishes."""
-    proc = subprocess.run([DSCJAX, *argv], capture_output=True, text=True,
-                          preexec_fn=_limited(limit))
+    proc = subprocess.run([sys.executable, "-c", LIMITED, str(limit), DSCJAX, *argv],
+                          capture_output=True, text=True)
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 4, proc.stderr[-3000:]
     command = shlex.join([DSCJAX, *argv, "--resume"])
@@ -265,11 +267,10 @@ def straight(search_problem, tmp_path_factory):
 
 
 def _ctrl_c(times: int = 1) -> None:
-    """Ctrl-C, as the terminal sends it: SIGINT to this process (`times` presses, each
-    handled before the next)."""
+    """Ctrl-C: SIGINT, `times` presses, each handled before the next (sent to the main
+    thread, which runs Python's signal handlers, so that it is taken at once)."""
     for _ in range(times):
-        os.kill(os.getpid(), signal.SIGINT)
-        time.sleep(0.05)
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGINT)
 
 
 def _in_generation(monkeypatch, where: str, generation: int, times: int = 1):
