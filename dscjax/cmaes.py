@@ -21,11 +21,14 @@ def require_cma():
 class ReplayCMA:
     """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
 
-    It records what it was told: the fitness values of every generation and the point
-    injected after it (if any). `replay` rebuilds the same strategy from a fresh one with the
-    same x0, sigma0 and options (so the same seed: cma's samples come from the `randn` option
-    or NumPy's generator seeded by `seed`) by repeating ask/tell/inject with the stored values,
-    no simulation needed, and checks the last population against the stored one.
+    It records what it was told: the fitness values of every generation, the point injected
+    after it (if any) and the population of the last generation told. `replay` rebuilds the
+    same strategy from a fresh one with the same x0, sigma0 and options (so the same seed:
+    cma's samples come from the `randn` option or NumPy's generator seeded by `seed`) by
+    repeating ask/tell/inject with the stored values, no simulation needed, and checks the last
+    population told against the stored one. A population asked but not yet told is not part
+    of the record: a strategy saved between ask and tell replays to its last told generation,
+    and asks that population again.
 
         es = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9})
         x = es.ask(); es.tell(x, f(x)); es.inject(best)     # as with cma
@@ -39,7 +42,8 @@ class ReplayCMA:
         self.n = int(np.size(x0))
         self.fitness: list[np.ndarray] = []  # (popsize,) per generation, as told
         self.injected: list[np.ndarray] = []  # (n,) per generation, NaN: none
-        self.asked = np.zeros((0, self.n))  # the last population
+        self.asked = np.zeros((0, self.n))  # the last population asked (told or not)
+        self.told = np.zeros((0, self.n))  # the population of the last generation told
 
     def ask(self) -> np.ndarray:
         self.asked = np.asarray(self.es.ask(), dtype=float)
@@ -50,6 +54,7 @@ class ReplayCMA:
         self.es.tell(list(x), list(f))
         self.fitness.append(f)
         self.injected.append(np.full(self.n, np.nan))
+        self.told = np.array(x, dtype=float)
 
     def inject(self, x) -> None:
         """Inject x into the next generation (after this generation's tell)."""
@@ -57,23 +62,24 @@ class ReplayCMA:
         self.injected[-1] = np.asarray(x, dtype=float)
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """{"fitness": (G, popsize), "injected": (G, n), "asked": (popsize, n)}."""
+        """{"fitness": (G, popsize), "injected": (G, n), "asked": (popsize, n)}: "asked" is
+        the population of generation G, the last told (the key the files have always used)."""
         pop = self.es.popsize
         return {"fitness": np.asarray(self.fitness).reshape(-1, pop),
                 "injected": np.asarray(self.injected).reshape(-1, self.n),
-                "asked": self.asked}
+                "asked": self.told}
 
     def replay(self, arrays: dict[str, np.ndarray]) -> None:
         """Repeat the stored generations (`arrays()`; "injected" may be left out: none).
-        ValueError if the replay does not meet the stored last population (another cma
-        version or other options)."""
+        ValueError if the replay does not meet the stored population of the last generation
+        (another cma version or other options)."""
         fitness = np.asarray(arrays["fitness"])
         injected = arrays.get("injected", np.full((len(fitness), self.n), np.nan))
         for f, x in zip(fitness, injected, strict=True):
             self.tell(self.ask(), f)
             if np.all(np.isfinite(x)):
                 self.inject(x)
-        if len(fitness) and not np.array_equal(self.asked, arrays["asked"]):
+        if len(fitness) and not np.array_equal(self.told, arrays["asked"]):
             raise ValueError("CMA-ES could not replay its stored generations")
 
 

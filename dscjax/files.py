@@ -8,20 +8,27 @@ whether a directory holds the same run (so that `--resume` never mixes two runs)
 
 Every write goes to a temporary file in the same directory, is flushed to disk (fsync) and
 renamed over the target, so a run killed in the middle of a write leaves the previous complete
-file behind, never half a file. Sweeps (chunk files, results.npz), tuning (checkpoints, the
-best point) and the paper's reproduction (summaries, the complexity study's measurements) all
-write through here.
+file behind, never half a file; a write that fails removes its temporary file, and one that
+fails for want of space (ENOSPC, EDQUOT, EFBIG) raises `NoSpace`. Every file a command writes,
+figures included (`save_figure`), goes through here. `lock_out` keeps a second process out of
+an output directory while a command writes there.
 """
 
 from __future__ import annotations
 
+import contextlib
+import datetime
+import errno
+import fcntl
 import hashlib
 import io
 import json
 import math
 import os
+import shlex
+import socket
 import zipfile
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -29,16 +36,59 @@ import numpy as np
 
 from dscjax.validation import ConfigError
 
+# errno of a write that failed for want of space: the device, the quota, the file size limit
+NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
+
+
+class NoSpace(OSError):
+    """A write failed for want of space (errno ENOSPC, EDQUOT or EFBIG); `filename` is the
+    file that was being written (its temporary file is removed)."""
+
+
+def _no_space(err: OSError, path: str | Path) -> OSError:
+    """`err` as NoSpace naming `path` if it is one of NO_SPACE_ERRNOS, else `err`."""
+    if err.errno in NO_SPACE_ERRNOS:
+        return NoSpace(err.errno, err.strerror, str(path))
+    return err
+
 
 def atomic_write(path: str | Path, data: bytes) -> None:
-    """Write `data` to `path` atomically: a temporary file, fsync, then a rename over `path`."""
+    """Write `data` to `path` atomically: a temporary file, fsync, then a rename over `path`.
+
+    On any failure (an interrupt included) the temporary file is removed and `path` keeps its
+    previous content; NoSpace if the disk, the quota or the file size limit is exhausted."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(data)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException as err:
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
+        if isinstance(err, OSError):
+            raise _no_space(err, path) from None
+        raise
+
+
+def mkdir(path: str | Path) -> Path:
+    """`path` and its parents created (NoSpace where the disk is full)."""
+    path = Path(path)
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise _no_space(err, path) from None
+    return path
+
+
+def save_figure(fig, path: str | Path, **kwargs) -> None:
+    """A matplotlib figure saved atomically to `path` (its format from the suffix), as every
+    other file: rendered into memory, then `atomic_write`."""
+    buf = io.BytesIO()
+    fig.savefig(buf, format=Path(path).suffix.lstrip(".") or None, **kwargs)
+    atomic_write(path, buf.getvalue())
 
 
 def write_text(path: str | Path, text: str) -> None:
@@ -148,5 +198,86 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray] | None:
         return None
 
 
-__all__ = ["atomic_write", "canonical", "check_same", "differences", "digest", "dumps",
-           "jsonable", "read_json", "read_npz", "write_json", "write_npz", "write_text"]
+# -- one process per output directory ----------------------------------------------------------
+
+LOCK = ".dscjax.lock"
+
+
+@contextlib.contextmanager
+def lock_out(out: str | Path, *, name: str = LOCK, argv: Sequence[str] = (),
+             option: str = "--out") -> Iterator[None]:
+    """Hold an exclusive lock on the directory `out` (which must exist) while the block runs.
+
+    An flock on `out/name`, a file that says who holds it (pid, host, `argv`, start time) and
+    is removed on release. Another process that asks for it gets a ConfigError at once naming
+    the holder, e.g. ``--out 'DIR' is in use by another dscjax process (pid 4242 on host h,
+    since 2026-01-01T10:00:00+01:00: dscjax sweep --out DIR); ...``. A holder that died
+    never blocks: the kernel releases its lock, and the next holder rewrites the file."""
+    path = Path(out) / name
+    fd = _acquire(path, out, option)
+    try:
+        info = {"pid": os.getpid(), "host": socket.gethostname(), "command": shlex.join(argv),
+                "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
+        try:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, (json.dumps(info) + "\n").encode(), 0)
+        except OSError as err:
+            raise _no_space(err, path) from None
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            if _same_file(path, fd):
+                os.unlink(path)  # before the lock is released: no one can hold this file
+        os.close(fd)
+
+
+def _acquire(path: Path, out, option: str) -> int:
+    """A descriptor of `path` holding its flock; ConfigError naming the holder if another
+    process has it."""
+    for _ in range(100):
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
+        except OSError as err:
+            raise ConfigError(f"{option} {str(out)!r}: cannot create the lock file {path.name} "
+                              f"({err.strerror or err}); give a writable directory") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = _holder(fd)
+            os.close(fd)
+            raise ConfigError(f"{option} {str(out)!r} is in use by another dscjax process "
+                              f"({holder}); wait for it to end, or give another {option}") \
+                from None
+        except OSError as err:
+            if err.errno not in (errno.ENOLCK, errno.EOPNOTSUPP):
+                os.close(fd)
+                raise
+            return fd  # a file system without locks: go on unlocked
+        # the previous holder may have removed the file between our open and our lock
+        if _same_file(path, fd):
+            return fd
+        os.close(fd)
+    raise ConfigError(f"{option} {str(out)!r}: cannot lock {path.name}; try again")
+
+
+def _same_file(path: Path, fd: int) -> bool:
+    try:
+        a, b = os.stat(path), os.fstat(fd)
+    except OSError:
+        return False
+    return (a.st_dev, a.st_ino) == (b.st_dev, b.st_ino)
+
+
+def _holder(fd: int) -> str:
+    """Who holds the lock, from its file: "pid P on host H, since T: COMMAND"."""
+    try:
+        info = json.loads(os.pread(fd, 1 << 16, 0).decode())
+        return (f"pid {info['pid']} on host {info['host']}, since {info['started']}: "
+                f"{info['command']}")
+    except (OSError, ValueError, KeyError, TypeError):
+        return "its details are not written yet"
+
+
+__all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "atomic_write", "canonical", "check_same",
+           "differences", "digest", "dumps", "jsonable", "lock_out", "mkdir", "read_json",
+           "read_npz", "save_figure", "write_json", "write_npz", "write_text"]

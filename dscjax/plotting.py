@@ -11,6 +11,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dscjax import files
+
 # One colour per signal across every figure of the project.
 COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": "#9467bd",
           "x": ("#1f77b4", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f",
@@ -19,7 +21,7 @@ COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": 
 
 def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", **kwargs):
     """(Figure, axes) like `pyplot.subplots`, but a Figure no pyplot state knows about: it is
-    saved with `fig.savefig` and freed with it, and needs no backend."""
+    saved with `files.save_figure` and freed with it, and needs no backend."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=figsize, layout=layout)
@@ -89,5 +91,5 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
                fontsize=9)
     if title:
         fig.suptitle(title)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     return fig

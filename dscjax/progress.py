@@ -8,12 +8,22 @@ On a terminal tqdm redraws one line in place (rate, elapsed time, ETA). Anywhere
 file, CI, a pipe) the same figures are printed as a plain line of their own, at most every
 `every_s` seconds and once at the end, so that a log holds readable lines instead of carriage
 returns. The numbers (rate, ETA) are tqdm's in both cases.
+
+Ctrl-C in long work: while a command runs (`handle_interrupts`, installed by the CLI), a Ctrl-C
+that lands inside a `critical()` section (one generation and its state update, a checkpoint
+write) is deferred to the end of the section, so that the state saved on interrupt is always a
+whole one; a second Ctrl-C during the deferral raises `Abort` at once (nothing is saved).
 """
 
 from __future__ import annotations
 
+import os
+import signal
 import sys
+import threading
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TextIO
 
 from tqdm import tqdm
@@ -100,4 +110,83 @@ class Progress:
         self.close()
 
 
-__all__ = ["Progress"]
+# -- Ctrl-C ------------------------------------------------------------------------------------
+
+
+class Abort(BaseException):
+    """A second Ctrl-C while the first was deferred: stop at once, without saving. Not a
+    KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass."""
+
+
+class _Deferral:
+    """The state of `handle_interrupts` (main thread only)."""
+
+    installed = False
+    depth = 0  # nested critical sections now open
+    pending = False  # a Ctrl-C arrived inside one
+
+
+_DEFERRAL = _Deferral()
+DEFERRED = ("\n  Ctrl-C: finishing the current step to save a whole state (Ctrl-C again stops "
+            "at once, without saving)\n")
+
+
+def _on_sigint(signum, frame) -> None:
+    if _DEFERRAL.depth == 0:
+        raise KeyboardInterrupt
+    if _DEFERRAL.pending:
+        raise Abort
+    _DEFERRAL.pending = True
+    try:  # not through sys.stderr's buffer, which the interrupted code may be writing
+        os.write(sys.stderr.fileno(), DEFERRED.encode())
+    except (AttributeError, OSError, ValueError):
+        sys.stderr.write(DEFERRED)
+
+
+@contextmanager
+def handle_interrupts() -> Iterator[None]:
+    """Install the deferral of Ctrl-C for the block (see the module docstring): a command's
+    entry point calls it, never a library. Outside the main thread it does nothing (only the
+    main thread receives signals). The previous SIGINT handler is restored afterwards."""
+    if threading.current_thread() is not threading.main_thread() or _DEFERRAL.installed:
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, _on_sigint)
+    _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = True, 0, False
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = False, 0, False
+
+
+class critical:
+    """A section that a Ctrl-C does not cut: under `handle_interrupts`, a Ctrl-C inside it
+    raises KeyboardInterrupt when the outermost section ends (unless the section raised
+    something else: that goes on). Sections nest. Without `handle_interrupts`, or outside the
+    main thread, it changes nothing.
+
+        with critical():
+            row = search.generation()     # ask, simulate, tell, inject, counters
+            search.save()                 # every checkpoint file
+    """
+
+    def __enter__(self) -> critical:
+        self.active = (_DEFERRAL.installed
+                       and threading.current_thread() is threading.main_thread())
+        if self.active:
+            _DEFERRAL.depth += 1
+        return self
+
+    def __exit__(self, kind, value, tb) -> bool:
+        if not self.active:
+            return False
+        _DEFERRAL.depth -= 1
+        if _DEFERRAL.depth == 0 and _DEFERRAL.pending:
+            _DEFERRAL.pending = False
+            if kind is None:
+                raise KeyboardInterrupt
+        return False
+
+
+__all__ = ["Abort", "Progress", "critical", "handle_interrupts"]

@@ -50,6 +50,7 @@ from dscjax import files, params, validation
 from dscjax import ranges as ranges_mod
 from dscjax.closed_loop import Setup
 from dscjax.metrics import default_window
+from dscjax.progress import critical
 from dscjax.validation import ConfigError
 
 Method = Literal["gradient", "random", "cma"]
@@ -428,11 +429,8 @@ class Programs:
         same loop simulated at F dt (F times cheaper: a search direction only), while every
         value (what the search compares and reports) is simulated at dt."""
         validation.one_of(gradient, "gradient", GRADIENTS)
-        validation.integer(coarsening, "--gradient-coarsening", 1)
         p = problem
-        if p.n_steps % coarsening:
-            raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
-                              f"steps t_final/dt = {p.n_steps}")
+        _check_coarsening(coarsening, p.n_steps)
         basis, project_coef = np.zeros((1, 0)), None
         if p.m:
             grid = dist_mod.half_step_grid(p.t_final, p.dt)
@@ -680,6 +678,28 @@ def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int,
     return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
 
 
+def _check_coarsening(coarsening: int, n_steps: int) -> None:
+    validation.integer(coarsening, "--gradient-coarsening", 1)
+    if n_steps % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                          f"steps t_final/dt = {n_steps}")
+
+
+def check_options(problem: Problem, methods: Sequence[str], starts: int, batch: int,
+                  time_limit: float, max_evals: int | None, coarsening: int = 1) -> None:
+    """The search options of `worst_case` for `problem`, checked (ConfigError naming the
+    option), so that a command can check them before it writes anything."""
+    _check_coarsening(coarsening, problem.n_steps)
+    for mth in methods:
+        validation.one_of(mth, "--methods", METHODS)
+    validation.integer(starts, "--starts", 1)
+    validation.integer(batch, "batch", 1)
+    if not (time_limit > 0):
+        raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
+    if max_evals is not None:
+        validation.integer(max_evals, "--max-evals", 1)
+
+
 def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str] = (),
                disturbance: DisturbanceSpec | str | None = None, *,
                time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
@@ -727,14 +747,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
     elif ranges or disturbance is not None or problem_options:
         raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
                           "make_problem, not with a Problem")
-    for mth in methods:
-        validation.one_of(mth, "--methods", METHODS)
-    validation.integer(starts, "--starts", 1)
-    validation.integer(batch, "batch", 1)
-    if not (time_limit > 0):
-        raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
-    if max_evals is not None:
-        validation.integer(max_evals, "--max-evals", 1)
+    check_options(problem, methods, starts, batch, time_limit, max_evals, coarsening)
     fp = files.digest({"problem": problem.fingerprint(), "seed": seed, "starts": starts,
                        "batch": batch, "lr": lr, "gradient": gradient,
                        "coarsening": coarsening})
@@ -787,17 +800,19 @@ def search(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
         if running(tr):
             tr.compile_s += _warm_up(prog, mth, starts, batch)
         while running(tr):
-            t0 = time.perf_counter()
-            if mth == "gradient":
-                z, v, bad = _gradient_step(prog, tr, seed, starts, lr, batch)
-            elif mth == "random":
-                z, v, bad = _random_step(prog, tr, seed, batch)
-            else:
-                z, v, bad = cma_es.step(prog)
-            seconds = time.perf_counter() - t0
-            tr.record(z, v, bad, seconds)
-            if path is not None:
-                tr.save(path, fingerprint)
+            # a Ctrl-C waits for the iteration and its state file (dscjax.progress)
+            with critical():
+                t0 = time.perf_counter()
+                if mth == "gradient":
+                    z, v, bad = _gradient_step(prog, tr, seed, starts, lr, batch)
+                elif mth == "random":
+                    z, v, bad = _random_step(prog, tr, seed, batch)
+                else:
+                    z, v, bad = cma_es.step(prog)
+                seconds = time.perf_counter() - t0
+                tr.record(z, v, bad, seconds)
+                if path is not None:
+                    tr.save(path, fingerprint)
             if progress is not None:
                 progress(mth, tr, time_limit)
         traces[mth] = tr

@@ -134,7 +134,7 @@ def _plot_worst(path, worst, nominal, result):
     ax[0].legend(loc="upper right")
     ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
                     f"(nominal {result.nominal_value:.4g})")
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 def _plot_disturbance(path, t_half, dbar, result):
@@ -149,7 +149,7 @@ def _plot_disturbance(path, t_half, dbar, result):
     ax.set_xlabel("t [s]")
     ax.set_ylabel(r"$\bar d(t)$ [-]")
     ax.set_title("worst disturbance" + (f" ({spec.spec()})" if spec else ""))
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 def _plot_progress(path, result):
@@ -161,7 +161,7 @@ def _plot_progress(path, result):
     ax.set_xlabel("search time [s]")
     ax.set_ylabel(f"best {result.problem.metric}")
     ax.legend()
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 __all__ = ["FIGURES", "options_of", "report_md", "summary", "write"]

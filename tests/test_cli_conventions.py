@@ -106,6 +106,7 @@ def test_params_set_with_an_unknown_path_raises_config_error():
     (["sweep", "--resume"], "sweep.json"),
     (["tune", "--resume"], "checkpoint.json"),
     (["reproduce", "--complexity", "--resume"], "complexity_rows.json"),
+    (["worst-case", "--range", "hysteresis.alpha=30%", "--resume"], "worst_case.json"),
 ])
 def test_resuming_nothing_is_an_error_naming_the_directory(argv, missing, tmp_path, capsys):
     out = tmp_path / "new"
@@ -196,6 +197,7 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
     last, command = _interrupted(capsys, argv)
     assert command is None and last.endswith(f"run the same command again: dscjax "
                                              f"reproduce --out {tmp_path / 'p'}")
+    (tmp_path / "c" / "complexity_rows.json").unlink()  # (a fresh --out: stop writes it)
     argv = ["reproduce", "--complexity", "--out", str(tmp_path / "c")]
     last, command = _interrupted(capsys, argv)
     assert command == ["dscjax", *argv, "--resume"]

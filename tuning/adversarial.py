@@ -37,6 +37,7 @@ import numpy as np
 
 from dscjax import files, worst
 from dscjax.config import SimOptions
+from dscjax.progress import critical
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning import runner
@@ -85,7 +86,7 @@ def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
     with `seed` (resumed from `out_dir` if it holds one)."""
     spec = cfg.adversarial
     if out_dir is not None:
-        Path(out_dir).mkdir(parents=True, exist_ok=True)
+        files.mkdir(out_dir)
     return worst.worst_case(search_problem(setup, options, cfg), time_limit=spec.search_time,
                             seed=seed, out_dir=out_dir, resume=out_dir is not None,
                             starts=spec.starts, methods=(spec.method,), batch=spec.batch,
@@ -179,7 +180,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
     say = say or (lambda text: None)
     out = None if out_dir is None else Path(out_dir)
     if out is not None:
-        out.mkdir(parents=True, exist_ok=True)
+        files.mkdir(out)
     # the training plants need the waveform's coefficients as a leaf: a zero waveform
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
@@ -209,7 +210,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             new = {k: np.asarray(v) for k, v in res.problem.overrides(zw).items()}
             plants = new if plants is None else runner.join_plants(setup, plants, new)
             if rdir is not None:
-                rdir.mkdir(parents=True, exist_ok=True)
+                files.mkdir(rdir)
                 files.write_npz(rdir / "plants.npz", plants)
             say(f"round {r}/{spec.rounds}: worst {spec.metric} {res.value:.6g} for the current "
                 f"gains; {len(zw)} worst cases join the training set")
@@ -222,11 +223,13 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             row_cb = None if progress is None else (lambda row, r=r: progress(row | {"round": r}))
             result = runner.run(problem, rdir, z_init=z, progress=row_cb,
                                 resume=rdir is not None and (rdir / "checkpoint.json").exists())
-            meta["rounds"].append({
-                "round": r, "search": record(res), "added": len(zw),
-                "train_size": problem.n_train, "iterations": int(result.state.iteration),
-                "stop_reason": result.stop_reason, "best_loss": float(result.state.best_loss)})
-            save()
+            with critical():  # the round's record and its file (dscjax.progress)
+                meta["rounds"].append({
+                    "round": r, "search": record(res), "added": len(zw),
+                    "train_size": problem.n_train, "iterations": int(result.state.iteration),
+                    "stop_reason": result.stop_reason,
+                    "best_loss": float(result.state.best_loss)})
+                save()
         z = jax.device_get(result.best_z)
     fresh = meta.setdefault("fresh", {})
     seed = spec.seed + FRESH_SEED
@@ -234,9 +237,10 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
                                    ("tuned", z, f"fresh_tuned_R{spec.rounds}", spec.rounds)):
         if tag in fresh and fresh[tag]["rounds"] == rounds:
             continue  # done (the start gains' search does not depend on the rounds)
-        fresh[tag] = record(search(zz, seed, where, f"fresh search, {tag} gains")) | {
-            "seed": seed, "rounds": rounds}
-        save()
+        found = record(search(zz, seed, where, f"fresh search, {tag} gains"))
+        with critical():
+            fresh[tag] = found | {"seed": seed, "rounds": rounds}
+            save()
     if out is not None:
         runner.write_best(out, result.problem, result.state)
     return Outcome(result=result, rounds=meta["rounds"], fresh=fresh)

@@ -575,7 +575,7 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
         a.set_xlabel("iteration")
         a.grid(alpha=0.3, which="both")
         a.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     return fig
 
 
@@ -621,7 +621,7 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="upper right", fontsize=8)
-    fig.savefig(out / "before_after.png", dpi=110)
+    files.save_figure(fig, out / "before_after.png", dpi=110)
     figures.append("before_after.png")
 
     if ev["heldout"] is not None:
@@ -650,6 +650,6 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
         n = ev["heldout"]["start"]["diverged"].size
         fig.suptitle(f"held-out batch of {n} plants: distribution (ECDF) with the start and the "
                      f"tuned gains (solid: median, dashed: p95)")
-        fig.savefig(out / "heldout.png", dpi=110)
+        files.save_figure(fig, out / "heldout.png", dpi=110)
         figures.append("heldout.png")
     return figures

@@ -28,6 +28,7 @@ from dscjax import files
 from dscjax import ranges as rg
 from dscjax.config import SimOptions
 from dscjax.plant import PaperPlant
+from dscjax.progress import critical
 from dscjax.reference import SmoothStep
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
@@ -337,7 +338,7 @@ def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
 
 def _prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
     check_out_dir(out, resume, overwrite)
-    out.mkdir(parents=True, exist_ok=True)
+    files.mkdir(out)
     if overwrite:
         for name in ck.FILES:
             (out / name).unlink(missing_ok=True)
@@ -364,11 +365,13 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
                       z_init)
     try:
         while (reason := loop.limit_reached()) is None:
-            row = loop.iterate(step_hook)
+            # a Ctrl-C waits for the iteration, its row and its checkpoint (dscjax.progress)
+            with critical():
+                row = loop.iterate(step_hook)
+                loop.checkpoint(every=loop.spec.save_interval)
             if progress is not None:
                 progress(row | {"steps": loop.spec.max_steps, "terms": loop.terms,
                                 "n_rejected": int(loop.state.n_rejected)})
-            loop.checkpoint(every=loop.spec.save_interval)
             if (reason := loop.stalled()) is not None:
                 break
     except KeyboardInterrupt:
@@ -395,7 +398,10 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
             (out / STATE_FILE).unlink(missing_ok=True)
     loop = Search.open(problem, out, resume, t_start, z_init)
     spec = loop.spec
-    loop.compile()
+    # a Ctrl-C waits for the compilation too: one that cuts XLA's ahead-of-time compilation
+    # short makes the process crash as it exits
+    with critical():
+        loop.compile()
     reason = None
     try:
         while True:
@@ -408,18 +414,23 @@ def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: boo
                     and elapsed + loop.last_iter_s > spec.time_limit):
                 reason = f"time limit {spec.time_limit:g} s"
                 break
-            row = loop.generation()
+            # a Ctrl-C waits for the generation (ask, simulate, tell, inject, counters), a
+            # restart and the checkpoint (dscjax.progress): the state saved is a whole one
+            with critical():
+                row = loop.generation()
+                # before the checkpoint: a file written at this generation holds the restart
+                stopped = loop.state.es.stop()
+                if stopped and loop.state.restarts >= spec.restarts:
+                    reason = f"CMA-ES stopped: {dict(stopped)}"
+                elif stopped:
+                    loop.restart()  # budget left: a fresh CMA-ES from the start point
+                if reason is None and loop.state.iteration % spec.save_interval == 0:
+                    loop.save()
             if progress is not None:
                 progress(row | {"steps": spec.max_steps, "terms": _term_names(problem),
                                 "n_rejected": 0})
-            # before the checkpoint: a file written at this generation holds the restart
-            if loop.state.es.stop():
-                if loop.state.restarts >= spec.restarts:
-                    reason = f"CMA-ES stopped: {dict(loop.state.es.stop())}"
-                    break
-                loop.restart()  # budget left: a fresh CMA-ES from the start point
-            if loop.state.iteration % spec.save_interval == 0:
-                loop.save()
+            if reason is not None:
+                break
             if spec.patience and loop.state.stall >= spec.patience:
                 reason = (f"no improvement of the best loss by more than {spec.min_delta:g} "
                           f"(relative) in {spec.patience} generations")
@@ -598,13 +609,20 @@ class _Loop:
             self.save()
 
     def save(self, stop_reason: str | None = None) -> None:
-        """Write every checkpoint file (stop_reason: the run ends here)."""
+        """Write every checkpoint file (stop_reason: the run ends here), a Ctrl-C waiting for
+        them. The history and the best point first, then the state, then checkpoint.json: a
+        save cut short (a full disk) leaves a state whose history and best point are on disk
+        (a resume reads the history up to the state's iteration)."""
         if self.out is None:
             return
+        with critical():
+            self._save(stop_reason)
+
+    def _save(self, stop_reason: str | None) -> None:
         out, state, desc = self.out, self.state, self.desc
-        meta_state = ck.save_state(out / "checkpoint.npz", state)
-        write_best(out, self.problem, state)
         ck.write_history(out / "history.csv", self.history, history_columns(self.problem))
+        write_best(out, self.problem, state)
+        meta_state = ck.save_state(out / "checkpoint.npz", state)
         files.write_json(out / "checkpoint.json", {
             "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
             "iteration": int(state.iteration), "best_loss": float(state.best_loss),

@@ -71,6 +71,7 @@ from jax.flatten_util import ravel_pytree
 
 from dscjax import files, params, xla
 from dscjax.cmaes import ReplayCMA
+from dscjax.progress import critical
 from tuning import checkpoint as ck
 from tuning.objective import aggregate, plant_loss, simulate_metrics, within_bounds
 from tuning.optimize import value_and_grad
@@ -465,20 +466,27 @@ class Search:
 
     # -- files -----------------------------------------------------------------------------
     def save(self, stop_reason: str | None = None) -> None:
-        from tuning.runner import history_columns, write_best
-
+        """Write every checkpoint file, a Ctrl-C waiting for them (dscjax.progress): the
+        history and the best point, then the state (STATE_FILE), then checkpoint.json, so
+        that a save cut short (a full disk) leaves a state whose history is on disk."""
         if self.out is None:
             return
+        with critical():
+            self._save(stop_reason)
+
+    def _save(self, stop_reason: str | None) -> None:
+        from tuning.runner import history_columns, write_best
+
         st = self.state
+        ck.write_history(self.out / "history.csv", self.history,
+                         history_columns(self.problem))
+        write_best(self.out, self.problem, st)
         files.write_npz(self.out / STATE_FILE, st.cma.arrays() | {
             "best_flat": st.best_flat, "start_flat": st.start_flat,
             "line_rng": _rng_words(st.rng)}
             | {k: np.float64(getattr(st, k)) for k in _FLOATS}
             | {k: np.int64(getattr(st, k)) for k in _COUNTERS + _BACKOFF}
             | {_STEP_WINS: st.line_step_wins, "restarts": np.int64(st.restarts)})
-        write_best(self.out, self.problem, st)
-        ck.write_history(self.out / "history.csv", self.history,
-                         history_columns(self.problem))
         desc = self.problem.describe()
         files.write_json(self.out / "checkpoint.json", {
             "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),

@@ -96,12 +96,60 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
     return cast(setup, np.dtype(options.dtype)), options
 
 
-def prepare_out(path, option: str = "--out") -> Path:
-    """Create the output directory and check that a file can be written in it, before any
-    work is done; ConfigError (one line, exit 2) naming the option and the path if not."""
+def add_overwrite_arg(p):
+    """--overwrite of the commands without --resume (the one rule of --out, README)."""
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier "
+                   "run in DIR (only those this command writes); without it such a DIR is "
+                   "refused")
+
+
+@dataclasses.dataclass(frozen=True)
+class Outputs:
+    """What a command writes into its --out, declared once per command: file names or glob
+    patterns, and folders. The one rule of an existing --out checks them and --overwrite
+    deletes them, never anything else."""
+
+    files: tuple[str, ...]
+    folders: tuple[str, ...] = ()
+
+    def found(self, out: Path) -> list[str]:
+        """The outputs present in `out` (folders with a trailing /), sorted."""
+        names = {p.name for pattern in self.files for p in out.glob(pattern) if p.is_file()}
+        names |= {f"{p.name}/" for pattern in self.folders for p in out.glob(pattern)
+                  if p.is_dir()}
+        return sorted(names)
+
+    def remove(self, out: Path) -> None:
+        import shutil
+
+        for name in self.found(out):
+            path = out / name.rstrip("/")
+            if name.endswith("/"):
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+
+
+def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
+                check: bool = True, option: str = "--out") -> Path:
+    """Make `args.out` ready for a command, after every input has been validated:
+
+    1. a DIR that is a file, or cannot be written, is refused (one line, exit 2);
+    2. DIR is created if new (and removed again when the command ends leaving it empty), and
+       locked for the rest of the command (`files.lock_out`; `lock`: the lock file's name);
+       a DIR another process holds is refused, naming it;
+    3. the one rule (`check`): a DIR that holds `outputs` is refused unless --resume (where
+       the command has it, `resumable`: it continues them) or --overwrite (they are deleted,
+       and nothing else).
+
+    The lock and the clean-up belong to `args.exit_stack`, which the CLI's main holds open
+    while the command runs."""
+    from dscjax import files
     from dscjax.validation import ConfigError
 
-    out = Path(path)
+    out = Path(args.out)
+    new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
+    args.exit_stack.callback(_remove_if_empty, new)
     try:
         if out.exists() and not out.is_dir():
             raise NotADirectoryError(0, "it is a file, not a directory")
@@ -110,6 +158,28 @@ def prepare_out(path, option: str = "--out") -> Path:
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise ConfigError(f"{option} {str(path)!r}: cannot write the output there "
+        raise ConfigError(f"{option} {str(args.out)!r}: cannot write the output there "
                           f"({err.strerror or err}); give a writable directory") from None
+    args.exit_stack.enter_context(files.lock_out(
+        out, name=lock or files.LOCK, argv=[*args.prog, *args.argv], option=option))
+    if check:
+        found = outputs.found(out)
+        if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
+            shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
+            how = ("--resume to continue them, --overwrite to start afresh (deleting only "
+                   "them)" if resumable else "--overwrite to replace them")
+            raise ConfigError(f"{option} {str(args.out)!r} already holds files this command "
+                              f"writes ({shown}); {how}, or give another {option}")
+        if getattr(args, "overwrite", False):
+            outputs.remove(out)
     return out
+
+
+def _remove_if_empty(created: list[Path]) -> None:
+    """The directories a command created for its --out (leaf first), removed if it left
+    nothing in them."""
+    for path in created:
+        try:
+            path.rmdir()
+        except OSError:
+            return

@@ -13,10 +13,11 @@ import sys
 
 import numpy as np
 
-from dscjax.cli.common import add_example_arg, prepare_out
+from dscjax.cli.common import Outputs, add_example_arg, add_overwrite_arg, prepare_out
 
 DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
 DEFAULT_OMEGA = 2.3
+OUTPUTS = Outputs(("loop.npz", "loop.png"))
 
 
 def add_parser(sub):
@@ -39,6 +40,7 @@ def add_parser(sub):
                    "(default 1e-3)")
     p.add_argument("--out", default="results/hysteresis", metavar="DIR",
                    help="output directory (default results/hysteresis)")
+    add_overwrite_arg(p)
     return p
 
 
@@ -66,7 +68,7 @@ def run(args) -> int:
         validation.finite(args.t_final, "--t-final")
         t_final = args.t_final
         validation.whole_steps(t_final, args.dt, "--t-final", "--dt")
-    out = prepare_out(args.out)
+    out = prepare_out(args, OUTPUTS)
     print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
           f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {args.dt:g} s",
           file=sys.stderr)
@@ -84,6 +86,7 @@ def run(args) -> int:
 def _plot(hyst, amplitudes, omega, u, w, path):
     import matplotlib
 
+    from dscjax import files
     from dscjax.plotting import hysteresis_loop, subplots
     from dscjax.reproduce import RC
 
@@ -97,4 +100,4 @@ def _plot(hyst, amplitudes, omega, u, w, path):
             ax.legend(loc="upper left", framealpha=0.95, fontsize=8)
         axes[0].set_ylabel("hysteresis output $w$ [-]")
         fig.suptitle(hyst.title)
-        fig.savefig(path, dpi=120)
+        files.save_figure(fig, path, dpi=120)

@@ -1,16 +1,23 @@
 """Entry point of the `dscjax` command.
 
-Errors a user can fix (bad settings, unreadable files) print one line and exit 2 without a
-traceback; a diverged simulation prints when it diverged and exits 3; Ctrl-C exits 130 and
-says what was kept and the command that continues (a subcommand's `interrupt_hint(args)`).
+Errors a user can fix (bad settings, unreadable files, an --out in use) print one line and
+exit 2 without a traceback; a diverged simulation prints when it diverged and exits 3; a full
+disk prints the file and the command that continues, and exits 4; Ctrl-C exits 130 and says
+what was kept and the command that continues (a subcommand's `interrupt_hint(args)`). A Ctrl-C
+inside a critical section of long work is deferred to its end (`dscjax.progress`); a second
+one stops at once without saving. Hints print the program as the user typed it.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import errno
 import importlib
 import os
+import shlex
 import sys
+from pathlib import Path
 
 # Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
 COMMANDS = {
@@ -25,6 +32,8 @@ COMMANDS = {
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
+EXIT_NO_SPACE = 4
+EXIT_INTERRUPTED = 130
 
 
 class CLIError(Exception):
@@ -58,7 +67,8 @@ def build_parser(commands) -> argparse.ArgumentParser:
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
         epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
-        "stderr. Exit codes: 0 ok, 2 bad input, 3 a simulation diverged, 130 interrupted.",
+        "stderr. Exit codes: 0 ok, 2 bad input (or --out in use by another process), 3 a "
+        "simulation diverged, 4 no space left on the device, 130 interrupted.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     parser.add_argument("--no-compilation-cache", action="store_true",
@@ -71,29 +81,54 @@ def build_parser(commands) -> argparse.ArgumentParser:
     return parser
 
 
-def resume_command(argv) -> str:
-    """The command line that continues an interrupted run: the same arguments, --resume
-    instead of --overwrite."""
-    import shlex
-
-    args = [a for a in argv if a != "--overwrite"]
-    if "--resume" not in args:
-        args.append("--resume")
-    return shlex.join(["dscjax", *args])
+def resume_command(args) -> str:
+    """The command line that continues an interrupted run: the program as typed, the same
+    arguments, --resume instead of --overwrite."""
+    argv = [a for a in args.argv if a != "--overwrite"]
+    if "--resume" not in argv:
+        argv.append("--resume")
+    return shlex.join([*args.prog, *argv])
 
 
-def rerun_command(argv) -> str:
-    import shlex
+def rerun_command(args) -> str:
+    """The command line that runs a command again from the start: the program as typed, the
+    same arguments without --resume, and --overwrite where --out holds files the command
+    writes (the one rule of --out would refuse the run otherwise)."""
+    argv = [a for a in args.argv if a != "--resume"]
+    outputs = getattr(importlib.import_module(COMMANDS[args.command]), "OUTPUTS", None)
+    out = getattr(args, "out", None)
+    if (outputs is not None and out is not None and "--overwrite" not in argv
+            and os.path.isdir(out) and outputs.found(Path(out))):
+        argv.append("--overwrite")
+    return shlex.join([*args.prog, *argv])
 
-    return shlex.join(["dscjax", *argv])
+
+def typed_program() -> list[str]:
+    """The program as the user typed it: `sys.argv[0]` (e.g. .venv/bin/dscjax), or `python -m
+    dscjax.cli.main` with the interpreter that runs it."""
+    prog = sys.argv[0] if sys.argv else ""
+    if prog and os.path.abspath(prog) == os.path.abspath(__file__):
+        return [sys.executable, "-m", "dscjax.cli.main"]
+    return [prog if prog not in ("", "-c") else "dscjax"]
+
+
+def _continue(args, module) -> str:
+    """After a full disk: the command that continues (--resume, where something is kept to
+    continue) or that runs the command again."""
+    resumable = getattr(module, "resumable", None)
+    if resumable is not None and resumable(args):
+        return f"rerun with: {resume_command(args)}"
+    return f"run the same command again: {rerun_command(args)}"
 
 
 def main(argv=None) -> int:
     commands = _available_commands()
     parser = build_parser(commands)
+    # the program as typed (hints repeat it); "dscjax" when called with arguments (tests)
+    prog = typed_program() if argv is None else ["dscjax"]
     argv = list(sys.argv[1:] if argv is None else argv)
     args = parser.parse_args(argv)
-    args.argv = argv
+    args.argv, args.prog = argv, prog
     # Float64 is the default everywhere in the CLI; --float32 casts the setup instead.
     os.environ.setdefault("JAX_ENABLE_X64", "1")
     import jax
@@ -104,23 +139,37 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
+    from dscjax.files import NoSpace
+    from dscjax.progress import Abort, handle_interrupts
     from dscjax.simulate import DivergenceError
     from dscjax.validation import ConfigError
 
+    module = commands[args.command]
     try:
-        return int(commands[args.command].run(args) or 0)
+        # the lock on --out and the clean-up of an --out left empty (cli.common.prepare_out)
+        # last as long as the command
+        with handle_interrupts(), contextlib.ExitStack() as args.exit_stack:
+            return int(module.run(args) or 0)
     except (ConfigError, CLIError) as err:
         print(f"dscjax {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except DivergenceError as err:
         print(f"dscjax {args.command}: simulation diverged: {err}", file=sys.stderr)
         return EXIT_DIVERGED
-    except KeyboardInterrupt:
-        hint = getattr(commands[args.command], "interrupt_hint", None)
-        note = hint(args) if hint is not None else None
-        print(f"\ndscjax {args.command}: interrupted" + (f"; {note}" if note else ""),
+    except NoSpace as err:
+        why = "" if err.errno == errno.ENOSPC else f" ({err.strerror})"
+        print(f"dscjax {args.command}: error: no space left on the device writing "
+              f"{err.filename}{why}; free space and {_continue(args, module)}",
               file=sys.stderr)
-        return 130
+        return EXIT_NO_SPACE
+    except (KeyboardInterrupt, Abort) as stop:
+        hint = getattr(module, "interrupt_hint", None)
+        note = hint(args) if hint is not None else None
+        what = ("interrupted again: stopped at once without saving the step under way"
+                if isinstance(stop, Abort) else "interrupted")
+        print(f"\ndscjax {args.command}: {what}" + (f"; {note}" if note else ""),
+              file=sys.stderr)
+        return EXIT_INTERRUPTED
 
 
 if __name__ == "__main__":

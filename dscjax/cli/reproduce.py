@@ -4,7 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from dscjax.cli.common import Outputs
+from dscjax.reproduce.figures import FIGURES
+
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
+OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
+                   *(f"{stem}.{fmt}" for stem in FIGURES.values() for fmt in ("png", "pdf"))),
+                  folders=("theory",))
 
 
 def parse_orders(text: str) -> list[int]:
@@ -59,10 +65,14 @@ def add_parser(sub):
     p.add_argument("--repeats", type=int, default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
-    p.add_argument("--resume", action="store_true",
-                   help="with --complexity: keep the control-law measurements an interrupted "
-                   "run saved in DIR/complexity_rows.json (same --repeats) and measure only "
-                   "the rest")
+    again = p.add_mutually_exclusive_group()
+    again.add_argument("--resume", action="store_true",
+                       help="with --complexity: keep the control-law measurements an "
+                       "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
+                       "measure only the rest")
+    again.add_argument("--overwrite", action="store_true", help="replace the files of an "
+                       "earlier run in DIR (only those this command writes); without it such "
+                       "a DIR is refused")
     p.add_argument("--theory", action="store_true",
                    help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
                    "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
@@ -118,7 +128,7 @@ def run(args) -> int:
     if args.resume and not rows.exists():
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
-    prepare_out(args.out)
+    prepare_out(args, OUTPUTS, resumable=args.complexity)
     summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
                         dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
                         complexity_repeats=args.repeats, resume=args.resume,
@@ -132,11 +142,15 @@ def run(args) -> int:
     return 0
 
 
+def resumable(args) -> bool:
+    """Does --out hold what `--resume` continues (the --complexity study's measurements)?"""
+    return bool(args.complexity) and (Path(args.out) / ROWS).exists()
+
+
 def interrupt_hint(args) -> str:
     from dscjax.cli.main import rerun_command, resume_command
 
-    rows = Path(args.out) / ROWS
-    if args.complexity and rows.exists():
-        return (f"the finished control-law measurements are kept in {rows}; continue with: "
-                f"{resume_command(args.argv)}")
-    return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    if resumable(args):
+        return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
+                f"continue with: {resume_command(args)}")
+    return f"nothing is kept; run the same command again: {rerun_command(args)}"

@@ -8,9 +8,18 @@ import time
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, add_integration_args, load_setup, prepare_out
+from dscjax.cli.common import (
+    Outputs,
+    add_config_args,
+    add_integration_args,
+    add_overwrite_arg,
+    load_setup,
+    prepare_out,
+)
 from dscjax.files import write_json, write_npz
 from dscjax.progress import Progress
+
+OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
 
 
 def _default_variant() -> str:
@@ -44,6 +53,7 @@ def add_parser(sub):
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "
                    f"{_default_variant()})")
+    add_overwrite_arg(p)
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
     p.add_argument("--print-config", action="store_true",
                    help="print the effective config as TOML and exit")
@@ -77,7 +87,7 @@ def run(args) -> int:
     nbytes = _check_memory(setup, options, every, n_steps)
     warnings = validation.assumption_warnings(setup)
 
-    out = prepare_out(args.out)
+    out = prepare_out(args, OUTPUTS)
     n = setup.order
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
@@ -242,7 +252,7 @@ def interrupt_hint(args) -> str:
     from dscjax.cli.main import rerun_command
 
     return (f"nothing is kept (the files are written when the run ends); run the same command "
-            f"again: {rerun_command(args.argv)}")
+            f"again: {rerun_command(args)}")
 
 
 def _title(setup, options):

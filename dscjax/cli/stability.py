@@ -11,8 +11,17 @@ import sys
 
 import numpy as np
 
-from dscjax.cli.common import add_config_args, load_setup, prepare_out
+from dscjax import files
+from dscjax.cli.common import (
+    Outputs,
+    add_config_args,
+    add_overwrite_arg,
+    load_setup,
+    prepare_out,
+)
 from dscjax.files import write_json
+
+OUTPUTS = Outputs(("stability.json", "stability.png"))
 
 
 def add_parser(sub):
@@ -28,6 +37,7 @@ def add_parser(sub):
                    "0.25,0.5,1,2,4)")
     p.add_argument("--out", default="results/stability", metavar="DIR",
                    help="output directory (default results/stability)")
+    add_overwrite_arg(p)
     p.add_argument("--no-plot", action="store_true", help="skip stability.png")
     return p
 
@@ -51,7 +61,7 @@ def run(args) -> int:
     setup, options = load_setup(args)
     scales = _scales(args.tau_scales)
     validation.validate_run(setup, options.t_final, options.dt, 1, None)
-    out = prepare_out(args.out)
+    out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
           f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)
     m = stability_map(setup, options.t_final, options.dt, tau_scales=scales,
@@ -114,4 +124,4 @@ def _plot(m, path):
     ax.set_title("Where classical RK4 stays finite over the horizon")
     ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    files.save_figure(fig, path, dpi=120)

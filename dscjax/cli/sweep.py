@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax.cli.common import (
+    Outputs,
     add_example_arg,
     add_horizon_args,
     add_integration_args,
@@ -27,6 +28,9 @@ from dscjax.progress import Progress
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
+OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
+                   "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
+                   "traces.png"), folders=("chunks",))
 
 
 def add_parser(sub):
@@ -201,7 +205,7 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import params, sweep
+    from dscjax import files, params, sweep, validation
     from dscjax.metrics import default_window
     from dscjax.ranges import assumption_warnings
     from dscjax.simulate import simulate
@@ -215,10 +219,15 @@ def run(args) -> int:
     if args.print_config:
         sys.stdout.write(sweep_toml(settings, setup))
         return 0
+    validation.validate_run(setup, t_final, dt, 1, window_start)
+    validation.validate_setup(setup)
     if args.resume:
         sweep.check_resumable(args.out)
-    out = prepare_out(args.out)
     main = jax.process_index() == 0
+    # several processes share --out: process 0 (which writes every file) takes the lock of
+    # the directory and applies the rule of --out; process i > 0 takes a lock of its own
+    out = prepare_out(args, OUTPUTS, resumable=True, check=main,
+                      lock=files.LOCK if main else f"{files.LOCK}.{jax.process_index()}")
     n = settings.n_samples()
     if main:
         desc = ", ".join(
@@ -320,6 +329,11 @@ def run(args) -> int:
     return 0
 
 
+def resumable(args) -> bool:
+    """Does --out hold a sweep that `--resume` continues (its sweep.json)?"""
+    return (Path(args.out) / "sweep.json").exists()
+
+
 def interrupt_hint(args) -> str | None:
     import jax
 
@@ -328,11 +342,11 @@ def interrupt_hint(args) -> str | None:
     if jax.process_index() != 0:
         return None
     out = Path(args.out)
-    if not (out / "sweep.json").exists():
-        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    if not resumable(args):
+        return f"nothing is kept; run the same command again: {rerun_command(args)}"
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
     return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
-            f"{resume_command(args.argv)}")
+            f"{resume_command(args)}")
 
 
 def _traces_title(kinds, dtype) -> str:

@@ -15,6 +15,13 @@ import sys
 import time
 from pathlib import Path
 
+from dscjax.cli.common import Outputs
+
+OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
+                   "before_after.png", "heldout.png", "checkpoint.npz", "search.npz",
+                   "checkpoint.json", "best.json", "adversarial.json"),
+                  folders=("round_*", "fresh_*"))
+
 
 def add_parser(sub):
     from dscjax.cli.common import add_example_arg, add_horizon_args
@@ -109,6 +116,13 @@ def add_parser(sub):
     return p
 
 
+def resumable(args) -> bool:
+    """Does --out hold a run that `--resume` continues (its checkpoint, or the record of the
+    adversarial rounds)?"""
+    out = Path(args.out)
+    return (out / "checkpoint.json").exists() or (out / "adversarial.json").exists()
+
+
 def interrupt_hint(args) -> str:
     import json
 
@@ -116,15 +130,15 @@ def interrupt_hint(args) -> str:
 
     if (Path(args.out) / "adversarial.json").exists():
         return (f"the finished rounds and searches are kept in {args.out}; continue with: "
-                f"{resume_command(args.argv)}")
+                f"{resume_command(args)}")
     path = Path(args.out) / "checkpoint.json"
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+        return f"nothing is kept; run the same command again: {rerun_command(args)}"
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
-            f"{resume_command(args.argv)}")
+            f"{resume_command(args)}")
 
 
 def load(args):
@@ -230,14 +244,10 @@ def run(args) -> int:
     from dscjax.cli.common import prepare_out
     from dscjax.params import cast
     from dscjax.progress import Progress
+    from dscjax.validation import ConfigError
     from tuning import report
     from tuning.config import to_toml
-    from tuning.runner import (
-        build_problem,
-        check_out_dir,
-        format_progress,
-        model_default_ranges,
-    )
+    from tuning.runner import build_problem, format_progress, model_default_ranges
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
@@ -251,11 +261,14 @@ def run(args) -> int:
         from tuning import adversarial
 
         # the zero waveform the training plants' disturbances replace (one compiled structure)
-        setup = adversarial.search_problem(setup, options, cfg).setup
-    else:
-        check_out_dir(out, args.resume, args.overwrite)
-    prepare_out(out)
-    problem = build_problem(setup, options, cfg)
+        searched = adversarial.search_problem(setup, options, cfg)
+        setup = searched.setup
+    if args.resume and not resumable(args):
+        missing = "adversarial.json" if adv.rounds else "checkpoint.json"
+        raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
+                          f"without --resume to start afresh")
+    problem = build_problem(setup, options, cfg)  # (validates every setting)
+    prepare_out(args, OUTPUTS, resumable=True)
     oc = cfg.optimizer
     from tuning.optimize import SEARCHES
 
@@ -273,8 +286,7 @@ def run(args) -> int:
           + "; " + ("at most " + " or ".join(limits) if limits
                     else "no iteration or time limit")
           + (f" per round; {adv.rounds} adversarial rounds over "
-             + ", ".join(r.spec() for r in adversarial.search_problem(setup, options,
-                                                                      cfg).ranges)
+             + ", ".join(r.spec() for r in searched.ranges)
              + (f" and {adv.disturbance}" if adv.disturbance else "")
              + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else ""),
           file=sys.stderr)

@@ -11,7 +11,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import add_config_args, load_setup, prepare_out
+from dscjax.cli.common import Outputs, add_config_args, load_setup, prepare_out
+from dscjax.worst_report import FIGURES
+
+MANIFEST = "worst_case.json"
+OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
+                   "report.md", "state_*.npz", *FIGURES))
 
 
 def add_parser(sub):
@@ -81,7 +86,7 @@ def run(args) -> int:
     from dscjax.progress import Progress
     from dscjax.ranges import parse_range
     from dscjax.validation import ConfigError
-    from dscjax.worst import make_problem, worst_case
+    from dscjax.worst import check_options, make_problem, worst_case
     from dscjax.worst_report import write
 
     if args.max_evals is not None:
@@ -94,24 +99,21 @@ def run(args) -> int:
                            window_start=options.window_start, state_bound=options.state_bound,
                            solver=options.solver, refine=options.refine, period=args.period)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
+    check_options(problem, methods, args.starts, args.batch, args.time_limit, args.max_evals,
+                  args.gradient_coarsening)
     out = Path(args.out)
-    manifest = out / "worst_case.json"
+    manifest = out / MANIFEST
     fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
                    "batch": args.batch, "methods": methods,
                    "coarsening": args.gradient_coarsening}
     if args.resume:
         if not manifest.exists():
-            raise ConfigError(f"--resume: {manifest} does not exist; run without --resume")
+            raise ConfigError(f"--resume: nothing to resume in {out} ({MANIFEST} is "
+                              f"missing); run without --resume to start afresh")
         files.check_same(files.read_json(manifest).get("fingerprint"), fingerprint,
                          where=f"--resume: {manifest}", fix="use the same settings, or "
                          "--overwrite to start afresh")
-    elif manifest.exists() and not args.overwrite:
-        raise ConfigError(f"--out {str(out)!r} holds a search already; --resume to continue "
-                          f"it or --overwrite to start afresh")
-    out = prepare_out(out)
-    if args.overwrite:
-        for f in out.glob("state_*.npz"):
-            f.unlink()
+    out = prepare_out(args, OUTPUTS, resumable=True)
     files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
     print(f"dscjax worst-case: {problem.metric} over "
           + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
@@ -174,12 +176,17 @@ def requirement_of(args, setup):
     return build_requirements(setup, {name: table[name]})[0]
 
 
+def resumable(args) -> bool:
+    """Does --out hold a search that `--resume` continues (its manifest)?"""
+    return (Path(args.out) / MANIFEST).exists()
+
+
 def interrupt_hint(args) -> str | None:
     from dscjax.cli.main import rerun_command, resume_command
 
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
-    if not states:
-        return f"nothing is kept; run the same command again: {rerun_command(args.argv)}"
+    if not states or not resumable(args):
+        return f"nothing is kept; run the same command again: {rerun_command(args)}"
     return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
-            f"continue with: {resume_command(args.argv)}")
+            f"continue with: {resume_command(args)}")

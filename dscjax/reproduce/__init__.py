@@ -24,7 +24,6 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Callable, Sequence
-from pathlib import Path
 
 import jax
 
@@ -103,8 +102,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     if log is None:
         def log(msg):
             print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = files.mkdir(out)
     log(f"reproducing Section 4 of the paper: T = {t_final:g} s, dt = {dt:g} s -> {out}/")
     family = family_loops()
     # Fig. 1 is the family's backlash entry: hysteresis_example("backlash") is the paper's (4)

@@ -35,6 +35,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.examples import order_n_example, paper_example
 from dscjax.reproduce import theory
@@ -355,7 +356,7 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
                      "measured error", fontsize=9.5)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        fig.savefig(path, dpi=dpi)
+        files.save_figure(fig, path, dpi=dpi)
     return path
 
 

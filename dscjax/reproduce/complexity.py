@@ -313,4 +313,4 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
         ax.set_ylim(lo, hi * 10 ** (decades * share / (1 - share)))
         ax.legend(fontsize=8, loc="upper left")
     fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)
-    fig.savefig(path, dpi=dpi)
+    files.save_figure(fig, path, dpi=dpi)

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from dscjax import files
 from dscjax.examples import paper_example
 from dscjax.plotting import COLORS, hysteresis_loop, subplots
 from dscjax.reproduce.runs import LABELS, STYLE, estimates
@@ -30,7 +31,7 @@ RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid"
 
 def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
     path = out / f"{stem}.{fmt}"
-    fig.savefig(path, dpi=dpi)
+    files.save_figure(fig, path, dpi=dpi)
     return path
 
 

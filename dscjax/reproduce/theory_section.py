@@ -194,7 +194,7 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
                          "(data-driven $M$)")
         bottom.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         path = Path(path)
-        fig.savefig(path, dpi=dpi)
+        files.save_figure(fig, path, dpi=dpi)
     return path
 
 
@@ -219,10 +219,9 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
         The summary written to theory.json (also the input of `markdown`).
     """
     t0 = time.perf_counter()
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
+    out = files.mkdir(out)
     paper, arrays = paper_check(setup, traj)
-    np.savez(out / "lyapunov.npz", **{k: np.asarray(v) for k, v in arrays.items()})
+    files.write_npz(out / "lyapunov.npz", {k: np.asarray(v) for k, v in arrays.items()})
     figs = {"lyapunov": str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))}
     log(f"theory: V(t) of (44) on the paper's example: V(0) = {paper['V0']:.4g}, max "
         f"{paper['V_max']:.4g}; certified alpha_0 = {paper['alpha0']:.3g} (bound by "

@@ -14,6 +14,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
+from dscjax import files
 from dscjax.plotting import subplots
 
 _SYMBOLS = {
@@ -105,7 +106,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
               frameon=False)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 def _cells(x, edges_x, y, edges_y):
@@ -234,7 +235,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     if handles:
         ax.legend(handles=handles, fontsize=8, loc="upper center",
                   bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
             "count": count.tolist(), "degraded_cells": int(bad.sum()),
@@ -264,7 +265,7 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
     ax.set_title(title, fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
@@ -307,7 +308,7 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     if title:
         fig.suptitle(title, fontsize=11)
-    fig.savefig(path, dpi=110)
+    files.save_figure(fig, path, dpi=110)
 
 
 def trace_label(record: dict, names: Sequence[str], kind: str) -> str:

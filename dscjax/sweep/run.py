@@ -14,6 +14,7 @@ import jax
 import numpy as np
 
 from dscjax import config, files, params, validation
+from dscjax.progress import critical
 from dscjax.ranges import sample_table
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check
@@ -157,8 +158,9 @@ def run_sweep(
                             table[lo:lo + m], part)
             if out is not None:
                 if main:
-                    files.write_npz(_chunk_path(out, b),
-                                    {**data, "_fingerprint": np.array(digest)})
+                    with critical():  # a Ctrl-C waits for the chunk file (dscjax.progress)
+                        files.write_npz(_chunk_path(out, b),
+                                        {**data, "_fingerprint": np.array(digest)})
             else:
                 kept[b] = data
             n_run += m
@@ -184,7 +186,8 @@ def run_sweep(
     columns_out = ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
                    if parts and parts[0] is not None else {})
     if out is not None and main:
-        files.write_npz(out / "results.npz", columns_out)
+        with critical():
+            files.write_npz(out / "results.npz", columns_out)
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, parallel=settings.parallel,
@@ -211,7 +214,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
     if resume:
         check_resumable(out)
     if main:
-        (out / "chunks").mkdir(parents=True, exist_ok=True)
+        files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
             files.check_same(files.read_json(manifest).get("fingerprint"), fp,
@@ -226,7 +229,9 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
             for f in existing:
                 f.unlink()
             (out / "results.npz").unlink(missing_ok=True)
-        files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
+        with critical():
+            files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest})
+                             + "\n")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
