@@ -72,13 +72,13 @@ class SimOptions:
             raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
 
     def save_stride(self, n_steps: int) -> int:
-        """`save_every` if given; else every step while that keeps at most MAX_SAVED_POINTS
-        points, otherwise the smallest stride that divides the N steps and keeps them within
-        (a tiny dt must not fill the memory with a trajectory nobody asked for)."""
+        """`save_every` if given; else the smallest stride s that keeps at most
+        MAX_SAVED_POINTS points: the steps 0, s, 2s, ... and always the last one, N (s need
+        not divide N), so a tiny dt does not fill the memory with a trajectory nobody asked
+        for and any N keeps about MAX_SAVED_POINTS of them."""
         if self.save_every is not None:
             return self.save_every
-        lo = -(-n_steps // (MAX_SAVED_POINTS - 1))
-        return next(s for s in range(max(lo, 1), n_steps + 1) if n_steps % s == 0)
+        return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
 # -- Setup -> dict -> TOML ----------------------------------------------------------------------

@@ -230,7 +230,7 @@ class Status(NamedTuple):
 
 
 class Integration(NamedTuple):
-    ys: Pytree  # states at t_0, t_s, t_2s, ..., t_N (leading axis N/s + 1, then the batch)
+    ys: Pytree  # states at the steps `saved_steps(N, s)`: 0, s, 2s, ..., N (then the batch)
     obs: Pytree  # observations at the same times
     acc: Pytree  # running reductions over every step k = 0..N (None without a reduction)
     status: Status
@@ -480,7 +480,7 @@ class _Problem:
             c, (ys, obs) = jax.lax.scan(rows, c0, None, length=n // chunk)
             ys, obs = (jax.tree.map(lambda v: v.reshape(n, *v.shape[2:]), x) for x in (ys, obs))
         else:
-            def block(c, _):
+            def block(c, length):
                 def inner(cc, _):
                     cr, obs_first, first = cc
                     cr_new, obs = self.guarded(cr, a, red, dt, bound)
@@ -489,10 +489,14 @@ class _Problem:
                     return (cr_new, obs_first, jnp.zeros_like(first)), None
 
                 (c_new, obs_first, _), _ = jax.lax.scan(inner, (c, obs_zero, jnp.array(True)),
-                                                        None, length=s)
+                                                        None, length=length)
                 return c_new, (c.y, obs_first)
 
-            c, (ys, obs) = jax.lax.scan(block, c0, None, length=n // s)
+            c, (ys, obs) = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=n // s)
+            if n % s:  # the last, shorter block: its first step is saved too
+                c, last = block(c, n % s)
+                ys, obs = (jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), x, x_last)
+                           for x, x_last in zip((ys, obs), last, strict=True))
         acc, obs_end = self.finish(c, a, red, dt)
         ys = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), ys, c.y)
         obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), obs, obs_end)
@@ -511,6 +515,12 @@ class _Problem:
         c, (Y, A, O) = _blocked_scan(step, c0, None, n, width)
         acc, obs_end = self.finish(c, a, red, dt)
         return c, Y, A, O, acc, obs_end
+
+
+def saved_steps(n_steps: int, save_every: int) -> np.ndarray:
+    """The step indices k that `integrate` saves: 0, s, 2s, ... below N, and N itself (the
+    stride need not divide N: the last interval is then shorter)."""
+    return np.append(np.arange(0, n_steps, save_every), n_steps)
 
 
 def _saved(all_k, end, s):
@@ -779,7 +789,6 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
         return (k + 1, y_next, acc, code, bad), obs
 
     obs_zero = _zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
-    seg = _segment_length(save_every, checkpoint_every)
 
     def steps(carry, obs_first, first, length):
         def inner(c, _):
@@ -790,13 +799,14 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
 
         return jax.lax.scan(inner, (carry, obs_first, first), None, length=length)[0]
 
-    def block(carry, _):
-        # save_every steps (in checkpointed segments); keep the state and obs at the first one.
+    def block(carry, length):
+        # `length` steps (in checkpointed segments); keep the state and obs at the first one.
         y_start = carry[1]
         state = (carry, obs_zero, jnp.array(True))
-        if seg is None or seg == save_every:
+        seg = _segment_length(length, checkpoint_every)
+        if seg is None or seg == length:
             def body(st):
-                return steps(*st, save_every)
+                return steps(*st, length)
 
             state = (jax.checkpoint(body) if seg else body)(state)
         else:
@@ -804,7 +814,7 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
             def segment(st, _):
                 return steps(*st, seg), None
 
-            state, _ = jax.lax.scan(segment, state, None, length=save_every // seg)
+            state, _ = jax.lax.scan(segment, state, None, length=length // seg)
         carry, obs_first, _ = state
         return carry, (ys_c.stack(y_start), obs_c.stack(obs_first))
 
@@ -827,7 +837,12 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
             ys = ys.reshape(n_steps, *ys.shape[2:])
             obs = obs.reshape(n_steps, *obs.shape[2:])
         else:
-            carry, (ys, obs) = jax.lax.scan(block, init, None, length=n_steps // save_every)
+            carry, (ys, obs) = jax.lax.scan(lambda c, _: block(c, save_every), init, None,
+                                            length=n_steps // save_every)
+            if n_steps % save_every:  # the last, shorter block: its first step is saved too
+                carry, (y_last, obs_last) = block(carry, n_steps % save_every)
+                ys = jnp.concatenate([ys, y_last[None]])
+                obs = jnp.concatenate([obs, obs_last[None]])
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         _, obs_end = f_obs(t_end, y_end)
@@ -869,10 +884,11 @@ def integrate(
             as f(t, y, args, b) for one batch member b (and does not see the batch axis).
         y0: initial state pytree (with `batch`: every leaf has a leading batch axis B).
         dt: step (traced).
-        n_steps: number of steps N (static). Must be a multiple of save_every.
+        n_steps: number of steps N (static).
         args: shared arguments passed to f (traced leaves, one copy for the whole batch).
         batch: None, or a pytree whose leaves have a leading batch axis B: per-member arguments.
-        save_every: keep every s-th state and observation (static); memory is O(N/s).
+        save_every: keep the states and observations at the steps 0, s, 2s, ... and always
+            at N (`saved_steps`; s need not divide N) (static); memory is O(N/s).
         reduction: None, or a `Reduction` pytree: acc <- reduction.update(acc, k, t_k, y_k,
             obs_k) for every k = 0..N while the trajectory is healthy (running metrics).
         acc0: initial accumulator (with `batch`: leading batch axis).
@@ -901,8 +917,6 @@ def integrate(
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
     """
-    if n_steps % save_every:
-        raise ValueError(f"n_steps={n_steps} must be a multiple of save_every={save_every}")
     dt = jnp.asarray(dt)
     if not jnp.issubdtype(dt.dtype, jnp.floating):
         dt = dt.astype(jnp.result_type(*jax.tree.leaves(y0)))
@@ -917,4 +931,4 @@ def integrate(
 
 
 __all__ = ["STATUS_BOUND", "STATUS_NONFINITE", "STATUS_OK", "Carry", "Integration",
-           "Reduction", "SMALL", "Status", "integrate", "rk4_step"]
+           "Reduction", "SMALL", "Status", "integrate", "rk4_step", "saved_steps"]

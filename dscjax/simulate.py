@@ -36,15 +36,17 @@ from dscjax.integrate import (
     STATUS_OK,
     Status,
     integrate,
+    saved_steps,
 )
 from dscjax.metrics import DEFAULT_WINDOW_START, default_window  # noqa: F401 (public here too)
 
 
 class Trajectory(eqx.Module):
-    """A simulated closed loop, saved every `save_every` steps (leading axis T).
+    """A simulated closed loop, saved every `save_every` steps and at T (leading axis T).
 
     Attributes:
-        t: (T,) save times t_j = j * save_every * dt.
+        t: (T,) save times k dt at the saved steps k = 0, s, 2s, ..., and N (the last point is
+            always t_final, also where s does not divide N: `integrate.saved_steps`).
         x: (T, n) plant state; y = x[:, 0].
         w: (T,) hysteresis output w = P(u).
         h: the hysteresis model's state (for the backlash-like model (4): w itself).
@@ -207,8 +209,9 @@ def run(setup: Setup, dt, window_start, state_bound, *, n_steps: int, save_every
         res = integrate(lambda t, y, sh, b: vector_field(t, y, rebuild(sh, b)), y0, dt, n_steps,
                         shared, batch=batched, acc0=acc0, checkpoint_every=checkpoint_every,
                         **common)
-    n_saved = n_steps // save_every + 1
-    t = (jnp.arange(n_saved, dtype=jnp.int32) * save_every).astype(dtype) * dt
+    steps = saved_steps(n_steps, save_every)
+    n_saved = steps.size
+    t = jnp.asarray(steps, jnp.int32).astype(dtype) * dt
     finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
     if overrides is not None:
         t = jnp.broadcast_to(t, (n_batch, n_saved))
@@ -326,7 +329,8 @@ def simulate(
         setup: the plant, hysteresis, controller and reference (see `paper_example`).
         t_final: horizon T in seconds; must be a whole number of steps.
         dt: RK4 step. Validated against the fastest filter (dt/tau <= 2.785).
-        save_every: keep every s-th step in the returned arrays (metrics still use every step).
+        save_every: keep every s-th step in the returned arrays, and always the last one, at
+            t_final (s need not divide the number of steps; the metrics use every step).
         window_start: t0 of the windowed metrics [t0, T]; default 1 s (0 if T <= 1 s).
         state_bound: a state component beyond it in magnitude counts as divergence.
         throw: raise DivergenceError if the run diverged (set False to inspect `status`).
@@ -349,8 +353,8 @@ def simulate(
             are added to `metrics`. Not together with `progress`.
 
     Returns:
-        Trajectory with arrays of length t_final/(dt save_every) + 1 and the metrics (NaN if
-        the run diverged: `traj.diverged`, `traj.t_diverged` say when).
+        Trajectory with arrays of length ceil(N / save_every) + 1 (N = t_final/dt) and the
+        metrics (NaN if the run diverged: `traj.diverged`, `traj.t_diverged` say when).
 
     Example:
         >>> import dscjax

@@ -111,3 +111,33 @@ def test_every_examples_printed_config_round_trips(name, tmp_path, capsys):
                      "--no-plot", "--out", str(tmp_path / "o")]) == 0
         m = json.loads((tmp_path / "o" / "metrics.json").read_text())
         assert m["diverged"] is False and m["linf_error"] > 0
+
+
+@pytest.mark.parametrize("n_steps", [1, 20_000, 20_011, 40_000, 1_000_003, 2_147_483_629])
+def test_the_automatic_stride_keeps_about_the_documented_number_of_points(n_steps):
+    # 20,011 and 1,000,003 are prime: a stride that had to divide N kept t = 0 and T only
+    from dscjax.integrate import saved_steps
+
+    every = config.SimOptions().save_stride(n_steps)
+    points = saved_steps(n_steps, every)
+    assert every == max(1, -(-n_steps // (config.MAX_SAVED_POINTS - 1)))
+    assert points[-1] == n_steps and points.size <= config.MAX_SAVED_POINTS
+    assert every == 1 or points.size > config.MAX_SAVED_POINTS // 2
+
+
+def test_a_prime_step_count_saves_the_strided_steps_and_t_final(paper_setup):
+    from dscjax.integrate import saved_steps
+
+    every_step = dscjax.simulate(paper_setup, 0.211, 1e-3, save_every=1)  # 211 steps, prime
+    strided = dscjax.simulate(paper_setup, 0.211, 1e-3, save_every=10)
+    k = saved_steps(211, 10)
+    assert strided.t.shape == (23,) and float(strided.t[-1]) == pytest.approx(0.211, rel=1e-15)
+    for name in ("t", "x", "u", "w", "u_dot", "yr", "S"):
+        np.testing.assert_allclose(np.asarray(getattr(strided, name)),
+                                   np.asarray(getattr(every_step, name))[k], rtol=1e-13,
+                                   atol=1e-15, err_msg=name)
+    batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": np.array([1.0, 1.1])},
+                                  0.211, 1e-3, save_every=10)
+    np.testing.assert_allclose(np.asarray(batch.x[0]), np.asarray(strided.x), rtol=1e-12,
+                               atol=1e-15)
+    assert float(batch.t[0, -1]) == pytest.approx(0.211, rel=1e-15)

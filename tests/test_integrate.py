@@ -5,7 +5,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from dscjax.integrate import STATUS_OK, integrate, rk4_step
+from dscjax.integrate import STATUS_OK, integrate, rk4_step, saved_steps
 
 
 def _oscillator(t, y, args):
@@ -55,6 +55,60 @@ def test_save_stride_and_times():
     np.testing.assert_array_equal(np.asarray(full.obs)[::20], np.asarray(strided.obs))
     p_exact, _ = _exact(np.arange(11) * 0.2, 3.0)
     np.testing.assert_allclose(np.asarray(strided.ys["p"]), p_exact, atol=1e-6)
+
+
+def test_a_stride_that_does_not_divide_the_steps_keeps_every_s_th_step_and_the_last():
+    # 197 steps (a prime) saved every 20: k = 0, 20, ..., 180 and 197 (t = T); the single
+    # forward run, the time-parallel jvp's outputs and the batched rows layout agree
+    n, dt, s = 197, 0.01, 20
+    y0 = {"p": jnp.array(1.0), "q": jnp.array(0.0)}
+    full = integrate(_oscillator, y0, dt, n, jnp.array(3.0))
+    k = saved_steps(n, s)
+    np.testing.assert_array_equal(k, [*range(0, 197, 20), 197])
+    strided = integrate(_oscillator, y0, dt, n, jnp.array(3.0), save_every=s)
+    np.testing.assert_array_equal(np.asarray(full.ys["p"])[k], np.asarray(strided.ys["p"]))
+    np.testing.assert_array_equal(np.asarray(full.obs)[k], np.asarray(strided.obs))
+    primal, _ = jax.jvp(lambda w: integrate(_oscillator, y0, dt, n, w, save_every=s).ys["p"],
+                        (jnp.array(3.0),), (jnp.array(1.0),))
+    np.testing.assert_allclose(np.asarray(primal), np.asarray(strided.ys["p"]), rtol=1e-14)
+
+    def f(t, y, args, w):
+        return _oscillator(t, y, w)
+
+    for checkpoint_every in (None, 7):
+        batch = integrate(f, {"p": jnp.array([1.0, 0.5]), "q": jnp.zeros(2)}, dt, n, (),
+                          batch=jnp.array([3.0, 2.0]), save_every=s,
+                          checkpoint_every=checkpoint_every)
+        assert batch.ys["p"].shape == (2, k.size)
+        np.testing.assert_allclose(np.asarray(batch.ys["p"][0]), np.asarray(strided.ys["p"]),
+                                   rtol=1e-13)
+        np.testing.assert_allclose(np.asarray(batch.obs[0]), np.asarray(strided.obs),
+                                   rtol=1e-13)
+
+
+def test_gradient_through_a_stride_that_does_not_divide_the_steps():
+    def loss(w, time_parallel):
+        res = integrate(_oscillator, {"p": jnp.array(1.0), "q": jnp.array(0.0)}, 0.005, 397, w,
+                        save_every=10, time_parallel=time_parallel)
+        return jnp.sum(res.ys["p"] ** 2) + jnp.sum(res.obs)
+
+    g_tp = jax.grad(loss)(jnp.array(3.0), True)
+    assert float(g_tp) == pytest.approx(float(jax.grad(loss)(jnp.array(3.0), False)), rel=1e-12)
+    h = 1e-6
+    fd = (loss(jnp.array(3.0 + h), True) - loss(jnp.array(3.0 - h), True)) / (2 * h)
+    assert float(g_tp) == pytest.approx(float(fd), rel=1e-6)
+
+    def batch_loss(ws, checkpoint_every):
+        def f(t, y, args, w):
+            return _oscillator(t, y, w)
+
+        res = integrate(f, {"p": jnp.ones(2), "q": jnp.zeros(2)}, 0.005, 397, (), batch=ws,
+                        save_every=10, checkpoint_every=checkpoint_every)
+        return jnp.sum(res.ys["p"] ** 2)
+
+    ws = jnp.array([2.0, 3.0])
+    np.testing.assert_allclose(np.asarray(jax.grad(batch_loss)(ws, 4)),
+                               np.asarray(jax.grad(batch_loss)(ws, None)), rtol=1e-13)
 
 
 class _Count:

@@ -342,11 +342,8 @@ def _traces_title(kinds, dtype) -> str:
 
 
 def _save_every(n_steps: int) -> int:
-    """About 2000 saved points per trace."""
-    every = max(1, n_steps // 2000)
-    while n_steps % every:
-        every -= 1
-    return every
+    """At most 2001 saved points per trace (the last one at T whatever the stride)."""
+    return max(1, -(-n_steps // 2000))
 
 
 def _recheck(trajs, records) -> dict[str, float] | None:

@@ -120,8 +120,6 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
     n_steps = info["n_steps"]
     every = max(1, min(save_every, n_steps))
-    while n_steps % every:
-        every -= 1
     out = []
     for i in rows:
         row = np.array([result.columns[p][i] for p in result.param_names])
