@@ -68,8 +68,12 @@ class SimOptions:
         validation.one_of(self.dtype, "simulation.dtype", ("float64", "float32"))
         validation.one_of(self.solver, "simulation.solver", ("rk4", "etdrk4"))
         validation.integer(self.refine, "simulation.refine", 0)
-        if not (self.state_bound > 0):
-            raise ConfigError(f"simulation.state_bound must be > 0 (got {self.state_bound})")
+        for name in ("t_final", "dt", "state_bound"):
+            validation.finite_positive(getattr(self, name), f"simulation.{name}")
+        if self.window_start is not None:
+            validation.number(self.window_start, "simulation.window_start")
+        if self.save_every is not None:
+            validation.integer(self.save_every, "simulation.save_every", 1)
 
     def save_stride(self, n_steps: int) -> int:
         """`save_every` if given; else the smallest stride s that keeps at most

@@ -372,6 +372,7 @@ def simulate(
     _check_refine(refine)
     validation.one_of(solver, "solver", SOLVERS)
     validation.one_of(gradient, "gradient", GRADIENTS)
+    refine = counted_levels(n_steps, refine, solver)
     traj = _simulate(setup, dt, window_start, state_bound, n_steps=n_steps,
                      save_every=save_every, extra=extra, solver=solver, gradient=gradient)
     concrete = validation.is_concrete(traj.status)
@@ -430,6 +431,14 @@ def _check_refine(refine):
     validation.integer(refine, "refine", 0)
 
 
+def counted_levels(n_steps: int, refine: int, solver: str = "rk4") -> int:
+    """The refinement levels up to `refine` whose step count (N 2^halvings) the integrator's
+    int32 step counter holds (`validation.MAX_STEPS`): finer ones are not tried."""
+    while refine and n_steps * 2 ** refinement_level(refine, solver)[1] > validation.MAX_STEPS:
+        refine -= 1
+    return refine
+
+
 def _check_checkpoint(checkpoint_every):
     if checkpoint_every is not None:
         validation.integer(checkpoint_every, "checkpoint_every", 1)
@@ -484,7 +493,7 @@ def simulate_batch(
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
     window_start = default_window(t_final, window_start)
-    n_total = int(round(t_final / dt))
+    n_total = validation.whole_steps(t_final, dt)  # before any arithmetic that can overflow
     save_every = n_total if save_every is None else save_every
     if validation.is_concrete(setup):
         validation.validate_setup(setup)
@@ -496,6 +505,7 @@ def simulate_batch(
     _check_checkpoint(checkpoint_every)
     _check_refine(refine)
     validation.one_of(solver, "solver", SOLVERS)
+    refine = counted_levels(n_steps, refine, solver)
     overrides = dict(overrides)
 
     def level(j, ov):

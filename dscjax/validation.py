@@ -8,12 +8,16 @@ with a leading batch axis are checked elementwise.
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 
 import jax
 import numpy as np
 
 # RK4's stability interval on the negative real axis is about [-2.785, 0].
 RK4_REAL_STABILITY = 2.785
+# The integrator counts steps in an int32 (t_k = k dt): no run may have more.
+MAX_STEPS = 2**31 - 1
 
 
 class ConfigError(ValueError):
@@ -53,6 +57,17 @@ def nonnegative(value, field: str) -> None:
     a = np.asarray(value, dtype=float)
     if not np.all(a >= 0):
         raise ConfigError(f"{field} must be >= 0 (got {fmt(value)})")
+
+
+def finite_positive(value, field: str) -> float:
+    """`value` as a float if it is a finite number > 0; else ConfigError naming `field`."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if isinstance(value, bool) or not (math.isfinite(x) and x > 0):
+        raise ConfigError(f"{field} must be a finite number > 0 (got {value!r})")
+    return x
 
 
 def finite(value, field: str) -> None:
@@ -108,12 +123,12 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         raise ConfigError(f"plant.g must have length n >= 2 (the order; got n={n})")
     if check_shapes:
         validate_shapes(setup)
+    for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
+        finite_tree(getattr(setup, f.name), f.name)
     setup.plant.validate("plant")
     setup.hysteresis.validate("hysteresis")
     setup.controller.validate("controller")
     setup.reference.validate("reference")
-    for f in dataclasses.fields(setup):
-        finite_tree(getattr(setup, f.name), f.name)
 
 
 def assumption_warnings(setup) -> list[str]:
@@ -155,16 +170,25 @@ def finite_tree(obj, prefix: str) -> None:
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:
-    """The number of steps N = t_final / dt, both positive; ConfigError naming the fields if
-    the horizon is not a whole number of steps."""
-    positive(dt, dt_field)
-    positive(t_final, t_field)
-    n_steps = int(round(float(t_final) / float(dt)))
-    if n_steps < 1 or abs(n_steps * float(dt) - float(t_final)) > 1e-9 * max(1.0, float(t_final)):
+    """The number of steps N = t_final / dt: the one place a horizon becomes a step count.
+
+    ConfigError naming the fields (config paths, or the command-line options the values came
+    from) if either is not a finite number > 0, if N exceeds the integrator's step counter
+    (MAX_STEPS, checked before any arithmetic that could overflow), or if the horizon is not
+    a whole number of steps."""
+    dt = finite_positive(dt, dt_field)
+    t_final = finite_positive(t_final, t_field)
+    ratio = t_final / dt
+    if not ratio < MAX_STEPS + 0.5:
+        raise ConfigError(
+            f"{t_field} / {dt_field} = {ratio:.4g} steps, more than the {MAX_STEPS:,} the "
+            f"integrator's step counter holds (got t_final={t_final:.6g}, dt={dt:.6g}); use a "
+            f"shorter {t_field} or a larger {dt_field}")
+    n_steps = int(round(ratio))
+    if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
         raise ConfigError(
             f"{t_field} must be a whole number of steps of {dt_field} "
-            f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, "
-            f"ratio {float(t_final) / float(dt):.6g})"
+            f"(got t_final={t_final:.6g}, dt={dt:.6g}, ratio {ratio:.6g})"
         )
     return n_steps
 

@@ -17,7 +17,7 @@ from dscjax import config, files, params, validation
 from dscjax.integrate import SOLVERS
 from dscjax.metrics import default_window
 from dscjax.ranges import sample_table
-from dscjax.simulate import DEFAULT_REFINE
+from dscjax.simulate import DEFAULT_REFINE, counted_levels
 from dscjax.sweep.device import METRICS, Runner
 from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
 from dscjax.validation import ConfigError
@@ -161,7 +161,7 @@ def run_sweep(
             lo = b * chunk
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
-            part = runner.refine(table[lo:lo + m], part, refine)
+            part = runner.refine(table[lo:lo + m], part, counted_levels(n_steps, refine, solver))
             data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
                             table[lo:lo + m], part)
             if out is not None:
