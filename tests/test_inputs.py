@@ -129,7 +129,7 @@ def test_one_generation_or_iteration_beyond_the_time_limit_is_refused(two_cores,
                         "--dt, or a larger --time-limit")
     err = _refused(capsys, ["worst-case", "--range", "hysteresis.alpha=30%", "--t-final",
                             "2000", "--time-limit", "0.01"], tmp_path / "o")
-    assert "one search iteration (T = 2000 s at dt = 0.001 s (2,000,000 steps)) needs at " \
+    assert "one search iteration of T = 2000 s at dt = 0.001 s (2,000,000 steps) needs at " \
            "least" in err and "more than --time-limit 0.01 s" in err
 
 

@@ -113,10 +113,9 @@ def run(args) -> int:
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
     each = iteration_work(problem, methods, args.starts, args.batch, args.gradient_coarsening)
-    check_work(each, what=f"one search iteration ({what})", fix=fix,
+    check_work(each, what=f"one search iteration of {what}", fix=fix,
                limit_s=args.time_limit, limit=f"--time-limit {args.time_limit:g} s")
-    check_work(after_work(problem, methods, args.starts, args.gradient_coarsening),
-               what=f"the worst case's re-simulation and figures ({what})", fix=fix)
+    check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
     out = Path(args.out)
     manifest = out / "worst_case.json"
     fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
@@ -191,9 +190,9 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
     return slowest
 
 
-def after_work(problem, methods, starts: int, coarsening: int):
-    """What the search is followed by: the worst case simulated at every step (kept for
-    worst_trajectory.npz and the figures), with the waveform's basis on the half-step grid."""
+def stored_work(problem):
+    """What the search keeps besides its iterations: the waveform's basis on the half-step
+    grid, and the worst case re-simulated at every step (worst_trajectory.npz, figures)."""
     from dscjax.validation import Work
 
     n = problem.n_steps
