@@ -203,7 +203,7 @@ def envelope(e, u):
 
 
 def _pi_r():
-    return 0.2 * np.arange(1, 11)
+    return np.arange(1, 11) / 5.0  # 0.2, 0.4, ..., 2.0, each the nearest float
 
 
 def _pi_p():

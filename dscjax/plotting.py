@@ -69,13 +69,13 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
                label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
     a.set_ylabel("state $x_i$, reference $y_r$ [-]")
     a.set_title("states against the reference")
-    for a, key, label, title in (
+    for a, key, label, panel in (
             (ax[0, 1], "e", "tracking error $e = y - y_r$ [-]", "tracking error"),
             (ax[1, 0], "u", "control input $u$ [-]", "control input"),
             (ax[1, 1], "w", "hysteresis output $w$ [-]", "hysteresis output")):
         a.plot(t, signals[key], color=COLORS[key], lw=1.0)
         a.set_ylabel(label)
-        a.set_title(title)
+        a.set_title(panel)
     for a in ax[1]:
         a.set_xlabel("time $t$ [s]")
     for a in ax.ravel():

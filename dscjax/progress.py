@@ -29,9 +29,9 @@ from typing import TextIO
 from tqdm import tqdm
 
 # A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s"
-LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}s) {elapsed} elapsed, ETA {remaining}"
+LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed, ETA {remaining}"
 # ... and without a total (work that stops on a time limit or a criterion, not a count)
-OPEN_LINE = "{desc} {n_fmt} {unit}s, {elapsed} elapsed"
+OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 
 
 class Progress:
@@ -40,7 +40,8 @@ class Progress:
     Args:
         total: units of work in all (None: not known in advance; no percentage or ETA).
         desc: what is being done, the start of the line.
-        unit: the unit's name ("sample", "step", "iteration"), pluralised with an s.
+        unit: the unit's name ("sample", "step", "iteration"), pluralised with an s unless
+            the count is 1.
         initial: units done before this display started (a resumed run).
         elapsed: seconds of this run already spent when the display starts.
         file: where to write (default stderr).
@@ -92,7 +93,9 @@ class Progress:
         elapsed = now - self.start
         done = self.n - self.initial
         rate = done / elapsed if elapsed > 0 and done > 0 else None
-        text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=self.unit,
+        count = self.total if self.total is not None else self.n
+        unit = self.unit + ("" if count == 1 else "s")  # "1 generation", "2 generations"
+        text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=unit,
                                  rate=rate, initial=self.initial,
                                  bar_format=LINE if self.total is not None else OPEN_LINE)
         print(text + (f"; {self.postfix}" if self.postfix else ""), file=self.file,

@@ -187,11 +187,12 @@ class RunSpec(eqx.Module):
     def to_table(self) -> dict[str, Any]:
         """The [simulation] table of this spec (rule-derived keys given as None)."""
         noise = None if self.noise is None else np.asarray(self.noise, float).tolist()
-        out = {"t_final": _clean(self.t_final), "dt": _clean(float(self.dt)),
-               "save_every": self.save_every, "window_start": _clean(float(self.window_start)),
-               "state_bound": _clean(float(self.state_bound)), "dtype": self.dtype,
+        short = validation.shortest
+        out = {"t_final": short(self.t_final), "dt": short(float(self.dt)),
+               "save_every": self.save_every, "window_start": short(float(self.window_start)),
+               "state_bound": short(float(self.state_bound)), "dtype": self.dtype,
                "solver": self.solver.name, "refine": self.refine,
-               "sample_time": None if not self.sampled else _clean(self.sample_time),
+               "sample_time": None if not self.sampled else short(self.sample_time),
                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
                "device": self.device}
         for key in self.rules:
@@ -202,7 +203,8 @@ class RunSpec(eqx.Module):
         """What determines a run's numbers (a resumable run's fingerprint): the table with
         every rule applied, without the host-side device."""
         out = self.to_table()
-        out.update(save_every=self.save_every, window_start=_clean(float(self.window_start)))
+        out.update(save_every=self.save_every,
+                   window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
         if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
             out["gradient"] = [self.gradient.name, self.gradient.every]
@@ -232,16 +234,6 @@ def auto_stride(n_steps: int) -> int:
     """The smallest stride s that keeps at most MAX_SAVED_POINTS points of N steps: the steps
     0, s, 2s, ... and always N (s need not divide N)."""
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
-
-
-def _clean(x: float) -> float:
-    """The shortest decimal that reads back as the same float64 (no 0.6000000000000001 made by
-    arithmetic on a value written as 0.6)."""
-    for digits in range(1, 18):
-        y = float(f"{x:.{digits}g}")
-        if abs(y - x) <= 4 * np.finfo(float).eps * abs(x):
-            return y
-    return x
 
 
 def _coerce(key: str, value, prefix: str):

@@ -302,6 +302,16 @@ def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
     return "etdrk4", (j - 1 if solver == "rk4" else j)
 
 
+def counted_levels(spec: RunSpec) -> int:
+    """The refinement levels up to `spec.refine` whose step count (N 2^halvings) the
+    integrator's int32 step counter holds (`validation.MAX_STEPS`): finer ones are not tried."""
+    refine = spec.refine
+    while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
+                      > validation.MAX_STEPS):
+        refine -= 1
+    return refine
+
+
 def level_spec(spec: RunSpec, j: int) -> RunSpec:
     """The spec of refinement level j (`refinement_level`) of a run."""
     name, halvings = refinement_level(j, spec.solver.name)
@@ -361,7 +371,7 @@ def simulate(
         extra = _Progress(spec.n_steps, progress)
     traj = _simulate(setup, spec, None, extra)
     concrete = validation.is_concrete(traj.status)
-    for j in range(1, spec.refine + 1):
+    for j in range(1, counted_levels(spec) + 1):
         if not (concrete and bool(traj.diverged)):
             break
         finer = _simulate(setup, level_spec(spec, j), None, extra)
@@ -482,8 +492,8 @@ def simulate_batch(
         return _simulate_batch(setup, level_spec(spec, j), ov)
 
     traj = level(0, overrides)
-    if spec.refine and validation.is_concrete((traj, overrides)):  # refinement is host-side
-        traj = refine_diverged(traj, overrides, level, spec.refine)
+    if counted_levels(spec) and validation.is_concrete((traj, overrides)):  # host-side
+        traj = refine_diverged(traj, overrides, level, counted_levels(spec))
     return traj
 
 

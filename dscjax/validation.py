@@ -8,12 +8,16 @@ with a leading batch axis are checked elementwise.
 from __future__ import annotations
 
 import dataclasses
+import math
+import os
 
 import jax
 import numpy as np
 
 # RK4's stability interval on the negative real axis is about [-2.785, 0].
 RK4_REAL_STABILITY = 2.785
+# The integrator counts steps in an int32 (t_k = k dt): no run may have more.
+MAX_STEPS = 2**31 - 1
 
 
 class ConfigError(ValueError):
@@ -28,6 +32,12 @@ def fmt(v) -> str:
     if a.size <= 8:
         return "[" + ", ".join(f"{float(x):.6g}" for x in a.ravel()) + "]"
     return f"array of shape {a.shape}"
+
+
+def shortest(x, dtype=np.float64) -> float:
+    """x as the float whose repr is the shortest decimal that gives back x in `dtype`
+    (float32 0.1 prints as 0.1, not 0.10000000149011612)."""
+    return float(str(np.dtype(dtype).type(x)))
 
 
 def floor_sig(x: float, digits: int = 3) -> str:
@@ -53,6 +63,17 @@ def nonnegative(value, field: str) -> None:
     a = np.asarray(value, dtype=float)
     if not np.all(a >= 0):
         raise ConfigError(f"{field} must be >= 0 (got {fmt(value)})")
+
+
+def finite_positive(value, field: str) -> float:
+    """`value` as a float if it is a finite number > 0; else ConfigError naming `field`."""
+    try:
+        x = float(value)
+    except (TypeError, ValueError):
+        x = math.nan
+    if isinstance(value, bool) or not (math.isfinite(x) and x > 0):
+        raise ConfigError(f"{field} must be a finite number > 0 (got {value!r})")
+    return x
 
 
 def finite(value, field: str) -> None:
@@ -108,12 +129,12 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         raise ConfigError(f"plant.g must have length n >= 2 (the order; got n={n})")
     if check_shapes:
         validate_shapes(setup)
+    for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
+        finite_tree(getattr(setup, f.name), f.name)
     setup.plant.validate("plant")
     setup.hysteresis.validate("hysteresis")
     setup.controller.validate("controller")
     setup.reference.validate("reference")
-    for f in dataclasses.fields(setup):
-        finite_tree(getattr(setup, f.name), f.name)
 
 
 def assumption_warnings(setup) -> list[str]:
@@ -155,16 +176,25 @@ def finite_tree(obj, prefix: str) -> None:
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:
-    """The number of steps N = t_final / dt, both positive; ConfigError naming the fields if
-    the horizon is not a whole number of steps."""
-    positive(dt, dt_field)
-    positive(t_final, t_field)
-    n_steps = int(round(float(t_final) / float(dt)))
-    if n_steps < 1 or abs(n_steps * float(dt) - float(t_final)) > 1e-9 * max(1.0, float(t_final)):
+    """The number of steps N = t_final / dt: the one place a horizon becomes a step count.
+
+    ConfigError naming the fields (config paths, or the command-line options the values came
+    from) if either is not a finite number > 0, if N exceeds the integrator's step counter
+    (MAX_STEPS, checked before any arithmetic that could overflow), or if the horizon is not
+    a whole number of steps."""
+    dt = finite_positive(dt, dt_field)
+    t_final = finite_positive(t_final, t_field)
+    ratio = t_final / dt
+    if not ratio < MAX_STEPS + 0.5:
+        raise ConfigError(
+            f"{t_field} / {dt_field} = {ratio:.4g} steps, more than the {MAX_STEPS:,} the "
+            f"integrator's step counter holds (got t_final={t_final:.6g}, dt={dt:.6g}); use a "
+            f"shorter {t_field} or a larger {dt_field}")
+    n_steps = int(round(ratio))
+    if n_steps < 1 or abs(n_steps * dt - t_final) > 1e-9 * max(1.0, t_final):
         raise ConfigError(
             f"{t_field} must be a whole number of steps of {dt_field} "
-            f"(got t_final={float(t_final):.6g}, dt={float(dt):.6g}, "
-            f"ratio {float(t_final) / float(dt):.6g})"
+            f"(got t_final={t_final:.6g}, dt={dt:.6g}, ratio {ratio:.6g})"
         )
     return n_steps
 
@@ -197,3 +227,102 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
         )
     check_filters(setup, dt)
     return n_steps
+
+
+# -- what a command's work needs, checked before any of it runs -----------------------------------
+
+TIME_LIMIT_S = 86_400.0  # work that cannot end within a day is refused before it starts
+TIME_LIMIT_TEXT = "the limit of 24 h"
+# The speeds the time check assumes are above any dscjax reaches, so an estimate is a lower
+# bound on the time and a run that could finish is never refused.
+STEPS_PER_S = 5e6  # consecutive steps of one loop (a scan runs its steps one after another)
+MEMBER_STEPS_PER_S_CORE = 1e8  # steps x trajectories of a batch, per CPU core
+MEMBER_STEPS_PER_S_DEVICE = 1e11  # the same, per accelerator
+
+
+@dataclasses.dataclass(frozen=True)
+class Work:
+    """A command's work, estimated from its settings alone (`check_work`).
+
+    steps: consecutive integration steps (simulations run one after another add up).
+    member_steps: steps x trajectories, over all its simulations and batches.
+    memory: bytes of its largest single allocation; `memory_what` says what it holds.
+    """
+
+    steps: float = 0.0
+    member_steps: float = 0.0
+    memory: float = 0.0
+    memory_what: str = ""
+
+    def __add__(self, other: Work) -> Work:
+        big = self if self.memory >= other.memory else other
+        return Work(self.steps + other.steps, self.member_steps + other.member_steps,
+                    big.memory, big.memory_what)
+
+    def __mul__(self, k: float) -> Work:
+        """The same work done k times over (the memory is reused)."""
+        return dataclasses.replace(self, steps=k * self.steps,
+                                   member_steps=k * self.member_steps)
+
+    def seconds(self) -> float:
+        """A lower bound on its time at the optimistic speeds of this machine's devices."""
+        return max(self.steps / STEPS_PER_S, self.member_steps / batch_speed())
+
+
+def batch_speed() -> float:
+    """The optimistic throughput of a batch (member-steps per second) on JAX's devices."""
+    devices = jax.devices()
+    if devices[0].platform == "cpu":
+        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                 else os.cpu_count())
+        return MEMBER_STEPS_PER_S_CORE * (cores or 1)
+    return MEMBER_STEPS_PER_S_DEVICE * len(devices)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory available to a new allocation (Linux MemAvailable), None if unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def fmt_bytes(nbytes: float) -> str:
+    """1536 -> '1.5 KiB'."""
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if nbytes < 1024 or unit == "TiB":
+            return f"{nbytes:.3g} {unit}" if unit != "B" else f"{int(nbytes)} B"
+        nbytes /= 1024
+    raise AssertionError
+
+
+def fmt_seconds(seconds: float) -> str:
+    """90 -> '90 s', 5400 -> '1.5 h', 3e5 -> '3.5 days'."""
+    for unit, size in (("days", 86_400.0), ("h", 3600.0), ("min", 60.0)):
+        if seconds >= 2 * size:
+            return f"{seconds / size:.3g} {unit}"
+    return f"{seconds:.3g} s"
+
+
+def check_work(work: Work, *, what: str, fix: str, limit_s: float = TIME_LIMIT_S,
+               limit: str = TIME_LIMIT_TEXT) -> None:
+    """Refuse, before any of it runs, work that cannot finish on this machine: its largest
+    allocation above the memory available, or its time at optimistic speeds (a lower bound)
+    above `limit_s` (default a day; a command's own time limit where one piece of its work
+    must fit in it). ConfigError: one line with the estimate, the limit and `fix`."""
+    avail = available_memory()
+    if avail is not None and work.memory > avail:
+        raise ConfigError(f"{what}: {work.memory_what} needs about {fmt_bytes(work.memory)} "
+                          f"of memory, more than the {fmt_bytes(avail)} available; {fix}")
+    seconds = work.seconds()
+    if seconds > limit_s:
+        raise ConfigError(f"{what} needs at least {fmt_seconds(seconds)} ({work.steps:,.0f} "
+                          f"consecutive RK4 steps, {work.member_steps:.3g} in all, at speeds "
+                          f"above any dscjax reaches), more than {limit}; {fix}")

@@ -39,7 +39,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any, Literal, get_args
+from typing import Any, ClassVar, Literal, get_args
 
 import jax
 import jax.numpy as jnp
@@ -89,23 +89,31 @@ class DisturbanceSpec:
             raise ConfigError(f"{field} must be fourier:K:D or spline:K:D (got {text!r})")
         kind, k_text, d_text = (p.strip() for p in parts)
         validation.one_of(kind, f"{field} kind", tuple(dist_mod.KINDS))
+        low = cls.MIN_K[kind]
         try:
             k = int(k_text)
         except ValueError:
-            raise ConfigError(f"{field}: K must be an integer >= 1 (got {k_text!r})") from None
+            raise ConfigError(f"{field}: K must be an integer >= {low} (got {k_text!r})") \
+                from None
         try:
             bound = float(d_text)
         except ValueError:
-            raise ConfigError(f"{field}: D must be a number >= 0 (got {d_text!r})") from None
+            raise ConfigError(f"{field}: D must be a finite number > 0 (got {d_text!r})") \
+                from None
         return cls(kind, k, bound, period).checked(field)
+
+    # K below which a waveform is not one: a spline needs two knots to have a knot spacing
+    MIN_K: ClassVar[dict[str, int]] = {"fourier": 1, "spline": 2}
 
     def checked(self, field: str = "--disturbance") -> DisturbanceSpec:
         validation.one_of(self.kind, f"{field} kind", tuple(dist_mod.KINDS))
-        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < 1:
-            raise ConfigError(f"{field}: K must be an integer >= 1 (got {self.k!r})")
-        if not (math.isfinite(self.bound) and self.bound >= 0):
-            raise ConfigError(f"{field}: the bound D must be a finite number >= 0 (got "
-                              f"{self.bound!r})")
+        low = self.MIN_K[self.kind]
+        if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < low:
+            raise ConfigError(f"{field}: K must be an integer >= {low} for {self.kind} (got "
+                              f"{self.k!r})")
+        if not (math.isfinite(self.bound) and self.bound > 0):
+            raise ConfigError(f"{field}: the bound D must be a finite number > 0 (max|dbar| "
+                              f"<= D; D = 0 leaves nothing to search) (got {self.bound!r})")
         if self.period is not None and not (math.isfinite(self.period) and self.period > 0):
             raise ConfigError(f"--period must be > 0 (got {self.period!r})")
         if self.period is not None and self.kind != "fourier":
@@ -685,21 +693,6 @@ def _check_coarsening(coarsening: int, n_steps: int) -> None:
                           f"steps t_final/dt = {n_steps}")
 
 
-def check_options(problem: Problem, methods: Sequence[str], starts: int, batch: int,
-                  time_limit: float, max_evals: int | None, coarsening: int = 1) -> None:
-    """The search options of `worst_case` for `problem`, checked (ConfigError naming the
-    option), so that a command can check them before it writes anything."""
-    _check_coarsening(coarsening, problem.n_steps)
-    for mth in methods:
-        validation.one_of(mth, "--methods", METHODS)
-    validation.integer(starts, "--starts", 1)
-    validation.integer(batch, "batch", 1)
-    if not (time_limit > 0):
-        raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
-    if max_evals is not None:
-        validation.integer(max_evals, "--max-evals", 1)
-
-
 def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str] = (),
                disturbance: DisturbanceSpec | str | None = None, *,
                time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
@@ -747,7 +740,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
     elif ranges or disturbance is not None or problem_options:
         raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
                           "make_problem, not with a Problem")
-    check_options(problem, methods, starts, batch, time_limit, max_evals, coarsening)
+    check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
+                 max_evals=max_evals, coarsening=coarsening)
     fp = files.digest({"problem": problem.fingerprint(), "seed": seed, "starts": starts,
                        "batch": batch, "lr": lr, "gradient": gradient,
                        "coarsening": coarsening})
@@ -756,6 +750,26 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
                     batch=batch, lr=lr, out_dir=out_dir, resume=resume, fingerprint=fp,
                     progress=progress, max_evals=max_evals)
     return _finish(problem, traces)
+
+
+def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
+                 time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
+    """The search settings of `worst_case`, checked before anything runs (ConfigError naming
+    the option)."""
+    if not methods:
+        raise ConfigError(f"--methods must name at least one of {', '.join(METHODS)}")
+    for mth in methods:
+        validation.one_of(mth, "--methods", METHODS)
+    validation.integer(starts, "--starts", 1)
+    validation.integer(batch, "batch", 1)
+    if not (time_limit > 0):
+        raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
+    if max_evals is not None:
+        validation.integer(max_evals, "--max-evals", 1)
+    validation.integer(coarsening, "--gradient-coarsening", 1)
+    if problem.n_steps % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                          f"steps t_final/dt = {problem.n_steps}")
 
 
 def _warm_up(prog: Programs, method: str, starts: int, batch: int) -> float:

@@ -118,23 +118,30 @@ def report_md(result: Result) -> str:
     return "\n".join(lines)
 
 
+# One colour per case, the same in every panel.
+CASE_COLORS = {"nominal": "#444444", "worst case": "#d62728"}
+
+
 def _plot_worst(path, worst, nominal, result):
-    from dscjax.plotting import COLORS, subplots
+    """worst_vs_nominal.png: e and u of the nominal and the worst case, one colour and line
+    style per case in both panels, each panel with its legend. Returns the Figure."""
+    from dscjax.plotting import subplots
 
     fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
     for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
         t = np.asarray(traj.t)
-        ax[0].plot(t, np.asarray(traj.e), ls=style, lw=1.0, label=name,
-                   color=COLORS["e"] if name == "worst case" else "#444444")
-        ax[1].plot(t, np.asarray(traj.u), ls=style, lw=1.0, label=name,
-                   color=COLORS["u"] if name == "worst case" else "#444444")
+        for a, signal in zip(ax, (traj.e, traj.u), strict=True):
+            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name,
+                   color=CASE_COLORS[name])
     ax[0].set_ylabel("tracking error e [-]")
     ax[1].set_ylabel("control u [-]")
     ax[1].set_xlabel("t [s]")
-    ax[0].legend(loc="upper right")
+    for a in ax:
+        a.legend(loc="upper right")
     ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
                     f"(nominal {result.nominal_value:.4g})")
     files.save_figure(fig, path, dpi=110)
+    return fig
 
 
 def _plot_disturbance(path, t_half, dbar, result):

@@ -63,17 +63,27 @@ def test_tiny_dt_saves_a_bounded_trajectory_and_says_so(tmp_path, capsys):
     assert main(["simulate", "--t-final", "0.1", "--dt", "1e-6", "--no-plot",
                  "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "saving every 5th step: 20,001 points" in err
+    assert "saving every 5th step and the last: 20,001 points" in err
     data = np.load(out / "trajectory.npz")
     assert data["t"].shape == (20_001,) and data["t"][1] == pytest.approx(5e-6)
     assert json.loads((out / "metrics.json").read_text())["save_every"] == 5
 
 
+def test_a_prime_step_count_keeps_about_the_documented_number_of_points(tmp_path, capsys):
+    out = tmp_path / "prime"
+    assert main(["simulate", "--t-final", "0.20011", "--dt", "1e-5", "--no-plot",
+                 "--out", str(out)]) == 0  # 20,011 steps, a prime
+    assert "saving every 2nd step and the last: 10,007 points" in capsys.readouterr().err
+    t = np.load(out / "trajectory.npz")["t"]
+    assert t.shape == (10_007,) and t[-2] == pytest.approx(0.2001) and t[-1] == 0.20011
+    assert json.loads((out / "metrics.json").read_text())["save_every"] == 2
+
+
 def test_a_trajectory_that_cannot_fit_is_refused_before_any_work(tmp_path, capsys,
                                                                   monkeypatch):
-    import dscjax.cli.simulate as cli_simulate
+    from dscjax import validation
 
-    monkeypatch.setattr(cli_simulate, "_available_memory", lambda: 100_000)
+    monkeypatch.setattr(validation, "available_memory", lambda: 100_000)
     out = tmp_path / "big"
     assert main(["simulate", "--t-final", "2", "--save-every", "1", "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -119,7 +129,10 @@ def test_trajectory_figure_legend_outside_and_units_on_every_axis(tmp_path, pape
     from dscjax.plotting import plot_trajectory
 
     traj = dscjax.simulate(paper_setup, 1.0, 1e-3, save_every=10)
-    fig = plot_trajectory(traj, tmp_path / "t.png")
+    fig = plot_trajectory(traj, tmp_path / "t.png", title="DSC (full), n=2")
+    assert fig.get_suptitle() == "DSC (full), n=2"  # the run's title, not a panel's
+    assert [ax.get_title() for ax in fig.axes] == [
+        "states against the reference", "tracking error", "control input", "hysteresis output"]
     assert len(fig.legends) == 1  # one legend for the figure, under the panels
     for ax in fig.axes:
         assert ax.get_legend() is None  # none inside a panel, over the curves

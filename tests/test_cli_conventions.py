@@ -208,7 +208,13 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
      "dscjax tune: error: argument --effort-bounds: invalid choice: 'everywhere' (choose from "
      "'nominal', 'per_plant')"),
     (["sweep", "--samples", "many"],
-     "dscjax sweep: error: argument --samples: invalid int value: 'many'"),
+     "dscjax sweep: error: argument --samples: must be an integer >= 1 (got 'many')"),
+    (["sweep", "--samples", "1.5"],
+     "dscjax sweep: error: argument --samples: must be an integer >= 1 (got '1.5')"),
+    (["hysteresis", "--bogus", "1"], "dscjax hysteresis: error: unrecognized arguments: "
+     "--bogus 1"),
+    (["stability", "--print-config", "--samples", "3"], "dscjax stability: error: "
+     "unrecognized arguments: --samples 3"),
     (["frobnicate"], "dscjax: error: argument COMMAND: invalid choice: 'frobnicate'"),
 ])
 def test_argparse_errors_are_one_line_and_exit_2(argv, wanted, capsys):

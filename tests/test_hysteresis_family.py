@@ -213,9 +213,11 @@ def test_hysteresis_command_writes_the_loop_and_refuses_bad_input(tmp_path, caps
         assert str(f["kind"]) == "pi"
     assert (out / "loop.png").stat().st_size > 0
     capsys.readouterr()
-    assert main(["hysteresis", "--omega", "0", "--out", str(out)]) == 2
+    with pytest.raises(SystemExit) as stop:
+        main(["hysteresis", "--omega", "0", "--out", str(out)])
     err = capsys.readouterr().err
-    assert "--omega must be > 0" in err and "Traceback" not in err
+    assert stop.value.code == 2 and "Traceback" not in err
+    assert "argument --omega: must be a finite number > 0 (got '0')" in err
     cfg.write_text('[hysteresis]\nkind = "pi"\nr = [0.5, 0.1]\np = [1.0, 1.0]\n')
     assert main(["hysteresis", "--config", str(cfg), "--out", str(out)]) == 2
     assert "hysteresis.r must be strictly increasing" in capsys.readouterr().err

@@ -122,4 +122,12 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
         # a sum over 2**m * 2000 steps, batched or not: round-off of the summation order
         assert after[key][1] == pytest.approx(float(one.metrics[key]), rel=1e-9), key
     stats = report.batch_stats(after)
-    assert (stats["n_diverged"], stats["n_refined"]) == (0, 1)
+    assert (stats["n_tracked"], stats["n_refined"], stats["n_diverged"]) == (2, 1, 0)
+    # reported as sweeps report their rows, with no warning for a plant refinement tracks
+    summary = {"heldout": {"start": report.batch_stats(before | {"refined": np.zeros(3)}),
+                           "tuned": stats}}
+    assert report.heldout_counts(summary) == (
+        "held-out batch (3 plants, start -> tuned gains): tracked 2 -> 2; tracked after "
+        "refinement (a numerically stiff run re-done with ETDRK4 at a smaller step) 0 -> 1; "
+        "diverged at every step tried 1 -> 0")
+    assert report.heldout_warning(summary, problem.cfg) is None

@@ -203,7 +203,10 @@ def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
 
 
 def _cli_error(args, capsys, tmp_path):
-    code = cli(["sweep", "--out", str(tmp_path / "never"), *args])
+    try:
+        code = cli(["sweep", "--out", str(tmp_path / "never"), *args])
+    except SystemExit as stop:  # argparse's own refusals (the count options)
+        code = stop.code
     err = capsys.readouterr().err
     assert code == 2, err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
@@ -212,9 +215,9 @@ def _cli_error(args, capsys, tmp_path):
 
 
 @pytest.mark.parametrize("args, field", [
-    (["--samples", "0"], "sweep.samples must be an integer >= 1"),
-    (["--samples=-5"], "sweep.samples"),
-    (["--chunk", "0"], "sweep.chunk must be an integer >= 1"),
+    (["--samples", "0"], "argument --samples: must be an integer >= 1 (got '0')"),
+    (["--samples=-5"], "argument --samples: must be an integer >= 1 (got '-5')"),
+    (["--chunk", "0"], "argument --chunk: must be an integer >= 1 (got '0')"),
     (["--range", "hysteresis.alpha=1.3:0.7"], "hysteresis.alpha: lower bound > upper bound"),
     (["--range", "hysteresis.alpha=1:1"], "hysteresis.alpha is an empty range"),
     (["--range", "hysteresis.alpha=0%"], "empty range"),

@@ -166,10 +166,11 @@ def test_bad_config_values_name_the_field(toml, wanted, tmp_path, capsys):
 def test_search_evals_option_needs_adversarial_and_a_positive_count(tmp_path, capsys):
     assert main(["tune", "--search-evals", "8", "--out", str(tmp_path)]) == 2
     assert "--search-evals applies to adversarial tuning" in capsys.readouterr().err
-    assert main(["tune", "--adversarial", "1", "--search-evals", "-3",
-                 "--out", str(tmp_path)]) == 2
+    with pytest.raises(SystemExit) as stop:
+        main(["tune", "--adversarial", "1", "--search-evals", "-3", "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip()
-    assert err.endswith("--search-evals must be an integer >= 1 (got -3)")
+    assert stop.value.code == 2
+    assert err.endswith("argument --search-evals: must be an integer >= 1 (got '-3')")
 
 
 def test_resume_refuses_another_search_evals(adv_run, run_with_config, capsys):

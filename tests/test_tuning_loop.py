@@ -7,6 +7,7 @@ problem objects are shared so that each jitted function compiles once.
 """
 
 import json
+import re
 
 import jax
 import jax.numpy as jnp
@@ -44,8 +45,38 @@ FILES = ("gains.json", "history.csv", "report.md", "report.json", "loss_curve.pn
 
 @pytest.fixture(scope="module")
 def cli_run(tmp_path_factory, run_with_config):
-    code, out = run_with_config(tmp_path_factory.mktemp("tune"), TINY, "tune", "--quiet")
+    import contextlib
+    import io
+
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+        code, out = run_with_config(tmp_path_factory.mktemp("tune"), TINY, "tune", "--quiet")
+    (out.parent / "stdout.txt").write_text(stdout.getvalue())
+    (out.parent / "stderr.txt").write_text(stderr.getvalue())
     return code, out, out.parent / "config.toml"
+
+
+def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(cli_run):
+    code, out, _ = cli_run
+    stdout = (out.parent / "stdout.txt").read_text()
+    stderr = (out.parent / "stderr.txt").read_text()
+    assert code == 0
+    assert ("  the held-out check (4 plants, start and tuned gains) and the figures come after "
+            "the search; the time limit (100 s) bounds the search only") in stderr
+    assert "stopped: reached 5 iterations; 5 iterations" in stdout
+    counts = next(line for line in stdout.splitlines() if "held-out batch (4 plants" in line)
+    assert re.fullmatch(r"  held-out batch \(4 plants, start -> tuned gains\): tracked \d -> \d; "
+                        r"tracked after refinement \(a numerically stiff run re-done with "
+                        r"ETDRK4 at a smaller step\) \d -> \d; diverged at every step tried "
+                        r"\d -> \d", counts), counts
+    heldout = json.loads((out / "report.json").read_text())["heldout"]
+    for tag in ("start", "tuned"):
+        h = heldout[tag]
+        assert h["n_tracked"] + h["n_refined"] + h["n_diverged"] == h["n"] == 4
+        assert f"tracked {heldout['start']['n_tracked']} -> {heldout['tuned']['n_tracked']}" \
+            in counts
+    assert "WARNING" not in stderr or heldout["tuned"]["n_diverged"]
+    assert "Plants: tracked " in (out / "report.md").read_text()
 
 
 def test_short_run_lowers_the_objective_and_writes_every_file(cli_run):

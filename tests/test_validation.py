@@ -45,9 +45,13 @@ def test_bad_static_choice(paper_setup):
 
 
 @pytest.mark.parametrize("kw,pattern", [
-    (dict(dt=0.0), r"simulation.dt must be > 0"),
-    (dict(dt=-1e-3), r"simulation.dt must be > 0"),
-    (dict(t_final=0.0), r"simulation.t_final must be > 0"),
+    (dict(dt=0.0), r"simulation.dt must be a finite number > 0 \(got 0.0\)"),
+    (dict(dt=-1e-3), r"simulation.dt must be a finite number > 0"),
+    (dict(t_final=0.0), r"simulation.t_final must be a finite number > 0"),
+    (dict(t_final=float("inf")), r"simulation.t_final must be a finite number > 0 \(got inf\)"),
+    (dict(dt=float("nan")), r"simulation.dt must be a finite number > 0 \(got nan\)"),
+    (dict(t_final=1e9), r"simulation.t_final / simulation.dt = 1e\+12 steps, more than the "
+                        r"2,147,483,647 the integrator's step counter holds"),
     (dict(dt=0.03, t_final=0.9),
      r"simulation.dt = 0.03 is too large for RK4 on the fastest filter: dt / "
                     r"min\(controller.tau\) must be <= 2.785 \(got min tau = 0.01, ratio 3\); "
@@ -106,7 +110,8 @@ def test_cli_unreadable_config_and_bad_dt(tmp_path):
     assert r.returncode == 2 and "cannot read config file" in r.stderr
     assert "Traceback" not in r.stderr
     r = _cli("simulate", "--dt", "-1", cwd=tmp_path)
-    assert r.returncode == 2 and "simulation.dt must be > 0" in r.stderr
+    assert r.returncode == 2 and "argument --dt: must be a finite number > 0 (got '-1')" in \
+        r.stderr
 
 
 def test_cli_divergence_exits_3_with_time(tmp_path):

@@ -253,10 +253,15 @@ def test_max_evals_option_caps_each_method(tmp_path):
     (["--range", "plant.nope=1:2"], "plant.nope"),
     (["--disturbance", "fourier:0:0.5"], "K must be"),
     (["--disturbance", "spline:4:-0.5"], "D must be"),
-    (["--max-evals", "0"], "--max-evals must be an integer >= 1 (got 0)"),
+    (["--disturbance", "spline:1:0.5"], "K must be an integer >= 2 for spline (got 1)"),
+    (["--max-evals", "0"], "argument --max-evals: must be an integer >= 1 (got '0')"),
 ])
 def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
-    assert main(["worst-case", "--t-final", "1", "--out", str(tmp_path), *extra]) == 2
+    try:
+        code = main(["worst-case", "--t-final", "1", "--out", str(tmp_path / "o"), *extra])
+    except SystemExit as stop:  # argparse's own refusals
+        code = stop.code
+    assert code == 2 and not (tmp_path / "o").exists()
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
 

@@ -52,16 +52,17 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A batch's per-plant figures with its plants that diverged at the tuning's step re-run
-    at the refinement levels of `simulate` (ETDRK4 at dt, dt/2, ..., `simulation.refine`
-    levels; `simulate.refine_rows`: only the rows still diverged, padded batches): a
-    numerical divergence of the integrator is not a divergence of the loop (issue 11).
+    as sweeps re-run theirs: the refinement levels of `simulate` (ETDRK4 at dt, dt/2, ...,
+    `simulation.refine` levels; `simulate.refine_rows`: only the rows still diverged, padded
+    batches), the metrics over the objective's window: a numerical divergence of the
+    integrator is not a divergence of the loop (issue 11).
     Adds `refined` (the level that tracked, 0 = the tuning's own step); the exact metrics
     (those `simulate` reports) and `diverged` of the refined plants are those of the refined
     runs; their loss and smooth surrogates stay the objective's at the tuning's step (the
     finite divergence penalty)."""
     m = dict(m)
     m["refined"] = np.zeros(np.shape(m["diverged"]), np.int32)
-    opts = problem.options
+    opts, sim = problem.options, problem.objective.sim
     if not np.any(m["diverged"]) or not opts.refine:
         return m
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
@@ -70,7 +71,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     def level(j, idx):  # rows idx at refinement level j (level 0, the tuning's step, is m)
         solver, halvings = refinement_level(j, opts.solver)
         traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, opts.t_final,
-                              opts.dt / 2**halvings, window_start=opts.window_start,
+                              opts.dt / 2**halvings, window_start=sim.window_start,
                               state_bound=opts.state_bound, refine=0, solver=solver)
         return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys}}
 
@@ -91,8 +92,11 @@ def _host(d):
 
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     ok = ~m["diverged"].astype(bool)
-    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_diverged": int((~ok).sum()),
-                           "n_refined": int(np.sum(np.asarray(m.get("refined", 0)) > 0))}
+    refined = ok & (np.asarray(m.get("refined", 0)) > 0)
+    # the three outcomes of a sweep's rows: tracked at the tuning's step, tracked after
+    # refinement (numerically stiff there), diverged at every step tried
+    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
+                           "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
     for key in STATS_METRICS + ("loss",):
         v = m[key][ok] if key != "loss" else m[key]
         out[key] = None if v.size == 0 else {
@@ -199,9 +203,13 @@ def problem_sentence(problem) -> str:
 
 
 def trajectories(problem, z0, z1, save_every: int = 10):
+    """The start and tuned loops on the nominal plant for the figures, saved every
+    `save_every` steps or more (at most `config.MAX_SAVED_POINTS` points)."""
+    from dscjax.config import SimOptions
     from dscjax.simulate import simulate
 
     sim = problem.objective.sim
+    save_every = max(save_every, SimOptions().save_stride(sim.n_steps))
     out = {}
     for tag, z in (("start", z0), ("tuned", z1)):
         setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
@@ -271,7 +279,6 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
-    summary["heldout_stiff"] = stiff_note(summary, problem.options)
     out = Path(out)
     figures = []
     trajs = None
@@ -298,7 +305,8 @@ def _bounds_train(sc) -> dict[str, Any] | None:
 def heldout_warning(summary: dict, cfg) -> str | None:
     """The sentence to put first when the tuned gains diverge on held-out plants at every
     step tried (None if on none, or there is no held-out batch): a loop that loses plants
-    must not hide in a table. Plants that track once refined are `stiff_note`'s."""
+    must not hide in a table. Plants that track once refined are no warning: they are
+    counted as sweeps count them (`heldout_counts`)."""
     h = summary.get("heldout")
     if not h or not h["tuned"]["n_diverged"]:
         return None
@@ -315,16 +323,17 @@ def heldout_warning(summary: dict, cfg) -> str | None:
             f"they were tuned on {where}: do not deploy them as they are; {fix}")
 
 
-def stiff_note(summary: dict, options) -> str | None:
-    """The sentence saying that held-out plants diverged only numerically with the tuned gains
-    (they track once refined), or None."""
+def heldout_counts(summary: dict) -> str | None:
+    """The held-out outcomes with the start and the tuned gains, as sweeps report theirs
+    (None without a held-out batch)."""
     h = summary.get("heldout")
-    if not h or not h["tuned"]["n_refined"]:
+    if not h:
         return None
-    return (f"{h['tuned']['n_refined']} of {h['tuned']['n']} held-out plants diverge with the "
-            f"tuned gains at dt = {options.dt:g} s with the {options.solver} solver, and track "
-            f"once refined (ETDRK4, smaller steps): the loop is numerically stiff there, not "
-            f"unstable; simulate or sweep these gains with `--solver etdrk4` or a smaller dt")
+    a, b = h["start"], h["tuned"]
+    return (f"held-out batch ({a['n']} plants, start -> tuned gains): tracked {a['n_tracked']} "
+            f"-> {b['n_tracked']}; tracked after refinement (a numerically stiff run re-done "
+            f"with ETDRK4 at a smaller step) {a['n_refined']} -> {b['n_refined']}; diverged "
+            f"at every step tried {a['n_diverged']} -> {b['n_diverged']}")
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
@@ -378,8 +387,6 @@ def _markdown(s: dict, problem, figures) -> str:
     lines = ["# dscjax tune: report", ""]
     if s.get("heldout_warning"):
         lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
-    if s.get("heldout_stiff"):
-        lines += [f"> Note: {s['heldout_stiff']}.", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -477,10 +484,12 @@ def _markdown(s: dict, problem, figures) -> str:
                 continue
             lines.append(f"| {_md(LABELS[m])} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
-        lines.append(f"| diverged at every step tried | {st['n_diverged']} | "
-                     f"{tu['n_diverged']} | | | | |")
-        lines.append(f"| tracked after refinement (numerically stiff at dt) | "
-                     f"{st['n_refined']} | {tu['n_refined']} | | | | |")
+        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
+                  f"(tuned); tracked after refinement (a numerically stiff run re-done with "
+                  f"ETDRK4 at a smaller step, as sweeps do) {st['n_refined']} and "
+                  f"{tu['n_refined']}; diverged at every step tried {st['n_diverged']} and "
+                  f"{tu['n_diverged']}. The figures above are over the plants that did not "
+                  f"diverge."]
         reqs = s[key]["requirements"]["tuned"]
         if reqs:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "

@@ -702,9 +702,11 @@ def _best_from_file(out: Path, state, problem: Problem):
                           best_iteration=jnp.asarray(int(b["iteration"]), jnp.int32))
 
 
-def format_progress(row: dict) -> str:
-    """The figures of one iteration's row, for a progress display (dscjax.progress)."""
+def format_progress(row: dict, step: str = "lr") -> str:
+    """The figures of one iteration's row, for a progress display (dscjax.progress). `step`
+    names the row's "lr" column: "lr" for the optax rules, "sigma" for the CMA-ES methods
+    (whose rows hold CMA-ES's step size there)."""
     terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
     return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
             f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "
-            f"{row['max_abs_u']:.4g}  lr {row['lr']:.3g}")
+            f"{row['max_abs_u']:.4g}  {step} {row['lr']:.3g}")

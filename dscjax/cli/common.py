@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -10,15 +12,109 @@ from pathlib import Path
 import numpy as np
 
 
+def count(low: int = 0):
+    """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
+    anything else is refused with the allowed range and the value."""
+
+    def parse(text: str) -> int:
+        value = None
+        try:
+            value = int(text)
+        except ValueError:
+            try:
+                x = float(text)
+            except ValueError:
+                x = math.nan
+            if math.isfinite(x) and x == int(x):
+                value = int(x)
+        if value is None or value < low:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {low} (got {text!r})")
+        return value
+
+    parse.__name__ = "count"
+    return parse
+
+
+def finite_float(text: str) -> float:
+    """An argparse type: a finite number (inf and nan are refused, naming the option)."""
+    try:
+        x = float(text)
+    except ValueError:
+        x = math.nan
+    if not math.isfinite(x):
+        raise argparse.ArgumentTypeError(f"must be a finite number (got {text!r})")
+    return x
+
+
+def positive_float(text: str) -> float:
+    """An argparse type: a finite number > 0."""
+    try:
+        x = float(text)
+    except ValueError:
+        x = math.nan
+    if not (math.isfinite(x) and x > 0):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0 (got {text!r})")
+    return x
+
+
 def add_horizon_args(p):
     """--t-final and --dt, their help stating SimOptions' defaults (a config may change them)."""
     from dscjax.config import SimOptions
 
     d = SimOptions()
-    p.add_argument("--t-final", type=float, metavar="S", help=f"horizon in seconds (default "
-                   f"{d.t_final:g}, or the config's simulation.t_final)")
-    p.add_argument("--dt", type=float, metavar="S", help=f"RK4 step in seconds (default "
-                   f"{d.dt:g}, or the config's simulation.dt)")
+    p.add_argument("--t-final", type=positive_float, metavar="S", help=f"horizon in seconds "
+                   f"(default {d.t_final:g}, or the config's simulation.t_final)")
+    p.add_argument("--dt", type=positive_float, metavar="S", help=f"RK4 step in seconds "
+                   f"(default {d.dt:g}, or the config's simulation.dt)")
+
+
+def horizon_fields(args) -> tuple[str, str]:
+    """The names of T and dt in messages: the option where the command line gave the value,
+    else the config's field."""
+    return ("--t-final" if getattr(args, "t_final", None) is not None else "simulation.t_final",
+            "--dt" if getattr(args, "dt", None) is not None else "simulation.dt")
+
+
+def n_steps(args, options) -> int:
+    """N = T/dt (`validation.whole_steps`), its messages naming the options or fields."""
+    from dscjax.validation import whole_steps
+
+    return whole_steps(options.t_final, options.dt, *horizon_fields(args))
+
+
+def horizon_text(t_final: float, dt: float, steps: int) -> str:
+    return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
+
+
+def loop_sizes(setup) -> tuple[int, int, int]:
+    """(m, k, itemsize): the floats of the closed loop's state (what the time-parallel
+    gradient's Jacobians are square in), of one saved point of a Trajectory (state and
+    observations, k >= m), and the bytes of one float. Shapes only: nothing is run."""
+    import functools
+
+    import jax
+
+    from dscjax.simulate import run
+
+    shapes = jax.eval_shape(functools.partial(run, n_steps=1, save_every=1), setup, 1e-3, 0.0,
+                            1e6)
+    def floats(tree):
+        return sum(math.prod(a.shape[1:]) for a in jax.tree.leaves(tree))
+
+    m = floats((shapes.x, shapes.h, shapes.ctrl))
+    return m, m + floats((shapes.w, shapes.u, shapes.u_dot, shapes.yr, shapes.S)), \
+        shapes.x.dtype.itemsize
+
+
+def gradient_work(setup, steps: int, copies: int = 1):
+    """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
+    Jacobians of every step, O(N m^2) (`integrate._time_parallel_jvp`)."""
+    from dscjax.validation import Work
+
+    m, per_point, size = loop_sizes(setup)
+    return Work(memory=copies * steps * m * per_point * size,
+                memory_what=f"the time-parallel gradient ({copies:,} x {steps:,} steps x "
+                f"{m} x {per_point} Jacobian entries)")
 
 
 def add_integration_args(p):
@@ -30,17 +126,32 @@ def add_integration_args(p):
     p.add_argument("--solver", choices=SOLVERS, help=f"integrator: rk4 (classical RK4) or "
                    f"etdrk4 (exponential RK4, exact on the stiff linear decays) (default "
                    f"{d.solver}, or the config's simulation.solver)")
-    p.add_argument("--refine", type=int, metavar="J", help=f"if the run diverges, levels "
+    p.add_argument("--refine", type=count(0), metavar="J", help=f"if the run diverges, levels "
                    f"tried before it counts as diverged: ETDRK4 at dt, dt/2, ... (0: none; "
                    f"default {d.refine}, or the config's simulation.refine)")
 
 
 def add_example_arg(p):
+    """--example, and --print-config, which prints the whole effective config (`print_config`)."""
     p.add_argument("--example", default="paper", metavar="NAME",
                    help="the built-in closed loop a --config is laid over: paper (default), "
                    "backstepping (the paper's plant, backstepping baseline), order-N (the "
                    "order-n family, N >= 2, e.g. order-4), or pi, gpi, bouc_wen (the paper's "
                    "loop behind that hysteresis model); --print-config shows it whole")
+    p.add_argument("--print-config", action="store_true",
+                   help="print the whole effective config as TOML ([simulation], the model "
+                   "tables and this command's own settings) and exit; --config loads it back")
+
+
+def print_config(setup, options, *tables: str) -> None:
+    """`--print-config`: [simulation] and the model tables of (setup, options), then a
+    command's own tables (TOML text), on stdout."""
+    import sys
+
+    from dscjax import config
+
+    sys.stdout.write("\n".join([config.to_toml(setup, options).rstrip("\n"),
+                                *(t.rstrip("\n") for t in tables)]) + "\n")
 
 
 def example_setup(args):
@@ -90,6 +201,7 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
             controller=dataclasses.replace(setup.controller, variant=args.variant))
     options = dataclasses.replace(options, **changes)
     options.validate()
+    n_steps(args, options)
     # before anything traces the setup (a shape mismatch would otherwise surface as a JAX
     # broadcasting error from inside an eval_shape)
     validate_setup(setup)

@@ -13,10 +13,20 @@ import sys
 
 import numpy as np
 
-from dscjax.cli.common import Outputs, add_example_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.common import (
+    Outputs,
+    add_example_arg,
+    add_overwrite_arg,
+    finite_float,
+    horizon_text,
+    positive_float,
+    prepare_out,
+    print_config,
+)
 
 DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
 DEFAULT_OMEGA = 2.3
+DEFAULT_DT = 1e-3
 OUTPUTS = Outputs(("loop.npz", "loop.png"))
 
 
@@ -28,16 +38,17 @@ def add_parser(sub):
         "the play operators' exact clamp); write DIR/loop.npz (t, u, w on the step grid) and "
         "DIR/loop.png (w against u). Default: the paper's Fig. 1.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config; only its "
-                   "[hysteresis] table is used (default: the --example's)")
+                   "[hysteresis] table is used, and simulation.t_final and simulation.dt "
+                   "where --t-final and --dt are not given (default: the --example's)")
     add_example_arg(p)
-    p.add_argument("--amplitude", type=float, action="append", metavar="A",
+    p.add_argument("--amplitude", type=finite_float, action="append", metavar="A",
                    help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
-    p.add_argument("--omega", type=float, default=DEFAULT_OMEGA, metavar="W",
+    p.add_argument("--omega", type=positive_float, default=DEFAULT_OMEGA, metavar="W",
                    help=f"input frequency [rad/s] (default {DEFAULT_OMEGA:g})")
-    p.add_argument("--t-final", type=float, metavar="T",
+    p.add_argument("--t-final", type=positive_float, metavar="T",
                    help="horizon [s] (default three periods 6 pi / omega, on the dt grid)")
-    p.add_argument("--dt", type=float, default=1e-3, metavar="DT", help="RK4 step [s] "
-                   "(default 1e-3)")
+    p.add_argument("--dt", type=positive_float, metavar="DT", help=f"RK4 step [s] "
+                   f"(default {DEFAULT_DT:g})")
     p.add_argument("--out", default="results/hysteresis", metavar="DIR",
                    help="output directory (default results/hysteresis)")
     add_overwrite_arg(p)
@@ -49,30 +60,38 @@ def run(args) -> int:
     from dscjax.cli.common import example_setup
     from dscjax.files import write_npz
     from dscjax.hysteresis import sine_loops
+    from dscjax.runspec import RunSpec
 
     amplitudes = tuple(args.amplitude or DEFAULT_AMPLITUDES)
-    for a in amplitudes:
-        validation.finite(a, "--amplitude")
-    validation.finite(args.omega, "--omega")
-    validation.positive(args.omega, "--omega")
-    validation.finite(args.dt, "--dt")
-    validation.positive(args.dt, "--dt")
     base = example_setup(args)
-    setup = config.load(args.config, base=base)[0] if args.config else base
+    raw = config.read(args.config) if args.config else {}
+    setup = config.from_dict(raw, base=base)[0] if args.config else base
     hyst = setup.hysteresis
     hyst.validate("hysteresis")
     validation.finite_tree(hyst, "hysteresis")
-    if args.t_final is None:
-        t_final = max(round(6 * math.pi / args.omega / args.dt), 1) * args.dt
+    sim = raw.get("simulation", {}) if isinstance(raw.get("simulation"), dict) else {}
+    dt, dt_field = ((args.dt, "--dt") if args.dt is not None else
+                    (sim["dt"], "simulation.dt") if "dt" in sim else (DEFAULT_DT, "--dt"))
+    if args.t_final is not None or "t_final" in sim:
+        t_final, t_field = ((args.t_final, "--t-final") if args.t_final is not None else
+                            (sim["t_final"], "simulation.t_final"))
     else:
-        validation.finite(args.t_final, "--t-final")
-        t_final = args.t_final
-        validation.whole_steps(t_final, args.dt, "--t-final", "--dt")
+        dt = validation.finite_positive(dt, dt_field)
+        t_final, t_field = max(round(6 * math.pi / args.omega / dt), 1) * dt, "--t-final"
+    steps = validation.whole_steps(t_final, dt, t_field, dt_field)
+    if args.print_config:
+        print_config(setup, RunSpec.make(float(t_final), float(dt)))
+        return 0
+    k = len(amplitudes)
+    validation.check_work(validation.Work(
+        steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
+        memory_what=f"t, u and w at every step ({k} amplitude(s))"),
+        what=horizon_text(t_final, dt, steps), fix="use a shorter --t-final or a larger --dt")
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
-          f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {args.dt:g} s",
+          f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s",
           file=sys.stderr)
-    t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, args.dt)
+    t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, dt)
     write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
                                      omega=np.asarray(args.omega, float),
                                      kind=np.asarray(hyst.kind)))

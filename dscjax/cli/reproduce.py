@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dscjax.cli.common import Outputs
+from dscjax.cli.common import Outputs, count, positive_float
 from dscjax.reproduce.figures import FIGURES
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
@@ -52,17 +52,17 @@ def add_parser(sub):
                    help="output directory (default: results/paper)")
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
-    p.add_argument("--dpi", type=int, default=r.DPI,
+    p.add_argument("--dpi", type=count(10), default=r.DPI,
                    help="resolution of PNG figures (default %(default)s)")
-    p.add_argument("--t-final", type=float, default=r.T_FINAL, metavar="S",
+    p.add_argument("--t-final", type=positive_float, default=r.T_FINAL, metavar="S",
                    help="horizon of the closed-loop runs in seconds (default %(default)g)")
-    p.add_argument("--dt", type=float, default=r.DT, metavar="S",
+    p.add_argument("--dt", type=positive_float, default=r.DT, metavar="S",
                    help="RK4 step in seconds (default %(default)g)")
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
     p.add_argument("--orders", default=orders, metavar="N-M",
                    help="orders for --complexity, e.g. 2-8 or 2,4,6 (default %(default)s)")
-    p.add_argument("--repeats", type=int, default=r.COMPLEXITY_REPEATS, metavar="R",
+    p.add_argument("--repeats", type=count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
     again = p.add_mutually_exclusive_group()
@@ -83,7 +83,7 @@ def add_parser(sub):
     p.add_argument("--alpha0", metavar="A,B,...",
                    help="alpha_0 values of the study (default: 10 values from 0.1 to 10, "
                    "log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
-    p.add_argument("--mu", type=float, metavar="MU",
+    p.add_argument("--mu", type=positive_float, metavar="MU",
                    help="mu of (59)-(60) for the study (default 0.1 for n = 2, 10 for n >= 3)")
     return p
 
@@ -118,9 +118,19 @@ def run(args) -> int:
         raise ConfigError(f"--repeats must be >= 1 (got {args.repeats})")
     if args.dpi < 10:
         raise ConfigError(f"--dpi must be >= 10 (got {args.dpi})")
+    from dscjax.cli.common import horizon_text, loop_sizes
     from dscjax.reproduce import setups
+    from dscjax.validation import Work, check_work, whole_steps
 
+    steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
+    runs = len(setups())  # each saved at every step and kept for the figures
+    point = loop_sizes(setups()["dsc"])
+    check_work(Work(steps=runs * steps, member_steps=runs * steps,
+                    memory=runs * (steps + 1) * point[1] * point[2],
+                    memory_what=f"the {runs} runs saved at every step"),
+               what=horizon_text(args.t_final, args.dt, steps),
+               fix="use a shorter --t-final or a larger --dt")
     if args.resume and not args.complexity:
         raise ConfigError("--resume continues an interrupted --complexity study (the "
                           "closed-loop runs take seconds and are not kept); add --complexity")

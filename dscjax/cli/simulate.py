@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 
@@ -13,7 +12,10 @@ from dscjax.cli.common import (
     add_config_args,
     add_integration_args,
     add_overwrite_arg,
+    count,
+    horizon_text,
     load_setup,
+    loop_sizes,
     prepare_out,
 )
 from dscjax.files import write_json, write_npz
@@ -45,23 +47,23 @@ def add_parser(sub):
     add_integration_args(p)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
-    p.add_argument("--save-every", type=int, metavar="K", help=f"keep every K-th step in "
-                   f"trajectory.npz (default: the config's simulation.save_every, else every "
-                   f"step up to {MAX_SAVED_POINTS:,} points and the smallest stride that keeps "
-                   f"at most that many beyond; the metrics use every step)")
+    p.add_argument("--save-every", type=count(1), metavar="K", help=f"keep every K-th step "
+                   f"in trajectory.npz, and always the last one at T (default: the config's "
+                   f"simulation.save_every, else every step up to {MAX_SAVED_POINTS:,} points "
+                   f"and the smallest stride that keeps at most that many beyond; the metrics "
+                   f"use every step)")
     p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "
                    f"{_default_variant()})")
     add_overwrite_arg(p)
     p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
-    p.add_argument("--print-config", action="store_true",
-                   help="print the effective config as TOML and exit")
     return p
 
 
 def run(args) -> int:
     from dscjax import config, validation
+    from dscjax.integrate import saved_steps
     from dscjax.simulate import (
         DivergenceError,
         default_window,
@@ -70,8 +72,6 @@ def run(args) -> int:
         simulate,
     )
 
-    if args.save_every is not None:
-        validation.integer(args.save_every, "--save-every", 1)
     setup, options = load_setup(args)
     if args.save_every is not None:
         import dataclasses
@@ -81,10 +81,20 @@ def run(args) -> int:
         sys.stdout.write(config.to_toml(setup, options))
         return 0
 
-    n_steps = validation.validate_run(setup, options.t_final, options.dt, 1, None)
+    n_steps = validation.validate_run(setup, options.t_final, options.dt, 1,
+                                      options.window_start)
     every = options.save_stride(n_steps)
-    validation.validate_run(setup, options.t_final, options.dt, every, options.window_start)
-    nbytes = _check_memory(setup, options, every, n_steps)
+    n_points = saved_steps(n_steps, every).size
+    _, per_point, itemsize = loop_sizes(setup)
+    nbytes = n_points * per_point * itemsize
+    validation.check_work(validation.Work(
+        steps=n_steps, member_steps=n_steps, memory=MEMORY_FACTOR * nbytes,
+        memory_what=f"the saved trajectory (simulation.save_every = {every} keeps "
+        f"{n_points:,} points, {_size(nbytes)}; about {MEMORY_FACTOR}x that while "
+        f"trajectory.npz is written)"),
+        what=horizon_text(options.t_final, options.dt, n_steps),
+        fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
+        f"{config.MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     warnings = validation.assumption_warnings(setup)
 
     out = prepare_out(args, OUTPUTS)
@@ -95,12 +105,12 @@ def run(args) -> int:
     for w in warnings:
         print(f"dscjax simulate: warning: {w}", file=sys.stderr)
     if options.save_every is None and every > 1:
-        print(f"  saving every {_ordinal(every)} step: {n_steps // every + 1:,} points (at most "
-              f"{config.MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
-              f"otherwise); the metrics use every step", file=sys.stderr)
+        print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
+              f"most {config.MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
+              f"says otherwise); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
-        print(f"  trajectory.npz will take about {_size(nbytes)} ({n_steps // every + 1:,} "
-              f"points)", file=sys.stderr)
+        print(f"  trajectory.npz will take about {_size(nbytes)} ({n_points:,} points)",
+              file=sys.stderr)
     bar, progress = None, None
     if n_steps >= PROGRESS_MIN_STEPS:
         bar = Progress(n_steps, desc="  simulated", unit="step")
@@ -188,64 +198,15 @@ BIG_FILE = 256 * 2**20
 MEMORY_FACTOR = 3
 
 
-def _available_memory() -> int | None:
-    """Bytes of memory available to a new allocation (Linux MemAvailable), None if unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    try:
-        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
-    except (ValueError, OSError, AttributeError):
-        return None
-
-
 def _size(nbytes: float) -> str:
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if nbytes < 1024 or unit == "GiB":
-            return f"{nbytes:.3g} {unit}" if unit != "B" else f"{int(nbytes)} B"
-        nbytes /= 1024
-    raise AssertionError
+    from dscjax.validation import fmt_bytes
+
+    return fmt_bytes(nbytes)
 
 
 def _ordinal(k: int) -> str:
     suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
     return f"{k:,}{suffix}"
-
-
-def _trajectory_bytes(setup, options, every: int) -> int:
-    """Bytes of the Trajectory `simulate` would return: shapes only, nothing is run."""
-    import functools
-    import math
-
-    import jax
-
-    from dscjax.simulate import simulate
-
-    shapes = jax.eval_shape(functools.partial(
-        simulate, t_final=options.t_final, dt=options.dt, save_every=every,
-        window_start=options.window_start, state_bound=options.state_bound, throw=False), setup)
-    return sum(math.prod(s.shape) * s.dtype.itemsize for s in jax.tree.leaves(shapes))
-
-
-def _check_memory(setup, options, every: int, n_steps: int) -> int:
-    """The trajectory's size in bytes; ConfigError before any work if it cannot fit."""
-    from dscjax.config import MAX_SAVED_POINTS
-    from dscjax.validation import ConfigError
-
-    nbytes = _trajectory_bytes(setup, options, every)
-    need, avail = MEMORY_FACTOR * nbytes, _available_memory()
-    if avail is not None and need > avail:
-        raise ConfigError(
-            f"simulation.save_every = {every} keeps {n_steps // every + 1:,} points of the "
-            f"trajectory ({_size(nbytes)}, about {_size(need)} in memory while writing "
-            f"trajectory.npz), more than the {_size(avail)} available; use a larger "
-            f"--save-every, or omit it for the automatic stride (at most "
-            f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
-    return nbytes
 
 
 def interrupt_hint(args) -> str:

@@ -16,8 +16,11 @@ from dscjax.cli.common import (
     Outputs,
     add_config_args,
     add_overwrite_arg,
+    horizon_text,
     load_setup,
+    n_steps,
     prepare_out,
+    print_config,
 )
 from dscjax.files import write_json
 
@@ -56,11 +59,25 @@ def _scales(text: str) -> list[float]:
 
 def run(args) -> int:
     from dscjax import validation
-    from dscjax.step_size import stability_map
+    from dscjax.step_size import DT_FACTORS, stability_map
 
     setup, options = load_setup(args)
     scales = _scales(args.tau_scales)
     validation.validate_run(setup, options.t_final, options.dt, 1, None)
+    if args.print_config:
+        print_config(setup, options)
+        return 0
+    steps = n_steps(args, options)
+    what = horizon_text(options.t_final, options.dt, steps)
+    finest = round(steps / min(DT_FACTORS))
+    if finest > validation.MAX_STEPS:
+        raise validation.ConfigError(
+            f"{what}: the map's finest step, dt * {min(DT_FACTORS):g}, needs {finest:,} steps, "
+            f"more than the {validation.MAX_STEPS:,} the integrator's step counter holds; use "
+            f"a shorter --t-final or a larger --dt")
+    each = sum(steps / f for f in DT_FACTORS)  # one batch over the tau scales per step size
+    validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
+                          what=what, fix="use a shorter --t-final or a larger --dt")
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
           f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)

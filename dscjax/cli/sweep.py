@@ -20,8 +20,13 @@ from dscjax.cli.common import (
     add_example_arg,
     add_horizon_args,
     add_integration_args,
+    count,
     example_setup,
+    finite_float,
+    horizon_text,
+    n_steps,
     prepare_out,
+    print_config,
 )
 from dscjax.files import write_json
 from dscjax.progress import Progress
@@ -55,7 +60,7 @@ def add_parser(sub):
                    "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
                    "tune`; its other sections are ignored")
     mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--samples", type=int, metavar="N", help=f"number of sampled plants "
+    mode.add_argument("--samples", type=count(1), metavar="N", help=f"number of sampled plants "
                       f"(default {d.samples})")
     mode.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "
@@ -65,13 +70,14 @@ def add_parser(sub):
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
     p.add_argument("--method", choices=("uniform", "lhs"), help=f"sampling: i.i.d. uniform "
                    f"or Latin hypercube (default {d.method})")
-    p.add_argument("--seed", type=int, help=f"seed of the samples (default {d.seed})")
-    p.add_argument("--chunk", type=int, metavar="C", help=f"samples per block and device "
+    p.add_argument("--seed", type=count(0), help=f"seed of the samples (default {d.seed})")
+    p.add_argument("--chunk", type=count(1), metavar="C", help=f"samples per block and device "
                    f"(default: about {AUTO_BLOCK})")
     add_horizon_args(p)
     add_integration_args(p)
     add_example_arg(p)
-    p.add_argument("--t0", type=float, metavar="S", help=f"start of the metric window [t0, T] "
+    p.add_argument("--t0", type=finite_float, metavar="S",
+                   help=f"start of the metric window [t0, T] "
                    f"(default {DEFAULT_WINDOW_START:g} s, 0 if T <= {DEFAULT_WINDOW_START:g} s)")
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
@@ -85,13 +91,15 @@ def add_parser(sub):
                        "the blocks already written")
     again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
                        "start afresh")
-    p.add_argument("--worst", type=int, metavar="K", help=f"full traces of the K worst samples "
+    p.add_argument("--worst", type=count(0), metavar="K",
+                   help=f"full traces of the K worst samples "
                    f"(default {d.worst})")
-    p.add_argument("--random", type=int, metavar="R", help=f"full traces of R random samples "
+    p.add_argument("--random", type=count(0), metavar="R", help=f"full traces of R random samples "
                    f"(default {d.random})")
     p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap "
                    "(default: the first two swept)")
-    p.add_argument("--threshold", type=float, metavar="E", help=f"windowed L-inf error above "
+    p.add_argument("--threshold", type=finite_float, metavar="E",
+                   help=f"windowed L-inf error above "
                    f"which tracking counts as degraded (default: {DEGRADED_FACTOR:g} x the "
                    f"nominal setup's)")
     p.add_argument("--parallel", choices=PARALLEL, help=f"per_device (results bitwise "
@@ -103,12 +111,10 @@ def add_parser(sub):
                       "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
                       "(implies --distributed)")
-    dist.add_argument("--num-processes", type=int, metavar="N", help="number of processes")
-    dist.add_argument("--process-id", type=int, metavar="I", help="this process's index")
+    dist.add_argument("--num-processes", type=count(1), metavar="N", help="number of processes")
+    dist.add_argument("--process-id", type=count(0), metavar="I", help="this process's index")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
-    p.add_argument("--print-config", action="store_true",
-                   help="print the effective [sweep] table as TOML and exit")
     return p
 
 
@@ -117,7 +123,7 @@ def load(args):
     from dscjax import config
     from dscjax.ranges import parse_range
     from dscjax.sweep import SweepSettings, settings_from_dict
-    from dscjax.validation import ConfigError
+    from dscjax.validation import ConfigError, validate_setup
 
     raw = config.read(args.config) if args.config else {}
     sweep_table = raw.pop("sweep", {})
@@ -175,12 +181,16 @@ def load(args):
             opt[name] = getattr(args, name)
     options = dataclasses.replace(options, **opt)
     options.validate()
+    n_steps(args, options)
+    validate_setup(setup)
     return setup, options, settings
 
 
 def sweep_toml(settings, setup) -> str:
-    """The effective [sweep] table as TOML (ranges resolved to absolute bounds)."""
+    """The effective [sweep] table as TOML (ranges resolved to absolute bounds, each the
+    shortest decimal that gives the bound in the sweep's dtype)."""
     from dscjax.config import toml_value
+    from dscjax.validation import shortest
 
     lines = ["[sweep]"]
     for f in dataclasses.fields(settings):
@@ -193,9 +203,22 @@ def sweep_toml(settings, setup) -> str:
     table = "grid" if settings.method == "grid" else "ranges"
     lines += ["", f"[sweep.{table}]"]
     for r in settings.resolved_ranges(setup):
-        vals = [r.low, r.high] + ([r.num] if r.num is not None else [])
+        vals = ([shortest(r.low, settings.dtype), shortest(r.high, settings.dtype)]
+                + ([r.num] if r.num is not None else []))
         lines.append(f"{json.dumps(r.name)} = {toml_value(vals)}")
     return "\n".join(lines) + "\n"
+
+
+def work(setup, settings, steps: int, ranges):
+    """The sweep's work (`validation.check_work`): every sample over the horizon, the
+    nominal setup and the re-simulated traces; its largest allocation, the results table."""
+    from dscjax.validation import Work
+
+    n, columns = settings.n_samples(), len(ranges) + 16  # parameters, metrics, status
+    traces = 1 + settings.worst + settings.random  # re-simulated one after another
+    return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
+                memory=8.0 * n * columns,
+                memory_what=f"the results table ({n:,} samples x {columns} columns)")
 
 
 def run(args) -> int:
@@ -209,18 +232,24 @@ def run(args) -> int:
     from dscjax.metrics import default_window
     from dscjax.ranges import assumption_warnings
     from dscjax.simulate import simulate
+    from dscjax.validation import check_work
 
     setup, options, settings = load(args)
     t_final, dt, state_bound = options.t_final, options.dt, options.state_bound
     window_start = default_window(t_final, options.window_start)
     dtype = np.dtype(settings.dtype)
+    printed = setup
     setup = params.cast(setup, dtype)
     ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
-        sys.stdout.write(sweep_toml(settings, setup))
+        print_config(printed, options, sweep_toml(settings, setup))
         return 0
     validation.validate_run(setup, t_final, dt, 1, window_start)
     validation.validate_setup(setup)
+    steps = n_steps(args, options)
+    check_work(work(setup, settings, steps, ranges),
+               what=f"{settings.n_samples():,} samples of {horizon_text(t_final, dt, steps)}",
+               fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         sweep.check_resumable(args.out)
     main = jax.process_index() == 0

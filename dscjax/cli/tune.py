@@ -24,7 +24,13 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 
 def add_parser(sub):
-    from dscjax.cli.common import add_example_arg, add_horizon_args
+    from dscjax.cli.common import (
+        add_example_arg,
+        add_horizon_args,
+        count,
+        finite_float,
+        positive_float,
+    )
     from dscjax.worst import METHODS
     from tuning.config import TuningConfig
     from tuning.objective import AGGREGATES, EFFORT_BOUNDS
@@ -51,9 +57,10 @@ def add_parser(sub):
     limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
     steps = (f"{opt.steps}" if opt.steps is not None else
              f"{OPTAX_STEPS} for the optax methods, none for the CMA-ES methods")
-    p.add_argument("--steps", type=int, metavar="N", help=f"maximum number of iterations, "
+    p.add_argument("--steps", type=count(1), metavar="N", help=f"maximum number of iterations, "
                    f"generations for the CMA-ES methods (default {steps})")
-    p.add_argument("--time-limit", type=float, metavar="S", help=f"stop after S seconds of wall "
+    p.add_argument("--time-limit", type=finite_float, metavar="S",
+                   help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
                    "CMA-ES with a line search from the best point along its evolution path, "
@@ -61,23 +68,25 @@ def add_parser(sub):
                    "the robust one), docs/tuning.md; cma: CMA-ES alone; cma_line: the line "
                    "search along random directions; cma_grad: along the exact gradient; adam "
                    "... : optax rules with exact gradients)")
-    p.add_argument("--lr", type=float, metavar="LR", help=f"learning rate (default "
+    p.add_argument("--lr", type=positive_float, metavar="LR", help=f"learning rate (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
-    p.add_argument("--batch", type=int, metavar="B", help=f"training batch of B plants sampled "
+    p.add_argument("--batch", type=count(0), metavar="B",
+                   help=f"training batch of B plants sampled "
                    f"from [tuning.robust] ranges (default {rob.batch}"
                    + (": the nominal plant only)" if rob.batch == 0 else ")"))
     p.add_argument("--aggregate", choices=AGGREGATES, help=f"objective over the "
                    f"training batch (default {rob.aggregate})")
-    p.add_argument("--cvar-level", type=float, metavar="A", help=f"CVaR level in (0, 1]: the "
+    p.add_argument("--cvar-level", type=finite_float, metavar="A",
+                   help=f"CVaR level in (0, 1]: the "
                    f"mean of the worst ceil(A B) plants (default {rob.cvar_level:g})")
-    p.add_argument("--seed", type=int, help=f"seed of the training batch (default {rob.seed})")
+    p.add_argument("--seed", type=count(0), help=f"seed of the training batch (default {rob.seed})")
     p.add_argument("--effort-bounds", choices=EFFORT_BOUNDS, help="where the \"start\" "
                    "bounds on max|u| and TV(u) are measured: on the nominal plant, for every "
                    "plant, or on each training plant its own (per_plant: the start gains' "
                    "max|u| and tv_max_factor x TV(u) on that plant, the worst cases of "
                    f"--adversarial included; default {d.objective.effort_bounds})")
-    p.add_argument("--heldout", type=int, metavar="N", help=f"held-out evaluation batch size "
+    p.add_argument("--heldout", type=count(0), metavar="N", help=f"held-out evaluation batch size "
                    f"(default {d.heldout.batch}; 0 = skip)")
     p.add_argument("--gradient", choices=GRADIENTS,
                    help=f"AD mode (default {opt.gradient}"
@@ -94,10 +103,10 @@ def add_parser(sub):
     p.add_argument("--disturbance", metavar="KIND:K:D", help="with --adversarial: the "
                    "searched waveform added to dbar, fourier:K:D or spline:K:D, max|dbar| <= D "
                    "(as dscjax worst-case's; default: none)")
-    p.add_argument("--search-time", type=float, metavar="S", help=f"with --adversarial: "
+    p.add_argument("--search-time", type=positive_float, metavar="S", help=f"with --adversarial: "
                    f"seconds of each worst-case search, compilation apart (default "
                    f"{adv.search_time:g})")
-    p.add_argument("--search-evals", type=int, metavar="N", help="with --adversarial: end "
+    p.add_argument("--search-evals", type=count(1), metavar="N", help="with --adversarial: end "
                    "each worst-case search after N evaluations, or at --search-time, whichever "
                    "comes first (default: the time alone)")
     p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
@@ -111,8 +120,6 @@ def add_parser(sub):
                        "start afresh")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
-    p.add_argument("--print-config", action="store_true",
-                   help="print the effective [tuning] table as TOML and exit")
     return p
 
 
@@ -144,7 +151,7 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config, validation
-    from dscjax.cli.common import example_setup
+    from dscjax.cli.common import example_setup, n_steps
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -218,6 +225,8 @@ def load(args):
         changes["dt"] = args.dt
     options = dataclasses.replace(options, **changes)
     options.validate()
+    n_steps(args, options)
+    validation.validate_setup(setup)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
@@ -241,7 +250,7 @@ def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
 
-    from dscjax.cli.common import prepare_out
+    from dscjax.cli.common import prepare_out, print_config
     from dscjax.params import cast
     from dscjax.progress import Progress
     from dscjax.validation import ConfigError
@@ -253,8 +262,9 @@ def run(args) -> int:
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        sys.stdout.write(to_toml(model_default_ranges(cfg, setup), setup))
+        print_config(setup, options, to_toml(model_default_ranges(cfg, setup), setup))
         return 0
+    check_work_of(args, setup, options, cfg)
     out = Path(args.out)
     adv = cfg.adversarial
     if adv.rounds:
@@ -276,7 +286,8 @@ def run(args) -> int:
                                                     if oc.name == "cma_grad" else "")
            if oc.name in SEARCHES else
            f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} ({oc.schedule})")
-    limits = ([f"{oc.max_steps} iterations"] if oc.max_steps is not None else []) + (
+    unit = "generation" if oc.name in SEARCHES else "iteration"
+    limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
           f"{how}; T={options.t_final:g} s, dt={options.dt:g} s, window "
@@ -290,6 +301,13 @@ def run(args) -> int:
              + (f" and {adv.disturbance}" if adv.disturbance else "")
              + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else ""),
           file=sys.stderr)
+    after = (f"the held-out check ({cfg.heldout.batch} plants, start and tuned gains)"
+             if cfg.heldout.batch else "")
+    after = " and ".join(x for x in (after, "" if args.no_plot else "the figures") if x)
+    if after:
+        print(f"  {after} come after the search"
+              + (f"; the time limit ({oc.time_limit:g} s) bounds the search only"
+                 if oc.time_limit else ""), file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
     for w in report.assumption_warnings(problem):
@@ -310,9 +328,10 @@ def run(args) -> int:
         if bar is None:
             bar_round = row.get("round")
             bar = Progress(row["steps"], desc="  tune" if bar_round is None else
-                           f"  round {bar_round} tune", unit="iteration",
+                           f"  round {bar_round} tune", unit=unit,
                            initial=row["iteration"], enabled=not args.quiet)
-        bar.update_to(row["iteration"] + 1, format_progress(row))
+        bar.update_to(row["iteration"] + 1, format_progress(
+            row, "sigma" if oc.name in SEARCHES else "lr"))
 
     def say(text):
         nonlocal bar
@@ -333,7 +352,7 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    print(f"  stopped: {result.stop_reason}; {int(result.state.iteration)} iterations"
+    print(f"  stopped: {result.stop_reason}; {_count(int(result.state.iteration), unit)}"
           + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
           + f", {int(result.state.n_rejected)} rejected, best at iteration "
           f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
@@ -364,22 +383,61 @@ def run(args) -> int:
                   f"{worst}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
+        print(f"  {report.heldout_counts(summary)}")
         if h0["linf_error_window"] and h1["linf_error_window"]:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
-            print(f"  held-out batch ({h0['n']} plants): L-inf error median {a['median']:.4g} "
-                  f"-> {b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; diverged "
-                  f"{h0['n_diverged']} -> {h1['n_diverged']}; tracked only after refinement "
-                  f"(numerically stiff at dt) {h0['n_refined']} -> {h1['n_refined']}")
+            print(f"  held-out L-inf error on the window, plants that did not diverge: median "
+                  f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
+                  f"{b['p95']:.4g}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
-    if summary.get("heldout_stiff"):
-        print(f"  note: {summary['heldout_stiff']}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
              if outcome is not None else "history.csv, ") + "report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
+
+
+def _count(n: int, unit: str) -> str:
+    """"1 generation", "2 generations"."""
+    return f"{n} {unit}" + ("" if n == 1 else "s")
+
+
+def check_work_of(args, setup, options, cfg) -> None:
+    """`validation.check_work` for a tuning run, before any of it: one generation (or
+    iteration) within the time limit, and what follows the search (the held-out check, the
+    figures) within the rest of a day. Lower bounds: a default population of at least 4."""
+    from dscjax.cli.common import gradient_work, horizon_text, n_steps
+    from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
+    from tuning.optimize import SEARCHES, choose_gradient
+
+    steps = n_steps(args, options)
+    oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
+    what = horizon_text(options.t_final, options.dt, steps)
+    fix = "use a shorter --t-final or a larger --dt"
+    if oc.name in SEARCHES:
+        width = (oc.popsize or 4) + oc.line_points
+        one = Work(steps=steps, member_steps=width * plants * steps)
+        unit = f"generation ({width} candidates x {plants} plant(s))"
+    else:
+        one = Work(steps=2 * steps, member_steps=2 * plants * steps)
+        unit = f"iteration ({plants} plant(s), a value and a gradient)"
+    mode = choose_gradient(oc.gradient, 0, plants, cfg.robust.aggregate, cfg.robust.cvar_level)
+    if (oc.name not in SEARCHES or oc.name == "cma_grad") and (
+            mode == "plants" or (mode == "reverse" and plants == 1)):
+        one = one + gradient_work(setup, steps)
+    if oc.time_limit:
+        name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
+        check_work(one, what=f"one {unit} of {what}", fix=f"{fix}, or a larger {name}",
+                   limit_s=oc.time_limit, limit=f"{name} {oc.time_limit:g} s")
+    else:
+        check_work(one, what=f"one {unit} of {what}", fix=fix)
+    # after the search: start and tuned gains on the training and held-out batches, figures
+    after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
+    left = TIME_LIMIT_S - (oc.time_limit or 0.0)
+    check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
+               limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")
 
 
 def _worst(record: dict) -> str:

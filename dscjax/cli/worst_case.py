@@ -11,7 +11,18 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import Outputs, add_config_args, load_setup, prepare_out
+from dscjax.cli.common import (
+    Outputs,
+    add_config_args,
+    count,
+    gradient_work,
+    horizon_text,
+    load_setup,
+    loop_sizes,
+    positive_float,
+    prepare_out,
+    print_config,
+)
 from dscjax.worst_report import FIGURES
 
 MANIFEST = "worst_case.json"
@@ -45,31 +56,32 @@ def add_parser(sub):
     p.add_argument("--disturbance", metavar="KIND:K:D", help="a searched waveform added to "
                    "dbar with max|dbar| <= D: fourier:K:D (K harmonics, 2K+1 coefficients) or "
                    "spline:K:D (K knots over the horizon)")
-    p.add_argument("--period", type=float, metavar="P", help="period of a fourier waveform "
+    p.add_argument("--period", type=positive_float, metavar="P",
+                   help="period of a fourier waveform "
                    "(default: the horizon)")
     p.add_argument("--metric", default=DEFAULT_METRIC, metavar="METRIC",
                    help=f"the metric maximised: one of {', '.join(METRICS)} (default "
                    f"{DEFAULT_METRIC}), or {REQUIREMENT}NAME: the violation margin of the "
                    f"[tuning.requirements.NAME] table of --config (envelope, step, u_bound, "
                    f"u_rate; > 0: violated)")
-    p.add_argument("--time-limit", type=float, default=60.0, metavar="S",
+    p.add_argument("--time-limit", type=positive_float, default=60.0, metavar="S",
                    help="search seconds per method, compilation excluded (default 60)")
-    p.add_argument("--max-evals", type=int, metavar="N",
+    p.add_argument("--max-evals", type=count(1), metavar="N",
                    help="stop each method after N evaluations (its last batch finished), or "
                    "at --time-limit, whichever comes first: a count makes searches under "
                    "different loads comparable (default: the time limit alone)")
-    p.add_argument("--starts", type=int, default=DEFAULT_STARTS, metavar="M",
+    p.add_argument("--starts", type=count(1), default=DEFAULT_STARTS, metavar="M",
                    help=f"starts of the gradient search, one batch (default {DEFAULT_STARTS})")
-    p.add_argument("--batch", type=int, default=DEFAULT_BATCH, metavar="B",
+    p.add_argument("--batch", type=count(1), default=DEFAULT_BATCH, metavar="B",
                    help=f"candidates per batch of random sampling and CMA-ES (default "
                    f"{DEFAULT_BATCH})")
-    p.add_argument("--gradient-coarsening", type=int, default=DEFAULT_COARSENING, metavar="F",
+    p.add_argument("--gradient-coarsening", type=count(1), default=DEFAULT_COARSENING, metavar="F",
                    help=f"take the gradient method's gradients on the loop simulated at F dt "
                    f"(F times cheaper; every value is still simulated at dt; 1: exact "
                    f"gradients; default {DEFAULT_COARSENING})")
     p.add_argument("--methods", default=",".join(METHODS), metavar="LIST",
                    help=f"comma-separated, of {', '.join(METHODS)} (default all)")
-    p.add_argument("--seed", type=int, default=0, help="seed of every random draw (default 0)")
+    p.add_argument("--seed", type=count(0), default=0, help="seed of every random draw (default 0)")
     p.add_argument("--out", default="results/worst-case", metavar="DIR",
                    help="output directory (default: results/worst-case)")
     again = p.add_mutually_exclusive_group()
@@ -82,15 +94,13 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import files, validation
+    from dscjax import files
     from dscjax.progress import Progress
     from dscjax.ranges import parse_range
-    from dscjax.validation import ConfigError
-    from dscjax.worst import check_options, make_problem, worst_case
+    from dscjax.validation import ConfigError, check_work
+    from dscjax.worst import check_search, make_problem, worst_case
     from dscjax.worst_report import write
 
-    if args.max_evals is not None:
-        validation.integer(args.max_evals, "--max-evals", 1)
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
@@ -99,8 +109,19 @@ def run(args) -> int:
                            window_start=options.window_start, state_bound=options.state_bound,
                            solver=options.solver, refine=options.refine, period=args.period)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    check_options(problem, methods, args.starts, args.batch, args.time_limit, args.max_evals,
-                  args.gradient_coarsening)
+    check_search(problem, methods, starts=args.starts, batch=args.batch,
+                 time_limit=args.time_limit, max_evals=args.max_evals,
+                 coarsening=args.gradient_coarsening)
+    if args.print_config:
+        print_config(setup, options, *requirement_table(args))
+        return 0
+    what = horizon_text(problem.t_final, problem.dt, problem.n_steps)
+    fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
+           "(or a larger --time-limit)")
+    each = iteration_work(problem, methods, args.starts, args.batch, args.gradient_coarsening)
+    check_work(each, what=f"one search iteration of {what}", fix=fix,
+               limit_s=args.time_limit, limit=f"--time-limit {args.time_limit:g} s")
+    check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
     out = Path(args.out)
     manifest = out / MANIFEST
     fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
@@ -153,6 +174,48 @@ def run(args) -> int:
               f"evaluations, compile {tr.compile_s:.1f} s)")
     print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
     return 0
+
+
+def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
+    """One iteration of the slowest of `methods` (`validation.Work`): the gradient method
+    simulates its M starts and differentiates them on the loop at F dt; random sampling and
+    CMA-ES simulate one batch."""
+    from dscjax.validation import Work
+
+    n = problem.n_steps
+    works = [Work(steps=n + n // coarsening, member_steps=starts * (n + n // coarsening))
+             if m == "gradient" else Work(steps=n, member_steps=batch * n) for m in methods]
+    slowest = max(works, key=lambda w: w.seconds())
+    if "gradient" in methods:
+        slowest = slowest + gradient_work(problem.setup, n // coarsening, copies=starts)
+    return slowest
+
+
+def stored_work(problem):
+    """What the search keeps besides its iterations: the waveform's basis on the half-step
+    grid, and the worst case re-simulated at every step (worst_trajectory.npz, figures)."""
+    from dscjax.validation import Work
+
+    n = problem.n_steps
+    _, per_point, size = loop_sizes(problem.setup)
+    saved = Work(steps=2 * n, member_steps=2 * n, memory=3.0 * (n + 1) * per_point * size,
+                 memory_what=f"the worst case's trajectory at every step ({n + 1:,} points)")
+    basis = Work(memory=8.0 * (2 * n + 1) * problem.m, memory_what=f"the waveform's basis on "
+                 f"the half-step grid ({2 * n + 1:,} x {problem.m})")
+    return saved + basis
+
+
+def requirement_table(args) -> list[str]:
+    """The [tuning.requirements.NAME] table of `--metric requirement:NAME`, as TOML ([] for
+    any other metric): the rest of the config --print-config shows."""
+    from dscjax import config
+    from dscjax.worst import REQUIREMENT
+
+    if not args.metric.startswith(REQUIREMENT) or not args.config:
+        return []
+    name = args.metric[len(REQUIREMENT):]
+    table = config.read(args.config).get("tuning", {}).get("requirements", {}).get(name, {})
+    return [config.dumps_toml({f"tuning.requirements.{name}": table})]
 
 
 def requirement_of(args, setup):

@@ -17,7 +17,7 @@ from dscjax import config, files, params, validation
 from dscjax.progress import critical
 from dscjax.ranges import sample_table
 from dscjax.runspec import RunSpec
-from dscjax.simulate import check
+from dscjax.simulate import check, counted_levels
 from dscjax.sweep.device import METRICS, Runner
 from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
 from dscjax.validation import ConfigError
@@ -153,7 +153,7 @@ def run_sweep(
             lo = b * chunk
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
-            part = runner.refine(table[lo:lo + m], part, spec.refine)
+            part = runner.refine(table[lo:lo + m], part, counted_levels(spec))
             data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
                             table[lo:lo + m], part)
             if out is not None:
