@@ -90,52 +90,56 @@ class RunSpec(eqx.Module):
              dtype: str = "float64", solver: str | Solver = "rk4", refine: int = DEFAULT_REFINE,
              sample_time: float | None = None, delay: int = 0, noise=None, noise_seed: int = 0,
              device: str = "auto", gradient: Gradient | None = None,
-             prefix: str = "simulation.") -> RunSpec:
-        """A checked RunSpec; `prefix` is how the fields are named in messages."""
-        f = prefix
-        n_steps = validation.whole_steps(t_final, dt, f"{f}t_final", f"{f}dt")
+             prefix: str = "simulation.", names: Mapping[str, str] | None = None) -> RunSpec:
+        """A checked RunSpec. Messages name a field `prefix` + key, or `names[key]` (the
+        command-line option that gave it)."""
+        names = names or {}
+
+        def f(key):
+            return names.get(key, prefix + key)
+
+        n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))
         t_final, dt = float(t_final), float(dt)
         rules = []
         if save_every is None:
             rules.append("save_every")
             save_every = auto_stride(n_steps)
-        validation.integer(save_every, f"{f}save_every", 1)
+        validation.integer(save_every, f("save_every"), 1)
         if window_start is None:
             rules.append("window_start")
             window_start = default_window(t_final)
-        window_start = validation.number(window_start, f"{f}window_start")
+        window_start = validation.number(window_start, f("window_start"))
         if not 0 <= window_start < t_final:
-            raise ConfigError(f"{f}window_start must be in [0, t_final) = [0, {t_final:.6g}) "
-                              f"(got {window_start:.6g})")
-        state_bound = validation.number(state_bound, f"{f}state_bound")
+            raise ConfigError(f"{f('window_start')} must be in [0, t_final) = [0, "
+                              f"{t_final:.6g}) (got {window_start:.6g})")
+        state_bound = validation.number(state_bound, f("state_bound"))
         if not state_bound > 0:
-            raise ConfigError(f"{f}state_bound must be > 0 (got {state_bound:g})")
-        validation.one_of(dtype, f"{f}dtype", DTYPES)
-        validation.one_of(getattr(solver, "name", solver), f"{f}solver", tuple(SOLVERS))
-        validation.integer(refine, f"{f}refine", 0)
-        validation.one_of(device, f"{f}device", DEVICES)
-        validation.integer(delay, f"{f}delay", 0)
-        validation.integer(noise_seed, f"{f}noise_seed", 0)
+            raise ConfigError(f"{f('state_bound')} must be > 0 (got {state_bound:g})")
+        validation.one_of(dtype, f("dtype"), DTYPES)
+        validation.one_of(getattr(solver, "name", solver), f("solver"), tuple(SOLVERS))
+        validation.integer(refine, f("refine"), 0)
+        validation.one_of(device, f("device"), DEVICES)
+        validation.integer(delay, f("delay"), 0)
+        validation.integer(noise_seed, f("noise_seed"), 0)
         every = 0
         if sample_time is not None:
-            sample_time = validation.number(sample_time, f"{f}sample_time")
-            every = int(round(sample_time / dt))
-            if not (sample_time > 0 and every >= 1
-                    and abs(every * dt - sample_time) <= 1e-9 * sample_time):
+            sample_time = validation.number(sample_time, f("sample_time"))
+            every = int(round(sample_time / dt)) if sample_time > 0 else 0
+            if not (every >= 1 and abs(every * dt - sample_time) <= 1e-9 * sample_time):
                 raise ConfigError(
-                    f"{f}sample_time must be a whole multiple > 0 of {f}dt (got sample_time="
-                    f"{sample_time:.6g}, dt={dt:.6g}, ratio {sample_time / dt:.6g})")
+                    f"{f('sample_time')} must be a whole multiple > 0 of {f('dt')} (got "
+                    f"sample_time={sample_time:.6g}, dt={dt:.6g}, ratio {sample_time / dt:.6g})")
             if every > n_steps:
-                raise ConfigError(f"{f}sample_time must be <= {f}t_final = {t_final:.6g} "
-                                  f"(got {sample_time:.6g})")
+                raise ConfigError(f"{f('sample_time')} must be <= {f('t_final')} = "
+                                  f"{t_final:.6g} (got {sample_time:.6g})")
         elif delay or noise is not None:
             which = "delay" if delay else "noise"
-            raise ConfigError(f"{f}{which} applies to a sampled controller: give "
-                              f"{f}sample_time too")
+            raise ConfigError(f"{f(which)} applies to a sampled controller: give "
+                              f"{f('sample_time')} too")
         if noise is not None:
             a = np.asarray(noise, dtype=float)
             if a.ndim > 1 or not np.all(np.isfinite(a)) or not np.all(a >= 0):
-                raise ConfigError(f"{f}noise must be one number or a list of numbers >= 0 "
+                raise ConfigError(f"{f('noise')} must be one number or a list of numbers >= 0 "
                                   f"(got {validation.fmt(a)})")
             noise = a
         return cls(dt=dt, window_start=float(window_start), state_bound=state_bound,
@@ -147,7 +151,8 @@ class RunSpec(eqx.Module):
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
-                   prefix: str = "simulation.") -> RunSpec:
+                   prefix: str = "simulation.", names: Mapping[str, str] | None = None
+                   ) -> RunSpec:
         """The [simulation] table laid over `base` (default: the defaults). A key of the
         table replaces the base's value; a rule-derived value of the base (save_every,
         window_start) is derived again from the new horizon and step."""
@@ -158,13 +163,14 @@ class RunSpec(eqx.Module):
         values = (base.to_table() if base is not None else
                   {k: d for k, (d, _) in OPTIONS.items()})
         for key, value in table.items():
-            values[key] = _coerce(key, value, prefix)
-        return cls.make(**values, prefix=prefix,
+            values[key] = _coerce(key, value, (names or {}).get(key, prefix + key))
+        return cls.make(**values, prefix=prefix, names=names,
                         gradient=base.gradient if base is not None else None)
 
-    def replace(self, **table) -> RunSpec:
-        """This spec with some [simulation] keys changed (checked again)."""
-        return type(self).from_table(table, base=self)
+    def replace(self, names: Mapping[str, str] | None = None, **table) -> RunSpec:
+        """This spec with some [simulation] keys changed (checked again; `names`: how the
+        changed keys are named in messages, e.g. by their command-line options)."""
+        return type(self).from_table(table, base=self, names=names)
 
     # -- reading --------------------------------------------------------------------------------
     @property
@@ -236,9 +242,8 @@ def auto_stride(n_steps: int) -> int:
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
-def _coerce(key: str, value, prefix: str):
+def _coerce(key: str, value, field: str):
     """A value of the [simulation] table of the type its key takes; ConfigError otherwise."""
-    field = f"{prefix}{key}"
     if isinstance(value, str) and value.lower() == "none" and OPTIONS[key][0] is None:
         return None
     if key in ("dtype", "solver", "device"):

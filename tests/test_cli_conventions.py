@@ -42,12 +42,12 @@ def _expected_defaults():
     import dataclasses
 
     from dscjax import reproduce
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
     from dscjax.sweep import SweepSettings
     from tuning.config import TuningConfig
     from tuning.optimize import OPTAX_STEPS
 
-    sim, sw, tu = SimOptions(), SweepSettings(), TuningConfig()
+    sim, sw, tu = RunSpec.make(), SweepSettings(), TuningConfig()
     horizon = {"--t-final": f"{sim.t_final:g}", "--dt": f"{sim.dt:g}"}
     assert dataclasses.is_dataclass(tu.optimizer)
     return {

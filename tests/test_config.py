@@ -8,6 +8,7 @@ import pytest
 
 import dscjax
 from dscjax import config
+from dscjax.runspec import MAX_SAVED_POINTS, RunSpec, auto_stride
 
 
 def _same(a, b):
@@ -19,7 +20,7 @@ def test_default_toml_round_trips():
     text = config.default_toml()
     setup, options = config.from_dict(tomllib.loads(text))
     assert _same(setup, dscjax.paper_example(dtype=np.float64))
-    assert options == config.SimOptions()
+    assert options == RunSpec.make()
     # and writing it again gives the same text body
     assert config.to_toml(setup, options) in text
     # keys whose default is a rule are shown, commented out with the value they take
@@ -118,11 +119,10 @@ def test_the_automatic_stride_keeps_about_the_documented_number_of_points(n_step
     # 20,011 and 1,000,003 are prime: a stride that had to divide N kept t = 0 and T only
     from dscjax.integrate import saved_steps
 
-    every = config.SimOptions().save_stride(n_steps)
+    every = auto_stride(n_steps)
     points = saved_steps(n_steps, every)
-    assert every == max(1, -(-n_steps // (config.MAX_SAVED_POINTS - 1)))
-    assert points[-1] == n_steps and points.size <= config.MAX_SAVED_POINTS
-    assert every == 1 or points.size > config.MAX_SAVED_POINTS // 2
+    assert points[-1] == n_steps and points.size <= MAX_SAVED_POINTS
+    assert every == 1 or points.size > MAX_SAVED_POINTS // 2
 
 
 def test_a_prime_step_count_saves_the_strided_steps_and_t_final(paper_setup):

@@ -57,29 +57,57 @@ def positive_float(text: str) -> float:
     return x
 
 
-def add_horizon_args(p):
-    """--t-final and --dt, their help stating SimOptions' defaults (a config may change them)."""
-    from dscjax.config import SimOptions
-
-    d = SimOptions()
-    p.add_argument("--t-final", type=positive_float, metavar="S", help=f"horizon in seconds "
-                   f"(default {d.t_final:g}, or the config's simulation.t_final)")
-    p.add_argument("--dt", type=positive_float, metavar="S", help=f"RK4 step in seconds "
-                   f"(default {d.dt:g}, or the config's simulation.dt)")
+# The [simulation] keys the commands take as options, and their argparse types.
+RUN_TYPES = {"t_final": positive_float, "dt": positive_float, "save_every": count(1),
+             "window_start": finite_float, "state_bound": positive_float, "refine": count(0),
+             "sample_time": positive_float, "delay": count(0), "noise": finite_float,
+             "noise_seed": count(0)}
 
 
-def horizon_fields(args) -> tuple[str, str]:
-    """The names of T and dt in messages: the option where the command line gave the value,
-    else the config's field."""
-    return ("--t-final" if getattr(args, "t_final", None) is not None else "simulation.t_final",
-            "--dt" if getattr(args, "dt", None) is not None else "simulation.dt")
+def flag(key: str) -> str:
+    """The command-line option of a [simulation] key: --key-with-dashes."""
+    return "--" + key.replace("_", "-")
 
 
-def n_steps(args, options) -> int:
-    """N = T/dt (`validation.whole_steps`), its messages naming the options or fields."""
-    from dscjax.validation import whole_steps
+def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
+    """Options for the given [simulation] keys (`dscjax.runspec.OPTIONS`), each overriding the
+    config's value; their help states the default (`defaults` may give a command's own)."""
+    from dscjax.integrate import SOLVERS
+    from dscjax.runspec import DEVICES, OPTIONS
 
-    return whole_steps(options.t_final, options.dt, *horizon_fields(args))
+    for key in keys:
+        default, doc = OPTIONS[key]
+        default = (defaults or {}).get(key, default)
+        shown = "omitted" if default is None else f"{default:g}" if isinstance(
+            default, float) else f"{default}"
+        text = f"{doc} (default {shown}, or the config's simulation.{key})"
+        if key == "solver":
+            p.add_argument(flag(key), choices=tuple(SOLVERS), help=text)
+        elif key == "device":
+            p.add_argument(flag(key), choices=DEVICES, help=text)
+        else:
+            p.add_argument(flag(key), type=RUN_TYPES[key], metavar=key.upper().replace(
+                "_", "-") if key != "t_final" else "S", help=text.replace("%", "%%"))
+
+
+def run_overrides(args) -> dict:
+    """{key: value} of the [simulation] options given on the command line."""
+    from dscjax.runspec import OPTIONS
+
+    out = {k: getattr(args, k) for k in OPTIONS if getattr(args, k, None) is not None}
+    if getattr(args, "float32", False):
+        out["dtype"] = "float32"
+    return out
+
+
+def apply_run_options(args, spec):
+    """`spec` with the command line's [simulation] options laid over it (checked; a message
+    names the option)."""
+    overrides = run_overrides(args)
+    if not overrides:
+        return spec
+    return spec.replace(names={k: flag(k) if k != "dtype" else "--float32" for k in overrides},
+                        **overrides)
 
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
@@ -94,10 +122,11 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 
     import jax
 
+    from dscjax.runspec import RunSpec
     from dscjax.simulate import run
 
-    shapes = jax.eval_shape(functools.partial(run, n_steps=1, save_every=1), setup, 1e-3, 0.0,
-                            1e6)
+    spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
+    shapes = jax.eval_shape(functools.partial(run, spec=spec), setup)
     def floats(tree):
         return sum(math.prod(a.shape[1:]) for a in jax.tree.leaves(tree))
 
@@ -117,20 +146,6 @@ def gradient_work(setup, steps: int, copies: int = 1):
                 f"{m} x {per_point} Jacobian entries)")
 
 
-def add_integration_args(p):
-    """--solver and --refine, their help stating SimOptions' defaults."""
-    from dscjax.config import SimOptions
-    from dscjax.integrate import SOLVERS
-
-    d = SimOptions()
-    p.add_argument("--solver", choices=SOLVERS, help=f"integrator: rk4 (classical RK4) or "
-                   f"etdrk4 (exponential RK4, exact on the stiff linear decays) (default "
-                   f"{d.solver}, or the config's simulation.solver)")
-    p.add_argument("--refine", type=count(0), metavar="J", help=f"if the run diverges, levels "
-                   f"tried before it counts as diverged: ETDRK4 at dt, dt/2, ... (0: none; "
-                   f"default {d.refine}, or the config's simulation.refine)")
-
-
 def add_example_arg(p):
     """--example, and --print-config, which prints the whole effective config (`print_config`)."""
     p.add_argument("--example", default="paper", metavar="NAME",
@@ -143,14 +158,14 @@ def add_example_arg(p):
                    "tables and this command's own settings) and exit; --config loads it back")
 
 
-def print_config(setup, options, *tables: str) -> None:
-    """`--print-config`: [simulation] and the model tables of (setup, options), then a
-    command's own tables (TOML text), on stdout."""
+def print_config(setup, spec, *tables: str) -> None:
+    """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
+    own tables (TOML text), on stdout."""
     import sys
 
     from dscjax import config
 
-    sys.stdout.write("\n".join([config.to_toml(setup, options).rstrip("\n"),
+    sys.stdout.write("\n".join([config.to_toml(setup, spec).rstrip("\n"),
                                 *(t.rstrip("\n") for t in tables)]) + "\n")
 
 
@@ -161,20 +176,19 @@ def example_setup(args):
     return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 
 
-def add_config_args(p, *, t_final=True):
-    from dscjax.config import SimOptions
-
+def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
+    """--config, --example and --print-config, the given [simulation] options, --float32."""
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the "
                    "--example (default: the paper's); see `dscjax simulate --print-config`")
     add_example_arg(p)
-    if t_final:
-        add_horizon_args(p)
-    p.add_argument("--float32", action="store_true",
-                   help=f"run in float32 (default {SimOptions().dtype})")
+    add_run_args(p, run_keys)
+    if float32:
+        p.add_argument("--float32", action="store_true", help="run in float32 (default "
+                       "float64, or the config's simulation.dtype)")
 
 
 def load_setup(args, ignore: tuple[str, ...] = ()):
-    """(Setup, SimOptions) from --config plus command-line overrides, cast to the dtype.
+    """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype.
 
     `ignore`: tables of the file that belong to another command (e.g. "tuning"), skipped."""
     from dscjax import config
@@ -182,30 +196,18 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
     from dscjax.validation import validate_setup
 
     base = example_setup(args)
-    if args.config:
-        raw = config.read(args.config)
-        for name in ignore:
-            raw.pop(name, None)
-        setup, options = config.from_dict(raw, base=base)
-    else:
-        setup, options = config.from_dict({}, base=base)
-    changes = {}
-    for name in ("t_final", "dt", "solver", "refine"):
-        value = getattr(args, name, None)
-        if value is not None:
-            changes[name] = value
-    if getattr(args, "float32", False):
-        changes["dtype"] = "float32"
+    raw = config.read(args.config) if args.config else {}
+    for name in ignore:
+        raw.pop(name, None)
+    setup, spec = config.from_dict(raw, base=base)
+    spec = apply_run_options(args, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(
             controller=dataclasses.replace(setup.controller, variant=args.variant))
-    options = dataclasses.replace(options, **changes)
-    options.validate()
-    n_steps(args, options)
     # before anything traces the setup (a shape mismatch would otherwise surface as a JAX
     # broadcasting error from inside an eval_shape)
     validate_setup(setup)
-    return cast(setup, np.dtype(options.dtype)), options
+    return cast(setup, np.dtype(spec.dtype)), spec
 
 
 def add_overwrite_arg(p):

@@ -10,9 +10,7 @@ import numpy as np
 from dscjax.cli.common import (
     Outputs,
     add_config_args,
-    add_integration_args,
     add_overwrite_arg,
-    count,
     horizon_text,
     load_setup,
     loop_sizes,
@@ -22,6 +20,9 @@ from dscjax.files import write_json, write_npz
 from dscjax.progress import Progress
 
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
+# the [simulation] keys this command takes as options
+SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refine",
+                 "sample_time", "delay", "noise", "noise_seed", "device")
 
 
 def _default_variant() -> str:
@@ -33,7 +34,6 @@ def _default_variant() -> str:
 
 
 def add_parser(sub):
-    from dscjax.config import MAX_SAVED_POINTS
     from dscjax.controllers.dsc import VARIANTS
 
     p = sub.add_parser(
@@ -43,15 +43,9 @@ def add_parser(sub):
         "DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function "
         "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
         "V_zeta, V_d, V_y (the filter errors).")
-    add_config_args(p)
-    add_integration_args(p)
+    add_config_args(p, run_keys=SIMULATE_KEYS)
     p.add_argument("--out", default="results/simulate", metavar="DIR",
                    help="output directory (default: results/simulate)")
-    p.add_argument("--save-every", type=count(1), metavar="K", help=f"keep every K-th step "
-                   f"in trajectory.npz, and always the last one at T (default: the config's "
-                   f"simulation.save_every, else every step up to {MAX_SAVED_POINTS:,} points "
-                   f"and the smallest stride that keeps at most that many beyond; the metrics "
-                   f"use every step)")
     p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "
@@ -63,28 +57,22 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax import config, validation
-    from dscjax.integrate import saved_steps
+    from dscjax.runspec import MAX_SAVED_POINTS
     from dscjax.simulate import (
         DivergenceError,
-        default_window,
+        check,
         divergence_report,
         refinement_level,
         simulate,
     )
 
     setup, options = load_setup(args)
-    if args.save_every is not None:
-        import dataclasses
-
-        options = dataclasses.replace(options, save_every=args.save_every)
     if args.print_config:
         sys.stdout.write(config.to_toml(setup, options))
         return 0
 
-    n_steps = validation.validate_run(setup, options.t_final, options.dt, 1,
-                                      options.window_start)
-    every = options.save_stride(n_steps)
-    n_points = saved_steps(n_steps, every).size
+    check(setup, options)
+    n_steps, every, n_points = options.n_steps, options.save_every, options.n_saved
     _, per_point, itemsize = loop_sizes(setup)
     nbytes = n_points * per_point * itemsize
     validation.check_work(validation.Work(
@@ -94,19 +82,21 @@ def run(args) -> int:
         f"trajectory.npz is written)"),
         what=horizon_text(options.t_final, options.dt, n_steps),
         fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
-        f"{config.MAX_SAVED_POINTS:,} points), or a shorter --t-final")
+        f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     warnings = validation.assumption_warnings(setup)
 
     out = prepare_out(args, OUTPUTS)
     n = setup.order
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
-          f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}", file=sys.stderr)
+          f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}"
+          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold)"
+             if options.sampled else ""), file=sys.stderr)
     for w in warnings:
         print(f"dscjax simulate: warning: {w}", file=sys.stderr)
-    if options.save_every is None and every > 1:
+    if "save_every" in options.rules and every > 1:
         print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
-              f"most {config.MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
+              f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
               f"says otherwise); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {_size(nbytes)} ({n_points:,} points)",
@@ -123,9 +113,7 @@ def run(args) -> int:
     t0 = time.perf_counter()
     diverged = None
     try:
-        traj = simulate(setup, options.t_final, options.dt, save_every=every,
-                        window_start=options.window_start, state_bound=options.state_bound,
-                        progress=progress, solver=options.solver, refine=options.refine)
+        traj = simulate(setup, spec=options, progress=progress)
     except DivergenceError as err:
         traj, diverged = err.trajectory, err
     finally:
@@ -145,19 +133,19 @@ def run(args) -> int:
                                  if k not in ("t", "V")}
     write_npz(out / "trajectory.npz", {k: np.asarray(v) for k, v in arrays.items()})
     metrics = {k: float(v) for k, v in traj.metrics.items()}
-    report = divergence_report(traj, options.state_bound)
+    report = divergence_report(traj, float(options.state_bound))
     write_json(out / "metrics.json", {
         **metrics,
         "diverged": bool(traj.diverged),
         "t_diverged": float(traj.t_diverged) if bool(traj.diverged) else None,
         "divergence": report[0] if report else None,
-        "t_final": options.t_final, "dt": options.dt, "dtype": options.dtype,
-        "save_every": every,
-        "solver": options.solver,
+        "t_final": options.t_final, "dt": float(options.dt), "dtype": options.dtype,
+        "save_every": every, "sample_time": options.sample_time,
+        "solver": options.solver.name,
         "refinements": int(traj.refinements),
-        "solver_used": refinement_level(int(traj.refinements), options.solver)[0],
+        "solver_used": refinement_level(int(traj.refinements), options.solver.name)[0],
         "dt_used": float(traj.dt),
-        "window_start": float(default_window(options.t_final, options.window_start)),
+        "window_start": float(options.window_start),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
            if "V" in arrays else {}),
         "wall_time_s": elapsed,
@@ -170,11 +158,11 @@ def run(args) -> int:
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements):
-        used, _ = refinement_level(int(traj.refinements), options.solver)
+        used, _ = refinement_level(int(traj.refinements), options.solver.name)
         what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
                 if diverged is not None else
                 f"the reported run is {used} at dt = {float(traj.dt):g} s")
-        print(f"  {options.solver} at dt = {options.dt:g} s diverged (a stiff loop: the "
+        print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop: the "
               f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
               file=sys.stderr)
     if diverged is None:
@@ -219,4 +207,5 @@ def interrupt_hint(args) -> str:
 def _title(setup, options):
     c = setup.controller
     return (f"{c.kind.upper()} ({getattr(c, 'variant', '')}), n={setup.order}, "
-            f"dt={options.dt:g} s, {options.dtype}")
+            f"dt={options.dt:g} s, {options.dtype}"
+            + (f", sampled every {options.sample_time:g} s" if options.sampled else ""))

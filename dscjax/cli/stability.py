@@ -18,7 +18,6 @@ from dscjax.cli.common import (
     add_overwrite_arg,
     horizon_text,
     load_setup,
-    n_steps,
     prepare_out,
     print_config,
 )
@@ -63,11 +62,11 @@ def run(args) -> int:
 
     setup, options = load_setup(args)
     scales = _scales(args.tau_scales)
-    validation.validate_run(setup, options.t_final, options.dt, 1, None)
+    validation.check_filters(setup, float(options.dt))
     if args.print_config:
         print_config(setup, options)
         return 0
-    steps = n_steps(args, options)
+    steps = options.n_steps
     what = horizon_text(options.t_final, options.dt, steps)
     finest = round(steps / min(DT_FACTORS))
     if finest > validation.MAX_STEPS:
@@ -81,7 +80,7 @@ def run(args) -> int:
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
           f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)
-    m = stability_map(setup, options.t_final, options.dt, tau_scales=scales,
+    m = stability_map(setup, options.t_final, float(options.dt), tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
     bound = ">= " if m.beyond_grid else ""
     print(f"largest stable dt for classical RK4 at this config's tau: {bound}"

@@ -18,13 +18,12 @@ import numpy as np
 from dscjax.cli.common import (
     Outputs,
     add_example_arg,
-    add_horizon_args,
-    add_integration_args,
+    add_run_args,
+    apply_run_options,
     count,
     example_setup,
     finite_float,
     horizon_text,
-    n_steps,
     prepare_out,
     print_config,
 )
@@ -33,25 +32,28 @@ from dscjax.progress import Progress
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
+# the [simulation] keys this command takes as options
+SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", "sample_time", "delay",
+              "noise", "noise_seed", "device")
 OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))
 
 
 def add_parser(sub):
-    from dscjax.config import SimOptions
-    from dscjax.metrics import DEFAULT_WINDOW_START
     from dscjax.ranges import DEFAULT_PATHS, DEFAULT_REL
+    from dscjax.runspec import OPTIONS
     from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
 
-    d, sim = SweepSettings(), SimOptions()
+    d = SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
         description=f"Simulate many plants with the gains fixed and report how well they track. "
         f"Default: the paper's example and gains, {names} each {d.method} within "
         f"+-{100 * DEFAULT_REL:g} % of the paper's values, {d.samples:,} samples, "
-        f"{sim.t_final:g} s at dt = {sim.dt:g}, {d.dtype}, seed {d.seed}. Settings may also "
+        f"{OPTIONS['t_final'][0]:g} s at dt = {OPTIONS['dt'][0]:g}, {d.dtype}, seed {d.seed}. "
+        f"Settings may also "
         f"come from a [sweep] table in the config (see docs/sweeps.md); the command line "
         f"wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
@@ -73,12 +75,8 @@ def add_parser(sub):
     p.add_argument("--seed", type=count(0), help=f"seed of the samples (default {d.seed})")
     p.add_argument("--chunk", type=count(1), metavar="C", help=f"samples per block and device "
                    f"(default: about {AUTO_BLOCK})")
-    add_horizon_args(p)
-    add_integration_args(p)
+    add_run_args(p, SWEEP_KEYS)
     add_example_arg(p)
-    p.add_argument("--t0", type=finite_float, metavar="S",
-                   help=f"start of the metric window [t0, T] "
-                   f"(default {DEFAULT_WINDOW_START:g} s, 0 if T <= {DEFAULT_WINDOW_START:g} s)")
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
                       f"{d.dtype})")
@@ -130,6 +128,7 @@ def load(args):
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
     setup, options = config.from_dict(raw, base=example_setup(args))
+    options = apply_run_options(args, options)
     if args.gains:
         # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
         # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.
@@ -138,7 +137,7 @@ def load(args):
             raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains "
                               f"file")
         setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
-                                    base_options=options)
+                                    base_spec=options)
     settings = settings_from_dict(sweep_table, SweepSettings())
     changes = {}
     if args.grid:
@@ -169,19 +168,6 @@ def load(args):
                               f"{args.heatmap!r})")
         changes["heatmap"] = tuple(names)
     settings = dataclasses.replace(settings, **changes)
-    opt = {}
-    if args.t_final is not None:
-        opt["t_final"] = args.t_final
-    if args.dt is not None:
-        opt["dt"] = args.dt
-    if args.t0 is not None:
-        opt["window_start"] = args.t0
-    for name in ("solver", "refine"):
-        if getattr(args, name, None) is not None:
-            opt[name] = getattr(args, name)
-    options = dataclasses.replace(options, **opt)
-    options.validate()
-    n_steps(args, options)
     validate_setup(setup)
     return setup, options, settings
 
@@ -228,15 +214,14 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import files, params, sweep, validation
-    from dscjax.metrics import default_window
+    from dscjax import files, params, sweep
     from dscjax.ranges import assumption_warnings
-    from dscjax.simulate import simulate
+    from dscjax.simulate import check, simulate
     from dscjax.validation import check_work
 
     setup, options, settings = load(args)
-    t_final, dt, state_bound = options.t_final, options.dt, options.state_bound
-    window_start = default_window(t_final, options.window_start)
+    t_final, dt = options.t_final, float(options.dt)
+    window_start = float(options.window_start)
     dtype = np.dtype(settings.dtype)
     printed = setup
     setup = params.cast(setup, dtype)
@@ -244,9 +229,8 @@ def run(args) -> int:
     if args.print_config:
         print_config(printed, options, sweep_toml(settings, setup))
         return 0
-    validation.validate_run(setup, t_final, dt, 1, window_start)
-    validation.validate_setup(setup)
-    steps = n_steps(args, options)
+    check(setup, options)
+    steps = options.n_steps
     check_work(work(setup, settings, steps, ranges),
                what=f"{settings.n_samples():,} samples of {horizon_text(t_final, dt, steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
@@ -281,10 +265,8 @@ def run(args) -> int:
         bar.update_to(p["done"], f"{p['steps_per_s']:.3g} steps/s")
 
     try:
-        result = sweep.run_sweep(setup, settings, t_final, dt, window_start=window_start,
-                                 state_bound=state_bound, out_dir=out, resume=args.resume,
-                                 overwrite=args.overwrite, progress=progress,
-                                 solver=options.solver, refine=options.refine)
+        result = sweep.run_sweep(setup, settings, options, out_dir=out, resume=args.resume,
+                                 overwrite=args.overwrite, progress=progress)
     finally:
         if bar is not None:
             bar.close()
@@ -296,9 +278,7 @@ def run(args) -> int:
               file=sys.stderr)
     c = result.columns
     every = _save_every(info["n_steps"])
-    nominal = simulate(setup, t_final, dt, save_every=every, window_start=window_start,
-                       state_bound=state_bound, throw=False, solver=options.solver,
-                       refine=options.refine)
+    nominal = simulate(setup, spec=options.replace(save_every=every), throw=False)
     nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
     threshold, rule = settings.threshold, "given"
     if threshold is None:

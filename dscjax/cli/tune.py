@@ -26,7 +26,7 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 def add_parser(sub):
     from dscjax.cli.common import (
         add_example_arg,
-        add_horizon_args,
+        add_run_args,
         count,
         finite_float,
         positive_float,
@@ -111,7 +111,7 @@ def add_parser(sub):
                    "comes first (default: the time alone)")
     p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
                    f"method (default {adv.method})")
-    add_horizon_args(p)
+    add_run_args(p, ("t_final", "dt"))
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
@@ -151,7 +151,7 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config, validation
-    from dscjax.cli.common import example_setup, n_steps
+    from dscjax.cli.common import apply_run_options, example_setup
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -172,7 +172,7 @@ def load(args):
         gains = config.read(args.gains)
         for key in ("tuning", "sweep"):
             gains.pop(key, None)
-        setup, options = config.from_dict(gains, base=setup, base_options=options)
+        setup, options = config.from_dict(gains, base=setup, base_spec=options)
     opt, rob, held, obj = {}, {}, {}, {}
     if args.effort_bounds is not None:
         obj["effort_bounds"] = args.effort_bounds
@@ -218,14 +218,7 @@ def load(args):
         heldout=dataclasses.replace(cfg.heldout, **held),
         adversarial=dataclasses.replace(cfg.adversarial, **adv))
     cfg.validate()
-    changes = {}
-    if args.t_final is not None:
-        changes["t_final"] = args.t_final
-    if args.dt is not None:
-        changes["dt"] = args.dt
-    options = dataclasses.replace(options, **changes)
-    options.validate()
-    n_steps(args, options)
+    options = apply_run_options(args, options)
     validation.validate_setup(setup)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
@@ -408,11 +401,11 @@ def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
-    from dscjax.cli.common import gradient_work, horizon_text, n_steps
+    from dscjax.cli.common import gradient_work, horizon_text
     from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.optimize import SEARCHES, choose_gradient
 
-    steps = n_steps(args, options)
+    steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = horizon_text(options.t_final, options.dt, steps)
     fix = "use a shorter --t-final or a larger --dt"

@@ -127,7 +127,8 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
         out.append(simulate(s, info["t_final"], info["dt"], save_every=every,
                             window_start=info["window_start"],
                             state_bound=info["state_bound"], throw=False,
-                            solver=info.get("solver", "rk4"), refine=info.get("refine", 0)))
+                            solver=info.get("solver", "rk4"), refine=info.get("refine", 0),
+                            sample_time=info.get("sample_time")))
     return out
 
 
