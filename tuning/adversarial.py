@@ -125,11 +125,10 @@ def _gains(problem: runner.Problem, z) -> Any:
 def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
     """What adversarial.json stores to resume: the digest of the tuning problem's
     description `desc` and the [tuning.adversarial] settings (the rounds apart, the box as
-    searched; `search_evals` only when set, so that runs from before it still resume)."""
+    searched)."""
     adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
-    return {"problem": files.digest(desc),
-            "adversarial": ck.drop_defaults(adv, {"search_evals": None})}
+    return {"problem": files.digest(desc), "adversarial": adv}
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
@@ -224,8 +223,8 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
                                 resume=rdir is not None and (rdir / "checkpoint.json").exists())
             meta["rounds"].append({
                 "round": r, "search": record(res), "added": len(zw),
-                "train_size": problem.n_train, "iterations": int(result.state.iteration),
-                "stop_reason": result.stop_reason, "best_loss": float(result.state.best_loss)})
+                "train_size": problem.n_train, "iterations": result.trace.iterations,
+                "stop_reason": result.stop_reason, "best_loss": result.trace.best_loss})
             save()
         z = jax.device_get(result.best_z)
     fresh = meta.setdefault("fresh", {})
@@ -238,7 +237,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             "seed": seed, "rounds": rounds}
         save()
     if out is not None:
-        runner.write_best(out, result.problem, result.state)
+        runner.write_best(out, result.problem, result.trace)
     return Outcome(result=result, rounds=meta["rounds"], fresh=fresh)
 
 
