@@ -4,31 +4,15 @@ initial-state parameters and a bounded disturbance waveform.
     problem = make_problem(setup, ranges=[parse_range("hysteresis.alpha=30%")],
                            disturbance="fourier:16:0.5", t_final=20.0, dt=1e-3)
     result = worst_case(problem, time_limit=60.0, starts=4, out_dir="results/worst")
-    result = dscjax.worst_case(setup, ["hysteresis.alpha=30%"], "spline:8:0.5")   # the same
 
-The search runs in normalised coordinates z = (u, c): u in [0, 1]^d places each ranged
-parameter in its box (value = low + u (high - low)); c (m coefficients) is the waveform in
-units of the bound D (coefficients = D c). The feasible set is u in the box and max |dbar| <= D
-(`dscjax.disturbance`: knots clipped, or a Fourier series scaled on the half-step grid).
-
-Three methods, each given the same wall time (compilation excluded and reported apart):
-  - "gradient": a screened batch of random points gives the M best starts; then projected
-    gradient ascent, all M starts advanced together in ONE compiled program (each start's
-    time-parallel gradient, vmapped; by default of the loop at 4 dt, values always at dt):
-    Adam steps on the box, a normalised step on the waveform, a step that grows by 1.2 after
-    an improvement and backs off by half after a loss, then the projection;
-  - "random": uniform points of the box with coefficients drawn uniformly in [-1, 1]^m and
-    rescaled so that max |dbar| = D exactly;
-  - "cma": CMA-ES (`cma` package) on the same coordinates, one batch per generation.
-
-A candidate whose batch simulation diverged is not a worst case yet: it is re-simulated by
-`simulate` with refinement (ETDRK4 at dt, dt/2, ...). If that run stays finite, its metric
-is the candidate's value; if not, the loop itself diverges there and that is reported, with
-the time, as the worst case (value +inf, never NaN). The value reported is always that of
-`simulate` on the worst setup, which `worst_config.toml` reproduces exactly.
-
-Every method saves its state after each iteration (`state_<method>.npz`, atomic), so a run
-killed at any point continues with `resume=True` losing only the iteration in progress.
+Normalised coordinates z = (u, c): u in [0, 1]^d places each ranged parameter in its box, c
+(m coefficients) is the waveform in units of the bound D; the feasible set is the box and
+max |dbar| <= D. Each method of `dscjax.search` minimises -metric there for the same search
+time (compilation apart): "gradient" (projected gradient ascent from M screened starts, one
+batch, gradients of the loop at 4 dt by default), "random" and "cma". A candidate whose batch
+run diverged is re-simulated by `simulate` with refinement: the value reported is that of
+`simulate` on the worst setup (+inf, with the time, if the loop itself diverges), which
+`worst_config.toml` reproduces. Each method saves `state_<method>.npz` after every iteration.
 """
 
 from __future__ import annotations
@@ -36,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any, ClassVar, Literal, get_args
@@ -46,11 +29,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import disturbance as dist_mod
-from dscjax import files, params, validation
+from dscjax import files, params, search, validation
 from dscjax import ranges as ranges_mod
 from dscjax.closed_loop import Setup
 from dscjax.metrics import default_window
-from dscjax.progress import critical
 from dscjax.validation import ConfigError
 
 Method = Literal["gradient", "random", "cma"]
@@ -66,8 +48,6 @@ DEFAULT_STARTS = 4  # measured: see docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md
-STATE_VERSION = 1
-TOP = 8  # best distinct points a trace keeps
 
 
 @dataclasses.dataclass(frozen=True)
@@ -380,6 +360,17 @@ def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bou
                            window_start, state_bound, extra)
 
 
+@functools.partial(jax.jit, static_argnames=("st", "st_g", "gradient"))
+def _problem_coarse(setup, z, lo, hi, bound, dt, window_start, state_bound, extra, dt_g,
+                    extra_g, *, st: _Static, st_g: _Static, gradient: str):
+    """Values at dt, gradients of the loop at dt_g (zero where that run diverged)."""
+    v, bad = _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, extra,
+                             st=st)
+    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, dt_g, window_start,
+                                          state_bound, extra_g, st=st_g, gradient=gradient)
+    return v, bad, jnp.where(bad_g[:, None], 0.0, g)
+
+
 @functools.partial(jax.jit, static_argnames=("d", "project_coef"))
 def _project(z, basis, *, d, project_coef):
     u = jnp.clip(z[:, :d], 0.0, 1.0)
@@ -400,25 +391,72 @@ def _rescale(z, basis, *, d):
     return jnp.concatenate([z[:, :d], c], axis=1)
 
 
-class Programs:
-    """The compiled programs of a search on (B, d + m) batches of normalised points:
-    `project`, `rescale`, `values(z) -> (v, diverged)` and `value_and_grad(z) -> (v,
-    diverged, g)`. `for_problem` builds them for a `Problem` (module-level jitted functions,
-    shared by every problem of the same structure); `from_functions` for any objective, so
-    that a search can be checked on a problem with a known answer.
+class _Fixed:
+    """A module-level jitted function with every argument but the points z fixed, so that
+    problems of one structure share its compilations: call it on z, or `lower` it for z."""
+
+    def __init__(self, fn, before=(), after=(), **kwargs):
+        self.fn, self.before, self.after, self.kwargs = fn, before, after, kwargs
+
+    def __call__(self, z):
+        return self.fn(*self.before, z, *self.after, **self.kwargs)
+
+    def lower(self, z):
+        return self.fn.lower(*self.before, z, *self.after, **self.kwargs)
+
+
+class Programs(search.Problem):
+    """The compiled programs of a search on (B, d + m) batches of normalised points, and the
+    `dscjax.search` problem they make: minimise loss = -metric over the box [0, 1]^d x
+    [-1, 1]^m, `project`ed onto the waveform's bound, from `x0` (the nominal box point, no
+    waveform); a candidate whose batch run diverged has loss +inf (the search keeps it for the
+    re-check). `values(z) -> (v, diverged)`; every program is compiled once per batch width,
+    its compilation timed (`compile_seconds`). `for_problem` builds them for a `Problem`
+    (module-level jitted functions, shared by every problem of the same structure);
+    `from_functions` for any objective, so that a search can be checked on a problem with a
+    known answer.
 
     d box coordinates in [0, 1]; m waveform coefficients whose waveform on a grid is
     `c @ basis.T` (basis (G, m)); `project_coef` the waveform's projection onto max|.| <= 1.
     """
 
-    def __init__(self, d: int, m: int, basis, project_coef, values: Callable,
-                 value_and_grad: Callable, nominal_u: np.ndarray | None = None):
+    def __init__(self, d: int, m: int, basis, project_coef, values, value_and_grad,
+                 nominal_u: np.ndarray | None = None):
         self.d, self.m, self.nominal_u = d, m, nominal_u
         self.basis = jnp.asarray(basis)
-        self.values, self.value_and_grad = values, value_and_grad
         pc = project_coef if m else None
-        self.project = lambda z: _project(z, self.basis, d=d, project_coef=pc)
-        self.rescale = lambda z: _rescale(z, self.basis, d=d)
+        self.values = search.Batched(values)
+        self._value_and_grad = search.Batched(value_and_grad)
+        self.project = search.Batched(_Fixed(_project, after=(self.basis,), d=d,
+                                             project_coef=pc))
+        self.rescale = search.Batched(_Fixed(_rescale, after=(self.basis,), d=d))
+        self.lower = np.concatenate([np.zeros(d), -np.ones(m)])
+        self.upper = np.ones(d + m)
+        self.x0 = np.concatenate([nominal_u if nominal_u is not None else np.full(d, 0.5),
+                                  np.zeros(m)])
+
+    @property
+    def compile_seconds(self) -> float:
+        return sum(p.seconds for p in (self.values, self._value_and_grad, self.project,
+                                       self.rescale))
+
+    @staticmethod
+    def _evaluation(v, bad) -> search.Evaluation:
+        v, bad = np.asarray(v, dtype=np.float64), np.asarray(bad, dtype=bool)
+        return search.Evaluation.of(np.where(bad, np.inf, -v), ~bad, bad)
+
+    def evaluate(self, z) -> search.Evaluation:
+        return self._evaluation(*self.values(z))
+
+    def value_and_grad(self, z) -> tuple[search.Evaluation, np.ndarray]:
+        v, bad, g = self._value_and_grad(z)
+        return self._evaluation(v, bad), -np.asarray(g, dtype=np.float64)
+
+    def sample(self, rng: np.random.Generator, b: int) -> np.ndarray:
+        """b uniform points of the box, coefficients uniform in [-1, 1]^m rescaled so that
+        max |dbar| = D exactly."""
+        return self.rescale(np.concatenate([rng.random((b, self.d)),
+                                            rng.uniform(-1.0, 1.0, (b, self.m))], axis=1))
 
     @classmethod
     def from_functions(cls, d: int, m: int, basis, project_coef, values: Callable,
@@ -448,208 +486,38 @@ class Programs:
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
         lo, hi = p.lows_highs()
-        args = (p.setup, lo, hi, p.disturbance.bound if p.m else 0.0, p.dt, p.window_start,
+        args = (lo, hi, p.disturbance.bound if p.m else 0.0, p.dt, p.window_start,
                 p.state_bound, p.requirement)
         st = p.static()
-
-        def values(z):
-            return _problem_values_jit(args[0], z, *args[1:], st=st)
-
+        values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
-            def value_and_grad(z):
-                return _problem_value_and_grad(args[0], z, *args[1:], st=st, gradient=gradient)
+            vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st, gradient=gradient)
         else:
             st_g = dataclasses.replace(st, n_steps=st.n_steps // coarsening)
             extra_g = p.requirement
             if extra_g is not None and hasattr(extra_g, "n_steps"):
                 extra_g = dataclasses.replace(extra_g, n_steps=st_g.n_steps)
-            args_g = args[:4] + (p.dt * coarsening,) + args[5:7] + (extra_g,)
-
-            def value_and_grad(z):
-                v, bad = values(z)
-                _, bad_g, g = _problem_value_and_grad(args_g[0], z, *args_g[1:], st=st_g,
-                                                      gradient=gradient)
-                return v, bad, jnp.where(bad_g[:, None], 0.0, g)
-
+            vg = _Fixed(_problem_coarse, (p.setup,), args + (p.dt * coarsening, extra_g),
+                        st=st, st_g=st_g, gradient=gradient)
         nominal_u = None
         if p.d:
             nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])
             nominal_u = np.clip((nominal - lo) / (hi - lo), 0.0, 1.0)
-        return cls(p.d, p.m, basis, project_coef, values, value_and_grad, nominal_u)
+        return cls(p.d, p.m, basis, project_coef, values, vg, nominal_u)
 
 
-# -- the methods' states (resumable) -------------------------------------------------------------
+def best_value(trace: search.Trace) -> float:
+    """The best metric value of a method's trace (-inf before a finite one)."""
+    return -trace.best_loss
 
 
-@dataclasses.dataclass
-class Trace:
-    """A method's progress: best value against its search time, its best point, and the
-    candidates whose batch run diverged (to be re-checked)."""
-
-    method: str
-    t: list[float] = dataclasses.field(default_factory=list)  # search seconds at iteration end
-    best: list[float] = dataclasses.field(default_factory=list)  # best value so far then
-    best_value: float = -math.inf
-    best_z: np.ndarray | None = None
-    evaluations: int = 0
-    iterations: int = 0
-    elapsed: float = 0.0
-    compile_s: float = 0.0
-    diverged_z: list = dataclasses.field(default_factory=list)
-    extra: dict = dataclasses.field(default_factory=dict)  # method state arrays
-
-    def record(self, z: np.ndarray, v: np.ndarray, bad: np.ndarray, seconds: float) -> None:
-        v = np.where(bad, -np.inf, np.asarray(v, dtype=np.float64))
-        v = np.where(np.isfinite(v), v, -np.inf)
-        i = int(np.argmax(v))
-        if v[i] > self.best_value:
-            self.best_value, self.best_z = float(v[i]), np.array(z[i])
-        for j in np.flatnonzero(bad)[:max(0, 8 - len(self.diverged_z))]:
-            self.diverged_z.append(np.array(z[j]))
-        # the TOP best distinct points so far (worst cases for adversarial tuning)
-        zs = np.concatenate([self.extra.get("top_z", np.zeros((0, z.shape[1]))), z])
-        vs = np.concatenate([self.extra.get("top_v", np.zeros(0)), v])
-        _, first = np.unique(zs, axis=0, return_index=True)
-        keep = first[np.argsort(-vs[first], kind="stable")][:TOP]
-        keep = keep[np.isfinite(vs[keep])]
-        self.extra["top_z"], self.extra["top_v"] = zs[keep], vs[keep]
-        self.evaluations += len(v)
-        self.iterations += 1
-        self.elapsed += seconds
-        self.t.append(self.elapsed)
-        self.best.append(self.best_value)
-
-    def save(self, path: Path, fingerprint: str) -> None:
-        arrays = {"t": np.asarray(self.t), "best": np.asarray(self.best),
-                  "best_value": np.asarray(self.best_value),
-                  "best_z": np.asarray(self.best_z if self.best_z is not None else []),
-                  "counts": np.asarray([self.evaluations, self.iterations, STATE_VERSION]),
-                  "seconds": np.asarray([self.elapsed, self.compile_s]),
-                  "diverged_z": (np.asarray(self.diverged_z) if self.diverged_z
-                                 else np.zeros((0, 0))),
-                  "fingerprint": np.frombuffer(fingerprint.encode(), dtype=np.uint8)}
-        arrays |= {f"x_{k}": np.asarray(v) for k, v in self.extra.items()}
-        files.write_npz(path, arrays)
-
-    @classmethod
-    def load(cls, path: Path, method: str, fingerprint: str) -> Trace | None:
-        a = files.read_npz(path)
-        if a is None or bytes(a["fingerprint"]).decode() != fingerprint:
-            return None
-        ev, it, version = (int(x) for x in a["counts"])
-        if version != STATE_VERSION:
-            return None
-        tr = cls(method, list(a["t"]), list(a["best"]), float(a["best_value"]),
-                 a["best_z"] if a["best_z"].size else None, ev, it, float(a["seconds"][0]),
-                 float(a["seconds"][1]), list(a["diverged_z"]))
-        tr.extra = {k[2:]: v for k, v in a.items() if k.startswith("x_")}
-        return tr
-
-
-def _rng(seed: int, method: str, iteration: int) -> np.random.Generator:
-    """A generator that depends only on (seed, method, iteration): a resumed run draws what an
-    uninterrupted one would have drawn."""
-    return np.random.default_rng([seed, METHODS.index(method), iteration])
-
-
-def _random_points(prog: Programs, rng: np.random.Generator, b: int) -> np.ndarray:
-    z = np.concatenate([rng.random((b, prog.d)), rng.uniform(-1.0, 1.0, (b, prog.m))], axis=1)
-    return np.array(prog.rescale(jnp.asarray(z)))
-
-
-def _gradient_step(prog, tr, seed, starts, lr0, batch):
-    """One iteration of projected gradient ascent for all starts: (z, values, diverged).
-
-    The box coordinates u take Adam steps (per coordinate, lr box widths at most); the
-    waveform coefficients a normalised gradient step (the largest moves by lr in units of D),
-    since the waveform's constraint couples them; then the projection. Each start's lr grows
-    by 1.2 after an improvement and halves after a loss."""
-    d = prog.d
-    x = tr.extra
-    if "z" not in x:
-        # the first iteration screens a batch of random points (the nominal box point among
-        # them) by value alone and starts the ascent from the M best
-        pool = _random_points(prog, _rng(seed, "gradient", 0), max(batch, starts))
-        if prog.nominal_u is not None:
-            pool[0, :d] = prog.nominal_u
-        v, bad = (np.asarray(a) for a in prog.values(jnp.asarray(pool)))
-        order = np.argsort(np.where(bad, -np.inf, v))[::-1]
-        z = pool[order[:starts]]
-        x.update(z=z, m1=np.zeros_like(z[:, :d]), m2=np.zeros_like(z[:, :d]),
-                 lr=np.full(starts, lr0), prev=np.full(starts, -np.inf), k=np.zeros(starts))
-        return pool, v, bad
-    z = x["z"]
-    v, bad, g = (np.array(a) for a in prog.value_and_grad(jnp.asarray(z)))
-    v = np.asarray(v, dtype=np.float64)
-    g = np.where(np.isfinite(g), g, 0.0)
-    better = v >= x["prev"]
-    lr = np.where(better, np.minimum(x["lr"] * 1.2, 8 * lr0), x["lr"] * 0.5)
-    k = x["k"] + 1
-    m1 = 0.9 * x["m1"] + 0.1 * g[:, :d]
-    m2 = 0.999 * x["m2"] + 0.001 * g[:, :d] ** 2
-    step_u = (m1 / (1 - 0.9 ** k[:, None])) / (np.sqrt(m2 / (1 - 0.999 ** k[:, None])) + 1e-30)
-    gc = g[:, d:]
-    peak = np.max(np.abs(gc), axis=1, keepdims=True) if prog.m else np.ones((len(z), 1))
-    step_c = gc / np.where(peak > 0, peak, 1.0)
-    step = np.concatenate([step_u, step_c], axis=1)
-    # a worse point: step back from the previous one with half the step; else step from here
-    base = np.where(better[:, None] | ~np.isfinite(x["prev"])[:, None], z, x.get("zprev", z))
-    gradient = np.where(better[:, None], step, x.get("stepprev", step))
-    new = np.array(prog.project(jnp.asarray(base + lr[:, None] * gradient)))
-    # a start that diverged (to be re-checked), or whose step has collapsed, starts afresh
-    restart = bad | (lr < lr0 / 64)
-    if restart.any():
-        fresh = _random_points(prog, _rng(seed, "gradient", tr.iterations + 1), starts)
-        new[restart] = fresh[restart]
-        m1[restart] = 0.0
-        m2[restart] = 0.0
-        k = np.where(restart, 0.0, k)
-        lr = np.where(restart, lr0, lr)
-    keep = better | ~np.isfinite(x["prev"])
-    x.update(zprev=np.where(keep[:, None], z, x.get("zprev", z)),
-             stepprev=np.where(keep[:, None], step, x.get("stepprev", step)),
-             prev=np.where(restart, -np.inf, np.where(keep, v, x["prev"])),
-             z=new, m1=m1, m2=m2, k=k, lr=lr)
-    return z, v, bad
-
-
-def _random_step(prog, tr, seed, batch):
-    z = _random_points(prog, _rng(seed, "random", tr.iterations), batch)
-    v, bad = (np.asarray(a) for a in prog.values(jnp.asarray(z)))
-    return z, v, bad
-
-
-class _CMA:
-    """CMA-ES of the `cma` package, resumable without pickles: the fitness of every
-    generation is kept, and a resumed run replays ask/tell from the same seed (cma draws from
-    NumPy's global generator, seeded by its `seed` option), checked against the stored last
-    generation."""
-
-    def __init__(self, prog, seed, popsize, x):
-        from dscjax.cmaes import ReplayCMA
-
-        lower = [0.0] * prog.d + [-1.0] * prog.m
-        upper = [1.0] * prog.d + [1.0] * prog.m
-        x0 = np.concatenate([np.full(prog.d, 0.5), np.zeros(prog.m)])
-        self.es = ReplayCMA(x0, 0.3, {"seed": seed + 1, "verbose": -9, "popsize": popsize,
-                                      "bounds": [lower, upper]})
-        if len(x.get("fitness", ())):
-            try:
-                self.es.replay({"fitness": x["fitness"], "asked": x["last_x"]})
-            except ValueError:
-                raise ConfigError("--resume: CMA-ES could not replay its stored generations; "
-                                  "use --overwrite") from None
-        self.x = x
-
-    def step(self, prog):
-        asked = self.es.ask()
-        z = np.asarray(prog.project(jnp.asarray(asked)))
-        v, bad = (np.asarray(a) for a in prog.values(jnp.asarray(z)))
-        f = np.where(bad | ~np.isfinite(v), -1e30, np.asarray(v, dtype=np.float64))
-        self.es.tell(asked, -f)  # cma minimises
-        saved = self.es.arrays()
-        self.x["fitness"], self.x["last_x"] = saved["fitness"], saved["asked"]
-        return z, v, bad
+def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
+                  lr: float = DEFAULT_LR, m: int = 0):
+    """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
+    return {"gradient": lambda: search.Gradient(lr=lr, starts=starts, screen=max(batch, starts),
+                                                coupled=m),
+            "random": lambda: search.Random(batch=batch),
+            "cma": lambda: search.CMA(popsize=batch)}[name]()
 
 
 # -- the search ---------------------------------------------------------------------------------
@@ -667,7 +535,7 @@ class Result:
     diverged: bool
     t_diverged: float | None
     refinements: int
-    traces: dict[str, Trace]
+    traces: dict[str, search.Trace]
     nominal_value: float
     info: dict
     trajectory: Any  # `simulate`'s run of `setup` (kept for the report's files)
@@ -700,7 +568,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
                lr: float = DEFAULT_LR, gradient: str = "time_parallel",
                coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
                resume: bool = False, max_evals: int | None = None,
-               progress: Callable[[str, Trace, float], None] | None = None,
+               progress: Callable[[str, search.Trace, float], None] | None = None,
                **problem_options) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds (or
     `max_evals` evaluations, whichever comes first).
@@ -742,13 +610,12 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
                           "make_problem, not with a Problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
-    fp = files.digest({"problem": problem.fingerprint(), "seed": seed, "starts": starts,
-                       "batch": batch, "lr": lr, "gradient": gradient,
-                       "coarsening": coarsening})
+    fp = {"problem": files.digest(problem.fingerprint()), "gradient": gradient,
+          "coarsening": coarsening}
     prog = Programs.for_problem(problem, gradient, coarsening)
-    traces = search(prog, time_limit=time_limit, starts=starts, methods=methods, seed=seed,
-                    batch=batch, lr=lr, out_dir=out_dir, resume=resume, fingerprint=fp,
-                    progress=progress, max_evals=max_evals)
+    traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
+                         seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
+                         fingerprint=fp, progress=progress, max_evals=max_evals)
     return _finish(problem, traces)
 
 
@@ -772,68 +639,30 @@ def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch
                           f"steps t_final/dt = {problem.n_steps}")
 
 
-def _warm_up(prog: Programs, method: str, starts: int, batch: int) -> float:
-    """Compile the method's programs before its clock starts: the seconds of compilation (a
-    first call less a second one)."""
-    z0 = np.zeros((max(batch, starts) if method == "gradient" else batch, prog.d + prog.m))
-    calls = [lambda: prog.values(jnp.asarray(z0)), lambda: prog.project(jnp.asarray(z0)),
-             lambda: prog.rescale(jnp.asarray(z0))]
-    if method == "gradient":  # its iterations project and restart M = `starts` points
-        calls += [lambda: prog.value_and_grad(jnp.asarray(z0[:starts])),
-                  lambda: prog.project(jnp.asarray(z0[:starts])),
-                  lambda: prog.rescale(jnp.asarray(z0[:starts]))]
-    total = 0.0
-    for call in calls:
-        t0 = time.perf_counter()
-        jax.block_until_ready(call())
-        t1 = time.perf_counter()
-        jax.block_until_ready(call())
-        total += max((t1 - t0) - (time.perf_counter() - t1), 0.0)
-    return total
-
-
-def search(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
-           methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
-           lr: float = DEFAULT_LR, out_dir: str | Path | None = None, resume: bool = False,
-           fingerprint: str = "", progress: Callable | None = None,
-           max_evals: int | None = None) -> dict[str, Trace]:
-    """Run each method on the programs for `time_limit` search seconds or `max_evals`
-    evaluations, whichever comes first; {method: Trace}."""
+def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
+                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
+                lr: float = DEFAULT_LR, out_dir: str | Path | None = None,
+                resume: bool = False, fingerprint: Any = None,
+                progress: Callable | None = None,
+                max_evals: int | None = None) -> dict[str, search.Trace]:
+    """Run each method on the programs for `time_limit` search seconds (compilation apart)
+    or `max_evals` evaluations, whichever comes first, each from its `state_<method>.npz` in
+    out_dir with `resume`; {method: Trace}."""
     out = Path(out_dir) if out_dir is not None else None
-    traces: dict[str, Trace] = {}
-    cap = math.inf if max_evals is None else max_evals
-
-    def running(tr: Trace) -> bool:
-        return tr.elapsed < time_limit and tr.evaluations < cap
-
-    for mth in methods:
-        path = out / f"state_{mth}.npz" if out is not None else None
-        tr = Trace.load(path, mth, fingerprint) if (resume and path is not None) else None
-        tr = tr or Trace(mth)
-        cma_es = _CMA(prog, seed, batch, tr.extra) if mth == "cma" else None
-        if running(tr):
-            tr.compile_s += _warm_up(prog, mth, starts, batch)
-        while running(tr):
-            # a Ctrl-C waits for the iteration and its state file (dscjax.progress)
-            with critical():
-                t0 = time.perf_counter()
-                if mth == "gradient":
-                    z, v, bad = _gradient_step(prog, tr, seed, starts, lr, batch)
-                elif mth == "random":
-                    z, v, bad = _random_step(prog, tr, seed, batch)
-                else:
-                    z, v, bad = cma_es.step(prog)
-                seconds = time.perf_counter() - t0
-                tr.record(z, v, bad, seconds)
-                if path is not None:
-                    tr.save(path, fingerprint)
-            if progress is not None:
-                progress(mth, tr, time_limit)
-        traces[mth] = tr
+    traces = {}
+    for name in methods:
+        each = None if progress is None else (
+            lambda tr, row, name=name: progress(name, tr, time_limit))
+        res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
+                         x0=prog.x0, seed=seed, time_limit=time_limit, max_evals=max_evals,
+                         path=None if out is None else out / f"state_{name}.npz",
+                         resume=resume, fingerprint=fingerprint, progress=each,
+                         count_compile=False)
+        traces[name] = res.trace
     return traces
 
 
-def _finish(problem: Problem, traces: dict[str, Trace]) -> Result:
+def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
     """Re-check each method's best point and its diverged candidates with `simulate`; the
     worst of them is the result."""
     candidates = []
@@ -864,5 +693,5 @@ def _finish(problem: Problem, traces: dict[str, Trace]) -> Result:
 
 
 __all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
-           "DisturbanceSpec",
-           "Problem", "Programs", "Result", "Trace", "make_problem", "worst_case"]
+           "DisturbanceSpec", "Problem", "Programs", "Result", "best_value", "make_problem",
+           "run_methods", "search_method", "worst_case"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
-from dscjax.worst import Result
+from dscjax.worst import Result, best_value
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
 
@@ -45,9 +45,10 @@ def summary(result: Result) -> dict:
         "ranges": {r.name: [r.low, r.high] for r in p.ranges},
         "simulation": {"t_final": p.t_final, "dt": p.dt, "window_start": p.window_start,
                        "solver": p.solver, "refine": p.refine},
-        "methods": {m: {"best_value": (tr.best_value if np.isfinite(tr.best_value) else None),
+        "methods": {m: {"best_value": (best_value(tr) if np.isfinite(best_value(tr))
+                                       else None),
                         "evaluations": tr.evaluations, "iterations": tr.iterations,
-                        "search_s": tr.elapsed, "compile_s": tr.compile_s,
+                        "search_s": tr.seconds, "compile_s": tr.compile_seconds,
                         "diverged_candidates": len(tr.diverged_z)}
                     for m, tr in result.traces.items()},
         "info": result.info,
@@ -100,13 +101,13 @@ def report_md(result: Result) -> str:
               "| method | best value | evaluations | iterations | search s | compile s |",
               "|---|---|---|---|---|---|"]
     for m, tr in result.traces.items():
-        lines.append(f"| {m} | {tr.best_value:.6g} | {tr.evaluations} | {tr.iterations} | "
-                     f"{tr.elapsed:.1f} | {tr.compile_s:.1f} |")
+        lines.append(f"| {m} | {best_value(tr):.6g} | {tr.evaluations} | {tr.iterations} | "
+                     f"{tr.seconds:.1f} | {tr.compile_seconds:.1f} |")
     lines += ["", "## Best value against search time", "",
               "| method | " + " | ".join(f"{f:.0%} of time" for f in (0.1, 0.25, 0.5, 1.0))
               + " |", "|---|---|---|---|---|"]
     for m, tr in result.traces.items():
-        t, best = np.asarray(tr.t), np.asarray(tr.best)
+        t, best = _curve(tr)
         cells = []
         for f in (0.1, 0.25, 0.5, 1.0):
             i = np.searchsorted(t, f * (t[-1] if t.size else 0.0), side="right") - 1
@@ -120,6 +121,12 @@ def report_md(result: Result) -> str:
 
 # One colour per case, the same in every panel.
 CASE_COLORS = {"nominal": "#444444", "worst case": "#d62728"}
+
+
+def _curve(trace) -> tuple[np.ndarray, np.ndarray]:
+    """(search seconds, best value so far) at the end of each iteration."""
+    return (np.array([r["seconds"] for r in trace.history], dtype=float),
+            -np.array([r["best_loss"] for r in trace.history], dtype=float))
 
 
 def _plot_worst(path, worst, nominal, result):
@@ -164,7 +171,7 @@ def _plot_progress(path, result):
 
     fig, ax = subplots(figsize=(7, 4))
     for m, tr in result.traces.items():
-        ax.step(tr.t, tr.best, where="post", label=m)
+        ax.step(*_curve(tr), where="post", label=m)
     ax.set_xlabel("search time [s]")
     ax.set_ylabel(f"best {result.problem.metric}")
     ax.legend()

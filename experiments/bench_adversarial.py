@@ -155,7 +155,7 @@ def main(argv=None) -> int:
 
     rows = [("paper's gains (start)", fresh(base_setup, "paper's gains"), None, None),
             ("tuned on random plants only", fresh(res_random.best_setup, "random-only gains"),
-             int(res_random.state.iteration), args.batch),
+             res_random.trace.iterations, args.batch),
             ("adversarial (min-max)", fresh(outcome.result.best_setup, "adversarial gains"),
              sum(adv_iters), outcome.rounds[-1]["train_size"])]
     load_end = os.getloadavg()

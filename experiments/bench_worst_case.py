@@ -44,7 +44,13 @@ def main(argv=None) -> int:
     import dscjax
     from dscjax.files import write_json
     from dscjax.ranges import parse_range
-    from dscjax.worst import DEFAULT_COARSENING, DEFAULT_STARTS, make_problem, worst_case
+    from dscjax.worst import (
+        DEFAULT_COARSENING,
+        DEFAULT_STARTS,
+        best_value,
+        make_problem,
+        worst_case,
+    )
     from dscjax.worst_report import summary, write
 
     t_final = args.t_final or (5.0 if args.quick else 20.0)
@@ -60,10 +66,10 @@ def main(argv=None) -> int:
     result = worst_case(problem, time_limit=limit, starts=starts, seed=args.seed,
                         gradient=args.gradient, coarsening=coarsening, methods=methods,
                         progress=lambda m, tr, lim: print(
-                            f"  {m:8s} {tr.elapsed:6.1f}/{lim:g} s  best {tr.best_value:.6g}  "
+                            f"  {m:8s} {tr.seconds:6.1f}/{lim:g} s  best {best_value(tr):.6g}  "
                             f"({tr.evaluations} evaluations)", flush=True))
     wall = time.perf_counter() - t0
-    best = {m: tr.best_value for m, tr in result.traces.items()}
+    best = {m: best_value(tr) for m, tr in result.traces.items()}
     ratio_random = best["gradient"] / best["random"] if "random" in best else None
     ratio_cma = best["gradient"] / best["cma"] if "cma" in best else None
     print(f"\nworst case of {problem.metric}, T = {t_final:g} s, {limit:g} s per method, "
@@ -73,8 +79,8 @@ def main(argv=None) -> int:
     print(f"{'method':10s} {'best':>12s} {'evals':>7s} {'iters':>6s} {'search s':>9s} "
           f"{'compile s':>9s}")
     for m, tr in result.traces.items():
-        print(f"{m:10s} {tr.best_value:12.6g} {tr.evaluations:7d} {tr.iterations:6d} "
-              f"{tr.elapsed:9.1f} {tr.compile_s:9.1f}")
+        print(f"{m:10s} {best_value(tr):12.6g} {tr.evaluations:7d} {tr.iterations:6d} "
+              f"{tr.seconds:9.1f} {tr.compile_seconds:9.1f}")
     print(f"nominal {result.nominal_value:.6g}; re-checked worst {result.value:.6g} "
           f"({result.method})")
     if ratio_random is not None and ratio_cma is not None:

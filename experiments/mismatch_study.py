@@ -86,7 +86,7 @@ def tune(kinds, args, batch: int, time_limit: float, start):
     result = tuning.run(problem)
     info = {"iterations": len(result.history), "stop": result.stop_reason,
             "wall_s": time.perf_counter() - t0, "compile_s": result.compile_s,
-            "mode": problem.mode, "best_loss": float(result.state.best_loss)}
+            "mode": problem.mode, "best_loss": result.trace.best_loss}
     print(f"  tuned on {', '.join(kinds)}: {info['iterations']} iterations in "
           f"{info['wall_s']:.0f} s ({result.stop_reason}), best loss {info['best_loss']:.3f}",
           flush=True)

@@ -1,7 +1,7 @@
-"""Tuning methods at equal wall time on the deployable problem, with an ablation of the
-gradient: what do the exact gradients add?
+"""`dscjax tune`'s methods at equal wall time on the deployable problem: the default against
+its baseline, plain CMA-ES, and against exact gradients.
 
-    python experiments/tune_compare.py                 # 2 problems x 6 methods x 100 s, T = 20 s
+    python experiments/tune_compare.py                 # 2 problems x 3 methods x 100 s, T = 20 s
     python experiments/tune_compare.py --quick         # T = 5 s, 30 s each, 32 held-out plants
     python experiments/tune_compare.py --rounds 3      # medians over 3 interleaved rounds
 
@@ -12,24 +12,16 @@ the paper's gains):
   robust   CVaR at level 0.25 over a training batch of 8 plants, hysteresis alpha, lam, psi
            +-30 %
 
-Methods (every budget includes the method's own compilation; all but adam simulate a whole
-population as one batched program):
-  cma          CMA-ES (sigma0 = 0.3 in log-space, default population)
+Methods (every budget includes the method's own compilation; the CMA-ES methods simulate a
+whole population as one batched program):
+  cma          CMA-ES (sigma0 = 0.3 in log-space, default population), no restart: the
+               baseline
   cma_path     CMA-ES + a line search along its own evolution path in the same batch, in
-               the first 50 generations (`line_generations`): `dscjax tune`'s default
-               (`cma_path:line_generations=0`: the line in every generation, the default
-               before round 6)
-  cma_grad     CMA-ES + a line search along -C grad (exact gradient) in the same batch
-  cma_grad_off the same with its gradient switched off (grad_every = 0: random directions; no
-               gradient is compiled or evaluated: the ablation). It is "cma_line", the
-               default before cma_path
-  adam         exact gradients and Adam (the old default)
-  random       uniform in the box z0 +- ln 10, 32 per batch
+               its first 50 generations: `dscjax tune`'s default
+  adam         exact gradients, Adam's scaling
 
-A method may carry [tuning.optimizer] options after colons, e.g. `cma_path:line_points=2` or
-`cma_path:line_points=3:line_min=0.1` (integers, floats, true/false), to compare variants.
-The search methods also report, per line step size (index 0 = the shortest), how many
-generations it won (`line_step_wins`).
+A method may carry [tuning.optimizer] options after colons, e.g. `cma_path:sigma0=0.5` or
+`adam:learning_rate=0.05` (integers, floats, true/false), to compare variants.
 
 Rounds run every method in turn (interleaved, so that they share the machine's load); the
 table reports medians over rounds and the load average beside each run. Held-out figures of
@@ -47,16 +39,13 @@ import json
 import math
 import os
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
-METHODS = ("cma", "cma_path", "cma_grad", "cma_grad_off", "adam", "random")
+METHODS = ("cma", "cma_path", "adam")
 LABELS = {"cma": "CMA-ES", "cma_path": "CMA-ES + path line (default)",
-          "cma_grad": "CMA-ES + gradient line search",
-          "cma_grad_off": "same, gradient off (cma_line)", "adam": "Adam (exact gradients)",
-          "random": "random search"}
+          "adam": "Adam (exact gradients)"}
 
 
 def build(name: str, t_final: float, heldout: int):
@@ -86,70 +75,22 @@ def with_method(problem, method: str, budget: float, seed: int):
     # the baseline is plain CMA-ES (issue 13: the cma package, sigma0 0.3, its default
     # population): it ends where cma's own criteria stop it, no restart
     opt = {"cma": dict(name="cma", restarts=0), "cma_path": dict(name="cma_path"),
-           "cma_line": dict(name="cma_line"),
-           "cma_grad": dict(name="cma_grad"),
-           "cma_grad_off": dict(name="cma_grad", grad_every=0),
            "adam": dict(name="adam")}[base] | dict(_option(x) for x in extra)
     cfg = problem.cfg
     spec = dataclasses.replace(cfg.optimizer, time_limit=budget, steps=10**7, patience=0,
-                               seed=seed, decay_steps=cfg.optimizer.schedule_steps, **opt)
+                               seed=seed, **opt)
     return dataclasses.replace(problem, cfg=dataclasses.replace(cfg, optimizer=spec))
 
 
-def random_search(problem, budget: float, seed: int, batch: int = 32):
-    """Uniform in z0 +- ln 10 (clipped to the bounds), best ranked feasible first."""
-    import jax.numpy as jnp
-    from jax.flatten_util import ravel_pytree
-
-    from tuning import search
-
-    t0 = time.perf_counter()
-    run = search.batch_fn(problem)
-    flat0 = np.asarray(ravel_pytree(problem.z0)[0], float)
-    lo, hi = search.z_box(problem)
-    rng = np.random.default_rng(seed)
-    best, best_loss, best_feas, curve, n = flat0, math.inf, False, [], 0
-    while True:
-        zs = np.clip(flat0 + rng.uniform(-math.log(10), math.log(10), (batch, flat0.size)),
-                     lo, hi)
-        if n == 0:
-            zs[0] = flat0
-        r = run(jnp.asarray(zs))
-        loss, feas = np.asarray(r["loss"]), np.asarray(r["feasible"])
-        for i in range(batch):
-            if search.better(bool(feas[i]), float(loss[i]), best_feas, best_loss):
-                best, best_loss, best_feas = zs[i], float(loss[i]), bool(feas[i])
-        n += batch
-        now = time.perf_counter() - t0
-        curve.append((now, best_loss if best_feas else math.inf))
-        if now >= budget:
-            return {"best_flat": best, "best_loss": best_loss, "best_feasible": best_feas,
-                    "evaluations": n, "gradient_evaluations": 0, "iterations": len(curve),
-                    "compile_s": None, "curve": curve}
-
-
 def run_method(problem, method, budget, seed):
-    from jax.flatten_util import ravel_pytree
-
     import tuning
 
-    if method == "random":
-        return random_search(problem, budget, seed)
     res = tuning.run(with_method(problem, method, budget, seed), None)
-    z = res.state.best_z
-    return {"best_flat": np.asarray(ravel_pytree(z)[0], float),
-            "best_loss": float(res.state.best_loss),
-            "best_feasible": bool(res.state.best_feasible),
-            "evaluations": res.evaluations if res.evaluations is not None else int(
-                res.state.iteration),
-            "gradient_evaluations": res.gradient_evaluations
-            if res.gradient_evaluations is not None else int(res.state.iteration),
-            "iterations": int(res.state.iteration), "compile_s": res.compile_s,
-            "line_wins": getattr(res.state, "line_wins", None),
-            "restarts": getattr(res.state, "restarts", None),
-            "line_step_wins": (res.state.line_step_wins.tolist()
-                               if hasattr(res.state, "line_step_wins") else None),
-            "first_gradient_generation": getattr(res.state, "first_grad", None),
+    tr = res.trace
+    return {"best_flat": np.asarray(tr.best_z, float), "best_loss": tr.best_loss,
+            "best_feasible": tr.best_feasible, "evaluations": tr.evaluations,
+            "gradient_evaluations": tr.gradients, "iterations": tr.iterations,
+            "compile_s": res.compile_s, "restarts": tr.restarts,
             "curve": [(r["wall_s"], r["best_loss"] if r["best_feasible"] else math.inf)
                       for r in res.history]}
 
@@ -188,7 +129,7 @@ def main():
     jax.config.update("jax_enable_x64", True)
     from jax.flatten_util import ravel_pytree
 
-    from tuning import baselines
+    from dscjax.search import require_cma
 
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true")
@@ -202,7 +143,7 @@ def main():
     p.add_argument("--out", default="results/tune_compare")
     args = p.parse_args()
     try:
-        baselines.require_cma()
+        require_cma()
     except ModuleNotFoundError as err:
         sys.exit(f"tune_compare: {err}")
     t_final = 5.0 if args.quick else 20.0
@@ -223,8 +164,7 @@ def main():
         for r in range(args.rounds):
             for m in methods:
                 load = os.getloadavg()[0]
-                # every method compiles its own programs (the objective caches them, and
-                # cma_grad and its ablation have the same batch width)
+                # every method compiles its own programs (the objective caches them)
                 problem.objective.compiled.clear()
                 res = run_method(problem, m, budget, seed=args.first_seed + r)
                 res["seed"] = args.first_seed + r
@@ -235,9 +175,8 @@ def main():
                 print(f"  {name} round {r} {m}: best {res['best_loss']:.4g} "
                       f"({'feasible' if res['best_feasible'] else 'infeasible'}), "
                       f"{res['evaluations']} evaluations, {res['gradient_evaluations']} "
-                      f"gradients; {res['iterations']} generations, line wins "
-                      f"{res.get('line_wins')} {res.get('line_step_wins')}; "
-                      f"L-inf {f['linf_error_window']:.4g}; load {load:.1f}",
+                      f"gradients; {res['iterations']} iterations, {res['restarts']} "
+                      f"restarts; L-inf {f['linf_error_window']:.4g}; load {load:.1f}",
                       file=sys.stderr, flush=True)
                 Path(f"{out}.json").write_text(json.dumps(results | {"problems": {
                     **results["problems"], name: entry}}, indent=1) + "\n")
@@ -288,12 +227,11 @@ def _table(r):
 def _plot(r, name, path):
     from dscjax.plotting import subplots
 
-    colors = {"cma": "#1f77b4", "cma_path": "#2ca02c", "cma_grad": "#d62728",
-              "cma_grad_off": "#ff9896", "adam": "#9467bd", "random": "#7f7f7f"}
+    colors = {"cma": "#1f77b4", "cma_path": "#2ca02c", "adam": "#9467bd"}
     extra = iter(("#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#000000"))
     fig, ax = subplots(1, 1, figsize=(7, 4.5), layout="constrained")
     for m, runs in r["problems"][name]["runs"].items():
-        # a variant ("cma_path:line_points=2") gets a colour of its own, the same for its rounds
+        # a variant ("cma_path:sigma0=0.5") gets a colour of its own, the same for its rounds
         colors.setdefault(m, next(extra, None))
         for i, run in enumerate(runs):
             c = np.asarray(run["curve"], float).reshape(-1, 2)

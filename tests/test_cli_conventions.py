@@ -54,7 +54,7 @@ def _expected_defaults():
         "simulate": horizon,
         "tune": horizon | {
             "--lr": f"{tu.optimizer.learning_rate:g}",
-            "--steps": f"{OPTAX_STEPS} for the optax methods, none for the CMA-ES methods"
+            "--steps": f"{OPTAX_STEPS} for adam, none for the CMA-ES methods"
             if tu.optimizer.steps is None and tu.optimizer.max_steps is None
             else str(tu.optimizer.steps),
             "--time-limit": f"{tu.optimizer.time_limit:g}", "--batch": str(tu.robust.batch),

@@ -1,4 +1,4 @@
-"""The order-6 start of the scaling study (`experiments/tune_scaling.py`'s STARTS[6]) tracks
+"""The order-6 start of the scaling study (`experiments/order_n_start.py`'s STARTS[6]) tracks
 where the example's uniform gains diverge, as docs/tuning.md and docs/numerics.md say."""
 
 import importlib.util
@@ -11,8 +11,8 @@ import dscjax
 
 
 def _starts():
-    path = Path(__file__).resolve().parents[1] / "experiments" / "tune_scaling.py"
-    spec = importlib.util.spec_from_file_location("tune_scaling", path)
+    path = Path(__file__).resolve().parents[1] / "experiments" / "order_n_start.py"
+    spec = importlib.util.spec_from_file_location("order_n_start", path)
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.STARTS

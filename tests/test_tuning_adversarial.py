@@ -111,7 +111,7 @@ def test_resume_after_finished_rounds_redoes_nothing(adv_run, monkeypatch):
         assert p.read_bytes() == b
     saved = json.loads((out / "adversarial.json").read_text())
     assert outcome.fresh == saved["fresh"]
-    assert int(outcome.result.state.iteration) == saved["rounds"][0]["iterations"]
+    assert outcome.result.trace.iterations == saved["rounds"][0]["iterations"]
 
 
 def test_killed_during_the_last_search_resumes_to_the_same_result(adv_run, tmp_path,
@@ -293,13 +293,13 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
                for n in problem.notes)
 
 
-def test_effort_bounds_enter_the_fingerprint_only_when_per_plant(adv_run):
-    """Runs from before the option (nominal bounds, the default) keep their fingerprint and
-    resume; per_plant is another problem."""
+def test_effort_bounds_are_part_of_the_fingerprint(adv_run):
+    """nominal and per_plant bounds are two problems: a run does not resume with the
+    other."""
     _, out = adv_run
     setup, options, cfg = _inputs()
     nominal = runner.build_problem(setup, options, cfg).describe()
-    assert "effort_bounds" not in nominal["objective"]
+    assert nominal["objective"]["effort_bounds"] == "nominal"
     _, per = _per_plant_problem(out)
     assert per.describe()["objective"]["effort_bounds"] == "per_plant"
     assert 'effort_bounds = "nominal"' in tuning.config.to_toml(cfg)
@@ -334,7 +334,7 @@ def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
     objective evaluated at each candidate alone."""
     from jax.flatten_util import ravel_pytree
 
-    from tuning import baselines, search
+    from tuning import search
 
     _, out = adv_run
     _, problem = _per_plant_problem(out)
@@ -342,7 +342,7 @@ def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
     # the start, and k_2 x 3: more effort than the start's on some plants
     pts = np.stack([np.asarray(flat0), np.asarray(flat0) + np.log([1.0, 3.0])])
     got = search.batch_fn(problem)(pts)
-    losses = baselines.batch_loss_fn(problem)[0](pts)
+    losses = search.TuneProblem(problem).evaluate(pts).loss
     terms = []
     for i, p in enumerate(pts):
         loss, aux = problem.objective.evaluate(unravel(p))

@@ -8,6 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 import dscjax
 import tuning
@@ -36,7 +37,11 @@ def test_selection_freezes_elements_and_round_trips(setup):
     np.testing.assert_allclose(s2.controller.gamma_g, [3.0, 8.0])
     np.testing.assert_allclose(s2.controller.c, [-0.2])
     np.testing.assert_allclose(s2.controller.k, setup.controller.k)
-    clipped = sel.project({**z, "controller.k": jnp.log(jnp.array([100.0, 0.01]))})
+    # the box of the flat z (names sorted) bounds k where it sits
+    flat, unravel = ravel_pytree(z)
+    clipped = unravel(np.clip(flat.at[-2:].set(jnp.log(jnp.array([100.0, 0.01]))),
+                              *sel.z_box(z)))
+    assert sorted(z)[-1] == "controller.k"
     np.testing.assert_allclose(jnp.exp(clipped["controller.k"]), [50.0, 0.1])
     assert sel.size(setup) == 4
 
@@ -81,24 +86,34 @@ def test_bad_tuning_table_is_a_clear_error(table, match):
         from_dict(table)
 
 
-def test_steps_default_to_300_for_optax_rules_and_no_limit_for_searches():
-    """`steps` not given (or "none"): the optax rules stop after OPTAX_STEPS = 300
-    iterations, the length of their schedule; the searches have no count limit. Given, it is
-    the limit for both, and the schedule's length unless decay_steps is given."""
+def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
+    """`steps` not given (or "none"): adam stops after OPTAX_STEPS = 300 iterations; the
+    CMA-ES methods have no count limit. Given, it is the limit for all."""
     from tuning.optimize import OPTAX_STEPS
 
     assert OPTAX_STEPS == 300
     search, adam = from_dict({}).optimizer, from_dict({"optimizer": {"name": "adam"}}).optimizer
     assert search.name == "cma_path" and search.steps is None and search.max_steps is None
-    assert adam.max_steps == 300 and adam.schedule_steps == 300
-    for name in ("cma_path", "adam"):
+    assert adam.max_steps == 300
+    for name in ("cma_path", "cma", "adam"):
         spec = from_dict({"optimizer": {"name": name, "steps": 50}}).optimizer
-        assert spec.max_steps == 50 and spec.schedule_steps == 50
-    spec = from_dict({"optimizer": {"name": "adam", "steps": 50, "decay_steps": 20}}).optimizer
-    assert spec.max_steps == 50 and spec.schedule_steps == 20
+        assert spec.max_steps == 50
     for name, limit in (("cma_path", None), ("adam", 300)):
         spec = from_dict({"optimizer": {"name": name, "steps": "none"}}).optimizer
         assert spec.steps is None and spec.max_steps == limit
+
+
+@pytest.mark.parametrize("table, line", [
+    ({"name": "cma_line"}, "tuning.optimizer.name must be one of 'cma_path', 'cma', 'adam' "
+                           "(got 'cma_line')"),
+    ({"line_points": 3}, "unknown key 'tuning.optimizer.line_points' (allowed: name, "
+                         "learning_rate, patience, min_delta, steps, time_limit, gradient, "
+                         "checkpoint_every, save_interval, sigma0, popsize, seed, restarts)"),
+])
+def test_removed_methods_and_options_are_one_line_errors(table, line):
+    with pytest.raises(ConfigError) as err:
+        from_dict({"optimizer": table})
+    assert str(err.value) == line
 
 
 def test_tuning_table_parses_nested_ranges_and_bounds():

@@ -139,15 +139,14 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     prob = tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=T_FINAL), cfg)
     assert prob.mode == "plants"
     assert prob.describe()["mode"] == "plants"  # asked for by name
-    # picked by "auto" (CVaR 0.25 of 4 plants: ceil(0.25 x 4) = 1 <= 4/4): the fingerprint
-    # keeps what auto picked before "plants" existed (4 plants, a handful of numbers:
-    # forward mode), so runs saved then still resume
+    # picked by "auto" (CVaR 0.25 of 4 plants: ceil(0.25 x 4) = 1 <= 4/4); the fingerprint
+    # holds the mode the run uses
     auto = tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=T_FINAL),
                                 tuning.TuningConfig(
                                     params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
                                     robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
                                                             cvar_level=0.25)))
-    assert auto.mode == "plants" and auto.describe()["mode"] == "forward"
+    assert auto.mode == "plants" and auto.describe()["mode"] == "plants"
     rng = np.random.default_rng(5)
     z = jax.tree.map(lambda v: v + rng.uniform(-0.15, 0.15, np.shape(v)), prob.z0)
     obj = prob.objective

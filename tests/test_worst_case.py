@@ -14,10 +14,10 @@ import numpy as np
 import pytest
 
 import dscjax
-from dscjax import config
+from dscjax import config, search
 from dscjax import disturbance as dm
 from dscjax.cli.main import main
-from dscjax.worst import DisturbanceSpec, Programs, Trace, search
+from dscjax.worst import DisturbanceSpec, Programs, best_value, run_methods
 
 # -- waveforms ----------------------------------------------------------------------------------
 
@@ -122,12 +122,21 @@ def oscillator():
 
 def test_gradient_search_finds_the_bang_bang_worst_case(oscillator):
     prog, exact = oscillator
-    traces = search(prog, time_limit=1.5, starts=4, methods=("gradient", "random"), batch=16)
+    traces = run_methods(prog, time_limit=1.5, starts=4, methods=("gradient", "random"),
+                         batch=16)
     grad, rand = traces["gradient"], traces["random"]
-    assert exact * 0.98 <= grad.best_value <= exact * 1.001
-    assert grad.best_value > 1.3 * rand.best_value  # sampling is far off in 25 dimensions
+    assert exact * 0.98 <= best_value(grad) <= exact * 1.001
+    assert best_value(grad) > 1.3 * best_value(rand)  # sampling is far off in 25 dimensions
     # the worst spline is bang-bang: its knots sit on the bound
     assert np.mean(np.abs(grad.best_z) > 0.99) > 0.7
+
+
+def _rows(trace):
+    return [{k: v for k, v in r.items() if k != "seconds"} for r in trace.history]
+
+
+def _same(a, b):
+    np.testing.assert_equal(a, b)  # (NaN == NaN here)
 
 
 @pytest.mark.parametrize("method", ["gradient", "cma"])  # cma: replayed from its fitness
@@ -145,22 +154,26 @@ def test_search_resumes_losing_nothing_finished(oscillator, tmp_path, method):
         return progress
 
     with pytest.raises(Stop):
-        search(prog, time_limit=60.0, starts=2, methods=(method,), out_dir=tmp_path,
-               fingerprint="fp", progress=stop_at(3))
-    saved = Trace.load(tmp_path / f"state_{method}.npz", method, "fp")
+        run_methods(prog, time_limit=60.0, starts=2, methods=(method,), out_dir=tmp_path,
+                    fingerprint="fp", progress=stop_at(3))
+    path = tmp_path / f"state_{method}.npz"
+    saved = search.load(path).trace
     assert saved.iterations == 3
-    assert Trace.load(tmp_path / f"state_{method}.npz", method, "other") is None
-    resumed = search(prog, time_limit=saved.elapsed + 0.2, starts=2, methods=(method,),
-                     out_dir=tmp_path, resume=True, fingerprint="fp")[method]
-    assert resumed.iterations > 3 and resumed.best[:3] == saved.best
+    with pytest.raises(dscjax.ConfigError, match=r"caller 'fp' \(now 'other'\)"):
+        run_methods(prog, time_limit=60.0, starts=2, methods=(method,), out_dir=tmp_path,
+                    fingerprint="other", resume=True)
+    resumed = run_methods(prog, time_limit=saved.seconds + 0.2, starts=2, methods=(method,),
+                          out_dir=tmp_path, resume=True, fingerprint="fp")[method]
+    assert resumed.iterations > 3
+    _same(_rows(resumed)[:3], _rows(saved))
     # the same iterates as a run that was never interrupted
     (tmp_path / "fresh").mkdir()
     with pytest.raises(Stop):
-        search(prog, time_limit=60.0, starts=2, methods=(method,),
-               out_dir=tmp_path / "fresh", fingerprint="fp",
-               progress=stop_at(resumed.iterations))
-    fresh = Trace.load(tmp_path / "fresh" / f"state_{method}.npz", method, "fp")
-    assert fresh.best == resumed.best
+        run_methods(prog, time_limit=60.0, starts=2, methods=(method,),
+                    out_dir=tmp_path / "fresh", fingerprint="fp",
+                    progress=stop_at(resumed.iterations))
+    fresh = search.load(tmp_path / "fresh" / f"state_{method}.npz").trace
+    _same(_rows(fresh), _rows(resumed))
     np.testing.assert_array_equal(fresh.best_z, resumed.best_z)
 
 
@@ -174,25 +187,26 @@ def test_max_evals_ends_a_search_after_that_many_evaluations(oscillator, method,
     screening batch, then M starts per iteration), whatever time is left; and a count-capped
     search is a function of its seed alone."""
     prog, _ = oscillator
-    runs = [search(prog, time_limit=600.0, max_evals=50, starts=4, methods=(method,), batch=16,
-                   seed=5)[method] for _ in range(2)]
+    runs = [run_methods(prog, time_limit=600.0, max_evals=50, starts=4, methods=(method,),
+                        batch=16, seed=5)[method] for _ in range(2)]
     for tr in runs:
         assert (tr.evaluations, tr.iterations) == (evaluations, iterations)
-    assert runs[0].best == runs[1].best
+    _same(_rows(runs[0]), _rows(runs[1]))
     np.testing.assert_array_equal(runs[0].best_z, runs[1].best_z)
 
 
 def test_a_count_capped_search_resumes_to_the_uninterrupted_one(oscillator, tmp_path):
     prog, _ = oscillator
-    short = search(prog, time_limit=600.0, max_evals=32, methods=("random",), batch=16,
-                   out_dir=tmp_path, fingerprint="fp")["random"]
+    short = run_methods(prog, time_limit=600.0, max_evals=32, methods=("random",), batch=16,
+                        out_dir=tmp_path, fingerprint="fp")["random"]
     assert short.evaluations == 32
-    longer = search(prog, time_limit=600.0, max_evals=80, methods=("random",), batch=16,
-                    out_dir=tmp_path, resume=True, fingerprint="fp")["random"]
-    whole = search(prog, time_limit=600.0, max_evals=80, methods=("random",),
-                   batch=16)["random"]
+    longer = run_methods(prog, time_limit=600.0, max_evals=80, methods=("random",), batch=16,
+                         out_dir=tmp_path, resume=True, fingerprint="fp")["random"]
+    whole = run_methods(prog, time_limit=600.0, max_evals=80, methods=("random",), batch=16,
+                        fingerprint="fp")["random"]
     assert longer.evaluations == whole.evaluations == 80
-    assert longer.best[:2] == short.best and longer.best == whole.best
+    _same(_rows(longer)[:2], _rows(short))
+    _same(_rows(longer), _rows(whole))
 
 
 # -- the command --------------------------------------------------------------------------------

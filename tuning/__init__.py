@@ -1,4 +1,4 @@
-"""Gradient-based tuning of dscjax controllers: exact gradients through the closed loop, optax.
+"""Gain tuning of dscjax controllers through the closed loop: CMA-ES (default) or exact gradients.
 
     import dscjax, tuning
     setup = dscjax.paper_example()
@@ -21,7 +21,7 @@ from tuning.objective import (
     TuningMetrics,
     aggregate,
 )
-from tuning.optimize import OptimizerSpec, TuneState, guarded_update, init_state, value_and_grad
+from tuning.optimize import OptimizerSpec, value_and_grad
 from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
 from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, combine, run
@@ -29,7 +29,7 @@ from tuning.runner import Problem, Result, build_problem, combine, run
 __all__ = [
     "AdversarialSpec", "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
     "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
-    "Selection", "SimSpec", "StepResponse", "TuneState", "Tuned", "TuningConfig",
-    "TuningMetrics", "UBound", "URate", "aggregate", "build_problem", "combine",
-    "config_from_dict", "guarded_update", "init_state", "run", "value_and_grad",
+    "Selection", "SimSpec", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
+    "URate", "aggregate", "build_problem", "combine", "config_from_dict", "run",
+    "value_and_grad",
 ]

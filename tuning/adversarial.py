@@ -105,11 +105,11 @@ def record(res: worst.Result) -> dict:
 
 def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     """Up to `add` distinct worst points of a search, worst first: the re-checked worst case,
-    then the best points each method kept (`Trace`'s top points)."""
+    then the best points each method kept (`Trace`'s top points, loss = -metric)."""
     cands = []
     for tr in res.traces.values():
-        cands += zip(tr.extra.get("top_v", ()), tr.extra.get("top_z", ()), strict=True)
-    cands.sort(key=lambda c: -c[0])
+        cands += zip(tr.top_loss, tr.top_z, strict=True)
+    cands.sort(key=lambda c: c[0])
     out: list[np.ndarray] = [np.asarray(res.z)]
     for _, z in cands:
         if len(out) >= add:
@@ -126,11 +126,10 @@ def _gains(problem: runner.Problem, z) -> Any:
 def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
     """What adversarial.json stores to resume: the digest of the tuning problem's
     description `desc` and the [tuning.adversarial] settings (the rounds apart, the box as
-    searched; `search_evals` only when set, so that runs from before it still resume)."""
+    searched)."""
     adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
-    return {"problem": files.digest(desc),
-            "adversarial": ck.drop_defaults(adv, {"search_evals": None})}
+    return {"problem": files.digest(desc), "adversarial": adv}
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
@@ -226,9 +225,8 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             with critical():  # the round's record and its file (dscjax.progress)
                 meta["rounds"].append({
                     "round": r, "search": record(res), "added": len(zw),
-                    "train_size": problem.n_train, "iterations": int(result.state.iteration),
-                    "stop_reason": result.stop_reason,
-                    "best_loss": float(result.state.best_loss)})
+                    "train_size": problem.n_train, "iterations": result.trace.iterations,
+                    "stop_reason": result.stop_reason, "best_loss": result.trace.best_loss})
                 save()
         z = jax.device_get(result.best_z)
     fresh = meta.setdefault("fresh", {})
@@ -242,7 +240,7 @@ def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | Non
             fresh[tag] = found | {"seed": seed, "rounds": rounds}
             save()
     if out is not None:
-        runner.write_best(out, result.problem, result.state)
+        runner.write_best(out, result.problem, result.trace)
     return Outcome(result=result, rounds=meta["rounds"], fresh=fresh)
 
 

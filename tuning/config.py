@@ -7,7 +7,7 @@
     "controller.tau" = [0.002, 0.1]
     [tuning.transforms]                                 # "log" (default) or "linear"
     [tuning.objective]                                  # weights, u_max bound, smoothness
-    [tuning.optimizer]                                  # optax settings, steps, time limit
+    [tuning.optimizer]                                  # method, steps, time limit
     [tuning.robust]                                     # training batch of plants
     batch = 8
     aggregate = "cvar"
@@ -205,19 +205,14 @@ def _objective_value(name, v, field):
 
 
 def _optimizer_value(name, v, field):
-    if name in ("name", "schedule", "gradient"):
+    if name in ("name", "gradient"):
         return validation.string(v, field)
-    if name in ("background_compile", "line_inject"):
-        if not isinstance(v, bool):
-            raise ConfigError(f"{field} must be true or false (got {v!r})")
-        return v
-    if name in ("steps", "decay_steps") and isinstance(v, str) and v.lower() == "none":
+    if name == "steps" and isinstance(v, str) and v.lower() == "none":
         return None
-    if name in ("max_rejections", "patience", "steps", "checkpoint_every", "save_interval",
-                "decay_steps", "popsize", "seed", "grad_every", "line_points",
-                "line_backoff", "line_generations", "restarts"):
+    if name in ("patience", "steps", "checkpoint_every", "save_interval", "popsize", "seed",
+                "restarts"):
         return validation.integer(v, field)
-    if name in ("clip_norm", "time_limit") and isinstance(v, str) and v.lower() == "none":
+    if name == "time_limit" and isinstance(v, str) and v.lower() == "none":
         return None
     return validation.number(v, field)
 

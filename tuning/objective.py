@@ -510,9 +510,6 @@ class Objective:
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
         return (loss, aux), jax.tree.map(lambda g: jnp.mean(g, axis=0), grads)
 
-    def __call__(self, z):
-        return self.evaluate(z)
-
     def per_plant(self, z, overrides=None):
         """Every plant's J, divergence flag and metrics (exact and smooth) at z: leaves of
         shape (B,) with a batch, () without."""
@@ -579,7 +576,4 @@ class Combined:
             "feasible": jnp.all(jnp.stack([a["feasible"] for a in auxes])),
         }
         return self._reduce([loss for loss, _ in out]), aux
-
-    def __call__(self, z):
-        return self.evaluate(z)
 

@@ -229,15 +229,6 @@ class Selection:
         """The tuned values at z as one vector, in the order of `columns` (traceable)."""
         return jnp.concatenate([jnp.ravel(t.from_z(z[t.name])) for t in self.items])
 
-    def project(self, z: Mapping[str, Any]) -> dict[str, Any]:
-        """z clipped onto the box (identity for unbounded parameters)."""
-        out = {}
-        for t in self.items:
-            lo, hi = t.z_bounds()
-            out[t.name] = z[t.name] if (lo, hi) == (-math.inf, math.inf) else jnp.clip(
-                z[t.name], lo, hi)
-        return out
-
     def z_box(self, z: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) bounds of the flat vector `jax.flatten_util.ravel_pytree(z)[0]`,
         element by element. Its order is the pytree's (names sorted), not the order of

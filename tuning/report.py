@@ -13,9 +13,9 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
+from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import refine_rows, refinement_level, simulate_batch
 from tuning.objective import within
-from tuning.optimize import SEARCHES
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
@@ -227,7 +227,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
 
     problem = result.problem
     z0 = problem.z0
-    z1 = jax.device_get(result.state.best_z)
+    z1 = jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
     sim = problem.objective.sim
     nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
@@ -246,20 +246,17 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
                          for tag in ("start", "tuned")},
         "run": {
-            "iterations": int(result.state.iteration), "resumed_from": result.resumed_from,
-            "rejected": int(result.state.n_rejected), "stop_reason": result.stop_reason,
-            "restarts": int(getattr(result.state, "restarts", 0)),
-            "best_iteration": int(result.state.best_iteration),
-            "best_loss": float(result.state.best_loss),
-            "best_feasible": bool(result.state.best_feasible),
+            "iterations": result.trace.iterations, "resumed_from": result.resumed_from,
+            "rejected": result.rejected, "stop_reason": result.stop_reason,
+            "restarts": result.trace.restarts,
+            "best_iteration": result.trace.best_iteration,
+            "best_loss": result.trace.best_loss,
+            "best_feasible": result.trace.best_feasible,
             "wall_s": result.wall_s, "compile_s": result.compile_s,
             "wall_total_s": None, "gradient": problem.mode,
             "method": problem.cfg.optimizer.name,
-            "evaluations": (result.evaluations if result.evaluations is not None
-                            else int(result.state.iteration)),
-            "gradient_evaluations": (result.gradient_evaluations
-                                     if result.gradient_evaluations is not None
-                                     else int(result.state.iteration)),
+            "evaluations": result.trace.evaluations,
+            "gradient_evaluations": result.trace.gradients,
             "n_params": problem.n_params,
         },
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
@@ -410,8 +407,9 @@ def _markdown(s: dict, problem, figures) -> str:
         f"of which {run['gradient_evaluations']} with an exact gradient"
         + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
         + f", {run['rejected']} rejected"
-        + (f"; CMA-ES restarted afresh from the start point {run['restarts']} time(s) after "
-           f"its own criteria stopped it" if run.get("restarts") else "")
+        + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
+           f"its own criteria stopped it; adam from a random point after its step collapsed)"
+           if run.get("restarts") else "")
         + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
@@ -511,38 +509,21 @@ def _mode_words(mode: str) -> str:
 
 
 def method_sentence(opt, mode: str) -> str:
+    if opt.name == "adam":
+        return (f"{_mode_words(mode)} exact gradients: projected gradient descent with "
+                f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
+                f"after an improvement, halved (from the last good point) after a worse one.")
+    cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
+           f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed})")
+    line = (f" with a line search of {LINE_POINTS} step sizes from the best point along "
+            f"CMA-ES's evolution path in its first {LINE_GENERATIONS} generations, simulated "
+            f"in the same batch as the population, a winning point injected into CMA-ES"
+            if opt.name == "cma_path" else "")
     restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
                 f"starts from the start point (at most {opt.restarts} times; the best point "
-                f"is kept)."
-                if opt.name in SEARCHES and opt.restarts else "")
-    return _method(opt, mode) + restarts
-
-
-def _method(opt, mode: str) -> str:
-    if opt.name == "cma":
-        return (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
-                f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}, one batched "
-                f"simulation per generation; no gradient).")
-    if opt.name in ("cma_grad", "cma_line", "cma_path"):
-        along = ("CMA-ES's evolution path (no gradient)" if opt.name == "cma_path" else
-                 "a random direction (no gradient)" if opt.grad_every == 0
-                 or opt.name == "cma_line" else
-                 f"-C grad ({_mode_words(mode)} exact gradient at the best point, every "
-                 f"{opt.grad_every} generation(s); random directions otherwise)")
-        kept = ("the best injected into CMA-ES." if opt.line_inject else
-                "the best kept as the incumbent only (not injected into CMA-ES).")
-        backoff = (f" After k consecutive losing lines the line is skipped for "
-                   f"min(2^(k-1), {opt.line_backoff}) generations."
-                   if opt.line_backoff and opt.line_points else "")
-        early = (f" The line is taken in the first {opt.line_generations} generations "
-                 f"only; CMA-ES alone after them."
-                 if opt.line_generations and opt.line_points else "")
-        return (f"{opt.name}: CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
-                f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed}) with a line search "
-                f"of {opt.line_points} step sizes from the best point along {along}, "
-                f"simulated in the same batch as the population, {kept}{backoff}{early}")
-    return (f"{_mode_words(mode)} exact gradients, {opt.name} (lr {opt.learning_rate:g}, "
-            f"{opt.schedule}).")
+                f"is kept)." if opt.restarts else "")
+    return (f"{opt.name}: {cma}{line}; one batched simulation per generation, no gradient."
+            + restarts)
 
 
 def _fmt_val(v):

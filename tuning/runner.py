@@ -1,19 +1,17 @@
-"""A tuning run end to end: build the problem, iterate with progress and checkpoints, resume.
+"""A tuning run end to end: build the problem, search (`dscjax.search`), write its files.
 
     problem = build_problem(setup, options, TuningConfig())
     result = run(problem, out_dir="results/tune")          # or resume=True
     result.best_setup                                       # the tuned Setup
 
-`run` writes the checkpoint files (see checkpoint.py) every `save_interval` iterations, when
-the best point improves (at most once a second), on Ctrl-C and at the end, so an interrupted
-run (Ctrl-C, kill) resumes with `resume=True` from its last checkpoint and never loses the
-best point written before it stopped.
+The search saves its state (search.npz) after every iteration; `run` writes the other files
+(see checkpoint.py) every `save_interval` iterations, on Ctrl-C and at the end, so an
+interrupted run (Ctrl-C, kill) resumes with `resume=True` exactly where it stopped.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -24,7 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config as dconfig
-from dscjax import files
+from dscjax import files, search
 from dscjax import ranges as rg
 from dscjax.config import SimOptions
 from dscjax.plant import PaperPlant
@@ -34,21 +32,16 @@ from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
 from tuning.objective import Combined, Objective, SimSpec, start_scales
-from tuning.optimize import SEARCHES, choose_gradient, init_state, make_step
+from tuning.optimize import SEARCHES, choose_gradient
 from tuning.params import Selection
 from tuning.requirements import KINDS
-from tuning.search import line_points
+from tuning.search import STATE_FILE, TuneProblem, method_of
 
 # Elements with no effect on the paper's plant (f_2 = 0 in eq. 73): gamma_g2 and eta_2 only
 # act on theta_hat_2, which multiplies f_2. Frozen by default on that plant: tuning them would
 # cost a tangent each for a zero gradient.
 PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
-# Options added after runs were saved, per part of `Problem.describe`: left out of the
-# fingerprint at these values (what the older runs did), so that those runs still resume
-NEW_OPTIONS = {"params": {"scale": False}, "objective": {"effort_bounds": "nominal"},
-               "optimizer": {"line_backoff": 0, "line_inject": True,
-                             "line_generations": 0}}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -77,32 +70,20 @@ class Problem:
     def n_params(self) -> int:
         return self.selection.size(self.setup)
 
-    def _mode_desc(self) -> str:
-        # "auto" now picks "plants" where it picked forward or reverse mode before: same
-        # numbers, so the fingerprint keeps the older choice (older runs still resume)
-        if self.mode == "plants" and self.cfg.optimizer.gradient == "auto":
-            return choose_gradient("auto", self.n_params, self.objective.batch_size)
-        return self.mode
-
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         opt = dataclasses.asdict(self.cfg.optimizer)
-        for k in ("steps", "time_limit", "patience", "max_rejections", "save_interval",
-                  "decay_steps", "regrow", "shrink", "min_delta", "restarts"):
-            opt.pop(k)
-        if opt["name"] not in SEARCHES or not line_points(self.cfg.optimizer):
-            opt.pop("line_generations")  # no line: it changes nothing
+        for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
+            opt.pop(k)  # where to stop: a resumed run may change it
         return {
             "setup": dconfig.to_dict(self.setup, self.options),
-            "params": [ck.drop_defaults(dataclasses.asdict(t), NEW_OPTIONS["params"])
-                       for t in self.selection.items],
-            "objective": ck.drop_defaults(dataclasses.asdict(self.cfg.objective),
-                                          NEW_OPTIONS["objective"]),
-            "optimizer": ck.drop_defaults(opt, NEW_OPTIONS["optimizer"]),
+            "params": [dataclasses.asdict(t) for t in self.selection.items],
+            "objective": dataclasses.asdict(self.cfg.objective),
+            "optimizer": opt,
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
             "sim": dataclasses.asdict(self.objective.sim),
-            "mode": self._mode_desc(),
+            "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
              if self.extra_plants else {}) | (
             {"members": [m.describe() for m in self.members], "combine": self.objective.how}
@@ -226,10 +207,9 @@ def combine(problems, how: str = "mean") -> Problem:
     """
     first = problems[0]
     if first.cfg.optimizer.name in SEARCHES:
-        # (the search methods simulate one batch of one structure per generation)
-        raise ConfigError(f"combine: tuning.optimizer.name must be one of the gradient rules "
-                          f"(adam, adamw, sgd, lion), not the search method "
-                          f"{first.cfg.optimizer.name!r}; e.g. name = \"adam\"")
+        # (the CMA-ES methods simulate one batch of one structure per generation)
+        raise ConfigError(f"combine: tuning.optimizer.name must be \"adam\" (the gradient "
+                          f"method), not the search method {first.cfg.optimizer.name!r}")
     for p in problems[1:]:
         if (p.selection.names != first.selection.names or p.cfg.optimizer != first.cfg.optimizer
                 or p.objective.sim != first.objective.sim or p.n_params != first.n_params):
@@ -280,29 +260,55 @@ def build_requirements(setup, table) -> tuple:
     return tuple(out)
 
 
-# -- the loop ------------------------------------------------------------------------------------
+# -- the run -------------------------------------------------------------------------------------
 
 
 @dataclasses.dataclass
 class Result:
+    """A tuning run: its problem and the search's record (`dscjax.search.Trace`)."""
+
     problem: Problem
-    state: Any
-    history: list[dict]
+    trace: search.Trace
     stop_reason: str
     wall_s: float  # this invocation
-    compile_s: float
-    resumed_from: int
-    method: str = "optax"
-    evaluations: int | None = None  # loss evaluations (None: one per iteration)
-    gradient_evaluations: int | None = None
+    compile_s: float  # this invocation
+    resumed_from: int  # iterations done before this invocation
 
     @property
-    def best_z(self):
-        return self.state.best_z
+    def method(self) -> str:
+        return self.problem.cfg.optimizer.name
+
+    @property
+    def history(self) -> list[dict]:
+        return [history_row(r) for r in self.trace.history]
+
+    @property
+    def best_z(self) -> dict:
+        return TuneProblem(self.problem).point(self.trace.best_z)
 
     @property
     def best_setup(self):
-        return self.problem.selection.apply(self.problem.setup, self.state.best_z)
+        return self.problem.selection.apply(self.problem.setup, self.best_z)
+
+    @property
+    def rejected(self) -> int:
+        """adam's iterations whose point was worse than its last good one (stepped back)."""
+        return sum(not r.get("accepted", True) for r in self.trace.history)
+
+
+def history_row(row: dict) -> dict:
+    """A search trace's history row as history.csv and the progress display give it."""
+    return {"iteration": row["iteration"], "loss": row["loss"],
+            "accepted": bool(row.get("accepted", True)), "feasible": row["feasible"],
+            "best_loss": row["best_loss"], "lr": row["scale"],
+            "grad_norm": row.get("grad_norm", float("nan")),
+            **{k: v for k, v in row.items() if k not in _SEARCH_KEYS},  # figures and terms
+            "wall_s": row["seconds"], "best_iteration": row["best_iteration"],
+            "best_feasible": row["best_feasible"]}
+
+
+_SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_norm", "accepted",
+                "seconds", "best_iteration", "best_feasible")
 
 
 def history_columns(problem: Problem) -> list[str]:
@@ -344,321 +350,99 @@ def _prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
             (out / name).unlink(missing_ok=True)
 
 
+def _saved(out: Path, problem: Problem) -> search.Saved:
+    """The checkpoint of the run in `out` (the problem must be the same)."""
+    fix = "start afresh with --overwrite or another --out"
+    meta = files.read_json(out / "checkpoint.json")
+    files.check_same(meta.get("problem"), problem.describe(),
+                     where=f"the checkpoint in {out}", fix=fix)
+    saved = search.load(out / STATE_FILE)
+    if saved is None:
+        raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
+    return saved
+
+
 def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = False,
         overwrite: bool = False, progress: Callable[[dict], None] | None = None,
-        step_hook: Callable | None = None, z_init: dict | None = None) -> Result:
-    """Iterate until steps, time limit, early stopping or too many rejections.
+        z_init: dict | None = None) -> Result:
+    """Search until steps, time limit, patience or CMA-ES's own end (after its restarts).
 
     Args:
-        out_dir: where checkpoints go (None: nothing is written).
-        resume: continue from the checkpoint in out_dir (the problem must be the same; the
-            stopping settings steps/time_limit/patience may differ).
-        z_init: the first point (default `problem.z0`, the start gains; the report still
-            compares against `problem.z0`); ignored on resume.
+        out_dir: where the files go (None: nothing is written).
+        resume: continue the run in out_dir (the problem must be the same; the stopping
+            settings steps/time_limit/patience may differ): bitwise as if never stopped.
+        z_init: the start point (default `problem.z0`, the start gains; the report still
+            compares against `problem.z0`); a resumed run keeps its own.
         progress: called with each iteration's row (dict) for a progress display.
-        step_hook: test hook, (state, report) -> report, applied to every report on the host.
     """
-    if problem.cfg.optimizer.name in SEARCHES:
-        return _run_search(problem, None if out_dir is None else Path(out_dir), resume,
-                           overwrite, progress, z_init)
-    loop = _Loop.open(problem, None if out_dir is None else Path(out_dir), resume, overwrite,
-                      z_init)
-    try:
-        while (reason := loop.limit_reached()) is None:
-            # a Ctrl-C waits for the iteration, its row and its checkpoint (dscjax.progress)
-            with critical():
-                row = loop.iterate(step_hook)
-                loop.checkpoint(every=loop.spec.save_interval)
-            if progress is not None:
-                progress(row | {"steps": loop.spec.max_steps, "terms": loop.terms,
-                                "n_rejected": int(loop.state.n_rejected)})
-            if (reason := loop.stalled()) is not None:
-                break
-    except KeyboardInterrupt:
-        loop.save(stop_reason="interrupted")
-        raise
-    loop.save(stop_reason=reason)
-    if not np.isfinite(float(loop.state.best_loss)):
-        raise ConfigError("no iteration produced a finite loss: the start point is not usable "
-                          "(see the divergence report of `dscjax simulate`)")
-    return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
-                  wall_s=time.perf_counter() - loop.t_start, compile_s=loop.compile_s,
-                  resumed_from=loop.resumed_from)
-
-
-def _run_search(problem: Problem, out: Path | None, resume: bool, overwrite: bool,
-                progress, z_init: dict | None = None) -> Result:
-    """The cma / cma_grad loop (tuning/search.py) under the same stopping rules and files."""
-    from tuning.search import STATE_FILE, Search
-
     t_start = time.perf_counter()
+    spec = problem.cfg.optimizer
+    out = None if out_dir is None else Path(out_dir)
+    before, begun = 0.0, 0
     if out is not None:
         _prepare_dir(out, resume, overwrite)
-        if overwrite:
-            (out / STATE_FILE).unlink(missing_ok=True)
-    loop = Search.open(problem, out, resume, t_start, z_init)
-    spec = loop.spec
-    # a Ctrl-C waits for the compilation too: one that cuts XLA's ahead-of-time compilation
-    # short makes the process crash as it exits
-    with critical():
-        loop.compile()
-    reason = None
+        if resume:
+            saved = _saved(out, problem).trace
+            before, begun = saved.seconds, saved.iterations
+    sp = TuneProblem(problem)
+    desc = problem.describe()
+    terms = _term_names(problem)
+
+    def each(trace, row):
+        # (after the first iteration too: a run killed early still has a checkpoint)
+        if out is not None and (trace.iterations % spec.save_interval == 0
+                                or trace.iterations == begun + 1):
+            write_files(out, problem, trace)
+        if progress is not None:
+            progress(history_row(row) | {"steps": spec.max_steps, "terms": terms})
+
     try:
-        while True:
-            elapsed = time.perf_counter() - t_start
-            if spec.max_steps is not None and loop.state.iteration >= spec.max_steps:
-                reason = f"reached {spec.max_steps} generations"
-                break
-            # at least one generation, so that a slow compilation never leaves no result
-            if (spec.time_limit is not None and loop.state.iteration > loop.resumed_from
-                    and elapsed + loop.last_iter_s > spec.time_limit):
-                reason = f"time limit {spec.time_limit:g} s"
-                break
-            # a Ctrl-C waits for the generation (ask, simulate, tell, inject, counters), a
-            # restart and the checkpoint (dscjax.progress): the state saved is a whole one
-            with critical():
-                row = loop.generation()
-                # before the checkpoint: a file written at this generation holds the restart
-                stopped = loop.state.es.stop()
-                if stopped and loop.state.restarts >= spec.restarts:
-                    reason = f"CMA-ES stopped: {dict(stopped)}"
-                elif stopped:
-                    loop.restart()  # budget left: a fresh CMA-ES from the start point
-                if reason is None and loop.state.iteration % spec.save_interval == 0:
-                    loop.save()
-            if progress is not None:
-                progress(row | {"steps": spec.max_steps, "terms": _term_names(problem),
-                                "n_rejected": 0})
-            if reason is not None:
-                break
-            if spec.patience and loop.state.stall >= spec.patience:
-                reason = (f"no improvement of the best loss by more than {spec.min_delta:g} "
-                          f"(relative) in {spec.patience} generations")
-                break
+        res = search.run(
+            sp, method_of(spec), x0=sp.x0 if z_init is None else sp.flat(z_init),
+            seed=spec.seed, max_iterations=spec.max_steps, patience=spec.patience,
+            time_limit=None if spec.time_limit is None else before + spec.time_limit,
+            min_delta=spec.min_delta, path=None if out is None else out / STATE_FILE,
+            resume=resume, fingerprint={"problem": files.digest(desc)}, progress=each)
     except KeyboardInterrupt:
-        loop.save(stop_reason="interrupted")
+        saved = None if out is None else search.load(out / STATE_FILE)
+        if saved is not None:
+            write_files(out, problem, saved.trace, "interrupted")
         raise
-    loop.save(stop_reason=reason)
-    if not np.isfinite(loop.state.best_loss):
-        raise ConfigError("no generation produced a finite loss: the start point is not usable "
+    if out is not None:
+        write_files(out, problem, res.trace, res.stop_reason)
+    if not np.isfinite(res.trace.best_loss):
+        raise ConfigError("no iteration produced a finite loss: the start point is not usable "
                           "(see the divergence report of `dscjax simulate`)")
-    return Result(problem=problem, state=loop.state, history=loop.history, stop_reason=reason,
-                  wall_s=time.perf_counter() - t_start, compile_s=loop.compile_s,
-                  resumed_from=loop.resumed_from, method=spec.name,
-                  evaluations=loop.state.evaluations,
-                  gradient_evaluations=loop.state.gradient_evaluations)
+    return Result(problem=problem, trace=res.trace, stop_reason=res.stop_reason,
+                  wall_s=time.perf_counter() - t_start, compile_s=res.compile_seconds,
+                  resumed_from=res.resumed_from)
 
 
 def finished(problem: Problem, out_dir: str | Path) -> Result:
     """The `Result` of the run whose checkpoint is in `out_dir`, without iterating (a phase
     of `tuning.adversarial` that has finished)."""
     out = Path(out_dir)
-    if problem.cfg.optimizer.name in SEARCHES:
-        from tuning.search import Search
-
-        search = Search.open(problem, out, True, 0.0)
-        meta = files.read_json(out / "checkpoint.json")
-        return Result(problem=problem, state=search.state, history=search.history,
-                      stop_reason=meta.get("stop_reason") or "finished", wall_s=0.0,
-                      compile_s=0.0, resumed_from=search.resumed_from,
-                      method=problem.cfg.optimizer.name,
-                      evaluations=search.state.evaluations,
-                      gradient_evaluations=search.state.gradient_evaluations)
-    loop = _Loop.open(problem, out, True, False)
+    trace = _saved(out, problem).trace
     meta = files.read_json(out / "checkpoint.json")
-    return Result(problem=problem, state=loop.state, history=loop.history,
-                  stop_reason=meta.get("stop_reason") or "finished", wall_s=0.0,
-                  compile_s=0.0, resumed_from=loop.resumed_from)
+    return Result(problem=problem, trace=trace, stop_reason=meta.get("stop_reason") or
+                  "finished", wall_s=0.0, compile_s=0.0, resumed_from=trace.iterations)
 
 
-@dataclasses.dataclass
-class _Loop:
-    """One invocation of the tuning loop: the state, its history and its files."""
-
-    problem: Problem
-    out: Path | None
-    spec: Any  # OptimizerSpec with the run's decay_steps (kept from the first invocation)
-    step: Any  # the jitted step (compiled on first use)
-    state: Any  # TuneState
-    history: list[dict]
-    resumed_from: int = 0
-    elapsed_before: float = 0.0  # wall time of earlier invocations of the same run
-    t_start: float = dataclasses.field(default_factory=time.perf_counter)
-    compile_s: float = 0.0
-    last_iter_s: float = 0.0
-    last_best_write: float = 0.0
-
-    @classmethod
-    def open(cls, problem: Problem, out: Path | None, resume: bool, overwrite: bool,
-             z_init: dict | None = None) -> _Loop:
-        """A fresh start, or the state, history and schedule of the checkpoint in `out`."""
-        t_start = time.perf_counter()
-        spec = problem.cfg.optimizer
-        meta = None
-        if out is not None:
-            _prepare_dir(out, resume, overwrite)
-        if resume:
-            meta = files.read_json(out / "checkpoint.json")
-            files.check_same(meta.get("problem"), problem.describe(),
-                             where=f"the checkpoint in {out}",
-                             fix="start afresh with --overwrite or another --out")
-        decay_steps = int(meta["decay_steps"]) if meta else spec.schedule_steps
-        spec = dataclasses.replace(spec, decay_steps=decay_steps)
-        optimizer, step = compiled_step(problem, spec)
-        z_init = problem.z0 if z_init is None else jax.tree.map(jnp.asarray, z_init)
-        loop = cls(problem, out, spec, step, init_state(z_init, optimizer), [],
-                   t_start=t_start)
-        if meta:
-            state = ck.load_state(out / "checkpoint.npz", loop.state, meta["state"])
-            loop.history = [r for r in ck.read_history(out / "history.csv")
-                            if r["iteration"] < int(state.iteration)]
-            loop.state = _best_from_file(out, state, problem)
-            loop.resumed_from = int(loop.state.iteration)
-            loop.elapsed_before = float(meta.get("elapsed_total_s", 0.0))
-        return loop
-
-    @functools.cached_property
-    def terms(self) -> list[str]:
-        return _term_names(self.problem)
-
-    @functools.cached_property
-    def schedule(self):
-        return self.spec.schedule_fn()
-
-    @functools.cached_property
-    def desc(self) -> dict:
-        return self.problem.describe()
-
-    @functools.cached_property
-    def rates(self) -> tuple:
-        """(shrink, min_delta, regrow) as arrays: traced arguments of the step."""
-        dtype = self.state.lr_scale.dtype
-        return tuple(jnp.asarray(getattr(self.spec, k), dtype)
-                     for k in ("shrink", "min_delta", "regrow"))
-
-    # -- stopping ---------------------------------------------------------------------------
-    def limit_reached(self) -> str | None:
-        """Why to stop before the next iteration (steps, time limit), or None."""
-        spec, elapsed = self.spec, time.perf_counter() - self.t_start
-        if spec.max_steps is not None and int(self.state.iteration) >= spec.max_steps:
-            return f"reached {spec.max_steps} iterations"
-        if spec.time_limit is not None and elapsed + self.last_iter_s > spec.time_limit:
-            return f"time limit {spec.time_limit:g} s"
-        return None
-
-    def stalled(self) -> str | None:
-        """Why to stop after an iteration (rejections, no improvement), or None."""
-        spec, state = self.spec, self.state
-        if int(state.streak) >= spec.max_rejections:
-            return (f"{spec.max_rejections} rejected steps in a row (non-finite or "
-                    f"diverging); the learning rate is now x{float(state.lr_scale):.3g}")
-        if spec.patience and int(state.stall) >= spec.patience:
-            return (f"no improvement of the best loss by more than {spec.min_delta:g} "
-                    f"(relative) in {spec.patience} iterations")
-        return None
-
-    # -- one iteration ------------------------------------------------------------------------
-    def iterate(self, step_hook=None) -> dict:
-        """One jitted step (compiled on first use: a finished run resumes at once); returns
-        its row of the history."""
-        if self.step.executable is None:
-            t0 = time.perf_counter()
-            self.step.compile(self.state, *self.rates)
-            self.compile_s = time.perf_counter() - t0
-        t_it = time.perf_counter()
-        before = self.state
-        self.state, rep = self.step.executable(self.state, *self.rates)
-        rep = jax.device_get(rep)
-        if step_hook is not None:
-            rep = step_hook(self.state, rep)
-        self.last_iter_s = time.perf_counter() - t_it
-        row = self._row(int(before.iteration), rep)
-        self.history.append(row)
-        if float(self.state.best_loss) != float(before.best_loss):
-            self._best_improved()
-        return row
-
-    def _row(self, it: int, rep: dict) -> dict:
-        state = self.state
-        accepted_steps = int(state.iteration) - int(state.n_rejected)
-        lr = float(self.schedule(max(accepted_steps - 1, 0))) * float(rep["lr_scale"])
-        return {
-            "iteration": it, "loss": float(rep["loss"]), "accepted": bool(rep["accepted"]),
-            "feasible": bool(rep["feasible"]), "best_loss": float(state.best_loss), "lr": lr,
-            "grad_norm": float(rep["grad_norm"]),
-            "linf_window": float(rep["linf_window"]), "max_abs_u": float(rep["max_abs_u"]),
-            "n_diverged": int(rep["n_diverged"]),
-            **{k: float(rep["terms"][k]) for k in self.terms},
-            "wall_s": self.elapsed_before + time.perf_counter() - self.t_start,
-            "best_iteration": int(state.best_iteration),
-            "best_feasible": bool(state.best_feasible),
-        }
-
-    # -- files --------------------------------------------------------------------------------
-    def _best_improved(self) -> None:
-        """Write the new best point at once (at most once a second): a run killed before its
-        next checkpoint keeps it."""
-        now = time.perf_counter()
-        if self.out is not None and now - self.last_best_write > 1:
-            write_best(self.out, self.problem, self.state)
-            self.last_best_write = now
-
-    def checkpoint(self, every: int) -> None:
-        """The checkpoint files, after every `every`-th iteration."""
-        if int(self.state.iteration) % every == 0:
-            self.save()
-
-    def save(self, stop_reason: str | None = None) -> None:
-        """Write every checkpoint file (stop_reason: the run ends here), a Ctrl-C waiting for
-        them. The history and the best point first, then the state, then checkpoint.json: a
-        save cut short (a full disk) leaves a state whose history and best point are on disk
-        (a resume reads the history up to the state's iteration)."""
-        if self.out is None:
-            return
-        with critical():
-            self._save(stop_reason)
-
-    def _save(self, stop_reason: str | None) -> None:
-        out, state, desc = self.out, self.state, self.desc
-        ck.write_history(out / "history.csv", self.history, history_columns(self.problem))
-        write_best(out, self.problem, state)
-        meta_state = ck.save_state(out / "checkpoint.npz", state)
-        files.write_json(out / "checkpoint.json", {
-            "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
-            "iteration": int(state.iteration), "best_loss": float(state.best_loss),
-            "best_iteration": int(state.best_iteration),
-            "best_feasible": bool(state.best_feasible), "decay_steps": self.spec.decay_steps,
-            "elapsed_total_s": self.elapsed_before + time.perf_counter() - self.t_start,
-            "stop_reason": stop_reason, "state": meta_state, "problem": desc})
-
-
-def compiled_step(problem: Problem, spec):
-    """The optax transformation and the jitted step for the problem and update rule.
-
-    Kept in the objective's cache (`Objective.compiled`), so that a run resumed in the same
-    process (tests, experiments) does not compile again; it lives as long as the objective.
-    """
-    rule = (spec.name, spec.learning_rate, spec.schedule, spec.final_lr_fraction,
-            spec.decay_steps, spec.clip_norm)
-    key = ("tuning step", problem.mode, rule)
-    cache = problem.objective.compiled
-    if key not in cache:
-        optimizer = spec.make()
-        cache[key] = (optimizer, _AheadOfTime(make_step(
-            problem.objective, optimizer, problem.selection, problem.mode,
-            problem.objective.sim.checkpoint_every)))
-    return cache[key]
-
-
-class _AheadOfTime:
-    """A jitted step compiled ahead of time once (so compilation can be timed apart)."""
-
-    def __init__(self, step):
-        self.step = step
-        self.executable = None
-
-    def compile(self, *args) -> None:
-        self.executable = self.step.lower(*args).compile()
+def write_files(out: Path, problem: Problem, trace: search.Trace,
+                stop_reason: str | None = None) -> None:
+    """best.json, gains.json, history.csv and checkpoint.json of a search's trace
+    (stop_reason: the run ends here)."""
+    desc = problem.describe()
+    write_best(out, problem, trace)
+    ck.write_history(out / "history.csv", [history_row(r) for r in trace.history],
+                     history_columns(problem))
+    files.write_json(out / "checkpoint.json", {
+        "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
+        "iteration": trace.iterations, "best_loss": trace.best_loss,
+        "best_iteration": trace.best_iteration, "best_feasible": trace.best_feasible,
+        "evaluations": trace.evaluations, "gradient_evaluations": trace.gradients,
+        "elapsed_total_s": trace.seconds, "stop_reason": stop_reason,
+        "state": {"kind": problem.cfg.optimizer.name, "file": STATE_FILE}, "problem": desc})
 
 
 def gains_config(problem: Problem, z) -> dict:
@@ -668,44 +452,23 @@ def gains_config(problem: Problem, z) -> dict:
     return dconfig.to_dict(setup, problem.options)
 
 
-def write_best(out: Path, problem: Problem, state) -> None:
-    """best.json and gains.json of the state's best point (nothing before a finite loss)."""
-    if not np.isfinite(float(state.best_loss)):
+def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
+    """best.json and gains.json of the trace's best point (nothing before a finite loss)."""
+    if not np.isfinite(trace.best_loss):
         return
-    z = jax.device_get(state.best_z)
+    z = TuneProblem(problem).point(trace.best_z)
     values = jax.device_get(problem.selection.values(z))
     files.write_json(out / "best.json", {
-        "iteration": int(state.best_iteration), "loss": float(state.best_loss),
-        "feasible": bool(state.best_feasible),
+        "iteration": int(trace.best_iteration), "loss": float(trace.best_loss),
+        "feasible": bool(trace.best_feasible),
         "values": {k: np.asarray(v).tolist() for k, v in values.items()},
         "z": {k: np.asarray(v).tolist() for k, v in z.items()},
     })
     files.write_json(out / "gains.json", gains_config(problem, z))
 
 
-def _best_from_file(out: Path, state, problem: Problem):
-    """A best point written after the last checkpoint (best.json) replaces the state's."""
-    path = out / "best.json"
-    if not path.exists():
-        return state
-    b = files.read_json(path)
-    loss, feas = float(b["loss"]), bool(b["feasible"])
-    better = (feas and not bool(state.best_feasible)) or (
-        feas == bool(state.best_feasible) and loss < float(state.best_loss))
-    if not better or set(b["z"]) != set(problem.selection.names):
-        return state
-    dtype = state.best_loss.dtype
-    z = {k: jnp.asarray(np.asarray(b["z"][k]), dtype).reshape(np.shape(state.best_z[k]))
-         for k in state.best_z}
-    return state._replace(best_z=z, best_loss=jnp.asarray(loss, dtype),
-                          best_feasible=jnp.asarray(feas),
-                          best_iteration=jnp.asarray(int(b["iteration"]), jnp.int32))
-
-
-def format_progress(row: dict, step: str = "lr") -> str:
-    """The figures of one iteration's row, for a progress display (dscjax.progress). `step`
-    names the row's "lr" column: "lr" for the optax rules, "sigma" for the CMA-ES methods
-    (whose rows hold CMA-ES's step size there)."""
+def format_progress(row: dict) -> str:
+    """The figures of one iteration's row, for a progress display (dscjax.progress)."""
     terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
     return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
             f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "

@@ -4,8 +4,8 @@ exact gradients).
 Writes into DIR: gains.json (the tuned closed loop as a config: `dscjax simulate --config
 DIR/gains.json` loads it), history.csv (one row per iteration), report.md and report.json
 (start against tuned gains: nominal plant, training batch, held-out batch), loss_curve.png,
-before_after.png, heldout.png, and the checkpoint files (checkpoint.npz, or search.npz for
-the CMA-ES methods; checkpoint.json; best.json: `--resume` continues from them).
+before_after.png, heldout.png, and the checkpoint files (search.npz, checkpoint.json,
+best.json: `--resume` continues from them).
 """
 
 from __future__ import annotations
@@ -56,19 +56,18 @@ def add_parser(sub):
                    help="output directory (default: results/tune)")
     limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
     steps = (f"{opt.steps}" if opt.steps is not None else
-             f"{OPTAX_STEPS} for the optax methods, none for the CMA-ES methods")
+             f"{OPTAX_STEPS} for adam, none for the CMA-ES methods")
     p.add_argument("--steps", type=count(1), metavar="N", help=f"maximum number of iterations, "
                    f"generations for the CMA-ES methods (default {steps})")
     p.add_argument("--time-limit", type=finite_float, metavar="S",
                    help=f"stop after S seconds of wall "
                    f"time, compilation included (default {limit}; 0 = no limit)")
-    p.add_argument("--method", choices=OPTIMIZERS, help=f"optimiser (default {opt.name}: "
-                   "CMA-ES with a line search from the best point along its evolution path, "
-                   "ahead of CMA-ES at equal wall time on the nominal problem (not on "
-                   "the robust one), docs/tuning.md; cma: CMA-ES alone; cma_line: the line "
-                   "search along random directions; cma_grad: along the exact gradient; adam "
-                   "... : optax rules with exact gradients)")
-    p.add_argument("--lr", type=positive_float, metavar="LR", help=f"learning rate (default "
+    p.add_argument("--method", choices=OPTIMIZERS, help=f"search method (default {opt.name}: "
+                   "CMA-ES with a line search from the best point along its evolution path in "
+                   "its first generations, ahead of CMA-ES at equal wall time on the nominal "
+                   "problem (not on the robust one), docs/tuning.md; cma: CMA-ES alone; adam: "
+                   "gradient descent on exact gradients with Adam's scaling)")
+    p.add_argument("--lr", type=positive_float, metavar="LR", help=f"adam's initial step (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
     p.add_argument("--batch", type=count(0), metavar="B",
@@ -275,10 +274,8 @@ def run(args) -> int:
     oc = cfg.optimizer
     from tuning.optimize import SEARCHES
 
-    how = (f"{oc.name} (sigma0 {oc.sigma0:g})" + (f", {problem.mode}-mode gradients"
-                                                    if oc.name == "cma_grad" else "")
-           if oc.name in SEARCHES else
-           f"{problem.mode}-mode gradients; {oc.name}, lr {oc.learning_rate:g} ({oc.schedule})")
+    how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
+           else f"{oc.name} (sigma0 {oc.sigma0:g})")
     unit = "generation" if oc.name in SEARCHES else "iteration"
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
@@ -345,10 +342,10 @@ def run(args) -> int:
     finally:
         if bar is not None:
             bar.close()
-    print(f"  stopped: {result.stop_reason}; {_count(int(result.state.iteration), unit)}"
+    print(f"  stopped: {result.stop_reason}; {_count(result.trace.iterations, unit)}"
           + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
-          + f", {int(result.state.n_rejected)} rejected, best at iteration "
-          f"{int(result.state.best_iteration)}; {result.wall_s:.1f} s (compilation "
+          + f", {result.rejected} rejected, best at iteration "
+          f"{result.trace.best_iteration}; {result.wall_s:.1f} s (compilation "
           f"{result.compile_s:.1f} s)")
     summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     if outcome is not None:
@@ -402,6 +399,7 @@ def check_work_of(args, setup, options, cfg) -> None:
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
     from dscjax.cli.common import gradient_work, horizon_text
+    from dscjax.search.methods import LINE_POINTS
     from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.optimize import SEARCHES, choose_gradient
 
@@ -410,14 +408,14 @@ def check_work_of(args, setup, options, cfg) -> None:
     what = horizon_text(options.t_final, options.dt, steps)
     fix = "use a shorter --t-final or a larger --dt"
     if oc.name in SEARCHES:
-        width = (oc.popsize or 4) + oc.line_points
+        width = (oc.popsize or 4) + (LINE_POINTS if oc.name == "cma_path" else 0)
         one = Work(steps=steps, member_steps=width * plants * steps)
         unit = f"generation ({width} candidates x {plants} plant(s))"
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
     mode = choose_gradient(oc.gradient, 0, plants, cfg.robust.aggregate, cfg.robust.cvar_level)
-    if (oc.name not in SEARCHES or oc.name == "cma_grad") and (
+    if oc.name not in SEARCHES and (
             mode == "plants" or (mode == "reverse" and plants == 1)):
         one = one + gradient_work(setup, steps)
     if oc.time_limit:

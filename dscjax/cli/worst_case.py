@@ -98,7 +98,7 @@ def run(args) -> int:
     from dscjax.progress import Progress
     from dscjax.ranges import parse_range
     from dscjax.validation import ConfigError, check_work
-    from dscjax.worst import check_search, make_problem, worst_case
+    from dscjax.worst import best_value, check_search, make_problem, worst_case
     from dscjax.worst_report import write
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
@@ -152,8 +152,8 @@ def run(args) -> int:
         if bar is None:
             bar = bars[method] = Progress(int(round(limit)), desc=f"  {method:8s}", unit="second",
                                           enabled=not args.quiet)
-        bar.update_to(min(int(tr.elapsed), int(round(limit))),
-                      f"best {tr.best_value:.5g}, {tr.evaluations} evaluations")
+        bar.update_to(min(int(tr.seconds), int(round(limit))),
+                      f"best {best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
         result = worst_case(problem, time_limit=args.time_limit, starts=args.starts,
@@ -170,8 +170,8 @@ def run(args) -> int:
     print(f"  worst {problem.metric}: {what} by {result.method} (nominal "
           f"{result.nominal_value:.6g})")
     for m, tr in result.traces.items():
-        print(f"  {m:8s} best {tr.best_value:.6g} in {tr.elapsed:.1f} s ({tr.evaluations} "
-              f"evaluations, compile {tr.compile_s:.1f} s)")
+        print(f"  {m:8s} best {best_value(tr):.6g} in {tr.seconds:.1f} s ({tr.evaluations} "
+              f"evaluations, compile {tr.compile_seconds:.1f} s)")
     print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
     return 0
 

@@ -1,8 +1,10 @@
-"""CMA-ES of the `cma` package, shared by the tuner (tuning/search.py, tuning/baselines.py)
-and the worst-case search (dscjax/worst.py): `require_cma`, and `ReplayCMA`, whose state is
-saved as plain arrays (no pickle) and restored exactly by replaying ask/tell/inject."""
+"""CMA-ES of the `cma` package with a state of plain arrays: `ReplayCMA` records what it was
+told and rebuilds the same strategy by replaying ask/tell/inject, so a search resumes
+exactly without pickles."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 
@@ -21,14 +23,12 @@ def require_cma():
 class ReplayCMA:
     """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
 
-    It records what it was told: the fitness values of every generation, the point injected
-    after it (if any) and the population of the last generation told. `replay` rebuilds the
-    same strategy from a fresh one with the same x0, sigma0 and options (so the same seed:
-    cma's samples come from the `randn` option or NumPy's generator seeded by `seed`) by
-    repeating ask/tell/inject with the stored values, no simulation needed, and checks the last
-    population told against the stored one. A population asked but not yet told is not part
-    of the record: a strategy saved between ask and tell replays to its last told generation,
-    and asks that population again.
+    It records what it was told: the fitness of every generation, the point injected after
+    it (if any) and the last told population. `replay` rebuilds the same strategy from a fresh
+    one with the same x0, sigma0 and options (so the same `seed`, and the same `randn`
+    stream) by repeating ask/tell/inject with the stored values, no simulation needed, and
+    checks the last population against the stored one. A record taken between an ask and its
+    tell replays too: only told generations are recorded.
 
         es = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9})
         x = es.ask(); es.tell(x, f(x)); es.inject(best)     # as with cma
@@ -40,14 +40,12 @@ class ReplayCMA:
         cma = require_cma()
         self.es = cma.CMAEvolutionStrategy(x0, sigma0, opts)
         self.n = int(np.size(x0))
-        self.fitness: list[np.ndarray] = []  # (popsize,) per generation, as told
-        self.injected: list[np.ndarray] = []  # (n,) per generation, NaN: none
-        self.asked = np.zeros((0, self.n))  # the last population asked (told or not)
-        self.told = np.zeros((0, self.n))  # the population of the last generation told
+        self.fitness: list[np.ndarray] = []  # (popsize,) per told generation
+        self.injected: list[np.ndarray] = []  # (n,) per told generation, NaN: none
+        self.told = np.zeros((0, self.n))  # (popsize, n) the last told population
 
     def ask(self) -> np.ndarray:
-        self.asked = np.asarray(self.es.ask(), dtype=float)
-        return self.asked
+        return np.asarray(self.es.ask(), dtype=float)
 
     def tell(self, x, fitness) -> None:
         f = np.asarray(fitness, dtype=float)
@@ -61,25 +59,30 @@ class ReplayCMA:
         self.es.inject([np.asarray(x, dtype=float)])
         self.injected[-1] = np.asarray(x, dtype=float)
 
+    def copy(self) -> ReplayCMA:
+        """An independent copy (its own strategy and random stream), for a step that computes
+        a new state without changing this one."""
+        new = object.__new__(ReplayCMA)
+        new.es, new.n = copy.deepcopy(self.es), self.n
+        new.fitness, new.injected, new.told = list(self.fitness), list(self.injected), self.told
+        return new
+
     def arrays(self) -> dict[str, np.ndarray]:
-        """{"fitness": (G, popsize), "injected": (G, n), "asked": (popsize, n)}: "asked" is
-        the population of generation G, the last told (the key the files have always used)."""
+        """{"fitness": (G, popsize), "injected": (G, n), "told": (popsize, n)}."""
         pop = self.es.popsize
         return {"fitness": np.asarray(self.fitness).reshape(-1, pop),
                 "injected": np.asarray(self.injected).reshape(-1, self.n),
-                "asked": self.told}
+                "told": self.told}
 
     def replay(self, arrays: dict[str, np.ndarray]) -> None:
-        """Repeat the stored generations (`arrays()`; "injected" may be left out: none).
-        ValueError if the replay does not meet the stored population of the last generation
-        (another cma version or other options)."""
+        """Repeat the stored generations (`arrays()`). ValueError if the replay does not meet
+        the stored last population (another cma version or other options)."""
         fitness = np.asarray(arrays["fitness"])
-        injected = arrays.get("injected", np.full((len(fitness), self.n), np.nan))
-        for f, x in zip(fitness, injected, strict=True):
+        for f, x in zip(fitness, np.asarray(arrays["injected"]), strict=True):
             self.tell(self.ask(), f)
             if np.all(np.isfinite(x)):
                 self.inject(x)
-        if len(fitness) and not np.array_equal(self.told, arrays["asked"]):
+        if len(fitness) and not np.array_equal(self.told, arrays["told"]):
             raise ValueError("CMA-ES could not replay its stored generations")
 
 
