@@ -32,7 +32,8 @@ from dscjax import disturbance as dist_mod
 from dscjax import files, params, search, validation
 from dscjax import ranges as ranges_mod
 from dscjax.closed_loop import Setup
-from dscjax.metrics import default_window
+from dscjax.runspec import RunSpec
+from dscjax.simulate import check, run, simulate
 from dscjax.validation import ConfigError
 
 Method = Literal["gradient", "random", "cma"]
@@ -124,12 +125,7 @@ class Problem:
     ranges: tuple[ranges_mod.Range, ...]  # resolved (absolute bounds)
     disturbance: DisturbanceSpec | None
     metric: str
-    t_final: float
-    dt: float
-    window_start: float
-    state_bound: float = 1e6
-    solver: str = "rk4"
-    refine: int = 6
+    spec: RunSpec  # how every candidate is simulated (metrics only: save_every = n_steps)
     requirement: Any = None  # the reduction of a "requirement:NAME" metric, else None
 
     @property
@@ -139,7 +135,19 @@ class Problem:
 
     @property
     def n_steps(self) -> int:
-        return int(round(self.t_final / self.dt))
+        return self.spec.n_steps
+
+    @property
+    def t_final(self) -> float:
+        return self.spec.t_final
+
+    @property
+    def dt(self) -> float:
+        return float(self.spec.dt)
+
+    @property
+    def window_start(self) -> float:
+        return float(self.spec.window_start)
 
     @property
     def d(self) -> int:
@@ -167,7 +175,7 @@ class Problem:
 
     def static(self) -> _Static:
         return _Static(tuple(self.columns), self.coef_path if self.m else None,
-                       self.metric_key, self.n_steps, self.solver)
+                       self.metric_key)
 
     def overrides(self, z):
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
@@ -201,9 +209,7 @@ class Problem:
         return {"setup": config.to_dict(self.setup), "ranges": [r.spec() for r in self.ranges],
                 "disturbance": None if self.disturbance is None else
                 dataclasses.asdict(self.disturbance),
-                "metric": self.metric, "t_final": self.t_final, "dt": self.dt,
-                "window_start": self.window_start, "state_bound": self.state_bound,
-                "solver": self.solver, "refine": self.refine,
+                "metric": self.metric, "run": self.spec.describe(),
                 "requirement": _describe(self.requirement)}
 
 
@@ -222,10 +228,8 @@ def _dtype(setup):
 
 def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
                  disturbance: DisturbanceSpec | str | None = None, *, metric: str = DEFAULT_METRIC,
-                 t_final: float = 20.0, dt: float = 1e-3, window_start: float | None = None,
-                 state_bound: float = 1e6, solver: str = "rk4", refine: int = 6,
-                 period: float | None = None, field: str = "--range",
-                 requirement: Any = None) -> Problem:
+                 spec: RunSpec | None = None, period: float | None = None,
+                 field: str = "--range", requirement: Any = None, **run) -> Problem:
     """Validate and build a `Problem`; ConfigError (one line, naming the field) if bad.
 
     Args:
@@ -234,6 +238,8 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
         disturbance: "fourier:K:D", "spline:K:D" or a `DisturbanceSpec`; None: no waveform.
         metric: one of `METRICS` (default the windowed L-inf of the tracking error), or
             "requirement:NAME": the violation margin of `requirement` (> 0: violated).
+        spec: how every candidate is simulated (`RunSpec`); or its fields as keywords (`run`:
+            t_final, dt, window_start, state_bound, solver, refine, sample_time, ...).
         period: the Fourier period (default: the horizon).
         requirement: with metric "requirement:NAME", a `dscjax.metrics.Running` reduction
             whose results include "margin" (in the bound's units, <= 0 when met), such as
@@ -257,23 +263,27 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
     if disturbance is not None and getattr(setup.plant, "disturbance", "absent") == "absent":
         raise ConfigError(f"--disturbance: plant.family {type(setup.plant).kind!r} takes no "
                           f"waveform (use paper or strict_feedback)")
-    window_start = default_window(t_final, window_start)
+    if spec is None:
+        spec = RunSpec.make(**run, prefix="")
+    elif run:
+        raise TypeError("make_problem: give spec or its fields, not both")
+    spec = spec.replace(save_every=spec.n_steps)
+    t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     setup = params.cast(setup, _dtype(setup))
     if disturbance is not None:
         zero = disturbance.model(np.zeros(disturbance.size), t_final)
         setup = setup.replace(plant=dataclasses.replace(
             setup.plant, disturbance=params.cast(zero, _dtype(setup))))
     validation.validate_setup(setup)
-    validation.validate_run(setup, t_final, dt, 1, window_start)
+    check(setup, spec)
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance, "
                           f"not by a range")
     resolved = ranges_mod.check(list(ranges), setup, field, t_final=t_final, dt=dt,
                                 window_start=window_start)
     if requirement is not None and hasattr(requirement, "n_steps"):
-        requirement = dataclasses.replace(requirement, n_steps=int(round(t_final / dt)))
-    return Problem(setup, resolved, disturbance, metric, float(t_final), float(dt),
-                   float(window_start), float(state_bound), solver, int(refine), requirement)
+        requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
+    return Problem(setup, resolved, disturbance, metric, spec, requirement)
 
 
 # -- the compiled programs ----------------------------------------------------------------------
@@ -290,8 +300,6 @@ class _Static:
     columns: tuple[params.Param, ...]
     coef_path: str | None
     metric: str
-    n_steps: int
-    solver: str
 
 
 def _overrides(setup, st: _Static, z, lo, hi, bound):
@@ -305,22 +313,14 @@ def _overrides(setup, st: _Static, z, lo, hi, bound):
     return out
 
 
-def _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, extra=None, *,
-                    st: _Static):
-    from dscjax.simulate import run
-
-    traj = run(setup, dt, window_start, state_bound, n_steps=st.n_steps, save_every=st.n_steps,
-               overrides=_overrides(setup, st, z, lo, hi, bound), solver=st.solver, extra=extra)
+def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: _Static):
+    traj = run(setup, spec, overrides=_overrides(setup, st, z, lo, hi, bound), extra=extra)
     return traj.metrics[st.metric], traj.diverged
 
 
-def _problem_single(setup, z1, lo, hi, bound, dt, window_start, state_bound, extra=None, *,
-                    st: _Static):
-    from dscjax.simulate import run
-
+def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: _Static):
     one = {p: v[0] for p, v in _overrides(setup, st, z1[None, :], lo, hi, bound).items()}
-    traj = run(params.set_many(setup, one), dt, window_start, state_bound, n_steps=st.n_steps,
-               save_every=st.n_steps, solver=st.solver, gradient="time_parallel", extra=extra)
+    traj = run(params.set_many(setup, one), spec, extra=extra)
     return traj.metrics[st.metric], traj.diverged
 
 
@@ -348,26 +348,25 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
 
 
 @functools.partial(jax.jit, static_argnames=("st", "gradient"))
-def _problem_value_and_grad(setup, z, lo, hi, bound, dt, window_start, state_bound, extra, *,
-                            st: _Static, gradient: str):
+def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: _Static,
+                            gradient: str):
     def values(z_, *a):
         return _problem_values(*a[:1], z_, *a[1:], st=st)
 
     def single(z1, *a):
         return _problem_single(*a[:1], z1, *a[1:], st=st)
 
-    return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, dt,
-                           window_start, state_bound, extra)
+    return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, spec, extra)
 
 
-@functools.partial(jax.jit, static_argnames=("st", "st_g", "gradient"))
-def _problem_coarse(setup, z, lo, hi, bound, dt, window_start, state_bound, extra, dt_g,
-                    extra_g, *, st: _Static, st_g: _Static, gradient: str):
-    """Values at dt, gradients of the loop at dt_g (zero where that run diverged)."""
-    v, bad = _problem_values(setup, z, lo, hi, bound, dt, window_start, state_bound, extra,
-                             st=st)
-    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, dt_g, window_start,
-                                          state_bound, extra_g, st=st_g, gradient=gradient)
+@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+def _problem_coarse(setup, z, lo, hi, bound, spec, extra, spec_g, extra_g, *, st: _Static,
+                    gradient: str):
+    """Values of the loop of `spec`, gradients of the loop of `spec_g` (a coarser step; zero
+    where that run diverged)."""
+    v, bad = _problem_values(setup, z, lo, hi, bound, spec, extra, st=st)
+    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, spec_g, extra_g, st=st,
+                                          gradient=gradient)
     return v, bad, jnp.where(bad_g[:, None], 0.0, g)
 
 
@@ -476,7 +475,7 @@ class Programs(search.Problem):
         value (what the search compares and reports) is simulated at dt."""
         validation.one_of(gradient, "gradient", GRADIENTS)
         p = problem
-        _check_coarsening(coarsening, p.n_steps)
+        _check_coarsening(coarsening, p.spec)
         basis, project_coef = np.zeros((1, 0)), None
         if p.m:
             grid = dist_mod.half_step_grid(p.t_final, p.dt)
@@ -486,19 +485,22 @@ class Programs(search.Problem):
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
         lo, hi = p.lows_highs()
-        args = (lo, hi, p.disturbance.bound if p.m else 0.0, p.dt, p.window_start,
-                p.state_bound, p.requirement)
+        spec = p.spec.for_dtype(_dtype(p.setup))
+        args = (lo, hi, p.disturbance.bound if p.m else 0.0, spec, p.requirement)
         st = p.static()
         values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
             vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st, gradient=gradient)
         else:
-            st_g = dataclasses.replace(st, n_steps=st.n_steps // coarsening)
+            f = coarsening
+            spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
+                                         save_every=spec.n_steps // f,
+                                         sample_every=spec.sample_every // f)
             extra_g = p.requirement
             if extra_g is not None and hasattr(extra_g, "n_steps"):
-                extra_g = dataclasses.replace(extra_g, n_steps=st_g.n_steps)
-            vg = _Fixed(_problem_coarse, (p.setup,), args + (p.dt * coarsening, extra_g),
-                        st=st, st_g=st_g, gradient=gradient)
+                extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
+            vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st,
+                        gradient=gradient)
         nominal_u = None
         if p.d:
             nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])
@@ -544,21 +546,21 @@ class Result:
 
 def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int, Any]:
     """`simulate` of one candidate with refinement: (value, diverged, t_diverged, level, traj)."""
-    from dscjax.simulate import simulate
-
-    traj = simulate(setup, problem.t_final, problem.dt, window_start=problem.window_start,
-                    state_bound=problem.state_bound, throw=False, refine=problem.refine,
-                    solver=problem.solver, extra=problem.requirement)
+    traj = simulate(setup, spec=problem.spec.replace(save_every=1), throw=False,
+                    extra=problem.requirement)
     bad = bool(traj.diverged)
     value = math.inf if bad else float(traj.metrics[problem.metric_key])
     return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
 
 
-def _check_coarsening(coarsening: int, n_steps: int) -> None:
+def _check_coarsening(coarsening: int, spec: RunSpec) -> None:
     validation.integer(coarsening, "--gradient-coarsening", 1)
-    if n_steps % coarsening:
+    if spec.n_steps % coarsening:
         raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
-                          f"steps t_final/dt = {n_steps}")
+                          f"steps t_final/dt = {spec.n_steps}")
+    if spec.sampled and spec.sample_every % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
+                          f"controller sample, sample_time/dt = {spec.sample_every}")
 
 
 def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str] = (),
@@ -634,9 +636,7 @@ def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch
     if max_evals is not None:
         validation.integer(max_evals, "--max-evals", 1)
     validation.integer(coarsening, "--gradient-coarsening", 1)
-    if problem.n_steps % coarsening:
-        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
-                          f"steps t_final/dt = {problem.n_steps}")
+    _check_coarsening(coarsening, problem.spec)
 
 
 def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,

@@ -16,16 +16,16 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
+from dscjax.runspec import RunSpec
 from dscjax.worst import Result, best_value
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
 
 
-def options_of(result: Result) -> config.SimOptions:
-    p = result.problem
-    return config.SimOptions(t_final=p.t_final, dt=p.dt, window_start=p.window_start,
-                             state_bound=p.state_bound, solver=p.solver, refine=p.refine,
-                             dtype=str(np.result_type(np.asarray(result.setup.plant.x0))))
+def options_of(result: Result) -> RunSpec:
+    """The [simulation] table of the worst case's config: the search's run, its dtype."""
+    dtype = str(np.result_type(np.asarray(result.setup.plant.x0)))
+    return result.problem.spec.replace(dtype=dtype)
 
 
 def summary(result: Result) -> dict:
@@ -43,8 +43,7 @@ def summary(result: Result) -> dict:
         "disturbance": dist,
         "nominal_value": result.nominal_value,
         "ranges": {r.name: [r.low, r.high] for r in p.ranges},
-        "simulation": {"t_final": p.t_final, "dt": p.dt, "window_start": p.window_start,
-                       "solver": p.solver, "refine": p.refine},
+        "simulation": p.spec.to_table() | {"window_start": p.window_start},
         "methods": {m: {"best_value": (best_value(tr) if np.isfinite(best_value(tr))
                                        else None),
                         "evaluations": tr.evaluations, "iterations": tr.iterations,

@@ -85,9 +85,9 @@ def main(argv=None) -> int:
 
     import dscjax
     import tuning
-    from dscjax.config import SimOptions
     from dscjax.files import write_json
     from dscjax.ranges import parse_range
+    from dscjax.runspec import RunSpec
     from tuning import adversarial
 
     t_final = args.t_final or (2.0 if args.quick else 20.0)
@@ -96,7 +96,7 @@ def main(argv=None) -> int:
     fresh_evals = args.fresh_evals or (512 if args.quick else 4096)
     box = tuple(parse_range(s) for s in BOX)
     setup = dscjax.paper_example(dtype=np.float64)
-    options = SimOptions(t_final=t_final, dt=1e-3)
+    options = RunSpec.make(t_final=t_final, dt=1e-3)
     bound = {"start": "start", "none": None}
     steps = args.round_steps or 10_000
     cfg = tuning.TuningConfig(

@@ -206,13 +206,13 @@ def tuning_modes(t_final: float, repeats: int, batch: int = 8, level: float = 0.
 
     import dscjax
     import tuning
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
     from tuning.optimize import value_and_grad
 
     cfg = tuning.TuningConfig(robust=tuning.BatchSpec(batch=batch, seed=0, aggregate="cvar",
                                                       cvar_level=level),
                               heldout=tuning.BatchSpec(batch=0))
-    prob = tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
+    prob = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=t_final), cfg)
     obj = prob.objective
     ce = cfg.optimizer.checkpoint_every
     fns = {"forward_run": jax.jit(lambda z: obj.evaluate(z)[0])}

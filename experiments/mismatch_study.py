@@ -68,9 +68,9 @@ def tune(kinds, args, batch: int, time_limit: float, start):
     `kinds` (one problem per kind, combined when there are several): each kind's nominal
     plant when batch = 0, else a robust batch of that kind."""
     import tuning
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
 
-    options = SimOptions(t_final=args.t_final, dt=args.dt)
+    options = RunSpec.make(t_final=args.t_final, dt=args.dt)
     problems = []
     for i, kind in enumerate(kinds):
         cfg = tuning.TuningConfig(

@@ -51,13 +51,13 @@ LABELS = {"cma": "CMA-ES", "cma_path": "CMA-ES + path line (default)",
 def build(name: str, t_final: float, heldout: int):
     import dscjax
     import tuning
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
 
     robust = tuning.BatchSpec(batch=8, seed=0, aggregate="cvar", cvar_level=0.25) \
         if name == "robust" else tuning.BatchSpec(batch=0)
     cfg = tuning.TuningConfig(robust=robust,
                               heldout=tuning.BatchSpec(batch=heldout, seed=12345))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=t_final), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=t_final), cfg)
 
 
 def _option(text: str):

@@ -13,7 +13,8 @@ from jax.flatten_util import ravel_pytree
 
 import dscjax
 import tuning
-from dscjax.config import SimOptions
+from dscjax.integrate import Checkpointed
+from dscjax.runspec import RunSpec
 
 T = 0.4  # short horizons: the tests check numbers, not speed
 
@@ -26,7 +27,7 @@ def _problem(batch: int = 0):
         requirements={"envelope": {"b0": 0.1, "b_inf": 0.005, "decay": 0.1},
                       "u_rate": {"max": 40.0}},
         robust=tuning.BatchSpec(batch=batch, seed=1), heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=T), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T), cfg)
 
 
 def _with(objective, **changes):
@@ -47,7 +48,7 @@ def _close(a, b):
 def test_one_trajectory_gradient_equals_autodiff_and_finite_differences():
     obj = _problem().objective
     loss = lambda z: obj.evaluate(z)[0]  # noqa: E731
-    ref_obj = _with(obj, gradient="autodiff")
+    ref_obj = _with(obj, gradient=Checkpointed(every=None))
     ref = jax.jit(jax.jacfwd(lambda z: ref_obj.evaluate(z)[0]))  # JAX's forward mode of the scan
     grad, fwd, value = jax.jit(jax.grad(loss)), jax.jit(jax.jacfwd(loss)), jax.jit(loss)
     points, unravel = _points(_problem(), 2)

@@ -21,15 +21,15 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from dscjax.cmaes import ReplayCMA
 
 import dscjax
 import tuning
 import tuning.search
 from dscjax import files
 from dscjax.cli.main import main
-from dscjax.cmaes import ReplayCMA
-from dscjax.config import SimOptions
 from dscjax.progress import Abort, critical, handle_interrupts
+from dscjax.runspec import RunSpec
 from tuning.runner import run
 
 DSCJAX = str(Path(sys.executable).parent / "dscjax")  # the console script, as a user runs it
@@ -253,7 +253,7 @@ def _search_problem():
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
                               heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=1.0, dt=2e-3), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
 
 
 @pytest.fixture(scope="module")
@@ -356,7 +356,7 @@ def test_the_optax_loop_finishes_its_iteration_and_checkpoint_on_ctrl_c(tmp_path
         optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1,
                                        save_interval=10, decay_steps=20, gradient="forward"),
         heldout=tuning.BatchSpec(batch=0))
-    problem = tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=0.5, dt=2e-3),
+    problem = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=0.5, dt=2e-3),
                                    cfg)
     full = run(problem, tmp_path / "full")
 

@@ -97,10 +97,10 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     at the tuning's step but tracks once refined is counted as refined, not diverged, with
     the figures of the refined run; the other plants are left as they were."""
     import tuning
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
     from tuning import report
 
-    problem = tuning.build_problem(paper_setup, SimOptions(t_final=2.0), tuning.TuningConfig())
+    problem = tuning.build_problem(paper_setup, RunSpec.make(t_final=2.0), tuning.TuningConfig())
     ov = {"hysteresis.alpha": np.array([0.7, 10.0, 1.3]),
           "hysteresis.lam": np.array([1.2, 0.15, 1.7])}
     z = problem.z0

@@ -257,7 +257,7 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
     blows up from x_1(0) = 0.08 within about 1 / 80 s) keeps the nominal plant's bounds,
     exactly; the others get the start gains' own figures on them, computed here by
     `simulate` on each plant alone (max|u| and TV(u) = sum |u_(k+1) - u_k| by numpy)."""
-    from dscjax.config import SimOptions
+    from dscjax.runspec import RunSpec
 
     setup = dscjax.paper_example()
     cfg = tuning.TuningConfig(params=("controller.k",),
@@ -265,7 +265,7 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
                               robust=tuning.BatchSpec(batch=0),
                               heldout=tuning.BatchSpec(batch=0))
     theta = np.array([[0.2, 0.0], [1000.0, 0.0], [0.05, 0.0]])
-    problem = runner.build_problem(setup, SimOptions(t_final=0.4, window_start=0.2), cfg,
+    problem = runner.build_problem(setup, RunSpec.make(t_final=0.4, window_start=0.2), cfg,
                                    extra_plants={"plant.theta": theta})
     sc = problem.objective.scales
     assert problem.n_train == 4  # the nominal plant, then the three added

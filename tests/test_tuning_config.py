@@ -13,7 +13,7 @@ from jax.flatten_util import ravel_pytree
 import dscjax
 import tuning
 from dscjax.cli.main import main
-from dscjax.config import SimOptions
+from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from tuning.config import from_dict
 from tuning.objective import simulate_metrics
@@ -149,7 +149,7 @@ def test_printed_config_reads_back():
 def test_unknown_range_path_is_a_clear_error(setup):
     cfg = from_dict({"robust": {"batch": 2, "ranges": {"plant.gg": [0.8, 1.2]}}})
     with pytest.raises(ConfigError, match="gg"):
-        tuning.build_problem(setup, SimOptions(t_final=1.0), cfg)
+        tuning.build_problem(setup, RunSpec.make(t_final=1.0), cfg)
 
 
 def test_cli_bad_setting_exits_2_with_one_line(tmp_path, capsys):
@@ -182,7 +182,7 @@ def test_requirements_penalties_and_checks():
         height=1.0, t_step=0.5, rise_time=0.1))
     setup = dscjax.cast(setup, np.float64)
     T = 2.0
-    sim = tuning.SimSpec(t_final=T, dt=1e-3, window_start=1.0)
+    sim = RunSpec.make(T, 1e-3, window_start=1.0, save_every=int(round(T / 1e-3)))
     tr = dscjax.simulate(setup, T, 1e-3, save_every=1, window_start=1.0)
     y, t = np.asarray(tr.x[:, 0]), np.asarray(tr.t)
     u, du, e = np.abs(np.asarray(tr.u)), np.abs(np.asarray(tr.u_dot)), np.abs(np.asarray(tr.e))
@@ -225,12 +225,12 @@ def test_requirements_from_config_build_into_the_objective(setup):
     cfg = from_dict({"params": ["controller.k"],
                      "requirements": {"u_rate": {"max": 1e4, "weight": 2.0},
                                       "envelope": {"b0": 0.1, "b_inf": 0.03, "decay": 0.5}}})
-    problem = tuning.build_problem(setup, SimOptions(t_final=1.0), cfg)
+    problem = tuning.build_problem(setup, RunSpec.make(t_final=1.0), cfg)
     kinds = [type(r).__name__ for r in problem.objective.requirements]
     assert kinds == ["URate", "Envelope"]
     assert float(problem.objective.requirements[0].weight) == 2.0
     with pytest.raises(ConfigError, match="step reference"):
-        tuning.build_problem(setup, SimOptions(t_final=1.0),
+        tuning.build_problem(setup, RunSpec.make(t_final=1.0),
                              dataclasses.replace(cfg, requirements={"step": {}}))
     assert math.isfinite(problem.objective.scales.linf)
 
@@ -239,7 +239,7 @@ def test_smooth_linf_is_finite_with_a_large_error_before_the_window():
     """The window's log-sum-exp must not see the (masked) samples before t0: with a sharp
     surrogate, exp(s |e|) of the initial error 0.08 overflows (regression: it gave -inf)."""
     setup = dscjax.paper_example()
-    sim = tuning.SimSpec(t_final=2.0, dt=1e-3, window_start=1.0)
+    sim = RunSpec.make(2.0, 1e-3, window_start=1.0, save_every=2000)
     extra = tuning.TuningMetrics(window_start=jnp.asarray(1.0), e_sharpness=jnp.asarray(1e5),
                                  u_sharpness=jnp.asarray(10.0), n_steps=sim.n_steps)
     m, _ = jax.jit(lambda s: simulate_metrics(s, sim, extra))(setup)

@@ -17,7 +17,7 @@ import pytest
 import dscjax
 import tuning
 from dscjax.cli.main import main
-from dscjax.config import SimOptions
+from dscjax.runspec import RunSpec
 from tuning import checkpoint as ck
 from tuning import report as tuning_report
 from tuning.runner import run
@@ -123,7 +123,7 @@ def small_problem():
         params=("controller.k",),
         optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1, save_interval=2),
         heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=2.0), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=2.0), cfg)
 
 
 def _with_steps(problem, steps):

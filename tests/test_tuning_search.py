@@ -24,7 +24,7 @@ import tuning
 import tuning.runner
 from dscjax import metrics
 from dscjax import search as box
-from dscjax.config import SimOptions
+from dscjax.runspec import RunSpec
 from dscjax.search import methods
 from tuning import report, search
 from tuning.objective import Scales
@@ -110,7 +110,7 @@ def _problem():
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
                               heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), SimOptions(t_final=1.0, dt=2e-3), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
 
 
 def _with(problem, **opt):

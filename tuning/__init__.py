@@ -2,7 +2,7 @@
 
     import dscjax, tuning
     setup = dscjax.paper_example()
-    problem = tuning.build_problem(setup, dscjax.config.SimOptions(), tuning.TuningConfig())
+    problem = tuning.build_problem(setup, dscjax.RunSpec.make(), tuning.TuningConfig())
     result = tuning.run(problem, out_dir="results/tune")
     result.best_setup
     tuning.adversarial.run(setup, options, config_with_rounds, out_dir)   # min-max tuning
@@ -17,7 +17,6 @@ from tuning.objective import (
     Objective,
     ObjectiveSpec,
     Scales,
-    SimSpec,
     TuningMetrics,
     aggregate,
 )
@@ -29,7 +28,7 @@ from tuning.runner import Problem, Result, build_problem, combine, run
 __all__ = [
     "AdversarialSpec", "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
     "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
-    "Selection", "SimSpec", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
+    "Selection", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
     "URate", "aggregate", "build_problem", "combine", "config_from_dict", "run",
     "value_and_grad",
 ]

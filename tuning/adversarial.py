@@ -7,7 +7,7 @@ start gains and for the tuned gains gives the evidence:
 
     cfg = TuningConfig(robust=BatchSpec(batch=8), adversarial=AdversarialSpec(
         rounds=2, disturbance="fourier:16:0.5"))
-    out = tuning.adversarial.run(setup, SimOptions(), cfg, out_dir="results/adv")
+    out = tuning.adversarial.run(setup, RunSpec.make(), cfg, out_dir="results/adv")
     out.result.best_setup, out.fresh["start"]["value"], out.fresh["tuned"]["value"]
 
 Round r searches with seed `seed + r`; the fresh searches with `seed + FRESH_SEED`, the same
@@ -36,8 +36,8 @@ import jax
 import numpy as np
 
 from dscjax import files, worst
-from dscjax.config import SimOptions
 from dscjax.progress import critical
+from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning import runner
@@ -62,7 +62,7 @@ class Outcome:
                 "train_sizes": [r["train_size"] for r in self.rounds]}
 
 
-def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Problem:
+def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
     """The worst-case problem of [tuning.adversarial] at the gains of `setup`."""
     spec = cfg.adversarial
     ranges = (spec.ranges if spec.ranges is not None
@@ -73,13 +73,10 @@ def search_problem(setup, options: SimOptions, cfg: TuningConfig) -> worst.Probl
             raise ConfigError(f"tuning.adversarial.ranges: {r.param.path} is tuned, it cannot "
                               f"be searched too")
     return worst.make_problem(setup, list(ranges), spec.disturbance, metric=spec.metric,
-                              t_final=options.t_final, dt=options.dt,
-                              window_start=options.window_start,
-                              state_bound=options.state_bound, solver=options.solver,
-                              refine=options.refine, field="tuning.adversarial.ranges")
+                              spec=options, field="tuning.adversarial.ranges")
 
 
-def search_worst(setup, options: SimOptions, cfg: TuningConfig, seed: int,
+def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
                  out_dir: Path | None = None) -> worst.Result:
     """The worst case of [tuning.adversarial] for the gains of `setup`: a search of
     `search_time` seconds (or `search_evals` evaluations, if that comes first) by `method`
@@ -157,7 +154,7 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
     return meta
 
 
-def run(setup, options: SimOptions, cfg: TuningConfig, out_dir: str | Path | None = None, *,
+def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None = None, *,
         resume: bool = False, overwrite: bool = False,
         progress: Callable[[dict], None] | None = None,
         say: Callable[[str], None] | None = None) -> Outcome:

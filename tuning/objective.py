@@ -49,6 +49,7 @@ import numpy as np
 from dscjax import params, validation
 from dscjax.closed_loop import Setup
 from dscjax.metrics import step_weights
+from dscjax.runspec import RunSpec
 from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
@@ -212,24 +213,6 @@ class ObjectiveSpec:
 
 
 @dataclasses.dataclass(frozen=True)
-class SimSpec:
-    """Run settings of every simulation of the objective (static: they fix array sizes)."""
-
-    t_final: float = 20.0
-    dt: float = 1e-3
-    window_start: float = 1.0
-    state_bound: float = 1e6
-    checkpoint_every: int | None = None
-    gradient: str = "time_parallel"  # one plant: see dscjax.simulate.run; "autodiff" = JAX's own
-    solver: str = "rk4"  # "etdrk4" for stiff loops (simulation.solver); gradients stay exact
-
-    @property
-    def n_steps(self) -> int:
-        return int(round(self.t_final / self.dt))
-
-
-
-@dataclasses.dataclass(frozen=True)
 class Scales:
     """The start gains' figures on the nominal plant, used to normalise the terms, and the
     bounds: on the nominal plant (u_max, tv_max) and, with effort_bounds = "per_plant", on
@@ -263,18 +246,20 @@ class Scales:
         return tuple(out)
 
 
-def simulate_metrics(setup: Setup, sim: SimSpec, extra: TuningMetrics | None,
+def simulate_metrics(setup: Setup, sim: RunSpec, extra: TuningMetrics | None,
                      overrides: Mapping[str, Any] | None = None,
                      checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
-    """(metrics, diverged) of one plant (or a batch with overrides), traceable."""
-    traj = run(setup, sim.dt, sim.window_start, sim.state_bound, n_steps=sim.n_steps,
-               save_every=sim.n_steps, overrides=dict(overrides) if overrides else None,
-               checkpoint_every=checkpoint_every or sim.checkpoint_every, extra=extra,
-               gradient=sim.gradient, solver=sim.solver)
+    """(metrics, diverged) of one plant (or a batch with overrides), traceable. `sim` keeps
+    only the first and last points (save_every = n_steps); `checkpoint_every` replaces the
+    checkpoint segment of a batch's reverse-mode gradient."""
+    if checkpoint_every is not None:
+        sim = dataclasses.replace(sim, gradient=dataclasses.replace(sim.gradient,
+                                                                    every=checkpoint_every))
+    traj = run(setup, sim, overrides=dict(overrides) if overrides else None, extra=extra)
     return traj.metrics, traj.diverged
 
 
-def extra_for(spec: ObjectiveSpec, scales: Scales, sim: SimSpec, requirements=(),
+def extra_for(spec: ObjectiveSpec, scales: Scales, sim: RunSpec, requirements=(),
               dtype=jnp.float64) -> TuningMetrics:
     u_ref = scales.u_max if scales.u_max is not None else scales.max_u
     return TuningMetrics(
@@ -365,19 +350,19 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
-# one compilation per setup structure and SimSpec (adversarial tuning builds a problem a round)
-_start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None),
-                         static_argnames=("sim",))
+# one compilation per setup structure and run structure (adversarial tuning builds a problem
+# a round)
+_start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None))
 
 
-def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec,
+def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                  train: Mapping[str, Any] | None = None) -> Scales:
     """Figures of the start gains on the nominal plant (raises if they diverge there); with
     effort_bounds = "per_plant" and a training batch `train`, also the "start" bounds of
     each training plant: the start gains' exact max|u| and tv_max_factor x TV(u) (every RK4
     step) simulated on that plant, once (a plant on which the start diverges keeps the
     nominal bounds)."""
-    metrics, diverged = _start_metrics(setup, sim=sim)
+    metrics, diverged = _start_metrics(setup, sim)
     if bool(diverged):
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
                           "stable start (revise the gains, dt or tau)")
@@ -398,7 +383,7 @@ def start_scales(setup: Setup, sim: SimSpec, spec: ObjectiveSpec,
     tv_max = None if tv_max is None else float(tv_max)
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
-        mb, div = jax.device_get(_start_metrics(setup, sim=sim, overrides=dict(train)))
+        mb, div = jax.device_get(_start_metrics(setup, sim, overrides=dict(train)))
         div = np.asarray(div, bool)
         for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
                                            ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
@@ -423,7 +408,7 @@ class Objective:
     setup: Setup
     selection: Any
     spec: ObjectiveSpec
-    sim: SimSpec
+    sim: RunSpec  # how every plant is simulated (metrics only: save_every = n_steps)
     scales: Scales
     requirements: tuple = ()
     overrides: Mapping[str, Any] | None = None  # the training batch, {path: (B, ...)}

@@ -14,7 +14,7 @@ from dscjax import files, metrics, validation
 from dscjax.plotting import subplots
 from dscjax.ranges import assumption_warnings as with_ranges
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
-from dscjax.simulate import refine_rows, refinement_level, simulate_batch
+from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate_batch
 from tuning.objective import within
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
@@ -62,17 +62,15 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     finite divergence penalty)."""
     m = dict(m)
     m["refined"] = np.zeros(np.shape(m["diverged"]), np.int32)
-    opts, sim = problem.options, problem.objective.sim
-    if not np.any(m["diverged"]) or not opts.refine:
+    sim = problem.objective.sim
+    if not np.any(m["diverged"]) or not sim.refine:
         return m
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
     ov = {k: np.asarray(v) for k, v in overrides.items()}
 
     def level(j, idx):  # rows idx at refinement level j (level 0, the tuning's step, is m)
-        solver, halvings = refinement_level(j, opts.solver)
-        traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, opts.t_final,
-                              opts.dt / 2**halvings, window_start=sim.window_start,
-                              state_bound=opts.state_bound, refine=0, solver=solver)
+        spec = level_spec(sim, j).replace(refine=0)
+        traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, spec=spec)
         return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys}}
 
     # the exact metrics, those `simulate` reports (not J, not the smooth surrogates)
@@ -80,7 +78,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     keys = sorted(names.keys() & m.keys())
     rows = {"diverged": np.asarray(m["diverged"]).astype(bool),
             **{k: np.asarray(m[k], dtype=float) for k in keys}}
-    rows, levels = refine_rows(rows, lambda r: r["diverged"], level, opts.refine)
+    rows, levels = refine_rows(rows, lambda r: r["diverged"], level, counted_levels(sim))
     m.update(rows)
     m["refined"] = np.where(rows["diverged"], 0, levels).astype(np.int32)
     return m
@@ -204,18 +202,16 @@ def problem_sentence(problem) -> str:
 
 def trajectories(problem, z0, z1, save_every: int = 10):
     """The start and tuned loops on the nominal plant for the figures, saved every
-    `save_every` steps or more (at most `config.MAX_SAVED_POINTS` points)."""
-    from dscjax.config import SimOptions
+    `save_every` steps or more (at most `runspec.MAX_SAVED_POINTS` points)."""
+    from dscjax.runspec import auto_stride
     from dscjax.simulate import simulate
 
     sim = problem.objective.sim
-    save_every = max(save_every, SimOptions().save_stride(sim.n_steps))
+    spec = sim.replace(save_every=max(save_every, auto_stride(sim.n_steps)), refine=0)
     out = {}
     for tag, z in (("start", z0), ("tuned", z1)):
         setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-        out[tag] = simulate(setup, sim.t_final, sim.dt, save_every=save_every,
-                            window_start=sim.window_start, state_bound=sim.state_bound,
-                            throw=False, solver=sim.solver, refine=0)
+        out[tag] = simulate(setup, spec=spec, throw=False)
     return out
 
 

@@ -24,14 +24,14 @@ import numpy as np
 from dscjax import config as dconfig
 from dscjax import files, search
 from dscjax import ranges as rg
-from dscjax.config import SimOptions
+from dscjax.integrate import TimeParallel
 from dscjax.plant import PaperPlant
-from dscjax.progress import critical
 from dscjax.reference import SmoothStep
+from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Combined, Objective, SimSpec, start_scales
+from tuning.objective import Combined, Objective, start_scales
 from tuning.optimize import SEARCHES, choose_gradient
 from tuning.params import Selection
 from tuning.requirements import KINDS
@@ -49,7 +49,7 @@ class Problem:
     """Everything a run needs, built and validated (see `build_problem`)."""
 
     setup: Any
-    options: SimOptions
+    options: RunSpec  # the [simulation] table of the config (dtype float64)
     cfg: TuningConfig
     selection: Selection
     objective: Objective
@@ -82,7 +82,7 @@ class Problem:
             "optimizer": opt,
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
-            "sim": dataclasses.asdict(self.objective.sim),
+            "sim": self.objective.sim.describe(),
             "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
              if self.extra_plants else {}) | (
@@ -115,7 +115,7 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     return cfg
 
 
-def build_problem(setup, options: SimOptions, cfg: TuningConfig,
+def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                   extra_plants: dict | None = None) -> Problem:
     """Validate the tuning settings against the setup and build the objective.
 
@@ -123,8 +123,8 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     training batch (or the nominal plant, without one). Raises ConfigError (naming the field)
     on any bad setting.
     """
-    from dscjax.metrics import default_window
-    from dscjax.validation import validate_run, validate_setup
+    from dscjax.simulate import check
+    from dscjax.validation import validate_setup
 
     cfg.validate()
     validate_setup(setup)
@@ -132,8 +132,8 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     notes = []
     window = cfg.objective.window_start
     if window is None:
-        window = default_window(options.t_final, options.window_start)
-    validate_run(setup, options.t_final, options.dt, 1, window)
+        window = float(options.window_start)
+    check(setup, options)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
@@ -141,8 +141,9 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
     bounds = dict(cfg.bounds)
     if "controller.tau" in cfg.params and not any(k.startswith("controller.tau")
                                                    for k in bounds):
-        bounds["controller.tau"] = (TAU_MIN_STEPS * options.dt, None)
-        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} dt = {TAU_MIN_STEPS * options.dt:g} "
+        dt = float(options.dt)
+        bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
+        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} dt = {TAU_MIN_STEPS * dt:g} "
                      f"s by default (RK4 stability of the filters)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
     n_params = selection.size(setup)
@@ -151,8 +152,9 @@ def build_problem(setup, options: SimOptions, cfg: TuningConfig,
                            (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra,
                            cfg.robust.aggregate, cfg.robust.cvar_level)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
-    sim = SimSpec(t_final=options.t_final, dt=options.dt, window_start=float(window),
-                  state_bound=options.state_bound, checkpoint_every=ce, solver=options.solver)
+    sim = options.replace(save_every=options.n_steps, window_start=float(window),
+                          names={"window_start": "tuning.objective.window_start"})
+    sim = dataclasses.replace(sim, gradient=TimeParallel(every=ce))
     batches = {}
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
@@ -236,7 +238,7 @@ def combine(problems, how: str = "mean") -> Problem:
 
 def _sample(setup, b, field, options) -> dict:
     """{path: (batch, ...)}: the plants of a [tuning.robust] or [tuning.heldout] table."""
-    ranges = rg.check(b.ranges, setup, field, t_final=options.t_final, dt=options.dt)
+    ranges = rg.check(b.ranges, setup, field, t_final=options.t_final, dt=float(options.dt))
     return rg.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
 
@@ -467,8 +469,9 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
     files.write_json(out / "gains.json", gains_config(problem, z))
 
 
-def format_progress(row: dict) -> str:
-    """The figures of one iteration's row, for a progress display (dscjax.progress)."""
+def format_progress(row: dict, step: str = "lr") -> str:
+    """The figures of one iteration's row, for a progress display (dscjax.progress); `step`
+    names the step size's column (sigma for the CMA-ES methods)."""
     terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
     return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
             f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "

@@ -84,7 +84,7 @@ def grad_fn(problem):
 
     def one(flat):
         (loss, aux), g = value_and_grad(obj, unravel(flat), problem.mode,
-                                        obj.sim.checkpoint_every)
+                                        obj.sim.gradient.every)
         return {"loss": loss, "feasible": aux["feasible"], "n_diverged": aux["n_diverged"],
                 "linf_window": aux["linf_window"], "max_abs_u": aux["max_abs_u"],
                 "terms": aux["terms"], "grad": ravel_pytree(g)[0]}

@@ -105,9 +105,7 @@ def run(args) -> int:
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
                            requirement=requirement_of(args, setup),
-                           t_final=options.t_final, dt=options.dt,
-                           window_start=options.window_start, state_bound=options.state_bound,
-                           solver=options.solver, refine=options.refine, period=args.period)
+                           spec=options, period=args.period)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     check_search(problem, methods, starts=args.starts, batch=args.batch,
                  time_limit=args.time_limit, max_evals=args.max_evals,
