@@ -8,8 +8,8 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
 
 from dscjax import closed_loop, disturbance, metrics, params, xla
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
+from dscjax.config import order_n_example, paper_example
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
-from dscjax.examples import order_n_example, paper_example
 from dscjax.hysteresis import Backlash, closed_form
 from dscjax.integrate import ETDRK4, RK4, Checkpointed, Status, TimeParallel, integrate, rk4_step
 from dscjax.metrics import default_window

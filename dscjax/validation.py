@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+from collections.abc import Mapping
 
 import jax
 import numpy as np
@@ -168,11 +169,32 @@ def validate_shapes(setup) -> None:
             shape(getattr(model, name), f"{section}.{name}", expected, why)
 
 
-def finite_tree(obj, prefix: str) -> None:
-    from dscjax import params
+def numeric_paths(obj, prefix: str = "") -> list[str]:
+    """Every path to a traced leaf (array or float) below obj, in field order (an absent
+    optional model, None, has none)."""
+    out = []
+    if obj is None:
+        return out
+    if dataclasses.is_dataclass(obj):
+        for f in dataclasses.fields(obj):
+            if f.metadata.get("static"):
+                continue
+            out += numeric_paths(getattr(obj, f.name), f"{prefix}{f.name}.")
+    elif isinstance(obj, Mapping):
+        for k, v in obj.items():
+            out += numeric_paths(v, f"{prefix}{k}.")
+    else:
+        out.append(prefix[:-1])
+    return out
 
-    for path in params.numeric_paths(obj):
-        finite(params.get(obj, path), f"{prefix}.{path}")
+
+def finite_tree(obj, prefix: str) -> None:
+    """Every traced number below obj (a model) finite; ConfigError naming its config path."""
+    for path in numeric_paths(obj):
+        value = obj
+        for name in path.split("."):
+            value = value[name] if isinstance(value, Mapping) else getattr(value, name)
+        finite(value, f"{prefix}.{path}")
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:

@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     import dscjax
     import tuning
     from dscjax.files import write_json
-    from dscjax.ranges import parse_range
+    from dscjax.params import parse_range
     from dscjax.runspec import RunSpec
     from tuning import adversarial
 

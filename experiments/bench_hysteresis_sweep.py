@@ -21,8 +21,8 @@ import time
 import jax
 import numpy as np
 
-from dscjax import ranges as rg
-from dscjax.examples import example
+from dscjax import params
+from dscjax.config import example
 from dscjax.metrics import default_window
 from dscjax.sweep.device import Runner
 
@@ -43,8 +43,8 @@ def main():
     names = args.examples.split(",")
     for name in names:
         setup = example(name, dtype=np.float32)
-        ranges = [r.resolve(setup) for r in rg.default_ranges(setup)]
-        table = rg.sample_table(ranges, "uniform", args.plants, 0)
+        ranges = [r.resolve(setup) for r in params.default_ranges(setup)]
+        table = params.sample_table(ranges, "uniform", args.plants, 0)
         runner = Runner(setup, [r.param for r in ranges], n, DT,
                         default_window(args.t_final, None), 1e6, args.plants,
                         devices=jax.devices()[:1])

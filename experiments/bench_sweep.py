@@ -39,7 +39,7 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import dscjax  # noqa: E402
-from dscjax import ranges as rg  # noqa: E402
+from dscjax import params  # noqa: E402
 from dscjax.metrics import default_window  # noqa: E402
 from dscjax.sweep.device import METRICS, Runner  # noqa: E402
 
@@ -56,8 +56,8 @@ def _table(b, seed=0):
     """The default sweep's parameters, rounded to float32 so that float32 and float64 runs
     simulate the same plants."""
     setup = dscjax.paper_example()
-    ranges = [r.resolve(setup) for r in rg.default_ranges()]
-    table = rg.sample_table(ranges, "uniform", b, seed)
+    ranges = [r.resolve(setup) for r in params.default_ranges()]
+    table = params.sample_table(ranges, "uniform", b, seed)
     return ranges, table.astype(np.float32).astype(np.float64)
 
 

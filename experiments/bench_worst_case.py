@@ -43,7 +43,7 @@ def main(argv=None) -> int:
     jax.config.update("jax_enable_x64", True)
     import dscjax
     from dscjax.files import write_json
-    from dscjax.ranges import parse_range
+    from dscjax.params import parse_range
     from dscjax.worst import (
         DEFAULT_COARSENING,
         DEFAULT_STARTS,
@@ -51,7 +51,7 @@ def main(argv=None) -> int:
         make_problem,
         worst_case,
     )
-    from dscjax.worst_report import summary, write
+    from dscjax.worst.report import summary, write
 
     t_final = args.t_final or (5.0 if args.quick else 20.0)
     limit = args.time_limit or (15.0 if args.quick else 60.0)

@@ -10,7 +10,7 @@ from __future__ import annotations
 import jax
 import numpy as np
 
-from dscjax.examples import example
+from dscjax.config import example
 from dscjax.simulate import simulate
 
 

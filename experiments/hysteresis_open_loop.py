@@ -24,7 +24,7 @@ import numpy as np
 from scipy.integrate import solve_ivp
 
 from dscjax.cli.main import main as dscjax_main
-from dscjax.examples import example
+from dscjax.config import example
 
 A, OMEGA, T, DT = 3.5, 2.3, 6.0, 1e-3
 

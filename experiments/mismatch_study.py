@@ -51,14 +51,13 @@ METRIC = "linf_error_window"
 
 
 def plant(kind: str):
-    from dscjax.examples import hysteresis_example
+    from dscjax.config import hysteresis_example
 
     return hysteresis_example(kind)
 
 
 def ranges(kind: str):
-    from dscjax.params import Param
-    from dscjax.ranges import Range
+    from dscjax.params import Param, Range
 
     return tuple(Range(Param.parse(p), rel=SPREAD) for p in RANGES[kind])
 
@@ -174,7 +173,7 @@ def main():
 
     jax.config.update("jax_enable_x64", True)  # tuning in float64; sweeps cast to float32
     from dscjax import files
-    from dscjax.examples import paper_example
+    from dscjax.config import paper_example
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

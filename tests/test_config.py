@@ -105,7 +105,7 @@ def test_every_examples_printed_config_round_trips(name, tmp_path, capsys):
     assert main(["simulate", "--example", name, "--print-config"]) == 0
     text = capsys.readouterr().out
     setup, _ = config.from_dict(tomllib.loads(text))
-    assert _same(setup, dscjax.examples.example(name, dtype=np.float64))
+    assert _same(setup, dscjax.config.example(name, dtype=np.float64))
     if name in ("backstepping", "order-3"):
         (tmp_path / "c.toml").write_text(text)
         assert main(["simulate", "--config", str(tmp_path / "c.toml"), "--t-final", "0.05",

@@ -10,7 +10,7 @@ from scipy.integrate import solve_ivp
 import dscjax
 from dscjax import config, params
 from dscjax.cli.main import main
-from dscjax.examples import example
+from dscjax.config import example
 from dscjax.hysteresis import BoucWen, GeneralizedPI, PrandtlIshlinskii, open_loop, sine_loops
 from dscjax.validation import ConfigError, validate_setup
 
@@ -226,7 +226,7 @@ def test_hysteresis_command_writes_the_loop_and_refuses_bad_input(tmp_path, caps
 @pytest.fixture(scope="module")
 def pi_sweep():
     """One float64 grid over a scale of the whole weight vector p and one element r[3]."""
-    from dscjax.ranges import parse_range
+    from dscjax.params import parse_range
     from dscjax.sweep import SweepSettings, run_sweep
 
     setup = example("pi")
@@ -252,8 +252,7 @@ def test_sweeping_a_scale_or_an_element_equals_setting_it(pi_sweep):
 
 
 def test_scale_syntax_is_checked_by_the_one_parser(tmp_path, capsys):
-    from dscjax.params import Param
-    from dscjax.ranges import check, parse_range
+    from dscjax.params import Param, check, parse_range
 
     assert Param.parse("hysteresis.p*") == Param("hysteresis.p", scale=True)
     assert parse_range("hysteresis.p*=30%").resolve(example("pi")).low == pytest.approx(0.7)

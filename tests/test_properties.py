@@ -10,8 +10,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from dscjax.params import Param
-from dscjax.ranges import Range, from_table, parse_range
+from dscjax.params import Param, Range, from_table, parse_range
 from dscjax.validation import ConfigError
 
 FAST = settings(max_examples=100, deadline=None)

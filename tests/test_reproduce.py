@@ -15,7 +15,7 @@ from test_hysteresis_family import bouc_wen_reference
 import dscjax
 from dscjax import metrics
 from dscjax.cli.main import main
-from dscjax.examples import hysteresis_example
+from dscjax.config import hysteresis_example
 from dscjax.hysteresis import closed_form
 from dscjax.reproduce import (
     FAMILY,

@@ -17,8 +17,7 @@ import pytest
 import dscjax
 from dscjax import sweep
 from dscjax.cli.main import main as cli
-from dscjax.params import Param
-from dscjax.ranges import Range, sample_table
+from dscjax.params import Param, Range, sample_table
 from dscjax.sweep import SweepSettings, run_sweep
 
 T, DT = 0.5, 1e-3

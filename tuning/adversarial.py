@@ -92,7 +92,7 @@ def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
 
 def record(res: worst.Result) -> dict:
     """The worst case of a search as report.json gives it."""
-    from dscjax.worst_report import summary
+    from dscjax.worst.report import summary
 
     s = summary(res)
     return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",

@@ -29,7 +29,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from dscjax import validation
-from dscjax.ranges import default_ranges, flatten, from_table
+from dscjax.params import default_ranges, flatten, from_table
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
 from tuning.optimize import OptimizerSpec

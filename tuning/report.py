@@ -11,8 +11,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import files, metrics, validation
+from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
-from dscjax.ranges import assumption_warnings as with_ranges
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate_batch
 from tuning.objective import within

@@ -22,8 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config as dconfig
-from dscjax import files, search
-from dscjax import ranges as rg
+from dscjax import files, params, search
 from dscjax.integrate import TimeParallel
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
@@ -105,7 +104,7 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
 def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     """Batches left at the default ranges vary the setup's own hysteresis model's numbers
     (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
-    from dscjax.ranges import default_ranges
+    from dscjax.params import default_ranges
 
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
@@ -238,8 +237,8 @@ def combine(problems, how: str = "mean") -> Problem:
 
 def _sample(setup, b, field, options) -> dict:
     """{path: (batch, ...)}: the plants of a [tuning.robust] or [tuning.heldout] table."""
-    ranges = rg.check(b.ranges, setup, field, t_final=options.t_final, dt=float(options.dt))
-    return rg.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
+    ranges = params.check(b.ranges, setup, field, t_final=options.t_final, dt=float(options.dt))
+    return params.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
 
 def build_requirements(setup, table) -> tuple:

@@ -171,7 +171,7 @@ def print_config(setup, spec, *tables: str) -> None:
 
 def example_setup(args):
     """The Setup of --example (float64), the base every config is laid over."""
-    from dscjax.examples import example
+    from dscjax.config import example
 
     return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 

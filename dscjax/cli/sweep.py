@@ -41,7 +41,7 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
 
 
 def add_parser(sub):
-    from dscjax.ranges import DEFAULT_PATHS, DEFAULT_REL
+    from dscjax.params import DEFAULT_PATHS, DEFAULT_REL
     from dscjax.runspec import OPTIONS
     from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
 
@@ -119,7 +119,7 @@ def add_parser(sub):
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
     from dscjax import config
-    from dscjax.ranges import parse_range
+    from dscjax.params import parse_range
     from dscjax.sweep import SweepSettings, settings_from_dict
     from dscjax.validation import ConfigError, validate_setup
 
@@ -215,7 +215,7 @@ def run(args) -> int:
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
     from dscjax import files, params, sweep
-    from dscjax.ranges import assumption_warnings
+    from dscjax.params import assumption_warnings
     from dscjax.simulate import check, simulate
     from dscjax.validation import check_work
 

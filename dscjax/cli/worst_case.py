@@ -23,7 +23,7 @@ from dscjax.cli.common import (
     prepare_out,
     print_config,
 )
-from dscjax.worst_report import FIGURES
+from dscjax.worst.report import FIGURES
 
 MANIFEST = "worst_case.json"
 OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
@@ -95,11 +95,11 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax import files
+    from dscjax.params import parse_range
     from dscjax.progress import Progress
-    from dscjax.ranges import parse_range
     from dscjax.validation import ConfigError, check_work
     from dscjax.worst import best_value, check_search, make_problem, worst_case
-    from dscjax.worst_report import write
+    from dscjax.worst.report import write
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
     ranges = [parse_range(text) for text in (args.ranges or [])]

@@ -37,7 +37,7 @@ import numpy as np
 
 from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
-from dscjax.examples import order_n_example, paper_example
+from dscjax.config import order_n_example, paper_example
 from dscjax.reproduce import theory
 from dscjax.simulate import canonical, simulate
 from dscjax.validation import RK4_REAL_STABILITY, ConfigError

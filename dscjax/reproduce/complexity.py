@@ -40,8 +40,8 @@ import numpy as np
 
 from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
+from dscjax.config import order_n_example
 from dscjax.controllers.backstepping import with_backstepping
-from dscjax.examples import order_n_example
 from dscjax.plotting import subplots
 from dscjax.validation import ConfigError
 

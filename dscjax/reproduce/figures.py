@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import files
-from dscjax.examples import paper_example
+from dscjax.config import paper_example
 from dscjax.plotting import COLORS, hysteresis_loop, subplots
 from dscjax.reproduce.runs import LABELS, STYLE, estimates
 

@@ -10,8 +10,8 @@ from collections.abc import Callable, Sequence
 import jax
 import numpy as np
 
+from dscjax.config import hysteresis_example, paper_example
 from dscjax.controllers.backstepping import with_backstepping
-from dscjax.examples import hysteresis_example, paper_example
 from dscjax.hysteresis import sine_loops
 from dscjax.simulate import divergence_report, simulate
 

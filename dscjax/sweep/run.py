@@ -14,8 +14,8 @@ import jax
 import numpy as np
 
 from dscjax import config, files, params, validation
+from dscjax.params import sample_table
 from dscjax.progress import critical
-from dscjax.ranges import sample_table
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
 from dscjax.sweep.device import METRICS, Runner

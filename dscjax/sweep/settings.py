@@ -9,10 +9,8 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from dscjax import ranges as rg
-from dscjax import validation
-from dscjax.params import Param
-from dscjax.ranges import Range, default_ranges
+from dscjax import params, validation
+from dscjax.params import Param, Range, default_ranges
 from dscjax.validation import ConfigError
 
 Parallel = Literal["per_device", "spmd"]
@@ -43,7 +41,7 @@ class SweepSettings:
     """
 
     samples: int = 10_000
-    method: rg.Method = "uniform"
+    method: params.Method = "uniform"
     ranges: tuple[Range, ...] = ()
     seed: int = 0
     chunk: int | None = None
@@ -100,7 +98,7 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
         raise ConfigError("give either [sweep.ranges] or [sweep.grid], not both")
     for key, grid in (("ranges", False), ("grid", True)):
         if key in table:
-            changes["ranges"] = rg.from_table(table[key], f"sweep.{key}", grid)
+            changes["ranges"] = params.from_table(table[key], f"sweep.{key}", grid)
     if "grid" in table:
         if "samples" in table:
             raise ConfigError("sweep.samples cannot be used with [sweep.grid] (a grid's size "
@@ -123,7 +121,7 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     s = settings
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)
-    validation.one_of(s.method, "sweep.method", rg.METHODS)
+    validation.one_of(s.method, "sweep.method", params.METHODS)
     validation.one_of(s.dtype, "sweep.dtype", DTYPES)
     validation.one_of(s.parallel, "sweep.parallel", PARALLEL)
     if s.method != "grid":
@@ -137,7 +135,7 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     if s.method == "grid" and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method == "grid" else "sweep.ranges"
-    ranges = rg.check(s.ranges or default_ranges(setup), setup, field, grid=s.method == "grid",
+    ranges = params.check(s.ranges or default_ranges(setup), setup, field, grid=s.method == "grid",
                       t_final=t_final, dt=dt, window_start=window_start)
     if s.method != "grid" and len(ranges) == 0:
         raise ConfigError("sweep.ranges is empty")

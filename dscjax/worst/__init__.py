@@ -30,7 +30,6 @@ import numpy as np
 
 from dscjax import disturbance as dist_mod
 from dscjax import files, params, search, validation
-from dscjax import ranges as ranges_mod
 from dscjax.closed_loop import Setup
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, run, simulate
@@ -122,7 +121,7 @@ class Problem:
     """What a search maximises (see `make_problem`)."""
 
     setup: Setup  # the base setup, with a zero waveform of `disturbance` installed
-    ranges: tuple[ranges_mod.Range, ...]  # resolved (absolute bounds)
+    ranges: tuple[params.Range, ...]  # resolved (absolute bounds)
     disturbance: DisturbanceSpec | None
     metric: str
     spec: RunSpec  # how every candidate is simulated (metrics only: save_every = n_steps)
@@ -226,7 +225,7 @@ def _dtype(setup):
     return jnp.result_type(setup.plant.x0)
 
 
-def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
+def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
                  disturbance: DisturbanceSpec | str | None = None, *, metric: str = DEFAULT_METRIC,
                  spec: RunSpec | None = None, period: float | None = None,
                  field: str = "--range", requirement: Any = None, **run) -> Problem:
@@ -234,7 +233,7 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
 
     Args:
         setup: the closed loop (its values are the nominal point).
-        ranges: boxes of parameters, by config path (`dscjax.ranges`).
+        ranges: boxes of parameters, by config path (`dscjax.params`).
         disturbance: "fourier:K:D", "spline:K:D" or a `DisturbanceSpec`; None: no waveform.
         metric: one of `METRICS` (default the windowed L-inf of the tracking error), or
             "requirement:NAME": the violation margin of `requirement` (> 0: violated).
@@ -279,7 +278,7 @@ def make_problem(setup: Setup, ranges: Sequence[ranges_mod.Range] = (),
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance, "
                           f"not by a range")
-    resolved = ranges_mod.check(list(ranges), setup, field, t_final=t_final, dt=dt,
+    resolved = params.check(list(ranges), setup, field, t_final=t_final, dt=dt,
                                 window_start=window_start)
     if requirement is not None and hasattr(requirement, "n_steps"):
         requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
@@ -563,7 +562,7 @@ def _check_coarsening(coarsening: int, spec: RunSpec) -> None:
                           f"controller sample, sample_time/dt = {spec.sample_every}")
 
 
-def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str] = (),
+def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = (),
                disturbance: DisturbanceSpec | str | None = None, *,
                time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
@@ -605,7 +604,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[ranges_mod.Range | str
         >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
     """
     if not isinstance(problem, Problem):
-        problem = make_problem(problem, [ranges_mod.parse_range(r) if isinstance(r, str) else r
+        problem = make_problem(problem, [params.parse_range(r) if isinstance(r, str) else r
                                          for r in ranges], disturbance, **problem_options)
     elif ranges or disturbance is not None or problem_options:
         raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
