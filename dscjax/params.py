@@ -371,12 +371,12 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
     what RK4 can integrate) at either end.
     """
     check_columns([r.param for r in ranges], field)
-    seen = set()
+    seen: dict[str, None] = {}
     for r in ranges:
         f = f"{field}.{r.name}"
         if r.name in seen:
             raise ConfigError(f"{f} is given twice")
-        seen.add(r.name)
+        seen[r.name] = None
         value = r.param.check(setup, field)
         if r.param.index is None and np.shape(value) != ():
             raise ConfigError(f"{f}: {r.param.path} has shape {np.shape(value)}; vary one "

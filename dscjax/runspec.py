@@ -254,8 +254,11 @@ def _coerce(key: str, value, field: str):
         return value
     if key == "noise":
         return value
-    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
-        raise ConfigError(f"{field} must be a finite number (got {value!r})")
+    positive = key in ("t_final", "dt", "state_bound", "sample_time")
+    if (isinstance(value, bool) or not isinstance(value, int | float)
+            or not math.isfinite(value) or (positive and not value > 0)):
+        raise ConfigError(f"{field} must be a finite number{' > 0' if positive else ''} "
+                          f"(got {value!r})")
     return value
 
 

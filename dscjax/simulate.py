@@ -362,7 +362,7 @@ def simulate(
     if spec is None:
         spec = RunSpec.make(t_final, dt, save_every=save_every, window_start=window_start,
                             state_bound=state_bound, solver=solver, refine=refine,
-                            sample_time=sample_time, prefix="")
+                            sample_time=sample_time)
     setup = canonical(setup)
     check(setup, spec)
     if progress is not None:
@@ -468,10 +468,10 @@ def simulate_batch(
     if spec is None:
         if checkpoint_every is not None:
             validation.integer(checkpoint_every, "checkpoint_every", 1)
-        n_total = validation.whole_steps(t_final, dt, "t_final", "dt")
+        n_total = validation.whole_steps(t_final, dt)
         spec = RunSpec.make(t_final, dt, save_every=n_total if save_every is None else save_every,
                             window_start=window_start, state_bound=state_bound, solver=solver,
-                            refine=refine, sample_time=sample_time, prefix="",
+                            refine=refine, sample_time=sample_time,
                             gradient=TimeParallel(every=checkpoint_every))
     setup = canonical(setup)
     dtype = _dtype(setup)

@@ -265,7 +265,7 @@ def test_a_bad_setting_is_reported_before_any_banner(argv, wanted, tmp_path, cap
 def test_worst_vs_nominal_has_one_colour_per_case_and_a_legend_in_each_panel(tmp_path):
     from types import SimpleNamespace
 
-    from dscjax import worst_report
+    from dscjax.worst import report as worst_report
 
     t = np.linspace(0.0, 1.0, 11)
     nominal = SimpleNamespace(t=t, e=0.1 * t, u=t)
@@ -311,9 +311,17 @@ def test_a_json_config_with_every_key_once_still_loads(tmp_path):
 
 
 def test_refinement_stops_at_the_step_counter():
+    import dataclasses
+
+    from dscjax.integrate import solver
+    from dscjax.runspec import RunSpec
     from dscjax.simulate import counted_levels
 
-    assert counted_levels(20_000, 6) == 6  # ETDRK4 at dt, dt/2, ..., dt/32
-    assert counted_levels(validation.MAX_STEPS // 4, 6) == 3  # dt/4 still counts
-    assert counted_levels(validation.MAX_STEPS // 4, 6, "etdrk4") == 2
-    assert counted_levels(validation.MAX_STEPS, 6) == 1  # ETDRK4 at dt only
+    def levels(n_steps, name="rk4"):
+        return counted_levels(dataclasses.replace(RunSpec.make(refine=6), n_steps=n_steps,
+                                                  solver=solver(name)))
+
+    assert levels(20_000) == 6  # ETDRK4 at dt, dt/2, ..., dt/32
+    assert levels(validation.MAX_STEPS // 4) == 3  # dt/4 still counts
+    assert levels(validation.MAX_STEPS // 4, "etdrk4") == 2
+    assert levels(validation.MAX_STEPS) == 1  # ETDRK4 at dt only

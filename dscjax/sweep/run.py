@@ -109,7 +109,7 @@ def run_sweep(
     """
     settings = settings or SweepSettings()
     if spec is None:
-        spec = RunSpec.make(**run, prefix="")
+        spec = RunSpec.make(**run)
     elif run:
         raise TypeError("run_sweep: give spec or its fields, not both")
     validation.one_of(settings.dtype, "sweep.dtype", DTYPES)

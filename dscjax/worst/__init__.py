@@ -263,7 +263,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         raise ConfigError(f"--disturbance: plant.family {type(setup.plant).kind!r} takes no "
                           f"waveform (use paper or strict_feedback)")
     if spec is None:
-        spec = RunSpec.make(**run, prefix="")
+        spec = RunSpec.make(**run)
     elif run:
         raise TypeError("make_problem: give spec or its fields, not both")
     spec = spec.replace(save_every=spec.n_steps)
