@@ -171,20 +171,22 @@ class Tracking(eqx.Module):
 
 
 class Combined(eqx.Module):
-    """Several running reductions as one; their results are merged (each name prefixed)."""
+    """Several running reductions as one; their results are merged, each name prefixed."""
 
-    parts: tuple  # ((prefix, reduction), ...)
+    reductions: tuple  # the reductions (pytrees)
+    prefixes: tuple[str, ...] = eqx.field(static=True, default=())  # one per reduction
 
     def init(self, dtype):
-        return tuple(r.init(dtype) for _, r in self.parts)
+        return tuple(r.init(dtype) for r in self.reductions)
 
     def update(self, acc, k, t, y, obs, dt):
         return tuple(r.update(a, k, t, y, obs, dt)
-                     for (_, r), a in zip(self.parts, acc, strict=True))
+                     for r, a in zip(self.reductions, acc, strict=True))
 
     def finalize(self, acc, t_final) -> dict[str, Any]:
         out = {}
-        for (prefix, r), a in zip(self.parts, acc, strict=True):
+        prefixes = self.prefixes or ("",) * len(self.reductions)
+        for prefix, r, a in zip(prefixes, self.reductions, acc, strict=True):
             out |= {prefix + k: v for k, v in r.finalize(a, t_final).items()}
         return out
 

@@ -175,7 +175,7 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     spec = spec.for_dtype(dtype)
     red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
     if extra is not None:
-        red = m.Combined((("", red), ("", extra)))
+        red = m.Combined((red, extra))
     samp = None
     if spec.sampled:
         samp = (Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
