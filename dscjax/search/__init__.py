@@ -28,8 +28,8 @@ import numpy as np
 from dscjax import files
 from dscjax.progress import critical
 from dscjax.search.cma import ReplayCMA, require_cma
-from dscjax.search.methods import CMA, Context, Gradient, Random, Step, generator
-from dscjax.search.trace import Evaluation, Incumbent, Saved, Trace, load, order, save, take
+from dscjax.search.methods import CMA, Context, Gradient, Random, generator
+from dscjax.search.trace import Evaluation, Incumbent, Saved, Step, Trace, load, order, save, take
 
 
 class Problem(Protocol):

@@ -10,12 +10,12 @@ import dataclasses
 import functools
 import math
 import zlib
-from typing import Any, ClassVar, NamedTuple
+from typing import ClassVar, NamedTuple
 
 import numpy as np
 
 from dscjax.search.cma import ReplayCMA
-from dscjax.search.trace import Evaluation, Incumbent, order, take
+from dscjax.search.trace import Evaluation, Incumbent, Step, order, take
 from dscjax.validation import ConfigError
 
 # cma_path's line: LINE_POINTS step sizes sigma sqrt(n) geomspace(LINE_MIN, LINE_MAX) from the
@@ -32,21 +32,6 @@ class Context(NamedTuple):
     x0: np.ndarray  # (n,) the start point
     best: Incumbent  # the incumbent before this iteration
     min_delta: float
-
-
-class Step(NamedTuple):
-    """One iteration's outcome: the candidates evaluated and the method's next state."""
-
-    z: np.ndarray  # (B, n) every candidate evaluated, in order
-    ev: Evaluation
-    state: Any
-    start: int | None = None  # the row of the start point's evaluation (first iteration)
-    first: int = 0  # the first row of the iteration's own candidates (rows before: the start)
-    scale: float = math.nan  # CMA-ES's sigma, the gradient's step
-    notes: dict | None = None  # per-iteration figures for the history row
-    gradients: int = 0  # points whose gradient was taken
-    restarts: int = 0  # restarts in this iteration (the stall count starts again)
-    done: str | None = None  # the method's own end
 
 
 def generator(seed: int, name: str, iteration: int) -> np.random.Generator:
@@ -314,5 +299,5 @@ class Gradient:
 
 
 __all__ = ["BAD", "CMA", "LINE_GENERATIONS", "LINE_MAX", "LINE_MIN", "LINE_POINTS", "CMAState",
-           "Context", "Gradient", "GradientState", "Random", "Step", "generator",
+           "Context", "Gradient", "GradientState", "Random", "generator",
            "path_direction"]

@@ -9,15 +9,12 @@ import dataclasses
 import json
 import math
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from dscjax import files
 from dscjax.validation import ConfigError
-
-if TYPE_CHECKING:
-    from dscjax.search.methods import Step
 
 VERSION = 1
 TOP = 8  # best distinct points a trace keeps
@@ -63,6 +60,21 @@ class Incumbent(NamedTuple):
     loss: float = math.inf
     feasible: bool = False
     iteration: int = -1
+
+
+class Step(NamedTuple):
+    """One iteration's outcome: the candidates evaluated and the method's next state."""
+
+    z: np.ndarray  # (B, n) every candidate evaluated, in order
+    ev: Evaluation
+    state: Any
+    start: int | None = None  # the row of the start point's evaluation (first iteration)
+    first: int = 0  # the first row of the iteration's own candidates (rows before: the start)
+    scale: float = math.nan  # CMA-ES's sigma, the gradient's step
+    notes: dict | None = None  # per-iteration figures for the history row
+    gradients: int = 0  # points whose gradient was taken
+    restarts: int = 0  # restarts in this iteration (the stall count starts again)
+    done: str | None = None  # the method's own end
 
 
 def order(ev: Evaluation) -> np.ndarray:
