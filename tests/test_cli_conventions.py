@@ -207,6 +207,9 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
     (["tune", "--effort-bounds", "everywhere"],
      "dscjax tune: error: argument --effort-bounds: invalid choice: 'everywhere' (choose from "
      "'nominal', 'per_plant')"),
+    (["tune", "--method", "cma_grad"],  # a removed method
+     "dscjax tune: error: argument --method: invalid choice: 'cma_grad' (choose from "
+     "'cma_path', 'cma', 'adam')"),
     (["sweep", "--samples", "many"],
      "dscjax sweep: error: argument --samples: must be an integer >= 1 (got 'many')"),
     (["sweep", "--samples", "1.5"],

@@ -51,3 +51,104 @@ def test_bouc_wen_jump_is_the_closed_form_for_n_1(u_from, u_to, h, rel):
     # RK4 in u over JUMP_SUBSTEPS substeps: round-off for the steps of a sampled input
     # (|du| well below 1), O(du^4) for a step across the whole loop
     assert got == pytest.approx(want, rel=rel)
+
+
+# -- the sampled loop against an independent per-sample implementation -------------------------
+
+T_SHORT = 2.0
+
+
+@pytest.mark.parametrize("every, delay", [(1, 0), (5, 0), (2, 2)])
+def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, every, delay):
+    import reference_paper as ref
+
+    import dscjax
+
+    n = int(T_SHORT / 1e-3)
+    want, u_want = ref.sampled_rk4(ref.initial_state(), 1e-3, n, every, delay=delay)
+    spec = dscjax.RunSpec.make(T_SHORT, 1e-3, save_every=1, sample_time=every * 1e-3,
+                               delay=delay)
+    traj = dscjax.simulate(paper_setup, spec=spec)
+    # round-off of 2,000 steps of arithmetic done in another order: |x|, |u| ~ 1
+    np.testing.assert_allclose(np.asarray(traj.x), want[:, :2], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(traj.w), want[:, 2], rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(traj.u), u_want, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(traj.z)[:, 0], want[:, 3], rtol=0, atol=1e-9)
+    batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": np.array([0.8, 1.0])},
+                                  spec=spec)
+    np.testing.assert_allclose(np.asarray(batch.x[1]), want[:, :2], rtol=0, atol=1e-11)
+
+
+def test_the_sampled_output_tends_to_the_continuous_one_at_first_order(paper_setup):
+    import dscjax
+
+    dt, t_final = 1e-4, 2.0
+    cont = dscjax.simulate(paper_setup, t_final, dt, save_every=10)
+    window = np.asarray(cont.t) >= 1.0  # after the initial transient, whose fast modes
+    errors, steps = [], (32, 16, 8, 4, 2)  # are not resolved by the coarser samples
+    for every in steps:
+        s = dscjax.simulate(paper_setup, spec=dscjax.RunSpec.make(
+            t_final, dt, save_every=10, sample_time=every * dt))
+        y, y_cont = np.asarray(s.x)[:, 0], np.asarray(cont.x)[:, 0]
+        errors.append(float(np.max(np.abs(y - y_cont)[window])))
+    order = np.polyfit(np.log(np.asarray(steps) * dt), np.log(errors), 1)[0]
+    # a zero-order hold and one exponential-Euler step per sample: first order in Ts
+    assert abs(order - 1.0) < 0.1, (order, errors)
+
+
+def test_the_sampled_loop_has_an_exact_gradient(paper_setup):
+    import jax
+
+    import dscjax
+
+    spec = dscjax.RunSpec.make(1.0, 1e-3, save_every=100, sample_time=2e-3)
+
+    def l2(k):
+        s = dscjax.params.set(paper_setup, "controller.k", k)
+        return dscjax.simulate(s, spec=spec, throw=False).metrics["l2_error"]
+
+    k0 = np.asarray(paper_setup.controller.k)
+    g = np.asarray(jax.grad(l2)(k0))
+    h = 1e-6
+    fd = [(float(l2(k0 + h * e)) - float(l2(k0 - h * e))) / (2 * h) for e in np.eye(2)]
+    np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_measurement_noise_is_seeded(paper_setup):
+    import dscjax
+
+    def run(**kw):
+        return np.asarray(dscjax.simulate(paper_setup, spec=dscjax.RunSpec.make(
+            0.5, 1e-3, sample_time=1e-3, **kw)).u)
+
+    quiet = run()
+    np.testing.assert_array_equal(run(noise=0.0), quiet)  # std 0: the noiseless loop, exactly
+    a, b, c = run(noise=1e-3, noise_seed=1), run(noise=1e-3, noise_seed=1), run(
+        noise=1e-3, noise_seed=2)
+    np.testing.assert_array_equal(a, b)
+    assert np.max(np.abs(a - c)) > 1e-4 and np.max(np.abs(a - quiet)) > 1e-4
+
+
+@pytest.mark.parametrize("argv, line", [
+    (["--sample-time", "0.0015"], "--sample-time must be a whole multiple > 0 of simulation.dt "
+                                  "(got sample_time=0.0015, dt=0.001, ratio 1.5)"),
+    (["--sample-time", "0"], "argument --sample-time: must be a finite number > 0 (got '0')"),
+    (["--sample-time=-1e-3"], "argument --sample-time: must be a finite number > 0 "
+                              "(got '-1e-3')"),
+    (["--sample-time", "5", "--t-final", "2"], "--sample-time must be <= --t-final = 2 "
+                                               "(got 5)"),
+    (["--delay", "2"], "--delay applies to a sampled controller: give simulation.sample_time "
+                       "too"),
+])
+def test_bad_sample_times_are_one_line_and_exit_2(tmp_path, capsys, argv, line):
+    from dscjax.cli.main import main
+
+    out = tmp_path / "o"
+    try:
+        code = main(["simulate", *argv, "--out", str(out)])
+    except SystemExit as stop:  # argparse's own refusal
+        code = stop.code
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and line in err[0], err
+    assert not out.exists()
