@@ -147,8 +147,8 @@ def _frozen_unperturbed(setup):
 
 def _fd_error(setup, dt, t_final=1.0):
     """max |central difference of V(t) - dV/dt along the vector field| / max |dV/dt|."""
-    run = jax.jit(dscjax.run, static_argnames=("n_steps", "save_every"))
-    traj = run(setup, dt, 0.0, 1e6, n_steps=int(round(t_final / dt)), save_every=1)
+    spec = dscjax.RunSpec.make(t_final, dt, save_every=1, window_start=0.0)
+    traj = jax.jit(dscjax.run)(setup, spec)
     assert not bool(traj.diverged)
     V, V_dot = theory.lyapunov_rate(setup, traj)
     fd = (V[2:] - V[:-2]) / (2 * dt)

@@ -21,15 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from dscjax.cmaes import ReplayCMA
 
 import dscjax
+import dscjax.search.methods  # noqa: F401 (its path_direction is wrapped)
 import tuning
 import tuning.search
-from dscjax import files
+from dscjax import files, search
 from dscjax.cli.main import main
 from dscjax.progress import Abort, critical, handle_interrupts
 from dscjax.runspec import RunSpec
+from dscjax.search.cma import ReplayCMA
 from tuning.runner import run
 
 DSCJAX = str(Path(sys.executable).parent / "dscjax")  # the console script, as a user runs it
@@ -119,7 +120,9 @@ def test_a_refused_run_leaves_no_new_out_behind(tmp_path, capsys, monkeypatch):
     import importlib
 
     out = tmp_path / "new" / "deeper"
-    assert main(["simulate", "--t-final", "-1", "--out", str(out)]) == 2  # before any file
+    with pytest.raises(SystemExit) as stop:  # argparse's own refusal, before any file
+        main(["simulate", "--t-final", "-1", "--out", str(out)])
+    assert stop.value.code == 2
     assert not (tmp_path / "new").exists()
 
     def refuse(*a, **k):  # an error found after --out was made (the library's own checks)
@@ -234,7 +237,12 @@ def test_a_tuning_run_whose_disk_fills_says_so_in_one_line_and_resumes(tmp_path)
     def kept(out):  # the last checkpoint written whole, part of the way
         assert 1 <= json.loads((out / "checkpoint.json").read_text())["iteration"] < 12
 
-    _full_disk_then_resume(argv, out, 7700, "search.npz", kept)
+    # the limit: 80 % of the state file of the whole run, which grows by a history row per
+    # generation, so that some generations are saved whole before a write fails
+    ref = tmp_path / "ref"
+    assert main([*argv[:-1], str(ref)]) == 0
+    limit = int(0.8 * (ref / "search.npz").stat().st_size)
+    _full_disk_then_resume(argv, out, limit, "search.npz", kept)
     report = json.loads((out / "report.json").read_text())
     assert report["run"]["iterations"] == 12
     assert [r["iteration"] for r in tuning.checkpoint.read_history(out / "history.csv")] == \
@@ -247,9 +255,8 @@ STEPS = 4  # generations of the uninterrupted run; the interrupts land in genera
 
 
 def _search_problem():
-    spec = tuning.OptimizerSpec(name="cma_grad", steps=STEPS, save_interval=1, popsize=4,
-                                line_points=3, background_compile=False, time_limit=None,
-                                gradient="forward")
+    spec = tuning.OptimizerSpec(name="cma_path", steps=STEPS, save_interval=1, popsize=4,
+                                time_limit=None, gradient="forward")
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
                               heldout=tuning.BatchSpec(batch=0))
@@ -263,7 +270,8 @@ def search_problem():
 
 @pytest.fixture(scope="module")
 def straight(search_problem, tmp_path_factory):
-    return run(search_problem, tmp_path_factory.mktemp("straight"))
+    out = tmp_path_factory.mktemp("straight")
+    return run(search_problem, out), out
 
 
 def _ctrl_c(times: int = 1) -> None:
@@ -299,9 +307,11 @@ def _in_generation(monkeypatch, where: str, generation: int, times: int = 1):
     if where == "ask":  # a population asked, not told yet
         wrap(ReplayCMA, "ask", before=False)
     elif where == "simulate":
-        wrap(tuning.search.Search, "_eval")
-    elif where == "gradient":  # the line's exact gradient
-        wrap(tuning.search.Search, "_gradient")
+        wrap(tuning.search.TuneProblem, "evaluate")
+    elif where == "line":  # the direction of cma_path's line, from CMA-ES's evolution path
+        wrap(search.methods, "path_direction")
+    elif where == "gradient":  # adam's exact gradient
+        wrap(tuning.search.TuneProblem, "value_and_grad")
     elif where == "tell":  # told, before the injection, the incumbent and the counters
         wrap(ReplayCMA, "tell", before=False)
     elif where == "checkpoint":  # inside the write of the state file
@@ -309,7 +319,17 @@ def _in_generation(monkeypatch, where: str, generation: int, times: int = 1):
     return counting
 
 
-@pytest.mark.parametrize("where", ["ask", "simulate", "gradient", "tell", "checkpoint",
+def _same_search(out, other):
+    """The two runs' final states, read back from their state files: equal bitwise."""
+    a, b = search.load(out / "search.npz"), search.load(other / "search.npz")
+    np.testing.assert_array_equal(a.trace.best_z, b.trace.best_z)
+    assert a.trace.evaluations == b.trace.evaluations
+    assert a.arrays.keys() == b.arrays.keys()
+    for key, value in b.arrays.items():
+        np.testing.assert_array_equal(a.arrays[key], value, err_msg=key)
+
+
+@pytest.mark.parametrize("where", ["ask", "simulate", "line", "tell", "checkpoint",
                                    "progress"])
 def test_ctrl_c_anywhere_in_a_generation_saves_a_whole_state_that_resumes_exactly(
         where, search_problem, straight, tmp_path, monkeypatch):
@@ -328,11 +348,8 @@ def test_ctrl_c_anywhere_in_a_generation_saves_a_whole_state_that_resumes_exactl
     assert (meta["iteration"], meta["stop_reason"]) == (2, "interrupted")  # generation 1 done
     _no_temporary_files(out)
     again = run(search_problem, out, resume=True)
-    assert again.resumed_from == 2 and again.state.iteration == STEPS
-    np.testing.assert_array_equal(again.state.best_flat, straight.state.best_flat)
-    assert again.state.evaluations == straight.state.evaluations
-    for key, value in straight.state.cma.arrays().items():
-        np.testing.assert_array_equal(again.state.cma.arrays()[key], value)
+    assert again.resumed_from == 2 and again.trace.iterations == STEPS
+    _same_search(out, straight[1])
 
 
 def test_a_second_ctrl_c_stops_at_once_keeping_the_last_checkpoint(search_problem, straight,
@@ -346,34 +363,29 @@ def test_a_second_ctrl_c_stops_at_once_keeping_the_last_checkpoint(search_proble
     assert "Ctrl-C again stops at once, without saving" in capsys.readouterr().err
     meta = json.loads((out / "checkpoint.json").read_text())
     assert (meta["iteration"], meta["stop_reason"]) == (2, None)  # generation 1's, as it was
-    again = run(search_problem, out, resume=True)
-    np.testing.assert_array_equal(again.state.best_flat, straight.state.best_flat)
+    run(search_problem, out, resume=True)
+    _same_search(out, straight[1])
 
 
-def test_the_optax_loop_finishes_its_iteration_and_checkpoint_on_ctrl_c(tmp_path):
+def test_adam_finishes_its_iteration_and_checkpoint_on_ctrl_c(tmp_path, monkeypatch):
     cfg = tuning.TuningConfig(
         params=("controller.k",),
         optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1,
-                                       save_interval=10, decay_steps=20, gradient="forward"),
+                                       save_interval=10, gradient="forward"),
         heldout=tuning.BatchSpec(batch=0))
     problem = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=0.5, dt=2e-3),
                                    cfg)
-    full = run(problem, tmp_path / "full")
-
-    def hook(state, rep):  # inside iteration 1, after its step
-        if int(state.iteration) == 2:
-            _ctrl_c()
-        return rep
-
+    run(problem, tmp_path / "full")
+    counting = _in_generation(monkeypatch, "gradient", generation=1)  # inside iteration 1
     with handle_interrupts(), pytest.raises(KeyboardInterrupt):
-        run(problem, tmp_path / "cut", step_hook=hook)
+        run(problem, tmp_path / "cut", progress=counting)
+    monkeypatch.undo()
     meta = json.loads((tmp_path / "cut" / "checkpoint.json").read_text())
     assert (meta["iteration"], meta["stop_reason"]) == (2, "interrupted")
     rows = tuning.checkpoint.read_history(tmp_path / "cut" / "history.csv")
     assert [r["iteration"] for r in rows] == [0, 1]
-    again = run(problem, tmp_path / "cut", resume=True)
-    np.testing.assert_array_equal(np.asarray(again.state.z["controller.k"]),
-                                  np.asarray(full.state.z["controller.k"]))
+    run(problem, tmp_path / "cut", resume=True)
+    _same_search(tmp_path / "cut", tmp_path / "full")
 
 
 def test_without_the_command_nothing_is_deferred_and_no_handler_is_left():

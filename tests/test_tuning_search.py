@@ -152,13 +152,13 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
 
     seen = []
 
-    def spy(*args, **kwargs):
-        seen.append((kwargs["solver"], kwargs["gradient"]))
+    def spy(setup, spec, **kwargs):
+        seen.append((spec.solver.name, spec.gradient.name))
         raise Seen
 
     monkeypatch.setattr(tuning.objective, "run", spy)
     p = problems["cma_path"]
-    sim = dataclasses.replace(p.objective.sim, solver="etdrk4")
+    sim = p.objective.sim.replace(solver="etdrk4")
     q = dataclasses.replace(p, objective=dataclasses.replace(p.objective, sim=sim))
     flat = jnp.asarray(ravel_pytree(q.z0)[0])[None]
     for program in (search.batch_fn(q), search.grad_fn(q)):
