@@ -107,7 +107,8 @@ def main(argv=None) -> int:
     rss = median([r.peak_rss_mib for r in runs])
     bench.add(case=f"peak RSS, {what} [MiB]", dscjax=rss, baseline=f"{few:,} plants",
               baseline_value=rss_few, x_baseline=rss / rss_few)
-    bench.note(f"End to end: median of {repeats} fresh processes (`dscjax sweep --samples "
+    runs_word = f"median of {repeats} fresh processes" if repeats > 1 else "one fresh process"
+    bench.note(f"End to end: {runs_word} (`dscjax sweep --samples "
                f"{samples} --t-final {horizon:g}`, DSCJAX_NO_COMPILATION_CACHE=1); "
                f"{summary['n_diverged']} of {samples:,} plants diverged. scipy: the median "
                "plant's seconds times the plants.")
