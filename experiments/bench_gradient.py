@@ -31,7 +31,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, child, median, parser  # noqa: E402
+from harness import Bench, child, median, parser, positive  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
@@ -117,8 +117,8 @@ def main(argv=None) -> int:
     if argv[:1] == ["--child"]:
         return batch_child(argv[1:])
     p = parser(__doc__)
-    p.add_argument("--repeats", type=int, default=None, help="timed calls per case")
-    p.add_argument("--memory-limit-gib", type=float, default=8.0)
+    p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
+    p.add_argument("--memory-limit-gib", type=positive(float), default=8.0)
     a = p.parse_args(argv)
     quick = a.quick
     t_final, batch = (2.0, 16) if quick else (20.0, 256)

@@ -27,7 +27,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from harness import Bench, median, parser  # noqa: E402
+from harness import Bench, median, parser, positive  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
@@ -82,8 +82,9 @@ def sign_test(wins: int, losses: int) -> float:
 def main(argv=None) -> int:
     p = parser(__doc__)
     p.add_argument("--problem", choices=("default", "robust"), default="default")
-    p.add_argument("--seeds", type=int, default=None, help="seeds 0 .. N-1 (default 9; 2 quick)")
-    p.add_argument("--budget", type=float, default=None,
+    p.add_argument("--seeds", type=positive(), default=None,
+                   help="seeds 0 .. N-1 (default 9; 2 quick)")
+    p.add_argument("--budget", type=positive(float), default=None,
                    help="seconds of wall time per method and seed, compilation included "
                    "(default 100; 10 quick)")
     a = p.parse_args(argv)

@@ -18,7 +18,7 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from harness import Bench, median, parser  # noqa: E402
+from harness import Bench, median, parser, positive  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax.ranges import parse_range  # noqa: E402
@@ -40,8 +40,9 @@ LABELS = {"gradient": f"gradient ascent (M = {DEFAULT_STARTS}, gradients at "
 
 def main(argv=None) -> int:
     p = parser(__doc__)
-    p.add_argument("--time-limit", type=float, default=None, help="search seconds per method")
-    p.add_argument("--seeds", type=int, default=None, help="seeds 0 .. N-1 (medians)")
+    p.add_argument("--time-limit", type=positive(float), default=None,
+                   help="search seconds per method")
+    p.add_argument("--seeds", type=positive(), default=None, help="seeds 0 .. N-1 (medians)")
     a = p.parse_args(argv)
     quick = a.quick
     t_final = 2.0 if quick else 20.0

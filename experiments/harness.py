@@ -44,6 +44,22 @@ def parser(doc: str) -> argparse.ArgumentParser:
     return p
 
 
+def positive(kind=int):
+    """An argparse type: an integer (kind=int) or a finite number > 0, else the option's one-line
+    error naming the range and the value (exit 2)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value > 0 or value != value or value == float("inf"):
+            what = "an integer" if kind is int else "a finite number"
+            raise argparse.ArgumentTypeError(f"must be {what} > 0 (got {text!r})")
+        return value
+
+    return parse
+
+
 def reference_loop():
     """The independent plain-Python loop of the paper's example (tests/reference_paper.py),
     the baseline of scipy's solve_ivp, loaded by its path (sys.path is left alone)."""
