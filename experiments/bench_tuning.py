@@ -28,6 +28,7 @@ jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
 from harness import Bench, median, parser, positive  # noqa: E402
+from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
@@ -96,8 +97,6 @@ def main(argv=None) -> int:
                   "problem", quick=quick)
     problem = build(a.problem, t_final, 16 if quick else 256)
     per_plant = jax.jit(problem.objective.per_plant)
-    from jax.flatten_util import ravel_pytree
-
     unravel = ravel_pytree(problem.z0)[1]
     start = figures(problem, per_plant, problem.z0)
     runs = {m: [] for m in METHODS}
