@@ -1,31 +1,20 @@
-"""Benchmark of the simulator core (issue 2): the paper's example, 20 s at dt = 1e-3.
+"""The simulator core: the paper's example, 20 s at dt = 1e-3 (20,000 RK4 steps).
 
-Everything is measured in ONE run on this machine, as ratios against baselines timed in the
-same run, medians of several repetitions after compilation:
+    python experiments/bench_core.py            # full sizes (docs/benchmarks.md)
+    python experiments/bench_core.py --quick    # 2 s, small batches: JSON only
 
-- single trajectory: dscjax (full trajectory saved; metrics only) against scipy solve_ivp
-  (RK45, rtol 1e-6) on the same closed loop (the independent numpy implementation of
-  tests/reference_paper.py), and diffrax with a classical RK4 tableau on dscjax's vector field
-  at the same dt (if diffrax is installed: `pip install -e ".[bench]"`);
-- batched throughput in closed-loop RK4 steps per second, vmap over the hysteresis
-  parameters, float32 and float64, batch 1 ... 32768; also plain `jax.vmap(simulate)`;
-- compile time, and whether changing a gain recompiles.
-
-    python experiments/bench_core.py            # full (~10 min on 2 cores)
-    python experiments/bench_core.py --quick    # smoke run (~1 min)
-
-Prints a table and writes JSON (default results/bench_core.json).
+One trajectory (float64; every step saved, and metrics only) against scipy's solve_ivp (RK45,
+rtol 1e-6) on the independent plain-Python loop of tests/reference_paper.py, and against diffrax
+with the same RK4 tableau and dt on dscjax's vector field; batched throughput in closed-loop
+RK4 steps per second against the batch size, float32 and float64 (hysteresis alpha, lam, psi
++-30 %), against the same program without 512-bit vectors (on AVX-512 CPUs) and against plain
+`jax.vmap`; the compile time; whether changing a gain recompiles. The compiled programs are
+timed alone (`simulate._simulate`, `_simulate_batch`: no host-side checks).
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import platform
-import sys
 import time
-from pathlib import Path
 
 import jax
 
@@ -33,44 +22,33 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from harness import Bench, median, parser, positive, reference_loop  # noqa: E402
 
 import dscjax  # noqa: E402
-from dscjax import params  # noqa: E402
-from dscjax.simulate import _simulate, _simulate_batch  # noqa: E402
+from dscjax import params, xla  # noqa: E402
+from dscjax.runspec import RunSpec  # noqa: E402
+from dscjax.simulate import _run_reported, _simulate, _simulate_batch, canonical  # noqa: E402
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-import reference_paper  # noqa: E402
-
-T_FINAL, DT = 20.0, 1e-3
-N_STEPS = int(round(T_FINAL / DT))
+DT = 1e-3
 
 
-def median_time(fn, repeats):
-    out = fn()
-    jax.block_until_ready(out)
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return float(np.median(times)), times
+def spec(t_final: float, save_every: int | None = None) -> RunSpec:
+    n = int(round(t_final / DT))
+    return RunSpec.make(t_final, DT, save_every=save_every or n)
 
 
-def bench_scipy(repeats):
+def scipy_run(t_final: float):
     from scipy.integrate import solve_ivp
 
-    x0 = reference_paper.initial_state()
-    times, nfev = [], 0
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sol = solve_ivp(reference_paper.rhs, (0.0, T_FINAL), x0, method="RK45", rtol=1e-6)
-        times.append(time.perf_counter() - t0)
-        nfev = sol.nfev
-    return float(np.median(times)), nfev
+    ref = reference_loop()
+    x0 = ref.initial_state()
+    return lambda: solve_ivp(ref.rhs, (0.0, t_final), x0, method="RK45", rtol=1e-6)
 
 
-def bench_diffrax(setup, repeats):
+def diffrax_run(setup, t_final: float):
+    """diffrax's diffeqsolve with the classical RK4 tableau at dt on dscjax's vector field (the
+    last state only), its largest difference from dscjax's last state and diffrax's version;
+    None without diffrax (`pip install -e ".[bench]"`)."""
     try:
         import diffrax
     except ImportError:
@@ -81,11 +59,9 @@ def bench_diffrax(setup, repeats):
 
     class RK4(diffrax.AbstractERK):
         tableau = diffrax.ButcherTableau(
-            c=np.array([0.5, 0.5, 1.0]),
-            b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+            c=np.array([0.5, 0.5, 1.0]), b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
             b_error=np.zeros(4),
-            a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])),
-        )
+            a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])))
         interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
 
         def order(self, terms):
@@ -93,160 +69,124 @@ def bench_diffrax(setup, repeats):
 
     s = prepared(setup)
     y0, unravel = ravel_pytree(initial_state(s))
-
-    def field(t, y, args):
-        return ravel_pytree(vector_field(t, unravel(y), args)[0])[0]
+    n = int(round(t_final / DT))
 
     @jax.jit
     def solve(args, y0):
-        sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(field), RK4(), t0=0.0, t1=T_FINAL, dt0=DT, y0=y0, args=args,
+        def field(t, y, args):
+            return ravel_pytree(vector_field(t, unravel(y), args)[0])[0]
+
+        return diffrax.diffeqsolve(
+            diffrax.ODETerm(field), RK4(), t0=0.0, t1=t_final, dt0=DT, y0=y0, args=args,
             saveat=diffrax.SaveAt(t1=True), stepsize_controller=diffrax.ConstantStepSize(),
-            max_steps=N_STEPS + 10)
-        return sol.ys
+            max_steps=n + 10).ys
 
-    t_med, _ = median_time(lambda: solve(s, y0), repeats)
-    # same trajectory as dscjax (same tableau and grid; diffrax forms t_k by summation)
-    ours = dscjax.simulate(setup, T_FINAL, DT, save_every=N_STEPS)
+    ours = dscjax.simulate(setup, t_final, DT, save_every=n)
     diff = float(jnp.max(jnp.abs(solve(s, y0)[-1][:2] - ours.x[-1])))
-    return t_med, diff
+    return (lambda: solve(s, y0)), diff, diffrax.__version__
 
 
-def bench_single(setup, repeats):
-    full, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=N_STEPS,
-                                            save_every=1), repeats)
-    only, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=N_STEPS,
-                                            save_every=N_STEPS), repeats)
-    return full, only
-
-
-def bench_compile(setup):
-    """Wall time of a first call (trace + compile + run) at a step count not used before."""
-    n = N_STEPS - 1000
+def compile_and_recompile(setup, t_final: float) -> tuple[float, bool]:
+    """Seconds of tracing and compiling a simulation at a step count not used before (first
+    call minus a later call), and whether changing a gain recompiled."""
+    sp = spec(t_final - 0.5)
     t0 = time.perf_counter()
-    jax.block_until_ready(_simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n))
+    jax.block_until_ready(_simulate(setup, sp, None, None))
     first = time.perf_counter() - t0
-    run, _ = median_time(lambda: _simulate(setup, DT, 1.0, 1e6, n_steps=n, save_every=n), 3)
-    jax.block_until_ready(dscjax.simulate(setup, T_FINAL - 1.0, DT, save_every=n).x)
+    runs = []
+    for _ in range(3):
+        t0 = time.perf_counter()
+        jax.block_until_ready(_simulate(setup, sp, None, None))
+        runs.append(time.perf_counter() - t0)
     size = _simulate._cache_size()
     for k1 in (8.0, 9.0, 11.0):
-        s = params.set(setup, "controller.k", np.array([k1, 0.5]))
-        jax.block_until_ready(dscjax.simulate(s, T_FINAL - 1.0, DT, save_every=n).x)
-    recompiled = _simulate._cache_size() != size
-    return first - run, recompiled
+        changed = params.set(setup, "controller.k", np.array([k1, 0.5]))
+        jax.block_until_ready(dscjax.simulate(changed, spec=sp).x)
+    return first - median(runs), _simulate._cache_size() != size
 
 
-def bench_batch(dtype, sizes, repeats, horizon):
-    setup = dscjax.paper_example(dtype=dtype)
-    n = int(round(horizon / DT))
-    rows = []
-    for b in sizes:
-        rng = np.random.default_rng(0)
-        over = {
-            "hysteresis.alpha": jnp.asarray(rng.uniform(0.7, 1.3, b), dtype),
+def hysteresis_batch(b: int, dtype) -> dict:
+    rng = np.random.default_rng(0)
+    return {"hysteresis.alpha": jnp.asarray(rng.uniform(0.7, 1.3, b), dtype),
             "hysteresis.lam": jnp.asarray(rng.uniform(1.0, 1.86, b), dtype),
-            "hysteresis.psi": jnp.asarray(rng.uniform(0.0735, 0.1365, b), dtype),
-        }
-
-        def run(over=over):
-            return _simulate_batch(setup, over, DT, 1.0, 1e6, n_steps=n, save_every=n).metrics
-
-        t0 = time.perf_counter()
-        jax.block_until_ready(run())
-        first = time.perf_counter() - t0
-        reps = repeats if b * n <= 2e8 else max(2, repeats // 2)
-        t_med, _ = median_time(run, reps)
-        rows.append(dict(batch=b, dtype=np.dtype(dtype).name, seconds=t_med,
-                         steps_per_s=b * n / t_med, first_call_s=first))
-        print(f"  {np.dtype(dtype).name:8s} B={b:6d}  {b * n / t_med:10.3g} steps/s "
-              f"({t_med:.3f} s per run)", flush=True)
-    return rows
+            "hysteresis.psi": jnp.asarray(rng.uniform(0.0735, 0.1365, b), dtype)}
 
 
-def bench_plain_vmap(dtype, b, repeats, horizon):
-    """jax.vmap of the single-trajectory simulation (batch-first layout), for comparison."""
-    setup = dscjax.paper_example(dtype=dtype)
-    n = int(round(horizon / DT))
-    alphas = jnp.asarray(np.linspace(0.7, 1.3, b), dtype)
-    from dscjax.simulate import run
+def batched(bench: Bench, dtype, b: int, horizon: float, reps: int, wide: bool, vmap: bool
+            ) -> dict[str, float]:
+    """Steps per second of `simulate_batch`'s program on B plants, and of its baselines: the
+    same program without 512-bit vectors (`wide`) and plain jax.vmap of `run` (`vmap`)."""
+    setup = canonical(dscjax.paper_example(dtype=dtype))
+    sp = spec(horizon)
+    over = hysteresis_batch(b, dtype)
+    runs = {"dscjax": lambda: _simulate_batch(setup, sp, over).metrics}
+    if wide:
+        narrow = jax.jit(_run_reported)
+        runs["256-bit"] = lambda: narrow(setup, sp, over).metrics
+    if vmap:
+        plain = jax.jit(jax.vmap(lambda a: _run_reported(
+            params.set(setup, "hysteresis.alpha", a), sp).metrics))
+        runs["vmap"] = lambda: plain(over["hysteresis.alpha"])
+    steps = b * sp.n_steps
+    return {k: steps / median(v) for k, v in bench.interleaved(runs, reps).items()}
 
-    @jax.jit
-    def batched(alphas):
-        return jax.vmap(lambda a: run(params.set(setup, "hysteresis.alpha", a), DT, 1.0, 1e6,
-                                      n_steps=n, save_every=n).metrics)(alphas)
 
-    t_med, _ = median_time(lambda: batched(alphas), repeats)
-    return b * n / t_med
-
-
-def main(argv=None):
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--quick", action="store_true", help="small batches, few repeats")
-    p.add_argument("--out", default=str(ROOT / "results" / "bench_core.json"))
-    p.add_argument("--repeats", type=int, default=None)
+def main(argv=None) -> int:
+    p = parser(__doc__)
+    p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
     a = p.parse_args(argv)
-    repeats = a.repeats or (3 if a.quick else 7)
-    setup = dscjax.paper_example()
+    quick = a.quick
+    repeats = a.repeats or (3 if quick else 7)
+    t_final = 2.0 if quick else 20.0
+    horizon = 0.5 if quick else 20.0  # of the batched runs
+    sizes = (64, 1024) if quick else (1, 64, 1024, 8192, 32768)
+    vmap_size = 1024 if quick else 8192
+    n, n_batch = int(round(t_final / DT)), int(round(horizon / DT))
+    bench = Bench("core", "The simulator core", quick=quick)
+    setup = canonical(dscjax.paper_example())
 
-    print(f"dscjax core benchmark: paper example, T = {T_FINAL} s, dt = {DT}, "
-          f"{N_STEPS} RK4 steps; {os.cpu_count()} CPUs, jax {jax.__version__}; XLA_FLAGS "
-          f"{os.environ.get('XLA_FLAGS', '')!r}", flush=True)
-    compile_s, recompiled = bench_compile(setup)
-    full, only = bench_single(setup, repeats)
-    sc, nfev = bench_scipy(max(3, repeats // 2))
-    dx = bench_diffrax(setup, repeats)
-    print(f"  single: dscjax {full * 1e3:.1f} ms (every step saved), {only * 1e3:.1f} ms "
-          f"(metrics only); scipy RK45 {sc * 1e3:.1f} ms ({nfev} evaluations)"
-          + (f"; diffrax RK4 {dx[0] * 1e3:.1f} ms" if dx else "; diffrax not installed"),
-          flush=True)
+    compile_s, recompiled = compile_and_recompile(setup, t_final)
+    every, only = spec(t_final, 1), spec(t_final)
+    cases = {"every step saved": lambda: _simulate(setup, every, None, None),
+             "metrics only": lambda: _simulate(setup, only, None, None),
+             "scipy": scipy_run(t_final)}
+    dx = diffrax_run(setup, t_final)
+    if dx is not None:
+        cases["diffrax"] = dx[0]
+    ms = {k: 1e3 * median(v) for k, v in bench.interleaved(cases, repeats).items()}
+    what = f"one trajectory, float64, {n:,} steps [ms]"
+    for case in ("every step saved", "metrics only"):
+        bench.add(case=f"{what}, {case}", dscjax=ms[case], baseline="scipy RK45, rtol 1e-6",
+                  baseline_value=ms["scipy"], x_baseline=ms["scipy"] / ms[case])
+    if dx is not None:
+        bench.add(case=f"{what}, metrics only", dscjax=ms["metrics only"],
+                  baseline="diffrax, same RK4 tableau and dt", baseline_value=ms["diffrax"],
+                  x_baseline=ms["diffrax"] / ms["metrics only"])
+        bench.note(f"diffrax {dx[2]} and dscjax agree to {dx[1]:.1e} in the last state.")
+    else:
+        bench.note("diffrax is not installed (`pip install -e \".[bench]\"`): no diffrax row.")
 
-    sizes = [1, 64, 1024, 8192] if a.quick else [1, 8, 64, 512, 2048, 8192, 16384, 32768]
-    horizon = 2.0 if a.quick else T_FINAL
-    batch = []
+    wide = bool(xla.compiler_options())
     for dtype in (np.float32, np.float64):
-        batch += bench_batch(dtype, sizes, repeats, horizon)
-    plain = {np.dtype(d).name: bench_plain_vmap(d, 8192, max(2, repeats // 2), 2.0)
-             for d in (np.float32, np.float64)}
-
-    best = {d: max((r for r in batch if r["dtype"] == d), key=lambda r: r["steps_per_s"])
-            for d in ("float32", "float64")}
-    result = dict(
-        machine=dict(cpus=os.cpu_count(), platform=platform.platform(), jax=jax.__version__,
-                     python=platform.python_version(),
-                     xla_flags=os.environ.get("XLA_FLAGS", "")),
-        settings=dict(t_final=T_FINAL, dt=DT, steps=N_STEPS, repeats=repeats, quick=a.quick,
-                      batch_horizon_s=horizon),
-        single=dict(dscjax_full_s=full, dscjax_metrics_only_s=only, scipy_rk45_s=sc,
-                    scipy_nfev=nfev, speedup_vs_scipy_full=sc / full,
-                    speedup_vs_scipy_metrics_only=sc / only,
-                    diffrax_rk4_s=dx[0] if dx else None,
-                    diffrax_max_abs_diff=dx[1] if dx else None,
-                    speedup_vs_diffrax=(dx[0] / only) if dx else None),
-        compile=dict(compile_s=compile_s, gain_change_recompiles=recompiled),
-        batch=batch, best=best, plain_jax_vmap_steps_per_s_B8192=plain,
-        targets=dict(single_speedup_vs_scipy=25.0, float32_steps_per_s=3e7,
-                     float64_steps_per_s=1.5e7),
-    )
-    print("\n| measure | value | target |\n|---|---|---|")
-    print(f"| single run vs scipy RK45 (every step saved) | {sc / full:.1f}x "
-          f"({full * 1e3:.1f} vs {sc * 1e3:.0f} ms) | >= 25x |")
-    print(f"| single run vs scipy RK45 (metrics only) | {sc / only:.1f}x ({only * 1e3:.1f} ms) | "
-          f">= 25x |")
-    if dx:
-        print(f"| single run vs diffrax RK4 (same tableau, dt) | {dx[0] / only:.1f}x "
-              f"({dx[0] * 1e3:.1f} ms; max |dx| {dx[1]:.1e}) | - |")
-    for d, target in (("float32", 3e7), ("float64", 1.5e7)):
-        r = best[d]
-        print(f"| batched {d}, best batch {r['batch']} | {r['steps_per_s']:.3g} steps/s | "
-              f">= {target:.1e} |")
-        print(f"| plain jax.vmap(simulate) {d}, B=8192 | {plain[d]:.3g} steps/s | - |")
-    print(f"| compile time (trace + XLA) | {compile_s:.2f} s | - |")
-    print(f"| changing a gain recompiles | {'yes' if recompiled else 'no'} | no |")
-    out = Path(a.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=2) + "\n")
-    print(f"\nwrote {out}")
+        for b in sizes:
+            rate = batched(bench, dtype, b, horizon, reps=repeats if b * n_batch <= 2e8 else
+                           max(2, repeats // 2), wide=wide, vmap=b == vmap_size)
+            case = f"batched, {np.dtype(dtype).name}, B = {b:,}, {n_batch:,} steps [steps/s]"
+            print(f"  {case}: {rate['dscjax']:.3g}", flush=True)
+            for key, label in (("256-bit", "256-bit vectors"), ("vmap", "plain jax.vmap of run")):
+                if key in rate:
+                    bench.add(case=case, dscjax=rate["dscjax"], baseline=label,
+                              baseline_value=rate[key], x_baseline=rate["dscjax"] / rate[key])
+            if len(rate) == 1:
+                bench.add(case=case, dscjax=rate["dscjax"])
+    if not wide:
+        bench.note("This CPU has no AVX-512 (or XLA_FLAGS sets the vector width): the batched "
+                   "programs are compiled without 512-bit vectors, and no row compares them.")
+    bench.add(case="compile time of a simulation [s]", dscjax=compile_s)
+    bench.add(case="changing a gain recompiles", dscjax="yes" if recompiled else "no")
+    bench.finish()
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -10,16 +10,20 @@ Cases are run in turn (A B C A B C ...) after one warm-up call each (compilation
 of the shared machine's speed hits every case alike; ratios against a baseline are taken from
 medians measured in the same run. The load average is read before and after and written beside
 every figure. `quick` (the suite's CI mode) marks the results as a smoke run: they are printed
-and written to JSON but never to docs/benchmarks.md.
+and written to JSON but never to docs/benchmarks.md. `child` runs a command in a fresh process
+and measures its wall time and peak RSS (start-up, compilation and memory of a whole command).
 """
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import datetime
 import json
 import os
 import platform
 import statistics
+import subprocess
 import sys
 import time
 from collections.abc import Callable, Mapping
@@ -28,6 +32,44 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 DOC = ROOT / "docs" / "benchmarks.md"
 RESULTS = ROOT / "results" / "bench"
+# New sections go above this heading of docs/benchmarks.md (the deleted studies stay last).
+STUDIES = "## Studies that left the suite"
+
+
+def parser(doc: str) -> argparse.ArgumentParser:
+    """A benchmark's argument parser (its description the first line of `doc`), with --quick."""
+    p = argparse.ArgumentParser(description=doc.splitlines()[0])
+    p.add_argument("--quick", action="store_true",
+                   help="small sizes, a minute or two; results to JSON only, not to the docs")
+    return p
+
+
+def positive(kind=int):
+    """An argparse type: an integer (kind=int) or a finite number > 0, else the option's one-line
+    error naming the range and the value (exit 2)."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            value = None
+        if value is None or not value > 0 or value != value or value == float("inf"):
+            what = "an integer" if kind is int else "a finite number"
+            raise argparse.ArgumentTypeError(f"must be {what} > 0 (got {text!r})")
+        return value
+
+    return parse
+
+
+def reference_loop():
+    """The independent plain-Python loop of the paper's example (tests/reference_paper.py),
+    the baseline of scipy's solve_ivp, loaded by its path (sys.path is left alone)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "reference_paper", ROOT / "tests" / "reference_paper.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
 
 
 def median(values) -> float:
@@ -62,11 +104,63 @@ def machine() -> dict:
     devices = jax.devices()
     return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
             "jax": jax.__version__, "backend": jax.default_backend(),
-            "devices": [f"{d.platform}:{getattr(d, 'device_kind', '')}" for d in devices]}
+            "devices": f"{len(devices)} x {devices[0].device_kind}"}
 
 
 def load() -> float:
     return os.getloadavg()[0]
+
+
+@dataclasses.dataclass
+class Child:
+    """A command run in a fresh process (`child`)."""
+
+    returncode: int
+    wall_s: float
+    peak_rss_mib: float  # its own high-water mark, also when it was killed
+    stdout: str
+    stderr: str
+    killed: bool  # stopped because its resident memory passed the limit
+
+
+# A small process that forks the command, kills it past a resident memory of argv[1] MiB and
+# reports its peak RSS from wait4. A command forked by the benchmark itself would report the
+# benchmark's own peak: Linux carries the high-water mark of the forking process into exec.
+_LAUNCHER = """
+import os, sys, time
+limit, argv = float(sys.argv[1]), sys.argv[2:]
+pid = os.fork()
+if pid == 0:
+    os.execvp(argv[0], argv)
+killed = False
+while True:
+    done, status, usage = os.wait4(pid, os.WNOHANG)
+    if done:
+        break
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            rss = [float(x.split()[1]) / 1024 for x in f if x.startswith("VmRSS:")]
+    except OSError:
+        rss = []
+    if limit > 0 and not killed and rss and rss[0] > limit:
+        os.kill(pid, 9)
+        killed = True
+    time.sleep(0.05)
+sys.stderr.write(f"\\nharness: peak {usage.ru_maxrss / 1024} killed {int(killed)}\\n")
+sys.exit(os.waitstatus_to_exitcode(status))
+"""
+
+
+def child(argv, *, env=None, limit_mib: float | None = None) -> Child:
+    """Run `argv` in a fresh process: its wall time (start-up included) and peak RSS; it is
+    killed once its resident memory passes `limit_mib` (checked every 50 ms)."""
+    cmd = [sys.executable, "-c", _LAUNCHER, str(limit_mib or 0), *map(str, argv)]
+    t0 = time.perf_counter()
+    proc = subprocess.run(cmd, env=env, capture_output=True, text=True)
+    wall = time.perf_counter() - t0
+    head, _, tail = proc.stderr.rpartition("\nharness: peak ")
+    peak, killed = tail.split()[0], tail.split()[2] == "1"
+    return Child(proc.returncode, wall, float(peak), proc.stdout, head, killed)
 
 
 class Bench:
@@ -98,6 +192,10 @@ class Bench:
         self.loads.append(load())
         return times
 
+    def read_load(self) -> None:
+        """Read the load average now (beside the reads of `interleaved` and `finish`)."""
+        self.loads.append(load())
+
     def add(self, **row) -> None:
         """One row of the table (its keys are the columns, in order)."""
         self.rows.append(row)
@@ -111,7 +209,8 @@ class Bench:
         if not self.rows:
             return ""
         cols = list(dict.fromkeys(k for r in self.rows for k in r))
-        lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+        lines = ["| " + " | ".join(c.replace("_", " ") for c in cols) + " |",
+                 "|" + "---|" * len(cols)]
         for r in self.rows:
             lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
         return "\n".join(lines)
@@ -120,7 +219,7 @@ class Bench:
         m = machine()
         loads = f"{min(self.loads):.1f}-{max(self.loads):.1f}"
         return (f"Measured {self.started:%Y-%m-%d} on {m['cpu']} ({m['cores']} cores, "
-                f"{m['backend']}: {', '.join(m['devices'])}), load average {loads}, jax "
+                f"{m['backend']}: {m['devices']}), load average {loads}, jax "
                 f"{m['jax']}: `{self.command}`")
 
     def finish(self) -> dict:
@@ -145,18 +244,20 @@ class Bench:
 
 
 def write_section(name: str, title: str, text: str, doc: Path = DOC) -> None:
-    """Replace (or append) the benchmark's section of docs/benchmarks.md, between its markers."""
+    """Replace the benchmark's section of docs/benchmarks.md, between its markers; a new one
+    goes above the deleted studies' section (or at the end)."""
     begin, end = f"<!-- bench:{name} -->", f"<!-- /bench:{name} -->"
     body = f"{begin}\n## {title}\n\n{text}\n{end}"
     old = doc.read_text() if doc.exists() else "# Benchmarks\n"
     if begin in old and end in old:
         new = old[:old.index(begin)] + body + old[old.index(end) + len(end):]
+    elif f"\n{STUDIES}" in old:
+        i = old.index(f"\n{STUDIES}") + 1
+        new = old[:i] + body + "\n\n" + old[i:]
     else:
         new = old.rstrip("\n") + "\n\n" + body + "\n"
     doc.write_text(new)
 
 
 def _fmt(v) -> str:
-    if isinstance(v, float):
-        return f"{v:.3g}" if abs(v) < 1e4 else f"{v:.3e}"
-    return str(v)
+    return f"{v:.3g}" if isinstance(v, float) else str(v)

@@ -5,6 +5,13 @@ control law (74)-(78), the adaptive laws (17), (29), (31), (32), the filter (18)
 (73) and the hysteresis (4), with u' derived by hand with the chain rule.
 
 State X = [x1, x2, w, z2, theta_g1, theta_2, phi_1, zeta, d_hat].
+
+As a command, it re-simulates the gains of a config of the paper's example (the gains.json of
+`dscjax tune`) by classical RK4 on the same grid and prints the windowed L-inf error, max|u|
+and TV(u); beside a tuning run's report.json also the start gains', dscjax's own figures and
+the problem's bounds; --corners adds the held-out box's 8 corners at dt and dt/10:
+
+    python tests/reference_paper.py results/tune/gains.json [--corners]
 """
 
 from __future__ import annotations
@@ -181,3 +188,132 @@ def sampled_rk4(X0, dt, n_steps, every, p=P, delay=0):
         k4 = plant(t + dt, x + dt * k3)
         X[:2] = x + (dt / 6.0) * (k1 + 2.0 * (k2 + k3) + k4)
     return out, us
+
+
+# -- the command: a config's gains re-simulated -------------------------------------------------
+
+# The parts of the paper's example this loop hard-codes: a config must have these values.
+FIXED = {"controller.kind": "dsc", "controller.variant": "full", "controller.robust_term": "sat",
+         "controller.init": "paper", "hysteresis.kind": "backlash", "hysteresis.smooth": False,
+         "plant.family": "paper", "plant.rho1": 0.2, "plant.rho2": 0.1, "plant.delta1": 0.2,
+         "plant.delta2": 0.1, "plant.delta_freq": 1.0, "plant.dbar_amp": 0.0,
+         "plant.dbar_bias": 0.0, "reference.kind": "sine", "reference.amplitude": 1.0,
+         "reference.frequency": 1.0, "reference.phase": 0.0, "reference.offset": 0.0}
+
+
+class Refused(Exception):
+    """A config this loop does not implement (one line for the user)."""
+
+
+def params_of(cfg: dict) -> dict:
+    """This loop's parameters for a config (a dscjax config dict) of the paper's example."""
+    for path, value in FIXED.items():
+        section, key = path.split(".")
+        got = cfg.get(section, {}).get(key, value)
+        if got != value:
+            raise Refused(f"{path} must be {value!r} here: this loop implements the paper's "
+                          f"example only (got {got!r})")
+    c, h, pl = cfg["controller"], cfg["hysteresis"], cfg["plant"]
+    g, th = pl["g"], pl["theta"]
+    return dict(P, g1=g[0], g2=g[1], th1=th[0], th2=th[1], alpha=h["alpha"], lam=h["lam"],
+                psi=h["psi"], k1=c["k"][0], k2=c["k"][1], gam_g1=c["gamma_g"][0],
+                gam_g2=c["gamma_g"][1], gam_phi=c["gamma_phi"][0], gam_z=c["gamma_zeta"],
+                gam_d=c["gamma_d"], eta1=c["eta"][0], eta2=c["eta"][1], eta_z=c["eta_zeta"],
+                eta_d=c["eta_d"], sigma=c["sigma"][0], eps=c["eps"], gmin=c["g_min"],
+                tau=c["tau"][0], c2=c["c"][0], width=c["sat_width"])
+
+
+def figures(cfg: dict, t_final: float, dt: float, window_start: float) -> dict:
+    """Windowed L-inf of e on [window_start, T], max|u| and TV(u) = sum |u_(k+1) - u_k| over
+    the step grid; {"finite": False} if the run blows up."""
+    p, c, pl = params_of(cfg), cfg["controller"], cfg["plant"]
+    est = (c["theta_hat0"][0], c["theta_hat0"][1], c["phi_hat0"][0], c["zeta_hat0"],
+           c["d_hat0"])
+    n = int(round(t_final / dt))
+    try:
+        with np.errstate(all="ignore"):
+            X = rk4(initial_state(p, x0=tuple(pl["x0"]), w0=cfg["hysteresis"]["w0"], est=est),
+                    dt, n, p)
+            t = np.arange(n + 1) * dt
+            u = np.array([rhs(tk, Xk, p, full=True)[1]["u"] for tk, Xk in zip(t, X,
+                                                                             strict=True)])
+    except (ValueError, OverflowError):  # math raises where the run overflows
+        return {"finite": False}
+    if not np.all(np.isfinite(X)):
+        return {"finite": False}
+    keep = t >= window_start - 1e-12
+    return {"finite": True,
+            "linf_error_window": float(np.max(np.abs(X[keep, 0] - np.sin(t[keep])))),
+            "max_abs_u": float(np.max(np.abs(u))), "tv_u": float(np.sum(np.abs(np.diff(u))))}
+
+
+def _line(name: str, f: dict, dscjax_figures: dict | None = None) -> str:
+    if not f["finite"]:
+        return f"{name}: blows up"
+    out = (f"{name}: L-inf {f['linf_error_window']:.6g}, max|u| {f['max_abs_u']:.6g}, "
+           f"TV(u) {f['tv_u']:.6g}")
+    if dscjax_figures:
+        rel = [abs(f[k] - dscjax_figures[k]) / abs(dscjax_figures[k])
+               for k in ("linf_error_window", "max_abs_u", "tv_u") if dscjax_figures.get(k)]
+        out += f" (dscjax's report: largest relative difference {max(rel):.1e})"
+    return out
+
+
+def main(argv=None) -> int:
+    import argparse
+    import json
+    import sys
+    from pathlib import Path
+
+    ap = argparse.ArgumentParser(
+        prog="reference_paper.py", description="Re-simulate the gains of a config of the "
+        "paper's example (e.g. the gains.json of dscjax tune) in this independent loop.")
+    ap.add_argument("gains", help="a JSON config of the paper's example")
+    ap.add_argument("--corners", action="store_true",
+                    help="also the corners of the held-out box (alpha, lam, psi +-30 %%) at dt "
+                    "and dt/10")
+    a = ap.parse_args(argv)
+    path = Path(a.gains)
+    try:
+        cfg = json.loads(path.read_text())
+        sim = cfg.get("simulation", {})
+        t_final, dt = float(sim.get("t_final", 20.0)), float(sim.get("dt", 1e-3))
+        window = sim.get("window_start")
+        window = (1.0 if t_final > 1.0 else 0.0) if window is None else float(window)
+        tuned = figures(cfg, t_final, dt, window)
+        report_path = path.with_name("report.json")
+        report = json.loads(report_path.read_text()) if report_path.exists() else None
+        start = None
+        if report is not None:
+            start = figures(report["settings"]["setup"], t_final, dt, window)
+    except (OSError, ValueError, KeyError, TypeError, Refused) as err:
+        what = f"missing key {err}" if isinstance(err, KeyError) else str(err)
+        print(f"reference_paper.py: error: {path}: {what}", file=sys.stderr)
+        return 2
+    nominal = (report or {}).get("nominal", {})
+    print(f"{path}: T = {t_final:g} s, dt = {dt:g}, windowed L-inf on [{window:g} s, T]")
+    print(_line("gains", tuned, nominal.get("tuned")))
+    if start is not None and start["finite"] and tuned["finite"]:
+        factor = report["settings"]["objective"].get("tv_max_factor", 1.5)
+        print(_line("start gains", start, nominal.get("start")))
+        print(f"L-inf {start['linf_error_window'] / tuned['linf_error_window']:.4g}x lower; "
+              f"max|u| {tuned['max_abs_u']:.6g} <= {start['max_abs_u']:.6g}: "
+              f"{tuned['max_abs_u'] <= start['max_abs_u'] * (1 + 1e-9)}; TV(u) "
+              f"{tuned['tv_u']:.6g} <= {factor:g} x {start['tv_u']:.6g}: "
+              f"{tuned['tv_u'] <= factor * start['tv_u'] * (1 + 1e-9)}")
+    if a.corners:
+        h = cfg["hysteresis"]
+        for fa in (0.7, 1.3):
+            for fl in (0.7, 1.3):
+                for fp in (0.7, 1.3):
+                    c = json.loads(json.dumps(cfg))
+                    c["hysteresis"].update(alpha=fa * h["alpha"], lam=fl * h["lam"],
+                                           psi=fp * h["psi"])
+                    runs = [_line(f"dt {d:g}", figures(c, t_final, d, window))
+                            for d in (dt, dt / 10)]
+                    print(f"corner alpha x{fa:g}, lam x{fl:g}, psi x{fp:g}: " + "; ".join(runs))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -6,6 +6,10 @@ tolerance: agreement within RK4's own error at dt = 1e-3 over 20 s.
 """
 
 import dataclasses
+import json
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +17,8 @@ import reference_paper as ref
 from scipy.integrate import solve_ivp
 
 import dscjax
+from dscjax import config
+from dscjax.runspec import RunSpec
 
 
 def _stack(traj):
@@ -107,3 +113,37 @@ def test_smooth_surrogates_recover_fourth_order(paper_setup):
         orders[smooth] = np.polyfit(np.log(dts), np.log(errs), 1)[0]
     assert 3.4 < orders[True] < 4.6, orders
     assert orders[False] < 2.0, orders
+
+
+def _reference_command(*argv):
+    script = Path(ref.__file__)
+    return subprocess.run([sys.executable, str(script), *map(str, argv)], capture_output=True,
+                          text=True, timeout=300)
+
+
+def test_reference_command_resimulates_a_configs_gains(paper_setup, tmp_path):
+    """`python tests/reference_paper.py GAINS.json` (the independent check of tuned gains)
+    prints the windowed L-inf, max|u| and TV(u) of dscjax's own run of that config."""
+    setup = dataclasses.replace(paper_setup, controller=dataclasses.replace(
+        paper_setup.controller, k=np.array([12.0, 0.6])))
+    gains = tmp_path / "gains.json"
+    gains.write_text(json.dumps(config.to_dict(setup, RunSpec.make(1.5, 1e-3))))
+    proc = _reference_command(gains)
+    assert proc.returncode == 0, proc.stderr
+    line = next(x for x in proc.stdout.splitlines() if x.startswith("gains: "))
+    printed = [float(v.split()[-1]) for v in line.removeprefix("gains: ").split(", ")]
+    m = dscjax.simulate(setup, 1.5, 1e-3).metrics
+    expected = [float(m[k]) for k in ("linf_error_window", "max_abs_u", "tv_u")]
+    np.testing.assert_allclose(printed, expected, rtol=1e-5)
+
+
+def test_reference_command_refuses_what_it_does_not_implement(paper_setup, tmp_path):
+    cfg = config.to_dict(paper_setup, RunSpec.make(1.5, 1e-3))
+    cfg["plant"]["rho1"] = 0.3
+    gains = tmp_path / "gains.json"
+    gains.write_text(json.dumps(cfg))
+    proc = _reference_command(gains)
+    assert proc.returncode == 2
+    assert proc.stderr == (f"reference_paper.py: error: {gains}: plant.rho1 must be 0.2 here: "
+                           "this loop implements the paper's example only (got 0.3)\n")
+    assert proc.stdout == ""

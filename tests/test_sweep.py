@@ -295,8 +295,8 @@ def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
     # the window [0.25, 0.5] s (its windowed error used to read 0.0). With --refine 0 it is
     # reported diverged; by default it is re-run with ETDRK4 and tracks.
     grid = ["sweep", "--grid", "hysteresis.alpha=1:10:2", "--grid", "hysteresis.lam=0.15:3:2",
-            "--float64", "--t-final", str(T), "--window-start", "0.25", "--worst", "1", "--random", "0",
-            "--no-plot"]
+            "--float64", "--t-final", str(T), "--window-start", "0.25", "--worst", "1",
+            "--random", "0", "--no-plot"]
     out = tmp_path / "div"
     code = cli([*grid, "--refine", "0", "--out", str(out)])
     captured = capsys.readouterr()
