@@ -120,8 +120,13 @@ class TuningConfig:
     heldout: BatchSpec = BatchSpec(batch=256, seed=12345)
     requirements: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
     adversarial: AdversarialSpec = AdversarialSpec()
+    # The deployable constraint: the gains must track with the controller sampled at this
+    # period, a zero-order hold between samples (None: no constraint). See docs/tuning.md.
+    sample_time: float | None = 1e-3
 
     def validate(self) -> None:
+        if self.sample_time is not None:
+            validation.finite_positive(self.sample_time, "tuning.sample_time")
         self.objective.validate()
         self.optimizer.validate()
         self.robust.validate("tuning.robust")
@@ -130,7 +135,7 @@ class TuningConfig:
 
 
 TOP_KEYS = ("params", "freeze", "bounds", "transforms", "objective", "optimizer", "robust",
-            "heldout", "requirements", "adversarial")
+            "heldout", "requirements", "adversarial", "sample_time")
 REQUIREMENT_KEYS = {
     "envelope": ("b0", "b_inf", "decay", "weight"),
     "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
@@ -171,6 +176,10 @@ def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> Tun
         changes["requirements"] = _requirements(table["requirements"])
     if "adversarial" in table:
         changes["adversarial"] = _adversarial(cfg.adversarial, table["adversarial"])
+    if "sample_time" in table:
+        v = table["sample_time"]
+        changes["sample_time"] = (None if isinstance(v, str) and v.lower() == "none" else
+                                  validation.number(v, "tuning.sample_time"))
     cfg = dataclasses.replace(cfg, **changes)
     cfg.validate()
     return cfg
@@ -299,7 +308,7 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
             return '"none"'
         return toml_value(list(v) if isinstance(v, tuple) else v)
 
-    lines = ["[tuning]", f"params = {val(cfg.params)}"]
+    lines = ["[tuning]", f"params = {val(cfg.params)}", f"sample_time = {val(cfg.sample_time)}"]
     if cfg.freeze is not None:
         lines.append(f"freeze = {val(cfg.freeze)}")
     for key in ("bounds", "transforms"):

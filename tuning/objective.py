@@ -175,6 +175,10 @@ class ObjectiveSpec:
     tv_max: float | str | None = "start"
     tv_max_factor: float = 1.5
     tv_max_weight: float = 100.0
+    # the deployable constraint (tuning.sample_time): the loop with the controller sampled
+    # keeps its windowed L-inf within sampled_factor x the continuous loop's, per plant
+    sampled_factor: float = 2.0
+    sampled_weight: float = 100.0
     # "nominal": the "start" bounds are the start gains' figures on the nominal plant, for
     # every plant; "per_plant": each training plant's own (a plant that needs more effort than
     # the nominal one, e.g. a worst case with its disturbance, is bounded by what the start
@@ -187,14 +191,15 @@ class ObjectiveSpec:
 
     def validate(self, field: str = "tuning.objective") -> None:
         for name in ("linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max_weight",
-                     "tv_max_weight"):
+                     "tv_max_weight", "sampled_weight"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"{field}.{name} must be a number >= 0 (got {v!r})")
         if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
             raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2, "
                               f"effort_max or effort_tv > 0)")
-        for name in ("sharpness", "u_sharpness", "divergence_penalty", "tv_max_factor"):
+        for name in ("sharpness", "u_sharpness", "divergence_penalty", "tv_max_factor",
+                     "sampled_factor"):
             v = getattr(self, name)
             if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
                 raise ConfigError(f"{field}.{name} must be a number > 0 (got {v!r})")
@@ -296,12 +301,52 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
             metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
+    if SAMPLED in metrics and spec.sampled_weight:
+        ratio = metrics[SAMPLED] / (spec.sampled_factor * metrics["smooth_linf_window"])
+        terms["sampled"] = spec.sampled_weight * jnp.maximum(ratio - 1.0, 0.0) ** 2
     total = sum(terms.values())
-    # A diverged plant costs a large constant: finite, so that means and CVaRs stay usable.
-    # Anything else non-finite stays NaN/inf, so that the optimiser's guard rejects the step
-    # instead of silently seeing a flat penalty (see optimize.py).
-    total = jnp.where(diverged, spec.divergence_penalty, total)
+    # A diverged plant (in either loop) costs a large constant: finite, so that means and
+    # CVaRs stay usable. Anything else non-finite stays NaN/inf, so that the search ranks it
+    # last instead of silently seeing a flat penalty.
+    total = jnp.where(diverged | metrics.get("sampled_diverged", False),
+                      spec.divergence_penalty, total)
     return total, terms
+
+
+def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
+                    n_requirements: int, spec: ObjectiveSpec) -> jax.Array:
+    """Each plant's feasibility, exactly: no divergence, the effort bounds, every requirement
+    met and, with the deployable constraint, the sampled loop within sampled_factor x the
+    continuous loop's windowed L-inf."""
+    ok = ~diverged & within_bounds(metrics, bounds)
+    for i in range(n_requirements):
+        ok = ok & (metrics[f"req{i}_met"] > 0)
+    if SAMPLED in metrics:
+        ok = ok & ~metrics["sampled_diverged"] & within(
+            metrics["sampled_linf_window"], spec.sampled_factor * metrics["linf_error_window"])
+    return ok
+
+
+# the metrics of the sampled loop of the deployable constraint (`loop_metrics`)
+SAMPLED = "sampled_smooth_linf_window"
+
+
+def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
+                 ) -> tuple[dict, jax.Array]:
+    """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`), and,
+    with the deployable constraint (`objective.sampled`, the same loop with the controller
+    sampled), that loop's windowed L-inf exact and smooth and its divergence, as
+    sampled_linf_window, sampled_smooth_linf_window and sampled_diverged. Traceable."""
+    m, div = simulate_metrics(setup, objective.sim, objective.extra(), overrides,
+                              checkpoint_every)
+    if objective.sampled is not None:
+        e = objective.extra()
+        smooth = SmoothLinf(e.window_start, e.e_sharpness, objective.sampled.n_steps)
+        ms, div_s = simulate_metrics(setup, objective.sampled, smooth, overrides,
+                                     checkpoint_every)
+        m = m | {"sampled_linf_window": ms["linf_error_window"],
+                 SAMPLED: ms["smooth_linf_window"], "sampled_diverged": div_s}
+    return m, div
 
 
 def within(value, bound):
@@ -414,6 +459,8 @@ class Objective:
     overrides: Mapping[str, Any] | None = None  # the training batch, {path: (B, ...)}
     aggregate: str = "mean"
     cvar_level: float = 1.0
+    # the deployable constraint's loop: `sim` with the controller sampled (None: none)
+    sampled: RunSpec | None = None
     # Programs compiled for this objective (the tuning step per update rule: `runner`); they
     # live and die with it.
     compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
@@ -442,15 +489,13 @@ class Objective:
         """(loss, aux, every plant's J)."""
         setup = self.selection.apply(self.setup, z)
         ov = self.overrides if overrides is None else overrides
-        metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov,
-                                             checkpoint_every)
+        metrics, diverged = loop_metrics(self, setup, ov, checkpoint_every)
         bounds = self.bounds(overrides)
         per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
                                       len(self.requirements), bounds)
         loss = aggregate(per_plant, self.aggregate, self.cvar_level)
-        feasible = ~diverged & within_bounds(metrics, bounds)
-        for i in range(len(self.requirements)):
-            feasible = feasible & (metrics[f"req{i}_met"] > 0)
+        feasible = feasible_plants(metrics, diverged, bounds, len(self.requirements),
+                                   self.spec)
         aux = {
             "terms": {k: aggregate(jnp.where(diverged, 0.0, v), self.aggregate,
                                    self.cvar_level) for k, v in terms.items()},
@@ -487,7 +532,7 @@ class Objective:
         def one(z_, i):
             setup = params.set_many(self.selection.apply(self.setup, z_),
                                     {p: v[i] for p, v in train.items()})
-            metrics, diverged = simulate_metrics(setup, self.sim, self.extra())
+            metrics, diverged = loop_metrics(self, setup)
             b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
                       for v in bounds)
             return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b)[0]
@@ -500,7 +545,7 @@ class Objective:
         shape (B,) with a batch, () without."""
         setup = self.selection.apply(self.setup, z)
         ov = self.overrides if overrides is None else overrides
-        metrics, diverged = simulate_metrics(setup, self.sim, self.extra(), ov)
+        metrics, diverged = loop_metrics(self, setup, ov)
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
                                   len(self.requirements), self.bounds(overrides))
         return {"loss": per_plant, "diverged": diverged, **metrics}

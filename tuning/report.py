@@ -17,8 +17,10 @@ from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate_batch
 from tuning.objective import within
 
-STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u")
+STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
+                 "sampled_linf_window")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
+          "sampled_linf_window": "L-inf error on [t0, T], controller sampled",
           "max_abs_u": "max |u|", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
           "tv_u": "total variation of u", "loss": "objective J"}
 
@@ -53,35 +55,46 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A batch's per-plant figures with its plants that diverged at the tuning's step re-run
     as sweeps re-run theirs: the refinement levels of `simulate` (ETDRK4 at dt, dt/2, ...,
-    `simulation.refine` levels; `simulate.refine_rows`: only the rows still diverged, padded
-    batches), the metrics over the objective's window: a numerical divergence of the
-    integrator is not a divergence of the loop (issue 11).
-    Adds `refined` (the level that tracked, 0 = the tuning's own step); the exact metrics
-    (those `simulate` reports) and `diverged` of the refined plants are those of the refined
-    runs; their loss and smooth surrogates stay the objective's at the tuning's step (the
-    finite divergence penalty)."""
+    `simulation.refine` levels; only the rows still diverged), the metrics over the
+    objective's window: a numerical divergence of the integrator is not a divergence of the
+    loop. The sampled loop of the deployable constraint is refined alike (its controller
+    keeps its sample time). Adds `refined` (the level that tracked, 0 = the tuning's own
+    step) and `sampled_refined`; the exact metrics and `diverged` of the refined plants are
+    those of the refined runs; their loss and smooth surrogates stay the objective's at the
+    tuning's step (the finite divergence penalty)."""
     m = dict(m)
-    m["refined"] = np.zeros(np.shape(m["diverged"]), np.int32)
-    sim = problem.objective.sim
-    if not np.any(m["diverged"]) or not sim.refine:
-        return m
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
     ov = {k: np.asarray(v) for k, v in overrides.items()}
+    # the exact metrics, those `simulate` reports (not J, not the smooth surrogates)
+    names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
+    keys = sorted(names.keys() & m.keys())
+    m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
+    if "sampled_diverged" in m:
+        m["sampled_refined"] = _refine(setup, ov, problem.objective.sampled, m, {
+            "diverged": "sampled_diverged", "linf_error_window": "sampled_linf_window"})
+    return m
+
+
+def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
+    """Re-run the rows of `m` diverged (`m[keys["diverged"]]`) at the refinement levels of
+    `sim`; update `m`'s `keys` (simulate's metric name -> m's) in place; the level that
+    tracked per row (0: the tuning's step, or diverged at every level)."""
+    keys = {"diverged": keys.pop("diverged", "diverged"), **keys}
+    diverged = np.asarray(m[keys["diverged"]]).astype(bool)
+    if not diverged.any() or not sim.refine:
+        return np.zeros(diverged.shape, np.int32)
 
     def level(j, idx):  # rows idx at refinement level j (level 0, the tuning's step, is m)
         spec = level_spec(sim, j).replace(refine=0)
         traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, spec=spec)
-        return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys}}
+        return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys if k != "diverged"}}
 
-    # the exact metrics, those `simulate` reports (not J, not the smooth surrogates)
-    names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
-    keys = sorted(names.keys() & m.keys())
-    rows = {"diverged": np.asarray(m["diverged"]).astype(bool),
-            **{k: np.asarray(m[k], dtype=float) for k in keys}}
+    rows = {k: np.asarray(m[mk], dtype=bool if k == "diverged" else float)
+            for k, mk in keys.items()}
     rows, levels = refine_rows(rows, lambda r: r["diverged"], level, counted_levels(sim))
-    m.update(rows)
-    m["refined"] = np.where(rows["diverged"], 0, levels).astype(np.int32)
-    return m
+    for k, mk in keys.items():
+        m[mk] = rows[k]
+    return np.where(rows["diverged"], 0, levels).astype(np.int32)
 
 
 def _host(d):
@@ -95,8 +108,16 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     # refinement (numerically stiff there), diverged at every step tried
     out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
                            "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
+    sampled_ok = ok
+    if "sampled_diverged" in m:  # the same three outcomes in the loop sampled
+        sampled_ok = ~m["sampled_diverged"].astype(bool)
+        ref = sampled_ok & (np.asarray(m["sampled_refined"]) > 0)
+        out["sampled"] = {"n_tracked": int((sampled_ok & ~ref).sum()),
+                          "n_refined": int(ref.sum()), "n_diverged": int((~sampled_ok).sum())}
     for key in STATS_METRICS + ("loss",):
-        v = m[key][ok] if key != "loss" else m[key]
+        if key not in m:
+            continue
+        v = m[key] if key == "loss" else m[key][sampled_ok if key.startswith("sampled") else ok]
         out[key] = None if v.size == 0 else {
             "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
             "max": float(np.max(v)), "mean": float(np.mean(v))}
@@ -116,16 +137,23 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
     return rows
 
 
-def constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
+def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
     """The bounds of the problem checked exactly on one plant's metrics `m` (max_abs_u, tv_u:
     every RK4 step, TV = sum_k |u_(k+1) - u_k|): name, value, bound, margin = bound - value
     and met (value <= bound within BOUND_RTOL = 1e-9 relative: a bound taken from the start
     gains may sit a few ulps under the start's own figure in another compiled program). A
-    diverged plant meets nothing (its metrics were not measured)."""
+    diverged plant meets nothing (its metrics were not measured). `sampled` ((Ts, factor),
+    the deployable constraint) adds its row: the windowed L-inf with the controller sampled
+    at Ts <= factor x the continuous loop's."""
     rows = []
     diverged = bool(np.asarray(m.get("diverged", False)))
-    for name, key, bound in (("max|u|", "max_abs_u", scales.u_max),
-                             ("TV(u)", "tv_u", scales.tv_max)):
+    checks = [("max|u|", "max_abs_u", scales.u_max), ("TV(u)", "tv_u", scales.tv_max)]
+    if sampled is not None:
+        ts, factor = sampled
+        diverged = diverged or bool(np.asarray(m["sampled_diverged"]))
+        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
+                       factor * float(np.asarray(m["linf_error_window"]))))
+    for name, key, bound in checks:
         if bound is None:
             continue
         value = float(np.asarray(m[key]))
@@ -137,7 +165,7 @@ def constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
     return rows
 
 
-def train_constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
+def train_constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
     """The bounds checked exactly on every plant of the training batch (`m`: its per-plant
     figures, as `evaluate` gives them): each plant against its own bound (per_plant) or the
     nominal one; how many meet it, and the worst plant (the smallest relative margin; a plant
@@ -145,8 +173,14 @@ def train_constraint_checks(scales, m: dict[str, Any]) -> list[dict[str, Any]]:
     diverged = np.asarray(m["diverged"]).astype(bool)
     n = diverged.size
     rows = []
-    for name, key, bound in zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"),
-                                scales.bounds(train=True), strict=True):
+    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), scales.bounds(train=True),
+                      strict=True))
+    if sampled is not None:
+        ts, factor = sampled
+        diverged = diverged | np.asarray(m["sampled_diverged"]).astype(bool)
+        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
+                       factor * np.asarray(m["linf_error_window"], float)))
+    for name, key, bound in checks:
         if bound is None:
             continue
         b = np.broadcast_to(np.asarray(bound, float), (n,))
@@ -237,8 +271,11 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "effort_bounds": problem.cfg.objective.effort_bounds,
         "bounds_train": _bounds_train(problem.objective.scales),
         "problem": problem_sentence(problem),
-        "constraints": {tag: constraint_checks(problem.objective.scales, ev["nominal"][tag])
+        "constraints": {tag: constraint_checks(problem.objective.scales, ev["nominal"][tag],
+                                               _sampled(problem))
                         for tag in ("start", "tuned")},
+        "sample_time": (None if problem.objective.sampled is None
+                        else problem.objective.sampled.sample_time),
         "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
                          for tag in ("start", "tuned")},
         "run": {
@@ -263,8 +300,10 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
            if w not in validation.assumption_warnings(problem.setup)],
     }
     sc = problem.objective.scales
-    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None):
-        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag])
+    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None
+                                    or _sampled(problem)):
+        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag],
+                                                                     _sampled(problem))
                                         for tag in ("start", "tuned")}
     for key in ("train", "heldout"):
         if ev[key] is not None:
@@ -286,6 +325,13 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     return summary
 
 
+def _sampled(problem):
+    """(Ts, factor) of the deployable constraint, or None."""
+    if problem.objective.sampled is None:
+        return None
+    return problem.objective.sampled.sample_time, problem.cfg.objective.sampled_factor
+
+
 def _bounds_train(sc) -> dict[str, Any] | None:
     """The per-plant bounds of the training batch (None: the nominal ones for every plant)."""
     if not sc.per_plant:
@@ -301,9 +347,21 @@ def heldout_warning(summary: dict, cfg) -> str | None:
     must not hide in a table. Plants that track once refined are no warning: they are
     counted as sweeps count them (`heldout_counts`)."""
     h = summary.get("heldout")
-    if not h or not h["tuned"]["n_diverged"]:
+    if not h:
         return None
-    k, n, k0 = h["tuned"]["n_diverged"], h["tuned"]["n"], h["start"]["n_diverged"]
+    lost = {"diverged": (h["tuned"]["n_diverged"], h["start"]["n_diverged"]),
+            "RK4 diverged at dt (the loop stiff there; tracked only once refined)":
+            (h["tuned"]["n_refined"], h["start"]["n_refined"])}
+    if "sampled" in h["tuned"]:
+        lost["diverged with the controller sampled at "
+             f"{summary['sample_time']:g} s"] = (h["tuned"]["sampled"]["n_diverged"],
+                                                 h["start"]["sampled"]["n_diverged"])
+    lost = {how: kk for how, kk in lost.items() if kk[0]}
+    if not lost:
+        return None
+    n = h["tuned"]["n"]
+    what = "; ".join(f"{how} on {k} of {n} held-out plants (start gains: {k0})"
+                     for how, (k, k0) in lost.items())
     if cfg.robust.batch:
         where = f"a training batch of {cfg.robust.batch} plants"
         fix = (f"train on more plants (e.g. `--batch {4 * cfg.robust.batch}`) or with "
@@ -312,8 +370,8 @@ def heldout_warning(summary: dict, cfg) -> str | None:
         where = "the nominal plant only"
         fix = ("tune robustly, e.g. `dscjax tune --batch 8 --aggregate cvar --cvar-level "
                "0.25` ([tuning.robust] in a config)")
-    return (f"the tuned gains DIVERGE on {k} of {n} held-out plants (start gains: {k0}); "
-            f"they were tuned on {where}: do not deploy them as they are; {fix}")
+    return (f"the tuned gains DIVERGE: {what}; they were tuned on {where}: do not deploy "
+            f"them as they are; {fix}")
 
 
 def heldout_counts(summary: dict) -> str | None:
@@ -323,10 +381,18 @@ def heldout_counts(summary: dict) -> str | None:
     if not h:
         return None
     a, b = h["start"], h["tuned"]
-    return (f"held-out batch ({a['n']} plants, start -> tuned gains): tracked {a['n_tracked']} "
-            f"-> {b['n_tracked']}; tracked after refinement (a numerically stiff run re-done "
-            f"with ETDRK4 at a smaller step) {a['n_refined']} -> {b['n_refined']}; diverged "
-            f"at every step tried {a['n_diverged']} -> {b['n_diverged']}")
+
+    def counts(a, b):
+        return (f"tracked {a['n_tracked']} -> {b['n_tracked']}; RK4 diverged at dt but "
+                f"tracked after refinement (ETDRK4 at a smaller step: the loop is stiff at "
+                f"dt) {a['n_refined']} -> {b['n_refined']}; diverged at every step tried "
+                f"{a['n_diverged']} -> {b['n_diverged']}")
+
+    text = f"held-out batch ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
+    if "sampled" in b:
+        text += (f". With the controller sampled at {summary['sample_time']:g} s: "
+                 f"{counts(a['sampled'], b['sampled'])}")
+    return text
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
@@ -420,14 +486,17 @@ def _markdown(s: dict, problem, figures) -> str:
     lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
               "|---|---|---|---|"]
     for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u",
-                "tv_u"):
-        a, b = nom["start"][key], nom["tuned"][key]
-        lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
-    lines.append(f"| diverged | {bool(nom['start']['diverged'])} | "
-                 f"{bool(nom['tuned']['diverged'])} | |")
+                "tv_u", "sampled_linf_window"):
+        if key in nom["start"]:
+            a, b = nom["start"][key], nom["tuned"][key]
+            lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+    for key, label in (("diverged", "diverged"), ("sampled_diverged", "diverged, sampled")):
+        if key in nom["start"]:
+            lines.append(f"| {label} | {bool(nom['start'][key])} | {bool(nom['tuned'][key])} "
+                         f"| |")
     if s["constraints"]["tuned"]:
         lines += ["", "## Constraints (nominal plant, checked exactly on every RK4 step)", "",
-                  "| constraint | bound | start | tuned | margin (bound - tuned) | tuned |",
+                  "| constraint | bound (tuned) | start | tuned | margin (bound - tuned) | tuned |",
                   "|---|---|---|---|---|---|"]
         for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"], strict=True):
             lines.append(f"| {_md(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
@@ -473,17 +542,24 @@ def _markdown(s: dict, problem, figures) -> str:
                   "| | start median | tuned median | start p95 | tuned p95 | start max | "
                   "tuned max |", "|---|---|---|---|---|---|---|"]
         for m in STATS_METRICS:
-            a, c = st[m], tu[m]
+            a, c = st.get(m), tu.get(m)
             if a is None or c is None:
                 continue
             lines.append(f"| {_md(LABELS[m])} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
         lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
-                  f"(tuned); tracked after refinement (a numerically stiff run re-done with "
-                  f"ETDRK4 at a smaller step, as sweeps do) {st['n_refined']} and "
-                  f"{tu['n_refined']}; diverged at every step tried {st['n_diverged']} and "
-                  f"{tu['n_diverged']}. The figures above are over the plants that did not "
-                  f"diverge."]
+                  f"(tuned); RK4 diverged at dt but tracked after refinement (a numerically "
+                  f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
+                  f"{st['n_refined']} and {tu['n_refined']}; diverged at every step tried "
+                  f"{st['n_diverged']} and {tu['n_diverged']}."]
+        if "sampled" in tu:
+            a, c = st["sampled"], tu["sampled"]
+            lines.append(f"With the controller sampled at {s['sample_time']:g} s: tracked "
+                         f"{a['n_tracked']} and {c['n_tracked']}; tracked after refinement "
+                         f"{a['n_refined']} and {c['n_refined']}; diverged {a['n_diverged']} "
+                         f"and {c['n_diverged']}.")
+        lines.append("The figures above are over the plants that did not diverge (in the "
+                     "loop they name).")
         reqs = s[key]["requirements"]["tuned"]
         if reqs:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "

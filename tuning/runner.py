@@ -82,6 +82,8 @@ class Problem:
             "robust": _batch_desc(self.cfg.robust, self.setup),
             "requirements": dict(self.cfg.requirements),
             "sim": self.objective.sim.describe(),
+            "sampled": (None if self.objective.sampled is None
+                        else self.objective.sampled.describe()),
             "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
              if self.extra_plants else {}) | (
@@ -170,10 +172,17 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                      f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
                      + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
+    sampled = None
+    if cfg.sample_time is not None and not options.sampled:
+        sampled = sim.replace(sample_time=cfg.sample_time,
+                              names={"sample_time": "tuning.sample_time"})
+        notes.append(f"deployable: the controller sampled every {cfg.sample_time:g} s (zero-order "
+                     f"hold) keeps each plant's windowed L-inf within "
+                     f"{cfg.objective.sampled_factor:g} x the continuous loop's")
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level)
+                          cvar_level=cfg.robust.cvar_level, sampled=sampled)
     return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
                    objective=objective, heldout=heldout, mode=mode,
                    z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants)
@@ -327,6 +336,8 @@ def _term_names(problem):
     if obj.scales.tv_max is not None and spec.tv_max_weight:
         names.append("tv_bound")
     names += [f"req{i}" for i in range(len(obj.requirements))]
+    if obj.sampled is not None and spec.sampled_weight:
+        names.append("sampled")
     return names
 
 

@@ -20,7 +20,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from dscjax import params, search, xla
-from tuning.objective import aggregate, plant_loss, simulate_metrics, within_bounds
+from tuning.objective import aggregate, feasible_plants, loop_metrics, plant_loss
 from tuning.optimize import value_and_grad
 
 STATE_FILE = "search.npz"  # the run's search state (dscjax.search's format)
@@ -48,13 +48,11 @@ def batch_fn(problem):
             ov = {p: jnp.repeat(v, n_train, axis=0) for p, v in ov.items()}
             ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
                    for p, v in train.items()}
-        m, div = simulate_metrics(obj.setup, obj.sim, obj.extra(), ov)
+        m, div = loop_metrics(obj, obj.setup, ov)
         # the training plants' own bounds (per_plant), laid out as the plants are: tiled
         bounds = sc.bounds(train=bool(train), tile=b)
         loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements), bounds)
-        feas = ~div & within_bounds(m, bounds)
-        for i in range(len(obj.requirements)):
-            feas = feas & (m[f"req{i}_met"] > 0)
+        feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.spec)
 
         def per(v, how):
             v = v.reshape(b, n_train)

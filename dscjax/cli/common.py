@@ -69,6 +69,10 @@ def flag(key: str) -> str:
     return "--" + key.replace("_", "-")
 
 
+# the [simulation] keys of the sampled controller, an option on every command that simulates
+SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed")
+
+
 def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
     """Options for the given [simulation] keys (`dscjax.runspec.OPTIONS`), each overriding the
     config's value; their help states the default (`defaults` may give a command's own)."""

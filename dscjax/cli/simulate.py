@@ -8,6 +8,7 @@ import time
 import numpy as np
 
 from dscjax.cli.common import (
+    SAMPLED_KEYS,
     Outputs,
     add_config_args,
     add_overwrite_arg,
@@ -22,7 +23,7 @@ from dscjax.progress import Progress
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
 # the [simulation] keys this command takes as options
 SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refine",
-                 "sample_time", "delay", "noise", "noise_seed", "device")
+                 *SAMPLED_KEYS, "device")
 
 
 def _default_variant() -> str:

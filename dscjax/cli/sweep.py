@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax.cli.common import (
+    SAMPLED_KEYS,
     Outputs,
     add_example_arg,
     add_run_args,
@@ -33,8 +34,7 @@ from dscjax.progress import Progress
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
 # the [simulation] keys this command takes as options
-SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", "sample_time", "delay",
-              "noise", "noise_seed", "device")
+SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *SAMPLED_KEYS, "device")
 OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))

@@ -25,6 +25,7 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 def add_parser(sub):
     from dscjax.cli.common import (
+        SAMPLED_KEYS,
         add_example_arg,
         add_run_args,
         count,
@@ -110,7 +111,7 @@ def add_parser(sub):
                    "comes first (default: the time alone)")
     p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
                    f"method (default {adv.method})")
-    add_run_args(p, ("t_final", "dt"))
+    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS))
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
@@ -379,6 +380,11 @@ def run(args) -> int:
             print(f"  held-out L-inf error on the window, plants that did not diverge: median "
                   f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
                   f"{b['p95']:.4g}")
+        if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
+            a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
+            print(f"  held-out L-inf error on the window with the controller sampled at "
+                  f"{summary['sample_time']:g} s: median {a['median']:.4g} -> "
+                  f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
     print(f"  wrote {out}/gains.json, "

@@ -12,6 +12,7 @@ import sys
 from pathlib import Path
 
 from dscjax.cli.common import (
+    SAMPLED_KEYS,
     Outputs,
     add_config_args,
     count,
@@ -49,7 +50,7 @@ def add_parser(sub):
         "advanced together, with random sampling and CMA-ES given the same search time as "
         "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
         "before it is reported; a divergence of the loop itself is reported with its time.")
-    add_config_args(p)
+    add_config_args(p, run_keys=("t_final", "dt", *SAMPLED_KEYS))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
