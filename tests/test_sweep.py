@@ -27,7 +27,7 @@ BASE = SweepSettings(samples=24, chunk=8, dtype="float64")  # alpha, lam, psi +-
 
 @pytest.fixture(scope="module")
 def base_result(paper_setup):
-    return run_sweep(paper_setup, BASE, T, DT)
+    return run_sweep(paper_setup, BASE, t_final=T, dt=DT)
 
 
 def _same(a, b):
@@ -41,7 +41,7 @@ def test_sweep_equals_single_simulations(paper_setup):
               Range(Param("plant.theta", 0), 0.0, 0.2), Range(Param("plant.x0", 0), 0.05, 0.1),
               Range(Param("plant.dbar_amp"), 0.0, 0.5))
     settings = SweepSettings(samples=12, chunk=8, dtype="float64", method="lhs", ranges=ranges)
-    res = run_sweep(paper_setup, settings, T, DT)
+    res = run_sweep(paper_setup, settings, t_final=T, dt=DT)
     rows = [0, 5, 11]
     trajs = sweep.simulate_rows(paper_setup, res, rows, save_every=1)
     for i, tr in zip(rows, trajs, strict=True):
@@ -70,14 +70,14 @@ def test_sweep_equals_single_simulations(paper_setup):
 def test_chunk_size_does_not_change_results(paper_setup, base_result):
     for chunk in (16,):  # 16: two blocks, the second padded
         other = run_sweep(paper_setup, SweepSettings(samples=24, chunk=chunk, dtype="float64"),
-                          T, DT)
+                          t_final=T, dt=DT)
         _same(base_result.columns, other.columns)
 
 
 def test_spmd_program_agrees_with_the_per_device_programs(paper_setup, base_result):
     # parallel="spmd" is one shard_map program: equal to round-off, not bitwise (package doc)
     spmd = run_sweep(paper_setup, SweepSettings(samples=24, chunk=8, dtype="float64",
-                                                parallel="spmd"), T, DT)
+                                                parallel="spmd"), t_final=T, dt=DT)
     assert spmd.info["parallel"] == "spmd"
     np.testing.assert_array_equal(spmd.columns["diverged"], base_result.columns["diverged"])
     for m in sweep.METRICS:
@@ -86,37 +86,37 @@ def test_spmd_program_agrees_with_the_per_device_programs(paper_setup, base_resu
 
 
 def test_resume_after_interrupt_gives_the_same_file(paper_setup, tmp_path):
-    full = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "a")
+    full = run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=tmp_path / "a")
 
     def stop(p):
         if p["round"] == 1:
             raise KeyboardInterrupt
 
     with pytest.raises(KeyboardInterrupt):
-        run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", progress=stop)
+        run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=tmp_path / "b", progress=stop)
     assert len(list((tmp_path / "b" / "chunks").glob("*.npz"))) == 1
     assert not (tmp_path / "b" / "results.npz").exists()
     # a half-written chunk (e.g. killed while writing) is not trusted
     (tmp_path / "b" / "chunks" / "chunk_000001.npz").write_bytes(b"PK\x03\x04 truncated")
-    res = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", resume=True)
+    res = run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=tmp_path / "b", resume=True)
     assert res.info["samples_resumed"] == 8 and res.info["samples_run"] == 16
     a = (tmp_path / "a" / "results.npz").read_bytes()
     assert a == (tmp_path / "b" / "results.npz").read_bytes()
     _same(full.columns, res.columns)
     # resuming a finished sweep runs nothing and rewrites the same file
-    again = run_sweep(paper_setup, BASE, T, DT, out_dir=tmp_path / "b", resume=True)
+    again = run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=tmp_path / "b", resume=True)
     assert again.info["samples_run"] == 0
     assert a == (tmp_path / "b" / "results.npz").read_bytes()
 
 
 def test_resume_refuses_other_settings_and_existing_dirs(paper_setup, tmp_path):
     out = tmp_path / "s"
-    run_sweep(paper_setup, BASE, T, DT, out_dir=out)
+    run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=out)
     with pytest.raises(dscjax.ConfigError, match="other settings.*seed"):
         run_sweep(paper_setup, SweepSettings(samples=24, chunk=8, dtype="float64", seed=1),
-                  T, DT, out_dir=out, resume=True)
+                  t_final=T, dt=DT, out_dir=out, resume=True)
     with pytest.raises(dscjax.ConfigError, match="--resume.*--overwrite"):
-        run_sweep(paper_setup, BASE, T, DT, out_dir=out)
+        run_sweep(paper_setup, BASE, t_final=T, dt=DT, out_dir=out)
 
 
 def test_one_and_four_devices_give_identical_float64_metrics(base_result, tmp_path):
@@ -127,7 +127,7 @@ def test_one_and_four_devices_give_identical_float64_metrics(base_result, tmp_pa
         from dscjax.sweep import SweepSettings, run_sweep
         assert jax.device_count() == 4, jax.devices()
         res = run_sweep(dscjax.paper_example(), SweepSettings(samples=24, chunk=8,
-                        dtype="float64"), {T}, {DT})
+                        dtype="float64"), t_final={T}, dt={DT})
         assert res.info["devices"] == 4
         np.savez({str(tmp_path / "four.npz")!r}, **res.columns)
     """)
@@ -183,7 +183,7 @@ def test_sample_tables():
 def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
     out = tmp_path / "cli"
     code = cli(["sweep", "--samples", "24", "--chunk", "8", "--float64", "--t-final", str(T),
-                "--t0", "0.25", "--worst", "2", "--random", "1", "--out", str(out)])
+                "--window-start", "0.25", "--worst", "2", "--random", "1", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 0, err
     assert "24/24 samples" in err and "steps/s" in err
@@ -296,8 +296,8 @@ def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
     # the window [0.25, 0.5] s (its windowed error used to read 0.0). With --refine 0 it is
     # reported diverged; by default it is re-run with ETDRK4 and tracks.
     grid = ["sweep", "--grid", "hysteresis.alpha=1:10:2", "--grid", "hysteresis.lam=0.15:3:2",
-            "--float64", "--t-final", str(T), "--t0", "0.25", "--worst", "1", "--random", "0",
-            "--no-plot"]
+            "--float64", "--t-final", str(T), "--window-start", "0.25", "--worst", "1",
+            "--random", "0", "--no-plot"]
     out = tmp_path / "div"
     code = cli([*grid, "--refine", "0", "--out", str(out)])
     captured = capsys.readouterr()
