@@ -1,12 +1,14 @@
 """Where programs run (issue 28): the device choice and the sweep's block size as functions of
 a device list and free memory (stand-in devices: no accelerator is needed), placement on real
-(forced host) devices, `--device gpu` without a GPU, `--version`."""
+(forced host) devices, `--device gpu` without a GPU, `--version`, and the device benchmark."""
 
+import json
 import os
 import subprocess
 import sys
 import textwrap
 from dataclasses import dataclass
+from pathlib import Path
 
 import jax
 import numpy as np
@@ -15,6 +17,8 @@ import pytest
 import dscjax
 from dscjax import device
 from dscjax.cli.main import main
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 @dataclass(frozen=True, eq=False)
@@ -228,3 +232,16 @@ def test_a_resume_keeps_the_block_size_the_sweep_started_with(tmp_path):
     assert first.info["chunk"] == again.info["chunk"] == 8 and again.info["samples_run"] == 0
     assert again.info["placement"] == "cpu (auto: JAX sees no GPU)"
 
+
+def test_the_device_benchmark_runs_at_small_sizes():
+    written = ROOT / "results" / "bench" / "device-quick.json"  # the harness's place
+    written.unlink(missing_ok=True)
+    proc = subprocess.run([sys.executable, str(ROOT / "experiments" / "bench_device.py"),
+                           "--quick"], capture_output=True, text=True, timeout=600, cwd=ROOT)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    record = json.loads(written.read_text())
+    assert record["quick"] is True
+    cases = {(r["case"], r["device"]) for r in record["rows"]}
+    assert ("batch throughput", "cpu") in cases and ("one trajectory (float64)", "cpu") in cases
+    batch = next(r for r in record["rows"] if r["case"] == "batch throughput")
+    assert batch["dscjax"] > 0 and batch["vmap+scan"] > 0
