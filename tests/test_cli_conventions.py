@@ -79,7 +79,7 @@ def test_help_states_the_defaults_the_code_uses(command):
 
 
 @pytest.mark.parametrize("argv, wanted, unwanted", [
-    (["sweep", "--window-start", "30"], "simulation.window_start must be in [0, t_final) = [0, 20)",
+    (["sweep", "--window-start", "30"], "--window-start must be in [0, t_final) = [0, 20)",
      "alpha"),
     (["reproduce", "--complexity", "--orders", "8-2"], "did you mean 2-8?", "n >= 2"),
     (["sweep", "--range", "hysteresis.alpha=0.5-1.5"], "(got 'hysteresis.alpha=0.5-1.5')",
