@@ -6,7 +6,7 @@ uncertain strict-feedback plants driven through backlash-like hysteresis.
     traj = dscjax.simulate(dscjax.paper_example(), t_final=20.0, dt=1e-3)
 """
 
-from dscjax import closed_loop, disturbance, metrics, params, xla
+from dscjax import closed_loop, device, disturbance, metrics, params, xla
 from dscjax.closed_loop import Observation, Setup, State, initial_state, prepared, vector_field
 from dscjax.config import order_n_example, paper_example
 from dscjax.controllers import DSC, Backstepping, BacksteppingState, Controller, DSCState
@@ -35,7 +35,8 @@ __version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic versio
 __all__ = [
     "Backlash", "Backstepping", "BacksteppingState", "canonical", "cast", "check_strict_feedback",
     "Checkpointed", "closed_form", "closed_loop", "ConfigError", "Controller", "CustomPlant",
-    "default_window", "disturbance", "divergence_report", "DivergenceError", "DSC", "DSCState",
+    "default_window", "device", "disturbance", "divergence_report", "DivergenceError", "DSC",
+    "DSCState",
     "ETDRK4", "initial_state", "InitialOffset", "integrate", "metrics", "MultiSine",
     "nan_if_diverged", "Observation", "order_n_example", "paper_example", "PaperPlant", "params",
     "Plant", "prepared", "Reference", "refinement_level", "RK4", "rk4_step", "run", "RunSpec",

@@ -10,6 +10,7 @@ as diverged; a diverged trajectory's metrics are NaN, beside its status and time
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any, NamedTuple
@@ -19,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import device as dscjax_device
 from dscjax import metrics as m
 from dscjax import params, validation, xla
 from dscjax.closed_loop import (
@@ -333,6 +335,7 @@ def simulate(
     throw: bool = True,
     progress: Callable[[float], None] | None = None,
     extra=None,
+    device=None,
 ) -> Trajectory:
     """Simulate the closed loop on t_k = k dt, k = 0..t_final/dt.
 
@@ -349,6 +352,9 @@ def simulate(
         progress: called on the host with the fraction of the steps done (every 1 %) while
             the compiled loop runs; pass the same callable to avoid recompiling.
         extra: running reductions of the caller's own (`integrate.Running`), as `run`'s.
+        device: where it runs: "auto", "cpu", "gpu" or a jax Device (default: the spec's
+            `device`, "auto": the CPU, or the caller's `jax.default_device`;
+            `dscjax.device.choose`).
 
     Returns:
         Trajectory (metrics NaN if the run diverged: `traj.diverged`, `traj.t_diverged`).
@@ -369,13 +375,14 @@ def simulate(
         if extra is not None:
             raise ValueError("simulate: give progress or extra, not both")
         extra = _Progress(spec.n_steps, progress)
-    traj = _simulate(setup, spec, None, extra)
-    concrete = validation.is_concrete(traj.status)
-    for j in range(1, counted_levels(spec) + 1):
-        if not (concrete and bool(traj.diverged)):
-            break
-        finer = _simulate(setup, level_spec(spec, j), None, extra)
-        traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
+    with _placed(spec, device, 1, setup):
+        traj = _simulate(setup, spec, None, extra)
+        concrete = validation.is_concrete(traj.status)
+        for j in range(1, counted_levels(spec) + 1):
+            if not (concrete and bool(traj.diverged)):
+                break
+            finer = _simulate(setup, level_spec(spec, j), None, extra)
+            traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
     if throw and concrete and bool(traj.diverged):
         why = "" if spec.sampled else diagnose(setup, traj)
         raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
@@ -441,6 +448,7 @@ def simulate_batch(
     refine: int = DEFAULT_REFINE,
     solver: str = "rk4",
     sample_time: float | None = None,
+    device=None,
 ) -> Trajectory:
     """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
     the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
@@ -456,6 +464,8 @@ def simulate_batch(
         save_every: default t_final/dt: only the first and last points, and the metrics.
         checkpoint_every: reverse-mode differentiation keeps the batch's state every this many
             steps and recomputes the steps between (memory O(N/L + L) states per member).
+        device: as `simulate`'s; "auto" takes the accelerator for a batch of at least
+            `dscjax.device.crossover()` members, else the CPU.
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -491,10 +501,22 @@ def simulate_batch(
     def level(j, ov):
         return _simulate_batch(setup, level_spec(spec, j), ov)
 
-    traj = level(0, overrides)
-    if counted_levels(spec) and validation.is_concrete((traj, overrides)):  # host-side
-        traj = refine_diverged(traj, overrides, level, counted_levels(spec))
+    with _placed(spec, device, next(iter(sizes.values()), 1), (setup, overrides)):
+        traj = level(0, overrides)
+        if counted_levels(spec) and validation.is_concrete((traj, overrides)):  # host-side
+            traj = refine_diverged(traj, overrides, level, counted_levels(spec))
     return traj
+
+
+def _placed(spec: RunSpec, device, rows: int, inputs):
+    """The device of a run (`dscjax.device.choose` of `device` if given, else of the spec's)
+    made JAX's default, a context; nothing where `inputs` are traced (the caller's program
+    decides where it runs)."""
+    choice = (dscjax_device.choose(spec.device, rows) if device is None else
+              dscjax_device.choose(device, rows, field="device"))
+    if not validation.is_concrete(inputs):
+        return contextlib.nullcontext()
+    return dscjax_device.placed(choice)
 
 
 def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):

@@ -1,5 +1,5 @@
 """Property tests (hypothesis) of the two small languages every feature shares: parameter
-paths (`dscjax.params.Param`) and ranges (`dscjax.ranges.parse_range`, `from_value`).
+paths (`dscjax.params.Param`) and ranges (`dscjax.params.parse_range`, `from_value`).
 
 Pure host code, no JAX tracing: 100 examples each, a few seconds in all.
 """

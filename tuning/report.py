@@ -405,7 +405,7 @@ def _measured(m: dict[str, float]) -> dict[str, float]:
 
 def assumption_warnings(problem) -> list[str]:
     """The paper's assumptions the start setup violates, at the nominal plant or at an end of
-    the training or held-out ranges (`dscjax.ranges.assumption_warnings`)."""
+    the training or held-out ranges (`dscjax.params.assumption_warnings`)."""
     out = []
     cfg = problem.cfg
     for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):

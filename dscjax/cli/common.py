@@ -114,6 +114,28 @@ def apply_run_options(args, spec):
                         **overrides)
 
 
+def choose_device(args, kind: str, rows: int = 1):
+    """Where a command's work runs (`dscjax.device.choose` of `kind`, --device or
+    simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
+    banner's clause. "gpu" without one is refused (one line naming the option, exit 2), so
+    call it before `prepare_out`."""
+    from dscjax import device
+
+    field = "--device" if getattr(args, "device", None) else "simulation.device"
+    return device.choose(kind, rows, field=field)
+
+
+def use_device(args, kind: str, rows: int = 1):
+    """`choose_device`, with its device made JAX's default (`jax.default_device`) for the
+    rest of the command (held by `args.exit_stack`): for commands whose library calls take no
+    device of their own."""
+    from dscjax import device
+
+    choice = choose_device(args, kind, rows)
+    args.exit_stack.enter_context(device.placed(choice))
+    return choice
+
+
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
 

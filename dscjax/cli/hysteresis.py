@@ -17,11 +17,13 @@ from dscjax.cli.common import (
     Outputs,
     add_example_arg,
     add_overwrite_arg,
+    add_run_args,
     finite_float,
     horizon_text,
     positive_float,
     prepare_out,
     print_config,
+    use_device,
 )
 
 DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
@@ -38,8 +40,9 @@ def add_parser(sub):
         "the play operators' exact clamp); write DIR/loop.npz (t, u, w on the step grid) and "
         "DIR/loop.png (w against u). Default: the paper's Fig. 1.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config; only its "
-                   "[hysteresis] table is used, and simulation.t_final and simulation.dt "
-                   "where --t-final and --dt are not given (default: the --example's)")
+                   "[hysteresis] table is used, and simulation.t_final, simulation.dt and "
+                   "simulation.device where --t-final, --dt and --device are not given "
+                   "(default: the --example's)")
     add_example_arg(p)
     p.add_argument("--amplitude", type=finite_float, action="append", metavar="A",
                    help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
@@ -49,6 +52,7 @@ def add_parser(sub):
                    help="horizon [s] (default three periods 6 pi / omega, on the dt grid)")
     p.add_argument("--dt", type=positive_float, metavar="DT", help=f"RK4 step [s] "
                    f"(default {DEFAULT_DT:g})")
+    add_run_args(p, ("device",))
     p.add_argument("--out", default="results/hysteresis", metavar="DIR",
                    help="output directory (default results/hysteresis)")
     add_overwrite_arg(p)
@@ -87,10 +91,12 @@ def run(args) -> int:
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
         memory_what=f"t, u and w at every step ({k} amplitude(s))"),
         what=horizon_text(t_final, dt, steps), fix="use a shorter --t-final or a larger --dt")
+    kind = args.device or validation.string(sim.get("device", "auto"), "simulation.device")
+    choice = use_device(args, kind, k)
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
-          f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s",
-          file=sys.stderr)
+          f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "
+          f"on {choice}", file=sys.stderr)
     t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, dt)
     write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
                                      omega=np.asarray(args.omega, float),

@@ -49,6 +49,20 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
 
 
+class _Version(argparse.Action):
+    """--version: the version, then what JAX sees (`dscjax.device.describe`), one line each."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
+                 help=None):
+        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from dscjax import __version__, device
+
+        print("\n".join([f"{parser.prog} {__version__}", *device.describe()]))
+        parser.exit(0)
+
+
 def _available_commands():
     out = {}
     for name, module in COMMANDS.items():
@@ -61,8 +75,6 @@ def _available_commands():
 
 
 def build_parser(commands) -> argparse.ArgumentParser:
-    from dscjax import __version__
-
     parser = _Parser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
@@ -70,7 +82,8 @@ def build_parser(commands) -> argparse.ArgumentParser:
         "stderr. Exit codes: 0 ok, 2 bad input (or --out in use by another process), 3 a "
         "simulation diverged, 4 no space left on the device, 130 interrupted.",
     )
-    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument("--version", action=_Version,
+                        help="show the version, then the JAX backends and devices, and exit")
     parser.add_argument("--no-compilation-cache", action="store_true",
                         help="do not keep compiled programs in JAX's persistent cache "
                         "($XDG_CACHE_HOME/dscjax/jax or ~/.cache/dscjax/jax; also "

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 from dscjax.cli.common import Outputs, count, positive_float
@@ -39,6 +40,7 @@ def parse_orders(text: str) -> list[int]:
 
 def add_parser(sub):
     from dscjax import reproduce as r
+    from dscjax.runspec import DEVICES, OPTIONS
 
     orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
@@ -58,6 +60,8 @@ def add_parser(sub):
                    help="horizon of the closed-loop runs in seconds (default %(default)g)")
     p.add_argument("--dt", type=positive_float, default=r.DT, metavar="S",
                    help="RK4 step in seconds (default %(default)g)")
+    p.add_argument("--device", choices=DEVICES, help=f"{OPTIONS['device'][1]} (default "
+                   f"{OPTIONS['device'][0]})")
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
     p.add_argument("--orders", default=orders, metavar="N-M",
@@ -138,7 +142,11 @@ def run(args) -> int:
     if args.resume and not rows.exists():
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
+    from dscjax.cli.common import use_device
+
+    choice = use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
+    print(f"dscjax reproduce: on {choice}", file=sys.stderr)
     summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
                         dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
                         complexity_repeats=args.repeats, resume=args.resume,

@@ -12,6 +12,7 @@ from dscjax.cli.common import (
     Outputs,
     add_config_args,
     add_overwrite_arg,
+    choose_device,
     horizon_text,
     load_setup,
     loop_sizes,
@@ -85,6 +86,7 @@ def run(args) -> int:
         fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
         f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     warnings = validation.assumption_warnings(setup)
+    choice = choose_device(args, options.device)  # simulate() places the run alike
 
     out = prepare_out(args, OUTPUTS)
     n = setup.order
@@ -92,7 +94,7 @@ def run(args) -> int:
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
           f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}"
           + (f", the controller sampled every {options.sample_time:g} s (zero-order hold)"
-             if options.sampled else ""), file=sys.stderr)
+             if options.sampled else "") + f"; on {choice}", file=sys.stderr)
     for w in warnings:
         print(f"dscjax simulate: warning: {w}", file=sys.stderr)
     if "save_every" in options.rules and every > 1:

@@ -20,6 +20,7 @@ from dscjax.cli.common import (
     load_setup,
     prepare_out,
     print_config,
+    use_device,
 )
 from dscjax.files import write_json
 
@@ -33,7 +34,7 @@ def add_parser(sub):
         "scale, report where classical RK4 stays finite, bisect the largest stable dt at the "
         "config's tau, and compare with the linear guide 2.785 / max spectral radius of the "
         "closed loop's Jacobian along the nominal run.")
-    add_config_args(p)
+    add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
                    help="factors applied to every filter constant tau_i (default "
                    "0.25,0.5,1,2,4)")
@@ -77,9 +78,10 @@ def run(args) -> int:
     each = sum(steps / f for f in DT_FACTORS)  # one batch over the tau scales per step size
     validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
                           what=what, fix="use a shorter --t-final or a larger --dt")
+    choice = use_device(args, options.device, len(scales))
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
-          f"{', '.join(f'{s:g}' for s in scales)}", file=sys.stderr)
+          f"{', '.join(f'{s:g}' for s in scales)}; on {choice}", file=sys.stderr)
     m = stability_map(setup, options.t_final, float(options.dt), tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
     bound = ">= " if m.beyond_grid else ""

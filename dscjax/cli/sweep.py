@@ -21,6 +21,7 @@ from dscjax.cli.common import (
     add_example_arg,
     add_run_args,
     apply_run_options,
+    choose_device,
     count,
     example_setup,
     finite_float,
@@ -41,6 +42,7 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
 
 
 def add_parser(sub):
+    from dscjax.device import MAX_BLOCK
     from dscjax.params import DEFAULT_PATHS, DEFAULT_REL
     from dscjax.runspec import OPTIONS
     from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
@@ -74,7 +76,8 @@ def add_parser(sub):
                    f"or Latin hypercube (default {d.method})")
     p.add_argument("--seed", type=count(0), help=f"seed of the samples (default {d.seed})")
     p.add_argument("--chunk", type=count(1), metavar="C", help=f"samples per block and device "
-                   f"(default: about {AUTO_BLOCK})")
+                   f"(default: about {AUTO_BLOCK} on the CPU; on a GPU from its free memory, "
+                   f"up to {MAX_BLOCK:,}; a --resume keeps the sweep's own)")
     add_run_args(p, SWEEP_KEYS)
     add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
@@ -236,20 +239,21 @@ def run(args) -> int:
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         sweep.check_resumable(args.out)
+    n = settings.n_samples()
+    choice = choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0
     # several processes share --out: process 0 (which writes every file) takes the lock of
     # the directory and applies the rule of --out; process i > 0 takes a lock of its own
     out = prepare_out(args, OUTPUTS, resumable=True, check=main,
                       lock=files.LOCK if main else f"{files.LOCK}.{jax.process_index()}")
-    n = settings.n_samples()
     if main:
         desc = ", ".join(
             f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
             for r in ranges)
         print(f"dscjax sweep: {n:,} {'grid points' if settings.method == 'grid' else 'samples'}"
               f" ({settings.method}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
-              f"dt={dt:g} s, {settings.dtype}, {jax.device_count()} device(s) "
-              f"({jax.devices()[0].platform}), {jax.process_count()} process(es)",
+              f"dt={dt:g} s, {settings.dtype}; on {len(choice.devices)} device(s) "
+              f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
               file=sys.stderr)
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
                                    else "sweep.ranges")

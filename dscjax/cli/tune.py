@@ -111,7 +111,7 @@ def add_parser(sub):
                    "comes first (default: the time alone)")
     p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
                    f"method (default {adv.method})")
-    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS))
+    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"))
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
@@ -243,7 +243,7 @@ def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
 
-    from dscjax.cli.common import prepare_out, print_config
+    from dscjax.cli.common import prepare_out, print_config, use_device
     from dscjax.params import cast
     from dscjax.progress import Progress
     from dscjax.validation import ConfigError
@@ -270,6 +270,8 @@ def run(args) -> int:
         missing = "adversarial.json" if adv.rounds else "checkpoint.json"
         raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
                           f"without --resume to start afresh")
+    # before build_problem, whose start scales run the loop; a refusal writes nothing
+    choice = use_device(args, options.device, generation_rows(cfg))
     problem = build_problem(setup, options, cfg)  # (validates every setting)
     prepare_out(args, OUTPUTS, resumable=True)
     oc = cfg.optimizer
@@ -290,8 +292,8 @@ def run(args) -> int:
           + (f" per round; {adv.rounds} adversarial rounds over "
              + ", ".join(r.spec() for r in searched.ranges)
              + (f" and {adv.disturbance}" if adv.disturbance else "")
-             + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else ""),
-          file=sys.stderr)
+             + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else "")
+          + f"; on {choice}", file=sys.stderr)
     after = (f"the held-out check ({cfg.heldout.batch} plants, start and tuned gains)"
              if cfg.heldout.batch else "")
     after = " and ".join(x for x in (after, "" if args.no_plot else "the figures") if x)
@@ -400,12 +402,23 @@ def _count(n: int, unit: str) -> str:
     return f"{n} {unit}" + ("" if n == 1 else "s")
 
 
+def generation_rows(cfg) -> int:
+    """Trajectories of one generation (a search method: candidates, a default population
+    counted as 4, times the training plants) or iteration (adam: the plants), run together."""
+    from dscjax.search.methods import LINE_POINTS
+    from tuning.optimize import SEARCHES
+
+    oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
+    if oc.name not in SEARCHES:
+        return plants
+    return plants * ((oc.popsize or 4) + (LINE_POINTS if oc.name == "cma_path" else 0))
+
+
 def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
     from dscjax.cli.common import gradient_work, horizon_text
-    from dscjax.search.methods import LINE_POINTS
     from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.optimize import SEARCHES, choose_gradient
 
@@ -414,7 +427,7 @@ def check_work_of(args, setup, options, cfg) -> None:
     what = horizon_text(options.t_final, options.dt, steps)
     fix = "use a shorter --t-final or a larger --dt"
     if oc.name in SEARCHES:
-        width = (oc.popsize or 4) + (LINE_POINTS if oc.name == "cma_path" else 0)
+        width = generation_rows(cfg) // plants
         one = Work(steps=steps, member_steps=width * plants * steps)
         unit = f"generation ({width} candidates x {plants} plant(s))"
     else:

@@ -23,6 +23,7 @@ from dscjax.cli.common import (
     positive_float,
     prepare_out,
     print_config,
+    use_device,
 )
 from dscjax.worst.report import FIGURES
 
@@ -50,7 +51,7 @@ def add_parser(sub):
         "advanced together, with random sampling and CMA-ES given the same search time as "
         "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
         "before it is reported; a divergence of the loop itself is reported with its time.")
-    add_config_args(p, run_keys=("t_final", "dt", *SAMPLED_KEYS))
+    add_config_args(p, run_keys=("t_final", "dt", *SAMPLED_KEYS, "device"))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
@@ -121,6 +122,7 @@ def run(args) -> int:
     check_work(each, what=f"one search iteration of {what}", fix=fix,
                limit_s=args.time_limit, limit=f"--time-limit {args.time_limit:g} s")
     check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
+    choice = use_device(args, options.device, max(args.starts, args.batch))
     out = Path(args.out)
     manifest = out / MANIFEST
     fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
@@ -140,7 +142,7 @@ def run(args) -> int:
           + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
           + f"; {', '.join(methods)}, {args.time_limit:g} s each"
           + (f" (at most {args.max_evals} evaluations)" if args.max_evals else "")
-          + f"; T={problem.t_final:g} s, dt={problem.dt:g} s", file=sys.stderr)
+          + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)

@@ -16,8 +16,10 @@ What a sweep does:
   first row). Every block has the same shape, so one compiled program serves all of them. Per
   sample only the metrics come back (running reductions over every RK4 step, see `metrics.py`),
   with the divergence status and time; memory is O(chunk) on the device.
-- **Devices.** The blocks of a round are laid out over a `jax.sharding.Mesh` of every device
-  (all hosts after `jax.distributed.initialize()`) as one global array with a `NamedSharding`
+- **Devices.** `spec.device` picks the platform (`dscjax.device.choose`: "auto" runs a sweep
+  below a crossover size on the CPU, a larger one on the accelerators). The blocks of a round
+  are laid out over a `jax.sharding.Mesh` of every device of that platform (all hosts after
+  `jax.distributed.initialize()`) as one global array with a `NamedSharding`
   along the batch axis; each device then runs the SAME single-device program on its own block.
   This is deliberate: XLA compiles a partitioned (shard_map / GSPMD) program through a
   different pass pipeline from the single-device one, which on XLA:CPU changed float64 results
@@ -34,13 +36,13 @@ the time it left the state bound or went non-finite, and NaN for every metric (t
 measured over the horizon they name; `dscjax.simulate.nan_if_diverged`).
 """
 
+from dscjax.device import auto_chunk
 from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import SweepResult, check_resumable, run_sweep
 from dscjax.sweep.settings import (
     AUTO_BLOCK,
     PARALLEL,
     SweepSettings,
-    auto_chunk,
     check_settings,
     settings_from_dict,
 )

@@ -7,9 +7,10 @@ from concurrent.futures import ThreadPoolExecutor
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding
+from jax.sharding import Mesh, NamedSharding, SingleDeviceSharding
 from jax.sharding import PartitionSpec as P
 
+from dscjax import device as dscjax_device
 from dscjax import params, xla
 from dscjax.runspec import RunSpec
 from dscjax.simulate import level_spec, nan_if_diverged, refine_rows, refinement_level, run
@@ -28,6 +29,20 @@ def _block_body(setup, spec, table, *, columns):
 
 # One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
 _block = xla.jit(_block_body, static_argnames=("columns",))
+PROBE_ROWS = 1024  # the block size whose compiled memory gives the footprint of a row
+
+
+def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int = PROBE_ROWS
+                  ) -> float | None:
+    """The memory of one row of the block program on `device` (`dscjax.device.per_row_bytes`
+    of the program compiled for `rows` rows; nothing is run). None where JAX does not say."""
+    dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
+    spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype)
+    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,
+                                 sharding=SingleDeviceSharding(device))
+    compiled = _block.top.lower(jax.device_put(setup, device), spec, table,
+                                columns=tuple(columns)).compile()
+    return dscjax_device.per_row_bytes(compiled, rows)
 
 
 class Runner:

@@ -13,13 +13,13 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import config, files, params, validation
+from dscjax import config, device, files, params, validation
 from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner
-from dscjax.sweep.settings import DTYPES, SweepSettings, auto_chunk, check_settings
+from dscjax.sweep.device import METRICS, Runner, bytes_per_row
+from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
 # 2: the metrics of diverged rows are NaN (were the frozen values); 3: rows that diverged are
@@ -94,7 +94,9 @@ def run_sweep(
         progress: called after every round with a dict: done (samples, resumed ones
             included), total, resumed, elapsed_s, samples_per_s and steps_per_s (after the
             first round: without compilation), eta_s, round, rounds.
-        devices: the devices to use (default: all, over every host).
+        devices: the devices to use (default: those of `dscjax.device.choose(spec.device,
+            n)`: for "auto" the CPU below a crossover size, else every accelerator, over
+            every host).
 
     Returns:
         SweepResult; nothing is raised for diverged samples.
@@ -122,8 +124,14 @@ def run_sweep(
     ranges = check_settings(settings, setup, t_final, dt, float(spec.window_start))
     check(setup, spec)
     n = settings.n_samples()
-    chunk = settings.chunk or auto_chunk(n)
     columns = tuple(r.param for r in ranges)
+    if devices is None:
+        choice = device.choose(spec.device, n)
+        devices, placement = choice.devices, str(choice)
+    else:
+        placement = "the devices given"
+    chunk = settings.chunk or (_started_chunk(out_dir) if resume else None) or _default_chunk(
+        setup, columns, spec, n, devices)
     names = tuple(r.name for r in ranges)
     table = sample_table(ranges, settings.method, n, settings.seed)
     # the values actually simulated: rounded to the sweep's dtype
@@ -190,7 +198,8 @@ def run_sweep(
             files.write_npz(out / "results.npz", columns_out)
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
-                platform=runner.devices[0].platform, parallel=settings.parallel,
+                platform=runner.devices[0].platform, placement=placement,
+                parallel=settings.parallel,
                 n_steps=n_steps, dtype=settings.dtype, t_final=t_final, dt=dt,
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method, seed=settings.seed, solver=spec.solver.name,
@@ -199,6 +208,34 @@ def run_sweep(
                 samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
                 steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)
     return SweepResult(columns=columns_out, param_names=names, info=info)
+
+
+def _started_chunk(out_dir) -> int | None:
+    """The chunk of the sweep in `out_dir` (its sweep.json), which a resume without a chunk of
+    its own continues with; None if there is none."""
+    if out_dir is None:
+        return None
+    try:
+        chunk = files.read_json(Path(out_dir) / "sweep.json")["fingerprint"]["chunk"]
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    return int(chunk) if isinstance(chunk, int) and chunk > 0 else None
+
+
+def _default_chunk(setup, columns, spec: RunSpec, n: int, devices) -> int:
+    """`device.auto_chunk` for the first of `devices`: on an accelerator from its free memory
+    and the block program's footprint per row (process 0's, so that every host agrees)."""
+    first = devices[0]
+    if first.platform == "cpu":
+        return device.auto_chunk(n)
+    mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
+    chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
+                              bytes_per_row(setup, columns, spec, mine[0]), len(devices))
+    if jax.process_count() > 1:
+        from jax.experimental import multihost_utils
+
+        chunk = int(multihost_utils.broadcast_one_to_all(np.int64(chunk)))
+    return chunk
 
 
 def check_resumable(out: str | Path) -> None:

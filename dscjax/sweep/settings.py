@@ -9,7 +9,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from dscjax import params, validation
+from dscjax import device, params, validation
 from dscjax.params import Param, Range, default_ranges
 from dscjax.validation import ConfigError
 
@@ -17,7 +17,7 @@ Parallel = Literal["per_device", "spmd"]
 PARALLEL: tuple[str, ...] = get_args(Parallel)
 Dtype = Literal["float32", "float64"]
 DTYPES: tuple[str, ...] = get_args(Dtype)
-AUTO_BLOCK = 16384  # samples per block and device when chunk = None (best measured on CPU)
+AUTO_BLOCK = device.CPU_BLOCK  # about this many samples per block on the CPU (chunk = None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -31,7 +31,8 @@ class SweepSettings:
         ranges: what varies; empty means `default_ranges(setup)` (the hysteresis model's
             `default_sweep`, e.g. alpha, lam, psi, each +-30 %).
         seed: seed of the samples (and of the random handful of traces).
-        chunk: samples per block and device; None picks about 16384, evenly split.
+        chunk: samples per block and device; None: `dscjax.device.auto_chunk` (on the CPU
+            about 16384, evenly split; on an accelerator from its free memory).
         dtype: "float32" (default for sweeps) or "float64".
         worst, random: how many worst samples and random samples get full traces.
         heatmap: the two parameter names of the heatmap (default: the first two swept).
@@ -150,13 +151,4 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     if s.n_samples() > 2**40:
         raise ConfigError(f"sweep size {s.n_samples()} is too large")
     return ranges
-
-
-def auto_chunk(n: int) -> int:
-    """Samples per block: about AUTO_BLOCK, the blocks evenly filled (rounded to 256)."""
-    blocks = -(-n // AUTO_BLOCK)
-    per = -(-n // blocks)
-    align = 256 if per > 256 else 8
-    return -(-per // align) * align
-
 
