@@ -232,7 +232,7 @@ class Sampling(eqx.Module):
     The plant integrates continuously in between.
     """
 
-    every: int = eqx.field(static=True)  # dt steps per sample: Ts = every dt
+    every: Any  # dt steps per sample, Ts = every dt (a number: one program serves every Ts)
     delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
     noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
     seed: Any = 0  # seed of the noise (a float holding an integer: no integer leaf is traced)
@@ -308,10 +308,9 @@ def sampled_frozen(setup: Setup) -> SampledState:
 def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampling, dt):
     """After the step that ends at t = t_(k_next): the controller's sample if k_next is a
     multiple of `every`, else X unchanged."""
-    new = _sample_update(k_next // sampling.every, t, X, setup, sampling, dt)
-    if sampling.every == 1:
-        return new
-    due = k_next % sampling.every == 0
+    every = jnp.round(jnp.asarray(sampling.every)).astype(jnp.asarray(k_next).dtype)
+    new = _sample_update(k_next // every, t, X, setup, sampling, dt)
+    due = k_next % every == 0
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 

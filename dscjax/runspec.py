@@ -5,12 +5,12 @@
     traj = dscjax.simulate(setup, spec=spec)
 
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
-`sample_every` (the controller sampled every this many steps; 0: continuous) and `delay`.
-Traced fields change without recompiling: `dt`, `window_start`, `state_bound`, `noise` and
-`noise_seed`. `refine`, `dtype` and `device` are host-side settings. The [simulation] table
-(`from_table`, `to_table`), the command-line flags (`OPTIONS`, read by dscjax.cli.common) and a
-resumable run's fingerprint (`describe`) all derive from it. Every check names the field, the
-allowed range and the value (`ConfigError`).
+`sampled` (the controller sampled, or continuous) and `delay`. Traced fields change without
+recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
+sample), `noise` and `noise_seed`. `refine`, `dtype` and `device` are host-side settings. The
+[simulation] table (`from_table`, `to_table`), the command-line flags (`OPTIONS`, read by
+dscjax.cli.common) and a resumable run's fingerprint (`describe`) all derive from it. Every
+check names the field, the allowed range and the value (`ConfigError`).
 """
 
 from __future__ import annotations
@@ -76,7 +76,8 @@ class RunSpec(eqx.Module):
     save_every: int = eqx.field(static=True, default=1)
     solver: Solver = eqx.field(static=True, default_factory=lambda: SOLVERS["rk4"]())
     gradient: Gradient = eqx.field(static=True, default_factory=TimeParallel)
-    sample_every: int = eqx.field(static=True, default=0)
+    sample_every: Any = 0  # steps per controller sample (0: continuous); traced
+    sampled: bool = eqx.field(static=True, default=False)
     delay: int = eqx.field(static=True, default=0)
     refine: int = eqx.field(static=True, default=DEFAULT_REFINE)
     dtype: str = eqx.field(static=True, default="float64")
@@ -146,8 +147,8 @@ class RunSpec(eqx.Module):
                    noise=noise, noise_seed=int(noise_seed), n_steps=n_steps,
                    save_every=int(save_every), solver=as_solver(solver),
                    gradient=gradient if gradient is not None else TimeParallel(),
-                   sample_every=every, delay=int(delay), refine=int(refine), dtype=dtype,
-                   device=device, rules=tuple(rules))
+                   sample_every=every, sampled=every > 0, delay=int(delay),
+                   refine=int(refine), dtype=dtype, device=device, rules=tuple(rules))
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
@@ -179,11 +180,7 @@ class RunSpec(eqx.Module):
 
     @property
     def sample_time(self) -> float | None:
-        return self.sample_every * float(self.dt) if self.sample_every else None
-
-    @property
-    def sampled(self) -> bool:
-        return self.sample_every > 0
+        return int(self.sample_every) * float(self.dt) if self.sampled else None
 
     @property
     def n_saved(self) -> int:
@@ -218,14 +215,16 @@ class RunSpec(eqx.Module):
 
     def for_dtype(self, dtype) -> RunSpec:
         """The traced fields as arrays of `dtype` (the setup's), strongly typed, so that
-        jit's cache does not depend on how they were written (the noise seed too: an integer
-        leaf would be a constant of the time-parallel derivative's trace; None without noise)."""
+        jit's cache does not depend on how they were written (the noise seed and the sample
+        period too: an integer leaf would be a constant of the time-parallel derivative's
+        trace; None when unused)."""
         noise = None if self.noise is None else jnp.asarray(self.noise, dtype)
         return dataclasses.replace(
             self, dt=jnp.asarray(self.dt, dtype), window_start=jnp.asarray(self.window_start,
                                                                            dtype),
             state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
-            noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype))
+            noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype),
+            sample_every=jnp.asarray(self.sample_every, dtype) if self.sampled else None)
 
     def refined(self, halvings: int, solver_name: str) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
