@@ -25,6 +25,7 @@ from dscjax.reproduce import (
     complexity,
     family_loops,
     hysteresis_loops,
+    sampling,
 )
 
 T_SHORT = 2.0
@@ -117,6 +118,26 @@ def test_summary_numbers_match_an_independent_computation(reproduced):
     comp = claims["compensation_improves_tracking_no_dhat_no_zeta"]
     q = runs["dsc_no_dhat_no_zeta"]["l2_error_after_1s"] / runs["dsc"]["l2_error_after_1s"]
     np.testing.assert_allclose(comp["ratio_l2"], q, rtol=1e-12)
+
+
+def test_sampling_study(reproduced):
+    """The figure of the sampled controller: every Ts of the figure, the paper's continuous
+    loop equal to the DSC row (computed by another run), first-order convergence as Ts -> 0
+    (one exponential-Euler step of the controller per sample, a zero-order hold on u), and
+    the sampled loop at Ts = 2 ms equal to one `simulate` with that sample time."""
+    _, summary = reproduced
+    s = summary["sampling"]
+    assert s["sample_times"] == list(sampling.SAMPLE_TIMES)
+    np.testing.assert_allclose(s["paper"]["continuous"],
+                               summary["runs"]["dsc"]["linf_error_after_1s"], rtol=1e-10)
+    assert 0.8 < s["order"]["order"] < 1.2
+    assert s["order"]["sample_times"] == [ts for ts in sampling.SAMPLE_TIMES if ts <= 1e-3]
+    traj = dscjax.simulate(dscjax.paper_example(), T_SHORT, 1e-3, sample_time=2e-3)
+    i = s["sample_times"].index(2e-3)
+    np.testing.assert_allclose(s["paper"]["sampled"][i],
+                               float(traj.metrics["linf_error_window"]), rtol=1e-10)
+    assert all(isinstance(v, float) for v in s["paper"]["sampled"])
+    assert "## The controller sampled at Ts" in (reproduced[0] / "summary.md").read_text()
 
 
 def test_complexity_rows(reproduced):

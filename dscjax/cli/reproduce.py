@@ -110,7 +110,7 @@ def parse_alpha0(text: str | None) -> list[float] | None:
 
 def run(args) -> int:
     from dscjax.cli.common import prepare_out
-    from dscjax.reproduce import claim_lines, reproduce
+    from dscjax.reproduce import claim_lines, reproduce, sampling
     from dscjax.validation import ConfigError, validate_run
 
     orders = parse_orders(args.orders)
@@ -130,7 +130,9 @@ def run(args) -> int:
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
     runs = len(setups())  # each saved at every step and kept for the figures
     point = loop_sizes(setups()["dsc"])
-    check_work(Work(steps=runs * steps, member_steps=runs * steps,
+    extra = sampling.total_steps(args.t_final, args.dt)
+    check_work(Work(steps=runs * steps + extra,
+                    member_steps=runs * steps + len(sampling.GAINS) * extra,
                     memory=runs * (steps + 1) * point[1] * point[2],
                     memory_what=f"the {runs} runs saved at every step"),
                what=horizon_text(args.t_final, args.dt, steps),
@@ -155,6 +157,7 @@ def run(args) -> int:
     # the results on stdout (progress went to stderr)
     for line in claim_lines(summary):
         print(line)
+    print(sampling.line(summary["sampling"]))
     print(f"wrote {len(summary['figures'])} figures, summary.json and summary.md to "
           f"{args.out}/")
     return 0

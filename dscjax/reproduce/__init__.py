@@ -29,7 +29,7 @@ import jax
 
 from dscjax import files
 from dscjax.reproduce import complexity as cx
-from dscjax.reproduce import theory_section
+from dscjax.reproduce import sampling, theory_section
 from dscjax.reproduce.claims import (
     ALIKE_FACTOR,
     AMPLITUDE_MARGIN,
@@ -112,6 +112,11 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     summary = summarize(trajs, t_final, dt)
     log("writing figures")
     paths = figures(trajs, loops, out, fmt, dpi, family)
+    log("the controller sampled at Ts = 0.1-20 ms: paper's and default-tuned gains")
+    summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt)
+    paths["sampling"] = out / f"{FIGURES['sampling']}.{fmt}"
+    sampling.plot(summary["sampling"], paths["sampling"], dpi=dpi,
+                  colors={"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"})
     if complexity:
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")

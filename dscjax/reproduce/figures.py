@@ -22,6 +22,7 @@ FIGURES = {
     "fig6": "fig6_backstepping_control",
     "estimates": "fig_estimates",
     "complexity": "fig_complexity",
+    "sampling": "fig_sampling",
 }
 
 # The style of the paper's figures, applied with matplotlib.rc_context (never globally).

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from dscjax.reproduce.runs import ESTIMATES, METRIC_FIELDS
+from dscjax.reproduce.sampling import markdown as sampling_markdown
 from dscjax.reproduce.theory_section import markdown as theory_markdown
 
 
@@ -38,6 +39,8 @@ def summary_markdown(summary: dict) -> str:
         cells = " | ".join("{min:.3g} / {max:.3g} / {final:.3g}".format(**r["estimates"][k])
                            for k in ESTIMATES)
         lines.append(f"| {name} | {cells} |")
+    if "sampling" in summary:
+        lines += ["", sampling_markdown(summary["sampling"])]
     if "complexity" in summary:
         cx = summary["complexity"]
         lines += ["", "## Explosion of complexity (control law only)", "",

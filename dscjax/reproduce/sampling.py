@@ -1,0 +1,156 @@
+"""How slowly the controller may be sampled: the paper's gains and `dscjax tune`'s default
+gains with the controller sampled at Ts (a zero-order hold on u), windowed L-inf against Ts,
+the continuous loop as the Ts -> 0 line; and the order at which the sampled loop tends to the
+continuous one (fitted on max |y_Ts - y| over t >= 1 s).
+
+`TUNED` is the controller `dscjax tune` returns with its defaults (`tuning.sample_time` 1 ms)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+from dscjax import files
+from dscjax.config import from_dict
+from dscjax.plotting import subplots
+from dscjax.runspec import RunSpec
+from dscjax.simulate import simulate_batch
+
+# the sample times of the figure [s]
+SAMPLE_TIMES = (1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2)
+# the controller of `dscjax tune` with its defaults (its gains.json, [controller] keys tuned)
+TUNED = {
+    "k": [19.884242918863265, 0.9721728021235744],
+    "gamma_g": [25.589908538272915, 8.0],
+    "eta": [0.0036222126901159627, 0.01],
+    "gamma_phi": [11.424268259990127],
+    "sigma": [0.00010109010751600343],
+    "gamma_zeta": 0.9476710930145209,
+    "eta_zeta": 0.0003441796862446836,
+    "gamma_d": 1.5701850634266679,
+    "eta_d": 0.022954497428073636,
+    "eps": 0.01211401485120154,
+    "tau": [0.004516417180926585],
+    "sat_width": 0.006556062008199157,
+}
+GAINS = ("paper", "tuned")
+
+
+def gain_sets(setup) -> dict:
+    """{path: (2, ...)}: the controller leaves of the paper's gains and of `TUNED`, a batch."""
+    tuned = from_dict({"controller": TUNED}, base=setup)[0]
+    return {f"controller.{k}": np.stack([np.asarray(getattr(s.controller, k), float)
+                                         for s in (setup, tuned)]) for k in TUNED}
+
+
+def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
+    """The plant's step for each Ts: dt where Ts is a whole multiple of dt, else one fine step
+    (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so that the
+    runs of the figure share two compiled programs (the sample period is traced)."""
+    def whole(ts, h):
+        return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
+
+    fine = min(sample_times) / math.ceil(min(sample_times) / dt * (1 - 1e-12))
+    return [dt if whole(ts, dt) else fine if whole(ts, fine) else
+            ts / math.ceil(ts / dt * (1 - 1e-12)) for ts in sample_times]
+
+
+def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPLE_TIMES) -> int:
+    """The consecutive steps `study` integrates (each a batch of both gain sets)."""
+    kept = [ts for ts in sample_times if ts <= t_final]
+    return sum(round(t_final / h) for h in [dt, *plant_steps(kept, dt)])
+
+
+def study(setup, t_final: float, dt: float, window_start: float = 1.0,
+          sample_times: Sequence[float] = SAMPLE_TIMES) -> dict:
+    """Windowed L-inf of both gain sets (`GAINS`), continuous (RK4 at dt) and sampled at each
+    Ts (`plant_steps`), None where a run diverged; and the order at which y_Ts tends to y (the
+    paper's gains: max |y_Ts - y| on t >= window_start over the sample times <= dt, the
+    outputs compared every dt)."""
+    ov = gain_sets(setup)
+    # no refinement: a sampled loop that diverges does so at any plant step
+    spec = RunSpec.make(t_final, dt, window_start=window_start, refine=0)
+    sample_times = [ts for ts in sample_times if ts <= t_final]
+
+    def run(ts=None, h=dt):
+        sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
+                          **({} if ts is None else {"sample_time": ts}))
+        tr = simulate_batch(setup, ov, spec=sp)
+        m = [None if d else float(v) for d, v in zip(np.asarray(tr.diverged),
+                                                      np.asarray(tr.metrics["linf_error_window"]),
+                                                      strict=True)]
+        return m, np.asarray(tr.x)[0, :, 0]
+
+    cont, y = run()
+    sampled = [run(ts, h) for ts, h in zip(sample_times, plant_steps(sample_times, dt),
+                                            strict=True)]
+    out = {"sample_times": list(sample_times), "window_start": window_start}
+    for i, name in enumerate(GAINS):
+        out[name] = {"continuous": cont[i], "sampled": [m[i] for m, _ in sampled]}
+    keep = np.arange(y.size) * dt >= window_start
+    fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
+            zip(sample_times, sampled, strict=True) if ts <= dt * (1 + 1e-9)]
+    ts, err = np.asarray(fine).T
+    out["order"] = {"sample_times": ts.tolist(), "max_abs_dy": err.tolist(),
+                    "order": float(np.polyfit(np.log(ts), np.log(err), 1)[0])}
+    return out
+
+
+def line(result: dict) -> str:
+    """One line for stdout: the windowed L-inf of both gain sets at the largest Ts each tracks
+    and the fitted order."""
+    def last(name):
+        ok = [(ts, v) for ts, v in zip(result["sample_times"], result[name]["sampled"],
+                                       strict=True) if v is not None]
+        return (f"{name} gains track up to Ts = {1e3 * ok[-1][0]:g} ms (L-inf {ok[-1][1]:.3g})"
+                if ok else f"{name} gains diverge at every Ts")
+
+    return (f"sampled controller: {last('paper')}; {last('tuned')}; the sampled loop tends to "
+            f"the continuous one at order {result['order']['order']:.2f} in Ts")
+
+
+def plot(result: dict, path, colors: dict, dpi: int) -> None:
+    fig, ax = subplots(figsize=(6.4, 4.0), layout="constrained")
+    ts_ms = 1e3 * np.asarray(result["sample_times"])
+    for name in GAINS:
+        r, c = result[name], colors[name]
+        ok = np.array([v is not None for v in r["sampled"]])
+        v = np.array([np.nan if x is None else x for x in r["sampled"]])
+        label = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}[name]
+        ax.plot(ts_ms[ok], v[ok], "o-", color=c, label=f"{label}, sampled")
+        if r["continuous"] is not None:
+            ax.axhline(r["continuous"], color=c, ls="--", lw=1,
+                       label=f"{label}, continuous (Ts -> 0)")
+        if (~ok).any():
+            ax.plot(ts_ms[~ok], np.full((~ok).sum(), np.nanmax(v) if ok.any() else 1.0), "x",
+                    color=c, ms=9, mew=2, ls="none", label=f"{label}: diverged")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
+    ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
+    ax.set_title(f"Sampled controller (fitted order {result['order']['order']:.2f} in Ts)")
+    ax.legend(fontsize=8)
+    files.save_figure(fig, path, dpi=dpi)
+
+
+def markdown(result: dict) -> str:
+    lines = ["## The controller sampled at Ts (zero-order hold)", "",
+             "| Ts [ms] | " + " | ".join(f"{n}: L∞ e after {result['window_start']:g} s"
+                                       for n in GAINS) + " |", "|---|---|---|"]
+
+    def cell(v):
+        return "diverged" if v is None else f"{v:.4g}"
+
+    for i, ts in enumerate(result["sample_times"]):
+        lines.append(f"| {1e3 * ts:g} | " + " | ".join(cell(result[n]["sampled"][i])
+                                                      for n in GAINS) + " |")
+    lines.append("| continuous | " + " | ".join(cell(result[n]["continuous"]) for n in GAINS)
+                 + " |")
+    o = result["order"]
+    lines += ["", f"The sampled loop tends to the continuous one at order "
+              f"{o['order']:.2f} in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
+              f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's gains; one "
+              f"exponential-Euler step of the controller per sample: first order)."]
+    return "\n".join(lines)
