@@ -116,11 +116,8 @@ def _cells(x, edges_x, y, edges_y):
 
 
 def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
-    """Median windowed error per cell (diverged samples count as +inf) and the edges.
-
-    With grid_x/grid_y (the grid's axis values) each grid point is one cell; otherwise the
-    box is cut into bins x bins cells.
-    """
+    """Median windowed error per cell (diverged: +inf) and the edges: one cell per grid point
+    with grid_x/grid_y, else bins x bins cells."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     e = np.where(np.asarray(diverged, bool), np.inf, np.asarray(err, np.float64))
     if grid_x is not None and grid_y is not None:
