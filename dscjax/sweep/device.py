@@ -77,10 +77,6 @@ class Runner:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
         self._setup = setup
 
-    @property
-    def round_size(self) -> int:
-        return self.n_dev * self.chunk
-
     def __call__(self, table: np.ndarray, n_real: int) -> dict[str, np.ndarray]:
         """table: (n_dev * chunk, d) host array, identical on every process; its first
         `n_real` blocks are real (the others pad the round and their rows are garbage)."""
