@@ -31,11 +31,8 @@ from dscjax.xla import barrier
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Setup:
-    """Everything a simulation needs, as one pytree.
-
-    Every number a user may tune or sweep is a traced leaf; the model classes and their
-    static fields (order n through array shapes, variant, robust term, ...) are the structure.
-    Changing a leaf never recompiles; changing a class or a static field does.
+    """Everything a simulation needs, as one pytree: numbers are traced leaves, the model
+    classes and static fields the structure (changing those recompiles).
 
     Attributes:
         plant: a `Plant` (its `x0` is the initial state x(0)).
@@ -222,14 +219,11 @@ def diagnose(setup: Setup, traj) -> str:
 class Sampling(eqx.Module):
     """A controller that runs at the sample times t_k = k Ts, Ts = `every` dt.
 
-    At t_k it reads the plant's state x(t_k) (plus seeded Gaussian measurement noise of std
-    `noise`, when given), computes u_k and advances its own states (filters, estimates) once,
-    by the exponential Euler step c <- c + Ts phi(-lam Ts) c', lam the states' decay rates
-    (`Controller.decay_rates`: 1/tau for the filters, exact for their linear part; 0 for the
-    estimates: forward Euler), phi(z) = (e^z - 1)/z. The actuator holds u_(k-delay) until
-    t_(k+1) (zero-order hold; the first input is held during the first `delay` samples); when
-    the held input changes, the hysteresis moves along its own curve (`Hysteresis.jump`).
-    The plant integrates continuously in between.
+    At t_k it reads x(t_k) (plus seeded Gaussian noise of std `noise`), computes u_k and
+    advances its states once by the exponential Euler step c <- c + Ts phi(-lam Ts) c',
+    phi(z) = (e^z - 1)/z, lam = `Controller.decay_rates` (exact for the filters' linear part).
+    The actuator holds u_(k-delay) until t_(k+1) (the first input for the first `delay`
+    samples); a change of the held input moves the hysteresis along its curve (`jump`).
     """
 
     every: Any  # dt steps per sample, Ts = every dt (a number: one program serves every Ts)

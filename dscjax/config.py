@@ -48,8 +48,8 @@ OLD_KIND_KEY = {"hysteresis": "model"}
 SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
 
 
-# -- the built-in examples (--example) --------------------------------------------------------
-# Every reading of the paper that had to be made is a setting (docs/paper-readings.md).
+# -- the built-in examples (--example); every reading of the paper is a setting
+# (docs/paper-readings.md)
 
 
 def paper_plant() -> PaperPlant:
@@ -114,28 +114,14 @@ def _default_float():
 
 def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
                     **controller_changes) -> Setup:
-    """A tracking example of order n from the StrictFeedback family (stable for n = 2..4 at
-    dt = 1e-3; see below for n >= 5).
+    """A tracking example of order n >= 2 from the StrictFeedback family (tracks for n <= 4
+    with these uniform gains; higher orders need their own, as `controller_changes`).
 
     Plant (q_i = x_1^2 + ... + x_i^2): g_i = 1, theta_i = 0.1, f_i = 0.2 x_i^2 + 0.2 sin(x_i)
     (+ 0.05 x_(i-1) x_i for i >= 2), rho_i = 0.05 + 0.02 q_i, Delta_i = 0.05 sin(x_(i+1)) +
-    0.02 q_i sin^3 t; the paper's hysteresis; y_r = sin t.
-
-    Order n >= 3 is stiff (u'(0) grows like 1/tau^(n-1); docs/numerics.md), so the plant starts
-    on the reference's derivative chain, x_i(0) = y_r^(i-1)(0) = (0, 1, 0, -1, ...), the
-    designer's estimates start at their nominal values (phi_hat = 1/g = 1, zeta_hat =
-    1/lam = 0.7, theta_hat = d_hat = 0), c_i is chosen so that S_i(0) = 0 ("zero_surfaces"),
-    and every filter uses tau = 0.05 with k_i = 4.
-
-    Measured at dt = 1e-3 over 20 s: n = 3 and n = 4 track (L-inf error on [1, 20] s of 0.027
-    and 0.037). For n >= 5 no uniform (tau, k) we tried with these gains survives, at any step
-    or solver: the loop diverges, not the integrator. At n = 6, tau = 0.05, k = 4 the loop's
-    Jacobian at rest (x = 0, y_r = 0, estimates frozen) has eigenvalues 2.8 +- 3.6j (2.9 +-
-    9.2j with a nearly linear actuator, psi = 1.4), and the start on the derivative chain
-    kicks u'(0) to -3.9e5 (~1/tau^5).
-    Such orders are still fine for measuring the control law (complexity study). Order 6 does
-    track with non-uniform k_i, tau_i and adaptation rates (passed as `controller_changes`):
-    `experiments/tune_scaling.py`'s STARTS[6], found by CMA-ES (docs/tuning.md).
+    0.02 q_i sin^3 t; the paper's hysteresis; y_r = sin t. Order n >= 3 is stiff (u'(0) grows
+    like 1/tau^(n-1); docs/numerics.md), so x_i(0) = y_r^(i-1)(0), the estimates start at their
+    nominal values, S_i(0) = 0 ("zero_surfaces"), tau_i = `tau` and k_i = `k`.
     """
     if n < 2:
         raise ValueError(f"order n must be >= 2 (got {n})")

@@ -3,14 +3,11 @@
     choice = device.choose("auto", rows=100_000)   # Choice(device, devices, reason)
     with device.placed(choice): ...                # jax.default_device, a context
 
-`choose` and `auto_chunk` are pure functions of a device list and free memory, so their rules
-are tested without an accelerator. "auto" runs one trajectory, and batches below a crossover
-row count, on the CPU (an accelerator pays a launch latency at every step, so small programs
-run slower there) and larger batches on the accelerator. The crossover, the CPU's speed and
-the accelerator's latency are estimates (from one H200 and this project's 2-core CPU, see
-docs/sweeps.md), not measured on the machine at hand. A user's `jax.default_device` is
-honoured by "auto". Nothing here changes JAX's global state; callers place work with
-`placed` (`jax.default_device`, a context).
+`choose` and `auto_chunk` are pure functions of a device list and free memory (testable
+without an accelerator). "auto" runs one trajectory, and batches below a crossover row count,
+on the CPU (an accelerator pays a launch latency at every step) and larger batches on the
+accelerator; the crossover is an estimate (docs/sweeps.md), not measured on the machine at
+hand. A user's `jax.default_device` is honoured. Nothing here changes JAX's global state.
 """
 
 from __future__ import annotations
@@ -30,7 +27,7 @@ KINDS = ("auto", "cpu", "gpu")
 # batch (kernel launches), so a batch of B rows runs at B / latency row-steps per second there.
 CPU_ROW_STEPS_PER_S_CORE = 1.5e7
 ACCELERATOR_STEP_LATENCY_S = 3.4e-5
-# The sweep's block: on the CPU about CPU_BLOCK rows (the fastest measured there); on an
+# The sweep's block: on the CPU about CPU_BLOCK rows; on an
 # accelerator the largest power of two whose program takes at most FILL of the free memory,
 # within [MIN_BLOCK, MAX_BLOCK], or DEFAULT_ACCELERATOR_BLOCK where the memory is unknown.
 CPU_BLOCK = 16_384
@@ -96,15 +93,13 @@ def choose(kind, rows: int = 1, devices: Sequence | None = None, *, preferred=No
     Args:
         kind: "auto", "cpu" or "gpu" (`RunSpec.device`), or a jax Device (used as given).
         rows: trajectories run together (1: a single run).
-        devices: the devices to choose from (default `visible()`; tests give stand-ins with
-            `.platform` and `.process_index`).
-        preferred: a device the caller made the default (`jax.default_device`), which "auto"
-            takes; read from JAX when `devices` is None.
+        devices: the devices to choose from (default `visible()`).
+        preferred: the caller's `jax.default_device`, which "auto" takes (read from JAX when
+            `devices` is None).
         n_cores: the CPU cores (default: this process's), for the crossover.
-        field: how a message names the setting ("--device" at the command line).
+        field: how a message names the setting.
 
-    Raises ConfigError naming `field`, the allowed values and what JAX sees for an unknown
-    kind, or "gpu" where JAX sees no accelerator.
+    Raises ConfigError naming `field` for an unknown kind, or "gpu" with no accelerator.
     """
     process = 0
     if devices is None:

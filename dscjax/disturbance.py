@@ -1,30 +1,17 @@
-"""Waveforms of the external disturbance dbar(t) on the last plant equation, eq. (1).
-
-The built-in plants' own term is one sinusoid (`dbar_amp sin(dbar_freq t) + dbar_bias`); a
-plant may add one of these waveforms with many coefficients (`plant.disturbance`), which is
-what a worst-case search (`dscjax.worst_case`) varies:
+"""Waveforms of the external disturbance dbar(t) on the last plant equation, eq. (1), added to
+a plant's own term (`plant.disturbance`); what a worst-case search varies.
 
     Fourier(coefficients (2K+1,), period ()):
         dbar(t) = c_0 + sum_{j=1..K} a_j cos(j w t) + b_j sin(j w t),   w = 2 pi / period,
-        coefficients = [c_0, a_1..a_K, b_1..b_K]  (K harmonics).
+        coefficients = [c_0, a_1..a_K, b_1..b_K].
     Spline(knots (K,), horizon ()):
-        the monotone cubic Hermite spline (PCHIP, Fritsch-Butland slopes) through the values
-        `knots` at K equally spaced times 0, horizon/(K-1), ..., horizon (constant after it).
-        It never leaves [min knots, max knots], so max_t |dbar| = max |knots| exactly.
+        the monotone cubic Hermite spline (PCHIP) through `knots` at K equally spaced times on
+        [0, horizon] (constant after it); max_t |dbar| = max |knots| exactly.
 
-The amplitude bound max_t |dbar(t)| <= D is enforced by projection (`project`): a spline's
-knots are clipped to [-D, D] (exact, the Euclidean projection); a Fourier series is scaled by
-min(1, D / max_k |dbar(t_k)|) over the half-step grid t_k = k dt/2 on which RK4 evaluates it,
-so the bound holds at every time the simulation sees (between grid points a series of K
-harmonics can exceed it by O((K w dt)^2) relative, far below 1e-6 at the defaults).
-
-Config (TOML): a table under the plant, e.g.
-
-    [plant.disturbance]
-    kind = "fourier"               # or "spline"
-    coefficients = [0.1, 0.0, 0.2] # fourier: [c_0, a_1..a_K, b_1..b_K]; K = 1 here
-    period = 20.0                  # fourier: period [s]
-    # spline: knots = [...], horizon = 20.0
+The bound max_t |dbar(t)| <= D is enforced by `project`: a spline's knots are clipped to
+[-D, D]; a Fourier series is scaled by min(1, D / max_k |dbar(t_k)|) on the half-step grid
+t_k = k dt/2 on which RK4 evaluates it. Config: a table [plant.disturbance] with `kind`
+("fourier" | "spline") and the fields above.
 """
 
 from __future__ import annotations

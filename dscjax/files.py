@@ -6,12 +6,10 @@ whether a directory holds the same run (so that `--resume` never mixes two runs)
     check_same(read_json(manifest)["fingerprint"], fp, where=f"--resume: {manifest}",
                fix="use the same settings, or --overwrite to start afresh")
 
-Every write goes to a temporary file in the same directory, is flushed to disk (fsync) and
-renamed over the target, so a run killed in the middle of a write leaves the previous complete
-file behind, never half a file; a write that fails removes its temporary file, and one that
-fails for want of space (ENOSPC, EDQUOT, EFBIG) raises `NoSpace`. Every file a command writes,
-figures included (`save_figure`), goes through here. `lock_out` keeps a second process out of
-an output directory while a command writes there.
+Every write (figures too: `save_figure`) goes to a temporary file beside the target, fsynced
+and renamed over it, so a killed run leaves the previous whole file; a failed write removes its
+temporary file, one short of space raises `NoSpace`. `lock_out` keeps a second process out of
+an output directory.
 """
 
 from __future__ import annotations
@@ -208,11 +206,9 @@ def lock_out(out: str | Path, *, name: str = LOCK, argv: Sequence[str] = (),
              option: str = "--out") -> Iterator[None]:
     """Hold an exclusive lock on the directory `out` (which must exist) while the block runs.
 
-    An flock on `out/name`, a file that says who holds it (pid, host, `argv`, start time) and
-    is removed on release. Another process that asks for it gets a ConfigError at once naming
-    the holder, e.g. ``--out 'DIR' is in use by another dscjax process (pid 4242 on host h,
-    since 2026-01-01T10:00:00+01:00: dscjax sweep --out DIR); ...``. A holder that died
-    never blocks: the kernel releases its lock, and the next holder rewrites the file."""
+    An flock on `out/name`, a file naming the holder (pid, host, argv, start), removed on
+    release; another process gets a ConfigError at once naming the holder. A dead holder never
+    blocks (the kernel releases its lock)."""
     path = Path(out) / name
     fd = _acquire(path, out, option)
     try:

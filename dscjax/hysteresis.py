@@ -1,41 +1,22 @@
-"""Hysteresis actuators w = P[u] behind the DSC: the backlash-like model (4) of the paper (Su et
-al. 2000, the default), Prandtl-Ishlinskii, generalized Prandtl-Ishlinskii and Bouc-Wen.
+"""Hysteresis actuators w = P[u] behind the DSC (docs/hysteresis.md): the backlash-like model
+(4) of the paper ("backlash", the default), Prandtl-Ishlinskii ("pi"), generalized P-I ("gpi")
+and Bouc-Wen ("bouc_wen").
 
-Every model is a `Hysteresis` (numbers traced, the class and its options static) with one
-interface, used by the closed loop (`closed_loop.py`) and by the open-loop driver `open_loop`:
+Every model is a `Hysteresis` (numbers traced, class and options static) with one interface:
 
-    init_state(u0)        -> h(0), the model's state (a pytree), given u(0) = u0
-    output(u, h)          -> w, the actuator's output, which drives the plant
-    rate(u, du, h)        -> h', given u and its exact derivative u' = du
-    decay_rate(u, du, h)  -> rates >= 0 (like h) of the stiff linear decays in `rate`, which the
-                             exponential step (ETDRK4) integrates exactly
-    project(u, h)         -> h after a step, u at its end: the plays' exact clamp (else h)
-    jump(u_from, u_to, h) -> h after u steps from u_from to u_to (a held input of a sampled
-                             controller): the model moves along its own rate-independent curve
-    effective_slope()     -> lam of w = lam u + d_1(u) with d_1 bounded, eq. (5)
-    d1_limits()           -> limits of d_1 as u -> -inf and u -> +inf, eqs. (7)-(8)
+    init_state(u0) -> h(0)                 output(u, h) -> w, which drives the plant
+    rate(u, du, h) -> h' given u' = du     decay_rate(u, du, h) -> rates >= 0 (like h) of the
+                                           stiff linear decays in `rate` (ETDRK4's exact part)
+    project(u, h) -> h after a step        jump(u_from, u_to, h) -> h after u steps (a held
+                                           input of a sampled controller), along the model's curve
+    effective_slope() -> lam of w = lam u + d_1(u), eq. (5); d1_limits() -> limits of d_1, (7)-(8)
 
-The models (docs/hysteresis.md):
-
-- `Backlash` ("backlash"): w' = alpha |u'| (lam u - w) + psi u', eq. (4); h = w. On a monotone
-  segment of u it has the closed form (5)-(6), `closed_form`, the test oracle.
-- `PrandtlIshlinskii` ("pi"): w = p0 u + sum_j p_j F_(r_j)[u], with the play operator
-  z(t) = max(u(t) - r, min(u(t) + r, z(t-))).
-- `GeneralizedPI` ("gpi"): G_r[u](t) = max(gamma_l(u) - r, min(gamma_r(u) + r, G_r(t-))),
-  gamma(u) = a tanh(b u + c) + d; w = p0 u + sum_j p_j G_(r_j)[u].
-- `BoucWen` ("bouc_wen"): w = a u + b h, h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n.
-
-How a play operator is advanced (measured in docs/hysteresis.md). A play is rate-independent
-and non-smooth, so it is not written as an ODE. Its state z (N,) holds the plays' outputs at the
-start of the step; inside the step z is frozen and every RK4 stage reads the output through the
-exact clamp max(lo(u), min(hi(u), z)) at that stage's u. After the step, `project(u, z)` applies
-the clamp at the step's end, with u the control law at the new state (the integrator's
-`project` hook; one extra evaluation of the law per step). This is the exact recursion on the
-step grid. The ODE form z' = u' [on the active branch] instead lets RK4's intermediate stages
-pick the branch from perturbed states and keeps an error of a fraction of one step's input
-change from every reversal (experiments/hysteresis_play_numerics.py). Carrying u in the state
-(v' = u') instead of re-evaluating the law drifted by 7e-3 in the paper's loop, where u' jumps
-when the robust term saturates.
+A play operator is rate-independent and non-smooth, so it is not an ODE: its state z (the plays'
+outputs at the step's start) is frozen inside a step, every RK4 stage reads the output through
+the exact clamp max(lo(u), min(hi(u), z)), and `project` applies the clamp at the step's end with
+u the control law at the new state: the exact recursion on the step grid. The ODE form
+z' = u' [active branch] lets RK4's stages pick the branch from perturbed states and keeps an
+error from every reversal.
 """
 
 from __future__ import annotations
@@ -60,9 +41,7 @@ class Hysteresis(Model):
 
     kind: ClassVar[str]
     title: ClassVar[str]  # the model's name in figures
-    # True if h is a discrete state (the plays): the integrator holds it constant inside a step
-    # (`integrate(frozen=...)`: its rate is never integrated) and applies `project` after
-    # every step.
+    # h is a discrete state (the plays): held inside a step, changed only by `project`
     projects: ClassVar[bool] = False
     # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
     default_sweep: ClassVar[tuple[str, ...]] = ()
@@ -165,24 +144,12 @@ class Backlash(Hysteresis):
 
 
 def closed_form(u, u0, w0, alpha, lam, psi, direction):
-    """Solution (5)-(6) of eq. (4) on a monotone segment of u.
-
-    With s = sgn(u') constant on the segment, (4) reads dw/du = alpha s (lam u - w) + psi, a linear
-    ODE in u. Writing d_1 = w - lam u (eq. 5):
+    """w(u) (shaped like u) by the solution (5)-(6) of eq. (4) on a monotone segment of u from
+    (u0, w0), direction +1 rising, -1 falling. With s = sgn(u'), d_1 = w - lam u is
 
         d_1(u) = (w0 - lam u0) E + (psi - lam)/(alpha s) (1 - E),  E = e^{-alpha s (u - u0)},
 
-    which is (6) with the paper's sgn(u) read as sgn(u') (docs/paper-readings.md).
-
-    Args:
-        u: input values on the segment (any shape).
-        u0, w0: start of the segment.
-        alpha, lam, psi: hysteresis parameters.
-        direction: +1 on a rising segment, -1 on a falling one.
-
-    Returns:
-        w(u), same shape as u.
-    """
+    (6) with the paper's sgn(u) read as sgn(u') (docs/paper-readings.md)."""
     s = direction
     decay = jnp.exp(-alpha * s * (u - u0))
     d1 = (w0 - lam * u0) * decay + (psi - lam) / (alpha * s) * (1.0 - decay)
@@ -211,11 +178,8 @@ def _pi_p():
 
 
 class _Plays(Hysteresis):
-    """w = p0 u + sum_j p_j z_j, each z_j a play between the bounds g_lo(u) - r_j and g_hi(u) + r_j
-    (`envelopes`).
-
-    The fields shared by P-I and generalized P-I (defaults: the P-I example of the issue);
-    a subclass adds its own (the envelopes) after them."""
+    """w = p0 u + sum_j p_j z_j, each z_j a play between g_lo(u) - r_j and g_hi(u) + r_j
+    (`envelopes`): the fields P-I and generalized P-I share; a subclass adds its envelopes."""
 
     p0: jax.Array = nonnegative(default=0.432)
     r: jax.Array = eqx.field(default_factory=_pi_r)
@@ -225,8 +189,7 @@ class _Plays(Hysteresis):
     projects: ClassVar[bool] = True
 
     def envelopes(self, u):
-        """(g_lo, g_hi) at input u (shaped like u): play j is clamped between g_lo - r_j and
-        g_hi + r_j."""
+        """(g_lo, g_hi) at input u, shaped like u."""
         raise NotImplementedError
 
     def expected_shapes(self, n):
@@ -259,15 +222,9 @@ class _Plays(Hysteresis):
         return self.plays(u0, jnp.broadcast_to(z0, jnp.shape(self.r)))
 
     def each_play(self, u, z):
-        """The plays' outputs at input u, one array shaped like u per play, from their
-        outputs z (..., N) at the step's start.
-
-        Per play, not as one (..., N) array: in a batch every play is then a row of its own
-        (see `integrate`'s rows layout), and XLA:CPU computes the clamps, the weighted sum and
-        the end-of-step update row by row. On (B, N) arrays it copied the N rows into one
-        array at every stage, summed them by a library call and, for the end-of-step update,
-        transposed the result and recomputed the control law's last operations once per row
-        (docs/hysteresis.md)."""
+        """The plays' outputs at input u from z (..., N) at the step's start, one array shaped
+        like u per play: in a batch each play is then its own row (`integrate`'s rows layout),
+        which XLA:CPU computes row by row instead of copying and transposing (B, N) arrays."""
         g_lo, g_hi = self.envelopes(jnp.asarray(u))
         r = jnp.asarray(self.r)
         return [play(z[..., j], g_lo - r[..., j], g_hi + r[..., j]) for j in range(z.shape[-1])]
@@ -296,11 +253,9 @@ class _Plays(Hysteresis):
 
 
 class PrandtlIshlinskii(_Plays):
-    """Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j F_(r_j)[u] (N play operators).
-
-    The defaults are the issue's example: r_j = 0.2 j (j = 1..10), p_j = 0.137 exp(-0.3 r_j),
-    p0 = 0.432: large-amplitude slope p0 + sum p_j = 1.43 and offset sum p_j r_j = 1.00,
-    against the paper's lam = 1.432 and (lam - psi)/alpha = 1.33.
+    """Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j F_(r_j)[u], F_r the play
+    z = max(u - r, min(u + r, z-)). Defaults: r_j = 0.2 j (j = 1..10), p_j = 0.137 exp(-0.3 r_j),
+    p0 = 0.432 (slope 1.43 and offset 1.00, near the paper's lam and (lam - psi)/alpha).
 
     Attributes:
         p0: () weight of the linear term, >= 0.
@@ -334,9 +289,7 @@ _GPI_RIGHT = (8.0, 0.125, 0.02, 0.0)
 class GeneralizedPI(_Plays):
     """Generalized Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j G_(r_j)[u], each play
     clamped between gamma_l(u) - r_j and gamma_r(u) + r_j, gamma(u) = a tanh(b u + c) + d.
-
-    The defaults: the P-I example's p0, r, p with envelopes 8 tanh(0.125 u -+ 0.02), close to
-    u - +0.16 for |u| <= 3 and saturating at +-8 (a magnetostrictive actuator's shape).
+    Defaults: P-I's p0, r, p; envelopes 8 tanh(0.125 u -+ 0.02) (saturating at +-8).
 
     Attributes:
         envelope_left: (4,) [a, b, c, d] of gamma_l, which drags the plays while u rises;
@@ -373,15 +326,13 @@ class GeneralizedPI(_Plays):
                 envelope(jnp.asarray(self.envelope_right), u))
 
     def effective_slope(self):
-        """p0: the envelopes saturate, so w = p0 u + d_1 with d_1 = sum p_j G_j bounded is the
-        decomposition (5) that holds for every u. Near u = 0 the loop is steeper:
-        p0 + sum p_j gamma'(0)."""
+        """p0: the envelopes saturate, so d_1 = sum p_j G_j is bounded for every u (near u = 0
+        the loop is steeper: p0 + sum p_j gamma'(0))."""
         return jnp.asarray(self.p0)
 
     def d1_limits(self):
-        """sum p_j (gamma_r(-inf) + r_j) as u -> -inf (the plays dragged down along gamma_r
-        + r_j) and sum p_j (gamma_l(+inf) - r_j) as u -> +inf, with gamma(+-inf) =
-        d +- a sgn(b)."""
+        """sum p_j (gamma_r(-inf) + r_j) as u -> -inf, sum p_j (gamma_l(+inf) - r_j) as
+        u -> +inf, gamma(+-inf) = d +- a sgn(b)."""
         el, er = jnp.asarray(self.envelope_left), jnp.asarray(self.envelope_right)
         p, r = jnp.asarray(self.p), jnp.asarray(self.r)
         right_low = er[..., 3] - er[..., 0] * jnp.sign(er[..., 1])
@@ -416,9 +367,7 @@ class BoucWen(Hysteresis):
     """Bouc-Wen hysteresis: w = a u + b h, h' = A u' - beta |u'| |h|^(n-1) h - gamma u' |h|^n.
 
     For beta >= |gamma| and |h0| <= h_max = (A / (beta + gamma))^(1/n), |h| <= h_max, so
-    w = a u + d_1 with |d_1| = |b h| <= |b| h_max. The defaults: a = 1.432, b = 1, A = 1,
-    beta = 0.6, gamma = 0.15, n = 1 (h_max = 4/3): the paper's slope lam = 1.432 and nearly its
-    offset (lam - psi)/alpha = 1.33.
+    |d_1| = |b h| <= |b| h_max. Defaults: the paper's slope 1.432 and nearly its offset.
 
     Attributes:
         a: () slope of the elastic part, > 0 (the effective slope).
@@ -512,17 +461,9 @@ MODELS = (Backlash, PrandtlIshlinskii, GeneralizedPI, BoucWen)
 
 
 def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: float):
-    """Drive a model alone by u(t) (u' by forward-mode AD) with the loop's RK4 and clamp.
+    """(t, u, w), NumPy arrays on t_k = k dt, of a model driven alone by u_of_t (a JAX function
+    of t; u' by forward-mode AD) with the loop's RK4 and clamp, round(t_final / dt) steps.
 
-    Args:
-        hysteresis: a model.
-        u_of_t: t -> u(t), a JAX function of a scalar.
-        t_final, dt: horizon and step; round(t_final / dt) steps.
-
-    Returns:
-        (t, u, w) on the step grid t_k = k dt, as NumPy arrays.
-
-    Example:
         >>> import jax.numpy as jnp
         >>> t, u, w = open_loop(PrandtlIshlinskii(), lambda t: 3.5 * jnp.sin(2.3 * t), 1.0, 1e-3)
         >>> w.shape
@@ -536,8 +477,7 @@ def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: floa
 
 @dataclasses.dataclass(frozen=True)
 class _OfT:
-    """u_of_t(t) as the (t, args) function `_open_loop` takes; equal for the same u_of_t, so
-    the compiled program is reused (a new lambda per call would compile again)."""
+    """u_of_t as a (t, args) function, equal for the same u_of_t (its program is reused)."""
 
     u_of_t: Callable
 
@@ -556,11 +496,8 @@ def _sine_loops(model, amps, om, dt, n_steps):
 
 
 def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float, dt: float):
-    """The model driven by u = A sin(omega t) for each amplitude A (one program, vmapped).
-
-    Returns:
-        (t (N+1,), u (K, N+1), w (K, N+1)) on the step grid, K = len(amplitudes).
-    """
+    """(t (N+1,), u (K, N+1), w (K, N+1)): the model driven by u = A sin(omega t) for each of
+    the K amplitudes (one vmapped program)."""
     n_steps = max(int(round(t_final / dt)), 1)
     dtype = jnp.result_type(float)
     u, w = _sine_loops(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),

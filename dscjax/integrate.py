@@ -1,18 +1,13 @@
-"""Fixed-step integration over pytrees: the time loop is a `jax.lax.scan`, its derivative (for
-one trajectory) a time-parallel linearisation. Nothing here knows about DSC.
+"""Fixed-step integration over pytrees on t_k = k dt, a `jax.lax.scan`; knows nothing of DSC.
 
-`integrate(f, y0, dt, n_steps, ...)` takes any f(t, y, args) -> (dy, obs), obs an observation
-at (t, y) read off for saving and for the running reductions (`Running`, one protocol). Step
-times are t_k = k dt exactly (an integer counter times dt). Strategies are objects, as in
-diffrax: the solver (`RK4()`, `ETDRK4()`: exponential RK4, exact on the stiff linear decays
-the model reports) and the gradient (`TimeParallel()`: one trajectory's derivative as all N
-step Jacobians at once, then a small recurrence, transposed by JAX for reverse mode;
-`Checkpointed(every)`: JAX's own differentiation of the scan). A batch is always
-differentiated through its scan, in checkpointed segments of `every` steps.
-
-Layouts, chosen for XLA:CPU (docs/architecture.md): one trajectory carries its state as flat
-vectors of at most `SMALL` floats (XLA:CPU runs such a loop body sequentially, without a
-thread pool); a batch is stored batch-last, one (B,) row per state component.
+`integrate(f, y0, dt, n_steps, ...)` takes f(t, y, args) -> (dy, obs), obs read off for saving
+and for the running reductions (`Running`). Strategies are objects, as in diffrax: the solver
+(`RK4()`, `ETDRK4()`: exact on the stiff linear decays the model reports) and the gradient
+(`TimeParallel()`: one trajectory's N step Jacobians at once, then a small recurrence;
+`Checkpointed(every)`: JAX's own differentiation of the scan). A batch is differentiated
+through its scan, checkpointed every `every` steps. Layouts suit XLA:CPU
+(docs/architecture.md): one trajectory as flat vectors of at most `SMALL` floats, a batch
+batch-last, one (B,) row per state component.
 """
 
 from __future__ import annotations
@@ -37,8 +32,8 @@ STATUS_BOUND = 2
 
 SMALL = 64  # floats per buffer for XLA:CPU's sequential loop-body executor (512 bytes f64)
 
-# Rows are written from an inner scan over this many steps when every step is saved: a single
-# scan that both steps and writes rows ran ~3x slower on XLA:CPU (measured; 8+ is slow again).
+# Rows are written from an inner scan over this many steps when every step is saved: one scan
+# that both steps and writes rows is slower on XLA:CPU.
 _ROW_CHUNKS = (4, 2)
 # Members per chunk of the time-parallel Jacobians (bounds their memory, not their result).
 _PARALLEL_CHUNK = 8192
@@ -53,13 +48,9 @@ def _axpy(a, x, y):
 
 
 def _hold(new, y, frozen):
-    """`new` with the frozen components of the state taken from y unchanged.
-
-    `frozen` (static) is None (nothing frozen) or a tree like y whose leaves are Python bools
-    (one per row of a batch) or NumPy bool arrays (one per element of a packed chunk). In the
-    batched rows layout a frozen row's increments are never formed (XLA drops them as dead
-    code); in a packed chunk that mixes frozen and live elements they are computed with the
-    chunk and discarded by the select."""
+    """`new` with the frozen components taken from y. `frozen` (static): None, or a tree like
+    y of Python bools (batch rows: a frozen row's increments are dead code) or NumPy bool
+    arrays (packed chunks: computed, then discarded by the select)."""
     if frozen is None:
         return new
 
@@ -84,13 +75,9 @@ def rk4_step(f: Callable, t, y: Pytree, dt, args) -> Pytree:
 
 
 def _rk4(f_obs, t, y, dt, h=None, frozen=None):
-    """RK4 step for f_obs(t, y) -> (dy, obs); returns (y_next, obs at (t, y)).
-
-    `h` (default dt) scales the increments only: h = 0 gives y_next = y exactly, with the
-    stages still evaluated at finite points (how frozen steps are linearised safely).
-    `frozen` (see `_hold`): components that every stage reads unchanged and that the step
-    leaves as they are (a discrete state that only `integrate`'s `project` updates).
-    """
+    """RK4 step for f_obs(t, y) -> (dy, obs); returns (y_next, obs at (t, y)). `h` (default
+    dt) scales the increments only: h = 0 gives y_next = y with the stages at finite points
+    (how frozen steps are linearised safely). `frozen`: see `_hold`."""
     h = dt if h is None else h
     half = 0.5 * h
     k1, obs = f_obs(t, y)
@@ -134,15 +121,9 @@ def _weight(z, coeffs, direct):
 
 
 def _etdrk4(f_obs, rates, t, y, dt, h=None, frozen=None):
-    """One exponential RK4 step (ETDRK4, Cox & Matthews 2002) of y' = -lam y + N(t, y), with
-    lam = rates(t_k, y_k, obs_k) >= 0 frozen over the step (a pytree like y).
-
-    The rates are the stiff linear decays the model knows of (the hysteresis rate alpha |u'|,
-    the filters 1/tau): they are integrated exactly, and the rest N = F + lam y with
-    exponential weights, so the step stays stable however large lam h is; fourth order, and
-    exactly classical RK4 where lam = 0. `frozen` as for `_rk4`. Returns (y_next, obs at
-    (t, y)).
-    """
+    """One ETDRK4 step (Cox & Matthews 2002) of y' = -lam y + N(t, y), lam = rates(t_k, y_k,
+    obs_k) >= 0 (like y) frozen over the step: the stiff decays integrated exactly, so the step
+    is stable however large lam h is; classical RK4 where lam = 0. As `_rk4` otherwise."""
     h = dt if h is None else h
     k1, obs = f_obs(t, y)
     lam = rates(t, y, obs)
@@ -179,12 +160,8 @@ def _etdrk4(f_obs, rates, t, y, dt, h=None, frozen=None):
 
 
 def _rk4_scanned(f_obs, t, y, dt, h, frozen=None):
-    """The same step as `_rk4`, its four stages a `lax.scan` over one copy of f_obs.
-
-    Used where the step is differentiated in bulk (the time-parallel Jacobians): one copy of
-    the vector field's derivative instead of four halves XLA's compile time. Equal to `_rk4`
-    to round-off (the stage sums are formed in the same order).
-    """
+    """`_rk4` with its four stages a `lax.scan` over one copy of f_obs, for bulk
+    differentiation (one copy of the field's derivative compiles faster). Equal to round-off."""
     c = jnp.asarray([0.0, 0.5, 0.5, 1.0], dt.dtype)
     w = jnp.asarray([1.0, 2.0, 2.0, 1.0], dt.dtype)
 
@@ -223,13 +200,12 @@ class Integration(NamedTuple):
 
 
 class Running(Protocol):
-    """A running reduction over every step k = 0..N of an integration, while it is healthy:
-    the one protocol of the metrics, tuning's terms and requirements, and progress reports.
+    """A running reduction over every step k = 0..N while the run is healthy (metrics,
+    tuning's terms and requirements, progress); a pytree whose numbers are traced leaves.
 
-    A pytree (its numbers are traced leaves, differentiable like any parameter) with
         init(dtype) -> acc                         a pytree of scalars
         update(acc, k, t, y, obs, dt) -> acc       at step k: time t_k, state y_k, obs_k
-        finalize(acc, t_final) -> {name: value}    the named results (the caller's)
+        finalize(acc, t_final) -> {name: value}
     """
 
     def init(self, dtype) -> Any: ...
@@ -296,24 +272,22 @@ DEFAULT_CHECKPOINT_EVERY = 100
 
 
 class Gradient(eqx.Module):
-    """How jax.grad, jvp and jacfwd differentiate an integration. `every`: a batch's scan keeps
-    its state every this many steps and recomputes the rest (memory O(N/L + L) states per
-    member; None keeps every step's residuals)."""
+    """How an integration is differentiated. `every`: a batch's scan keeps its state every this
+    many steps and recomputes the rest (None keeps every step's residuals)."""
 
     name: ClassVar[str]
     every: int | None = DEFAULT_CHECKPOINT_EVERY
 
 
 class TimeParallel(Gradient):
-    """One trajectory: the Jacobians of all N steps in one batched program, then a small linear
-    recurrence (exact: the derivative of the discrete map; memory O(N m^2))."""
+    """One trajectory: all N step Jacobians in one batched program, then a small recurrence
+    (the exact derivative of the discrete map; memory O(N m^2))."""
 
     name: ClassVar[str] = "time_parallel"
 
 
 class Checkpointed(Gradient):
-    """JAX's own differentiation of the scan (one trajectory: every residual kept; a reference
-    for tests)."""
+    """JAX's own differentiation of the scan (a reference for tests)."""
 
     name: ClassVar[str] = "checkpointed"
 
@@ -325,11 +299,8 @@ GRADIENTS: dict[str, type[Gradient]] = {c.name: c for c in (TimeParallel, Checkp
 
 
 class _Packer:
-    """A pytree <-> a tuple of flat float arrays of at most SMALL elements each.
-
-    Leaves are packed whole, in order, greedily into arrays of <= SMALL floats (a leaf larger
-    than that gets an array of its own); non-float leaves are kept aside as they are.
-    """
+    """A pytree <-> a tuple of flat float arrays: leaves packed whole, in order, greedily into
+    arrays of <= SMALL floats (a larger leaf gets its own); non-float leaves kept aside."""
 
     def __init__(self, proto):
         leaves, self.treedef = jax.tree.flatten(proto)
@@ -349,10 +320,6 @@ class _Packer:
             sizes[-1] += size
         self.sizes = tuple(sizes)
         self.n_leaves = len(leaves)
-
-    @property
-    def size(self) -> int:
-        return sum(self.sizes)
 
     def pack(self, tree) -> tuple:
         leaves = jax.tree.leaves(tree)
@@ -397,8 +364,7 @@ def _zeros(shape_tree):
 
 
 def _full_mask(frozen, y):
-    """`frozen`, a tree of bools that is a prefix of y's, as NumPy bool arrays shaped like
-    every leaf of y (None if nothing is frozen)."""
+    """`frozen` (a prefix of y's tree) as NumPy bool arrays shaped like y's leaves, or None."""
     if frozen is None:
         return None
     mask = jax.tree.map(lambda m, sub: jax.tree.map(lambda x: np.full(np.shape(x), bool(m)), sub),
@@ -412,20 +378,73 @@ def _all_finite_small(chunks, bound):
     return ok_finite, ok_small
 
 
+def _guard(ok_now, finite, small, k, code, bad):
+    """(code, first bad step, keep) after step k: a state that left the bound or went
+    non-finite freezes the run at its last good state."""
+    bad_now = ok_now & ~(finite & small)
+    code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), code)
+    return code, jnp.where(bad_now, k + 1, bad), code == STATUS_OK
+
+
+def _saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None):
+    """n steps of `step(c) -> (c, obs)` from c0, keeping record(c, obs) of the steps 0, s, 2s,
+    ... (c the carry before the step; a last, shorter block's first step too); a batch's
+    steps are checkpointed in segments of `every` (None: not checkpointed)."""
+    if s == 1:
+        chunk = next((q for q in _ROW_CHUNKS if n % q == 0), 1)
+
+        def save_step(c, _):
+            c_new, obs = step(c)
+            return c_new, record(c, obs)
+
+        def rows(c, _):
+            return jax.lax.scan(save_step, c, None, length=chunk)
+
+        c, recs = jax.lax.scan(jax.checkpoint(rows) if every else rows, c0, None,
+                               length=n // chunk)
+        return c, jax.tree.map(lambda v: v.reshape(n, *v.shape[2:]), recs)
+
+    def steps(state, length):
+        def inner(st, _):
+            c, obs_f, first = st
+            c, obs = step(c)
+            obs_f = jax.tree.map(lambda o, of: jnp.where(first, o, of), obs, obs_f)
+            return (c, obs_f, jnp.zeros_like(first)), None
+
+        return jax.lax.scan(inner, state, None, length=length)[0]
+
+    def block(c, length):
+        state = (c, obs_zero, jnp.array(True))
+        seg = _segment_length(length, every)
+        if seg is None or seg == length:
+            def body(st):
+                return steps(st, length)
+
+            state = (jax.checkpoint(body) if seg else body)(state)
+        else:
+            @jax.checkpoint
+            def segment(st, _):
+                return steps(st, seg), None
+
+            state, _ = jax.lax.scan(segment, state, None, length=length // seg)
+        return state[0], record(c, state[1])
+
+    c, recs = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=n // s)
+    if n % s:
+        c, last = block(c, n % s)
+        recs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), recs, last)
+    return c, recs
+
+
 def _block_length(n: int, width: int) -> int:
-    """The largest divisor L of n with L * width <= SMALL (at least 1): blocks of L steps
-    whose per-step records fit XLA:CPU's cheap sequential executor."""
+    """The largest divisor L of n with L * width <= SMALL (at least 1)."""
     cap = max(1, SMALL // max(width, 1))
     return max(d for d in range(1, min(cap, n) + 1) if n % d == 0)
 
 
 def _blocked_scan(body, carry, xs, n: int, width: int, reverse: bool = False):
-    """lax.scan over n steps with per-step inputs/outputs grouped in small blocks.
-
-    An outer scan moves whole blocks in and out of the big (n, ...) arrays; the inner scan over
-    the L steps of a block touches only <= 512-byte buffers, so XLA:CPU runs it sequentially.
-    Same results as a plain scan.
-    """
+    """lax.scan over n steps in blocks of L: the inner scan touches only small buffers (run
+    sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a plain scan."""
     L = _block_length(n, width)
 
     def split(a):
@@ -463,8 +482,7 @@ class _Problem:
     def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
                  project=None, frozen=None):
         self.f, self.reduction_is_none = f, reduction is None
-        self.solver, self.rates = solver, rates  # rates: the decays ETDRK4 integrates exactly
-        self.project = project  # None, or the map applied to the state after every step
+        self.solver, self.rates, self.project = solver, rates, project
         self.n, self.s = n_steps, save_every
         self.yp = _Packer(y0)
         mask = _full_mask(frozen, y0)  # components held inside a step, per packed chunk
@@ -517,10 +535,7 @@ class _Problem:
         acc = jax.tree.map(lambda old, new: jnp.where(ok_now, new, old), c.acc,
                            self.update(red, c.acc, c.k, t, c.y, obs, dt))
         finite, small = _all_finite_small(y_next, bound)
-        bad_now = ok_now & ~(finite & small)
-        code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), c.code)
-        bad = jnp.where(bad_now, c.k + 1, c.bad)
-        keep = code == STATUS_OK
+        code, bad, keep = _guard(ok_now, finite, small, c.k, c.code, c.bad)
         y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y_next, c.y)
         return Carry(c.k + 1, y, acc, code, bad), obs
 
@@ -536,48 +551,17 @@ class _Problem:
                            self.update(red, c.acc, c.k, t, c.y, obs, dt))
         return acc, obs
 
-    # -- the primal loop: saves every s-th state, never stores the others ----------------------
+    # the primal loop: saves every s-th state, never stores the others
     def forward(self, y0, a, red, acc0, dt, bound):
-        n, s = self.n, self.s
-        c0 = self.init(y0, acc0)
-        obs_zero = self.op.zeros(self.dtype)
-
-        def step(c, _):
-            c_new, obs = self.guarded(c, a, red, dt, bound)
-            return c_new, (c.y, obs)
-
-        if s == 1:
-            chunk = next((q for q in _ROW_CHUNKS if n % q == 0), 1)
-
-            def rows(c, _):
-                return jax.lax.scan(step, c, None, length=chunk)
-
-            c, (ys, obs) = jax.lax.scan(rows, c0, None, length=n // chunk)
-            ys, obs = (jax.tree.map(lambda v: v.reshape(n, *v.shape[2:]), x) for x in (ys, obs))
-        else:
-            def block(c, length):
-                def inner(cc, _):
-                    cr, obs_first, first = cc
-                    cr_new, obs = self.guarded(cr, a, red, dt, bound)
-                    obs_first = jax.tree.map(lambda o, f_: jnp.where(first, o, f_), obs,
-                                             obs_first)
-                    return (cr_new, obs_first, jnp.zeros_like(first)), None
-
-                (c_new, obs_first, _), _ = jax.lax.scan(inner, (c, obs_zero, jnp.array(True)),
-                                                        None, length=length)
-                return c_new, (c.y, obs_first)
-
-            c, (ys, obs) = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=n // s)
-            if n % s:  # the last, shorter block: its first step is saved too
-                c, last = block(c, n % s)
-                ys, obs = (jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), x, x_last)
-                           for x, x_last in zip((ys, obs), last, strict=True))
+        c, (ys, obs) = _saving_scan(lambda c: self.guarded(c, a, red, dt, bound),
+                                    self.init(y0, acc0), self.op.zeros(self.dtype), self.n,
+                                    self.s, lambda c, obs: (c.y, obs))
         acc, obs_end = self.finish(c, a, red, dt)
         ys = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), ys, c.y)
         obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), obs, obs_end)
         return ys, obs, acc, c.code, c.bad
 
-    # -- the same loop, keeping every state, sample and observation (for the linearisation) --
+    # the same loop, keeping every state, sample and observation (for the linearisation)
     def forward_all(self, y0, a, red, acc0, dt, bound):
         n = self.n
         c0 = self.init(y0, acc0)
@@ -604,20 +588,16 @@ def _saved(all_k, end, s):
 
 
 def _time_parallel_jvp(prob: _Problem, primals, tangents):
-    """The jvp of `_Problem.forward` as a time-parallel linearisation (see module docstring).
-
-    With c_k the carry, the discrete map is y_(k+1) = Phi_k(y_k; a, dt) and obs_k = O_k(y_k).
-    Its tangent is the linear recurrence
+    """The jvp of `_Problem.forward` as a time-parallel linearisation of y_(k+1) =
+    Phi_k(y_k; a, dt), obs_k = O_k(y_k):
 
         dy_(k+1) = J_k dy_k + b_k,   dobs_k = G_k dy_k + g_k,
         dacc_(k+1) = jvp of the reduction update along (dacc_k, dy_k, dobs_k, dred, dt),
 
-    with J_k = dPhi/dy, G_k = dO/dy (one batched jacfwd over all k: they need only the stored
-    primal states) and b_k, g_k the derivatives along (da, d dt) (one batched jvp). Only the
-    recurrences run step by step, and they are small. JAX transposes this for reverse mode.
-
-    A frozen step (after a divergence) is linearised with its increments scaled by 0, which
-    makes it exactly the identity with finite partials, so no NaN reaches the derivative.
+    J_k = dPhi/dy, G_k = dO/dy by one batched jacfwd over the stored states, b_k, g_k along
+    (da, d dt) by one batched jvp; only the small recurrences run step by step. JAX transposes
+    it for reverse mode. A frozen step (after a divergence) has its increments scaled by 0:
+    exactly the identity with finite partials, so no NaN reaches the derivative.
     """
     y0, a, red, acc0, dt, bound = primals
     dy0, da, dred, dacc0, ddt, _ = tangents
@@ -689,9 +669,8 @@ def _time_parallel_jvp(prob: _Problem, primals, tangents):
 
 
 def _parallel(fn, xs):
-    """fn vmapped over the leading axis of xs, in chunks of at most _PARALLEL_CHUNK members
-    (the last chunk padded by repeating the first member, its results dropped): the memory
-    of the batched program is bounded and it is compiled once."""
+    """fn vmapped over the leading axis of xs in chunks of _PARALLEL_CHUNK (the last padded with
+    the first member, its results dropped): bounded memory, compiled once."""
     n = jax.tree.leaves(xs)[0].shape[0]
     if n <= _PARALLEL_CHUNK:
         return jax.vmap(fn)(*xs)
@@ -742,19 +721,12 @@ def _integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, sta
 
 
 class _Rows:
-    """A batch: the state is a tuple of m rows of shape (B,), one per state component.
-
-    Each derivative component stays its own output: packing computed components into one
-    array (a concatenate, as ravel_pytree does) lets XLA fuse the whole vector field into the
-    concatenate, whose emitter then recomputes the shared control law once per component
-    (measured 5x slower). Rows are stacked only to save them.
-    """
+    """A batch: the state is a tuple of m rows of shape (B,), one per component. Packing
+    computed components into one array lets XLA fuse the whole field into the concatenate,
+    which then recomputes the control law once per component; rows are stacked only to save."""
 
     def __init__(self, proto):
         self.unravel = ravel_pytree(proto)[1]
-
-    def pack_one(self, tree):
-        return _scalars(tree)
 
     def unpack_one(self, row_scalars):
         return self.unravel(jnp.stack(row_scalars))
@@ -793,7 +765,6 @@ def _segment_length(save_every: int, target: int | None) -> int | None:
 
 def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
                      state_bound, solver, gradient, rates=None, project=None, frozen=None):
-    checkpoint_every = gradient.every
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = _first(y0), _first(batch)
     mask = _full_mask(frozen, y_one)  # one Python bool per row: held inside a step
@@ -857,68 +828,17 @@ def _integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_ever
         acc = acc_update(acc, k, t, y, obs, ok_now)
         finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in y_next])
         small = functools.reduce(jnp.logical_and, [jnp.abs(v) <= state_bound for v in y_next])
-        bad_now = ok_now & ~(finite & small)
-        code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), code)
-        bad = jnp.where(bad_now, k + 1, bad)
-        keep = code == STATUS_OK
+        code, bad, keep = _guard(ok_now, finite, small, k, code, bad)
         y_next = tuple(jnp.where(keep, a, b) for a, b in zip(y_next, y, strict=True))
         return (k + 1, y_next, acc, code, bad), obs
 
     obs_zero = _zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
-
-    def steps(carry, obs_first, first, length):
-        def inner(c, _):
-            carry_, obs_f, fst = c
-            carry_, obs = step(carry_)
-            obs_f = jax.tree.map(lambda o, of: jnp.where(fst, o, of), obs, obs_f)
-            return (carry_, obs_f, jnp.zeros_like(fst)), None
-
-        return jax.lax.scan(inner, (carry, obs_first, first), None, length=length)[0]
-
-    def block(carry, length):
-        # `length` steps (in checkpointed segments); keep the state and obs at the first one.
-        y_start = carry[1]
-        state = (carry, obs_zero, jnp.array(True))
-        seg = _segment_length(length, checkpoint_every)
-        if seg is None or seg == length:
-            def body(st):
-                return steps(*st, length)
-
-            state = (jax.checkpoint(body) if seg else body)(state)
-        else:
-            @jax.checkpoint
-            def segment(st, _):
-                return steps(*st, seg), None
-
-            state, _ = jax.lax.scan(segment, state, None, length=length // seg)
-        carry, obs_first, _ = state
-        return carry, (ys_c.stack(y_start), obs_c.stack(obs_first))
-
     init = (jnp.zeros((), jnp.int32), y_init, acc_init,
             jnp.full((n_batch,), STATUS_OK, jnp.int32), jnp.full((n_batch,), -1, jnp.int32))
     with barriers(True):
-        if save_every == 1:
-            chunk = next((c for c in _ROW_CHUNKS if n_steps % c == 0), 1)
-
-            def save_step(carry, _):
-                y_start = carry[1]
-                carry, obs = step(carry)
-                return carry, (ys_c.stack(y_start), obs_c.stack(obs))
-
-            def rows(carry, _):
-                return jax.lax.scan(save_step, carry, None, length=chunk)
-
-            rows = jax.checkpoint(rows) if checkpoint_every else rows
-            carry, (ys, obs) = jax.lax.scan(rows, init, None, length=n_steps // chunk)
-            ys = ys.reshape(n_steps, *ys.shape[2:])
-            obs = obs.reshape(n_steps, *obs.shape[2:])
-        else:
-            carry, (ys, obs) = jax.lax.scan(lambda c, _: block(c, save_every), init, None,
-                                            length=n_steps // save_every)
-            if n_steps % save_every:  # the last, shorter block: its first step is saved too
-                carry, (y_last, obs_last) = block(carry, n_steps % save_every)
-                ys = jnp.concatenate([ys, y_last[None]])
-                obs = jnp.concatenate([obs, obs_last[None]])
+        carry, (ys, obs) = _saving_scan(
+            step, init, obs_zero, n_steps, save_every,
+            lambda c, o: (ys_c.stack(c[1]), obs_c.stack(o)), gradient.every)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         _, obs_end = f_obs(t_end, y_end)
@@ -953,31 +873,25 @@ def integrate(
     """Integrate y' = f(t, y, args) on t_k = k dt, k = 0..n_steps.
 
     Args:
-        f: f(t, y, args) -> (dy, obs); obs is an observation at (t, y). With `batch`, f is called
-            as f(t, y, args, b) for one batch member b (and does not see the batch axis).
+        f: f(t, y, args) -> (dy, obs), obs an observation at (t, y); with `batch`, called as
+            f(t, y, args, b) for one member b (without the batch axis).
         y0: initial state pytree (with `batch`: every leaf has a leading batch axis B).
-        dt: step (traced).
-        n_steps: number of steps N (static).
-        args: shared arguments passed to f (traced leaves, one copy for the whole batch).
-        batch: None, or a pytree whose leaves have a leading batch axis B: per-member arguments.
-        save_every: keep the states and observations at the steps 0, s, 2s, ... and always
-            at N (`saved_steps`; s need not divide N) (static); memory is O(N/s).
-        reduction: None, or a `Running` reduction: acc <- update(acc, k, t_k, y_k, obs_k, dt)
-            for every k = 0..N while the trajectory is healthy, from init(dtype) (every member
-            of a batch alike); `Integration.acc` is its raw accumulator.
+        dt: step (traced). n_steps: N (static).
+        args: shared arguments of f (traced, one copy for the whole batch).
+        batch: None, or per-member arguments, leaves with a leading batch axis B.
+        save_every: s (static): keep the steps 0, s, 2s, ... and always N (`saved_steps`).
+        reduction: None, or a `Running` updated at every k = 0..N while the run is healthy;
+            `Integration.acc` is its raw accumulator.
         state_bound: a state with any |component| above it counts as diverged (traced).
-        solver: `RK4()` (None: the default) or `ETDRK4()` (needs `rates`).
-        gradient: `TimeParallel()` (None: the default) or `Checkpointed()`; its `every` is the
-            checkpoint segment of a batch's scan.
-        rates: rates(t, y, args, obs) -> a decay rate >= 0 per state component (a pytree like
-            y; with `batch`, args is (args, b)), whose linear part -rate * y ETDRK4 integrates
-            exactly. Ignored by RK4.
-        project: None, or project(k, t, y, args) -> y (with `batch`, args is (args, b)),
-            applied to the state after every step, at its end (step index k, time t): a
-            discrete update that is no ODE (the plays' clamp, a sampled controller).
-        frozen: None, or a tree of Python bools, a prefix of y's structure (static; for a
-            batch, of one member's): True marks components held constant inside a step; only
-            `project` changes them. They are still checked against `state_bound`.
+        solver: `RK4()` (default) or `ETDRK4()` (needs `rates`).
+        gradient: `TimeParallel()` (default) or `Checkpointed()`; `every` is the checkpoint
+            segment of a batch's scan.
+        rates: rates(t, y, args, obs) -> decay rates >= 0 like y, integrated exactly by
+            ETDRK4 (with `batch`, args is (args, b)).
+        project: None, or project(k, t, y, args) -> y, applied after every step at its end
+            (step k, time t): a discrete update (the plays' clamp, a sampled controller).
+        frozen: None, or a static tree of Python bools, a prefix of y's (one member's):
+            components held inside a step, changed only by `project`, still bound-checked.
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.

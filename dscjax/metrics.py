@@ -1,10 +1,8 @@
 """Tracking and control-effort metrics, all differentiable (max and |.| a.e.).
 
-Two implementations of the same definitions: functions of saved arrays (`linf`, `l2`, ...)
-for post-processing, and `Tracking`, a running reduction (the `integrate.Running` protocol)
-updated at every step inside the scan, so that sweeps and tuning get exact step-grid metrics
-without storing the trajectory (with save_every = 1 the two agree; tested). `Combined` folds
-several reductions into one (a run's metrics beside tuning's terms and requirements).
+Functions of saved arrays (`linf`, `l2`, ...) and `Tracking`, the same definitions as a running
+reduction (`integrate.Running`) over every step, without storing the trajectory. `Combined`
+folds several reductions into one.
 
 Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
     L_inf  = max_{k in W} |e_k|

@@ -1,24 +1,19 @@
 """The one base of every model class: plants, hysteresis, controllers, references, the Setup
 that holds them, and the objects tuning and the integrator carry.
 
-A model is an `equinox.Module`: a frozen dataclass registered as a JAX pytree. Its numbers are
-typed fields (`jax.Array`), traced leaves a user may tune, sweep or differentiate; its choices
-are static fields (`option(...)`, typed `Literal[...]`), part of the pytree's structure, so
-changing one recompiles and changing a number never does. Range rules live on the fields:
+A model is an `equinox.Module` (a frozen dataclass, a JAX pytree). Its numbers are typed fields
+(`jax.Array`), traced leaves; its choices are static fields (`option(...)`, typed
+`Literal[...]`): changing one recompiles, changing a number never does. Range rules live on
+the fields:
 
     class Backlash(Model):
         alpha: jax.Array = positive()   # validate(): "hysteresis.alpha must be > 0 (got -1)"
         smooth: bool = option(False)    # static
 
-    class DSC(Model):
-        variant: Variant = option("full")   # Variant = Literal["full", "no_dhat", ...]
-
-`validate(prefix)` checks every rule and every `Literal` option and names the field by its
-config path; a model adds the rules that tie two fields together (lam > psi) by overriding it
-and calling `super().validate(prefix)`. Validation is explicit (`validation.validate_setup`),
-not in `__init__` or `__check_init__`: models are also built inside traced code (a batch of
-setups under vmap, tuning's parameters), where the numbers are tracers and cannot be checked,
-and only the Setup knows the config path ("hysteresis") a message must name.
+`validate(prefix)` checks every rule and `Literal` option, naming the field by its config
+path; a model adds rules tying fields together (lam > psi) by overriding it. Validation is
+explicit (`validation.validate_setup`), not in `__init__`: models are also built from tracers,
+and only the Setup knows the config path a message must name.
 """
 
 from __future__ import annotations

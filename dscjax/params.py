@@ -5,8 +5,7 @@
     Param.parse("hysteresis.p*")          # one factor s scaling a whole vector leaf: p -> s p
     overrides(setup, columns, table)      # a (B, d) table of numbers -> {path: (B, ...)}
 
-Every feature names numbers this way: tuning the parameters it differentiates, sweeps (and
-the training and held-out batches of tuning) the ones they vary (`dscjax.params`).
+Tuning, sweeps and the worst-case search all name the numbers they vary this way.
 """
 
 from __future__ import annotations
@@ -113,11 +112,9 @@ def check_columns(columns: Sequence[Param], field: str) -> None:
 
 
 def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
-    """{path: (B, ...)} for `simulate_batch`/`run` from a (B, d) table whose column j holds
-    the values of columns[j]; the elements of a vector leaf that no column names keep their
-    values in `setup`, a scale column s gives s * (the vector in `setup`), and every leaf
-    keeps its dtype. NumPy in, NumPy out; traced in, traced out (the sweep builds its
-    overrides inside its compiled block)."""
+    """{path: (B, ...)} for `simulate_batch`/`run` from a (B, d) table, column j the values of
+    columns[j]; unnamed elements of a vector leaf keep `setup`'s values, a scale column s gives
+    s * the vector, dtypes are kept. NumPy in, NumPy out; traced in, traced out."""
     host = isinstance(table, np.ndarray)
     xp = np if host else jnp
     b = table.shape[0]
@@ -210,11 +207,8 @@ def set_many(setup, values: Mapping[str, Any]):
 
 
 def cast(setup, dtype):
-    """Every floating leaf of setup converted to `dtype` (e.g. jnp.float32 for sweeps).
-
-    Concrete leaves become NumPy arrays (host data, exact whatever JAX's x64 setting; JAX
-    converts them when a jitted function is called); traced leaves are cast with jnp.
-    """
+    """Every floating leaf of setup in `dtype`: concrete leaves as NumPy arrays (exact whatever
+    JAX's x64 setting), traced ones cast with jnp."""
 
     def conv(x):
         if isinstance(x, jax.core.Tracer):
@@ -238,11 +232,8 @@ DEFAULT_REL = 0.30
 
 @dataclasses.dataclass(frozen=True)
 class Range:
-    """Bounds of one varied parameter.
-
-    Either absolute (`low`, `high`) or relative (`rel`: nominal * (1 -+ rel), resolved against
-    the setup by `resolve`). `num` is the number of grid points (grid sweeps only).
-    """
+    """Bounds of one varied parameter: absolute (`low`, `high`) or relative (`rel`: nominal
+    * (1 -+ rel), `resolve`d against the setup); `num` grid points (grid sweeps only)."""
 
     param: Param
     low: float | None = None
@@ -362,14 +353,10 @@ def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 
 def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_final=None,
           dt=None, window_start=None) -> tuple[Range, ...]:
-    """Validate ranges against the setup; return them resolved (absolute bounds).
-
-    ConfigError naming `field` for: a parameter given twice, an unknown path, a vector leaf
-    without an index, an index out of range, a grid axis without (or with fewer than 2) points
-    or a sampled range with some, non-finite or empty bounds, lower > upper, ranges that allow
-    lam <= psi, and values outside a model's allowed range (or, with t_final and dt, outside
-    what RK4 can integrate) at either end.
-    """
+    """The ranges resolved (absolute bounds), or a ConfigError naming `field`: a parameter
+    given twice, an unknown path or index, a grid axis with < 2 points (a sampled one with
+    any), bounds not finite or reversed, lam <= psi allowed, or either end outside a model's
+    range (or, with t_final and dt, outside what RK4 can integrate)."""
     check_columns([r.param for r in ranges], field)
     seen: dict[str, None] = {}
     for r in ranges:
@@ -452,13 +439,10 @@ def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep
 
 
 def sample_table(ranges: Sequence[Range], method: str, n: int, seed: int) -> np.ndarray:
-    """(N, d) float64 parameter values, row i = sample i, column j = ranges[j] (resolved).
-
-    "uniform": i.i.d. uniform in the box. "lhs": Latin hypercube (each column visits each of
-    N equal strata exactly once, uniformly within it). "grid": the full factorial of
-    linspace(low, high, num) per range, C order (the last range varies fastest; n is unused).
-    The table is a function of (ranges, method, n, seed) only.
-    """
+    """(N, d) float64 values, column j = ranges[j] (resolved), a function of (ranges, method,
+    n, seed) only: "uniform" i.i.d. in the box; "lhs" a Latin hypercube (each column visits
+    each of N strata once); "grid" the full factorial of linspace(low, high, num), C order
+    (n unused)."""
     low = np.array([r.low for r in ranges], dtype=np.float64)
     high = np.array([r.high for r in ranges], dtype=np.float64)
     if method == "grid":

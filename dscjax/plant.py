@@ -91,12 +91,8 @@ def _validate_disturbance(plant, prefix):
 
 
 def _cumulative_sq(x):
-    """[q_1, ..., q_n] with q_i = sum_{j<=i} x_j^2, as a list of per-stage scalars.
-
-    Per-stage code (index, elementwise, stack once) rather than whole-array ops such as cumsum
-    or concatenate along the stage axis: those make vmap move the batch axis around (one
-    transpose per op), which cost 5x in batched throughput.
-    """
+    """[q_1, ..., q_n], q_i = sum_{j<=i} x_j^2, as per-stage scalars: whole-array ops (cumsum,
+    concatenate) make vmap transpose the batch axis once per op."""
     q, out = 0.0, []
     for i in range(x.shape[0]):
         q = q + x[i] * x[i]
@@ -112,14 +108,9 @@ class StrictFeedback(Plant):
         rho_i(xbar_i) = rho_const_i + rho_quad_i q_i
         Delta_i(x,t) = delta_sin_i sin(x_{i+1}) + delta_quad_i q_i sin^3(delta_freq t)
         dbar(t)      = dbar_amp sin(dbar_freq t) + dbar_bias (+ disturbance(t), if given)
-    The paper's example (73) is f_quad = (1, 0), rho_const = (0.2, 0), rho_quad = (0, 0.1),
-    delta_sin = (0.2, 0), delta_quad = (0, 0.1), delta_freq = 1, no dbar. |Delta_i| <= rho_i holds
-    when |delta_sin_i| <= rho_const_i and |delta_quad_i| <= rho_quad_i; it is not enforced, so a
-    wrong bound (a designer's mistake) can be studied.
-
-    All fields are traced; shapes (n,) except the scalars delta_freq, dbar_*. x0 (n,) is the
-    initial state x(0). `disturbance` (None by default) is an optional waveform added to dbar
-    (`dscjax.disturbance`: Fourier series or spline).
+    |Delta_i| <= rho_i holds when |delta_sin_i| <= rho_const_i and |delta_quad_i| <=
+    rho_quad_i; not enforced, so a wrong bound can be studied. All fields traced, (n,) but the
+    scalars delta_freq, dbar_*; x0 = x(0); `disturbance`: an optional waveform added to dbar.
     """
 
     g: jax.Array = positive()
@@ -191,11 +182,8 @@ class PaperPlant(Plant):
         Delta_1 = delta1 sin(x_2), Delta_2 = delta2 (x_1^2 + x_2^2) sin^3(delta_freq t),
         dbar = dbar_amp sin(dbar_freq t) + dbar_bias (+ disturbance(t), if given).
 
-    The paper's values: g = (1, 1), theta = (0.1, 0), rho1 = delta1 = 0.2, rho2 = delta2 = 0.1,
-    delta_freq = 1, no dbar, x(0) = (0.08, 0.1). `disturbance` (None by default) is an optional
-    waveform added to dbar (`dscjax.disturbance`). The same plant is `StrictFeedback` with the
-    coefficients of `paper_family_plant()` (tested equal); this class computes only the terms
-    (73) has, which makes batched sweeps 2-4x faster (fewer sines per step).
+    The same plant is `StrictFeedback` with `paper_family_plant()`'s coefficients; this class
+    computes only the terms (73) has (fewer sines per step in a batch).
     """
 
     g: jax.Array = positive()
@@ -289,11 +277,8 @@ class CustomPlant(Plant):
 
 
 def check_strict_feedback(plant: Plant, x=None, atol: float = 0.0) -> None:
-    """Raise ValueError if f_i or rho_i depend on x_j for some j > i (at a probe state x).
-
-    The Jacobians of f and rho must be lower triangular. Checked at a random-looking probe
-    state unless `x` is given.
-    """
+    """ValueError if f_i or rho_i depend on x_j, j > i (Jacobians not lower triangular) at
+    the probe state `x` (default: a random-looking one)."""
     n = plant.order
     if x is None:
         x = jnp.asarray(np.linspace(0.3, 1.1, n) * np.array([1.0, -1.0] * n)[:n])

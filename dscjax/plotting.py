@@ -45,10 +45,8 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
 
 
 def plot_trajectory(traj, path: Path | str, title: str = ""):
-    """Four panels: states against the reference, tracking error, control u, hysteresis
-    output w. The legend sits under the panels (it never hides a curve); the model's
-    quantities are dimensionless, hence [-]. A diverged run is drawn up to its divergence,
-    which is marked. Returns the matplotlib Figure (already saved to `path`)."""
+    """The Figure (saved to `path`) of four panels: states against the reference, tracking
+    error, u, w; a diverged run drawn up to its marked divergence."""
     from matplotlib.figure import Figure
 
     t = np.asarray(traj.t)

@@ -4,15 +4,12 @@
         for ...:
             bar.update_to(done, postfix="2.1e7 steps/s")
 
-On a terminal tqdm redraws one line in place (rate, elapsed time, ETA). Anywhere else (a log
-file, CI, a pipe) the same figures are printed as a plain line of their own, at most every
-`every_s` seconds and once at the end, so that a log holds readable lines instead of carriage
-returns. The numbers (rate, ETA) are tqdm's in both cases.
+On a terminal tqdm redraws one line in place; elsewhere (a log, CI, a pipe) the same figures
+are printed as plain lines, at most every `every_s` seconds and once at the end.
 
-Ctrl-C in long work: while a command runs (`handle_interrupts`, installed by the CLI), a Ctrl-C
-that lands inside a `critical()` section (one generation and its state update, a checkpoint
-write) is deferred to the end of the section, so that the state saved on interrupt is always a
-whole one; a second Ctrl-C during the deferral raises `Abort` at once (nothing is saved).
+Under `handle_interrupts` (installed by the CLI) a Ctrl-C inside a `critical()` section (a
+generation and its state update, a checkpoint write) is deferred to the section's end, so the
+state saved on interrupt is whole; a second Ctrl-C then raises `Abort` at once.
 """
 
 from __future__ import annotations
@@ -38,12 +35,10 @@ class Progress:
     """A progress display of `total` units of work (see the module docstring).
 
     Args:
-        total: units of work in all (None: not known in advance; no percentage or ETA).
-        desc: what is being done, the start of the line.
-        unit: the unit's name ("sample", "step", "iteration"), pluralised with an s unless
-            the count is 1.
-        initial: units done before this display started (a resumed run).
-        elapsed: seconds of this run already spent when the display starts.
+        total: units of work in all (None: unknown; no percentage or ETA).
+        desc: the start of the line.
+        unit: the unit's name ("sample", ...), pluralised with an s unless the count is 1.
+        initial, elapsed: units done and seconds spent before (a resumed run).
         file: where to write (default stderr).
         every_s: the least time between two plain lines (not on a terminal).
         enabled: False shows nothing (--quiet).
@@ -164,15 +159,9 @@ def handle_interrupts() -> Iterator[None]:
 
 
 class critical:
-    """A section that a Ctrl-C does not cut: under `handle_interrupts`, a Ctrl-C inside it
-    raises KeyboardInterrupt when the outermost section ends (unless the section raised
-    something else: that goes on). Sections nest. Without `handle_interrupts`, or outside the
-    main thread, it changes nothing.
-
-        with critical():
-            row = search.generation()     # ask, simulate, tell, inject, counters
-            search.save()                 # every checkpoint file
-    """
+    """A section a Ctrl-C does not cut: under `handle_interrupts` (main thread), a Ctrl-C
+    inside it raises KeyboardInterrupt when the outermost section ends (unless the section
+    raised something else). Sections nest; elsewhere it changes nothing."""
 
     def __enter__(self) -> critical:
         self.active = (_DEFERRAL.installed

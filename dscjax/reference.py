@@ -38,11 +38,8 @@ class Reference(Model):
 
 
 def time_signal(tree):
-    """Mark values that depend on time only (not on the state) as computed once per stage.
-
-    In a batch XLA:CPU would otherwise fuse such a scalar into every per-trajectory kernel and
-    evaluate it once per trajectory (the reference's sin and cos were, 8192 times per stage).
-    """
+    """Mark values that depend on time only as computed once per stage: in a batch XLA:CPU
+    would otherwise fuse them into every per-trajectory kernel."""
     return barrier(tree)
 
 
@@ -68,10 +65,7 @@ class Sine(Reference):
 
 
 class SmoothStep(Reference):
-    """A C-infinity step: y_r = initial + height (1 + tanh((t - t_step)/rise_time)) / 2.
-
-    About 96 % of the step is made within t_step +- rise_time.
-    """
+    """A C-infinity step: y_r = initial + height (1 + tanh((t - t_step)/rise_time)) / 2."""
 
     height: jax.Array = 1.0
     t_step: jax.Array = 1.0
@@ -106,9 +100,7 @@ class MultiSine(Reference):
 class InitialOffset(Reference):
     """base(t) + offset exp(-t / decay_time): a reference moved to start at a chosen y_r(0).
 
-    Used by the L-infinity initialisation (68), which needs y_r(0) = x_1(0) (Assumption 3 puts
-    y_r(0) at the designer's disposal); the offset fades so the tracking task is unchanged after
-    a few decay times.
+    For the L-infinity initialisation (68), which needs y_r(0) = x_1(0) (Assumption 3).
     """
 
     base: Reference

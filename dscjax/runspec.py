@@ -7,10 +7,9 @@
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
 `sampled` (the controller sampled, or continuous) and `delay`. Traced fields change without
 recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
-sample), `noise` and `noise_seed`. `refine`, `dtype` and `device` are host-side settings. The
-[simulation] table (`from_table`, `to_table`), the command-line flags (`OPTIONS`, read by
-dscjax.cli.common) and a resumable run's fingerprint (`describe`) all derive from it. Every
-check names the field, the allowed range and the value (`ConfigError`).
+sample), `noise` and `noise_seed`; `refine`, `dtype` and `device` are host-side. The
+[simulation] table, the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`)
+all derive from it.
 """
 
 from __future__ import annotations

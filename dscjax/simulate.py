@@ -52,29 +52,19 @@ from dscjax.runspec import DEFAULT_REFINE, RunSpec
 
 
 class Trajectory(eqx.Module):
-    """A simulated closed loop, saved every `save_every` steps and at T (leading axis T).
+    """A simulated closed loop at the saved steps 0, s, 2s, ... and N (leading axis T; under
+    `simulate_batch` every field gains a leading batch axis).
 
     Attributes:
-        t: (T,) save times k dt at the saved steps k = 0, s, 2s, ..., and N (the last point is
-            always t_final, also where s does not divide N: `integrate.saved_steps`).
-        x: (T, n) plant state; y = x[:, 0].
-        w: (T,) hysteresis output w = P(u).
-        h: the hysteresis model's state (for the backlash-like model (4): w itself).
-        u: (T,) control input; u_dot (T,) its exact derivative.
-        yr: (T,) reference (as used by the controller, e.g. shifted by the L-inf initialisation).
-        S: (T, n) surfaces S_1..S_n (S_1 = tracking error).
-        ctrl: controller state with a leading T axis (for DSC: z, theta_hat, phi_hat, zeta_hat,
-            d_hat).
-        metrics: dict of scalars over EVERY step (not only the saved ones), see `metrics.py`;
-            all NaN if the trajectory diverged (from `simulate` and `simulate_batch`; see
-            `nan_if_diverged`).
-        status: integration status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
-        dt: the step of the run reported (the requested one unless it was refined).
-        refinements: int, the refinement level of this run (`refinement_level`): 0 = classical
-            RK4 at the requested dt; j >= 1 = RK4 diverged there and this is the exponential
-            step ETDRK4 at dt/2^(j-1) (`refine` in `simulate`). For a trajectory still
-            diverged, dt is the smallest step tried: it diverged at every level.
-    Under `simulate_batch` every field gains a leading batch axis.
+        t: (T,) save times (the last always t_final: `integrate.saved_steps`).
+        x: (T, n) plant state. w: (T,) hysteresis output. h: the hysteresis model's state.
+        u, u_dot: (T,) control input and its exact derivative.
+        yr: (T,) reference as the controller uses it. S: (T, n) surfaces (S_1 = tracking error).
+        ctrl: controller state with a leading T axis (for DSC: z, theta_hat, phi_hat, ...).
+        metrics: scalars over EVERY step (`metrics.py`); NaN if diverged (`nan_if_diverged`).
+        status: code (0 ok, 1 non-finite, 2 state bound) and first bad step.
+        dt: the step of the run reported; for a run still diverged, the smallest one tried.
+        refinements: the refinement level of the run reported (`refinement_level`; 0: none).
     """
 
     t: jax.Array
@@ -133,9 +123,8 @@ class DivergenceError(RuntimeError):
 
 
 class _Loop(NamedTuple):
-    """The functions `integrate` needs for one kind of loop (continuous or sampled), each
-    taking the setup and the sampled controller's numbers (a `Sampling` and dt, or None) as
-    arguments, never closing over traced values."""
+    """What `integrate` needs for one kind of loop, each function taking the setup and the
+    sampling ((`Sampling`, dt) or None) as arguments, never closing over traced values."""
 
     field: Callable  # (t, y, setup, samp) -> (dy, obs)
     init: Callable  # (setup, samp) -> y0
@@ -163,16 +152,10 @@ def _loop(setup: Setup, spec: RunSpec) -> _Loop:
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
-    """The pure simulation behind `simulate` and `simulate_batch`: not jitted, no host checks.
-
-    Compose it freely with jit, vmap, grad, checkpoint and sharding (tuning and sweeps do); the
-    caller validates (`check`). `spec`'s traced fields may be traced.
-
-    With `overrides` ({path: (B, ...)}), simulates the batch of setups with those leaves
-    replaced, stored batch-last inside the loop (see integrate.py). `extra` adds running
-    reductions of the caller's own (a `integrate.Running`, e.g. tuning's smooth terms and
-    requirements), whose results are added to `metrics`.
-    """
+    """The pure simulation under `simulate` and `simulate_batch`: not jitted, no host checks
+    (the caller runs `check`); compose it with jit, vmap, grad and sharding. With `overrides`
+    ({path: (B, ...)}) it runs that batch of setups; `extra` (an `integrate.Running`) adds the
+    caller's running reductions to `metrics`."""
     dtype = jnp.result_type(setup.plant.x0)
     spec = spec.for_dtype(dtype)
     red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
@@ -228,13 +211,9 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
 
 
 def _split_members(setup, overrides):
-    """The prepared setups of a batch, split into shared leaves and per-member leaves.
-
-    Only leaves that depend on the overrides (found by a dependency pass over the jaxpr of
-    `prepared(set_many(setup, overrides))`) carry the batch axis; everything else stays one
-    shared copy. Broadcasting every parameter would make XLA compute, e.g., sin(omega t) of the
-    reference once per trajectory instead of once per step (measured 2.7x slower).
-    """
+    """The prepared setups of a batch as (shared, batched, rebuild): only the leaves that
+    depend on the overrides (by a pass over the jaxpr) carry the batch axis, so XLA computes,
+    e.g., the reference's sin(omega t) once per step, not once per member."""
 
     def member(values):
         return prepared(params.set_many(setup, values))
@@ -270,16 +249,8 @@ def _depends_on_inputs(jaxpr) -> list[bool]:
 
 
 def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
-    """The metrics as the public entry points report them: NaN for a diverged trajectory.
-
-    The integrator freezes a diverged trajectory at its last good state, so its running
-    metrics cover only the time before the divergence; a windowed metric whose window starts
-    later saw nothing at all and reads 0. Such numbers were not measured over the horizon they
-    name, so every metric of a diverged trajectory becomes NaN (elementwise over a batch);
-    `diverged` and `t_diverged` say what happened. Differentiable: the gradient of a diverged
-    trajectory's metric is 0, never NaN. Tuning reads `run`'s raw metrics instead, with its own
-    finite divergence penalty.
-    """
+    """The metrics, NaN where `diverged` (elementwise): a diverged run's metrics cover only
+    the time before it froze, not the horizon they name. Its gradient is 0, never NaN."""
     return {k: jnp.where(diverged, jnp.nan, v) for k, v in metrics.items()}
 
 
@@ -295,18 +266,15 @@ _simulate_batch = xla.jit(_run_reported)
 
 
 def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
-    """(solver, halvings of dt) of refinement level j: level 0 is the requested solver at the
-    requested dt; then the exponential ETDRK4 step, which integrates the stiff decays
-    (hysteresis rate alpha |u'|, filters 1/tau) exactly: at dt (after classical RK4), then
-    at dt/2, dt/4, ..."""
+    """(solver, halvings of dt) of refinement level j: 0 is the requested solver at dt; then
+    ETDRK4 (exact on the stiff decays) at dt (after RK4), dt/2, dt/4, ..."""
     if j == 0:
         return solver, 0
     return "etdrk4", (j - 1 if solver == "rk4" else j)
 
 
 def counted_levels(spec: RunSpec) -> int:
-    """The refinement levels up to `spec.refine` whose step count (N 2^halvings) the
-    integrator's int32 step counter holds (`validation.MAX_STEPS`): finer ones are not tried."""
+    """The refinement levels up to `spec.refine` whose step count fits `validation.MAX_STEPS`."""
     refine = spec.refine
     while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
                       > validation.MAX_STEPS):
@@ -342,19 +310,14 @@ def simulate(
     Args:
         setup: the plant, hysteresis, controller and reference (see `paper_example`).
         t_final, dt, save_every, window_start, state_bound, solver, refine, sample_time: the
-            run (`RunSpec.make`'s arguments; checked, ConfigError naming the field), unless
-            `spec` gives it whole. save_every: every s-th step is kept in the returned arrays,
-            and always the last one (the metrics use every step). refine: if the run diverges,
-            it is run again with ETDRK4 at dt, dt/2, ..., and the first run that stays finite
-            is reported (`traj.refinements`, `traj.dt`); 0 disables it (concrete inputs only).
-            sample_time: the controller sampled at Ts with a zero-order hold (`Sampling`).
-        throw: raise DivergenceError if the run diverged (set False to inspect `status`).
-        progress: called on the host with the fraction of the steps done (every 1 %) while
-            the compiled loop runs; pass the same callable to avoid recompiling.
-        extra: running reductions of the caller's own (`integrate.Running`), as `run`'s.
-        device: where it runs: "auto", "cpu", "gpu" or a jax Device (default: the spec's
-            `device`, "auto": the CPU, or the caller's `jax.default_device`;
-            `dscjax.device.choose`).
+            run (`RunSpec.make`'s arguments, checked), unless `spec` gives it whole. A diverged
+            run is run again at the refinement levels 1..refine (concrete inputs only) and the
+            first that stays finite is reported. sample_time: a zero-order-hold controller.
+        throw: raise DivergenceError if the run diverged.
+        progress: called on the host with the fraction of steps done (every 1 %); pass the same
+            callable to avoid recompiling.
+        extra: the caller's running reductions, as `run`'s.
+        device: "auto", "cpu", "gpu" or a jax Device (default: the spec's; `device.choose`).
 
     Returns:
         Trajectory (metrics NaN if the run diverged: `traj.diverged`, `traj.t_diverged`).
@@ -390,8 +353,7 @@ def simulate(
 
 
 class _Progress(eqx.Module):
-    """An `extra` reduction of `run` (an `integrate.Running`) that reports progress to the
-    host and reduces nothing."""
+    """An `integrate.Running` that reports progress to the host and reduces nothing."""
 
     n_steps: int = eqx.field(static=True)
     report: Callable[[float], None] = eqx.field(static=True)
@@ -416,11 +378,8 @@ def _dtype(setup):
 
 
 def canonical(setup: Setup) -> Setup:
-    """Every floating leaf in the setup's dtype (that of `plant.x0`), strongly typed.
-
-    Python floats and `jnp.asarray(0.5)` are weakly typed, and weak types are part of jit's
-    cache key: without this, setting a gain from a Python float would recompile.
-    """
+    """Every floating leaf in `plant.x0`'s dtype, strongly typed (weak types are part of jit's
+    cache key: a gain set from a Python float would recompile)."""
     return params.cast(setup, _dtype(setup))
 
 
@@ -450,22 +409,17 @@ def simulate_batch(
     sample_time: float | None = None,
     device=None,
 ) -> Trajectory:
-    """Simulate a batch: `setup` with the parameters at the paths in `overrides` replaced by
-    the rows of the given arrays (leading axis B), all in one vmapped, jitted call.
-
-    Only the overridden leaves are batched; the rest of the setup is shared, not copied. Never
-    raises on divergence: inspect `traj.status` (per trajectory) or `divergence_report(traj)`.
-    The metrics of a diverged trajectory are NaN.
+    """Simulate `setup` with the parameters at the paths of `overrides` replaced by the rows
+    of its arrays (leading axis B) in one jitted call; only those leaves are batched. Never
+    raises on divergence (`traj.status`, `divergence_report`); diverged rows' metrics are NaN.
 
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
-        t_final, dt, window_start, state_bound, solver, refine, sample_time: as `simulate`'s
-            (or `spec`); refinement re-runs only the diverged rows, as a batch of their own.
-        save_every: default t_final/dt: only the first and last points, and the metrics.
-        checkpoint_every: reverse-mode differentiation keeps the batch's state every this many
-            steps and recomputes the steps between (memory O(N/L + L) states per member).
-        device: as `simulate`'s; "auto" takes the accelerator for a batch of at least
-            `dscjax.device.crossover()` members, else the CPU.
+        t_final, dt, window_start, state_bound, solver, refine, sample_time, device: as
+            `simulate`'s (or `spec`); refinement re-runs only the diverged rows.
+        save_every: default t_final/dt: only the first and last points.
+        checkpoint_every: reverse mode keeps the state every this many steps and recomputes
+            the rest.
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -509,9 +463,8 @@ def simulate_batch(
 
 
 def _placed(spec: RunSpec, device, rows: int, inputs):
-    """The device of a run (`dscjax.device.choose` of `device` if given, else of the spec's)
-    made JAX's default, a context; nothing where `inputs` are traced (the caller's program
-    decides where it runs)."""
+    """A context making the run's device (`device.choose` of `device`, else the spec's) JAX's
+    default; nothing where `inputs` are traced."""
     choice = (dscjax_device.choose(spec.device, rows) if device is None else
               dscjax_device.choose(device, rows, field="device"))
     if not validation.is_concrete(inputs):
@@ -520,15 +473,10 @@ def _placed(spec: RunSpec, device, rows: int, inputs):
 
 
 def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):
-    """Re-run the failed rows of a batch at the refinement levels 1..refine, host-side.
-
-    `rows`: a pytree of arrays whose leading axis is the batch; `failed(tree)`: its rows that
-    diverged (bool); `level(j, idx)`: the rows `idx` re-run at level j (`refinement_level`), the
-    same pytree. Each level runs only the rows still diverged, as a batch of their own padded to
-    a power of two (sub-batches of similar sizes share one compiled program), and its rows
-    replace theirs. Returns (rows as NumPy arrays, the level of each row's run: 0 = unrefined).
-    Used by `simulate_batch` and by sweeps.
-    """
+    """(rows as NumPy arrays, each row's level) after re-running the `failed(tree)` rows of
+    a batch (leading axis) at levels 1..refine, host-side: `level(j, idx)` runs rows idx at
+    level j; each level runs the rows still failed, padded to a power of two (one program for
+    similar sizes)."""
     out = jax.tree.map(np.array, rows)
     todo = np.flatnonzero(failed(out))
     levels = np.zeros(len(failed(out)), np.int32)

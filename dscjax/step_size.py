@@ -39,15 +39,10 @@ DT_FACTORS = tuple(2.0 ** k for k in range(-4, 5))
 def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 2.0, 4.0),
                   factors=DT_FACTORS, bisections: int = 4,
                   log=lambda s: None) -> StabilityMap:
-    """Which dt does classical RK4 need for this loop, and how does it depend on tau?
-
-    Runs the loop (metrics only, no refinement) for every dt = dt * factor, each dt one batch
-    over the filter constants tau * scale (the horizon rounded to a whole number of steps),
-    then bisects (in log dt) between the largest stable and the smallest unstable step at the
-    config's own tau. The linear guide 2.785 / max rho(t) along the nominal run is reported
-    beside it: rho is the spectral radius of the closed loop's Jacobian, computed on a run
-    that stays finite (refined if it had to be).
-    """
+    """Which dt classical RK4 needs for this loop, against tau: the loop (no refinement) at
+    every dt * factor, each one batch over tau * scale, then a bisection (in log dt) at the
+    config's tau; beside it the linear guide 2.785 / max rho(t), rho the spectral radius of
+    the loop's Jacobian along a finite (refined if need be) nominal run."""
 
     has_tau = hasattr(setup.controller, "tau")
     scales = np.asarray(tau_scales if has_tau else (1.0,), float)

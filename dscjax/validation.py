@@ -139,12 +139,8 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
 
 
 def assumption_warnings(setup) -> list[str]:
-    """The paper's assumptions a (valid) setup violates, one sentence each; [] if none.
-
-    Not errors: a controller may be tried outside its design assumptions on purpose, but its
-    guarantees (Theorem 1) then do not apply. Checked: Assumption 4, g_min <= |g_i| for every
-    i (the controller's known lower bound of the plant's unknown gains).
-    """
+    """The paper's assumptions a valid setup violates (Assumption 4: g_min <= |g_i|), one
+    sentence each: not errors, but Theorem 1 then does not apply."""
     g_min = getattr(setup.controller, "g_min", None)
     g = getattr(setup.plant, "g", None)
     if g_min is None or g is None or not is_concrete((g_min, g)):
@@ -198,12 +194,8 @@ def finite_tree(obj, prefix: str) -> None:
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:
-    """The number of steps N = t_final / dt: the one place a horizon becomes a step count.
-
-    ConfigError naming the fields (config paths, or the command-line options the values came
-    from) if either is not a finite number > 0, if N exceeds the integrator's step counter
-    (MAX_STEPS, checked before any arithmetic that could overflow), or if the horizon is not
-    a whole number of steps."""
+    """N = t_final / dt, the one place a horizon becomes a step count; ConfigError naming the
+    fields if either is not finite and > 0, N > MAX_STEPS, or N is not whole."""
     dt = finite_positive(dt, dt_field)
     t_final = finite_positive(t_final, t_field)
     ratio = t_final / dt

@@ -6,12 +6,9 @@
 - `barrier` / `barriers`: optimisation barriers, active only while the batched layout is
   traced, so that XLA:CPU computes a shared intermediate once instead of re-fusing it into
   every consumer (docs/architecture.md).
-- `enable_compilation_cache()`: JAX's persistent compilation cache in a per-user directory
-  ($XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax). The `dscjax` command calls it;
-  the library never does (opt out: DSCJAX_NO_COMPILATION_CACHE=1 or --no-compilation-cache;
-  a JAX_COMPILATION_CACHE_DIR set beforehand wins).
-
-Nothing here changes JAX's global state on import.
+- `enable_compilation_cache()`: JAX's persistent cache in $XDG_CACHE_HOME/dscjax/jax (else
+  ~/.cache/dscjax/jax); the `dscjax` command calls it, the library never does (opt out:
+  DSCJAX_NO_COMPILATION_CACHE=1, --no-compilation-cache; JAX_COMPILATION_CACHE_DIR wins).
 """
 
 from __future__ import annotations

@@ -272,18 +272,11 @@ class Outputs:
 
 def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
                 check: bool = True, option: str = "--out") -> Path:
-    """Make `args.out` ready for a command, after every input has been validated:
-
-    1. a DIR that is a file, or cannot be written, is refused (one line, exit 2);
-    2. DIR is created if new (and removed again when the command ends leaving it empty), and
-       locked for the rest of the command (`files.lock_out`; `lock`: the lock file's name);
-       a DIR another process holds is refused, naming it;
-    3. the one rule (`check`): a DIR that holds `outputs` is refused unless --resume (where
-       the command has it, `resumable`: it continues them) or --overwrite (they are deleted,
-       and nothing else).
-
-    The lock and the clean-up belong to `args.exit_stack`, which the CLI's main holds open
-    while the command runs."""
+    """Make `args.out` ready, after every input has been validated: refuse a DIR that is a
+    file, cannot be written or is held by another process (one line, exit 2); create it if new
+    (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
+    the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
+    (`resumable`) or --overwrite (deletes them, nothing else)."""
     from dscjax import files
     from dscjax.validation import ConfigError
 

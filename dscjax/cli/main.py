@@ -1,11 +1,8 @@
 """Entry point of the `dscjax` command.
 
-Errors a user can fix (bad settings, unreadable files, an --out in use) print one line and
-exit 2 without a traceback; a diverged simulation prints when it diverged and exits 3; a full
-disk prints the file and the command that continues, and exits 4; Ctrl-C exits 130 and says
-what was kept and the command that continues (a subcommand's `interrupt_hint(args)`). A Ctrl-C
-inside a critical section of long work is deferred to its end (`dscjax.progress`); a second
-one stops at once without saving. Hints print the program as the user typed it.
+Errors a user can fix print one line and exit 2 (no traceback); a diverged simulation exits 3;
+a full disk exits 4, naming the file and the command that continues; Ctrl-C exits 130, saying
+what was kept and how to continue (a subcommand's `interrupt_hint(args)`).
 """
 
 from __future__ import annotations

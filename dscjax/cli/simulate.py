@@ -180,12 +180,10 @@ def run(args) -> int:
     return 0
 
 
-# A run of at least this many steps shows progress (about 1 s of simulation on this CPU).
-PROGRESS_MIN_STEPS = 1_000_000
-# A trajectory.npz above this size is announced before the run.
-BIG_FILE = 256 * 2**20
-# Peak memory of a saved trajectory, in multiples of its size: the result, its host copy and
-# the npz being written (measured 2.8x at dt = 1e-6: 7.1 GB for a 2.56 GB file).
+PROGRESS_MIN_STEPS = 1_000_000  # a run of at least this many steps shows progress
+BIG_FILE = 256 * 2**20  # a trajectory.npz above this size is announced before the run
+# Peak memory of a saved trajectory in multiples of its size: the result, its host copy and the
+# npz being written
 MEMORY_FACTOR = 3
 
 

@@ -1,10 +1,8 @@
 """The parameterisation and adaptive laws the DSC and the backstepping baseline share.
 
-Both controllers carry the same gains and initial estimates (the fields of `AdaptiveLaws`)
-and the same robust term, and differ only in their surfaces: S_i for the DSC, z_i = x_i -
-alpha_(i-1) for backstepping (`s` below), and in the signal v_i that multiplies phi_hat_i (a
-filter derivative, or alpha_i'). `AdaptiveLaws` holds the gains and the formulas once; each
-controller derives from it.
+Both controllers derive from `AdaptiveLaws` (the same gains, estimates and robust term) and
+differ only in their surfaces (S_i, or z_i = x_i - alpha_(i-1): `s` below) and in the signal
+v_i that multiplies phi_hat_i (a filter derivative, or alpha_i').
 """
 
 from typing import Literal, get_args

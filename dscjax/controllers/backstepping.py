@@ -1,55 +1,20 @@
 """Adaptive backstepping of order n: the baseline the paper compares the DSC with (Remark 6).
 
-The paper's backstepping law (79) is garbled (it uses g_hat_1 and theta_hat_1, which are never
-defined, and its brackets do not match the adaptive laws; docs/paper-readings.md). This module
-implements standard adaptive backstepping with the DSC's parameterisation and robust terms,
-so that the two controllers differ in ONE thing only: where the DSC passes the virtual control
-through a filter and uses the filter derivative z_i' = (x_id - z_i)/tau_i (18), (24),
-backstepping uses the exact time derivative alpha_(i-1)' of the virtual control.
+The paper's law (79) is garbled, so this is standard adaptive backstepping with the DSC's
+parameterisation, robust terms and adaptive laws (docs/reproduction.md): the two controllers
+differ in ONE thing, the exact derivative alpha_(i-1)' of the virtual control where the DSC has
+its filter derivative z_i' (18), (24). With 0-based arrays and paper indices in the text:
 
-Design (0-based arrays, paper indices in the text), for i = 1..n-1:
+    z_1 = x_1 - y_r,  z_i = x_i - alpha_(i-1) (no filter, no c_i),  alpha_0 = y_r
+    alpha_i = -theta_hat_gi f_i - z_i rho_i^2 / (2 eps g_min) - k_i z_i + phi_hat_i alpha_(i-1)'
+    u = zeta_hat ubar,  ubar = -k_n z_n - theta_hat_n f_n - z_n rho_n^2 / (2 eps) + alpha_(n-1)'
+                               - sat(z_n / sat_width) d_hat
 
-    z_1 = x_1 - y_r                                                      as (13)
-    z_i = x_i - alpha_(i-1)       (i >= 2; no filter, no constant c_i)     cf. (19), (25)
-    alpha_0 = y_r
-    alpha_i = -theta_hat_gi f_i - z_i rho_i^2 / (2 eps g_min) - k_i z_i
-              + phi_hat_i alpha_(i-1)'                                    as (16), (22)
-    u = zeta_hat ubar                                                     (28)
-    ubar = -k_n z_n - theta_hat_n f_n - z_n rho_n^2 / (2 eps) + alpha_(n-1)'
-           - sat(z_n / sat_width) d_hat                                   as (30)
-
-with the DSC's adaptive laws, z_i in place of S_i and alpha_(i-1)' in place of z_i':
-
-    theta_hat_gi' = gamma_gi (f_i z_i - eta_i theta_hat_gi)               (17), (23), (31)
-    phi_hat_i'    = -gamma_phi_i (alpha_(i-1)' z_i + sigma_i phi_hat_i)  (17), (23)
-    zeta_hat'     = -gamma_zeta (ubar z_n + eta_zeta zeta_hat)           (29)
-    d_hat'        = gamma_d (|z_n| - eta_d d_hat)                         (32)
-
-alpha_(i-1)' is the derivative of alpha_(i-1)(estimates, xbar_(i-1), t) by the chain rule along
-the NOMINAL closed loop: the adaptive laws above for the estimates, y_r^(k+1) for the reference,
-and for the plant the model without its unknown perturbations,
-
-    x_j' = g_nom_j (x_(j+1) + theta_hat_gj f_j(xbar_j)),   j = 1..i-1,
-
-i.e. eq. (1) with Delta_j dropped, g_j replaced by the designer's nominal value g_nom_j
-(default g_min, Assumption 4) and theta_j = g_j theta_gj by its certainty-equivalent estimate
-g_nom_j theta_hat_gj. These are the g_hat_1 and theta_hat_1 of (79). Because alpha_i contains
-alpha_(i-1)', alpha_(n-1)' holds derivatives of order n-1 of f, rho and the adaptive laws: it is
-computed by n-1 nested forward-mode derivatives (`jax.linearize`, i.e. jvp with the primal
-reused), never written out. That growth is the "explosion of complexity" the DSC avoids;
-`dscjax.complexity` measures it.
-
-Choices not fixed by the paper (documented in docs/reproduction.md):
-- No cross term -g_(i-1) z_(i-1) in alpha_i: (79) has none, and the DSC's proof dominates the
-  cross products S_i S_(i+1) by Young's inequality (53) with k_i >= 3 1/4 (55) instead of
-  cancelling them; the same argument applies here, so both controllers share the same law.
-- The mismatch between the nominal and the true x_j' (Delta_j, g_j - g_nom_j, theta_j -
-  g_nom_j theta_hat_gj) enters z_i' through d alpha_(i-1)/d x_j and is not dominated by an
-  extra damping term (a rigorous design would add one); (79) has none either.
-- In the rho_n term of ubar there is no 1/g_min, as in (30).
-
-`derivative="hand"` (order 2 only) uses `law_order2_by_hand`, the same law with alpha_1' written
-out term by term: the oracle for the automatic version in the tests.
+alpha_(i-1)' is taken by the chain rule along the NOMINAL closed loop (the adaptive laws,
+y_r^(k+1), and x_j' = g_nom_j (x_(j+1) + theta_hat_gj f_j)), by n-1 nested forward-mode
+derivatives (`jax.linearize`), never written out: the "explosion of complexity" the DSC avoids.
+As in (79), no cross term -z_(i-1) in alpha_i and no damping of the nominal model's mismatch.
+`derivative="hand"` (order 2) uses `law_order2_by_hand`, the tests' oracle.
 """
 
 from __future__ import annotations
@@ -101,11 +66,8 @@ class _Chain(NamedTuple):
 class Backstepping(AdaptiveLaws):
     """Adaptive backstepping of any order n with hysteresis compensation (module docstring).
 
-    Traced gains (shapes for order n), with the DSC's names and meanings: k (n,), gamma_g (n,),
-    eta (n,), gamma_phi (n-1,), sigma (n-1,), scalars gamma_zeta, eta_zeta, gamma_d, eta_d, eps,
-    g_min, sat_width, smooth_delta; g_nom (n-1,) the nominal g_j of the chain rule; initial
-    estimates theta_hat0 (n,), phi_hat0 (n-1,), zeta_hat0, d_hat0. There are no filters, so no
-    tau and no c_i.
+    Traced: the DSC's gains and initial estimates but tau and c (`AdaptiveLaws`), and g_nom
+    (n-1,), the nominal g_j of the chain rule.
 
     Static choices:
         robust_term: "sat" (sat(z_n/sat_width), as the paper's simulation), "sgn" or "smooth"
@@ -193,12 +155,9 @@ class Backstepping(AdaptiveLaws):
         return a_m, chain._replace(z=chain.z + [z_m], alpha=chain.alpha + [a_m])
 
     def _alpha_and_rate(self, m, th, ph, xs, t, x_rest, plant, reference):
-        """(alpha_m, alpha_m', chain): alpha_m' exact along the nominal closed loop.
-
-        One forward-mode derivative of alpha_m, which itself holds alpha_(m-1)': m nested
-        derivatives in all. `jax.linearize` is a jvp whose primal pass also yields the chain,
-        from which the tangent (the nominal rates of the estimates and states) is built.
-        """
+        """(alpha_m, alpha_m', chain): alpha_m' exact along the nominal closed loop, by one
+        `jax.linearize` of alpha_m (m nested derivatives in all); its primal pass yields the
+        chain, from which the tangent (the nominal rates) is built."""
 
         def alpha_m(th_, ph_, xs_, t_):
             return self._alpha(m, th_, ph_, xs_, t_, x_rest, plant, reference)
@@ -214,14 +173,10 @@ class Backstepping(AdaptiveLaws):
 
     # -- the law ------------------------------------------------------------------------------
     def law(self, state, x, t, plant, reference):
-        """u = zeta_hat ubar with alpha_(n-1)' exact, as eqs. (28), (30). Returns (u, ControlInfo).
+        """(u, ControlInfo): u = zeta_hat ubar with alpha_(n-1)' exact, as eqs. (28), (30).
 
-        The automatic law is wrapped in `jax.jit` (departing from "jit at the top only"): the
-        closed loop traces the law at every RK4 stage (7 times per `simulate`), and tracing n-1
-        nested linearisations in Python dominated the build time (order 4: 11.3 s to lower the
-        simulation, 1.4 s with the inner jit, which JAX traces once and whose derivatives it
-        caches; XLA inlines it, so results and run time are unchanged). It composes with vmap,
-        grad and checkpoint like the plain function `plain_law`.
+        The automatic law is an inner `jax.jit`: the loop traces the law at every RK4 stage,
+        and JAX then traces the n-1 nested linearisations once; XLA inlines it (same results).
         """
         if self.derivative == "hand":
             return law_order2_by_hand(self, state, x, t, plant, reference)
@@ -270,8 +225,7 @@ def law_order2_by_hand(ctrl: Backstepping, state, x, t, plant, reference):
         theta_hat_g1' = gamma_g1 (f_1 z_1 - eta_1 theta_hat_g1)               (17)
         phi_hat_1' = -gamma_phi1 (y_r' z_1 + sigma_1 phi_hat_1)               (17)
 
-    where f_1' and rho_1' are the derivatives in x_1 of the known scalar functions f_1 and rho_1
-    (taken by `jax.grad` of the plant's functions: the only derivatives not written here).
+    with f_1', rho_1' (d/dx_1) by `jax.grad` of the plant's functions.
     """
     if x.shape[0] != 2:
         raise ValueError(f"law_order2_by_hand is for order n = 2 (got n={x.shape[0]})")

@@ -9,9 +9,8 @@ estimates) and gives:
     law(state, x, t, plant, reference)   -> (u, info)   u as a function of (state, x, t) only
     state_rate(state, x, t, info, plant, reference) -> d(state)/dt
 
-`law` never sees w or the true plant parameters: only the known f_i, rho_i and the plant
-state. Because u is a function of (state, x, t) only, the closed loop gets u' exactly by a jvp
-of `law` along the vector field (no algebraic loop, see `closed_loop.py`).
+`law` never sees w or the true plant parameters; as u is a function of (state, x, t) only, the
+loop gets u' exactly by a jvp of `law` along the vector field (`closed_loop.py`).
 """
 
 from __future__ import annotations

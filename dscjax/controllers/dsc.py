@@ -56,21 +56,16 @@ class DSCExtra(NamedTuple):
 class DSC(AdaptiveLaws):
     """Adaptive DSC with hysteresis compensation, eqs. (13)-(32).
 
-    Traced gains (shapes for order n): k (n,), tau (n-1,), c (n-1,), gamma_g (n,), eta (n,),
-    gamma_phi (n-1,), sigma (n-1,), scalars gamma_zeta, eta_zeta, gamma_d, eta_d, eps (the
-    epsilon of (16), (22), (30)), g_min (Assumption 4), sat_width (the boundary layer of
-    sat(S_n/width) that replaces sgn(S_n)), smooth_delta (corner width of the smooth
-    saturation, relative to sat_width), linf_decay_time (how fast the reference offset of the
-    L-infinity initialisation fades). Initial estimates theta_hat0 (n,), phi_hat0 (n-1,),
-    zeta_hat0, d_hat0.
+    Traced: `AdaptiveLaws`' gains and estimates, tau (n-1,), c (n-1,), sat_width (the boundary
+    layer of sat(S_n/width)), smooth_delta (the smooth saturation's corner, relative to
+    sat_width), linf_decay_time (fade of the L-infinity initialisation's reference offset).
 
     Static choices:
         variant: "full"; "no_dhat" = no hysteresis compensation, the robust term and d_hat are
             dropped (d_hat = 0); "no_dhat_no_zeta" = additionally zeta_hat = 1, so u = ubar.
         robust_term: "sat" (sat(S_n/sat_width), the paper's simulation), "sgn" (eq. 30 as
-            printed), or "smooth" (a C-infinity saturation and a smooth |S_n| in (32), for
-            fourth-order RK4 and clean gradients; bias <= smooth_delta/2 in the saturation and
-            <= smooth_delta * sat_width in |S_n|).
+            printed), or "smooth" (C-infinity saturation and |S_n| in (32): clean gradients;
+            bias <= smooth_delta/2 and <= smooth_delta * sat_width).
         init: "paper" (c and initial estimates as given), "linf" (eqs. 67-68: all estimates 0,
             c_i = x_i(0), y_r shifted so that y_r(0) = x_1(0) by an offset decaying in
             linf_decay_time; then S_i(0) = 0 for all i), or "zero_surfaces" (estimates as given,

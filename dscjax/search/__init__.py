@@ -8,11 +8,9 @@ objective as a `Problem` (the worst case minimises loss = -metric).
                      path="search.npz", fingerprint={"problem": digest})
     res.trace.best_z, res.trace.best_loss, res.stop_reason
 
-Ranking everywhere: feasible first, then lower loss; a non-finite loss is never the best, and
-"improved" means by more than `min_delta` (relative). Every iteration computes its new state
-without changing the current one, then commits it and saves, a Ctrl-C waiting for the end of
-that (`dscjax.progress.critical`), so a search stopped at any point resumes bitwise as an
-uninterrupted one.
+Ranking: feasible first, then lower loss (a non-finite loss is never the best; "improved" is
+by more than `min_delta`, relative). Each iteration commits its new state and saves inside
+`progress.critical`, so a search stopped anywhere resumes bitwise as an uninterrupted one.
 """
 
 from __future__ import annotations
@@ -101,10 +99,9 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
     Args:
         x0: (n,) the start point (a resumed search keeps its own).
         time_limit, max_evals, max_iterations: totals over the search's life, resumed calls
-            included (search seconds: compilation counted only with `count_compile`).
-            An iteration is not begun where the last one would pass `time_limit`.
-        resume: continue the search saved in `path` (none there: start afresh); its
-            `fingerprint` (JSON-able, the caller's) must equal the one given.
+            included (compilation counted only with `count_compile`); no iteration begins
+            that the last one's time says would pass `time_limit`.
+        resume: continue the search in `path` (if any); its `fingerprint` must be equal.
         progress: called with the trace and its new history row after every iteration.
     """
     fp = {"caller": fingerprint, "method": method.name, "settings": dataclasses.asdict(method),

@@ -23,12 +23,9 @@ def require_cma():
 class ReplayCMA:
     """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
 
-    It records what it was told: the fitness of every generation, the point injected after
-    it (if any) and the last told population. `replay` rebuilds the same strategy from a fresh
-    one with the same x0, sigma0 and options (so the same `seed`, and the same `randn`
-    stream) by repeating ask/tell/inject with the stored values, no simulation needed, and
-    checks the last population against the stored one. A record taken between an ask and its
-    tell replays too: only told generations are recorded.
+    It records every told generation's fitness, the point injected after it and the last
+    population; `replay` repeats ask/tell/inject on a fresh one with the same x0, sigma0 and
+    options (no simulation) and checks the last population against the stored one.
 
         es = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9})
         x = es.ask(); es.tell(x, f(x)); es.inject(best)     # as with cma

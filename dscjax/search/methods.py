@@ -222,15 +222,12 @@ def _adam():
 
 @dataclasses.dataclass(frozen=True)
 class Gradient:
-    """Projected gradient descent from `starts` points advanced as one batch: the direction is
-    optax's Adam scaling of the gradient (the last `coupled` coordinates, which a constraint
-    couples, take the gradient normalised by its largest entry instead); the step lr per
-    start grows x1.2 (up to 8 lr) after an improvement and halves after a worse or non-finite
-    point, stepping again from the last good point along its own descent direction (Adam's
-    scaling without the momentum); then `problem.project`. `screen` > 0 first evaluates that
-    many points (x0 and `problem.sample`) and starts from the best; else from x0 and random
-    points. A start that diverged, or whose step fell below lr/64, starts again from a
-    random point."""
+    """Projected gradient descent from `starts` points as one batch: Adam's scaling of the
+    gradient (the last `coupled` coordinates: the gradient over its largest entry); each
+    start's step grows x1.2 (up to 8 lr) after an improvement and halves after a worse or
+    non-finite point (stepping again from the last good one); then `problem.project`.
+    `screen` > 0 starts from the best of that many points (x0 and `problem.sample`). A start
+    that diverged, or whose step fell below lr/64, restarts from a random point."""
 
     lr: float = 0.1
     starts: int = 1

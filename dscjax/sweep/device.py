@@ -77,10 +77,6 @@ class Runner:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
         self._setup = setup
 
-    @property
-    def round_size(self) -> int:
-        return self.n_dev * self.chunk
-
     def __call__(self, table: np.ndarray, n_real: int) -> dict[str, np.ndarray]:
         """table: (n_dev * chunk, d) host array, identical on every process; its first
         `n_real` blocks are real (the others pad the round and their rows are garbage)."""
@@ -123,11 +119,9 @@ class Runner:
 
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
                ) -> dict[str, np.ndarray]:
-        """Re-run the rows of `table` whose run in `part` diverged, at the refinement levels
-        1..levels (`dscjax.simulate.refine_rows`: ETDRK4 at dt, dt/2, ...), on the first local
-        device. Returns `part` with those rows replaced and two columns added: "refinements"
-        (the level of the reported run: 0 the requested solver at dt) and "dt_used". Every
-        process computes the same rows (deterministic), so no gather is needed."""
+        """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
+        first local device, and the columns "refinements" and "dt_used" added (every process
+        computes the same rows: no gather)."""
         dt = float(self.spec.dt)
         device = self.local[0] if self.local else self.devices[0]
         setup = jax.device_put(self._setup, device)

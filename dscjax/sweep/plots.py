@@ -116,11 +116,8 @@ def _cells(x, edges_x, y, edges_y):
 
 
 def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
-    """Median windowed error per cell (diverged samples count as +inf) and the edges.
-
-    With grid_x/grid_y (the grid's axis values) each grid point is one cell; otherwise the
-    box is cut into bins x bins cells.
-    """
+    """Median windowed error per cell (diverged: +inf) and the edges: one cell per grid point
+    with grid_x/grid_y, else bins x bins cells."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     e = np.where(np.asarray(diverged, bool), np.inf, np.asarray(err, np.float64))
     if grid_x is not None and grid_y is not None:
@@ -152,11 +149,9 @@ def _edges_of(values):
 
 def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=None,
                  nominal_xy=None, grid_x=None, grid_y=None, title="", refined=None) -> dict:
-    """Heatmap of the median windowed L-inf error over two parameters. Hatched: only the
-    cells with a sample that diverged at every step tried; outlined in red: the cells whose
-    median is above `threshold`; diverged samples are marked x, samples that tracked only
-    after refinement (`refined`) o. Returns the cell statistics (for tests and
-    summary.json)."""
+    """Heatmap of the median windowed L-inf error over two parameters (hatched: a sample
+    diverged at every step tried; red: median above `threshold`; x diverged, o `refined`
+    samples); returns the cell statistics."""
     med, ex, ey, count = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div

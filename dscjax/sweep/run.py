@@ -32,13 +32,10 @@ STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
 class SweepResult:
     """A finished sweep.
 
-    columns: one array per column, one row per sample (in sample order): "sample", the
-        parameter columns (names as `Range.name`), the metrics (`METRICS`), "diverged"
-        (still diverged after every refinement level), "t_diverged" (+inf if not), "status"
-        (0 ok, 1 non-finite, 2 state bound), "refinements" (0: tracked with the requested
-        solver at dt; j >= 1: the refinement level of the reported run, see
-        `dscjax.simulate.refinement_level`) and "dt_used" (the step of the reported run: for a
-        diverged row, the smallest step tried).
+    columns: one array per column, one row per sample: "sample", the parameter columns
+        (`Range.name`), the metrics (`METRICS`), "diverged" (after every refinement level),
+        "t_diverged" (+inf if not), "status", "refinements" (`refinement_level` of the run
+        reported) and "dt_used" (its step).
     param_names: the parameter columns, in table order.
     info: sizes, timing and settings (what `summary.json` reports under "run").
     """
@@ -84,19 +81,14 @@ def run_sweep(
 
     Args:
         setup: the nominal Setup; it is cast to `settings.dtype`.
-        settings: what to sample and how (validated here; ConfigError names the field);
-            default `SweepSettings()`.
-        spec: how each plant is simulated (`RunSpec`); or its fields as keywords (`run`:
-            t_final, dt, window_start, state_bound, solver, refine, sample_time, ...).
-        out_dir: write chunk files and results.npz there (None: keep everything in memory).
+        settings: what to sample and how (validated here); default `SweepSettings()`.
+        spec: how each plant is simulated; or its fields as keywords (`run`).
+        out_dir: write chunk files and results.npz there (None: in memory only).
         resume: skip the blocks already in out_dir (written by the same settings).
-        overwrite: start afresh even if out_dir holds chunk files of a sweep.
-        progress: called after every round with a dict: done (samples, resumed ones
-            included), total, resumed, elapsed_s, samples_per_s and steps_per_s (after the
-            first round: without compilation), eta_s, round, rounds.
-        devices: the devices to use (default: those of `dscjax.device.choose(spec.device,
-            n)`: for "auto" the CPU below a crossover size, else every accelerator, over
-            every host).
+        overwrite: start afresh even if out_dir holds a sweep's chunk files.
+        progress: called after every round with a dict: done, total, resumed, elapsed_s,
+            samples_per_s, steps_per_s (without compilation), eta_s, round, rounds.
+        devices: default those of `device.choose(spec.device, n)`.
 
     Returns:
         SweepResult; nothing is raised for diverged samples.

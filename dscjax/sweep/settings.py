@@ -25,15 +25,12 @@ class SweepSettings:
     """What to sweep and how; the `[sweep]` table of a config file (see `settings_from_dict`).
 
     Attributes:
-        samples: number of sampled plants (ignored for a grid, whose size is the product).
-        method: "uniform" (i.i.d.), "lhs" (Latin hypercube) or "grid" (full factorial over
-            the ranges' `num` points, first range slowest).
-        ranges: what varies; empty means `default_ranges(setup)` (the hysteresis model's
-            `default_sweep`, e.g. alpha, lam, psi, each +-30 %).
+        samples: number of sampled plants (not for a grid).
+        method: "uniform", "lhs" or "grid" (full factorial, first range slowest).
+        ranges: what varies; empty: `default_ranges(setup)` (each +-30 %).
         seed: seed of the samples (and of the random handful of traces).
-        chunk: samples per block and device; None: `dscjax.device.auto_chunk` (on the CPU
-            about 16384, evenly split; on an accelerator from its free memory).
-        dtype: "float32" (default for sweeps) or "float64".
+        chunk: samples per block and device; None: `device.auto_chunk`.
+        dtype: "float32" (default) or "float64".
         worst, random: how many worst samples and random samples get full traces.
         heatmap: the two parameter names of the heatmap (default: the first two swept).
         threshold: windowed L-inf error above which tracking counts as degraded (default:
@@ -70,10 +67,9 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
                        ) -> SweepSettings:
     """The `[sweep]` table of a config file laid over `base`.
 
-    Keys: samples, method, seed, chunk, dtype, worst, random, heatmap (a list of two names),
-    threshold, parallel, and the sub-tables `[sweep.ranges]` (``"plant.g[1]" = [0.8, 1.2]``,
-    ``"hysteresis.alpha" = "30%"``; dotted keys such as ``hysteresis.alpha = [..]`` work too)
-    or `[sweep.grid]` (``"hysteresis.alpha" = [0.7, 1.3, 41]``, which selects method "grid").
+    Keys: `SweepSettings`' fields, and the sub-tables `[sweep.ranges]` (``"plant.g[1]" =
+    [0.8, 1.2]``, ``"hysteresis.alpha" = "30%"``) or `[sweep.grid]` (``"hysteresis.alpha" =
+    [0.7, 1.3, 41]``, method "grid").
     """
     s = base or SweepSettings()
     for key in table:
@@ -113,12 +109,8 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
 
 def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
                    window_start: float | None = None) -> tuple[Range, ...]:
-    """Validate the settings against the setup; return the resolved ranges.
-
-    Raises ConfigError naming the field for: N <= 0, chunk <= 0, an unknown method or dtype,
-    an unknown parameter path, a vector leaf without an index, an empty range or lower > upper,
-    ranges that allow lam <= psi, and values outside a model's allowed range at either end.
-    """
+    """The resolved ranges, after checking the settings against the setup (ConfigError
+    naming the field; the ranges as `params.check`)."""
     s = settings
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)

@@ -6,13 +6,10 @@ initial-state parameters and a bounded disturbance waveform.
     result = worst_case(problem, time_limit=60.0, starts=4, out_dir="results/worst")
 
 Normalised coordinates z = (u, c): u in [0, 1]^d places each ranged parameter in its box, c
-(m coefficients) is the waveform in units of the bound D; the feasible set is the box and
-max |dbar| <= D. Each method of `dscjax.search` minimises -metric there for the same search
-time (compilation apart): "gradient" (projected gradient ascent from M screened starts, one
-batch, gradients of the loop at 4 dt by default), "random" and "cma". A candidate whose batch
-run diverged is re-simulated by `simulate` with refinement: the value reported is that of
-`simulate` on the worst setup (+inf, with the time, if the loop itself diverges), which
-`worst_config.toml` reproduces. Each method saves `state_<method>.npz` after every iteration.
+(m coefficients) is the waveform in units of the bound D (max |dbar| <= D). Each method of
+`dscjax.search` ("gradient": projected ascent from M starts; "random"; "cma") minimises -metric
+there for the same search time. The value reported is `simulate`'s (with refinement) on the
+worst setup (+inf if it diverges), which `worst_config.toml` reproduces.
 """
 
 from __future__ import annotations
@@ -41,13 +38,12 @@ METHODS: tuple[str, ...] = get_args(Method)
 METRICS = ("linf_error_window", "linf_error", "l2_error_window", "rms_error_window",
            "max_abs_u", "l2_u", "tv_u", "max_abs_w")
 DEFAULT_METRIC = "linf_error_window"
-# "requirement:NAME" maximises the violation margin of a requirement (a `metrics.Running`
-# reduction whose results include "margin", e.g. `tuning.Envelope`): > 0 when it is violated
+# "requirement:NAME" maximises a requirement's "margin" (> 0 when violated)
 REQUIREMENT = "requirement:"
-DEFAULT_STARTS = 4  # measured: see docs/worst-case.md
+DEFAULT_STARTS = 4  # docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
-DEFAULT_COARSENING = 4  # gradients at 4 dt: measured, see docs/worst-case.md
+DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -235,14 +231,11 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         setup: the closed loop (its values are the nominal point).
         ranges: boxes of parameters, by config path (`dscjax.params`).
         disturbance: "fourier:K:D", "spline:K:D" or a `DisturbanceSpec`; None: no waveform.
-        metric: one of `METRICS` (default the windowed L-inf of the tracking error), or
-            "requirement:NAME": the violation margin of `requirement` (> 0: violated).
-        spec: how every candidate is simulated (`RunSpec`); or its fields as keywords (`run`:
-            t_final, dt, window_start, state_bound, solver, refine, sample_time, ...).
+        metric: one of `METRICS`, or "requirement:NAME": the margin of `requirement`.
+        spec: how every candidate is simulated; or its fields as keywords (`run`).
         period: the Fourier period (default: the horizon).
-        requirement: with metric "requirement:NAME", a `dscjax.metrics.Running` reduction
-            whose results include "margin" (in the bound's units, <= 0 when met), such as
-            `tuning.Envelope`, `tuning.UBound`, `tuning.URate`, `tuning.StepResponse`.
+        requirement: a `metrics.Running` whose results include "margin" (<= 0 when met),
+            e.g. `tuning.Envelope`.
     """
     if str(metric).startswith(REQUIREMENT):
         if requirement is None:
@@ -404,19 +397,12 @@ class _Fixed:
 
 
 class Programs(search.Problem):
-    """The compiled programs of a search on (B, d + m) batches of normalised points, and the
-    `dscjax.search` problem they make: minimise loss = -metric over the box [0, 1]^d x
-    [-1, 1]^m, `project`ed onto the waveform's bound, from `x0` (the nominal box point, no
-    waveform); a candidate whose batch run diverged has loss +inf (the search keeps it for the
-    re-check). `values(z) -> (v, diverged)`; every program is compiled once per batch width,
-    its compilation timed (`compile_seconds`). `for_problem` builds them for a `Problem`
-    (module-level jitted functions, shared by every problem of the same structure);
-    `from_functions` for any objective, so that a search can be checked on a problem with a
-    known answer.
-
-    d box coordinates in [0, 1]; m waveform coefficients whose waveform on a grid is
-    `c @ basis.T` (basis (G, m)); `project_coef` the waveform's projection onto max|.| <= 1.
-    """
+    """The compiled programs of a search on (B, d + m) batches of normalised points, as the
+    `dscjax.search` problem: minimise -metric over [0, 1]^d x [-1, 1]^m, projected onto the
+    waveform's bound (waveform `c @ basis.T`, `project_coef`), from `x0` (the nominal point);
+    a diverged candidate's loss is +inf. `values(z) -> (v, diverged)`. `for_problem` builds
+    them for a `Problem` (shared by problems of one structure), `from_functions` for any
+    objective (a search checked on a known answer)."""
 
     def __init__(self, d: int, m: int, basis, project_coef, values, value_and_grad,
                  nominal_u: np.ndarray | None = None):
@@ -469,9 +455,8 @@ class Programs(search.Problem):
     @classmethod
     def for_problem(cls, problem: Problem, gradient: str = "time_parallel",
                     coarsening: int = 1) -> Programs:
-        """The programs of `problem`. With `coarsening` F > 1 the gradients are those of the
-        same loop simulated at F dt (F times cheaper: a search direction only), while every
-        value (what the search compares and reports) is simulated at dt."""
+        """The programs of `problem`; with `coarsening` F > 1 the gradients are the loop's at
+        F dt (a search direction only), the values always at dt."""
         validation.one_of(gradient, "gradient", GRADIENTS)
         p = problem
         _check_coarsening(coarsening, p.spec)
@@ -576,22 +561,18 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
     Args:
         problem: from `make_problem`; or a Setup, then `make_problem(problem, ranges,
-            disturbance, **problem_options)` (ranges may be given as text, "PATH=30%").
-        time_limit: search seconds per method (compilation excluded, reported apart).
-        starts: M, the starts of the gradient method, advanced together as one batch.
-        methods: any of "gradient", "random", "cma" (the last two are the baselines).
+            disturbance, **problem_options)` (ranges may be text, "PATH=30%").
+        time_limit: search seconds per method (compilation excluded).
+        starts: M, the gradient method's starts, advanced as one batch.
+        methods: any of "gradient", "random", "cma".
         seed: every random draw is a function of (seed, method, iteration).
-        batch: candidates per batch of the random and CMA-ES methods.
-        lr: the initial step (in box widths and units of D) of the gradient method.
-        gradient: "time_parallel" (each start's own time-parallel gradient, vmapped) or
-            "batch" (reverse mode through the batch's checkpointed scan).
-        coarsening: F, gradients taken on the loop simulated at F dt (values always at dt);
-            1: exact gradients of the values.
+        batch: candidates per batch of random and CMA-ES.
+        lr: the gradient method's initial step (box widths, units of D).
+        gradient: "time_parallel" (per start, vmapped) or "batch" (through the batch's scan).
+        coarsening: F, gradients of the loop at F dt (1: exact gradients of the values).
         out_dir: where each method's state is saved after every iteration (for `resume`).
-        max_evals: stop a method once it has evaluated this many candidates (its last batch
-            is finished, so it may evaluate up to a batch more); None: the time limit alone.
-            A count, unlike a time, makes searches of different gains or under different
-            loads see the same points (random sampling with the same seed: exactly the same).
+        max_evals: stop a method after this many candidates (its last batch finished); a
+            count, unlike a time, sees the same points under any load.
         progress: called with (method, trace, time_limit) after every iteration.
 
     Returns:
