@@ -1,4 +1,4 @@
-"""The files of a worst-case search (`dscjax worst-case`, `dscjax.worst_case`):
+"""The files of a worst-case search (`dscjax worst-case`, `dscjax.worst.worst_case`):
 
     worst.json            the metric, its value, the parameters by config path, the waveform
     worst_config.toml     a complete config of the worst case (`dscjax simulate --config`)
