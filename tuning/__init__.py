@@ -7,7 +7,7 @@
     result.best_setup
     tuning.adversarial.run(setup, options, config_with_rounds, out_dir)   # min-max tuning
 
-See docs/tuning.md for the objective, the settings and measured figures.
+docs/tuning.md describes the objective and the settings.
 """
 
 from tuning.config import AdversarialSpec, BatchSpec, TuningConfig

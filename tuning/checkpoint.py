@@ -6,8 +6,7 @@
     gains.json       the best gains as a dscjax config (loadable by `dscjax simulate --config`)
     history.csv      one row per iteration
 
-Every file is written atomically (`dscjax.files`): a run killed in the middle of a write
-leaves the previous complete file behind.
+Each is written atomically (`dscjax.files`): a run killed mid-write leaves the previous file.
 """
 
 from __future__ import annotations
@@ -40,16 +39,6 @@ def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequen
     files.write_text(path, buf.getvalue())
 
 
-def read_history(path: Path) -> list[dict[str, Any]]:
-    if not Path(path).exists():
-        return []
-    with open(path, newline="") as f:
-        rows = []
-        for r in csv.DictReader(f):
-            rows.append({k: _parse(v) for k, v in r.items()})
-        return rows
-
-
 def _fmt(v):
     if v is None:
         return ""
@@ -58,13 +47,3 @@ def _fmt(v):
     if isinstance(v, float | np.floating):
         return repr(float(v))
     return v
-
-
-def _parse(v: str):
-    if v == "":
-        return None
-    try:
-        f = float(v)
-    except ValueError:
-        return v
-    return int(f) if f.is_integer() and "." not in v and "e" not in v.lower() else f

@@ -1,13 +1,8 @@
 """Time-domain requirements as differentiable penalties (requirement-based tuning).
 
-Each requirement is a `dscjax.metrics.Running` reduction (init/update/finalize; its numbers
-traced, so changing a bound never recompiles) that keeps a few running sums and maxima
-inside the simulation loop, at every RK4 step:
-
-- a **penalty**: weight x (1/T) x integral of relu(violation)^2 dt, zero when the requirement
-  is met, smooth (C^1) in the trajectory, and growing with how much and how long it is
-  violated, so that its gradient pulls on every violating sample, not only the worst one;
-- an exact **check** on the step grid (met / violated, with a margin), for the report.
+Each requirement is a `dscjax.metrics.Running` reduction (numbers traced: a new bound never
+recompiles) giving, at every RK4 step, a **penalty** weight x (1/T) integral relu(violation)^2
+dt (zero when met, C^1, pulling on every violating sample) and an exact **check** (met, margin).
 
     Envelope     |e(t)| <= b(t) = b_inf + (b0 - b_inf) exp(-t / decay)
     StepResponse overshoot <= overshoot and |y - y_final| <= band |height| for t >= settling_time
@@ -33,12 +28,10 @@ def _relu(x):
 
 
 class Requirement(eqx.Module):
-    """A `dscjax.metrics.Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or
-    0.0), 'margin' (<= 0 when met, in the units of the bound) and the requirement's own exact
-    figures. A subclass gives `init`, `sample(acc, k, t, e, y, obs, w)` (one step, with the
-    tracking error e and the trapezoid weight w of step k: dt, dt/2 at both ends), `penalty`
-    and `check`. `n_steps` (static, for the end weights) is set by the objective that holds
-    the requirement (`tuning.objective.TuningMetrics`)."""
+    """A `Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or 0.0), 'margin' (<= 0
+    when met, in the bound's units) and its own figures. A subclass gives `init`, `sample(acc,
+    k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w), `penalty` and
+    `check`; `n_steps` (static) is set by `TuningMetrics`."""
 
     n_steps: eqx.AbstractVar[int]
     name: ClassVar[str]
@@ -97,13 +90,9 @@ class Envelope(Requirement):
 
 
 class StepResponse(Requirement):
-    """Overshoot and settling of a step reference from `initial` to `final` = initial + height.
-
-    overshoot: largest allowed excursion beyond `final`, as a fraction of |height|;
-    settling_time, band: |y - final| <= band |height| for every t >= settling_time.
-    Reports the measured overshoot (fraction) and settling time (the last grid time at which
-    |y - final| > band |height|; 0 if never).
-    """
+    """A step reference to `final` = initial + height: excursion beyond `final` <= overshoot
+    |height|, and |y - final| <= band |height| for t >= settling_time. Reports the overshoot
+    (fraction) and the settling time (the last time |y - final| > band |height|; 0: never)."""
 
     final: jax.Array
     height: jax.Array
