@@ -243,8 +243,7 @@ LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)"
 
 
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
-    """Log-scale panels of the metrics against n, one line per controller, growth in the
-    legend."""
+    """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
     panels = ("eqns", "flops", "build_s", "eval_s")

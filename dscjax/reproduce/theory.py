@@ -451,10 +451,3 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
         v0_69=float(v0_69(s.controller, tr)), holds=holds, assumptions=assumptions,
     )
 
-
-__all__ = [
-    "ASSUMPTIONS", "HOLD", "LyapunovTerms", "STATEMENTS", "Terms", "Truth", "b_at", "bound_65",
-    "bound_71", "bound_72", "certified_alpha0", "check", "default_d", "disturbance_at", "e_M",
-    "filter_errors_at", "filter_rates", "gains_55", "hysteresis_slope", "lyapunov", "lyapunov_at",
-    "lyapunov_rate", "lyapunov_rate_at", "max_abs_dbar", "robust_slack_at", "tau_60", "terms_at",
-    "truth", "v0_69"]

@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import files
+from dscjax.plotting import subplots
 from dscjax.reproduce import alpha0 as alpha0_study
 from dscjax.reproduce import theory
 
@@ -69,8 +70,7 @@ def _max_abs_after(traj, t0: float) -> float | None:
 
 
 def paper_check(setup, traj) -> tuple[dict, dict]:
-    """(summary of plain numbers, arrays for lyapunov.npz): Theorem 1 on the paper's example
-    run (its own gains and initialisation)."""
+    """(summary, arrays for lyapunov.npz) of Theorem 1 on the paper's example run."""
     lv = theory.lyapunov(setup, traj)
     probe = theory.check(setup, traj, 1.0, 1.0)  # M and the slack do not depend on alpha_0, mu
     M = probe["M_measured"]
@@ -144,30 +144,24 @@ def _rc():
 
 def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
     """Top: V(t) of (44) with its terms stacked. Bottom: V against (65) and (71), log axis."""
-    from matplotlib.figure import Figure
-
     t = arrays["t"]
     parts = [np.sum(np.reshape(arrays[k], (len(t), -1)), axis=1) for k, _, _ in GROUPS]
     with _rc():
-        fig = Figure(figsize=(8.8, 6.4), layout="constrained")
-        top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+        fig, (top, bottom) = subplots(2, 1, figsize=(8.8, 6.4), sharex=True, height_ratios=(3, 2))
         top.stackplot(t, *parts, labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
         top.plot(t, arrays["V"], color="k", lw=0.8, label="$V$ (44)")
-        top.set_ylabel("$V$ and its terms [-]")
-        top.set_title("Lyapunov function (44) along the paper's example (its own gains and "
-                      "initialisation)")
+        top.set(ylabel="$V$ and its terms [-]", title="Lyapunov function (44) along the paper's "
+                "example (its own gains and initialisation)")
         top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         bottom.semilogy(t, arrays["V"], color="k", lw=1.0, label="$V(t)$")
         bottom.semilogy(t, arrays["bound_65"], color="#d62728", ls="--", lw=1.0,
                         label="bound (65)")
         bottom.axhline(summary["bound_71"], color="#7f7f7f", ls=":", lw=1.0,
                        label="$C/(2\\alpha_0)$ (71)")
-        bottom.set_xlabel("time $t$ [s]")
-        bottom.set_ylabel("[-]")
-        bottom.set_title(f"against Theorem 1 with the certified $\\alpha_0$ = "
-                         f"{summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
-                         "(data-driven $M$)")
+        bottom.set(xlabel="time $t$ [s]", ylabel="[-]", title=f"against Theorem 1 with the "
+                   f"certified $\\alpha_0$ = {summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
+                   "(data-driven $M$)")
         bottom.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         path = Path(path)
         files.save_figure(fig, path, dpi=dpi)
