@@ -31,6 +31,7 @@ from dscjax import files, worst
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
+from dscjax.worst.report import summary as worst_summary
 from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
@@ -70,8 +71,7 @@ def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
 
 def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
                  out_dir: Path | None = None) -> worst.Result:
-    """The worst case of [tuning.adversarial] for the gains of `setup` (resumed from `out_dir`
-    if it holds a search)."""
+    """The worst case of [tuning.adversarial] for the gains of `setup` (resumed from `out_dir`)."""
     spec = cfg.adversarial
     if out_dir is not None:
         files.mkdir(out_dir)
@@ -83,9 +83,7 @@ def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
 
 def record(res: worst.Result) -> dict:
     """The worst case of a search as report.json gives it."""
-    from dscjax.worst.report import summary
-
-    s = summary(res)
+    s = worst_summary(res)
     return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",
                               "parameters", "disturbance", "nominal_value")} | {
         "evaluations": sum(tr.evaluations for tr in res.traces.values())}

@@ -18,7 +18,8 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from dscjax import validation
+from dscjax import validation, worst
+from dscjax.config import toml_value
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
@@ -70,22 +71,20 @@ class AdversarialSpec:
     search_evals: int | None = None  # None: search_time alone ends a search
 
     def validate(self, field: str = "tuning.adversarial") -> None:
-        from dscjax.worst import METHODS, METRICS, DisturbanceSpec
-
         validation.integer(self.rounds, f"{field}.rounds", 0)
         for key in ("starts", "batch", "add"):
             validation.integer(getattr(self, key), f"{field}.{key}", 1)
         validation.integer(self.seed, f"{field}.seed", 0)
         if self.search_evals is not None:
             validation.integer(self.search_evals, f"{field}.search_evals", 1)
-        validation.one_of(self.method, f"{field}.method", METHODS)
-        validation.one_of(self.metric, f"{field}.metric", METRICS)
+        validation.one_of(self.method, f"{field}.method", worst.METHODS)
+        validation.one_of(self.metric, f"{field}.metric", worst.METRICS)
         t = self.search_time
         if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t < float("inf")):
             raise ConfigError(f"{field}.search_time must be a number of seconds > 0 (got "
                               f"{t!r})")
         if self.disturbance is not None:
-            DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
+            worst.DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -270,8 +269,6 @@ def _requirements(table) -> dict[str, dict[str, float]]:
 
 def to_toml(cfg: TuningConfig, setup=None) -> str:
     """The effective [tuning] table as TOML (ranges resolved against `setup` if given)."""
-    from dscjax.config import toml_value
-
     def val(v):
         if v is None:
             return '"none"'
@@ -286,24 +283,13 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
             lines += ["", f"[tuning.{key}]"]
             lines += [f'"{k}" = {val(list(v) if isinstance(v, list | tuple) else v)}'
                       for k, v in d.items()]
-    for key in ("objective", "optimizer"):
-        spec = getattr(cfg, key)
-        lines += ["", f"[tuning.{key}]"]
-        lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)]
-    for key in ("robust", "heldout"):
+    for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
         spec = getattr(cfg, key)
         lines += ["", f"[tuning.{key}]"]
         lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)
                   if f.name != "ranges"]
-        lines += ["", f"[tuning.{key}.ranges]"]
-        lines += [_range_line(r, setup) for r in spec.ranges]
-    adv = cfg.adversarial
-    lines += ["", "[tuning.adversarial]"]
-    lines += [f"{f.name} = {val(getattr(adv, f.name))}" for f in dataclasses.fields(adv)
-              if f.name != "ranges"]
-    if adv.ranges:
-        lines += ["", "[tuning.adversarial.ranges]"]
-        lines += [_range_line(r, setup) for r in adv.ranges]
+        if getattr(spec, "ranges", None):
+            lines += ["", f"[tuning.{key}.ranges]"] + [_range_line(r, setup) for r in spec.ranges]
     for name, values in cfg.requirements.items():
         lines += ["", f"[tuning.requirements.{name}]"]
         lines += [f"{k} = {val(v)}" for k, v in values.items()]
@@ -311,8 +297,6 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
 
 
 def _range_line(r, setup) -> str:
-    from dscjax.config import toml_value
-
     r = r.resolve(setup) if setup is not None else r
     body = f'"{r.rel * 100:g}%"' if r.rel is not None else toml_value([r.low, r.high])
     return f'"{r.name}" = {body}'

@@ -217,16 +217,6 @@ def simulate_metrics(setup: Setup, sim: RunSpec, extra: TuningMetrics | None,
     return traj.metrics, traj.diverged
 
 
-def extra_for(spec: ObjectiveSpec, scales: Scales, sim: RunSpec, requirements=(),
-              dtype=jnp.float64) -> TuningMetrics:
-    u_ref = scales.u_max if scales.u_max is not None else scales.max_u
-    return TuningMetrics(
-        window_start=jnp.asarray(sim.window_start, dtype),
-        e_sharpness=jnp.asarray(spec.sharpness / scales.linf, dtype),
-        u_sharpness=jnp.asarray(spec.u_sharpness / u_ref, dtype),
-        requirements=tuple(requirements), n_steps=sim.n_steps)
-
-
 def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
                n_requirements: int, bounds: tuple | None = None
                ) -> tuple[jax.Array, dict[str, jax.Array]]:
@@ -356,20 +346,18 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
                           "stable start (revise the gains, dt or tau)")
     m = {k: float(v) for k, v in metrics.items()}
-    u_max = spec.u_max
-    if u_max == "start":
-        u_max = m["max_abs_u"]
-    tv_max = spec.tv_max
-    if tv_max == "start":
-        tv_max = spec.tv_max_factor * m["tv_u"]
+
+    def bound(v, start):  # "start", a number or None
+        return start if v == "start" else None if v is None else float(v)
+
+    u_max = bound(spec.u_max, m["max_abs_u"])
+    tv_max = bound(spec.tv_max, spec.tv_max_factor * m["tv_u"])
     for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
                       ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
         if getattr(spec, name) and not m[key] > 0:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
     tiny = 1e-300
-    u_max = None if u_max is None else float(u_max)
-    tv_max = None if tv_max is None else float(tv_max)
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
         mb, div = jax.device_get(_start_metrics(setup, sim, overrides=dict(train)))
@@ -411,8 +399,12 @@ class Objective:
         return 1 if not self.overrides else int(np.shape(next(iter(self.overrides.values())))[0])
 
     def extra(self) -> TuningMetrics:
-        dtype = jnp.result_type(self.setup.plant.x0)
-        return extra_for(self.spec, self.scales, self.sim, self.requirements, dtype)
+        dtype, sc = jnp.result_type(self.setup.plant.x0), self.scales
+        u_ref = sc.u_max if sc.u_max is not None else sc.max_u
+        return TuningMetrics(window_start=jnp.asarray(self.sim.window_start, dtype),
+                             e_sharpness=jnp.asarray(self.spec.sharpness / sc.linf, dtype),
+                             u_sharpness=jnp.asarray(self.spec.u_sharpness / u_ref, dtype),
+                             requirements=tuple(self.requirements), n_steps=self.sim.n_steps)
 
     def bounds(self, overrides=None) -> tuple:
         """(bound on max|u|, bound on TV(u)) of the plants of `overrides` (None: the training

@@ -22,6 +22,7 @@ from typing import Any, Literal, get_args
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from dscjax import params, validation
 from dscjax.params import Param
@@ -200,8 +201,6 @@ class Selection:
     def z_box(self, z: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
         """(lower, upper) of the flat `ravel_pytree(z)[0]` element by element (the pytree's
         order, names sorted, not `items`'s: the box is raveled as z is)."""
-        from jax.flatten_util import ravel_pytree
-
         box = [{t.name: np.full(np.shape(z[t.name]), t.z_bounds()[k], dtype=float)
                 for t in self.items} for k in (0, 1)]
         return tuple(np.asarray(ravel_pytree(b)[0], dtype=float) for b in box)

@@ -3,6 +3,7 @@ training batch and on a fresh held-out batch; report.md, report.json and PNG fig
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +14,9 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
+from dscjax.runspec import auto_stride
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
-from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate_batch
+from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning.objective import within
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
@@ -136,15 +138,9 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
     ((Ts, factor)) adds the sampled loop's row: its windowed L-inf <= factor x the continuous."""
     rows = []
     diverged = bool(np.asarray(m.get("diverged", False)))
-    checks = [("max|u|", "max_abs_u", scales.u_max), ("TV(u)", "tv_u", scales.tv_max)]
     if sampled is not None:
-        ts, factor = sampled
         diverged = diverged or bool(np.asarray(m["sampled_diverged"]))
-        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
-                       factor * float(np.asarray(m["linf_error_window"]))))
-    for name, key, bound in checks:
-        if bound is None:
-            continue
+    for name, key, bound in _checks((scales.u_max, scales.tv_max), m, sampled):
         value = float(np.asarray(m[key]))
         margin = float(bound) - value
         rows.append({"name": name, "value": value, "bound": float(bound), "margin": margin,
@@ -154,6 +150,16 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
     return rows
 
 
+def _checks(bounds, m, sampled) -> list[tuple]:
+    """(name, metric, bound) of each bound (max|u|, TV(u), the sampled loop's) there is."""
+    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
+    if sampled is not None:
+        ts, factor = sampled
+        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
+                       factor * np.asarray(m["linf_error_window"], float)))
+    return [c for c in checks if c[2] is not None]
+
+
 def train_constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
     """The bounds checked exactly on every training plant (`m` as `evaluate` gives it), each
     against its own or the nominal bound: how many meet it, and the worst plant (the smallest
@@ -161,16 +167,9 @@ def train_constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dic
     diverged = np.asarray(m["diverged"]).astype(bool)
     n = diverged.size
     rows = []
-    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), scales.bounds(train=True),
-                      strict=True))
     if sampled is not None:
-        ts, factor = sampled
         diverged = diverged | np.asarray(m["sampled_diverged"]).astype(bool)
-        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
-                       factor * np.asarray(m["linf_error_window"], float)))
-    for name, key, bound in checks:
-        if bound is None:
-            continue
+    for name, key, bound in _checks(scales.bounds(train=True), m, sampled):
         b = np.broadcast_to(np.asarray(bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         with np.errstate(invalid="ignore"):
@@ -218,9 +217,6 @@ def problem_sentence(problem) -> str:
 def trajectories(problem, z0, z1, save_every: int = 10):
     """The start and tuned loops on the nominal plant for the figures, saved every
     `save_every` steps or more (`runspec.auto_stride`)."""
-    from dscjax.runspec import auto_stride
-    from dscjax.simulate import simulate
-
     sim = problem.objective.sim
     spec = sim.replace(save_every=max(save_every, auto_stride(sim.n_steps)), refine=0)
     out = {}
@@ -233,8 +229,6 @@ def trajectories(problem, z0, z1, save_every: int = 10):
 def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
     PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
-    import time
-
     problem, tr = result.problem, result.trace
     sc, sampled = problem.objective.scales, _sampled(problem)
     z0, z1 = problem.z0, jax.device_get(result.best_z)

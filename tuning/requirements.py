@@ -30,8 +30,8 @@ def _relu(x):
 class Requirement(eqx.Module):
     """A `Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or 0.0), 'margin' (<= 0
     when met, in the bound's units) and its own figures. A subclass gives `init`, `sample(acc,
-    k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w), `penalty` and
-    `check`; `n_steps` (static) is set by `TuningMetrics`."""
+    k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w) and `check`
+    (`penalty`: weight x viol/T unless it says otherwise); `n_steps` is set by `TuningMetrics`."""
 
     n_steps: eqx.AbstractVar[int]
     name: ClassVar[str]
@@ -46,8 +46,8 @@ class Requirement(eqx.Module):
     @abc.abstractmethod
     def sample(self, acc, k, t, e, y, obs, w) -> dict: ...
 
-    @abc.abstractmethod
-    def penalty(self, acc, t_final): ...
+    def penalty(self, acc, t_final):
+        return self.weight * acc["viol"] / t_final
 
     @abc.abstractmethod
     def check(self, acc, t_final) -> dict: ...
@@ -58,6 +58,10 @@ class Requirement(eqx.Module):
 
 def _zeros(dtype, *names):
     return {n: jnp.zeros((), dtype) for n in names}
+
+
+def _met(margin, **figures):
+    return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, **figures}
 
 
 class Envelope(Requirement):
@@ -82,11 +86,8 @@ class Envelope(Requirement):
         return {"viol": acc["viol"] + w * _relu(a / b - 1.0) ** 2,
                 "margin": jnp.maximum(acc["margin"], a - b)}
 
-    def penalty(self, acc, t_final):
-        return self.weight * acc["viol"] / t_final
-
     def check(self, acc, t_final):
-        return {"met": (acc["margin"] <= 0).astype(acc["margin"].dtype), "margin": acc["margin"]}
+        return _met(acc["margin"])
 
 
 class StepResponse(Requirement):
@@ -124,8 +125,7 @@ class StepResponse(Requirement):
 
     def check(self, acc, t_final):
         margin = jnp.maximum(acc["os_max"] - self.overshoot, acc["set_max"] - self.band)
-        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin,
-                "overshoot": acc["os_max"], "settling_time": acc["t_settle"]}
+        return _met(margin, overshoot=acc["os_max"], settling_time=acc["t_settle"])
 
 
 class UBound(Requirement):
@@ -147,12 +147,8 @@ class UBound(Requirement):
         return {"viol": acc["viol"] + w * _relu(a / self.max - 1.0) ** 2,
                 "peak": jnp.maximum(acc["peak"], a)}
 
-    def penalty(self, acc, t_final):
-        return self.weight * acc["viol"] / t_final
-
     def check(self, acc, t_final):
-        margin = acc["peak"] - self.max
-        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, "peak": acc["peak"]}
+        return _met(acc["peak"] - self.max, peak=acc["peak"])
 
 
 class URate(UBound):

@@ -23,10 +23,12 @@ import numpy as np
 from dscjax import config as dconfig
 from dscjax import files, params, search
 from dscjax.integrate import TimeParallel
+from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
 from dscjax.runspec import RunSpec
-from dscjax.validation import ConfigError
+from dscjax.simulate import check
+from dscjax.validation import ConfigError, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
 from tuning.objective import Combined, Objective, start_scales
@@ -102,8 +104,6 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
 
 def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     """Batches left at the default ranges vary the setup's own hysteresis model's numbers."""
-    from dscjax.params import default_ranges
-
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
         if b.ranges == default_ranges():
@@ -117,9 +117,6 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
     cases) join the training batch (or the nominal plant)."""
-    from dscjax.simulate import check
-    from dscjax.validation import validate_setup
-
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
@@ -264,10 +261,6 @@ class Result:
     resumed_from: int  # iterations done before this invocation
 
     @property
-    def method(self) -> str:
-        return self.problem.cfg.optimizer.name
-
-    @property
     def history(self) -> list[dict]:
         return [history_row(r) for r in self.trace.history]
 
@@ -321,8 +314,7 @@ def _term_names(problem):
 
 
 def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    """ConfigError unless --resume finds a checkpoint, or a run there is replaced with
-    --overwrite."""
+    """ConfigError unless --resume finds a checkpoint; only --overwrite replaces a run there."""
     out = Path(out)
     has = (out / "checkpoint.json").exists()
     if resume and not has:

@@ -60,9 +60,8 @@ def add_parser(sub):
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"search method (default {opt.name}: "
                    "CMA-ES with a line search from the best point along its evolution path in "
-                   "its first generations, ahead of CMA-ES at equal wall time on the nominal "
-                   "problem (not on the robust one), docs/tuning.md; cma: CMA-ES alone; adam: "
-                   "gradient descent on exact gradients with Adam's scaling)")
+                   "its first generations; cma: CMA-ES alone; adam: gradient descent on exact "
+                   "gradients with Adam's scaling; docs/tuning.md compares them)")
     p.add_argument("--lr", type=positive_float, metavar="LR", help=f"adam's initial step (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
