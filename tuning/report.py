@@ -35,10 +35,6 @@ def _md(text: str) -> str:
 def evaluate(problem, z0, z1) -> dict[str, Any]:
     """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train, held-out."""
     obj = problem.objective
-    if not hasattr(obj, "per_plant"):  # a `tuning.combine` of several structures
-        raise validation.ConfigError(
-            "report: a combined problem (tuning.combine) has no single plant to report on; "
-            "evaluate its gains per member (e.g. by sweeps)")
     per_plant = jax.jit(obj.per_plant)
     out = {"nominal": {}, "train": None, "heldout": None}
     for tag, z in (("start", z0), ("tuned", z1)):

@@ -31,8 +31,8 @@ from dscjax.simulate import check
 from dscjax.validation import ConfigError, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Combined, Objective, start_scales
-from tuning.optimize import SEARCHES, choose_gradient
+from tuning.objective import Objective, start_scales
+from tuning.optimize import choose_gradient
 from tuning.params import Selection
 from tuning.requirements import KINDS
 from tuning.search import STATE_FILE, TuneProblem, method_of
@@ -56,7 +56,6 @@ class Problem:
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
-    members: tuple[Problem, ...] = ()  # the problems a `combine`d one is made of
 
     @property
     def n_train(self) -> int:
@@ -85,9 +84,7 @@ class Problem:
                         else self.objective.sampled.describe()),
             "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
-             if self.extra_plants else {}) | (
-            {"members": [m.describe() for m in self.members], "combine": self.objective.how}
-            if self.members else {})
+             if self.extra_plants else {})
 
 
 def _batch_desc(b, setup):
@@ -186,41 +183,6 @@ def join_plants(setup, first: dict | None, then: dict) -> dict:
                 else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
-
-
-def combine(problems, how: str = "mean") -> Problem:
-    """One problem whose loss is the mean (or max) of the problems' losses (`Combined`), e.g.
-    one `build_problem` per hysteresis kind: they must tune the same parameters with the same
-    settings from the same values; the setup, gains.json and report are the first's.
-
-        probs = [build_problem(hysteresis_example(k), options, cfg) for k in ("pi", "gpi")]
-        result = run(combine(probs, "max"))
-    """
-    first = problems[0]
-    if first.cfg.optimizer.name in SEARCHES:
-        raise ConfigError(f"combine: tuning.optimizer.name must be \"adam\" (the gradient "
-                          f"method), not the search method {first.cfg.optimizer.name!r}")
-    for p in problems[1:]:
-        if (p.selection.names != first.selection.names or p.cfg.optimizer != first.cfg.optimizer
-                or p.objective.sim != first.objective.sim or p.n_params != first.n_params):
-            raise ConfigError("combine: every problem must tune the same parameters with the "
-                              "same optimizer and simulation settings")
-        for k in first.z0:
-            if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
-                raise ConfigError(f"combine: the problems start from different values of {k}")
-    objective = Combined(tuple(p.objective for p in problems), how)
-    gradient = first.cfg.optimizer.gradient
-    if gradient == "plants":
-        raise ConfigError("tuning.optimizer.gradient = \"plants\" differentiates one batch "
-                          "plant by plant; combine objectives with \"auto\", \"forward\" or "
-                          "\"reverse\"")
-    # the members' own choice if they agree, else the whole's ("plants": their batches differ)
-    modes = {p.mode for p in problems}
-    mode = (next(iter(modes)) if len(modes) == 1 and "plants" not in modes else
-            choose_gradient(gradient, first.n_params, objective.batch_size))
-    return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
-                               members=tuple(problems), extra_plants=None,
-                               notes=first.notes + (f"{how} of {len(problems)} objectives",))
 
 
 def _sample(setup, b, field, options) -> dict:
