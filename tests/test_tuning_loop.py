@@ -1,6 +1,6 @@
 """The tuning loop with adam (exact gradients): a short run lowers the objective and writes
 every file, `--resume` continues where a run stopped (also after Ctrl-C), exactly,
-gains.json loads back into `dscjax simulate`; the resume fingerprints; combined objectives.
+gains.json loads back into `dscjax simulate`; the resume fingerprints.
 
 Small problems (2 s horizon, k_1 and k_2 tuned, 4 held-out plants) keep this file fast; the
 problem objects are shared so that each jitted function compiles once.
@@ -10,7 +10,6 @@ import dataclasses
 import json
 import re
 
-import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -19,7 +18,6 @@ import tuning
 from dscjax.cli.main import main
 from dscjax.runspec import RunSpec
 from tuning import checkpoint as ck
-from tuning import report as tuning_report
 from tuning.runner import run
 
 TINY = """
@@ -228,43 +226,3 @@ def test_a_state_file_of_an_older_version_is_refused_in_one_line(small_problem, 
         run(_with_steps(small_problem, 2), tmp_path, resume=True)
     assert str(err.value) == (f"{tmp_path / 'search.npz'} was written by another version of "
                               f"dscjax and cannot be resumed; start afresh with --overwrite")
-
-
-class _Member:
-    """An objective with known losses and aux (no simulation): what `Combined` reduces."""
-
-    def __init__(self, loss, linf, n_div, feasible, batch):
-        self.loss, self.linf, self.n_div, self.feasible, self.batch_size = (
-            loss, linf, n_div, feasible, batch)
-
-    def evaluate(self, z, overrides=None, checkpoint_every=None):
-        return jnp.asarray(self.loss * z), {
-            "terms": {"linf": jnp.asarray(2 * self.loss)}, "linf_window": jnp.asarray(self.linf),
-            "max_abs_u": jnp.asarray(self.linf + 1), "n_diverged": jnp.asarray(self.n_div),
-            "feasible": jnp.asarray(self.feasible)}
-
-
-def test_combined_objective_is_the_mean_or_max_of_its_members():
-    members = (_Member(1.0, 0.5, 0, True, 3), _Member(4.0, jnp.nan, 2, False, 5))
-    for how, expect in (("mean", 2.5), ("max", 4.0)):
-        obj = tuning.Combined(members, how)
-        loss, aux = obj.evaluate(jnp.asarray(2.0))
-        assert float(loss) == 2 * expect and float(aux["terms"]["linf"]) == 2 * expect
-        assert float(aux["linf_window"]) == 0.5 and float(aux["max_abs_u"]) == 1.5
-        assert int(aux["n_diverged"]) == 2 and not bool(aux["feasible"])
-        assert obj.batch_size == 8
-    with pytest.raises(dscjax.validation.ConfigError, match="combine must be one of"):
-        tuning.Combined(members, "sum")
-
-
-def test_combine_refuses_problems_that_tune_other_parameters(small_problem):
-    other = dataclasses.replace(small_problem, selection=tuning.Selection.build(
-        small_problem.setup, ["controller.tau"]))
-    with pytest.raises(dscjax.validation.ConfigError, match="same parameters"):
-        tuning.combine([small_problem, other])
-    both = tuning.combine([small_problem, small_problem], "max")
-    assert both.members == (small_problem, small_problem)
-    assert both.describe()["combine"] == "max" and len(both.describe()["members"]) == 2
-    z = both.selection.init(both.setup)
-    with pytest.raises(dscjax.validation.ConfigError, match="combined problem"):
-        tuning_report.evaluate(both, z, z)  # one line, not an AttributeError

@@ -167,11 +167,6 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
     assert seen == [("etdrk4", "time_parallel")] * 2
 
 
-def test_combining_problems_of_a_search_method_is_refused_naming_the_field(problems):
-    with pytest.raises(dscjax.ConfigError, match="tuning.optimizer.name must be \"adam\""):
-        tuning.combine([problems["cma"], problems["cma"]])
-
-
 def test_evaluations_are_counted_and_only_adam_takes_gradients(problems, straight):
     # the start point, then the population (+ cma_path's line points)
     assert straight["cma_path"].trace.evaluations == 1 + STEPS * WIDTH

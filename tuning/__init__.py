@@ -7,28 +7,21 @@
     result.best_setup
     tuning.adversarial.run(setup, options, config_with_rounds, out_dir)   # min-max tuning
 
-See docs/tuning.md for the objective, the settings and measured figures.
+docs/tuning.md describes the objective and the settings.
 """
 
 from tuning.config import AdversarialSpec, BatchSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
-from tuning.objective import (
-    Combined,
-    Objective,
-    ObjectiveSpec,
-    Scales,
-    TuningMetrics,
-    aggregate,
-)
+from tuning.objective import Objective, ObjectiveSpec, Scales, TuningMetrics, aggregate
 from tuning.optimize import OptimizerSpec, value_and_grad
 from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
 from tuning.requirements import Envelope, StepResponse, UBound, URate
-from tuning.runner import Problem, Result, build_problem, combine, run
+from tuning.runner import Problem, Result, build_problem, run
 
 __all__ = [
-    "AdversarialSpec", "BatchSpec", "Combined", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
+    "AdversarialSpec", "BatchSpec", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
     "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
     "Selection", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
-    "URate", "aggregate", "build_problem", "combine", "config_from_dict", "run",
+    "URate", "aggregate", "build_problem", "config_from_dict", "run",
     "value_and_grad",
 ]

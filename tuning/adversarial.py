@@ -1,27 +1,19 @@
 """Min-max (adversarial) robust tuning: `dscjax tune --adversarial R`, [tuning.adversarial].
 
 R rounds of: search the worst cases of the current gains over a box of plant parameters and
-a bounded disturbance waveform (`dscjax.worst_case`), add them to the training set, tune
-again from the current gains. Then a FRESH search (another seed, never trained on) for the
-start gains and for the tuned gains gives the evidence:
+a bounded disturbance waveform (`dscjax.worst_case`, seed `seed + r`), add them to the
+training set (their box values and waveform coefficients; the other plants get a zero
+waveform), tune again from the current gains. Then a fresh search (seed `seed + FRESH_SEED`,
+never trained on) for the start and the tuned gains gives the evidence:
 
     cfg = TuningConfig(robust=BatchSpec(batch=8), adversarial=AdversarialSpec(
         rounds=2, disturbance="fourier:16:0.5"))
     out = tuning.adversarial.run(setup, RunSpec.make(), cfg, out_dir="results/adv")
     out.result.best_setup, out.fresh["start"]["value"], out.fresh["tuned"]["value"]
 
-Round r searches with seed `seed + r`; the fresh searches with `seed + FRESH_SEED`, the same
-for start and tuned gains (a paired comparison). A worst case joins the training set as a
-plant: its box values and its waveform's coefficients (`plant.disturbance`); every other
-plant of the set gets a zero waveform. The size of the training set is a static shape, so
-each round compiles its tuning step again.
-
-Files in `out_dir`: adversarial.json (the settings' fingerprint and every finished phase),
-round_<r>/ (round r's tuning run, as `tuning.run` writes it; plants.npz, the plants added so
-far), round_<r>/search/, fresh_start/, fresh_tuned_R<R>/ (the searches' states). A finished
-phase is never redone on resume; an unfinished one continues from its own checkpoint. A
-finished run may be resumed with more rounds: only the new rounds and the fresh search of the
-new tuned gains run.
+Files in `out_dir`: adversarial.json (fingerprint, finished phases), round_<r>/ (the round's
+tuning run, plants.npz, search/), fresh_start/, fresh_tuned_R<R>/. A finished phase is never
+redone on resume; a finished run may be resumed with more rounds.
 """
 
 from __future__ import annotations
@@ -39,6 +31,7 @@ from dscjax import files, worst
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
+from dscjax.worst.report import summary as worst_summary
 from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
@@ -78,9 +71,7 @@ def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
 
 def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
                  out_dir: Path | None = None) -> worst.Result:
-    """The worst case of [tuning.adversarial] for the gains of `setup`: a search of
-    `search_time` seconds (or `search_evals` evaluations, if that comes first) by `method`
-    with `seed` (resumed from `out_dir` if it holds one)."""
+    """The worst case of [tuning.adversarial] for the gains of `setup` (resumed from `out_dir`)."""
     spec = cfg.adversarial
     if out_dir is not None:
         files.mkdir(out_dir)
@@ -92,9 +83,7 @@ def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
 
 def record(res: worst.Result) -> dict:
     """The worst case of a search as report.json gives it."""
-    from dscjax.worst.report import summary
-
-    s = summary(res)
+    s = worst_summary(res)
     return {k: s[k] for k in ("metric", "value", "diverged", "t_diverged", "method",
                               "parameters", "disturbance", "nominal_value")} | {
         "evaluations": sum(tr.evaluations for tr in res.traces.values())}
@@ -121,9 +110,8 @@ def _gains(problem: runner.Problem, z) -> Any:
 
 
 def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
-    """What adversarial.json stores to resume: the digest of the tuning problem's
-    description `desc` and the [tuning.adversarial] settings (the rounds apart, the box as
-    searched)."""
+    """What adversarial.json stores to resume: the digest of `desc` and the
+    [tuning.adversarial] settings (the rounds apart, the box as searched)."""
     adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
     return {"problem": files.digest(desc), "adversarial": adv}
@@ -158,16 +146,9 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
         resume: bool = False, overwrite: bool = False,
         progress: Callable[[dict], None] | None = None,
         say: Callable[[str], None] | None = None) -> Outcome:
-    """Adversarial tuning with `cfg.adversarial.rounds` >= 1 rounds (see the module doc).
-
-    Args:
-        setup, options, cfg: as `tuning.build_problem`'s; `cfg.optimizer`'s steps and time
-            limit are those of each round's tuning, `cfg.adversarial.search_time` that of
-            each search (compilation apart).
-        out_dir: where every phase is saved (None: nothing is written, nothing resumes).
-        progress: called with each tuning iteration's row (with "round" added).
-        say: called with one line when a phase starts or ends.
-    """
+    """Adversarial tuning with `cfg.adversarial.rounds` >= 1 rounds (the module doc), every
+    phase saved in `out_dir` (None: nothing written or resumed); `cfg.optimizer`'s limits are
+    each round's. `progress` gets each tuning row (with "round"), `say` a line per phase."""
     spec = cfg.adversarial
     cfg.validate()
     if spec.rounds < 1:
@@ -249,12 +230,12 @@ def markdown(summary: dict) -> str:
              "| iterations | stopped |", "|---|---|---|---|---|---|---|"]
     for r in summary["rounds"]:
         s = r["search"]
-        lines.append(f"| {r['round']} | {_value(s)} | {s['method']} | {r['added']} | "
+        lines.append(f"| {r['round']} | {worst_text(s)} | {s['method']} | {r['added']} | "
                      f"{r['train_size']} | {r['iterations']} | {r['stop_reason']} |")
     a, b = f["start"], f["tuned"]
     lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
               "| | start gains | tuned gains |", "|---|---|---|",
-              f"| worst {a['metric']} | {_value(a)} | {_value(b)} |",
+              f"| worst {a['metric']} | {worst_text(a)} | {worst_text(b)} |",
               f"| nominal {a['metric']} | {a['nominal_value']:.6g} | "
               f"{b['nominal_value']:.6g} |",
               f"| evaluations | {a['evaluations']} | {b['evaluations']} |", "",
@@ -264,15 +245,15 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def _value(s: dict) -> str:
+def worst_text(s: dict, digits: int = 6) -> str:
+    """A search's worst value, or when its worst case diverges."""
     if s["diverged"]:
         return f"diverges at t = {s['t_diverged']:.4g} s"
-    return f"{s['value']:.6g}"
+    return f"{s['value']:.{digits}g}"
 
 
 def add_to_report(out: str | Path, summary: dict, outcome: Outcome) -> dict:
-    """Add the adversarial section to report.json and report.md (written by
-    `tuning.report.write`)."""
+    """Add the adversarial section to report.json and report.md (`tuning.report.write`'s)."""
     out = Path(out)
     summary["adversarial"] = outcome.summary()
     files.write_json(out / "report.json", summary)

@@ -6,8 +6,7 @@
     gains.json       the best gains as a dscjax config (loadable by `dscjax simulate --config`)
     history.csv      one row per iteration
 
-Every file is written atomically (`dscjax.files`): a run killed in the middle of a write
-leaves the previous complete file behind.
+Each is written atomically (`dscjax.files`): a run killed mid-write leaves the previous file.
 """
 
 from __future__ import annotations
@@ -41,13 +40,11 @@ def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequen
 
 
 def read_history(path: Path) -> list[dict[str, Any]]:
+    """history.csv's rows, numbers parsed ([] if there is no file)."""
     if not Path(path).exists():
         return []
     with open(path, newline="") as f:
-        rows = []
-        for r in csv.DictReader(f):
-            rows.append({k: _parse(v) for k, v in r.items()})
-        return rows
+        return [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
 
 
 def _fmt(v):

@@ -4,22 +4,12 @@
     params = ["controller.k", "controller.tau", ...]   # tuned; everything else is frozen
     freeze = ["controller.gamma_g[1]"]                  # elements or leaves left out of params
     [tuning.bounds]                                     # on values, [lower, upper]
-    "controller.tau" = [0.002, 0.1]
     [tuning.transforms]                                 # "log" (default) or "linear"
-    [tuning.objective]                                  # weights, u_max bound, smoothness
-    [tuning.optimizer]                                  # method, steps, time limit
-    [tuning.robust]                                     # training batch of plants
-    batch = 8
-    aggregate = "cvar"
-    cvar_level = 0.25
-    [tuning.robust.ranges]                              # same syntax as [sweep.ranges]
-    "hysteresis.alpha" = "30%"
-    [tuning.heldout]                                    # evaluation batch of the report
+    [tuning.objective], [tuning.optimizer], [tuning.adversarial]
+    [tuning.robust], [tuning.heldout]                   # batches; .ranges as [sweep.ranges]
     [tuning.requirements.envelope]                      # time-domain requirements
-    b0 = 0.1
-    ...
 
-Unknown keys are errors that name the field; so are bad values.
+Unknown keys and bad values are errors that name the field (docs/tuning.md lists them all).
 """
 
 from __future__ import annotations
@@ -28,7 +18,8 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from dscjax import validation
+from dscjax import validation, worst
+from dscjax.config import toml_value
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
@@ -40,11 +31,8 @@ METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
 
 @dataclasses.dataclass(frozen=True)
 class BatchSpec:
-    """A batch of plants drawn from ranges with a seed ([tuning.robust] or [tuning.heldout]).
-
-    batch = 0 means the nominal plant only (no sampling). The default ranges are alpha, lam
-    and psi of the hysteresis each within +-30 % of the setup's values.
-    """
+    """A batch of plants drawn from ranges with a seed ([tuning.robust] or [tuning.heldout]);
+    batch = 0: the nominal plant only."""
 
     batch: int = 0
     seed: int = 0
@@ -66,14 +54,9 @@ class BatchSpec:
 
 @dataclasses.dataclass(frozen=True)
 class AdversarialSpec:
-    """Min-max tuning ([tuning.adversarial], `dscjax tune --adversarial R`): R rounds of a
-    worst-case search for the current gains, whose worst cases join the training set, then
-    tuning again (`tuning.adversarial`). rounds = 0: off.
-
-    The box is `ranges` (None: those of [tuning.robust]); `disturbance` ("fourier:K:D",
-    "spline:K:D" or None) the searched waveform; each search runs `method` for
-    `search_time` seconds (compilation apart), or `search_evals` evaluations if that comes
-    first, and adds its `add` worst points."""
+    """Min-max tuning ([tuning.adversarial], `tuning.adversarial`; rounds = 0: off): each
+    round's search (`method`, `search_time` seconds or `search_evals` evaluations) over the box
+    `ranges` (None: [tuning.robust]'s) and the waveform `disturbance` adds `add` worst points."""
 
     rounds: int = 0
     disturbance: str | None = None
@@ -88,22 +71,20 @@ class AdversarialSpec:
     search_evals: int | None = None  # None: search_time alone ends a search
 
     def validate(self, field: str = "tuning.adversarial") -> None:
-        from dscjax.worst import METHODS, METRICS, DisturbanceSpec
-
         validation.integer(self.rounds, f"{field}.rounds", 0)
         for key in ("starts", "batch", "add"):
             validation.integer(getattr(self, key), f"{field}.{key}", 1)
         validation.integer(self.seed, f"{field}.seed", 0)
         if self.search_evals is not None:
             validation.integer(self.search_evals, f"{field}.search_evals", 1)
-        validation.one_of(self.method, f"{field}.method", METHODS)
-        validation.one_of(self.metric, f"{field}.metric", METRICS)
+        validation.one_of(self.method, f"{field}.method", worst.METHODS)
+        validation.one_of(self.metric, f"{field}.metric", worst.METRICS)
         t = self.search_time
         if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t < float("inf")):
             raise ConfigError(f"{field}.search_time must be a number of seconds > 0 (got "
                               f"{t!r})")
         if self.disturbance is not None:
-            DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
+            worst.DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -111,7 +92,7 @@ class TuningConfig:
     """Everything `dscjax tune` needs beyond the Setup and [simulation]."""
 
     params: tuple[str, ...] = DSC_GAINS
-    freeze: tuple[str, ...] | None = None  # None: the default for the plant (see `freeze_for`)
+    freeze: tuple[str, ...] | None = None  # None: the default for the plant
     bounds: Mapping[str, Any] = dataclasses.field(default_factory=dict)
     transforms: Mapping[str, str] = dataclasses.field(default_factory=dict)
     objective: ObjectiveSpec = ObjectiveSpec()
@@ -120,8 +101,7 @@ class TuningConfig:
     heldout: BatchSpec = BatchSpec(batch=256, seed=12345)
     requirements: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
     adversarial: AdversarialSpec = AdversarialSpec()
-    # The deployable constraint: the gains must track with the controller sampled at this
-    # period, a zero-order hold between samples (None: no constraint). See docs/tuning.md.
+    # the deployable constraint: the loop with the controller sampled (ZOH) at this period
     sample_time: float | None = 1e-3
 
     def validate(self) -> None:
@@ -171,11 +151,12 @@ def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> Tun
                                      _optimizer_value)
     for key in ("robust", "heldout"):
         if key in table:
-            changes[key] = _batch(getattr(cfg, key), table[key], f"tuning.{key}")
+            changes[key] = _spec(getattr(cfg, key), table[key], f"tuning.{key}", _batch_value)
     if "requirements" in table:
         changes["requirements"] = _requirements(table["requirements"])
     if "adversarial" in table:
-        changes["adversarial"] = _adversarial(cfg.adversarial, table["adversarial"])
+        changes["adversarial"] = _spec(cfg.adversarial, table["adversarial"],
+                                       "tuning.adversarial", _adversarial_value)
     if "sample_time" in table:
         v = table["sample_time"]
         changes["sample_time"] = (None if isinstance(v, str) and v.lower() == "none" else
@@ -234,48 +215,35 @@ def _spec(base, table, field, convert):
                                         for k, v in table.items()})
 
 
-def _batch(base: BatchSpec, table, field) -> BatchSpec:
-    table = _table(table, field)
-    _known(table, [f.name for f in dataclasses.fields(BatchSpec)], field)
-    changes = {}
-    for k, v in table.items():
-        if k == "ranges":
-            changes[k] = from_table(v, f"{field}.ranges")
-            if not changes[k]:
-                raise ConfigError(f"{field}.ranges is empty")
-        elif k in ("batch", "seed"):
-            changes[k] = validation.integer(v, f"{field}.{k}")
-        elif k in ("method", "aggregate"):
-            changes[k] = validation.string(v, f"{field}.{k}")
-        else:
-            changes[k] = validation.number(v, f"{field}.{k}")
-    return dataclasses.replace(base, **changes)
+def _batch_value(name, v, field):
+    if name == "ranges":
+        ranges = from_table(v, field)
+        if not ranges:
+            raise ConfigError(f"{field} is empty")
+        return ranges
+    if name in ("batch", "seed"):
+        return validation.integer(v, field)
+    if name in ("method", "aggregate"):
+        return validation.string(v, field)
+    return validation.number(v, field)
 
 
-def _adversarial(base: AdversarialSpec, table) -> AdversarialSpec:
-    field = "tuning.adversarial"
-    table = _table(table, field)
-    _known(table, [f.name for f in dataclasses.fields(AdversarialSpec)], field)
-    changes: dict[str, Any] = {}
-    for k, v in table.items():
-        if k == "ranges":
-            changes[k] = from_table(v, f"{field}.ranges") or None
-        elif k == "disturbance":
-            text = validation.string(v, f"{field}.{k}")
-            changes[k] = None if text.lower() == "none" else text
-        elif k in ("method", "metric"):
-            changes[k] = validation.string(v, f"{field}.{k}")
-        elif k == "search_time":
-            changes[k] = validation.number(v, f"{field}.{k}")
-        elif k == "search_evals":
-            none = isinstance(v, str) and v.lower() == "none"
-            if not none and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-                raise validation.ConfigError(f"{field}.{k} must be an integer >= 1 or \"none\" "
-                                             f"(got {v!r})")
-            changes[k] = None if none else v
-        else:
-            changes[k] = validation.integer(v, f"{field}.{k}")
-    return dataclasses.replace(base, **changes)
+def _adversarial_value(name, v, field):
+    if name == "ranges":
+        return from_table(v, field) or None
+    if name == "disturbance":
+        text = validation.string(v, field)
+        return None if text.lower() == "none" else text
+    if name in ("method", "metric"):
+        return validation.string(v, field)
+    if name == "search_time":
+        return validation.number(v, field)
+    if name == "search_evals":
+        none = isinstance(v, str) and v.lower() == "none"
+        if not none and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise ConfigError(f"{field} must be an integer >= 1 or \"none\" (got {v!r})")
+        return None if none else v
+    return validation.integer(v, field)
 
 
 def _requirements(table) -> dict[str, dict[str, float]]:
@@ -301,8 +269,6 @@ def _requirements(table) -> dict[str, dict[str, float]]:
 
 def to_toml(cfg: TuningConfig, setup=None) -> str:
     """The effective [tuning] table as TOML (ranges resolved against `setup` if given)."""
-    from dscjax.config import toml_value
-
     def val(v):
         if v is None:
             return '"none"'
@@ -317,24 +283,13 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
             lines += ["", f"[tuning.{key}]"]
             lines += [f'"{k}" = {val(list(v) if isinstance(v, list | tuple) else v)}'
                       for k, v in d.items()]
-    for key in ("objective", "optimizer"):
-        spec = getattr(cfg, key)
-        lines += ["", f"[tuning.{key}]"]
-        lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)]
-    for key in ("robust", "heldout"):
+    for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
         spec = getattr(cfg, key)
         lines += ["", f"[tuning.{key}]"]
         lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)
                   if f.name != "ranges"]
-        lines += ["", f"[tuning.{key}.ranges]"]
-        lines += [_range_line(r, setup) for r in spec.ranges]
-    adv = cfg.adversarial
-    lines += ["", "[tuning.adversarial]"]
-    lines += [f"{f.name} = {val(getattr(adv, f.name))}" for f in dataclasses.fields(adv)
-              if f.name != "ranges"]
-    if adv.ranges:
-        lines += ["", "[tuning.adversarial.ranges]"]
-        lines += [_range_line(r, setup) for r in adv.ranges]
+        if getattr(spec, "ranges", None):
+            lines += ["", f"[tuning.{key}.ranges]"] + [_range_line(r, setup) for r in spec.ranges]
     for name, values in cfg.requirements.items():
         lines += ["", f"[tuning.requirements.{name}]"]
         lines += [f"{k} = {val(v)}" for k, v in values.items()]
@@ -342,8 +297,6 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
 
 
 def _range_line(r, setup) -> str:
-    from dscjax.config import toml_value
-
     r = r.resolve(setup) if setup is not None else r
     body = f'"{r.rel * 100:g}%"' if r.rel is not None else toml_value([r.low, r.high])
     return f'"{r.name}" = {body}'

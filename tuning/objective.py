@@ -1,36 +1,18 @@
-"""The tuning objective: a weighted sum of normalised tracking, effort and penalty terms per
-plant, aggregated over a batch of plants, as one pure, differentiable function of the tuned
-coordinates z.
+"""The tuning objective: per plant, a weighted sum of terms normalised by the start gains'
+figures on the nominal plant (window W = [t0, T], every RK4 step; docs/tuning.md), aggregated
+over a batch of plants (mean, CVaR at level a: the mean of the worst ceil(a B), or max):
 
-Per plant (window W = [t0, T], every RK4 step, see `TuningMetrics`):
+    J = w_linf Linf~(e on W)/(start) + w_l2 L2(e on W)/(start) + w_effort_l2 L2(u)/(start)
+      + w_effort_max max~|u|/(start) + w_effort_tv TV(u)/(start)
+      + w_u relu(max~|u|/u_max - 1)^2 + w_tv relu(TV(u)/tv_max - 1)^2 + requirement penalties
+      + w_sampled relu(Linf~ sampled/(sampled_factor Linf~) - 1)^2
+    J = divergence_penalty if the trajectory diverged (finite, no NaN)
 
-    J = w_linf  Linf~(e on W) / Linf(start)       smooth L-inf surrogate (log-sum-exp)
-      + w_l2    L2(e on W)    / L2(start)
-      + w_effort_l2  L2(u)    / L2(u)(start)
-      + w_effort_max max~|u|  / max|u|(start)
-      + w_effort_tv  TV(u)    / TV(u)(start)      total variation: ringing and chattering of u
-      + w_u     relu(max~|u| / u_max - 1)^2       hard-ish bound on max|u|
-      + w_tv    relu(TV(u) / tv_max - 1)^2         hard-ish bound on TV(u) = sum_k |u_(k+1) - u_k|
-      + sum of requirement penalties (requirements.py)
-    J = divergence_penalty                        if the trajectory diverged (finite, no NaN)
-
-where "(start)" is the value for the start gains on the nominal plant, so that weights are
-dimensionless and J(start) is about the sum of the active weights. The bounds u_max and
-tv_max given as "start" are the start gains' figures on the nominal plant for every plant
-(effort_bounds = "nominal"), or on each training plant its own (effort_bounds = "per_plant":
-the start gains' max|u| and tv_max_factor x TV(u) simulated on that plant, see
-`start_scales`). Over a batch of plants the loss is the mean, the CVaR at level a (the mean of
-the worst ceil(a B) values) or the max.
-
-Smooth surrogates (both running log-sum-exp accumulators, stable by a running max):
-
-    Linf~ = (1/s) log( (1/|W|) integral_W exp(s |e|) dt ),   s = sharpness / Linf(start)
-    max~|u| = (1/r) log( sum_k exp(r |u_k|) ),               r = u_sharpness / u_max
-
-Linf~ lies between the mean and the max of |e| on W: its gradient is the softmax-weighted
-gradient of the largest errors (the exact max's gradient goes to one sample only). max~|u|
-is >= max|u| (by at most log(#samples near the peak)/r), so penalising it keeps the exact
-max|u| below the bound.
+Linf~ = (1/s) log((1/|W|) integral_W exp(s |e|) dt) and max~|u| = (1/r) log(sum_k exp(r |u_k|))
+are running log-sum-exps (stable by a running max): Linf~'s gradient is the softmax-weighted
+one of the largest errors, and max~|u| >= max|u|, so penalising it keeps the exact max|u| under
+its bound. Bounds "start" are the start gains' figures on the nominal plant, or on each
+training plant its own (effort_bounds = "per_plant", `start_scales`).
 """
 
 from __future__ import annotations
@@ -54,19 +36,15 @@ from dscjax.simulate import run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
-# Where the "start" bounds on max|u| and TV(u) are measured: on the nominal plant (one bound
-# for every plant) or on each training plant (its own bound).
 EFFORT_BOUNDS = ("nominal", "per_plant")
-# A bound "start" is the start gains' own figure, computed by another compiled program (the
-# nominal one, not the batched one): rounding may put the start a few ulps over its own bound.
-# Bounds are met within this relative tolerance; the report prints the exact margin.
+# a bound "start" is the start's own figure from another compiled program: rounding may put
+# the start a few ulps over it
 BOUND_RTOL = 1e-9
 
 
 class SmoothLinf(eqx.Module):
-    """Linf~ of the tracking error on the window [t0, T] (module docstring), as a
-    `dscjax.metrics.Running` reduction: a log-sum-exp with a running max m, s = sum w
-    exp(x - m), invariant to the choice of m."""
+    """Linf~ of the tracking error on [t0, T] (module docstring), a `Running` reduction: a
+    log-sum-exp with a running max m, s = sum w exp(x - m)."""
 
     window_start: jax.Array  # () t0
     sharpness: jax.Array  # () s (1/units of e)
@@ -81,8 +59,7 @@ class SmoothLinf(eqx.Module):
         _, w_win, in_win, _ = step_weights(k, t, dt, self.window_start, self.n_steps)
         x = self.sharpness * jnp.abs(e)
         m = jnp.where(in_win, jnp.maximum(acc["m"], x), acc["m"])
-        # Before the window the exponent is masked, not just its weight: exp of a large error
-        # before t0 would overflow and 0 * inf is NaN (double where).
+        # the exponent masked before t0, not just its weight: 0 * inf is NaN (double where)
         arg = jnp.where(in_win, x - m, 0.0)
         s = acc["s"] * jnp.exp(acc["m"] - m) + jnp.where(in_win, w_win * jnp.exp(arg), 0.0)
         return {"m": m, "s": s, "w": acc["w"] + w_win}
@@ -111,23 +88,14 @@ class SmoothMaxU(eqx.Module):
 
 
 class TuningMetrics(eqx.Module):
-    """The running reductions tuning needs beyond `dscjax.metrics` (the `extra` of `run`): a
-    `dscjax.metrics.Running` made of other ones, the smooth terms `SmoothLinf` and
-    `SmoothMaxU` and every requirement, whose results are named req0_penalty, req0_met, ...
+    """The `Running` reductions tuning adds to `dscjax.metrics` (the `extra` of `run`):
+    `SmoothLinf`, `SmoothMaxU` and every requirement (results req0_penalty, req0_met, ...)."""
 
-    Attributes:
-        window_start: () t0 of the window [t0, T].
-        e_sharpness: () s of the smooth L-inf (1/units of e).
-        u_sharpness: () r of the smooth max|u| (1/units of u).
-        requirements: tuple of `Requirement`s (their number and kinds are static).
-        n_steps: static, N (for the trapezoid end weights).
-    """
-
-    window_start: jax.Array
-    e_sharpness: jax.Array
-    u_sharpness: jax.Array
-    requirements: tuple = ()
-    n_steps: int = eqx.field(static=True, default=1)
+    window_start: jax.Array  # () t0
+    e_sharpness: jax.Array  # () s of the smooth L-inf (1/units of e)
+    u_sharpness: jax.Array  # () r of the smooth max|u| (1/units of u)
+    requirements: tuple = ()  # `Requirement`s (their number and kinds are static)
+    n_steps: int = eqx.field(static=True, default=1)  # N, for the trapezoid end weights
 
     def parts(self) -> tuple[tuple[str, Any], ...]:
         """(prefix of the result names, reduction) of every part."""
@@ -170,19 +138,14 @@ class ObjectiveSpec:
     effort_tv: float = 0.0
     u_max: float | str | None = "start"
     u_max_weight: float = 100.0
-    # The deployable default: TV(u) <= tv_max_factor x the start gains' TV(u) on the nominal
-    # plant ("start"), an absolute number, or "none" (the old tracking-only problem).
+    # TV(u) <= tv_max_factor x the start gains' TV(u) ("start"), a number, or "none"
     tv_max: float | str | None = "start"
     tv_max_factor: float = 1.5
     tv_max_weight: float = 100.0
-    # the deployable constraint (tuning.sample_time): the loop with the controller sampled
-    # keeps its windowed L-inf within sampled_factor x the continuous loop's, per plant
+    # tuning.sample_time: the sampled loop's windowed L-inf <= sampled_factor x the continuous
     sampled_factor: float = 2.0
     sampled_weight: float = 100.0
-    # "nominal": the "start" bounds are the start gains' figures on the nominal plant, for
-    # every plant; "per_plant": each training plant's own (a plant that needs more effort than
-    # the nominal one, e.g. a worst case with its disturbance, is bounded by what the start
-    # gains spend on it)
+    # the "start" bounds measured on the nominal plant, or on each training plant its own
     effort_bounds: str = "nominal"
     sharpness: float = 50.0
     u_sharpness: float = 300.0
@@ -200,28 +163,22 @@ class ObjectiveSpec:
                               f"effort_max or effort_tv > 0)")
         for name in ("sharpness", "u_sharpness", "divergence_penalty", "tv_max_factor",
                      "sampled_factor"):
+            validation.finite_positive(getattr(self, name), f"{field}.{name}")
+        for name, start in (("u_max", "the start gains' max|u| on the nominal plant"),
+                            ("tv_max", "tv_max_factor x the start gains' TV(u) on the nominal "
+                                       "plant")):
             v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v > 0):
-                raise ConfigError(f"{field}.{name} must be a number > 0 (got {v!r})")
-        u = self.u_max
-        if not (u is None or u == "start" or (isinstance(u, int | float) and not isinstance(
-                u, bool) and math.isfinite(u) and u > 0)):
-            raise ConfigError(f"{field}.u_max must be a number > 0, \"start\" (the start gains' "
-                              f"max|u| on the nominal plant) or \"none\" (got {u!r})")
-        v = self.tv_max
-        if not (v is None or v == "start" or (isinstance(v, int | float) and not isinstance(
-                v, bool) and math.isfinite(v) and v > 0)):
-            raise ConfigError(f"{field}.tv_max must be a number > 0, \"start\" (tv_max_factor "
-                              f"x the start gains' TV(u) on the nominal plant) or \"none\" "
-                              f"(got {v!r})")
+            if not (v is None or v == "start" or (isinstance(v, int | float) and not isinstance(
+                    v, bool) and math.isfinite(v) and v > 0)):
+                raise ConfigError(f"{field}.{name} must be a number > 0, \"start\" ({start}) or "
+                                  f"\"none\" (got {v!r})")
         validation.one_of(self.effort_bounds, f"{field}.effort_bounds", EFFORT_BOUNDS)
 
 
 @dataclasses.dataclass(frozen=True)
 class Scales:
-    """The start gains' figures on the nominal plant, used to normalise the terms, and the
-    bounds: on the nominal plant (u_max, tv_max) and, with effort_bounds = "per_plant", on
-    each plant of the objective's training batch (u_max_train, tv_max_train: (B,) float64)."""
+    """The start gains' figures on the nominal plant (the terms' normalisation) and the bounds,
+    with effort_bounds = "per_plant" also per training plant (u_max_train, tv_max_train)."""
 
     linf: float
     l2: float
@@ -230,8 +187,7 @@ class Scales:
     u_max: float | None  # the bound on max|u| (None: no bound)
     tv_u: float = 1.0
     tv_max: float | None = None  # the bound on TV(u) (None: no bound)
-    # per training plant (None: u_max / tv_max for every plant); only for the objective's own
-    # training batch: any other batch (held-out plants, the nominal plant) gets the nominal ones
+    # (B,) float64 per training plant (None: the nominal bound); other batches get the nominal
     u_max_train: np.ndarray | None = dataclasses.field(default=None, compare=False)
     tv_max_train: np.ndarray | None = dataclasses.field(default=None, compare=False)
     # training plants on which the start gains diverge: they keep the nominal bounds
@@ -242,21 +198,18 @@ class Scales:
         return self.u_max_train is not None or self.tv_max_train is not None
 
     def bounds(self, train: bool, tile: int = 1) -> tuple:
-        """(bound on max|u|, bound on TV(u)) of a batch: the training batch's own per plant
-        if `train` (repeated `tile` times, as a batch of candidates x training plants lays
-        them out), else the nominal ones; None where there is no bound."""
-        out = []
-        for nominal, per in ((self.u_max, self.u_max_train), (self.tv_max, self.tv_max_train)):
-            out.append(np.tile(per, tile) if train and per is not None else nominal)
-        return tuple(out)
+        """(bound on max|u|, bound on TV(u)) of a batch (None: no bound): the training batch's
+        own if `train` (tiled `tile` times: candidates x training plants), else the nominal."""
+        return tuple(np.tile(per, tile) if train and per is not None else nominal
+                     for nominal, per in ((self.u_max, self.u_max_train),
+                                          (self.tv_max, self.tv_max_train)))
 
 
 def simulate_metrics(setup: Setup, sim: RunSpec, extra: TuningMetrics | None,
                      overrides: Mapping[str, Any] | None = None,
                      checkpoint_every: int | None = None) -> tuple[dict, jax.Array]:
-    """(metrics, diverged) of one plant (or a batch with overrides), traceable. `sim` keeps
-    only the first and last points (save_every = n_steps); `checkpoint_every` replaces the
-    checkpoint segment of a batch's reverse-mode gradient."""
+    """(metrics, diverged) of one plant (or a batch with overrides), traceable;
+    `checkpoint_every` replaces the checkpoint segment of the reverse-mode gradient."""
     if checkpoint_every is not None:
         sim = dataclasses.replace(sim, gradient=dataclasses.replace(sim.gradient,
                                                                     every=checkpoint_every))
@@ -264,22 +217,11 @@ def simulate_metrics(setup: Setup, sim: RunSpec, extra: TuningMetrics | None,
     return traj.metrics, traj.diverged
 
 
-def extra_for(spec: ObjectiveSpec, scales: Scales, sim: RunSpec, requirements=(),
-              dtype=jnp.float64) -> TuningMetrics:
-    u_ref = scales.u_max if scales.u_max is not None else scales.max_u
-    return TuningMetrics(
-        window_start=jnp.asarray(sim.window_start, dtype),
-        e_sharpness=jnp.asarray(spec.sharpness / scales.linf, dtype),
-        u_sharpness=jnp.asarray(spec.u_sharpness / u_ref, dtype),
-        requirements=tuple(requirements), n_steps=sim.n_steps)
-
-
 def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
                n_requirements: int, bounds: tuple | None = None
                ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """J of one plant (or elementwise over a batch) and its weighted terms. `bounds`: (bound
-    on max|u|, bound on TV(u)), scalars or one per plant (`Scales.bounds`); default the
-    nominal ones."""
+    """J of one plant (or elementwise over a batch) and its weighted terms; `bounds` as
+    `Scales.bounds` gives them (default the nominal ones)."""
     u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
     u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
     terms = {}
@@ -305,9 +247,8 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
         ratio = metrics[SAMPLED] / (spec.sampled_factor * metrics["smooth_linf_window"])
         terms["sampled"] = spec.sampled_weight * jnp.maximum(ratio - 1.0, 0.0) ** 2
     total = sum(terms.values())
-    # A diverged plant (in either loop) costs a large constant: finite, so that means and
-    # CVaRs stay usable. Anything else non-finite stays NaN/inf, so that the search ranks it
-    # last instead of silently seeing a flat penalty.
+    # a diverged plant (either loop) costs a finite constant, so that means and CVaRs stay
+    # usable; any other non-finite J stays so, and the search ranks it last
     total = jnp.where(diverged | metrics.get("sampled_diverged", False),
                       spec.divergence_penalty, total)
     return total, terms
@@ -315,9 +256,8 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
 
 def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
                     n_requirements: int, spec: ObjectiveSpec) -> jax.Array:
-    """Each plant's feasibility, exactly: no divergence, the effort bounds, every requirement
-    met and, with the deployable constraint, the sampled loop within sampled_factor x the
-    continuous loop's windowed L-inf."""
+    """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
+    the sampled loop's constraint met."""
     ok = ~diverged & within_bounds(metrics, bounds)
     for i in range(n_requirements):
         ok = ok & (metrics[f"req{i}_met"] > 0)
@@ -327,16 +267,14 @@ def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
     return ok
 
 
-# the metrics of the sampled loop of the deployable constraint (`loop_metrics`)
 SAMPLED = "sampled_smooth_linf_window"
 
 
 def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
                  ) -> tuple[dict, jax.Array]:
-    """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`), and,
-    with the deployable constraint (`objective.sampled`, the same loop with the controller
-    sampled), that loop's windowed L-inf exact and smooth and its divergence, as
-    sampled_linf_window, sampled_smooth_linf_window and sampled_diverged. Traceable."""
+    """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`);
+    with `objective.sampled`, also that loop's sampled_linf_window, sampled_smooth_linf_window
+    (`SAMPLED`) and sampled_diverged. Traceable."""
     m, div = simulate_metrics(setup, objective.sim, objective.extra(), overrides,
                               checkpoint_every)
     if objective.sampled is not None:
@@ -364,8 +302,7 @@ def within_bounds(metrics: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
 
 
 def _like(bound, x):
-    """A per-plant bound (a float64 array) in the dtype of the figures `x` it bounds, as a
-    scalar bound (a weakly typed Python float) is: float32 runs stay float32."""
+    """A per-plant bound (float64) in the dtype of the figures `x`: float32 runs stay float32."""
     if bound is None or np.ndim(bound) == 0:
         return bound
     return jnp.asarray(bound, jnp.result_type(x))
@@ -395,37 +332,32 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
-# one compilation per setup structure and run structure (adversarial tuning builds a problem
-# a round)
+# one compilation per setup and run structure (adversarial tuning builds a problem a round)
 _start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None))
 
 
 def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                  train: Mapping[str, Any] | None = None) -> Scales:
-    """Figures of the start gains on the nominal plant (raises if they diverge there); with
-    effort_bounds = "per_plant" and a training batch `train`, also the "start" bounds of
-    each training plant: the start gains' exact max|u| and tv_max_factor x TV(u) (every RK4
-    step) simulated on that plant, once (a plant on which the start diverges keeps the
-    nominal bounds)."""
+    """The start gains' `Scales` (ConfigError if they diverge on the nominal plant); with
+    effort_bounds = "per_plant" and a batch `train`, each training plant's "start" bounds (a
+    plant on which the start diverges keeps the nominal ones)."""
     metrics, diverged = _start_metrics(setup, sim)
     if bool(diverged):
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
                           "stable start (revise the gains, dt or tau)")
     m = {k: float(v) for k, v in metrics.items()}
-    u_max = spec.u_max
-    if u_max == "start":
-        u_max = m["max_abs_u"]
-    tv_max = spec.tv_max
-    if tv_max == "start":
-        tv_max = spec.tv_max_factor * m["tv_u"]
+
+    def bound(v, start):  # "start", a number or None
+        return start if v == "start" else None if v is None else float(v)
+
+    u_max = bound(spec.u_max, m["max_abs_u"])
+    tv_max = bound(spec.tv_max, spec.tv_max_factor * m["tv_u"])
     for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
                       ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
         if getattr(spec, name) and not m[key] > 0:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
     tiny = 1e-300
-    u_max = None if u_max is None else float(u_max)
-    tv_max = None if tv_max is None else float(tv_max)
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
         mb, div = jax.device_get(_start_metrics(setup, sim, overrides=dict(train)))
@@ -444,11 +376,8 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
 
 @dataclasses.dataclass(frozen=True, eq=False)
 class Objective:
-    """loss(z) for a Selection over a fixed setup and (optional) batch of plants.
-
-    Hashable by identity: it is a static argument of the jitted tuning step. Every number in
-    it that changes between runs (setup, batch) is a closed-over constant of that step.
-    """
+    """loss(z) for a Selection over a fixed setup and (optional) batch of plants; hashable by
+    identity (a static argument of the jitted step, its numbers closed-over constants)."""
 
     setup: Setup
     selection: Any
@@ -461,8 +390,7 @@ class Objective:
     cvar_level: float = 1.0
     # the deployable constraint's loop: `sim` with the controller sampled (None: none)
     sampled: RunSpec | None = None
-    # Programs compiled for this objective (the tuning step per update rule: `runner`); they
-    # live and die with it.
+    # the programs compiled for this objective live and die with it
     compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
                                        compare=False)
 
@@ -471,8 +399,12 @@ class Objective:
         return 1 if not self.overrides else int(np.shape(next(iter(self.overrides.values())))[0])
 
     def extra(self) -> TuningMetrics:
-        dtype = jnp.result_type(self.setup.plant.x0)
-        return extra_for(self.spec, self.scales, self.sim, self.requirements, dtype)
+        dtype, sc = jnp.result_type(self.setup.plant.x0), self.scales
+        u_ref = sc.u_max if sc.u_max is not None else sc.max_u
+        return TuningMetrics(window_start=jnp.asarray(self.sim.window_start, dtype),
+                             e_sharpness=jnp.asarray(self.spec.sharpness / sc.linf, dtype),
+                             u_sharpness=jnp.asarray(self.spec.u_sharpness / u_ref, dtype),
+                             requirements=tuple(self.requirements), n_steps=self.sim.n_steps)
 
     def bounds(self, overrides=None) -> tuple:
         """(bound on max|u|, bound on TV(u)) of the plants of `overrides` (None: the training
@@ -510,13 +442,10 @@ class Objective:
         return loss, aux, per_plant
 
     def value_and_grad_plants(self, z):
-        """((loss, aux), d loss / d z) over the training batch, the gradient taken plant by
-        plant (`gradient = "plants"`): the aggregate's gradient is the mean of the gradients
-        of the plants it weighs (mean: all B; cvar: the worst ceil(level B), as `top_k` picks
-        them; max: the worst), so only those are simulated again, each alone, and
-        differentiated by the one-trajectory time-parallel linearisation (vmapped over them).
-        Exact, as `jax.grad` of `evaluate` is (where the worst plants are not tied); the loss
-        and aux are `evaluate`'s, from one batched forward run of all the plants."""
+        """((loss, aux), d loss / d z) with the gradient plant by plant (`gradient = "plants"`):
+        the mean of the gradients of the plants the aggregate weighs (as `top_k` picks them),
+        each simulated again alone; exact where the worst plants are not tied. The loss and
+        aux are `evaluate`'s, from one batched forward run."""
         loss, aux, per = self._evaluate(jax.lax.stop_gradient(z))
         n = self.batch_size
         if self.aggregate == "mean" or not self.overrides:
@@ -549,61 +478,3 @@ class Objective:
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
                                   len(self.requirements), self.bounds(overrides))
         return {"loss": per_plant, "diverged": diverged, **metrics}
-
-
-COMBINE = ("mean", "max")
-
-
-@dataclasses.dataclass(frozen=True, eq=False)
-class Combined:
-    """loss(z) = mean or max over several `Objective`s of their losses, for one tuned
-    `Selection`: robust tuning over plants whose STRUCTURE differs (e.g. one batch per
-    hysteresis kind: a kind is a class, static, so one batch cannot mix them). Each member
-    keeps its own setup, batch, aggregate and start scales, so each member's loss is about 1
-    at the start gains and the members weigh alike. Evaluated in one traced function (one
-    jitted step); its gradient is the members' (for "max": the worst member's).
-
-    Hashable by identity, like `Objective`; `sim`, `spec`, `scales` and `requirements` are
-    the first member's (the members share the tuning settings: see `runner.combine`)."""
-
-    members: tuple[Objective, ...]
-    how: str = "mean"
-    compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
-                                       compare=False)
-
-    def __post_init__(self):
-        if self.how not in COMBINE:
-            raise ConfigError(f"combine must be one of {', '.join(COMBINE)} (got {self.how!r})")
-        if not self.members:
-            raise ConfigError("combine needs at least one objective")
-
-    # the members share the tuning settings (`runner.combine`): read off the first one
-    sim = property(lambda self: self.members[0].sim)
-    spec = property(lambda self: self.members[0].spec)
-    scales = property(lambda self: self.members[0].scales)
-    requirements = property(lambda self: self.members[0].requirements)
-
-    @property
-    def batch_size(self) -> int:
-        return sum(m.batch_size for m in self.members)
-
-    def _reduce(self, values):
-        v = jnp.stack(values)
-        return jnp.mean(v) if self.how == "mean" else jnp.max(v)
-
-    def evaluate(self, z, overrides=None, checkpoint_every=None):
-        """(loss, aux) as `Objective.evaluate`'s: terms combined as the loss is, the largest
-        L-inf and max|u| measured, the diverged plants summed, feasible if every member is."""
-        if overrides is not None:
-            raise ValueError("a combined objective evaluates its members' own batches")
-        out = [m.evaluate(z, checkpoint_every=checkpoint_every) for m in self.members]
-        auxes = [a for _, a in out]
-        aux = {
-            "terms": {k: self._reduce([a["terms"][k] for a in auxes]) for k in auxes[0]["terms"]},
-            "linf_window": jnp.nanmax(jnp.stack([a["linf_window"] for a in auxes])),
-            "max_abs_u": jnp.nanmax(jnp.stack([a["max_abs_u"] for a in auxes])),
-            "n_diverged": sum(a["n_diverged"] for a in auxes),
-            "feasible": jnp.all(jnp.stack([a["feasible"] for a in auxes])),
-        }
-        return self._reduce([loss for loss, _ in out]), aux
-

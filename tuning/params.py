@@ -1,17 +1,10 @@
 """Which numbers of a Setup are tuned, and in which coordinates.
 
-A tuned parameter is a leaf of the Setup addressed by its config path (``controller.k``) or one
-element of a vector leaf (``controller.gamma_g[0]``), the same names `dscjax sweep` uses.
-Everything not selected is frozen. The optimiser works on unconstrained coordinates z:
-
-- ``"log"`` (default for gains, which must stay positive): value = exp(z). A step of the
-  optimiser is then a relative change of the gain, whatever its scale (k_1 = 10 and
-  eps = 0.01 move alike), and positivity can never be lost.
-- ``"linear"`` (for signed numbers such as initial estimates theta_hat0): value = z.
-
-Optional box bounds [lower, upper] are enforced by projecting z onto the box after every step
-(projected gradient descent), so the bounds hold exactly and do not distort the landscape
-inside the box.
+A tuned parameter is a leaf of the Setup by its config path (``controller.k``), one element
+(``controller.gamma_g[0]``) or one factor scaling a vector (``hysteresis.p*``); everything else
+is frozen. The search works on coordinates z: "log" (the default for gains: value = exp(z), a
+step is a relative change whatever the scale, positivity never lost) or "linear" (signed
+numbers such as theta_hat0: value = z). Box bounds on values are a box on z.
 
     sel = Selection.build(setup, ["controller.k", "controller.tau"],
                           bounds={"controller.tau": (1e-3, 0.1)})
@@ -29,6 +22,7 @@ from typing import Any, Literal, get_args
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from dscjax import params, validation
 from dscjax.params import Param
@@ -37,7 +31,7 @@ from dscjax.validation import ConfigError
 Transform = Literal["log", "linear"]
 TRANSFORMS: tuple[str, ...] = get_args(Transform)
 
-# The design parameters of the DSC (Section 2 of the paper) tuned by default.
+# the design parameters of the DSC (Section 2 of the paper), tuned by default
 DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
              "controller.gamma_zeta", "controller.gamma_d", "controller.eta", "controller.sigma",
              "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
@@ -49,22 +43,14 @@ SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
 
 @dataclasses.dataclass(frozen=True)
 class Tuned:
-    """One tuned number or leaf.
+    """One tuned number or leaf."""
 
-    Attributes:
-        path: config path of the leaf, e.g. "controller.k".
-        index: element of a vector leaf, or None for the whole leaf.
-        transform: "log" or "linear".
-        lower, upper: box bounds on the VALUE (not on z); None for none.
-        scale: one factor s (start 1) multiplying the whole vector leaf ("path*").
-    """
-
-    path: str
-    index: int | None = None
+    path: str  # config path of the leaf, e.g. "controller.k"
+    index: int | None = None  # an element of a vector leaf (None: the whole leaf)
     transform: Transform = "log"
-    lower: float | None = None
+    lower: float | None = None  # box bounds on the VALUE, not on z (None: none)
     upper: float | None = None
-    scale: bool = False
+    scale: bool = False  # one factor (start 1) multiplying the whole vector leaf ("path*")
 
     @property
     def param(self) -> Param:
@@ -99,34 +85,18 @@ class Selection:
     def names(self) -> tuple[str, ...]:
         return tuple(t.name for t in self.items)
 
-    def __len__(self) -> int:
-        return len(self.items)
-
     def size(self, setup) -> int:
         """Number of scalars tuned."""
         return sum(int(np.size(t.param.value(setup))) for t in self.items)
 
-    # -- construction ------------------------------------------------------------------------
     @classmethod
     def build(cls, setup, tune: Sequence[str], freeze: Sequence[str] = (),
               bounds: Mapping[str, Sequence[float]] | None = None,
               transforms: Mapping[str, str] | None = None, field: str = "tuning") -> Selection:
-        """Validate the names against the setup and expand frozen elements.
-
-        Args:
-            tune: paths (whole leaves, single elements, or "path*": one factor scaling a
-                whole vector) to tune.
-            freeze: paths or elements to leave out of `tune` (e.g. "controller.gamma_g[1]").
-            bounds: {name: (lower, upper)} on values; either end may be None. A bound given
-                for a whole leaf applies to each of its tuned elements.
-            transforms: {name: "log" | "linear"}; default "log", except for signed numbers
-                (initial estimates theta_hat0, c, x0, w0), which default to "linear".
-
-        Raises:
-            ConfigError naming the field: unknown path, index out of range, a bound on a
-            parameter that is not tuned, a log-parameter with a non-positive value or bound,
-            lower >= upper, or a start value outside its bounds.
-        """
+        """The selection of the paths `tune` less `freeze` (paths or elements), validated
+        against the setup (ConfigError naming the field). `bounds`: {name: (lower, upper)} on
+        values, either end None, a whole leaf's for each of its elements; `transforms`: {name:
+        "log" | "linear"}, default "log" except for the signed numbers of `SIGNED`."""
         bounds = dict(bounds or {})
         transforms = dict(transforms or {})
         order: list[tuple[str, int | str | None]] = []  # index "*": a scale of the vector
@@ -187,7 +157,6 @@ class Selection:
             items.append(item)
         return cls(tuple(items))
 
-    # -- coordinates ---------------------------------------------------------------------------
     def init(self, setup) -> dict[str, jax.Array]:
         """Unconstrained coordinates z of the setup's current values."""
         return {t.name: t.to_z(jnp.asarray(t.param.value(setup))) for t in self.items}
@@ -230,11 +199,8 @@ class Selection:
         return jnp.concatenate([jnp.ravel(t.from_z(z[t.name])) for t in self.items])
 
     def z_box(self, z: Mapping[str, Any]) -> tuple[np.ndarray, np.ndarray]:
-        """(lower, upper) bounds of the flat vector `jax.flatten_util.ravel_pytree(z)[0]`,
-        element by element. Its order is the pytree's (names sorted), not the order of
-        `items`: the box is built as a pytree like z and raveled the same way."""
-        from jax.flatten_util import ravel_pytree
-
+        """(lower, upper) of the flat `ravel_pytree(z)[0]` element by element (the pytree's
+        order, names sorted, not `items`'s: the box is raveled as z is)."""
         box = [{t.name: np.full(np.shape(z[t.name]), t.z_bounds()[k], dtype=float)
                 for t in self.items} for k in (0, 1)]
         return tuple(np.asarray(ravel_pytree(b)[0], dtype=float) for b in box)

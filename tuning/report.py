@@ -3,6 +3,7 @@ training batch and on a fresh held-out batch; report.md, report.json and PNG fig
 
 from __future__ import annotations
 
+import time
 from pathlib import Path
 from typing import Any
 
@@ -13,8 +14,9 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
+from dscjax.runspec import auto_stride
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
-from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate_batch
+from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning.objective import within
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
@@ -33,11 +35,6 @@ def _md(text: str) -> str:
 def evaluate(problem, z0, z1) -> dict[str, Any]:
     """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train, held-out."""
     obj = problem.objective
-    if not hasattr(obj, "per_plant"):  # a `tuning.combine` of several structures
-        raise validation.ConfigError(
-            "report: a combined problem (tuning.combine) has no single plant to report on; "
-            "evaluate its gains per member (e.g. by sweeps, as experiments/mismatch_study.py "
-            "does)")
     per_plant = jax.jit(obj.per_plant)
     out = {"nominal": {}, "train": None, "heldout": None}
     for tag, z in (("start", z0), ("tuned", z1)):
@@ -53,19 +50,14 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 
 
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """A batch's per-plant figures with its plants that diverged at the tuning's step re-run
-    as sweeps re-run theirs: the refinement levels of `simulate` (ETDRK4 at dt, dt/2, ...,
-    `simulation.refine` levels; only the rows still diverged), the metrics over the
-    objective's window: a numerical divergence of the integrator is not a divergence of the
-    loop. The sampled loop of the deployable constraint is refined alike (its controller
-    keeps its sample time). Adds `refined` (the level that tracked, 0 = the tuning's own
-    step) and `sampled_refined`; the exact metrics and `diverged` of the refined plants are
-    those of the refined runs; their loss and smooth surrogates stay the objective's at the
-    tuning's step (the finite divergence penalty)."""
+    """A batch's per-plant figures with the plants that diverged at the tuning's step re-run
+    at `simulate`'s refinement levels, as sweeps do (a divergence of the integrator is not one
+    of the loop); the sampled loop alike. Adds `refined` and `sampled_refined` (the level that
+    tracked, 0: the tuning's step); the refined plants' exact metrics and `diverged` are the
+    refined runs', their loss and smooth surrogates stay the objective's."""
     m = dict(m)
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
     ov = {k: np.asarray(v) for k, v in overrides.items()}
-    # the exact metrics, those `simulate` reports (not J, not the smooth surrogates)
     names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
     keys = sorted(names.keys() & m.keys())
     m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
@@ -76,9 +68,9 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
 
 
 def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
-    """Re-run the rows of `m` diverged (`m[keys["diverged"]]`) at the refinement levels of
-    `sim`; update `m`'s `keys` (simulate's metric name -> m's) in place; the level that
-    tracked per row (0: the tuning's step, or diverged at every level)."""
+    """Re-run the rows of `m` diverged at the refinement levels of `sim`, updating `m`'s
+    `keys` (simulate's name -> m's) in place; returns the level that tracked per row (0: the
+    tuning's step, or none)."""
     keys = {"diverged": keys.pop("diverged", "diverged"), **keys}
     diverged = np.asarray(m[keys["diverged"]]).astype(bool)
     if not diverged.any() or not sim.refine:
@@ -104,8 +96,7 @@ def _host(d):
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     ok = ~m["diverged"].astype(bool)
     refined = ok & (np.asarray(m.get("refined", 0)) > 0)
-    # the three outcomes of a sweep's rows: tracked at the tuning's step, tracked after
-    # refinement (numerically stiff there), diverged at every step tried
+    # as a sweep's rows: tracked at the tuning's step, after refinement, or diverged
     out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
                            "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
     sampled_ok = ok
@@ -138,24 +129,14 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
 
 
 def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
-    """The bounds of the problem checked exactly on one plant's metrics `m` (max_abs_u, tv_u:
-    every RK4 step, TV = sum_k |u_(k+1) - u_k|): name, value, bound, margin = bound - value
-    and met (value <= bound within BOUND_RTOL = 1e-9 relative: a bound taken from the start
-    gains may sit a few ulps under the start's own figure in another compiled program). A
-    diverged plant meets nothing (its metrics were not measured). `sampled` ((Ts, factor),
-    the deployable constraint) adds its row: the windowed L-inf with the controller sampled
-    at Ts <= factor x the continuous loop's."""
+    """The bounds checked exactly on one plant's metrics `m` (every RK4 step): name, value,
+    bound, margin and met (within `BOUND_RTOL`; never for a diverged plant). `sampled`
+    ((Ts, factor)) adds the sampled loop's row: its windowed L-inf <= factor x the continuous."""
     rows = []
     diverged = bool(np.asarray(m.get("diverged", False)))
-    checks = [("max|u|", "max_abs_u", scales.u_max), ("TV(u)", "tv_u", scales.tv_max)]
     if sampled is not None:
-        ts, factor = sampled
         diverged = diverged or bool(np.asarray(m["sampled_diverged"]))
-        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
-                       factor * float(np.asarray(m["linf_error_window"]))))
-    for name, key, bound in checks:
-        if bound is None:
-            continue
+    for name, key, bound in _checks((scales.u_max, scales.tv_max), m, sampled):
         value = float(np.asarray(m[key]))
         margin = float(bound) - value
         rows.append({"name": name, "value": value, "bound": float(bound), "margin": margin,
@@ -165,24 +146,26 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
     return rows
 
 
+def _checks(bounds, m, sampled) -> list[tuple]:
+    """(name, metric, bound) of each bound (max|u|, TV(u), the sampled loop's) there is."""
+    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
+    if sampled is not None:
+        ts, factor = sampled
+        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
+                       factor * np.asarray(m["linf_error_window"], float)))
+    return [c for c in checks if c[2] is not None]
+
+
 def train_constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
-    """The bounds checked exactly on every plant of the training batch (`m`: its per-plant
-    figures, as `evaluate` gives them): each plant against its own bound (per_plant) or the
-    nominal one; how many meet it, and the worst plant (the smallest relative margin; a plant
-    that diverged at every step tried meets nothing and is the worst)."""
+    """The bounds checked exactly on every training plant (`m` as `evaluate` gives it), each
+    against its own or the nominal bound: how many meet it, and the worst plant (the smallest
+    relative margin; a diverged plant meets nothing and is the worst)."""
     diverged = np.asarray(m["diverged"]).astype(bool)
     n = diverged.size
     rows = []
-    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), scales.bounds(train=True),
-                      strict=True))
     if sampled is not None:
-        ts, factor = sampled
         diverged = diverged | np.asarray(m["sampled_diverged"]).astype(bool)
-        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
-                       factor * np.asarray(m["linf_error_window"], float)))
-    for name, key, bound in checks:
-        if bound is None:
-            continue
+    for name, key, bound in _checks(scales.bounds(train=True), m, sampled):
         b = np.broadcast_to(np.asarray(bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         with np.errstate(invalid="ignore"):
@@ -211,22 +194,15 @@ def problem_sentence(problem) -> str:
              + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
              + f" over {cfg.robust.batch} training plants")
     cons = []
-    if sc.u_max_train is not None:
-        cons.append(f"max|u| <= the start gains' max|u| on each training plant "
-                    f"({sc.u_max_train.min():.4g} to {sc.u_max_train.max():.4g}; nominal "
-                    f"plant {sc.u_max:.4g})")
-    elif sc.u_max is not None:
-        cons.append(f"max|u| <= {sc.u_max:.4g}"
-                    + (" (the start gains' on the nominal plant)"
-                       if cfg.objective.u_max == "start" else ""))
-    if sc.tv_max_train is not None:
-        cons.append(f"TV(u) <= {cfg.objective.tv_max_factor:g} x the start gains' TV(u) on "
-                    f"each training plant ({sc.tv_max_train.min():.4g} to "
-                    f"{sc.tv_max_train.max():.4g}; nominal plant {sc.tv_max:.4g})")
-    elif sc.tv_max is not None:
-        cons.append(f"TV(u) <= {sc.tv_max:.4g}"
-                    + (f" ({cfg.objective.tv_max_factor:g} x the start gains' on the nominal "
-                       f"plant)" if cfg.objective.tv_max == "start" else ""))
+    for name, per, bound, key, factor in (
+            ("max|u|", sc.u_max_train, sc.u_max, "u_max", ""),
+            ("TV(u)", sc.tv_max_train, sc.tv_max, "tv_max", f"{cfg.objective.tv_max_factor:g} x ")):
+        if per is not None:
+            cons.append(f"{name} <= {factor}the start gains' {name} on each training plant "
+                        f"({per.min():.4g} to {per.max():.4g}; nominal plant {bound:.4g})")
+        elif bound is not None:
+            cons.append(f"{name} <= {bound:.4g}" + (f" ({factor}the start gains' on the nominal "
+                        f"plant)" if getattr(cfg.objective, key) == "start" else ""))
     on = "" if sc.per_plant else " on " + (
         "the nominal plant" if not cfg.robust.batch else "every training plant")
     return (f"Minimise {' + '.join(terms)} on [{sim.window_start:g}, {sim.t_final:g}] s over "
@@ -236,10 +212,7 @@ def problem_sentence(problem) -> str:
 
 def trajectories(problem, z0, z1, save_every: int = 10):
     """The start and tuned loops on the nominal plant for the figures, saved every
-    `save_every` steps or more (at most `runspec.MAX_SAVED_POINTS` points)."""
-    from dscjax.runspec import auto_stride
-    from dscjax.simulate import simulate
-
+    `save_every` steps or more (`runspec.auto_stride`)."""
     sim = problem.objective.sim
     spec = sim.replace(save_every=max(save_every, auto_stride(sim.n_steps)), refine=0)
     out = {}
@@ -250,48 +223,34 @@ def trajectories(problem, z0, z1, save_every: int = 10):
 
 
 def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
-    """Evaluate, then write report.json, report.md and (with plots) the PNGs. Returns the
-    summary dict (report.json's content). `t_start` (perf_counter at the start of the
-    command) lets the report state the whole command's wall time."""
-    import time
-
-    problem = result.problem
-    z0 = problem.z0
-    z1 = jax.device_get(result.best_z)
+    """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
+    PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
+    problem, tr = result.problem, result.trace
+    sc, sampled = problem.objective.scales, _sampled(problem)
+    z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
-    sim = problem.objective.sim
     nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
                            if np.ndim(v) == 0}) for tag in ("start", "tuned")}
     summary: dict[str, Any] = {
         "nominal": nom,
-        "bound_max_abs_u": problem.objective.scales.u_max,
-        "bound_tv_u": problem.objective.scales.tv_max,
-        # where the "start" bounds were measured: "nominal" (one bound for every plant) or
-        # "per_plant" (each training plant's own: bounds_train)
+        "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
         "effort_bounds": problem.cfg.objective.effort_bounds,
-        "bounds_train": _bounds_train(problem.objective.scales),
-        "problem": problem_sentence(problem),
-        "constraints": {tag: constraint_checks(problem.objective.scales, ev["nominal"][tag],
-                                               _sampled(problem))
+        "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
+        "constraints": {tag: constraint_checks(sc, ev["nominal"][tag], sampled)
                         for tag in ("start", "tuned")},
         "sample_time": (None if problem.objective.sampled is None
                         else problem.objective.sampled.sample_time),
         "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
                          for tag in ("start", "tuned")},
         "run": {
-            "iterations": result.trace.iterations, "resumed_from": result.resumed_from,
+            "iterations": tr.iterations, "resumed_from": result.resumed_from,
             "rejected": result.rejected, "stop_reason": result.stop_reason,
-            "restarts": result.trace.restarts,
-            "best_iteration": result.trace.best_iteration,
-            "best_loss": result.trace.best_loss,
-            "best_feasible": result.trace.best_feasible,
-            "wall_s": result.wall_s, "compile_s": result.compile_s,
-            "wall_total_s": None, "gradient": problem.mode,
-            "method": problem.cfg.optimizer.name,
-            "evaluations": result.trace.evaluations,
-            "gradient_evaluations": result.trace.gradients,
-            "n_params": problem.n_params,
-        },
+            "restarts": tr.restarts, "best_iteration": tr.best_iteration,
+            "best_loss": tr.best_loss, "best_feasible": tr.best_feasible,
+            "wall_s": result.wall_s, "compile_s": result.compile_s, "wall_total_s": None,
+            "gradient": problem.mode, "method": problem.cfg.optimizer.name,
+            "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
+            "n_params": problem.n_params},
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
         "settings": problem.describe(),
         "notes": list(problem.notes),
@@ -299,11 +258,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         + [f"tuned gains: {w}" for w in validation.assumption_warnings(result.best_setup)
            if w not in validation.assumption_warnings(problem.setup)],
     }
-    sc = problem.objective.scales
-    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None
-                                    or _sampled(problem)):
-        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag],
-                                                                     _sampled(problem))
+    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None or sampled):
+        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag], sampled)
                                         for tag in ("start", "tuned")}
     for key in ("train", "heldout"):
         if ev[key] is not None:
@@ -312,11 +268,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
     out = Path(out)
-    figures = []
-    trajs = None
-    if plots:
-        trajs = trajectories(problem, z0, z1)
-        figures = _plots(out, result, ev, trajs, sim, problem)
+    figures = (_plots(out, result, ev, trajectories(problem, z0, z1), problem.objective.sim,
+                      problem) if plots else [])
     summary["figures"] = figures
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
@@ -342,10 +295,8 @@ def _bounds_train(sc) -> dict[str, Any] | None:
 
 
 def heldout_warning(summary: dict, cfg) -> str | None:
-    """The sentence to put first when the tuned gains diverge on held-out plants at every
-    step tried (None if on none, or there is no held-out batch): a loop that loses plants
-    must not hide in a table. Plants that track once refined are no warning: they are
-    counted as sweeps count them (`heldout_counts`)."""
+    """The sentence put first when the tuned gains lose held-out plants (diverged, tracked only
+    once refined, or diverged sampled), None if on none: that must not hide in a table."""
     h = summary.get("heldout")
     if not h:
         return None
@@ -375,8 +326,7 @@ def heldout_warning(summary: dict, cfg) -> str | None:
 
 
 def heldout_counts(summary: dict) -> str | None:
-    """The held-out outcomes with the start and the tuned gains, as sweeps report theirs
-    (None without a held-out batch)."""
+    """The held-out outcomes, start -> tuned gains, as sweeps report theirs (None: no batch)."""
     h = summary.get("heldout")
     if not h:
         return None
@@ -396,8 +346,7 @@ def heldout_counts(summary: dict) -> str | None:
 
 
 def _measured(m: dict[str, float]) -> dict[str, float]:
-    """A diverged plant's metrics as NaN (null in report.json): they were not measured over
-    the horizon they name. Its loss (the finite divergence penalty) stays."""
+    """A diverged plant's metrics as NaN (null in report.json: not measured); its loss stays."""
     if not m.get("diverged"):
         return m
     return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
@@ -405,9 +354,8 @@ def _measured(m: dict[str, float]) -> dict[str, float]:
 
 def assumption_warnings(problem) -> list[str]:
     """The paper's assumptions the start setup violates, at the nominal plant or at an end of
-    the training or held-out ranges (`dscjax.params.assumption_warnings`)."""
-    out = []
-    cfg = problem.cfg
+    the training or held-out ranges."""
+    out, cfg = [], problem.cfg
     for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):
         ranges = [r.resolve(problem.setup) for r in b.ranges] if b.batch else []
         for w in with_ranges(problem.setup, ranges, f"tuning.{key}.ranges"):
@@ -419,9 +367,6 @@ def assumption_warnings(problem) -> list[str]:
 def _values(problem, z):
     values = jax.device_get(problem.selection.values(z))
     return {name: np.asarray(values[name]).tolist() for name in problem.selection.names}
-
-
-# -- markdown -------------------------------------------------------------------------------------
 
 
 def _f(v, digits=4):
@@ -603,36 +548,28 @@ def _fmt_val(v):
     return ", ".join(f"{x:.5g}" for x in a)
 
 
-# -- figures --------------------------------------------------------------------------------------
-
-
 def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = False):
-    """loss_curve.png: the loss (and best loss, rejected steps marked), the L-inf error and
-    max|u| per iteration, each in its own panel with its own axis and legend; the bound on
-    max|u| is a labelled line. Returns the Figure (already saved)."""
+    """loss_curve.png: the loss (best loss, rejected steps), the L-inf error and max|u| (its
+    bound) per iteration, a panel each. Returns the Figure (saved)."""
     it = np.array([r["iteration"] for r in history])
     loss = np.array([r["loss"] for r in history], dtype=float)
     best = np.array([r["best_loss"] for r in history], dtype=float)
     acc = np.array([bool(r["accepted"]) for r in history])
     linf = np.array([r["linf_window"] for r in history], dtype=float)
     umax = np.array([r["max_abs_u"] for r in history], dtype=float)
-    # three panels, one quantity and one y-axis each (no twin axes)
     fig, ax = subplots(1, 3, figsize=(14, 4))
     ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
     ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
     if (~acc).any():
         ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected step")
-    ax[0].set_ylabel("objective J [-] (about 1 at the start gains)")
-    ax[0].set_title("loss")
+    ax[0].set(ylabel="objective J [-] (about 1 at the start gains)", title="loss")
     ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
-    ax[1].set_ylabel("L-inf tracking error on [t0, T] [-]")
     worst = " (worst training plant)" if batch else ""
-    ax[1].set_title("tracking error" + worst)
+    ax[1].set(ylabel="L-inf tracking error on [t0, T] [-]", title="tracking error" + worst)
     ax[2].plot(it, umax, color="#2ca02c", lw=1, label="max|u|" + worst)
     if u_max:
         ax[2].axhline(u_max, color="k", ls=":", lw=1, label=f"bound on max|u| ({u_max:.4g})")
-    ax[2].set_ylabel("max|u| [-]")
-    ax[2].set_title("control amplitude")
+    ax[2].set(ylabel="max|u| [-]", title="control amplitude")
     for a in ax:
         a.set_xlabel("iteration")
         a.grid(alpha=0.3, which="both")
@@ -642,10 +579,9 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
 
 
 def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
-    figures = []
+    figures, sc = [], problem.objective.scales
     if result.history:
-        plot_loss_curve(result.history, out / "loss_curve.png",
-                        u_max=problem.objective.scales.u_max,
+        plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
@@ -664,22 +600,18 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
                    label=f"{tag} (TV(u) on every step {float(tr.metrics['tv_u']):.4g})")
         ax[2].plot(t, u, color="#2ca02c" if tag == "tuned" else color, lw=0.9,
                    label=f"{tag} (max|u| {float(tr.metrics['max_abs_u']):.3g})")
-    if problem.objective.scales.u_max:
+    if sc.u_max:
         for sgn in (1, -1):
-            ax[2].axhline(sgn * problem.objective.scales.u_max, color="k", ls=":", lw=0.8)
-    ax[0].set_ylabel("e = y - y_r [-]")
-    ax[0].set_title("tracking error, whole horizon")
-    ax[1].set_ylabel("e on [t0, T] [-]")
-    ax[1].set_title(f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
-    ax[2].set_ylabel("u [-]")
-    ax[2].set_title("control input (dotted: the bound on max|u|)")
-    if problem.objective.scales.tv_max:
-        ax[3].axhline(problem.objective.scales.tv_max, color="k", ls=":", lw=0.8,
-                      label=f"bound on TV(u) ({problem.objective.scales.tv_max:.4g})")
-    ax[3].set_ylabel("sum |du| [-]")
-    ax[3].set_title("total variation of u up to t (curves: on the saved grid, a lower bound; "
-                    "labels: exact)")
-    ax[3].set_xlabel("time t [s]")
+            ax[2].axhline(sgn * sc.u_max, color="k", ls=":", lw=0.8)
+    ax[0].set(ylabel="e = y - y_r [-]", title="tracking error, whole horizon")
+    ax[1].set(ylabel="e on [t0, T] [-]",
+              title=f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
+    ax[2].set(ylabel="u [-]", title="control input (dotted: the bound on max|u|)")
+    if sc.tv_max:
+        ax[3].axhline(sc.tv_max, color="k", ls=":", lw=0.8,
+                      label=f"bound on TV(u) ({sc.tv_max:.4g})")
+    ax[3].set(ylabel="sum |du| [-]", xlabel="time t [s]", title="total variation of u up to t "
+              "(curves: on the saved grid, a lower bound; labels: exact)")
     for a in ax:
         a.grid(alpha=0.3)
         a.legend(loc="upper right", fontsize=8)
@@ -702,11 +634,9 @@ def _plots(out: Path, result, ev, trajs, sim, problem) -> list[str]:
                     ax[i].axvline(np.percentile(v, q), color=color, lw=0.8, ls=ls)
             if key == "linf_error_window":
                 ax[i].set_xscale("log")
-            elif problem.objective.scales.u_max:
-                ax[i].axvline(problem.objective.scales.u_max, color="k", ls=":", lw=1,
-                              label="bound (nominal plant)")
-            ax[i].set_xlabel(LABELS[key])
-            ax[i].set_ylabel("fraction of plants")
+            elif sc.u_max:
+                ax[i].axvline(sc.u_max, color="k", ls=":", lw=1, label="bound (nominal plant)")
+            ax[i].set(xlabel=LABELS[key], ylabel="fraction of plants")
             ax[i].legend(fontsize=8, loc="lower right")
             ax[i].grid(alpha=0.3, which="both")
         n = ev["heldout"]["start"]["diverged"].size

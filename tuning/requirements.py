@@ -1,13 +1,8 @@
 """Time-domain requirements as differentiable penalties (requirement-based tuning).
 
-Each requirement is a `dscjax.metrics.Running` reduction (init/update/finalize; its numbers
-traced, so changing a bound never recompiles) that keeps a few running sums and maxima
-inside the simulation loop, at every RK4 step:
-
-- a **penalty**: weight x (1/T) x integral of relu(violation)^2 dt, zero when the requirement
-  is met, smooth (C^1) in the trajectory, and growing with how much and how long it is
-  violated, so that its gradient pulls on every violating sample, not only the worst one;
-- an exact **check** on the step grid (met / violated, with a margin), for the report.
+Each requirement is a `dscjax.metrics.Running` reduction (numbers traced: a new bound never
+recompiles) giving, at every RK4 step, a **penalty** weight x (1/T) integral relu(violation)^2
+dt (zero when met, C^1, pulling on every violating sample) and an exact **check** (met, margin).
 
     Envelope     |e(t)| <= b(t) = b_inf + (b0 - b_inf) exp(-t / decay)
     StepResponse overshoot <= overshoot and |y - y_final| <= band |height| for t >= settling_time
@@ -33,12 +28,10 @@ def _relu(x):
 
 
 class Requirement(eqx.Module):
-    """A `dscjax.metrics.Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or
-    0.0), 'margin' (<= 0 when met, in the units of the bound) and the requirement's own exact
-    figures. A subclass gives `init`, `sample(acc, k, t, e, y, obs, w)` (one step, with the
-    tracking error e and the trapezoid weight w of step k: dt, dt/2 at both ends), `penalty`
-    and `check`. `n_steps` (static, for the end weights) is set by the objective that holds
-    the requirement (`tuning.objective.TuningMetrics`)."""
+    """A `Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or 0.0), 'margin' (<= 0
+    when met, in the bound's units) and its own figures. A subclass gives `init`, `sample(acc,
+    k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w) and `check`
+    (`penalty`: weight x viol/T unless it says otherwise); `n_steps` is set by `TuningMetrics`."""
 
     n_steps: eqx.AbstractVar[int]
     name: ClassVar[str]
@@ -53,8 +46,8 @@ class Requirement(eqx.Module):
     @abc.abstractmethod
     def sample(self, acc, k, t, e, y, obs, w) -> dict: ...
 
-    @abc.abstractmethod
-    def penalty(self, acc, t_final): ...
+    def penalty(self, acc, t_final):
+        return self.weight * acc["viol"] / t_final
 
     @abc.abstractmethod
     def check(self, acc, t_final) -> dict: ...
@@ -65,6 +58,10 @@ class Requirement(eqx.Module):
 
 def _zeros(dtype, *names):
     return {n: jnp.zeros((), dtype) for n in names}
+
+
+def _met(margin, **figures):
+    return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, **figures}
 
 
 class Envelope(Requirement):
@@ -89,21 +86,14 @@ class Envelope(Requirement):
         return {"viol": acc["viol"] + w * _relu(a / b - 1.0) ** 2,
                 "margin": jnp.maximum(acc["margin"], a - b)}
 
-    def penalty(self, acc, t_final):
-        return self.weight * acc["viol"] / t_final
-
     def check(self, acc, t_final):
-        return {"met": (acc["margin"] <= 0).astype(acc["margin"].dtype), "margin": acc["margin"]}
+        return _met(acc["margin"])
 
 
 class StepResponse(Requirement):
-    """Overshoot and settling of a step reference from `initial` to `final` = initial + height.
-
-    overshoot: largest allowed excursion beyond `final`, as a fraction of |height|;
-    settling_time, band: |y - final| <= band |height| for every t >= settling_time.
-    Reports the measured overshoot (fraction) and settling time (the last grid time at which
-    |y - final| > band |height|; 0 if never).
-    """
+    """A step reference to `final` = initial + height: excursion beyond `final` <= overshoot
+    |height|, and |y - final| <= band |height| for t >= settling_time. Reports the overshoot
+    (fraction) and the settling time (the last time |y - final| > band |height|; 0: never)."""
 
     final: jax.Array
     height: jax.Array
@@ -135,8 +125,7 @@ class StepResponse(Requirement):
 
     def check(self, acc, t_final):
         margin = jnp.maximum(acc["os_max"] - self.overshoot, acc["set_max"] - self.band)
-        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin,
-                "overshoot": acc["os_max"], "settling_time": acc["t_settle"]}
+        return _met(margin, overshoot=acc["os_max"], settling_time=acc["t_settle"])
 
 
 class UBound(Requirement):
@@ -158,12 +147,8 @@ class UBound(Requirement):
         return {"viol": acc["viol"] + w * _relu(a / self.max - 1.0) ** 2,
                 "peak": jnp.maximum(acc["peak"], a)}
 
-    def penalty(self, acc, t_final):
-        return self.weight * acc["viol"] / t_final
-
     def check(self, acc, t_final):
-        margin = acc["peak"] - self.max
-        return {"met": (margin <= 0).astype(margin.dtype), "margin": margin, "peak": acc["peak"]}
+        return _met(acc["peak"] - self.max, peak=acc["peak"])
 
 
 class URate(UBound):

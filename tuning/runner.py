@@ -4,9 +4,8 @@
     result = run(problem, out_dir="results/tune")          # or resume=True
     result.best_setup                                       # the tuned Setup
 
-The search saves its state (search.npz) after every iteration; `run` writes the other files
-(see checkpoint.py) every `save_interval` iterations, on Ctrl-C and at the end, so an
-interrupted run (Ctrl-C, kill) resumes with `resume=True` exactly where it stopped.
+The search saves its state after every iteration, `run` the other files (checkpoint.py) every
+`save_interval` iterations, on Ctrl-C and at the end: `resume=True` continues exactly.
 """
 
 from __future__ import annotations
@@ -24,21 +23,21 @@ import numpy as np
 from dscjax import config as dconfig
 from dscjax import files, params, search
 from dscjax.integrate import TimeParallel
+from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
 from dscjax.runspec import RunSpec
-from dscjax.validation import ConfigError
+from dscjax.simulate import check
+from dscjax.validation import ConfigError, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Combined, Objective, start_scales
-from tuning.optimize import SEARCHES, choose_gradient
+from tuning.objective import Objective, start_scales
+from tuning.optimize import choose_gradient
 from tuning.params import Selection
 from tuning.requirements import KINDS
 from tuning.search import STATE_FILE, TuneProblem, method_of
 
-# Elements with no effect on the paper's plant (f_2 = 0 in eq. 73): gamma_g2 and eta_2 only
-# act on theta_hat_2, which multiplies f_2. Frozen by default on that plant: tuning them would
-# cost a tangent each for a zero gradient.
+# no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
 PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
 
@@ -57,7 +56,6 @@ class Problem:
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
-    members: tuple[Problem, ...] = ()  # the problems a `combine`d one is made of
 
     @property
     def n_train(self) -> int:
@@ -86,9 +84,7 @@ class Problem:
                         else self.objective.sampled.describe()),
             "mode": self.mode,
         } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
-             if self.extra_plants else {}) | (
-            {"members": [m.describe() for m in self.members], "combine": self.objective.how}
-            if self.members else {})
+             if self.extra_plants else {})
 
 
 def _batch_desc(b, setup):
@@ -104,10 +100,7 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
 
 
 def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
-    """Batches left at the default ranges vary the setup's own hysteresis model's numbers
-    (`default_ranges(setup)`: alpha, lam, psi only for the backlash-like model)."""
-    from dscjax.params import default_ranges
-
+    """Batches left at the default ranges vary the setup's own hysteresis model's numbers."""
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
         if b.ranges == default_ranges():
@@ -118,22 +111,15 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
 
 def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                   extra_plants: dict | None = None) -> Problem:
-    """Validate the tuning settings against the setup and build the objective.
-
-    `extra_plants` ({path: (k, ...)}, e.g. the worst cases of `tuning.adversarial`) join the
-    training batch (or the nominal plant, without one). Raises ConfigError (naming the field)
-    on any bad setting.
-    """
-    from dscjax.simulate import check
-    from dscjax.validation import validate_setup
-
+    """Validate the tuning settings against the setup (ConfigError naming the field) and
+    build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
+    cases) join the training batch (or the nominal plant)."""
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
-    if window is None:
-        window = float(options.window_start)
+    window = float(options.window_start) if window is None else window
     check(setup, options)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
@@ -156,12 +142,8 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     sim = options.replace(save_every=options.n_steps, window_start=float(window),
                           names={"window_start": "tuning.objective.window_start"})
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=ce))
-    batches = {}
-    for key in ("robust", "heldout"):
-        b = getattr(cfg, key)
-        if b.batch > 0:
-            batches[key] = _sample(setup, b, f"tuning.{key}.ranges", options)
-    train, heldout = batches.get("robust"), batches.get("heldout")
+    train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
+                      for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
     requirements = build_requirements(setup, cfg.requirements)
@@ -191,8 +173,6 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
 def join_plants(setup, first: dict | None, then: dict) -> dict:
     """{path: (n1 + n2, ...)}: the plants of `first` (None: the nominal plant alone), then
     those of `then`; where one side does not vary a leaf, its plants keep the setup's value."""
-    from dscjax import params
-
     def size(d):
         return len(next(iter(d.values()))) if d else 1
 
@@ -203,45 +183,6 @@ def join_plants(setup, first: dict | None, then: dict) -> dict:
                 else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
-
-
-def combine(problems, how: str = "mean") -> Problem:
-    """One problem whose loss is the mean (or max) of the problems' losses (`Combined`): the
-    same tuned gains over setups of different structure, e.g. `build_problem` once per
-    hysteresis kind, each with its own robust batch. The problems must tune the same
-    parameters (same names and sizes) with the same settings, and start from the same
-    values; the result's setup, gains.json and report are the first problem's.
-
-        probs = [build_problem(hysteresis_example(k), options, cfg) for k in ("pi", "gpi")]
-        result = run(combine(probs, "max"))
-    """
-    first = problems[0]
-    if first.cfg.optimizer.name in SEARCHES:
-        # (the CMA-ES methods simulate one batch of one structure per generation)
-        raise ConfigError(f"combine: tuning.optimizer.name must be \"adam\" (the gradient "
-                          f"method), not the search method {first.cfg.optimizer.name!r}")
-    for p in problems[1:]:
-        if (p.selection.names != first.selection.names or p.cfg.optimizer != first.cfg.optimizer
-                or p.objective.sim != first.objective.sim or p.n_params != first.n_params):
-            raise ConfigError("combine: every problem must tune the same parameters with the "
-                              "same optimizer and simulation settings")
-        for k in first.z0:
-            if not np.array_equal(np.asarray(p.z0[k]), np.asarray(first.z0[k])):
-                raise ConfigError(f"combine: the problems start from different values of {k}")
-    objective = Combined(tuple(p.objective for p in problems), how)
-    gradient = first.cfg.optimizer.gradient
-    if gradient == "plants":
-        raise ConfigError("tuning.optimizer.gradient = \"plants\" differentiates one batch "
-                          "plant by plant; combine objectives with \"auto\", \"forward\" or "
-                          "\"reverse\"")
-    # each member's own choice (forward over a batch, reverse for one plant) if they agree;
-    # not "plants" (the members' batches differ): then the choice for the whole
-    modes = {p.mode for p in problems}
-    mode = (next(iter(modes)) if len(modes) == 1 and "plants" not in modes else
-            choose_gradient(gradient, first.n_params, objective.batch_size))
-    return dataclasses.replace(first, objective=objective, heldout=None, mode=mode,
-                               members=tuple(problems), extra_plants=None,
-                               notes=first.notes + (f"{how} of {len(problems)} objectives",))
 
 
 def _sample(setup, b, field, options) -> dict:
@@ -270,9 +211,6 @@ def build_requirements(setup, table) -> tuple:
     return tuple(out)
 
 
-# -- the run -------------------------------------------------------------------------------------
-
-
 @dataclasses.dataclass
 class Result:
     """A tuning run: its problem and the search's record (`dscjax.search.Trace`)."""
@@ -283,10 +221,6 @@ class Result:
     wall_s: float  # this invocation
     compile_s: float  # this invocation
     resumed_from: int  # iterations done before this invocation
-
-    @property
-    def method(self) -> str:
-        return self.problem.cfg.optimizer.name
 
     @property
     def history(self) -> list[dict]:
@@ -342,8 +276,7 @@ def _term_names(problem):
 
 
 def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    """ConfigError unless the directory's state fits: --resume needs a checkpoint, and an
-    existing run is only replaced with --overwrite."""
+    """ConfigError unless --resume finds a checkpoint; only --overwrite replaces a run there."""
     out = Path(out)
     has = (out / "checkpoint.json").exists()
     if resume and not has:
@@ -377,16 +310,10 @@ def _saved(out: Path, problem: Problem) -> search.Saved:
 def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = False,
         overwrite: bool = False, progress: Callable[[dict], None] | None = None,
         z_init: dict | None = None) -> Result:
-    """Search until steps, time limit, patience or CMA-ES's own end (after its restarts).
-
-    Args:
-        out_dir: where the files go (None: nothing is written).
-        resume: continue the run in out_dir (the problem must be the same; the stopping
-            settings steps/time_limit/patience may differ): bitwise as if never stopped.
-        z_init: the start point (default `problem.z0`, the start gains; the report still
-            compares against `problem.z0`); a resumed run keeps its own.
-        progress: called with each iteration's row (dict) for a progress display.
-    """
+    """Search until steps, time limit, patience or CMA-ES's own end (after its restarts),
+    writing into `out_dir` (None: nothing). `resume` continues the run there bitwise (the same
+    problem; the stopping settings may differ); `z_init` is the start point (default the start
+    gains `problem.z0`, which the report compares against); `progress` gets each row."""
     t_start = time.perf_counter()
     spec = problem.cfg.optimizer
     out = None if out_dir is None else Path(out_dir)
@@ -401,7 +328,6 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     terms = _term_names(problem)
 
     def each(trace, row):
-        # (after the first iteration too: a run killed early still has a checkpoint)
         if out is not None and (trace.iterations % spec.save_interval == 0
                                 or trace.iterations == begun + 1):
             write_files(out, problem, trace)
@@ -431,8 +357,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
 
 
 def finished(problem: Problem, out_dir: str | Path) -> Result:
-    """The `Result` of the run whose checkpoint is in `out_dir`, without iterating (a phase
-    of `tuning.adversarial` that has finished)."""
+    """The `Result` of the finished run whose checkpoint is in `out_dir`, without iterating."""
     out = Path(out_dir)
     trace = _saved(out, problem).trace
     meta = files.read_json(out / "checkpoint.json")
@@ -442,8 +367,7 @@ def finished(problem: Problem, out_dir: str | Path) -> Result:
 
 def write_files(out: Path, problem: Problem, trace: search.Trace,
                 stop_reason: str | None = None) -> None:
-    """best.json, gains.json, history.csv and checkpoint.json of a search's trace
-    (stop_reason: the run ends here)."""
+    """best.json, gains.json, history.csv and checkpoint.json of a search's trace."""
     desc = problem.describe()
     write_best(out, problem, trace)
     ck.write_history(out / "history.csv", [history_row(r) for r in trace.history],
@@ -455,13 +379,6 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
         "evaluations": trace.evaluations, "gradient_evaluations": trace.gradients,
         "elapsed_total_s": trace.seconds, "stop_reason": stop_reason,
         "state": {"kind": problem.cfg.optimizer.name, "file": STATE_FILE}, "problem": desc})
-
-
-def gains_config(problem: Problem, z) -> dict:
-    """The tuned setup as a dscjax config dict (all sections, the config's names)."""
-    setup = problem.selection.apply(problem.setup, z)
-    setup = jax.tree.map(np.asarray, setup)
-    return dconfig.to_dict(setup, problem.options)
 
 
 def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
@@ -476,12 +393,13 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
         "values": {k: np.asarray(v).tolist() for k, v in values.items()},
         "z": {k: np.asarray(v).tolist() for k, v in z.items()},
     })
-    files.write_json(out / "gains.json", gains_config(problem, z))
+    setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
+    files.write_json(out / "gains.json", dconfig.to_dict(setup, problem.options))
 
 
 def format_progress(row: dict, step: str = "lr") -> str:
-    """The figures of one iteration's row, for a progress display (dscjax.progress); `step`
-    names the step size's column (sigma for the CMA-ES methods)."""
+    """The figures of one iteration's row for the progress display; `step` names the step
+    size (sigma for the CMA-ES methods)."""
     terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
     return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
             f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "

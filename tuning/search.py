@@ -1,7 +1,6 @@
-"""`dscjax tune` on the box search of `dscjax.search`: the tuning objective as a search
-`Problem` over the flat z (`TuneProblem`: the batched program `batch_fn`, padded to the
-widths it compiled; the exact gradient in the problem's AD mode, `grad_fn`), and the method
-of an `OptimizerSpec` (`method_of`: cma_path, cma or adam).
+"""The tuning objective as a `dscjax.search` problem over the flat z (`TuneProblem`: the
+batched program `batch_fn`; the exact gradient `grad_fn` in the problem's AD mode), and the
+method of an `OptimizerSpec` (`method_of`).
 
     sp = TuneProblem(problem)                  # problem: tuning.build_problem(...)
     res = dscjax.search.run(sp, method_of(problem.cfg.optimizer), x0=sp.x0)
@@ -28,9 +27,8 @@ SPREAD = math.log(10.0)  # random points (a restarted adam start): z0 x/ 10, in 
 
 
 def batch_fn(problem):
-    """Jitted (B, n) flat z -> per-candidate loss, feasibility, exact figures and terms: the
-    loss of `Objective.evaluate` (J of the nominal plant or the aggregate over the training
-    batch), every candidate (x every training plant) as one batched simulation."""
+    """Jitted (B, n) flat z -> per-candidate loss (`Objective.evaluate`'s), feasibility,
+    figures and terms: every candidate x training plant in one batched simulation."""
     obj = problem.objective
     _, unravel = ravel_pytree(problem.z0)
     columns = obj.selection.columns(obj.setup)
@@ -91,9 +89,8 @@ def grad_fn(problem):
 
 
 class TuneProblem(search.Problem):
-    """The tuning objective of a `runner.Problem` as a search problem over the flat z (the
-    order of `ravel_pytree(problem.z0)`), in the box of its bounds. Its programs are compiled
-    once per objective (`Objective.compiled`): runs that share the objective share them."""
+    """A `runner.Problem` as a search problem over the flat z (`ravel_pytree(problem.z0)`) in
+    the box of its bounds; its programs are compiled once per objective (`compiled`)."""
 
     def __init__(self, problem):
         self.problem = problem

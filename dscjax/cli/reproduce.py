@@ -109,23 +109,13 @@ def parse_alpha0(text: str | None) -> list[float] | None:
 
 
 def run(args) -> int:
-    from dscjax.cli.common import prepare_out
-    from dscjax.reproduce import claim_lines, reproduce, sampling
-    from dscjax.validation import ConfigError, validate_run
+    from dscjax.cli.common import horizon_text, loop_sizes, prepare_out, use_device
+    from dscjax.reproduce import claim_lines, reproduce, sampling, setups
+    from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
     alpha0 = parse_alpha0(args.alpha0)
-    if args.mu is not None and not args.mu > 0:
-        raise ConfigError(f"--mu must be > 0 (got {args.mu})")
-    if args.repeats < 1:
-        raise ConfigError(f"--repeats must be >= 1 (got {args.repeats})")
-    if args.dpi < 10:
-        raise ConfigError(f"--dpi must be >= 10 (got {args.dpi})")
-    from dscjax.cli.common import horizon_text, loop_sizes
-    from dscjax.reproduce import setups
-    from dscjax.validation import Work, check_work, whole_steps
-
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
     runs = len(setups())  # each saved at every step and kept for the figures
@@ -144,8 +134,6 @@ def run(args) -> int:
     if args.resume and not rows.exists():
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
-    from dscjax.cli.common import use_device
-
     choice = use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
     print(f"dscjax reproduce: on {choice}", file=sys.stderr)

@@ -1,11 +1,6 @@
 """`dscjax tune`: tune controller gains through the closed loop (CMA-ES by default, or
-exact gradients).
-
-Writes into DIR: gains.json (the tuned closed loop as a config: `dscjax simulate --config
-DIR/gains.json` loads it), history.csv (one row per iteration), report.md and report.json
-(start against tuned gains: nominal plant, training batch, held-out batch), loss_curve.png,
-before_after.png, heldout.png, and the checkpoint files (search.npz, checkpoint.json,
-best.json: `--resume` continues from them).
+exact gradients). Writes into DIR gains.json (`dscjax simulate --config DIR/gains.json`),
+history.csv, report.md, report.json, the figures and the checkpoint files `--resume` reads.
 """
 
 from __future__ import annotations
@@ -65,9 +60,8 @@ def add_parser(sub):
                    f"time, compilation included (default {limit}; 0 = no limit)")
     p.add_argument("--method", choices=OPTIMIZERS, help=f"search method (default {opt.name}: "
                    "CMA-ES with a line search from the best point along its evolution path in "
-                   "its first generations, ahead of CMA-ES at equal wall time on the nominal "
-                   "problem (not on the robust one), docs/tuning.md; cma: CMA-ES alone; adam: "
-                   "gradient descent on exact gradients with Adam's scaling)")
+                   "its first generations; cma: CMA-ES alone; adam: gradient descent on exact "
+                   "gradients with Adam's scaling; docs/tuning.md compares them)")
     p.add_argument("--lr", type=positive_float, metavar="LR", help=f"adam's initial step (default "
                    f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
                    f"{100 * opt.learning_rate:g} %% per step)")
@@ -173,50 +167,30 @@ def load(args):
         for key in ("tuning", "sweep"):
             gains.pop(key, None)
         setup, options = config.from_dict(gains, base=setup, base_spec=options)
-    opt, rob, held, obj = {}, {}, {}, {}
-    if args.effort_bounds is not None:
-        obj["effort_bounds"] = args.effort_bounds
-    if args.steps is not None:
-        if args.steps < 1:
-            raise ConfigError(f"--steps must be >= 1 (got {args.steps})")
-        opt["steps"] = args.steps
-    if args.time_limit is not None:
-        if args.time_limit < 0:
-            raise ConfigError(f"--time-limit must be >= 0 (got {args.time_limit:g})")
-        opt["time_limit"] = args.time_limit or None
-    if args.lr is not None:
-        opt["learning_rate"] = args.lr
-    if args.gradient:
-        opt["gradient"] = args.gradient
-    if args.method:
-        opt["name"] = args.method
-    for name in ("batch", "aggregate", "cvar_level", "seed"):
-        value = getattr(args, name)
-        if value is not None:
-            rob[name] = value
-    if args.heldout is not None:
-        held["batch"] = args.heldout
-    adv = {}
-    if args.adversarial is not None:
-        adv["rounds"] = _rounds(args.adversarial)
+    if args.time_limit is not None and args.time_limit < 0:
+        raise ConfigError(f"--time-limit must be >= 0 (got {args.time_limit:g})")
+    adv = {} if args.adversarial is None else {"rounds": _rounds(args.adversarial)}
     for name in ("disturbance", "search_time", "search_evals", "search_method"):
         if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
             raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
                               f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
-    if args.search_evals is not None:
-        validation.integer(args.search_evals, "--search-evals", 1)
     if args.disturbance is not None:
         adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
-    for key, value in (("search_time", args.search_time), ("search_evals", args.search_evals),
-                       ("method", args.search_method)):
-        if value is not None:
-            adv[key] = value
-    cfg = dataclasses.replace(
-        cfg, objective=dataclasses.replace(cfg.objective, **obj),
-        optimizer=dataclasses.replace(cfg.optimizer, **opt),
-        robust=dataclasses.replace(cfg.robust, **rob),
-        heldout=dataclasses.replace(cfg.heldout, **held),
-        adversarial=dataclasses.replace(cfg.adversarial, **adv))
+    # (table of the config, {option: its field}): the options given replace the fields
+    changes = {"objective": {"effort_bounds": "effort_bounds"},
+               "optimizer": {"steps": "steps", "lr": "learning_rate", "gradient": "gradient",
+                             "method": "name", "time_limit": "time_limit"},
+               "robust": {k: k for k in ("batch", "aggregate", "cvar_level", "seed")},
+               "heldout": {"heldout": "batch"},
+               "adversarial": {"search_time": "search_time", "search_evals": "search_evals",
+                               "search_method": "method"}}
+    given = {key: {field: getattr(args, name) for name, field in names.items()
+                   if getattr(args, name) is not None} for key, names in changes.items()}
+    if "time_limit" in given["optimizer"]:
+        given["optimizer"]["time_limit"] = args.time_limit or None  # 0: no limit
+    given["adversarial"] |= adv
+    cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(getattr(cfg, key), **values)
+                                      for key, values in given.items()})
     cfg.validate()
     options = apply_run_options(args, options)
     validation.validate_setup(setup)
@@ -227,7 +201,7 @@ def load(args):
 
 
 def _rounds(text: str) -> int:
-    """R of --adversarial R: an integer >= 0 (one-line error naming the option otherwise)."""
+    """R of --adversarial R: an integer >= 0."""
     from dscjax.validation import ConfigError
 
     try:
@@ -249,6 +223,7 @@ def run(args) -> int:
     from dscjax.validation import ConfigError
     from tuning import report
     from tuning.config import to_toml
+    from tuning.optimize import SEARCHES
     from tuning.runner import build_problem, format_progress, model_default_ranges
     from tuning.runner import run as run_tuning
 
@@ -275,8 +250,6 @@ def run(args) -> int:
     problem = build_problem(setup, options, cfg)  # (validates every setting)
     prepare_out(args, OUTPUTS, resumable=True)
     oc = cfg.optimizer
-    from tuning.optimize import SEARCHES
-
     how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
            else f"{oc.name} (sigma0 {oc.sigma0:g})")
     unit = "generation" if oc.name in SEARCHES else "iteration"
@@ -355,7 +328,8 @@ def run(args) -> int:
         adversarial.add_to_report(out, summary, outcome)
         f0, f1 = outcome.fresh["start"], outcome.fresh["tuned"]
         print(f"  fresh worst-case search (seed {f0['seed']}): worst {f0['metric']} "
-              f"{_worst(f0)} (start gains) -> {_worst(f1)} (tuned gains); training set "
+              f"{adversarial.worst_text(f0, 4)} (start gains) -> "
+              f"{adversarial.worst_text(f1, 4)} (tuned gains); training set "
               f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
@@ -448,8 +422,3 @@ def check_work_of(args, setup, options, cfg) -> None:
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
     check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
                limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")
-
-
-def _worst(record: dict) -> str:
-    return (f"diverges at t = {record['t_diverged']:.4g} s" if record["diverged"]
-            else f"{record['value']:.4g}")

@@ -1,27 +1,16 @@
 """The alpha_0 study: Theorem 1's guaranteed L-inf bound (72) against what the loop does.
 
-For each alpha_0 the DSC gets the gains of eq. (55), the filter constants of eq. (60) and the
-L-inf initialisation (67)-(68); it is simulated, and every statement of Theorem 1 is checked
-along the run (`theory.check`): the measured ||S_1||_inf against (72), max V against (71), V(t)
-against (65), V' against (63).
+For each alpha_0 the DSC gets the gains of (55), the filters of (60) and the L-inf
+initialisation (67)-(68), and every statement of Theorem 1 is checked along its run
+(`theory.check`). M_(i+1) of (60) has no closed form: from fast filters (tau_start), M <-
+(1 + margin) max_t |B(t)| under tau(M) until max_t |B(t)| <= M, so (59) holds on the run with
+the M the gains were built from; the bounds are then data-driven estimates of the theorem's
+constants. The RK4 step of a run is stable on the fastest filter and on the hysteresis state
+(rate alpha |u'|), halved on divergence; an alpha_0 needing more than `max_steps` steps is
+reported as skipped.
 
-M_(i+1) in (60), the maximum of |B_(i+1)| (43) over the theorem's compact set, has no closed
-form. It is estimated along the trajectory, and the gains and M are iterated to a fixed point:
-
-    M <- (1 + margin) max_t |B(t)| under tau(M),   until max_t |B(t)| <= M (then (59) holds
-    on the run with the M the gains were built from).
-
-It starts from fast filters (tau = tau_start); if that first run is already consistent, one
-more run at M = (1 + margin) * measured is tried and kept if still consistent. The bounds
-computed with that M are DATA-DRIVEN ESTIMATES of the theorem's constants, not the constants
-themselves (those are maxima over a set that contains the run, so at least as large).
-
-The RK4 step is chosen per run: stable on the fastest filter and on the hysteresis state
-(rate alpha |u'|, measured), halved on divergence; an alpha_0 whose runs would need more than
-`max_steps` steps is reported as skipped, with the dt it needed.
-
-    result = dscjax.alpha0_study.study(dscjax.alpha0_study.base_setup(2))
-    print(dscjax.alpha0_study.table_markdown(result))
+    result = alpha0.study(alpha0.base_setup(2))
+    print(alpha0.table_markdown(result))
 """
 
 from __future__ import annotations
@@ -38,6 +27,7 @@ import numpy as np
 from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example, paper_example
+from dscjax.plotting import subplots
 from dscjax.reproduce import theory
 from dscjax.simulate import canonical, simulate
 from dscjax.validation import RK4_REAL_STABILITY, ConfigError
@@ -47,47 +37,25 @@ DEFAULT_ALPHA0 = tuple(float(a) for a in np.round(np.geomspace(0.1, 10.0, 10), 4
 
 @dataclasses.dataclass(frozen=True)
 class StudyOptions:
-    """Settings of the study.
+    """Settings of the study."""
 
-    Attributes:
-        alpha0: the alpha_0 values (> 0).
-        mu: the mu of (59)-(60) (> 0). The bound grows with (n-1) mu/2, the filters get faster
-            (1/tau ~ M^2/(2 mu)) as mu shrinks: a smaller mu costs smaller steps.
-        hold: "eta" (keep the leakages, gamma = 2 alpha_0/eta: the paper's choice after (72)) or
-            "gamma" (keep the rates, eta = 2 alpha_0/gamma). See `theory.gains_55`.
-        t_final: horizon [s].
-        dt_max: the largest RK4 step; the step is dt_max / 2^j, the largest such that
-            dt <= dt_safety * 2.785 * min tau (RK4's real stability limit on the fastest
-            filter), halved again if the run diverges.
-        dt_safety: fraction of the stability limit used.
-        margin: M = (1 + margin) * measured max |B| when the fixed point is iterated.
-        max_iter: iterations of the fixed point before giving up (reported as not converged).
-        verify_dt: re-run the final gains at dt/2 and report how much ||S_1||_inf and max V
-            change (a check that dt resolves the loop, not only keeps it stable).
-        tau_start: the filter constant the fixed point starts from (M_(i+1) such that (60)
-            gives it, or |B_(i+1)(0)| if larger).
-        max_halvings: how many times a run's dt may be halved (divergence or hysteresis
-            stiffness) before the iteration gives up on it and doubles M instead.
-        tighten: when the first run is already consistent, try once more with
-            M = (1 + margin) * measured (slower filters, closer to the fixed point of (60));
-            keep it if it does not diverge, needs no smaller dt and still satisfies (59).
-        max_steps: a run that would need more RK4 steps than this (t_final/dt; every step is
-            saved) is not made: the alpha_0 is reported as skipped, with the dt it needed.
-    """
-
-    alpha0: tuple[float, ...] = DEFAULT_ALPHA0
-    mu: float = 0.1
-    hold: str = "eta"
-    t_final: float = 20.0
+    alpha0: tuple[float, ...] = DEFAULT_ALPHA0  # the values (> 0)
+    mu: float = 0.1  # of (59)-(60); the bound grows with (n-1) mu/2, 1/tau with M^2/(2 mu)
+    hold: str = "eta"  # what (55) keeps: the leakages or the rates (`theory.gains_55`)
+    t_final: float = 20.0  # horizon [s]
+    # the step: dt_max/2^j, the largest with dt <= dt_safety x 2.785 x min tau (RK4's real
+    # stability limit on the fastest filter), halved again while the run diverges
     dt_max: float = 1e-3
     dt_safety: float = 0.5
-    margin: float = 0.05
-    max_iter: int = 8
-    verify_dt: bool = True
-    tau_start: float = 1e-3
-    max_halvings: int = 6
+    margin: float = 0.05  # M = (1 + margin) x the measured max |B| in the fixed point
+    max_iter: int = 8  # fixed-point iterations before giving up (reported: not converged)
+    verify_dt: bool = True  # re-run the final gains at dt/2 and report the change
+    tau_start: float = 1e-3  # the filter constant the fixed point starts from
+    max_halvings: int = 6  # halvings of a run's dt before M is doubled instead
+    # a first consistent run: try once more at M = (1 + margin) x measured, kept if it does
+    # not diverge, needs no smaller dt and still satisfies (59)
     tighten: bool = True
-    max_steps: int = 2_000_000
+    max_steps: int = 2_000_000  # a run needing more steps is skipped, with the dt it needed
 
     def validate(self):
         if not self.alpha0 or min(self.alpha0) <= 0:
@@ -95,8 +63,6 @@ class StudyOptions:
         for name in ("mu", "t_final", "dt_max", "dt_safety"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
-        if self.hold not in theory.HOLD:
-            raise ConfigError(f"hold must be one of {theory.HOLD} (got {self.hold!r})")
 
 
 ALPHA0_HIGH_ORDER = (0.1, 0.3, 1.0)
@@ -106,13 +72,10 @@ T_HIGH_ORDER = 10.0
 def default_options(n: int, **changes) -> StudyOptions:
     """The study's settings for order n, with `changes` (None values ignored) applied.
 
-    n = 2: the 10 values of `DEFAULT_ALPHA0` (0.1 to 10), mu = 0.1, 20 s.
-    n = 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s. n >= 4: alpha_0 in (0.1, 0.3), mu = 50,
-    5 s. Order n >= 3 is much stiffer: u' carries z_n'' and grows in bursts, and the
-    hysteresis rate alpha |u'| then needs dt down to 1e-5 s or below (n = 3, alpha_0 = 1:
-    1.6e-5 s; n = 4, alpha_0 = 0.3: 4.9e-7 s). A larger mu keeps tau_start consistent with
-    (60) (measured M_n: 81 for n = 3, alpha_0 = 1; 277 for n = 4, alpha_0 = 0.1), at the
-    price of (n-1) mu/2 in the bound.
+    n = 2: `DEFAULT_ALPHA0`, mu = 0.1, 20 s; n = 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s;
+    n >= 4: alpha_0 in (0.1, 0.3), mu = 50, 5 s. Order n >= 3 is much stiffer (u' carries
+    z_n'' and the hysteresis rate alpha |u'| needs tiny steps); a larger mu keeps tau_start
+    consistent with (60), at the price of (n-1) mu/2 in the bound.
     """
     if n == 2:
         base = StudyOptions()
@@ -135,7 +98,6 @@ def base_setup(n: int = 2):
 
 def _initial_M(setup):
     """|B_(i+1)(0)| at the initial state: the fixed point's starting guess."""
-
     s = prepared(canonical(setup))
     X = initial_state(s)
     b = jax.jit(theory.b_at)(s, X.x[0] * 0.0, X)
@@ -175,9 +137,8 @@ def _simulate(setup, t_final, dt, opts: StudyOptions):
 
 
 def _run(setup, t_final, dt, opts: StudyOptions):
-    """Simulate at dt, then halve dt while the run diverges or the hysteresis state's rate
-    alpha max |u'| (measured on the run) puts it beyond dt_safety times RK4's limit (at most
-    `max_halvings` times). Returns (trajectory, dt); the trajectory may still have diverged."""
+    """(trajectory, dt): dt halved (at most `max_halvings` times) while the run diverges or
+    alpha max |u'| puts dt beyond dt_safety x RK4's limit; it may still have diverged."""
     for _ in range(opts.max_halvings + 1):
         traj = _simulate(setup, t_final, dt, opts)
         if bool(traj.diverged):
@@ -196,8 +157,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     t0 = time.perf_counter()
     n = base.order
     s0, _ = _with(base, alpha0, np.ones(n - 1), opts)
-    # Start with fast filters (tau = tau_start where (60) allows it): a slow filter can make
-    # the loop diverge, and from fast filters the iteration settles in 2-3 runs.
+    # from fast filters (tau_start where (60) allows it): a slow filter can diverge
     fast = math.sqrt(2 * opts.mu * max(1.0 / opts.tau_start - 0.25 - alpha0, 0.0))
     M = np.maximum((1 + opts.margin) * _initial_M(s0), fast)
     history, converged, last = [], False, None
@@ -221,8 +181,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
         raise RuntimeError(f"alpha_0 = {alpha0}: every run diverged ({history})")
     M_tight = (1 + opts.margin) * last[3]["M_measured"]
     if opts.tighten and converged and np.any(M_tight < M):
-        # The first consistent M may be far above what the run needs (the start is fast):
-        # one run with M = (1 + margin) * measured, kept if (59) still holds on it.
+        # the first consistent M may be far above what the run needs (the start is fast)
         setup, tau = _with(base, alpha0, M_tight, opts)
         dt = min(_dt_for(tau, opts), last[2])
         traj = _simulate(setup, opts.t_final, dt, opts)
@@ -261,10 +220,9 @@ def _row(alpha0, setup, tau, dt, res, converged, history):
         eta=np.asarray(c.eta).tolist(), eta_d=float(c.eta_d), dt=dt,
         M=np.asarray(res["M"]).tolist(), M_measured=res["M_measured"].tolist(),
         iterations=len(history), converged=converged, history=history,
-        S1_inf=res["S1_inf"], bound_72=res["bound_72"], V0=res["V0"], v0_69=res["v0_69"],
-        V_max=res["V_max"], bound_71=res["bound_71"], e_M=res["e_M"], C=res["C"],
-        slack=res["slack"], d=res["d"], d_n_max=res["d_n_max"], margin_63=res["margin_63"],
-        margin_65=res["margin_65"], holds=res["holds"], assumptions=res["assumptions"],
+        **{k: res[k] for k in ("S1_inf", "bound_72", "V0", "v0_69", "V_max", "bound_71", "e_M",
+                               "C", "slack", "d", "d_n_max", "margin_63", "margin_65", "holds",
+                               "assumptions")},
         all_hold=bool(all(res["holds"].values())),
         assumptions_hold=bool(converged and all(res["assumptions"].values())),
         conservatism=res["bound_72"] / res["S1_inf"],
@@ -273,11 +231,8 @@ def _row(alpha0, setup, tau, dt, res, converged, history):
 
 def study(base, opts: StudyOptions | None = None,
           log: Callable[[str], None] = lambda s: None) -> dict:
-    """Run the study on `base` (a DSC setup with init="linf", see `base_setup`).
-
-    Returns {"n", "options", "rows": [one dict per alpha_0], "wall_s"}. A row whose runs would
-    need more than `max_steps` steps has only alpha0, skipped=True, dt_needed and steps.
-    """
+    """{"n", "options", "rows": one per alpha_0, "wall_s"} of the study on `base` (a DSC
+    with init="linf", `base_setup`); a skipped row has alpha0, skipped, dt_needed, steps."""
     opts = opts or StudyOptions()
     opts.validate()
     if getattr(base.controller, "init", None) != "linf":
@@ -334,13 +289,11 @@ COLORS = {2: "#1f77b4", 3: "#ff7f0e", 4: "#2ca02c", 5: "#d62728"}
 def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
     """||S_1||_inf measured and the bound (72) against alpha_0, log axes, one colour per n."""
     import matplotlib
-    from matplotlib.figure import Figure
 
     path = Path(path)
     with matplotlib.rc_context({"font.size": 10, "axes.grid": True, "grid.alpha": 0.3,
                                 "legend.fontsize": 8.5}):
-        fig = Figure(figsize=(8.6, 4.4), layout="constrained")
-        ax = fig.add_subplot()
+        fig, ax = subplots(figsize=(8.6, 4.4))
         for res in results:
             n = res["n"]
             rows = [r for r in res["rows"] if not r.get("skipped")]
@@ -351,8 +304,7 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
                       ms=4, label=f"n = {n}: bound (72), data-driven M, $\\mu$ = {mu:g}")
             ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=color, marker="o",
                       ms=4, label=f"n = {n}: measured $\\|S_1\\|_\\infty$")
-        ax.set_xlabel(r"$\alpha_0$ (gains by (55), $\tau$ by (60))")
-        ax.set_ylabel(r"$\|S_1\|_\infty$ [-]")
+        ax.set(xlabel=r"$\alpha_0$ (gains by (55), $\tau$ by (60))", ylabel=r"$\|S_1\|_\infty$ [-]")
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
                      "measured error", fontsize=9.5)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
@@ -360,5 +312,3 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
     return path
 
 
-__all__ = ["ALPHA0_HIGH_ORDER", "DEFAULT_ALPHA0", "StudyOptions", "TooStiff", "base_setup",
-           "default_options", "plot", "study", "study_one", "table_markdown"]

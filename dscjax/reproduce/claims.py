@@ -42,7 +42,6 @@ INTERPRETATIONS = [
 ]
 
 
-
 def summarize(trajs: dict, t_final: float, dt: float) -> dict:
     """Metrics of every run, the estimates' ranges and the check of every claim."""
     window = 1.0 if t_final > 1.0 else 0.0
@@ -150,13 +149,7 @@ def complexity_claim(result: dict) -> dict:
         holds=bool(holds))
 
 
-
 def claim_lines(summary: dict) -> list[str]:
     """One line per claim of the paper: the verdict, the claim, what we measured."""
     return [f"claim {c['verdict'].upper() if c['holds'] else 'FAILS'}: {c['claim']}: "
             f"{c['measured']}" for c in summary["claims"]]
-
-
-
-__all__ = ["ALIKE_FACTOR", "AMPLITUDE_MARGIN", "INTERPRETATIONS", "check_claims", "claim_lines",
-           "complexity_claim", "summarize"]

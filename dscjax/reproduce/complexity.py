@@ -1,29 +1,11 @@
-"""The "explosion of complexity", measured: size and cost of the control law against the order n.
-
-The paper's case for the DSC (Introduction, Remark 4, Remark 6) is that backstepping's control
-law grows explosively with the order because every virtual control must be differentiated, while
-the DSC's filters keep it simple. The paper never measures this. Here both laws are built by the
-same code for one family of plants (`order_n_example(n)`: nonlinear f_i and rho_i of every stage)
-and measured as compiled programs:
-
-- eqns: equations in the jaxpr of the control law (sub-jaxprs inlined and counted);
-- flops: floating-point operations of the compiled law, from XLA's cost analysis (after XLA's
-  simplification and common-subexpression elimination, so smaller than the jaxpr suggests);
-- trace_s: time to trace the law to a jaxpr (Python, including the nested differentiation);
-- compile_s: XLA lowering and compilation time; build_s = trace + compile, the JIT time a
-  user waits for;
-- eval_s: time per evaluation, measured inside one compiled loop of evaluations (so the
-  microseconds of Python dispatch per call do not hide the law's own cost), which is how a
-  simulation evaluates the law;
-- call_s: wall time of one call of the compiled law from Python (dispatch included).
-
-Timings are medians over `repeats` fresh builds (new function objects, so no cache is reused).
-The law measured is what the closed loop needs: (u, info), i.e. u and every signal the adaptive
-laws read, at the example's initial closed-loop state.
-
-Growth is fitted by least squares on log(value): `ratio_per_order` = exp(slope of log v against
-n) (geometric growth, v ~ r^n) and `exponent` = slope of log v against log n (power law,
-v ~ n^p). Both are reported for both controllers; which model fits is visible from `r2`.
+"""The "explosion of complexity" (Introduction, Remarks 4 and 6; never measured by the paper):
+size and cost of the DSC and backstepping control laws, built by the same code for
+`order_n_example(n)`, against the order n, as compiled programs of (u, info) at the initial
+state: eqns (jaxpr equations, sub-jaxprs inlined), flops (XLA's cost analysis, after its
+simplification), trace_s, compile_s, build_s = trace + compile, eval_s (per evaluation inside
+one compiled loop, as a simulation evaluates the law) and call_s (one call from Python).
+Timings are medians over `repeats` fresh builds. Growth is fitted by least squares on log(v):
+`ratio_per_order` (v ~ r^n) and `exponent` (v ~ n^p), each with its r2.
 """
 
 from __future__ import annotations
@@ -50,7 +32,6 @@ CONTROLLERS = ("dsc", "backstepping")
 
 def law_setup(controller: str, n: int):
     """The prepared order-n example with the given controller ("dsc" or "backstepping")."""
-
     setup = order_n_example(n, dtype=jnp.float64)
     if controller == "backstepping":
         setup = with_backstepping(setup)
@@ -60,12 +41,8 @@ def law_setup(controller: str, n: int):
 
 
 def law_function(setup) -> tuple[Callable, tuple]:
-    """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it at.
-
-    For backstepping the function without the inner jit (`plain_law`) is used, so tracing is
-    measured in full every time.
-    """
-
+    """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it
+    at; backstepping's without its inner jit (`plain_law`), so tracing is measured in full."""
     ctrl, plant, ref = setup.controller, setup.plant, setup.reference
     impl = getattr(ctrl, "plain_law", ctrl.law)
 
@@ -102,12 +79,8 @@ def _flops(compiled) -> float:
 
 
 def _eval_loop(law):
-    """A jitted loop of k law evaluations at moving (x, t), k traced; returns a checksum.
-
-    Every output leaf is summed so that XLA cannot drop what the closed loop would use, and
-    the outputs pass an optimisation barrier, as the law's outputs do in the closed loop
-    (`closed_loop.vector_field`).
-    """
+    """A jitted loop of k (traced) law evaluations at moving (x, t) -> a checksum of every
+    output leaf behind an optimisation barrier, as in the closed loop: XLA drops nothing."""
 
     def run(state, x, t0, k):
         def body(i, acc):
@@ -131,13 +104,9 @@ def _median_time(fn, runs: int) -> float:
 
 def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
             eval_budget_s: float = 0.25, slow_build_s: float = 20.0) -> dict:
-    """Size and cost of one control law (see the module docstring for the fields).
-
-    Builds are repeated `repeats` times, unless one build takes longer than `slow_build_s`
-    (backstepping at n >= 8 on a loaded 2-core machine); `repeats` in the result is the number
-    actually made. The in-loop evaluation count is `evals`, reduced so that one timing loop
-    takes about `eval_budget_s` (at least 10 evaluations) when the law is slow.
-    """
+    """Size and cost of one control law (the module docstring's fields): `repeats` builds
+    (fewer, counted in the result, after one slower than `slow_build_s`); `evals` evaluations
+    per timing loop, fewer (at least 10) to keep a loop near `eval_budget_s`."""
     setup = law_setup(controller, n)
     trace_s, compile_s, eqns, flops = [], [], None, None
     for _ in range(repeats):
@@ -201,9 +170,8 @@ def _settings(repeats: int, evals: int) -> dict:
 
 
 def _load_rows(path: Path, settings: dict, log) -> dict:
-    """The saved measurements; ConfigError if there is nothing to resume (missing, unreadable,
-    or made with other settings: resuming them would mix two studies)."""
-
+    """The saved measurements; ConfigError if missing, unreadable or made with other
+    settings (resuming them would mix two studies)."""
     if not path.exists():
         raise ConfigError(f"--resume: nothing to resume in {path.parent} ({path.name} is "
                           f"missing); run without --resume to start afresh")
@@ -221,21 +189,13 @@ def _load_rows(path: Path, settings: dict, log) -> dict:
     return rows
 
 
-def _save_rows(path: Path, settings: dict, rows: dict) -> None:
-    """Written atomically: an interruption leaves the previous file or the new one."""
-    files.write_json(path, dict(settings=settings, rows=list(rows.values())))
-
-
 def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: int = 2000,
           controllers: Sequence[str] = CONTROLLERS,
           log: Callable[[str], None] | None = print, rows_path=None,
           resume: bool = False) -> dict:
-    """Measure every controller at every order; returns rows, fits and the machine context.
-
-    With `rows_path`, every finished measurement is saved there at once (JSON, atomically),
-    so an interrupted study loses at most the law being measured; `resume=True` reuses the
-    saved measurements made with the same repeats, evals, jax version and backend.
-    """
+    """Rows, fits and the machine context of every controller at every order. Each finished
+    measurement is saved at once to `rows_path` (atomically); `resume=True` reuses those made
+    with the same repeats, evals, jax version and backend."""
     settings = _settings(repeats, evals)
     path = None if rows_path is None else Path(rows_path)
     saved = _load_rows(path, settings, log) if (resume and path) else {}
@@ -248,7 +208,7 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
             rows.append(row)
             if path is not None and not kept:
                 saved[(c, int(n))] = row
-                _save_rows(path, settings, saved)
+                files.write_json(path, dict(settings=settings, rows=list(saved.values())))
             if log:
                 log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, {row['flops']:>9.0f} "
                     f"flops, trace {row['trace_s']:.3g} s, compile {row['compile_s']:.3g} s, "
@@ -283,9 +243,7 @@ LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)"
 
 
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
-    """Log-scale panels of every metric against n, one line per controller, fitted growth in
-    the legend."""
-
+    """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
     panels = ("eqns", "flops", "build_s", "eval_s")
@@ -306,7 +264,7 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
         ax.set_ylabel(LABELS[metric])
         ax.set_xticks(result["orders"])
         ax.grid(alpha=0.3, which="both")
-        # Headroom above the data (log axes) so that the legend never hides a point.
+        # headroom above the data so that the legend never hides a point
         lo, hi = ax.get_ylim()
         decades = np.log10(hi / lo)
         share = 0.45 if metric == "eval_s" else 0.3

@@ -46,15 +46,9 @@ def setups(dtype=None) -> dict:
     }
 
 
-# -- Fig. 1 ------------------------------------------------------------------------------------
-
-
 def hysteresis_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
                      t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
-    """w(t) of eq. (4) for u = k sin(omega t), integrated by RK4 from w(0) = 0 (Fig. 1).
-
-    Returns {k: (t, u, w)} as NumPy arrays.
-    """
+    """{k: (t, u, w)}: w(t) of eq. (4) for u = k sin(omega t), by RK4 from w(0) = 0 (Fig. 1)."""
     return by_amplitude(amplitudes, *sine_loops(paper_example().hysteresis, amplitudes, omega,
                                                 t_final, dt))
 
@@ -67,11 +61,8 @@ def by_amplitude(amplitudes: Sequence[float], t, u, w) -> dict:
 
 def family_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
                  t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
-    """Fig. 1's input applied to every hysteresis model of dscjax at its example's values
-    (`hysteresis_example`; the paper's (4) for backlash), as `dscjax hysteresis` drives one.
-
-    Returns {kind: (model, t (N+1,), u (K, N+1), w (K, N+1))}, K = len(amplitudes).
-    """
+    """{kind: (model, t (N+1,), u (K, N+1), w (K, N+1))}: Fig. 1's input applied to every
+    hysteresis model at its example's values (`hysteresis_example`), K = len(amplitudes)."""
     out = {}
     for kind in FAMILY:
         model = hysteresis_example(kind).hysteresis
@@ -112,9 +103,3 @@ def run_all(t_final: float = 20.0, dt: float = 1e-3, log: Callable[[str], None] 
         log(f"simulated {name:<20} ({time.perf_counter() - t0:.1f} s){note}")
         trajs[name] = traj
     return trajs
-
-
-
-__all__ = ["ESTIMATES", "FAMILY", "FIG1_AMPLITUDES", "LABELS", "METRIC_FIELDS", "RUNS",
-           "STYLE", "by_amplitude", "estimates", "family_loops", "hysteresis_loops", "run_all",
-           "run_metrics", "setups"]

@@ -1,29 +1,16 @@
-"""Theorem 1 of the paper along trajectories: the Lyapunov function (44), the gain rules (55) and
-(60), the constant e_M (61) and the bounds (65), (71) and (72).
+"""Theorem 1 along trajectories: the Lyapunov function (44), the gain rules (55) and (60), the
+constant e_M (61) and the bounds (65), (71) and (72).
 
-    traj = dscjax.simulate(setup, 20.0, 1e-3)
-    lv = theory.lyapunov(setup, traj)          # V(t) of (44) and its terms
-    lv.V, lv.surface, lv.filter, lv.theta, lv.phi, lv.zeta, lv.d
+    lv = theory.lyapunov(setup, dscjax.simulate(setup, 20.0, 1e-3))   # V(t) of (44), its terms
 
-V of eq. (44), for a DSC of order n, is (all sums over i = 1..n-1)
-
-    V = 1/2 sum_i ( S_i^2 / g_i + theta~_gi^2 / gamma_gi + phi~_i^2 / gamma_phi_i + y_(i+1)^2 )
-      + 1/2 ( beta zeta~^2 / gamma_zeta + theta~_n^2 / gamma_gn + d~^2 / gamma_d + S_n^2 )
-
-with the estimation errors (34)-(38) against the TRUE plant: theta~_gi = theta_hat_gi -
-theta_i/g_i, phi~_i = phi_hat_i - 1/g_i, theta~_n = theta_hat_n - theta_n, zeta~ = zeta_hat -
-1/beta, beta = lam g_n (10), d~ = d_hat - d with d a bound of |d_n| (12), and the filter errors
-y_(i+1) = z_(i+1) - x_(i+1)d (33). `docs/theory.md` lists every reading of the garbled text.
-
-Everything that is a function of one closed-loop state is a pure function of (setup, truth, t, X)
-(`terms_at`, `filter_errors_at`, `b_at`, `lyapunov_rate_at`): it composes with vmap and jvp. The
-host functions (`lyapunov`, `lyapunov_rate`, `filter_rates`, `check`) evaluate them at every
-saved point of a `Trajectory`, in fixed-size chunks so that trajectories of different lengths
-share one compilation.
-
-Where the theorem's constants are not computable (M_(i+1), the maximum of |B_(i+1)| over a
-compact set, eq. (59)), `check` uses the maximum measured along the trajectory. A bound built
-from it is a data-driven estimate, not the theorem's constant, and is labelled so.
+V of (44) is 1/2 sum_(i<n) (S_i^2/g_i + theta~_gi^2/gamma_gi + phi~_i^2/gamma_phi_i + y_(i+1)^2)
++ 1/2 (beta zeta~^2/gamma_zeta + theta~_n^2/gamma_gn + d~^2/gamma_d + S_n^2), with the
+estimation errors (34)-(38) against the TRUE plant (`Truth`) and the filter errors (33);
+docs/theory.md lists every reading of the garbled text. Functions of one state (`terms_at`,
+`b_at`, ...) are pure in (setup, truth, t, X) and compose with vmap and jvp; the host
+functions (`lyapunov`, `check`, ...) evaluate them at a `Trajectory`'s saved points in
+fixed-size chunks (one compilation whatever the length). M_(i+1) of (59) has no closed form:
+`check` uses the maximum measured on the run, so its bounds are data-driven estimates.
 """
 
 from __future__ import annotations
@@ -41,54 +28,34 @@ from dscjax.closed_loop import State, prepared, vector_field
 from dscjax.simulate import canonical
 from dscjax.validation import ConfigError
 
+# what (55) keeps fixed when alpha_0 changes: the leakages (gamma = 2 alpha_0/eta, the paper's
+# remark after (72): e_M then does not depend on alpha_0) or the rates (eta = 2 alpha_0/gamma)
 HOLD = ("eta", "gamma")
-"""What (55) keeps fixed when alpha_0 changes: the leakages eta, sigma (gamma = 2 alpha_0/eta, as
-the paper suggests after (72), so that e_M does not depend on alpha_0) or the adaptation rates
-gamma (eta = 2 alpha_0/gamma)."""
 
 _CHUNK = 2048  # points per vmapped chunk when evaluating along a trajectory
 
 
-# -- the true plant ---------------------------------------------------------------------------
-
-
 class Truth(NamedTuple):
-    """The true values the DSC's estimates estimate, and the constants of Assumption 4.
+    """The true values the DSC's estimates estimate, and the constants of Assumption 4."""
 
-    theta: (n,) theta_i/g_i for i < n (15), (21), then theta_n (36): what `theta_hat` estimates.
-    phi: (n-1,) 1/g_i, what `phi_hat` estimates (15), (21).
-    beta: () lam g_n (10), lam the hysteresis's slope (5).
-    zeta: () 1/beta (27), what `zeta_hat` estimates.
-    d: () the bound d of |d_n| (12), what `d_hat` estimates.
-    g: (n,) the true g_i.
-    g_min, g_max: () the bounds of Assumption 4; g_min as the designer set it in the controller,
-        g_max = max g_i.
-    """
-
-    theta: jax.Array
-    phi: jax.Array
-    beta: jax.Array
-    zeta: jax.Array
-    d: jax.Array
-    g: jax.Array
-    g_min: jax.Array
-    g_max: jax.Array
+    theta: jax.Array  # (n,) theta_i/g_i for i < n (15), (21), then theta_n (36)
+    phi: jax.Array  # (n-1,) 1/g_i (15), (21)
+    beta: jax.Array  # () lam g_n (10), lam the hysteresis's slope (5)
+    zeta: jax.Array  # () 1/beta (27)
+    d: jax.Array  # () the bound d of |d_n| (12)
+    g: jax.Array  # (n,) the true g_i
+    g_min: jax.Array  # () as the designer set it in the controller
+    g_max: jax.Array  # () max g_i
 
 
 def hysteresis_slope(hysteresis) -> jax.Array:
-    """The slope lam of w = lam u + d_1(u) (5): the hysteresis's effective gain in beta (10).
-
-    Every `hysteresis.Hysteresis` provides it (`effective_slope()`): lam for (4), p0 + sum p_j
-    for Prandtl-Ishlinskii, p0 for the generalized model (saturating envelopes), a for Bouc-Wen.
-    """
+    """The slope lam of w = lam u + d_1(u) (5) (`Hysteresis.effective_slope`), in beta (10)."""
     return jnp.asarray(hysteresis.effective_slope())
 
 
 def max_abs_dbar(plant, t=None) -> jax.Array:
-    """max_t |dbar(t)|: exact for the built-in plants' sinusoid (|dbar_amp| + |dbar_bias|),
-    plus the waveform's bound if the plant has one (`Disturbance.max_abs`: exact for a spline,
-    the sum of |coefficients| for a Fourier series); for other plants the maximum over the
-    times `t` (e.g. a trajectory's saved times)."""
+    """max_t |dbar(t)|: |dbar_amp| + |dbar_bias| (+ the waveform's `max_abs`) for the built-in
+    plants; for other plants the maximum over the times `t`."""
     if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
         out = jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
         if getattr(plant, "disturbance", None) is not None:
@@ -101,13 +68,8 @@ def max_abs_dbar(plant, t=None) -> jax.Array:
 
 
 def default_d(setup, t=None) -> jax.Array:
-    """The default bound of |d_n| = |g_n d_1(u) + dbar| (11)-(12): g_n (lam - psi)/alpha +
-    max |dbar|, from the limits (7)-(8) of d_1.
-
-    It bounds |d_n| once d_1 has settled between its asymptotes; if w(0) - lam u(0) lies outside
-    [-(lam-psi)/alpha, (lam-psi)/alpha] the early |d_1| can exceed it. `check` measures
-    max |d_n| along the run and says whether (12) held.
-    """
+    """The default bound of |d_n| (11)-(12): g_n (lam - psi)/alpha + max |dbar|, from the limits
+    (7)-(8) of d_1. An early d_1 outside its asymptotes can exceed it: `check` tests (12)."""
     g_n = jnp.asarray(setup.plant.g)[-1]
     return g_n * setup.hysteresis.d1_bound() + max_abs_dbar(setup.plant, t)
 
@@ -127,26 +89,15 @@ def truth(setup, d=None, t=None) -> Truth:
                  g_max=jnp.max(g))
 
 
-# -- V of (44) at one state --------------------------------------------------------------------
-
-
 class Terms(NamedTuple):
-    """The terms of V (44) at one state (add a leading time axis along a trajectory).
+    """The terms of V (44) at one state (a leading time axis along a trajectory)."""
 
-    surface: (n,) S_i^2/(2 g_i) for i < n, S_n^2/2 for i = n.
-    filter: (n-1,) y_(i+1)^2/2, the filter errors (33).
-    theta: (n,) theta~_gi^2/(2 gamma_gi) for i < n, theta~_n^2/(2 gamma_gn).
-    phi: (n-1,) phi~_i^2/(2 gamma_phi_i).
-    zeta: () beta zeta~^2/(2 gamma_zeta).
-    d: () d~^2/(2 gamma_d).
-    """
-
-    surface: jax.Array
-    filter: jax.Array
-    theta: jax.Array
-    phi: jax.Array
-    zeta: jax.Array
-    d: jax.Array
+    surface: jax.Array  # (n,) S_i^2/(2 g_i) for i < n, S_n^2/2
+    filter: jax.Array  # (n-1,) y_(i+1)^2/2, the filter errors (33)
+    theta: jax.Array  # (n,) theta~_gi^2/(2 gamma_gi) for i < n, theta~_n^2/(2 gamma_gn)
+    phi: jax.Array  # (n-1,) phi~_i^2/(2 gamma_phi_i)
+    zeta: jax.Array  # () beta zeta~^2/(2 gamma_zeta)
+    d: jax.Array  # () d~^2/(2 gamma_d)
 
     def total(self):
         return (jnp.sum(self.surface, -1) + jnp.sum(self.filter, -1) + jnp.sum(self.theta, -1)
@@ -157,12 +108,8 @@ TERM_NAMES = Terms._fields
 
 
 def _over_rate(err, gamma):
-    """err^2 / (2 gamma), and 0 where gamma = 0.
-
-    An estimate that does not adapt (gamma = 0) makes its term of (44) infinite; it is a
-    constant then, so it is left out and V of the other terms stays usable (its derivative is
-    unchanged). Double `where`: no NaN in gradients from the branch not taken.
-    """
+    """err^2 / (2 gamma), and 0 where gamma = 0: an estimate that does not adapt is a constant
+    whose infinite term is left out (V' unchanged). Double `where`: no NaN gradients."""
     on = gamma > 0
     return jnp.where(on, 0.5 * err * err / jnp.where(on, gamma, 1.0), 0.0)
 
@@ -174,11 +121,8 @@ def _require_dsc(controller):
 
 
 def filter_errors_at(setup, t, X: State):
-    """y_(i+1) = z_(i+1) - x_(i+1)d, i = 1..n-1 (33), at one state of a prepared setup.
-
-    The law's filter derivative is z_(i+1)' = (x_(i+1)d - z_(i+1))/tau_(i+1) (18), (24), so
-    y_(i+1) = -tau_(i+1) z_(i+1)' (42). Returns (y (n-1,), S (n,)).
-    """
+    """(y (n-1,), S (n,)) at one state of a prepared setup: the filter errors y_(i+1) =
+    z_(i+1) - x_(i+1)d (33) = -tau_(i+1) z_(i+1)' (42) by the filters (18), (24)."""
     ctrl = setup.controller
     _, info = ctrl.law(X.ctrl, X.x, t, setup.plant, setup.reference)
     return -ctrl.tau * info.extra.z_dot, info.S
@@ -218,11 +162,8 @@ def lyapunov_rate_at(setup, tr: Truth, t, X: State):
 
 
 def b_at(setup, t, X: State):
-    """B_(i+1) of (43), i = 1..n-1: y_(i+1)' = -y_(i+1)/tau_(i+1) + B_(i+1).
-
-    Since y = z - x_d and z' = -y/tau (42), B_(i+1) = -x_(i+1)d' (the virtual control's
-    derivative along the closed loop). Computed as y' + y/tau with y' by one jvp.
-    """
+    """B_(i+1) of (43): y_(i+1)' = -y_(i+1)/tau_(i+1) + B_(i+1), i.e. -x_(i+1)d' along the
+    closed loop; computed as y' + y/tau with y' by one jvp."""
     dX, _ = vector_field(t, X, setup)
     y, y_dot = jax.jvp(lambda tt, XX: filter_errors_at(setup, tt, XX)[0], (t, X),
                        (jnp.ones_like(t), dX))
@@ -230,13 +171,9 @@ def b_at(setup, t, X: State):
 
 
 def robust_slack_at(setup, tr: Truth, t, X: State):
-    """What the robust term in use leaves over in the proof's step (48)-(49).
-
-    With sgn(S_n) in (30) and |S_n| in (32), S_n d_n - S_n sgn(S_n) d_hat + d~ |S_n| <= 0
-    (using (12)). With the switching function r and the |.| surrogate a of the controller
-    (sat(S_n/w) and |S_n| by default) the same sum is <= d (|S_n| - a(S_n)) + d_hat (a(S_n) -
-    S_n r(S_n)), which this returns (>= 0; 0 for sgn; <= d_hat w/4 for sat, d_hat >= 0).
-    """
+    """What the robust term in use leaves over in the proof's step (48)-(49): with the
+    controller's switching function r and |.| surrogate a, d (|S_n| - a(S_n)) + d_hat (a(S_n)
+    - S_n r(S_n)) (0 for sgn(S_n), the proof's term; <= d_hat w/4 for sat(S_n/w))."""
     ctrl = setup.controller
     _, info = ctrl.law(X.ctrl, X.x, t, setup.plant, setup.reference)
     return _slack(ctrl, tr, info.S[-1], X.ctrl.d_hat)
@@ -255,23 +192,15 @@ def disturbance_at(setup, t, X: State, u):
     return g_n * (setup.hysteresis.output(u, X.h) - lam * u) + setup.plant.dbar(t)
 
 
-# -- along a trajectory ------------------------------------------------------------------------
-
-
 class LyapunovTerms(NamedTuple):
-    """V(t) of (44) and its terms at a trajectory's saved times (leading axis T), NumPy arrays.
+    """V(t) of (44) and its terms at a trajectory's saved times (leading axis T), NumPy arrays;
+    the terms' fields read as attributes too (lv.surface: (T, n), ...)."""
 
-    t: (T,); V: (T,) the sum of every term; terms: the `Terms` with a leading time axis,
-    also read as attributes: surface (T, n), filter (T, n-1), theta (T, n), phi (T, n-1),
-    zeta (T,), d (T,); y: (T, n-1) the filter errors (33); truth: the true parameters used
-    (`Truth`).
-    """
-
-    t: jax.Array
-    V: jax.Array
-    terms: Terms
-    y: jax.Array
-    truth: Truth
+    t: jax.Array  # (T,)
+    V: jax.Array  # (T,) the sum of every term
+    terms: Terms  # with a leading time axis
+    y: jax.Array  # (T, n-1) the filter errors (33)
+    truth: Truth  # the true parameters used
 
     def __getattr__(self, name):  # lv.surface, lv.theta, ...: the terms' fields
         if name in TERM_NAMES:
@@ -309,22 +238,13 @@ def _chunk_eval(fn, args, t, X):
 
 def _prepared_dsc(setup):
     _require_dsc(setup.controller)
-
     return prepared(canonical(setup))
 
 
 def lyapunov(setup, traj, d=None) -> LyapunovTerms:
-    """V(t) of eq. (44) and its terms along a DSC trajectory of any order n.
-
-    Args:
-        setup: the setup `traj` was simulated from (not yet prepared: the initialisation rule,
-            e.g. (67)-(68), is applied here as in `simulate`).
-        traj: a single `Trajectory` (saved at any stride).
-        d: the bound of |d_n| used in d~ = d_hat - d (38); default `default_d`:
-            g_n (lam - psi)/alpha + max |dbar|.
-
-    Returns:
-        `LyapunovTerms` with V and every term at the saved times.
+    """V(t) of eq. (44) and its terms (`LyapunovTerms`) along a single DSC trajectory `traj`
+    of the unprepared `setup`, at its saved times; `d` the bound of |d_n| in d~ = d_hat - d
+    (38), default `default_d`.
 
     Example:
         >>> import dscjax
@@ -360,19 +280,10 @@ def filter_rates(setup, traj):
     return _chunked(b_at, (s,), jnp.asarray(traj.t), _states(traj))
 
 
-# -- gain rules and bounds ---------------------------------------------------------------------
-
-
 def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
-    """The controller with k and the leakage/adaptation pairs chosen by eq. (55) for alpha_0.
-
-        k_1 = 3 + alpha_0/g_min, k_i = 3 1/4 + alpha_0/g_min (2 <= i <= n-1), k_n = 1/4 + alpha_0,
-        eta_i gamma_gi = sigma_i gamma_phi_i = eta_zeta gamma_zeta = eta_d gamma_d = 2 alpha_0.
-
-    hold="eta" keeps eta, sigma, eta_zeta, eta_d and sets gamma = 2 alpha_0/eta (the paper's
-    remark after (72): then e_M (61) does not depend on alpha_0); hold="gamma" keeps the gammas
-    and sets eta = 2 alpha_0/gamma. tau is left alone: see `tau_60`.
-    """
+    """The controller with the gains of eq. (55) for alpha_0: k_1 = 3 + alpha_0/g_min, k_i =
+    3 1/4 + alpha_0/g_min, k_n = 1/4 + alpha_0, every eta gamma pair = 2 alpha_0, keeping the
+    leakages (hold="eta") or the rates (hold="gamma"); tau is left alone (`tau_60`)."""
     if hold not in HOLD:
         raise ConfigError(f"hold must be one of {HOLD} (got {hold!r})")
     _require_dsc(controller)
@@ -398,13 +309,8 @@ def tau_60(alpha0, M, mu):
 
 
 def e_M(controller, tr: Truth):
-    """The constant e_M of eq. (61) (printed "M"), without the mu term:
-
-        sum_(i<n) (eta_i theta_gi^2/2 + sigma_i phi_i^2/2 + c_(i+1)^2/4) + eta_n theta_n^2/2
-        + eta_zeta beta zeta^2/2 + eta_d d^2/2 + (n-1) eps/(2 g_min) + eps/2
-
-    c_(i+1) is the PREPARED controller's offset (x_(i+1)(0) under (68)).
-    """
+    """The constant e_M of eq. (61) (printed "M") without the mu term; c_(i+1) is the
+    PREPARED controller's offset (x_(i+1)(0) under (68))."""
     c = controller
     n = np.shape(c.k)[0]
     return (jnp.sum(c.eta * tr.theta ** 2) / 2 + jnp.sum(c.sigma * tr.phi ** 2) / 2
@@ -438,12 +344,8 @@ def bound_72(C, alpha0, g_max):
 
 
 def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
-    """The largest alpha_0 for which the controller's gains satisfy (55) and (60) as the
-    inequalities the proof uses (k_1 >= 3 + alpha_0/g_min, ..., eta_i gamma_gi >= 2 alpha_0,
-    1/tau_(i+1) >= 1/4 + M_(i+1)^2/(2 mu) + alpha_0), and the alpha_0 each gain allows.
-
-    Returns (alpha_0, {gain name: the alpha_0 it allows}).
-    """
+    """(alpha_0, {gain: the alpha_0 it allows}): the largest alpha_0 for which the gains
+    satisfy (55) and (60) as the inequalities the proof uses (k_1 >= 3 + alpha_0/g_min, ...)."""
     c = jax.tree.map(np.asarray, controller)
     n = np.shape(c.k)[0]
     g_min = float(c.g_min)
@@ -452,8 +354,7 @@ def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
         allows[f"k_{i + 1}"] = (float(c.k[i]) - 3.25) * g_min
     allows[f"k_{n}"] = float(c.k[n - 1]) - 0.25
     for i in range(n):
-        name = f"g{i + 1}" if i < n - 1 else f"g{n}"
-        allows[f"eta_{i + 1} gamma_{name}"] = float(c.eta[i] * c.gamma_g[i]) / 2
+        allows[f"eta_{i + 1} gamma_g{i + 1}"] = float(c.eta[i] * c.gamma_g[i]) / 2
     for i in range(n - 1):
         allows[f"sigma_{i + 1} gamma_phi{i + 1}"] = float(c.sigma[i] * c.gamma_phi[i]) / 2
     allows["eta_zeta gamma_zeta"] = float(c.eta_zeta * c.gamma_zeta) / 2
@@ -462,9 +363,6 @@ def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
     for i in range(n - 1):
         allows[f"tau_{i + 2}"] = float(1.0 / c.tau[i] - 0.25 - M[i] ** 2 / (2.0 * mu))
     return min(allows.values()), allows
-
-
-# -- the theorem along one trajectory ----------------------------------------------------------
 
 
 def _v_y_s(setup, tr, t, X):
@@ -484,6 +382,8 @@ def _point_checks(setup, tr, t, X):
                 d_n=disturbance_at(setup, t, X, obs.u))
 
 
+# the conclusions of Theorem 1 that `check` tests, and the hypotheses of the proof it tests on
+# the run (Delta_i <= rho_i and g_i >= g_min hold by construction for the built-in plants)
 STATEMENTS = {
     "(63)": "V' <= -2 alpha_0 V + C at every step",
     "(65)": "V(t) <= C/(2 alpha_0) + (V(0) - C/(2 alpha_0)) exp(-2 alpha_0 t)",
@@ -491,40 +391,22 @@ STATEMENTS = {
     "(71)": "V(t) <= C/(2 alpha_0)",
     "(72)": "||S_1||_inf <= sqrt(g_max C/alpha_0)",
 }
-"""The conclusions of Theorem 1 that `check` tests, by equation number."""
-
 ASSUMPTIONS = {
     "(12)": "|d_n(t)| <= d",
     "(59)": "|B_(i+1)(t)| <= M_(i+1)",
 }
-"""Hypotheses of the proof that `check` tests on the run (Delta_i <= rho_i and g_i >= g_min
-hold by construction for the built-in plants and are not re-checked)."""
 
 
 def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
-    """Every statement of Theorem 1 along one DSC trajectory, with the numbers.
+    """Every statement of Theorem 1 along one DSC trajectory (saved at every step for the
+    maxima to be over every step) of the unprepared `setup`, for `alpha0` and `mu` of (59)-(60).
 
-    The constant of (63)-(72) is C = e_M + (n-1) mu/2 + slack: e_M from (61) with the true
-    parameters and the prepared controller; slack = the maximum along the run of
-    `robust_slack_at` (0 for sgn(S_n), the term the proof assumes; <= d_hat w/4 with
-    sat(S_n/w)). M_(i+1) (59) defaults to max_t |B_(i+1)| measured on this run, so that (59)
-    holds on the run by construction: the bounds are then DATA-DRIVEN ESTIMATES, not the
-    theorem's constants.
-
-    Args:
-        setup, traj: the setup (unprepared) and a single trajectory from it; save every step
-            for max |B| and max V to be the maxima over every step.
-        alpha0: the alpha_0 the gains were chosen for (or certify, `certified_alpha0`).
-        mu: the mu of (59)-(60).
-        M: (n-1,) bounds of |B_(i+1)|; default measured.
-        d: the bound of |d_n|; default `default_d`.
-
-    Returns:
-        A dict of plain floats/arrays: V0, V_max, S1_inf, e_M, C, slack, M, M_measured,
-        d, d_n_max, bound_71, bound_72, bound_65 (T,), V and V' (T,), the worst margins of (63)
-        and (65) (max over t of V' + 2 alpha_0 V - C and of V - bound_65: <= 0 when they hold),
-        `holds`: {equation of a conclusion (`STATEMENTS`): bool} and `assumptions`:
-        {equation of a hypothesis the proof uses (`ASSUMPTIONS`), checked on the run: bool}.
+    C = e_M (61) + (n-1) mu/2 + the maximum of `robust_slack_at` on the run. M (n-1,) of (59)
+    defaults to max_t |B_(i+1)| measured on the run (the bounds are then data-driven
+    estimates); d to `default_d`. Returns plain floats/arrays: V0, V_max, S1_inf, e_M, C,
+    slack, M, M_measured, d, d_n_max, the bounds (65) (T,), (71), (72), V and V' (T,), the worst
+    margins of (63) and (65) (<= 0 when they hold), `holds` ({`STATEMENTS` key: bool}) and
+    `assumptions` ({`ASSUMPTIONS` key: bool}).
     """
     s = _prepared_dsc(setup)
     X = _states(traj)
@@ -569,12 +451,3 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
         v0_69=float(v0_69(s.controller, tr)), holds=holds, assumptions=assumptions,
     )
 
-
-__all__ = [
-    "ASSUMPTIONS", "HOLD", "LyapunovTerms", "STATEMENTS", "Terms", "Truth", "b_at", "bound_65",
-    "bound_71", "bound_72",
-    "certified_alpha0", "check", "default_d", "disturbance_at", "e_M", "filter_errors_at",
-    "filter_rates", "gains_55", "hysteresis_slope", "lyapunov", "lyapunov_at", "lyapunov_rate",
-    "lyapunov_rate_at", "max_abs_dbar", "robust_slack_at", "tau_60", "terms_at", "truth",
-    "v0_69",
-]

@@ -7,12 +7,9 @@ Writes into DIR/theory/:
     alpha0_n{n}.json    the alpha_0 study for each order n (`alpha0_study`)
     fig_alpha0.png      ||S_1||_inf and the bound (72) against alpha_0, log axes
     theory.json         everything summarised (the paper's example and every study row)
-and returns the section `reproduce` adds to summary.md.
-
-The paper's example (Section 4) does not satisfy the theorem's assumptions: its gains do not
-follow (55) for one alpha_0 and it does not use (67)-(68). What it does satisfy is (55) and (60)
-as inequalities (all the proof uses) for alpha_0 up to a value `theory.certified_alpha0`
-computes; the statements are checked with that alpha_0 and the mu that makes (72) smallest.
+and returns the section `reproduce` adds to summary.md. The paper's example satisfies (55)
+and (60) only as inequalities, up to `theory.certified_alpha0`: it is checked with that
+alpha_0 and the mu that makes (72) smallest.
 """
 
 from __future__ import annotations
@@ -26,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import files
+from dscjax.plotting import subplots
 from dscjax.reproduce import alpha0 as alpha0_study
 from dscjax.reproduce import theory
 
@@ -41,13 +39,9 @@ ALPHA0_PAPER = 0.2  # what k_2 = 0.45 = 1/4 + alpha_0 suggests (docs/paper-readi
 
 
 def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, float]:
-    """The mu that makes (72) smallest for fixed gains: (mu, certified alpha_0).
-
-    alpha_0(mu) = `certified_alpha0` (the tau rule (60) allows more as mu grows) and
-    C(mu) = C0 + (n-1) mu/2; minimised over a log grid of mu in [1e-4, 1e4] and the mu at
-    which the tau rule stops being the binding one.
-    """
-    # mu* where the tau rule (60) stops binding: the optimum unless the grid finds better
+    """(mu, certified alpha_0) with the smallest (72) for fixed gains: alpha_0(mu) grows with
+    mu (the tau rule (60)), C(mu) = C0 + (n-1) mu/2; over a log grid of mu in [1e-4, 1e4] and
+    the mu at which the tau rule stops binding."""
     _, allows = theory.certified_alpha0(controller, M, 1.0)
     others = min(v for k, v in allows.items() if not k.startswith("tau_"))
     c = controller
@@ -76,10 +70,7 @@ def _max_abs_after(traj, t0: float) -> float | None:
 
 
 def paper_check(setup, traj) -> tuple[dict, dict]:
-    """Theorem 1 on the paper's example run (its own gains and initialisation).
-
-    Returns (summary dict of plain numbers, arrays for lyapunov.npz).
-    """
+    """(summary, arrays for lyapunov.npz) of Theorem 1 on the paper's example run."""
     lv = theory.lyapunov(setup, traj)
     probe = theory.check(setup, traj, 1.0, 1.0)  # M and the slack do not depend on alpha_0, mu
     M = probe["M_measured"]
@@ -128,35 +119,20 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
 
 def _gains_table(c, M, mu) -> list[dict]:
     """Each gain of (55)/(60): the paper's value, the rule's value at alpha_0 = 0.2."""
-    a = ALPHA0_PAPER
-    n = np.shape(c.k)[0]
-    g_min = float(c.g_min)
-    rows = [dict(gain="k_1", paper=float(c.k[0]), rule="3 + alpha_0/g_min", at_0_2=3 + a / g_min)]
-    for i in range(1, n - 1):
-        rows.append(dict(gain=f"k_{i + 1}", paper=float(c.k[i]), rule="3 1/4 + alpha_0/g_min",
-                         at_0_2=3.25 + a / g_min))
-    rows.append(dict(gain=f"k_{n}", paper=float(c.k[n - 1]), rule="1/4 + alpha_0",
-                     at_0_2=0.25 + a))
-    for i in range(n):
-        rows.append(dict(gain=f"eta_{i + 1} gamma_g{i + 1}", paper=float(c.eta[i] * c.gamma_g[i]),
-                         rule="2 alpha_0", at_0_2=2 * a))
-    for i in range(n - 1):
-        rows.append(dict(gain=f"sigma_{i + 1} gamma_phi{i + 1}",
-                         paper=float(c.sigma[i] * c.gamma_phi[i]), rule="2 alpha_0",
-                         at_0_2=2 * a))
-    rows.append(dict(gain="eta_zeta gamma_zeta", paper=float(c.eta_zeta * c.gamma_zeta),
-                     rule="2 alpha_0", at_0_2=2 * a))
-    rows.append(dict(gain="eta_d gamma_d", paper=float(c.eta_d * c.gamma_d), rule="2 alpha_0",
-                     at_0_2=2 * a))
-    for i in range(n - 1):
-        rows.append(dict(gain=f"1/tau_{i + 2}", paper=float(1 / c.tau[i]),
-                         rule=f"1/4 + M^2/(2 mu) + alpha_0 (M = {float(M[i]):.3g}, "
-                              f"mu = {mu:.3g})",
-                         at_0_2=float(0.25 + M[i] ** 2 / (2 * mu) + a)))
-    return rows
-
-
-# -- figures -----------------------------------------------------------------------------------
+    a, n, g_min = ALPHA0_PAPER, np.shape(c.k)[0], float(c.g_min)
+    rows = [("k_1", c.k[0], "3 + alpha_0/g_min", 3 + a / g_min)]
+    rows += [(f"k_{i + 1}", c.k[i], "3 1/4 + alpha_0/g_min", 3.25 + a / g_min)
+             for i in range(1, n - 1)]
+    rows += [(f"k_{n}", c.k[n - 1], "1/4 + alpha_0", 0.25 + a)]
+    rows += [(f"eta_{i + 1} gamma_g{i + 1}", c.eta[i] * c.gamma_g[i], "2 alpha_0", 2 * a)
+             for i in range(n)]
+    rows += [(f"sigma_{i + 1} gamma_phi{i + 1}", c.sigma[i] * c.gamma_phi[i], "2 alpha_0", 2 * a)
+             for i in range(n - 1)]
+    rows += [("eta_zeta gamma_zeta", c.eta_zeta * c.gamma_zeta, "2 alpha_0", 2 * a),
+             ("eta_d gamma_d", c.eta_d * c.gamma_d, "2 alpha_0", 2 * a)]
+    rows += [(f"1/tau_{i + 2}", 1 / c.tau[i], f"1/4 + M^2/(2 mu) + alpha_0 (M = {float(M[i]):.3g}, "
+              f"mu = {mu:.3g})", 0.25 + M[i] ** 2 / (2 * mu) + a) for i in range(n - 1)]
+    return [dict(gain=g, paper=float(v), rule=r, at_0_2=float(x)) for g, v, r, x in rows]
 
 
 def _rc():
@@ -168,56 +144,36 @@ def _rc():
 
 def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
     """Top: V(t) of (44) with its terms stacked. Bottom: V against (65) and (71), log axis."""
-    from matplotlib.figure import Figure
-
     t = arrays["t"]
     parts = [np.sum(np.reshape(arrays[k], (len(t), -1)), axis=1) for k, _, _ in GROUPS]
     with _rc():
-        fig = Figure(figsize=(8.8, 6.4), layout="constrained")
-        top, bottom = fig.subplots(2, 1, sharex=True, height_ratios=(3, 2))
+        fig, (top, bottom) = subplots(2, 1, figsize=(8.8, 6.4), sharex=True, height_ratios=(3, 2))
         top.stackplot(t, *parts, labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
         top.plot(t, arrays["V"], color="k", lw=0.8, label="$V$ (44)")
-        top.set_ylabel("$V$ and its terms [-]")
-        top.set_title("Lyapunov function (44) along the paper's example (its own gains and "
-                      "initialisation)")
+        top.set(ylabel="$V$ and its terms [-]", title="Lyapunov function (44) along the paper's "
+                "example (its own gains and initialisation)")
         top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         bottom.semilogy(t, arrays["V"], color="k", lw=1.0, label="$V(t)$")
         bottom.semilogy(t, arrays["bound_65"], color="#d62728", ls="--", lw=1.0,
                         label="bound (65)")
         bottom.axhline(summary["bound_71"], color="#7f7f7f", ls=":", lw=1.0,
                        label="$C/(2\\alpha_0)$ (71)")
-        bottom.set_xlabel("time $t$ [s]")
-        bottom.set_ylabel("[-]")
-        bottom.set_title(f"against Theorem 1 with the certified $\\alpha_0$ = "
-                         f"{summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
-                         "(data-driven $M$)")
+        bottom.set(xlabel="time $t$ [s]", ylabel="[-]", title=f"against Theorem 1 with the "
+                   f"certified $\\alpha_0$ = {summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
+                   "(data-driven $M$)")
         bottom.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         path = Path(path)
         files.save_figure(fig, path, dpi=dpi)
     return path
 
 
-# -- the whole --theory step -------------------------------------------------------------------
-
-
 def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] | None = None,
         mu: float | None = None, t_final: float = 20.0, fmt: str = "png", dpi: int = 150,
         log: Callable[[str], None] = print) -> dict:
-    """Theorem 1 on the paper's run `traj` of `setup`, and the alpha_0 study for each order.
-
-    Args:
-        out: the theory directory (created).
-        setup, traj: the paper's example and its run (saved at every step).
-        orders: orders n of the alpha_0 study (`alpha0_study.base_setup(n)`).
-        alpha0: the alpha_0 values (default: `alpha0_study.default_options(n)`).
-        mu: mu of (59)-(60) for every order (default: `alpha0_study.default_options(n)`).
-        t_final: horizon of the study's runs (at most the order's default: 20 s for n = 2,
-            10 s for n = 3, 5 s above).
-
-    Returns:
-        The summary written to theory.json (also the input of `markdown`).
-    """
+    """Theorem 1 on the paper's run `traj` (saved at every step) of `setup`, and the alpha_0
+    study for each order (`alpha0.default_options(n)` unless `alpha0`, `mu` are given; the
+    horizon at most `t_final`), written into `out`. Returns theory.json's summary."""
     t0 = time.perf_counter()
     out = files.mkdir(out)
     paper, arrays = paper_check(setup, traj)
@@ -336,6 +292,3 @@ def markdown(summary: dict) -> str:
               f"`theory/{Path(summary['figures']['alpha0']).name}`.", ""]
     return "\n".join(lines)
 
-
-__all__ = ["ALPHA0_PAPER", "best_mu", "markdown", "paper_check", "plot_lyapunov",
-           "run"]
