@@ -11,6 +11,7 @@ The search saves its state after every iteration, `run` the other files (checkpo
 from __future__ import annotations
 
 import dataclasses
+import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -156,11 +157,16 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     sampled = None
     if cfg.sample_time is not None and not options.sampled:
-        sampled = sim.replace(sample_time=cfg.sample_time,
+        # the plant's step in that loop: dt, or the largest step below it dividing Ts
+        ts, dt = cfg.sample_time, float(sim.dt)
+        step = ts / math.ceil(ts / dt * (1 - 1e-12))
+        sampled = sim.replace(sample_time=ts, **({"dt": step} if step < dt * (1 - 1e-12) else {}),
                               names={"sample_time": "tuning.sample_time"})
-        notes.append(f"deployable: the controller sampled every {cfg.sample_time:g} s (zero-order "
-                     f"hold) keeps each plant's windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x the continuous loop's")
+        notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
+                     f"keeps each plant's windowed L-inf within "
+                     f"{cfg.objective.sampled_factor:g} x the continuous loop's"
+                     + (f" (the plant at dt = {step:g} s there)" if step < dt * (1 - 1e-12)
+                        else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",
