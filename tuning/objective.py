@@ -582,6 +582,7 @@ class Combined:
     spec = property(lambda self: self.members[0].spec)
     scales = property(lambda self: self.members[0].scales)
     requirements = property(lambda self: self.members[0].requirements)
+    sampled = property(lambda self: self.members[0].sampled)
 
     @property
     def batch_size(self) -> int:
