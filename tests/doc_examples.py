@@ -66,6 +66,8 @@ def commands(text: str) -> list[list[str]]:
         if not block or lang not in SHELL:
             continue
         for part in line.split("&&"):
+            if part.split()[:1] not in (["dscjax"], [".venv/bin/dscjax"]):
+                continue  # not a command (a plain ``` block may hold a diagram)
             words = shlex.split(part, comments=True)
             if words and words[0] in (".venv/bin/dscjax", "dscjax"):
                 out.append(words[1:])
