@@ -30,6 +30,20 @@ def pytest_configure(config):
                                  else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
 
 
+# The longest files first (xdist's --dist loadfile with --no-loadscope-reorder hands files out in
+# this order): a long file started last would leave the other worker idle at the end.
+LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradients.py",
+                 "test_tuning_gradients.py", "test_tuning_loop.py", "test_tuning_adversarial.py")
+
+
+def pytest_collection_modifyitems(items):
+    def rank(item):
+        name = item.path.name
+        return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
+
+    items.sort(key=rank)  # stable: each file keeps its own order
+
+
 @pytest.fixture(scope="session")
 def paper_setup():
     """The paper's example in float64."""
