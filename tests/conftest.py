@@ -23,11 +23,14 @@ from dscjax import xla  # noqa: E402
 
 def pytest_configure(config):
     """JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
-    workers, and by test_docs' subprocess): a program that several tests or files compile, in
-    whatever process, is compiled once. Without pytest's cache: a directory of this process."""
+    workers and, through JAX_COMPILATION_CACHE_DIR, by the processes tests start): a program
+    that several tests or files compile, in whatever process, is compiled once. Without
+    pytest's cache: a directory of this process."""
     cache = getattr(config, "cache", None)
-    xla.enable_compilation_cache(cache.mkdir("jax-compilation-cache") if cache is not None
-                                 else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
+    path = xla.enable_compilation_cache(cache.mkdir("jax-compilation-cache") if cache is not None
+                                        else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
+    if path is not None:
+        os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
 
 
 # The longest files first (xdist's --dist loadfile with --no-loadscope-reorder hands files out in
