@@ -12,7 +12,7 @@ order would type it (so the docs may use what the README's examples wrote: `my.t
 - sizes: 300 RK4 steps (--t-final 300 dt), --samples 8, grid axes of 2 points, --steps 1 (2
   to resume), --batch 2, --heldout 0, --adversarial 1 with searches by random sampling for
   0.2 s, --dpi 30, --complexity for n = 2..3 with 1 build, --theory-orders without the orders
-  above 3,
+  above 3 and the alpha_0 study at alpha_0 = 1 only (--alpha0 1),
   sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
   (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
   figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
@@ -66,6 +66,8 @@ def commands(text: str) -> list[list[str]]:
         if not block or lang not in SHELL:
             continue
         for part in line.split("&&"):
+            if part.split()[:1] not in (["dscjax"], [".venv/bin/dscjax"]):
+                continue  # not a command (a plain ``` block may hold a diagram)
             words = shlex.split(part, comments=True)
             if words and words[0] in (".venv/bin/dscjax", "dscjax"):
                 out.append(words[1:])
@@ -118,6 +120,8 @@ def shrink(argv: list[str]) -> list[str]:
         if "--theory-orders" in a:  # n = 4 compiles ~40 s (its V: test_lyapunov)
             orders = [o for o in a[a.index("--theory-orders") + 1].split(",") if int(o) <= 3]
             _set(a, "--theory-orders", ",".join(orders) or "2")
+        if "--theory" in a:  # each alpha_0 picks its own step: one program per value
+            _set(a, "--alpha0", "1")
     return a
 
 

@@ -233,7 +233,7 @@ def pi_sweep():
     ranges = (parse_range("hysteresis.p*=0.7:1.3:2", grid=True),
               parse_range("hysteresis.r[3]=0.7:0.9:2", grid=True))
     settings = SweepSettings(method="grid", ranges=ranges, dtype="float64", worst=0, random=0)
-    return setup, run_sweep(setup, settings, 0.4, DT, window_start=0.1)
+    return setup, run_sweep(setup, settings, t_final=0.4, dt=DT, window_start=0.1)
 
 
 def test_sweeping_a_scale_or_an_element_equals_setting_it(pi_sweep):

@@ -257,9 +257,10 @@ STEPS = 4  # generations of the uninterrupted run; the interrupts land in genera
 def _search_problem():
     spec = tuning.OptimizerSpec(name="cma_path", steps=STEPS, save_interval=1, popsize=4,
                                 time_limit=None, gradient="forward")
+    # no sampled loop: a 1 ms controller cannot be sampled on the 2 ms step
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
-                              heldout=tuning.BatchSpec(batch=0))
+                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
     return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
 
 
@@ -372,7 +373,7 @@ def test_adam_finishes_its_iteration_and_checkpoint_on_ctrl_c(tmp_path, monkeypa
         params=("controller.k",),
         optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1,
                                        save_interval=10, gradient="forward"),
-        heldout=tuning.BatchSpec(batch=0))
+        heldout=tuning.BatchSpec(batch=0), sample_time=None)  # (1 ms: not on the 2 ms step)
     problem = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=0.5, dt=2e-3),
                                    cfg)
     run(problem, tmp_path / "full")

@@ -73,13 +73,14 @@ def test_tv_bound_defaults_to_one_and_a_half_start_and_is_one_line_away():
 
 def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option():
     cfg = tuning.TuningConfig()
-    stats = {"start": {"n": 256, "n_diverged": 0}, "tuned": {"n": 256, "n_diverged": 38}}
+    stats = {"start": {"n": 256, "n_diverged": 0, "n_refined": 0},
+             "tuned": {"n": 256, "n_diverged": 38, "n_refined": 0}}
     w = report.heldout_warning({"heldout": stats}, cfg)
     assert "38 of 256 held-out plants" in w and "--batch" in w and "nominal plant only" in w
     robust = dataclasses.replace(cfg, robust=tuning.BatchSpec(batch=8))
     w = report.heldout_warning({"heldout": stats}, robust)
     assert "38 of 256" in w and "training batch of 8 plants" in w and "--batch 32" in w
-    ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0}}
+    ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0, "n_refined": 0}}
     assert report.heldout_warning({"heldout": ok}, cfg) is None
     assert report.heldout_warning({}, cfg) is None
 
@@ -107,9 +108,10 @@ def _problem():
     # forward mode: 2 tangents, the cheapest gradient to compile for two numbers
     spec = tuning.OptimizerSpec(name="cma_path", steps=STEPS, save_interval=2, popsize=4,
                                 time_limit=None, gradient="forward")
+    # no sampled loop: a 1 ms controller cannot be sampled on the 2 ms step
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
-                              heldout=tuning.BatchSpec(batch=0))
+                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
     return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
 
 
