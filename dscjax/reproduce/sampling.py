@@ -3,7 +3,8 @@ gains with the controller sampled at Ts (a zero-order hold on u), windowed L-inf
 the continuous loop as the Ts -> 0 line; and the order at which the sampled loop tends to the
 continuous one (fitted on max |y_Ts - y| over t >= 1 s).
 
-`TUNED` is the controller `dscjax tune` returns with its defaults (`tuning.sample_time` 1 ms)."""
+`TUNED` is the controller of one `dscjax tune` run with its defaults (`tuning.sample_time`
+1 ms, seed 0, 100 s; its figures are in docs/benchmarks.md)."""
 
 from __future__ import annotations
 
@@ -20,20 +21,20 @@ from dscjax.simulate import simulate_batch
 
 # the sample times of the figure [s]
 SAMPLE_TIMES = (1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2)
-# the controller of `dscjax tune` with its defaults (its gains.json, [controller] keys tuned)
+# the controller of that run (its gains.json, the [controller] keys tuned)
 TUNED = {
-    "k": [19.884242918863265, 0.9721728021235744],
-    "gamma_g": [25.589908538272915, 8.0],
-    "eta": [0.0036222126901159627, 0.01],
-    "gamma_phi": [11.424268259990127],
-    "sigma": [0.00010109010751600343],
-    "gamma_zeta": 0.9476710930145209,
-    "eta_zeta": 0.0003441796862446836,
-    "gamma_d": 1.5701850634266679,
-    "eta_d": 0.022954497428073636,
-    "eps": 0.01211401485120154,
-    "tau": [0.004516417180926585],
-    "sat_width": 0.006556062008199157,
+    "k": [29.39024466421628, 8.015169941845304],
+    "gamma_g": [205.2171513207762, 8.0],
+    "eta": [0.0008421409923122778, 0.01],
+    "gamma_phi": [14.682802370379456],
+    "sigma": [4.8090451538218025e-05],
+    "gamma_zeta": 0.4819148697887836,
+    "eta_zeta": 0.00021334472799264574,
+    "gamma_d": 1.9005617649331588,
+    "eta_d": 0.0036673049174152745,
+    "eps": 0.04665530731204365,
+    "tau": [0.004854277711245431],
+    "sat_width": 0.0003299278181248443,
 }
 GAINS = ("paper", "tuned")
 
