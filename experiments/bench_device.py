@@ -14,9 +14,7 @@
     python experiments/bench_device.py            # full: 20 s, batches up to 2^20 (for a GPU)
     python experiments/bench_device.py --quick    # 64 plants, 0.1 s, no gradient (CI's smoke run)
 
---quick leaves the gradient out (its program alone compiles for minutes on a small CPU);
-`--quick --only gradient` runs it at the quick sizes.
-
+--quick leaves the gradient out (`--quick --only gradient` runs it at the quick sizes).
 On the shared harness (experiments/harness.py): a table, results/bench/device.json and, unless
 --quick, the section of docs/benchmarks.md.
 """
