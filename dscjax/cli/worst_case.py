@@ -104,6 +104,9 @@ def run(args) -> int:
     from dscjax.worst.report import write
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
+    if args.print_config:  # the model and the run: the box is given by options, not a table
+        print_config(setup, options, *requirement_table(args))
+        return 0
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
                            requirement=requirement_of(args, setup),
@@ -112,9 +115,6 @@ def run(args) -> int:
     check_search(problem, methods, starts=args.starts, batch=args.batch,
                  time_limit=args.time_limit, max_evals=args.max_evals,
                  coarsening=args.gradient_coarsening)
-    if args.print_config:
-        print_config(setup, options, *requirement_table(args))
-        return 0
     what = horizon_text(problem.t_final, problem.dt, problem.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
