@@ -231,7 +231,8 @@ class RunSpec(eqx.Module):
         m = 2 ** halvings
         return dataclasses.replace(
             self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m, solver=as_solver(solver_name))
+            sample_every=self.sample_every * m if self.sampled else self.sample_every,
+            solver=as_solver(solver_name))
 
 
 def auto_stride(n_steps: int) -> int:
