@@ -113,7 +113,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     log("writing figures")
     paths = figures(trajs, loops, out, fmt, dpi, family)
     log("the controller sampled at Ts = 0.1-20 ms: paper's and default-tuned gains")
-    summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt)
+    summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt,
+                                         window_start=summary["window_start"])
     paths["sampling"] = out / f"{FIGURES['sampling']}.{fmt}"
     sampling.plot(summary["sampling"], paths["sampling"], dpi=dpi,
                   colors={"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"})
