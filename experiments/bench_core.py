@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, median, parser, positive, reference_loop  # noqa: E402
+from harness import Bench, diffrax_rk4, median, parser, positive, reference_loop  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax import params, xla  # noqa: E402
@@ -49,23 +49,13 @@ def diffrax_run(setup, t_final: float):
     """diffrax's diffeqsolve with the classical RK4 tableau at dt on dscjax's vector field (the
     last state only), its largest difference from dscjax's last state and diffrax's version;
     None without diffrax (`pip install -e ".[bench]"`)."""
-    try:
-        import diffrax
-    except ImportError:
+    peer = diffrax_rk4()
+    if peer is None:
         return None
+    diffrax, rk4 = peer
     from jax.flatten_util import ravel_pytree
 
     from dscjax.closed_loop import initial_state, prepared, vector_field
-
-    class RK4(diffrax.AbstractERK):
-        tableau = diffrax.ButcherTableau(
-            c=np.array([0.5, 0.5, 1.0]), b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
-            b_error=np.zeros(4),
-            a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])))
-        interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
-
-        def order(self, terms):
-            return 4
 
     s = prepared(setup)
     y0, unravel = ravel_pytree(initial_state(s))
@@ -77,7 +67,7 @@ def diffrax_run(setup, t_final: float):
             return ravel_pytree(vector_field(t, unravel(y), args)[0])[0]
 
         return diffrax.diffeqsolve(
-            diffrax.ODETerm(field), RK4(), t0=0.0, t1=t_final, dt0=DT, y0=y0, args=args,
+            diffrax.ODETerm(field), rk4, t0=0.0, t1=t_final, dt0=DT, y0=y0, args=args,
             saveat=diffrax.SaveAt(t1=True), stepsize_controller=diffrax.ConstantStepSize(),
             max_steps=n + 10).ys
 

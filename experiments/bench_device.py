@@ -30,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, median  # noqa: E402
+from harness import Bench, diffrax_rk4, median  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax import params  # noqa: E402
@@ -121,24 +121,14 @@ def plain_linf(hyst, n_steps: int, window_start: float, dtype):
 
 def diffrax_solver(n_steps: int, dtype):
     """A vmapped diffrax solve of the same loop (RK4 tableau, final state), or None."""
-    try:
-        import diffrax
-    except ImportError:
+    peer = diffrax_rk4()
+    if peer is None:
         return None
-
-    class RK4(diffrax.AbstractERK):
-        tableau = diffrax.ButcherTableau(
-            c=np.array([0.5, 0.5, 1.0]), b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
-            b_error=np.zeros(4),
-            a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])))
-        interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
-
-        def order(self, terms):
-            return 4
+    diffrax, rk4 = peer
 
     def one(hyst):
         sol = diffrax.diffeqsolve(
-            diffrax.ODETerm(lambda t, y, args: field(t, y, args)), RK4(), t0=0.0,
+            diffrax.ODETerm(lambda t, y, args: field(t, y, args)), rk4, t0=0.0,
             t1=n_steps * DT, dt0=DT, y0=x0(dtype), args=hyst, saveat=diffrax.SaveAt(t1=True),
             stepsize_controller=diffrax.ConstantStepSize(), max_steps=n_steps + 10)
         return sol.ys[-1]

@@ -72,6 +72,28 @@ def reference_loop():
     return module
 
 
+def diffrax_rk4():
+    """(diffrax, an instance of its solver with the classical RK4 tableau), or None without
+    diffrax (`pip install -e ".[bench]"`): the peer both diffrax comparisons use."""
+    try:
+        import diffrax
+    except ImportError:
+        return None
+    import numpy as np
+
+    class RK4(diffrax.AbstractERK):
+        tableau = diffrax.ButcherTableau(
+            c=np.array([0.5, 0.5, 1.0]), b_sol=np.array([1 / 6, 1 / 3, 1 / 3, 1 / 6]),
+            b_error=np.zeros(4),
+            a_lower=(np.array([0.5]), np.array([0.0, 0.5]), np.array([0.0, 0.0, 1.0])))
+        interpolation_cls = diffrax.ThirdOrderHermitePolynomialInterpolation.from_k
+
+        def order(self, terms):
+            return 4
+
+    return diffrax, RK4()
+
+
 def median(values) -> float:
     return float(statistics.median(values))
 
