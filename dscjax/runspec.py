@@ -235,6 +235,12 @@ class RunSpec(eqx.Module):
             solver=as_solver(solver_name))
 
 
+def step_for(sample_time: float, dt: float) -> float:
+    """The largest integration step <= dt that divides `sample_time` a whole number of times
+    (dt itself when it does)."""
+    return sample_time / math.ceil(sample_time / dt * (1 - 1e-12))
+
+
 def auto_stride(n_steps: int) -> int:
     """The smallest stride s that keeps at most MAX_SAVED_POINTS points of N steps: the steps
     0, s, 2s, ... and always N (s need not divide N)."""

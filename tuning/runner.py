@@ -11,7 +11,6 @@ The search saves its state after every iteration, `run` the other files (checkpo
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -27,7 +26,7 @@ from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import check
 from dscjax.validation import ConfigError, validate_setup
 from tuning import checkpoint as ck
@@ -159,7 +158,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     if cfg.sample_time is not None and not options.sampled:
         # the plant's step in that loop: dt, or the largest step below it dividing Ts
         ts, dt = cfg.sample_time, float(sim.dt)
-        step = ts / math.ceil(ts / dt * (1 - 1e-12))
+        step = step_for(ts, dt)
         sampled = sim.replace(sample_time=ts, **({"dt": step} if step < dt * (1 - 1e-12) else {}),
                               names={"sample_time": "tuning.sample_time"})
         notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "

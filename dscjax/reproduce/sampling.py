@@ -8,7 +8,6 @@ continuous one (fitted on max |y_Ts - y| over t >= 1 s).
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -16,7 +15,7 @@ import numpy as np
 from dscjax import files
 from dscjax.config import from_dict
 from dscjax.plotting import subplots
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import simulate_batch
 
 # the sample times of the figure [s]
@@ -53,9 +52,9 @@ def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
     def whole(ts, h):
         return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
 
-    fine = min(sample_times) / math.ceil(min(sample_times) / dt * (1 - 1e-12))
-    return [dt if whole(ts, dt) else fine if whole(ts, fine) else
-            ts / math.ceil(ts / dt * (1 - 1e-12)) for ts in sample_times]
+    fine = step_for(min(sample_times), dt)
+    return [dt if whole(ts, dt) else fine if whole(ts, fine) else step_for(ts, dt)
+            for ts in sample_times]
 
 
 def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPLE_TIMES) -> int:
