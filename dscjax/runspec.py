@@ -216,14 +216,14 @@ class RunSpec(eqx.Module):
         """The traced fields as arrays of `dtype` (the setup's), strongly typed, so that
         jit's cache does not depend on how they were written (the noise seed and the sample
         period too: an integer leaf would be a constant of the time-parallel derivative's
-        trace; None when unused)."""
+        trace; the noise None without noise)."""
         noise = None if self.noise is None else jnp.asarray(self.noise, dtype)
         return dataclasses.replace(
             self, dt=jnp.asarray(self.dt, dtype), window_start=jnp.asarray(self.window_start,
                                                                            dtype),
             state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
             noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype),
-            sample_every=jnp.asarray(self.sample_every, dtype) if self.sampled else None)
+            sample_every=jnp.asarray(self.sample_every, dtype))
 
     def refined(self, halvings: int, solver_name: str) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
@@ -231,8 +231,7 @@ class RunSpec(eqx.Module):
         m = 2 ** halvings
         return dataclasses.replace(
             self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m if self.sampled else self.sample_every,
-            solver=as_solver(solver_name))
+            sample_every=self.sample_every * m, solver=as_solver(solver_name))
 
 
 def step_for(sample_time: float, dt: float) -> float:

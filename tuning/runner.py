@@ -159,13 +159,13 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
         # the plant's step in that loop: dt, or the largest step below it dividing Ts
         ts, dt = cfg.sample_time, float(sim.dt)
         step = step_for(ts, dt)
-        sampled = sim.replace(sample_time=ts, **({"dt": step} if step < dt * (1 - 1e-12) else {}),
+        finer = step < dt * (1 - 1e-12)
+        sampled = sim.replace(sample_time=ts, **({"dt": step} if finer else {}),
                               names={"sample_time": "tuning.sample_time"})
         notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
                      f"keeps each plant's windowed L-inf within "
                      f"{cfg.objective.sampled_factor:g} x the continuous loop's"
-                     + (f" (the plant at dt = {step:g} s there)" if step < dt * (1 - 1e-12)
-                        else ""))
+                     + (f" (the plant at dt = {step:g} s there)" if finer else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",

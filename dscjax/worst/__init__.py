@@ -479,8 +479,7 @@ class Programs(search.Problem):
             f = coarsening
             spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
                                          save_every=spec.n_steps // f,
-                                         sample_every=(spec.sample_every // f if spec.sampled
-                                                       else spec.sample_every))
+                                         sample_every=spec.sample_every // f)
             extra_g = p.requirement
             if extra_g is not None and hasattr(extra_g, "n_steps"):
                 extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
