@@ -1,0 +1,572 @@
+"""A config's digital controller as C99: the sampled loop's update law, exactly.
+
+    files = dscjax.export.c_files(setup, spec)   # {"dsc_controller.h": text, ".c": text}
+
+The C is generated from the jaxpr of `closed_loop.sample_update` (the law, the advance of the
+controller's states by `spec.discretisation`, the delay line) for the concrete config: gains,
+sample time and delay are constants; the plant state x, the time t and the reference's
+derivatives are the inputs. One C statement per primitive, in double precision, with no
+dependency beyond <math.h>. Measurement noise belongs to the sensor, not the controller.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
+from dscjax.reference import InitialOffset, Reference
+from dscjax.validation import ConfigError
+
+HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
+REF_NAMES = ("yr", "yr_dot")  # the reference arguments of dsc_step; higher ones: yr_higher[]
+
+
+class ExportError(ConfigError):
+    """A config whose law uses something the C emitter does not write (one line)."""
+
+
+# -- the reference as an input: its derivatives are given, not computed ------------------------
+
+
+@jax.custom_jvp
+def _given(t, d):
+    """y_r(t) from its given derivatives d = (y_r, y_r', ...): d[0], and d/dt of it is d[1]
+    (exactly: nested jvp shifts the tuple), so every law that differentiates the reference in
+    t (DSC's y_r', backstepping's nested derivatives) reads the inputs."""
+    return d[0]
+
+
+@_given.defjvp
+def _given_jvp(primals, tangents):
+    t, d = primals
+    return _given(t, d), _given(t, (*d[1:], jnp.zeros_like(d[0]))) * tangents[0]
+
+
+class Given(Reference):
+    """A reference whose value and derivatives at the current time are inputs."""
+
+    d: tuple
+
+    kind = "given"
+
+    def __call__(self, t):
+        return _given(t, self.d)
+
+
+def _with_given(setup, prepared_ref, d):
+    """The prepared reference with the config's reference replaced by the inputs (the L-inf
+    initialisation's decaying offset stays in the law)."""
+    if prepared_ref is setup.reference:
+        return Given(d=d)
+    if isinstance(prepared_ref, InitialOffset) and prepared_ref.base is setup.reference:
+        return dataclasses.replace(prepared_ref, base=Given(d=d))
+    raise ExportError(f"reference: the controller's initialisation changes the reference in a "
+                      f"way export does not know ({type(prepared_ref).__name__})")
+
+
+# -- tracing: the sample update as one flat program ---------------------------------------------
+
+
+@dataclasses.dataclass
+class Law:
+    """The traced sample update and what the C around it needs."""
+
+    ops: list  # flat, live operations (after inlining and dead-code removal)
+    state: list  # [(C name, shape, initial values (flat))], the controller's state
+    outputs: list  # [atom of u, atoms of the new state leaves in `state` order]
+    n_ref: int  # reference values the law reads: y_r .. y_r^(n_ref - 1)
+    order: int
+    sample_time: float
+
+
+def trace(setup, spec) -> Law:
+    """The sampled controller of (setup, spec) as a flat program (spec sampled, float64)."""
+    if not spec.sampled:
+        raise ConfigError("simulation.sample_time: export needs a sampled controller")
+    s = prepared(setup)
+    X0 = initial_state(s)
+    n = setup.order
+    n_d = n + 2  # more reference derivatives than any law of order n reads
+    every, dt = float(spec.sample_every), float(spec.dt)
+    sampling = Sampling(every=every, delay=spec.delay, scheme=spec.discretisation)
+    u0, _ = s.controller.law(X0.ctrl, X0.x, jnp.zeros((), X0.x.dtype), s.plant, s.reference)
+    past0 = jnp.full((spec.delay,), u0, X0.x.dtype)
+
+    def step(ctrl, past, x, t, d):
+        loop = s.replace(reference=_with_given(setup, s.reference, d))
+        X = SampledState(x=x, h=X0.h, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
+        new = sample_update(jnp.zeros((), jnp.int32), t, X, loop, sampling, dt)
+        return new.u, new.ctrl, new.past
+
+    zero = jnp.zeros((), X0.x.dtype)
+    closed = jax.make_jaxpr(step)(X0.ctrl, past0, X0.x, zero, (zero,) * n_d)
+    leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
+    names = [_c_name(jax.tree_util.keystr(p)) for p, _ in leaves]
+    values = [np.asarray(v, np.float64) for _, v in leaves]
+    if spec.delay:
+        names.append("past")
+        values.append(np.asarray(past0, np.float64))
+    state = [(nm, v.shape, v.ravel()) for nm, v in zip(names, values, strict=True)]
+    jx = closed.jaxpr
+    n_state = len(leaves) + (1 if spec.delay else 0)
+    # the inputs: the state's leaves, the delay line (a (0,) array nothing reads if no delay),
+    # x, t and the reference's derivatives
+    kinds = ([("state", nm) for nm in names[:len(leaves)]]
+             + [("state", "past" if spec.delay else None), ("x",), ("t",)]
+             + [("ref", j) for j in range(n_d)])
+    flat = _Flattener()
+    env = {}
+    for v, kind in zip(jx.invars, kinds, strict=True):
+        env[v] = ("in", kind, v.aval.shape)
+    for v, c in zip(jx.constvars, closed.consts, strict=True):
+        env[v] = ("const", np.asarray(c))
+    flat.inline(jx, env)
+    outs = [flat.atom(env, v) for v in jx.outvars]
+    outs = outs[:1 + n_state]
+    ops = _live(flat.ops, outs)
+    used = {a[1][1] for op in ops for a in op.ins if a[0] == "in" and a[1][0] == "ref"}
+    used |= {a[1][1] for a in outs if a[0] == "in" and a[1][0] == "ref"}
+    n_ref = max(used, default=1) + 1
+    if n_ref >= n_d:
+        raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
+    return Law(ops=ops, state=state, outputs=outs, n_ref=max(n_ref, 2), order=n,
+               sample_time=every * dt)
+
+
+def _c_name(key: str) -> str:
+    name = "".join(ch if ch.isalnum() else "_" for ch in key).strip("_")
+    return name or "state"
+
+
+@dataclasses.dataclass
+class Op:
+    prim: str
+    ins: list  # atoms: ("v", id, shape, dtype) | ("lit", value) | ("const", array) | ("in", ...)
+    outs: list  # [("v", id, shape, dtype)]
+    params: dict
+    where: str  # the Python line it comes from
+
+
+# primitives whose outputs are their inputs, element for element (flat row-major data)
+_ALIASES = {"optimization_barrier", "copy", "copy_p", "squeeze", "reshape", "expand_dims"}
+_CALLS = ("jaxpr", "call_jaxpr", "fun_jaxpr")
+
+
+class _Flattener:
+    """Inlines nested jaxprs (jit, custom_jvp_call, ...) into one list of operations."""
+
+    def __init__(self):
+        self.ops: list[Op] = []
+        self.count = 0
+
+    def atom(self, env, v):
+        if isinstance(v, jax.extend.core.Literal):
+            return ("lit", np.asarray(v.val))
+        return env[v]
+
+    def inline(self, jaxpr, env):
+        from jax._src import source_info_util
+
+        for eqn in jaxpr.eqns:
+            ins = [self.atom(env, v) for v in eqn.invars]
+            name = eqn.primitive.name
+            sub = next((eqn.params[k] for k in _CALLS if k in eqn.params), None)
+            if name in _ALIASES or (name == "convert_element_type"
+                                    and eqn.invars[0].aval.dtype == eqn.outvars[0].aval.dtype):
+                if name == "optimization_barrier":
+                    for o, a in zip(eqn.outvars, ins, strict=True):
+                        env[o] = a
+                else:
+                    env[eqn.outvars[0]] = self._reshaped(ins[0], eqn.outvars[0].aval.shape)
+                continue
+            if sub is not None and name != "cond":
+                inner = sub.jaxpr if hasattr(sub, "consts") else sub
+                consts = sub.consts if hasattr(sub, "consts") else []
+                ienv = {v: ("const", np.asarray(c)) for v, c in zip(inner.constvars, consts,
+                                                                     strict=True)}
+                n_in = len(inner.invars)
+                ienv |= dict(zip(inner.invars, ins[len(ins) - n_in:], strict=True))
+                self.inline(inner, ienv)
+                for o, v in zip(eqn.outvars, inner.outvars, strict=True):
+                    env[o] = self.atom(ienv, v)
+                continue
+            outs = []
+            for o in eqn.outvars:
+                self.count += 1
+                outs.append(("v", self.count, tuple(o.aval.shape), np.dtype(o.aval.dtype)))
+                env[o] = outs[-1]
+            try:
+                where = _short(source_info_util.summarize(eqn.source_info))
+            except Exception:  # a comment only: never a reason to fail
+                where = ""
+            self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
+
+    @staticmethod
+    def _reshaped(a, shape):
+        shape = tuple(shape)
+        if a[0] == "v":
+            return ("v", a[1], shape, a[3])
+        if a[0] == "in":
+            return ("in", a[1], shape)
+        return (a[0], np.reshape(a[1], shape))
+
+
+def _short(where: str) -> str:
+    """'/.../dscjax/controllers/dsc.py:157:13 (DSC.law)' -> 'controllers/dsc.py:157 (DSC.law)'."""
+    path, _, rest = where.partition(" ")
+    parts = path.split(":")
+    name = parts[0].rsplit("/dscjax/", 1)[-1]
+    return f"{name}:{parts[1]} {rest}" if len(parts) > 1 else where
+
+
+def _live(ops, outs):
+    need = {a[1] for a in outs if a[0] == "v"}
+    kept = []
+    for op in reversed(ops):
+        if any(o[1] in need for o in op.outs):
+            kept.append(op)
+            need |= {a[1] for a in op.ins if a[0] == "v"}
+    return kept[::-1]
+
+
+# -- the C -----------------------------------------------------------------------------------
+
+
+def _num(x) -> str:
+    x = np.asarray(x)
+    if x.dtype == bool:
+        return "1" if bool(x) else "0"
+    if x.dtype.kind in "iu":
+        return str(int(x))
+    f = float(x)
+    if np.isnan(f):
+        return "NAN"
+    if np.isinf(f):
+        return "INFINITY" if f > 0 else "(-INFINITY)"
+    text = repr(f)
+    return f"({text})" if f < 0 else text
+
+
+def _size(shape) -> int:
+    return int(np.prod(shape, dtype=int))
+
+
+class _Emitter:
+    def __init__(self, law: Law):
+        self.law = law
+        self.lines: list[str] = []
+        self.declared: dict[int, tuple] = {}  # op output id -> the shape it is declared with
+
+    def el(self, a, i: int) -> str:
+        """The C expression of flat element i of atom a (a size-1 atom broadcasts)."""
+        kind = a[0]
+        if kind in ("lit", "const"):
+            arr = np.ravel(a[1])
+            return _num(arr[i if arr.size > 1 else 0])
+        shape = a[2]
+        j = i if _size(shape) > 1 else 0
+        if kind == "v":
+            return f"v{a[1]}" if self.declared[a[1]] == () else f"v{a[1]}[{j}]"
+        what = a[1]
+        if what[0] == "x":
+            return f"x[{j}]"
+        if what[0] == "t":
+            return "t"
+        if what[0] == "ref":
+            k = what[1]
+            return REF_NAMES[k] if k < 2 else f"yr_higher[{k - 2}]"
+        name = what[1]
+        full = dict((nm, shp) for nm, shp, _ in self.law.state)[name]
+        return f"s->{name}" if full == () else f"s->{name}[{j}]"
+
+    def declare(self, o, values: list[str]):
+        ctype = "double" if o[3].kind == "f" else "long long"
+        self.declared[o[1]] = o[2]
+        if not values:
+            return
+        if o[2] == ():
+            self.lines.append(f"    {ctype} v{o[1]} = {values[0]};")
+        else:
+            self.lines.append(f"    {ctype} v{o[1]}[{len(values)}] = {{{', '.join(values)}}};")
+
+    def op(self, op: Op):
+        out = op.outs[0]
+        n = _size(out[2])
+        f = _ELEMENTWISE.get(op.prim)
+        if f is not None:
+            vals = [f([self.el(a, i) for a in op.ins], op.params, op.ins) for i in range(n)]
+        elif op.prim in _INDEXING:
+            src = _INDEXING[op.prim](op, [a[2] if a[0] in ("v", "in") else np.shape(a[1])
+                                          for a in op.ins])
+            vals = [self.el(op.ins[k], int(j)) for k, j in src]
+        elif op.prim == "dot_general":
+            vals = _dot(self, op)
+        elif op.prim in ("reduce_sum", "reduce_max", "reduce_min"):
+            vals = _reduce(self, op)
+        else:
+            raise ExportError(f"controller: export cannot write the primitive "
+                              f"'{op.prim}' ({op.where}) in C")
+        self.declare(out, vals)
+
+
+def _bin(fmt):
+    return lambda a, p, ins: fmt.format(*a)
+
+
+def _integer_pow(a, p, ins):
+    """x^y by JAX's own sequence of products (its lowering), so the rounding is the same."""
+    x, y = a[0], int(p["y"])
+    if y == 0:
+        return "1.0"
+    recip, y = y < 0, abs(y)
+    acc, cur = None, f"({x})"
+    while y > 0:
+        if y & 1:
+            acc = cur if acc is None else f"({acc} * {cur})"
+        y >>= 1
+        if y > 0:
+            cur = f"({cur} * {cur})"
+    return f"(1.0 / {acc})" if recip else acc
+
+
+def _convert(a, p, ins):
+    dtype = np.dtype(p["new_dtype"])
+    if dtype.kind == "f":
+        return f"(double)({a[0]})"
+    if dtype.kind == "b":
+        return f"(({a[0]}) != 0)"
+    return f"(long long)({a[0]})"
+
+
+def _select(a, p, ins):
+    if len(a) == 3:
+        return f"(({a[0]}) ? {a[2]} : {a[1]})"
+    expr = a[-1]
+    for k in range(len(a) - 2, 0, -1):
+        expr = f"(({a[0]}) == {k - 1} ? {a[k]} : {expr})"
+    return expr
+
+
+_ELEMENTWISE = {
+    "add": _bin("({} + {})"), "add_any": _bin("({} + {})"), "sub": _bin("({} - {})"),
+    "mul": _bin("({} * {})"), "div": _bin("({} / {})"), "neg": _bin("(-{})"),
+    "max": _bin("dsc_max_({}, {})"), "min": _bin("dsc_min_({}, {})"),
+    "pow": _bin("pow({}, {})"), "atan2": _bin("atan2({}, {})"), "rem": _bin("fmod({}, {})"),
+    "abs": _bin("fabs({})"), "exp": _bin("exp({})"), "expm1": _bin("expm1({})"),
+    "log": _bin("log({})"), "log1p": _bin("log1p({})"), "sqrt": _bin("sqrt({})"),
+    "rsqrt": _bin("(1.0 / sqrt({}))"), "sin": _bin("sin({})"), "cos": _bin("cos({})"),
+    "tan": _bin("tan({})"), "tanh": _bin("tanh({})"), "atan": _bin("atan({})"),
+    "logistic": _bin("(1.0 / (1.0 + exp(-{})))"), "square": _bin("({0} * {0})"),
+    "sign": _bin("dsc_sign_({})"), "floor": _bin("floor({})"), "ceil": _bin("ceil({})"),
+    "lt": _bin("({} < {})"), "le": _bin("({} <= {})"), "gt": _bin("({} > {})"),
+    "ge": _bin("({} >= {})"), "eq": _bin("({} == {})"), "ne": _bin("({} != {})"),
+    "and": _bin("({} & {})"), "or": _bin("({} | {})"), "not": _bin("(!{})"),
+    "integer_pow": _integer_pow, "convert_element_type": _convert, "select_n": _select,
+}
+
+
+def _index_map(op, shapes):
+    """(operand, flat index) of every flat output element of a data-movement primitive."""
+    ids = [np.arange(_size(s)).reshape(s) for s in shapes]
+    p = op.params
+    if op.prim == "broadcast_in_dim":
+        keep = [1] * len(p["shape"])
+        for d, s in zip(p["broadcast_dimensions"], shapes[0], strict=True):
+            keep[d] = s
+        got = np.broadcast_to(ids[0].reshape(keep), p["shape"])
+        return [(0, j) for j in got.ravel()]
+    if op.prim == "slice":
+        strides = p.get("strides") or (1,) * len(shapes[0])
+        sl = tuple(slice(a, b, c) for a, b, c in zip(p["start_indices"], p["limit_indices"],
+                                                     strides, strict=True))
+        return [(0, j) for j in ids[0][sl].ravel()]
+    if op.prim == "transpose":
+        return [(0, j) for j in np.transpose(ids[0], p["permutation"]).ravel()]
+    if op.prim == "rev":
+        return [(0, j) for j in np.flip(ids[0], p["dimensions"]).ravel()]
+    if op.prim in ("concatenate", "stack"):
+        tagged = [k * 1_000_000 + a for k, a in enumerate(ids)]
+        got = (np.concatenate(tagged, axis=p["dimension"]) if op.prim == "concatenate"
+               else np.stack(tagged, axis=p["axis"]))
+        return [(int(g) // 1_000_000, int(g) % 1_000_000) for g in got.ravel()]
+    if op.prim == "iota":
+        raise ExportError("controller: iota")
+    raise AssertionError(op.prim)
+
+
+_INDEXING = {k: _index_map for k in ("broadcast_in_dim", "slice", "transpose", "rev",
+                                     "concatenate", "stack")}
+
+
+def _dot(em, op):
+    a, b = op.ins
+    (ca, cb), (ba, bb) = op.params["dimension_numbers"]
+    if ba or bb:
+        raise ExportError(f"controller: batched dot_general ({op.where})")
+    sa = a[2] if a[0] in ("v", "in") else np.shape(a[1])
+    sb = b[2] if b[0] in ("v", "in") else np.shape(b[1])
+    ia, ib = np.arange(_size(sa)).reshape(sa), np.arange(_size(sb)).reshape(sb)
+    fa = [d for d in range(len(sa)) if d not in ca]
+    fb = [d for d in range(len(sb)) if d not in cb]
+    ia = np.transpose(ia, fa + list(ca)).reshape(-1, _size([sa[d] for d in ca]))
+    ib = np.transpose(ib, fb + list(cb)).reshape(-1, _size([sb[d] for d in cb]))
+    return ["(" + " + ".join(f"{em.el(a, int(x))} * {em.el(b, int(y))}"
+                             for x, y in zip(ra, rb, strict=True)) + ")"
+            for ra in ia for rb in ib]
+
+
+def _reduce(em, op):
+    a = op.ins[0]
+    shape = a[2] if a[0] in ("v", "in") else np.shape(a[1])
+    axes = tuple(op.params["axes"])
+    ids = np.arange(_size(shape)).reshape(shape)
+    rest = [d for d in range(len(shape)) if d not in axes]
+    groups = np.transpose(ids, rest + list(axes)).reshape(-1, _size([shape[d] for d in axes]))
+    out = []
+    for g in groups:
+        expr = em.el(a, int(g[0]))
+        for j in g[1:]:
+            e = em.el(a, int(j))
+            expr = {"reduce_sum": f"({expr} + {e})", "reduce_max": f"dsc_max_({expr}, {e})",
+                    "reduce_min": f"dsc_min_({expr}, {e})"}[op.prim]
+        out.append(expr)
+    return out
+
+
+def step_signature(law: Law) -> str:
+    extra = ", const double *yr_higher" if law.n_ref > 2 else ""
+    return ("double dsc_step(void *state, double t, const double *x, double yr, "
+            f"double yr_dot{extra})")
+
+
+def c_files(setup, spec, *, source: str = "", gains: dict | None = None) -> dict[str, str]:
+    """{"dsc_controller.h": text, "dsc_controller.c": text} of the sampled controller of
+    (setup, spec). `source` names the config in the header; `gains` ({name: value}) lists
+    them there (default: the controller's config table)."""
+    from dscjax import config
+
+    law = trace(setup, spec)
+    if gains is None:
+        gains = config.to_dict(setup)["controller"]
+    return {HEADER: _header(law, spec, source, gains), SOURCE: _source(law, spec)}
+
+
+def _header(law, spec, source, gains) -> str:
+    n_hi = law.n_ref - 2
+    ref_doc = ("yr, yr_dot: the reference y_r(t) and its derivative"
+               + (f"; yr_higher: its derivatives 2..{law.n_ref - 1} ({n_hi} values)"
+                  if n_hi else ""))
+    glines = "\n".join(f" *   {k} = {v}" for k, v in gains.items())
+    return f"""/* dsc_controller.h: the digital controller of {source or 'a dscjax config'},
+ * generated by `dscjax export`: exactly the update law of dscjax's sampled loop.
+ *
+ * order n = {law.order}; sample time Ts = {law.sample_time!r} s; the controller's states advance
+ * by {spec.discretisation} ({_scheme_doc(spec.discretisation)});
+ * input delay: {spec.delay} sample(s){' (dsc_step returns the input computed ' + str(spec.delay)
+                                        + ' samples before; the initial one before that)'
+                                        if spec.delay else ''}.
+ * The law reads the plant state x (n values, measured at t), t and the reference: {ref_doc}.
+ * Call dsc_step once per sample, at t = k Ts, k = 0, 1, ..., and hold its u until t + Ts.
+ * C99, double precision, only <math.h>; compile without -ffast-math for dscjax's numbers.
+ *
+ * The controller (its gains and initial estimates):
+{glines}
+ */
+#ifndef DSC_CONTROLLER_H
+#define DSC_CONTROLLER_H
+#include <stddef.h>
+
+#define DSC_ORDER {law.order}
+#define DSC_REFERENCE_DERIVATIVES {law.n_ref - 1}  /* y_r' .. y_r^({law.n_ref - 1}) */
+
+size_t dsc_state_size(void);          /* bytes of the controller's state */
+void   dsc_init(void *state);         /* the config's initial estimates and filters */
+{step_signature(law)};
+/* one sample: x = the plant state ({law.order} values) at time t; returns u to hold until t + Ts,
+   and advances the controller's states by one sample */
+double dsc_sample_time(void);
+int    dsc_order(void);
+
+#endif
+"""
+
+
+def _scheme_doc(scheme: str) -> str:
+    return ("c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau for a filter, 0 for an "
+            "estimate" if scheme == "exponential-euler" else "forward Euler, c += Ts c'")
+
+
+def _source(law: Law, spec) -> str:
+    fields = "\n".join(f"    double {nm}{'' if shp == () else f'[{_size(shp)}]'};"
+                       for nm, shp, _ in law.state)
+    init = []
+    for nm, shp, vals in law.state:
+        if shp == ():
+            init.append(f"    s->{nm} = {_num(vals[0])};")
+        else:
+            init += [f"    s->{nm}[{i}] = {_num(v)};" for i, v in enumerate(vals)]
+    em = _Emitter(law)
+    last = None
+    for op in law.ops:
+        if op.where and op.where != last:
+            em.lines.append(f"    /* {op.where} */")
+            last = op.where
+        em.op(op)
+    u, *new = law.outputs
+    tail = [f"    double u_out = {em.el(u, 0)};"]
+    for (nm, shp, _), a in zip(law.state, new, strict=True):
+        k = _size(shp)
+        vals = ", ".join(em.el(a, i) for i in range(k))
+        tail.append(f"    double next_{nm}[{max(k, 1)}] = {{{vals}}};")
+    for nm, shp, _ in law.state:
+        if shp == ():
+            tail.append(f"    s->{nm} = next_{nm}[0];")
+        else:
+            tail += [f"    s->{nm}[{i}] = next_{nm}[{i}];" for i in range(_size(shp))]
+    body = "\n".join(em.lines + tail)
+    unused = ["t", "x", "yr", "yr_dot"] + (["yr_higher"] if law.n_ref > 2 else [])
+    voids = " ".join(f"(void){u_};" for u_ in unused)
+    return f"""/* dsc_controller.c: generated by `dscjax export` from the jaxpr of dscjax's sample
+ * update (closed_loop.sample_update); see dsc_controller.h. */
+#include <math.h>
+#include <stddef.h>
+#include "dsc_controller.h"
+
+typedef struct {{
+{fields}
+}} dsc_state;
+
+size_t dsc_state_size(void) {{ return sizeof(dsc_state); }}
+
+double dsc_sample_time(void) {{ return {_num(law.sample_time)}; }}
+
+int dsc_order(void) {{ return {law.order}; }}
+
+void dsc_init(void *state) {{
+    dsc_state *s = (dsc_state *)state;
+{chr(10).join(init)}
+}}
+
+/* max and min as XLA computes them: NaN if either is */
+static inline double dsc_max_(double a, double b) {{
+    return (a != a || b != b) ? a + b : (a > b ? a : b);
+}}
+static inline double dsc_min_(double a, double b) {{
+    return (a != a || b != b) ? a + b : (a < b ? a : b);
+}}
+static inline double dsc_sign_(double a) {{ return a > 0.0 ? 1.0 : (a < 0.0 ? -1.0 : a); }}
+
+{step_signature(law)} {{
+    dsc_state *s = (dsc_state *)state;
+    {voids}
+{body}
+    return u_out;
+}}
+"""
+
+
+__all__ = ["HEADER", "SOURCE", "ExportError", "Law", "c_files", "trace"]
