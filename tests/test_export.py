@@ -6,6 +6,8 @@ import ctypes
 import shutil
 import subprocess
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -44,9 +46,6 @@ def _closed_loop(setup, lib, m, every, n_samples):
     (m reference values)), the
     actuator's hysteresis jumps from u_(k-1) to u_k, then `every` RK4 steps of the plant with
     w held. Returns (u_k (K,), x(t_k) (K, n))."""
-    import jax
-    import jax.numpy as jnp
-
     from dscjax.closed_loop import initial_state, prepared
 
     s = prepared(setup)
@@ -129,3 +128,91 @@ def test_the_exported_controller_is_the_sampled_loop(tmp_path, example, t_final,
     # round-off only: libm's and XLA's exp, sin, ... may differ by an ulp
     np.testing.assert_allclose(us, u_want, rtol=1e-9, atol=1e-9 * np.max(np.abs(u_want)))
     np.testing.assert_allclose(xs, x_want, rtol=1e-9, atol=1e-9 * np.max(np.abs(x_want)))
+
+
+def test_a_config_without_a_sample_time_is_refused_in_one_line(tmp_path, capsys):
+    from dscjax.cli.main import main
+
+    out = tmp_path / "c"
+    assert main(["export", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["dscjax export: error: --sample-time is needed: the config has no "
+                   "simulation.sample_time (a continuous controller); give --sample-time TS, "
+                   "a number > 0 [s], e.g. 0.001"]
+    assert not out.exists()
+
+
+def test_export_reads_the_gains_file_and_its_sample_time(tmp_path, capsys):
+    from dscjax import config
+    from dscjax.cli.main import main
+
+    gains = config.to_dict(config.example("order-3"))
+    gains["controller"]["k"] = [7.25, 1.5, 0.75]
+    gains["simulation"] |= {"sample_time": 0.002, "delay": 1, "discretisation": "euler"}
+    path = tmp_path / "gains.json"
+    path.write_text(__import__("json").dumps(gains))
+    out = tmp_path / "c"
+    assert main(["export", "--gains", str(path), "--out", str(out)]) == 0
+    header = (out / "dsc_controller.h").read_text()
+    for text in ("Order n = 3", "Ts = 0.002 s", "input delay: 1 sample", "advance by euler",
+                 "k = [7.25, 1.5, 0.75]", f"--gains {path}", "double yr, double yr_dot)"):
+        assert text in header, text
+    assert "double dsc_step(void *state, double t, const double *x, double yr, double " \
+        "yr_dot)" in capsys.readouterr().out
+    if CC is not None:  # a C99 compiler takes it without a warning
+        subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                        "-fsyntax-only", str(out / "dsc_controller.c")], check=True)
+
+
+
+# a user's plant functions (module level: equal plants hash equal)
+def _f_by_matrices(x, p):
+    """f_1 = x_1^2, f_2 = 0, written with a matrix product, a transpose and reductions."""
+    m = jnp.stack([x, -x])
+    return jnp.stack([jnp.dot(p["e"], x) ** 2,
+                      0.0 * jnp.sum(m.T @ x) * jnp.max(x) * jnp.min(x)])
+
+
+def _rho(x, p):
+    return jnp.stack([0.2, 0.1 * jnp.sum(x * x)])
+
+
+def _delta(x, t, p):
+    return jnp.zeros(2)
+
+
+def _dbar(t, p):
+    return 0.0
+
+
+@needs_cc
+def test_one_sample_of_the_c_equals_the_sample_update_for_a_custom_plant(tmp_path):
+    """dot_general, transpose and the reductions of a user's plant functions: u and every
+    state after one sample of the C, at random states, against `closed_loop.sample_update`."""
+    import dscjax
+    from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
+    from dscjax.config import paper_example
+    from dscjax.plant import CustomPlant
+
+    plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]),
+                        {"e": jnp.array([1.0, 0.0])}, _f_by_matrices, _rho, _delta, _dbar)
+    setup = paper_example(dtype=np.float64).replace(plant=plant)
+    spec = dscjax.RunSpec.make(1.0, DT, sample_time=2 * DT, discretisation="euler")
+    lib, _ = _load(setup, spec, tmp_path)
+    s = prepared(setup)
+    X0 = initial_state(s)
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        ctrl = jax.tree.map(lambda a: a + 0.1 * rng.standard_normal(np.shape(a)), X0.ctrl)
+        x, t = X0.x + rng.standard_normal(2), 0.37 * k
+        new = sample_update(jnp.asarray(k), t, SampledState(x=x, h=X0.h, ctrl=ctrl, u=0.0,
+                                                            past=jnp.zeros(0)),
+                            s, Sampling(every=2.0, scheme="euler"), DT)
+        flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)])
+        assert lib.dsc_state_size() == 8 * flat.size  # the state is the leaves, in order
+        buf = (ctypes.c_double * flat.size)(*flat.tolist())
+        u = lib.dsc_step(buf, t, (ctypes.c_double * 2)(*np.asarray(x).tolist()), np.sin(t),
+                         np.cos(t))
+        want = np.concatenate([np.ravel(a) for a in jax.tree.leaves(new.ctrl)])
+        np.testing.assert_allclose(u, float(new.u), rtol=1e-13)
+        np.testing.assert_allclose(np.asarray(buf[:]), want, rtol=1e-13, atol=1e-15)
