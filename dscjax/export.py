@@ -89,6 +89,9 @@ def trace(setup, spec) -> Law:
         raise ConfigError("simulation.sample_time: export needs a sampled controller")
     s = prepared(setup)
     X0 = initial_state(s)
+    if X0.x.dtype != np.float64:
+        raise ConfigError(f"simulation.dtype: export writes the controller in float64 (got a "
+                          f"{X0.x.dtype} setup; turn jax_enable_x64 on)")
     n = setup.order
     n_d = n + 2  # more reference derivatives than any law of order n reads
     every, dt = float(spec.sample_every), float(spec.dt)
@@ -105,7 +108,8 @@ def trace(setup, spec) -> Law:
     zero = jnp.zeros((), X0.x.dtype)
     closed = jax.make_jaxpr(step)(X0.ctrl, past0, X0.x, zero, (zero,) * n_d)
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
-    names = [_c_name(jax.tree_util.keystr(p)) for p, _ in leaves]
+    names = ["".join(c if c.isalnum() else "_" for c in jax.tree_util.keystr(p)).strip("_")
+             for p, _ in leaves]
     values = [np.asarray(v, np.float64) for _, v in leaves]
     if spec.delay:
         names.append("past")
@@ -119,14 +123,11 @@ def trace(setup, spec) -> Law:
              + [("state", "past" if spec.delay else None), ("x",), ("t",)]
              + [("ref", j) for j in range(n_d)])
     flat = _Flattener()
-    env = {}
-    for v, kind in zip(jx.invars, kinds, strict=True):
-        env[v] = ("in", kind, v.aval.shape)
-    for v, c in zip(jx.constvars, closed.consts, strict=True):
-        env[v] = ("const", np.asarray(c))
+    env = {v: ("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)}
+    env |= {v: ("const", np.asarray(c)) for v, c in zip(jx.constvars, closed.consts,
+                                                         strict=True)}
     flat.inline(jx, env)
-    outs = [flat.atom(env, v) for v in jx.outvars]
-    outs = outs[:1 + n_state]
+    outs = [flat.atom(env, v) for v in jx.outvars][:1 + n_state]
     ops = _live(flat.ops, outs)
     used = {a[1][1] for op in ops for a in op.ins if a[0] == "in" and a[1][0] == "ref"}
     used |= {a[1][1] for a in outs if a[0] == "in" and a[1][0] == "ref"}
@@ -135,11 +136,6 @@ def trace(setup, spec) -> Law:
         raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
     return Law(ops=ops, state=state, outputs=outs, n_ref=max(n_ref, 2), order=n,
                sample_time=every * dt)
-
-
-def _c_name(key: str) -> str:
-    name = "".join(ch if ch.isalnum() else "_" for ch in key).strip("_")
-    return name or "state"
 
 
 @dataclasses.dataclass
@@ -153,7 +149,9 @@ class Op:
 
 # primitives whose outputs are their inputs, element for element (flat row-major data)
 _ALIASES = {"optimization_barrier", "copy", "copy_p", "squeeze", "reshape", "expand_dims"}
-_CALLS = ("jaxpr", "call_jaxpr", "fun_jaxpr")
+# calls whose jaxpr runs once, as it is (loops and conditionals are not: refused by the emitter)
+_CALLS = {"jit", "pjit", "closed_call", "core_call", "remat", "checkpoint", "custom_jvp_call",
+          "custom_vjp_call", "custom_vjp_call_jaxpr"}
 
 
 class _Flattener:
@@ -168,29 +166,35 @@ class _Flattener:
             return ("lit", np.asarray(v.val))
         return env[v]
 
-    def inline(self, jaxpr, env):
+    def inline(self, jaxpr, env, outer: str = ""):
+        """Append the operations of `jaxpr` (inputs and constants in `env`); `outer`: the
+        Python line of the call it is inlined at (for a library's own nested calls)."""
         from jax._src import source_info_util
 
         for eqn in jaxpr.eqns:
+            try:
+                where = _short(source_info_util.summarize(eqn.source_info)) or outer
+            except Exception:  # a comment only: never a reason to fail
+                where = outer
             ins = [self.atom(env, v) for v in eqn.invars]
             name = eqn.primitive.name
-            sub = next((eqn.params[k] for k in _CALLS if k in eqn.params), None)
+            sub = next((eqn.params[k] for k in ("jaxpr", "call_jaxpr", "fun_jaxpr")
+                        if k in eqn.params), None) if name in _CALLS else None
             if name in _ALIASES or (name == "convert_element_type"
                                     and eqn.invars[0].aval.dtype == eqn.outvars[0].aval.dtype):
-                if name == "optimization_barrier":
-                    for o, a in zip(eqn.outvars, ins, strict=True):
-                        env[o] = a
-                else:
-                    env[eqn.outvars[0]] = self._reshaped(ins[0], eqn.outvars[0].aval.shape)
+                for o, a in zip(eqn.outvars, ins, strict=False):  # reshaped, same data
+                    shape = tuple(o.aval.shape)
+                    env[o] = ((*a[:2], shape, *a[3:]) if a[0] in ("v", "in")
+                              else (a[0], np.reshape(a[1], shape)))
                 continue
-            if sub is not None and name != "cond":
+            if sub is not None:
                 inner = sub.jaxpr if hasattr(sub, "consts") else sub
                 consts = sub.consts if hasattr(sub, "consts") else []
                 ienv = {v: ("const", np.asarray(c)) for v, c in zip(inner.constvars, consts,
                                                                      strict=True)}
                 n_in = len(inner.invars)
                 ienv |= dict(zip(inner.invars, ins[len(ins) - n_in:], strict=True))
-                self.inline(inner, ienv)
+                self.inline(inner, ienv, where)
                 for o, v in zip(eqn.outvars, inner.outvars, strict=True):
                     env[o] = self.atom(ienv, v)
                 continue
@@ -199,27 +203,15 @@ class _Flattener:
                 self.count += 1
                 outs.append(("v", self.count, tuple(o.aval.shape), np.dtype(o.aval.dtype)))
                 env[o] = outs[-1]
-            try:
-                where = _short(source_info_util.summarize(eqn.source_info))
-            except Exception:  # a comment only: never a reason to fail
-                where = ""
             self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
-
-    @staticmethod
-    def _reshaped(a, shape):
-        shape = tuple(shape)
-        if a[0] == "v":
-            return ("v", a[1], shape, a[3])
-        if a[0] == "in":
-            return ("in", a[1], shape)
-        return (a[0], np.reshape(a[1], shape))
 
 
 def _short(where: str) -> str:
     """'/.../dscjax/controllers/dsc.py:157:13 (DSC.law)' -> 'controllers/dsc.py:157 (DSC.law)'."""
     path, _, rest = where.partition(" ")
     parts = path.split(":")
-    name = parts[0].rsplit("/dscjax/", 1)[-1]
+    name = (parts[0].rsplit("/dscjax/", 1)[-1] if "/dscjax/" in parts[0]
+            else parts[0].rsplit("/", 1)[-1])
     return f"{name}:{parts[1]} {rest}" if len(parts) > 1 else where
 
 
@@ -253,6 +245,10 @@ def _num(x) -> str:
 
 def _size(shape) -> int:
     return int(np.prod(shape, dtype=int))
+
+
+def _shape(a) -> tuple:
+    return tuple(a[2]) if a[0] in ("v", "in") else np.shape(a[1])
 
 
 class _Emitter:
@@ -299,10 +295,8 @@ class _Emitter:
         f = _ELEMENTWISE.get(op.prim)
         if f is not None:
             vals = [f([self.el(a, i) for a in op.ins], op.params, op.ins) for i in range(n)]
-        elif op.prim in _INDEXING:
-            src = _INDEXING[op.prim](op, [a[2] if a[0] in ("v", "in") else np.shape(a[1])
-                                          for a in op.ins])
-            vals = [self.el(op.ins[k], int(j)) for k, j in src]
+        elif op.prim in _MOVES:
+            vals = [self.el(op.ins[k], int(j)) for k, j in _index_map(op)]
         elif op.prim == "dot_general":
             vals = _dot(self, op)
         elif op.prim in ("reduce_sum", "reduce_max", "reduce_min"):
@@ -343,9 +337,7 @@ def _convert(a, p, ins):
 
 
 def _select(a, p, ins):
-    if len(a) == 3:
-        return f"(({a[0]}) ? {a[2]} : {a[1]})"
-    expr = a[-1]
+    expr = a[-1]  # select_n(which, case_0, case_1, ...)
     for k in range(len(a) - 2, 0, -1):
         expr = f"(({a[0]}) == {k - 1} ? {a[k]} : {expr})"
     return expr
@@ -369,8 +361,9 @@ _ELEMENTWISE = {
 }
 
 
-def _index_map(op, shapes):
+def _index_map(op):
     """(operand, flat index) of every flat output element of a data-movement primitive."""
+    shapes = [_shape(a) for a in op.ins]
     ids = [np.arange(_size(s)).reshape(s) for s in shapes]
     p = op.params
     if op.prim == "broadcast_in_dim":
@@ -393,13 +386,10 @@ def _index_map(op, shapes):
         got = (np.concatenate(tagged, axis=p["dimension"]) if op.prim == "concatenate"
                else np.stack(tagged, axis=p["axis"]))
         return [(int(g) // 1_000_000, int(g) % 1_000_000) for g in got.ravel()]
-    if op.prim == "iota":
-        raise ExportError("controller: iota")
     raise AssertionError(op.prim)
 
 
-_INDEXING = {k: _index_map for k in ("broadcast_in_dim", "slice", "transpose", "rev",
-                                     "concatenate", "stack")}
+_MOVES = ("broadcast_in_dim", "slice", "transpose", "rev", "concatenate", "stack")
 
 
 def _dot(em, op):
@@ -407,8 +397,7 @@ def _dot(em, op):
     (ca, cb), (ba, bb) = op.params["dimension_numbers"]
     if ba or bb:
         raise ExportError(f"controller: batched dot_general ({op.where})")
-    sa = a[2] if a[0] in ("v", "in") else np.shape(a[1])
-    sb = b[2] if b[0] in ("v", "in") else np.shape(b[1])
+    sa, sb = _shape(a), _shape(b)
     ia, ib = np.arange(_size(sa)).reshape(sa), np.arange(_size(sb)).reshape(sb)
     fa = [d for d in range(len(sa)) if d not in ca]
     fb = [d for d in range(len(sb)) if d not in cb]
@@ -421,7 +410,7 @@ def _dot(em, op):
 
 def _reduce(em, op):
     a = op.ins[0]
-    shape = a[2] if a[0] in ("v", "in") else np.shape(a[1])
+    shape = _shape(a)
     axes = tuple(op.params["axes"])
     ids = np.arange(_size(shape)).reshape(shape)
     rest = [d for d in range(len(shape)) if d not in axes]
@@ -443,15 +432,13 @@ def step_signature(law: Law) -> str:
             f"double yr_dot{extra})")
 
 
-def c_files(setup, spec, *, source: str = "", gains: dict | None = None) -> dict[str, str]:
+def c_files(setup, spec, *, source: str = "") -> dict[str, str]:
     """{"dsc_controller.h": text, "dsc_controller.c": text} of the sampled controller of
-    (setup, spec). `source` names the config in the header; `gains` ({name: value}) lists
-    them there (default: the controller's config table)."""
+    (setup, spec); `source` names the config in the header, which lists the gains."""
     from dscjax import config
 
     law = trace(setup, spec)
-    if gains is None:
-        gains = config.model_to_dict("controller", setup.controller)
+    gains = config.model_to_dict("controller", setup.controller)
     return {HEADER: _header(law, spec, source, gains), SOURCE: _source(law, spec)}
 
 
@@ -505,12 +492,8 @@ def _scheme_doc(scheme: str) -> str:
 def _source(law: Law, spec) -> str:
     fields = "\n".join(f"    double {nm}{'' if shp == () else f'[{_size(shp)}]'};"
                        for nm, shp, _ in law.state)
-    init = []
-    for nm, shp, vals in law.state:
-        if shp == ():
-            init.append(f"    s->{nm} = {_num(vals[0])};")
-        else:
-            init += [f"    s->{nm}[{i}] = {_num(v)};" for i, v in enumerate(vals)]
+    init = [f"    s->{nm}{'' if shp == () else f'[{i}]'} = {_num(v)};"
+            for nm, shp, vals in law.state for i, v in enumerate(vals)]
     em = _Emitter(law)
     last = None
     for op in law.ops:
@@ -518,17 +501,13 @@ def _source(law: Law, spec) -> str:
             em.lines.append(f"    /* {op.where} */")
             last = op.where
         em.op(op)
-    u, *new = law.outputs
+    u, *new = law.outputs  # all read before the state is written (u may be s->past[...])
     tail = [f"    double u_out = {em.el(u, 0)};"]
     for (nm, shp, _), a in zip(law.state, new, strict=True):
-        k = _size(shp)
-        vals = ", ".join(em.el(a, i) for i in range(k))
-        tail.append(f"    double next_{nm}[{max(k, 1)}] = {{{vals}}};")
-    for nm, shp, _ in law.state:
-        if shp == ():
-            tail.append(f"    s->{nm} = next_{nm}[0];")
-        else:
-            tail += [f"    s->{nm}[{i}] = next_{nm}[{i}];" for i in range(_size(shp))]
+        vals = ", ".join(em.el(a, i) for i in range(_size(shp)))
+        tail.append(f"    double next_{nm}[{_size(shp)}] = {{{vals}}};")
+    tail += [f"    s->{nm}{'' if shp == () else f'[{i}]'} = next_{nm}[{i}];"
+             for nm, shp, _ in law.state for i in range(_size(shp))]
     body = "\n".join(em.lines + tail)
     unused = ["t", "x", "yr", "yr_dot"] + (["yr_higher"] if law.n_ref > 2 else [])
     voids = " ".join(f"(void){u_};" for u_ in unused)

@@ -3,6 +3,7 @@ by ctypes, driven in closed loop with a plant written here (RK4 with u held, the
 jumped at each new input), equals dscjax's sampled simulation over 20 s."""
 
 import ctypes
+import dataclasses
 import shutil
 import subprocess
 
@@ -106,8 +107,6 @@ CASES = [  # (example, horizon, sample time in steps, delay, discretisation, con
 @pytest.mark.parametrize("example, t_final, every, delay, scheme, init", CASES)
 def test_the_exported_controller_is_the_sampled_loop(tmp_path, example, t_final, every, delay,
                                                      scheme, init):
-    import dataclasses
-
     import dscjax
     from dscjax.config import example as build
 
@@ -185,34 +184,73 @@ def _dbar(t, p):
     return 0.0
 
 
-@needs_cc
-def test_one_sample_of_the_c_equals_the_sample_update_for_a_custom_plant(tmp_path):
-    """dot_general, transpose and the reductions of a user's plant functions: u and every
-    state after one sample of the C, at random states, against `closed_loop.sample_update`."""
-    import dscjax
-    from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
+def _custom_plant_setup():
     from dscjax.config import paper_example
     from dscjax.plant import CustomPlant
 
     plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]),
                         {"e": jnp.array([1.0, 0.0])}, _f_by_matrices, _rho, _delta, _dbar)
     setup = paper_example(dtype=np.float64).replace(plant=plant)
-    spec = dscjax.RunSpec.make(1.0, DT, sample_time=2 * DT, discretisation="euler")
+    return setup.replace(controller=dataclasses.replace(setup.controller, robust_term="smooth"))
+
+
+def _order3_linf_setup():
+    from dscjax.config import example
+
+    setup = example("order-3", dtype=np.float64)
+    return setup.replace(controller=dataclasses.replace(
+        setup.controller, init="linf", robust_term="sgn", variant="no_dhat_no_zeta"))
+
+
+@needs_cc
+@pytest.mark.parametrize("build, delay, scheme", [(_custom_plant_setup, 0, "euler"),
+                                                  (_order3_linf_setup, 2, "exponential-euler")])
+def test_one_sample_of_the_c_equals_the_sample_update(tmp_path, build, delay, scheme):
+    """One sample of the C, at random states and times, against `closed_loop.sample_update`:
+    u and every state (the leaves in order, then the delay line). A user's plant functions
+    with dot_general, transpose and reductions and the smooth robust term; the L-inf
+    initialisation's time-dependent reference offset, sgn, no adaptation of zeta."""
+    import dscjax
+    from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
+
+    setup = build()
+    spec = dscjax.RunSpec.make(1.0, DT, sample_time=2 * DT, delay=delay, discretisation=scheme)
     lib, _ = _load(setup, spec, tmp_path)
     s = prepared(setup)
     X0 = initial_state(s)
+    n = setup.order
     rng = np.random.default_rng(0)
     for k in range(4):
         ctrl = jax.tree.map(lambda a: a + 0.1 * rng.standard_normal(np.shape(a)), X0.ctrl)
-        x, t = X0.x + rng.standard_normal(2), 0.37 * k
+        past = rng.standard_normal(delay)
+        x, t = X0.x + 0.5 * rng.standard_normal(n), 0.37 * k
         new = sample_update(jnp.asarray(k), t, SampledState(x=x, h=X0.h, ctrl=ctrl, u=0.0,
-                                                            past=jnp.zeros(0)),
-                            s, Sampling(every=2.0, scheme="euler"), DT)
-        flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)])
+                                                            past=jnp.asarray(past)),
+                            s, Sampling(every=2.0, delay=delay, scheme=scheme), DT)
+        flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)] + [past])
         assert lib.dsc_state_size() == 8 * flat.size  # the state is the leaves, in order
         buf = (ctypes.c_double * flat.size)(*flat.tolist())
-        u = lib.dsc_step(buf, t, (ctypes.c_double * 2)(*np.asarray(x).tolist()), np.sin(t),
-                         np.cos(t))
-        want = np.concatenate([np.ravel(a) for a in jax.tree.leaves(new.ctrl)])
+        yr, yr_dot = (float(v) for v in setup.reference.derivatives(jnp.asarray(t), 1))
+        u = lib.dsc_step(buf, t, (ctypes.c_double * n)(*np.asarray(x).tolist()), yr, yr_dot)
+        want = np.concatenate([np.ravel(a) for a in jax.tree.leaves(new.ctrl)]
+                              + [np.asarray(new.past)])
         np.testing.assert_allclose(u, float(new.u), rtol=1e-13)
         np.testing.assert_allclose(np.asarray(buf[:]), want, rtol=1e-13, atol=1e-15)
+
+
+def _f_cumulative(x, p):
+    return jnp.stack([jnp.cumsum(x * x)[0], 0.0 * x[1]])
+
+
+def test_a_primitive_the_emitter_does_not_write_is_refused_naming_it():
+    import dscjax
+    from dscjax import export
+    from dscjax.config import paper_example
+    from dscjax.plant import CustomPlant
+
+    plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]), {},
+                        _f_cumulative, _rho, _delta, _dbar)
+    setup = paper_example(dtype=np.float64).replace(plant=plant)
+    with pytest.raises(export.ExportError, match=r"^controller: export cannot write the "
+                       r"primitive 'cumsum' \(test_export.py:\d+ \(_f_cumulative\)\) in C$"):
+        export.c_files(setup, dscjax.RunSpec.make(1.0, DT, sample_time=DT))
