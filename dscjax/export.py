@@ -18,43 +18,19 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
-from dscjax.reference import InitialOffset, Reference
+from dscjax.reference import Given, InitialOffset
 from dscjax.validation import ConfigError
 
 HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
-REF_NAMES = ("yr", "yr_dot")  # the reference arguments of dsc_step; higher ones: yr_higher[]
+SCHEME_DOC = {"exponential-euler": "c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau "
+              "for a filter, 0 for an estimate", "euler": "forward Euler, c += Ts c'"}
 
 
 class ExportError(ConfigError):
     """A config whose law uses something the C emitter does not write (one line)."""
 
 
-# -- the reference as an input: its derivatives are given, not computed ------------------------
-
-
-@jax.custom_jvp
-def _given(t, d):
-    """y_r(t) from its given derivatives d = (y_r, y_r', ...): d[0], and d/dt of it is d[1]
-    (exactly: nested jvp shifts the tuple), so every law that differentiates the reference in
-    t (DSC's y_r', backstepping's nested derivatives) reads the inputs."""
-    return d[0]
-
-
-@_given.defjvp
-def _given_jvp(primals, tangents):
-    t, d = primals
-    return _given(t, d), _given(t, (*d[1:], jnp.zeros_like(d[0]))) * tangents[0]
-
-
-class Given(Reference):
-    """A reference whose value and derivatives at the current time are inputs."""
-
-    d: tuple
-
-    kind = "given"
-
-    def __call__(self, t):
-        return _given(t, self.d)
+# -- tracing: the sample update as one flat program ---------------------------------------------
 
 
 def _with_given(setup, prepared_ref, d):
@@ -66,9 +42,6 @@ def _with_given(setup, prepared_ref, d):
         return dataclasses.replace(prepared_ref, base=Given(d=d))
     raise ExportError(f"reference: the controller's initialisation changes the reference in a "
                       f"way export does not know ({type(prepared_ref).__name__})")
-
-
-# -- tracing: the sample update as one flat program ---------------------------------------------
 
 
 @dataclasses.dataclass
@@ -109,28 +82,24 @@ def trace(setup, spec) -> Law:
     closed = jax.make_jaxpr(step)(X0.ctrl, past0, X0.x, zero, (zero,) * n_d)
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
     names = ["".join(c if c.isalnum() else "_" for c in jax.tree_util.keystr(p)).strip("_")
-             for p, _ in leaves]
-    values = [np.asarray(v, np.float64) for _, v in leaves]
-    if spec.delay:
-        names.append("past")
-        values.append(np.asarray(past0, np.float64))
-    state = [(nm, v.shape, v.ravel()) for nm, v in zip(names, values, strict=True)]
+             for p, _ in leaves] + (["past"] if spec.delay else [])
+    values = [v for _, v in leaves] + ([past0] if spec.delay else [])
+    state = [(nm, np.shape(v), np.ravel(np.asarray(v, np.float64)))
+             for nm, v in zip(names, values, strict=True)]
     jx = closed.jaxpr
-    n_state = len(leaves) + (1 if spec.delay else 0)
     # the inputs: the state's leaves, the delay line (a (0,) array nothing reads if no delay),
     # x, t and the reference's derivatives
-    kinds = ([("state", nm) for nm in names[:len(leaves)]]
-             + [("state", "past" if spec.delay else None), ("x",), ("t",)]
-             + [("ref", j) for j in range(n_d)])
+    kinds = ([("state", nm) for nm in names] + ([] if spec.delay else [("state", None)])
+             + [("x",), ("t",)] + [("ref", j) for j in range(n_d)])
     flat = _Flattener()
     env = {v: ("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)}
     env |= {v: ("const", np.asarray(c)) for v, c in zip(jx.constvars, closed.consts,
                                                          strict=True)}
     flat.inline(jx, env)
-    outs = [flat.atom(env, v) for v in jx.outvars][:1 + n_state]
+    outs = [flat.atom(env, v) for v in jx.outvars][:1 + len(names)]
     ops = _live(flat.ops, outs)
-    used = {a[1][1] for op in ops for a in op.ins if a[0] == "in" and a[1][0] == "ref"}
-    used |= {a[1][1] for a in outs if a[0] == "in" and a[1][0] == "ref"}
+    used = {a[1][1] for a in [*outs, *(a for op in ops for a in op.ins)]
+            if a[0] == "in" and a[1][0] == "ref"}
     n_ref = max(used, default=1) + 1
     if n_ref >= n_d:
         raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
@@ -162,9 +131,7 @@ class _Flattener:
         self.count = 0
 
     def atom(self, env, v):
-        if isinstance(v, jax.extend.core.Literal):
-            return ("lit", np.asarray(v.val))
-        return env[v]
+        return ("lit", np.asarray(v.val)) if isinstance(v, jax.extend.core.Literal) else env[v]
 
     def inline(self, jaxpr, env, outer: str = ""):
         """Append the operations of `jaxpr` (inputs and constants in `env`); `outer`: the
@@ -229,18 +196,14 @@ def _live(ops, outs):
 
 
 def _num(x) -> str:
+    """A C literal that reads back as exactly x (the shortest repr of a double)."""
     x = np.asarray(x)
-    if x.dtype == bool:
-        return "1" if bool(x) else "0"
-    if x.dtype.kind in "iu":
+    if x.dtype.kind in "biu":
         return str(int(x))
     f = float(x)
-    if np.isnan(f):
-        return "NAN"
-    if np.isinf(f):
-        return "INFINITY" if f > 0 else "(-INFINITY)"
-    text = repr(f)
-    return f"({text})" if f < 0 else text
+    if not np.isfinite(f):
+        return "NAN" if np.isnan(f) else ("INFINITY" if f > 0 else "(-INFINITY)")
+    return f"({f!r})" if f < 0 else repr(f)
 
 
 def _size(shape) -> int:
@@ -259,42 +222,26 @@ class _Emitter:
 
     def el(self, a, i: int) -> str:
         """The C expression of flat element i of atom a (a size-1 atom broadcasts)."""
-        kind = a[0]
-        if kind in ("lit", "const"):
+        if a[0] in ("lit", "const"):
             arr = np.ravel(a[1])
             return _num(arr[i if arr.size > 1 else 0])
-        shape = a[2]
-        j = i if _size(shape) > 1 else 0
-        if kind == "v":
+        j = i if _size(a[2]) > 1 else 0
+        if a[0] == "v":
             return f"v{a[1]}" if self.declared[a[1]] == () else f"v{a[1]}[{j}]"
-        what = a[1]
-        if what[0] == "x":
-            return f"x[{j}]"
-        if what[0] == "t":
-            return "t"
-        if what[0] == "ref":
-            k = what[1]
-            return REF_NAMES[k] if k < 2 else f"yr_higher[{k - 2}]"
-        name = what[1]
-        full = dict((nm, shp) for nm, shp, _ in self.law.state)[name]
-        return f"s->{name}" if full == () else f"s->{name}[{j}]"
-
-    def declare(self, o, values: list[str]):
-        ctype = "double" if o[3].kind == "f" else "long long"
-        self.declared[o[1]] = o[2]
-        if not values:
-            return
-        if o[2] == ():
-            self.lines.append(f"    {ctype} v{o[1]} = {values[0]};")
-        else:
-            self.lines.append(f"    {ctype} v{o[1]}[{len(values)}] = {{{', '.join(values)}}};")
+        kind, *what = a[1]
+        if kind in ("x", "t"):
+            return "t" if kind == "t" else f"x[{j}]"
+        if kind == "ref":
+            return ("yr", "yr_dot")[what[0]] if what[0] < 2 else f"yr_higher[{what[0] - 2}]"
+        full = {nm: shp for nm, shp, _ in self.law.state}[what[0]]
+        return f"s->{what[0]}" + ("" if full == () else f"[{j}]")
 
     def op(self, op: Op):
         out = op.outs[0]
         n = _size(out[2])
         f = _ELEMENTWISE.get(op.prim)
         if f is not None:
-            vals = [f([self.el(a, i) for a in op.ins], op.params, op.ins) for i in range(n)]
+            vals = [f([self.el(a, i) for a in op.ins], op.params) for i in range(n)]
         elif op.prim in _MOVES:
             vals = [self.el(op.ins[k], int(j)) for k, j in _index_map(op)]
         elif op.prim == "dot_general":
@@ -304,14 +251,19 @@ class _Emitter:
         else:
             raise ExportError(f"controller: export cannot write the primitive "
                               f"'{op.prim}' ({op.where}) in C")
-        self.declare(out, vals)
+        ctype = "double" if out[3].kind == "f" else "long long"
+        self.declared[out[1]] = out[2]
+        if out[2] == ():
+            self.lines.append(f"    {ctype} v{out[1]} = {vals[0]};")
+        elif vals:
+            self.lines.append(f"    {ctype} v{out[1]}[{len(vals)}] = {{{', '.join(vals)}}};")
 
 
 def _bin(fmt):
-    return lambda a, p, ins: fmt.format(*a)
+    return lambda a, p: fmt.format(*a)
 
 
-def _integer_pow(a, p, ins):
+def _integer_pow(a, p):
     """x^y by JAX's own sequence of products (its lowering), so the rounding is the same."""
     x, y = a[0], int(p["y"])
     if y == 0:
@@ -327,7 +279,7 @@ def _integer_pow(a, p, ins):
     return f"(1.0 / {acc})" if recip else acc
 
 
-def _convert(a, p, ins):
+def _convert(a, p):
     dtype = np.dtype(p["new_dtype"])
     if dtype.kind == "f":
         return f"(double)({a[0]})"
@@ -336,7 +288,7 @@ def _convert(a, p, ins):
     return f"(long long)({a[0]})"
 
 
-def _select(a, p, ins):
+def _select(a, p):
     expr = a[-1]  # select_n(which, case_0, case_1, ...)
     for k in range(len(a) - 2, 0, -1):
         expr = f"(({a[0]}) == {k - 1} ? {a[k]} : {expr})"
@@ -437,8 +389,7 @@ def c_files(setup, spec, *, source: str = "") -> dict[str, str]:
     (setup, spec); `source` names the config in the header, which lists the gains."""
     from dscjax import config
 
-    law = trace(setup, spec)
-    gains = config.model_to_dict("controller", setup.controller)
+    law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
     return {HEADER: _header(law, spec, source, gains), SOURCE: _source(law, spec)}
 
 
@@ -456,7 +407,7 @@ def _header(law, spec, source, gains) -> str:
  *
  * Order n = {law.order}; sample time Ts = {law.sample_time!r} s; {delay}.
  * The controller's states advance by {spec.discretisation}:
- *   {_scheme_doc(spec.discretisation)}.
+ *   {SCHEME_DOC[spec.discretisation]}.
  * dsc_step reads the plant state x (n values, measured at t), t and the reference:
  *   {ref_doc}.
  * Call dsc_step once per sample, at t = k Ts, k = 0, 1, ..., and hold its u until t + Ts.
@@ -482,11 +433,6 @@ int    dsc_order(void);
 
 #endif
 """
-
-
-def _scheme_doc(scheme: str) -> str:
-    return ("c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau for a filter, 0 "
-            "for an estimate" if scheme == "exponential-euler" else "forward Euler, c += Ts c'")
 
 
 def _source(law: Law, spec) -> str:
