@@ -238,7 +238,11 @@ def markdown(summary: Mapping[str, Any]) -> str:
                      f"{nominal['tv_u']:.4g}"))
     check = summary.get("float32_check")
     lines += ["", "## float32 trust", ""]
-    if check is None:
+    if check is None and run.get("dtype") == "float32":
+        lines.append("The sweep ran in float32 and was **not re-checked** in float64 "
+                     "(`dscjax.sweep.float64_check`): its metrics may differ from float64 by "
+                     "far more than round-off.")
+    elif check is None:
         lines.append(f"The sweep ran in {run.get('dtype')}: nothing to re-check.")
     else:
         bad = check["untrusted"]
