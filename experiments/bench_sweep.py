@@ -3,7 +3,7 @@
     python experiments/bench_sweep.py            # full sizes (docs/benchmarks.md)
     python experiments/bench_sweep.py --quick    # small sweeps, short horizons: JSON only
 
-- End to end: `dscjax sweep --samples 100000` over 20 s (float32, the default) in a fresh
+- End to end: `dscjax sweep --samples 100000` over 20 s (its default dtype) in a fresh
   process, start-up and compilation included (no persistent compilation cache), median of
   --repeats: wall time and closed-loop RK4 steps per second, against scipy's solve_ivp (RK45,
   rtol 1e-6) one plant at a time on the plain-Python loop of tests/reference_paper.py.
@@ -32,6 +32,7 @@ from harness import Bench, Child, child, median, parser, positive, reference_loo
 from dscjax import params  # noqa: E402
 from dscjax.config import example  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
+from dscjax.sweep import SweepSettings  # noqa: E402
 from dscjax.sweep.device import Runner  # noqa: E402
 
 DT = 1e-3
@@ -98,7 +99,7 @@ def main(argv=None) -> int:
     steps = samples * int(round(horizon / DT))
     wall = median([r.wall_s for r in runs])
     scipy_s = scipy_seconds(2 if quick else 5, horizon)
-    what = f"{samples:,} plants x {horizon:g} s, float32"
+    what = f"{samples:,} plants x {horizon:g} s, {SweepSettings().dtype}"
     bench.add(case=f"end to end, {what} [s]", dscjax=wall, baseline="scipy RK45, one plant "
               "at a time", baseline_value=scipy_s * samples, x_baseline=scipy_s * samples / wall)
     bench.add(case=f"end to end, {what} [steps/s]", dscjax=steps / wall)

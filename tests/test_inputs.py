@@ -244,7 +244,7 @@ def test_printed_numbers_are_the_shortest_decimals_of_their_dtype(capsys):
     assert main(["simulate", "--example", "pi", "--print-config"]) == 0
     r = tomllib.loads(capsys.readouterr().out)["hysteresis"]["r"]
     assert r == [0.2, 0.4, 0.6, 0.8, 1.0, 1.2, 1.4, 1.6, 1.8, 2.0]
-    assert main(["sweep", "--print-config"]) == 0  # float32 by default
+    assert main(["sweep", "--print-config"]) == 0  # in the sweep's dtype
     ranges = tomllib.loads(capsys.readouterr().out)["sweep"]["ranges"]
     assert ranges["hysteresis.psi"] == [0.0735, 0.1365]
     assert validation.shortest(np.float32(0.1), np.float32) == 0.1

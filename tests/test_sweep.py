@@ -5,6 +5,7 @@ Short horizons (0.5 s) and a few dozen samples; the compiled block program is sh
 the tests through identical shapes and settings (float64, chunk 8, alpha/lam/psi).
 """
 
+import dataclasses
 import json
 import os
 import subprocess
@@ -18,6 +19,7 @@ import dscjax
 from dscjax import sweep
 from dscjax.cli.main import main as cli
 from dscjax.params import Param, Range, sample_table
+from dscjax.reproduce.sampling import TUNED
 from dscjax.sweep import SweepSettings, run_sweep
 
 T, DT = 0.5, 1e-3
@@ -71,6 +73,41 @@ def test_chunk_size_does_not_change_results(paper_setup, base_result):
         other = run_sweep(paper_setup, SweepSettings(samples=24, chunk=chunk, dtype="float64"),
                           t_final=T, dt=DT)
         _same(base_result.columns, other.columns)
+
+
+def test_float32_metrics_are_rechecked_in_float64(paper_setup):
+    """tune's gains (high k, small tau) make the float32 loop chatter: within 1 s its TV(u)
+    and L2 metrics differ from float64 by far more than round-off, and no float64 sum of the
+    float32 run would repair that. The re-check measures the difference on a few rows (against an
+    independent float64 batch here) and flags exactly the metrics beyond its tolerance."""
+    tuned = dscjax.config.from_dict({"controller": TUNED}, base=paper_setup)[0]
+    t = 1.0
+    s32 = run_sweep(tuned, SweepSettings(samples=8, chunk=8, dtype="float32"), t_final=t, dt=DT)
+    rows = sweep.check_rows(s32, [0, 1], seed=0, least=4)
+    assert len(rows) == 4 and {0, 1} <= set(rows.tolist())
+    check = sweep.float64_check(tuned, s32, rows)
+    # the reference: one float64 batch of the very parameter values the float32 sweep ran
+    s64 = dscjax.simulate_batch(tuned, {p: s32.columns[p][rows] for p in s32.param_names},
+                                t, DT)
+    tol = sweep.FLOAT32_RTOL
+    for m in sweep.METRICS:
+        a, ref = s32.columns[m][rows], np.asarray(s64.metrics[m])
+        diff = float(np.max(np.abs(a - ref) / np.abs(ref)))
+        assert abs(check["max_rel_diff"][m] - diff) <= 0.05 * diff + 1e-6, m
+        if diff > 2 * tol:
+            assert m in check["untrusted"], m
+        elif diff < tol / 2:
+            assert m not in check["untrusted"], m
+    assert {"tv_u", "l2_u"} <= set(check["untrusted"])
+    assert "linf_error" not in check["untrusted"]  # pinned by the initial error, |x1(0)|
+    f64 = dataclasses.replace(s32, info=s32.info | {"dtype": "float64"})
+    assert sweep.float64_check(tuned, f64, rows) is None  # nothing to re-check in float64
+    # summary.md says which metrics float32 cannot be trusted with
+    summary = sweep.summarize(s32) | {"float32_check": check, "run": s32.info}
+    md = sweep.markdown(summary)
+    assert f"**Not trusted in float32: {', '.join(check['untrusted'])}**" in md
+    assert f"| tv_u | {check['max_rel_diff']['tv_u']:.4g} | " in md
+    assert "| linf_error | " in md.split("## float32 trust")[1]
 
 
 def test_spmd_program_agrees_with_the_per_device_programs(paper_setup, base_result):
@@ -181,16 +218,26 @@ def test_sample_tables():
 
 def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
     out = tmp_path / "cli"
-    code = cli(["sweep", "--samples", "24", "--chunk", "8", "--float64", "--t-final", str(T),
+    code = cli(["sweep", "--samples", "24", "--chunk", "8", "--t-final", str(T),
                 "--window-start", "0.25", "--worst", "2", "--random", "1", "--out", str(out)])
     err = capsys.readouterr().err
     assert code == 0, err
     assert "24/24 samples" in err and "steps/s" in err
-    for f in ("results.npz", "summary.json", "traces.npz", "hist_linf_window.png",
+    assert "re-checking" not in err  # float64, the default: nothing to re-check
+    for f in ("results.npz", "summary.json", "summary.md", "traces.npz", "hist_linf_window.png",
               "heatmap_linf_window.png", "traces.png", "sweep.json"):
         assert (out / f).exists(), f
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_samples"] == 24
+    assert summary["run"]["dtype"] == "float64" and summary["float32_check"] is None
+    md = (out / "summary.md").read_text()
+    q = summary["quantiles"]["linf_error_window"]
+    assert (f"| linf_error_window | {q['min']:.4g} | {q['p01']:.4g} | {q['p05']:.4g} | "
+            f"{q['p25']:.4g} | {q['p50']:.4g} |") in md
+    assert f"- diverged at every step tried: {summary['n_diverged']} (" in md
+    assert "ran in float64: nothing to re-check" in md
+    worst = summary["worst"][0]
+    assert f"| {worst['sample']} | " in md.split("## Worst samples that track")[1]
     assert set(summary["quantiles"]) == set(sweep.METRICS)
     assert summary["quantiles"]["linf_error_window"]["p50"] > 0
     assert len(summary["worst"]) == 2 and "hysteresis.lam" in summary["worst"][0]["params"]

@@ -1,5 +1,6 @@
 """Nothing global changes on `import dscjax`; the 512-bit vector preference of the batched
-programs (dscjax/xla.py) is asked for only when wanted and changes no result."""
+programs (dscjax/xla.py) is asked for only when wanted, and no vector width changes a result
+(checked on every machine at each width its CPU runs)."""
 
 import json
 import os
@@ -13,6 +14,7 @@ import pytest
 
 import dscjax
 from dscjax import xla
+from dscjax.runspec import RunSpec
 from dscjax.simulate import _run_reported
 
 
@@ -35,56 +37,65 @@ def test_cpuinfo_parsing(tmp_path):
     assert not xla.cpu_has_avx512(str(tmp_path / "missing"))
 
 
-# Without AVX-512 (or with a width already set in XLA_FLAGS) both compilations below are the
-# same program, and comparing their results would prove nothing.
-wide_differs = pytest.mark.skipif(
-    not xla.cpu_has_avx512() or jax.default_backend() != "cpu"
-    or xla.OPTION in os.environ.get("XLA_FLAGS", ""),
-    reason="512-bit vectors change the code only on a CPU with AVX-512 and no width set in "
-           "XLA_FLAGS")
+def _vector_widths(cpuinfo: str = "/proc/cpuinfo") -> tuple[int, ...]:
+    """The vector widths [bits] this CPU runs: 128 (SSE2, every x86-64), 256 with AVX2, 512
+    with AVX-512 (the width dscjax's batched programs ask for there)."""
+    try:
+        with open(cpuinfo) as f:
+            flags = next((line.split() for line in f if line.startswith("flags")), [])
+    except OSError:
+        flags = []
+    return (128,) + ((256,) if "avx2" in flags else ()) + ((512,) if "avx512f" in flags else ())
 
-_DUMP = f"""
-import jax, jax.numpy as jnp
+
+# Every machine compiles the batch at each width it runs: on the CI machine (AVX2) 128 and 256
+# bits, on an AVX-512 machine also 512, the width of `xla.compiler_options()` there.
+WIDTHS = _vector_widths()
+
+_DUMP = """
+import sys, jax, jax.numpy as jnp
 x = jnp.ones(4096, jnp.float32)
-jax.jit(lambda x: jnp.sin(x) * x + 1.0, compiler_options={xla.WIDE!r}).lower(x).compile()
-jax.jit(lambda x: jnp.sin(x) * x + 2.0).lower(x).compile()
+for w in sys.argv[1:]:
+    jax.jit(lambda x: jnp.sin(x) * x + 1.0,
+            compiler_options={"xla_cpu_prefer_vector_width": int(w)}).lower(x).compile()
 """
 
 
-@wide_differs
-def test_the_option_reaches_the_code_generator(tmp_path):
-    """The premise of the next test: compiled with the option, XLA:CPU emits 16-float vectors
-    (512 bits), without it 8-float ones, for the same elementwise kernel (LLVM IR dumps)."""
+def test_the_vector_width_reaches_the_code_generator(tmp_path):
+    """The premise of the next test: XLA:CPU emits vectors of the width asked for (LLVM IR
+    dumps of one elementwise kernel compiled at each width this CPU runs), so that each width
+    is different machine code."""
     env = dict(os.environ, XLA_FLAGS=f"--xla_dump_to={tmp_path}", JAX_PLATFORMS="cpu")
-    subprocess.run([sys.executable, "-c", _DUMP], env=env, check=True, capture_output=True,
-                   timeout=300)
-
-    def widths(module):
-        ir = "".join(f.read_text() for f in tmp_path.glob(f"{module}.*ir-with-opt.ll"))
-        return "<16 x float>" in ir, "<8 x float>" in ir
-
-    # the two lambdas, in the order compiled (module numbers grow)
+    subprocess.run([sys.executable, "-c", _DUMP, *map(str, WIDTHS)], env=env, check=True,
+                   capture_output=True, timeout=300)
+    # the kernels, in the order compiled (module numbers grow)
     modules = sorted({f.name.split(".")[0] for f in tmp_path.glob("*lambda*ir-with-opt.ll")})
-    assert len(modules) == 2, sorted(f.name for f in tmp_path.iterdir())
-    wide, narrow = (widths(m) for m in modules)
-    assert wide == (True, False) and narrow == (False, True)
+    assert len(modules) == len(WIDTHS), sorted(f.name for f in tmp_path.iterdir())
+    for width, module in zip(WIDTHS, modules, strict=True):
+        ir = "".join(f.read_text() for f in tmp_path.glob(f"{module}.*ir-with-opt.ll"))
+        floats = width // 32
+        assert f"<{floats} x float>" in ir, (width, module)
+        assert f"<{2 * floats} x float>" not in ir, (width, module)
 
 
-@wide_differs
-def test_wide_vectors_change_no_result(paper_setup):
-    """The same float64 batch compiled with and without 512-bit vectors (different machine
-    code on this CPU, see above): bitwise equal trajectories and metrics."""
+def test_vector_widths_change_no_result(paper_setup):
+    """The same float64 batch compiled for every vector width this CPU runs (different machine
+    code, see above), dscjax's own choice included: bitwise equal trajectories and metrics."""
     setup = dscjax.canonical(paper_setup)
     overrides = {"hysteresis.alpha": jnp.linspace(0.7, 1.3, 64),
                  "hysteresis.lam": jnp.linspace(1.0, 1.8, 64)}
-    args = (setup, jnp.asarray(1e-3), jnp.asarray(0.25), jnp.asarray(1e6))
-    kw = dict(n_steps=500, save_every=50, overrides=overrides)
-    static = ("n_steps", "save_every", "checkpoint_every")
-    wide = jax.jit(_run_reported, static_argnames=static, compiler_options=xla.WIDE)(*args, **kw)
-    narrow = jax.jit(_run_reported, static_argnames=static)(*args, **kw)
-    assert xla.compiler_options() == xla.WIDE  # what simulate_batch and sweeps compile with
-    for a, b in zip(jax.tree.leaves(wide), jax.tree.leaves(narrow), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    spec = RunSpec.make(0.5, 1e-3, save_every=50, window_start=0.25)
+    runs = [jax.jit(_run_reported, compiler_options={xla.OPTION: w})(setup, spec, overrides)
+            for w in WIDTHS]
+    # what simulate_batch and sweeps run: the 512-bit program above on AVX-512, else JAX's own
+    assert xla.compiler_options() in ({}, xla.WIDE)
+    if xla.compiler_options() == xla.WIDE:
+        assert 512 in WIDTHS
+    else:
+        runs.append(xla.jit(_run_reported)(setup, spec, overrides))
+    for other in runs[1:]:
+        for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(other), strict=True):
+            np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
 _IMPORT_ALL = """

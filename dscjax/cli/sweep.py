@@ -1,7 +1,8 @@
 """`dscjax sweep`: Monte-Carlo or grid robustness sweep with fixed gains.
 
 Writes into DIR: sweep.json (what was run), chunks/chunk_*.npz (one per finished block),
-results.npz (one row per sample: parameters and metrics), summary.json, hist_linf_window.png,
+results.npz (one row per sample: parameters and metrics), summary.json, summary.md (the same for a
+person, with the float32 trust flags of a float32 sweep), hist_linf_window.png,
 heatmap_linf_window.png (or scan_linf_window.png for one parameter), traces.npz and
 traces.png (the worst samples and a random handful, re-simulated with full trajectories).
 """
@@ -36,7 +37,7 @@ from dscjax.progress import Progress
 DEGRADED_FACTOR = 2.0
 # the [simulation] keys this command takes as options
 SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *SAMPLED_KEYS, "device")
-OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "traces.npz",
+OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))
 
@@ -313,15 +314,24 @@ def run(args) -> int:
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
                          "max_rel_diff_resimulated_vs_sweep": check}
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
+    f32 = None
+    if settings.dtype == "float32":
+        rechecked = sweep.check_rows(result, rows, settings.seed)
+        print(f"  re-checking {len(rechecked)} rows in float64 (which metrics float32 can be "
+              f"trusted with) ...", file=sys.stderr)
+        f32 = sweep.float64_check(setup, result, rechecked,
+                                  ranges_params=[r.param for r in ranges])
+    summary["float32_check"] = f32
 
     figures = []
     if not args.no_plot:
         figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
                          nominal_params, trajs, records, kinds, window_start, t_final, summary)
     write_json(out / "summary.json", summary)
+    files.write_text(out / "summary.md", sweep.markdown(summary))
 
     q = summary["quantiles"]["linf_error_window"]
-    print(f"  wrote {out}/results.npz, summary.json, traces.npz"
+    print(f"  wrote {out}/results.npz, summary.json, summary.md, traces.npz"
           + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
              else "nothing left to run)"))
@@ -339,6 +349,12 @@ def run(args) -> int:
           + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")")
     print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
           f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
+    if f32 is not None and f32["untrusted"]:
+        worst = max(f32["max_rel_diff"][m] for m in f32["untrusted"])
+        print(f"  warning: float32 cannot be trusted with {', '.join(f32['untrusted'])}: they "
+              f"differ from float64 by up to {100 * worst:.3g} % on {len(f32['rows'])} "
+              f"re-checked rows (tolerance {100 * f32['rtol']:g} %); rerun with --float64",
+              file=sys.stderr)
     return 0
 
 

@@ -1,7 +1,7 @@
 """Monte-Carlo and grid robustness sweeps: many plants, fixed gains, metrics only.
 
     settings = SweepSettings(samples=100_000)                  # alpha, lam, psi within +-30 %
-    result = run_sweep(paper_example(np.float32), settings, t_final=20.0, dt=1e-3,
+    result = run_sweep(paper_example(), settings, t_final=20.0, dt=1e-3,
                        out_dir="results/sweep")                 # chunk files, resumable
     result.columns["linf_error_window"]                         # one row per sample
 
@@ -29,6 +29,10 @@ from dscjax.sweep.settings import (
     settings_from_dict,
 )
 from dscjax.sweep.summary import (
+    FLOAT32_RTOL,
+    check_rows,
+    float64_check,
+    markdown,
     random_rows,
     rank_diverged,
     rank_worst,
@@ -38,7 +42,8 @@ from dscjax.sweep.summary import (
     trace_rows,
 )
 
-__all__ = ["AUTO_BLOCK", "METRICS", "PARALLEL", "SweepResult", "SweepSettings", "auto_chunk",
-           "check_resumable", "check_settings", "random_rows",
+__all__ = ["AUTO_BLOCK", "FLOAT32_RTOL", "METRICS", "PARALLEL", "SweepResult", "SweepSettings",
+           "auto_chunk", "check_resumable", "check_rows", "check_settings", "float64_check",
+           "markdown", "random_rows",
            "rank_diverged", "rank_worst", "run_sweep", "sample_record", "settings_from_dict",
            "simulate_rows", "summarize", "trace_rows"]

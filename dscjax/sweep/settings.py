@@ -30,7 +30,8 @@ class SweepSettings:
         ranges: what varies; empty: `default_ranges(setup)` (each +-30 %).
         seed: seed of the samples (and of the random handful of traces).
         chunk: samples per block and device; None: `device.auto_chunk`.
-        dtype: "float32" (default) or "float64".
+        dtype: "float64" (default) or "float32" (faster; its metrics re-checked in float64,
+            `float64_check`).
         worst, random: how many worst samples and random samples get full traces.
         heatmap: the two parameter names of the heatmap (default: the first two swept).
         threshold: windowed L-inf error above which tracking counts as degraded (default:
@@ -43,7 +44,7 @@ class SweepSettings:
     ranges: tuple[Range, ...] = ()
     seed: int = 0
     chunk: int | None = None
-    dtype: Dtype = "float32"
+    dtype: Dtype = "float64"
     worst: int = 6
     random: int = 3
     heatmap: tuple[str, str] | None = None

@@ -1,5 +1,6 @@
 """What a finished sweep says: quantiles, divergence and degradation rates, the worst samples,
-and full re-simulated traces of chosen rows."""
+full re-simulated traces of chosen rows, the float64 re-check of a float32 sweep (which metrics
+float32 can be trusted with) and summary.md."""
 
 from __future__ import annotations
 
@@ -15,6 +16,10 @@ from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import SweepResult
 
 QUANTILES = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
+# A float32 metric is trusted when, on every re-checked row, it agrees with the same row run in
+# float64 to this relative difference (`float64_check`).
+FLOAT32_RTOL = 1e-3
+MIN_CHECK_ROWS = 3  # a float32 sweep re-checks at least this many rows in float64
 
 
 def rank_worst(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
@@ -111,12 +116,13 @@ def random_rows(n: int, k: int, seed: int, exclude: Iterable[int] = ()) -> np.nd
 
 
 def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every: int = 10,
-                  ranges_params: Sequence[Param] | None = None) -> list:
+                  ranges_params: Sequence[Param] | None = None, dtype: str | None = None
+                  ) -> list:
     """Full trajectories of chosen rows, re-simulated one at a time with `dscjax.simulate`
     with the sweep's solver and refinement (throw=False: diverged ones come back frozen at
-    their last good state)."""
+    their last good state), in `dtype` (default the sweep's)."""
     info = result.info
-    setup = params.cast(setup, np.dtype(info["dtype"]))
+    setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
     n_steps = info["n_steps"]
     every = max(1, min(save_every, n_steps))
@@ -132,3 +138,139 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     return out
 
 
+
+
+def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
+               least: int = MIN_CHECK_ROWS) -> np.ndarray:
+    """The rows a float32 sweep re-checks in float64: `rows` (the traced ones) that did not
+    diverge, topped up with random rows that did not diverge to at least `least`."""
+    ok = ~np.asarray(result.columns["diverged"], bool)
+    mine = [int(i) for i in rows if ok[i]]
+    if len(mine) < least:
+        pool = random_rows(result.n, result.n, seed, exclude=np.flatnonzero(~ok).tolist() + mine)
+        mine += [int(i) for i in pool[:least - len(mine)]]
+    return np.asarray(sorted(set(mine)), np.int64)
+
+
+def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
+                  ranges_params: Sequence[Param] | None = None,
+                  rtol: float = FLOAT32_RTOL) -> dict[str, Any] | None:
+    """Which metrics a float32 sweep can be trusted with: `rows` re-run in float64
+    (`simulate_rows`), and per metric the largest relative difference of the swept float32
+    value from the float64 one. A metric above `rtol` on any row is listed in "untrusted".
+    None for a float64 sweep (nothing to check) or without rows.
+
+    The float32 loop itself can differ from the float64 one (high gains amplify its rounding
+    into chattering of u), so no float64 accumulation of the float32 run would repair it.
+    """
+    if result.info["dtype"] != "float32" or len(rows) == 0:
+        return None
+    runs = simulate_rows(setup, result, rows, save_every=result.info["n_steps"],
+                         ranges_params=ranges_params, dtype="float64")
+    c = result.columns
+    diff, where = {}, {}
+    for m in METRICS:
+        worst, at = 0.0, None
+        for i, tr in zip(rows, runs, strict=True):
+            a, ref = float(c[m][i]), float(tr.metrics[m])
+            d = (abs(a - ref) / max(abs(ref), 1e-30) if np.isfinite(a) and np.isfinite(ref)
+                 else (0.0 if np.isnan(a) and np.isnan(ref) else np.inf))
+            if at is None or d > worst:
+                worst, at = d, int(c["sample"][i])
+        diff[m], where[m] = worst, at
+    return {"rows": [int(c["sample"][i]) for i in rows], "rtol": rtol,
+            "max_rel_diff": diff, "at_sample": where,
+            "untrusted": [m for m in METRICS if not diff[m] <= rtol]}
+
+
+def _cell(x) -> str:
+    if isinstance(x, bool) or x is None:
+        return {True: "yes", False: "no", None: "-"}[x]
+    if isinstance(x, (int, np.integer)):
+        return f"{int(x):,}"
+    if isinstance(x, float):
+        return f"{x:.4g}"
+    return str(x).replace("|", "\\|")
+
+
+def _table(head: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
+    return (["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+            + ["| " + " | ".join(_cell(x) for x in r) + " |" for r in rows])
+
+
+def markdown(summary: Mapping[str, Any]) -> str:
+    """summary.md: what summary.json says, for a person: the run, the three kinds of rows,
+    the degraded rate, the float32 trust flags, the quantiles, the worst and first diverged
+    samples."""
+    run = summary.get("run", {})
+    n = summary["n_samples"]
+    what = "grid points" if run.get("method") == "grid" else "samples"
+    ranges = ", ".join(f"{k} in [{v[0]:.4g}, {v[1]:.4g}]" + (f" x{v[2]}" if len(v) > 2 else "")
+                       for k, v in run.get("ranges", {}).items())
+    lines = ["# Robustness sweep", "",
+             f"{n:,} {what} ({run.get('method')}, seed {run.get('seed')}) of {ranges}; "
+             f"T = {run.get('t_final', float('nan')):g} s, dt = {run.get('dt', float('nan')):g} s, "
+             f"{run.get('dtype')}, solver {run.get('solver')}; windowed metrics on t >= "
+             f"{run.get('window_start', float('nan')):g} s. Wall time "
+             f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
+             f"({run.get('platform')}).", ""]
+    for w in summary.get("warnings", []):
+        lines.append(f"**Warning:** {w}")
+    if summary.get("warnings"):
+        lines.append("")
+    smallest = summary.get("smallest_dt_tried")
+    lines += ["## Outcome", "",
+              f"- tracked: {summary['n_tracked']:,}",
+              f"- tracked after refinement (a stiff run re-done with ETDRK4 at a smaller step): "
+              f"{summary['n_refined']:,}",
+              f"- diverged at every step tried: {summary['n_diverged']:,} "
+              f"({100 * summary['divergence_rate']:.2f} %"
+              + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")"]
+    deg = summary.get("degraded")
+    if deg:
+        lines.append(f"- degraded ({deg['metric']} above {deg['threshold']:.4g}"
+                     + (f", {deg['rule']}" if deg.get("rule") else "")
+                     + f"; diverged included): {deg['count']:,} ({100 * deg['rate']:.2f} %)")
+    nominal = summary.get("nominal")
+    if nominal:
+        lines.append("- nominal setup: " + ("diverged" if nominal.get("diverged") else
+                     f"linf_error_window {nominal['linf_error_window']:.4g}, tv_u "
+                     f"{nominal['tv_u']:.4g}"))
+    check = summary.get("float32_check")
+    lines += ["", "## float32 trust", ""]
+    if check is None and run.get("dtype") == "float32":
+        lines.append("The sweep ran in float32 and was **not re-checked** in float64 "
+                     "(`dscjax.sweep.float64_check`): its metrics may differ from float64 by "
+                     "far more than round-off.")
+    elif check is None:
+        lines.append(f"The sweep ran in {run.get('dtype')}: nothing to re-check.")
+    else:
+        bad = check["untrusted"]
+        lines += [f"{len(check['rows'])} rows (samples {', '.join(map(str, check['rows']))}) "
+                  f"were re-run in float64. A metric is trusted when every one agrees to a "
+                  f"relative {check['rtol']:.3g}. "
+                  + (f"**Not trusted in float32: {', '.join(bad)}**; rerun with --float64."
+                     if bad else "Every metric agrees."), ""]
+        lines += _table(["metric", "max relative difference", "at sample", "trusted"],
+                        [(m, check["max_rel_diff"][m], check["at_sample"][m], m not in bad)
+                         for m in check["max_rel_diff"]])
+    q = summary["quantiles"]
+    lines += ["", f"## Quantiles over the {summary['quantiles_over']}", ""]
+    keys = ["min", "p01", "p05", "p25", "p50", "p75", "p95", "p99", "max", "mean"]
+    lines += _table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
+                                                ["-"] * len(keys))) for m in q])
+    for title, recs, extra in (("Worst samples that track", summary.get("worst", []), False),
+                               ("First samples to diverge", summary.get("first_diverged", []),
+                                True)):
+        if not recs:
+            continue
+        names = list(recs[0]["params"])
+        head = ["sample", *names] + (["t_diverged", "dt_used"] if extra else
+                                     ["linf_error_window", "rms_error_window", "tv_u",
+                                      "refinements"])
+        body = [(r["sample"], *[r["params"][p] for p in names])
+                + ((r["t_diverged"], r["dt_used"]) if extra else
+                   (r["metrics"]["linf_error_window"], r["metrics"]["rms_error_window"],
+                    r["metrics"]["tv_u"], r["refinements"])) for r in recs]
+        lines += ["", f"## {title}", ""] + _table(head, body)
+    return "\n".join(lines) + "\n"
