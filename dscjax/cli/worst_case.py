@@ -100,7 +100,13 @@ def run(args) -> int:
     from dscjax.params import parse_range
     from dscjax.progress import Progress
     from dscjax.validation import ConfigError, check_work
-    from dscjax.worst import best_value, check_search, make_problem, worst_case
+    from dscjax.worst import (
+        assumption_warnings,
+        best_value,
+        check_search,
+        make_problem,
+        worst_case,
+    )
     from dscjax.worst.report import write
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
@@ -143,6 +149,8 @@ def run(args) -> int:
           + f"; {', '.join(methods)}, {args.time_limit:g} s each"
           + (f" (at most {args.max_evals} evaluations)" if args.max_evals else "")
           + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
+    for w in assumption_warnings(problem):
+        print(f"dscjax worst-case: warning: {w}", file=sys.stderr)
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)

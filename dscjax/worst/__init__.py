@@ -122,6 +122,9 @@ class Problem:
     metric: str
     spec: RunSpec  # how every candidate is simulated (metrics only: save_every = n_steps)
     requirement: Any = None  # the reduction of a "requirement:NAME" metric, else None
+    # the run as the user gave it (`spec` before the search's metrics-only settings): what
+    # worst_config.toml writes, so that it replays as a trajectory one can look at
+    options: RunSpec | None = None
 
     @property
     def metric_key(self) -> str:
@@ -208,6 +211,14 @@ class Problem:
                 "requirement": _describe(self.requirement)}
 
 
+def assumption_warnings(problem: Problem) -> list[str]:
+    """The paper's assumptions (`validation.assumption_warnings`) that the base setup, or an
+    end of a searched box, violates: a box on plant.g[i] reaching below controller.g_min is
+    named with its --range."""
+    return [w.replace("--range.", "--range ") for w in
+            params.assumption_warnings(problem.setup, problem.ranges, "--range")]
+
+
 def _describe(reduction) -> dict | None:
     """The kind and numbers of a requirement (for fingerprints)."""
     if reduction is None:
@@ -259,7 +270,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         spec = RunSpec.make(**run)
     elif run:
         raise TypeError("make_problem: give spec or its fields, not both")
-    spec = spec.replace(save_every=spec.n_steps)
+    options, spec = spec, spec.replace(save_every=spec.n_steps)
     t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     setup = params.cast(setup, _dtype(setup))
     if disturbance is not None:
@@ -275,7 +286,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
                                 window_start=window_start)
     if requirement is not None and hasattr(requirement, "n_steps"):
         requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
-    return Problem(setup, resolved, disturbance, metric, spec, requirement)
+    return Problem(setup, resolved, disturbance, metric, spec, requirement, options)
 
 
 # -- the compiled programs ----------------------------------------------------------------------
@@ -673,5 +684,6 @@ def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
 
 
 __all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
-           "DisturbanceSpec", "Problem", "Programs", "Result", "best_value", "make_problem",
+           "DisturbanceSpec", "Problem", "Programs", "Result", "assumption_warnings",
+           "best_value", "make_problem",
            "run_methods", "search_method", "worst_case"]
