@@ -279,8 +279,18 @@ def test_a_box_of_one_dimension_is_searched_and_warned_of(tmp_path, capsys):
     out = tmp_path / "w"
     assert main(["worst-case", "--t-final", "1.5", "--range", "plant.g[1]=0.7:1.3", "--methods",
                  "cma,random", "--batch", "4", "--max-evals", "8", "--time-limit", "600",
-                 "--no-plot", "--quiet", "--out", str(out)]) == 0
+                 "--no-plot", "--out", str(out)]) == 0
     err = capsys.readouterr().err.splitlines()
+    # each phase says what it does: a method's compilation, then its bar (search seconds,
+    # after an iteration that compiled nothing), the re-check
+    said = [i for i, line in enumerate(err) if line.startswith(("  cma: compiling",
+                                                                "  random: compiling",
+                                                                "  re-checking "))]
+    assert len(said) == 3 and said == sorted(said)
+    cma_bar = [i for i, line in enumerate(err) if line.startswith("  cma      ")]
+    random_bar = [i for i, line in enumerate(err) if line.startswith("  random   ")]
+    assert cma_bar and all(said[0] < i < said[1] for i in cma_bar)
+    assert random_bar and all(said[1] < i < said[2] for i in random_bar)
     warning = ("dscjax worst-case: warning: Assumption 4 (g_min <= |g_i|) does not hold: "
                "controller.g_min = 1 but plant.g has |g_2| = 0.7 for part of --range "
                "plant.g[1] = [0.7, 1.3]; the design's guarantees (Theorem 1) do not apply there")

@@ -566,7 +566,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
                coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
                resume: bool = False, max_evals: int | None = None,
                progress: Callable[[str, search.Trace, float], None] | None = None,
-               **problem_options) -> Result:
+               say: Callable[[str], None] | None = None, **problem_options) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds (or
     `max_evals` evaluations, whichever comes first).
 
@@ -585,6 +585,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
         max_evals: stop a method after this many candidates (its last batch finished); a
             count, unlike a time, sees the same points under any load.
         progress: called with (method, trace, time_limit) after every iteration.
+        say: called with a line of text as each phase begins (a method's compilation and
+            search, the re-check), so that no long phase passes in silence.
 
     Returns:
         `Result`; its value is re-checked by `simulate` (with refinement) on the worst setup.
@@ -608,8 +610,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
     prog = Programs.for_problem(problem, gradient, coarsening)
     traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
                          seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
-                         fingerprint=fp, progress=progress, max_evals=max_evals)
-    return _finish(problem, traces)
+                         fingerprint=fp, progress=progress, max_evals=max_evals, say=say)
+    return _finish(problem, traces, say)
 
 
 def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
@@ -635,13 +637,17 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
                 lr: float = DEFAULT_LR, out_dir: str | Path | None = None,
                 resume: bool = False, fingerprint: Any = None,
                 progress: Callable | None = None,
-                max_evals: int | None = None) -> dict[str, search.Trace]:
+                max_evals: int | None = None,
+                say: Callable[[str], None] | None = None) -> dict[str, search.Trace]:
     """Run each method on the programs for `time_limit` search seconds (compilation apart)
     or `max_evals` evaluations, whichever comes first, each from its `state_<method>.npz` in
-    out_dir with `resume`; {method: Trace}."""
+    out_dir with `resume`; {method: Trace}. `say` gets a line as each method begins."""
     out = Path(out_dir) if out_dir is not None else None
     traces = {}
     for name in methods:
+        if say is not None:
+            say(f"{name}: compiling its programs (not counted in the time limit), then "
+                f"searching")
         each = None if progress is None else (
             lambda tr, row, name=name: progress(name, tr, time_limit))
         res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
@@ -653,7 +659,8 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
     return traces
 
 
-def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
+def _finish(problem: Problem, traces: dict[str, search.Trace],
+            say: Callable[[str], None] | None = None) -> Result:
     """Re-check each method's best point and its diverged candidates with `simulate`; the
     worst of them is the result."""
     candidates = []
@@ -663,6 +670,10 @@ def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
         candidates += [(mth, z) for z in tr.diverged_z[:2]]
     if not candidates:
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
+    if say is not None:
+        n = len({np.asarray(z).tobytes() for _, z in candidates})
+        say(f"re-checking {n} candidate(s) and the nominal point with simulate (every step, "
+            f"refined if they diverge)")
     best = None
     checked = {}
     for mth, z in candidates:
