@@ -291,6 +291,10 @@ def test_a_box_of_one_dimension_is_searched_and_warned_of(tmp_path, capsys):
     random_bar = [i for i, line in enumerate(err) if line.startswith("  random   ")]
     assert cma_bar and all(said[0] < i < said[1] for i in cma_bar)
     assert random_bar and all(said[1] < i < said[2] for i in random_bar)
+    # no bar for an iteration that compiled (or loaded) programs: the first line is the
+    # second iteration's (CMA-ES: 1 + 4 then 4 evaluations; random: 4 then 4)
+    assert err[cma_bar[0]].endswith(", 9 evaluations")
+    assert err[random_bar[0]].endswith(", 8 evaluations")
     warning = ("dscjax worst-case: warning: Assumption 4 (g_min <= |g_i|) does not hold: "
                "controller.g_min = 1 but plant.g has |g_2| = 0.7 for part of --range "
                "plant.g[1] = [0.7, 1.3]; the design's guarantees (Theorem 1) do not apply there")
