@@ -311,3 +311,25 @@ def test_a_nan_point_steps_back_from_the_last_good_one_with_half_the_step():
     assert all(np.isfinite(x).all() for x in s2)
     # the descent direction is the gradient scaled as Adam scales it, without the momentum
     assert np.all(np.sign(s1.good_dir) == -np.sign(2 * (np.zeros(3) - C)))
+
+
+@pytest.mark.parametrize("method, tol", [(CMA(), 1e-4), (CMA(path=True), 1e-4),
+                                         (Gradient(starts=2, screen=8), 1e-2),
+                                         (Random(batch=16), 0.05)])
+def test_every_method_searches_a_box_of_one_dimension(method, tol, tmp_path):
+    """A box of one dimension (pycma 4.5 alone fails on it with 'not yet initialized'):
+    each method finds the minimum z = 0.3 of (z - 0.3)^2 on [-1, 1], every candidate inside
+    the box; CMA-ES resumes bitwise there too."""
+    p = Bowl([0.3], [-1.0], [1.0])
+    res = search.run(p, method, x0=np.zeros(1), max_iterations=40)
+    assert res.trace.best_z.shape == (1,)
+    assert abs(res.trace.best_z[0] - 0.3) < tol
+    assert np.all(np.abs(res.trace.top_z) <= 1.0)
+    if isinstance(method, CMA):
+        whole = search.run(Bowl([0.3], [-1.0], [1.0]), method, x0=np.zeros(1), seed=2,
+                           max_iterations=6)
+        search.run(Bowl([0.3], [-1.0], [1.0]), method, x0=np.zeros(1), seed=2,
+                   max_iterations=3, path=tmp_path / "s.npz")
+        again = search.run(Bowl([0.3], [-1.0], [1.0]), method, x0=np.zeros(1), seed=2,
+                           max_iterations=6, path=tmp_path / "s.npz", resume=True)
+        _same(again, whole, method)

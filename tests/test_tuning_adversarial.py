@@ -182,9 +182,10 @@ def test_resume_refuses_another_search_evals(adv_run, run_with_config, capsys):
                               "8", "--resume", "--quiet", "--no-plot")
     err = capsys.readouterr().err.strip()
     assert code == 2 and "Traceback" not in err
-    assert err.splitlines()[-1].endswith("was made with other settings (adversarial."
-                                         "search_evals None (now 8)); use the same settings, "
-                                         "or --overwrite to start afresh")
+    # refused first: the one line, before the banner and any work
+    assert len(err.splitlines()) == 1
+    assert err.endswith("was made with other settings (adversarial.search_evals None (now 8)); "
+                        "use the same settings, or --overwrite to start afresh")
 
 
 def test_search_evals_ends_each_search_at_that_count(adv_run):

@@ -107,6 +107,29 @@ def test_gains_json_loads_back_into_simulate(cli_run, tmp_path):
     gains = json.loads((out / "gains.json").read_text())
     best = json.loads((out / "best.json").read_text())
     assert gains["controller"]["k"] == pytest.approx(best["values"]["controller.k"], rel=1e-15)
+    # a trajectory one can look at: every step of the 2 s horizon, not the search's two
+    # metrics-only points
+    with np.load(tmp_path / "trajectory.npz") as z:
+        np.testing.assert_allclose(z["t"], np.arange(2001) * 1e-3, rtol=0, atol=1e-12)
+
+
+def test_resume_with_a_changed_config_is_refused_first_with_old_and_new_values(
+        cli_run, tmp_path, capsys):
+    """Before the banner, the notes and the start gains' evaluation: one line naming the old
+    and the new value, exit 2, nothing printed or written besides."""
+    _, out, _ = cli_run
+    cfg = tmp_path / "changed.toml"
+    cfg.write_text(TINY.replace("learning_rate = 0.1", "learning_rate = 0.2"))
+    before = {f.name: f.read_bytes() for f in out.iterdir()}
+    capsys.readouterr()
+    assert main(["tune", "--config", str(cfg), "--out", str(out), "--resume", "--quiet"]) == 2
+    captured = capsys.readouterr()
+    assert captured.out == ""
+    assert captured.err.splitlines() == [
+        f"dscjax tune: error: --resume: the checkpoint in {out} was made with other settings "
+        f"(optimizer.learning_rate 0.1 (now 0.2)); use the same settings, or --overwrite to "
+        f"start afresh"]
+    assert {f.name: f.read_bytes() for f in out.iterdir()} == before
 
 
 def test_existing_run_needs_resume_or_overwrite(cli_run, capsys):

@@ -246,13 +246,74 @@ def test_worst_case_outputs_and_exact_reproduction(searched, tmp_path):
                  "--no-plot"]) == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["linf_error_window"] == worst["value"]  # exactly
+    # a trajectory one can look at: every step of 1.5 s at dt = 1e-3, not the search's two
+    # metrics-only points (its save_every = 1500 stays out of the config)
+    with np.load(out / "trajectory.npz") as z:
+        np.testing.assert_allclose(z["t"], np.arange(1501) * 1e-3, rtol=0, atol=1e-12)
+    assert config.load(searched / "worst_config.toml")[1].save_every == 1
+    # plant.g[1] = 0.7:1.3 reaches below controller.g_min = 1 (Assumption 4), as simulate warns
+    assert worst["warnings"] == [
+        "Assumption 4 (g_min <= |g_i|) does not hold: controller.g_min = 1 but plant.g has "
+        "|g_2| = 0.7 for part of --range plant.g[1] = [0.7, 1.3]; the design's guarantees "
+        "(Theorem 1) do not apply there"]
+
+
+@pytest.mark.parametrize("command", ["simulate", "sweep", "tune", "worst-case", "stability",
+                                     "hysteresis"])
+def test_every_printed_config_replays_as_a_whole_trajectory(command, tmp_path, capsys):
+    """`--print-config` of every command, loaded back by `dscjax simulate --config`: the
+    trajectory holds every step of the horizon (another command's own table is its own)."""
+    assert main([command, "--print-config", "--t-final", "0.25"]) == 0
+    printed = tmp_path / "printed.toml"
+    printed.write_text(capsys.readouterr().out)
+    out = tmp_path / "sim"
+    assert main(["simulate", "--config", str(printed), "--out", str(out), "--no-plot"]) == 0
+    with np.load(out / "trajectory.npz") as z:
+        np.testing.assert_allclose(z["t"], np.arange(251) * 1e-3, rtol=0, atol=1e-12)
+
+
+def test_a_box_of_one_dimension_is_searched_and_warned_of(tmp_path, capsys):
+    """A box of one dimension, by CMA-ES and random sampling (pycma 4.5 alone fails on it),
+    on plant.g[1] across controller.g_min = 1: the Assumption 4 warning on stderr, before the
+    search, and in worst.json; the worst point lies in the box."""
+    out = tmp_path / "w"
+    assert main(["worst-case", "--t-final", "1.5", "--range", "plant.g[1]=0.7:1.3", "--methods",
+                 "cma,random", "--batch", "4", "--max-evals", "8", "--time-limit", "600",
+                 "--no-plot", "--out", str(out)]) == 0
+    err = capsys.readouterr().err.splitlines()
+    # each phase says what it does: a method's compilation, then its bar (search seconds,
+    # after an iteration that compiled nothing), the re-check
+    said = [i for i, line in enumerate(err) if line.startswith(("  cma: compiling",
+                                                                "  random: compiling",
+                                                                "  re-checking "))]
+    assert len(said) == 3 and said == sorted(said)
+    cma_bar = [i for i, line in enumerate(err) if line.startswith("  cma      ")]
+    random_bar = [i for i, line in enumerate(err) if line.startswith("  random   ")]
+    assert cma_bar and all(said[0] < i < said[1] for i in cma_bar)
+    assert random_bar and all(said[1] < i < said[2] for i in random_bar)
+    # no bar for an iteration that compiled (or loaded) programs: the first line is the
+    # second iteration's (CMA-ES: 1 + 4 then 4 evaluations; random: 4 then 4)
+    assert err[cma_bar[0]].endswith(", 9 evaluations")
+    assert err[random_bar[0]].endswith(", 8 evaluations")
+    warning = ("dscjax worst-case: warning: Assumption 4 (g_min <= |g_i|) does not hold: "
+               "controller.g_min = 1 but plant.g has |g_2| = 0.7 for part of --range "
+               "plant.g[1] = [0.7, 1.3]; the design's guarantees (Theorem 1) do not apply there")
+    assert err[1] == warning and err.count(warning) == 1
+    worst = json.loads((out / "worst.json").read_text())
+    assert worst["warnings"] == [warning.split("warning: ", 1)[1]]
+    assert set(worst["methods"]) == {"cma", "random"}
+    assert all(m["evaluations"] >= 8 for m in worst["methods"].values())
+    assert 0.7 <= worst["parameters"]["plant.g[1]"] <= 1.3
 
 
 def test_worst_case_refuses_to_mix_runs_and_resumes(searched, capsys):
     assert main([*ARGS, "--out", str(searched)]) == 2
     assert "--resume" in capsys.readouterr().err
     assert main([*ARGS, "--out", str(searched), "--resume", "--seed", "3"]) == 2
-    assert "seed" in capsys.readouterr().err
+    # refused first, in one line naming the old and the new value
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("dscjax worst-case: error: --resume: ")
+    assert "was made with other settings (seed 0 (now 3))" in err[0]
     before = json.loads((searched / "worst.json").read_text())["methods"]["random"]
     assert main([*ARGS, "--out", str(searched), "--resume"]) == 0
     after = json.loads((searched / "worst.json").read_text())["methods"]["random"]

@@ -110,11 +110,26 @@ def _gains(problem: runner.Problem, z) -> Any:
 
 
 def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
-    """What adversarial.json stores to resume: the digest of `desc` and the
-    [tuning.adversarial] settings (the rounds apart, the box as searched)."""
+    """What adversarial.json stores to resume: `desc` (whole, so that a refusal names the old
+    and new values) and the [tuning.adversarial] settings (the rounds apart, the box as
+    searched)."""
     adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
-    return {"problem": files.digest(desc), "adversarial": adv}
+    return {"problem": desc, "adversarial": adv}
+
+
+def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
+    """ConfigError (one line, the old and new values of what differs) unless the run in `out`
+    was made with these settings (`run`'s arguments); nothing is run: checked before any
+    work or output."""
+    path = Path(out) / MANIFEST
+    if not path.exists():
+        return  # (run says what is missing)
+    searched = search_problem(setup, options, cfg)
+    desc = runner.describe(searched.setup, options, cfg)
+    files.check_same(files.read_json(path).get("fingerprint"),
+                     run_fingerprint(cfg.adversarial, searched, desc), where=f"--resume: {path}",
+                     fix="use the same settings, or --overwrite to start afresh")
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:

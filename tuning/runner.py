@@ -69,22 +69,28 @@ class Problem:
 
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
-        opt = dataclasses.asdict(self.cfg.optimizer)
-        for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
-            opt.pop(k)  # where to stop: a resumed run may change it
-        return {
-            "setup": dconfig.to_dict(self.setup, self.options),
-            "params": [dataclasses.asdict(t) for t in self.selection.items],
-            "objective": dataclasses.asdict(self.cfg.objective),
-            "optimizer": opt,
-            "robust": _batch_desc(self.cfg.robust, self.setup),
-            "requirements": dict(self.cfg.requirements),
-            "sim": self.objective.sim.describe(),
-            "sampled": (None if self.objective.sampled is None
-                        else self.objective.sampled.describe()),
-            "mode": self.mode,
-        } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in self.extra_plants.items()}}
-             if self.extra_plants else {})
+        return _description(self.setup, self.options, self.cfg, self.selection,
+                            self.objective.sim, self.objective.sampled, self.mode,
+                            self.extra_plants)
+
+
+def _description(setup, options, cfg, selection, sim, sampled, mode, extra_plants) -> dict:
+    """`Problem.describe` of these parts (the start gains' evaluation plays no part)."""
+    opt = dataclasses.asdict(cfg.optimizer)
+    for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
+        opt.pop(k)  # where to stop: a resumed run may change it
+    return {
+        "setup": dconfig.to_dict(setup, options),
+        "params": [dataclasses.asdict(t) for t in selection.items],
+        "objective": dataclasses.asdict(cfg.objective),
+        "optimizer": opt,
+        "robust": _batch_desc(cfg.robust, setup),
+        "requirements": dict(cfg.requirements),
+        "sim": sim.describe(),
+        "sampled": None if sampled is None else sampled.describe(),
+        "mode": mode,
+    } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
+         if extra_plants else {})
 
 
 def _batch_desc(b, setup):
@@ -114,6 +120,56 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
     cases) join the training batch (or the nominal plant)."""
+    parts = _parts(setup, options, cfg, extra_plants)
+    cfg, notes, selection, mode, sim, sampled, train, heldout = parts
+    notes = list(notes)
+    requirements = build_requirements(setup, cfg.requirements)
+    scales = start_scales(setup, sim, cfg.objective, train)
+    if scales.per_plant:
+        n = len(next(iter(train.values())))
+        notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
+                     f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
+                     + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
+                        f"the nominal plant's)" if scales.n_train_fallback else ""))
+    if sampled is not None:
+        ts, step = cfg.sample_time, float(sampled.dt)
+        finer = step < float(sim.dt) * (1 - 1e-12)
+        notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
+                     f"keeps each plant's windowed L-inf within "
+                     f"{cfg.objective.sampled_factor:g} x the continuous loop's"
+                     + (f" (the plant at dt = {step:g} s there)" if finer else ""))
+    objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
+                          scales=scales, requirements=requirements, overrides=train,
+                          aggregate=cfg.robust.aggregate if train else "mean",
+                          cvar_level=cfg.robust.cvar_level, sampled=sampled)
+    return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
+                   objective=objective, heldout=heldout, mode=mode,
+                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants)
+
+
+def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None
+             ) -> dict:
+    """`build_problem(...).describe()` without building the objective (nothing is run): what
+    a resumed run is checked against before it starts."""
+    cfg, _, selection, mode, sim, sampled, _, _ = _parts(setup, options, cfg, extra_plants)
+    return _description(setup, options, cfg, selection, sim, sampled, mode, extra_plants)
+
+
+def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
+    """ConfigError (one line, the old and new values of what differs) unless the run in
+    `out` was made with these settings; checked before anything runs or is printed."""
+    out = Path(out)
+    if not (out / "checkpoint.json").exists():
+        return  # (run says what is missing)
+    meta = files.read_json(out / "checkpoint.json")
+    files.check_same(meta.get("problem"), describe(setup, options, cfg),
+                     where=f"--resume: the checkpoint in {out}",
+                     fix="use the same settings, or --overwrite to start afresh")
+
+
+def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None):
+    """The validated settings of `build_problem` before the start gains are evaluated:
+    (cfg, notes, selection, mode, sim, sampled, train, heldout)."""
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
@@ -146,14 +202,6 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
-    requirements = build_requirements(setup, cfg.requirements)
-    scales = start_scales(setup, sim, cfg.objective, train)
-    if scales.per_plant:
-        n = len(next(iter(train.values())))
-        notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
-                     f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
-                     + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
-                        f"the nominal plant's)" if scales.n_train_fallback else ""))
     sampled = None
     if cfg.sample_time is not None and not options.sampled:
         # the plant's step in that loop: dt, or the largest step below it dividing Ts
@@ -162,17 +210,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
         finer = step < dt * (1 - 1e-12)
         sampled = sim.replace(sample_time=ts, **({"dt": step} if finer else {}),
                               names={"sample_time": "tuning.sample_time"})
-        notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
-                     f"keeps each plant's windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x the continuous loop's"
-                     + (f" (the plant at dt = {step:g} s there)" if finer else ""))
-    objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
-                          scales=scales, requirements=requirements, overrides=train,
-                          aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level, sampled=sampled)
-    return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
-                   objective=objective, heldout=heldout, mode=mode,
-                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants)
+    return cfg, tuple(notes), selection, mode, sim, sampled, train, heldout
 
 
 def join_plants(setup, first: dict | None, then: dict) -> dict:

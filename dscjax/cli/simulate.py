@@ -68,7 +68,8 @@ def run(args) -> int:
         simulate,
     )
 
-    setup, options = load_setup(args)
+    # another command's own table (a printed config of tune or sweep) is that command's
+    setup, options = load_setup(args, ignore=("tuning", "sweep"))
     if args.print_config:
         sys.stdout.write(config.to_toml(setup, options))
         return 0

@@ -239,7 +239,8 @@ def run(args) -> int:
                what=f"{settings.n_samples():,} samples of {horizon_text(t_final, dt, steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
-        sweep.check_resumable(args.out)
+        # a changed config: refused before anything is printed or run
+        sweep.check_resumable(args.out, setup, settings, options)
     n = settings.n_samples()
     choice = choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0

@@ -224,7 +224,7 @@ def run(args) -> int:
     from tuning import report
     from tuning.config import to_toml
     from tuning.optimize import SEARCHES
-    from tuning.runner import build_problem, format_progress, model_default_ranges
+    from tuning.runner import build_problem, check_resume, format_progress, model_default_ranges
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
@@ -245,6 +245,11 @@ def run(args) -> int:
         missing = "adversarial.json" if adv.rounds else "checkpoint.json"
         raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
                           f"without --resume to start afresh")
+    if args.resume:  # a changed config is refused before anything runs or is printed
+        if adv.rounds:
+            adversarial.check_resume(out, setup, options, cfg)
+        else:
+            check_resume(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = use_device(args, options.device, generation_rows(cfg))
     problem = build_problem(setup, options, cfg)  # (validates every setting)

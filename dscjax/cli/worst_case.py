@@ -100,7 +100,13 @@ def run(args) -> int:
     from dscjax.params import parse_range
     from dscjax.progress import Progress
     from dscjax.validation import ConfigError, check_work
-    from dscjax.worst import best_value, check_search, make_problem, worst_case
+    from dscjax.worst import (
+        assumption_warnings,
+        best_value,
+        check_search,
+        make_problem,
+        worst_case,
+    )
     from dscjax.worst.report import write
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
@@ -143,28 +149,44 @@ def run(args) -> int:
           + f"; {', '.join(methods)}, {args.time_limit:g} s each"
           + (f" (at most {args.max_evals} evaluations)" if args.max_evals else "")
           + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
+    for w in assumption_warnings(problem):
+        print(f"dscjax worst-case: warning: {w}", file=sys.stderr)
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)
-    bars = {}
+    bars, compiled = {}, {}
+
+    def say(text):
+        for bar in bars.values():
+            bar.close()
+        if not args.quiet:
+            print(f"  {text}", file=sys.stderr)
 
     def progress(method, tr, limit):
+        # the bar (and its ETA) counts search seconds: it starts after an iteration that
+        # compiled nothing (the first of this process always compiles or loads its programs),
+        # its clock at the search seconds so far; while a method compiles, `say` said so
+        fresh = compiled.get(method) == tr.compile_seconds
+        compiled[method] = tr.compile_seconds
         bar = bars.get(method)
-        if bar is None:
+        if bar is None and fresh:
             bar = bars[method] = Progress(int(round(limit)), desc=f"  {method:8s}", unit="second",
-                                          enabled=not args.quiet)
-        bar.update_to(min(int(tr.seconds), int(round(limit))),
-                      f"best {best_value(tr):.5g}, {tr.evaluations} evaluations")
+                                          elapsed=tr.seconds, enabled=not args.quiet)
+        if bar is not None:
+            bar.update_to(min(int(tr.seconds), int(round(limit))),
+                          f"best {best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
         result = worst_case(problem, time_limit=args.time_limit, starts=args.starts,
                             methods=methods, seed=args.seed, batch=args.batch,
                             coarsening=args.gradient_coarsening, out_dir=out,
                             resume=args.resume, max_evals=args.max_evals,
-                            progress=progress)
+                            progress=progress, say=say)
     finally:
         for bar in bars.values():
             bar.close()
+    if not args.no_plot:
+        say("writing worst_trajectory.npz, report.md and the figures")
     names = write(result, out, plots=not args.no_plot)
     what = (f"the loop diverges (t = {result.t_diverged:.6g} s at every refinement level)"
             if result.diverged else f"{result.value:.6g}")

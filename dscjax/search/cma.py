@@ -1,6 +1,7 @@
 """CMA-ES of the `cma` package with a state of plain arrays: `ReplayCMA` records what it was
 told and rebuilds the same strategy by replaying ask/tell/inject, so a search resumes
-exactly without pickles."""
+exactly without pickles. A search of one dimension runs CMA-ES in two, the second a copy of
+the first's box that no loss depends on (pycma fails on a bounded box of one dimension)."""
 
 from __future__ import annotations
 
@@ -35,40 +36,80 @@ class ReplayCMA:
 
     def __init__(self, x0, sigma0: float, opts: dict):
         cma = require_cma()
+        x0 = np.asarray(x0, dtype=float).reshape(-1)
+        self.n = x0.size  # the search's dimension
+        if self.n == 1:  # pycma 4.5 cannot bound one dimension: a neutral copy of it
+            x0 = np.concatenate([x0, x0])
+            opts = dict(opts)
+            if "bounds" in opts:
+                opts["bounds"] = [list(b) * 2 if np.ndim(b) == 1 and len(b) == 1 else b
+                                  for b in opts["bounds"]]
+        self.dim = x0.size  # CMA-ES's dimension (n, or 2 when n = 1)
         self.es = cma.CMAEvolutionStrategy(x0, sigma0, opts)
-        self.n = int(np.size(x0))
         self.fitness: list[np.ndarray] = []  # (popsize,) per told generation
-        self.injected: list[np.ndarray] = []  # (n,) per told generation, NaN: none
-        self.told = np.zeros((0, self.n))  # (popsize, n) the last told population
+        self.injected: list[np.ndarray] = []  # (dim,) per told generation, NaN: none
+        self.told = np.zeros((0, self.dim))  # (popsize, dim) the last told population
+        self.asked = np.zeros((0, self.dim))  # (popsize, dim) the last asked population
 
     def ask(self) -> np.ndarray:
-        return np.asarray(self.es.ask(), dtype=float)
+        """The next population (popsize, n)."""
+        self.asked = np.asarray(self.es.ask(), dtype=float)
+        return self.asked[:, :self.n].copy()
 
     def tell(self, x, fitness) -> None:
+        """The losses of the population x (popsize, n) last asked."""
         f = np.asarray(fitness, dtype=float)
+        x = np.asarray(x, dtype=float)
+        if self.dim > self.n:  # the neutral coordinate as asked
+            x = np.concatenate([x, self.asked[:len(x), self.n:]], axis=1)
         self.es.tell(list(x), list(f))
         self.fitness.append(f)
-        self.injected.append(np.full(self.n, np.nan))
+        self.injected.append(np.full(self.dim, np.nan))
         self.told = np.array(x, dtype=float)
 
     def inject(self, x) -> None:
-        """Inject x into the next generation (after this generation's tell)."""
-        self.es.inject([np.asarray(x, dtype=float)])
-        self.injected[-1] = np.asarray(x, dtype=float)
+        """Inject x (n,) into the next generation (after this generation's tell)."""
+        x = np.asarray(x, dtype=float).reshape(-1)
+        if self.dim > self.n:  # the neutral coordinate at the mean's
+            x = np.concatenate([x, np.asarray(self.es.mean, float)[self.n:]])
+        self._inject(x)
+
+    def _inject(self, x: np.ndarray) -> None:
+        self.es.inject([x])
+        self.injected[-1] = x
+
+    # what a method reads of the strategy, in the search's n dimensions
+    @property
+    def sigma(self) -> float:
+        return float(self.es.sigma)
+
+    @property
+    def pc(self) -> np.ndarray:
+        """The evolution path p_c (n,)."""
+        return np.asarray(self.es.pc, float)[:self.n]
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """The covariance matrix C (n, n)."""
+        return np.asarray(self.es.sm.covariance_matrix, float)[:self.n, :self.n]
+
+    def stop(self) -> dict:
+        return self.es.stop()
 
     def copy(self) -> ReplayCMA:
         """An independent copy (its own strategy and random stream), for a step that computes
         a new state without changing this one."""
         new = object.__new__(ReplayCMA)
-        new.es, new.n = copy.deepcopy(self.es), self.n
+        new.es, new.n, new.dim = copy.deepcopy(self.es), self.n, self.dim
         new.fitness, new.injected, new.told = list(self.fitness), list(self.injected), self.told
+        new.asked = self.asked
         return new
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """{"fitness": (G, popsize), "injected": (G, n), "told": (popsize, n)}."""
+        """{"fitness": (G, popsize), "injected": (G, dim), "told": (popsize, dim)}."""
         pop = self.es.popsize
         return {"fitness": np.asarray(self.fitness).reshape(-1, pop),
-                "injected": np.asarray(self.injected).reshape(-1, self.n),
+                "injected": np.asarray(self.injected).reshape(-1, self.dim),
                 "told": self.told}
 
     def replay(self, arrays: dict[str, np.ndarray]) -> None:
@@ -78,7 +119,7 @@ class ReplayCMA:
         for f, x in zip(fitness, np.asarray(arrays["injected"]), strict=True):
             self.tell(self.ask(), f)
             if np.all(np.isfinite(x)):
-                self.inject(x)
+                self._inject(x)
         if len(fitness) and not np.array_equal(self.told, arrays["told"]):
             raise ValueError("CMA-ES could not replay its stored generations")
 

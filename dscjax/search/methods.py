@@ -111,8 +111,8 @@ class CMA:
         line = self.path and ctx.iteration < LINE_GENERATIONS
         if line:
             n = len(ctx.x0)
-            cov = es.es.sm.covariance_matrix
-            d = path_direction(es.es, cov)
+            cov = es.covariance
+            d = path_direction(es, cov)
             if d is None:  # a random direction of unit Mahalanobis length under C
                 g = _generator(rng)
                 xi = g.standard_normal(n)
@@ -120,7 +120,7 @@ class CMA:
                 d = np.linalg.cholesky(cov + 1e-300 * np.eye(n)) @ (xi / np.linalg.norm(xi))
             base = ctx.x0 if ctx.best.z is None else ctx.best.z
             steps = math.sqrt(n) * np.geomspace(LINE_MIN, LINE_MAX, LINE_POINTS)
-            parts.append(problem.project(base[None, :] + es.es.sigma * steps[:, None] * d))
+            parts.append(problem.project(base[None, :] + es.sigma * steps[:, None] * d))
         z = np.concatenate(parts)
         ev = problem.evaluate(z)
         best, first, start = ctx.best, 0, None
@@ -136,7 +136,7 @@ class CMA:
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
         if line and improved is not None and improved >= k:
             es.inject(best.z)
-        sigma, stop = float(es.es.sigma), es.es.stop()
+        sigma, stop = es.sigma, es.stop()
         restarts, done = state.restarts, None
         if stop and restarts < self.restarts:
             restarts += 1

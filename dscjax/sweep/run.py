@@ -230,11 +230,25 @@ def _default_chunk(setup, columns, spec: RunSpec, n: int, devices) -> int:
     return chunk
 
 
-def check_resumable(out: str | Path) -> None:
-    """ConfigError unless `out` holds a sweep to resume (its sweep.json)."""
+def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None = None,
+                    spec: RunSpec | None = None) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json); given the sweep's
+    setup, settings and run, also unless it was made with them (naming the old and new
+    values), so that a command refuses before it prints or runs anything."""
     if not (Path(out) / "sweep.json").exists():
         raise ConfigError(f"--resume: nothing to resume in {out} (sweep.json is missing); run "
                           f"without --resume to start afresh")
+    chunk = None if settings is None else settings.chunk or _started_chunk(out)
+    if chunk is None or setup is None or spec is None:
+        return
+    setup = params.cast(setup, np.dtype(settings.dtype))
+    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt),
+                            float(spec.window_start))
+    manifest = Path(out) / "sweep.json"
+    files.check_same(files.read_json(manifest).get("fingerprint"),
+                     fingerprint(setup, settings, ranges, spec, chunk),
+                     where=f"--resume: {manifest}",
+                     fix="use the same settings, or --overwrite to start afresh")
 
 
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:

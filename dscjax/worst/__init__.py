@@ -122,6 +122,9 @@ class Problem:
     metric: str
     spec: RunSpec  # how every candidate is simulated (metrics only: save_every = n_steps)
     requirement: Any = None  # the reduction of a "requirement:NAME" metric, else None
+    # the run as the user gave it (`spec` before the search's metrics-only settings): what
+    # worst_config.toml writes, so that it replays as a trajectory one can look at
+    options: RunSpec | None = None
 
     @property
     def metric_key(self) -> str:
@@ -208,6 +211,14 @@ class Problem:
                 "requirement": _describe(self.requirement)}
 
 
+def assumption_warnings(problem: Problem) -> list[str]:
+    """The paper's assumptions (`validation.assumption_warnings`) that the base setup, or an
+    end of a searched box, violates: a box on plant.g[i] reaching below controller.g_min is
+    named with its --range."""
+    return [w.replace("--range.", "--range ") for w in
+            params.assumption_warnings(problem.setup, problem.ranges, "--range")]
+
+
 def _describe(reduction) -> dict | None:
     """The kind and numbers of a requirement (for fingerprints)."""
     if reduction is None:
@@ -259,7 +270,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         spec = RunSpec.make(**run)
     elif run:
         raise TypeError("make_problem: give spec or its fields, not both")
-    spec = spec.replace(save_every=spec.n_steps)
+    options, spec = spec, spec.replace(save_every=spec.n_steps)
     t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     setup = params.cast(setup, _dtype(setup))
     if disturbance is not None:
@@ -275,7 +286,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
                                 window_start=window_start)
     if requirement is not None and hasattr(requirement, "n_steps"):
         requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
-    return Problem(setup, resolved, disturbance, metric, spec, requirement)
+    return Problem(setup, resolved, disturbance, metric, spec, requirement, options)
 
 
 # -- the compiled programs ----------------------------------------------------------------------
@@ -555,7 +566,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
                coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
                resume: bool = False, max_evals: int | None = None,
                progress: Callable[[str, search.Trace, float], None] | None = None,
-               **problem_options) -> Result:
+               say: Callable[[str], None] | None = None, **problem_options) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds (or
     `max_evals` evaluations, whichever comes first).
 
@@ -574,6 +585,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
         max_evals: stop a method after this many candidates (its last batch finished); a
             count, unlike a time, sees the same points under any load.
         progress: called with (method, trace, time_limit) after every iteration.
+        say: called with a line of text as each phase begins (a method's compilation and
+            search, the re-check), so that no long phase passes in silence.
 
     Returns:
         `Result`; its value is re-checked by `simulate` (with refinement) on the worst setup.
@@ -597,8 +610,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
     prog = Programs.for_problem(problem, gradient, coarsening)
     traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
                          seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
-                         fingerprint=fp, progress=progress, max_evals=max_evals)
-    return _finish(problem, traces)
+                         fingerprint=fp, progress=progress, max_evals=max_evals, say=say)
+    return _finish(problem, traces, say)
 
 
 def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
@@ -624,13 +637,17 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
                 lr: float = DEFAULT_LR, out_dir: str | Path | None = None,
                 resume: bool = False, fingerprint: Any = None,
                 progress: Callable | None = None,
-                max_evals: int | None = None) -> dict[str, search.Trace]:
+                max_evals: int | None = None,
+                say: Callable[[str], None] | None = None) -> dict[str, search.Trace]:
     """Run each method on the programs for `time_limit` search seconds (compilation apart)
     or `max_evals` evaluations, whichever comes first, each from its `state_<method>.npz` in
-    out_dir with `resume`; {method: Trace}."""
+    out_dir with `resume`; {method: Trace}. `say` gets a line as each method begins."""
     out = Path(out_dir) if out_dir is not None else None
     traces = {}
     for name in methods:
+        if say is not None:
+            say(f"{name}: compiling its programs (not counted in the time limit), then "
+                f"searching")
         each = None if progress is None else (
             lambda tr, row, name=name: progress(name, tr, time_limit))
         res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
@@ -642,7 +659,8 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
     return traces
 
 
-def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
+def _finish(problem: Problem, traces: dict[str, search.Trace],
+            say: Callable[[str], None] | None = None) -> Result:
     """Re-check each method's best point and its diverged candidates with `simulate`; the
     worst of them is the result."""
     candidates = []
@@ -652,6 +670,10 @@ def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
         candidates += [(mth, z) for z in tr.diverged_z[:2]]
     if not candidates:
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
+    if say is not None:
+        n = len({np.asarray(z).tobytes() for _, z in candidates})
+        say(f"re-checking {n} candidate(s) and the nominal point with simulate (every step, "
+            f"refined if they diverge)")
     best = None
     checked = {}
     for mth, z in candidates:
@@ -673,5 +695,6 @@ def _finish(problem: Problem, traces: dict[str, search.Trace]) -> Result:
 
 
 __all__ = ["DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
-           "DisturbanceSpec", "Problem", "Programs", "Result", "best_value", "make_problem",
+           "DisturbanceSpec", "Problem", "Programs", "Result", "assumption_warnings",
+           "best_value", "make_problem",
            "run_methods", "search_method", "worst_case"]

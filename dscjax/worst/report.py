@@ -17,15 +17,17 @@ import numpy as np
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
 from dscjax.runspec import RunSpec
-from dscjax.worst import Result, best_value
+from dscjax.worst import Result, assumption_warnings, best_value
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
 
 
 def options_of(result: Result) -> RunSpec:
-    """The [simulation] table of the worst case's config: the search's run, its dtype."""
+    """The [simulation] table of the worst case's config: the run the user gave (not the
+    search's metrics-only settings: it replays as a whole trajectory), its dtype."""
+    p = result.problem
     dtype = str(np.result_type(np.asarray(result.setup.plant.x0)))
-    return result.problem.spec.replace(dtype=dtype)
+    return (p.options if p.options is not None else p.spec).replace(dtype=dtype)
 
 
 def summary(result: Result) -> dict:
@@ -51,6 +53,7 @@ def summary(result: Result) -> dict:
                         "diverged_candidates": len(tr.diverged_z)}
                     for m, tr in result.traces.items()},
         "info": result.info,
+        "warnings": assumption_warnings(p),
     }
 
 
@@ -96,6 +99,8 @@ def report_md(result: Result) -> str:
               f"{p.t_final:g}] s. Searched: "
               + (", ".join(r.spec() for r in p.ranges) or "no parameter")
               + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
+              *(f"Warning: {w}." for w in assumption_warnings(p)),
+              *([""] if assumption_warnings(p) else []),
               "## Methods (equal search time; compilation apart)", "",
               "| method | best value | evaluations | iterations | search s | compile s |",
               "|---|---|---|---|---|---|"]
