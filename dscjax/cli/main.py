@@ -25,6 +25,7 @@ COMMANDS = {
     "stability": "dscjax.cli.stability",
     "worst-case": "dscjax.cli.worst_case",
     "hysteresis": "dscjax.cli.hysteresis",
+    "sensitivity": "dscjax.cli.sensitivity",
 }
 
 EXIT_USAGE = 2
