@@ -163,8 +163,8 @@ def _metrics(z, setup, spec, overrides, lp_order, cols, zero, metrics):
     """(the metrics (k,), whether any plant diverged): the loop at the numbers moved by z."""
     values: dict[str, Any] = {}
     ov = dict(overrides) if overrides is not None else None
+    dtype = jnp.result_type(setup.plant.x0)
     for j, p in enumerate(cols):
-        dtype = jnp.result_type(setup.plant.x0)
         zj = z[j].astype(dtype)
         values[p.path] = _moved(values.get(p.path, params.get(setup, p.path)), p, zj, zero[j],
                                 False)
@@ -208,8 +208,7 @@ class Problem:
              metrics: Sequence[str] = METRICS, overrides: Mapping[str, Any] | None = None,
              lp_order: float = LP_ORDER) -> Problem:
         setup = canonical(setup)
-        validation.validate_setup(setup)
-        check(setup, spec)
+        check(setup, spec)  # the setup's models, the filters against an RK4 step
         cols = columns(setup, paths)
         ov = None
         if overrides is not None:
@@ -254,8 +253,10 @@ class Problem:
         if np.any(code != 0):
             lines = divergence_report(_StatusOnly(status, self.spec.dt),
                                       float(self.spec.state_bound))
-            raise DivergenceError("no sensitivity: " + "; ".join(lines[:3])
-                                  + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else ""),
+            lines = [line.split(";")[0] for line in lines]  # not the trajectory's advice
+            raise DivergenceError("no sensitivity: " + ", ".join(lines[:3])
+                                  + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else "")
+                                  + "; reduce dt, use the etdrk4 solver or revise the gains",
                                   None)
         return Sensitivity(self.columns, self.metrics, np.asarray(k, float),
                            np.asarray(grad, float), np.asarray(self.zero, bool))

@@ -116,6 +116,22 @@ def test_the_command_writes_the_json_the_table_and_the_chart(tmp_path, capsys, n
     assert "--overwrite" in capsys.readouterr().err
 
 
+def test_a_loop_that_diverges_has_no_sensitivity_and_exits_3(tmp_path, capsys):
+    """The README example's program (cached) with a state bound below |x0|: it diverges at
+    the first step, and the command says so instead of differentiating a frozen trajectory."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[simulation]\nstate_bound = 0.01\n")
+    argv = ["sensitivity", "--config", str(cfg), "--t-final", str(T_FINAL)]
+    for p in PATHS:
+        argv += ["--param", p]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("dscjax sensitivity: simulation diverged: no sensitivity: the "
+                          "trajectory diverged at t = 0.001 s: a state exceeded the state "
+                          "bound 0.01; reduce dt")
+    assert not (tmp_path / "o" / "sensitivity.json").exists()
+
+
 @pytest.mark.parametrize(("argv", "wanted"), [
     (["--metric", "linf_error"], "--metric must be one of 'l2_error_window', "
      "'lp_error_window', 'max_abs_u', 'tv_u' (got 'linf_error')"),
