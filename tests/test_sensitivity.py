@@ -148,3 +148,11 @@ def test_bad_input_is_one_line_and_exit_2_before_any_work(argv, wanted, tmp_path
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and wanted in err, err
     assert not out.exists()
+
+
+def test_an_unwritable_out_is_one_line_and_exit_2(tmp_path, capsys):
+    (tmp_path / "afile").write_text("")
+    out = str(tmp_path / "afile" / "sub")
+    assert main(["sensitivity", "--out", out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--out {out!r}" in err and "cannot write" in err
