@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Mapping, Sequence
+from types import SimpleNamespace
 from typing import Any
 
 import equinox as eqx
@@ -160,7 +161,7 @@ def _moved(leaf, p: Param, zj, zero: bool, batched: bool):
 
 
 def _metrics(z, setup, spec, overrides, lp_order, cols, zero, metrics):
-    """(the metrics (k,), whether any plant diverged): the loop at the numbers moved by z."""
+    """(the metrics (k,), the run's status): the loop at the numbers moved by z."""
     values: dict[str, Any] = {}
     ov = dict(overrides) if overrides is not None else None
     dtype = jnp.result_type(setup.plant.x0)
@@ -214,6 +215,7 @@ class Problem:
         if overrides is not None:
             dtype = np.dtype(spec.dtype)
             ov = {p: np.asarray(v, dtype) for p, v in overrides.items()}
+            validation.validate_setup(params.set_many(setup, ov), check_shapes=False)
         zero = tuple(bool(p.nominal(setup) == 0.0) and (ov is None or p.path not in ov)
                      for p in cols)
         return cls(setup, spec, ov, cols, zero, check_metrics(metrics), float(lp_order))
@@ -251,8 +253,10 @@ class Problem:
         k, grad, status = out
         code = np.atleast_1d(np.asarray(status.code))
         if np.any(code != 0):
-            lines = divergence_report(_StatusOnly(status, self.spec.dt),
-                                      float(self.spec.state_bound))
+            step = np.asarray(status.step)  # what divergence_report reads of a Trajectory
+            seen = SimpleNamespace(status=status, t_diverged=np.where(
+                step >= 0, step * float(self.spec.dt), np.inf))
+            lines = divergence_report(seen, float(self.spec.state_bound))
             lines = [line.split(";")[0] for line in lines]  # not the trajectory's advice
             raise DivergenceError("no sensitivity: " + ", ".join(lines[:3])
                                   + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else "")
@@ -260,19 +264,6 @@ class Problem:
                                   None)
         return Sensitivity(self.columns, self.metrics, np.asarray(k, float),
                            np.asarray(grad, float), np.asarray(self.zero, bool))
-
-
-@dataclasses.dataclass(frozen=True)
-class _StatusOnly:
-    """What `divergence_report` reads of a Trajectory: its status and the time of a step."""
-
-    status: Any
-    dt: Any
-
-    @property
-    def t_diverged(self):
-        step = np.asarray(self.status.step)
-        return np.where(step >= 0, step * float(self.dt), np.inf)
 
 
 def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
