@@ -108,6 +108,8 @@ def shrink(argv: list[str]) -> list[str]:
             _set(a, "--search-time", "0.2")
             _set(a, "--search-method", "random")
         a.append("--no-plot")
+    elif command == "sensitivity":
+        _set(a, "--batch", "2", add=False)
     elif command == "worst-case":
         _set(a, "--time-limit", "0.2")
         _set(a, "--methods", "random")

@@ -26,6 +26,7 @@ COMMANDS = {
     "worst-case": "dscjax.cli.worst_case",
     "hysteresis": "dscjax.cli.hysteresis",
     "export": "dscjax.cli.export",
+    "sensitivity": "dscjax.cli.sensitivity",
 }
 
 EXIT_USAGE = 2

@@ -1,0 +1,183 @@
+"""`dscjax sensitivity`: d ln m / d ln p of a loop's metrics to every number of its controller,
+plant and hysteresis model, by reverse mode (`dscjax.sensitivity`).
+
+Writes DIR/sensitivity.json ({metric: {path: value}}, null where the number is 0) and
+DIR/sensitivity.png (a tornado chart per metric), and prints the table sorted by magnitude.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from dscjax.cli.common import (
+    SAMPLED_KEYS,
+    Outputs,
+    add_config_args,
+    add_overwrite_arg,
+    count,
+    gradient_work,
+    horizon_text,
+    load_setup,
+    prepare_out,
+    print_config,
+    use_device,
+)
+
+OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
+RUN_KEYS = ("t_final", "dt", "window_start", "solver", *SAMPLED_KEYS, "device")
+TOP = 15  # bars per metric in the tornado chart
+
+
+def add_parser(sub):
+    from dscjax.sensitivity import LP_ORDER, METRICS
+
+    p = sub.add_parser(
+        "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse "
+        "mode",
+        description="The normalised sensitivity d ln m / d ln p = (p / m) dm/dp of each metric "
+        "m to every number p of the controller, the plant and the hysteresis model (or those "
+        "given by --param), on the nominal plant or as the mean over --batch plants, by one "
+        "reverse pass per metric. A number whose value is 0 has no d ln p: null in "
+        f"sensitivity.json. lp_error_window is the windowed L_p norm of e, p = {LP_ORDER:g} (a "
+        "smooth L-inf). The loop is piecewise smooth: these are exact local derivatives "
+        "(docs/sensitivity.md). Writes DIR/sensitivity.json and DIR/sensitivity.png.")
+    add_config_args(p, run_keys=RUN_KEYS)
+    p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
+                   help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
+    p.add_argument("--param", action="append", dest="paths", metavar="PATH",
+                   help="a number by its config path, a vector whole (controller.k) or one "
+                   "element (plant.g[1]) (repeat; default every number of the controller, "
+                   "plant and hysteresis model)")
+    p.add_argument("--batch", type=count(0), default=0, metavar="B",
+                   help="the mean over B plants drawn uniformly from --range, as tune's "
+                   "training batch (default 0: the nominal plant)")
+    p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
+                   help="a range the --batch plants are drawn from (repeat; default the "
+                   "hysteresis model's numbers within +-30%%, as sweep's)")
+    p.add_argument("--seed", type=count(0), default=0, help="seed of the --batch plants "
+                   "(default 0)")
+    p.add_argument("--out", default="results/sensitivity", metavar="DIR",
+                   help="output directory (default results/sensitivity)")
+    add_overwrite_arg(p)
+    p.add_argument("--no-plot", action="store_true", help="skip sensitivity.png")
+    return p
+
+
+def run(args) -> int:
+    from dscjax import files, params, validation
+    from dscjax.progress import Progress
+    from dscjax.sensitivity import METRICS, Problem, check_metrics
+    from dscjax.validation import ConfigError
+
+    setup, spec = load_setup(args)
+    metrics = check_metrics(args.metrics or METRICS)
+    if args.ranges and not args.batch:
+        raise ConfigError("--range draws the --batch plants: give --batch B >= 1 too")
+    overrides = None
+    if args.batch:
+        ranges = (tuple(params.parse_range(r) for r in args.ranges) if args.ranges
+                  else params.default_ranges(setup))
+        ranges = params.check(ranges, setup, "--range", t_final=spec.t_final, dt=float(spec.dt))
+        overrides = params.sample_overrides(setup, ranges, args.batch, args.seed)
+    problem = Problem.make(setup, spec, args.paths, metrics, overrides)
+    if args.print_config:
+        print_config(setup, spec)
+        return 0
+    steps, rows = spec.n_steps, max(args.batch, 1)
+    what = horizon_text(spec.t_final, float(spec.dt), steps)
+    work = validation.Work(steps=2 * steps, member_steps=2 * steps * rows)
+    if not args.batch:
+        work = work + gradient_work(setup, steps)
+    validation.check_work(work, what=what, fix="use a shorter --t-final or a larger --dt")
+    warnings = validation.assumption_warnings(setup)
+    choice = use_device(args, spec.device, rows)
+    out = prepare_out(args, OUTPUTS)
+    d = len(problem.columns)
+    print(f"dscjax sensitivity: {len(metrics)} metric(s) x {d} numbers, "
+          + (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
+             else "the nominal plant")
+          + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
+                           if spec.sampled else ", continuous loop") + f"; on {choice}",
+          file=sys.stderr)
+    for w in warnings:
+        print(f"dscjax sensitivity: warning: {w}", file=sys.stderr)
+    with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
+        t0 = time.perf_counter()
+        bar.update_to(0, "compiling the loop and its reverse pass")
+        jacobian = problem.compile()
+        t1 = time.perf_counter()
+        bar.update_to(1, f"compiled in {t1 - t0:.1f} s; running")
+        result = problem.result(jacobian())
+        t2 = time.perf_counter()
+        bar.update_to(2, f"forward and {len(metrics)} reverse pass(es) in {t2 - t1:.2f} s")
+    values = result.values
+    files.write_json(out / "sensitivity.json", values)
+    _print_table(result)
+    if not args.no_plot:
+        _plot(result, out / "sensitivity.png", title=_title(setup, spec, args))
+    print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
+          + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
+    return 0
+
+
+def _order(result) -> np.ndarray:
+    """Columns by their largest |d ln m / d ln p| over the metrics, largest first (those
+    without one, p = 0, last)."""
+    n = np.abs(result.normalised)
+    key = np.where(np.all(np.isnan(n), axis=0), -1.0, np.nanmax(np.where(np.isnan(n), -1.0, n),
+                                                                 axis=0))
+    return np.argsort(-key, kind="stable")
+
+
+def _print_table(result) -> None:
+    names = result.names
+    width = max(len("parameter"), *(len(n) for n in names))
+    cols = [max(len(m), 10) for m in result.metrics]
+    print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
+    print(f"{'parameter':<{width}}  " + "  ".join(f"{m:>{c}}" for m, c in
+                                                 zip(result.metrics, cols, strict=True)))
+    print(f"{'value of m':<{width}}  " + "  ".join(f"{v:>{c}.4g}" for v, c in
+                                                  zip(result.value, cols, strict=True)))
+    n = result.normalised
+    for j in _order(result):
+        print(f"{names[j]:<{width}}  " + "  ".join(
+            f"{'-':>{c}}" if np.isnan(n[i, j]) else f"{n[i, j]:>+{c}.3e}"
+            for i, c in enumerate(cols)))
+
+
+def _plot(result, path, title: str) -> None:
+    from dscjax.files import save_figure
+    from dscjax.plotting import subplots
+
+    k = len(result.metrics)
+    n = result.normalised
+    shown = min(TOP, len(result.names))
+    fig, axes = subplots(1, k, figsize=(3.6 * k + 1.6, 0.28 * shown + 1.6), squeeze=False)
+    for i, ax in enumerate(axes[0]):
+        row = np.where(np.isnan(n[i]), 0.0, n[i])
+        order = np.argsort(-np.abs(row), kind="stable")[:shown][::-1]
+        ax.barh(np.arange(shown), row[order],
+                color=["#d62728" if v > 0 else "#1f77b4" for v in row[order]])
+        ax.set_yticks(np.arange(shown), [result.names[j] for j in order], fontsize=7)
+        ax.axvline(0.0, color="k", lw=0.6)
+        ax.set_title(f"{result.metrics[i]} = {result.value[i]:.3g}", fontsize=9)
+        ax.set_xlabel("d ln m / d ln p")
+    fig.suptitle(title, fontsize=9)
+    save_figure(fig, path, dpi=120)
+
+
+def _title(setup, spec, args) -> str:
+    return (f"sensitivity of {setup.controller.kind.upper()}, n={setup.order}, "
+            f"T={spec.t_final:g} s, dt={float(spec.dt):g} s"
+            + (f", sampled every {spec.sample_time:g} s" if spec.sampled else "")
+            + (f", mean over {args.batch} plants" if args.batch else ", nominal plant"))
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command
+
+    return (f"nothing is kept (the files are written when the run ends); run the same command "
+            f"again: {rerun_command(args)}")

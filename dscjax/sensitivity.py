@@ -1,0 +1,295 @@
+"""Normalised sensitivities d ln m / d ln p of a loop's metrics m to its numbers p, by reverse
+mode: one pull-back through the loop per metric, whatever the number of parameters.
+
+    res = sensitivity(setup, spec)                     # every number of the setup, METRICS
+    res.values["l2_error_window"]["controller.k[0]"]   # (p / m) dm/dp; None where p = 0
+
+Each number is moved multiplicatively, p -> p exp(z_p), and the derivative taken at z = 0. A
+number whose value is 0 has no d ln p: it is differentiated additively (p -> p + z_p) but its
+value is None (`Sensitivity.zero` lists them). With `overrides` (a batch of plants) m is the
+mean over the batch, and an overridden number is scaled in every plant alike. The loop is
+piecewise smooth (sat(), max, |.|): the result is the exact derivative of the discrete loop at
+the point, which a difference quotient matches only for small steps (docs/sensitivity.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping, Sequence
+from types import SimpleNamespace
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import params, validation
+from dscjax.closed_loop import Setup
+from dscjax.metrics import step_weights
+from dscjax.params import Param
+from dscjax.runspec import RunSpec
+from dscjax.simulate import DivergenceError, canonical, check, divergence_report, run
+from dscjax.validation import ConfigError
+
+# l2_error_window, max_abs_u and tv_u as `dscjax.metrics` defines them; lp_error_window the
+# windowed L_p norm of e (`LpWindow`), a smooth stand-in for the windowed L-inf
+METRICS = ("l2_error_window", "lp_error_window", "max_abs_u", "tv_u")
+LP_ORDER = 16.0  # p of lp_error_window
+PARTS = ("controller", "plant", "hysteresis")  # whose numbers are differentiated by default
+
+
+class LpWindow(eqx.Module):
+    """lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], a
+    running reduction (`integrate.Running`): between the mean and the max of |e| on W, tending
+    to the max as p grows, smooth in e for p > 1. Summed relative to the running max of |e|,
+    so |e|^p neither under- nor overflows."""
+
+    window_start: jax.Array  # () t0
+    order: jax.Array  # () p
+    n_steps: int = eqx.field(static=True)
+
+    def init(self, dtype):
+        z = jnp.zeros((), dtype)
+        return {"m": z, "s": z, "w": z}
+
+    def update(self, acc, k, t, y, obs, dt):
+        _, w_win, in_win, _ = step_weights(k, t, dt, self.window_start, self.n_steps)
+        a = jnp.where(in_win, jnp.abs(y.x[0] - obs.yr), 0.0)
+        m = jnp.maximum(acc["m"], a)
+        safe = jnp.where(m > 0, m, 1.0)  # m = 0: every term so far is 0
+        s = acc["s"] * (acc["m"] / safe) ** self.order + w_win * (a / safe) ** self.order
+        return {"m": m, "s": s, "w": acc["w"] + w_win}
+
+    def finalize(self, acc, t_final):
+        w = jnp.maximum(acc["w"], jnp.finfo(acc["w"].dtype).tiny)
+        s = acc["s"] / w
+        pos = s > 0
+        root = jnp.where(pos, jnp.where(pos, s, 1.0) ** (1.0 / self.order), 0.0)
+        return {"lp_error_window": acc["m"] * root}
+
+
+@dataclasses.dataclass(frozen=True)
+class Sensitivity:
+    """The result of `sensitivity`.
+
+    Attributes:
+        columns: the numbers differentiated (`Param`s), in order; `names` their paths.
+        metrics: the metrics' names; `value` their values (mean over the batch), (k,).
+        gradient: (k, d) d m_i / d z_j (z_j = ln p_j, or p_j itself where p_j = 0).
+        zero: (d,) True where p_j = 0 (no d ln p: its sensitivity is None).
+    """
+
+    columns: tuple[Param, ...]
+    metrics: tuple[str, ...]
+    value: np.ndarray
+    gradient: np.ndarray
+    zero: np.ndarray
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.columns)
+
+    @property
+    def normalised(self) -> np.ndarray:
+        """(k, d) d ln m_i / d ln p_j; NaN where p_j = 0 or m_i = 0."""
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = self.gradient / self.value[:, None]
+        out[:, self.zero] = np.nan
+        out[self.value == 0, :] = np.nan
+        return out
+
+    @property
+    def values(self) -> dict[str, dict[str, float | None]]:
+        """{metric: {path: d ln m / d ln p, or None}} (`normalised`), as sensitivity.json."""
+        n = self.normalised
+        return {m: {name: (None if np.isnan(v) else float(v))
+                    for name, v in zip(self.names, n[i], strict=True)}
+                for i, m in enumerate(self.metrics)}
+
+
+def default_paths(setup) -> list[str]:
+    """The numbers of the controller, the plant and the hysteresis model (their config paths,
+    vectors whole)."""
+    return [f"{part}.{p}" for part in PARTS
+            for p in validation.numeric_paths(getattr(setup, part))]
+
+
+def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
+            ) -> tuple[Param, ...]:
+    """One `Param` per scalar differentiated: `paths` (default `default_paths`) checked
+    against the setup (ConfigError naming `field`), a vector leaf given whole split into its
+    elements; a number given twice is refused."""
+    out: list[Param] = []
+    for text in default_paths(setup) if paths is None else paths:
+        p = Param.parse(text, field)
+        p.check(setup, field)
+        shape = np.shape(params.get(setup, p.path))
+        if p.index is None and not p.scale and shape:
+            out += [Param(p.path, i) for i in range(shape[0])]
+        else:
+            out.append(p)
+    params.check_columns(out, field)
+    seen: set[str] = set()
+    for p in out:
+        if p.name in seen:
+            raise ConfigError(f"{field}: {p.name!r} is given twice")
+        seen.add(p.name)
+    if not out:
+        raise ConfigError(f"{field}: no parameter to differentiate")
+    return tuple(out)
+
+
+def check_metrics(metrics: Sequence[str], field: str = "--metric") -> tuple[str, ...]:
+    """The metrics, each one of METRICS and none twice (ConfigError naming `field`)."""
+    for m in metrics:
+        validation.one_of(m, field, METRICS)
+    if len(set(metrics)) != len(metrics):
+        raise ConfigError(f"{field}: a metric is given twice (got {', '.join(metrics)})")
+    return tuple(metrics)
+
+
+def _moved(leaf, p: Param, zj, zero: bool, batched: bool):
+    """`leaf` with the number p moved by zj (exp(zj) x, or x + zj where zero)."""
+    leaf = jnp.asarray(leaf)
+    f = (lambda x: x + zj) if zero else (lambda x: x * jnp.exp(zj).astype(x.dtype))
+    if p.index is None:  # a scalar, or the whole vector of a scale ("path*")
+        return f(leaf)
+    if batched:
+        return leaf.at[:, p.index].set(f(leaf[:, p.index]))
+    return leaf.at[p.index].set(f(leaf[p.index]))
+
+
+def _metrics(z, setup, spec, overrides, lp_order, cols, zero, metrics):
+    """(the metrics (k,), the run's status): the loop at the numbers moved by z."""
+    values: dict[str, Any] = {}
+    ov = dict(overrides) if overrides is not None else None
+    dtype = jnp.result_type(setup.plant.x0)
+    for j, p in enumerate(cols):
+        zj = z[j].astype(dtype)
+        values[p.path] = _moved(values.get(p.path, params.get(setup, p.path)), p, zj, zero[j],
+                                False)
+        if ov is not None and p.path in ov:
+            ov[p.path] = _moved(ov[p.path], p, zj, False, True)
+    moved = params.set_many(setup, values)
+    extra = LpWindow(spec.window_start, lp_order, spec.n_steps)
+    traj = run(moved, spec, overrides=ov, extra=extra)
+    k = jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics])
+    return k, traj.status
+
+
+def _jacobian(setup, spec, overrides, lp_order, z, cols, zero, metrics):
+    """(metrics, d metrics / d z (k, d), status): one forward pass, then one pull-back per
+    metric (its unit cotangent), vectorised."""
+    k, vjp, status = jax.vjp(lambda z_: _metrics(z_, setup, spec, overrides, lp_order, cols,
+                                                 zero, metrics), z, has_aux=True)
+    (grad,) = jax.vmap(vjp)(jnp.eye(k.shape[0], dtype=k.dtype))
+    return k, grad, status
+
+
+_jacobian_jit = jax.jit(_jacobian, static_argnames=("cols", "zero", "metrics"))
+_metrics_jit = jax.jit(_metrics, static_argnames=("cols", "zero", "metrics"))
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """What `sensitivity` differentiates, checked and ready: the compiled programs take `z`
+    (the log-factors, 0 at the point) and are shared by every Problem of the same structure."""
+
+    setup: Setup
+    spec: RunSpec
+    overrides: Mapping[str, Any] | None
+    columns: tuple[Param, ...]
+    zero: tuple[bool, ...]
+    metrics: tuple[str, ...]
+    lp_order: float = LP_ORDER
+
+    @classmethod
+    def make(cls, setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
+             metrics: Sequence[str] = METRICS, overrides: Mapping[str, Any] | None = None,
+             lp_order: float = LP_ORDER) -> Problem:
+        setup = canonical(setup)
+        check(setup, spec)  # the setup's models, the filters against an RK4 step
+        cols = columns(setup, paths)
+        ov = None
+        if overrides is not None:
+            dtype = np.dtype(spec.dtype)
+            ov = {p: np.asarray(v, dtype) for p, v in overrides.items()}
+            validation.validate_setup(params.set_many(setup, ov), check_shapes=False)
+        zero = tuple(bool(p.nominal(setup) == 0.0) and (ov is None or p.path not in ov)
+                     for p in cols)
+        return cls(setup, spec, ov, cols, zero, check_metrics(metrics), float(lp_order))
+
+    def args(self, z=None):
+        """The traced arguments of the compiled programs at z (default the point itself)."""
+        z = self.z0() if z is None else z
+        dtype = jnp.result_type(self.setup.plant.x0)
+        return (self.setup, self.spec, self.overrides, jnp.asarray(self.lp_order, dtype),
+                jnp.asarray(z, dtype))
+
+    def z0(self) -> np.ndarray:
+        return np.zeros(len(self.columns), np.dtype(self.spec.dtype))
+
+    def compile(self):
+        """`jacobian`, compiled now (ahead of time: a caller can time its compilation)."""
+        compiled = _jacobian_jit.lower(*self.args(), cols=self.columns, zero=self.zero,
+                                       metrics=self.metrics).compile()
+        return lambda z=None: compiled(*self.args(z))
+
+    def jacobian(self, z=None):
+        """(metrics (k,), gradient (k, d), status) at z (default the point itself): one
+        forward pass and one pull-back per metric."""
+        return _jacobian_jit(*self.args(z), cols=self.columns, zero=self.zero,
+                             metrics=self.metrics)
+
+    def metrics_at(self, z):
+        """(metrics (k,), status) of the loop at z, forward only (difference quotients)."""
+        setup, spec, overrides, lp_order, z = self.args(z)
+        return _metrics_jit(z, setup, spec, overrides, lp_order, cols=self.columns,
+                            zero=self.zero, metrics=self.metrics)
+
+    def result(self, out) -> Sensitivity:
+        """The `Sensitivity` of `jacobian`'s output; DivergenceError if the loop diverged."""
+        k, grad, status = out
+        code = np.atleast_1d(np.asarray(status.code))
+        if np.any(code != 0):
+            step = np.asarray(status.step)  # what divergence_report reads of a Trajectory
+            seen = SimpleNamespace(status=status, t_diverged=np.where(
+                step >= 0, step * float(self.spec.dt), np.inf))
+            lines = divergence_report(seen, float(self.spec.state_bound))
+            lines = [line.split(";")[0] for line in lines]  # not the trajectory's advice
+            raise DivergenceError("no sensitivity: " + ", ".join(lines[:3])
+                                  + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else "")
+                                  + "; reduce dt, use the etdrk4 solver or revise the gains",
+                                  None)
+        return Sensitivity(self.columns, self.metrics, np.asarray(k, float),
+                           np.asarray(grad, float), np.asarray(self.zero, bool))
+
+
+def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
+                metrics: Sequence[str] = METRICS, overrides: Mapping[str, Any] | None = None,
+                lp_order: float = LP_ORDER) -> Sensitivity:
+    """d ln m / d ln p of each metric m to each number p (module docstring).
+
+    Args:
+        setup, spec: the loop and how it is run (a sampled controller with spec.sample_time).
+        paths: config paths (a vector whole, or one element "plant.g[1]", or a scale
+            "hysteresis.p*"); default every number of the controller, plant and hysteresis.
+        metrics: names from METRICS.
+        overrides: {path: (B, ...)} a batch of plants; m is then the mean over them.
+        lp_order: p of lp_error_window.
+
+    Example:
+        >>> import dscjax
+        >>> from dscjax.sensitivity import sensitivity
+        >>> spec = dscjax.RunSpec.make(1.0, 1e-3)
+        >>> res = sensitivity(dscjax.paper_example(), spec, ["controller.k"], ["l2_error_window"])
+        >>> sorted(res.values["l2_error_window"])
+        ['controller.k[0]', 'controller.k[1]']
+    """
+    problem = Problem.make(setup, spec, paths, metrics, overrides, lp_order)
+    return problem.result(problem.jacobian())
+
+
+__all__ = ["LP_ORDER", "LpWindow", "METRICS", "Problem", "Sensitivity", "columns",
+           "check_metrics", "default_paths", "sensitivity"]

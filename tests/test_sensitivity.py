@@ -1,0 +1,158 @@
+"""`dscjax sensitivity` and `dscjax.sensitivity` against central finite differences (float64,
+a 0.3 s horizon, a small step: the loop is piecewise smooth, so only small steps give a local
+derivative), the L_p metric against its definition on a saved trajectory, the files written
+and the one-line errors."""
+
+import json
+
+import numpy as np
+import pytest
+
+import dscjax
+from dscjax import params
+from dscjax.cli.main import main
+from dscjax.sensitivity import METRICS, Problem
+
+# the programs of the README's and docs/sensitivity.md's examples as tests/doc_examples.py runs
+# them (300 steps), so that one compilation serves both through the persistent cache
+T_FINAL = 0.3
+# hysteresis.w0 is 0: differentiated additively, no d ln p
+PATHS = ("controller.k", "controller.tau", "hysteresis.alpha", "plant.g[1]", "hysteresis.w0")
+NAMES = ("controller.k[0]", "controller.k[1]", "controller.tau[0]", "hysteresis.alpha",
+         "plant.g[1]", "hysteresis.w0")
+H = 1e-7  # step of the difference quotients, in ln p (in p where p = 0)
+
+
+@pytest.fixture(scope="module")
+def nominal():
+    problem = Problem.make(dscjax.paper_example(), dscjax.RunSpec.make(T_FINAL, 1e-3), PATHS)
+    return problem, problem.result(problem.jacobian())
+
+
+def _central(problem, j, metrics_at):
+    """(m(+h e_j) - m(-h e_j)) / 2h and the same quotient of ln m."""
+    e = np.zeros(len(problem.columns))
+    e[j] = H
+    up, down = (np.asarray(metrics_at(s * e)[0], float) for s in (1, -1))
+    return (up - down) / (2 * H), (np.log(up) - np.log(down)) / (2 * H)
+
+
+def _check_against_differences(problem, res):
+    def metrics_at(z):  # the values of the compiled program already there (no new compile)
+        return problem.jacobian(z)
+
+    for j, name in enumerate(res.names):
+        fd, fd_log = _central(problem, j, metrics_at)
+        scale = np.abs(res.gradient).max(axis=1) + 1e-12
+        for i, m in enumerate(res.metrics):
+            assert res.gradient[i, j] == pytest.approx(fd[i], rel=2e-4, abs=1e-5 * scale[i]), \
+                (m, name)
+            got = res.values[m][name]
+            if res.zero[j]:
+                assert got is None, (m, name)
+            else:
+                assert got == pytest.approx(fd_log[i], rel=2e-4, abs=1e-5 * scale[i] /
+                                            res.value[i]), (m, name)
+
+
+def test_reverse_mode_agrees_with_central_differences(nominal):
+    problem, res = nominal
+    assert res.metrics == METRICS and res.names == NAMES
+    assert res.zero.tolist() == [False] * 5 + [True]
+    assert np.all(np.abs(res.gradient[:, :5]) > 0)  # every number moves every metric here
+    _check_against_differences(problem, res)
+
+
+def test_the_lp_metric_is_its_definition_on_the_saved_trajectory(nominal):
+    problem, res = nominal
+    traj = dscjax.simulate(dscjax.paper_example(), T_FINAL, 1e-3, save_every=1)
+    t, e = np.asarray(traj.t), np.abs(np.asarray(traj.e))
+    w = np.asarray(problem.spec.window_start)  # 0 for a 1 s horizon: the whole run
+    keep = t >= w
+    p = problem.lp_order
+    lp = (np.trapezoid(e[keep] ** p, t[keep]) / (t[keep][-1] - t[keep][0])) ** (1 / p)
+    got = dict(zip(res.metrics, res.value, strict=True))
+    assert got["lp_error_window"] == pytest.approx(lp, rel=1e-9)
+    assert e[keep].mean() < got["lp_error_window"] < e[keep].max()
+    for name in ("l2_error_window", "max_abs_u", "tv_u"):
+        assert got[name] == pytest.approx(float(traj.metrics[name]), rel=1e-12)
+
+
+def test_a_sampled_loop_over_a_batch_agrees_with_central_differences():
+    setup = dscjax.paper_example()
+    spec = dscjax.RunSpec.make(T_FINAL, 1e-3, sample_time=1e-3)
+    ranges = params.check(params.default_ranges(setup), setup, "ranges")
+    overrides = params.sample_overrides(setup, ranges, 2, seed=0)
+    problem = Problem.make(setup, spec, ["controller.k", "hysteresis.alpha"], METRICS,
+                           overrides)
+    res = problem.result(problem.jacobian())
+    assert not res.zero.any()
+    _check_against_differences(problem, res)
+
+
+def test_the_command_writes_the_json_the_table_and_the_chart(tmp_path, capsys, nominal):
+    _, res = nominal
+    out = tmp_path / "s"
+    argv = ["sensitivity", "--t-final", str(T_FINAL), "--out", str(out)]
+    for p in PATHS:
+        argv += ["--param", p]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    data = json.loads((out / "sensitivity.json").read_text())
+    assert list(data) == list(METRICS)
+    for m in METRICS:
+        assert list(data[m]) == list(res.names)
+        assert data[m]["hysteresis.w0"] is None
+        for name in res.names[:5]:
+            assert data[m][name] == pytest.approx(res.values[m][name], rel=1e-9)
+    assert (out / "sensitivity.png").stat().st_size > 0
+    rows = [line.split()[0] for line in captured.out.splitlines()
+            if line.split() and line.split()[0] in res.names]
+    largest = np.nanmax(np.abs(res.normalised[:, :5]), axis=0)
+    assert rows == [res.names[j] for j in np.argsort(-largest)] + ["hysteresis.w0"]
+    assert "compiling" in captured.err
+    # the one rule of --out: a second run is refused, --overwrite replaces
+    assert main(argv) == 2
+    assert "--overwrite" in capsys.readouterr().err
+
+
+def test_a_loop_that_diverges_has_no_sensitivity_and_exits_3(tmp_path, capsys):
+    """The README example's program (cached) with a state bound below |x0|: it diverges at
+    the first step, and the command says so instead of differentiating a frozen trajectory."""
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[simulation]\nstate_bound = 0.01\n")
+    argv = ["sensitivity", "--config", str(cfg), "--t-final", str(T_FINAL)]
+    for p in PATHS:
+        argv += ["--param", p]
+    assert main([*argv, "--out", str(tmp_path / "o")]) == 3
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("dscjax sensitivity: simulation diverged: no sensitivity: the "
+                          "trajectory diverged at t = 0.001 s: a state exceeded the state "
+                          "bound 0.01; reduce dt")
+    assert not (tmp_path / "o" / "sensitivity.json").exists()
+
+
+@pytest.mark.parametrize(("argv", "wanted"), [
+    (["--metric", "linf_error"], "--metric must be one of 'l2_error_window', "
+     "'lp_error_window', 'max_abs_u', 'tv_u' (got 'linf_error')"),
+    (["--param", "controller.kk"], "--param: unknown parameter 'controller.kk'"),
+    (["--param", "plant.g[2]"], "--param: index 2 of 'plant.g' is out of range"),
+    (["--param", "plant.g", "--param", "plant.g[0]"], "--param: 'plant.g[0]' is given twice"),
+    (["--range", "hysteresis.alpha=30%"], "--range draws the --batch plants"),
+    (["--batch", "2", "--range", "hysteresis.alpha=0:0"], "--range.hysteresis.alpha is an "
+     "empty range"),
+])
+def test_bad_input_is_one_line_and_exit_2_before_any_work(argv, wanted, tmp_path, capsys):
+    out = tmp_path / "o"
+    assert main(["sensitivity", *argv, "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and wanted in err, err
+    assert not out.exists()
+
+
+def test_an_unwritable_out_is_one_line_and_exit_2(tmp_path, capsys):
+    (tmp_path / "afile").write_text("")
+    out = str(tmp_path / "afile" / "sub")
+    assert main(["sensitivity", "--out", out]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and f"--out {out!r}" in err and "cannot write" in err
