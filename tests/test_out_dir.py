@@ -84,6 +84,24 @@ def test_an_out_holding_results_is_refused_in_one_line_and_left_as_it_was(comman
     assert _listing(out) == before and not (out / files.LOCK).exists()
 
 
+@pytest.mark.parametrize("adversarial", [[], ["--adversarial", "1"]])
+def test_tune_refuses_its_out_before_it_runs_the_loop(adversarial, tmp_path, capsys,
+                                                      monkeypatch):
+    from tuning import runner
+
+    def ran(*a, **k):
+        raise AssertionError("the start scales ran (and compiled the loop) before --out")
+
+    monkeypatch.setattr(runner, "start_scales", ran)
+    out = tmp_path / "a-file"
+    out.write_text("mine")
+    assert main(["tune", *COMMANDS["tune"][0], *adversarial, "--out", str(out)]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and err[0].startswith(f"dscjax tune: error: --out {str(out)!r}: "
+                                               f"cannot write the output there"), err
+    assert out.read_text() == "mine"
+
+
 @pytest.mark.parametrize("command", COMMANDS)
 def test_overwrite_deletes_what_the_command_writes_and_nothing_else(command, tmp_path):
     import importlib

@@ -110,10 +110,13 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
 
 
 def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None) -> Problem:
+                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None
+                  ) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
-    cases) join the training batch (or the nominal plant)."""
+    cases) join the training batch (or the nominal plant). `ready()` is called once every
+    setting is validated, before anything runs or compiles (the start scales run the loop):
+    the command prepares its --out there."""
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
@@ -147,14 +150,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
     requirements = build_requirements(setup, cfg.requirements)
-    scales = start_scales(setup, sim, cfg.objective, train)
-    if scales.per_plant:
-        n = len(next(iter(train.values())))
-        notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
-                     f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
-                     + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
-                        f"the nominal plant's)" if scales.n_train_fallback else ""))
-    sampled = None
+    sampled, sampled_note = None, None
     if cfg.sample_time is not None and not options.sampled:
         # the plant's step in that loop: dt, or the largest step below it dividing Ts
         ts, dt = cfg.sample_time, float(sim.dt)
@@ -162,10 +158,21 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
         finer = step < dt * (1 - 1e-12)
         sampled = sim.replace(sample_time=ts, **({"dt": step} if finer else {}),
                               names={"sample_time": "tuning.sample_time"})
-        notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
-                     f"keeps each plant's windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x the continuous loop's"
-                     + (f" (the plant at dt = {step:g} s there)" if finer else ""))
+        sampled_note = (f"deployable: the controller sampled every {ts:g} s (zero-order "
+                        f"hold) keeps each plant's windowed L-inf within "
+                        f"{cfg.objective.sampled_factor:g} x the continuous loop's"
+                        + (f" (the plant at dt = {step:g} s there)" if finer else ""))
+    if ready is not None:
+        ready()
+    scales = start_scales(setup, sim, cfg.objective, train)
+    if scales.per_plant:
+        n = len(next(iter(train.values())))
+        notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
+                     f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
+                     + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
+                        f"the nominal plant's)" if scales.n_train_fallback else ""))
+    if sampled_note is not None:
+        notes.append(sampled_note)
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",
