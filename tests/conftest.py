@@ -33,18 +33,77 @@ def pytest_configure(config):
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
 
 
-# The longest files first (xdist's --dist loadfile with --no-loadscope-reorder hands files out in
-# this order): a long file started last would leave the other worker idle at the end.
+# The longest files first (xdist's --dist loadgroup with --no-loadscope-reorder hands the groups
+# out in this order): a long file started last would leave the other worker idle at the end.
 LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradients.py",
                  "test_tuning_gradients.py", "test_tuning_loop.py", "test_tuning_adversarial.py")
+# Files whose tests xdist may hand to different workers, one group a parameter (each test
+# runs alone, whatever is shared comes from `once`); every other file is one group.
+SPLIT = ("test_docs.py",)
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
 def pytest_collection_modifyitems(items):
     def rank(item):
         name = item.path.name
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=rank)  # stable: each file keeps its own order
+    for item in items:
+        name = item.path.name
+        split = name in SPLIT and getattr(item, "callspec", None) is not None
+        item.add_marker(pytest.mark.xdist_group(f"{name}[{item.callspec.id}]" if split
+                                                 else name))
+
+
+@pytest.fixture(scope="session")
+def once(tmp_path_factory):
+    """f(NAME, MAKE) -> a directory that MAKE(directory) filled once in this pytest session,
+    whichever xdist worker asked first (the others wait for it, then read it). A MAKE that
+    failed fails every later f(NAME, ...) with its message, without running again."""
+    import fcntl
+    import shutil
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's directory, above the workers' own
+
+    def get(name: str, make):
+        work, done, failed = root / name, root / f"{name}.done", root / f"{name}.failed"
+        with open(root / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if failed.exists():
+                pytest.fail(f"{name} failed in another test: {failed.read_text()}")
+            if not done.exists():
+                shutil.rmtree(work, ignore_errors=True)
+                try:
+                    make(work)
+                except BaseException as err:
+                    failed.write_text(str(err)[-3000:])
+                    raise
+                done.touch()
+        return work
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def four_devices(once):
+    """The directory of tests/four_devices.py's results: the checks that need several real
+    devices, run once per session in one interpreter with 4 forced host devices."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    def make(work):
+        env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+                   JAX_PLATFORMS="cpu")
+        proc = subprocess.run([sys.executable, str(Path(__file__).parent / "four_devices.py"),
+                               str(work)], env=env, capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+
+    return once("four-devices", make)
 
 
 @pytest.fixture(scope="session")
