@@ -40,6 +40,9 @@ LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradi
 # Files whose tests xdist may hand to different workers, one group a parameter (each test
 # runs alone, whatever is shared comes from `once`); every other file is one group.
 SPLIT = ("test_docs.py",)
+# Files that share a session fixture's compiled programs run on one worker, in one group:
+# `search_problem` (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc).
+TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py"}
 
 
 @pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
@@ -53,7 +56,7 @@ def pytest_collection_modifyitems(items):
         name = item.path.name
         split = name in SPLIT and getattr(item, "callspec", None) is not None
         item.add_marker(pytest.mark.xdist_group(f"{name}[{item.callspec.id}]" if split
-                                                 else name))
+                                                 else TOGETHER.get(name, name)))
 
 
 @pytest.fixture(scope="session")
@@ -106,6 +109,19 @@ def four_devices(once):
     return once("four-devices", make)
 
 
+# The size policy of the tests that run a command: the horizon SHORT (200 RK4 steps at the
+# default dt = 1 ms) unless the test is about a longer one, the same in every file, so that
+# the program one test compiles serves the others (in this process, or through the
+# persistent cache). The documents' examples have their own size (tests/doc_examples.py).
+SHORT = "0.2"
+
+
+@pytest.fixture(scope="session")
+def short() -> tuple[str, str]:
+    """("--t-final", SHORT): the horizon of a test's command (see SHORT)."""
+    return ("--t-final", SHORT)
+
+
 @pytest.fixture(scope="session")
 def paper_setup():
     """The paper's example in float64."""
@@ -126,3 +142,28 @@ def run_with_config():
     """f(DIR, TOML, *ARGV) -> (exit code, DIR/out): `dscjax ARGV --config DIR/config.toml
     --out DIR/out`, the config holding TOML."""
     return _run_with_config
+
+
+@pytest.fixture(scope="session")
+def traj20(paper_setup):
+    """The paper's example over its 20 s at dt = 1 ms, every step saved."""
+    return dscjax.simulate(paper_setup, 20.0, 1e-3)
+
+
+@pytest.fixture(scope="session")
+def search_problem():
+    """The tuning problem of the search tests (test_tuning_search, test_out_dir): controller.k
+    by cma_path (population 4, 4 generations, each saved), forward-mode gradients, over 1 s
+    at dt = 2 ms, window from 0.5 s; no sampled loop (a 1 ms controller cannot be sampled on
+    the 2 ms step). A test changes its optimizer by `dataclasses.replace` of `cfg`: the same
+    objective, so the same compiled programs."""
+    import tuning
+    from dscjax.runspec import RunSpec
+
+    spec = tuning.OptimizerSpec(name="cma_path", steps=4, save_interval=1, popsize=4,
+                                time_limit=None, gradient="forward")
+    cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
+                              objective=tuning.ObjectiveSpec(window_start=0.5),
+                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
+
