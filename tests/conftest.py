@@ -33,30 +33,45 @@ def pytest_configure(config):
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
 
 
-# The longest files first (xdist's --dist loadgroup with --no-loadscope-reorder hands the groups
-# out in this order): a long file started last would leave the other worker idle at the end.
+# The longest files first (the scheduler below hands the groups out in this order,
+# --no-loadscope-reorder): a long file started last would leave the other worker idle.
 LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradients.py",
                  "test_tuning_gradients.py", "test_tuning_loop.py", "test_tuning_adversarial.py")
-# Files whose tests xdist may hand to different workers, one group a parameter (each test
-# runs alone, whatever is shared comes from `once`); every other file is one group.
+# Files whose parametrized tests xdist may hand to different workers, one group a parameter
+# (each test runs alone, whatever is shared comes from `once`); every other file is one group.
 SPLIT = ("test_docs.py",)
 # Files that share a session fixture's compiled programs run on one worker, in one group:
 # `search_problem` (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc).
 TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py"}
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist's hook reads the groups
+def group(nodeid: str) -> str:
+    """The xdist work unit of a test: its file (see SPLIT and TOGETHER)."""
+    path, _, rest = nodeid.partition("::")
+    name = path.rsplit("/", 1)[-1]
+    if name in SPLIT and "[" in rest:
+        return nodeid
+    return TOGETHER.get(name, name)
+
+
 def pytest_collection_modifyitems(items):
     def rank(item):
         name = item.path.name
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=rank)  # stable: each file keeps its own order
-    for item in items:
-        name = item.path.name
-        split = name in SPLIT and getattr(item, "callspec", None) is not None
-        item.add_marker(pytest.mark.xdist_group(f"{name}[{item.callspec.id}]" if split
-                                                 else TOGETHER.get(name, name)))
+
+
+@pytest.hookimpl(optionalhook=True)  # (a hook of xdist's)
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's scheduling by scope (as --dist loadfile), the scopes being `group`'s."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByGroup(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return group(nodeid)
+
+    return ByGroup(config, log)
 
 
 @pytest.fixture(scope="session")

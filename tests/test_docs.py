@@ -32,7 +32,7 @@ def _run(group: str, work: Path, cache_dir: Path) -> list[dict]:
            "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
            "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1"}
     proc = subprocess.run([sys.executable, str(HERE / "doc_examples.py"), str(work), group],
-                          env=env, capture_output=True, text=True, timeout=1200)
+                          env=env, capture_output=True, text=True, timeout=3600)
     assert proc.stdout.strip(), proc.stderr[-3000:]
     report = json.loads(proc.stdout)
     failed = [r for r in report if r["code"]]
