@@ -33,10 +33,25 @@ def pytest_configure(config):
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
 
 
-# The longest files first (xdist's --dist loadfile with --no-loadscope-reorder hands files out in
-# this order): a long file started last would leave the other worker idle at the end.
+# The longest files first (the scheduler below hands the groups out in this order,
+# --no-loadscope-reorder): a long file started last would leave the other worker idle.
 LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradients.py",
                  "test_tuning_gradients.py", "test_tuning_loop.py", "test_tuning_adversarial.py")
+# Files whose parametrized tests xdist may hand to different workers, one group a parameter
+# (each test runs alone, whatever is shared comes from `once`); every other file is one group.
+SPLIT = ("test_docs.py",)
+# Files that share a session fixture's compiled programs run on one worker, in one group:
+# `search_problem` (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc).
+TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py"}
+
+
+def group(nodeid: str) -> str:
+    """The xdist work unit of a test: its file (see SPLIT and TOGETHER)."""
+    path, _, rest = nodeid.partition("::")
+    name = path.rsplit("/", 1)[-1]
+    if name in SPLIT and "[" in rest:
+        return nodeid
+    return TOGETHER.get(name, name)
 
 
 def pytest_collection_modifyitems(items):
@@ -45,6 +60,81 @@ def pytest_collection_modifyitems(items):
         return LONGEST_FIRST.index(name) if name in LONGEST_FIRST else len(LONGEST_FIRST)
 
     items.sort(key=rank)  # stable: each file keeps its own order
+
+
+@pytest.hookimpl(optionalhook=True)  # (a hook of xdist's)
+def pytest_xdist_make_scheduler(config, log):
+    """xdist's scheduling by scope (as --dist loadfile), the scopes being `group`'s."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ByGroup(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return group(nodeid)
+
+    return ByGroup(config, log)
+
+
+@pytest.fixture(scope="session")
+def once(tmp_path_factory):
+    """f(NAME, MAKE) -> a directory that MAKE(directory) filled once in this pytest session,
+    whichever xdist worker asked first (the others wait for it, then read it). A MAKE that
+    failed fails every later f(NAME, ...) with its message, without running again."""
+    import fcntl
+    import shutil
+
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the session's directory, above the workers' own
+
+    def get(name: str, make):
+        work, done, failed = root / name, root / f"{name}.done", root / f"{name}.failed"
+        with open(root / f"{name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            if failed.exists():
+                pytest.fail(f"{name} failed in another test: {failed.read_text()}")
+            if not done.exists():
+                shutil.rmtree(work, ignore_errors=True)
+                try:
+                    make(work)
+                except BaseException as err:
+                    failed.write_text(str(err)[-3000:])
+                    raise
+                done.touch()
+        return work
+
+    return get
+
+
+@pytest.fixture(scope="session")
+def four_devices(once):
+    """The directory of tests/four_devices.py's results: the checks that need several real
+    devices, run once per session in one interpreter with 4 forced host devices."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    def make(work):
+        env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
+                   JAX_PLATFORMS="cpu")
+        proc = subprocess.run([sys.executable, str(Path(__file__).parent / "four_devices.py"),
+                               str(work)], env=env, capture_output=True, text=True,
+                              timeout=600)
+        assert proc.returncode == 0, proc.stderr[-3000:]
+
+    return once("four-devices", make)
+
+
+# The size policy of the tests that run a command: the horizon SHORT (200 RK4 steps at the
+# default dt = 1 ms) unless the test is about a longer one, the same in every file, so that
+# the program one test compiles serves the others (in this process, or through the
+# persistent cache). The documents' examples have their own size (tests/doc_examples.py).
+SHORT = "0.2"
+
+
+@pytest.fixture(scope="session")
+def short() -> tuple[str, str]:
+    """("--t-final", SHORT): the horizon of a test's command (see SHORT)."""
+    return ("--t-final", SHORT)
 
 
 @pytest.fixture(scope="session")
@@ -67,3 +157,28 @@ def run_with_config():
     """f(DIR, TOML, *ARGV) -> (exit code, DIR/out): `dscjax ARGV --config DIR/config.toml
     --out DIR/out`, the config holding TOML."""
     return _run_with_config
+
+
+@pytest.fixture(scope="session")
+def traj20(paper_setup):
+    """The paper's example over its 20 s at dt = 1 ms, every step saved."""
+    return dscjax.simulate(paper_setup, 20.0, 1e-3)
+
+
+@pytest.fixture(scope="session")
+def search_problem():
+    """The tuning problem of the search tests (test_tuning_search, test_out_dir): controller.k
+    by cma_path (population 4, 4 generations, each saved), forward-mode gradients, over 1 s
+    at dt = 2 ms, window from 0.5 s; no sampled loop (a 1 ms controller cannot be sampled on
+    the 2 ms step). A test changes its optimizer by `dataclasses.replace` of `cfg`: the same
+    objective, so the same compiled programs."""
+    import tuning
+    from dscjax.runspec import RunSpec
+
+    spec = tuning.OptimizerSpec(name="cma_path", steps=4, save_interval=1, popsize=4,
+                                time_limit=None, gradient="forward")
+    cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
+                              objective=tuning.ObjectiveSpec(window_start=0.5),
+                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
+

@@ -1,13 +1,14 @@
-"""Run the shell examples of README.md and docs/*.md, in order, with small sizes.
+"""Run the shell examples of README.md and docs/*.md with small sizes.
 
-    python tests/doc_examples.py WORKDIR      # prints a JSON report; exit 1 if any failed
+    python tests/doc_examples.py WORKDIR          # all of them, in order, in one directory
+    python tests/doc_examples.py WORKDIR GROUP    # one group of `plan()`: shared, README.md, ...
 
-Used by tests/test_docs.py (in a subprocess, with JAX's persistent compilation cache, so that
-a program compiled by one command is not compiled again by the next). Every `dscjax ...` line
-of a shell block (```, ```bash) of README.md, then of docs/*.md, runs through
-`dscjax.cli.main.main` in ONE working directory, as a user who follows the documents in
-order would type it (so the docs may use what the README's examples wrote: `my.toml`,
-`results/tune/gains.json`), with these changes only:
+prints a JSON report; exit 1 if any failed. Used by tests/test_docs.py (one subprocess per
+group, with JAX's persistent compilation cache, so that a program compiled by one command is
+not compiled again by another). Every `dscjax ...` line of a shell block (```, ```bash) of
+README.md, then of docs/*.md, runs through `dscjax.cli.main.main`, as a user who follows the
+documents in order would type it (so the docs may use what the README's examples wrote:
+`my.toml`, `results/tune/gains.json`), with these changes only:
 
 - sizes: 300 RK4 steps (--t-final 300 dt), --samples 8, grid axes of 2 points, --steps 1 (2
   to resume), --batch 2, --heldout 0, --adversarial 1 with searches by random sampling for
@@ -20,9 +21,15 @@ order would type it (so the docs may use what the README's examples wrote: `my.t
 - `> FILE` redirects stdout to FILE;
 - a ```toml block whose first line is `# file: NAME` is written to NAME where it stands (a
   config the commands after it read);
-- a command printed twice (the docs repeat the README) runs once;
+- a command printed twice (the docs repeat the README) runs once, in the first document
+  that prints it;
 - multi-host lines (--coordinator, --distributed) are skipped: they need several processes
   (tests/test_sweep.py runs two).
+
+The groups of `plan()` are independent: the commands whose outputs other documents read
+(SHARED: `my.toml`, the README's tune run) form the group "shared"; each document's group is
+the rest of its commands, run in a copy of the shared group's directory when it reads them
+(READS_SHARED).
 """
 
 from __future__ import annotations
@@ -156,14 +163,22 @@ def _join(words: list[str]) -> str:
     return " ".join(w if w == ">" else shlex.quote(w) for w in words)
 
 
-def main(work: Path) -> int:
-    report, failed, done = [], 0, set()
-    work.mkdir(parents=True, exist_ok=True)
-    os.chdir(work)
+# The commands (as printed) whose outputs other documents read, and the documents that read
+# them (my.toml, results/tune/: the README's `tune`, resumed by tuning.md's `tune --resume`).
+SHARED = ("dscjax simulate --print-config > my.toml", "dscjax tune")
+READS_SHARED = ("README.md", "hysteresis.md", "sweeps.md", "tuning.md")
+
+
+def plan() -> dict[str, list[tuple]]:
+    """{group: its steps in order}: the group "shared" (the commands of SHARED), then one
+    group per document. A step is ("file", NAME, TEXT) or ("run", printed, small argv,
+    redirect target or None); each command (after `shrink`) runs in one group only."""
+    groups, done = {"shared": []}, set()
     for doc in documents():
+        steps = groups.setdefault(doc.name, [])
         for argv in commands(doc.read_text()):
             if argv[0] == FILE:
-                Path(argv[1]).write_text(argv[2])
+                steps.append(("file", argv[1], argv[2]))
                 continue
             if any(s in argv for s in SKIP):
                 continue
@@ -173,15 +188,42 @@ def main(work: Path) -> int:
             if ran in done:
                 continue
             done.add(ran)
-            t0 = time.perf_counter()
-            code, err = run_one(small, target)
-            failed += code != 0
-            report.append(dict(doc=doc.name, printed=_join(["dscjax", *argv]), ran=ran,
-                               code=code, seconds=round(time.perf_counter() - t0, 1),
-                               stderr=err if code else ""))
+            printed = _join(["dscjax", *argv])
+            (groups["shared"] if printed in SHARED else steps).append(
+                ("run", printed, small, target))
+    return groups
+
+
+def run_group(work: Path, group: str, steps: list[tuple]) -> list[dict]:
+    """Run `steps` in `work` (the current directory meanwhile): one report entry a command."""
+    report = []
+    work.mkdir(parents=True, exist_ok=True)
+    os.chdir(work)
+    for step in steps:
+        if step[0] == "file":
+            Path(step[1]).write_text(step[2])
+            continue
+        _, printed, small, target = step
+        t0 = time.perf_counter()
+        code, err = run_one(small, target)
+        report.append(dict(doc=group, printed=printed,
+                           ran=_join(["dscjax", *small] + ([">", target] if target else [])),
+                           code=code, seconds=round(time.perf_counter() - t0, 1),
+                           stderr=err if code else ""))
+    return report
+
+
+def main(work: Path, group: str | None = None) -> int:
+    groups = plan()
+    names = list(groups) if group is None else [group]
+    if group is not None and group not in groups:
+        print(f"doc_examples.py: GROUP must be one of {', '.join(groups)} (got {group!r})",
+              file=sys.stderr)
+        return 2
+    report = [r for name in names for r in run_group(work, name, groups[name])]
     print(json.dumps(report, indent=1))
-    return 1 if failed else 0
+    return 1 if any(r["code"] for r in report) else 0
 
 
 if __name__ == "__main__":
-    sys.exit(main(Path(sys.argv[1]).resolve()))
+    sys.exit(main(Path(sys.argv[1]).resolve(), *sys.argv[2:3]))

@@ -92,21 +92,22 @@ def test_a_trajectory_that_cannot_fit_is_refused_before_any_work(tmp_path, capsy
     assert not out.exists()
 
 
-def test_long_runs_show_progress(tmp_path, capsys, monkeypatch):
+def test_long_runs_show_progress(tmp_path, capsys, monkeypatch, short):
     import dscjax.cli.simulate as cli_simulate
 
     monkeypatch.setattr(cli_simulate, "PROGRESS_MIN_STEPS", 100)
-    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    assert short == ("--t-final", "0.2")  # 200 steps of 1 ms
+    assert main(["simulate", *short, "--no-plot", "--out", str(tmp_path)]) == 0
     err = capsys.readouterr().err
-    assert "simulated   0 % (0/500 steps)" in err
-    assert "simulated 100 % (500/500 steps)" in err and "t = 0.5 of 0.5 s" in err
+    assert "simulated   0 % (0/200 steps)" in err
+    assert "simulated 100 % (200/200 steps)" in err and "t = 0.2 of 0.2 s" in err
 
 
-def test_assumption_4_violated_is_a_warning_recorded_in_metrics(tmp_path, capsys):
+def test_assumption_4_violated_is_a_warning_recorded_in_metrics(tmp_path, capsys, short):
     cfg = tmp_path / "g.toml"
     cfg.write_text("[plant]\ng = [0.5, 0.5]\n\n[controller]\ng_min = 1.0\n")
     out = tmp_path / "o"
-    assert main(["simulate", "--config", str(cfg), "--t-final", "0.5", "--no-plot",
+    assert main(["simulate", "--config", str(cfg), *short, "--no-plot",
                  "--out", str(out)]) == 0
     err = capsys.readouterr().err
     assert "warning: Assumption 4 (g_min <= |g_i|) does not hold" in err

@@ -246,8 +246,8 @@ def test_version_comes_from_one_place(capsys):
     assert importlib.metadata.version("dscjax") == dscjax.__version__
 
 
-def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
-    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys, short):
+    assert main(["simulate", *short, "--no-plot", "--out", str(tmp_path)]) == 0
     captured = capsys.readouterr()
     assert "wrote" in captured.out and "L-inf error" in captured.out
     assert "dscjax simulate: order n=2" in captured.err

@@ -39,9 +39,8 @@ def test_zero_surfaces_initialisation():
     assert float(tr.S[0, 0]) == pytest.approx(0.08)  # S_1(0) = x_1(0) - y_r(0) unchanged
 
 
-def test_paper_example_tracks(paper_setup):
-    tr = dscjax.simulate(paper_setup, 20.0, 1e-3, save_every=20)
-    m = {k: float(v) for k, v in tr.metrics.items()}
+def test_paper_example_tracks(traj20):  # conftest's run over 20 s at dt = 1 ms
+    m = {k: float(v) for k, v in traj20.metrics.items()}
     assert m["linf_error"] == pytest.approx(0.08)  # pinned by S_1(0) = 0.08
     assert m["linf_error_window"] < 0.03
     assert 1.0 < m["max_abs_u"] < 20.0

@@ -8,6 +8,7 @@ Faults are real: SIGINT sent to this process from inside the work, a lock held b
 process, writes past RLIMIT_FSIZE in a subprocess (EFBIG, SIGXFSZ ignored).
 """
 
+import dataclasses
 import json
 import os
 import shlex
@@ -29,7 +30,6 @@ import tuning.search
 from dscjax import files, search
 from dscjax.cli.main import main
 from dscjax.progress import Abort, critical, handle_interrupts
-from dscjax.runspec import RunSpec
 from dscjax.search.cma import ReplayCMA
 from tuning.runner import run
 
@@ -83,6 +83,24 @@ def test_an_out_holding_results_is_refused_in_one_line_and_left_as_it_was(comman
                                 f"files this command writes ({shown}); {how}, or give "
                                 f"another --out")
     assert _listing(out) == before and not (out / files.LOCK).exists()
+
+
+@pytest.mark.parametrize("adversarial", [[], ["--adversarial", "1"]])
+def test_tune_refuses_its_out_before_it_runs_the_loop(adversarial, tmp_path, capsys,
+                                                      monkeypatch):
+    from tuning import runner
+
+    def ran(*a, **k):
+        raise AssertionError("the start scales ran (and compiled the loop) before --out")
+
+    monkeypatch.setattr(runner, "start_scales", ran)
+    out = tmp_path / "a-file"
+    out.write_text("mine")
+    assert main(["tune", *COMMANDS["tune"][0], *adversarial, "--out", str(out)]) == 2
+    err = _err(capsys)
+    assert len(err) == 1 and err[0].startswith(f"dscjax tune: error: --out {str(out)!r}: "
+                                               f"cannot write the output there"), err
+    assert out.read_text() == "mine"
 
 
 @pytest.mark.parametrize("command", COMMANDS)
@@ -255,23 +273,12 @@ def test_a_tuning_run_whose_disk_fills_says_so_in_one_line_and_resumes(tmp_path)
 STEPS = 4  # generations of the uninterrupted run; the interrupts land in generation 1
 
 
-def _search_problem():
-    spec = tuning.OptimizerSpec(name="cma_path", steps=STEPS, save_interval=1, popsize=4,
-                                time_limit=None, gradient="forward")
-    # no sampled loop: a 1 ms controller cannot be sampled on the 2 ms step
-    cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
-                              objective=tuning.ObjectiveSpec(window_start=0.5),
-                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
-
-
-@pytest.fixture(scope="module")
-def search_problem():
-    return _search_problem()
+# search_problem: conftest's (cma_path over STEPS generations, each saved)
 
 
 @pytest.fixture(scope="module")
 def straight(search_problem, tmp_path_factory):
+    assert search_problem.cfg.optimizer.steps == STEPS
     out = tmp_path_factory.mktemp("straight")
     return run(search_problem, out), out
 
@@ -369,14 +376,12 @@ def test_a_second_ctrl_c_stops_at_once_keeping_the_last_checkpoint(search_proble
     _same_search(out, straight[1])
 
 
-def test_adam_finishes_its_iteration_and_checkpoint_on_ctrl_c(tmp_path, monkeypatch):
-    cfg = tuning.TuningConfig(
-        params=("controller.k",),
-        optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1,
-                                       save_interval=10, gradient="forward"),
-        heldout=tuning.BatchSpec(batch=0), sample_time=None)  # (1 ms: not on the 2 ms step)
-    problem = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=0.5, dt=2e-3),
-                                   cfg)
+def test_adam_finishes_its_iteration_and_checkpoint_on_ctrl_c(search_problem, tmp_path,
+                                                              monkeypatch):
+    cfg = search_problem.cfg  # its objective, by adam (forward-mode gradients)
+    problem = dataclasses.replace(search_problem, cfg=dataclasses.replace(
+        cfg, optimizer=dataclasses.replace(cfg.optimizer, name="adam", steps=4,
+                                           learning_rate=0.1, save_interval=10)))
     run(problem, tmp_path / "full")
     counting = _in_generation(monkeypatch, "gradient", generation=1)  # inside iteration 1
     with handle_interrupts(), pytest.raises(KeyboardInterrupt):
@@ -407,8 +412,10 @@ def test_the_interrupt_hint_of_tune_resumes_a_run_cut_inside_a_generation(tmp_pa
     cfg = tmp_path / "small.toml"
     cfg.write_text('[tuning]\nparams = ["controller.k"]\n')
     out = tmp_path / "t"
+    # --time-limit 0: the 3 generations whatever the machine's load (the default 100 s limit
+    # counts the resumed run's time too)
     argv = ["tune", "--tuning", str(cfg), "--t-final", "0.2", "--heldout", "0", "--steps",
-            "3", "--no-plot", "--quiet", "--out", str(out)]
+            "3", "--time-limit", "0", "--no-plot", "--quiet", "--out", str(out)]
     _in_generation(monkeypatch, "simulate", generation=0)
     assert main(argv) == 130
     last = _err(capsys)[-1]

@@ -29,9 +29,7 @@ def _stack(traj):
         np.asarray(c.d_hat)[:, None]], axis=1)
 
 
-@pytest.fixture(scope="module")
-def traj20(paper_setup):
-    return dscjax.simulate(paper_setup, 20.0, 1e-3)
+# traj20: conftest.py's (shared with test_dsc.py)
 
 
 def test_initial_filter_state_is_x2d_at_zero(traj20):

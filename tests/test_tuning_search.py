@@ -24,7 +24,6 @@ import tuning
 import tuning.runner
 from dscjax import metrics
 from dscjax import search as box
-from dscjax.runspec import RunSpec
 from dscjax.search import methods
 from tuning import report, search
 from tuning.objective import Scales
@@ -104,17 +103,6 @@ def test_the_box_follows_the_order_of_the_flat_z():
         assert np.all(np.isneginf(lo_t[name])) and np.all(np.isposinf(hi_t[name]))
 
 
-def _problem():
-    # forward mode: 2 tangents, the cheapest gradient to compile for two numbers
-    spec = tuning.OptimizerSpec(name="cma_path", steps=STEPS, save_interval=2, popsize=4,
-                                time_limit=None, gradient="forward")
-    # no sampled loop: a 1 ms controller cannot be sampled on the 2 ms step
-    cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
-                              objective=tuning.ObjectiveSpec(window_start=0.5),
-                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
-
-
 def _with(problem, **opt):
     cfg = problem.cfg
     new = dataclasses.replace(cfg, optimizer=dataclasses.replace(cfg.optimizer, **opt))
@@ -122,9 +110,11 @@ def _with(problem, **opt):
 
 
 @pytest.fixture(scope="module")
-def problems():
-    # one objective, so every method shares its compiled programs (the batches have one width)
-    p = _problem()
+def problems(search_problem):
+    # one objective, so every method shares its compiled programs (the batches have one width);
+    # conftest's, saved every 2 iterations here
+    assert search_problem.cfg.optimizer.steps == STEPS
+    p = _with(search_problem, save_interval=2)
     return {"cma_path": p, "cma": _with(p, name="cma", popsize=WIDTH),
             "adam": _with(p, name="adam")}
 

@@ -116,12 +116,17 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
 
 
 def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None) -> Problem:
+                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None
+                  ) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
-    cases) join the training batch (or the nominal plant)."""
+    cases) join the training batch (or the nominal plant). `ready()` is called once every
+    setting is validated, before anything runs or compiles (the start scales run the loop):
+    the command prepares its --out there."""
     parts = _parts(setup, options, cfg, extra_plants)
     cfg, notes, selection, mode, sim, sampled, train, heldout = parts
+    if ready is not None:
+        ready()
     notes = list(notes)
     requirements = build_requirements(setup, cfg.requirements)
     scales = start_scales(setup, sim, cfg.objective, train)

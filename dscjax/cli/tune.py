@@ -252,8 +252,9 @@ def run(args) -> int:
             check_resume(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = use_device(args, options.device, generation_rows(cfg))
-    problem = build_problem(setup, options, cfg)  # (validates every setting)
-    prepare_out(args, OUTPUTS, resumable=True)
+    # --out once every setting is validated, before the start scales compile and run the loop
+    problem = build_problem(setup, options, cfg,
+                            ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
     oc = cfg.optimizer
     how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
            else f"{oc.name} (sigma0 {oc.sigma0:g})")
