@@ -33,7 +33,7 @@ from dscjax import params  # noqa: E402
 from dscjax.config import example  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
 from dscjax.sweep import SweepSettings  # noqa: E402
-from dscjax.sweep.device import Runner  # noqa: E402
+from dscjax.sweep.device import Runner, tile_rows  # noqa: E402
 
 DT = 1e-3
 MODELS = ("paper", "pi", "gpi", "bouc_wen")
@@ -74,7 +74,7 @@ def runner(name: str, dtype, plants: int, t_final: float, seed: int = 0):
     ranges = [r.resolve(setup) for r in params.default_ranges(setup)]
     table = params.sample_table(ranges, "uniform", plants, seed).astype(np.float32)
     run = Runner(setup, [r.param for r in ranges], RunSpec.make(t_final, DT), plants,
-                 devices=jax.devices()[:1])
+                 devices=jax.devices()[:1], tile=tile_rows(jax.devices()[0].platform, plants))
     return lambda: run(table, 1)
 
 

@@ -7,8 +7,9 @@
 
 The parameter table (seeded samples or a full-factorial grid over config paths such as
 ``plant.g[1]``) is drawn up front, so it does not depend on the chunk size or device count.
-Samples run in blocks of `chunk` rows of one shape (one compiled program; the last block
-padded), only the metrics and divergence status coming back. The blocks of a round are laid
+Samples run in blocks of `chunk` rows, each block as tiles of a fixed width (one compiled
+program whatever the chunk, so results are bitwise independent of it; the last tile padded),
+only the metrics and divergence status coming back. The blocks of a round are laid
 over every device of `spec.device`'s platform (all hosts after `jax.distributed.initialize()`),
 each device running the SAME single-device program, so results are bitwise independent of the
 device count (a partitioned program compiles differently); `parallel="spmd"` runs one

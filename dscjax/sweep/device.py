@@ -1,5 +1,6 @@
-"""Running blocks of a sweep on the devices: one compiled single-device program per device,
-each on its own block of a globally sharded table (see the package docstring)."""
+"""Running blocks of a sweep on the devices: one compiled single-device program of a fixed
+tile width (`tile_rows`) per device; a block of any size runs as tiles of that width (the last
+padded with copies of a valid row), so a row's result does not depend on the block size."""
 
 from __future__ import annotations
 
@@ -27,15 +28,45 @@ def _block_body(setup, spec, table, *, columns):
             "bad_step": traj.status.step}
 
 
-# One compiled program per block shape; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
+# One compiled program per shape: every block runs it on tiles of the same width, so one
+# program serves every block size; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
 _block = xla.jit(_block_body, static_argnames=("columns",))
-PROBE_ROWS = 1024  # the block size whose compiled memory gives the footprint of a row
+PROBE_ROWS = 1 << 20  # a sweep of this size runs the widest tile
+# Rows per tile: XLA compiles each width differently (the fused loop of two widths can differ in
+# the last bits of some rows), so the width never follows the chunk. It is a multiple of 64, so
+# every row sits in a full vector (no scalar remainder loop with code of its own).
+CPU_TILE_ROWS = 1024
+ACCELERATOR_TILE_ROWS = 65536  # a GPU needs wide batches: a narrow tile idles most of it
 
 
-def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int = PROBE_ROWS
+def tile_rows(platform: str, n: int) -> int:
+    """The tile width of the block program of a sweep of `n` rows on `platform` ("cpu",
+    "gpu", ...): the platform's maximum (`CPU_TILE_ROWS`, `ACCELERATOR_TILE_ROWS`), or n
+    rounded up to 64 (to 256 beyond 256 rows, the alignment of `dscjax.device.auto_chunk`)
+    where that is less, so a small sweep does not pay for a wide tile."""
+    most = CPU_TILE_ROWS if platform == "cpu" else ACCELERATOR_TILE_ROWS
+    align = 256 if n > 256 else 64
+    return min(most, -(-max(n, 1) // align) * align)
+
+
+def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
+    """`rows` split into tiles of `width` rows, the last padded with copies of its own first
+    row (a valid sample)."""
+    out = []
+    for lo in range(0, max(rows.shape[0], 1), width):
+        t = rows[lo:lo + width]
+        if t.shape[0] < width:
+            t = np.concatenate([t, np.repeat(t[:1], width - t.shape[0], axis=0)])
+        out.append(t)
+    return out
+
+
+def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int | None = None
                   ) -> float | None:
     """The memory of one row of the block program on `device` (`dscjax.device.per_row_bytes`
-    of the program compiled for `rows` rows; nothing is run). None where JAX does not say."""
+    of the program compiled for `rows` rows, default the tile width of a large sweep; nothing
+    is run). None where JAX does not say."""
+    rows = rows or tile_rows(device.platform, PROBE_ROWS)
     dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
     spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype)
     table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,
@@ -51,8 +82,11 @@ class Runner:
     AXIS = "batch"
 
     def __init__(self, setup, columns, spec: RunSpec, chunk, parallel="per_device",
-                 devices=None):
+                 devices=None, tile: int | None = None):
         self.devices = list(devices if devices is not None else jax.devices())
+        # rows per compiled tile (per_device only: the spmd program runs whole blocks);
+        # default: the widest tile (callers pass the sweep's `tile_rows`)
+        self.tile = tile or tile_rows(self.devices[0].platform, PROBE_ROWS)
         self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
         self.n_dev = len(self.devices)
         self.chunk = chunk
@@ -77,45 +111,61 @@ class Runner:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
         self._setup = setup
 
-    def __call__(self, table: np.ndarray, n_real: int) -> dict[str, np.ndarray]:
+    def __call__(self, table: np.ndarray, n_real: int, last_rows: int | None = None
+                 ) -> dict[str, np.ndarray]:
         """table: (n_dev * chunk, d) host array, identical on every process; its first
-        `n_real` blocks are real (the others pad the round and their rows are garbage)."""
+        `n_real` blocks are real (the others pad the round and their rows are garbage), the
+        last of them with `last_rows` real rows (default chunk: the tiles past them need not
+        run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
-        arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
         if self.parallel == "spmd":
+            arr = jax.make_array_from_callback(table.shape, self.in_sharding,
+                                               lambda i: table[i])
             out = self._spmd(self.setup, self.spec, arr)
             return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1
         jobs = {}
-        for shard in arr.addressable_shards:
-            block = (shard.index[0].start or 0) // self.chunk
+        for dev, index in self.in_sharding.addressable_devices_indices_map(
+                table.shape).items():
+            block = (index[0].start or 0) // self.chunk
             if not (single and block >= n_real):  # one process: padding blocks need not run
-                jobs[block] = shard
+                jobs[block] = dev
 
-        def dispatch(shard):
-            return shard.device, _block(self.setup_on[shard.device], self.spec, shard.data,
-                                        columns=self.columns)
+        def dispatch(block_dev):
+            block, dev = block_dev
+            rows = table[block * self.chunk:(block + 1) * self.chunk]
+            if block == n_real - 1 and last_rows is not None:
+                rows = rows[:last_rows]
+            return dev, self._tiles_on(dev, self.setup_on[dev], self.spec, rows)
 
         if self._compiled or len(jobs) == 1:
-            per_dev = {b: dispatch(sh) for b, sh in jobs.items()}  # asynchronous: devices overlap
+            # asynchronous: the devices overlap
+            per_dev = {b: dispatch((b, dev)) for b, dev in jobs.items()}
         else:
             # The first call compiles the program once per device: do that concurrently.
             with ThreadPoolExecutor(len(jobs)) as pool:
-                per_dev = dict(zip(jobs, pool.map(dispatch, jobs.values()), strict=True))
+                per_dev = dict(zip(jobs, pool.map(dispatch, jobs.items()), strict=True))
         self._compiled = True
         if single:
-            keys = per_dev[0][1].keys()
-            return {k: np.concatenate([np.asarray(per_dev[b][1][k]) for b in sorted(per_dev)]
+            first = per_dev[min(per_dev)][1][0]
+            return {k: np.concatenate([_join(per_dev[b][1], k, self.chunk)
+                                       for b in sorted(per_dev)]
                                       + [np.zeros(self.chunk * (self.n_dev - len(per_dev)),
-                                                  per_dev[0][1][k].dtype)])
-                    for k in keys}
-        by_device = {dev: res for dev, res in per_dev.values()}
-        keys = next(iter(by_device.values())).keys()
+                                                  first[k].dtype)])
+                    for k in first}
+        by_device = {dev: [_join_on(res, k, self.chunk) for k in res[0]]
+                     for dev, res in per_dev.values()}
+        keys = list(next(iter(per_dev.values()))[1][0])
         out = {k: jax.make_array_from_single_device_arrays(
-            (table.shape[0],), self.out_sharding, [by_device[d][k] for d in self.local])
-            for k in keys}
+            (table.shape[0],), self.out_sharding, [by_device[d][i] for d in self.local])
+            for i, k in enumerate(keys)}
         return {k: _to_host(v) for k, v in out.items()}
 
+    def _tiles_on(self, device, setup, spec, rows) -> list[dict]:
+        """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
+        split into tiles (`tiles`) on `device`."""
+        return [_block(setup, spec, jax.device_put(t, device), columns=self.columns)
+                for t in tiles(rows, self.tile)]
 
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
                ) -> dict[str, np.ndarray]:
@@ -127,9 +177,9 @@ class Runner:
         setup = jax.device_put(self._setup, device)
         rows = np.asarray(table, self.dtype)
 
-        def level(j, idx):
-            return _block(setup, level_spec(self.spec, j), jax.device_put(rows[idx], device),
-                          columns=self.columns)
+        def level(j, idx):  # the same tile program as the blocks: independent of the chunk
+            out = self._tiles_on(device, setup, level_spec(self.spec, j), rows[idx])
+            return {k: _join(out, k, len(idx)) for k in out[0]}
 
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
         halvings = np.zeros(level_of.shape, np.int64)
@@ -138,6 +188,18 @@ class Runner:
         out["refinements"] = level_of.astype(np.int8)
         out["dt_used"] = dt / 2.0**halvings
         return out
+
+
+def _join(outputs: list[dict], key: str, n: int) -> np.ndarray:
+    """Column `key` of a list of tile outputs on the host, cut or zero-padded to n rows."""
+    a = np.concatenate([np.asarray(o[key]) for o in outputs])[:n]
+    return np.concatenate([a, np.zeros(n - a.shape[0], a.dtype)])
+
+
+def _join_on(outputs: list[dict], key: str, n: int):
+    """`_join` on the tiles' device (concatenation copies bits, nothing is computed)."""
+    a = jax.numpy.concatenate([o[key] for o in outputs])[:n]
+    return jax.numpy.concatenate([a, jax.numpy.zeros(n - a.shape[0], a.dtype)])
 
 
 def _to_host(a) -> np.ndarray:

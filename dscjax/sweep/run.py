@@ -18,7 +18,7 @@ from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner, bytes_per_row
+from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
@@ -50,7 +50,7 @@ class SweepResult:
 
 
 def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
-                chunk: int) -> dict[str, Any]:
+                chunk: int, tile: int | None = None) -> dict[str, Any]:
     """Everything that determines the rows of a sweep (and how they are split into files)."""
     setup_dict = config.to_dict(setup)
     setup_dict.pop("simulation", None)
@@ -62,6 +62,7 @@ def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
         "ranges": [[r.name, r.low, r.high, r.num] for r in ranges],
         "method": settings.method, "samples": settings.n_samples(), "seed": settings.seed,
         "dtype": settings.dtype, "run": run, "chunk": int(chunk),
+        "tile": tile,  # the compiled width decides the last bits (dscjax.sweep.device)
     }
 
 
@@ -75,6 +76,7 @@ def run_sweep(
     overwrite: bool = False,
     progress: Callable[[dict[str, Any]], None] | None = None,
     devices=None,
+    tile: int | None = None,
     **run,
 ) -> SweepResult:
     """Run a sweep of `setup` (gains fixed) over `settings`; see the module docstring.
@@ -89,6 +91,9 @@ def run_sweep(
         progress: called after every round with a dict: done, total, resumed, elapsed_s,
             samples_per_s, steps_per_s (without compilation), eta_s, round, rounds.
         devices: default those of `device.choose(spec.device, n)`.
+        tile: rows of the one compiled block program (a multiple of 64); default
+            `dscjax.sweep.device.tile_rows(platform, n)`. Blocks of any chunk run as tiles of
+            this width, so the results do not depend on the chunk.
 
     Returns:
         SweepResult; nothing is raised for diverged samples.
@@ -122,14 +127,21 @@ def run_sweep(
         devices, placement = choice.devices, str(choice)
     else:
         placement = "the devices given"
-    chunk = settings.chunk or (_started_chunk(out_dir) if resume else None) or _default_chunk(
-        setup, columns, spec, n, devices)
+    if tile is not None and (not isinstance(tile, int) or tile < 1):
+        raise ConfigError(f"tile must be an integer >= 1 (got {tile!r})")
+    tile = tile or tile_rows(devices[0].platform, n)
+    chunk = settings.chunk or (_started_chunk(out_dir) if resume else None)
+    if not chunk:  # the default, in whole tiles where that keeps the number of blocks
+        chunk = _default_chunk(setup, columns, spec, n, devices, tile)
+        whole = -(-chunk // tile) * tile
+        chunk = whole if -(-n // whole) == -(-n // chunk) else chunk
     names = tuple(r.name for r in ranges)
     table = sample_table(ranges, settings.method, n, settings.seed)
     # the values actually simulated: rounded to the sweep's dtype
     table = table.astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
-    fp = fingerprint(setup, settings, ranges, spec, chunk)
+    tile = tile if settings.parallel == "per_device" else None
+    fp = fingerprint(setup, settings, ranges, spec, chunk, tile)
     digest = files.digest(fp)
 
     out = Path(out_dir) if out_dir is not None else None
@@ -139,7 +151,7 @@ def run_sweep(
         done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices)
+    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile)
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
     n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))
@@ -148,7 +160,7 @@ def run_sweep(
         group = todo[r:r + runner.n_dev]
         padded = group + [group[-1]] * (runner.n_dev - len(group))
         rows = np.concatenate([_block_rows(table, b, chunk) for b in padded])
-        host = runner(rows, len(group))
+        host = runner(rows, len(group), _block_len(group[-1], chunk, n))
         for k, b in enumerate(group):
             lo = b * chunk
             m = _block_len(b, chunk, n)
@@ -214,15 +226,16 @@ def _started_chunk(out_dir) -> int | None:
     return int(chunk) if isinstance(chunk, int) and chunk > 0 else None
 
 
-def _default_chunk(setup, columns, spec: RunSpec, n: int, devices) -> int:
+def _default_chunk(setup, columns, spec: RunSpec, n: int, devices, tile: int) -> int:
     """`device.auto_chunk` for the first of `devices`: on an accelerator from its free memory
-    and the block program's footprint per row (process 0's, so that every host agrees)."""
+    and the tile program's footprint per row (process 0's, so that every host agrees)."""
     first = devices[0]
     if first.platform == "cpu":
         return device.auto_chunk(n)
     mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
     chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
-                              bytes_per_row(setup, columns, spec, mine[0]), len(devices))
+                              bytes_per_row(setup, columns, spec, mine[0], tile),
+                              len(devices))
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
