@@ -2,6 +2,7 @@
 
     python experiments/bench_gradient.py            # 20 s, a batch of 256 plants (docs)
     python experiments/bench_gradient.py --quick    # 2 s, a batch of 16: JSON only
+    python experiments/bench_gradient.py --t-final 5 --batch 64   # reduced, to the docs
 
 J = the L2 norm of the tracking error on [1 s, T] (`l2_error_window`) of the paper's example
 (dt = 1 ms), a pure function (`dscjax.run`, as `dscjax.objective` builds it) of the 13 DSC
@@ -103,8 +104,13 @@ def main(argv=None) -> int:
     p = parser(__doc__)
     p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
     p.add_argument("--memory-limit-gib", type=positive(float), default=8.0)
+    p.add_argument("--t-final", type=positive(float), default=None,
+                   help="horizon [s] (default 20, --quick 2)")
+    p.add_argument("--batch", type=positive(), default=None,
+                   help="plants of the batch (default 256, --quick 16)")
     a = p.parse_args(argv)
     t_final, batch = (2.0, 16) if a.quick else (20.0, 256)
+    t_final, batch = a.t_final or t_final, a.batch or batch
     repeats = a.repeats or (3 if a.quick else 7)
     bench = Bench("gradient", "Exact gradients", quick=a.quick)
     env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
