@@ -15,6 +15,7 @@ from dscjax.integrate import ETDRK4, RK4, Checkpointed, Status, TimeParallel, in
 from dscjax.metrics import default_window
 from dscjax.params import cast
 from dscjax.plant import CustomPlant, PaperPlant, Plant, StrictFeedback, check_strict_feedback
+from dscjax.pure import objective
 from dscjax.reference import InitialOffset, MultiSine, Reference, Sine, SmoothStep
 from dscjax.runspec import RunSpec
 from dscjax.simulate import (
@@ -40,6 +41,6 @@ __all__ = [
     "ETDRK4", "initial_state", "InitialOffset", "integrate", "metrics", "MultiSine",
     "nan_if_diverged", "Observation", "order_n_example", "paper_example", "PaperPlant", "params",
     "Plant", "prepared", "Reference", "refinement_level", "RK4", "rk4_step", "run", "RunSpec",
-    "Setup", "simulate", "simulate_batch", "Sine", "SmoothStep", "State", "Status",
+    "objective", "Setup", "simulate", "simulate_batch", "Sine", "SmoothStep", "State", "Status",
     "StrictFeedback", "TimeParallel", "Trajectory", "validate_setup", "vector_field", "xla"
 ]

@@ -8,9 +8,10 @@ Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gr
 `sampled` (the controller sampled, or continuous), `delay` and `discretisation` (how the
 sampled controller advances its states). Traced fields change without
 recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
-sample), `noise` and `noise_seed`; `refine`, `dtype` and `device` are host-side. The
-[simulation] table, the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`)
-all derive from it.
+sample), `noise` and `noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side
+(`HOST_FIELDS`): `program()` sets them to fixed values before a spec enters a jitted
+function, so specs differing only there share one compiled program. The [simulation] table,
+the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`) all derive from it.
 """
 
 from __future__ import annotations
@@ -37,6 +38,9 @@ MAX_SAVED_POINTS = 20_001
 DTYPES = ("float64", "float32")
 DEVICES = ("auto", "cpu", "gpu")
 DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
+# settings read on the host only (refinement, the setup's cast, placement, which keys a
+# default rule set): never part of a compiled program
+HOST_FIELDS = ("refine", "dtype", "device", "rules")
 
 # The [simulation] table: key -> (default, one-line description). The keys are RunSpec.make's
 # arguments; the command-line flag of a key is --key-with-dashes.
@@ -236,6 +240,12 @@ class RunSpec(eqx.Module):
             noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype),
             sample_every=jnp.asarray(self.sample_every, dtype))
 
+    def program(self) -> RunSpec:
+        """This spec with its host-side fields (`HOST_FIELDS`) at fixed values: what a jitted
+        function takes, so that specs differing only in refinement, dtype, device or rules
+        hit the same compiled program."""
+        return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
+
     def refined(self, halvings: int, solver_name: str) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
         the same controller sample time (a refinement level of `simulate`)."""
@@ -277,5 +287,5 @@ def _coerce(key: str, value, field: str):
     return value
 
 
-__all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "MAX_SAVED_POINTS", "OPTIONS",
-           "RunSpec", "auto_stride"]
+__all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "HOST_FIELDS", "MAX_SAVED_POINTS",
+           "OPTIONS", "RunSpec", "auto_stride"]

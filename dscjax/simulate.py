@@ -4,8 +4,12 @@
 A run is a `Setup` (every number traced) and a `RunSpec` (how it is simulated: the number of
 steps, the save stride, the solver and the controller's sampling are static). Both entry points
 are jitted once per static structure: changing a gain, dt or the metric window never
-recompiles. A run that diverges is run again refined (ETDRK4, smaller steps) before it counts
-as diverged; a diverged trajectory's metrics are NaN, beside its status and time.
+recompiles, nor does a host-side setting of the spec (`RunSpec.program`). A run that
+diverges is run again refined (ETDRK4, smaller steps) before it counts as diverged; a diverged
+trajectory's metrics are NaN, beside its status and time. Refinement is host-side: under a
+trace (jit, grad, vmap) both entry points refuse a spec that would refine (pass refine=0, or
+use the pure `dscjax.objective`); with refine=0 they compute the same function traced or not
+(`simulate`'s throw becomes `eqx.error_if`).
 """
 
 from __future__ import annotations
@@ -311,9 +315,12 @@ def simulate(
         setup: the plant, hysteresis, controller and reference (see `paper_example`).
         t_final, dt, save_every, window_start, state_bound, solver, refine, sample_time: the
             run (`RunSpec.make`'s arguments, checked), unless `spec` gives it whole. A diverged
-            run is run again at the refinement levels 1..refine (concrete inputs only) and the
-            first that stays finite is reported. sample_time: a zero-order-hold controller.
-        throw: raise DivergenceError if the run diverged.
+            run is run again at the refinement levels 1..refine and the first that stays
+            finite is reported. Under a trace (jit, grad, vmap) refine must be 0: refinement
+            runs on the host (ValueError otherwise; `dscjax.objective` is the pure function).
+            sample_time: a zero-order-hold controller.
+        throw: raise DivergenceError if the run diverged (under a trace: `eqx.error_if`,
+            an error when the compiled function runs).
         progress: called on the host with the fraction of steps done (every 1 %); pass the same
             callable to avoid recompiling.
         extra: the caller's running reductions, as `run`'s.
@@ -338,18 +345,35 @@ def simulate(
         if extra is not None:
             raise ValueError("simulate: give progress or extra, not both")
         extra = _Progress(spec.n_steps, progress)
+    if not validation.is_concrete((setup, spec)):
+        refuse_traced_refinement(spec, "simulate")
     with _placed(spec, device, 1, setup):
-        traj = _simulate(setup, spec, None, extra)
+        traj = _simulate(setup, spec.program(), None, extra)
         concrete = validation.is_concrete(traj.status)
+        if not concrete:  # inside jit with concrete inputs
+            refuse_traced_refinement(spec, "simulate")
         for j in range(1, counted_levels(spec) + 1):
             if not (concrete and bool(traj.diverged)):
                 break
-            finer = _simulate(setup, level_spec(spec, j), None, extra)
+            finer = _simulate(setup, level_spec(spec, j).program(), None, extra)
             traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
-    if throw and concrete and bool(traj.diverged):
+    if throw and not concrete:
+        return eqx.error_if(traj, traj.diverged, "simulate: the run diverged (throw=False "
+                            "returns it with traj.status)")
+    if throw and bool(traj.diverged):
         why = "" if spec.sampled else diagnose(setup, traj)
         raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
     return traj
+
+
+def refuse_traced_refinement(spec: RunSpec, where: str) -> None:
+    """ValueError if `spec` would refine a diverged run: refinement re-runs it on the host,
+    which a traced call cannot do (a silent skip would make the traced function another one)."""
+    if counted_levels(spec):
+        raise ValueError(
+            f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
+            f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "
+            f"not), or use dscjax.objective (a pure function of chosen numbers)")
 
 
 class _Progress(eqx.Module):
@@ -416,7 +440,8 @@ def simulate_batch(
     Args:
         overrides: {"hysteresis.alpha": (B,), "plant.x0": (B, n), ...}.
         t_final, dt, window_start, state_bound, solver, refine, sample_time, device: as
-            `simulate`'s (or `spec`); refinement re-runs only the diverged rows.
+            `simulate`'s (or `spec`); refinement re-runs only the diverged rows, on the host
+            (under a trace refine must be 0, as for `simulate`).
         save_every: default t_final/dt: only the first and last points.
         checkpoint_every: reverse mode keeps the state every this many steps and recomputes
             the rest.
@@ -453,11 +478,15 @@ def simulate_batch(
     overrides = dict(overrides)
 
     def level(j, ov):
-        return _simulate_batch(setup, level_spec(spec, j), ov)
+        return _simulate_batch(setup, level_spec(spec, j).program(), ov)
 
+    if not validation.is_concrete((setup, spec, overrides)):
+        refuse_traced_refinement(spec, "simulate_batch")
     with _placed(spec, device, next(iter(sizes.values()), 1), (setup, overrides)):
         traj = level(0, overrides)
-        if counted_levels(spec) and validation.is_concrete((traj, overrides)):  # host-side
+        if not validation.is_concrete(traj.status):
+            refuse_traced_refinement(spec, "simulate_batch")
+        elif counted_levels(spec):  # host-side
             traj = refine_diverged(traj, overrides, level, counted_levels(spec))
     return traj
 

@@ -133,7 +133,7 @@ def test_the_sampled_loop_has_an_exact_gradient(paper_setup):
 
     import dscjax
 
-    spec = dscjax.RunSpec.make(1.0, 1e-3, save_every=100, sample_time=2e-3)
+    spec = dscjax.RunSpec.make(1.0, 1e-3, save_every=100, sample_time=2e-3, refine=0)
 
     def l2(k):
         s = dscjax.params.set(paper_setup, "controller.k", k)

@@ -13,7 +13,7 @@ docs/tuning.md describes the objective and the settings.
 from tuning.config import AdversarialSpec, BatchSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
 from tuning.objective import Objective, ObjectiveSpec, Scales, TuningMetrics, aggregate
-from tuning.optimize import OptimizerSpec, value_and_grad
+from tuning.optimize import OptimizerSpec, loss_function, value_and_grad
 from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
 from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, run
@@ -22,6 +22,6 @@ __all__ = [
     "AdversarialSpec", "BatchSpec", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
     "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
     "Selection", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
-    "URate", "aggregate", "build_problem", "config_from_dict", "run",
+    "URate", "aggregate", "build_problem", "config_from_dict", "loss_function", "run",
     "value_and_grad",
 ]

@@ -341,7 +341,7 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     """The start gains' `Scales` (ConfigError if they diverge on the nominal plant); with
     effort_bounds = "per_plant" and a batch `train`, each training plant's "start" bounds (a
     plant on which the start diverges keeps the nominal ones)."""
-    metrics, diverged = _start_metrics(setup, sim)
+    metrics, diverged = _start_metrics(setup, sim.program())
     if bool(diverged):
         raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
                           "stable start (revise the gains, dt or tau)")
@@ -360,7 +360,7 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     tiny = 1e-300
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
-        mb, div = jax.device_get(_start_metrics(setup, sim, overrides=dict(train)))
+        mb, div = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
         div = np.asarray(div, bool)
         for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
                                            ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):

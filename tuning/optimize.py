@@ -1,6 +1,6 @@
-"""The [tuning.optimizer] table (`OptimizerSpec`: the search method, its settings and limits)
-and the exact gradient of the tuning objective in each AD mode (`value_and_grad`,
-`choose_gradient`)."""
+"""The [tuning.optimizer] table (`OptimizerSpec`: the search method, its settings and limits),
+the tuner's loss as one pure function (`loss_function`) and its exact gradient in each AD mode
+(`value_and_grad`, `choose_gradient`)."""
 
 from __future__ import annotations
 
@@ -97,3 +97,30 @@ def value_and_grad(objective, z, mode: str, checkpoint_every: int | None = None)
             lambda z_: objective.evaluate(z_, checkpoint_every=checkpoint_every),
             has_aux=True)(z)
     raise ValueError(f"unknown gradient mode {mode!r}")
+
+
+def loss_function(problem):
+    """(loss, z0): the tuner's own loss as a pure function of the tuned coordinates.
+
+    `loss(z) -> (J, aux)`: z as `z0` ({name: array}, log coordinates for positive numbers,
+    `problem.selection`), J the objective the search minimises (normalised terms, constraint
+    penalties, the batch aggregate; a diverged plant costs the finite divergence penalty) and
+    aux its terms, exact metrics, `n_diverged` and `feasible`. No host-side step inside: the
+    same value eagerly and under jit, differentiable (`jax.value_and_grad(loss,
+    has_aux=True)`). The box of z: `problem.selection.z_box(z0)`.
+
+    Example:
+        >>> import jax, dscjax, tuning
+        >>> problem = tuning.build_problem(dscjax.paper_example(), dscjax.RunSpec.make(0.5),
+        ...                                tuning.TuningConfig())
+        >>> loss, z0 = tuning.loss_function(problem)
+        >>> (J, aux), g = jax.value_and_grad(loss, has_aux=True)(z0)
+        >>> int(aux["n_diverged"]), sorted(g) == sorted(z0)
+        (0, True)
+    """
+    objective = problem.objective
+
+    def loss(z):
+        return objective.evaluate(z)
+
+    return loss, problem.z0
