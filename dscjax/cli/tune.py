@@ -145,7 +145,7 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config, validation
-    from dscjax.cli.common import apply_run_options, example_setup
+    from dscjax.cli.common import apply_run_options, blame_options, example_setup
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -191,7 +191,15 @@ def load(args):
     given["adversarial"] |= adv
     cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(getattr(cfg, key), **values)
                                       for key, values in given.items()})
-    cfg.validate()
+    # a setting given on the command line is blamed on its option, as typed
+    typed = {f"tuning.{key}.{field}": f"--{name.replace('_', '-')}"
+             for key, names in changes.items() for name, field in names.items()
+             if getattr(args, name) is not None}
+    typed |= {f"tuning.adversarial.{k}": f"--{k}" for k in ("rounds", "disturbance")
+              if k in adv}
+    typed = {k: "--adversarial" if v == "--rounds" else v for k, v in typed.items()}
+    with blame_options(typed):
+        cfg.validate()
     options = apply_run_options(args, options)
     validation.validate_setup(setup)
     if options.dtype != "float64":
