@@ -174,6 +174,18 @@ def apply_run_options(args, spec):
                         **overrides)
 
 
+def check_noise(args, setup, spec) -> None:
+    """simulation.noise (--noise) as one number or one per state of the plant (n), refused
+    in one line naming how it was given otherwise (before anything traces the loop)."""
+    from dscjax.validation import ConfigError
+
+    noise = None if spec.noise is None else np.asarray(spec.noise)
+    if noise is not None and noise.ndim == 1 and noise.size != setup.order:
+        name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
+        raise ConfigError(f"{name} must be one number or one per state of the plant, "
+                          f"{setup.order} numbers (got {noise.size})")
+
+
 def choose_device(args, kind: str, rows: int = 1):
     """Where a command's work runs (`dscjax.device.choose` of `kind`, --device or
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
@@ -287,6 +299,7 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
         raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
+    check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(
             controller=dataclasses.replace(setup.controller, variant=args.variant))

@@ -22,6 +22,7 @@ from dscjax.cli.common import (
     add_run_args,
     apply_run_options,
     blame_options,
+    check_noise,
     choose_device,
     count,
     example_setup,
@@ -174,6 +175,7 @@ def load(args):
         changes["heatmap"] = tuple(names)
     settings = dataclasses.replace(settings, **changes)
     validate_setup(setup)
+    check_noise(args, setup, options)
     return setup, options, settings
 
 

@@ -145,7 +145,12 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config, validation
-    from dscjax.cli.common import apply_run_options, blame_options, example_setup
+    from dscjax.cli.common import (
+        apply_run_options,
+        blame_options,
+        check_noise,
+        example_setup,
+    )
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -202,6 +207,7 @@ def load(args):
         cfg.validate()
     options = apply_run_options(args, options)
     validation.validate_setup(setup)
+    check_noise(args, setup, options)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
