@@ -435,6 +435,19 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     return out
 
 
+def kept_text(args, outputs: Outputs, rerun: str) -> str:
+    """What an interrupted command that cannot resume says it keeps: the files it finished
+    (`outputs` found in --out: the rule of --out let it start only where none was), or
+    nothing; then `rerun`, the command that makes them all."""
+    out = Path(args.out)
+    found = outputs.found(out) if out.is_dir() else []
+    if not found:
+        return f"nothing is kept; run the same command again: {rerun}"
+    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
+    return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
+            f"rest is not written; run the same command again for all of it: {rerun}")
+
+
 def _remove_if_empty(created: list[Path]) -> None:
     """The directories a command created for its --out (leaf first), removed if it left
     nothing in them."""

@@ -162,4 +162,6 @@ def interrupt_hint(args) -> str:
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"
+    from dscjax.cli.common import kept_text
+
+    return kept_text(args, OUTPUTS, rerun_command(args))

@@ -136,7 +136,9 @@ def interrupt_hint(args) -> str:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        return f"nothing is kept; run the same command again: {rerun_command(args)}"
+        from dscjax.cli.common import kept_text
+
+        return kept_text(args, OUTPUTS, rerun_command(args))
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
             f"{resume_command(args)}")
