@@ -5,7 +5,13 @@
             bar.update_to(done, postfix="2.1e7 steps/s")
 
 On a terminal tqdm redraws one line in place; elsewhere (a log, CI, a pipe) the same figures
-are printed as plain lines, at most every `every_s` seconds and once at the end.
+are printed as plain lines, at most every `every_s` seconds and once at the end. The ETA is
+shown once a unit of work was timed (never from compilation alone).
+
+Work without a count (a compilation, a held-out check) is a `Phase`, shown only if it lasts:
+
+    with Phase("  the held-out check (256 plants)"):
+        ...
 
 Under `handle_interrupts` (installed by the CLI) a Ctrl-C inside a `critical()` section (a
 generation and its state update, a checkpoint write) is deferred to the section's end, so the
@@ -29,6 +35,8 @@ from tqdm import tqdm
 
 # A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s"
 LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed, ETA {remaining}"
+# ... before a unit was timed (no rate yet, so no ETA)
+START_LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed"
 # ... and without a total (work that stops on a time limit or a criterion, not a count)
 OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 
@@ -92,9 +100,9 @@ class Progress:
         rate = done / elapsed if elapsed > 0 and done > 0 else None
         count = self.total if self.total is not None else self.n
         unit = self.unit + ("" if count == 1 else "s")  # "1 generation", "2 generations"
+        form = OPEN_LINE if self.total is None else LINE if rate is not None else START_LINE
         text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=unit,
-                                 rate=rate, initial=self.initial,
-                                 bar_format=LINE if self.total is not None else OPEN_LINE)
+                                 rate=rate, initial=self.initial, bar_format=form)
         print(text + (f"; {self.postfix}" if self.postfix else ""), file=self.file,
               flush=True)
 
@@ -108,6 +116,64 @@ class Progress:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+class Phase:
+    """A phase of work without a count, on stderr: if it still runs after `after_s` seconds,
+    "DESC ..." (on a terminal, redrawn with the time elapsed every second; elsewhere again
+    every `every_s` seconds), and at its end "DESC: done in 12.3 s". A phase shorter than
+    `after_s` shows nothing. Use it as a context manager, or `start()` and `stop()`."""
+
+    def __init__(self, desc: str, *, after_s: float = 2.0, every_s: float = 30.0,
+                 file: TextIO | None = None, enabled: bool = True):
+        self.desc, self.after_s, self.every_s, self.enabled = desc, after_s, every_s, enabled
+        self.file = file if file is not None else sys.stderr
+        self.tty = hasattr(self.file, "isatty") and self.file.isatty()
+        self.shown = False
+        self._stop = threading.Event()
+        self._thread = None
+
+    def start(self) -> Phase:
+        self.t0 = time.perf_counter()
+        if self.enabled:
+            self._thread = threading.Thread(target=self._show, daemon=True)
+            self._thread.start()
+        return self
+
+    def _elapsed(self) -> str:
+        return tqdm.format_interval(time.perf_counter() - self.t0)
+
+    def _show(self) -> None:
+        if self._stop.wait(self.after_s):
+            return
+        self.shown = True
+        while True:
+            if self.tty:
+                self.file.write(f"\r{self.desc} ... {self._elapsed()} elapsed")
+            else:
+                self.file.write(f"{self.desc} ... ({self._elapsed()} elapsed)\n")
+            self.file.flush()
+            if self._stop.wait(1.0 if self.tty else self.every_s):
+                return
+
+    def stop(self) -> None:
+        """End the phase (again: nothing)."""
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._thread = None
+        if self.shown:
+            start, end = ("\r", "\033[K") if self.tty else ("", "")  # (erase the rest)
+            self.file.write(f"{start}{self.desc}: done in "
+                            f"{time.perf_counter() - self.t0:.1f} s{end}\n")
+            self.file.flush()
+
+    def __enter__(self) -> Phase:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
 
 
 # -- Ctrl-C, SIGTERM, SIGHUP -------------------------------------------------------------------
@@ -224,5 +290,5 @@ class critical:
         return False
 
 
-__all__ = ["SIGNALS", "Abort", "Progress", "Terminated", "critical", "handle_interrupts",
+__all__ = ["SIGNALS", "Abort", "Phase", "Progress", "Terminated", "critical", "handle_interrupts",
            "signal_name", "signal_number"]

@@ -235,7 +235,7 @@ def run(args) -> int:
 
     from dscjax.cli.common import prepare_out, print_config, use_device
     from dscjax.params import cast
-    from dscjax.progress import Progress
+    from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import report
     from tuning.config import to_toml
@@ -263,7 +263,10 @@ def run(args) -> int:
                           f"without --resume to start afresh")
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = use_device(args, options.device, generation_rows(cfg))
-    problem = build_problem(setup, options, cfg)  # (validates every setting)
+    plants = max(cfg.robust.batch, 1)
+    with Phase(f"  compiling the closed loop and measuring the start gains ({plants} "
+               f"plant{'s' if plants > 1 else ''})", enabled=not args.quiet):
+        problem = build_problem(setup, options, cfg)  # (validates every setting)
     prepare_out(args, OUTPUTS, resumable=True)
     oc = cfg.optimizer
     how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
@@ -301,17 +304,22 @@ def run(args) -> int:
           + ("; bounds per training plant" if cfg.objective.effort_bounds == "per_plant"
              else ""), file=sys.stderr)
     bar, bar_round = None, None
+    # until the first generation (or iteration) ends: its compilation and run
+    first = Phase(f"  compiling the {'search' if oc.name in SEARCHES else 'gradient'} and "
+                  f"running its first {unit}", enabled=not args.quiet).start()
 
     def progress(row):
         nonlocal bar, bar_round
+        first.stop()
         if bar is not None and row.get("round") != bar_round:
             bar.close()
             bar = None
         if bar is None:
             bar_round = row.get("round")
+            # the unit just done counts as done before the clock (its time was compilation)
             bar = Progress(row["steps"], desc="  tune" if bar_round is None else
                            f"  round {bar_round} tune", unit=unit,
-                           initial=row["iteration"], enabled=not args.quiet)
+                           initial=row["iteration"] + 1, enabled=not args.quiet)
         bar.update_to(row["iteration"] + 1, format_progress(
             row, "sigma" if oc.name in SEARCHES else "lr"))
 
@@ -332,6 +340,7 @@ def run(args) -> int:
             result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
                                 progress=progress)
     finally:
+        first.stop()
         if bar is not None:
             bar.close()
     print(f"  stopped: {result.stop_reason}; {_count(result.trace.iterations, unit)}"
@@ -339,7 +348,8 @@ def run(args) -> int:
           + f", {result.rejected} rejected, best at iteration "
           f"{result.trace.best_iteration}; {result.wall_s:.1f} s (compilation "
           f"{result.compile_s:.1f} s)")
-    summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
+    with Phase(f"  {after}" if after else "  the report", enabled=not args.quiet):
+        summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     if outcome is not None:
         adversarial.add_to_report(out, summary, outcome)
         f0, f1 = outcome.fresh["start"], outcome.fresh["tuned"]
