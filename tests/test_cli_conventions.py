@@ -1,6 +1,11 @@
 """What every subcommand does alike (issue 9): unwritable output directories, help defaults
 that match the code's, interrupt and resume, stdout against stderr, --version."""
 
+import errno
+import os
+import signal
+import threading
+
 import pytest
 
 from dscjax.cli.main import main
@@ -258,3 +263,179 @@ def test_print_config_lists_window_start(capsys):
     assert main(["simulate", "--print-config"]) == 0
     out = capsys.readouterr().out
     assert "# window_start = 1.0 " in out and "# save_every = 1 " in out
+
+
+# -- issue 32: the output path, repeated options, names as typed, signals, headlines ---------
+
+ALL_COMMANDS = {"simulate": [], "sweep": [], "tune": [], "reproduce": [], "stability": [],
+                "hysteresis": [], "worst-case": ["--range", "hysteresis.alpha=30%"]}
+
+
+@pytest.mark.parametrize("command", ALL_COMMANDS)
+@pytest.mark.parametrize("where", ["name_too_long", "a_file_above", "the_out_is_a_file",
+                                   "empty"])
+def test_an_out_the_system_refuses_is_one_line_naming_it_before_any_work(
+        command, where, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("kept")
+    out, reason = {
+        "name_too_long": (str(tmp_path / ("x" * 291) / "sub"),
+                          os.strerror(errno.ENAMETOOLONG)),
+        "a_file_above": (str(afile / "sub"), os.strerror(errno.ENOTDIR)),
+        "the_out_is_a_file": (str(afile), "it is a file, not a directory"),
+        "empty": ("", "an empty path"),
+    }[where]
+    line = _one_line_error(capsys, main([command, *ALL_COMMANDS[command], "--out", out]))
+    assert line.startswith(f"dscjax {command}: error: --out {out!r}: "), line
+    assert reason in line, line
+    assert sorted(os.listdir(tmp_path)) == ["afile"] and afile.read_text() == "kept"
+
+
+def test_a_read_only_file_system_is_named_as_such(tmp_path, monkeypatch):
+    from dscjax import files
+
+    class ReadOnly:
+        f_flag = os.ST_RDONLY
+
+    # what a read-only mount answers (root may write anywhere else, so the fault is staged)
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    monkeypatch.setattr(os, "statvfs", lambda path: ReadOnly())
+    assert files.out_problem(tmp_path / "new") == f"{os.strerror(errno.EROFS)}: {tmp_path}"
+    assert files.out_problem(tmp_path) == os.strerror(errno.EROFS)
+
+
+def test_every_single_valued_option_of_every_command_is_refused_when_repeated(capsys):
+    import argparse
+
+    from dscjax.cli.common import Once
+    from dscjax.cli.main import _available_commands, build_parser
+
+    parser = build_parser(_available_commands())
+    for name, sub in parser.subcommands.items():
+        for action in sub._actions:
+            if type(action) is not argparse._HelpAction and action.option_strings:
+                takes_one = action.nargs is None and not isinstance(
+                    action, argparse._StoreConstAction | argparse._AppendAction)
+                assert isinstance(action, Once) == takes_one, (name, action.option_strings)
+    for command, extra in ALL_COMMANDS.items():
+        with pytest.raises(SystemExit) as stop:  # argparse's error, before the command runs
+            main([command, *extra, "--out", "a", "--out", "b"])
+        line = _one_line_error(capsys, stop.value.code)
+        assert line == (f"dscjax {command}: error: argument --out: given twice (first 'a', "
+                        f"then 'b'); give it once")
+
+
+def test_noise_takes_one_number_or_one_per_state_as_its_help_says(capsys):
+    argv = ["simulate", "--sample-time", "0.01", "--print-config"]
+    assert main([*argv, "--noise", "0.01,0.02"]) == 0
+    assert "noise = [0.01, 0.02]" in capsys.readouterr().out
+    assert main([*argv, "--noise", "0.03"]) == 0
+    assert "noise = 0.03" in capsys.readouterr().out
+    line = _one_line_error(capsys, main([*argv, "--noise", "0.01,0.02,0.03"]))
+    assert line == ("dscjax simulate: error: --noise must be one number or one per state of "
+                    "the plant, 2 numbers (got 3)")
+    assert "separated by commas" in _help("simulate")["--noise"]
+
+
+@pytest.mark.parametrize(("argv", "wanted"), [
+    (["sweep", "--grid", "hysteresis.alpha=0.7:1.3:0"],
+     "--grid hysteresis.alpha: the number of grid points must be >= 2 (got 0)"),
+    (["sweep", "--threshold", "-1"], "--threshold must be > 0 (got -1.0)"),
+    (["sweep", "--range", "plant.g[5]=0.8:1.2"],
+     "--range: index 5 of 'plant.g' is out of range (it has 2 elements, indices 0..1)"),
+    (["tune", "--cvar-level", "2"], "--cvar-level must be in (0, 1] (got 2.0)"),
+    (["tune", "--adversarial", "1", "--disturbance", "sine"],
+     "--disturbance must be fourier:K:D or spline:K:D (got 'sine')"),
+])
+def test_an_error_names_the_option_as_typed(argv, wanted, tmp_path, capsys):
+    line = _one_line_error(capsys, main([*argv, "--out", str(tmp_path / "o")]))
+    assert line.startswith(f"dscjax {argv[0]}: error: {wanted}"), line
+
+
+def test_an_error_from_a_config_names_its_key(tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sweep]\nthreshold = -1\n")
+    line = _one_line_error(capsys, main(["sweep", "--config", str(cfg), "--out",
+                                         str(tmp_path / "o")]))
+    assert line == "dscjax sweep: error: sweep.threshold must be > 0 (got -1.0)"
+
+
+@pytest.mark.parametrize(("command", "theirs", "other", "shared"), [
+    ("reproduce", ("sweep.json", "summary.json"), "sweep", "summary.json"),
+    ("sweep", ("fig1_hysteresis.png", "summary.json"), "reproduce", "summary.json"),
+])
+def test_a_command_never_replaces_another_commands_files(command, theirs, other, shared,
+                                                          tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    for name in theirs:
+        (out / name).write_text(f"{other}'s")
+    for again in ([], ["--overwrite"]):
+        line = _one_line_error(capsys, main([command, *again, "--out", str(out)]))
+        assert line == (f"dscjax {command}: error: --out {str(out)!r} holds the results of "
+                        f"another command, which this one would replace (`dscjax {other}`: "
+                        f"{shared}); give another --out")
+        assert {p.name: p.read_text() for p in out.iterdir()} == {
+            name: f"{other}'s" for name in theirs}
+
+
+def test_an_interrupted_reproduce_names_the_figures_it_kept(tmp_path, capsys, monkeypatch):
+    import dscjax.reproduce
+
+    out = tmp_path / "p"
+
+    def stop(*a, **k):  # a figure is finished, then Ctrl-C
+        (out / "fig1_hysteresis.png").write_bytes(b"png")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dscjax.reproduce, "family_loops", stop)
+    assert main(["reproduce", "--out", str(out)]) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (f"dscjax reproduce: interrupted; the 1 file(s) finished before it are kept "
+                    f"in {out} (fig1_hysteresis.png), the rest is not written; run the same "
+                    f"command again for all of it: dscjax reproduce --out {out} --overwrite")
+    assert (out / "fig1_hysteresis.png").read_bytes() == b"png"
+
+
+@pytest.mark.parametrize(("signum", "code", "name"), [(signal.SIGTERM, 143, "SIGTERM"),
+                                                       (signal.SIGHUP, 129, "SIGHUP")])
+def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, capsys,
+                                                  monkeypatch):
+    import dscjax.cli.simulate
+    from dscjax.progress import Abort, Terminated, critical, handle_interrupts
+
+    def send():
+        signal.pthread_kill(threading.main_thread().ident, signum)
+
+    before = signal.getsignal(signum)
+    with handle_interrupts():  # inside a step: deferred to its end, with its number
+        with pytest.raises(Terminated) as info, critical():
+            send()
+            finished = True
+        assert finished and info.value.signum == signum
+        with pytest.raises(Abort) as info, critical():  # twice: at once
+            send()
+            send()
+        assert info.value.signum == signum
+    assert signal.getsignal(signum) is before
+
+    def stop(args):
+        send()
+
+    monkeypatch.setattr(dscjax.cli.simulate, "load_setup", stop)
+    out = tmp_path / "s"
+    assert main(["simulate", "--out", str(out)]) == code
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"dscjax simulate: interrupted by {name}; nothing is kept"), last
+
+
+def test_an_ignored_sighup_stays_ignored():
+    from dscjax.progress import handle_interrupts
+
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup
+    try:
+        with handle_interrupts():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
