@@ -252,11 +252,22 @@ def test_version_comes_from_one_place(capsys):
 
 
 def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
-    assert main(["simulate", "--t-final", "0.5", "--no-plot", "--out", str(tmp_path)]) == 0
+    import numpy as np
+
+    assert main(["simulate", "--t-final", "2", "--no-plot", "--out", str(tmp_path)]) == 0
     captured = capsys.readouterr()
     assert "wrote" in captured.out and "L-inf error" in captured.out
     assert "dscjax simulate: order n=2" in captured.err
     assert "wrote" not in captured.err and "order n=2" not in captured.out
+    # the headline leads with the windowed error and says the window (issue 32): over the
+    # whole run it is the initial error |x1(0) - yr(0)| = 0.08 of the paper's example
+    with np.load(tmp_path / "trajectory.npz") as z:
+        assert np.all(np.diff(z["t"]) > 0) and len(z["t"]) == 2001  # every step saved
+        window = float(np.max(np.abs(z["e"][z["t"] >= 1.0 - 1e-12])))
+        assert abs(z["e"][0]) == pytest.approx(0.08)
+    headline = captured.out.strip().splitlines()[-1]
+    assert headline.startswith(f"  L-inf error on [1, 2] s {window:.4g} (over the whole run "
+                               f"0.08, from the initial error)"), headline
 
 
 def test_print_config_lists_window_start(capsys):
@@ -439,3 +450,21 @@ def test_an_ignored_sighup_stays_ignored():
             assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGHUP, before)
+
+
+def test_reproduce_summary_md_leads_with_the_windowed_error_and_says_the_window():
+    from dscjax.reproduce.markdown import summary_markdown
+    from dscjax.reproduce.runs import ESTIMATES, METRIC_FIELDS
+
+    values = {k: float(i + 1) for i, k in enumerate(METRIC_FIELDS)}  # distinct, to find each
+    run = {**values, "diverged": False,
+           "estimates": {k: {"min": 0.0, "max": 1.0, "final": 0.5} for k in ESTIMATES}}
+    text = summary_markdown({"t_final": 20.0, "dt": 1e-3, "window_start": 1.0, "claims": [],
+                             "runs": {"dsc": run}, "interpretations": [], "figures": {}})
+    lines = text.splitlines()
+    head = lines[lines.index("## Runs") + 2]
+    row = next(line for line in lines if line.startswith("| dsc | "))
+    cells = dict(zip(head.strip("|").split(" | "), row.strip("|").split(" | "), strict=True))
+    assert list(cells)[1].strip() == "L∞ e on [1, 20] s"
+    assert float(cells["L∞ e on [1, 20] s"]) == values["linf_error_after_1s"]
+    assert float(cells["L∞ e on [0, T] (the initial error)"]) == values["linf_error"]
