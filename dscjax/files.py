@@ -25,6 +25,7 @@ import math
 import os
 import shlex
 import socket
+import tempfile
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -202,9 +203,29 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray] | None:
 def out_problem(path: str | Path) -> str | None:
     """Why the system would refuse `path` as an output directory, in its own words (strerror:
     "File name too long", "Not a directory", "Permission denied", "Read-only file system"),
-    or None if it may be used: it is a writable directory, or the nearest existing folder
-    above it is and every name below it fits. Nothing is created."""
+    or None if it may be used. Asked of the system itself: the directories are made and a
+    file written in the last, then all of it that was new is removed again."""
     path = Path(os.path.abspath(path))
+    problem = _path_problem(path)
+    if problem is not None:
+        return problem
+    new = [p for p in (path, *path.parents) if not os.path.lexists(p)]  # leaf first
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".dscjax-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        return err.strerror or str(err)
+    finally:
+        for level in new:
+            with contextlib.suppress(OSError):
+                level.rmdir()
+    return None
+
+
+def _path_problem(path: Path) -> str | None:
+    """`out_problem` from what the path's existing part says (nothing is created)."""
     for level in (path, *path.parents):
         try:
             os.stat(level)
