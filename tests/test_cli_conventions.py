@@ -405,7 +405,7 @@ def test_an_interrupted_reproduce_names_the_figures_it_kept(tmp_path, capsys, mo
     last = capsys.readouterr().err.strip().splitlines()[-1]
     assert last == (f"dscjax reproduce: interrupted; the 1 file(s) finished before it are kept "
                     f"in {out} (fig1_hysteresis.png), the rest is not written; run the same "
-                    f"command again for all of it: dscjax reproduce --out {out} --overwrite")
+                    f"command again: dscjax reproduce --out {out} --overwrite")
     assert (out / "fig1_hysteresis.png").read_bytes() == b"png"
 
 

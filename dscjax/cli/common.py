@@ -445,7 +445,7 @@ def kept_text(args, outputs: Outputs, rerun: str) -> str:
         return f"nothing is kept; run the same command again: {rerun}"
     shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
     return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
-            f"rest is not written; run the same command again for all of it: {rerun}")
+            f"rest is not written; run the same command again: {rerun}")
 
 
 def _remove_if_empty(created: list[Path]) -> None:
