@@ -468,3 +468,28 @@ def test_reproduce_summary_md_leads_with_the_windowed_error_and_says_the_window(
     assert list(cells)[1].strip() == "L∞ e on [1, 20] s"
     assert float(cells["L∞ e on [1, 20] s"]) == values["linf_error_after_1s"]
     assert float(cells["L∞ e on [0, T] (the initial error)"]) == values["linf_error"]
+
+
+def test_a_phase_that_lasts_says_what_it_does_and_a_short_one_says_nothing():
+    import io
+    import time
+
+    from dscjax.progress import Phase, Progress
+
+    log = io.StringIO()
+    with Phase("  the held-out check", after_s=0.05, every_s=60.0, file=log):
+        time.sleep(0.5)
+    lines = log.getvalue().splitlines()
+    assert lines[0].startswith("  the held-out check ... (00:00 elapsed)"), lines
+    assert lines[-1].startswith("  the held-out check: done in ") and len(lines) == 2, lines
+    quiet = io.StringIO()
+    with Phase("  quick", after_s=30.0, file=quiet):
+        pass
+    assert quiet.getvalue() == ""
+    # no ETA from a unit timed by nothing (the one that compiled), one once a unit was timed
+    bar = Progress(10, desc="  tune", unit="generation", initial=1, file=log, every_s=0.0)
+    bar.update_to(1)
+    assert "ETA" not in log.getvalue().splitlines()[-1]
+    time.sleep(0.01)
+    bar.update_to(2)
+    assert "ETA" in log.getvalue().splitlines()[-1]
