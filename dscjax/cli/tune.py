@@ -325,6 +325,7 @@ def run(args) -> int:
 
     def say(text):
         nonlocal bar
+        first.stop()  # a round's search says what it does itself
         if bar is not None:
             bar.close()
             bar = None
