@@ -152,6 +152,17 @@ def _continue(args, module) -> str:
     return f"run the same command again: {rerun_command(args)}"
 
 
+def _kept(args, module) -> str | None:
+    """The hint of a command without its own `interrupt_hint`: the files it finished (or
+    nothing), and the command that runs it again."""
+    from dscjax.cli.common import kept_text
+
+    outputs = getattr(module, "OUTPUTS", None)
+    if outputs is None or getattr(args, "out", None) is None:
+        return None
+    return kept_text(args, outputs, rerun_command(args))
+
+
 def main(argv=None) -> int:
     commands = _available_commands()
     parser = build_parser(commands)
@@ -198,7 +209,7 @@ def main(argv=None) -> int:
         return EXIT_NO_SPACE
     except (KeyboardInterrupt, Abort) as stop:
         hint = getattr(module, "interrupt_hint", None)
-        note = hint(args) if hint is not None else None
+        note = hint(args) if hint is not None else _kept(args, module)
         signum = signal_number(stop)
         by = "" if signum == signal.SIGINT else f" by {signal_name(signum)}"
         what = (f"interrupted again{by}: stopped at once without saving the step under way"
