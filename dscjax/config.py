@@ -374,6 +374,13 @@ def _coerce(section: str, name: str, value, static: bool, default):
     if where is not None:
         raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
                           f"{'true' if _at(value, where) else 'false'})")
+    where = _find_text(value)
+    if where is not None:  # NumPy would read "10" as the number 10
+        detail = validation.got(_at(value, where))
+        if where:  # "controller.k[1] is a string, 'a'"
+            detail = f"{field}{where} is {detail.removeprefix('got ')}"
+        raise ConfigError(f"{field} must be a number or a list of numbers, not text in quotes "
+                          f"({detail})")
     try:
         a = np.asarray(value, dtype=float)
     except (TypeError, ValueError):
@@ -382,6 +389,19 @@ def _coerce(section: str, name: str, value, static: bool, default):
     if a.dtype == object:
         raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})")
     return float(a) if a.ndim == 0 else a
+
+
+def _find_text(value, where: str = "") -> str | None:
+    """The index ("", "[1]", ...) of the first string or table in a value read from TOML or
+    JSON, or None."""
+    if isinstance(value, str | dict):
+        return where
+    if isinstance(value, list | tuple):
+        for i, item in enumerate(value):
+            found = _find_text(item, f"{where}[{i}]")
+            if found is not None:
+                return found
+    return None
 
 
 def find_bool(value, where: str = "") -> str | None:
@@ -516,10 +536,29 @@ def read(path: str | Path) -> dict:
         dup = None if is_json else _toml_duplicate(text, str(err))
         if dup is not None:
             raise ConfigError(f"duplicate key {dup!r} in {path}") from None
-        raise ConfigError(f"{path}: not valid {'JSON' if is_json else 'TOML'}: {err}") from None
+        if is_json:
+            raise ConfigError(f"{path}: not valid JSON: {err}") from None
+        raise ConfigError(f"{path}, {_toml_where(text, str(err))}") from None
     if not isinstance(d, dict):
         raise ConfigError(f"{path}: the top level must be a table of sections")
     return d
+
+
+def _toml_where(text: str, message: str) -> str:
+    """A TOML parser's message as "line L, column C: not valid TOML: REASON" (the line of the
+    end of the file where the parser ran out of text, e.g. an unclosed array)."""
+    import re
+
+    found = re.search(r"\s*\(at line (\d+), column (\d+)\)$", message)
+    if found is not None:
+        return (f"line {found[1]}, column {found[2]}: not valid TOML: "
+                f"{message[:found.start()]}")
+    end = re.search(r"\s*\(at end of document\)$", message)
+    if end is not None:
+        last = max(len(text.rstrip("\n").splitlines()), 1)
+        return (f"line {last} (the end of the file): not valid TOML: "
+                f"{message[:end.start()]} (opened and never closed)")
+    return f"not valid TOML: {message}"
 
 
 class _Pairs(list):

@@ -25,6 +25,7 @@ import math
 import os
 import shlex
 import socket
+import tempfile
 import zipfile
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
@@ -196,6 +197,60 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray] | None:
         return None
 
 
+# -- the output directory ----------------------------------------------------------------------
+
+
+def out_problem(path: str | Path) -> str | None:
+    """Why the system would refuse `path` as an output directory, in its own words (strerror:
+    "File name too long", "Not a directory", "Permission denied", "Read-only file system"),
+    or None if it may be used. Asked of the system itself: the directories are made and a
+    file written in the last, then all of it that was new is removed again."""
+    path = Path(os.path.abspath(path))
+    problem = _path_problem(path)
+    if problem is not None:
+        return problem
+    new = [p for p in (path, *path.parents) if not os.path.lexists(p)]  # leaf first
+    try:
+        path.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=path, prefix=".dscjax-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        return err.strerror or str(err)
+    finally:
+        for level in new:
+            with contextlib.suppress(OSError):
+                level.rmdir()
+    return None
+
+
+def _path_problem(path: Path) -> str | None:
+    """`out_problem` from what the path's existing part says (nothing is created)."""
+    for level in (path, *path.parents):
+        try:
+            os.stat(level)
+        except FileNotFoundError:
+            continue
+        except OSError as err:  # too long, a loop of links, no permission to look
+            return err.strerror or str(err)
+        if not os.path.isdir(level):
+            return ("it is a file, not a directory" if level == path else
+                    f"{os.strerror(errno.ENOTDIR)}: {level} is a file")
+        try:
+            longest = os.pathconf(level, "PC_NAME_MAX")
+        except (OSError, ValueError):
+            longest = 255
+        if any(len(os.fsencode(name)) > longest for name in path.relative_to(level).parts):
+            return f"{os.strerror(errno.ENAMETOOLONG)}: a name longer than {longest} bytes"
+        if os.access(level, os.W_OK | os.X_OK):
+            return None
+        with contextlib.suppress(OSError):
+            if os.statvfs(level).f_flag & os.ST_RDONLY:
+                return os.strerror(errno.EROFS) + (f": {level}" if level != path else "")
+        return os.strerror(errno.EACCES) + (f": {level}" if level != path else "")
+    return None
+
+
 # -- one process per output directory ----------------------------------------------------------
 
 LOCK = ".dscjax.lock"
@@ -276,4 +331,4 @@ def _holder(fd: int) -> str:
 
 __all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "atomic_write", "canonical", "check_same",
            "differences", "digest", "dumps", "jsonable", "lock_out", "mkdir", "read_json",
-           "read_npz", "save_figure", "write_json", "write_npz", "write_text"]
+           "out_problem", "read_npz", "save_figure", "write_json", "write_npz", "write_text"]

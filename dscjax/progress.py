@@ -5,11 +5,19 @@
             bar.update_to(done, postfix="2.1e7 steps/s")
 
 On a terminal tqdm redraws one line in place; elsewhere (a log, CI, a pipe) the same figures
-are printed as plain lines, at most every `every_s` seconds and once at the end.
+are printed as plain lines, at most every `every_s` seconds and once at the end. The ETA is
+shown once a unit of work was timed (never from compilation alone).
+
+Work without a count (a compilation, a held-out check) is a `Phase`, shown only if it lasts:
+
+    with Phase("  the held-out check (256 plants)"):
+        ...
 
 Under `handle_interrupts` (installed by the CLI) a Ctrl-C inside a `critical()` section (a
 generation and its state update, a checkpoint write) is deferred to the section's end, so the
-state saved on interrupt is whole; a second Ctrl-C then raises `Abort` at once.
+state saved on interrupt is whole; a second Ctrl-C then raises `Abort` at once. SIGTERM and
+SIGHUP (`timeout`, batch schedulers, `docker stop`, a closed terminal) are handled alike, as
+`Terminated`, a KeyboardInterrupt that carries the signal's number.
 """
 
 from __future__ import annotations
@@ -27,6 +35,8 @@ from tqdm import tqdm
 
 # A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s"
 LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed, ETA {remaining}"
+# ... before a unit was timed (no rate yet, so no ETA)
+START_LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed"
 # ... and without a total (work that stops on a time limit or a criterion, not a count)
 OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 
@@ -90,9 +100,9 @@ class Progress:
         rate = done / elapsed if elapsed > 0 and done > 0 else None
         count = self.total if self.total is not None else self.n
         unit = self.unit + ("" if count == 1 else "s")  # "1 generation", "2 generations"
+        form = OPEN_LINE if self.total is None else LINE if rate is not None else START_LINE
         text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=unit,
-                                 rate=rate, initial=self.initial,
-                                 bar_format=LINE if self.total is not None else OPEN_LINE)
+                                 rate=rate, initial=self.initial, bar_format=form)
         print(text + (f"; {self.postfix}" if self.postfix else ""), file=self.file,
               flush=True)
 
@@ -108,12 +118,98 @@ class Progress:
         self.close()
 
 
-# -- Ctrl-C ------------------------------------------------------------------------------------
+class Phase:
+    """A phase of work without a count, on stderr: if it still runs after `after_s` seconds,
+    "DESC ..." (on a terminal, redrawn with the time elapsed every second; elsewhere again
+    every `every_s` seconds), and at its end "DESC: done in 12.3 s". A phase shorter than
+    `after_s` shows nothing. Use it as a context manager, or `start()` and `stop()`."""
+
+    def __init__(self, desc: str, *, after_s: float = 2.0, every_s: float = 30.0,
+                 file: TextIO | None = None, enabled: bool = True):
+        self.desc, self.after_s, self.every_s, self.enabled = desc, after_s, every_s, enabled
+        self.file = file if file is not None else sys.stderr
+        self.tty = hasattr(self.file, "isatty") and self.file.isatty()
+        self.shown = False
+        self._stop = threading.Event()
+        self._thread = None
+
+    def start(self) -> Phase:
+        self.t0 = time.perf_counter()
+        if self.enabled:
+            self._thread = threading.Thread(target=self._show, daemon=True)
+            self._thread.start()
+        return self
+
+    def _elapsed(self) -> str:
+        return tqdm.format_interval(time.perf_counter() - self.t0)
+
+    def _show(self) -> None:
+        if self._stop.wait(self.after_s):
+            return
+        self.shown = True
+        while True:
+            if self.tty:
+                self.file.write(f"\r{self.desc} ... {self._elapsed()} elapsed")
+            else:
+                self.file.write(f"{self.desc} ... ({self._elapsed()} elapsed)\n")
+            self.file.flush()
+            if self._stop.wait(1.0 if self.tty else self.every_s):
+                return
+
+    def stop(self) -> None:
+        """End the phase (again: nothing)."""
+        if self._thread is None:
+            return
+        self._stop.set()
+        self._thread.join()
+        self._thread = None
+        if self.shown:
+            start, end = ("\r", "\033[K") if self.tty else ("", "")  # (erase the rest)
+            self.file.write(f"{start}{self.desc}: done in "
+                            f"{time.perf_counter() - self.t0:.1f} s{end}\n")
+            self.file.flush()
+
+    def __enter__(self) -> Phase:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+
+# -- Ctrl-C, SIGTERM, SIGHUP -------------------------------------------------------------------
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, handled as Ctrl-C is: `signum` is the signal's number (the CLI exits
+    128 + signum, as a shell reports a process the signal ended)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
 
 
 class Abort(BaseException):
-    """A second Ctrl-C while the first was deferred: stop at once, without saving. Not a
-    KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass."""
+    """A second Ctrl-C (or SIGTERM, SIGHUP) while the first was deferred: stop at once, without
+    saving. Not a KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass.
+    `signum`: the signal that asked to stop."""
+
+    def __init__(self, signum: int = signal.SIGINT):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+# the signals handled as Ctrl-C, where the process does not ignore them (`nohup` ignores SIGHUP)
+SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+
+
+def signal_number(stop: BaseException) -> int:
+    """The signal behind an interrupt (SIGINT for a plain KeyboardInterrupt)."""
+    return int(getattr(stop, "signum", signal.SIGINT))
+
+
+def signal_name(signum: int) -> str:
+    """"Ctrl-C" for SIGINT, else the signal's name ("SIGTERM")."""
+    return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
 
 
 class _Deferral:
@@ -121,47 +217,60 @@ class _Deferral:
 
     installed = False
     depth = 0  # nested critical sections now open
-    pending = False  # a Ctrl-C arrived inside one
+    pending = None  # the signal number of an interrupt that arrived inside one, or None
 
 
 _DEFERRAL = _Deferral()
-DEFERRED = ("\n  Ctrl-C: finishing the current step to save a whole state (Ctrl-C again stops "
+DEFERRED = ("\n  {name}: finishing the current step to save a whole state ({again} stops "
             "at once, without saving)\n")
 
 
-def _on_sigint(signum, frame) -> None:
+def _interrupt(signum: int) -> KeyboardInterrupt:
+    return KeyboardInterrupt() if signum == signal.SIGINT else Terminated(signum)
+
+
+def _on_signal(signum, frame) -> None:
     if _DEFERRAL.depth == 0:
-        raise KeyboardInterrupt
-    if _DEFERRAL.pending:
-        raise Abort
-    _DEFERRAL.pending = True
+        raise _interrupt(signum)
+    if _DEFERRAL.pending is not None:
+        raise Abort(signum)
+    _DEFERRAL.pending = signum
+    name = signal_name(signum)
+    text = DEFERRED.format(name=name, again="Ctrl-C again" if name == "Ctrl-C"
+                           else f"{name} or Ctrl-C")
     try:  # not through sys.stderr's buffer, which the interrupted code may be writing
-        os.write(sys.stderr.fileno(), DEFERRED.encode())
+        os.write(sys.stderr.fileno(), text.encode())
     except (AttributeError, OSError, ValueError):
-        sys.stderr.write(DEFERRED)
+        sys.stderr.write(text)
 
 
 @contextmanager
 def handle_interrupts() -> Iterator[None]:
-    """Install the deferral of Ctrl-C for the block (see the module docstring): a command's
-    entry point calls it, never a library. Outside the main thread it does nothing (only the
-    main thread receives signals). The previous SIGINT handler is restored afterwards."""
+    """Install the deferral of Ctrl-C, SIGTERM and SIGHUP for the block (see the module
+    docstring): a command's entry point calls it, never a library. Outside the main thread it
+    does nothing (only the main thread receives signals); a signal the process ignores (SIGHUP
+    under `nohup`) stays ignored. The previous handlers are restored afterwards."""
     if threading.current_thread() is not threading.main_thread() or _DEFERRAL.installed:
         yield
         return
-    previous = signal.signal(signal.SIGINT, _on_sigint)
-    _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = True, 0, False
+    previous = {}
+    for signum in SIGNALS:
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            previous[signum] = signal.signal(signum, _on_signal)
+    _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = True, 0, None
     try:
         yield
     finally:
-        signal.signal(signal.SIGINT, previous)
-        _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = False, 0, False
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+        _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = False, 0, None
 
 
 class critical:
-    """A section a Ctrl-C does not cut: under `handle_interrupts` (main thread), a Ctrl-C
-    inside it raises KeyboardInterrupt when the outermost section ends (unless the section
-    raised something else). Sections nest; elsewhere it changes nothing."""
+    """A section a Ctrl-C (SIGTERM, SIGHUP) does not cut: under `handle_interrupts` (main
+    thread), one inside it raises KeyboardInterrupt (`Terminated`) when the outermost section
+    ends (unless the section raised something else). Sections nest; elsewhere it changes
+    nothing."""
 
     def __enter__(self) -> critical:
         self.active = (_DEFERRAL.installed
@@ -174,11 +283,12 @@ class critical:
         if not self.active:
             return False
         _DEFERRAL.depth -= 1
-        if _DEFERRAL.depth == 0 and _DEFERRAL.pending:
-            _DEFERRAL.pending = False
+        if _DEFERRAL.depth == 0 and _DEFERRAL.pending is not None:
+            signum, _DEFERRAL.pending = _DEFERRAL.pending, None
             if kind is None:
-                raise KeyboardInterrupt
+                raise _interrupt(signum)
         return False
 
 
-__all__ = ["Abort", "Progress", "critical", "handle_interrupts"]
+__all__ = ["SIGNALS", "Abort", "Phase", "Progress", "Terminated", "critical", "handle_interrupts",
+           "signal_name", "signal_number"]

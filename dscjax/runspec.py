@@ -275,7 +275,7 @@ def _coerce(key: str, value, field: str):
         return validation.string(value, field)
     if key in ("save_every", "refine", "delay", "noise_seed"):
         if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{field} must be an integer (got {value!r})")
+            raise ConfigError(f"{field} must be an integer ({validation.got(value)})")
         return value
     if key == "noise":
         return value
@@ -283,7 +283,7 @@ def _coerce(key: str, value, field: str):
     if (isinstance(value, bool) or not isinstance(value, int | float)
             or not math.isfinite(value) or (positive and not value > 0)):
         raise ConfigError(f"{field} must be a finite number{' > 0' if positive else ''} "
-                          f"(got {value!r})")
+                          f"({validation.got(value)})")
     return value
 
 

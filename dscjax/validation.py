@@ -90,12 +90,25 @@ def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
         raise ConfigError(f"{field} must have shape {tuple(expected)}{hint} (got shape {got})")
 
 
+def got(value) -> str:
+    """The "got ..." of a message, saying what kind of value it is where its printed form
+    hides that: a string ("got a string, '10'": quoted in the file, it is no number), a
+    boolean, a table."""
+    if isinstance(value, str):
+        return f"got a string, {value!r}"
+    if isinstance(value, bool):
+        return f"got {str(value).lower()}, a boolean"
+    if isinstance(value, dict):
+        return f"got a table, {value!r}"
+    return f"got {value!r}"
+
+
 def integer(value, field: str, low: int | None = None) -> int:
     """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
     if (isinstance(value, bool) or not isinstance(value, int | np.integer)
             or (low is not None and value < low)):
         bound = "" if low is None else f" >= {low}"
-        raise ConfigError(f"{field} must be an integer{bound} (got {value!r})")
+        raise ConfigError(f"{field} must be an integer{bound} ({got(value)})")
     return int(value)
 
 
@@ -103,7 +116,7 @@ def number(value, field: str) -> float:
     """`value` as a float if it is a finite number (not a bool, not a string); else ConfigError."""
     if (isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating)
             or not np.isfinite(value)):
-        raise ConfigError(f"{field} must be a number (got {value!r})")
+        raise ConfigError(f"{field} must be a number ({got(value)})")
     return float(value)
 
 

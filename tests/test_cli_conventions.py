@@ -1,6 +1,11 @@
 """What every subcommand does alike (issue 9): unwritable output directories, help defaults
 that match the code's, interrupt and resume, stdout against stderr, --version."""
 
+import errno
+import os
+import signal
+import threading
+
 import pytest
 
 from dscjax.cli.main import main
@@ -246,15 +251,260 @@ def test_version_comes_from_one_place(capsys):
     assert importlib.metadata.version("dscjax") == dscjax.__version__
 
 
-def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys, short):
-    assert main(["simulate", *short, "--no-plot", "--out", str(tmp_path)]) == 0
+def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
+    import numpy as np
+
+    assert main(["simulate", "--t-final", "2", "--no-plot", "--out", str(tmp_path)]) == 0
     captured = capsys.readouterr()
     assert "wrote" in captured.out and "L-inf error" in captured.out
     assert "dscjax simulate: order n=2" in captured.err
     assert "wrote" not in captured.err and "order n=2" not in captured.out
+    # the headline leads with the windowed error and says the window (issue 32): over the
+    # whole run it is the initial error |x1(0) - yr(0)| = 0.08 of the paper's example
+    with np.load(tmp_path / "trajectory.npz") as z:
+        assert np.all(np.diff(z["t"]) > 0) and len(z["t"]) == 2001  # every step saved
+        window = float(np.max(np.abs(z["e"][z["t"] >= 1.0 - 1e-12])))
+        assert abs(z["e"][0]) == pytest.approx(0.08)
+    headline = captured.out.strip().splitlines()[-1]
+    assert headline.startswith(f"  L-inf error on [1, 2] s {window:.4g} (over the whole run "
+                               f"0.08, from the initial error)"), headline
 
 
 def test_print_config_lists_window_start(capsys):
     assert main(["simulate", "--print-config"]) == 0
     out = capsys.readouterr().out
     assert "# window_start = 1.0 " in out and "# save_every = 1 " in out
+
+
+# -- issue 32: the output path, repeated options, names as typed, signals, headlines ---------
+
+ALL_COMMANDS = {"simulate": [], "sweep": [], "tune": [], "reproduce": [], "stability": [],
+                "hysteresis": [], "worst-case": ["--range", "hysteresis.alpha=30%"]}
+
+
+@pytest.mark.parametrize("command", ALL_COMMANDS)
+@pytest.mark.parametrize("where", ["name_too_long", "a_file_above", "the_out_is_a_file",
+                                   "empty"])
+def test_an_out_the_system_refuses_is_one_line_naming_it_before_any_work(
+        command, where, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    afile = tmp_path / "afile"
+    afile.write_text("kept")
+    out, reason = {
+        "name_too_long": (str(tmp_path / ("x" * 291) / "sub"),
+                          os.strerror(errno.ENAMETOOLONG)),
+        "a_file_above": (str(afile / "sub"), os.strerror(errno.ENOTDIR)),
+        "the_out_is_a_file": (str(afile), "it is a file, not a directory"),
+        "empty": ("", "an empty path"),
+    }[where]
+    line = _one_line_error(capsys, main([command, *ALL_COMMANDS[command], "--out", out]))
+    assert line.startswith(f"dscjax {command}: error: --out {out!r}: "), line
+    assert reason in line, line
+    assert sorted(os.listdir(tmp_path)) == ["afile"] and afile.read_text() == "kept"
+
+
+def test_a_read_only_file_system_is_named_as_such(tmp_path, monkeypatch):
+    from dscjax import files
+
+    class ReadOnly:
+        f_flag = os.ST_RDONLY
+
+    # what a read-only mount answers (root may write anywhere else, so the fault is staged)
+    monkeypatch.setattr(os, "access", lambda path, mode: False)
+    monkeypatch.setattr(os, "statvfs", lambda path: ReadOnly())
+    assert files.out_problem(tmp_path / "new") == f"{os.strerror(errno.EROFS)}: {tmp_path}"
+    assert files.out_problem(tmp_path) == os.strerror(errno.EROFS)
+
+
+def test_every_single_valued_option_of_every_command_is_refused_when_repeated(capsys):
+    import argparse
+
+    from dscjax.cli.common import Once
+    from dscjax.cli.main import _available_commands, build_parser
+
+    parser = build_parser(_available_commands())
+    for name, sub in parser.subcommands.items():
+        for action in sub._actions:
+            if type(action) is not argparse._HelpAction and action.option_strings:
+                takes_one = action.nargs is None and not isinstance(
+                    action, argparse._StoreConstAction | argparse._AppendAction)
+                assert isinstance(action, Once) == takes_one, (name, action.option_strings)
+    for command, extra in ALL_COMMANDS.items():
+        with pytest.raises(SystemExit) as stop:  # argparse's error, before the command runs
+            main([command, *extra, "--out", "a", "--out", "b"])
+        line = _one_line_error(capsys, stop.value.code)
+        assert line == (f"dscjax {command}: error: argument --out: given twice (first 'a', "
+                        f"then 'b'); give it once")
+
+
+def test_noise_takes_one_number_or_one_per_state_as_its_help_says(capsys):
+    argv = ["simulate", "--sample-time", "0.01", "--print-config"]
+    assert main([*argv, "--noise", "0.01,0.02"]) == 0
+    assert "noise = [0.01, 0.02]" in capsys.readouterr().out
+    assert main([*argv, "--noise", "0.03"]) == 0
+    assert "noise = 0.03" in capsys.readouterr().out
+    line = _one_line_error(capsys, main([*argv, "--noise", "0.01,0.02,0.03"]))
+    assert line == ("dscjax simulate: error: --noise must be one number or one per state of "
+                    "the plant, 2 numbers (got 3)")
+    assert "separated by commas" in _help("simulate")["--noise"]
+
+
+@pytest.mark.parametrize(("argv", "wanted"), [
+    (["sweep", "--grid", "hysteresis.alpha=0.7:1.3:0"],
+     "--grid hysteresis.alpha: the number of grid points must be >= 2 (got 0)"),
+    (["sweep", "--threshold", "-1"], "--threshold must be > 0 (got -1.0)"),
+    (["sweep", "--range", "plant.g[5]=0.8:1.2"],
+     "--range: index 5 of 'plant.g' is out of range (it has 2 elements, indices 0..1)"),
+    (["tune", "--cvar-level", "2"], "--cvar-level must be in (0, 1] (got 2.0)"),
+    (["tune", "--adversarial", "1", "--disturbance", "sine"],
+     "--disturbance must be fourier:K:D or spline:K:D (got 'sine')"),
+])
+def test_an_error_names_the_option_as_typed(argv, wanted, tmp_path, capsys):
+    line = _one_line_error(capsys, main([*argv, "--out", str(tmp_path / "o")]))
+    assert line.startswith(f"dscjax {argv[0]}: error: {wanted}"), line
+
+
+def test_an_error_from_a_config_names_its_key(tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[sweep]\nthreshold = -1\n")
+    line = _one_line_error(capsys, main(["sweep", "--config", str(cfg), "--out",
+                                         str(tmp_path / "o")]))
+    assert line == "dscjax sweep: error: sweep.threshold must be > 0 (got -1.0)"
+
+
+@pytest.mark.parametrize(("command", "theirs", "other", "shared"), [
+    ("reproduce", ("sweep.json", "summary.json"), "sweep", "summary.json"),
+    ("sweep", ("fig1_hysteresis.png", "summary.json"), "reproduce", "summary.json"),
+])
+def test_a_command_never_replaces_another_commands_files(command, theirs, other, shared,
+                                                          tmp_path, capsys):
+    out = tmp_path / "o"
+    out.mkdir()
+    for name in theirs:
+        (out / name).write_text(f"{other}'s")
+    for again in ([], ["--overwrite"]):
+        line = _one_line_error(capsys, main([command, *again, "--out", str(out)]))
+        assert line == (f"dscjax {command}: error: --out {str(out)!r} holds the results of "
+                        f"another command, which this one would replace (`dscjax {other}`: "
+                        f"{shared}); give another --out")
+        assert {p.name: p.read_text() for p in out.iterdir()} == {
+            name: f"{other}'s" for name in theirs}
+
+
+def test_an_interrupted_reproduce_names_the_figures_it_kept(tmp_path, capsys, monkeypatch):
+    import dscjax.reproduce
+
+    out = tmp_path / "p"
+
+    def stop(*a, **k):  # a figure is finished, then Ctrl-C
+        (out / "fig1_hysteresis.png").write_bytes(b"png")
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dscjax.reproduce, "family_loops", stop)
+    assert main(["reproduce", "--out", str(out)]) == 130
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (f"dscjax reproduce: interrupted; the 1 file(s) finished before it are kept "
+                    f"in {out} (fig1_hysteresis.png), the rest is not written; run the same "
+                    f"command again: dscjax reproduce --out {out} --overwrite")
+    assert (out / "fig1_hysteresis.png").read_bytes() == b"png"
+
+
+@pytest.mark.parametrize(("signum", "code", "name"), [(signal.SIGTERM, 143, "SIGTERM"),
+                                                       (signal.SIGHUP, 129, "SIGHUP")])
+def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, capsys,
+                                                  monkeypatch):
+    import dscjax.cli.simulate
+    from dscjax.progress import Abort, Terminated, critical, handle_interrupts
+
+    def send():
+        signal.pthread_kill(threading.main_thread().ident, signum)
+
+    before = signal.getsignal(signum)
+    with handle_interrupts():  # inside a step: deferred to its end, with its number
+        with pytest.raises(Terminated) as info, critical():
+            send()
+            finished = True
+        assert finished and info.value.signum == signum
+        with pytest.raises(Abort) as info, critical():  # twice: at once
+            send()
+            send()
+        assert info.value.signum == signum
+    assert signal.getsignal(signum) is before
+
+    def stop(args):
+        send()
+
+    monkeypatch.setattr(dscjax.cli.simulate, "load_setup", stop)
+    out = tmp_path / "s"
+    assert main(["simulate", "--out", str(out)]) == code
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith(f"dscjax simulate: interrupted by {name}; nothing is kept"), last
+
+
+def test_an_ignored_sighup_stays_ignored():
+    from dscjax.progress import handle_interrupts
+
+    before = signal.signal(signal.SIGHUP, signal.SIG_IGN)  # as under nohup
+    try:
+        with handle_interrupts():
+            assert signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGHUP, before)
+
+
+def test_reproduce_summary_md_leads_with_the_windowed_error_and_says_the_window():
+    from dscjax.reproduce.markdown import summary_markdown
+    from dscjax.reproduce.runs import ESTIMATES, METRIC_FIELDS
+
+    values = {k: float(i + 1) for i, k in enumerate(METRIC_FIELDS)}  # distinct, to find each
+    run = {**values, "diverged": False,
+           "estimates": {k: {"min": 0.0, "max": 1.0, "final": 0.5} for k in ESTIMATES}}
+    text = summary_markdown({"t_final": 20.0, "dt": 1e-3, "window_start": 1.0, "claims": [],
+                             "runs": {"dsc": run}, "interpretations": [], "figures": {}})
+    lines = text.splitlines()
+    head = lines[lines.index("## Runs") + 2]
+    row = next(line for line in lines if line.startswith("| dsc | "))
+    cells = dict(zip(head.strip("|").split(" | "), row.strip("|").split(" | "), strict=True))
+    assert list(cells)[1].strip() == "L∞ e on [1, 20] s"
+    assert float(cells["L∞ e on [1, 20] s"]) == values["linf_error_after_1s"]
+    assert float(cells["L∞ e on [0, T] (the initial error)"]) == values["linf_error"]
+
+
+def test_a_phase_that_lasts_says_what_it_does_and_a_short_one_says_nothing():
+    import io
+    import time
+
+    from dscjax.progress import Phase, Progress
+
+    log = io.StringIO()
+    with Phase("  the held-out check", after_s=0.05, every_s=60.0, file=log):
+        time.sleep(0.5)
+    lines = log.getvalue().splitlines()
+    assert lines[0].startswith("  the held-out check ... (00:00 elapsed)"), lines
+    assert lines[-1].startswith("  the held-out check: done in ") and len(lines) == 2, lines
+    quiet = io.StringIO()
+    with Phase("  quick", after_s=30.0, file=quiet):
+        pass
+    assert quiet.getvalue() == ""
+    # no ETA from a unit timed by nothing (the one that compiled), one once a unit was timed
+    bar = Progress(10, desc="  tune", unit="generation", initial=1, file=log, every_s=0.0)
+    bar.update_to(1)
+    assert "ETA" not in log.getvalue().splitlines()[-1]
+    time.sleep(0.01)
+    bar.update_to(2)
+    assert "ETA" in log.getvalue().splitlines()[-1]
+
+
+def test_a_command_without_a_hint_of_its_own_says_what_to_run_again(tmp_path, capsys,
+                                                                    monkeypatch):
+    import dscjax.cli.stability
+
+    def stop(args):
+        signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
+
+    monkeypatch.setattr(dscjax.cli.stability, "load_setup", stop)
+    out = tmp_path / "st"
+    assert main(["stability", "--out", str(out)]) == 143
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (f"dscjax stability: interrupted by SIGTERM; nothing is kept; run the same "
+                    f"command again: dscjax stability --out {out}")

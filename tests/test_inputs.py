@@ -325,3 +325,39 @@ def test_refinement_stops_at_the_step_counter():
     assert levels(validation.MAX_STEPS // 4) == 3  # dt/4 still counts
     assert levels(validation.MAX_STEPS // 4, "etdrk4") == 2
     assert levels(validation.MAX_STEPS) == 1  # ETDRK4 at dt only
+
+
+# -- issue 32: invalid TOML says where; a number in quotes says it is a string ----------------
+
+
+@pytest.mark.parametrize(("text", "where"), [
+    ("[controller]\nk = 1 2\n", "line 2, column 7: not valid TOML: Expected newline"),
+    ("# a comment\n\n[plant]\ng = [1.0, 1.0\n", "line 4 (the end of the file): not valid TOML: "
+     "Unclosed array"),
+    ("[controller\nk = 1\n", "line 1, column 12: not valid TOML"),
+])
+def test_invalid_toml_names_the_file_and_the_line(text, where, tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    err = _refused(capsys, ["simulate", "--config", str(cfg)], tmp_path / "o")
+    assert err.startswith(f"dscjax simulate: error: {cfg}, {where}"), err
+
+
+@pytest.mark.parametrize(("command", "text", "wanted"), [
+    ("simulate", '[controller]\nk = "10"\n', "controller.k must be a number or a list of "
+     "numbers, not text in quotes (got a string, '10')"),
+    ("simulate", '[controller]\nk = [10, "2"]\n', "controller.k must be a number or a list of "
+     "numbers, not text in quotes (controller.k[1] is a string, '2')"),
+    ("simulate", '[simulation]\ndt = "0.001"\n', "simulation.dt must be a finite number > 0 "
+     "(got a string, '0.001')"),
+    ("simulate", '[simulation]\nsave_every = "2"\n', "simulation.save_every must be an integer "
+     "(got a string, '2')"),
+    ("sweep", '[sweep]\nseed = "1"\n', "sweep.seed must be an integer (got a string, '1')"),
+    ("sweep", '[sweep]\nthreshold = "0.1"\n', "sweep.threshold must be a number (got a string, "
+     "'0.1')"),
+])
+def test_a_number_in_quotes_is_named_a_string(command, text, wanted, tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(text)
+    err = _refused(capsys, [command, "--config", str(cfg)], tmp_path / "o")
+    assert err == f"dscjax {command}: error: {wanted}"

@@ -520,3 +520,33 @@ def test_replayed_cma_es_saved_between_ask_and_tell_asks_the_same_population_aga
     b = make()
     b.replay({k: np.array(v) for k, v in a.arrays().items()})
     np.testing.assert_array_equal(b.ask(), pending)
+
+
+# -- SIGTERM (timeout, batch schedulers, docker stop): handled as Ctrl-C (issue 32) -----------
+
+
+def test_a_sweep_sent_sigterm_keeps_its_blocks_exits_143_and_resumes(tmp_path):
+    out = tmp_path / "sweep"
+    argv = ["sweep", "--samples", "64", "--chunk", "8", "--t-final", "0.2", "--float64",
+            "--worst", "0", "--random", "0", "--no-plot", "--quiet", "--out", str(out)]
+    proc = subprocess.Popen([DSCJAX, *argv], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)
+    first = out / "chunks" / "chunk_000000.npz"
+    deadline = time.monotonic() + 600
+    while not first.exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGTERM)  # mid-run: at the latest, while the nominal run compiles
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 143, err[-3000:]
+    assert "Traceback" not in err
+    blocks = sorted((out / "chunks").glob("chunk_*.npz"))
+    assert blocks and all(files.read_npz(b) is not None for b in blocks)  # each whole
+    _no_temporary_files(out)
+    command = shlex.join([DSCJAX, *argv, "--resume"])
+    assert err.strip().splitlines()[-1] == (
+        f"dscjax sweep: interrupted by SIGTERM; {len(blocks)} finished block(s) are kept in "
+        f"{out}/chunks; continue with: {command}")
+    again = subprocess.run(shlex.split(command), capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr[-3000:]
+    with np.load(out / "results.npz") as z:
+        assert z["sample"].tolist() == list(range(64))

@@ -319,7 +319,7 @@ def _cli_error(args, capsys, tmp_path):
     (["--range", "hysteresis.alpha"], "--range must be PATH=LOW:HIGH"),
     (["--grid", "hysteresis.alpha=0.7:1.3:1"], "number of grid points must be >= 2"),
     (["--grid", "hysteresis.alpha=0.7:1.3"], "--grid hysteresis.alpha must be PATH=LOW:HIGH:NUM"),
-    (["--heatmap", "hysteresis.alpha,plant.g[0]"], "sweep.heatmap: 'plant.g[0]' is not swept"),
+    (["--heatmap", "hysteresis.alpha,plant.g[0]"], "--heatmap: 'plant.g[0]' is not swept"),
 ])
 def test_bad_settings_give_one_clear_line(args, field, capsys, tmp_path):
     err = _cli_error(args, capsys, tmp_path)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import math
 import os
@@ -57,11 +58,66 @@ def positive_float(text: str) -> float:
     return x
 
 
+def numbers(text: str) -> float | list[float]:
+    """An argparse type: one finite number, or several separated by commas (0.01,0,0.02), a
+    list; anything else is refused with the value."""
+    parts = text.split(",")
+    try:
+        values = [float(part) for part in parts]
+    except ValueError:
+        values = []
+    if not values or not all(math.isfinite(x) for x in values):
+        raise argparse.ArgumentTypeError(f"must be one finite number or several separated by "
+                                         f"commas, e.g. 0.01,0.02 (got {text!r})")
+    return values[0] if len(parts) == 1 else values
+
+
 # The [simulation] keys the commands take as options, and their argparse types.
 RUN_TYPES = {"t_final": positive_float, "dt": positive_float, "save_every": count(1),
              "window_start": finite_float, "state_bound": positive_float, "refine": count(0),
-             "sample_time": positive_float, "delay": count(0), "noise": finite_float,
+             "sample_time": positive_float, "delay": count(0), "noise": numbers,
              "noise_seed": count(0)}
+# how a [simulation] key that takes a list is written on the command line
+RUN_LISTS = {"noise": "on the command line one number, or one per state separated by "
+                      "commas, e.g. 0.01,0,0.02"}
+RUN_METAVARS = {"noise": "STD[,STD...]"}
+
+
+class Once(argparse._StoreAction):
+    """argparse's "store", refusing an option given twice (one line, exit 2) instead of
+    silently keeping the last value. The parsers of the `dscjax` command (`cli.main`) use it
+    for every single-valued option; options that take several values say so (append)."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        seen = namespace.__dict__.setdefault("_given_once", {})
+        if self.dest in seen:
+            first, then = (repr(v) if isinstance(v, str) else f"{v}"
+                           for v in (seen[self.dest], values))
+            raise argparse.ArgumentError(
+                self, f"given twice (first {first}, then {then}); give it once")
+        seen[self.dest] = values
+        super().__call__(parser, namespace, values, option_string)
+
+
+@contextlib.contextmanager
+def blame_options(names: dict[str, str]):
+    """A ConfigError raised in the block that names a config key given on the command line
+    names the option the user typed instead: `names` maps such keys to their options, e.g.
+    {"sweep.threshold": "--threshold"} ("sweep.threshold must be > 0" becomes "--threshold
+    must be > 0"; "sweep.grid.hysteresis.alpha: ..." becomes "--grid hysteresis.alpha: ...").
+    Keys the config gave keep their names."""
+    from dscjax.validation import ConfigError
+
+    try:
+        yield
+    except ConfigError as err:
+        text = str(err)
+        for key in sorted(names, key=len, reverse=True):
+            rest = text[len(key):]
+            if text.startswith(key) and not (rest[:1].isalnum() or rest[:1] in "_["):
+                rest = " " + rest[1:] if rest.startswith(".") else rest
+                raise ConfigError(names[key] + rest) from None
+        raise
 
 
 def flag(key: str) -> str:
@@ -92,8 +148,12 @@ def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
         elif key == "discretisation":
             p.add_argument(flag(key), type=str, metavar="SCHEME", help=text)
         else:
-            p.add_argument(flag(key), type=RUN_TYPES[key], metavar=key.upper().replace(
-                "_", "-") if key != "t_final" else "S", help=text.replace("%", "%%"))
+            if key in RUN_LISTS:
+                text = f"{text}; {RUN_LISTS[key]}"
+            metavar = RUN_METAVARS.get(key, key.upper().replace("_", "-") if key != "t_final"
+                                       else "S")
+            p.add_argument(flag(key), type=RUN_TYPES[key], metavar=metavar,
+                           help=text.replace("%", "%%"))
 
 
 def run_overrides(args) -> dict:
@@ -114,6 +174,18 @@ def apply_run_options(args, spec):
         return spec
     return spec.replace(names={k: flag(k) if k != "dtype" else "--float32" for k in overrides},
                         **overrides)
+
+
+def check_noise(args, setup, spec) -> None:
+    """simulation.noise (--noise) as one number or one per state of the plant (n), refused
+    in one line naming how it was given otherwise (before anything traces the loop)."""
+    from dscjax.validation import ConfigError
+
+    noise = None if spec.noise is None else np.asarray(spec.noise)
+    if noise is not None and noise.ndim == 1 and noise.size != setup.order:
+        name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
+        raise ConfigError(f"{name} must be one number or one per state of the plant, "
+                          f"{setup.order} numbers (got {noise.size})")
 
 
 def choose_device(args, kind: str, rows: int = 1):
@@ -229,6 +301,7 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
         raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
+    check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(
             controller=dataclasses.replace(setup.controller, variant=args.variant))
@@ -272,6 +345,52 @@ class Outputs:
                 path.unlink()
 
 
+def check_out(args, option: str = "--out") -> None:
+    """Refuse an --out the system cannot take as an output directory, before any work: an
+    empty path, a name too long, a component that is a file, no permission, a read-only file
+    system (`files.out_problem`); one line naming the path and the reason, exit 2."""
+    from dscjax import files
+    from dscjax.validation import ConfigError
+
+    text = getattr(args, "out", None)
+    if text is None:
+        return
+    if not str(text).strip():
+        raise ConfigError(f"{option} {str(text)!r}: an empty path; give a directory, e.g. "
+                          f"{option} results/run (or {option} . for the current one)")
+    problem = files.out_problem(text)
+    if problem is not None:
+        raise ConfigError(f"{option} {str(text)!r}: cannot write the output there "
+                          f"({problem}); give a writable directory")
+
+
+def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
+    """{command: its files in `out` that this command would replace}: for each other command
+    whose own files are in `out` (those no other command writes, e.g. a sweep's sweep.json),
+    the files of `outputs` found there that are among its outputs too (summary.json). A
+    command may replace or delete only the files that it wrote itself."""
+    import importlib
+
+    from dscjax.cli.main import COMMANDS
+
+    ours = set(outputs.found(out))
+    if not ours:
+        return {}
+    found = {}
+    for name, module in COMMANDS.items():
+        if name == getattr(args, "command", None):
+            continue
+        theirs = getattr(importlib.import_module(module), "OUTPUTS", None)
+        if theirs is not None and theirs != outputs:
+            found[name] = set(theirs.found(out))
+    clash = {}
+    for name, theirs in found.items():
+        others = set().union(ours, *(f for n, f in found.items() if n != name))
+        if theirs - others and theirs & ours:  # its own files are there, and shared names
+            clash[name] = sorted(theirs & ours)
+    return clash
+
+
 def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
                 check: bool = True, option: str = "--out") -> Path:
     """Make `args.out` ready, after every input has been validated: refuse a DIR that is a
@@ -282,10 +401,11 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     from dscjax import files
     from dscjax.validation import ConfigError
 
+    check_out(args, option)
     out = Path(args.out)
-    new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
-    args.exit_stack.callback(_remove_if_empty, new)
     try:
+        new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
+        args.exit_stack.callback(_remove_if_empty, new)
         if out.exists() and not out.is_dir():
             raise NotADirectoryError(0, "it is a file, not a directory")
         out.mkdir(parents=True, exist_ok=True)
@@ -298,6 +418,13 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     args.exit_stack.enter_context(files.lock_out(
         out, name=lock or files.LOCK, argv=[*args.prog, *args.argv], option=option))
     if check:
+        clash = _other_commands(args, outputs, out)
+        if clash:
+            shown = "; ".join(f"`dscjax {name}`: {', '.join(names)}"
+                              for name, names in clash.items())
+            raise ConfigError(f"{option} {str(args.out)!r} holds the results of another "
+                              f"command, which this one would replace ({shown}); give another "
+                              f"{option}")
         found = outputs.found(out)
         if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
             shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
@@ -308,6 +435,19 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
         if getattr(args, "overwrite", False):
             outputs.remove(out)
     return out
+
+
+def kept_text(args, outputs: Outputs, rerun: str) -> str:
+    """What an interrupted command that cannot resume says it keeps: the files it finished
+    (`outputs` found in --out: the rule of --out let it start only where none was), or
+    nothing; then `rerun`, the command that makes them all."""
+    out = Path(args.out)
+    found = outputs.found(out) if out.is_dir() else []
+    if not found:
+        return f"nothing is kept; run the same command again: {rerun}"
+    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
+    return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
+            f"rest is not written; run the same command again: {rerun}")
 
 
 def _remove_if_empty(created: list[Path]) -> None:

@@ -1,8 +1,9 @@
 """Entry point of the `dscjax` command.
 
 Errors a user can fix print one line and exit 2 (no traceback); a diverged simulation exits 3;
-a full disk exits 4, naming the file and the command that continues; Ctrl-C exits 130, saying
-what was kept and how to continue (a subcommand's `interrupt_hint(args)`).
+a full disk exits 4, naming the file and the command that continues; Ctrl-C exits 130, SIGTERM
+143 and SIGHUP 129 (128 + the signal's number, as a shell reports it), each saying what was kept
+and how to continue (a subcommand's `interrupt_hint(args)`).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import errno
 import importlib
 import os
 import shlex
+import signal
 import sys
 from pathlib import Path
 
@@ -32,7 +34,7 @@ COMMANDS = {
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
 EXIT_NO_SPACE = 4
-EXIT_INTERRUPTED = 130
+EXIT_INTERRUPTED = 130  # Ctrl-C; SIGTERM 143, SIGHUP 129: 128 + the signal's number
 
 
 class CLIError(Exception):
@@ -42,7 +44,15 @@ class CLIError(Exception):
 class _Parser(argparse.ArgumentParser):
     """argparse's own errors (an unknown choice, a missing or malformed value) as one line
     and exit 2, like every other bad input, instead of a usage block first; `--help` still
-    gives the usage. Subcommands' parsers are of this class too (argparse's default)."""
+    gives the usage. Subcommands' parsers are of this class too (argparse's default). A
+    single-valued option given twice is refused (`cli.common.Once`)."""
+
+    def __init__(self, *args, **kwargs):
+        from dscjax.cli.common import Once
+
+        super().__init__(*args, **kwargs)
+        self.register("action", None, Once)  # groups share the registry
+        self.register("action", "store", Once)
 
     def error(self, message):
         self.exit(EXIT_USAGE, f"{self.prog}: error: {message}\n")
@@ -79,7 +89,8 @@ def build_parser(commands) -> argparse.ArgumentParser:
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
         epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
         "stderr. Exit codes: 0 ok, 2 bad input (or --out in use by another process), 3 a "
-        "simulation diverged, 4 no space left on the device, 130 interrupted.",
+        "simulation diverged, 4 no space left on the device, 130 interrupted (Ctrl-C), 143 "
+        "SIGTERM, 129 SIGHUP (each keeps what is whole and prints the command that continues).",
     )
     parser.add_argument("--version", action=_Version,
                         help="show the version, then the JAX backends and devices, and exit")
@@ -143,6 +154,17 @@ def _continue(args, module) -> str:
     return f"run the same command again: {rerun_command(args)}"
 
 
+def _kept(args, module) -> str | None:
+    """The hint of a command without its own `interrupt_hint`: the files it finished (or
+    nothing), and the command that runs it again."""
+    from dscjax.cli.common import kept_text
+
+    outputs = getattr(module, "OUTPUTS", None)
+    if outputs is None or getattr(args, "out", None) is None:
+        return None
+    return kept_text(args, outputs, rerun_command(args))
+
+
 def main(argv=None) -> int:
     commands = _available_commands()
     parser = build_parser(commands)
@@ -161,8 +183,9 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
+    from dscjax.cli.common import check_out
     from dscjax.files import NoSpace
-    from dscjax.progress import Abort, handle_interrupts
+    from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
     from dscjax.simulate import DivergenceError
     from dscjax.validation import ConfigError
 
@@ -171,6 +194,8 @@ def main(argv=None) -> int:
         # the lock on --out and the clean-up of an --out left empty (cli.common.prepare_out)
         # last as long as the command
         with handle_interrupts(), contextlib.ExitStack() as args.exit_stack:
+            if not getattr(args, "print_config", False):
+                check_out(args)  # an --out the system refuses: one line, before any work
             return int(module.run(args) or 0)
     except (ConfigError, CLIError) as err:
         print(f"dscjax {args.command}: error: {err}", file=sys.stderr)
@@ -186,12 +211,14 @@ def main(argv=None) -> int:
         return EXIT_NO_SPACE
     except (KeyboardInterrupt, Abort) as stop:
         hint = getattr(module, "interrupt_hint", None)
-        note = hint(args) if hint is not None else None
-        what = ("interrupted again: stopped at once without saving the step under way"
-                if isinstance(stop, Abort) else "interrupted")
+        note = hint(args) if hint is not None else _kept(args, module)
+        signum = signal_number(stop)
+        by = "" if signum == signal.SIGINT else f" by {signal_name(signum)}"
+        what = (f"interrupted again{by}: stopped at once without saving the step under way"
+                if isinstance(stop, Abort) else f"interrupted{by}")
         print(f"\ndscjax {args.command}: {what}" + (f"; {note}" if note else ""),
               file=sys.stderr)
-        return EXIT_INTERRUPTED
+        return 128 + signum  # EXIT_INTERRUPTED for Ctrl-C
 
 
 if __name__ == "__main__":

@@ -85,8 +85,8 @@ def add_parser(sub):
     p.add_argument("--theory-orders", default="2", metavar="N,M",
                    help="orders of the alpha_0 study for --theory, e.g. 2,3,4 (default 2)")
     p.add_argument("--alpha0", metavar="A,B,...",
-                   help="alpha_0 values of the study (default: 10 values from 0.1 to 10, "
-                   "log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
+                   help="alpha_0 values of the study, separated by commas (default: 10 values "
+                   "from 0.1 to 10, log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
     p.add_argument("--mu", type=positive_float, metavar="MU",
                    help="mu of (59)-(60) for the study (default 0.1 for n = 2, 10 for n >= 3)")
     return p
@@ -162,4 +162,6 @@ def interrupt_hint(args) -> str:
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"
+    from dscjax.cli.common import kept_text
+
+    return kept_text(args, OUTPUTS, rerun_command(args))

@@ -170,9 +170,10 @@ def run(args) -> int:
               f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
               file=sys.stderr)
     if diverged is None:
-        print(f"  L-inf error {metrics['linf_error']:.4g} "
-              f"(after t0: {metrics['linf_error_window']:.4g}),"
-              f" L2 error {metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
+        window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
+        print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
+              f"run {metrics['linf_error']:.4g}, from the initial error), L2 error "
+              f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
     else:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
               f"were not measured (null in metrics.json)")
@@ -200,10 +201,12 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
+    from dscjax.cli.common import kept_text
     from dscjax.cli.main import rerun_command
 
-    return (f"nothing is kept (the files are written when the run ends); run the same command "
-            f"again: {rerun_command(args)}")
+    text = kept_text(args, OUTPUTS, rerun_command(args))
+    return text.replace("nothing is kept;", "nothing is kept (the files are written when the "
+                        "run ends);", 1)
 
 
 def _title(setup, options):

@@ -36,7 +36,8 @@ def add_parser(sub):
         "closed loop's Jacobian along the nominal run.")
     add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
-                   help="factors applied to every filter constant tau_i (default "
+                   help="factors applied to every filter constant tau_i, separated by commas "
+                   "(default "
                    "0.25,0.5,1,2,4)")
     p.add_argument("--out", default="results/stability", metavar="DIR",
                    help="output directory (default results/stability)")

@@ -22,6 +22,8 @@ from dscjax.cli.common import (
     add_example_arg,
     add_run_args,
     apply_run_options,
+    blame_options,
+    check_noise,
     choose_device,
     count,
     example_setup,
@@ -98,8 +100,9 @@ def add_parser(sub):
                    f"(default {d.worst})")
     p.add_argument("--random", type=count(0), metavar="R", help=f"full traces of R random samples "
                    f"(default {d.random})")
-    p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap "
-                   "(default: the first two swept)")
+    p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap, "
+                   "separated by a comma, e.g. hysteresis.alpha,plant.g[1] (default: the first "
+                   "two swept)")
     p.add_argument("--threshold", type=finite_float, metavar="E",
                    help=f"windowed L-inf error above "
                    f"which tracking counts as degraded (default: {DEGRADED_FACTOR:g} x the "
@@ -173,7 +176,25 @@ def load(args):
         changes["heatmap"] = tuple(names)
     settings = dataclasses.replace(settings, **changes)
     validate_setup(setup)
+    check_noise(args, setup, options)
     return setup, options, settings
+
+
+# the options that set a [sweep] key (the others are named after their key)
+SETTING_OPTIONS = {"ranges": "--range", "float32": "--float32", "float64": "--float64"}
+
+
+def typed_settings(args) -> dict[str, str]:
+    """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
+    names = {}
+    for name in ("samples", "grid", "ranges", "method", "seed", "chunk", "worst", "random",
+                 "threshold", "parallel", "heatmap"):
+        if getattr(args, name, None) is not None:
+            names[f"sweep.{name}"] = SETTING_OPTIONS.get(name, f"--{name}")
+    for name in ("float32", "float64"):
+        if getattr(args, name, False):
+            names["sweep.dtype"] = SETTING_OPTIONS[name]
+    return names
 
 
 def sweep_toml(settings, setup) -> str:
@@ -229,7 +250,8 @@ def run(args) -> int:
     dtype = np.dtype(settings.dtype)
     printed = setup
     setup = params.cast(setup, dtype)
-    ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
+    with blame_options(typed_settings(args)):
+        ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
         print_config(printed, options, sweep_toml(settings, setup))
         return 0

@@ -136,7 +136,9 @@ def interrupt_hint(args) -> str:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        return f"nothing is kept; run the same command again: {rerun_command(args)}"
+        from dscjax.cli.common import kept_text
+
+        return kept_text(args, OUTPUTS, rerun_command(args))
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
             f"{resume_command(args)}")
@@ -145,7 +147,12 @@ def interrupt_hint(args) -> str:
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
     from dscjax import config, validation
-    from dscjax.cli.common import apply_run_options, example_setup
+    from dscjax.cli.common import (
+        apply_run_options,
+        blame_options,
+        check_noise,
+        example_setup,
+    )
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
@@ -191,9 +198,18 @@ def load(args):
     given["adversarial"] |= adv
     cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(getattr(cfg, key), **values)
                                       for key, values in given.items()})
-    cfg.validate()
+    # a setting given on the command line is blamed on its option, as typed
+    typed = {f"tuning.{key}.{field}": f"--{name.replace('_', '-')}"
+             for key, names in changes.items() for name, field in names.items()
+             if getattr(args, name) is not None}
+    typed |= {f"tuning.adversarial.{k}": f"--{k}" for k in ("rounds", "disturbance")
+              if k in adv}
+    typed = {k: "--adversarial" if v == "--rounds" else v for k, v in typed.items()}
+    with blame_options(typed):
+        cfg.validate()
     options = apply_run_options(args, options)
     validation.validate_setup(setup)
+    check_noise(args, setup, options)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
@@ -219,7 +235,7 @@ def run(args) -> int:
 
     from dscjax.cli.common import prepare_out, print_config, use_device
     from dscjax.params import cast
-    from dscjax.progress import Progress
+    from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import report
     from tuning.config import to_toml
@@ -252,9 +268,12 @@ def run(args) -> int:
             check_resume(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = use_device(args, options.device, generation_rows(cfg))
+    plants = max(cfg.robust.batch, 1)
     # --out once every setting is validated, before the start scales compile and run the loop
-    problem = build_problem(setup, options, cfg,
-                            ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
+    with Phase(f"  compiling the closed loop and measuring the start gains ({plants} "
+               f"plant{'s' if plants > 1 else ''})", enabled=not args.quiet):
+        problem = build_problem(setup, options, cfg,
+                                ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
     oc = cfg.optimizer
     how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
            else f"{oc.name} (sigma0 {oc.sigma0:g})")
@@ -291,22 +310,28 @@ def run(args) -> int:
           + ("; bounds per training plant" if cfg.objective.effort_bounds == "per_plant"
              else ""), file=sys.stderr)
     bar, bar_round = None, None
+    # until the first generation (or iteration) ends: its compilation and run
+    first = Phase(f"  compiling the {'search' if oc.name in SEARCHES else 'gradient'} and "
+                  f"running its first {unit}", enabled=not args.quiet).start()
 
     def progress(row):
         nonlocal bar, bar_round
+        first.stop()
         if bar is not None and row.get("round") != bar_round:
             bar.close()
             bar = None
         if bar is None:
             bar_round = row.get("round")
+            # the unit just done counts as done before the clock (its time was compilation)
             bar = Progress(row["steps"], desc="  tune" if bar_round is None else
                            f"  round {bar_round} tune", unit=unit,
-                           initial=row["iteration"], enabled=not args.quiet)
+                           initial=row["iteration"] + 1, enabled=not args.quiet)
         bar.update_to(row["iteration"] + 1, format_progress(
             row, "sigma" if oc.name in SEARCHES else "lr"))
 
     def say(text):
         nonlocal bar
+        first.stop()  # a round's search says what it does itself
         if bar is not None:
             bar.close()
             bar = None
@@ -322,6 +347,7 @@ def run(args) -> int:
             result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
                                 progress=progress)
     finally:
+        first.stop()
         if bar is not None:
             bar.close()
     print(f"  stopped: {result.stop_reason}; {_count(result.trace.iterations, unit)}"
@@ -329,7 +355,8 @@ def run(args) -> int:
           + f", {result.rejected} rejected, best at iteration "
           f"{result.trace.best_iteration}; {result.wall_s:.1f} s (compilation "
           f"{result.compile_s:.1f} s)")
-    summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
+    with Phase(f"  {after}" if after else "  the report", enabled=not args.quiet):
+        summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     if outcome is not None:
         adversarial.add_to_report(out, summary, outcome)
         f0, f1 = outcome.fresh["start"], outcome.fresh["tuned"]

@@ -273,6 +273,8 @@ def interrupt_hint(args) -> str | None:
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
-        return f"nothing is kept; run the same command again: {rerun_command(args)}"
+        from dscjax.cli.common import kept_text
+
+        return kept_text(args, OUTPUTS, rerun_command(args))
     return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
             f"continue with: {resume_command(args)}")
