@@ -14,10 +14,13 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
+from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
+from tuning import margins
 from tuning.objective import within
+from tuning.runner import loop_words
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
                  "sampled_linf_window")
@@ -267,9 +270,21 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
+    summary["loop"] = loop_words(problem.objective.sim)
+    summary["heldout_box"] = ([r.resolve(problem.setup).spec() for r in problem.cfg.heldout.ranges]
+                              if problem.heldout else None)
+    # the margins come with the held-out check (`--heldout 0` skips both)
+    summary["margins"] = margins.evaluate(problem, z0, z1) if problem.heldout else None
+    summary["margins_warning"] = (None if summary["margins"] is None else
+                                  "; ".join(margins.failures(summary["margins"])) or None)
     out = Path(out)
     figures = (_plots(out, result, ev, trajectories(problem, z0, z1), problem.objective.sim,
                       problem) if plots else [])
+    st = (summary["margins"] or {}).get("sample_time")
+    if plots and st is not None:
+        sampling.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
+                      labels={"start": "start gains", "tuned": "tuned gains"})
+        figures.append("sampling.png")
     summary["figures"] = figures
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
@@ -391,11 +406,14 @@ def _markdown(s: dict, problem, figures) -> str:
     lines = ["# dscjax tune: report", ""]
     if s.get("heldout_warning"):
         lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
+    if s.get("margins_warning"):
+        lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
+        f"Loop tuned: {s['loop']}.",
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
         f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
         "Objective per plant: " + ", ".join(
@@ -468,6 +486,10 @@ def _markdown(s: dict, problem, figures) -> str:
             lines.append(f"| {_md(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
                          f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
                          f"{margin} |")
+    if s.get("margins"):
+        short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
+        lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
+                                                 for k, v in short.items()})
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
                   "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]

@@ -256,7 +256,8 @@ def run(args) -> int:
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-          f"{how}; T={options.t_final:g} s, dt={options.dt:g} s, window "
+          f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
+          f"dt={options.dt:g} s, window "
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
@@ -369,6 +370,20 @@ def run(args) -> int:
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
+
+
+def loop_banner(sim) -> str:
+    """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
+    import numpy as np
+
+    from tuning.runner import discretisation
+
+    if not sim.sampled:
+        return "the continuous loop"
+    noise = ("no noise" if sim.noise is None else "noise std "
+             + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float))))
+    return (f"the sampled loop (Ts={sim.sample_time:g} s, ZOH, {discretisation(sim)}, delay "
+            f"{sim.delay}, {noise})")
 
 
 def _count(n: int, unit: str) -> str:
