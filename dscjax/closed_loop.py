@@ -220,8 +220,9 @@ class Sampling(eqx.Module):
     """A controller that runs at the sample times t_k = k Ts, Ts = `every` dt.
 
     At t_k it reads x(t_k) (plus seeded Gaussian noise of std `noise`), computes u_k and
-    advances its states once by the exponential Euler step c <- c + Ts phi(-lam Ts) c',
-    phi(z) = (e^z - 1)/z, lam = `Controller.decay_rates` (exact for the filters' linear part).
+    advances its states once by the `scheme`: "exponential-euler", c <- c + Ts phi(-lam Ts) c',
+    phi(z) = (e^z - 1)/z, lam = `Controller.decay_rates` (exact for the filters' linear part),
+    or "euler", forward Euler c <- c + Ts c' (what a hand-written controller often does).
     The actuator holds u_(k-delay) until t_(k+1) (the first input for the first `delay`
     samples); a change of the held input moves the hysteresis along its curve (`jump`).
     """
@@ -230,6 +231,11 @@ class Sampling(eqx.Module):
     delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
     noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
     seed: Any = 0  # seed of the noise (a float holding an integer: no integer leaf is traced)
+    scheme: str = eqx.field(static=True, default="exponential-euler")  # one of SCHEMES
+
+
+# How the sampled controller advances its states over one sample (`Sampling.scheme`).
+SCHEMES = ("exponential-euler", "euler")
 
 
 class SampledState(NamedTuple):
@@ -260,8 +266,11 @@ def _sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
     u_new, info = ctrl.law(X.ctrl, x, t, plant, ref)
     rate = ctrl.state_rate(X.ctrl, x, t, info, plant, ref)
     ts = sampling.every * dt
-    lam = ctrl.decay_rates(X.ctrl)
-    c_next = jax.tree.map(lambda c, r, l: c + ts * _phi(-l * ts) * r, X.ctrl, rate, lam)
+    if sampling.scheme == "euler":
+        c_next = jax.tree.map(lambda c, r: c + ts * r, X.ctrl, rate)
+    else:
+        lam = ctrl.decay_rates(X.ctrl)
+        c_next = jax.tree.map(lambda c, r, l: c + ts * _phi(-l * ts) * r, X.ctrl, rate, lam)
     if sampling.delay:
         applied, past = X.past[-1], jnp.concatenate([u_new[None], X.past[:-1]])
     else:
@@ -308,7 +317,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["Controller", "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile",
-           "State", "decay_rates", "diagnose", "frozen", "initial_state", "local_eigenvalues",
-           "prepared", "project", "sample_after_step", "sampled_frozen", "sampled_initial_state",
-           "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]
+__all__ = ["SCHEMES", "Controller", "Observation", "SampledState", "Sampling", "Setup",
+           "SpectrumProfile", "State", "decay_rates", "diagnose", "frozen", "initial_state",
+           "local_eigenvalues", "prepared", "project", "sample_after_step", "sampled_frozen",
+           "sampled_initial_state", "sampled_vector_field", "spectrum_along", "states_of",
+           "vector_field"]

@@ -5,7 +5,8 @@
     traj = dscjax.simulate(setup, spec=spec)
 
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
-`sampled` (the controller sampled, or continuous) and `delay`. Traced fields change without
+`sampled` (the controller sampled, or continuous), `delay` and `discretisation` (how the
+sampled controller advances its states). Traced fields change without
 recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
 sample), `noise` and `noise_seed`; `refine`, `dtype` and `device` are host-side. The
 [simulation] table, the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`)
@@ -24,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation
+from dscjax.closed_loop import SCHEMES
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
@@ -57,6 +59,9 @@ OPTIONS: dict[str, tuple[Any, str]] = {
     "noise": (None, "sampled controller: std of Gaussian measurement noise on x, one number "
               "or one per state; omitted: none"),
     "noise_seed": (0, "sampled controller: seed of the measurement noise"),
+    "discretisation": ("exponential-euler", "sampled controller: how its states advance over "
+                       "a sample, exponential-euler (c += Ts phi(-Ts/tau) c', exact for the "
+                       "filters) or euler (forward Euler, c += Ts c')"),
     "device": ("auto", "auto (one trajectory and small batches on the CPU, large batches on an "
                "accelerator), cpu or gpu"),
 }
@@ -78,6 +83,7 @@ class RunSpec(eqx.Module):
     sample_every: Any = 0  # steps per controller sample (0: continuous); traced
     sampled: bool = eqx.field(static=True, default=False)
     delay: int = eqx.field(static=True, default=0)
+    discretisation: str = eqx.field(static=True, default="exponential-euler")  # SCHEMES
     refine: int = eqx.field(static=True, default=DEFAULT_REFINE)
     dtype: str = eqx.field(static=True, default="float64")
     device: str = eqx.field(static=True, default="auto")
@@ -89,7 +95,8 @@ class RunSpec(eqx.Module):
              window_start: float | None = None, state_bound: float = 1e6,
              dtype: str = "float64", solver: str | Solver = "rk4", refine: int = DEFAULT_REFINE,
              sample_time: float | None = None, delay: int = 0, noise=None, noise_seed: int = 0,
-             device: str = "auto", gradient: Gradient | None = None,
+             discretisation: str = "exponential-euler", device: str = "auto",
+             gradient: Gradient | None = None,
              prefix: str = "simulation.", names: Mapping[str, str] | None = None) -> RunSpec:
         """A checked RunSpec. Messages name a field `prefix` + key, or `names[key]` (the
         command-line option that gave it)."""
@@ -121,6 +128,7 @@ class RunSpec(eqx.Module):
         validation.one_of(device, f("device"), DEVICES)
         validation.integer(delay, f("delay"), 0)
         validation.integer(noise_seed, f("noise_seed"), 0)
+        validation.one_of(discretisation, f("discretisation"), SCHEMES)
         every = 0
         if sample_time is not None:
             sample_time = validation.number(sample_time, f("sample_time"))
@@ -147,6 +155,7 @@ class RunSpec(eqx.Module):
                    save_every=int(save_every), solver=as_solver(solver),
                    gradient=gradient if gradient is not None else TimeParallel(),
                    sample_every=every, sampled=every > 0, delay=int(delay),
+                   discretisation=discretisation,
                    refine=int(refine), dtype=dtype, device=device, rules=tuple(rules))
 
     @classmethod
@@ -196,7 +205,7 @@ class RunSpec(eqx.Module):
                "solver": self.solver.name, "refine": self.refine,
                "sample_time": None if not self.sampled else short(self.sample_time),
                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
-               "device": self.device}
+               "discretisation": self.discretisation, "device": self.device}
         for key in self.rules:
             out[key] = None
         return out
@@ -208,6 +217,8 @@ class RunSpec(eqx.Module):
         out.update(save_every=self.save_every,
                    window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
+        if self.discretisation == OPTIONS["discretisation"][0]:
+            out.pop("discretisation")  # the fingerprints of runs made before the key existed
         if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
             out["gradient"] = [self.gradient.name, self.gradient.every]
         return out
@@ -250,7 +261,7 @@ def _coerce(key: str, value, field: str):
     """A value of the [simulation] table of the type its key takes; ConfigError otherwise."""
     if isinstance(value, str) and value.lower() == "none" and OPTIONS[key][0] is None:
         return None
-    if key in ("dtype", "solver", "device"):
+    if key in ("dtype", "solver", "device", "discretisation"):
         return validation.string(value, field)
     if key in ("save_every", "refine", "delay", "noise_seed"):
         if isinstance(value, bool) or not isinstance(value, int):

@@ -164,7 +164,7 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     samp = None
     if spec.sampled:
         samp = (Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
-                         seed=spec.noise_seed), spec.dt)
+                         seed=spec.noise_seed, scheme=spec.discretisation), spec.dt)
     loop = _loop(setup, spec)
     common = dict(save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
                   solver=spec.solver, gradient=spec.gradient, frozen=loop.frozen)

@@ -145,13 +145,14 @@ def _backlash_step(w, u_from, u_to, p=P):
     return lam * u_to - s * (lam - psi) / a + c * math.exp(-s * a * u_to)
 
 
-def sampled_rk4(X0, dt, n_steps, every, p=P, delay=0):
+def sampled_rk4(X0, dt, n_steps, every, p=P, delay=0, scheme="exponential-euler"):
     """The loop with the controller sampled every `every` steps (Ts = every dt): at each
     sample the law reads x, and the input computed `delay` samples before (the first one
     while there is none) is held until the next sample (the hysteresis jumps along its curve
     when it changes); the filter advances by its exact response to the held x2d
     (z <- x2d + (z - x2d) e^(-Ts/tau)) and the estimates by forward Euler; the plant is
-    integrated by RK4 with w held. Returns (states (N+1, 9), held u (N+1,))."""
+    integrated by RK4 with w held. scheme "euler": the filter by forward Euler too,
+    z <- z + Ts (x2d - z)/tau. Returns (states (N+1, 9), held u (N+1,))."""
     X = np.array(X0, dtype=float)
     ts = every * dt
     u_held, _ = _law(0.0, X, p)
@@ -165,7 +166,10 @@ def sampled_rk4(X0, dt, n_steps, every, p=P, delay=0):
             computed.append(u_law)
             u_new = computed[max(len(computed) - 1 - delay, 0)]
             X[2] = _backlash_step(X[2], u_held, u_new, p)
-            X[3] = r["x2d"] + (X[3] - r["x2d"]) * math.exp(-ts / p["tau"])
+            if scheme == "euler":
+                X[3] += ts * (r["x2d"] - X[3]) / p["tau"]
+            else:
+                X[3] = r["x2d"] + (X[3] - r["x2d"]) * math.exp(-ts / p["tau"])
             X[4] += ts * r["th1"]
             X[5] += ts * r["th2"]
             X[6] += ts * r["ph1"]

@@ -79,6 +79,38 @@ def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, eve
     np.testing.assert_allclose(np.asarray(batch.x[1]), want[:, :2], rtol=0, atol=1e-11)
 
 
+@pytest.mark.parametrize("every, delay", [(5, 0), (2, 1)])
+def test_the_forward_euler_sampled_loop_equals_a_hand_written_one(paper_setup, every, delay):
+    import reference_paper as ref
+
+    import dscjax
+
+    n = int(T_SHORT / 1e-3)
+    want, u_want = ref.sampled_rk4(ref.initial_state(), 1e-3, n, every, delay=delay,
+                                   scheme="euler")
+    spec = dscjax.RunSpec.make(T_SHORT, 1e-3, save_every=1, sample_time=every * 1e-3,
+                               delay=delay, discretisation="euler")
+    traj = dscjax.simulate(paper_setup, spec=spec)
+    np.testing.assert_allclose(np.asarray(traj.x), want[:, :2], rtol=0, atol=1e-11)
+    np.testing.assert_allclose(np.asarray(traj.u), u_want, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(np.asarray(traj.z)[:, 0], want[:, 3], rtol=0, atol=1e-9)
+    # the two schemes differ in the filter (tau = 0.05 s, Ts = 5 ms: visibly)
+    expo, _ = ref.sampled_rk4(ref.initial_state(), 1e-3, n, every, delay=delay)
+    assert np.max(np.abs(expo[:, 3] - want[:, 3])) > 1e-6
+
+
+def test_the_default_discretisation_is_the_loop_without_the_option(paper_setup):
+    import dscjax
+
+    base = dict(save_every=1, sample_time=5e-3)  # the program of a test above
+    plain = dscjax.simulate(paper_setup, spec=dscjax.RunSpec.make(T_SHORT, 1e-3, **base))
+    named = dscjax.simulate(paper_setup, spec=dscjax.RunSpec.make(
+        T_SHORT, 1e-3, discretisation="exponential-euler", **base))
+    np.testing.assert_array_equal(np.asarray(named.x), np.asarray(plain.x))
+    np.testing.assert_array_equal(np.asarray(named.u), np.asarray(plain.u))
+    assert "discretisation" not in dscjax.RunSpec.make(T_SHORT, 1e-3, **base).describe()
+
+
 def test_the_sampled_output_tends_to_the_continuous_one_at_first_order(paper_setup):
     import dscjax
 
@@ -139,6 +171,8 @@ def test_measurement_noise_is_seeded(paper_setup):
                                                "(got 5)"),
     (["--delay", "2"], "--delay applies to a sampled controller: give simulation.sample_time "
                        "too"),
+    (["--discretisation", "rk4"], "--discretisation must be one of 'exponential-euler', "
+                                  "'euler' (got 'rk4')"),
 ])
 def test_bad_sample_times_are_one_line_and_exit_2(tmp_path, capsys, argv, line):
     from dscjax.cli.main import main

@@ -70,7 +70,7 @@ def flag(key: str) -> str:
 
 
 # the [simulation] keys of the sampled controller, an option on every command that simulates
-SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed")
+SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 
 
 def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
@@ -89,6 +89,8 @@ def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
             p.add_argument(flag(key), choices=tuple(SOLVERS), help=text)
         elif key == "device":
             p.add_argument(flag(key), choices=DEVICES, help=text)
+        elif key == "discretisation":
+            p.add_argument(flag(key), type=str, metavar="SCHEME", help=text)
         else:
             p.add_argument(flag(key), type=RUN_TYPES[key], metavar=key.upper().replace(
                 "_", "-") if key != "t_final" else "S", help=text.replace("%", "%%"))
