@@ -142,12 +142,15 @@ class ObjectiveSpec:
     tv_max: float | str | None = "start"
     tv_max_factor: float = 1.5
     tv_max_weight: float = 100.0
-    # tuning.sample_time: the sampled loop's windowed L-inf <= sampled_factor x the continuous
+    # an `Objective` given a second loop `sampled`: that loop's windowed L-inf <=
+    # sampled_factor x the first's (`dscjax tune` tunes the sampled loop itself: none there)
     sampled_factor: float = 2.0
     sampled_weight: float = 100.0
     # the "start" bounds measured on the nominal plant, or on each training plant its own
     effort_bounds: str = "nominal"
-    sharpness: float = 50.0
+    # s x Linf(start): large, so that Linf~ stays close to the max where the tuned error is
+    # 20-50 times the start's (at 50 it was nearly the mean there, and the max lagged)
+    sharpness: float = 1000.0
     u_sharpness: float = 300.0
     divergence_penalty: float = 1000.0
     window_start: float | None = None
