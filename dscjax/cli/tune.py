@@ -13,8 +13,8 @@ from pathlib import Path
 from dscjax.cli.common import Outputs
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
-                   "before_after.png", "heldout.png", "checkpoint.npz", "search.npz",
-                   "checkpoint.json", "best.json", "adversarial.json"),
+                   "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
+                   "search.npz", "checkpoint.json", "best.json", "adversarial.json"),
                   folders=("round_*", "fresh_*"))
 
 
