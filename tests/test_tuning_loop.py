@@ -72,6 +72,10 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     assert re.fullmatch(rf"  held-out batch \(4 plants, start -> tuned gains\): {outcomes}",
                         counts), counts
     assert "the sampled loop (Ts=0.001 s, ZOH, exponential Euler, delay 0, no noise)" in stderr
+    # the paper's gains track up to 20 ms (fig_sampling): so at every Ts of the margin
+    assert ("  sample-time margin (0.1 to 2 ms): start gains track up to Ts = 2 ms, tuned gains "
+            "up to Ts = 2 ms") in stdout
+    assert "  20 s run with noise and a disturbance: L-inf error " in stdout
     heldout = json.loads((out / "report.json").read_text())["heldout"]
     for tag in ("start", "tuned"):
         h = heldout[tag]

@@ -364,12 +364,46 @@ def run(args) -> int:
                   f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
+    for line in margin_lines(summary.get("margins"), summary["nominal"]):
+        print(f"  {line}")
+    if summary.get("margins_warning"):
+        print(f"dscjax tune: WARNING: a margin fails: {summary['margins_warning']}",
+              file=sys.stderr)
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
              if outcome is not None else "history.csv, ") + "report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
+
+
+def margin_lines(margins, nominal) -> list[str]:
+    """The margins in the console's last lines: the largest Ts each gain set tracks, the long
+    run's error beside the figure over T and whether the estimates stay bounded."""
+    if not margins:
+        return []
+    out = []
+    st = margins.get("sample_time")
+    if st is not None:
+        def upto(tag):
+            last = st["largest"][tag]
+            return f"up to Ts = {1e3 * last[0]:g} ms" if last else "at no Ts"
+
+        out.append(f"sample-time margin ({1e3 * st['sample_times'][0]:g} to "
+                   f"{1e3 * st['sample_times'][-1]:g} ms): start gains track {upto('start')}, "
+                   f"tuned gains {upto('tuned')}")
+    lr = margins["long_run"]
+
+    def fig(v):
+        return "diverged" if v is None else f"{v:.4g}"
+
+    out.append(f"{lr['t_final']:g} s run with noise and a disturbance: L-inf error "
+               f"{fig(lr['start']['linf_error_window'])} -> "
+               f"{fig(lr['tuned']['linf_error_window'])} (over T, neither: "
+               f"{fig(nominal['start'].get('linf_error_window'))} -> "
+               f"{fig(nominal['tuned'].get('linf_error_window'))}); adaptive estimates "
+               + ("bounded" if lr["tuned"]["bounded"] else "NOT bounded") + " (tuned gains)")
+    return out
 
 
 def loop_banner(sim) -> str:
