@@ -319,8 +319,11 @@ def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config)
     assert len(rep["bounds_train"]["max_abs_u"]) == len(rep["bounds_train"]["tv_u"]) == 2
     for tag in ("start", "tuned"):
         rows = rep["train_constraints"][tag]
-        # the effort bounds (the loop sampled at tuning.sample_time is the one tuned)
-        assert [r["name"] for r in rows] == ["max|u|", "TV(u)"]
+        # the effort bounds, then the second loop's (the states by forward Euler) L-inf and
+        # effort bounds
+        euler = ", the states by forward Euler"
+        assert [r["name"] for r in rows] == ["max|u|", "TV(u)", "L-inf on [t0,T]" + euler,
+                                             "max|u|" + euler, "TV(u)" + euler]
         assert all(r["bounds"] == "per_plant" and r["n"] == 2 for r in rows[:2])
     assert all(r["n_met"] == 2 for r in rep["train_constraints"]["start"][:2])
     tv = rep["train_constraints"]["start"][1]

@@ -258,7 +258,10 @@ def test_the_default_tunes_the_loop_sampled_at_tuning_sample_time(setup):
     cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
     p = build_problem(setup, options, cfg)
     assert p.objective.sim.sampled and p.objective.sim.sample_time == 1e-3
-    assert p.objective.sampled is None  # no second loop in the loss
+    # the second loop: the same, the controller's states by forward Euler
+    second = p.objective.sampled
+    assert second.discretisation == "euler" and second.sample_time == 1e-3
+    assert p.objective.sim.discretisation == "exponential-euler"
     assert not p.options.sampled and not p.continuous.sampled
     assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
     ref = dscjax.simulate(setup, 1.0, 1e-3, window_start=0.5, sample_time=1e-3).metrics
@@ -271,7 +274,8 @@ def test_the_default_tunes_the_loop_sampled_at_tuning_sample_time(setup):
     given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
                           dataclasses.replace(cfg, params=("controller.tau",)))
     assert given.objective.sim.sample_time == 0.002 and given.continuous is None
-    assert any("forward Euler" in n for n in given.notes)
+    assert given.objective.sampled.discretisation == "exponential-euler"
+    assert any("states advanced by forward Euler" in n for n in given.notes)
     assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)
 
 

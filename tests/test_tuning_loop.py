@@ -68,9 +68,9 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     outcomes = (r"tracked \d -> \d; tracked after refinement \(a numerically stiff run re-done "
                 r"with ETDRK4 at a smaller step\) \d -> \d; diverged at every step tried "
                 r"\d -> \d")
-    # the loop tuned (and checked on the held-out plants) is the one sampled at 1 ms
-    assert re.fullmatch(rf"  held-out batch \(4 plants, start -> tuned gains\): {outcomes}",
-                        counts), counts
+    # the loop tuned is the one sampled at 1 ms; the second, its states by forward Euler
+    assert re.fullmatch(rf"  held-out batch \(4 plants, start -> tuned gains\): {outcomes}\. "
+                        rf"With the states by forward Euler: {outcomes}", counts), counts
     assert "the sampled loop (Ts=0.001 s, ZOH, exponential Euler, delay 0, no noise)" in stderr
     # the paper's gains track up to 20 ms (fig_sampling): so at every Ts of the margin
     assert ("  sample-time margin (0.1 to 2 ms): start gains track up to Ts = 2 ms, tuned gains "

@@ -359,8 +359,8 @@ def run(args) -> int:
                   f"{b['p95']:.4g}")
         if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
             a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
-            print(f"  held-out L-inf error on the window with the controller sampled at "
-                  f"{summary['sample_time']:g} s: median {a['median']:.4g} -> "
+            print(f"  held-out L-inf error on the window with "
+                  f"{summary['second_loop']}: median {a['median']:.4g} -> "
                   f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
