@@ -105,7 +105,8 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
     t = np.asarray(tr.t)[0]
     half = t > t_long / 2
     quarter = (t > t_long / 4) & ~half
-    out = {"t_final": t_long, "noise": LONG_NOISE if noise else None,
+    own = None if sim.noise is None else float(np.max(np.asarray(sim.noise)))  # the loop's
+    out = {"t_final": t_long, "noise": LONG_NOISE if noise else own,
            "disturbance": f"{LONG_DBAR:g} sin(t)" if dbar else None,
            "window_start": float(sim.window_start)}
     for i, tag in enumerate(NAMES):
