@@ -255,7 +255,7 @@ def _phi(z):
     return jnp.where(small, 1.0 + 0.5 * z, jnp.expm1(zs) / zs)
 
 
-def _sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
+def sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
     """The controller's step at sample index k (time t): read x, compute u, advance."""
     plant, ctrl, ref = setup.plant, setup.controller, setup.reference
     x = X.x
@@ -287,7 +287,7 @@ def sampled_initial_state(setup: Setup, sampling: Sampling, dt) -> SampledState:
     u0 = jnp.asarray(u0, X0.x.dtype)
     start = SampledState(x=X0.x, h=X0.h, ctrl=X0.ctrl, u=u0,
                          past=jnp.full((sampling.delay,), u0, X0.x.dtype))
-    return _sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), X0.x.dtype), start, setup,
+    return sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), X0.x.dtype), start, setup,
                           sampling, jnp.asarray(dt, X0.x.dtype))
 
 
@@ -312,13 +312,13 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     """After the step that ends at t = t_(k_next): the controller's sample if k_next is a
     multiple of `every`, else X unchanged."""
     every = jnp.round(jnp.asarray(sampling.every)).astype(jnp.asarray(k_next).dtype)
-    new = _sample_update(k_next // every, t, X, setup, sampling, dt)
+    new = sample_update(k_next // every, t, X, setup, sampling, dt)
     due = k_next % every == 0
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
 __all__ = ["SCHEMES", "Controller", "Observation", "SampledState", "Sampling", "Setup",
            "SpectrumProfile", "State", "decay_rates", "diagnose", "frozen", "initial_state",
-           "local_eigenvalues", "prepared", "project", "sample_after_step", "sampled_frozen",
-           "sampled_initial_state", "sampled_vector_field", "spectrum_along", "states_of",
-           "vector_field"]
+           "local_eigenvalues", "prepared", "project", "sample_after_step", "sample_update",
+           "sampled_frozen", "sampled_initial_state", "sampled_vector_field", "spectrum_along",
+           "states_of", "vector_field"]

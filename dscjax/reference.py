@@ -97,6 +97,32 @@ class MultiSine(Reference):
         return jnp.sum(self.amplitudes * jnp.sin(self.frequencies * t + self.phases)) + self.offset
 
 
+@jax.custom_jvp
+def _given(t, d):
+    """y_r(t) from its given derivatives d = (y_r, y_r', ...): d[0]; its derivative in t is
+    d[1], exactly (nested jvp shifts the tuple)."""
+    return d[0]
+
+
+@_given.defjvp
+def _given_jvp(primals, tangents):
+    t, d = primals
+    return _given(t, d), _given(t, (*d[1:], jnp.zeros_like(d[0]))) * tangents[0]
+
+
+class Given(Reference):
+    """A reference whose value and derivatives at the current time are given, d = (y_r, y_r',
+    ...): every law that differentiates the reference in t (DSC's y_r', backstepping's nested
+    derivatives) reads them. How `dscjax.export` makes the reference an input of the C."""
+
+    d: tuple
+
+    kind: ClassVar[str] = "given"
+
+    def __call__(self, t):
+        return _given(t, self.d)
+
+
 class InitialOffset(Reference):
     """base(t) + offset exp(-t / decay_time): a reference moved to start at a chosen y_r(0).
 

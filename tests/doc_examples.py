@@ -16,6 +16,7 @@ order would type it (so the docs may use what the README's examples wrote: `my.t
   sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
   (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
   figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
+- export (no horizon) as printed;
 - `> FILE` redirects stdout to FILE;
 - a ```toml block whose first line is `# file: NAME` is written to NAME where it stands (a
   config the commands after it read);
@@ -85,7 +86,7 @@ def shrink(argv: list[str]) -> list[str]:
     """The same command with small sizes (see the module docstring)."""
     a = list(argv)
     command = a[0]
-    if "--print-config" not in a or command == "simulate":
+    if ("--print-config" not in a or command == "simulate") and command != "export":
         # the same number of steps whatever dt: one compiled program serves every command
         dt = float(a[a.index("--dt") + 1]) if "--dt" in a else 1e-3
         _set(a, "--t-final", f"{N_STEPS * dt:g}")

@@ -45,6 +45,7 @@ COMMANDS = {
     "sweep": (["--samples", "8", "--t-final", "0.2", "--no-plot"], "chunks/chunk_000000.npz"),
     "worst-case": (["--t-final", "0.2", "--range", "hysteresis.alpha=30%", "--no-plot"],
                    "worst.json"),
+    "export": (["--sample-time", "0.001"], "dsc_controller.c"),
 }
 RESUMABLE = ("tune", "sweep", "worst-case")
 

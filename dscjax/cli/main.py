@@ -25,6 +25,7 @@ COMMANDS = {
     "stability": "dscjax.cli.stability",
     "worst-case": "dscjax.cli.worst_case",
     "hysteresis": "dscjax.cli.hysteresis",
+    "export": "dscjax.cli.export",
 }
 
 EXIT_USAGE = 2

@@ -1,0 +1,106 @@
+"""`dscjax export`: the digital controller of a config (e.g. a tune's gains.json) as C99,
+DIR/dsc_controller.h and DIR/dsc_controller.c (`dscjax.export`)."""
+
+from __future__ import annotations
+
+import sys
+
+from dscjax.cli.common import (
+    Outputs,
+    add_config_args,
+    add_overwrite_arg,
+    example_setup,
+    flag,
+    prepare_out,
+    print_config,
+)
+
+OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
+EXPORT_KEYS = ("sample_time", "delay", "discretisation")
+
+
+def add_parser(sub):
+    p = sub.add_parser(
+        "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
+        description="Write DIR/dsc_controller.h and DIR/dsc_controller.c: the controller of "
+        "a config sampled every TS seconds, in C99 and double precision with no dependency "
+        "beyond <math.h>, exactly the update law of dscjax's sampled loop (the law, its "
+        "hysteresis compensation, the discretisation of its states, the input delay). The "
+        "plant, the actuator and the measurement noise are not part of it.")
+    p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
+                   "tune`) laid over --config: its gains, plant model, reference and "
+                   "[simulation] sample time, delay and discretisation")
+    add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
+    p.add_argument("--out", default="results/export", metavar="DIR",
+                   help="output directory (default: results/export)")
+    add_overwrite_arg(p)
+    return p
+
+
+def load(args):
+    """(setup, spec, source) of --example, --config, --gains and the options, float64, the
+    spec sampled (a config without a sample time and no --sample-time: one line)."""
+    import numpy as np
+
+    from dscjax import config
+    from dscjax.cli.common import run_overrides
+    from dscjax.params import cast
+    from dscjax.runspec import step_for
+    from dscjax.validation import ConfigError, validate_setup
+
+    setup = example_setup(args)
+    spec = None
+    source = [f"--example {args.example}"]
+    for option, path in (("--config", args.config), ("--gains", args.gains)):
+        if path:
+            raw = config.read(path)
+            raw.pop("tuning", None)
+            setup, spec = config.from_dict(raw, base=setup, base_spec=spec)
+            source.append(f"{option} {path}")
+    if spec is None:
+        spec = config.from_dict({}, base=setup)[1]
+    overrides = run_overrides(args)
+    ts = overrides.get("sample_time", spec.sample_time)
+    if ts is None:
+        raise ConfigError("--sample-time is needed: the config has no simulation.sample_time "
+                          "(a continuous controller); give --sample-time TS, a number > 0 "
+                          "[s], e.g. 0.001")
+    if "sample_time" in overrides:
+        # the integration step (the plant's, not the controller's) divides the new sample
+        # time, and the horizon is whole samples: the loop the C is exact for is then
+        # `simulate --config ... --sample-time TS`'s own
+        overrides["dt"] = step_for(float(ts), float(spec.dt))
+        if overrides["dt"] != float(spec.dt) or ts > spec.t_final:
+            overrides["t_final"] = float(ts) * max(round(spec.t_final / ts), 1)
+    names = {k: flag(k) for k in overrides}
+    names["dt"] = "simulation.dt"
+    spec = spec.replace(names=names, **overrides)
+    validate_setup(setup)
+    return cast(setup, np.dtype("float64")), spec, " ".join(source)
+
+
+def run(args) -> int:
+    from dscjax import export
+    from dscjax.files import write_text
+
+    setup, spec, source = load(args)
+    if args.print_config:
+        print_config(setup, spec)
+        return 0
+    files = export.c_files(setup, spec, source=source)  # every input checked before --out
+    out = prepare_out(args, OUTPUTS)
+    print(f"dscjax export: order n={setup.order}, {setup.controller.kind}, sampled every "
+          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}; from {source}",
+          file=sys.stderr)
+    for name, text in files.items():
+        write_text(out / name, text)
+    header = files[export.HEADER]
+    signature = " ".join(header[header.index("double dsc_step("):].split(";")[0].split())
+    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {signature}")
+    return 0
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command
+
+    return f"nothing is kept; run the same command again: {rerun_command(args)}"
