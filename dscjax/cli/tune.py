@@ -377,6 +377,11 @@ def run(args) -> int:
     return 0
 
 
+# consecutive steps of the margins in units of the tuning's steps, at most: the Ts sweep's
+# continuous run and three sample times at dt/10 and two at dt, the long run of 10 x T
+MARGIN_STEPS = 4 * 10 + 2 + 10
+
+
 def margin_lines(margins, nominal) -> list[str]:
     """The margins in the console's last lines: the largest Ts each gain set tracks, the long
     run's error beside the figure over T and whether the estimates stay bounded."""
@@ -468,6 +473,8 @@ def check_work_of(args, setup, options, cfg) -> None:
         check_work(one, what=f"one {unit} of {what}", fix=fix)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
+    if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
+        after = after + Work(steps=MARGIN_STEPS * steps, member_steps=2 * MARGIN_STEPS * steps)
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
     check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
                limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")
