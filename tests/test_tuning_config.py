@@ -305,6 +305,8 @@ def test_margin_sweep_times_and_failures():
     st = {"sample_times": [1e-3, 2e-3], "tuned_tracks_all": False,
           "tuned": {"sampled": [0.001, None]}}
     long = {"t_final": 200.0, "tuned": {"bounded": False, "diverged": False}}
+    unjudged = {"t_final": 20.0, "tuned": {"bounded": None, "diverged": False}}
+    assert margins.failures({"sample_time": None, "long_run": unjudged}) == []
     assert margins.failures({"sample_time": st, "long_run": long}) == [
         "the tuned gains diverge with the controller sampled at 2 ms",
         "the tuned gains let an adaptive estimate grow over the 200 s run"]

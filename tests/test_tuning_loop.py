@@ -76,14 +76,14 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     assert ("  sample-time margin (0.1 to 2 ms): start gains track up to Ts = 2 ms, tuned gains "
             "up to Ts = 2 ms") in stdout
     assert "  20 s run with noise and a disturbance: L-inf error " in stdout
+    assert "adaptive estimates not judged (a run under 100 s) (tuned gains)" in stdout
     heldout = json.loads((out / "report.json").read_text())["heldout"]
     for tag in ("start", "tuned"):
         h = heldout[tag]
         assert h["n_tracked"] + h["n_refined"] + h["n_diverged"] == h["n"] == 4
         assert f"tracked {heldout['start']['n_tracked']} -> {heldout['tuned']['n_tracked']}" \
             in counts
-    # (a margin may warn: 5 adam steps on k, its estimates still settling over 20 s)
-    assert "WARNING: the tuned gains DIVERGE" not in stderr or heldout["tuned"]["n_diverged"]
+    assert "WARNING" not in stderr or heldout["tuned"]["n_diverged"]
     assert "Plants: tracked " in (out / "report.md").read_text()
 
 

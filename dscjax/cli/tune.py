@@ -407,7 +407,9 @@ def margin_lines(margins, nominal) -> list[str]:
                f"{fig(lr['tuned']['linf_error_window'])} (over T, neither: "
                f"{fig(nominal['start'].get('linf_error_window'))} -> "
                f"{fig(nominal['tuned'].get('linf_error_window'))}); adaptive estimates "
-               + ("bounded" if lr["tuned"]["bounded"] else "NOT bounded") + " (tuned gains)")
+               + {True: "bounded", False: "NOT bounded",
+                  None: "not judged (a run under 100 s)"}[lr["tuned"]["bounded"]]
+               + " (tuned gains)")
     return out
 
 
