@@ -216,8 +216,10 @@ def _per_plant_problem(out):
 
 def _effort_figures(s):
     """(diverged, max|u|, TV(u) = sum |u_(k+1) - u_k|) of `s` over 0.4 s by `simulate`
-    (every step saved) and numpy: the start bounds' independent reference."""
-    traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2, throw=False, refine=0)
+    (every step saved) and numpy in the loop tuned (the controller sampled at 1 ms): the start
+    bounds' independent reference."""
+    traj = dscjax.simulate(s, 0.4, 1e-3, window_start=0.2, throw=False, refine=0,
+                           sample_time=1e-3)
     u = np.asarray(traj.u, np.float64)
     return bool(traj.diverged), np.max(np.abs(u)), np.sum(np.abs(np.diff(u)))
 
@@ -288,7 +290,7 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
         assert sc.tv_max_train[i] == pytest.approx(runs[i][2], rel=1e-9)
     # the plants that did not diverge have bounds of their own, not the nominal ones
     assert abs(sc.u_max_train[1] / sc.u_max - 1) > 1e-3
-    assert abs(sc.tv_max_train[3] / sc.tv_max - 1) > 1e-3
+    assert abs(sc.tv_max_train[3] / sc.tv_max - 1) > 5e-4  # theta_1 0.05: TV(u) 0.1 % lower
     assert any("(1 on which the start gains diverge keep the nominal plant's)" in n
                for n in problem.notes)
 
