@@ -278,12 +278,39 @@ def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
 
 
 def counted_levels(spec: RunSpec) -> int:
-    """The refinement levels up to `spec.refine` whose step count fits `validation.MAX_STEPS`."""
-    refine = spec.refine
+    """The refinement levels up to `spec.refine` whose step count fits `validation.MAX_STEPS`;
+    at most one for a sampled loop (its held input makes the plant non-stiff: a sampled loop
+    that diverges again once refined is unstable, `sampled_unstable`)."""
+    refine = min(spec.refine, SAMPLED_REFINE) if spec.sampled else spec.refine
     while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
                       > validation.MAX_STEPS):
         refine -= 1
     return refine
+
+
+# refinement levels of a sampled loop: one, to tell an unstable loop from a numerical accident
+SAMPLED_REFINE = 1
+
+
+def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
+    """A sampled loop that diverged at its step and again, refined, within one sample period
+    of the same time: the loop (Ts, delay, noise) is unstable, not the integrator."""
+    if not spec.sampled:
+        return False
+    return bool(abs(float(t_first) - float(t_refined)) <= float(spec.sample_time) * (1 + 1e-9))
+
+
+def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
+    """One line naming what makes a sampled loop unstable: its sample time, delay and noise."""
+    what = [f"sample time {spec.sample_time:g} s"]
+    if spec.delay:
+        what.append(f"input delay {spec.delay} sample{'s' if spec.delay > 1 else ''}")
+    if spec.noise is not None and np.any(np.asarray(spec.noise) > 0):
+        what.append("measurement noise std "
+                    + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(spec.noise, float))))
+    return (f"the sampled loop is unstable ({', '.join(what)}): it diverges at t = "
+            f"{float(t_diverged):.6g} s at the plant's step and refined alike, so no smaller "
+            f"step helps; use a shorter sample time, less delay or noise, or revise the gains")
 
 
 def level_spec(spec: RunSpec, j: int) -> RunSpec:
@@ -352,6 +379,7 @@ def simulate(
         concrete = validation.is_concrete(traj.status)
         if not concrete:  # inside jit with concrete inputs
             refuse_traced_refinement(spec, "simulate")
+        t_first = traj.t_diverged
         for j in range(1, counted_levels(spec) + 1):
             if not (concrete and bool(traj.diverged)):
                 break
@@ -361,6 +389,8 @@ def simulate(
         return eqx.error_if(traj, traj.diverged, "simulate: the run diverged (throw=False "
                             "returns it with traj.status)")
     if throw and bool(traj.diverged):
+        if int(traj.refinements) and sampled_unstable(spec, t_first, traj.t_diverged):
+            raise DivergenceError(sampled_unstable_line(spec, traj.t_diverged), traj)
         why = "" if spec.sampled else diagnose(setup, traj)
         raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
     return traj

@@ -256,11 +256,14 @@ def test_a_tuning_run_whose_disk_fills_says_so_in_one_line_and_resumes(tmp_path)
     def kept(out):  # the last checkpoint written whole, part of the way
         assert 1 <= json.loads((out / "checkpoint.json").read_text())["iteration"] < 12
 
-    # the limit: 80 % of the state file of the whole run, which grows by a history row per
-    # generation, so that some generations are saved whole before a write fails
-    ref = tmp_path / "ref"
+    # the limit: half-way between the state file after the first generation and after the
+    # whole run (it grows by a history row per generation), so that some generations are
+    # saved whole before a write fails
+    ref, first = tmp_path / "ref", tmp_path / "first"
     assert main([*argv[:-1], str(ref)]) == 0
-    limit = int(0.8 * (ref / "search.npz").stat().st_size)
+    one = [a if a != "12" else "1" for a in argv[:-1]]
+    assert main([*one, str(first)]) == 0
+    limit = ((ref / "search.npz").stat().st_size + (first / "search.npz").stat().st_size) // 2
     _full_disk_then_resume(argv, out, limit, "search.npz", kept)
     report = json.loads((out / "report.json").read_text())
     assert report["run"]["iterations"] == 12

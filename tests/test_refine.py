@@ -139,3 +139,27 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     warning = report.heldout_warning(summary, problem.cfg)
     assert ("RK4 diverged at dt (the loop stiff there; tracked only once refined) on 1 of 3 "
             "held-out plants (start gains: 0)") in warning and "diverged on" not in warning
+
+
+def test_an_unstable_sampled_loop_is_refined_once_and_named_in_one_line(paper_setup):
+    """A sampled loop that diverges because of its sample time and delay diverges again at
+    the same time once refined: one refinement, then one line naming Ts and the delay (not
+    six refinements and "reduce dt")."""
+    from dscjax.runspec import RunSpec
+    from dscjax.simulate import counted_levels
+
+    spec = RunSpec.make(2.0, 1e-3, sample_time=0.04, delay=2)
+    assert spec.refine > 1 and counted_levels(spec) == 1
+    assert counted_levels(RunSpec.make(2.0, 1e-3)) == spec.refine  # continuous: all of them
+    plain = dscjax.simulate(paper_setup, spec=spec.replace(refine=0), throw=False)
+    assert bool(plain.diverged)
+    with pytest.raises(dscjax.DivergenceError) as err:
+        dscjax.simulate(paper_setup, spec=spec)
+    traj = err.value.trajectory
+    assert int(traj.refinements) == 1
+    # the refined run (ETDRK4 at dt) fails within one sample period of the plain one
+    assert abs(float(traj.t_diverged) - float(plain.t_diverged)) <= 0.04
+    text = str(err.value)
+    assert "\n" not in text and "Reduce dt" not in text
+    assert text.startswith("the sampled loop is unstable (sample time 0.04 s, input delay 2 "
+                           "samples): it diverges at t = ")

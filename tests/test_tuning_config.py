@@ -246,3 +246,70 @@ def test_smooth_linf_is_finite_with_a_large_error_before_the_window():
     assert np.isfinite(float(m["smooth_linf_window"]))
     assert float(m["smooth_linf_window"]) <= float(m["linf_error_window"])
     assert float(m["smooth_linf_window"]) > 0.9 * float(m["linf_error_window"])
+
+
+def test_the_default_tunes_the_loop_sampled_at_tuning_sample_time(setup):
+    """`dscjax tune`'s default objective is the controller sampled every 1 ms (ZOH), its start
+    figures those of `dscjax.simulate` of that loop; the continuous loop stays the config's
+    (gains.json) and becomes the report's check. `--sample-time` tunes its loop as given."""
+    from tuning.runner import build_problem
+
+    options = RunSpec.make(t_final=1.0, window_start=0.5)
+    cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
+    p = build_problem(setup, options, cfg)
+    assert p.objective.sim.sampled and p.objective.sim.sample_time == 1e-3
+    # the second loop: the same, the controller's states by forward Euler
+    second = p.objective.sampled
+    assert second.discretisation == "euler" and second.sample_time == 1e-3
+    assert p.objective.sim.discretisation == "exponential-euler"
+    assert not p.options.sampled and not p.continuous.sampled
+    assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
+    ref = dscjax.simulate(setup, 1.0, 1e-3, window_start=0.5, sample_time=1e-3).metrics
+    assert p.objective.scales.linf == pytest.approx(float(ref["linf_error_window"]), rel=1e-9)
+    assert p.objective.scales.u_max == pytest.approx(float(ref["max_abs_u"]), rel=1e-9)
+    assert any("Ts = 0.001 s" in n and "exponential Euler" in n for n in p.notes)
+    off = build_problem(setup, options, dataclasses.replace(cfg, sample_time=None))
+    assert not off.objective.sim.sampled and off.continuous is None
+    # a loop already sampled (--sample-time 0.002) is tuned as given; tau >= 2 Ts by default
+    given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
+                          dataclasses.replace(cfg, params=("controller.tau",)))
+    assert given.objective.sim.sample_time == 0.002 and given.continuous is None
+    assert given.objective.sampled.discretisation == "exponential-euler"
+    assert any("states advanced by forward Euler" in n for n in given.notes)
+    assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)
+
+
+def test_heldout_box_varies_the_plant_and_the_disturbance(setup):
+    """The held-out batch's default box: alpha, lam, psi -+30 %, g x [1, 1.2] (not below
+    g_min = 1, Assumption 4), theta x [0.7, 1.3], dbar_amp in [0, 0.2]."""
+    from tuning.runner import model_default_ranges
+
+    cfg = model_default_ranges(tuning.TuningConfig(), setup)
+    box = {r.name: r.resolve(setup) for r in cfg.heldout.ranges}
+    assert list(box) == ["hysteresis.alpha", "hysteresis.lam", "hysteresis.psi", "plant.g*",
+                         "plant.theta*", "plant.dbar_amp"]
+    assert (box["hysteresis.alpha"].low, box["hysteresis.alpha"].high) == pytest.approx(
+        (0.7, 1.3))
+    assert (box["plant.g*"].low, box["plant.g*"].high) == (1.0, 1.2)
+    assert (box["plant.theta*"].low, box["plant.theta*"].high) == (0.7, 1.3)
+    assert (box["plant.dbar_amp"].low, box["plant.dbar_amp"].high) == (0.0, 0.2)
+    assert [r.name for r in cfg.robust.ranges] == ["hysteresis.alpha", "hysteresis.lam",
+                                                    "hysteresis.psi"]  # training: as before
+
+
+def test_margin_sweep_times_and_failures():
+    from tuning import margins
+
+    assert margins.sweep_times(1e-3) == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3]
+    assert margins.sweep_times(2e-3) == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 4e-3]
+    st = {"sample_times": [1e-3, 2e-3], "tuned_tracks_all": False,
+          "tuned": {"sampled": [0.001, None]}}
+    long = {"t_final": 200.0, "tuned": {"bounded": False, "diverged": False}}
+    unjudged = {"t_final": 20.0, "tuned": {"bounded": None, "diverged": False}}
+    assert margins.failures({"sample_time": None, "long_run": unjudged}) == []
+    assert margins.failures({"sample_time": st, "long_run": long}) == [
+        "the tuned gains diverge with the controller sampled at 2 ms",
+        "the tuned gains let an adaptive estimate grow over the 200 s run"]
+    ok = {"sample_time": st | {"tuned_tracks_all": True},
+          "long_run": {"tuned": {"bounded": True}}}
+    assert margins.failures(ok) == []

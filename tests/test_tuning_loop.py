@@ -39,7 +39,8 @@ batch = 4
 """
 
 FILES = ("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
-         "before_after.png", "heldout.png", "search.npz", "checkpoint.json", "best.json")
+         "before_after.png", "heldout.png", "sampling.png", "search.npz", "checkpoint.json",
+         "best.json")
 
 
 @pytest.fixture(scope="module")
@@ -67,8 +68,15 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     outcomes = (r"tracked \d -> \d; tracked after refinement \(a numerically stiff run re-done "
                 r"with ETDRK4 at a smaller step\) \d -> \d; diverged at every step tried "
                 r"\d -> \d")
+    # the loop tuned is the one sampled at 1 ms; the second, its states by forward Euler
     assert re.fullmatch(rf"  held-out batch \(4 plants, start -> tuned gains\): {outcomes}\. "
-                        rf"With the controller sampled at 0\.001 s: {outcomes}", counts), counts
+                        rf"With the states by forward Euler: {outcomes}", counts), counts
+    assert "the sampled loop (Ts=0.001 s, ZOH, exponential Euler, delay 0, no noise)" in stderr
+    # the paper's gains track up to 20 ms (fig_sampling): so at every Ts of the margin
+    assert ("  sample-time margin (0.1 to 2 ms): start gains track up to Ts = 2 ms, tuned gains "
+            "up to Ts = 2 ms") in stdout
+    assert "  20 s run with noise and a disturbance: L-inf error " in stdout
+    assert "adaptive estimates not judged (a run under 100 s) (tuned gains)" in stdout
     heldout = json.loads((out / "report.json").read_text())["heldout"]
     for tag in ("start", "tuned"):
         h = heldout[tag]
@@ -94,10 +102,36 @@ def test_short_run_lowers_the_objective_and_writes_every_file(cli_run):
     assert "## Held-out batch: 4 plants" in (out / "report.md").read_text()
 
 
+def test_report_states_the_loop_and_its_margins(cli_run, paper_setup):
+    """The margins beside the held-out check: the Ts sweep (0.1 ms to 2 x 1 ms) whose start
+    gains at 1 ms are the loop tuned (the nominal start figure), the continuous check (as
+    `dscjax.simulate` gives it), the 10 x T run with noise and a disturbance."""
+    _, out, _ = cli_run
+    rep = json.loads((out / "report.json").read_text())
+    st = rep["margins"]["sample_time"]
+    assert st["sample_times"] == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3]
+    assert st["start"]["sampled"][3] == pytest.approx(
+        rep["nominal"]["start"]["linf_error_window"], rel=1e-9)
+    cont = dscjax.simulate(paper_setup, 2.0, 1e-3).metrics["linf_error_window"]
+    assert rep["margins"]["continuous"]["start"]["linf_error_window"] == pytest.approx(
+        float(cont), rel=1e-9)
+    long = rep["margins"]["long_run"]
+    assert long["t_final"] == 20.0 and long["noise"] == 1e-4
+    assert set(long["start"]["estimates"]) == {"theta_hat", "phi_hat", "zeta_hat", "d_hat"}
+    md = (out / "report.md").read_text()
+    assert ("Loop tuned: the controller sampled every Ts = 0.001 s with a zero-order hold, its "
+            "states advanced by exponential Euler") in md
+    assert "**Sample time.**" in md and "**Long run.** 20 s" in md
+    assert "sampling.png" in rep["figures"] and (out / "sampling.png").stat().st_size > 0
+    assert rep["heldout_box"][3:] == ["plant.g*=1:1.2", "plant.theta*=0.7:1.3",
+                                      "plant.dbar_amp=0:0.2"]
+
+
 def test_gains_json_loads_back_into_simulate(cli_run, tmp_path):
     _, out, _ = cli_run
-    code = main(["simulate", "--config", str(out / "gains.json"), "--out", str(tmp_path),
-                 "--no-plot"])
+    # gains.json keeps the continuous [simulation]; the loop tuned is sampled at 1 ms
+    code = main(["simulate", "--config", str(out / "gains.json"), "--sample-time", "0.001",
+                 "--out", str(tmp_path), "--no-plot"])
     assert code == 0
     metrics = json.loads((tmp_path / "metrics.json").read_text())
     report = json.loads((out / "report.json").read_text())

@@ -5,7 +5,9 @@ over a batch of plants (mean, CVaR at level a: the mean of the worst ceil(a B), 
     J = w_linf Linf~(e on W)/(start) + w_l2 L2(e on W)/(start) + w_effort_l2 L2(u)/(start)
       + w_effort_max max~|u|/(start) + w_effort_tv TV(u)/(start)
       + w_u relu(max~|u|/u_max - 1)^2 + w_tv relu(TV(u)/tv_max - 1)^2 + requirement penalties
-      + w_sampled relu(Linf~ sampled/(sampled_factor Linf~) - 1)^2
+      + w_sampled relu(Linf~ second/(sampled_factor Linf~) - 1)^2
+    (with a second loop, `dscjax tune`'s other discretisation, w_u and w_tv also penalise its
+    max~|u| and TV(u) against the same bounds)
     J = divergence_penalty if the trajectory diverged (finite, no NaN)
 
 Linf~ = (1/s) log((1/|W|) integral_W exp(s |e|) dt) and max~|u| = (1/r) log(sum_k exp(r |u_k|))
@@ -142,12 +144,15 @@ class ObjectiveSpec:
     tv_max: float | str | None = "start"
     tv_max_factor: float = 1.5
     tv_max_weight: float = 100.0
-    # tuning.sample_time: the sampled loop's windowed L-inf <= sampled_factor x the continuous
+    # the second loop (`dscjax tune`: the sampled controller by the other discretisation):
+    # its windowed L-inf <= sampled_factor x the first's, and the effort bounds; weight 0: none
     sampled_factor: float = 2.0
     sampled_weight: float = 100.0
     # the "start" bounds measured on the nominal plant, or on each training plant its own
     effort_bounds: str = "nominal"
-    sharpness: float = 50.0
+    # s x Linf(start): large, so that Linf~ stays close to the max where the tuned error is
+    # 20-50 times the start's (at 50 it was nearly the mean there, and the max lagged)
+    sharpness: float = 1000.0
     u_sharpness: float = 300.0
     divergence_penalty: float = 1000.0
     window_start: float | None = None
@@ -235,12 +240,16 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
         terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
     if spec.effort_tv:
         terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
+    # the effort bounds hold in the second loop too, where there is one
+    second = "sampled_" if SAMPLED in metrics and spec.sampled_weight else None
     if u_bound is not None and spec.u_max_weight:
-        terms["u_bound"] = spec.u_max_weight * jnp.maximum(
-            metrics["smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
+        terms["u_bound"] = spec.u_max_weight * sum(jnp.maximum(
+            metrics[f"{p}smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
+            for p in ("", second) if p is not None)
     if tv_bound is not None and spec.tv_max_weight:
-        terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
-            metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
+        terms["tv_bound"] = spec.tv_max_weight * sum(jnp.maximum(
+            metrics[f"{p}tv_u"] / tv_bound - 1.0, 0.0) ** 2 for p in ("", second)
+            if p is not None)
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     if SAMPLED in metrics and spec.sampled_weight:
@@ -257,13 +266,15 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
 def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
                     n_requirements: int, spec: ObjectiveSpec) -> jax.Array:
     """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
-    the sampled loop's constraint met."""
+    the second loop's constraint (its L-inf and effort bounds) met."""
     ok = ~diverged & within_bounds(metrics, bounds)
     for i in range(n_requirements):
         ok = ok & (metrics[f"req{i}_met"] > 0)
     if SAMPLED in metrics:
         ok = ok & ~metrics["sampled_diverged"] & within(
             metrics["sampled_linf_window"], spec.sampled_factor * metrics["linf_error_window"])
+        ok = ok & within_bounds({"max_abs_u": metrics["sampled_max_abs_u"],
+                                 "tv_u": metrics["sampled_tv_u"]}, bounds)
     return ok
 
 
@@ -273,17 +284,21 @@ SAMPLED = "sampled_smooth_linf_window"
 def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
                  ) -> tuple[dict, jax.Array]:
     """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`);
-    with `objective.sampled`, also that loop's sampled_linf_window, sampled_smooth_linf_window
-    (`SAMPLED`) and sampled_diverged. Traceable."""
+    with a second loop `objective.sampled`, also its sampled_linf_window,
+    sampled_smooth_linf_window (`SAMPLED`), sampled_diverged, sampled_max_abs_u,
+    sampled_smooth_max_abs_u and sampled_tv_u. Traceable."""
     m, div = simulate_metrics(setup, objective.sim, objective.extra(), overrides,
                               checkpoint_every)
     if objective.sampled is not None:
         e = objective.extra()
-        smooth = SmoothLinf(e.window_start, e.e_sharpness, objective.sampled.n_steps)
+        smooth = TuningMetrics(e.window_start, e.e_sharpness, e.u_sharpness,
+                               n_steps=objective.sampled.n_steps)
         ms, div_s = simulate_metrics(setup, objective.sampled, smooth, overrides,
                                      checkpoint_every)
         m = m | {"sampled_linf_window": ms["linf_error_window"],
-                 SAMPLED: ms["smooth_linf_window"], "sampled_diverged": div_s}
+                 SAMPLED: ms["smooth_linf_window"], "sampled_diverged": div_s,
+                 "sampled_max_abs_u": ms["max_abs_u"], "sampled_tv_u": ms["tv_u"],
+                 "sampled_smooth_max_abs_u": ms["smooth_max_abs_u"]}
     return m, div
 
 

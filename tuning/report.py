@@ -14,15 +14,18 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
+from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
+from tuning import margins
 from tuning.objective import within
+from tuning.runner import discretisation, loop_words
 
 STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
                  "sampled_linf_window")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
-          "sampled_linf_window": "L-inf error on [t0, T], controller sampled",
+          "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
           "max_abs_u": "max |u|", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
           "tv_u": "total variation of u", "loss": "objective J"}
 
@@ -147,12 +150,14 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
 
 
 def _checks(bounds, m, sampled) -> list[tuple]:
-    """(name, metric, bound) of each bound (max|u|, TV(u), the sampled loop's) there is."""
+    """(name, metric, bound) of each bound (max|u|, TV(u), the second loop's) there is."""
     checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
     if sampled is not None:
-        ts, factor = sampled
-        checks.append((f"L-inf on [t0,T] sampled at {ts:g} s", "sampled_linf_window",
+        label, factor = sampled
+        checks.append((f"L-inf on [t0,T], {label}", "sampled_linf_window",
                        factor * np.asarray(m["linf_error_window"], float)))
+        checks += [(f"{name}, {label}", f"sampled_{key}", bound) for name, key, bound in
+                   zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True)]
     return [c for c in checks if c[2] is not None]
 
 
@@ -238,8 +243,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
         "constraints": {tag: constraint_checks(sc, ev["nominal"][tag], sampled)
                         for tag in ("start", "tuned")},
-        "sample_time": (None if problem.objective.sampled is None
-                        else problem.objective.sampled.sample_time),
+        "sample_time": problem.objective.sim.sample_time,
+        "second_loop": second_label(problem),
         "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
                          for tag in ("start", "tuned")},
         "run": {
@@ -267,9 +272,21 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
+    summary["loop"] = loop_words(problem.objective.sim)
+    summary["heldout_box"] = ([r.resolve(problem.setup).spec() for r in problem.cfg.heldout.ranges]
+                              if problem.heldout else None)
+    # the margins come with the held-out check (`--heldout 0` skips both)
+    summary["margins"] = margins.evaluate(problem, z0, z1) if problem.heldout else None
+    summary["margins_warning"] = (None if summary["margins"] is None else
+                                  "; ".join(margins.failures(summary["margins"])) or None)
     out = Path(out)
     figures = (_plots(out, result, ev, trajectories(problem, z0, z1), problem.objective.sim,
                       problem) if plots else [])
+    st = (summary["margins"] or {}).get("sample_time")
+    if plots and st is not None:
+        sampling.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
+                      labels={"start": "start gains", "tuned": "tuned gains"})
+        figures.append("sampling.png")
     summary["figures"] = figures
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
@@ -279,10 +296,17 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
 
 
 def _sampled(problem):
-    """(Ts, factor) of the deployable constraint, or None."""
+    """(label, factor) of the second loop's constraint, or None."""
     if problem.objective.sampled is None:
         return None
-    return problem.objective.sampled.sample_time, problem.cfg.objective.sampled_factor
+    return second_label(problem), problem.cfg.objective.sampled_factor
+
+
+def second_label(problem) -> str | None:
+    """The second loop in words ("the states by forward Euler"), None without one."""
+    if problem.objective.sampled is None:
+        return None
+    return f"the states by {discretisation(problem.objective.sampled)}"
 
 
 def _bounds_train(sc) -> dict[str, Any] | None:
@@ -304,8 +328,7 @@ def heldout_warning(summary: dict, cfg) -> str | None:
             "RK4 diverged at dt (the loop stiff there; tracked only once refined)":
             (h["tuned"]["n_refined"], h["start"]["n_refined"])}
     if "sampled" in h["tuned"]:
-        lost["diverged with the controller sampled at "
-             f"{summary['sample_time']:g} s"] = (h["tuned"]["sampled"]["n_diverged"],
+        lost[f"diverged with {summary['second_loop']}"] = (h["tuned"]["sampled"]["n_diverged"],
                                                  h["start"]["sampled"]["n_diverged"])
     lost = {how: kk for how, kk in lost.items() if kk[0]}
     if not lost:
@@ -340,7 +363,7 @@ def heldout_counts(summary: dict) -> str | None:
 
     text = f"held-out batch ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
     if "sampled" in b:
-        text += (f". With the controller sampled at {summary['sample_time']:g} s: "
+        text += (f". With {summary['second_loop']}: "
                  f"{counts(a['sampled'], b['sampled'])}")
     return text
 
@@ -391,11 +414,14 @@ def _markdown(s: dict, problem, figures) -> str:
     lines = ["# dscjax tune: report", ""]
     if s.get("heldout_warning"):
         lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
+    if s.get("margins_warning"):
+        lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
+        f"Loop tuned: {s['loop']}.",
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
         f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
         "Objective per plant: " + ", ".join(
@@ -435,7 +461,8 @@ def _markdown(s: dict, problem, figures) -> str:
         if key in nom["start"]:
             a, b = nom["start"][key], nom["tuned"][key]
             lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
-    for key, label in (("diverged", "diverged"), ("sampled_diverged", "diverged, sampled")):
+    for key, label in (("diverged", "diverged"),
+                       ("sampled_diverged", "diverged, the other discretisation")):
         if key in nom["start"]:
             lines.append(f"| {label} | {bool(nom['start'][key])} | {bool(nom['tuned'][key])} "
                          f"| |")
@@ -468,6 +495,10 @@ def _markdown(s: dict, problem, figures) -> str:
             lines.append(f"| {_md(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
                          f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
                          f"{margin} |")
+    if s.get("margins"):
+        short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
+        lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
+                                                 for k, v in short.items()})
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
                   "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]
@@ -499,7 +530,7 @@ def _markdown(s: dict, problem, figures) -> str:
                   f"{st['n_diverged']} and {tu['n_diverged']}."]
         if "sampled" in tu:
             a, c = st["sampled"], tu["sampled"]
-            lines.append(f"With the controller sampled at {s['sample_time']:g} s: tracked "
+            lines.append(f"With {s['second_loop']}: tracked "
                          f"{a['n_tracked']} and {c['n_tracked']}; tracked after refinement "
                          f"{a['n_refined']} and {c['n_refined']}; diverged {a['n_diverged']} "
                          f"and {c['n_diverged']}.")

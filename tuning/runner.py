@@ -56,6 +56,8 @@ class Problem:
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
+    # the continuous loop, a check in the report (None: tuned as given, `--sample-time`)
+    continuous: RunSpec | None = None
 
     @property
     def n_train(self) -> int:
@@ -105,13 +107,36 @@ def default_freeze(setup, tune) -> tuple[str, ...]:
     return ()
 
 
+# the held-out batch's default box beyond the hysteresis: the plant's g and theta (one factor
+# scaling each vector: g within -+20 %, but not below the controller's g_min, Assumption 4)
+# and the amplitude of a disturbance dbar_amp sin(dbar_freq t)
+HELDOUT_PLANT = (("plant.g*", (0.8, 1.2)), ("plant.theta*", (0.7, 1.3)),
+                 ("plant.dbar_amp", (0.0, 0.2)))
+
+
+def heldout_ranges(setup) -> tuple:
+    """The held-out batch's default box: the hysteresis model's numbers (`default_ranges`)
+    and, where the plant has them, `HELDOUT_PLANT`."""
+    out = []
+    for path, (low, high) in HELDOUT_PLANT:
+        name = path.split(".")[1].rstrip("*")
+        if not hasattr(setup.plant, name):
+            continue
+        g_min = getattr(setup.controller, "g_min", None)
+        if name == "g" and g_min is not None:
+            low = max(low, float(np.max(g_min)) / float(np.min(np.abs(setup.plant.g))))
+        out.append(params.Range(params.Param.parse(path), low=low, high=max(high, low)))
+    return default_ranges(setup) + tuple(out)
+
+
 def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
-    """Batches left at the default ranges vary the setup's own hysteresis model's numbers."""
+    """Batches left at the default ranges vary the setup's own hysteresis model's numbers;
+    the held-out batch also the plant (`heldout_ranges`)."""
     for key in ("robust", "heldout"):
         b = getattr(cfg, key)
         if b.ranges == default_ranges():
-            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(
-                b, ranges=default_ranges(setup))})
+            ranges = heldout_ranges(setup) if key == "heldout" else default_ranges(setup)
+            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(b, ranges=ranges)})
     return cfg
 
 
@@ -124,7 +149,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     setting is validated, before anything runs or compiles (the start scales run the loop):
     the command prepares its --out there."""
     parts = _parts(setup, options, cfg, extra_plants)
-    cfg, notes, selection, mode, sim, sampled, train, heldout = parts
+    cfg, notes, selection, mode, sim, second, train, heldout, continuous = parts
     if ready is not None:
         ready()
     notes = list(notes)
@@ -136,27 +161,31 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                      f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
                      + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
-    if sampled is not None:
-        ts, step = cfg.sample_time, float(sampled.dt)
-        finer = step < float(sim.dt) * (1 - 1e-12)
-        notes.append(f"deployable: the controller sampled every {ts:g} s (zero-order hold) "
-                     f"keeps each plant's windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x the continuous loop's"
-                     + (f" (the plant at dt = {step:g} s there)" if finer else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level, sampled=sampled)
+                          cvar_level=cfg.robust.cvar_level, sampled=second)
+    notes.append(f"the loop tuned: {loop_words(sim)}")
+    if second is not None:
+        notes.append(f"the same loop with its states by {discretisation(second)} keeps the "
+                     f"effort bounds and its windowed L-inf within "
+                     f"{cfg.objective.sampled_factor:g} x (tuning.objective.sampled_weight "
+                     f"= 0: unchecked)")
+    if continuous is not None:
+        notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
+                     f"where stiff) is a check in the report, not part of the objective")
     return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
                    objective=objective, heldout=heldout, mode=mode,
-                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants)
+                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants,
+                   continuous=continuous)
 
 
 def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None
              ) -> dict:
     """`build_problem(...).describe()` without building the objective (nothing is run): what
     a resumed run is checked against before it starts."""
-    cfg, _, selection, mode, sim, sampled, _, _ = _parts(setup, options, cfg, extra_plants)
+    cfg, _, selection, mode, sim, sampled, _, _, _ = _parts(setup, options, cfg,
+                                                             extra_plants)
     return _description(setup, options, cfg, selection, sim, sampled, mode, extra_plants)
 
 
@@ -174,14 +203,21 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None):
     """The validated settings of `build_problem` before the start gains are evaluated:
-    (cfg, notes, selection, mode, sim, sampled, train, heldout)."""
+    (cfg, notes, selection, mode, sim, second, train, heldout, continuous): `second` the
+    tuned loop with the other discretisation (or None), `continuous` the check loop."""
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
     window = float(options.window_start) if window is None else window
-    check(setup, options)
+    # the default: the controller sampled at tuning.sample_time is the loop tuned; the
+    # continuous one (the config's [simulation], which gains.json keeps) becomes a check
+    loop = deployed(options, cfg.sample_time)
+    continuous = None if loop is options else options.replace(
+        save_every=options.n_steps, window_start=float(window),
+        names={"window_start": "tuning.objective.window_start"})
+    check(setup, loop)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
@@ -189,10 +225,15 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     bounds = dict(cfg.bounds)
     if "controller.tau" in cfg.params and not any(k.startswith("controller.tau")
                                                    for k in bounds):
-        dt = float(options.dt)
+        # RK4 at dt in the continuous loop; forward Euler at Ts in a sampled one (an
+        # embedded controller may advance its filters so: stable for Ts/tau < 2)
+        dt, what = float(options.dt), "dt"
+        if loop.sampled and loop.sample_time > dt:
+            dt, what = loop.sample_time, "Ts"
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
-        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} dt = {TAU_MIN_STEPS * dt:g} "
-                     f"s by default (RK4 stability of the filters)")
+        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
+                     f"s by default (the filters stable with RK4 at dt and forward Euler "
+                     f"at Ts)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
@@ -200,22 +241,56 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
                            (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra,
                            cfg.robust.aggregate, cfg.robust.cvar_level)
     ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
-    sim = options.replace(save_every=options.n_steps, window_start=float(window),
-                          names={"window_start": "tuning.objective.window_start"})
+    sim = loop.replace(save_every=loop.n_steps, window_start=float(window),
+                       names={"window_start": "tuning.objective.window_start"})
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=ce))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
-    sampled = None
-    if cfg.sample_time is not None and not options.sampled:
-        # the plant's step in that loop: dt, or the largest step below it dividing Ts
-        ts, dt = cfg.sample_time, float(sim.dt)
-        step = step_for(ts, dt)
-        finer = step < dt * (1 - 1e-12)
-        sampled = sim.replace(sample_time=ts, **({"dt": step} if finer else {}),
-                              names={"sample_time": "tuning.sample_time"})
-    return cfg, tuple(notes), selection, mode, sim, sampled, train, heldout
+    second = None
+    if sim.sampled and cfg.objective.sampled_weight:
+        # an embedded engineer may advance the controller's states either way: the gains
+        # must not depend on it
+        second = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
+    return cfg, tuple(notes), selection, mode, sim, second, train, heldout, continuous
+
+
+# the second loop's discretisation: the one the loop tuned does not use
+OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
+
+
+def deployed(options: RunSpec, sample_time: float | None) -> RunSpec:
+    """The loop `dscjax tune` optimises: `options` as given where they sample the controller
+    already (`--sample-time`) or `sample_time` is None, else the controller sampled every
+    `sample_time` (ZOH), the plant at dt or the largest step below it dividing Ts."""
+    if sample_time is None or options.sampled:
+        return options
+    dt = float(options.dt)
+    step = step_for(sample_time, dt)
+    finer = step < dt * (1 - 1e-12)
+    return options.replace(sample_time=sample_time, **({"dt": step} if finer else {}),
+                           names={"sample_time": "tuning.sample_time"})
+
+
+def loop_words(sim: RunSpec) -> str:
+    """The loop of a RunSpec in words: continuous, or sampled (Ts, ZOH, discretisation of the
+    controller's states, the plant's step, delay and noise)."""
+    if not sim.sampled:
+        return f"the continuous loop (RK4 at dt = {float(sim.dt):g} s)"
+    noise = ("no measurement noise" if sim.noise is None else "measurement noise std "
+             + ", ".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float)))
+             + f" (seed {int(sim.noise_seed)})")
+    return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
+            f"its states advanced by {discretisation(sim)}, the plant by RK4 at dt = "
+            f"{float(sim.dt):g} s; input delay {sim.delay} sample(s); {noise}")
+
+
+def discretisation(sim: RunSpec) -> str:
+    """How a sampled loop advances the controller's states (`simulation.discretisation` where
+    the RunSpec has it)."""
+    name = getattr(sim, "discretisation", "exponential-euler")
+    return {"exponential-euler": "exponential Euler", "euler": "forward Euler"}.get(name, name)
 
 
 def join_plants(setup, first: dict | None, then: dict) -> dict:

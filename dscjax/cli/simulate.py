@@ -161,7 +161,8 @@ def run(args) -> int:
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
-    if int(traj.refinements):
+    if int(traj.refinements) and not (options.sampled and diverged is not None):
+        # (a sampled loop refined and still diverged: the error's line says why)
         used, _ = refinement_level(int(traj.refinements), options.solver.name)
         what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
                 if diverged is not None else

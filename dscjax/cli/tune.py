@@ -13,8 +13,8 @@ from pathlib import Path
 from dscjax.cli.common import Outputs
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
-                   "before_after.png", "heldout.png", "checkpoint.npz", "search.npz",
-                   "checkpoint.json", "best.json", "adversarial.json"),
+                   "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
+                   "search.npz", "checkpoint.json", "best.json", "adversarial.json"),
                   folders=("round_*", "fresh_*"))
 
 
@@ -281,7 +281,8 @@ def run(args) -> int:
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-          f"{how}; T={options.t_final:g} s, dt={options.dt:g} s, window "
+          f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
+          f"dt={options.dt:g} s, window "
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
           + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
              if cfg.robust.batch else "nominal plant")
@@ -391,17 +392,72 @@ def run(args) -> int:
                   f"{b['p95']:.4g}")
         if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
             a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
-            print(f"  held-out L-inf error on the window with the controller sampled at "
-                  f"{summary['sample_time']:g} s: median {a['median']:.4g} -> "
+            print(f"  held-out L-inf error on the window with "
+                  f"{summary['second_loop']}: median {a['median']:.4g} -> "
                   f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
+    for line in margin_lines(summary.get("margins"), summary["nominal"]):
+        print(f"  {line}")
+    if summary.get("margins_warning"):
+        print(f"dscjax tune: WARNING: a margin fails: {summary['margins_warning']}",
+              file=sys.stderr)
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
              if outcome is not None else "history.csv, ") + "report.md, report.json"
           + "".join(f", {f}" for f in summary["figures"])
           + f" ({time.perf_counter() - t_start:.1f} s in all)")
     return 0
+
+
+# consecutive steps of the margins in units of the tuning's steps, at most: the Ts sweep's
+# continuous run and three sample times at dt/10 and two at dt, the long run of 10 x T
+MARGIN_STEPS = 4 * 10 + 2 + 10
+
+
+def margin_lines(margins, nominal) -> list[str]:
+    """The margins in the console's last lines: the largest Ts each gain set tracks, the long
+    run's error beside the figure over T and whether the estimates stay bounded."""
+    if not margins:
+        return []
+    out = []
+    st = margins.get("sample_time")
+    if st is not None:
+        def upto(tag):
+            last = st["largest"][tag]
+            return f"up to Ts = {1e3 * last[0]:g} ms" if last else "at no Ts"
+
+        out.append(f"sample-time margin ({1e3 * st['sample_times'][0]:g} to "
+                   f"{1e3 * st['sample_times'][-1]:g} ms): start gains track {upto('start')}, "
+                   f"tuned gains {upto('tuned')}")
+    lr = margins["long_run"]
+
+    def fig(v):
+        return "diverged" if v is None else f"{v:.4g}"
+
+    out.append(f"{lr['t_final']:g} s run with noise and a disturbance: L-inf error "
+               f"{fig(lr['start']['linf_error_window'])} -> "
+               f"{fig(lr['tuned']['linf_error_window'])} (over T, neither: "
+               f"{fig(nominal['start'].get('linf_error_window'))} -> "
+               f"{fig(nominal['tuned'].get('linf_error_window'))}); adaptive estimates "
+               + {True: "bounded", False: "NOT bounded",
+                  None: "not judged (a run under 100 s)"}[lr["tuned"]["bounded"]]
+               + " (tuned gains)")
+    return out
+
+
+def loop_banner(sim) -> str:
+    """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
+    import numpy as np
+
+    from tuning.runner import discretisation
+
+    if not sim.sampled:
+        return "the continuous loop"
+    noise = ("no noise" if sim.noise is None else "noise std "
+             + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float))))
+    return (f"the sampled loop (Ts={sim.sample_time:g} s, ZOH, {discretisation(sim)}, delay "
+            f"{sim.delay}, {noise})")
 
 
 def _count(n: int, unit: str) -> str:
@@ -452,6 +508,8 @@ def check_work_of(args, setup, options, cfg) -> None:
         check_work(one, what=f"one {unit} of {what}", fix=fix)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
+    if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
+        after = after + Work(steps=MARGIN_STEPS * steps, member_steps=2 * MARGIN_STEPS * steps)
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
     check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
                limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")

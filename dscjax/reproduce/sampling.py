@@ -1,7 +1,8 @@
 """How slowly the controller may be sampled: the paper's gains and `dscjax tune`'s default
 gains with the controller sampled at Ts (a zero-order hold on u), windowed L-inf against Ts,
 the continuous loop as the Ts -> 0 line; and the order at which the sampled loop tends to the
-continuous one (fitted on max |y_Ts - y| over t >= 1 s).
+continuous one (fitted on max |y_Ts - y| over t >= 1 s). `study`, `largest_tracking`, `plot`
+and `markdown` take any named gain sets (`dscjax tune`'s report draws start against tuned).
 
 `TUNED` is the controller of one `dscjax tune` run with its defaults (`tuning.sample_time`
 1 ms, seed 0, 100 s; its figures are in docs/benchmarks.md)."""
@@ -65,20 +66,28 @@ def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPL
 
 
 def study(setup, t_final: float, dt: float, window_start: float = 1.0,
-          sample_times: Sequence[float] = SAMPLE_TIMES) -> dict:
-    """Windowed L-inf of both gain sets (`GAINS`), continuous (RK4 at the finest plant step of
+          sample_times: Sequence[float] = SAMPLE_TIMES, gains: dict | None = None,
+          names: Sequence[str] = GAINS, base: RunSpec | None = None) -> dict:
+    """Windowed L-inf of each gain set (`names`; `gains` {path: (len(names), ...)}, default
+    `gain_sets`: the paper's and `TUNED`), continuous (RK4 at the finest plant step of
     `plant_steps`: the Ts -> 0 limit, which RK4 at dt may miss for stiff gains) and sampled at
-    each Ts, None where a run diverged; and the order at which y_Ts tends to y (the
-    paper's gains: max |y_Ts - y| on t >= window_start over the sample times <= dt, the
-    outputs compared every dt)."""
-    ov = gain_sets(setup)
+    each Ts, None where a run diverged; and the order at which y_Ts tends to y (the first gain
+    set: max |y_Ts - y| on t >= window_start over the sample times <= dt, the outputs compared
+    every dt; None with fewer than two). `base`: a sampled loop whose other settings
+    (discretisation, delay, noise) the sampled runs keep."""
+    ov = gain_sets(setup) if gains is None else gains
     # no refinement: a sampled loop that diverges does so at any plant step
     spec = RunSpec.make(t_final, dt, window_start=window_start, refine=0)
+    if base is not None:
+        spec = base.replace(t_final=t_final, dt=dt, window_start=window_start, refine=0,
+                            save_every=1, sample_time="none", delay=0, noise=None)
+    keep = {} if base is None or not base.sampled else {"delay": base.delay,
+                                                         "noise": base.to_table()["noise"]}
     sample_times = [ts for ts in sample_times if ts <= t_final]
 
     def run(ts=None, h=dt):
         sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
-                          **({} if ts is None else {"sample_time": ts}))
+                          **({} if ts is None else {"sample_time": ts} | keep))
         tr = simulate_batch(setup, ov, spec=sp)
         m = [None if d else float(v) for d, v in zip(np.asarray(tr.diverged),
                                                       np.asarray(tr.metrics["linf_error_window"]),
@@ -88,39 +97,53 @@ def study(setup, t_final: float, dt: float, window_start: float = 1.0,
     steps = plant_steps(sample_times, dt)
     cont, y = run(h=min(steps, default=dt))
     sampled = [run(ts, h) for ts, h in zip(sample_times, steps, strict=True)]
-    out = {"sample_times": list(sample_times), "window_start": window_start}
-    for i, name in enumerate(GAINS):
+    out = {"sample_times": list(sample_times), "window_start": window_start,
+           "names": list(names)}
+    for i, name in enumerate(names):
         out[name] = {"continuous": cont[i], "sampled": [m[i] for m, _ in sampled]}
     keep = np.arange(y.size) * dt >= window_start
     fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
             zip(sample_times, sampled, strict=True) if ts <= dt * (1 + 1e-9)]
+    if len(fine) < 2 or not all(np.isfinite(e) and e > 0 for _, e in fine):
+        out["order"] = None
+        return out
     ts, err = np.asarray(fine).T
     out["order"] = {"sample_times": ts.tolist(), "max_abs_dy": err.tolist(),
                     "order": float(np.polyfit(np.log(ts), np.log(err), 1)[0])}
     return out
 
 
+def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
+    """(Ts, windowed L-inf) at the largest Ts of the study at which gain set `name` still
+    tracks (None: it diverges at every Ts)."""
+    ok = [(ts, v) for ts, v in zip(result["sample_times"], result[name]["sampled"],
+                                   strict=True) if v is not None]
+    return ok[-1] if ok else None
+
+
 def line(result: dict) -> str:
     """One line for stdout: the windowed L-inf of both gain sets at the largest Ts each tracks
     and the fitted order."""
     def last(name):
-        ok = [(ts, v) for ts, v in zip(result["sample_times"], result[name]["sampled"],
-                                       strict=True) if v is not None]
-        return (f"{name} gains track up to Ts = {1e3 * ok[-1][0]:g} ms (L-inf {ok[-1][1]:.3g})"
+        ok = largest_tracking(result, name)
+        return (f"{name} gains track up to Ts = {1e3 * ok[0]:g} ms (L-inf {ok[1]:.3g})"
                 if ok else f"{name} gains diverge at every Ts")
 
     return (f"sampled controller: {last('paper')}; {last('tuned')}; the sampled loop tends to "
             f"the continuous one at order {result['order']['order']:.2f} in Ts")
 
 
-def plot(result: dict, path, colors: dict, dpi: int) -> None:
+LABELS = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}
+
+
+def plot(result: dict, path, colors: dict, dpi: int, labels: dict | None = None) -> None:
     fig, ax = subplots(figsize=(6.4, 4.0), layout="constrained")
     ts_ms = 1e3 * np.asarray(result["sample_times"])
-    for name in GAINS:
+    for name in result.get("names", GAINS):
         r, c = result[name], colors[name]
         ok = np.array([v is not None for v in r["sampled"]])
         v = np.array([np.nan if x is None else x for x in r["sampled"]])
-        label = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}[name]
+        label = (labels or LABELS)[name]
         ax.plot(ts_ms[ok], v[ok], "o-", color=c, label=f"{label}, sampled")
         if r["continuous"] is not None:
             ax.axhline(r["continuous"], color=c, ls="--", lw=1,
@@ -132,27 +155,36 @@ def plot(result: dict, path, colors: dict, dpi: int) -> None:
     ax.set_yscale("log")
     ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
     ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
-    ax.set_title(f"Sampled controller (fitted order {result['order']['order']:.2f} in Ts)")
+    order = result["order"]
+    ax.set_title("Sampled controller" + ("" if order is None else
+                                         f" (fitted order {order['order']:.2f} in Ts)"))
     ax.legend(fontsize=8)
     files.save_figure(fig, path, dpi=dpi)
 
 
 def markdown(result: dict) -> str:
-    lines = ["## The controller sampled at Ts (zero-order hold)", "",
-             "| Ts [ms] | " + " | ".join(f"{n}: L∞ e after {result['window_start']:g} s"
-                                       for n in GAINS) + " |", "|---|---|---|"]
-
-    def cell(v):
-        return "diverged" if v is None else f"{v:.4g}"
-
-    for i, ts in enumerate(result["sample_times"]):
-        lines.append(f"| {1e3 * ts:g} | " + " | ".join(cell(result[n]["sampled"][i])
-                                                      for n in GAINS) + " |")
-    lines.append("| continuous | " + " | ".join(cell(result[n]["continuous"]) for n in GAINS)
-                 + " |")
+    names = result.get("names", GAINS)
+    lines = ["## The controller sampled at Ts (zero-order hold)", "", *table(result, names)]
     o = result["order"]
     lines += ["", f"The sampled loop tends to the continuous one at order "
               f"{o['order']:.2f} in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
               f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's gains; one "
               f"exponential-Euler step of the controller per sample: first order)."]
     return "\n".join(lines)
+
+
+def table(result: dict, names: Sequence[str]) -> list[str]:
+    """The markdown table of windowed L-inf against Ts, a column per gain set."""
+    lines = ["| Ts [ms] | " + " | ".join(f"{n}: L∞ e after {result['window_start']:g} s"
+                                       for n in names) + " |",
+             "|---|" + "---|" * len(names)]
+
+    def cell(v):
+        return "diverged" if v is None else f"{v:.4g}"
+
+    for i, ts in enumerate(result["sample_times"]):
+        lines.append(f"| {1e3 * ts:g} | " + " | ".join(cell(result[n]["sampled"][i])
+                                                      for n in names) + " |")
+    lines.append("| continuous | " + " | ".join(cell(result[n]["continuous"]) for n in names)
+                 + " |")
+    return lines
