@@ -443,6 +443,11 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
     integrated by RK4, the fastest filter against the step."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
+    noise = None if spec.noise is None else np.shape(spec.noise)
+    if noise and noise != (setup.order,):
+        raise validation.ConfigError(f"simulation.noise must be one number or one per state "
+                                     f"of the plant, {setup.order} numbers "
+                                     f"(got {int(np.prod(noise))})")
     if not spec.sampled and spec.solver.name == "rk4":
         validation.check_filters(setup, float(spec.dt))
 

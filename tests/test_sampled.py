@@ -161,6 +161,16 @@ def test_measurement_noise_is_seeded(paper_setup):
     assert np.max(np.abs(a - c)) > 1e-4 and np.max(np.abs(a - quiet)) > 1e-4
 
 
+def test_noise_of_the_wrong_length_is_one_config_error_before_any_run(paper_setup):
+    import dscjax
+    from dscjax.validation import ConfigError
+
+    spec = dscjax.RunSpec.make(0.5, 1e-3, sample_time=1e-3, noise=[1e-3, 1e-3, 1e-3])
+    with pytest.raises(ConfigError, match=r"^simulation.noise must be one number or one per "
+                       r"state of the plant, 2 numbers \(got 3\)$"):
+        dscjax.simulate(paper_setup, spec=spec)
+
+
 @pytest.mark.parametrize("argv, line", [
     (["--sample-time", "0.0015"], "--sample-time must be a whole multiple > 0 of simulation.dt "
                                   "(got sample_time=0.0015, dt=0.001, ratio 1.5)"),
