@@ -391,28 +391,24 @@ def _coerce(section: str, name: str, value, static: bool, default):
     return float(a) if a.ndim == 0 else a
 
 
-def _find_text(value, where: str = "") -> str | None:
-    """The index ("", "[1]", ...) of the first string or table in a value read from TOML or
-    JSON, or None."""
-    if isinstance(value, str | dict):
-        return where
-    if isinstance(value, list | tuple):
-        for i, item in enumerate(value):
-            found = _find_text(item, f"{where}[{i}]")
-            if found is not None:
-                return found
-    return None
-
-
 def find_bool(value, where: str = "") -> str | None:
     """The index ("" for the value itself, "[1]", "[0][2]") of the first boolean in a value
     read from TOML or JSON, or None. NumPy would read `true` as the number 1.0: a config that
     says `k = [10.0, true]` is a mistake, not k_2 = 1."""
-    if isinstance(value, bool | np.bool_):
+    return _find(value, lambda v: isinstance(v, bool | np.bool_), where)
+
+
+def _find_text(value) -> str | None:
+    """The index of the first string or table in a value read from TOML or JSON, or None."""
+    return _find(value, lambda v: isinstance(v, str | dict), "")
+
+
+def _find(value, hit, where: str) -> str | None:
+    if hit(value):
         return where
     if isinstance(value, list | tuple):
-        for i, v in enumerate(value):
-            found = find_bool(v, f"{where}[{i}]")
+        for i, item in enumerate(value):
+            found = _find(item, hit, f"{where}[{i}]")
             if found is not None:
                 return found
     return None
