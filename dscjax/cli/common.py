@@ -12,6 +12,19 @@ from pathlib import Path
 
 import numpy as np
 
+# Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
+COMMANDS = {
+    "simulate": "dscjax.cli.simulate",
+    "reproduce": "dscjax.cli.reproduce",
+    "tune": "dscjax.cli.tune",
+    "sweep": "dscjax.cli.sweep",
+    "stability": "dscjax.cli.stability",
+    "worst-case": "dscjax.cli.worst_case",
+    "hysteresis": "dscjax.cli.hysteresis",
+    "export": "dscjax.cli.export",
+    "sensitivity": "dscjax.cli.sensitivity",
+}
+
 
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
@@ -370,8 +383,6 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
     the files of `outputs` found there that are among its outputs too (summary.json). A
     command may replace or delete only the files that it wrote itself."""
     import importlib
-
-    from dscjax.cli.main import COMMANDS
 
     ours = set(outputs.found(out))
     if not ours:

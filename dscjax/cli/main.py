@@ -18,18 +18,7 @@ import signal
 import sys
 from pathlib import Path
 
-# Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
-COMMANDS = {
-    "simulate": "dscjax.cli.simulate",
-    "reproduce": "dscjax.cli.reproduce",
-    "tune": "dscjax.cli.tune",
-    "sweep": "dscjax.cli.sweep",
-    "stability": "dscjax.cli.stability",
-    "worst-case": "dscjax.cli.worst_case",
-    "hysteresis": "dscjax.cli.hysteresis",
-    "export": "dscjax.cli.export",
-    "sensitivity": "dscjax.cli.sensitivity",
-}
+from dscjax.cli.common import COMMANDS
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
