@@ -431,7 +431,7 @@ def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, 
         assert info.value.signum == signum
     assert signal.getsignal(signum) is before
 
-    def stop(args):
+    def stop(args, **_):
         send()
 
     monkeypatch.setattr(dscjax.cli.simulate, "load_setup", stop)

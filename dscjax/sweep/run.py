@@ -258,8 +258,10 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     ranges = check_settings(settings, setup, spec.t_final, float(spec.dt),
                             float(spec.window_start))
     manifest = Path(out) / "sweep.json"
-    files.check_same(files.read_json(manifest).get("fingerprint"),
-                     fingerprint(setup, settings, ranges, spec, chunk),
+    old = files.read_json(manifest).get("fingerprint")
+    # the tile follows the devices, known only once placed: run_sweep checks it again
+    tile = old.get("tile") if isinstance(old, dict) else None
+    files.check_same(old, fingerprint(setup, settings, ranges, spec, chunk, tile),
                      where=f"--resume: {manifest}",
                      fix="use the same settings, or --overwrite to start afresh")
 
