@@ -24,6 +24,7 @@ import json
 import math
 import os
 import shlex
+import shutil
 import socket
 import tempfile
 import zipfile
@@ -203,24 +204,32 @@ def read_npz(path: str | Path) -> dict[str, np.ndarray] | None:
 def out_problem(path: str | Path) -> str | None:
     """Why the system would refuse `path` as an output directory, in its own words (strerror:
     "File name too long", "Not a directory", "Permission denied", "Read-only file system"),
-    or None if it may be used. Asked of the system itself: the directories are made and a
-    file written in the last, then all of it that was new is removed again."""
+    or None if it may be used. Asked of the system itself, without touching `path` (several
+    processes may share it): a file is written in `path` if it exists, else the missing
+    directories are made and a file written under a fresh temporary directory beside them,
+    which is removed again."""
     path = Path(os.path.abspath(path))
     problem = _path_problem(path)
     if problem is not None:
         return problem
-    new = [p for p in (path, *path.parents) if not os.path.lexists(p)]  # leaf first
+    base = next(p for p in (path, *path.parents) if os.path.lexists(p))
+    probe_dir = None
     try:
-        path.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(dir=path, prefix=".dscjax-write-test-")
+        if base == path:
+            fd, probe = tempfile.mkstemp(dir=path, prefix=".dscjax-write-test-")
+            os.close(fd)
+            os.unlink(probe)
+            return None
+        probe_dir = tempfile.mkdtemp(dir=base, prefix=".dscjax-write-test-")
+        leaf = Path(probe_dir, path.relative_to(base))
+        leaf.mkdir(parents=True)
+        fd, _ = tempfile.mkstemp(dir=leaf)
         os.close(fd)
-        os.unlink(probe)
     except OSError as err:
         return err.strerror or str(err)
     finally:
-        for level in new:
-            with contextlib.suppress(OSError):
-                level.rmdir()
+        if probe_dir is not None:
+            shutil.rmtree(probe_dir, ignore_errors=True)
     return None
 
 
