@@ -265,6 +265,9 @@ def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
     err = capsys.readouterr().err
     assert code == 0, err
     assert "24/24 samples" in err and "steps/s" in err
+    lines = [line for line in err.splitlines() if line.startswith("  sweep ")]
+    # no ETA from the first round, which compiled (issue 32): one from a round timed alone
+    assert "ETA" not in lines[0] and "ETA" in lines[-1], lines
     assert "re-checking" not in err  # float64, the default: nothing to re-check
     for f in ("results.npz", "summary.json", "summary.md", "traces.npz", "hist_linf_window.png",
               "heatmap_linf_window.png", "traces.png", "sweep.json"):

@@ -287,9 +287,10 @@ def run(args) -> int:
 
     def progress(p):
         nonlocal bar
-        if bar is None:  # after the first round: its time (compilation included) counts
-            bar = Progress(p["total"], desc="  sweep", unit="sample", initial=p["resumed"],
-                           elapsed=p["elapsed_s"], enabled=main and not args.quiet)
+        if bar is None:  # after the first round, which compiled: the rate and the ETA are
+            # timed from here on, so no ETA is shown before a round was timed alone
+            bar = Progress(p["total"], desc="  sweep", unit="sample", initial=p["done"],
+                           enabled=main and not args.quiet)
         bar.update_to(p["done"], f"{p['steps_per_s']:.3g} steps/s")
 
     try:
