@@ -68,7 +68,7 @@ def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int | None = None
     is run). None where JAX does not say."""
     rows = rows or tile_rows(device.platform, PROBE_ROWS)
     dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
-    spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype)
+    spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype).program()
     table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,
                                  sharding=SingleDeviceSharding(device))
     compiled = _block.top.lower(jax.device_put(setup, device), spec, table,
@@ -121,7 +121,7 @@ class Runner:
         if self.parallel == "spmd":
             arr = jax.make_array_from_callback(table.shape, self.in_sharding,
                                                lambda i: table[i])
-            out = self._spmd(self.setup, self.spec, arr)
+            out = self._spmd(self.setup, self.spec.program(), arr)
             return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1
         jobs = {}
@@ -164,7 +164,8 @@ class Runner:
     def _tiles_on(self, device, setup, spec, rows) -> list[dict]:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
         split into tiles (`tiles`) on `device`."""
-        return [_block(setup, spec, jax.device_put(t, device), columns=self.columns)
+        program = spec.program()  # (host-side fields never recompile the tile program)
+        return [_block(setup, program, jax.device_put(t, device), columns=self.columns)
                 for t in tiles(rows, self.tile)]
 
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int

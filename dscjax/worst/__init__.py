@@ -480,7 +480,7 @@ class Programs(search.Problem):
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
         lo, hi = p.lows_highs()
-        spec = p.spec.for_dtype(_dtype(p.setup))
+        spec = p.spec.for_dtype(_dtype(p.setup)).program()  # (refinement is simulate's)
         args = (lo, hi, p.disturbance.bound if p.m else 0.0, spec, p.requirement)
         st = p.static()
         values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
