@@ -324,6 +324,12 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
     return cast(setup, np.dtype(spec.dtype)), spec
 
 
+def add_out_arg(p, default: str):
+    """--out DIR of a command (the one rule of --out, README)."""
+    p.add_argument("--out", default=default, metavar="DIR",
+                   help=f"output directory (default: {default})")
+
+
 def add_overwrite_arg(p):
     """--overwrite of the commands without --resume (the one rule of --out, README)."""
     p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier "

@@ -8,6 +8,7 @@ import sys
 from dscjax.cli.common import (
     Outputs,
     add_config_args,
+    add_out_arg,
     add_overwrite_arg,
     example_setup,
     flag,
@@ -31,8 +32,7 @@ def add_parser(sub):
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")
     add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
-    p.add_argument("--out", default="results/export", metavar="DIR",
-                   help="output directory (default: results/export)")
+    add_out_arg(p, "results/export")
     add_overwrite_arg(p)
     return p
 

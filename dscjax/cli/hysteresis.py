@@ -16,6 +16,7 @@ import numpy as np
 from dscjax.cli.common import (
     Outputs,
     add_example_arg,
+    add_out_arg,
     add_overwrite_arg,
     add_run_args,
     finite_float,
@@ -53,8 +54,7 @@ def add_parser(sub):
     p.add_argument("--dt", type=positive_float, metavar="DT", help=f"RK4 step [s] "
                    f"(default {DEFAULT_DT:g})")
     add_run_args(p, ("device",))
-    p.add_argument("--out", default="results/hysteresis", metavar="DIR",
-                   help="output directory (default results/hysteresis)")
+    add_out_arg(p, "results/hysteresis")
     add_overwrite_arg(p)
     return p
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import Outputs, count, positive_float
+from dscjax.cli.common import Outputs, add_out_arg, count, positive_float
 from dscjax.reproduce.figures import FIGURES
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
@@ -50,8 +50,7 @@ def add_parser(sub):
         "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
         f"With --complexity also measure the size and cost of both control laws for orders "
         f"n = {orders.replace('-', '..')} (takes minutes).")
-    p.add_argument("--out", default="results/paper", metavar="DIR",
-                   help="output directory (default: results/paper)")
+    add_out_arg(p, "results/paper")
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
     p.add_argument("--dpi", type=count(10), default=r.DPI,

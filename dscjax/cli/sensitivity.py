@@ -16,6 +16,7 @@ from dscjax.cli.common import (
     SAMPLED_KEYS,
     Outputs,
     add_config_args,
+    add_out_arg,
     add_overwrite_arg,
     count,
     gradient_work,
@@ -59,8 +60,7 @@ def add_parser(sub):
                    "hysteresis model's numbers within +-30%%, as sweep's)")
     p.add_argument("--seed", type=count(0), default=0, help="seed of the --batch plants "
                    "(default 0)")
-    p.add_argument("--out", default="results/sensitivity", metavar="DIR",
-                   help="output directory (default results/sensitivity)")
+    add_out_arg(p, "results/sensitivity")
     add_overwrite_arg(p)
     p.add_argument("--no-plot", action="store_true", help="skip sensitivity.png")
     return p

@@ -11,6 +11,7 @@ from dscjax.cli.common import (
     SAMPLED_KEYS,
     Outputs,
     add_config_args,
+    add_out_arg,
     add_overwrite_arg,
     choose_device,
     horizon_text,
@@ -46,8 +47,7 @@ def add_parser(sub):
         "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
         "V_zeta, V_d, V_y (the filter errors).")
     add_config_args(p, run_keys=SIMULATE_KEYS)
-    p.add_argument("--out", default="results/simulate", metavar="DIR",
-                   help="output directory (default: results/simulate)")
+    add_out_arg(p, "results/simulate")
     p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "

@@ -15,6 +15,7 @@ from dscjax import files
 from dscjax.cli.common import (
     Outputs,
     add_config_args,
+    add_out_arg,
     add_overwrite_arg,
     horizon_text,
     load_setup,
@@ -39,8 +40,7 @@ def add_parser(sub):
                    help="factors applied to every filter constant tau_i, separated by commas "
                    "(default "
                    "0.25,0.5,1,2,4)")
-    p.add_argument("--out", default="results/stability", metavar="DIR",
-                   help="output directory (default results/stability)")
+    add_out_arg(p, "results/stability")
     add_overwrite_arg(p)
     p.add_argument("--no-plot", action="store_true", help="skip stability.png")
     return p

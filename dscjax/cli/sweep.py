@@ -20,6 +20,7 @@ from dscjax.cli.common import (
     SAMPLED_KEYS,
     Outputs,
     add_example_arg,
+    add_out_arg,
     add_run_args,
     apply_run_options,
     blame_options,
@@ -88,8 +89,7 @@ def add_parser(sub):
                       f"{d.dtype})")
     prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
                       f"{d.dtype})")
-    p.add_argument("--out", default="results/sweep", metavar="DIR",
-                   help="output directory (default: results/sweep)")
+    add_out_arg(p, "results/sweep")
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue a sweep in DIR: skip "
                        "the blocks already written")

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from dscjax.cli.common import Outputs
+from dscjax.cli.common import Outputs, add_out_arg
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -48,8 +48,7 @@ def add_parser(sub):
                    "(laid over the one in --config)")
     p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
                    "the gains.json of an earlier run (laid over --config)")
-    p.add_argument("--out", default="results/tune", metavar="DIR",
-                   help="output directory (default: results/tune)")
+    add_out_arg(p, "results/tune")
     limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
     steps = (f"{opt.steps}" if opt.steps is not None else
              f"{OPTAX_STEPS} for adam, none for the CMA-ES methods")

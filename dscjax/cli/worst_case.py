@@ -15,6 +15,7 @@ from dscjax.cli.common import (
     SAMPLED_KEYS,
     Outputs,
     add_config_args,
+    add_out_arg,
     count,
     gradient_work,
     horizon_text,
@@ -84,8 +85,7 @@ def add_parser(sub):
     p.add_argument("--methods", default=",".join(METHODS), metavar="LIST",
                    help=f"comma-separated, of {', '.join(METHODS)} (default all)")
     p.add_argument("--seed", type=count(0), default=0, help="seed of every random draw (default 0)")
-    p.add_argument("--out", default="results/worst-case", metavar="DIR",
-                   help="output directory (default: results/worst-case)")
+    add_out_arg(p, "results/worst-case")
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue a search in DIR "
                        "(each method from its last finished iteration)")
