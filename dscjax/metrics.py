@@ -9,7 +9,13 @@ Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
     L2     = sqrt( trapezoid_W(e^2) )           (trapezoid rule over the samples in W)
     RMS    = sqrt( trapezoid_W(e^2) / (T - t_first) ),  t_first the first sample time in W
     max|u| = max_k |u_k|, TV(u) = sum_k |u_(k+1) - u_k|, L2(u) = sqrt(trapezoid(u^2))
+    (each also on W: max|u| and TV(u) over the steps k, k-1 in W)
 where e = y - y_r = x_1 - y_r.
+
+Chattering (the one definition; docs/numerics.md): u_lp is u through a first-order low pass
+of time constant CHATTER_TIME_CONSTANT, and the chattering index is TV_W(u) / TV_W(u_lp). A
+smooth u passes the filter unchanged (index near 1); a limit cycle near the sample or step rate
+is filtered out (index >> 1). A run chatters when its index exceeds CHATTER_RATIO.
 """
 
 from __future__ import annotations
@@ -35,6 +41,9 @@ def step_weights(k, t, dt, t0, n_steps):
     w_all = trapezoid_weight(k, dt, n_steps)
     w_win = jnp.where(in_win, jnp.where(first_win | (k == n_steps), 0.5 * dt, dt), 0.0)
     return w_all, w_win, in_win, first_win
+
+CHATTER_TIME_CONSTANT = 0.02  # [s] of the low pass in the chattering index
+CHATTER_RATIO = 1.5  # a run whose chattering index exceeds this chatters
 
 DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
 
@@ -88,8 +97,31 @@ def rms(e, t, t0=None):
     return l2(e, t, t0) / jnp.sqrt(t[-1] - t_first)
 
 
-def total_variation(u):
-    return jnp.sum(jnp.abs(jnp.diff(u)))
+def total_variation(u, t=None, t0=None):
+    """sum |u_(k+1) - u_k|, over the steps whose both ends lie in t >= t0 if t0 is given."""
+    d = jnp.abs(jnp.diff(u))
+    if t0 is None:
+        return jnp.sum(d)
+    return jnp.sum(jnp.where(_window(t[:-1], t0), d, 0.0))
+
+
+def low_pass(u, t):
+    """u through the chattering index's first-order low pass (exact for u held over a step)."""
+    a = -jnp.expm1(-jnp.diff(t) / CHATTER_TIME_CONSTANT)
+
+    def step(v, x):
+        ai, ui = x
+        v = v + ai * (ui - v)
+        return v, v
+
+    _, rest = jax.lax.scan(step, u[0], (a, u[1:]))
+    return jnp.concatenate([u[:1], rest])
+
+
+def chattering_index(u, t, t0=None):
+    """TV(u) / TV(low_pass(u)) over the window (module docstring)."""
+    tv = total_variation(u, t, t0)
+    return tv / jnp.maximum(total_variation(low_pass(u, t), t, t0), jnp.finfo(tv.dtype).tiny)
 
 
 # -- running, inside the scan -----------------------------------------------------------------
@@ -108,17 +140,24 @@ class RunningMetrics(NamedTuple):
     u_tv: jax.Array  # total variation of u
     u_prev: jax.Array  # u at the previous step
     w_max: jax.Array  # max |w|
+    u_max_win: jax.Array  # max |u| over t >= t0
+    u_tv_win: jax.Array  # total variation of u over t >= t0
+    u_lp: jax.Array  # u through the chattering index's low pass
+    u_lp_tv_win: jax.Array  # total variation of u_lp over t >= t0
 
 
 def running_init(dtype) -> RunningMetrics:
     z = jnp.zeros((), dtype)
-    return RunningMetrics(z, z, z, z, jnp.asarray(jnp.inf, dtype), z, z, z, z, z)
+    return RunningMetrics(z, z, z, z, jnp.asarray(jnp.inf, dtype), z, z, z, z, z, z, z, z, z)
 
 
 def running_update(acc: RunningMetrics, k, t, e, u, w, dt, t0, n_steps: int) -> RunningMetrics:
     """Fold the sample (t_k, e_k, u_k, w_k) into the running metrics."""
     w_all, w_win, in_win, first_win = step_weights(k, t, dt, t0, n_steps)
     ae, au = jnp.abs(e), jnp.abs(u)
+    a = -jnp.expm1(-dt / CHATTER_TIME_CONSTANT)
+    u_lp = jnp.where(k > 0, acc.u_lp + a * (u - acc.u_lp), u)
+    step_win = in_win & ~first_win & (k > 0)  # the step k-1 -> k lies in the window
     return RunningMetrics(
         e_max=jnp.maximum(acc.e_max, ae),
         e_max_win=jnp.where(in_win, jnp.maximum(acc.e_max_win, ae), acc.e_max_win),
@@ -130,6 +169,10 @@ def running_update(acc: RunningMetrics, k, t, e, u, w, dt, t0, n_steps: int) -> 
         u_tv=acc.u_tv + jnp.where(k > 0, jnp.abs(u - acc.u_prev), 0.0),
         u_prev=u,
         w_max=jnp.maximum(acc.w_max, jnp.abs(w)),
+        u_max_win=jnp.where(in_win, jnp.maximum(acc.u_max_win, au), acc.u_max_win),
+        u_tv_win=acc.u_tv_win + jnp.where(step_win, jnp.abs(u - acc.u_prev), 0.0),
+        u_lp=u_lp,
+        u_lp_tv_win=acc.u_lp_tv_win + jnp.where(step_win, jnp.abs(u_lp - acc.u_lp), 0.0),
     )
 
 
@@ -147,7 +190,16 @@ def finalize(acc: RunningMetrics, t_final) -> dict[str, jax.Array]:
         "l2_u": _safe_sqrt(acc.u_sq),
         "tv_u": acc.u_tv,
         "max_abs_w": acc.w_max,
+        "max_abs_u_window": acc.u_max_win,
+        "tv_u_window": acc.u_tv_win,
+        "chattering_index": acc.u_tv_win / jnp.maximum(acc.u_lp_tv_win,
+                                                      jnp.finfo(acc.u_tv.dtype).tiny),
     }
+
+
+def chatters(chattering_index) -> bool:
+    """Whether a run with this chattering index chatters (module docstring)."""
+    return bool(chattering_index > CHATTER_RATIO)
 
 
 class Tracking(eqx.Module):

@@ -51,3 +51,41 @@ def test_metric_gradients_are_finite(paper_setup):
 
     g = jax.grad(loss)(paper_setup.controller.k)
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
+
+
+def _np_low_pass(u, t, tc):
+    v = np.empty_like(u)
+    v[0] = u[0]
+    for k in range(1, len(u)):
+        v[k] = v[k - 1] + (1 - np.exp(-(t[k] - t[k - 1]) / tc)) * (u[k] - v[k - 1])
+    return v
+
+
+def test_window_effort_and_chattering_index_equal_numpy(full):
+    t, u = np.asarray(full.t), np.asarray(full.u)
+    m = {k: float(v) for k, v in full.metrics.items()}
+    win = t >= 1.0
+    steps = win[:-1]  # the steps k -> k+1 that start (and so end) in the window
+    tv_win = np.abs(np.diff(u))[steps].sum()
+    lp = _np_low_pass(u, t, metrics.CHATTER_TIME_CONSTANT)
+    assert m["max_abs_u_window"] == pytest.approx(np.abs(u[win]).max(), rel=1e-12)
+    assert m["tv_u_window"] == pytest.approx(tv_win, rel=1e-10)
+    index = tv_win / np.abs(np.diff(lp))[steps].sum()
+    assert m["chattering_index"] == pytest.approx(index, rel=1e-9)
+    assert float(metrics.chattering_index(full.u, full.t, 1.0)) == pytest.approx(index, rel=1e-9)
+    assert 1.0 <= index < metrics.CHATTER_RATIO and not metrics.chatters(m["chattering_index"])
+
+
+def test_a_limit_cycle_chatters_and_a_smooth_signal_does_not():
+    # u = sin t plus a +-a square wave at the sample rate of 1 kHz: TV grows by 2a per sample,
+    # the low pass keeps about 1/(pi tau / Ts) of it
+    t = np.arange(0, 5.0 + 5e-4, 1e-3)
+    smooth = np.sin(t)
+    assert float(metrics.chattering_index(smooth, t, 1.0)) == pytest.approx(1.0, abs=5e-3)
+    cycle = smooth + 0.05 * (-1.0) ** np.arange(t.size)
+    index = float(metrics.chattering_index(cycle, t, 1.0))
+    lp = _np_low_pass(cycle, t, metrics.CHATTER_TIME_CONSTANT)
+    steps = t[:-1] >= 1.0
+    assert index == pytest.approx(np.abs(np.diff(cycle))[steps].sum()
+                                  / np.abs(np.diff(lp))[steps].sum(), rel=1e-9)
+    assert index > 10 and metrics.chatters(index)
