@@ -1,0 +1,136 @@
+"""The settings schema: each rule's reading, writing and message; the four readers of a
+group's declarations (table, TOML data, command line, docs rows) on a group of its own."""
+
+import argparse
+import dataclasses
+
+import pytest
+
+from dscjax import settings as st
+from dscjax.validation import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class Inner:
+    level: float = st.setting(0.2, "CVaR level", st.Number(gt=0, le=1))
+
+
+@dataclasses.dataclass(frozen=True)
+class Group:
+    time_limit: float | None = st.setting(100.0, "wall seconds", st.Maybe(st.Positive()),
+                                          flag="--time-limit")
+    steps: int = st.setting(3, "iterations", st.AtLeast(1))
+    name: str = st.setting("a", "which", st.Choice(("a", "b")), flag="--name")
+    bound: float | str | None = st.setting("start", "a bound",
+                                           st.Maybe(st.Either((st.Choice(("start",)),
+                                                               st.Positive()))))
+    noise: float | tuple | None = st.setting(None, "std", st.Maybe(st.Numbers(st.Number(ge=0))))
+    inner: Inner = st.group(Inner)
+
+    def validate(self, prefix):
+        if self.name == "b" and self.steps < 2:
+            raise ConfigError(f"{prefix}.steps must be >= 2 with {prefix}.name = 'b'")
+
+
+@pytest.mark.parametrize("rule, value, expected", [
+    (st.Positive(), 2, 2.0), (st.AtLeast(1), 5, 5), (st.Maybe(st.Positive()), "none", None),
+    (st.Maybe(st.Positive()), "None", None), (st.Number(gt=0, le=1), 1, 1.0),
+    (st.Numbers(), [1, 2.5], (1.0, 2.5)), (st.Strings(), ["a.b", "c"], ("a.b", "c")),
+])
+def test_rules_read_values_from_files(rule, value, expected):
+    assert rule.parse(value) == expected
+
+
+@pytest.mark.parametrize("rule, value, must", [
+    (st.Positive(), 0, "a number > 0"), (st.Positive(), True, "a number > 0"),
+    (st.Positive(), "10", "a number > 0"), (st.Positive(), float("inf"), "a number > 0"),
+    (st.AtLeast(1), 1.0, "an integer >= 1"), (st.AtLeast(0), -1, "an integer >= 0"),
+    (st.Number(gt=0, le=1), 1.5, "a number in (0, 1]"),
+    (st.Number(ge=0, lt=1), 1, "a number in [0, 1)"),
+    (st.Maybe(st.Positive()), 0, 'a number > 0, or "none"'),
+    (st.Choice(("rk4", "etdrk4")), "euler", "one of 'rk4', 'etdrk4'"),
+    (st.Numbers(st.Number(ge=0)), [1, -1], "one number >= 0 or a list of them"),
+])
+def test_rules_refuse_with_what_the_value_must_be(rule, value, must):
+    with pytest.raises(st.Invalid) as err:
+        rule.parse(value)
+    assert err.value.must == must and err.value.value == value
+
+
+def test_the_command_line_and_a_file_spell_values_alike():
+    assert st.Maybe(st.Positive()).from_text("none") is None
+    assert st.Maybe(st.Positive()).from_text("2.5") == 2.5
+    assert st.AtLeast(0).from_text("1e5") == 100_000  # a count typed in floating notation
+    assert st.Numbers().from_text("0.01,0,0.02") == (0.01, 0.0, 0.02)
+    assert st.Numbers().from_text("0.01") == 0.01
+    with pytest.raises(st.Invalid):
+        st.AtLeast(0).from_text("1.5")
+    with pytest.raises(st.Invalid):
+        st.Maybe(st.Positive()).from_text("0")
+
+
+def test_a_strategy_is_read_as_its_object_and_written_as_its_name():
+    class CVaR:
+        pass
+
+    rule = st.Choice({"mean": "MEAN", "cvar": CVaR})
+    assert rule.parse("cvar") is CVaR and rule.dump(CVaR) == "cvar"
+
+
+def test_from_table_parses_nests_validates_and_names_the_path():
+    g = st.from_table(Group, {"time_limit": "none", "name": "b", "steps": 2,
+                              "inner": {"level": 0.5}, "noise": [0.1, 0.2]}, "tuning.opt.")
+    assert (g.time_limit, g.name, g.steps, g.inner.level, g.noise) == (
+        None, "b", 2, 0.5, (0.1, 0.2))
+    over = st.from_table(Group, {"steps": 7}, "tuning.opt.", base=g)  # laid over a base
+    assert (over.steps, over.name, over.inner.level) == (7, "b", 0.5)
+    cases = [({"steps": 0}, "tuning.opt.steps must be an integer >= 1 (got 0)"),
+             ({"time_limit": 0}, 'tuning.opt.time_limit must be a number > 0, or "none" '
+                                 '(got 0)'),
+             ({"inner": {"level": 2}}, "tuning.opt.inner.level must be a number in (0, 1] "
+                                       "(got 2)"),
+             ({"stepz": 1}, "unknown key 'tuning.opt.stepz' (allowed: time_limit, steps, "
+                            "name, bound, noise, inner)"),
+             ({"inner": 3}, "'tuning.opt.inner' must be a table ([tuning.opt.inner])"),
+             ({"name": "b", "steps": 1}, "tuning.opt.steps must be >= 2 with tuning.opt.name "
+                                         "= 'b'"),
+             ({"bound": "end"}, 'tuning.opt.bound must be one of \'start\' or a number > 0, '
+                                'or "none" (got a string, \'end\')')]
+    for table, message in cases:
+        with pytest.raises(ConfigError) as err:
+            st.from_table(Group, table, "tuning.opt.")
+        assert str(err.value) == message
+
+
+def test_to_table_round_trips_through_from_table():
+    g = Group(time_limit=None, bound=3.0, noise=(0.1, 0.0), inner=Inner(0.7))
+    table = st.to_table(g)
+    assert table == {"time_limit": "none", "steps": 3, "name": "a", "bound": 3.0,
+                     "noise": [0.1, 0.0], "inner": {"level": 0.7}}
+    assert st.from_table(Group, table, "x.") == g
+    assert st.to_table(Group())["bound"] == "start" and st.to_table(Group())["noise"] == "none"
+
+
+def test_options_parse_by_the_rule_and_name_the_option_typed(capsys):
+    p = argparse.ArgumentParser(prog="t", exit_on_error=False)
+    st.add_arguments(p, Group, "tuning.opt.")
+    args = p.parse_args(["--time-limit", "none", "--name", "b"])
+    assert st.given(args, Group, "tuning.opt.") == (
+        {"time_limit": None, "name": "b"},
+        {"tuning.opt.time_limit": "--time-limit", "tuning.opt.name": "--name"})
+    assert st.given(p.parse_args([]), Group, "tuning.opt.") == ({}, {})
+    with pytest.raises(argparse.ArgumentError) as err:
+        p.parse_args(["--time-limit", "0"])
+    assert str(err.value) == ("argument --time-limit: must be a number > 0, or \"none\" "
+                              "(got '0')")
+    help_text = p.format_help()
+    assert "wall seconds (default 100, or the config's tuning.opt.time_limit)" in " ".join(
+        help_text.split())
+
+
+def test_doc_rows_list_every_key_with_default_range_and_option():
+    rows = st.doc_rows(Group, "tuning.opt.")
+    assert rows[2] == ('| `tuning.opt.time_limit` | `100` | a number > 0, or "none" | '
+                       'wall seconds | `--time-limit` |')
+    assert rows[-1] == "| `tuning.opt.inner.level` | `0.2` | a number in (0, 1] | CVaR level |  |"
+    assert len(rows) == 2 + 6
