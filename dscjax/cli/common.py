@@ -227,6 +227,31 @@ def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
 
 
+def figure(x: float) -> str:
+    """A measured number for a results line: 4 significant digits, whole numbers with
+    thousands separators from 10,000 on (a TV(u) of 19,408, not 1.941e+04)."""
+    return f"{x:,.0f}" if abs(x) >= 1e4 else f"{x:.4g}"
+
+
+def chattering_text(index: float) -> str:
+    """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
+    docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
+    (index 1.04 <= 1.5)"."""
+    from dscjax.metrics import CHATTER_RATIO, chatters
+
+    if chatters(index):
+        return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
+    return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
+
+
+def effort_text(metrics, window: str) -> str:
+    """The effort part of a run's verdict: "effort on [t0, T] s: max|u| 6.29, TV(u) 19,408,
+    CHATTERING (...)", from its metrics (`max_abs_u_window`, `tv_u_window`,
+    `chattering_index`)."""
+    return (f"effort on {window}: max|u| {figure(metrics['max_abs_u_window'])}, TV(u) "
+            f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
+
+
 def loop_sizes(setup) -> tuple[int, int, int]:
     """(m, k, itemsize): the floats of the closed loop's state (what the time-parallel
     gradient's Jacobians are square in), of one saved point of a Trajectory (state and

@@ -14,6 +14,7 @@ from dscjax.cli.common import (
     add_out_arg,
     add_overwrite_arg,
     choose_device,
+    effort_text,
     horizon_text,
     load_setup,
     loop_sizes,
@@ -94,7 +95,9 @@ def run(args) -> int:
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
           f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}"
-          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold)"
+          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold"
+             + (f", input delay {options.delay} sample(s)" if options.delay else "")
+             + (", measurement noise" if options.noise is not None else "") + ")"
              if options.sampled else "") + f"; on {choice}", file=sys.stderr)
     for w in warnings:
         print(f"dscjax simulate: warning: {w}", file=sys.stderr)
@@ -174,7 +177,8 @@ def run(args) -> int:
         window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
               f"run {metrics['linf_error']:.4g}, from the initial error), L2 error "
-              f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
+              f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}; "
+              + effort_text(metrics, window))
     else:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
               f"were not measured (null in metrics.json)")
