@@ -112,8 +112,8 @@ def test_work_that_cannot_fit_in_memory_is_refused_with_the_estimate(monkeypatch
                                                                      capsys):
     monkeypatch.setattr(validation, "available_memory", lambda: 2**30)
     err = _refused(capsys, ["sweep", "--samples", "1e8", "--t-final", "0.1"], tmp_path / "o")
-    assert err.endswith("the results table (100,000,000 samples x 19 columns) needs about "
-                        "14.2 GiB of memory, more than the 1 GiB available; use fewer "
+    assert err.endswith("the results table (100,000,000 samples x 22 columns) needs about "
+                        "16.4 GiB of memory, more than the 1 GiB available; use fewer "
                         "--samples, a shorter --t-final or a larger --dt")
     err = _refused(capsys, ["hysteresis", "--t-final", "1e5"], tmp_path / "o")
     assert "t, u and w at every step (2 amplitude(s)) needs about 3.73 GiB of memory, more " \

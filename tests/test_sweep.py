@@ -8,6 +8,7 @@ the tests through identical shapes and settings (float64, chunk 8, alpha/lam/psi
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -425,3 +426,69 @@ def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
     assert (summary["n_tracked"], summary["n_refined"], summary["n_diverged"]) == (3, 1, 0)
     assert "after refinement (a numerically stiff run re-done with ETDRK4 at a smaller step): 1"\
         in captured.out
+
+
+# -- issue 38: effort and chattering in every verdict; a gains file sweeps its own loop -------
+
+# a sampled controller with a one-sample input delay, 2 s (every step saved in the traces): at
+# k_1 = 30 the gains chatter (a limit cycle at the sample rate), at k_1 = 10 they do not; one
+# compiled block program serves both tests below (the gains and Ts are traced)
+DELAYED = ["--sample-time", "0.001", "--delay", "1", "--t-final", "2", "--no-plot"]
+
+
+def _chattering_numpy(t, u, t0, tau=0.02):
+    """TV(u) on t >= t0 over that of u low-passed (v_k = v_(k-1) + (1 - e^(-dt/tau))
+    (u_k - v_(k-1)), v_0 = u_0): the index of docs/numerics.md, from saved samples."""
+    v = np.empty_like(u)
+    v[0] = u[0]
+    a = -np.expm1(-np.diff(t) / tau)
+    for k in range(1, len(u)):
+        v[k] = v[k - 1] + a[k - 1] * (u[k] - v[k - 1])
+    steps = t[:-1] >= t0
+    tv = np.abs(np.diff(u))[steps].sum()
+    return tv, tv / np.abs(np.diff(v))[steps].sum()
+
+
+def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsys):
+    cfg = tmp_path / "k.toml"
+    cfg.write_text("[controller]\nk = [10.0, 5.0]\n")
+    out = tmp_path / "chat"
+    assert cli(["sweep", "--config", str(cfg), "--grid", "controller.k[0]=10:30:3", *DELAYED,
+                "--worst", "3", "--random", "0", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert ("controller sampled every Ts = 0.001 s (zero-order hold, states advanced by "
+            "exponential-euler, input delay 1 sample(s))") in captured.err
+    with np.load(out / "results.npz") as z:
+        cols = {k: z[k] for k in z.files}
+    with np.load(out / "traces.npz") as z:
+        traces = {k: z[k] for k in z.files}
+    assert traces["t"].shape == (3, 2001) and not cols["diverged"].any()
+    # every row's TV(u) and chattering index against NumPy on its re-simulated trace; the
+    # limit cycle amplifies the round-off by which one run differs from a batch's row (XLA
+    # fuses them differently) into the third digit, the smooth rows agree to round-off
+    for j, sample in enumerate(traces["sample"]):
+        tv, index = _chattering_numpy(traces["t"][j], traces["u"][j], 1.0)
+        rel = 1e-9 if index < 1.5 else 1e-2
+        assert cols["tv_u_window"][sample] == pytest.approx(tv, rel=rel)
+        assert cols["chattering_index"][sample] == pytest.approx(index, rel=rel)
+    index = cols["chattering_index"]
+    assert index[0] < 1.5 < index[2]  # k_1 = 10 smooth, k_1 = 30 a limit cycle
+    count = int(np.sum(index > 1.5))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["chattering"] == {"metric": "chattering_index", "above": 1.5,
+                                     "count": count, "rate": count / 3,
+                                     "definition": "docs/numerics.md"}
+    tv = summary["quantiles"]["tv_u_window"]
+    np.testing.assert_allclose([tv["p50"], tv["p95"], tv["max"]],
+                               np.quantile(cols["tv_u_window"], [0.5, 0.95, 1.0]), rtol=1e-12)
+    assert summary["run"]["loop"].startswith("controller sampled every Ts = 0.001 s")
+    line = next(x for x in captured.out.splitlines() if x.startswith("  effort on [1, 2] s"))
+    shown = [float(x.replace(",", "")) for x in re.findall(
+        r"median ([\d.,]+), p95 ([\d.,]+), max ([\d.,]+);", line)[0]]
+    np.testing.assert_allclose(shown, [tv["p50"], tv["p95"], tv["max"]], rtol=5e-4)
+    assert (f"  chattering (chattering index above 1.5; docs/numerics.md): {count} of 3 "
+            f"({100 * count / 3:.2f} %)") in captured.out
+    md = (out / "summary.md").read_text()
+    assert (f"- chattering (chattering index above 1.5, docs/numerics.md; diverged samples "
+            f"not counted): {count} ({100 * count / 3:.2f} %)") in md
+    assert "controller sampled every Ts = 0.001 s" in md.split("## Outcome")[0]

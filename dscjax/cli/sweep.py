@@ -24,10 +24,12 @@ from dscjax.cli.common import (
     add_run_args,
     apply_run_options,
     blame_options,
+    chattering_text,
     check_noise,
     choose_device,
     count,
     example_setup,
+    figure,
     finite_float,
     horizon_text,
     prepare_out,
@@ -223,9 +225,12 @@ def sweep_toml(settings, setup) -> str:
 def work(setup, settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
+    from dscjax.sweep import METRICS
+    from dscjax.sweep.run import STATUS_COLUMNS
     from dscjax.validation import Work
 
-    n, columns = settings.n_samples(), len(ranges) + 16  # parameters, metrics, status
+    # the sample's number, its parameters, metrics and status
+    n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
     traces = 1 + settings.worst + settings.random  # re-simulated one after another
     return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
                 memory=8.0 * n * columns,
@@ -276,7 +281,8 @@ def run(args) -> int:
             for r in ranges)
         print(f"dscjax sweep: {n:,} {'grid points' if settings.method == 'grid' else 'samples'}"
               f" ({settings.method}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
-              f"dt={dt:g} s, {settings.dtype}; on {len(choice.devices)} device(s) "
+              f"dt={dt:g} s, {settings.dtype}, {sweep.loop_text(options.to_table())}; on "
+              f"{len(choice.devices)} device(s) "
               f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
               file=sys.stderr)
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
@@ -324,7 +330,7 @@ def run(args) -> int:
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
     summary["nominal_params"] = nominal_params
-    summary["run"] = info
+    summary["run"] = info | {"loop": sweep.loop_text(info)}
     summary["warnings"] = warnings
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
@@ -365,6 +371,17 @@ def run(args) -> int:
         print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
               f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
               f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
+    tv = summary["quantiles"]["tv_u_window"]
+    chat = summary["chattering"]
+    if tv is not None:
+        nom = ("" if bool(nominal.diverged) else
+               f"; nominal TV(u) {figure(nominal_metrics['tv_u_window'])}, "
+               + chattering_text(nominal_metrics["chattering_index"]))
+        print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
+              f"median {figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
+              f"max|u| max {figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
+    print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
+          f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
     smallest = summary["smallest_dt_tried"]
     print(f"  tracked: {summary['n_tracked']:,}; tracked after refinement (a numerically stiff "
           f"run re-done with ETDRK4 at a smaller step): {summary['n_refined']:,}; diverged "
