@@ -492,3 +492,46 @@ def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsy
     assert (f"- chattering (chattering index above 1.5, docs/numerics.md; diverged samples "
             f"not counted): {count} ({100 * count / 3:.2f} %)") in md
     assert "controller sampled every Ts = 0.001 s" in md.split("## Outcome")[0]
+
+
+def test_a_gains_file_is_swept_in_the_loop_it_was_tuned_as(tmp_path, capsys):
+    gains = tmp_path / "gains.json"
+    # as `dscjax tune` writes it: a whole config; the sampled controller's keys travel
+    gains.write_text(json.dumps({
+        "controller": {"k": [10.0, 0.45]},
+        "simulation": {"t_final": 7.0, "dt": 5e-4, "sample_time": 0.002, "delay": 1},
+        "hysteresis": {"alpha": 2.0}}))
+    out = tmp_path / "g"
+    assert cli(["sweep", "--gains", str(gains), "--samples", "3", "--t-final", "2",
+                "--no-plot", "--worst", "0", "--random", "0", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "controller sampled every Ts = 0.002 s" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run"]["sample_time"] == 0.002 and summary["run"]["delay"] == 1
+    assert "controller sampled every Ts = 0.002 s" in (out / "summary.md").read_text()
+    with np.load(out / "results.npz") as z:
+        cols = {k: z[k] for k in z.files}
+    # each row is `dscjax.simulate` of its plant with the gains, sampled at 2 ms with the delay
+    spec = dscjax.RunSpec.make(2.0, 1e-3, sample_time=0.002, delay=1)
+    gains_setup = dscjax.params.set(dscjax.paper_example(), "controller.k",
+                                    np.array([10.0, 0.45]))
+    for i in range(3):
+        plant = dscjax.params.set_many(gains_setup, {
+            p: cols[p][i] for p in ("hysteresis.alpha", "hysteresis.lam", "hysteresis.psi")})
+        one = dscjax.simulate(plant, spec=spec, throw=False)
+        for m in sweep.METRICS:
+            assert cols[m][i] == pytest.approx(float(one.metrics[m]), rel=1e-9), m
+    # the command line overrides the gains file's loop; a config's loop gives way to it
+    from dscjax.cli.main import _available_commands, build_parser
+    from dscjax.cli.sweep import load
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[simulation]\nsample_time = 0.001\n")
+    parse = build_parser(_available_commands()).parse_args
+    _, options, _ = load(parse(["sweep", "--config", str(cfg), "--gains", str(gains)]))
+    assert (options.sample_time, options.delay, options.dt) == (0.002, 1, 1e-3)
+    assert (f"dscjax sweep: note: simulation.sample_time = 0.001 in {cfg} gives way to the gains "
+            f"file's 0.002 ({gains}: the loop the gains were tuned as; --sample-time overrides "
+            f"both)") in capsys.readouterr().err
+    _, options, _ = load(parse(["sweep", "--gains", str(gains), "--sample-time", "0.003"]))
+    assert (options.sample_time, options.delay) == (0.003, 1)

@@ -31,6 +31,7 @@ from dscjax.cli.common import (
     example_setup,
     figure,
     finite_float,
+    flag,
     horizon_text,
     prepare_out,
     print_config,
@@ -68,7 +69,10 @@ def add_parser(sub):
                    "example; may hold a [sweep] table")
     p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
                    "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
-                   "tune`; its other sections are ignored")
+                   "tune`, with the loop they were tuned as: its [simulation] keys of the "
+                   "sampled controller (sample_time, delay, noise, noise_seed, "
+                   "discretisation), which the options of the same names override; its other "
+                   "sections and keys are ignored")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--samples", type=count(1), metavar="N", help=f"number of sampled plants "
                       f"(default {d.samples})")
@@ -137,16 +141,9 @@ def load(args):
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
     setup, options = config.from_dict(raw, base=example_setup(args))
-    options = apply_run_options(args, options)
     if args.gains:
-        # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
-        # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.
-        gains = config.read(args.gains)
-        if not isinstance(gains.get("controller"), dict):
-            raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains "
-                              f"file")
-        setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
-                                    base_spec=options)
+        setup, options = _gains(args, setup, options, raw.get("simulation", {}))
+    options = apply_run_options(args, options)
     settings = settings_from_dict(sweep_table, SweepSettings())
     changes = {}
     if args.grid:
@@ -180,6 +177,43 @@ def load(args):
     validate_setup(setup)
     check_noise(args, setup, options)
     return setup, options, settings
+
+
+def _gains(args, setup, options, config_loop: dict):
+    """(setup, options) with the gains file's gains and the loop they were tuned as laid
+    over the config's: a gains.json of `dscjax tune` is a whole config, of which the sweep
+    takes the [controller] table and the sampled controller's [simulation] keys
+    (`SAMPLED_KEYS`: Ts, delay, noise, discretisation; absent ones at their defaults, so
+    gains tuned continuous are swept continuous); its plant, hysteresis and horizon are the
+    sweep's to choose. The command line still wins (`apply_run_options` afterwards)."""
+    from dscjax import config
+    from dscjax.runspec import OPTIONS, RunSpec
+    from dscjax.validation import ConfigError
+
+    gains = config.read(args.gains)
+    if not isinstance(gains.get("controller"), dict):
+        raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains file")
+    setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
+                                base_spec=options)
+    loop = gains.get("simulation")
+    if loop is None:  # gains alone: the config's loop
+        return setup, options
+    if not isinstance(loop, dict):
+        raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
+    for key in SAMPLED_KEYS:
+        value = loop.get(key, OPTIONS[key][0])
+        if key in config_loop and config_loop[key] != value:
+            print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
+                  f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
+                  f"loop the gains were tuned as; {flag(key)} overrides both)",
+                  file=sys.stderr)
+    # the config's run with a continuous controller, then the gains file's keys (checked)
+    continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),
+                              gradient=options.gradient)
+    given = {k: loop[k] for k in SAMPLED_KEYS if k in loop}
+    options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
+                                        for k in given}, **given)
+    return setup, options
 
 
 # the options that set a [sweep] key (the others are named after their key)
