@@ -201,6 +201,25 @@ def check_noise(args, setup, spec) -> None:
                           f"{setup.order} numbers (got {noise.size})")
 
 
+def portable_device(args, spec, source):
+    """`spec` where its device may run here: a config file's `simulation.device = "gpu"` on a
+    machine without an accelerator is a preference of the run it was written for (a gains.json
+    of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
+    note on stderr. A device typed on the command line is left to `choose_device`, which
+    refuses one that is not here."""
+    import sys
+
+    from dscjax import device
+
+    if getattr(args, "device", None) or spec.device != "gpu":
+        return spec
+    if any(d.platform != "cpu" for d in device.visible()):
+        return spec
+    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {source}: no GPU here; "
+          f"running on the CPU", file=sys.stderr)
+    return spec.replace(device="auto")
+
+
 def choose_device(args, kind: str, rows: int = 1):
     """Where a command's work runs (`dscjax.device.choose` of `kind`, --device or
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
@@ -339,6 +358,7 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
         raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
+    spec = portable_device(args, spec, args.config)
     check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(

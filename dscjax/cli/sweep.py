@@ -33,6 +33,7 @@ from dscjax.cli.common import (
     finite_float,
     flag,
     horizon_text,
+    portable_device,
     prepare_out,
     print_config,
 )
@@ -144,6 +145,7 @@ def load(args):
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
     options = apply_run_options(args, options)
+    options = portable_device(args, options, args.config)
     settings = settings_from_dict(sweep_table, SweepSettings())
     changes = {}
     if args.grid:
