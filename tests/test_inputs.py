@@ -361,3 +361,17 @@ def test_a_number_in_quotes_is_named_a_string(command, text, wanted, tmp_path, c
     cfg.write_text(text)
     err = _refused(capsys, [command, "--config", str(cfg)], tmp_path / "o")
     assert err == f"dscjax {command}: error: {wanted}"
+
+
+# -- issue 38 item 7e: a directory given as a config file ------------------------------------
+
+
+@pytest.mark.parametrize("name", ["results", "results.toml"])  # (a suffix makes no file)
+@pytest.mark.parametrize("argv", [["simulate", "--config"], ["sweep", "--config"],
+                                  ["sweep", "--gains"], ["sensitivity", "--config"]])
+def test_a_directory_given_as_a_config_is_named_as_such(argv, name, tmp_path, capsys):
+    folder = tmp_path / name
+    folder.mkdir()
+    err = _refused(capsys, [*argv, str(folder)], tmp_path / "o")
+    assert err == (f"dscjax {argv[0]}: error: {argv[1]}: {str(folder)!r} is a directory (give "
+                   f"a .toml or .json file)")

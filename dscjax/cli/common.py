@@ -353,7 +353,7 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
     from dscjax.validation import validate_setup
 
     base = example_setup(args)
-    raw = config.read(args.config) if args.config else {}
+    raw = config.read(args.config, "--config") if args.config else {}
     for name in ignore:
         raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)

@@ -137,7 +137,7 @@ def load(args):
     from dscjax.sweep import SweepSettings, settings_from_dict
     from dscjax.validation import ConfigError, validate_setup
 
-    raw = config.read(args.config) if args.config else {}
+    raw = config.read(args.config, "--config") if args.config else {}
     sweep_table = raw.pop("sweep", {})
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
@@ -192,7 +192,7 @@ def _gains(args, setup, options, config_loop: dict):
     from dscjax.runspec import OPTIONS, RunSpec
     from dscjax.validation import ConfigError
 
-    gains = config.read(args.gains)
+    gains = config.read(args.gains, "--gains")
     if not isinstance(gains.get("controller"), dict):
         raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains file")
     setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
