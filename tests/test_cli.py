@@ -258,3 +258,38 @@ def test_simulate_says_the_effort_and_whether_the_loop_chatters(delayed_runs, na
         assert m["linf_error_window"] < 0.01
     else:
         assert index < 1.1
+
+
+def test_simulate_float32_is_rechecked_in_float64_and_says_what_it_cannot_be_trusted_with(
+        tmp_path, capsys):
+    """Issue 38 item 7a: the chattering loop in float32; the reference is the same loop (the
+    float32 numbers) run here in float64."""
+    import dscjax
+    from dscjax.params import cast
+
+    cfg = tmp_path / "gains.toml"
+    cfg.write_text(f"[controller]\nk = {CHATTER_K}\n")
+    out = tmp_path / "f32"
+    assert main(["simulate", "--config", str(cfg), *SAMPLED_DELAY, "--float32",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    m = json.loads((out / "metrics.json").read_text())
+    setup = dscjax.params.set(dscjax.paper_example(), "controller.k", np.array([30.0, 5.0]))
+    ref = dscjax.simulate(cast(cast(setup, np.float32), np.float64), throw=False,
+                          spec=dscjax.RunSpec.make(3.0, 1e-3, sample_time=1e-3, delay=1,
+                                                   save_every=3000))
+    check = m["float32_check"]
+    untrusted = []
+    for name, value in ref.metrics.items():
+        r = float(value)
+        assert check["float64"][name] == pytest.approx(r, rel=1e-12), name
+        diff = abs(m[name] - r) / abs(r)
+        assert check["rel_diff"][name] == pytest.approx(diff, rel=1e-9, abs=1e-15), name
+        if diff > 1e-3:
+            untrusted.append(name)
+    assert "tv_u_window" in untrusted and "max_abs_u" not in untrusted  # the limit cycle's
+    assert sorted(check["untrusted"]) == sorted(untrusted) and check["rtol"] == 1e-3
+    worst = max(check["rel_diff"][n] for n in check["untrusted"])
+    line = (f"float32 cannot be trusted with {', '.join(check['untrusted'])}: they differ from "
+            f"float64 by up to {100 * worst:.3g} % (tolerance 0.1 %); rerun without --float32")
+    assert f"dscjax simulate: warning: {line}\n" in err and m["warnings"] == [line]

@@ -196,19 +196,36 @@ def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
     runs = simulate_rows(setup, result, rows, save_every=result.info["n_steps"],
                          ranges_params=ranges_params, dtype="float64")
     c = result.columns
-    diff, where = {}, {}
-    for m in METRICS:
-        worst, at = 0.0, None
-        for i, tr in zip(rows, runs, strict=True):
-            a, ref = float(c[m][i]), float(tr.metrics[m])
-            d = (abs(a - ref) / max(abs(ref), 1e-30) if np.isfinite(a) and np.isfinite(ref)
-                 else (0.0 if np.isnan(a) and np.isnan(ref) else np.inf))
-            if at is None or d > worst:
-                worst, at = d, int(c["sample"][i])
-        diff[m], where[m] = worst, at
+    trust = float32_trust({m: [c[m][i] for i in rows] for m in METRICS},
+                          {m: [tr.metrics[m] for tr in runs] for m in METRICS}, rtol)
     return {"rows": [int(c["sample"][i]) for i in rows], "rtol": rtol,
-            "max_rel_diff": diff, "at_sample": where,
-            "untrusted": [m for m in METRICS if not diff[m] <= rtol]}
+            "max_rel_diff": trust["max_rel_diff"],
+            "at_sample": {m: int(c["sample"][rows[j]]) for m, j in trust["at"].items()},
+            "untrusted": trust["untrusted"]}
+
+
+def float32_trust(got: Mapping[str, Sequence[float]], reference: Mapping[str, Sequence[float]],
+                  rtol: float = FLOAT32_RTOL) -> dict[str, Any]:
+    """The one float32 check (sweeps, `simulate --float32`, `sensitivity --float32`): per
+    name, the largest relative difference |a - r| / |r| of the float32 values `got` from
+    their float64 `reference` (0 where both are NaN, no value: a diverged run, a null
+    sensitivity; inf where only one is), the index where it is largest ("at"), and the names
+    whose sign flips on some index (a r < 0). A name above `rtol` or whose sign flips is
+    "untrusted"; the order is `got`'s."""
+    diff, at, flips = {}, {}, []
+    for name, values in got.items():
+        a = np.asarray(values, np.float64).reshape(-1)
+        r = np.asarray(reference[name], np.float64).reshape(-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.where(np.isfinite(a) & np.isfinite(r),
+                         np.abs(a - r) / np.maximum(np.abs(r), 1e-30),
+                         np.where(np.isnan(a) & np.isnan(r), 0.0, np.inf))
+        j = int(np.argmax(d))  # the first of the largest
+        diff[name], at[name] = float(d[j]), j
+        if np.any(a * r < 0):
+            flips.append(name)
+    return {"rtol": rtol, "max_rel_diff": diff, "at": at, "sign_flips": flips,
+            "untrusted": [n for n in got if not diff[n] <= rtol or n in flips]}
 
 
 def _cell(x) -> str:
