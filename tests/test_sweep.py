@@ -535,3 +535,17 @@ def test_a_gains_file_is_swept_in_the_loop_it_was_tuned_as(tmp_path, capsys):
             f"both)") in capsys.readouterr().err
     _, options, _ = load(parse(["sweep", "--gains", str(gains), "--sample-time", "0.003"]))
     assert (options.sample_time, options.delay) == (0.003, 1)
+
+
+def test_the_float32_check_flags_differences_sign_flips_and_lone_nans():
+    got = {"a": [1.0, 2.0005], "b": [0.5, -0.25], "c": [np.nan, 1.0], "d": [np.nan, 3.0],
+           "e": [4.0, 5.0]}
+    ref = {"a": [1.0, 2.0], "b": [0.5, 0.25], "c": [np.nan, 1.0], "d": [1.0, 3.0],
+           "e": [4.004, 5.0]}
+    trust = sweep.float32_trust(got, ref)
+    assert trust["rtol"] == 1e-3
+    assert trust["max_rel_diff"] == {"a": pytest.approx(2.5e-4), "b": 2.0, "c": 0.0,
+                                     "d": np.inf, "e": pytest.approx(0.004 / 4.004)}
+    assert trust["at"] == {"a": 1, "b": 1, "c": 0, "d": 0, "e": 0}
+    assert trust["sign_flips"] == ["b"] and trust["untrusted"] == ["b", "d"]
+    assert sweep.float32_trust(got, ref, rtol=1e-4)["untrusted"] == ["a", "b", "d", "e"]

@@ -182,7 +182,7 @@ def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
 
 def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
                   ranges_params: Sequence[Param] | None = None,
-                  rtol: float = FLOAT32_RTOL) -> dict[str, Any] | None:
+                  rtol: float | None = None) -> dict[str, Any] | None:
     """Which metrics a float32 sweep can be trusted with: `rows` re-run in float64
     (`simulate_rows`), and per metric the largest relative difference of the swept float32
     value from the float64 one. A metric above `rtol` on any row is listed in "untrusted".
@@ -198,20 +198,21 @@ def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
     c = result.columns
     trust = float32_trust({m: [c[m][i] for i in rows] for m in METRICS},
                           {m: [tr.metrics[m] for tr in runs] for m in METRICS}, rtol)
-    return {"rows": [int(c["sample"][i]) for i in rows], "rtol": rtol,
+    return {"rows": [int(c["sample"][i]) for i in rows], "rtol": trust["rtol"],
             "max_rel_diff": trust["max_rel_diff"],
             "at_sample": {m: int(c["sample"][rows[j]]) for m, j in trust["at"].items()},
             "untrusted": trust["untrusted"]}
 
 
 def float32_trust(got: Mapping[str, Sequence[float]], reference: Mapping[str, Sequence[float]],
-                  rtol: float = FLOAT32_RTOL) -> dict[str, Any]:
+                  rtol: float | None = None) -> dict[str, Any]:
     """The one float32 check (sweeps, `simulate --float32`, `sensitivity --float32`): per
     name, the largest relative difference |a - r| / |r| of the float32 values `got` from
     their float64 `reference` (0 where both are NaN, no value: a diverged run, a null
     sensitivity; inf where only one is), the index where it is largest ("at"), and the names
     whose sign flips on some index (a r < 0). A name above `rtol` or whose sign flips is
-    "untrusted"; the order is `got`'s."""
+    "untrusted"; the order is `got`'s. `rtol` default: FLOAT32_RTOL."""
+    rtol = FLOAT32_RTOL if rtol is None else rtol
     diff, at, flips = {}, {}, []
     for name, values in got.items():
         a = np.asarray(values, np.float64).reshape(-1)
