@@ -509,11 +509,15 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
 SUFFIXES = (".toml", ".json")
 
 
-def read(path: str | Path) -> dict:
+def read(path: str | Path, option: str | None = None) -> dict:
     """The tables of a .toml (or .json) file, not yet interpreted; ConfigError if unreadable,
-    of another format, or if it gives a key twice (`duplicate key 'controller.k' in FILE`:
-    TOML forbids it, and JSON's last-one-wins would hide a mistake)."""
+    a directory, of another format, or if it gives a key twice (`duplicate key 'controller.k'
+    in FILE`: TOML forbids it, and JSON's last-one-wins would hide a mistake). `option`: how
+    the message names where the path came from (e.g. "--config")."""
     path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{option + ': ' if option else ''}{str(path)!r} is a directory "
+                          f"(give a .toml or .json file)")
     suffix = path.suffix.lower()
     if suffix not in SUFFIXES:
         raise ConfigError(f"{path}: configs are TOML (.toml) or JSON (.json) (got "

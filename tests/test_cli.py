@@ -34,14 +34,12 @@ def test_print_config_round_trips(tmp_path, capsys):
     assert "alpha = 2.0" in capsys.readouterr().out
 
 
-def test_variant_and_float32_flags(tmp_path):
+def test_variant_flag(tmp_path):
     out = tmp_path / "v"
-    assert main(["simulate", "--t-final", "1", "--variant", "no_dhat", "--float32",
-                 "--save-every", "10", "--no-plot", "--out", str(out)]) == 0
+    assert main(["simulate", "--t-final", "1", "--variant", "no_dhat", "--save-every", "10",
+                 "--no-plot", "--out", str(out)]) == 0
     data = np.load(out / "trajectory.npz")
-    assert data["x"].dtype == np.float32 and data["x"].shape == (101, 2)
-    assert np.all(data["d_hat"] == 0.0)
-    assert json.loads((out / "metrics.json").read_text())["dtype"] == "float32"
+    assert data["x"].shape == (101, 2) and np.all(data["d_hat"] == 0.0)
 
 
 def test_diverged_simulation_writes_null_metrics_not_zeros(tmp_path, capsys):
@@ -191,3 +189,106 @@ def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(
     off, on = out.stdout.split()
     assert off in ("None", "''") and on == repr(str(tmp_path / "dscjax" / "jax"))
     assert (tmp_path / "dscjax" / "jax").is_dir()
+
+
+# -- issue 38 item 2: effort in simulate's verdict --------------------------------------------
+
+# High gains behind a one-sample input delay at 1 kHz: a limit cycle of u (chattering) that
+# tracks well; the paper's gains in the same loop (one compiled program: the gains are traced).
+CHATTER_K, PAPER_K = "[30.0, 5.0]", "[10.0, 0.45]"
+SAMPLED_DELAY = ["--sample-time", "0.001", "--delay", "1", "--t-final", "3", "--no-plot"]
+
+
+@pytest.fixture(scope="module")
+def delayed_runs(tmp_path_factory):
+    """{name: (trajectory.npz, metrics.json, stdout)} of the two loops."""
+    import contextlib
+    import io
+
+    out = {}
+    for name, k in (("chatter", CHATTER_K), ("paper", PAPER_K)):
+        d = tmp_path_factory.mktemp(name)
+        cfg = d / "gains.toml"
+        cfg.write_text(f"[controller]\nk = {k}\n")
+        text = io.StringIO()
+        with contextlib.redirect_stdout(text), contextlib.redirect_stderr(io.StringIO()):
+            assert main(["simulate", "--config", str(cfg), *SAMPLED_DELAY,
+                         "--out", str(d / "o")]) == 0
+        out[name] = (dict(np.load(d / "o" / "trajectory.npz")),
+                     json.loads((d / "o" / "metrics.json").read_text()), text.getvalue())
+    return out
+
+
+def _effort_numpy(t, u, t0, tau=0.02):
+    """max|u|, TV(u) on t >= t0 and TV(u) / TV(u low-passed) there, from the saved samples:
+    u through v_k = v_(k-1) + (1 - exp(-dt/tau)) (u_k - v_(k-1)), v_0 = u_0 (docs/numerics.md)."""
+    v = np.empty_like(u)
+    v[0] = u[0]
+    a = -np.expm1(-np.diff(t) / tau)
+    for k in range(1, len(u)):
+        v[k] = v[k - 1] + a[k - 1] * (u[k] - v[k - 1])
+    steps = t[:-1] >= t0  # both ends of the step in the window
+    tv = np.abs(np.diff(u))[steps].sum()
+    return np.abs(u[t >= t0]).max(), tv, tv / np.abs(np.diff(v))[steps].sum()
+
+
+EFFORT = re.compile(r"effort on \[1, 3\] s: max\|u\| ([\d.,e+-]+), TV\(u\) ([\d.,e+-]+), "
+                    r"(CHATTERING|no chattering) \(index ([\d.,e+-]+) (>|<=) 1\.5")
+
+
+@pytest.mark.parametrize(("name", "verdict"), [("chatter", "CHATTERING"),
+                                               ("paper", "no chattering")])
+def test_simulate_says_the_effort_and_whether_the_loop_chatters(delayed_runs, name, verdict):
+    data, m, out = delayed_runs[name]
+    assert np.all(np.diff(data["t"]) > 0) and data["t"].shape == (3001,)  # every step saved
+    u_max, tv, index = _effort_numpy(data["t"], data["u"], 1.0)
+    assert m["max_abs_u_window"] == pytest.approx(u_max, rel=1e-12)
+    assert m["tv_u_window"] == pytest.approx(tv, rel=1e-9)
+    assert m["chattering_index"] == pytest.approx(index, rel=1e-9)
+    line = next(line for line in out.splitlines() if "L-inf error on [1, 3] s" in line)
+    found = EFFORT.search(line)
+    assert found is not None, line
+    shown = [float(found[i].replace(",", "")) for i in (1, 2, 4)]
+    assert shown == pytest.approx([u_max, tv, index], rel=5e-4)  # 4 digits, or whole
+    assert found[3] == verdict and found[5] == (">" if verdict == "CHATTERING" else "<=")
+    if verdict == "CHATTERING":  # the limit cycle: tracks, yet u switches at the sample rate
+        assert line.endswith("; docs/numerics.md)") and index > 10
+        assert m["linf_error_window"] < 0.01
+    else:
+        assert index < 1.1
+
+
+def test_simulate_float32_is_rechecked_in_float64_and_says_what_it_cannot_be_trusted_with(
+        tmp_path, capsys):
+    """Issue 38 item 7a: the chattering loop in float32; the reference is the same loop (the
+    float32 numbers) run here in float64."""
+    import dscjax
+    from dscjax.params import cast
+
+    cfg = tmp_path / "gains.toml"
+    cfg.write_text(f"[controller]\nk = {CHATTER_K}\n")
+    out = tmp_path / "f32"
+    assert main(["simulate", "--config", str(cfg), *SAMPLED_DELAY, "--float32",
+                 "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["dtype"] == "float32" and np.load(out / "trajectory.npz")["x"].dtype == np.float32
+    setup = dscjax.params.set(dscjax.paper_example(), "controller.k", np.array([30.0, 5.0]))
+    ref = dscjax.simulate(cast(cast(setup, np.float32), np.float64), throw=False,
+                          spec=dscjax.RunSpec.make(3.0, 1e-3, sample_time=1e-3, delay=1,
+                                                   save_every=3000))
+    check = m["float32_check"]
+    untrusted = []
+    for name, value in ref.metrics.items():
+        r = float(value)
+        assert check["float64"][name] == pytest.approx(r, rel=1e-12), name
+        diff = abs(m[name] - r) / abs(r)
+        assert check["rel_diff"][name] == pytest.approx(diff, rel=1e-9, abs=1e-15), name
+        if diff > 1e-3:
+            untrusted.append(name)
+    assert "tv_u_window" in untrusted and "max_abs_u" not in untrusted  # the limit cycle's
+    assert sorted(check["untrusted"]) == sorted(untrusted) and check["rtol"] == 1e-3
+    worst = max(check["rel_diff"][n] for n in check["untrusted"])
+    line = (f"float32 cannot be trusted with {', '.join(check['untrusted'])}: they differ from "
+            f"float64 by up to {100 * worst:.3g} % (tolerance 0.1 %); rerun without --float32")
+    assert f"dscjax simulate: warning: {line}\n" in err and m["warnings"] == [line]

@@ -281,3 +281,71 @@ def test_a_tuned_scale_multiplies_the_vector():
     tuned = sel.apply(setup, {**z, "controller.k*": jnp.log(2.5)})
     np.testing.assert_allclose(tuned.controller.k, 2.5 * np.asarray(setup.controller.k),
                                rtol=1e-15)
+
+
+# -- issue 38 item 7f: what each model does with the first input, at t = 0 ---------------------
+
+# x(0) = (0.5, 0.1): the law's first input is u(0) = -1.71, which drags most plays from z0
+START = {"plant.x0": np.array([0.5, 0.1])}
+FIRST = {"paper": {"hysteresis.w0": 0.3}, "bouc_wen": {"hysteresis.h0": 0.2},
+         "pi": {"hysteresis.z0": 0.2}, "gpi": {"hysteresis.z0": 0.2}}
+
+
+def _start(name, **sampled):
+    """(u(0), w(0), u_0 held by a sampled controller, its w) of the example `name` from rest
+    at START: the closed loop's own initial state and output, evaluated eagerly."""
+    import jax.numpy as jnp
+
+    from dscjax import closed_loop as cl
+    from dscjax.simulate import canonical
+
+    setup = cl.prepared(canonical(params.set_many(example(name), START | FIRST[name])))
+    X0 = cl.initial_state(setup)
+    _, obs = cl.vector_field(jnp.zeros(()), X0, setup)
+    held = cl.sampled_initial_state(setup, cl.Sampling(every=1.0, **sampled), 1e-3)
+    w_held = setup.hysteresis.output(held.u, held.h)
+    return setup, float(obs.u), float(obs.w), float(held.u), float(w_held)
+
+
+def _play_outputs(setup, u, z0):
+    """max(lo(u) - r, min(hi(u) + r, z0)) in NumPy: the plays dragged from z0 to u at once."""
+    h = setup.hysteresis
+    r = np.asarray(h.r)
+    if h.kind == "gpi":
+        lo, hi = (a * np.tanh(b * u + c) + d for a, b, c, d in
+                  (np.asarray(h.envelope_left), np.asarray(h.envelope_right)))
+    else:
+        lo = hi = u
+    return np.maximum(lo - r, np.minimum(hi + r, z0))
+
+
+@pytest.mark.parametrize("name", ["paper", "bouc_wen", "pi", "gpi"])
+def test_the_first_input_at_t0_is_what_docs_hysteresis_says(name):
+    setup, u0, w0, u_held, w_held = _start(name)
+    h = setup.hysteresis
+    assert u0 == pytest.approx(-1.7125, abs=1e-4)
+    if name == "paper":  # w(0) = w0, whatever u(0)
+        assert w0 == 0.3
+    elif name == "bouc_wen":  # h(0) = h0: w(0) = a u(0) + b h0
+        assert w0 == pytest.approx(float(h.a) * u0 + float(h.b) * 0.2, rel=1e-14)
+    else:  # the plays dragged from z0 to u(0): w(0) = p0 u(0) + sum p_j z_j(0)
+        z = _play_outputs(setup, u0, 0.2)
+        assert 0 < np.sum(z != 0.2) < len(z)  # some plays dragged, some not
+        assert w0 == pytest.approx(float(h.p0) * u0 + np.sum(np.asarray(h.p) * z), rel=1e-14)
+    # the sampled controller's first sample holds u(0) itself: no jump at t = 0 (the
+    # backlash's closed form from u(0) to u(0), to round-off)
+    assert u_held == u0 and w_held == pytest.approx(w0, rel=1e-13)
+
+
+def test_a_noisy_first_sample_moves_the_backlash_along_its_curve():
+    setup, u0, w0, u_held, w_held = _start("paper", noise=0.05, seed=3.0)
+    h = setup.hysteresis
+    alpha, lam, psi = (float(x) for x in (h.alpha, h.lam, h.psi))
+    assert abs(u_held - u0) > 0.1 and abs(w_held - w0) > 1e-3  # it read a noisy x
+    s = np.sign(u_held - u0)  # eqs. (5)-(6) from (u(0), w0) to the sampled input
+    decay = np.exp(-alpha * s * (u_held - u0))
+    d1 = (w0 - lam * u0) * decay + (psi - lam) / (alpha * s) * (1 - decay)
+    assert w_held == pytest.approx(lam * u_held + d1, rel=1e-12)
+    # with a one-sample delay the actuator holds the noise-free u(0) for the first sample
+    _, _, _, u_late, w_late = _start("paper", noise=0.05, seed=3.0, delay=1)
+    assert u_late == u0 and w_late == pytest.approx(w0, rel=1e-13)

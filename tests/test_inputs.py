@@ -112,8 +112,8 @@ def test_work_that_cannot_fit_in_memory_is_refused_with_the_estimate(monkeypatch
                                                                      capsys):
     monkeypatch.setattr(validation, "available_memory", lambda: 2**30)
     err = _refused(capsys, ["sweep", "--samples", "1e8", "--t-final", "0.1"], tmp_path / "o")
-    assert err.endswith("the results table (100,000,000 samples x 19 columns) needs about "
-                        "14.2 GiB of memory, more than the 1 GiB available; use fewer "
+    assert err.endswith("the results table (100,000,000 samples x 22 columns) needs about "
+                        "16.4 GiB of memory, more than the 1 GiB available; use fewer "
                         "--samples, a shorter --t-final or a larger --dt")
     err = _refused(capsys, ["hysteresis", "--t-final", "1e5"], tmp_path / "o")
     assert "t, u and w at every step (2 amplitude(s)) needs about 3.73 GiB of memory, more " \
@@ -361,3 +361,17 @@ def test_a_number_in_quotes_is_named_a_string(command, text, wanted, tmp_path, c
     cfg.write_text(text)
     err = _refused(capsys, [command, "--config", str(cfg)], tmp_path / "o")
     assert err == f"dscjax {command}: error: {wanted}"
+
+
+# -- issue 38 item 7e: a directory given as a config file ------------------------------------
+
+
+@pytest.mark.parametrize("name", ["results", "results.toml"])  # (a suffix makes no file)
+@pytest.mark.parametrize("argv", [["simulate", "--config"], ["sweep", "--config"],
+                                  ["sweep", "--gains"], ["sensitivity", "--config"]])
+def test_a_directory_given_as_a_config_is_named_as_such(argv, name, tmp_path, capsys):
+    folder = tmp_path / name
+    folder.mkdir()
+    err = _refused(capsys, [*argv, str(folder)], tmp_path / "o")
+    assert err == (f"dscjax {argv[0]}: error: {argv[1]}: {str(folder)!r} is a directory (give "
+                   f"a .toml or .json file)")

@@ -8,6 +8,7 @@ the tests through identical shapes and settings (float64, chunk 8, alpha/lam/psi
 import dataclasses
 import json
 import os
+import re
 import subprocess
 import sys
 import textwrap
@@ -425,3 +426,126 @@ def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
     assert (summary["n_tracked"], summary["n_refined"], summary["n_diverged"]) == (3, 1, 0)
     assert "after refinement (a numerically stiff run re-done with ETDRK4 at a smaller step): 1"\
         in captured.out
+
+
+# -- issue 38: effort and chattering in every verdict; a gains file sweeps its own loop -------
+
+# a sampled controller with a one-sample input delay, 2 s (every step saved in the traces): at
+# k_1 = 30 the gains chatter (a limit cycle at the sample rate), at k_1 = 10 they do not; one
+# compiled block program serves both tests below (the gains and Ts are traced)
+DELAYED = ["--sample-time", "0.001", "--delay", "1", "--t-final", "2", "--no-plot"]
+
+
+def _chattering_numpy(t, u, t0, tau=0.02):
+    """TV(u) on t >= t0 over that of u low-passed (v_k = v_(k-1) + (1 - e^(-dt/tau))
+    (u_k - v_(k-1)), v_0 = u_0): the index of docs/numerics.md, from saved samples."""
+    v = np.empty_like(u)
+    v[0] = u[0]
+    a = -np.expm1(-np.diff(t) / tau)
+    for k in range(1, len(u)):
+        v[k] = v[k - 1] + a[k - 1] * (u[k] - v[k - 1])
+    steps = t[:-1] >= t0
+    tv = np.abs(np.diff(u))[steps].sum()
+    return tv, tv / np.abs(np.diff(v))[steps].sum()
+
+
+def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsys):
+    cfg = tmp_path / "k.toml"
+    cfg.write_text("[controller]\nk = [10.0, 5.0]\n")
+    out = tmp_path / "chat"
+    assert cli(["sweep", "--config", str(cfg), "--grid", "controller.k[0]=10:30:3", *DELAYED,
+                "--worst", "3", "--random", "0", "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert ("controller sampled every Ts = 0.001 s (zero-order hold, states advanced by "
+            "exponential-euler, input delay 1 sample(s))") in captured.err
+    with np.load(out / "results.npz") as z:
+        cols = {k: z[k] for k in z.files}
+    with np.load(out / "traces.npz") as z:
+        traces = {k: z[k] for k in z.files}
+    assert traces["t"].shape == (3, 2001) and not cols["diverged"].any()
+    # every row's TV(u) and chattering index against NumPy on its re-simulated trace; the
+    # limit cycle amplifies the round-off by which one run differs from a batch's row (XLA
+    # fuses them differently) into the third digit, the smooth rows agree to round-off
+    for j, sample in enumerate(traces["sample"]):
+        tv, index = _chattering_numpy(traces["t"][j], traces["u"][j], 1.0)
+        rel = 1e-9 if index < 1.5 else 1e-2
+        assert cols["tv_u_window"][sample] == pytest.approx(tv, rel=rel)
+        assert cols["chattering_index"][sample] == pytest.approx(index, rel=rel)
+    index = cols["chattering_index"]
+    assert index[0] < 1.5 < index[2]  # k_1 = 10 smooth, k_1 = 30 a limit cycle
+    count = int(np.sum(index > 1.5))
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["chattering"] == {"metric": "chattering_index", "above": 1.5,
+                                     "count": count, "rate": count / 3,
+                                     "definition": "docs/numerics.md"}
+    tv = summary["quantiles"]["tv_u_window"]
+    np.testing.assert_allclose([tv["p50"], tv["p95"], tv["max"]],
+                               np.quantile(cols["tv_u_window"], [0.5, 0.95, 1.0]), rtol=1e-12)
+    assert summary["run"]["loop"].startswith("controller sampled every Ts = 0.001 s")
+    line = next(x for x in captured.out.splitlines() if x.startswith("  effort on [1, 2] s"))
+    shown = [float(x.replace(",", "")) for x in re.findall(
+        r"median ([\d.,]+), p95 ([\d.,]+), max ([\d.,]+);", line)[0]]
+    np.testing.assert_allclose(shown, [tv["p50"], tv["p95"], tv["max"]], rtol=5e-4)
+    assert (f"  chattering (chattering index above 1.5; docs/numerics.md): {count} of 3 "
+            f"({100 * count / 3:.2f} %)") in captured.out
+    md = (out / "summary.md").read_text()
+    assert (f"- chattering (chattering index above 1.5, docs/numerics.md; diverged samples "
+            f"not counted): {count} ({100 * count / 3:.2f} %)") in md
+    assert "controller sampled every Ts = 0.001 s" in md.split("## Outcome")[0]
+
+
+def test_a_gains_file_is_swept_in_the_loop_it_was_tuned_as(tmp_path, capsys):
+    gains = tmp_path / "gains.json"
+    # as `dscjax tune` writes it: a whole config; the sampled controller's keys travel
+    gains.write_text(json.dumps({
+        "controller": {"k": [10.0, 0.45]},
+        "simulation": {"t_final": 7.0, "dt": 5e-4, "sample_time": 0.002, "delay": 1},
+        "hysteresis": {"alpha": 2.0}}))
+    out = tmp_path / "g"
+    assert cli(["sweep", "--gains", str(gains), "--samples", "3", "--t-final", "2",
+                "--no-plot", "--worst", "0", "--random", "0", "--out", str(out)]) == 0
+    err = capsys.readouterr().err
+    assert "controller sampled every Ts = 0.002 s" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["run"]["sample_time"] == 0.002 and summary["run"]["delay"] == 1
+    assert "controller sampled every Ts = 0.002 s" in (out / "summary.md").read_text()
+    with np.load(out / "results.npz") as z:
+        cols = {k: z[k] for k in z.files}
+    # each row is `dscjax.simulate` of its plant with the gains, sampled at 2 ms with the delay
+    spec = dscjax.RunSpec.make(2.0, 1e-3, sample_time=0.002, delay=1)
+    gains_setup = dscjax.params.set(dscjax.paper_example(), "controller.k",
+                                    np.array([10.0, 0.45]))
+    for i in range(3):
+        plant = dscjax.params.set_many(gains_setup, {
+            p: cols[p][i] for p in ("hysteresis.alpha", "hysteresis.lam", "hysteresis.psi")})
+        one = dscjax.simulate(plant, spec=spec, throw=False)
+        for m in sweep.METRICS:
+            assert cols[m][i] == pytest.approx(float(one.metrics[m]), rel=1e-9), m
+    # the command line overrides the gains file's loop; a config's loop gives way to it
+    from dscjax.cli.main import _available_commands, build_parser
+    from dscjax.cli.sweep import load
+
+    cfg = tmp_path / "c.toml"
+    cfg.write_text("[simulation]\nsample_time = 0.001\n")
+    parse = build_parser(_available_commands()).parse_args
+    _, options, _ = load(parse(["sweep", "--config", str(cfg), "--gains", str(gains)]))
+    assert (options.sample_time, options.delay, options.dt) == (0.002, 1, 1e-3)
+    assert (f"dscjax sweep: note: simulation.sample_time = 0.001 in {cfg} gives way to the gains "
+            f"file's 0.002 ({gains}: the loop the gains were tuned as; --sample-time overrides "
+            f"both)") in capsys.readouterr().err
+    _, options, _ = load(parse(["sweep", "--gains", str(gains), "--sample-time", "0.003"]))
+    assert (options.sample_time, options.delay) == (0.003, 1)
+
+
+def test_the_float32_check_flags_differences_sign_flips_and_lone_nans():
+    got = {"a": [1.0, 2.0005], "b": [0.5, -0.25], "c": [np.nan, 1.0], "d": [np.nan, 3.0],
+           "e": [4.0, 5.0]}
+    ref = {"a": [1.0, 2.0], "b": [0.5, 0.25], "c": [np.nan, 1.0], "d": [1.0, 3.0],
+           "e": [4.004, 5.0]}
+    trust = sweep.float32_trust(got, ref)
+    assert trust["rtol"] == 1e-3
+    assert trust["max_rel_diff"] == {"a": pytest.approx(2.5e-4), "b": 2.0, "c": 0.0,
+                                     "d": np.inf, "e": pytest.approx(0.004 / 4.004)}
+    assert trust["at"] == {"a": 1, "b": 1, "c": 0, "d": 0, "e": 0}
+    assert trust["sign_flips"] == ["b"] and trust["untrusted"] == ["b", "d"]
+    assert sweep.float32_trust(got, ref, rtol=1e-4)["untrusted"] == ["a", "b", "d", "e"]

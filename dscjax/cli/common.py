@@ -201,6 +201,25 @@ def check_noise(args, setup, spec) -> None:
                           f"{setup.order} numbers (got {noise.size})")
 
 
+def portable_device(args, spec, source):
+    """`spec` where its device may run here: a config file's `simulation.device = "gpu"` on a
+    machine without an accelerator is a preference of the run it was written for (a gains.json
+    of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
+    note on stderr. A device typed on the command line is left to `choose_device`, which
+    refuses one that is not here."""
+    import sys
+
+    from dscjax import device
+
+    if getattr(args, "device", None) or spec.device != "gpu":
+        return spec
+    if any(d.platform != "cpu" for d in device.visible()):
+        return spec
+    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {source}: no GPU here; "
+          f"running on the CPU", file=sys.stderr)
+    return spec.replace(device="auto")
+
+
 def choose_device(args, kind: str, rows: int = 1):
     """Where a command's work runs (`dscjax.device.choose` of `kind`, --device or
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
@@ -225,6 +244,31 @@ def use_device(args, kind: str, rows: int = 1):
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
+
+
+def figure(x: float) -> str:
+    """A measured number for a results line: 4 significant digits, whole numbers with
+    thousands separators from 10,000 on (a TV(u) of 19,408, not 1.941e+04)."""
+    return f"{x:,.0f}" if abs(x) >= 1e4 else f"{x:.4g}"
+
+
+def chattering_text(index: float) -> str:
+    """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
+    docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
+    (index 1.04 <= 1.5)"."""
+    from dscjax.metrics import CHATTER_RATIO, chatters
+
+    if chatters(index):
+        return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
+    return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
+
+
+def effort_text(metrics, window: str) -> str:
+    """The effort part of a run's verdict: "effort on [t0, T] s: max|u| 6.29, TV(u) 19,408,
+    CHATTERING (...)", from its metrics (`max_abs_u_window`, `tv_u_window`,
+    `chattering_index`)."""
+    return (f"effort on {window}: max|u| {figure(metrics['max_abs_u_window'])}, TV(u) "
+            f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
 
 
 def loop_sizes(setup) -> tuple[int, int, int]:
@@ -309,11 +353,12 @@ def load_setup(args, ignore: tuple[str, ...] = ()):
     from dscjax.validation import validate_setup
 
     base = example_setup(args)
-    raw = config.read(args.config) if args.config else {}
+    raw = config.read(args.config, "--config") if args.config else {}
     for name in ignore:
         raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
+    spec = portable_device(args, spec, args.config)
     check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(

@@ -1,8 +1,9 @@
 """`dscjax sensitivity`: d ln m / d ln p of a loop's metrics to every number of its controller,
 plant and hysteresis model, by reverse mode (`dscjax.sensitivity`).
 
-Writes DIR/sensitivity.json ({metric: {path: value}}, null where the number is 0) and
-DIR/sensitivity.png (a tornado chart per metric), and prints the table sorted by magnitude.
+Writes DIR/sensitivity.json ({metric: {path: value}}, null where the number is 0; with
+--float32 also "float32_check", the float64 re-check) and DIR/sensitivity.png (a tornado chart
+per metric), and prints the table sorted by magnitude.
 """
 
 from __future__ import annotations
@@ -86,6 +87,12 @@ def run(args) -> int:
     if args.print_config:
         print_config(setup, spec)
         return 0
+    # a number that is 0 has no d ln p (null): known before anything compiles
+    zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
+    if len(zero) == len(problem.columns):
+        raise ConfigError(f"{'--param' if args.paths else 'the loop'}: every number to "
+                          f"differentiate is 0, so none has a d ln p (got {_listed(zero)} = "
+                          f"0); give numbers that are not 0")
     steps, rows = spec.n_steps, max(args.batch, 1)
     what = horizon_text(spec.t_final, float(spec.dt), steps)
     work = validation.Work(steps=2 * steps, member_steps=2 * steps * rows)
@@ -104,23 +111,94 @@ def run(args) -> int:
           file=sys.stderr)
     for w in warnings:
         print(f"dscjax sensitivity: warning: {w}", file=sys.stderr)
+    if zero:
+        are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
+        print(f"dscjax sensitivity: note: {len(zero)} of the {d} numbers {are} no d ln p "
+              f"(null in sensitivity.json): {_listed(zero)}", file=sys.stderr)
+    t0 = time.perf_counter()
     with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
-        t0 = time.perf_counter()
         bar.update_to(0, "compiling the loop and its reverse pass")
         jacobian = problem.compile()
-        t1 = time.perf_counter()
+    t1 = time.perf_counter()
+    # the run is timed on its own: the compilation's time says nothing of it (no ETA from it)
+    with Progress(2, desc="  sensitivity", unit="stage", initial=1, elapsed=t1 - t0,
+                  every_s=0.0) as bar:
         bar.update_to(1, f"compiled in {t1 - t0:.1f} s; running")
         result = problem.result(jacobian())
         t2 = time.perf_counter()
         bar.update_to(2, f"forward and {len(metrics)} reverse pass(es) in {t2 - t1:.2f} s")
     values = result.values
-    files.write_json(out / "sensitivity.json", values)
+    f32 = None
+    if spec.dtype == "float32":
+        print("  re-checking in float64 (which values float32 can be trusted with) ...",
+              file=sys.stderr)
+        f32, untrusted = _float64_check(problem, result, args.paths)
+    files.write_json(out / "sensitivity.json",
+                     values if f32 is None else values | {"float32_check": f32})
     _print_table(result)
     if not args.no_plot:
         _plot(result, out / "sensitivity.png", title=_title(setup, spec, args))
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
+    if f32 is not None and untrusted:
+        print(f"dscjax sensitivity: warning: {untrusted}", file=sys.stderr)
     return 0
+
+
+def _listed(names, most: int = 6) -> str:
+    """names joined, at most `most` of them and how many more."""
+    shown = ", ".join(names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
+    """The float32 sensitivities against the same problem (the float32 numbers) in float64:
+    `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
+    ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
+    sensitivity.json records and the warning (None if every value is trusted)."""
+    from dscjax.params import cast
+    from dscjax.sensitivity import Problem
+    from dscjax.simulate import DivergenceError
+    from dscjax.sweep.summary import float32_trust
+
+    f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
+                       paths, problem.metrics, problem.overrides, problem.lp_order)
+    try:
+        ref = f64.result(f64.jacobian())
+        value, normalised = ref.value, ref.normalised
+    except DivergenceError:  # no float64 reference: nothing of float32's can be trusted
+        value = np.full(len(result.metrics), np.nan)
+        normalised = np.full(result.normalised.shape, np.nan)
+
+    def named(v, n):
+        out = {m: float(v[i]) for i, m in enumerate(result.metrics)}
+        return out | {f"{m} / {p}": float(n[i, j]) for i, m in enumerate(result.metrics)
+                      for j, p in enumerate(result.names)}
+
+    got, want = named(result.value, result.normalised), named(value, normalised)
+    trust = float32_trust({k: [v] for k, v in got.items()}, {k: [v] for k, v in want.items()})
+    check = {"rtol": trust["rtol"],
+             "float64": {k: (None if np.isnan(v) else v) for k, v in want.items()},
+             "rel_diff": trust["max_rel_diff"], "sign_flips": trust["sign_flips"],
+             "untrusted": trust["untrusted"]}
+    if not trust["untrusted"]:
+        return check, None
+
+    def why(name):
+        if name in trust["sign_flips"]:
+            return f"{got[name]:+.3g} against {want[name]:+.3g}"
+        if np.isnan(got[name]) or np.isnan(want[name]):
+            return f"{got[name]:.3g} against {want[name]:.3g}"  # one has no value (nan)
+        return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
+
+    # sign flips first, then the largest differences
+    bad = sorted(trust["untrusted"], key=lambda n: (n not in trust["sign_flips"],
+                                                    -trust["max_rel_diff"][n]))
+    shown = [f"{n} ({why(n)})" for n in bad]
+    return check, (f"float32 cannot be trusted with {len(bad)} of the {len(got)} values "
+                   f"(float64 differs by more than {100 * trust['rtol']:g} % or has the other "
+                   f"sign): {_listed(shown, 8)} (sensitivity.json: float32_check); rerun "
+                   f"without --float32")
 
 
 def _order(result) -> np.ndarray:

@@ -14,6 +14,7 @@ from dscjax.cli.common import (
     add_out_arg,
     add_overwrite_arg,
     choose_device,
+    effort_text,
     horizon_text,
     load_setup,
     loop_sizes,
@@ -94,7 +95,9 @@ def run(args) -> int:
     print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
           f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
           f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}"
-          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold)"
+          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold"
+             + (f", input delay {options.delay} sample(s)" if options.delay else "")
+             + (", measurement noise" if options.noise is not None else "") + ")"
              if options.sampled else "") + f"; on {choice}", file=sys.stderr)
     for w in warnings:
         print(f"dscjax simulate: warning: {w}", file=sys.stderr)
@@ -137,6 +140,13 @@ def run(args) -> int:
                                  if k not in ("t", "V")}
     write_npz(out / "trajectory.npz", {k: np.asarray(v) for k, v in arrays.items()})
     metrics = {k: float(v) for k, v in traj.metrics.items()}
+    f32 = None
+    if options.dtype == "float32" and diverged is None:
+        print("  re-checking the run in float64 (which metrics float32 can be trusted with) "
+              "...", file=sys.stderr)
+        f32 = _float64_check(setup, options, metrics)
+        if f32["untrusted"]:
+            warnings = [*warnings, _untrusted_text(f32, "rerun without --float32")]
     report = divergence_report(traj, float(options.state_bound))
     write_json(out / "metrics.json", {
         **metrics,
@@ -154,6 +164,7 @@ def run(args) -> int:
            if "V" in arrays else {}),
         "wall_time_s": elapsed,
         "warnings": warnings,
+        "float32_check": f32,
     })
     if not args.no_plot:
         from dscjax.plotting import plot_trajectory
@@ -174,13 +185,41 @@ def run(args) -> int:
         window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
               f"run {metrics['linf_error']:.4g}, from the initial error), L2 error "
-              f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}")
+              f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}; "
+              + effort_text(metrics, window))
     else:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
               f"were not measured (null in metrics.json)")
+    if f32 is not None and f32["untrusted"]:
+        print(f"dscjax simulate: warning: {warnings[-1]}", file=sys.stderr)
     if diverged is not None:
         raise diverged
     return 0
+
+
+def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
+    """The float32 run's metrics against the same loop in float64 (the float32 numbers, the
+    arithmetic in float64): `dscjax.sweep.float32_trust`, the check of a float32 sweep, with
+    the float64 values."""
+    from dscjax.params import cast
+    from dscjax.simulate import simulate
+    from dscjax.sweep.summary import float32_trust
+
+    ref = simulate(cast(setup, np.float64), throw=False,
+                   spec=options.replace(dtype="float64", save_every=options.n_steps))
+    float64 = {m: float(ref.metrics[m]) for m in metrics}
+    trust = float32_trust({m: [v] for m, v in metrics.items()},
+                          {m: [v] for m, v in float64.items()})
+    return {"rtol": trust["rtol"], "float64": float64, "rel_diff": trust["max_rel_diff"],
+            "untrusted": trust["untrusted"]}
+
+
+def _untrusted_text(check: dict, fix: str) -> str:
+    """The warning of a float32 check with untrusted values (`_float64_check`)."""
+    worst = max(check["rel_diff"][m] for m in check["untrusted"])
+    return (f"float32 cannot be trusted with {', '.join(check['untrusted'])}: they differ "
+            f"from float64 by up to {100 * worst:.3g} % (tolerance {100 * check['rtol']:g} "
+            f"%); {fix}")
 
 
 PROGRESS_MIN_STEPS = 1_000_000  # a run of at least this many steps shows progress

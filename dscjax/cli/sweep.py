@@ -24,12 +24,16 @@ from dscjax.cli.common import (
     add_run_args,
     apply_run_options,
     blame_options,
+    chattering_text,
     check_noise,
     choose_device,
     count,
     example_setup,
+    figure,
     finite_float,
+    flag,
     horizon_text,
+    portable_device,
     prepare_out,
     print_config,
 )
@@ -66,7 +70,10 @@ def add_parser(sub):
                    "example; may hold a [sweep] table")
     p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
                    "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
-                   "tune`; its other sections are ignored")
+                   "tune`, with the loop they were tuned as: its [simulation] keys of the "
+                   "sampled controller (sample_time, delay, noise, noise_seed, "
+                   "discretisation), which the options of the same names override; its other "
+                   "sections and keys are ignored")
     mode = p.add_mutually_exclusive_group()
     mode.add_argument("--samples", type=count(1), metavar="N", help=f"number of sampled plants "
                       f"(default {d.samples})")
@@ -130,21 +137,15 @@ def load(args):
     from dscjax.sweep import SweepSettings, settings_from_dict
     from dscjax.validation import ConfigError, validate_setup
 
-    raw = config.read(args.config) if args.config else {}
+    raw = config.read(args.config, "--config") if args.config else {}
     sweep_table = raw.pop("sweep", {})
     if not isinstance(sweep_table, dict):
         raise ConfigError("'sweep' must be a table ([sweep])")
     setup, options = config.from_dict(raw, base=example_setup(args))
-    options = apply_run_options(args, options)
     if args.gains:
-        # Only the gains: a gains.json of `dscjax tune` is a whole config, and its plant,
-        # hysteresis and [simulation] (horizon, dt) must not replace the sweep's.
-        gains = config.read(args.gains)
-        if not isinstance(gains.get("controller"), dict):
-            raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains "
-                              f"file")
-        setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
-                                    base_spec=options)
+        setup, options = _gains(args, setup, options, raw.get("simulation", {}))
+    options = apply_run_options(args, options)
+    options = portable_device(args, options, args.config)
     settings = settings_from_dict(sweep_table, SweepSettings())
     changes = {}
     if args.grid:
@@ -178,6 +179,43 @@ def load(args):
     validate_setup(setup)
     check_noise(args, setup, options)
     return setup, options, settings
+
+
+def _gains(args, setup, options, config_loop: dict):
+    """(setup, options) with the gains file's gains and the loop they were tuned as laid
+    over the config's: a gains.json of `dscjax tune` is a whole config, of which the sweep
+    takes the [controller] table and the sampled controller's [simulation] keys
+    (`SAMPLED_KEYS`: Ts, delay, noise, discretisation; absent ones at their defaults, so
+    gains tuned continuous are swept continuous); its plant, hysteresis and horizon are the
+    sweep's to choose. The command line still wins (`apply_run_options` afterwards)."""
+    from dscjax import config
+    from dscjax.runspec import OPTIONS, RunSpec
+    from dscjax.validation import ConfigError
+
+    gains = config.read(args.gains, "--gains")
+    if not isinstance(gains.get("controller"), dict):
+        raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains file")
+    setup, _ = config.from_dict({"controller": gains["controller"]}, base=setup,
+                                base_spec=options)
+    loop = gains.get("simulation")
+    if loop is None:  # gains alone: the config's loop
+        return setup, options
+    if not isinstance(loop, dict):
+        raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
+    for key in SAMPLED_KEYS:
+        value = loop.get(key, OPTIONS[key][0])
+        if key in config_loop and config_loop[key] != value:
+            print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
+                  f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
+                  f"loop the gains were tuned as; {flag(key)} overrides both)",
+                  file=sys.stderr)
+    # the config's run with a continuous controller, then the gains file's keys (checked)
+    continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),
+                              gradient=options.gradient)
+    given = {k: loop[k] for k in SAMPLED_KEYS if k in loop}
+    options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
+                                        for k in given}, **given)
+    return setup, options
 
 
 # the options that set a [sweep] key (the others are named after their key)
@@ -223,9 +261,12 @@ def sweep_toml(settings, setup) -> str:
 def work(setup, settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
+    from dscjax.sweep import METRICS
+    from dscjax.sweep.run import STATUS_COLUMNS
     from dscjax.validation import Work
 
-    n, columns = settings.n_samples(), len(ranges) + 16  # parameters, metrics, status
+    # the sample's number, its parameters, metrics and status
+    n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
     traces = 1 + settings.worst + settings.random  # re-simulated one after another
     return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
                 memory=8.0 * n * columns,
@@ -276,7 +317,8 @@ def run(args) -> int:
             for r in ranges)
         print(f"dscjax sweep: {n:,} {'grid points' if settings.method == 'grid' else 'samples'}"
               f" ({settings.method}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
-              f"dt={dt:g} s, {settings.dtype}; on {len(choice.devices)} device(s) "
+              f"dt={dt:g} s, {settings.dtype}, {sweep.loop_text(options.to_table())}; on "
+              f"{len(choice.devices)} device(s) "
               f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
               file=sys.stderr)
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
@@ -324,7 +366,7 @@ def run(args) -> int:
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
     summary["nominal_params"] = nominal_params
-    summary["run"] = info
+    summary["run"] = info | {"loop": sweep.loop_text(info)}
     summary["warnings"] = warnings
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
@@ -365,6 +407,17 @@ def run(args) -> int:
         print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
               f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
               f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
+    tv = summary["quantiles"]["tv_u_window"]
+    chat = summary["chattering"]
+    if tv is not None:
+        nom = ("" if bool(nominal.diverged) else
+               f"; nominal TV(u) {figure(nominal_metrics['tv_u_window'])}, "
+               + chattering_text(nominal_metrics["chattering_index"]))
+        print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
+              f"median {figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
+              f"max|u| max {figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
+    print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
+          f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
     smallest = summary["smallest_dt_tried"]
     print(f"  tracked: {summary['n_tracked']:,}; tracked after refinement (a numerically stiff "
           f"run re-done with ETDRK4 at a smaller step): {summary['n_refined']:,}; diverged "

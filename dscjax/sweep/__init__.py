@@ -32,7 +32,9 @@ from dscjax.sweep.settings import (
 from dscjax.sweep.summary import (
     FLOAT32_RTOL,
     check_rows,
+    float32_trust,
     float64_check,
+    loop_text,
     markdown,
     random_rows,
     rank_diverged,
@@ -44,7 +46,7 @@ from dscjax.sweep.summary import (
 )
 
 __all__ = ["AUTO_BLOCK", "FLOAT32_RTOL", "METRICS", "PARALLEL", "SweepResult", "SweepSettings",
-           "auto_chunk", "check_resumable", "check_rows", "check_settings", "float64_check",
-           "markdown", "random_rows",
-           "rank_diverged", "rank_worst", "run_sweep", "sample_record", "settings_from_dict",
-           "simulate_rows", "summarize", "trace_rows"]
+           "auto_chunk", "check_resumable", "check_rows", "check_settings", "float32_trust",
+           "float64_check", "loop_text", "markdown", "random_rows", "rank_diverged",
+           "rank_worst", "run_sweep", "sample_record", "settings_from_dict", "simulate_rows",
+           "summarize", "trace_rows"]

@@ -16,8 +16,11 @@ from dscjax import params, xla
 from dscjax.runspec import RunSpec
 from dscjax.simulate import level_spec, nan_if_diverged, refine_rows, refinement_level, run
 
+# the tracking error, and the effort with the chattering index (docs/numerics.md): every
+# verdict of a sweep says both
 METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rms_error",
-           "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w")
+           "rms_error_window", "max_abs_u", "l2_u", "tv_u", "max_abs_w", "max_abs_u_window",
+           "tv_u_window", "chattering_index")
 
 
 def _block_body(setup, spec, table, *, columns):

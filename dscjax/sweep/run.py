@@ -23,8 +23,9 @@ from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
 # 2: the metrics of diverged rows are NaN (were the frozen values); 3: rows that diverged are
-# re-run with ETDRK4 at smaller steps ("refinements", "dt_used")
-FORMAT_VERSION = 3
+# re-run with ETDRK4 at smaller steps ("refinements", "dt_used"); 4: the effort on the window
+# and the chattering index are columns (a chunk of 3 lacks them)
+FORMAT_VERSION = 4
 STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
 
 
@@ -207,7 +208,9 @@ def run_sweep(
                 n_steps=n_steps, dtype=settings.dtype, t_final=t_final, dt=dt,
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method, seed=settings.seed, solver=spec.solver.name,
-                refine=spec.refine, sample_time=spec.sample_time,
+                refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
+                noise=None if spec.noise is None else np.asarray(spec.noise, float).tolist(),
+                noise_seed=int(spec.noise_seed), discretisation=spec.discretisation,
                 ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
                 samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
                 steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)

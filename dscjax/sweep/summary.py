@@ -10,16 +10,35 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
+from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
+from dscjax.runspec import RunSpec
 from dscjax.simulate import simulate
 from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import SweepResult
 
+# the metrics of summary.md's table of the worst samples: tracking and effort on the window
+WORST_COLUMNS = ("linf_error_window", "rms_error_window", "tv_u_window", "chattering_index")
 QUANTILES = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
 # A float32 metric is trusted when, on every re-checked row, it agrees with the same row run in
 # float64 to this relative difference (`float64_check`).
 FLOAT32_RTOL = 1e-3
 MIN_CHECK_ROWS = 3  # a float32 sweep re-checks at least this many rows in float64
+
+
+def loop_text(run: Mapping[str, Any]) -> str:
+    """The controller's loop in words, from a sweep's "run" (or a RunSpec's `to_table()`):
+    "continuous controller" or "controller sampled every Ts = 0.002 s (zero-order hold, ...)"."""
+    ts = run.get("sample_time")
+    if ts is None:
+        return "continuous controller"
+    parts = ["zero-order hold", f"states advanced by {run.get('discretisation')}"]
+    if run.get("delay"):
+        parts.append(f"input delay {run['delay']} sample(s)")
+    if run.get("noise") is not None:
+        std = ", ".join(f"{x:g}" for x in np.atleast_1d(run["noise"]))
+        parts.append(f"measurement noise std {std}, seed {run.get('noise_seed')}")
+    return f"controller sampled every Ts = {ts:g} s ({', '.join(parts)})"
 
 
 def rank_worst(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
@@ -83,6 +102,12 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     }
     if nominal is not None:
         out["nominal"] = {k: float(v) for k, v in nominal.items()}
+    # the one chattering criterion (dscjax.metrics.chatters, row by row); NaN (diverged): no
+    chatter = ok & (np.asarray(c["chattering_index"], np.float64) > CHATTER_RATIO)
+    out["chattering"] = {"metric": "chattering_index", "above": CHATTER_RATIO,
+                         "count": int(chatter.sum()),
+                         "rate": float(chatter.mean()) if n else 0.0,
+                         "definition": "docs/numerics.md"}
     if threshold is not None:
         degraded = div | (lw > threshold)
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
@@ -119,22 +144,25 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
                   ranges_params: Sequence[Param] | None = None, dtype: str | None = None
                   ) -> list:
     """Full trajectories of chosen rows, re-simulated one at a time with `dscjax.simulate`
-    with the sweep's solver and refinement (throw=False: diverged ones come back frozen at
-    their last good state), in `dtype` (default the sweep's)."""
+    with the sweep's run (solver, refinement, the sampled controller's Ts, delay and noise;
+    throw=False: diverged ones come back frozen at their last good state), in `dtype`
+    (default the sweep's)."""
     info = result.info
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
     n_steps = info["n_steps"]
     every = max(1, min(save_every, n_steps))
+    spec = RunSpec.make(
+        info["t_final"], info["dt"], save_every=every, window_start=info["window_start"],
+        state_bound=info["state_bound"], solver=info.get("solver", "rk4"),
+        refine=info.get("refine", 0), sample_time=info.get("sample_time"),
+        delay=info.get("delay", 0), noise=info.get("noise"), noise_seed=info.get("noise_seed", 0),
+        discretisation=info.get("discretisation", "exponential-euler"))
     out = []
     for i in rows:
         row = np.array([result.columns[p][i] for p in result.param_names])
         s = params.set_row(setup, cols, row)
-        out.append(simulate(s, info["t_final"], info["dt"], save_every=every,
-                            window_start=info["window_start"],
-                            state_bound=info["state_bound"], throw=False,
-                            solver=info.get("solver", "rk4"), refine=info.get("refine", 0),
-                            sample_time=info.get("sample_time")))
+        out.append(simulate(s, spec=spec, throw=False))
     return out
 
 
@@ -154,7 +182,7 @@ def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
 
 def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
                   ranges_params: Sequence[Param] | None = None,
-                  rtol: float = FLOAT32_RTOL) -> dict[str, Any] | None:
+                  rtol: float | None = None) -> dict[str, Any] | None:
     """Which metrics a float32 sweep can be trusted with: `rows` re-run in float64
     (`simulate_rows`), and per metric the largest relative difference of the swept float32
     value from the float64 one. A metric above `rtol` on any row is listed in "untrusted".
@@ -168,19 +196,37 @@ def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
     runs = simulate_rows(setup, result, rows, save_every=result.info["n_steps"],
                          ranges_params=ranges_params, dtype="float64")
     c = result.columns
-    diff, where = {}, {}
-    for m in METRICS:
-        worst, at = 0.0, None
-        for i, tr in zip(rows, runs, strict=True):
-            a, ref = float(c[m][i]), float(tr.metrics[m])
-            d = (abs(a - ref) / max(abs(ref), 1e-30) if np.isfinite(a) and np.isfinite(ref)
-                 else (0.0 if np.isnan(a) and np.isnan(ref) else np.inf))
-            if at is None or d > worst:
-                worst, at = d, int(c["sample"][i])
-        diff[m], where[m] = worst, at
-    return {"rows": [int(c["sample"][i]) for i in rows], "rtol": rtol,
-            "max_rel_diff": diff, "at_sample": where,
-            "untrusted": [m for m in METRICS if not diff[m] <= rtol]}
+    trust = float32_trust({m: [c[m][i] for i in rows] for m in METRICS},
+                          {m: [tr.metrics[m] for tr in runs] for m in METRICS}, rtol)
+    return {"rows": [int(c["sample"][i]) for i in rows], "rtol": trust["rtol"],
+            "max_rel_diff": trust["max_rel_diff"],
+            "at_sample": {m: int(c["sample"][rows[j]]) for m, j in trust["at"].items()},
+            "untrusted": trust["untrusted"]}
+
+
+def float32_trust(got: Mapping[str, Sequence[float]], reference: Mapping[str, Sequence[float]],
+                  rtol: float | None = None) -> dict[str, Any]:
+    """The one float32 check (sweeps, `simulate --float32`, `sensitivity --float32`): per
+    name, the largest relative difference |a - r| / |r| of the float32 values `got` from
+    their float64 `reference` (0 where both are NaN, no value: a diverged run, a null
+    sensitivity; inf where only one is), the index where it is largest ("at"), and the names
+    whose sign flips on some index (a r < 0). A name above `rtol` or whose sign flips is
+    "untrusted"; the order is `got`'s. `rtol` default: FLOAT32_RTOL."""
+    rtol = FLOAT32_RTOL if rtol is None else rtol
+    diff, at, flips = {}, {}, []
+    for name, values in got.items():
+        a = np.asarray(values, np.float64).reshape(-1)
+        r = np.asarray(reference[name], np.float64).reshape(-1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            d = np.where(np.isfinite(a) & np.isfinite(r),
+                         np.abs(a - r) / np.maximum(np.abs(r), 1e-30),
+                         np.where(np.isnan(a) & np.isnan(r), 0.0, np.inf))
+        j = int(np.argmax(d))  # the first of the largest
+        diff[name], at[name] = float(d[j]), j
+        if np.any(a * r < 0):
+            flips.append(name)
+    return {"rtol": rtol, "max_rel_diff": diff, "at": at, "sign_flips": flips,
+            "untrusted": [n for n in got if not diff[n] <= rtol or n in flips]}
 
 
 def _cell(x) -> str:
@@ -210,7 +256,8 @@ def markdown(summary: Mapping[str, Any]) -> str:
     lines = ["# Robustness sweep", "",
              f"{n:,} {what} ({run.get('method')}, seed {run.get('seed')}) of {ranges}; "
              f"T = {run.get('t_final', float('nan')):g} s, dt = {run.get('dt', float('nan')):g} s, "
-             f"{run.get('dtype')}, solver {run.get('solver')}; windowed metrics on t >= "
+             f"{run.get('dtype')}, solver {run.get('solver')}, {loop_text(run)}; windowed "
+             f"metrics on t >= "
              f"{run.get('window_start', float('nan')):g} s. Wall time "
              f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
              f"({run.get('platform')}).", ""]
@@ -226,6 +273,11 @@ def markdown(summary: Mapping[str, Any]) -> str:
               f"- diverged at every step tried: {summary['n_diverged']:,} "
               f"({100 * summary['divergence_rate']:.2f} %"
               + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")"]
+    chat = summary.get("chattering")
+    if chat:
+        lines.append(f"- chattering (chattering index above {chat['above']:g}, "
+                     f"docs/numerics.md; diverged samples not counted): {chat['count']:,} "
+                     f"({100 * chat['rate']:.2f} %)")
     deg = summary.get("degraded")
     if deg:
         lines.append(f"- degraded ({deg['metric']} above {deg['threshold']:.4g}"
@@ -234,8 +286,9 @@ def markdown(summary: Mapping[str, Any]) -> str:
     nominal = summary.get("nominal")
     if nominal:
         lines.append("- nominal setup: " + ("diverged" if nominal.get("diverged") else
-                     f"linf_error_window {nominal['linf_error_window']:.4g}, tv_u "
-                     f"{nominal['tv_u']:.4g}"))
+                     f"linf_error_window {nominal['linf_error_window']:.4g}, tv_u_window "
+                     f"{nominal['tv_u_window']:.4g}, chattering_index "
+                     f"{nominal['chattering_index']:.4g}"))
     check = summary.get("float32_check")
     lines += ["", "## float32 trust", ""]
     if check is None and run.get("dtype") == "float32":
@@ -266,11 +319,10 @@ def markdown(summary: Mapping[str, Any]) -> str:
             continue
         names = list(recs[0]["params"])
         head = ["sample", *names] + (["t_diverged", "dt_used"] if extra else
-                                     ["linf_error_window", "rms_error_window", "tv_u",
-                                      "refinements"])
+                                     [*WORST_COLUMNS, "refinements"])
         body = [(r["sample"], *[r["params"][p] for p in names])
                 + ((r["t_diverged"], r["dt_used"]) if extra else
-                   (r["metrics"]["linf_error_window"], r["metrics"]["rms_error_window"],
-                    r["metrics"]["tv_u"], r["refinements"])) for r in recs]
+                   (*[r["metrics"][m] for m in WORST_COLUMNS], r["refinements"]))
+                for r in recs]
         lines += ["", f"## {title}", ""] + _table(head, body)
     return "\n".join(lines) + "\n"
