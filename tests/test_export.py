@@ -141,6 +141,28 @@ def test_a_config_without_a_sample_time_is_refused_in_one_line(tmp_path, capsys)
     assert not out.exists()
 
 
+@pytest.mark.parametrize("ts, line", [
+    # issue 38 item 7: the first was exported for dt = 0.00075, the last silently, the
+    # second named --t-final, which export does not have
+    ("0.0015", "--sample-time must be a whole multiple > 0 of the config's simulation.dt "
+               "(got sample_time=0.0015, dt=0.001, ratio 1.5)"),
+    ("1e-300", "--sample-time must be a whole multiple > 0 of the config's simulation.dt "
+               "(got sample_time=1e-300, dt=0.001, ratio 1e-297)"),
+    ("1e6", "--sample-time must be <= the config's simulation.t_final = 20 (got 1e+06)")])
+def test_export_checks_the_sample_time_as_simulate_does(tmp_path, capsys, ts, line):
+    """The C is exact for `simulate --sample-time TS` of the config: a TS simulate refuses is
+    refused, by the same check, naming the config's step and horizon."""
+    from dscjax.cli.main import main
+
+    for command in ("export", "simulate"):
+        out = tmp_path / command
+        assert main([command, "--sample-time", ts, "--out", str(out)]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and not out.exists()
+        if command == "export":
+            assert err == [f"dscjax export: error: {line}"]
+
+
 def test_export_reads_the_gains_file_and_its_sample_time(tmp_path, capsys):
     from dscjax import config
     from dscjax.cli.main import main
