@@ -1,9 +1,12 @@
-"""`dscjax export` (issue 33): the C controller, compiled by the system's C compiler and loaded
-by ctypes, driven in closed loop with a plant written here (RK4 with u held, the hysteresis
-jumped at each new input), equals dscjax's sampled simulation over 20 s."""
+"""`dscjax export` (issues 33, 38): the C controller, compiled by the system's C compiler and
+loaded by ctypes, driven in closed loop with a plant written here (RK4 with u held, the
+hysteresis jumped at each new input), equals dscjax's sampled simulation, started by dsc_init
+from whatever x(0) the plant has."""
 
 import ctypes
 import dataclasses
+import functools
+import json
 import shutil
 import subprocess
 
@@ -13,7 +16,7 @@ import numpy as np
 import pytest
 
 CC = shutil.which("cc") or shutil.which("gcc")
-T_FINAL, DT = 20.0, 1e-3
+DT = 1e-3
 
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on PATH: the "
                               "exported controller cannot be compiled here")
@@ -21,7 +24,7 @@ needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on P
 
 def _load(setup, spec, directory):
     """The exported controller of (setup, spec), compiled into a shared library, and the
-    number of reference values its dsc_step takes (y_r, y_r', ...)."""
+    number of reference values its dsc_init and dsc_step take (y_r, y_r', ...)."""
     from dscjax import export
 
     files = export.c_files(setup, spec, source="a test")
@@ -33,100 +36,263 @@ def _load(setup, spec, directory):
                     "-ffp-contract=off", "-shared", "-fPIC", "-o", str(lib_path),
                     str(directory / export.SOURCE), "-lm"], check=True)
     lib = ctypes.CDLL(str(lib_path))
+    real = ctypes.c_double
     lib.dsc_state_size.restype = ctypes.c_size_t
-    lib.dsc_sample_time.restype = ctypes.c_double
-    lib.dsc_step.restype = ctypes.c_double
-    more = [ctypes.POINTER(ctypes.c_double)] if m > 2 else []
-    lib.dsc_step.argtypes = [ctypes.c_void_p, ctypes.c_double, ctypes.POINTER(ctypes.c_double),
-                             ctypes.c_double, ctypes.c_double, *more]
+    lib.dsc_sample_time.restype = real
+    lib.dsc_step.restype = real
+    more = [ctypes.POINTER(real)] if m > 2 else []
+    args = [ctypes.c_void_p, real, ctypes.POINTER(real), real, real, *more]
+    lib.dsc_step.argtypes = lib.dsc_init.argtypes = args
+    lib.real = real
     return lib, m
 
 
-def _closed_loop(setup, lib, m, every, n_samples):
-    """The C controller with the plant: at t_k = k Ts, u_k = dsc_step(x(t_k), y_r, y_r', ...
-    (m reference values)), the
-    actuator's hysteresis jumps from u_(k-1) to u_k, then `every` RK4 steps of the plant with
-    w held. Returns (u_k (K,), x(t_k) (K, n))."""
+@functools.partial(jax.jit, static_argnames="every")
+def _segment(plant, hyst, x, h, u_from, u_to, k, every):
+    """The actuator's hysteresis jumps from u_from to u_to, then `every` RK4 steps of the
+    plant with w held, from the sample k."""
+    h = hyst.jump(u_from, u_to, h)
+    w = hyst.output(u_to, h)
+
+    def rk4(j, x):
+        t = (k * every + j).astype(x.dtype) * DT
+        k1 = plant.rhs(x, w, t)
+        k2 = plant.rhs(x + 0.5 * DT * k1, w, t + 0.5 * DT)
+        k3 = plant.rhs(x + 0.5 * DT * k2, w, t + 0.5 * DT)
+        k4 = plant.rhs(x + DT * k3, w, t + DT)
+        return x + (k1 + 2.0 * (k2 + k3) + k4) * (DT / 6.0)
+
+    return jax.lax.fori_loop(0, every, rk4, x), h
+
+
+@jax.jit
+def _start(setup):
+    """(the prepared setup, X(0), u(0)) of the simulation (one program, not op by op)."""
     from dscjax.closed_loop import initial_state, prepared
 
     s = prepared(setup)
-    plant, hyst, ref = s.plant, s.hysteresis, setup.reference  # the config's own reference
-
-    @jax.jit
-    def segment(x, h, u_from, u_to, k):
-        h = hyst.jump(u_from, u_to, h)
-        w = hyst.output(u_to, h)
-
-        def rk4(j, x):
-            t = (k * every + j).astype(x.dtype) * DT
-            k1 = plant.rhs(x, w, t)
-            k2 = plant.rhs(x + 0.5 * DT * k1, w, t + 0.5 * DT)
-            k3 = plant.rhs(x + 0.5 * DT * k2, w, t + 0.5 * DT)
-            k4 = plant.rhs(x + DT * k3, w, t + DT)
-            return x + (k1 + 2.0 * (k2 + k3) + k4) * (DT / 6.0)
-
-        x = jax.lax.fori_loop(0, every, rk4, x)
-        t_next = ((k + 1) * every).astype(x.dtype) * DT
-        return x, h, jnp.stack(ref.derivatives(t_next, m - 1))
-
     X0 = initial_state(s)
-    u0, _ = s.controller.law(X0.ctrl, X0.x, 0.0, s.plant, s.reference)
+    return s, X0, s.controller.law(X0.ctrl, X0.x, jnp.zeros_like(X0.x[0]), s.plant,
+                                   s.reference)[0]
+
+
+@functools.partial(jax.jit, static_argnames="m")
+def _reference(ref, times, m):
+    """(y_r, ..., y_r^(m-1)) at times, (K, m)."""
+    return jax.vmap(lambda t: jnp.stack(ref.derivatives(t, m - 1)))(times)
+
+
+def _closed_loop(setup, lib, m, every, n_samples):
+    """The C controller with the plant of `setup`, from its x(0): dsc_init(0, x(0), y_r(0),
+    ...), then at t_k = k Ts, u_k = dsc_step(x(t_k), y_r, y_r', ... (m reference values)),
+    the actuator's hysteresis jumps from u_(k-1) to u_k, then `every` RK4 steps of the plant
+    with w held. Returns (u_k (K,), x(t_k) (K, n))."""
+    # the config's own reference: the C reads its values
+    d = np.asarray(_reference(setup.reference, np.arange(n_samples) * (every * DT), m))
+    # the actuator's state at t = 0, which the plant brings: the simulation's own
+    s, X0, u0 = _start(setup)
     x, h, u_prev = X0.x, X0.h, float(u0)
-    d = np.asarray(jnp.stack(ref.derivatives(jnp.zeros(()), m - 1)))
+    real, n = lib.real, setup.order
     state = ctypes.create_string_buffer(lib.dsc_state_size())
-    lib.dsc_init(state)
-    us, xs = np.empty(n_samples), np.empty((n_samples, setup.order))
-    xbuf = (ctypes.c_double * setup.order)()
-    higher = (ctypes.c_double * max(m - 2, 1))()
+    xbuf, higher = (real * n)(), (real * max(m - 2, 1))()
+
+    def reference(k):
+        higher[:m - 2] = d[k, 2:].tolist()
+        return float(d[k, 0]), float(d[k, 1]), *([higher] if m > 2 else [])
+
+    xbuf[:] = np.asarray(x).tolist()
+    lib.dsc_init(state, 0.0, xbuf, *reference(0))
+    us, xs = np.empty(n_samples), np.empty((n_samples, n))
     for k in range(n_samples):
-        xk = np.asarray(x)
-        xs[k] = xk
-        xbuf[:] = xk.tolist()
-        higher[:m - 2] = d[2:].tolist()
-        u = lib.dsc_step(state, k * every * DT, xbuf, float(d[0]), float(d[1]),
-                         *([higher] if m > 2 else []))
-        us[k] = u
-        x, h, d = segment(x, h, u_prev, u, jnp.asarray(k))
-        d = np.asarray(d)
+        xs[k] = np.asarray(x)
+        xbuf[:] = xs[k].tolist()
+        us[k] = u = lib.dsc_step(state, k * every * DT, xbuf, *reference(k))
+        x, h = _segment(s.plant, s.hysteresis, x, h, u_prev, u, jnp.asarray(k), every)
         u_prev = u
     return us, xs
 
 
-CASES = [  # (example, horizon, sample time in steps, delay, discretisation, controller.init)
-    ("paper", T_FINAL, 1, 0, "exponential-euler", None),
-    ("order-4", T_FINAL, 1, 0, "euler", None),
-    ("pi", T_FINAL, 2, 1, "exponential-euler", None),
-    # the law reads y_r'' too (a third reference argument); the L-inf initialisation's
-    # reference offset (eq. 68) lives inside the controller
-    ("backstepping", 2.0, 1, 0, "exponential-euler", None),
-    ("paper", 2.0, 1, 0, "exponential-euler", "linf"),
-]
-
-
-@needs_cc
-@pytest.mark.parametrize("example, t_final, every, delay, scheme, init", CASES)
-def test_the_exported_controller_is_the_sampled_loop(tmp_path, example, t_final, every, delay,
-                                                     scheme, init):
-    import dscjax
+def _build(example, init=None):
     from dscjax.config import example as build
 
     setup = build(example, dtype=np.float64)
     if init is not None:
         setup = setup.replace(controller=dataclasses.replace(setup.controller, init=init))
+    return setup
+
+
+CASES = [  # (example, controller.init, x(0) of the plant (None: the config's), horizon,
+    #         sample time in steps, delay, discretisation)
+    # issue 38: from rest the C started with the filter state of the config's x(0)
+    ("paper", None, (0.0, 0.0), 2.0, 1, 0, "exponential-euler"),
+    # c, the reference's offset and the delay line's first input all come from x(0) (from
+    # (2, 0.1) the paper's own initialisation diverges, in the simulation too)
+    ("paper", "linf", (2.0, 0.1), 2.0, 1, 1, "exponential-euler"),
+    ("order-4", None, None, 1.0, 1, 0, "euler"),
+    ("pi", None, (0.02, 0.0), 1.0, 2, 1, "exponential-euler"),
+    # the law reads y_r'' too (a third reference argument)
+    ("backstepping", None, (0.0, 0.0), 1.0, 1, 0, "exponential-euler"),
+]
+
+
+@needs_cc
+@pytest.mark.parametrize("example, init, x0, t_final, every, delay, scheme", CASES)
+def test_the_exported_controller_is_the_sampled_loop(tmp_path, example, init, x0, t_final,
+                                                     every, delay, scheme):
+    """Exported from the config, run from x(0) (the config's or another): u(t_k) and x(t_k)
+    equal `simulate` of the config with plant.x0 = x(0), to round-off."""
+    import dscjax
+    from dscjax import params
+
+    setup = _build(example, init)
     spec = dscjax.RunSpec.make(t_final, DT, save_every=1, sample_time=every * DT, delay=delay,
                                discretisation=scheme)
     lib, m = _load(setup, spec, tmp_path)
     assert lib.dsc_order() == setup.order and lib.dsc_sample_time() == every * DT
     assert m == (3 if example == "backstepping" else 2)
+    if x0 is not None:
+        setup = params.set(setup, "plant.x0", np.array(x0))
     traj = dscjax.simulate(setup, spec=spec)
-    n_samples = int(round(t_final / (every * DT)))
-    us, xs = _closed_loop(setup, lib, m, every, n_samples)
+    us, xs = _closed_loop(setup, lib, m, every, int(round(t_final / (every * DT))))
     u_want = np.asarray(traj.u)[:-1:every]
     x_want = np.asarray(traj.x)[:-1:every]
     assert np.max(np.abs(u_want)) > 0.1  # the loop does something
     # round-off only: libm's and XLA's exp, sin, ... may differ by an ulp
     np.testing.assert_allclose(us, u_want, rtol=1e-9, atol=1e-9 * np.max(np.abs(u_want)))
     np.testing.assert_allclose(xs, x_want, rtol=1e-9, atol=1e-9 * np.max(np.abs(x_want)))
+
+
+# -- dsc_init and one sample, against the simulation's own functions --------------------------
+
+
+def _state_fields(setup, spec):
+    """[(name, size, advances)] of the C's state in its order, as export.trace lays it."""
+    from dscjax import export
+
+    return [(nm, int(np.prod(shp, dtype=int)), adv)
+            for nm, shp, adv in export.trace(setup, spec).state]
+
+
+@needs_cc
+@pytest.mark.parametrize("example, init, delay", [("paper", "linf", 2),
+                                                  ("order-3", "zero_surfaces", 1),
+                                                  ("backstepping", None, 1)])
+def test_dsc_init_is_the_simulations_initial_state_of_any_x0(tmp_path, example, init, delay):
+    """dsc_init(t0, x0, y_r(0), ...) writes the controller's state, the delay line and what
+    the initialisation derives (c, the reference's offset) exactly as `initial_state` and
+    `prepared` compute them for a setup with plant.x0 = x0, at random x0."""
+    import dscjax
+    from dscjax import params
+
+    setup = _build(example, init)
+    spec = dscjax.RunSpec.make(1.0, DT, sample_time=DT, delay=delay)
+    lib, m = _load(setup, spec, tmp_path)
+    fields = _state_fields(setup, spec)
+    size = sum(k for _, k, _ in fields) + 1  # and t0, last
+    assert lib.dsc_state_size() == 8 * size
+    rng = np.random.default_rng(1)
+    d = [float(v) for v in setup.reference.derivatives(jnp.zeros(()), m - 1)]
+    for _ in range(3):
+        x0 = rng.uniform(-1.0, 1.0, setup.order)
+        buf = (ctypes.c_double * size)()
+        higher = (ctypes.c_double * max(m - 2, 1))(*d[2:])
+        lib.dsc_init(buf, 0.25, (ctypes.c_double * setup.order)(*x0.tolist()), d[0], d[1],
+                     *([higher] if m > 2 else []))
+        s, X0, u0 = _start(params.set(setup, "plant.x0", x0))
+        want = {"past": np.full(delay, float(u0))}
+        want |= {nm: np.ravel(v) for nm, v in zip(
+            [f[0] for f in fields], jax.tree.leaves(X0.ctrl), strict=False)}
+        if init in ("linf", "zero_surfaces"):
+            want["controller_c"] = np.ravel(s.controller.c)
+        if init == "linf":
+            want["reference_offset"] = np.ravel(s.reference.offset)
+        got, at = {}, 0
+        for nm, k, _ in fields:
+            got[nm], at = np.asarray(buf[at:at + k]), at + k
+        assert sorted(got) == sorted(k for k in want if k != "past" or delay)
+        for nm in got:
+            np.testing.assert_allclose(got[nm], want[nm], rtol=1e-13, atol=1e-15, err_msg=nm)
+        assert buf[size - 1] == 0.25  # t0
+
+
+# a user's plant functions (module level: equal plants hash equal)
+def _f_by_matrices(x, p):
+    """f_1 = x_1^2, f_2 = 0, written with a matrix product, a transpose and reductions."""
+    m = jnp.stack([x, -x])
+    return jnp.stack([jnp.dot(p["e"], x) ** 2,
+                      0.0 * jnp.sum(m.T @ x) * jnp.max(x) * jnp.min(x)])
+
+
+def _rho(x, p):
+    return jnp.stack([0.2, 0.1 * jnp.sum(x * x)])
+
+
+def _delta(x, t, p):
+    return jnp.zeros(2)
+
+
+def _dbar(t, p):
+    return 0.0
+
+
+def _custom_plant_setup():
+    from dscjax.config import paper_example
+    from dscjax.plant import CustomPlant
+
+    plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]),
+                        {"e": jnp.array([1.0, 0.0])}, _f_by_matrices, _rho, _delta, _dbar)
+    setup = paper_example(dtype=np.float64).replace(plant=plant)
+    return setup.replace(controller=dataclasses.replace(setup.controller, robust_term="smooth"))
+
+
+def _order3_linf_setup():
+    setup = _build("order-3")
+    return setup.replace(controller=dataclasses.replace(
+        setup.controller, init="linf", robust_term="sgn", variant="no_dhat_no_zeta"))
+
+
+@needs_cc
+@pytest.mark.parametrize("build, delay, scheme", [(_custom_plant_setup, 0, "euler"),
+                                                  (_order3_linf_setup, 2, "exponential-euler")])
+def test_one_sample_of_the_c_equals_the_sample_update(tmp_path, build, delay, scheme):
+    """One sample of the C, at random states and times, against `closed_loop.sample_update`:
+    u and every state (the leaves in order, then the delay line). A user's plant functions
+    with dot_general, transpose and reductions and the smooth robust term; the L-inf
+    initialisation's time-dependent reference offset (dsc_init at the config's x(0)), sgn,
+    no adaptation of zeta."""
+    import dscjax
+    from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
+
+    setup = build()
+    spec = dscjax.RunSpec.make(1.0, DT, sample_time=2 * DT, delay=delay, discretisation=scheme)
+    lib, _ = _load(setup, spec, tmp_path)
+    s = prepared(setup)
+    X0 = initial_state(s)
+    n = setup.order
+    size = lib.dsc_state_size() // 8
+    buf = (ctypes.c_double * size)()
+    y0, y0_dot = (float(v) for v in setup.reference.derivatives(jnp.zeros(()), 1))
+    lib.dsc_init(buf, 0.0, (ctypes.c_double * n)(*np.asarray(X0.x).tolist()), y0, y0_dot)
+    rng = np.random.default_rng(0)
+    for k in range(4):
+        ctrl = jax.tree.map(lambda a: a + 0.1 * rng.standard_normal(np.shape(a)), X0.ctrl)
+        past = rng.standard_normal(delay)
+        x, t = X0.x + 0.5 * rng.standard_normal(n), 0.37 * k
+        new = jax.jit(sample_update)(jnp.asarray(k), t, SampledState(
+            x=x, h=X0.h, ctrl=ctrl, u=jnp.zeros(()), past=jnp.asarray(past)), s,
+            Sampling(every=2.0, delay=delay, scheme=scheme), DT)
+        # the state starts with the leaves, in order, then the delay line
+        flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)] + [past])
+        buf[:flat.size] = flat.tolist()
+        yr, yr_dot = (float(v) for v in setup.reference.derivatives(jnp.asarray(t), 1))
+        u = lib.dsc_step(buf, t, (ctypes.c_double * n)(*np.asarray(x).tolist()), yr, yr_dot)
+        want = np.concatenate([np.ravel(a) for a in jax.tree.leaves(new.ctrl)]
+                              + [np.asarray(new.past)])
+        np.testing.assert_allclose(u, float(new.u), rtol=1e-13)
+        np.testing.assert_allclose(np.asarray(buf[:flat.size]), want, rtol=1e-13, atol=1e-15)
+
+
+# -- the command-------------------------------------------------------------------------------
 
 
 def test_a_config_without_a_sample_time_is_refused_in_one_line(tmp_path, capsys):
@@ -171,93 +337,29 @@ def test_export_reads_the_gains_file_and_its_sample_time(tmp_path, capsys):
     gains["controller"]["k"] = [7.25, 1.5, 0.75]
     gains["simulation"] |= {"sample_time": 0.002, "delay": 1, "discretisation": "euler"}
     path = tmp_path / "gains.json"
-    path.write_text(__import__("json").dumps(gains))
+    path.write_text(json.dumps(gains))
     out = tmp_path / "c"
     assert main(["export", "--gains", str(path), "--out", str(out)]) == 0
     header = (out / "dsc_controller.h").read_text()
     for text in ("Order n = 3", "Ts = 0.002 s", "input delay: 1 sample", "advance by euler",
-                 "k = [7.25, 1.5, 0.75]", f"--gains {path}", "double yr, double yr_dot)"):
+                 "k = [7.25, 1.5, 0.75]", f"--gains {path}", "double yr, double yr_dot)",
+                 " * Actuator limit: none. dsc_step returns u unbounded, as the simulated "
+                 "loop applies it;", "dsc_init starts the controller from the measured plant "
+                 "state x0 at time t0"):
         assert text in header, text
-    assert "double dsc_step(void *state, double t, const double *x, double yr, double " \
-        "yr_dot)" in capsys.readouterr().out
+    assert capsys.readouterr().out.endswith(
+        ": void dsc_init(void *state, double t0, const double *x0, double yr, double "
+        "yr_dot); double dsc_step(void *state, double t, const double *x, double yr, double "
+        "yr_dot)\n")
     if CC is not None:  # a C99 compiler takes it without a warning
         subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
                         "-fsyntax-only", str(out / "dsc_controller.c")], check=True)
-
-
-
-# a user's plant functions (module level: equal plants hash equal)
-def _f_by_matrices(x, p):
-    """f_1 = x_1^2, f_2 = 0, written with a matrix product, a transpose and reductions."""
-    m = jnp.stack([x, -x])
-    return jnp.stack([jnp.dot(p["e"], x) ** 2,
-                      0.0 * jnp.sum(m.T @ x) * jnp.max(x) * jnp.min(x)])
-
-
-def _rho(x, p):
-    return jnp.stack([0.2, 0.1 * jnp.sum(x * x)])
-
-
-def _delta(x, t, p):
-    return jnp.zeros(2)
-
-
-def _dbar(t, p):
-    return 0.0
-
-
-def _custom_plant_setup():
-    from dscjax.config import paper_example
-    from dscjax.plant import CustomPlant
-
-    plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]),
-                        {"e": jnp.array([1.0, 0.0])}, _f_by_matrices, _rho, _delta, _dbar)
-    setup = paper_example(dtype=np.float64).replace(plant=plant)
-    return setup.replace(controller=dataclasses.replace(setup.controller, robust_term="smooth"))
-
-
-def _order3_linf_setup():
-    from dscjax.config import example
-
-    setup = example("order-3", dtype=np.float64)
-    return setup.replace(controller=dataclasses.replace(
-        setup.controller, init="linf", robust_term="sgn", variant="no_dhat_no_zeta"))
-
-
-@needs_cc
-@pytest.mark.parametrize("build, delay, scheme", [(_custom_plant_setup, 0, "euler"),
-                                                  (_order3_linf_setup, 2, "exponential-euler")])
-def test_one_sample_of_the_c_equals_the_sample_update(tmp_path, build, delay, scheme):
-    """One sample of the C, at random states and times, against `closed_loop.sample_update`:
-    u and every state (the leaves in order, then the delay line). A user's plant functions
-    with dot_general, transpose and reductions and the smooth robust term; the L-inf
-    initialisation's time-dependent reference offset, sgn, no adaptation of zeta."""
-    import dscjax
-    from dscjax.closed_loop import SampledState, Sampling, initial_state, prepared, sample_update
-
-    setup = build()
-    spec = dscjax.RunSpec.make(1.0, DT, sample_time=2 * DT, delay=delay, discretisation=scheme)
-    lib, _ = _load(setup, spec, tmp_path)
-    s = prepared(setup)
-    X0 = initial_state(s)
-    n = setup.order
-    rng = np.random.default_rng(0)
-    for k in range(4):
-        ctrl = jax.tree.map(lambda a: a + 0.1 * rng.standard_normal(np.shape(a)), X0.ctrl)
-        past = rng.standard_normal(delay)
-        x, t = X0.x + 0.5 * rng.standard_normal(n), 0.37 * k
-        new = sample_update(jnp.asarray(k), t, SampledState(x=x, h=X0.h, ctrl=ctrl, u=0.0,
-                                                            past=jnp.asarray(past)),
-                            s, Sampling(every=2.0, delay=delay, scheme=scheme), DT)
-        flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)] + [past])
-        assert lib.dsc_state_size() == 8 * flat.size  # the state is the leaves, in order
-        buf = (ctypes.c_double * flat.size)(*flat.tolist())
-        yr, yr_dot = (float(v) for v in setup.reference.derivatives(jnp.asarray(t), 1))
-        u = lib.dsc_step(buf, t, (ctypes.c_double * n)(*np.asarray(x).tolist()), yr, yr_dot)
-        want = np.concatenate([np.ravel(a) for a in jax.tree.leaves(new.ctrl)]
-                              + [np.asarray(new.past)])
-        np.testing.assert_allclose(u, float(new.u), rtol=1e-13)
-        np.testing.assert_allclose(np.asarray(buf[:]), want, rtol=1e-13, atol=1e-15)
+    # the sample time is a whole multiple of the config's own step
+    gains["simulation"] |= {"dt": 5e-4, "t_final": 1.0}
+    path.write_text(json.dumps(gains))
+    assert main(["export", "--gains", str(path), "--sample-time", "0.0015", "--out",
+                 str(out), "--overwrite"]) == 0
+    assert "Ts = 0.0015 s" in (out / "dsc_controller.h").read_text()
 
 
 def _f_cumulative(x, p):

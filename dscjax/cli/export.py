@@ -24,10 +24,12 @@ def add_parser(sub):
     p = sub.add_parser(
         "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
         description="Write DIR/dsc_controller.h and DIR/dsc_controller.c: the controller of "
-        "a config sampled every TS seconds, in C99 and double precision with no dependency "
-        "beyond <math.h>, exactly the update law of dscjax's sampled loop (the law, its "
-        "hysteresis compensation, the discretisation of its states, the input delay). The "
-        "plant, the actuator and the measurement noise are not part of it.")
+        "a config sampled every TS seconds, in C99 with no dependency beyond <math.h>, "
+        "exactly the initialisation and the update law of dscjax's sampled loop (the law, "
+        "its hysteresis compensation, the discretisation of its states, the input delay): "
+        "dsc_init starts it from the measured x(0), dsc_step runs one sample. The plant, the "
+        "actuator (and its limits: u is returned unbounded) and the measurement noise are "
+        "not part of it.")
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")
@@ -90,8 +92,9 @@ def run(args) -> int:
     for name, text in files.items():
         write_text(out / name, text)
     header = files[export.HEADER]
-    signature = " ".join(header[header.index("double dsc_step("):].split(";")[0].split())
-    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {signature}")
+    init, step = (" ".join(header[header.index(start):].split(";")[0].split())
+                  for start in ("void dsc_init(", "double dsc_step("))
+    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {init}; {step}")
     return 0
 
 
