@@ -2,6 +2,7 @@
 exactly.
 
     files = dscjax.export.c_files(setup, spec)   # {"dsc_controller.h": text, ".c": text}
+    files = dscjax.export.c_files(setup, spec, precision="float")   # C float throughout
 
 Two functions are generated from jaxprs of the sampled loop, for the concrete config (gains,
 sample time and delay are constants):
@@ -11,14 +12,15 @@ sample time and delay are constants):
 - `dsc_step` from `closed_loop.sample_update` (the law, the advance of the controller's
   states by `spec.discretisation`, the delay line), with x, t and the reference's
   derivatives as inputs.
-One C statement per primitive, in double precision, with no dependency beyond <math.h>.
-Measurement noise belongs to the sensor and the actuator's limits to the actuator: neither is
-part of the controller (u is returned unbounded, as the simulation applies it).
+One C statement per primitive, in double (or float) precision, with no dependency beyond
+<math.h>. Measurement noise belongs to the sensor and the actuator's limits to the actuator:
+neither is part of the controller (u is returned unbounded, as the simulation applies it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from fractions import Fraction
 
 import jax
 import jax.numpy as jnp
@@ -29,6 +31,7 @@ from dscjax.reference import Given, InitialOffset
 from dscjax.validation import ConfigError
 
 HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
+PRECISIONS = ("double", "float")
 SCHEME_DOC = {"exponential-euler": "c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau "
               "for a filter, 0 for an estimate", "euler": "forward Euler, c += Ts c'"}
 
@@ -285,23 +288,51 @@ def _live(ops, outs):
 
 
 class _Real:
-    """How the C writes a real number (the C type, the suffix of <math.h>'s functions, the
-    literal 1)."""
+    """How the C writes a real number: `double`, or `float` throughout (constants with an f
+    suffix, the float functions of C99's <math.h>: expf, sinf, ...)."""
 
     def __init__(self, name: str):
         self.name = name
-        self.f = ""
-        self.one = "1.0"
+        self.f = "f" if name == "float" else ""
+        self.one = "1.0" + self.f
 
     def num(self, x) -> str:
-        """A C literal that reads back as exactly x (the shortest repr of a double)."""
+        """A C literal that reads back as exactly x rounded to this type (the shortest)."""
         x = np.asarray(x)
         if x.dtype.kind in "biu":
             return str(int(x))
         f = float(x)
         if not np.isfinite(f):
             return "NAN" if np.isnan(f) else ("INFINITY" if f > 0 else "(-INFINITY)")
-        return f"({f!r})" if f < 0 else repr(f)
+        text = repr(f) if self.name == "double" else _float_literal(f)
+        return f"({text})" if f < 0 else text
+
+
+class _OutOfRange(ValueError):
+    pass
+
+
+def _float_literal(f: float) -> str:
+    """The shortest decimal whose nearest float is float32(f), with the f suffix: nearer to
+    it than half the distance to either neighbour, so any correctly rounding compiler reads
+    exactly that float (no double rounding through a double)."""
+    v = np.float32(f)
+    if not np.isfinite(v) or (v == 0 and f != 0):
+        raise _OutOfRange(f)
+    exact = Fraction(float(v))
+    lo = Fraction(float(np.nextafter(v, np.float32(-np.inf))))
+    up = np.nextafter(v, np.float32(np.inf))
+    hi = Fraction(float(up)) if np.isfinite(up) else 2 * exact - lo
+
+    def reads_back(text):
+        gap = Fraction(text) - exact
+        return 2 * gap < hi - exact and 2 * -gap < exact - lo
+
+    text = next(t for t in (f"{float(v):.{digits}g}" for digits in range(1, 10))
+                if reads_back(t))
+    if reads_back(repr(float(text))):  # 10.0 rather than 1e+01
+        text = repr(float(text))
+    return (text if ("." in text or "e" in text) else text + ".0") + "f"
 
 
 def _size(shape) -> int:
@@ -343,7 +374,12 @@ class _Emitter:
             if op.where and op.where != last:
                 self.lines.append(f"    /* {op.where} */")
                 last = op.where
-            self.op(op)
+            try:
+                self.op(op)
+            except _OutOfRange as e:
+                raise ExportError(f"controller: the constant {e.args[0]:g} ({op.where}) is "
+                                  f"beyond the range of C {self.real.name}; export it in "
+                                  f"double (--precision double)") from None
 
     def op(self, op: Op):
         out = op.outs[0]
@@ -505,14 +541,23 @@ def init_signature(law: Law, precision: str = "double") -> str:
     return f"void dsc_init(void *state, {r} t0, const {r} *x0, {_reference_args(law, r)})"
 
 
-def c_files(setup, spec, *, source: str = "") -> dict[str, str]:
+def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict[str, str]:
     """{"dsc_controller.h": text, "dsc_controller.c": text} of the sampled controller of
-    (setup, spec); `source` names the config in the header, which lists the gains."""
+    (setup, spec) in C `precision` (double or float); `source` names the config in the
+    header, which lists the gains."""
     from dscjax import config
 
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)} (got "
+                          f"{precision!r})")
     law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
-    real = _Real("double")
-    return {HEADER: _header(law, spec, source, gains, real), SOURCE: _source(law, spec, real)}
+    real = _Real(precision)
+    try:
+        text = _source(law, spec, real)
+        return {HEADER: _header(law, spec, source, gains, real), SOURCE: text}
+    except _OutOfRange as e:  # outside an operation: an initial value, the sample time
+        raise ExportError(f"controller: the constant {e.args[0]:g} is beyond the range of C "
+                          f"{precision}; export it in double (--precision double)") from None
 
 
 def _header(law, spec, source, gains, real) -> str:
@@ -650,5 +695,5 @@ static inline {r} dsc_sign_({r} a) {{ return a > 0 ? {real.one} : (a < 0 ? -{rea
 """
 
 
-__all__ = ["HEADER", "SOURCE", "ExportError", "Law", "Program", "c_files",
+__all__ = ["HEADER", "PRECISIONS", "SOURCE", "ExportError", "Law", "Program", "c_files",
            "init_signature", "step_signature", "trace"]

@@ -1,12 +1,13 @@
 """`dscjax export` (issues 33, 38): the C controller, compiled by the system's C compiler and
 loaded by ctypes, driven in closed loop with a plant written here (RK4 with u held, the
 hysteresis jumped at each new input), equals dscjax's sampled simulation, started by dsc_init
-from whatever x(0) the plant has."""
+from whatever x(0) the plant has; the float variant is the double one to its rounding bound."""
 
 import ctypes
 import dataclasses
 import functools
 import json
+import re
 import shutil
 import subprocess
 
@@ -14,29 +15,32 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from jax.flatten_util import ravel_pytree
 
 CC = shutil.which("cc") or shutil.which("gcc")
 DT = 1e-3
+EPS32 = float(np.finfo(np.float32).eps)
 
 needs_cc = pytest.mark.skipif(CC is None, reason="no C compiler (cc or gcc) on PATH: the "
                               "exported controller cannot be compiled here")
 
 
-def _load(setup, spec, directory):
+def _load(setup, spec, directory, precision="double"):
     """The exported controller of (setup, spec), compiled into a shared library, and the
     number of reference values its dsc_init and dsc_step take (y_r, y_r', ...)."""
     from dscjax import export
 
-    files = export.c_files(setup, spec, source="a test")
+    files = export.c_files(setup, spec, source="a test", precision=precision)
     m = int(files[export.HEADER].split("#define DSC_REFERENCE_DERIVATIVES ")[1].split()[0]) + 1
     for name, text in files.items():
         (directory / name).write_text(text)
     lib_path = directory / "libdsc.so"
+    # -Wdouble-promotion: a float controller that computes anything in double is refused
     subprocess.run([CC, "-std=c99", "-O2", "-Wall", "-Wextra", "-Werror", "-pedantic",
-                    "-ffp-contract=off", "-shared", "-fPIC", "-o", str(lib_path),
-                    str(directory / export.SOURCE), "-lm"], check=True)
+                    "-Wdouble-promotion", "-ffp-contract=off", "-shared", "-fPIC", "-o",
+                    str(lib_path), str(directory / export.SOURCE), "-lm"], check=True)
     lib = ctypes.CDLL(str(lib_path))
-    real = ctypes.c_double
+    real = ctypes.c_double if precision == "double" else ctypes.c_float
     lib.dsc_state_size.restype = ctypes.c_size_t
     lib.dsc_sample_time.restype = real
     lib.dsc_step.restype = real
@@ -292,6 +296,215 @@ def test_one_sample_of_the_c_equals_the_sample_update(tmp_path, build, delay, sc
         np.testing.assert_allclose(np.asarray(buf[:flat.size]), want, rtol=1e-13, atol=1e-15)
 
 
+# -- the float variant -------------------------------------------------------------------------
+
+
+# the primitives whose result a float evaluation rounds (the others move or compare values)
+ROUNDED = {"add", "add_any", "sub", "mul", "div", "exp", "exp2", "expm1", "log", "log1p",
+           "sqrt", "rsqrt", "cbrt", "sin", "cos", "tan", "tanh", "atan", "atan2", "pow",
+           "integer_pow", "logistic", "square", "rem", "dot_general", "reduce_sum"}
+
+
+def _rounding_gain(fn, *example):
+    """A jitted g(*args) -> (outputs, G) of fn: its outputs (flat) and, per output element,
+    G = sum_i |d out / d delta_i| over every rounding i of a float evaluation of fn, each
+    modelled as v (1 + delta_i): every element of every input, every constant and every
+    arithmetic result of fn's jaxpr (a sum of L terms: L roundings; x^y: |y| - 1
+    products). With every |delta_i| <= eps, |float - exact| <= eps G to first order."""
+    from jax.extend.core import Literal
+
+    calls = ("jaxpr", "call_jaxpr", "fun_jaxpr")
+    closed = jax.make_jaxpr(fn)(*example)
+
+    def run(draw, args):
+        """fn's outputs with every rounding v -> draw(v, count)."""
+        def floating(v):
+            return jnp.issubdtype(jnp.asarray(v).dtype, jnp.floating)
+
+        def ev(jaxpr, consts, ins):
+            env = dict(zip(jaxpr.invars, ins, strict=True))
+            env |= {v: draw(jnp.asarray(c), 1) if floating(c) else c
+                    for v, c in zip(jaxpr.constvars, consts, strict=True)}
+
+            def read(v):
+                if isinstance(v, Literal):  # 0, 1, 0.5, ...: no rounding
+                    exact = np.float32(v.val) == v.val
+                    return draw(jnp.asarray(v.val), 1) if floating(v.val) and not exact else v.val
+                return env[v]
+
+            for eqn in jaxpr.eqns:
+                vals = [read(v) for v in eqn.invars]
+                name = eqn.primitive.name
+                sub = next((eqn.params[k] for k in calls if k in eqn.params), None)
+                if sub is not None:
+                    inner = getattr(sub, "jaxpr", sub)
+                    outs = ev(inner, getattr(sub, "consts", []),
+                              vals[len(vals) - len(inner.invars):])
+                else:
+                    outs = eqn.primitive.bind(*vals, **eqn.params)
+                    outs = outs if eqn.primitive.multiple_results else [outs]
+                    if name in ROUNDED and floating(outs[0]):
+                        count = (max(np.size(vals[0]) // max(np.size(outs[0]), 1), 1)
+                                 if name in ("reduce_sum", "dot_general") else
+                                 max(abs(int(eqn.params["y"])) - 1, 1) if name == "integer_pow"
+                                 else 1)
+                        outs = [draw(outs[0], count)]
+                env.update(zip(eqn.outvars, outs, strict=True))
+            return [read(v) for v in jaxpr.outvars]
+
+        flat = [draw(jnp.asarray(a), 1) if floating(a) else a for a in jax.tree.leaves(args)]
+        return jnp.concatenate([jnp.ravel(o) for o in ev(closed.jaxpr, closed.consts, flat)])
+
+    sizes = []
+    jax.eval_shape(lambda args: run(lambda v, count: sizes.append(jnp.size(v)) or v, args),
+                   example)
+
+    def perturbed(deltas, args):  # deltas: one vector, sliced in the order run draws
+        at = iter(np.cumsum([0, *sizes[:-1]]).tolist())
+
+        def draw(v, count):
+            i = next(at)
+            return v * (1 + count * deltas[i:i + jnp.size(v)].reshape(jnp.shape(v)))
+
+        return run(draw, args)
+
+    @jax.jit
+    def gain(*args):
+        zeros = jnp.zeros(sum(sizes))
+        jac = jax.jacrev(perturbed)(zeros, args)  # (outputs, deltas)
+        return perturbed(zeros, args), jnp.sum(jnp.abs(jac), axis=1)
+
+    return gain
+
+
+def _gain_sets():
+    """[setup]: the paper's example with its own gains and with `dscjax tune`'s
+    (reproduce.sampling.TUNED)."""
+    from dscjax.config import from_dict
+    from dscjax.params import cast
+    from dscjax.reproduce.sampling import TUNED
+
+    setup = _build("paper")
+    # float64 arrays, not Python floats: one compiled program serves both
+    return [setup, cast(from_dict({"controller": TUNED}, base=setup)[0], np.dtype("float64"))]
+
+
+def _sample(s, ctrl, x, t, d):
+    """One sample of the double loop's controller (setup `s` prepared, its reference given
+    by d = (y_r, y_r')): u and the next state, flat."""
+    from dscjax.closed_loop import SampledState, Sampling, sample_update
+    from dscjax.reference import Given
+
+    # h: the backlash's output, which the controller never reads
+    X = SampledState(x=x, h=jnp.zeros_like(t), ctrl=ctrl, u=jnp.zeros_like(t),
+                     past=jnp.zeros((0,)))
+    new = sample_update(jnp.zeros((), jnp.int32), t, X, s.replace(reference=Given(d=d)),
+                        Sampling(every=1.0), DT)
+    return jnp.concatenate([new.u[None], ravel_pytree(new.ctrl)[0]])
+
+
+@functools.cache
+def _sample_gain():
+    """`_rounding_gain` of `_sample` for the paper's example (any gains: they are arguments)."""
+    from dscjax.closed_loop import initial_state, prepared
+
+    s = prepared(_gain_sets()[0])
+    X0 = initial_state(s)
+    return _rounding_gain(_sample, s, X0.ctrl, X0.x, jnp.zeros(()), (jnp.zeros(()),) * 2)
+
+
+@needs_cc
+def test_one_float_sample_is_the_double_one_within_its_rounding_bound(tmp_path):
+    """The float C's sample (u and the next state) at states along the double loop of the
+    paper's and the tuned gains, against `sample_update` in float64: |float - exact| <= 2
+    eps32 G per output, G = the law's gain from relative roundings (`_rounding_gain`: every
+    input, constant and operation rounded once by at most one ulp, eps32); 2 for the
+    second-order terms, (L eps32)^2 for a chain of L << 1/eps32 roundings."""
+    import dscjax
+    from dscjax.closed_loop import initial_state, prepared
+
+    spec = dscjax.RunSpec.make(2.0, DT, save_every=1, sample_time=DT)
+    gain = _sample_gain()
+    for k_set, setup in enumerate(_gain_sets()):
+        (tmp_path / str(k_set)).mkdir()
+        lib, _ = _load(setup, spec, tmp_path / str(k_set), precision="float")
+        s = prepared(setup)
+        X0 = initial_state(s)
+        traj = dscjax.simulate(setup, spec=spec)
+        d_all = _reference(setup.reference, traj.t, 2)
+        n, size = setup.order, lib.dsc_state_size() // 4
+        buf = (ctypes.c_float * size)()
+        lib.dsc_init(buf, 0.0, (ctypes.c_float * n)(*np.asarray(X0.x).tolist()),
+                     *(float(v) for v in d_all[0]))
+        for k in np.linspace(0, len(traj.t) - 2, 8).astype(int):
+            ctrl = jax.tree.map(lambda a, k=k: a[k], traj.ctrl)
+            x, t, d = traj.x[k], traj.t[k], tuple(d_all[k])
+            want, g = (np.asarray(a) for a in gain(s, ctrl, x, t, d))
+            flat = np.asarray(ravel_pytree(ctrl)[0])
+            buf[:flat.size] = flat.tolist()
+            u = lib.dsc_step(buf, float(t), (ctypes.c_float * n)(*np.asarray(x).tolist()),
+                             *(float(v) for v in d))
+            got = np.concatenate([[u], np.asarray(buf[:flat.size], float)])
+            assert np.all(np.abs(got - want) <= 2 * EPS32 * g), (k_set, k, got - want, g)
+
+
+@needs_cc
+def test_the_float_loop_from_rest_is_the_double_one_within_its_rounding_bound(tmp_path):
+    """The float C in closed loop from dsc_init at rest (the paper's gains) against the
+    double loop: at every sample, |u_f - u| and |x_f - x| <= 2 eps32 B, B = sum over the
+    samples j so far and the controller's outputs o (u and its next state) of |d (u or x) /
+    d r_jo| G_jo: the loop's gain from a perturbation r_jo of output o at sample j (reverse
+    mode through the double loop) times the law's gain G_jo from float roundings at that
+    sample (`_rounding_gain`). The first-order bound of every rounding of the float
+    controller as the loop propagates it; it holds while the loop is smooth: a loop that
+    chatters in the boundary layer of sat (the tuned gains from rest) is not."""
+    import dscjax
+    from dscjax import params
+    from dscjax.closed_loop import initial_state, prepared
+
+    n_samples = 150
+    setup = _gain_sets()[0]
+    spec = dscjax.RunSpec.make(n_samples * DT, DT, save_every=1, sample_time=DT)
+    lib, m = _load(setup, spec, tmp_path, precision="float")
+    setup = params.set(setup, "plant.x0", np.zeros(2))
+    s = prepared(setup)
+    X0 = initial_state(s)
+    flat0, unravel = ravel_pytree(X0.ctrl)
+    times = jnp.arange(n_samples) * DT
+    d_all = _reference(setup.reference, times, 2)
+    u0, _ = s.controller.law(X0.ctrl, X0.x, 0.0, s.plant, s.reference)
+
+    def loop(r):
+        """The double loop with r (K, outputs) added to the controller's outputs at each
+        sample: (u_k, x(t_k)) (K, 1 + n), and (those, the controller's state, x) before each
+        sample."""
+        def one(carry, inputs):
+            x, h, u_prev, ctrl = carry
+            t, d, rk = inputs
+            out = _sample(s, unravel(ctrl), x, t, tuple(d)) + rk
+            x_next, h = _segment(s.plant, s.hysteresis, x, h, u_prev, out[0],
+                                 jnp.round(t / DT).astype(jnp.int32), 1)
+            return (x_next, h, out[0], out[1:]), (jnp.concatenate([out[:1], x]), ctrl, x)
+
+        outs = jax.lax.scan(one, (X0.x, X0.h, jnp.asarray(u0), flat0), (times, d_all, r))[1]
+        return outs[0], outs
+
+    zero = jnp.zeros((n_samples, 1 + flat0.size))
+    loop_gain, (want, ctrls, xs) = jax.jit(jax.jacrev(loop, has_aux=True))(zero)
+    gain = _sample_gain()
+    # on host arrays: no small program per sample
+    ctrls, xs, times, d_all = (jax.tree.map(np.asarray, a)
+                               for a in (jax.vmap(unravel)(ctrls), xs, times, d_all))
+    law_gain = [gain(s, jax.tree.map(lambda a, k=k: a[k], ctrls), xs[k], times[k],
+                     tuple(d_all[k]))[1] for k in range(n_samples)]
+    bound = 2 * EPS32 * np.einsum("kajo,jo->ka", np.abs(np.asarray(loop_gain)),
+                                  np.asarray(law_gain))
+    us, xs_f = _closed_loop(setup, lib, m, 1, n_samples)
+    err = np.abs(np.concatenate([us[:, None], xs_f], axis=1) - want)
+    assert np.max(err[:, 0]) > 0  # float rounds
+    assert np.all(err <= bound), np.max(err / np.maximum(bound, 1e-300))
+
+
 # -- the command-------------------------------------------------------------------------------
 
 
@@ -360,6 +573,40 @@ def test_export_reads_the_gains_file_and_its_sample_time(tmp_path, capsys):
     assert main(["export", "--gains", str(path), "--sample-time", "0.0015", "--out",
                  str(out), "--overwrite"]) == 0
     assert "Ts = 0.0015 s" in (out / "dsc_controller.h").read_text()
+
+
+def test_export_precision_float_is_c_float_throughout(tmp_path, capsys):
+    from dscjax.cli.main import main
+
+    out = tmp_path / "c"
+    assert main(["export", "--sample-time", "0.001", "--precision", "float", "--out",
+                 str(out)]) == 0
+    assert capsys.readouterr().out.endswith(
+        ": void dsc_init(void *state, float t0, const float *x0, float yr, float yr_dot); "
+        "float dsc_step(void *state, float t, const float *x, float yr, float yr_dot)\n")
+    source = (out / "dsc_controller.c").read_text()
+    assert "double" not in source and "expm1f(" in source and "(-0.45f)" in source
+    assert "C99, single precision: C float throughout" in (out / "dsc_controller.h").read_text()
+    if CC is not None:  # nothing is promoted to double
+        subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
+                        "-Wdouble-promotion", "-fsyntax-only", str(out / "dsc_controller.c")],
+                       check=True)
+
+
+def test_a_constant_beyond_float_is_refused_naming_it(tmp_path, capsys):
+    from dscjax.cli.main import main
+
+    config = tmp_path / "tiny.toml"
+    config.write_text("[controller]\nsat_width = 1e-50\n")
+    out = tmp_path / "c"
+    assert main(["export", "--config", str(config), "--sample-time", "0.001", "--precision",
+                 "float", "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and re.fullmatch(
+        r"dscjax export: error: controller: the constant 1e-50 \(controllers/adaptive.py:\d+ "
+        r"\(AdaptiveLaws._robust\)\) is beyond the range of C float; export it in double "
+        r"\(--precision double\)", err[0]), err
+    assert not out.exists()
 
 
 def _f_cumulative(x, p):

@@ -15,6 +15,7 @@ from dscjax.cli.common import (
     prepare_out,
     print_config,
 )
+from dscjax.export import PRECISIONS
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 EXPORT_KEYS = ("sample_time", "delay", "discretisation")
@@ -34,6 +35,9 @@ def add_parser(sub):
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")
     add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
+    p.add_argument("--precision", choices=PRECISIONS, default="double", help="the C's real "
+                   "type throughout, double (default: the simulated loop to round-off) or "
+                   "float (for a single-precision FPU; docs/export.md: how closely it agrees)")
     add_out_arg(p, "results/export")
     add_overwrite_arg(p)
     return p
@@ -84,16 +88,17 @@ def run(args) -> int:
     if args.print_config:
         print_config(setup, spec)
         return 0
-    files = export.c_files(setup, spec, source=source)  # every input checked before --out
+    # every input checked before --out
+    files = export.c_files(setup, spec, source=source, precision=args.precision)
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax export: order n={setup.order}, {setup.controller.kind}, sampled every "
-          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}; from {source}",
-          file=sys.stderr)
+          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}, "
+          f"{args.precision}; from {source}", file=sys.stderr)
     for name, text in files.items():
         write_text(out / name, text)
     header = files[export.HEADER]
     init, step = (" ".join(header[header.index(start):].split(";")[0].split())
-                  for start in ("void dsc_init(", "double dsc_step("))
+                  for start in ("void dsc_init(", f"{args.precision} dsc_step("))
     print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {init}; {step}")
     return 0
 
