@@ -179,8 +179,7 @@ def _state_fields(setup, spec):
 
 @needs_cc
 @pytest.mark.parametrize("example, init, delay", [("paper", "linf", 2),
-                                                  ("order-3", "zero_surfaces", 1),
-                                                  ("backstepping", None, 1)])
+                                                  ("paper", "zero_surfaces", 1)])
 def test_dsc_init_is_the_simulations_initial_state_of_any_x0(tmp_path, example, init, delay):
     """dsc_init(t0, x0, y_r(0), ...) writes the controller's state, the delay line and what
     the initialisation derives (c, the reference's offset) exactly as `initial_state` and
@@ -370,9 +369,9 @@ def _rounding_gain(fn, *example):
 
     @jax.jit
     def gain(*args):
-        zeros = jnp.zeros(sum(sizes))
-        jac = jax.jacrev(perturbed)(zeros, args)  # (outputs, deltas)
-        return perturbed(zeros, args), jnp.sum(jnp.abs(jac), axis=1)
+        out, pullback = jax.vjp(lambda d: perturbed(d, args), jnp.zeros(sum(sizes)))
+        jac = jax.vmap(pullback)(jnp.eye(out.size, dtype=out.dtype))[0]  # (outputs, deltas)
+        return out, jnp.sum(jnp.abs(jac), axis=1)
 
     return gain
 
@@ -414,38 +413,39 @@ def _sample_gain():
 
 
 @needs_cc
-def test_one_float_sample_is_the_double_one_within_its_rounding_bound(tmp_path):
+def test_one_float_sample_of_the_tuned_gains_is_the_double_one_within_its_rounding_bound(
+        tmp_path):
     """The float C's sample (u and the next state) at states along the double loop of the
-    paper's and the tuned gains, against `sample_update` in float64: |float - exact| <= 2
-    eps32 G per output, G = the law's gain from relative roundings (`_rounding_gain`: every
-    input, constant and operation rounded once by at most one ulp, eps32); 2 for the
-    second-order terms, (L eps32)^2 for a chain of L << 1/eps32 roundings."""
+    tuned gains (whose loop chatters, so the closed-loop bound below does not apply), against
+    `sample_update` in float64: |float - exact| <= 2 eps32 G per output, G = the law's gain
+    from relative roundings (`_rounding_gain`: every input, constant and operation rounded
+    once by at most one ulp, eps32); 2 for the second-order terms, (L eps32)^2 for a chain of
+    L << 1/eps32 roundings."""
     import dscjax
     from dscjax.closed_loop import initial_state, prepared
 
-    spec = dscjax.RunSpec.make(2.0, DT, save_every=1, sample_time=DT)
+    setup = _gain_sets()[1]
+    spec = dscjax.RunSpec.make(1.0, DT, save_every=1, sample_time=DT)
+    lib, _ = _load(setup, spec, tmp_path, precision="float")
+    s = prepared(setup)
+    X0 = initial_state(s)
+    traj = dscjax.simulate(setup, spec=spec)
+    d_all = _reference(setup.reference, traj.t, 2)
+    n, size = setup.order, lib.dsc_state_size() // 4
+    buf = (ctypes.c_float * size)()
+    lib.dsc_init(buf, 0.0, (ctypes.c_float * n)(*np.asarray(X0.x).tolist()),
+                 *(float(v) for v in d_all[0]))
     gain = _sample_gain()
-    for k_set, setup in enumerate(_gain_sets()):
-        (tmp_path / str(k_set)).mkdir()
-        lib, _ = _load(setup, spec, tmp_path / str(k_set), precision="float")
-        s = prepared(setup)
-        X0 = initial_state(s)
-        traj = dscjax.simulate(setup, spec=spec)
-        d_all = _reference(setup.reference, traj.t, 2)
-        n, size = setup.order, lib.dsc_state_size() // 4
-        buf = (ctypes.c_float * size)()
-        lib.dsc_init(buf, 0.0, (ctypes.c_float * n)(*np.asarray(X0.x).tolist()),
-                     *(float(v) for v in d_all[0]))
-        for k in np.linspace(0, len(traj.t) - 2, 8).astype(int):
-            ctrl = jax.tree.map(lambda a, k=k: a[k], traj.ctrl)
-            x, t, d = traj.x[k], traj.t[k], tuple(d_all[k])
-            want, g = (np.asarray(a) for a in gain(s, ctrl, x, t, d))
-            flat = np.asarray(ravel_pytree(ctrl)[0])
-            buf[:flat.size] = flat.tolist()
-            u = lib.dsc_step(buf, float(t), (ctypes.c_float * n)(*np.asarray(x).tolist()),
-                             *(float(v) for v in d))
-            got = np.concatenate([[u], np.asarray(buf[:flat.size], float)])
-            assert np.all(np.abs(got - want) <= 2 * EPS32 * g), (k_set, k, got - want, g)
+    for k in np.linspace(0, len(traj.t) - 2, 10).astype(int):
+        ctrl = jax.tree.map(lambda a, k=k: a[k], traj.ctrl)
+        x, t, d = traj.x[k], traj.t[k], tuple(d_all[k])
+        want, g = (np.asarray(a) for a in gain(s, ctrl, x, t, d))
+        flat = np.asarray(ravel_pytree(ctrl)[0])
+        buf[:flat.size] = flat.tolist()
+        u = lib.dsc_step(buf, float(t), (ctypes.c_float * n)(*np.asarray(x).tolist()),
+                         *(float(v) for v in d))
+        got = np.concatenate([[u], np.asarray(buf[:flat.size], float)])
+        assert np.all(np.abs(got - want) <= 2 * EPS32 * g), (k, got - want, g)
 
 
 @needs_cc
@@ -462,7 +462,7 @@ def test_the_float_loop_from_rest_is_the_double_one_within_its_rounding_bound(tm
     from dscjax import params
     from dscjax.closed_loop import initial_state, prepared
 
-    n_samples = 150
+    n_samples = 100
     setup = _gain_sets()[0]
     spec = dscjax.RunSpec.make(n_samples * DT, DT, save_every=1, sample_time=DT)
     lib, m = _load(setup, spec, tmp_path, precision="float")
@@ -505,7 +505,7 @@ def test_the_float_loop_from_rest_is_the_double_one_within_its_rounding_bound(tm
     assert np.all(err <= bound), np.max(err / np.maximum(bound, 1e-300))
 
 
-# -- the command-------------------------------------------------------------------------------
+# -- the command -----------------------------------------------------------------------------
 
 
 def test_a_config_without_a_sample_time_is_refused_in_one_line(tmp_path, capsys):
