@@ -1,17 +1,26 @@
-"""A config's digital controller as C99: the sampled loop's update law, exactly.
+"""A config's digital controller as C99: the sampled loop's initialisation and update law,
+exactly.
 
     files = dscjax.export.c_files(setup, spec)   # {"dsc_controller.h": text, ".c": text}
+    files = dscjax.export.c_files(setup, spec, precision="float")   # C float throughout
 
-The C is generated from the jaxpr of `closed_loop.sample_update` (the law, the advance of the
-controller's states by `spec.discretisation`, the delay line) for the concrete config: gains,
-sample time and delay are constants; the plant state x, the time t and the reference's
-derivatives are the inputs. One C statement per primitive, in double precision, with no
-dependency beyond <math.h>. Measurement noise belongs to the sensor, not the controller.
+Two functions are generated from jaxprs of the sampled loop, for the concrete config (gains,
+sample time and delay are constants):
+- `dsc_init` from the loop's initialisation (`Controller.prepare`, `closed_loop.initial_state`
+  and the delay line's first input) as a function of x(0) and the reference at the start: the
+  controller starts from the measured state exactly as dscjax's loop starts from plant.x0;
+- `dsc_step` from `closed_loop.sample_update` (the law, the advance of the controller's
+  states by `spec.discretisation`, the delay line), with x, t and the reference's
+  derivatives as inputs.
+One C statement per primitive, in double (or float) precision, with no dependency beyond
+<math.h>. Measurement noise belongs to the sensor and the actuator's limits to the actuator:
+neither is part of the controller (u is returned unbounded, as the simulation applies it).
 """
 
 from __future__ import annotations
 
 import dataclasses
+from fractions import Fraction
 
 import jax
 import jax.numpy as jnp
@@ -22,6 +31,7 @@ from dscjax.reference import Given, InitialOffset
 from dscjax.validation import ConfigError
 
 HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
+PRECISIONS = ("double", "float")
 SCHEME_DOC = {"exponential-euler": "c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau "
               "for a filter, 0 for an estimate", "euler": "forward Euler, c += Ts c'"}
 
@@ -30,81 +40,163 @@ class ExportError(ConfigError):
     """A config whose law uses something the C emitter does not write (one line)."""
 
 
-# -- tracing: the sample update as one flat program ---------------------------------------------
+# -- tracing: the initialisation and the sample update as flat programs -------------------------
 
 
-def _with_given(setup, prepared_ref, d):
-    """The prepared reference with the config's reference replaced by the inputs (the L-inf
-    initialisation's decaying offset stays in the law)."""
-    if prepared_ref is setup.reference:
+def _with_given(prepared_ref, d):
+    """The prepared reference (prepared from `Given(d0)`) reading the inputs d instead (the
+    L-inf initialisation's decaying offset stays in the law)."""
+    if isinstance(prepared_ref, Given):
         return Given(d=d)
-    if isinstance(prepared_ref, InitialOffset) and prepared_ref.base is setup.reference:
+    if isinstance(prepared_ref, InitialOffset) and isinstance(prepared_ref.base, Given):
         return dataclasses.replace(prepared_ref, base=Given(d=d))
     raise ExportError(f"reference: the controller's initialisation changes the reference in a "
                       f"way export does not know ({type(prepared_ref).__name__})")
 
 
 @dataclasses.dataclass
-class Law:
-    """The traced sample update and what the C around it needs."""
+class Program:
+    """One traced function as flat, live operations and the atoms of its outputs."""
 
-    ops: list  # flat, live operations (after inlining and dead-code removal)
-    state: list  # [(C name, shape, initial values (flat))], the controller's state
-    outputs: list  # [atom of u, atoms of the new state leaves in `state` order]
+    ops: list
+    outputs: list
+
+
+@dataclasses.dataclass
+class Law:
+    """The traced initialisation and sample update, and what the C around them needs."""
+
+    init: Program  # outputs: the initial value of every field of `state`, in order
+    step: Program  # outputs: u, then the new value of every field of `state` that advances
+    state: list  # [(C name, shape, advances)]: the controller's state, the delay line, then
+    #              what the initialisation derives from x(0) and the step only reads
     n_ref: int  # reference values the law reads: y_r .. y_r^(n_ref - 1)
     order: int
     sample_time: float
+    reads_t: bool  # whether the step reads t (the L-inf offset's decay does)
+
+
+def _name(path) -> str:
+    """A C identifier of a pytree path: ('controller', .c) -> 'controller_c'."""
+    parts = [str(getattr(k, "name", getattr(k, "key", getattr(k, "idx", k)))) for k in path]
+    return "".join(c if c.isalnum() else "_" for c in "_".join(parts)).strip("_")
+
+
+def _depends(jaxpr) -> list[bool]:
+    """Which outputs of `jaxpr` depend on its inputs (not on its constants alone)."""
+    dep = {v for v in jaxpr.invars}
+    for eqn in jaxpr.eqns:
+        if any(not isinstance(v, jax.extend.core.Literal) and v in dep for v in eqn.invars):
+            dep |= set(eqn.outvars)
+    return [not isinstance(v, jax.extend.core.Literal) and v in dep for v in jaxpr.outvars]
 
 
 def trace(setup, spec) -> Law:
-    """The sampled controller of (setup, spec) as a flat program (spec sampled, float64)."""
+    """The sampled controller of (setup, spec) as flat programs (spec sampled, float64)."""
     if not spec.sampled:
         raise ConfigError("simulation.sample_time: export needs a sampled controller")
-    s = prepared(setup)
-    X0 = initial_state(s)
-    if X0.x.dtype != np.float64:
-        raise ConfigError(f"simulation.dtype: export writes the controller in float64 (got a "
-                          f"{X0.x.dtype} setup; turn jax_enable_x64 on)")
+    X0 = jax.eval_shape(lambda: initial_state(prepared(setup)))  # shapes and dtypes only
+    dtype = X0.x.dtype
+    if dtype != np.float64:
+        raise ConfigError(f"simulation.dtype: export writes the controller from its float64 "
+                          f"trace (got a {dtype} setup; turn jax_enable_x64 on)")
     n = setup.order
     n_d = n + 2  # more reference derivatives than any law of order n reads
     every, dt = float(spec.sample_every), float(spec.dt)
     sampling = Sampling(every=every, delay=spec.delay, scheme=spec.discretisation)
-    u0, _ = s.controller.law(X0.ctrl, X0.x, jnp.zeros((), X0.x.dtype), s.plant, s.reference)
-    past0 = jnp.full((spec.delay,), u0, X0.x.dtype)
+    zero = jnp.zeros((), dtype)
 
-    def step(ctrl, past, x, t, d):
-        loop = s.replace(reference=_with_given(setup, s.reference, d))
-        X = SampledState(x=x, h=X0.h, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
+    def prepare_at(x0, d0):
+        """{plant, controller, reference} as dscjax's loop starts with them from x(0) = x0
+        and the reference's derivatives d0 at the start (`closed_loop.prepared`)."""
+        plant = dataclasses.replace(setup.plant, x0=x0)
+        p = prepared(setup.replace(plant=plant, reference=Given(d=d0)))
+        return {"plant": p.plant, "controller": p.controller, "reference": p.reference}
+
+    # What the initialisation derives from x(0) and the reference (the DSC's c and the L-inf
+    # offset, say) becomes state that dsc_init sets; everything else stays a constant.
+    d_any = (zero,) * n_d
+    probe = jax.make_jaxpr(lambda x0, d0: jax.tree.leaves(prepare_at(x0, d0)))(X0.x, d_any)
+    paths, treedef = jax.tree_util.tree_flatten_with_path(
+        prepare_at(jnp.asarray(setup.plant.x0, dtype), d_any))
+    base = [v for _, v in paths]
+    which = [i for i, dep in enumerate(_depends(probe.jaxpr)) if dep]
+    # the actuator's state: sample_update moves it, nothing the C returns depends on it
+    h0 = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), X0.h)
+
+    def loop_of(p):
+        return setup.replace(plant=p["plant"], controller=p["controller"],
+                             reference=p["reference"])
+
+    def step(ctrl, past, values, x, t, d):
+        leaves = list(base)
+        for i, v in zip(which, values, strict=True):
+            leaves[i] = v
+        loop = loop_of(jax.tree.unflatten(treedef, leaves))
+        loop = loop.replace(reference=_with_given(loop.reference, d))
+        X = SampledState(x=x, h=h0, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
         new = sample_update(jnp.zeros((), jnp.int32), t, X, loop, sampling, dt)
         return new.u, new.ctrl, new.past
 
-    zero = jnp.zeros((), X0.x.dtype)
-    closed = jax.make_jaxpr(step)(X0.ctrl, past0, X0.x, zero, (zero,) * n_d)
+    def init(x0, d0):
+        p = prepare_at(x0, d0)
+        loop = loop_of(p)
+        X = initial_state(loop)  # the simulation's own X(0) of this x(0)
+        u0, _ = loop.controller.law(X.ctrl, X.x, zero, loop.plant, loop.reference)
+        past = jnp.full((spec.delay,), u0, dtype)  # as closed_loop.sampled_initial_state
+        flat = jax.tree.leaves(p)
+        return X.ctrl, past, [flat[i] for i in which]
+
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
-    names = ["".join(c if c.isalnum() else "_" for c in jax.tree_util.keystr(p)).strip("_")
-             for p, _ in leaves] + (["past"] if spec.delay else [])
-    values = [v for _, v in leaves] + ([past0] if spec.delay else [])
-    state = [(nm, np.shape(v), np.ravel(np.asarray(v, np.float64)))
-             for nm, v in zip(names, values, strict=True)]
+    ctrl_names = [_name(p) for p, _ in leaves]
+    value_names = [_name(paths[i][0]) for i in which]
+    past0 = jnp.zeros((spec.delay,), dtype)
+    values0 = [base[i] for i in which]
+    ref_in = [("ref", j) for j in range(n_d)]
+    # the step's inputs: the state's leaves, the delay line (a (0,) array nothing reads if no
+    # delay), the derived values, x, t and the reference's derivatives
+    kinds = ([("state", nm) for nm in ctrl_names] + [("state", "past" if spec.delay else None)]
+             + [("state", nm) for nm in value_names] + [("x",), ("t",)] + ref_in)
+    closed = jax.make_jaxpr(step)(X0.ctrl, past0, values0, X0.x, zero, d_any)
+    n_out = 1 + len(ctrl_names) + (1 if spec.delay else 0)
+    step_prog = _program(closed, kinds, n_out)
+    read = {a[1] for a in _atoms(step_prog) if a[0] == "in"}
+    kept = [k for k, nm in enumerate(value_names) if ("state", nm) in read]
+    state = ([(nm, tuple(v.shape), True) for nm, (_, v) in zip(ctrl_names, leaves, strict=True)]
+             + ([("past", (spec.delay,), True)] if spec.delay else [])
+             + [(value_names[k], np.shape(values0[k]), False) for k in kept])
+    closed_init = jax.make_jaxpr(init)(X0.x, d_any)
+    init_all = _program(closed_init, [("x",)] + ref_in, None)
+    outs = init_all.outputs
+    picked = (outs[:len(ctrl_names)] + (outs[len(ctrl_names):len(ctrl_names) + 1]
+                                        if spec.delay else [])
+              + [outs[len(ctrl_names) + 1 + k] for k in kept])
+    init_prog = Program(_live(init_all.ops, picked), picked)
+    used = {a[1][1] for prog in (step_prog, init_prog) for a in _atoms(prog)
+            if a[0] == "in" and a[1][0] == "ref"}
+    n_ref = max(used, default=1) + 1
+    if n_ref >= n_d:
+        raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
+    reads_t = any(a[0] == "in" and a[1][0] == "t" for a in _atoms(step_prog))
+    return Law(init=init_prog, step=step_prog, state=state, n_ref=max(n_ref, 2), order=n,
+               sample_time=every * dt, reads_t=reads_t)
+
+
+def _atoms(prog: Program) -> list:
+    return [*prog.outputs, *(a for op in prog.ops for a in op.ins)]
+
+
+def _program(closed, kinds, n_out) -> Program:
+    """The closed jaxpr inlined into live operations; its inputs are the atoms ("in", kind,
+    shape); the first `n_out` outputs (all if None) are kept."""
     jx = closed.jaxpr
-    # the inputs: the state's leaves, the delay line (a (0,) array nothing reads if no delay),
-    # x, t and the reference's derivatives
-    kinds = ([("state", nm) for nm in names] + ([] if spec.delay else [("state", None)])
-             + [("x",), ("t",)] + [("ref", j) for j in range(n_d)])
     flat = _Flattener()
     env = {v: ("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)}
     env |= {v: ("const", np.asarray(c)) for v, c in zip(jx.constvars, closed.consts,
                                                          strict=True)}
     flat.inline(jx, env)
-    outs = [flat.atom(env, v) for v in jx.outvars][:1 + len(names)]
-    ops = _live(flat.ops, outs)
-    used = {a[1][1] for a in [*outs, *(a for op in ops for a in op.ins)]
-            if a[0] == "in" and a[1][0] == "ref"}
-    n_ref = max(used, default=1) + 1
-    if n_ref >= n_d:
-        raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
-    return Law(ops=ops, state=state, outputs=outs, n_ref=max(n_ref, 2), order=n,
-               sample_time=every * dt)
+    outs = [flat.atom(env, v) for v in jx.outvars][:n_out]
+    return Program(_live(flat.ops, outs), outs)
 
 
 @dataclasses.dataclass
@@ -195,15 +287,52 @@ def _live(ops, outs):
 # -- the C -----------------------------------------------------------------------------------
 
 
-def _num(x) -> str:
-    """A C literal that reads back as exactly x (the shortest repr of a double)."""
-    x = np.asarray(x)
-    if x.dtype.kind in "biu":
-        return str(int(x))
-    f = float(x)
-    if not np.isfinite(f):
-        return "NAN" if np.isnan(f) else ("INFINITY" if f > 0 else "(-INFINITY)")
-    return f"({f!r})" if f < 0 else repr(f)
+class _Real:
+    """How the C writes a real number: `double`, or `float` throughout (constants with an f
+    suffix, the float functions of C99's <math.h>: expf, sinf, ...)."""
+
+    def __init__(self, name: str):
+        self.name = name
+        self.f = "f" if name == "float" else ""
+        self.one = "1.0" + self.f
+
+    def num(self, x) -> str:
+        """A C literal that reads back as exactly x rounded to this type (the shortest)."""
+        x = np.asarray(x)
+        if x.dtype.kind in "biu":
+            return str(int(x))
+        f = float(x)
+        if not np.isfinite(f):
+            return "NAN" if np.isnan(f) else ("INFINITY" if f > 0 else "(-INFINITY)")
+        text = repr(f) if self.name == "double" else _float_literal(f)
+        return f"({text})" if f < 0 else text
+
+
+class _OutOfRange(ValueError):
+    pass
+
+
+def _float_literal(f: float) -> str:
+    """The shortest decimal whose nearest float is float32(f), with the f suffix: nearer to
+    it than half the distance to either neighbour, so any correctly rounding compiler reads
+    exactly that float (no double rounding through a double)."""
+    v = np.float32(f)
+    if not np.isfinite(v) or (v == 0 and f != 0):
+        raise _OutOfRange(f)
+    exact = Fraction(float(v))
+    lo = Fraction(float(np.nextafter(v, np.float32(-np.inf))))
+    up = np.nextafter(v, np.float32(np.inf))
+    hi = Fraction(float(up)) if np.isfinite(up) else 2 * exact - lo
+
+    def reads_back(text):
+        gap = Fraction(text) - exact
+        return 2 * gap < hi - exact and 2 * -gap < exact - lo
+
+    text = next(t for t in (f"{float(v):.{digits}g}" for digits in range(1, 10))
+                if reads_back(t))
+    if reads_back(repr(float(text))):  # 10.0 rather than 1e+01
+        text = repr(float(text))
+    return (text if ("." in text or "e" in text) else text + ".0") + "f"
 
 
 def _size(shape) -> int:
@@ -215,8 +344,12 @@ def _shape(a) -> tuple:
 
 
 class _Emitter:
-    def __init__(self, law: Law):
-        self.law = law
+    """C statements of one program; `x`: the C name of the plant state it reads (x, or x0 in
+    dsc_init); the time it reads is `t_s`, the time since dsc_init."""
+
+    def __init__(self, law: Law, real: _Real, x: str = "x"):
+        self.law, self.real, self.x = law, real, x
+        self.shapes = {nm: shp for nm, shp, _ in law.state}
         self.lines: list[str] = []
         self.declared: dict[int, tuple] = {}  # op output id -> the shape it is declared with
 
@@ -224,24 +357,36 @@ class _Emitter:
         """The C expression of flat element i of atom a (a size-1 atom broadcasts)."""
         if a[0] in ("lit", "const"):
             arr = np.ravel(a[1])
-            return _num(arr[i if arr.size > 1 else 0])
+            return self.real.num(arr[i if arr.size > 1 else 0])
         j = i if _size(a[2]) > 1 else 0
         if a[0] == "v":
             return f"v{a[1]}" if self.declared[a[1]] == () else f"v{a[1]}[{j}]"
         kind, *what = a[1]
         if kind in ("x", "t"):
-            return "t" if kind == "t" else f"x[{j}]"
+            return "t_s" if kind == "t" else f"{self.x}[{j}]"
         if kind == "ref":
             return ("yr", "yr_dot")[what[0]] if what[0] < 2 else f"yr_higher[{what[0] - 2}]"
-        full = {nm: shp for nm, shp, _ in self.law.state}[what[0]]
-        return f"s->{what[0]}" + ("" if full == () else f"[{j}]")
+        return f"s->{what[0]}" + ("" if self.shapes[what[0]] == () else f"[{j}]")
+
+    def program(self, prog: Program):
+        last = None
+        for op in prog.ops:
+            if op.where and op.where != last:
+                self.lines.append(f"    /* {op.where} */")
+                last = op.where
+            try:
+                self.op(op)
+            except _OutOfRange as e:
+                raise ExportError(f"controller: the constant {e.args[0]:g} ({op.where}) is "
+                                  f"beyond the range of C {self.real.name}; export it in "
+                                  f"double (--precision double)") from None
 
     def op(self, op: Op):
         out = op.outs[0]
         n = _size(out[2])
         f = _ELEMENTWISE.get(op.prim)
         if f is not None:
-            vals = [f([self.el(a, i) for a in op.ins], op.params) for i in range(n)]
+            vals = [f([self.el(a, i) for a in op.ins], op.params, self.real) for i in range(n)]
         elif op.prim in _MOVES:
             vals = [self.el(op.ins[k], int(j)) for k, j in _index_map(op)]
         elif op.prim == "dot_general":
@@ -251,7 +396,7 @@ class _Emitter:
         else:
             raise ExportError(f"controller: export cannot write the primitive "
                               f"'{op.prim}' ({op.where}) in C")
-        ctype = "double" if out[3].kind == "f" else "long long"
+        ctype = self.real.name if out[3].kind == "f" else "long long"
         self.declared[out[1]] = out[2]
         if out[2] == ():
             self.lines.append(f"    {ctype} v{out[1]} = {vals[0]};")
@@ -260,14 +405,16 @@ class _Emitter:
 
 
 def _bin(fmt):
-    return lambda a, p: fmt.format(*a)
+    """An elementwise primitive by a format: {} the operands, {f} the float functions'
+    suffix, {one} the literal 1."""
+    return lambda a, p, r: fmt.format(*a, f=r.f, one=r.one)
 
 
-def _integer_pow(a, p):
+def _integer_pow(a, p, r):
     """x^y by JAX's own sequence of products (its lowering), so the rounding is the same."""
     x, y = a[0], int(p["y"])
     if y == 0:
-        return "1.0"
+        return r.one
     recip, y = y < 0, abs(y)
     acc, cur = None, f"({x})"
     while y > 0:
@@ -276,19 +423,19 @@ def _integer_pow(a, p):
         y >>= 1
         if y > 0:
             cur = f"({cur} * {cur})"
-    return f"(1.0 / {acc})" if recip else acc
+    return f"({r.one} / {acc})" if recip else acc
 
 
-def _convert(a, p):
+def _convert(a, p, r):
     dtype = np.dtype(p["new_dtype"])
     if dtype.kind == "f":
-        return f"(double)({a[0]})"
+        return f"({r.name})({a[0]})"
     if dtype.kind == "b":
         return f"(({a[0]}) != 0)"
     return f"(long long)({a[0]})"
 
 
-def _select(a, p):
+def _select(a, p, r):
     expr = a[-1]  # select_n(which, case_0, case_1, ...)
     for k in range(len(a) - 2, 0, -1):
         expr = f"(({a[0]}) == {k - 1} ? {a[k]} : {expr})"
@@ -299,13 +446,14 @@ _ELEMENTWISE = {
     "add": _bin("({} + {})"), "add_any": _bin("({} + {})"), "sub": _bin("({} - {})"),
     "mul": _bin("({} * {})"), "div": _bin("({} / {})"), "neg": _bin("(-{})"),
     "max": _bin("dsc_max_({}, {})"), "min": _bin("dsc_min_({}, {})"),
-    "pow": _bin("pow({}, {})"), "atan2": _bin("atan2({}, {})"), "rem": _bin("fmod({}, {})"),
-    "abs": _bin("fabs({})"), "exp": _bin("exp({})"), "expm1": _bin("expm1({})"),
-    "log": _bin("log({})"), "log1p": _bin("log1p({})"), "sqrt": _bin("sqrt({})"),
-    "rsqrt": _bin("(1.0 / sqrt({}))"), "sin": _bin("sin({})"), "cos": _bin("cos({})"),
-    "tan": _bin("tan({})"), "tanh": _bin("tanh({})"), "atan": _bin("atan({})"),
-    "logistic": _bin("(1.0 / (1.0 + exp(-{})))"), "square": _bin("({0} * {0})"),
-    "sign": _bin("dsc_sign_({})"), "floor": _bin("floor({})"), "ceil": _bin("ceil({})"),
+    "pow": _bin("pow{f}({}, {})"), "atan2": _bin("atan2{f}({}, {})"),
+    "rem": _bin("fmod{f}({}, {})"), "abs": _bin("fabs{f}({})"), "exp": _bin("exp{f}({})"),
+    "expm1": _bin("expm1{f}({})"), "log": _bin("log{f}({})"), "log1p": _bin("log1p{f}({})"),
+    "sqrt": _bin("sqrt{f}({})"), "rsqrt": _bin("({one} / sqrt{f}({}))"),
+    "sin": _bin("sin{f}({})"), "cos": _bin("cos{f}({})"), "tan": _bin("tan{f}({})"),
+    "tanh": _bin("tanh{f}({})"), "atan": _bin("atan{f}({})"),
+    "logistic": _bin("({one} / ({one} + exp{f}(-{})))"), "square": _bin("({0} * {0})"),
+    "sign": _bin("dsc_sign_({})"), "floor": _bin("floor{f}({})"), "ceil": _bin("ceil{f}({})"),
     "lt": _bin("({} < {})"), "le": _bin("({} <= {})"), "gt": _bin("({} > {})"),
     "ge": _bin("({} >= {})"), "eq": _bin("({} == {})"), "ne": _bin("({} != {})"),
     "and": _bin("({} & {})"), "or": _bin("({} | {})"), "not": _bin("(!{})"),
@@ -378,40 +526,74 @@ def _reduce(em, op):
     return out
 
 
-def step_signature(law: Law) -> str:
-    extra = ",\n                const double *yr_higher" if law.n_ref > 2 else ""
-    return ("double dsc_step(void *state, double t, const double *x, double yr, "
-            f"double yr_dot{extra})")
+def _reference_args(law: Law, r: str) -> str:
+    extra = f",\n                const {r} *yr_higher" if law.n_ref > 2 else ""
+    return f"{r} yr, {r} yr_dot{extra}"
 
 
-def c_files(setup, spec, *, source: str = "") -> dict[str, str]:
+def step_signature(law: Law, precision: str = "double") -> str:
+    r = precision
+    return f"{r} dsc_step(void *state, {r} t, const {r} *x, {_reference_args(law, r)})"
+
+
+def init_signature(law: Law, precision: str = "double") -> str:
+    r = precision
+    return f"void dsc_init(void *state, {r} t0, const {r} *x0, {_reference_args(law, r)})"
+
+
+def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict[str, str]:
     """{"dsc_controller.h": text, "dsc_controller.c": text} of the sampled controller of
-    (setup, spec); `source` names the config in the header, which lists the gains."""
+    (setup, spec) in C `precision` (double or float); `source` names the config in the
+    header, which lists the gains."""
     from dscjax import config
 
+    if precision not in PRECISIONS:
+        raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)} (got "
+                          f"{precision!r})")
     law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
-    return {HEADER: _header(law, spec, source, gains), SOURCE: _source(law, spec)}
+    real = _Real(precision)
+    try:
+        text = _source(law, spec, real)
+        return {HEADER: _header(law, spec, source, gains, real), SOURCE: text}
+    except _OutOfRange as e:  # outside an operation: an initial value, the sample time
+        raise ExportError(f"controller: the constant {e.args[0]:g} is beyond the range of C "
+                          f"{precision}; export it in double (--precision double)") from None
 
 
-def _header(law, spec, source, gains) -> str:
+def _header(law, spec, source, gains, real) -> str:
+    r = real.name
     n_hi = law.n_ref - 2
     ref_doc = ("yr, yr_dot: the reference y_r(t) and its derivative"
                + (f";\n *   yr_higher[j] = the derivative j + 2 of y_r(t), j = 0..{n_hi - 1} "
                   f"(the law reads them)" if n_hi else ""))
     glines = "\n".join(f" *   {k} = {v}" for k, v in gains.items())
     delay = (f"input delay: {spec.delay} sample(s):\n * dsc_step returns the input computed "
-             f"{spec.delay} sample(s) before (the initial one until then)" if spec.delay
+             f"{spec.delay} sample(s) before (the first one until then)" if spec.delay
              else "no input delay")
+    precision = ("double precision" if r == "double" else
+                 "single precision: C float throughout (constants and <math.h> functions)")
+    line = ", delay line" if spec.delay else ""
+    derived = [nm for nm, _, advances in law.state if not advances]
+    derived_doc = (f",\n * and what the initialisation derives ({', '.join(derived)}),"
+                   if derived else "")
     return f"""/* dsc_controller.h: the digital controller of {source or 'a dscjax config'},
- * generated by `dscjax export`: exactly the update law of dscjax's sampled loop.
+ * generated by `dscjax export`: exactly the initialisation and the update law of dscjax's
+ * sampled loop.
  *
  * Order n = {law.order}; sample time Ts = {law.sample_time!r} s; {delay}.
  * The controller's states advance by {spec.discretisation}:
  *   {SCHEME_DOC[spec.discretisation]}.
+ * dsc_init starts the controller from the measured plant state x0 at time t0, as dscjax's
+ * loop starts from plant.x0: its filters, estimates{line}{derived_doc} are
+ * computed from x0 and the reference at t0 by the simulation's own initialisation.
  * dsc_step reads the plant state x (n values, measured at t), t and the reference:
  *   {ref_doc}.
- * Call dsc_step once per sample, at t = k Ts, k = 0, 1, ..., and hold its u until t + Ts.
- * C99, double precision, only <math.h>; compile without -ffast-math for dscjax's numbers.
+ * Call dsc_init once, then dsc_step once per sample, at t = t0 + k Ts, k = 0, 1, ..., and
+ * hold its u until t + Ts. The controller is dscjax's loop started at t0 (its time origin).
+ * Actuator limit: none. dsc_step returns u unbounded, as the simulated loop applies it; a
+ * limit clipped by the caller makes a loop that was not simulated (the adaptive laws keep
+ * adapting while u is clipped).
+ * C99, {precision}, only <math.h>; compile without -ffast-math for dscjax's numbers.
  *
  * The controller (its gains and initial estimates):
 {glines}
@@ -424,76 +606,94 @@ def _header(law, spec, source, gains) -> str:
 #define DSC_REFERENCE_DERIVATIVES {law.n_ref - 1}  /* y_r' .. y_r^({law.n_ref - 1}) */
 
 size_t dsc_state_size(void);          /* bytes of the controller's state */
-void   dsc_init(void *state);         /* the config's initial estimates and filters */
-{step_signature(law)};
+{init_signature(law, r)};
+/* the controller's state at t0 from the measured plant state x0 ({law.order} values) and the
+   reference at t0 */
+{step_signature(law, r)};
 /* one sample: x = the plant state ({law.order} values) at time t; returns u to hold until t + Ts,
    and advances the controller's states by one sample */
-double dsc_sample_time(void);
+{r} dsc_sample_time(void);
 int    dsc_order(void);
 
 #endif
 """
 
 
-def _source(law: Law, spec) -> str:
-    fields = "\n".join(f"    double {nm}{'' if shp == () else f'[{_size(shp)}]'};"
+def _assign(law, atoms, em, fields, *, stage: bool) -> list[str]:
+    """Statements writing `atoms` into the state `fields`; `stage`: all read before any is
+    written (the step's u and next state may read the state being replaced)."""
+    r = em.real.name
+    lines, writes = [], []
+    for (nm, shp, _), a in zip(fields, atoms, strict=True):
+        vals = [em.el(a, i) for i in range(_size(shp))]
+        idx = ["" if shp == () else f"[{i}]" for i in range(len(vals))]
+        if stage:
+            lines.append(f"    {r} next_{nm}[{len(vals)}] = {{{', '.join(vals)}}};")
+            writes += [f"    s->{nm}{k} = next_{nm}[{i}];" for i, k in enumerate(idx)]
+        else:
+            writes += [f"    s->{nm}{k} = {v};" for k, v in zip(idx, vals, strict=True)]
+    return lines + writes
+
+
+def _source(law: Law, spec, real: _Real) -> str:
+    r = real.name
+    fields = "\n".join(f"    {r} {nm}{'' if shp == () else f'[{_size(shp)}]'};"
                        for nm, shp, _ in law.state)
-    init = [f"    s->{nm}{'' if shp == () else f'[{i}]'} = {_num(v)};"
-            for nm, shp, vals in law.state for i, v in enumerate(vals)]
-    em = _Emitter(law)
-    last = None
-    for op in law.ops:
-        if op.where and op.where != last:
-            em.lines.append(f"    /* {op.where} */")
-            last = op.where
-        em.op(op)
-    u, *new = law.outputs  # all read before the state is written (u may be s->past[...])
-    tail = [f"    double u_out = {em.el(u, 0)};"]
-    for (nm, shp, _), a in zip(law.state, new, strict=True):
-        vals = ", ".join(em.el(a, i) for i in range(_size(shp)))
-        tail.append(f"    double next_{nm}[{_size(shp)}] = {{{vals}}};")
-    tail += [f"    s->{nm}{'' if shp == () else f'[{i}]'} = next_{nm}[{i}];"
-             for nm, shp, _ in law.state for i in range(_size(shp))]
-    body = "\n".join(em.lines + tail)
-    unused = ["t", "x", "yr", "yr_dot"] + (["yr_higher"] if law.n_ref > 2 else [])
-    voids = " ".join(f"(void){u_};" for u_ in unused)
-    return f"""/* dsc_controller.c: generated by `dscjax export` from the jaxpr of dscjax's sample
- * update (closed_loop.sample_update); see dsc_controller.h. */
+    ref_names = ["yr", "yr_dot"] + (["yr_higher"] if law.n_ref > 2 else [])
+    em_init = _Emitter(law, real, x="x0")
+    em_init.program(law.init)
+    init_body = "\n".join(
+        [f"    {' '.join(f'(void){u};' for u in ['x0', *ref_names])}"]
+        + em_init.lines + _assign(law, law.init.outputs, em_init, law.state, stage=False)
+        + ["    s->t0 = t0;"])
+    em = _Emitter(law, real)
+    if law.reads_t:
+        em.lines.append(f"    {r} t_s = t - s->t0;  /* the time since dsc_init */")
+    em.program(law.step)
+    u, *new = law.step.outputs  # all read before the state is written (u may be s->past[...])
+    advancing = [f for f in law.state if f[2]]
+    step_body = "\n".join(
+        [f"    {' '.join(f'(void){u_};' for u_ in ['t', 'x', *ref_names])}"] + em.lines
+        + [f"    {r} u_out = {em.el(u, 0)};"] + _assign(law, new, em, advancing, stage=True))
+    return f"""/* dsc_controller.c: generated by `dscjax export` from the jaxprs of dscjax's
+ * initialisation (closed_loop.initial_state) and sample update (closed_loop.sample_update);
+ * see dsc_controller.h. */
 #include <math.h>
 #include <stddef.h>
 #include "dsc_controller.h"
 
 typedef struct {{
 {fields}
+    {r} t0;
 }} dsc_state;
 
 size_t dsc_state_size(void) {{ return sizeof(dsc_state); }}
 
-double dsc_sample_time(void) {{ return {_num(law.sample_time)}; }}
+{r} dsc_sample_time(void) {{ return {real.num(law.sample_time)}; }}
 
 int dsc_order(void) {{ return {law.order}; }}
 
-void dsc_init(void *state) {{
-    dsc_state *s = (dsc_state *)state;
-{chr(10).join(init)}
-}}
-
 /* max and min as XLA computes them: NaN if either is */
-static inline double dsc_max_(double a, double b) {{
+static inline {r} dsc_max_({r} a, {r} b) {{
     return (a != a || b != b) ? a + b : (a > b ? a : b);
 }}
-static inline double dsc_min_(double a, double b) {{
+static inline {r} dsc_min_({r} a, {r} b) {{
     return (a != a || b != b) ? a + b : (a < b ? a : b);
 }}
-static inline double dsc_sign_(double a) {{ return a > 0.0 ? 1.0 : (a < 0.0 ? -1.0 : a); }}
+static inline {r} dsc_sign_({r} a) {{ return a > 0 ? {real.one} : (a < 0 ? -{real.one} : a); }}
 
-{step_signature(law)} {{
+{init_signature(law, r)} {{
     dsc_state *s = (dsc_state *)state;
-    {voids}
-{body}
+{init_body}
+}}
+
+{step_signature(law, r)} {{
+    dsc_state *s = (dsc_state *)state;
+{step_body}
     return u_out;
 }}
 """
 
 
-__all__ = ["HEADER", "SOURCE", "ExportError", "Law", "c_files", "trace"]
+__all__ = ["HEADER", "PRECISIONS", "SOURCE", "ExportError", "Law", "Program", "c_files",
+           "init_signature", "step_signature", "trace"]

@@ -15,6 +15,7 @@ from dscjax.cli.common import (
     prepare_out,
     print_config,
 )
+from dscjax.export import PRECISIONS
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 EXPORT_KEYS = ("sample_time", "delay", "discretisation")
@@ -24,14 +25,19 @@ def add_parser(sub):
     p = sub.add_parser(
         "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
         description="Write DIR/dsc_controller.h and DIR/dsc_controller.c: the controller of "
-        "a config sampled every TS seconds, in C99 and double precision with no dependency "
-        "beyond <math.h>, exactly the update law of dscjax's sampled loop (the law, its "
-        "hysteresis compensation, the discretisation of its states, the input delay). The "
-        "plant, the actuator and the measurement noise are not part of it.")
+        "a config sampled every TS seconds, in C99 with no dependency beyond <math.h>, "
+        "exactly the initialisation and the update law of dscjax's sampled loop (the law, "
+        "its hysteresis compensation, the discretisation of its states, the input delay): "
+        "dsc_init starts it from the measured x(0), dsc_step runs one sample. The plant, the "
+        "actuator (and its limits: u is returned unbounded) and the measurement noise are "
+        "not part of it.")
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")
     add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
+    p.add_argument("--precision", choices=PRECISIONS, default="double", help="the C's real "
+                   "type throughout, double (default: the simulated loop to round-off) or "
+                   "float (for a single-precision FPU; docs/export.md: how closely it agrees)")
     add_out_arg(p, "results/export")
     add_overwrite_arg(p)
     return p
@@ -45,7 +51,6 @@ def load(args):
     from dscjax import config
     from dscjax.cli.common import run_overrides
     from dscjax.params import cast
-    from dscjax.runspec import step_for
     from dscjax.validation import ConfigError, validate_setup
 
     setup = example_setup(args)
@@ -65,15 +70,11 @@ def load(args):
         raise ConfigError("--sample-time is needed: the config has no simulation.sample_time "
                           "(a continuous controller); give --sample-time TS, a number > 0 "
                           "[s], e.g. 0.001")
-    if "sample_time" in overrides:
-        # the integration step (the plant's, not the controller's) divides the new sample
-        # time, and the horizon is whole samples: the loop the C is exact for is then
-        # `simulate --config ... --sample-time TS`'s own
-        overrides["dt"] = step_for(float(ts), float(spec.dt))
-        if overrides["dt"] != float(spec.dt) or ts > spec.t_final:
-            overrides["t_final"] = float(ts) * max(round(spec.t_final / ts), 1)
+    # The C is exact for `dscjax simulate` of the same config with --sample-time TS, so TS
+    # is checked as simulate checks it (RunSpec.make), against the config's own step and
+    # horizon: export has neither option, so the message names them as the config's.
     names = {k: flag(k) for k in overrides}
-    names["dt"] = "simulation.dt"
+    names |= {"dt": "the config's simulation.dt", "t_final": "the config's simulation.t_final"}
     spec = spec.replace(names=names, **overrides)
     validate_setup(setup)
     return cast(setup, np.dtype("float64")), spec, " ".join(source)
@@ -87,16 +88,18 @@ def run(args) -> int:
     if args.print_config:
         print_config(setup, spec)
         return 0
-    files = export.c_files(setup, spec, source=source)  # every input checked before --out
+    # every input checked before --out
+    files = export.c_files(setup, spec, source=source, precision=args.precision)
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax export: order n={setup.order}, {setup.controller.kind}, sampled every "
-          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}; from {source}",
-          file=sys.stderr)
+          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}, "
+          f"{args.precision}; from {source}", file=sys.stderr)
     for name, text in files.items():
         write_text(out / name, text)
     header = files[export.HEADER]
-    signature = " ".join(header[header.index("double dsc_step("):].split(";")[0].split())
-    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {signature}")
+    init, step = (" ".join(header[header.index(start):].split(";")[0].split())
+                  for start in ("void dsc_init(", f"{args.precision} dsc_step("))
+    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {init}; {step}")
     return 0
 
 
