@@ -25,11 +25,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation
+from dscjax import settings, validation
 from dscjax.closed_loop import SCHEMES
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
+from dscjax.settings import AtLeast, Choice, Maybe, Number, Numbers, Positive, setting
 from dscjax.validation import ConfigError
 
 # A saved trajectory keeps at most this many points unless save_every says otherwise (20 s at
@@ -42,33 +43,52 @@ DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down
 # default rule set): never part of a compiled program
 HOST_FIELDS = ("refine", "dtype", "device", "rules")
 
-# The [simulation] table: key -> (default, one-line description). The keys are RunSpec.make's
-# arguments; the command-line flag of a key is --key-with-dashes.
+
+
+@dataclasses.dataclass(frozen=True)
+class Simulation:
+    """The [simulation] table as a person writes it, each key declared once
+    (`dscjax.settings`); `RunSpec.make` builds the spec from these keys. A key whose default
+    is a rule (save_every, window_start) is None, written "none", until given."""
+
+    t_final: float = setting(20.0, "horizon T [s] (the paper does not give it)", Positive())
+    dt: float = setting(1e-3, "integration step [s]; RK4 needs dt/min(tau) <= 2.785",
+                        Positive())
+    save_every: int | None = setting(
+        None, "keep every k-th step in saved trajectories (metrics use every step); none: "
+        f"automatic, at most {MAX_SAVED_POINTS:,} points", Maybe(AtLeast(1)))
+    window_start: float | None = setting(
+        None, "t0 [s] of the windowed metrics on [t0, T]; none: 1 s (0 s if t_final <= 1 s)",
+        Maybe(Number(ge=0)))
+    state_bound: float = setting(1e6, "a state beyond this magnitude counts as divergence",
+                                 Positive())
+    dtype: str = setting("float64", "the precision of the run", Choice(DTYPES))
+    solver: str = setting("rk4", "rk4 (classical RK4, the paper's method) or etdrk4 "
+                          "(exponential RK4: integrates the stiff decays alpha |u'| and 1/tau "
+                          "exactly)", Choice(("rk4", "etdrk4")))
+    refine: int = setting(DEFAULT_REFINE, "if the run diverges: levels tried (ETDRK4 at dt, "
+                          "dt/2, ...) before it counts as diverged; 0: report the divergence at "
+                          "once", AtLeast(0))
+    sample_time: float | None = setting(
+        None, "the controller sampled every Ts seconds, its input held in between (zero-order "
+        "hold), a whole multiple of dt; none: continuous", Maybe(Positive()))
+    delay: int = setting(0, "sampled controller: input delay in whole samples", AtLeast(0))
+    noise: float | tuple | None = setting(
+        None, "sampled controller: std of Gaussian measurement noise on x, one number or one "
+        "per state; none: no noise", Maybe(Numbers(Number(ge=0))))
+    noise_seed: int = setting(0, "sampled controller: seed of the measurement noise",
+                              AtLeast(0))
+    discretisation: str = setting(
+        "exponential-euler", "sampled controller: how its states advance over a sample, "
+        "exponential-euler (c += Ts phi(-Ts/tau) c', exact for the filters) or euler (forward "
+        "Euler, c += Ts c')", Choice(SCHEMES))
+    device: str = setting("auto", "auto (one trajectory and small batches on the CPU, large "
+                          "batches on an accelerator), cpu or gpu", Choice(DEVICES))
+
+
+# key -> (default, meaning) of the [simulation] table, read off `Simulation`
 OPTIONS: dict[str, tuple[Any, str]] = {
-    "t_final": (20.0, "horizon T [s] (the paper does not give it)"),
-    "dt": (1e-3, "integration step [s]; RK4 needs dt/min(tau) <= 2.785"),
-    "save_every": (None, "keep every k-th step in saved trajectories (metrics use every "
-                   f"step); omitted: automatic, at most {MAX_SAVED_POINTS:,} points"),
-    "window_start": (None, "t0 [s] of the windowed metrics on [t0, T]; omitted: 1 s (0 s if "
-                     "t_final <= 1 s)"),
-    "state_bound": (1e6, "a state beyond this magnitude counts as divergence"),
-    "dtype": ("float64", "float64 or float32"),
-    "solver": ("rk4", "rk4 (classical RK4, the paper's method) or etdrk4 (exponential RK4: "
-               "integrates the stiff decays alpha |u'| and 1/tau exactly)"),
-    "refine": (DEFAULT_REFINE, "if the run diverges: levels tried (ETDRK4 at dt, dt/2, ...) "
-               "before it counts as diverged; 0: report the divergence at once"),
-    "sample_time": (None, "the controller sampled every Ts seconds, its input held in between "
-                    "(zero-order hold), a whole multiple of dt; omitted: continuous"),
-    "delay": (0, "sampled controller: input delay in whole samples"),
-    "noise": (None, "sampled controller: std of Gaussian measurement noise on x, one number "
-              "or one per state; omitted: none"),
-    "noise_seed": (0, "sampled controller: seed of the measurement noise"),
-    "discretisation": ("exponential-euler", "sampled controller: how its states advance over "
-                       "a sample, exponential-euler (c += Ts phi(-Ts/tau) c', exact for the "
-                       "filters) or euler (forward Euler, c += Ts c')"),
-    "device": ("auto", "auto (one trajectory and small batches on the CPU, large batches on an "
-               "accelerator), cpu or gpu"),
-}
+    k: (getattr(Simulation(), k), s.doc) for k, s in settings.declared(Simulation).items()}
 
 
 class RunSpec(eqx.Module):
@@ -102,41 +122,36 @@ class RunSpec(eqx.Module):
              discretisation: str = "exponential-euler", device: str = "auto",
              gradient: Gradient | None = None,
              prefix: str = "simulation.", names: Mapping[str, str] | None = None) -> RunSpec:
-        """A checked RunSpec. Messages name a field `prefix` + key, or `names[key]` (the
-        command-line option that gave it)."""
+        """A checked RunSpec: each key checked by its rule (`Simulation`), then the rules
+        between keys. Messages name a field `prefix` + key, or `names[key]` (the command-line
+        option that gave it)."""
         names = names or {}
 
         def f(key):
             return names.get(key, prefix + key)
 
+        keys = settings.checked(Simulation(
+            t_final=t_final, dt=dt, save_every=save_every, window_start=window_start,
+            state_bound=state_bound, dtype=dtype, solver=getattr(solver, "name", solver),
+            refine=refine, sample_time=sample_time, delay=delay, noise=noise,
+            noise_seed=noise_seed, discretisation=discretisation, device=device), f)
+        t_final, dt, save_every, window_start = (keys.t_final, keys.dt, keys.save_every,
+                                                 keys.window_start)
         n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))
-        t_final, dt = float(t_final), float(dt)
         rules = []
         if save_every is None:
             rules.append("save_every")
             save_every = auto_stride(n_steps)
-        validation.integer(save_every, f("save_every"), 1)
         if window_start is None:
             rules.append("window_start")
             window_start = default_window(t_final)
-        window_start = validation.number(window_start, f("window_start"))
-        if not 0 <= window_start < t_final:
+        if not window_start < t_final:
             raise ConfigError(f"{f('window_start')} must be in [0, t_final) = [0, "
                               f"{t_final:.6g}) (got {window_start:.6g})")
-        state_bound = validation.number(state_bound, f("state_bound"))
-        if not state_bound > 0:
-            raise ConfigError(f"{f('state_bound')} must be > 0 (got {state_bound:g})")
-        validation.one_of(dtype, f("dtype"), DTYPES)
-        validation.one_of(getattr(solver, "name", solver), f("solver"), tuple(SOLVERS))
-        validation.integer(refine, f("refine"), 0)
-        validation.one_of(device, f("device"), DEVICES)
-        validation.integer(delay, f("delay"), 0)
-        validation.integer(noise_seed, f("noise_seed"), 0)
-        validation.one_of(discretisation, f("discretisation"), SCHEMES)
         every = 0
+        sample_time = keys.sample_time
         if sample_time is not None:
-            sample_time = validation.number(sample_time, f("sample_time"))
-            every = int(round(sample_time / dt)) if sample_time > 0 else 0
+            every = int(round(sample_time / dt))
             if not (every >= 1 and abs(every * dt - sample_time) <= 1e-9 * sample_time):
                 raise ConfigError(
                     f"{f('sample_time')} must be a whole multiple > 0 of {f('dt')} (got "
@@ -149,12 +164,8 @@ class RunSpec(eqx.Module):
             raise ConfigError(f"{f(which)} applies to a sampled controller: give "
                               f"{f('sample_time')} too")
         if noise is not None:
-            a = np.asarray(noise, dtype=float)
-            if a.ndim > 1 or not np.all(np.isfinite(a)) or not np.all(a >= 0):
-                raise ConfigError(f"{f('noise')} must be one number or a list of numbers >= 0 "
-                                  f"(got {validation.fmt(a)})")
-            noise = a
-        return cls(dt=dt, window_start=float(window_start), state_bound=state_bound,
+            noise = np.asarray(noise, dtype=float)
+        return cls(dt=dt, window_start=float(window_start), state_bound=keys.state_bound,
                    noise=noise, noise_seed=int(noise_seed), n_steps=n_steps,
                    save_every=int(save_every), solver=as_solver(solver),
                    gradient=gradient if gradient is not None else TimeParallel(),
@@ -166,18 +177,13 @@ class RunSpec(eqx.Module):
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
                    prefix: str = "simulation.", names: Mapping[str, str] | None = None
                    ) -> RunSpec:
-        """The [simulation] table laid over `base` (default: the defaults). A key of the
-        table replaces the base's value; a rule-derived value of the base (save_every,
-        window_start) is derived again from the new horizon and step."""
-        unknown = [k for k in table if k not in OPTIONS]
-        if unknown:
-            raise ConfigError(f"unknown key '{prefix}{unknown[0]}' (allowed: "
-                              f"{', '.join(OPTIONS)})")
-        values = (base.to_table() if base is not None else
-                  {k: d for k, (d, _) in OPTIONS.items()})
-        for key, value in table.items():
-            values[key] = _coerce(key, value, (names or {}).get(key, prefix + key))
-        return cls.make(**values, prefix=prefix, names=names,
+        """The [simulation] table laid over `base` (default: the defaults), each key read by
+        its rule (`Simulation`). A key of the table replaces the base's value; a rule-derived
+        value of the base (save_every, window_start) is derived again from the new horizon and
+        step."""
+        values = Simulation(**base.to_table()) if base is not None else Simulation()
+        values = settings.from_table(Simulation, table, prefix, base=values)
+        return cls.make(**dataclasses.asdict(values), prefix=prefix, names=names,
                         gradient=base.gradient if base is not None else None)
 
     def replace(self, names: Mapping[str, str] | None = None, **table) -> RunSpec:
@@ -267,25 +273,5 @@ def auto_stride(n_steps: int) -> int:
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
-def _coerce(key: str, value, field: str):
-    """A value of the [simulation] table of the type its key takes; ConfigError otherwise."""
-    if isinstance(value, str) and value.lower() == "none" and OPTIONS[key][0] is None:
-        return None
-    if key in ("dtype", "solver", "device", "discretisation"):
-        return validation.string(value, field)
-    if key in ("save_every", "refine", "delay", "noise_seed"):
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise ConfigError(f"{field} must be an integer ({validation.got(value)})")
-        return value
-    if key == "noise":
-        return value
-    positive = key in ("t_final", "dt", "state_bound", "sample_time")
-    if (isinstance(value, bool) or not isinstance(value, int | float)
-            or not math.isfinite(value) or (positive and not value > 0)):
-        raise ConfigError(f"{field} must be a finite number{' > 0' if positive else ''} "
-                          f"({validation.got(value)})")
-    return value
-
-
 __all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "HOST_FIELDS", "MAX_SAVED_POINTS",
-           "OPTIONS", "RunSpec", "auto_stride"]
+           "OPTIONS", "RunSpec", "Simulation", "auto_stride"]

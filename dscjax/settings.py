@@ -40,6 +40,7 @@ class Rule:
 
     text = "a value"
     metavar = "VALUE"
+    hint = ""  # how a value is typed on the command line, where it differs from a file
 
     def parse(self, value):
         return value
@@ -63,7 +64,7 @@ class Number(Rule):
 
     @property
     def text(self) -> str:
-        kind = "an integer" if self.integer else "a number"
+        kind = "an integer" if self.integer else "a finite number"
         lo = f"> {self.gt:g}" if self.gt is not None else (
             f">= {self.ge:g}" if self.ge is not None else None)
         hi = f"< {self.lt:g}" if self.lt is not None else (
@@ -152,6 +153,10 @@ class Maybe(Rule):
     @property
     def metavar(self) -> str:
         return self.rule.metavar
+
+    @property
+    def hint(self) -> str:
+        return self.rule.hint
 
     def parse(self, value):
         if value is None or (isinstance(value, str) and value.lower() == "none"):
@@ -243,11 +248,14 @@ class Numbers(Rule):
 
     @property
     def text(self) -> str:
-        return f"{self.each.text.replace('a number', 'one number')} or a list of them"
+        return f"{self.each.text.replace('a finite number', 'one finite number')} or a list of them"
 
     metavar = "X[,X...]"
+    hint = "on the command line one number or several separated by commas, e.g. 0.01,0,0.02"
 
     def parse(self, value):
+        if isinstance(value, np.ndarray) and value.ndim <= 1:
+            value = value.tolist()
         if isinstance(value, list | tuple):
             try:
                 return tuple(self.each.parse(v) for v in value)
@@ -315,7 +323,7 @@ class Setting:
     flag: str | None = None  # its command-line option, e.g. "--time-limit"
 
 
-def setting(default, doc: str, rule: Rule = Rule(), *, flag: str | None = None,
+def setting(default, doc: str, rule: Rule, *, flag: str | None = None,
             static: bool = False, factory: Callable[[], Any] | None = None):
     """A dataclass (or `eqx.Module`) field declared with its `Setting`."""
     meta: dict[str, Any] = {"setting": Setting(doc, rule, flag)}
@@ -350,6 +358,13 @@ def parse_field(s: Setting, value, field: str):
         return s.rule.parse(value)
     except Invalid as err:
         raise ConfigError(f"{field} must be {err.must} ({got(err.value)})") from None
+
+
+def checked(obj, name: Callable[[str], str]):
+    """`obj` (a group built in code, e.g. from keyword arguments) with each declared field
+    read again by its rule; a refusal names the field `name(key)`."""
+    return dataclasses.replace(obj, **{k: parse_field(s, getattr(obj, k), name(k))
+                                       for k, s in declared(type(obj)).items()})
 
 
 def from_table(cls, table: Mapping[str, Any], prefix: str, base=None, *,
@@ -403,8 +418,9 @@ def add_arguments(parser, cls, prefix: str, *, keys: tuple[str, ...] | None = No
         if (keys is None and s.flag is None) or (keys is not None and key not in keys):
             continue
         default = (defaults or {}).get(key, getattr(base, key))
-        help_text = (f"{s.doc} (default {shown(s, default)}, or the config's {prefix}{key}); "
-                     f"{s.rule.text}")
+        allowed = "" if isinstance(s.rule, Choice) else f"; {s.rule.text}"  # (the metavar)
+        allowed += f"; {s.rule.hint}" if s.rule.hint else ""
+        help_text = f"{s.doc} (default {shown(s, default)}, or the config's {prefix}{key}){allowed}"
         parser.add_argument(option_of(key, s), dest=key, type=_argtype(s.rule),
                             metavar=s.rule.metavar, help=help_text.replace("%", "%%"))
 
@@ -487,5 +503,5 @@ def _literal(text: str):
 
 __all__ = ["AtLeast", "Boolean", "Choice", "Custom", "Either", "Invalid", "Maybe", "Number",
            "Numbers", "Positive", "Rule", "Setting", "Strings", "Text", "add_arguments",
-           "declared", "doc_rows", "from_table", "given", "group", "groups", "parse_field",
-           "setting", "shown", "to_table", "unwrap"]
+           "checked", "declared", "doc_rows", "from_table", "given", "group", "groups",
+           "parse_field", "setting", "shown", "to_table", "unwrap"]

@@ -351,7 +351,7 @@ def test_invalid_toml_names_the_file_and_the_line(text, where, tmp_path, capsys)
     ("simulate", '[simulation]\ndt = "0.001"\n', "simulation.dt must be a finite number > 0 "
      "(got a string, '0.001')"),
     ("simulate", '[simulation]\nsave_every = "2"\n', "simulation.save_every must be an integer "
-     "(got a string, '2')"),
+     ">= 1, or \"none\" (got a string, '2')"),
     ("sweep", '[sweep]\nseed = "1"\n', "sweep.seed must be an integer (got a string, '1')"),
     ("sweep", '[sweep]\nthreshold = "0.1"\n', "sweep.threshold must be a number (got a string, "
      "'0.1')"),

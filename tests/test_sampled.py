@@ -174,15 +174,16 @@ def test_noise_of_the_wrong_length_is_one_config_error_before_any_run(paper_setu
 @pytest.mark.parametrize("argv, line", [
     (["--sample-time", "0.0015"], "--sample-time must be a whole multiple > 0 of simulation.dt "
                                   "(got sample_time=0.0015, dt=0.001, ratio 1.5)"),
-    (["--sample-time", "0"], "argument --sample-time: must be a finite number > 0 (got '0')"),
-    (["--sample-time=-1e-3"], "argument --sample-time: must be a finite number > 0 "
-                              "(got '-1e-3')"),
+    (["--sample-time", "0"], "argument --sample-time: must be a finite number > 0, or "
+                             "\"none\" (got '0')"),
+    (["--sample-time=-1e-3"], "argument --sample-time: must be a finite number > 0, or "
+                              "\"none\" (got '-1e-3')"),
     (["--sample-time", "5", "--t-final", "2"], "--sample-time must be <= --t-final = 2 "
                                                "(got 5)"),
     (["--delay", "2"], "--delay applies to a sampled controller: give simulation.sample_time "
                        "too"),
-    (["--discretisation", "rk4"], "--discretisation must be one of 'exponential-euler', "
-                                  "'euler' (got 'rk4')"),
+    (["--discretisation", "rk4"], "argument --discretisation: must be one of "
+                                  "'exponential-euler', 'euler' (got 'rk4')"),
 ])
 def test_bad_sample_times_are_one_line_and_exit_2(tmp_path, capsys, argv, line):
     from dscjax.cli.main import main

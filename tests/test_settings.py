@@ -42,14 +42,15 @@ def test_rules_read_values_from_files(rule, value, expected):
 
 
 @pytest.mark.parametrize("rule, value, must", [
-    (st.Positive(), 0, "a number > 0"), (st.Positive(), True, "a number > 0"),
-    (st.Positive(), "10", "a number > 0"), (st.Positive(), float("inf"), "a number > 0"),
+    (st.Positive(), 0, "a finite number > 0"), (st.Positive(), True, "a finite number > 0"),
+    (st.Positive(), "10", "a finite number > 0"),
+    (st.Positive(), float("inf"), "a finite number > 0"),
     (st.AtLeast(1), 1.0, "an integer >= 1"), (st.AtLeast(0), -1, "an integer >= 0"),
-    (st.Number(gt=0, le=1), 1.5, "a number in (0, 1]"),
-    (st.Number(ge=0, lt=1), 1, "a number in [0, 1)"),
-    (st.Maybe(st.Positive()), 0, 'a number > 0, or "none"'),
+    (st.Number(gt=0, le=1), 1.5, "a finite number in (0, 1]"),
+    (st.Number(ge=0, lt=1), 1, "a finite number in [0, 1)"),
+    (st.Maybe(st.Positive()), 0, 'a finite number > 0, or "none"'),
     (st.Choice(("rk4", "etdrk4")), "euler", "one of 'rk4', 'etdrk4'"),
-    (st.Numbers(st.Number(ge=0)), [1, -1], "one number >= 0 or a list of them"),
+    (st.Numbers(st.Number(ge=0)), [1, -1], "one finite number >= 0 or a list of them"),
 ])
 def test_rules_refuse_with_what_the_value_must_be(rule, value, must):
     with pytest.raises(st.Invalid) as err:
@@ -85,16 +86,16 @@ def test_from_table_parses_nests_validates_and_names_the_path():
     over = st.from_table(Group, {"steps": 7}, "tuning.opt.", base=g)  # laid over a base
     assert (over.steps, over.name, over.inner.level) == (7, "b", 0.5)
     cases = [({"steps": 0}, "tuning.opt.steps must be an integer >= 1 (got 0)"),
-             ({"time_limit": 0}, 'tuning.opt.time_limit must be a number > 0, or "none" '
+             ({"time_limit": 0}, 'tuning.opt.time_limit must be a finite number > 0, or "none" '
                                  '(got 0)'),
-             ({"inner": {"level": 2}}, "tuning.opt.inner.level must be a number in (0, 1] "
+             ({"inner": {"level": 2}}, "tuning.opt.inner.level must be a finite number in (0, 1] "
                                        "(got 2)"),
              ({"stepz": 1}, "unknown key 'tuning.opt.stepz' (allowed: time_limit, steps, "
                             "name, bound, noise, inner)"),
              ({"inner": 3}, "'tuning.opt.inner' must be a table ([tuning.opt.inner])"),
              ({"name": "b", "steps": 1}, "tuning.opt.steps must be >= 2 with tuning.opt.name "
                                          "= 'b'"),
-             ({"bound": "end"}, 'tuning.opt.bound must be one of \'start\' or a number > 0, '
+             ({"bound": "end"}, 'tuning.opt.bound must be one of \'start\' or a finite number > 0, '
                                 'or "none" (got a string, \'end\')')]
     for table, message in cases:
         with pytest.raises(ConfigError) as err:
@@ -121,7 +122,7 @@ def test_options_parse_by_the_rule_and_name_the_option_typed(capsys):
     assert st.given(p.parse_args([]), Group, "tuning.opt.") == ({}, {})
     with pytest.raises(argparse.ArgumentError) as err:
         p.parse_args(["--time-limit", "0"])
-    assert str(err.value) == ("argument --time-limit: must be a number > 0, or \"none\" "
+    assert str(err.value) == ("argument --time-limit: must be a finite number > 0, or \"none\" "
                               "(got '0')")
     help_text = p.format_help()
     assert "wall seconds (default 100, or the config's tuning.opt.time_limit)" in " ".join(
@@ -130,7 +131,8 @@ def test_options_parse_by_the_rule_and_name_the_option_typed(capsys):
 
 def test_doc_rows_list_every_key_with_default_range_and_option():
     rows = st.doc_rows(Group, "tuning.opt.")
-    assert rows[2] == ('| `tuning.opt.time_limit` | `100` | a number > 0, or "none" | '
+    assert rows[2] == ('| `tuning.opt.time_limit` | `100` | a finite number > 0, or "none" | '
                        'wall seconds | `--time-limit` |')
-    assert rows[-1] == "| `tuning.opt.inner.level` | `0.2` | a number in (0, 1] | CVaR level |  |"
+    assert rows[-1] == ("| `tuning.opt.inner.level` | `0.2` | a finite number in (0, 1] | "
+                        "CVaR level |  |")
     assert len(rows) == 2 + 6

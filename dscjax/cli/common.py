@@ -85,17 +85,6 @@ def numbers(text: str) -> float | list[float]:
     return values[0] if len(parts) == 1 else values
 
 
-# The [simulation] keys the commands take as options, and their argparse types.
-RUN_TYPES = {"t_final": positive_float, "dt": positive_float, "save_every": count(1),
-             "window_start": finite_float, "state_bound": positive_float, "refine": count(0),
-             "sample_time": positive_float, "delay": count(0), "noise": numbers,
-             "noise_seed": count(0)}
-# how a [simulation] key that takes a list is written on the command line
-RUN_LISTS = {"noise": "on the command line one number, or one per state separated by "
-                      "commas, e.g. 0.01,0,0.02"}
-RUN_METAVARS = {"noise": "STD[,STD...]"}
-
-
 class Once(argparse._StoreAction):
     """argparse's "store", refusing an option given twice (one line, exit 2) instead of
     silently keeping the last value. The parsers of the `dscjax` command (`cli.main`) use it
@@ -143,50 +132,31 @@ SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 
 
 def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
-    """Options for the given [simulation] keys (`dscjax.runspec.OPTIONS`), each overriding the
-    config's value; their help states the default (`defaults` may give a command's own)."""
-    from dscjax.integrate import SOLVERS
-    from dscjax.runspec import DEVICES, OPTIONS
+    """Options for the given [simulation] keys (`dscjax.runspec.Simulation`), each overriding
+    the config's value; their help states the default (`defaults` may give a command's own)."""
+    from dscjax import settings
+    from dscjax.runspec import Simulation
 
-    for key in keys:
-        default, doc = OPTIONS[key]
-        default = (defaults or {}).get(key, default)
-        shown = "omitted" if default is None else f"{default:g}" if isinstance(
-            default, float) else f"{default}"
-        text = f"{doc} (default {shown}, or the config's simulation.{key})"
-        if key == "solver":
-            p.add_argument(flag(key), choices=tuple(SOLVERS), help=text)
-        elif key == "device":
-            p.add_argument(flag(key), choices=DEVICES, help=text)
-        elif key == "discretisation":
-            p.add_argument(flag(key), type=str, metavar="SCHEME", help=text)
-        else:
-            if key in RUN_LISTS:
-                text = f"{text}; {RUN_LISTS[key]}"
-            metavar = RUN_METAVARS.get(key, key.upper().replace("_", "-") if key != "t_final"
-                                       else "S")
-            p.add_argument(flag(key), type=RUN_TYPES[key], metavar=metavar,
-                           help=text.replace("%", "%%"))
+    settings.add_arguments(p, Simulation, "simulation.", keys=keys, defaults=defaults)
 
 
-def run_overrides(args) -> dict:
-    """{key: value} of the [simulation] options given on the command line."""
-    from dscjax.runspec import OPTIONS
+def run_overrides(args) -> tuple[dict, dict]:
+    """({key: value} of the [simulation] options given on the command line, {key: option
+    typed})."""
+    from dscjax import settings
+    from dscjax.runspec import Simulation
 
-    out = {k: getattr(args, k) for k in OPTIONS if getattr(args, k, None) is not None}
+    table, names = settings.given(args, Simulation, "")
     if getattr(args, "float32", False):
-        out["dtype"] = "float32"
-    return out
+        table["dtype"], names["dtype"] = "float32", "--float32"
+    return table, names
 
 
 def apply_run_options(args, spec):
     """`spec` with the command line's [simulation] options laid over it (checked; a message
     names the option)."""
-    overrides = run_overrides(args)
-    if not overrides:
-        return spec
-    return spec.replace(names={k: flag(k) if k != "dtype" else "--float32" for k in overrides},
-                        **overrides)
+    overrides, names = run_overrides(args)
+    return spec.replace(names=names, **overrides) if overrides else spec
 
 
 def check_noise(args, setup, spec) -> None:

@@ -11,7 +11,6 @@ from dscjax.cli.common import (
     add_out_arg,
     add_overwrite_arg,
     example_setup,
-    flag,
     prepare_out,
     print_config,
 )
@@ -64,7 +63,7 @@ def load(args):
             source.append(f"{option} {path}")
     if spec is None:
         spec = config.from_dict({}, base=setup)[1]
-    overrides = run_overrides(args)
+    overrides, names = run_overrides(args)
     ts = overrides.get("sample_time", spec.sample_time)
     if ts is None:
         raise ConfigError("--sample-time is needed: the config has no simulation.sample_time "
@@ -73,7 +72,6 @@ def load(args):
     # The C is exact for `dscjax simulate` of the same config with --sample-time TS, so TS
     # is checked as simulate checks it (RunSpec.make), against the config's own step and
     # horizon: export has neither option, so the message names them as the config's.
-    names = {k: flag(k) for k in overrides}
     names |= {"dt": "the config's simulation.dt", "t_final": "the config's simulation.t_final"}
     spec = spec.replace(names=names, **overrides)
     validate_setup(setup)

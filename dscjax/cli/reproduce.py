@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import Outputs, add_out_arg, count, positive_float
+from dscjax.cli.common import Outputs, add_out_arg, add_run_args, count, positive_float
 from dscjax.reproduce.figures import FIGURES
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
@@ -40,7 +40,6 @@ def parse_orders(text: str) -> list[int]:
 
 def add_parser(sub):
     from dscjax import reproduce as r
-    from dscjax.runspec import DEVICES, OPTIONS
 
     orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
@@ -55,12 +54,8 @@ def add_parser(sub):
                    help="figure format (default: png)")
     p.add_argument("--dpi", type=count(10), default=r.DPI,
                    help="resolution of PNG figures (default %(default)s)")
-    p.add_argument("--t-final", type=positive_float, default=r.T_FINAL, metavar="S",
-                   help="horizon of the closed-loop runs in seconds (default %(default)g)")
-    p.add_argument("--dt", type=positive_float, default=r.DT, metavar="S",
-                   help="RK4 step in seconds (default %(default)g)")
-    p.add_argument("--device", choices=DEVICES, help=f"{OPTIONS['device'][1]} (default "
-                   f"{OPTIONS['device'][0]})")
+    add_run_args(p, ("t_final", "dt", "device"), defaults={"t_final": r.T_FINAL, "dt": r.DT})
+    p.set_defaults(t_final=r.T_FINAL, dt=r.DT)
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
     p.add_argument("--orders", default=orders, metavar="N-M",
