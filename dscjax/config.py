@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import tomllib
 import warnings
 from collections.abc import Mapping
@@ -311,23 +310,6 @@ DOCS: dict[str, str] = {f"simulation.{k}": doc for k, (_, doc) in OPTIONS.items(
 }
 
 
-def toml_value(v) -> str:
-    """A Python value as TOML text (bools, numbers, strings, lists)."""
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, int):
-        return str(v)
-    if isinstance(v, float):
-        if math.isinf(v):
-            return "inf" if v > 0 else "-inf"
-        return repr(v)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, list | tuple):
-        return "[" + ", ".join(toml_value(x) for x in v) + "]"
-    raise TypeError(f"cannot write {type(v).__name__} to TOML")
-
-
 @dataclasses.dataclass(frozen=True)
 class Omitted:
     """A key left out of the config, printed commented out with the value it takes."""
@@ -335,26 +317,59 @@ class Omitted:
     value: Any
 
 
-def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "") -> str:
-    """TOML text of a config dict, each key with its one-line description from DOCS. A value
-    wrapped in `Omitted` is printed as a comment: the key is valid, its default is a rule."""
-    lines = [f"# {line}" for line in header.splitlines()]
-    for section, table in d.items():
-        lines += ["", f"[{section}]"] if lines else [f"[{section}]"]
-        subtables = {}
-        for k, v in table.items():
-            if isinstance(v, Mapping):
-                subtables[f"{section}.{k}"] = v
-                continue
-            if isinstance(v, Omitted):
-                line = f"# {k} = {toml_value(v.value)}" if v.value is not None else f"# {k}"
-            else:
-                line = f"{k} = {toml_value(v)}"
-            doc = DOCS.get(f"{section}.{k}")
-            lines.append(f"{line:<38s} # {doc}" if doc else line)
-        if subtables:
-            lines += ["", dumps_toml(subtables).rstrip("\n")]
-    return "\n".join(lines) + "\n"
+DOC_COLUMN = 38  # where a key's meaning starts, after its value
+
+
+def dumps_toml(d: Mapping[str, Mapping[str, Any]], header: str = "",
+               docs: Mapping[str, str] | None = None) -> str:
+    """TOML text of config tables, written by tomlkit: each key followed by its meaning as a
+    comment (`docs`: config path -> text, default DOCS); a value wrapped in `Omitted` is
+    written as a comment (the key is valid, its default is a rule); None as "none"."""
+    import tomlkit
+
+    doc = tomlkit.document()
+    for line in header.splitlines():
+        doc.add(tomlkit.comment(line))
+    for name, table in d.items():
+        doc.add(name, _toml_table(name, table, DOCS if docs is None else docs))
+    return tomlkit.dumps(doc)
+
+
+def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
+    import tomlkit
+
+    out = tomlkit.table()
+    subtables = {k: v for k, v in table.items() if isinstance(v, Mapping)}
+    for key, value in table.items():
+        if key in subtables:
+            continue
+        text = docs.get(f"{path}.{key}")
+        if isinstance(value, Omitted):
+            line = key if value.value is None else tomlkit.dumps({key: _data(value.value)})
+            line = line.strip()
+            out.add(tomlkit.comment(f"{line:<{DOC_COLUMN - 2}s}# {text}" if text else line))
+            continue
+        out.add(key, _data(value))
+        if text:
+            item = out.item(key)
+            width = len(tomlkit.dumps({key: item}).strip())
+            item.comment(text)
+            item.trivia.comment_ws = " " * max(1, DOC_COLUMN - width)
+    for key, value in subtables.items():
+        out.add(key, _toml_table(f"{path}.{key}", value, docs))
+    return out
+
+
+def _data(value):
+    """A value as TOML data: NumPy scalars and arrays as Python numbers and lists, tuples as
+    lists, None as "none" (TOML has no null)."""
+    if value is None:
+        return "none"
+    if isinstance(value, np.ndarray | np.generic):
+        value = value.tolist()
+    if isinstance(value, list | tuple):
+        return [_data(v) for v in value]
+    return value
 
 
 # -- dict / file -> Setup -----------------------------------------------------------------------

@@ -352,9 +352,9 @@ def test_invalid_toml_names_the_file_and_the_line(text, where, tmp_path, capsys)
      "(got a string, '0.001')"),
     ("simulate", '[simulation]\nsave_every = "2"\n', "simulation.save_every must be an integer "
      ">= 1, or \"none\" (got a string, '2')"),
-    ("sweep", '[sweep]\nseed = "1"\n', "sweep.seed must be an integer (got a string, '1')"),
-    ("sweep", '[sweep]\nthreshold = "0.1"\n', "sweep.threshold must be a number (got a string, "
-     "'0.1')"),
+    ("sweep", '[sweep]\nseed = "1"\n', "sweep.seed must be an integer >= 0 (got a string, '1')"),
+    ("sweep", '[sweep]\nthreshold = "0.1"\n', "sweep.threshold must be a finite number > 0, or "
+     "\"none\" (got a string, '0.1')"),
 ])
 def test_a_number_in_quotes_is_named_a_string(command, text, wanted, tmp_path, capsys):
     cfg = tmp_path / "c.toml"

@@ -309,7 +309,7 @@ def _cli_error(args, capsys, tmp_path):
 @pytest.mark.parametrize("args, field", [
     (["--samples", "0"], "argument --samples: must be an integer >= 1 (got '0')"),
     (["--samples=-5"], "argument --samples: must be an integer >= 1 (got '-5')"),
-    (["--chunk", "0"], "argument --chunk: must be an integer >= 1 (got '0')"),
+    (["--chunk", "0"], "argument --chunk: must be an integer >= 1, or \"none\" (got '0')"),
     (["--range", "hysteresis.alpha=1.3:0.7"], "hysteresis.alpha: lower bound > upper bound"),
     (["--range", "hysteresis.alpha=1:1"], "hysteresis.alpha is an empty range"),
     (["--range", "hysteresis.alpha=0%"], "empty range"),

@@ -19,7 +19,6 @@ from collections.abc import Mapping
 from typing import Any
 
 from dscjax import validation, worst
-from dscjax.config import toml_value
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.validation import ConfigError
 from tuning.objective import AGGREGATES, ObjectiveSpec
@@ -267,36 +266,27 @@ def _requirements(table) -> dict[str, dict[str, float]]:
     return out
 
 
-def to_toml(cfg: TuningConfig, setup=None) -> str:
-    """The effective [tuning] table as TOML (ranges resolved against `setup` if given)."""
-    def val(v):
-        if v is None:
-            return '"none"'
-        return toml_value(list(v) if isinstance(v, tuple) else v)
+def to_table(cfg: TuningConfig, setup=None) -> dict[str, Any]:
+    """The effective [tuning] table as data (ranges resolved against `setup` if given)."""
+    def ranges(spec):
+        out = {}
+        for r in spec.ranges or ():
+            r = r.resolve(setup) if setup is not None else r
+            out[r.name] = f"{r.rel * 100:g}%" if r.rel is not None else [r.low, r.high]
+        return out
 
-    lines = ["[tuning]", f"params = {val(cfg.params)}", f"sample_time = {val(cfg.sample_time)}"]
+    table: dict[str, Any] = {"params": list(cfg.params), "sample_time": cfg.sample_time}
     if cfg.freeze is not None:
-        lines.append(f"freeze = {val(cfg.freeze)}")
+        table["freeze"] = list(cfg.freeze)
     for key in ("bounds", "transforms"):
-        d = getattr(cfg, key)
-        if d:
-            lines += ["", f"[tuning.{key}]"]
-            lines += [f'"{k}" = {val(list(v) if isinstance(v, list | tuple) else v)}'
-                      for k, v in d.items()]
+        if getattr(cfg, key):
+            table[key] = dict(getattr(cfg, key))
     for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
         spec = getattr(cfg, key)
-        lines += ["", f"[tuning.{key}]"]
-        lines += [f"{f.name} = {val(getattr(spec, f.name))}" for f in dataclasses.fields(spec)
-                  if f.name != "ranges"]
+        table[key] = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec)
+                      if f.name != "ranges"}
         if getattr(spec, "ranges", None):
-            lines += ["", f"[tuning.{key}.ranges]"] + [_range_line(r, setup) for r in spec.ranges]
-    for name, values in cfg.requirements.items():
-        lines += ["", f"[tuning.requirements.{name}]"]
-        lines += [f"{k} = {val(v)}" for k, v in values.items()]
-    return "\n".join(lines) + "\n"
-
-
-def _range_line(r, setup) -> str:
-    r = r.resolve(setup) if setup is not None else r
-    body = f'"{r.rel * 100:g}%"' if r.rel is not None else toml_value([r.low, r.high])
-    return f'"{r.name}" = {body}'
+            table[key]["ranges"] = ranges(spec)
+    if cfg.requirements:
+        table["requirements"] = {name: dict(v) for name, v in cfg.requirements.items()}
+    return table

@@ -285,15 +285,14 @@ def add_example_arg(p):
                    "tables and this command's own settings) and exit; --config loads it back")
 
 
-def print_config(setup, spec, *tables: str) -> None:
+def print_config(setup, spec, extra: dict | None = None) -> None:
     """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
-    own tables (TOML text), on stdout."""
+    own tables ({name: table}), as TOML on stdout."""
     import sys
 
     from dscjax import config
 
-    sys.stdout.write("\n".join([config.to_toml(setup, spec).rstrip("\n"),
-                                *(t.rstrip("\n") for t in tables)]) + "\n")
+    sys.stdout.write(config.to_toml(setup, spec, extra=extra))
 
 
 def example_setup(args):

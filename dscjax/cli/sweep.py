@@ -10,7 +10,6 @@ traces.png (the worst samples and a random handful, re-simulated with full traje
 from __future__ import annotations
 
 import dataclasses
-import json
 import sys
 from pathlib import Path
 
@@ -30,7 +29,6 @@ from dscjax.cli.common import (
     count,
     example_setup,
     figure,
-    finite_float,
     flag,
     horizon_text,
     portable_device,
@@ -50,10 +48,10 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    from dscjax.device import MAX_BLOCK
     from dscjax.params import DEFAULT_PATHS, DEFAULT_REL
     from dscjax.runspec import OPTIONS
-    from dscjax.sweep import AUTO_BLOCK, PARALLEL, SweepSettings
+    from dscjax.settings import add_arguments
+    from dscjax.sweep import SweepSettings
 
     d = SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
@@ -74,21 +72,13 @@ def add_parser(sub):
                    "sampled controller (sample_time, delay, noise, noise_seed, "
                    "discretisation), which the options of the same names override; its other "
                    "sections and keys are ignored")
-    mode = p.add_mutually_exclusive_group()
-    mode.add_argument("--samples", type=count(1), metavar="N", help=f"number of sampled plants "
-                      f"(default {d.samples})")
-    mode.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
-                      help="full-factorial grid axis (repeat for more axes), e.g. "
-                      "hysteresis.alpha=0.7:1.3:41")
+    p.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
+                   help="full-factorial grid axis (repeat for more axes), e.g. "
+                   "hysteresis.alpha=0.7:1.3:41")
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
-    p.add_argument("--method", choices=("uniform", "lhs"), help=f"sampling: i.i.d. uniform "
-                   f"or Latin hypercube (default {d.method})")
-    p.add_argument("--seed", type=count(0), help=f"seed of the samples (default {d.seed})")
-    p.add_argument("--chunk", type=count(1), metavar="C", help=f"samples per block and device "
-                   f"(default: about {AUTO_BLOCK} on the CPU; on a GPU from its free memory, "
-                   f"up to {MAX_BLOCK:,}; a --resume keeps the sweep's own)")
+    add_arguments(p, SweepSettings, "sweep.")
     add_run_args(p, SWEEP_KEYS)
     add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
@@ -102,21 +92,6 @@ def add_parser(sub):
                        "the blocks already written")
     again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
                        "start afresh")
-    p.add_argument("--worst", type=count(0), metavar="K",
-                   help=f"full traces of the K worst samples "
-                   f"(default {d.worst})")
-    p.add_argument("--random", type=count(0), metavar="R", help=f"full traces of R random samples "
-                   f"(default {d.random})")
-    p.add_argument("--heatmap", metavar="P1,P2", help="the two parameters of the heatmap, "
-                   "separated by a comma, e.g. hysteresis.alpha,plant.g[1] (default: the first "
-                   "two swept)")
-    p.add_argument("--threshold", type=finite_float, metavar="E",
-                   help=f"windowed L-inf error above "
-                   f"which tracking counts as degraded (default: {DEGRADED_FACTOR:g} x the "
-                   f"nominal setup's)")
-    p.add_argument("--parallel", choices=PARALLEL, help=f"per_device (results bitwise "
-                   f"independent of the device count) or spmd (one shard_map program; default "
-                   f"{d.parallel})")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
@@ -133,6 +108,7 @@ def add_parser(sub):
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
     from dscjax import config
+    from dscjax import settings as schema
     from dscjax.params import parse_range
     from dscjax.sweep import SweepSettings, settings_from_dict
     from dscjax.validation import ConfigError, validate_setup
@@ -147,6 +123,12 @@ def load(args):
     options = apply_run_options(args, options)
     options = portable_device(args, options, args.config)
     settings = settings_from_dict(sweep_table, SweepSettings())
+    given, names = schema.given(args, SweepSettings, "sweep.")
+    if args.grid and args.samples is not None:
+        raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
+                          "of its numbers of points)")
+    with blame_options(names):
+        settings = schema.from_table(SweepSettings, given, "sweep.", settings)
     changes = {}
     if args.grid:
         if args.ranges:
@@ -154,27 +136,15 @@ def load(args):
                               "--grid")
         changes |= dict(method="grid", ranges=tuple(parse_range(g, grid=True)
                                                     for g in args.grid))
-    elif args.samples is not None or args.ranges or args.method:
-        if settings.method == "grid":
-            changes |= dict(method="uniform", ranges=())
-    if args.samples is not None:
-        changes["samples"] = args.samples
+    elif (args.samples is not None or args.ranges or args.method) and settings.method == "grid" \
+            and "method" not in given:
+        changes |= dict(method="uniform", ranges=())
     if args.ranges:
         changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
-    for name in ("method", "seed", "chunk", "worst", "random", "threshold", "parallel"):
-        value = getattr(args, name)
-        if value is not None:
-            changes[name] = value
     if args.float64:
         changes["dtype"] = "float64"
     elif args.float32:
         changes["dtype"] = "float32"
-    if args.heatmap:
-        names = [h.strip() for h in args.heatmap.split(",")]
-        if len(names) != 2:
-            raise ConfigError(f"--heatmap must be two parameter names P1,P2 (got "
-                              f"{args.heatmap!r})")
-        changes["heatmap"] = tuple(names)
     settings = dataclasses.replace(settings, **changes)
     validate_setup(setup)
     check_noise(args, setup, options)
@@ -218,44 +188,18 @@ def _gains(args, setup, options, config_loop: dict):
     return setup, options
 
 
-# the options that set a [sweep] key (the others are named after their key)
-SETTING_OPTIONS = {"ranges": "--range", "float32": "--float32", "float64": "--float64"}
-
-
 def typed_settings(args) -> dict[str, str]:
     """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
-    names = {}
-    for name in ("samples", "grid", "ranges", "method", "seed", "chunk", "worst", "random",
-                 "threshold", "parallel", "heatmap"):
-        if getattr(args, name, None) is not None:
-            names[f"sweep.{name}"] = SETTING_OPTIONS.get(name, f"--{name}")
-    for name in ("float32", "float64"):
-        if getattr(args, name, False):
-            names["sweep.dtype"] = SETTING_OPTIONS[name]
+    from dscjax import settings as schema
+    from dscjax.sweep import SweepSettings
+
+    names = schema.given(args, SweepSettings, "sweep.")[1]
+    names |= {f"sweep.{key}": option for key, option in (
+        ("grid", "--grid"), ("ranges", "--range")) if getattr(args, key, None) is not None}
+    for option in ("float32", "float64"):
+        if getattr(args, option, False):
+            names["sweep.dtype"] = f"--{option}"
     return names
-
-
-def sweep_toml(settings, setup) -> str:
-    """The effective [sweep] table as TOML (ranges resolved to absolute bounds, each the
-    shortest decimal that gives the bound in the sweep's dtype)."""
-    from dscjax.config import toml_value
-    from dscjax.validation import shortest
-
-    lines = ["[sweep]"]
-    for f in dataclasses.fields(settings):
-        v = getattr(settings, f.name)
-        if f.name == "ranges" or v is None:
-            continue
-        if f.name == "samples" and settings.method == "grid":
-            continue
-        lines.append(f"{f.name} = {toml_value(list(v) if isinstance(v, tuple) else v)}")
-    table = "grid" if settings.method == "grid" else "ranges"
-    lines += ["", f"[sweep.{table}]"]
-    for r in settings.resolved_ranges(setup):
-        vals = ([shortest(r.low, settings.dtype), shortest(r.high, settings.dtype)]
-                + ([r.num] if r.num is not None else []))
-        lines.append(f"{json.dumps(r.name)} = {toml_value(vals)}")
-    return "\n".join(lines) + "\n"
 
 
 def work(setup, settings, steps: int, ranges):
@@ -283,6 +227,7 @@ def run(args) -> int:
     from dscjax import files, params, sweep
     from dscjax.params import assumption_warnings
     from dscjax.simulate import check, simulate
+    from dscjax.sweep import settings as sweep_settings
     from dscjax.validation import check_work
 
     setup, options, settings = load(args)
@@ -294,7 +239,7 @@ def run(args) -> int:
     with blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
-        print_config(printed, options, sweep_toml(settings, setup))
+        print_config(printed, options, {"sweep": sweep_settings.to_table(settings, setup)})
         return 0
     check(setup, options)
     steps = options.n_steps

@@ -237,7 +237,7 @@ def run(args) -> int:
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import report
-    from tuning.config import to_toml
+    from tuning.config import to_table
     from tuning.optimize import SEARCHES
     from tuning.runner import build_problem, check_resume, format_progress, model_default_ranges
     from tuning.runner import run as run_tuning
@@ -245,7 +245,7 @@ def run(args) -> int:
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        print_config(setup, options, to_toml(model_default_ranges(cfg, setup), setup))
+        print_config(setup, options, {"tuning": to_table(model_default_ranges(cfg, setup), setup)})
         return 0
     check_work_of(args, setup, options, cfg)
     out = Path(args.out)

@@ -111,7 +111,7 @@ def run(args) -> int:
 
     setup, options = load_setup(args, ignore=("tuning", "sweep"))
     if args.print_config:  # the model and the run: the box is given by options, not a table
-        print_config(setup, options, *requirement_table(args))
+        print_config(setup, options, requirement_table(args))
         return 0
     ranges = [parse_range(text) for text in (args.ranges or [])]
     problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
@@ -228,17 +228,17 @@ def stored_work(problem):
     return saved + basis
 
 
-def requirement_table(args) -> list[str]:
-    """The [tuning.requirements.NAME] table of `--metric requirement:NAME`, as TOML ([] for
-    any other metric): the rest of the config --print-config shows."""
+def requirement_table(args) -> dict:
+    """The [tuning.requirements.NAME] table of `--metric requirement:NAME` ({} for any other
+    metric): the rest of the config --print-config shows."""
     from dscjax import config
     from dscjax.worst import REQUIREMENT
 
     if not args.metric.startswith(REQUIREMENT) or not args.config:
-        return []
+        return {}
     name = args.metric[len(REQUIREMENT):]
     table = config.read(args.config).get("tuning", {}).get("requirements", {}).get(name, {})
-    return [config.dumps_toml({f"tuning.requirements.{name}": table})]
+    return {"tuning": {"requirements": {name: table}}}
 
 
 def requirement_of(args, setup):

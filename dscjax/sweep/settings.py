@@ -3,14 +3,15 @@
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from typing import Any, Literal, get_args
 
 import numpy as np
 
 from dscjax import device, params, validation
+from dscjax import settings as schema
 from dscjax.params import Param, Range, default_ranges
+from dscjax.settings import AtLeast, Choice, Maybe, Positive, Strings, setting
 from dscjax.validation import ConfigError
 
 Parallel = Literal["per_device", "spmd"]
@@ -22,34 +23,41 @@ AUTO_BLOCK = device.CPU_BLOCK  # about this many samples per block on the CPU (c
 
 @dataclasses.dataclass(frozen=True)
 class SweepSettings:
-    """What to sweep and how; the `[sweep]` table of a config file (see `settings_from_dict`).
+    """What to sweep and how: the `[sweep]` table of a config file, each key declared once
+    (`dscjax.settings`: its default, meaning, rule and option), and `ranges` from the
+    sub-table `[sweep.ranges]` (sampled) or `[sweep.grid]` (full factorial), read by
+    `settings_from_dict`; empty: `default_ranges(setup)` (each +-30 %)."""
 
-    Attributes:
-        samples: number of sampled plants (not for a grid).
-        method: "uniform", "lhs" or "grid" (full factorial, first range slowest).
-        ranges: what varies; empty: `default_ranges(setup)` (each +-30 %).
-        seed: seed of the samples (and of the random handful of traces).
-        chunk: samples per block and device; None: `device.auto_chunk`.
-        dtype: "float64" (default) or "float32" (faster; its metrics re-checked in float64,
-            `float64_check`).
-        worst, random: how many worst samples and random samples get full traces.
-        heatmap: the two parameter names of the heatmap (default: the first two swept).
-        threshold: windowed L-inf error above which tracking counts as degraded (default:
-            2 x the nominal setup's).
-        parallel: "per_device" (bitwise device-count independent) or "spmd" (shard_map).
-    """
-
-    samples: int = 10_000
-    method: params.Method = "uniform"
+    samples: int = setting(10_000, "number of sampled plants (not for a grid)", AtLeast(1),
+                           flag="--samples")
+    method: params.Method = setting(
+        "uniform", "sampling: uniform (i.i.d.), lhs (Latin hypercube) or grid (full factorial, "
+        "first range slowest; [sweep.grid] or --grid)", Choice(params.METHODS), flag="--method")
     ranges: tuple[Range, ...] = ()
-    seed: int = 0
-    chunk: int | None = None
-    dtype: Dtype = "float64"
-    worst: int = 6
-    random: int = 3
-    heatmap: tuple[str, str] | None = None
-    threshold: float | None = None
-    parallel: Parallel = "per_device"
+    seed: int = setting(0, "seed of the samples (and of the random handful of traces)",
+                        AtLeast(0), flag="--seed")
+    chunk: int | None = setting(
+        None, f"samples per block and device; none: about {AUTO_BLOCK} on the CPU, on a GPU "
+        f"from its free memory up to {device.MAX_BLOCK:,} (a --resume keeps the sweep's own)",
+        Maybe(AtLeast(1)), flag="--chunk")
+    dtype: Dtype = setting("float64", "float64, or float32 (faster; its metrics re-checked in "
+                           "float64 on a few rows)", Choice(DTYPES))
+    worst: int = setting(6, "full traces of the K worst samples", AtLeast(0), flag="--worst")
+    random: int = setting(3, "full traces of R random samples", AtLeast(0), flag="--random")
+    heatmap: tuple[str, str] | None = setting(
+        None, "the two parameters of the heatmap, e.g. hysteresis.alpha,plant.g[1]; none: the "
+        "first two swept", Maybe(Strings()), flag="--heatmap")
+    threshold: float | None = setting(
+        None, "windowed L-inf error above which tracking counts as degraded; none: 2 x the "
+        "nominal setup's", Maybe(Positive()), flag="--threshold")
+    parallel: Parallel = setting(
+        "per_device", "per_device (results bitwise independent of the device count) or spmd "
+        "(one shard_map program)", Choice(PARALLEL), flag="--parallel")
+
+    def validate(self, prefix: str = "sweep") -> None:
+        if self.heatmap is not None and len(self.heatmap) != 2:
+            raise ConfigError(f"{prefix}.heatmap must be two parameter names (got "
+                              f"{list(self.heatmap)!r})")
 
     def resolved_ranges(self, setup) -> tuple[Range, ...]:
         return tuple(r.resolve(setup) for r in (self.ranges or default_ranges(setup)))
@@ -60,52 +68,41 @@ class SweepSettings:
         return int(self.samples)
 
 
-SETTINGS_KEYS = ("samples", "method", "seed", "chunk", "dtype", "worst", "random", "heatmap",
-                 "threshold", "parallel", "ranges", "grid")
-
-
 def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = None
                        ) -> SweepSettings:
-    """The `[sweep]` table of a config file laid over `base`.
-
-    Keys: `SweepSettings`' fields, and the sub-tables `[sweep.ranges]` (``"plant.g[1]" =
-    [0.8, 1.2]``, ``"hysteresis.alpha" = "30%"``) or `[sweep.grid]` (``"hysteresis.alpha" =
-    [0.7, 1.3, 41]``, method "grid").
-    """
-    s = base or SweepSettings()
-    for key in table:
-        if key not in SETTINGS_KEYS:
-            raise ConfigError(f"unknown key 'sweep.{key}' (allowed: {', '.join(SETTINGS_KEYS)})")
-    changes: dict[str, Any] = {}
-    for key in ("samples", "seed", "chunk", "worst", "random"):
-        if key in table:
-            changes[key] = validation.integer(table[key], f"sweep.{key}")
-    for key in ("method", "dtype", "parallel"):
-        if key in table:
-            changes[key] = validation.string(table[key], f"sweep.{key}")
-    if "threshold" in table:
-        changes["threshold"] = validation.number(table["threshold"], "sweep.threshold")
-    if "heatmap" in table:
-        v = table["heatmap"]
-        if not (isinstance(v, list) and len(v) == 2 and all(isinstance(x, str) for x in v)):
-            raise ConfigError(f"sweep.heatmap must be a list of two parameter names "
-                              f"(got {v!r})")
-        changes["heatmap"] = (Param.parse(v[0], "sweep.heatmap").name,
-                              Param.parse(v[1], "sweep.heatmap").name)
+    """The `[sweep]` table of a config file laid over `base`: `SweepSettings`' keys, and the
+    sub-tables `[sweep.ranges]` (``"plant.g[1]" = [0.8, 1.2]``, ``"hysteresis.alpha" =
+    "30%"``) or `[sweep.grid]` (``"hysteresis.alpha" = [0.7, 1.3, 41]``, method "grid")."""
+    s = schema.from_table(SweepSettings, table, "sweep.", base, skip=("ranges", "grid"))
+    if s.heatmap is not None:
+        s = dataclasses.replace(s, heatmap=tuple(Param.parse(h, "sweep.heatmap").name
+                                                 for h in s.heatmap))
     if "ranges" in table and "grid" in table:
         raise ConfigError("give either [sweep.ranges] or [sweep.grid], not both")
     for key, grid in (("ranges", False), ("grid", True)):
         if key in table:
-            changes["ranges"] = params.from_table(table[key], f"sweep.{key}", grid)
+            s = dataclasses.replace(s, ranges=params.from_table(table[key], f"sweep.{key}",
+                                                                grid))
     if "grid" in table:
         if "samples" in table:
             raise ConfigError("sweep.samples cannot be used with [sweep.grid] (a grid's size "
                               "is the product of its numbers of points)")
-        if changes.get("method", "grid") != "grid":
+        if table.get("method", "grid") != "grid":
             raise ConfigError(f"sweep.method must be 'grid' with [sweep.grid] "
-                              f"(got {changes['method']!r})")
-        changes["method"] = "grid"
-    return dataclasses.replace(s, **changes)
+                              f"(got {table['method']!r})")
+        s = dataclasses.replace(s, method="grid")
+    return s
+
+
+def to_table(s: SweepSettings, setup) -> dict[str, Any]:
+    """The effective [sweep] table (ranges resolved to absolute bounds, each the shortest
+    decimal that gives the bound in the sweep's dtype), as data for the TOML writer."""
+    table = {k: v for k, v in schema.to_table(s).items() if v != "none"
+             and not (k == "samples" and s.method == "grid")}
+    table["grid" if s.method == "grid" else "ranges"] = {
+        r.name: [validation.shortest(r.low, s.dtype), validation.shortest(r.high, s.dtype)]
+        + ([r.num] if r.num is not None else []) for r in s.resolved_ranges(setup)}
+    return table
 
 
 def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
@@ -115,17 +112,7 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     s = settings
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)
-    validation.one_of(s.method, "sweep.method", params.METHODS)
-    validation.one_of(s.dtype, "sweep.dtype", DTYPES)
-    validation.one_of(s.parallel, "sweep.parallel", PARALLEL)
-    if s.method != "grid":
-        validation.integer(s.samples, "sweep.samples", 1)
-    if s.chunk is not None:
-        validation.integer(s.chunk, "sweep.chunk", 1)
-    for key in ("worst", "random"):
-        validation.integer(getattr(s, key), f"sweep.{key}", 0)
-    if s.threshold is not None and not (s.threshold > 0 and math.isfinite(s.threshold)):
-        raise ConfigError(f"sweep.threshold must be > 0 (got {s.threshold})")
+    s = schema.checked(s, lambda key: f"sweep.{key}")  # (built in code: read by the rules)
     if s.method == "grid" and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method == "grid" else "sweep.ranges"
