@@ -50,8 +50,8 @@ def test_constraints_are_exact_on_a_hand_made_trajectory():
     assert float(m["tv_u"]) == 9.0 and float(m["max_abs_u"]) == 3.0
     sc = Scales(linf=1.0, l2=1.0, l2_u=1.0, max_u=3.0, u_max=3.5, tv_u=6.0, tv_max=1.5 * 6.0)
     rows = {r["name"]: r for r in report.constraint_checks(sc, m)}
-    assert rows["max|u|"] == {"name": "max|u|", "value": 3.0, "bound": 3.5, "margin": 0.5,
-                              "relative_margin": 0.5 / 3.5, "met": True}
+    assert rows["max|u|"] == {"name": "max|u|", "key": "max_abs_u", "value": 3.0, "bound": 3.5,
+                              "margin": 0.5, "relative_margin": 0.5 / 3.5, "met": True}
     assert rows["TV(u)"]["value"] == 9.0 and rows["TV(u)"]["margin"] == 0.0
     assert rows["TV(u)"]["met"]  # on the bound: met
     tight = dataclasses.replace(sc, tv_max=8.75)
