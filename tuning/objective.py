@@ -25,9 +25,9 @@ that error; `UserError` measures the same figures against the config's own y_r b
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Mapping
+from types import SimpleNamespace
 from typing import Any
 
 import equinox as eqx
@@ -40,7 +40,7 @@ from dscjax import params, validation
 from dscjax.closed_loop import Setup, prepared
 from dscjax.metrics import step_weights
 from dscjax.runspec import RunSpec
-from dscjax.simulate import DivergenceError, divergence_report, run, simulate
+from dscjax.simulate import DivergenceError, divergence_report, run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
@@ -395,9 +395,14 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
+def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
+    """(metrics, `Status`) of the start gains: the status says when a diverged run did."""
+    traj = run(setup, sim, overrides=dict(overrides) if overrides else None, extra=extra)
+    return traj.metrics, traj.status
+
+
 # one compilation per setup and run structure (adversarial tuning builds a problem a round)
-_start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None))
-_start_user_metrics = jax.jit(simulate_metrics)
+_start_metrics = jax.jit(_start_run)
 
 
 def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
@@ -406,14 +411,11 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     nominal plant); with effort_bounds = "per_plant" and a batch `train`, each training
     plant's "start" bounds (a plant on which the start diverges keeps the nominal ones)."""
     reference = shifted_reference(setup)
-    if reference is None:
-        metrics, diverged = _start_metrics(setup, sim.program())
-    else:  # the error against the config's reference too (reported, not tuned)
-        metrics, diverged = _start_user_metrics(setup, sim.program(), UserError(
-            reference, jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)),
-            sim.n_steps))
-    if bool(diverged):
-        raise start_divergence(setup, sim)
+    user = None if reference is None else UserError(  # reported beside, not tuned
+        reference, jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)), sim.n_steps)
+    metrics, status = _start_metrics(setup, sim.program(), user)
+    if int(status.code) != 0:
+        raise start_divergence(sim, status)
     m = {k: float(v) for k, v in metrics.items()}
 
     def bound(v, start):  # "start", a number or None
@@ -429,8 +431,9 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     tiny = 1e-300
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
-        mb, div = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
-        div = np.asarray(div, bool)
+        mb, status = jax.device_get(_start_metrics(setup, sim.program(),
+                                                   overrides=dict(train)))
+        div = np.asarray(status.code) != 0
         for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
                                            ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
             if getattr(spec, name) == "start":
@@ -443,17 +446,18 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                   u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, start=m, **per)
 
 
-def start_divergence(setup: Setup, sim: RunSpec) -> DivergenceError:
-    """The error of start gains that diverge on the nominal plant: which run, when and how
-    (the run again at the tuning's step, with its trajectory)."""
+def start_divergence(sim: RunSpec, status) -> DivergenceError:
+    """The error of start gains that diverge on the nominal plant (their run's `Status`):
+    which run, when and how, as `divergence_report` says it."""
     from tuning.runner import loop_words
 
-    traj = simulate(setup, spec=sim.replace(refine=0, save_every=sim.n_steps), throw=False)
-    how = divergence_report(traj, float(sim.state_bound))
-    when = how[0].split(";")[0].removeprefix("the trajectory ") if how else "diverged"
+    step = int(status.step)
+    seen = SimpleNamespace(status=status, t_diverged=step * float(sim.dt) if step >= 0
+                           else np.inf)
+    how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
     return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
-                           f"({loop_words(sim)}): the run {when}; tuning needs a stable start "
-                           f"(revise the gains, dt or tau)", traj)
+                           f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
+                           f"tuning needs a stable start (revise the gains, dt or tau)", None)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
