@@ -324,7 +324,7 @@ def test_tracking_is_a_small_error_without_chattering():
     from dscjax.reproduce.sampling import judge
 
     assert judge(0.02, 1.5, 0.01) is None  # at both bounds: tracks
-    assert judge(0.0201, 1.0, 0.01) == "error 2.01 x the reference"
+    assert judge(0.0201, 1.0, 0.01) == "error 2.01 x the reference loop's"
     assert judge(0.001, 1.5001, 0.01) == "chatters (index 1.5)"
     assert judge(None, None, 0.01) == "diverged"
     assert judge(5.0, 1.0, None) is None  # no reference: the error is not judged

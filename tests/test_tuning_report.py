@@ -221,3 +221,25 @@ def test_start_gains_that_diverge_exit_3_with_which_run_and_when(tmp_path, run_w
         f"{float(tr.t_diverged):.6g} s: a state exceeded the state bound 1e+06; tuning needs "
         f"a stable start (revise the gains, dt or tau)")
     assert "Traceback" not in stderr and stdout == ""
+
+
+def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
+    """A loop that chatters chaotically has a tangent that grows without bound over the run,
+    until it overflows: its elasticity is None in report.json, "not finite" in report.md, and
+    the constraint is fragile in that number, whatever its margin."""
+    el = {(0, "max_abs_u"): {"k[0]": 2.0, "k[1]": 0.5},
+          (0, "tv_u"): {"k[0]": float("inf"), "k[1]": -3.0}}
+    monkeypatch.setattr(elasticity, "elasticities", lambda problem, z, figures: el)
+    checks = [{"name": "max|u|", "key": "max_abs_u", "value": 9.0, "bound": 10.0,
+               "relative_margin": 0.1, "met": True},
+              {"name": "TV(u)", "key": "tv_u", "value": 50.0, "bound": 100.0,
+               "relative_margin": 0.5, "met": True}]
+    sens = elasticity.constraints(None, None, checks)
+    # 0.9 (1 + 0.01 x 2) = 0.918 <= 1: room; TV(u): half its bound, but k[0] not finite
+    assert [r["fragile"] for r in sens["rows"]] == [[], ["k[0]"]]
+    assert sens["rows"][1]["elasticity"] == {"k[0]": None, "k[1]": -3.0}
+    assert sens["rows"][1]["largest"] == {"number": "k[0]", "elasticity": None}
+    assert elasticity.warning(sens) == (
+        "a 1 % change of one tuned number breaks a constraint (to first order, nominal "
+        "plant): TV(u) (margin 50 % of its bound) by k[0] (elasticity not finite)")
+    assert "| `k[0]` | 2 | **not finite** |" in report.sensitivity_section(sens)

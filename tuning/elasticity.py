@@ -9,7 +9,9 @@ number g is e = d ln r / d ln g: a 1 % change of g moves r by about e %. It come
 forward run of the loop tuned (and of the second loop) and one reverse pass per figure the
 constraints read (`jax.vjp`, its pull-backs vmapped), through the objective's own simulation
 (`tuning.objective.simulate_metrics`). A constraint is **fragile** where a STEP change of one
-number breaks it to first order: r (1 + STEP |e|) > 1.
+number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
+in the result) is one whose tangent grew without bound over the run, as it does in a loop
+that chatters chaotically: any change may break that constraint, so it counts as fragile.
 """
 
 from __future__ import annotations
@@ -96,9 +98,10 @@ def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | No
     for c in checks:
         e = {name: sum(sign * el[(lp, m)][name] for sign, lp, m in terms(c["key"]))
              for name in next(iter(el.values()))}
+        e = {n: float(v) if np.isfinite(v) else None for n, v in e.items()}
         ratio = c["value"] / c["bound"]
-        top = max(e, key=lambda n: abs(e[n]))
-        fragile = ([n for n, v in e.items() if ratio * (1 + STEP * abs(v)) > 1]
+        top = max(e, key=lambda n: np.inf if e[n] is None else abs(e[n]))
+        fragile = ([n for n, v in e.items() if v is None or ratio * (1 + STEP * abs(v)) > 1]
                    if c["met"] else [])
         rows.append({"name": c["name"], "key": c["key"], "value": c["value"],
                      "bound": c["bound"], "relative_margin": c["relative_margin"],
@@ -107,13 +110,21 @@ def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | No
     return {"step": STEP, "rows": rows}
 
 
+def text(e: float | None) -> str:
+    """An elasticity as the report prints it."""
+    return "not finite" if e is None else f"{e:.3g}"
+
+
 def warning(sens: dict[str, Any] | None) -> str | None:
     """The fragile constraints in one sentence (None: none)."""
     if not sens:
         return None
+    def size(r, n):
+        return np.inf if r["elasticity"][n] is None else abs(r["elasticity"][n])
+
     parts = [f"{r['name']} (margin {100 * r['relative_margin']:.3g} % of its bound) by "
-             + ", ".join(f"{n} (elasticity {r['elasticity'][n]:.3g})"
-                         for n in sorted(r["fragile"], key=lambda n: -abs(r["elasticity"][n])))
+             + ", ".join(f"{n} (elasticity {text(r['elasticity'][n])})"
+                         for n in sorted(r["fragile"], key=lambda n: -size(r, n)))
              for r in sens["rows"] if r["fragile"]]
     if not parts:
         return None

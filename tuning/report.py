@@ -633,14 +633,15 @@ def sensitivity_section(sens: dict) -> list[str]:
              f"g, by reverse mode through the loop tuned (one pass per figure the constraints "
              f"read): a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
              f"**Bold**: that change breaks the constraint to first order (r (1 + "
-             f"{sens['step']:g} |e|) > 1).", "",
+             f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
+             f"over the run (a loop that chatters chaotically); any change may break it.", "",
              "| tuned number | " + " | ".join(
                  f"{_md(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
              + " |", "|---|" + "---|" * len(rows)]
     for name in rows[0]["elasticity"]:
         cells = []
         for r in rows:
-            v = f"{r['elasticity'][name]:.3g}"
+            v = elasticity.text(r["elasticity"][name])
             cells.append(f"**{v}**" if name in r["fragile"] else v)
         lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
     return lines

@@ -81,7 +81,8 @@ def add_parser(sub):
                    "max|u| and tv_max_factor x TV(u) on that plant, the worst cases of "
                    f"--adversarial included; default {d.objective.effort_bounds})")
     p.add_argument("--heldout", type=count(0), metavar="N", help=f"held-out evaluation batch size "
-                   f"(default {d.heldout.batch}; 0 = skip)")
+                   f"(default {d.heldout.batch}; 0 = skip it, the margins and the constraints' "
+                   f"sensitivities)")
     p.add_argument("--gradient", choices=GRADIENTS,
                    help=f"AD mode (default {opt.gradient}"
                    + (f": reverse mode (time-parallel) for one plant; with a training batch "
@@ -237,7 +238,7 @@ def run(args) -> int:
     from dscjax.params import cast
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
-    from tuning import report
+    from tuning import elasticity, report
     from tuning.config import to_toml
     from tuning.optimize import SEARCHES
     from tuning.runner import (
@@ -400,7 +401,7 @@ def run(args) -> int:
               f" (tuned {c['value']:.6g}, margin {c['margin']:.4g}, "
               f"{100 * c['relative_margin']:.3g} %)"
               + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
-                 f"{top['elasticity']:.3g})"))
+                 f"{elasticity.text(top['elasticity'])})"))
     if summary.get("sensitivity_warning"):
         print(f"dscjax tune: WARNING: {summary['sensitivity_warning']}", file=sys.stderr)
     if summary["effort_bounds"] == "per_plant":

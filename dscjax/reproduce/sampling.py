@@ -51,14 +51,15 @@ FIGURES = ("linf_error_window", "tv_u_window", "chattering_index")
 
 def judge(linf: float | None, index: float | None, reference: float | None) -> str | None:
     """Why a run does not track, in words, or None where it tracks (module docstring):
-    "diverged", "chatters (index 3.2)" or "error 2.6 x the reference"; `reference` None:
-    the error is not judged."""
+    "diverged", "chatters (index 3.2)" or "error 2.6 x the reference loop's"; `reference`
+    (the same gains' windowed L-inf in the loop they are judged against) None: the error is
+    not judged."""
     if linf is None or index is None:
         return "diverged"
     if metrics.chatters(index):
         return f"chatters (index {index:.3g})"
     if reference is not None and not linf <= TRACK_FACTOR * reference:
-        return f"error {linf / reference:.3g} x the reference"
+        return f"error {linf / reference:.3g} x the reference loop's"
     return None
 
 
