@@ -205,6 +205,12 @@ def test_report_judges_every_sample_time_and_delay_by_its_effort(cli_run):
            f"and {h['n_chattering']}." in md
     assert (f"| TV(u) on [t0, T] | {rep['heldout']['start']['tv_u_window']['median']:.4g} | "
             f"{h['tv_u_window']['median']:.4g} |") in md
+    h0 = rep["heldout"]["start"]
+    assert (f"  held-out TV(u) on the window, plants that did not diverge: median "
+            f"{h0['tv_u_window']['median']:.4g} -> {h['tv_u_window']['median']:.4g}, p95 "
+            f"{h0['tv_u_window']['p95']:.4g} -> {h['tv_u_window']['p95']:.4g}; chattering "
+            f"(chattering index above 1.5) on {h0['n_chattering']} -> {h['n_chattering']}\n"
+            ) in (out.parent / "stdout.txt").read_text()
 
 
 def test_report_gives_each_constraints_sensitivity_to_the_gains(cli_run):

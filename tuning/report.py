@@ -350,7 +350,8 @@ def _bounds_train(sc) -> dict[str, Any] | None:
 
 def heldout_warning(summary: dict, cfg) -> str | None:
     """The sentence put first when the tuned gains lose held-out plants (diverged, tracked only
-    once refined, or diverged sampled), None if on none: that must not hide in a table."""
+    once refined, diverged sampled, or chattering: a small error with an input that switches
+    is not tracking), None if on none: that must not hide in a table."""
     h = summary.get("heldout")
     if not h:
         return None
@@ -360,12 +361,16 @@ def heldout_warning(summary: dict, cfg) -> str | None:
     if "sampled" in h["tuned"]:
         lost[f"diverged with {summary['second_loop']}"] = (h["tuned"]["sampled"]["n_diverged"],
                                                  h["start"]["sampled"]["n_diverged"])
+    chatter = f"chatter (chattering index above {metrics.CHATTER_RATIO:g})"
+    lost[chatter] = (h["tuned"].get("n_chattering", 0), h["start"].get("n_chattering", 0))
     lost = {how: kk for how, kk in lost.items() if kk[0]}
     if not lost:
         return None
     n = h["tuned"]["n"]
     what = "; ".join(f"{how} on {k} of {n} held-out plants (start gains: {k0})"
                      for how, (k, k0) in lost.items())
+    verb = " and ".join(w for w, on in (("DIVERGE", set(lost) - {chatter}),
+                                        ("CHATTER", chatter in lost)) if on)
     if cfg.robust.batch:
         where = f"a training batch of {cfg.robust.batch} plants"
         fix = (f"train on more plants (e.g. `--batch {4 * cfg.robust.batch}`) or with "
@@ -374,7 +379,7 @@ def heldout_warning(summary: dict, cfg) -> str | None:
         where = "the nominal plant only"
         fix = ("tune robustly, e.g. `dscjax tune --batch 8 --aggregate cvar --cvar-level "
                "0.25` ([tuning.robust] in a config)")
-    return (f"the tuned gains DIVERGE: {what}; they were tuned on {where}: do not deploy "
+    return (f"the tuned gains {verb}: {what}; they were tuned on {where}: do not deploy "
             f"them as they are; {fix}")
 
 

@@ -235,6 +235,7 @@ def run(args) -> int:
     import numpy as np
 
     from dscjax.cli.common import prepare_out, print_config, use_device
+    from dscjax.metrics import CHATTER_RATIO
     from dscjax.params import cast
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
@@ -422,9 +423,10 @@ def run(args) -> int:
                   f"{a['p95']:.4g} -> {b['p95']:.4g}")
         if h0.get("tv_u_window") and h1.get("tv_u_window"):
             a, b = h0["tv_u_window"], h1["tv_u_window"]
-            print(f"  held-out TV(u) on the window: median {a['median']:.4g} -> "
-                  f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}; chattering "
-                  f"plants {h0['n_chattering']} -> {h1['n_chattering']}")
+            print(f"  held-out TV(u) on the window, plants that did not diverge: median "
+                  f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
+                  f"{b['p95']:.4g}; chattering (chattering index above "
+                  f"{CHATTER_RATIO:g}) on {h0['n_chattering']} -> {h1['n_chattering']}")
         if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
             a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
             print(f"  held-out L-inf error on the window with "
