@@ -125,9 +125,9 @@ def transient():
 
 
 def test_the_report_says_where_the_effort_bounds_are_measured(transient):
-    """Issue 38 item 5: the start's max|u| (the bound) is its transient's, at t < 0.1 s; the
-    report states that the bounds are measured on [0, T] and gives the effort on the window
-    [1, 2] s beside them (numpy on the trajectory), where the start needs ~ 1/80 of it."""
+    """Issue 38 item 5: the start's max|u| (the bound) is its transient's, at t < 0.1 s, many
+    times its peak on the window; the report states that the bounds are measured on [0, T]
+    and gives the effort on the window [1, 2] s beside them (numpy on the trajectory)."""
     problem, nom = transient
     tr = dscjax.simulate(problem.setup, spec=problem.objective.sim.replace(save_every=1))
     t, u = np.asarray(tr.t), np.asarray(tr.u)
