@@ -224,9 +224,10 @@ def test_start_gains_that_diverge_exit_3_with_which_run_and_when(tmp_path, run_w
 
 
 def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
-    """A loop that chatters chaotically has a tangent that grows without bound over the run,
-    until it overflows: its elasticity is None in report.json, "not finite" in report.md, and
-    the constraint is fragile in that number, whatever its margin."""
+    """A loop that depends sensitively on its gains has a tangent that grows without bound
+    over the run, until it overflows: its elasticity is None in report.json, "not finite" in
+    report.md, and the constraint is fragile in that number, whatever its margin; the warning
+    names at most three numbers a constraint, or says "every tuned number"."""
     el = {(0, "max_abs_u"): {"k[0]": 2.0, "k[1]": 0.5},
           (0, "tv_u"): {"k[0]": float("inf"), "k[1]": -3.0}}
     monkeypatch.setattr(elasticity, "elasticities", lambda problem, z, figures: el)
@@ -243,3 +244,11 @@ def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
         "a 1 % change of one tuned number breaks a constraint (to first order, nominal "
         "plant): TV(u) (margin 50 % of its bound) by k[0] (elasticity not finite)")
     assert "| `k[0]` | 2 | **not finite** |" in report.sensitivity_section(sens)
+    many = {"name": "TV(u)", "relative_margin": 0.5, "fragile": ["a", "b", "c", "d", "e"],
+            "elasticity": {"a": 9.0, "b": None, "c": -70.0, "d": 60.0, "e": 50.0}}
+    assert elasticity.warning({"step": 0.01, "rows": [many]}).endswith(
+        "TV(u) (margin 50 % of its bound) by b (elasticity not finite), c (elasticity -70), "
+        "d (elasticity 60) and 2 more")
+    every = many | {"fragile": ["a", "b"], "elasticity": {"a": None, "b": None}}
+    assert elasticity.warning({"step": 0.01, "rows": [every]}).endswith(
+        "TV(u) (margin 50 % of its bound) by every tuned number (elasticity not finite)")

@@ -10,8 +10,9 @@ forward run of the loop tuned (and of the second loop) and one reverse pass per 
 constraints read (`jax.vjp`, its pull-backs vmapped), through the objective's own simulation
 (`tuning.objective.simulate_metrics`). A constraint is **fragile** where a STEP change of one
 number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
-in the result) is one whose tangent grew without bound over the run, as it does in a loop
-that chatters chaotically: any change may break that constraint, so it counts as fragile.
+in the result) is one whose tangent grew without bound over the run, as it does where the loop
+depends sensitively on its gains (a chaotic or chattering loop): any change may break that
+constraint, so it counts as fragile.
 """
 
 from __future__ import annotations
@@ -115,17 +116,27 @@ def text(e: float | None) -> str:
     return "not finite" if e is None else f"{e:.3g}"
 
 
+NAMED = 3  # the fragile numbers a warning names per constraint, the largest first
+
+
 def warning(sens: dict[str, Any] | None) -> str | None:
-    """The fragile constraints in one sentence (None: none)."""
+    """The fragile constraints in one sentence (None: none): per constraint its margin and
+    the NAMED numbers with the largest elasticities (those not finite first)."""
     if not sens:
         return None
-    def size(r, n):
-        return np.inf if r["elasticity"][n] is None else abs(r["elasticity"][n])
+
+    def which(r):
+        e = r["elasticity"]
+        unbounded = [n for n in r["fragile"] if e[n] is None]
+        finite = sorted((n for n in r["fragile"] if e[n] is not None), key=lambda n: -abs(e[n]))
+        if unbounded and len(unbounded) == len(e):
+            return "every tuned number (elasticity not finite)"
+        named = [f"{n} (elasticity {text(e[n])})" for n in (unbounded + finite)[:NAMED]]
+        more = len(r["fragile"]) - len(named)
+        return ", ".join(named) + (f" and {more} more" if more else "")
 
     parts = [f"{r['name']} (margin {100 * r['relative_margin']:.3g} % of its bound) by "
-             + ", ".join(f"{n} (elasticity {text(r['elasticity'][n])})"
-                         for n in sorted(r["fragile"], key=lambda n: -size(r, n)))
-             for r in sens["rows"] if r["fragile"]]
+             f"{which(r)}" for r in sens["rows"] if r["fragile"]]
     if not parts:
         return None
     return (f"a {100 * sens['step']:g} % change of one tuned number breaks a constraint (to "

@@ -639,7 +639,8 @@ def sensitivity_section(sens: dict) -> list[str]:
              f"read): a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
              f"**Bold**: that change breaks the constraint to first order (r (1 + "
              f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
-             f"over the run (a loop that chatters chaotically); any change may break it.", "",
+             f"over the run (the loop depends sensitively on its gains: chaotic or "
+             f"chattering); any change may break the constraint.", "",
              "| tuned number | " + " | ".join(
                  f"{_md(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
              + " |", "|---|" + "---|" * len(rows)]
