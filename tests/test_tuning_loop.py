@@ -32,7 +32,6 @@ name = "adam"
 steps = 5
 learning_rate = 0.1
 save_interval = 2
-gradient = "forward"  # 2 numbers: forward mode compiles faster than the time-parallel reverse
 time_limit = 3600  # the 5 steps end the run, not the machine's speed (compiling counts)
 
 [tuning.heldout]
