@@ -298,18 +298,33 @@ def test_heldout_box_varies_the_plant_and_the_disturbance(setup):
 
 
 def test_margin_sweep_times_and_failures():
+    from dscjax.reproduce.sampling import judge
     from tuning import margins
 
     assert margins.sweep_times(1e-3) == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3]
     assert margins.sweep_times(2e-3) == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 4e-3]
-    st = {"sample_times": [1e-3, 2e-3], "tuned_tracks_all": False,
-          "tuned": {"sampled": [0.001, None]}}
+    st = {"sample_times": [1e-3, 2e-3, 4e-3], "tuned_tracks_all": False,
+          "tuned": {"why_not": [None, judge(0.01, 16.25, 0.01), judge(None, None, 0.01)]}}
     long = {"t_final": 200.0, "tuned": {"bounded": False, "diverged": False}}
     unjudged = {"t_final": 20.0, "tuned": {"bounded": None, "diverged": False}}
     assert margins.failures({"sample_time": None, "long_run": unjudged}) == []
     assert margins.failures({"sample_time": st, "long_run": long}) == [
-        "the tuned gains diverge with the controller sampled at 2 ms",
+        "the tuned gains do not track with the controller sampled at 2 ms (chatters (index "
+        "16.2)), 4 ms (diverged)",
         "the tuned gains let an adaptive estimate grow over the 200 s run"]
     ok = {"sample_time": st | {"tuned_tracks_all": True},
           "long_run": {"tuned": {"bounded": True}}}
     assert margins.failures(ok) == []
+
+
+def test_tracking_is_a_small_error_without_chattering():
+    """One verdict for the Ts sweep and the delay margin: diverged, chattering (index above
+    1.5, docs/numerics.md) and an error beyond 2 x the reference each fail; the bounds
+    themselves pass."""
+    from dscjax.reproduce.sampling import judge
+
+    assert judge(0.02, 1.5, 0.01) is None  # at both bounds: tracks
+    assert judge(0.0201, 1.0, 0.01) == "error 2.01 x the reference loop's"
+    assert judge(0.001, 1.5001, 0.01) == "chatters (index 1.5)"
+    assert judge(None, None, 0.01) == "diverged"
+    assert judge(5.0, 1.0, None) is None  # no reference: the error is not judged

@@ -50,8 +50,8 @@ def test_constraints_are_exact_on_a_hand_made_trajectory():
     assert float(m["tv_u"]) == 9.0 and float(m["max_abs_u"]) == 3.0
     sc = Scales(linf=1.0, l2=1.0, l2_u=1.0, max_u=3.0, u_max=3.5, tv_u=6.0, tv_max=1.5 * 6.0)
     rows = {r["name"]: r for r in report.constraint_checks(sc, m)}
-    assert rows["max|u|"] == {"name": "max|u|", "value": 3.0, "bound": 3.5, "margin": 0.5,
-                              "relative_margin": 0.5 / 3.5, "met": True}
+    assert rows["max|u|"] == {"name": "max|u|", "key": "max_abs_u", "value": 3.0, "bound": 3.5,
+                              "margin": 0.5, "relative_margin": 0.5 / 3.5, "met": True}
     assert rows["TV(u)"]["value"] == 9.0 and rows["TV(u)"]["margin"] == 0.0
     assert rows["TV(u)"]["met"]  # on the bound: met
     tight = dataclasses.replace(sc, tv_max=8.75)
@@ -82,6 +82,18 @@ def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option(
     ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0, "n_refined": 0}}
     assert report.heldout_warning({"heldout": ok}, cfg) is None
     assert report.heldout_warning({}, cfg) is None
+    # plants that track with a small error but chatter are lost too (issue 38 item 2)
+    chatter = {"start": stats["start"] | {"n_chattering": 0},
+               "tuned": stats["tuned"] | {"n_chattering": 200}}
+    w = report.heldout_warning({"heldout": chatter}, cfg)
+    assert w.startswith("the tuned gains DIVERGE and CHATTER: diverged on 38 of 256 held-out "
+                        "plants (start gains: 0); chatter (chattering index above 1.5) on 200 "
+                        "of 256 held-out plants (start gains: 0); they were tuned on ")
+    only = {"start": ok["start"] | {"n_chattering": 1},
+            "tuned": ok["tuned"] | {"n_chattering": 3}}
+    assert report.heldout_warning({"heldout": only}, cfg).startswith(
+        "the tuned gains CHATTER: chatter (chattering index above 1.5) on 3 of 256 held-out "
+        "plants (start gains: 1);")
 
 
 def test_the_box_follows_the_order_of_the_flat_z():

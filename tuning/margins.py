@@ -1,13 +1,20 @@
 """The margins of a tuning run, start against tuned gains (report.md's "Margins"):
 
     continuous(problem, z0, z1)    the continuous loop (RK4 at dt, refined where stiff): a check
-    sample_times(problem, z0, z1)  windowed L-inf against Ts, 0.1 ms to 2 x the tuned loop's Ts
-                                   (`dscjax.reproduce.sampling.study`), the largest Ts tracked
+    sample_times(problem, z0, z1)  windowed L-inf, TV(u) and chattering index against Ts, 0.1
+                                   ms to 2 x the tuned loop's Ts (`dscjax.reproduce.sampling`),
+                                   the held-out batch at the tuned Ts and above, the largest Ts
+                                   up to which the gains track (`sampling.judge`)
+    delays(problem, z0, z1)        the input delay in samples, from the loop's own up to
+                                   DELAY_MAX: the largest up to which the gains track
     long_run(problem, z0, z1)      LONG_FACTOR x T with measurement noise (LONG_NOISE) and a
                                    bounded disturbance (LONG_DBAR sin t): windowed L-inf and
                                    the peaks of the adaptive estimates (drift)
 
-Each returns a JSON-able dict; `markdown(margins)` is report.md's section.
+"Tracks" is one criterion everywhere (`sampling.judge`): no divergence, a windowed L-inf at
+most `sampling.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
+(`dscjax.metrics.chatters`). Each returns a JSON-able dict; `markdown(margins)` is report.md's
+section.
 """
 
 from __future__ import annotations
@@ -17,8 +24,9 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import params
+from dscjax import metrics, params
 from dscjax.reproduce import sampling
+from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
@@ -30,6 +38,7 @@ LONG_DBAR = 0.2  # amplitude of the long run's disturbance dbar = LONG_DBAR sin(
 # the quarter before (the first quarter, the transient, left out)
 DRIFT_RATIO = 1.1
 DRIFT_MIN_S = 100.0  # a shorter long run is reported, its drift not judged (still settling)
+DELAY_MAX = 4  # the largest input delay [samples] the delay margin tries (a program each)
 ESTIMATES = ("theta_hat", "phi_hat", "zeta_hat", "d_hat")
 NAMES = ("start", "tuned")
 
@@ -57,7 +66,7 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
         out[tag] = {"diverged": bool(tr.diverged), "refinements": j,
                     "solver": refinement_level(j, spec.solver.name)[0], "dt_used": float(tr.dt),
                     **{k: None if bool(tr.diverged) else float(tr.metrics[k])
-                       for k in ("linf_error_window", "max_abs_u", "tv_u")}}
+                       for k in ("linf_error_window", "max_abs_u", "tv_u", "chattering_index")}}
     return out
 
 
@@ -69,20 +78,127 @@ def sweep_times(ts: float) -> list[float]:
     return out + [top]
 
 
-def sample_times(problem, z0, z1) -> dict[str, Any] | None:
+def sample_times(problem, z0, z1, nominal: dict | None = None,
+                 heldout: dict | None = None) -> dict[str, Any] | None:
     """`sampling.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
-    Ts (its discretisation, delay and noise kept), the largest Ts each tracks, and whether the
-    tuned gains track at every Ts of the range; None for a continuous tuned loop."""
+    Ts (its discretisation, delay and noise kept), each Ts judged against the gains' windowed
+    L-inf in the loop tuned (`nominal`: {tag: the nominal plant's figures there}; default their
+    continuous figure); the largest Ts up to which each tracks, and whether the tuned gains
+    track at every Ts of the range. With `heldout` ({tag: the held-out plants' figures in the
+    loop tuned}, `report.evaluate`), the held-out batch's p95 of TV(u) on the window and its
+    chattering plants at the tuned Ts (those figures) and at every larger Ts of the sweep (run
+    here). None for a continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None
     dt = float(problem.options.dt)
+    reference = None if nominal is None else {
+        tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     result = sampling.study(problem.setup, sim.t_final, dt, float(sim.window_start),
                             sweep_times(sim.sample_time), gains=gain_rows(problem, z0, z1),
-                            names=NAMES, base=sim)
+                            names=NAMES, base=sim, reference=reference)
+    result["reference"] = "the loop tuned" if reference is not None else "the continuous loop"
     result["largest"] = {n: sampling.largest_tracking(result, n) for n in NAMES}
-    result["tuned_tracks_all"] = all(v is not None for v in result["tuned"]["sampled"])
+    result["tuned_tracks_all"] = all(result["tuned"]["tracks"])
+    if heldout is not None and problem.heldout:
+        result["batch"] = heldout_at(problem, z0, z1, result["sample_times"], heldout)
     return result
+
+
+def _finite(v):
+    return None if v is None or not np.isfinite(v) else float(v)
+
+
+def batch_figures(m: dict[str, np.ndarray]) -> dict[str, Any]:
+    """A batch's effort verdict from its per-plant metrics: p95 of TV(u) on the window and the
+    plants that chatter (`metrics.chatters`), over the plants that did not diverge."""
+    ok = ~np.asarray(m["diverged"]).astype(bool)
+    tv = np.asarray(m["tv_u_window"], float)[ok]
+    index = np.asarray(m["chattering_index"], float)[ok]
+    return {"p95_tv_u_window": float(np.percentile(tv, 95)) if tv.size else None,
+            "n_chattering": int(sum(metrics.chatters(v) for v in index)),
+            "n_measured": int(ok.sum()), "n_diverged": int((~ok).sum())}
+
+
+def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
+    """`batch_figures` of the held-out batch for start and tuned gains at each Ts of
+    `sample_times` (None below the tuned loop's Ts): at the tuned Ts from `heldout` (the
+    held-out check's figures), above it by one batched run of both gain sets per Ts (no
+    refinement: a sampled loop that diverges is unstable, not stiff)."""
+    sim = problem.objective.sim
+    own = sim.sample_time
+    ho = {k: np.asarray(v) for k, v in problem.heldout.items()}
+    n = len(next(iter(ho.values())))
+    gains = gain_rows(problem, z0, z1)
+    # rows: every held-out plant with the start gains, then with the tuned
+    ov = ({p: np.repeat(v, n, axis=0) for p, v in gains.items()}
+          | {p: np.concatenate([v, v]) for p, v in ho.items() if p not in gains})
+    out: dict[str, Any] = {"label": f"held-out ({n} plants)", "n": n,
+                           **{tag: [] for tag in NAMES}}
+    for ts in sample_times:
+        if ts < own * (1 - 1e-9):
+            for tag in NAMES:
+                out[tag].append(None)
+            continue
+        if ts <= own * (1 + 1e-9):
+            for tag in NAMES:
+                out[tag].append(batch_figures(heldout[tag]))
+            continue
+        h = step_for(ts, float(sim.dt))
+        steps = int(round(sim.t_final / h))
+        tr = jax.device_get(simulate_batch(problem.setup, ov, spec=sim.replace(
+            sample_time=ts, dt=h, save_every=steps, refine=0)))
+        m = {"diverged": np.asarray(tr.diverged),
+             **{k: np.asarray(tr.metrics[k]) for k in ("tv_u_window", "chattering_index")}}
+        for i, tag in enumerate(NAMES):
+            out[tag].append(batch_figures({k: v[i * n:(i + 1) * n] for k, v in m.items()}))
+    return out
+
+
+def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
+    """The delay margin: the loop tuned with an input delay of d samples, d from its own delay
+    up to DELAY_MAX, each gain set judged (`sampling.judge`) against its windowed L-inf in the
+    loop tuned (`nominal`, {tag: the nominal plant's figures}, which are the row of its own
+    delay); the largest d up to which each tracks (None: not even at its own delay). The
+    delay fixes the program's shape, so each d compiles one program: the sweep stops at the
+    first d at which neither gain set tracks. None for a continuous tuned loop."""
+    sim = problem.objective.sim
+    if not sim.sampled:
+        return None
+    gains = gain_rows(problem, z0, z1)
+    own = int(sim.delay)
+    ref = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
+    out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
+                           **{tag: {k: [] for k in (*sampling.FIGURES, "why_not")}
+                              for tag in NAMES}}
+
+    def add(d, rows):
+        out["delays"].append(d)
+        for tag, r in zip(NAMES, rows, strict=True):
+            for k in sampling.FIGURES:
+                out[tag][k].append(r[k])
+            out[tag]["why_not"].append(sampling.judge(r["linf_error_window"],
+                                                      r["chattering_index"], ref[tag]))
+
+    add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
+               for k in sampling.FIGURES} for tag in NAMES])
+    for d in range(own + 1, DELAY_MAX + 1):
+        if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
+            break
+        tr = jax.device_get(simulate_batch(problem.setup, gains,
+                                           spec=sim.replace(delay=d, refine=0)))
+        div = np.asarray(tr.diverged)
+        add(d, [{k: None if div[i] else float(np.asarray(tr.metrics[k])[i])
+                 for k in sampling.FIGURES} for i in range(len(NAMES))])
+    out["largest"] = {}
+    for tag in NAMES:
+        last = None
+        for d, why in zip(out["delays"], out[tag]["why_not"], strict=True):
+            if why is not None:
+                break
+            last = d
+        out["largest"][tag] = last
+    return out
 
 
 def long_run(problem, z0, z1) -> dict[str, Any]:
@@ -112,9 +228,10 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
            "window_start": float(sim.window_start)}
     for i, tag in enumerate(NAMES):
         row: dict[str, Any] = {"diverged": bool(np.asarray(tr.diverged)[i]),
-                               "linf_error_window": None}
+                               "linf_error_window": None, "chattering_index": None}
         if not row["diverged"]:
-            row["linf_error_window"] = float(np.asarray(tr.metrics["linf_error_window"])[i])
+            for k in ("linf_error_window", "chattering_index"):
+                row[k] = float(np.asarray(tr.metrics[k])[i])
         est = {}
         for name in ESTIMATES:
             if not hasattr(tr.ctrl, name):
@@ -130,10 +247,16 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
     return out
 
 
-def evaluate(problem, z0, z1) -> dict[str, Any]:
-    """All three margins (JSON-able; a margin that does not apply is None)."""
+def evaluate(problem, z0, z1, ev: dict | None = None) -> dict[str, Any]:
+    """Every margin (JSON-able; a margin that does not apply is None); `ev`: the report's
+    per-plant figures (`report.evaluate`), against which the Ts sweep and the delays are
+    judged (the nominal plant in the loop tuned) and from which the held-out batch's figures
+    at the tuned Ts come."""
+    nominal = None if ev is None else ev["nominal"]
+    heldout = None if ev is None else ev.get("heldout")
     return {"continuous": continuous(problem, z0, z1),
-            "sample_time": sample_times(problem, z0, z1),
+            "sample_time": sample_times(problem, z0, z1, nominal, heldout),
+            "delay": None if nominal is None else delays(problem, z0, z1, nominal),
             "long_run": long_run(problem, z0, z1)}
 
 
@@ -142,9 +265,10 @@ def failures(margins: dict[str, Any]) -> list[str]:
     out = []
     st = margins.get("sample_time")
     if st is not None and not st["tuned_tracks_all"]:
-        lost = [f"{1e3 * ts:g} ms" for ts, v in zip(st["sample_times"], st["tuned"]["sampled"],
-                                                     strict=True) if v is None]
-        out.append(f"the tuned gains diverge with the controller sampled at {', '.join(lost)}")
+        lost = [f"{1e3 * ts:g} ms ({why})" for ts, why in zip(
+            st["sample_times"], st["tuned"]["why_not"], strict=True) if why is not None]
+        out.append(f"the tuned gains do not track with the controller sampled at "
+                   f"{', '.join(lost)}")
     lr = margins.get("long_run")
     if lr is not None and lr["tuned"]["bounded"] is False:
         out.append("the tuned gains " + ("diverge" if lr["tuned"]["diverged"] else
@@ -153,8 +277,8 @@ def failures(margins: dict[str, Any]) -> list[str]:
     return out
 
 
-def _f(v):
-    return "diverged" if v is None else f"{v:.4g}"
+def _f(v, digits=4):
+    return "diverged" if v is None else f"{v:.{digits}g}"
 
 
 def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> list[str]:
@@ -165,29 +289,52 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
     if c is not None:
         lines += ["", f"**The continuous loop** (a check, not tuned: RK4 at dt = "
                   f"{c['dt']:g} s, refined where stiff; a stiff continuous loop is not a "
-                  f"failure):", "", "| | L∞ e on [t0, T] | max\\|u\\| | TV(u) | simulated by |",
-                  "|---|---|---|---|---|"]
+                  f"failure):", "", "| | L∞ e on [t0, T] | max\\|u\\| | TV(u) | chattering index "
+                  "on [t0, T] | simulated by |", "|---|---|---|---|---|---|"]
         for tag in NAMES:
             r = c[tag]
             how = (f"{r['solver']} at dt = {r['dt_used']:g} s"
                    + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
             lines.append(f"| {tag} | {_f(r['linf_error_window'])} | {_f(r['max_abs_u'])} | "
-                         f"{_f(r['tv_u'])} | {how} |")
+                         f"{_f(r['tv_u'])} | {_f(r.get('chattering_index'), 3)} | {how} |")
     st = margins.get("sample_time")
     if st is not None:
         lines += ["", f"**Sample time.** The loop tuned with the controller sampled at each Ts "
                   f"from {1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms "
                   f"(its discretisation, delay and noise kept; the continuous loop at the "
-                  f"finest plant step as Ts -> 0; figure `sampling.png`):", "",
+                  f"finest plant step as Ts -> 0; figure `sampling.png`). "
+                  + sampling.criterion(st, "the same gains in the loop tuned"
+                                       if st.get("reference") == "the loop tuned" else
+                                       "the same gains' continuous loop")
+                  + (" The held-out columns: the held-out batch at the tuned Ts and above, "
+                     "over the plants that did not diverge." if st.get("batch") else ""), "",
                   *sampling.table(st, NAMES), ""]
         for tag in NAMES:
             last = st["largest"][tag]
-            lines.append(f"- {tag} gains: " + (f"track up to Ts = {1e3 * last[0]:g} ms (the "
-                                               f"largest of the sweep they track)" if last else
-                                               "diverge at every Ts of the sweep"))
+            lines.append(f"- {tag} gains: " + (
+                f"track up to Ts = {1e3 * last[0]:g} ms (at every Ts of the sweep up to it)"
+                if last else f"do not track at Ts = {1e3 * st['sample_times'][0]:g} ms "
+                f"({st[tag]['why_not'][0]})"))
         lines.append("- the tuned gains " + ("track at every Ts of the range" if
                                             st["tuned_tracks_all"] else
                                             "do NOT track at every Ts of the range"))
+    dl = margins.get("delay")
+    if dl is not None:
+        lines += ["", f"**Delay margin.** The loop tuned (Ts = {1e3 * dl['sample_time']:g} ms) "
+                  f"with the input applied d samples after it was computed, d from the loop's "
+                  f"own delay up to {dl['max']}, until neither gain set tracks (the same "
+                  f"criterion, against each set's own delay):", "",
+                  "| delay d [samples] | gains | L∞ e on [t0, T] | TV(u) on [t0, T] | "
+                  "chattering index | tracks |", "|---|---|---|---|---|---|"]
+        for i, d in enumerate(dl["delays"]):
+            for tag in NAMES:
+                r = dl[tag]
+                why = r["why_not"][i]
+                lines.append(f"| {d} | {tag} | {_f(r['linf_error_window'][i])} | "
+                             f"{_f(r['tv_u_window'][i])} | {_f(r['chattering_index'][i], 3)} | "
+                             + ("yes" if why is None else f"**no**: {why}") + " |")
+        lines.append("")
+        lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
     lr = margins["long_run"]
     what = " and ".join(x for x in (
         f"measurement noise of std {lr['noise']:g} on every state" if lr["noise"] else "",
@@ -198,15 +345,25 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
               f"most {DRIFT_RATIO:g} x its peak on the second quarter (the first, the "
               f"transient, left out; not judged below {DRIFT_MIN_S:g} s):", "",
               f"| | L∞ e on [{lr['window_start']:g}, {lr['t_final']:g}] s | L∞ e over the "
-              f"tuning's horizon (no noise, no disturbance) | "
+              f"tuning's horizon (no noise, no disturbance) | chattering index | "
               + " | ".join(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
                            if e in lr["tuned"]["estimates"]) + " | bounded |",
-              "|---|---|---|" + "---|" * len(lr["tuned"]["estimates"]) + "---|"]
+              "|---|---|---|---|" + "---|" * len(lr["tuned"]["estimates"]) + "---|"]
     for tag in NAMES:
         r = lr[tag]
         cells = [f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                  for e in r["estimates"].values()]
         lines.append(f"| {tag} | {_f(r['linf_error_window'])} | {_f(short_linf[tag])} | "
+                     f"{_f(r.get('chattering_index'), 3)} | "
                      + " | ".join(cells) + " | " + {True: "yes", False: "**no**", None:
                                                    "not judged"}[r["bounded"]] + " |")
     return lines
+
+
+def delay_words(dl: dict[str, Any], tag: str) -> str:
+    """The delay margin of one gain set in words."""
+    last, own = dl["largest"][tag], dl["delays"][0]
+    if last is None:
+        return f"do not track even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
+    more = " (the largest tried)" if last == dl["delays"][-1] and last >= dl["max"] else ""
+    return f"track up to an input delay of {last} sample(s){more}"

@@ -13,16 +13,21 @@ over a batch of plants (mean, CVaR at level a: the mean of the worst ceil(a B), 
 Linf~ = (1/s) log((1/|W|) integral_W exp(s |e|) dt) and max~|u| = (1/r) log(sum_k exp(r |u_k|))
 are running log-sum-exps (stable by a running max): Linf~'s gradient is the softmax-weighted
 one of the largest errors, and max~|u| >= max|u|, so penalising it keeps the exact max|u| under
-its bound. Bounds "start" are the start gains' figures on the nominal plant, or on each
-training plant its own (effort_bounds = "per_plant", `start_scales`).
+its bound. Bounds "start" are the start gains' figures over the whole horizon [0, T] (the
+transient included) on the nominal plant, or on each training plant its own (effort_bounds =
+"per_plant", `start_scales`).
+
+e is measured against the reference the controller tracks: a controller whose initialisation
+shifts it (the DSC's init = "linf": y_r(0) moved to x_1(0), the offset decaying) is tuned on
+that error; `UserError` measures the same figures against the config's own y_r beside it.
 """
 
 from __future__ import annotations
 
 import dataclasses
-import functools
 import math
 from collections.abc import Mapping
+from types import SimpleNamespace
 from typing import Any
 
 import equinox as eqx
@@ -30,11 +35,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import metrics as dm
 from dscjax import params, validation
-from dscjax.closed_loop import Setup
+from dscjax.closed_loop import Setup, prepared
 from dscjax.metrics import step_weights
 from dscjax.runspec import RunSpec
-from dscjax.simulate import run
+from dscjax.simulate import DivergenceError, divergence_report, run
 from dscjax.validation import ConfigError
 
 AGGREGATES = ("mean", "cvar", "max")
@@ -89,22 +95,60 @@ class SmoothMaxU(eqx.Module):
         return {"smooth_max_abs_u": (acc["m"] + _safe_log(acc["s"])) / self.sharpness}
 
 
+# the error figures `UserError` gives against the config's reference (as "user_" + name)
+USER_METRICS = ("linf_error_window", "linf_error", "l2_error_window")
+
+
+class UserError(eqx.Module):
+    """The error figures USER_METRICS of e = x_1 - y_r(t) against the config's reference y_r,
+    where the controller tracks a shifted one (`shifted_reference`), as `dscjax.metrics`
+    defines them: results user_linf_error_window, ... A `Running` reduction."""
+
+    reference: Any  # the config's `Reference`
+    window_start: jax.Array  # () t0
+    n_steps: int = eqx.field(static=True, default=1)
+
+    def init(self, dtype):
+        return dm.running_init(dtype)
+
+    def update(self, acc, k, t, y, obs, dt):
+        return dm.running_update(acc, k, t, y.x[0] - self.reference(t), obs.u, obs.w, dt,
+                                 self.window_start, self.n_steps)
+
+    def finalize(self, acc, t_final):
+        m = dm.finalize(acc, t_final)
+        return {f"user_{k}": m[k] for k in USER_METRICS}
+
+
+def shifted_reference(setup: Setup, overrides: Mapping[str, Any] | None = None):
+    """The config's reference where the controller's initialisation tracks another one (the
+    DSC's init = "linf"), else None; None too where `overrides` vary the reference (its
+    figures would be the nominal one's)."""
+    if overrides and any(p.startswith("reference.") for p in overrides):
+        return None
+    return None if prepared(setup).reference is setup.reference else setup.reference
+
+
 class TuningMetrics(eqx.Module):
     """The `Running` reductions tuning adds to `dscjax.metrics` (the `extra` of `run`):
-    `SmoothLinf`, `SmoothMaxU` and every requirement (results req0_penalty, req0_met, ...)."""
+    `SmoothLinf`, `SmoothMaxU`, every requirement (results req0_penalty, req0_met, ...) and,
+    with a `reference`, `UserError` (results user_linf_error_window, ...)."""
 
     window_start: jax.Array  # () t0
     e_sharpness: jax.Array  # () s of the smooth L-inf (1/units of e)
     u_sharpness: jax.Array  # () r of the smooth max|u| (1/units of u)
     requirements: tuple = ()  # `Requirement`s (their number and kinds are static)
     n_steps: int = eqx.field(static=True, default=1)  # N, for the trapezoid end weights
+    reference: Any = None  # the config's reference, where the controller tracks another
 
     def parts(self) -> tuple[tuple[str, Any], ...]:
         """(prefix of the result names, reduction) of every part."""
         reqs = tuple((f"req{i}_", dataclasses.replace(r, n_steps=self.n_steps))
                      for i, r in enumerate(self.requirements))
+        user = (() if self.reference is None else
+                (("", UserError(self.reference, self.window_start, self.n_steps)),))
         return (("", SmoothLinf(self.window_start, self.e_sharpness, self.n_steps)),
-                ("", SmoothMaxU(self.u_sharpness))) + reqs
+                ("", SmoothMaxU(self.u_sharpness))) + reqs + user
 
     def init(self, dtype):
         return tuple(p.init(dtype) for _, p in self.parts())
@@ -197,6 +241,9 @@ class Scales:
     tv_max_train: np.ndarray | None = dataclasses.field(default=None, compare=False)
     # training plants on which the start gains diverge: they keep the nominal bounds
     n_train_fallback: int = 0
+    # every figure of the start gains on the nominal plant (the loop tuned): the effort on the
+    # window beside the bounds' [0, T], the error against the config's reference
+    start: dict = dataclasses.field(default_factory=dict, compare=False)
 
     @property
     def per_plant(self) -> bool:
@@ -287,7 +334,8 @@ def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
     with a second loop `objective.sampled`, also its sampled_linf_window,
     sampled_smooth_linf_window (`SAMPLED`), sampled_diverged, sampled_max_abs_u,
     sampled_smooth_max_abs_u and sampled_tv_u. Traceable."""
-    m, div = simulate_metrics(setup, objective.sim, objective.extra(), overrides,
+    m, div = simulate_metrics(setup, objective.sim,
+                              objective.extra(shifted_reference(setup, overrides)), overrides,
                               checkpoint_every)
     if objective.sampled is not None:
         e = objective.extra()
@@ -347,19 +395,27 @@ def aggregate(values: jax.Array, how: str, level: float = 1.0) -> jax.Array:
     raise ValueError(f"aggregate must be one of {AGGREGATES} (got {how!r})")
 
 
+def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
+    """(metrics, `Status`) of the start gains: the status says when a diverged run did."""
+    traj = run(setup, sim, overrides=dict(overrides) if overrides else None, extra=extra)
+    return traj.metrics, traj.status
+
+
 # one compilation per setup and run structure (adversarial tuning builds a problem a round)
-_start_metrics = jax.jit(functools.partial(simulate_metrics, extra=None))
+_start_metrics = jax.jit(_start_run)
 
 
 def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                  train: Mapping[str, Any] | None = None) -> Scales:
-    """The start gains' `Scales` (ConfigError if they diverge on the nominal plant); with
-    effort_bounds = "per_plant" and a batch `train`, each training plant's "start" bounds (a
-    plant on which the start diverges keeps the nominal ones)."""
-    metrics, diverged = _start_metrics(setup, sim.program())
-    if bool(diverged):
-        raise ConfigError("the start gains diverge on the nominal plant; tuning needs a "
-                          "stable start (revise the gains, dt or tau)")
+    """The start gains' `Scales` (DivergenceError, which run and when, if they diverge on the
+    nominal plant); with effort_bounds = "per_plant" and a batch `train`, each training
+    plant's "start" bounds (a plant on which the start diverges keeps the nominal ones)."""
+    reference = shifted_reference(setup)
+    user = None if reference is None else UserError(  # reported beside, not tuned
+        reference, jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)), sim.n_steps)
+    metrics, status = _start_metrics(setup, sim.program(), user)
+    if int(status.code) != 0:
+        raise start_divergence(sim, status)
     m = {k: float(v) for k, v in metrics.items()}
 
     def bound(v, start):  # "start", a number or None
@@ -375,8 +431,9 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     tiny = 1e-300
     per: dict[str, Any] = {}
     if spec.effort_bounds == "per_plant" and train and "start" in (spec.u_max, spec.tv_max):
-        mb, div = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
-        div = np.asarray(div, bool)
+        mb, status = jax.device_get(_start_metrics(setup, sim.program(),
+                                                   overrides=dict(train)))
+        div = np.asarray(status.code) != 0
         for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
                                            ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
             if getattr(spec, name) == "start":
@@ -386,7 +443,21 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
         per["n_train_fallback"] = int(div.sum())
     return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
                   l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
-                  u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, **per)
+                  u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, start=m, **per)
+
+
+def start_divergence(sim: RunSpec, status) -> DivergenceError:
+    """The error of start gains that diverge on the nominal plant (their run's `Status`):
+    which run, when and how, as `divergence_report` says it."""
+    from tuning.runner import loop_words
+
+    step = int(status.step)
+    seen = SimpleNamespace(status=status, t_diverged=step * float(sim.dt) if step >= 0
+                           else np.inf)
+    how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
+    return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
+                           f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
+                           f"tuning needs a stable start (revise the gains, dt or tau)", None)
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -413,13 +484,16 @@ class Objective:
     def batch_size(self) -> int:
         return 1 if not self.overrides else int(np.shape(next(iter(self.overrides.values())))[0])
 
-    def extra(self) -> TuningMetrics:
+    def extra(self, reference=None) -> TuningMetrics:
+        """The tuning's reductions; with `reference` (`shifted_reference`) the error against
+        it too."""
         dtype, sc = jnp.result_type(self.setup.plant.x0), self.scales
         u_ref = sc.u_max if sc.u_max is not None else sc.max_u
         return TuningMetrics(window_start=jnp.asarray(self.sim.window_start, dtype),
                              e_sharpness=jnp.asarray(self.spec.sharpness / sc.linf, dtype),
                              u_sharpness=jnp.asarray(self.spec.u_sharpness / u_ref, dtype),
-                             requirements=tuple(self.requirements), n_steps=self.sim.n_steps)
+                             requirements=tuple(self.requirements), n_steps=self.sim.n_steps,
+                             reference=reference)
 
     def bounds(self, overrides=None) -> tuple:
         """(bound on max|u|, bound on TV(u)) of the plants of `overrides` (None: the training

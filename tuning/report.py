@@ -1,5 +1,7 @@
 """The evidence of a tuning run: start against tuned gains on the nominal plant, on the
-training batch and on a fresh held-out batch; report.md, report.json and PNG figures."""
+training batch and on a fresh held-out batch, every verdict with its effort (TV(u) and the
+chattering index, docs/numerics.md); the constraints' margins and their elasticities to the
+tuned numbers (`tuning.elasticity`); report.md, report.json and PNG figures."""
 
 from __future__ import annotations
 
@@ -18,16 +20,25 @@ from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride
 from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
-from tuning import margins
-from tuning.objective import within
-from tuning.runner import discretisation, loop_words
+from tuning import elasticity, margins
+from tuning.objective import shifted_reference, within
+from tuning.runner import discretisation, loop_words, simulate_command
 
-STATS_METRICS = ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u",
-                 "sampled_linf_window")
+STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
+                 "l2_u", "tv_u_window", "sampled_linf_window")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
           "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
-          "max_abs_u": "max |u|", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
-          "tv_u": "total variation of u", "loss": "objective J"}
+          "max_abs_u": "max |u| on [0, T]", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
+          "tv_u": "TV(u) on [0, T]", "loss": "objective J",
+          "max_abs_u_window": "max |u| on [t0, T]", "tv_u_window": "TV(u) on [t0, T]",
+          "chattering_index": "chattering index on [t0, T] (chatters above "
+                              f"{metrics.CHATTER_RATIO:g})",
+          "user_linf_error_window": "L-inf error on [t0, T] against the config's y_r",
+          "user_linf_error": "L-inf error on [0, T] against the config's y_r",
+          "user_l2_error_window": "L2 error on [t0, T] against the config's y_r"}
+# where the controller tracks a shifted reference, the error figures measured against it
+SHIFTED = " against the shifted y_r the controller tracks"
+ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window")
 
 
 def _md(text: str) -> str:
@@ -64,6 +75,8 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
     keys = sorted(names.keys() & m.keys())
     m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
+    for k in [k for k in m if k.startswith("user_")]:  # the refined runs do not measure them
+        m[k] = np.where(m["refined"] > 0, np.nan, np.asarray(m[k], float))
     if "sampled_diverged" in m:
         m["sampled_refined"] = _refine(setup, ov, problem.objective.sampled, m, {
             "diverged": "sampled_diverged", "linf_error_window": "sampled_linf_window"})
@@ -112,9 +125,14 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
         if key not in m:
             continue
         v = m[key] if key == "loss" else m[key][sampled_ok if key.startswith("sampled") else ok]
+        v = np.asarray(v, float)
+        v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
         out[key] = None if v.size == 0 else {
             "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
             "max": float(np.max(v)), "mean": float(np.mean(v))}
+    if "chattering_index" in m:  # the plants that track in the loop tuned but chatter
+        out["n_chattering"] = int(sum(metrics.chatters(v) for v in
+                                      np.asarray(m["chattering_index"], float)[ok]))
     return out
 
 
@@ -142,7 +160,8 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
     for name, key, bound in _checks((scales.u_max, scales.tv_max), m, sampled):
         value = float(np.asarray(m[key]))
         margin = float(bound) - value
-        rows.append({"name": name, "value": value, "bound": float(bound), "margin": margin,
+        rows.append({"name": name, "key": key, "value": value, "bound": float(bound),
+                     "margin": margin,
                      "relative_margin": margin / float(bound),
                      "met": bool(not diverged and np.isfinite(value)
                                  and bool(within(value, float(bound))))})
@@ -193,6 +212,10 @@ def problem_sentence(problem) -> str:
     cfg, sc, sim = problem.cfg, problem.objective.scales, problem.objective.sim
     what = {"linf": "the L-inf tracking error", "l2": "the L2 tracking error",
             "effort_l2": "L2(u)", "effort_max": "max|u|", "effort_tv": "TV(u)"}
+    if shifted_reference(problem.setup) is not None:
+        for k in ("linf", "l2"):
+            what[k] += " (against the reference the controller tracks: y_r shifted by its "
+            what[k] += "initialisation to start at x_1(0))"
     terms = [what[k] for k in what if getattr(cfg.objective, k)]
     where = ("the nominal plant" if not cfg.robust.batch else
              f"the {cfg.robust.aggregate}"
@@ -272,11 +295,18 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
                                             for tag in ("start", "tuned")}
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
+    summary["shifted_reference"] = shifted_reference(problem.setup) is not None
+    # with the held-out check and the margins: `--heldout 0`, a quick run, skips all three
+    summary["sensitivity"] = (None if not (problem.heldout and summary["constraints"]["tuned"])
+                              else elasticity.constraints(problem, z1,
+                                                          summary["constraints"]["tuned"]))
+    summary["sensitivity_warning"] = elasticity.warning(summary["sensitivity"])
+    summary["simulate_command"] = simulate_command(problem)
     summary["loop"] = loop_words(problem.objective.sim)
     summary["heldout_box"] = ([r.resolve(problem.setup).spec() for r in problem.cfg.heldout.ranges]
                               if problem.heldout else None)
-    # the margins come with the held-out check (`--heldout 0` skips both)
-    summary["margins"] = margins.evaluate(problem, z0, z1) if problem.heldout else None
+    # the margins come with the held-out check (`--heldout 0` skips them)
+    summary["margins"] = margins.evaluate(problem, z0, z1, ev) if problem.heldout else None
     summary["margins_warning"] = (None if summary["margins"] is None else
                                   "; ".join(margins.failures(summary["margins"])) or None)
     out = Path(out)
@@ -320,7 +350,8 @@ def _bounds_train(sc) -> dict[str, Any] | None:
 
 def heldout_warning(summary: dict, cfg) -> str | None:
     """The sentence put first when the tuned gains lose held-out plants (diverged, tracked only
-    once refined, or diverged sampled), None if on none: that must not hide in a table."""
+    once refined, diverged sampled, or chattering: a small error with an input that switches
+    is not tracking), None if on none: that must not hide in a table."""
     h = summary.get("heldout")
     if not h:
         return None
@@ -330,12 +361,16 @@ def heldout_warning(summary: dict, cfg) -> str | None:
     if "sampled" in h["tuned"]:
         lost[f"diverged with {summary['second_loop']}"] = (h["tuned"]["sampled"]["n_diverged"],
                                                  h["start"]["sampled"]["n_diverged"])
+    chatter = f"chatter (chattering index above {metrics.CHATTER_RATIO:g})"
+    lost[chatter] = (h["tuned"].get("n_chattering", 0), h["start"].get("n_chattering", 0))
     lost = {how: kk for how, kk in lost.items() if kk[0]}
     if not lost:
         return None
     n = h["tuned"]["n"]
     what = "; ".join(f"{how} on {k} of {n} held-out plants (start gains: {k0})"
                      for how, (k, k0) in lost.items())
+    verb = " and ".join(w for w, on in (("DIVERGE", set(lost) - {chatter}),
+                                        ("CHATTER", chatter in lost)) if on)
     if cfg.robust.batch:
         where = f"a training batch of {cfg.robust.batch} plants"
         fix = (f"train on more plants (e.g. `--batch {4 * cfg.robust.batch}`) or with "
@@ -344,7 +379,7 @@ def heldout_warning(summary: dict, cfg) -> str | None:
         where = "the nominal plant only"
         fix = ("tune robustly, e.g. `dscjax tune --batch 8 --aggregate cvar --cvar-level "
                "0.25` ([tuning.robust] in a config)")
-    return (f"the tuned gains DIVERGE: {what}; they were tuned on {where}: do not deploy "
+    return (f"the tuned gains {verb}: {what}; they were tuned on {where}: do not deploy "
             f"them as they are; {fix}")
 
 
@@ -416,6 +451,9 @@ def _markdown(s: dict, problem, figures) -> str:
         lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
     if s.get("margins_warning"):
         lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
+    if s.get("sensitivity_warning"):
+        lines += [f"> **Warning: {s['sensitivity_warning']} (\"Sensitivity of the "
+                  f"constraints\" below).**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -454,13 +492,20 @@ def _markdown(s: dict, problem, figures) -> str:
         lines.append(f"Note: {note}.")
     for w in s["warnings"]:
         lines.append(f"**Warning:** {w}.")
-    lines += ["", "## Nominal plant", "", "| | start gains | tuned gains | tuned / start |",
-              "|---|---|---|---|"]
-    for key in ("linf_error_window", "l2_error_window", "linf_error", "max_abs_u", "l2_u",
-                "tv_u", "sampled_linf_window"):
+    lines += ["", "## Nominal plant", ""]
+    if s.get("shifted_reference"):
+        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) "
+                  "to x_1(0), the offset decaying): the error tuned and every error figure "
+                  "below is measured against it unless it says \"against the config's "
+                  "y_r\".", ""]
+    lines += ["| | start gains | tuned gains | tuned / start |", "|---|---|---|---|"]
+    for key in ("linf_error_window", "user_linf_error_window", "l2_error_window",
+                "user_l2_error_window", "linf_error", "user_linf_error", "max_abs_u",
+                "max_abs_u_window", "l2_u", "tv_u", "tv_u_window", "chattering_index",
+                "sampled_linf_window"):
         if key in nom["start"]:
             a, b = nom["start"][key], nom["tuned"][key]
-            lines.append(f"| {_md(LABELS[key])} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+            lines.append(f"| {_md(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
     for key, label in (("diverged", "diverged"),
                        ("sampled_diverged", "diverged, the other discretisation")):
         if key in nom["start"]:
@@ -475,6 +520,10 @@ def _markdown(s: dict, problem, figures) -> str:
                          f"{b['value']:.6g} | {b['margin']:.4g} "
                          f"({100 * b['relative_margin']:.2f} %) | "
                          f"**{'met' if b['met'] else 'violated'}** |")
+        if s["bound_max_abs_u"] or s["bound_tv_u"]:
+            lines += ["", effort_span(s)]
+    if s.get("sensitivity"):
+        lines += sensitivity_section(s["sensitivity"])
     if s.get("train_constraints"):
         per = s["effort_bounds"] == "per_plant"
         lines += ["", "## Constraints per training plant (checked exactly on every RK4 step)",
@@ -521,13 +570,16 @@ def _markdown(s: dict, problem, figures) -> str:
             a, c = st.get(m), tu.get(m)
             if a is None or c is None:
                 continue
-            lines.append(f"| {_md(LABELS[m])} | {_f(a['median'])} | {_f(c['median'])} | "
+            lines.append(f"| {_md(_label(m, s))} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
         lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
                   f"(tuned); tracked after refinement (a numerically "
                   f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
                   f"{st['n_refined']} and {tu['n_refined']}; diverged at every step tried "
-                  f"{st['n_diverged']} and {tu['n_diverged']}."]
+                  f"{st['n_diverged']} and {tu['n_diverged']}"
+                  + (f"; of the plants that did not diverge, chattering (chattering index "
+                     f"above {metrics.CHATTER_RATIO:g}) {st['n_chattering']} and "
+                     f"{tu['n_chattering']}" if "n_chattering" in tu else "") + "."]
         if "sampled" in tu:
             a, c = st["sampled"], tu["sampled"]
             lines.append(f"With {s['second_loop']}: tracked "
@@ -546,10 +598,70 @@ def _markdown(s: dict, problem, figures) -> str:
     for name in s["gains"]["start"]:
         lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
                      f"{_fmt_val(s['gains']['tuned'][name])} |")
-    lines += ["", "Load the tuned closed loop with `dscjax simulate --config gains.json`.", ""]
+    lines += ["", run_sentence(s), ""]
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def _label(key: str, s: dict) -> str:
+    """A nominal row's label; the error figures say which reference they are against where
+    the controller tracks a shifted one."""
+    label = LABELS[key]
+    if s.get("shifted_reference") and key in ERRORS:
+        label += SHIFTED + (" (tuned)" if key == "linf_error_window" else "")
+    return label
+
+
+def effort_span(s: dict) -> str:
+    """Where the effort bounds are measured, and the effort on the window beside them: a start
+    transient can set a bound that the steady state never needs."""
+    a, b = s["nominal"]["start"], s["nominal"]["tuned"]
+    return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
+            f"transient included (the actuator must survive it, and a bound on the window "
+            f"alone would let the search buy its error with an unbounded transient). On the "
+            f"window [t0, T], where the error is measured, the start gains use max|u| "
+            f"{_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the "
+            f"tuned gains {_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: a "
+            f"bound over [0, T] does not hold the window's effort to the start's figure there "
+            f"(numbers for tuning.objective.u_max and tv_max bound it by your actuator's "
+            f"limits).")
+
+
+def sensitivity_section(sens: dict) -> list[str]:
+    """report.md's "Sensitivity of the constraints": a row per tuned number, a column per
+    constraint."""
+    rows = sens["rows"]
+    step = 100 * sens["step"]
+    lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
+             f"d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned number "
+             f"g, by reverse mode through the loop tuned (one pass per figure the constraints "
+             f"read): a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
+             f"**Bold**: that change breaks the constraint to first order (r (1 + "
+             f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
+             f"over the run (the loop depends sensitively on its gains: chaotic or "
+             f"chattering); any change may break the constraint.", "",
+             "| tuned number | " + " | ".join(
+                 f"{_md(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
+             + " |", "|---|" + "---|" * len(rows)]
+    for name in rows[0]["elasticity"]:
+        cells = []
+        for r in rows:
+            v = elasticity.text(r["elasticity"][name])
+            cells.append(f"**{v}**" if name in r["fragile"] else v)
+        lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
+    return lines
+
+
+def run_sentence(s: dict) -> str:
+    """report.md's last line: the command that runs the loop tuned."""
+    cmd = s["simulate_command"]
+    if cmd == "dscjax simulate --config gains.json":
+        return f"Run the loop tuned ({s['loop']}) with `{cmd}`."
+    return (f"Run the loop tuned ({s['loop']}) with `{cmd}`: gains.json keeps the config's "
+            f"[simulation], which `dscjax simulate --config gains.json` alone runs"
+            + (" (the continuous loop)" if "--sample-time" in cmd else "")
+            + ".")
 
 
 def _mode_words(mode: str) -> str:

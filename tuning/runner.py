@@ -11,6 +11,7 @@ The search saves its state after every iteration, `run` the other files (checkpo
 from __future__ import annotations
 
 import dataclasses
+import shlex
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -28,7 +29,7 @@ from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
 from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import check
-from dscjax.validation import ConfigError, validate_setup
+from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
 from tuning.objective import Objective, start_scales
@@ -167,10 +168,11 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                           cvar_level=cfg.robust.cvar_level, sampled=second)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     if second is not None:
-        notes.append(f"the same loop with its states by {discretisation(second)} keeps the "
-                     f"effort bounds and its windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x (tuning.objective.sampled_weight "
-                     f"= 0: unchecked)")
+        notes.append(f"checked too: the same loop with its states by {discretisation(second)} "
+                     f"must keep the effort bounds and its windowed L-inf within "
+                     f"{cfg.objective.sampled_factor:g} x the loop tuned's (penalty weight "
+                     f"tuning.objective.sampled_weight = {cfg.objective.sampled_weight:g}; 0 "
+                     f"turns this check off)")
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
                      f"where stiff) is a check in the report, not part of the objective")
@@ -284,6 +286,22 @@ def loop_words(sim: RunSpec) -> str:
     return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
             f"its states advanced by {discretisation(sim)}, the plant by RK4 at dt = "
             f"{float(sim.dt):g} s; input delay {sim.delay} sample(s); {noise}")
+
+
+def simulate_command(problem: Problem, config: str = "gains.json") -> str:
+    """The `dscjax simulate` command that runs the loop tuned from `config` (gains.json, whose
+    [simulation] is the one given, `problem.options`): the options by which the loop tuned
+    differs from it (the sample time `tuning.sample_time` adds, the plant's step, the
+    window)."""
+    sim, given = problem.objective.sim, problem.options
+    flags = []
+    if sim.sampled and not given.sampled:
+        flags.append(f"--sample-time {shortest(sim.sample_time)}")
+    for option, key in (("--dt", "dt"), ("--window-start", "window_start")):
+        a, b = float(getattr(sim, key)), float(getattr(given, key))
+        if a != b:
+            flags.append(f"{option} {shortest(a)}")
+    return " ".join(["dscjax simulate --config", shlex.quote(config), *flags])
 
 
 def discretisation(sim: RunSpec) -> str:

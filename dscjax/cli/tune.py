@@ -1,5 +1,6 @@
 """`dscjax tune`: tune controller gains through the closed loop (CMA-ES by default, or
-exact gradients). Writes into DIR gains.json (`dscjax simulate --config DIR/gains.json`),
+exact gradients). Writes into DIR gains.json (the tuned gains as a config; report.md's last
+line and the console's give the `dscjax simulate` command that runs the loop tuned from it),
 history.csv, report.md, report.json, the figures and the checkpoint files `--resume` reads.
 """
 
@@ -80,7 +81,8 @@ def add_parser(sub):
                    "max|u| and tv_max_factor x TV(u) on that plant, the worst cases of "
                    f"--adversarial included; default {d.objective.effort_bounds})")
     p.add_argument("--heldout", type=count(0), metavar="N", help=f"held-out evaluation batch size "
-                   f"(default {d.heldout.batch}; 0 = skip)")
+                   f"(default {d.heldout.batch}; 0 = skip it, the margins and the constraints' "
+                   f"sensitivities)")
     p.add_argument("--gradient", choices=GRADIENTS,
                    help=f"AD mode (default {opt.gradient}"
                    + (f": reverse mode (time-parallel) for one plant; with a training batch "
@@ -233,19 +235,27 @@ def run(args) -> int:
     import numpy as np
 
     from dscjax.cli.common import prepare_out, print_config, use_device
+    from dscjax.metrics import CHATTER_RATIO
     from dscjax.params import cast
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
-    from tuning import report
+    from tuning import elasticity, report
     from tuning.config import to_table
     from tuning.optimize import SEARCHES
-    from tuning.runner import build_problem, check_resume, format_progress, model_default_ranges
+    from tuning.runner import (
+        build_problem,
+        check_resume,
+        format_progress,
+        model_default_ranges,
+        simulate_command,
+    )
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        print_config(setup, options, {"tuning": to_table(model_default_ranges(cfg, setup), setup)})
+        print_config(setup, options,
+                     {"tuning": to_table(model_default_ranges(cfg, setup), setup)})
         return 0
     check_work_of(args, setup, options, cfg)
     out = Path(args.out)
@@ -292,9 +302,10 @@ def run(args) -> int:
              + (f" and {adv.disturbance}" if adv.disturbance else "")
              + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else "")
           + f"; on {choice}", file=sys.stderr)
-    after = (f"the held-out check ({cfg.heldout.batch} plants, start and tuned gains)"
-             if cfg.heldout.batch else "")
-    after = " and ".join(x for x in (after, "" if args.no_plot else "the figures") if x)
+    parts = ([f"the held-out check ({cfg.heldout.batch} plants, start and tuned gains)",
+              "the margins", "the constraints' sensitivities"] if cfg.heldout.batch else [])
+    parts += [] if args.no_plot else ["the figures"]
+    after = " and ".join([", ".join(parts[:-1]), parts[-1]] if len(parts) > 1 else parts)
     if after:
         print(f"  {after} come after the search"
               + (f"; the time limit ({oc.time_limit:g} s) bounds the search only"
@@ -304,11 +315,18 @@ def run(args) -> int:
     for w in report.assumption_warnings(problem):
         print(f"dscjax tune: warning: {w}", file=sys.stderr)
     sc = problem.objective.scales
-    print(f"  start: L-inf error on the window {sc.linf:.4g}, max|u| {sc.max_u:.4g}"
+    user = sc.start.get("user_linf_error_window")
+    print(f"  start: L-inf error on the window {sc.linf:.4g}"
+          + ("" if user is None else f" against the shifted reference the controller tracks "
+             f"(tuned), {user:.4g} against the config's y_r")
+          + f"; over [0, T] max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else "") + f", TV(u) {sc.tv_u:.4g}"
           + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else "")
           + ("; bounds per training plant" if cfg.objective.effort_bounds == "per_plant"
-             else ""), file=sys.stderr)
+             else "")
+          + (f"; on the window max|u| {sc.start['max_abs_u_window']:.4g}, TV(u) "
+             f"{sc.start['tv_u_window']:.4g}" if "tv_u_window" in sc.start else ""),
+          file=sys.stderr)
     bar, bar_round = None, None
     # until the first generation (or iteration) ends: its compilation and run
     first = Phase(f"  compiling the {'search' if oc.name in SEARCHES else 'gradient'} and "
@@ -366,13 +384,28 @@ def run(args) -> int:
               f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
-    print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
-          f"{options.t_final:g}] s {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower), max|u| "
-          f"{n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}, TV(u) {n0['tv_u']:.4g} -> "
-          f"{n1['tv_u']:.4g}")
+    window = f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s"
+    shifted = " against the shifted reference the controller tracks" if "user_linf_error_window" \
+        in n0 else ""
+    print(f"  nominal plant: L-inf error on {window}{shifted} {a:.4g} -> {b:.4g} "
+          f"({a / max(b, 1e-300):.3g}x lower)"
+          + (f", against the config's y_r {n0['user_linf_error_window']:.4g} -> "
+             f"{n1['user_linf_error_window']:.4g}" if shifted else "")
+          + f"; over [0, T] max|u| {n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}, TV(u) "
+          f"{n0['tv_u']:.4g} -> {n1['tv_u']:.4g}; on the window max|u| "
+          f"{n0['max_abs_u_window']:.4g} -> {n1['max_abs_u_window']:.4g}, TV(u) "
+          f"{n0['tv_u_window']:.4g} -> {n1['tv_u_window']:.4g}, chattering index "
+          f"{n0['chattering_index']:.3g} -> {n1['chattering_index']:.3g}")
+    sens = {r["name"]: r for r in (summary.get("sensitivity") or {}).get("rows", [])}
     for c in summary["constraints"]["tuned"]:
+        top = sens.get(c["name"], {}).get("largest")
         print(f"  constraint {c['name']} <= {c['bound']:.6g}: {'met' if c['met'] else 'VIOLATED'}"
-              f" (tuned {c['value']:.6g}, margin {c['margin']:.4g})")
+              f" (tuned {c['value']:.6g}, margin {c['margin']:.4g}, "
+              f"{100 * c['relative_margin']:.3g} %)"
+              + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
+                 f"{elasticity.text(top['elasticity'])})"))
+    if summary.get("sensitivity_warning"):
+        print(f"dscjax tune: WARNING: {summary['sensitivity_warning']}", file=sys.stderr)
     if summary["effort_bounds"] == "per_plant":
         for c in summary.get("train_constraints", {}).get("tuned", []):
             worst = ("diverged" if c["worst_margin"] is None else
@@ -386,9 +419,15 @@ def run(args) -> int:
         print(f"  {report.heldout_counts(summary)}")
         if h0["linf_error_window"] and h1["linf_error_window"]:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
-            print(f"  held-out L-inf error on the window, plants that did not diverge: median "
+            print(f"  held-out L-inf error on the window{shifted}, plants that did not "
+                  f"diverge: median {a['median']:.4g} -> {b['median']:.4g}, p95 "
+                  f"{a['p95']:.4g} -> {b['p95']:.4g}")
+        if h0.get("tv_u_window") and h1.get("tv_u_window"):
+            a, b = h0["tv_u_window"], h1["tv_u_window"]
+            print(f"  held-out TV(u) on the window, plants that did not diverge: median "
                   f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
-                  f"{b['p95']:.4g}")
+                  f"{b['p95']:.4g}; chattering (chattering index above "
+                  f"{CHATTER_RATIO:g}) on {h0['n_chattering']} -> {h1['n_chattering']}")
         if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
             a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
             print(f"  held-out L-inf error on the window with "
@@ -401,6 +440,7 @@ def run(args) -> int:
     if summary.get("margins_warning"):
         print(f"dscjax tune: WARNING: a margin fails: {summary['margins_warning']}",
               file=sys.stderr)
+    print(f"  run the loop tuned: {simulate_command(result.problem, str(out / 'gains.json'))}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
              if outcome is not None else "history.csv, ") + "report.md, report.json"
@@ -410,8 +450,9 @@ def run(args) -> int:
 
 
 # consecutive steps of the margins in units of the tuning's steps, at most: the Ts sweep's
-# continuous run and three sample times at dt/10 and two at dt, the long run of 10 x T
-MARGIN_STEPS = 4 * 10 + 2 + 10
+# continuous run and three sample times at dt/10 and two at dt, the long run of 10 x T, the
+# delays (tuning.margins.DELAY_MAX runs)
+MARGIN_STEPS = 4 * 10 + 2 + 10 + 4
 
 
 def margin_lines(margins, nominal) -> list[str]:
@@ -427,8 +468,15 @@ def margin_lines(margins, nominal) -> list[str]:
             return f"up to Ts = {1e3 * last[0]:g} ms" if last else "at no Ts"
 
         out.append(f"sample-time margin ({1e3 * st['sample_times'][0]:g} to "
-                   f"{1e3 * st['sample_times'][-1]:g} ms): start gains track {upto('start')}, "
-                   f"tuned gains {upto('tuned')}")
+                   f"{1e3 * st['sample_times'][-1]:g} ms; tracking: error within "
+                   f"{st['track_factor']:g} x the loop tuned's, no chattering): start gains "
+                   f"track {upto('start')}, tuned gains {upto('tuned')}")
+    dl = margins.get("delay")
+    if dl is not None:
+        from tuning.margins import delay_words
+
+        out.append(f"delay margin at Ts = {1e3 * dl['sample_time']:g} ms: start gains "
+                   f"{delay_words(dl, 'start')}; tuned gains {delay_words(dl, 'tuned')}")
     lr = margins["long_run"]
 
     def fig(v):
@@ -509,6 +557,11 @@ def check_work_of(args, setup, options, cfg) -> None:
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
     if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
         after = after + Work(steps=MARGIN_STEPS * steps, member_steps=2 * MARGIN_STEPS * steps)
+        # the held-out batch with both gain sets at 2 x Ts
+        after = after + Work(steps=steps, member_steps=2 * cfg.heldout.batch * steps)
+        # the constraints' elasticities: a time-parallel gradient of each loop (the loop tuned
+        # and the other discretisation's)
+        after = after + gradient_work(setup, steps, copies=2)
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
     check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
                limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")

@@ -1,0 +1,143 @@
+"""How far each constraint of a tuning run stands from breaking: its elasticity to every tuned
+number on the nominal plant (report.md's "Sensitivity of the constraints").
+
+    rows = constraints(problem, z, checks)   # checks: `report.constraint_checks` at z
+
+A constraint value <= bound is read as the ratio r = value / bound <= 1 (the second loop's
+L-inf bound is a multiple of the first loop's, so r divides the two). Its elasticity to a tuned
+number g is e = d ln r / d ln g: a 1 % change of g moves r by about e %. It comes from one
+forward run of the loop tuned (and of the second loop) and one reverse pass per figure the
+constraints read (`jax.vjp`, its pull-backs vmapped), through the objective's own simulation
+(`tuning.objective.simulate_metrics`). A constraint is **fragile** where a STEP change of one
+number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
+in the result) is one whose tangent grew without bound over the run, as it does where the loop
+depends sensitively on its gains (a chaotic or chattering loop): any change may break that
+constraint, so it counts as fragile.
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from tuning.objective import simulate_metrics
+
+STEP = 0.01  # the relative change of one tuned number a constraint should survive
+
+
+def terms(key: str) -> tuple[tuple[int, int, str], ...]:
+    """ln r of the constraint on the report's metric `key` as (sign, loop, metric) terms:
+    loop 0 the loop tuned, 1 the second loop (`report._checks`' keys)."""
+    if key == "sampled_linf_window":  # sampled L-inf / (factor x L-inf)
+        return (1, 1, "linf_error_window"), (-1, 0, "linf_error_window")
+    if key.startswith("sampled_"):
+        return ((1, 1, key.removeprefix("sampled_")),)
+    return ((1, 0, key),)
+
+
+def _figures(z, setup, loops, selection, keys):
+    """(the figures `keys` of each loop, stacked; whether each loop diverged)."""
+    moved = selection.apply(setup, z)
+    out, diverged = [], []
+    for spec, names in zip(loops, keys, strict=True):
+        m, div = simulate_metrics(moved, spec, None)
+        out += [m[k] for k in names]
+        diverged.append(div)
+    return jnp.stack(out), jnp.stack(diverged)
+
+
+@functools.partial(jax.jit, static_argnames=("selection", "keys"))
+def _jacobian(z, setup, loops, selection, keys):
+    """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): one forward pass, then
+    one pull-back per figure (its unit cotangent), vectorised."""
+    y, pull, diverged = jax.vjp(lambda z_: _figures(z_, setup, loops, selection, keys), z,
+                                has_aux=True)
+    (grad,) = jax.vmap(pull)(jnp.eye(y.shape[0], dtype=y.dtype))
+    return y, grad, diverged
+
+
+def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] | None:
+    """{(loop, metric): {number: d ln figure / d ln g}} of the loop tuned (loop 0) and the
+    second loop (1) at z on the nominal plant, for each tuned number g by name (a vector's
+    elements as "path[i]"; a number tuned in linear coordinates scaled by its value: still
+    d ln figure / d ln |g|); None where a loop diverged or a figure is 0."""
+    obj, sel = problem.objective, problem.selection
+    loops = [obj.sim] + ([obj.sampled] if obj.sampled is not None else [])
+    keys = tuple(tuple(dict.fromkeys(m for lp, m in figures if lp == i))
+                 for i in range(len(loops)))
+    used = [i for i, k in enumerate(keys) if k]
+    y, grad, diverged = jax.device_get(_jacobian(
+        z, obj.setup, tuple(loops[i].program() for i in used), sel, tuple(keys[i] for i in used)))
+    if np.any(diverged) or not np.all(np.asarray(y) > 0):  # no d ln of a figure of 0
+        return None
+    columns = [p.name for p in sel.columns(obj.setup)]
+    rows = []
+    for t in sel.items:
+        g = np.asarray(grad[t.name], float).reshape(len(y), -1)
+        scale = 1.0 if t.transform == "log" else np.ravel(np.asarray(z[t.name], float))
+        rows.append(g * scale)  # d figure / d ln g
+    d = np.concatenate(rows, axis=1) / np.asarray(y, float)[:, None]
+    flat = [(i, m) for i in used for m in keys[i]]
+    return {f: dict(zip(columns, map(float, d[j]), strict=True)) for j, f in enumerate(flat)}
+
+
+def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | None:
+    """Each constraint of `checks` (`report.constraint_checks` at z, with their metric `key`)
+    with its elasticity to every tuned number, the largest, and the numbers a STEP change of
+    which breaks it to first order (`fragile`); None if a loop diverged at z."""
+    if not checks:
+        return None
+    needed = [(lp, m) for c in checks for _, lp, m in terms(c["key"])]
+    el = elasticities(problem, z, needed)
+    if el is None:
+        return None
+    rows = []
+    for c in checks:
+        e = {name: sum(sign * el[(lp, m)][name] for sign, lp, m in terms(c["key"]))
+             for name in next(iter(el.values()))}
+        e = {n: float(v) if np.isfinite(v) else None for n, v in e.items()}
+        ratio = c["value"] / c["bound"]
+        top = max(e, key=lambda n: np.inf if e[n] is None else abs(e[n]))
+        fragile = ([n for n, v in e.items() if v is None or ratio * (1 + STEP * abs(v)) > 1]
+                   if c["met"] else [])
+        rows.append({"name": c["name"], "key": c["key"], "value": c["value"],
+                     "bound": c["bound"], "relative_margin": c["relative_margin"],
+                     "elasticity": e, "largest": {"number": top, "elasticity": e[top]},
+                     "fragile": fragile})
+    return {"step": STEP, "rows": rows}
+
+
+def text(e: float | None) -> str:
+    """An elasticity as the report prints it."""
+    return "not finite" if e is None else f"{e:.3g}"
+
+
+NAMED = 3  # the fragile numbers a warning names per constraint, the largest first
+
+
+def warning(sens: dict[str, Any] | None) -> str | None:
+    """The fragile constraints in one sentence (None: none): per constraint its margin and
+    the NAMED numbers with the largest elasticities (those not finite first)."""
+    if not sens:
+        return None
+
+    def which(r):
+        e = r["elasticity"]
+        unbounded = [n for n in r["fragile"] if e[n] is None]
+        finite = sorted((n for n in r["fragile"] if e[n] is not None), key=lambda n: -abs(e[n]))
+        if unbounded and len(unbounded) == len(e):
+            return "every tuned number (elasticity not finite)"
+        named = [f"{n} (elasticity {text(e[n])})" for n in (unbounded + finite)[:NAMED]]
+        more = len(r["fragile"]) - len(named)
+        return ", ".join(named) + (f" and {more} more" if more else "")
+
+    parts = [f"{r['name']} (margin {100 * r['relative_margin']:.3g} % of its bound) by "
+             f"{which(r)}" for r in sens["rows"] if r["fragile"]]
+    if not parts:
+        return None
+    return (f"a {100 * sens['step']:g} % change of one tuned number breaks a constraint (to "
+            f"first order, nominal plant): " + "; ".join(parts))
