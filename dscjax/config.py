@@ -645,7 +645,8 @@ def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, RunSpec]:
     return from_dict(read(path), base)
 
 
-def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=None) -> str:
+def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=None,
+            docs: Mapping[str, str] | None = None) -> str:
     """The config as TOML with every key, each described (`--print-config`). [simulation] keys
     whose default is a rule (window_start, save_every) are printed commented out with the
     value the rule gives for this horizon and step; optional keys left out, commented out.
@@ -664,7 +665,7 @@ def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=N
         else:
             sim[key] = value
     d["simulation"] = sim
-    return dumps_toml({**d, **(extra or {})}, header=header)
+    return dumps_toml({**d, **(extra or {})}, header=header, docs=docs)
 
 
 def default_toml() -> str:

@@ -51,39 +51,45 @@ class Simulation:
     (`dscjax.settings`); `RunSpec.make` builds the spec from these keys. A key whose default
     is a rule (save_every, window_start) is None, written "none", until given."""
 
-    t_final: float = setting(20.0, "horizon T [s] (the paper does not give it)", Positive())
+    t_final: float = setting(20.0, "horizon T [s] (the paper does not give it)", Positive(),
+                             flag="--t-final")
     dt: float = setting(1e-3, "integration step [s]; RK4 needs dt/min(tau) <= 2.785",
-                        Positive())
+                        Positive(), flag="--dt")
     save_every: int | None = setting(
         None, "keep every k-th step in saved trajectories (metrics use every step); none: "
-        f"automatic, at most {MAX_SAVED_POINTS:,} points", Maybe(AtLeast(1)))
+        f"automatic, at most {MAX_SAVED_POINTS:,} points", Maybe(AtLeast(1)),
+        flag="--save-every")
     window_start: float | None = setting(
         None, "t0 [s] of the windowed metrics on [t0, T]; none: 1 s (0 s if t_final <= 1 s)",
-        Maybe(Number(ge=0)))
+        Maybe(Number(ge=0)), flag="--window-start")
     state_bound: float = setting(1e6, "a state beyond this magnitude counts as divergence",
-                                 Positive())
-    dtype: str = setting("float64", "the precision of the run", Choice(DTYPES))
+                                 Positive(), flag="--state-bound")
+    dtype: str = setting("float64", "the precision of the run (float32: --float32)",
+                         Choice(DTYPES))
     solver: str = setting("rk4", "rk4 (classical RK4, the paper's method) or etdrk4 "
                           "(exponential RK4: integrates the stiff decays alpha |u'| and 1/tau "
-                          "exactly)", Choice(("rk4", "etdrk4")))
+                          "exactly)", Choice(("rk4", "etdrk4")), flag="--solver")
     refine: int = setting(DEFAULT_REFINE, "if the run diverges: levels tried (ETDRK4 at dt, "
                           "dt/2, ...) before it counts as diverged; 0: report the divergence at "
-                          "once", AtLeast(0))
+                          "once", AtLeast(0), flag="--refine")
     sample_time: float | None = setting(
         None, "the controller sampled every Ts seconds, its input held in between (zero-order "
-        "hold), a whole multiple of dt; none: continuous", Maybe(Positive()))
-    delay: int = setting(0, "sampled controller: input delay in whole samples", AtLeast(0))
+        "hold), a whole multiple of dt; none: continuous", Maybe(Positive()),
+        flag="--sample-time")
+    delay: int = setting(0, "sampled controller: input delay in whole samples", AtLeast(0),
+                         flag="--delay")
     noise: float | tuple | None = setting(
         None, "sampled controller: std of Gaussian measurement noise on x, one number or one "
-        "per state; none: no noise", Maybe(Numbers(Number(ge=0))))
+        "per state; none: no noise", Maybe(Numbers(Number(ge=0))), flag="--noise")
     noise_seed: int = setting(0, "sampled controller: seed of the measurement noise",
-                              AtLeast(0))
+                              AtLeast(0), flag="--noise-seed")
     discretisation: str = setting(
         "exponential-euler", "sampled controller: how its states advance over a sample, "
         "exponential-euler (c += Ts phi(-Ts/tau) c', exact for the filters) or euler (forward "
-        "Euler, c += Ts c')", Choice(SCHEMES))
+        "Euler, c += Ts c')", Choice(SCHEMES), flag="--discretisation")
     device: str = setting("auto", "auto (one trajectory and small batches on the CPU, large "
-                          "batches on an accelerator), cpu or gpu", Choice(DEVICES))
+                          "batches on an accelerator), cpu or gpu", Choice(DEVICES),
+                          flag="--device")
 
 
 # key -> (default, meaning) of the [simulation] table, read off `Simulation`

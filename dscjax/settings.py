@@ -334,9 +334,14 @@ def setting(default, doc: str, rule: Rule, *, flag: str | None = None,
     return dataclasses.field(default=default, metadata=meta)
 
 
-def group(cls: type, doc: str = ""):
-    """A field holding a nested settings group (a sub-table, e.g. [tuning.optimizer])."""
-    return dataclasses.field(default_factory=cls, metadata={"group": cls, "doc": doc})
+def group(cls: type, factory: Callable[[], Any] | None = None,
+          flags: Mapping[str, str | None] | None = None, docs: Mapping[str, str] | None = None):
+    """A field holding a nested settings group (a sub-table, e.g. [tuning.optimizer]), built
+    by `factory` (default `cls()`); `flags` and `docs` give this occurrence's options and
+    meanings where they differ from the class's (a class used at two paths: [tuning.robust]
+    and [tuning.heldout])."""
+    return dataclasses.field(default_factory=factory or cls, metadata={
+        "group": cls, "flags": dict(flags or {}), "docs": dict(docs or {})})
 
 
 def declared(cls) -> dict[str, Setting]:
@@ -350,10 +355,34 @@ def groups(cls) -> dict[str, type]:
     return {f.name: f.metadata["group"] for f in dataclasses.fields(cls) if "group" in f.metadata}
 
 
+def walk(obj, prefix: str, flags: Mapping[str, str | None] | None = None,
+         docs: Mapping[str, str] | None = None):
+    """(config path, key, Setting, value, option or None) of every declared setting of a group
+    instance and of its nested groups, depth first; an option and a meaning are the
+    occurrence's (`group`), else the class's."""
+    for key, s in declared(type(obj)).items():
+        if docs and key in docs:
+            s = dataclasses.replace(s, doc=docs[key])
+        yield prefix + key, key, s, getattr(obj, key), (flags or {}).get(key, s.flag)
+    for f in dataclasses.fields(obj):
+        if "group" in f.metadata:
+            yield from walk(getattr(obj, f.name), f"{prefix}{f.name}.", f.metadata["flags"],
+                            f.metadata["docs"])
+
+
+def _custom(rule: Rule) -> Custom | None:
+    """The `Custom` rule of `rule` (itself, or under `Maybe`), or None."""
+    inner = rule.rule if isinstance(rule, Maybe) else rule
+    return inner if isinstance(inner, Custom) else None
+
+
 def parse_field(s: Setting, value, field: str):
     """One value through its rule; ConfigError "FIELD must be RANGE (got VALUE)"."""
-    if isinstance(s.rule, Custom):
-        return s.rule.read(value, field)
+    custom = _custom(s.rule)
+    if custom is not None:
+        if s.rule is not custom and (value is None or str(value).lower() == "none"):
+            return None
+        return custom.read(value, field)
     try:
         return s.rule.parse(value)
     except Invalid as err:
@@ -362,9 +391,11 @@ def parse_field(s: Setting, value, field: str):
 
 def checked(obj, name: Callable[[str], str]):
     """`obj` (a group built in code, e.g. from keyword arguments) with each declared field
-    read again by its rule; a refusal names the field `name(key)`."""
+    read again by its rule (a `Custom` one reads file data only: its value is taken as
+    built); a refusal names the field `name(key)`."""
     return dataclasses.replace(obj, **{k: parse_field(s, getattr(obj, k), name(k))
-                                       for k, s in declared(type(obj)).items()})
+                                       for k, s in declared(type(obj)).items()
+                                       if _custom(s.rule) is None})
 
 
 def from_table(cls, table: Mapping[str, Any], prefix: str, base=None, *,
@@ -408,36 +439,58 @@ def shown(s: Setting, value) -> str:
     return str(v)
 
 
-def add_arguments(parser, cls, prefix: str, *, keys: tuple[str, ...] | None = None,
+def add_arguments(parser, obj, prefix: str, *, keys: tuple[str, ...] | None = None,
                   defaults: Mapping[str, Any] | None = None) -> None:
-    """An option for each setting of `cls` that has a flag (or for `keys`, by their flag or
-    --key-with-dashes); its value is parsed by the setting's rule, a refusal names the option
-    (argparse: "argument --time-limit: must be ..."). The option's dest is the key."""
-    base = cls()
-    for key, s in declared(cls).items():
-        if (keys is None and s.flag is None) or (keys is not None and key not in keys):
+    """An option for each setting of the group `obj` (an instance or a class: its defaults)
+    and its nested groups that has an option (or, with `keys`, for those keys of `obj`
+    itself, by their option or --key-with-dashes). Its value is parsed by the setting's rule,
+    a refusal names the option ("argument --time-limit: must be ..."); its help gives the
+    default (`defaults` may give a command's own) and the config path."""
+    obj = obj() if isinstance(obj, type) else obj
+    for path, key, s, value, flag in walk(obj, prefix):
+        if keys is not None:
+            if path != prefix + key or key not in keys:
+                continue
+            flag = flag or "--" + key.replace("_", "-")
+        elif flag is None:
             continue
-        default = (defaults or {}).get(key, getattr(base, key))
+        default = (defaults or {}).get(key, value)
         allowed = "" if isinstance(s.rule, Choice) else f"; {s.rule.text}"  # (the metavar)
         allowed += f"; {s.rule.hint}" if s.rule.hint else ""
-        help_text = f"{s.doc} (default {shown(s, default)}, or the config's {prefix}{key}){allowed}"
-        parser.add_argument(option_of(key, s), dest=key, type=_argtype(s.rule),
-                            metavar=s.rule.metavar, help=help_text.replace("%", "%%"))
+        text = f"{s.doc} (default {shown(s, default)}, or the config's {path}){allowed}"
+        parser.add_argument(flag, dest=dest(flag), type=_argtype(s.rule), metavar=s.rule.metavar,
+                            help=text.replace("%", "%%"))
 
 
-def option_of(key: str, s: Setting) -> str:
-    return s.flag or "--" + key.replace("_", "-")
+def dest(flag: str) -> str:
+    """The argparse attribute of an option: --time-limit -> time_limit."""
+    return flag.lstrip("-").replace("-", "_")
 
 
-def given(args, cls, prefix: str) -> tuple[dict[str, Any], dict[str, str]]:
-    """({key: value} of the options of `cls` given on the command line, {config path: option
-    typed}) for `cli.common.blame_options`; an option typed as "none" is given as None."""
-    table, names = {}, {}
-    for key, s in declared(cls).items():
-        value = getattr(args, key, None)
-        if value is not None:
-            table[key] = unwrap(value)
-            names[prefix + key] = option_of(key, s)
+def given(args, obj, prefix: str, *, keys: tuple[str, ...] | None = None
+          ) -> tuple[dict[str, Any], dict[str, str]]:
+    """(table, names): the settings of the group `obj` (as `add_arguments` declared them)
+    given on the command line as a table for `from_table` (nested groups as sub-tables), and
+    {config path: option typed} for `cli.common.blame_options`. An option typed as "none" is
+    given as None."""
+    obj = obj() if isinstance(obj, type) else obj
+    table: dict[str, Any] = {}
+    names: dict[str, str] = {}
+    for path, key, _, _, flag in walk(obj, prefix):
+        if keys is not None:
+            if path != prefix + key or key not in keys:
+                continue
+            flag = flag or "--" + key.replace("_", "-")
+        elif flag is None:
+            continue
+        value = getattr(args, dest(flag), None)
+        if value is None:
+            continue
+        where = table
+        for part in path[len(prefix):].split(".")[:-1]:
+            where = where.setdefault(part, {})
+        where[key] = unwrap(value)
+        names[path] = flag
     return table, names
 
 
@@ -465,21 +518,20 @@ def unwrap(value):
     return value.value if isinstance(value, _Given) else value
 
 
-def doc_rows(cls, prefix: str) -> list[str]:
-    """The docs' table of a group and its nested groups: key, default, allowed values,
-    meaning, option (markdown rows, with the header)."""
+def meanings(obj, prefix: str) -> dict[str, str]:
+    """{config path: meaning} of a group's settings (the comments of a printed config)."""
+    obj = obj() if isinstance(obj, type) else obj
+    return {path: s.doc for path, _, s, _, _ in walk(obj, prefix)}
+
+
+def doc_rows(obj, prefix: str) -> list[str]:
+    """The docs' table of a group (an instance or a class: its defaults) and its nested
+    groups: key, default, allowed values, meaning, option (markdown rows, with the header)."""
+    obj = obj() if isinstance(obj, type) else obj
     rows = ["| key | default | allowed | meaning | option |", "|---|---|---|---|---|"]
-
-    def walk(c, p):
-        base = c()
-        for key, s in declared(c).items():
-            flag = f"`{s.flag}`" if s.flag else ""
-            rows.append(f"| `{p}{key}` | `{shown(s, getattr(base, key))}` | "
-                        f"{_md(s.rule.text)} | {_md(s.doc)} | {flag} |")
-        for key, sub in groups(c).items():
-            walk(sub, f"{p}{key}.")
-
-    walk(cls, prefix)
+    for path, _, s, value, flag in walk(obj, prefix):
+        rows.append(f"| `{path}` | `{shown(s, value)}` | {_md(s.rule.text)} | {_md(s.doc)} | "
+                    f"{f'`{flag}`' if flag else ''} |")
     return rows
 
 
@@ -503,5 +555,5 @@ def _literal(text: str):
 
 __all__ = ["AtLeast", "Boolean", "Choice", "Custom", "Either", "Invalid", "Maybe", "Number",
            "Numbers", "Positive", "Rule", "Setting", "Strings", "Text", "add_arguments",
-           "checked", "declared", "doc_rows", "from_table", "given", "group", "groups",
-           "parse_field", "setting", "shown", "to_table", "unwrap"]
+           "checked", "declared", "dest", "doc_rows", "from_table", "given", "group", "groups",
+           "meanings", "parse_field", "setting", "shown", "to_table", "unwrap", "walk"]

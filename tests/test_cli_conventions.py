@@ -49,8 +49,7 @@ def _expected_defaults():
     from dscjax import reproduce
     from dscjax.runspec import RunSpec
     from dscjax.sweep import SweepSettings
-    from tuning.config import TuningConfig
-    from tuning.optimize import OPTAX_STEPS
+    from tuning.config import OPTAX_STEPS, TuningConfig
 
     sim, sw, tu = RunSpec.make(), SweepSettings(), TuningConfig()
     horizon = {"--t-final": f"{sim.t_final:g}", "--dt": f"{sim.dt:g}"}
@@ -352,15 +351,21 @@ def test_noise_takes_one_number_or_one_per_state_as_its_help_says(capsys):
 @pytest.mark.parametrize(("argv", "wanted"), [
     (["sweep", "--grid", "hysteresis.alpha=0.7:1.3:0"],
      "--grid hysteresis.alpha: the number of grid points must be >= 2 (got 0)"),
-    (["sweep", "--threshold", "-1"], "--threshold must be > 0 (got -1.0)"),
+    (["sweep", "--threshold", "-1"], "argument --threshold: must be a finite number > 0, or "
+                                     "\"none\" (got '-1')"),
     (["sweep", "--range", "plant.g[5]=0.8:1.2"],
      "--range: index 5 of 'plant.g' is out of range (it has 2 elements, indices 0..1)"),
-    (["tune", "--cvar-level", "2"], "--cvar-level must be in (0, 1] (got 2.0)"),
+    (["tune", "--cvar-level", "2"], "argument --cvar-level: must be a finite number in (0, 1] "
+                                    "(got '2')"),
     (["tune", "--adversarial", "1", "--disturbance", "sine"],
      "--disturbance must be fourier:K:D or spline:K:D (got 'sine')"),
 ])
 def test_an_error_names_the_option_as_typed(argv, wanted, tmp_path, capsys):
-    line = _one_line_error(capsys, main([*argv, "--out", str(tmp_path / "o")]))
+    try:
+        code = main([*argv, "--out", str(tmp_path / "o")])
+    except SystemExit as exit_:  # argparse's refusal of an option's value
+        code = exit_.code
+    line = _one_line_error(capsys, code)
     assert line.startswith(f"dscjax {argv[0]}: error: {wanted}"), line
 
 
@@ -369,7 +374,8 @@ def test_an_error_from_a_config_names_its_key(tmp_path, capsys):
     cfg.write_text("[sweep]\nthreshold = -1\n")
     line = _one_line_error(capsys, main(["sweep", "--config", str(cfg), "--out",
                                          str(tmp_path / "o")]))
-    assert line == "dscjax sweep: error: sweep.threshold must be > 0 (got -1.0)"
+    assert line == ("dscjax sweep: error: sweep.threshold must be a finite number > 0, or "
+                    "\"none\" (got -1)")
 
 
 @pytest.mark.parametrize(("command", "theirs", "other", "shared"), [

@@ -124,9 +124,9 @@ def test_host_settings_do_not_recompile(monkeypatch):
 
 def test_tuning_loss_function_is_the_tuners_loss_eager_and_jitted():
     # J = L2(e on W) / the start's L2(e on W): 1 at the start, the ratio of two eager runs of
-    # the loop tuned by default, the controller sampled at tuning.sample_time = 1 ms
+    # the loop tuned, the controller sampled at 1 ms
     setup = dscjax.paper_example()
-    options = RunSpec.make(0.5, window_start=0.1)
+    options = RunSpec.make(0.5, window_start=0.1, sample_time=1e-3)
     cfg = tuning.TuningConfig(
         objective=tuning.ObjectiveSpec(linf=0.0, l2=1.0, u_max=None, tv_max=None,
                                        sampled_weight=0.0),
@@ -136,7 +136,7 @@ def test_tuning_loss_function_is_the_tuners_loss_eager_and_jitted():
     got = [float(loss(z0)[0]), float(jax.jit(loss)(z)[0])]  # eager, jitted
 
     def l2(s):
-        return float(dscjax.simulate(s, spec=options.replace(sample_time=1e-3))
+        return float(dscjax.simulate(s, spec=options)
                      .metrics["l2_error_window"])
 
     ratio = l2(params.set(setup, "controller.k", 1.5 * setup.controller.k)) / l2(setup)

@@ -26,6 +26,7 @@ class Group:
                                                                st.Positive()))))
     noise: float | tuple | None = st.setting(None, "std", st.Maybe(st.Numbers(st.Number(ge=0))))
     inner: Inner = st.group(Inner)
+    other: Inner = st.group(Inner, factory=lambda: Inner(0.5), flags={"level": "--level"})
 
     def validate(self, prefix):
         if self.name == "b" and self.steps < 2:
@@ -91,7 +92,7 @@ def test_from_table_parses_nests_validates_and_names_the_path():
              ({"inner": {"level": 2}}, "tuning.opt.inner.level must be a finite number in (0, 1] "
                                        "(got 2)"),
              ({"stepz": 1}, "unknown key 'tuning.opt.stepz' (allowed: time_limit, steps, "
-                            "name, bound, noise, inner)"),
+                            "name, bound, noise, inner, other)"),
              ({"inner": 3}, "'tuning.opt.inner' must be a table ([tuning.opt.inner])"),
              ({"name": "b", "steps": 1}, "tuning.opt.steps must be >= 2 with tuning.opt.name "
                                          "= 'b'"),
@@ -107,7 +108,7 @@ def test_to_table_round_trips_through_from_table():
     g = Group(time_limit=None, bound=3.0, noise=(0.1, 0.0), inner=Inner(0.7))
     table = st.to_table(g)
     assert table == {"time_limit": "none", "steps": 3, "name": "a", "bound": 3.0,
-                     "noise": [0.1, 0.0], "inner": {"level": 0.7}}
+                     "noise": [0.1, 0.0], "inner": {"level": 0.7}, "other": {"level": 0.5}}
     assert st.from_table(Group, table, "x.") == g
     assert st.to_table(Group())["bound"] == "start" and st.to_table(Group())["noise"] == "none"
 
@@ -115,24 +116,44 @@ def test_to_table_round_trips_through_from_table():
 def test_options_parse_by_the_rule_and_name_the_option_typed(capsys):
     p = argparse.ArgumentParser(prog="t", exit_on_error=False)
     st.add_arguments(p, Group, "tuning.opt.")
-    args = p.parse_args(["--time-limit", "none", "--name", "b"])
+    args = p.parse_args(["--time-limit", "none", "--name", "b", "--level", "0.3"])
     assert st.given(args, Group, "tuning.opt.") == (
-        {"time_limit": None, "name": "b"},
-        {"tuning.opt.time_limit": "--time-limit", "tuning.opt.name": "--name"})
+        {"time_limit": None, "name": "b", "other": {"level": 0.3}},
+        {"tuning.opt.time_limit": "--time-limit", "tuning.opt.name": "--name",
+         "tuning.opt.other.level": "--level"})
     assert st.given(p.parse_args([]), Group, "tuning.opt.") == ({}, {})
     with pytest.raises(argparse.ArgumentError) as err:
         p.parse_args(["--time-limit", "0"])
     assert str(err.value) == ("argument --time-limit: must be a finite number > 0, or \"none\" "
                               "(got '0')")
-    help_text = p.format_help()
-    assert "wall seconds (default 100, or the config's tuning.opt.time_limit)" in " ".join(
-        help_text.split())
+    help_text = " ".join(p.format_help().split())
+    assert "(default 0.5, or the config's tuning.opt.other.level)" in help_text
+    assert "wall seconds (default 100, or the config's tuning.opt.time_limit)" in help_text
 
 
 def test_doc_rows_list_every_key_with_default_range_and_option():
     rows = st.doc_rows(Group, "tuning.opt.")
     assert rows[2] == ('| `tuning.opt.time_limit` | `100` | a finite number > 0, or "none" | '
                        'wall seconds | `--time-limit` |')
+    # the second occurrence of a group: its own default and option
+    assert rows[-1] == ("| `tuning.opt.other.level` | `0.5` | a finite number in (0, 1] | "
+                        "CVaR level | `--level` |")
+    rows = rows[:-1]
     assert rows[-1] == ("| `tuning.opt.inner.level` | `0.2` | a finite number in (0, 1] | "
                         "CVaR level |  |")
     assert len(rows) == 2 + 6
+
+
+def test_docs_settings_md_holds_the_declarations_tables():
+    """docs/settings.md's key tables are generated from the declarations: regenerated, the
+    page is unchanged (regenerate it with cli.common.settings_docs)."""
+    from pathlib import Path
+
+    from dscjax.cli.common import settings_docs, settings_groups
+
+    page = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
+    text = page.read_text()
+    assert settings_docs(text) == text
+    for name in settings_groups():
+        assert f"<!-- settings {name} -->" in text
+    assert "| `tuning.optimizer.time_limit` | `100` |" in text

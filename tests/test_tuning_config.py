@@ -68,13 +68,16 @@ def test_bad_selection_is_a_clear_error(setup, kwargs, match):
 @pytest.mark.parametrize("table, match", [
     ({"parms": []}, "unknown key 'tuning.parms'"),
     ({"objective": {"linff": 1.0}}, "unknown key 'tuning.objective.linff'"),
-    ({"objective": {"linf": -1.0}}, "tuning.objective.linf must be a number >= 0"),
+    ({"objective": {"linf": -1.0}}, "tuning.objective.linf must be a finite number >= 0"),
     ({"objective": {"u_max": "sometimes"}}, "tuning.objective.u_max"),
     ({"optimizer": {"name": "newton"}}, "tuning.optimizer.name must be one of"),
     ({"optimizer": {"steps": 0}}, "tuning.optimizer.steps must be an integer >= 1"),
-    ({"optimizer": {"learning_rate": "fast"}}, "tuning.optimizer.learning_rate must be a number"),
-    ({"robust": {"aggregate": "cvar", "cvar_level": 0.0}}, r"cvar_level must be in \(0, 1\]"),
-    ({"robust": {"cvar_level": 1.5}}, r"tuning.robust.cvar_level must be in \(0, 1\]"),
+    ({"optimizer": {"learning_rate": "fast"}},
+     "tuning.optimizer.learning_rate must be a finite number > 0 \\(got a string"),
+    ({"robust": {"aggregate": "cvar", "cvar_level": 0.0}},
+     r"cvar_level must be a finite number in \(0, 1\]"),
+    ({"robust": {"cvar_level": 1.5}}, r"tuning.robust.cvar_level must be a finite number in "
+                                      r"\(0, 1\] \(got 1.5\)"),
     ({"robust": {"ranges": {"hysteresis.alpha": "lots"}}}, "tuning.robust.ranges"),
     ({"requirements": {"envelope": {"b0": 0.1}}}, "tuning.requirements.envelope.b_inf is "
                                                   "required"),
@@ -89,7 +92,7 @@ def test_bad_tuning_table_is_a_clear_error(table, match):
 def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
     """`steps` not given (or "none"): adam stops after OPTAX_STEPS = 300 iterations; the
     CMA-ES methods have no count limit. Given, it is the limit for all."""
-    from tuning.optimize import OPTAX_STEPS
+    from tuning.config import OPTAX_STEPS
 
     assert OPTAX_STEPS == 300
     search, adam = from_dict({}).optimizer, from_dict({"optimizer": {"name": "adam"}}).optimizer
@@ -105,7 +108,7 @@ def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
 
 @pytest.mark.parametrize("table, line", [
     ({"name": "cma_line"}, "tuning.optimizer.name must be one of 'cma_path', 'cma', 'adam' "
-                           "(got 'cma_line')"),
+                           "(got a string, 'cma_line')"),
     ({"line_points": 3}, "unknown key 'tuning.optimizer.line_points' (allowed: name, "
                          "learning_rate, patience, min_delta, steps, time_limit, gradient, "
                          "checkpoint_every, save_interval, sigma0, popsize, seed, restarts)"),
@@ -157,7 +160,8 @@ def test_cli_bad_setting_exits_2_with_one_line(tmp_path, capsys):
     cfg.write_text("[tuning.robust]\ncvar_level = 2.0\n")
     assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "cvar_level must be in (0, 1]" in err[0]
+    assert err == ["dscjax tune: error: tuning.robust.cvar_level must be a finite number in "
+                   "(0, 1] (got 2.0)"]
     cfg.write_text('[tuning]\nparams = ["controller.nope"]\n')
     assert main(["tune", "--config", str(cfg), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -248,13 +252,14 @@ def test_smooth_linf_is_finite_with_a_large_error_before_the_window():
     assert float(m["smooth_linf_window"]) > 0.9 * float(m["linf_error_window"])
 
 
-def test_the_default_tunes_the_loop_sampled_at_tuning_sample_time(setup):
-    """`dscjax tune`'s default objective is the controller sampled every 1 ms (ZOH), its start
-    figures those of `dscjax.simulate` of that loop; the continuous loop stays the config's
-    (gains.json) and becomes the report's check. `--sample-time` tunes its loop as given."""
+def test_the_loop_tuned_is_the_simulation_given(setup):
+    """The loop tuned is the [simulation] given (one sample_time): sampled at 1 ms (ZOH), its
+    start figures those of `dscjax.simulate` of that loop, with the second loop (forward
+    Euler) and the continuous loop as the report's check; a continuous [simulation] is tuned
+    continuous, with neither."""
     from tuning.runner import build_problem
 
-    options = RunSpec.make(t_final=1.0, window_start=0.5)
+    options = RunSpec.make(t_final=1.0, window_start=0.5, sample_time=1e-3)
     cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
     p = build_problem(setup, options, cfg)
     assert p.objective.sim.sampled and p.objective.sim.sample_time == 1e-3
@@ -262,18 +267,19 @@ def test_the_default_tunes_the_loop_sampled_at_tuning_sample_time(setup):
     second = p.objective.sampled
     assert second.discretisation == "euler" and second.sample_time == 1e-3
     assert p.objective.sim.discretisation == "exponential-euler"
-    assert not p.options.sampled and not p.continuous.sampled
+    assert p.options.sampled and not p.continuous.sampled
     assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
     ref = dscjax.simulate(setup, 1.0, 1e-3, window_start=0.5, sample_time=1e-3).metrics
     assert p.objective.scales.linf == pytest.approx(float(ref["linf_error_window"]), rel=1e-9)
     assert p.objective.scales.u_max == pytest.approx(float(ref["max_abs_u"]), rel=1e-9)
     assert any("Ts = 0.001 s" in n and "exponential Euler" in n for n in p.notes)
-    off = build_problem(setup, options, dataclasses.replace(cfg, sample_time=None))
+    off = build_problem(setup, options.replace(sample_time=None), cfg)
     assert not off.objective.sim.sampled and off.continuous is None
-    # a loop already sampled (--sample-time 0.002) is tuned as given; tau >= 2 Ts by default
+    assert off.objective.sampled is None
+    # tau >= 2 Ts by default; the other discretisation is the second loop's
     given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
                           dataclasses.replace(cfg, params=("controller.tau",)))
-    assert given.objective.sim.sample_time == 0.002 and given.continuous is None
+    assert given.objective.sim.sample_time == 0.002
     assert given.objective.sampled.discretisation == "exponential-euler"
     assert any("states advanced by forward Euler" in n for n in given.notes)
     assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)

@@ -19,6 +19,7 @@ redone on resume; a finished run may be resumed with more rounds.
 from __future__ import annotations
 
 import dataclasses
+import math
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -78,7 +79,9 @@ def search_worst(setup, options: RunSpec, cfg: TuningConfig, seed: int,
     return worst.worst_case(search_problem(setup, options, cfg), time_limit=spec.search_time,
                             seed=seed, out_dir=out_dir, resume=out_dir is not None,
                             starts=spec.starts, methods=(spec.method,), batch=spec.batch,
-                            max_evals=spec.search_evals)
+                            max_evals=spec.search_evals, coarsening=math.gcd(
+                                worst.DEFAULT_COARSENING, int(options.sample_every))
+                            if options.sampled else worst.DEFAULT_COARSENING)
 
 
 def record(res: worst.Result) -> dict:

@@ -1,4 +1,5 @@
-"""The [tuning] table of a config file -> `TuningConfig` (validated, naming the bad field).
+"""The [tuning] table of a config file -> `TuningConfig`, each setting declared once
+(`dscjax.settings`: default, meaning, rule and command-line option on its field).
 
     [tuning]
     params = ["controller.k", "controller.tau", ...]   # tuned; everything else is frozen
@@ -9,7 +10,9 @@
     [tuning.robust], [tuning.heldout]                   # batches; .ranges as [sweep.ranges]
     [tuning.requirements.envelope]                      # time-domain requirements
 
-Unknown keys and bad values are errors that name the field (docs/tuning.md lists them all).
+The loop tuned is the config's [simulation] (`dscjax tune` samples the controller at 1 ms
+unless the config says otherwise). Unknown keys and bad values are errors that name the field;
+docs/tuning.md's key table is generated from these declarations.
 """
 
 from __future__ import annotations
@@ -18,14 +21,134 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from dscjax import validation, worst
+from dscjax import settings, validation, worst
 from dscjax.params import default_ranges, flatten, from_table
+from dscjax.settings import (
+    AtLeast,
+    Choice,
+    Custom,
+    Either,
+    Maybe,
+    Number,
+    Positive,
+    Strings,
+    group,
+    setting,
+)
 from dscjax.validation import ConfigError
-from tuning.objective import AGGREGATES, ObjectiveSpec
-from tuning.optimize import OptimizerSpec
 from tuning.params import DSC_GAINS
 
+AGGREGATES = ("mean", "cvar", "max")
+EFFORT_BOUNDS = ("nominal", "per_plant")
+OPTIMIZERS = ("cma_path", "cma", "adam")
+SEARCHES = ("cma_path", "cma")  # the population methods
+GRADIENTS = ("auto", "forward", "reverse", "plants")
+OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
 METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
+WEIGHT = Number(ge=0)
+BOUND = Maybe(Either((Choice(("start",)), Positive())))
+
+
+def _ranges(value, field):
+    ranges = from_table(value, field)
+    if not ranges:
+        raise ConfigError(f"{field} is empty")
+    return ranges
+
+
+def _ranges_table(ranges) -> dict:
+    return {r.name: f"{r.rel * 100:g}%" if r.rel is not None else [r.low, r.high]
+            for r in ranges or ()}
+
+
+RANGES = Custom(_ranges, "a table of ranges, \"PATH\" = [low, high] or \"P%\"", _ranges_table)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObjectiveSpec:
+    """[tuning.objective]: the weights and settings of the per-plant objective
+    (`tuning.objective`, docs/tuning.md)."""
+
+    linf: float = setting(1.0, "weight of the smooth windowed L-inf of e (over the start's)",
+                          WEIGHT)
+    l2: float = setting(0.0, "weight of L2(e) on the window (over the start's)", WEIGHT)
+    effort_l2: float = setting(0.0, "weight of L2(u) (over the start's)", WEIGHT)
+    effort_max: float = setting(0.0, "weight of the smooth max|u| (over the start's)", WEIGHT)
+    effort_tv: float = setting(0.0, "weight of TV(u) (over the start's)", WEIGHT)
+    u_max: float | str | None = setting(
+        "start", "bound on max|u|: a number, start (the start gains' on the nominal plant) or "
+        "none", BOUND)
+    u_max_weight: float = setting(100.0, "weight of the max|u| bound's penalty", WEIGHT)
+    tv_max: float | str | None = setting(
+        "start", "bound on TV(u): a number, start (tv_max_factor x the start gains' on the "
+        "nominal plant) or none", BOUND)
+    tv_max_factor: float = setting(1.5, "the TV(u) bound \"start\" over the start's TV(u)",
+                                   Positive())
+    tv_max_weight: float = setting(100.0, "weight of the TV(u) bound's penalty", WEIGHT)
+    sampled_factor: float = setting(
+        2.0, "the second loop (the other discretisation of the sampled controller): its "
+        "windowed L-inf at most this x the first's, and the effort bounds", Positive())
+    sampled_weight: float = setting(100.0, "weight of the second loop's penalty; 0: no second "
+                                    "loop", WEIGHT)
+    effort_bounds: str = setting(
+        "nominal", "the start bounds measured on the nominal plant, or per_plant: on each "
+        "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
+    sharpness: float = setting(
+        1000.0, "s x L-inf(start) of the smooth L-inf: large, so that it stays close to the max "
+        "where the tuned error is 20-50 times smaller", Positive())
+    u_sharpness: float = setting(300.0, "r x max|u|(start) of the smooth max|u|", Positive())
+    divergence_penalty: float = setting(1000.0, "the loss of a plant that diverges",
+                                        Positive())
+    window_start: float | None = setting(None, "t0 [s] of the window; none: the run's",
+                                         Maybe(Number(ge=0)))
+
+    def validate(self, prefix: str = "tuning.objective") -> None:
+        if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
+            raise ConfigError(f"{prefix}: every weight is 0 (set linf, l2, effort_l2, "
+                              f"effort_max or effort_tv > 0)")
+
+
+@dataclasses.dataclass(frozen=True)
+class OptimizerSpec:
+    """[tuning.optimizer]: the search method, its settings and limits. An iteration of the
+    CMA-ES methods is a generation: one batched simulation."""
+
+    name: str = setting(
+        "cma_path", "cma_path (CMA-ES + a line search along its evolution path), cma (CMA-ES "
+        "alone) or adam (projected descent on exact gradients)", Choice(OPTIMIZERS),
+        flag="--method")
+    learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
+                                   "after a loss", Positive(), flag="--lr")
+    patience: int = setting(60, "stop after this many iterations without a min_delta "
+                            "(relative) gain", AtLeast(0))
+    min_delta: float = setting(1e-4, "the relative gain that counts", Number(ge=0))
+    steps: int | None = setting(None, f"at most this many iterations; none: none for CMA-ES, "
+                                f"{OPTAX_STEPS} for adam", Maybe(AtLeast(1)), flag="--steps")
+    time_limit: float | None = setting(100.0, "seconds of search in this invocation, "
+                                       "compilation included; none: no limit",
+                                       Maybe(Positive()), flag="--time-limit")
+    gradient: str = setting(
+        "auto", "adam's AD mode: forward, reverse, plants (a batch's weighed plants one by one) "
+        "or auto (reverse for one plant; plants where the aggregate weighs at most a quarter "
+        "of a batch; else forward up to 64 tuned numbers)", Choice(GRADIENTS), flag="--gradient")
+    checkpoint_every: int = setting(100, "reverse mode's jax.checkpoint segment in steps",
+                                    AtLeast(1))
+    save_interval: int = setting(10, "iterations between writes of history.csv, best.json, "
+                                 "gains.json", AtLeast(1))
+    sigma0: float = setting(0.3, "CMA-ES's initial step in z", Positive())
+    popsize: int = setting(0, "CMA-ES's population; 0: 4 + 3 ln n", AtLeast(0))
+    seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)",
+                        AtLeast(0))
+    restarts: int = setting(9, "fresh CMA-ES runs from the start point after CMA-ES's own "
+                            "stop", AtLeast(0))
+
+    @property
+    def max_steps(self) -> int | None:
+        """The iteration limit: `steps`, or by default OPTAX_STEPS for adam and none (None)
+        for the CMA-ES methods."""
+        if self.steps is not None:
+            return self.steps
+        return None if self.name in SEARCHES else OPTAX_STEPS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -33,88 +156,47 @@ class BatchSpec:
     """A batch of plants drawn from ranges with a seed ([tuning.robust] or [tuning.heldout]);
     batch = 0: the nominal plant only."""
 
-    batch: int = 0
-    seed: int = 0
-    method: str = "uniform"
-    ranges: tuple = dataclasses.field(default_factory=default_ranges)
-    aggregate: str = "mean"
-    cvar_level: float = 0.2
-
-    def validate(self, field: str) -> None:
-        validation.integer(self.batch, f"{field}.batch", 0)
-        validation.integer(self.seed, f"{field}.seed", 0)
-        validation.one_of(self.method, f"{field}.method", METHODS)
-        validation.one_of(self.aggregate, f"{field}.aggregate", AGGREGATES)
-        lv = self.cvar_level
-        if isinstance(lv, bool) or not isinstance(lv, int | float) or not (0 < lv <= 1):
-            raise ConfigError(f"{field}.cvar_level must be in (0, 1] (got {lv!r}); 1 is the "
-                              f"mean, small levels average only the worst plants")
+    batch: int = setting(0, "plants drawn (0: the nominal plant only)", AtLeast(0))
+    seed: int = setting(0, "seed of the plants", AtLeast(0))
+    method: str = setting("uniform", "uniform or lhs (Latin hypercube)", Choice(METHODS))
+    ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
+                            RANGES, factory=default_ranges)
+    aggregate: str = setting("mean", "over the plants: mean, cvar (the mean of the worst "
+                             "cvar_level share) or max", Choice(AGGREGATES))
+    cvar_level: float = setting(0.2, "CVaR's share of the worst plants: 1 is the mean",
+                                Number(gt=0, le=1))
 
 
 @dataclasses.dataclass(frozen=True)
 class AdversarialSpec:
-    """Min-max tuning ([tuning.adversarial], `tuning.adversarial`; rounds = 0: off): each
+    """[tuning.adversarial]: min-max tuning (`tuning.adversarial`; rounds = 0: off): each
     round's search (`method`, `search_time` seconds or `search_evals` evaluations) over the box
-    `ranges` (None: [tuning.robust]'s) and the waveform `disturbance` adds `add` worst points."""
+    `ranges` (none: [tuning.robust]'s) and the waveform `disturbance` adds `add` worst points."""
 
-    rounds: int = 0
-    disturbance: str | None = None
-    ranges: tuple | None = None
-    method: str = "gradient"
-    metric: str = "linf_error_window"
-    search_time: float = 30.0
-    starts: int = 4
-    batch: int = 32
-    add: int = 4
-    seed: int = 0
-    search_evals: int | None = None  # None: search_time alone ends a search
-
-    def validate(self, field: str = "tuning.adversarial") -> None:
-        validation.integer(self.rounds, f"{field}.rounds", 0)
-        for key in ("starts", "batch", "add"):
-            validation.integer(getattr(self, key), f"{field}.{key}", 1)
-        validation.integer(self.seed, f"{field}.seed", 0)
-        if self.search_evals is not None:
-            validation.integer(self.search_evals, f"{field}.search_evals", 1)
-        validation.one_of(self.method, f"{field}.method", worst.METHODS)
-        validation.one_of(self.metric, f"{field}.metric", worst.METRICS)
-        t = self.search_time
-        if isinstance(t, bool) or not isinstance(t, int | float) or not (0 < t < float("inf")):
-            raise ConfigError(f"{field}.search_time must be a number of seconds > 0 (got "
-                              f"{t!r})")
-        if self.disturbance is not None:
-            worst.DisturbanceSpec.parse(self.disturbance, field=f"{field}.disturbance")
+    rounds: int = setting(0, "rounds of worst-case search and re-tuning (0: off)", AtLeast(0),
+                          flag="--adversarial")
+    disturbance: str | None = setting(
+        None, "a searched waveform KIND:K:D (fourier or spline, K, max|dbar| <= D); none",
+        Maybe(Custom(lambda v, f: worst.DisturbanceSpec.parse(validation.string(v, f),
+                                                              field=f).spec(),
+                     "fourier:K:D or spline:K:D", metavar="KIND:K:D")), flag="--disturbance")
+    ranges: tuple | None = setting(None, "the searched box; none: [tuning.robust]'s ranges",
+                                   Maybe(RANGES))
+    method: str = setting("gradient", "each round's search method", Choice(worst.METHODS),
+                          flag="--search-method")
+    metric: str = setting("linf_error_window", "the metric each round maximises",
+                          Choice(worst.METRICS))
+    search_time: float = setting(30.0, "seconds of each round's search", Positive(),
+                                 flag="--search-time")
+    starts: int = setting(4, "gradient starts of each search", AtLeast(1))
+    batch: int = setting(32, "candidates per batch of each search", AtLeast(1))
+    add: int = setting(4, "worst points each round adds to the training batch", AtLeast(1))
+    seed: int = setting(0, "seed of the searches", AtLeast(0))
+    search_evals: int | None = setting(None, "evaluations of each round's search; none: "
+                                       "search_time alone ends it", Maybe(AtLeast(1)),
+                                       flag="--search-evals")
 
 
-@dataclasses.dataclass(frozen=True)
-class TuningConfig:
-    """Everything `dscjax tune` needs beyond the Setup and [simulation]."""
-
-    params: tuple[str, ...] = DSC_GAINS
-    freeze: tuple[str, ...] | None = None  # None: the default for the plant
-    bounds: Mapping[str, Any] = dataclasses.field(default_factory=dict)
-    transforms: Mapping[str, str] = dataclasses.field(default_factory=dict)
-    objective: ObjectiveSpec = ObjectiveSpec()
-    optimizer: OptimizerSpec = OptimizerSpec()
-    robust: BatchSpec = BatchSpec()
-    heldout: BatchSpec = BatchSpec(batch=256, seed=12345)
-    requirements: Mapping[str, Mapping[str, float]] = dataclasses.field(default_factory=dict)
-    adversarial: AdversarialSpec = AdversarialSpec()
-    # the deployable constraint: the loop with the controller sampled (ZOH) at this period
-    sample_time: float | None = 1e-3
-
-    def validate(self) -> None:
-        if self.sample_time is not None:
-            validation.finite_positive(self.sample_time, "tuning.sample_time")
-        self.objective.validate()
-        self.optimizer.validate()
-        self.robust.validate("tuning.robust")
-        self.heldout.validate("tuning.heldout")
-        self.adversarial.validate()
-
-
-TOP_KEYS = ("params", "freeze", "bounds", "transforms", "objective", "optimizer", "robust",
-            "heldout", "requirements", "adversarial", "sample_time")
 REQUIREMENT_KEYS = {
     "envelope": ("b0", "b_inf", "decay", "weight"),
     "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
@@ -125,44 +207,27 @@ REQUIRED = {"envelope": ("b0", "b_inf", "decay"), "step": (), "u_bound": ("max",
             "u_rate": ("max",)}
 
 
-def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:
-    """The [tuning] table laid over `base` (default: `TuningConfig()`)."""
-    cfg = base or TuningConfig()
+def _requirements(table, field) -> dict[str, dict[str, float]]:
     if not isinstance(table, Mapping):
-        raise ConfigError("'tuning' must be a table ([tuning])")
-    _known(table, TOP_KEYS, "tuning")
-    changes: dict[str, Any] = {}
-    for key in ("params", "freeze"):
-        if key in table:
-            v = table[key]
-            if not isinstance(v, list) or not all(isinstance(x, str) for x in v):
-                raise ConfigError(f"tuning.{key} must be a list of parameter paths (got {v!r})")
-            changes[key] = tuple(v)
-    for key in ("bounds", "transforms"):
-        if key in table:
-            sub = _table(table[key], f"tuning.{key}")
-            changes[key] = dict(flatten(sub))
-    if "objective" in table:
-        changes["objective"] = _spec(cfg.objective, table["objective"], "tuning.objective",
-                                     _objective_value)
-    if "optimizer" in table:
-        changes["optimizer"] = _spec(cfg.optimizer, table["optimizer"], "tuning.optimizer",
-                                     _optimizer_value)
-    for key in ("robust", "heldout"):
-        if key in table:
-            changes[key] = _spec(getattr(cfg, key), table[key], f"tuning.{key}", _batch_value)
-    if "requirements" in table:
-        changes["requirements"] = _requirements(table["requirements"])
-    if "adversarial" in table:
-        changes["adversarial"] = _spec(cfg.adversarial, table["adversarial"],
-                                       "tuning.adversarial", _adversarial_value)
-    if "sample_time" in table:
-        v = table["sample_time"]
-        changes["sample_time"] = (None if isinstance(v, str) and v.lower() == "none" else
-                                  validation.number(v, "tuning.sample_time"))
-    cfg = dataclasses.replace(cfg, **changes)
-    cfg.validate()
-    return cfg
+        raise ConfigError(f"{field} must be a table ([{field}])")
+    _known(table, tuple(REQUIREMENT_KEYS), field)
+    out = {}
+    for name, sub in table.items():
+        where = f"{field}.{name}"
+        if not isinstance(sub, Mapping):
+            raise ConfigError(f"{where} must be a table ([{where}])")
+        _known(sub, REQUIREMENT_KEYS[name], where)
+        for key in REQUIRED[name]:
+            if key not in sub:
+                raise ConfigError(f"{where}.{key} is required")
+        values = {k: validation.number(v, f"{where}.{k}") for k, v in sub.items()}
+        for k, v in values.items():
+            if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
+                raise ConfigError(f"{where}.{k} must be > 0 (got {v:g})")
+            if k in ("weight", "overshoot") and v < 0:
+                raise ConfigError(f"{where}.{k} must be >= 0 (got {v:g})")
+        out[name] = values
+    return out
 
 
 def _known(table, allowed, field):
@@ -171,122 +236,80 @@ def _known(table, allowed, field):
             raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
 
 
-def _table(v, field):
-    if not isinstance(v, Mapping):
+def _paths_table(value, field) -> dict:
+    if not isinstance(value, Mapping):
         raise ConfigError(f"{field} must be a table ([{field}])")
-    return v
+    return dict(flatten(value))
 
 
-def _objective_value(name, v, field):
-    if name == "effort_bounds":
-        return v  # checked with its allowed values by ObjectiveSpec.validate
-    if name == "window_start" and isinstance(v, str) and v.lower() == "none":
-        return None
-    if name in ("u_max", "tv_max"):
-        if isinstance(v, str):
-            if v.lower() == "none":
-                return None
-            if v == "start":
-                return v
-            raise ConfigError(f"{field} must be a number > 0, \"start\" or \"none\" (got {v!r})")
-        return validation.number(v, field)
-    return validation.number(v, field)
+@dataclasses.dataclass(frozen=True)
+class TuningConfig:
+    """Everything `dscjax tune` needs beyond the Setup and [simulation]."""
+
+    params: tuple[str, ...] = setting(DSC_GAINS, "the tuned numbers (config paths); "
+                                      "everything else is frozen", Strings())
+    freeze: tuple[str, ...] | None = setting(
+        None, "elements or leaves left out of params; none: the plant's default", Maybe(Strings()))
+    bounds: Mapping[str, Any] = setting(
+        None, "box bounds on values, \"PATH\" = [lower, upper]",
+        Custom(_paths_table, "a table of \"PATH\" = [lower, upper]"), factory=dict)
+    transforms: Mapping[str, str] = setting(
+        None, "coordinates of a tuned number, \"PATH\" = \"log\" (default) or \"linear\"",
+        Custom(_paths_table, "a table of \"PATH\" = \"log\" or \"linear\""), factory=dict)
+    objective: ObjectiveSpec = group(ObjectiveSpec)
+    optimizer: OptimizerSpec = group(OptimizerSpec)
+    robust: BatchSpec = group(BatchSpec, flags={
+        "batch": "--batch", "aggregate": "--aggregate", "cvar_level": "--cvar-level",
+        "seed": "--seed"})
+    heldout: BatchSpec = group(
+        BatchSpec, factory=lambda: BatchSpec(batch=256, seed=12345), flags={"batch": "--heldout"},
+        docs={"batch": "held-out plants that check the tuned gains (0: skip the check, the "
+                       "margins and the constraints' sensitivities)"})
+    requirements: Mapping[str, Mapping[str, float]] = setting(
+        None, "time-domain requirements: [tuning.requirements.NAME], NAME one of envelope, "
+        "step, u_bound, u_rate (docs/tuning.md)",
+        Custom(_requirements, "a table of requirement tables"), factory=dict)
+    adversarial: AdversarialSpec = group(AdversarialSpec)
+
+    def validate(self, prefix: str = "tuning") -> None:
+        """Every setting by its rule, and the rules between them (a config built in code is
+        checked as one read from a file)."""
+        settings.checked(self, lambda key: f"{prefix}.{key}")
+        for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
+            part = getattr(self, key)
+            settings.checked(part, lambda k, key=key: f"{prefix}.{key}.{k}")
+            check = getattr(part, "validate", None)
+            if check is not None:
+                check(f"{prefix}.{key}")
 
 
-def _optimizer_value(name, v, field):
-    if name in ("name", "gradient"):
-        return validation.string(v, field)
-    if name == "steps" and isinstance(v, str) and v.lower() == "none":
-        return None
-    if name in ("patience", "steps", "checkpoint_every", "save_interval", "popsize", "seed",
-                "restarts"):
-        return validation.integer(v, field)
-    if name == "time_limit" and isinstance(v, str) and v.lower() == "none":
-        return None
-    return validation.number(v, field)
-
-
-def _spec(base, table, field, convert):
-    table = _table(table, field)
-    names = [f.name for f in dataclasses.fields(base)]
-    _known(table, names, field)
-    return dataclasses.replace(base, **{k: convert(k, v, f"{field}.{k}")
-                                        for k, v in table.items()})
-
-
-def _batch_value(name, v, field):
-    if name == "ranges":
-        ranges = from_table(v, field)
-        if not ranges:
-            raise ConfigError(f"{field} is empty")
-        return ranges
-    if name in ("batch", "seed"):
-        return validation.integer(v, field)
-    if name in ("method", "aggregate"):
-        return validation.string(v, field)
-    return validation.number(v, field)
-
-
-def _adversarial_value(name, v, field):
-    if name == "ranges":
-        return from_table(v, field) or None
-    if name == "disturbance":
-        text = validation.string(v, field)
-        return None if text.lower() == "none" else text
-    if name in ("method", "metric"):
-        return validation.string(v, field)
-    if name == "search_time":
-        return validation.number(v, field)
-    if name == "search_evals":
-        none = isinstance(v, str) and v.lower() == "none"
-        if not none and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
-            raise ConfigError(f"{field} must be an integer >= 1 or \"none\" (got {v!r})")
-        return None if none else v
-    return validation.integer(v, field)
-
-
-def _requirements(table) -> dict[str, dict[str, float]]:
-    table = _table(table, "tuning.requirements")
-    _known(table, tuple(REQUIREMENT_KEYS), "tuning.requirements")
-    out = {}
-    for name, sub in table.items():
-        field = f"tuning.requirements.{name}"
-        sub = _table(sub, field)
-        _known(sub, REQUIREMENT_KEYS[name], field)
-        for key in REQUIRED[name]:
-            if key not in sub:
-                raise ConfigError(f"{field}.{key} is required")
-        values = {k: validation.number(v, f"{field}.{k}") for k, v in sub.items()}
-        for k, v in values.items():
-            if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
-                raise ConfigError(f"{field}.{k} must be > 0 (got {v:g})")
-            if k in ("weight", "overshoot") and v < 0:
-                raise ConfigError(f"{field}.{k} must be >= 0 (got {v:g})")
-        out[name] = values
-    return out
+def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:
+    """The [tuning] table laid over `base` (default: `TuningConfig()`)."""
+    return settings.from_table(TuningConfig, table, "tuning.", base)
 
 
 def to_table(cfg: TuningConfig, setup=None) -> dict[str, Any]:
     """The effective [tuning] table as data (ranges resolved against `setup` if given)."""
-    def ranges(spec):
-        out = {}
-        for r in spec.ranges or ():
-            r = r.resolve(setup) if setup is not None else r
-            out[r.name] = f"{r.rel * 100:g}%" if r.rel is not None else [r.low, r.high]
-        return out
-
-    table: dict[str, Any] = {"params": list(cfg.params), "sample_time": cfg.sample_time}
-    if cfg.freeze is not None:
-        table["freeze"] = list(cfg.freeze)
-    for key in ("bounds", "transforms"):
-        if getattr(cfg, key):
-            table[key] = dict(getattr(cfg, key))
-    for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
-        spec = getattr(cfg, key)
-        table[key] = {f.name: getattr(spec, f.name) for f in dataclasses.fields(spec)
-                      if f.name != "ranges"}
-        if getattr(spec, "ranges", None):
-            table[key]["ranges"] = ranges(spec)
-    if cfg.requirements:
-        table["requirements"] = {name: dict(v) for name, v in cfg.requirements.items()}
+    if setup is not None:
+        cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(
+            getattr(cfg, key), ranges=tuple(r.resolve(setup) for r in getattr(cfg, key).ranges))
+            for key in ("robust", "heldout")})
+    table = settings.to_table(cfg)
+    for key in ("bounds", "transforms", "requirements"):
+        if not table[key]:
+            del table[key]
+    if cfg.adversarial.ranges is None:
+        del table["adversarial"]["ranges"]
     return table
+
+
+def to_toml(cfg: TuningConfig, setup=None) -> str:
+    """The effective [tuning] table as TOML, each key with its meaning."""
+    from dscjax.config import dumps_toml
+
+    return dumps_toml({"tuning": to_table(cfg, setup)}, docs=settings.meanings(cfg, "tuning."))
+
+
+__all__ = ["AGGREGATES", "AdversarialSpec", "BatchSpec", "EFFORT_BOUNDS", "GRADIENTS",
+           "ObjectiveSpec", "OptimizerSpec", "SEARCHES", "TuningConfig", "from_dict",
+           "to_table", "to_toml"]

@@ -36,15 +36,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import metrics as dm
-from dscjax import params, validation
+from dscjax import params
 from dscjax.closed_loop import Setup, prepared
 from dscjax.metrics import step_weights
 from dscjax.runspec import RunSpec
 from dscjax.simulate import DivergenceError, divergence_report, run
 from dscjax.validation import ConfigError
+from tuning.config import AGGREGATES, ObjectiveSpec
 
-AGGREGATES = ("mean", "cvar", "max")
-EFFORT_BOUNDS = ("nominal", "per_plant")
 # a bound "start" is the start's own figure from another compiled program: rounding may put
 # the start a few ulps over it
 BOUND_RTOL = 1e-9
@@ -171,57 +170,6 @@ def _pos(x):
 def _safe_log(x):
     ok = x > 0
     return jnp.where(ok, jnp.log(jnp.where(ok, x, 1.0)), -jnp.inf)
-
-
-@dataclasses.dataclass(frozen=True)
-class ObjectiveSpec:
-    """Weights and settings of the per-plant objective (the [tuning.objective] table)."""
-
-    linf: float = 1.0
-    l2: float = 0.0
-    effort_l2: float = 0.0
-    effort_max: float = 0.0
-    effort_tv: float = 0.0
-    u_max: float | str | None = "start"
-    u_max_weight: float = 100.0
-    # TV(u) <= tv_max_factor x the start gains' TV(u) ("start"), a number, or "none"
-    tv_max: float | str | None = "start"
-    tv_max_factor: float = 1.5
-    tv_max_weight: float = 100.0
-    # the second loop (`dscjax tune`: the sampled controller by the other discretisation):
-    # its windowed L-inf <= sampled_factor x the first's, and the effort bounds; weight 0: none
-    sampled_factor: float = 2.0
-    sampled_weight: float = 100.0
-    # the "start" bounds measured on the nominal plant, or on each training plant its own
-    effort_bounds: str = "nominal"
-    # s x Linf(start): large, so that Linf~ stays close to the max where the tuned error is
-    # 20-50 times the start's (at 50 it was nearly the mean there, and the max lagged)
-    sharpness: float = 1000.0
-    u_sharpness: float = 300.0
-    divergence_penalty: float = 1000.0
-    window_start: float | None = None
-
-    def validate(self, field: str = "tuning.objective") -> None:
-        for name in ("linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max_weight",
-                     "tv_max_weight", "sampled_weight"):
-            v = getattr(self, name)
-            if not (isinstance(v, int | float) and math.isfinite(v) and v >= 0):
-                raise ConfigError(f"{field}.{name} must be a number >= 0 (got {v!r})")
-        if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
-            raise ConfigError(f"{field}: every weight is 0 (set linf, l2, effort_l2, "
-                              f"effort_max or effort_tv > 0)")
-        for name in ("sharpness", "u_sharpness", "divergence_penalty", "tv_max_factor",
-                     "sampled_factor"):
-            validation.finite_positive(getattr(self, name), f"{field}.{name}")
-        for name, start in (("u_max", "the start gains' max|u| on the nominal plant"),
-                            ("tv_max", "tv_max_factor x the start gains' TV(u) on the nominal "
-                                       "plant")):
-            v = getattr(self, name)
-            if not (v is None or v == "start" or (isinstance(v, int | float) and not isinstance(
-                    v, bool) and math.isfinite(v) and v > 0)):
-                raise ConfigError(f"{field}.{name} must be a number > 0, \"start\" ({start}) or "
-                                  f"\"none\" (got {v!r})")
-        validation.one_of(self.effort_bounds, f"{field}.effort_bounds", EFFORT_BOUNDS)
 
 
 @dataclasses.dataclass(frozen=True)

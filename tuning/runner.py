@@ -27,7 +27,7 @@ from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.reference import SmoothStep
-from dscjax.runspec import RunSpec, step_for
+from dscjax.runspec import RunSpec
 from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
@@ -213,12 +213,13 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     notes = []
     window = cfg.objective.window_start
     window = float(options.window_start) if window is None else window
-    # the default: the controller sampled at tuning.sample_time is the loop tuned; the
-    # continuous one (the config's [simulation], which gains.json keeps) becomes a check
-    loop = deployed(options, cfg.sample_time)
-    continuous = None if loop is options else options.replace(
-        save_every=options.n_steps, window_start=float(window),
-        names={"window_start": "tuning.objective.window_start"})
+    # the loop tuned is the one given ([simulation]: `dscjax tune` samples the controller at
+    # 1 ms unless told otherwise); the continuous one is a check of a sampled loop
+    loop = options
+    continuous = options.replace(
+        sample_time=None, delay=0, noise=None, save_every=options.n_steps,
+        window_start=float(window), names={"window_start": "tuning.objective.window_start"}
+    ) if options.sampled else None
     check(setup, loop)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
@@ -262,19 +263,6 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
 OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
 
 
-def deployed(options: RunSpec, sample_time: float | None) -> RunSpec:
-    """The loop `dscjax tune` optimises: `options` as given where they sample the controller
-    already (`--sample-time`) or `sample_time` is None, else the controller sampled every
-    `sample_time` (ZOH), the plant at dt or the largest step below it dividing Ts."""
-    if sample_time is None or options.sampled:
-        return options
-    dt = float(options.dt)
-    step = step_for(sample_time, dt)
-    finer = step < dt * (1 - 1e-12)
-    return options.replace(sample_time=sample_time, **({"dt": step} if finer else {}),
-                           names={"sample_time": "tuning.sample_time"})
-
-
 def loop_words(sim: RunSpec) -> str:
     """The loop of a RunSpec in words: continuous, or sampled (Ts, ZOH, discretisation of the
     controller's states, the plant's step, delay and noise)."""
@@ -290,17 +278,11 @@ def loop_words(sim: RunSpec) -> str:
 
 def simulate_command(problem: Problem, config: str = "gains.json") -> str:
     """The `dscjax simulate` command that runs the loop tuned from `config` (gains.json, whose
-    [simulation] is the one given, `problem.options`): the options by which the loop tuned
-    differs from it (the sample time `tuning.sample_time` adds, the plant's step, the
-    window)."""
+    [simulation] is the loop tuned): with --window-start where the objective's differs."""
     sim, given = problem.objective.sim, problem.options
     flags = []
-    if sim.sampled and not given.sampled:
-        flags.append(f"--sample-time {shortest(sim.sample_time)}")
-    for option, key in (("--dt", "dt"), ("--window-start", "window_start")):
-        a, b = float(getattr(sim, key)), float(getattr(given, key))
-        if a != b:
-            flags.append(f"{option} {shortest(a)}")
+    if float(sim.window_start) != float(given.window_start):
+        flags.append(f"--window-start {shortest(float(sim.window_start))}")
     return " ".join(["dscjax simulate --config", shlex.quote(config), *flags])
 
 

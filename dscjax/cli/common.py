@@ -26,6 +26,35 @@ COMMANDS = {
 }
 
 
+def settings_groups() -> dict:
+    """{table: the settings group declaring it}: the tables of docs/settings.md."""
+    from dscjax.runspec import Simulation
+    from dscjax.sweep import SweepSettings
+    from tuning.config import TuningConfig
+
+    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig}
+
+
+BLOCK = "<!-- settings {} -->", "<!-- end settings -->"
+
+
+def settings_docs(text: str) -> str:
+    """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
+    settings -->` replaced by the key table of the group NAME, generated from its declarations
+    (`dscjax.settings.doc_rows`); tests/test_settings.py checks docs/settings.md is current."""
+    import re
+
+    from dscjax import settings
+
+    groups = settings_groups()
+
+    def table(match):
+        rows = settings.doc_rows(groups[match[1]], f"{match[1]}.")
+        return "\n".join([BLOCK[0].format(match[1]), *rows, BLOCK[1]])
+
+    return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
+
+
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
     anything else is refused with the allowed range and the value."""
@@ -285,14 +314,18 @@ def add_example_arg(p):
                    "tables and this command's own settings) and exit; --config loads it back")
 
 
-def print_config(setup, spec, extra: dict | None = None) -> None:
+def print_config(setup, spec, extra: dict | None = None, groups: dict | None = None) -> None:
     """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
-    own tables ({name: table}), as TOML on stdout."""
+    own tables ({name: table}), as TOML on stdout, each key with its meaning (`groups`:
+    {name: the settings group declaring a table})."""
     import sys
 
-    from dscjax import config
+    from dscjax import config, settings
 
-    sys.stdout.write(config.to_toml(setup, spec, extra=extra))
+    docs = dict(config.DOCS)
+    for name, group in (groups or {}).items():
+        docs |= settings.meanings(group, f"{name}.")
+    sys.stdout.write(config.to_toml(setup, spec, extra=extra, docs=docs))
 
 
 def example_setup(args):

@@ -239,7 +239,8 @@ def run(args) -> int:
     with blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
-        print_config(printed, options, {"sweep": sweep_settings.to_table(settings, setup)})
+        print_config(printed, options, {"sweep": sweep_settings.to_table(settings, setup)},
+                     groups={"sweep": settings})
         return 0
     check(setup, options)
     steps = options.n_steps

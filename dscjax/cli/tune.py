@@ -6,7 +6,6 @@ history.csv, report.md, report.json, the figures and the checkpoint files `--res
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 from pathlib import Path
@@ -19,30 +18,23 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
                   folders=("round_*", "fresh_*"))
 
 
-def add_parser(sub):
-    from dscjax.cli.common import (
-        SAMPLED_KEYS,
-        add_example_arg,
-        add_run_args,
-        count,
-        finite_float,
-        positive_float,
-    )
-    from dscjax.worst import METHODS
-    from tuning.config import TuningConfig
-    from tuning.objective import AGGREGATES, EFFORT_BOUNDS
-    from tuning.optimize import FORWARD_MAX_PARAMS, GRADIENTS, OPTAX_STEPS, OPTIMIZERS
+# `dscjax tune`'s own default of [simulation]: the controller that runs, sampled at 1 kHz
+TUNE_DEFAULTS = {"sample_time": 1e-3}
 
-    d = TuningConfig()
-    opt, rob = d.optimizer, d.robust
+
+def add_parser(sub):
+    from dscjax.cli.common import SAMPLED_KEYS, add_example_arg, add_run_args
+    from dscjax.settings import add_arguments
+    from tuning.config import TuningConfig
+
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
-        "starting from the paper's gains) to minimise the L-inf tracking error on [t0, T] "
-        "with max|u| kept at or below the start gains' max|u| and TV(u) at or below 1.5x "
-        "the start gains' TV(u), by CMA-ES with a line search (default) or exact gradients "
-        "through the RK4 closed loop. Settings come from a [tuning] table in the config (see "
-        "docs/tuning.md); the command line wins.")
+        "starting from the paper's gains, the controller sampled at 1 kHz) to minimise the "
+        "L-inf tracking error on [t0, T] with max|u| kept at or below the start gains' max|u| "
+        "and TV(u) at or below 1.5x the start gains' TV(u), by CMA-ES with a line search "
+        "(default) or exact gradients through the closed loop. Settings come from a [tuning] "
+        "table in the config (docs/tuning.md lists them all); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
@@ -50,63 +42,8 @@ def add_parser(sub):
     p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
                    "the gains.json of an earlier run (laid over --config)")
     add_out_arg(p, "results/tune")
-    limit = "none" if opt.time_limit is None else f"{opt.time_limit:g}"
-    steps = (f"{opt.steps}" if opt.steps is not None else
-             f"{OPTAX_STEPS} for adam, none for the CMA-ES methods")
-    p.add_argument("--steps", type=count(1), metavar="N", help=f"maximum number of iterations, "
-                   f"generations for the CMA-ES methods (default {steps})")
-    p.add_argument("--time-limit", type=finite_float, metavar="S",
-                   help=f"stop after S seconds of wall "
-                   f"time, compilation included (default {limit}; 0 = no limit)")
-    p.add_argument("--method", choices=OPTIMIZERS, help=f"search method (default {opt.name}: "
-                   "CMA-ES with a line search from the best point along its evolution path in "
-                   "its first generations; cma: CMA-ES alone; adam: gradient descent on exact "
-                   "gradients with Adam's scaling; docs/tuning.md compares them)")
-    p.add_argument("--lr", type=positive_float, metavar="LR", help=f"adam's initial step (default "
-                   f"{opt.learning_rate:g}, in log-space: {opt.learning_rate:g} = "
-                   f"{100 * opt.learning_rate:g} %% per step)")
-    p.add_argument("--batch", type=count(0), metavar="B",
-                   help=f"training batch of B plants sampled "
-                   f"from [tuning.robust] ranges (default {rob.batch}"
-                   + (": the nominal plant only)" if rob.batch == 0 else ")"))
-    p.add_argument("--aggregate", choices=AGGREGATES, help=f"objective over the "
-                   f"training batch (default {rob.aggregate})")
-    p.add_argument("--cvar-level", type=finite_float, metavar="A",
-                   help=f"CVaR level in (0, 1]: the "
-                   f"mean of the worst ceil(A B) plants (default {rob.cvar_level:g})")
-    p.add_argument("--seed", type=count(0), help=f"seed of the training batch (default {rob.seed})")
-    p.add_argument("--effort-bounds", choices=EFFORT_BOUNDS, help="where the \"start\" "
-                   "bounds on max|u| and TV(u) are measured: on the nominal plant, for every "
-                   "plant, or on each training plant its own (per_plant: the start gains' "
-                   "max|u| and tv_max_factor x TV(u) on that plant, the worst cases of "
-                   f"--adversarial included; default {d.objective.effort_bounds})")
-    p.add_argument("--heldout", type=count(0), metavar="N", help=f"held-out evaluation batch size "
-                   f"(default {d.heldout.batch}; 0 = skip it, the margins and the constraints' "
-                   f"sensitivities)")
-    p.add_argument("--gradient", choices=GRADIENTS,
-                   help=f"AD mode (default {opt.gradient}"
-                   + (f": reverse mode (time-parallel) for one plant; with a training batch "
-                      f"whose aggregate weighs at most a quarter of its plants (CVaR 0.25), "
-                      f"those plants one by one (plants); else forward for up to "
-                      f"{FORWARD_MAX_PARAMS} tuned numbers)"
-                      if opt.gradient == "auto" else ")"))
-    adv = d.adversarial
-    p.add_argument("--adversarial", metavar="R", help="min-max tuning: R rounds of (search "
-                   "the worst cases of the current gains, add them to the training set, tune "
-                   "again), then a fresh search for the start and tuned gains (default "
-                   f"{adv.rounds}: off; the box and the rest: [tuning.adversarial])")
-    p.add_argument("--disturbance", metavar="KIND:K:D", help="with --adversarial: the "
-                   "searched waveform added to dbar, fourier:K:D or spline:K:D, max|dbar| <= D "
-                   "(as dscjax worst-case's; default: none)")
-    p.add_argument("--search-time", type=positive_float, metavar="S", help=f"with --adversarial: "
-                   f"seconds of each worst-case search, compilation apart (default "
-                   f"{adv.search_time:g})")
-    p.add_argument("--search-evals", type=count(1), metavar="N", help="with --adversarial: end "
-                   "each worst-case search after N evaluations, or at --search-time, whichever "
-                   "comes first (default: the time alone)")
-    p.add_argument("--search-method", choices=METHODS, help=f"with --adversarial: the search "
-                   f"method (default {adv.method})")
-    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"))
+    add_arguments(p, TuningConfig, "tuning.")
+    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=TUNE_DEFAULTS)
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
@@ -147,87 +84,53 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax import config, validation
+    from dscjax import config, settings, validation
     from dscjax.cli.common import (
         apply_run_options,
         blame_options,
         check_noise,
         example_setup,
+        portable_device,
     )
+    from dscjax.runspec import RunSpec
     from dscjax.validation import ConfigError
     from tuning.config import TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
-    raw = config.read(args.config) if args.config else {}
+    raw = config.read(args.config, "--config") if args.config else {}
     table = raw.pop("tuning", {})
     raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
-    setup, options = config.from_dict(raw, base=example_setup(args))
+    setup, options = config.from_dict(raw, base=example_setup(args),
+                                      base_spec=RunSpec.make(**TUNE_DEFAULTS))
     cfg = tuning_from_dict(table, TuningConfig())
     if args.tuning:
-        extra = config.read(args.tuning)
+        extra = config.read(args.tuning, "--tuning")
         unknown = set(extra) - {"tuning"}
         if unknown:
             raise ConfigError(f"{args.tuning}: a --tuning file holds only a [tuning] table "
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
     if args.gains:
-        gains = config.read(args.gains)
+        gains = config.read(args.gains, "--gains")
         for key in ("tuning", "sweep"):
             gains.pop(key, None)
         setup, options = config.from_dict(gains, base=setup, base_spec=options)
-    if args.time_limit is not None and args.time_limit < 0:
-        raise ConfigError(f"--time-limit must be >= 0 (got {args.time_limit:g})")
-    adv = {} if args.adversarial is None else {"rounds": _rounds(args.adversarial)}
-    for name in ("disturbance", "search_time", "search_evals", "search_method"):
-        if getattr(args, name) is not None and not adv.get("rounds", cfg.adversarial.rounds):
-            raise ConfigError(f"--{name.replace('_', '-')} applies to adversarial tuning: give "
-                              f"--adversarial R with R >= 1 (or [tuning.adversarial] rounds)")
-    if args.disturbance is not None:
-        adv["disturbance"] = None if args.disturbance.lower() == "none" else args.disturbance
-    # (table of the config, {option: its field}): the options given replace the fields
-    changes = {"objective": {"effort_bounds": "effort_bounds"},
-               "optimizer": {"steps": "steps", "lr": "learning_rate", "gradient": "gradient",
-                             "method": "name", "time_limit": "time_limit"},
-               "robust": {k: k for k in ("batch", "aggregate", "cvar_level", "seed")},
-               "heldout": {"heldout": "batch"},
-               "adversarial": {"search_time": "search_time", "search_evals": "search_evals",
-                               "search_method": "method"}}
-    given = {key: {field: getattr(args, name) for name, field in names.items()
-                   if getattr(args, name) is not None} for key, names in changes.items()}
-    if "time_limit" in given["optimizer"]:
-        given["optimizer"]["time_limit"] = args.time_limit or None  # 0: no limit
-    given["adversarial"] |= adv
-    cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(getattr(cfg, key), **values)
-                                      for key, values in given.items()})
-    # a setting given on the command line is blamed on its option, as typed
-    typed = {f"tuning.{key}.{field}": f"--{name.replace('_', '-')}"
-             for key, names in changes.items() for name, field in names.items()
-             if getattr(args, name) is not None}
-    typed |= {f"tuning.adversarial.{k}": f"--{k}" for k in ("rounds", "disturbance")
-              if k in adv}
-    typed = {k: "--adversarial" if v == "--rounds" else v for k, v in typed.items()}
-    with blame_options(typed):
-        cfg.validate()
+    given, names = settings.given(args, TuningConfig, "tuning.")
+    search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
+              if k not in ("rounds",)]
+    with blame_options(names):
+        cfg = tuning_from_dict(given, cfg)
+    if search and not cfg.adversarial.rounds:
+        raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
+                          f"with R >= 1 (or [tuning.adversarial] rounds)")
     options = apply_run_options(args, options)
+    options = portable_device(args, options, args.config)
     validation.validate_setup(setup)
     check_noise(args, setup, options)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
     return setup, options, cfg
-
-
-def _rounds(text: str) -> int:
-    """R of --adversarial R: an integer >= 0."""
-    from dscjax.validation import ConfigError
-
-    try:
-        rounds = int(text)
-    except ValueError:
-        rounds = -1
-    if rounds < 0 or str(rounds) != text.strip().lstrip("+"):
-        raise ConfigError(f"--adversarial must be an integer >= 0 (got {text!r})")
-    return rounds
 
 
 def run(args) -> int:
@@ -240,8 +143,7 @@ def run(args) -> int:
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import elasticity, report
-    from tuning.config import to_table
-    from tuning.optimize import SEARCHES
+    from tuning.config import SEARCHES, to_table
     from tuning.runner import (
         build_problem,
         check_resume,
@@ -255,7 +157,8 @@ def run(args) -> int:
     setup = cast(setup, np.float64)
     if args.print_config:
         print_config(setup, options,
-                     {"tuning": to_table(model_default_ranges(cfg, setup), setup)})
+                     {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
+                     groups={"tuning": cfg})
         return 0
     check_work_of(args, setup, options, cfg)
     out = Path(args.out)
@@ -516,7 +419,7 @@ def generation_rows(cfg) -> int:
     """Trajectories of one generation (a search method: candidates, a default population
     counted as 4, times the training plants) or iteration (adam: the plants), run together."""
     from dscjax.search.methods import LINE_POINTS
-    from tuning.optimize import SEARCHES
+    from tuning.config import SEARCHES
 
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     if oc.name not in SEARCHES:
@@ -530,7 +433,8 @@ def check_work_of(args, setup, options, cfg) -> None:
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
     from dscjax.cli.common import gradient_work, horizon_text
     from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
-    from tuning.optimize import SEARCHES, choose_gradient
+    from tuning.config import SEARCHES
+    from tuning.optimize import choose_gradient
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
