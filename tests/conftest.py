@@ -179,6 +179,6 @@ def search_problem():
                                 time_limit=None, gradient="forward")
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
-                              heldout=tuning.BatchSpec(batch=0), sample_time=None)
+                              heldout=tuning.BatchSpec(batch=0))
     return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=1.0, dt=2e-3), cfg)
 

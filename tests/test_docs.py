@@ -68,7 +68,7 @@ def test_every_document_with_examples_is_run_and_the_key_examples_are_among_them
     printed = {s[1] for steps in PLAN.values() for s in steps if s[0] == "run"}
     assert set(doc_examples.SHARED) <= {s[1] for s in PLAN["shared"]}
     for example in ("dscjax simulate --print-config > my.toml",
-                    "dscjax tune --resume --steps 600 --time-limit 0",
+                    "dscjax tune --resume --steps 600 --time-limit none",
                     "dscjax reproduce --complexity --resume",
                     "dscjax sweep --resume --samples 100000 --out results/big",
                     "dscjax worst-case --config envelope.toml --metric requirement:envelope "

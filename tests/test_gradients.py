@@ -27,7 +27,8 @@ def _problem(batch: int = 0):
         requirements={"envelope": {"b0": 0.1, "b_inf": 0.005, "decay": 0.1},
                       "u_rate": {"max": 40.0}},
         robust=tuning.BatchSpec(batch=batch, seed=1), heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T), cfg)
+    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T, sample_time=1e-3),
+                                cfg)
 
 
 def _with(objective, **changes):

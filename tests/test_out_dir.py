@@ -418,7 +418,7 @@ def test_the_interrupt_hint_of_tune_resumes_a_run_cut_inside_a_generation(tmp_pa
     # --time-limit 0: the 3 generations whatever the machine's load (the default 100 s limit
     # counts the resumed run's time too)
     argv = ["tune", "--tuning", str(cfg), "--t-final", "0.2", "--heldout", "0", "--steps",
-            "3", "--time-limit", "0", "--no-plot", "--quiet", "--out", str(out)]
+            "3", "--time-limit", "none", "--no-plot", "--quiet", "--out", str(out)]
     _in_generation(monkeypatch, "simulate", generation=0)
     assert main(argv) == 130
     last = _err(capsys)[-1]

@@ -102,7 +102,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
 
     # the continuous loop alone (the sampled constraint off: its refinement is the same code)
     problem = tuning.build_problem(paper_setup, RunSpec.make(t_final=2.0),
-                                   tuning.TuningConfig(sample_time=None))
+                                   tuning.TuningConfig())
     ov = {"hysteresis.alpha": np.array([0.7, 10.0, 1.3]),
           "hysteresis.lam": np.array([1.2, 0.15, 1.7])}
     z = problem.z0

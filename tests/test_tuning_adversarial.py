@@ -14,6 +14,7 @@ import dscjax
 import tuning
 from dscjax import config, files, worst
 from dscjax.cli.main import main
+from dscjax.runspec import RunSpec
 from tuning import adversarial, runner
 
 TOML = """
@@ -57,7 +58,8 @@ def test_one_round_writes_fresh_worst_cases_of_start_and_tuned_gains(adv_run):
     fresh = adv["fresh"]
     assert fresh["start"]["seed"] == fresh["tuned"]["seed"] == adversarial.FRESH_SEED
     assert "Fresh worst-case search" in (out / "report.md").read_text()
-    # each fresh worst value is that of `simulate` on its gains, plant and waveform
+    # each fresh worst value is that of `simulate` on its gains, plant and waveform, in the
+    # loop tuned (the controller sampled at 1 ms)
     for tag, gains in (("start", None), ("tuned", out / "gains.json")):
         f = fresh[tag]
         setup = dscjax.paper_example()
@@ -67,7 +69,7 @@ def test_one_round_writes_fresh_worst_cases_of_start_and_tuned_gains(adv_run):
         setup = setup.replace(plant=dataclasses.replace(
             setup.plant, disturbance=spec.model(f["disturbance"]["coefficients"], 0.4)))
         setup = dscjax.params.set_many(setup, f["parameters"])
-        traj = dscjax.simulate(setup, 0.4, 1e-3, window_start=0.2)
+        traj = dscjax.simulate(setup, 0.4, 1e-3, window_start=0.2, sample_time=1e-3)
         assert f["value"] == pytest.approx(float(traj.metrics["linf_error_window"]), rel=1e-12)
         assert abs(f["disturbance"]["coefficients"][0]) <= 0.3
 
@@ -90,7 +92,7 @@ def test_the_round_adds_its_worst_cases_to_the_training_set(adv_run):
 def _inputs():
     raw = tomllib.loads(TOML)
     table = raw.pop("tuning")
-    setup, options = config.from_dict(raw)
+    setup, options = config.from_dict(raw, base_spec=RunSpec.make(**tuning.config.SIMULATION))
     cfg = tuning.config_from_dict(table)
     return setup, options, dataclasses.replace(
         cfg, adversarial=dataclasses.replace(cfg.adversarial, rounds=1))
@@ -135,13 +137,15 @@ def test_killed_during_the_last_search_resumes_to_the_same_result(adv_run, tmp_p
 
 @pytest.mark.parametrize("value", ["-1", "1.5", "two"])
 def test_bad_adversarial_rounds_give_one_line_and_exit_2(value, tmp_path, capsys):
-    assert main(["tune", "--adversarial", value, "--out", str(tmp_path)]) == 2
+    with pytest.raises(SystemExit) as stop:  # argparse's refusal of the option's value
+        main(["tune", "--adversarial", value, "--out", str(tmp_path)])
+    assert stop.value.code == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "Traceback" not in err
     assert "--adversarial" in err and ">= 0" in err and repr(value) in err
 
 
-SEARCH_EVALS = 'tuning.adversarial.search_evals must be an integer >= 1 or "none"'
+SEARCH_EVALS = 'tuning.adversarial.search_evals must be an integer >= 1, or "none"'
 EFFORT_BOUNDS = "tuning.objective.effort_bounds must be one of 'nominal', 'per_plant'"
 
 
@@ -150,8 +154,10 @@ EFFORT_BOUNDS = "tuning.objective.effort_bounds must be one of 'nominal', 'per_p
      "(got -2)"),
     ("[tuning.adversarial]\nrounds = 1\nsearch_evals = 0", f"{SEARCH_EVALS} (got 0)"),
     ("[tuning.adversarial]\nrounds = 1\nsearch_evals = 2.5", f"{SEARCH_EVALS} (got 2.5)"),
-    ('[tuning.adversarial]\nrounds = 1\nsearch_evals = "many"', f"{SEARCH_EVALS} (got 'many')"),
-    ('[tuning.objective]\neffort_bounds = "everywhere"', f"{EFFORT_BOUNDS} (got 'everywhere')"),
+    ('[tuning.adversarial]\nrounds = 1\nsearch_evals = "many"',
+     f"{SEARCH_EVALS} (got a string, 'many')"),
+    ('[tuning.objective]\neffort_bounds = "everywhere"',
+     f"{EFFORT_BOUNDS} (got a string, 'everywhere')"),
     ("[tuning.objective]\neffort_bounds = 1", f"{EFFORT_BOUNDS} (got 1)"),
 ])
 def test_bad_config_values_name_the_field(toml, wanted, tmp_path, capsys):
@@ -170,7 +176,8 @@ def test_search_evals_option_needs_adversarial_and_a_positive_count(tmp_path, ca
         main(["tune", "--adversarial", "1", "--search-evals", "-3", "--out", str(tmp_path)])
     err = capsys.readouterr().err.strip()
     assert stop.value.code == 2
-    assert err.endswith("argument --search-evals: must be an integer >= 1 (got '-3')")
+    assert err.endswith("argument --search-evals: must be an integer >= 1, or \"none\" (got "
+                        "'-3')")
 
 
 def test_resume_refuses_another_search_evals(adv_run, run_with_config, capsys):
@@ -268,7 +275,8 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
                               robust=tuning.BatchSpec(batch=0),
                               heldout=tuning.BatchSpec(batch=0))
     theta = np.array([[0.2, 0.0], [1000.0, 0.0], [0.05, 0.0]])
-    problem = runner.build_problem(setup, RunSpec.make(t_final=0.4, window_start=0.2), cfg,
+    problem = runner.build_problem(setup, RunSpec.make(t_final=0.4, window_start=0.2,
+                                                       sample_time=1e-3), cfg,
                                    extra_plants={"plant.theta": theta})
     sc = problem.objective.scales
     assert problem.n_train == 4  # the nominal plant, then the three added

@@ -18,6 +18,7 @@ from dscjax.runspec import RunSpec
 from tuning.objective import simulate_metrics
 
 T_FINAL = 2.0
+SPEC = RunSpec.make(t_final=T_FINAL, sample_time=1e-3)  # the loop tuned: sampled at 1 ms
 PARAMS = ("controller.k", "controller.tau", "controller.gamma_zeta", "controller.eps")
 KEYS = ("l2_error_window", "smooth_linf_window", "linf_error_window")
 
@@ -26,7 +27,7 @@ KEYS = ("l2_error_window", "smooth_linf_window", "linf_error_window")
 def problem():
     cfg = tuning.TuningConfig(params=PARAMS,
                               objective=tuning.ObjectiveSpec(linf=1.0, l2=1.0, u_max=None))
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T_FINAL), cfg)
+    return tuning.build_problem(dscjax.paper_example(), SPEC, cfg)
 
 
 def _metrics_fn(problem, extra=True, checkpoint_every=None):
@@ -136,12 +137,12 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
                               robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
                                                       cvar_level=0.5),
                               optimizer=tuning.OptimizerSpec(gradient="plants"))
-    prob = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T_FINAL), cfg)
+    prob = tuning.build_problem(dscjax.paper_example(), SPEC, cfg)
     assert prob.mode == "plants"
     assert prob.describe()["mode"] == "plants"  # asked for by name
     # picked by "auto" (CVaR 0.25 of 4 plants: ceil(0.25 x 4) = 1 <= 4/4); the fingerprint
     # holds the mode the run uses
-    auto = tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T_FINAL),
+    auto = tuning.build_problem(dscjax.paper_example(), SPEC,
                                 tuning.TuningConfig(
                                     params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
                                     robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",

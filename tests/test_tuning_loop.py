@@ -240,24 +240,21 @@ def test_report_gives_each_constraints_sensitivity_to_the_gains(cli_run):
 
 
 def test_gains_json_loads_back_into_simulate(cli_run, tmp_path):
-    """The command report.md ends with (and the console prints) runs the loop tuned: its
-    metrics are the report's; gains.json alone keeps the continuous [simulation] (issue 38
-    item 6: the old last line ran that one)."""
+    """The command report.md ends with (and the console prints) runs the loop tuned, whose
+    [simulation] gains.json keeps (the controller sampled at 1 ms): its metrics are the
+    report's (issue 38 item 6: the old last line ran the continuous loop)."""
     import shlex
 
     _, out, _ = cli_run
     last = (out / "report.md").read_text().split("\n## Figures")[0].strip().splitlines()[-1]
     cmd = re.fullmatch(r"Run the loop tuned \(the controller sampled every Ts = 0\.001 s .*\) "
-                       r"with `(dscjax simulate --config gains\.json[^`]*)`: gains\.json keeps "
-                       r"the config's \[simulation\], which `dscjax simulate --config "
-                       r"gains\.json` alone runs \(the continuous loop\)\.",
-                       last)
+                       r"with `(dscjax simulate --config gains\.json[^`]*)`\.", last)
     assert cmd is not None, last
     argv = shlex.split(cmd.group(1))
-    assert argv == ["dscjax", "simulate", "--config", "gains.json", "--sample-time", "0.001"]
+    assert argv == ["dscjax", "simulate", "--config", "gains.json"]
+    assert json.loads((out / "gains.json").read_text())["simulation"]["sample_time"] == 0.001
     stdout = (out.parent / "stdout.txt").read_text()
-    assert f"  run the loop tuned: dscjax simulate --config {out / 'gains.json'} --sample-time " \
-           f"0.001\n" in stdout
+    assert f"  run the loop tuned: dscjax simulate --config {out / 'gains.json'}\n" in stdout
     code = main([*argv[1:3], str(out / "gains.json"), *argv[4:], "--out", str(tmp_path),
                  "--no-plot"])
     assert code == 0

@@ -117,7 +117,7 @@ def transient():
     5); its nominal figures at the start gains."""
     setup = params.set(dscjax.paper_example(), "plant.x0", np.array([0.2, 0.0]))
     cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
-    problem = tuning.build_problem(setup, RunSpec.make(2.0, 1e-3), cfg)
+    problem = tuning.build_problem(setup, RunSpec.make(2.0, 1e-3, sample_time=1e-3), cfg)
     ev = report.evaluate(problem, problem.z0, problem.z0)
     nom = {tag: {k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()}
            for tag in ("start", "tuned")}

@@ -367,10 +367,10 @@ def test_a_search_without_a_step_limit_runs_until_its_own_criteria(problems, tmp
     here, does not apply to it)."""
     import cma
 
-    import tuning.optimize
+    import tuning.config
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
-    monkeypatch.setattr(tuning.optimize, "OPTAX_STEPS", 5)
+    monkeypatch.setattr(tuning.config, "OPTAX_STEPS", 5)
     p = _with(problems["cma_path"], steps=None, restarts=2, patience=0)
     assert p.cfg.optimizer.max_steps is None
     res = run(p, tmp_path / "open")

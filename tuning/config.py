@@ -45,6 +45,8 @@ SEARCHES = ("cma_path", "cma")  # the population methods
 GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
 METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
+# `dscjax tune`'s own defaults of [simulation]: the controller that runs, sampled at 1 kHz
+SIMULATION = {"sample_time": 1e-3}
 WEIGHT = Number(ge=0)
 BOUND = Maybe(Either((Choice(("start",)), Positive())))
 
@@ -311,5 +313,5 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
 
 
 __all__ = ["AGGREGATES", "AdversarialSpec", "BatchSpec", "EFFORT_BOUNDS", "GRADIENTS",
-           "ObjectiveSpec", "OptimizerSpec", "SEARCHES", "TuningConfig", "from_dict",
+           "ObjectiveSpec", "OptimizerSpec", "SEARCHES", "SIMULATION", "TuningConfig", "from_dict",
            "to_table", "to_toml"]

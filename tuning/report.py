@@ -655,13 +655,7 @@ def sensitivity_section(sens: dict) -> list[str]:
 
 def run_sentence(s: dict) -> str:
     """report.md's last line: the command that runs the loop tuned."""
-    cmd = s["simulate_command"]
-    if cmd == "dscjax simulate --config gains.json":
-        return f"Run the loop tuned ({s['loop']}) with `{cmd}`."
-    return (f"Run the loop tuned ({s['loop']}) with `{cmd}`: gains.json keeps the config's "
-            f"[simulation], which `dscjax simulate --config gains.json` alone runs"
-            + (" (the continuous loop)" if "--sample-time" in cmd else "")
-            + ".")
+    return f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`."
 
 
 def _mode_words(mode: str) -> str:

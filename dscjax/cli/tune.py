@@ -18,14 +18,10 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
                   folders=("round_*", "fresh_*"))
 
 
-# `dscjax tune`'s own default of [simulation]: the controller that runs, sampled at 1 kHz
-TUNE_DEFAULTS = {"sample_time": 1e-3}
-
-
 def add_parser(sub):
     from dscjax.cli.common import SAMPLED_KEYS, add_example_arg, add_run_args
     from dscjax.settings import add_arguments
-    from tuning.config import TuningConfig
+    from tuning.config import SIMULATION, TuningConfig
 
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
@@ -43,7 +39,7 @@ def add_parser(sub):
                    "the gains.json of an earlier run (laid over --config)")
     add_out_arg(p, "results/tune")
     add_arguments(p, TuningConfig, "tuning.")
-    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=TUNE_DEFAULTS)
+    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=SIMULATION)
     add_example_arg(p)
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
@@ -94,14 +90,14 @@ def load(args):
     )
     from dscjax.runspec import RunSpec
     from dscjax.validation import ConfigError
-    from tuning.config import TuningConfig
+    from tuning.config import SIMULATION, TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
     raw = config.read(args.config, "--config") if args.config else {}
     table = raw.pop("tuning", {})
     raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
     setup, options = config.from_dict(raw, base=example_setup(args),
-                                      base_spec=RunSpec.make(**TUNE_DEFAULTS))
+                                      base_spec=RunSpec.make(**SIMULATION))
     cfg = tuning_from_dict(table, TuningConfig())
     if args.tuning:
         extra = config.read(args.tuning, "--tuning")
