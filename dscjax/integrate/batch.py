@@ -1,0 +1,145 @@
+"""A batch in the rows layout: the state a tuple of m rows of shape (B,), one per component
+(batch-last), the field vmapped over the members, the shared arguments one flat vector.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from dscjax.integrate import scan
+from dscjax.xla import barriers
+
+
+def _first(tree):
+    return jax.tree.map(lambda x: x[0], tree)
+
+
+def _scalars(tree) -> tuple:
+    """Every element of every leaf as a separate scalar (for the batched row layout)."""
+    return tuple(e for leaf in jax.tree.leaves(tree) for e in jnp.ravel(leaf))
+
+
+class _Rows:
+    """A batch: the state is a tuple of m rows of shape (B,), one per component. Packing
+    computed components into one array lets XLA fuse the whole field into the concatenate,
+    which then recomputes the control law once per component; rows are stacked only to save."""
+
+    def __init__(self, proto):
+        self.unravel = ravel_pytree(proto)[1]
+
+    def unpack_one(self, row_scalars):
+        return self.unravel(jnp.stack(row_scalars))
+
+    def stack(self, y):
+        return jnp.stack(y)  # (m, B)
+
+    def unstack(self, ys):
+        # ys: (T, m, B) -> pytree with leaves (B, T, ...)
+        return jax.vmap(jax.vmap(self.unravel), in_axes=-1)(ys)
+
+
+def _ravel_floats(tree):
+    """ravel_pytree over the floating leaves only (other leaves are kept as they are)."""
+    leaves, treedef = jax.tree.flatten(tree)
+    is_float = [jnp.issubdtype(jnp.result_type(x), jnp.floating) for x in leaves]
+    floats = [x for x, fl in zip(leaves, is_float, strict=True) if fl]
+    flat, unravel_floats = ravel_pytree(floats)
+
+    def unravel(v):
+        it = iter(unravel_floats(v))
+        return jax.tree.unflatten(treedef, [next(it) if fl else x
+                                            for x, fl in zip(leaves, is_float, strict=True)])
+
+    return flat, unravel
+
+
+def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
+                    state_bound, solver, gradient, rates=None, project=None, frozen=None):
+    args_flat, unravel_args = _ravel_floats(args)
+    y_one, b_one = _first(y0), _first(batch)
+    mask = scan.frozen_mask(frozen, y_one)  # one Python bool per row: held inside a step
+    frozen_rows = (None if mask is None else
+                   tuple(bool(m) for leaf in jax.tree.leaves(mask) for m in np.ravel(leaf)))
+    acc_one = _first(acc0) if reduction is not None else ()
+    _, unravel_b = _ravel_floats(b_one)
+    b_flat = jax.vmap(lambda b: _ravel_floats(b)[0], out_axes=-1)(batch)  # (p, B)
+    obs_one = jax.eval_shape(lambda: f(dt, y_one, unravel_args(args_flat), b_one)[1])
+    ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc_one)
+
+    def member(t, y_row, b_col):
+        dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(args_flat), unravel_b(b_col))
+        return _scalars(dy), _scalars(obs)
+
+    f_rows = jax.vmap(member, in_axes=(None, 0, -1), out_axes=0)
+
+    def f_obs(t, y):
+        return f_rows(t, y, b_flat)
+
+    def rates_member(t, y_row, obs_row, b_col):
+        return _scalars(rates(t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
+                                                          unravel_b(b_col)),
+                              obs_c.unpack_one(obs_row)))
+
+    def rates_rows(t, y, obs):
+        return jax.vmap(rates_member, in_axes=(None, 0, 0, -1), out_axes=0)(t, y, obs, b_flat)
+
+    def project_member(k, t, y_row, b_col):
+        return _scalars(project(k, t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
+                                                               unravel_b(b_col))))
+
+    def project_rows(k, t, y):
+        return jax.vmap(project_member, in_axes=(None, None, 0, -1), out_axes=0)(k, t, y, b_flat)
+
+    def acc_member(acc_row, k, t, y_row, obs_row):
+        new = reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
+                               obs_c.unpack_one(obs_row), dt)
+        return _scalars(new)
+
+    acc_fn = jax.vmap(acc_member, in_axes=(0, None, None, 0, 0), out_axes=0)
+    y_init = tuple(jnp.moveaxis(jax.vmap(lambda y: ravel_pytree(y)[0])(y0), 0, -1))
+    acc_init = (tuple(jnp.moveaxis(jax.vmap(lambda a: ravel_pytree(a)[0])(acc0), 0, -1))
+                if reduction is not None else ())
+    n_batch = jax.tree.leaves(y0)[0].shape[0]
+
+    def acc_update(acc, k, t, y, obs, ok):
+        if reduction is None:
+            return acc
+        new = acc_fn(acc, k, t, y, obs)
+        return jax.tree.map(lambda a, b: jnp.where(ok, b, a), acc, new)
+
+    def step(carry):
+        k, y, acc, code, bad = carry
+        t = k.astype(dt.dtype) * dt
+        y_next, obs = solver.step(f_obs, rates_rows if rates is not None else None, t, y, dt,
+                                  frozen=frozen_rows)
+        if project is not None:
+            y_next = project_rows(k + 1, t + dt, y_next)
+        ok_now = code == scan.STATUS_OK
+        acc = acc_update(acc, k, t, y, obs, ok_now)
+        finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in y_next])
+        small = functools.reduce(jnp.logical_and, [jnp.abs(v) <= state_bound for v in y_next])
+        code, bad, keep = scan.guard(ok_now, finite, small, k, code, bad)
+        y_next = tuple(jnp.where(keep, a, b) for a, b in zip(y_next, y, strict=True))
+        return (k + 1, y_next, acc, code, bad), obs
+
+    obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
+    init = (jnp.zeros((), jnp.int32), y_init, acc_init,
+            jnp.full((n_batch,), scan.STATUS_OK, jnp.int32), jnp.full((n_batch,), -1, jnp.int32))
+    with barriers(True):
+        carry, (ys, obs) = scan.saving_scan(
+            step, init, obs_zero, n_steps, save_every,
+            lambda c, o: (ys_c.stack(c[1]), obs_c.stack(o)), gradient.every)
+        k, y_end, acc, code, bad = carry
+        t_end = k.astype(dt.dtype) * dt
+        _, obs_end = f_obs(t_end, y_end)
+        acc = acc_update(acc, k, t_end, y_end, obs_end, code == scan.STATUS_OK)
+    ys = ys_c.unstack(jnp.concatenate([ys, ys_c.stack(y_end)[None]]))
+    obs = obs_c.unstack(jnp.concatenate([obs, obs_c.stack(obs_end)[None]]))
+    acc = (jax.vmap(acc_c.unravel, in_axes=-1)(jnp.stack(acc)) if reduction is not None
+           else None)
+    return scan.Integration(ys=ys, obs=obs, acc=acc, status=scan.Status(code=code, step=bad))

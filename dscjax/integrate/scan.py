@@ -1,0 +1,167 @@
+"""The time loop every layout shares: the divergence `Status` and its guard, the saving scan
+(the save stride, checkpointed segments), the blocked scan of small buffers, the `Running`
+protocol of running reductions and the `Integration` an integration returns.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple, Protocol
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+Pytree = Any
+
+STATUS_OK = 0
+STATUS_NONFINITE = 1
+STATUS_BOUND = 2
+
+SMALL = 64  # floats per buffer for XLA:CPU's sequential loop-body executor (512 bytes f64)
+
+# Rows are written from an inner scan over this many steps when every step is saved: one scan
+# that both steps and writes rows is slower on XLA:CPU.
+_ROW_CHUNKS = (4, 2)
+
+
+class Status(NamedTuple):
+    """Outcome of an integration (per trajectory in a batch: never raises in traced code).
+
+    code: int32, STATUS_OK, STATUS_NONFINITE (a state became inf/NaN) or STATUS_BOUND (a state
+        component exceeded the state bound in magnitude).
+    step: int32, the first step index k whose state y_k was bad, -1 if none. From then on the
+        state is frozen at its last good value, so outputs stay finite.
+    """
+
+    code: jax.Array
+    step: jax.Array
+
+
+class Integration(NamedTuple):
+    ys: Pytree  # states at the steps `saved_steps(N, s)`: 0, s, 2s, ..., N (then the batch)
+    obs: Pytree  # observations at the same times
+    acc: Pytree  # running reductions over every step k = 0..N (None without a reduction)
+    status: Status
+
+
+class Running(Protocol):
+    """A running reduction over every step k = 0..N while the run is healthy (metrics,
+    tuning's terms and requirements, progress); a pytree whose numbers are traced leaves.
+
+        init(dtype) -> acc                         a pytree of scalars
+        update(acc, k, t, y, obs, dt) -> acc       at step k: time t_k, state y_k, obs_k
+        finalize(acc, t_final) -> {name: value}
+    """
+
+    def init(self, dtype) -> Any: ...
+
+    def update(self, acc, k, t, y, obs, dt) -> Any: ...
+
+    def finalize(self, acc, t_final) -> dict[str, jax.Array]: ...
+
+
+def saved_steps(n_steps: int, save_every: int) -> np.ndarray:
+    """The step indices k that `integrate` saves: 0, s, 2s, ... below N, and N itself (the
+    stride need not divide N: the last interval is then shorter)."""
+    return np.append(np.arange(0, n_steps, save_every), n_steps)
+
+
+def zeros(shape_tree):
+    """Zeros shaped like a tree of `jax.ShapeDtypeStruct`s."""
+    return jax.tree.map(lambda sd: jnp.zeros(sd.shape, sd.dtype), shape_tree)
+
+
+def frozen_mask(frozen, y):
+    """`frozen` (a prefix of y's tree) as NumPy bool arrays shaped like y's leaves, or None."""
+    if frozen is None:
+        return None
+    mask = jax.tree.map(lambda m, sub: jax.tree.map(lambda x: np.full(np.shape(x), bool(m)), sub),
+                        frozen, y)
+    return mask if any(np.any(m) for m in jax.tree.leaves(mask)) else None
+
+
+def guard(ok_now, finite, small, k, code, bad):
+    """(code, first bad step, keep) after step k: a state that left the bound or went
+    non-finite freezes the run at its last good state."""
+    bad_now = ok_now & ~(finite & small)
+    code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), code)
+    return code, jnp.where(bad_now, k + 1, bad), code == STATUS_OK
+
+
+def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None):
+    """n steps of `step(c) -> (c, obs)` from c0, keeping record(c, obs) of the steps 0, s, 2s,
+    ... (c the carry before the step; a last, shorter block's first step too); a batch's
+    steps are checkpointed in segments of `every` (None: not checkpointed)."""
+    if s == 1:
+        chunk = next((q for q in _ROW_CHUNKS if n % q == 0), 1)
+
+        def save_step(c, _):
+            c_new, obs = step(c)
+            return c_new, record(c, obs)
+
+        def rows(c, _):
+            return jax.lax.scan(save_step, c, None, length=chunk)
+
+        c, recs = jax.lax.scan(jax.checkpoint(rows) if every else rows, c0, None,
+                               length=n // chunk)
+        return c, jax.tree.map(lambda v: v.reshape(n, *v.shape[2:]), recs)
+
+    def steps(state, length):
+        def inner(st, _):
+            c, obs_f, first = st
+            c, obs = step(c)
+            obs_f = jax.tree.map(lambda o, of: jnp.where(first, o, of), obs, obs_f)
+            return (c, obs_f, jnp.zeros_like(first)), None
+
+        return jax.lax.scan(inner, state, None, length=length)[0]
+
+    def block(c, length):
+        state = (c, obs_zero, jnp.array(True))
+        seg = _segment_length(length, every)
+        if seg is None or seg == length:
+            def body(st):
+                return steps(st, length)
+
+            state = (jax.checkpoint(body) if seg else body)(state)
+        else:
+            @jax.checkpoint
+            def segment(st, _):
+                return steps(st, seg), None
+
+            state, _ = jax.lax.scan(segment, state, None, length=length // seg)
+        return state[0], record(c, state[1])
+
+    c, recs = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=n // s)
+    if n % s:
+        c, last = block(c, n % s)
+        recs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), recs, last)
+    return c, recs
+
+
+def _segment_length(save_every: int, target: int | None) -> int | None:
+    """Checkpoint segment inside a save block: the largest divisor of save_every <= target."""
+    if target is None:
+        return None
+    if target >= save_every:
+        return save_every
+    return max(d for d in range(1, target + 1) if save_every % d == 0)
+
+
+def _block_length(n: int, width: int) -> int:
+    """The largest divisor L of n with L * width <= SMALL (at least 1)."""
+    cap = max(1, SMALL // max(width, 1))
+    return max(d for d in range(1, min(cap, n) + 1) if n % d == 0)
+
+
+def blocked_scan(body, carry, xs, n: int, width: int):
+    """lax.scan over n steps in blocks of L: the inner scan touches only small buffers (run
+    sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a plain scan."""
+    L = _block_length(n, width)
+
+    def outer(c, block):
+        return jax.lax.scan(body, c, block, length=L)
+
+    blocks = None if xs is None else jax.tree.map(lambda a: a.reshape(n // L, L, *a.shape[1:]),
+                                                  xs)
+    carry, ys = jax.lax.scan(outer, carry, blocks, length=n // L)
+    return carry, jax.tree.map(lambda a: a.reshape(n, *a.shape[2:]), ys)

@@ -1,0 +1,214 @@
+"""One trajectory: its state, arguments, observations and reductions packed into a few flat
+arrays (`_Packer`: XLA:CPU then moves a couple of buffers per kernel, not dozens of scalars),
+stepped by the solver under the divergence guard (`Carry`), and differentiated by its
+gradient mode (`gradients`).
+"""
+
+from __future__ import annotations
+
+import functools
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.integrate import scan
+from dscjax.integrate.gradients import TimeParallel, time_parallel_jvp
+
+Pytree = Any
+
+
+class _Packer:
+    """A pytree <-> a tuple of flat float arrays: leaves packed whole, in order, greedily into
+    arrays of <= SMALL floats (a larger leaf gets its own); non-float leaves kept aside."""
+
+    def __init__(self, proto):
+        leaves, self.treedef = jax.tree.flatten(proto)
+        self.fixed = []  # (index, value) of non-float leaves
+        self.slots = []  # (index, chunk, offset, size, shape)
+        sizes: list[int] = []
+        for i, leaf in enumerate(leaves):
+            dtype = jnp.result_type(leaf)
+            if not jnp.issubdtype(dtype, jnp.floating):
+                self.fixed.append((i, leaf))
+                continue
+            shape = np.shape(leaf)
+            size = int(np.prod(shape, dtype=int))
+            if not sizes or sizes[-1] + size > scan.SMALL:
+                sizes.append(0)
+            self.slots.append((i, len(sizes) - 1, sizes[-1], size, shape))
+            sizes[-1] += size
+        self.sizes = tuple(sizes)
+        self.n_leaves = len(leaves)
+
+    def pack(self, tree) -> tuple:
+        leaves = jax.tree.leaves(tree)
+        parts: list[list] = [[] for _ in self.sizes]
+        for i, chunk, _, _, _ in self.slots:
+            parts[chunk].append(jnp.ravel(leaves[i]))
+        return tuple(p[0] if len(p) == 1 else jnp.concatenate(p) for p in parts)
+
+    def unpack(self, chunks) -> Pytree:
+        leaves: list = [None] * self.n_leaves
+        for i, value in self.fixed:
+            leaves[i] = value
+        for i, chunk, off, size, shape in self.slots:
+            c = chunks[chunk]
+            leaves[i] = (c if size == c.shape[-1] and off == 0 else c[off:off + size]).reshape(
+                shape)
+        return jax.tree.unflatten(self.treedef, leaves)
+
+    def zeros(self, dtype) -> tuple:
+        return tuple(jnp.zeros((s,), dtype) for s in self.sizes)
+
+    def pack_mask(self, mask) -> tuple:
+        """A static tree of bool arrays like the packed tree -> one NumPy bool array per chunk."""
+        leaves = jax.tree.leaves(mask)
+        parts = [np.zeros((s,), bool) for s in self.sizes]
+        for i, chunk, off, size, _ in self.slots:
+            parts[chunk][off:off + size] = np.ravel(leaves[i])
+        return tuple(parts)
+
+
+def _all_finite_small(chunks, bound):
+    ok_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(c)) for c in chunks]))
+    ok_small = jnp.all(jnp.stack([jnp.all(jnp.abs(c) <= bound) for c in chunks]))
+    return ok_finite, ok_small
+
+
+class Carry(NamedTuple):
+    """What the time loop carries from step k to k + 1 (one trajectory)."""
+
+    k: jax.Array  # () int32: the step index
+    y: tuple  # state y_k, packed
+    acc: tuple  # running reductions over samples 0..k-1, packed
+    code: jax.Array  # () int32 status code
+    bad: jax.Array  # () int32: first bad step, -1 if none
+
+
+class _Problem:
+    """The static structure of a single-trajectory integration and its step functions."""
+
+    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
+                 project=None, frozen=None):
+        self.f, self.reduction_is_none = f, reduction is None
+        self.solver, self.rates, self.project = solver, rates, project
+        self.n, self.s = n_steps, save_every
+        self.yp = _Packer(y0)
+        mask = scan.frozen_mask(frozen, y0)  # components held inside a step, per packed chunk
+        self.frozen = None if mask is None else self.yp.pack_mask(mask)
+        self.ap = _Packer(args)
+        self.accp = _Packer(acc0 if reduction is not None else ())
+        dtype = jnp.result_type(*jax.tree.leaves(y0))
+        obs_proto = jax.eval_shape(lambda: f(jnp.zeros((), dtype), y0, args)[1])
+        self.op = _Packer(scan.zeros(obs_proto))
+        self.dtype = dtype
+
+    def field(self, t, y, a, packed=True):
+        """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
+        dy, obs = self.f(t, self.yp.unpack(y), self.ap.unpack(a) if packed else a)
+        return self.yp.pack(dy), self.op.pack(obs)
+
+    def step(self, k, y, a, dt, h=None, scanned=False, packed=True):
+        """(y_(k+1), obs_k) by the solver from y_k (unguarded)."""
+        t = k.astype(dt.dtype) * dt
+        h = dt if h is None else h
+
+        def f_obs(tt, yy):
+            return self.field(tt, yy, a, packed)
+
+        args = self.ap.unpack(a) if packed else a
+        rates = None
+        if self.rates is not None:
+            def rates(tt, yy, obs):
+                return self.yp.pack(self.rates(tt, self.yp.unpack(yy), args,
+                                               self.op.unpack(obs)))
+
+        method = self.solver.step_scanned if scanned else self.solver.step
+        y_next, obs = method(f_obs, rates, t, y, dt, h, self.frozen)
+        if self.project is not None:
+            y_next = self.yp.pack(self.project(k + 1, t + dt, self.yp.unpack(y_next), args))
+        return y_next, obs
+
+    def update(self, red, acc, k, t, y, obs, dt):
+        if self.reduction_is_none:
+            return acc
+        new = red.update(self.accp.unpack(acc), k, t, self.yp.unpack(y), self.op.unpack(obs),
+                         dt)
+        return self.accp.pack(new)
+
+    def guarded(self, c: Carry, a, red, dt, bound):
+        """One RK4 step with the divergence guard; returns (carry, obs_k)."""
+        t = c.k.astype(dt.dtype) * dt
+        y_next, obs = self.step(c.k, c.y, a, dt)
+        ok_now = c.code == scan.STATUS_OK
+        acc = jax.tree.map(lambda old, new: jnp.where(ok_now, new, old), c.acc,
+                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
+        finite, small = _all_finite_small(y_next, bound)
+        code, bad, keep = scan.guard(ok_now, finite, small, c.k, c.code, c.bad)
+        y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y_next, c.y)
+        return Carry(c.k + 1, y, acc, code, bad), obs
+
+    def init(self, y0, acc0):
+        i32 = functools.partial(jnp.asarray, dtype=jnp.int32)
+        return Carry(i32(0), y0, acc0, i32(scan.STATUS_OK), i32(-1))
+
+    def finish(self, c: Carry, a, red, dt):
+        """Observation at t_N and the last sample folded into the reductions."""
+        t = c.k.astype(dt.dtype) * dt
+        _, obs = self.field(t, c.y, a)
+        acc = jax.tree.map(lambda old, new: jnp.where(c.code == scan.STATUS_OK, new, old), c.acc,
+                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
+        return acc, obs
+
+    # the primal loop: saves every s-th state, never stores the others
+    def forward(self, y0, a, red, acc0, dt, bound):
+        c, (ys, obs) = scan.saving_scan(lambda c: self.guarded(c, a, red, dt, bound),
+                                        self.init(y0, acc0), self.op.zeros(self.dtype), self.n,
+                                        self.s, lambda c, obs: (c.y, obs))
+        acc, obs_end = self.finish(c, a, red, dt)
+        ys = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), ys, c.y)
+        obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), obs, obs_end)
+        return ys, obs, acc, c.code, c.bad
+
+    # the same loop, keeping every state, sample and observation (for the linearisation)
+    def forward_all(self, y0, a, red, acc0, dt, bound):
+        n = self.n
+        c0 = self.init(y0, acc0)
+
+        def step(c, _):
+            c_new, obs = self.guarded(c, a, red, dt, bound)
+            return c_new, (c.y, c.acc, obs)
+
+        width = max(self.yp.sizes + self.accp.sizes + self.op.sizes, default=1)
+        c, (Y, A, O) = scan.blocked_scan(step, c0, None, n, width)
+        acc, obs_end = self.finish(c, a, red, dt)
+        return c, Y, A, O, acc, obs_end
+
+
+def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
+                     solver, gradient, rates=None, project=None, frozen=None):
+    prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
+                    frozen)
+
+    def primal(y0c, ac, red, acc0c, dtv, bound):
+        return prob.forward(y0c, ac, red, acc0c, dtv, bound)
+
+    if isinstance(gradient, TimeParallel):
+        primal = jax.custom_jvp(primal)
+        primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
+    red = reduction if reduction is not None else ()
+    acc0c = prob.accp.pack(acc0 if reduction is not None else ())
+    ys, obs, acc, code, bad = primal(prob.yp.pack(y0), prob.ap.pack(args), red, acc0c, dt,
+                                     state_bound)
+
+    def unstack(packer, chunks):
+        return jax.vmap(packer.unpack)(chunks) if packer.sizes else packer.unpack(())
+
+    return scan.Integration(
+        ys=unstack(prob.yp, ys),
+        obs=unstack(prob.op, obs),
+        acc=prob.accp.unpack(acc) if reduction is not None else None,
+        status=scan.Status(code=code, step=bad),
+    )
