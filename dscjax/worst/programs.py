@@ -1,0 +1,223 @@
+"""The compiled programs of a worst-case search (`Programs`, a `dscjax.search` problem): the
+metric of a (B, d + m) batch of normalised points and its gradient, the projection onto the
+waveform's bound and random points of the box. Problems of one structure share them: the setup,
+the box and the bound are traced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import disturbance as dist_mod
+from dscjax import params, search, validation
+from dscjax.runspec import RunSpec
+from dscjax.simulate import run
+from dscjax.validation import ConfigError
+from dscjax.worst.problem import Problem, Static, box_overrides, dtype_of
+
+GRADIENTS = ("time_parallel", "batch")
+
+
+def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
+    traj = run(setup, spec, overrides=box_overrides(setup, st, z, lo, hi, bound), extra=extra)
+    return traj.metrics[st.metric], traj.diverged
+
+
+def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
+    one = {p: v[0] for p, v in box_overrides(setup, st, z1[None, :], lo, hi, bound).items()}
+    traj = run(params.set_many(setup, one), spec, extra=extra)
+    return traj.metrics[st.metric], traj.diverged
+
+
+def _masked_total(values, z, *args):
+    v, bad = values(z, *args)
+    return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
+
+
+def _value_and_grad(values, single, gradient, z, *args):
+    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0."""
+    if gradient == "batch" or single is None:
+        (_, (v, bad)), g = jax.value_and_grad(
+            lambda z_: _masked_total(values, z_, *args), has_aux=True)(z)
+    else:  # each start's own time-parallel gradient, vmapped over the starts
+        def one(z1):
+            v1, bad1 = single(z1, *args)
+            return jnp.where(bad1, 0.0, v1), (v1, bad1)
+
+        (_, (v, bad)), g = jax.vmap(jax.value_and_grad(one, has_aux=True))(z)
+    return v, bad, g
+
+
+_STATIC_PROBLEM = ("st",)
+
+
+_problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
+
+
+@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static,
+                            gradient: str):
+    def values(z_, *a):
+        return _problem_values(*a[:1], z_, *a[1:], st=st)
+
+    def single(z1, *a):
+        return _problem_single(*a[:1], z1, *a[1:], st=st)
+
+    return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, spec, extra)
+
+
+@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+def _problem_coarse(setup, z, lo, hi, bound, spec, extra, spec_g, extra_g, *, st: Static,
+                    gradient: str):
+    """Values of the loop of `spec`, gradients of the loop of `spec_g` (a coarser step; zero
+    where that run diverged)."""
+    v, bad = _problem_values(setup, z, lo, hi, bound, spec, extra, st=st)
+    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, spec_g, extra_g, st=st,
+                                          gradient=gradient)
+    return v, bad, jnp.where(bad_g[:, None], 0.0, g)
+
+
+@functools.partial(jax.jit, static_argnames=("d", "project_coef"))
+def _project(z, basis, *, d, project_coef):
+    u = jnp.clip(z[:, :d], 0.0, 1.0)
+    if project_coef is None:
+        return u
+    c = z[:, d:]
+    return jnp.concatenate([u, project_coef(c, 1.0, c @ basis.T)], axis=1)
+
+
+@functools.partial(jax.jit, static_argnames=("d",))
+def _rescale(z, basis, *, d):
+    """Random points: the waveform scaled so that max |dbar| = D exactly."""
+    if z.shape[1] == d:
+        return z
+    c = z[:, d:]
+    peak = jnp.max(jnp.abs(c @ basis.T), axis=1, keepdims=True)
+    c = jnp.where(peak > 0, c / jnp.where(peak > 0, peak, 1.0), c)
+    return jnp.concatenate([z[:, :d], c], axis=1)
+
+
+class _Fixed:
+    """A module-level jitted function with every argument but the points z fixed, so that
+    problems of one structure share its compilations: call it on z, or `lower` it for z."""
+
+    def __init__(self, fn, before=(), after=(), **kwargs):
+        self.fn, self.before, self.after, self.kwargs = fn, before, after, kwargs
+
+    def __call__(self, z):
+        return self.fn(*self.before, z, *self.after, **self.kwargs)
+
+    def lower(self, z):
+        return self.fn.lower(*self.before, z, *self.after, **self.kwargs)
+
+
+class Programs(search.Problem):
+    """The compiled programs of a search on (B, d + m) batches of normalised points, as the
+    `dscjax.search` problem: minimise -metric over [0, 1]^d x [-1, 1]^m, projected onto the
+    waveform's bound (waveform `c @ basis.T`, `project_coef`), from `x0` (the nominal point);
+    a diverged candidate's loss is +inf. `values(z) -> (v, diverged)`. `for_problem` builds
+    them for a `Problem` (shared by problems of one structure), `from_functions` for any
+    objective (a search checked on a known answer)."""
+
+    def __init__(self, d: int, m: int, basis, project_coef, values, value_and_grad,
+                 nominal_u: np.ndarray | None = None):
+        self.d, self.m, self.nominal_u = d, m, nominal_u
+        self.basis = jnp.asarray(basis)
+        pc = project_coef if m else None
+        self.values = search.Batched(values)
+        self._value_and_grad = search.Batched(value_and_grad)
+        self.project = search.Batched(_Fixed(_project, after=(self.basis,), d=d,
+                                             project_coef=pc))
+        self.rescale = search.Batched(_Fixed(_rescale, after=(self.basis,), d=d))
+        self.lower = np.concatenate([np.zeros(d), -np.ones(m)])
+        self.upper = np.ones(d + m)
+        self.x0 = np.concatenate([nominal_u if nominal_u is not None else np.full(d, 0.5),
+                                  np.zeros(m)])
+
+    @property
+    def compile_seconds(self) -> float:
+        return sum(p.seconds for p in (self.values, self._value_and_grad, self.project,
+                                       self.rescale))
+
+    @staticmethod
+    def _evaluation(v, bad) -> search.Evaluation:
+        v, bad = np.asarray(v, dtype=np.float64), np.asarray(bad, dtype=bool)
+        return search.Evaluation.of(np.where(bad, np.inf, -v), ~bad, bad)
+
+    def evaluate(self, z) -> search.Evaluation:
+        return self._evaluation(*self.values(z))
+
+    def value_and_grad(self, z) -> tuple[search.Evaluation, np.ndarray]:
+        v, bad, g = self._value_and_grad(z)
+        return self._evaluation(v, bad), -np.asarray(g, dtype=np.float64)
+
+    def sample(self, rng: np.random.Generator, b: int) -> np.ndarray:
+        """b uniform points of the box, coefficients uniform in [-1, 1]^m rescaled so that
+        max |dbar| = D exactly."""
+        return self.rescale(np.concatenate([rng.random((b, self.d)),
+                                            rng.uniform(-1.0, 1.0, (b, self.m))], axis=1))
+
+    @classmethod
+    def from_functions(cls, d: int, m: int, basis, project_coef, values: Callable,
+                       single: Callable | None = None, gradient: str = "time_parallel",
+                       nominal_u=None) -> Programs:
+        """From a batch objective `values(z) -> (v, diverged)` and optionally its one-point
+        version `single(z1)` (differentiated per start when gradient = "time_parallel")."""
+        validation.one_of(gradient, "gradient", GRADIENTS)
+        vg = jax.jit(lambda z: _value_and_grad(values, single, gradient, z))
+        return cls(d, m, basis, project_coef, jax.jit(values), vg, nominal_u)
+
+    @classmethod
+    def for_problem(cls, problem: Problem, gradient: str = "time_parallel",
+                    coarsening: int = 1) -> Programs:
+        """The programs of `problem`; with `coarsening` F > 1 the gradients are the loop's at
+        F dt (a search direction only), the values always at dt."""
+        validation.one_of(gradient, "gradient", GRADIENTS)
+        p = problem
+        check_coarsening(coarsening, p.spec)
+        basis, project_coef = np.zeros((1, 0)), None
+        if p.m:
+            grid = dist_mod.half_step_grid(p.t_final, p.dt)
+            model = p.setup.plant.disturbance
+            basis = np.stack([np.asarray(dist_mod.sample(
+                dataclasses.replace(model, **{model.coefficients_name: e}), grid))
+                for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
+            project_coef = type(model).project_coefficients
+        lo, hi = p.lows_highs()
+        spec = p.spec.for_dtype(dtype_of(p.setup)).program()  # (refinement is simulate's)
+        args = (lo, hi, p.disturbance.bound if p.m else 0.0, spec, p.requirement)
+        st = p.static()
+        values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
+        if coarsening == 1:
+            vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st, gradient=gradient)
+        else:
+            f = coarsening
+            spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
+                                         save_every=spec.n_steps // f,
+                                         sample_every=spec.sample_every // f)
+            extra_g = p.requirement
+            if extra_g is not None and hasattr(extra_g, "n_steps"):
+                extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
+            vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st,
+                        gradient=gradient)
+        nominal_u = None
+        if p.d:
+            nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])
+            nominal_u = np.clip((nominal - lo) / (hi - lo), 0.0, 1.0)
+        return cls(p.d, p.m, basis, project_coef, values, vg, nominal_u)
+
+
+def check_coarsening(coarsening: int, spec: RunSpec) -> None:
+    validation.integer(coarsening, "--gradient-coarsening", 1)
+    if spec.n_steps % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                          f"steps t_final/dt = {spec.n_steps}")
+    if spec.sampled and spec.sample_every % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
+                          f"controller sample, sample_time/dt = {spec.sample_every}")

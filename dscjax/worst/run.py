@@ -1,0 +1,217 @@
+"""The worst-case search: each method of `dscjax.search` ("gradient": projected ascent from M
+starts; "random"; "cma") minimises -metric over a `Problem`'s box for the same search time,
+and the best points are re-checked by `simulate` (with refinement) on the worst setup
+(`worst_case`, `Result`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+import numpy as np
+
+from dscjax import files, params, search, validation
+from dscjax.closed_loop import Setup
+from dscjax.simulate import simulate
+from dscjax.validation import ConfigError
+from dscjax.worst.problem import DisturbanceSpec, Problem, make_problem
+from dscjax.worst.programs import Programs, check_coarsening
+
+Method = Literal["gradient", "random", "cma"]
+
+
+METHODS: tuple[str, ...] = get_args(Method)
+
+
+DEFAULT_STARTS = 4  # docs/worst-case.md
+
+
+DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
+
+
+DEFAULT_LR = 0.1
+
+
+DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
+
+
+def best_value(trace: search.Trace) -> float:
+    """The best metric value of a method's trace (-inf before a finite one)."""
+    return -trace.best_loss
+
+
+def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
+                  lr: float = DEFAULT_LR, m: int = 0):
+    """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
+    return {"gradient": lambda: search.Gradient(lr=lr, starts=starts, screen=max(batch, starts),
+                                                coupled=m),
+            "random": lambda: search.Random(batch=batch),
+            "cma": lambda: search.CMA(popsize=batch)}[name]()
+
+
+@dataclasses.dataclass
+class Result:
+    """The worst case found and each method's trace."""
+
+    problem: Problem
+    value: float  # the metric of `simulate` on the worst setup (+inf: the loop diverges)
+    z: np.ndarray
+    method: str
+    setup: Setup
+    diverged: bool
+    t_diverged: float | None
+    refinements: int
+    traces: dict[str, search.Trace]
+    nominal_value: float
+    info: dict
+    trajectory: Any  # `simulate`'s run of `setup` (kept for the report's files)
+    nominal: Any  # and of the nominal point (zero waveform: the same values exactly)
+
+
+def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int, Any]:
+    """`simulate` of one candidate with refinement: (value, diverged, t_diverged, level, traj)."""
+    traj = simulate(setup, spec=problem.spec.replace(save_every=1), throw=False,
+                    extra=problem.requirement)
+    bad = bool(traj.diverged)
+    value = math.inf if bad else float(traj.metrics[problem.metric_key])
+    return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
+
+
+def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = (),
+               disturbance: DisturbanceSpec | str | None = None, *,
+               time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
+               methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
+               lr: float = DEFAULT_LR, gradient: str = "time_parallel",
+               coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
+               resume: bool = False, max_evals: int | None = None,
+               progress: Callable[[str, search.Trace, float], None] | None = None,
+               say: Callable[[str], None] | None = None, **problem_options) -> Result:
+    """Search the worst case of `problem` with each method for `time_limit` seconds (or
+    `max_evals` evaluations, whichever comes first).
+
+    Args:
+        problem: from `make_problem`; or a Setup, then `make_problem(problem, ranges,
+            disturbance, **problem_options)` (ranges may be text, "PATH=30%").
+        time_limit: search seconds per method (compilation excluded).
+        starts: M, the gradient method's starts, advanced as one batch.
+        methods: any of "gradient", "random", "cma".
+        seed: every random draw is a function of (seed, method, iteration).
+        batch: candidates per batch of random and CMA-ES.
+        lr: the gradient method's initial step (box widths, units of D).
+        gradient: "time_parallel" (per start, vmapped) or "batch" (through the batch's scan).
+        coarsening: F, gradients of the loop at F dt (1: exact gradients of the values).
+        out_dir: where each method's state is saved after every iteration (for `resume`).
+        max_evals: stop a method after this many candidates (its last batch finished); a
+            count, unlike a time, sees the same points under any load.
+        progress: called with (method, trace, time_limit) after every iteration.
+        say: called with a line of text as each phase begins (a method's compilation and
+            search, the re-check), so that no long phase passes in silence.
+
+    Returns:
+        `Result`; its value is re-checked by `simulate` (with refinement) on the worst setup.
+
+    Example:
+        >>> import dscjax
+        >>> res = dscjax.worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"],
+        ...                         "fourier:2:0.5", t_final=2.0, time_limit=5.0)  # doctest: +SKIP
+        >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
+    """
+    if not isinstance(problem, Problem):
+        problem = make_problem(problem, [params.parse_range(r) if isinstance(r, str) else r
+                                         for r in ranges], disturbance, **problem_options)
+    elif ranges or disturbance is not None or problem_options:
+        raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
+                          "make_problem, not with a Problem")
+    check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
+                 max_evals=max_evals, coarsening=coarsening)
+    fp = {"problem": files.digest(problem.fingerprint()), "gradient": gradient,
+          "coarsening": coarsening}
+    prog = Programs.for_problem(problem, gradient, coarsening)
+    traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
+                         seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
+                         fingerprint=fp, progress=progress, max_evals=max_evals, say=say)
+    return _finish(problem, traces, say)
+
+
+def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
+                 time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
+    """The search settings of `worst_case`, checked before anything runs (ConfigError naming
+    the option)."""
+    if not methods:
+        raise ConfigError(f"--methods must name at least one of {', '.join(METHODS)}")
+    for mth in methods:
+        validation.one_of(mth, "--methods", METHODS)
+    validation.integer(starts, "--starts", 1)
+    validation.integer(batch, "batch", 1)
+    if not (time_limit > 0):
+        raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
+    if max_evals is not None:
+        validation.integer(max_evals, "--max-evals", 1)
+    validation.integer(coarsening, "--gradient-coarsening", 1)
+    check_coarsening(coarsening, problem.spec)
+
+
+def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
+                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
+                lr: float = DEFAULT_LR, out_dir: str | Path | None = None,
+                resume: bool = False, fingerprint: Any = None,
+                progress: Callable | None = None,
+                max_evals: int | None = None,
+                say: Callable[[str], None] | None = None) -> dict[str, search.Trace]:
+    """Run each method on the programs for `time_limit` search seconds (compilation apart)
+    or `max_evals` evaluations, whichever comes first, each from its `state_<method>.npz` in
+    out_dir with `resume`; {method: Trace}. `say` gets a line as each method begins."""
+    out = Path(out_dir) if out_dir is not None else None
+    traces = {}
+    for name in methods:
+        if say is not None:
+            say(f"{name}: compiling its programs (not counted in the time limit), then "
+                f"searching")
+        each = None if progress is None else (
+            lambda tr, row, name=name: progress(name, tr, time_limit))
+        res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
+                         x0=prog.x0, seed=seed, time_limit=time_limit, max_evals=max_evals,
+                         path=None if out is None else out / f"state_{name}.npz",
+                         resume=resume, fingerprint=fingerprint, progress=each,
+                         count_compile=False)
+        traces[name] = res.trace
+    return traces
+
+
+def _finish(problem: Problem, traces: dict[str, search.Trace],
+            say: Callable[[str], None] | None = None) -> Result:
+    """Re-check each method's best point and its diverged candidates with `simulate`; the
+    worst of them is the result."""
+    candidates = []
+    for mth, tr in traces.items():
+        if tr.best_z is not None:
+            candidates.append((mth, tr.best_z))
+        candidates += [(mth, z) for z in tr.diverged_z[:2]]
+    if not candidates:
+        raise ConfigError("no candidate was evaluated: give a larger --time-limit")
+    if say is not None:
+        n = len({np.asarray(z).tobytes() for _, z in candidates})
+        say(f"re-checking {n} candidate(s) and the nominal point with simulate (every step, "
+            f"refined if they diverge)")
+    best = None
+    checked = {}
+    for mth, z in candidates:
+        key = np.asarray(z).tobytes()
+        if key in checked:
+            continue
+        setup = problem.setup_at(z)
+        value, bad, t_bad, level, traj = _check_run(problem, setup)
+        checked[key] = value
+        score = (math.inf, -t_bad) if bad else (value, 0.0)
+        if best is None or score > best[0]:
+            best = (score, mth, z, setup, value, bad, t_bad, level, traj)
+    _, mth, z, setup, value, bad, t_bad, level, traj = best
+    # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
+    # the program of the candidates' re-check serves it
+    nominal_value, *_, nominal = _check_run(problem, problem.setup)
+    return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
+                  nominal_value, {"rechecked": len(checked)}, traj, nominal)
