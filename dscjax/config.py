@@ -6,14 +6,13 @@ A config file maps onto the same dataclasses the Python API takes: one table per
 paper's example). Changing a section's kind (e.g. `reference.kind = "smooth_step"`) starts
 that section from the new class's defaults. Unknown sections or keys, wrong types and
 out-of-range values are `ConfigError`s naming the field. Nothing in a config is ever evaluated
-as code, and pickles are never read.
+as code, and pickles are never read. A file's tables are read by `dscjax.configfile`; the
+built-in loops are `dscjax.examples`' (their callers import them from here too).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import json
-import tomllib
 import warnings
 from collections.abc import Mapping
 from pathlib import Path
@@ -23,10 +22,15 @@ import numpy as np
 
 from dscjax import disturbance, validation
 from dscjax.closed_loop import Setup
-from dscjax.controllers.backstepping import Backstepping, with_backstepping
+from dscjax.configfile import read
+from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
-from dscjax.hysteresis import Backlash, BoucWen, GeneralizedPI, PrandtlIshlinskii
-from dscjax.params import cast
+from dscjax.examples import example as example  # re-exported (the module docstring)
+from dscjax.examples import hysteresis_example as hysteresis_example
+from dscjax.examples import order_n_example as order_n_example
+from dscjax.examples import paper_example
+from dscjax.examples import paper_family_plant as paper_family_plant
+from dscjax.hysteresis import MODELS
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
 from dscjax.runspec import OPTIONS, RunSpec
@@ -35,7 +39,7 @@ from dscjax.validation import ConfigError
 # kind name -> class, per section; the key that selects the kind.
 REGISTRY: dict[str, dict[str, type]] = {
     "plant": {PaperPlant.kind: PaperPlant, StrictFeedback.kind: StrictFeedback},
-    "hysteresis": {c.kind: c for c in (Backlash, PrandtlIshlinskii, GeneralizedPI, BoucWen)},
+    "hysteresis": {c.kind: c for c in MODELS},
     "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
@@ -45,143 +49,6 @@ OLD_KIND_KEY = {"hysteresis": "model"}
 # Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
 # "kind" key; absent (None) unless the config gives the table.
 SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
-
-
-# -- the built-in examples (--example); every reading of the paper is a setting
-# (docs/paper-readings.md)
-
-
-def paper_plant() -> PaperPlant:
-    """Eq. (73): g = (1, 1), theta = (0.1, 0), f_1 = x_1^2, f_2 = 0, Delta_1 = 0.2 sin(x_2),
-    Delta_2 = 0.1 (x_1^2 + x_2^2) sin^3(t), rho = (0.2, 0.1 (x_1^2 + x_2^2)), x(0) = (0.08, 0.1)."""
-    return PaperPlant(g=np.array([1.0, 1.0]), theta=np.array([0.1, 0.0]),
-                      x0=np.array([0.08, 0.1]))
-
-
-def paper_family_plant() -> StrictFeedback:
-    """Eq. (73) as a member of the order-n `StrictFeedback` family (same plant, more terms)."""
-    return StrictFeedback.zeros(
-        2, g=[1.0, 1.0], theta=[0.1, 0.0], x0=[0.08, 0.1], f_quad=[1.0, 0.0],
-        rho_const=[0.2, 0.0], rho_quad=[0.0, 0.1], delta_sin=[0.2, 0.0], delta_quad=[0.0, 0.1])
-
-
-def paper_hysteresis() -> Backlash:
-    """alpha = 1, lam = 1.432, psi = 0.105; w(0) = 0 (not given in the paper)."""
-    return Backlash(alpha=1.0, lam=1.432, psi=0.105, w0=0.0)
-
-
-def paper_controller(variant: str = "full", robust_term: str = "sat", init: str = "paper") -> DSC:
-    """Section 4's gains. The text prints "k_1 = 10, k_1 = 0.45": read k_2 = 0.45 (= 1/4 + alpha_0
-    with alpha_0 = 0.2, eq. 55). gamma_g2, eta_2, theta_hat_2(0) are not given and irrelevant
-    (f_2 = 0): 8, 0.01, 0. c_2 = x_2(0) = 0.1; sat width 0.01."""
-    return DSC(
-        k=np.array([10.0, 0.45]), tau=np.array([0.01]), c=np.array([0.1]),
-        gamma_g=np.array([8.0, 8.0]), eta=np.array([0.01, 0.01]),
-        gamma_phi=np.array([8.0]), sigma=np.array([0.01]),
-        gamma_zeta=8.0, eta_zeta=0.01, gamma_d=8.0, eta_d=0.01, eps=0.01, g_min=1.0,
-        theta_hat0=np.array([0.05, 0.0]), phi_hat0=np.array([1.0]), zeta_hat0=0.5, d_hat0=1.0,
-        sat_width=0.01, variant=variant, robust_term=robust_term, init=init)
-
-
-def paper_example(variant: str = "full", robust_term: str = "sat", init: str = "paper",
-                  dtype=None) -> Setup:
-    """The closed loop of the paper's Section 4 with y_r = sin t.
-
-    Args:
-        variant: "full", "no_dhat" or "no_dhat_no_zeta" (the two readings of "without
-            considering hysteresis" in Fig. 2).
-        robust_term: "sat" (the paper's sat(S_2/0.01)), "sgn" or "smooth".
-        init: "paper" (Section 4's initial values), "linf" (67-68), "zero_surfaces".
-        dtype: dtype of every number (default: JAX's default float, float64 when x64 is on).
-
-    Example:
-        >>> import dscjax
-        >>> setup = dscjax.paper_example()
-        >>> setup.order
-        2
-    """
-    setup = Setup(plant=paper_plant(), hysteresis=paper_hysteresis(),
-                  controller=paper_controller(variant, robust_term, init), reference=Sine())
-    return cast(setup, dtype if dtype is not None else _default_float())
-
-
-def _default_float():
-    import jax.numpy as jnp
-
-    return jnp.zeros(()).dtype
-
-
-def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
-                    **controller_changes) -> Setup:
-    """A tracking example of order n >= 2 from the StrictFeedback family (tracks for n <= 4
-    with these uniform gains; higher orders need their own, as `controller_changes`).
-
-    Plant (q_i = x_1^2 + ... + x_i^2): g_i = 1, theta_i = 0.1, f_i = 0.2 x_i^2 + 0.2 sin(x_i)
-    (+ 0.05 x_(i-1) x_i for i >= 2), rho_i = 0.05 + 0.02 q_i, Delta_i = 0.05 sin(x_(i+1)) +
-    0.02 q_i sin^3 t; the paper's hysteresis; y_r = sin t. Order n >= 3 is stiff (u'(0) grows
-    like 1/tau^(n-1); docs/numerics.md), so x_i(0) = y_r^(i-1)(0), the estimates start at their
-    nominal values, S_i(0) = 0 ("zero_surfaces"), tau_i = `tau` and k_i = `k`.
-    """
-    if n < 2:
-        raise ValueError(f"order n must be >= 2 (got {n})")
-    m = n - 1
-    cross = np.full(n, 0.05)
-    cross[0] = 0.0
-    x0 = np.round(np.sin(0.5 * np.pi * np.arange(n)), 12)  # 0, 1, 0, -1, ...
-    plant = StrictFeedback.zeros(
-        n, g=np.ones(n), theta=np.full(n, 0.1), x0=x0, f_quad=np.full(n, 0.2),
-        f_sin=np.full(n, 0.2), f_cross=cross, rho_const=np.full(n, 0.05),
-        rho_quad=np.full(n, 0.02), delta_sin=np.full(n, 0.05), delta_quad=np.full(n, 0.02))
-    ctrl = DSC(
-        k=np.full(n, k), tau=np.full(m, tau), c=np.zeros(m), gamma_g=np.full(n, 1.0),
-        eta=np.full(n, 0.01), gamma_phi=np.full(m, 1.0), sigma=np.full(m, 0.01),
-        gamma_zeta=1.0, eta_zeta=0.01, gamma_d=1.0, eta_d=0.01, eps=0.5, g_min=1.0,
-        theta_hat0=np.zeros(n), phi_hat0=np.ones(m), zeta_hat0=1.0 / 1.432, d_hat0=0.0,
-        sat_width=0.05, init="zero_surfaces")
-    if controller_changes:
-        ctrl = dataclasses.replace(ctrl, **controller_changes)
-    setup = Setup(plant=plant, hysteresis=paper_hysteresis(), controller=ctrl, reference=Sine())
-    return cast(setup, dtype if dtype is not None else _default_float())
-
-
-# order-N: the order-n family, N >= 2; pi, gpi, bouc_wen: the paper's loop on another actuator
-EXAMPLES = ("paper", "backstepping", "order-N", "pi", "gpi", "bouc_wen")
-
-
-def hysteresis_example(kind: str, dtype=None) -> Setup:
-    """The paper's loop (plant, DSC gains, reference) with the `kind` hysteresis model at its
-    class defaults, whose large-amplitude slope and offset are close to the paper's
-    (docs/hysteresis.md): "pi", "gpi" or "bouc_wen"; "backlash" is `paper_example` itself."""
-    setup = paper_example(dtype=np.float64)
-    if kind != "backlash":
-        setup = setup.replace(hysteresis=REGISTRY["hysteresis"][kind]())
-    return cast(setup, dtype if dtype is not None else _default_float())
-
-
-def example(name: str, dtype=None) -> Setup:
-    """A built-in closed loop by name, as `--example NAME` selects it.
-
-    - "paper": the paper's Section 4 (`paper_example`), the default;
-    - "backstepping": the paper's plant with the adaptive backstepping baseline (the DSC's
-      gains, `Backstepping.from_dsc`);
-    - "order-N" (N >= 2): the order-n family of `order_n_example` (S_i(0) = 0, tau = 0.05);
-    - "pi", "gpi", "bouc_wen": the paper's loop behind another actuator (`hysteresis_example`).
-
-    Example:
-        >>> import dscjax
-        >>> dscjax.config.example("order-3").order
-        3
-    """
-    if name == "paper":
-        return paper_example(dtype=dtype)
-    if name == "backstepping":
-        return with_backstepping(paper_example(dtype=dtype))
-    if name.startswith("order-") and name[6:].isdigit() and int(name[6:]) >= 2:
-        return order_n_example(int(name[6:]), dtype=dtype)
-    if name in ("pi", "gpi", "bouc_wen"):
-        return hysteresis_example(name, dtype=dtype)
-    raise ConfigError(f"--example must be paper, backstepping, order-N with N >= 2 (e.g. "
-                      f"order-4), pi, gpi or bouc_wen (got {name!r})")
 
 
 # -- Setup -> dict -> TOML ----------------------------------------------------------------------
@@ -521,125 +388,6 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
 
 
-SUFFIXES = (".toml", ".json")
-
-
-def read(path: str | Path, option: str | None = None) -> dict:
-    """The tables of a .toml (or .json) file, not yet interpreted; ConfigError if unreadable,
-    a directory, of another format, or if it gives a key twice (`duplicate key 'controller.k'
-    in FILE`: TOML forbids it, and JSON's last-one-wins would hide a mistake). `option`: how
-    the message names where the path came from (e.g. "--config")."""
-    path = Path(path)
-    if path.is_dir():
-        raise ConfigError(f"{option + ': ' if option else ''}{str(path)!r} is a directory "
-                          f"(give a .toml or .json file)")
-    suffix = path.suffix.lower()
-    if suffix not in SUFFIXES:
-        raise ConfigError(f"{path}: configs are TOML (.toml) or JSON (.json) (got "
-                          f"{suffix or 'no suffix'!r})")
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise ConfigError(f"cannot read config file {str(path)!r}: {err.strerror}") from None
-    is_json = suffix == ".json"
-    try:
-        if is_json:
-            d = _unique(json.loads(text, object_pairs_hook=_Pairs), path)
-        else:
-            d = tomllib.loads(text)
-    except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
-        dup = None if is_json else _toml_duplicate(text, str(err))
-        if dup is not None:
-            raise ConfigError(f"duplicate key {dup!r} in {path}") from None
-        if is_json:
-            raise ConfigError(f"{path}: not valid JSON: {err}") from None
-        raise ConfigError(f"{path}, {_toml_where(text, str(err))}") from None
-    if not isinstance(d, dict):
-        raise ConfigError(f"{path}: the top level must be a table of sections")
-    return d
-
-
-def _toml_where(text: str, message: str) -> str:
-    """A TOML parser's message as "line L, column C: not valid TOML: REASON" (the line of the
-    end of the file where the parser ran out of text, e.g. an unclosed array)."""
-    import re
-
-    found = re.search(r"\s*\(at line (\d+), column (\d+)\)$", message)
-    if found is not None:
-        return (f"line {found[1]}, column {found[2]}: not valid TOML: "
-                f"{message[:found.start()]}")
-    end = re.search(r"\s*\(at end of document\)$", message)
-    if end is not None:
-        last = max(len(text.rstrip("\n").splitlines()), 1)
-        return (f"line {last} (the end of the file): not valid TOML: "
-                f"{message[:end.start()]} (opened and never closed)")
-    return f"not valid TOML: {message}"
-
-
-class _Pairs(list):
-    """A JSON object as the (key, value) pairs it was written with (duplicates kept)."""
-
-
-def _unique(value, path: Path, where: str = ""):
-    """A JSON value read with `_Pairs` as dicts, a key given twice a ConfigError naming it."""
-    if isinstance(value, _Pairs):
-        out = {}
-        for key, item in value:
-            name = f"{where}.{key}" if where else key
-            if key in out:
-                raise ConfigError(f"duplicate key {name!r} in {path}")
-            out[key] = _unique(item, path, name)
-        return out
-    if isinstance(value, list):
-        return [_unique(item, path, f"{where}[{i}]") for i, item in enumerate(value)]
-    return value
-
-
-def _toml_duplicate(text: str, message: str) -> str | None:
-    """The dotted path of the key (or table) a TOMLDecodeError says is given twice, or None
-    if the error is of another kind. tomllib's own message names no key for a value."""
-    import ast
-    import re
-
-    declared = re.match(r"Cannot (?:declare|redefine namespace) \(([^()]*)\)", message)
-    if declared:
-        try:
-            return ".".join(ast.literal_eval(f"({declared.group(1)})"))
-        except (ValueError, SyntaxError, TypeError):
-            return None
-    value = re.match(r"(Cannot overwrite a value|Duplicate inline table key '(.*)') "
-                     r"\((?:at line (\d+)|at end of document)", message)
-    if not value:
-        return None
-    lines = text.splitlines()
-    if value.group(3):
-        n = int(value.group(3)) - 1
-    else:
-        n = max((i for i, ln in enumerate(lines) if ln.strip()), default=0)
-    table = next((_toml_path(ln.strip()) for ln in reversed(lines[:n])
-                  if ln.strip().startswith("[")), [])
-    key = _toml_path(lines[n].partition("=")[0] + "= 0") if n < len(lines) else []
-    inline = [value.group(2)] if value.group(2) else []
-    return ".".join([*table, *key, *inline]) or None
-
-
-def _toml_path(line: str) -> list[str]:
-    """The key path of one TOML header (`[a.b]`, `[[a]]`) or `key = 0` line."""
-    try:
-        d = tomllib.loads(line)
-    except tomllib.TOMLDecodeError:
-        return []
-    path = []
-    while isinstance(d, dict | list) and d:
-        if isinstance(d, list):
-            d = d[-1]
-            continue
-        key = next(iter(d))
-        path.append(key)
-        d = d[key]
-    return path
-
-
 def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, RunSpec]:
     """Read a .toml (or .json) config file laid over the default; ConfigError if it is bad."""
     return from_dict(read(path), base)
@@ -666,12 +414,3 @@ def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=N
             sim[key] = value
     d["simulation"] = sim
     return dumps_toml({**d, **(extra or {})}, header=header, docs=docs)
-
-
-def default_toml() -> str:
-    return to_toml(
-        paper_example(dtype=np.float64),
-        header="dscjax configuration: the paper's example (Section 4, eq. 73) with the "
-        "readings of\ndocs/paper-readings.md. Every key may be omitted; omitted keys take "
-        "these values.",
-    )
