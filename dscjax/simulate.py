@@ -25,8 +25,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import device as dscjax_device
+from dscjax import divergence, params, validation, xla
 from dscjax import metrics as m
-from dscjax import params, validation, xla
 from dscjax.closed_loop import (
     Sampling,
     Setup,
@@ -42,10 +42,11 @@ from dscjax.closed_loop import (
     sampled_vector_field,
     vector_field,
 )
+from dscjax.divergence import DivergenceError, counted_levels, divergence_report, level_spec
+from dscjax.divergence import refine_rows as refine_rows  # callers import these from here
+from dscjax.divergence import refinement_level as refinement_level
 from dscjax.integrate import (
     DEFAULT_CHECKPOINT_EVERY,
-    STATUS_BOUND,
-    STATUS_NONFINITE,
     STATUS_OK,
     Status,
     TimeParallel,
@@ -117,15 +118,6 @@ class Trajectory(eqx.Module):
         raise AttributeError(name)
 
 
-class DivergenceError(RuntimeError):
-    """A simulation left the state bound or went non-finite. `.trajectory` holds the run,
-    frozen at its last good state."""
-
-    def __init__(self, message: str, trajectory: Trajectory):
-        super().__init__(message)
-        self.trajectory = trajectory
-
-
 class _Loop(NamedTuple):
     """What `integrate` needs for one kind of loop, each function taking the setup and the
     sampling ((`Sampling`, dt) or None) as arguments, never closing over traced values."""
@@ -160,7 +152,7 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     (the caller runs `check`); compose it with jit, vmap, grad and sharding. With `overrides`
     ({path: (B, ...)}) it runs that batch of setups; `extra` (an `integrate.Running`) adds the
     caller's running reductions to `metrics`."""
-    dtype = jnp.result_type(setup.plant.x0)
+    dtype = dtype_of(setup)
     spec = spec.for_dtype(dtype)
     red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
     if extra is not None:
@@ -224,7 +216,7 @@ def _split_members(setup, overrides):
 
     one = jax.tree.map(lambda v: v[0], overrides)
     closed = jax.make_jaxpr(member)(one)
-    depends = _depends_on_inputs(closed.jaxpr)
+    depends = depends_on_inputs(closed.jaxpr)
     full = jax.vmap(member)(overrides)
     leaves, treedef = jax.tree.flatten(full)
     if len(leaves) != len(depends):
@@ -239,7 +231,7 @@ def _split_members(setup, overrides):
     return shared, batched, rebuild
 
 
-def _depends_on_inputs(jaxpr) -> list[bool]:
+def depends_on_inputs(jaxpr) -> list[bool]:
     """For each output of a jaxpr: does it depend on any of its inputs (not only constants)?"""
     dep = set(jaxpr.invars)
 
@@ -267,56 +259,6 @@ def _run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
 _simulate = jax.jit(_run_reported)
 # 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
 _simulate_batch = xla.jit(_run_reported)
-
-
-def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
-    """(solver, halvings of dt) of refinement level j: 0 is the requested solver at dt; then
-    ETDRK4 (exact on the stiff decays) at dt (after RK4), dt/2, dt/4, ..."""
-    if j == 0:
-        return solver, 0
-    return "etdrk4", (j - 1 if solver == "rk4" else j)
-
-
-def counted_levels(spec: RunSpec) -> int:
-    """The refinement levels up to `spec.refine` whose step count fits `validation.MAX_STEPS`;
-    at most one for a sampled loop (its held input makes the plant non-stiff: a sampled loop
-    that diverges again once refined is unstable, `sampled_unstable`)."""
-    refine = min(spec.refine, SAMPLED_REFINE) if spec.sampled else spec.refine
-    while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
-                      > validation.MAX_STEPS):
-        refine -= 1
-    return refine
-
-
-# refinement levels of a sampled loop: one, to tell an unstable loop from a numerical accident
-SAMPLED_REFINE = 1
-
-
-def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
-    """A sampled loop that diverged at its step and again, refined, within one sample period
-    of the same time: the loop (Ts, delay, noise) is unstable, not the integrator."""
-    if not spec.sampled:
-        return False
-    return bool(abs(float(t_first) - float(t_refined)) <= float(spec.sample_time) * (1 + 1e-9))
-
-
-def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
-    """One line naming what makes a sampled loop unstable: its sample time, delay and noise."""
-    what = [f"sample time {spec.sample_time:g} s"]
-    if spec.delay:
-        what.append(f"input delay {spec.delay} sample{'s' if spec.delay > 1 else ''}")
-    if spec.noise is not None and np.any(np.asarray(spec.noise) > 0):
-        what.append("measurement noise std "
-                    + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(spec.noise, float))))
-    return (f"the sampled loop is unstable ({', '.join(what)}): it diverges at t = "
-            f"{float(t_diverged):.6g} s at the plant's step and refined alike, so no smaller "
-            f"step helps; use a shorter sample time, less delay or noise, or revise the gains")
-
-
-def level_spec(spec: RunSpec, j: int) -> RunSpec:
-    """The spec of refinement level j (`refinement_level`) of a run."""
-    name, halvings = refinement_level(j, spec.solver.name)
-    return spec.refined(halvings, name) if j else spec
 
 
 def simulate(
@@ -373,12 +315,12 @@ def simulate(
             raise ValueError("simulate: give progress or extra, not both")
         extra = _Progress(spec.n_steps, progress)
     if not validation.is_concrete((setup, spec)):
-        refuse_traced_refinement(spec, "simulate")
+        divergence.refuse_traced_refinement(spec, "simulate")
     with _placed(spec, device, 1, setup):
         traj = _simulate(setup, spec.program(), None, extra)
         concrete = validation.is_concrete(traj.status)
         if not concrete:  # inside jit with concrete inputs
-            refuse_traced_refinement(spec, "simulate")
+            divergence.refuse_traced_refinement(spec, "simulate")
         t_first = traj.t_diverged
         for j in range(1, counted_levels(spec) + 1):
             if not (concrete and bool(traj.diverged)):
@@ -389,21 +331,11 @@ def simulate(
         return eqx.error_if(traj, traj.diverged, "simulate: the run diverged (throw=False "
                             "returns it with traj.status)")
     if throw and bool(traj.diverged):
-        if int(traj.refinements) and sampled_unstable(spec, t_first, traj.t_diverged):
-            raise DivergenceError(sampled_unstable_line(spec, traj.t_diverged), traj)
+        if int(traj.refinements) and divergence.sampled_unstable(spec, t_first, traj.t_diverged):
+            raise DivergenceError(divergence.sampled_unstable_line(spec, traj.t_diverged), traj)
         why = "" if spec.sampled else diagnose(setup, traj)
         raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
     return traj
-
-
-def refuse_traced_refinement(spec: RunSpec, where: str) -> None:
-    """ValueError if `spec` would refine a diverged run: refinement re-runs it on the host,
-    which a traced call cannot do (a silent skip would make the traced function another one)."""
-    if counted_levels(spec):
-        raise ValueError(
-            f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
-            f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "
-            f"not), or use dscjax.objective (a pure function of chosen numbers)")
 
 
 class _Progress(eqx.Module):
@@ -427,14 +359,15 @@ class _Progress(eqx.Module):
         return {}
 
 
-def _dtype(setup):
+def dtype_of(setup: Setup):
+    """The dtype of a setup's numbers: its plant.x0's."""
     return jnp.result_type(setup.plant.x0)
 
 
 def canonical(setup: Setup) -> Setup:
     """Every floating leaf in `plant.x0`'s dtype, strongly typed (weak types are part of jit's
     cache key: a gain set from a Python float would recompile)."""
-    return params.cast(setup, _dtype(setup))
+    return params.cast(setup, dtype_of(setup))
 
 
 def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
@@ -498,7 +431,7 @@ def simulate_batch(
                             refine=refine, sample_time=sample_time,
                             gradient=TimeParallel(every=checkpoint_every))
     setup = canonical(setup)
-    dtype = _dtype(setup)
+    dtype = dtype_of(setup)
     overrides = {p: params.cast(v, dtype) for p, v in overrides.items()}
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
@@ -516,13 +449,13 @@ def simulate_batch(
         return _simulate_batch(setup, level_spec(spec, j).program(), ov)
 
     if not validation.is_concrete((setup, spec, overrides)):
-        refuse_traced_refinement(spec, "simulate_batch")
+        divergence.refuse_traced_refinement(spec, "simulate_batch")
     with _placed(spec, device, next(iter(sizes.values()), 1), (setup, overrides)):
         traj = level(0, overrides)
         if not validation.is_concrete(traj.status):
-            refuse_traced_refinement(spec, "simulate_batch")
+            divergence.refuse_traced_refinement(spec, "simulate_batch")
         elif counted_levels(spec):  # host-side
-            traj = refine_diverged(traj, overrides, level, counted_levels(spec))
+            traj = divergence.refine_diverged(traj, overrides, level, counted_levels(spec))
     return traj
 
 
@@ -536,57 +469,3 @@ def _placed(spec: RunSpec, device, rows: int, inputs):
     return dscjax_device.placed(choice)
 
 
-def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):
-    """(rows as NumPy arrays, each row's level) after re-running the `failed(tree)` rows of
-    a batch (leading axis) at levels 1..refine, host-side: `level(j, idx)` runs rows idx at
-    level j; each level runs the rows still failed, padded to a power of two (one program for
-    similar sizes)."""
-    out = jax.tree.map(np.array, rows)
-    todo = np.flatnonzero(failed(out))
-    levels = np.zeros(len(failed(out)), np.int32)
-    for j in range(1, refine + 1):
-        if todo.size == 0:
-            break
-        size = 1 << int(np.ceil(np.log2(todo.size)))
-        idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
-        sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
-
-        def put(dst, src, todo=todo):
-            dst[todo] = src
-            return dst
-
-        out = jax.tree.map(put, out, sub)
-        levels[todo] = j
-        todo = todo[failed(sub)]
-    return out, levels
-
-
-def refine_diverged(traj: Trajectory, overrides: Mapping[str, Any], level: Callable,
-                    refine: int) -> Trajectory:
-    """`refine_rows` for a batch Trajectory: `level(j, overrides_subset)` simulates a
-    sub-batch at level j with the same save times; `refinements` says each member's level."""
-    def rows(j, idx):
-        sub = level(j, {p: np.asarray(v)[idx] for p, v in overrides.items()})
-        return dataclasses.replace(sub, refinements=None)
-
-    out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
-                              lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
-    return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
-
-
-def divergence_report(traj: Trajectory, state_bound: float | None = None) -> list[str]:
-    """One line per diverged trajectory: which one (batch index), when, and how."""
-    code = np.atleast_1d(np.asarray(traj.status.code))
-    t_bad = np.atleast_1d(np.asarray(traj.t_diverged))
-    lines = []
-    batched = np.ndim(traj.status.code) > 0
-    for i in np.flatnonzero(code != STATUS_OK):
-        who = f"trajectory {i}" if batched else "the trajectory"
-        how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
-               STATUS_BOUND: "a state exceeded the state bound"
-               + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
-        lines.append(
-            f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time hold the "
-            f"last good state. Reduce dt (RK4 stability) or revise the gains."
-        )
-    return lines

@@ -18,7 +18,7 @@ from dscjax import disturbance as dist_mod
 from dscjax import params, validation
 from dscjax.closed_loop import Setup
 from dscjax.runspec import RunSpec
-from dscjax.simulate import check
+from dscjax.simulate import check, dtype_of
 from dscjax.validation import ConfigError
 
 # metrics of `run` a search may maximise (windowed L-inf of e by default)
@@ -213,11 +213,6 @@ def _describe(reduction) -> dict | None:
     return {"kind": type(reduction).__name__,
             **{f.name: np.asarray(getattr(reduction, f.name)).tolist()
                for f in dataclasses.fields(reduction)}}
-
-
-def dtype_of(setup):
-    """The dtype of a setup's numbers (its plant.x0's)."""
-    return jnp.result_type(setup.plant.x0)
 
 
 def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),

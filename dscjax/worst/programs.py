@@ -17,9 +17,9 @@ import numpy as np
 from dscjax import disturbance as dist_mod
 from dscjax import params, search, validation
 from dscjax.runspec import RunSpec
-from dscjax.simulate import run
+from dscjax.simulate import dtype_of, run
 from dscjax.validation import ConfigError
-from dscjax.worst.problem import Problem, Static, box_overrides, dtype_of
+from dscjax.worst.problem import Problem, Static, box_overrides
 
 GRADIENTS = ("time_parallel", "batch")
 

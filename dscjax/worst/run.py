@@ -151,7 +151,6 @@ def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
     if max_evals is not None:
         validation.integer(max_evals, "--max-evals", 1)
-    validation.integer(coarsening, "--gradient-coarsening", 1)
     check_coarsening(coarsening, problem.spec)
 
 

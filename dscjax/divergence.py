@@ -1,0 +1,147 @@
+"""A run that diverges: run again, refined, before it counts as diverged, then reported.
+
+Refinement runs ETDRK4 (exact on the stiff decays) at dt, dt/2, dt/4, ... (`refinement_level`,
+`level_spec`), up to `RunSpec.refine` levels that fit `validation.MAX_STEPS`
+(`counted_levels`). It runs on the host: a batch re-runs only its diverged rows (`refine_rows`,
+`refine_diverged`), and a traced call refuses a spec that would refine
+(`refuse_traced_refinement`). A sampled loop refines once: diverging again within a sample
+period means the loop is unstable, not the integrator (`sampled_unstable`). What still
+diverges is a `DivergenceError` or a line of `divergence_report`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import validation
+from dscjax.integrate import STATUS_BOUND, STATUS_NONFINITE, STATUS_OK
+from dscjax.runspec import RunSpec
+
+# refinement levels of a sampled loop: one, to tell an unstable loop from a numerical accident
+SAMPLED_REFINE = 1
+
+
+def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
+    """(solver, halvings of dt) of refinement level j: 0 is the requested solver at dt; then
+    ETDRK4 (exact on the stiff decays) at dt (after RK4), dt/2, dt/4, ..."""
+    if j == 0:
+        return solver, 0
+    return "etdrk4", (j - 1 if solver == "rk4" else j)
+
+
+def counted_levels(spec: RunSpec) -> int:
+    """The refinement levels up to `spec.refine` whose step count fits `validation.MAX_STEPS`;
+    at most one for a sampled loop (its held input makes the plant non-stiff: a sampled loop
+    that diverges again once refined is unstable, `sampled_unstable`)."""
+    refine = min(spec.refine, SAMPLED_REFINE) if spec.sampled else spec.refine
+    while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
+                      > validation.MAX_STEPS):
+        refine -= 1
+    return refine
+
+
+def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
+    """A sampled loop that diverged at its step and again, refined, within one sample period
+    of the same time: the loop (Ts, delay, noise) is unstable, not the integrator."""
+    if not spec.sampled:
+        return False
+    return bool(abs(float(t_first) - float(t_refined)) <= float(spec.sample_time) * (1 + 1e-9))
+
+
+def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
+    """One line naming what makes a sampled loop unstable: its sample time, delay and noise."""
+    what = [f"sample time {spec.sample_time:g} s"]
+    if spec.delay:
+        what.append(f"input delay {spec.delay} sample{'s' if spec.delay > 1 else ''}")
+    if spec.noise is not None and np.any(np.asarray(spec.noise) > 0):
+        what.append("measurement noise std "
+                    + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(spec.noise, float))))
+    return (f"the sampled loop is unstable ({', '.join(what)}): it diverges at t = "
+            f"{float(t_diverged):.6g} s at the plant's step and refined alike, so no smaller "
+            f"step helps; use a shorter sample time, less delay or noise, or revise the gains")
+
+
+def level_spec(spec: RunSpec, j: int) -> RunSpec:
+    """The spec of refinement level j (`refinement_level`) of a run."""
+    name, halvings = refinement_level(j, spec.solver.name)
+    return spec.refined(halvings, name) if j else spec
+
+
+def refuse_traced_refinement(spec: RunSpec, where: str) -> None:
+    """ValueError if `spec` would refine a diverged run: refinement re-runs it on the host,
+    which a traced call cannot do (a silent skip would make the traced function another one)."""
+    if counted_levels(spec):
+        raise ValueError(
+            f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
+            f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "
+            f"not), or use dscjax.objective (a pure function of chosen numbers)")
+
+
+def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refine: int):
+    """(rows as NumPy arrays, each row's level) after re-running the `failed(tree)` rows of
+    a batch (leading axis) at levels 1..refine, host-side: `level(j, idx)` runs rows idx at
+    level j; each level runs the rows still failed, padded to a power of two (one program for
+    similar sizes)."""
+    out = jax.tree.map(np.array, rows)
+    todo = np.flatnonzero(failed(out))
+    levels = np.zeros(len(failed(out)), np.int32)
+    for j in range(1, refine + 1):
+        if todo.size == 0:
+            break
+        size = 1 << int(np.ceil(np.log2(todo.size)))
+        idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
+        sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
+
+        def put(dst, src, todo=todo):
+            dst[todo] = src
+            return dst
+
+        out = jax.tree.map(put, out, sub)
+        levels[todo] = j
+        todo = todo[failed(sub)]
+    return out, levels
+
+
+class DivergenceError(RuntimeError):
+    """A simulation left the state bound or went non-finite. `.trajectory` holds the run,
+    frozen at its last good state."""
+
+    def __init__(self, message: str, trajectory):
+        super().__init__(message)
+        self.trajectory = trajectory
+
+
+def refine_diverged(traj, overrides: Mapping[str, Any], level: Callable, refine: int):
+    """`refine_rows` for a batch Trajectory: `level(j, overrides_subset)` simulates a
+    sub-batch at level j with the same save times; `refinements` says each member's level."""
+    def rows(j, idx):
+        sub = level(j, {p: np.asarray(v)[idx] for p, v in overrides.items()})
+        return dataclasses.replace(sub, refinements=None)
+
+    out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
+                              lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
+    return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
+
+
+def divergence_report(traj, state_bound: float | None = None) -> list[str]:
+    """One line per diverged trajectory: which one (batch index), when, and how."""
+    code = np.atleast_1d(np.asarray(traj.status.code))
+    t_bad = np.atleast_1d(np.asarray(traj.t_diverged))
+    lines = []
+    batched = np.ndim(traj.status.code) > 0
+    for i in np.flatnonzero(code != STATUS_OK):
+        who = f"trajectory {i}" if batched else "the trajectory"
+        how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
+               STATUS_BOUND: "a state exceeded the state bound"
+               + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
+        lines.append(
+            f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time hold the "
+            f"last good state. Reduce dt (RK4 stability) or revise the gains."
+        )
+    return lines
