@@ -623,3 +623,24 @@ def test_a_primitive_the_emitter_does_not_write_is_refused_naming_it():
     with pytest.raises(export.ExportError, match=r"^controller: export cannot write the "
                        r"primitive 'cumsum' \(test_export.py:\d+ \(_f_cumulative\)\) in C$"):
         export.c_files(setup, dscjax.RunSpec.make(1.0, DT, sample_time=DT))
+
+
+def _f_huge(x, p):
+    return jnp.concatenate([np.zeros(1_000_001), x * x])[1_000_000:1_000_002]
+
+
+def test_an_array_beyond_what_export_writes_is_refused_naming_it():
+    # export writes at most 1,000,000 elements per array; a larger operand was mis-indexed
+    # (its element 1,000,000 read as the next operand's first) and written out silently
+    import dscjax
+    from dscjax import export
+    from dscjax.config import paper_example
+    from dscjax.plant import CustomPlant
+
+    plant = CustomPlant(jnp.ones(2), jnp.array([0.1, 0.0]), jnp.array([0.08, 0.1]), {},
+                        _f_huge, _rho, _delta, _dbar)
+    setup = paper_example(dtype=np.float64).replace(plant=plant)
+    with pytest.raises(export.ExportError, match=r"^controller: operand 1 of 'concatenate' "
+                       r"\(test_export.py:\d+ \(_f_huge\)\) has 1000001 elements; export "
+                       r"writes arrays of at most 1000000 elements$"):
+        export.c_files(setup, dscjax.RunSpec.make(1.0, DT, sample_time=DT))
