@@ -304,7 +304,7 @@ def test_heldout_box_varies_the_plant_and_the_disturbance(setup):
 
 
 def test_margin_sweep_times_and_failures():
-    from dscjax.reproduce.sampling import judge
+    from dscjax.ts_sweep import judge
     from tuning import margins
 
     assert margins.sweep_times(1e-3) == [1e-4, 2e-4, 5e-4, 1e-3, 2e-3]
@@ -327,7 +327,7 @@ def test_tracking_is_a_small_error_without_chattering():
     """One verdict for the Ts sweep and the delay margin: diverged, chattering (index above
     1.5, docs/numerics.md) and an error beyond 2 x the reference each fail; the bounds
     themselves pass."""
-    from dscjax.reproduce.sampling import judge
+    from dscjax.ts_sweep import judge
 
     assert judge(0.02, 1.5, 0.01) is None  # at both bounds: tracks
     assert judge(0.0201, 1.0, 0.01) == "error 2.01 x the reference loop's"

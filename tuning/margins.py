@@ -2,17 +2,17 @@
 
     continuous(problem, z0, z1)    the continuous loop (RK4 at dt, refined where stiff): a check
     sample_times(problem, z0, z1)  windowed L-inf, TV(u) and chattering index against Ts, 0.1
-                                   ms to 2 x the tuned loop's Ts (`dscjax.reproduce.sampling`),
+                                   ms to 2 x the tuned loop's Ts (`dscjax.ts_sweep`),
                                    the held-out batch at the tuned Ts and above, the largest Ts
-                                   up to which the gains track (`sampling.judge`)
+                                   up to which the gains track (`ts_sweep.judge`)
     delays(problem, z0, z1)        the input delay in samples, from the loop's own up to
                                    DELAY_MAX: the largest up to which the gains track
     long_run(problem, z0, z1)      LONG_FACTOR x T with measurement noise (LONG_NOISE) and a
                                    bounded disturbance (LONG_DBAR sin t): windowed L-inf and
                                    the peaks of the adaptive estimates (drift)
 
-"Tracks" is one criterion everywhere (`sampling.judge`): no divergence, a windowed L-inf at
-most `sampling.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
+"Tracks" is one criterion everywhere (`ts_sweep.judge`): no divergence, a windowed L-inf at
+most `ts_sweep.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
 (`dscjax.metrics.chatters`). Each returns a JSON-able dict; `markdown(margins)` is report.md's
 section.
 """
@@ -24,8 +24,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import metrics, params
-from dscjax.reproduce import sampling
+from dscjax import metrics, params, ts_sweep
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
 
@@ -71,16 +70,16 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
 
 
 def sweep_times(ts: float) -> list[float]:
-    """The sample times of the sweep: `sampling.SAMPLE_TIMES` from TS_MIN up to TS_FACTOR x
+    """The sample times of the sweep: `ts_sweep.SAMPLE_TIMES` from TS_MIN up to TS_FACTOR x
     ts, and that end itself."""
     top = TS_FACTOR * ts
-    out = [t for t in sampling.SAMPLE_TIMES if TS_MIN * (1 - 1e-9) <= t < top * (1 - 1e-9)]
+    out = [t for t in ts_sweep.SAMPLE_TIMES if TS_MIN * (1 - 1e-9) <= t < top * (1 - 1e-9)]
     return out + [top]
 
 
 def sample_times(problem, z0, z1, nominal: dict | None = None,
                  heldout: dict | None = None) -> dict[str, Any] | None:
-    """`sampling.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
+    """`ts_sweep.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
     Ts (its discretisation, delay and noise kept), each Ts judged against the gains' windowed
     L-inf in the loop tuned (`nominal`: {tag: the nominal plant's figures there}; default their
     continuous figure); the largest Ts up to which each tracks, and whether the tuned gains
@@ -94,11 +93,11 @@ def sample_times(problem, z0, z1, nominal: dict | None = None,
     dt = float(problem.options.dt)
     reference = None if nominal is None else {
         tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
-    result = sampling.study(problem.setup, sim.t_final, dt, float(sim.window_start),
-                            sweep_times(sim.sample_time), gains=gain_rows(problem, z0, z1),
-                            names=NAMES, base=sim, reference=reference)
+    result = ts_sweep.study(problem.setup, gain_rows(problem, z0, z1), NAMES, sim.t_final, dt,
+                            float(sim.window_start), sweep_times(sim.sample_time), base=sim,
+                            reference=reference)
     result["reference"] = "the loop tuned" if reference is not None else "the continuous loop"
-    result["largest"] = {n: sampling.largest_tracking(result, n) for n in NAMES}
+    result["largest"] = {n: ts_sweep.largest_tracking(result, n) for n in NAMES}
     result["tuned_tracks_all"] = all(result["tuned"]["tracks"])
     if heldout is not None and problem.heldout:
         result["batch"] = heldout_at(problem, z0, z1, result["sample_times"], heldout)
@@ -157,7 +156,7 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
 
 def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     """The delay margin: the loop tuned with an input delay of d samples, d from its own delay
-    up to DELAY_MAX, each gain set judged (`sampling.judge`) against its windowed L-inf in the
+    up to DELAY_MAX, each gain set judged (`ts_sweep.judge`) against its windowed L-inf in the
     loop tuned (`nominal`, {tag: the nominal plant's figures}, which are the row of its own
     delay); the largest d up to which each tracks (None: not even at its own delay). The
     delay fixes the program's shape, so each d compiles one program: the sweep stops at the
@@ -169,19 +168,19 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     own = int(sim.delay)
     ref = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
-                           **{tag: {k: [] for k in (*sampling.FIGURES, "why_not")}
+                           **{tag: {k: [] for k in (*ts_sweep.FIGURES, "why_not")}
                               for tag in NAMES}}
 
     def add(d, rows):
         out["delays"].append(d)
         for tag, r in zip(NAMES, rows, strict=True):
-            for k in sampling.FIGURES:
+            for k in ts_sweep.FIGURES:
                 out[tag][k].append(r[k])
-            out[tag]["why_not"].append(sampling.judge(r["linf_error_window"],
+            out[tag]["why_not"].append(ts_sweep.judge(r["linf_error_window"],
                                                       r["chattering_index"], ref[tag]))
 
     add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
-               for k in sampling.FIGURES} for tag in NAMES])
+               for k in ts_sweep.FIGURES} for tag in NAMES])
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
@@ -189,7 +188,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
                                            spec=sim.replace(delay=d, refine=0)))
         div = np.asarray(tr.diverged)
         add(d, [{k: None if div[i] else float(np.asarray(tr.metrics[k])[i])
-                 for k in sampling.FIGURES} for i in range(len(NAMES))])
+                 for k in ts_sweep.FIGURES} for i in range(len(NAMES))])
     out["largest"] = {}
     for tag in NAMES:
         last = None
@@ -303,12 +302,12 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   f"from {1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms "
                   f"(its discretisation, delay and noise kept; the continuous loop at the "
                   f"finest plant step as Ts -> 0; figure `sampling.png`). "
-                  + sampling.criterion(st, "the same gains in the loop tuned"
+                  + ts_sweep.criterion(st, "the same gains in the loop tuned"
                                        if st.get("reference") == "the loop tuned" else
                                        "the same gains' continuous loop")
                   + (" The held-out columns: the held-out batch at the tuned Ts and above, "
                      "over the plants that did not diverge." if st.get("batch") else ""), "",
-                  *sampling.table(st, NAMES), ""]
+                  *ts_sweep.table(st, NAMES), ""]
         for tag in NAMES:
             last = st["largest"][tag]
             lines.append(f"- {tag} gains: " + (

@@ -1,14 +1,6 @@
-"""How slowly the controller may be sampled: the paper's gains and `dscjax tune`'s default
-gains with the controller sampled at Ts (a zero-order hold on u), windowed L-inf, TV(u) and
-the chattering index against Ts, the continuous loop as the Ts -> 0 line; and the order at
-which the sampled loop tends to the continuous one (fitted on max |y_Ts - y| over t >= 1 s).
-`study`, `largest_tracking`, `plot` and `markdown` take any named gain sets (`dscjax tune`'s
-report draws start against tuned).
-
-A run **tracks** (`judge`) when it did not diverge, its windowed L-inf is at most
-TRACK_FACTOR x the same gains' reference figure (by default their continuous loop's), and it
-does not chatter (`dscjax.metrics.chatters`, docs/numerics.md): a small error bought by an
-input that switches at the sample rate is not tracking.
+"""How slowly the paper's gains and `dscjax tune`'s default gains may be sampled: the Ts sweep
+of `dscjax.ts_sweep` on the two, as `dscjax reproduce` draws it (`fig_sampling`), with its
+line for stdout and its section of summary.md.
 
 `TUNED` is the controller of one `dscjax tune` run with its defaults (`tuning.sample_time`
 1 ms, seed 0, 100 s; its figures are in docs/benchmarks.md)."""
@@ -19,14 +11,11 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dscjax import files, metrics
+from dscjax import ts_sweep
 from dscjax.config import from_dict
-from dscjax.plotting import subplots
-from dscjax.runspec import RunSpec, step_for
-from dscjax.simulate import simulate_batch
+from dscjax.ts_sweep import SAMPLE_TIMES, criterion, largest_tracking, table
+from dscjax.ts_sweep import total_steps as total_steps  # the command sizes its work by it
 
-# the sample times of the figure [s]
-SAMPLE_TIMES = (1e-4, 2e-4, 5e-4, 1e-3, 2e-3, 5e-3, 1e-2, 2e-2)
 # the controller of that run (its gains.json, the [controller] keys tuned)
 TUNED = {
     "k": [29.39024466421628, 8.015169941845304],
@@ -43,24 +32,7 @@ TUNED = {
     "sat_width": 0.0003299278181248443,
 }
 GAINS = ("paper", "tuned")
-# a run tracks when its windowed L-inf is at most this many times its gains' reference figure
-TRACK_FACTOR = 2.0
-# the figures of every run of the study (`metrics.json` names)
-FIGURES = ("linf_error_window", "tv_u_window", "chattering_index")
-
-
-def judge(linf: float | None, index: float | None, reference: float | None) -> str | None:
-    """Why a run does not track, in words, or None where it tracks (module docstring):
-    "diverged", "chatters (index 3.2)" or "error 2.6 x the reference loop's"; `reference`
-    (the same gains' windowed L-inf in the loop they are judged against) None: the error is
-    not judged."""
-    if linf is None or index is None:
-        return "diverged"
-    if metrics.chatters(index):
-        return f"chatters (index {index:.3g})"
-    if reference is not None and not linf <= TRACK_FACTOR * reference:
-        return f"error {linf / reference:.3g} x the reference loop's"
-    return None
+LABELS = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}
 
 
 def gain_sets(setup) -> dict:
@@ -70,96 +42,16 @@ def gain_sets(setup) -> dict:
                                          for s in (setup, tuned)]) for k in TUNED}
 
 
-def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
-    """The plant's step for each Ts: dt where Ts is a whole multiple of dt, else one fine step
-    (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so that the
-    runs of the figure share two compiled programs (the sample period is traced)."""
-    def whole(ts, h):
-        return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
-
-    fine = step_for(min(sample_times), dt)
-    return [dt if whole(ts, dt) else fine if whole(ts, fine) else step_for(ts, dt)
-            for ts in sample_times]
-
-
-def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPLE_TIMES) -> int:
-    """The consecutive steps `study` integrates (each a batch of both gain sets)."""
-    kept = [ts for ts in sample_times if ts <= t_final]
-    steps = plant_steps(kept, dt)
-    return sum(round(t_final / h) for h in [min(steps, default=dt), *steps])
-
-
 def study(setup, t_final: float, dt: float, window_start: float = 1.0,
-          sample_times: Sequence[float] = SAMPLE_TIMES, gains: dict | None = None,
-          names: Sequence[str] = GAINS, base: RunSpec | None = None,
-          reference: dict | None = None) -> dict:
-    """Windowed L-inf, TV(u) and chattering index on [window_start, T] (`FIGURES`) of each
-    gain set (`names`; `gains` {path: (len(names), ...)}, default `gain_sets`: the paper's and
-    `TUNED`), continuous (RK4 at the finest plant step of `plant_steps`: the Ts -> 0 limit,
-    which RK4 at dt may miss for stiff gains) and sampled at each Ts, None where a run
-    diverged; whether each Ts tracks (`judge` against `reference` {name: windowed L-inf},
-    default each set's continuous figure, else its figure at the smallest Ts); and the order at
-    which y_Ts tends to y (the first gain set: max |y_Ts - y| on t >= window_start over the
-    sample times <= dt, the outputs compared every dt; None with fewer than two). `base`: a
-    sampled loop whose other settings (discretisation, delay, noise) the sampled runs keep."""
-    ov = gain_sets(setup) if gains is None else gains
-    # no refinement: a sampled loop that diverges does so at any plant step
-    spec = RunSpec.make(t_final, dt, window_start=window_start, refine=0)
-    if base is not None:
-        spec = base.replace(t_final=t_final, dt=dt, window_start=window_start, refine=0,
-                            save_every=1, sample_time="none", delay=0, noise=None)
-    keep = {} if base is None or not base.sampled else {"delay": base.delay,
-                                                         "noise": base.to_table()["noise"]}
-    sample_times = [ts for ts in sample_times if ts <= t_final]
-
-    def run(ts=None, h=dt):
-        sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
-                          **({} if ts is None else {"sample_time": ts} | keep))
-        tr = simulate_batch(setup, ov, spec=sp)
-        diverged = np.asarray(tr.diverged)
-        rows = [{k: None if d else float(np.asarray(tr.metrics[k])[i]) for k in FIGURES}
-                for i, d in enumerate(diverged)]
-        return rows, np.asarray(tr.x)[0, :, 0]
-
-    steps = plant_steps(sample_times, dt)
-    cont, y = run(h=min(steps, default=dt))
-    sampled = [run(ts, h) for ts, h in zip(sample_times, steps, strict=True)]
-    out = {"sample_times": list(sample_times), "window_start": window_start,
-           "names": list(names), "track_factor": TRACK_FACTOR}
-    for i, name in enumerate(names):
-        rows = [r[i] for r, _ in sampled]
-        ref = (reference or {}).get(name, cont[i]["linf_error_window"])
-        if ref is None:  # the continuous loop diverged (stiff at the finest step)
-            ref = next((r["linf_error_window"] for r in rows if r["linf_error_window"]), None)
-        why = [judge(r["linf_error_window"], r["chattering_index"], ref) for r in rows]
-        out[name] = {"continuous": cont[i]["linf_error_window"],
-                     "continuous_tv_u_window": cont[i]["tv_u_window"],
-                     "continuous_chattering_index": cont[i]["chattering_index"],
-                     "sampled": [r["linf_error_window"] for r in rows],
-                     "tv_u_window": [r["tv_u_window"] for r in rows],
-                     "chattering_index": [r["chattering_index"] for r in rows],
-                     "reference": ref, "tracks": [w is None for w in why], "why_not": why}
-    keep = np.arange(y.size) * dt >= window_start
-    fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
-            zip(sample_times, sampled, strict=True) if ts <= dt * (1 + 1e-9)]
-    if len(fine) < 2 or not all(np.isfinite(e) and e > 0 for _, e in fine):
-        out["order"] = None
-        return out
-    ts, err = np.asarray(fine).T
-    out["order"] = {"sample_times": ts.tolist(), "max_abs_dy": err.tolist(),
-                    "order": float(np.polyfit(np.log(ts), np.log(err), 1)[0])}
-    return out
+          sample_times: Sequence[float] = SAMPLE_TIMES) -> dict:
+    """`ts_sweep.study` of the paper's gains and `TUNED` (`gain_sets`)."""
+    return ts_sweep.study(setup, gain_sets(setup), GAINS, t_final, dt, window_start,
+                          sample_times)
 
 
-def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
-    """(Ts, windowed L-inf) at the largest Ts of the study up to which gain set `name` tracks
-    at every Ts (`judge`; None: it does not track at the smallest)."""
-    r, last = result[name], None
-    for ts, v, ok in zip(result["sample_times"], r["sampled"], r["tracks"], strict=True):
-        if not ok:
-            break
-        last = (ts, v)
-    return last
+def plot(result: dict, path, colors: dict, dpi: int, labels: dict | None = None) -> None:
+    """`ts_sweep.plot`, the gain sets named by `LABELS` unless `labels` says otherwise."""
+    ts_sweep.plot(result, path, colors, dpi, LABELS if labels is None else labels)
 
 
 def line(result: dict) -> str:
@@ -173,42 +65,6 @@ def line(result: dict) -> str:
 
     return (f"sampled controller: {last('paper')}; {last('tuned')}; the sampled loop tends to "
             f"the continuous one at order {result['order']['order']:.2f} in Ts")
-
-
-LABELS = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}
-
-
-def plot(result: dict, path, colors: dict, dpi: int, labels: dict | None = None) -> None:
-    fig, ax = subplots(figsize=(6.4, 4.0), layout="constrained")
-    ts_ms = 1e3 * np.asarray(result["sample_times"])
-    for name in result.get("names", GAINS):
-        r, c = result[name], colors[name]
-        ok = np.array([v is not None for v in r["sampled"]])
-        tracks = np.array(r["tracks"], bool)
-        v = np.array([np.nan if x is None else x for x in r["sampled"]])
-        label = (labels or LABELS)[name]
-        ax.plot(ts_ms[ok], v[ok], "-", color=c, lw=1)
-        ax.plot(ts_ms[tracks], v[tracks], "o", color=c, ls="none",
-                label=f"{label}, sampled: tracks")
-        if (ok & ~tracks).any():
-            ax.plot(ts_ms[ok & ~tracks], v[ok & ~tracks], "o", mfc="none", color=c, ms=8,
-                    ls="none", label=f"{label}, sampled: chatters or error > "
-                    f"{result.get('track_factor', TRACK_FACTOR):g} x")
-        if r["continuous"] is not None:
-            ax.axhline(r["continuous"], color=c, ls="--", lw=1,
-                       label=f"{label}, continuous (Ts -> 0)")
-        if (~ok).any():
-            ax.plot(ts_ms[~ok], np.full((~ok).sum(), np.nanmax(v) if ok.any() else 1.0), "x",
-                    color=c, ms=9, mew=2, ls="none", label=f"{label}: diverged")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
-    ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
-    order = result["order"]
-    ax.set_title("Sampled controller" + ("" if order is None else
-                                         f" (fitted order {order['order']:.2f} in Ts)"))
-    ax.legend(fontsize=8)
-    files.save_figure(fig, path, dpi=dpi)
 
 
 def markdown(result: dict) -> str:
@@ -228,52 +84,3 @@ def markdown(result: dict) -> str:
                   f"gains; one exponential-Euler step of the controller per sample: first "
                   f"order)."]
     return "\n".join(lines)
-
-
-def criterion(result: dict, reference: str = "the same gains' continuous loop") -> str:
-    """The tracking criterion of a study in one sentence."""
-    return (f"A Ts tracks when the loop did not diverge, its L∞ error on "
-            f"[{result['window_start']:g} s, T] is at most "
-            f"{result.get('track_factor', TRACK_FACTOR):g} x that of {reference}, and it does "
-            f"not chatter (chattering index, TV(u)/TV(u low-passed at "
-            f"{1e3 * metrics.CHATTER_TIME_CONSTANT:g} ms) on the window, at most "
-            f"{metrics.CHATTER_RATIO:g}: docs/numerics.md, \"Chattering\").")
-
-
-def table(result: dict, names: Sequence[str], labels: dict | None = None) -> list[str]:
-    """The markdown table against Ts, a row per Ts and gain set: windowed L-inf, TV(u) and
-    chattering index on the window, the verdict (`judge`); with `result["batch"]` (a batch
-    of plants at some Ts, {name: [None or {"p95_tv_u_window", "n_chattering", "n_measured"},
-    ...] per Ts}), its p95 of TV(u) and its chattering plants."""
-    t0 = f"{result['window_start']:g}"
-    batch = result.get("batch")
-    head = (f"| Ts [ms] | gains | L∞ e on [{t0} s, T] | TV(u) on [{t0} s, T] | chattering "
-            f"index | tracks |")
-    if batch:
-        head += f" {batch['label']}: p95 of TV(u) | {batch['label']}: chattering plants |"
-    lines = [head, "|---" * (head.count("|") - 1) + "|"]
-
-    def cell(v, digits=4):
-        return "diverged" if v is None else f"{v:.{digits}g}"
-
-    for i, ts in enumerate(result["sample_times"]):
-        for n in names:
-            r = result[n]
-            why = r["why_not"][i]
-            row = (f"| {1e3 * ts:g} | {(labels or {}).get(n, n)} | {cell(r['sampled'][i])} | "
-                   f"{cell(r['tv_u_window'][i])} | {cell(r['chattering_index'][i], 3)} | "
-                   + ("yes" if why is None else f"**no**: {why}") + " |")
-            if batch:
-                b = batch[n][i]
-                row += (" - | - |" if b is None else
-                        f" {cell(b['p95_tv_u_window'])} | {b['n_chattering']} of "
-                        f"{b['n_measured']}" + (f" ({b['n_diverged']} diverged)"
-                                                if b["n_diverged"] else "") + " |")
-            lines.append(row)
-    for n in names:
-        r = result[n]
-        lines.append(f"| continuous | {(labels or {}).get(n, n)} | {cell(r['continuous'])} | "
-                     f"{cell(r['continuous_tv_u_window'])} | "
-                     f"{cell(r['continuous_chattering_index'], 3)} | |"
-                     + (" | |" if batch else ""))
-    return lines
