@@ -17,8 +17,6 @@ from dscjax.integrate.scan import blocked_scan
 
 # Members per chunk of the time-parallel Jacobians (bounds their memory, not their result).
 _PARALLEL_CHUNK = 8192
-
-
 DEFAULT_CHECKPOINT_EVERY = 100
 
 

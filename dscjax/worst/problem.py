@@ -143,10 +143,6 @@ class Problem:
         return 0 if self.disturbance is None else self.disturbance.size
 
     @property
-    def dim(self) -> int:
-        return self.d + self.m
-
-    @property
     def columns(self) -> list[params.Param]:
         return [r.param for r in self.ranges]
 
