@@ -1,0 +1,354 @@
+"""Grey-box identification: the free numbers of a config (and each segment's initial plant
+state) that minimise the simulation error of the measured columns, by Levenberg-Marquardt on
+exact Jacobians through the simulator (optimistix), with the Gauss-Newton covariance.
+
+    problem = Problem.make(setup, record, ["plant.g", "hysteresis.alpha"], plant=True, dt=1e-3)
+    fit = solve(problem)                       # fit.values, fit.cov, fit.cost
+    report = assess(problem, fit)              # standard errors, intervals, NRMSE, FPE, ...
+
+Residuals are (y - y_hat) / sigma per measured column (sigma given, or estimated from the
+record's second differences), plus each segment's continuity (its end state against the next
+segment's start) with weight CONTINUITY. Free numbers that must be positive are fitted in log
+coordinates (their intervals stay positive), signed ones as they are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from dscjax import params, validation
+from dscjax.closed_loop import Setup
+from dscjax.identify.data import Record
+from dscjax.identify.experiment import Experiment, simulate
+from dscjax.validation import ConfigError
+
+CONTINUITY = 10.0  # a segment's end state against the next's start, in units of its sigma
+RANK_TOL = 1e-8  # singular values below this x the largest: directions the data do not fix
+LOOSE = 1.0  # a relative standard error above this (100 %): not identified
+Z95 = 1.959963984540054  # the 97.5 % quantile of the standard normal
+
+
+@dataclasses.dataclass(frozen=True)
+class Free:
+    """One free number (a leaf or one element): its path, and log coordinates if positive."""
+
+    param: params.Param
+    log: bool
+
+    @property
+    def name(self) -> str:
+        return self.param.name
+
+
+@dataclasses.dataclass(frozen=True)
+class Problem:
+    """What is fitted: the setup, the free numbers, the experiment and the data it is fitted
+    to (`fit_index`: the samples of the fit; the rest validates)."""
+
+    setup: Setup
+    free: tuple[Free, ...]
+    exp: Experiment
+    record: Record
+    sigma: dict[str, float]  # per measured column
+    fit_index: np.ndarray  # (M,) sample indices fitted
+    h0: object = None  # the actuator's state at the first sample (None: at rest)
+
+    @classmethod
+    def make(cls, setup: Setup, record: Record, paths: Sequence[str], *, plant: bool,
+             dt: float, segments: int = 1, hold: str = "zoh",
+             sigma: Mapping[str, float] | None = None, fit_index=None,
+             field: str = "--free") -> Problem:
+        free = []
+        for text in paths:
+            p = params.Param.parse(text, field)
+            p.check(setup, field)
+            value = np.atleast_1d(np.asarray(p.value(setup), float))
+            elements = [p] if p.index is not None or p.scale or value.size == 1 and \
+                np.ndim(p.value(setup)) == 0 else \
+                [params.Param(p.path, i) for i in range(value.size)]
+            for q in elements:
+                v = float(np.asarray(q.value(setup), float))
+                free.append(Free(q, log=_positive(setup, q) and v > 0))
+        names = [f.name for f in free]
+        twice = {n for n in names if names.count(n) > 1}
+        if twice:
+            raise ConfigError(f"{field}: {sorted(twice)[0]!r} is given twice")
+        if not free:
+            raise ConfigError(f"{field}: no number to fit")
+        exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
+                              hold=hold)
+        measured = list(record.y)
+        est = {c: noise_level(record.y[c]) for c in measured}
+        sigma = {c: float((sigma or {}).get(c, est[c])) for c in measured}
+        index = np.arange(len(record)) if fit_index is None else np.asarray(fit_index)
+        return cls(setup, tuple(free), exp, record, sigma, index)
+
+    # -- coordinates ------------------------------------------------------------------------
+    def z0(self) -> dict:
+        """The start: the setup's numbers (logs where positive) and each segment's start
+        state (the measured states there, the setup's x0 or a simulation elsewhere)."""
+        z = jnp.asarray([math.log(float(f.param.value(self.setup))) if f.log else
+                         float(f.param.value(self.setup)) for f in self.free])
+        return {"z": z, "x": self.initial_states(self.setup)}
+
+    def setup_at(self, z) -> Setup:
+        values: dict = {}
+        for i, f in enumerate(self.free):
+            v = jnp.exp(z[i]) if f.log else z[i]
+            leaf = values.get(f.param.path, jnp.asarray(params.get(self.setup, f.param.path)))
+            values[f.param.path] = v if f.param.index is None else leaf.at[f.param.index].set(v)
+        return params.set_many(self.setup, values)
+
+    def values(self, z) -> np.ndarray:
+        z = np.asarray(z, float)
+        return np.array([math.exp(v) if f.log else v for v, f in zip(z, self.free,
+                                                                       strict=True)])
+
+    def initial_states(self, setup) -> jnp.ndarray:
+        """(S, n) each segment's start state: measured columns from the record, the others
+        from a single-shot simulation of `setup` from x0 (0 where it left the finite)."""
+        if not self.exp.plant:
+            return jnp.zeros((1, 0))
+        n = setup.order
+        x0 = jnp.asarray(setup.plant.x0, float)
+        one = dataclasses.replace(self.exp, starts=(0,))
+        x, _, _ = simulate(setup, one, x0[None], self.h0)
+        x = np.where(np.isfinite(np.asarray(x)), np.asarray(x), 0.0)
+        out = x[list(self.exp.starts)]
+        for i in range(n):
+            if f"x{i + 1}" in self.record.y:
+                out[:, i] = self.record.y[f"x{i + 1}"][list(self.exp.starts)]
+        return jnp.asarray(out)
+
+    # -- residuals --------------------------------------------------------------------------
+    def predict(self, theta):
+        """{column: (N,) the model's value at every sample}, and the segment ends."""
+        setup = self.setup_at(theta["z"])
+        x, w, ends = simulate(setup, self.exp, theta["x"], self.h0)
+        out = {"w": w}
+        if x is not None:
+            out |= {f"x{i + 1}": x[:, i] for i in range(x.shape[1])}
+        return out, ends
+
+    def residuals(self, theta) -> jax.Array:
+        """The weighted residuals of the fitted samples, then the continuity of segments."""
+        pred, ends = self.predict(theta)
+        idx = self.fit_index
+        parts = [(jnp.asarray(self.record.y[c][idx]) - pred[c][idx]) / self.sigma[c]
+                 for c in self.record.y]
+        if ends is not None and ends.shape[0]:
+            scale = jnp.asarray([self.sigma.get(f"x{i + 1}", self._state_scale())
+                                 for i in range(ends.shape[1])])
+            parts.append(CONTINUITY * (ends - theta["x"][1:]).ravel()
+                         / jnp.tile(scale, ends.shape[0]))
+        return jnp.concatenate(parts)
+
+    def _state_scale(self) -> float:
+        return float(np.median([self.sigma[c] for c in self.record.y]))
+
+    @property
+    def n_data(self) -> int:
+        return len(self.fit_index) * len(self.record.y)
+
+
+def noise_level(y) -> float:
+    """The std of white noise on a smooth signal sampled finely: that of its second
+    differences over sqrt(6) (floored at 1e-9 of its range)."""
+    y = np.asarray(y, float)
+    d2 = np.diff(y, 2)
+    level = float(np.std(d2) / math.sqrt(6.0)) if d2.size > 2 else 0.0
+    return max(level, 1e-9 * float(np.ptp(y)), 1e-12)
+
+
+def _positive(setup, p: params.Param) -> bool:
+    """Whether the field of p must be > 0 (its range rule), so that log coordinates fit it."""
+    model = getattr(setup, p.path.split(".")[0])
+    name = p.path.split(".")[1]
+    for f in dataclasses.fields(model):
+        if f.name == name:
+            return f.metadata.get("check") == "positive"
+    return False
+
+
+@dataclasses.dataclass(frozen=True)
+class Fit:
+    """A solution: theta (the free numbers' coordinates z and the segments' start states),
+    its cost 0.5 sum r^2, the solver's steps and status, the residual function's calls."""
+
+    theta: dict
+    cost: float
+    steps: int
+    status: str
+    jacobian: np.ndarray  # (m, p) of the weighted residuals at theta, p = free + states
+    residuals: np.ndarray  # (m,)
+    start: int = 0  # which start (of --starts) it came from
+
+
+def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
+          tol: float = 1e-10) -> Fit:
+    """Levenberg-Marquardt (optimistix) from theta0 (default the problem's start), the
+    Jacobian by forward mode through the simulator."""
+    import optimistix as optx
+
+    theta0 = problem.z0() if theta0 is None else theta0
+    solver = optx.LevenbergMarquardt(rtol=tol, atol=tol)
+    sol = optx.least_squares(lambda th, _: problem.residuals(th), solver, theta0,
+                             max_steps=max_steps, throw=False)
+    theta = jax.tree.map(np.asarray, sol.value)
+    r, jac = residuals_and_jacobian(problem, theta)
+    status = "converged" if sol.result == optx.RESULTS.successful else str(
+        optx.RESULTS[sol.result]) if hasattr(optx.RESULTS, "__getitem__") else "stopped"
+    return Fit(theta, 0.5 * float(r @ r), int(sol.stats["num_steps"]), status, jac, r)
+
+
+def residuals_and_jacobian(problem: Problem, theta) -> tuple[np.ndarray, np.ndarray]:
+    """(r (m,), dr/dtheta (m, p)) at theta, by forward mode; the columns: the free numbers'
+    coordinates z, then the segments' start states."""
+    flat, unravel = ravel_pytree((jnp.asarray(theta["z"]), jnp.asarray(theta["x"])))
+
+    def f(v):
+        z, x = unravel(v)
+        return problem.residuals({"z": z, "x": x})
+
+    r = f(flat)
+    jac = jax.jacfwd(f)(flat)
+    return np.asarray(r, float), np.asarray(jac, float)
+
+
+def solve_starts(problem: Problem, starts: int = 1, seed: int = 0, spread: float = 0.5,
+                 **kw) -> tuple[Fit, list[float]]:
+    """The best of `starts` fits: the problem's start, then starts whose free numbers are
+    scattered (log coordinates: x e^(+-spread); others: +-spread x |value|, at least spread)
+    around it; (best fit, every start's cost)."""
+    rng = np.random.default_rng(seed)
+    base = problem.z0()
+    fits = [solve(problem, base, **kw)]
+    for k in range(1, starts):
+        z = np.asarray(base["z"], float).copy()
+        for i, f in enumerate(problem.free):
+            z[i] += rng.uniform(-spread, spread) * (1.0 if f.log else max(abs(z[i]), 1.0))
+        theta = {"z": jnp.asarray(z), "x": problem.initial_states(problem.setup_at(z))}
+        fits.append(dataclasses.replace(solve(problem, theta, **kw), start=k))
+    costs = [f.cost if math.isfinite(f.cost) else math.inf for f in fits]
+    return fits[int(np.argmin(costs))], costs
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """One free number: its value, standard error, 95 % interval, and whether the data fix
+    it (`why` says why not)."""
+
+    name: str
+    value: float
+    se: float
+    low: float
+    high: float
+    identifiable: bool
+    why: str = ""
+
+
+def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, np.ndarray,
+                                                    float]:
+    """(each free number's `Estimate`, their correlation matrix, the Jacobian's singular
+    values, the residual variance factor s^2). Covariance s^2 (J^T J)^-1 (Gauss-Newton) in the
+    fit's coordinates, s^2 = |r|^2 / (m - p); a log coordinate's interval is exp(z +- 1.96 se),
+    its se the delta method's value x se_z. A number is not identifiable where it loads on a
+    direction whose singular value is below RANK_TOL x the largest, or where its relative
+    standard error exceeds LOOSE."""
+    jac, r = fit.jacobian, fit.residuals
+    m, p = jac.shape
+    k = len(problem.free)
+    s2 = float(r @ r) / max(m - p, 1)
+    u, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    keep = sv > RANK_TOL * sv[0]
+    inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]  # the pseudo-inverse of J^T J
+    cov = s2 * inv[:k, :k]
+    se_z = np.sqrt(np.clip(np.diag(cov), 0, None))
+    weak = np.zeros(k, bool)
+    for j in np.flatnonzero(~keep):
+        weak |= np.abs(vt[j, :k]) > 0.3
+    z = np.asarray(fit.theta["z"], float)
+    out = []
+    for i, f in enumerate(problem.free):
+        if f.log:
+            value, se = math.exp(z[i]), math.exp(z[i]) * se_z[i]
+            low, high = math.exp(z[i] - Z95 * se_z[i]), math.exp(z[i] + Z95 * se_z[i])
+            rel = se_z[i]
+        else:
+            value, se = z[i], se_z[i]
+            low, high = value - Z95 * se, value + Z95 * se
+            rel = se / abs(value) if value else math.inf
+        why = ""
+        if weak[i]:
+            why = "the data leave its direction undetermined (a singular value below " \
+                  f"{RANK_TOL:g} x the largest)"
+        elif not rel <= LOOSE:
+            why = f"its relative standard error is {100 * rel:.3g} % (> {100 * LOOSE:g} %)"
+        out.append(Estimate(f.name, value, float(se), low, high, not why, why))
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(d, d)
+    return out, corr, sv, s2
+
+
+def fit_figures(problem: Problem, fit: Fit, index=None) -> dict[str, dict[str, float]]:
+    """Per measured column on the samples `index` (default the fitted ones): NRMSE fit in
+    percent, 100 (1 - |y - y_hat| / |y - mean y|), and MSE; over all columns, FPE =
+    det(E^T E / N) (1 + d/N) / (1 - d/N) (E the residuals, d the free numbers and start
+    states, N the samples)."""
+    index = problem.fit_index if index is None else index
+    pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
+    out, errs = {}, []
+    for c, y in problem.record.y.items():
+        y = np.asarray(y)[index]
+        e = y - np.asarray(pred[c])[index]
+        errs.append(e)
+        out[c] = {"nrmse_fit_percent": float(100 * (1 - np.linalg.norm(e)
+                                                    / max(np.linalg.norm(y - y.mean()),
+                                                          1e-300))),
+                  "mse": float(np.mean(e * e))}
+    e = np.column_stack(errs)
+    n, d = e.shape[0], fit.jacobian.shape[1]
+    det = float(np.linalg.det(e.T @ e / n))
+    out["all"] = {"fpe": det * (1 + d / n) / (1 - d / n) if d < n else math.inf}
+    return out
+
+
+def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
+                   ) -> tuple[Problem, Fit]:
+    """The identified model on another record (or the record's tail, its actuator going on
+    from `h0`): its numbers fixed, only its initial plant state fitted (one segment), as a
+    grey-box user compares."""
+    setup = problem.setup_at(jnp.asarray(fit.theta["z"]))
+    val = dataclasses.replace(problem, setup=setup, free=(), record=record, h0=h0,
+                              exp=Experiment.make(record.t, record.u, plant=problem.exp.plant,
+                                                  dt=_dt(problem), hold=problem.exp.hold),
+                              fit_index=np.arange(len(record)))
+    if not val.exp.plant:
+        theta = {"z": jnp.zeros((0,)), "x": jnp.zeros((1, 0))}
+        r, jac = residuals_and_jacobian(val, theta)
+        return val, Fit(theta, 0.5 * float(r @ r), 0, "no state to fit", jac, r)
+    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
+
+
+def _dt(problem: Problem) -> float:
+    t = np.asarray(problem.exp.t)
+    return float(np.max(np.diff(t))) / problem.exp.substeps
+
+
+def check_segments(segments: int, n: int, field: str = "--segments") -> int:
+    validation.integer(segments, field, 1)
+    if segments > n // 10:
+        raise ConfigError(f"{field} must be at most {n // 10} for {n} samples (10 a segment; "
+                          f"got {segments})")
+    return segments
+
+
+__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures",
+           "noise_level", "residuals_and_jacobian", "solve", "solve_starts", "validation_fit"]
