@@ -19,7 +19,7 @@ def _curves(res):
     for tag, problem, fit in (("fit", res.problem, res.fit),
                               ("validation", res.val_problem, res.val_fit)):
         pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
-        idx = problem.fit_index
+        idx = np.asarray(problem.fit_index)
         for c, y in problem.record.y.items():
             out.append((c, tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
                         np.asarray(pred[c])[idx]))

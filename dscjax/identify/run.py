@@ -160,9 +160,10 @@ def summary_of(res: Identified, source: dict, box: dict) -> dict:
     return {
         "data": source, "samples": len(p.record), "fitted_samples": int(len(p.fit_index)),
         "experiment": "plant" if p.exp.plant else "actuator",
-        "columns": list(p.record.y), "noise_std": p.sigma, "hold": p.exp.hold,
+        "columns": list(p.record.y), "hold": p.exp.hold,
+        "noise_std": {c: float(v) for c, v in p.sigma.items()},
         "segments": p.exp.segments, "substeps": p.exp.substeps,
-        "solver": {"method": "Levenberg-Marquardt (optimistix), forward-mode Jacobians",
+        "solver": {"method": "Levenberg-Marquardt, exact Jacobians by forward mode",
                    "steps": fit.steps, "status": fit.status, "cost": fit.cost,
                    "starts": res.start_costs, "best_start": fit.start,
                    "seconds": res.seconds},
