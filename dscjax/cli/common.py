@@ -23,16 +23,19 @@ COMMANDS = {
     "hysteresis": "dscjax.cli.hysteresis",
     "export": "dscjax.cli.export",
     "sensitivity": "dscjax.cli.sensitivity",
+    "identify": "dscjax.cli.identify",
 }
 
 
 def settings_groups() -> dict:
     """{table: the settings group declaring it}: the tables of docs/settings.md."""
+    from dscjax.identify.run import IdentifySettings
     from dscjax.runspec import Simulation
     from dscjax.sweep import SweepSettings
     from tuning.config import TuningConfig
 
-    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig}
+    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig,
+            "identify": IdentifySettings}
 
 
 BLOCK = "<!-- settings {} -->", "<!-- end settings -->"

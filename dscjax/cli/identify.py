@@ -1,0 +1,101 @@
+"""`dscjax identify`: grey-box identification of the plant and the actuator from a measured
+record (`dscjax.identify`). Writes into DIR identified.toml (a whole config, the parameters'
+95 % intervals as the robust tuning box), report.md, report.json, fit.png and residuals.png.
+"""
+
+from __future__ import annotations
+
+import sys
+
+from dscjax.cli.common import Outputs, add_config_args, add_out_arg, add_overwrite_arg
+
+OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
+
+
+def add_parser(sub):
+    from dscjax.identify.run import IdentifySettings
+    from dscjax.settings import add_arguments
+
+    p = sub.add_parser(
+        "identify", help="identify plant and actuator numbers from a measured record",
+        description="Fit the free numbers of a config (--free) to a measured record (--data: "
+        "CSV with a header row, or NPZ, columns t, u and any of x1..xn, w) by "
+        "Levenberg-Marquardt on exact Jacobians through the simulator: the actuator alone "
+        "where the record measures w only, the plant with its actuator where it measures a "
+        "state. Reports the fit (NRMSE, MSE, FPE), each number's standard error and 95 % "
+        "interval, which numbers the data cannot identify, and a validation fit "
+        "(docs/identification.md).")
+    p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
+    add_config_args(p, run_keys=("dt",), float32=False)
+    add_arguments(p, IdentifySettings, "identify.")
+    add_out_arg(p, "results/identify")
+    add_overwrite_arg(p)
+    p.add_argument("--no-plot", action="store_true", help="skip the figures")
+    return p
+
+
+def load(args):
+    """(setup, spec, settings, source) from --config (its [identify] table), --example and the
+    options."""
+    import numpy as np
+
+    from dscjax import config, settings
+    from dscjax.cli.common import apply_run_options, blame_options, example_setup
+    from dscjax.identify.run import IdentifySettings
+    from dscjax.params import cast
+    from dscjax.validation import ConfigError, validate_setup
+
+    raw = config.read(args.config, "--config") if args.config else {}
+    table = raw.pop("identify", {})
+    for other in ("tuning", "sweep"):
+        raw.pop(other, None)
+    setup, spec = config.from_dict(raw, base=example_setup(args))
+    s = settings.from_table(IdentifySettings, table, "identify.")
+    given, names = settings.given(args, IdentifySettings, "identify.")
+    with blame_options(names):
+        s = settings.from_table(IdentifySettings, given, "identify.", s)
+    if not s.free:
+        raise ConfigError("--free: give the numbers to fit, e.g. --free "
+                          "plant.g,hysteresis.alpha (or [identify] free in the config)")
+    spec = apply_run_options(args, spec)
+    validate_setup(setup)
+    source = {"data": args.data, "model": args.config or f"--example {args.example}"}
+    return cast(setup, np.dtype("float64")), spec, s, source
+
+
+def run(args) -> int:
+    from dscjax.cli.common import prepare_out, print_config
+    from dscjax.identify import run as ident
+
+    setup, spec, s, source = load(args)
+    if args.print_config:
+        from dscjax import settings
+
+        print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
+        return 0
+    record, val = ident.read_records(s, args.data, setup.order)
+    out = prepare_out(args, OUTPUTS)
+    kind = "the plant with its actuator" if any(c != "w" for c in record.y) else \
+        "the actuator alone"
+    print(f"dscjax identify: {len(record)} samples of {', '.join(record.y)} over "
+          f"t = {record.t[0]:g}..{record.t[-1]:g} s, {kind}; free: {', '.join(s.free)}; "
+          f"{s.segments} segment(s), {s.starts} start(s); fitting ...", file=sys.stderr)
+    res = ident.identify(setup, spec, record, s, val)
+    written = ident.write(out, res, spec, source, plot=not args.no_plot)
+    for c, f in res.figures.items():
+        if c != "all":
+            print(f"  fit to estimation data, {c}: {f['nrmse_fit_percent']:.2f} % (NRMSE), "
+                  f"validation {res.validation[c]['nrmse_fit_percent']:.2f} %")
+    for e in res.estimates:
+        flag = "" if e.identifiable else f"  NOT IDENTIFIABLE: {e.why}"
+        print(f"  {e.name} = {e.value:.6g} +- {e.se:.3g} (95 %: [{e.low:.6g}, {e.high:.6g}])"
+              f"{flag}")
+    print(f"  wrote {out}: {', '.join(written)}; tune for it: dscjax tune --config "
+          f"{out}/identified.toml --batch 8")
+    return 0
+
+
+def interrupt_hint(args) -> str:
+    from dscjax.cli.main import rerun_command
+
+    return f"nothing is kept; run the same command again: {rerun_command(args)}"

@@ -1,0 +1,118 @@
+"""An experiment as a pure function of numbers: the actuator (and the plant behind it) driven
+by the measured input u(t), simulated on the record's own time stamps.
+
+    exp = Experiment.make(record, plant=True, dt=1e-3, segments=4)
+    x, w, ends = simulate(setup, exp, x_init)     # (N, n), (N,), (S - 1, n)
+
+Between two samples u is held (`hold = "zoh"`: the actuator steps along its own curve at each
+sample, `Hysteresis.jump`) or linear (`"linear"`: u' constant, the hysteresis rate integrated
+with the plant). Each interval is integrated by `substeps` RK4 steps of at most dt. With
+segments (multiple shooting) the plant restarts at each segment's first sample from a state
+of its own, `x_init[s]`; the actuator, driven by u alone, runs through the whole record. A
+plain `lax.scan`: differentiable in both modes, so Jacobians come by forward mode.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Literal
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.closed_loop import Setup
+from dscjax.integrate import rk4_step
+
+Hold = Literal["linear", "zoh"]
+HOLDS: tuple[str, ...] = ("linear", "zoh")
+
+
+class Experiment(eqx.Module):
+    """The record's time stamps and input, and how it is simulated."""
+
+    t: jax.Array  # (N,) increasing
+    u: jax.Array  # (N,) the measured input
+    starts: tuple[int, ...] = eqx.field(static=True)  # each segment's first sample (0 first)
+    substeps: int = eqx.field(static=True, default=1)  # RK4 steps per interval
+    hold: Hold = eqx.field(static=True, default="zoh")
+    plant: bool = eqx.field(static=True, default=True)  # False: the actuator alone
+
+    @classmethod
+    def make(cls, t, u, *, plant: bool, dt: float, segments: int = 1,
+             hold: Hold = "zoh") -> Experiment:
+        t, u = np.asarray(t, np.float64), np.asarray(u, np.float64)
+        n = t.size
+        starts = tuple(int(round(i * (n - 1) / segments)) for i in range(segments))
+        substeps = max(1, math.ceil(float(np.max(np.diff(t))) / dt * (1 - 1e-12)))
+        return cls(jnp.asarray(t), jnp.asarray(u), starts, substeps, hold, plant)
+
+    @property
+    def segments(self) -> int:
+        return len(self.starts)
+
+
+def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = False):
+    """(x (N, n) or None, w (N,), ends (S - 1, n) or None): the plant's states and the
+    actuator's output at every sample, and each segment's last state before the next one
+    restarts from `x_init` (S, n) (the continuity that multiple shooting fits). The actuator
+    starts from `h0` (default its state at rest, `init_state(u[0])`); `final`: return its
+    state at the last sample instead (where a record's tail goes on)."""
+    hyst, plant = setup.hysteresis, setup.plant
+    t, u = exp.t, exp.u
+    dtype = t.dtype
+    h0 = hyst.init_state(u[0]) if h0 is None else h0
+    h0 = jax.tree.map(lambda a: jnp.asarray(a, dtype), h0)
+    n_int = t.size - 1
+    restart = np.zeros(n_int, bool)
+    which = np.zeros(n_int, np.int32)
+    for s, k in enumerate(exp.starts[1:], start=1):
+        restart[k - 1], which[k - 1] = True, s  # after interval k-1, sample k starts segment s
+    x0 = x_init[0] if exp.plant else jnp.zeros((0,), dtype)
+    x_inits = x_init if exp.plant else jnp.zeros((1, 0), dtype)
+
+    def interval(carry, xs):
+        x, h = carry
+        t0, t1, u0, u1, again, s = xs
+        step = (t1 - t0) / exp.substeps
+        if exp.hold == "zoh":
+            w = hyst.output(u0, h)
+
+            def fx(tt, xx, _):
+                return plant.rhs(xx, w, tt)
+
+            for i in range(exp.substeps):
+                x = rk4_step(fx, t0 + i * step, x, step, None) if exp.plant else x
+            h = hyst.jump(u0, u1, h)
+        else:
+            slope = (u1 - u0) / (t1 - t0)
+
+            def f(tt, y, _):
+                xx, hh = y
+                uu = u0 + slope * (tt - t0)
+                dh = hyst.rate(uu, slope, hh)
+                dx = plant.rhs(xx, hyst.output(uu, hh), tt) if exp.plant else jnp.zeros_like(xx)
+                return dx, dh
+
+            for i in range(exp.substeps):
+                ti = t0 + i * step
+                x, h = rk4_step(f, ti, (x, h), step, None)
+                if hyst.projects:
+                    h = hyst.project(u0 + slope * (ti + step - t0), h)
+        end = x
+        x = jnp.where(again, x_inits[s], x)
+        return (x, h), (x, hyst.output(u1, h), end)
+
+    xs = (t[:-1], t[1:], u[:-1], u[1:], jnp.asarray(restart), jnp.asarray(which))
+    (_, h_last), (x, w, ends) = jax.lax.scan(interval, (x0, h0), xs)
+    if final:
+        return h_last
+    w = jnp.concatenate([hyst.output(u[0], h0)[None], w])
+    if not exp.plant:
+        return None, w, None
+    x = jnp.concatenate([x0[None], x])
+    return x, w, ends[np.asarray(exp.starts[1:], int) - 1]
+
+
+__all__ = ["HOLDS", "Experiment", "Hold", "simulate"]

@@ -1,0 +1,417 @@
+"""Grey-box identification: the free numbers of a config (and each segment's initial plant
+state) that minimise the simulation error of the measured columns, by Levenberg-Marquardt on
+exact Jacobians through the simulator, with the Gauss-Newton covariance.
+
+    problem = Problem.make(setup, record, ["plant.g", "hysteresis.alpha"], plant=True, dt=1e-3)
+    fit = solve(problem)                       # fit.values, fit.cov, fit.cost
+    report = assess(problem, fit)              # standard errors, intervals, NRMSE, FPE, ...
+
+Residuals are (y - y_hat) / sigma per measured column (sigma given, or estimated from the
+record's second differences), plus each segment's continuity (its end state against the next
+segment's start) with weight CONTINUITY. Free numbers that must be positive are fitted in log
+coordinates (their intervals stay positive), signed ones as they are.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.flatten_util import ravel_pytree
+
+from dscjax import params, validation
+from dscjax.closed_loop import Setup
+from dscjax.identify.data import Record
+from dscjax.identify.experiment import Experiment, simulate
+from dscjax.validation import ConfigError
+
+CONTINUITY = 10.0  # a segment's end state against the next's start, in units of its sigma
+RANK_TOL = 1e-8  # singular values below this x the largest: directions the data do not fix
+LOOSE = 1.0  # a relative standard error above this (100 %): not identified
+Z95 = 1.959963984540054  # the 97.5 % quantile of the standard normal
+
+
+@dataclasses.dataclass(frozen=True)
+class Free:
+    """One free number (a leaf or one element): its path, and log coordinates if positive."""
+
+    param: params.Param
+    log: bool
+
+    @property
+    def name(self) -> str:
+        return self.param.name
+
+
+class Problem(eqx.Module):
+    """What is fitted: the setup, the free numbers, the experiment and the data it is fitted
+    to (`fit_index`: the samples of the fit; the rest validates). A pytree whose numbers are
+    traced: records of the same shape share one compiled fit."""
+
+    setup: Setup
+    exp: Experiment
+    y: dict  # {column: (N,)} the measured columns
+    sigma: dict  # {column: ()} their noise std
+    fit_index: jax.Array  # (M,) sample indices fitted
+    free: tuple[Free, ...] = eqx.field(static=True)
+    h0: Any = None  # the actuator's state at the first sample (None: at rest)
+    source: str = eqx.field(static=True, default="")
+
+    @property
+    def record(self) -> Record:
+        return Record(np.asarray(self.exp.t), np.asarray(self.exp.u),
+                      {c: np.asarray(v) for c, v in self.y.items()}, self.source)
+
+    @classmethod
+    def make(cls, setup: Setup, record: Record, paths: Sequence[str], *, plant: bool,
+             dt: float, segments: int = 1, hold: str = "zoh",
+             sigma: Mapping[str, float] | None = None, fit_index=None,
+             field: str = "--free") -> Problem:
+        free = []
+        for text in paths:
+            p = params.Param.parse(text, field)
+            p.check(setup, field)
+            value = np.atleast_1d(np.asarray(p.value(setup), float))
+            elements = [p] if p.index is not None or p.scale or value.size == 1 and \
+                np.ndim(p.value(setup)) == 0 else \
+                [params.Param(p.path, i) for i in range(value.size)]
+            for q in elements:
+                v = float(np.asarray(q.value(setup), float))
+                free.append(Free(q, log=q.scale or _positive(setup, q) and v > 0))
+        names = [f.name for f in free]
+        twice = {n for n in names if names.count(n) > 1}
+        if twice:
+            raise ConfigError(f"{field}: {sorted(twice)[0]!r} is given twice")
+        if not free:
+            raise ConfigError(f"{field}: no number to fit")
+        exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
+                              hold=hold)
+        measured = list(record.y)
+        est = {c: noise_level(record.y[c]) for c in measured}
+        sigma = {c: float((sigma or {}).get(c, est[c])) for c in measured}
+        index = np.arange(len(record)) if fit_index is None else np.asarray(fit_index)
+        return cls(setup, exp, {c: jnp.asarray(v) for c, v in record.y.items()},
+                   {c: jnp.asarray(v) for c, v in sigma.items()}, jnp.asarray(index),
+                   tuple(free), None, record.source)
+
+    # -- coordinates ------------------------------------------------------------------------
+    def z0(self) -> dict:
+        """The start: the setup's numbers (logs where positive) and each segment's start
+        state (the measured states there, the setup's x0 or a simulation elsewhere)."""
+        z = jnp.asarray([math.log(float(f.param.value(self.setup))) if f.log else
+                         float(f.param.value(self.setup)) for f in self.free])
+        return {"z": z, "x": self.initial_states(self.setup)}
+
+    def setup_at(self, z) -> Setup:
+        values: dict = {}
+        for i, f in enumerate(self.free):
+            v = jnp.exp(z[i]) if f.log else z[i]
+            leaf = values.get(f.param.path, jnp.asarray(params.get(self.setup, f.param.path)))
+            values[f.param.path] = (v * leaf if f.param.scale else v if f.param.index is None
+                                    else leaf.at[f.param.index].set(v))
+        return params.set_many(self.setup, values)
+
+    def values(self, z) -> np.ndarray:
+        z = np.asarray(z, float)
+        return np.array([math.exp(v) if f.log else v for v, f in zip(z, self.free,
+                                                                       strict=True)])
+
+    def initial_states(self, setup) -> jnp.ndarray:
+        """(S, n) each segment's start state: measured columns from the record, the others
+        from a single-shot simulation of `setup` from x0 (0 where it left the finite)."""
+        if not self.exp.plant:
+            return jnp.zeros((1, 0))
+        x0 = jnp.asarray(setup.plant.x0, float)
+        one = dataclasses.replace(self.exp, starts=(0,))
+        x, _, _ = _simulate(setup, one, x0[None], self.h0)
+        x = np.where(np.isfinite(np.asarray(x)), np.asarray(x), 0.0)
+        out = x[list(self.exp.starts)]
+        for i in range(setup.order):
+            if f"x{i + 1}" in self.y:
+                out[:, i] = np.asarray(self.y[f"x{i + 1}"])[list(self.exp.starts)]
+        return jnp.asarray(out)
+
+    # -- residuals --------------------------------------------------------------------------
+    def predict(self, theta):
+        """{column: (N,) the model's value at every sample}, and the segment ends."""
+        setup = self.setup_at(theta["z"])
+        x, w, ends = simulate(setup, self.exp, theta["x"], self.h0)
+        out = {"w": w}
+        if x is not None:
+            out |= {f"x{i + 1}": x[:, i] for i in range(x.shape[1])}
+        return out, ends
+
+    def residuals(self, theta) -> jax.Array:
+        """The weighted residuals of the fitted samples, then the continuity of segments."""
+        pred, ends = self.predict(theta)
+        idx = self.fit_index
+        parts = [(self.y[c][idx] - pred[c][idx]) / self.sigma[c] for c in self.y]
+        if ends is not None and ends.shape[0]:
+            scale = jnp.asarray([self.sigma.get(f"x{i + 1}", self._state_scale())
+                                 for i in range(ends.shape[1])])
+            parts.append(CONTINUITY * (ends - theta["x"][1:]).ravel()
+                         / jnp.tile(scale, ends.shape[0]))
+        return jnp.concatenate(parts)
+
+    def _state_scale(self):
+        return jnp.median(jnp.stack([self.sigma[c] for c in self.y]))
+
+
+def noise_level(y) -> float:
+    """The std of white noise on a smooth signal sampled finely: that of its second
+    differences over sqrt(6) (floored at 1e-9 of its range)."""
+    y = np.asarray(y, float)
+    d2 = np.diff(y, 2)
+    level = float(np.std(d2) / math.sqrt(6.0)) if d2.size > 2 else 0.0
+    return max(level, 1e-9 * float(np.ptp(y)), 1e-12)
+
+
+def _positive(setup, p: params.Param) -> bool:
+    """Whether the field of p must be > 0 (its range rule), so that log coordinates fit it."""
+    model = getattr(setup, p.path.split(".")[0])
+    name = p.path.split(".")[1]
+    for f in dataclasses.fields(model):
+        if f.name == name:
+            return f.metadata.get("check") == "positive"
+    return False
+
+
+@dataclasses.dataclass(frozen=True)
+class Fit:
+    """A solution: theta (the free numbers' coordinates z and the segments' start states),
+    its cost 0.5 sum r^2, the solver's steps and status, the residual function's calls."""
+
+    theta: dict
+    cost: float
+    steps: int
+    status: str
+    jacobian: np.ndarray  # (m, p) of the weighted residuals at theta, p = free + states
+    residuals: np.ndarray  # (m,)
+    start: int = 0  # which start (of --starts) it came from
+
+
+def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
+          tol: float = 1e-10) -> Fit:
+    """Levenberg-Marquardt from theta0 (default the problem's start): the Jacobian exact, by
+    forward mode through the simulator one column after another (`lax.map` of JVPs, which
+    compiles several times faster than a vectorised `jacfwd` of the loop), Marquardt's
+    diagonal scaling and Nielsen's damping update; it stops when a step or the cost's
+    relative decrease falls below `tol`."""
+    theta0 = problem.z0() if theta0 is None else theta0
+    flat0, unravel = ravel_pytree((jnp.asarray(theta0["z"]), jnp.asarray(theta0["x"])))
+    theta = np.asarray(flat0, float)
+    r, jac = (np.asarray(a, float) for a in _rj(problem, jnp.asarray(theta)))
+    cost, lam, nu, steps, status = 0.5 * float(r @ r), None, 2.0, 0, "stopped at max_steps"
+    if not math.isfinite(cost):
+        status = "the start's residuals are not finite"
+    while math.isfinite(cost) and steps < max_steps:
+        a, g = jac.T @ jac, jac.T @ r
+        d = np.diag(a).copy()
+        d[d <= 0] = 1.0
+        lam = 1e-3 * float(d.max()) if lam is None else lam
+        if float(np.max(np.abs(g))) <= tol * max(1.0, cost):
+            status = "converged"
+            break
+        try:
+            step = np.linalg.solve(a + lam * np.diag(d), -g)
+        except np.linalg.LinAlgError:
+            lam, nu = lam * nu, nu * 2
+            continue
+        trial = theta + step
+        r_new = np.asarray(_r(problem, jnp.asarray(trial)), float)
+        new = 0.5 * float(r_new @ r_new)
+        predicted = -(g @ step + 0.5 * step @ a @ step)
+        if math.isfinite(new) and new < cost:
+            rho = (cost - new) / max(predicted, 1e-300)
+            small = np.linalg.norm(step) <= tol * (np.linalg.norm(theta) + tol)
+            flat_cost = cost - new <= tol * cost
+            theta, cost = trial, new
+            r, jac = (np.asarray(x, float) for x in _rj(problem, jnp.asarray(theta)))
+            lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
+            nu = 2.0
+            steps += 1
+            if small or flat_cost:
+                status = "converged"
+                break
+        else:
+            lam, nu = lam * nu, nu * 2
+            steps += 1
+            if lam > 1e16 * float(d.max()):
+                status = "converged"  # no step lowers the cost: a minimum to round-off
+                break
+    z, x = unravel(jnp.asarray(theta))
+    return Fit({"z": np.asarray(z), "x": np.asarray(x)}, cost, steps, status, jac, r)
+
+
+def _flat(problem: Problem, v):
+    z = v[:len(problem.free)]
+    return problem.residuals({"z": z, "x": v[len(problem.free):].reshape(_x_shape(problem))})
+
+
+def _x_shape(problem: Problem) -> tuple[int, int]:
+    return (problem.exp.segments, problem.setup.order) if problem.exp.plant else (1, 0)
+
+
+@eqx.filter_jit
+def _r(problem: Problem, v):
+    return _flat(problem, v)
+
+
+@eqx.filter_jit
+def _rj(problem: Problem, v):
+    """(r, dr/dv): the columns by one JVP each, in a loop (`lax.map`)."""
+    r = _flat(problem, v)
+    cols = jax.lax.map(lambda e: jax.jvp(lambda w: _flat(problem, w), (v,), (e,))[1],
+                       jnp.eye(v.size, dtype=v.dtype))
+    return r, cols.T
+
+
+def residuals_and_jacobian(problem: Problem, theta) -> tuple[np.ndarray, np.ndarray]:
+    """(r (m,), dr/dtheta (m, p)) at theta, by forward mode; the columns: the free numbers'
+    coordinates z, then the segments' start states."""
+    v = jnp.concatenate([jnp.ravel(jnp.asarray(theta["z"])), jnp.ravel(jnp.asarray(theta["x"]))])
+    r, jac = _rj(problem, v)
+    return np.asarray(r, float), np.asarray(jac, float)
+
+
+_simulate = eqx.filter_jit(simulate)
+_predict = eqx.filter_jit(lambda problem, theta: problem.predict(theta))
+
+
+def solve_starts(problem: Problem, starts: int = 1, seed: int = 0, spread: float = 0.5,
+                 **kw) -> tuple[Fit, list[float]]:
+    """The best of `starts` fits: the problem's start, then starts whose free numbers are
+    scattered (log coordinates: x e^(+-spread); others: +-spread x |value|, at least spread)
+    around it; (best fit, every start's cost)."""
+    rng = np.random.default_rng(seed)
+    base = problem.z0()
+    fits = [solve(problem, base, **kw)]
+    for k in range(1, starts):
+        z = np.asarray(base["z"], float).copy()
+        for i, f in enumerate(problem.free):
+            z[i] += rng.uniform(-spread, spread) * (1.0 if f.log else max(abs(z[i]), 1.0))
+        theta = {"z": jnp.asarray(z), "x": problem.initial_states(problem.setup_at(z))}
+        fits.append(dataclasses.replace(solve(problem, theta, **kw), start=k))
+    costs = [f.cost if math.isfinite(f.cost) else math.inf for f in fits]
+    return fits[int(np.argmin(costs))], costs
+
+
+@dataclasses.dataclass(frozen=True)
+class Estimate:
+    """One free number: its value, standard error, 95 % interval, and whether the data fix
+    it (`why` says why not)."""
+
+    name: str
+    value: float
+    se: float
+    low: float
+    high: float
+    identifiable: bool
+    why: str = ""
+
+
+def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, np.ndarray,
+                                                    float]:
+    """(each free number's `Estimate`, their correlation matrix, the Jacobian's singular
+    values, the residual variance factor s^2). Covariance s^2 (J^T J)^-1 (Gauss-Newton) in the
+    fit's coordinates, s^2 = |r|^2 / (m - p); a log coordinate's interval is exp(z +- 1.96 se),
+    its se the delta method's value x se_z. A number is not identifiable where it loads on a
+    direction whose singular value is below RANK_TOL x the largest, or where its relative
+    standard error exceeds LOOSE."""
+    jac, r = fit.jacobian, fit.residuals
+    m, p = jac.shape
+    k = len(problem.free)
+    s2 = float(r @ r) / max(m - p, 1)
+    u, sv, vt = np.linalg.svd(jac, full_matrices=False)
+    keep = sv > RANK_TOL * sv[0]
+    inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]  # the pseudo-inverse of J^T J
+    cov = s2 * inv[:k, :k]
+    se_z = np.sqrt(np.clip(np.diag(cov), 0, None))
+    weak = np.zeros(k, bool)
+    for j in np.flatnonzero(~keep):
+        weak |= np.abs(vt[j, :k]) > 0.3
+    z = np.asarray(fit.theta["z"], float)
+    out = []
+    for i, f in enumerate(problem.free):
+        if f.log:
+            value, se = math.exp(z[i]), math.exp(z[i]) * se_z[i]
+            low, high = math.exp(z[i] - Z95 * se_z[i]), math.exp(z[i] + Z95 * se_z[i])
+            rel = se_z[i]
+        else:
+            value, se = z[i], se_z[i]
+            low, high = value - Z95 * se, value + Z95 * se
+            rel = se / abs(value) if value else math.inf
+        why = ""
+        if weak[i]:
+            why = "the data leave its direction undetermined (a singular value below " \
+                  f"{RANK_TOL:g} x the largest)"
+        elif not rel <= LOOSE:
+            why = f"its relative standard error is {100 * rel:.3g} % (> {100 * LOOSE:g} %)"
+        out.append(Estimate(f.name, value, float(se), low, high, not why, why))
+    d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
+    corr = cov / np.outer(d, d)
+    return out, corr, sv, s2
+
+
+def fit_figures(problem: Problem, fit: Fit, index=None) -> dict[str, dict[str, float]]:
+    """Per measured column on the samples `index` (default the fitted ones): NRMSE fit in
+    percent, 100 (1 - |y - y_hat| / |y - mean y|), and MSE; over all columns, FPE =
+    det(E^T E / N) (1 + d/N) / (1 - d/N) (E the residuals, d the free numbers and start
+    states, N the samples)."""
+    index = np.asarray(problem.fit_index if index is None else index)
+    pred, _ = _predict(problem, jax.tree.map(jnp.asarray, fit.theta))
+    out, errs = {}, []
+    for c, y in problem.record.y.items():
+        y = np.asarray(y)[index]
+        e = y - np.asarray(pred[c])[index]
+        errs.append(e)
+        out[c] = {"nrmse_fit_percent": float(100 * (1 - np.linalg.norm(e)
+                                                    / max(np.linalg.norm(y - y.mean()),
+                                                          1e-300))),
+                  "mse": float(np.mean(e * e))}
+    e = np.column_stack(errs)
+    n, d = e.shape[0], fit.jacobian.shape[1]
+    det = float(np.linalg.det(e.T @ e / n))
+    out["all"] = {"fpe": det * (1 + d / n) / (1 - d / n) if d < n else math.inf}
+    return out
+
+
+def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
+                   ) -> tuple[Problem, Fit]:
+    """The identified model on another record (or the record's tail, its actuator going on
+    from `h0`): its numbers fixed, only its initial plant state fitted (one segment), as a
+    grey-box user compares."""
+    setup = problem.setup_at(jnp.asarray(fit.theta["z"]))
+    val = Problem(setup, Experiment.make(record.t, record.u, plant=problem.exp.plant,
+                                         dt=_dt(problem), hold=problem.exp.hold),
+                  {c: jnp.asarray(v) for c, v in record.y.items()},
+                  {c: problem.sigma[c] for c in record.y}, jnp.arange(len(record)), (), h0,
+                  record.source)
+    if not val.exp.plant:
+        theta = {"z": jnp.zeros((0,)), "x": jnp.zeros((1, 0))}
+        r, jac = residuals_and_jacobian(val, theta)
+        return val, Fit(theta, 0.5 * float(r @ r), 0, "no state to fit", jac, r)
+    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
+
+
+def _dt(problem: Problem) -> float:
+    t = np.asarray(problem.exp.t)
+    return float(np.max(np.diff(t))) / problem.exp.substeps
+
+
+def check_segments(segments: int, n: int, field: str = "--segments") -> int:
+    validation.integer(segments, field, 1)
+    if segments > n // 10:
+        raise ConfigError(f"{field} must be at most {n // 10} for {n} samples (10 a segment; "
+                          f"got {segments})")
+    return segments
+
+
+__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures",
+           "noise_level", "residuals_and_jacobian", "solve", "solve_starts", "validation_fit"]

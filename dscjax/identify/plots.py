@@ -1,0 +1,48 @@
+"""The figures of an identification: fit.png (each measured column against the identified
+model, the fit's samples and the validation's) and residuals.png (their residuals)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax import files
+from dscjax.plotting import subplots
+
+
+def _curves(res):
+    """[(label, t, y measured, y model, fitted mask)] of the fit and of the validation."""
+    out = []
+    for tag, problem, fit in (("fit", res.problem, res.fit),
+                              ("validation", res.val_problem, res.val_fit)):
+        pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
+        idx = np.asarray(problem.fit_index)
+        for c, y in problem.record.y.items():
+            out.append((c, tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
+                        np.asarray(pred[c])[idx]))
+    return out
+
+
+def write(out: Path, res) -> None:
+    curves = _curves(res)
+    columns = list(res.problem.record.y)
+    for name, residual in (("fit.png", False), ("residuals.png", True)):
+        fig, axes = subplots(len(columns), 1, figsize=(8, 2.4 * len(columns)), squeeze=False)
+        for ax, c in zip(axes[:, 0], columns, strict=True):
+            for col, tag, t, y, yh in curves:
+                if col != c:
+                    continue
+                colour = "#1f77b4" if tag == "fit" else "#d62728"
+                if residual:
+                    ax.plot(t, y - yh, color=colour, lw=0.8, label=f"{tag}: measured - model")
+                else:
+                    ax.plot(t, y, color="#999999", lw=0.8, label=f"{tag}: measured")
+                    ax.plot(t, yh, color=colour, lw=1.2, label=f"{tag}: model")
+            ax.set_ylabel(c)
+            ax.legend(fontsize=7, loc="upper right")
+        axes[-1, 0].set_xlabel("t [s]")
+        fig.suptitle("residuals" if residual else "measured and identified model")
+        files.save_figure(fig, out / name)
