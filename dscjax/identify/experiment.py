@@ -46,6 +46,8 @@ class Experiment(eqx.Module):
         n = t.size
         starts = tuple(int(round(i * (n - 1) / segments)) for i in range(segments))
         substeps = max(1, math.ceil(float(np.max(np.diff(t))) / dt * (1 - 1e-12)))
+        if not plant and hold == "zoh":
+            substeps = 1  # the actuator alone steps along its curve: nothing to integrate
         return cls(jnp.asarray(t), jnp.asarray(u), starts, substeps, hold, plant)
 
     @property
