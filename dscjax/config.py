@@ -372,16 +372,25 @@ def _submodel(field: str, table, kinds: Mapping[str, type], base):
     return cls(**values)
 
 
+# the tables of the commands' own settings: a config may hold them (a printed config, a
+# gains.json, identified.toml); each command reads its own, the model ignores them
+COMMAND_TABLES = ("tuning", "sweep", "worst", "identify")
+
+
 def from_dict(d: Mapping[str, Any], base: Setup | None = None,
               base_spec: RunSpec | None = None) -> tuple[Setup, RunSpec]:
     """(Setup, RunSpec) from a config dict laid over `base` (default: the paper's example) and
-    `base_spec` (default: the defaults of [simulation])."""
+    `base_spec` (default: the defaults of [simulation]); a command's table (`COMMAND_TABLES`)
+    is left to its command."""
     if base is None:
         base = paper_example(dtype=np.float64)
     allowed = ("simulation", "plant", "hysteresis", "controller", "reference")
     for key, value in d.items():
+        if key in COMMAND_TABLES:
+            continue
         if key not in allowed:
-            raise ConfigError(f"unknown section '{key}' (allowed: {', '.join(allowed)})")
+            raise ConfigError(f"unknown section '{key}' (allowed: "
+                              f"{', '.join(allowed + COMMAND_TABLES)})")
         if not isinstance(value, Mapping):
             raise ConfigError(f"'{key}' must be a table ([{key}])")
     models = {s: model_from_dict(s, d.get(s, {}), getattr(base, s)) for s in allowed[1:]}

@@ -333,7 +333,8 @@ def test_max_evals_option_caps_each_method(tmp_path):
     (["--disturbance", "fourier:0:0.5"], "K must be"),
     (["--disturbance", "spline:4:-0.5"], "D must be"),
     (["--disturbance", "spline:1:0.5"], "K must be an integer >= 2 for spline (got 1)"),
-    (["--max-evals", "0"], "argument --max-evals: must be an integer >= 1 (got '0')"),
+    (["--max-evals", "0"], "argument --max-evals: must be an integer >= 1, or \"none\" (got "
+                           "'0')"),
 ])
 def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
     try:

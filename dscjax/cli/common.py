@@ -32,10 +32,11 @@ def settings_groups() -> dict:
     from dscjax.identify.run import IdentifySettings
     from dscjax.runspec import Simulation
     from dscjax.sweep import SweepSettings
+    from dscjax.worst import WorstSettings
     from tuning.config import TuningConfig
 
     return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig,
-            "identify": IdentifySettings}
+            "worst": WorstSettings, "identify": IdentifySettings}
 
 
 BLOCK = "<!-- settings {} -->", "<!-- end settings -->"
@@ -349,18 +350,15 @@ def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
                        "float64, or the config's simulation.dtype)")
 
 
-def load_setup(args, ignore: tuple[str, ...] = ()):
-    """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype.
-
-    `ignore`: tables of the file that belong to another command (e.g. "tuning"), skipped."""
+def load_setup(args):
+    """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
+    (a command's own table in the file, e.g. [tuning], is left to that command)."""
     from dscjax import config
     from dscjax.params import cast
     from dscjax.validation import validate_setup
 
     base = example_setup(args)
     raw = config.read(args.config, "--config") if args.config else {}
-    for name in ignore:
-        raw.pop(name, None)
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
     spec = portable_device(args, spec, args.config)

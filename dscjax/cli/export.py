@@ -58,7 +58,6 @@ def load(args):
     for option, path in (("--config", args.config), ("--gains", args.gains)):
         if path:
             raw = config.read(path)
-            raw.pop("tuning", None)
             setup, spec = config.from_dict(raw, base=setup, base_spec=spec)
             source.append(f"{option} {path}")
     if spec is None:

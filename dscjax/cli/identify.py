@@ -47,8 +47,6 @@ def load(args):
 
     raw = config.read(args.config, "--config") if args.config else {}
     table = raw.pop("identify", {})
-    for other in ("tuning", "sweep"):
-        raw.pop(other, None)
     setup, spec = config.from_dict(raw, base=example_setup(args))
     s = settings.from_table(IdentifySettings, table, "identify.")
     given, names = settings.given(args, IdentifySettings, "identify.")

@@ -70,7 +70,7 @@ def run(args) -> int:
     )
 
     # another command's own table (a printed config of tune or sweep) is that command's
-    setup, options = load_setup(args, ignore=("tuning", "sweep"))
+    setup, options = load_setup(args)
     if args.print_config:
         sys.stdout.write(config.to_toml(setup, options))
         return 0

@@ -95,7 +95,6 @@ def load(args):
 
     raw = config.read(args.config, "--config") if args.config else {}
     table = raw.pop("tuning", {})
-    raw.pop("sweep", None)  # a config shared with `dscjax sweep` may hold its table
     setup, options = config.from_dict(raw, base=example_setup(args),
                                       base_spec=RunSpec.make(**SIMULATION))
     cfg = tuning_from_dict(table, TuningConfig())
@@ -108,8 +107,6 @@ def load(args):
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
     if args.gains:
         gains = config.read(args.gains, "--gains")
-        for key in ("tuning", "sweep"):
-            gains.pop(key, None)
         setup, options = config.from_dict(gains, base=setup, base_spec=options)
     given, names = settings.given(args, TuningConfig, "tuning.")
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})

@@ -16,12 +16,10 @@ from dscjax.cli.common import (
     Outputs,
     add_config_args,
     add_out_arg,
-    count,
     gradient_work,
     horizon_text,
     load_setup,
     loop_sizes,
-    positive_float,
     prepare_out,
     print_config,
     use_device,
@@ -34,15 +32,8 @@ OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajector
 
 
 def add_parser(sub):
-    from dscjax.worst import (
-        DEFAULT_BATCH,
-        DEFAULT_COARSENING,
-        DEFAULT_METRIC,
-        DEFAULT_STARTS,
-        METHODS,
-        METRICS,
-        REQUIREMENT,
-    )
+    from dscjax.settings import add_arguments
+    from dscjax.worst import WorstSettings
 
     p = sub.add_parser(
         "worst-case", help="worst-case search over parameter boxes and disturbance waveforms",
@@ -51,40 +42,13 @@ def add_parser(sub):
         "disturbance waveform (--disturbance), by projected gradient ascent from M starts "
         "advanced together, with random sampling and CMA-ES given the same search time as "
         "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
-        "before it is reported; a divergence of the loop itself is reported with its time.")
+        "before it is reported; a divergence of the loop itself is reported with its time. "
+        "Settings may also come from a [worst] table of the config; the command line wins.")
     add_config_args(p, run_keys=("t_final", "dt", *SAMPLED_KEYS, "device"))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
-    p.add_argument("--disturbance", metavar="KIND:K:D", help="a searched waveform added to "
-                   "dbar with max|dbar| <= D: fourier:K:D (K harmonics, 2K+1 coefficients) or "
-                   "spline:K:D (K knots over the horizon)")
-    p.add_argument("--period", type=positive_float, metavar="P",
-                   help="period of a fourier waveform "
-                   "(default: the horizon)")
-    p.add_argument("--metric", default=DEFAULT_METRIC, metavar="METRIC",
-                   help=f"the metric maximised: one of {', '.join(METRICS)} (default "
-                   f"{DEFAULT_METRIC}), or {REQUIREMENT}NAME: the violation margin of the "
-                   f"[tuning.requirements.NAME] table of --config (envelope, step, u_bound, "
-                   f"u_rate; > 0: violated)")
-    p.add_argument("--time-limit", type=positive_float, default=60.0, metavar="S",
-                   help="search seconds per method, compilation excluded (default 60)")
-    p.add_argument("--max-evals", type=count(1), metavar="N",
-                   help="stop each method after N evaluations (its last batch finished), or "
-                   "at --time-limit, whichever comes first: a count makes searches under "
-                   "different loads comparable (default: the time limit alone)")
-    p.add_argument("--starts", type=count(1), default=DEFAULT_STARTS, metavar="M",
-                   help=f"starts of the gradient search, one batch (default {DEFAULT_STARTS})")
-    p.add_argument("--batch", type=count(1), default=DEFAULT_BATCH, metavar="B",
-                   help=f"candidates per batch of random sampling and CMA-ES (default "
-                   f"{DEFAULT_BATCH})")
-    p.add_argument("--gradient-coarsening", type=count(1), default=DEFAULT_COARSENING, metavar="F",
-                   help=f"take the gradient method's gradients on the loop simulated at F dt "
-                   f"(F times cheaper; every value is still simulated at dt; 1: exact "
-                   f"gradients; default {DEFAULT_COARSENING})")
-    p.add_argument("--methods", default=",".join(METHODS), metavar="LIST",
-                   help=f"comma-separated, of {', '.join(METHODS)} (default all)")
-    p.add_argument("--seed", type=count(0), default=0, help="seed of every random draw (default 0)")
+    add_arguments(p, WorstSettings, "worst.")
     add_out_arg(p, "results/worst-case")
     again = p.add_mutually_exclusive_group()
     again.add_argument("--resume", action="store_true", help="continue a search in DIR "
@@ -97,7 +61,6 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax import files
-    from dscjax.params import parse_range
     from dscjax.progress import Progress
     from dscjax.validation import ConfigError, check_work
     from dscjax.worst import (
@@ -109,31 +72,34 @@ def run(args) -> int:
     )
     from dscjax.worst.report import write
 
-    setup, options = load_setup(args, ignore=("tuning", "sweep"))
-    if args.print_config:  # the model and the run: the box is given by options, not a table
-        print_config(setup, options, requirement_table(args))
+    setup, options = load_setup(args)
+    s, ranges = worst_settings(args)
+    if args.print_config:
+        from dscjax import settings
+
+        table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
+                                                    for r in ranges}} if ranges else {})
+        print_config(setup, options, {"worst": table} | requirement_table(args, s),
+                     groups={"worst": s})
         return 0
-    ranges = [parse_range(text) for text in (args.ranges or [])]
-    problem = make_problem(setup, ranges, args.disturbance, metric=args.metric,
-                           requirement=requirement_of(args, setup),
-                           spec=options, period=args.period)
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    check_search(problem, methods, starts=args.starts, batch=args.batch,
-                 time_limit=args.time_limit, max_evals=args.max_evals,
-                 coarsening=args.gradient_coarsening)
+    problem = make_problem(setup, ranges, s.disturbance, metric=s.metric,
+                           requirement=requirement_of(args, setup, s),
+                           spec=options, period=s.period)
+    methods = list(s.methods)
+    check_search(problem, methods, starts=s.starts, batch=s.batch, time_limit=s.time_limit,
+                 max_evals=s.max_evals, coarsening=s.gradient_coarsening)
     what = horizon_text(problem.t_final, problem.dt, problem.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
-    each = iteration_work(problem, methods, args.starts, args.batch, args.gradient_coarsening)
+    each = iteration_work(problem, methods, s.starts, s.batch, s.gradient_coarsening)
     check_work(each, what=f"one search iteration of {what}", fix=fix,
-               limit_s=args.time_limit, limit=f"--time-limit {args.time_limit:g} s")
+               limit_s=s.time_limit, limit=f"--time-limit {s.time_limit:g} s")
     check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
-    choice = use_device(args, options.device, max(args.starts, args.batch))
+    choice = use_device(args, options.device, max(s.starts, s.batch))
     out = Path(args.out)
     manifest = out / MANIFEST
-    fingerprint = {"problem": problem.fingerprint(), "seed": args.seed, "starts": args.starts,
-                   "batch": args.batch, "methods": methods,
-                   "coarsening": args.gradient_coarsening}
+    fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
+                   "batch": s.batch, "methods": methods, "coarsening": s.gradient_coarsening}
     if args.resume:
         if not manifest.exists():
             raise ConfigError(f"--resume: nothing to resume in {out} ({MANIFEST} is "
@@ -146,8 +112,8 @@ def run(args) -> int:
     print(f"dscjax worst-case: {problem.metric} over "
           + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
           + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
-          + f"; {', '.join(methods)}, {args.time_limit:g} s each"
-          + (f" (at most {args.max_evals} evaluations)" if args.max_evals else "")
+          + f"; {', '.join(methods)}, {s.time_limit:g} s each"
+          + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
           + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
     for w in assumption_warnings(problem):
         print(f"dscjax worst-case: warning: {w}", file=sys.stderr)
@@ -177,10 +143,10 @@ def run(args) -> int:
                           f"best {best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
-        result = worst_case(problem, time_limit=args.time_limit, starts=args.starts,
-                            methods=methods, seed=args.seed, batch=args.batch,
-                            coarsening=args.gradient_coarsening, out_dir=out,
-                            resume=args.resume, max_evals=args.max_evals,
+        result = worst_case(problem, time_limit=s.time_limit, starts=s.starts,
+                            methods=methods, seed=s.seed, batch=s.batch,
+                            coarsening=s.gradient_coarsening, out_dir=out,
+                            resume=args.resume, max_evals=s.max_evals,
                             progress=progress, say=say)
     finally:
         for bar in bars.values():
@@ -228,36 +194,56 @@ def stored_work(problem):
     return saved + basis
 
 
-def requirement_table(args) -> dict:
+def worst_settings(args):
+    """(WorstSettings, ranges): the config's [worst] table (and [worst.ranges]) laid over the
+    defaults, then the options given (a refusal names the option)."""
+    from dscjax import config, settings
+    from dscjax.cli.common import blame_options
+    from dscjax.params import from_table, parse_range
+    from dscjax.worst import WorstSettings
+
+    table = dict(config.read(args.config, "--config").get("worst", {})) if args.config else {}
+    ranges = tuple(from_table(table.pop("ranges"), "worst.ranges")) if "ranges" in table \
+        else ()
+    s = settings.from_table(WorstSettings, table, "worst.")
+    given, names = settings.given(args, WorstSettings, "worst.")
+    with blame_options(names):
+        s = settings.from_table(WorstSettings, given, "worst.", s)
+    if args.ranges:
+        ranges = tuple(parse_range(text) for text in args.ranges)
+    return s, ranges
+
+
+def requirement_table(args, s) -> dict:
     """The [tuning.requirements.NAME] table of `--metric requirement:NAME` ({} for any other
     metric): the rest of the config --print-config shows."""
     from dscjax import config
     from dscjax.worst import REQUIREMENT
 
-    if not args.metric.startswith(REQUIREMENT) or not args.config:
+    if not s.metric.startswith(REQUIREMENT) or not args.config:
         return {}
-    name = args.metric[len(REQUIREMENT):]
+    name = s.metric[len(REQUIREMENT):]
     table = config.read(args.config).get("tuning", {}).get("requirements", {}).get(name, {})
     return {"tuning": {"requirements": {name: table}}}
 
 
-def requirement_of(args, setup):
+def requirement_of(args, setup, s):
     """The requirement of `--metric requirement:NAME`: [tuning.requirements.NAME] of --config
     (built as the tuner builds it), or None for any other metric."""
     from dscjax import config
     from dscjax.validation import ConfigError
     from dscjax.worst import REQUIREMENT
 
-    if not args.metric.startswith(REQUIREMENT):
+    if not s.metric.startswith(REQUIREMENT):
         return None
-    name = args.metric[len(REQUIREMENT):]
+    name = s.metric[len(REQUIREMENT):]
     from tuning.config import from_dict
     from tuning.runner import build_requirements
 
     raw = config.read(args.config) if args.config else {}
     table = from_dict(raw.get("tuning", {})).requirements
     if name not in table:
-        raise ConfigError(f"--metric {args.metric}: --config has no [tuning.requirements."
+        raise ConfigError(f"--metric {s.metric}: --config has no [tuning.requirements."
                           f"{name}] table (has: {', '.join(table) or 'none'})")
     return build_requirements(setup, {name: table[name]})[0]
 

@@ -27,6 +27,7 @@ from dscjax.worst.run import (
     DEFAULT_STARTS,
     METHODS,
     Result,
+    WorstSettings,
     best_value,
     check_search,
     run_methods,
@@ -36,5 +37,6 @@ from dscjax.worst.run import (
 
 __all__ = ["DEFAULT_BATCH", "DEFAULT_COARSENING", "DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS",
            "METRICS", "REQUIREMENT", "DisturbanceSpec", "Problem", "Programs", "Result",
+           "WorstSettings",
            "assumption_warnings", "best_value", "check_search", "make_problem", "run_methods",
            "search_method", "worst_case"]

@@ -16,27 +16,78 @@ import numpy as np
 
 from dscjax import files, params, search, validation
 from dscjax.closed_loop import Setup
+from dscjax.settings import AtLeast, Custom, Maybe, Positive, Strings, setting
 from dscjax.simulate import simulate
 from dscjax.validation import ConfigError
-from dscjax.worst.problem import DisturbanceSpec, Problem, make_problem
+from dscjax.worst.problem import (
+    DEFAULT_METRIC,
+    METRICS,
+    REQUIREMENT,
+    DisturbanceSpec,
+    Problem,
+    make_problem,
+)
 from dscjax.worst.programs import Programs, check_coarsening
 
 Method = Literal["gradient", "random", "cma"]
-
-
 METHODS: tuple[str, ...] = get_args(Method)
-
-
 DEFAULT_STARTS = 4  # docs/worst-case.md
-
-
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
-
-
 DEFAULT_LR = 0.1
-
-
 DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
+
+
+def _metric(value, field: str) -> str:
+    text = validation.string(value, field)
+    if text not in METRICS and not text.startswith(REQUIREMENT):
+        raise ConfigError(f"{field} must be one of {', '.join(METRICS)}, or {REQUIREMENT}NAME "
+                          f"(got {text!r})")
+    return text
+
+
+def _disturbance(value, field: str) -> str:
+    return DisturbanceSpec.parse(validation.string(value, field), field=field).spec()
+
+
+@dataclasses.dataclass(frozen=True)
+class WorstSettings:
+    """[worst]: what `dscjax worst-case` maximises and how it searches (the box: --range or
+    [worst.ranges], as a sweep's)."""
+
+    metric: str = setting(
+        DEFAULT_METRIC, f"the metric maximised: one of {', '.join(METRICS)}, or "
+        f"{REQUIREMENT}NAME, the violation margin of [tuning.requirements.NAME] of the config "
+        f"(> 0: violated)", Custom(_metric, "a metric's name"), flag="--metric")
+    disturbance: str | None = setting(
+        None, "a searched waveform added to dbar with max|dbar| <= D: fourier:K:D (K "
+        "harmonics) or spline:K:D (K knots over the horizon); none",
+        Maybe(Custom(_disturbance, "fourier:K:D or spline:K:D", metavar="KIND:K:D")),
+        flag="--disturbance")
+    period: float | None = setting(None, "period [s] of a fourier waveform; none: the horizon",
+                                   Maybe(Positive()), flag="--period")
+    time_limit: float = setting(60.0, "search seconds per method, compilation excluded",
+                                Positive(), flag="--time-limit")
+    max_evals: int | None = setting(
+        None, "each method ends after this many evaluations (its last batch finished), or at "
+        "time_limit, whichever comes first: a count makes searches under different loads "
+        "comparable; none: the time alone", Maybe(AtLeast(1)), flag="--max-evals")
+    starts: int = setting(DEFAULT_STARTS, "starts of the gradient search, one batch",
+                          AtLeast(1), flag="--starts")
+    batch: int = setting(DEFAULT_BATCH, "candidates per batch of random sampling and CMA-ES",
+                         AtLeast(1), flag="--batch")
+    gradient_coarsening: int = setting(
+        DEFAULT_COARSENING, "the gradient method's gradients on the loop simulated at this x dt "
+        "(that many times cheaper; every value is still simulated at dt; 1: exact)",
+        AtLeast(1), flag="--gradient-coarsening")
+    methods: tuple[str, ...] = setting(METHODS, f"the methods run, of {', '.join(METHODS)}",
+                                       Strings(), flag="--methods")
+    seed: int = setting(0, "seed of every random draw", AtLeast(0), flag="--seed")
+
+    def validate(self, prefix: str = "worst") -> None:
+        for m in self.methods:
+            validation.one_of(m, f"{prefix}.methods", METHODS)
+        if not self.methods:
+            raise ConfigError(f"{prefix}.methods: give at least one of {', '.join(METHODS)}")
 
 
 def best_value(trace: search.Trace) -> float:
