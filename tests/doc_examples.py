@@ -17,12 +17,14 @@ documents in order would type it (so the docs may use what the README's examples
   sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
   (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
   figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
-- export (no horizon) as printed;
-- `> FILE` redirects stdout to FILE;
+- export (no horizon) as printed; identify on the whole record, with 3 Marquardt steps and no
+  figures (--max-steps 3 --no-plot);
+- `> FILE` redirects stdout to FILE; the example records dscjax/data/*.csv are where they are
+  in a clone;
 - a ```toml block whose first line is `# file: NAME` is written to NAME where it stands (a
   config the commands after it read);
 - a command printed twice (the docs repeat the README) runs once, in the first document
-  that prints it;
+  that prints it, or in the document of HOME that reads its outputs;
 - multi-host lines (--coordinator, --distributed) are skipped: they need several processes
   (tests/test_sweep.py runs two).
 
@@ -93,7 +95,8 @@ def shrink(argv: list[str]) -> list[str]:
     """The same command with small sizes (see the module docstring)."""
     a = list(argv)
     command = a[0]
-    if ("--print-config" not in a or command == "simulate") and command != "export":
+    if (("--print-config" not in a or command == "simulate")
+            and command not in ("export", "identify")):
         # the same number of steps whatever dt: one compiled program serves every command
         dt = float(a[a.index("--dt") + 1]) if "--dt" in a else 1e-3
         _set(a, "--t-final", f"{N_STEPS * dt:g}")
@@ -114,6 +117,9 @@ def shrink(argv: list[str]) -> list[str]:
             _set(a, "--adversarial", "1")
             _set(a, "--search-time", "0.2")
             _set(a, "--search-method", "random")
+        a.append("--no-plot")
+    elif command == "identify":  # the record's own length: a few Marquardt steps
+        _set(a, "--max-steps", "3")
         a.append("--no-plot")
     elif command == "sensitivity":
         _set(a, "--batch", "2", add=False)
@@ -167,6 +173,11 @@ def _join(words: list[str]) -> str:
 # them (my.toml, results/tune/: the README's `tune`, resumed by tuning.md's `tune --resume`).
 SHARED = ("dscjax simulate --print-config > my.toml", "dscjax tune")
 READS_SHARED = ("README.md", "hysteresis.md", "sweeps.md", "tuning.md")
+# A command the README prints whose outputs one other document reads runs in that document's
+# group (identification.md replays, tunes and exports what `identify` wrote).
+HOME = {"dscjax identify --data dscjax/data/record.csv --free 'plant.g[0],plant.theta[0],"
+        "hysteresis.alpha,hysteresis.lam,hysteresis.psi' --segments 4 --out results/identify":
+        "identification.md"}
 
 
 def plan() -> dict[str, list[tuple]]:
@@ -189,8 +200,8 @@ def plan() -> dict[str, list[tuple]]:
                 continue
             done.add(ran)
             printed = _join(["dscjax", *argv])
-            (groups["shared"] if printed in SHARED else steps).append(
-                ("run", printed, small, target))
+            home = ("shared" if printed in SHARED else HOME.get(printed, doc.name))
+            groups.setdefault(home, []).append(("run", printed, small, target))
     return groups
 
 
@@ -198,6 +209,10 @@ def run_group(work: Path, group: str, steps: list[tuple]) -> list[dict]:
     """Run `steps` in `work` (the current directory meanwhile): one report entry a command."""
     report = []
     work.mkdir(parents=True, exist_ok=True)
+    data = work / "dscjax" / "data"  # the example records, where a clone has them
+    if not data.exists():
+        data.parent.mkdir(exist_ok=True)
+        data.symlink_to(ROOT / "dscjax" / "data")
     os.chdir(work)
     for step in steps:
         if step[0] == "file":
