@@ -30,7 +30,8 @@ from dscjax.closed_loop import SCHEMES
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
-from dscjax.settings import AtLeast, Choice, Maybe, Number, Numbers, Positive, setting
+from dscjax.rules import AtLeast, Choice, Maybe, Number, Numbers, Positive
+from dscjax.settings import setting
 from dscjax.validation import ConfigError
 
 # A saved trajectory keeps at most this many points unless save_every says otherwise (20 s at

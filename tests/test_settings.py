@@ -1,30 +1,33 @@
-"""The settings schema: each rule's reading, writing and message; the four readers of a
-group's declarations (table, TOML data, command line, docs rows) on a group of its own."""
+"""The settings schema: each rule's reading, writing and message (`dscjax.rules`); the four
+readers of a group's declarations (table, TOML data, command line, docs rows)
+on a group of its own."""
 
 import argparse
 import dataclasses
 
 import pytest
 
+from dscjax import rules
 from dscjax import settings as st
 from dscjax.validation import ConfigError
 
 
 @dataclasses.dataclass(frozen=True)
 class Inner:
-    level: float = st.setting(0.2, "CVaR level", st.Number(gt=0, le=1))
+    level: float = st.setting(0.2, "CVaR level", rules.Number(gt=0, le=1))
 
 
 @dataclasses.dataclass(frozen=True)
 class Group:
-    time_limit: float | None = st.setting(100.0, "wall seconds", st.Maybe(st.Positive()),
+    time_limit: float | None = st.setting(100.0, "wall seconds", rules.Maybe(rules.Positive()),
                                           flag="--time-limit")
-    steps: int = st.setting(3, "iterations", st.AtLeast(1))
-    name: str = st.setting("a", "which", st.Choice(("a", "b")), flag="--name")
+    steps: int = st.setting(3, "iterations", rules.AtLeast(1))
+    name: str = st.setting("a", "which", rules.Choice(("a", "b")), flag="--name")
     bound: float | str | None = st.setting("start", "a bound",
-                                           st.Maybe(st.Either((st.Choice(("start",)),
-                                                               st.Positive()))))
-    noise: float | tuple | None = st.setting(None, "std", st.Maybe(st.Numbers(st.Number(ge=0))))
+                                           rules.Maybe(rules.Either((rules.Choice(("start",)),
+                                                               rules.Positive()))))
+    noise: float | tuple | None = st.setting(None, "std",
+                                             rules.Maybe(rules.Numbers(rules.Number(ge=0))))
     inner: Inner = st.group(Inner)
     other: Inner = st.group(Inner, factory=lambda: Inner(0.5), flags={"level": "--level"})
 
@@ -34,48 +37,49 @@ class Group:
 
 
 @pytest.mark.parametrize("rule, value, expected", [
-    (st.Positive(), 2, 2.0), (st.AtLeast(1), 5, 5), (st.Maybe(st.Positive()), "none", None),
-    (st.Maybe(st.Positive()), "None", None), (st.Number(gt=0, le=1), 1, 1.0),
-    (st.Numbers(), [1, 2.5], (1.0, 2.5)), (st.Strings(), ["a.b", "c"], ("a.b", "c")),
+    (rules.Positive(), 2, 2.0), (rules.AtLeast(1), 5, 5),
+    (rules.Maybe(rules.Positive()), "none", None),
+    (rules.Maybe(rules.Positive()), "None", None), (rules.Number(gt=0, le=1), 1, 1.0),
+    (rules.Numbers(), [1, 2.5], (1.0, 2.5)), (rules.Strings(), ["a.b", "c"], ("a.b", "c")),
 ])
 def test_rules_read_values_from_files(rule, value, expected):
     assert rule.parse(value) == expected
 
 
 @pytest.mark.parametrize("rule, value, must", [
-    (st.Positive(), 0, "a finite number > 0"), (st.Positive(), True, "a finite number > 0"),
-    (st.Positive(), "10", "a finite number > 0"),
-    (st.Positive(), float("inf"), "a finite number > 0"),
-    (st.AtLeast(1), 1.0, "an integer >= 1"), (st.AtLeast(0), -1, "an integer >= 0"),
-    (st.Number(gt=0, le=1), 1.5, "a finite number in (0, 1]"),
-    (st.Number(ge=0, lt=1), 1, "a finite number in [0, 1)"),
-    (st.Maybe(st.Positive()), 0, 'a finite number > 0, or "none"'),
-    (st.Choice(("rk4", "etdrk4")), "euler", "one of 'rk4', 'etdrk4'"),
-    (st.Numbers(st.Number(ge=0)), [1, -1], "one finite number >= 0 or a list of them"),
+    (rules.Positive(), 0, "a finite number > 0"), (rules.Positive(), True, "a finite number > 0"),
+    (rules.Positive(), "10", "a finite number > 0"),
+    (rules.Positive(), float("inf"), "a finite number > 0"),
+    (rules.AtLeast(1), 1.0, "an integer >= 1"), (rules.AtLeast(0), -1, "an integer >= 0"),
+    (rules.Number(gt=0, le=1), 1.5, "a finite number in (0, 1]"),
+    (rules.Number(ge=0, lt=1), 1, "a finite number in [0, 1)"),
+    (rules.Maybe(rules.Positive()), 0, 'a finite number > 0, or "none"'),
+    (rules.Choice(("rk4", "etdrk4")), "euler", "one of 'rk4', 'etdrk4'"),
+    (rules.Numbers(rules.Number(ge=0)), [1, -1], "one finite number >= 0 or a list of them"),
 ])
 def test_rules_refuse_with_what_the_value_must_be(rule, value, must):
-    with pytest.raises(st.Invalid) as err:
+    with pytest.raises(rules.Invalid) as err:
         rule.parse(value)
     assert err.value.must == must and err.value.value == value
 
 
 def test_the_command_line_and_a_file_spell_values_alike():
-    assert st.Maybe(st.Positive()).from_text("none") is None
-    assert st.Maybe(st.Positive()).from_text("2.5") == 2.5
-    assert st.AtLeast(0).from_text("1e5") == 100_000  # a count typed in floating notation
-    assert st.Numbers().from_text("0.01,0,0.02") == (0.01, 0.0, 0.02)
-    assert st.Numbers().from_text("0.01") == 0.01
-    with pytest.raises(st.Invalid):
-        st.AtLeast(0).from_text("1.5")
-    with pytest.raises(st.Invalid):
-        st.Maybe(st.Positive()).from_text("0")
+    assert rules.Maybe(rules.Positive()).from_text("none") is None
+    assert rules.Maybe(rules.Positive()).from_text("2.5") == 2.5
+    assert rules.AtLeast(0).from_text("1e5") == 100_000  # a count typed in floating notation
+    assert rules.Numbers().from_text("0.01,0,0.02") == (0.01, 0.0, 0.02)
+    assert rules.Numbers().from_text("0.01") == 0.01
+    with pytest.raises(rules.Invalid):
+        rules.AtLeast(0).from_text("1.5")
+    with pytest.raises(rules.Invalid):
+        rules.Maybe(rules.Positive()).from_text("0")
 
 
 def test_a_strategy_is_read_as_its_object_and_written_as_its_name():
     class CVaR:
         pass
 
-    rule = st.Choice({"mean": "MEAN", "cvar": CVaR})
+    rule = rules.Choice({"mean": "MEAN", "cvar": CVaR})
     assert rule.parse("cvar") is CVaR and rule.dump(CVaR) == "cvar"
 
 

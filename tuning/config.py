@@ -23,18 +23,8 @@ from typing import Any
 
 from dscjax import settings, validation, worst
 from dscjax.params import default_ranges, flatten, from_table
-from dscjax.settings import (
-    AtLeast,
-    Choice,
-    Custom,
-    Either,
-    Maybe,
-    Number,
-    Positive,
-    Strings,
-    group,
-    setting,
-)
+from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positive, Strings
+from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
 from tuning.params import DSC_GAINS
 

@@ -5,15 +5,8 @@ from __future__ import annotations
 
 import sys
 
-from dscjax.cli.common import (
-    Outputs,
-    add_config_args,
-    add_out_arg,
-    add_overwrite_arg,
-    example_setup,
-    prepare_out,
-    print_config,
-)
+from dscjax.cli.common import add_config_args, example_setup, print_config
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.export import PRECISIONS
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))

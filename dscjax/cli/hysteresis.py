@@ -14,18 +14,15 @@ import sys
 import numpy as np
 
 from dscjax.cli.common import (
-    Outputs,
     add_example_arg,
-    add_out_arg,
-    add_overwrite_arg,
     add_run_args,
     finite_float,
     horizon_text,
     positive_float,
-    prepare_out,
     print_config,
     use_device,
 )
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 
 DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
 DEFAULT_OMEGA = 2.3

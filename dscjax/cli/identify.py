@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import sys
 
-from dscjax.cli.common import Outputs, add_config_args, add_out_arg, add_overwrite_arg
+from dscjax.cli.common import add_config_args
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
 
@@ -62,7 +63,8 @@ def load(args):
 
 
 def run(args) -> int:
-    from dscjax.cli.common import prepare_out, print_config
+    from dscjax.cli.common import print_config
+    from dscjax.cli.out import prepare_out
     from dscjax.identify import run as ident
 
     setup, spec, s, source = load(args)

@@ -146,7 +146,7 @@ def _continue(args, module) -> str:
 def _kept(args, module) -> str | None:
     """The hint of a command without its own `interrupt_hint`: the files it finished (or
     nothing), and the command that runs it again."""
-    from dscjax.cli.common import kept_text
+    from dscjax.cli.out import kept_text
 
     outputs = getattr(module, "OUTPUTS", None)
     if outputs is None or getattr(args, "out", None) is None:
@@ -172,7 +172,7 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
-    from dscjax.cli.common import check_out
+    from dscjax.cli.out import check_out
     from dscjax.files import NoSpace
     from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
     from dscjax.simulate import DivergenceError
@@ -180,7 +180,7 @@ def main(argv=None) -> int:
 
     module = commands[args.command]
     try:
-        # the lock on --out and the clean-up of an --out left empty (cli.common.prepare_out)
+        # the lock on --out and the clean-up of an --out left empty (cli.out.prepare_out)
         # last as long as the command
         with handle_interrupts(), contextlib.ExitStack() as args.exit_stack:
             if not getattr(args, "print_config", False):

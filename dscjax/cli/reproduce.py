@@ -5,7 +5,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import Outputs, add_out_arg, add_run_args, count, positive_float
+from dscjax.cli.common import add_run_args, count, positive_float
+from dscjax.cli.out import Outputs, add_out_arg
 from dscjax.reproduce.figures import FIGURES
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
@@ -103,7 +104,8 @@ def parse_alpha0(text: str | None) -> list[float] | None:
 
 
 def run(args) -> int:
-    from dscjax.cli.common import horizon_text, loop_sizes, prepare_out, use_device
+    from dscjax.cli.common import horizon_text, loop_sizes, use_device
+    from dscjax.cli.out import prepare_out
     from dscjax.reproduce import claim_lines, reproduce, sampling, setups
     from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
@@ -156,6 +158,6 @@ def interrupt_hint(args) -> str:
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
-    from dscjax.cli.common import kept_text
+    from dscjax.cli.out import kept_text
 
     return kept_text(args, OUTPUTS, rerun_command(args))

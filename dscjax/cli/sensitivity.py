@@ -15,18 +15,15 @@ import numpy as np
 
 from dscjax.cli.common import (
     SAMPLED_KEYS,
-    Outputs,
     add_config_args,
-    add_out_arg,
-    add_overwrite_arg,
     count,
     gradient_work,
     horizon_text,
     load_setup,
-    prepare_out,
     print_config,
     use_device,
 )
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *SAMPLED_KEYS, "device")

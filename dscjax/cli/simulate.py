@@ -9,17 +9,14 @@ import numpy as np
 
 from dscjax.cli.common import (
     SAMPLED_KEYS,
-    Outputs,
     add_config_args,
-    add_out_arg,
-    add_overwrite_arg,
     choose_device,
     effort_text,
     horizon_text,
     load_setup,
     loop_sizes,
-    prepare_out,
 )
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json, write_npz
 from dscjax.progress import Progress
 
@@ -241,8 +238,8 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.common import kept_text
     from dscjax.cli.main import rerun_command
+    from dscjax.cli.out import kept_text
 
     text = kept_text(args, OUTPUTS, rerun_command(args))
     return text.replace("nothing is kept;", "nothing is kept (the files are written when the "

@@ -12,17 +12,8 @@ import sys
 import numpy as np
 
 from dscjax import files
-from dscjax.cli.common import (
-    Outputs,
-    add_config_args,
-    add_out_arg,
-    add_overwrite_arg,
-    horizon_text,
-    load_setup,
-    prepare_out,
-    print_config,
-    use_device,
-)
+from dscjax.cli.common import add_config_args, horizon_text, load_setup, print_config, use_device
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json
 
 OUTPUTS = Outputs(("stability.json", "stability.png"))

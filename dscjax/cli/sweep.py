@@ -17,9 +17,7 @@ import numpy as np
 
 from dscjax.cli.common import (
     SAMPLED_KEYS,
-    Outputs,
     add_example_arg,
-    add_out_arg,
     add_run_args,
     apply_run_options,
     blame_options,
@@ -32,9 +30,9 @@ from dscjax.cli.common import (
     flag,
     horizon_text,
     portable_device,
-    prepare_out,
     print_config,
 )
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.files import write_json
 from dscjax.progress import Progress
 

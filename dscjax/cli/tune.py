@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from dscjax.cli.common import Outputs, add_out_arg
+from dscjax.cli.out import Outputs, add_out_arg
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -70,7 +70,7 @@ def interrupt_hint(args) -> str:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        from dscjax.cli.common import kept_text
+        from dscjax.cli.out import kept_text
 
         return kept_text(args, OUTPUTS, rerun_command(args))
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
@@ -130,7 +130,8 @@ def run(args) -> int:
     t_start = time.perf_counter()
     import numpy as np
 
-    from dscjax.cli.common import prepare_out, print_config, use_device
+    from dscjax.cli.common import print_config, use_device
+    from dscjax.cli.out import prepare_out
     from dscjax.metrics import CHATTER_RATIO
     from dscjax.params import cast
     from dscjax.progress import Phase, Progress

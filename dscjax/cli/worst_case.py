@@ -13,17 +13,15 @@ from pathlib import Path
 
 from dscjax.cli.common import (
     SAMPLED_KEYS,
-    Outputs,
     add_config_args,
-    add_out_arg,
     gradient_work,
     horizon_text,
     load_setup,
     loop_sizes,
-    prepare_out,
     print_config,
     use_device,
 )
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.worst.report import FIGURES
 
 MANIFEST = "worst_case.json"
@@ -259,7 +257,7 @@ def interrupt_hint(args) -> str | None:
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
-        from dscjax.cli.common import kept_text
+        from dscjax.cli.out import kept_text
 
         return kept_text(args, OUTPUTS, rerun_command(args))
     return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "

@@ -20,7 +20,8 @@ from dscjax import config, files
 from dscjax.identify import fit as fitting
 from dscjax.identify.data import Record, columns_of, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
-from dscjax.settings import AtLeast, Choice, Maybe, Number, Strings, Text, setting
+from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
+from dscjax.settings import setting
 from dscjax.validation import ConfigError
 
 FIGURES = ("fit.png", "residuals.png")

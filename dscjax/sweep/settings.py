@@ -11,7 +11,8 @@ import numpy as np
 from dscjax import device, params, validation
 from dscjax import settings as schema
 from dscjax.params import Param, Range, default_ranges
-from dscjax.settings import AtLeast, Choice, Maybe, Positive, Strings, setting
+from dscjax.rules import AtLeast, Choice, Maybe, Positive, Strings
+from dscjax.settings import setting
 from dscjax.validation import ConfigError
 
 Parallel = Literal["per_device", "spmd"]

@@ -16,7 +16,8 @@ import numpy as np
 
 from dscjax import files, params, search, validation
 from dscjax.closed_loop import Setup
-from dscjax.settings import AtLeast, Custom, Maybe, Positive, Strings, setting
+from dscjax.rules import AtLeast, Custom, Maybe, Positive, Strings
+from dscjax.settings import setting
 from dscjax.simulate import simulate
 from dscjax.validation import ConfigError
 from dscjax.worst.problem import (

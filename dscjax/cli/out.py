@@ -1,0 +1,166 @@
+"""--out, the one rule of every command's output directory: what a command writes
+(`Outputs`), the checks before any work (`check_out`), the directory made ready and locked
+(`prepare_out`: refused when it holds another run's or another command's files, unless
+--overwrite or --resume), and what an interrupted command keeps (`kept_text`)."""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from pathlib import Path
+
+from dscjax.cli.common import COMMANDS
+
+
+def add_out_arg(p, default: str):
+    """--out DIR of a command (the one rule of --out, README)."""
+    p.add_argument("--out", default=default, metavar="DIR",
+                   help=f"output directory (default: {default})")
+
+
+def add_overwrite_arg(p):
+    """--overwrite of the commands without --resume (the one rule of --out, README)."""
+    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier "
+                   "run in DIR (only those this command writes); without it such a DIR is "
+                   "refused")
+
+
+@dataclasses.dataclass(frozen=True)
+class Outputs:
+    """What a command writes into its --out, declared once per command: file names or glob
+    patterns, and folders. The one rule of an existing --out checks them and --overwrite
+    deletes them, never anything else."""
+
+    files: tuple[str, ...]
+    folders: tuple[str, ...] = ()
+
+    def found(self, out: Path) -> list[str]:
+        """The outputs present in `out` (folders with a trailing /), sorted."""
+        names = {p.name for pattern in self.files for p in out.glob(pattern) if p.is_file()}
+        names |= {f"{p.name}/" for pattern in self.folders for p in out.glob(pattern)
+                  if p.is_dir()}
+        return sorted(names)
+
+    def remove(self, out: Path) -> None:
+        import shutil
+
+        for name in self.found(out):
+            path = out / name.rstrip("/")
+            if name.endswith("/"):
+                shutil.rmtree(path)
+            else:
+                path.unlink()
+
+
+def check_out(args, option: str = "--out") -> None:
+    """Refuse an --out the system cannot take as an output directory, before any work: an
+    empty path, a name too long, a component that is a file, no permission, a read-only file
+    system (`files.out_problem`); one line naming the path and the reason, exit 2."""
+    from dscjax import files
+    from dscjax.validation import ConfigError
+
+    text = getattr(args, "out", None)
+    if text is None:
+        return
+    if not str(text).strip():
+        raise ConfigError(f"{option} {str(text)!r}: an empty path; give a directory, e.g. "
+                          f"{option} results/run (or {option} . for the current one)")
+    problem = files.out_problem(text)
+    if problem is not None:
+        raise ConfigError(f"{option} {str(text)!r}: cannot write the output there "
+                          f"({problem}); give a writable directory")
+
+
+def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
+    """{command: its files in `out` that this command would replace}: for each other command
+    whose own files are in `out` (those no other command writes, e.g. a sweep's sweep.json),
+    the files of `outputs` found there that are among its outputs too (summary.json). A
+    command may replace or delete only the files that it wrote itself."""
+    import importlib
+
+    ours = set(outputs.found(out))
+    if not ours:
+        return {}
+    found = {}
+    for name, module in COMMANDS.items():
+        if name == getattr(args, "command", None):
+            continue
+        theirs = getattr(importlib.import_module(module), "OUTPUTS", None)
+        if theirs is not None and theirs != outputs:
+            found[name] = set(theirs.found(out))
+    clash = {}
+    for name, theirs in found.items():
+        others = set().union(ours, *(f for n, f in found.items() if n != name))
+        if theirs - others and theirs & ours:  # its own files are there, and shared names
+            clash[name] = sorted(theirs & ours)
+    return clash
+
+
+def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
+                check: bool = True, option: str = "--out") -> Path:
+    """Make `args.out` ready, after every input has been validated: refuse a DIR that is a
+    file, cannot be written or is held by another process (one line, exit 2); create it if new
+    (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
+    the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
+    (`resumable`) or --overwrite (deletes them, nothing else)."""
+    from dscjax import files
+    from dscjax.validation import ConfigError
+
+    check_out(args, option)
+    out = Path(args.out)
+    try:
+        new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
+        args.exit_stack.callback(_remove_if_empty, new)
+        if out.exists() and not out.is_dir():
+            raise NotADirectoryError(0, "it is a file, not a directory")
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(dir=out, prefix=".dscjax-write-test-")
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise ConfigError(f"{option} {str(args.out)!r}: cannot write the output there "
+                          f"({err.strerror or err}); give a writable directory") from None
+    args.exit_stack.enter_context(files.lock_out(
+        out, name=lock or files.LOCK, argv=[*args.prog, *args.argv], option=option))
+    if check:
+        clash = _other_commands(args, outputs, out)
+        if clash:
+            shown = "; ".join(f"`dscjax {name}`: {', '.join(names)}"
+                              for name, names in clash.items())
+            raise ConfigError(f"{option} {str(args.out)!r} holds the results of another "
+                              f"command, which this one would replace ({shown}); give another "
+                              f"{option}")
+        found = outputs.found(out)
+        if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
+            shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
+            how = ("--resume to continue them, --overwrite to start afresh (deleting only "
+                   "them)" if resumable else "--overwrite to replace them")
+            raise ConfigError(f"{option} {str(args.out)!r} already holds files this command "
+                              f"writes ({shown}); {how}, or give another {option}")
+        if getattr(args, "overwrite", False):
+            outputs.remove(out)
+    return out
+
+
+def kept_text(args, outputs: Outputs, rerun: str) -> str:
+    """What an interrupted command that cannot resume says it keeps: the files it finished
+    (`outputs` found in --out: the rule of --out let it start only where none was), or
+    nothing; then `rerun`, the command that makes them all."""
+    out = Path(args.out)
+    found = outputs.found(out) if out.is_dir() else []
+    if not found:
+        return f"nothing is kept; run the same command again: {rerun}"
+    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
+    return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
+            f"rest is not written; run the same command again: {rerun}")
+
+
+def _remove_if_empty(created: list[Path]) -> None:
+    """The directories a command created for its --out (leaf first), removed if it left
+    nothing in them."""
+    for path in created:
+        try:
+            path.rmdir()
+        except OSError:
+            return
