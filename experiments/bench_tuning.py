@@ -1,19 +1,26 @@
-"""`dscjax tune`'s methods at equal wall time: cma_path (the default), cma (plain CMA-ES, the
-baseline) and adam (exact gradients).
+"""`dscjax tune`'s search methods at equal wall time on paired seeds: the default (CMA-ES with
+a population sized to the CPU's throughput, IPOP restarts) against cma_path (the default
+before it: CMA-ES at cma's own population with a line search along its evolution path).
 
-    python experiments/bench_tuning.py                    # the default problem, 9 seeds (docs)
-    python experiments/bench_tuning.py --problem robust --seeds 18 --budget 100
-    python experiments/bench_tuning.py --quick            # 2 seeds, T = 2 s: JSON only
+    python experiments/bench_tuning.py                          # 10 seeds, 100 s (docs)
+    python experiments/bench_tuning.py --methods cma,cma_path,adam --seeds 3
+    python experiments/bench_tuning.py --problem robust --seeds 10
+    python experiments/bench_tuning.py --quick                  # 2 seeds, T = 2 s: JSON only
 
-Problems: `default`, what `dscjax tune` solves (the paper's example from its gains: smooth
-L-inf error on [1 s, T] with max|u| <= the start's and TV(u) <= 1.5 x the start's, nominal
-plant), and `robust` (the same, CVaR 0.25 over 8 plants, hysteresis +-30 %). Each seed runs
-every method in turn for --budget seconds of wall time, compilation included (each method
-compiles its own programs), with that seed. Per method: medians over seeds of the best feasible
-loss, the nominal L-inf error of the best gains and how much lower it is than the start's, and
-the held-out batch (256 plants, seed 12345) refined as the tuner's report does ("stiff": track
-only once refined; "diverged": at every step tried); against cma, seed by seed: wins, the
-paired sign test (two-sided p, ties dropped) and the geometric mean of the loss ratios.
+Problems: `default`, what `dscjax tune` solves (the paper's example from its gains, the
+controller sampled at 1 ms by exponential Euler: smooth L-inf error on [1 s, T] with max|u| <=
+the start's and TV(u) <= 1.5 x the start's, the forward-Euler and the one-sample-delayed loops
+checked; nominal plant), and `robust` (the same, CVaR 0.25 over 8 plants, hysteresis +-30 %).
+Each seed runs every method in turn for --budget seconds of wall time, compilation included.
+
+Each best point is judged on the nominal plant: its windowed L-inf against the start gains'
+(exponential and forward Euler), every constraint in both discretisations, the loop with the
+input delayed one sample (L-inf at most 2 x the undelayed, TV(u) at most 1.5 x its bound: no
+limit cycle), and the held-out plants (32, the default held-out box, seed 777) that blow up at
+Ts = 1 ms and 0.5 ms (one refinement). A run "meets" when all of these hold. Per method: the
+median and worst ratio, the worst forward-Euler ratio, the runs that meet, generations and
+evaluations per second; against the baseline, seed by seed on the ratio (a run that does not
+meet counts 0): wins and the paired sign test (two-sided p, ties dropped).
 """
 
 from __future__ import annotations
@@ -32,42 +39,65 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
+from dscjax import params  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
-from tuning import report  # noqa: E402
+from tuning.params import DSC_GAINS  # noqa: E402
+from tuning.runner import heldout_ranges  # noqa: E402
 
-METHODS = ("cma_path", "cma", "adam")  # cma is the baseline of the paired comparisons
-BASELINE = "cma"
+# name -> [tuning.optimizer] settings; the first is the default, BASELINE the comparison's
+METHODS = {"cma": {}, "cma_path": {"name": "cma_path", "popsize": 0, "growth": 1},
+           "adam": {"name": "adam"}}
+BASELINE = "cma_path"
+PLANTS, SEED = 32, 777  # the held-out blow-up check
 
 
-def build(problem: str, t_final: float, heldout: int):
+def build(problem: str, t_final: float):
     robust = (tuning.BatchSpec(batch=8, seed=0, aggregate="cvar", cvar_level=0.25)
               if problem == "robust" else tuning.BatchSpec(batch=0))
-    cfg = tuning.TuningConfig(robust=robust, heldout=tuning.BatchSpec(batch=heldout, seed=12345))
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=t_final), cfg)
+    cfg = tuning.TuningConfig(robust=robust, heldout=tuning.BatchSpec(batch=0))
+    return tuning.build_problem(dscjax.paper_example(),
+                                RunSpec.make(t_final=t_final, sample_time=1e-3), cfg)
 
 
 def with_method(problem, method: str, budget: float, seed: int):
-    """The problem searched by `method` for `budget` seconds with `seed`: no count or patience
-    stops it; plain CMA-ES ends where its own criteria stop it (no restart)."""
-    opt = dataclasses.replace(problem.cfg.optimizer, name=method, time_limit=budget,
-                              steps=10**7, patience=0, seed=seed,
-                              **({"restarts": 0} if method == "cma" else {}))
+    """The problem searched by `method` for `budget` seconds with `seed` (no iteration count
+    or patience stops it)."""
+    opt = dataclasses.replace(problem.cfg.optimizer, **METHODS[method], time_limit=budget,
+                              steps=None, patience=0, seed=seed)
     return dataclasses.replace(problem, cfg=dataclasses.replace(problem.cfg, optimizer=opt))
 
 
-def figures(problem, per_plant, z) -> dict:
-    """The nominal figures of the gains z, and the held-out batch's (refined)."""
-    def host(d):
-        return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
-
-    nominal = host(per_plant(z, {}))
-    out = {k: float(nominal[k]) for k in ("linf_error_window", "max_abs_u", "tv_u")}
-    if problem.heldout:
-        ov = {k: jax.numpy.asarray(v) for k, v in problem.heldout.items()}
-        h = report.batch_stats(report.refined(problem, z, ov, host(per_plant(z, ov))))
-        linf = h["linf_error_window"] or {"median": math.nan, "p95": math.nan}
-        out["heldout"] = {"median": linf["median"], "p95": linf["p95"],
-                          "diverged": h["n_diverged"], "stiff": h["n_refined"]}
+def judge(problem, setup, t_final: float) -> dict:
+    """The figures of the gains of `setup` against the start's (see the module docstring)."""
+    start = problem.setup
+    sc = problem.objective.scales
+    ov = {p: np.stack([np.asarray(params.get(s, p)) for s in (start, setup)])
+          for p in DSC_GAINS}
+    out, ok = {}, True
+    for disc, delay in (("exponential-euler", 0), ("euler", 0), ("exponential-euler", 1)):
+        spec = RunSpec.make(t_final, 1e-3, sample_time=1e-3, discretisation=disc, delay=delay,
+                            refine=0)
+        m = {k: np.asarray(v) for k, v in
+             dscjax.simulate_batch(start, ov, spec=spec).metrics.items()}
+        tag = "delayed" if delay else disc
+        out[tag] = {"linf": float(m["linf_error_window"][1]),
+                    "ratio": float(m["linf_error_window"][0] / m["linf_error_window"][1]),
+                    "max_abs_u": float(m["max_abs_u"][1]), "tv_u": float(m["tv_u"][1])}
+    for tag in ("exponential-euler", "euler"):
+        f = out[tag]
+        ok &= f["max_abs_u"] <= sc.u_max * (1 + 1e-9) and f["tv_u"] <= sc.tv_max * (1 + 1e-9)
+    d = out["delayed"]
+    d["delay_ok"] = bool(d["linf"] <= 2 * out["exponential-euler"]["linf"]
+                         and d["tv_u"] <= 1.5 * sc.tv_max)
+    ranges = params.check(heldout_ranges(start), start, "heldout")
+    held = params.sample_overrides(setup, ranges, PLANTS, SEED, "uniform")
+    for ts in (1e-3, 5e-4):
+        sp = RunSpec.make(t_final, ts, sample_time=ts, refine=1)
+        out[f"heldout_blowups_{1e3 * ts:g}ms"] = int(
+            np.asarray(dscjax.simulate_batch(setup, held, spec=sp).diverged).sum())
+    out["constraints_ok"] = bool(ok)
+    out["meets"] = bool(ok and d["delay_ok"] and out["heldout_blowups_1ms"] == 0
+                        and out["heldout_blowups_0.5ms"] == 0)
     return out
 
 
@@ -84,70 +114,71 @@ def main(argv=None) -> int:
     p = parser(__doc__)
     p.add_argument("--problem", choices=("default", "robust"), default="default")
     p.add_argument("--seeds", type=positive(), default=None,
-                   help="seeds 0 .. N-1 (default 9; 2 quick)")
+                   help="seeds 0 .. N-1 (default 10; 2 quick)")
     p.add_argument("--budget", type=positive(float), default=None,
                    help="seconds of wall time per method and seed, compilation included "
                    "(default 100; 10 quick)")
+    p.add_argument("--methods", default="cma,cma_path",
+                   help=f"comma-separated, of {', '.join(METHODS)} (default cma,cma_path)")
     a = p.parse_args(argv)
+    methods = a.methods.split(",")
+    if any(m not in METHODS for m in methods) or BASELINE not in methods:
+        p.error(f"--methods: names of {', '.join(METHODS)}, {BASELINE} among them "
+                f"(got {a.methods!r})")
     quick = a.quick
-    seeds = a.seeds or (2 if quick else 9)
+    seeds = a.seeds or (2 if quick else 10)
     budget = a.budget or (10.0 if quick else 100.0)
     t_final = 2.0 if quick else 20.0
     bench = Bench(f"tuning_{a.problem}", f"Gain tuning at equal wall time, the {a.problem} "
                   "problem", quick=quick)
-    problem = build(a.problem, t_final, 16 if quick else 256)
-    per_plant = jax.jit(problem.objective.per_plant)
+    problem = build(a.problem, t_final)
     unravel = ravel_pytree(problem.z0)[1]
-    start = figures(problem, per_plant, problem.z0)
-    runs = {m: [] for m in METHODS}
+    runs = {m: [] for m in methods}
     for seed in range(seeds):
-        for m in METHODS:
+        for m in methods:
             problem.objective.compiled.clear()  # every method compiles its own programs
             res = tuning.run(with_method(problem, m, budget, seed))
             tr = res.trace
-            loss = tr.best_loss if tr.best_feasible else math.inf
-            runs[m].append({"seed": seed, "loss": loss, "evaluations": tr.evaluations,
-                            "gradients": tr.gradients, "iterations": tr.iterations,
-                            "figures": figures(problem, per_plant, unravel(tr.best_z))})
-            print(f"  seed {seed} {m}: best {loss:.4g}, {tr.iterations} iterations",
-                  file=sys.stderr, flush=True)
+            setup = problem.selection.apply(problem.setup, unravel(tr.best_z))
+            f = judge(problem, jax.tree.map(np.asarray, setup), t_final)
+            runs[m].append({"seed": seed, "ratio": f["exponential-euler"]["ratio"],
+                            "ratio_fe": f["euler"]["ratio"], "meets": f["meets"],
+                            "delay_ok": f["delayed"]["delay_ok"], "figures": f,
+                            "evaluations": tr.evaluations, "iterations": tr.iterations,
+                            "search_s": tr.seconds})
+            print(f"  seed {seed} {m}: {f['exponential-euler']['ratio']:.1f}x (forward Euler "
+                  f"{f['euler']['ratio']:.1f}x), meets {f['meets']} (delay "
+                  f"{f['delayed']['delay_ok']}, held-out blow-ups "
+                  f"{f['heldout_blowups_1ms']}/{f['heldout_blowups_0.5ms']}), "
+                  f"{tr.iterations} generations", file=sys.stderr, flush=True)
             bench.read_load()
 
-    bench.add(method="(start gains)", best_loss="", linf_nominal=start["linf_error_window"],
-              x_lower="", tv_u=start["tv_u"], max_abs_u=start["max_abs_u"],
-              **_heldout(start.get("heldout")))
-    base = [r["loss"] for r in runs[BASELINE]]
+    def score(r):  # what the sign test compares: the ratio of a run that meets, else 0
+        return r["ratio"] if r["meets"] else 0.0
+
+    base = [score(r) for r in runs[BASELINE]]
     for m, rs in runs.items():
-        loss = [r["loss"] for r in rs]
-        i = int(np.argsort(loss)[len(loss) // 2])  # the median run's gains
-        f = rs[i]["figures"]
-        row = {"method": m, "best_loss": median(loss), "linf_nominal": f["linf_error_window"],
-               "x_lower": start["linf_error_window"] / f["linf_error_window"],
-               "tv_u": f["tv_u"], "max_abs_u": f["max_abs_u"], **_heldout(f.get("heldout")),
-               "evaluations": int(median([r["evaluations"] for r in rs])),
-               "gradients": int(median([r["gradients"] for r in rs]))}
+        s = [score(r) for r in rs]
+        row = {"method": m, "median_x": median([r["ratio"] for r in rs]),
+               "worst_x": min(r["ratio"] for r in rs),
+               "worst_x_forward_euler": min(r["ratio_fe"] for r in rs),
+               "meet": f"{sum(r['meets'] for r in rs)} of {len(rs)}",
+               "delay_ok": f"{sum(r['delay_ok'] for r in rs)} of {len(rs)}",
+               "generations_per_s": median([r["iterations"] / r["search_s"] for r in rs]),
+               "evaluations_per_s": median([r["evaluations"] / r["search_s"] for r in rs])}
         if m != BASELINE:
-            wins = sum(x < y for x, y in zip(loss, base, strict=True))
-            losses = sum(x > y for x, y in zip(loss, base, strict=True))
-            ratios = [x / y for x, y in zip(loss, base, strict=True)
-                      if math.isfinite(x) and math.isfinite(y) and y > 0]
-            row |= {f"wins_vs_{BASELINE}": f"{wins} of {len(loss)}",
-                    "sign_test_p": sign_test(wins, losses),
-                    "geo_mean_ratio": math.exp(np.mean(np.log(ratios))) if ratios else math.nan}
+            wins = sum(x > y for x, y in zip(s, base, strict=True))
+            losses = sum(x < y for x, y in zip(s, base, strict=True))
+            row |= {f"wins_vs_{BASELINE}": f"{wins} of {len(s)}",
+                    "sign_test_p": sign_test(wins, losses)}
         bench.add(**row)
     bench.note(f"T = {t_final:g} s, {budget:g} s per method and seed (compilation included), "
-               f"seeds 0-{seeds - 1}; the nominal and held-out columns are the median run's "
-               f"gains'; {problem.n_params} tuned numbers; held-out: "
-               f"{len(next(iter(problem.heldout.values()))) if problem.heldout else 0} plants.")
-    bench.finish()
+               f"seeds 0-{seeds - 1}; x: the start gains' windowed L-inf over the tuned "
+               f"gains' (nominal plant, sampled at 1 ms); {problem.n_params} tuned numbers; "
+               f"'meet': every constraint in both discretisations, the delayed loop, no "
+               f"held-out blow-up at 1 and 0.5 ms.")
+    bench.finish(extra={"runs": runs})
     return 0
-
-
-def _heldout(h) -> dict:
-    if not h:
-        return {}
-    return {"heldout_median": h["median"], "heldout_p95": h["p95"],
-            "heldout_diverged": h["diverged"], "heldout_stiff": h["stiff"]}
 
 
 if __name__ == "__main__":

@@ -244,13 +244,13 @@ class Bench:
                 f"{m['backend']}: {m['devices']}), load average {loads}, jax "
                 f"{m['jax']}: `{self.command}`")
 
-    def finish(self) -> dict:
-        """Print the table, write results/bench/NAME.json and (unless quick) the section of
-        docs/benchmarks.md. Returns the JSON record."""
+    def finish(self, extra: dict | None = None) -> dict:
+        """Print the table, write results/bench/NAME.json (with `extra`'s keys) and (unless
+        quick) the section of docs/benchmarks.md. Returns the JSON record."""
         self.loads.append(load())
         record = {"name": self.name, "title": self.title, "date": self.started.isoformat(),
                   "machine": machine(), "load": self.loads, "command": self.command,
-                  "quick": self.quick, "rows": self.rows, "notes": self.notes}
+                  "quick": self.quick, "rows": self.rows, "notes": self.notes, **(extra or {})}
         text = "\n\n".join(x for x in (self.header(), self.table(), "\n".join(
             f"- {n}" for n in self.notes)) if x)
         print(f"\n## {self.title}" + (" (quick: not written to docs)" if self.quick else ""))

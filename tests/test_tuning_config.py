@@ -263,9 +263,15 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
     p = build_problem(setup, options, cfg)
     assert p.objective.sim.sampled and p.objective.sim.sample_time == 1e-3
-    # the second loop: the same, the controller's states by forward Euler
-    second = p.objective.sampled
+    # the check loops: the same, the controller's states by forward Euler; the same, its input
+    # delayed one sample
+    checks = {c.name: c for c in p.objective.checks}
+    second, delayed = checks["sampled"].sim, checks["delayed"].sim
     assert second.discretisation == "euler" and second.sample_time == 1e-3
+    assert second.delay == 0 and delayed.delay == 1 and delayed.sample_time == 1e-3
+    assert delayed.discretisation == "exponential-euler"
+    assert (checks["delayed"].linf_factor, checks["delayed"].tv_factor,
+            checks["delayed"].u_factor) == (2.0, 1.5, None)
     assert p.objective.sim.discretisation == "exponential-euler"
     assert p.options.sampled and not p.continuous.sampled
     assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
@@ -275,12 +281,12 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     assert any("Ts = 0.001 s" in n and "exponential Euler" in n for n in p.notes)
     off = build_problem(setup, options.replace(sample_time=None), cfg)
     assert not off.objective.sim.sampled and off.continuous is None
-    assert off.objective.sampled is None
+    assert off.objective.checks == ()
     # tau >= 2 Ts by default; the other discretisation is the second loop's
     given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
                           dataclasses.replace(cfg, params=("controller.tau",)))
     assert given.objective.sim.sample_time == 0.002
-    assert given.objective.sampled.discretisation == "exponential-euler"
+    assert given.objective.checks[0].sim.discretisation == "exponential-euler"
     assert any("states advanced by forward Euler" in n for n in given.notes)
     assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)
 

@@ -11,6 +11,7 @@ sampled loop and its second discretisation), so their compiled programs are shar
 import contextlib
 import io
 import json
+from types import SimpleNamespace
 
 import jax
 import numpy as np
@@ -114,9 +115,11 @@ def test_errors_are_reported_against_the_config_reference_beside_the_shifted_one
 def transient():
     """The problem of test_tuning_loop's run (2 s, controller.k, sampled at 1 ms, the second
     discretisation) from x(0) = (0.2, 0): a start transient of max|u| ~ 120 (issue 38 item
-    5); its nominal figures at the start gains."""
+    5); its nominal figures at the start gains. Without the delayed loop: from this start it
+    chatters, and the tangents of a chattering loop are not the slopes of its figures."""
     setup = params.set(dscjax.paper_example(), "plant.x0", np.array([0.2, 0.0]))
-    cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0))
+    cfg = tuning.TuningConfig(params=("controller.k",), heldout=tuning.BatchSpec(batch=0),
+                              objective=tuning.ObjectiveSpec(delay_samples=0))
     problem = tuning.build_problem(setup, RunSpec.make(2.0, 1e-3, sample_time=1e-3), cfg)
     ev = report.evaluate(problem, problem.z0, problem.z0)
     nom = {tag: {k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()}
@@ -146,20 +149,21 @@ def test_the_report_says_where_the_effort_bounds_are_measured(transient):
 
 
 def test_constraint_elasticities_match_central_differences(transient):
-    """Issue 38 item 3: d ln r / d ln k_i of every constraint (max|u|, TV(u), both loops;
-    the second loop's L-inf over the first's) by one reverse pass per figure, against
-    central differences of the loops' exact figures in float64; the start sits on its max|u|
-    bound (margin 0), so a 1 % change of k_1 breaks it: fragile, and the warning says so."""
+    """Issue 38 item 3: d ln r / d ln k_i of every constraint (max|u|, TV(u), the check
+    loop's: the other discretisation; its L-inf over the first's) by one reverse pass per
+    figure, against central differences of the loops' exact figures in
+    float64; the start sits on its max|u| bound (margin 0), so a 1 % change of k_1 breaks it:
+    fragile, and the warning says so."""
     problem, nom = transient
     z0 = problem.z0
     checks = report.constraint_checks(problem.objective.scales, nom["start"],
-                                      report._sampled(problem))
+                                      problem.objective.checks)
     sens = elasticity.constraints(problem, z0, checks)
     per_plant = jax.jit(problem.objective.per_plant)
 
-    def ratio(m, key):  # value / bound, bounds fixed but the second loop's L-inf's
-        return (m["sampled_linf_window"] / m["linf_error_window"]
-                if key == "sampled_linf_window" else m[key])
+    def ratio(m, key):  # value / bound, bounds fixed but the check loops' L-inf's
+        return (m[key] / m["linf_error_window"]
+                if key in ("sampled_linf_window", "delayed_linf_window") else m[key])
 
     h = 1e-6
     names = [p.name for p in problem.selection.columns(problem.setup)]
@@ -235,7 +239,8 @@ def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
                "relative_margin": 0.1, "met": True},
               {"name": "TV(u)", "key": "tv_u", "value": 50.0, "bound": 100.0,
                "relative_margin": 0.5, "met": True}]
-    sens = elasticity.constraints(None, None, checks)
+    problem = SimpleNamespace(objective=SimpleNamespace(checks=()))  # no check loop
+    sens = elasticity.constraints(problem, None, checks)
     # 0.9 (1 + 0.01 x 2) = 0.918 <= 1: room; TV(u): half its bound, but k[0] not finite
     assert [r["fragile"] for r in sens["rows"]] == [[], ["k[0]"]]
     assert sens["rows"][1]["elasticity"] == {"k[0]": None, "k[1]": -3.0}

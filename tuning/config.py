@@ -82,6 +82,15 @@ class ObjectiveSpec:
         "windowed L-inf at most this x the first's, and the effort bounds", Positive())
     sampled_weight: float = setting(100.0, "weight of the second loop's penalty; 0: no second "
                                     "loop", WEIGHT)
+    delay_samples: int = setting(
+        1, "the delayed loop (a sampled loop's input delayed this many more samples) must "
+        "track without a limit cycle; 0: no delayed loop", AtLeast(0))
+    delay_factor: float = setting(2.0, "the delayed loop's windowed L-inf at most this x the "
+                                  "loop tuned's", Positive())
+    delay_tv_factor: float = setting(1.5, "the delayed loop's TV(u) at most this x the TV(u) "
+                                     "bound", Positive())
+    delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
+                                  "loop", WEIGHT)
     effort_bounds: str = setting(
         "nominal", "the start bounds measured on the nominal plant, or per_plant: on each "
         "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
@@ -106,7 +115,7 @@ class OptimizerSpec:
     CMA-ES methods is a generation: one batched simulation."""
 
     name: str = setting(
-        "cma_path", "cma_path (CMA-ES + a line search along its evolution path), cma (CMA-ES "
+        "cma", "cma_path (CMA-ES + a line search along its evolution path), cma (CMA-ES "
         "alone) or adam (projected descent on exact gradients)", Choice(OPTIMIZERS),
         flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
@@ -128,7 +137,11 @@ class OptimizerSpec:
     save_interval: int = setting(10, "iterations between writes of history.csv, best.json, "
                                  "gains.json", AtLeast(1))
     sigma0: float = setting(0.3, "CMA-ES's initial step in z", Positive())
-    popsize: int = setting(0, "CMA-ES's population; 0: 4 + 3 ln n", AtLeast(0))
+    popsize: int = setting(64, "CMA-ES's population, sized to what a batched simulation "
+                           "does per second on a CPU (larger batches run faster per "
+                           "candidate); 0: cma's 4 + 3 ln n", AtLeast(0))
+    growth: int = setting(2, "the population's factor at each restart (IPOP-CMA-ES; 1: the "
+                          "same)", AtLeast(1))
     seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)",
                         AtLeast(0))
     restarts: int = setting(9, "fresh CMA-ES runs from the start point after CMA-ES's own "

@@ -3,10 +3,10 @@ number on the nominal plant (report.md's "Sensitivity of the constraints").
 
     rows = constraints(problem, z, checks)   # checks: `report.constraint_checks` at z
 
-A constraint value <= bound is read as the ratio r = value / bound <= 1 (the second loop's
-L-inf bound is a multiple of the first loop's, so r divides the two). Its elasticity to a tuned
+A constraint value <= bound is read as the ratio r = value / bound <= 1 (a check loop's
+L-inf bound is a multiple of the loop tuned's, so r divides the two). Its elasticity to a tuned
 number g is e = d ln r / d ln g: a 1 % change of g moves r by about e %. It comes from one
-forward run of the loop tuned (and of the second loop) and one reverse pass per figure the
+forward run of the loop tuned (and of each check loop) and one reverse pass per figure the
 constraints read (`jax.vjp`, its pull-backs vmapped), through the objective's own simulation
 (`tuning.objective.simulate_metrics`). A constraint is **fragile** where a STEP change of one
 number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
@@ -29,13 +29,14 @@ from tuning.objective import simulate_metrics
 STEP = 0.01  # the relative change of one tuned number a constraint should survive
 
 
-def terms(key: str) -> tuple[tuple[int, int, str], ...]:
+def terms(key: str, names: tuple[str, ...]) -> tuple[tuple[int, int, str], ...]:
     """ln r of the constraint on the report's metric `key` as (sign, loop, metric) terms:
-    loop 0 the loop tuned, 1 the second loop (`report._checks`' keys)."""
-    if key == "sampled_linf_window":  # sampled L-inf / (factor x L-inf)
-        return (1, 1, "linf_error_window"), (-1, 0, "linf_error_window")
-    if key.startswith("sampled_"):
-        return ((1, 1, key.removeprefix("sampled_")),)
+    loop 0 the loop tuned, i the check loop names[i - 1] (`report._checks`' keys)."""
+    for i, name in enumerate(names, start=1):
+        if key == f"{name}_linf_window":  # its L-inf / (factor x L-inf)
+            return (1, i, "linf_error_window"), (-1, 0, "linf_error_window")
+        if key.startswith(f"{name}_"):
+            return ((1, i, key.removeprefix(f"{name}_")),)
     return ((1, 0, key),)
 
 
@@ -62,11 +63,11 @@ def _jacobian(z, setup, loops, selection, keys):
 
 def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] | None:
     """{(loop, metric): {number: d ln figure / d ln g}} of the loop tuned (loop 0) and the
-    second loop (1) at z on the nominal plant, for each tuned number g by name (a vector's
+    check loops (1, 2, ...) at z on the nominal plant, for each tuned number g by name (a vector's
     elements as "path[i]"; a number tuned in linear coordinates scaled by its value: still
     d ln figure / d ln |g|); None where a loop diverged or a figure is 0."""
     obj, sel = problem.objective, problem.selection
-    loops = [obj.sim] + ([obj.sampled] if obj.sampled is not None else [])
+    loops = [obj.sim] + [c.sim for c in obj.checks]
     keys = tuple(tuple(dict.fromkeys(m for lp, m in figures if lp == i))
                  for i in range(len(loops)))
     used = [i for i, k in enumerate(keys) if k]
@@ -91,13 +92,14 @@ def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | No
     which breaks it to first order (`fragile`); None if a loop diverged at z."""
     if not checks:
         return None
-    needed = [(lp, m) for c in checks for _, lp, m in terms(c["key"])]
+    names = tuple(c.name for c in problem.objective.checks)
+    needed = [(lp, m) for c in checks for _, lp, m in terms(c["key"], names)]
     el = elasticities(problem, z, needed)
     if el is None:
         return None
     rows = []
     for c in checks:
-        e = {name: sum(sign * el[(lp, m)][name] for sign, lp, m in terms(c["key"]))
+        e = {name: sum(sign * el[(lp, m)][name] for sign, lp, m in terms(c["key"], names))
              for name in next(iter(el.values()))}
         e = {n: float(v) if np.isfinite(v) else None for n, v in e.items()}
         ratio = c["value"] / c["bound"]

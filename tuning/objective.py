@@ -5,10 +5,14 @@ over a batch of plants (mean, CVaR at level a: the mean of the worst ceil(a B), 
     J = w_linf Linf~(e on W)/(start) + w_l2 L2(e on W)/(start) + w_effort_l2 L2(u)/(start)
       + w_effort_max max~|u|/(start) + w_effort_tv TV(u)/(start)
       + w_u relu(max~|u|/u_max - 1)^2 + w_tv relu(TV(u)/tv_max - 1)^2 + requirement penalties
-      + w_sampled relu(Linf~ second/(sampled_factor Linf~) - 1)^2
-    (with a second loop, `dscjax tune`'s other discretisation, w_u and w_tv also penalise its
-    max~|u| and TV(u) against the same bounds)
-    J = divergence_penalty if the trajectory diverged (finite, no NaN)
+      + sum over the check loops c of
+        w_c [relu(Linf~_c/(f_c Linf~) - 1)^2 + relu(max~|u|_c/(g_c u_max) - 1)^2
+             + relu(TV(u)_c/(h_c tv_max) - 1)^2]
+    J = divergence_penalty if the trajectory diverged in any loop (finite, no NaN)
+
+The check loops (`CheckLoop`) are the loop tuned with one thing changed that the gains must
+survive: `dscjax tune`'s other discretisation of the sampled controller (f = 2, g = h = 1) and
+its input delayed one sample (f = 2, h = 1.5, max|u| unchecked).
 
 Linf~ = (1/s) log((1/|W|) integral_W exp(s |e|) dt) and max~|u| = (1/r) log(sum_k exp(r |u_k|))
 are running log-sum-exps (stable by a running max): Linf~'s gradient is the softmax-weighted
@@ -218,10 +222,11 @@ def simulate_metrics(setup: Setup, sim: RunSpec, extra: TuningMetrics | None,
 
 
 def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
-               n_requirements: int, bounds: tuple | None = None
+               n_requirements: int, bounds: tuple | None = None, checks: tuple = ()
                ) -> tuple[jax.Array, dict[str, jax.Array]]:
     """J of one plant (or elementwise over a batch) and its weighted terms; `bounds` as
-    `Scales.bounds` gives them (default the nominal ones)."""
+    `Scales.bounds` gives them (default the nominal ones); `checks` the `CheckLoop`s whose
+    metrics `loop_metrics` added."""
     u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
     u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
     terms = {}
@@ -235,66 +240,95 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
         terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
     if spec.effort_tv:
         terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
-    # the effort bounds hold in the second loop too, where there is one
-    second = "sampled_" if SAMPLED in metrics and spec.sampled_weight else None
     if u_bound is not None and spec.u_max_weight:
-        terms["u_bound"] = spec.u_max_weight * sum(jnp.maximum(
-            metrics[f"{p}smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
-            for p in ("", second) if p is not None)
+        terms["u_bound"] = spec.u_max_weight * jnp.maximum(
+            metrics["smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
     if tv_bound is not None and spec.tv_max_weight:
-        terms["tv_bound"] = spec.tv_max_weight * sum(jnp.maximum(
-            metrics[f"{p}tv_u"] / tv_bound - 1.0, 0.0) ** 2 for p in ("", second)
-            if p is not None)
+        terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
+            metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
-    if SAMPLED in metrics and spec.sampled_weight:
-        ratio = metrics[SAMPLED] / (spec.sampled_factor * metrics["smooth_linf_window"])
-        terms["sampled"] = spec.sampled_weight * jnp.maximum(ratio - 1.0, 0.0) ** 2
+    for c in checks:
+        terms[c.name] = c.penalty(metrics, u_bound, tv_bound)
     total = sum(terms.values())
     # a diverged plant (either loop) costs a finite constant, so that means and CVaRs stay
     # usable; any other non-finite J stays so, and the search ranks it last
-    total = jnp.where(diverged | metrics.get("sampled_diverged", False),
-                      spec.divergence_penalty, total)
+    for c in checks:
+        diverged = diverged | metrics[f"{c.name}_diverged"]
+    total = jnp.where(diverged, spec.divergence_penalty, total)
     return total, terms
 
 
 def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
-                    n_requirements: int, spec: ObjectiveSpec) -> jax.Array:
+                    n_requirements: int, checks: tuple = ()) -> jax.Array:
     """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
-    the second loop's constraint (its L-inf and effort bounds) met."""
+    each check loop's constraints met."""
     ok = ~diverged & within_bounds(metrics, bounds)
     for i in range(n_requirements):
         ok = ok & (metrics[f"req{i}_met"] > 0)
-    if SAMPLED in metrics:
-        ok = ok & ~metrics["sampled_diverged"] & within(
-            metrics["sampled_linf_window"], spec.sampled_factor * metrics["linf_error_window"])
-        ok = ok & within_bounds({"max_abs_u": metrics["sampled_max_abs_u"],
-                                 "tv_u": metrics["sampled_tv_u"]}, bounds)
+    for c in checks:
+        ok = ok & c.met(metrics, bounds)
     return ok
 
 
-SAMPLED = "sampled_smooth_linf_window"
+@dataclasses.dataclass(frozen=True)
+class CheckLoop:
+    """A loop the gains must also hold in: `sim`, the loop tuned with one thing changed. Its
+    windowed L-inf at most `linf_factor` x the loop tuned's, its max|u| at most `u_factor` x
+    the max|u| bound and its TV(u) at most `tv_factor` x the TV(u) bound (None: not checked);
+    `weight` of its penalty; its metrics in `loop_metrics` are prefixed `name`_; `label` says
+    the loop in the report."""
+
+    name: str
+    sim: RunSpec
+    linf_factor: float
+    u_factor: float | None
+    tv_factor: float | None
+    weight: float
+    label: str
+
+    def bounded(self, bounds: tuple) -> list[tuple[str, str, Any, float]]:
+        """(what, metric key, bound, factor) of each effort bound checked in this loop."""
+        return [(what, key, b, f) for what, key, b, f in
+                zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds,
+                    (self.u_factor, self.tv_factor), strict=True)
+                if b is not None and f is not None]
+
+    def penalty(self, m: Mapping[str, jax.Array], u_bound, tv_bound) -> jax.Array:
+        p = self.name
+        ratio = m[f"{p}_smooth_linf_window"] / (self.linf_factor * m["smooth_linf_window"])
+        out = jnp.maximum(ratio - 1.0, 0.0) ** 2
+        smooth = {"max_abs_u": f"{p}_smooth_max_abs_u", "tv_u": f"{p}_tv_u"}
+        for _, key, b, f in self.bounded((u_bound, tv_bound)):
+            out = out + jnp.maximum(m[smooth[key]] / (f * b) - 1.0, 0.0) ** 2
+        return self.weight * out
+
+    def met(self, m: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
+        p = self.name
+        ok = ~m[f"{p}_diverged"] & within(m[f"{p}_linf_window"],
+                                          self.linf_factor * m["linf_error_window"])
+        for _, key, b, f in self.bounded(bounds):
+            ok = ok & within(m[f"{p}_{key}"], f * _like(b, m[f"{p}_{key}"]))
+        return ok
 
 
 def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
                  ) -> tuple[dict, jax.Array]:
-    """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`);
-    with a second loop `objective.sampled`, also its sampled_linf_window,
-    sampled_smooth_linf_window (`SAMPLED`), sampled_diverged, sampled_max_abs_u,
-    sampled_smooth_max_abs_u and sampled_tv_u. Traceable."""
+    """(metrics, diverged) of the objective's loop on `setup` (a batch with `overrides`), and
+    of each of its check loops c: c_linf_window, c_smooth_linf_window, c_diverged,
+    c_max_abs_u, c_smooth_max_abs_u and c_tv_u. Traceable."""
     m, div = simulate_metrics(setup, objective.sim,
                               objective.extra(shifted_reference(setup, overrides)), overrides,
                               checkpoint_every)
-    if objective.sampled is not None:
+    for c in objective.checks:
         e = objective.extra()
         smooth = TuningMetrics(e.window_start, e.e_sharpness, e.u_sharpness,
-                               n_steps=objective.sampled.n_steps)
-        ms, div_s = simulate_metrics(setup, objective.sampled, smooth, overrides,
-                                     checkpoint_every)
-        m = m | {"sampled_linf_window": ms["linf_error_window"],
-                 SAMPLED: ms["smooth_linf_window"], "sampled_diverged": div_s,
-                 "sampled_max_abs_u": ms["max_abs_u"], "sampled_tv_u": ms["tv_u"],
-                 "sampled_smooth_max_abs_u": ms["smooth_max_abs_u"]}
+                               n_steps=c.sim.n_steps)
+        mc, div_c = simulate_metrics(setup, c.sim, smooth, overrides, checkpoint_every)
+        m = m | {f"{c.name}_{k}": mc[k] for k in ("linf_error_window", "smooth_linf_window",
+                                                 "max_abs_u", "smooth_max_abs_u", "tv_u")}
+        m[f"{c.name}_linf_window"] = m.pop(f"{c.name}_linf_error_window")
+        m[f"{c.name}_diverged"] = div_c
     return m, div
 
 
@@ -422,8 +456,8 @@ class Objective:
     overrides: Mapping[str, Any] | None = None  # the training batch, {path: (B, ...)}
     aggregate: str = "mean"
     cvar_level: float = 1.0
-    # the deployable constraint's loop: `sim` with the controller sampled (None: none)
-    sampled: RunSpec | None = None
+    # the loops the gains must also hold in (`CheckLoop`)
+    checks: tuple = ()
     # the programs compiled for this objective live and die with it
     compiled: dict = dataclasses.field(default_factory=dict, init=False, repr=False,
                                        compare=False)
@@ -461,10 +495,10 @@ class Objective:
         metrics, diverged = loop_metrics(self, setup, ov, checkpoint_every)
         bounds = self.bounds(overrides)
         per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
-                                      len(self.requirements), bounds)
+                                      len(self.requirements), bounds, self.checks)
         loss = aggregate(per_plant, self.aggregate, self.cvar_level)
         feasible = feasible_plants(metrics, diverged, bounds, len(self.requirements),
-                                   self.spec)
+                                   self.checks)
         aux = {
             "terms": {k: aggregate(jnp.where(diverged, 0.0, v), self.aggregate,
                                    self.cvar_level) for k, v in terms.items()},
@@ -501,7 +535,8 @@ class Objective:
             metrics, diverged = loop_metrics(self, setup)
             b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
                       for v in bounds)
-            return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b)[0]
+            return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b,
+                              self.checks)[0]
 
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
         return (loss, aux), jax.tree.map(lambda g: jnp.mean(g, axis=0), grads)
@@ -513,5 +548,5 @@ class Objective:
         ov = self.overrides if overrides is None else overrides
         metrics, diverged = loop_metrics(self, setup, ov)
         per_plant, _ = plant_loss(metrics, diverged, self.spec, self.scales,
-                                  len(self.requirements), self.bounds(overrides))
+                                  len(self.requirements), self.bounds(overrides), self.checks)
         return {"loss": per_plant, "diverged": diverged, **metrics}

@@ -22,12 +22,15 @@ from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
 from tuning.objective import shifted_reference, within
-from tuning.runner import discretisation, loop_words, simulate_command
+from tuning.runner import loop_words, simulate_command
 
 STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
-                 "l2_u", "tv_u_window", "sampled_linf_window")
+                 "l2_u", "tv_u_window", "sampled_linf_window", "delayed_linf_window",
+                 "delayed_tv_u")
 LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
           "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
+          "delayed_linf_window": "L-inf error on [t0, T], the input delayed",
+          "delayed_tv_u": "TV(u) on [0, T], the input delayed",
           "max_abs_u": "max |u| on [0, T]", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
           "tv_u": "TV(u) on [0, T]", "loss": "objective J",
           "max_abs_u_window": "max |u| on [t0, T]", "tv_u_window": "TV(u) on [t0, T]",
@@ -38,7 +41,8 @@ LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 
           "user_l2_error_window": "L2 error on [t0, T] against the config's y_r"}
 # where the controller tracks a shifted reference, the error figures measured against it
 SHIFTED = " against the shifted y_r the controller tracks"
-ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window")
+ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window",
+          "delayed_linf_window")
 
 
 def _md(text: str) -> str:
@@ -66,7 +70,7 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
     """A batch's per-plant figures with the plants that diverged at the tuning's step re-run
     at `simulate`'s refinement levels, as sweeps do (a divergence of the integrator is not one
-    of the loop); the sampled loop alike. Adds `refined` and `sampled_refined` (the level that
+    of the loop); each check loop c alike. Adds `refined` and c_refined (the level that
     tracked, 0: the tuning's step); the refined plants' exact metrics and `diverged` are the
     refined runs', their loss and smooth surrogates stay the objective's."""
     m = dict(m)
@@ -77,9 +81,10 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
     for k in [k for k in m if k.startswith("user_")]:  # the refined runs do not measure them
         m[k] = np.where(m["refined"] > 0, np.nan, np.asarray(m[k], float))
-    if "sampled_diverged" in m:
-        m["sampled_refined"] = _refine(setup, ov, problem.objective.sampled, m, {
-            "diverged": "sampled_diverged", "linf_error_window": "sampled_linf_window"})
+    for c in problem.objective.checks:
+        m[f"{c.name}_refined"] = _refine(setup, ov, c.sim, m, {
+            "diverged": f"{c.name}_diverged", "linf_error_window": f"{c.name}_linf_window",
+            "tv_u": f"{c.name}_tv_u"})
     return m
 
 
@@ -115,16 +120,17 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     # as a sweep's rows: tracked at the tuning's step, after refinement, or diverged
     out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
                            "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
-    sampled_ok = ok
-    if "sampled_diverged" in m:  # the same three outcomes in the loop sampled
-        sampled_ok = ~m["sampled_diverged"].astype(bool)
-        ref = sampled_ok & (np.asarray(m.get("sampled_refined", 0)) > 0)
-        out["sampled"] = {"n_tracked": int((sampled_ok & ~ref).sum()),
-                          "n_refined": int(ref.sum()), "n_diverged": int((~sampled_ok).sum())}
+    masks = {}
+    for c in ("sampled", "delayed"):  # the same three outcomes in each check loop
+        if f"{c}_diverged" in m:
+            masks[c] = c_ok = ~m[f"{c}_diverged"].astype(bool)
+            ref = c_ok & (np.asarray(m.get(f"{c}_refined", 0)) > 0)
+            out[c] = {"n_tracked": int((c_ok & ~ref).sum()), "n_refined": int(ref.sum()),
+                      "n_diverged": int((~c_ok).sum())}
     for key in STATS_METRICS + ("loss",):
         if key not in m:
             continue
-        v = m[key] if key == "loss" else m[key][sampled_ok if key.startswith("sampled") else ok]
+        v = m[key] if key == "loss" else m[key][masks.get(key.split("_")[0], ok)]
         v = np.asarray(v, float)
         v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
         out[key] = None if v.size == 0 else {
@@ -149,15 +155,15 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
     return rows
 
 
-def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
+def constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, Any]]:
     """The bounds checked exactly on one plant's metrics `m` (every RK4 step): name, value,
-    bound, margin and met (within `BOUND_RTOL`; never for a diverged plant). `sampled`
-    ((Ts, factor)) adds the sampled loop's row: its windowed L-inf <= factor x the continuous."""
+    bound, margin and met (within `BOUND_RTOL`; never for a diverged plant). Each check loop
+    (`CheckLoop`) adds its rows: its windowed L-inf and effort bounds."""
     rows = []
     diverged = bool(np.asarray(m.get("diverged", False)))
-    if sampled is not None:
-        diverged = diverged or bool(np.asarray(m["sampled_diverged"]))
-    for name, key, bound in _checks((scales.u_max, scales.tv_max), m, sampled):
+    for c in checks:
+        diverged = diverged or bool(np.asarray(m[f"{c.name}_diverged"]))
+    for name, key, bound in _checks((scales.u_max, scales.tv_max), m, checks):
         value = float(np.asarray(m[key]))
         margin = float(bound) - value
         rows.append({"name": name, "key": key, "value": value, "bound": float(bound),
@@ -168,28 +174,28 @@ def constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str,
     return rows
 
 
-def _checks(bounds, m, sampled) -> list[tuple]:
-    """(name, metric, bound) of each bound (max|u|, TV(u), the second loop's) there is."""
-    checks = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
-    if sampled is not None:
-        label, factor = sampled
-        checks.append((f"L-inf on [t0,T], {label}", "sampled_linf_window",
-                       factor * np.asarray(m["linf_error_window"], float)))
-        checks += [(f"{name}, {label}", f"sampled_{key}", bound) for name, key, bound in
-                   zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True)]
-    return [c for c in checks if c[2] is not None]
+def _checks(bounds, m, checks) -> list[tuple]:
+    """(name, metric, bound) of each bound (max|u|, TV(u), the check loops') there is."""
+    out = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
+    for c in checks:
+        out.append((f"L-inf on [t0,T], {c.label}", f"{c.name}_linf_window",
+                    c.linf_factor * np.asarray(m["linf_error_window"], float)))
+        out += [(f"{what}, {c.label}", f"{c.name}_{key}",
+                 b if f == 1 else f * np.asarray(b, float))
+                for what, key, b, f in c.bounded(bounds)]
+    return [c for c in out if c[2] is not None]
 
 
-def train_constraint_checks(scales, m: dict[str, Any], sampled=None) -> list[dict[str, Any]]:
+def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, Any]]:
     """The bounds checked exactly on every training plant (`m` as `evaluate` gives it), each
     against its own or the nominal bound: how many meet it, and the worst plant (the smallest
     relative margin; a diverged plant meets nothing and is the worst)."""
     diverged = np.asarray(m["diverged"]).astype(bool)
     n = diverged.size
     rows = []
-    if sampled is not None:
-        diverged = diverged | np.asarray(m["sampled_diverged"]).astype(bool)
-    for name, key, bound in _checks(scales.bounds(train=True), m, sampled):
+    for c in checks:
+        diverged = diverged | np.asarray(m[f"{c.name}_diverged"]).astype(bool)
+    for name, key, bound in _checks(scales.bounds(train=True), m, checks):
         b = np.broadcast_to(np.asarray(bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         with np.errstate(invalid="ignore"):
@@ -254,7 +260,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
     PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
     problem, tr = result.problem, result.trace
-    sc, sampled = problem.objective.scales, _sampled(problem)
+    sc, checks = problem.objective.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
     nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
@@ -264,7 +270,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
         "effort_bounds": problem.cfg.objective.effort_bounds,
         "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
-        "constraints": {tag: constraint_checks(sc, ev["nominal"][tag], sampled)
+        "constraints": {tag: constraint_checks(sc, ev["nominal"][tag], checks)
                         for tag in ("start", "tuned")},
         "sample_time": problem.objective.sim.sample_time,
         "second_loop": second_label(problem),
@@ -286,8 +292,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         + [f"tuned gains: {w}" for w in validation.assumption_warnings(result.best_setup)
            if w not in validation.assumption_warnings(problem.setup)],
     }
-    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None or sampled):
-        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag], sampled)
+    if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None or checks):
+        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag], checks)
                                         for tag in ("start", "tuned")}
     for key in ("train", "heldout"):
         if ev[key] is not None:
@@ -325,18 +331,9 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     return summary
 
 
-def _sampled(problem):
-    """(label, factor) of the second loop's constraint, or None."""
-    if problem.objective.sampled is None:
-        return None
-    return second_label(problem), problem.cfg.objective.sampled_factor
-
-
 def second_label(problem) -> str | None:
     """The second loop in words ("the states by forward Euler"), None without one."""
-    if problem.objective.sampled is None:
-        return None
-    return f"the states by {discretisation(problem.objective.sampled)}"
+    return next((c.label for c in problem.objective.checks if c.name == "sampled"), None)
 
 
 def _bounds_train(sc) -> dict[str, Any] | None:
@@ -502,12 +499,13 @@ def _markdown(s: dict, problem, figures) -> str:
     for key in ("linf_error_window", "user_linf_error_window", "l2_error_window",
                 "user_l2_error_window", "linf_error", "user_linf_error", "max_abs_u",
                 "max_abs_u_window", "l2_u", "tv_u", "tv_u_window", "chattering_index",
-                "sampled_linf_window"):
+                "sampled_linf_window", "delayed_linf_window", "delayed_tv_u"):
         if key in nom["start"]:
             a, b = nom["start"][key], nom["tuned"][key]
             lines.append(f"| {_md(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
     for key, label in (("diverged", "diverged"),
-                       ("sampled_diverged", "diverged, the other discretisation")):
+                       ("sampled_diverged", "diverged, the other discretisation"),
+                       ("delayed_diverged", "diverged, the input delayed")):
         if key in nom["start"]:
             lines.append(f"| {label} | {bool(nom['start'][key])} | {bool(nom['tuned'][key])} "
                          f"| |")

@@ -32,7 +32,7 @@ from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import Objective, start_scales
+from tuning.objective import CheckLoop, Objective, start_scales
 from tuning.optimize import choose_gradient
 from tuning.params import Selection
 from tuning.requirements import KINDS
@@ -73,11 +73,11 @@ class Problem:
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         return _description(self.setup, self.options, self.cfg, self.selection,
-                            self.objective.sim, self.objective.sampled, self.mode,
+                            self.objective.sim, self.objective.checks, self.mode,
                             self.extra_plants)
 
 
-def _description(setup, options, cfg, selection, sim, sampled, mode, extra_plants) -> dict:
+def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants) -> dict:
     """`Problem.describe` of these parts (the start gains' evaluation plays no part)."""
     opt = dataclasses.asdict(cfg.optimizer)
     for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
@@ -90,7 +90,7 @@ def _description(setup, options, cfg, selection, sim, sampled, mode, extra_plant
         "robust": _batch_desc(cfg.robust, setup),
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
-        "sampled": None if sampled is None else sampled.describe(),
+        "checks": {c.name: c.sim.describe() for c in checks},
         "mode": mode,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
@@ -150,7 +150,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     setting is validated, before anything runs or compiles (the start scales run the loop):
     the command prepares its --out there."""
     parts = _parts(setup, options, cfg, extra_plants)
-    cfg, notes, selection, mode, sim, second, train, heldout, continuous = parts
+    cfg, notes, selection, mode, sim, checks, train, heldout, continuous = parts
     if ready is not None:
         ready()
     notes = list(notes)
@@ -165,14 +165,16 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train,
                           aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level, sampled=second)
+                          cvar_level=cfg.robust.cvar_level, checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
-    if second is not None:
-        notes.append(f"checked too: the same loop with its states by {discretisation(second)} "
-                     f"must keep the effort bounds and its windowed L-inf within "
-                     f"{cfg.objective.sampled_factor:g} x the loop tuned's (penalty weight "
-                     f"tuning.objective.sampled_weight = {cfg.objective.sampled_weight:g}; 0 "
-                     f"turns this check off)")
+    for c in checks:
+        effort = " and ".join(f"{what} within {f:g} x its bound"
+                              for what, _, _, f in c.bounded((1.0, 1.0)))
+        notes.append(f"checked too, in the search: the same loop with {c.label} must keep its "
+                     f"windowed L-inf within {c.linf_factor:g} x the loop tuned's"
+                     + (f" and {effort}" if effort else "")
+                     + f" (penalty weight tuning.objective.{WEIGHTS[c.name]} = "
+                     f"{c.weight:g}; 0 turns this check off)")
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
                      f"where stiff) is a check in the report, not part of the objective")
@@ -186,9 +188,9 @@ def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | No
              ) -> dict:
     """`build_problem(...).describe()` without building the objective (nothing is run): what
     a resumed run is checked against before it starts."""
-    cfg, _, selection, mode, sim, sampled, _, _, _ = _parts(setup, options, cfg,
+    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg,
                                                              extra_plants)
-    return _description(setup, options, cfg, selection, sim, sampled, mode, extra_plants)
+    return _description(setup, options, cfg, selection, sim, checks, mode, extra_plants)
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
@@ -205,8 +207,8 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None):
     """The validated settings of `build_problem` before the start gains are evaluated:
-    (cfg, notes, selection, mode, sim, second, train, heldout, continuous): `second` the
-    tuned loop with the other discretisation (or None), `continuous` the check loop."""
+    (cfg, notes, selection, mode, sim, checks, train, heldout, continuous): `checks` the
+    `CheckLoop`s of the search, `continuous` the report's check loop."""
     cfg.validate()
     validate_setup(setup)
     cfg = model_default_ranges(cfg, setup)
@@ -251,14 +253,31 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
-    second = None
-    if sim.sampled and cfg.objective.sampled_weight:
-        # an embedded engineer may advance the controller's states either way: the gains
-        # must not depend on it
-        second = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
-    return cfg, tuple(notes), selection, mode, sim, second, train, heldout, continuous
+    return (cfg, tuple(notes), selection, mode, sim, check_loops(sim, cfg.objective), train,
+            heldout, continuous)
 
 
+def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
+    """The loops a sampled loop's gains must also hold in: the other discretisation of the
+    controller's states (an embedded engineer may advance them either way) and the input
+    delayed `delay_samples` more samples (no limit cycle where the hardware is a sample late)."""
+    if not sim.sampled:
+        return ()
+    out = []
+    if spec.sampled_weight:
+        other = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
+        out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0,
+                             spec.sampled_weight, f"the states by {discretisation(other)}"))
+    if spec.delay_samples and spec.delay_weight:
+        d = sim.delay + spec.delay_samples
+        out.append(CheckLoop("delayed", dataclasses.replace(sim, delay=d), spec.delay_factor,
+                             None, spec.delay_tv_factor, spec.delay_weight,
+                             f"the input delayed {d} sample{'s' if d != 1 else ''}"))
+    return tuple(out)
+
+
+# the setting of each check loop's weight
+WEIGHTS = {"sampled": "sampled_weight", "delayed": "delay_weight"}
 # the second loop's discretisation: the one the loop tuned does not use
 OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
 
@@ -393,8 +412,7 @@ def _term_names(problem):
     if obj.scales.tv_max is not None and spec.tv_max_weight:
         names.append("tv_bound")
     names += [f"req{i}" for i in range(len(obj.requirements))]
-    if obj.sampled is not None and spec.sampled_weight:
-        names.append("sampled")
+    names += [c.name for c in obj.checks]
     return names
 
 

@@ -49,8 +49,9 @@ def batch_fn(problem):
         m, div = loop_metrics(obj, obj.setup, ov)
         # the training plants' own bounds (per_plant), laid out as the plants are: tiled
         bounds = sc.bounds(train=bool(train), tile=b)
-        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements), bounds)
-        feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.spec)
+        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements), bounds,
+                                 obj.checks)
+        feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.checks)
 
         def per(v, how):
             v = v.reshape(b, n_train)
@@ -140,4 +141,5 @@ def method_of(spec) -> search.CMA | search.Gradient:
     if spec.name == "adam":
         return search.Gradient(lr=spec.learning_rate)
     return search.CMA(sigma0=spec.sigma0, popsize=spec.popsize, path=spec.name == "cma_path",
+                      growth=spec.growth,
                       restarts=spec.restarts)

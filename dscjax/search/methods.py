@@ -77,7 +77,7 @@ class CMA:
     """CMA-ES (`cma`) from x0 with step sigma0, one batch per generation, told a non-finite
     loss as BAD; its seed is seed + 1, restart r's SeedSequence([seed, r]). When its own
     criteria stop it, a fresh instance starts from x0 (at most `restarts` times; the incumbent
-    is kept). path=True ("cma_path") adds LINE_POINTS points from the incumbent along the
+    is kept) with `growth` times the population (IPOP-CMA-ES: 2). path=True ("cma_path") adds LINE_POINTS points from the incumbent along the
     evolution path p_c (a random direction while p_c is zero, from seed + 2) in the first
     LINE_GENERATIONS generations, simulated in the same batch; a line point that improves on
     the incumbent is injected into the next generation."""
@@ -86,6 +86,7 @@ class CMA:
     popsize: int = 0  # 0: cma's default, 4 + floor(3 ln n)
     path: bool = False
     restarts: int = 9
+    growth: int = 1  # the population's factor at each restart
 
     @property
     def name(self) -> str:
@@ -97,8 +98,9 @@ class CMA:
         opts = {"seed": seed, "verbose": -9, "randn": np.random.RandomState(seed).randn,
                 "bounds": [[x if np.isfinite(x) else None for x in problem.lower],
                            [x if np.isfinite(x) else None for x in problem.upper]]}
-        if self.popsize:
-            opts["popsize"] = self.popsize
+        if self.popsize or (restart and self.growth > 1):
+            base = self.popsize or 4 + int(3 * math.log(len(x0)))
+            opts["popsize"] = base * self.growth ** restart
         return ReplayCMA(np.asarray(x0, dtype=np.float64), self.sigma0, opts)
 
     def init(self, problem, x0, seed: int) -> CMAState:
