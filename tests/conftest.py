@@ -168,14 +168,15 @@ def traj20(paper_setup):
 @pytest.fixture(scope="session")
 def search_problem():
     """The tuning problem of the search tests (test_tuning_search, test_out_dir): controller.k
-    by cma_path (population 4, 4 generations, each saved), forward-mode gradients, over 1 s
+    by cma (population 10, the same at a restart, 4 generations, each saved), forward-mode
+    gradients, over 1 s
     at dt = 2 ms, window from 0.5 s; no sampled loop (a 1 ms controller cannot be sampled on
     the 2 ms step). A test changes its optimizer by `dataclasses.replace` of `cfg`: the same
     objective, so the same compiled programs."""
     import tuning
     from dscjax.runspec import RunSpec
 
-    spec = tuning.OptimizerSpec(name="cma_path", steps=4, save_interval=1, popsize=4,
+    spec = tuning.OptimizerSpec(name="cma", steps=4, save_interval=1, popsize=10, growth=1,
                                 time_limit=None, gradient="forward")
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),

@@ -210,8 +210,7 @@ def test_reproduce_interrupt_says_what_to_run(tmp_path, capsys, monkeypatch):
      "dscjax tune: error: argument --effort-bounds: must be one of 'nominal', 'per_plant' (got "
      "'everywhere')"),
     (["tune", "--method", "cma_grad"],  # a removed method
-     "dscjax tune: error: argument --method: must be one of 'cma_path', 'cma', 'adam' (got "
-     "'cma_grad')"),
+     "dscjax tune: error: argument --method: must be one of 'cma', 'adam' (got 'cma_grad')"),
     (["sweep", "--samples", "many"],
      "dscjax sweep: error: argument --samples: must be an integer >= 1 (got 'many')"),
     (["sweep", "--samples", "1.5"],

@@ -24,7 +24,6 @@ import numpy as np
 import pytest
 
 import dscjax
-import dscjax.search.methods  # noqa: F401 (its path_direction is wrapped)
 import tuning
 import tuning.search
 from dscjax import files, search
@@ -276,7 +275,7 @@ def test_a_tuning_run_whose_disk_fills_says_so_in_one_line_and_resumes(tmp_path)
 STEPS = 4  # generations of the uninterrupted run; the interrupts land in generation 1
 
 
-# search_problem: conftest's (cma_path over STEPS generations, each saved)
+# search_problem: conftest's (cma over STEPS generations, each saved)
 
 
 @pytest.fixture(scope="module")
@@ -320,8 +319,6 @@ def _in_generation(monkeypatch, where: str, generation: int, times: int = 1):
         wrap(ReplayCMA, "ask", before=False)
     elif where == "simulate":
         wrap(tuning.search.TuneProblem, "evaluate")
-    elif where == "line":  # the direction of cma_path's line, from CMA-ES's evolution path
-        wrap(search.methods, "path_direction")
     elif where == "gradient":  # adam's exact gradient
         wrap(tuning.search.TuneProblem, "value_and_grad")
     elif where == "tell":  # told, before the injection, the incumbent and the counters
@@ -341,7 +338,7 @@ def _same_search(out, other):
         np.testing.assert_array_equal(a.arrays[key], value, err_msg=key)
 
 
-@pytest.mark.parametrize("where", ["ask", "simulate", "line", "tell", "checkpoint",
+@pytest.mark.parametrize("where", ["ask", "simulate", "tell", "checkpoint",
                                    "progress"])
 def test_ctrl_c_anywhere_in_a_generation_saves_a_whole_state_that_resumes_exactly(
         where, search_problem, straight, tmp_path, monkeypatch):

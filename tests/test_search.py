@@ -53,8 +53,7 @@ def bowl(**kw):
     return Bowl(C, -np.ones(3), np.ones(3), **kw)
 
 
-@pytest.mark.parametrize("method, tol", [(CMA(), 1e-4), (CMA(path=True), 1e-4),
-                                         (Gradient(starts=2, screen=8), 1e-2),
+@pytest.mark.parametrize("method, tol", [(CMA(), 1e-4), (Gradient(starts=2, screen=8), 1e-2),
                                          (Random(batch=64), 0.25)])
 def test_each_method_finds_the_minimum_of_a_bowl(method, tol):
     res = search.run(bowl(), method, x0=np.zeros(3), max_iterations=80)
@@ -145,8 +144,7 @@ def test_the_trace_keeps_the_best_distinct_points_and_the_first_diverged():
     assert tr.stall == 1  # the third iteration found nothing
 
 
-METHODS = [CMA(popsize=6), CMA(path=True, popsize=6), Random(batch=5),
-           Gradient(starts=3, screen=8, coupled=1)]
+METHODS = [CMA(popsize=6), Random(batch=5), Gradient(starts=3, screen=8, coupled=1)]
 
 
 @pytest.mark.parametrize("method", METHODS, ids=lambda m: m.name)
@@ -235,17 +233,22 @@ def test_limits_and_patience_end_a_search():
     assert res.trace.iterations == 1 and res.stop_reason == "time limit 1e-09 s"
 
 
-def test_cma_es_restarts_from_the_start_when_its_criteria_stop_it(monkeypatch):
+@pytest.mark.parametrize("growth", [1, 2])
+def test_cma_es_restarts_from_the_start_when_its_criteria_stop_it(monkeypatch, growth):
+    """Each restart a fresh CMA-ES from x0; with growth 2 (IPOP) its population doubles: cma's
+    4 + floor(3 ln 3) = 7 in three dimensions, then 14, then 28 candidates a generation."""
     import cma
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop",
                         lambda self, *a, **k: {"forced": 3} if self.countiter >= 3 else {})
-    res = search.run(bowl(), CMA(restarts=2), x0=np.full(3, 0.1), seed=4)
+    res = search.run(bowl(), CMA(restarts=2, growth=growth), x0=np.full(3, 0.1), seed=4)
     assert (res.trace.iterations, res.trace.restarts) == (9, 2)
     assert res.stop_reason == "CMA-ES stopped: {'forced': 3}"
     es = res.state.es.es
     np.testing.assert_array_equal(np.asarray(es.x0, float), np.full(3, 0.1))
     assert es.opts["seed"] == int(np.random.SeedSequence([4, 2]).generate_state(1)[0])
+    pops = [7 * growth ** r for r in range(3)]
+    assert res.trace.evaluations == 1 + 3 * sum(pops) and es.popsize == pops[-1]
 
 
 def test_a_replayed_cma_es_continues_exactly_even_from_between_ask_and_tell():
@@ -313,8 +316,7 @@ def test_a_nan_point_steps_back_from_the_last_good_one_with_half_the_step():
     assert np.all(np.sign(s1.good_dir) == -np.sign(2 * (np.zeros(3) - C)))
 
 
-@pytest.mark.parametrize("method, tol", [(CMA(), 1e-4), (CMA(path=True), 1e-4),
-                                         (Gradient(starts=2, screen=8), 1e-2),
+@pytest.mark.parametrize("method, tol", [(CMA(), 1e-4), (Gradient(starts=2, screen=8), 1e-2),
                                          (Random(batch=16), 0.05)])
 def test_every_method_searches_a_box_of_one_dimension(method, tol, tmp_path):
     """A box of one dimension (pycma 4.5 alone fails on it with 'not yet initialized'):

@@ -96,22 +96,24 @@ def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
 
     assert OPTAX_STEPS == 300
     search, adam = from_dict({}).optimizer, from_dict({"optimizer": {"name": "adam"}}).optimizer
-    assert search.name == "cma_path" and search.steps is None and search.max_steps is None
+    assert search.name == "cma" and search.steps is None and search.max_steps is None
+    assert (search.popsize, search.growth) == (64, 2)
     assert adam.max_steps == 300
-    for name in ("cma_path", "cma", "adam"):
+    for name in ("cma", "adam"):
         spec = from_dict({"optimizer": {"name": name, "steps": 50}}).optimizer
         assert spec.max_steps == 50
-    for name, limit in (("cma_path", None), ("adam", 300)):
+    for name, limit in (("cma", None), ("adam", 300)):
         spec = from_dict({"optimizer": {"name": name, "steps": "none"}}).optimizer
         assert spec.steps is None and spec.max_steps == limit
 
 
 @pytest.mark.parametrize("table, line", [
-    ({"name": "cma_line"}, "tuning.optimizer.name must be one of 'cma_path', 'cma', 'adam' "
+    ({"name": "cma_line"}, "tuning.optimizer.name must be one of 'cma', 'adam' "
                            "(got a string, 'cma_line')"),
     ({"line_points": 3}, "unknown key 'tuning.optimizer.line_points' (allowed: name, "
                          "learning_rate, patience, min_delta, steps, time_limit, gradient, "
-                         "checkpoint_every, save_interval, sigma0, popsize, seed, restarts)"),
+                         "checkpoint_every, save_interval, sigma0, popsize, growth, seed, "
+                         "restarts)"),
 ])
 def test_removed_methods_and_options_are_one_line_errors(table, line):
     with pytest.raises(ConfigError) as err:

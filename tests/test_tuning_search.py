@@ -1,13 +1,12 @@
-"""The deployable problem and `dscjax tune`'s methods on the box search (cma_path, cma, adam):
-the TV(u) and max|u| bounds are exact in the report (a hand-made u with known figures), the
-CMA-ES methods never evaluate a gradient (counted), each method lowers the objective on a
-short horizon and resumes from a pickle-free checkpoint to the very same result, cma_path's
-populations are a plain CMA-ES's until a line point wins and is injected, and a NaN never
-becomes the best point nor reaches CMA-ES.
+"""The deployable problem and `dscjax tune`'s methods on the box search (cma, adam): the TV(u)
+and max|u| bounds are exact in the report (a hand-made u with known figures), CMA-ES never
+evaluates a gradient (counted), each method lowers the objective on a short horizon and
+resumes from a pickle-free checkpoint to the very same result, CMA-ES's populations are a
+plain CMA-ES's, and a NaN never becomes the best point nor reaches CMA-ES.
 
-One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: the
-CMA-ES methods' batches have one width (cma_path: population 4 + 6 line points; cma:
-population 10), so ONE batched program and one gradient are compiled for the whole module.
+One small problem (1 s horizon at dt = 2 ms, k_1 and k_2 tuned), shared by every test: CMA-ES's
+batches have one width (population 10), so ONE batched program and one gradient are compiled
+for the whole module.
 """
 
 import dataclasses
@@ -30,7 +29,7 @@ from tuning.objective import Scales
 from tuning.runner import run
 
 STEPS = 4  # iterations of an uninterrupted run; the interrupted one stops at 2
-WIDTH = 4 + methods.LINE_POINTS
+WIDTH = 10  # conftest search_problem's population
 
 
 def test_constraints_are_exact_on_a_hand_made_trajectory():
@@ -127,8 +126,7 @@ def problems(search_problem):
     # conftest's, saved every 2 iterations here
     assert search_problem.cfg.optimizer.steps == STEPS
     p = _with(search_problem, save_interval=2)
-    return {"cma_path": p, "cma": _with(p, name="cma", popsize=WIDTH),
-            "adam": _with(p, name="adam")}
+    return {"cma": p, "adam": _with(p, name="adam")}
 
 
 @pytest.fixture(scope="module")
@@ -138,7 +136,7 @@ def straight(problems, tmp_path_factory):
 
 
 def test_problem_bounds_are_the_start_gains(problems):
-    p = problems["cma_path"]
+    p = problems["cma"]
     sc = p.objective.scales
     assert sc.tv_max == pytest.approx(1.5 * sc.tv_u, rel=1e-12)
     assert sc.u_max == pytest.approx(sc.max_u, rel=1e-12)
@@ -161,7 +159,7 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
         raise Seen
 
     monkeypatch.setattr(tuning.objective, "run", spy)
-    p = problems["cma_path"]
+    p = problems["cma"]
     sim = p.objective.sim.replace(solver="etdrk4")
     q = dataclasses.replace(p, objective=dataclasses.replace(p.objective, sim=sim))
     flat = jnp.asarray(ravel_pytree(q.z0)[0])[None]
@@ -172,17 +170,15 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
 
 
 def test_evaluations_are_counted_and_only_adam_takes_gradients(problems, straight):
-    # the start point, then the population (+ cma_path's line points)
-    assert straight["cma_path"].trace.evaluations == 1 + STEPS * WIDTH
+    # the start point, then the population
     assert straight["cma"].trace.evaluations == 1 + STEPS * WIDTH
-    for name in ("cma_path", "cma"):
-        assert straight[name].trace.gradients == 0
+    assert straight["cma"].trace.gradients == 0
     assert straight["adam"].trace.gradients == straight["adam"].trace.evaluations == STEPS
     # the start point ran padded to the population's batch: one program, one width
-    assert problems["cma_path"].objective.compiled["batch"].widths == {WIDTH}
+    assert problems["cma"].objective.compiled["batch"].widths == {WIDTH}
 
 
-@pytest.mark.parametrize("which", ["cma_path", "cma", "adam"])
+@pytest.mark.parametrize("which", ["cma", "adam"])
 def test_each_method_lowers_the_objective_and_resumes_to_the_same_result(problems, straight,
                                                                           which, tmp_path):
     p, full = problems[which], straight[which]
@@ -211,19 +207,6 @@ def _same_run(a, b):
     assert [r["lr"] for r in a.history] == [r["lr"] for r in b.history]
 
 
-def test_cma_path_takes_its_line_in_its_first_generations_only(problems, tmp_path,
-                                                                monkeypatch):
-    """LINE_GENERATIONS = 2: the line in generations 0-1 (population + line points), the
-    population alone after them (its own program); a run stopped at the switch resumes
-    across it to the uninterrupted one."""
-    monkeypatch.setattr(methods, "LINE_GENERATIONS", 2)
-    p = problems["cma_path"]
-    full = run(p, tmp_path / "full")
-    assert full.trace.evaluations == 1 + 2 * WIDTH + (STEPS - 2) * 4
-    run(_with(p, steps=2), tmp_path / "part")
-    _same_run(run(p, tmp_path / "part", resume=True), full)
-
-
 def test_a_nan_is_never_the_best_point_nor_told_to_cma_es(problems):
     """Every batch's first candidate is NaN, the start point's evaluation included: the
     incumbent stays finite and CMA-ES is told a finite fitness."""
@@ -233,8 +216,8 @@ def test_a_nan_is_never_the_best_point_nor_told_to_cma_es(problems):
             ev.loss[0] = np.nan
             return ev
 
-    sp = Nan(problems["cma_path"])
-    res = box.run(sp, search.method_of(problems["cma_path"].cfg.optimizer), x0=sp.x0,
+    sp = Nan(problems["cma"])
+    res = box.run(sp, search.method_of(problems["cma"].cfg.optimizer), x0=sp.x0,
                   max_iterations=2)
     assert np.isnan(res.trace.start_loss)
     assert np.isfinite(res.trace.best_loss) and np.all(np.isfinite(res.trace.best_z))
@@ -242,67 +225,22 @@ def test_a_nan_is_never_the_best_point_nor_told_to_cma_es(problems):
     assert (res.state.es.arrays()["fitness"][:, 0] == methods.BAD).all()
 
 
-def test_the_path_direction_has_unit_mahalanobis_length_and_never_a_nan():
-    # cma_path's line follows CMA-ES's evolution path p_c, scaled to d' C^-1 d = 1 (checked
-    # against an explicit inverse); a zero or non-finite path gives no direction (random then)
-    rng = np.random.default_rng(3)
-    a = rng.standard_normal((4, 4))
-    cov = a @ a.T + np.eye(4)
-    es = type("Es", (), {})()
-    es.pc = rng.standard_normal(4)
-    d = methods.path_direction(es, cov)
-    assert d @ np.linalg.inv(cov) @ d == pytest.approx(1.0, rel=1e-12)
-    c = d / es.pc
-    np.testing.assert_allclose(c, c[0], rtol=1e-12)
-    assert c[0] > 0
-    for bad in (np.zeros(4), np.array([1.0, np.nan, 0.0, 0.0]), np.full(4, np.inf)):
-        es.pc = bad
-        assert methods.path_direction(es, cov) is None
-
-
-def test_cma_path_draws_its_line_along_the_evolution_path(problems, monkeypatch):
-    """cma_path asks for the path's direction in every generation and takes it once p_c is
-    non-zero (CMA-ES leaves p_c at zero while its hsig test fails, early on); cma never
-    asks for it."""
-    used = {"calls": 0, "directions": 0}
-    real = methods.path_direction
-
-    def counting(es, cov):
-        d = real(es, cov)
-        used["calls"] += 1
-        used["directions"] += d is not None
-        return d
-
-    monkeypatch.setattr(methods, "path_direction", counting)
-    run(problems["cma"], None)
-    assert used == {"calls": 0, "directions": 0}
-    run(problems["cma_path"], None)
-    assert used["calls"] == STEPS and used["directions"] >= 1
-
-
-@pytest.mark.parametrize("name", ["cma", "cma_path"])
-def test_cma_es_asks_as_a_plain_cma_es_until_a_line_point_is_injected(problems, name):
+def test_cma_es_asks_as_a_plain_cma_es(problems):
     """The tuner's CMA-ES, as docs/tuning.md states it: sigma0 0.3 from z0, seed + 1 (its
     `randn` stream), the box. Its populations are those of a plain
-    `cma.CMAEvolutionStrategy` told the same fitness; for cma_path until a line point wins
-    (forced at generation 1 here) and is injected into the next generation."""
+    `cma.CMAEvolutionStrategy` told the same fitness."""
     import cma
 
     asked = []
 
-    class Forced(search.TuneProblem):
+    class Seen(search.TuneProblem):
         def evaluate(self, z):
-            ev = super().evaluate(z)
-            if len(z) == WIDTH and name == "cma_path":  # the line loses, except once:
-                ev.loss[4:], ev.feasible[4:] = 1e9, False
-                if len(asked) == 1:  # at generation 1 its first point wins
-                    ev.loss[4], ev.feasible[4] = -1.0, True
             if len(z) == WIDTH:
-                asked.append(np.array(z[:4] if name == "cma_path" else z))
-            return ev
+                asked.append(np.array(z))
+            return super().evaluate(z)
 
-    p = problems[name]
-    sp = Forced(p)
+    p = problems["cma"]
+    sp = Seen(p)
     spec = p.cfg.optimizer
     res = box.run(sp, search.method_of(spec), x0=sp.x0, max_iterations=4)
     fitness = res.state.es.arrays()["fitness"]
@@ -311,17 +249,11 @@ def test_cma_es_asks_as_a_plain_cma_es_until_a_line_point_is_injected(problems, 
                              "randn": np.random.RandomState(spec.seed + 1).randn,
                              "bounds": [[x if np.isfinite(x) else None for x in sp.lower],
                                         [x if np.isfinite(x) else None for x in sp.upper]]})
-    same = []
     for g in range(4):
         x = np.asarray(plain.ask(), float)
-        same.append(np.array_equal(x, asked[g]))
+        np.testing.assert_array_equal(x, asked[g])
         plain.tell(list(x), list(fitness[g]))
-    injected = res.state.es.arrays()["injected"]
-    if name == "cma":
-        assert same == [True] * 4 and np.isnan(injected).all()
-    else:
-        assert same == [True, True, False, False]
-        assert np.isfinite(injected[1]).all() and np.isnan(injected[[0, 2, 3]]).all()
+    assert np.isnan(res.state.es.arrays()["injected"]).all()
 
 
 def _stop_after(n):
@@ -339,7 +271,7 @@ def test_cma_es_restarts_afresh_when_its_own_criteria_stop_it(problems, tmp_path
     import cma
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
-    p = _with(problems["cma_path"], steps=8)
+    p = _with(problems["cma"], steps=8)
     full = run(p, tmp_path / "full")
     assert full.trace.iterations == 8 and full.trace.restarts == 2
     assert full.stop_reason == "reached 8 iterations"
@@ -371,7 +303,7 @@ def test_a_search_without_a_step_limit_runs_until_its_own_criteria(problems, tmp
 
     monkeypatch.setattr(cma.CMAEvolutionStrategy, "stop", _stop_after(3))
     monkeypatch.setattr(tuning.config, "OPTAX_STEPS", 5)
-    p = _with(problems["cma_path"], steps=None, restarts=2, patience=0)
+    p = _with(problems["cma"], steps=None, restarts=2, patience=0)
     assert p.cfg.optimizer.max_steps is None
     res = run(p, tmp_path / "open")
     assert res.trace.iterations == 9 and res.trace.restarts == 2
@@ -383,7 +315,7 @@ def test_a_run_started_from_z_init_resumes_without_it(problems, tmp_path):
     """The start point is saved (search.npz): a run started from other gains (as adversarial
     rounds start from the last round's) resumes bitwise without the caller passing them
     again."""
-    p = problems["cma_path"]
+    p = problems["cma"]
     z = {k: np.asarray(v) + 0.1 for k, v in p.z0.items()}
     full = run(_with(p, steps=4), tmp_path / "full", z_init=z)
     run(_with(p, steps=2), tmp_path / "part", z_init=z)

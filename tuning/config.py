@@ -30,8 +30,8 @@ from tuning.params import DSC_GAINS
 
 AGGREGATES = ("mean", "cvar", "max")
 EFFORT_BOUNDS = ("nominal", "per_plant")
-OPTIMIZERS = ("cma_path", "cma", "adam")
-SEARCHES = ("cma_path", "cma")  # the population methods
+OPTIMIZERS = ("cma", "adam")
+SEARCHES = ("cma",)  # the population methods
 GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
 METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
@@ -115,8 +115,8 @@ class OptimizerSpec:
     CMA-ES methods is a generation: one batched simulation."""
 
     name: str = setting(
-        "cma", "cma_path (CMA-ES + a line search along its evolution path), cma (CMA-ES "
-        "alone) or adam (projected descent on exact gradients)", Choice(OPTIMIZERS),
+        "cma", "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
+        "gradients)", Choice(OPTIMIZERS),
         flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
                                    "after a loss", Positive(), flag="--lr")

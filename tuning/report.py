@@ -18,7 +18,6 @@ from dscjax.params import assumption_warnings as with_ranges
 from dscjax.plotting import subplots
 from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride
-from dscjax.search.methods import LINE_GENERATIONS, LINE_POINTS
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
 from tuning.objective import shifted_reference, within
@@ -667,14 +666,11 @@ def method_sentence(opt, mode: str) -> str:
                 f"after an improvement, halved (from the last good point) after a worse one.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
            f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed})")
-    line = (f" with a line search of {LINE_POINTS} step sizes from the best point along "
-            f"CMA-ES's evolution path in its first {LINE_GENERATIONS} generations, simulated "
-            f"in the same batch as the population, a winning point injected into CMA-ES"
-            if opt.name == "cma_path" else "")
+    grows = f" and {opt.growth} times the population" if opt.growth > 1 else ""
     restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
-                f"starts from the start point (at most {opt.restarts} times; the best point "
-                f"is kept)." if opt.restarts else "")
-    return (f"{opt.name}: {cma}{line}; one batched simulation per generation, no gradient."
+                f"starts from the start point{grows} (at most {opt.restarts} times; the best "
+                f"point is kept)." if opt.restarts else "")
+    return (f"{opt.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)
 
 

@@ -140,6 +140,5 @@ def method_of(spec) -> search.CMA | search.Gradient:
     """The search method of an `OptimizerSpec`."""
     if spec.name == "adam":
         return search.Gradient(lr=spec.learning_rate)
-    return search.CMA(sigma0=spec.sigma0, popsize=spec.popsize, path=spec.name == "cma_path",
-                      growth=spec.growth,
-                      restarts=spec.restarts)
+    return search.CMA(sigma0=spec.sigma0, popsize=spec.popsize, restarts=spec.restarts,
+                      growth=spec.growth)

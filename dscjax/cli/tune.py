@@ -410,15 +410,14 @@ def _count(n: int, unit: str) -> str:
 
 
 def generation_rows(cfg) -> int:
-    """Trajectories of one generation (a search method: candidates, a default population
+    """Trajectories of one generation (a search method: its first population, cma's default
     counted as 4, times the training plants) or iteration (adam: the plants), run together."""
-    from dscjax.search.methods import LINE_POINTS
     from tuning.config import SEARCHES
 
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     if oc.name not in SEARCHES:
         return plants
-    return plants * ((oc.popsize or 4) + (LINE_POINTS if oc.name == "cma_path" else 0))
+    return plants * (oc.popsize or 4)
 
 
 def check_work_of(args, setup, options, cfg) -> None:

@@ -4,7 +4,7 @@ loop (`run`), one record (`Trace`) and one resume format (`trace.save`/`load`: a
 per search). `dscjax tune` and `dscjax worst-case` both search with it; the caller gives the
 objective as a `Problem` (the worst case minimises loss = -metric).
 
-    res = search.run(problem, search.CMA(path=True), x0=z0, seed=0, time_limit=100.0,
+    res = search.run(problem, search.CMA(popsize=64, growth=2), x0=z0, seed=0, time_limit=100.0,
                      path="search.npz", fingerprint={"problem": digest})
     res.trace.best_z, res.trace.best_loss, res.stop_reason
 

@@ -1,5 +1,5 @@
-"""The methods of a search, each a frozen dataclass of settings: `CMA` (CMA-ES; path=True adds
-the line along its evolution path, `dscjax tune`'s default), `Random` (random sampling) and
+"""The methods of a search, each a frozen dataclass of settings: `CMA` (CMA-ES with IPOP
+restarts, `dscjax tune`'s default), `Random` (random sampling) and
 `Gradient` (projected gradient descent from one or more starts). `step` computes the next
 state from the current one without changing it; states are plain arrays (CMA-ES: a
 `ReplayCMA`, rebuilt by replay), saved by `arrays` and rebuilt by `restore`."""
@@ -18,9 +18,6 @@ from dscjax.search.cma import ReplayCMA
 from dscjax.search.trace import Evaluation, Incumbent, Step, order, take
 from dscjax.validation import ConfigError
 
-# cma_path's line: LINE_POINTS step sizes sigma sqrt(n) geomspace(LINE_MIN, LINE_MAX) from the
-# incumbent, in the first LINE_GENERATIONS generations of a run (restarts included)
-LINE_POINTS, LINE_MIN, LINE_MAX, LINE_GENERATIONS = 6, 0.02, 1.0, 50
 BAD = 1e30  # what CMA-ES is told for a non-finite loss
 
 
@@ -40,57 +37,28 @@ def generator(seed: int, name: str, iteration: int) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode()), iteration])
 
 
-def _words(rng: np.random.Generator) -> np.ndarray:
-    """PCG64's state as uint64 words: state and increment (high word first), has_uint32,
-    uinteger."""
-    st = rng.bit_generator.state
-    words = [w for k in ("state", "inc") for v in [int(st["state"][k])]
-             for w in (v >> 64, v & (2**64 - 1))]
-    return np.asarray(words + [st["has_uint32"], st["uinteger"]], dtype=np.uint64)
-
-
-def _generator(words) -> np.random.Generator:
-    w = [int(x) for x in words]
-    rng = np.random.default_rng()
-    rng.bit_generator.state = rng.bit_generator.state | {
-        "state": {"state": (w[0] << 64) | w[1], "inc": (w[2] << 64) | w[3]},
-        "has_uint32": w[4], "uinteger": w[5]}
-    return rng
-
-
-def path_direction(es, cov) -> np.ndarray | None:
-    """CMA-ES's evolution path p_c (its smoothed recent mean shift), scaled to unit
-    Mahalanobis length under C; None while it is still zero or not finite."""
-    pc = np.asarray(es.pc, float)
-    q = float(pc @ np.linalg.solve(cov, pc)) if np.all(np.isfinite(pc)) else 0.0
-    return pc / math.sqrt(q) if np.isfinite(q) and q > 0 else None
-
-
 class CMAState(NamedTuple):
     es: ReplayCMA  # the current instance (of restart `restarts`) and what it was told
     restarts: int
-    line_rng: np.ndarray  # (6,) uint64: the generator of the line's random directions
 
 
 @dataclasses.dataclass(frozen=True)
 class CMA:
-    """CMA-ES (`cma`) from x0 with step sigma0, one batch per generation, told a non-finite
-    loss as BAD; its seed is seed + 1, restart r's SeedSequence([seed, r]). When its own
-    criteria stop it, a fresh instance starts from x0 (at most `restarts` times; the incumbent
-    is kept) with `growth` times the population (IPOP-CMA-ES: 2). path=True ("cma_path") adds LINE_POINTS points from the incumbent along the
-    evolution path p_c (a random direction while p_c is zero, from seed + 2) in the first
-    LINE_GENERATIONS generations, simulated in the same batch; a line point that improves on
-    the incumbent is injected into the next generation."""
+    """CMA-ES (`cma`) from x0 with step sigma0 and `popsize` candidates (0: cma's 4 + 3 ln n),
+    one batch per generation, told a non-finite loss as BAD; its seed is seed + 1, restart r's
+    SeedSequence([seed, r]). When its own criteria stop it, a fresh instance starts from x0
+    with `growth` times the population (IPOP-CMA-ES: 2), at most `restarts` times; the
+    incumbent is kept."""
 
     sigma0: float = 0.3
-    popsize: int = 0  # 0: cma's default, 4 + floor(3 ln n)
-    path: bool = False
+    popsize: int = 0
     restarts: int = 9
-    growth: int = 1  # the population's factor at each restart
+    growth: int = 1
+    name: ClassVar[str] = "cma"
 
-    @property
-    def name(self) -> str:
-        return "cma_path" if self.path else "cma"
+    def population(self, n: int, restart: int = 0) -> int:
+        """The population of restart `restart` in n dimensions."""
+        return (self.popsize or 4 + int(3 * math.log(max(n, 2)))) * self.growth ** restart
 
     def _new(self, problem, x0, seed: int, restart: int = 0) -> ReplayCMA:
         seed = (seed + 1 if not restart else
@@ -98,32 +66,17 @@ class CMA:
         opts = {"seed": seed, "verbose": -9, "randn": np.random.RandomState(seed).randn,
                 "bounds": [[x if np.isfinite(x) else None for x in problem.lower],
                            [x if np.isfinite(x) else None for x in problem.upper]]}
-        if self.popsize or (restart and self.growth > 1):
-            base = self.popsize or 4 + int(3 * math.log(len(x0)))
-            opts["popsize"] = base * self.growth ** restart
+        if self.popsize or restart:
+            opts["popsize"] = self.population(len(x0), restart)
         return ReplayCMA(np.asarray(x0, dtype=np.float64), self.sigma0, opts)
 
     def init(self, problem, x0, seed: int) -> CMAState:
-        return CMAState(self._new(problem, x0, seed), 0, _words(np.random.default_rng(seed + 2)))
+        return CMAState(self._new(problem, x0, seed), 0)
 
     def step(self, problem, state: CMAState, ctx: Context) -> Step:
-        es, rng = state.es.copy(), state.line_rng
+        es = state.es.copy()
         pop = es.ask()
-        parts = [problem.project(pop)]
-        line = self.path and ctx.iteration < LINE_GENERATIONS
-        if line:
-            n = len(ctx.x0)
-            cov = es.covariance
-            d = path_direction(es, cov)
-            if d is None:  # a random direction of unit Mahalanobis length under C
-                g = _generator(rng)
-                xi = g.standard_normal(n)
-                rng = _words(g)
-                d = np.linalg.cholesky(cov + 1e-300 * np.eye(n)) @ (xi / np.linalg.norm(xi))
-            base = ctx.x0 if ctx.best.z is None else ctx.best.z
-            steps = math.sqrt(n) * np.geomspace(LINE_MIN, LINE_MAX, LINE_POINTS)
-            parts.append(problem.project(base[None, :] + es.sigma * steps[:, None] * d))
-        z = np.concatenate(parts)
+        z = problem.project(pop)
         ev = problem.evaluate(z)
         best, first, start = ctx.best, 0, None
         if ctx.iteration == 0:  # the start point (evaluated after: padded to this batch)
@@ -131,13 +84,10 @@ class CMA:
             best, _ = take(best, ctx.x0[None, :], ev0, 0, ctx.min_delta)
             z, ev, first, start = np.concatenate([ctx.x0[None, :], z]), Evaluation.join(
                 [ev0, ev]), 1, 0
-        k = len(pop)
-        best, improved = take(best, z[first:], ev.rows(slice(first, None)), ctx.iteration,
-                              ctx.min_delta)
-        loss = ev.loss[first:first + k]
+        best, _ = take(best, z[first:], ev.rows(slice(first, None)), ctx.iteration,
+                       ctx.min_delta)
+        loss = ev.loss[first:]
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
-        if line and improved is not None and improved >= k:
-            es.inject(best.z)
         sigma, stop = es.sigma, es.stop()
         restarts, done = state.restarts, None
         if stop and restarts < self.restarts:
@@ -145,12 +95,11 @@ class CMA:
             es = self._new(problem, ctx.x0, ctx.seed, restarts)
         elif stop:
             done = f"CMA-ES stopped: {dict(stop)}"
-        return Step(z, ev, CMAState(es, restarts, rng), start, first, sigma,
+        return Step(z, ev, CMAState(es, restarts), start, first, sigma,
                     restarts=restarts - state.restarts, done=done)
 
     def arrays(self, state: CMAState) -> dict:
-        return state.es.arrays() | {"restarts": np.int64(state.restarts),
-                                    "line_rng": state.line_rng}
+        return state.es.arrays() | {"restarts": np.int64(state.restarts)}
 
     def restore(self, problem, x0, seed: int, arrays: dict) -> CMAState:
         restarts = int(arrays["restarts"])
@@ -160,7 +109,7 @@ class CMA:
         except ValueError as e:
             raise ConfigError(f"--resume: {e} (another cma version?); start afresh with "
                               f"--overwrite") from None
-        return CMAState(es, restarts, np.asarray(arrays["line_rng"], np.uint64))
+        return CMAState(es, restarts)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -297,6 +246,5 @@ class Gradient:
         return GradientState(**arrays) if arrays else None
 
 
-__all__ = ["BAD", "CMA", "LINE_GENERATIONS", "LINE_MAX", "LINE_MIN", "LINE_POINTS", "CMAState",
-           "Context", "Gradient", "GradientState", "Random", "generator",
-           "path_direction"]
+__all__ = ["BAD", "CMA", "CMAState", "Context", "Gradient", "GradientState", "Random",
+           "generator"]
