@@ -123,8 +123,9 @@ def test_work_that_cannot_fit_in_memory_is_refused_with_the_estimate(monkeypatch
 def test_one_generation_or_iteration_beyond_the_time_limit_is_refused(two_cores, tmp_path,
                                                                       capsys):
     err = _refused(capsys, ["tune", "--t-final", "2000", "--time-limit", "0.01"], tmp_path / "o")
-    assert "one generation (10 candidates x 1 plant(s)) of T = 2000 s at dt = 0.001 s " \
-           "(2,000,000 steps) needs at least 0.4 s" in err
+    # 64 candidates x 2e6 steps over 2 cores at 1e8 steps/s each (dscjax.validation's bound)
+    assert "one generation (64 candidates x 1 plant(s)) of T = 2000 s at dt = 0.001 s " \
+           "(2,000,000 steps) needs at least 0.64 s" in err
     assert err.endswith("more than --time-limit 0.01 s; use a shorter --t-final or a larger "
                         "--dt, or a larger --time-limit")
     err = _refused(capsys, ["worst-case", "--range", "hysteresis.alpha=30%", "--t-final",

@@ -330,11 +330,12 @@ def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config)
     assert len(rep["bounds_train"]["max_abs_u"]) == len(rep["bounds_train"]["tv_u"]) == 2
     for tag in ("start", "tuned"):
         rows = rep["train_constraints"][tag]
-        # the effort bounds, then the second loop's (the states by forward Euler) L-inf and
-        # effort bounds
-        euler = ", the states by forward Euler"
+        # the effort bounds, then the check loops': the states by forward Euler (L-inf and
+        # effort bounds), the input delayed a sample (L-inf and TV(u))
+        euler, late = ", the states by forward Euler", ", the input delayed 1 sample"
         assert [r["name"] for r in rows] == ["max|u|", "TV(u)", "L-inf on [t0,T]" + euler,
-                                             "max|u|" + euler, "TV(u)" + euler]
+                                             "max|u|" + euler, "TV(u)" + euler,
+                                             "L-inf on [t0,T]" + late, "TV(u)" + late]
         assert all(r["bounds"] == "per_plant" and r["n"] == 2 for r in rows[:2])
     assert all(r["n_met"] == 2 for r in rep["train_constraints"]["start"][:2])
     tv = rep["train_constraints"]["start"][1]

@@ -73,10 +73,15 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     assert re.fullmatch(rf"  held-out batch \(4 plants, start -> tuned gains\): {outcomes}\. "
                         rf"With the states by forward Euler: {outcomes}", counts), counts
     assert "the sampled loop (Ts=0.001 s, ZOH, exponential Euler, delay 0, no noise)" in stderr
-    # the second loop's check is on, and the note says so (issue 38 item 6)
-    assert ("  note: checked too: the same loop with its states by forward Euler must keep the "
-            "effort bounds and its windowed L-inf within 2 x the loop tuned's (penalty weight "
+    # the check loops are on, and the notes say so (issue 38 item 6, issue 40)
+    assert ("  note: checked too, in the search: the same loop with the states by forward "
+            "Euler must keep its windowed L-inf within 2 x the loop tuned's and max|u| within "
+            "1 x its bound and TV(u) within 1 x its bound (penalty weight "
             "tuning.objective.sampled_weight = 100; 0 turns this check off)") in stderr
+    assert ("  note: checked too, in the search: the same loop with the input delayed 1 sample "
+            "must keep its windowed L-inf within 2 x the loop tuned's and TV(u) within 1.5 x "
+            "its bound (penalty weight tuning.objective.delay_weight = 100; 0 turns this check "
+            "off)") in stderr
     assert "unchecked" not in stderr
     # the paper's gains and these track (a small error, no chattering: the report's own
     # figures, checked in test_report_judges_every_sample_time_and_delay_by_its_effort) at
@@ -360,11 +365,12 @@ def test_resume_refuses_a_different_problem(small_problem, tmp_path):
 # The keys of each resume fingerprint, written out: every setting that changes the search
 # (the stopping settings steps, time_limit, patience, min_delta and save_interval do not)
 OPTIMIZER_KEYS = {"name", "learning_rate", "gradient", "checkpoint_every", "sigma0", "popsize",
-                  "seed", "restarts"}
+                  "growth", "seed", "restarts"}
 OBJECTIVE_KEYS = {"linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max",
                   "u_max_weight", "tv_max", "tv_max_factor", "tv_max_weight", "sharpness",
                   "u_sharpness", "divergence_penalty", "window_start", "effort_bounds",
-                  "sampled_factor", "sampled_weight"}
+                  "sampled_factor", "sampled_weight", "delay_samples", "delay_factor",
+                  "delay_tv_factor", "delay_weight"}
 ADVERSARIAL_KEYS = {"rounds", "disturbance", "ranges", "method", "metric", "search_time",
                     "starts", "batch", "add", "seed", "search_evals"}
 
