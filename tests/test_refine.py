@@ -98,7 +98,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     the figures of the refined run; the other plants are left as they were."""
     import tuning
     from dscjax.runspec import RunSpec
-    from tuning import report
+    from tuning import report, report_md
 
     # the continuous loop alone (the sampled constraint off: its refinement is the same code)
     problem = tuning.build_problem(paper_setup, RunSpec.make(t_final=2.0),
@@ -113,7 +113,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     assert np.asarray(after["diverged"]).astype(bool).tolist() == [False, False, False]
     j = int(after["refined"][1])
     assert after["refined"].tolist() == [0, j, 0] and j >= 1
-    for key in [k for k in report.STATS_METRICS + ("loss",) if k in before]:  # (no sampled_*)
+    for key in [k for k in report_md.STATS_METRICS + ("loss",) if k in before]:  # (no sampled_*)
         assert key in after, key
         np.testing.assert_array_equal(after[key][[0, 2]], np.asarray(before[key])[[0, 2]])
     np.testing.assert_array_equal(after["loss"], before["loss"])  # the objective's, at dt
@@ -129,7 +129,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     # reported as sweeps report their rows
     summary = {"heldout": {"start": report.batch_stats(before | {"refined": np.zeros(3)}),
                            "tuned": stats}}
-    assert report.heldout_counts(summary) == (
+    assert report_md.heldout_counts(summary) == (
         "held-out batch (3 plants, start -> tuned gains): tracked 2 -> 2; tracked after "
         "refinement (a numerically stiff run re-done with ETDRK4 at a smaller step) 0 -> 1; "
         "diverged at every step tried 1 -> 0")

@@ -21,7 +21,7 @@ import dscjax
 import tuning
 from dscjax import params
 from dscjax.runspec import RunSpec
-from tuning import elasticity, report
+from tuning import elasticity, report, report_md
 
 
 def _cli(run_with_config, directory, toml, *argv):
@@ -142,7 +142,7 @@ def test_the_report_says_where_the_effort_bounds_are_measured(transient):
     assert sc.u_max == pytest.approx(peak, rel=1e-12)
     assert sc.start["max_abs_u_window"] == pytest.approx(peak_win, rel=1e-12)
     assert sc.start["tv_u_window"] == pytest.approx(tv_win, rel=1e-9)
-    text = report.effort_span({"nominal": nom})
+    text = report_md.effort_span({"nominal": nom})
     assert text.startswith("The effort bounds are measured over the whole horizon [0, T], "
                            "the start-up transient included")
     assert (f"the start gains use max|u| {peak_win:.4g} and TV(u) {tv_win:.4g}") in text
@@ -248,7 +248,7 @@ def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
     assert elasticity.warning(sens) == (
         "a 1 % change of one tuned number breaks a constraint (to first order, nominal "
         "plant): TV(u) (margin 50 % of its bound) by k[0] (elasticity not finite)")
-    assert "| `k[0]` | 2 | **not finite** |" in report.sensitivity_section(sens)
+    assert "| `k[0]` | 2 | **not finite** |" in report_md.sensitivity_section(sens)
     many = {"name": "TV(u)", "relative_margin": 0.5, "fragile": ["a", "b", "c", "d", "e"],
             "elasticity": {"a": 9.0, "b": None, "c": -70.0, "d": 60.0, "e": 50.0}}
     assert elasticity.warning({"step": 0.01, "rows": [many]}).endswith(

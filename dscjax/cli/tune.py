@@ -136,7 +136,7 @@ def run(args) -> int:
     from dscjax.params import cast
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
-    from tuning import elasticity, report
+    from tuning import elasticity, report, report_md
     from tuning.config import SEARCHES, to_table
     from tuning.runner import (
         build_problem,
@@ -313,7 +313,7 @@ def run(args) -> int:
                   f"{worst}")
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
-        print(f"  {report.heldout_counts(summary)}")
+        print(f"  {report_md.heldout_counts(summary)}")
         if h0["linf_error_window"] and h1["linf_error_window"]:
             a, b = h0["linf_error_window"], h1["linf_error_window"]
             print(f"  held-out L-inf error on the window{shifted}, plants that did not "

@@ -1,0 +1,352 @@
+"""report.md of a tuning run: its text from the summary `tuning.report.write` builds (the
+problem, the method, start against tuned gains, constraints, held-out outcomes, margins,
+sensitivities), and the labels of its figures."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from dscjax import metrics
+from tuning import elasticity, margins
+
+STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
+                 "l2_u", "tv_u_window", "sampled_linf_window", "delayed_linf_window",
+                 "delayed_tv_u")
+
+
+LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
+          "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
+          "delayed_linf_window": "L-inf error on [t0, T], the input delayed",
+          "delayed_tv_u": "TV(u) on [0, T], the input delayed",
+          "max_abs_u": "max |u| on [0, T]", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
+          "tv_u": "TV(u) on [0, T]", "loss": "objective J",
+          "max_abs_u_window": "max |u| on [t0, T]", "tv_u_window": "TV(u) on [t0, T]",
+          "chattering_index": "chattering index on [t0, T] (chatters above "
+                              f"{metrics.CHATTER_RATIO:g})",
+          "user_linf_error_window": "L-inf error on [t0, T] against the config's y_r",
+          "user_linf_error": "L-inf error on [0, T] against the config's y_r",
+          "user_l2_error_window": "L2 error on [t0, T] against the config's y_r"}
+
+
+# where the controller tracks a shifted reference, the error figures measured against it
+SHIFTED = " against the shifted y_r the controller tracks"
+
+
+ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window",
+          "delayed_linf_window")
+
+
+def _md(text: str) -> str:
+    """A label for a markdown table cell (a bare | would split the cell)."""
+    return text.replace("|", "\\|")
+
+
+def heldout_warning(summary: dict, cfg) -> str | None:
+    """The sentence put first when the tuned gains lose held-out plants (diverged, tracked only
+    once refined, diverged sampled, or chattering: a small error with an input that switches
+    is not tracking), None if on none: that must not hide in a table."""
+    h = summary.get("heldout")
+    if not h:
+        return None
+    lost = {"diverged": (h["tuned"]["n_diverged"], h["start"]["n_diverged"]),
+            "RK4 diverged at dt (the loop stiff there; tracked only once refined)":
+            (h["tuned"]["n_refined"], h["start"]["n_refined"])}
+    if "sampled" in h["tuned"]:
+        lost[f"diverged with {summary['second_loop']}"] = (h["tuned"]["sampled"]["n_diverged"],
+                                                 h["start"]["sampled"]["n_diverged"])
+    chatter = f"chatter (chattering index above {metrics.CHATTER_RATIO:g})"
+    lost[chatter] = (h["tuned"].get("n_chattering", 0), h["start"].get("n_chattering", 0))
+    lost = {how: kk for how, kk in lost.items() if kk[0]}
+    if not lost:
+        return None
+    n = h["tuned"]["n"]
+    what = "; ".join(f"{how} on {k} of {n} held-out plants (start gains: {k0})"
+                     for how, (k, k0) in lost.items())
+    verb = " and ".join(w for w, on in (("DIVERGE", set(lost) - {chatter}),
+                                        ("CHATTER", chatter in lost)) if on)
+    if cfg.robust.batch:
+        where = f"a training batch of {cfg.robust.batch} plants"
+        fix = (f"train on more plants (e.g. `--batch {4 * cfg.robust.batch}`) or with "
+               f"`--aggregate max`, over ranges covering the held-out ones")
+    else:
+        where = "the nominal plant only"
+        fix = ("tune robustly, e.g. `dscjax tune --batch 8 --aggregate cvar --cvar-level "
+               "0.25` ([tuning.robust] in a config)")
+    return (f"the tuned gains {verb}: {what}; they were tuned on {where}: do not deploy "
+            f"them as they are; {fix}")
+
+
+def heldout_counts(summary: dict) -> str | None:
+    """The held-out outcomes, start -> tuned gains, as sweeps report theirs (None: no batch)."""
+    h = summary.get("heldout")
+    if not h:
+        return None
+    a, b = h["start"], h["tuned"]
+
+    def counts(a, b):
+        return (f"tracked {a['n_tracked']} -> {b['n_tracked']}; tracked after refinement (a "
+                f"numerically stiff run re-done with ETDRK4 at a smaller step) {a['n_refined']} "
+                f"-> {b['n_refined']}; diverged at every step tried {a['n_diverged']} -> "
+                f"{b['n_diverged']}")
+
+    text = f"held-out batch ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
+    if "sampled" in b:
+        text += (f". With {summary['second_loop']}: "
+                 f"{counts(a['sampled'], b['sampled'])}")
+    return text
+
+
+def _f(v, digits=4):
+    return "-" if v is None or v != v else f"{v:.{digits}g}"  # None or NaN: not measured
+
+
+def _ratio(a, b):
+    return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
+
+
+def _own(s: dict, key: str) -> str:
+    """" on the nominal plant, each training plant its own" where that bound is per plant."""
+    per = s.get("bounds_train") or {}
+    return " on the nominal plant, each training plant its own" if per.get(key) else ""
+
+
+def text(s: dict, problem, figures) -> str:
+    sim = problem.objective.sim
+    run = s["run"]
+    nom = s["nominal"]
+    cfg = problem.cfg
+    lines = ["# dscjax tune: report", ""]
+    if s.get("heldout_warning"):
+        lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
+    if s.get("margins_warning"):
+        lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
+    if s.get("sensitivity_warning"):
+        lines += [f"> **Warning: {s['sensitivity_warning']} (\"Sensitivity of the "
+                  f"constraints\" below).**", ""]
+    lines += [f"**Problem.** {s['problem']}", ""]
+    lines += [
+        f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
+        f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
+        f"[{sim.window_start:g}, {sim.t_final:g}] s.",
+        f"Loop tuned: {s['loop']}.",
+        f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
+        f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
+        "Objective per plant: " + ", ".join(
+            f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
+                                                          "effort_max", "effort_tv")
+            if getattr(cfg.objective, k)) + (
+            f"; max|u| <= {s['bound_max_abs_u']:.4g}{_own(s, 'max_abs_u')} (penalty weight "
+            f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
+        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
+           f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
+        + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
+           + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
+           + ")" if cfg.robust.batch else "; nominal plant only") + ".",
+        "",
+        f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
+        f"of which {run['gradient_evaluations']} with an exact gradient"
+        + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
+        + f", {run['rejected']} rejected"
+        + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
+           f"its own criteria stopped it; adam from a random point after its step collapsed)"
+           if run.get("restarts") else "")
+        + f"; stopped: {run['stop_reason']}. Best at iteration "
+        f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
+        f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
+        f"{run['wall_s']:.1f} s in this invocation, of which compilation {run['compile_s']:.1f} s"
+        + (f"; the whole command up to this report {run['wall_total_s']:.1f} s"
+           if run["wall_total_s"] else "") + ".",
+    ]
+    for note in s["notes"]:
+        lines.append(f"Note: {note}.")
+    for w in s["warnings"]:
+        lines.append(f"**Warning:** {w}.")
+    lines += ["", "## Nominal plant", ""]
+    if s.get("shifted_reference"):
+        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) "
+                  "to x_1(0), the offset decaying): the error tuned and every error figure "
+                  "below is measured against it unless it says \"against the config's "
+                  "y_r\".", ""]
+    lines += ["| | start gains | tuned gains | tuned / start |", "|---|---|---|---|"]
+    for key in ("linf_error_window", "user_linf_error_window", "l2_error_window",
+                "user_l2_error_window", "linf_error", "user_linf_error", "max_abs_u",
+                "max_abs_u_window", "l2_u", "tv_u", "tv_u_window", "chattering_index",
+                "sampled_linf_window", "delayed_linf_window", "delayed_tv_u"):
+        if key in nom["start"]:
+            a, b = nom["start"][key], nom["tuned"][key]
+            lines.append(f"| {_md(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+    for key, label in (("diverged", "diverged"),
+                       ("sampled_diverged", "diverged, the other discretisation"),
+                       ("delayed_diverged", "diverged, the input delayed")):
+        if key in nom["start"]:
+            lines.append(f"| {label} | {bool(nom['start'][key])} | {bool(nom['tuned'][key])} "
+                         f"| |")
+    if s["constraints"]["tuned"]:
+        lines += ["", "## Constraints (nominal plant, checked exactly on every RK4 step)", "",
+                  "| constraint | bound (tuned) | start | tuned | margin (bound - tuned) | tuned |",
+                  "|---|---|---|---|---|---|"]
+        for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"], strict=True):
+            lines.append(f"| {_md(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
+                         f"{b['value']:.6g} | {b['margin']:.4g} "
+                         f"({100 * b['relative_margin']:.2f} %) | "
+                         f"**{'met' if b['met'] else 'violated'}** |")
+        if s["bound_max_abs_u"] or s["bound_tv_u"]:
+            lines += ["", effort_span(s)]
+    if s.get("sensitivity"):
+        lines += sensitivity_section(s["sensitivity"])
+    if s.get("train_constraints"):
+        per = s["effort_bounds"] == "per_plant"
+        lines += ["", "## Constraints per training plant (checked exactly on every RK4 step)",
+                  "", ("Bounds: per plant, the start gains' own figures on each training plant "
+                       "(`effort_bounds = \"per_plant\"`)." if per else
+                       "Bounds: the nominal plant's, for every training plant "
+                       "(`effort_bounds = \"nominal\"`)."), "",
+                  "| constraint | bounds | met (start) | met (tuned) | worst plant (tuned) | "
+                  "its value / bound | margin (bound - value) |", "|---|---|---|---|---|---|---|"]
+        for a, b in zip(s["train_constraints"]["start"], s["train_constraints"]["tuned"],
+                        strict=True):
+            rng = (f"{b['bound_min']:.4g} to {b['bound_max']:.4g}" if b["bounds"] == "per_plant"
+                   else f"{b['bound_min']:.4g}")
+            worst = ("diverged" if b["worst_value"] is None else
+                     f"{b['worst_value']:.6g} / {b['worst_bound']:.6g}")
+            margin = ("-" if b["worst_margin"] is None else
+                      f"{b['worst_margin']:.4g} ({100 * b['worst_relative_margin']:.2f} %)")
+            lines.append(f"| {_md(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
+                         f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
+                         f"{margin} |")
+    if s.get("margins"):
+        short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
+        lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
+                                                 for k, v in short.items()})
+    if s["requirements"]["tuned"]:
+        lines += ["", "## Requirements (nominal plant)", "",
+                  "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]
+        for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"], strict=True):
+            extra = "".join(f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
+                            if k in b)
+            lines.append(f"| {b['name']} | {'met' if a['met_fraction'] == 1 else 'violated'} | "
+                         f"{'met' if b['met_fraction'] == 1 else 'violated'} | "
+                         f"{b['worst_margin']:.4g}{extra} |")
+    for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
+        if key not in s:
+            continue
+        b = cfg.robust if key == "train" else cfg.heldout
+        rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
+        st, tu = s[key]["start"], s[key]["tuned"]
+        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method}, seed {b.seed})", "",
+                  "| | start median | tuned median | start p95 | tuned p95 | start max | "
+                  "tuned max |", "|---|---|---|---|---|---|---|"]
+        for m in STATS_METRICS:
+            a, c = st.get(m), tu.get(m)
+            if a is None or c is None:
+                continue
+            lines.append(f"| {_md(_label(m, s))} | {_f(a['median'])} | {_f(c['median'])} | "
+                         f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
+        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
+                  f"(tuned); tracked after refinement (a numerically "
+                  f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
+                  f"{st['n_refined']} and {tu['n_refined']}; diverged at every step tried "
+                  f"{st['n_diverged']} and {tu['n_diverged']}"
+                  + (f"; of the plants that did not diverge, chattering (chattering index "
+                     f"above {metrics.CHATTER_RATIO:g}) {st['n_chattering']} and "
+                     f"{tu['n_chattering']}" if "n_chattering" in tu else "") + "."]
+        if "sampled" in tu:
+            a, c = st["sampled"], tu["sampled"]
+            lines.append(f"With {s['second_loop']}: tracked "
+                         f"{a['n_tracked']} and {c['n_tracked']}; tracked after refinement "
+                         f"{a['n_refined']} and {c['n_refined']}; diverged {a['n_diverged']} "
+                         f"and {c['n_diverged']}.")
+        lines.append("The figures above are over the plants that did not diverge (in the "
+                     "loop they name).")
+        reqs = s[key]["requirements"]["tuned"]
+        if reqs:
+            lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
+                             f"plants with the tuned gains (start: "
+                             f"{100 * a['met_fraction']:.1f} %)"
+                             for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
+    lines += ["", "## Gains", "", "| parameter | start | tuned |", "|---|---|---|"]
+    for name in s["gains"]["start"]:
+        lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
+                     f"{_fmt_val(s['gains']['tuned'][name])} |")
+    lines += ["", run_sentence(s), ""]
+    if figures:
+        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    return "\n".join(lines)
+
+
+def _label(key: str, s: dict) -> str:
+    """A nominal row's label; the error figures say which reference they are against where
+    the controller tracks a shifted one."""
+    label = LABELS[key]
+    if s.get("shifted_reference") and key in ERRORS:
+        label += SHIFTED + (" (tuned)" if key == "linf_error_window" else "")
+    return label
+
+
+def effort_span(s: dict) -> str:
+    """Where the effort bounds are measured, and the effort on the window beside them: a start
+    transient can set a bound that the steady state never needs."""
+    a, b = s["nominal"]["start"], s["nominal"]["tuned"]
+    return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
+            f"transient included (the actuator must survive it, and a bound on the window "
+            f"alone would let the search buy its error with an unbounded transient). On the "
+            f"window [t0, T], where the error is measured, the start gains use max|u| "
+            f"{_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the "
+            f"tuned gains {_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: a "
+            f"bound over [0, T] does not hold the window's effort to the start's figure there "
+            f"(numbers for tuning.objective.u_max and tv_max bound it by your actuator's "
+            f"limits).")
+
+
+def sensitivity_section(sens: dict) -> list[str]:
+    """report.md's "Sensitivity of the constraints": a row per tuned number, a column per
+    constraint."""
+    rows = sens["rows"]
+    step = 100 * sens["step"]
+    lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
+             f"d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned number "
+             f"g, by reverse mode through the loop tuned (one pass per figure the constraints "
+             f"read): a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
+             f"**Bold**: that change breaks the constraint to first order (r (1 + "
+             f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
+             f"over the run (the loop depends sensitively on its gains: chaotic or "
+             f"chattering); any change may break the constraint.", "",
+             "| tuned number | " + " | ".join(
+                 f"{_md(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
+             + " |", "|---|" + "---|" * len(rows)]
+    for name in rows[0]["elasticity"]:
+        cells = []
+        for r in rows:
+            v = elasticity.text(r["elasticity"][name])
+            cells.append(f"**{v}**" if name in r["fragile"] else v)
+        lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
+    return lines
+
+
+def run_sentence(s: dict) -> str:
+    """report.md's last line: the command that runs the loop tuned."""
+    return f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`."
+
+
+def _mode_words(mode: str) -> str:
+    return "plant-by-plant (the aggregate's worst plants)" if mode == "plants" else f"{mode}-mode"
+
+
+def method_sentence(opt, mode: str) -> str:
+    if opt.name == "adam":
+        return (f"{_mode_words(mode)} exact gradients: projected gradient descent with "
+                f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
+                f"after an improvement, halved (from the last good point) after a worse one.")
+    cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
+           f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed})")
+    grows = f" and {opt.growth} times the population" if opt.growth > 1 else ""
+    restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
+                f"starts from the start point{grows} (at most {opt.restarts} times; the best "
+                f"point is kept)." if opt.restarts else "")
+    return (f"{opt.name}: {cma}; one batched simulation per generation, no gradient."
+            + restarts)
+
+
+def _fmt_val(v):
+    a = np.atleast_1d(np.asarray(v, dtype=float))
+    return ", ".join(f"{x:.5g}" for x in a)

@@ -1,0 +1,111 @@
+"""The figures of a tuning run: the loss curve, start against tuned trajectories and the
+held-out distributions (PNG)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from dscjax import files
+from dscjax.plotting import subplots
+from tuning.report_md import LABELS
+
+
+def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = False):
+    """loss_curve.png: the loss (best loss, rejected steps), the L-inf error and max|u| (its
+    bound) per iteration, a panel each. Returns the Figure (saved)."""
+    it = np.array([r["iteration"] for r in history])
+    loss = np.array([r["loss"] for r in history], dtype=float)
+    best = np.array([r["best_loss"] for r in history], dtype=float)
+    acc = np.array([bool(r["accepted"]) for r in history])
+    linf = np.array([r["linf_window"] for r in history], dtype=float)
+    umax = np.array([r["max_abs_u"] for r in history], dtype=float)
+    fig, ax = subplots(1, 3, figsize=(14, 4))
+    ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
+    ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
+    if (~acc).any():
+        ax[0].semilogy(it[~acc], loss[~acc], "rx", label="rejected step")
+    ax[0].set(ylabel="objective J [-] (about 1 at the start gains)", title="loss")
+    ax[1].semilogy(it, linf, color="#d62728", lw=1, label="L-inf error on [t0, T]")
+    worst = " (worst training plant)" if batch else ""
+    ax[1].set(ylabel="L-inf tracking error on [t0, T] [-]", title="tracking error" + worst)
+    ax[2].plot(it, umax, color="#2ca02c", lw=1, label="max|u|" + worst)
+    if u_max:
+        ax[2].axhline(u_max, color="k", ls=":", lw=1, label=f"bound on max|u| ({u_max:.4g})")
+    ax[2].set(ylabel="max|u| [-]", title="control amplitude")
+    for a in ax:
+        a.set_xlabel("iteration")
+        a.grid(alpha=0.3, which="both")
+        a.legend(fontsize=8)
+    files.save_figure(fig, path, dpi=110)
+    return fig
+
+
+def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
+    figures, sc = [], problem.objective.scales
+    if result.history:
+        plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,
+                        batch=bool(problem.objective.overrides))
+        figures.append("loss_curve.png")
+
+    fig, ax = subplots(4, 1, figsize=(10, 11), layout="constrained")
+    for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+        tr = trajs[tag]
+        t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
+        label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
+                              else f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}"
+                              ) + ")"
+        ax[0].plot(t, e, color=color, lw=0.9, label=label)
+        win = t >= sim.window_start
+        ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
+        tv = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(u)))])
+        ax[3].plot(t, tv, color=color, lw=1.2,
+                   label=f"{tag} (TV(u) on every step {float(tr.metrics['tv_u']):.4g})")
+        ax[2].plot(t, u, color="#2ca02c" if tag == "tuned" else color, lw=0.9,
+                   label=f"{tag} (max|u| {float(tr.metrics['max_abs_u']):.3g})")
+    if sc.u_max:
+        for sgn in (1, -1):
+            ax[2].axhline(sgn * sc.u_max, color="k", ls=":", lw=0.8)
+    ax[0].set(ylabel="e = y - y_r [-]", title="tracking error, whole horizon")
+    ax[1].set(ylabel="e on [t0, T] [-]",
+              title=f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
+    ax[2].set(ylabel="u [-]", title="control input (dotted: the bound on max|u|)")
+    if sc.tv_max:
+        ax[3].axhline(sc.tv_max, color="k", ls=":", lw=0.8,
+                      label=f"bound on TV(u) ({sc.tv_max:.4g})")
+    ax[3].set(ylabel="sum |du| [-]", xlabel="time t [s]", title="total variation of u up to t "
+              "(curves: on the saved grid, a lower bound; labels: exact)")
+    for a in ax:
+        a.grid(alpha=0.3)
+        a.legend(loc="upper right", fontsize=8)
+    files.save_figure(fig, out / "before_after.png", dpi=110)
+    figures.append("before_after.png")
+
+    if ev["heldout"] is not None:
+        fig, ax = subplots(1, 2, figsize=(11, 4), layout="constrained")
+        for i, key in enumerate(("linf_error_window", "max_abs_u")):
+            for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+                m = ev["heldout"][tag]
+                v = np.sort(m[key][~m["diverged"].astype(bool)])
+                if not v.size:
+                    continue
+                frac = np.arange(1, v.size + 1) / v.size
+                ax[i].step(v, frac, where="post", color=color, lw=1.5,
+                           label=f"{tag}: median {np.median(v):.3g}, p95 "
+                           f"{np.percentile(v, 95):.3g}")
+                for q, ls in ((50, "-"), (95, "--")):
+                    ax[i].axvline(np.percentile(v, q), color=color, lw=0.8, ls=ls)
+            if key == "linf_error_window":
+                ax[i].set_xscale("log")
+            elif sc.u_max:
+                ax[i].axvline(sc.u_max, color="k", ls=":", lw=1, label="bound (nominal plant)")
+            ax[i].set(xlabel=LABELS[key], ylabel="fraction of plants")
+            ax[i].legend(fontsize=8, loc="lower right")
+            ax[i].grid(alpha=0.3, which="both")
+        n = ev["heldout"]["start"]["diverged"].size
+        fig.suptitle(f"held-out batch of {n} plants: distribution (ECDF) with the start and the "
+                     f"tuned gains (solid: median, dashed: p95)")
+        files.save_figure(fig, out / "heldout.png", dpi=110)
+        figures.append("heldout.png")
+    return figures
