@@ -282,3 +282,23 @@ def auto_stride(n_steps: int) -> int:
 
 __all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "HOST_FIELDS", "MAX_SAVED_POINTS",
            "OPTIONS", "RunSpec", "Simulation", "auto_stride"]
+
+
+def loop_words(sim: RunSpec) -> str:
+    """The loop of a RunSpec in words: continuous, or sampled (Ts, ZOH, discretisation of the
+    controller's states, the plant's step, delay and noise)."""
+    if not sim.sampled:
+        return f"the continuous loop (RK4 at dt = {float(sim.dt):g} s)"
+    noise = ("no measurement noise" if sim.noise is None else "measurement noise std "
+             + ", ".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float)))
+             + f" (seed {int(sim.noise_seed)})")
+    return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
+            f"its states advanced by {discretisation(sim)}, the plant by RK4 at dt = "
+            f"{float(sim.dt):g} s; input delay {sim.delay} sample(s); {noise}")
+
+
+def discretisation(sim: RunSpec) -> str:
+    """How a sampled loop advances the controller's states (`simulation.discretisation` where
+    the RunSpec has it)."""
+    name = getattr(sim, "discretisation", "exponential-euler")
+    return {"exponential-euler": "exponential Euler", "euler": "forward Euler"}.get(name, name)

@@ -231,7 +231,8 @@ def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
     """A loop that depends sensitively on its gains has a tangent that grows without bound
     over the run, until it overflows: its elasticity is None in report.json, "not finite" in
     report.md, and the constraint is fragile in that number, whatever its margin; the warning
-    names at most three numbers a constraint, or says "every tuned number"."""
+    names at most three numbers a constraint, or says "every tuned number". A rough check
+    loop's constraint (the delayed input) is left out."""
     el = {(0, "max_abs_u"): {"k[0]": 2.0, "k[1]": 0.5},
           (0, "tv_u"): {"k[0]": float("inf"), "k[1]": -3.0}}
     monkeypatch.setattr(elasticity, "elasticities", lambda problem, z, figures: el)
@@ -239,8 +240,12 @@ def test_an_elasticity_that_is_not_finite_counts_as_breaking(monkeypatch):
                "relative_margin": 0.1, "met": True},
               {"name": "TV(u)", "key": "tv_u", "value": 50.0, "bound": 100.0,
                "relative_margin": 0.5, "met": True}]
-    problem = SimpleNamespace(objective=SimpleNamespace(checks=()))  # no check loop
-    sens = elasticity.constraints(problem, None, checks)
+    # a rough check loop's constraint (the delayed input) is left out
+    delayed = SimpleNamespace(name="delayed", smooth=False)
+    problem = SimpleNamespace(objective=SimpleNamespace(checks=(delayed,)))
+    late = {"name": "TV(u), the input delayed 1 sample", "key": "delayed_tv_u", "value": 1.0,
+            "bound": 2.0, "relative_margin": 0.5, "met": True}
+    sens = elasticity.constraints(problem, None, [*checks, late])
     # 0.9 (1 + 0.01 x 2) = 0.918 <= 1: room; TV(u): half its bound, but k[0] not finite
     assert [r["fragile"] for r in sens["rows"]] == [[], ["k[0]"]]
     assert sens["rows"][1]["elasticity"] == {"k[0]": None, "k[1]": -3.0}

@@ -12,9 +12,10 @@ docs/tuning.md describes the objective and the settings.
 
 from tuning.config import AdversarialSpec, BatchSpec, ObjectiveSpec, OptimizerSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
-from tuning.objective import Objective, Scales, TuningMetrics, aggregate
+from tuning.objective import Objective, Scales, aggregate
 from tuning.optimize import loss_function, value_and_grad
 from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
+from tuning.reductions import TuningMetrics
 from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, run
 

@@ -18,6 +18,7 @@ docs/tuning.md's key table is generated from these declarations.
 from __future__ import annotations
 
 import dataclasses
+import math
 from collections.abc import Mapping
 from typing import Any
 
@@ -30,6 +31,9 @@ from tuning.params import DSC_GAINS
 
 AGGREGATES = ("mean", "cvar", "max")
 EFFORT_BOUNDS = ("nominal", "per_plant")
+# the trajectories a CMA-ES generation runs by default: a batched simulation costs far less per
+# trajectory in a batch of this size than in one of the 11 of cma's own population
+ROWS = 64
 OPTIMIZERS = ("cma", "adam")
 SEARCHES = ("cma",)  # the population methods
 GRADIENTS = ("auto", "forward", "reverse", "plants")
@@ -137,15 +141,19 @@ class OptimizerSpec:
     save_interval: int = setting(10, "iterations between writes of history.csv, best.json, "
                                  "gains.json", AtLeast(1))
     sigma0: float = setting(0.3, "CMA-ES's initial step in z", Positive())
-    popsize: int = setting(64, "CMA-ES's population, sized to what a batched simulation "
-                           "does per second on a CPU (larger batches run faster per "
-                           "candidate); 0: cma's 4 + 3 ln n", AtLeast(0))
+    popsize: int = setting(0, f"CMA-ES's population; 0: sized to a batched simulation's "
+                           f"throughput, about {ROWS} trajectories a generation (ceil({ROWS} / "
+                           f"the training plants), at least cma's 4 + 3 ln n)", AtLeast(0))
     growth: int = setting(2, "the population's factor at each restart (IPOP-CMA-ES; 1: the "
                           "same)", AtLeast(1))
     seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)",
                         AtLeast(0))
     restarts: int = setting(9, "fresh CMA-ES runs from the start point after CMA-ES's own "
                             "stop", AtLeast(0))
+
+    def population(self, plants: int, n: int) -> int:
+        """CMA-ES's first population for `plants` training plants and n tuned numbers."""
+        return self.popsize or max(4 + int(3 * math.log(max(n, 1))), -(-ROWS // plants))
 
     @property
     def max_steps(self) -> int | None:

@@ -89,7 +89,10 @@ def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] |
 def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | None:
     """Each constraint of `checks` (`report.constraint_checks` at z, with their metric `key`)
     with its elasticity to every tuned number, the largest, and the numbers a STEP change of
-    which breaks it to first order (`fragile`); None if a loop diverged at z."""
+    which breaks it to first order (`fragile`); None if a loop diverged at z. The constraints
+    of a check loop that is not `smooth` (the delayed input) are left out."""
+    rough = tuple(f"{c.name}_" for c in problem.objective.checks if not c.smooth)
+    checks = [c for c in checks if not (rough and c["key"].startswith(rough))]
     if not checks:
         return None
     names = tuple(c.name for c in problem.objective.checks)

@@ -16,14 +16,15 @@ import numpy as np
 from dscjax import files, metrics, validation
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.reproduce import sampling
-from dscjax.runspec import auto_stride
+from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
-from tuning.objective import shifted_reference, within
+from tuning.objective import within
+from tuning.reductions import shifted_reference
 from tuning.report_md import STATS_METRICS, heldout_warning
 from tuning.report_md import text as markdown
 from tuning.report_plots import draw
-from tuning.runner import loop_words, simulate_command
+from tuning.runner import simulate_command
 
 
 def evaluate(problem, z0, z1) -> dict[str, Any]:

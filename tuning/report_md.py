@@ -8,6 +8,7 @@ import numpy as np
 
 from dscjax import metrics
 from tuning import elasticity, margins
+from tuning.config import ROWS
 
 STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
                  "l2_u", "tv_u_window", "sampled_linf_window", "delayed_linf_window",
@@ -338,7 +339,8 @@ def method_sentence(opt, mode: str) -> str:
                 f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
                 f"after an improvement, halved (from the last good point) after a worse one.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
-           f"{opt.popsize or 'default (4 + 3 ln n)'}, seed {opt.seed})")
+           f"{opt.popsize or f'sized to about {ROWS} trajectories a generation'}, seed "
+           f"{opt.seed})")
     grows = f" and {opt.growth} times the population" if opt.growth > 1 else ""
     restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
                 f"starts from the start point{grows} (at most {opt.restarts} times; the best "

@@ -21,6 +21,8 @@ import jax
 import jax.numpy as jnp
 
 from dscjax.metrics import trapezoid_weight
+from dscjax.reference import SmoothStep
+from dscjax.validation import ConfigError
 
 
 def _relu(x):
@@ -161,3 +163,23 @@ class URate(UBound):
 
 
 KINDS = {cls.name: cls for cls in (Envelope, StepResponse, UBound, URate)}
+
+
+def build_requirements(setup, table) -> tuple:
+    out = []
+    dtype = jnp.result_type(setup.plant.x0)
+    for name, values in table.items():
+        values = dict(values)
+        if name == "step":
+            ref = setup.reference
+            if "final" not in values or "height" not in values:
+                if not isinstance(ref, SmoothStep):
+                    raise ConfigError("tuning.requirements.step needs a step reference "
+                                      "(reference.kind = \"smooth_step\") or both 'final' and "
+                                      "'height'")
+                values.setdefault("height", float(ref.height))
+                values.setdefault("final", float(ref.initial) + float(ref.height))
+            if values["height"] == 0:
+                raise ConfigError("tuning.requirements.step.height must be != 0")
+        out.append(KINDS[name](**{k: jnp.asarray(v, dtype) for k, v in values.items()}))
+    return tuple(out)

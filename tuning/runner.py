@@ -18,7 +18,6 @@ from pathlib import Path
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config as dconfig
@@ -26,16 +25,15 @@ from dscjax import files, params, search
 from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
-from dscjax.reference import SmoothStep
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import CheckLoop, Objective, start_scales
+from tuning.objective import WEIGHTS, Objective, check_loops, start_scales
 from tuning.optimize import choose_gradient
 from tuning.params import Selection
-from tuning.requirements import KINDS
+from tuning.requirements import build_requirements
 from tuning.search import STATE_FILE, TuneProblem, method_of
 
 # no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
@@ -257,44 +255,6 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
             heldout, continuous)
 
 
-def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
-    """The loops a sampled loop's gains must also hold in: the other discretisation of the
-    controller's states (an embedded engineer may advance them either way) and the input
-    delayed `delay_samples` more samples (no limit cycle where the hardware is a sample late)."""
-    if not sim.sampled:
-        return ()
-    out = []
-    if spec.sampled_weight:
-        other = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
-        out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0,
-                             spec.sampled_weight, f"the states by {discretisation(other)}"))
-    if spec.delay_samples and spec.delay_weight:
-        d = sim.delay + spec.delay_samples
-        out.append(CheckLoop("delayed", dataclasses.replace(sim, delay=d), spec.delay_factor,
-                             None, spec.delay_tv_factor, spec.delay_weight,
-                             f"the input delayed {d} sample{'s' if d != 1 else ''}"))
-    return tuple(out)
-
-
-# the setting of each check loop's weight
-WEIGHTS = {"sampled": "sampled_weight", "delayed": "delay_weight"}
-# the second loop's discretisation: the one the loop tuned does not use
-OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
-
-
-def loop_words(sim: RunSpec) -> str:
-    """The loop of a RunSpec in words: continuous, or sampled (Ts, ZOH, discretisation of the
-    controller's states, the plant's step, delay and noise)."""
-    if not sim.sampled:
-        return f"the continuous loop (RK4 at dt = {float(sim.dt):g} s)"
-    noise = ("no measurement noise" if sim.noise is None else "measurement noise std "
-             + ", ".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float)))
-             + f" (seed {int(sim.noise_seed)})")
-    return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
-            f"its states advanced by {discretisation(sim)}, the plant by RK4 at dt = "
-            f"{float(sim.dt):g} s; input delay {sim.delay} sample(s); {noise}")
-
-
 def simulate_command(problem: Problem, config: str = "gains.json") -> str:
     """The `dscjax simulate` command that runs the loop tuned from `config` (gains.json, whose
     [simulation] is the loop tuned): with --window-start where the objective's differs."""
@@ -303,13 +263,6 @@ def simulate_command(problem: Problem, config: str = "gains.json") -> str:
     if float(sim.window_start) != float(given.window_start):
         flags.append(f"--window-start {shortest(float(sim.window_start))}")
     return " ".join(["dscjax simulate --config", shlex.quote(config), *flags])
-
-
-def discretisation(sim: RunSpec) -> str:
-    """How a sampled loop advances the controller's states (`simulation.discretisation` where
-    the RunSpec has it)."""
-    name = getattr(sim, "discretisation", "exponential-euler")
-    return {"exponential-euler": "exponential Euler", "euler": "forward Euler"}.get(name, name)
 
 
 def join_plants(setup, first: dict | None, then: dict) -> dict:
@@ -332,25 +285,6 @@ def _sample(setup, b, field, options) -> dict:
     ranges = params.check(b.ranges, setup, field, t_final=options.t_final, dt=float(options.dt))
     return params.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
-
-def build_requirements(setup, table) -> tuple:
-    out = []
-    dtype = jnp.result_type(setup.plant.x0)
-    for name, values in table.items():
-        values = dict(values)
-        if name == "step":
-            ref = setup.reference
-            if "final" not in values or "height" not in values:
-                if not isinstance(ref, SmoothStep):
-                    raise ConfigError("tuning.requirements.step needs a step reference "
-                                      "(reference.kind = \"smooth_step\") or both 'final' and "
-                                      "'height'")
-                values.setdefault("height", float(ref.height))
-                values.setdefault("final", float(ref.initial) + float(ref.height))
-            if values["height"] == 0:
-                raise ConfigError("tuning.requirements.step.height must be != 0")
-        out.append(KINDS[name](**{k: jnp.asarray(v, dtype) for k, v in values.items()}))
-    return tuple(out)
 
 
 @dataclasses.dataclass
@@ -477,7 +411,8 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
 
     try:
         res = search.run(
-            sp, method_of(spec), x0=sp.x0 if z_init is None else sp.flat(z_init),
+            sp, method_of(spec, problem.objective.batch_size, sp.x0.size),
+            x0=sp.x0 if z_init is None else sp.flat(z_init),
             seed=spec.seed, max_iterations=spec.max_steps, patience=spec.patience,
             time_limit=None if spec.time_limit is None else before + spec.time_limit,
             min_delta=spec.min_delta, path=None if out is None else out / STATE_FILE,

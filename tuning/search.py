@@ -3,7 +3,8 @@ batched program `batch_fn`; the exact gradient `grad_fn` in the problem's AD mod
 method of an `OptimizerSpec` (`method_of`).
 
     sp = TuneProblem(problem)                  # problem: tuning.build_problem(...)
-    res = dscjax.search.run(sp, method_of(problem.cfg.optimizer), x0=sp.x0)
+    method = method_of(problem.cfg.optimizer, problem.objective.batch_size, sp.x0.size)
+    res = dscjax.search.run(sp, method, x0=sp.x0)
 
 Its candidates never count as diverged: the loss itself penalises a plant that diverges.
 """
@@ -136,9 +137,10 @@ class TuneProblem(search.Problem):
         return jax.tree.map(np.asarray, self.unravel(jnp.asarray(flat)))
 
 
-def method_of(spec) -> search.CMA | search.Gradient:
-    """The search method of an `OptimizerSpec`."""
+def method_of(spec, plants: int = 1, n: int = 1) -> search.CMA | search.Gradient:
+    """The search method of an `OptimizerSpec` for `plants` training plants and n tuned
+    numbers."""
     if spec.name == "adam":
         return search.Gradient(lr=spec.learning_rate)
-    return search.CMA(sigma0=spec.sigma0, popsize=spec.popsize, restarts=spec.restarts,
-                      growth=spec.growth)
+    return search.CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
+                      restarts=spec.restarts, growth=spec.growth)

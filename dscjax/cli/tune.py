@@ -394,7 +394,7 @@ def loop_banner(sim) -> str:
     """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
     import numpy as np
 
-    from tuning.runner import discretisation
+    from dscjax.runspec import discretisation
 
     if not sim.sampled:
         return "the continuous loop"
@@ -410,14 +410,14 @@ def _count(n: int, unit: str) -> str:
 
 
 def generation_rows(cfg) -> int:
-    """Trajectories of one generation (a search method: its first population, cma's default
-    counted as 4, times the training plants) or iteration (adam: the plants), run together."""
+    """Trajectories of one generation (a search method: its first population, at least, times
+    the training plants) or iteration (adam: the plants), run together."""
     from tuning.config import SEARCHES
 
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     if oc.name not in SEARCHES:
         return plants
-    return plants * (oc.popsize or 4)
+    return plants * oc.population(plants, 1)
 
 
 def check_work_of(args, setup, options, cfg) -> None:

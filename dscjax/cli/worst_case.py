@@ -236,7 +236,7 @@ def requirement_of(args, setup, s):
         return None
     name = s.metric[len(REQUIREMENT):]
     from tuning.config import from_dict
-    from tuning.runner import build_requirements
+    from tuning.requirements import build_requirements
 
     raw = config.read(args.config) if args.config else {}
     table = from_dict(raw.get("tuning", {})).requirements
