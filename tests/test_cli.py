@@ -140,7 +140,7 @@ def test_trajectory_figure_legend_outside_and_units_on_every_axis(tmp_path, pape
 
 
 def test_loss_curve_has_one_axis_per_quantity_and_a_labelled_bound(tmp_path):
-    from tuning.report import plot_loss_curve
+    from tuning.report_plots import plot_loss_curve
 
     rows = [dict(iteration=i, loss=1.0 / (i + 1), best_loss=1.0 / (i + 1), accepted=i != 2,
                  linf_window=0.02 / (i + 1), max_abs_u=6.0 + 0.01 * i) for i in range(5)]
