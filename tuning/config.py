@@ -18,13 +18,13 @@ docs/tuning.md's key table is generated from these declarations.
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Mapping
 from typing import Any
 
 from dscjax import settings, validation, worst
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positive, Strings
+from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
 from tuning.params import DSC_GAINS
@@ -153,7 +153,7 @@ class OptimizerSpec:
 
     def population(self, plants: int, n: int) -> int:
         """CMA-ES's first population for `plants` training plants and n tuned numbers."""
-        return self.popsize or max(4 + int(3 * math.log(max(n, 1))), -(-ROWS // plants))
+        return self.popsize or max(cma_population(n), -(-ROWS // plants))
 
     @property
     def max_steps(self) -> int | None:

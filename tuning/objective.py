@@ -228,10 +228,10 @@ def loop_metrics(objective, setup: Setup, overrides=None, checkpoint_every=None
         smooth = TuningMetrics(e.window_start, e.e_sharpness, e.u_sharpness,
                                n_steps=c.sim.n_steps)
         mc, div_c = simulate_metrics(setup, c.sim, smooth, overrides, checkpoint_every)
-        m = m | {f"{c.name}_{k}": mc[k] for k in ("linf_error_window", "smooth_linf_window",
-                                                 "max_abs_u", "smooth_max_abs_u", "tv_u")}
-        m[f"{c.name}_linf_window"] = m.pop(f"{c.name}_linf_error_window")
-        m[f"{c.name}_diverged"] = div_c
+        mc = mc | {"linf_window": mc["linf_error_window"], "diverged": div_c}
+        m = m | {f"{c.name}_{k}": mc[k] for k in ("linf_window", "smooth_linf_window",
+                                                 "max_abs_u", "smooth_max_abs_u", "tv_u",
+                                                 "diverged")}
     return m, div
 
 

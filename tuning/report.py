@@ -97,17 +97,17 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     # as a sweep's rows: tracked at the tuning's step, after refinement, or diverged
     out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
                            "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
-    masks = {}
-    for c in ("sampled", "delayed"):  # the same three outcomes in each check loop
-        if f"{c}_diverged" in m:
-            masks[c] = c_ok = ~m[f"{c}_diverged"].astype(bool)
-            ref = c_ok & (np.asarray(m.get(f"{c}_refined", 0)) > 0)
-            out[c] = {"n_tracked": int((c_ok & ~ref).sum()), "n_refined": int(ref.sum()),
-                      "n_diverged": int((~c_ok).sum())}
+    masks = {}  # the same three outcomes in each check loop c (its metrics c_...)
+    for c in (k.removesuffix("_diverged") for k in m if k.endswith("_diverged")):
+        masks[c] = c_ok = ~m[f"{c}_diverged"].astype(bool)
+        ref = c_ok & (np.asarray(m.get(f"{c}_refined", 0)) > 0)
+        out[c] = {"n_tracked": int((c_ok & ~ref).sum()), "n_refined": int(ref.sum()),
+                  "n_diverged": int((~c_ok).sum())}
     for key in STATS_METRICS + ("loss",):
         if key not in m:
             continue
-        v = m[key] if key == "loss" else m[key][masks.get(key.split("_")[0], ok)]
+        mask = next((masks[c] for c in masks if key.startswith(f"{c}_")), ok)
+        v = m[key] if key == "loss" else m[key][mask]
         v = np.asarray(v, float)
         v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
         out[key] = None if v.size == 0 else {

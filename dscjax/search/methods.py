@@ -37,6 +37,12 @@ def generator(seed: int, name: str, iteration: int) -> np.random.Generator:
     return np.random.default_rng([seed, zlib.crc32(name.encode()), iteration])
 
 
+def cma_population(n: int) -> int:
+    """cma's own population in n dimensions, 4 + floor(3 ln n) (a search of one dimension runs
+    in two: `ReplayCMA`)."""
+    return 4 + int(3 * math.log(max(n, 2)))
+
+
 class CMAState(NamedTuple):
     es: ReplayCMA  # the current instance (of restart `restarts`) and what it was told
     restarts: int
@@ -58,7 +64,7 @@ class CMA:
 
     def population(self, n: int, restart: int = 0) -> int:
         """The population of restart `restart` in n dimensions."""
-        return (self.popsize or 4 + int(3 * math.log(max(n, 2)))) * self.growth ** restart
+        return (self.popsize or cma_population(n)) * self.growth ** restart
 
     def _new(self, problem, x0, seed: int, restart: int = 0) -> ReplayCMA:
         seed = (seed + 1 if not restart else
@@ -247,4 +253,4 @@ class Gradient:
 
 
 __all__ = ["BAD", "CMA", "CMAState", "Context", "Gradient", "GradientState", "Random",
-           "generator"]
+           "cma_population", "generator"]
