@@ -21,14 +21,17 @@ T = 0.4  # short horizons: the tests check numbers, not speed
 
 def _problem(batch: int = 0):
     """Every term of the objective at once: smooth L-inf, L2, the requirement envelope and the
-    control-rate limit (the envelope and u_rate terms read u' and the windowed error)."""
+    control-rate limit (the envelope and u_rate terms read u' and the windowed error), and the
+    forward-Euler check loop's penalty. The loop tuned has its input delayed one sample (the
+    delayed check loop's code, without a third loop to compile)."""
     cfg = tuning.TuningConfig(
-        objective=tuning.ObjectiveSpec(window_start=0.1, linf=1.0, l2=1.0, u_max=None),
+        objective=tuning.ObjectiveSpec(window_start=0.1, linf=1.0, l2=1.0, u_max=None,
+                                       delay_weight=0.0),
         requirements={"envelope": {"b0": 0.1, "b_inf": 0.005, "decay": 0.1},
                       "u_rate": {"max": 40.0}},
         robust=tuning.BatchSpec(batch=batch, seed=1), heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=T, sample_time=1e-3),
-                                cfg)
+    return tuning.build_problem(dscjax.paper_example(),
+                                RunSpec.make(t_final=T, sample_time=1e-3, delay=1), cfg)
 
 
 def _with(objective, **changes):

@@ -133,7 +133,10 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     # JAX's forward mode through the batched simulation of all 4 (no time-parallel rule)
     from tuning.optimize import value_and_grad
 
-    cfg = tuning.TuningConfig(params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
+    # (the loop tuned only: the check loops' gradients are test_gradients')
+    cfg = tuning.TuningConfig(params=PARAMS,
+                              objective=tuning.ObjectiveSpec(u_max=None, sampled_weight=0.0,
+                                                             delay_weight=0.0),
                               robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
                                                       cvar_level=0.5),
                               optimizer=tuning.OptimizerSpec(gradient="plants"))

@@ -91,7 +91,7 @@ class ObjectiveSpec:
         "track without a limit cycle; 0: no delayed loop", AtLeast(0))
     delay_factor: float = setting(2.0, "the delayed loop's windowed L-inf at most this x the "
                                   "loop tuned's", Positive())
-    delay_tv_factor: float = setting(1.5, "the delayed loop's TV(u) at most this x the TV(u) "
+    delay_tv_factor: float = setting(1.4, "the delayed loop's TV(u) at most this x the TV(u) "
                                      "bound", Positive())
     delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
                                   "loop", WEIGHT)
