@@ -151,9 +151,10 @@ class CheckLoop:
     """A loop the gains must also hold in: `sim`, the loop tuned with one thing changed. Its
     windowed L-inf at most `linf_factor` x the loop tuned's, its max|u| at most `u_factor` x
     the max|u| bound and its TV(u) at most `tv_factor` x the TV(u) bound (None: not checked);
-    `weight` of its penalty; its metrics in `loop_metrics` are prefixed `name`_; `label` says
-    the loop in the report. `smooth`: its figures have slopes in the gains (the report's
-    elasticities); a loop at the edge of a limit cycle has tangents that are not."""
+    `weight` of its penalty, the setting tuning.objective.`weight_key`; its metrics in
+    `loop_metrics` are prefixed `name`_; `label` says the loop in the report. `smooth`: its
+    figures have slopes in the gains (the report's elasticities); a loop at the edge of a
+    limit cycle has tangents that are not."""
 
     name: str
     sim: RunSpec
@@ -161,6 +162,7 @@ class CheckLoop:
     u_factor: float | None
     tv_factor: float | None
     weight: float
+    weight_key: str
     label: str
     smooth: bool = True
 
@@ -189,8 +191,6 @@ class CheckLoop:
         return ok
 
 
-# the setting of each check loop's weight
-WEIGHTS = {"sampled": "sampled_weight", "delayed": "delay_weight"}
 # the second loop's discretisation: the one the loop tuned does not use
 OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
 
@@ -205,11 +205,12 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
     if spec.sampled_weight:
         other = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
         out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0,
-                             spec.sampled_weight, f"the states by {discretisation(other)}"))
+                             spec.sampled_weight, "sampled_weight",
+                             f"the states by {discretisation(other)}"))
     if spec.delay_samples and spec.delay_weight:
         d = sim.delay + spec.delay_samples
         out.append(CheckLoop("delayed", dataclasses.replace(sim, delay=d), spec.delay_factor,
-                             None, spec.delay_tv_factor, spec.delay_weight,
+                             None, spec.delay_tv_factor, spec.delay_weight, "delay_weight",
                              f"the input delayed {d} sample{'s' if d != 1 else ''}",
                              smooth=False))
     return tuple(out)

@@ -30,7 +30,7 @@ from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import TuningConfig
-from tuning.objective import WEIGHTS, Objective, check_loops, start_scales
+from tuning.objective import Objective, check_loops, start_scales
 from tuning.optimize import choose_gradient
 from tuning.params import Selection
 from tuning.requirements import build_requirements
@@ -171,7 +171,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
         notes.append(f"checked too, in the search: the same loop with {c.label} must keep its "
                      f"windowed L-inf within {c.linf_factor:g} x the loop tuned's"
                      + (f" and {effort}" if effort else "")
-                     + f" (penalty weight tuning.objective.{WEIGHTS[c.name]} = "
+                     + f" (penalty weight tuning.objective.{c.weight_key} = "
                      f"{c.weight:g}; 0 turns this check off)")
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
