@@ -1,9 +1,11 @@
 """`dscjax tune`'s search methods at equal wall time on paired seeds: the default (`cma`:
-CMA-ES with a population sized to the CPU's throughput, IPOP restarts) against `small` (the
-same at cma's own population for 13 numbers, 11, the default's before it) and `adam`.
+CMA-ES of 64 candidates a generation, restarted afresh with twice the population when it
+stalls or stops) against `previous` (the default before it: restarted only at CMA-ES's own
+stop) and `adam`.
 
-    python experiments/bench_tuning.py                          # 10 seeds, 100 s (docs)
-    python experiments/bench_tuning.py --methods cma,small,adam --seeds 3
+    python experiments/bench_tuning.py                          # 10 seeds, 200 s (docs)
+    python experiments/bench_tuning.py --methods cma --marks 100  # and what 100 s gave
+    python experiments/bench_tuning.py --methods cma,previous,adam --seeds 3
     python experiments/bench_tuning.py --problem robust --methods cma
     python experiments/bench_tuning.py --quick                  # 2 seeds, T = 2 s: JSON only
 
@@ -28,6 +30,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import sys
+import tempfile
 
 import jax
 
@@ -45,8 +48,8 @@ from tuning.params import DSC_GAINS  # noqa: E402
 from tuning.runner import heldout_ranges  # noqa: E402
 
 # name -> [tuning.optimizer] settings; the first is the default, BASELINE the comparison's
-METHODS = {"cma": {}, "small": {"popsize": 11, "growth": 1}, "adam": {"name": "adam"}}
-BASELINE = "small"
+METHODS = {"cma": {}, "previous": {"stall": 0}, "adam": {"name": "adam"}}
+BASELINE = "previous"
 PLANTS, SEED = 32, 777  # the held-out blow-up check
 
 
@@ -100,6 +103,24 @@ def judge(problem, setup, t_final: float) -> dict:
     return out
 
 
+def judged(problem, tr, unravel, t_final: float, seed: int, key: str) -> dict:
+    """The run record of a search's incumbent (`judge`'s figures), printed on stderr."""
+    setup = problem.selection.apply(problem.setup, unravel(tr.best_z))
+    f = judge(problem, jax.tree.map(np.asarray, setup), t_final)
+    print(f"  seed {seed} {key}: {f['exponential-euler']['ratio']:.1f}x (forward Euler "
+          f"{f['euler']['ratio']:.1f}x), meets {f['meets']} (delay "
+          f"{f['delayed']['delay_ok']}, held-out blow-ups "
+          f"{f['heldout_blowups_1ms']}/{f['heldout_blowups_0.5ms']}), "
+          f"{tr.iterations} generations, {tr.restarts} restarts", file=sys.stderr, flush=True)
+    return {"seed": seed, "ratio": f["exponential-euler"]["ratio"],
+            "ratio_fe": f["euler"]["ratio"], "meets": f["meets"],
+            "delay_ok": f["delayed"]["delay_ok"], "figures": f,
+            "evaluations": tr.evaluations, "iterations": tr.iterations,
+            "restarts": tr.restarts, "search_s": tr.seconds, "best_loss": tr.best_loss,
+            "best_feasible": bool(tr.best_feasible),
+            "gains": {k: np.asarray(v).tolist() for k, v in unravel(tr.best_z).items()}}
+
+
 def sign_test(wins: int, losses: int) -> float:
     """Two-sided p of the paired sign test (exact binomial, ties dropped)."""
     n = wins + losses
@@ -116,50 +137,49 @@ def main(argv=None) -> int:
                    help="seeds 0 .. N-1 (default 10; 2 quick)")
     p.add_argument("--budget", type=positive(float), default=None,
                    help="seconds of wall time per method and seed, compilation included "
-                   "(default 100; 10 quick)")
-    p.add_argument("--methods", default="cma,small",
-                   help=f"comma-separated, of {', '.join(METHODS)} (default cma,small)")
+                   "(default 200, the default time limit; 10 quick)")
+    p.add_argument("--marks", default="",
+                   help="comma-separated seconds before --budget at which each search's "
+                   "incumbent is judged too (the search stopped and resumed there)")
+    p.add_argument("--methods", default="cma,previous",
+                   help=f"comma-separated, of {', '.join(METHODS)} (default cma,previous)")
     a = p.parse_args(argv)
     methods = a.methods.split(",")
     if any(m not in METHODS for m in methods):
         p.error(f"--methods: names of {', '.join(METHODS)} (got {a.methods!r})")
     quick = a.quick
     seeds = a.seeds or (2 if quick else 10)
-    budget = a.budget or (10.0 if quick else 100.0)
+    budget = a.budget or (10.0 if quick else 200.0)
     t_final = 2.0 if quick else 20.0
     bench = Bench(f"tuning_{a.problem}", f"Gain tuning at equal wall time, the {a.problem} "
                   "problem", quick=quick)
     problem = build(a.problem, t_final)
     unravel = ravel_pytree(problem.z0)[1]
-    runs = {m: [] for m in methods}
+    marks = sorted({float(x) for x in a.marks.split(",") if x} - {budget})
+    if any(not 0 < x < budget for x in marks):
+        p.error(f"--marks: seconds in (0, {budget:g}) (got {a.marks!r})")
+    runs = {f"{m}{f' @{x:g} s' if x != budget else ''}": [] for m in methods
+            for x in [*marks, budget]}
     for seed in range(seeds):
         for m in methods:
             problem.objective.compiled.clear()  # every method compiles its own programs
-            res = tuning.run(with_method(problem, m, budget, seed))
-            tr = res.trace
-            setup = problem.selection.apply(problem.setup, unravel(tr.best_z))
-            f = judge(problem, jax.tree.map(np.asarray, setup), t_final)
-            runs[m].append({"seed": seed, "ratio": f["exponential-euler"]["ratio"],
-                            "ratio_fe": f["euler"]["ratio"], "meets": f["meets"],
-                            "delay_ok": f["delayed"]["delay_ok"], "figures": f,
-                            "evaluations": tr.evaluations, "iterations": tr.iterations,
-                            "search_s": tr.seconds, "best_loss": tr.best_loss,
-                            "best_feasible": bool(tr.best_feasible),
-                            "gains": {k: np.asarray(v).tolist()
-                                      for k, v in unravel(tr.best_z).items()}})
-            print(f"  seed {seed} {m}: {f['exponential-euler']['ratio']:.1f}x (forward Euler "
-                  f"{f['euler']['ratio']:.1f}x), meets {f['meets']} (delay "
-                  f"{f['delayed']['delay_ok']}, held-out blow-ups "
-                  f"{f['heldout_blowups_1ms']}/{f['heldout_blowups_0.5ms']}), "
-                  f"{tr.iterations} generations", file=sys.stderr, flush=True)
+            with tempfile.TemporaryDirectory() as out:
+                done = 0.0  # one search, stopped and resumed at each mark (bitwise the same)
+                for x in [*marks, budget]:
+                    res = tuning.run(with_method(problem, m, x - done, seed), out,
+                                     resume=done > 0)
+                    done = x
+                    key = f"{m}{f' @{x:g} s' if x != budget else ''}"
+                    runs[key].append(judged(problem, res.trace, unravel, t_final, seed, key))
             bench.read_load()
 
     def score(r):  # what the sign test compares: the ratio of a run that meets, else 0
         return r["ratio"] if r["meets"] else 0.0
 
-    base = [score(r) for r in runs[BASELINE]] if BASELINE in runs else None
     for m, rs in runs.items():
         s = [score(r) for r in rs]
+        method, at = m.split(" ", 1) if " " in m else (m, "")  # the baseline at the same time
+        base = runs.get(f"{BASELINE} {at}".strip())
         row = {"method": m, "median_x": median([r["ratio"] for r in rs]),
                "worst_x": min(r["ratio"] for r in rs),
                "worst_x_forward_euler": min(r["ratio_fe"] for r in rs),
@@ -168,13 +188,16 @@ def main(argv=None) -> int:
                "delay_ok": f"{sum(r['delay_ok'] for r in rs)} of {len(rs)}",
                "generations_per_s": median([r["iterations"] / r["search_s"] for r in rs]),
                "evaluations_per_s": median([r["evaluations"] / r["search_s"] for r in rs])}
-        if base is not None and m != BASELINE:
+        if base is not None and method != BASELINE:
+            base = [score(r) for r in base]
             wins = sum(x > y for x, y in zip(s, base, strict=True))
             losses = sum(x < y for x, y in zip(s, base, strict=True))
             row |= {f"wins_vs_{BASELINE}": f"{wins} of {len(s)}",
                     "sign_test_p": sign_test(wins, losses)}
         bench.add(**row)
-    bench.note(f"T = {t_final:g} s, {budget:g} s per method and seed (compilation included), "
+    bench.note(f"T = {t_final:g} s, {budget:g} s per method and seed (compilation included"
+               + ("; 'x @S s': its incumbent after S s of the same search" if marks else "")
+               + "), "
                f"seeds 0-{seeds - 1}; x: the start gains' windowed L-inf over the tuned "
                f"gains' (nominal plant, sampled at 1 ms); {problem.n_params} tuned numbers; "
                f"'meet': every constraint in both discretisations, the delayed loop, no "

@@ -251,6 +251,30 @@ def test_cma_es_restarts_from_the_start_when_its_criteria_stop_it(monkeypatch, g
     assert res.trace.evaluations == 1 + 3 * sum(pops) and es.popsize == pops[-1]
 
 
+def test_cma_es_restarts_when_it_stalls_and_a_resumed_stalling_search_is_the_same(tmp_path):
+    """stall = 3: a generation whose instance's best fell by less than stall_gain of it over
+    the last 3 generations restarts it. On 1 + |z - c|^2 / 100 (1 to 1.1 on the box) that is
+    every instance's 4th generation (2 restarts, then its end); on the bowl from far away
+    CMA-ES gains more than 10 % in every 3 generations of its first 12 (no stall there)."""
+    flat = Bowl(C, -np.ones(3), np.ones(3))
+    flat.loss = lambda z: 1 + np.sum((z - C) ** 2, axis=1) / 100
+    method = CMA(restarts=2, stall=3)
+
+    def go(n, path=None, resume=False):
+        return search.run(flat, method, x0=np.full(3, 0.1), seed=2, max_iterations=n,
+                          path=path, resume=resume)
+
+    whole = go(20)
+    assert (whole.trace.iterations, whole.trace.restarts) == (12, 2)
+    assert whole.stop_reason == "CMA-ES stopped: {'stall': 3}"
+    assert whole.trace.evaluations == 1 + 12 * 7  # cma's 7 candidates in 3 dimensions
+    go(6, tmp_path / "s.npz")
+    _same(go(20, tmp_path / "s.npz", resume=True), whole, method)
+    far = Bowl(np.full(3, 0.9), -np.ones(3), np.ones(3))
+    res = search.run(far, CMA(stall=3), x0=np.full(3, -0.9), seed=2, max_iterations=12)
+    assert res.trace.restarts == 0
+
+
 def test_a_replayed_cma_es_continues_exactly_even_from_between_ask_and_tell():
     def make():
         return search.ReplayCMA(np.ones(3), 0.5, {"seed": 3, "verbose": -9, "popsize": 5,

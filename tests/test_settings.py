@@ -160,4 +160,4 @@ def test_docs_settings_md_holds_the_declarations_tables():
     assert settings_docs(text) == text
     for name in settings_groups():
         assert f"<!-- settings {name} -->" in text
-    assert "| `tuning.optimizer.time_limit` | `100` |" in text
+    assert "| `tuning.optimizer.time_limit` | `200` |" in text

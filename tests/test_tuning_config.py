@@ -101,6 +101,7 @@ def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
     # 64 trajectories a generation: 64 candidates on one plant, 8 on 8 plants, but never
     # below cma's 4 + floor(3 ln 13) = 11 for the 13 numbers of the default tune
     assert [search.population(b, 13) for b in (1, 2, 8, 64)] == [64, 32, 11, 11]
+    assert (search.stall, search.stall_gain) == (20, 0.1)
     assert adam.max_steps == 300
     for name in ("cma", "adam"):
         spec = from_dict({"optimizer": {"name": name, "steps": 50}}).optimizer
@@ -116,7 +117,7 @@ def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
     ({"line_points": 3}, "unknown key 'tuning.optimizer.line_points' (allowed: name, "
                          "learning_rate, patience, min_delta, steps, time_limit, gradient, "
                          "checkpoint_every, save_interval, sigma0, popsize, growth, seed, "
-                         "restarts)"),
+                         "restarts, stall, stall_gain)"),
 ])
 def test_removed_methods_and_options_are_one_line_errors(table, line):
     with pytest.raises(ConfigError) as err:

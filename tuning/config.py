@@ -129,7 +129,7 @@ class OptimizerSpec:
     min_delta: float = setting(1e-4, "the relative gain that counts", Number(ge=0))
     steps: int | None = setting(None, f"at most this many iterations; none: none for CMA-ES, "
                                 f"{OPTAX_STEPS} for adam", Maybe(AtLeast(1)), flag="--steps")
-    time_limit: float | None = setting(100.0, "seconds of search in this invocation, "
+    time_limit: float | None = setting(200.0, "seconds of search in this invocation, "
                                        "compilation included; none: no limit",
                                        Maybe(Positive()), flag="--time-limit")
     gradient: str = setting(
@@ -149,7 +149,12 @@ class OptimizerSpec:
     seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)",
                         AtLeast(0))
     restarts: int = setting(9, "fresh CMA-ES runs from the start point after CMA-ES's own "
-                            "stop", AtLeast(0))
+                            "stop or a stall", AtLeast(0))
+    stall: int = setting(20, "CMA-ES has stalled when its best loss fell by less than the share "
+                         "stall_gain over this many generations (0: only its own stop)",
+                         AtLeast(0))
+    stall_gain: float = setting(0.1, "the share of the best loss that counts as progress over "
+                                "stall generations", Number(gt=0, lt=1))
 
     def population(self, plants: int, n: int) -> int:
         """CMA-ES's first population for `plants` training plants and n tuned numbers."""

@@ -149,7 +149,8 @@ def text(s: dict, problem, figures) -> str:
         + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
         + f", {run['rejected']} rejected"
         + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
-           f"its own criteria stopped it; adam from a random point after its step collapsed)"
+           f"its own criteria stopped it or it stalled; adam from a random point after its step "
+           f"collapsed)"
            if run.get("restarts") else "")
         + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
@@ -342,9 +343,11 @@ def method_sentence(opt, mode: str) -> str:
            f"{opt.popsize or f'sized to about {ROWS} trajectories a generation'}, seed "
            f"{opt.seed})")
     grows = f" and {opt.growth} times the population" if opt.growth > 1 else ""
-    restarts = (f" When CMA-ES's own criteria stop it before the budget ends, a fresh CMA-ES "
-                f"starts from the start point{grows} (at most {opt.restarts} times; the best "
-                f"point is kept)." if opt.restarts else "")
+    stalls = (f" or it stalls (its best loss falls by less than {100 * opt.stall_gain:g} % over "
+              f"{opt.stall} generations)" if opt.stall else "")
+    restarts = (f" When CMA-ES's own criteria stop it before the budget ends{stalls}, a fresh "
+                f"CMA-ES starts from the start point{grows} (at most {opt.restarts} times; the "
+                f"best point is kept)." if opt.restarts else "")
     return (f"{opt.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)
 

@@ -143,4 +143,5 @@ def method_of(spec, plants: int = 1, n: int = 1) -> search.CMA | search.Gradient
     if spec.name == "adam":
         return search.Gradient(lr=spec.learning_rate)
     return search.CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
-                      restarts=spec.restarts, growth=spec.growth)
+                      restarts=spec.restarts, growth=spec.growth,
+                      stall=spec.stall, stall_gain=spec.stall_gain)

@@ -52,14 +52,17 @@ class CMAState(NamedTuple):
 class CMA:
     """CMA-ES (`cma`) from x0 with step sigma0 and `popsize` candidates (0: cma's 4 + 3 ln n),
     one batch per generation, told a non-finite loss as BAD; its seed is seed + 1, restart r's
-    SeedSequence([seed, r]). When its own criteria stop it, a fresh instance starts from x0
-    with `growth` times the population (IPOP-CMA-ES: 2), at most `restarts` times; the
-    incumbent is kept."""
+    SeedSequence([seed, r]). When its own criteria stop it, or when it stalls (its best loss
+    fell by less than the share `stall_gain` over the last `stall` generations; 0: never), a
+    fresh instance starts from x0 with `growth` times the population (IPOP-CMA-ES: 2), at
+    most `restarts` times; the incumbent is kept."""
 
     sigma0: float = 0.3
     popsize: int = 0
     restarts: int = 9
     growth: int = 1
+    stall: int = 0
+    stall_gain: float = 0.1
     name: ClassVar[str] = "cma"
 
     def population(self, n: int, restart: int = 0) -> int:
@@ -94,7 +97,7 @@ class CMA:
                        ctx.min_delta)
         loss = ev.loss[first:]
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
-        sigma, stop = es.sigma, es.stop()
+        sigma, stop = es.sigma, es.stop() or self._stalled(es)
         restarts, done = state.restarts, None
         if stop and restarts < self.restarts:
             restarts += 1
@@ -103,6 +106,15 @@ class CMA:
             done = f"CMA-ES stopped: {dict(stop)}"
         return Step(z, ev, CMAState(es, restarts), start, first, sigma,
                     restarts=restarts - state.restarts, done=done)
+
+    def _stalled(self, es: ReplayCMA) -> dict:
+        """{"stall": generations} when the instance's best loss fell by less than the share
+        stall_gain over its last `stall` generations, else {}."""
+        if not self.stall or len(es.fitness) <= self.stall:
+            return {}
+        best = np.minimum.accumulate([np.min(f) for f in es.fitness])
+        then, now = best[-1 - self.stall], best[-1]
+        return {"stall": self.stall} if then - now <= self.stall_gain * abs(then) else {}
 
     def arrays(self, state: CMAState) -> dict:
         return state.es.arrays() | {"restarts": np.int64(state.restarts)}
