@@ -369,7 +369,7 @@ def test_resume_refuses_a_different_problem(small_problem, tmp_path):
 # The keys of each resume fingerprint, written out: every setting that changes the search
 # (the stopping settings steps, time_limit, patience, min_delta and save_interval do not)
 OPTIMIZER_KEYS = {"name", "learning_rate", "gradient", "checkpoint_every", "sigma0", "popsize",
-                  "growth", "seed", "restarts"}
+                  "growth", "seed", "restarts", "stall", "stall_gain"}
 OBJECTIVE_KEYS = {"linf", "l2", "effort_l2", "effort_max", "effort_tv", "u_max",
                   "u_max_weight", "tv_max", "tv_max_factor", "tv_max_weight", "sharpness",
                   "u_sharpness", "divergence_penalty", "window_start", "effort_bounds",
@@ -401,6 +401,7 @@ def test_fingerprints_carry_every_setting_of_the_search(small_problem):
     assert described({"steps": 9, "time_limit": 5.0, "patience": 2, "min_delta": 0.5,
                       "save_interval": 3}) == d
     assert described({"restarts": 2})["optimizer"]["restarts"] == 2
+    assert described({"stall": 0})["optimizer"]["stall"] == 0
     on = described(objective={"effort_bounds": "per_plant"}, tune=("controller.k*",))
     assert on["objective"]["effort_bounds"] == "per_plant"
     assert on["params"] == [k | {"scale": True}]
