@@ -158,8 +158,10 @@ def main(argv=None) -> int:
     marks = sorted({float(x) for x in a.marks.split(",") if x} - {budget})
     if any(not 0 < x < budget for x in marks):
         p.error(f"--marks: seconds in (0, {budget:g}) (got {a.marks!r})")
-    runs = {f"{m}{f' @{x:g} s' if x != budget else ''}": [] for m in methods
-            for x in [*marks, budget]}
+    def label(m: str, x: float) -> str:  # a row: the method, and the mark if not the budget
+        return m if x == budget else f"{m} @{x:g} s"
+
+    runs = {label(m, x): [] for m in methods for x in [*marks, budget]}
     for seed in range(seeds):
         for m in methods:
             problem.objective.compiled.clear()  # every method compiles its own programs
@@ -169,17 +171,17 @@ def main(argv=None) -> int:
                     res = tuning.run(with_method(problem, m, x - done, seed), out,
                                      resume=done > 0)
                     done = x
-                    key = f"{m}{f' @{x:g} s' if x != budget else ''}"
-                    runs[key].append(judged(problem, res.trace, unravel, t_final, seed, key))
+                    runs[label(m, x)].append(judged(problem, res.trace, unravel, t_final,
+                                                    seed, label(m, x)))
             bench.read_load()
 
     def score(r):  # what the sign test compares: the ratio of a run that meets, else 0
         return r["ratio"] if r["meets"] else 0.0
 
-    for m, rs in runs.items():
+    for (method, x), (m, rs) in zip([(m, x) for m in methods for x in [*marks, budget]],
+                                    runs.items(), strict=True):
         s = [score(r) for r in rs]
-        method, at = m.split(" ", 1) if " " in m else (m, "")  # the baseline at the same time
-        base = runs.get(f"{BASELINE} {at}".strip())
+        base = runs.get(label(BASELINE, x))  # the baseline at the same time
         row = {"method": m, "median_x": median([r["ratio"] for r in rs]),
                "worst_x": min(r["ratio"] for r in rs),
                "worst_x_forward_euler": min(r["ratio_fe"] for r in rs),
