@@ -414,7 +414,7 @@ def _sample_gain():
 def test_one_float_sample_of_the_tuned_gains_is_the_double_one_within_its_rounding_bound(
         tmp_path):
     """The float C's sample (u and the next state) at states along the double loop of the
-    tuned gains (whose loop chatters, so the closed-loop bound below does not apply), against
+    tuned gains (high gains, a boundary layer 5 times thinner than the paper's), against
     `sample_update` in float64: |float - exact| <= 2 eps32 G per output, G = the law's gain
     from relative roundings (`_rounding_gain`: every input, constant and operation rounded
     once by at most one ulp, eps32); 2 for the second-order terms, (L eps32)^2 for a chain of

@@ -3,7 +3,7 @@ of `dscjax.ts_sweep` on the two, as `dscjax reproduce` draws it (`fig_sampling`)
 line for stdout and its section of summary.md.
 
 `TUNED` is the controller of one `dscjax tune` run with its defaults (`tuning.sample_time`
-1 ms, seed 0, 100 s; its figures are in docs/benchmarks.md)."""
+1 ms, seed 0, 200 s; its figures are in docs/benchmarks.md)."""
 
 from __future__ import annotations
 
@@ -18,18 +18,18 @@ from dscjax.ts_sweep import total_steps as total_steps  # the command sizes its 
 
 # the controller of that run (its gains.json, the [controller] keys tuned)
 TUNED = {
-    "k": [29.39024466421628, 8.015169941845304],
-    "gamma_g": [205.2171513207762, 8.0],
-    "eta": [0.0008421409923122778, 0.01],
-    "gamma_phi": [14.682802370379456],
-    "sigma": [4.8090451538218025e-05],
-    "gamma_zeta": 0.4819148697887836,
-    "eta_zeta": 0.00021334472799264574,
-    "gamma_d": 1.9005617649331588,
-    "eta_d": 0.0036673049174152745,
-    "eps": 0.04665530731204365,
-    "tau": [0.004854277711245431],
-    "sat_width": 0.0003299278181248443,
+    "k": [33.23462715532851, 0.08475892254059818],
+    "gamma_g": [619.3713607232775, 8.0],
+    "eta": [2.792260390923935e-07, 0.01],
+    "gamma_phi": [400.5465697652097],
+    "sigma": [3.988823848130539e-11],
+    "gamma_zeta": 0.24809778679565533,
+    "eta_zeta": 4.561500525908476e-06,
+    "gamma_d": 8.17815401458443,
+    "eta_d": 1.1572687780287664e-05,
+    "eps": 0.014211310661439451,
+    "tau": [0.003930399566535375],
+    "sat_width": 0.0019559910108478866,
 }
 GAINS = ("paper", "tuned")
 LABELS = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}
