@@ -60,8 +60,8 @@ def exact(problem, v0):
     seconds = time.perf_counter() - t0
     p = v0.size
     v = np.concatenate([fit.theta["z"], np.ravel(fit.theta["x"])])
-    # each step: the trial's residuals, and at an accepted point the residuals and p columns
-    return {"cost": fit.cost, "iterations": fit.steps, "simulations": fit.steps * (p + 2),
+    # each step: the trial's residuals and p columns (one program)
+    return {"cost": fit.cost, "iterations": fit.steps, "simulations": fit.steps * (p + 1),
             "seconds": seconds, "error": error(problem, v)}
 
 

@@ -200,10 +200,9 @@ class Fit:
 def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
           tol: float = 1e-10) -> Fit:
     """Levenberg-Marquardt from theta0 (default the problem's start): the Jacobian exact, by
-    forward mode through the simulator one column after another (`lax.map` of JVPs, which
-    compiles several times faster than a vectorised `jacfwd` of the loop), Marquardt's
-    diagonal scaling and Nielsen's damping update; it stops when a step or the cost's
-    relative decrease falls below `tol`."""
+    forward mode through the simulator (one JVP a column, vectorised), taken with the
+    residuals at every trial point; Marquardt's diagonal scaling and Nielsen's damping update;
+    it stops when a step or the cost's relative decrease falls below `tol`."""
     theta0 = problem.z0() if theta0 is None else theta0
     flat0, unravel = ravel_pytree((jnp.asarray(theta0["z"]), jnp.asarray(theta0["x"])))
     theta = np.asarray(flat0, float)
@@ -225,15 +224,15 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
             lam, nu = lam * nu, nu * 2
             continue
         trial = theta + step
-        r_new = np.asarray(_r(problem, jnp.asarray(trial)), float)
+        # the trial's Jacobian with its residuals: one program a step, and most steps pass
+        r_new, jac_new = (np.asarray(x, float) for x in _rj(problem, jnp.asarray(trial)))
         new = 0.5 * float(r_new @ r_new)
         predicted = -(g @ step + 0.5 * step @ a @ step)
         if math.isfinite(new) and new < cost:
             rho = (cost - new) / max(predicted, 1e-300)
             small = np.linalg.norm(step) <= tol * (np.linalg.norm(theta) + tol)
             flat_cost = cost - new <= tol * cost
-            theta, cost = trial, new
-            r, jac = (np.asarray(x, float) for x in _rj(problem, jnp.asarray(theta)))
+            theta, cost, r, jac = trial, new, r_new, jac_new
             lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
             nu = 2.0
             steps += 1
