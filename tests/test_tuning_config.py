@@ -273,12 +273,12 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     # delayed one sample
     checks = {c.name: c for c in p.objective.checks}
     second, delayed = checks["sampled"].sim, checks["delayed"].sim
-    assert second.discretisation == "euler" and second.sample_time == 1e-3
+    assert second.discretisation.name == "euler" and second.sample_time == 1e-3
     assert second.delay == 0 and delayed.delay == 1 and delayed.sample_time == 1e-3
-    assert delayed.discretisation == "exponential-euler"
+    assert delayed.discretisation.name == "exponential-euler"
     assert (checks["delayed"].linf_factor, checks["delayed"].tv_factor,
             checks["delayed"].u_factor) == (2.0, 1.4, None)
-    assert p.objective.sim.discretisation == "exponential-euler"
+    assert p.objective.sim.discretisation.name == "exponential-euler"
     assert p.options.sampled and not p.continuous.sampled
     assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
     ref = dscjax.simulate(setup, 1.0, 1e-3, window_start=0.5, sample_time=1e-3).metrics
@@ -292,7 +292,7 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
                           dataclasses.replace(cfg, params=("controller.tau",)))
     assert given.objective.sim.sample_time == 0.002
-    assert given.objective.checks[0].sim.discretisation == "exponential-euler"
+    assert given.objective.checks[0].sim.discretisation.name == "exponential-euler"
     assert any("states advanced by forward Euler" in n for n in given.notes)
     assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)
 

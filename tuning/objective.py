@@ -39,7 +39,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import params
-from dscjax.closed_loop import Setup
+from dscjax.closed_loop import SCHEME, Setup
 from dscjax.runspec import RunSpec, discretisation, loop_words
 from dscjax.simulate import DivergenceError, divergence_report, run
 from dscjax.validation import ConfigError
@@ -191,10 +191,6 @@ class CheckLoop:
         return ok
 
 
-# the second loop's discretisation: the one the loop tuned does not use
-OTHER = {"exponential-euler": "euler", "euler": "exponential-euler"}
-
-
 def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
     """The loops a sampled loop's gains must also hold in: the other discretisation of the
     controller's states (an embedded engineer may advance them either way) and the input
@@ -203,7 +199,9 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
         return ()
     out = []
     if spec.sampled_weight:
-        other = dataclasses.replace(sim, discretisation=OTHER[sim.discretisation])
+        # the scheme the loop tuned does not use
+        other = dataclasses.replace(
+            sim, discretisation=next(s for s in SCHEME.values() if s != sim.discretisation))
         out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0,
                              spec.sampled_weight, "sampled_weight",
                              f"the states by {discretisation(other)}"))
