@@ -9,6 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from compilations import counted
 
 import dscjax
 import tuning
@@ -367,3 +368,35 @@ def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
         assert bool(got["feasible"][i]) == bool(aux["feasible"])
         terms.append(float(aux["terms"]["u_bound"]))
     assert terms[1] > 0  # the bounds were in play
+
+
+def test_rounds_padded_to_one_capacity_share_the_compiled_search(adv_run):
+    """Issue 39 item 4: two rounds' training sets (the round's plants, then one more worst
+    case) padded to the capacity of two rounds run the search's batched and gradient
+    programs compiled once; the padding weighs nothing (the loss and gradient of the batch
+    unpadded)."""
+    from tuning import search
+
+    _, out = adv_run
+    setup, options, cfg = _inputs()
+    setup = adversarial.search_problem(setup, options, cfg).setup
+    first = files.read_npz(out / "round_1" / "plants.npz")
+    more = {k: np.asarray(v)[:1] for k, v in first.items()}
+    more["hysteresis.alpha"] = 1.1 * more["hysteresis.alpha"]
+    second = runner.join_plants(setup, first, more)
+    capacity = 2 + 2 * cfg.adversarial.add
+    rounds = [runner.build_problem(setup, options, cfg, extra_plants=p, capacity=capacity)
+              for p in (first, second)]
+    k = len(first["hysteresis.alpha"])
+    assert [p.n_train for p in rounds] == [2 + k, 3 + k]
+    assert [p.objective.batch_size for p in rounds] == [capacity] * 2
+    x0 = search.TuneProblem(rounds[0]).x0
+    pts = np.stack([x0, x0 + 0.05])
+    with counted() as seen:
+        got = [(search.TuneProblem(p).evaluate(pts).loss, search.TuneProblem(p).value_and_grad(
+            pts[1:])[1]) for p in rounds]
+    assert seen["_batch"] == 1 and seen["_gradient"] == 1
+    plain = search.TuneProblem(runner.build_problem(setup, options, cfg, extra_plants=second))
+    assert plain.problem.mode == rounds[1].mode  # one plant weighed (max): plant by plant
+    np.testing.assert_allclose(got[1][0], plain.evaluate(pts).loss, rtol=1e-12)
+    np.testing.assert_allclose(got[1][1], plain.value_and_grad(pts[1:])[1], rtol=1e-12)

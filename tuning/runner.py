@@ -26,14 +26,15 @@ from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.runspec import RunSpec, loop_words
+from dscjax.selection import Selection
 from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
-from tuning.config import TuningConfig
-from tuning.objective import Objective, check_loops, start_scales
-from tuning.optimize import choose_gradient
-from tuning.params import Selection
+from tuning.config import SIGNED, TuningConfig
+from tuning.objective import Objective, check_loops
+from tuning.optimize import Forward, Mean, aggregate_of, choose_gradient
 from tuning.requirements import build_requirements
+from tuning.scales import start_scales
 from tuning.search import STATE_FILE, TuneProblem, method_of
 
 # no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
@@ -51,18 +52,27 @@ class Problem:
     selection: Selection
     objective: Objective
     heldout: dict | None
-    mode: str
+    mode: Forward  # the AD mode of the exact gradient (`tuning.optimize`)
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
     # the continuous loop, a check in the report (None: tuned as given, `--sample-time`)
     continuous: RunSpec | None = None
+    # the compiled programs of the search ({name: (objective, `search.Batched`)})
+    programs: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_train(self) -> int:
-        """Plants of the training set (1: the nominal plant alone)."""
-        ov = self.objective.overrides
-        return len(next(iter(ov.values()))) if ov else 1
+        """Plants of the training set (1: the nominal plant alone), padding apart."""
+        obj = self.objective
+        return obj.batch_size if obj.mask is None else int(np.sum(obj.mask))
+
+    @property
+    def scales(self):
+        """The objective's `Scales` with the per-plant bounds of the real training plants."""
+        sc, n = self.objective.scales, self.n_train
+        return dataclasses.replace(sc, **{k: getattr(sc, k)[:n] for k in (
+            "u_max_train", "tv_max_train") if getattr(sc, k) is not None})
 
     @property
     def n_params(self) -> int:
@@ -82,14 +92,14 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
         opt.pop(k)  # where to stop: a resumed run may change it
     return {
         "setup": dconfig.to_dict(setup, options),
-        "params": [dataclasses.asdict(t) for t in selection.items],
+        "params": [t.describe() for t in selection.items],
         "objective": dataclasses.asdict(cfg.objective),
         "optimizer": opt,
         "robust": _batch_desc(cfg.robust, setup),
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
         "checks": {c.name: c.sim.describe() for c in checks},
-        "mode": mode,
+        "mode": mode.name,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
 
@@ -140,30 +150,38 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
 
 
 def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None
-                  ) -> Problem:
+                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None,
+                  capacity: int = 0) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
-    cases) join the training batch (or the nominal plant). `ready()` is called once every
-    setting is validated, before anything runs or compiles (the start scales run the loop):
-    the command prepares its --out there."""
-    parts = _parts(setup, options, cfg, extra_plants)
+    cases) join the training batch (or the nominal plant), padded to `capacity` plants with
+    copies of the nominal one that weigh nothing (the objective's mask), so that batches of
+    one capacity share their compiled programs. `ready()` is called once every setting is
+    validated, before anything runs or compiles (the start scales run the loop): the command
+    prepares its --out there."""
+    parts = _parts(setup, options, cfg, extra_plants, capacity)
     cfg, notes, selection, mode, sim, checks, train, heldout, continuous = parts
     if ready is not None:
         ready()
     notes = list(notes)
     requirements = build_requirements(setup, cfg.requirements)
+    n = len(next(iter(train.values()))) if train else 1
+    mask = None
+    if train and capacity:  # (a mask even where none is padding: one structure)
+        train = join_plants(setup, train, {p: np.repeat(np.asarray(params.get(setup, p))[None],
+                                                        max(capacity - n, 0), axis=0)
+                                           for p in train})
+        mask = np.arange(max(capacity, n)) < n
     scales = start_scales(setup, sim, cfg.objective, train)
     if scales.per_plant:
-        n = len(next(iter(train.values())))
         notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
                      f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
                      + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
-                          scales=scales, requirements=requirements, overrides=train,
-                          aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level, checks=checks)
+                          scales=scales, requirements=requirements, overrides=train, mask=mask,
+                          aggregate=aggregate_of(cfg.robust) if train else Mean(),
+                          checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
         effort = " and ".join(f"{what} within {f:g} x its bound"
@@ -203,7 +221,8 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
                      fix="use the same settings, or --overwrite to start afresh")
 
 
-def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None):
+def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
+           capacity: int = 0):
     """The validated settings of `build_problem` before the start gains are evaluated:
     (cfg, notes, selection, mode, sim, checks, train, heldout, continuous): `checks` the
     `CheckLoop`s of the search, `continuous` the report's check loop."""
@@ -237,16 +256,17 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
                      f"s by default (the filters stable with RK4 at dt and forward Euler "
                      f"at Ts)")
-    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
+    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
+                                signed=SIGNED)
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
-    mode = choose_gradient(cfg.optimizer.gradient, n_params,
-                           (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra,
-                           cfg.robust.aggregate, cfg.robust.cvar_level)
-    ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
+    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
+    mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
+        (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
+        aggregate_of(cfg.robust), cfg.optimizer.checkpoint_every)
     sim = loop.replace(save_every=loop.n_steps, window_start=float(window),
                        names={"window_start": "tuning.objective.window_start"})
-    sim = dataclasses.replace(sim, gradient=TimeParallel(every=ce))
+    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
