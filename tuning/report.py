@@ -13,9 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, metrics, validation
+from dscjax import files, metrics, ts_sweep, validation
 from dscjax.params import assumption_warnings as with_ranges
-from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
@@ -309,8 +308,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
                       problem) if plots else [])
     st = (summary["margins"] or {}).get("sample_time")
     if plots and st is not None:
-        sampling.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
-                      labels={"start": "start gains", "tuned": "tuned gains"})
+        ts_sweep.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
+                      {"start": "start gains", "tuned": "tuned gains"})
         figures.append("sampling.png")
     summary["figures"] = figures
     if t_start is not None:
