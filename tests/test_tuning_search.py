@@ -140,7 +140,7 @@ def test_problem_bounds_are_the_start_gains(problems):
     sc = p.objective.scales
     assert sc.tv_max == pytest.approx(1.5 * sc.tv_u, rel=1e-12)
     assert sc.u_max == pytest.approx(sc.max_u, rel=1e-12)
-    assert "tv_bound" in tuning.runner.history_columns(p)
+    assert "tv_bound" in tuning.checkpoint.history_columns(p)
 
 
 def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems,

@@ -320,7 +320,7 @@ class Result:
 
     @property
     def history(self) -> list[dict]:
-        return [history_row(r) for r in self.trace.history]
+        return [ck.history_row(r) for r in self.trace.history]
 
     @property
     def best_z(self) -> dict:
@@ -334,40 +334,6 @@ class Result:
     def rejected(self) -> int:
         """adam's iterations whose point was worse than its last good one (stepped back)."""
         return sum(not r.get("accepted", True) for r in self.trace.history)
-
-
-def history_row(row: dict) -> dict:
-    """A search trace's history row as history.csv and the progress display give it."""
-    return {"iteration": row["iteration"], "loss": row["loss"],
-            "accepted": bool(row.get("accepted", True)), "feasible": row["feasible"],
-            "best_loss": row["best_loss"], "lr": row["scale"],
-            "grad_norm": row.get("grad_norm", float("nan")),
-            **{k: v for k, v in row.items() if k not in _SEARCH_KEYS},  # figures and terms
-            "wall_s": row["seconds"], "best_iteration": row["best_iteration"],
-            "best_feasible": row["best_feasible"]}
-
-
-_SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_norm", "accepted",
-                "seconds", "best_iteration", "best_feasible")
-
-
-def history_columns(problem: Problem) -> list[str]:
-    terms = list(_term_names(problem))
-    return (["iteration", "loss", "accepted", "feasible", "best_loss", "lr", "grad_norm",
-             "linf_window", "max_abs_u", "n_diverged"] + terms + ["wall_s"])
-
-
-def _term_names(problem):
-    spec, obj = problem.cfg.objective, problem.objective
-    names = [n for n in ("linf", "l2", "effort_l2", "effort_max", "effort_tv")
-             if getattr(spec, n)]
-    if obj.scales.u_max is not None and spec.u_max_weight:
-        names.append("u_bound")
-    if obj.scales.tv_max is not None and spec.tv_max_weight:
-        names.append("tv_bound")
-    names += [f"req{i}" for i in range(len(obj.requirements))]
-    names += [c.name for c in obj.checks]
-    return names
 
 
 def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
@@ -420,14 +386,14 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     desc = problem.describe()
-    terms = _term_names(problem)
+    terms = ck.term_names(problem)
 
     def each(trace, row):
         if out is not None and (trace.iterations % spec.save_interval == 0
                                 or trace.iterations == begun + 1):
             write_files(out, problem, trace)
         if progress is not None:
-            progress(history_row(row) | {"steps": spec.max_steps, "terms": terms})
+            progress(ck.history_row(row) | {"steps": spec.max_steps, "terms": terms})
 
     try:
         res = search.run(
@@ -466,8 +432,8 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
     """best.json, gains.json, history.csv and checkpoint.json of a search's trace."""
     desc = problem.describe()
     write_best(out, problem, trace)
-    ck.write_history(out / "history.csv", [history_row(r) for r in trace.history],
-                     history_columns(problem))
+    ck.write_history(out / "history.csv", [ck.history_row(r) for r in trace.history],
+                     ck.history_columns(problem))
     files.write_json(out / "checkpoint.json", {
         "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
         "iteration": trace.iterations, "best_loss": trace.best_loss,
@@ -491,12 +457,3 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
     })
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
     files.write_json(out / "gains.json", dconfig.to_dict(setup, problem.options))
-
-
-def format_progress(row: dict, step: str = "lr") -> str:
-    """The figures of one iteration's row for the progress display; `step` names the step
-    size (sigma for the CMA-ES methods)."""
-    terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
-    return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
-            f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "
-            f"{row['max_abs_u']:.4g}  {step} {row['lr']:.3g}")

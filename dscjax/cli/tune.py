@@ -137,14 +137,9 @@ def run(args) -> int:
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import elasticity, report, report_md
+    from tuning.checkpoint import format_progress
     from tuning.config import SEARCHES, to_table
-    from tuning.runner import (
-        build_problem,
-        check_resume,
-        format_progress,
-        model_default_ranges,
-        simulate_command,
-    )
+    from tuning.runner import build_problem, check_resume, model_default_ranges, simulate_command
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
