@@ -12,7 +12,7 @@ exact, at every RK4 stage, with no algebraic loop (docs/numerics.md).
 from __future__ import annotations
 
 import dataclasses
-from typing import Any, NamedTuple
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -216,14 +216,39 @@ def diagnose(setup: Setup, traj) -> str:
 # -- the digital controller: sampled at Ts, its input held (zero-order hold) ---------------
 
 
+class ExponentialEuler(eqx.Module):
+    """c <- c + Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = `Controller.decay_rates`:
+    exact for the filters' linear part."""
+
+    name: ClassVar[str] = "exponential-euler"
+    words: ClassVar[str] = "exponential Euler"
+
+    def advance(self, ctrl, c, rate, ts):
+        return jax.tree.map(lambda c_, r, l: c_ + ts * _phi(-l * ts) * r, c, rate,
+                            ctrl.decay_rates(c))
+
+
+class ForwardEuler(eqx.Module):
+    """c <- c + Ts c' (what a hand-written controller often does)."""
+
+    name: ClassVar[str] = "euler"
+    words: ClassVar[str] = "forward Euler"
+
+    def advance(self, ctrl, c, rate, ts):
+        return jax.tree.map(lambda c_, r: c_ + ts * r, c, rate)
+
+
+# How a sampled controller may advance its states over one sample, by the name a config gives
+SCHEME = {s.name: s for s in (ExponentialEuler(), ForwardEuler())}
+SCHEMES = tuple(SCHEME)
+
+
 class Sampling(eqx.Module):
     """A controller that runs at the sample times t_k = k Ts, Ts = `every` dt.
 
     At t_k it reads x(t_k) (plus seeded Gaussian noise of std `noise`), computes u_k and
-    advances its states once by the `scheme`: "exponential-euler", c <- c + Ts phi(-lam Ts) c',
-    phi(z) = (e^z - 1)/z, lam = `Controller.decay_rates` (exact for the filters' linear part),
-    or "euler", forward Euler c <- c + Ts c' (what a hand-written controller often does).
-    The actuator holds u_(k-delay) until t_(k+1) (the first input for the first `delay`
+    advances its states once by the `scheme` (`ExponentialEuler` or `ForwardEuler`). The
+    actuator holds u_(k-delay) until t_(k+1) (the first input for the first `delay`
     samples); a change of the held input moves the hysteresis along its curve (`jump`).
     """
 
@@ -231,11 +256,7 @@ class Sampling(eqx.Module):
     delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
     noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
     seed: Any = 0  # seed of the noise (a float holding an integer: no integer leaf is traced)
-    scheme: str = eqx.field(static=True, default="exponential-euler")  # one of SCHEMES
-
-
-# How the sampled controller advances its states over one sample (`Sampling.scheme`).
-SCHEMES = ("exponential-euler", "euler")
+    scheme: ExponentialEuler | ForwardEuler = eqx.field(static=True, default=ExponentialEuler())
 
 
 class SampledState(NamedTuple):
@@ -265,12 +286,7 @@ def sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
         x = x + jnp.asarray(sampling.noise, x.dtype) * jax.random.normal(key, x.shape, x.dtype)
     u_new, info = ctrl.law(X.ctrl, x, t, plant, ref)
     rate = ctrl.state_rate(X.ctrl, x, t, info, plant, ref)
-    ts = sampling.every * dt
-    if sampling.scheme == "euler":
-        c_next = jax.tree.map(lambda c, r: c + ts * r, X.ctrl, rate)
-    else:
-        lam = ctrl.decay_rates(X.ctrl)
-        c_next = jax.tree.map(lambda c, r, l: c + ts * _phi(-l * ts) * r, X.ctrl, rate, lam)
+    c_next = sampling.scheme.advance(ctrl, X.ctrl, rate, sampling.every * dt)
     if sampling.delay:
         applied, past = X.past[-1], jnp.concatenate([u_new[None], X.past[:-1]])
     else:
@@ -317,8 +333,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["SCHEMES", "Controller", "Observation", "SampledState", "Sampling", "Setup",
-           "SpectrumProfile", "State", "decay_rates", "diagnose", "frozen", "initial_state",
-           "local_eigenvalues", "prepared", "project", "sample_after_step", "sample_update",
-           "sampled_frozen", "sampled_initial_state", "sampled_vector_field", "spectrum_along",
-           "states_of", "vector_field"]
+__all__ = ["SCHEME", "SCHEMES", "Controller", "ExponentialEuler", "ForwardEuler", "Observation",
+           "SampledState", "Sampling", "Setup", "SpectrumProfile", "State", "decay_rates",
+           "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared", "project",
+           "sample_after_step", "sample_update", "sampled_frozen", "sampled_initial_state",
+           "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]

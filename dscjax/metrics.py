@@ -2,7 +2,8 @@
 
 Functions of saved arrays (`linf`, `l2`, ...) and `Tracking`, the same definitions as a running
 reduction (`integrate.Running`) over every step, without storing the trajectory. `Combined`
-folds several reductions into one.
+folds several reductions into one; `SmoothMax` is the one smooth maximum (the tuner's smooth
+L-inf and max|u|, sensitivity's L_p error).
 
 Definitions on the step grid t_k = k dt, k = 0..N, window W = {k : t_k >= t0}:
     L_inf  = max_{k in W} |e_k|
@@ -204,16 +205,19 @@ def chatters(chattering_index) -> bool:
 
 class Tracking(eqx.Module):
     """The metrics of every run as a running reduction (`integrate.Running`): it reads
-    e = x_1 - y_r, u and w off a closed-loop state y (`y.x`) and its observation."""
+    e = x_1 - y_r, u and w off a closed-loop state y (`y.x`) and its observation; y_r is the
+    reference the controller tracks, or `reference(t)` where given."""
 
     window_start: jax.Array  # () t0 of the window [t0, T]
     n_steps: int = eqx.field(static=True, default=1)
+    reference: Any = None
 
     def init(self, dtype) -> RunningMetrics:
         return running_init(dtype)
 
     def update(self, acc, k, t, y, obs, dt):
-        return running_update(acc, k, t, y.x[0] - obs.yr, obs.u, obs.w, dt, self.window_start,
+        yr = obs.yr if self.reference is None else self.reference(t)
+        return running_update(acc, k, t, y.x[0] - yr, obs.u, obs.w, dt, self.window_start,
                               self.n_steps)
 
     def finalize(self, acc, t_final):
@@ -239,6 +243,73 @@ class Combined(eqx.Module):
         for prefix, r, a in zip(prefixes, self.reductions, acc, strict=True):
             out |= {prefix + k: v for k, v in r.finalize(a, t_final).items()}
         return out
+
+
+class LogSumExp(eqx.Module):
+    """The form (1/s) log(mean exp(s a)) of a `SmoothMax`: s the sharpness (1/units of a); it
+    tends to max a as s grows, and its gradient is the softmax-weighted one of the largest a."""
+
+    sharpness: Any
+
+    def fold(self, m, s, a, w, on):
+        """(running max m of s a, sum s of w exp(s a - m)) with the sample a of weight w, where
+        `on`; the exponent is masked where not, not just its weight: 0 x inf is NaN."""
+        x = self.sharpness * a
+        top = jnp.where(on, jnp.maximum(m, x), m)
+        arg = jnp.where(on, x - top, 0.0)
+        return top, s * jnp.exp(m - top) + jnp.where(on, w * jnp.exp(arg), 0.0)
+
+    def value(self, m, mean):
+        ok = mean > 0
+        return (m + jnp.where(ok, jnp.log(jnp.where(ok, mean, 1.0)), -jnp.inf)) / self.sharpness
+
+
+class Power(eqx.Module):
+    """The form (mean a^p)^(1/p) of a `SmoothMax`, the L_p norm: p the order; between the mean
+    and the max of a, tending to the max as p grows, smooth in a for p > 1. Summed relative
+    to the running max of a, so a^p neither under- nor overflows."""
+
+    order: Any
+
+    def fold(self, m, s, a, w, on):
+        a = jnp.where(on, a, 0.0)
+        top = jnp.maximum(m, a)
+        safe = jnp.where(top > 0, top, 1.0)  # top = 0: every term so far is 0
+        return top, s * (m / safe) ** self.order + w * (a / safe) ** self.order
+
+    def value(self, m, mean):
+        pos = mean > 0
+        return m * jnp.where(pos, jnp.where(pos, mean, 1.0) ** (1.0 / self.order), 0.0)
+
+
+class SmoothMax(eqx.Module):
+    """A smooth maximum of |e| (e = x_1 - y_r) or |u| as a running reduction, named `name`:
+    the `form` (`LogSumExp` or `Power`) of the mean over the window [t0, T] (trapezoid
+    weights) or, without a window (`window_start` None), of the sum over every step, which
+    bounds the max from above."""
+
+    form: LogSumExp | Power
+    window_start: Any = None  # () t0; None: every step, summed
+    name: str = eqx.field(static=True, default="smooth_max")
+    of_u: bool = eqx.field(static=True, default=False)  # |u|, else |e|
+    n_steps: int = eqx.field(static=True, default=1)
+
+    def init(self, dtype):
+        return dict.fromkeys(("m", "s", "w"), jnp.zeros((), dtype))
+
+    def update(self, acc, k, t, y, obs, dt):
+        a = jnp.abs(obs.u if self.of_u else y.x[0] - obs.yr)
+        w, on = 1.0, True
+        if self.window_start is not None:
+            _, w, on, _ = step_weights(k, t, dt, self.window_start, self.n_steps)
+        m, s = self.form.fold(acc["m"], acc["s"], a, w, on)
+        return {"m": m, "s": s, "w": acc["w"] + w}
+
+    def finalize(self, acc, t_final):
+        s = acc["s"]
+        if self.window_start is not None:
+            s = s / jnp.maximum(acc["w"], jnp.finfo(acc["w"].dtype).tiny)
+        return {self.name: self.form.value(acc["m"], s)}
 
 
 def _safe_sqrt(x):

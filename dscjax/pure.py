@@ -6,8 +6,9 @@
 `loss(z)` is pure: no host-side check, no refinement, no exception, so it is the same function
 eagerly and under `jit`, `grad` and `vmap`, and equals `simulate(setup with z,
 spec=spec).metrics[metric]` on any run that needs no refinement. A diverged run is a returned
-status, never a silent switch: the value is NaN (its gradient 0) and `status.code` != 0.
-Refinement is the host-side wrapper `simulate`; the checks run once, here.
+status, never a silent switch: the value is NaN (its gradient 0) and `status.code` != 0
+(`dscjax.selection.run_at`, the run the tuner and `dscjax.sensitivity` share). Refinement is
+the host-side wrapper `simulate`; the checks run once, here.
 """
 
 from __future__ import annotations
@@ -20,11 +21,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import metrics as m
-from dscjax import params
 from dscjax.closed_loop import Setup
 from dscjax.integrate import Status
 from dscjax.runspec import RunSpec
-from dscjax.simulate import canonical, check, nan_if_diverged, run
+from dscjax.selection import Linear, Log, Selection, run_at
+from dscjax.simulate import canonical, check
 from dscjax.validation import ConfigError
 
 
@@ -68,22 +69,19 @@ def objective(setup: Setup, spec: RunSpec | None = None,
         raise ConfigError(f"paths must be a non-empty list of config paths (got {paths!r})")
     setup = canonical(setup)
     check(setup, spec)
-    dtype = jnp.result_type(setup.plant.x0)
-    z0 = {}
-    for p in paths:
-        value = np.asarray(params.get(setup, p), dtype)
+    selection = Selection.of(paths, Log() if log else Linear())
+    for t in selection.items:
+        value = np.asarray(t.param.check(setup, "paths"))
         if log and not np.all(value > 0):
-            raise ConfigError(f"{p} must be > 0 with log=True (got {value.tolist()})")
-        z0[p] = jnp.asarray(np.log(value) if log else value)
+            raise ConfigError(f"{t.name} must be > 0 with log=True (got {value.tolist()})")
     program = spec.program()
     pick = (lambda ms: ms[metric]) if isinstance(metric, str) else metric
 
     def loss(z: Mapping[str, Any]) -> tuple[jax.Array, Status]:
-        values = {p: params.cast(jnp.exp(v) if log else v, dtype) for p, v in z.items()}
-        traj = run(params.set_many(setup, values), program)
-        return pick(nan_if_diverged(traj.metrics, traj.diverged)), traj.status
+        traj = run_at(selection, setup, z, program)
+        return pick(traj.metrics), traj.status
 
-    return loss, z0
+    return loss, selection.init(setup)
 
 
 def metric_names() -> tuple[str, ...]:

@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import settings, validation
-from dscjax.closed_loop import SCHEMES
+from dscjax.closed_loop import SCHEME, SCHEMES, ExponentialEuler, ForwardEuler
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
@@ -114,7 +114,8 @@ class RunSpec(eqx.Module):
     sample_every: Any = 0  # steps per controller sample (0: continuous); traced
     sampled: bool = eqx.field(static=True, default=False)
     delay: int = eqx.field(static=True, default=0)
-    discretisation: str = eqx.field(static=True, default="exponential-euler")  # SCHEMES
+    discretisation: ExponentialEuler | ForwardEuler = eqx.field(  # closed_loop.SCHEME
+        static=True, default=ExponentialEuler())
     refine: int = eqx.field(static=True, default=DEFAULT_REFINE)
     dtype: str = eqx.field(static=True, default="float64")
     device: str = eqx.field(static=True, default="auto")
@@ -126,7 +127,8 @@ class RunSpec(eqx.Module):
              window_start: float | None = None, state_bound: float = 1e6,
              dtype: str = "float64", solver: str | Solver = "rk4", refine: int = DEFAULT_REFINE,
              sample_time: float | None = None, delay: int = 0, noise=None, noise_seed: int = 0,
-             discretisation: str = "exponential-euler", device: str = "auto",
+             discretisation: str | ExponentialEuler | ForwardEuler = "exponential-euler",
+             device: str = "auto",
              gradient: Gradient | None = None,
              prefix: str = "simulation.", names: Mapping[str, str] | None = None) -> RunSpec:
         """A checked RunSpec: each key checked by its rule (`Simulation`), then the rules
@@ -141,7 +143,8 @@ class RunSpec(eqx.Module):
             t_final=t_final, dt=dt, save_every=save_every, window_start=window_start,
             state_bound=state_bound, dtype=dtype, solver=getattr(solver, "name", solver),
             refine=refine, sample_time=sample_time, delay=delay, noise=noise,
-            noise_seed=noise_seed, discretisation=discretisation, device=device), f)
+            noise_seed=noise_seed, discretisation=getattr(discretisation, "name", discretisation),
+            device=device), f)
         t_final, dt, save_every, window_start = (keys.t_final, keys.dt, keys.save_every,
                                                  keys.window_start)
         n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))
@@ -177,7 +180,7 @@ class RunSpec(eqx.Module):
                    save_every=int(save_every), solver=as_solver(solver),
                    gradient=gradient if gradient is not None else TimeParallel(),
                    sample_every=every, sampled=every > 0, delay=int(delay),
-                   discretisation=discretisation,
+                   discretisation=SCHEME[keys.discretisation],
                    refine=int(refine), dtype=dtype, device=device, rules=tuple(rules))
 
     @classmethod
@@ -222,7 +225,7 @@ class RunSpec(eqx.Module):
                "solver": self.solver.name, "refine": self.refine,
                "sample_time": None if not self.sampled else short(self.sample_time),
                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
-               "discretisation": self.discretisation, "device": self.device}
+               "discretisation": self.discretisation.name, "device": self.device}
         for key in self.rules:
             out[key] = None
         return out
@@ -234,7 +237,7 @@ class RunSpec(eqx.Module):
         out.update(save_every=self.save_every,
                    window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
-        if self.discretisation == OPTIONS["discretisation"][0]:
+        if self.discretisation.name == OPTIONS["discretisation"][0]:
             out.pop("discretisation")  # the fingerprints of runs made before the key existed
         if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
             out["gradient"] = [self.gradient.name, self.gradient.every]
@@ -300,5 +303,4 @@ def loop_words(sim: RunSpec) -> str:
 def discretisation(sim: RunSpec) -> str:
     """How a sampled loop advances the controller's states (`simulation.discretisation` where
     the RunSpec has it)."""
-    name = getattr(sim, "discretisation", "exponential-euler")
-    return {"exponential-euler": "exponential Euler", "euler": "forward Euler"}.get(name, name)
+    return getattr(sim, "discretisation", ExponentialEuler()).words

@@ -15,58 +15,35 @@ the point, which a difference quotient matches only for small steps (docs/sensit
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections.abc import Mapping, Sequence
 from types import SimpleNamespace
 from typing import Any
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from dscjax import params, validation
 from dscjax.closed_loop import Setup
-from dscjax.metrics import step_weights
+from dscjax.metrics import Power, SmoothMax
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
-from dscjax.simulate import DivergenceError, canonical, check, divergence_report, run
+from dscjax.selection import Relative, Selection, Shift, Tuned, run_at
+from dscjax.simulate import DivergenceError, canonical, check, divergence_report
 from dscjax.validation import ConfigError
 
 # l2_error_window, max_abs_u and tv_u as `dscjax.metrics` defines them; lp_error_window the
-# windowed L_p norm of e (`LpWindow`), a smooth stand-in for the windowed L-inf
+# windowed L_p norm of e (`metrics.SmoothMax` of the `Power` form), a smooth windowed L-inf
 METRICS = ("l2_error_window", "lp_error_window", "max_abs_u", "tv_u")
 LP_ORDER = 16.0  # p of lp_error_window
 PARTS = ("controller", "plant", "hysteresis")  # whose numbers are differentiated by default
 
 
-class LpWindow(eqx.Module):
-    """lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], a
-    running reduction (`integrate.Running`): between the mean and the max of |e| on W, tending
-    to the max as p grows, smooth in e for p > 1. Summed relative to the running max of |e|,
-    so |e|^p neither under- nor overflows."""
-
-    window_start: jax.Array  # () t0
-    order: jax.Array  # () p
-    n_steps: int = eqx.field(static=True)
-
-    def init(self, dtype):
-        z = jnp.zeros((), dtype)
-        return {"m": z, "s": z, "w": z}
-
-    def update(self, acc, k, t, y, obs, dt):
-        _, w_win, in_win, _ = step_weights(k, t, dt, self.window_start, self.n_steps)
-        a = jnp.where(in_win, jnp.abs(y.x[0] - obs.yr), 0.0)
-        m = jnp.maximum(acc["m"], a)
-        safe = jnp.where(m > 0, m, 1.0)  # m = 0: every term so far is 0
-        s = acc["s"] * (acc["m"] / safe) ** self.order + w_win * (a / safe) ** self.order
-        return {"m": m, "s": s, "w": acc["w"] + w_win}
-
-    def finalize(self, acc, t_final):
-        w = jnp.maximum(acc["w"], jnp.finfo(acc["w"].dtype).tiny)
-        s = acc["s"] / w
-        pos = s > 0
-        root = jnp.where(pos, jnp.where(pos, s, 1.0) ** (1.0 / self.order), 0.0)
-        return {"lp_error_window": acc["m"] * root}
+def lp_window(window_start, order, n_steps: int) -> SmoothMax:
+    """lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], p =
+    `order`: between the mean and the max of |e| on W (a running reduction)."""
+    return SmoothMax(Power(order), window_start, "lp_error_window", n_steps=n_steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,21 +97,15 @@ def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
     """One `Param` per scalar differentiated: `paths` (default `default_paths`) checked
     against the setup (ConfigError naming `field`), a vector leaf given whole split into its
     elements; a number given twice is refused."""
-    out: list[Param] = []
-    for text in default_paths(setup) if paths is None else paths:
-        p = Param.parse(text, field)
+    given = [Param.parse(text, field) for text in (default_paths(setup) if paths is None
+                                                   else paths)]
+    for p in given:
         p.check(setup, field)
-        shape = np.shape(params.get(setup, p.path))
-        if p.index is None and not p.scale and shape:
-            out += [Param(p.path, i) for i in range(shape[0])]
-        else:
-            out.append(p)
+    out = Selection.of(given).columns(setup)
     params.check_columns(out, field)
-    seen: set[str] = set()
-    for p in out:
-        if p.name in seen:
-            raise ConfigError(f"{field}: {p.name!r} is given twice")
-        seen.add(p.name)
+    twice = [p.name for i, p in enumerate(out) if p.name in {q.name for q in out[:i]}]
+    if twice:
+        raise ConfigError(f"{field}: {twice[0]!r} is given twice")
     if not out:
         raise ConfigError(f"{field}: no parameter to differentiate")
     return tuple(out)
@@ -149,46 +120,23 @@ def check_metrics(metrics: Sequence[str], field: str = "--metric") -> tuple[str,
     return tuple(metrics)
 
 
-def _moved(leaf, p: Param, zj, zero: bool, batched: bool):
-    """`leaf` with the number p moved by zj (exp(zj) x, or x + zj where zero)."""
-    leaf = jnp.asarray(leaf)
-    f = (lambda x: x + zj) if zero else (lambda x: x * jnp.exp(zj).astype(x.dtype))
-    if p.index is None:  # a scalar, or the whole vector of a scale ("path*")
-        return f(leaf)
-    if batched:
-        return leaf.at[:, p.index].set(f(leaf[:, p.index]))
-    return leaf.at[p.index].set(f(leaf[p.index]))
-
-
-def _metrics(z, setup, spec, overrides, lp_order, cols, zero, metrics):
+def _metrics(z, selection, setup, spec, overrides, lp_order, metrics):
     """(the metrics (k,), the run's status): the loop at the numbers moved by z."""
-    values: dict[str, Any] = {}
-    ov = dict(overrides) if overrides is not None else None
-    dtype = jnp.result_type(setup.plant.x0)
-    for j, p in enumerate(cols):
-        zj = z[j].astype(dtype)
-        values[p.path] = _moved(values.get(p.path, params.get(setup, p.path)), p, zj, zero[j],
-                                False)
-        if ov is not None and p.path in ov:
-            ov[p.path] = _moved(ov[p.path], p, zj, False, True)
-    moved = params.set_many(setup, values)
-    extra = LpWindow(spec.window_start, lp_order, spec.n_steps)
-    traj = run(moved, spec, overrides=ov, extra=extra)
-    k = jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics])
-    return k, traj.status
+    traj = run_at(selection, setup, dict(zip(selection.names, z, strict=True)), spec,
+                  overrides=overrides, extra=lp_window(spec.window_start, lp_order, spec.n_steps))
+    return jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics]), traj.status
 
 
-def _jacobian(setup, spec, overrides, lp_order, z, cols, zero, metrics):
+@functools.partial(jax.jit, static_argnums=(1, 6))
+def _jacobian(z, *args):
     """(metrics, d metrics / d z (k, d), status): one forward pass, then one pull-back per
     metric (its unit cotangent), vectorised."""
-    k, vjp, status = jax.vjp(lambda z_: _metrics(z_, setup, spec, overrides, lp_order, cols,
-                                                 zero, metrics), z, has_aux=True)
+    k, vjp, status = jax.vjp(lambda z_: _metrics(z_, *args), z, has_aux=True)
     (grad,) = jax.vmap(vjp)(jnp.eye(k.shape[0], dtype=k.dtype))
     return k, grad, status
 
 
-_jacobian_jit = jax.jit(_jacobian, static_argnames=("cols", "zero", "metrics"))
-_metrics_jit = jax.jit(_metrics, static_argnames=("cols", "zero", "metrics"))
+_metrics_jit = jax.jit(_metrics, static_argnums=(1, 6))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -220,33 +168,37 @@ class Problem:
                      for p in cols)
         return cls(setup, spec, ov, cols, zero, check_metrics(metrics), float(lp_order))
 
+    @property
+    def selection(self) -> Selection:
+        """Each column moved by p exp(z), or by p + z where p = 0."""
+        return Selection(tuple(Tuned(p, Shift() if zero else Relative())
+                               for p, zero in zip(self.columns, self.zero, strict=True)))
+
     def args(self, z=None):
-        """The traced arguments of the compiled programs at z (default the point itself)."""
+        """The arguments of the compiled programs at z (default the point itself): the
+        numbers traced, the structure static, the spec's host-side settings out
+        (`RunSpec.program`)."""
         z = self.z0() if z is None else z
         dtype = jnp.result_type(self.setup.plant.x0)
-        return (self.setup, self.spec, self.overrides, jnp.asarray(self.lp_order, dtype),
-                jnp.asarray(z, dtype))
+        return (jnp.asarray(z, dtype), self.selection, self.setup, self.spec.program(),
+                self.overrides, jnp.asarray(self.lp_order, dtype), self.metrics)
 
     def z0(self) -> np.ndarray:
         return np.zeros(len(self.columns), np.dtype(self.spec.dtype))
 
     def compile(self):
         """`jacobian`, compiled now (ahead of time: a caller can time its compilation)."""
-        compiled = _jacobian_jit.lower(*self.args(), cols=self.columns, zero=self.zero,
-                                       metrics=self.metrics).compile()
-        return lambda z=None: compiled(*self.args(z))
+        _jacobian.lower(*self.args()).compile()  # (the jit's own cache keeps it)
+        return self.jacobian
 
     def jacobian(self, z=None):
         """(metrics (k,), gradient (k, d), status) at z (default the point itself): one
         forward pass and one pull-back per metric."""
-        return _jacobian_jit(*self.args(z), cols=self.columns, zero=self.zero,
-                             metrics=self.metrics)
+        return _jacobian(*self.args(z))
 
     def metrics_at(self, z):
         """(metrics (k,), status) of the loop at z, forward only (difference quotients)."""
-        setup, spec, overrides, lp_order, z = self.args(z)
-        return _metrics_jit(z, setup, spec, overrides, lp_order, cols=self.columns,
-                            zero=self.zero, metrics=self.metrics)
+        return _metrics_jit(*self.args(z))
 
     def result(self, out) -> Sensitivity:
         """The `Sensitivity` of `jacobian`'s output; DivergenceError if the loop diverged."""
@@ -291,5 +243,5 @@ def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
     return problem.result(problem.jacobian())
 
 
-__all__ = ["LP_ORDER", "LpWindow", "METRICS", "Problem", "Sensitivity", "columns",
-           "check_metrics", "default_paths", "sensitivity"]
+__all__ = ["LP_ORDER", "METRICS", "Problem", "Sensitivity", "columns",
+           "check_metrics", "default_paths", "lp_window", "sensitivity"]

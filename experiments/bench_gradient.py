@@ -55,7 +55,7 @@ MODES = {  # name: (batch?, gradient); "forward": the forward run alone (its col
 def objective(t_final: float, sample_time, batch: int, gradient):
     """(J(z), z0): J of one trajectory (batch 0) or the mean over `batch` plants."""
     setup = dscjax.paper_example()
-    sel = tuning.Selection.build(setup, tuning.DSC_GAINS, freeze=PAPER_PLANT_FREEZE)
+    sel = tuning.Selection.build(setup, tuning.config.DSC_GAINS, freeze=PAPER_PLANT_FREEZE)
     spec = RunSpec.make(t_final, DT, save_every=int(round(t_final / DT)), refine=0,
                         sample_time=sample_time, gradient=gradient).program()
     over = None

@@ -44,7 +44,7 @@ import dscjax  # noqa: E402
 import tuning  # noqa: E402
 from dscjax import params  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
-from tuning.params import DSC_GAINS  # noqa: E402
+from tuning.config import DSC_GAINS  # noqa: E402
 from tuning.runner import heldout_ranges  # noqa: E402
 
 # name -> [tuning.optimizer] settings; the first is the default, BASELINE the comparison's
@@ -164,7 +164,8 @@ def main(argv=None) -> int:
     runs = {label(m, x): [] for m in methods for x in [*marks, budget]}
     for seed in range(seeds):
         for m in methods:
-            problem.objective.compiled.clear()  # every method compiles its own programs
+            problem.programs.clear()  # every method compiles its own programs
+            jax.clear_caches()
             with tempfile.TemporaryDirectory() as out:
                 done = 0.0  # one search, stopped and resumed at each mark (bitwise the same)
                 for x in [*marks, budget]:

@@ -24,7 +24,7 @@ import numpy as np  # noqa: E402
 import dscjax  # noqa: E402
 from dscjax import config, params  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
-from tuning.params import DSC_GAINS  # noqa: E402
+from tuning.config import DSC_GAINS  # noqa: E402
 from tuning.runner import heldout_ranges  # noqa: E402
 
 PLANTS, SEED = 32, 777

@@ -271,7 +271,7 @@ def test_scale_syntax_is_checked_by_the_one_parser(tmp_path, capsys):
 def test_a_tuned_scale_multiplies_the_vector():
     import jax.numpy as jnp
 
-    from tuning.params import Selection
+    from dscjax.selection import Selection
 
     setup = example("pi")
     sel = Selection.build(setup, ["controller.tau", "controller.k*"])

@@ -296,7 +296,7 @@ def test_progress_counts_read_one_generation_and_two_generations():
 
 
 def test_the_cma_progress_line_shows_sigma_not_lr():
-    from tuning.runner import format_progress
+    from tuning.checkpoint import format_progress
 
     row = {"loss": 0.5, "accepted": True, "best_loss": 0.4, "terms": ["linf"], "linf": 0.4,
            "linf_window": 0.01, "max_abs_u": 6.0, "lr": 0.25}

@@ -7,11 +7,12 @@ import json
 
 import numpy as np
 import pytest
+from compilations import counted
 
 import dscjax
 from dscjax import params
 from dscjax.cli.main import main
-from dscjax.sensitivity import METRICS, Problem
+from dscjax.sensitivity import METRICS, Problem, sensitivity
 
 # the programs of the README's and docs/sensitivity.md's examples as tests/doc_examples.py runs
 # them (300 steps), so that one compilation serves both through the persistent cache
@@ -76,6 +77,26 @@ def test_the_lp_metric_is_its_definition_on_the_saved_trajectory(nominal):
     assert e[keep].mean() < got["lp_error_window"] < e[keep].max()
     for name in ("l2_error_window", "max_abs_u", "tv_u"):
         assert got[name] == pytest.approx(float(traj.metrics[name]), rel=1e-12)
+
+
+def test_calls_that_differ_in_host_settings_or_numbers_compile_nothing(nominal):
+    """Issue 39 item 4: the program takes `spec.program()` and every number traced, so other
+    gains, refinement, device, window or L_p order reuse the program compiled for `nominal`;
+    the results are those numbers' (the L_p metric against its definition)."""
+    problem, res = nominal
+    faster = params.set(dscjax.paper_example(), "controller.k", [12.0, 0.5])
+    with counted() as seen:
+        a = sensitivity(faster, problem.spec.replace(refine=2, device="cpu"), PATHS)
+        b = sensitivity(dscjax.paper_example(), problem.spec.replace(window_start=0.1), PATHS,
+                        lp_order=8.0)
+    assert seen["_jacobian"] == 0
+    traj = dscjax.simulate(faster, T_FINAL, 1e-3, save_every=1)
+    assert a.value[0] == pytest.approx(float(traj.metrics["l2_error_window"]), rel=1e-12)
+    traj = dscjax.simulate(dscjax.paper_example(), T_FINAL, 1e-3, save_every=1)
+    t, e = np.asarray(traj.t), np.abs(np.asarray(traj.e))
+    keep = t >= 0.1
+    lp = (np.trapezoid(e[keep] ** 8, t[keep]) / (t[keep][-1] - t[keep][0])) ** (1 / 8)
+    assert b.value[1] == pytest.approx(lp, rel=1e-9)
 
 
 def test_a_sampled_loop_over_a_batch_agrees_with_central_differences():

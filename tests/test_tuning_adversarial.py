@@ -9,6 +9,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from compilations import counted
 
 import dscjax
 import tuning
@@ -367,3 +368,42 @@ def test_search_programs_apply_each_candidate_the_plants_own_bounds(adv_run):
         assert bool(got["feasible"][i]) == bool(aux["feasible"])
         terms.append(float(aux["terms"]["u_bound"]))
     assert terms[1] > 0  # the bounds were in play
+
+
+def test_rounds_padded_to_one_capacity_share_the_compiled_search(adv_run):
+    """Issue 39 item 4: two rounds' training sets (the round's plants, then one more worst
+    case) padded to one capacity run the search's batched and gradient programs compiled
+    once; the padding weighs nothing: the loss is the worst real plant's, as the report's
+    per-plant program gives them (the loop tuned alone: the check loops are not what is
+    tested; the masked aggregates and gradient weights are test_tuning_config's)."""
+    from tuning import report, search
+
+    _, out = adv_run
+    setup, options, cfg = _inputs()
+    cfg = dataclasses.replace(cfg, objective=dataclasses.replace(
+        cfg.objective, sampled_weight=0.0, delay_weight=0.0))
+    setup = adversarial.search_problem(setup, options, cfg).setup
+    first = files.read_npz(out / "round_1" / "plants.npz")
+    more = {k: np.asarray(v)[:1] for k, v in first.items()}
+    more["hysteresis.alpha"] = 1.1 * more["hysteresis.alpha"]
+    second = runner.join_plants(setup, first, more)
+    k = len(first["hysteresis.alpha"])
+    capacity = 4 + k  # both rounds padded
+    rounds = [runner.build_problem(setup, options, cfg, extra_plants=p, capacity=capacity)
+              for p in (first, second)]
+    assert [p.n_train for p in rounds] == [2 + k, 3 + k]
+    assert [p.objective.batch_size for p in rounds] == [capacity] * 2
+    assert rounds[1].mode == tuning.Plants()  # one plant weighed (max): plant by plant
+    x0 = search.TuneProblem(rounds[0]).x0
+    pts = np.stack([x0, x0 + 0.05])
+    with counted() as seen:
+        got = [(search.TuneProblem(p).evaluate(pts).loss, search.TuneProblem(p).value_and_grad(
+            pts[1:])[1]) for p in rounds]
+    assert seen["_batch"] == 1 and seen["_gradient"] == 1
+    assert np.all(np.isfinite(got[1][1]))
+    p = rounds[1]
+    for i, x in enumerate(pts):
+        per = report._per_plant(p.objective.program(), search.TuneProblem(p).point(x), None)
+        loss = np.asarray(per["loss"])
+        assert loss.shape == (capacity,)
+        np.testing.assert_allclose(got[1][0][i], loss[:p.n_train].max(), rtol=1e-12)

@@ -14,9 +14,10 @@ import dscjax
 import tuning
 from dscjax.cli.main import main
 from dscjax.runspec import RunSpec
+from dscjax.simulate import run as simulate_run
 from dscjax.validation import ConfigError
-from tuning.config import from_dict
-from tuning.objective import simulate_metrics
+from tuning.config import SIGNED, from_dict
+from tuning.optimize import CVaR, Max, Mean
 
 
 @pytest.fixture(scope="module")
@@ -27,9 +28,9 @@ def setup():
 def test_selection_freezes_elements_and_round_trips(setup):
     sel = tuning.Selection.build(setup, ["controller.k", "controller.gamma_g", "controller.c"],
                                  freeze=["controller.gamma_g[1]"],
-                                 bounds={"controller.k": (0.1, 50.0)})
+                                 bounds={"controller.k": (0.1, 50.0)}, signed=SIGNED)
     assert sel.names == ("controller.k", "controller.gamma_g[0]", "controller.c")
-    assert [t.transform for t in sel.items] == ["log", "log", "linear"]
+    assert [t.transform.name for t in sel.items] == ["log", "log", "linear"]
     z = sel.init(setup)
     np.testing.assert_allclose(z["controller.k"], np.log([10.0, 0.45]))
     z = {**z, "controller.gamma_g[0]": jnp.log(3.0), "controller.c": jnp.array([-0.2])}
@@ -62,7 +63,7 @@ def test_selection_freezes_elements_and_round_trips(setup):
 ])
 def test_bad_selection_is_a_clear_error(setup, kwargs, match):
     with pytest.raises(ConfigError, match=match):
-        tuning.Selection.build(setup, **kwargs)
+        tuning.Selection.build(setup, **kwargs, signed=SIGNED)
 
 
 @pytest.mark.parametrize("table, match", [
@@ -176,13 +177,23 @@ def test_cli_bad_setting_exits_2_with_one_line(tmp_path, capsys):
 
 def test_aggregates():
     v = jnp.array([1.0, 5.0, 2.0, 4.0, 3.0])
-    assert float(tuning.aggregate(v, "mean")) == 3.0
-    assert float(tuning.aggregate(v, "max")) == 5.0
-    assert float(tuning.aggregate(v, "cvar", 0.4)) == 4.5  # worst 2 of 5
-    assert float(tuning.aggregate(v, "cvar", 1.0)) == 3.0
-    assert float(tuning.aggregate(v, "cvar", 0.01)) == 5.0
-    g = jax.grad(lambda x: tuning.aggregate(x, "cvar", 0.4))(v)
+    assert float(Mean()(v)) == 3.0
+    assert float(Max()(v)) == 5.0
+    assert float(CVaR(0.4)(v)) == 4.5  # worst 2 of 5
+    assert float(CVaR(1.0)(v)) == 3.0
+    assert float(CVaR(0.01)(v)) == 5.0
+    g = jax.grad(CVaR(0.4))(v)
     np.testing.assert_allclose(g, [0, 0.5, 0, 0.5, 0])
+    # a batch padded with two plants that weigh nothing (worse than any real one): the same
+    # figures, the padding's gradient 0; the plants the gradient weighs, from a static count
+    padded, mask = jnp.concatenate([v, jnp.array([100.0, 90.0])]), jnp.arange(7) < 5
+    for agg, want in ((Mean(), 3.0), (Max(), 5.0), (CVaR(0.4), 4.5), (CVaR(0.01), 5.0)):
+        assert float(agg(padded, mask)) == want
+    np.testing.assert_allclose(jax.grad(CVaR(0.4))(padded, mask), [0, 0.5, 0, 0.5, 0, 0, 0])
+    np.testing.assert_allclose(jax.grad(Mean())(padded, mask), [0.2] * 5 + [0, 0])
+    idx, w = CVaR(0.4).weights(padded, mask)  # ceil(0.4 x 7) = 3 picked, the real 2 weighed
+    assert idx.tolist() == [1, 3, 4] and w.tolist() == [0.5, 0.5, 0.0]
+    assert CVaR(0.25).weighs(8) == 2 and Max().weighs(8) == 1 and Mean().weighs(8) == 8
 
 
 def test_requirements_penalties_and_checks():
@@ -198,10 +209,9 @@ def test_requirements_penalties_and_checks():
     u, du, e = np.abs(np.asarray(tr.u)), np.abs(np.asarray(tr.u_dot)), np.abs(np.asarray(tr.e))
 
     def run(reqs):
-        extra = tuning.TuningMetrics(window_start=jnp.asarray(1.0), e_sharpness=jnp.asarray(100.),
-                                     u_sharpness=jnp.asarray(10.0), requirements=tuple(reqs),
-                                     n_steps=sim.n_steps)
-        m, _ = jax.jit(lambda s: simulate_metrics(s, sim, extra))(setup)
+        extra = tuning.tuning_metrics(jnp.asarray(1.0), jnp.asarray(100.), jnp.asarray(10.0),
+                                      tuple(reqs), sim.n_steps)
+        m = jax.jit(lambda s: simulate_run(s, sim, extra=extra).metrics)(setup)
         return {k: float(v) for k, v in m.items()}
 
     over = max(0.0, float(np.max(y - 1.0)))
@@ -250,9 +260,9 @@ def test_smooth_linf_is_finite_with_a_large_error_before_the_window():
     surrogate, exp(s |e|) of the initial error 0.08 overflows (regression: it gave -inf)."""
     setup = dscjax.paper_example()
     sim = RunSpec.make(2.0, 1e-3, window_start=1.0, save_every=2000)
-    extra = tuning.TuningMetrics(window_start=jnp.asarray(1.0), e_sharpness=jnp.asarray(1e5),
-                                 u_sharpness=jnp.asarray(10.0), n_steps=sim.n_steps)
-    m, _ = jax.jit(lambda s: simulate_metrics(s, sim, extra))(setup)
+    extra = tuning.tuning_metrics(jnp.asarray(1.0), jnp.asarray(1e5), jnp.asarray(10.0),
+                                  n_steps=sim.n_steps)
+    m = jax.jit(lambda s: simulate_run(s, sim, extra=extra).metrics)(setup)
     assert np.isfinite(float(m["smooth_linf_window"]))
     assert float(m["smooth_linf_window"]) <= float(m["linf_error_window"])
     assert float(m["smooth_linf_window"]) > 0.9 * float(m["linf_error_window"])
@@ -273,12 +283,12 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     # delayed one sample
     checks = {c.name: c for c in p.objective.checks}
     second, delayed = checks["sampled"].sim, checks["delayed"].sim
-    assert second.discretisation == "euler" and second.sample_time == 1e-3
+    assert second.discretisation.name == "euler" and second.sample_time == 1e-3
     assert second.delay == 0 and delayed.delay == 1 and delayed.sample_time == 1e-3
-    assert delayed.discretisation == "exponential-euler"
+    assert delayed.discretisation.name == "exponential-euler"
     assert (checks["delayed"].linf_factor, checks["delayed"].tv_factor,
             checks["delayed"].u_factor) == (2.0, 1.4, None)
-    assert p.objective.sim.discretisation == "exponential-euler"
+    assert p.objective.sim.discretisation.name == "exponential-euler"
     assert p.options.sampled and not p.continuous.sampled
     assert float(p.continuous.dt) == 1e-3 and float(p.continuous.window_start) == 0.5
     ref = dscjax.simulate(setup, 1.0, 1e-3, window_start=0.5, sample_time=1e-3).metrics
@@ -292,7 +302,7 @@ def test_the_loop_tuned_is_the_simulation_given(setup):
     given = build_problem(setup, options.replace(sample_time=0.002, discretisation="euler"),
                           dataclasses.replace(cfg, params=("controller.tau",)))
     assert given.objective.sim.sample_time == 0.002
-    assert given.objective.checks[0].sim.discretisation == "exponential-euler"
+    assert given.objective.checks[0].sim.discretisation.name == "exponential-euler"
     assert any("states advanced by forward Euler" in n for n in given.notes)
     assert given.selection.items[0].lower == pytest.approx(0.004, rel=1e-12)
 

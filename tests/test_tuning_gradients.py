@@ -6,6 +6,8 @@ evaluations run as one vmapped batch and the Jacobians of the three metrics come
 forward-mode pass, so the module compiles few functions.
 """
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -15,7 +17,8 @@ from jax.flatten_util import ravel_pytree
 import dscjax
 import tuning
 from dscjax.runspec import RunSpec
-from tuning.objective import simulate_metrics
+from dscjax.selection import run_at
+from tuning.optimize import CVaR, Forward, Max, Mean, Plants, choose_gradient
 
 T_FINAL = 2.0
 SPEC = RunSpec.make(t_final=T_FINAL, sample_time=1e-3)  # the loop tuned: sampled at 1 ms
@@ -34,11 +37,12 @@ def _metrics_fn(problem, extra=True, checkpoint_every=None):
     """flat z -> the metrics of KEYS (or the L2 error alone without the extra reductions)."""
     obj = problem.objective
     unravel = ravel_pytree(problem.z0)[1]
+    sim = obj.sim if checkpoint_every is None else dataclasses.replace(
+        obj.sim, gradient=dataclasses.replace(obj.sim.gradient, every=checkpoint_every))
 
     def f(flat):
-        setup = obj.selection.apply(obj.setup, unravel(flat))
-        metrics, _ = simulate_metrics(setup, obj.sim, obj.extra() if extra else None, None,
-                                      checkpoint_every)
+        metrics = run_at(obj.selection, obj.setup, unravel(flat), sim,
+                         extra=obj.extra() if extra else None).metrics
         if not extra:
             return metrics["l2_error_window"]
         return jnp.stack([metrics[k] for k in KEYS])
@@ -112,14 +116,16 @@ def test_checkpointed_and_plain_reverse_gradients_agree(problem, points, jacobia
 
 
 def test_loss_and_gradient_stay_finite_through_a_diverging_trajectory(problem):
-    # k_1 = 1e4 makes the loop diverge within a step or two: the loss is the finite
-    # divergence penalty, and the NaN of the public API's metrics (nan_if_diverged) reaches
+    # k_1 = 1e4 makes the loop diverge within a step or two: its metrics are NaN (the one
+    # convention of `run_at`), the loss is the finite divergence penalty, and the NaN reaches
     # neither the loss nor tuning's default forward-mode gradient
-    from tuning.optimize import value_and_grad
-
     z = dict(problem.z0)
     z["controller.k"] = jnp.log(jnp.array([1e4, 0.45]))
-    (loss, aux), grads = jax.jit(lambda z_: value_and_grad(problem.objective, z_, "forward"))(z)
+    obj = problem.objective
+    ((loss, aux), grads), per = jax.jit(lambda z_: (Forward().value_and_grad(obj, z_),
+                                                    obj.per_plant(z_)))(z)
+    assert bool(per["diverged"]) and float(per["loss"]) == float(loss)
+    assert np.isnan(float(per["linf_error_window"])) and np.isnan(float(per["sampled_tv_u"]))
     assert int(aux["n_diverged"]) == 1
     assert float(loss) == problem.cfg.objective.divergence_penalty
     for g in jax.tree.leaves(grads):
@@ -131,8 +137,6 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     # gradient = "plants": one batched forward run, then only the worst ceil(0.5 x 4) = 2
     # plants differentiated, each alone by the time-parallel linearisation; the reference is
     # JAX's forward mode through the batched simulation of all 4 (no time-parallel rule)
-    from tuning.optimize import value_and_grad
-
     # (the loop tuned only: the check loops' gradients are test_gradients')
     cfg = tuning.TuningConfig(params=PARAMS,
                               objective=tuning.ObjectiveSpec(u_max=None, sampled_weight=0.0,
@@ -141,7 +145,7 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
                                                       cvar_level=0.5),
                               optimizer=tuning.OptimizerSpec(gradient="plants"))
     prob = tuning.build_problem(dscjax.paper_example(), SPEC, cfg)
-    assert prob.mode == "plants"
+    assert prob.mode == Plants()
     assert prob.describe()["mode"] == "plants"  # asked for by name
     # picked by "auto" (CVaR 0.25 of 4 plants: ceil(0.25 x 4) = 1 <= 4/4); the fingerprint
     # holds the mode the run uses
@@ -150,13 +154,13 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
                                     params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
                                     robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
                                                             cvar_level=0.25)))
-    assert auto.mode == "plants" and auto.describe()["mode"] == "plants"
+    assert auto.mode == Plants() and auto.describe()["mode"] == "plants"
     rng = np.random.default_rng(5)
     z = jax.tree.map(lambda v: v + rng.uniform(-0.15, 0.15, np.shape(v)), prob.z0)
     obj = prob.objective
 
     def both(z_):
-        return value_and_grad(obj, z_, "plants"), value_and_grad(obj, z_, "forward")
+        return Plants().value_and_grad(obj, z_), Forward().value_and_grad(obj, z_)
 
     ((_, aux), g), ((_, aux_f), g_f) = jax.jit(both)(z)
     g, g_f = ravel_pytree(g)[0], ravel_pytree(g_f)[0]
@@ -164,16 +168,15 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     assert bool(aux["feasible"]) == bool(aux_f["feasible"])
 
 
-@pytest.mark.parametrize("batch, aggregate, level, n_params, expected", [
-    (1, "mean", 1.0, 13, "reverse"),      # one plant
-    (8, "cvar", 0.25, 13, "plants"),      # ceil(0.25 x 8) = 2 <= 8 / 4
-    (8, "cvar", 0.3, 13, "forward"),      # ceil(2.4) = 3 > 2
-    (8, "max", 1.0, 13, "plants"),        # 1 plant
-    (8, "mean", 1.0, 13, "forward"),      # all 8
-    (8, "mean", 1.0, 65, "reverse"),      # more than FORWARD_MAX_PARAMS = 64
-    (3, "max", 1.0, 13, "forward"),       # 1 > 3 / 4
+@pytest.mark.parametrize("batch, aggregate, n_params, expected", [
+    (1, Mean(), 13, "reverse"),       # one plant
+    (8, CVaR(0.25), 13, "plants"),    # ceil(0.25 x 8) = 2 <= 8 / 4
+    (8, CVaR(0.3), 13, "forward"),    # ceil(2.4) = 3 > 2
+    (8, Max(), 13, "plants"),         # 1 plant
+    (8, Mean(), 13, "forward"),       # all 8
+    (8, Mean(), 65, "reverse"),       # more than FORWARD_MAX_PARAMS = 64
+    (3, Max(), 13, "forward"),        # 1 > 3 / 4
 ])
-def test_auto_gradient_mode(batch, aggregate, level, n_params, expected):
-    from tuning.optimize import choose_gradient
-
-    assert choose_gradient("auto", n_params, batch, aggregate, level) == expected
+def test_auto_gradient_mode(batch, aggregate, n_params, expected):
+    mode = choose_gradient("auto", n_params, batch, aggregate, every=50)
+    assert mode.name == expected and mode.every == (50 if expected == "reverse" else None)

@@ -359,8 +359,8 @@ def test_interrupted_run_keeps_its_best_and_resumes(small_problem, tmp_path):
 
 def test_resume_refuses_a_different_problem(small_problem, tmp_path):
     run(_with_steps(small_problem, 2), tmp_path)
-    assert small_problem.mode == "reverse"  # one plant: the time-parallel reverse mode
-    other = dataclasses.replace(small_problem, mode="forward")
+    assert small_problem.mode.name == "reverse"  # one plant: the time-parallel reverse mode
+    other = dataclasses.replace(small_problem, mode=tuning.Forward())
     with pytest.raises(dscjax.ConfigError,
                        match=r"other settings \(mode .reverse. \(now .forward.\)\)"):
         run(other, tmp_path, resume=True)
@@ -380,8 +380,8 @@ ADVERSARIAL_KEYS = {"rounds", "disturbance", "ranges", "method", "metric", "sear
 
 
 def test_fingerprints_carry_every_setting_of_the_search(small_problem):
+    from dscjax.selection import Selection
     from tuning import adversarial
-    from tuning.params import Selection
 
     p, cfg = small_problem, small_problem.cfg
 

@@ -25,8 +25,8 @@ from dscjax import metrics
 from dscjax import search as box
 from dscjax.search import methods
 from tuning import report, search
-from tuning.objective import Scales
 from tuning.runner import run
+from tuning.scales import Scales
 
 STEPS = 4  # iterations of an uninterrupted run; the interrupted one stops at 2
 WIDTH = 10  # conftest search_problem's population
@@ -98,7 +98,7 @@ def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option(
 def test_the_box_follows_the_order_of_the_flat_z():
     # ravel_pytree orders z by name, not in the order the parameters were listed: the box of
     # CMA-ES and of the line search must bound tau where tau sits in the flat vector
-    from tuning.params import Selection
+    from dscjax.selection import Selection
 
     setup = dscjax.paper_example()
     sel = Selection.build(setup, ("controller.tau", "controller.k", "controller.eps"),
@@ -140,14 +140,14 @@ def test_problem_bounds_are_the_start_gains(problems):
     sc = p.objective.scales
     assert sc.tv_max == pytest.approx(1.5 * sc.tv_u, rel=1e-12)
     assert sc.u_max == pytest.approx(sc.max_u, rel=1e-12)
-    assert "tv_bound" in tuning.runner.history_columns(p)
+    assert "tv_bound" in tuning.checkpoint.history_columns(p)
 
 
 def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems,
                                                                        monkeypatch):
     # simulation.solver and the time-parallel gradient reach the batch and the gradient of
     # the search (spied at the call of dscjax's run while tracing: nothing compiles)
-    import tuning.objective
+    import dscjax.selection
 
     class Seen(Exception):
         pass
@@ -158,7 +158,7 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
         seen.append((spec.solver.name, spec.gradient.name))
         raise Seen
 
-    monkeypatch.setattr(tuning.objective, "run", spy)
+    monkeypatch.setattr(dscjax.selection, "run", spy)
     p = problems["cma"]
     sim = p.objective.sim.replace(solver="etdrk4")
     q = dataclasses.replace(p, objective=dataclasses.replace(p.objective, sim=sim))
@@ -175,7 +175,7 @@ def test_evaluations_are_counted_and_only_adam_takes_gradients(problems, straigh
     assert straight["cma"].trace.gradients == 0
     assert straight["adam"].trace.gradients == straight["adam"].trace.evaluations == STEPS
     # the start point ran padded to the population's batch: one program, one width
-    assert problems["cma"].objective.compiled["batch"].widths == {WIDTH}
+    assert problems["cma"].programs["batch"][1].widths == {WIDTH}
 
 
 @pytest.mark.parametrize("which", ["cma", "adam"])

@@ -10,19 +10,17 @@
 docs/tuning.md describes the objective and the settings.
 """
 
+from dscjax.selection import Selection, Tuned
 from tuning.config import AdversarialSpec, BatchSpec, ObjectiveSpec, OptimizerSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
-from tuning.objective import Objective, Scales, aggregate
-from tuning.optimize import loss_function, value_and_grad
-from tuning.params import DSC_GAINS, DSC_INITIAL_ESTIMATES, Selection, Tuned
-from tuning.reductions import TuningMetrics
+from tuning.objective import Objective
+from tuning.optimize import CVaR, Forward, Max, Mean, Plants, Reverse, loss_function
+from tuning.reductions import tuning_metrics
 from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, run
+from tuning.scales import Scales
 
-__all__ = [
-    "AdversarialSpec", "BatchSpec", "DSC_GAINS", "DSC_INITIAL_ESTIMATES",
-    "Envelope", "Objective", "ObjectiveSpec", "OptimizerSpec", "Problem", "Result", "Scales",
-    "Selection", "StepResponse", "Tuned", "TuningConfig", "TuningMetrics", "UBound",
-    "URate", "aggregate", "build_problem", "config_from_dict", "loss_function", "run",
-    "value_and_grad",
-]
+__all__ = ["AdversarialSpec", "BatchSpec", "CVaR", "Envelope", "Forward", "Max", "Mean",
+           "Objective", "ObjectiveSpec", "OptimizerSpec", "Plants", "Problem", "Result",
+           "Reverse", "Scales", "Selection", "StepResponse", "Tuned", "TuningConfig", "UBound",
+           "URate", "build_problem", "config_from_dict", "loss_function", "run", "tuning_metrics"]

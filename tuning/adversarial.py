@@ -209,12 +209,13 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
                 files.write_npz(rdir / "plants.npz", plants)
             say(f"round {r}/{spec.rounds}: worst {spec.metric} {res.value:.6g} for the current "
                 f"gains; {len(zw)} worst cases join the training set")
-        problem = runner.build_problem(setup, options, cfg, extra_plants=plants)
+        # every round's plants padded to the last round's count: one compiled program
+        problem = runner.build_problem(setup, options, cfg, extra_plants=plants,
+                                       capacity=max(cfg.robust.batch, 1) + spec.rounds * spec.add)
         if done:
             result = runner.finished(problem, rdir)
         else:
-            say(f"round {r}/{spec.rounds}: tuning on {problem.n_train} plants (compiles again:"
-                f" the training set grew)")
+            say(f"round {r}/{spec.rounds}: tuning on {problem.n_train} plants")
             row_cb = None if progress is None else (lambda row, r=r: progress(row | {"round": r}))
             result = runner.run(problem, rdir, z_init=z, progress=row_cb,
                                 resume=rdir is not None and (rdir / "checkpoint.json").exists())

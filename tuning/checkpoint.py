@@ -4,7 +4,7 @@
     checkpoint.json  what the run is (fingerprint of the problem) and where it is
     best.json        the best point so far (values and z by name, its loss and iteration)
     gains.json       the best gains as a dscjax config (loadable by `dscjax simulate --config`)
-    history.csv      one row per iteration
+    history.csv      one row per iteration (`history_row`; its columns `history_columns`)
 
 Each is written atomically (`dscjax.files`): a run killed mid-write leaves the previous file.
 """
@@ -28,6 +28,51 @@ FILES = ("search.npz", "checkpoint.json", "best.json", "gains.json", "history.cs
 def fingerprint(desc) -> str:
     """Short digest of the problem's description (stored in checkpoint.json beside it)."""
     return files.digest(desc)[:16]
+
+
+def history_row(row: dict) -> dict:
+    """A search trace's history row as history.csv and the progress display give it."""
+    return {"iteration": row["iteration"], "loss": row["loss"],
+            "accepted": bool(row.get("accepted", True)), "feasible": row["feasible"],
+            "best_loss": row["best_loss"], "lr": row["scale"],
+            "grad_norm": row.get("grad_norm", float("nan")),
+            **{k: v for k, v in row.items() if k not in _SEARCH_KEYS},  # figures and terms
+            "wall_s": row["seconds"], "best_iteration": row["best_iteration"],
+            "best_feasible": row["best_feasible"]}
+
+
+_SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_norm", "accepted",
+                "seconds", "best_iteration", "best_feasible")
+
+
+def history_columns(problem) -> list[str]:
+    """history.csv's columns: the search's, the figures and the problem's terms."""
+    terms = list(term_names(problem))
+    return (["iteration", "loss", "accepted", "feasible", "best_loss", "lr", "grad_norm",
+             "linf_window", "max_abs_u", "n_diverged"] + terms + ["wall_s"])
+
+
+def term_names(problem) -> list[str]:
+    """The names of the problem's loss terms (its aux terms' keys), in their order."""
+    spec, obj = problem.cfg.objective, problem.objective
+    names = [n for n in ("linf", "l2", "effort_l2", "effort_max", "effort_tv")
+             if getattr(spec, n)]
+    if obj.scales.u_max is not None and spec.u_max_weight:
+        names.append("u_bound")
+    if obj.scales.tv_max is not None and spec.tv_max_weight:
+        names.append("tv_bound")
+    names += [f"req{i}" for i in range(len(obj.requirements))]
+    names += [c.name for c in obj.checks]
+    return names
+
+
+def format_progress(row: dict, step: str = "lr") -> str:
+    """The figures of one iteration's row for the progress display; `step` names the step
+    size (sigma for the CMA-ES methods)."""
+    terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
+    return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
+            f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "
+            f"{row['max_abs_u']:.4g}  {step} {row['lr']:.3g}")
 
 
 def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:

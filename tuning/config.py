@@ -27,8 +27,16 @@ from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positiv
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
-from tuning.params import DSC_GAINS
 
+# the design parameters of the DSC (Section 2 of the paper), tuned by default
+DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
+             "controller.gamma_zeta", "controller.gamma_d", "controller.eta", "controller.sigma",
+             "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
+# Initial estimates: optional ("and optionally the initial estimates"). theta_hat0 is signed.
+DSC_INITIAL_ESTIMATES = ("controller.theta_hat0", "controller.phi_hat0",
+                         "controller.zeta_hat0", "controller.d_hat0")
+# tuned in linear coordinates by default (`dscjax.selection.Linear`): signed numbers
+SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
 AGGREGATES = ("mean", "cvar", "max")
 EFFORT_BOUNDS = ("nominal", "per_plant")
 # the trajectories a CMA-ES generation runs by default: a batched simulation costs far less per

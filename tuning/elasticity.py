@@ -7,8 +7,8 @@ A constraint value <= bound is read as the ratio r = value / bound <= 1 (a check
 L-inf bound is a multiple of the loop tuned's, so r divides the two). Its elasticity to a tuned
 number g is e = d ln r / d ln g: a 1 % change of g moves r by about e %. It comes from one
 forward run of the loop tuned (and of each check loop) and one reverse pass per figure the
-constraints read (`jax.vjp`, its pull-backs vmapped), through the objective's own simulation
-(`tuning.objective.simulate_metrics`). A constraint is **fragile** where a STEP change of one
+constraints read (`jax.vjp`, its pull-backs vmapped), through the run the objective simulates
+(`dscjax.selection.run_at`). A constraint is **fragile** where a STEP change of one
 number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
 in the result) is one whose tangent grew without bound over the run, as it does where the loop
 depends sensitively on its gains (a chaotic or chattering loop): any change may break that
@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from tuning.objective import simulate_metrics
+from dscjax.selection import Log, run_at
 
 STEP = 0.01  # the relative change of one tuned number a constraint should survive
 
@@ -42,21 +42,16 @@ def terms(key: str, names: tuple[str, ...]) -> tuple[tuple[int, int, str], ...]:
 
 def _figures(z, setup, loops, selection, keys):
     """(the figures `keys` of each loop, stacked; whether each loop diverged)."""
-    moved = selection.apply(setup, z)
-    out, diverged = [], []
-    for spec, names in zip(loops, keys, strict=True):
-        m, div = simulate_metrics(moved, spec, None)
-        out += [m[k] for k in names]
-        diverged.append(div)
-    return jnp.stack(out), jnp.stack(diverged)
+    runs = [run_at(selection, setup, z, spec) for spec in loops]
+    return (jnp.stack([r.metrics[k] for r, names in zip(runs, keys, strict=True) for k in names]),
+            jnp.stack([r.diverged for r in runs]))
 
 
-@functools.partial(jax.jit, static_argnames=("selection", "keys"))
-def _jacobian(z, setup, loops, selection, keys):
+@functools.partial(jax.jit, static_argnums=(3, 4))
+def _jacobian(z, *args):
     """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): one forward pass, then
     one pull-back per figure (its unit cotangent), vectorised."""
-    y, pull, diverged = jax.vjp(lambda z_: _figures(z_, setup, loops, selection, keys), z,
-                                has_aux=True)
+    y, pull, diverged = jax.vjp(lambda z_: _figures(z_, *args), z, has_aux=True)
     (grad,) = jax.vmap(pull)(jnp.eye(y.shape[0], dtype=y.dtype))
     return y, grad, diverged
 
@@ -79,7 +74,7 @@ def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] |
     rows = []
     for t in sel.items:
         g = np.asarray(grad[t.name], float).reshape(len(y), -1)
-        scale = 1.0 if t.transform == "log" else np.ravel(np.asarray(z[t.name], float))
+        scale = 1.0 if isinstance(t.transform, Log) else np.ravel(np.asarray(z[t.name], float))
         rows.append(g * scale)  # d figure / d ln g
     d = np.concatenate(rows, axis=1) / np.asarray(y, float)[:, None]
     flat = [(i, m) for i in used for m in keys[i]]

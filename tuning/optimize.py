@@ -1,48 +1,142 @@
-"""The tuner's loss as one pure function (`loss_function`) and its exact gradient in each AD
-mode (`value_and_grad`, `choose_gradient`)."""
+"""The tuner's strategies, each an object chosen once from the name a config gives: the
+aggregate over the plants (`Mean`, `CVaR`, `Max`; `aggregate_of`) and the AD mode of the exact
+gradient (`Forward`, `Reverse`, `Plants`; `choose_gradient`); and the loss as one pure function
+(`loss_function`)."""
 
 from __future__ import annotations
 
-import jax
+import dataclasses
+import math
+from typing import ClassVar
 
-from tuning.objective import n_worst
+import jax
+import jax.numpy as jnp
 
 FORWARD_MAX_PARAMS = 64  # "auto" over a batch: forward mode up to this many tuned scalars
 
 
-def choose_gradient(mode: str, n_params: int, batch: int = 1, aggregate: str = "mean",
-                    level: float = 1.0) -> str:
-    """The AD mode for "auto": reverse (time-parallel) for one plant; for a batch whose
-    aggregate weighs at most a quarter of its plants (max, CVaR <= 0.25) the plants one by
-    one; else forward up to FORWARD_MAX_PARAMS tuned scalars (docs/benchmarks.md)."""
-    if mode != "auto":
-        return mode
-    if batch <= 1:
-        return "reverse"
-    weighed = {"max": 1, "cvar": n_worst(level, batch)}.get(aggregate, batch)
-    if weighed <= batch / 4:
-        return "plants"
-    return "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
+@dataclasses.dataclass(frozen=True)
+class CVaR:
+    """The mean of the worst ceil(level B) of B plants."""
+
+    level: float = 1.0
+    name: ClassVar[str] = "cvar"
+
+    def weighs(self, n):
+        """How many of n plants the aggregate weighs (n may be traced: the real plants of a
+        padded batch)."""
+        if isinstance(n, int):
+            return max(1, int(math.ceil(self.level * n - 1e-9)))
+        return jnp.maximum(1.0, jnp.ceil(self.level * n - 1e-9))
+
+    def __call__(self, values, mask=None):
+        """The aggregate over axis 0, of the plants where `mask` (None: every one)."""
+        if values.ndim == 0:
+            return values
+        if mask is None:
+            return jnp.mean(jax.lax.top_k(values, self.weighs(values.shape[0]))[0])
+        idx, w = self.weights(values, mask)
+        return jnp.sum(jnp.where(w > 0, values[idx], 0.0)) / self.weighs(jnp.sum(mask))
+
+    def weights(self, values, mask=None):
+        """(indices, weights) of a static count, the worst first: the aggregate is
+        sum(weights values[indices]) where the values are finite."""
+        n = values.shape[0]
+        worst = jnp.where(mask, values, -jnp.inf) if mask is not None else values
+        idx = jax.lax.top_k(worst, self.weighs(n))[1]
+        k = self.weighs(n if mask is None else jnp.sum(mask))
+        return idx, jnp.where(jnp.arange(idx.shape[0]) < k, 1.0 / k, 0.0)
 
 
-def value_and_grad(objective, z, mode: str, checkpoint_every: int | None = None):
-    """((loss, aux), grads) of objective.evaluate at z, exactly: forward (one jvp per tuned
-    scalar, vmapped), reverse (one vjp through the scan, `jax.checkpoint` segments of
-    checkpoint_every steps) or plants (`Objective.value_and_grad_plants`)."""
-    if mode == "forward":
+@dataclasses.dataclass(frozen=True)
+class Mean(CVaR):
+    """The mean over the plants (CVaR at level 1, summed in the plants' order)."""
+
+    name: ClassVar[str] = "mean"
+
+    def weighs(self, n):
+        return n
+
+    def __call__(self, values, mask=None):
+        if values.ndim == 0 or mask is not None:
+            return super().__call__(values, mask)
+        return jnp.mean(values)
+
+
+@dataclasses.dataclass(frozen=True)
+class Max(CVaR):
+    """The worst plant."""
+
+    name: ClassVar[str] = "max"
+
+    def weighs(self, n):
+        return 1
+
+    def __call__(self, values, mask=None):
+        if values.ndim == 0:
+            return values
+        return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
+
+
+def aggregate_of(batch) -> CVaR:
+    """The aggregate a `BatchSpec` ([tuning.robust]) names (`aggregate`, `cvar_level`)."""
+    return {"mean": Mean(), "cvar": CVaR(batch.cvar_level), "max": Max()}[batch.aggregate]
+
+
+@dataclasses.dataclass(frozen=True)
+class Forward:
+    """One jvp per tuned scalar, vmapped."""
+
+    name: ClassVar[str] = "forward"
+    every: ClassVar[int | None] = None  # the reverse pass's checkpoint segment (none)
+
+    def value_and_grad(self, objective, z):
+        """((loss, aux), grads) of objective.evaluate at z, exactly."""
         def f(z_):
             loss, aux = objective.evaluate(z_)
             return loss, (loss, aux)
 
         grads, (loss, aux) = jax.jacfwd(f, has_aux=True)(z)
         return (loss, aux), grads
-    if mode == "plants":
+
+
+@dataclasses.dataclass(frozen=True)
+class Reverse(Forward):
+    """One vjp through the scan, `jax.checkpoint` segments of `every` steps (the loop's
+    `TimeParallel` gradient carries it)."""
+
+    every: int | None = None
+    name: ClassVar[str] = "reverse"
+
+    def value_and_grad(self, objective, z):
+        return jax.value_and_grad(objective.evaluate, has_aux=True)(z)
+
+
+@dataclasses.dataclass(frozen=True)
+class Plants(Forward):
+    """The plants the aggregate weighs, one by one (`Objective.value_and_grad_plants`)."""
+
+    name: ClassVar[str] = "plants"
+
+    def value_and_grad(self, objective, z):
         return objective.value_and_grad_plants(z)
-    if mode == "reverse":
-        return jax.value_and_grad(
-            lambda z_: objective.evaluate(z_, checkpoint_every=checkpoint_every),
-            has_aux=True)(z)
-    raise ValueError(f"unknown gradient mode {mode!r}")
+
+
+def choose_gradient(mode: str, n_params: int, batch: int = 1, aggregate=None,
+                    every: int | None = None) -> Forward:
+    """The AD mode a config names (`Reverse` with the checkpoint segment `every`); "auto":
+    reverse (time-parallel) for one plant; for a batch whose `aggregate` weighs at most a
+    quarter of its plants (max, CVaR <= 0.25) the plants one by one; else forward up to
+    FORWARD_MAX_PARAMS tuned scalars (docs/benchmarks.md)."""
+    if mode == "auto":
+        if batch <= 1:
+            mode = "reverse"
+        elif aggregate is not None and aggregate.weighs(batch) <= batch / 4:
+            mode = "plants"
+        else:
+            mode = "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
+    return Reverse(every) if mode == "reverse" else {"forward": Forward(),
+                                                     "plants": Plants()}[mode]
 
 
 def loss_function(problem):
@@ -66,7 +160,7 @@ def loss_function(problem):
     """
     objective = problem.objective
 
-    def loss(z):
+    def loss(z):  # a function: a jitted method would hash its module, arrays and all
         return objective.evaluate(z)
 
     return loss, problem.z0

@@ -13,9 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, metrics, validation
+from dscjax import files, metrics, ts_sweep, validation
 from dscjax.params import assumption_warnings as with_ranges
-from dscjax.reproduce import sampling
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
@@ -27,19 +26,31 @@ from tuning.report_plots import draw
 from tuning.runner import simulate_command
 
 
+@jax.jit
+def _per_plant(objective, z, overrides):
+    """`Objective.per_plant`, compiled once per structure (the objective an argument)."""
+    return objective.per_plant(z, overrides)
+
+
 def evaluate(problem, z0, z1) -> dict[str, Any]:
-    """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train, held-out."""
-    obj = problem.objective
-    per_plant = jax.jit(obj.per_plant)
+    """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train (its real
+    plants), held-out."""
+    obj, n = problem.objective.program(), problem.n_train
+
+    def per_plant(z, overrides=None):
+        return _host(_per_plant(obj, z, overrides))
+
     out = {"nominal": {}, "train": None, "heldout": None}
     for tag, z in (("start", z0), ("tuned", z1)):
-        out["nominal"][tag] = _host(per_plant(z, {}))
+        out["nominal"][tag] = per_plant(z, {})
     if obj.overrides:
-        out["train"] = {tag: refined(problem, z, obj.overrides, _host(per_plant(z)))
+        train = {k: np.asarray(v)[:n] for k, v in obj.overrides.items()}
+        out["train"] = {tag: refined(problem, z, train, {k: v[:n] for k, v in
+                                                         per_plant(z).items()})
                         for tag, z in (("start", z0), ("tuned", z1))}
     if problem.heldout:
         ov = {k: jnp.asarray(v) for k, v in problem.heldout.items()}
-        out["heldout"] = {tag: refined(problem, z, ov, _host(per_plant(z, ov)))
+        out["heldout"] = {tag: refined(problem, z, ov, per_plant(z, ov))
                           for tag, z in (("start", z0), ("tuned", z1))}
     return out
 
@@ -192,7 +203,7 @@ def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[s
 
 def problem_sentence(problem) -> str:
     """The problem in one sentence (report.md's first line)."""
-    cfg, sc, sim = problem.cfg, problem.objective.scales, problem.objective.sim
+    cfg, sc, sim = problem.cfg, problem.scales, problem.objective.sim
     what = {"linf": "the L-inf tracking error", "l2": "the L2 tracking error",
             "effort_l2": "L2(u)", "effort_max": "max|u|", "effort_tv": "TV(u)"}
     if shifted_reference(problem.setup) is not None:
@@ -237,7 +248,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
     PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
     problem, tr = result.problem, result.trace
-    sc, checks = problem.objective.scales, problem.objective.checks
+    sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
     nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
@@ -259,7 +270,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             "restarts": tr.restarts, "best_iteration": tr.best_iteration,
             "best_loss": tr.best_loss, "best_feasible": tr.best_feasible,
             "wall_s": result.wall_s, "compile_s": result.compile_s, "wall_total_s": None,
-            "gradient": problem.mode, "method": problem.cfg.optimizer.name,
+            "gradient": problem.mode.name, "method": problem.cfg.optimizer.name,
             "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
             "n_params": problem.n_params},
         "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
@@ -297,8 +308,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
                       problem) if plots else [])
     st = (summary["margins"] or {}).get("sample_time")
     if plots and st is not None:
-        sampling.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
-                      labels={"start": "start gains", "tuned": "tuned gains"})
+        ts_sweep.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
+                      {"start": "start gains", "tuned": "tuned gains"})
         figures.append("sampling.png")
     summary["figures"] = figures
     if t_start is not None:

@@ -43,7 +43,7 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
 
 
 def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
-    figures, sc = [], problem.objective.scales
+    figures, sc = [], problem.scales
     if result.history:
         plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,
                         batch=bool(problem.objective.overrides))

@@ -33,7 +33,7 @@ class Requirement(eqx.Module):
     """A `Running` reduction whose `finalize` gives 'penalty', 'met' (1.0 or 0.0), 'margin' (<= 0
     when met, in the bound's units) and its own figures. A subclass gives `init`, `sample(acc,
     k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w) and `check`
-    (`penalty`: weight x viol/T unless it says otherwise); `n_steps` is set by `TuningMetrics`."""
+    (`penalty`: weight x viol/T unless it says otherwise); `n_steps` is set by `tuning_metrics`."""
 
     n_steps: eqx.AbstractVar[int]
     name: ClassVar[str]

@@ -26,14 +26,15 @@ from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
 from dscjax.runspec import RunSpec, loop_words
+from dscjax.selection import Selection
 from dscjax.simulate import check
 from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
-from tuning.config import TuningConfig
-from tuning.objective import Objective, check_loops, start_scales
-from tuning.optimize import choose_gradient
-from tuning.params import Selection
+from tuning.config import SIGNED, TuningConfig
+from tuning.objective import Objective, check_loops
+from tuning.optimize import Forward, Mean, aggregate_of, choose_gradient
 from tuning.requirements import build_requirements
+from tuning.scales import start_scales
 from tuning.search import STATE_FILE, TuneProblem, method_of
 
 # no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
@@ -51,18 +52,27 @@ class Problem:
     selection: Selection
     objective: Objective
     heldout: dict | None
-    mode: str
+    mode: Forward  # the AD mode of the exact gradient (`tuning.optimize`)
     z0: dict
     notes: tuple[str, ...] = ()
     extra_plants: dict | None = None  # {path: (k, ...)} plants added to the training batch
     # the continuous loop, a check in the report (None: tuned as given, `--sample-time`)
     continuous: RunSpec | None = None
+    # the compiled programs of the search ({name: (objective, `search.Batched`)})
+    programs: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def n_train(self) -> int:
-        """Plants of the training set (1: the nominal plant alone)."""
-        ov = self.objective.overrides
-        return len(next(iter(ov.values()))) if ov else 1
+        """Plants of the training set (1: the nominal plant alone), padding apart."""
+        obj = self.objective
+        return obj.batch_size if obj.mask is None else int(np.sum(obj.mask))
+
+    @property
+    def scales(self):
+        """The objective's `Scales` with the per-plant bounds of the real training plants."""
+        sc, n = self.objective.scales, self.n_train
+        return dataclasses.replace(sc, **{k: getattr(sc, k)[:n] for k in (
+            "u_max_train", "tv_max_train") if getattr(sc, k) is not None})
 
     @property
     def n_params(self) -> int:
@@ -82,14 +92,14 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
         opt.pop(k)  # where to stop: a resumed run may change it
     return {
         "setup": dconfig.to_dict(setup, options),
-        "params": [dataclasses.asdict(t) for t in selection.items],
+        "params": [t.describe() for t in selection.items],
         "objective": dataclasses.asdict(cfg.objective),
         "optimizer": opt,
         "robust": _batch_desc(cfg.robust, setup),
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
         "checks": {c.name: c.sim.describe() for c in checks},
-        "mode": mode,
+        "mode": mode.name,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
 
@@ -140,30 +150,38 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
 
 
 def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None
-                  ) -> Problem:
+                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None,
+                  capacity: int = 0) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
-    cases) join the training batch (or the nominal plant). `ready()` is called once every
-    setting is validated, before anything runs or compiles (the start scales run the loop):
-    the command prepares its --out there."""
-    parts = _parts(setup, options, cfg, extra_plants)
+    cases) join the training batch (or the nominal plant), padded to `capacity` plants with
+    copies of the nominal one that weigh nothing (the objective's mask), so that batches of
+    one capacity share their compiled programs. `ready()` is called once every setting is
+    validated, before anything runs or compiles (the start scales run the loop): the command
+    prepares its --out there."""
+    parts = _parts(setup, options, cfg, extra_plants, capacity)
     cfg, notes, selection, mode, sim, checks, train, heldout, continuous = parts
     if ready is not None:
         ready()
     notes = list(notes)
     requirements = build_requirements(setup, cfg.requirements)
+    n = len(next(iter(train.values()))) if train else 1
+    mask = None
+    if train and capacity:  # (a mask even where none is padding: one structure)
+        train = join_plants(setup, train, {p: np.repeat(np.asarray(params.get(setup, p))[None],
+                                                        max(capacity - n, 0), axis=0)
+                                           for p in train})
+        mask = np.arange(max(capacity, n)) < n
     scales = start_scales(setup, sim, cfg.objective, train)
     if scales.per_plant:
-        n = len(next(iter(train.values())))
         notes.append(f"effort bounds per training plant: the start gains' own max|u| and "
                      f"{cfg.objective.tv_max_factor:g} x TV(u) on each of the {n} plants"
                      + (f" ({scales.n_train_fallback} on which the start gains diverge keep "
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
-                          scales=scales, requirements=requirements, overrides=train,
-                          aggregate=cfg.robust.aggregate if train else "mean",
-                          cvar_level=cfg.robust.cvar_level, checks=checks)
+                          scales=scales, requirements=requirements, overrides=train, mask=mask,
+                          aggregate=aggregate_of(cfg.robust) if train else Mean(),
+                          checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
         effort = " and ".join(f"{what} within {f:g} x its bound"
@@ -203,7 +221,8 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
                      fix="use the same settings, or --overwrite to start afresh")
 
 
-def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None):
+def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
+           capacity: int = 0):
     """The validated settings of `build_problem` before the start gains are evaluated:
     (cfg, notes, selection, mode, sim, checks, train, heldout, continuous): `checks` the
     `CheckLoop`s of the search, `continuous` the report's check loop."""
@@ -237,16 +256,17 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
                      f"s by default (the filters stable with RK4 at dt and forward Euler "
                      f"at Ts)")
-    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms)
+    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
+                                signed=SIGNED)
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
-    mode = choose_gradient(cfg.optimizer.gradient, n_params,
-                           (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra,
-                           cfg.robust.aggregate, cfg.robust.cvar_level)
-    ce = cfg.optimizer.checkpoint_every if mode == "reverse" else None
+    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
+    mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
+        (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
+        aggregate_of(cfg.robust), cfg.optimizer.checkpoint_every)
     sim = loop.replace(save_every=loop.n_steps, window_start=float(window),
                        names={"window_start": "tuning.objective.window_start"})
-    sim = dataclasses.replace(sim, gradient=TimeParallel(every=ce))
+    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
@@ -300,7 +320,7 @@ class Result:
 
     @property
     def history(self) -> list[dict]:
-        return [history_row(r) for r in self.trace.history]
+        return [ck.history_row(r) for r in self.trace.history]
 
     @property
     def best_z(self) -> dict:
@@ -314,40 +334,6 @@ class Result:
     def rejected(self) -> int:
         """adam's iterations whose point was worse than its last good one (stepped back)."""
         return sum(not r.get("accepted", True) for r in self.trace.history)
-
-
-def history_row(row: dict) -> dict:
-    """A search trace's history row as history.csv and the progress display give it."""
-    return {"iteration": row["iteration"], "loss": row["loss"],
-            "accepted": bool(row.get("accepted", True)), "feasible": row["feasible"],
-            "best_loss": row["best_loss"], "lr": row["scale"],
-            "grad_norm": row.get("grad_norm", float("nan")),
-            **{k: v for k, v in row.items() if k not in _SEARCH_KEYS},  # figures and terms
-            "wall_s": row["seconds"], "best_iteration": row["best_iteration"],
-            "best_feasible": row["best_feasible"]}
-
-
-_SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_norm", "accepted",
-                "seconds", "best_iteration", "best_feasible")
-
-
-def history_columns(problem: Problem) -> list[str]:
-    terms = list(_term_names(problem))
-    return (["iteration", "loss", "accepted", "feasible", "best_loss", "lr", "grad_norm",
-             "linf_window", "max_abs_u", "n_diverged"] + terms + ["wall_s"])
-
-
-def _term_names(problem):
-    spec, obj = problem.cfg.objective, problem.objective
-    names = [n for n in ("linf", "l2", "effort_l2", "effort_max", "effort_tv")
-             if getattr(spec, n)]
-    if obj.scales.u_max is not None and spec.u_max_weight:
-        names.append("u_bound")
-    if obj.scales.tv_max is not None and spec.tv_max_weight:
-        names.append("tv_bound")
-    names += [f"req{i}" for i in range(len(obj.requirements))]
-    names += [c.name for c in obj.checks]
-    return names
 
 
 def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
@@ -400,14 +386,14 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     desc = problem.describe()
-    terms = _term_names(problem)
+    terms = ck.term_names(problem)
 
     def each(trace, row):
         if out is not None and (trace.iterations % spec.save_interval == 0
                                 or trace.iterations == begun + 1):
             write_files(out, problem, trace)
         if progress is not None:
-            progress(history_row(row) | {"steps": spec.max_steps, "terms": terms})
+            progress(ck.history_row(row) | {"steps": spec.max_steps, "terms": terms})
 
     try:
         res = search.run(
@@ -446,8 +432,8 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
     """best.json, gains.json, history.csv and checkpoint.json of a search's trace."""
     desc = problem.describe()
     write_best(out, problem, trace)
-    ck.write_history(out / "history.csv", [history_row(r) for r in trace.history],
-                     history_columns(problem))
+    ck.write_history(out / "history.csv", [ck.history_row(r) for r in trace.history],
+                     ck.history_columns(problem))
     files.write_json(out / "checkpoint.json", {
         "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
         "iteration": trace.iterations, "best_loss": trace.best_loss,
@@ -471,12 +457,3 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
     })
     setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
     files.write_json(out / "gains.json", dconfig.to_dict(setup, problem.options))
-
-
-def format_progress(row: dict, step: str = "lr") -> str:
-    """The figures of one iteration's row for the progress display; `step` names the step
-    size (sigma for the CMA-ES methods)."""
-    terms = " ".join(f"{k} {row[k]:.3g}" for k in row["terms"])
-    return (f"loss {row['loss']:.4g}{'' if row['accepted'] else ' (rejected)'}  best "
-            f"{row['best_loss']:.4g}  [{terms}]  Linf[t0,T] {row['linf_window']:.4g}  max|u| "
-            f"{row['max_abs_u']:.4g}  {step} {row['lr']:.3g}")

@@ -19,80 +19,85 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax import params, search, xla
-from tuning.objective import aggregate, feasible_plants, loop_metrics, plant_loss
-from tuning.optimize import value_and_grad
+from dscjax import search, xla
+from tuning.objective import feasible_plants, loop_metrics, plant_loss
 
 STATE_FILE = "search.npz"  # the run's search state (dscjax.search's format)
 SPREAD = math.log(10.0)  # random points (a restarted adam start): z0 x/ 10, in the box
 
 
-def batch_fn(problem):
-    """Jitted (B, n) flat z -> per-candidate loss (`Objective.evaluate`'s), feasibility,
-    figures and terms: every candidate x training plant in one batched simulation."""
-    obj = problem.objective
-    _, unravel = ravel_pytree(problem.z0)
-    columns = obj.selection.columns(obj.setup)
+def _unravel(obj):
+    """The {name: array} point of a flat z (the structure of the selection's own z)."""
+    return ravel_pytree(obj.selection.init(obj.setup))[1]
+
+
+# one top-level batched program: 512-bit vectors where the CPU has them (dscjax.xla)
+@functools.partial(jax.jit, compiler_options=xla.compiler_options())
+def _batch(obj, flat_pts):
+    """(B, n) flat z -> per-candidate loss (`Objective.evaluate`'s), feasibility, figures and
+    terms: every candidate x training plant in one batched simulation."""
+    b, n = flat_pts.shape[0], obj.batch_size
     train = obj.overrides or {}
-    n_train = obj.batch_size if train else 1
-    sc = obj.scales
+    zs = jax.tree.map(lambda v: jnp.repeat(v, n, axis=0), jax.vmap(_unravel(obj))(flat_pts))
+    ov = {p: jnp.tile(v, (b,) + (1,) * (v.ndim - 1)) for p, v in train.items()}
+    m, div = loop_metrics(obj, zs, ov, points=True)
+    # the training plants' own bounds (per_plant), laid out as the plants are: tiled
+    bounds = obj.scales.bounds(train=bool(train), tile=b)
+    loss, terms = plant_loss(m, div, obj.spec, obj.scales, len(obj.requirements), bounds,
+                             obj.checks)
+    feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.checks)
+    real = jnp.ones(n, bool) if obj.mask is None else obj.mask
 
-    # one top-level batched program: 512-bit vectors where the CPU has them (dscjax.xla)
-    @functools.partial(jax.jit, compiler_options=xla.compiler_options())
-    def run(flat_pts):
-        table = jax.vmap(lambda p: obj.selection.row(unravel(p)))(flat_pts)
-        b = flat_pts.shape[0]
-        ov = params.overrides(obj.setup, columns, table)
-        if train:
-            ov = {p: jnp.repeat(v, n_train, axis=0) for p, v in ov.items()}
-            ov |= {p: jnp.tile(jnp.asarray(v), (b,) + (1,) * (np.ndim(v) - 1))
-                   for p, v in train.items()}
-        m, div = loop_metrics(obj, obj.setup, ov)
-        # the training plants' own bounds (per_plant), laid out as the plants are: tiled
-        bounds = sc.bounds(train=bool(train), tile=b)
-        loss, terms = plant_loss(m, div, obj.spec, sc, len(obj.requirements), bounds,
-                                 obj.checks)
-        feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.checks)
+    def per(v):
+        v = v.reshape(b, n)
+        return jax.vmap(lambda r: obj.aggregate(r, obj.mask))(v) if train else v[:, 0]
 
-        def per(v, how):
-            v = v.reshape(b, n_train)
-            return jax.vmap(lambda r: aggregate(r, how, obj.cvar_level))(v) if train \
-                else v[:, 0]
+    def worst(v):  # max over the real plants that did not diverge (NaN: none)
+        v = jnp.where(div.reshape(b, n) | ~real, -jnp.inf, v.reshape(b, n)).max(axis=1)
+        return jnp.where(jnp.isfinite(v), v, jnp.nan)
 
-        def worst(v):  # max over the plants that did not diverge (NaN: none)
-            v = jnp.where(div, -jnp.inf, v).reshape(b, n_train).max(axis=1)
-            return jnp.where(jnp.isfinite(v), v, jnp.nan)
-
-        return {"loss": per(loss, obj.aggregate),
-                "feasible": feas.reshape(b, n_train).all(axis=1),
-                "n_diverged": div.reshape(b, n_train).sum(axis=1),
-                "linf_window": worst(m["linf_error_window"]),
-                "max_abs_u": worst(m["max_abs_u"]), "tv_u": worst(m["tv_u"]),
-                "terms": {k: per(jnp.where(div, 0.0, v), obj.aggregate)
-                          for k, v in terms.items()}}
-
-    return run
+    return {"loss": per(loss), "feasible": (feas.reshape(b, n) | ~real).all(axis=1),
+            "n_diverged": (div.reshape(b, n) & real).sum(axis=1),
+            "linf_window": worst(m["linf_error_window"]),
+            "max_abs_u": worst(m["max_abs_u"]), "tv_u": worst(m["tv_u"]),
+            "terms": {k: per(v) for k, v in terms.items()}}
 
 
-def grad_fn(problem):
-    """Jitted (M, n) flat z -> per-point loss, feasibility, figures and flat gradient, exact,
-    in the problem's AD mode (the points one after the other)."""
-    obj = problem.objective
-    _, unravel = ravel_pytree(problem.z0)
-
+@functools.partial(jax.jit, static_argnums=0)
+def _gradient(mode, obj, flat_pts):
+    """(M, n) flat z -> per-point loss, feasibility, figures and flat gradient, exact, in the
+    AD `mode` (the points one after the other)."""
     def one(flat):
-        (loss, aux), g = value_and_grad(obj, unravel(flat), problem.mode,
-                                        obj.sim.gradient.every)
+        (loss, aux), g = mode.value_and_grad(obj, _unravel(obj)(flat))
         return {"loss": loss, "feasible": aux["feasible"], "n_diverged": aux["n_diverged"],
                 "linf_window": aux["linf_window"], "max_abs_u": aux["max_abs_u"],
                 "terms": aux["terms"], "grad": ravel_pytree(g)[0]}
 
-    return jax.jit(lambda pts: jax.lax.map(one, pts))
+    return jax.lax.map(one, flat_pts)
+
+
+def _bound(fn, *before):
+    """`fn` with its leading arguments bound, called and lowered (compiled ahead of time)
+    with the points alone, as `search.Batched` does."""
+    call = functools.partial(fn, *before)
+    call.lower = functools.partial(fn.lower, *before)
+    return call
+
+
+def batch_fn(problem):
+    """The batched program of the problem's objective: every candidate x training plant."""
+    return _bound(_batch, problem.objective.program())
+
+
+def grad_fn(problem):
+    """The exact gradient program of the problem's objective in its AD mode."""
+    return _bound(_gradient, problem.mode, problem.objective.program())
 
 
 class TuneProblem(search.Problem):
     """A `runner.Problem` as a search problem over the flat z (`ravel_pytree(problem.z0)`) in
-    the box of its bounds; its programs are compiled once per objective (`compiled`)."""
+    the box of its bounds; its programs take the objective as an argument, so they compile
+    once per structure of the objective (a new round's training plants reuse them)."""
 
     def __init__(self, problem):
         self.problem = problem
@@ -101,15 +106,17 @@ class TuneProblem(search.Problem):
         self.lower, self.upper = problem.selection.z_box(problem.z0)
 
     def _program(self, name: str, build) -> search.Batched:
-        cache = self.problem.objective.compiled
-        if name not in cache:
-            cache[name] = search.Batched(build(self.problem))
-        return cache[name]
+        """The problem's program `name`, its widths and compilation timed (`search.Batched`),
+        kept with the problem for this objective: every program compiles once per structure."""
+        obj, cache = self.problem.objective, self.problem.programs
+        if name not in cache or cache[name][0] is not obj:
+            cache[name] = (obj, search.Batched(build(self.problem)))
+        return cache[name][1]
 
     @property
     def compile_seconds(self) -> float:
-        cache = self.problem.objective.compiled
-        return sum(cache[k].seconds for k in ("batch", "gradient") if k in cache)
+        cache = self.problem.programs
+        return sum(cache[k][1].seconds for k in ("batch", "gradient") if k in cache)
 
     @staticmethod
     def _evaluation(r) -> search.Evaluation:

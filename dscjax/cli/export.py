@@ -82,7 +82,7 @@ def run(args) -> int:
     files = export.c_files(setup, spec, source=source, precision=args.precision)
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax export: order n={setup.order}, {setup.controller.kind}, sampled every "
-          f"{spec.sample_time:g} s, {spec.discretisation}, delay {spec.delay}, "
+          f"{spec.sample_time:g} s, {spec.discretisation.name}, delay {spec.delay}, "
           f"{args.precision}; from {source}", file=sys.stderr)
     for name, text in files.items():
         write_text(out / name, text)

@@ -137,14 +137,9 @@ def run(args) -> int:
     from dscjax.progress import Phase, Progress
     from dscjax.validation import ConfigError
     from tuning import elasticity, report, report_md
+    from tuning.checkpoint import format_progress
     from tuning.config import SEARCHES, to_table
-    from tuning.runner import (
-        build_problem,
-        check_resume,
-        format_progress,
-        model_default_ranges,
-        simulate_command,
-    )
+    from tuning.runner import build_problem, check_resume, model_default_ranges, simulate_command
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
@@ -181,7 +176,7 @@ def run(args) -> int:
         problem = build_problem(setup, options, cfg,
                                 ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
     oc = cfg.optimizer
-    how = (f"{problem.mode}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
+    how = (f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
            else f"{oc.name} (sigma0 {oc.sigma0:g})")
     unit = "generation" if oc.name in SEARCHES else "iteration"
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
@@ -211,7 +206,7 @@ def run(args) -> int:
         print(f"  note: {note}", file=sys.stderr)
     for w in report.assumption_warnings(problem):
         print(f"dscjax tune: warning: {w}", file=sys.stderr)
-    sc = problem.objective.scales
+    sc = problem.scales
     user = sc.start.get("user_linf_error_window")
     print(f"  start: L-inf error on the window {sc.linf:.4g}"
           + ("" if user is None else f" against the shifted reference the controller tracks "
@@ -394,14 +389,12 @@ def loop_banner(sim) -> str:
     """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
     import numpy as np
 
-    from dscjax.runspec import discretisation
-
     if not sim.sampled:
         return "the continuous loop"
     noise = ("no noise" if sim.noise is None else "noise std "
              + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float))))
-    return (f"the sampled loop (Ts={sim.sample_time:g} s, ZOH, {discretisation(sim)}, delay "
-            f"{sim.delay}, {noise})")
+    return (f"the sampled loop (Ts={sim.sample_time:g} s, ZOH, {sim.discretisation.words}, "
+            f"delay {sim.delay}, {noise})")
 
 
 def _count(n: int, unit: str) -> str:
@@ -427,7 +420,7 @@ def check_work_of(args, setup, options, cfg) -> None:
     from dscjax.cli.common import gradient_work, horizon_text
     from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.config import SEARCHES
-    from tuning.optimize import choose_gradient
+    from tuning.optimize import aggregate_of, choose_gradient
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
@@ -440,7 +433,7 @@ def check_work_of(args, setup, options, cfg) -> None:
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
-    mode = choose_gradient(oc.gradient, 0, plants, cfg.robust.aggregate, cfg.robust.cvar_level)
+    mode = choose_gradient(oc.gradient, 0, plants, aggregate_of(cfg.robust)).name
     if oc.name not in SEARCHES and (
             mode == "plants" or (mode == "reverse" and plants == 1)):
         one = one + gradient_work(setup, steps)

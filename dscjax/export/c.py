@@ -320,8 +320,8 @@ def _header(law, spec, source, gains, real) -> str:
  * sampled loop.
  *
  * Order n = {law.order}; sample time Ts = {law.sample_time!r} s; {delay}.
- * The controller's states advance by {spec.discretisation}:
- *   {SCHEME_DOC[spec.discretisation]}.
+ * The controller's states advance by {spec.discretisation.name}:
+ *   {SCHEME_DOC[spec.discretisation.name]}.
  * dsc_init starts the controller from the measured plant state x0 at time t0, as dscjax's
  * loop starts from plant.x0: its filters, estimates{line}{derived_doc} are
  * computed from x0 and the reference at t0 by the simulation's own initialisation.

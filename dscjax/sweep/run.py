@@ -210,7 +210,7 @@ def run_sweep(
                 method=settings.method, seed=settings.seed, solver=spec.solver.name,
                 refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
                 noise=None if spec.noise is None else np.asarray(spec.noise, float).tolist(),
-                noise_seed=int(spec.noise_seed), discretisation=spec.discretisation,
+                noise_seed=int(spec.noise_seed), discretisation=spec.discretisation.name,
                 ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
                 samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
                 steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)

@@ -1,0 +1,25 @@
+"""Counting compilations: every trace of a jitted function (each one compiles) by its name,
+as JAX reports them (`jax.monitoring`)."""
+
+import collections
+import contextlib
+
+from jax import monitoring
+
+TRACE = "/jax/core/compile/jaxpr_trace_duration"
+
+
+@contextlib.contextmanager
+def counted():
+    """{function name: traces} of the jitted functions traced inside the block."""
+    seen = collections.Counter()
+
+    def count(event, duration, **kwargs):
+        if event == TRACE:
+            seen[kwargs.get("fun_name")] += 1
+
+    monitoring.register_event_duration_secs_listener(count)
+    try:
+        yield seen
+    finally:
+        monitoring.unregister_event_duration_listener(count)

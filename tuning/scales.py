@@ -1,0 +1,144 @@
+"""The start gains' figures on the nominal plant (`start_scales`): the normalisation of the
+objective's terms and its effort bounds, "start" bounds being the start's own figures over the
+whole horizon [0, T] (the transient included), on the nominal plant for every plant
+(`Nominal`) or on each training plant its own (`PerPlant`); `Scales` holds them."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from types import SimpleNamespace
+from typing import Any, ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from dscjax.closed_loop import Setup
+from dscjax.runspec import RunSpec, loop_words
+from dscjax.simulate import DivergenceError, divergence_report, run
+from dscjax.validation import ConfigError
+from tuning.config import ObjectiveSpec
+from tuning.reductions import UserError, shifted_reference
+
+
+class Scales(eqx.Module):
+    """The start gains' figures on the nominal plant (the terms' normalisation) and the bounds,
+    with `PerPlant` bounds also per training plant (u_max_train, tv_max_train); a pytree, so
+    that a compiled objective takes them as numbers."""
+
+    linf: Any
+    l2: Any
+    l2_u: Any
+    max_u: Any
+    u_max: Any  # the bound on max|u| (None: no bound)
+    tv_u: Any = 1.0
+    tv_max: Any = None  # the bound on TV(u) (None: no bound)
+    # (B,) float64 per training plant (None: the nominal bound); other batches get the nominal
+    u_max_train: Any = None
+    tv_max_train: Any = None
+    # training plants on which the start gains diverge: they keep the nominal bounds
+    n_train_fallback: Any = 0
+    # every figure of the start gains on the nominal plant (the loop tuned): the effort on the
+    # window beside the bounds' [0, T], the error against the config's reference
+    start: dict = eqx.field(default_factory=dict)
+
+    @property
+    def per_plant(self) -> bool:
+        return self.u_max_train is not None or self.tv_max_train is not None
+
+    def bounds(self, train: bool, tile: int = 1) -> tuple:
+        """(bound on max|u|, bound on TV(u)) of a batch (None: no bound): the training batch's
+        own if `train` (tiled `tile` times: candidates x training plants), else the nominal."""
+        return tuple(jnp.tile(jnp.asarray(per), tile) if train and per is not None else nominal
+                     for nominal, per in ((self.u_max, self.u_max_train),
+                                          (self.tv_max, self.tv_max_train)))
+
+
+def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
+    """(metrics, `Status`) of the start gains: the status says when a diverged run did."""
+    traj = run(setup, sim, overrides=dict(overrides) if overrides else None, extra=extra)
+    return traj.metrics, traj.status
+
+
+# one compilation per setup and run structure (adversarial tuning builds a problem a round)
+_start_metrics = jax.jit(_start_run)
+
+
+@dataclasses.dataclass(frozen=True)
+class Nominal:
+    """The start bounds measured on the nominal plant hold for every plant."""
+
+    name: ClassVar[str] = "nominal"
+
+    def train_bounds(self, setup, sim, spec, train, u_max, tv_max) -> dict[str, Any]:
+        """`Scales`' per-plant fields of the training batch `train`: none."""
+        return {}
+
+
+@dataclasses.dataclass(frozen=True)
+class PerPlant(Nominal):
+    """Each training plant's start bounds are its own figures ("start" bounds only; a plant
+    on which the start gains diverge keeps the nominal ones)."""
+
+    name: ClassVar[str] = "per_plant"
+
+    def train_bounds(self, setup, sim, spec, train, u_max, tv_max) -> dict[str, Any]:
+        if not train or "start" not in (spec.u_max, spec.tv_max):
+            return {}
+        mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
+        div = np.asarray(status.code) != 0
+        per: dict[str, Any] = {"n_train_fallback": int(div.sum())}
+        for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
+                                           ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
+            if getattr(spec, name) == "start":
+                v = factor * np.asarray(mb[key], np.float64)
+                # a figure of 0 (no effort at all on that plant) would leave no room at all
+                per[f"{name}_train"] = np.where(div | ~(v > 0), nominal, v)
+        return per
+
+
+EFFORT_BOUNDS = {b.name: b for b in (Nominal(), PerPlant())}
+
+
+def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
+                 train: Mapping[str, Any] | None = None) -> Scales:
+    """The start gains' `Scales` (DivergenceError, which run and when, if they diverge on the
+    nominal plant); with effort_bounds = "per_plant" and a batch `train`, each training
+    plant's "start" bounds (`PerPlant`)."""
+    reference = shifted_reference(setup)
+    user = None if reference is None else UserError(  # reported beside, not tuned
+        jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)), sim.n_steps, reference)
+    metrics, status = _start_metrics(setup, sim.program(), user)
+    if int(status.code) != 0:
+        raise start_divergence(sim, status)
+    m = {k: float(v) for k, v in metrics.items()}
+
+    def bound(v, start):  # "start", a number or None
+        return start if v == "start" else None if v is None else float(v)
+
+    u_max = bound(spec.u_max, m["max_abs_u"])
+    tv_max = bound(spec.tv_max, spec.tv_max_factor * m["tv_u"])
+    for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
+                      ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
+        if getattr(spec, name) and not m[key] > 0:
+            raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
+                              f"{m[key]:g}, which cannot normalise the term")
+    tiny = 1e-300
+    per = EFFORT_BOUNDS[spec.effort_bounds].train_bounds(setup, sim, spec, train, u_max, tv_max)
+    return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
+                  l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
+                  u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, start=m, **per)
+
+
+def start_divergence(sim: RunSpec, status) -> DivergenceError:
+    """The error of start gains that diverge on the nominal plant (their run's `Status`):
+    which run, when and how, as `divergence_report` says it."""
+    step = int(status.step)
+    seen = SimpleNamespace(status=status, t_diverged=step * float(sim.dt) if step >= 0
+                           else np.inf)
+    how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
+    return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
+                           f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
+                           f"tuning needs a stable start (revise the gains, dt or tau)", None)
