@@ -259,11 +259,6 @@ def _x_shape(problem: Problem) -> tuple[int, int]:
 
 
 @eqx.filter_jit
-def _r(problem: Problem, v):
-    return _flat(problem, v)
-
-
-@eqx.filter_jit
 def _rj(problem: Problem, v):
     """(r, dr/dv): one JVP a column, vectorised over the columns."""
     r = _flat(problem, v)
