@@ -2,6 +2,7 @@
 requirement penalties and checks."""
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -323,6 +324,26 @@ def test_heldout_box_varies_the_plant_and_the_disturbance(setup):
     assert (box["plant.dbar_amp"].low, box["plant.dbar_amp"].high) == (0.0, 0.2)
     assert [r.name for r in cfg.robust.ranges] == ["hysteresis.alpha", "hysteresis.lam",
                                                     "hysteresis.psi"]  # training: as before
+
+
+def test_the_delay_margin_judges_as_the_search_judges_its_delayed_loop():
+    """One criterion for one sample of delay (issue 40): the report's delay margin fails a
+    delayed loop exactly where the search's delayed check does (L-inf within delay_factor x,
+    TV(u) within delay_tv_factor x its bound); without a TV(u) bound, by chattering."""
+    from types import SimpleNamespace
+
+    from tuning import margins
+
+    cfg = SimpleNamespace(objective=tuning.TuningConfig().objective)
+    bounded = SimpleNamespace(cfg=cfg, scales=SimpleNamespace(tv_max=50.0))
+    judge = functools.partial(margins.delay_judge, bounded)
+    assert judge(1e-3, 69.9, 9.0, 5e-4) is None  # 2 x and 1.398 x: holds, however it chatters
+    assert judge(1e-3, 70.5, 1.0, 5e-4) == "TV(u) 1.41 x its bound"
+    assert judge(1.1e-3, 60.0, 1.0, 5e-4) == "error 2.2 x the loop tuned's"
+    assert judge(None, None, None, 5e-4) == "diverged"
+    free = SimpleNamespace(cfg=cfg, scales=SimpleNamespace(tv_max=None))
+    assert margins.delay_judge(free, 1e-3, 1e4, 1.2, 5e-4) is None
+    assert margins.delay_judge(free, 1e-3, 1e4, 1.6, 5e-4) == "chatters (index 1.6)"
 
 
 def test_margin_sweep_times_and_failures():

@@ -6,14 +6,17 @@
                                    the held-out batch at the tuned Ts and above, the largest Ts
                                    up to which the gains track (`ts_sweep.judge`)
     delays(problem, z0, z1)        the input delay in samples, from the loop's own up to
-                                   DELAY_MAX: the largest up to which the gains track
+                                   DELAY_MAX: the largest up to which the gains hold
+                                   (`delay_judge`)
     long_run(problem, z0, z1)      LONG_FACTOR x T with measurement noise (LONG_NOISE) and a
                                    bounded disturbance (LONG_DBAR sin t): windowed L-inf and
                                    the peaks of the adaptive estimates (drift)
 
-"Tracks" is one criterion everywhere (`ts_sweep.judge`): no divergence, a windowed L-inf at
-most `ts_sweep.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
-(`dscjax.metrics.chatters`). Each returns a JSON-able dict; `markdown(margins)` is report.md's
+"Tracks" at a sample time (`ts_sweep.judge`): no divergence, a windowed L-inf at most
+`ts_sweep.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
+(`dscjax.metrics.chatters`). At a delay, the search's own delayed check (`delay_judge`): no
+divergence, the windowed L-inf at most `delay_factor` x and TV(u) at most `delay_tv_factor`
+x its bound (no bound: no chattering), so gains the search accepts hold one sample. Each returns a JSON-able dict; `markdown(margins)` is report.md's
 section.
 """
 
@@ -154,33 +157,54 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
     return out
 
 
+def delay_judge(problem, linf, tv, index, reference) -> str | None:
+    """Why a delayed loop fails the search's delayed check, in words, or None where it holds:
+    diverged, TV(u) over `delay_tv_factor` x the TV(u) bound (without a bound: chattering,
+    `ts_sweep.judge`), or a windowed L-inf over `delay_factor` x `reference` (the same gains'
+    in the loop tuned)."""
+    spec, bound = problem.cfg.objective, problem.scales.tv_max
+    if linf is None or tv is None:
+        return "diverged"
+    if bound is None:
+        return ts_sweep.judge(linf, index, None if reference is None else
+                              reference * spec.delay_factor / ts_sweep.TRACK_FACTOR)
+    if not tv <= spec.delay_tv_factor * bound:
+        return f"TV(u) {tv / bound:.3g} x its bound"
+    if reference is not None and not linf <= spec.delay_factor * reference:
+        return f"error {linf / reference:.3g} x the loop tuned's"
+    return None
+
+
 def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     """The delay margin: the loop tuned with an input delay of d samples, d from its own delay
-    up to DELAY_MAX, each gain set judged (`ts_sweep.judge`) against its windowed L-inf in the
+    up to DELAY_MAX, each gain set judged by `delay_judge` against its windowed L-inf in the
     loop tuned (`nominal`, {tag: the nominal plant's figures}, which are the row of its own
-    delay); the largest d up to which each tracks (None: not even at its own delay). The
+    delay); the largest d up to which each holds (None: not even at its own delay). The
     delay fixes the program's shape, so each d compiles one program: the sweep stops at the
-    first d at which neither gain set tracks. None for a continuous tuned loop."""
+    first d at which neither gain set holds. None for a continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None
     gains = gain_rows(problem, z0, z1)
     own = int(sim.delay)
+    figures = (*ts_sweep.FIGURES, "tv_u")
     ref = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
-                           **{tag: {k: [] for k in (*ts_sweep.FIGURES, "why_not")}
-                              for tag in NAMES}}
+                           "linf_factor": problem.cfg.objective.delay_factor,
+                           "tv_limit": None if problem.scales.tv_max is None else
+                           problem.cfg.objective.delay_tv_factor * problem.scales.tv_max,
+                           **{tag: {k: [] for k in (*figures, "why_not")} for tag in NAMES}}
 
     def add(d, rows):
         out["delays"].append(d)
         for tag, r in zip(NAMES, rows, strict=True):
-            for k in ts_sweep.FIGURES:
+            for k in figures:
                 out[tag][k].append(r[k])
-            out[tag]["why_not"].append(ts_sweep.judge(r["linf_error_window"],
-                                                      r["chattering_index"], ref[tag]))
+            out[tag]["why_not"].append(delay_judge(problem, r["linf_error_window"], r["tv_u"],
+                                                   r["chattering_index"], ref[tag]))
 
     add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
-               for k in ts_sweep.FIGURES} for tag in NAMES])
+               for k in figures} for tag in NAMES])
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
@@ -188,7 +212,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
                                            spec=sim.replace(delay=d, refine=0)))
         div = np.asarray(tr.diverged)
         add(d, [{k: None if div[i] else float(np.asarray(tr.metrics[k])[i])
-                 for k in ts_sweep.FIGURES} for i in range(len(NAMES))])
+                 for k in figures} for i in range(len(NAMES))])
     out["largest"] = {}
     for tag in NAMES:
         last = None
@@ -319,18 +343,22 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                                             "do NOT track at every Ts of the range"))
     dl = margins.get("delay")
     if dl is not None:
+        tv = ("" if dl["tv_limit"] is None else
+              f" and TV(u) at most {dl['tv_limit']:.4g} (`delay_tv_factor` x its bound)")
         lines += ["", f"**Delay margin.** The loop tuned (Ts = {1e3 * dl['sample_time']:g} ms) "
                   f"with the input applied d samples after it was computed, d from the loop's "
-                  f"own delay up to {dl['max']}, until neither gain set tracks (the same "
-                  f"criterion, against each set's own delay):", "",
-                  "| delay d [samples] | gains | L∞ e on [t0, T] | TV(u) on [t0, T] | "
-                  "chattering index | tracks |", "|---|---|---|---|---|---|"]
+                  f"own delay up to {dl['max']}, until neither gain set holds, judged as the "
+                  f"search judges its delayed loop: windowed L-inf at most "
+                  f"{dl['linf_factor']:g} x the same gains' at the loop's own delay" + tv
+                  + ("" if dl["tv_limit"] is not None else " and no chattering") + ":", "",
+                  "| delay d [samples] | gains | L∞ e on [t0, T] | TV(u) | "
+                  "chattering index | holds |", "|---|---|---|---|---|---|"]
         for i, d in enumerate(dl["delays"]):
             for tag in NAMES:
                 r = dl[tag]
                 why = r["why_not"][i]
                 lines.append(f"| {d} | {tag} | {_f(r['linf_error_window'][i])} | "
-                             f"{_f(r['tv_u_window'][i])} | {_f(r['chattering_index'][i], 3)} | "
+                             f"{_f(r['tv_u'][i])} | {_f(r['chattering_index'][i], 3)} | "
                              + ("yes" if why is None else f"**no**: {why}") + " |")
         lines.append("")
         lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
@@ -363,6 +391,6 @@ def delay_words(dl: dict[str, Any], tag: str) -> str:
     """The delay margin of one gain set in words."""
     last, own = dl["largest"][tag], dl["delays"][0]
     if last is None:
-        return f"do not track even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
+        return f"do not hold even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
     more = " (the largest tried)" if last == dl["delays"][-1] and last >= dl["max"] else ""
-    return f"track up to an input delay of {last} sample(s){more}"
+    return f"hold up to an input delay of {last} sample(s){more}"

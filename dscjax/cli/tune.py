@@ -367,8 +367,12 @@ def margin_lines(margins, nominal) -> list[str]:
     if dl is not None:
         from tuning.margins import delay_words
 
-        out.append(f"delay margin at Ts = {1e3 * dl['sample_time']:g} ms: start gains "
-                   f"{delay_words(dl, 'start')}; tuned gains {delay_words(dl, 'tuned')}")
+        tv = ("no chattering" if dl["tv_limit"] is None else
+              f"TV(u) within {dl['tv_limit']:.4g}")
+        out.append(f"delay margin at Ts = {1e3 * dl['sample_time']:g} ms (the search's delayed "
+                   f"check: error within {dl['linf_factor']:g} x the loop tuned's, {tv}): "
+                   f"start gains {delay_words(dl, 'start')}; tuned gains "
+                   f"{delay_words(dl, 'tuned')}")
     lr = margins["long_run"]
 
     def fig(v):
