@@ -32,9 +32,6 @@ from dscjax.validation import ConfigError
 DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
              "controller.gamma_zeta", "controller.gamma_d", "controller.eta", "controller.sigma",
              "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
-# Initial estimates: optional ("and optionally the initial estimates"). theta_hat0 is signed.
-DSC_INITIAL_ESTIMATES = ("controller.theta_hat0", "controller.phi_hat0",
-                         "controller.zeta_hat0", "controller.d_hat0")
 # tuned in linear coordinates by default (`dscjax.selection.Linear`): signed numbers
 SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
 AGGREGATES = ("mean", "cvar", "max")

@@ -16,8 +16,8 @@
 `ts_sweep.TRACK_FACTOR` x the same gains' figure in the loop tuned, and no chattering
 (`dscjax.metrics.chatters`). At a delay, the search's own delayed check (`delay_judge`): no
 divergence, the windowed L-inf at most `delay_factor` x and TV(u) at most `delay_tv_factor`
-x its bound (no bound: no chattering), so gains the search accepts hold one sample. Each returns a JSON-able dict; `markdown(margins)` is report.md's
-section.
+x its bound (no bound: no chattering), so gains the search accepts hold one sample. Each
+returns a JSON-able dict; `markdown(margins)` is report.md's section.
 """
 
 from __future__ import annotations

@@ -101,20 +101,6 @@ def positive_float(text: str) -> float:
     return x
 
 
-def numbers(text: str) -> float | list[float]:
-    """An argparse type: one finite number, or several separated by commas (0.01,0,0.02), a
-    list; anything else is refused with the value."""
-    parts = text.split(",")
-    try:
-        values = [float(part) for part in parts]
-    except ValueError:
-        values = []
-    if not values or not all(math.isfinite(x) for x in values):
-        raise argparse.ArgumentTypeError(f"must be one finite number or several separated by "
-                                         f"commas, e.g. 0.01,0.02 (got {text!r})")
-    return values[0] if len(parts) == 1 else values
-
-
 class Once(argparse._StoreAction):
     """argparse's "store", refusing an option given twice (one line, exit 2) instead of
     silently keeping the last value. The parsers of the `dscjax` command (`cli.main`) use it

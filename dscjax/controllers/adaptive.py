@@ -5,7 +5,7 @@ differ only in their surfaces (S_i, or z_i = x_i - alpha_(i-1): `s` below) and i
 v_i that multiplies phi_hat_i (a filter derivative, or alpha_i').
 """
 
-from typing import Literal, get_args
+from typing import Literal
 
 import equinox as eqx
 import jax
@@ -18,7 +18,6 @@ ALL = slice(None)  # stage index selecting every stage at once (the vectorised l
 # The switching function of the robust term: sgn(s_n) as printed in (30), sat(s_n/width) as
 # in the paper's simulation, or a smooth saturation (C-infinity, for RK4's order and gradients).
 RobustTerm = Literal["sat", "sgn", "smooth"]
-ROBUST_TERMS: tuple[str, ...] = get_args(RobustTerm)
 
 
 class AdaptiveLaws(Controller):

@@ -19,7 +19,7 @@ As in (79), no cross term -z_(i-1) in alpha_i and no damping of the nominal mode
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal, NamedTuple, get_args
+from typing import ClassVar, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -32,7 +32,6 @@ from dscjax.model import option, positive
 
 # alpha_(n-1)' by nested forward-mode derivatives (any n), or written out (n = 2 only)
 Derivative = Literal["autodiff", "hand"]
-DERIVATIVES: tuple[str, ...] = get_args(Derivative)
 
 
 class BacksteppingState(NamedTuple):

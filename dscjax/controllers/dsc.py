@@ -33,7 +33,6 @@ from dscjax.xla import barrier
 Variant = Literal["full", "no_dhat", "no_dhat_no_zeta"]
 VARIANTS: tuple[str, ...] = get_args(Variant)
 InitMode = Literal["paper", "linf", "zero_surfaces"]
-INIT_MODES: tuple[str, ...] = get_args(InitMode)
 
 
 class DSCState(NamedTuple):

@@ -83,16 +83,6 @@ class ReplayCMA:
     def sigma(self) -> float:
         return float(self.es.sigma)
 
-    @property
-    def pc(self) -> np.ndarray:
-        """The evolution path p_c (n,)."""
-        return np.asarray(self.es.pc, float)[:self.n]
-
-    @property
-    def covariance(self) -> np.ndarray:
-        """The covariance matrix C (n, n)."""
-        return np.asarray(self.es.sm.covariance_matrix, float)[:self.n, :self.n]
-
     def stop(self) -> dict:
         return self.es.stop()
 
