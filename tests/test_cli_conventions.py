@@ -415,13 +415,17 @@ def test_an_interrupted_reproduce_names_the_figures_it_kept(tmp_path, capsys, mo
 @pytest.mark.parametrize(("signum", "code", "name"), [(signal.SIGTERM, 143, "SIGTERM"),
                                                        (signal.SIGHUP, 129, "SIGHUP")])
 def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, capsys,
-                                                  monkeypatch):
+                                                  monkeypatch, request):
     import dscjax.cli.simulate
     from dscjax.progress import Abort, Terminated, critical, handle_interrupts
 
     def send():
         signal.pthread_kill(threading.main_thread().ident, signum)
 
+    # the disposition a terminal gives (under nohup SIGHUP is ignored, and stays ignored: the
+    # next test), restored after
+    previous = signal.signal(signum, signal.SIG_DFL)
+    request.addfinalizer(lambda: signal.signal(signum, previous))
     before = signal.getsignal(signum)
     with handle_interrupts():  # inside a step: deferred to its end, with its number
         with pytest.raises(Terminated) as info, critical():
