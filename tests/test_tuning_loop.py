@@ -97,7 +97,7 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
             "(the largest tried)") in stdout
     assert "  20 s run with noise and a disturbance: L-inf error " in stdout
     assert "adaptive estimates not judged (a run under 100 s) (tuned gains)" in stdout
-    heldout = json.loads((out / "report.json").read_text())["heldout"]
+    heldout = rep["heldout"]
     for tag in ("start", "tuned"):
         h = heldout[tag]
         assert h["n_tracked"] + h["n_refined"] + h["n_diverged"] == h["n"] == 4
