@@ -71,14 +71,18 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
     obs_one = jax.eval_shape(lambda: f(dt, y_one, unravel_args(args_flat), b_one)[1])
     ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc_one)
 
-    def member(t, y_row, b_col):
-        dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(args_flat), unravel_b(b_col))
-        return _scalars(dy), _scalars(obs)
+    def rows(t, y, a_flat, b):
+        def one(y_row, b_col):
+            dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(a_flat), unravel_b(b_col))
+            return _scalars(dy), _scalars(obs)
+        return jax.vmap(one, in_axes=(0, -1), out_axes=0)(y, b)
 
-    f_rows = jax.vmap(member, in_axes=(None, 0, -1), out_axes=0)
+    # one trace of the field for every call with the same shapes (RK4's four stages, the
+    # last observation): an inner jit, inlined by XLA
+    f_rows = jax.jit(rows)
 
     def f_obs(t, y):
-        return f_rows(t, y, b_flat)
+        return f_rows(t, y, args_flat, b_flat)
 
     def rates_member(t, y_row, obs_row, b_col):
         return _scalars(rates(t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
@@ -127,10 +131,10 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         y_next = tuple(jnp.where(keep, a, b) for a, b in zip(y_next, y, strict=True))
         return (k + 1, y_next, acc, code, bad), obs
 
-    obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
     init = (jnp.zeros((), jnp.int32), y_init, acc_init,
             jnp.full((n_batch,), scan.STATUS_OK, jnp.int32), jnp.full((n_batch,), -1, jnp.int32))
-    with barriers(True):
+    with barriers(True):  # (f_rows is traced once, here: with its barriers)
+        obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
         carry, (ys, obs) = scan.saving_scan(
             step, init, obs_zero, n_steps, save_every,
             lambda c, o: (ys_c.stack(c[1]), obs_c.stack(o)), gradient.every)

@@ -104,9 +104,18 @@ class _Problem:
         obs_proto = jax.eval_shape(lambda: f(jnp.zeros((), dtype), y0, args)[1])
         self.op = _Packer(scan.zeros(obs_proto))
         self.dtype = dtype
+        # one trace of the field for every call with the same shapes (RK4's four stages, the
+        # last observation, the linearisation): an inner jit, inlined by XLA
+        self._packed_field = jax.jit(self._field)
+
+    def _field(self, t, y, a):
+        dy, obs = self.f(t, self.yp.unpack(y), self.ap.unpack(a))
+        return self.yp.pack(dy), self.op.pack(obs)
 
     def field(self, t, y, a, packed=True):
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
+        if packed:
+            return self._packed_field(t, y, a)
         dy, obs = self.f(t, self.yp.unpack(y), self.ap.unpack(a) if packed else a)
         return self.yp.pack(dy), self.op.pack(obs)
 
