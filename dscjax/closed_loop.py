@@ -20,6 +20,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
+from dscjax import xla
 from dscjax.controllers.base import Controller
 from dscjax.hysteresis import Hysteresis
 from dscjax.plant import Plant
@@ -167,7 +168,7 @@ def local_eigenvalues(setup: Setup, t, state: State) -> np.ndarray:
     """Eigenvalues of the closed loop's Jacobian dF/dX at one time and state."""
     field = _flat_field(setup)
     y = ravel_pytree(state)[0]
-    jac = jax.jit(jax.jacfwd(field))(y, jnp.asarray(t, y.dtype))
+    jac = xla.jit(jax.jacfwd(field), lean=True)(y, jnp.asarray(t, y.dtype))
     return np.linalg.eigvals(np.asarray(jac))
 
 
@@ -186,7 +187,7 @@ def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
     states = jax.tree.map(lambda a: a[::every], states_of(traj))
     ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states)
     ts = jnp.asarray(traj.t)[::every]
-    jacs = jax.jit(jax.vmap(jax.jacfwd(field)))(ys, ts)
+    jacs = xla.jit(jax.vmap(jax.jacfwd(field)), lean=True)(ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
     radius = np.abs(ev).max(axis=1)
     max_real = ev.real.max(axis=1)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import params, validation
+from dscjax import params, validation, xla
 from dscjax.closed_loop import Setup
 from dscjax.metrics import Power, SmoothMax
 from dscjax.params import Param
@@ -127,7 +127,7 @@ def _metrics(z, selection, setup, spec, overrides, lp_order, metrics):
     return jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics]), traj.status
 
 
-@functools.partial(jax.jit, static_argnums=(1, 6))
+@functools.partial(xla.jit, lean=True, static_argnums=(1, 6))
 def _jacobian(z, *args):
     """(metrics, d metrics / d z (k, d), status): one forward pass, then one pull-back per
     metric (its unit cotangent), vectorised."""
@@ -136,7 +136,7 @@ def _jacobian(z, *args):
     return k, grad, status
 
 
-_metrics_jit = jax.jit(_metrics, static_argnums=(1, 6))
+_metrics_jit = xla.jit(_metrics, lean=True, static_argnums=(1, 6))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -256,9 +256,16 @@ def _run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
     return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
 
 
-_simulate = jax.jit(_run_reported)
-# 512-bit vectors on AVX-512 CPUs when called at the top level (dscjax.xla.jit)
+# at the top level (dscjax.xla.jit): one trajectory and a small batch compile lean, a larger
+# batch with 512-bit vectors on AVX-512 CPUs
+_simulate = xla.jit(_run_reported, lean=True)
 _simulate_batch = xla.jit(_run_reported)
+
+
+def _batch_program(overrides):
+    """The compiled batch for these overrides' rows (`xla.LEAN_ROWS`)."""
+    rows = np.shape(next(iter(jax.tree.leaves(overrides)), np.zeros(1)))[0]
+    return _simulate if rows <= xla.LEAN_ROWS else _simulate_batch
 
 
 def simulate(
@@ -446,7 +453,7 @@ def simulate_batch(
     overrides = dict(overrides)
 
     def level(j, ov):
-        return _simulate_batch(setup, level_spec(spec, j).program(), ov)
+        return _batch_program(ov)(setup, level_spec(spec, j).program(), ov)
 
     if not validation.is_concrete((setup, spec, overrides)):
         divergence.refuse_traced_refinement(spec, "simulate_batch")

@@ -1,8 +1,14 @@
-"""How dscjax's programs are compiled: vector width, fusion barriers, the persistent cache.
+"""How dscjax's programs are compiled: fusion emitters, vector width, fusion barriers, the
+persistent cache.
 
-- `compiler_options()`: 512-bit vectors for the batched programs on CPUs with AVX-512, given
-  per compiled function (`jax.jit(f, compiler_options=...)`), never through the environment;
-  a width the user sets in `XLA_FLAGS` wins. `jit` carries them at the top level.
+- `compiler_options()`: 512-bit vectors for the batched programs on CPUs with AVX-512.
+- `lean_options()`: XLA:CPU's loop fusion emitters instead of its MLIR ones, for the programs
+  that run once or a few times (one trajectory, a gradient, a report's check, a batch of at
+  most `LEAN_ROWS` rows): they compile in about half the time and run as fast; a larger
+  batch runs faster with the MLIR emitters (docs/benchmarks.md, "Compilation").
+- Both are given per compiled function (`jax.jit(f, compiler_options=...)`), never through the
+  environment; an option the user sets in `XLA_FLAGS` wins. `jit` carries them at the top
+  level.
 - `barrier` / `barriers`: optimisation barriers, active only while the batched layout is
   traced, so that XLA:CPU computes a shared intermediate once instead of re-fusing it into
   every consumer (docs/architecture.md).
@@ -25,6 +31,9 @@ import jax
 
 OPTION = "xla_cpu_prefer_vector_width"
 WIDE = {OPTION: 512}
+EMITTERS = "xla_cpu_use_fusion_emitters"
+LEAN = {EMITTERS: False}
+LEAN_ROWS = 8  # a batch of at most this many rows compiles lean
 
 
 def cpu_has_avx512(cpuinfo: str = "/proc/cpuinfo") -> bool:
@@ -53,21 +62,34 @@ def compiler_options(environ: Mapping[str, str] = os.environ,
     return dict(WIDE)
 
 
-def jit(fn: Callable, **kwargs) -> Callable:
-    """`jax.jit(fn, **kwargs)` carrying `compiler_options()` when called at the top level.
+def lean_options(environ: Mapping[str, str] = os.environ) -> dict[str, bool]:
+    """The compiler options of dscjax's run-once programs: `LEAN`, unless `XLA_FLAGS` already
+    chooses the fusion emitters (the user's choice wins). Other backends ignore the option."""
+    return {} if EMITTERS in environ.get("XLA_FLAGS", "") else dict(LEAN)
+
+
+def jit(fn: Callable, lean: bool = False, **kwargs) -> Callable:
+    """`jax.jit(fn, **kwargs)` carrying `lean_options()` (lean) or `compiler_options()` when
+    called at the top level.
 
     JAX refuses compiler options on a jit nested in a trace (a user's jit, grad or vmap), so
     there the plain jit is traced into the caller's program instead. `.top` is the top-level
-    compiled function (its cache, e.g. for tests)."""
-    top = jax.jit(fn, compiler_options=compiler_options(), **kwargs)
+    compiled function (its cache, e.g. for tests; `.lower` is its)."""
+    top = jax.jit(fn, compiler_options=lean_options() if lean else compiler_options(), **kwargs)
     nested = jax.jit(fn, **kwargs)
 
     @functools.wraps(fn)
     def call(*args, **kw):
-        traced = any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((args, kw)))
-        return (nested if traced else top)(*args, **kw)
+        if any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves((args, kw))):
+            return nested(*args, **kw)
+        try:
+            return top(*args, **kw)
+        except ValueError as e:  # concrete arguments, but inside a trace all the same
+            if "compiler_options" not in str(e):
+                raise
+            return nested(*args, **kw)
 
-    call.top = top
+    call.top, call.lower = top, top.lower
     return call
 
 
@@ -128,6 +150,6 @@ def enable_compilation_cache(directory: str | Path | None = None,
     return path
 
 
-__all__ = ["CACHE_OPT_OUT", "MIN_COMPILE_TIME_S", "OPTION", "WIDE", "barrier", "barriers",
-           "cache_opted_out", "compiler_options", "cpu_has_avx512", "default_cache_dir",
-           "enable_compilation_cache", "jit"]
+__all__ = ["CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "MIN_COMPILE_TIME_S", "OPTION",
+           "WIDE", "barrier", "barriers", "cache_opted_out", "compiler_options", "cpu_has_avx512",
+           "default_cache_dir", "enable_compilation_cache", "jit", "lean_options"]

@@ -1,10 +1,13 @@
-"""Counting compilations: every trace of a jitted function (each one compiles) by its name,
-as JAX reports them (`jax.monitoring`)."""
+"""Compilations in the tests: `counted` counts every trace of a jitted function (each one
+compiles) by its name, as JAX reports them (`jax.monitoring`); `lean` compiles a test's own
+program as dscjax compiles its run-once programs (`dscjax.xla.jit(fn, lean=True)`)."""
 
 import collections
 import contextlib
 
 from jax import monitoring
+
+from dscjax import xla
 
 TRACE = "/jax/core/compile/jaxpr_trace_duration"
 
@@ -23,3 +26,8 @@ def counted():
         yield seen
     finally:
         monitoring.unregister_event_duration_listener(count)
+
+
+def lean(fn):
+    """`fn` jitted as dscjax's run-once programs are (`dscjax.xla.lean_options`)."""
+    return xla.jit(fn, lean=True)

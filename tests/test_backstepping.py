@@ -136,11 +136,11 @@ def test_backstepping_tracks_at_order_3_and_4(n):
 def test_changing_a_gain_does_not_recompile():
     setup = with_backstepping(dscjax.paper_example())
     dscjax.simulate(setup, t_final=0.01, dt=1e-3)
-    size = simulate_module._simulate._cache_size()
+    size = simulate_module._simulate.top._cache_size()
     other = dscjax.params.set(setup, "controller.k", np.array([8.0, 0.5]))
     other = dscjax.params.set(other, "controller.g_nom", np.array([1.2]))
     dscjax.simulate(other, t_final=0.01, dt=1e-3)
-    assert simulate_module._simulate._cache_size() == size
+    assert simulate_module._simulate.top._cache_size() == size
 
 
 def test_config_round_trip_and_validation():

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 import dscjax
-from dscjax import params
+from dscjax import params, xla
 from dscjax.simulate import _simulate, _simulate_batch
 
 ALPHAS = jnp.array([0.7, 1.0, 1.3])
@@ -50,7 +50,7 @@ def test_jax_vmap_of_simulate(paper_setup):
 
 def test_changing_numbers_does_not_recompile(paper_setup):
     dscjax.simulate(paper_setup, 0.5, 1e-3)
-    before = _simulate._cache_size()
+    before = _simulate.top._cache_size()
     for gain in (8.0, 10.5, 12.0):
         s = params.set_many(paper_setup, {"controller.k": jnp.array([gain, 0.45]),
                                           "hysteresis.alpha": jnp.asarray(gain / 10),
@@ -58,11 +58,12 @@ def test_changing_numbers_does_not_recompile(paper_setup):
         dscjax.simulate(s, 0.5, 1e-3)
         dscjax.simulate(paper_setup, 0.5, 2e-3)  # a new dt is a traced number too... but
     # ...t_final/dt changes the step count (static): 0.5/2e-3 = 250 steps is one more compile
-    assert _simulate._cache_size() == before + 1
+    assert _simulate.top._cache_size() == before + 1
 
-    dscjax.simulate_batch(paper_setup, {"controller.k": jnp.ones((4, 2))}, 0.5, 1e-3)
+    rows = xla.LEAN_ROWS + 1  # (a smaller batch runs _simulate's lean program)
+    dscjax.simulate_batch(paper_setup, {"controller.k": jnp.ones((rows, 2))}, 0.5, 1e-3)
     b_before = _simulate_batch.top._cache_size()
-    dscjax.simulate_batch(paper_setup, {"controller.k": 2 * jnp.ones((4, 2))}, 0.5, 1e-3)
+    dscjax.simulate_batch(paper_setup, {"controller.k": 2 * jnp.ones((rows, 2))}, 0.5, 1e-3)
     assert _simulate_batch.top._cache_size() == b_before
 
 

@@ -5,14 +5,17 @@ differentiation of the scan and central finite differences of the tuning objecti
 memory against the horizon: experiments/bench_gradient.py.)"""
 
 import dataclasses
+import functools
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+from compilations import lean
 from jax.flatten_util import ravel_pytree
 
 import dscjax
 import tuning
+from dscjax import xla
 from dscjax.integrate import Checkpointed
 from dscjax.runspec import RunSpec
 
@@ -53,8 +56,8 @@ def test_one_trajectory_gradient_equals_autodiff_and_finite_differences():
     obj = _problem().objective
     loss = lambda z: obj.evaluate(z)[0]  # noqa: E731
     ref_obj = _with(obj, gradient=Checkpointed(every=None))
-    ref = jax.jit(jax.jacfwd(lambda z: ref_obj.evaluate(z)[0]))  # JAX's forward mode of the scan
-    grad, fwd, value = jax.jit(jax.grad(loss)), jax.jit(jax.jacfwd(loss)), jax.jit(loss)
+    ref = lean(jax.jacfwd(lambda z: ref_obj.evaluate(z)[0]))  # JAX's forward mode of the scan
+    grad, fwd, value = lean(jax.grad(loss)), lean(jax.jacfwd(loss)), lean(loss)
     points, unravel = _points(_problem(), 2)
     for z in points:
         g_ref = ref(z)
@@ -81,7 +84,7 @@ def test_batch_gradient_through_the_public_api_equals_single_plant_gradients():
         return jnp.mean(dscjax.simulate_batch(s, {"hysteresis.alpha": alphas}, T, 1e-3,
                                               refine=0).metrics["l2_error"])
 
-    @jax.jit
+    @functools.partial(xla.jit, lean=True)
     def single_grad(k, alpha):
         def loss(k):
             s = dscjax.params.set_many(setup, {"controller.k": k, "hysteresis.alpha": alpha})
@@ -89,5 +92,5 @@ def test_batch_gradient_through_the_public_api_equals_single_plant_gradients():
         return jax.grad(loss)(k)
 
     k = jnp.asarray(setup.controller.k) * 1.1
-    g = jax.jit(jax.grad(batch_loss))(k)
+    g = lean(jax.grad(batch_loss))(k)
     _close(g, np.mean([single_grad(k, a) for a in alphas], axis=0))

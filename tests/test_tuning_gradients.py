@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compilations import lean
 from jax.flatten_util import ravel_pytree
 
 import dscjax
@@ -60,13 +61,13 @@ def points(problem):
 @pytest.fixture(scope="module")
 def jacobians(problem, points):
     """(points, metrics, params) by forward mode, all points in one call."""
-    return np.asarray(jax.jit(jax.vmap(jax.jacfwd(_metrics_fn(problem))))(points))
+    return np.asarray(lean(jax.vmap(jax.jacfwd(_metrics_fn(problem))))(points))
 
 
 @pytest.fixture(scope="module")
 def fd(problem, points):
     """Central differences (points, metrics, params) at step h: one vmapped call per h."""
-    f = jax.jit(jax.vmap(_metrics_fn(problem)))
+    f = lean(jax.vmap(_metrics_fn(problem)))
     n = points.shape[1]
 
     def at(h):
@@ -106,8 +107,8 @@ def test_exact_linf_gradient_where_the_max_is_unique(problem, points, jacobians,
 
 def test_checkpointed_and_plain_reverse_gradients_agree(problem, points, jacobians):
     z = points[2]
-    plain = np.asarray(jax.jit(jax.grad(_metrics_fn(problem, extra=False)))(z))
-    ckpt = np.asarray(jax.jit(jax.grad(_metrics_fn(problem, extra=False, checkpoint_every=100)))(
+    plain = np.asarray(lean(jax.grad(_metrics_fn(problem, extra=False)))(z))
+    ckpt = np.asarray(lean(jax.grad(_metrics_fn(problem, extra=False, checkpoint_every=100)))(
         z))
     scale = np.max(np.abs(plain))
     assert np.max(np.abs(ckpt - plain)) <= 1e-13 * scale  # same numbers, rounding only
@@ -122,7 +123,7 @@ def test_loss_and_gradient_stay_finite_through_a_diverging_trajectory(problem):
     z = dict(problem.z0)
     z["controller.k"] = jnp.log(jnp.array([1e4, 0.45]))
     obj = problem.objective
-    ((loss, aux), grads), per = jax.jit(lambda z_: (Forward().value_and_grad(obj, z_),
+    ((loss, aux), grads), per = lean(lambda z_: (Forward().value_and_grad(obj, z_),
                                                     obj.per_plant(z_)))(z)
     assert bool(per["diverged"]) and float(per["loss"]) == float(loss)
     assert np.isnan(float(per["linf_error_window"])) and np.isnan(float(per["sampled_tv_u"]))
@@ -162,7 +163,7 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     def both(z_):
         return Plants().value_and_grad(obj, z_), Forward().value_and_grad(obj, z_)
 
-    ((_, aux), g), ((_, aux_f), g_f) = jax.jit(both)(z)
+    ((_, aux), g), ((_, aux_f), g_f) = lean(both)(z)
     g, g_f = ravel_pytree(g)[0], ravel_pytree(g_f)[0]
     assert np.max(np.abs(np.asarray(g - g_f))) <= 1e-10 * np.max(np.abs(np.asarray(g_f)))
     assert bool(aux["feasible"]) == bool(aux_f["feasible"])

@@ -28,6 +28,38 @@ def test_wide_vectors_only_when_wanted(env, avx512, wide):
     assert xla.compiler_options(env, has_avx512=avx512) == (xla.WIDE if wide else {})
 
 
+@pytest.mark.parametrize("env,lean", [
+    ({}, True),
+    ({"XLA_FLAGS": "--xla_cpu_use_fusion_emitters=true"}, False),  # the user's choice wins
+    ({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}, True),
+])
+def test_lean_emitters_unless_the_user_chose(env, lean):
+    assert xla.lean_options(env) == (xla.LEAN if lean else {})
+
+
+def test_a_lean_program_called_inside_a_trace_joins_the_callers_program():
+    """JAX refuses compiler options on a nested jit, also when its arguments are concrete."""
+    f = xla.jit(lambda x: jnp.sin(x) * 2.0, lean=True)
+    assert float(jax.jit(lambda x: f(2.0) + f(x))(1.0)) == pytest.approx(
+        2 * (np.sin(2.0) + np.sin(1.0)), rel=1e-15)
+    assert float(jax.grad(f)(1.0)) == pytest.approx(2 * np.cos(1.0), rel=1e-15)
+
+
+def test_lean_emitters_change_no_result_beyond_rounding(paper_setup):
+    """One trajectory, continuous and sampled, compiled as dscjax compiles it (lean: the loop
+    emitters) and with XLA's default emitters: the same trajectories and metrics to rounding
+    (1e-10 of each quantity's scale; RK4's own error at this step is orders larger)."""
+    setup = dscjax.canonical(paper_setup)
+    for sample_time in (None, 2e-3):
+        spec = RunSpec.make(0.5, 1e-3, save_every=50, window_start=0.25,
+                            sample_time=sample_time).program()
+        runs = [jax.jit(_run_reported, compiler_options=o)(setup, spec, None, None)
+                for o in (xla.LEAN, {xla.EMITTERS: True})]
+        for a, b in zip(*(jax.tree.leaves(r) for r in runs), strict=True):
+            a, b = np.asarray(a), np.asarray(b)
+            np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-10 * np.max(np.abs(b)))
+
+
 def test_cpuinfo_parsing(tmp_path):
     info = tmp_path / "cpuinfo"
     info.write_text("processor\t: 0\nflags\t\t: fpu sse2 avx2 avx512f avx512bw\n")

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import xla
 from dscjax.selection import Log, run_at
 
 STEP = 0.01  # the relative change of one tuned number a constraint should survive
@@ -47,7 +48,7 @@ def _figures(z, setup, loops, selection, keys):
             jnp.stack([r.diverged for r in runs]))
 
 
-@functools.partial(jax.jit, static_argnums=(3, 4))
+@functools.partial(xla.jit, lean=True, static_argnums=(3, 4))
 def _jacobian(z, *args):
     """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): one forward pass, then
     one pull-back per figure (its unit cotangent), vectorised."""

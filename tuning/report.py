@@ -5,6 +5,7 @@ tuned numbers (`tuning.elasticity`); report.md, report.json and PNG figures."""
 
 from __future__ import annotations
 
+import functools
 import time
 from pathlib import Path
 from typing import Any
@@ -13,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, metrics, ts_sweep, validation
+from dscjax import files, metrics, ts_sweep, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
@@ -26,7 +27,7 @@ from tuning.report_plots import draw
 from tuning.runner import simulate_command
 
 
-@jax.jit
+@functools.partial(xla.jit, lean=True)
 def _per_plant(objective, z, overrides):
     """`Objective.per_plant`, compiled once per structure (the objective an argument)."""
     return objective.per_plant(z, overrides)

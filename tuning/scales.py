@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import xla
 from dscjax.closed_loop import Setup
 from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import DivergenceError, divergence_report, run
@@ -63,7 +64,7 @@ def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
 
 
 # one compilation per setup and run structure (adversarial tuning builds a problem a round)
-_start_metrics = jax.jit(_start_run)
+_start_metrics = xla.jit(_start_run, lean=True)
 
 
 @dataclasses.dataclass(frozen=True)

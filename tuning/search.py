@@ -63,7 +63,7 @@ def _batch(obj, flat_pts):
             "terms": {k: per(v) for k, v in terms.items()}}
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(xla.jit, lean=True, static_argnums=0)
 def _gradient(mode, obj, flat_pts):
     """(M, n) flat z -> per-point loss, feasibility, figures and flat gradient, exact, in the
     AD `mode` (the points one after the other)."""

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import xla
 from dscjax.hysteresis.base import Hysteresis
 from dscjax.integrate import Checkpointed, integrate
 
@@ -47,7 +48,7 @@ def _sine(t, amp_omega):
     return amplitude * jnp.sin(om * t)
 
 
-@functools.partial(jax.jit, static_argnames=("n_steps",))
+@functools.partial(xla.jit, lean=True, static_argnames=("n_steps",))
 def _sine_loops(model, amps, om, dt, n_steps):
     return jax.vmap(lambda a: _open_loop(model, _sine, (a, om), n_steps, dt))(amps)
 
@@ -82,4 +83,4 @@ def _open_loop(model, u_of_t, args, n_steps, dt):
     return res.obs
 
 
-_open_loop_jit = jax.jit(_open_loop, static_argnums=(1, 3))
+_open_loop_jit = xla.jit(_open_loop, lean=True, static_argnums=(1, 3))

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import xla
 from dscjax.closed_loop import State, prepared, vector_field
 from dscjax.simulate import canonical
 from dscjax.validation import ConfigError
@@ -231,7 +232,7 @@ def _chunked(fn, args, t, X, chunk=_CHUNK):
     return jax.tree.map(lambda *a: np.concatenate(a)[:n_pts], *outs)
 
 
-@functools.partial(jax.jit, static_argnums=0)
+@functools.partial(xla.jit, lean=True, static_argnums=0)
 def _chunk_eval(fn, args, t, X):
     return jax.vmap(lambda tt, XX: fn(*args, tt, XX))(t, X)
 
