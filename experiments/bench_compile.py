@@ -91,13 +91,17 @@ def measure(argv) -> int:
     return 0
 
 
+def _options(argv):
+    p = parser(__doc__)
+    p.add_argument("--repeats", type=positive(), default=None, help="compiles per program")
+    return p.parse_args(argv)
+
+
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv[:1] == ["--child"]:
         return measure(argv[1:])
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="compiles per program")
-    a = p.parse_args(argv)
+    a = _options(argv)
     one_t, batch_t = (2.0, 1.0) if a.quick else (20.0, 5.0)
     sizes = (4, 16) if a.quick else (4, 8, 16, 64, 256)
     repeats = a.repeats or (2 if a.quick else 3)

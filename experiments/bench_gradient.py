@@ -14,9 +14,11 @@ at 1 ms (the controller held between samples):
 - the mean of J over a batch of plants (alpha, lam, psi +-30 %): reverse mode through the
   scan checkpointed every 100 steps (the batch's default).
 
-Every program is compiled in a fresh process without a persistent compilation cache (cold:
-its compile time is the first call's), which then times it interleaved with its forward run
-(A B A B ...), so that each ratio comes from one process; peak RSS per process.
+The programs of one trajectory compile lean, those of the batch with XLA's defaults, as
+dscjax compiles its own (`dscjax.xla`). Every program is compiled in a fresh process without a
+persistent compilation cache (cold: its compile time is the first call's), which then times
+it interleaved with its forward run (A B A B ...), so that each ratio comes from one process;
+peak RSS per process.
 """
 
 from __future__ import annotations
@@ -38,6 +40,7 @@ from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
+from dscjax import xla  # noqa: E402
 from dscjax.integrate import Checkpointed, TimeParallel  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
 from tuning.runner import PAPER_PLANT_FREEZE  # noqa: E402
@@ -86,7 +89,9 @@ def measure(argv) -> int:
         ("forward", J),)
     for name, fn in fns:
         t0 = time.perf_counter()
-        programs[name] = jax.jit(fn).lower(z0).compile()
+        # as dscjax compiles them (dscjax.xla): one trajectory lean, a batch of 256 not
+        options = {} if is_batch else xla.lean_options()
+        programs[name] = jax.jit(fn, compiler_options=options).lower(z0).compile()
         out[f"compile_{name}_s"] = time.perf_counter() - t0
     bench = Bench("gradient-child", "")
     times = bench.interleaved({k: (lambda p=p: p(z0)) for k, p in programs.items()}, repeats)

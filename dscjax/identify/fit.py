@@ -15,6 +15,7 @@ coordinates (their intervals stay positive), signed ones as they are.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -25,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax import params, validation
+from dscjax import params, validation, xla
 from dscjax.closed_loop import Setup
 from dscjax.identify.data import Record
 from dscjax.identify.experiment import Experiment, simulate
@@ -258,9 +259,10 @@ def _x_shape(problem: Problem) -> tuple[int, int]:
     return (problem.exp.segments, problem.setup.order) if problem.exp.plant else (1, 0)
 
 
-@eqx.filter_jit
+@functools.partial(xla.jit, lean=True)
 def _rj(problem: Problem, v):
-    """(r, dr/dv): one JVP a column, vectorised over the columns."""
+    """(r, dr/dv): one JVP a column, vectorised over the columns (a program run at each
+    Marquardt step: lean, `dscjax.xla`)."""
     r = _flat(problem, v)
     cols = jax.vmap(lambda e: jax.jvp(lambda w: _flat(problem, w), (v,), (e,))[1])(
         jnp.eye(v.size, dtype=v.dtype))
