@@ -116,8 +116,9 @@ def barriers(enabled: bool = True):
 # -- the persistent compilation cache -------------------------------------------------------------
 
 CACHE_OPT_OUT = "DSCJAX_NO_COMPILATION_CACHE"
-# programs that compile faster than this are not written (JAX's own default: 1 s)
-MIN_COMPILE_TIME_S = 1.0
+# programs that compile faster than this are not written (JAX's own default, 1 s, would leave
+# out the lean programs, which compile in a fraction of a second to a few seconds)
+MIN_COMPILE_TIME_S = 0.3
 
 
 def default_cache_dir(environ: Mapping[str, str] = os.environ) -> Path:
