@@ -116,7 +116,7 @@ class _Problem:
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
         if packed:
             return self._packed_field(t, y, a)
-        dy, obs = self.f(t, self.yp.unpack(y), self.ap.unpack(a) if packed else a)
+        dy, obs = self.f(t, self.yp.unpack(y), a)
         return self.yp.pack(dy), self.op.pack(obs)
 
     def step(self, k, y, a, dt, h=None, scanned=False, packed=True):
