@@ -5,7 +5,6 @@ differentiation of the scan and central finite differences of the tuning objecti
 memory against the horizon: experiments/bench_gradient.py.)"""
 
 import dataclasses
-import functools
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +14,6 @@ from jax.flatten_util import ravel_pytree
 
 import dscjax
 import tuning
-from dscjax import xla
 from dscjax.integrate import Checkpointed
 from dscjax.runspec import RunSpec
 
@@ -84,7 +82,7 @@ def test_batch_gradient_through_the_public_api_equals_single_plant_gradients():
         return jnp.mean(dscjax.simulate_batch(s, {"hysteresis.alpha": alphas}, T, 1e-3,
                                               refine=0).metrics["l2_error"])
 
-    @functools.partial(xla.jit, lean=True)
+    @lean
     def single_grad(k, alpha):
         def loss(k):
             s = dscjax.params.set_many(setup, {"controller.k": k, "hysteresis.alpha": alpha})
