@@ -164,11 +164,20 @@ def _flat_field(setup):
     return field
 
 
+def _flat_jacobian(setup, y, t):
+    """dF/dX of the closed loop's flat field at (t, y)."""
+    return jax.jacfwd(_flat_field(setup))(y, t)
+
+
+# compiled once per structure (the setup an argument): a diagnosis does not recompile
+_jacobian_at = xla.jit(_flat_jacobian, lean=True)
+_jacobians_along = xla.jit(jax.vmap(_flat_jacobian, in_axes=(None, 0, 0)), lean=True)
+
+
 def local_eigenvalues(setup: Setup, t, state: State) -> np.ndarray:
     """Eigenvalues of the closed loop's Jacobian dF/dX at one time and state."""
-    field = _flat_field(setup)
     y = ravel_pytree(state)[0]
-    jac = xla.jit(jax.jacfwd(field), lean=True)(y, jnp.asarray(t, y.dtype))
+    jac = _jacobian_at(setup, y, jnp.asarray(t, y.dtype))
     return np.linalg.eigvals(np.asarray(jac))
 
 
@@ -183,11 +192,10 @@ def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
         traj = dscjax.simulate(setup, 20.0, 1e-3)
         prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
     """
-    field = _flat_field(setup)
     states = jax.tree.map(lambda a: a[::every], states_of(traj))
     ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states)
     ts = jnp.asarray(traj.t)[::every]
-    jacs = xla.jit(jax.vmap(jax.jacfwd(field)), lean=True)(ys, ts)
+    jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
     radius = np.abs(ev).max(axis=1)
     max_real = ev.real.max(axis=1)
