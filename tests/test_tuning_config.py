@@ -344,6 +344,11 @@ def test_the_delay_margin_judges_as_the_search_judges_its_delayed_loop():
     free = SimpleNamespace(cfg=cfg, scales=SimpleNamespace(tv_max=None))
     assert margins.delay_judge(free, 1e-3, 1e4, 1.2, 5e-4) is None
     assert margins.delay_judge(free, 1e-3, 1e4, 1.6, 5e-4) == "chatters (index 1.6)"
+    assert margins.delay_judge(free, 1.1e-3, 1e4, 1.2, 5e-4) == "error 2.2 x the loop tuned's"
+    strict = SimpleNamespace(cfg=SimpleNamespace(objective=dataclasses.replace(
+        cfg.objective, delay_factor=1.5)), scales=SimpleNamespace(tv_max=None))
+    assert margins.delay_judge(strict, 0.8e-3, 1e4, 1.2, 5e-4) == "error 1.6 x the loop tuned's"
+    assert margins.delay_judge(strict, 0.7e-3, 1e4, 1.2, 5e-4) is None  # 1.4 x
 
 
 def test_margin_sweep_times_and_failures():

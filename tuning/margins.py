@@ -163,12 +163,11 @@ def delay_judge(problem, linf, tv, index, reference) -> str | None:
     `ts_sweep.judge`), or a windowed L-inf over `delay_factor` x `reference` (the same gains'
     in the loop tuned)."""
     spec, bound = problem.cfg.objective, problem.scales.tv_max
-    if linf is None or tv is None:
+    if linf is None or tv is None or index is None:
         return "diverged"
-    if bound is None:
-        return ts_sweep.judge(linf, index, None if reference is None else
-                              reference * spec.delay_factor / ts_sweep.TRACK_FACTOR)
-    if not tv <= spec.delay_tv_factor * bound:
+    if bound is None and metrics.chatters(index):
+        return f"chatters (index {index:.3g})"
+    if bound is not None and not tv <= spec.delay_tv_factor * bound:
         return f"TV(u) {tv / bound:.3g} x its bound"
     if reference is not None and not linf <= spec.delay_factor * reference:
         return f"error {linf / reference:.3g} x the loop tuned's"
