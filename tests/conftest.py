@@ -127,7 +127,7 @@ def four_devices(once):
 # The size policy of the tests that run a command: the horizon SHORT (200 RK4 steps at the
 # default dt = 1 ms) unless the test is about a longer one, the same in every file, so that
 # the program one test compiles serves the others (in this process, or through the
-# persistent cache). The documents' examples have their own size (tests/doc_examples.py).
+# persistent cache); the documents' examples run as many steps (tests/doc_examples.py).
 SHORT = "0.2"
 
 

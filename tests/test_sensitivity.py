@@ -15,8 +15,8 @@ from dscjax.cli.main import main
 from dscjax.sensitivity import METRICS, Problem, sensitivity
 
 # the programs of the README's and docs/sensitivity.md's examples as tests/doc_examples.py runs
-# them (300 steps), so that one compilation serves both through the persistent cache
-T_FINAL = 0.3
+# them (200 steps), so that one compilation serves both through the persistent cache
+T_FINAL = 0.2
 # hysteresis.w0 is 0: differentiated additively, no d ln p
 PATHS = ("controller.k", "controller.tau", "hysteresis.alpha", "plant.g[1]", "hysteresis.w0")
 NAMES = ("controller.k[0]", "controller.k[1]", "controller.tau[0]", "hysteresis.alpha",
