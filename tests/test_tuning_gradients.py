@@ -171,6 +171,8 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
 
 @pytest.mark.parametrize("batch, aggregate, n_params, expected", [
     (1, Mean(), 13, "reverse"),       # one plant
+    (1, Mean(), 7, "reverse"),        # more than FORWARD_MAX_PARAMS_ONE_PLANT = 6
+    (1, Mean(), 6, "forward"),
     (8, CVaR(0.25), 13, "plants"),    # ceil(0.25 x 8) = 2 <= 8 / 4
     (8, CVaR(0.3), 13, "forward"),    # ceil(2.4) = 3 > 2
     (8, Max(), 13, "plants"),         # 1 plant

@@ -362,10 +362,10 @@ def test_interrupted_run_keeps_its_best_and_resumes(small_problem, tmp_path):
 
 def test_resume_refuses_a_different_problem(small_problem, tmp_path):
     run(_with_steps(small_problem, 2), tmp_path)
-    assert small_problem.mode.name == "reverse"  # one plant: the time-parallel reverse mode
-    other = dataclasses.replace(small_problem, mode=tuning.Forward())
+    assert small_problem.mode.name == "forward"  # one plant, two tuned numbers
+    other = dataclasses.replace(small_problem, mode=tuning.Reverse())
     with pytest.raises(dscjax.ConfigError,
-                       match=r"other settings \(mode .reverse. \(now .forward.\)\)"):
+                       match=r"other settings \(mode .forward. \(now .reverse.\)\)"):
         run(other, tmp_path, resume=True)
 
 

@@ -139,8 +139,9 @@ class OptimizerSpec:
                                        Maybe(Positive()), flag="--time-limit")
     gradient: str = setting(
         "auto", "adam's AD mode: forward, reverse, plants (a batch's weighed plants one by one) "
-        "or auto (reverse for one plant; plants where the aggregate weighs at most a quarter "
-        "of a batch; else forward up to 64 tuned numbers)", Choice(GRADIENTS), flag="--gradient")
+        "or auto (for one plant forward up to 6 tuned numbers, else reverse; plants where the "
+        "aggregate weighs at most a quarter of a batch; else forward up to 64 tuned numbers)",
+        Choice(GRADIENTS), flag="--gradient")
     checkpoint_every: int = setting(100, "reverse mode's jax.checkpoint segment in steps",
                                     AtLeast(1))
     save_interval: int = setting(10, "iterations between writes of history.csv, best.json, "

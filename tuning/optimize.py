@@ -13,6 +13,9 @@ import jax
 import jax.numpy as jnp
 
 FORWARD_MAX_PARAMS = 64  # "auto" over a batch: forward mode up to this many tuned scalars
+# "auto" for one plant: forward mode up to this many tuned scalars, where its gradient costs no
+# more than the time-parallel reverse mode's and compiles sooner (docs/benchmarks.md)
+FORWARD_MAX_PARAMS_ONE_PLANT = 6
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,12 +128,13 @@ class Plants(Forward):
 def choose_gradient(mode: str, n_params: int, batch: int = 1, aggregate=None,
                     every: int | None = None) -> Forward:
     """The AD mode a config names (`Reverse` with the checkpoint segment `every`); "auto":
-    reverse (time-parallel) for one plant; for a batch whose `aggregate` weighs at most a
-    quarter of its plants (max, CVaR <= 0.25) the plants one by one; else forward up to
-    FORWARD_MAX_PARAMS tuned scalars (docs/benchmarks.md)."""
+    for one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
+    (time-parallel); for a batch whose `aggregate` weighs at most a quarter of its plants
+    (max, CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned
+    scalars (docs/benchmarks.md)."""
     if mode == "auto":
         if batch <= 1:
-            mode = "reverse"
+            mode = "forward" if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else "reverse"
         elif aggregate is not None and aggregate.weighs(batch) <= batch / 4:
             mode = "plants"
         else:

@@ -438,8 +438,7 @@ def check_work_of(args, setup, options, cfg) -> None:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
     mode = choose_gradient(oc.gradient, 0, plants, aggregate_of(cfg.robust)).name
-    if oc.name not in SEARCHES and (
-            mode == "plants" or (mode == "reverse" and plants == 1)):
+    if oc.name not in SEARCHES and (mode == "plants" or plants == 1):  # time-parallel
         one = one + gradient_work(setup, steps)
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
