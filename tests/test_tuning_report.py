@@ -149,8 +149,8 @@ def test_the_report_says_where_the_effort_bounds_are_measured(transient):
 
 def test_constraint_elasticities_match_central_differences(transient):
     """Issue 38 item 3: d ln r / d ln k_i of every constraint (max|u|, TV(u), the check
-    loop's: the other discretisation; its L-inf over the first's) by one reverse pass per
-    figure, against central differences of the loops' exact figures in
+    loop's: the other discretisation; its L-inf over the first's) by forward mode, against
+    central differences of the loops' exact figures in
     float64; the start sits on its max|u| bound (margin 0), so a 1 % change of k_1 breaks it:
     fragile, and the warning says so."""
     problem, nom = transient

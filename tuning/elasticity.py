@@ -6,8 +6,8 @@ number on the nominal plant (report.md's "Sensitivity of the constraints").
 A constraint value <= bound is read as the ratio r = value / bound <= 1 (a check loop's
 L-inf bound is a multiple of the loop tuned's, so r divides the two). Its elasticity to a tuned
 number g is e = d ln r / d ln g: a 1 % change of g moves r by about e %. It comes from one
-forward run of the loop tuned (and of each check loop) and one reverse pass per figure the
-constraints read (`jax.vjp`, its pull-backs vmapped), through the run the objective simulates
+forward run of the loop tuned (and of each check loop) carrying one tangent per tuned number
+(`jax.jvp`, vmapped), through the run the objective simulates
 (`dscjax.selection.run_at`). A constraint is **fragile** where a STEP change of one
 number breaks it to first order: r (1 + STEP |e|) > 1. An elasticity that is not finite (None
 in the result) is one whose tangent grew without bound over the run, as it does where the loop
@@ -23,6 +23,7 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.flatten_util import ravel_pytree
 
 from dscjax import xla
 from dscjax.selection import Log, run_at
@@ -50,11 +51,17 @@ def _figures(z, setup, loops, selection, keys):
 
 @functools.partial(xla.jit, lean=True, static_argnums=(3, 4))
 def _jacobian(z, *args):
-    """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): one forward pass, then
-    one pull-back per figure (its unit cotangent), vectorised."""
-    y, pull, diverged = jax.vjp(lambda z_: _figures(z_, *args), z, has_aux=True)
-    (grad,) = jax.vmap(pull)(jnp.eye(y.shape[0], dtype=y.dtype))
-    return y, grad, diverged
+    """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): forward mode, one tangent
+    per tuned number, vectorised (computed once per report, it compiles in about two thirds of
+    reverse mode's time; benchmarks.md, "The tuner's AD mode for one plant")."""
+    flat, unravel = ravel_pytree(z)
+
+    def push(v):
+        return jax.jvp(lambda x: _figures(unravel(x), *args), (flat,), (v,), has_aux=True)
+
+    y, columns, diverged = jax.vmap(push, out_axes=(None, 1, None))(
+        jnp.eye(flat.size, dtype=flat.dtype))
+    return y, jax.vmap(unravel)(columns), diverged
 
 
 def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] | None:
