@@ -28,6 +28,7 @@ def counted():
         monitoring.unregister_event_duration_listener(count)
 
 
-def lean(fn):
-    """`fn` jitted as dscjax's run-once programs are (`dscjax.xla.lean_options`)."""
-    return xla.jit(fn, lean=True)
+def lean(fn, **jit_options):
+    """`fn` jitted as dscjax's run-once programs are (`dscjax.xla.lean_options`): one program
+    instead of the many small ones of an eager `jax.grad`."""
+    return xla.jit(fn, lean=True, **jit_options)
