@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compilations import lean
 
 import dscjax
 from dscjax import params, xla
@@ -108,7 +109,7 @@ def test_diverged_trajectories_report_nan_metrics(paper_setup):
 
 
 def test_forward_derivative_of_a_public_metric_stays_finite_when_the_run_diverges(paper_setup):
-    @jax.jit
+    @lean  # as a user compiles a gradient program (README)
     def l2_and_derivative(k, dk):
         def l2(k_):
             s = params.set(paper_setup, "controller.k", k_)
