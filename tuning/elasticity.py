@@ -52,8 +52,9 @@ def _figures(z, setup, loops, selection, keys):
 @functools.partial(xla.jit, lean=True, static_argnums=(3, 4))
 def _jacobian(z, *args):
     """(figures (k,), d figures / d z ({name: (k, ...)}), diverged): forward mode, one tangent
-    per tuned number, vectorised (computed once per report, it compiles in about two thirds of
-    reverse mode's time; benchmarks.md, "The tuner's AD mode for one plant")."""
+    per tuned number, vectorised. A report computes it once, so its compile time is its cost,
+    and forward mode compiles sooner than reverse mode's pull-backs (benchmarks.md, "The
+    tuner's AD mode for one plant")."""
     flat, unravel = ravel_pytree(z)
 
     def push(v):
