@@ -307,8 +307,8 @@ def sensitivity_section(sens: dict) -> list[str]:
     step = 100 * sens["step"]
     lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
              f"d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned number "
-             f"g, by reverse mode through the loop tuned (one pass per figure the constraints "
-             f"read): a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
+             f"g, by forward mode through the loop tuned (one tangent per tuned number): "
+             f"a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
              f"**Bold**: that change breaks the constraint to first order (r (1 + "
              f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
              f"over the run (the loop depends sensitively on its gains: chaotic or "
