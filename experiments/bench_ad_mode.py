@@ -16,7 +16,6 @@ carried forward, or the transposed recurrence).
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -26,7 +25,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from harness import Bench, child, median, parser, positive  # noqa: E402
+from harness import Bench, child_call, cold_env, median, parser, positive, run_child  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
@@ -78,24 +77,20 @@ def measure(argv) -> int:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["--child"]:
-        return measure(argv[1:])
+    if (code := child_call(argv, measure)) is not None:
+        return code
     p = parser(__doc__)
     p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
     a = p.parse_args(argv)
     t_final, repeats = (2.0, 3) if a.quick else (20.0, a.repeats or 7)
     bench = Bench("ad_mode", "The tuner's AD mode for one plant", quick=a.quick)
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
-    env["DSCJAX_NO_COMPILATION_CACHE"] = "1"
     script = Path(__file__).resolve()
     for size in SIZES:
         out = {}
         for mode in ("forward", "reverse"):
-            run = child([sys.executable, script, "--child", mode, size, t_final, repeats],
-                        env=env)
-            if run.returncode != 0:
+            run, out[mode] = run_child(script, mode, size, t_final, repeats, env=cold_env())
+            if out[mode] is None:
                 raise SystemExit(run.stderr.strip().splitlines()[-1][:300])
-            out[mode] = json.loads(run.stdout.strip().splitlines()[-1])
         f, r = out["forward"], out["reverse"]
         g, g_ref = np.asarray(f["grad"]), np.asarray(r["grad"])
         bench.add(tuned_numbers=size, forward_grad_s=f["grad_s"], reverse_grad_s=r["grad_s"],

@@ -17,7 +17,6 @@ interleaved (the median). dscjax compiles lean one trajectory, a batch of at mos
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -28,7 +27,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, child, median, parser, positive  # noqa: E402
+from harness import Bench, child_call, cold_env, median, parser, positive, run_child  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
@@ -99,25 +98,22 @@ def _options(argv):
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["--child"]:
-        return measure(argv[1:])
+    if (code := child_call(argv, measure)) is not None:
+        return code
     a = _options(argv)
     one_t, batch_t = (2.0, 1.0) if a.quick else (20.0, 5.0)
     sizes = (4, 16) if a.quick else (4, 8, 16, 64, 256)
     repeats = a.repeats or (2 if a.quick else 3)
     bench = Bench("compile", "Compilation: lean against XLA's default emitters", quick=a.quick)
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("JAX_COMPILATION_CACHE_DIR", "XLA_FLAGS")}
     cases = [("one:continuous", one_t), ("one:sampled", one_t),
              *((f"batch:{b}", batch_t) for b in sizes),
              ("grad:time-parallel", one_t), ("grad:sampled", one_t), ("grad:scan", one_t)]
     script = Path(__file__).resolve()
     for case, t_final in cases:
-        run = child([sys.executable, script, "--child", case, t_final, repeats], env=env)
-        if run.returncode != 0:
+        run, out = run_child(script, case, t_final, repeats, env=cold_env("XLA_FLAGS"))
+        if out is None:
             bench.add(case=case, error=run.stderr.strip().splitlines()[-1][:200])
             continue
-        out = json.loads(run.stdout.strip().splitlines()[-1])
         kind, _, what = case.partition(":")
         label = {"one": f"one trajectory, {what}", "batch": f"batch of {what}",
                  "grad": f"value_and_grad, {what}"}[kind] + f", {t_final:g} s"

@@ -24,7 +24,6 @@ peak RSS per process.
 from __future__ import annotations
 
 import json
-import os
 import sys
 import time
 from pathlib import Path
@@ -35,7 +34,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, child, median, parser, positive  # noqa: E402
+from harness import Bench, child_call, cold_env, median, parser, positive, run_child  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
@@ -104,8 +103,8 @@ def measure(argv) -> int:
 
 def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
-    if argv[:1] == ["--child"]:
-        return measure(argv[1:])
+    if (code := child_call(argv, measure)) is not None:
+        return code
     p = parser(__doc__)
     p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
     p.add_argument("--memory-limit-gib", type=positive(float), default=8.0)
@@ -118,26 +117,24 @@ def main(argv=None) -> int:
     t_final, batch = a.t_final or t_final, a.batch or batch
     repeats = a.repeats or (3 if a.quick else 7)
     bench = Bench("gradient", "Exact gradients", quick=a.quick)
-    env = {k: v for k, v in os.environ.items() if k != "JAX_COMPILATION_CACHE_DIR"}
     script = Path(__file__).resolve()
     grads = {}
     for loop in LOOPS:
         for mode, (is_batch, _) in MODES.items():
-            run = child([sys.executable, script, "--child", loop, mode, t_final, batch,
-                         repeats], env=env, limit_mib=a.memory_limit_gib * 1024)
+            run, out = run_child(script, loop, mode, t_final, batch, repeats, env=cold_env(),
+                                 limit_mib=a.memory_limit_gib * 1024)
             what = (f"{loop}, " + (f"mean over {batch} plants" if is_batch else
                                    "one trajectory") + f", {t_final:g} s: "
                     + {"forward": "forward run alone",
                        "time-parallel": "value_and_grad, time-parallel (the default)",
                        "scan": "value_and_grad, JAX's reverse mode of the scan",
                        "batch": "value_and_grad, checkpointed every 100 steps"}[mode])
-            if run.killed or run.returncode != 0:
+            if out is None:
                 why = (f"> {a.memory_limit_gib:g} GiB (stopped)" if run.killed
                        else run.stderr.strip().splitlines()[-1][:200])
                 bench.add(case=what, grad_s="", forward_s="", x_forward="", compile_grad_s="",
                           compile_forward_s="", peak_rss_mib=why)
                 continue
-            out = json.loads(run.stdout.strip().splitlines()[-1])
             if mode == "forward":
                 bench.add(case=what, grad_s="", forward_s=out["forward_s"], x_forward="",
                           compile_grad_s="", compile_forward_s=out["compile_forward_s"],

@@ -185,6 +185,27 @@ def child(argv, *, env=None, limit_mib: float | None = None) -> Child:
     return Child(proc.returncode, wall, float(peak), proc.stdout, head, killed)
 
 
+def cold_env(*drop: str) -> dict[str, str]:
+    """The environment of a cold measurement: this one without a persistent compilation cache
+    (JAX_COMPILATION_CACHE_DIR) and without the variables `drop`."""
+    return {k: v for k, v in os.environ.items() if k not in ("JAX_COMPILATION_CACHE_DIR", *drop)}
+
+
+def run_child(script, *args, env=None, limit_mib: float | None = None
+              ) -> tuple[Child, dict | None]:
+    """A benchmark's own measurement `script --child ARGS` in a fresh process (`child`): the
+    run, and the JSON object its last line of stdout holds (None if it failed or was killed).
+    The script's main answers the call with `child_call`."""
+    run = child([sys.executable, script, "--child", *args], env=env, limit_mib=limit_mib)
+    ok = run.returncode == 0 and not run.killed
+    return run, json.loads(run.stdout.strip().splitlines()[-1]) if ok else None
+
+
+def child_call(argv, measure: Callable[[list[str]], int]) -> int | None:
+    """`measure(ARGS)`'s exit code where argv is `--child ARGS` (`run_child`), else None."""
+    return measure(argv[1:]) if argv[:1] == ["--child"] else None
+
+
 class Bench:
     """One benchmark's results (see the module docstring)."""
 
