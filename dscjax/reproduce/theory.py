@@ -344,25 +344,35 @@ def bound_72(C, alpha0, g_max):
     return math.sqrt(g_max * C / alpha0)
 
 
+def gain_rules(controller, M, mu) -> list[tuple]:
+    """The gain rules (55) and (60) as the inequalities the proof uses, value >= sum(base) +
+    alpha_0/scale: (gain, value, rule, base, scale) for each gain, in the controller's order."""
+    c = jax.tree.map(np.asarray, controller)
+    n, g_min = np.shape(c.k)[0], float(c.g_min)
+    M = np.asarray(M, float)
+    rows = [("k_1", c.k[0], "3 + alpha_0/g_min", (3.0,), g_min)]
+    rows += [(f"k_{i + 1}", c.k[i], "3 1/4 + alpha_0/g_min", (3.25,), g_min)
+             for i in range(1, n - 1)]
+    rows += [(f"k_{n}", c.k[n - 1], "1/4 + alpha_0", (0.25,), 1.0)]
+    rows += [(f"eta_{i + 1} gamma_g{i + 1}", c.eta[i] * c.gamma_g[i], "2 alpha_0", (), 0.5)
+             for i in range(n)]
+    rows += [(f"sigma_{i + 1} gamma_phi{i + 1}", c.sigma[i] * c.gamma_phi[i], "2 alpha_0", (), 0.5)
+             for i in range(n - 1)]
+    rows += [("eta_zeta gamma_zeta", c.eta_zeta * c.gamma_zeta, "2 alpha_0", (), 0.5),
+             ("eta_d gamma_d", c.eta_d * c.gamma_d, "2 alpha_0", (), 0.5)]
+    rows += [(f"1/tau_{i + 2}", 1.0 / c.tau[i], f"1/4 + M^2/(2 mu) + alpha_0 (M = {M[i]:.3g}, "
+              f"mu = {mu:.3g})", (0.25, M[i] ** 2 / (2.0 * mu)), 1.0) for i in range(n - 1)]
+    return rows
+
+
 def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
     """(alpha_0, {gain: the alpha_0 it allows}): the largest alpha_0 for which the gains
-    satisfy (55) and (60) as the inequalities the proof uses (k_1 >= 3 + alpha_0/g_min, ...)."""
-    c = jax.tree.map(np.asarray, controller)
-    n = np.shape(c.k)[0]
-    g_min = float(c.g_min)
-    allows = {"k_1": (float(c.k[0]) - 3.0) * g_min}
-    for i in range(1, n - 1):
-        allows[f"k_{i + 1}"] = (float(c.k[i]) - 3.25) * g_min
-    allows[f"k_{n}"] = float(c.k[n - 1]) - 0.25
-    for i in range(n):
-        allows[f"eta_{i + 1} gamma_g{i + 1}"] = float(c.eta[i] * c.gamma_g[i]) / 2
-    for i in range(n - 1):
-        allows[f"sigma_{i + 1} gamma_phi{i + 1}"] = float(c.sigma[i] * c.gamma_phi[i]) / 2
-    allows["eta_zeta gamma_zeta"] = float(c.eta_zeta * c.gamma_zeta) / 2
-    allows["eta_d gamma_d"] = float(c.eta_d * c.gamma_d) / 2
-    M = np.asarray(M, float)
-    for i in range(n - 1):
-        allows[f"tau_{i + 2}"] = float(1.0 / c.tau[i] - 0.25 - M[i] ** 2 / (2.0 * mu))
+    satisfy (55) and (60) (`gain_rules`); 1/tau_(i+1) is named tau_(i+1)."""
+    allows = {}
+    for gain, value, _, base, scale in gain_rules(controller, M, mu):
+        for b in base:
+            value = value - b
+        allows[gain.removeprefix("1/")] = float(value * scale)
     return min(allows.values()), allows
 
 

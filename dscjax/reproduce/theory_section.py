@@ -82,7 +82,8 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     _, allows = theory.certified_alpha0(setup.controller, M, mu)
     binding = min(allows, key=allows.get)
     c = setup.controller
-    gains = _gains_table(c, M, mu)
+    gains = [dict(gain=g, paper=float(v), rule=r, at_0_2=float(sum(base) + ALPHA0_PAPER / s))
+             for g, v, r, base, s in theory.gain_rules(c, M, mu)]
     x0 = np.asarray(setup.plant.x0)
     yr0 = float(setup.reference(0.0))
     init = dict(
@@ -115,24 +116,6 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
                                 B=np.asarray(theory.filter_rates(setup, traj)),
                                 alpha0=np.asarray(a0), mu=np.asarray(mu), C=np.asarray(res["C"]))
     return summary, arrays
-
-
-def _gains_table(c, M, mu) -> list[dict]:
-    """Each gain of (55)/(60): the paper's value, the rule's value at alpha_0 = 0.2."""
-    a, n, g_min = ALPHA0_PAPER, np.shape(c.k)[0], float(c.g_min)
-    rows = [("k_1", c.k[0], "3 + alpha_0/g_min", 3 + a / g_min)]
-    rows += [(f"k_{i + 1}", c.k[i], "3 1/4 + alpha_0/g_min", 3.25 + a / g_min)
-             for i in range(1, n - 1)]
-    rows += [(f"k_{n}", c.k[n - 1], "1/4 + alpha_0", 0.25 + a)]
-    rows += [(f"eta_{i + 1} gamma_g{i + 1}", c.eta[i] * c.gamma_g[i], "2 alpha_0", 2 * a)
-             for i in range(n)]
-    rows += [(f"sigma_{i + 1} gamma_phi{i + 1}", c.sigma[i] * c.gamma_phi[i], "2 alpha_0", 2 * a)
-             for i in range(n - 1)]
-    rows += [("eta_zeta gamma_zeta", c.eta_zeta * c.gamma_zeta, "2 alpha_0", 2 * a),
-             ("eta_d gamma_d", c.eta_d * c.gamma_d, "2 alpha_0", 2 * a)]
-    rows += [(f"1/tau_{i + 2}", 1 / c.tau[i], f"1/4 + M^2/(2 mu) + alpha_0 (M = {float(M[i]):.3g}, "
-              f"mu = {mu:.3g})", 0.25 + M[i] ** 2 / (2 * mu) + a) for i in range(n - 1)]
-    return [dict(gain=g, paper=float(v), rule=r, at_0_2=float(x)) for g, v, r, x in rows]
 
 
 def _rc():
@@ -225,11 +208,9 @@ def markdown(summary: dict) -> str:
         f"0.45 alone would allow {p['allows'].get('k_2', float('nan')):.3g}:", "",
         "| gain | paper | rule (55)/(60) | rule at alpha_0 = 0.2 | alpha_0 it allows |",
         "|---|---|---|---|---|"]
-    allows = p["allows"]
-    for g in p["gains"]:
-        key = g["gain"].replace("1/tau", "tau")
+    for g, allows in zip(p["gains"], p["allows"].values(), strict=True):
         lines.append(f"| {g['gain']} | {g['paper']:.4g} | {g['rule']} | {g['at_0_2']:.4g} | "
-                     f"{allows.get(key, float('nan')):.4g} |")
+                     f"{allows:.4g} |")
     est = ini["estimates"]
     lines += [
         "",
