@@ -129,12 +129,14 @@ def filter_errors_at(setup, t, X: State):
     return -ctrl.tau * info.extra.z_dot, info.S
 
 
-def _terms(setup, tr: Truth, X: State, y, s) -> Terms:
+def _terms_y_s(setup, tr: Truth, t, X: State):
+    """(the terms of V (44), y, S) at one state, from one evaluation of the law."""
+    y, s = filter_errors_at(setup, t, X)
     ctrl, c = setup.controller, X.ctrl
     n = s.shape[0]
     surface = jnp.stack([0.5 * s[i] * s[i] / tr.g[i] for i in range(n - 1)]
                         + [0.5 * s[n - 1] * s[n - 1]])
-    return Terms(
+    terms = Terms(
         surface=surface,
         filter=0.5 * y * y,
         theta=_over_rate(c.theta_hat - tr.theta, ctrl.gamma_g),
@@ -142,24 +144,12 @@ def _terms(setup, tr: Truth, X: State, y, s) -> Terms:
         zeta=tr.beta * _over_rate(c.zeta_hat - tr.zeta, ctrl.gamma_zeta),
         d=_over_rate(c.d_hat - tr.d, ctrl.gamma_d),
     )
+    return terms, y, s
 
 
 def terms_at(setup, tr: Truth, t, X: State) -> Terms:
     """The terms of V (44) at time t and closed-loop state X of a prepared setup."""
-    y, s = filter_errors_at(setup, t, X)
-    return _terms(setup, tr, X, y, s)
-
-
-def lyapunov_at(setup, tr: Truth, t, X: State):
-    """V of (44) at one state of a prepared setup."""
-    return terms_at(setup, tr, t, X).total()
-
-
-def lyapunov_rate_at(setup, tr: Truth, t, X: State):
-    """(V, dV/dt) at one state: the exact derivative of (44) along the closed-loop vector field
-    (a forward-mode derivative, so it includes every term the proof bounds in (45)-(63))."""
-    dX, _ = vector_field(t, X, setup)
-    return jax.jvp(lambda tt, XX: lyapunov_at(setup, tr, tt, XX), (t, X), (jnp.ones_like(t), dX))
+    return _terms_y_s(setup, tr, t, X)[0]
 
 
 def b_at(setup, t, X: State):
@@ -213,13 +203,6 @@ class LyapunovTerms(NamedTuple):
         return {k: np.asarray(getattr(self, k)) for k in ("t", "V", *TERM_NAMES, "y")}
 
 
-def _states(traj) -> State:
-    if np.ndim(traj.t) != 1:
-        raise ConfigError("expected a single trajectory (traj.t of shape (T,)); for a batch, "
-                          "index one member first")
-    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
-
-
 def _chunked(fn, args, t, X, chunk=_CHUNK):
     """fn(*args, t_j, X_j) at every point j, vmapped over fixed-size chunks (the last one
     padded): one compilation per chunk size, whatever the trajectory's length."""
@@ -237,9 +220,17 @@ def _chunk_eval(fn, args, t, X):
     return jax.vmap(lambda tt, XX: fn(*args, tt, XX))(t, X)
 
 
-def _prepared_dsc(setup):
+def _along(fn, setup, traj, d=None):
+    """(prepared setup, truth, fn(setup, truth, t, X) at every saved point) of a single DSC
+    trajectory `traj` of the unprepared `setup`."""
     _require_dsc(setup.controller)
-    return prepared(canonical(setup))
+    s = prepared(canonical(setup))
+    if np.ndim(traj.t) != 1:
+        raise ConfigError("expected a single trajectory (traj.t of shape (T,)); for a batch, "
+                          "index one member first")
+    t = np.asarray(traj.t)
+    tr = truth(s, d, t)
+    return s, tr, _chunked(fn, (s, tr), t, State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
 
 
 def lyapunov(setup, traj, d=None) -> LyapunovTerms:
@@ -256,29 +247,15 @@ def lyapunov(setup, traj, d=None) -> LyapunovTerms:
         >>> lv.V.shape, lv.surface.shape
         ((11,), (11, 2))
     """
-    s = _prepared_dsc(setup)
-    X = _states(traj)
-    tr = truth(s, d, traj.t)
-    t = np.asarray(traj.t)
-    terms, (y, _) = _chunked(_terms_and_y, (s, tr), t, X)
-    return LyapunovTerms(t=t, V=np.asarray(terms.total()), terms=terms, y=y, truth=tr)
-
-
-def _terms_and_y(setup, tr, t, X):
-    return terms_at(setup, tr, t, X), filter_errors_at(setup, t, X)
+    _, tr, (terms, y, _) = _along(_terms_y_s, setup, traj, d)
+    return LyapunovTerms(t=np.asarray(traj.t), V=np.asarray(terms.total()), terms=terms, y=y,
+                         truth=tr)
 
 
 def lyapunov_rate(setup, traj, d=None):
     """(V, dV/dt) at the saved points: the exact derivative of (44) along the vector field."""
-    s = _prepared_dsc(setup)
-    tr = truth(s, d, traj.t)
-    return _chunked(lyapunov_rate_at, (s, tr), jnp.asarray(traj.t), _states(traj))
-
-
-def filter_rates(setup, traj):
-    """B_(i+1)(t) of (43) at the saved points, shape (T, n-1)."""
-    s = _prepared_dsc(setup)
-    return _chunked(b_at, (s,), jnp.asarray(traj.t), _states(traj))
+    pts = _along(_point_checks, setup, traj, d)[2]
+    return pts["V"], pts["V_dot"]
 
 
 def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
@@ -376,17 +353,15 @@ def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
     return min(allows.values()), allows
 
 
-def _v_y_s(setup, tr, t, X):
-    """(V, y, S) at one state, from one evaluation of the law."""
-    y, s = filter_errors_at(setup, t, X)
-    return _terms(setup, tr, X, y, s).total(), y, s
-
-
 def _point_checks(setup, tr, t, X):
     """Everything `check` needs at one state: one vector field, one jvp of (V, y)."""
     dX, obs = vector_field(t, X, setup)
-    (v, y, s), (v_dot, y_dot, _) = jax.jvp(lambda tt, XX: _v_y_s(setup, tr, tt, XX), (t, X),
-                                           (jnp.ones_like(t), dX))
+
+    def v_y_s(tt, XX):
+        terms, y, s = _terms_y_s(setup, tr, tt, XX)
+        return terms.total(), y, s
+
+    (v, y, s), (v_dot, y_dot, _) = jax.jvp(v_y_s, (t, X), (jnp.ones_like(t), dX))
     ctrl = setup.controller
     return dict(V=v, V_dot=v_dot, B=y_dot + y / ctrl.tau,
                 slack=_slack(ctrl, tr, s[-1], X.ctrl.d_hat),
@@ -415,16 +390,11 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
     C = e_M (61) + (n-1) mu/2 + the maximum of `robust_slack_at` on the run. M (n-1,) of (59)
     defaults to max_t |B_(i+1)| measured on the run (the bounds are then data-driven
     estimates); d to `default_d`. Returns plain floats/arrays: V0, V_max, S1_inf, e_M, C,
-    slack, M, M_measured, d, d_n_max, the bounds (65) (T,), (71), (72), V and V' (T,), the worst
-    margins of (63) and (65) (<= 0 when they hold), `holds` ({`STATEMENTS` key: bool}) and
-    `assumptions` ({`ASSUMPTIONS` key: bool}).
+    slack, M, M_measured, d, d_n_max, the bounds (65) (T,), (71), (72), V, V' (T,), B (T, n-1)
+    of (43), the worst margins of (63) and (65) (<= 0 when they hold), `holds` ({`STATEMENTS`
+    key: bool}) and `assumptions` ({`ASSUMPTIONS` key: bool}).
     """
-    s = _prepared_dsc(setup)
-    X = _states(traj)
-    t = jnp.asarray(traj.t)
-    tr = truth(s, d, t)
-    pts = _chunked(_point_checks, (s, tr), t, X)
-    pts = {k: np.asarray(v) for k, v in pts.items()}
+    s, tr, pts = _along(_point_checks, setup, traj, d)
     n = setup.order
     M_meas = np.max(np.abs(pts["B"]), axis=0)
     M_used = M_meas if M is None else np.asarray(M, float)
@@ -434,10 +404,9 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
     V = pts["V"]
     V0 = float(V[0])
     S1 = float(np.max(np.abs(np.asarray(traj.S)[:, 0])))
-    g_max = float(tr.g_max)
-    b65 = bound_65(np.asarray(t), V0, C, alpha0)
+    b65 = bound_65(traj.t, V0, C, alpha0)
     b71 = bound_71(C, alpha0)
-    b72 = bound_72(C, alpha0, g_max)
+    b72 = bound_72(C, alpha0, float(tr.g_max))
     # (63): V' <= -2 alpha_0 V + C; relative to the size of the terms compared
     r63 = pts["V_dot"] + 2 * alpha0 * V - C
     scale63 = np.abs(pts["V_dot"]) + 2 * alpha0 * V + C
@@ -457,7 +426,7 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
     return dict(
         alpha0=float(alpha0), mu=float(mu), V0=V0, V_max=float(V.max()), S1_inf=S1, e_M=eM,
         C=C, slack=slack, M=M_used, M_measured=M_meas, d=dval, d_n_max=d_n_max,
-        bound_71=b71, bound_72=b72, bound_65=b65, V=V, V_dot=pts["V_dot"],
+        bound_71=b71, bound_72=b72, bound_65=b65, V=V, V_dot=pts["V_dot"], B=pts["B"],
         margin_63=float(np.max(r63)), margin_65=float(np.max(V - b65)),
         v0_69=float(v0_69(s.controller, tr)), holds=holds, assumptions=assumptions,
     )

@@ -113,7 +113,7 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
                    for k, _, _ in GROUPS},
     )
     arrays = lv.arrays() | dict(V_dot=res["V_dot"], bound_65=res["bound_65"],
-                                B=np.asarray(theory.filter_rates(setup, traj)),
+                                B=res["B"],
                                 alpha0=np.asarray(a0), mu=np.asarray(mu), C=np.asarray(res["C"]))
     return summary, arrays
 
