@@ -29,6 +29,7 @@ from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example, paper_example
 from dscjax.plotting import subplots
 from dscjax.reproduce import theory
+from dscjax.reproduce.figures import RC
 from dscjax.simulate import canonical, simulate
 from dscjax.validation import RK4_REAL_STABILITY, ConfigError
 
@@ -291,8 +292,7 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
     import matplotlib
 
     path = Path(path)
-    with matplotlib.rc_context({"font.size": 10, "axes.grid": True, "grid.alpha": 0.3,
-                                "legend.fontsize": 8.5}):
+    with matplotlib.rc_context(RC):
         fig, ax = subplots(figsize=(8.6, 4.4))
         for res in results:
             n = res["n"]

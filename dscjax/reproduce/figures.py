@@ -36,30 +36,30 @@ def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
     return path
 
 
-def _time_axes(title: str, ylabel: str):
-    fig, ax = subplots(figsize=(6.4, 3.8), layout="constrained")
-    ax.set_xlabel("time $t$ [s]")
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    return fig, ax
+def _time_axes(title: str, ylabel: str, t_after: float | None = None):
+    """(fig, axes): one panel against time, and with `t_after` a second one, t >= t_after,
+    where the first second's peak no longer sets the scale."""
+    rows = 1 if t_after is None else 2
+    fig, axes = subplots(rows, 1, figsize=(6.4, (3.8, 5.6)[rows - 1]), layout="constrained",
+                         squeeze=False)
+    axes = axes[:, 0]
+    axes[0].set_title(title)
+    for ax in axes:
+        ax.set_ylabel(ylabel)
+    axes[-1].set_xlabel("time $t$ [s]")
+    if t_after is not None:
+        axes[1].set_title(f"after the first {t_after:g} s (the initial peak left out)",
+                          fontsize=9)
+    return fig, axes
 
 
-def _time_axes_after(title: str, ylabel: str, t_after: float):
-    """Two panels: the whole horizon, and t >= t_after, where the first second's peak no
-    longer sets the scale."""
-    fig, (ax, zoom) = subplots(2, 1, figsize=(6.4, 5.6), layout="constrained")
-    ax.set_ylabel(ylabel)
-    ax.set_title(title)
-    zoom.set_xlabel("time $t$ [s]")
-    zoom.set_ylabel(ylabel)
-    zoom.set_title(f"after the first {t_after:g} s (the initial peak left out)", fontsize=9)
-    return fig, ax, zoom
-
-
-def _line_after(ax, traj, signal, name, t_after, **over):
-    t = np.asarray(traj.t)
+def _line(ax, traj, signal, name, t_after=None, **over):
+    """A run's signal against time, labelled; from t_after on (unlabelled), if given."""
+    t, y = np.asarray(traj.t), np.asarray(getattr(traj, signal))
+    if t_after is None:
+        ax.plot(t, y, label=LABELS[name], **(STYLE[name] | over))
+        return
     keep = t >= t_after
-    y = np.asarray(traj.e if signal == "e" else getattr(traj, signal))
     ax.plot(t[keep], y[keep], **(STYLE[name] | over))
     ax.set_xlim(t_after, t[-1])
 
@@ -68,12 +68,6 @@ def _legend_below(fig, ax, ncol=1):
     """Legend outside the axes, under them: it can never hide a curve."""
     handles, labels = ax.get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=ncol, frameon=False)
-
-
-def _line(ax, traj, signal, name, **over):
-    t = np.asarray(traj.t)
-    y = np.asarray(traj.e if signal == "e" else getattr(traj, signal))
-    ax.plot(t, y, label=LABELS[name], **(STYLE[name] | over))
 
 
 def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150,
@@ -134,8 +128,8 @@ def _figures(trajs, loops, out, fmt, dpi):
                  f"$\\lambda$ = {lam:g}, $\\psi$ = {psi:g}")
     paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
 
-    fig, ax = _time_axes("Fig. 2  Tracking error of the DSC with and without hysteresis "
-                         "compensation", "tracking error $e = y - y_r$ [-]")
+    fig, (ax,) = _time_axes("Fig. 2  Tracking error of the DSC with and without hysteresis "
+                            "compensation", "tracking error $e = y - y_r$ [-]")
     for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc"):
         _line(ax, trajs[name], "e", name)
     _legend_below(fig, ax)
@@ -146,11 +140,11 @@ def _figures(trajs, loops, out, fmt, dpi):
             ("fig3", "u", "Fig. 3  Control signal of the DSC", "control input $u$ [-]"),
             ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
              "hysteresis output $w$ [-]")):
-        fig, ax, zoom = _time_axes_after(title, ylabel, t_after)
+        fig, (ax, zoom) = _time_axes(title, ylabel, t_after)
         _line(ax, trajs["dsc"], signal, "dsc")
         ax.axvspan(t_after, float(np.asarray(trajs["dsc"].t)[-1]), color="#999999",
                    alpha=0.08, lw=0, label=f"shown below: $t \\geq$ {t_after:g} s")
-        _line_after(zoom, trajs["dsc"], signal, "dsc", t_after)
+        _line(zoom, trajs["dsc"], signal, "dsc", t_after)
         _legend_below(fig, ax, ncol=2)
         paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
@@ -160,7 +154,7 @@ def _figures(trajs, loops, out, fmt, dpi):
              "tracking error $e = y - y_r$ [-]"),
             ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping",
              "control input $u$ [-]")):
-        fig, ax = _time_axes(title, ylabel)
+        fig, (ax,) = _time_axes(title, ylabel)
         _line(ax, trajs["dsc"], signal, "dsc", **faint)
         _line(ax, trajs["backstepping"], signal, "backstepping")
         _legend_below(fig, ax, ncol=2)

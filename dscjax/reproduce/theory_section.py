@@ -26,6 +26,7 @@ from dscjax import files
 from dscjax.plotting import subplots
 from dscjax.reproduce import alpha0 as alpha0_study
 from dscjax.reproduce import theory
+from dscjax.reproduce.figures import RC
 
 GROUPS = (  # (term of (44), label, colour) in stacking order
     ("surface", r"$S_i^2/(2g_i)$, $S_n^2/2$", "#1f77b4"),
@@ -118,18 +119,13 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     return summary, arrays
 
 
-def _rc():
-    import matplotlib
-
-    return matplotlib.rc_context({"font.size": 10, "axes.titlesize": 10, "axes.grid": True,
-                                  "grid.alpha": 0.3, "legend.fontsize": 8.5})
-
-
 def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
     """Top: V(t) of (44) with its terms stacked. Bottom: V against (65) and (71), log axis."""
     t = arrays["t"]
     parts = [np.sum(np.reshape(arrays[k], (len(t), -1)), axis=1) for k, _, _ in GROUPS]
-    with _rc():
+    import matplotlib
+
+    with matplotlib.rc_context(RC):
         fig, (top, bottom) = subplots(2, 1, figsize=(8.8, 6.4), sharex=True, height_ratios=(3, 2))
         top.stackplot(t, *parts, labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
