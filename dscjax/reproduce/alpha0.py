@@ -114,7 +114,7 @@ def _dt_for(tau, opts: StudyOptions) -> float:
 def _with(base, alpha0, M, opts):
     ctrl = theory.gains_55(base.controller, alpha0, opts.hold)
     tau = np.asarray(theory.tau_60(alpha0, M, opts.mu))
-    return base.replace(controller=dataclasses.replace(ctrl, tau=tau)), tau
+    return base.replace(controller=dataclasses.replace(ctrl, tau=tau))
 
 
 def _hysteresis_stiffness(setup, traj) -> float:
@@ -157,20 +157,20 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
     t0 = time.perf_counter()
     n = base.order
-    s0, _ = _with(base, alpha0, np.ones(n - 1), opts)
+    s0 = _with(base, alpha0, np.ones(n - 1), opts)
     # from fast filters (tau_start where (60) allows it): a slow filter can diverge
     fast = math.sqrt(2 * opts.mu * max(1.0 / opts.tau_start - 0.25 - alpha0, 0.0))
     M = np.maximum((1 + opts.margin) * _initial_M(s0), fast)
     history, converged, last = [], False, None
     for it in range(opts.max_iter):
-        setup, tau = _with(base, alpha0, M, opts)
-        traj, dt = _run(setup, opts.t_final, _dt_for(tau, opts), opts)
+        setup = _with(base, alpha0, M, opts)
+        traj, dt = _run(setup, opts.t_final, _dt_for(setup.controller.tau, opts), opts)
         if bool(traj.diverged):
             history.append(dict(M=M.tolist(), dt=dt, diverged=True))
             M = 2 * M
             continue
         res = theory.check(setup, traj, alpha0, opts.mu, M=M)
-        last = (setup, tau, dt, res)
+        last = (setup, dt, res)
         history.append(dict(M=M.tolist(), M_measured=res["M_measured"].tolist(), dt=dt))
         log(f"  alpha_0 = {alpha0:g}, iteration {it + 1}: M = {np.array2string(M, precision=4)}"
             f", measured {np.array2string(res['M_measured'], precision=4)}, dt = {dt:g} s")
@@ -180,15 +180,14 @@ def study_one(base, alpha0: float, opts: StudyOptions,
         M = (1 + opts.margin) * res["M_measured"]
     if last is None:
         raise RuntimeError(f"alpha_0 = {alpha0}: every run diverged ({history})")
-    M_tight = (1 + opts.margin) * last[3]["M_measured"]
+    M_tight = (1 + opts.margin) * last[2]["M_measured"]
     if opts.tighten and converged and np.any(M_tight < M):
         # the first consistent M may be far above what the run needs (the start is fast)
-        setup, tau = _with(base, alpha0, M_tight, opts)
-        dt = min(_dt_for(tau, opts), last[2])
-        traj = _simulate(setup, opts.t_final, dt, opts)
+        setup = _with(base, alpha0, M_tight, opts)
+        dt = min(_dt_for(setup.controller.tau, opts), last[1])
+        traj, dt_needed = _run(setup, opts.t_final, dt, dataclasses.replace(opts, max_halvings=0))
         why = ("diverged" if bool(traj.diverged) else
-               "needs a smaller dt" if _hysteresis_stiffness(setup, traj) * dt
-               > opts.dt_safety * RK4_REAL_STABILITY else None)
+               "needs a smaller dt" if dt_needed < dt else None)
         res = None if why else theory.check(setup, traj, alpha0, opts.mu, M=M_tight)
         if res is not None and not np.all(res["M_measured"] <= M_tight):
             why = f"(59) fails: measured {np.array2string(res['M_measured'], precision=4)}"
@@ -197,28 +196,25 @@ def study_one(base, alpha0: float, opts: StudyOptions,
         log(f"  alpha_0 = {alpha0:g}, tightened M = {np.array2string(M_tight, precision=4)}: "
             + ("kept" if why is None else f"rejected, {why}"))
         if why is None:
-            last = (setup, tau, dt, res)
-    setup, tau, dt, res = last
-    row = _row(alpha0, setup, tau, dt, res, converged, history)
+            last = (setup, dt, res)
+    setup, dt, res = last
+    row = _row(alpha0, setup, dt, res, converged, history)
     if opts.verify_dt and opts.t_final / (dt / 2) <= opts.max_steps:
         traj2 = simulate(setup, opts.t_final, dt / 2, save_every=1, throw=False, refine=0)
-        lv = theory.lyapunov(setup, traj2)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
-        row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=float(np.max(lv.V)),
+        v_max = float(np.max(theory.lyapunov(setup, traj2).V))
+        row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=v_max,
                                rel_change_S1=abs(s1 - row["S1_inf"]) / row["S1_inf"],
-                               rel_change_V_max=abs(float(np.max(lv.V)) - row["V_max"])
-                               / row["V_max"])
+                               rel_change_V_max=abs(v_max - row["V_max"]) / row["V_max"])
     row["wall_s"] = time.perf_counter() - t0
     return row
 
 
-def _row(alpha0, setup, tau, dt, res, converged, history):
-    c = setup.controller
+def _row(alpha0, setup, dt, res, converged, history):
+    gains = ("k", "tau", "gamma_g", "gamma_phi", "gamma_zeta", "gamma_d", "eta", "eta_d")
     return dict(
-        alpha0=float(alpha0), k=np.asarray(c.k).tolist(), tau=np.asarray(tau).tolist(),
-        gamma_g=np.asarray(c.gamma_g).tolist(), gamma_phi=np.asarray(c.gamma_phi).tolist(),
-        gamma_zeta=float(c.gamma_zeta), gamma_d=float(c.gamma_d),
-        eta=np.asarray(c.eta).tolist(), eta_d=float(c.eta_d), dt=dt,
+        alpha0=float(alpha0), **{k: np.asarray(getattr(setup.controller, k)).tolist()
+                                 for k in gains}, dt=dt,
         M=np.asarray(res["M"]).tolist(), M_measured=res["M_measured"].tolist(),
         iterations=len(history), converged=converged, history=history,
         **{k: res[k] for k in ("S1_inf", "bound_72", "V0", "v0_69", "V_max", "bound_71", "e_M",
