@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 
 import jax
 
-from dscjax import files
+from dscjax import files, ts_sweep
 from dscjax.reproduce import complexity as cx
 from dscjax.reproduce import sampling, theory_section
 from dscjax.reproduce.claims import (
@@ -116,8 +116,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt,
                                          window_start=summary["window_start"])
     paths["sampling"] = out / f"{FIGURES['sampling']}.{fmt}"
-    sampling.plot(summary["sampling"], paths["sampling"], dpi=dpi,
-                  colors={"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"})
+    ts_sweep.plot(summary["sampling"], paths["sampling"],
+                  {"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"}, dpi, sampling.LABELS)
     if complexity:
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from dscjax.reproduce.complexity import growth_text
 from dscjax.reproduce.runs import LABELS, estimates, run_metrics
 
 # Two controllers "track alike" when their errors (after the first second) are within this
@@ -125,12 +126,6 @@ def check_claims(runs: dict, complexity: dict | None = None) -> list[dict]:
     return claims
 
 
-def _growth_text(fit: dict) -> str:
-    if fit["r2_geometric"] >= fit["r2_power"]:
-        return f"x{fit['ratio_per_order']:.2f} per order"
-    return f"~ n^{fit['exponent']:.2f}"
-
-
 def complexity_claim(result: dict) -> dict:
     fd, fb = result["fits"]["dsc"]["eqns"], result["fits"]["backstepping"]["eqns"]
     holds = (fb["ratio_per_order"] >= 2.0 and fb["r2_geometric"] >= fb["r2_power"]
@@ -143,7 +138,7 @@ def complexity_claim(result: dict) -> dict:
         claim="The DSC eliminates backstepping's explosion of complexity",
         paper="Asserted (Introduction, Remarks 4 and 6), never measured",
         measured=f"jaxpr equations of the law, n = {min(result['orders'])}..{n_max}: "
-                 f"DSC {_growth_text(fd)}, backstepping {_growth_text(fb)}; at n = {n_max}: "
+                 f"DSC {growth_text(fd)}, backstepping {growth_text(fb)}; at n = {n_max}: "
                  f"{eq.get('dsc')} vs {eq.get('backstepping')}",
         dsc_eqns_exponent=fd["exponent"], backstepping_eqns_ratio=fb["ratio_per_order"],
         holds=bool(holds))

@@ -226,13 +226,12 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
                 wall_time_s=time.perf_counter() - t_start)
 
 
-def growth_label(fit: dict) -> str:
-    """": x3.1 per order" or ": ~ n^1.0", whichever model fits log(value) better."""
-    if not fit.get("ratio_per_order"):
-        return ""
+def growth_text(fit: dict, power: str = "~ n^{:.2f}") -> str:
+    """"x3.10 per order" or "~ n^1.00" (the exponent in `power`), whichever model fits
+    log(value) better."""
     if fit["r2_geometric"] >= fit["r2_power"]:
-        return f": x{fit['ratio_per_order']:.2f} per order"
-    return f": ~ $n^{{{fit['exponent']:.2f}}}$"
+        return f"x{fit['ratio_per_order']:.2f} per order"
+    return power.format(fit["exponent"])
 
 
 LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)",
@@ -253,7 +252,9 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
             ys = [r[metric] for r in rows]
-            label = names.get(c, c) + growth_label(result["fits"][c][metric])
+            fit = result["fits"][c][metric]
+            label = names.get(c, c) + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+                                       if fit.get("ratio_per_order") else "")
             if metric == "eval_s":
                 label = names.get(c, c) + ", in a compiled loop"
             ax.semilogy(ns, ys, "o-", color=colors.get(c), lw=1.5, ms=4, label=label)

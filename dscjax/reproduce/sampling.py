@@ -35,23 +35,14 @@ GAINS = ("paper", "tuned")
 LABELS = {"paper": "paper's gains", "tuned": "dscjax tune's default gains"}
 
 
-def gain_sets(setup) -> dict:
-    """{path: (2, ...)}: the controller leaves of the paper's gains and of `TUNED`, a batch."""
-    tuned = from_dict({"controller": TUNED}, base=setup)[0]
-    return {f"controller.{k}": np.stack([np.asarray(getattr(s.controller, k), float)
-                                         for s in (setup, tuned)]) for k in TUNED}
-
-
 def study(setup, t_final: float, dt: float, window_start: float = 1.0,
           sample_times: Sequence[float] = SAMPLE_TIMES) -> dict:
-    """`ts_sweep.study` of the paper's gains and `TUNED` (`gain_sets`)."""
-    return ts_sweep.study(setup, gain_sets(setup), GAINS, t_final, dt, window_start,
-                          sample_times)
-
-
-def plot(result: dict, path, colors: dict, dpi: int, labels: dict | None = None) -> None:
-    """`ts_sweep.plot`, the gain sets named by `LABELS` unless `labels` says otherwise."""
-    ts_sweep.plot(result, path, colors, dpi, LABELS if labels is None else labels)
+    """`ts_sweep.study` of the paper's gains and `TUNED`, as a batch of the controller's
+    leaves; `ts_sweep.plot` draws it with `LABELS`."""
+    tuned = from_dict({"controller": TUNED}, base=setup)[0]
+    batch = {f"controller.{k}": np.stack([np.asarray(getattr(s.controller, k), float)
+                                          for s in (setup, tuned)]) for k in TUNED}
+    return ts_sweep.study(setup, batch, GAINS, t_final, dt, window_start, sample_times)
 
 
 def line(result: dict) -> str:
