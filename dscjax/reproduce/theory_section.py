@@ -48,26 +48,20 @@ def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, floa
     c = controller
     candidates = [float(np.asarray(M)[i]) ** 2 / (2 * (1 / float(c.tau[i]) - 0.25 - others))
                   for i in range(n - 1) if 1 / float(c.tau[i]) - 0.25 - others > 0]
-    best = (math.inf, None, None)
-    for mu in [*np.geomspace(1e-4, 1e4, 801), *(m * (1 + 1e-12) for m in candidates)]:
-        a0, _ = theory.certified_alpha0(controller, M, float(mu))
-        if a0 > 0:
-            b = theory.bound_72(C0 + (n - 1) * mu / 2, a0, g_max)
-            if b < best[0]:
-                best = (b, float(mu), a0)
-    if best[1] is None:
+
+    def bound(mu):
+        a0 = theory.certified_alpha0(controller, M, mu)[0]
+        return theory.bound_72(C0 + (n - 1) * mu / 2, a0, g_max) if a0 > 0 else math.inf
+
+    mu = min((float(mu) for mu in (*np.geomspace(1e-4, 1e4, 801),
+                                    *(m * (1 + 1e-12) for m in candidates))), key=bound)
+    if bound(mu) == math.inf:
         raise ValueError("no mu > 0 certifies a positive alpha_0 for these gains")
-    return best[1], best[2]
+    return mu, theory.certified_alpha0(controller, M, mu)[0]
 
 
 def _g(v) -> str:
     return "-" if v is None else f"{v:.3g}"
-
-
-def _max_abs_after(traj, t0: float) -> float | None:
-    """max |S_1(t)| over t >= t0 (None when the horizon ends before t0)."""
-    s1 = np.asarray(traj.S)[np.asarray(traj.t) >= t0, 0]
-    return float(np.max(np.abs(s1))) if s1.size else None
 
 
 def paper_check(setup, traj) -> tuple[dict, dict]:
@@ -81,7 +75,6 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     mu, a0 = best_mu(setup.controller, M, C0, g_max, n)
     res = theory.check(setup, traj, a0, mu)
     _, allows = theory.certified_alpha0(setup.controller, M, mu)
-    binding = min(allows, key=allows.get)
     c = setup.controller
     gains = [dict(gain=g, paper=float(v), rule=r, at_0_2=float(sum(base) + ALPHA0_PAPER / s))
              for g, v, r, base, s in theory.gain_rules(c, M, mu)]
@@ -99,22 +92,23 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     )
     b72_paper = theory.bound_72(C0 + (n - 1) * mu / 2, ALPHA0_PAPER, g_max)
     V = np.asarray(lv.V)
+    s1_after = np.asarray(traj.S)[np.asarray(traj.t) >= 1.0, 0]  # none if T < 1 s
     summary = dict(
-        alpha0=a0, mu=mu, binding_gain=binding, allows=allows, gains=gains, init=init,
+        alpha0=a0, mu=mu, binding_gain=min(allows, key=allows.get), allows=allows, gains=gains,
+        init=init,
         M_measured=np.asarray(M).tolist(), V0=res["V0"], V_max=res["V_max"], V_end=float(V[-1]),
         t_V_max=float(np.asarray(lv.t)[int(np.argmax(V))]),
         frac_V_decreasing=float(np.mean(res["V_dot"] < 0)),
-        S1_inf=res["S1_inf"], S1_inf_after_1s=_max_abs_after(traj, 1.0),
-        e_M=res["e_M"], slack=res["slack"], C=res["C"], bound_71=res["bound_71"],
-        bound_72=res["bound_72"], margin_63=res["margin_63"], margin_65=res["margin_65"],
-        d=res["d"], d_n_max=res["d_n_max"], holds=res["holds"], assumptions=res["assumptions"],
+        S1_inf=res["S1_inf"],
+        S1_inf_after_1s=float(np.max(np.abs(s1_after))) if s1_after.size else None,
+        **{k: res[k] for k in ("e_M", "slack", "C", "bound_71", "bound_72", "margin_63",
+                               "margin_65", "d", "d_n_max", "holds", "assumptions")},
         bound_72_at_alpha0_paper=b72_paper,
         terms_at_t0={k: float(np.sum(getattr(lv, k)[0])) for k, _, _ in GROUPS},
         terms_max={k: float(np.max(np.sum(np.reshape(getattr(lv, k), (len(V), -1)), axis=1)))
                    for k, _, _ in GROUPS},
     )
-    arrays = lv.arrays() | dict(V_dot=res["V_dot"], bound_65=res["bound_65"],
-                                B=res["B"],
+    arrays = lv.arrays() | dict(V_dot=res["V_dot"], bound_65=res["bound_65"], B=res["B"],
                                 alpha0=np.asarray(a0), mu=np.asarray(mu), C=np.asarray(res["C"]))
     return summary, arrays
 
