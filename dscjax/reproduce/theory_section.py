@@ -7,7 +7,8 @@ Writes into DIR/theory/:
     alpha0_n{n}.json    the alpha_0 study for each order n (`alpha0_study`)
     fig_alpha0.png      ||S_1||_inf and the bound (72) against alpha_0, log axes
     theory.json         everything summarised (the paper's example and every study row)
-and returns the section `reproduce` adds to summary.md. The paper's example satisfies (55)
+and returns the summary `reproduce` adds to summary.json (`markdown.theory_markdown` writes
+its section of summary.md). The paper's example satisfies (55)
 and (60) only as inequalities, up to `theory.certified_alpha0`: it is checked with that
 alpha_0 and the mu that makes (72) smallest.
 """
@@ -58,10 +59,6 @@ def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, floa
     if bound(mu) == math.inf:
         raise ValueError("no mu > 0 certifies a positive alpha_0 for these gains")
     return mu, theory.certified_alpha0(controller, M, mu)[0]
-
-
-def _g(v) -> str:
-    return "-" if v is None else f"{v:.3g}"
 
 
 def paper_check(setup, traj) -> tuple[dict, dict]:
@@ -169,97 +166,3 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
                    wall_s=time.perf_counter() - t0)
     files.write_json(out / "theory.json", summary)
     return summary
-
-
-def _cell(text: str) -> str:
-    return text.replace("|", "\\|")
-
-
-def _yes(b: bool) -> str:
-    return "yes" if b else "**no**"
-
-
-def markdown(summary: dict) -> str:
-    """The summary.md section on Theorem 1."""
-    p = summary["paper"]
-    ini = p["init"]
-    lines = [
-        "## Theorem 1 along trajectories (`--theory`)", "",
-        "V(t) of eq. (44) with the TRUE plant parameters (theta_g = theta/g, phi = 1/g, "
-        "zeta = 1/(lam g_n), d = g_n (lam - psi)/alpha + max |dbar|); data in "
-        "`theory/lyapunov.npz`, figure `theory/fig_lyapunov`. M_(i+1) of (59)-(60) is the "
-        "maximum of |B_(i+1)| measured along the run: every bound below is a **data-driven "
-        "estimate**, not the theorem's constant. With sat(S_n/w) in place of sgn(S_n), the "
-        "proof's step (48) leaves a slack (at most w d_hat/4) that is added to the constant "
-        "C = e_M + (n-1) mu/2 + slack. See docs/theory.md.", "",
-        "### The paper's example does not satisfy the theorem's assumptions", "",
-        f"- Its gains do not follow (55) for any single alpha_0. As inequalities (all the proof "
-        f"uses) they allow alpha_0 <= {p['alpha0']:.3g}, bound by {p['binding_gain']}; k_2 = "
-        f"0.45 alone would allow {p['allows'].get('k_2', float('nan')):.3g}:", "",
-        "| gain | paper | rule (55)/(60) | rule at alpha_0 = 0.2 | alpha_0 it allows |",
-        "|---|---|---|---|---|"]
-    for g, allows in zip(p["gains"], p["allows"].values(), strict=True):
-        lines.append(f"| {g['gain']} | {g['paper']:.4g} | {g['rule']} | {g['at_0_2']:.4g} | "
-                     f"{allows:.4g} |")
-    est = ini["estimates"]
-    lines += [
-        "",
-        f"- It does not use the L-inf initialisation (67)-(68): initial estimates "
-        f"theta_hat = {est['theta_hat']}, phi_hat = {est['phi_hat']}, zeta_hat = "
-        f"{est['zeta_hat']:g}, d_hat = {est['d_hat']:g} (67 wants 0); y_r(0) = "
-        f"{ini['yr0']:g} != x_1(0) = {ini['x1_0']:g} (68), though c_2 = {ini['c']} = x_2(0). "
-        f"So S(0) = {np.round(ini['S0'], 5).tolist()}, and (70)-(72) are not licensed; (65) "
-        "is the statement that applies.", "",
-        f"### Statements on the example (alpha_0 = {p['alpha0']:.3g}, mu = {p['mu']:.3g}, "
-        f"M = {np.round(p['M_measured'], 4).tolist()} measured, C = {p['C']:.4g})", "",
-        "| statement | measured | bound | holds |", "|---|---|---|---|"]
-    h, ratio = p["holds"], p["bound_72"] / p["S1_inf"]
-    rows = [
-        ("(63)", f"max(V' + 2 alpha_0 V - C) = {p['margin_63']:.3g}", "0"),
-        ("(65)", f"max(V - bound) = {p['margin_65']:.3g}", "0"),
-        ("(70)", f"V(0) = {p['V0']:.4g}", f"{p['bound_71']:.4g}"),
-        ("(71)", f"max V = {p['V_max']:.4g} (t = {p['t_V_max']:.3g} s)", f"{p['bound_71']:.4g}"),
-        ("(72)", f"{p['S1_inf']:.4g} (after 1 s: {_g(p['S1_inf_after_1s'])})",
-         f"{p['bound_72']:.4g} (x{ratio:.3g})"),
-    ]
-    for key, measured, bound in rows:
-        lines.append(f"| {key} {_cell(theory.STATEMENTS[key])} | {measured} | {bound} | "
-                     f"{_yes(h[key])} |")
-    lines += [
-        f"| (12) {_cell(theory.ASSUMPTIONS['(12)'])} (assumption) | {p['d_n_max']:.4g} | "
-        f"{p['d']:.4g} | {_yes(p['assumptions']['(12)'])} |",
-        "",
-        f"V decreases at {100 * p['frac_V_decreasing']:.1f} % of the steps; V(0) = "
-        f"{p['V0']:.4g}, V(end) = {p['V_end']:.4g}. Taking alpha_0 = 0.2 (what k_2 suggests, "
-        "not licensed by the other gains) would give the bound "
-        f"{p['bound_72_at_alpha0_paper']:.3g}.",
-        "",
-    ]
-    for res in summary["studies"]:
-        o = res["options"]
-        rows = [r for r in res["rows"] if not r.get("skipped")]
-        skipped = [r for r in res["rows"] if r.get("skipped")]
-        n_hold = sum(r["all_hold"] for r in rows)
-        dts = sorted({r["dt"] for r in rows})
-        lines += [
-            f"### alpha_0 study, n = {res['n']} (gains (55) holding eta, tau (60), L-inf "
-            f"initialisation (67)-(68), mu = {o['mu']:g}, T = {o['t_final']:g} s)", "",
-            f"RK4 steps used: {', '.join(f'{d:g}' for d in dts)} s (each the largest "
-            f"{o['dt_max']:g}/2^j with dt <= {o['dt_safety']:g} x 2.785 x min(tau, "
-            "1/(alpha max|u'|))). The conclusions (63), (65), (70)-(72) hold for "
-            f"{n_hold} of {len(rows)} values of alpha_0"
-            + (f" ({len(skipped)} more skipped: too stiff for max_steps = {o['max_steps']})"
-               if skipped else "") + f". Wall time {res['wall_s']:.0f} s.", "",
-            alpha0_study.table_markdown(res), ""]
-        if len(rows) > 1:
-            a = np.log([r["alpha0"] for r in rows])
-            slope_m = np.polyfit(a, np.log([r["S1_inf"] for r in rows]), 1)[0]
-            slope_b = np.polyfit(a, np.log([r["bound_72"] for r in rows]), 1)[0]
-            cons = [r["conservatism"] for r in rows]
-            lines += [f"‖S_1‖∞ falls like alpha_0^{slope_m:.2f} and the bound (72) like "
-                      f"alpha_0^{slope_b:.2f}; the bound is {min(cons):.3g} to {max(cons):.3g} "
-                      "times the measured error.", ""]
-    lines += [f"Figures: `theory/{Path(summary['figures']['lyapunov']).name}`, "
-              f"`theory/{Path(summary['figures']['alpha0']).name}`.", ""]
-    return "\n".join(lines)
-
