@@ -30,31 +30,19 @@ import jax
 from dscjax import files, ts_sweep
 from dscjax.reproduce import complexity as cx
 from dscjax.reproduce import sampling, theory_section
-from dscjax.reproduce.claims import (
-    ALIKE_FACTOR,
-    AMPLITUDE_MARGIN,
-    INTERPRETATIONS,
-    check_claims,
-    claim_lines,
-    complexity_claim,
-    summarize,
-)
+from dscjax.reproduce.claims import check_claims, claim_lines, summarize
 from dscjax.reproduce.figures import FIGURES, RC, figures
 from dscjax.reproduce.markdown import summary_markdown
 from dscjax.reproduce.runs import (
-    ESTIMATES,
     FAMILY,
     FIG1_AMPLITUDES,
-    LABELS,
     METRIC_FIELDS,
     RUNS,
     STYLE,
     by_amplitude,
-    estimates,
     family_loops,
     hysteresis_loops,
     run_all,
-    run_metrics,
     setups,
 )
 
@@ -144,9 +132,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     return summary
 
 
-__all__ = ["ALIKE_FACTOR", "AMPLITUDE_MARGIN", "COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI",
-           "DT", "ESTIMATES", "FAMILY", "FIG1_AMPLITUDES", "FIGURES", "INTERPRETATIONS", "LABELS",
-           "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "by_amplitude", "check_claims",
-           "claim_lines", "complexity_claim", "estimates", "family_loops", "figures",
-           "hysteresis_loops", "reproduce", "run_all", "run_metrics", "setups", "summarize",
-           "summary_markdown"]
+__all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "FAMILY", "FIG1_AMPLITUDES",
+           "FIGURES", "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "by_amplitude",
+           "check_claims", "claim_lines", "family_loops", "figures", "hysteresis_loops",
+           "reproduce", "run_all", "setups", "summarize", "summary_markdown"]

@@ -163,12 +163,6 @@ def fit_growth(ns: Sequence[int], values: Sequence[float]) -> dict:
 METRICS = ("eqns", "flops", "trace_s", "compile_s", "build_s", "eval_s", "call_s")
 
 
-def _settings(repeats: int, evals: int) -> dict:
-    """What a saved measurement must have been made with to be reused by a resumed study."""
-    return dict(repeats=repeats, evals=evals, jax_version=jax.__version__,
-                backend=jax.default_backend())
-
-
 def _load_rows(path: Path, settings: dict, log) -> dict:
     """The saved measurements; ConfigError if missing, unreadable or made with other
     settings (resuming them would mix two studies)."""
@@ -196,7 +190,9 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
     """Rows, fits and the machine context of every controller at every order. Each finished
     measurement is saved at once to `rows_path` (atomically); `resume=True` reuses those made
     with the same repeats, evals, jax version and backend."""
-    settings = _settings(repeats, evals)
+    # what a saved measurement must have been made with to be reused by a resumed study
+    settings = dict(repeats=repeats, evals=evals, jax_version=jax.__version__,
+                    backend=jax.default_backend())
     path = None if rows_path is None else Path(rows_path)
     saved = _load_rows(path, settings, log) if (resume and path) else {}
     rows = []
