@@ -64,19 +64,17 @@ def summarize(trajs: dict, t_final: float, dt: float) -> dict:
     )
 
 
-def _ratio(a, b):
-    return a / b if b else float("inf")
-
-
 def check_claims(runs: dict, complexity: dict | None = None) -> list[dict]:
     """Each claim of the paper: what the paper shows, what we measured, whether it holds."""
     d, b = runs["dsc"], runs["backstepping"]
+
+    def ratio(r, key):  # of run r to the DSC
+        return r[key] / d[key] if d[key] else float("inf")
+
     claims = []
     for reading, key in (("A (d_hat = 0)", "dsc_no_dhat"),
                          ("B (d_hat = 0, zeta_hat = 1)", "dsc_no_dhat_no_zeta")):
-        r = runs[key]
-        q_inf = _ratio(r["linf_error_after_1s"], d["linf_error_after_1s"])
-        q_2 = _ratio(r["l2_error_after_1s"], d["l2_error_after_1s"])
+        q_inf, q_2 = (ratio(runs[key], f"{m}_error_after_1s") for m in ("linf", "l2"))
         claims.append(dict(
             id=f"compensation_improves_tracking_{key.removeprefix('dsc_')}",
             claim=f"Tracking is poor once hysteresis compensation is ignored, reading {reading}",
@@ -84,8 +82,7 @@ def check_claims(runs: dict, complexity: dict | None = None) -> list[dict]:
             measured=f"error after 1 s without / with compensation: L-inf x{q_inf:.2f}, "
                      f"L2 x{q_2:.2f}",
             ratio_linf=q_inf, ratio_l2=q_2, holds=bool(q_inf > 1.0 and q_2 > 1.0)))
-    q_inf = _ratio(b["linf_error_after_1s"], d["linf_error_after_1s"])
-    q_2 = _ratio(b["l2_error_after_1s"], d["l2_error_after_1s"])
+    q_inf, q_2 = (ratio(b, f"{m}_error_after_1s") for m in ("linf", "l2"))
     alike = all(1.0 / ALIKE_FACTOR <= q <= ALIKE_FACTOR for q in (q_inf, q_2))
     claims.append(dict(
         id="dsc_and_backstepping_track_alike",
@@ -94,8 +91,7 @@ def check_claims(runs: dict, complexity: dict | None = None) -> list[dict]:
         measured=f"error after 1 s backstepping / DSC: L-inf x{q_inf:.2f}, L2 x{q_2:.2f} "
                  f"(alike: within x{ALIKE_FACTOR:g})",
         ratio_linf=q_inf, ratio_l2=q_2, holds=bool(alike)))
-    q_u = _ratio(b["max_abs_u"], d["max_abs_u"])
-    q_u1 = _ratio(b["max_abs_u_after_1s"], d["max_abs_u_after_1s"])
+    q_u, q_u1 = (ratio(b, k) for k in ("max_abs_u", "max_abs_u_after_1s"))
     claims.append(dict(
         id="dsc_smaller_control_amplitude",
         claim="The DSC needs a smaller control amplitude than backstepping",
