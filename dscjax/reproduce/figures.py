@@ -128,36 +128,28 @@ def _figures(trajs, loops, out, fmt, dpi):
                  f"$\\lambda$ = {lam:g}, $\\psi$ = {psi:g}")
     paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
 
-    fig, (ax,) = _time_axes("Fig. 2  Tracking error of the DSC with and without hysteresis "
-                            "compensation", "tracking error $e = y - y_r$ [-]")
-    for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc"):
-        _line(ax, trajs[name], "e", name)
-    _legend_below(fig, ax)
-    paths["fig2"] = _finish(fig, out, FIGURES["fig2"], fmt, dpi)
-
-    t_after = 1.0 if float(np.asarray(trajs["dsc"].t)[-1]) > 1.0 else 0.0
-    for key, signal, title, ylabel in (
-            ("fig3", "u", "Fig. 3  Control signal of the DSC", "control input $u$ [-]"),
+    t_end = float(np.asarray(trajs["dsc"].t)[-1])
+    t_after = 1.0 if t_end > 1.0 else 0.0  # Figs. 3 and 4 add a panel after it
+    error, u = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
+    dsc = (("dsc", {}),)
+    without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
+    against = (("dsc", dict(lw=0.9, alpha=0.55)), ("backstepping", {}))  # the DSC faint
+    for key, signal, title, ylabel, runs, zoom in (
+            ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
+             "compensation", error, without, False),
+            ("fig3", "u", "Fig. 3  Control signal of the DSC", u, dsc, True),
             ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
-             "hysteresis output $w$ [-]")):
-        fig, (ax, zoom) = _time_axes(title, ylabel, t_after)
-        _line(ax, trajs["dsc"], signal, "dsc")
-        ax.axvspan(t_after, float(np.asarray(trajs["dsc"].t)[-1]), color="#999999",
-                   alpha=0.08, lw=0, label=f"shown below: $t \\geq$ {t_after:g} s")
-        _line(zoom, trajs["dsc"], signal, "dsc", t_after)
-        _legend_below(fig, ax, ncol=2)
-        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
-
-    faint = dict(lw=0.9, alpha=0.55)  # the DSC, for comparison
-    for key, signal, title, ylabel in (
-            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping",
-             "tracking error $e = y - y_r$ [-]"),
-            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping",
-             "control input $u$ [-]")):
-        fig, (ax,) = _time_axes(title, ylabel)
-        _line(ax, trajs["dsc"], signal, "dsc", **faint)
-        _line(ax, trajs["backstepping"], signal, "backstepping")
-        _legend_below(fig, ax, ncol=2)
+             "hysteresis output $w$ [-]", dsc, True),
+            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against, False),
+            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", u, against, False)):
+        fig, axes = _time_axes(title, ylabel, t_after if zoom else None)
+        for name, over in runs:
+            _line(axes[0], trajs[name], signal, name, **over)
+        if zoom:
+            axes[0].axvspan(t_after, t_end, color="#999999", alpha=0.08, lw=0,
+                            label=f"shown below: $t \\geq$ {t_after:g} s")
+            _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
+        _legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels are long
         paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
 
     paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)

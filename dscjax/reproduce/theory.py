@@ -165,9 +165,8 @@ def robust_slack_at(setup, tr: Truth, t, X: State):
     """What the robust term in use leaves over in the proof's step (48)-(49): with the
     controller's switching function r and |.| surrogate a, d (|S_n| - a(S_n)) + d_hat (a(S_n)
     - S_n r(S_n)) (0 for sgn(S_n), the proof's term; <= d_hat w/4 for sat(S_n/w))."""
-    ctrl = setup.controller
-    _, info = ctrl.law(X.ctrl, X.x, t, setup.plant, setup.reference)
-    return _slack(ctrl, tr, info.S[-1], X.ctrl.d_hat)
+    _, s = filter_errors_at(setup, t, X)
+    return _slack(setup.controller, tr, s[-1], X.ctrl.d_hat)
 
 
 def _slack(ctrl, tr, s_n, d_hat):
