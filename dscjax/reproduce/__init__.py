@@ -112,10 +112,9 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
                           rows_path=out / "complexity_rows.json", resume=resume)
         files.write_json(out / "complexity.json", result)
-        path = out / f"{FIGURES['complexity']}.{fmt}"
-        cx.plot(result, path, colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")},
-                dpi=dpi)
-        paths["complexity"] = path
+        paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
+        cx.plot(result, paths["complexity"],
+                colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")}, dpi=dpi)
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
     if theory:
