@@ -32,6 +32,9 @@ from dscjax.validation import ConfigError
 # what (55) keeps fixed when alpha_0 changes: the leakages (gamma = 2 alpha_0/eta, the paper's
 # remark after (72): e_M then does not depend on alpha_0) or the rates (eta = 2 alpha_0/gamma)
 HOLD = ("eta", "gamma")
+# the (rate, leakage) pairs whose products (55) sets to 2 alpha_0, and their names in reports
+PAIRS = (("gamma_g", "eta", "eta_{i} gamma_g{i}"), ("gamma_phi", "sigma", "sigma_{i} gamma_phi{i}"),
+         ("gamma_zeta", "eta_zeta", "eta_zeta gamma_zeta"), ("gamma_d", "eta_d", "eta_d gamma_d"))
 
 _CHUNK = 2048  # points per vmapped chunk when evaluating along a trajectory
 
@@ -268,14 +271,10 @@ def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
     a = jnp.asarray(alpha0, jnp.result_type(controller.k))
     g_min = controller.g_min
     k = jnp.stack([3.0 + a / g_min] + [3.25 + a / g_min] * (n - 2) + [0.25 + a])
-    pairs = (("gamma_g", "eta"), ("gamma_phi", "sigma"), ("gamma_zeta", "eta_zeta"),
-             ("gamma_d", "eta_d"))
     changes = {"k": k}
-    for gamma, eta in pairs:
-        if hold == "eta":
-            changes[gamma] = 2.0 * a / jnp.asarray(getattr(controller, eta))
-        else:
-            changes[eta] = 2.0 * a / jnp.asarray(getattr(controller, gamma))
+    for rate, leakage, _ in PAIRS:
+        held, changed = (leakage, rate) if hold == "eta" else (rate, leakage)
+        changes[changed] = 2.0 * a / jnp.asarray(getattr(controller, held))
     return dataclasses.replace(controller, **changes)
 
 
@@ -330,12 +329,9 @@ def gain_rules(controller, M, mu) -> list[tuple]:
     rows += [(f"k_{i + 1}", c.k[i], "3 1/4 + alpha_0/g_min", (3.25,), g_min)
              for i in range(1, n - 1)]
     rows += [(f"k_{n}", c.k[n - 1], "1/4 + alpha_0", (0.25,), 1.0)]
-    rows += [(f"eta_{i + 1} gamma_g{i + 1}", c.eta[i] * c.gamma_g[i], "2 alpha_0", (), 0.5)
-             for i in range(n)]
-    rows += [(f"sigma_{i + 1} gamma_phi{i + 1}", c.sigma[i] * c.gamma_phi[i], "2 alpha_0", (), 0.5)
-             for i in range(n - 1)]
-    rows += [("eta_zeta gamma_zeta", c.eta_zeta * c.gamma_zeta, "2 alpha_0", (), 0.5),
-             ("eta_d gamma_d", c.eta_d * c.gamma_d, "2 alpha_0", (), 0.5)]
+    for rate, leakage, name in PAIRS:
+        products = np.atleast_1d(getattr(c, leakage) * getattr(c, rate))
+        rows += [(name.format(i=i + 1), v, "2 alpha_0", (), 0.5) for i, v in enumerate(products)]
     rows += [(f"1/tau_{i + 2}", 1.0 / c.tau[i], f"1/4 + M^2/(2 mu) + alpha_0 (M = {M[i]:.3g}, "
               f"mu = {mu:.3g})", (0.25, M[i] ** 2 / (2.0 * mu)), 1.0) for i in range(n - 1)]
     return rows
