@@ -10,6 +10,7 @@ import numpy as np
 from dscjax import files
 from dscjax.config import paper_example
 from dscjax.plotting import COLORS, hysteresis_loop, subplots
+from dscjax.reproduce import theory
 from dscjax.reproduce.runs import LABELS, STYLE, estimates
 
 FIGURES = {
@@ -157,12 +158,10 @@ def _figures(trajs, loops, out, fmt, dpi):
 
 
 def _estimates_figure(trajs, out, fmt, dpi):
-    setup = paper_example()
-    g, theta = np.asarray(setup.plant.g, float), np.asarray(setup.plant.theta, float)
-    lam = float(setup.hysteresis.lam)
-    true = {"theta_hat_g1": (theta[0] / g[0], r"$\theta_1/g_1$"),
-            "phi_hat_1": (1.0 / g[0], r"$1/g_1$"),
-            "zeta_hat": (1.0 / (lam * g[1]), r"$1/(\lambda g_2)$")}
+    tr = theory.truth(paper_example())  # what the estimates estimate
+    true = {"theta_hat_g1": (float(tr.theta[0]), r"$\theta_1/g_1$"),
+            "phi_hat_1": (float(tr.phi[0]), r"$1/g_1$"),
+            "zeta_hat": (float(tr.zeta), r"$1/(\lambda g_2)$")}
     panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]"), ("phi_hat_1", r"$\hat\phi_1$ [-]"),
               ("zeta_hat", r"$\hat\zeta$ [-]"), ("d_hat", r"$\hat d$ [-]"))
     fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")

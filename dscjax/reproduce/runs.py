@@ -81,11 +81,8 @@ def run_metrics(traj, window_start: float) -> dict:
 def estimates(traj) -> dict[str, np.ndarray]:
     """The adaptive estimates of `ESTIMATES` along one run."""
     c = traj.ctrl
-    return {
-        "theta_hat_g1": np.asarray(c.theta_hat[:, 0]), "theta_hat_2": np.asarray(c.theta_hat[:, 1]),
-        "phi_hat_1": np.asarray(c.phi_hat[:, 0]), "zeta_hat": np.asarray(c.zeta_hat),
-        "d_hat": np.asarray(c.d_hat),
-    }
+    columns = (c.theta_hat[:, 0], c.theta_hat[:, 1], c.phi_hat[:, 0], c.zeta_hat, c.d_hat)
+    return {k: np.asarray(v) for k, v in zip(ESTIMATES, columns, strict=True)}
 
 
 def run_all(t_final: float = 20.0, dt: float = 1e-3, log: Callable[[str], None] = print) -> dict:
