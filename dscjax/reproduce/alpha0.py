@@ -92,9 +92,7 @@ def default_options(n: int, **changes) -> StudyOptions:
 def base_setup(n: int = 2):
     """The setup the study starts from, with the L-inf initialisation (67)-(68): the paper's
     example for n = 2, `order_n_example(n)` (its plant and small gains) for n >= 3."""
-    if n == 2:
-        return paper_example(init="linf")
-    return order_n_example(n, init="linf")
+    return paper_example(init="linf") if n == 2 else order_n_example(n, init="linf")
 
 
 def _initial_M(setup):
