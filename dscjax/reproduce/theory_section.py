@@ -77,14 +77,12 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
              for g, v, r, base, s in theory.gain_rules(c, M, mu)]
     x0 = np.asarray(setup.plant.x0)
     yr0 = float(setup.reference(0.0))
+    est0 = {k: np.asarray(getattr(c, f"{k}0")).tolist()
+            for k in ("theta_hat", "phi_hat", "zeta_hat", "d_hat")}
     init = dict(
-        estimates=dict(theta_hat=np.asarray(c.theta_hat0).tolist(),
-                       phi_hat=np.asarray(c.phi_hat0).tolist(), zeta_hat=float(c.zeta_hat0),
-                       d_hat=float(c.d_hat0)),
-        yr0=yr0, x1_0=float(x0[0]), c=np.asarray(c.c).tolist(), x0=x0.tolist(),
+        estimates=est0, yr0=yr0, x1_0=float(x0[0]), c=np.asarray(c.c).tolist(), x0=x0.tolist(),
         S0=np.asarray(traj.S[0]).tolist(), y0=np.asarray(lv.y[0]).tolist(),
-        uses_67=bool(all(float(np.max(np.abs(np.asarray(v)))) == 0.0 for v in
-                         (c.theta_hat0, c.phi_hat0, c.zeta_hat0, c.d_hat0))),
+        uses_67=not any(np.any(v) for v in est0.values()),
         uses_68=bool(yr0 == float(x0[0]) and np.allclose(np.asarray(c.c), x0[1:])),
     )
     b72_paper = theory.bound_72(C0 + (n - 1) * mu / 2, ALPHA0_PAPER, g_max)
