@@ -18,7 +18,7 @@ from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows
+from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows, tiles
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
@@ -27,6 +27,9 @@ from dscjax.validation import ConfigError
 # and the chattering index are columns (a chunk of 3 lacks them)
 FORMAT_VERSION = 4
 STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
+# the run's settings in a result's info besides t_final and dt (a row re-simulated reads them)
+RUN_KEYS = ("window_start", "state_bound", "solver", "refine", "sample_time", "delay", "noise",
+            "noise_seed", "discretisation")
 
 
 @dataclasses.dataclass
@@ -160,7 +163,8 @@ def run_sweep(
     for r in range(0, len(todo), runner.n_dev):
         group = todo[r:r + runner.n_dev]
         padded = group + [group[-1]] * (runner.n_dev - len(group))
-        rows = np.concatenate([_block_rows(table, b, chunk) for b in padded])
+        # the last block padded with its first row (a valid sample)
+        rows = np.concatenate([tiles(table[b * chunk:(b + 1) * chunk], chunk)[0] for b in padded])
         host = runner(rows, len(group), _block_len(group[-1], chunk, n))
         for k, b in enumerate(group):
             lo = b * chunk
@@ -302,13 +306,6 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
 
 def _block_len(b, chunk, n):
     return min(chunk, n - b * chunk)
-
-
-def _block_rows(table, b, chunk):
-    rows = table[b * chunk:(b + 1) * chunk]
-    if rows.shape[0] < chunk:  # pad the last block with its first row (a valid sample)
-        rows = np.concatenate([rows, np.repeat(rows[:1], chunk - rows.shape[0], axis=0)])
-    return rows
 
 
 def _columns(sample, names, values, part) -> dict[str, np.ndarray]:
