@@ -16,10 +16,12 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
+from dscjax.plotting import subplots
 from dscjax.runspec import RunSpec
 from dscjax.worst import Result, assumption_warnings, best_value
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
+SHARES = (0.1, 0.25, 0.5, 1.0)  # report.md's best values at these shares of the search time
 
 
 def options_of(result: Result) -> RunSpec:
@@ -77,9 +79,8 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
         "t": np.asarray(worst.t), "x": np.asarray(worst.x), "u": np.asarray(worst.u),
         "w": np.asarray(worst.w), "e": np.asarray(worst.e), "t_half": t_half, "dbar": dbar,
         "dt": np.asarray(dt_used)})
-    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz"]
     files.write_text(out / "report.md", report_md(result))
-    names.append("report.md")
+    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md"]
     if plots:
         _plot_worst(out / FIGURES[0], worst, result.nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
@@ -108,12 +109,12 @@ def report_md(result: Result) -> str:
         lines.append(f"| {m} | {best_value(tr):.6g} | {tr.evaluations} | {tr.iterations} | "
                      f"{tr.seconds:.1f} | {tr.compile_seconds:.1f} |")
     lines += ["", "## Best value against search time", "",
-              "| method | " + " | ".join(f"{f:.0%} of time" for f in (0.1, 0.25, 0.5, 1.0))
-              + " |", "|---|---|---|---|---|"]
+              "| method | " + " | ".join(f"{f:.0%} of time" for f in SHARES) + " |",
+              "|---" * (len(SHARES) + 1) + "|"]
     for m, tr in result.traces.items():
         t, best = _curve(tr)
         cells = []
-        for f in (0.1, 0.25, 0.5, 1.0):
+        for f in SHARES:
             i = np.searchsorted(t, f * (t[-1] if t.size else 0.0), side="right") - 1
             cells.append(f"{best[i]:.6g}" if i >= 0 else "-")
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
@@ -136,8 +137,6 @@ def _curve(trace) -> tuple[np.ndarray, np.ndarray]:
 def _plot_worst(path, worst, nominal, result):
     """worst_vs_nominal.png: e and u of the nominal and the worst case, one colour and line
     style per case in both panels, each panel with its legend. Returns the Figure."""
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
     for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
         t = np.asarray(traj.t)
@@ -156,8 +155,6 @@ def _plot_worst(path, worst, nominal, result):
 
 
 def _plot_disturbance(path, t_half, dbar, result):
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(figsize=(9, 3.2))
     ax.plot(t_half, dbar, lw=1.0, color="#d62728")
     spec = result.problem.disturbance
@@ -171,8 +168,6 @@ def _plot_disturbance(path, t_half, dbar, result):
 
 
 def _plot_progress(path, result):
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(figsize=(7, 4))
     for m, tr in result.traces.items():
         ax.step(*_curve(tr), where="post", label=m)
