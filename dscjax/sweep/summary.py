@@ -253,10 +253,8 @@ def markdown(summary: Mapping[str, Any]) -> str:
              f"{run.get('window_start', float('nan')):g} s. Wall time "
              f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
              f"({run.get('platform')}).", ""]
-    for w in summary.get("warnings", []):
-        lines.append(f"**Warning:** {w}")
-    if summary.get("warnings"):
-        lines.append("")
+    warnings = summary.get("warnings", [])
+    lines += [f"**Warning:** {w}" for w in warnings] + ([""] if warnings else [])
     smallest = summary.get("smallest_dt_tried")
     lines += ["## Outcome", "",
               f"- tracked: {summary['n_tracked']:,}",
