@@ -43,19 +43,13 @@ def loop_text(run: Mapping[str, Any]) -> str:
     return f"controller sampled every Ts = {ts:g} s ({', '.join(parts)})"
 
 
-def rank_worst(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
-    """Rows of the k worst samples that did not diverge, largest windowed L-inf error first."""
-    ok = ~np.asarray(columns["diverged"], bool)
-    lw = np.nan_to_num(np.asarray(columns["linf_error_window"], np.float64), nan=np.inf)
-    rows = np.flatnonzero(ok)
-    return rows[np.argsort(-lw[rows], kind="stable")][:k]
-
-
-def rank_diverged(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
-    """Rows of the first k samples to diverge (earliest divergence time first)."""
-    rows = np.flatnonzero(np.asarray(columns["diverged"], bool))
-    t = np.asarray(columns["t_diverged"], np.float64)[rows]
-    return rows[np.argsort(t, kind="stable")][:k]
+def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False) -> np.ndarray:
+    """Rows of the k worst samples that did not diverge, largest windowed L-inf error first;
+    with `diverged`, of the first k samples to diverge (earliest divergence time first)."""
+    rows = np.flatnonzero(np.asarray(columns["diverged"], bool) == diverged)
+    key = (np.asarray(columns["t_diverged"], np.float64) if diverged else
+           -np.nan_to_num(np.asarray(columns["linf_error_window"], np.float64), nan=np.inf))
+    return rows[np.argsort(key[rows], kind="stable")][:k]
 
 
 def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, list[str]]:
@@ -63,8 +57,8 @@ def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, l
     the worst that track; either kind fills in for the other if there are too few."""
     n_div = int(np.sum(columns["diverged"]))
     want_div = min(n_div, -(-k // 3)) if n_div else 0
-    worst = rank_worst(columns, k - want_div)
-    div = rank_diverged(columns, k - len(worst))
+    worst = rank_rows(columns, k - want_div)
+    div = rank_rows(columns, k - len(worst), diverged=True)
     return (np.concatenate([worst, div]).astype(np.int64),
             ["worst"] * len(worst) + ["diverged"] * len(div))
 
@@ -111,9 +105,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
-    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_worst(c, worst)]
+    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_rows(c, worst)]
     out["first_diverged"] = [sample_record(c, result.param_names, i)
-                             for i in rank_diverged(c, worst)]
+                             for i in rank_rows(c, worst, diverged=True)]
     return out
 
 
