@@ -48,8 +48,7 @@ def summary(result: Result) -> dict:
         "nominal_value": result.nominal_value,
         "ranges": {r.name: [r.low, r.high] for r in p.ranges},
         "simulation": p.spec.to_table() | {"window_start": p.window_start},
-        "methods": {m: {"best_value": (best_value(tr) if np.isfinite(best_value(tr))
-                                       else None),
+        "methods": {m: {"best_value": best_value(tr),  # -inf (null) before a finite one
                         "evaluations": tr.evaluations, "iterations": tr.iterations,
                         "search_s": tr.seconds, "compile_s": tr.compile_seconds,
                         "diverged_candidates": len(tr.diverged_z)}
