@@ -94,9 +94,7 @@ class Problem(eqx.Module):
             raise ConfigError(f"{field}: no number to fit")
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
-        measured = list(record.y)
-        est = {c: noise_level(record.y[c]) for c in measured}
-        sigma = {c: float((sigma or {}).get(c, est[c])) for c in measured}
+        sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
         index = np.arange(len(record)) if fit_index is None else np.asarray(fit_index)
         return cls(setup, exp, {c: jnp.asarray(v) for c, v in record.y.items()},
                    {c: jnp.asarray(v) for c, v in sigma.items()}, jnp.asarray(index),
