@@ -75,9 +75,8 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     t_half = half_step_grid(p.t_final, dt_used)
     dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
     files.write_npz(out / "worst_trajectory.npz", {
-        "t": np.asarray(worst.t), "x": np.asarray(worst.x), "u": np.asarray(worst.u),
-        "w": np.asarray(worst.w), "e": np.asarray(worst.e), "t_half": t_half, "dbar": dbar,
-        "dt": np.asarray(dt_used)})
+        **{k: getattr(worst, k) for k in ("t", "x", "u", "w", "e")}, "t_half": t_half,
+        "dbar": dbar, "dt": dt_used})
     files.write_text(out / "report.md", report_md(result))
     names = ["worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md"]
     if plots:
