@@ -131,10 +131,6 @@ class Problem:
         return float(self.spec.dt)
 
     @property
-    def window_start(self) -> float:
-        return float(self.spec.window_start)
-
-    @property
     def d(self) -> int:
         return len(self.ranges)
 

@@ -47,7 +47,7 @@ def summary(result: Result) -> dict:
         "disturbance": dist,
         "nominal_value": result.nominal_value,
         "ranges": {r.name: [r.low, r.high] for r in p.ranges},
-        "simulation": p.spec.to_table() | {"window_start": p.window_start},
+        "simulation": p.spec.to_table() | {"window_start": float(p.spec.window_start)},
         "methods": {m: {"best_value": best_value(tr),  # -inf (null) before a finite one
                         "evaluations": tr.evaluations, "iterations": tr.iterations,
                         "search_s": tr.seconds, "compile_s": tr.compile_seconds,
@@ -94,7 +94,7 @@ def report_md(result: Result) -> str:
                f"level)" if result.diverged else f"{result.value:.6g}")
     lines += [f"Worst value: **{verdict}**, found by {result.method}; nominal: "
               f"{result.nominal_value:.6g}.", "",
-              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{p.window_start:g}, "
+              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{float(p.spec.window_start):g}, "
               f"{p.t_final:g}] s. Searched: "
               + (", ".join(r.spec() for r in p.ranges) or "no parameter")
               + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
