@@ -79,10 +79,9 @@ class Problem(eqx.Module):
         for text in paths:
             p = params.Param.parse(text, field)
             p.check(setup, field)
-            value = np.atleast_1d(np.asarray(p.value(setup), float))
-            elements = [p] if p.index is not None or p.scale or value.size == 1 and \
-                np.ndim(p.value(setup)) == 0 else \
-                [params.Param(p.path, i) for i in range(value.size)]
+            value = np.asarray(p.value(setup), float)
+            elements = ([p] if p.index is not None or p.scale or value.ndim == 0 else
+                        [params.Param(p.path, i) for i in range(value.size)])
             for q in elements:
                 v = float(np.asarray(q.value(setup), float))
                 free.append(Free(q, log=q.scale or _positive(setup, q) and v > 0))
