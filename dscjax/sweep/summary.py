@@ -76,9 +76,11 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     for m in METRICS:
         v = np.asarray(c[m], np.float64)[ok]
         v = v[np.isfinite(v)]
-        qs = np.quantile(v, list(QUANTILES.values())) if v.size else None
-        quant[m] = None if qs is None else {
-            **{k: float(x) for k, x in zip(QUANTILES, qs, strict=True)}, "mean": float(np.mean(v))}
+        quant[m] = None
+        if v.size:
+            qs = np.quantile(v, list(QUANTILES.values()))
+            quant[m] = {k: float(x) for k, x in zip(QUANTILES, qs, strict=True)}
+            quant[m]["mean"] = float(np.mean(v))
     lw = np.asarray(c["linf_error_window"], np.float64)
     refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
