@@ -325,7 +325,7 @@ def test_a_nan_point_steps_back_from_the_last_good_one_with_half_the_step():
 
     p = NanSecond(C, -np.ones(3), np.ones(3))
     method = Gradient()
-    ctx = search.Context(0, 0, np.zeros(3), Incumbent(), 0.0)
+    ctx = search.Context(0, 0, np.zeros(3))
     one = method.step(p, None, ctx)
     two = method.step(p, one.state, ctx._replace(iteration=1))
     assert one.notes["accepted"] and not two.notes["accepted"]

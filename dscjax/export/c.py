@@ -126,12 +126,8 @@ class _Emitter:
         f = _ELEMENTWISE.get(op.prim)
         if f is not None:
             vals = [f([self.el(a, i) for a in op.ins], op.params, self.real) for i in range(n)]
-        elif op.prim in _MOVES:
-            vals = [self.el(op.ins[k], int(j)) for k, j in _index_map(op)]
-        elif op.prim == "dot_general":
-            vals = _dot(self, op)
-        elif op.prim in ("reduce_sum", "reduce_max", "reduce_min"):
-            vals = _reduce(self, op)
+        elif op.prim in _STRUCTURAL:
+            vals = _STRUCTURAL[op.prim](self, op)
         else:
             raise ExportError(f"controller: export cannot write the primitive "
                               f"'{op.prim}' ({op.where}) in C")
@@ -203,32 +199,35 @@ _ELEMENTWISE = {
 def _index_map(op):
     """(operand, flat index) of every flat output element of a data-movement primitive."""
     shapes = [_shape(a) for a in op.ins]
-    ids = [np.arange(_size(s)).reshape(s) for s in shapes]
-    p = op.params
+    # every operand's flat indices, tagged with the operand's number
+    tagged = [k * MAX_ELEMENTS + np.arange(_size(s)).reshape(s) for k, s in enumerate(shapes)]
+    ids, p = tagged[0], op.params
     if op.prim == "broadcast_in_dim":
         keep = [1] * len(p["shape"])
         for d, s in zip(p["broadcast_dimensions"], shapes[0], strict=True):
             keep[d] = s
-        got = np.broadcast_to(ids[0].reshape(keep), p["shape"])
-        return [(0, j) for j in got.ravel()]
-    if op.prim == "slice":
+        got = np.broadcast_to(ids.reshape(keep), p["shape"])
+    elif op.prim == "slice":
         strides = p.get("strides") or (1,) * len(shapes[0])
-        sl = tuple(slice(a, b, c) for a, b, c in zip(p["start_indices"], p["limit_indices"],
-                                                     strides, strict=True))
-        return [(0, j) for j in ids[0][sl].ravel()]
-    if op.prim == "transpose":
-        return [(0, j) for j in np.transpose(ids[0], p["permutation"]).ravel()]
-    if op.prim == "rev":
-        return [(0, j) for j in np.flip(ids[0], p["dimensions"]).ravel()]
-    if op.prim in ("concatenate", "stack"):
-        tagged = [k * MAX_ELEMENTS + a for k, a in enumerate(ids)]
-        got = (np.concatenate(tagged, axis=p["dimension"]) if op.prim == "concatenate"
-               else np.stack(tagged, axis=p["axis"]))
-        return [(int(g) // MAX_ELEMENTS, int(g) % MAX_ELEMENTS) for g in got.ravel()]
-    raise AssertionError(op.prim)
+        bounds = zip(p["start_indices"], p["limit_indices"], strides, strict=True)
+        got = ids[tuple(slice(*b) for b in bounds)]
+    elif op.prim == "transpose":
+        got = np.transpose(ids, p["permutation"])
+    elif op.prim == "rev":
+        got = np.flip(ids, p["dimensions"])
+    elif op.prim == "concatenate":
+        got = np.concatenate(tagged, axis=p["dimension"])
+    else:  # stack
+        got = np.stack(tagged, axis=p["axis"])
+    return [(int(g) // MAX_ELEMENTS, int(g) % MAX_ELEMENTS) for g in got.ravel()]
 
 
-_MOVES = ("broadcast_in_dim", "slice", "transpose", "rev", "concatenate", "stack")
+def _groups(shape, axes) -> np.ndarray:
+    """The flat indices of an array of `shape`: one row per index of its other axes, the
+    `axes` along the row."""
+    ids = np.arange(_size(shape)).reshape(shape)
+    rest = [d for d in range(len(shape)) if d not in axes]
+    return np.transpose(ids, rest + list(axes)).reshape(-1, _size([shape[d] for d in axes]))
 
 
 def _dot(em, op):
@@ -236,33 +235,31 @@ def _dot(em, op):
     (ca, cb), (ba, bb) = op.params["dimension_numbers"]
     if ba or bb:
         raise ExportError(f"controller: batched dot_general ({op.where})")
-    sa, sb = _shape(a), _shape(b)
-    ia, ib = np.arange(_size(sa)).reshape(sa), np.arange(_size(sb)).reshape(sb)
-    fa = [d for d in range(len(sa)) if d not in ca]
-    fb = [d for d in range(len(sb)) if d not in cb]
-    ia = np.transpose(ia, fa + list(ca)).reshape(-1, _size([sa[d] for d in ca]))
-    ib = np.transpose(ib, fb + list(cb)).reshape(-1, _size([sb[d] for d in cb]))
     return ["(" + " + ".join(f"{em.el(a, int(x))} * {em.el(b, int(y))}"
                              for x, y in zip(ra, rb, strict=True)) + ")"
-            for ra in ia for rb in ib]
+            for ra in _groups(_shape(a), ca) for rb in _groups(_shape(b), cb)]
 
 
 def _reduce(em, op):
     a = op.ins[0]
-    shape = _shape(a)
-    axes = tuple(op.params["axes"])
-    ids = np.arange(_size(shape)).reshape(shape)
-    rest = [d for d in range(len(shape)) if d not in axes]
-    groups = np.transpose(ids, rest + list(axes)).reshape(-1, _size([shape[d] for d in axes]))
+    f = _ELEMENTWISE[{"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min"}[op.prim]]
     out = []
-    for g in groups:
+    for g in _groups(_shape(a), tuple(op.params["axes"])):
         expr = em.el(a, int(g[0]))
         for j in g[1:]:
-            e = em.el(a, int(j))
-            expr = {"reduce_sum": f"({expr} + {e})", "reduce_max": f"dsc_max_({expr}, {e})",
-                    "reduce_min": f"dsc_min_({expr}, {e})"}[op.prim]
+            expr = f([expr, em.el(a, int(j))], {}, em.real)
         out.append(expr)
     return out
+
+
+def _move(em, op):
+    return [em.el(op.ins[k], j) for k, j in _index_map(op)]
+
+
+# the primitives that are not elementwise: data movement, dot_general and reductions
+_STRUCTURAL = {**dict.fromkeys(("broadcast_in_dim", "slice", "transpose", "rev", "concatenate",
+                                "stack"), _move), "dot_general": _dot,
+               **dict.fromkeys(("reduce_sum", "reduce_max", "reduce_min"), _reduce)}
 
 
 def _reference_args(law: Law, r: str) -> str:

@@ -96,15 +96,11 @@ def trace(setup, spec) -> Law:
     # the actuator's state: sample_update moves it, nothing the C returns depends on it
     h0 = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), X0.h)
 
-    def loop_of(p):
-        return setup.replace(plant=p["plant"], controller=p["controller"],
-                             reference=p["reference"])
-
     def step(ctrl, past, values, x, t, d):
         leaves = list(base)
         for i, v in zip(which, values, strict=True):
             leaves[i] = v
-        loop = loop_of(jax.tree.unflatten(treedef, leaves))
+        loop = setup.replace(**jax.tree.unflatten(treedef, leaves))
         loop = loop.replace(reference=_with_given(loop.reference, d))
         X = SampledState(x=x, h=h0, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
         new = sample_update(jnp.zeros((), jnp.int32), t, X, loop, sampling, dt)
@@ -112,7 +108,7 @@ def trace(setup, spec) -> Law:
 
     def init(x0, d0):
         p = prepare_at(x0, d0)
-        loop = loop_of(p)
+        loop = setup.replace(**p)
         X = initial_state(loop)  # the simulation's own X(0) of this x(0)
         u0, _ = loop.controller.law(X.ctrl, X.x, zero, loop.plant, loop.reference)
         past = jnp.full((spec.delay,), u0, dtype)  # as closed_loop.sampled_initial_state

@@ -63,8 +63,8 @@ def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
         raw = _read_csv(path) if suffix == ".csv" else _read_npz(path)
     except OSError as err:
         raise ConfigError(f"{option}: cannot read {path}: {err.strerror}") from None
-    where = "line" if suffix == ".csv" else "index"
-    first = 2 if suffix == ".csv" else 0  # the first sample's line (after the header) or index
+    # where a value sits: the line of a CSV (the first sample's after the header), or the index
+    where, first = ("line", 2) if suffix == ".csv" else ("index", 0)
     allowed = columns_of(order)
     for name in ("t", "u"):
         if name not in raw:

@@ -79,10 +79,9 @@ class Problem(eqx.Module):
         for text in paths:
             p = params.Param.parse(text, field)
             p.check(setup, field)
-            value = np.atleast_1d(np.asarray(p.value(setup), float))
-            elements = [p] if p.index is not None or p.scale or value.size == 1 and \
-                np.ndim(p.value(setup)) == 0 else \
-                [params.Param(p.path, i) for i in range(value.size)]
+            value = np.asarray(p.value(setup), float)
+            elements = ([p] if p.index is not None or p.scale or value.ndim == 0 else
+                        [params.Param(p.path, i) for i in range(value.size)])
             for q in elements:
                 v = float(np.asarray(q.value(setup), float))
                 free.append(Free(q, log=q.scale or _positive(setup, q) and v > 0))
@@ -94,9 +93,7 @@ class Problem(eqx.Module):
             raise ConfigError(f"{field}: no number to fit")
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
-        measured = list(record.y)
-        est = {c: noise_level(record.y[c]) for c in measured}
-        sigma = {c: float((sigma or {}).get(c, est[c])) for c in measured}
+        sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
         index = np.arange(len(record)) if fit_index is None else np.asarray(fit_index)
         return cls(setup, exp, {c: jnp.asarray(v) for c, v in record.y.items()},
                    {c: jnp.asarray(v) for c, v in sigma.items()}, jnp.asarray(index),
@@ -155,14 +152,13 @@ class Problem(eqx.Module):
         idx = self.fit_index
         parts = [(self.y[c][idx] - pred[c][idx]) / self.sigma[c] for c in self.y]
         if ends is not None and ends.shape[0]:
-            scale = jnp.asarray([self.sigma.get(f"x{i + 1}", self._state_scale())
+            # an unmeasured state in units of the median noise of the measured columns
+            median = jnp.median(jnp.stack([self.sigma[c] for c in self.y]))
+            scale = jnp.asarray([self.sigma.get(f"x{i + 1}", median)
                                  for i in range(ends.shape[1])])
             parts.append(CONTINUITY * (ends - theta["x"][1:]).ravel()
                          / jnp.tile(scale, ends.shape[0]))
         return jnp.concatenate(parts)
-
-    def _state_scale(self):
-        return jnp.median(jnp.stack([self.sigma[c] for c in self.y]))
 
 
 def noise_level(y) -> float:
@@ -251,12 +247,11 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
 
 
 def _flat(problem: Problem, v):
-    z = v[:len(problem.free)]
-    return problem.residuals({"z": z, "x": v[len(problem.free):].reshape(_x_shape(problem))})
-
-
-def _x_shape(problem: Problem) -> tuple[int, int]:
-    return (problem.exp.segments, problem.setup.order) if problem.exp.plant else (1, 0)
+    """The residuals at the flat coordinates v: the free numbers' z, then the segments' start
+    states."""
+    k = len(problem.free)
+    shape = (problem.exp.segments, problem.setup.order) if problem.exp.plant else (1, 0)
+    return problem.residuals({"z": v[:k], "x": v[k:].reshape(shape)})
 
 
 @functools.partial(xla.jit, lean=True)
@@ -267,14 +262,6 @@ def _rj(problem: Problem, v):
     cols = jax.vmap(lambda e: jax.jvp(lambda w: _flat(problem, w), (v,), (e,))[1])(
         jnp.eye(v.size, dtype=v.dtype))
     return r, cols.T
-
-
-def residuals_and_jacobian(problem: Problem, theta) -> tuple[np.ndarray, np.ndarray]:
-    """(r (m,), dr/dtheta (m, p)) at theta, by forward mode; the columns: the free numbers'
-    coordinates z, then the segments' start states."""
-    v = jnp.concatenate([jnp.ravel(jnp.asarray(theta["z"])), jnp.ravel(jnp.asarray(theta["x"]))])
-    r, jac = _rj(problem, v)
-    return np.asarray(r, float), np.asarray(jac, float)
 
 
 _simulate = eqx.filter_jit(simulate)
@@ -385,21 +372,17 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
     from `h0`): its numbers fixed, only its initial plant state fitted (one segment), as a
     grey-box user compares."""
     setup = problem.setup_at(jnp.asarray(fit.theta["z"]))
-    val = Problem(setup, Experiment.make(record.t, record.u, plant=problem.exp.plant,
-                                         dt=_dt(problem), hold=problem.exp.hold),
+    dt = float(np.max(np.diff(np.asarray(problem.exp.t)))) / problem.exp.substeps
+    val = Problem(setup, Experiment.make(record.t, record.u, plant=problem.exp.plant, dt=dt,
+                                         hold=problem.exp.hold),
                   {c: jnp.asarray(v) for c, v in record.y.items()},
                   {c: problem.sigma[c] for c in record.y}, jnp.arange(len(record)), (), h0,
                   record.source)
-    if not val.exp.plant:
+    if not val.exp.plant:  # nothing to fit: the residuals (and their empty Jacobian) alone
+        r, jac = (np.asarray(a, float) for a in _rj(val, jnp.zeros((0,))))
         theta = {"z": jnp.zeros((0,)), "x": jnp.zeros((1, 0))}
-        r, jac = residuals_and_jacobian(val, theta)
         return val, Fit(theta, 0.5 * float(r @ r), 0, "no state to fit", jac, r)
     return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
-
-
-def _dt(problem: Problem) -> float:
-    t = np.asarray(problem.exp.t)
-    return float(np.max(np.diff(t))) / problem.exp.substeps
 
 
 def check_segments(segments: int, n: int, field: str = "--segments") -> int:
@@ -411,4 +394,4 @@ def check_segments(segments: int, n: int, field: str = "--segments") -> int:
 
 
 __all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures",
-           "noise_level", "residuals_and_jacobian", "solve", "solve_starts", "validation_fit"]
+           "noise_level", "solve", "solve_starts", "validation_fit"]

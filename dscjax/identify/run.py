@@ -122,16 +122,12 @@ def read_records(s: IdentifySettings, data: str, order: int | None
     return record, val
 
 
-def robust_box(res: Identified) -> dict[str, list[float]]:
-    """{path: [low, high]}: the 95 % interval of each identifiable number (the robust tuning
-    box of identified.toml); the others are left out (the report names them)."""
-    return {e.name: [e.low, e.high] for e in res.estimates if e.identifiable}
-
-
 def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> list[str]:
     """identified.toml, report.json, report.md (and the figures): the names written."""
     table = config.to_dict(res.setup, spec)
-    box = robust_box(res)
+    # the robust tuning box: the 95 % interval of each identifiable number (the report names
+    # the others)
+    box = {e.name: [e.low, e.high] for e in res.estimates if e.identifiable}
     if box:
         table["tuning"] = {"robust": {"ranges": box}}
     header = (f"dscjax identify: {source['data']} fitted to {source['model']}; the free numbers "
@@ -232,4 +228,4 @@ def markdown(s: dict) -> str:
 
 
 __all__ = ["FIGURES", "IdentifySettings", "Identified", "columns_of", "identify", "markdown",
-           "read_records", "robust_box", "summary_of", "write"]
+           "read_records", "summary_of", "write"]

@@ -125,8 +125,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
         # (dscjax.progress.critical): whatever was saved is a whole state
         with critical():
             c0 = getattr(problem, "compile_seconds", 0.0)
-            step = method.step(problem, state, Context(trace.iterations, seed, trace.start_z,
-                                                       trace.best, min_delta))
+            step = method.step(problem, state, Context(trace.iterations, seed, trace.start_z))
             c = getattr(problem, "compile_seconds", 0.0) - c0
             # (the seconds since the last iteration's step: its save and progress count here)
             now = time.perf_counter()

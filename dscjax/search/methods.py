@@ -15,7 +15,7 @@ from typing import ClassVar, NamedTuple
 import numpy as np
 
 from dscjax.search.cma import ReplayCMA
-from dscjax.search.trace import Evaluation, Incumbent, Step, order, take
+from dscjax.search.trace import Evaluation, Step, order
 from dscjax.validation import ConfigError
 
 BAD = 1e30  # what CMA-ES is told for a non-finite loss
@@ -27,8 +27,6 @@ class Context(NamedTuple):
     iteration: int  # iterations done before this one
     seed: int
     x0: np.ndarray  # (n,) the start point
-    best: Incumbent  # the incumbent before this iteration
-    min_delta: float
 
 
 def generator(seed: int, name: str, iteration: int) -> np.random.Generator:
@@ -87,14 +85,11 @@ class CMA:
         pop = es.ask()
         z = problem.project(pop)
         ev = problem.evaluate(z)
-        best, first, start = ctx.best, 0, None
+        first, start = 0, None
         if ctx.iteration == 0:  # the start point (evaluated after: padded to this batch)
             ev0 = problem.evaluate(ctx.x0[None, :])
-            best, _ = take(best, ctx.x0[None, :], ev0, 0, ctx.min_delta)
             z, ev, first, start = np.concatenate([ctx.x0[None, :], z]), Evaluation.join(
                 [ev0, ev]), 1, 0
-        best, _ = take(best, z[first:], ev.rows(slice(first, None)), ctx.iteration,
-                       ctx.min_delta)
         loss = ev.loss[first:]
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
         sigma, stop = es.sigma, es.stop() or self._stalled(es)

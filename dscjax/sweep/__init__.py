@@ -37,8 +37,7 @@ from dscjax.sweep.summary import (
     loop_text,
     markdown,
     random_rows,
-    rank_diverged,
-    rank_worst,
+    rank_rows,
     sample_record,
     simulate_rows,
     summarize,
@@ -47,6 +46,5 @@ from dscjax.sweep.summary import (
 
 __all__ = ["AUTO_BLOCK", "FLOAT32_RTOL", "METRICS", "PARALLEL", "SweepResult", "SweepSettings",
            "auto_chunk", "check_resumable", "check_rows", "check_settings", "float32_trust",
-           "float64_check", "loop_text", "markdown", "random_rows", "rank_diverged",
-           "rank_worst", "run_sweep", "sample_record", "settings_from_dict", "simulate_rows",
-           "summarize", "trace_rows"]
+           "float64_check", "loop_text", "markdown", "random_rows", "rank_rows", "run_sweep",
+           "sample_record", "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]

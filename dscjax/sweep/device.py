@@ -156,7 +156,7 @@ class Runner:
                                       + [np.zeros(self.chunk * (self.n_dev - len(per_dev)),
                                                   first[k].dtype)])
                     for k in first}
-        by_device = {dev: [_join_on(res, k, self.chunk) for k in res[0]]
+        by_device = {dev: [_join(res, k, self.chunk, jax.numpy) for k in res[0]]
                      for dev, res in per_dev.values()}
         keys = list(next(iter(per_dev.values()))[1][0])
         out = {k: jax.make_array_from_single_device_arrays(
@@ -194,16 +194,12 @@ class Runner:
         return out
 
 
-def _join(outputs: list[dict], key: str, n: int) -> np.ndarray:
-    """Column `key` of a list of tile outputs on the host, cut or zero-padded to n rows."""
-    a = np.concatenate([np.asarray(o[key]) for o in outputs])[:n]
-    return np.concatenate([a, np.zeros(n - a.shape[0], a.dtype)])
-
-
-def _join_on(outputs: list[dict], key: str, n: int):
-    """`_join` on the tiles' device (concatenation copies bits, nothing is computed)."""
-    a = jax.numpy.concatenate([o[key] for o in outputs])[:n]
-    return jax.numpy.concatenate([a, jax.numpy.zeros(n - a.shape[0], a.dtype)])
+def _join(outputs: list[dict], key: str, n: int, xp=np):
+    """Column `key` of a list of tile outputs, cut or zero-padded to n rows: on the host, or
+    with `xp` = `jax.numpy` on the tiles' device (concatenation copies bits, nothing is
+    computed)."""
+    a = xp.concatenate([xp.asarray(o[key]) for o in outputs])[:n]
+    return xp.concatenate([a, xp.zeros(n - a.shape[0], a.dtype)])
 
 
 def _to_host(a) -> np.ndarray:

@@ -193,23 +193,21 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
         handles.append(Patch(facecolor="none", edgecolor="#7f0000", hatch="///",
                              label=f"diverged at every step tried ({int(div_cells.sum())} "
                              f"cells)"))
-    if ref.any():
-        idx = np.flatnonzero(ref)
+    # the refined and the diverged samples (at most 2000 of each, a seeded draw)
+    for mask, style, handle in (
+            (ref, dict(marker="o", s=10, facecolors="none", edgecolors="#ff7f0e", lw=0.7),
+             Line2D([], [], marker="o", ls="", mfc="none", color="#ff7f0e",
+                    label=f"tracked after refinement ({int(ref.sum()):,} samples: stiff at "
+                    "dt, re-run with ETDRK4)")),
+            (div, dict(marker="x", s=14, c="#d62728", lw=0.8),
+             Line2D([], [], marker="x", ls="", color="#d62728",
+                    label=f"diverged sample ({int(div.sum()):,})"))):
+        idx = np.flatnonzero(mask)
         if idx.size > 2000:
             idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
-        ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], marker="o", s=10,
-                   facecolors="none", edgecolors="#ff7f0e", lw=0.7)
-        handles.append(Line2D([], [], marker="o", ls="", mfc="none", color="#ff7f0e",
-                              label=f"tracked after refinement ({int(ref.sum()):,} samples: "
-                              "stiff at dt, re-run with ETDRK4)"))
-    if div.any():
-        idx = np.flatnonzero(div)
-        if idx.size > 2000:
-            idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
-        ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], marker="x", s=14, c="#d62728",
-                   lw=0.8)
-        handles.append(Line2D([], [], marker="x", ls="", color="#d62728",
-                              label=f"diverged sample ({int(div.sum()):,})"))
+        if idx.size:
+            ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], **style)
+            handles.append(handle)
     if nominal_xy is not None:
         ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
         handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",

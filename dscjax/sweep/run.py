@@ -18,7 +18,7 @@ from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows
+from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows, tiles
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
@@ -27,6 +27,9 @@ from dscjax.validation import ConfigError
 # and the chattering index are columns (a chunk of 3 lacks them)
 FORMAT_VERSION = 4
 STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
+# the run's settings in a result's info besides t_final and dt (a row re-simulated reads them)
+RUN_KEYS = ("window_start", "state_bound", "solver", "refine", "sample_time", "delay", "noise",
+            "noise_seed", "discretisation")
 
 
 @dataclasses.dataclass
@@ -160,7 +163,8 @@ def run_sweep(
     for r in range(0, len(todo), runner.n_dev):
         group = todo[r:r + runner.n_dev]
         padded = group + [group[-1]] * (runner.n_dev - len(group))
-        rows = np.concatenate([_block_rows(table, b, chunk) for b in padded])
+        # the last block padded with its first row (a valid sample)
+        rows = np.concatenate([tiles(table[b * chunk:(b + 1) * chunk], chunk)[0] for b in padded])
         host = runner(rows, len(group), _block_len(group[-1], chunk, n))
         for k, b in enumerate(group):
             lo = b * chunk
@@ -178,12 +182,20 @@ def run_sweep(
                 kept[b] = data
             n_run += m
         now = time.perf_counter()
-        if t_first_round is None:
-            t_first_round = (now, n_run)
+        t_first_round = t_first_round or (now, n_run)
         if progress is not None:
-            progress(_progress(n_done_before + n_run, n, n_run, now - t_start, t_first_round,
-                               t_start, n_steps, r // runner.n_dev + 1,
-                               -(-len(todo) // runner.n_dev)) | {"resumed": n_done_before})
+            t_first, n_first = t_first_round
+            # the rate after the first round excludes compilation; the ETA uses it once known
+            if n_run > n_first and now > t_first:
+                rate = (n_run - n_first) / (now - t_first)
+            else:
+                rate = n_run / (now - t_start) if now > t_start else 0.0
+            done = n_done_before + n_run
+            progress(dict(done=done, total=n, elapsed_s=now - t_start, samples_per_s=rate,
+                          steps_per_s=rate * n_steps,
+                          eta_s=(n - done) / rate if rate > 0 else math.inf,
+                          round=r // runner.n_dev + 1, rounds=-(-len(todo) // runner.n_dev),
+                          resumed=n_done_before))
     elapsed = time.perf_counter() - t_start
 
     if out is not None:
@@ -304,25 +316,13 @@ def _block_len(b, chunk, n):
     return min(chunk, n - b * chunk)
 
 
-def _block_rows(table, b, chunk):
-    rows = table[b * chunk:(b + 1) * chunk]
-    if rows.shape[0] < chunk:  # pad the last block with its first row (a valid sample)
-        rows = np.concatenate([rows, np.repeat(rows[:1], chunk - rows.shape[0], axis=0)])
-    return rows
-
-
 def _columns(sample, names, values, part) -> dict[str, np.ndarray]:
-    code = part["status"].astype(np.int8)
-    step = part["bad_step"].astype(np.int64)
-    out = {"sample": sample}
-    out |= {name: values[:, j] for j, name in enumerate(names)}
-    out |= {k: part[k] for k in METRICS}
-    out["diverged"] = code != 0
-    out["t_diverged"] = np.where(step >= 0, step * part["dt_used"], np.inf)
-    out["status"] = code
-    out["refinements"] = part["refinements"].astype(np.int8)
-    out["dt_used"] = part["dt_used"].astype(np.float64)
-    return out
+    code, step = part["status"].astype(np.int8), part["bad_step"].astype(np.int64)
+    return {"sample": sample, **{name: values[:, j] for j, name in enumerate(names)},
+            **{k: part[k] for k in METRICS}, "diverged": code != 0,
+            "t_diverged": np.where(step >= 0, step * part["dt_used"], np.inf), "status": code,
+            "refinements": part["refinements"].astype(np.int8),
+            "dt_used": part["dt_used"].astype(np.float64)}
 
 
 def _read_chunk(path: Path, fingerprint: str) -> dict[str, np.ndarray] | None:
@@ -335,15 +335,3 @@ def _read_chunk(path: Path, fingerprint: str) -> dict[str, np.ndarray] | None:
 
 def _chunk_path(out_dir: Path, b: int) -> Path:
     return out_dir / "chunks" / f"chunk_{b:06d}.npz"
-
-
-def _progress(done, total, n_run, elapsed, first, t_start, n_steps, round_i, rounds):
-    # The rate after the first round excludes compilation; the ETA uses it once known.
-    t_first, n_first = first
-    if n_run > n_first and (t_start + elapsed) > t_first:
-        rate = (n_run - n_first) / (t_start + elapsed - t_first)
-    else:
-        rate = n_run / elapsed if elapsed > 0 else 0.0
-    eta = (total - done) / rate if rate > 0 else math.inf
-    return dict(done=done, total=total, elapsed_s=elapsed, samples_per_s=rate,
-                steps_per_s=rate * n_steps, eta_s=eta, round=round_i, rounds=rounds)

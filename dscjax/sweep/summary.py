@@ -15,11 +15,13 @@ from dscjax.params import Param
 from dscjax.runspec import RunSpec
 from dscjax.simulate import simulate
 from dscjax.sweep.device import METRICS
-from dscjax.sweep.run import SweepResult
+from dscjax.sweep.run import RUN_KEYS, SweepResult
 
 # the metrics of summary.md's table of the worst samples: tracking and effort on the window
 WORST_COLUMNS = ("linf_error_window", "rms_error_window", "tv_u_window", "chattering_index")
-QUANTILES = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
+# the quantiles of summary.json and summary.md, by name
+QUANTILES = {"min": 0.0, "p01": 0.01, "p05": 0.05, "p25": 0.25, "p50": 0.5, "p75": 0.75,
+             "p95": 0.95, "p99": 0.99, "max": 1.0}
 # A float32 metric is trusted when, on every re-checked row, it agrees with the same row run in
 # float64 to this relative difference (`float64_check`).
 FLOAT32_RTOL = 1e-3
@@ -41,19 +43,13 @@ def loop_text(run: Mapping[str, Any]) -> str:
     return f"controller sampled every Ts = {ts:g} s ({', '.join(parts)})"
 
 
-def rank_worst(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
-    """Rows of the k worst samples that did not diverge, largest windowed L-inf error first."""
-    ok = ~np.asarray(columns["diverged"], bool)
-    lw = np.nan_to_num(np.asarray(columns["linf_error_window"], np.float64), nan=np.inf)
-    rows = np.flatnonzero(ok)
-    return rows[np.argsort(-lw[rows], kind="stable")][:k]
-
-
-def rank_diverged(columns: Mapping[str, np.ndarray], k: int) -> np.ndarray:
-    """Rows of the first k samples to diverge (earliest divergence time first)."""
-    rows = np.flatnonzero(np.asarray(columns["diverged"], bool))
-    t = np.asarray(columns["t_diverged"], np.float64)[rows]
-    return rows[np.argsort(t, kind="stable")][:k]
+def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False) -> np.ndarray:
+    """Rows of the k worst samples that did not diverge, largest windowed L-inf error first;
+    with `diverged`, of the first k samples to diverge (earliest divergence time first)."""
+    rows = np.flatnonzero(np.asarray(columns["diverged"], bool) == diverged)
+    key = (np.asarray(columns["t_diverged"], np.float64) if diverged else
+           -np.nan_to_num(np.asarray(columns["linf_error_window"], np.float64), nan=np.inf))
+    return rows[np.argsort(key[rows], kind="stable")][:k]
 
 
 def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, list[str]]:
@@ -61,8 +57,8 @@ def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, l
     the worst that track; either kind fills in for the other if there are too few."""
     n_div = int(np.sum(columns["diverged"]))
     want_div = min(n_div, -(-k // 3)) if n_div else 0
-    worst = rank_worst(columns, k - want_div)
-    div = rank_diverged(columns, k - len(worst))
+    worst = rank_rows(columns, k - want_div)
+    div = rank_rows(columns, k - len(worst), diverged=True)
     return (np.concatenate([worst, div]).astype(np.int64),
             ["worst"] * len(worst) + ["diverged"] * len(div))
 
@@ -80,13 +76,11 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     for m in METRICS:
         v = np.asarray(c[m], np.float64)[ok]
         v = v[np.isfinite(v)]
+        quant[m] = None
         if v.size:
-            qs = np.quantile(v, QUANTILES)
-            quant[m] = {f"p{round(q * 100):02d}" if 0 < q < 1 else ("min" if q == 0 else "max"):
-                        float(x) for q, x in zip(QUANTILES, qs, strict=True)}
+            qs = np.quantile(v, list(QUANTILES.values()))
+            quant[m] = {k: float(x) for k, x in zip(QUANTILES, qs, strict=True)}
             quant[m]["mean"] = float(np.mean(v))
-        else:
-            quant[m] = None
     lw = np.asarray(c["linf_error_window"], np.float64)
     refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
@@ -113,9 +107,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
-    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_worst(c, worst)]
+    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_rows(c, worst)]
     out["first_diverged"] = [sample_record(c, result.param_names, i)
-                             for i in rank_diverged(c, worst)]
+                             for i in rank_rows(c, worst, diverged=True)]
     return out
 
 
@@ -152,20 +146,14 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
     n_steps = info["n_steps"]
     every = max(1, min(save_every, n_steps))
-    spec = RunSpec.make(
-        info["t_final"], info["dt"], save_every=every, window_start=info["window_start"],
-        state_bound=info["state_bound"], solver=info.get("solver", "rk4"),
-        refine=info.get("refine", 0), sample_time=info.get("sample_time"),
-        delay=info.get("delay", 0), noise=info.get("noise"), noise_seed=info.get("noise_seed", 0),
-        discretisation=info.get("discretisation", "exponential-euler"))
+    spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
+                        **{k: info[k] for k in RUN_KEYS})
     out = []
     for i in rows:
         row = np.array([result.columns[p][i] for p in result.param_names])
         s = params.set_row(setup, cols, row)
         out.append(simulate(s, spec=spec, throw=False))
     return out
-
-
 
 
 def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
@@ -261,10 +249,8 @@ def markdown(summary: Mapping[str, Any]) -> str:
              f"{run.get('window_start', float('nan')):g} s. Wall time "
              f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
              f"({run.get('platform')}).", ""]
-    for w in summary.get("warnings", []):
-        lines.append(f"**Warning:** {w}")
-    if summary.get("warnings"):
-        lines.append("")
+    warnings = summary.get("warnings", [])
+    lines += [f"**Warning:** {w}" for w in warnings] + ([""] if warnings else [])
     smallest = summary.get("smallest_dt_tried")
     lines += ["## Outcome", "",
               f"- tracked: {summary['n_tracked']:,}",
@@ -309,7 +295,7 @@ def markdown(summary: Mapping[str, Any]) -> str:
                          for m in check["max_rel_diff"]])
     q = summary["quantiles"]
     lines += ["", f"## Quantiles over the {summary['quantiles_over']}", ""]
-    keys = ["min", "p01", "p05", "p25", "p50", "p75", "p95", "p99", "max", "mean"]
+    keys = [*QUANTILES, "mean"]
     lines += _table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
                                                 ["-"] * len(keys))) for m in q])
     for title, recs, extra in (("Worst samples that track", summary.get("worst", []), False),

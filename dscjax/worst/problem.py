@@ -131,10 +131,6 @@ class Problem:
         return float(self.spec.dt)
 
     @property
-    def window_start(self) -> float:
-        return float(self.spec.window_start)
-
-    @property
     def d(self) -> int:
         return len(self.ranges)
 
@@ -142,21 +138,14 @@ class Problem:
     def m(self) -> int:
         return 0 if self.disturbance is None else self.disturbance.size
 
-    @property
-    def columns(self) -> list[params.Param]:
-        return [r.param for r in self.ranges]
-
-    @property
-    def coef_path(self) -> str:
-        return f"plant.disturbance.{self.setup.plant.disturbance.coefficients_name}"
-
     def lows_highs(self) -> tuple[np.ndarray, np.ndarray]:
         return (np.array([r.low for r in self.ranges], dtype=np.float64),
                 np.array([r.high for r in self.ranges], dtype=np.float64))
 
     def static(self) -> Static:
-        return Static(tuple(self.columns), self.coef_path if self.m else None,
-                       self.metric_key)
+        coef = (f"plant.disturbance.{self.setup.plant.disturbance.coefficients_name}"
+                if self.m else None)
+        return Static(tuple(r.param for r in self.ranges), coef, self.metric_key)
 
     def overrides(self, z):
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""

@@ -35,22 +35,21 @@ def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
     return traj.metrics[st.metric], traj.diverged
 
 
-def _masked_total(values, z, *args):
-    v, bad = values(z, *args)
-    return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
+def _value_and_grad(values, single, gradient, z):
+    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0: the
+    gradient of the batch's total, or ("time_parallel" with `single`) each start's own
+    time-parallel gradient, vmapped over the starts."""
+    def masked(f):
+        def total(z_):
+            v, bad = f(z_)
+            return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
 
+        return total
 
-def _value_and_grad(values, single, gradient, z, *args):
-    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0."""
     if gradient == "batch" or single is None:
-        (_, (v, bad)), g = jax.value_and_grad(
-            lambda z_: _masked_total(values, z_, *args), has_aux=True)(z)
-    else:  # each start's own time-parallel gradient, vmapped over the starts
-        def one(z1):
-            v1, bad1 = single(z1, *args)
-            return jnp.where(bad1, 0.0, v1), (v1, bad1)
-
-        (_, (v, bad)), g = jax.vmap(jax.value_and_grad(one, has_aux=True))(z)
+        (_, (v, bad)), g = jax.value_and_grad(masked(values), has_aux=True)(z)
+    else:
+        (_, (v, bad)), g = jax.vmap(jax.value_and_grad(masked(single), has_aux=True))(z)
     return v, bad, g
 
 
@@ -63,13 +62,9 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
 @functools.partial(jax.jit, static_argnames=("st", "gradient"))
 def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static,
                             gradient: str):
-    def values(z_, *a):
-        return _problem_values(*a[:1], z_, *a[1:], st=st)
-
-    def single(z1, *a):
-        return _problem_single(*a[:1], z1, *a[1:], st=st)
-
-    return _value_and_grad(values, single, gradient, z, setup, lo, hi, bound, spec, extra)
+    args = (lo, hi, bound, spec, extra)
+    return _value_and_grad(lambda z_: _problem_values(setup, z_, *args, st=st),
+                           lambda z1: _problem_single(setup, z1, *args, st=st), gradient, z)
 
 
 @functools.partial(jax.jit, static_argnames=("st", "gradient"))

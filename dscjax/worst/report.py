@@ -16,10 +16,12 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
+from dscjax.plotting import subplots
 from dscjax.runspec import RunSpec
 from dscjax.worst import Result, assumption_warnings, best_value
 
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
+SHARES = (0.1, 0.25, 0.5, 1.0)  # report.md's best values at these shares of the search time
 
 
 def options_of(result: Result) -> RunSpec:
@@ -45,9 +47,8 @@ def summary(result: Result) -> dict:
         "disturbance": dist,
         "nominal_value": result.nominal_value,
         "ranges": {r.name: [r.low, r.high] for r in p.ranges},
-        "simulation": p.spec.to_table() | {"window_start": p.window_start},
-        "methods": {m: {"best_value": (best_value(tr) if np.isfinite(best_value(tr))
-                                       else None),
+        "simulation": p.spec.to_table() | {"window_start": float(p.spec.window_start)},
+        "methods": {m: {"best_value": best_value(tr),  # -inf (null) before a finite one
                         "evaluations": tr.evaluations, "iterations": tr.iterations,
                         "search_s": tr.seconds, "compile_s": tr.compile_seconds,
                         "diverged_candidates": len(tr.diverged_z)}
@@ -74,12 +75,10 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     t_half = half_step_grid(p.t_final, dt_used)
     dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
     files.write_npz(out / "worst_trajectory.npz", {
-        "t": np.asarray(worst.t), "x": np.asarray(worst.x), "u": np.asarray(worst.u),
-        "w": np.asarray(worst.w), "e": np.asarray(worst.e), "t_half": t_half, "dbar": dbar,
-        "dt": np.asarray(dt_used)})
-    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz"]
+        **{k: getattr(worst, k) for k in ("t", "x", "u", "w", "e")}, "t_half": t_half,
+        "dbar": dbar, "dt": dt_used})
     files.write_text(out / "report.md", report_md(result))
-    names.append("report.md")
+    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md"]
     if plots:
         _plot_worst(out / FIGURES[0], worst, result.nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
@@ -95,7 +94,7 @@ def report_md(result: Result) -> str:
                f"level)" if result.diverged else f"{result.value:.6g}")
     lines += [f"Worst value: **{verdict}**, found by {result.method}; nominal: "
               f"{result.nominal_value:.6g}.", "",
-              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{p.window_start:g}, "
+              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{float(p.spec.window_start):g}, "
               f"{p.t_final:g}] s. Searched: "
               + (", ".join(r.spec() for r in p.ranges) or "no parameter")
               + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
@@ -108,12 +107,12 @@ def report_md(result: Result) -> str:
         lines.append(f"| {m} | {best_value(tr):.6g} | {tr.evaluations} | {tr.iterations} | "
                      f"{tr.seconds:.1f} | {tr.compile_seconds:.1f} |")
     lines += ["", "## Best value against search time", "",
-              "| method | " + " | ".join(f"{f:.0%} of time" for f in (0.1, 0.25, 0.5, 1.0))
-              + " |", "|---|---|---|---|---|"]
+              "| method | " + " | ".join(f"{f:.0%} of time" for f in SHARES) + " |",
+              "|---" * (len(SHARES) + 1) + "|"]
     for m, tr in result.traces.items():
         t, best = _curve(tr)
         cells = []
-        for f in (0.1, 0.25, 0.5, 1.0):
+        for f in SHARES:
             i = np.searchsorted(t, f * (t[-1] if t.size else 0.0), side="right") - 1
             cells.append(f"{best[i]:.6g}" if i >= 0 else "-")
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
@@ -136,8 +135,6 @@ def _curve(trace) -> tuple[np.ndarray, np.ndarray]:
 def _plot_worst(path, worst, nominal, result):
     """worst_vs_nominal.png: e and u of the nominal and the worst case, one colour and line
     style per case in both panels, each panel with its legend. Returns the Figure."""
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
     for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
         t = np.asarray(traj.t)
@@ -156,8 +153,6 @@ def _plot_worst(path, worst, nominal, result):
 
 
 def _plot_disturbance(path, t_half, dbar, result):
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(figsize=(9, 3.2))
     ax.plot(t_half, dbar, lw=1.0, color="#d62728")
     spec = result.problem.disturbance
@@ -171,8 +166,6 @@ def _plot_disturbance(path, t_half, dbar, result):
 
 
 def _plot_progress(path, result):
-    from dscjax.plotting import subplots
-
     fig, ax = subplots(figsize=(7, 4))
     for m, tr in result.traces.items():
         ax.step(*_curve(tr), where="post", label=m)
