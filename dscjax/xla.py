@@ -5,7 +5,9 @@ persistent cache.
 - `lean_options()`: XLA:CPU's loop fusion emitters instead of its MLIR ones, for the programs
   that run once or a few times (one trajectory, a gradient, a report's check, a batch of at
   most `LEAN_ROWS` rows): they compile in about half the time and run as fast; a larger
-  batch runs faster with the MLIR emitters (docs/benchmarks.md, "Compilation").
+  batch runs faster with the MLIR emitters (docs/benchmarks.md, "Compilation"). A batched
+  program whose whole work is known and small (`lean_work`: a sweep, a search with an
+  iteration limit) compiles lean too: the compile time it saves exceeds its slower run.
 - Both are given per compiled function (`jax.jit(f, compiler_options=...)`), never through the
   environment; an option the user sets in `XLA_FLAGS` wins. `jit` carries them at the top
   level.
@@ -34,6 +36,10 @@ WIDE = {OPTION: 512}
 EMITTERS = "xla_cpu_use_fusion_emitters"
 LEAN = {EMITTERS: False}
 LEAN_ROWS = 8  # a batch of at most this many rows compiles lean
+# A batched program whose runs add up to at most this many member-steps (rows x RK4 steps over
+# all its calls) compiles lean: its run is slower by less than the compile time lean saves
+# (half the break-even of docs/benchmarks.md, "Compilation").
+LEAN_WORK = 5e6
 
 
 def cpu_has_avx512(cpuinfo: str = "/proc/cpuinfo") -> bool:
@@ -66,6 +72,12 @@ def lean_options(environ: Mapping[str, str] = os.environ) -> dict[str, bool]:
     """The compiler options of dscjax's run-once programs: `LEAN`, unless `XLA_FLAGS` already
     chooses the fusion emitters (the user's choice wins). Other backends ignore the option."""
     return {} if EMITTERS in environ.get("XLA_FLAGS", "") else dict(LEAN)
+
+
+def lean_work(member_steps: float | None) -> bool:
+    """True if a batched program whose runs add up to `member_steps` (None: unknown, e.g. a
+    search limited by time alone) compiles lean (`LEAN_WORK`)."""
+    return member_steps is not None and member_steps <= LEAN_WORK
 
 
 def jit(fn: Callable, lean: bool = False, **kwargs) -> Callable:
@@ -151,6 +163,7 @@ def enable_compilation_cache(directory: str | Path | None = None,
     return path
 
 
-__all__ = ["CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "MIN_COMPILE_TIME_S", "OPTION",
-           "WIDE", "barrier", "barriers", "cache_opted_out", "compiler_options", "cpu_has_avx512",
-           "default_cache_dir", "enable_compilation_cache", "jit", "lean_options"]
+__all__ = ["CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "LEAN_WORK", "MIN_COMPILE_TIME_S",
+           "OPTION", "WIDE", "barrier", "barriers", "cache_opted_out", "compiler_options",
+           "cpu_has_avx512", "default_cache_dir", "enable_compilation_cache", "jit",
+           "lean_options", "lean_work"]

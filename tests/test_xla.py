@@ -37,6 +37,16 @@ def test_lean_emitters_unless_the_user_chose(env, lean):
     assert xla.lean_options(env) == (xla.LEAN if lean else {})
 
 
+@pytest.mark.parametrize("member_steps,lean", [
+    (None, False),  # a time limit alone: the run may be long
+    (0.0, True),
+    (5e6, True),  # LEAN_WORK: half the break-even of docs/benchmarks.md
+    (5e6 + 1, False),
+])
+def test_a_batched_program_compiles_lean_only_when_its_whole_work_is_small(member_steps, lean):
+    assert xla.lean_work(member_steps) is lean
+
+
 def test_a_lean_program_called_inside_a_trace_joins_the_callers_program():
     """JAX refuses compiler options on a nested jit, also when its arguments are concrete."""
     f = xla.jit(lambda x: jnp.sin(x) * 2.0, lean=True)

@@ -31,8 +31,6 @@ def _unravel(obj):
     return ravel_pytree(obj.selection.init(obj.setup))[1]
 
 
-# one top-level batched program: 512-bit vectors where the CPU has them (dscjax.xla)
-@functools.partial(jax.jit, compiler_options=xla.compiler_options())
 def _batch(obj, flat_pts):
     """(B, n) flat z -> per-candidate loss (`Objective.evaluate`'s), feasibility, figures and
     terms: every candidate x training plant in one batched simulation."""
@@ -63,6 +61,12 @@ def _batch(obj, flat_pts):
             "terms": {k: per(v) for k, v in terms.items()}}
 
 
+# one top-level batched program: 512-bit vectors where the CPU has them, or lean for a search
+# whose whole work is small (dscjax.xla.lean_work)
+_BATCH = {False: jax.jit(_batch, compiler_options=xla.compiler_options()),
+          True: jax.jit(_batch, compiler_options=xla.lean_options())}
+
+
 @functools.partial(xla.jit, lean=True, static_argnums=0)
 def _gradient(mode, obj, flat_pts):
     """(M, n) flat z -> per-point loss, feasibility, figures and flat gradient, exact, in the
@@ -85,8 +89,21 @@ def _bound(fn, *before):
 
 
 def batch_fn(problem):
-    """The batched program of the problem's objective: every candidate x training plant."""
-    return _bound(_batch, problem.objective.program())
+    """The batched program of the problem's objective: every candidate x training plant;
+    lean where an iteration limit bounds the search's work (`search_work`)."""
+    return _bound(_BATCH[xla.lean_work(search_work(problem))], problem.objective.program())
+
+
+def search_work(problem) -> float | None:
+    """The member-steps of the batched evaluations of a search with an iteration limit
+    (`steps` generations of the first population, every training plant in the loop tuned and
+    its check loops; None without one)."""
+    spec, obj = problem.cfg.optimizer, problem.objective
+    if spec.steps is None:
+        return None
+    plants, loops = obj.batch_size, 1 + len(obj.checks)
+    return (spec.steps * spec.population(plants, problem.n_params) * plants * loops
+            * obj.sim.n_steps)
 
 
 def grad_fn(problem):

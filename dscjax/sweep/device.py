@@ -32,8 +32,10 @@ def _block_body(setup, spec, table, *, columns):
 
 
 # One compiled program per shape: every block runs it on tiles of the same width, so one
-# program serves every block size; 512-bit vectors on AVX-512 CPUs (dscjax.xla).
+# program serves every block size; 512-bit vectors on AVX-512 CPUs, or lean for a sweep whose
+# whole work is small (dscjax.xla.lean_work).
 _block = xla.jit(_block_body, static_argnames=("columns",))
+_block_lean = xla.jit(_block_body, lean=True, static_argnames=("columns",))
 PROBE_ROWS = 1 << 20  # a sweep of this size runs the widest tile
 # Rows per tile: XLA compiles each width differently (the fused loop of two widths can differ in
 # the last bits of some rows), so the width never follows the chunk. It is a multiple of 64, so
@@ -85,8 +87,10 @@ class Runner:
     AXIS = "batch"
 
     def __init__(self, setup, columns, spec: RunSpec, chunk, parallel="per_device",
-                 devices=None, tile: int | None = None):
+                 devices=None, tile: int | None = None, lean: bool = False):
         self.devices = list(devices if devices is not None else jax.devices())
+        # the whole sweep's compiled programs alike: the tiles, the refinements, spmd's
+        self.block = _block_lean if lean else _block
         # rows per compiled tile (per_device only: the spmd program runs whole blocks);
         # default: the widest tile (callers pass the sweep's `tile_rows`)
         self.tile = tile or tile_rows(self.devices[0].platform, PROBE_ROWS)
@@ -108,7 +112,8 @@ class Runner:
                 lambda s, sp, t: _block_body(s, sp, t, columns=self.columns),
                 mesh=self.mesh, in_specs=(P(), P(), P(self.AXIS, None)),
                 out_specs=P(self.AXIS), check_vma=False)
-            self._spmd = jax.jit(body, compiler_options=xla.compiler_options())
+            self._spmd = jax.jit(body, compiler_options=xla.lean_options() if lean
+                                 else xla.compiler_options())
             self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
         else:
             self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
@@ -168,7 +173,7 @@ class Runner:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
         split into tiles (`tiles`) on `device`."""
         program = spec.program()  # (host-side fields never recompile the tile program)
-        return [_block(setup, program, jax.device_put(t, device), columns=self.columns)
+        return [self.block(setup, program, jax.device_put(t, device), columns=self.columns)
                 for t in tiles(rows, self.tile)]
 
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int

@@ -13,7 +13,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import config, device, files, params, validation
+from dscjax import config, device, files, params, validation, xla
 from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
@@ -155,7 +155,8 @@ def run_sweep(
         done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile)
+    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile,
+                    lean=xla.lean_work(n * spec.n_steps))
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
     n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))

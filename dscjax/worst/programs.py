@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import disturbance as dist_mod
-from dscjax import params, search, validation
+from dscjax import params, search, validation, xla
 from dscjax.runspec import RunSpec
 from dscjax.simulate import dtype_of, run
 from dscjax.validation import ConfigError
@@ -59,7 +59,8 @@ _STATIC_PROBLEM = ("st",)
 _problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
 
 
-@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+# the gradients compile lean, as every gradient of dscjax does (dscjax.xla)
+@functools.partial(xla.jit, lean=True, static_argnames=("st", "gradient"))
 def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static,
                             gradient: str):
     args = (lo, hi, bound, spec, extra)
@@ -67,7 +68,7 @@ def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static,
                            lambda z1: _problem_single(setup, z1, *args, st=st), gradient, z)
 
 
-@functools.partial(jax.jit, static_argnames=("st", "gradient"))
+@functools.partial(xla.jit, lean=True, static_argnames=("st", "gradient"))
 def _problem_coarse(setup, z, lo, hi, bound, spec, extra, spec_g, extra_g, *, st: Static,
                     gradient: str):
     """Values of the loop of `spec`, gradients of the loop of `spec_g` (a coarser step; zero
