@@ -48,6 +48,13 @@ METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
 SIMULATION = {"sample_time": 1e-3}
 WEIGHT = Number(ge=0)
 BOUND = Maybe(Either((Choice(("start",)), Positive())))
+# the objective's terms by their weight's key: (the figure the loss reads, the start gains'
+# figure that normalises it, the `Scales` field holding that figure, the term in words)
+TERMS = {"linf": ("smooth_linf_window", "linf_error_window", "linf", "the L-inf tracking error"),
+         "l2": ("l2_error_window", "l2_error_window", "l2", "the L2 tracking error"),
+         "effort_l2": ("l2_u", "l2_u", "l2_u", "L2(u)"),
+         "effort_max": ("smooth_max_abs_u", "max_abs_u", "max_u", "max|u|"),
+         "effort_tv": ("tv_u", "tv_u", "tv_u", "TV(u)")}
 
 
 def _ranges(value, field):
@@ -113,7 +120,7 @@ class ObjectiveSpec:
                                          Maybe(Number(ge=0)))
 
     def validate(self, prefix: str = "tuning.objective") -> None:
-        if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
+        if sum(getattr(self, k) for k in TERMS) == 0:
             raise ConfigError(f"{prefix}: every weight is 0 (set linf, l2, effort_l2, "
                               f"effort_max or effort_tv > 0)")
 

@@ -43,7 +43,7 @@ from dscjax import params
 from dscjax.closed_loop import SCHEME, Setup
 from dscjax.runspec import RunSpec, discretisation
 from dscjax.selection import Selection, run_at
-from tuning.config import ObjectiveSpec
+from tuning.config import TERMS, ObjectiveSpec
 from tuning.optimize import CVaR, Mean
 from tuning.reductions import shifted_reference, tuning_metrics
 from tuning.scales import Scales
@@ -69,28 +69,24 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
     u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
     terms = {}
-    if spec.linf:
-        terms["linf"] = spec.linf * metrics["smooth_linf_window"] / scales.linf
-    if spec.l2:
-        terms["l2"] = spec.l2 * metrics["l2_error_window"] / scales.l2
-    if spec.effort_l2:
-        terms["effort_l2"] = spec.effort_l2 * metrics["l2_u"] / scales.l2_u
-    if spec.effort_max:
-        terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
-    if spec.effort_tv:
-        terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
-    if u_bound is not None and spec.u_max_weight:
-        terms["u_bound"] = spec.u_max_weight * jnp.maximum(
-            metrics["smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
-    if tv_bound is not None and spec.tv_max_weight:
-        terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
-            metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
+    for name, (figure, _, scale, _) in TERMS.items():
+        if getattr(spec, name):
+            terms[name] = getattr(spec, name) * metrics[figure] / getattr(scales, scale)
+    for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
+        terms[name] = weight * jnp.maximum(metrics[figure] / bound - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     for c in checks:
         terms[c.name] = c.penalty(metrics, u_bound, tv_bound)
     total = jnp.where(bad, spec.divergence_penalty, sum(terms.values()))
     return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}
+
+
+def bound_terms(spec: ObjectiveSpec, u_bound, tv_bound) -> list[tuple]:
+    """(term, figure, bound, weight) of each effort bound's penalty there is."""
+    return [t for t in (("u_bound", "smooth_max_abs_u", u_bound, spec.u_max_weight),
+                        ("tv_bound", "tv_u", tv_bound, spec.tv_max_weight))
+            if t[2] is not None and t[3]]
 
 
 def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,

@@ -19,6 +19,7 @@ from dscjax.params import assumption_warnings as with_ranges
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
+from tuning.config import TERMS
 from tuning.objective import within
 from tuning.reductions import shifted_reference
 from tuning.report_md import STATS_METRICS, heldout_warning
@@ -205,8 +206,7 @@ def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[s
 def problem_sentence(problem) -> str:
     """The problem in one sentence (report.md's first line)."""
     cfg, sc, sim = problem.cfg, problem.scales, problem.objective.sim
-    what = {"linf": "the L-inf tracking error", "l2": "the L2 tracking error",
-            "effort_l2": "L2(u)", "effort_max": "max|u|", "effort_tv": "TV(u)"}
+    what = {k: t[3] for k, t in TERMS.items()}
     if shifted_reference(problem.setup) is not None:
         for k in ("linf", "l2"):
             what[k] += " (against the reference the controller tracks: y_r shifted by its "

@@ -8,7 +8,7 @@ import numpy as np
 
 from dscjax import metrics
 from tuning import elasticity, margins
-from tuning.config import ROWS
+from tuning.config import ROWS, TERMS
 
 STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
                  "l2_u", "tv_u_window", "sampled_linf_window", "delayed_linf_window",
@@ -133,9 +133,7 @@ def text(s: dict, problem, figures) -> str:
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
         f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
         "Objective per plant: " + ", ".join(
-            f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
-                                                          "effort_max", "effort_tv")
-            if getattr(cfg.objective, k)) + (
+            f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k)) + (
             f"; max|u| <= {s['bound_max_abs_u']:.4g}{_own(s, 'max_abs_u')} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
         + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
