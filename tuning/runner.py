@@ -78,6 +78,15 @@ class Problem:
     def n_params(self) -> int:
         return self.selection.size(self.setup)
 
+    def setup_at(self, z):
+        """The setup with the tuned numbers at z, as host arrays."""
+        return jax.tree.map(np.asarray, self.selection.apply(self.setup, z))
+
+    def values_at(self, z) -> dict[str, list | float]:
+        """The tuned numbers' values at z by name, as JSON data."""
+        return {k: np.asarray(v).tolist() for k, v in
+                jax.device_get(self.selection.values(z)).items()}
+
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         return _description(self.setup, self.options, self.cfg, self.selection,
@@ -336,20 +345,17 @@ class Result:
         return sum(not r.get("accepted", True) for r in self.trace.history)
 
 
-def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    """ConfigError unless --resume finds a checkpoint; only --overwrite replaces a run there."""
-    out = Path(out)
-    has = (out / "checkpoint.json").exists()
+def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json"
+                ) -> None:
+    """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
+    --overwrite replaces a run there (a tuning run's files removed)."""
+    has = (out / marker).exists()
     if resume and not has:
-        raise ConfigError(f"--resume: nothing to resume in {out} (checkpoint.json is missing); "
+        raise ConfigError(f"--resume: nothing to resume in {out} ({marker} is missing); "
                           f"run without --resume to start afresh")
-    if has and not resume and not overwrite:
+    if not resume and not overwrite and (has or (out / "checkpoint.json").exists()):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
-
-
-def _prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    check_out_dir(out, resume, overwrite)
     files.mkdir(out)
     if overwrite:
         for name in ck.FILES:
@@ -380,7 +386,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     out = None if out_dir is None else Path(out_dir)
     before, begun = 0.0, 0
     if out is not None:
-        _prepare_dir(out, resume, overwrite)
+        prepare_dir(out, resume, overwrite)
         if resume:
             saved = _saved(out, problem).trace
             before, begun = saved.seconds, saved.iterations
@@ -448,12 +454,9 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
     if not np.isfinite(trace.best_loss):
         return
     z = TuneProblem(problem).point(trace.best_z)
-    values = jax.device_get(problem.selection.values(z))
     files.write_json(out / "best.json", {
         "iteration": int(trace.best_iteration), "loss": float(trace.best_loss),
-        "feasible": bool(trace.best_feasible),
-        "values": {k: np.asarray(v).tolist() for k, v in values.items()},
+        "feasible": bool(trace.best_feasible), "values": problem.values_at(z),
         "z": {k: np.asarray(v).tolist() for k, v in z.items()},
     })
-    setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-    files.write_json(out / "gains.json", dconfig.to_dict(setup, problem.options))
+    files.write_json(out / "gains.json", dconfig.to_dict(problem.setup_at(z), problem.options))
