@@ -27,6 +27,7 @@ from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positiv
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
+from tuning.requirements import KINDS
 
 # the design parameters of the DSC (Section 2 of the paper), tuned by default
 DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
@@ -228,29 +229,21 @@ class AdversarialSpec:
                                        flag="--search-evals")
 
 
-REQUIREMENT_KEYS = {
-    "envelope": ("b0", "b_inf", "decay", "weight"),
-    "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
-    "u_bound": ("max", "weight"),
-    "u_rate": ("max", "weight"),
-}
-REQUIRED = {"envelope": ("b0", "b_inf", "decay"), "step": (), "u_bound": ("max",),
-            "u_rate": ("max",)}
-
-
 def _requirements(table, field) -> dict[str, dict[str, float]]:
     if not isinstance(table, Mapping):
         raise ConfigError(f"{field} must be a table ([{field}])")
-    _known(table, tuple(REQUIREMENT_KEYS), field)
+    _known(table, tuple(KINDS), field)
     out = {}
     for name, sub in table.items():
         where = f"{field}.{name}"
         if not isinstance(sub, Mapping):
             raise ConfigError(f"{where} must be a table ([{where}])")
-        _known(sub, REQUIREMENT_KEYS[name], where)
-        for key in REQUIRED[name]:
-            if key not in sub:
-                raise ConfigError(f"{where}.{key} is required")
+        # a requirement's keys are its fields; those without a default are required
+        keys = [f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"]
+        _known(sub, tuple(f.name for f in keys), where)
+        for f in keys:
+            if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:
+                raise ConfigError(f"{where}.{f.name} is required")
         values = {k: validation.number(v, f"{where}.{k}") for k, v in sub.items()}
         for k, v in values.items():
             if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:

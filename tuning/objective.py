@@ -93,7 +93,10 @@ def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
                     n_requirements: int, checks: tuple = ()) -> jax.Array:
     """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
     each check loop's constraints met."""
-    ok = ~diverged & within_bounds(metrics, bounds)
+    ok = ~diverged
+    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
+        if bound is not None:
+            ok = ok & within(metrics[key], _like(bound, metrics[key]))
     for i in range(n_requirements):
         ok = ok & (metrics[f"req{i}_met"] > 0)
     for c in checks:
@@ -196,15 +199,6 @@ def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=No
 def within(value, bound):
     """value <= bound, up to BOUND_RTOL (relative)."""
     return value <= bound * (1.0 + BOUND_RTOL)
-
-
-def within_bounds(metrics: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
-    """Every effort bound of `bounds` (`Scales.bounds`) met by each plant's exact figures."""
-    ok = jnp.ones(jnp.shape(metrics["max_abs_u"]), bool)
-    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
-        if bound is not None:
-            ok = ok & within(metrics[key], _like(bound, metrics[key]))
-    return ok
 
 
 def _like(bound, x):
