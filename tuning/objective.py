@@ -266,18 +266,20 @@ class Objective(eqx.Module):
         loss, aux, _ = self._evaluate(z, overrides)
         return loss, aux
 
-    def _evaluate(self, z, overrides=None):
-        """(loss, aux, `per_plant`)."""
-        ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
-        metrics, diverged = loop_metrics(self, z, ov)
-        bounds = self.bounds(overrides)
-        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
-                                      len(self.requirements), bounds, self.checks)
-        feasible = feasible_plants(metrics, diverged, bounds, len(self.requirements),
-                                   self.checks)
+    def judged(self, metrics, diverged, bounds: tuple):
+        """(J, its weighted terms, feasibility) of each plant of these metrics (`loop_metrics`)
+        against `bounds` (`Scales.bounds`)."""
+        n_req = len(self.requirements)
+        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales, n_req, bounds,
+                                      self.checks)
+        return per_plant, terms, feasible_plants(metrics, diverged, bounds, n_req, self.checks)
+
+    def summary(self, per_plant, terms, metrics, diverged, feasible, mask=None):
+        """(loss, aux) of one point from its plants' `judged` figures (axis 0, or none without
+        a batch; `mask`: the real plants, None: every one)."""
         real = jnp.ones_like(diverged) if mask is None else mask
         ignored = diverged | ~real
-        aux = {
+        return self.aggregate(per_plant, mask), {
             "terms": {k: self.aggregate(v, mask) for k, v in terms.items()},
             # reported, not differentiated: over the plants that did not diverge (a diverged
             # plant's metrics were not measured), NaN if none did
@@ -287,8 +289,14 @@ class Objective(eqx.Module):
             "n_diverged": jnp.sum(jnp.asarray(diverged & real, jnp.int32)),
             "feasible": jnp.all(feasible | ~real),
         }
-        return self.aggregate(per_plant, mask), aux, {"loss": per_plant, "diverged": diverged,
-                                                      **metrics}
+
+    def _evaluate(self, z, overrides=None):
+        """(loss, aux, `per_plant`)."""
+        ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
+        metrics, diverged = loop_metrics(self, z, ov)
+        per_plant, terms, feasible = self.judged(metrics, diverged, self.bounds(overrides))
+        loss, aux = self.summary(per_plant, terms, metrics, diverged, feasible, mask)
+        return loss, aux, {"loss": per_plant, "diverged": diverged, **metrics}
 
     def value_and_grad_plants(self, z):
         """((loss, aux), d loss / d z) with the gradient plant by plant (`optimize.Plants`):
