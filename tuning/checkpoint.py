@@ -49,9 +49,8 @@ _SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_nor
 
 def history_columns(problem) -> list[str]:
     """history.csv's columns: the search's, the figures and the problem's terms."""
-    terms = list(term_names(problem))
     return (["iteration", "loss", "accepted", "feasible", "best_loss", "lr", "grad_norm",
-             "linf_window", "max_abs_u", "n_diverged"] + terms + ["wall_s"])
+             "linf_window", "max_abs_u", "n_diverged"] + term_names(problem) + ["wall_s"])
 
 
 def term_names(problem) -> list[str]:

@@ -299,12 +299,11 @@ class TuningConfig:
         """Every setting by its rule, and the rules between them (a config built in code is
         checked as one read from a file)."""
         settings.checked(self, lambda key: f"{prefix}.{key}")
-        for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
+        for key in settings.groups(type(self)):
             part = getattr(self, key)
             settings.checked(part, lambda k, key=key: f"{prefix}.{key}.{k}")
-            check = getattr(part, "validate", None)
-            if check is not None:
-                check(f"{prefix}.{key}")
+            if hasattr(part, "validate"):
+                part.validate(f"{prefix}.{key}")
 
 
 def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:

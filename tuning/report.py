@@ -264,7 +264,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
         "constraints": both(lambda m: constraint_checks(sc, m, checks), ev["nominal"]),
         "sample_time": problem.objective.sim.sample_time,
-        "second_loop": second_label(problem),
+        # the second loop in words ("the states by forward Euler"), None without one
+        "second_loop": next((c.label for c in checks if c.name == "sampled"), None),
         "requirements": both(functools.partial(requirement_checks, problem), ev["nominal"]),
         "run": {
             "iterations": tr.iterations, "resumed_from": result.resumed_from,
@@ -319,11 +320,6 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", markdown(summary, problem, figures))
     return summary
-
-
-def second_label(problem) -> str | None:
-    """The second loop in words ("the states by forward Euler"), None without one."""
-    return next((c.label for c in problem.objective.checks if c.name == "sampled"), None)
 
 
 def _bounds_train(sc) -> dict[str, Any] | None:

@@ -119,13 +119,10 @@ def text(s: dict, problem, figures) -> str:
     nom = s["nominal"]
     cfg = problem.cfg
     lines = ["# dscjax tune: report", ""]
-    if s.get("heldout_warning"):
-        lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
-    if s.get("margins_warning"):
-        lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
-    if s.get("sensitivity_warning"):
-        lines += [f"> **Warning: {s['sensitivity_warning']} (\"Sensitivity of the "
-                  f"constraints\" below).**", ""]
+    for key, warning in (("heldout", "{}"), ("margins", "a margin fails: {}"), (
+            "sensitivity", '{} ("Sensitivity of the constraints" below)')):
+        if s.get(f"{key}_warning"):
+            lines += [f"> **Warning: {warning.format(s[f'{key}_warning'])}.**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -267,7 +264,8 @@ def text(s: dict, problem, figures) -> str:
     for name in s["gains"]["start"]:
         lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
                      f"{_fmt_val(s['gains']['tuned'][name])} |")
-    lines += ["", run_sentence(s), ""]
+    # the command that runs the loop tuned
+    lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
@@ -322,18 +320,11 @@ def sensitivity_section(sens: dict) -> list[str]:
     return lines
 
 
-def run_sentence(s: dict) -> str:
-    """report.md's last line: the command that runs the loop tuned."""
-    return f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`."
-
-
-def _mode_words(mode: str) -> str:
-    return "plant-by-plant (the aggregate's worst plants)" if mode == "plants" else f"{mode}-mode"
-
-
 def method_sentence(opt, mode: str) -> str:
     if opt.name == "adam":
-        return (f"{_mode_words(mode)} exact gradients: projected gradient descent with "
+        words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
+                 f"{mode}-mode")
+        return (f"{words} exact gradients: projected gradient descent with "
                 f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
                 f"after an improvement, halved (from the last good point) after a worse one.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "

@@ -104,19 +104,14 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
         "params": [t.describe() for t in selection.items],
         "objective": dataclasses.asdict(cfg.objective),
         "optimizer": opt,
-        "robust": _batch_desc(cfg.robust, setup),
+        "robust": dataclasses.asdict(cfg.robust) | {
+            "ranges": [r.resolve(setup).spec() for r in cfg.robust.ranges]},
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
         "checks": {c.name: c.sim.describe() for c in checks},
         "mode": mode.name,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
-
-
-def _batch_desc(b, setup):
-    d = dataclasses.asdict(b)
-    d["ranges"] = [r.resolve(setup).spec() for r in b.ranges]
-    return d
 
 
 def default_freeze(setup, tune) -> tuple[str, ...]:
