@@ -167,7 +167,6 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     cfg, notes, selection, mode, sim, checks, train, heldout, continuous = parts
     if ready is not None:
         ready()
-    notes = list(notes)
     requirements = build_requirements(setup, cfg.requirements)
     n = len(next(iter(train.values()))) if train else 1
     mask = None
@@ -235,15 +234,13 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
-    window = float(options.window_start) if window is None else window
     # the loop tuned is the one given ([simulation]: `dscjax tune` samples the controller at
     # 1 ms unless told otherwise); the continuous one is a check of a sampled loop
-    loop = options
-    continuous = options.replace(
-        sample_time=None, delay=0, noise=None, save_every=options.n_steps,
-        window_start=float(window), names={"window_start": "tuning.objective.window_start"}
-    ) if options.sampled else None
-    check(setup, loop)
+    sim = options.replace(save_every=options.n_steps, window_start=float(
+        options.window_start if window is None else window),
+        names={"window_start": "tuning.objective.window_start"})
+    continuous = sim.replace(sample_time=None, delay=0, noise=None) if options.sampled else None
+    check(setup, options)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
@@ -254,8 +251,8 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         # RK4 at dt in the continuous loop; forward Euler at Ts in a sampled one (an
         # embedded controller may advance its filters so: stable for Ts/tau < 2)
         dt, what = float(options.dt), "dt"
-        if loop.sampled and loop.sample_time > dt:
-            dt, what = loop.sample_time, "Ts"
+        if options.sampled and options.sample_time > dt:
+            dt, what = options.sample_time, "Ts"
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
         notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
                      f"s by default (the filters stable with RK4 at dt and forward Euler "
@@ -268,15 +265,13 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
         (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
         aggregate_of(cfg.robust), cfg.optimizer.checkpoint_every)
-    sim = loop.replace(save_every=loop.n_steps, window_start=float(window),
-                       names={"window_start": "tuning.objective.window_start"})
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
-    return (cfg, tuple(notes), selection, mode, sim, check_loops(sim, cfg.objective), train,
-            heldout, continuous)
+    return (cfg, notes, selection, mode, sim, check_loops(sim, cfg.objective), train, heldout,
+            continuous)
 
 
 def simulate_command(problem: Problem, config: str = "gains.json") -> str:
@@ -386,7 +381,6 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             saved = _saved(out, problem).trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
-    desc = problem.describe()
     terms = ck.term_names(problem)
 
     def each(trace, row):
@@ -403,7 +397,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             seed=spec.seed, max_iterations=spec.max_steps, patience=spec.patience,
             time_limit=None if spec.time_limit is None else before + spec.time_limit,
             min_delta=spec.min_delta, path=None if out is None else out / STATE_FILE,
-            resume=resume, fingerprint={"problem": files.digest(desc)}, progress=each)
+            resume=resume, fingerprint={"problem": files.digest(problem.describe())}, progress=each)
     except KeyboardInterrupt:
         saved = None if out is None else search.load(out / STATE_FILE)
         if saved is not None:
