@@ -309,15 +309,13 @@ class Objective(eqx.Module):
         train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
         bounds = self.bounds()
         dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `_like` casts them
-        n_req = len(self.requirements)
 
         def one(z_, i):
             setup = params.set_many(self.setup, {p: v[i] for p, v in train.items()})
             metrics, diverged = loop_metrics(self, z_, setup=setup)
             b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
                       for v in bounds)
-            return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b,
-                              self.checks)[0]
+            return self.judged(metrics, diverged, b)[0]
 
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
         return (loss, aux), jax.tree.map(lambda g: jnp.tensordot(w, g, 1), grads)
