@@ -214,10 +214,9 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
             break
         tr = _run(problem, gains, delay=d)
         add(d, [_row(tr, figures, i) for i in range(len(NAMES))])
-    out["largest"] = {}
-    for tag in NAMES:  # the last d before the first at which it fails
-        held = [why is None for why in out[tag]["why_not"]] + [False]
-        out["largest"][tag] = ([None] + out["delays"])[held.index(False)]
+    # each gain set's last d before the first at which it fails
+    held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
+    out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
     return out
 
 
