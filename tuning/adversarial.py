@@ -23,7 +23,6 @@ import math
 import shutil
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import jax
 import numpy as np
@@ -108,10 +107,6 @@ def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     return np.stack(out)
 
 
-def _gains(problem: runner.Problem, z) -> Any:
-    return jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-
-
 def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
     """What adversarial.json stores to resume: `desc` (whole, so that a refusal names the old
     and new values) and the [tuning.adversarial] settings (the rounds apart, the box as
@@ -139,18 +134,12 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
     if out is None:
         return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     path = out / MANIFEST
+    runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
-        if not path.exists():
-            raise ConfigError(f"--resume: nothing to resume in {out} ({MANIFEST} is missing); "
-                              f"run without --resume to start afresh")
         meta = files.read_json(path)
         files.check_same(meta.get("fingerprint"), fingerprint, where=f"--resume: {path}",
                          fix="use the same settings, or --overwrite to start afresh")
         return meta
-    if path.exists() or (out / "checkpoint.json").exists():
-        if not overwrite:
-            raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it "
-                              f"or --overwrite to start afresh")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
     for name in ck.FILES:
@@ -174,8 +163,6 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
                           f"{spec.rounds})")
     say = say or (lambda text: None)
     out = None if out_dir is None else Path(out_dir)
-    if out is not None:
-        files.mkdir(out)
     # the training plants need the waveform's coefficients as a leaf: a zero waveform
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
@@ -190,7 +177,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
     def search(z, seed: int, where: str, label: str) -> worst.Result:
         cap = f" or {spec.search_evals} evaluations" if spec.search_evals else ""
         say(f"{label}: {spec.method} search for {spec.search_time:g} s{cap} (seed {seed})")
-        return search_worst(_gains(base, z), options, cfg, seed,
+        return search_worst(base.setup_at(z), options, cfg, seed,
                             None if out is None else out / where)
 
     z, plants, result = base.z0, None, None

@@ -20,6 +20,8 @@ from typing import Any
 import numpy as np
 
 from dscjax import files
+from tuning.config import TERMS
+from tuning.objective import bound_terms
 
 FORMAT_VERSION = 2
 FILES = ("search.npz", "checkpoint.json", "best.json", "gains.json", "history.csv")
@@ -47,20 +49,15 @@ _SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_nor
 
 def history_columns(problem) -> list[str]:
     """history.csv's columns: the search's, the figures and the problem's terms."""
-    terms = list(term_names(problem))
     return (["iteration", "loss", "accepted", "feasible", "best_loss", "lr", "grad_norm",
-             "linf_window", "max_abs_u", "n_diverged"] + terms + ["wall_s"])
+             "linf_window", "max_abs_u", "n_diverged"] + term_names(problem) + ["wall_s"])
 
 
 def term_names(problem) -> list[str]:
     """The names of the problem's loss terms (its aux terms' keys), in their order."""
     spec, obj = problem.cfg.objective, problem.objective
-    names = [n for n in ("linf", "l2", "effort_l2", "effort_max", "effort_tv")
-             if getattr(spec, n)]
-    if obj.scales.u_max is not None and spec.u_max_weight:
-        names.append("u_bound")
-    if obj.scales.tv_max is not None and spec.tv_max_weight:
-        names.append("tv_bound")
+    names = [n for n in TERMS if getattr(spec, n)]
+    names += [t[0] for t in bound_terms(spec, obj.scales.u_max, obj.scales.tv_max)]
     names += [f"req{i}" for i in range(len(obj.requirements))]
     names += [c.name for c in obj.checks]
     return names

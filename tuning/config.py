@@ -27,6 +27,7 @@ from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positiv
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
+from tuning.requirements import KINDS
 
 # the design parameters of the DSC (Section 2 of the paper), tuned by default
 DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller.gamma_phi",
@@ -48,6 +49,13 @@ METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
 SIMULATION = {"sample_time": 1e-3}
 WEIGHT = Number(ge=0)
 BOUND = Maybe(Either((Choice(("start",)), Positive())))
+# the objective's terms by their weight's key: (the figure the loss reads, the start gains'
+# figure that normalises it, the `Scales` field holding that figure, the term in words)
+TERMS = {"linf": ("smooth_linf_window", "linf_error_window", "linf", "the L-inf tracking error"),
+         "l2": ("l2_error_window", "l2_error_window", "l2", "the L2 tracking error"),
+         "effort_l2": ("l2_u", "l2_u", "l2_u", "L2(u)"),
+         "effort_max": ("smooth_max_abs_u", "max_abs_u", "max_u", "max|u|"),
+         "effort_tv": ("tv_u", "tv_u", "tv_u", "TV(u)")}
 
 
 def _ranges(value, field):
@@ -113,7 +121,7 @@ class ObjectiveSpec:
                                          Maybe(Number(ge=0)))
 
     def validate(self, prefix: str = "tuning.objective") -> None:
-        if self.linf + self.l2 + self.effort_l2 + self.effort_max + self.effort_tv == 0:
+        if sum(getattr(self, k) for k in TERMS) == 0:
             raise ConfigError(f"{prefix}: every weight is 0 (set linf, l2, effort_l2, "
                               f"effort_max or effort_tv > 0)")
 
@@ -221,29 +229,21 @@ class AdversarialSpec:
                                        flag="--search-evals")
 
 
-REQUIREMENT_KEYS = {
-    "envelope": ("b0", "b_inf", "decay", "weight"),
-    "step": ("overshoot", "settling_time", "band", "final", "height", "weight"),
-    "u_bound": ("max", "weight"),
-    "u_rate": ("max", "weight"),
-}
-REQUIRED = {"envelope": ("b0", "b_inf", "decay"), "step": (), "u_bound": ("max",),
-            "u_rate": ("max",)}
-
-
 def _requirements(table, field) -> dict[str, dict[str, float]]:
     if not isinstance(table, Mapping):
         raise ConfigError(f"{field} must be a table ([{field}])")
-    _known(table, tuple(REQUIREMENT_KEYS), field)
+    _known(table, tuple(KINDS), field)
     out = {}
     for name, sub in table.items():
         where = f"{field}.{name}"
         if not isinstance(sub, Mapping):
             raise ConfigError(f"{where} must be a table ([{where}])")
-        _known(sub, REQUIREMENT_KEYS[name], where)
-        for key in REQUIRED[name]:
-            if key not in sub:
-                raise ConfigError(f"{where}.{key} is required")
+        # a requirement's keys are its fields; those without a default are required
+        keys = [f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"]
+        _known(sub, tuple(f.name for f in keys), where)
+        for f in keys:
+            if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:
+                raise ConfigError(f"{where}.{f.name} is required")
         values = {k: validation.number(v, f"{where}.{k}") for k, v in sub.items()}
         for k, v in values.items():
             if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
@@ -299,12 +299,11 @@ class TuningConfig:
         """Every setting by its rule, and the rules between them (a config built in code is
         checked as one read from a file)."""
         settings.checked(self, lambda key: f"{prefix}.{key}")
-        for key in ("objective", "optimizer", "robust", "heldout", "adversarial"):
+        for key in settings.groups(type(self)):
             part = getattr(self, key)
             settings.checked(part, lambda k, key=key: f"{prefix}.{key}.{k}")
-            check = getattr(part, "validate", None)
-            if check is not None:
-                check(f"{prefix}.{key}")
+            if hasattr(part, "validate"):
+                part.validate(f"{prefix}.{key}")
 
 
 def from_dict(table: Mapping[str, Any], base: TuningConfig | None = None) -> TuningConfig:

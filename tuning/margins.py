@@ -47,10 +47,21 @@ NAMES = ("start", "tuned")
 
 def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     """{leaf path: (2, ...)}: every leaf the selection tunes, at the start and tuned points."""
-    setups = [jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-              for z in (z0, z1)]
+    setups = [problem.setup_at(z) for z in (z0, z1)]
     paths = dict.fromkeys(n.split("[")[0].rstrip("*") for n in problem.selection.names)
     return {p: np.stack([np.asarray(params.get(s, p)) for s in setups]) for p in paths}
+
+
+def _run(problem, overrides: dict, **change):
+    """A batched run of the loop tuned with `change` (no refinement), on the host."""
+    spec = problem.objective.sim.replace(refine=0, **change)
+    return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
+
+
+def _row(tr, keys, i=()) -> dict[str, float | None]:
+    """The figures `keys` of row i of a run (a single run: no i), None where it diverged."""
+    diverged = bool(np.asarray(tr.diverged)[i])
+    return {k: None if diverged else float(np.asarray(tr.metrics[k])[i]) for k in keys}
 
 
 def continuous(problem, z0, z1) -> dict[str, Any] | None:
@@ -62,13 +73,11 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
         return None
     out = {"dt": float(spec.dt)}
     for tag, z in zip(NAMES, (z0, z1), strict=True):
-        setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-        tr = simulate(setup, spec=spec, throw=False)
+        tr = simulate(problem.setup_at(z), spec=spec, throw=False)
         j = int(tr.refinements)
         out[tag] = {"diverged": bool(tr.diverged), "refinements": j,
                     "solver": refinement_level(j, spec.solver.name)[0], "dt_used": float(tr.dt),
-                    **{k: None if bool(tr.diverged) else float(tr.metrics[k])
-                       for k in ("linf_error_window", "max_abs_u", "tv_u", "chattering_index")}}
+                    **_row(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
     return out
 
 
@@ -139,21 +148,17 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
                            **{tag: [] for tag in NAMES}}
     for ts in sample_times:
         if ts < own * (1 - 1e-9):
-            for tag in NAMES:
-                out[tag].append(None)
-            continue
-        if ts <= own * (1 + 1e-9):
-            for tag in NAMES:
-                out[tag].append(batch_figures(heldout[tag]))
-            continue
-        h = step_for(ts, float(sim.dt))
-        steps = int(round(sim.t_final / h))
-        tr = jax.device_get(simulate_batch(problem.setup, ov, spec=sim.replace(
-            sample_time=ts, dt=h, save_every=steps, refine=0)))
-        m = {"diverged": np.asarray(tr.diverged),
-             **{k: np.asarray(tr.metrics[k]) for k in ("tv_u_window", "chattering_index")}}
-        for i, tag in enumerate(NAMES):
-            out[tag].append(batch_figures({k: v[i * n:(i + 1) * n] for k, v in m.items()}))
+            rows = [None] * len(NAMES)
+        elif ts <= own * (1 + 1e-9):
+            rows = [batch_figures(heldout[tag]) for tag in NAMES]
+        else:
+            h = step_for(ts, float(sim.dt))
+            tr = _run(problem, ov, sample_time=ts, dt=h, save_every=int(round(sim.t_final / h)))
+            m = {"diverged": tr.diverged, **tr.metrics}
+            rows = [batch_figures({k: np.asarray(v)[i * n:(i + 1) * n] for k, v in m.items()})
+                    for i in range(len(NAMES))]
+        for tag, row in zip(NAMES, rows, strict=True):
+            out[tag].append(row)
     return out
 
 
@@ -207,19 +212,11 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
-        tr = jax.device_get(simulate_batch(problem.setup, gains,
-                                           spec=sim.replace(delay=d, refine=0)))
-        div = np.asarray(tr.diverged)
-        add(d, [{k: None if div[i] else float(np.asarray(tr.metrics[k])[i])
-                 for k in figures} for i in range(len(NAMES))])
-    out["largest"] = {}
-    for tag in NAMES:
-        last = None
-        for d, why in zip(out["delays"], out[tag]["why_not"], strict=True):
-            if why is not None:
-                break
-            last = d
-        out["largest"][tag] = last
+        tr = _run(problem, gains, delay=d)
+        add(d, [_row(tr, figures, i) for i in range(len(NAMES))])
+    # each gain set's last d before the first at which it fails
+    held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
+    out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
     return out
 
 
@@ -231,16 +228,15 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
     sim = problem.objective.sim
     t_long = LONG_FACTOR * sim.t_final
     n = int(round(t_long / float(sim.dt)))
-    change = {"t_final": t_long, "save_every": max(n // 2000, 1), "refine": 0}
+    change = {"t_final": t_long, "save_every": max(n // 2000, 1)}
     noise = sim.sampled and sim.noise is None
     if noise:
         change |= {"noise": LONG_NOISE, "noise_seed": 0}
-    spec = sim.replace(**change)
     ov = gain_rows(problem, z0, z1)
     dbar = hasattr(problem.setup.plant, "dbar_amp")
     if dbar:
         ov["plant.dbar_amp"] = np.full(2, LONG_DBAR)
-    tr = jax.device_get(simulate_batch(problem.setup, ov, spec=spec))
+    tr = _run(problem, ov, **change)
     t = np.asarray(tr.t)[0]
     half = t > t_long / 2
     quarter = (t > t_long / 4) & ~half
@@ -250,10 +246,7 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
            "window_start": float(sim.window_start)}
     for i, tag in enumerate(NAMES):
         row: dict[str, Any] = {"diverged": bool(np.asarray(tr.diverged)[i]),
-                               "linf_error_window": None, "chattering_index": None}
-        if not row["diverged"]:
-            for k in ("linf_error_window", "chattering_index"):
-                row[k] = float(np.asarray(tr.metrics[k])[i])
+                               **_row(tr, ("linf_error_window", "chattering_index"), i)}
         est = {}
         for name in ESTIMATES:
             if not hasattr(tr.ctrl, name):

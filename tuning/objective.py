@@ -43,7 +43,7 @@ from dscjax import params
 from dscjax.closed_loop import SCHEME, Setup
 from dscjax.runspec import RunSpec, discretisation
 from dscjax.selection import Selection, run_at
-from tuning.config import ObjectiveSpec
+from tuning.config import TERMS, ObjectiveSpec
 from tuning.optimize import CVaR, Mean
 from tuning.reductions import shifted_reference, tuning_metrics
 from tuning.scales import Scales
@@ -69,22 +69,11 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
     u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
     terms = {}
-    if spec.linf:
-        terms["linf"] = spec.linf * metrics["smooth_linf_window"] / scales.linf
-    if spec.l2:
-        terms["l2"] = spec.l2 * metrics["l2_error_window"] / scales.l2
-    if spec.effort_l2:
-        terms["effort_l2"] = spec.effort_l2 * metrics["l2_u"] / scales.l2_u
-    if spec.effort_max:
-        terms["effort_max"] = spec.effort_max * metrics["smooth_max_abs_u"] / scales.max_u
-    if spec.effort_tv:
-        terms["effort_tv"] = spec.effort_tv * metrics["tv_u"] / scales.tv_u
-    if u_bound is not None and spec.u_max_weight:
-        terms["u_bound"] = spec.u_max_weight * jnp.maximum(
-            metrics["smooth_max_abs_u"] / u_bound - 1.0, 0.0) ** 2
-    if tv_bound is not None and spec.tv_max_weight:
-        terms["tv_bound"] = spec.tv_max_weight * jnp.maximum(
-            metrics["tv_u"] / tv_bound - 1.0, 0.0) ** 2
+    for name, (figure, _, scale, _) in TERMS.items():
+        if getattr(spec, name):
+            terms[name] = getattr(spec, name) * metrics[figure] / getattr(scales, scale)
+    for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
+        terms[name] = weight * jnp.maximum(metrics[figure] / bound - 1.0, 0.0) ** 2
     for i in range(n_requirements):
         terms[f"req{i}"] = metrics[f"req{i}_penalty"]
     for c in checks:
@@ -93,11 +82,21 @@ def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, 
     return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}
 
 
+def bound_terms(spec: ObjectiveSpec, u_bound, tv_bound) -> list[tuple]:
+    """(term, figure, bound, weight) of each effort bound's penalty there is."""
+    return [t for t in (("u_bound", "smooth_max_abs_u", u_bound, spec.u_max_weight),
+                        ("tv_bound", "tv_u", tv_bound, spec.tv_max_weight))
+            if t[2] is not None and t[3]]
+
+
 def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
                     n_requirements: int, checks: tuple = ()) -> jax.Array:
     """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
     each check loop's constraints met."""
-    ok = ~diverged & within_bounds(metrics, bounds)
+    ok = ~diverged
+    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
+        if bound is not None:
+            ok = ok & within(metrics[key], _like(bound, metrics[key]))
     for i in range(n_requirements):
         ok = ok & (metrics[f"req{i}_met"] > 0)
     for c in checks:
@@ -202,15 +201,6 @@ def within(value, bound):
     return value <= bound * (1.0 + BOUND_RTOL)
 
 
-def within_bounds(metrics: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
-    """Every effort bound of `bounds` (`Scales.bounds`) met by each plant's exact figures."""
-    ok = jnp.ones(jnp.shape(metrics["max_abs_u"]), bool)
-    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
-        if bound is not None:
-            ok = ok & within(metrics[key], _like(bound, metrics[key]))
-    return ok
-
-
 def _like(bound, x):
     """A per-plant bound (float64) in the dtype of the figures `x`: float32 runs stay float32."""
     if bound is None or np.ndim(bound) == 0:
@@ -276,18 +266,20 @@ class Objective(eqx.Module):
         loss, aux, _ = self._evaluate(z, overrides)
         return loss, aux
 
-    def _evaluate(self, z, overrides=None):
-        """(loss, aux, `per_plant`)."""
-        ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
-        metrics, diverged = loop_metrics(self, z, ov)
-        bounds = self.bounds(overrides)
-        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales,
-                                      len(self.requirements), bounds, self.checks)
-        feasible = feasible_plants(metrics, diverged, bounds, len(self.requirements),
-                                   self.checks)
+    def judged(self, metrics, diverged, bounds: tuple):
+        """(J, its weighted terms, feasibility) of each plant of these metrics (`loop_metrics`)
+        against `bounds` (`Scales.bounds`)."""
+        n_req = len(self.requirements)
+        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales, n_req, bounds,
+                                      self.checks)
+        return per_plant, terms, feasible_plants(metrics, diverged, bounds, n_req, self.checks)
+
+    def summary(self, per_plant, terms, metrics, diverged, feasible, mask=None):
+        """(loss, aux) of one point from its plants' `judged` figures (axis 0, or none without
+        a batch; `mask`: the real plants, None: every one)."""
         real = jnp.ones_like(diverged) if mask is None else mask
         ignored = diverged | ~real
-        aux = {
+        return self.aggregate(per_plant, mask), {
             "terms": {k: self.aggregate(v, mask) for k, v in terms.items()},
             # reported, not differentiated: over the plants that did not diverge (a diverged
             # plant's metrics were not measured), NaN if none did
@@ -297,8 +289,14 @@ class Objective(eqx.Module):
             "n_diverged": jnp.sum(jnp.asarray(diverged & real, jnp.int32)),
             "feasible": jnp.all(feasible | ~real),
         }
-        return self.aggregate(per_plant, mask), aux, {"loss": per_plant, "diverged": diverged,
-                                                      **metrics}
+
+    def _evaluate(self, z, overrides=None):
+        """(loss, aux, `per_plant`)."""
+        ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
+        metrics, diverged = loop_metrics(self, z, ov)
+        per_plant, terms, feasible = self.judged(metrics, diverged, self.bounds(overrides))
+        loss, aux = self.summary(per_plant, terms, metrics, diverged, feasible, mask)
+        return loss, aux, {"loss": per_plant, "diverged": diverged, **metrics}
 
     def value_and_grad_plants(self, z):
         """((loss, aux), d loss / d z) with the gradient plant by plant (`optimize.Plants`):
@@ -311,15 +309,13 @@ class Objective(eqx.Module):
         train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
         bounds = self.bounds()
         dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `_like` casts them
-        n_req = len(self.requirements)
 
         def one(z_, i):
             setup = params.set_many(self.setup, {p: v[i] for p, v in train.items()})
             metrics, diverged = loop_metrics(self, z_, setup=setup)
             b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
                       for v in bounds)
-            return plant_loss(metrics, diverged, self.spec, self.scales, n_req, b,
-                              self.checks)[0]
+            return self.judged(metrics, diverged, b)[0]
 
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
         return (loss, aux), jax.tree.map(lambda g: jnp.tensordot(w, g, 1), grads)

@@ -19,11 +19,13 @@ from dscjax.params import assumption_warnings as with_ranges
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
+from tuning.config import TERMS
+from tuning.margins import NAMES
 from tuning.objective import within
 from tuning.reductions import shifted_reference
 from tuning.report_md import STATS_METRICS, heldout_warning
 from tuning.report_md import text as markdown
-from tuning.report_plots import draw
+from tuning.report_plots import COLORS, draw
 from tuning.runner import simulate_command
 
 
@@ -41,19 +43,21 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     def per_plant(z, overrides=None):
         return _host(_per_plant(obj, z, overrides))
 
-    out = {"nominal": {}, "train": None, "heldout": None}
-    for tag, z in (("start", z0), ("tuned", z1)):
-        out["nominal"][tag] = per_plant(z, {})
+    zs = {"start": z0, "tuned": z1}
+    out = {"nominal": both(lambda z: per_plant(z, {}), zs), "train": None, "heldout": None}
     if obj.overrides:
         train = {k: np.asarray(v)[:n] for k, v in obj.overrides.items()}
-        out["train"] = {tag: refined(problem, z, train, {k: v[:n] for k, v in
-                                                         per_plant(z).items()})
-                        for tag, z in (("start", z0), ("tuned", z1))}
+        out["train"] = both(lambda z: refined(problem, z, train, {
+            k: v[:n] for k, v in per_plant(z).items()}), zs)
     if problem.heldout:
         ov = {k: jnp.asarray(v) for k, v in problem.heldout.items()}
-        out["heldout"] = {tag: refined(problem, z, ov, per_plant(z, ov))
-                          for tag, z in (("start", z0), ("tuned", z1))}
+        out["heldout"] = both(lambda z: refined(problem, z, ov, per_plant(z, ov)), zs)
     return out
+
+
+def both(f, pair: dict) -> dict:
+    """f of the start and of the tuned gains' entry of `pair`."""
+    return {tag: f(pair[tag]) for tag in NAMES}
 
 
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -63,7 +67,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     tracked, 0: the tuning's step); the refined plants' exact metrics and `diverged` are the
     refined runs', their loss and smooth surrogates stay the objective's."""
     m = dict(m)
-    setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
+    setup = problem.setup_at(z)
     ov = {k: np.asarray(v) for k, v in overrides.items()}
     names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
     keys = sorted(names.keys() & m.keys())
@@ -103,18 +107,21 @@ def _host(d):
     return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
 
 
+def _outcomes(m: dict[str, np.ndarray], loop: str = "") -> tuple[np.ndarray, dict[str, int]]:
+    """(the plants that did not diverge in the loop whose metrics are prefixed `loop`, how many
+    tracked at the tuning's step, after refinement, or diverged: as a sweep's rows)."""
+    ok = ~np.asarray(m[f"{loop}diverged"]).astype(bool)
+    ref = ok & (np.asarray(m.get(f"{loop}refined", 0)) > 0)
+    return ok, {"n_tracked": int((ok & ~ref).sum()), "n_refined": int(ref.sum()),
+                "n_diverged": int((~ok).sum())}
+
+
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
-    ok = ~m["diverged"].astype(bool)
-    refined = ok & (np.asarray(m.get("refined", 0)) > 0)
-    # as a sweep's rows: tracked at the tuning's step, after refinement, or diverged
-    out: dict[str, Any] = {"n": int(m["diverged"].size), "n_tracked": int((ok & ~refined).sum()),
-                           "n_refined": int(refined.sum()), "n_diverged": int((~ok).sum())}
+    ok, counts = _outcomes(m)
+    out: dict[str, Any] = {"n": int(ok.size), **counts}
     masks = {}  # the same three outcomes in each check loop c (its metrics c_...)
     for c in (k.removesuffix("_diverged") for k in m if k.endswith("_diverged")):
-        masks[c] = c_ok = ~m[f"{c}_diverged"].astype(bool)
-        ref = c_ok & (np.asarray(m.get(f"{c}_refined", 0)) > 0)
-        out[c] = {"n_tracked": int((c_ok & ~ref).sum()), "n_refined": int(ref.sum()),
-                  "n_diverged": int((~c_ok).sum())}
+        masks[c], out[c] = _outcomes(m, f"{c}_")
     for key in STATS_METRICS + ("loss",):
         if key not in m:
             continue
@@ -205,8 +212,7 @@ def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[s
 def problem_sentence(problem) -> str:
     """The problem in one sentence (report.md's first line)."""
     cfg, sc, sim = problem.cfg, problem.scales, problem.objective.sim
-    what = {"linf": "the L-inf tracking error", "l2": "the L2 tracking error",
-            "effort_l2": "L2(u)", "effort_max": "max|u|", "effort_tv": "TV(u)"}
+    what = {k: t[3] for k, t in TERMS.items()}
     if shifted_reference(problem.setup) is not None:
         for k in ("linf", "l2"):
             what[k] += " (against the reference the controller tracks: y_r shifted by its "
@@ -238,11 +244,8 @@ def trajectories(problem, z0, z1, save_every: int = 10):
     `save_every` steps or more (`runspec.auto_stride`)."""
     sim = problem.objective.sim
     spec = sim.replace(save_every=max(save_every, auto_stride(sim.n_steps)), refine=0)
-    out = {}
-    for tag, z in (("start", z0), ("tuned", z1)):
-        setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-        out[tag] = simulate(setup, spec=spec, throw=False)
-    return out
+    return both(lambda z: simulate(problem.setup_at(z), spec=spec, throw=False),
+                {"start": z0, "tuned": z1})
 
 
 def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
@@ -252,19 +255,18 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
-    nom = {tag: _measured({k: float(np.asarray(v)) for k, v in ev["nominal"][tag].items()
-                           if np.ndim(v) == 0}) for tag in ("start", "tuned")}
+    nom = both(lambda m: _measured({k: float(np.asarray(v)) for k, v in m.items()
+                                    if np.ndim(v) == 0}), ev["nominal"])
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
         "effort_bounds": problem.cfg.objective.effort_bounds,
         "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
-        "constraints": {tag: constraint_checks(sc, ev["nominal"][tag], checks)
-                        for tag in ("start", "tuned")},
+        "constraints": both(lambda m: constraint_checks(sc, m, checks), ev["nominal"]),
         "sample_time": problem.objective.sim.sample_time,
-        "second_loop": second_label(problem),
-        "requirements": {tag: requirement_checks(problem, ev["nominal"][tag])
-                         for tag in ("start", "tuned")},
+        # the second loop in words ("the states by forward Euler"), None without one
+        "second_loop": next((c.label for c in checks if c.name == "sampled"), None),
+        "requirements": both(functools.partial(requirement_checks, problem), ev["nominal"]),
         "run": {
             "iterations": tr.iterations, "resumed_from": result.resumed_from,
             "rejected": result.rejected, "stop_reason": result.stop_reason,
@@ -274,7 +276,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             "gradient": problem.mode.name, "method": problem.cfg.optimizer.name,
             "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
             "n_params": problem.n_params},
-        "gains": {"start": _values(problem, z0), "tuned": _values(problem, z1)},
+        "gains": both(problem.values_at, {"start": z0, "tuned": z1}),
         "settings": problem.describe(),
         "notes": list(problem.notes),
         "warnings": assumption_warnings(problem)
@@ -282,13 +284,13 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
            if w not in validation.assumption_warnings(problem.setup)],
     }
     if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None or checks):
-        summary["train_constraints"] = {tag: train_constraint_checks(sc, ev["train"][tag], checks)
-                                        for tag in ("start", "tuned")}
+        summary["train_constraints"] = both(lambda m: train_constraint_checks(sc, m, checks),
+                                            ev["train"])
     for key in ("train", "heldout"):
         if ev[key] is not None:
-            summary[key] = {tag: batch_stats(ev[key][tag]) for tag in ("start", "tuned")}
-            summary[key]["requirements"] = {tag: requirement_checks(problem, ev[key][tag])
-                                            for tag in ("start", "tuned")}
+            summary[key] = both(batch_stats, ev[key])
+            summary[key]["requirements"] = both(functools.partial(requirement_checks, problem),
+                                                ev[key])
     summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
     summary["shifted_reference"] = shifted_reference(problem.setup) is not None
     # with the held-out check and the margins: `--heldout 0`, a quick run, skips all three
@@ -309,7 +311,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
                       problem) if plots else [])
     st = (summary["margins"] or {}).get("sample_time")
     if plots and st is not None:
-        ts_sweep.plot(st, out / "sampling.png", {"start": "#7f7f7f", "tuned": "#d62728"}, 110,
+        ts_sweep.plot(st, out / "sampling.png", COLORS, 110,
                       {"start": "start gains", "tuned": "tuned gains"})
         figures.append("sampling.png")
     summary["figures"] = figures
@@ -318,11 +320,6 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", markdown(summary, problem, figures))
     return summary
-
-
-def second_label(problem) -> str | None:
-    """The second loop in words ("the states by forward Euler"), None without one."""
-    return next((c.label for c in problem.objective.checks if c.name == "sampled"), None)
 
 
 def _bounds_train(sc) -> dict[str, Any] | None:
@@ -351,10 +348,3 @@ def assumption_warnings(problem) -> list[str]:
             if w not in out:
                 out.append(w)
     return out
-
-
-def _values(problem, z):
-    values = jax.device_get(problem.selection.values(z))
-    return {name: np.asarray(values[name]).tolist() for name in problem.selection.names}
-
-

@@ -8,25 +8,27 @@ import numpy as np
 
 from dscjax import metrics
 from tuning import elasticity, margins
-from tuning.config import ROWS
+from tuning.config import ROWS, TERMS
 
 STATS_METRICS = ("linf_error_window", "user_linf_error_window", "l2_error_window", "max_abs_u",
                  "l2_u", "tv_u_window", "sampled_linf_window", "delayed_linf_window",
                  "delayed_tv_u")
 
 
-LABELS = {"linf_error_window": "L-inf error on [t0, T]", "l2_error_window": "L2 error on [t0, T]",
-          "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
-          "delayed_linf_window": "L-inf error on [t0, T], the input delayed",
-          "delayed_tv_u": "TV(u) on [0, T], the input delayed",
-          "max_abs_u": "max |u| on [0, T]", "l2_u": "L2(u)", "linf_error": "L-inf error on [0, T]",
-          "tv_u": "TV(u) on [0, T]", "loss": "objective J",
-          "max_abs_u_window": "max |u| on [t0, T]", "tv_u_window": "TV(u) on [t0, T]",
+# the figures' labels, in the order of report.md's nominal table
+LABELS = {"linf_error_window": "L-inf error on [t0, T]",
+          "user_linf_error_window": "L-inf error on [t0, T] against the config's y_r",
+          "l2_error_window": "L2 error on [t0, T]",
+          "user_l2_error_window": "L2 error on [t0, T] against the config's y_r",
+          "linf_error": "L-inf error on [0, T]",
+          "user_linf_error": "L-inf error on [0, T] against the config's y_r",
+          "max_abs_u": "max |u| on [0, T]", "max_abs_u_window": "max |u| on [t0, T]",
+          "l2_u": "L2(u)", "tv_u": "TV(u) on [0, T]", "tv_u_window": "TV(u) on [t0, T]",
           "chattering_index": "chattering index on [t0, T] (chatters above "
                               f"{metrics.CHATTER_RATIO:g})",
-          "user_linf_error_window": "L-inf error on [t0, T] against the config's y_r",
-          "user_linf_error": "L-inf error on [0, T] against the config's y_r",
-          "user_l2_error_window": "L2 error on [t0, T] against the config's y_r"}
+          "sampled_linf_window": "L-inf error on [t0, T], the other discretisation",
+          "delayed_linf_window": "L-inf error on [t0, T], the input delayed",
+          "delayed_tv_u": "TV(u) on [0, T], the input delayed"}
 
 
 # where the controller tracks a shifted reference, the error figures measured against it
@@ -117,13 +119,10 @@ def text(s: dict, problem, figures) -> str:
     nom = s["nominal"]
     cfg = problem.cfg
     lines = ["# dscjax tune: report", ""]
-    if s.get("heldout_warning"):
-        lines += [f"> **Warning: {s['heldout_warning']}.**", ""]
-    if s.get("margins_warning"):
-        lines += [f"> **Warning: a margin fails: {s['margins_warning']}.**", ""]
-    if s.get("sensitivity_warning"):
-        lines += [f"> **Warning: {s['sensitivity_warning']} (\"Sensitivity of the "
-                  f"constraints\" below).**", ""]
+    for key, warning in (("heldout", "{}"), ("margins", "a margin fails: {}"), (
+            "sensitivity", '{} ("Sensitivity of the constraints" below)')):
+        if s.get(f"{key}_warning"):
+            lines += [f"> **Warning: {warning.format(s[f'{key}_warning'])}.**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -133,9 +132,7 @@ def text(s: dict, problem, figures) -> str:
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
         f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
         "Objective per plant: " + ", ".join(
-            f"{k} {getattr(cfg.objective, k):g}" for k in ("linf", "l2", "effort_l2",
-                                                          "effort_max", "effort_tv")
-            if getattr(cfg.objective, k)) + (
+            f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k)) + (
             f"; max|u| <= {s['bound_max_abs_u']:.4g}{_own(s, 'max_abs_u')} (penalty weight "
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
         + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
@@ -170,10 +167,7 @@ def text(s: dict, problem, figures) -> str:
                   "below is measured against it unless it says \"against the config's "
                   "y_r\".", ""]
     lines += ["| | start gains | tuned gains | tuned / start |", "|---|---|---|---|"]
-    for key in ("linf_error_window", "user_linf_error_window", "l2_error_window",
-                "user_l2_error_window", "linf_error", "user_linf_error", "max_abs_u",
-                "max_abs_u_window", "l2_u", "tv_u", "tv_u_window", "chattering_index",
-                "sampled_linf_window", "delayed_linf_window", "delayed_tv_u"):
+    for key in LABELS:
         if key in nom["start"]:
             a, b = nom["start"][key], nom["tuned"][key]
             lines.append(f"| {_md(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
@@ -270,7 +264,8 @@ def text(s: dict, problem, figures) -> str:
     for name in s["gains"]["start"]:
         lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
                      f"{_fmt_val(s['gains']['tuned'][name])} |")
-    lines += ["", run_sentence(s), ""]
+    # the command that runs the loop tuned
+    lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
@@ -325,18 +320,11 @@ def sensitivity_section(sens: dict) -> list[str]:
     return lines
 
 
-def run_sentence(s: dict) -> str:
-    """report.md's last line: the command that runs the loop tuned."""
-    return f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`."
-
-
-def _mode_words(mode: str) -> str:
-    return "plant-by-plant (the aggregate's worst plants)" if mode == "plants" else f"{mode}-mode"
-
-
 def method_sentence(opt, mode: str) -> str:
     if opt.name == "adam":
-        return (f"{_mode_words(mode)} exact gradients: projected gradient descent with "
+        words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
+                 f"{mode}-mode")
+        return (f"{words} exact gradients: projected gradient descent with "
                 f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
                 f"after an improvement, halved (from the last good point) after a worse one.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "

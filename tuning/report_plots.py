@@ -11,16 +11,15 @@ from dscjax import files
 from dscjax.plotting import subplots
 from tuning.report_md import LABELS
 
+COLORS = {"start": "#7f7f7f", "tuned": "#d62728"}  # of the start and the tuned gains
+
 
 def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = False):
     """loss_curve.png: the loss (best loss, rejected steps), the L-inf error and max|u| (its
     bound) per iteration, a panel each. Returns the Figure (saved)."""
-    it = np.array([r["iteration"] for r in history])
-    loss = np.array([r["loss"] for r in history], dtype=float)
-    best = np.array([r["best_loss"] for r in history], dtype=float)
+    it, loss, best, linf, umax = (np.array([r[k] for r in history], dtype=float) for k in (
+        "iteration", "loss", "best_loss", "linf_window", "max_abs_u"))
     acc = np.array([bool(r["accepted"]) for r in history])
-    linf = np.array([r["linf_window"] for r in history], dtype=float)
-    umax = np.array([r["max_abs_u"] for r in history], dtype=float)
     fig, ax = subplots(1, 3, figsize=(14, 4))
     ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
     ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
@@ -50,7 +49,7 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
         figures.append("loss_curve.png")
 
     fig, ax = subplots(4, 1, figsize=(10, 11), layout="constrained")
-    for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+    for tag, color in COLORS.items():
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
         label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
@@ -85,7 +84,7 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     if ev["heldout"] is not None:
         fig, ax = subplots(1, 2, figsize=(11, 4), layout="constrained")
         for i, key in enumerate(("linf_error_window", "max_abs_u")):
-            for tag, color in (("start", "#7f7f7f"), ("tuned", "#d62728")):
+            for tag, color in COLORS.items():
                 m = ev["heldout"][tag]
                 v = np.sort(m[key][~m["diverged"].astype(bool)])
                 if not v.size:

@@ -97,11 +97,12 @@ class StepResponse(Requirement):
     |height|, and |y - final| <= band |height| for t >= settling_time. Reports the overshoot
     (fraction) and the settling time (the last time |y - final| > band |height|; 0: never)."""
 
-    final: jax.Array
-    height: jax.Array
     overshoot: jax.Array = 0.05
     settling_time: jax.Array = 5.0
     band: jax.Array = 0.02
+    # required, but a table may leave them to the step reference (`build_requirements`)
+    final: jax.Array = eqx.field(kw_only=True)
+    height: jax.Array = eqx.field(kw_only=True)
     weight: jax.Array = 1.0
     n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "step"

@@ -78,6 +78,15 @@ class Problem:
     def n_params(self) -> int:
         return self.selection.size(self.setup)
 
+    def setup_at(self, z):
+        """The setup with the tuned numbers at z, as host arrays."""
+        return jax.tree.map(np.asarray, self.selection.apply(self.setup, z))
+
+    def values_at(self, z) -> dict[str, list | float]:
+        """The tuned numbers' values at z by name, as JSON data."""
+        return {k: np.asarray(v).tolist() for k, v in
+                jax.device_get(self.selection.values(z)).items()}
+
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         return _description(self.setup, self.options, self.cfg, self.selection,
@@ -95,19 +104,14 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
         "params": [t.describe() for t in selection.items],
         "objective": dataclasses.asdict(cfg.objective),
         "optimizer": opt,
-        "robust": _batch_desc(cfg.robust, setup),
+        "robust": dataclasses.asdict(cfg.robust) | {
+            "ranges": [r.resolve(setup).spec() for r in cfg.robust.ranges]},
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
         "checks": {c.name: c.sim.describe() for c in checks},
         "mode": mode.name,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
-
-
-def _batch_desc(b, setup):
-    d = dataclasses.asdict(b)
-    d["ranges"] = [r.resolve(setup).spec() for r in b.ranges]
-    return d
 
 
 def default_freeze(setup, tune) -> tuple[str, ...]:
@@ -163,7 +167,6 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     cfg, notes, selection, mode, sim, checks, train, heldout, continuous = parts
     if ready is not None:
         ready()
-    notes = list(notes)
     requirements = build_requirements(setup, cfg.requirements)
     n = len(next(iter(train.values()))) if train else 1
     mask = None
@@ -231,15 +234,13 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
-    window = float(options.window_start) if window is None else window
     # the loop tuned is the one given ([simulation]: `dscjax tune` samples the controller at
     # 1 ms unless told otherwise); the continuous one is a check of a sampled loop
-    loop = options
-    continuous = options.replace(
-        sample_time=None, delay=0, noise=None, save_every=options.n_steps,
-        window_start=float(window), names={"window_start": "tuning.objective.window_start"}
-    ) if options.sampled else None
-    check(setup, loop)
+    sim = options.replace(save_every=options.n_steps, window_start=float(
+        options.window_start if window is None else window),
+        names={"window_start": "tuning.objective.window_start"})
+    continuous = sim.replace(sample_time=None, delay=0, noise=None) if options.sampled else None
+    check(setup, options)
     freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
     if cfg.freeze is None and freeze:
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
@@ -250,8 +251,8 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         # RK4 at dt in the continuous loop; forward Euler at Ts in a sampled one (an
         # embedded controller may advance its filters so: stable for Ts/tau < 2)
         dt, what = float(options.dt), "dt"
-        if loop.sampled and loop.sample_time > dt:
-            dt, what = loop.sample_time, "Ts"
+        if options.sampled and options.sample_time > dt:
+            dt, what = options.sample_time, "Ts"
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
         notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
                      f"s by default (the filters stable with RK4 at dt and forward Euler "
@@ -264,15 +265,13 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
         (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
         aggregate_of(cfg.robust), cfg.optimizer.checkpoint_every)
-    sim = loop.replace(save_every=loop.n_steps, window_start=float(window),
-                       names={"window_start": "tuning.objective.window_start"})
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
-    return (cfg, tuple(notes), selection, mode, sim, check_loops(sim, cfg.objective), train,
-            heldout, continuous)
+    return (cfg, notes, selection, mode, sim, check_loops(sim, cfg.objective), train, heldout,
+            continuous)
 
 
 def simulate_command(problem: Problem, config: str = "gains.json") -> str:
@@ -336,20 +335,17 @@ class Result:
         return sum(not r.get("accepted", True) for r in self.trace.history)
 
 
-def check_out_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    """ConfigError unless --resume finds a checkpoint; only --overwrite replaces a run there."""
-    out = Path(out)
-    has = (out / "checkpoint.json").exists()
+def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json"
+                ) -> None:
+    """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
+    --overwrite replaces a run there (a tuning run's files removed)."""
+    has = (out / marker).exists()
     if resume and not has:
-        raise ConfigError(f"--resume: nothing to resume in {out} (checkpoint.json is missing); "
+        raise ConfigError(f"--resume: nothing to resume in {out} ({marker} is missing); "
                           f"run without --resume to start afresh")
-    if has and not resume and not overwrite:
+    if not resume and not overwrite and (has or (out / "checkpoint.json").exists()):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
-
-
-def _prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
-    check_out_dir(out, resume, overwrite)
     files.mkdir(out)
     if overwrite:
         for name in ck.FILES:
@@ -380,12 +376,11 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     out = None if out_dir is None else Path(out_dir)
     before, begun = 0.0, 0
     if out is not None:
-        _prepare_dir(out, resume, overwrite)
+        prepare_dir(out, resume, overwrite)
         if resume:
             saved = _saved(out, problem).trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
-    desc = problem.describe()
     terms = ck.term_names(problem)
 
     def each(trace, row):
@@ -402,7 +397,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
             seed=spec.seed, max_iterations=spec.max_steps, patience=spec.patience,
             time_limit=None if spec.time_limit is None else before + spec.time_limit,
             min_delta=spec.min_delta, path=None if out is None else out / STATE_FILE,
-            resume=resume, fingerprint={"problem": files.digest(desc)}, progress=each)
+            resume=resume, fingerprint={"problem": files.digest(problem.describe())}, progress=each)
     except KeyboardInterrupt:
         saved = None if out is None else search.load(out / STATE_FILE)
         if saved is not None:
@@ -448,12 +443,9 @@ def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
     if not np.isfinite(trace.best_loss):
         return
     z = TuneProblem(problem).point(trace.best_z)
-    values = jax.device_get(problem.selection.values(z))
     files.write_json(out / "best.json", {
         "iteration": int(trace.best_iteration), "loss": float(trace.best_loss),
-        "feasible": bool(trace.best_feasible),
-        "values": {k: np.asarray(v).tolist() for k, v in values.items()},
+        "feasible": bool(trace.best_feasible), "values": problem.values_at(z),
         "z": {k: np.asarray(v).tolist() for k, v in z.items()},
     })
-    setup = jax.tree.map(np.asarray, problem.selection.apply(problem.setup, z))
-    files.write_json(out / "gains.json", dconfig.to_dict(setup, problem.options))
+    files.write_json(out / "gains.json", dconfig.to_dict(problem.setup_at(z), problem.options))

@@ -1,14 +1,13 @@
 """The start gains' figures on the nominal plant (`start_scales`): the normalisation of the
 objective's terms and its effort bounds, "start" bounds being the start's own figures over the
-whole horizon [0, T] (the transient included), on the nominal plant for every plant
-(`Nominal`) or on each training plant its own (`PerPlant`); `Scales` holds them."""
+whole horizon [0, T] (the transient included), on the nominal plant for every plant or on
+each training plant its own (`per_plant_bounds`); `Scales` holds them."""
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 from types import SimpleNamespace
-from typing import Any, ClassVar
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -20,14 +19,14 @@ from dscjax.closed_loop import Setup
 from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import DivergenceError, divergence_report, run
 from dscjax.validation import ConfigError
-from tuning.config import ObjectiveSpec
+from tuning.config import TERMS, ObjectiveSpec
 from tuning.reductions import UserError, shifted_reference
 
 
 class Scales(eqx.Module):
     """The start gains' figures on the nominal plant (the terms' normalisation) and the bounds,
-    with `PerPlant` bounds also per training plant (u_max_train, tv_max_train); a pytree, so
-    that a compiled objective takes them as numbers."""
+    with per-plant bounds also per training plant (u_max_train, tv_max_train,
+    `per_plant_bounds`); a pytree, so that a compiled objective takes them as numbers."""
 
     linf: Any
     l2: Any
@@ -67,47 +66,31 @@ def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
 _start_metrics = xla.jit(_start_run, lean=True)
 
 
-@dataclasses.dataclass(frozen=True)
-class Nominal:
-    """The start bounds measured on the nominal plant hold for every plant."""
-
-    name: ClassVar[str] = "nominal"
-
-    def train_bounds(self, setup, sim, spec, train, u_max, tv_max) -> dict[str, Any]:
-        """`Scales`' per-plant fields of the training batch `train`: none."""
+def per_plant_bounds(setup: Setup, sim: RunSpec, spec: ObjectiveSpec, train, u_max,
+                     tv_max) -> dict[str, Any]:
+    """`Scales`' per-plant fields of the training batch `train`: with effort_bounds =
+    "per_plant", each training plant's "start" bounds are its own figures (a plant on which the
+    start gains diverge keeps the nominal ones); else none (the nominal ones hold for every
+    plant)."""
+    if spec.effort_bounds != "per_plant" or not train or "start" not in (spec.u_max, spec.tv_max):
         return {}
-
-
-@dataclasses.dataclass(frozen=True)
-class PerPlant(Nominal):
-    """Each training plant's start bounds are its own figures ("start" bounds only; a plant
-    on which the start gains diverge keeps the nominal ones)."""
-
-    name: ClassVar[str] = "per_plant"
-
-    def train_bounds(self, setup, sim, spec, train, u_max, tv_max) -> dict[str, Any]:
-        if not train or "start" not in (spec.u_max, spec.tv_max):
-            return {}
-        mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
-        div = np.asarray(status.code) != 0
-        per: dict[str, Any] = {"n_train_fallback": int(div.sum())}
-        for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
-                                           ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
-            if getattr(spec, name) == "start":
-                v = factor * np.asarray(mb[key], np.float64)
-                # a figure of 0 (no effort at all on that plant) would leave no room at all
-                per[f"{name}_train"] = np.where(div | ~(v > 0), nominal, v)
-        return per
-
-
-EFFORT_BOUNDS = {b.name: b for b in (Nominal(), PerPlant())}
+    mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
+    div = np.asarray(status.code) != 0
+    per: dict[str, Any] = {"n_train_fallback": int(div.sum())}
+    for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
+                                       ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
+        if getattr(spec, name) == "start":
+            v = factor * np.asarray(mb[key], np.float64)
+            # a figure of 0 (no effort at all on that plant) would leave no room at all
+            per[f"{name}_train"] = np.where(div | ~(v > 0), nominal, v)
+    return per
 
 
 def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                  train: Mapping[str, Any] | None = None) -> Scales:
     """The start gains' `Scales` (DivergenceError, which run and when, if they diverge on the
     nominal plant); with effort_bounds = "per_plant" and a batch `train`, each training
-    plant's "start" bounds (`PerPlant`)."""
+    plant's "start" bounds (`per_plant_bounds`)."""
     reference = shifted_reference(setup)
     user = None if reference is None else UserError(  # reported beside, not tuned
         jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)), sim.n_steps, reference)
@@ -121,16 +104,13 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
 
     u_max = bound(spec.u_max, m["max_abs_u"])
     tv_max = bound(spec.tv_max, spec.tv_max_factor * m["tv_u"])
-    for name, key in (("linf", "linf_error_window"), ("l2", "l2_error_window"),
-                      ("effort_l2", "l2_u"), ("effort_max", "max_abs_u"), ("effort_tv", "tv_u")):
+    for name, (_, key, _, _) in TERMS.items():
         if getattr(spec, name) and not m[key] > 0:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
-    tiny = 1e-300
-    per = EFFORT_BOUNDS[spec.effort_bounds].train_bounds(setup, sim, spec, train, u_max, tv_max)
-    return Scales(linf=max(m["linf_error_window"], tiny), l2=max(m["l2_error_window"], tiny),
-                  l2_u=max(m["l2_u"], tiny), max_u=max(m["max_abs_u"], tiny),
-                  u_max=u_max, tv_u=max(m["tv_u"], tiny), tv_max=tv_max, start=m, **per)
+    per = per_plant_bounds(setup, sim, spec, train, u_max, tv_max)
+    return Scales(**{scale: max(m[key], 1e-300) for _, key, scale, _ in TERMS.values()},
+                  u_max=u_max, tv_max=tv_max, start=m, **per)
 
 
 def start_divergence(sim: RunSpec, status) -> DivergenceError:

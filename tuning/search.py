@@ -20,7 +20,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from dscjax import search, xla
-from tuning.objective import feasible_plants, loop_metrics, plant_loss
+from tuning.objective import loop_metrics
 
 STATE_FILE = "search.npz"  # the run's search state (dscjax.search's format)
 SPREAD = math.log(10.0)  # random points (a restarted adam start): z0 x/ 10, in the box
@@ -40,25 +40,10 @@ def _batch(obj, flat_pts):
     ov = {p: jnp.tile(v, (b,) + (1,) * (v.ndim - 1)) for p, v in train.items()}
     m, div = loop_metrics(obj, zs, ov, points=True)
     # the training plants' own bounds (per_plant), laid out as the plants are: tiled
-    bounds = obj.scales.bounds(train=bool(train), tile=b)
-    loss, terms = plant_loss(m, div, obj.spec, obj.scales, len(obj.requirements), bounds,
-                             obj.checks)
-    feas = feasible_plants(m, div, bounds, len(obj.requirements), obj.checks)
-    real = jnp.ones(n, bool) if obj.mask is None else obj.mask
-
-    def per(v):
-        v = v.reshape(b, n)
-        return jax.vmap(lambda r: obj.aggregate(r, obj.mask))(v) if train else v[:, 0]
-
-    def worst(v):  # max over the real plants that did not diverge (NaN: none)
-        v = jnp.where(div.reshape(b, n) | ~real, -jnp.inf, v.reshape(b, n)).max(axis=1)
-        return jnp.where(jnp.isfinite(v), v, jnp.nan)
-
-    return {"loss": per(loss), "feasible": (feas.reshape(b, n) | ~real).all(axis=1),
-            "n_diverged": (div.reshape(b, n) & real).sum(axis=1),
-            "linf_window": worst(m["linf_error_window"]),
-            "max_abs_u": worst(m["max_abs_u"]), "tv_u": worst(m["tv_u"]),
-            "terms": {k: per(v) for k, v in terms.items()}}
+    judged = obj.judged(m, div, obj.scales.bounds(train=bool(train), tile=b))
+    rows = jax.tree.map(lambda v: v.reshape(b, n, *v.shape[1:]), (*judged, m, div))
+    loss, aux = jax.vmap(lambda p, t, f, m_, d: obj.summary(p, t, m_, d, f, obj.mask))(*rows)
+    return {"loss": loss, **aux}
 
 
 # one top-level batched program: 512-bit vectors where the CPU has them, or lean for a search
@@ -73,9 +58,7 @@ def _gradient(mode, obj, flat_pts):
     AD `mode` (the points one after the other)."""
     def one(flat):
         (loss, aux), g = mode.value_and_grad(obj, _unravel(obj)(flat))
-        return {"loss": loss, "feasible": aux["feasible"], "n_diverged": aux["n_diverged"],
-                "linf_window": aux["linf_window"], "max_abs_u": aux["max_abs_u"],
-                "terms": aux["terms"], "grad": ravel_pytree(g)[0]}
+        return {"loss": loss, **aux, "grad": ravel_pytree(g)[0]}
 
     return jax.lax.map(one, flat_pts)
 
