@@ -56,6 +56,14 @@ def settings_docs(text: str) -> str:
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
 
 
+def _float(text: str) -> float:
+    """`text` as a float, nan where it is not a number."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
+
+
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
     anything else is refused with the allowed range and the value."""
@@ -65,10 +73,7 @@ def count(low: int = 0):
         try:
             value = int(text)
         except ValueError:
-            try:
-                x = float(text)
-            except ValueError:
-                x = math.nan
+            x = _float(text)
             if math.isfinite(x) and x == int(x):
                 value = int(x)
         if value is None or value < low:
@@ -79,26 +84,19 @@ def count(low: int = 0):
     return parse
 
 
-def finite_float(text: str) -> float:
-    """An argparse type: a finite number (inf and nan are refused, naming the option)."""
-    try:
-        x = float(text)
-    except ValueError:
-        x = math.nan
-    if not math.isfinite(x):
-        raise argparse.ArgumentTypeError(f"must be a finite number (got {text!r})")
+def finite_float(text: str, positive: bool = False) -> float:
+    """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
+    where `positive`."""
+    x = _float(text)
+    if not (math.isfinite(x) and (x > 0 or not positive)):
+        raise argparse.ArgumentTypeError(
+            f"must be a finite number{' > 0' if positive else ''} (got {text!r})")
     return x
 
 
 def positive_float(text: str) -> float:
     """An argparse type: a finite number > 0."""
-    try:
-        x = float(text)
-    except ValueError:
-        x = math.nan
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0 (got {text!r})")
-    return x
+    return finite_float(text, positive=True)
 
 
 class Once(argparse._StoreAction):

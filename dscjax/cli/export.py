@@ -6,11 +6,12 @@ from __future__ import annotations
 import sys
 
 from dscjax.cli.common import add_config_args, example_setup, print_config
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 EXPORT_KEYS = ("sample_time", "delay", "discretisation")
+interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
@@ -91,9 +92,3 @@ def run(args) -> int:
                   for start in ("void dsc_init(", f"{args.precision} dsc_step("))
     print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {init}; {step}")
     return 0
-
-
-def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"

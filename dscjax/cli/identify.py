@@ -8,9 +8,10 @@ from __future__ import annotations
 import sys
 
 from dscjax.cli.common import add_config_args
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
+interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
@@ -93,9 +94,3 @@ def run(args) -> int:
     print(f"  wrote {out}: {', '.join(written)}; tune for it: dscjax tune --config "
           f"{out}/identified.toml --batch 8")
     return 0
-
-
-def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"

@@ -117,10 +117,8 @@ def rerun_command(args) -> str:
     same arguments without --resume, and --overwrite where --out holds files the command
     writes (the one rule of --out would refuse the run otherwise)."""
     argv = [a for a in args.argv if a != "--resume"]
-    outputs = getattr(importlib.import_module(COMMANDS[args.command]), "OUTPUTS", None)
-    out = getattr(args, "out", None)
-    if (outputs is not None and out is not None and "--overwrite" not in argv
-            and os.path.isdir(out) and outputs.found(Path(out))):
+    outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
+    if "--overwrite" not in argv and os.path.isdir(args.out) and outputs.found(Path(args.out)):
         argv.append("--overwrite")
     return shlex.join([*args.prog, *argv])
 
@@ -143,17 +141,6 @@ def _continue(args, module) -> str:
     return f"run the same command again: {rerun_command(args)}"
 
 
-def _kept(args, module) -> str | None:
-    """The hint of a command without its own `interrupt_hint`: the files it finished (or
-    nothing), and the command that runs it again."""
-    from dscjax.cli.out import kept_text
-
-    outputs = getattr(module, "OUTPUTS", None)
-    if outputs is None or getattr(args, "out", None) is None:
-        return None
-    return kept_text(args, outputs, rerun_command(args))
-
-
 def main(argv=None) -> int:
     commands = _available_commands()
     parser = build_parser(commands)
@@ -172,7 +159,7 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
-    from dscjax.cli.out import check_out
+    from dscjax.cli.out import check_out, kept_text
     from dscjax.files import NoSpace
     from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
     from dscjax.simulate import DivergenceError
@@ -199,8 +186,10 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return EXIT_NO_SPACE
     except (KeyboardInterrupt, Abort) as stop:
+        # a command without its own hint: the files it finished (or nothing), and the
+        # command that runs it again
         hint = getattr(module, "interrupt_hint", None)
-        note = hint(args) if hint is not None else _kept(args, module)
+        note = hint(args) if hint is not None else kept_text(args, module.OUTPUTS)
         signum = signal_number(stop)
         by = "" if signum == signal.SIGINT else f" by {signal_name(signum)}"
         what = (f"interrupted again{by}: stopped at once without saving the step under way"

@@ -19,11 +19,15 @@ def add_out_arg(p, default: str):
                    help=f"output directory (default: {default})")
 
 
-def add_overwrite_arg(p):
-    """--overwrite of the commands without --resume (the one rule of --out, README)."""
-    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier "
-                   "run in DIR (only those this command writes); without it such a DIR is "
-                   "refused")
+def add_overwrite_arg(p, resume: str | None = None, overwrite: str | None = None):
+    """--overwrite (the one rule of --out, README); for a command that continues an
+    interrupted run, --resume (help `resume`) too, the two exclusive."""
+    group = p.add_mutually_exclusive_group() if resume else p
+    if resume:
+        group.add_argument("--resume", action="store_true", help=resume)
+    group.add_argument("--overwrite", action="store_true", help=overwrite or "replace the "
+                       "files of an earlier run in DIR (only those this command writes); "
+                       "without it such a DIR is refused")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,17 +147,31 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     return out
 
 
-def kept_text(args, outputs: Outputs, rerun: str) -> str:
+# what a command that writes its files when it ends says it keeps when interrupted
+AT_END = " (the files are written when the run ends)"
+
+
+def nothing_kept(args, why: str = "") -> str:
+    """The hint of an interrupted command that keeps nothing (`why`, e.g. `AT_END`), and the
+    command that runs it again (`cli.main.rerun_command`)."""
+    from dscjax.cli.main import rerun_command
+
+    return f"nothing is kept{why}; run the same command again: {rerun_command(args)}"
+
+
+def kept_text(args, outputs: Outputs, why: str = "") -> str:
     """What an interrupted command that cannot resume says it keeps: the files it finished
     (`outputs` found in --out: the rule of --out let it start only where none was), or
-    nothing; then `rerun`, the command that makes them all."""
+    nothing (`nothing_kept`); then the command that makes them all."""
+    from dscjax.cli.main import rerun_command
+
     out = Path(args.out)
     found = outputs.found(out) if out.is_dir() else []
     if not found:
-        return f"nothing is kept; run the same command again: {rerun}"
+        return nothing_kept(args, why)
     shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
     return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
-            f"rest is not written; run the same command again: {rerun}")
+            f"rest is not written; run the same command again: {rerun_command(args)}")
 
 
 def _remove_if_empty(created: list[Path]) -> None:

@@ -6,7 +6,7 @@ import sys
 from pathlib import Path
 
 from dscjax.cli.common import add_run_args, count, positive_float
-from dscjax.cli.out import Outputs, add_out_arg
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
 from dscjax.reproduce.figures import FIGURES
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
@@ -64,14 +64,9 @@ def add_parser(sub):
     p.add_argument("--repeats", type=count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true",
-                       help="with --complexity: keep the control-law measurements an "
-                       "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
-                       "measure only the rest")
-    again.add_argument("--overwrite", action="store_true", help="replace the files of an "
-                       "earlier run in DIR (only those this command writes); without it such "
-                       "a DIR is refused")
+    add_overwrite_arg(p, resume="with --complexity: keep the control-law measurements an "
+                      "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
+                      "measure only the rest")
     p.add_argument("--theory", action="store_true",
                    help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
                    "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
@@ -153,11 +148,11 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.main import resume_command
 
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
     from dscjax.cli.out import kept_text
 
-    return kept_text(args, OUTPUTS, rerun_command(args))
+    return kept_text(args, OUTPUTS)

@@ -252,7 +252,6 @@ def _title(setup, spec, args) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
+    from dscjax.cli.out import AT_END, nothing_kept
 
-    return (f"nothing is kept (the files are written when the run ends); run the same command "
-            f"again: {rerun_command(args)}")
+    return nothing_kept(args, AT_END)

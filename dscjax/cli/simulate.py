@@ -238,12 +238,9 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-    from dscjax.cli.out import kept_text
+    from dscjax.cli.out import AT_END, kept_text
 
-    text = kept_text(args, OUTPUTS, rerun_command(args))
-    return text.replace("nothing is kept;", "nothing is kept (the files are written when the "
-                        "run ends);", 1)
+    return kept_text(args, OUTPUTS, AT_END)
 
 
 def _title(setup, options):

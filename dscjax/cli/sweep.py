@@ -32,7 +32,7 @@ from dscjax.cli.common import (
     portable_device,
     print_config,
 )
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json
 from dscjax.progress import Progress
 
@@ -85,11 +85,8 @@ def add_parser(sub):
     prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
                       f"{d.dtype})")
     add_out_arg(p, "results/sweep")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue a sweep in DIR: skip "
-                       "the blocks already written")
-    again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
-                       "start afresh")
+    add_overwrite_arg(p, resume="continue a sweep in DIR: skip the blocks already written",
+                      overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
@@ -387,13 +384,14 @@ def resumable(args) -> bool:
 def interrupt_hint(args) -> str | None:
     import jax
 
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.main import resume_command
+    from dscjax.cli.out import nothing_kept
 
     if jax.process_index() != 0:
         return None
     out = Path(args.out)
     if not resumable(args):
-        return f"nothing is kept; run the same command again: {rerun_command(args)}"
+        return nothing_kept(args)
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
     return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
             f"{resume_command(args)}")

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from dscjax.cli.out import Outputs, add_out_arg
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -41,11 +41,9 @@ def add_parser(sub):
     add_arguments(p, TuningConfig, "tuning.")
     add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=SIMULATION)
     add_example_arg(p)
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
-                       "its checkpoint (iteration count, optimiser state and best point)")
-    again.add_argument("--overwrite", action="store_true", help="discard a run in DIR and "
-                       "start afresh")
+    add_overwrite_arg(p, resume="continue the run in DIR from its checkpoint (iteration "
+                      "count, optimiser state and best point)",
+                      overwrite="discard a run in DIR and start afresh")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     return p
@@ -61,7 +59,7 @@ def resumable(args) -> bool:
 def interrupt_hint(args) -> str:
     import json
 
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.main import resume_command
 
     if (Path(args.out) / "adversarial.json").exists():
         return (f"the finished rounds and searches are kept in {args.out}; continue with: "
@@ -72,7 +70,7 @@ def interrupt_hint(args) -> str:
     except (OSError, ValueError):
         from dscjax.cli.out import kept_text
 
-        return kept_text(args, OUTPUTS, rerun_command(args))
+        return kept_text(args, OUTPUTS)
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
             f"{resume_command(args)}")

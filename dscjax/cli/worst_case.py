@@ -21,7 +21,7 @@ from dscjax.cli.common import (
     print_config,
     use_device,
 )
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.worst.report import FIGURES
 
 MANIFEST = "worst_case.json"
@@ -48,10 +48,8 @@ def add_parser(sub):
                    "hysteresis.alpha=30%%")
     add_arguments(p, WorstSettings, "worst.")
     add_out_arg(p, "results/worst-case")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue a search in DIR "
-                       "(each method from its last finished iteration)")
-    again.add_argument("--overwrite", action="store_true", help="discard a search in DIR")
+    add_overwrite_arg(p, resume="continue a search in DIR (each method from its last "
+                      "finished iteration)", overwrite="discard a search in DIR")
     p.add_argument("--no-plot", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     return p
@@ -252,13 +250,13 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str | None:
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.main import resume_command
 
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
         from dscjax.cli.out import kept_text
 
-        return kept_text(args, OUTPUTS, rerun_command(args))
+        return kept_text(args, OUTPUTS)
     return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
             f"continue with: {resume_command(args)}")
