@@ -99,6 +99,22 @@ def positive_float(text: str) -> float:
     return finite_float(text, positive=True)
 
 
+def positive_numbers(text: str | None, option: str) -> list[float] | None:
+    """"0.5,1,2" -> the positive numbers an option lists (None stays None); anything else is
+    refused in one line naming the option."""
+    from dscjax.validation import ConfigError
+
+    if text is None:
+        return None
+    try:
+        values = [float(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        values = []
+    if not values or min(values) <= 0:
+        raise ConfigError(f"{option} must be positive numbers like 0.5,1,2 (got {text!r})")
+    return values
+
+
 class Once(argparse._StoreAction):
     """argparse's "store", refusing an option given twice (one line, exit 2) instead of
     silently keeping the last value. The parsers of the `dscjax` command (`cli.main`) use it
@@ -253,6 +269,15 @@ def effort_text(metrics, window: str) -> str:
     `chattering_index`)."""
     return (f"effort on {window}: max|u| {figure(metrics['max_abs_u_window'])}, TV(u) "
             f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
+
+
+def untrusted_text(untrusted, rel_diff: dict, rtol: float, fix: str, on: str = "") -> str:
+    """The warning of a float32 re-check in float64 (`dscjax.sweep.float32_trust`) whose
+    metrics `untrusted` differ by more than `rtol` (`rel_diff` {metric: relative difference};
+    `on`: the rows re-checked)."""
+    worst = max(rel_diff[m] for m in untrusted)
+    return (f"float32 cannot be trusted with {', '.join(untrusted)}: they differ from float64 "
+            f"by up to {100 * worst:.3g} %{on} (tolerance {100 * rtol:g} %); {fix}")
 
 
 def loop_sizes(setup) -> tuple[int, int, int]:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import add_run_args, count, positive_float
+from dscjax.cli.common import add_run_args, count, positive_float, positive_numbers
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
 from dscjax.reproduce.figures import FIGURES
 
@@ -82,22 +82,6 @@ def add_parser(sub):
     return p
 
 
-def parse_alpha0(text: str | None) -> list[float] | None:
-    """"0.5,1,2" -> list of positive alpha_0 values (None stays None)."""
-    from dscjax.validation import ConfigError
-
-    if text is None:
-        return None
-    error = ConfigError(f"--alpha0 must be positive numbers like 0.5,1,2 (got {text!r})")
-    try:
-        values = [float(p) for p in text.split(",") if p.strip()]
-    except ValueError:
-        raise error from None
-    if not values or min(values) <= 0:
-        raise error
-    return values
-
-
 def run(args) -> int:
     from dscjax.cli.common import horizon_text, loop_sizes, use_device
     from dscjax.cli.out import prepare_out
@@ -106,7 +90,7 @@ def run(args) -> int:
 
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
-    alpha0 = parse_alpha0(args.alpha0)
+    alpha0 = positive_numbers(args.alpha0, "--alpha0")
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
     runs = len(setups())  # each saved at every step and kept for the figures

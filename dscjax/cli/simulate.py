@@ -15,6 +15,7 @@ from dscjax.cli.common import (
     horizon_text,
     load_setup,
     loop_sizes,
+    untrusted_text,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json, write_npz
@@ -143,7 +144,8 @@ def run(args) -> int:
               "...", file=sys.stderr)
         f32 = _float64_check(setup, options, metrics)
         if f32["untrusted"]:
-            warnings = [*warnings, _untrusted_text(f32, "rerun without --float32")]
+            warnings = [*warnings, untrusted_text(f32["untrusted"], f32["rel_diff"], f32["rtol"],
+                                                  "rerun without --float32")]
     report = divergence_report(traj, float(options.state_bound))
     write_json(out / "metrics.json", {
         **metrics,
@@ -209,14 +211,6 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
                           {m: [v] for m, v in float64.items()})
     return {"rtol": trust["rtol"], "float64": float64, "rel_diff": trust["max_rel_diff"],
             "untrusted": trust["untrusted"]}
-
-
-def _untrusted_text(check: dict, fix: str) -> str:
-    """The warning of a float32 check with untrusted values (`_float64_check`)."""
-    worst = max(check["rel_diff"][m] for m in check["untrusted"])
-    return (f"float32 cannot be trusted with {', '.join(check['untrusted'])}: they differ "
-            f"from float64 by up to {100 * worst:.3g} % (tolerance {100 * check['rtol']:g} "
-            f"%); {fix}")
 
 
 PROGRESS_MIN_STEPS = 1_000_000  # a run of at least this many steps shows progress

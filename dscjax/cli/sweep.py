@@ -31,6 +31,7 @@ from dscjax.cli.common import (
     horizon_text,
     portable_device,
     print_config,
+    untrusted_text,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json
@@ -189,12 +190,10 @@ def typed_settings(args) -> dict[str, str]:
     from dscjax.sweep import SweepSettings
 
     names = schema.given(args, SweepSettings, "sweep.")[1]
-    names |= {f"sweep.{key}": option for key, option in (
-        ("grid", "--grid"), ("ranges", "--range")) if getattr(args, key, None) is not None}
-    for option in ("float32", "float64"):
-        if getattr(args, option, False):
-            names["sweep.dtype"] = f"--{option}"
-    return names
+    return names | {f"sweep.{key}": option for dest, key, option in (
+        ("grid", "grid", "--grid"), ("ranges", "ranges", "--range"),
+        ("float32", "dtype", "--float32"), ("float64", "dtype", "--float64"))
+        if getattr(args, dest, None)}
 
 
 def work(setup, settings, steps: int, ranges):
@@ -368,10 +367,9 @@ def run(args) -> int:
     print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
           f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     if f32 is not None and f32["untrusted"]:
-        worst = max(f32["max_rel_diff"][m] for m in f32["untrusted"])
-        print(f"  warning: float32 cannot be trusted with {', '.join(f32['untrusted'])}: they "
-              f"differ from float64 by up to {100 * worst:.3g} % on {len(f32['rows'])} "
-              f"re-checked rows (tolerance {100 * f32['rtol']:g} %); rerun with --float64",
+        print("  warning: " + untrusted_text(f32["untrusted"], f32["max_rel_diff"], f32["rtol"],
+                                             "rerun with --float64",
+                                             on=f" on {len(f32['rows'])} re-checked rows"),
               file=sys.stderr)
     return 0
 
@@ -430,16 +428,10 @@ def _write_traces(path, trajs, records, kinds, nominal):
 
     arrays = {"nominal_t": nominal.t, "nominal_e": nominal.e, "nominal_u": nominal.u}
     if trajs:
-        arrays |= {
-            "sample": np.array([r["sample"] for r in records], dtype=np.int64),
-            "kind": np.array(kinds),
-            "t": np.stack([np.asarray(t.t) for t in trajs]),
-            "x": np.stack([np.asarray(t.x) for t in trajs]),
-            "e": np.stack([np.asarray(t.e) for t in trajs]),
-            "u": np.stack([np.asarray(t.u) for t in trajs]),
-            "w": np.stack([np.asarray(t.w) for t in trajs]),
-            "diverged": np.array([bool(t.diverged) for t in trajs]),
-        }
+        arrays |= {"sample": np.array([r["sample"] for r in records], dtype=np.int64),
+                   "kind": np.array(kinds)}
+        arrays |= {k: np.stack([np.asarray(getattr(t, k)) for t in trajs]) for k in "txeuw"}
+        arrays["diverged"] = np.array([bool(t.diverged) for t in trajs])
     write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 

@@ -307,22 +307,18 @@ def run(args) -> int:
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         print(f"  {report_md.heldout_counts(summary)}")
-        if h0["linf_error_window"] and h1["linf_error_window"]:
-            a, b = h0["linf_error_window"], h1["linf_error_window"]
-            print(f"  held-out L-inf error on the window{shifted}, plants that did not "
-                  f"diverge: median {a['median']:.4g} -> {b['median']:.4g}, p95 "
-                  f"{a['p95']:.4g} -> {b['p95']:.4g}")
-        if h0.get("tv_u_window") and h1.get("tv_u_window"):
-            a, b = h0["tv_u_window"], h1["tv_u_window"]
-            print(f"  held-out TV(u) on the window, plants that did not diverge: median "
-                  f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
-                  f"{b['p95']:.4g}; chattering (chattering index above "
-                  f"{CHATTER_RATIO:g}) on {h0['n_chattering']} -> {h1['n_chattering']}")
-        if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
-            a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
-            print(f"  held-out L-inf error on the window with "
-                  f"{summary['second_loop']}: median {a['median']:.4g} -> "
-                  f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
+        rows = {"linf_error_window": (f"L-inf error on the window{shifted}, plants that did "
+                                      f"not diverge", ""),
+                "tv_u_window": ("TV(u) on the window, plants that did not diverge",
+                                f"; chattering (chattering index above {CHATTER_RATIO:g}) on "
+                                f"{h0.get('n_chattering')} -> {h1.get('n_chattering')}"),
+                "sampled_linf_window": (f"L-inf error on the window with "
+                                        f"{summary.get('second_loop')}", "")}
+        for key, (what, then) in rows.items():
+            a, b = h0.get(key), h1.get(key)
+            if a and b:
+                print(f"  held-out {what}: median {a['median']:.4g} -> {b['median']:.4g}, "
+                      f"p95 {a['p95']:.4g} -> {b['p95']:.4g}{then}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
     for line in margin_lines(summary.get("margins"), summary["nominal"]):
