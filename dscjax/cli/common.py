@@ -6,8 +6,13 @@ import argparse
 import contextlib
 import dataclasses
 import math
+import sys
 
 import numpy as np
+
+from dscjax import config, device, settings
+from dscjax.runspec import RunSpec, Simulation
+from dscjax.validation import ConfigError, Work, validate_setup
 
 # Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
 COMMANDS = {
@@ -27,7 +32,6 @@ COMMANDS = {
 def settings_groups() -> dict:
     """{table: the settings group declaring it}: the tables of docs/settings.md."""
     from dscjax.identify.run import IdentifySettings
-    from dscjax.runspec import Simulation
     from dscjax.sweep import SweepSettings
     from dscjax.worst import WorstSettings
     from tuning.config import TuningConfig
@@ -44,8 +48,6 @@ def settings_docs(text: str) -> str:
     settings -->` replaced by the key table of the group NAME, generated from its declarations
     (`dscjax.settings.doc_rows`); tests/test_settings.py checks docs/settings.md is current."""
     import re
-
-    from dscjax import settings
 
     groups = settings_groups()
 
@@ -102,8 +104,6 @@ def positive_float(text: str) -> float:
 def positive_numbers(text: str | None, option: str) -> list[float] | None:
     """"0.5,1,2" -> the positive numbers an option lists (None stays None); anything else is
     refused in one line naming the option."""
-    from dscjax.validation import ConfigError
-
     if text is None:
         return None
     try:
@@ -138,8 +138,6 @@ def blame_options(names: dict[str, str]):
     {"sweep.threshold": "--threshold"} ("sweep.threshold must be > 0" becomes "--threshold
     must be > 0"; "sweep.grid.hysteresis.alpha: ..." becomes "--grid hysteresis.alpha: ...").
     Keys the config gave keep their names."""
-    from dscjax.validation import ConfigError
-
     try:
         yield
     except ConfigError as err:
@@ -164,18 +162,12 @@ SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
     """Options for the given [simulation] keys (`dscjax.runspec.Simulation`), each overriding
     the config's value; their help states the default (`defaults` may give a command's own)."""
-    from dscjax import settings
-    from dscjax.runspec import Simulation
-
     settings.add_arguments(p, Simulation, "simulation.", keys=keys, defaults=defaults)
 
 
 def run_overrides(args) -> tuple[dict, dict]:
     """({key: value} of the [simulation] options given on the command line, {key: option
     typed})."""
-    from dscjax import settings
-    from dscjax.runspec import Simulation
-
     table, names = settings.given(args, Simulation, "")
     if getattr(args, "float32", False):
         table["dtype"], names["dtype"] = "float32", "--float32"
@@ -192,8 +184,6 @@ def apply_run_options(args, spec):
 def check_noise(args, setup, spec) -> None:
     """simulation.noise (--noise) as one number or one per state of the plant (n), refused
     in one line naming how it was given otherwise (before anything traces the loop)."""
-    from dscjax.validation import ConfigError
-
     noise = None if spec.noise is None else np.asarray(spec.noise)
     if noise is not None and noise.ndim == 1 and noise.size != setup.order:
         name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
@@ -207,10 +197,6 @@ def portable_device(args, spec, source):
     of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
     note on stderr. A device typed on the command line is left to `choose_device`, which
     refuses one that is not here."""
-    import sys
-
-    from dscjax import device
-
     if getattr(args, "device", None) or spec.device != "gpu":
         return spec
     if any(d.platform != "cpu" for d in device.visible()):
@@ -225,8 +211,6 @@ def choose_device(args, kind: str, rows: int = 1):
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
     banner's clause. "gpu" without one is refused (one line naming the option, exit 2), so
     call it before `prepare_out`."""
-    from dscjax import device
-
     field = "--device" if getattr(args, "device", None) else "simulation.device"
     return device.choose(kind, rows, field=field)
 
@@ -235,8 +219,6 @@ def use_device(args, kind: str, rows: int = 1):
     """`choose_device`, with its device made JAX's default (`jax.default_device`) for the
     rest of the command (held by `args.exit_stack`): for commands whose library calls take no
     device of their own."""
-    from dscjax import device
-
     choice = choose_device(args, kind, rows)
     args.exit_stack.enter_context(device.placed(choice))
     return choice
@@ -288,7 +270,6 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 
     import jax
 
-    from dscjax.runspec import RunSpec
     from dscjax.simulate import run
 
     spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
@@ -304,8 +285,6 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 def gradient_work(setup, steps: int, copies: int = 1):
     """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
     Jacobians of every step, O(N m^2) (`integrate._time_parallel_jvp`)."""
-    from dscjax.validation import Work
-
     m, per_point, size = loop_sizes(setup)
     return Work(memory=copies * steps * m * per_point * size,
                 memory_what=f"the time-parallel gradient ({copies:,} x {steps:,} steps x "
@@ -328,10 +307,6 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
     """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
     own tables ({name: table}), as TOML on stdout, each key with its meaning (`groups`:
     {name: the settings group declaring a table})."""
-    import sys
-
-    from dscjax import config, settings
-
     docs = dict(config.DOCS)
     for name, group in (groups or {}).items():
         docs |= settings.meanings(group, f"{name}.")
@@ -359,9 +334,7 @@ def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
 def load_setup(args):
     """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
     (a command's own table in the file, e.g. [tuning], is left to that command)."""
-    from dscjax import config
     from dscjax.params import cast
-    from dscjax.validation import validate_setup
 
     base = example_setup(args)
     raw = config.read(args.config, "--config") if args.config else {}

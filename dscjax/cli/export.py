@@ -5,9 +5,13 @@ from __future__ import annotations
 
 import sys
 
-from dscjax.cli.common import add_config_args, example_setup, print_config
+from dscjax import config, export
+from dscjax.cli.common import add_config_args, example_setup, print_config, run_overrides
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
+from dscjax.files import write_text
+from dscjax.params import cast
+from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 EXPORT_KEYS = ("sample_time", "delay", "discretisation")
@@ -41,11 +45,6 @@ def load(args):
     spec sampled (a config without a sample time and no --sample-time: one line)."""
     import numpy as np
 
-    from dscjax import config
-    from dscjax.cli.common import run_overrides
-    from dscjax.params import cast
-    from dscjax.validation import ConfigError, validate_setup
-
     setup = example_setup(args)
     spec = None
     source = [f"--example {args.example}"]
@@ -72,9 +71,6 @@ def load(args):
 
 
 def run(args) -> int:
-    from dscjax import export
-    from dscjax.files import write_text
-
     setup, spec, source = load(args)
     if args.print_config:
         print_config(setup, spec)

@@ -13,12 +13,11 @@ import contextlib
 import errno
 import importlib
 import os
-import shlex
 import signal
 import sys
-from pathlib import Path
 
-from dscjax.cli.common import COMMANDS
+from dscjax.cli.common import COMMANDS, Once
+from dscjax.cli.out import check_out, kept_text, rerun_command, resume_command
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
@@ -37,8 +36,6 @@ class _Parser(argparse.ArgumentParser):
     single-valued option given twice is refused (`cli.common.Once`)."""
 
     def __init__(self, *args, **kwargs):
-        from dscjax.cli.common import Once
-
         super().__init__(*args, **kwargs)
         self.register("action", None, Once)  # groups share the registry
         self.register("action", "store", Once)
@@ -103,26 +100,6 @@ def parse(parser, argv):
     return args
 
 
-def resume_command(args) -> str:
-    """The command line that continues an interrupted run: the program as typed, the same
-    arguments, --resume instead of --overwrite."""
-    argv = [a for a in args.argv if a != "--overwrite"]
-    if "--resume" not in argv:
-        argv.append("--resume")
-    return shlex.join([*args.prog, *argv])
-
-
-def rerun_command(args) -> str:
-    """The command line that runs a command again from the start: the program as typed, the
-    same arguments without --resume, and --overwrite where --out holds files the command
-    writes (the one rule of --out would refuse the run otherwise)."""
-    argv = [a for a in args.argv if a != "--resume"]
-    outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
-    if "--overwrite" not in argv and os.path.isdir(args.out) and outputs.found(Path(args.out)):
-        argv.append("--overwrite")
-    return shlex.join([*args.prog, *argv])
-
-
 def typed_program() -> list[str]:
     """The program as the user typed it: `sys.argv[0]` (e.g. .venv/bin/dscjax), or `python -m
     dscjax.cli.main` with the interpreter that runs it."""
@@ -159,7 +136,6 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
-    from dscjax.cli.out import check_out, kept_text
     from dscjax.files import NoSpace
     from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
     from dscjax.simulate import DivergenceError

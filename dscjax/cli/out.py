@@ -1,16 +1,22 @@
 """--out, the one rule of every command's output directory: what a command writes
 (`Outputs`), the checks before any work (`check_out`), the directory made ready and locked
 (`prepare_out`: refused when it holds another run's or another command's files, unless
---overwrite or --resume), and what an interrupted command keeps (`kept_text`)."""
+--overwrite or --resume), what an interrupted command keeps (`kept_text`), and the command
+that continues it or runs it again (`resume_command`, `rerun_command`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
+import shlex
+import shutil
 import tempfile
 from pathlib import Path
 
+from dscjax import files
 from dscjax.cli.common import COMMANDS
+from dscjax.validation import ConfigError
 
 
 def add_out_arg(p, default: str):
@@ -47,8 +53,6 @@ class Outputs:
         return sorted(names)
 
     def remove(self, out: Path) -> None:
-        import shutil
-
         for name in self.found(out):
             path = out / name.rstrip("/")
             if name.endswith("/"):
@@ -61,9 +65,6 @@ def check_out(args, option: str = "--out") -> None:
     """Refuse an --out the system cannot take as an output directory, before any work: an
     empty path, a name too long, a component that is a file, no permission, a read-only file
     system (`files.out_problem`); one line naming the path and the reason, exit 2."""
-    from dscjax import files
-    from dscjax.validation import ConfigError
-
     text = getattr(args, "out", None)
     if text is None:
         return
@@ -81,8 +82,6 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
     whose own files are in `out` (those no other command writes, e.g. a sweep's sweep.json),
     the files of `outputs` found there that are among its outputs too (summary.json). A
     command may replace or delete only the files that it wrote itself."""
-    import importlib
-
     ours = set(outputs.found(out))
     if not ours:
         return {}
@@ -108,9 +107,6 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
     the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
     (`resumable`) or --overwrite (deletes them, nothing else)."""
-    from dscjax import files
-    from dscjax.validation import ConfigError
-
     check_out(args, option)
     out = Path(args.out)
     try:
@@ -154,8 +150,6 @@ AT_END = " (the files are written when the run ends)"
 def nothing_kept(args, why: str = "") -> str:
     """The hint of an interrupted command that keeps nothing (`why`, e.g. `AT_END`), and the
     command that runs it again (`cli.main.rerun_command`)."""
-    from dscjax.cli.main import rerun_command
-
     return f"nothing is kept{why}; run the same command again: {rerun_command(args)}"
 
 
@@ -163,8 +157,6 @@ def kept_text(args, outputs: Outputs, why: str = "") -> str:
     """What an interrupted command that cannot resume says it keeps: the files it finished
     (`outputs` found in --out: the rule of --out let it start only where none was), or
     nothing (`nothing_kept`); then the command that makes them all."""
-    from dscjax.cli.main import rerun_command
-
     out = Path(args.out)
     found = outputs.found(out) if out.is_dir() else []
     if not found:
@@ -172,6 +164,26 @@ def kept_text(args, outputs: Outputs, why: str = "") -> str:
     shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
     return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
             f"rest is not written; run the same command again: {rerun_command(args)}")
+
+
+def resume_command(args) -> str:
+    """The command line that continues an interrupted run: the program as typed, the same
+    arguments, --resume instead of --overwrite."""
+    argv = [a for a in args.argv if a != "--overwrite"]
+    if "--resume" not in argv:
+        argv.append("--resume")
+    return shlex.join([*args.prog, *argv])
+
+
+def rerun_command(args) -> str:
+    """The command line that runs a command again from the start: the program as typed, the
+    same arguments without --resume, and --overwrite where --out holds files the command
+    writes (the one rule of --out would refuse the run otherwise)."""
+    argv = [a for a in args.argv if a != "--resume"]
+    outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
+    if "--overwrite" not in argv and os.path.isdir(args.out) and outputs.found(Path(args.out)):
+        argv.append("--overwrite")
+    return shlex.join([*args.prog, *argv])
 
 
 def _remove_if_empty(created: list[Path]) -> None:

@@ -6,8 +6,10 @@ import sys
 from pathlib import Path
 
 from dscjax.cli.common import add_run_args, count, positive_float, positive_numbers
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.reproduce import claim_lines, reproduce, sampling, setups
 from dscjax.reproduce.figures import FIGURES
+from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
 OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
@@ -17,8 +19,6 @@ OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
 
 def parse_orders(text: str) -> list[int]:
     """"2-8" or "2,3,5" -> list of orders >= 2."""
-    from dscjax.validation import ConfigError
-
     try:
         if "-" in text.strip().lstrip("-"):
             lo, hi = (int(p) for p in text.split("-", 1))
@@ -84,9 +84,6 @@ def add_parser(sub):
 
 def run(args) -> int:
     from dscjax.cli.common import horizon_text, loop_sizes, use_device
-    from dscjax.cli.out import prepare_out
-    from dscjax.reproduce import claim_lines, reproduce, sampling, setups
-    from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
@@ -132,11 +129,9 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import resume_command
+    from dscjax.cli.out import resume_command
 
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
-    from dscjax.cli.out import kept_text
-
     return kept_text(args, OUTPUTS)

@@ -13,6 +13,7 @@ import time
 
 import numpy as np
 
+from dscjax import files, params, validation
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_config_args,
@@ -24,6 +25,12 @@ from dscjax.cli.common import (
     use_device,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.files import save_figure
+from dscjax.params import cast
+from dscjax.plotting import subplots
+from dscjax.progress import Progress
+from dscjax.simulate import DivergenceError
+from dscjax.validation import ConfigError
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *SAMPLED_KEYS, "device")
@@ -65,10 +72,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import files, params, validation
-    from dscjax.progress import Progress
     from dscjax.sensitivity import METRICS, Problem, check_metrics
-    from dscjax.validation import ConfigError
 
     setup, spec = load_setup(args)
     metrics = check_metrics(args.metrics or METRICS)
@@ -153,9 +157,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
     ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
     sensitivity.json records and the warning (None if every value is trusted)."""
-    from dscjax.params import cast
     from dscjax.sensitivity import Problem
-    from dscjax.simulate import DivergenceError
     from dscjax.sweep.summary import float32_trust
 
     f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
@@ -224,9 +226,6 @@ def _print_table(result) -> None:
 
 
 def _plot(result, path, title: str) -> None:
-    from dscjax.files import save_figure
-    from dscjax.plotting import subplots
-
     k = len(result.metrics)
     n = result.normalised
     shown = min(TOP, len(result.names))

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from dscjax import files
+from dscjax import files, validation
 from dscjax.cli.common import add_config_args, horizon_text, load_setup, print_config, use_device
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json
@@ -38,7 +38,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import validation
     from dscjax.cli.common import positive_numbers
     from dscjax.step_size import DT_FACTORS, stability_map
 

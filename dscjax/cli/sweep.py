@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dscjax import config, files, params
+from dscjax import settings as schema
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_example_arg,
@@ -33,9 +35,13 @@ from dscjax.cli.common import (
     print_config,
     untrusted_text,
 )
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
-from dscjax.files import write_json
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.files import write_json, write_npz
+from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
+from dscjax.runspec import OPTIONS, RunSpec
+from dscjax.settings import add_arguments
+from dscjax.validation import ConfigError, Work, check_work, validate_setup
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
@@ -47,9 +53,6 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    from dscjax.params import DEFAULT_PATHS, DEFAULT_REL
-    from dscjax.runspec import OPTIONS
-    from dscjax.settings import add_arguments
     from dscjax.sweep import SweepSettings
 
     d = SweepSettings()
@@ -103,11 +106,7 @@ def add_parser(sub):
 
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
-    from dscjax import config
-    from dscjax import settings as schema
-    from dscjax.params import parse_range
     from dscjax.sweep import SweepSettings, settings_from_dict
-    from dscjax.validation import ConfigError, validate_setup
 
     raw = config.read(args.config, "--config") if args.config else {}
     sweep_table = raw.pop("sweep", {})
@@ -154,10 +153,6 @@ def _gains(args, setup, options, config_loop: dict):
     (`SAMPLED_KEYS`: Ts, delay, noise, discretisation; absent ones at their defaults, so
     gains tuned continuous are swept continuous); its plant, hysteresis and horizon are the
     sweep's to choose. The command line still wins (`apply_run_options` afterwards)."""
-    from dscjax import config
-    from dscjax.runspec import OPTIONS, RunSpec
-    from dscjax.validation import ConfigError
-
     gains = config.read(args.gains, "--gains")
     if not isinstance(gains.get("controller"), dict):
         raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains file")
@@ -186,7 +181,6 @@ def _gains(args, setup, options, config_loop: dict):
 
 def typed_settings(args) -> dict[str, str]:
     """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
-    from dscjax import settings as schema
     from dscjax.sweep import SweepSettings
 
     names = schema.given(args, SweepSettings, "sweep.")[1]
@@ -201,7 +195,6 @@ def work(setup, settings, steps: int, ranges):
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
     from dscjax.sweep import METRICS
     from dscjax.sweep.run import STATUS_COLUMNS
-    from dscjax.validation import Work
 
     # the sample's number, its parameters, metrics and status
     n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
@@ -218,11 +211,9 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import files, params, sweep
-    from dscjax.params import assumption_warnings
+    from dscjax import sweep
     from dscjax.simulate import check, simulate
     from dscjax.sweep import settings as sweep_settings
-    from dscjax.validation import check_work
 
     setup, options, settings = load(args)
     t_final, dt = options.t_final, float(options.dt)
@@ -382,8 +373,7 @@ def resumable(args) -> bool:
 def interrupt_hint(args) -> str | None:
     import jax
 
-    from dscjax.cli.main import resume_command
-    from dscjax.cli.out import nothing_kept
+    from dscjax.cli.out import resume_command
 
     if jax.process_index() != 0:
         return None
@@ -424,8 +414,6 @@ def _recheck(trajs, records) -> dict[str, float] | None:
 
 
 def _write_traces(path, trajs, records, kinds, nominal):
-    from dscjax.files import write_npz
-
     arrays = {"nominal_t": nominal.t, "nominal_e": nominal.e, "nominal_u": nominal.u}
     if trajs:
         arrays |= {"sample": np.array([r["sample"] for r in records], dtype=np.int64),

@@ -6,11 +6,21 @@ history.csv, report.md, report.json, the figures and the checkpoint files `--res
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
 
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
+import numpy as np
+
+from dscjax import config, settings, validation
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.metrics import CHATTER_RATIO
+from dscjax.params import cast
+from dscjax.progress import Phase, Progress
+from dscjax.runspec import RunSpec
+from dscjax.settings import add_arguments
+from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -20,7 +30,6 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 def add_parser(sub):
     from dscjax.cli.common import SAMPLED_KEYS, add_example_arg, add_run_args
-    from dscjax.settings import add_arguments
     from tuning.config import SIMULATION, TuningConfig
 
     p = sub.add_parser(
@@ -57,9 +66,7 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    import json
-
-    from dscjax.cli.main import resume_command
+    from dscjax.cli.out import resume_command
 
     if (Path(args.out) / "adversarial.json").exists():
         return (f"the finished rounds and searches are kept in {args.out}; continue with: "
@@ -68,8 +75,6 @@ def interrupt_hint(args) -> str:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        from dscjax.cli.out import kept_text
-
         return kept_text(args, OUTPUTS)
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
@@ -78,7 +83,6 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax import config, settings, validation
     from dscjax.cli.common import (
         apply_run_options,
         blame_options,
@@ -86,8 +90,6 @@ def load(args):
         example_setup,
         portable_device,
     )
-    from dscjax.runspec import RunSpec
-    from dscjax.validation import ConfigError
     from tuning.config import SIMULATION, TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
@@ -126,14 +128,7 @@ def load(args):
 
 def run(args) -> int:
     t_start = time.perf_counter()
-    import numpy as np
-
     from dscjax.cli.common import print_config, use_device
-    from dscjax.cli.out import prepare_out
-    from dscjax.metrics import CHATTER_RATIO
-    from dscjax.params import cast
-    from dscjax.progress import Phase, Progress
-    from dscjax.validation import ConfigError
     from tuning import elasticity, report, report_md
     from tuning.checkpoint import format_progress
     from tuning.config import SEARCHES, to_table
@@ -385,8 +380,6 @@ def margin_lines(margins, nominal) -> list[str]:
 
 def loop_banner(sim) -> str:
     """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
-    import numpy as np
-
     if not sim.sampled:
         return "the continuous loop"
     noise = ("no noise" if sim.noise is None else "noise std "
@@ -416,7 +409,6 @@ def check_work_of(args, setup, options, cfg) -> None:
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
     from dscjax.cli.common import gradient_work, horizon_text
-    from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.config import SEARCHES
     from tuning.optimize import aggregate_of, choose_gradient
 
