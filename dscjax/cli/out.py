@@ -61,20 +61,21 @@ class Outputs:
                 path.unlink()
 
 
-def check_out(args, option: str = "--out") -> None:
+def check_out(args) -> None:
     """Refuse an --out the system cannot take as an output directory, before any work: an
     empty path, a name too long, a component that is a file, no permission, a read-only file
     system (`files.out_problem`); one line naming the path and the reason, exit 2."""
-    text = getattr(args, "out", None)
-    if text is None:
-        return
-    if not str(text).strip():
-        raise ConfigError(f"{option} {str(text)!r}: an empty path; give a directory, e.g. "
-                          f"{option} results/run (or {option} . for the current one)")
-    problem = files.out_problem(text)
+    if not str(args.out).strip():
+        raise ConfigError(f"--out {str(args.out)!r}: an empty path; give a directory, e.g. "
+                          f"--out results/run (or --out . for the current one)")
+    problem = files.out_problem(args.out)
     if problem is not None:
-        raise ConfigError(f"{option} {str(text)!r}: cannot write the output there "
-                          f"({problem}); give a writable directory")
+        raise _unwritable(args, problem)
+
+
+def _unwritable(args, why) -> ConfigError:
+    return ConfigError(f"--out {str(args.out)!r}: cannot write the output there ({why}); give "
+                       f"a writable directory")
 
 
 def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
@@ -87,10 +88,8 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
         return {}
     found = {}
     for name, module in COMMANDS.items():
-        if name == getattr(args, "command", None):
-            continue
-        theirs = getattr(importlib.import_module(module), "OUTPUTS", None)
-        if theirs is not None and theirs != outputs:
+        theirs = importlib.import_module(module).OUTPUTS
+        if name != args.command and theirs != outputs:
             found[name] = set(theirs.found(out))
     clash = {}
     for name, theirs in found.items():
@@ -101,13 +100,13 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
 
 
 def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
-                check: bool = True, option: str = "--out") -> Path:
+                check: bool = True) -> Path:
     """Make `args.out` ready, after every input has been validated: refuse a DIR that is a
     file, cannot be written or is held by another process (one line, exit 2); create it if new
     (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
     the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
     (`resumable`) or --overwrite (deletes them, nothing else)."""
-    check_out(args, option)
+    check_out(args)
     out = Path(args.out)
     try:
         new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
@@ -119,25 +118,24 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise ConfigError(f"{option} {str(args.out)!r}: cannot write the output there "
-                          f"({err.strerror or err}); give a writable directory") from None
-    args.exit_stack.enter_context(files.lock_out(
-        out, name=lock or files.LOCK, argv=[*args.prog, *args.argv], option=option))
+        raise _unwritable(args, err.strerror or err) from None
+    args.exit_stack.enter_context(files.lock_out(out, name=lock or files.LOCK,
+                                                 argv=[*args.prog, *args.argv]))
     if check:
         clash = _other_commands(args, outputs, out)
         if clash:
             shown = "; ".join(f"`dscjax {name}`: {', '.join(names)}"
                               for name, names in clash.items())
-            raise ConfigError(f"{option} {str(args.out)!r} holds the results of another "
+            raise ConfigError(f"--out {str(args.out)!r} holds the results of another "
                               f"command, which this one would replace ({shown}); give another "
-                              f"{option}")
+                              f"--out")
         found = outputs.found(out)
         if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
             shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
             how = ("--resume to continue them, --overwrite to start afresh (deleting only "
                    "them)" if resumable else "--overwrite to replace them")
-            raise ConfigError(f"{option} {str(args.out)!r} already holds files this command "
-                              f"writes ({shown}); {how}, or give another {option}")
+            raise ConfigError(f"--out {str(args.out)!r} already holds files this command "
+                              f"writes ({shown}); {how}, or give another --out")
         if getattr(args, "overwrite", False):
             outputs.remove(out)
     return out
