@@ -150,11 +150,6 @@ def blame_options(names: dict[str, str]):
         raise
 
 
-def flag(key: str) -> str:
-    """The command-line option of a [simulation] key: --key-with-dashes."""
-    return "--" + key.replace("_", "-")
-
-
 # the [simulation] keys of the sampled controller, an option on every command that simulates
 SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 
@@ -176,9 +171,11 @@ def run_overrides(args) -> tuple[dict, dict]:
 
 def apply_run_options(args, spec):
     """`spec` with the command line's [simulation] options laid over it (checked; a message
-    names the option)."""
+    names the option), and for a command with --device, its device one that may run here
+    (`portable_device`)."""
     overrides, names = run_overrides(args)
-    return spec.replace(names=names, **overrides) if overrides else spec
+    spec = spec.replace(names=names, **overrides) if overrides else spec
+    return portable_device(args, spec) if hasattr(args, "device") else spec
 
 
 def check_noise(args, setup, spec) -> None:
@@ -191,7 +188,7 @@ def check_noise(args, setup, spec) -> None:
                           f"{setup.order} numbers (got {noise.size})")
 
 
-def portable_device(args, spec, source):
+def portable_device(args, spec):
     """`spec` where its device may run here: a config file's `simulation.device = "gpu"` on a
     machine without an accelerator is a preference of the run it was written for (a gains.json
     of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
@@ -201,8 +198,8 @@ def portable_device(args, spec, source):
         return spec
     if any(d.platform != "cpu" for d in device.visible()):
         return spec
-    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {source}: no GPU here; "
-          f"running on the CPU", file=sys.stderr)
+    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {args.config}: no GPU "
+          f"here; running on the CPU", file=sys.stderr)
     return spec.replace(device="auto")
 
 
@@ -222,6 +219,12 @@ def use_device(args, kind: str, rows: int = 1):
     choice = choose_device(args, kind, rows)
     args.exit_stack.enter_context(device.placed(choice))
     return choice
+
+
+def listed(names, most: int = 6) -> str:
+    """names joined, at most `most` of them and how many more."""
+    shown = ", ".join(names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
@@ -340,7 +343,6 @@ def load_setup(args):
     raw = config.read(args.config, "--config") if args.config else {}
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
-    spec = portable_device(args, spec, args.config)
     check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(

@@ -15,7 +15,7 @@ import tempfile
 from pathlib import Path
 
 from dscjax import files
-from dscjax.cli.common import COMMANDS
+from dscjax.cli.common import COMMANDS, listed
 from dscjax.validation import ConfigError
 
 
@@ -159,9 +159,9 @@ def kept_text(args, outputs: Outputs, why: str = "") -> str:
     found = outputs.found(out) if out.is_dir() else []
     if not found:
         return nothing_kept(args, why)
-    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
-    return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
-            f"rest is not written; run the same command again: {rerun_command(args)}")
+    return (f"the {len(found)} file(s) finished before it are kept in {out} "
+            f"({listed(found, 4)}), the rest is not written; run the same command again: "
+            f"{rerun_command(args)}")
 
 
 def resume_command(args) -> str:

@@ -20,6 +20,7 @@ from dscjax.cli.common import (
     count,
     gradient_work,
     horizon_text,
+    listed,
     load_setup,
     print_config,
     use_device,
@@ -92,7 +93,7 @@ def run(args) -> int:
     zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
     if len(zero) == len(problem.columns):
         raise ConfigError(f"{'--param' if args.paths else 'the loop'}: every number to "
-                          f"differentiate is 0, so none has a d ln p (got {_listed(zero)} = "
+                          f"differentiate is 0, so none has a d ln p (got {listed(zero)} = "
                           f"0); give numbers that are not 0")
     steps, rows = spec.n_steps, max(args.batch, 1)
     what = horizon_text(spec.t_final, float(spec.dt), steps)
@@ -115,7 +116,7 @@ def run(args) -> int:
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         print(f"dscjax sensitivity: note: {len(zero)} of the {d} numbers {are} no d ln p "
-              f"(null in sensitivity.json): {_listed(zero)}", file=sys.stderr)
+              f"(null in sensitivity.json): {listed(zero)}", file=sys.stderr)
     t0 = time.perf_counter()
     with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
         bar.update_to(0, "compiling the loop and its reverse pass")
@@ -144,12 +145,6 @@ def run(args) -> int:
     if f32 is not None and untrusted:
         print(f"dscjax sensitivity: warning: {untrusted}", file=sys.stderr)
     return 0
-
-
-def _listed(names, most: int = 6) -> str:
-    """names joined, at most `most` of them and how many more."""
-    shown = ", ".join(names[:most])
-    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
@@ -196,7 +191,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     shown = [f"{n} ({why(n)})" for n in bad]
     return check, (f"float32 cannot be trusted with {len(bad)} of the {len(got)} values "
                    f"(float64 differs by more than {100 * trust['rtol']:g} % or has the other "
-                   f"sign): {_listed(shown, 8)} (sensitivity.json: float32_check); rerun "
+                   f"sign): {listed(shown, 8)} (sensitivity.json: float32_check); rerun "
                    f"without --float32")
 
 

@@ -29,9 +29,7 @@ from dscjax.cli.common import (
     count,
     example_setup,
     figure,
-    flag,
     horizon_text,
-    portable_device,
     print_config,
     untrusted_text,
 )
@@ -116,7 +114,6 @@ def load(args):
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
     options = apply_run_options(args, options)
-    options = portable_device(args, options, args.config)
     settings = settings_from_dict(sweep_table, SweepSettings())
     given, names = schema.given(args, SweepSettings, "sweep.")
     if args.grid and args.samples is not None:
@@ -168,7 +165,7 @@ def _gains(args, setup, options, config_loop: dict):
         if key in config_loop and config_loop[key] != value:
             print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
                   f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
-                  f"loop the gains were tuned as; {flag(key)} overrides both)",
+                  f"loop the gains were tuned as; --{key.replace('_', '-')} overrides both)",
                   file=sys.stderr)
     # the config's run with a continuous controller, then the gains file's keys (checked)
     continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),

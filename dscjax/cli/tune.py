@@ -83,13 +83,7 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax.cli.common import (
-        apply_run_options,
-        blame_options,
-        check_noise,
-        example_setup,
-        portable_device,
-    )
+    from dscjax.cli.common import apply_run_options, blame_options, check_noise, example_setup
     from tuning.config import SIMULATION, TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
@@ -117,7 +111,6 @@ def load(args):
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")
     options = apply_run_options(args, options)
-    options = portable_device(args, options, args.config)
     validation.validate_setup(setup)
     check_noise(args, setup, options)
     if options.dtype != "float64":

@@ -71,8 +71,6 @@ def run(args) -> int:
     setup, options = load_setup(args)
     s, ranges = worst_settings(args)
     if args.print_config:
-        from dscjax import settings
-
         table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
                                                     for r in ranges}} if ranges else {})
         print_config(setup, options, {"worst": table} | requirement_table(args, s),
