@@ -6,8 +6,13 @@ import argparse
 import contextlib
 import dataclasses
 import math
+import sys
 
 import numpy as np
+
+from dscjax import config, device, settings
+from dscjax.runspec import RunSpec, Simulation
+from dscjax.validation import ConfigError, Work, validate_setup
 
 # Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
 COMMANDS = {
@@ -27,7 +32,6 @@ COMMANDS = {
 def settings_groups() -> dict:
     """{table: the settings group declaring it}: the tables of docs/settings.md."""
     from dscjax.identify.run import IdentifySettings
-    from dscjax.runspec import Simulation
     from dscjax.sweep import SweepSettings
     from dscjax.worst import WorstSettings
     from tuning.config import TuningConfig
@@ -45,8 +49,6 @@ def settings_docs(text: str) -> str:
     (`dscjax.settings.doc_rows`); tests/test_settings.py checks docs/settings.md is current."""
     import re
 
-    from dscjax import settings
-
     groups = settings_groups()
 
     def table(match):
@@ -54,6 +56,14 @@ def settings_docs(text: str) -> str:
         return "\n".join([BLOCK[0].format(match[1]), *rows, BLOCK[1]])
 
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
+
+
+def _float(text: str) -> float:
+    """`text` as a float, nan where it is not a number."""
+    try:
+        return float(text)
+    except ValueError:
+        return math.nan
 
 
 def count(low: int = 0):
@@ -65,10 +75,7 @@ def count(low: int = 0):
         try:
             value = int(text)
         except ValueError:
-            try:
-                x = float(text)
-            except ValueError:
-                x = math.nan
+            x = _float(text)
             if math.isfinite(x) and x == int(x):
                 value = int(x)
         if value is None or value < low:
@@ -79,26 +86,33 @@ def count(low: int = 0):
     return parse
 
 
-def finite_float(text: str) -> float:
-    """An argparse type: a finite number (inf and nan are refused, naming the option)."""
-    try:
-        x = float(text)
-    except ValueError:
-        x = math.nan
-    if not math.isfinite(x):
-        raise argparse.ArgumentTypeError(f"must be a finite number (got {text!r})")
+def finite_float(text: str, positive: bool = False) -> float:
+    """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
+    where `positive`."""
+    x = _float(text)
+    if not (math.isfinite(x) and (x > 0 or not positive)):
+        raise argparse.ArgumentTypeError(
+            f"must be a finite number{' > 0' if positive else ''} (got {text!r})")
     return x
 
 
 def positive_float(text: str) -> float:
     """An argparse type: a finite number > 0."""
+    return finite_float(text, positive=True)
+
+
+def positive_numbers(text: str | None, option: str) -> list[float] | None:
+    """"0.5,1,2" -> the positive numbers an option lists (None stays None); anything else is
+    refused in one line naming the option."""
+    if text is None:
+        return None
     try:
-        x = float(text)
+        values = [float(v) for v in text.split(",") if v.strip()]
     except ValueError:
-        x = math.nan
-    if not (math.isfinite(x) and x > 0):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0 (got {text!r})")
-    return x
+        values = []
+    if not values or min(values) <= 0:
+        raise ConfigError(f"{option} must be positive numbers like 0.5,1,2 (got {text!r})")
+    return values
 
 
 class Once(argparse._StoreAction):
@@ -124,8 +138,6 @@ def blame_options(names: dict[str, str]):
     {"sweep.threshold": "--threshold"} ("sweep.threshold must be > 0" becomes "--threshold
     must be > 0"; "sweep.grid.hysteresis.alpha: ..." becomes "--grid hysteresis.alpha: ...").
     Keys the config gave keep their names."""
-    from dscjax.validation import ConfigError
-
     try:
         yield
     except ConfigError as err:
@@ -138,11 +150,6 @@ def blame_options(names: dict[str, str]):
         raise
 
 
-def flag(key: str) -> str:
-    """The command-line option of a [simulation] key: --key-with-dashes."""
-    return "--" + key.replace("_", "-")
-
-
 # the [simulation] keys of the sampled controller, an option on every command that simulates
 SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 
@@ -150,18 +157,12 @@ SAMPLED_KEYS = ("sample_time", "delay", "noise", "noise_seed", "discretisation")
 def add_run_args(p, keys=("t_final", "dt"), defaults: dict | None = None):
     """Options for the given [simulation] keys (`dscjax.runspec.Simulation`), each overriding
     the config's value; their help states the default (`defaults` may give a command's own)."""
-    from dscjax import settings
-    from dscjax.runspec import Simulation
-
     settings.add_arguments(p, Simulation, "simulation.", keys=keys, defaults=defaults)
 
 
 def run_overrides(args) -> tuple[dict, dict]:
     """({key: value} of the [simulation] options given on the command line, {key: option
     typed})."""
-    from dscjax import settings
-    from dscjax.runspec import Simulation
-
     table, names = settings.given(args, Simulation, "")
     if getattr(args, "float32", False):
         table["dtype"], names["dtype"] = "float32", "--float32"
@@ -170,16 +171,16 @@ def run_overrides(args) -> tuple[dict, dict]:
 
 def apply_run_options(args, spec):
     """`spec` with the command line's [simulation] options laid over it (checked; a message
-    names the option)."""
+    names the option), and for a command with --device, its device one that may run here
+    (`portable_device`)."""
     overrides, names = run_overrides(args)
-    return spec.replace(names=names, **overrides) if overrides else spec
+    spec = spec.replace(names=names, **overrides) if overrides else spec
+    return portable_device(args, spec) if hasattr(args, "device") else spec
 
 
 def check_noise(args, setup, spec) -> None:
     """simulation.noise (--noise) as one number or one per state of the plant (n), refused
     in one line naming how it was given otherwise (before anything traces the loop)."""
-    from dscjax.validation import ConfigError
-
     noise = None if spec.noise is None else np.asarray(spec.noise)
     if noise is not None and noise.ndim == 1 and noise.size != setup.order:
         name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
@@ -187,22 +188,18 @@ def check_noise(args, setup, spec) -> None:
                           f"{setup.order} numbers (got {noise.size})")
 
 
-def portable_device(args, spec, source):
+def portable_device(args, spec):
     """`spec` where its device may run here: a config file's `simulation.device = "gpu"` on a
     machine without an accelerator is a preference of the run it was written for (a gains.json
     of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
     note on stderr. A device typed on the command line is left to `choose_device`, which
     refuses one that is not here."""
-    import sys
-
-    from dscjax import device
-
     if getattr(args, "device", None) or spec.device != "gpu":
         return spec
     if any(d.platform != "cpu" for d in device.visible()):
         return spec
-    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {source}: no GPU here; "
-          f"running on the CPU", file=sys.stderr)
+    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {args.config}: no GPU "
+          f"here; running on the CPU", file=sys.stderr)
     return spec.replace(device="auto")
 
 
@@ -211,8 +208,6 @@ def choose_device(args, kind: str, rows: int = 1):
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
     banner's clause. "gpu" without one is refused (one line naming the option, exit 2), so
     call it before `prepare_out`."""
-    from dscjax import device
-
     field = "--device" if getattr(args, "device", None) else "simulation.device"
     return device.choose(kind, rows, field=field)
 
@@ -221,11 +216,15 @@ def use_device(args, kind: str, rows: int = 1):
     """`choose_device`, with its device made JAX's default (`jax.default_device`) for the
     rest of the command (held by `args.exit_stack`): for commands whose library calls take no
     device of their own."""
-    from dscjax import device
-
     choice = choose_device(args, kind, rows)
     args.exit_stack.enter_context(device.placed(choice))
     return choice
+
+
+def listed(names, most: int = 6) -> str:
+    """names joined, at most `most` of them and how many more."""
+    shown = ", ".join(names[:most])
+    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
@@ -257,6 +256,15 @@ def effort_text(metrics, window: str) -> str:
             f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
 
 
+def untrusted_text(untrusted, rel_diff: dict, rtol: float, fix: str, on: str = "") -> str:
+    """The warning of a float32 re-check in float64 (`dscjax.sweep.float32_trust`) whose
+    metrics `untrusted` differ by more than `rtol` (`rel_diff` {metric: relative difference};
+    `on`: the rows re-checked)."""
+    worst = max(rel_diff[m] for m in untrusted)
+    return (f"float32 cannot be trusted with {', '.join(untrusted)}: they differ from float64 "
+            f"by up to {100 * worst:.3g} %{on} (tolerance {100 * rtol:g} %); {fix}")
+
+
 def loop_sizes(setup) -> tuple[int, int, int]:
     """(m, k, itemsize): the floats of the closed loop's state (what the time-parallel
     gradient's Jacobians are square in), of one saved point of a Trajectory (state and
@@ -265,7 +273,6 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 
     import jax
 
-    from dscjax.runspec import RunSpec
     from dscjax.simulate import run
 
     spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
@@ -281,8 +288,6 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 def gradient_work(setup, steps: int, copies: int = 1):
     """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
     Jacobians of every step, O(N m^2) (`integrate._time_parallel_jvp`)."""
-    from dscjax.validation import Work
-
     m, per_point, size = loop_sizes(setup)
     return Work(memory=copies * steps * m * per_point * size,
                 memory_what=f"the time-parallel gradient ({copies:,} x {steps:,} steps x "
@@ -305,10 +310,6 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
     """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
     own tables ({name: table}), as TOML on stdout, each key with its meaning (`groups`:
     {name: the settings group declaring a table})."""
-    import sys
-
-    from dscjax import config, settings
-
     docs = dict(config.DOCS)
     for name, group in (groups or {}).items():
         docs |= settings.meanings(group, f"{name}.")
@@ -336,15 +337,12 @@ def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
 def load_setup(args):
     """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
     (a command's own table in the file, e.g. [tuning], is left to that command)."""
-    from dscjax import config
     from dscjax.params import cast
-    from dscjax.validation import validate_setup
 
     base = example_setup(args)
     raw = config.read(args.config, "--config") if args.config else {}
     setup, spec = config.from_dict(raw, base=base)
     spec = apply_run_options(args, spec)
-    spec = portable_device(args, spec, args.config)
     check_noise(args, setup, spec)
     if getattr(args, "variant", None):
         setup = setup.replace(

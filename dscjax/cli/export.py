@@ -5,12 +5,17 @@ from __future__ import annotations
 
 import sys
 
-from dscjax.cli.common import add_config_args, example_setup, print_config
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax import config, export
+from dscjax.cli.common import add_config_args, example_setup, print_config, run_overrides
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
+from dscjax.files import write_text
+from dscjax.params import cast
+from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 EXPORT_KEYS = ("sample_time", "delay", "discretisation")
+interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
@@ -40,11 +45,6 @@ def load(args):
     spec sampled (a config without a sample time and no --sample-time: one line)."""
     import numpy as np
 
-    from dscjax import config
-    from dscjax.cli.common import run_overrides
-    from dscjax.params import cast
-    from dscjax.validation import ConfigError, validate_setup
-
     setup = example_setup(args)
     spec = None
     source = [f"--example {args.example}"]
@@ -71,9 +71,6 @@ def load(args):
 
 
 def run(args) -> int:
-    from dscjax import export
-    from dscjax.files import write_text
-
     setup, spec, source = load(args)
     if args.print_config:
         print_config(setup, spec)
@@ -91,9 +88,3 @@ def run(args) -> int:
                   for start in ("void dsc_init(", f"{args.precision} dsc_step("))
     print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}: {init}; {step}")
     return 0
-
-
-def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"

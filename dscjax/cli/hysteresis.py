@@ -13,9 +13,11 @@ import sys
 
 import numpy as np
 
+from dscjax import config, files, validation
 from dscjax.cli.common import (
     add_example_arg,
     add_run_args,
+    example_setup,
     finite_float,
     horizon_text,
     positive_float,
@@ -23,6 +25,11 @@ from dscjax.cli.common import (
     use_device,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.files import write_npz
+from dscjax.hysteresis import sine_loops
+from dscjax.plotting import hysteresis_loop, subplots
+from dscjax.reproduce import RC
+from dscjax.runspec import RunSpec
 
 DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
 DEFAULT_OMEGA = 2.3
@@ -57,12 +64,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import config, validation
-    from dscjax.cli.common import example_setup
-    from dscjax.files import write_npz
-    from dscjax.hysteresis import sine_loops
-    from dscjax.runspec import RunSpec
-
     amplitudes = tuple(args.amplitude or DEFAULT_AMPLITUDES)
     base = example_setup(args)
     raw = config.read(args.config) if args.config else {}
@@ -107,10 +108,6 @@ def run(args) -> int:
 
 def _plot(hyst, amplitudes, omega, u, w, path):
     import matplotlib
-
-    from dscjax import files
-    from dscjax.plotting import hysteresis_loop, subplots
-    from dscjax.reproduce import RC
 
     with matplotlib.rc_context(RC):
         fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),

@@ -7,15 +7,19 @@ from __future__ import annotations
 
 import sys
 
+from dscjax import config, settings
 from dscjax.cli.common import add_config_args
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.params import cast
+from dscjax.settings import add_arguments
+from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
+interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
     from dscjax.identify.run import IdentifySettings
-    from dscjax.settings import add_arguments
 
     p = sub.add_parser(
         "identify", help="identify plant and actuator numbers from a measured record",
@@ -40,11 +44,8 @@ def load(args):
     options."""
     import numpy as np
 
-    from dscjax import config, settings
     from dscjax.cli.common import apply_run_options, blame_options, example_setup
     from dscjax.identify.run import IdentifySettings
-    from dscjax.params import cast
-    from dscjax.validation import ConfigError, validate_setup
 
     raw = config.read(args.config, "--config") if args.config else {}
     table = raw.pop("identify", {})
@@ -64,13 +65,10 @@ def load(args):
 
 def run(args) -> int:
     from dscjax.cli.common import print_config
-    from dscjax.cli.out import prepare_out
     from dscjax.identify import run as ident
 
     setup, spec, s, source = load(args)
     if args.print_config:
-        from dscjax import settings
-
         print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
     record, val = ident.read_records(s, args.data, setup.order)
@@ -93,9 +91,3 @@ def run(args) -> int:
     print(f"  wrote {out}: {', '.join(written)}; tune for it: dscjax tune --config "
           f"{out}/identified.toml --batch 8")
     return 0
-
-
-def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-
-    return f"nothing is kept; run the same command again: {rerun_command(args)}"

@@ -13,12 +13,11 @@ import contextlib
 import errno
 import importlib
 import os
-import shlex
 import signal
 import sys
-from pathlib import Path
 
-from dscjax.cli.common import COMMANDS
+from dscjax.cli.common import COMMANDS, Once
+from dscjax.cli.out import check_out, kept_text, rerun_command, resume_command
 
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
@@ -37,8 +36,6 @@ class _Parser(argparse.ArgumentParser):
     single-valued option given twice is refused (`cli.common.Once`)."""
 
     def __init__(self, *args, **kwargs):
-        from dscjax.cli.common import Once
-
         super().__init__(*args, **kwargs)
         self.register("action", None, Once)  # groups share the registry
         self.register("action", "store", Once)
@@ -103,28 +100,6 @@ def parse(parser, argv):
     return args
 
 
-def resume_command(args) -> str:
-    """The command line that continues an interrupted run: the program as typed, the same
-    arguments, --resume instead of --overwrite."""
-    argv = [a for a in args.argv if a != "--overwrite"]
-    if "--resume" not in argv:
-        argv.append("--resume")
-    return shlex.join([*args.prog, *argv])
-
-
-def rerun_command(args) -> str:
-    """The command line that runs a command again from the start: the program as typed, the
-    same arguments without --resume, and --overwrite where --out holds files the command
-    writes (the one rule of --out would refuse the run otherwise)."""
-    argv = [a for a in args.argv if a != "--resume"]
-    outputs = getattr(importlib.import_module(COMMANDS[args.command]), "OUTPUTS", None)
-    out = getattr(args, "out", None)
-    if (outputs is not None and out is not None and "--overwrite" not in argv
-            and os.path.isdir(out) and outputs.found(Path(out))):
-        argv.append("--overwrite")
-    return shlex.join([*args.prog, *argv])
-
-
 def typed_program() -> list[str]:
     """The program as the user typed it: `sys.argv[0]` (e.g. .venv/bin/dscjax), or `python -m
     dscjax.cli.main` with the interpreter that runs it."""
@@ -141,17 +116,6 @@ def _continue(args, module) -> str:
     if resumable is not None and resumable(args):
         return f"rerun with: {resume_command(args)}"
     return f"run the same command again: {rerun_command(args)}"
-
-
-def _kept(args, module) -> str | None:
-    """The hint of a command without its own `interrupt_hint`: the files it finished (or
-    nothing), and the command that runs it again."""
-    from dscjax.cli.out import kept_text
-
-    outputs = getattr(module, "OUTPUTS", None)
-    if outputs is None or getattr(args, "out", None) is None:
-        return None
-    return kept_text(args, outputs, rerun_command(args))
 
 
 def main(argv=None) -> int:
@@ -172,7 +136,6 @@ def main(argv=None) -> int:
     if not (args.no_compilation_cache or xla.cache_opted_out()):
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
-    from dscjax.cli.out import check_out
     from dscjax.files import NoSpace
     from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
     from dscjax.simulate import DivergenceError
@@ -199,8 +162,10 @@ def main(argv=None) -> int:
               file=sys.stderr)
         return EXIT_NO_SPACE
     except (KeyboardInterrupt, Abort) as stop:
+        # a command without its own hint: the files it finished (or nothing), and the
+        # command that runs it again
         hint = getattr(module, "interrupt_hint", None)
-        note = hint(args) if hint is not None else _kept(args, module)
+        note = hint(args) if hint is not None else kept_text(args, module.OUTPUTS)
         signum = signal_number(stop)
         by = "" if signum == signal.SIGINT else f" by {signal_name(signum)}"
         what = (f"interrupted again{by}: stopped at once without saving the step under way"

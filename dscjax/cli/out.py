@@ -1,16 +1,22 @@
 """--out, the one rule of every command's output directory: what a command writes
 (`Outputs`), the checks before any work (`check_out`), the directory made ready and locked
 (`prepare_out`: refused when it holds another run's or another command's files, unless
---overwrite or --resume), and what an interrupted command keeps (`kept_text`)."""
+--overwrite or --resume), what an interrupted command keeps (`kept_text`), and the command
+that continues it or runs it again (`resume_command`, `rerun_command`)."""
 
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import os
+import shlex
+import shutil
 import tempfile
 from pathlib import Path
 
-from dscjax.cli.common import COMMANDS
+from dscjax import files
+from dscjax.cli.common import COMMANDS, listed
+from dscjax.validation import ConfigError
 
 
 def add_out_arg(p, default: str):
@@ -19,11 +25,15 @@ def add_out_arg(p, default: str):
                    help=f"output directory (default: {default})")
 
 
-def add_overwrite_arg(p):
-    """--overwrite of the commands without --resume (the one rule of --out, README)."""
-    p.add_argument("--overwrite", action="store_true", help="replace the files of an earlier "
-                   "run in DIR (only those this command writes); without it such a DIR is "
-                   "refused")
+def add_overwrite_arg(p, resume: str | None = None, overwrite: str | None = None):
+    """--overwrite (the one rule of --out, README); for a command that continues an
+    interrupted run, --resume (help `resume`) too, the two exclusive."""
+    group = p.add_mutually_exclusive_group() if resume else p
+    if resume:
+        group.add_argument("--resume", action="store_true", help=resume)
+    group.add_argument("--overwrite", action="store_true", help=overwrite or "replace the "
+                       "files of an earlier run in DIR (only those this command writes); "
+                       "without it such a DIR is refused")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -43,8 +53,6 @@ class Outputs:
         return sorted(names)
 
     def remove(self, out: Path) -> None:
-        import shutil
-
         for name in self.found(out):
             path = out / name.rstrip("/")
             if name.endswith("/"):
@@ -53,23 +61,21 @@ class Outputs:
                 path.unlink()
 
 
-def check_out(args, option: str = "--out") -> None:
+def check_out(args) -> None:
     """Refuse an --out the system cannot take as an output directory, before any work: an
     empty path, a name too long, a component that is a file, no permission, a read-only file
     system (`files.out_problem`); one line naming the path and the reason, exit 2."""
-    from dscjax import files
-    from dscjax.validation import ConfigError
-
-    text = getattr(args, "out", None)
-    if text is None:
-        return
-    if not str(text).strip():
-        raise ConfigError(f"{option} {str(text)!r}: an empty path; give a directory, e.g. "
-                          f"{option} results/run (or {option} . for the current one)")
-    problem = files.out_problem(text)
+    if not str(args.out).strip():
+        raise ConfigError(f"--out {str(args.out)!r}: an empty path; give a directory, e.g. "
+                          f"--out results/run (or --out . for the current one)")
+    problem = files.out_problem(args.out)
     if problem is not None:
-        raise ConfigError(f"{option} {str(text)!r}: cannot write the output there "
-                          f"({problem}); give a writable directory")
+        raise _unwritable(args, problem)
+
+
+def _unwritable(args, why) -> ConfigError:
+    return ConfigError(f"--out {str(args.out)!r}: cannot write the output there ({why}); give "
+                       f"a writable directory")
 
 
 def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
@@ -77,17 +83,13 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
     whose own files are in `out` (those no other command writes, e.g. a sweep's sweep.json),
     the files of `outputs` found there that are among its outputs too (summary.json). A
     command may replace or delete only the files that it wrote itself."""
-    import importlib
-
     ours = set(outputs.found(out))
     if not ours:
         return {}
     found = {}
     for name, module in COMMANDS.items():
-        if name == getattr(args, "command", None):
-            continue
-        theirs = getattr(importlib.import_module(module), "OUTPUTS", None)
-        if theirs is not None and theirs != outputs:
+        theirs = importlib.import_module(module).OUTPUTS
+        if name != args.command and theirs != outputs:
             found[name] = set(theirs.found(out))
     clash = {}
     for name, theirs in found.items():
@@ -98,16 +100,13 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
 
 
 def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
-                check: bool = True, option: str = "--out") -> Path:
+                check: bool = True) -> Path:
     """Make `args.out` ready, after every input has been validated: refuse a DIR that is a
     file, cannot be written or is held by another process (one line, exit 2); create it if new
     (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
     the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
     (`resumable`) or --overwrite (deletes them, nothing else)."""
-    from dscjax import files
-    from dscjax.validation import ConfigError
-
-    check_out(args, option)
+    check_out(args)
     out = Path(args.out)
     try:
         new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
@@ -119,41 +118,70 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
         os.close(fd)
         os.unlink(probe)
     except OSError as err:
-        raise ConfigError(f"{option} {str(args.out)!r}: cannot write the output there "
-                          f"({err.strerror or err}); give a writable directory") from None
-    args.exit_stack.enter_context(files.lock_out(
-        out, name=lock or files.LOCK, argv=[*args.prog, *args.argv], option=option))
+        raise _unwritable(args, err.strerror or err) from None
+    args.exit_stack.enter_context(files.lock_out(out, name=lock or files.LOCK,
+                                                 argv=[*args.prog, *args.argv]))
     if check:
         clash = _other_commands(args, outputs, out)
         if clash:
             shown = "; ".join(f"`dscjax {name}`: {', '.join(names)}"
                               for name, names in clash.items())
-            raise ConfigError(f"{option} {str(args.out)!r} holds the results of another "
+            raise ConfigError(f"--out {str(args.out)!r} holds the results of another "
                               f"command, which this one would replace ({shown}); give another "
-                              f"{option}")
+                              f"--out")
         found = outputs.found(out)
         if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
             shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
             how = ("--resume to continue them, --overwrite to start afresh (deleting only "
                    "them)" if resumable else "--overwrite to replace them")
-            raise ConfigError(f"{option} {str(args.out)!r} already holds files this command "
-                              f"writes ({shown}); {how}, or give another {option}")
+            raise ConfigError(f"--out {str(args.out)!r} already holds files this command "
+                              f"writes ({shown}); {how}, or give another --out")
         if getattr(args, "overwrite", False):
             outputs.remove(out)
     return out
 
 
-def kept_text(args, outputs: Outputs, rerun: str) -> str:
+# what a command that writes its files when it ends says it keeps when interrupted
+AT_END = " (the files are written when the run ends)"
+
+
+def nothing_kept(args, why: str = "") -> str:
+    """The hint of an interrupted command that keeps nothing (`why`, e.g. `AT_END`), and the
+    command that runs it again (`cli.main.rerun_command`)."""
+    return f"nothing is kept{why}; run the same command again: {rerun_command(args)}"
+
+
+def kept_text(args, outputs: Outputs, why: str = "") -> str:
     """What an interrupted command that cannot resume says it keeps: the files it finished
     (`outputs` found in --out: the rule of --out let it start only where none was), or
-    nothing; then `rerun`, the command that makes them all."""
+    nothing (`nothing_kept`); then the command that makes them all."""
     out = Path(args.out)
     found = outputs.found(out) if out.is_dir() else []
     if not found:
-        return f"nothing is kept; run the same command again: {rerun}"
-    shown = ", ".join(found[:4]) + (f" and {len(found) - 4} more" if len(found) > 4 else "")
-    return (f"the {len(found)} file(s) finished before it are kept in {out} ({shown}), the "
-            f"rest is not written; run the same command again: {rerun}")
+        return nothing_kept(args, why)
+    return (f"the {len(found)} file(s) finished before it are kept in {out} "
+            f"({listed(found, 4)}), the rest is not written; run the same command again: "
+            f"{rerun_command(args)}")
+
+
+def resume_command(args) -> str:
+    """The command line that continues an interrupted run: the program as typed, the same
+    arguments, --resume instead of --overwrite."""
+    argv = [a for a in args.argv if a != "--overwrite"]
+    if "--resume" not in argv:
+        argv.append("--resume")
+    return shlex.join([*args.prog, *argv])
+
+
+def rerun_command(args) -> str:
+    """The command line that runs a command again from the start: the program as typed, the
+    same arguments without --resume, and --overwrite where --out holds files the command
+    writes (the one rule of --out would refuse the run otherwise)."""
+    argv = [a for a in args.argv if a != "--resume"]
+    outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
+    if "--overwrite" not in argv and os.path.isdir(args.out) and outputs.found(Path(args.out)):
+        argv.append("--overwrite")
+    return shlex.join([*args.prog, *argv])
 
 
 def _remove_if_empty(created: list[Path]) -> None:

@@ -5,9 +5,11 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import add_run_args, count, positive_float
-from dscjax.cli.out import Outputs, add_out_arg
+from dscjax.cli.common import add_run_args, count, positive_float, positive_numbers
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.reproduce import claim_lines, reproduce, sampling, setups
 from dscjax.reproduce.figures import FIGURES
+from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
 ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
 OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
@@ -17,8 +19,6 @@ OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
 
 def parse_orders(text: str) -> list[int]:
     """"2-8" or "2,3,5" -> list of orders >= 2."""
-    from dscjax.validation import ConfigError
-
     try:
         if "-" in text.strip().lstrip("-"):
             lo, hi = (int(p) for p in text.split("-", 1))
@@ -64,14 +64,9 @@ def add_parser(sub):
     p.add_argument("--repeats", type=count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true",
-                       help="with --complexity: keep the control-law measurements an "
-                       "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
-                       "measure only the rest")
-    again.add_argument("--overwrite", action="store_true", help="replace the files of an "
-                       "earlier run in DIR (only those this command writes); without it such "
-                       "a DIR is refused")
+    add_overwrite_arg(p, resume="with --complexity: keep the control-law measurements an "
+                      "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
+                      "measure only the rest")
     p.add_argument("--theory", action="store_true",
                    help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
                    "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
@@ -87,31 +82,12 @@ def add_parser(sub):
     return p
 
 
-def parse_alpha0(text: str | None) -> list[float] | None:
-    """"0.5,1,2" -> list of positive alpha_0 values (None stays None)."""
-    from dscjax.validation import ConfigError
-
-    if text is None:
-        return None
-    error = ConfigError(f"--alpha0 must be positive numbers like 0.5,1,2 (got {text!r})")
-    try:
-        values = [float(p) for p in text.split(",") if p.strip()]
-    except ValueError:
-        raise error from None
-    if not values or min(values) <= 0:
-        raise error
-    return values
-
-
 def run(args) -> int:
     from dscjax.cli.common import horizon_text, loop_sizes, use_device
-    from dscjax.cli.out import prepare_out
-    from dscjax.reproduce import claim_lines, reproduce, sampling, setups
-    from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
-    alpha0 = parse_alpha0(args.alpha0)
+    alpha0 = positive_numbers(args.alpha0, "--alpha0")
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
     runs = len(setups())  # each saved at every step and kept for the figures
@@ -153,11 +129,9 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.out import resume_command
 
     if resumable(args):
         return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
                 f"continue with: {resume_command(args)}")
-    from dscjax.cli.out import kept_text
-
-    return kept_text(args, OUTPUTS, rerun_command(args))
+    return kept_text(args, OUTPUTS)

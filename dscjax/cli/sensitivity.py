@@ -13,17 +13,25 @@ import time
 
 import numpy as np
 
+from dscjax import files, params, validation
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_config_args,
     count,
     gradient_work,
     horizon_text,
+    listed,
     load_setup,
     print_config,
     use_device,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.files import save_figure
+from dscjax.params import cast
+from dscjax.plotting import subplots
+from dscjax.progress import Progress
+from dscjax.simulate import DivergenceError
+from dscjax.validation import ConfigError
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *SAMPLED_KEYS, "device")
@@ -65,10 +73,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import files, params, validation
-    from dscjax.progress import Progress
     from dscjax.sensitivity import METRICS, Problem, check_metrics
-    from dscjax.validation import ConfigError
 
     setup, spec = load_setup(args)
     metrics = check_metrics(args.metrics or METRICS)
@@ -88,7 +93,7 @@ def run(args) -> int:
     zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
     if len(zero) == len(problem.columns):
         raise ConfigError(f"{'--param' if args.paths else 'the loop'}: every number to "
-                          f"differentiate is 0, so none has a d ln p (got {_listed(zero)} = "
+                          f"differentiate is 0, so none has a d ln p (got {listed(zero)} = "
                           f"0); give numbers that are not 0")
     steps, rows = spec.n_steps, max(args.batch, 1)
     what = horizon_text(spec.t_final, float(spec.dt), steps)
@@ -111,7 +116,7 @@ def run(args) -> int:
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         print(f"dscjax sensitivity: note: {len(zero)} of the {d} numbers {are} no d ln p "
-              f"(null in sensitivity.json): {_listed(zero)}", file=sys.stderr)
+              f"(null in sensitivity.json): {listed(zero)}", file=sys.stderr)
     t0 = time.perf_counter()
     with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
         bar.update_to(0, "compiling the loop and its reverse pass")
@@ -142,20 +147,12 @@ def run(args) -> int:
     return 0
 
 
-def _listed(names, most: int = 6) -> str:
-    """names joined, at most `most` of them and how many more."""
-    shown = ", ".join(names[:most])
-    return shown + (f" and {len(names) - most} more" if len(names) > most else "")
-
-
 def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     """The float32 sensitivities against the same problem (the float32 numbers) in float64:
     `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
     ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
     sensitivity.json records and the warning (None if every value is trusted)."""
-    from dscjax.params import cast
     from dscjax.sensitivity import Problem
-    from dscjax.simulate import DivergenceError
     from dscjax.sweep.summary import float32_trust
 
     f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
@@ -194,7 +191,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     shown = [f"{n} ({why(n)})" for n in bad]
     return check, (f"float32 cannot be trusted with {len(bad)} of the {len(got)} values "
                    f"(float64 differs by more than {100 * trust['rtol']:g} % or has the other "
-                   f"sign): {_listed(shown, 8)} (sensitivity.json: float32_check); rerun "
+                   f"sign): {listed(shown, 8)} (sensitivity.json: float32_check); rerun "
                    f"without --float32")
 
 
@@ -224,9 +221,6 @@ def _print_table(result) -> None:
 
 
 def _plot(result, path, title: str) -> None:
-    from dscjax.files import save_figure
-    from dscjax.plotting import subplots
-
     k = len(result.metrics)
     n = result.normalised
     shown = min(TOP, len(result.names))
@@ -252,7 +246,6 @@ def _title(setup, spec, args) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
+    from dscjax.cli.out import AT_END, nothing_kept
 
-    return (f"nothing is kept (the files are written when the run ends); run the same command "
-            f"again: {rerun_command(args)}")
+    return nothing_kept(args, AT_END)

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 
 import numpy as np
 
+from dscjax import config, validation
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_config_args,
@@ -15,10 +17,18 @@ from dscjax.cli.common import (
     horizon_text,
     load_setup,
     loop_sizes,
+    untrusted_text,
 )
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.controllers.dsc import DSC, VARIANTS
 from dscjax.files import write_json, write_npz
+from dscjax.params import cast
+from dscjax.plotting import plot_trajectory
 from dscjax.progress import Progress
+from dscjax.reproduce.theory import lyapunov
+from dscjax.runspec import MAX_SAVED_POINTS
+from dscjax.simulate import DivergenceError, check, divergence_report, refinement_level
+from dscjax.validation import fmt_bytes
 
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
 # the [simulation] keys this command takes as options
@@ -27,16 +37,10 @@ SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refin
 
 
 def _default_variant() -> str:
-    import dataclasses
-
-    from dscjax.controllers.dsc import DSC
-
     return {f.name: f.default for f in dataclasses.fields(DSC)}["variant"]
 
 
 def add_parser(sub):
-    from dscjax.controllers.dsc import VARIANTS
-
     p = sub.add_parser(
         "simulate", help="simulate one closed loop (default: the paper's example)",
         description="Simulate the closed loop of a config (default: the paper's Section 4 "
@@ -56,15 +60,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax import config, validation
-    from dscjax.runspec import MAX_SAVED_POINTS
-    from dscjax.simulate import (
-        DivergenceError,
-        check,
-        divergence_report,
-        refinement_level,
-        simulate,
-    )
+    from dscjax.simulate import simulate
 
     # another command's own table (a printed config of tune or sweep) is that command's
     setup, options = load_setup(args)
@@ -79,7 +75,7 @@ def run(args) -> int:
     validation.check_work(validation.Work(
         steps=n_steps, member_steps=n_steps, memory=MEMORY_FACTOR * nbytes,
         memory_what=f"the saved trajectory (simulation.save_every = {every} keeps "
-        f"{n_points:,} points, {_size(nbytes)}; about {MEMORY_FACTOR}x that while "
+        f"{n_points:,} points, {fmt_bytes(nbytes)}; about {MEMORY_FACTOR}x that while "
         f"trajectory.npz is written)"),
         what=horizon_text(options.t_final, options.dt, n_steps),
         fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
@@ -103,7 +99,7 @@ def run(args) -> int:
               f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
               f"says otherwise); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
-        print(f"  trajectory.npz will take about {_size(nbytes)} ({n_points:,} points)",
+        print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
     bar, progress = None, None
     if n_steps >= PROGRESS_MIN_STEPS:
@@ -130,8 +126,6 @@ def run(args) -> int:
     if hasattr(traj.ctrl, "_fields"):
         arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
     if setup.controller.kind == "dsc":
-        from dscjax.reproduce.theory import lyapunov
-
         lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
         arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()
                                  if k not in ("t", "V")}
@@ -143,7 +137,8 @@ def run(args) -> int:
               "...", file=sys.stderr)
         f32 = _float64_check(setup, options, metrics)
         if f32["untrusted"]:
-            warnings = [*warnings, _untrusted_text(f32, "rerun without --float32")]
+            warnings = [*warnings, untrusted_text(f32["untrusted"], f32["rel_diff"], f32["rtol"],
+                                                  "rerun without --float32")]
     report = divergence_report(traj, float(options.state_bound))
     write_json(out / "metrics.json", {
         **metrics,
@@ -164,8 +159,6 @@ def run(args) -> int:
         "float32_check": f32,
     })
     if not args.no_plot:
-        from dscjax.plotting import plot_trajectory
-
         plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
@@ -198,7 +191,6 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
     """The float32 run's metrics against the same loop in float64 (the float32 numbers, the
     arithmetic in float64): `dscjax.sweep.float32_trust`, the check of a float32 sweep, with
     the float64 values."""
-    from dscjax.params import cast
     from dscjax.simulate import simulate
     from dscjax.sweep.summary import float32_trust
 
@@ -211,25 +203,11 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
             "untrusted": trust["untrusted"]}
 
 
-def _untrusted_text(check: dict, fix: str) -> str:
-    """The warning of a float32 check with untrusted values (`_float64_check`)."""
-    worst = max(check["rel_diff"][m] for m in check["untrusted"])
-    return (f"float32 cannot be trusted with {', '.join(check['untrusted'])}: they differ "
-            f"from float64 by up to {100 * worst:.3g} % (tolerance {100 * check['rtol']:g} "
-            f"%); {fix}")
-
-
 PROGRESS_MIN_STEPS = 1_000_000  # a run of at least this many steps shows progress
 BIG_FILE = 256 * 2**20  # a trajectory.npz above this size is announced before the run
 # Peak memory of a saved trajectory in multiples of its size: the result, its host copy and the
 # npz being written
 MEMORY_FACTOR = 3
-
-
-def _size(nbytes: float) -> str:
-    from dscjax.validation import fmt_bytes
-
-    return fmt_bytes(nbytes)
 
 
 def _ordinal(k: int) -> str:
@@ -238,12 +216,9 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.main import rerun_command
-    from dscjax.cli.out import kept_text
+    from dscjax.cli.out import AT_END, kept_text
 
-    text = kept_text(args, OUTPUTS, rerun_command(args))
-    return text.replace("nothing is kept;", "nothing is kept (the files are written when the "
-                        "run ends);", 1)
+    return kept_text(args, OUTPUTS, AT_END)
 
 
 def _title(setup, options):

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from dscjax import files
+from dscjax import files, validation
 from dscjax.cli.common import add_config_args, horizon_text, load_setup, print_config, use_device
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.files import write_json
@@ -37,24 +37,12 @@ def add_parser(sub):
     return p
 
 
-def _scales(text: str) -> list[float]:
-    from dscjax.validation import ConfigError
-
-    try:
-        values = [float(v) for v in text.split(",") if v.strip()]
-    except ValueError:
-        values = []
-    if not values or min(values) <= 0:
-        raise ConfigError(f"--tau-scales must be positive numbers like 0.5,1,2 (got {text!r})")
-    return sorted(values)
-
-
 def run(args) -> int:
-    from dscjax import validation
+    from dscjax.cli.common import positive_numbers
     from dscjax.step_size import DT_FACTORS, stability_map
 
     setup, options = load_setup(args)
-    scales = _scales(args.tau_scales)
+    scales = sorted(positive_numbers(args.tau_scales, "--tau-scales"))
     validation.check_filters(setup, float(options.dt))
     if args.print_config:
         print_config(setup, options)

@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from dscjax import config, files, params
+from dscjax import settings as schema
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_example_arg,
@@ -27,14 +29,17 @@ from dscjax.cli.common import (
     count,
     example_setup,
     figure,
-    flag,
     horizon_text,
-    portable_device,
     print_config,
+    untrusted_text,
 )
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
-from dscjax.files import write_json
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.files import write_json, write_npz
+from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
+from dscjax.runspec import OPTIONS, RunSpec
+from dscjax.settings import add_arguments
+from dscjax.validation import ConfigError, Work, check_work, validate_setup
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
@@ -46,9 +51,6 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    from dscjax.params import DEFAULT_PATHS, DEFAULT_REL
-    from dscjax.runspec import OPTIONS
-    from dscjax.settings import add_arguments
     from dscjax.sweep import SweepSettings
 
     d = SweepSettings()
@@ -85,11 +87,8 @@ def add_parser(sub):
     prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
                       f"{d.dtype})")
     add_out_arg(p, "results/sweep")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue a sweep in DIR: skip "
-                       "the blocks already written")
-    again.add_argument("--overwrite", action="store_true", help="discard a sweep in DIR and "
-                       "start afresh")
+    add_overwrite_arg(p, resume="continue a sweep in DIR: skip the blocks already written",
+                      overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
@@ -105,11 +104,7 @@ def add_parser(sub):
 
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
-    from dscjax import config
-    from dscjax import settings as schema
-    from dscjax.params import parse_range
     from dscjax.sweep import SweepSettings, settings_from_dict
-    from dscjax.validation import ConfigError, validate_setup
 
     raw = config.read(args.config, "--config") if args.config else {}
     sweep_table = raw.pop("sweep", {})
@@ -119,7 +114,6 @@ def load(args):
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
     options = apply_run_options(args, options)
-    options = portable_device(args, options, args.config)
     settings = settings_from_dict(sweep_table, SweepSettings())
     given, names = schema.given(args, SweepSettings, "sweep.")
     if args.grid and args.samples is not None:
@@ -156,10 +150,6 @@ def _gains(args, setup, options, config_loop: dict):
     (`SAMPLED_KEYS`: Ts, delay, noise, discretisation; absent ones at their defaults, so
     gains tuned continuous are swept continuous); its plant, hysteresis and horizon are the
     sweep's to choose. The command line still wins (`apply_run_options` afterwards)."""
-    from dscjax import config
-    from dscjax.runspec import OPTIONS, RunSpec
-    from dscjax.validation import ConfigError
-
     gains = config.read(args.gains, "--gains")
     if not isinstance(gains.get("controller"), dict):
         raise ConfigError(f"{args.gains}: no [controller] table (the gains) in the gains file")
@@ -175,7 +165,7 @@ def _gains(args, setup, options, config_loop: dict):
         if key in config_loop and config_loop[key] != value:
             print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
                   f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
-                  f"loop the gains were tuned as; {flag(key)} overrides both)",
+                  f"loop the gains were tuned as; --{key.replace('_', '-')} overrides both)",
                   file=sys.stderr)
     # the config's run with a continuous controller, then the gains file's keys (checked)
     continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),
@@ -188,16 +178,13 @@ def _gains(args, setup, options, config_loop: dict):
 
 def typed_settings(args) -> dict[str, str]:
     """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
-    from dscjax import settings as schema
     from dscjax.sweep import SweepSettings
 
     names = schema.given(args, SweepSettings, "sweep.")[1]
-    names |= {f"sweep.{key}": option for key, option in (
-        ("grid", "--grid"), ("ranges", "--range")) if getattr(args, key, None) is not None}
-    for option in ("float32", "float64"):
-        if getattr(args, option, False):
-            names["sweep.dtype"] = f"--{option}"
-    return names
+    return names | {f"sweep.{key}": option for dest, key, option in (
+        ("grid", "grid", "--grid"), ("ranges", "ranges", "--range"),
+        ("float32", "dtype", "--float32"), ("float64", "dtype", "--float64"))
+        if getattr(args, dest, None)}
 
 
 def work(setup, settings, steps: int, ranges):
@@ -205,7 +192,6 @@ def work(setup, settings, steps: int, ranges):
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
     from dscjax.sweep import METRICS
     from dscjax.sweep.run import STATUS_COLUMNS
-    from dscjax.validation import Work
 
     # the sample's number, its parameters, metrics and status
     n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
@@ -222,11 +208,9 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import files, params, sweep
-    from dscjax.params import assumption_warnings
+    from dscjax import sweep
     from dscjax.simulate import check, simulate
     from dscjax.sweep import settings as sweep_settings
-    from dscjax.validation import check_work
 
     setup, options, settings = load(args)
     t_final, dt = options.t_final, float(options.dt)
@@ -371,10 +355,9 @@ def run(args) -> int:
     print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
           f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     if f32 is not None and f32["untrusted"]:
-        worst = max(f32["max_rel_diff"][m] for m in f32["untrusted"])
-        print(f"  warning: float32 cannot be trusted with {', '.join(f32['untrusted'])}: they "
-              f"differ from float64 by up to {100 * worst:.3g} % on {len(f32['rows'])} "
-              f"re-checked rows (tolerance {100 * f32['rtol']:g} %); rerun with --float64",
+        print("  warning: " + untrusted_text(f32["untrusted"], f32["max_rel_diff"], f32["rtol"],
+                                             "rerun with --float64",
+                                             on=f" on {len(f32['rows'])} re-checked rows"),
               file=sys.stderr)
     return 0
 
@@ -387,13 +370,13 @@ def resumable(args) -> bool:
 def interrupt_hint(args) -> str | None:
     import jax
 
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.out import resume_command
 
     if jax.process_index() != 0:
         return None
     out = Path(args.out)
     if not resumable(args):
-        return f"nothing is kept; run the same command again: {rerun_command(args)}"
+        return nothing_kept(args)
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
     return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
             f"{resume_command(args)}")
@@ -428,20 +411,12 @@ def _recheck(trajs, records) -> dict[str, float] | None:
 
 
 def _write_traces(path, trajs, records, kinds, nominal):
-    from dscjax.files import write_npz
-
     arrays = {"nominal_t": nominal.t, "nominal_e": nominal.e, "nominal_u": nominal.u}
     if trajs:
-        arrays |= {
-            "sample": np.array([r["sample"] for r in records], dtype=np.int64),
-            "kind": np.array(kinds),
-            "t": np.stack([np.asarray(t.t) for t in trajs]),
-            "x": np.stack([np.asarray(t.x) for t in trajs]),
-            "e": np.stack([np.asarray(t.e) for t in trajs]),
-            "u": np.stack([np.asarray(t.u) for t in trajs]),
-            "w": np.stack([np.asarray(t.w) for t in trajs]),
-            "diverged": np.array([bool(t.diverged) for t in trajs]),
-        }
+        arrays |= {"sample": np.array([r["sample"] for r in records], dtype=np.int64),
+                   "kind": np.array(kinds)}
+        arrays |= {k: np.stack([np.asarray(getattr(t, k)) for t in trajs]) for k in "txeuw"}
+        arrays["diverged"] = np.array([bool(t.diverged) for t in trajs])
     write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 

@@ -6,11 +6,21 @@ history.csv, report.md, report.json, the figures and the checkpoint files `--res
 
 from __future__ import annotations
 
+import json
 import sys
 import time
 from pathlib import Path
 
-from dscjax.cli.out import Outputs, add_out_arg
+import numpy as np
+
+from dscjax import config, settings, validation
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.metrics import CHATTER_RATIO
+from dscjax.params import cast
+from dscjax.progress import Phase, Progress
+from dscjax.runspec import RunSpec
+from dscjax.settings import add_arguments
+from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -20,7 +30,6 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 def add_parser(sub):
     from dscjax.cli.common import SAMPLED_KEYS, add_example_arg, add_run_args
-    from dscjax.settings import add_arguments
     from tuning.config import SIMULATION, TuningConfig
 
     p = sub.add_parser(
@@ -41,11 +50,9 @@ def add_parser(sub):
     add_arguments(p, TuningConfig, "tuning.")
     add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=SIMULATION)
     add_example_arg(p)
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue the run in DIR from "
-                       "its checkpoint (iteration count, optimiser state and best point)")
-    again.add_argument("--overwrite", action="store_true", help="discard a run in DIR and "
-                       "start afresh")
+    add_overwrite_arg(p, resume="continue the run in DIR from its checkpoint (iteration "
+                      "count, optimiser state and best point)",
+                      overwrite="discard a run in DIR and start afresh")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     return p
@@ -59,9 +66,7 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    import json
-
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.out import resume_command
 
     if (Path(args.out) / "adversarial.json").exists():
         return (f"the finished rounds and searches are kept in {args.out}; continue with: "
@@ -70,9 +75,7 @@ def interrupt_hint(args) -> str:
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
-        from dscjax.cli.out import kept_text
-
-        return kept_text(args, OUTPUTS, rerun_command(args))
+        return kept_text(args, OUTPUTS)
     return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
             f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
             f"{resume_command(args)}")
@@ -80,16 +83,7 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax import config, settings, validation
-    from dscjax.cli.common import (
-        apply_run_options,
-        blame_options,
-        check_noise,
-        example_setup,
-        portable_device,
-    )
-    from dscjax.runspec import RunSpec
-    from dscjax.validation import ConfigError
+    from dscjax.cli.common import apply_run_options, blame_options, check_noise, example_setup
     from tuning.config import SIMULATION, TuningConfig
     from tuning.config import from_dict as tuning_from_dict
 
@@ -117,7 +111,6 @@ def load(args):
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")
     options = apply_run_options(args, options)
-    options = portable_device(args, options, args.config)
     validation.validate_setup(setup)
     check_noise(args, setup, options)
     if options.dtype != "float64":
@@ -128,14 +121,7 @@ def load(args):
 
 def run(args) -> int:
     t_start = time.perf_counter()
-    import numpy as np
-
     from dscjax.cli.common import print_config, use_device
-    from dscjax.cli.out import prepare_out
-    from dscjax.metrics import CHATTER_RATIO
-    from dscjax.params import cast
-    from dscjax.progress import Phase, Progress
-    from dscjax.validation import ConfigError
     from tuning import elasticity, report, report_md
     from tuning.checkpoint import format_progress
     from tuning.config import SEARCHES, to_table
@@ -309,22 +295,18 @@ def run(args) -> int:
     if "heldout" in summary:
         h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         print(f"  {report_md.heldout_counts(summary)}")
-        if h0["linf_error_window"] and h1["linf_error_window"]:
-            a, b = h0["linf_error_window"], h1["linf_error_window"]
-            print(f"  held-out L-inf error on the window{shifted}, plants that did not "
-                  f"diverge: median {a['median']:.4g} -> {b['median']:.4g}, p95 "
-                  f"{a['p95']:.4g} -> {b['p95']:.4g}")
-        if h0.get("tv_u_window") and h1.get("tv_u_window"):
-            a, b = h0["tv_u_window"], h1["tv_u_window"]
-            print(f"  held-out TV(u) on the window, plants that did not diverge: median "
-                  f"{a['median']:.4g} -> {b['median']:.4g}, p95 {a['p95']:.4g} -> "
-                  f"{b['p95']:.4g}; chattering (chattering index above "
-                  f"{CHATTER_RATIO:g}) on {h0['n_chattering']} -> {h1['n_chattering']}")
-        if h0.get("sampled_linf_window") and h1.get("sampled_linf_window"):
-            a, b = h0["sampled_linf_window"], h1["sampled_linf_window"]
-            print(f"  held-out L-inf error on the window with "
-                  f"{summary['second_loop']}: median {a['median']:.4g} -> "
-                  f"{b['median']:.4g}, p95 {a['p95']:.4g} -> {b['p95']:.4g}")
+        rows = {"linf_error_window": (f"L-inf error on the window{shifted}, plants that did "
+                                      f"not diverge", ""),
+                "tv_u_window": ("TV(u) on the window, plants that did not diverge",
+                                f"; chattering (chattering index above {CHATTER_RATIO:g}) on "
+                                f"{h0.get('n_chattering')} -> {h1.get('n_chattering')}"),
+                "sampled_linf_window": (f"L-inf error on the window with "
+                                        f"{summary.get('second_loop')}", "")}
+        for key, (what, then) in rows.items():
+            a, b = h0.get(key), h1.get(key)
+            if a and b:
+                print(f"  held-out {what}: median {a['median']:.4g} -> {b['median']:.4g}, "
+                      f"p95 {a['p95']:.4g} -> {b['p95']:.4g}{then}")
     if summary.get("heldout_warning"):
         print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
     for line in margin_lines(summary.get("margins"), summary["nominal"]):
@@ -391,8 +373,6 @@ def margin_lines(margins, nominal) -> list[str]:
 
 def loop_banner(sim) -> str:
     """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
-    import numpy as np
-
     if not sim.sampled:
         return "the continuous loop"
     noise = ("no noise" if sim.noise is None else "noise std "
@@ -422,7 +402,6 @@ def check_work_of(args, setup, options, cfg) -> None:
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
     from dscjax.cli.common import gradient_work, horizon_text
-    from dscjax.validation import TIME_LIMIT_S, Work, check_work, fmt_seconds
     from tuning.config import SEARCHES
     from tuning.optimize import aggregate_of, choose_gradient
 

@@ -11,6 +11,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
+from dscjax import config, files, settings
 from dscjax.cli.common import (
     SAMPLED_KEYS,
     add_config_args,
@@ -21,8 +22,20 @@ from dscjax.cli.common import (
     print_config,
     use_device,
 )
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
-from dscjax.worst.report import FIGURES
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.params import from_table, parse_range
+from dscjax.progress import Progress
+from dscjax.settings import add_arguments
+from dscjax.validation import ConfigError, Work, check_work
+from dscjax.worst import (
+    REQUIREMENT,
+    WorstSettings,
+    assumption_warnings,
+    best_value,
+    check_search,
+    make_problem,
+)
+from dscjax.worst.report import FIGURES, write
 
 MANIFEST = "worst_case.json"
 OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
@@ -30,9 +43,6 @@ OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajector
 
 
 def add_parser(sub):
-    from dscjax.settings import add_arguments
-    from dscjax.worst import WorstSettings
-
     p = sub.add_parser(
         "worst-case", help="worst-case search over parameter boxes and disturbance waveforms",
         description="Maximise a metric of the closed loop (default: the windowed L-inf of the "
@@ -48,33 +58,19 @@ def add_parser(sub):
                    "hysteresis.alpha=30%%")
     add_arguments(p, WorstSettings, "worst.")
     add_out_arg(p, "results/worst-case")
-    again = p.add_mutually_exclusive_group()
-    again.add_argument("--resume", action="store_true", help="continue a search in DIR "
-                       "(each method from its last finished iteration)")
-    again.add_argument("--overwrite", action="store_true", help="discard a search in DIR")
+    add_overwrite_arg(p, resume="continue a search in DIR (each method from its last "
+                      "finished iteration)", overwrite="discard a search in DIR")
     p.add_argument("--no-plot", action="store_true", help="skip the figures")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     return p
 
 
 def run(args) -> int:
-    from dscjax import files
-    from dscjax.progress import Progress
-    from dscjax.validation import ConfigError, check_work
-    from dscjax.worst import (
-        assumption_warnings,
-        best_value,
-        check_search,
-        make_problem,
-        worst_case,
-    )
-    from dscjax.worst.report import write
+    from dscjax.worst import worst_case
 
     setup, options = load_setup(args)
     s, ranges = worst_settings(args)
     if args.print_config:
-        from dscjax import settings
-
         table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
                                                     for r in ranges}} if ranges else {})
         print_config(setup, options, {"worst": table} | requirement_table(args, s),
@@ -167,8 +163,6 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
     """One iteration of the slowest of `methods` (`validation.Work`): the gradient method
     simulates its M starts and differentiates them on the loop at F dt; random sampling and
     CMA-ES simulate one batch."""
-    from dscjax.validation import Work
-
     n = problem.n_steps
     works = [Work(steps=n + n // coarsening, member_steps=starts * (n + n // coarsening))
              if m == "gradient" else Work(steps=n, member_steps=batch * n) for m in methods]
@@ -181,8 +175,6 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
 def stored_work(problem):
     """What the search keeps besides its iterations: the waveform's basis on the half-step
     grid, and the worst case re-simulated at every step (worst_trajectory.npz, figures)."""
-    from dscjax.validation import Work
-
     n = problem.n_steps
     _, per_point, size = loop_sizes(problem.setup)
     saved = Work(steps=2 * n, member_steps=2 * n, memory=3.0 * (n + 1) * per_point * size,
@@ -195,10 +187,7 @@ def stored_work(problem):
 def worst_settings(args):
     """(WorstSettings, ranges): the config's [worst] table (and [worst.ranges]) laid over the
     defaults, then the options given (a refusal names the option)."""
-    from dscjax import config, settings
     from dscjax.cli.common import blame_options
-    from dscjax.params import from_table, parse_range
-    from dscjax.worst import WorstSettings
 
     table = dict(config.read(args.config, "--config").get("worst", {})) if args.config else {}
     ranges = tuple(from_table(table.pop("ranges"), "worst.ranges")) if "ranges" in table \
@@ -215,9 +204,6 @@ def worst_settings(args):
 def requirement_table(args, s) -> dict:
     """The [tuning.requirements.NAME] table of `--metric requirement:NAME` ({} for any other
     metric): the rest of the config --print-config shows."""
-    from dscjax import config
-    from dscjax.worst import REQUIREMENT
-
     if not s.metric.startswith(REQUIREMENT) or not args.config:
         return {}
     name = s.metric[len(REQUIREMENT):]
@@ -228,10 +214,6 @@ def requirement_table(args, s) -> dict:
 def requirement_of(args, setup, s):
     """The requirement of `--metric requirement:NAME`: [tuning.requirements.NAME] of --config
     (built as the tuner builds it), or None for any other metric."""
-    from dscjax import config
-    from dscjax.validation import ConfigError
-    from dscjax.worst import REQUIREMENT
-
     if not s.metric.startswith(REQUIREMENT):
         return None
     name = s.metric[len(REQUIREMENT):]
@@ -252,13 +234,11 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str | None:
-    from dscjax.cli.main import rerun_command, resume_command
+    from dscjax.cli.out import resume_command
 
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
-        from dscjax.cli.out import kept_text
-
-        return kept_text(args, OUTPUTS, rerun_command(args))
+        return kept_text(args, OUTPUTS)
     return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
             f"continue with: {resume_command(args)}")
