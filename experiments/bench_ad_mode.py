@@ -25,7 +25,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from harness import Bench, child_call, cold_env, median, parser, positive, run_child  # noqa: E402
+from harness import Bench, child_call, cold_env, median, parser, run_child  # noqa: E402
 from jax.flatten_util import ravel_pytree  # noqa: E402
 
 import dscjax  # noqa: E402
@@ -79,8 +79,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if (code := child_call(argv, measure)) is not None:
         return code
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
+    p = parser(__doc__, "timed calls per case")
     a = p.parse_args(argv)
     t_final, repeats = (2.0, 3) if a.quick else (20.0, a.repeats or 7)
     bench = Bench("ad_mode", "The tuner's AD mode for one plant", quick=a.quick)

@@ -27,7 +27,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, child_call, cold_env, median, parser, positive, run_child  # noqa: E402
+from harness import Bench, child_call, cold_env, median, parser, run_child  # noqa: E402
 
 import dscjax  # noqa: E402
 import tuning  # noqa: E402
@@ -91,8 +91,7 @@ def measure(argv) -> int:
 
 
 def _options(argv):
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="compiles per program")
+    p = parser(__doc__, "compiles per program")
     return p.parse_args(argv)
 
 

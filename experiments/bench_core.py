@@ -22,7 +22,7 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, diffrax_rk4, median, parser, positive, reference_loop  # noqa: E402
+from harness import Bench, diffrax_rk4, median, parser, reference_loop  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax import params, xla  # noqa: E402
@@ -122,8 +122,7 @@ def batched(bench: Bench, dtype, b: int, horizon: float, reps: int, wide: bool, 
 
 
 def main(argv=None) -> int:
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
+    p = parser(__doc__, "timed calls per case")
     a = p.parse_args(argv)
     quick = a.quick
     repeats = a.repeats or (3 if quick else 7)

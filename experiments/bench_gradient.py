@@ -105,8 +105,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if (code := child_call(argv, measure)) is not None:
         return code
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="timed calls per case")
+    p = parser(__doc__, "timed calls per case")
     p.add_argument("--memory-limit-gib", type=positive(float), default=8.0)
     p.add_argument("--t-final", type=positive(float), default=None,
                    help="horizon [s] (default 20, --quick 2)")

@@ -30,7 +30,7 @@ jax.config.update("jax_enable_x64", True)
 import equinox as eqx  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from harness import Bench, median, parser, positive  # noqa: E402
+from harness import Bench, median, parser  # noqa: E402
 
 import dscjax  # noqa: E402
 from dscjax.identify import Problem, read, solve  # noqa: E402
@@ -134,10 +134,8 @@ def optimistix_lm(problem, v0):
 
 
 def main() -> None:
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=5,
-                   help="fits of each of the exact and the finite-difference method, "
-                        "interleaved; their medians are reported (default 5)")
+    p = parser(__doc__, "fits of each of the exact and the finite-difference method, "
+               "interleaved; their medians are reported (default 5)", default=5)
     args = p.parse_args()
     bench = Bench("identify", "Identification: exact Jacobians against finite differences "
                   "and CMA-ES", quick=args.quick)

@@ -29,11 +29,9 @@ DT = 1e-3
 
 
 def main() -> None:
-    p = parser(__doc__)
+    p = parser(__doc__, "timed calls of each case (default 5; --quick 2)")
     p.add_argument("--t-final", type=positive(float), default=None,
                    help="horizon [s] (default 20; --quick 2)")
-    p.add_argument("--repeats", type=positive(int), default=None,
-                   help="timed calls of each case (default 5; --quick 2)")
     args = p.parse_args()
     t_final = args.t_final or (2.0 if args.quick else 20.0)
     repeats = args.repeats or (2 if args.quick else 5)

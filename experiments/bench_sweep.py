@@ -27,7 +27,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import numpy as np  # noqa: E402
-from harness import Bench, Child, child, median, parser, positive, reference_loop  # noqa: E402
+from harness import Bench, Child, child, median, parser, reference_loop  # noqa: E402
 
 from dscjax import params  # noqa: E402
 from dscjax.config import example  # noqa: E402
@@ -79,8 +79,7 @@ def runner(name: str, dtype, plants: int, t_final: float, seed: int = 0):
 
 
 def main(argv=None) -> int:
-    p = parser(__doc__)
-    p.add_argument("--repeats", type=positive(), default=None, help="end-to-end runs (median)")
+    p = parser(__doc__, "end-to-end runs (median)")
     a = p.parse_args(argv)
     quick = a.quick
     samples, horizon = (10_000, 0.2) if quick else (100_000, 20.0)

@@ -36,11 +36,15 @@ RESULTS = ROOT / "results" / "bench"
 STUDIES = "## Studies that left the suite"
 
 
-def parser(doc: str) -> argparse.ArgumentParser:
-    """A benchmark's argument parser (its description the first line of `doc`), with --quick."""
+def parser(doc: str, repeats: str | None = None, default: int | None = None
+           ) -> argparse.ArgumentParser:
+    """A benchmark's argument parser (its description the first line of `doc`), with --quick,
+    and with `repeats` (what is repeated) --repeats N (N > 0, default `default`)."""
     p = argparse.ArgumentParser(description=doc.splitlines()[0])
     p.add_argument("--quick", action="store_true",
                    help="small sizes, a minute or two; results to JSON only, not to the docs")
+    if repeats is not None:
+        p.add_argument("--repeats", type=positive(), default=default, help=repeats)
     return p
 
 
