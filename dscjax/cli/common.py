@@ -287,11 +287,15 @@ def loop_sizes(setup) -> tuple[int, int, int]:
 
 def gradient_work(setup, steps: int, copies: int = 1):
     """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
-    Jacobians of every step, O(N m^2) (`integrate._time_parallel_jvp`)."""
+    Jacobians of every step, of the state (m x k) and of the running metrics (r x r)
+    (`integrate.gradients.time_parallel_jvp`)."""
+    from dscjax.metrics import RunningMetrics
+
     m, per_point, size = loop_sizes(setup)
-    return Work(memory=copies * steps * m * per_point * size,
+    r = len(RunningMetrics._fields)
+    return Work(memory=copies * steps * (m * per_point + r * r) * size,
                 memory_what=f"the time-parallel gradient ({copies:,} x {steps:,} steps x "
-                f"{m} x {per_point} Jacobian entries)")
+                f"({m} x {per_point} + {r} x {r}) Jacobian entries)")
 
 
 def add_example_arg(p):

@@ -13,10 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax.integrate.scan import blocked_scan
-
 # Members per chunk of the time-parallel Jacobians (bounds their memory, not their result).
-_PARALLEL_CHUNK = 8192
+_PARALLEL_CHUNK = 4096
 DEFAULT_CHECKPOINT_EVERY = 100
 
 
@@ -30,7 +28,8 @@ class Gradient(eqx.Module):
 
 class TimeParallel(Gradient):
     """One trajectory: all N step Jacobians in one batched program, then a small recurrence
-    (the exact derivative of the discrete map; memory O(N m^2))."""
+    (the exact derivative of the discrete map; memory O(N (m^2 + r^2)) for m states and r
+    floats of running reductions)."""
 
     name: ClassVar[str] = "time_parallel"
 
@@ -53,13 +52,13 @@ def time_parallel_jvp(prob, primals, tangents):
     """The jvp of `prob.forward` (`single._Problem`) as a time-parallel linearisation of y_(k+1) =
     Phi_k(y_k; a, dt), obs_k = O_k(y_k):
 
-        dy_(k+1) = J_k dy_k + b_k,   dobs_k = G_k dy_k + g_k,
-        dacc_(k+1) = jvp of the reduction update along (dacc_k, dy_k, dobs_k, dred, dt),
+        dy_(k+1) = J_k dy_k + b_k,   dobs_k = G_k dy_k + g_k,   dacc_(k+1) = M_k dacc_k + r_k,
 
-    J_k = dPhi/dy, G_k = dO/dy by one batched jacfwd over the stored states, b_k, g_k along
-    (da, d dt) by one batched jvp; only the small recurrences run step by step. JAX transposes
-    it for reverse mode. A frozen step (after a divergence) has its increments scaled by 0:
-    exactly the identity with finite partials, so no NaN reaches the derivative.
+    J_k = dPhi/dy, G_k = dO/dy and M_k = dU/dacc (U: the reductions' update) by batched jacfwds
+    over the stored steps; b_k, g_k along (da, d dt) and r_k along (dred, dy_k, dobs_k, d dt)
+    by batched jvps; only the small matrix-vector recurrences run step by step. JAX
+    transposes it for reverse mode. A frozen step (after a divergence) has its increments
+    scaled by 0: exactly the identity with finite partials, so no NaN reaches the derivative.
     """
     y0, a, red, acc0, dt, bound = primals
     dy0, da, dred, dacc0, ddt, _ = tangents
@@ -109,16 +108,25 @@ def time_parallel_jvp(prob, primals, tangents):
     if prob.reduction_is_none:
         dacc_end = dacc0
     else:
-        def acc_step(dacc, inp):
-            k, live, acc_k, y_k, o_k, dy_k, do_k = inp
-            t_k, dt_k = k.astype(dt.dtype) * dt, k.astype(dt.dtype) * ddt
-            _, d_new = jax.jvp(
-                lambda r, ac, t_, y_, o_, h_: prob.update(r, ac, k, t_, y_, o_, h_),
-                (red, acc_k, t_k, y_k, o_k, dt), (dred, dacc, dt_k, dy_k, do_k, ddt))
-            return jax.tree.map(lambda new, old: jnp.where(live, new, old), d_new, dacc), None
+        def update_at(k, r, ac, y_, o_, dt_, t_scale):
+            return prob.update(r, ac, k, k.astype(dt.dtype) * t_scale, y_, o_, dt_)
 
-        width = max(prob.yp.sizes + prob.accp.sizes + prob.op.sizes, default=1)
-        dacc_n, _ = blocked_scan(acc_step, dacc0, (ks, live_acc, A, Y, O, dY, dO), n, width)
+        def acc_jac(k, acc_k, y_k, o_k):
+            return jax.jacfwd(lambda ac: update_at(k, red, ac, y_k, o_k, dt, dt))(acc_k)
+
+        def acc_along(k, acc_k, y_k, o_k, dy_k, do_k):
+            return jax.jvp(lambda r, y_, o_, h_: update_at(k, r, acc_k, y_, o_, h_, h_),
+                           (red, y_k, o_k, dt), (dred, dy_k, do_k, ddt))[1]
+
+        def acc_step(dacc, inp):
+            Mk, rk, live = inp
+            new = tuple(_matvec(rows, dacc) + rr for rows, rr in zip(Mk, rk, strict=True))
+            return tuple(jnp.where(live, n_, o_) for n_, o_ in zip(new, dacc, strict=True)), None
+
+        M = _parallel(acc_jac, (ks, A, Y, O))
+        R = _parallel(jax.checkpoint(acc_along), (ks, A, Y, O, dY, dO))
+
+        dacc_n, _ = jax.lax.scan(acc_step, dacc0, (M, R, live_acc))
         _, dacc_last = jax.jvp(
             lambda r, ac, t_, y_, o_, h_: prob.update(r, ac, c.k, t_, y_, o_, h_),
             (red, c.acc, t_end, c.y, obs_end, dt), (dred, dacc_n, dt_end, dy_end, dobs_end, ddt))
@@ -137,11 +145,12 @@ def _parallel(fn, xs):
     if n <= _PARALLEL_CHUNK:
         return jax.vmap(fn)(*xs)
     n_chunks = -(-n // _PARALLEL_CHUNK)
-    pad = n_chunks * _PARALLEL_CHUNK - n
+    size = -(-n // n_chunks)  # chunks of equal size: at most n_chunks - 1 padded members
+    pad = n_chunks * size - n
 
     def chunks(a):
         a = jnp.concatenate([a, jnp.broadcast_to(a[:1], (pad, *a.shape[1:]))]) if pad else a
-        return a.reshape(n_chunks, _PARALLEL_CHUNK, *a.shape[1:])
+        return a.reshape(n_chunks, size, *a.shape[1:])
 
     out = jax.lax.map(lambda c: jax.vmap(fn)(*c), jax.tree.map(chunks, xs))
     return jax.tree.map(lambda a: a.reshape(-1, *a.shape[2:])[:n], out)
