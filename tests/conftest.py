@@ -5,6 +5,7 @@ need float32 say so and cast their setups (dscjax.cast) instead of flipping the 
 """
 
 import os
+import signal
 import tempfile
 
 import jax
@@ -22,10 +23,16 @@ from dscjax import xla  # noqa: E402
 
 
 def pytest_configure(config):
-    """JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
+    """SIGINT delivered as KeyboardInterrupt, as in a user's terminal: a pytest started in the
+    background of a non-interactive shell (`pytest &` in a script) inherits SIGINT ignored,
+    Python then installs no handler, and the Ctrl-C tests (test_out_dir) would see nothing.
+
+    JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
     workers and, through JAX_COMPILATION_CACHE_DIR, by the processes tests start): a program
     that several tests or files compile, in whatever process, is compiled once. Without
     pytest's cache: a directory of this process."""
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
     cache = getattr(config, "cache", None)
     path = xla.enable_compilation_cache(cache.mkdir("jax-compilation-cache") if cache is not None
                                         else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
