@@ -101,15 +101,18 @@ class _Problem:
         self.ap = _Packer(args)
         self.accp = _Packer(acc0 if reduction is not None else ())
         dtype = jnp.result_type(*jax.tree.leaves(y0))
-        obs_proto = jax.eval_shape(lambda: f(jnp.zeros((), dtype), y0, args)[1])
+        # one trace of the field for every call with the same shapes (RK4's four stages, the
+        # last observation, the linearisation, and the shapes of the observations here): an
+        # inner jit, inlined by XLA
+        self._unpacked_field = jax.jit(
+            lambda t, y, a: f(t, self.yp.unpack(y), self.ap.unpack(a)))
+        obs_proto = jax.eval_shape(self._unpacked_field, jnp.zeros((), dtype),
+                                   self.yp.pack(y0), self.ap.pack(args))[1]
         self.op = _Packer(scan.zeros(obs_proto))
         self.dtype = dtype
-        # one trace of the field for every call with the same shapes (RK4's four stages, the
-        # last observation, the linearisation): an inner jit, inlined by XLA
-        self._packed_field = jax.jit(self._field)
 
-    def _field(self, t, y, a):
-        dy, obs = self.f(t, self.yp.unpack(y), self.ap.unpack(a))
+    def _packed_field(self, t, y, a):
+        dy, obs = self._unpacked_field(t, y, a)
         return self.yp.pack(dy), self.op.pack(obs)
 
     def field(self, t, y, a, packed=True):
