@@ -100,7 +100,7 @@ def time_parallel_jvp(prob, primals, tangents):
     dy_end, dY = jax.lax.scan(tangent_step, dy0, (J, b))
     dO = tuple(jax.vmap(_matvec)(rows, dY) + gg for rows, gg in zip(G, g, strict=True))
 
-    # Reductions: their own (cheap) tangent recurrence along the stored samples.
+    # Reductions: dacc_(k+1) = M_k dacc_k + r_k along the stored samples, then the last one.
     t_end = c.k.astype(dt.dtype) * dt
     dt_end = c.k.astype(dt.dtype) * ddt
     dobs_end = jax.jvp(lambda y_, a_, t_: prob.field(t_, y_, a_)[1], (c.y, a, t_end),
@@ -108,14 +108,14 @@ def time_parallel_jvp(prob, primals, tangents):
     if prob.reduction_is_none:
         dacc_end = dacc0
     else:
-        def update_at(k, r, ac, y_, o_, dt_, t_scale):
-            return prob.update(r, ac, k, k.astype(dt.dtype) * t_scale, y_, o_, dt_)
+        def update_at(k, r, ac, y_, o_, h):  # t_k = k h: its tangent k dh
+            return prob.update(r, ac, k, k.astype(dt.dtype) * h, y_, o_, h)
 
         def acc_jac(k, acc_k, y_k, o_k):
-            return jax.jacfwd(lambda ac: update_at(k, red, ac, y_k, o_k, dt, dt))(acc_k)
+            return jax.jacfwd(lambda ac: update_at(k, red, ac, y_k, o_k, dt))(acc_k)
 
         def acc_along(k, acc_k, y_k, o_k, dy_k, do_k):
-            return jax.jvp(lambda r, y_, o_, h_: update_at(k, r, acc_k, y_, o_, h_, h_),
+            return jax.jvp(lambda r, y_, o_, h: update_at(k, r, acc_k, y_, o_, h),
                            (red, y_k, o_k, dt), (dred, dy_k, do_k, ddt))[1]
 
         def acc_step(dacc, inp):
@@ -127,9 +127,9 @@ def time_parallel_jvp(prob, primals, tangents):
         R = _parallel(jax.checkpoint(acc_along), (ks, A, Y, O, dY, dO))
 
         dacc_n, _ = jax.lax.scan(acc_step, dacc0, (M, R, live_acc))
-        _, dacc_last = jax.jvp(
-            lambda r, ac, t_, y_, o_, h_: prob.update(r, ac, c.k, t_, y_, o_, h_),
-            (red, c.acc, t_end, c.y, obs_end, dt), (dred, dacc_n, dt_end, dy_end, dobs_end, ddt))
+        _, dacc_last = jax.jvp(lambda r, ac, y_, o_, h: update_at(c.k, r, ac, y_, o_, h),
+                               (red, c.acc, c.y, obs_end, dt),
+                               (dred, dacc_n, dy_end, dobs_end, ddt))
         dacc_end = jax.tree.map(lambda new, old: jnp.where(no_bad, new, old), dacc_last, dacc_n)
 
     out = (_saved(Y, c.y, s), _saved(O, obs_end, s), acc_end, c.code, c.bad)
