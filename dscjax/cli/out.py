@@ -131,11 +131,10 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
                               f"--out")
         found = outputs.found(out)
         if found and not (getattr(args, "overwrite", False) or getattr(args, "resume", False)):
-            shown = ", ".join(found[:4]) + (", ..." if len(found) > 4 else "")
             how = ("--resume to continue them, --overwrite to start afresh (deleting only "
                    "them)" if resumable else "--overwrite to replace them")
             raise ConfigError(f"--out {str(args.out)!r} already holds files this command "
-                              f"writes ({shown}); {how}, or give another --out")
+                              f"writes ({listed(found, 4)}); {how}, or give another --out")
         if getattr(args, "overwrite", False):
             outputs.remove(out)
     return out
@@ -147,7 +146,7 @@ AT_END = " (the files are written when the run ends)"
 
 def nothing_kept(args, why: str = "") -> str:
     """The hint of an interrupted command that keeps nothing (`why`, e.g. `AT_END`), and the
-    command that runs it again (`cli.main.rerun_command`)."""
+    command that runs it again (`rerun_command`)."""
     return f"nothing is kept{why}; run the same command again: {rerun_command(args)}"
 
 
