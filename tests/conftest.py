@@ -8,7 +8,12 @@ import os
 import signal
 import tempfile
 
-import jax
+# XLA's backend optimisations off for the tests' programs (and the commands they start): the
+# suite's time is compiling programs that each run a few short horizons once.
+os.environ["XLA_FLAGS"] = " ".join(
+    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]).strip()
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 # Commands run through dscjax.cli.main.main in this process must not switch JAX's persistent
@@ -121,8 +126,8 @@ def four_devices(once):
     from pathlib import Path
 
     def make(work):
-        env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=4",
-                   JAX_PLATFORMS="cpu")
+        env = dict(os.environ, JAX_PLATFORMS="cpu", XLA_FLAGS=os.environ["XLA_FLAGS"]
+                   + " --xla_force_host_platform_device_count=4")
         proc = subprocess.run([sys.executable, str(Path(__file__).parent / "four_devices.py"),
                                str(work)], env=env, capture_output=True, text=True,
                               timeout=600)

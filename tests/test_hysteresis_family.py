@@ -153,7 +153,7 @@ def test_single_run_plays_are_the_exact_recursion(kind, solver):
     np.testing.assert_allclose(z[1:], np.maximum(lo[1:], np.minimum(hi[1:], z[:-1])),
                                rtol=0, atol=1e-13)
     np.testing.assert_allclose(w, float(setup.hysteresis.p0) * u
-                               + z @ np.asarray(setup.hysteresis.p), rtol=0, atol=1e-14)
+                               + z @ np.asarray(setup.hysteresis.p), rtol=0, atol=1e-13)
 
 
 BAD = [

@@ -229,8 +229,7 @@ def test_two_processes_write_the_same_file(tmp_path, capsys):
         port = sock.getsockname()[1]
     args = ["sweep", "--samples", "24", "--chunk", "8", "--float64", "--t-final", str(T),
             "--worst", "0", "--random", "0", "--no-plot", "--quiet"]
-    env = dict(os.environ, JAX_PLATFORMS="cpu")
-    env.pop("XLA_FLAGS", None)
+    env = dict(os.environ, JAX_PLATFORMS="cpu")  # XLA_FLAGS as this process's (conftest)
     procs = [subprocess.Popen(
         [sys.executable, "-m", "dscjax.cli.main", *args, "--out", str(tmp_path / "two"),
          "--coordinator", f"localhost:{port}", "--num-processes", "2", "--process-id", str(i)],
