@@ -199,18 +199,14 @@ def run_sweep(
                           resumed=n_done_before))
     elapsed = time.perf_counter() - t_start
 
-    if out is not None:
-        parts = []
-        for b in range(n_blocks):
-            data = _read_chunk(_chunk_path(out, b), digest) if main else None
-            if main and data is None:
-                raise ConfigError(f"{_chunk_path(out, b)} is missing or unreadable after the "
-                                  f"sweep; run again with --resume")
-            parts.append(data)
-    else:
-        parts = [kept[b] for b in range(n_blocks)]
-    columns_out = ({k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
-                   if parts and parts[0] is not None else {})
+    if out is not None and main:  # every block from its file (the resumed ones too)
+        kept = {b: _read_chunk(_chunk_path(out, b), digest) for b in range(n_blocks)}
+        missing = [b for b, data in kept.items() if data is None]
+        if missing:
+            raise ConfigError(f"{_chunk_path(out, missing[0])} is missing or unreadable after "
+                              f"the sweep; run again with --resume")
+    columns_out = ({k: np.concatenate([kept[b][k] for b in range(n_blocks)]) for k in kept[0]}
+                   if kept else {})
     if out is not None and main:
         with critical():
             files.write_npz(out / "results.npz", columns_out)
