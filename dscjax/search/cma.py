@@ -89,10 +89,9 @@ class ReplayCMA:
     def copy(self) -> ReplayCMA:
         """An independent copy (its own strategy and random stream), for a step that computes
         a new state without changing this one."""
-        new = object.__new__(ReplayCMA)
-        new.es, new.n, new.dim = copy.deepcopy(self.es), self.n, self.dim
-        new.fitness, new.injected, new.told = list(self.fitness), list(self.injected), self.told
-        new.asked = self.asked
+        new = copy.copy(self)  # (the populations are replaced, never changed in place)
+        new.es, new.fitness, new.injected = (copy.deepcopy(self.es), list(self.fitness),
+                                             list(self.injected))
         return new
 
     def arrays(self) -> dict[str, np.ndarray]:

@@ -125,16 +125,29 @@ class CMA:
         return CMAState(es, restarts)
 
 
+class _BuiltByStep:
+    """The state handling of a method whose state is None until its first step builds it (if
+    it has one: a NamedTuple of arrays, `state_type`)."""
+
+    state_type: ClassVar[type | None] = None
+
+    def init(self, problem, x0, seed: int) -> None:
+        return None
+
+    def arrays(self, state) -> dict:
+        return {} if state is None else state._asdict()
+
+    def restore(self, problem, x0, seed: int, arrays: dict):
+        return self.state_type(**arrays) if arrays else None
+
+
 @dataclasses.dataclass(frozen=True)
-class Random:
+class Random(_BuiltByStep):
     """`batch` points of `problem.sample` per iteration, from `generator(seed, "random",
     iteration)`; the first iteration's first point is x0."""
 
     batch: int = 32
     name: ClassVar[str] = "random"
-
-    def init(self, problem, x0, seed: int) -> None:
-        return None
 
     def step(self, problem, state: None, ctx: Context) -> Step:
         z = np.array(problem.sample(generator(ctx.seed, self.name, ctx.iteration), self.batch))
@@ -142,12 +155,6 @@ class Random:
         if start == 0:
             z[0] = ctx.x0
         return Step(z, problem.evaluate(z), None, start)
-
-    def arrays(self, state: None) -> dict:
-        return {}
-
-    def restore(self, problem, x0, seed: int, arrays: dict) -> None:
-        return None
 
 
 class GradientState(NamedTuple):
@@ -185,7 +192,7 @@ def _adam():
 
 
 @dataclasses.dataclass(frozen=True)
-class Gradient:
+class Gradient(_BuiltByStep):
     """Projected gradient descent from `starts` points as one batch: Adam's scaling of the
     gradient (the last `coupled` coordinates: the gradient over its largest entry); each
     start's step grows x1.2 (up to 8 lr) after an improvement and halves after a worse or
@@ -198,9 +205,7 @@ class Gradient:
     screen: int = 0
     coupled: int = 0
     name: ClassVar[str] = "gradient"
-
-    def init(self, problem, x0, seed: int) -> None:
-        return None  # built by the first step
+    state_type: ClassVar[type] = GradientState
 
     def _fresh(self, z: np.ndarray) -> GradientState:
         m, a = len(z), z.shape[1] - self.coupled
@@ -251,12 +256,6 @@ class Gradient:
         return Step(z, ev, nxt, start, scale=float(lr[i]), gradients=len(z),
                     notes={"grad_norm": float(np.linalg.norm(g[i])), "accepted": bool(better[i])},
                     restarts=int(again.sum()))
-
-    def arrays(self, state: GradientState | None) -> dict:
-        return {} if state is None else state._asdict()
-
-    def restore(self, problem, x0, seed: int, arrays: dict) -> GradientState | None:
-        return GradientState(**arrays) if arrays else None
 
 
 __all__ = ["BAD", "CMA", "CMAState", "Context", "Gradient", "GradientState", "Random",
