@@ -66,12 +66,10 @@ def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
     return out
 
 
-def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int | None = None
-                  ) -> float | None:
+def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int) -> float | None:
     """The memory of one row of the block program on `device` (`dscjax.device.per_row_bytes`
-    of the program compiled for `rows` rows, default the tile width of a large sweep; nothing
-    is run). None where JAX does not say."""
-    rows = rows or tile_rows(device.platform, PROBE_ROWS)
+    of the program compiled for `rows` rows, the sweep's tile; nothing is run). None where JAX
+    does not say."""
     dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
     spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype).program()
     table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,

@@ -53,10 +53,7 @@ def _value_and_grad(values, single, gradient, z):
     return v, bad, g
 
 
-_STATIC_PROBLEM = ("st",)
-
-
-_problem_values_jit = jax.jit(_problem_values, static_argnames=_STATIC_PROBLEM)
+_problem_values_jit = jax.jit(_problem_values, static_argnames=("st",))
 
 
 # the gradients compile lean, as every gradient of dscjax does (dscjax.xla)
