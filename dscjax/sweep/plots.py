@@ -109,25 +109,22 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     files.save_figure(fig, path, dpi=110)
 
 
-def _cells(x, edges_x, y, edges_y):
-    ix = np.clip(np.searchsorted(edges_x, x, side="right") - 1, 0, len(edges_x) - 2)
-    iy = np.clip(np.searchsorted(edges_y, y, side="right") - 1, 0, len(edges_y) - 2)
-    return ix, iy
-
-
 def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
-    """Median windowed error per cell (diverged: +inf) and the edges: one cell per grid point
-    with grid_x/grid_y, else bins x bins cells."""
+    """Median windowed error per cell (diverged: +inf), the edges, the samples per cell and
+    the cells where a sample diverged: one cell per grid point with grid_x/grid_y, else bins x
+    bins cells."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    e = np.where(np.asarray(diverged, bool), np.inf, np.asarray(err, np.float64))
+    div = np.asarray(diverged, bool)
+    e = np.where(div, np.inf, np.asarray(err, np.float64))
     if grid_x is not None and grid_y is not None:
         ex, ey = _edges_of(grid_x), _edges_of(grid_y)
     else:
         b = bins or int(np.clip(np.sqrt(x.size / 8.0), 4, 40))
         ex = np.linspace(x.min(), x.max(), b + 1)
         ey = np.linspace(y.min(), y.max(), b + 1)
-    ix, iy = _cells(x, ex, y, ey)
     nx, ny = len(ex) - 1, len(ey) - 1
+    ix = np.clip(np.searchsorted(ex, x, side="right") - 1, 0, nx - 1)
+    iy = np.clip(np.searchsorted(ey, y, side="right") - 1, 0, ny - 1)
     flat = ix * ny + iy
     order = np.argsort(flat, kind="stable")
     med = np.full(nx * ny, np.nan)
@@ -136,7 +133,8 @@ def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
     es = e[order]
     for c in np.flatnonzero(count):
         med[c] = np.median(es[starts[c]:starts[c + 1]])
-    return med.reshape(nx, ny), ex, ey, count.reshape(nx, ny)
+    div_cells = np.bincount(flat[div], minlength=nx * ny) > 0
+    return med.reshape(nx, ny), ex, ey, count.reshape(nx, ny), div_cells.reshape(nx, ny)
 
 
 def _edges_of(values):
@@ -152,12 +150,10 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     """Heatmap of the median windowed L-inf error over two parameters (hatched: a sample
     diverged at every step tried; red: median above `threshold`; x diverged, o `refined`
     samples); returns the cell statistics."""
-    med, ex, ey, count = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
+    med, ex, ey, count, div_cells = heatmap_grid(x, y, err, diverged, grid_x=grid_x,
+                                                 grid_y=grid_y)
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
-    ix, iy = _cells(np.asarray(x, np.float64), ex, np.asarray(y, np.float64), ey)
-    div_cells = np.zeros(med.shape, bool)
-    div_cells[ix[div], iy[div]] = True
     finite = med[np.isfinite(med)]
     fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
