@@ -72,15 +72,7 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     div = np.asarray(c["diverged"], bool)
     ok = ~div
     n = result.n
-    quant = {}
-    for m in METRICS:
-        v = np.asarray(c[m], np.float64)[ok]
-        v = v[np.isfinite(v)]
-        quant[m] = None
-        if v.size:
-            qs = np.quantile(v, list(QUANTILES.values()))
-            quant[m] = {k: float(x) for k, x in zip(QUANTILES, qs, strict=True)}
-            quant[m]["mean"] = float(np.mean(v))
+    quant = {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS}
     lw = np.asarray(c["linf_error_window"], np.float64)
     refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
@@ -111,6 +103,15 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     out["first_diverged"] = [sample_record(c, result.param_names, i)
                              for i in rank_rows(c, worst, diverged=True)]
     return out
+
+
+def _quantiles(v: np.ndarray) -> dict[str, float] | None:
+    """`QUANTILES` and the mean of the finite values of v; None if there are none."""
+    v = v[np.isfinite(v)]
+    if not v.size:
+        return None
+    qs = np.quantile(v, list(QUANTILES.values()))
+    return {**{k: float(x) for k, x in zip(QUANTILES, qs, strict=True)}, "mean": float(np.mean(v))}
 
 
 def sample_record(columns, param_names, i) -> dict[str, Any]:

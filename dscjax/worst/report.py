@@ -111,10 +111,8 @@ def report_md(result: Result) -> str:
               "|---" * (len(SHARES) + 1) + "|"]
     for m, tr in result.traces.items():
         t, best = _curve(tr)
-        cells = []
-        for f in SHARES:
-            i = np.searchsorted(t, f * (t[-1] if t.size else 0.0), side="right") - 1
-            cells.append(f"{best[i]:.6g}" if i >= 0 else "-")
+        at = np.searchsorted(t, np.array(SHARES) * (t[-1] if t.size else 0.0), side="right") - 1
+        cells = [f"{best[i]:.6g}" if i >= 0 else "-" for i in at]
         lines.append(f"| {m} | " + " | ".join(cells) + " |")
     lines += ["", "Values in the tables are those of the search's batch runs; the worst value "
               "above is re-checked by `simulate` (with refinement) on the worst setup and is "

@@ -237,26 +237,19 @@ def _finish(problem: Problem, traces: dict[str, search.Trace],
             say: Callable[[str], None] | None = None) -> Result:
     """Re-check each method's best point and its diverged candidates with `simulate`; the
     worst of them is the result."""
-    candidates = []
+    candidates = {}  # each distinct point once, with the first method that found it
     for mth, tr in traces.items():
-        if tr.best_z is not None:
-            candidates.append((mth, tr.best_z))
-        candidates += [(mth, z) for z in tr.diverged_z[:2]]
+        for z in ([] if tr.best_z is None else [tr.best_z]) + list(tr.diverged_z[:2]):
+            candidates.setdefault(np.asarray(z).tobytes(), (mth, z))
     if not candidates:
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
     if say is not None:
-        n = len({np.asarray(z).tobytes() for _, z in candidates})
-        say(f"re-checking {n} candidate(s) and the nominal point with simulate (every step, "
-            f"refined if they diverge)")
+        say(f"re-checking {len(candidates)} candidate(s) and the nominal point with simulate "
+            f"(every step, refined if they diverge)")
     best = None
-    checked = {}
-    for mth, z in candidates:
-        key = np.asarray(z).tobytes()
-        if key in checked:
-            continue
+    for mth, z in candidates.values():
         setup = problem.setup_at(z)
         value, bad, t_bad, level, traj = _check_run(problem, setup)
-        checked[key] = value
         score = (math.inf, -t_bad) if bad else (value, 0.0)
         if best is None or score > best[0]:
             best = (score, mth, z, setup, value, bad, t_bad, level, traj)
@@ -265,4 +258,4 @@ def _finish(problem: Problem, traces: dict[str, search.Trace],
     # the program of the candidates' re-check serves it
     nominal_value, *_, nominal = _check_run(problem, problem.setup)
     return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
-                  nominal_value, {"rechecked": len(checked)}, traj, nominal)
+                  nominal_value, {"rechecked": len(candidates)}, traj, nominal)
