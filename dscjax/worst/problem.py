@@ -52,17 +52,15 @@ class DisturbanceSpec:
             raise ConfigError(f"{field} must be fourier:K:D or spline:K:D (got {text!r})")
         kind, k_text, d_text = (p.strip() for p in parts)
         validation.one_of(kind, f"{field} kind", tuple(dist_mod.KINDS))
-        low = cls.MIN_K[kind]
-        try:
-            k = int(k_text)
-        except ValueError:
-            raise ConfigError(f"{field}: K must be an integer >= {low} (got {k_text!r})") \
-                from None
-        try:
-            bound = float(d_text)
-        except ValueError:
-            raise ConfigError(f"{field}: D must be a finite number > 0 (got {d_text!r})") \
-                from None
+
+        def read(text, cast, what):
+            try:
+                return cast(text)
+            except ValueError:
+                raise ConfigError(f"{field}: {what} (got {text!r})") from None
+
+        k = read(k_text, int, f"K must be an integer >= {cls.MIN_K[kind]}")
+        bound = read(d_text, float, "D must be a finite number > 0")
         return cls(kind, k, bound, period).checked(field)
 
     # K below which a waveform is not one: a spline needs two knots to have a knot spacing
