@@ -144,9 +144,8 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
         met = np.asarray(m[f"req{i}_met"]) > 0
         row = {"name": r.name, "met_fraction": float(np.mean(met)),
                "worst_margin": float(np.max(m[f"req{i}_margin"]))}
-        for k in ("overshoot", "settling_time", "peak"):
-            if f"req{i}_{k}" in m:
-                row[k] = float(np.max(m[f"req{i}_{k}"]))
+        row |= {k: float(np.max(m[f"req{i}_{k}"])) for k in ("overshoot", "settling_time", "peak")
+                if f"req{i}_{k}" in m}
         rows.append(row)
     return rows
 
