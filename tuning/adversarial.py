@@ -94,9 +94,7 @@ def record(res: worst.Result) -> dict:
 def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     """Up to `add` distinct worst points of a search, worst first: the re-checked worst case,
     then the best points each method kept (`Trace`'s top points, loss = -metric)."""
-    cands = []
-    for tr in res.traces.values():
-        cands += zip(tr.top_loss, tr.top_z, strict=True)
+    cands = [c for tr in res.traces.values() for c in zip(tr.top_loss, tr.top_z, strict=True)]
     cands.sort(key=lambda c: c[0])
     out: list[np.ndarray] = [np.asarray(res.z)]
     for _, z in cands:

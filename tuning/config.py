@@ -238,8 +238,9 @@ def _requirements(table, field) -> dict[str, dict[str, float]]:
         where = f"{field}.{name}"
         if not isinstance(sub, Mapping):
             raise ConfigError(f"{where} must be a table ([{where}])")
-        # a requirement's keys are its fields; those without a default are required
-        keys = [f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"]
+        # a requirement's keys are its fields, weight last; those without a default are required
+        keys = sorted((f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"),
+                      key=lambda f: f.name == "weight")
         _known(sub, tuple(f.name for f in keys), where)
         for f in keys:
             if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:

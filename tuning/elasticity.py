@@ -33,7 +33,7 @@ STEP = 0.01  # the relative change of one tuned number a constraint should survi
 
 def terms(key: str, names: tuple[str, ...]) -> tuple[tuple[int, int, str], ...]:
     """ln r of the constraint on the report's metric `key` as (sign, loop, metric) terms:
-    loop 0 the loop tuned, i the check loop names[i - 1] (`report._checks`' keys)."""
+    loop 0 the loop tuned, i the check loop names[i - 1] (`report._exact`'s keys)."""
     for i, name in enumerate(names, start=1):
         if key == f"{name}_linf_window":  # its L-inf / (factor x L-inf)
             return (1, i, "linf_error_window"), (-1, 0, "linf_error_window")

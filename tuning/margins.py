@@ -89,29 +89,27 @@ def sweep_times(ts: float) -> list[float]:
     return out + [top]
 
 
-def sample_times(problem, z0, z1, nominal: dict | None = None,
-                 heldout: dict | None = None) -> dict[str, Any] | None:
+def sample_times(problem, z0, z1, nominal: dict, heldout: dict | None) -> dict[str, Any] | None:
     """`ts_sweep.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
     Ts (its discretisation, delay and noise kept), each Ts judged against the gains' windowed
-    L-inf in the loop tuned (`nominal`: {tag: the nominal plant's figures there}; default their
-    continuous figure); the largest Ts up to which each tracks, and whether the tuned gains
-    track at every Ts of the range. With `heldout` ({tag: the held-out plants' figures in the
-    loop tuned}, `report.evaluate`), the held-out batch's p95 of TV(u) on the window and its
+    L-inf in the loop tuned (`nominal`: {tag: the nominal plant's figures there}); the largest
+    Ts up to which each tracks, and whether the tuned gains track at every Ts of the range.
+    With `heldout` ({tag: the held-out plants' figures in the loop tuned}, `report.evaluate`;
+    None: no held-out batch), the held-out batch's p95 of TV(u) on the window and its
     chattering plants at the tuned Ts (those figures) and at every larger Ts of the sweep (run
     here). None for a continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None
     dt = float(problem.options.dt)
-    reference = None if nominal is None else {
-        tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
+    reference = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     result = ts_sweep.study(problem.setup, gain_rows(problem, z0, z1), NAMES, sim.t_final, dt,
                             float(sim.window_start), sweep_times(sim.sample_time), base=sim,
                             reference=reference)
-    result["reference"] = "the loop tuned" if reference is not None else "the continuous loop"
+    result["reference"] = "the loop tuned"
     result["largest"] = {n: ts_sweep.largest_tracking(result, n) for n in NAMES}
     result["tuned_tracks_all"] = all(result["tuned"]["tracks"])
-    if heldout is not None and problem.heldout:
+    if heldout is not None:
         result["batch"] = heldout_at(problem, z0, z1, result["sample_times"], heldout)
     return result
 
@@ -262,16 +260,14 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
     return out
 
 
-def evaluate(problem, z0, z1, ev: dict | None = None) -> dict[str, Any]:
+def evaluate(problem, z0, z1, ev: dict) -> dict[str, Any]:
     """Every margin (JSON-able; a margin that does not apply is None); `ev`: the report's
     per-plant figures (`report.evaluate`), against which the Ts sweep and the delays are
     judged (the nominal plant in the loop tuned) and from which the held-out batch's figures
     at the tuned Ts come."""
-    nominal = None if ev is None else ev["nominal"]
-    heldout = None if ev is None else ev.get("heldout")
     return {"continuous": continuous(problem, z0, z1),
-            "sample_time": sample_times(problem, z0, z1, nominal, heldout),
-            "delay": None if nominal is None else delays(problem, z0, z1, nominal),
+            "sample_time": sample_times(problem, z0, z1, ev["nominal"], ev["heldout"]),
+            "delay": delays(problem, z0, z1, ev["nominal"]),
             "long_run": long_run(problem, z0, z1)}
 
 
@@ -318,9 +314,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   f"from {1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms "
                   f"(its discretisation, delay and noise kept; the continuous loop at the "
                   f"finest plant step as Ts -> 0; figure `sampling.png`). "
-                  + ts_sweep.criterion(st, "the same gains in the loop tuned"
-                                       if st.get("reference") == "the loop tuned" else
-                                       "the same gains' continuous loop")
+                  + ts_sweep.criterion(st, "the same gains in the loop tuned")
                   + (" The held-out columns: the held-out batch at the tuned Ts and above, "
                      "over the plants that did not diverge." if st.get("batch") else ""), "",
                   *ts_sweep.table(st, NAMES), ""]

@@ -53,55 +53,11 @@ from tuning.scales import Scales
 BOUND_RTOL = 1e-9
 
 
-def plant_loss(metrics: Mapping[str, jax.Array], diverged, spec: ObjectiveSpec, scales: Scales,
-               n_requirements: int, bounds: tuple | None = None, checks: tuple = ()
-               ) -> tuple[jax.Array, dict[str, jax.Array]]:
-    """J of one plant (or elementwise over a batch) and its weighted terms, 0 where a loop
-    diverged; `bounds` as `Scales.bounds` gives them (default the nominal ones); `checks` the
-    `CheckLoop`s whose metrics `loop_metrics` added."""
-    # a plant diverged in any loop costs a finite constant, so that means and CVaRs stay
-    # usable; its metrics (NaN) are replaced first, or their 0 x NaN would reach the gradient.
-    # Any other non-finite J stays so, and the search ranks it last.
-    bad = diverged
-    for c in checks:
-        bad = bad | metrics[f"{c.name}_diverged"]
-    metrics = {k: jnp.where(bad, 1.0, v) for k, v in metrics.items()}
-    u_bound, tv_bound = bounds if bounds is not None else (scales.u_max, scales.tv_max)
-    u_bound, tv_bound = _like(u_bound, metrics["max_abs_u"]), _like(tv_bound, metrics["tv_u"])
-    terms = {}
-    for name, (figure, _, scale, _) in TERMS.items():
-        if getattr(spec, name):
-            terms[name] = getattr(spec, name) * metrics[figure] / getattr(scales, scale)
-    for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
-        terms[name] = weight * jnp.maximum(metrics[figure] / bound - 1.0, 0.0) ** 2
-    for i in range(n_requirements):
-        terms[f"req{i}"] = metrics[f"req{i}_penalty"]
-    for c in checks:
-        terms[c.name] = c.penalty(metrics, u_bound, tv_bound)
-    total = jnp.where(bad, spec.divergence_penalty, sum(terms.values()))
-    return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}
-
-
 def bound_terms(spec: ObjectiveSpec, u_bound, tv_bound) -> list[tuple]:
     """(term, figure, bound, weight) of each effort bound's penalty there is."""
     return [t for t in (("u_bound", "smooth_max_abs_u", u_bound, spec.u_max_weight),
                         ("tv_bound", "tv_u", tv_bound, spec.tv_max_weight))
             if t[2] is not None and t[3]]
-
-
-def feasible_plants(metrics: Mapping[str, jax.Array], diverged, bounds: tuple,
-                    n_requirements: int, checks: tuple = ()) -> jax.Array:
-    """Each plant's exact feasibility: no divergence, the effort bounds, the requirements and
-    each check loop's constraints met."""
-    ok = ~diverged
-    for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
-        if bound is not None:
-            ok = ok & within(metrics[key], _like(bound, metrics[key]))
-    for i in range(n_requirements):
-        ok = ok & (metrics[f"req{i}_met"] > 0)
-    for c in checks:
-        ok = ok & c.met(metrics, bounds)
-    return ok
 
 
 class CheckLoop(eqx.Module):
@@ -267,12 +223,37 @@ class Objective(eqx.Module):
         return loss, aux
 
     def judged(self, metrics, diverged, bounds: tuple):
-        """(J, its weighted terms, feasibility) of each plant of these metrics (`loop_metrics`)
-        against `bounds` (`Scales.bounds`)."""
-        n_req = len(self.requirements)
-        per_plant, terms = plant_loss(metrics, diverged, self.spec, self.scales, n_req, bounds,
-                                      self.checks)
-        return per_plant, terms, feasible_plants(metrics, diverged, bounds, n_req, self.checks)
+        """(J, its weighted terms (0 where a loop diverged), exact feasibility) of each plant of
+        these metrics (`loop_metrics`) against `bounds` (`Scales.bounds`): feasible where no loop
+        diverged and the effort bounds, the requirements and each check loop's constraints are
+        met."""
+        spec, n_req = self.spec, len(self.requirements)
+        ok = ~diverged
+        for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
+            if bound is not None:
+                ok = ok & within(metrics[key], _like(bound, metrics[key]))
+        # a plant diverged in any loop costs a finite constant, so that means and CVaRs stay
+        # usable; its metrics (NaN) are replaced first, or their 0 x NaN would reach the
+        # gradient. Any other non-finite J stays so, and the search ranks it last.
+        bad = diverged
+        for c in self.checks:
+            bad = bad | metrics[f"{c.name}_diverged"]
+        m = {k: jnp.where(bad, 1.0, v) for k, v in metrics.items()}
+        u_bound, tv_bound = _like(bounds[0], m["max_abs_u"]), _like(bounds[1], m["tv_u"])
+        terms = {}
+        for name, (figure, _, scale, _) in TERMS.items():
+            if getattr(spec, name):
+                terms[name] = getattr(spec, name) * m[figure] / getattr(self.scales, scale)
+        for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
+            terms[name] = weight * jnp.maximum(m[figure] / bound - 1.0, 0.0) ** 2
+        for i in range(n_req):
+            terms[f"req{i}"] = m[f"req{i}_penalty"]
+            ok = ok & (metrics[f"req{i}_met"] > 0)
+        for c in self.checks:
+            terms[c.name] = c.penalty(m, u_bound, tv_bound)
+            ok = ok & c.met(metrics, bounds)
+        total = jnp.where(bad, spec.divergence_penalty, sum(terms.values()))
+        return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}, ok
 
     def summary(self, per_plant, terms, metrics, diverged, feasible, mask=None):
         """(loss, aux) of one point from its plants' `judged` figures (axis 0, or none without

@@ -144,9 +144,8 @@ def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]
         met = np.asarray(m[f"req{i}_met"]) > 0
         row = {"name": r.name, "met_fraction": float(np.mean(met)),
                "worst_margin": float(np.max(m[f"req{i}_margin"]))}
-        for k in ("overshoot", "settling_time", "peak"):
-            if f"req{i}_{k}" in m:
-                row[k] = float(np.max(m[f"req{i}_{k}"]))
+        row |= {k: float(np.max(m[f"req{i}_{k}"])) for k in ("overshoot", "settling_time", "peak")
+                if f"req{i}_{k}" in m}
         rows.append(row)
     return rows
 
@@ -156,22 +155,21 @@ def constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, An
     bound, margin and met (within `BOUND_RTOL`; never for a diverged plant). Each check loop
     (`CheckLoop`) adds its rows: its windowed L-inf and effort bounds."""
     rows = []
-    diverged = bool(np.asarray(m.get("diverged", False)))
-    for c in checks:
-        diverged = diverged or bool(np.asarray(m[f"{c.name}_diverged"]))
-    for name, key, bound in _checks((scales.u_max, scales.tv_max), m, checks):
-        value = float(np.asarray(m[key]))
-        margin = float(bound) - value
-        rows.append({"name": name, "key": key, "value": value, "bound": float(bound),
-                     "margin": margin,
-                     "relative_margin": margin / float(bound),
-                     "met": bool(not diverged and np.isfinite(value)
-                                 and bool(within(value, float(bound))))})
+    for name, key, _, v, b, _, met in _exact((scales.u_max, scales.tv_max), m, checks, 1):
+        value, bound = float(v[0]), float(b[0])
+        rows.append({"name": name, "key": key, "value": value, "bound": bound,
+                     "margin": bound - value, "relative_margin": (bound - value) / bound,
+                     "met": bool(met[0])})
     return rows
 
 
-def _checks(bounds, m, checks) -> list[tuple]:
-    """(name, metric, bound) of each bound (max|u|, TV(u), the check loops') there is."""
+def _exact(bounds, m, checks, n: int):
+    """(name, metric, bound, values (n,), bounds (n,), unmeasured (n,), met (n,)) of each bound
+    there is (max|u|, TV(u), the check loops') on the n plants of `m`: unmeasured where a loop
+    diverged or the value is not finite, met within `BOUND_RTOL` where measured."""
+    diverged = np.broadcast_to(np.asarray(m.get("diverged", False)), (n,)).astype(bool)
+    for c in checks:
+        diverged = diverged | np.asarray(m[f"{c.name}_diverged"]).astype(bool)
     out = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
     for c in checks:
         out.append((f"L-inf on [t0,T], {c.label}", f"{c.name}_linf_window",
@@ -179,24 +177,22 @@ def _checks(bounds, m, checks) -> list[tuple]:
         out += [(f"{what}, {c.label}", f"{c.name}_{key}",
                  b if f == 1 else f * np.asarray(b, float))
                 for what, key, b, f in c.bounded(bounds)]
-    return [c for c in out if c[2] is not None]
+    for name, key, bound in (t for t in out if t[2] is not None):
+        b = np.broadcast_to(np.asarray(bound, float), (n,))
+        v = np.asarray(m[key], float).reshape(n)
+        bad = diverged | ~np.isfinite(v)
+        yield name, key, bound, v, b, bad, ~bad & within(v, b)
 
 
 def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, Any]]:
     """The bounds checked exactly on every training plant (`m` as `evaluate` gives it), each
     against its own or the nominal bound: how many meet it, and the worst plant (the smallest
     relative margin; a diverged plant meets nothing and is the worst)."""
-    diverged = np.asarray(m["diverged"]).astype(bool)
-    n = diverged.size
+    n = np.asarray(m["diverged"]).size
     rows = []
-    for c in checks:
-        diverged = diverged | np.asarray(m[f"{c.name}_diverged"]).astype(bool)
-    for name, key, bound in _checks(scales.bounds(train=True), m, checks):
-        b = np.broadcast_to(np.asarray(bound, float), (n,))
-        v = np.asarray(m[key], float).reshape(n)
+    for name, _, bound, v, b, bad, met in _exact(scales.bounds(train=True), m, checks, n):
         with np.errstate(invalid="ignore"):
-            met = ~diverged & np.isfinite(v) & within(v, b)
-            rel = np.where(diverged | ~np.isfinite(v), -np.inf, (b - v) / b)
+            rel = np.where(bad, -np.inf, (b - v) / b)
         worst = int(np.argmin(rel))
         measured = bool(np.isfinite(rel[worst]))
         rows.append({"name": name, "bounds": "per_plant" if np.ndim(bound) else "nominal",

@@ -156,10 +156,8 @@ def text(s: dict, problem, figures) -> str:
         + (f"; the whole command up to this report {run['wall_total_s']:.1f} s"
            if run["wall_total_s"] else "") + ".",
     ]
-    for note in s["notes"]:
-        lines.append(f"Note: {note}.")
-    for w in s["warnings"]:
-        lines.append(f"**Warning:** {w}.")
+    lines += [f"Note: {note}." for note in s["notes"]]
+    lines += [f"**Warning:** {w}." for w in s["warnings"]]
     lines += ["", "## Nominal plant", ""]
     if s.get("shifted_reference"):
         lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) "
@@ -261,9 +259,8 @@ def text(s: dict, problem, figures) -> str:
                              f"{100 * a['met_fraction']:.1f} %)"
                              for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
     lines += ["", "## Gains", "", "| parameter | start | tuned |", "|---|---|---|"]
-    for name in s["gains"]["start"]:
-        lines.append(f"| `{name}` | {_fmt_val(s['gains']['start'][name])} | "
-                     f"{_fmt_val(s['gains']['tuned'][name])} |")
+    lines += [f"| `{name}` | {_fmt_val(a)} | {_fmt_val(s['gains']['tuned'][name])} |"
+              for name, a in s["gains"]["start"].items()]
     # the command that runs the loop tuned
     lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
     if figures:

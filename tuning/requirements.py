@@ -35,7 +35,8 @@ class Requirement(eqx.Module):
     k, t, e, y, obs, w)` (one step: tracking error e, trapezoid weight w) and `check`
     (`penalty`: weight x viol/T unless it says otherwise); `n_steps` is set by `tuning_metrics`."""
 
-    n_steps: eqx.AbstractVar[int]
+    weight: jax.Array = eqx.field(default=1.0, kw_only=True)
+    n_steps: int = eqx.field(static=True, default=0, kw_only=True)
     name: ClassVar[str]
 
     @abc.abstractmethod
@@ -72,8 +73,6 @@ class Envelope(Requirement):
     b0: jax.Array
     b_inf: jax.Array
     decay: jax.Array
-    weight: jax.Array = 1.0
-    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "envelope"
 
     def bound(self, t):
@@ -103,8 +102,6 @@ class StepResponse(Requirement):
     # required, but a table may leave them to the step reference (`build_requirements`)
     final: jax.Array = eqx.field(kw_only=True)
     height: jax.Array = eqx.field(kw_only=True)
-    weight: jax.Array = 1.0
-    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "step"
 
     def init(self, dtype):
@@ -135,8 +132,6 @@ class UBound(Requirement):
     """|u(t)| <= max at every step."""
 
     max: jax.Array
-    weight: jax.Array = 1.0
-    n_steps: int = eqx.field(static=True, default=0)
     name: ClassVar[str] = "u_bound"
 
     def _signal(self, obs):

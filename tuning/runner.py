@@ -278,9 +278,8 @@ def simulate_command(problem: Problem, config: str = "gains.json") -> str:
     """The `dscjax simulate` command that runs the loop tuned from `config` (gains.json, whose
     [simulation] is the loop tuned): with --window-start where the objective's differs."""
     sim, given = problem.objective.sim, problem.options
-    flags = []
-    if float(sim.window_start) != float(given.window_start):
-        flags.append(f"--window-start {shortest(float(sim.window_start))}")
+    flags = ([f"--window-start {shortest(float(sim.window_start))}"]
+             if float(sim.window_start) != float(given.window_start) else [])
     return " ".join(["dscjax simulate --config", shlex.quote(config), *flags])
 
 
