@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import sys
 
-from dscjax import config, settings
-from dscjax.cli.common import add_config_args
+from dscjax import settings
+from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
 from dscjax.params import cast
 from dscjax.settings import add_arguments
@@ -31,7 +31,7 @@ def add_parser(sub):
         "interval, which numbers the data cannot identify, and a validation fit "
         "(docs/identification.md).")
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
-    add_config_args(p, run_keys=("dt",), float32=False)
+    common.add_config_args(p, run_keys=("dt",), float32=False)
     add_arguments(p, IdentifySettings, "identify.")
     add_out_arg(p, "results/identify")
     add_overwrite_arg(p)
@@ -44,32 +44,27 @@ def load(args):
     options."""
     import numpy as np
 
-    from dscjax.cli.common import apply_run_options, blame_options, example_setup
     from dscjax.identify.run import IdentifySettings
 
-    raw = config.read(args.config, "--config") if args.config else {}
-    table = raw.pop("identify", {})
-    setup, spec = config.from_dict(raw, base=example_setup(args))
+    setup, spec = common.config_setup(args)
+    table = common.config_data(args).get("identify", {})
     s = settings.from_table(IdentifySettings, table, "identify.")
-    given, names = settings.given(args, IdentifySettings, "identify.")
-    with blame_options(names):
-        s = settings.from_table(IdentifySettings, given, "identify.", s)
+    s = common.own_settings(args, IdentifySettings, "identify.", s)[0]
     if not s.free:
         raise ConfigError("--free: give the numbers to fit, e.g. --free "
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
-    spec = apply_run_options(args, spec)
+    spec = common.apply_run_options(args, spec)
     validate_setup(setup)
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, np.dtype("float64")), spec, s, source
 
 
 def run(args) -> int:
-    from dscjax.cli.common import print_config
     from dscjax.identify import run as ident
 
     setup, spec, s, source = load(args)
     if args.print_config:
-        print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
+        common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
     record, val = ident.read_records(s, args.data, setup.order)
     out = prepare_out(args, OUTPUTS)

@@ -17,24 +17,8 @@ import numpy as np
 
 from dscjax import config, files, params
 from dscjax import settings as schema
-from dscjax.cli.common import (
-    SAMPLED_KEYS,
-    add_example_arg,
-    add_run_args,
-    apply_run_options,
-    blame_options,
-    chattering_text,
-    check_noise,
-    choose_device,
-    count,
-    example_setup,
-    figure,
-    horizon_text,
-    print_config,
-    untrusted_text,
-)
+from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
-from dscjax.files import write_json, write_npz
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
@@ -44,7 +28,7 @@ from dscjax.validation import ConfigError, Work, check_work, validate_setup
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
 # the [simulation] keys this command takes as options
-SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *SAMPLED_KEYS, "device")
+SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *common.SAMPLED_KEYS, "device")
 OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))
@@ -79,8 +63,8 @@ def add_parser(sub):
                    help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
     add_arguments(p, SweepSettings, "sweep.")
-    add_run_args(p, SWEEP_KEYS)
-    add_example_arg(p)
+    common.add_run_args(p, SWEEP_KEYS)
+    common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
                       f"{d.dtype})")
@@ -95,8 +79,10 @@ def add_parser(sub):
                       "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
                       "(implies --distributed)")
-    dist.add_argument("--num-processes", type=count(1), metavar="N", help="number of processes")
-    dist.add_argument("--process-id", type=count(0), metavar="I", help="this process's index")
+    dist.add_argument("--num-processes", type=common.count(1), metavar="N",
+                      help="number of processes")
+    dist.add_argument("--process-id", type=common.count(0), metavar="I",
+                      help="this process's index")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     return p
@@ -106,21 +92,16 @@ def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
     from dscjax.sweep import SweepSettings, settings_from_dict
 
-    raw = config.read(args.config, "--config") if args.config else {}
-    sweep_table = raw.pop("sweep", {})
-    if not isinstance(sweep_table, dict):
-        raise ConfigError("'sweep' must be a table ([sweep])")
-    setup, options = config.from_dict(raw, base=example_setup(args))
+    raw = common.config_data(args)
+    setup, options = common.config_setup(args)
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
-    options = apply_run_options(args, options)
-    settings = settings_from_dict(sweep_table, SweepSettings())
-    given, names = schema.given(args, SweepSettings, "sweep.")
+    options = common.apply_run_options(args, options)
+    settings = settings_from_dict(raw.get("sweep", {}), SweepSettings())
     if args.grid and args.samples is not None:
         raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
                           "of its numbers of points)")
-    with blame_options(names):
-        settings = schema.from_table(SweepSettings, given, "sweep.", settings)
+    settings, given, _ = common.own_settings(args, SweepSettings, "sweep.", settings)
     changes = {}
     if args.grid:
         if args.ranges:
@@ -133,13 +114,11 @@ def load(args):
         changes |= dict(method="uniform", ranges=())
     if args.ranges:
         changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
-    if args.float64:
-        changes["dtype"] = "float64"
-    elif args.float32:
-        changes["dtype"] = "float32"
+    if args.float64 or args.float32:
+        changes["dtype"] = "float64" if args.float64 else "float32"
     settings = dataclasses.replace(settings, **changes)
     validate_setup(setup)
-    check_noise(args, setup, options)
+    common.check_noise(args, setup, options)
     return setup, options, settings
 
 
@@ -160,7 +139,7 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
-    for key in SAMPLED_KEYS:
+    for key in common.SAMPLED_KEYS:
         value = loop.get(key, OPTIONS[key][0])
         if key in config_loop and config_loop[key] != value:
             print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
@@ -168,9 +147,10 @@ def _gains(args, setup, options, config_loop: dict):
                   f"loop the gains were tuned as; --{key.replace('_', '-')} overrides both)",
                   file=sys.stderr)
     # the config's run with a continuous controller, then the gains file's keys (checked)
-    continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),
+    continuous = RunSpec.make(**(options.to_table()
+                                 | {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}),
                               gradient=options.gradient)
-    given = {k: loop[k] for k in SAMPLED_KEYS if k in loop}
+    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
     options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
                                         for k in given}, **given)
     return setup, options
@@ -218,22 +198,24 @@ def run(args) -> int:
     dtype = np.dtype(settings.dtype)
     printed = setup
     setup = params.cast(setup, dtype)
-    with blame_options(typed_settings(args)):
+    with common.blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
-        print_config(printed, options, {"sweep": sweep_settings.to_table(settings, setup)},
-                     groups={"sweep": settings})
+        common.print_config(printed, options,
+                            {"sweep": sweep_settings.to_table(settings, setup)},
+                            groups={"sweep": settings})
         return 0
     check(setup, options)
     steps = options.n_steps
     check_work(work(setup, settings, steps, ranges),
-               what=f"{settings.n_samples():,} samples of {horizon_text(t_final, dt, steps)}",
+               what=f"{settings.n_samples():,} samples of "
+               f"{common.horizon_text(t_final, dt, steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run
         sweep.check_resumable(args.out, setup, settings, options)
     n = settings.n_samples()
-    choice = choose_device(args, options.device, n)  # run_sweep places the blocks alike
+    choice = common.choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0
     # several processes share --out: process 0 (which writes every file) takes the lock of
     # the directory and applies the rule of --out; process i > 0 takes a lock of its own
@@ -321,7 +303,7 @@ def run(args) -> int:
     if not args.no_plot:
         figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
                          nominal_params, trajs, records, kinds, window_start, t_final, summary)
-    write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
     q = summary["quantiles"]["linf_error_window"]
@@ -339,11 +321,12 @@ def run(args) -> int:
     chat = summary["chattering"]
     if tv is not None:
         nom = ("" if bool(nominal.diverged) else
-               f"; nominal TV(u) {figure(nominal_metrics['tv_u_window'])}, "
-               + chattering_text(nominal_metrics["chattering_index"]))
+               f"; nominal TV(u) {common.figure(nominal_metrics['tv_u_window'])}, "
+               + common.chattering_text(nominal_metrics["chattering_index"]))
         print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
-              f"median {figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
-              f"max|u| max {figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
+              f"median {common.figure(tv['p50'])}, p95 {common.figure(tv['p95'])}, max "
+              f"{common.figure(tv['max'])}; max|u| max "
+              f"{common.figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
     print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
           f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
     smallest = summary["smallest_dt_tried"]
@@ -355,9 +338,9 @@ def run(args) -> int:
     print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
           f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     if f32 is not None and f32["untrusted"]:
-        print("  warning: " + untrusted_text(f32["untrusted"], f32["max_rel_diff"], f32["rtol"],
-                                             "rerun with --float64",
-                                             on=f" on {len(f32['rows'])} re-checked rows"),
+        print("  warning: " + common.untrusted_text(
+            f32["untrusted"], f32["max_rel_diff"], f32["rtol"], "rerun with --float64",
+            on=f" on {len(f32['rows'])} re-checked rows"),
               file=sys.stderr)
     return 0
 
@@ -417,7 +400,7 @@ def _write_traces(path, trajs, records, kinds, nominal):
                    "kind": np.array(kinds)}
         arrays |= {k: np.stack([np.asarray(getattr(t, k)) for t in trajs]) for k in "txeuw"}
         arrays["diverged"] = np.array([bool(t.diverged) for t in trajs])
-    write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
+    files.write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 
 def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,
