@@ -7,7 +7,7 @@ import sys
 
 from dscjax import config, export
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
 from dscjax.files import write_text
 from dscjax.params import cast
@@ -36,7 +36,6 @@ def add_parser(sub):
                    "type throughout, double (default: the simulated loop to round-off) or "
                    "float (for a single-precision FPU; docs/export.md: how closely it agrees)")
     add_out_arg(p, "results/export")
-    add_overwrite_arg(p)
     return p
 
 

@@ -15,7 +15,7 @@ import numpy as np
 
 from dscjax import config, files, validation
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.files import write_npz
 from dscjax.hysteresis import sine_loops
 from dscjax.plotting import hysteresis_loop, subplots
@@ -50,7 +50,6 @@ def add_parser(sub):
                    f"(default {DEFAULT_DT:g})")
     common.add_run_args(p, ("device",))
     add_out_arg(p, "results/hysteresis")
-    add_overwrite_arg(p)
     return p
 
 

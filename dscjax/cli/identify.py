@@ -9,7 +9,7 @@ import sys
 
 from dscjax import settings
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.params import cast
 from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, validate_setup
@@ -33,9 +33,7 @@ def add_parser(sub):
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
     common.add_config_args(p, run_keys=("dt",), float32=False)
     add_arguments(p, IdentifySettings, "identify.")
-    add_out_arg(p, "results/identify")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip the figures")
+    add_out_arg(p, "results/identify", plot="skip the figures")
     return p
 
 

@@ -50,7 +50,7 @@ def add_parser(sub):
         "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
         f"With --complexity also measure the size and cost of both control laws for orders "
         f"n = {orders.replace('-', '..')} (takes minutes).")
-    add_out_arg(p, "results/paper")
+    add_out_arg(p, "results/paper", later=True)
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
     p.add_argument("--dpi", type=common.count(10), default=r.DPI,

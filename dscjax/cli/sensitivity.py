@@ -15,7 +15,7 @@ import numpy as np
 
 from dscjax import files, params, validation
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.params import cast
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
@@ -55,9 +55,7 @@ def add_parser(sub):
                    "hysteresis model's numbers within +-30%%, as sweep's)")
     p.add_argument("--seed", type=common.count(0), default=0, help="seed of the --batch plants "
                    "(default 0)")
-    add_out_arg(p, "results/sensitivity")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip sensitivity.png")
+    add_out_arg(p, "results/sensitivity", plot="skip sensitivity.png")
     return p
 
 

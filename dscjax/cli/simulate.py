@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 
@@ -28,10 +27,6 @@ SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refin
                  *common.SAMPLED_KEYS, "device")
 
 
-def _default_variant() -> str:
-    return {f.name: f.default for f in dataclasses.fields(DSC)}["variant"]
-
-
 def add_parser(sub):
     p = sub.add_parser(
         "simulate", help="simulate one closed loop (default: the paper's example)",
@@ -41,13 +36,12 @@ def add_parser(sub):
         "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
         "V_zeta, V_d, V_y (the filter errors).")
     common.add_config_args(p, run_keys=SIMULATE_KEYS)
-    add_out_arg(p, "results/simulate")
+    add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "
-                   f"{_default_variant()})")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+                   f"{DSC.variant})")
+    add_overwrite_arg(p, plot="skip trajectory.png")
     return p
 
 

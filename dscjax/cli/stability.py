@@ -14,7 +14,7 @@ import numpy as np
 from dscjax import files, validation
 from dscjax.cli import common
 from dscjax.cli.common import load_setup
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 
 OUTPUTS = Outputs(("stability.json", "stability.png"))
 
@@ -31,9 +31,7 @@ def add_parser(sub):
                    help="factors applied to every filter constant tau_i, separated by commas "
                    "(default "
                    "0.25,0.5,1,2,4)")
-    add_out_arg(p, "results/stability")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip stability.png")
+    add_out_arg(p, "results/stability", plot="skip stability.png")
     return p
 
 

@@ -18,7 +18,7 @@ import numpy as np
 from dscjax import config, files, params
 from dscjax import settings as schema
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
@@ -70,9 +70,9 @@ def add_parser(sub):
                       f"{d.dtype})")
     prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
                       f"{d.dtype})")
-    add_out_arg(p, "results/sweep")
-    add_overwrite_arg(p, resume="continue a sweep in DIR: skip the blocks already written",
-                      overwrite="discard a sweep in DIR and start afresh")
+    add_out_arg(p, "results/sweep",
+                resume="continue a sweep in DIR: skip the blocks already written",
+                overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "

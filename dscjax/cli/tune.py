@@ -46,15 +46,14 @@ def add_parser(sub):
                    "(laid over the one in --config)")
     p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
                    "the gains.json of an earlier run (laid over --config)")
-    add_out_arg(p, "results/tune")
+    add_out_arg(p, "results/tune", later=True)
     add_arguments(p, TuningConfig, "tuning.")
     common.add_run_args(p, ("t_final", "dt", *common.SAMPLED_KEYS, "device"), defaults=SIMULATION)
     common.add_example_arg(p)
     add_overwrite_arg(p, resume="continue the run in DIR from its checkpoint (iteration "
                       "count, optimiser state and best point)",
-                      overwrite="discard a run in DIR and start afresh")
-    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
+                      overwrite="discard a run in DIR and start afresh",
+                      plot="skip the PNG figures", quiet="no progress line")
     return p
 
 

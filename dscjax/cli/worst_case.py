@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dscjax import files, settings, worst
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.settings import add_arguments
@@ -40,11 +40,9 @@ def add_parser(sub):
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
     add_arguments(p, worst.WorstSettings, "worst.")
-    add_out_arg(p, "results/worst-case")
-    add_overwrite_arg(p, resume="continue a search in DIR (each method from its last "
-                      "finished iteration)", overwrite="discard a search in DIR")
-    p.add_argument("--no-plot", action="store_true", help="skip the figures")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
+    add_out_arg(p, "results/worst-case", resume="continue a search in DIR (each method from "
+                "its last finished iteration)", overwrite="discard a search in DIR",
+                plot="skip the figures", quiet="no progress display")
     return p
 
 
