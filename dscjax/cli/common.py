@@ -198,8 +198,8 @@ def portable_device(args, spec):
         return spec
     if any(d.platform != "cpu" for d in device.visible()):
         return spec
-    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {args.config}: no GPU "
-          f"here; running on the CPU", file=sys.stderr)
+    say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
+        f"the CPU")
     return spec.replace(device="auto")
 
 
@@ -219,6 +219,12 @@ def use_device(args, kind: str, rows: int = 1):
     choice = choose_device(args, kind, rows)
     args.exit_stack.enter_context(device.placed(choice))
     return choice
+
+
+def say(args, kind: str, *texts) -> None:
+    """Each text as one line on stderr, "dscjax COMMAND: KIND: TEXT" (KIND: warning, note)."""
+    for text in texts:
+        print(f"dscjax {args.command}: {kind}: {text}", file=sys.stderr)
 
 
 def listed(names, most: int = 6) -> str:

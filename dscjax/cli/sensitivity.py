@@ -98,12 +98,11 @@ def run(args) -> int:
           + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
                            if spec.sampled else ", continuous loop") + f"; on {choice}",
           file=sys.stderr)
-    for w in warnings:
-        print(f"dscjax sensitivity: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
-        print(f"dscjax sensitivity: note: {len(zero)} of the {d} numbers {are} no d ln p "
-              f"(null in sensitivity.json): {common.listed(zero)}", file=sys.stderr)
+        common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "
+                   f"sensitivity.json): {common.listed(zero)}")
     t0 = time.perf_counter()
     with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
         bar.update_to(0, "compiling the loop and its reverse pass")
@@ -130,7 +129,7 @@ def run(args) -> int:
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
     if f32 is not None and untrusted:
-        print(f"dscjax sensitivity: warning: {untrusted}", file=sys.stderr)
+        common.say(args, "warning", untrusted)
     return 0
 
 

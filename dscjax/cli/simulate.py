@@ -78,8 +78,7 @@ def run(args) -> int:
              + (f", input delay {options.delay} sample(s)" if options.delay else "")
              + (", measurement noise" if options.noise is not None else "") + ")"
              if options.sampled else "") + f"; on {choice}", file=sys.stderr)
-    for w in warnings:
-        print(f"dscjax simulate: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *warnings)
     if "save_every" in options.rules and every > 1:
         print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
               f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
@@ -167,7 +166,7 @@ def run(args) -> int:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
               f"were not measured (null in metrics.json)")
     if f32 is not None and f32["untrusted"]:
-        print(f"dscjax simulate: warning: {warnings[-1]}", file=sys.stderr)
+        common.say(args, "warning", warnings[-1])
     if diverged is not None:
         raise diverged
     return 0

@@ -142,10 +142,10 @@ def _gains(args, setup, options, config_loop: dict):
     for key in common.SAMPLED_KEYS:
         value = loop.get(key, OPTIONS[key][0])
         if key in config_loop and config_loop[key] != value:
-            print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
-                  f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
-                  f"loop the gains were tuned as; --{key.replace('_', '-')} overrides both)",
-                  file=sys.stderr)
+            common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
+                       f"{args.config} gives way to the gains file's {value!r} ({args.gains}: "
+                       f"the loop the gains were tuned as; --{key.replace('_', '-')} overrides "
+                       f"both)")
     # the config's run with a continuous controller, then the gains file's keys (checked)
     continuous = RunSpec.make(**(options.to_table()
                                  | {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}),
@@ -221,6 +221,8 @@ def run(args) -> int:
     # the directory and applies the rule of --out; process i > 0 takes a lock of its own
     out = prepare_out(args, OUTPUTS, resumable=True, check=main,
                       lock=files.LOCK if main else f"{files.LOCK}.{jax.process_index()}")
+    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
+                                   else "sweep.ranges")
     if main:
         desc = ", ".join(
             f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
@@ -231,10 +233,7 @@ def run(args) -> int:
               f"{len(choice.devices)} device(s) "
               f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
               file=sys.stderr)
-    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
-                                   else "sweep.ranges")
-    for w in warnings if main else ():
-        print(f"dscjax sweep: warning: {w}", file=sys.stderr)
+        common.say(args, "warning", *warnings)
     bar = None
 
     def progress(p):

@@ -182,8 +182,7 @@ def run(args) -> int:
                  if oc.time_limit else ""), file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
-    for w in report.assumption_warnings(problem):
-        print(f"dscjax tune: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *report.assumption_warnings(problem))
     sc = problem.scales
     user = sc.start.get("user_linf_error_window")
     print(f"  start: L-inf error on the window {sc.linf:.4g}"
@@ -275,7 +274,7 @@ def run(args) -> int:
               + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
                  f"{elasticity.text(top['elasticity'])})"))
     if summary.get("sensitivity_warning"):
-        print(f"dscjax tune: WARNING: {summary['sensitivity_warning']}", file=sys.stderr)
+        common.say(args, "WARNING", summary["sensitivity_warning"])
     if summary["effort_bounds"] == "per_plant":
         for c in summary.get("train_constraints", {}).get("tuned", []):
             worst = ("diverged" if c["worst_margin"] is None else
@@ -300,12 +299,11 @@ def run(args) -> int:
                 print(f"  held-out {what}: median {a['median']:.4g} -> {b['median']:.4g}, "
                       f"p95 {a['p95']:.4g} -> {b['p95']:.4g}{then}")
     if summary.get("heldout_warning"):
-        print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
+        common.say(args, "WARNING", summary["heldout_warning"])
     for line in margin_lines(summary.get("margins"), summary["nominal"]):
         print(f"  {line}")
     if summary.get("margins_warning"):
-        print(f"dscjax tune: WARNING: a margin fails: {summary['margins_warning']}",
-              file=sys.stderr)
+        common.say(args, "WARNING", f"a margin fails: {summary['margins_warning']}")
     print(f"  run the loop tuned: {simulate_command(result.problem, str(out / 'gains.json'))}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "

@@ -89,8 +89,7 @@ def run(args) -> int:
           + f"; {', '.join(methods)}, {s.time_limit:g} s each"
           + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
           + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
-    for w in worst.assumption_warnings(problem):
-        print(f"dscjax worst-case: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *worst.assumption_warnings(problem))
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)
