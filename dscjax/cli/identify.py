@@ -10,6 +10,7 @@ import sys
 from dscjax import settings
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.identify import run as ident
 from dscjax.params import cast
 from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, validate_setup
@@ -19,8 +20,6 @@ interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
-    from dscjax.identify.run import IdentifySettings
-
     p = sub.add_parser(
         "identify", help="identify plant and actuator numbers from a measured record",
         description="Fit the free numbers of a config (--free) to a measured record (--data: "
@@ -32,7 +31,7 @@ def add_parser(sub):
         "(docs/identification.md).")
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
     common.add_config_args(p, run_keys=("dt",), float32=False)
-    add_arguments(p, IdentifySettings, "identify.")
+    add_arguments(p, ident.IdentifySettings, "identify.")
     add_out_arg(p, "results/identify", plot="skip the figures")
     return p
 
@@ -42,12 +41,10 @@ def load(args):
     options."""
     import numpy as np
 
-    from dscjax.identify.run import IdentifySettings
-
     setup, spec = common.config_setup(args)
     table = common.config_data(args).get("identify", {})
-    s = settings.from_table(IdentifySettings, table, "identify.")
-    s = common.own_settings(args, IdentifySettings, "identify.", s)[0]
+    s = settings.from_table(ident.IdentifySettings, table, "identify.")
+    s = common.own_settings(args, ident.IdentifySettings, "identify.", s)[0]
     if not s.free:
         raise ConfigError("--free: give the numbers to fit, e.g. --free "
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
@@ -58,8 +55,6 @@ def load(args):
 
 
 def run(args) -> int:
-    from dscjax.identify import run as ident
-
     setup, spec, s, source = load(args)
     if args.print_config:
         common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})

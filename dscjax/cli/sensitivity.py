@@ -15,10 +15,11 @@ import numpy as np
 
 from dscjax import files, params, validation
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
+from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.params import cast
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
+from dscjax.sensitivity import LP_ORDER, METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
 from dscjax.validation import ConfigError
 
@@ -28,8 +29,6 @@ TOP = 15  # bars per metric in the tornado chart
 
 
 def add_parser(sub):
-    from dscjax.sensitivity import LP_ORDER, METRICS
-
     p = sub.add_parser(
         "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse "
         "mode",
@@ -60,8 +59,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax.sensitivity import METRICS, Problem, check_metrics
-
     setup, spec = common.load_setup(args)
     metrics = check_metrics(args.metrics or METRICS)
     if args.ranges and not args.batch:
@@ -138,7 +135,6 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
     ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
     sensitivity.json records and the warning (None if every value is trusted)."""
-    from dscjax.sensitivity import Problem
     from dscjax.sweep.summary import float32_trust
 
     f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
@@ -232,6 +228,4 @@ def _title(setup, spec, args) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import AT_END, nothing_kept
-
     return nothing_kept(args, AT_END)

@@ -10,7 +10,7 @@ import numpy as np
 from dscjax import config, validation
 from dscjax.cli import common
 from dscjax.cli.common import load_setup
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import AT_END, Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.controllers.dsc import DSC, VARIANTS
 from dscjax.files import write_json, write_npz
 from dscjax.params import cast
@@ -201,8 +201,6 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import AT_END, kept_text
-
     return kept_text(args, OUTPUTS, AT_END)
 
 

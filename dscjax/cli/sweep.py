@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax import config, files, params
+from dscjax import config, files, params, sweep
 from dscjax import settings as schema
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_command
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
@@ -35,9 +35,7 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    from dscjax.sweep import SweepSettings
-
-    d = SweepSettings()
+    d = sweep.SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
@@ -62,7 +60,7 @@ def add_parser(sub):
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
-    add_arguments(p, SweepSettings, "sweep.")
+    add_arguments(p, sweep.SweepSettings, "sweep.")
     common.add_run_args(p, SWEEP_KEYS)
     common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
@@ -90,18 +88,16 @@ def add_parser(sub):
 
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
-    from dscjax.sweep import SweepSettings, settings_from_dict
-
     raw = common.config_data(args)
     setup, options = common.config_setup(args)
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
     options = common.apply_run_options(args, options)
-    settings = settings_from_dict(raw.get("sweep", {}), SweepSettings())
+    settings = sweep.settings_from_dict(raw.get("sweep", {}), sweep.SweepSettings())
     if args.grid and args.samples is not None:
         raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
                           "of its numbers of points)")
-    settings, given, _ = common.own_settings(args, SweepSettings, "sweep.", settings)
+    settings, given, _ = common.own_settings(args, sweep.SweepSettings, "sweep.", settings)
     changes = {}
     if args.grid:
         if args.ranges:
@@ -158,9 +154,7 @@ def _gains(args, setup, options, config_loop: dict):
 
 def typed_settings(args) -> dict[str, str]:
     """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
-    from dscjax.sweep import SweepSettings
-
-    names = schema.given(args, SweepSettings, "sweep.")[1]
+    names = schema.given(args, sweep.SweepSettings, "sweep.")[1]
     return names | {f"sweep.{key}": option for dest, key, option in (
         ("grid", "grid", "--grid"), ("ranges", "ranges", "--range"),
         ("float32", "dtype", "--float32"), ("float64", "dtype", "--float64"))
@@ -170,11 +164,10 @@ def typed_settings(args) -> dict[str, str]:
 def work(setup, settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
-    from dscjax.sweep import METRICS
     from dscjax.sweep.run import STATUS_COLUMNS
 
     # the sample's number, its parameters, metrics and status
-    n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
+    n, columns = settings.n_samples(), 1 + len(ranges) + len(sweep.METRICS) + len(STATUS_COLUMNS)
     traces = 1 + settings.worst + settings.random  # re-simulated one after another
     return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
                 memory=8.0 * n * columns,
@@ -188,9 +181,7 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import sweep
     from dscjax.simulate import check, simulate
-    from dscjax.sweep import settings as sweep_settings
 
     setup, options, settings = load(args)
     t_final, dt = options.t_final, float(options.dt)
@@ -202,7 +193,7 @@ def run(args) -> int:
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
         common.print_config(printed, options,
-                            {"sweep": sweep_settings.to_table(settings, setup)},
+                            {"sweep": sweep.settings.to_table(settings, setup)},
                             groups={"sweep": settings})
         return 0
     check(setup, options)
@@ -351,8 +342,6 @@ def resumable(args) -> bool:
 
 def interrupt_hint(args) -> str | None:
     import jax
-
-    from dscjax.cli.out import resume_command
 
     if jax.process_index() != 0:
         return None

@@ -22,6 +22,8 @@ from dscjax.progress import Phase, Progress
 from dscjax.runspec import RunSpec
 from dscjax.settings import add_arguments
 from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
+from tuning.config import SEARCHES, SIMULATION, TuningConfig, to_table
+from tuning.config import from_dict as tuning_from_dict
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -30,8 +32,6 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 
 def add_parser(sub):
-    from tuning.config import SIMULATION, TuningConfig
-
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
@@ -82,9 +82,6 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from tuning.config import SIMULATION, TuningConfig
-    from tuning.config import from_dict as tuning_from_dict
-
     setup, options = common.config_setup(args, base_spec=RunSpec.make(**SIMULATION))
     cfg = tuning_from_dict(common.config_data(args).get("tuning", {}), TuningConfig())
     if args.tuning:
@@ -116,7 +113,6 @@ def run(args) -> int:
     t_start = time.perf_counter()
     from tuning import elasticity, report, report_md
     from tuning.checkpoint import format_progress
-    from tuning.config import SEARCHES, to_table
     from tuning.runner import build_problem, check_resume, model_default_ranges, simulate_command
     from tuning.runner import run as run_tuning
 
@@ -379,8 +375,6 @@ def _count(n: int, unit: str) -> str:
 def generation_rows(cfg) -> int:
     """Trajectories of one generation (a search method: its first population, at least, times
     the training plants) or iteration (adam: the plants), run together."""
-    from tuning.config import SEARCHES
-
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     if oc.name not in SEARCHES:
         return plants
@@ -391,7 +385,6 @@ def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
-    from tuning.config import SEARCHES
     from tuning.optimize import aggregate_of, choose_gradient
 
     steps = options.n_steps

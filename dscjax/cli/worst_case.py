@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dscjax import files, settings, worst
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_command
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.settings import add_arguments
@@ -208,8 +208,6 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str | None:
-    from dscjax.cli.out import resume_command
-
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
