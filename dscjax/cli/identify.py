@@ -12,7 +12,6 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.identify import run as ident
 from dscjax.params import cast
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
@@ -31,7 +30,7 @@ def add_parser(sub):
         "(docs/identification.md).")
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
     common.add_config_args(p, run_keys=("dt",), float32=False)
-    add_arguments(p, ident.IdentifySettings, "identify.")
+    settings.add_arguments(p, ident.IdentifySettings, "identify.")
     add_out_arg(p, "results/identify", plot="skip the figures")
     return p
 

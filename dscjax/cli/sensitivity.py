@@ -16,12 +16,10 @@ import numpy as np
 from dscjax import files, params, validation
 from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
-from dscjax.params import cast
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
 from dscjax.sensitivity import LP_ORDER, METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
-from dscjax.validation import ConfigError
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "device")
@@ -62,7 +60,7 @@ def run(args) -> int:
     setup, spec = common.load_setup(args)
     metrics = check_metrics(args.metrics or METRICS)
     if args.ranges and not args.batch:
-        raise ConfigError("--range draws the --batch plants: give --batch B >= 1 too")
+        raise validation.ConfigError("--range draws the --batch plants: give --batch B >= 1 too")
     overrides = None
     if args.batch:
         ranges = (tuple(params.parse_range(r) for r in args.ranges) if args.ranges
@@ -76,9 +74,9 @@ def run(args) -> int:
     # a number that is 0 has no d ln p (null): known before anything compiles
     zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
     if len(zero) == len(problem.columns):
-        raise ConfigError(f"{'--param' if args.paths else 'the loop'}: every number to "
-                          f"differentiate is 0, so none has a d ln p (got {common.listed(zero)} = "
-                          f"0); give numbers that are not 0")
+        raise validation.ConfigError(
+            f"{'--param' if args.paths else 'the loop'}: every number to differentiate is 0, "
+            f"so none has a d ln p (got {common.listed(zero)} = 0); give numbers that are not 0")
     steps, rows = spec.n_steps, max(args.batch, 1)
     what = common.horizon_text(spec.t_final, float(spec.dt), steps)
     work = validation.Work(steps=2 * steps, member_steps=2 * steps * rows)
@@ -137,8 +135,9 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     sensitivity.json records and the warning (None if every value is trusted)."""
     from dscjax.sweep.summary import float32_trust
 
-    f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
-                       paths, problem.metrics, problem.overrides, problem.lp_order)
+    f64 = Problem.make(params.cast(problem.setup, np.float64),
+                       problem.spec.replace(dtype="float64"), paths, problem.metrics,
+                       problem.overrides, problem.lp_order)
     try:
         ref = f64.result(f64.jacobian())
         value, normalised = ref.value, ref.normalised

@@ -22,7 +22,6 @@ from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resu
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, Work, check_work, validate_setup
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
@@ -60,7 +59,7 @@ def add_parser(sub):
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
-    add_arguments(p, sweep.SweepSettings, "sweep.")
+    schema.add_arguments(p, sweep.SweepSettings, "sweep.")
     common.add_run_args(p, SWEEP_KEYS)
     common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()

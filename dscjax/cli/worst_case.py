@@ -16,7 +16,6 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_command
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, Work, check_work
 from dscjax.worst.report import FIGURES, write
 
@@ -39,7 +38,7 @@ def add_parser(sub):
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
-    add_arguments(p, worst.WorstSettings, "worst.")
+    settings.add_arguments(p, worst.WorstSettings, "worst.")
     add_out_arg(p, "results/worst-case", resume="continue a search in DIR (each method from "
                 "its last finished iteration)", overwrite="discard a search in DIR",
                 plot="skip the figures", quiet="no progress display")
