@@ -264,9 +264,8 @@ def run(args) -> int:
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
-    summary["nominal_params"] = nominal_params
-    summary["run"] = info | {"loop": sweep.loop_text(info)}
-    summary["warnings"] = warnings
+    summary |= {"nominal_params": nominal_params, "run": info | {"loop": sweep.loop_text(info)},
+                "warnings": warnings}
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
@@ -275,9 +274,8 @@ def run(args) -> int:
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
                                 ranges_params=[r.param for r in ranges])
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
-    check = _recheck(trajs, records)
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
-                         "max_rel_diff_resimulated_vs_sweep": check}
+                         "max_rel_diff_resimulated_vs_sweep": _recheck(trajs, records)}
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
     f32 = None
     if settings.dtype == "float32":

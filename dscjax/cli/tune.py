@@ -137,10 +137,8 @@ def run(args) -> int:
         raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
                           f"without --resume to start afresh")
     if args.resume:  # a changed config is refused before anything runs or is printed
-        if adv.rounds:
-            adversarial.check_resume(out, setup, options, cfg)
-        else:
-            check_resume(out, setup, options, cfg)
+        same_run = adversarial.check_resume if adv.rounds else check_resume
+        same_run(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = common.use_device(args, options.device, generation_rows(cfg))
     plants = max(cfg.robust.batch, 1)
