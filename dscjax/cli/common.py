@@ -233,6 +233,10 @@ def listed(names, most: int = 6) -> str:
     return shown + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
+# the fix of a horizon too long for the machine (`validation.check_work`)
+SHORTER = "use a shorter --t-final or a larger --dt"
+
+
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
 

@@ -78,8 +78,7 @@ def run(args) -> int:
     validation.check_work(validation.Work(
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
         memory_what=f"t, u and w at every step ({k} amplitude(s))"),
-        what=common.horizon_text(t_final, dt, steps),
-        fix="use a shorter --t-final or a larger --dt")
+        what=common.horizon_text(t_final, dt, steps), fix=common.SHORTER)
     kind = args.device or validation.string(sim.get("device", "auto"), "simulation.device")
     choice = common.use_device(args, kind, k)
     out = prepare_out(args, OUTPUTS)

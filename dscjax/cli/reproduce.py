@@ -83,7 +83,6 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
     alpha0 = common.positive_numbers(args.alpha0, "--alpha0")
@@ -96,8 +95,7 @@ def run(args) -> int:
                     member_steps=runs * steps + len(sampling.GAINS) * extra,
                     memory=runs * (steps + 1) * point[1] * point[2],
                     memory_what=f"the {runs} runs saved at every step"),
-               what=common.horizon_text(args.t_final, args.dt, steps),
-               fix="use a shorter --t-final or a larger --dt")
+               what=common.horizon_text(args.t_final, args.dt, steps), fix=common.SHORTER)
     if args.resume and not args.complexity:
         raise ConfigError("--resume continues an interrupted --complexity study (the "
                           "closed-loop runs take seconds and are not kept); add --complexity")

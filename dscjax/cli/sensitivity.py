@@ -82,7 +82,7 @@ def run(args) -> int:
     work = validation.Work(steps=2 * steps, member_steps=2 * steps * rows)
     if not args.batch:
         work = work + common.gradient_work(setup, steps)
-    validation.check_work(work, what=what, fix="use a shorter --t-final or a larger --dt")
+    validation.check_work(work, what=what, fix=common.SHORTER)
     warnings = validation.assumption_warnings(setup)
     choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)

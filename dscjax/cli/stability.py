@@ -54,7 +54,7 @@ def run(args) -> int:
             f"a shorter --t-final or a larger --dt")
     each = sum(steps / f for f in DT_FACTORS)  # one batch over the tau scales per step size
     validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
-                          what=what, fix="use a shorter --t-final or a larger --dt")
+                          what=what, fix=common.SHORTER)
     choice = common.use_device(args, options.device, len(scales))
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "

@@ -388,7 +388,6 @@ def check_work_of(args, setup, options, cfg) -> None:
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = common.horizon_text(options.t_final, options.dt, steps)
-    fix = "use a shorter --t-final or a larger --dt"
     if oc.name in SEARCHES:
         width = generation_rows(cfg) // plants
         one = Work(steps=steps, member_steps=width * plants * steps)
@@ -401,10 +400,10 @@ def check_work_of(args, setup, options, cfg) -> None:
         one = one + common.gradient_work(setup, steps)
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
-        check_work(one, what=f"one {unit} of {what}", fix=f"{fix}, or a larger {name}",
+        check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
                    limit_s=oc.time_limit, limit=f"{name} {oc.time_limit:g} s")
     else:
-        check_work(one, what=f"one {unit} of {what}", fix=fix)
+        check_work(one, what=f"one {unit} of {what}", fix=common.SHORTER)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
     if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
@@ -415,5 +414,6 @@ def check_work_of(args, setup, options, cfg) -> None:
         # and the other discretisation's)
         after = after + common.gradient_work(setup, steps, copies=2)
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
-    check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
-               limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")
+    check_work(after, what=f"the held-out check and figures after the search ({what})",
+               fix=common.SHORTER, limit_s=left,
+               limit=f"the {fmt_seconds(left)} a day leaves after the search")
