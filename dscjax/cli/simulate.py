@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from dscjax import config, validation
+from dscjax import validation
 from dscjax.cli import common
 from dscjax.cli.common import load_setup
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
@@ -51,7 +51,7 @@ def run(args) -> int:
     # another command's own table (a printed config of tune or sweep) is that command's
     setup, options = load_setup(args)
     if args.print_config:
-        sys.stdout.write(config.to_toml(setup, options))
+        common.print_config(setup, options)
         return 0
 
     check(setup, options)
