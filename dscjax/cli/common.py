@@ -198,8 +198,8 @@ def portable_device(args, spec):
         return spec
     if any(d.platform != "cpu" for d in device.visible()):
         return spec
-    print(f"dscjax {args.command}: note: simulation.device = 'gpu' in {args.config}: no GPU "
-          f"here; running on the CPU", file=sys.stderr)
+    say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
+        f"the CPU")
     return spec.replace(device="auto")
 
 
@@ -221,10 +221,20 @@ def use_device(args, kind: str, rows: int = 1):
     return choice
 
 
+def say(args, kind: str, *texts) -> None:
+    """Each text as one line on stderr, "dscjax COMMAND: KIND: TEXT" (KIND: warning, note)."""
+    for text in texts:
+        print(f"dscjax {args.command}: {kind}: {text}", file=sys.stderr)
+
+
 def listed(names, most: int = 6) -> str:
     """names joined, at most `most` of them and how many more."""
     shown = ", ".join(names[:most])
     return shown + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
+# the fix of a horizon too long for the machine (`validation.check_work`)
+SHORTER = "use a shorter --t-final or a larger --dt"
 
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
@@ -338,14 +348,35 @@ def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
                        "float64, or the config's simulation.dtype)")
 
 
+def config_data(args) -> dict:
+    """The tables of --config ({} without one), read once for the command (`args.config_data`):
+    the model's, and the commands' own ([tuning], [sweep], ...; `config.COMMAND_TABLES`)."""
+    if "config_data" not in vars(args):
+        args.config_data = config.read(args.config, "--config") if args.config else {}
+    return args.config_data
+
+
+def config_setup(args, base_spec=None):
+    """(Setup, RunSpec) of --config laid over --example (and `base_spec`), before the
+    command line's options."""
+    return config.from_dict(config_data(args), base=example_setup(args), base_spec=base_spec)
+
+
+def own_settings(args, group, prefix: str, base):
+    """(settings, given, names): `base` (a command's settings group, its config table read)
+    with the group's options given on the command line laid over it, a refusal naming the
+    option typed (`blame_options`); `given` and `names` as `dscjax.settings.given`'s."""
+    given, names = settings.given(args, group, prefix)
+    with blame_options(names):
+        return settings.from_table(group, given, prefix, base), given, names
+
+
 def load_setup(args):
     """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
     (a command's own table in the file, e.g. [tuning], is left to that command)."""
     from dscjax.params import cast
 
-    base = example_setup(args)
-    raw = config.read(args.config, "--config") if args.config else {}
-    setup, spec = config.from_dict(raw, base=base)
+    setup, spec = config_setup(args)
     spec = apply_run_options(args, spec)
     check_noise(args, setup, spec)
     if getattr(args, "variant", None):

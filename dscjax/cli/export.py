@@ -6,8 +6,8 @@ from __future__ import annotations
 import sys
 
 from dscjax import config, export
-from dscjax.cli.common import add_config_args, example_setup, print_config, run_overrides
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax.cli import common
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
 from dscjax.files import write_text
 from dscjax.params import cast
@@ -31,12 +31,11 @@ def add_parser(sub):
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")
-    add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
+    common.add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
     p.add_argument("--precision", choices=PRECISIONS, default="double", help="the C's real "
                    "type throughout, double (default: the simulated loop to round-off) or "
                    "float (for a single-precision FPU; docs/export.md: how closely it agrees)")
     add_out_arg(p, "results/export")
-    add_overwrite_arg(p)
     return p
 
 
@@ -45,7 +44,7 @@ def load(args):
     spec sampled (a config without a sample time and no --sample-time: one line)."""
     import numpy as np
 
-    setup = example_setup(args)
+    setup = common.example_setup(args)
     spec = None
     source = [f"--example {args.example}"]
     for option, path in (("--config", args.config), ("--gains", args.gains)):
@@ -55,7 +54,7 @@ def load(args):
             source.append(f"{option} {path}")
     if spec is None:
         spec = config.from_dict({}, base=setup)[1]
-    overrides, names = run_overrides(args)
+    overrides, names = common.run_overrides(args)
     ts = overrides.get("sample_time", spec.sample_time)
     if ts is None:
         raise ConfigError("--sample-time is needed: the config has no simulation.sample_time "
@@ -73,7 +72,7 @@ def load(args):
 def run(args) -> int:
     setup, spec, source = load(args)
     if args.print_config:
-        print_config(setup, spec)
+        common.print_config(setup, spec)
         return 0
     # every input checked before --out
     files = export.c_files(setup, spec, source=source, precision=args.precision)

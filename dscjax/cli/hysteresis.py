@@ -14,17 +14,8 @@ import sys
 import numpy as np
 
 from dscjax import config, files, validation
-from dscjax.cli.common import (
-    add_example_arg,
-    add_run_args,
-    example_setup,
-    finite_float,
-    horizon_text,
-    positive_float,
-    print_config,
-    use_device,
-)
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli import common
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.files import write_npz
 from dscjax.hysteresis import sine_loops
 from dscjax.plotting import hysteresis_loop, subplots
@@ -48,24 +39,23 @@ def add_parser(sub):
                    "[hysteresis] table is used, and simulation.t_final, simulation.dt and "
                    "simulation.device where --t-final, --dt and --device are not given "
                    "(default: the --example's)")
-    add_example_arg(p)
-    p.add_argument("--amplitude", type=finite_float, action="append", metavar="A",
+    common.add_example_arg(p)
+    p.add_argument("--amplitude", type=common.finite_float, action="append", metavar="A",
                    help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
-    p.add_argument("--omega", type=positive_float, default=DEFAULT_OMEGA, metavar="W",
+    p.add_argument("--omega", type=common.positive_float, default=DEFAULT_OMEGA, metavar="W",
                    help=f"input frequency [rad/s] (default {DEFAULT_OMEGA:g})")
-    p.add_argument("--t-final", type=positive_float, metavar="T",
+    p.add_argument("--t-final", type=common.positive_float, metavar="T",
                    help="horizon [s] (default three periods 6 pi / omega, on the dt grid)")
-    p.add_argument("--dt", type=positive_float, metavar="DT", help=f"RK4 step [s] "
+    p.add_argument("--dt", type=common.positive_float, metavar="DT", help=f"RK4 step [s] "
                    f"(default {DEFAULT_DT:g})")
-    add_run_args(p, ("device",))
+    common.add_run_args(p, ("device",))
     add_out_arg(p, "results/hysteresis")
-    add_overwrite_arg(p)
     return p
 
 
 def run(args) -> int:
     amplitudes = tuple(args.amplitude or DEFAULT_AMPLITUDES)
-    base = example_setup(args)
+    base = common.example_setup(args)
     raw = config.read(args.config) if args.config else {}
     setup = config.from_dict(raw, base=base)[0] if args.config else base
     hyst = setup.hysteresis
@@ -82,15 +72,15 @@ def run(args) -> int:
         t_final, t_field = max(round(6 * math.pi / args.omega / dt), 1) * dt, "--t-final"
     steps = validation.whole_steps(t_final, dt, t_field, dt_field)
     if args.print_config:
-        print_config(setup, RunSpec.make(float(t_final), float(dt)))
+        common.print_config(setup, RunSpec.make(float(t_final), float(dt)))
         return 0
     k = len(amplitudes)
     validation.check_work(validation.Work(
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
         memory_what=f"t, u and w at every step ({k} amplitude(s))"),
-        what=horizon_text(t_final, dt, steps), fix="use a shorter --t-final or a larger --dt")
+        what=common.horizon_text(t_final, dt, steps), fix=common.SHORTER)
     kind = args.device or validation.string(sim.get("device", "auto"), "simulation.device")
-    choice = use_device(args, kind, k)
+    choice = common.use_device(args, kind, k)
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
           f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "

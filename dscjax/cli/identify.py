@@ -7,11 +7,11 @@ from __future__ import annotations
 
 import sys
 
-from dscjax import config, settings
-from dscjax.cli.common import add_config_args
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
+from dscjax import settings
+from dscjax.cli import common
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.identify import run as ident
 from dscjax.params import cast
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
@@ -19,8 +19,6 @@ interrupt_hint = nothing_kept
 
 
 def add_parser(sub):
-    from dscjax.identify.run import IdentifySettings
-
     p = sub.add_parser(
         "identify", help="identify plant and actuator numbers from a measured record",
         description="Fit the free numbers of a config (--free) to a measured record (--data: "
@@ -31,11 +29,9 @@ def add_parser(sub):
         "interval, which numbers the data cannot identify, and a validation fit "
         "(docs/identification.md).")
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
-    add_config_args(p, run_keys=("dt",), float32=False)
-    add_arguments(p, IdentifySettings, "identify.")
-    add_out_arg(p, "results/identify")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip the figures")
+    common.add_config_args(p, run_keys=("dt",), float32=False)
+    settings.add_arguments(p, ident.IdentifySettings, "identify.")
+    add_out_arg(p, "results/identify", plot="skip the figures")
     return p
 
 
@@ -44,32 +40,23 @@ def load(args):
     options."""
     import numpy as np
 
-    from dscjax.cli.common import apply_run_options, blame_options, example_setup
-    from dscjax.identify.run import IdentifySettings
-
-    raw = config.read(args.config, "--config") if args.config else {}
-    table = raw.pop("identify", {})
-    setup, spec = config.from_dict(raw, base=example_setup(args))
-    s = settings.from_table(IdentifySettings, table, "identify.")
-    given, names = settings.given(args, IdentifySettings, "identify.")
-    with blame_options(names):
-        s = settings.from_table(IdentifySettings, given, "identify.", s)
+    setup, spec = common.config_setup(args)
+    table = common.config_data(args).get("identify", {})
+    s = settings.from_table(ident.IdentifySettings, table, "identify.")
+    s = common.own_settings(args, ident.IdentifySettings, "identify.", s)[0]
     if not s.free:
         raise ConfigError("--free: give the numbers to fit, e.g. --free "
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
-    spec = apply_run_options(args, spec)
+    spec = common.apply_run_options(args, spec)
     validate_setup(setup)
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, np.dtype("float64")), spec, s, source
 
 
 def run(args) -> int:
-    from dscjax.cli.common import print_config
-    from dscjax.identify import run as ident
-
     setup, spec, s, source = load(args)
     if args.print_config:
-        print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
+        common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
     record, val = ident.read_records(s, args.data, setup.order)
     out = prepare_out(args, OUTPUTS)

@@ -19,21 +19,29 @@ from dscjax.cli.common import COMMANDS, listed
 from dscjax.validation import ConfigError
 
 
-def add_out_arg(p, default: str):
-    """--out DIR of a command (the one rule of --out, README)."""
+def add_out_arg(p, default: str, *, later: bool = False, **rest):
+    """--out DIR of a command (the one rule of --out, README), then `add_overwrite_arg(p,
+    **rest)`, unless the command declares those `later` (after options of its own)."""
     p.add_argument("--out", default=default, metavar="DIR",
                    help=f"output directory (default: {default})")
+    if not later:
+        add_overwrite_arg(p, **rest)
 
 
-def add_overwrite_arg(p, resume: str | None = None, overwrite: str | None = None):
+def add_overwrite_arg(p, resume: str | None = None, overwrite: str | None = None, *,
+                      plot: str | None = None, quiet: str | None = None):
     """--overwrite (the one rule of --out, README); for a command that continues an
-    interrupted run, --resume (help `resume`) too, the two exclusive."""
+    interrupted run, --resume (help `resume`) too, the two exclusive; then --no-plot (help
+    `plot`) and --quiet (help `quiet`) where the command has them."""
     group = p.add_mutually_exclusive_group() if resume else p
     if resume:
         group.add_argument("--resume", action="store_true", help=resume)
     group.add_argument("--overwrite", action="store_true", help=overwrite or "replace the "
                        "files of an earlier run in DIR (only those this command writes); "
                        "without it such a DIR is refused")
+    for flag, text in (("--no-plot", plot), ("--quiet", quiet)):
+        if text:
+            p.add_argument(flag, action="store_true", help=text)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax.cli.common import add_run_args, count, positive_float, positive_numbers
+from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.reproduce import claim_lines, reproduce, sampling, setups
 from dscjax.reproduce.figures import FIGURES
@@ -50,18 +50,18 @@ def add_parser(sub):
         "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
         f"With --complexity also measure the size and cost of both control laws for orders "
         f"n = {orders.replace('-', '..')} (takes minutes).")
-    add_out_arg(p, "results/paper")
+    add_out_arg(p, "results/paper", later=True)
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
-    p.add_argument("--dpi", type=count(10), default=r.DPI,
+    p.add_argument("--dpi", type=common.count(10), default=r.DPI,
                    help="resolution of PNG figures (default %(default)s)")
-    add_run_args(p, ("t_final", "dt", "device"), defaults={"t_final": r.T_FINAL, "dt": r.DT})
+    common.add_run_args(p, ("t_final", "dt", "device"), defaults={"t_final": r.T_FINAL, "dt": r.DT})
     p.set_defaults(t_final=r.T_FINAL, dt=r.DT)
     p.add_argument("--complexity", action="store_true",
                    help="also measure the explosion of complexity (control law against order n)")
     p.add_argument("--orders", default=orders, metavar="N-M",
                    help="orders for --complexity, e.g. 2-8 or 2,4,6 (default %(default)s)")
-    p.add_argument("--repeats", type=count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
+    p.add_argument("--repeats", type=common.count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
     add_overwrite_arg(p, resume="with --complexity: keep the control-law measurements an "
@@ -77,28 +77,25 @@ def add_parser(sub):
     p.add_argument("--alpha0", metavar="A,B,...",
                    help="alpha_0 values of the study, separated by commas (default: 10 values "
                    "from 0.1 to 10, log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
-    p.add_argument("--mu", type=positive_float, metavar="MU",
+    p.add_argument("--mu", type=common.positive_float, metavar="MU",
                    help="mu of (59)-(60) for the study (default 0.1 for n = 2, 10 for n >= 3)")
     return p
 
 
 def run(args) -> int:
-    from dscjax.cli.common import horizon_text, loop_sizes, use_device
-
     orders = parse_orders(args.orders)
     theory_orders = parse_orders(args.theory_orders)
-    alpha0 = positive_numbers(args.alpha0, "--alpha0")
+    alpha0 = common.positive_numbers(args.alpha0, "--alpha0")
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
     runs = len(setups())  # each saved at every step and kept for the figures
-    point = loop_sizes(setups()["dsc"])
+    point = common.loop_sizes(setups()["dsc"])
     extra = sampling.total_steps(args.t_final, args.dt)
     check_work(Work(steps=runs * steps + extra,
                     member_steps=runs * steps + len(sampling.GAINS) * extra,
                     memory=runs * (steps + 1) * point[1] * point[2],
                     memory_what=f"the {runs} runs saved at every step"),
-               what=horizon_text(args.t_final, args.dt, steps),
-               fix="use a shorter --t-final or a larger --dt")
+               what=common.horizon_text(args.t_final, args.dt, steps), fix=common.SHORTER)
     if args.resume and not args.complexity:
         raise ConfigError("--resume continues an interrupted --complexity study (the "
                           "closed-loop runs take seconds and are not kept); add --complexity")
@@ -106,7 +103,7 @@ def run(args) -> int:
     if args.resume and not rows.exists():
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
-    choice = use_device(args, args.device or "auto")  # one trajectory at a time
+    choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
     print(f"dscjax reproduce: on {choice}", file=sys.stderr)
     summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,

@@ -14,33 +14,19 @@ import time
 import numpy as np
 
 from dscjax import files, params, validation
-from dscjax.cli.common import (
-    SAMPLED_KEYS,
-    add_config_args,
-    count,
-    gradient_work,
-    horizon_text,
-    listed,
-    load_setup,
-    print_config,
-    use_device,
-)
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
-from dscjax.files import save_figure
-from dscjax.params import cast
+from dscjax.cli import common
+from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
+from dscjax.sensitivity import LP_ORDER, METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
-from dscjax.validation import ConfigError
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
-RUN_KEYS = ("t_final", "dt", "window_start", "solver", *SAMPLED_KEYS, "device")
+RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "device")
 TOP = 15  # bars per metric in the tornado chart
 
 
 def add_parser(sub):
-    from dscjax.sensitivity import LP_ORDER, METRICS
-
     p = sub.add_parser(
         "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse "
         "mode",
@@ -51,34 +37,30 @@ def add_parser(sub):
         f"sensitivity.json. lp_error_window is the windowed L_p norm of e, p = {LP_ORDER:g} (a "
         "smooth L-inf). The loop is piecewise smooth: these are exact local derivatives "
         "(docs/sensitivity.md). Writes DIR/sensitivity.json and DIR/sensitivity.png.")
-    add_config_args(p, run_keys=RUN_KEYS)
+    common.add_config_args(p, run_keys=RUN_KEYS)
     p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
     p.add_argument("--param", action="append", dest="paths", metavar="PATH",
                    help="a number by its config path, a vector whole (controller.k) or one "
                    "element (plant.g[1]) (repeat; default every number of the controller, "
                    "plant and hysteresis model)")
-    p.add_argument("--batch", type=count(0), default=0, metavar="B",
+    p.add_argument("--batch", type=common.count(0), default=0, metavar="B",
                    help="the mean over B plants drawn uniformly from --range, as tune's "
                    "training batch (default 0: the nominal plant)")
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a range the --batch plants are drawn from (repeat; default the "
                    "hysteresis model's numbers within +-30%%, as sweep's)")
-    p.add_argument("--seed", type=count(0), default=0, help="seed of the --batch plants "
+    p.add_argument("--seed", type=common.count(0), default=0, help="seed of the --batch plants "
                    "(default 0)")
-    add_out_arg(p, "results/sensitivity")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip sensitivity.png")
+    add_out_arg(p, "results/sensitivity", plot="skip sensitivity.png")
     return p
 
 
 def run(args) -> int:
-    from dscjax.sensitivity import METRICS, Problem, check_metrics
-
-    setup, spec = load_setup(args)
+    setup, spec = common.load_setup(args)
     metrics = check_metrics(args.metrics or METRICS)
     if args.ranges and not args.batch:
-        raise ConfigError("--range draws the --batch plants: give --batch B >= 1 too")
+        raise validation.ConfigError("--range draws the --batch plants: give --batch B >= 1 too")
     overrides = None
     if args.batch:
         ranges = (tuple(params.parse_range(r) for r in args.ranges) if args.ranges
@@ -87,22 +69,22 @@ def run(args) -> int:
         overrides = params.sample_overrides(setup, ranges, args.batch, args.seed)
     problem = Problem.make(setup, spec, args.paths, metrics, overrides)
     if args.print_config:
-        print_config(setup, spec)
+        common.print_config(setup, spec)
         return 0
     # a number that is 0 has no d ln p (null): known before anything compiles
     zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
     if len(zero) == len(problem.columns):
-        raise ConfigError(f"{'--param' if args.paths else 'the loop'}: every number to "
-                          f"differentiate is 0, so none has a d ln p (got {listed(zero)} = "
-                          f"0); give numbers that are not 0")
+        raise validation.ConfigError(
+            f"{'--param' if args.paths else 'the loop'}: every number to differentiate is 0, "
+            f"so none has a d ln p (got {common.listed(zero)} = 0); give numbers that are not 0")
     steps, rows = spec.n_steps, max(args.batch, 1)
-    what = horizon_text(spec.t_final, float(spec.dt), steps)
+    what = common.horizon_text(spec.t_final, float(spec.dt), steps)
     work = validation.Work(steps=2 * steps, member_steps=2 * steps * rows)
     if not args.batch:
-        work = work + gradient_work(setup, steps)
-    validation.check_work(work, what=what, fix="use a shorter --t-final or a larger --dt")
+        work = work + common.gradient_work(setup, steps)
+    validation.check_work(work, what=what, fix=common.SHORTER)
     warnings = validation.assumption_warnings(setup)
-    choice = use_device(args, spec.device, rows)
+    choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
     print(f"dscjax sensitivity: {len(metrics)} metric(s) x {d} numbers, "
@@ -111,12 +93,11 @@ def run(args) -> int:
           + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
                            if spec.sampled else ", continuous loop") + f"; on {choice}",
           file=sys.stderr)
-    for w in warnings:
-        print(f"dscjax sensitivity: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
-        print(f"dscjax sensitivity: note: {len(zero)} of the {d} numbers {are} no d ln p "
-              f"(null in sensitivity.json): {listed(zero)}", file=sys.stderr)
+        common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "
+                   f"sensitivity.json): {common.listed(zero)}")
     t0 = time.perf_counter()
     with Progress(2, desc="  sensitivity", unit="stage", every_s=0.0) as bar:
         bar.update_to(0, "compiling the loop and its reverse pass")
@@ -143,7 +124,7 @@ def run(args) -> int:
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
     if f32 is not None and untrusted:
-        print(f"dscjax sensitivity: warning: {untrusted}", file=sys.stderr)
+        common.say(args, "warning", untrusted)
     return 0
 
 
@@ -152,11 +133,11 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
     ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
     sensitivity.json records and the warning (None if every value is trusted)."""
-    from dscjax.sensitivity import Problem
     from dscjax.sweep.summary import float32_trust
 
-    f64 = Problem.make(cast(problem.setup, np.float64), problem.spec.replace(dtype="float64"),
-                       paths, problem.metrics, problem.overrides, problem.lp_order)
+    f64 = Problem.make(params.cast(problem.setup, np.float64),
+                       problem.spec.replace(dtype="float64"), paths, problem.metrics,
+                       problem.overrides, problem.lp_order)
     try:
         ref = f64.result(f64.jacobian())
         value, normalised = ref.value, ref.normalised
@@ -191,7 +172,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     shown = [f"{n} ({why(n)})" for n in bad]
     return check, (f"float32 cannot be trusted with {len(bad)} of the {len(got)} values "
                    f"(float64 differs by more than {100 * trust['rtol']:g} % or has the other "
-                   f"sign): {listed(shown, 8)} (sensitivity.json: float32_check); rerun "
+                   f"sign): {common.listed(shown, 8)} (sensitivity.json: float32_check); rerun "
                    f"without --float32")
 
 
@@ -235,7 +216,7 @@ def _plot(result, path, title: str) -> None:
         ax.set_title(f"{result.metrics[i]} = {result.value[i]:.3g}", fontsize=9)
         ax.set_xlabel("d ln m / d ln p")
     fig.suptitle(title, fontsize=9)
-    save_figure(fig, path, dpi=120)
+    files.save_figure(fig, path, dpi=120)
 
 
 def _title(setup, spec, args) -> str:
@@ -246,6 +227,4 @@ def _title(setup, spec, args) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import AT_END, nothing_kept
-
     return nothing_kept(args, AT_END)

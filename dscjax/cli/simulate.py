@@ -2,24 +2,15 @@
 
 from __future__ import annotations
 
-import dataclasses
 import sys
 import time
 
 import numpy as np
 
-from dscjax import config, validation
-from dscjax.cli.common import (
-    SAMPLED_KEYS,
-    add_config_args,
-    choose_device,
-    effort_text,
-    horizon_text,
-    load_setup,
-    loop_sizes,
-    untrusted_text,
-)
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax import validation
+from dscjax.cli import common
+from dscjax.cli.common import load_setup
+from dscjax.cli.out import AT_END, Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.controllers.dsc import DSC, VARIANTS
 from dscjax.files import write_json, write_npz
 from dscjax.params import cast
@@ -33,11 +24,7 @@ from dscjax.validation import fmt_bytes
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
 # the [simulation] keys this command takes as options
 SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refine",
-                 *SAMPLED_KEYS, "device")
-
-
-def _default_variant() -> str:
-    return {f.name: f.default for f in dataclasses.fields(DSC)}["variant"]
+                 *common.SAMPLED_KEYS, "device")
 
 
 def add_parser(sub):
@@ -48,14 +35,13 @@ def add_parser(sub):
         "DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function "
         "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
         "V_zeta, V_d, V_y (the filter errors).")
-    add_config_args(p, run_keys=SIMULATE_KEYS)
-    add_out_arg(p, "results/simulate")
+    common.add_config_args(p, run_keys=SIMULATE_KEYS)
+    add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
                    f"also zeta_hat = 1) (default: the config's controller.variant, "
-                   f"{_default_variant()})")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip trajectory.png")
+                   f"{DSC.variant})")
+    add_overwrite_arg(p, plot="skip trajectory.png")
     return p
 
 
@@ -65,23 +51,23 @@ def run(args) -> int:
     # another command's own table (a printed config of tune or sweep) is that command's
     setup, options = load_setup(args)
     if args.print_config:
-        sys.stdout.write(config.to_toml(setup, options))
+        common.print_config(setup, options)
         return 0
 
     check(setup, options)
     n_steps, every, n_points = options.n_steps, options.save_every, options.n_saved
-    _, per_point, itemsize = loop_sizes(setup)
+    _, per_point, itemsize = common.loop_sizes(setup)
     nbytes = n_points * per_point * itemsize
     validation.check_work(validation.Work(
         steps=n_steps, member_steps=n_steps, memory=MEMORY_FACTOR * nbytes,
         memory_what=f"the saved trajectory (simulation.save_every = {every} keeps "
         f"{n_points:,} points, {fmt_bytes(nbytes)}; about {MEMORY_FACTOR}x that while "
         f"trajectory.npz is written)"),
-        what=horizon_text(options.t_final, options.dt, n_steps),
+        what=common.horizon_text(options.t_final, options.dt, n_steps),
         fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
         f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
     warnings = validation.assumption_warnings(setup)
-    choice = choose_device(args, options.device)  # simulate() places the run alike
+    choice = common.choose_device(args, options.device)  # simulate() places the run alike
 
     out = prepare_out(args, OUTPUTS)
     n = setup.order
@@ -92,8 +78,7 @@ def run(args) -> int:
              + (f", input delay {options.delay} sample(s)" if options.delay else "")
              + (", measurement noise" if options.noise is not None else "") + ")"
              if options.sampled else "") + f"; on {choice}", file=sys.stderr)
-    for w in warnings:
-        print(f"dscjax simulate: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *warnings)
     if "save_every" in options.rules and every > 1:
         print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
               f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
@@ -137,8 +122,8 @@ def run(args) -> int:
               "...", file=sys.stderr)
         f32 = _float64_check(setup, options, metrics)
         if f32["untrusted"]:
-            warnings = [*warnings, untrusted_text(f32["untrusted"], f32["rel_diff"], f32["rtol"],
-                                                  "rerun without --float32")]
+            warnings = [*warnings, common.untrusted_text(
+                f32["untrusted"], f32["rel_diff"], f32["rtol"], "rerun without --float32")]
     report = divergence_report(traj, float(options.state_bound))
     write_json(out / "metrics.json", {
         **metrics,
@@ -176,12 +161,12 @@ def run(args) -> int:
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
               f"run {metrics['linf_error']:.4g}, from the initial error), L2 error "
               f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}; "
-              + effort_text(metrics, window))
+              + common.effort_text(metrics, window))
     else:
         print(f"  no metrics: the run diverged at t = {float(traj.t_diverged):.6g} s, so they "
               f"were not measured (null in metrics.json)")
     if f32 is not None and f32["untrusted"]:
-        print(f"dscjax simulate: warning: {warnings[-1]}", file=sys.stderr)
+        common.say(args, "warning", warnings[-1])
     if diverged is not None:
         raise diverged
     return 0
@@ -216,8 +201,6 @@ def _ordinal(k: int) -> str:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import AT_END, kept_text
-
     return kept_text(args, OUTPUTS, AT_END)
 
 

@@ -12,9 +12,9 @@ import sys
 import numpy as np
 
 from dscjax import files, validation
-from dscjax.cli.common import add_config_args, horizon_text, load_setup, print_config, use_device
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
-from dscjax.files import write_json
+from dscjax.cli import common
+from dscjax.cli.common import load_setup
+from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 
 OUTPUTS = Outputs(("stability.json", "stability.png"))
 
@@ -26,29 +26,26 @@ def add_parser(sub):
         "scale, report where classical RK4 stays finite, bisect the largest stable dt at the "
         "config's tau, and compare with the linear guide 2.785 / max spectral radius of the "
         "closed loop's Jacobian along the nominal run.")
-    add_config_args(p, run_keys=("t_final", "dt", "device"))
+    common.add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
                    help="factors applied to every filter constant tau_i, separated by commas "
                    "(default "
                    "0.25,0.5,1,2,4)")
-    add_out_arg(p, "results/stability")
-    add_overwrite_arg(p)
-    p.add_argument("--no-plot", action="store_true", help="skip stability.png")
+    add_out_arg(p, "results/stability", plot="skip stability.png")
     return p
 
 
 def run(args) -> int:
-    from dscjax.cli.common import positive_numbers
     from dscjax.step_size import DT_FACTORS, stability_map
 
     setup, options = load_setup(args)
-    scales = sorted(positive_numbers(args.tau_scales, "--tau-scales"))
+    scales = sorted(common.positive_numbers(args.tau_scales, "--tau-scales"))
     validation.check_filters(setup, float(options.dt))
     if args.print_config:
-        print_config(setup, options)
+        common.print_config(setup, options)
         return 0
     steps = options.n_steps
-    what = horizon_text(options.t_final, options.dt, steps)
+    what = common.horizon_text(options.t_final, options.dt, steps)
     finest = round(steps / min(DT_FACTORS))
     if finest > validation.MAX_STEPS:
         raise validation.ConfigError(
@@ -57,8 +54,8 @@ def run(args) -> int:
             f"a shorter --t-final or a larger --dt")
     each = sum(steps / f for f in DT_FACTORS)  # one batch over the tau scales per step size
     validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
-                          what=what, fix="use a shorter --t-final or a larger --dt")
-    choice = use_device(args, options.device, len(scales))
+                          what=what, fix=common.SHORTER)
+    choice = common.use_device(args, options.device, len(scales))
     out = prepare_out(args, OUTPUTS)
     print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
           f"{', '.join(f'{s:g}' for s in scales)}; on {choice}", file=sys.stderr)
@@ -78,7 +75,7 @@ def run(args) -> int:
     for i in range(len(m.tau_scale)):
         label = f"{m.tau[i]:.4g}" if np.isfinite(m.tau[i]) else "-"
         print(f"{label:>14} " + " ".join(f"{'ok' if ok else 'div':>9}" for ok in m.stable[i]))
-    write_json(out / "stability.json", {
+    files.write_json(out / "stability.json", {
         "t_final": options.t_final, "requested_dt": m.requested_dt,
         "largest_stable_dt": m.largest_stable_dt, "beyond_grid": m.beyond_grid,
         "linear_dt": m.linear_dt,

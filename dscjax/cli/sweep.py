@@ -15,45 +15,26 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax import config, files, params
+from dscjax import config, files, params, sweep
 from dscjax import settings as schema
-from dscjax.cli.common import (
-    SAMPLED_KEYS,
-    add_example_arg,
-    add_run_args,
-    apply_run_options,
-    blame_options,
-    chattering_text,
-    check_noise,
-    choose_device,
-    count,
-    example_setup,
-    figure,
-    horizon_text,
-    print_config,
-    untrusted_text,
-)
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, nothing_kept, prepare_out
-from dscjax.files import write_json, write_npz
+from dscjax.cli import common
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_command
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, Work, check_work, validate_setup
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
 # the [simulation] keys this command takes as options
-SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *SAMPLED_KEYS, "device")
+SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *common.SAMPLED_KEYS, "device")
 OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))
 
 
 def add_parser(sub):
-    from dscjax.sweep import SweepSettings
-
-    d = SweepSettings()
+    d = sweep.SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
@@ -78,25 +59,27 @@ def add_parser(sub):
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help=f"a sampled parameter (repeat; replaces the default {names}), "
                    "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
-    add_arguments(p, SweepSettings, "sweep.")
-    add_run_args(p, SWEEP_KEYS)
-    add_example_arg(p)
+    schema.add_arguments(p, sweep.SweepSettings, "sweep.")
+    common.add_run_args(p, SWEEP_KEYS)
+    common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
     prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
                       f"{d.dtype})")
     prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
                       f"{d.dtype})")
-    add_out_arg(p, "results/sweep")
-    add_overwrite_arg(p, resume="continue a sweep in DIR: skip the blocks already written",
-                      overwrite="discard a sweep in DIR and start afresh")
+    add_out_arg(p, "results/sweep",
+                resume="continue a sweep in DIR: skip the blocks already written",
+                overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
                       "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
                       "(implies --distributed)")
-    dist.add_argument("--num-processes", type=count(1), metavar="N", help="number of processes")
-    dist.add_argument("--process-id", type=count(0), metavar="I", help="this process's index")
+    dist.add_argument("--num-processes", type=common.count(1), metavar="N",
+                      help="number of processes")
+    dist.add_argument("--process-id", type=common.count(0), metavar="I",
+                      help="this process's index")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
     return p
@@ -104,23 +87,16 @@ def add_parser(sub):
 
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
-    from dscjax.sweep import SweepSettings, settings_from_dict
-
-    raw = config.read(args.config, "--config") if args.config else {}
-    sweep_table = raw.pop("sweep", {})
-    if not isinstance(sweep_table, dict):
-        raise ConfigError("'sweep' must be a table ([sweep])")
-    setup, options = config.from_dict(raw, base=example_setup(args))
+    raw = common.config_data(args)
+    setup, options = common.config_setup(args)
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
-    options = apply_run_options(args, options)
-    settings = settings_from_dict(sweep_table, SweepSettings())
-    given, names = schema.given(args, SweepSettings, "sweep.")
+    options = common.apply_run_options(args, options)
+    settings = sweep.settings_from_dict(raw.get("sweep", {}), sweep.SweepSettings())
     if args.grid and args.samples is not None:
         raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
                           "of its numbers of points)")
-    with blame_options(names):
-        settings = schema.from_table(SweepSettings, given, "sweep.", settings)
+    settings, given, _ = common.own_settings(args, sweep.SweepSettings, "sweep.", settings)
     changes = {}
     if args.grid:
         if args.ranges:
@@ -133,13 +109,11 @@ def load(args):
         changes |= dict(method="uniform", ranges=())
     if args.ranges:
         changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
-    if args.float64:
-        changes["dtype"] = "float64"
-    elif args.float32:
-        changes["dtype"] = "float32"
+    if args.float64 or args.float32:
+        changes["dtype"] = "float64" if args.float64 else "float32"
     settings = dataclasses.replace(settings, **changes)
     validate_setup(setup)
-    check_noise(args, setup, options)
+    common.check_noise(args, setup, options)
     return setup, options, settings
 
 
@@ -160,17 +134,18 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
-    for key in SAMPLED_KEYS:
+    for key in common.SAMPLED_KEYS:
         value = loop.get(key, OPTIONS[key][0])
         if key in config_loop and config_loop[key] != value:
-            print(f"dscjax sweep: note: simulation.{key} = {config_loop[key]!r} in "
-                  f"{args.config} gives way to the gains file's {value!r} ({args.gains}: the "
-                  f"loop the gains were tuned as; --{key.replace('_', '-')} overrides both)",
-                  file=sys.stderr)
+            common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
+                       f"{args.config} gives way to the gains file's {value!r} ({args.gains}: "
+                       f"the loop the gains were tuned as; --{key.replace('_', '-')} overrides "
+                       f"both)")
     # the config's run with a continuous controller, then the gains file's keys (checked)
-    continuous = RunSpec.make(**(options.to_table() | {k: OPTIONS[k][0] for k in SAMPLED_KEYS}),
+    continuous = RunSpec.make(**(options.to_table()
+                                 | {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}),
                               gradient=options.gradient)
-    given = {k: loop[k] for k in SAMPLED_KEYS if k in loop}
+    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
     options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
                                         for k in given}, **given)
     return setup, options
@@ -178,9 +153,7 @@ def _gains(args, setup, options, config_loop: dict):
 
 def typed_settings(args) -> dict[str, str]:
     """{sweep.KEY: the option typed}, for the [sweep] keys given on the command line."""
-    from dscjax.sweep import SweepSettings
-
-    names = schema.given(args, SweepSettings, "sweep.")[1]
+    names = schema.given(args, sweep.SweepSettings, "sweep.")[1]
     return names | {f"sweep.{key}": option for dest, key, option in (
         ("grid", "grid", "--grid"), ("ranges", "ranges", "--range"),
         ("float32", "dtype", "--float32"), ("float64", "dtype", "--float64"))
@@ -190,11 +163,10 @@ def typed_settings(args) -> dict[str, str]:
 def work(setup, settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
-    from dscjax.sweep import METRICS
     from dscjax.sweep.run import STATUS_COLUMNS
 
     # the sample's number, its parameters, metrics and status
-    n, columns = settings.n_samples(), 1 + len(ranges) + len(METRICS) + len(STATUS_COLUMNS)
+    n, columns = settings.n_samples(), 1 + len(ranges) + len(sweep.METRICS) + len(STATUS_COLUMNS)
     traces = 1 + settings.worst + settings.random  # re-simulated one after another
     return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
                 memory=8.0 * n * columns,
@@ -208,9 +180,7 @@ def run(args) -> int:
         # before anything touches a JAX backend
         jax.distributed.initialize(coordinator_address=args.coordinator,
                                    num_processes=args.num_processes, process_id=args.process_id)
-    from dscjax import sweep
     from dscjax.simulate import check, simulate
-    from dscjax.sweep import settings as sweep_settings
 
     setup, options, settings = load(args)
     t_final, dt = options.t_final, float(options.dt)
@@ -218,27 +188,31 @@ def run(args) -> int:
     dtype = np.dtype(settings.dtype)
     printed = setup
     setup = params.cast(setup, dtype)
-    with blame_options(typed_settings(args)):
+    with common.blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
-        print_config(printed, options, {"sweep": sweep_settings.to_table(settings, setup)},
-                     groups={"sweep": settings})
+        common.print_config(printed, options,
+                            {"sweep": sweep.settings.to_table(settings, setup)},
+                            groups={"sweep": settings})
         return 0
     check(setup, options)
     steps = options.n_steps
     check_work(work(setup, settings, steps, ranges),
-               what=f"{settings.n_samples():,} samples of {horizon_text(t_final, dt, steps)}",
+               what=f"{settings.n_samples():,} samples of "
+               f"{common.horizon_text(t_final, dt, steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run
         sweep.check_resumable(args.out, setup, settings, options)
     n = settings.n_samples()
-    choice = choose_device(args, options.device, n)  # run_sweep places the blocks alike
+    choice = common.choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0
     # several processes share --out: process 0 (which writes every file) takes the lock of
     # the directory and applies the rule of --out; process i > 0 takes a lock of its own
     out = prepare_out(args, OUTPUTS, resumable=True, check=main,
                       lock=files.LOCK if main else f"{files.LOCK}.{jax.process_index()}")
+    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
+                                   else "sweep.ranges")
     if main:
         desc = ", ".join(
             f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
@@ -249,10 +223,7 @@ def run(args) -> int:
               f"{len(choice.devices)} device(s) "
               f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
               file=sys.stderr)
-    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
-                                   else "sweep.ranges")
-    for w in warnings if main else ():
-        print(f"dscjax sweep: warning: {w}", file=sys.stderr)
+        common.say(args, "warning", *warnings)
     bar = None
 
     def progress(p):
@@ -293,9 +264,8 @@ def run(args) -> int:
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
-    summary["nominal_params"] = nominal_params
-    summary["run"] = info | {"loop": sweep.loop_text(info)}
-    summary["warnings"] = warnings
+    summary |= {"nominal_params": nominal_params, "run": info | {"loop": sweep.loop_text(info)},
+                "warnings": warnings}
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
@@ -304,9 +274,8 @@ def run(args) -> int:
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
                                 ranges_params=[r.param for r in ranges])
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
-    check = _recheck(trajs, records)
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
-                         "max_rel_diff_resimulated_vs_sweep": check}
+                         "max_rel_diff_resimulated_vs_sweep": _recheck(trajs, records)}
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
     f32 = None
     if settings.dtype == "float32":
@@ -321,7 +290,7 @@ def run(args) -> int:
     if not args.no_plot:
         figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
                          nominal_params, trajs, records, kinds, window_start, t_final, summary)
-    write_json(out / "summary.json", summary)
+    files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
     q = summary["quantiles"]["linf_error_window"]
@@ -339,11 +308,12 @@ def run(args) -> int:
     chat = summary["chattering"]
     if tv is not None:
         nom = ("" if bool(nominal.diverged) else
-               f"; nominal TV(u) {figure(nominal_metrics['tv_u_window'])}, "
-               + chattering_text(nominal_metrics["chattering_index"]))
+               f"; nominal TV(u) {common.figure(nominal_metrics['tv_u_window'])}, "
+               + common.chattering_text(nominal_metrics["chattering_index"]))
         print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
-              f"median {figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
-              f"max|u| max {figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
+              f"median {common.figure(tv['p50'])}, p95 {common.figure(tv['p95'])}, max "
+              f"{common.figure(tv['max'])}; max|u| max "
+              f"{common.figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
     print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
           f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
     smallest = summary["smallest_dt_tried"]
@@ -355,9 +325,9 @@ def run(args) -> int:
     print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
           f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
     if f32 is not None and f32["untrusted"]:
-        print("  warning: " + untrusted_text(f32["untrusted"], f32["max_rel_diff"], f32["rtol"],
-                                             "rerun with --float64",
-                                             on=f" on {len(f32['rows'])} re-checked rows"),
+        print("  warning: " + common.untrusted_text(
+            f32["untrusted"], f32["max_rel_diff"], f32["rtol"], "rerun with --float64",
+            on=f" on {len(f32['rows'])} re-checked rows"),
               file=sys.stderr)
     return 0
 
@@ -369,8 +339,6 @@ def resumable(args) -> bool:
 
 def interrupt_hint(args) -> str | None:
     import jax
-
-    from dscjax.cli.out import resume_command
 
     if jax.process_index() != 0:
         return None
@@ -417,7 +385,7 @@ def _write_traces(path, trajs, records, kinds, nominal):
                    "kind": np.array(kinds)}
         arrays |= {k: np.stack([np.asarray(getattr(t, k)) for t in trajs]) for k in "txeuw"}
         arrays["diverged"] = np.array([bool(t.diverged) for t in trajs])
-    write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
+    files.write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 
 def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,

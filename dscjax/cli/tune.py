@@ -13,7 +13,8 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax import config, settings, validation
+from dscjax import config, validation
+from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import cast
@@ -21,6 +22,8 @@ from dscjax.progress import Phase, Progress
 from dscjax.runspec import RunSpec
 from dscjax.settings import add_arguments
 from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
+from tuning.config import SEARCHES, SIMULATION, TuningConfig, to_table
+from tuning.config import from_dict as tuning_from_dict
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
                    "before_after.png", "heldout.png", "sampling.png", "checkpoint.npz",
@@ -29,9 +32,6 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 
 
 def add_parser(sub):
-    from dscjax.cli.common import SAMPLED_KEYS, add_example_arg, add_run_args
-    from tuning.config import SIMULATION, TuningConfig
-
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
@@ -46,15 +46,14 @@ def add_parser(sub):
                    "(laid over the one in --config)")
     p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
                    "the gains.json of an earlier run (laid over --config)")
-    add_out_arg(p, "results/tune")
+    add_out_arg(p, "results/tune", later=True)
     add_arguments(p, TuningConfig, "tuning.")
-    add_run_args(p, ("t_final", "dt", *SAMPLED_KEYS, "device"), defaults=SIMULATION)
-    add_example_arg(p)
+    common.add_run_args(p, ("t_final", "dt", *common.SAMPLED_KEYS, "device"), defaults=SIMULATION)
+    common.add_example_arg(p)
     add_overwrite_arg(p, resume="continue the run in DIR from its checkpoint (iteration "
                       "count, optimiser state and best point)",
-                      overwrite="discard a run in DIR and start afresh")
-    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
+                      overwrite="discard a run in DIR and start afresh",
+                      plot="skip the PNG figures", quiet="no progress line")
     return p
 
 
@@ -83,15 +82,8 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    from dscjax.cli.common import apply_run_options, blame_options, check_noise, example_setup
-    from tuning.config import SIMULATION, TuningConfig
-    from tuning.config import from_dict as tuning_from_dict
-
-    raw = config.read(args.config, "--config") if args.config else {}
-    table = raw.pop("tuning", {})
-    setup, options = config.from_dict(raw, base=example_setup(args),
-                                      base_spec=RunSpec.make(**SIMULATION))
-    cfg = tuning_from_dict(table, TuningConfig())
+    setup, options = common.config_setup(args, base_spec=RunSpec.make(**SIMULATION))
+    cfg = tuning_from_dict(common.config_data(args).get("tuning", {}), TuningConfig())
     if args.tuning:
         extra = config.read(args.tuning, "--tuning")
         unknown = set(extra) - {"tuning"}
@@ -102,17 +94,15 @@ def load(args):
     if args.gains:
         gains = config.read(args.gains, "--gains")
         setup, options = config.from_dict(gains, base=setup, base_spec=options)
-    given, names = settings.given(args, TuningConfig, "tuning.")
+    cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
               if k not in ("rounds",)]
-    with blame_options(names):
-        cfg = tuning_from_dict(given, cfg)
     if search and not cfg.adversarial.rounds:
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")
-    options = apply_run_options(args, options)
+    options = common.apply_run_options(args, options)
     validation.validate_setup(setup)
-    check_noise(args, setup, options)
+    common.check_noise(args, setup, options)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
@@ -121,19 +111,17 @@ def load(args):
 
 def run(args) -> int:
     t_start = time.perf_counter()
-    from dscjax.cli.common import print_config, use_device
     from tuning import elasticity, report, report_md
     from tuning.checkpoint import format_progress
-    from tuning.config import SEARCHES, to_table
     from tuning.runner import build_problem, check_resume, model_default_ranges, simulate_command
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
     setup = cast(setup, np.float64)
     if args.print_config:
-        print_config(setup, options,
-                     {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
-                     groups={"tuning": cfg})
+        common.print_config(setup, options,
+                            {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
+                            groups={"tuning": cfg})
         return 0
     check_work_of(args, setup, options, cfg)
     out = Path(args.out)
@@ -149,12 +137,10 @@ def run(args) -> int:
         raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
                           f"without --resume to start afresh")
     if args.resume:  # a changed config is refused before anything runs or is printed
-        if adv.rounds:
-            adversarial.check_resume(out, setup, options, cfg)
-        else:
-            check_resume(out, setup, options, cfg)
+        same_run = adversarial.check_resume if adv.rounds else check_resume
+        same_run(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
-    choice = use_device(args, options.device, generation_rows(cfg))
+    choice = common.use_device(args, options.device, generation_rows(cfg))
     plants = max(cfg.robust.batch, 1)
     # --out once every setting is validated, before the start scales compile and run the loop
     with Phase(f"  compiling the closed loop and measuring the start gains ({plants} "
@@ -190,8 +176,7 @@ def run(args) -> int:
                  if oc.time_limit else ""), file=sys.stderr)
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
-    for w in report.assumption_warnings(problem):
-        print(f"dscjax tune: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *report.assumption_warnings(problem))
     sc = problem.scales
     user = sc.start.get("user_linf_error_window")
     print(f"  start: L-inf error on the window {sc.linf:.4g}"
@@ -283,7 +268,7 @@ def run(args) -> int:
               + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
                  f"{elasticity.text(top['elasticity'])})"))
     if summary.get("sensitivity_warning"):
-        print(f"dscjax tune: WARNING: {summary['sensitivity_warning']}", file=sys.stderr)
+        common.say(args, "WARNING", summary["sensitivity_warning"])
     if summary["effort_bounds"] == "per_plant":
         for c in summary.get("train_constraints", {}).get("tuned", []):
             worst = ("diverged" if c["worst_margin"] is None else
@@ -308,12 +293,11 @@ def run(args) -> int:
                 print(f"  held-out {what}: median {a['median']:.4g} -> {b['median']:.4g}, "
                       f"p95 {a['p95']:.4g} -> {b['p95']:.4g}{then}")
     if summary.get("heldout_warning"):
-        print(f"dscjax tune: WARNING: {summary['heldout_warning']}", file=sys.stderr)
+        common.say(args, "WARNING", summary["heldout_warning"])
     for line in margin_lines(summary.get("margins"), summary["nominal"]):
         print(f"  {line}")
     if summary.get("margins_warning"):
-        print(f"dscjax tune: WARNING: a margin fails: {summary['margins_warning']}",
-              file=sys.stderr)
+        common.say(args, "WARNING", f"a margin fails: {summary['margins_warning']}")
     print(f"  run the loop tuned: {simulate_command(result.problem, str(out / 'gains.json'))}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
@@ -389,8 +373,6 @@ def _count(n: int, unit: str) -> str:
 def generation_rows(cfg) -> int:
     """Trajectories of one generation (a search method: its first population, at least, times
     the training plants) or iteration (adam: the plants), run together."""
-    from tuning.config import SEARCHES
-
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     if oc.name not in SEARCHES:
         return plants
@@ -401,14 +383,11 @@ def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
-    from dscjax.cli.common import gradient_work, horizon_text
-    from tuning.config import SEARCHES
     from tuning.optimize import aggregate_of, choose_gradient
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
-    what = horizon_text(options.t_final, options.dt, steps)
-    fix = "use a shorter --t-final or a larger --dt"
+    what = common.horizon_text(options.t_final, options.dt, steps)
     if oc.name in SEARCHES:
         width = generation_rows(cfg) // plants
         one = Work(steps=steps, member_steps=width * plants * steps)
@@ -418,13 +397,13 @@ def check_work_of(args, setup, options, cfg) -> None:
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
     mode = choose_gradient(oc.gradient, 0, plants, aggregate_of(cfg.robust)).name
     if oc.name not in SEARCHES and (mode == "plants" or plants == 1):  # time-parallel
-        one = one + gradient_work(setup, steps)
+        one = one + common.gradient_work(setup, steps)
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
-        check_work(one, what=f"one {unit} of {what}", fix=f"{fix}, or a larger {name}",
+        check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
                    limit_s=oc.time_limit, limit=f"{name} {oc.time_limit:g} s")
     else:
-        check_work(one, what=f"one {unit} of {what}", fix=fix)
+        check_work(one, what=f"one {unit} of {what}", fix=common.SHORTER)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
     if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
@@ -433,7 +412,8 @@ def check_work_of(args, setup, options, cfg) -> None:
         after = after + Work(steps=steps, member_steps=2 * cfg.heldout.batch * steps)
         # the constraints' elasticities: a time-parallel gradient of each loop (the loop tuned
         # and the other discretisation's)
-        after = after + gradient_work(setup, steps, copies=2)
+        after = after + common.gradient_work(setup, steps, copies=2)
     left = TIME_LIMIT_S - (oc.time_limit or 0.0)
-    check_work(after, what=f"the held-out check and figures after the search ({what})", fix=fix,
-               limit_s=left, limit=f"the {fmt_seconds(left)} a day leaves after the search")
+    check_work(after, what=f"the held-out check and figures after the search ({what})",
+               fix=common.SHORTER, limit_s=left,
+               limit=f"the {fmt_seconds(left)} a day leaves after the search")

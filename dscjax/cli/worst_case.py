@@ -11,30 +11,12 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from dscjax import config, files, settings
-from dscjax.cli.common import (
-    SAMPLED_KEYS,
-    add_config_args,
-    gradient_work,
-    horizon_text,
-    load_setup,
-    loop_sizes,
-    print_config,
-    use_device,
-)
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax import files, settings, worst
+from dscjax.cli import common
+from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_command
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
-from dscjax.settings import add_arguments
 from dscjax.validation import ConfigError, Work, check_work
-from dscjax.worst import (
-    REQUIREMENT,
-    WorstSettings,
-    assumption_warnings,
-    best_value,
-    check_search,
-    make_problem,
-)
 from dscjax.worst.report import FIGURES, write
 
 MANIFEST = "worst_case.json"
@@ -52,44 +34,41 @@ def add_parser(sub):
         "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
         "before it is reported; a divergence of the loop itself is reported with its time. "
         "Settings may also come from a [worst] table of the config; the command line wins.")
-    add_config_args(p, run_keys=("t_final", "dt", *SAMPLED_KEYS, "device"))
+    common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
-    add_arguments(p, WorstSettings, "worst.")
-    add_out_arg(p, "results/worst-case")
-    add_overwrite_arg(p, resume="continue a search in DIR (each method from its last "
-                      "finished iteration)", overwrite="discard a search in DIR")
-    p.add_argument("--no-plot", action="store_true", help="skip the figures")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
+    settings.add_arguments(p, worst.WorstSettings, "worst.")
+    add_out_arg(p, "results/worst-case", resume="continue a search in DIR (each method from "
+                "its last finished iteration)", overwrite="discard a search in DIR",
+                plot="skip the figures", quiet="no progress display")
     return p
 
 
 def run(args) -> int:
-    from dscjax.worst import worst_case
-
-    setup, options = load_setup(args)
+    setup, options = common.load_setup(args)
     s, ranges = worst_settings(args)
     if args.print_config:
         table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
                                                     for r in ranges}} if ranges else {})
-        print_config(setup, options, {"worst": table} | requirement_table(args, s),
-                     groups={"worst": s})
+        common.print_config(setup, options, {"worst": table} | requirement_table(args, s),
+                            groups={"worst": s})
         return 0
-    problem = make_problem(setup, ranges, s.disturbance, metric=s.metric,
-                           requirement=requirement_of(args, setup, s),
-                           spec=options, period=s.period)
+    problem = worst.make_problem(setup, ranges, s.disturbance, metric=s.metric,
+                                 requirement=requirement_of(args, setup, s),
+                                 spec=options, period=s.period)
     methods = list(s.methods)
-    check_search(problem, methods, starts=s.starts, batch=s.batch, time_limit=s.time_limit,
-                 max_evals=s.max_evals, coarsening=s.gradient_coarsening)
-    what = horizon_text(problem.t_final, problem.dt, problem.n_steps)
+    worst.check_search(problem, methods, starts=s.starts, batch=s.batch,
+                       time_limit=s.time_limit, max_evals=s.max_evals,
+                       coarsening=s.gradient_coarsening)
+    what = common.horizon_text(problem.t_final, problem.dt, problem.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
     each = iteration_work(problem, methods, s.starts, s.batch, s.gradient_coarsening)
     check_work(each, what=f"one search iteration of {what}", fix=fix,
                limit_s=s.time_limit, limit=f"--time-limit {s.time_limit:g} s")
     check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
-    choice = use_device(args, options.device, max(s.starts, s.batch))
+    choice = common.use_device(args, options.device, max(s.starts, s.batch))
     out = Path(args.out)
     manifest = out / MANIFEST
     fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
@@ -109,8 +88,7 @@ def run(args) -> int:
           + f"; {', '.join(methods)}, {s.time_limit:g} s each"
           + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
           + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
-    for w in assumption_warnings(problem):
-        print(f"dscjax worst-case: warning: {w}", file=sys.stderr)
+    common.say(args, "warning", *worst.assumption_warnings(problem))
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)
@@ -134,14 +112,14 @@ def run(args) -> int:
                                           elapsed=tr.seconds, enabled=not args.quiet)
         if bar is not None:
             bar.update_to(min(int(tr.seconds), int(round(limit))),
-                          f"best {best_value(tr):.5g}, {tr.evaluations} evaluations")
+                          f"best {worst.best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
-        result = worst_case(problem, time_limit=s.time_limit, starts=s.starts,
-                            methods=methods, seed=s.seed, batch=s.batch,
-                            coarsening=s.gradient_coarsening, out_dir=out,
-                            resume=args.resume, max_evals=s.max_evals,
-                            progress=progress, say=say)
+        result = worst.worst_case(problem, time_limit=s.time_limit, starts=s.starts,
+                                  methods=methods, seed=s.seed, batch=s.batch,
+                                  coarsening=s.gradient_coarsening, out_dir=out,
+                                  resume=args.resume, max_evals=s.max_evals,
+                                  progress=progress, say=say)
     finally:
         for bar in bars.values():
             bar.close()
@@ -153,7 +131,7 @@ def run(args) -> int:
     print(f"  worst {problem.metric}: {what} by {result.method} (nominal "
           f"{result.nominal_value:.6g})")
     for m, tr in result.traces.items():
-        print(f"  {m:8s} best {best_value(tr):.6g} in {tr.seconds:.1f} s ({tr.evaluations} "
+        print(f"  {m:8s} best {worst.best_value(tr):.6g} in {tr.seconds:.1f} s ({tr.evaluations} "
               f"evaluations, compile {tr.compile_seconds:.1f} s)")
     print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
     return 0
@@ -168,7 +146,7 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
              if m == "gradient" else Work(steps=n, member_steps=batch * n) for m in methods]
     slowest = max(works, key=lambda w: w.seconds())
     if "gradient" in methods:
-        slowest = slowest + gradient_work(problem.setup, n // coarsening, copies=starts)
+        slowest = slowest + common.gradient_work(problem.setup, n // coarsening, copies=starts)
     return slowest
 
 
@@ -176,7 +154,7 @@ def stored_work(problem):
     """What the search keeps besides its iterations: the waveform's basis on the half-step
     grid, and the worst case re-simulated at every step (worst_trajectory.npz, figures)."""
     n = problem.n_steps
-    _, per_point, size = loop_sizes(problem.setup)
+    _, per_point, size = common.loop_sizes(problem.setup)
     saved = Work(steps=2 * n, member_steps=2 * n, memory=3.0 * (n + 1) * per_point * size,
                  memory_what=f"the worst case's trajectory at every step ({n + 1:,} points)")
     basis = Work(memory=8.0 * (2 * n + 1) * problem.m, memory_what=f"the waveform's basis on "
@@ -187,15 +165,11 @@ def stored_work(problem):
 def worst_settings(args):
     """(WorstSettings, ranges): the config's [worst] table (and [worst.ranges]) laid over the
     defaults, then the options given (a refusal names the option)."""
-    from dscjax.cli.common import blame_options
-
-    table = dict(config.read(args.config, "--config").get("worst", {})) if args.config else {}
+    table = dict(common.config_data(args).get("worst", {}))
     ranges = tuple(from_table(table.pop("ranges"), "worst.ranges")) if "ranges" in table \
         else ()
-    s = settings.from_table(WorstSettings, table, "worst.")
-    given, names = settings.given(args, WorstSettings, "worst.")
-    with blame_options(names):
-        s = settings.from_table(WorstSettings, given, "worst.", s)
+    s = settings.from_table(worst.WorstSettings, table, "worst.")
+    s = common.own_settings(args, worst.WorstSettings, "worst.", s)[0]
     if args.ranges:
         ranges = tuple(parse_range(text) for text in args.ranges)
     return s, ranges
@@ -204,24 +178,23 @@ def worst_settings(args):
 def requirement_table(args, s) -> dict:
     """The [tuning.requirements.NAME] table of `--metric requirement:NAME` ({} for any other
     metric): the rest of the config --print-config shows."""
-    if not s.metric.startswith(REQUIREMENT) or not args.config:
+    if not s.metric.startswith(worst.REQUIREMENT) or not args.config:
         return {}
-    name = s.metric[len(REQUIREMENT):]
-    table = config.read(args.config).get("tuning", {}).get("requirements", {}).get(name, {})
+    name = s.metric[len(worst.REQUIREMENT):]
+    table = common.config_data(args).get("tuning", {}).get("requirements", {}).get(name, {})
     return {"tuning": {"requirements": {name: table}}}
 
 
 def requirement_of(args, setup, s):
     """The requirement of `--metric requirement:NAME`: [tuning.requirements.NAME] of --config
     (built as the tuner builds it), or None for any other metric."""
-    if not s.metric.startswith(REQUIREMENT):
+    if not s.metric.startswith(worst.REQUIREMENT):
         return None
-    name = s.metric[len(REQUIREMENT):]
+    name = s.metric[len(worst.REQUIREMENT):]
     from tuning.config import from_dict
     from tuning.requirements import build_requirements
 
-    raw = config.read(args.config) if args.config else {}
-    table = from_dict(raw.get("tuning", {})).requirements
+    table = from_dict(common.config_data(args).get("tuning", {})).requirements
     if name not in table:
         raise ConfigError(f"--metric {s.metric}: --config has no [tuning.requirements."
                           f"{name}] table (has: {', '.join(table) or 'none'})")
@@ -234,8 +207,6 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str | None:
-    from dscjax.cli.out import resume_command
-
     out = Path(args.out)
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
