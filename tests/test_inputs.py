@@ -71,6 +71,17 @@ def test_a_non_finite_horizon_in_a_config_is_refused_by_its_field(command, name,
     assert err == f"dscjax {command}: error: {wanted}"
 
 
+@pytest.mark.parametrize(("command", "section"), [("worst-case", "worst"), ("sweep", "sweep"),
+                                                  ("tune", "tuning")])
+def test_a_commands_own_section_that_is_not_a_table_is_refused_by_its_name(command, section,
+                                                                          tmp_path, capsys):
+    cfg = tmp_path / "c.toml"
+    cfg.write_text(f"{section} = 1\n")
+    err = _refused(capsys, [command, "--config", str(cfg), *EXTRA.get(command, [])],
+                   tmp_path / "o")
+    assert err == f"dscjax {command}: error: '{section}' must be a table ([{section}])"
+
+
 @pytest.mark.parametrize("command", ["simulate", "sweep", "tune"])
 def test_a_non_finite_model_number_in_a_config_is_refused_by_its_field(command, tmp_path,
                                                                       capsys):

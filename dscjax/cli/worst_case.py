@@ -165,10 +165,9 @@ def stored_work(problem):
 def worst_settings(args):
     """(WorstSettings, ranges): the config's [worst] table (and [worst.ranges]) laid over the
     defaults, then the options given (a refusal names the option)."""
-    table = dict(common.config_data(args).get("worst", {}))
-    ranges = tuple(from_table(table.pop("ranges"), "worst.ranges")) if "ranges" in table \
-        else ()
-    s = settings.from_table(worst.WorstSettings, table, "worst.")
+    table = common.config_data(args).get("worst", {})
+    s = settings.from_table(worst.WorstSettings, table, "worst.", skip=("ranges",))
+    ranges = tuple(from_table(table["ranges"], "worst.ranges")) if "ranges" in table else ()
     s = common.own_settings(args, worst.WorstSettings, "worst.", s)[0]
     if args.ranges:
         ranges = tuple(parse_range(text) for text in args.ranges)
