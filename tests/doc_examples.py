@@ -3,9 +3,8 @@
     python tests/doc_examples.py WORKDIR          # all of them, in order, in one directory
     python tests/doc_examples.py WORKDIR GROUP    # one group of `plan()`: shared, README.md, ...
 
-prints a JSON report; exit 1 if any failed. Used by tests/test_docs.py (one subprocess per
-group, with JAX's persistent compilation cache, so that a program compiled by one command is
-not compiled again by another). Every `dscjax ...` line of a shell block (```, ```bash) of
+prints a JSON report; exit 1 if any failed. tests/test_docs.py runs each group through
+`run_group` in its own process. Every `dscjax ...` line of a shell block (```, ```bash) of
 README.md, then of docs/*.md, runs through `dscjax.cli.main.main`, as a user who follows the
 documents in order would type it (so the docs may use what the README's examples wrote:
 `my.toml`, `results/tune/gains.json`), with these changes only:

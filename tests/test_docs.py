@@ -1,22 +1,18 @@
 """The shell examples of README.md and docs/*.md run as printed (with small sizes; see
-tests/doc_examples.py for exactly what changes). One subprocess a document (xdist spreads
-them), each in its own directory; the outputs that several documents read (my.toml, the
-README's tune run) are made once per session (`shared_docs`) and copied in. JAX's persistent
-compilation cache lives in pytest's cache directory, so a program one document compiles is
-not compiled again by another, nor by a second run of the suite (without pytest's cache: a
-directory of this session)."""
+tests/doc_examples.py for exactly what changes). Each document's commands run through
+`dscjax.cli.main.main` in the test's process (xdist spreads the documents), in its own
+directory; the outputs that several documents read (my.toml, the README's tune run) are made
+once per session (`shared_docs`) and copied in. A program that the worker has traced already,
+for another document or another test, is not traced again; JAX's persistent compilation
+cache (conftest) spares the compiles that another worker did."""
 
-import json
 import os
 import shutil
-import subprocess
-import sys
 from pathlib import Path
 
 import doc_examples
 import pytest
 
-HERE = Path(__file__).parent
 PLAN = doc_examples.plan()
 # the longest first, those that wait for `shared_docs` between those that do not (xdist hands
 # the first two to the two workers)
@@ -26,42 +22,33 @@ DOCS = sorted((name for name, steps in PLAN.items() if name != "shared" and step
               key=lambda name: ORDER.index(name) if name in ORDER else len(ORDER))
 
 
-def _run(group: str, work: Path, cache_dir: Path) -> list[dict]:
-    """The report of `doc_examples.py WORK GROUP`, asserting that every command succeeded."""
-    env = {**os.environ, "JAX_COMPILATION_CACHE_DIR": str(cache_dir),
-           "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
-           "JAX_PERSISTENT_CACHE_MIN_ENTRY_SIZE_BYTES": "-1"}
-    proc = subprocess.run([sys.executable, str(HERE / "doc_examples.py"), str(work), group],
-                          env=env, capture_output=True, text=True, timeout=3600)
-    assert proc.stdout.strip(), proc.stderr[-3000:]
-    report = json.loads(proc.stdout)
+def _run(group: str, work: Path) -> list[dict]:
+    """The report of doc_examples' GROUP run in `work`, asserting that every command
+    succeeded."""
+    here = os.getcwd()
+    try:
+        report = doc_examples.run_group(work, group, PLAN[group])
+    finally:
+        os.chdir(here)
     failed = [r for r in report if r["code"]]
     assert not failed, "\n".join(f"{r['doc']}: {r['printed']}\n  ran: {r['ran']}\n  exit "
                                  f"{r['code']}: {r['stderr']}" for r in failed)
-    assert proc.returncode == 0
     assert [r["printed"] for r in report] == [s[1] for s in PLAN[group] if s[0] == "run"]
     return report
 
 
 @pytest.fixture(scope="session")
-def doc_cache(request, once):
-    cache = getattr(request.config, "cache", None)
-    return (cache.mkdir("jax-compilation-cache") if cache is not None
-            else once("jax-cache", lambda work: work.mkdir()))
-
-
-@pytest.fixture(scope="session")
-def shared_docs(once, doc_cache):
+def shared_docs(once):
     """The directory in which the commands of doc_examples.SHARED ran (once per session)."""
-    return once("doc-examples-shared", lambda work: _run("shared", work, doc_cache))
+    return once("doc-examples-shared", lambda work: _run("shared", work))
 
 
 @pytest.mark.parametrize("doc", DOCS)
-def test_shell_examples_of_the_document_run(doc, tmp_path, request, doc_cache):
+def test_shell_examples_of_the_document_run(doc, tmp_path, request):
     work = tmp_path / "w"
     if doc in doc_examples.READS_SHARED:
         shutil.copytree(request.getfixturevalue("shared_docs"), work)
-    _run(doc, work, doc_cache)
+    _run(doc, work)
 
 
 def test_every_document_with_examples_is_run_and_the_key_examples_are_among_them():
