@@ -8,10 +8,13 @@ import os
 import signal
 import tempfile
 
-# XLA's backend optimisations off for the tests' programs (and the commands they start): the
-# suite's time is compiling programs that each run a few short horizons once.
+# The tests' programs (and those of the commands they start) compile as cheaply as XLA:CPU
+# allows: the suite's time is compiling programs that each run a few short horizons once. No
+# backend optimisation, and every program with the loop emitters that dscjax gives its
+# run-once programs (`xla.LEAN`; test_xla compares both emitters explicitly).
 os.environ["XLA_FLAGS"] = " ".join(
-    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0"]).strip()
+    [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
+     "--xla_cpu_use_fusion_emitters=false"]).strip()
 
 import jax  # noqa: E402
 

@@ -211,8 +211,8 @@ def test_dsc_init_is_the_simulations_initial_state_of_any_x0(tmp_path, init, del
         for nm, k, _ in fields:
             got[nm], at = np.asarray(buf[at:at + k]), at + k
         assert sorted(got) == sorted(k for k in want if k != "past" or delay)
-        for nm in got:
-            np.testing.assert_allclose(got[nm], want[nm], rtol=1e-13, atol=1e-15, err_msg=nm)
+        for nm in got:  # (u0 of zero surfaces is a cancellation: zero to rounding, 1e-13)
+            np.testing.assert_allclose(got[nm], want[nm], rtol=1e-13, atol=1e-12, err_msg=nm)
         assert buf[size - 1] == 0.25  # t0
 
 

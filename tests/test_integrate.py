@@ -285,12 +285,14 @@ def test_held_components_follow_the_reference_recursion():
 
 
 def test_held_components_under_the_exponential_step_and_gradients():
-    """ETDRK4: the held z is exactly the recursion of the x it produced, whatever its rate;
-    the time-parallel derivative through held components equals JAX's own."""
+    """ETDRK4: the held z is the recursion of the x it produced (to the rounding of x, not to
+    the solver's error), whatever its rate; the time-parallel derivative through held
+    components equals JAX's own."""
     res = _held_run(0.2, [0.0, 0.5], 0.7, solver="etdrk4")
     x, z = np.asarray(res.ys["x"]), np.asarray(res.ys["z"])
-    np.testing.assert_array_equal(z[1:], np.maximum(x[1:, None] - R,
-                                                    np.minimum(x[1:, None] + R, z[:-1])))
+    np.testing.assert_allclose(z[1:], np.maximum(x[1:, None] - R,
+                                                 np.minimum(x[1:, None] + R, z[:-1])),
+                               rtol=0, atol=1e-15)
     x_ref, _ = _held_reference(0.2, [0.0, 0.5], 0.7, 0.01, 300)
     assert np.max(np.abs(x - x_ref)) < 1e-8  # both fourth order, same held z
 
