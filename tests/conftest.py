@@ -50,8 +50,9 @@ def pytest_configure(config):
 
 # The longest files first (the scheduler below hands the groups out in this order,
 # --no-loadscope-reorder): a long file started last would leave the other worker idle.
-LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_sweep.py", "test_gradients.py",
-                 "test_tuning_gradients.py", "test_tuning_loop.py", "test_tuning_adversarial.py")
+LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_tuning_adversarial.py",
+                 "test_tuning_loop.py", "test_sweep.py", "test_gradients.py",
+                 "test_tuning_gradients.py", "test_identify.py", "test_refine.py")
 # Files whose parametrized tests xdist may hand to different workers, one group a parameter
 # (each test runs alone, whatever is shared comes from `once`); every other file is one group.
 SPLIT = ("test_docs.py",)
