@@ -71,13 +71,16 @@ def test_a_non_finite_horizon_in_a_config_is_refused_by_its_field(command, name,
     assert err == f"dscjax {command}: error: {wanted}"
 
 
-@pytest.mark.parametrize(("command", "section"), [("worst-case", "worst"), ("sweep", "sweep"),
-                                                  ("tune", "tuning")])
+@pytest.mark.parametrize(("command", "section", "more"), [
+    ("worst-case", "worst", []), ("sweep", "sweep", []), ("tune", "tuning", []),
+    # the requirement a worst-case search maximises, shown by --print-config
+    ("worst-case", "tuning", ["--metric", "requirement:envelope", "--print-config"])])
 def test_a_commands_own_section_that_is_not_a_table_is_refused_by_its_name(command, section,
-                                                                          tmp_path, capsys):
+                                                                          more, tmp_path,
+                                                                          capsys):
     cfg = tmp_path / "c.toml"
     cfg.write_text(f"{section} = 1\n")
-    err = _refused(capsys, [command, "--config", str(cfg), *EXTRA.get(command, [])],
+    err = _refused(capsys, [command, "--config", str(cfg), *EXTRA.get(command, []), *more],
                    tmp_path / "o")
     assert err == f"dscjax {command}: error: '{section}' must be a table ([{section}])"
 

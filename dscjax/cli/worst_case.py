@@ -180,8 +180,14 @@ def requirement_table(args, s) -> dict:
     if not s.metric.startswith(worst.REQUIREMENT) or not args.config:
         return {}
     name = s.metric[len(worst.REQUIREMENT):]
-    table = common.config_data(args).get("tuning", {}).get("requirements", {}).get(name, {})
-    return {"tuning": {"requirements": {name: table}}}
+    return {"tuning": {"requirements": {name: _requirements(args).get(name, {})}}}
+
+
+def _requirements(args) -> dict:
+    """[tuning.requirements] of --config, read and checked as the tuner reads it."""
+    from tuning.config import from_dict
+
+    return from_dict(common.config_data(args).get("tuning", {})).requirements
 
 
 def requirement_of(args, setup, s):
@@ -190,10 +196,9 @@ def requirement_of(args, setup, s):
     if not s.metric.startswith(worst.REQUIREMENT):
         return None
     name = s.metric[len(worst.REQUIREMENT):]
-    from tuning.config import from_dict
     from tuning.requirements import build_requirements
 
-    table = from_dict(common.config_data(args).get("tuning", {})).requirements
+    table = _requirements(args)
     if name not in table:
         raise ConfigError(f"--metric {s.metric}: --config has no [tuning.requirements."
                           f"{name}] table (has: {', '.join(table) or 'none'})")
