@@ -140,10 +140,8 @@ class DSC(AdaptiveLaws):
         return self.theta_hat0, self.phi_hat0, zeta0, d0
 
     def init_state(self, plant, reference):
-        theta_hat, phi_hat, zeta_hat, d_hat = self._initial_estimates()
         _, x_d0 = self._initial_filters(plant, reference)
-        return DSCState(z=x_d0, theta_hat=theta_hat, phi_hat=phi_hat, zeta_hat=zeta_hat,
-                        d_hat=d_hat)
+        return DSCState(x_d0, *self._initial_estimates())
 
     # -- the law -----------------------------------------------------------------------------
     def law(self, state, x, t, plant, reference):
