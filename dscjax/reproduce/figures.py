@@ -179,12 +179,10 @@ def _estimates_figure(trajs, out, fmt, dpi):
         ax.margins(y=0.12)
     for ax in axes[1]:
         ax.set_xlabel("time $t$ [s]")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=3, frameon=False)
+    _legend_below(fig, axes[0, 0], ncol=3)
     fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
                  r"because $f_2 = 0$; not shown)")
     return _finish(fig, out, FIGURES["estimates"], fmt, dpi)
-
 
 
 __all__ = ["FIGURES", "RC", "figures"]
