@@ -1,4 +1,4 @@
-"""Markdown tables: the one way dscjax writes one (`table`), and a cell's text (`escape`)."""
+"""Markdown tables: the lines of one from its header and rows (`table`); a cell's text."""
 
 from __future__ import annotations
 
