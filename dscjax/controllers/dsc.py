@@ -99,12 +99,9 @@ class DSC(AdaptiveLaws):
     def prepare(self, plant, reference):
         x0 = jnp.asarray(plant.x0)
         if self.init == "linf":
-            zero = jnp.zeros_like
+            estimates = ("theta_hat0", "phi_hat0", "zeta_hat0", "d_hat0")
             ctrl = dataclasses.replace(
-                self,
-                theta_hat0=zero(self.theta_hat0), phi_hat0=zero(self.phi_hat0),
-                zeta_hat0=zero(self.zeta_hat0), d_hat0=zero(self.d_hat0), c=x0[1:],
-            )
+                self, c=x0[1:], **{k: jnp.zeros_like(getattr(self, k)) for k in estimates})
             ref = InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
                                 self.linf_decay_time)
             return ctrl, ref
