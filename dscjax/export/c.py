@@ -289,8 +289,7 @@ def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict
     law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
     real = _Real(precision)
     try:
-        text = _source(law, spec, real)
-        return {HEADER: _header(law, spec, source, gains, real), SOURCE: text}
+        return {HEADER: _header(law, spec, source, gains, real), SOURCE: _source(law, spec, real)}
     except _OutOfRange as e:  # outside an operation: an initial value, the sample time
         raise ExportError(f"controller: the constant {e.args[0]:g} is beyond the range of C "
                           f"{precision}; export it in double (--precision double)") from None

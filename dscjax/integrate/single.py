@@ -204,11 +204,9 @@ def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, stat
     prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
                     frozen)
 
-    def primal(y0c, ac, red, acc0c, dtv, bound):
-        return prob.forward(y0c, ac, red, acc0c, dtv, bound)
-
+    primal = prob.forward
     if isinstance(gradient, TimeParallel):
-        primal = jax.custom_jvp(primal)
+        primal = jax.custom_jvp(prob.forward)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
     acc0c = prob.accp.pack(acc0 if reduction is not None else ())
