@@ -111,21 +111,14 @@ class _Problem:
         self.op = _Packer(scan.zeros(obs_proto))
         self.dtype = dtype
 
-    def _packed_field(self, t, y, a):
-        dy, obs = self._unpacked_field(t, y, a)
-        return self.yp.pack(dy), self.op.pack(obs)
-
     def field(self, t, y, a, packed=True):
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
-        if packed:
-            return self._packed_field(t, y, a)
-        dy, obs = self.f(t, self.yp.unpack(y), a)
+        dy, obs = self._unpacked_field(t, y, a) if packed else self.f(t, self.yp.unpack(y), a)
         return self.yp.pack(dy), self.op.pack(obs)
 
     def step(self, k, y, a, dt, h=None, scanned=False, packed=True):
         """(y_(k+1), obs_k) by the solver from y_k (unguarded)."""
         t = k.astype(dt.dtype) * dt
-        h = dt if h is None else h
 
         def f_obs(tt, yy):
             return self.field(tt, yy, a, packed)
