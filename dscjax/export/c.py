@@ -289,7 +289,7 @@ def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict
     law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
     real = _Real(precision)
     try:
-        return {HEADER: _header(law, spec, source, gains, real), SOURCE: _source(law, spec, real)}
+        return {HEADER: _header(law, spec, source, gains, real), SOURCE: _source(law, real)}
     except _OutOfRange as e:  # outside an operation: an initial value, the sample time
         raise ExportError(f"controller: the constant {e.args[0]:g} is beyond the range of C "
                           f"{precision}; export it in double (--precision double)") from None
@@ -370,7 +370,7 @@ def _assign(atoms, em, fields, *, stage: bool) -> list[str]:
     return lines + writes
 
 
-def _source(law: Law, spec, real: _Real) -> str:
+def _source(law: Law, real: _Real) -> str:
     r = real.name
     fields = "\n".join(f"    {r} {nm}{'' if shp == () else f'[{_size(shp)}]'};"
                        for nm, shp, _ in law.state)
