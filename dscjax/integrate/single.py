@@ -179,15 +179,12 @@ class _Problem:
 
     # the same loop, keeping every state, sample and observation (for the linearisation)
     def forward_all(self, y0, a, red, acc0, dt, bound):
-        n = self.n
-        c0 = self.init(y0, acc0)
-
         def step(c, _):
             c_new, obs = self.guarded(c, a, red, dt, bound)
             return c_new, (c.y, c.acc, obs)
 
         width = max(self.yp.sizes + self.accp.sizes + self.op.sizes, default=1)
-        c, (Y, A, O) = scan.blocked_scan(step, c0, None, n, width)
+        c, (Y, A, O) = scan.blocked_scan(step, self.init(y0, acc0), None, self.n, width)
         acc, obs_end = self.finish(c, a, red, dt)
         return c, Y, A, O, acc, obs_end
 
