@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
-from dscjax.markdown import table
+from dscjax.markdown import escape, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
@@ -226,7 +226,7 @@ def _cell(x) -> str:
         return f"{int(x):,}"
     if isinstance(x, float):
         return f"{x:.4g}"
-    return str(x).replace("|", "\\|")
+    return escape(x)
 
 
 def markdown(summary: Mapping[str, Any]) -> str:
