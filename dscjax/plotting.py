@@ -47,8 +47,6 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
 def plot_trajectory(traj, path: Path | str, title: str = ""):
     """The Figure (saved to `path`) of four panels: states against the reference, tracking
     error, u, w; a diverged run drawn up to its marked divergence."""
-    from matplotlib.figure import Figure
-
     t = np.asarray(traj.t)
     signals = {k: np.array(v, dtype=float) for k, v in (
         ("x", traj.x), ("yr", traj.yr), ("e", traj.e), ("u", traj.u), ("w", traj.w))}
@@ -58,8 +56,7 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
         for v in signals.values():
             v[t > t_bad] = np.nan
     x = signals["x"]
-    fig = Figure(figsize=(10, 7), layout="constrained")
-    ax = fig.subplots(2, 2, sharex=True)
+    fig, ax = subplots(2, 2, figsize=(10, 7), sharex=True)
     a = ax[0, 0]
     a.plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--", label="reference $y_r$")
     for i in range(x.shape[1]):

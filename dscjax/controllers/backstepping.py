@@ -99,16 +99,10 @@ class Backstepping(AdaptiveLaws):
         dropped; g_nom defaults to g_min for every stage.
         """
         m = np.shape(dsc.phi_hat0)[0]
-        values = dict(
-            k=dsc.k, gamma_g=dsc.gamma_g, eta=dsc.eta, gamma_phi=dsc.gamma_phi, sigma=dsc.sigma,
-            gamma_zeta=dsc.gamma_zeta, eta_zeta=dsc.eta_zeta, gamma_d=dsc.gamma_d,
-            eta_d=dsc.eta_d, eps=dsc.eps, g_min=dsc.g_min,
+        shared = {k: getattr(dsc, k) for k in dsc.law_shapes(m + 1)}  # AdaptiveLaws' fields
+        return cls(**shared | dict(
             g_nom=np.full(m, np.asarray(dsc.g_min)).astype(np.asarray(dsc.k).dtype),
-            theta_hat0=dsc.theta_hat0, phi_hat0=dsc.phi_hat0, zeta_hat0=dsc.zeta_hat0,
-            d_hat0=dsc.d_hat0, sat_width=dsc.sat_width, smooth_delta=dsc.smooth_delta,
-            robust_term=dsc.robust_term)
-        values.update(changes)
-        return cls(**values)
+            robust_term=dsc.robust_term) | changes)
 
     def expected_shapes(self, n):
         return self.law_shapes(n) | dict(g_nom=(n - 1,))
@@ -122,8 +116,7 @@ class Backstepping(AdaptiveLaws):
                 f"use 'autodiff'")
 
     def init_state(self, plant, reference):
-        return BacksteppingState(theta_hat=self.theta_hat0, phi_hat=self.phi_hat0,
-                                 zeta_hat=self.zeta_hat0, d_hat=self.d_hat0)
+        return BacksteppingState(self.theta_hat0, self.phi_hat0, self.zeta_hat0, self.d_hat0)
 
     # The virtual controls (alpha_(i+1) = _virtual with v_i = alpha_i'), ubar and the adaptive
     # laws are the DSC's (`AdaptiveLaws`), with z_i in place of S_i.
@@ -205,10 +198,7 @@ class Backstepping(AdaptiveLaws):
     def state_rate(self, state, x, t, info, plant, reference):
         """Adaptive laws (17), (23), (29), (31), (32) with z_i for S_i, alpha_(i-1)' for z_i'."""
         e = info.extra
-        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info.S, e.f, e.phi_signal,
-                                                          e.ubar)
-        return BacksteppingState(theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
-                                 d_hat=d_dot)
+        return BacksteppingState(*self._rates(state, info.S, e.f, e.phi_signal, e.ubar))
 
 
 def law_order2_by_hand(ctrl: Backstepping, state, x, t, plant, reference):

@@ -99,12 +99,9 @@ class DSC(AdaptiveLaws):
     def prepare(self, plant, reference):
         x0 = jnp.asarray(plant.x0)
         if self.init == "linf":
-            zero = jnp.zeros_like
+            estimates = ("theta_hat0", "phi_hat0", "zeta_hat0", "d_hat0")
             ctrl = dataclasses.replace(
-                self,
-                theta_hat0=zero(self.theta_hat0), phi_hat0=zero(self.phi_hat0),
-                zeta_hat0=zero(self.zeta_hat0), d_hat0=zero(self.d_hat0), c=x0[1:],
-            )
+                self, c=x0[1:], **{k: jnp.zeros_like(getattr(self, k)) for k in estimates})
             ref = InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
                                 self.linf_decay_time)
             return ctrl, ref
@@ -140,10 +137,8 @@ class DSC(AdaptiveLaws):
         return self.theta_hat0, self.phi_hat0, zeta0, d0
 
     def init_state(self, plant, reference):
-        theta_hat, phi_hat, zeta_hat, d_hat = self._initial_estimates()
         _, x_d0 = self._initial_filters(plant, reference)
-        return DSCState(z=x_d0, theta_hat=theta_hat, phi_hat=phi_hat, zeta_hat=zeta_hat,
-                        d_hat=d_hat)
+        return DSCState(x_d0, *self._initial_estimates())
 
     # -- the law -----------------------------------------------------------------------------
     def law(self, state, x, t, plant, reference):

@@ -145,7 +145,7 @@ def trace(setup, spec) -> Law:
     n_ref = max(used, default=1) + 1
     if n_ref >= n_d:
         raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
-    reads_t = any(a[0] == "in" and a[1][0] == "t" for a in _atoms(step_prog))
+    reads_t = ("t",) in read  # the step's inputs it reads (above)
     return Law(init=init_prog, step=step_prog, state=state, n_ref=max(n_ref, 2), order=n,
                sample_time=every * dt, reads_t=reads_t)
 

@@ -94,18 +94,12 @@ def closed_form(u, u0, w0, alpha, lam, psi, direction):
     return lam * u + d1
 
 
-def _pow_abs(h, n):
-    """|h|^n with finite derivatives at h = 0 (double where)."""
+def _pow_abs(h, n, at_zero=0.0):
+    """|h|^n with finite derivatives at h = 0 (double where), `at_zero` there (0; for
+    |h|^(n-1), n >= 1: 1 if n = 1)."""
     zero = h == 0
     safe = jnp.where(zero, 1.0, jnp.abs(h))
-    return jnp.where(zero, 0.0, safe ** n)
-
-
-def _pow_abs_m1(h, n):
-    """|h|^(n-1) for n >= 1, finite at h = 0 (1 there for n = 1, 0 for n > 1)."""
-    zero = h == 0
-    safe = jnp.where(zero, 1.0, jnp.abs(h))
-    return jnp.where(zero, jnp.where(n == 1, 1.0, 0.0), safe ** (n - 1.0))
+    return jnp.where(zero, at_zero, safe ** n)
 
 
 # RK4 substeps in u of a Bouc-Wen jump: a sampled controller's input moves by |u'| Ts per
@@ -170,7 +164,7 @@ class BoucWen(Hysteresis):
     def decay_rate(self, u, du, h):
         """(beta |u'| + gamma u' sgn h) |h|^(n-1) where >= 0: the decay -(...) h in `rate`."""
         k = (self.beta * self._abs_du(du) + self.gamma * du * jnp.sign(h)) \
-            * _pow_abs_m1(h, self.n)
+            * _pow_abs(h, self.n - 1.0, jnp.where(self.n == 1, 1.0, 0.0))
         return jnp.maximum(k, 0.0)
 
     def jump(self, u_from, u_to, h):

@@ -204,14 +204,13 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
     flat0, unravel = ravel_pytree((jnp.asarray(theta0["z"]), jnp.asarray(theta0["x"])))
     theta = np.asarray(flat0, float)
     r, jac = (np.asarray(a, float) for a in _rj(problem, jnp.asarray(theta)))
-    cost, lam, nu, steps, status = 0.5 * float(r @ r), None, 2.0, 0, "stopped at max_steps"
+    cost, lam, nu, steps, status = 0.5 * float(r @ r), LAMBDA0, 2.0, 0, "stopped at max_steps"
     if not math.isfinite(cost):
         status = "the start's residuals are not finite"
     while math.isfinite(cost) and steps < max_steps:
         a, g = jac.T @ jac, jac.T @ r
         d = np.diag(a).copy()
         d[d <= 0] = 1.0
-        lam = LAMBDA0 if lam is None else lam
         if float(np.max(np.abs(g))) <= tol * max(1.0, cost):
             status = "converged"
             break
@@ -225,6 +224,7 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
         r_new, jac_new = (np.asarray(x, float) for x in _rj(problem, jnp.asarray(trial)))
         new = 0.5 * float(r_new @ r_new)
         predicted = -(g @ step + 0.5 * step @ a @ step)
+        steps += 1
         if math.isfinite(new) and new < cost:
             rho = (cost - new) / max(predicted, 1e-300)
             small = np.linalg.norm(step) <= tol * (np.linalg.norm(theta) + tol)
@@ -232,13 +232,11 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
             theta, cost, r, jac = trial, new, r_new, jac_new
             lam *= max(1 / 3, 1 - (2 * rho - 1) ** 3)
             nu = 2.0
-            steps += 1
             if small or flat_cost:
                 status = "converged"
                 break
         else:
             lam, nu = lam * nu, nu * 2
-            steps += 1
             if lam > 1e16:
                 status = "converged"  # no step lowers the cost: a minimum to round-off
                 break

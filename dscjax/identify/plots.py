@@ -13,28 +13,27 @@ from dscjax import files
 from dscjax.plotting import subplots
 
 
-def _curves(res):
-    """[(label, t, y measured, y model, fitted mask)] of the fit and of the validation."""
-    out = []
+def _curves(res) -> dict:
+    """{column: [(tag, t, y measured, y model)] on the fitted samples} of the fit and of the
+    validation."""
+    out = {c: [] for c in res.problem.record.y}
     for tag, problem, fit in (("fit", res.problem, res.fit),
                               ("validation", res.val_problem, res.val_fit)):
         pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
         idx = np.asarray(problem.fit_index)
         for c, y in problem.record.y.items():
-            out.append((c, tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
-                        np.asarray(pred[c])[idx]))
+            out[c].append((tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
+                           np.asarray(pred[c])[idx]))
     return out
 
 
 def write(out: Path, res) -> None:
     curves = _curves(res)
-    columns = list(res.problem.record.y)
+    columns = list(curves)
     for name, residual in (("fit.png", False), ("residuals.png", True)):
         fig, axes = subplots(len(columns), 1, figsize=(8, 2.4 * len(columns)), squeeze=False)
         for ax, c in zip(axes[:, 0], columns, strict=True):
-            for col, tag, t, y, yh in curves:
-                if col != c:
-                    continue
+            for tag, t, y, yh in curves[c]:
                 colour = "#1f77b4" if tag == "fit" else "#d62728"
                 if residual:
                     ax.plot(t, y - yh, color=colour, lw=0.8, label=f"{tag}: measured - model")

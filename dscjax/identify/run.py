@@ -20,6 +20,7 @@ from dscjax import config, files
 from dscjax.identify import fit as fitting
 from dscjax.identify.data import Record, columns_of, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
+from dscjax.markdown import table
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
 from dscjax.settings import setting
 from dscjax.validation import ConfigError
@@ -190,20 +191,17 @@ def markdown(s: dict) -> str:
         f"({s['solver']['status']}), {len(s['solver']['starts'])} start(s), "
         f"{s['solver']['seconds']:.1f} s.", "",
         "## Fit", "",
-        "| output | fit to estimation data (NRMSE %) | MSE | validation fit (NRMSE %) |",
-        "|---|---|---|---|"]
-    for c in cols:
-        lines.append(f"| {c} | {fit[c]['nrmse_fit_percent']:.2f} | {fit[c]['mse']:.4g} | "
-                     f"{val[c]['nrmse_fit_percent']:.2f} |")
+        *table(("output", "fit to estimation data (NRMSE %)", "MSE", "validation fit (NRMSE %)"),
+               [(c, f"{fit[c]['nrmse_fit_percent']:.2f}", f"{fit[c]['mse']:.4g}",
+                 f"{val[c]['nrmse_fit_percent']:.2f}") for c in cols])]
     lines += ["", f"FPE {fit['all']['fpe']:.4g}; validation on {s['validation']['on']} (the "
               "identified numbers fixed, the initial state fitted).", "",
               "## Parameters", "",
-              "| parameter | value | standard error | 95 % interval | identified |",
-              "|---|---|---|---|---|"]
-    for e in s["parameters"]:
-        lines.append(f"| `{e['name']}` | {e['value']:.6g} | {e['se']:.3g} | "
-                     f"[{e['low']:.6g}, {e['high']:.6g}] | "
-                     + ("yes" if e["identifiable"] else f"**no**: {e['why']}") + " |")
+              *table(("parameter", "value", "standard error", "95 % interval", "identified"),
+                     [(f"`{e['name']}`", f"{e['value']:.6g}", f"{e['se']:.3g}",
+                       f"[{e['low']:.6g}, {e['high']:.6g}]",
+                       "yes" if e["identifiable"] else f"**no**: {e['why']}")
+                      for e in s["parameters"]])]
     if s["not_identifiable"]:
         lines += ["", f"**Not identifiable from this record**: "
                   f"{', '.join(s['not_identifiable'])}. Their numbers above are one of many "

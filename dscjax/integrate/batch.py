@@ -35,9 +35,6 @@ class _Rows:
     def unpack_one(self, row_scalars):
         return self.unravel(jnp.stack(row_scalars))
 
-    def stack(self, y):
-        return jnp.stack(y)  # (m, B)
-
     def unstack(self, ys):
         # ys: (T, m, B) -> pytree with leaves (B, T, ...)
         return jax.vmap(jax.vmap(self.unravel), in_axes=-1)(ys)
@@ -137,13 +134,13 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
         carry, (ys, obs) = scan.saving_scan(
             step, init, obs_zero, n_steps, save_every,
-            lambda c, o: (ys_c.stack(c[1]), obs_c.stack(o)), gradient.every)
+            lambda c, o: (jnp.stack(c[1]), jnp.stack(o)), gradient.every)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         _, obs_end = f_obs(t_end, y_end)
         acc = acc_update(acc, k, t_end, y_end, obs_end, code == scan.STATUS_OK)
-    ys = ys_c.unstack(jnp.concatenate([ys, ys_c.stack(y_end)[None]]))
-    obs = obs_c.unstack(jnp.concatenate([obs, obs_c.stack(obs_end)[None]]))
+    ys = ys_c.unstack(jnp.concatenate([ys, jnp.stack(y_end)[None]]))  # rows (m, B) per step
+    obs = obs_c.unstack(jnp.concatenate([obs, jnp.stack(obs_end)[None]]))
     acc = (jax.vmap(acc_c.unravel, in_axes=-1)(jnp.stack(acc)) if reduction is not None
            else None)
     return scan.Integration(ys=ys, obs=obs, acc=acc, status=scan.Status(code=code, step=bad))

@@ -117,7 +117,7 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
 
     def block(c, length):
         state = (c, obs_zero, jnp.array(True))
-        seg = _segment_length(length, every)
+        seg = None if every is None else _largest_divisor(length, every)
         if seg is None or seg == length:
             def body(st):
                 return steps(st, length)
@@ -138,25 +138,16 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
     return c, recs
 
 
-def _segment_length(save_every: int, target: int | None) -> int | None:
-    """Checkpoint segment inside a save block: the largest divisor of save_every <= target."""
-    if target is None:
-        return None
-    if target >= save_every:
-        return save_every
-    return max(d for d in range(1, target + 1) if save_every % d == 0)
-
-
-def _block_length(n: int, width: int) -> int:
-    """The largest divisor L of n with L * width <= SMALL (at least 1)."""
-    cap = max(1, SMALL // max(width, 1))
+def _largest_divisor(n: int, cap: int) -> int:
+    """The largest divisor of n that is <= cap: a checkpoint segment inside a save block (cap
+    the target), or a block of `blocked_scan` (cap SMALL // width, at least 1)."""
     return max(d for d in range(1, min(cap, n) + 1) if n % d == 0)
 
 
 def blocked_scan(body, carry, xs, n: int, width: int):
     """lax.scan over n steps in blocks of L: the inner scan touches only small buffers (run
     sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a plain scan."""
-    L = _block_length(n, width)
+    L = _largest_divisor(n, max(1, SMALL // max(width, 1)))
 
     def outer(c, block):
         return jax.lax.scan(body, c, block, length=L)

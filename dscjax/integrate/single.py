@@ -111,21 +111,14 @@ class _Problem:
         self.op = _Packer(scan.zeros(obs_proto))
         self.dtype = dtype
 
-    def _packed_field(self, t, y, a):
-        dy, obs = self._unpacked_field(t, y, a)
-        return self.yp.pack(dy), self.op.pack(obs)
-
     def field(self, t, y, a, packed=True):
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
-        if packed:
-            return self._packed_field(t, y, a)
-        dy, obs = self.f(t, self.yp.unpack(y), a)
+        dy, obs = self._unpacked_field(t, y, a) if packed else self.f(t, self.yp.unpack(y), a)
         return self.yp.pack(dy), self.op.pack(obs)
 
     def step(self, k, y, a, dt, h=None, scanned=False, packed=True):
         """(y_(k+1), obs_k) by the solver from y_k (unguarded)."""
         t = k.astype(dt.dtype) * dt
-        h = dt if h is None else h
 
         def f_obs(tt, yy):
             return self.field(tt, yy, a, packed)
@@ -186,15 +179,12 @@ class _Problem:
 
     # the same loop, keeping every state, sample and observation (for the linearisation)
     def forward_all(self, y0, a, red, acc0, dt, bound):
-        n = self.n
-        c0 = self.init(y0, acc0)
-
         def step(c, _):
             c_new, obs = self.guarded(c, a, red, dt, bound)
             return c_new, (c.y, c.acc, obs)
 
         width = max(self.yp.sizes + self.accp.sizes + self.op.sizes, default=1)
-        c, (Y, A, O) = scan.blocked_scan(step, c0, None, n, width)
+        c, (Y, A, O) = scan.blocked_scan(step, self.init(y0, acc0), None, self.n, width)
         acc, obs_end = self.finish(c, a, red, dt)
         return c, Y, A, O, acc, obs_end
 
@@ -204,11 +194,9 @@ def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, stat
     prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
                     frozen)
 
-    def primal(y0c, ac, red, acc0c, dtv, bound):
-        return prob.forward(y0c, ac, red, acc0c, dtv, bound)
-
+    primal = prob.forward
     if isinstance(gradient, TimeParallel):
-        primal = jax.custom_jvp(primal)
+        primal = jax.custom_jvp(prob.forward)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
     acc0c = prob.accp.pack(acc0 if reduction is not None else ())

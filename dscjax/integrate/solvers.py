@@ -105,9 +105,7 @@ def _etdrk4(f_obs, rates, t, y, dt, h=None, frozen=None):
     lam = rates(t, y, obs)
     z = jax.tree.map(lambda r: -h * r, lam)
 
-    def each(fn, *trees):
-        return jax.tree.map(fn, *trees)
-
+    each = jax.tree.map
     e_full = each(jnp.exp, z)
     e_half = each(lambda zz: jnp.exp(0.5 * zz), z)
     # (e^(z/2) - 1)/(-lam) = (h/2) phi(z/2)
@@ -150,7 +148,6 @@ def _rk4_scanned(f_obs, t, y, dt, h, frozen=None):
     zero = jax.tree.map(jnp.zeros_like, y)
     (_, total), obs = jax.lax.scan(stage, (zero, zero), (c, w))
     return _hold(_axpy(h / 6.0, total, y), y, frozen), jax.tree.map(lambda o: o[0], obs)
-
 
 
 # -- the solvers as objects ----------------------------------------------------------------------

@@ -46,15 +46,12 @@ INTERPRETATIONS = [
 def summarize(trajs: dict, t_final: float, dt: float) -> dict:
     """Metrics of every run, the estimates' ranges and the check of every claim."""
     window = 1.0 if t_final > 1.0 else 0.0
-    runs = {}
-    for name, traj in trajs.items():
-        est = estimates(traj)
-        runs[name] = dict(
-            label=LABELS[name], **run_metrics(traj, window), diverged=bool(traj.diverged),
-            t_diverged=float(traj.t_diverged) if bool(traj.diverged) else None,
-            estimates={k: dict(min=float(v.min()), max=float(v.max()), final=float(v[-1]))
-                       for k, v in est.items()},
-        )
+    runs = {name: dict(
+        label=LABELS[name], **run_metrics(traj, window), diverged=bool(traj.diverged),
+        t_diverged=float(traj.t_diverged) if bool(traj.diverged) else None,
+        estimates={k: dict(min=float(v.min()), max=float(v.max()), final=float(v[-1]))
+                   for k, v in estimates(traj).items()},
+    ) for name, traj in trajs.items()}
     return dict(
         paper="Robust adaptive DSC for nonlinear systems with hysteresis input, Acta Automatica "
               "Sinica 2010, Section 4 (eq. 73)",

@@ -29,6 +29,7 @@ FIGURES = {
 # The style of the paper's figures, applied with matplotlib.rc_context (never globally).
 RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid": True,
       "grid.alpha": 0.3}
+LOOP_COLORS = ("#8c564b", COLORS["w"])  # Fig. 1's loops: the small one brown, the large one w's
 
 
 def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
@@ -88,14 +89,13 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
     """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
     both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
     hysteresis` draws one model)."""
-    loop_colors = ("#8c564b", COLORS["w"])  # as Fig. 1: small loop brown, large loop w's
     fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
                          layout="constrained")
     for ax, (model, _, u, w) in zip(np.atleast_1d(axes), family.values(), strict=True):
         big = int(np.argmax(np.max(np.abs(u), axis=1)))
         for i in range(len(u)):
             k = float(np.max(np.abs(u[i])))
-            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}", loop_colors[i % 2],
+            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}", LOOP_COLORS[i % 2],
                             lines=i == big)
         ax.set_title(model.title, fontsize=9)
         ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
@@ -110,13 +110,12 @@ def _figures(trajs, loops, out, fmt, dpi):
     hyst = paper_example().hysteresis
     lam, psi, alpha = (float(hyst.lam), float(hyst.psi), float(hyst.alpha))
 
-    loop_colors = ("#8c564b", COLORS["w"])  # small loop brown, large loop the colour of w
     fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
     axes = np.atleast_1d(axes)
     umax = max(float(np.max(np.abs(u))) for _, u, _ in loops.values())
     ug = np.linspace(-umax, umax, 2)
     b = (lam - psi) / alpha
-    for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), loop_colors, strict=False):
+    for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), LOOP_COLORS, strict=False):
         ax.plot(ug, lam * ug + b, color="#999999", lw=0.8, ls=":",
                 label=r"asymptotes $w = \lambda u \pm (\lambda-\psi)/\alpha$")
         ax.plot(ug, lam * ug - b, color="#999999", lw=0.8, ls=":")
@@ -179,12 +178,10 @@ def _estimates_figure(trajs, out, fmt, dpi):
         ax.margins(y=0.12)
     for ax in axes[1]:
         ax.set_xlabel("time $t$ [s]")
-    handles, labels = axes[0, 0].get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=3, frameon=False)
+    _legend_below(fig, axes[0, 0], ncol=3)
     fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
                  r"because $f_2 = 0$; not shown)")
     return _finish(fig, out, FIGURES["estimates"], fmt, dpi)
-
 
 
 __all__ = ["FIGURES", "RC", "figures"]

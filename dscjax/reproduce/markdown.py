@@ -6,21 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
+from dscjax.markdown import escape, table
 from dscjax.reproduce import theory
 from dscjax.reproduce.alpha0 import table_markdown
 from dscjax.reproduce.runs import ESTIMATES
 from dscjax.reproduce.sampling import markdown as sampling_markdown
-
-
-def _cell(text) -> str:
-    """Text safe inside a markdown table cell."""
-    return str(text).replace("|", "\\|")
-
-
-def _table(head, rows) -> list[str]:
-    """The lines of a markdown table: the header's cells, then each row's."""
-    return ["| " + " | ".join(head) + " |", "|---" * len(head) + "|",
-            *("| " + " | ".join(row) + " |" for row in rows)]
 
 
 def _yes(b: bool) -> str:
@@ -33,10 +23,10 @@ def summary_markdown(summary: dict) -> str:
              f"window t >= {summary['window_start']:g} s. Wall time "
              f"{summary.get('wall_time_s', float('nan')):.1f} s.", "",
              "## Claims of the paper", "",
-             *_table(("claim", "the paper shows", "we measured", "holds in our run"),
-                     [(*(_cell(c[k]) for k in ("claim", "paper", "measured")),
-                       c.get("verdict", "yes") if c["holds"] else "**no**")
-                      for c in summary["claims"]])]
+             *table(("claim", "the paper shows", "we measured", "holds in our run"),
+                    [(*(escape(c[k]) for k in ("claim", "paper", "measured")),
+                      c.get("verdict", "yes") if c["holds"] else "**no**")
+                     for c in summary["claims"]])]
     # the windowed figures lead: over the whole run, L∞ e is the initial error x1(0) - yr(0)
     window = f"on [{summary['window_start']:g}, {summary['t_final']:g}] s"
     heads = {"linf_error_after_1s": f"L∞ e {window}", "linf_error": "L∞ e on [0, T] (the "
@@ -45,11 +35,11 @@ def summary_markdown(summary: dict) -> str:
              "max_abs_w": "max abs w", "tv_u": "TV(u)"}
     runs = summary["runs"].items()
     lines += ["", "## Runs", "",
-              *_table(("run", *heads.values(), "diverged"),
-                      [(name, *(f"{r[k]:.4g}" for k in heads), "yes" if r["diverged"] else "no")
-                       for name, r in runs]),
+              *table(("run", *heads.values(), "diverged"),
+                     [(name, *(f"{r[k]:.4g}" for k in heads), "yes" if r["diverged"] else "no")
+                      for name, r in runs]),
               "", "## Adaptive estimates (min / max / final)", "",
-              *_table(("run", *ESTIMATES), [
+              *table(("run", *ESTIMATES), [
                   (name, *("{min:.3g} / {max:.3g} / {final:.3g}".format(**r["estimates"][k])
                            for k in ESTIMATES)) for name, r in runs])]
     if "sampling" in summary:
@@ -57,11 +47,11 @@ def summary_markdown(summary: dict) -> str:
     if "complexity" in summary:
         cx = summary["complexity"]
         lines += ["", "## Explosion of complexity (control law only)", "",
-                  *_table(("n", "controller", "jaxpr eqns", "FLOPs", "trace [s]", "compile [s]",
-                           "eval [us]"),
-                          [(str(r["n"]), r["controller"], str(r["eqns"]), f"{r['flops']:.0f}",
-                            f"{r['trace_s']:.3g}", f"{r['compile_s']:.3g}",
-                            f"{r['eval_s'] * 1e6:.3g}") for r in cx["rows"]]),
+                  *table(("n", "controller", "jaxpr eqns", "FLOPs", "trace [s]", "compile [s]",
+                          "eval [us]"),
+                         [(r["n"], r["controller"], r["eqns"], f"{r['flops']:.0f}",
+                           f"{r['trace_s']:.3g}", f"{r['compile_s']:.3g}",
+                           f"{r['eval_s'] * 1e6:.3g}") for r in cx["rows"]]),
                   "", "Fitted growth (ratio per order; power-law exponent):", ""]
         for c, fits in cx["fits"].items():
             parts = [f"{m}: x{f['ratio_per_order']:.2f}/order, n^{f['exponent']:.2f}"
@@ -92,7 +82,7 @@ def theory_markdown(summary: dict) -> str:
         f"- Its gains do not follow (55) for any single alpha_0. As inequalities (all the proof "
         f"uses) they allow alpha_0 <= {p['alpha0']:.3g}, bound by {p['binding_gain']}; k_2 = "
         f"0.45 alone would allow {p['allows'].get('k_2', float('nan')):.3g}:", "",
-        *_table(("gain", "paper", "rule (55)/(60)", "rule at alpha_0 = 0.2", "alpha_0 it allows"),
+        *table(("gain", "paper", "rule (55)/(60)", "rule at alpha_0 = 0.2", "alpha_0 it allows"),
                 [(g["gain"], f"{g['paper']:.4g}", g["rule"], f"{g['at_0_2']:.4g}", f"{a:.4g}")
                  for g, a in zip(p["gains"], p["allows"].values(), strict=True)])]
     est = ini["estimates"]
@@ -115,10 +105,10 @@ def theory_markdown(summary: dict) -> str:
         "is the statement that applies.", "",
         f"### Statements on the example (alpha_0 = {p['alpha0']:.3g}, mu = {p['mu']:.3g}, "
         f"M = {np.round(p['M_measured'], 4).tolist()} measured, C = {p['C']:.4g})", "",
-        *_table(("statement", "measured", "bound", "holds"), [
-            *((f"{key} {_cell(theory.STATEMENTS[key])}", measured, bound, _yes(h[key]))
+        *table(("statement", "measured", "bound", "holds"), [
+            *((f"{key} {escape(theory.STATEMENTS[key])}", measured, bound, _yes(h[key]))
               for key, measured, bound in rows),
-            (f"(12) {_cell(theory.ASSUMPTIONS['(12)'])} (assumption)", f"{p['d_n_max']:.4g}",
+            (f"(12) {escape(theory.ASSUMPTIONS['(12)'])} (assumption)", f"{p['d_n_max']:.4g}",
              f"{p['d']:.4g}", _yes(p["assumptions"]["(12)"]))]),
         "",
         f"V decreases at {100 * p['frac_V_decreasing']:.1f} % of the steps; V(0) = "

@@ -63,11 +63,8 @@ def family_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2
                  t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
     """{kind: (model, t (N+1,), u (K, N+1), w (K, N+1))}: Fig. 1's input applied to every
     hysteresis model at its example's values (`hysteresis_example`), K = len(amplitudes)."""
-    out = {}
-    for kind in FAMILY:
-        model = hysteresis_example(kind).hysteresis
-        out[kind] = (model, *sine_loops(model, amplitudes, omega, t_final, dt))
-    return out
+    models = {kind: hysteresis_example(kind).hysteresis for kind in FAMILY}
+    return {kind: (m, *sine_loops(m, amplitudes, omega, t_final, dt)) for kind, m in models.items()}
 
 
 def run_metrics(traj, window_start: float) -> dict:

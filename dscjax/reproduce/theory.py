@@ -6,8 +6,8 @@ constant e_M (61) and the bounds (65), (71) and (72).
 V of (44) is 1/2 sum_(i<n) (S_i^2/g_i + theta~_gi^2/gamma_gi + phi~_i^2/gamma_phi_i + y_(i+1)^2)
 + 1/2 (beta zeta~^2/gamma_zeta + theta~_n^2/gamma_gn + d~^2/gamma_d + S_n^2), with the
 estimation errors (34)-(38) against the TRUE plant (`Truth`) and the filter errors (33);
-docs/theory.md lists every reading of the garbled text. Functions of one state (`terms_at`,
-`b_at`, ...) are pure in (setup, truth, t, X) and compose with vmap and jvp; the host
+docs/theory.md lists every reading of the garbled text. Functions of one state (`b_at`,
+`robust_slack_at`, ...) are pure in (setup, truth, t, X) and compose with vmap and jvp; the host
 functions (`lyapunov`, `check`, ...) evaluate them at a `Trajectory`'s saved points in
 fixed-size chunks (one compilation whatever the length). M_(i+1) of (59) has no closed form:
 `check` uses the maximum measured on the run, so its bounds are data-driven estimates.
@@ -148,11 +148,6 @@ def _terms_y_s(setup, tr: Truth, t, X: State):
         d=_over_rate(c.d_hat - tr.d, ctrl.gamma_d),
     )
     return terms, y, s
-
-
-def terms_at(setup, tr: Truth, t, X: State) -> Terms:
-    """The terms of V (44) at time t and closed-loop state X of a prepared setup."""
-    return _terms_y_s(setup, tr, t, X)[0]
 
 
 def b_at(setup, t, X: State):

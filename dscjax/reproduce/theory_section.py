@@ -121,7 +121,6 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
         top.plot(t, arrays["V"], color="k", lw=0.8, label="$V$ (44)")
         top.set(ylabel="$V$ and its terms [-]", title="Lyapunov function (44) along the paper's "
                 "example (its own gains and initialisation)")
-        top.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         bottom.semilogy(t, arrays["V"], color="k", lw=1.0, label="$V(t)$")
         bottom.semilogy(t, arrays["bound_65"], color="#d62728", ls="--", lw=1.0,
                         label="bound (65)")
@@ -130,7 +129,8 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
         bottom.set(xlabel="time $t$ [s]", ylabel="[-]", title=f"against Theorem 1 with the "
                    f"certified $\\alpha_0$ = {summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
                    "(data-driven $M$)")
-        bottom.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+        for ax in (top, bottom):
+            ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         path = Path(path)
         files.save_figure(fig, path, dpi=dpi)
     return path

@@ -302,10 +302,7 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
 
 def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
     """'worst #123: α=0.81 λ=1.2 ψ=0.09 | L∞w 0.012' (short, for the legend)."""
-    parts = []
-    for n in names[:4]:
-        sym = param_label(n).split("  (")[0]
-        parts.append(f"{sym}={record['params'][n]:.3g}")
+    parts = [f"{param_label(n).split('  (')[0]}={record['params'][n]:.3g}" for n in names[:4]]
     tail = (f"diverged at {record['t_diverged']:.3g} s" if record["diverged"]
             else f"L∞ on window {record['metrics']['linf_error_window']:.3g}")
     return f"{kind} #{record['sample']}: " + " ".join(parts) + f" | {tail}"

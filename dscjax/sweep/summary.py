@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
+from dscjax.markdown import escape, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
@@ -225,12 +226,7 @@ def _cell(x) -> str:
         return f"{int(x):,}"
     if isinstance(x, float):
         return f"{x:.4g}"
-    return str(x).replace("|", "\\|")
-
-
-def _table(head: Sequence[str], rows: Iterable[Sequence[Any]]) -> list[str]:
-    return (["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
-            + ["| " + " | ".join(_cell(x) for x in r) + " |" for r in rows])
+    return escape(x)
 
 
 def markdown(summary: Mapping[str, Any]) -> str:
@@ -291,14 +287,14 @@ def markdown(summary: Mapping[str, Any]) -> str:
                   f"relative {check['rtol']:.3g}. "
                   + (f"**Not trusted in float32: {', '.join(bad)}**; rerun with --float64."
                      if bad else "Every metric agrees."), ""]
-        lines += _table(["metric", "max relative difference", "at sample", "trusted"],
-                        [(m, check["max_rel_diff"][m], check["at_sample"][m], m not in bad)
-                         for m in check["max_rel_diff"]])
+        lines += table(["metric", "max relative difference", "at sample", "trusted"],
+                       [(m, check["max_rel_diff"][m], check["at_sample"][m], m not in bad)
+                        for m in check["max_rel_diff"]], _cell)
     q = summary["quantiles"]
     lines += ["", f"## Quantiles over the {summary['quantiles_over']}", ""]
     keys = [*QUANTILES, "mean"]
-    lines += _table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
-                                                ["-"] * len(keys))) for m in q])
+    lines += table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
+                                               ["-"] * len(keys))) for m in q], _cell)
     for title, recs, extra in (("Worst samples that track", summary.get("worst", []), False),
                                ("First samples to diverge", summary.get("first_diverged", []),
                                 True)):
@@ -311,5 +307,5 @@ def markdown(summary: Mapping[str, Any]) -> str:
                 + ((r["t_diverged"], r["dt_used"]) if extra else
                    (*[r["metrics"][m] for m in WORST_COLUMNS], r["refinements"]))
                 for r in recs]
-        lines += ["", f"## {title}", ""] + _table(head, body)
+        lines += ["", f"## {title}", ""] + table(head, body, _cell)
     return "\n".join(lines) + "\n"

@@ -16,6 +16,7 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
+from dscjax.markdown import table
 from dscjax.plotting import subplots
 from dscjax.runspec import RunSpec
 from dscjax.worst import Result, assumption_warnings, best_value
@@ -101,19 +102,18 @@ def report_md(result: Result) -> str:
               *(f"Warning: {w}." for w in assumption_warnings(p)),
               *([""] if assumption_warnings(p) else []),
               "## Methods (equal search time; compilation apart)", "",
-              "| method | best value | evaluations | iterations | search s | compile s |",
-              "|---|---|---|---|---|---|"]
-    for m, tr in result.traces.items():
-        lines.append(f"| {m} | {best_value(tr):.6g} | {tr.evaluations} | {tr.iterations} | "
-                     f"{tr.seconds:.1f} | {tr.compile_seconds:.1f} |")
-    lines += ["", "## Best value against search time", "",
-              "| method | " + " | ".join(f"{f:.0%} of time" for f in SHARES) + " |",
-              "|---" * (len(SHARES) + 1) + "|"]
+              *table(("method", "best value", "evaluations", "iterations", "search s",
+                      "compile s"),
+                     [(m, f"{best_value(tr):.6g}", tr.evaluations, tr.iterations,
+                       f"{tr.seconds:.1f}", f"{tr.compile_seconds:.1f}")
+                      for m, tr in result.traces.items()]),
+              "", "## Best value against search time", ""]
+    rows = []
     for m, tr in result.traces.items():
         t, best = _curve(tr)
         at = np.searchsorted(t, np.array(SHARES) * (t[-1] if t.size else 0.0), side="right") - 1
-        cells = [f"{best[i]:.6g}" if i >= 0 else "-" for i in at]
-        lines.append(f"| {m} | " + " | ".join(cells) + " |")
+        rows.append((m, *(f"{best[i]:.6g}" if i >= 0 else "-" for i in at)))
+    lines += table(("method", *(f"{f:.0%} of time" for f in SHARES)), rows)
     lines += ["", "Values in the tables are those of the search's batch runs; the worst value "
               "above is re-checked by `simulate` (with refinement) on the worst setup and is "
               "what `dscjax simulate --config worst_config.toml` reproduces.", ""]

@@ -1,0 +1,26 @@
+"""Markdown tables: the lines of one from its header and rows (`table`); a cell's text."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterable, Sequence
+from typing import Any
+
+
+def escape(text) -> str:
+    """Text safe inside a markdown table cell."""
+    return str(text).replace("|", "\\|")
+
+
+def row(cells: Iterable[str]) -> str:
+    """One line of a table: `| a | b |`."""
+    return "| " + " | ".join(cells) + " |"
+
+
+def table(head: Sequence[str], rows: Iterable[Sequence[Any]],
+          cell: Callable[[Any], str] = str) -> list[str]:
+    """The lines of a markdown table: the header's cells, the rule, then each row's cells,
+    each written by `cell`."""
+    return [row(head), "|---" * len(head) + "|", *(row(map(cell, r)) for r in rows)]
+
+
+__all__ = ["escape", "row", "table"]
