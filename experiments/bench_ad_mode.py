@@ -55,7 +55,7 @@ def measure(argv) -> int:
     """--child MODE P T REPEATS: compile the gradient cold, time it; print JSON."""
     mode, p, t_final, repeats = argv[0], int(argv[1]), float(argv[2]), int(argv[3])
     cfg = tuning.TuningConfig(params=paths(p), heldout=tuning.BatchSpec(batch=0),
-                              optimizer=tuning.OptimizerSpec(name="adam", gradient=mode,
+                              optimizer=tuning.OptimizerSpec(name=tuning.Adam(), gradient=mode,
                                                              time_limit=None))
     problem = tuning.build_problem(dscjax.paper_example(),
                                    RunSpec.make(t_final=t_final, sample_time=1e-3), cfg)

@@ -192,7 +192,7 @@ def search_problem():
     import tuning
     from dscjax.runspec import RunSpec
 
-    spec = tuning.OptimizerSpec(name="cma", steps=4, save_interval=1, popsize=10, growth=1,
+    spec = tuning.OptimizerSpec(name=tuning.CMAES(), steps=4, save_interval=1, popsize=10, growth=1,
                                 time_limit=None, gradient="forward")
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),

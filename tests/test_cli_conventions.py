@@ -60,7 +60,7 @@ def _expected_defaults():
             "--lr": f"{tu.optimizer.learning_rate:g}",
             "--steps": "none" if tu.optimizer.steps is None else str(tu.optimizer.steps),
             "--time-limit": f"{tu.optimizer.time_limit:g}", "--batch": str(tu.robust.batch),
-            "--aggregate": tu.robust.aggregate, "--cvar-level": f"{tu.robust.cvar_level:g}",
+            "--aggregate": tu.robust.aggregate.name, "--cvar-level": f"{tu.robust.cvar_level:g}",
             "--seed": str(tu.robust.seed), "--heldout": str(tu.heldout.batch),
             "--gradient": tu.optimizer.gradient},
         "sweep": horizon | {

@@ -142,7 +142,7 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     cfg = tuning.TuningConfig(params=PARAMS,
                               objective=tuning.ObjectiveSpec(u_max=None, sampled_weight=0.0,
                                                              delay_weight=0.0),
-                              robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
+                              robust=tuning.BatchSpec(batch=4, seed=3, aggregate=tuning.CVaR(),
                                                       cvar_level=0.5),
                               optimizer=tuning.OptimizerSpec(gradient="plants"))
     prob = tuning.build_problem(dscjax.paper_example(), SPEC, cfg)
@@ -153,8 +153,8 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     auto = tuning.build_problem(dscjax.paper_example(), SPEC,
                                 tuning.TuningConfig(
                                     params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
-                                    robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
-                                                            cvar_level=0.25)))
+                                    robust=tuning.BatchSpec(batch=4, seed=3, cvar_level=0.25,
+                                                            aggregate=tuning.CVaR())))
     assert auto.mode == Plants() and auto.describe()["mode"] == "plants"
     rng = np.random.default_rng(5)
     z = jax.tree.map(lambda v: v + rng.uniform(-0.15, 0.15, np.shape(v)), prob.z0)

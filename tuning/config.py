@@ -27,6 +27,7 @@ from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positiv
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
+from tuning.optimize import CMAES, Adam, CVaR, Max, Mean, Nominal, PerPlant
 from tuning.requirements import KINDS
 
 # the design parameters of the DSC (Section 2 of the paper), tuned by default
@@ -35,13 +36,13 @@ DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller
              "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
 # tuned in linear coordinates by default (`dscjax.selection.Linear`): signed numbers
 SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
-AGGREGATES = ("mean", "cvar", "max")
-EFFORT_BOUNDS = ("nominal", "per_plant")
+# the strategies by the names a config gives (`rules.Choice`: the name reads to its object)
+AGGREGATES = {c.name: c() for c in (Mean, CVaR, Max)}
+EFFORT_BOUNDS = {c.name: c() for c in (Nominal, PerPlant)}
+OPTIMIZERS = {c.name: c() for c in (CMAES, Adam)}
 # the trajectories a CMA-ES generation runs by default: a batched simulation costs far less per
 # trajectory in a batch of this size than in one of the 11 of cma's own population
 ROWS = 64
-OPTIMIZERS = ("cma", "adam")
-SEARCHES = ("cma",)  # the population methods
 GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
 METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
@@ -108,8 +109,8 @@ class ObjectiveSpec:
                                      "bound", Positive())
     delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
                                   "loop", WEIGHT)
-    effort_bounds: str = setting(
-        "nominal", "the start bounds measured on the nominal plant, or per_plant: on each "
+    effort_bounds: Nominal = setting(
+        Nominal(), "the start bounds measured on the nominal plant, or per_plant: on each "
         "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
     sharpness: float = setting(
         1000.0, "s x L-inf(start) of the smooth L-inf: large, so that it stays close to the max "
@@ -131,8 +132,8 @@ class OptimizerSpec:
     """[tuning.optimizer]: the search method, its settings and limits. An iteration of the
     CMA-ES methods is a generation: one batched simulation."""
 
-    name: str = setting(
-        "cma", "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
+    name: CMAES = setting(
+        CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
         "gradients)", Choice(OPTIMIZERS),
         flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
@@ -180,7 +181,11 @@ class OptimizerSpec:
         for the CMA-ES methods."""
         if self.steps is not None:
             return self.steps
-        return None if self.name in SEARCHES else OPTAX_STEPS
+        return None if self.name.generations else OPTAX_STEPS
+
+    def method(self, plants: int = 1, n: int = 1):
+        """The `dscjax.search` method for `plants` training plants and n tuned numbers."""
+        return self.name.method(self, plants, n)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,10 +198,15 @@ class BatchSpec:
     method: str = setting("uniform", "uniform or lhs (Latin hypercube)", Choice(METHODS))
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
-    aggregate: str = setting("mean", "over the plants: mean, cvar (the mean of the worst "
-                             "cvar_level share) or max", Choice(AGGREGATES))
+    aggregate: CVaR = setting(Mean(), "over the plants: mean, cvar (the mean of the worst "
+                              "cvar_level share) or max", Choice(AGGREGATES))
     cvar_level: float = setting(0.2, "CVaR's share of the worst plants: 1 is the mean",
                                 Number(gt=0, le=1))
+
+    @property
+    def over(self) -> CVaR:
+        """The aggregate over the plants, CVaR at cvar_level."""
+        return self.aggregate.at(self.cvar_level)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -335,5 +345,5 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
 
 
 __all__ = ["AGGREGATES", "AdversarialSpec", "BatchSpec", "EFFORT_BOUNDS", "GRADIENTS",
-           "ObjectiveSpec", "OptimizerSpec", "SEARCHES", "SIMULATION", "TuningConfig", "from_dict",
-           "to_table", "to_toml"]
+           "OPTIMIZERS", "ObjectiveSpec", "OptimizerSpec", "SIMULATION", "TuningConfig",
+           "from_dict", "to_table", "to_toml"]

@@ -1,6 +1,7 @@
-"""The tuner's strategies, each an object chosen once from the name a config gives: the
-aggregate over the plants (`Mean`, `CVaR`, `Max`; `aggregate_of`) and the AD mode of the exact
-gradient (`Forward`, `Reverse`, `Plants`; `choose_gradient`); and the loss as one pure function
+"""The tuner's strategies, each an object a config's name reads to (`tuning.config`): the
+aggregate over the plants (`Mean`, `CVaR`, `Max`), the search method (`CMAES`, `Adam`), where
+"start" effort bounds are measured (`Nominal`, `PerPlant`) and the AD mode of the exact gradient
+(`Forward`, `Reverse`, `Plants`; `choose_gradient`); and the loss as one pure function
 (`loss_function`)."""
 
 from __future__ import annotations
@@ -11,6 +12,8 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+
+from dscjax.search.methods import CMA, Gradient
 
 FORWARD_MAX_PARAMS = 64  # "auto" over a batch: forward mode up to this many tuned scalars
 # "auto" for one plant: forward mode up to this many tuned scalars, where its gradient costs no
@@ -50,6 +53,13 @@ class CVaR:
         k = self.weighs(n if mask is None else jnp.sum(mask))
         return idx, jnp.where(jnp.arange(idx.shape[0]) < k, 1.0 / k, 0.0)
 
+    def at(self, level: float) -> CVaR:
+        """This aggregate at the share `level` ([tuning.robust] cvar_level)."""
+        return dataclasses.replace(self, level=level)
+
+    def __str__(self) -> str:  # as the report says it
+        return f"{self.name} at level {self.level:g}"
+
 
 @dataclasses.dataclass(frozen=True)
 class Mean(CVaR):
@@ -64,6 +74,12 @@ class Mean(CVaR):
         if values.ndim == 0 or mask is not None:
             return super().__call__(values, mask)
         return jnp.mean(values)
+
+    def at(self, level: float) -> CVaR:  # no level of its own
+        return self
+
+    def __str__(self) -> str:
+        return self.name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -80,10 +96,48 @@ class Max(CVaR):
             return values
         return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
 
+    at, __str__ = Mean.at, Mean.__str__
 
-def aggregate_of(batch) -> CVaR:
-    """The aggregate a `BatchSpec` ([tuning.robust]) names (`aggregate`, `cvar_level`)."""
-    return {"mean": Mean(), "cvar": CVaR(batch.cvar_level), "max": Max()}[batch.aggregate]
+
+@dataclasses.dataclass(frozen=True)
+class CMAES:
+    """CMA-ES with IPOP restarts: an iteration is a generation, one batched simulation."""
+
+    name: ClassVar[str] = "cma"
+    generations: ClassVar[bool] = True
+
+    def method(self, spec, plants: int, n: int) -> CMA:
+        """The `dscjax.search` method of an `OptimizerSpec`."""
+        return CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
+                   restarts=spec.restarts, growth=spec.growth, stall=spec.stall,
+                   stall_gain=spec.stall_gain)
+
+
+@dataclasses.dataclass(frozen=True)
+class Adam(CMAES):
+    """Projected descent on exact gradients (optax's Adam scaling): one point an iteration."""
+
+    name: ClassVar[str] = "adam"
+    generations: ClassVar[bool] = False
+
+    def method(self, spec, plants: int, n: int) -> Gradient:
+        return Gradient(lr=spec.learning_rate)
+
+
+@dataclasses.dataclass(frozen=True)
+class Nominal:
+    """Effort bounds "start" measured on the nominal plant, for every plant."""
+
+    name: ClassVar[str] = "nominal"
+    per_plant: ClassVar[bool] = False
+
+
+@dataclasses.dataclass(frozen=True)
+class PerPlant(Nominal):
+    """Effort bounds "start" measured on each training plant, its own."""
+
+    name: ClassVar[str] = "per_plant"
+    per_plant: ClassVar[bool] = True
 
 
 @dataclasses.dataclass(frozen=True)
