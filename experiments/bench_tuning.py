@@ -92,7 +92,7 @@ def judge(problem, setup, t_final: float) -> dict:
     d["delay_ok"] = bool(d["linf"] <= 2 * out["exponential-euler"]["linf"]
                          and d["tv_u"] <= 1.5 * sc.tv_max)
     ranges = params.check(heldout_ranges(start), start, "heldout")
-    held = params.sample_overrides(setup, ranges, PLANTS, SEED, "uniform")
+    held = params.sample_overrides(setup, ranges, PLANTS, SEED)
     for ts in (1e-3, 5e-4):
         sp = RunSpec.make(t_final, ts, sample_time=ts, refine=1)
         out[f"heldout_blowups_{1e3 * ts:g}ms"] = int(

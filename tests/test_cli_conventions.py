@@ -65,7 +65,7 @@ def _expected_defaults():
             "--gradient": tu.optimizer.gradient},
         "sweep": horizon | {
             "--samples": str(sw.samples), "--seed": str(sw.seed), "--worst": str(sw.worst),
-            "--random": str(sw.random), "--method": sw.method, "--parallel": sw.parallel,
+            "--random": str(sw.random), "--method": sw.method.name, "--parallel": sw.parallel,
             "--float64": sw.dtype},
         "reproduce": {"--t-final": f"{reproduce.T_FINAL:g}", "--dt": f"{reproduce.DT:g}",
                       "--dpi": str(reproduce.DPI),

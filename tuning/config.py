@@ -21,7 +21,7 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from dscjax import settings, validation, worst
+from dscjax import params, settings, validation, worst
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positive, Strings
 from dscjax.search.methods import cma_population
@@ -45,7 +45,7 @@ OPTIMIZERS = {c.name: c() for c in (CMAES, Adam)}
 ROWS = 64
 GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
-METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
+METHODS = {k: v for k, v in params.METHODS.items() if not v.grid}  # plants are drawn
 # `dscjax tune`'s own defaults of [simulation]: the controller that runs, sampled at 1 kHz
 SIMULATION = {"sample_time": 1e-3}
 WEIGHT = Number(ge=0)
@@ -195,7 +195,8 @@ class BatchSpec:
 
     batch: int = setting(0, "plants drawn (0: the nominal plant only)", AtLeast(0))
     seed: int = setting(0, "seed of the plants", AtLeast(0))
-    method: str = setting("uniform", "uniform or lhs (Latin hypercube)", Choice(METHODS))
+    method: params.Uniform = setting(params.Uniform(), "uniform or lhs (Latin hypercube)",
+                                     Choice(METHODS))
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
     aggregate: CVaR = setting(Mean(), "over the plants: mean, cvar (the mean of the worst "
