@@ -62,7 +62,7 @@ def _expected_defaults():
             "--time-limit": f"{tu.optimizer.time_limit:g}", "--batch": str(tu.robust.batch),
             "--aggregate": tu.robust.aggregate.name, "--cvar-level": f"{tu.robust.cvar_level:g}",
             "--seed": str(tu.robust.seed), "--heldout": str(tu.heldout.batch),
-            "--gradient": tu.optimizer.gradient},
+            "--gradient": tu.optimizer.gradient.name},
         "sweep": horizon | {
             "--samples": str(sw.samples), "--seed": str(sw.seed), "--worst": str(sw.worst),
             "--random": str(sw.random), "--method": sw.method.name, "--parallel": sw.parallel,

@@ -27,7 +27,8 @@ from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positiv
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
-from tuning.optimize import CMAES, Adam, CVaR, Max, Mean, Nominal, PerPlant
+from tuning import optimize
+from tuning.optimize import AGGREGATES, EFFORT_BOUNDS, GRADIENTS, OPTIMIZERS
 from tuning.requirements import KINDS
 
 # the design parameters of the DSC (Section 2 of the paper), tuned by default
@@ -36,14 +37,9 @@ DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller
              "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
 # tuned in linear coordinates by default (`dscjax.selection.Linear`): signed numbers
 SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
-# the strategies by the names a config gives (`rules.Choice`: the name reads to its object)
-AGGREGATES = {c.name: c() for c in (Mean, CVaR, Max)}
-EFFORT_BOUNDS = {c.name: c() for c in (Nominal, PerPlant)}
-OPTIMIZERS = {c.name: c() for c in (CMAES, Adam)}
 # the trajectories a CMA-ES generation runs by default: a batched simulation costs far less per
 # trajectory in a batch of this size than in one of the 11 of cma's own population
 ROWS = 64
-GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
 METHODS = {k: v for k, v in params.METHODS.items() if not v.grid}  # plants are drawn
 # `dscjax tune`'s own defaults of [simulation]: the controller that runs, sampled at 1 kHz
@@ -109,8 +105,8 @@ class ObjectiveSpec:
                                      "bound", Positive())
     delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
                                   "loop", WEIGHT)
-    effort_bounds: Nominal = setting(
-        Nominal(), "the start bounds measured on the nominal plant, or per_plant: on each "
+    effort_bounds: optimize.Nominal = setting(
+        optimize.Nominal(), "the start bounds measured on the nominal plant, or per_plant: on each "
         "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
     sharpness: float = setting(
         1000.0, "s x L-inf(start) of the smooth L-inf: large, so that it stays close to the max "
@@ -132,8 +128,8 @@ class OptimizerSpec:
     """[tuning.optimizer]: the search method, its settings and limits. An iteration of the
     CMA-ES methods is a generation: one batched simulation."""
 
-    name: CMAES = setting(
-        CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
+    name: optimize.CMAES = setting(
+        optimize.CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
         "gradients)", Choice(OPTIMIZERS),
         flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
@@ -146,10 +142,10 @@ class OptimizerSpec:
     time_limit: float | None = setting(200.0, "seconds of search in this invocation, "
                                        "compilation included; none: no limit",
                                        Maybe(Positive()), flag="--time-limit")
-    gradient: str = setting(
-        "auto", "adam's AD mode: forward, reverse, plants (a batch's weighed plants one by one) "
-        "or auto (for one plant forward up to 6 tuned numbers, else reverse; plants where the "
-        "aggregate weighs at most a quarter of a batch; else forward up to 64 tuned numbers)",
+    gradient: optimize.Auto | optimize.Forward = setting(
+        optimize.Auto(), "adam's AD mode: forward, reverse, plants (a batch's weighed plants one "
+        "by one) or auto (for one plant forward up to 6 tuned numbers, else reverse; plants where "
+        "the aggregate weighs at most a quarter of a batch; else forward up to 64 tuned numbers)",
         Choice(GRADIENTS), flag="--gradient")
     checkpoint_every: int = setting(100, "reverse mode's jax.checkpoint segment in steps",
                                     AtLeast(1))
@@ -199,13 +195,14 @@ class BatchSpec:
                                      Choice(METHODS))
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
-    aggregate: CVaR = setting(Mean(), "over the plants: mean, cvar (the mean of the worst "
-                              "cvar_level share) or max", Choice(AGGREGATES))
+    aggregate: optimize.CVaR = setting(optimize.Mean(), "over the plants: mean, cvar (the mean "
+                                       "of the worst cvar_level share) or max",
+                                       Choice(AGGREGATES))
     cvar_level: float = setting(0.2, "CVaR's share of the worst plants: 1 is the mean",
                                 Number(gt=0, le=1))
 
     @property
-    def over(self) -> CVaR:
+    def over(self) -> optimize.CVaR:
         """The aggregate over the plants, CVaR at cvar_level."""
         return self.aggregate.at(self.cvar_level)
 

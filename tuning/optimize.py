@@ -1,8 +1,8 @@
 """The tuner's strategies, each an object a config's name reads to (`tuning.config`): the
 aggregate over the plants (`Mean`, `CVaR`, `Max`), the search method (`CMAES`, `Adam`), where
 "start" effort bounds are measured (`Nominal`, `PerPlant`) and the AD mode of the exact gradient
-(`Forward`, `Reverse`, `Plants`; `choose_gradient`); and the loss as one pure function
-(`loss_function`)."""
+(`Forward`, `Reverse`, `Plants`, or `Auto`: each `chosen` for a problem); and the loss as one
+pure function (`loss_function`)."""
 
 from __future__ import annotations
 
@@ -156,6 +156,12 @@ class Forward:
         grads, (loss, aux) = jax.jacfwd(f, has_aux=True)(z)
         return (loss, aux), grads
 
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
+        """The mode run for n_params tuned scalars and `batch` plants weighed by `aggregate`,
+        a reverse pass checkpointed in segments of `every` steps: this one."""
+        return self
+
 
 @dataclasses.dataclass(frozen=True)
 class Reverse(Forward):
@@ -168,6 +174,10 @@ class Reverse(Forward):
     def value_and_grad(self, objective, z):
         return jax.value_and_grad(objective.evaluate, has_aux=True)(z)
 
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
+        return Reverse(every)
+
 
 @dataclasses.dataclass(frozen=True)
 class Plants(Forward):
@@ -179,22 +189,31 @@ class Plants(Forward):
         return objective.value_and_grad_plants(z)
 
 
-def choose_gradient(mode: str, n_params: int, batch: int = 1, aggregate=None,
-                    every: int | None = None) -> Forward:
-    """The AD mode a config names (`Reverse` with the checkpoint segment `every`); "auto":
-    for one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
-    (time-parallel); for a batch whose `aggregate` weighs at most a quarter of its plants
-    (max, CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned
-    scalars (docs/benchmarks.md)."""
-    if mode == "auto":
+@dataclasses.dataclass(frozen=True)
+class Auto:
+    """For one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
+    (time-parallel); for a batch whose aggregate weighs at most a quarter of its plants (max,
+    CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned scalars
+    (docs/benchmarks.md)."""
+
+    name: ClassVar[str] = "auto"
+
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
         if batch <= 1:
-            mode = "forward" if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else "reverse"
+            mode = Forward() if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else Reverse()
         elif aggregate is not None and aggregate.weighs(batch) <= batch / 4:
-            mode = "plants"
+            mode = Plants()
         else:
-            mode = "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
-    return Reverse(every) if mode == "reverse" else {"forward": Forward(),
-                                                     "plants": Plants()}[mode]
+            mode = Forward() if n_params <= FORWARD_MAX_PARAMS else Reverse()
+        return mode.chosen(n_params, batch, aggregate, every)
+
+
+# the strategies by the names a config gives (`tuning.config`, `rules.Choice`)
+AGGREGATES = {c.name: c() for c in (Mean, CVaR, Max)}
+OPTIMIZERS = {c.name: c() for c in (CMAES, Adam)}
+EFFORT_BOUNDS = {c.name: c() for c in (Nominal, PerPlant)}
+GRADIENTS = {c.name: c() for c in (Auto, Forward, Reverse, Plants)}
 
 
 def loss_function(problem):

@@ -32,7 +32,7 @@ from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import SIGNED, TuningConfig
 from tuning.objective import Objective, check_loops
-from tuning.optimize import Forward, Mean, choose_gradient
+from tuning.optimize import Forward, Mean
 from tuning.requirements import build_requirements
 from tuning.scales import start_scales
 from tuning.search import STATE_FILE, TuneProblem
@@ -262,7 +262,7 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
     # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
-    mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
+    mode = cfg.optimizer.gradient.chosen(n_params, max(
         (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
         cfg.robust.over, cfg.optimizer.checkpoint_every)
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))

@@ -382,7 +382,7 @@ def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
-    from tuning.optimize import choose_gradient
+    from tuning.optimize import Plants
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
@@ -394,8 +394,8 @@ def check_work_of(args, setup, options, cfg) -> None:
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
-    mode = choose_gradient(oc.gradient, 0, plants, cfg.robust.over).name
-    if not oc.name.generations and (mode == "plants" or plants == 1):  # time-parallel
+    mode = oc.gradient.chosen(0, plants, cfg.robust.over)
+    if not oc.name.generations and (isinstance(mode, Plants) or plants == 1):  # time-parallel
         one = one + common.gradient_work(setup, steps)
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
