@@ -262,13 +262,13 @@ class RunSpec(eqx.Module):
         hit the same compiled program."""
         return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
 
-    def refined(self, halvings: int, solver_name: str) -> RunSpec:
+    def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
         the same controller sample time (a refinement level of `simulate`)."""
         m = 2 ** halvings
         return dataclasses.replace(
             self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m, solver=as_solver(solver_name))
+            sample_every=self.sample_every * m, solver=solver)
 
 
 def step_for(sample_time: float, dt: float) -> float:
