@@ -27,6 +27,7 @@ class CVaR:
 
     level: float = 1.0
     name: ClassVar[str] = "cvar"
+    leveled: ClassVar[bool] = True  # the share `level` is its own (Mean and Max have none)
 
     def weighs(self, n):
         """How many of n plants the aggregate weighs (n may be traced: the real plants of a
@@ -54,11 +55,11 @@ class CVaR:
         return idx, jnp.where(jnp.arange(idx.shape[0]) < k, 1.0 / k, 0.0)
 
     def at(self, level: float) -> CVaR:
-        """This aggregate at the share `level` ([tuning.robust] cvar_level)."""
-        return dataclasses.replace(self, level=level)
+        """This aggregate at the share `level` ([tuning.robust] cvar_level) if it has one."""
+        return dataclasses.replace(self, level=level) if self.leveled else self
 
     def __str__(self) -> str:  # as the report says it
-        return f"{self.name} at level {self.level:g}"
+        return f"{self.name} at level {self.level:g}" if self.leveled else self.name
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +67,7 @@ class Mean(CVaR):
     """The mean over the plants (CVaR at level 1, summed in the plants' order)."""
 
     name: ClassVar[str] = "mean"
+    leveled: ClassVar[bool] = False
 
     def weighs(self, n):
         return n
@@ -75,18 +77,13 @@ class Mean(CVaR):
             return super().__call__(values, mask)
         return jnp.mean(values)
 
-    def at(self, level: float) -> CVaR:  # no level of its own
-        return self
-
-    def __str__(self) -> str:
-        return self.name
-
 
 @dataclasses.dataclass(frozen=True)
 class Max(CVaR):
     """The worst plant."""
 
     name: ClassVar[str] = "max"
+    leveled: ClassVar[bool] = False
 
     def weighs(self, n):
         return 1
@@ -95,8 +92,6 @@ class Max(CVaR):
         if values.ndim == 0:
             return values
         return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
-
-    at, __str__ = Mean.at, Mean.__str__
 
 
 @dataclasses.dataclass(frozen=True)
