@@ -237,7 +237,7 @@ class RunSpec(eqx.Module):
         out.update(save_every=self.save_every,
                    window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
-        if self.discretisation.name == OPTIONS["discretisation"][0]:
+        if isinstance(self.discretisation, ExponentialEuler):  # the default
             out.pop("discretisation")  # the fingerprints of runs made before the key existed
         if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
             out["gradient"] = [self.gradient.name, self.gradient.every]
