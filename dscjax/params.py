@@ -468,7 +468,7 @@ class LatinHypercube(Uniform):
 
 
 @dataclasses.dataclass(frozen=True)
-class Grid(Uniform):
+class Grid:
     """The full factorial of linspace(low, high, num), C order (the first range slowest; n and
     the seed unused)."""
 
@@ -484,7 +484,7 @@ METHODS = {c.name: c() for c in (Uniform, LatinHypercube, Grid)}  # by the name 
 
 
 def sample_overrides(setup, ranges: Sequence[Range], n: int, seed: int,
-                     method: Uniform = Uniform()) -> dict[str, np.ndarray]:
+                     method: Uniform | LatinHypercube = Uniform()) -> dict[str, np.ndarray]:
     """{path: (n, ...)} plants drawn from `ranges` with a seed by `method` (`Uniform`,
     `LatinHypercube`), put into the setup's leaves by `params.overrides` (other elements of a
     vector leaf keep their values)."""

@@ -105,7 +105,7 @@ class ObjectiveSpec:
                                      "bound", Positive())
     delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
                                   "loop", WEIGHT)
-    effort_bounds: optimize.Nominal = setting(
+    effort_bounds: optimize.Nominal | optimize.PerPlant = setting(
         optimize.Nominal(), "the start bounds measured on the nominal plant, or per_plant: on each "
         "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
     sharpness: float = setting(
@@ -128,7 +128,7 @@ class OptimizerSpec:
     """[tuning.optimizer]: the search method, its settings and limits. An iteration of the
     CMA-ES methods is a generation: one batched simulation."""
 
-    name: optimize.CMAES = setting(
+    name: optimize.CMAES | optimize.Adam = setting(
         optimize.CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
         "gradients)", Choice(OPTIMIZERS),
         flag="--method")
@@ -191,8 +191,8 @@ class BatchSpec:
 
     batch: int = setting(0, "plants drawn (0: the nominal plant only)", AtLeast(0))
     seed: int = setting(0, "seed of the plants", AtLeast(0))
-    method: params.Uniform = setting(params.Uniform(), "uniform or lhs (Latin hypercube)",
-                                     Choice(METHODS))
+    method: params.Uniform | params.LatinHypercube = setting(
+        params.Uniform(), "uniform or lhs (Latin hypercube)", Choice(METHODS))
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
     aggregate: optimize.CVaR = setting(optimize.Mean(), "over the plants: mean, cvar (the mean "

@@ -109,7 +109,7 @@ class CMAES:
 
 
 @dataclasses.dataclass(frozen=True)
-class Adam(CMAES):
+class Adam:
     """Projected descent on exact gradients (optax's Adam scaling): one point an iteration."""
 
     name: ClassVar[str] = "adam"
@@ -128,7 +128,7 @@ class Nominal:
 
 
 @dataclasses.dataclass(frozen=True)
-class PerPlant(Nominal):
+class PerPlant:
     """Effort bounds "start" measured on each training plant, its own."""
 
     name: ClassVar[str] = "per_plant"

@@ -31,7 +31,7 @@ class SweepSettings:
 
     samples: int = setting(10_000, "number of sampled plants (not for a grid)", AtLeast(1),
                            flag="--samples")
-    method: params.Uniform = setting(
+    method: params.Uniform | params.LatinHypercube | params.Grid = setting(
         params.Uniform(), "sampling: uniform (i.i.d.), lhs (Latin hypercube) or grid (full "
         "factorial, first range slowest; [sweep.grid] or --grid)", Choice(params.METHODS),
         flag="--method")
