@@ -226,7 +226,7 @@ def text(s: dict, problem, figures) -> str:
         b = cfg.robust if key == "train" else cfg.heldout
         rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
         st, tu = s[key]["start"], s[key]["tuned"]
-        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method}, seed {b.seed})", "",
+        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method.name}, seed {b.seed})", "",
                   "| | start median | tuned median | start p95 | tuned p95 | start max | "
                   "tuned max |", "|---|---|---|---|---|---|---|"]
         for m in STATS_METRICS:
