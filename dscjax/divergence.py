@@ -20,19 +20,20 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation
-from dscjax.integrate import STATUS_BOUND, STATUS_NONFINITE, STATUS_OK
+from dscjax.integrate import ETDRK4, RK4, STATUS_BOUND, STATUS_NONFINITE, STATUS_OK, Solver
 from dscjax.runspec import RunSpec
 
 # refinement levels of a sampled loop: one, to tell an unstable loop from a numerical accident
 SAMPLED_REFINE = 1
 
 
-def refinement_level(j: int, solver: str = "rk4") -> tuple[str, int]:
-    """(solver, halvings of dt) of refinement level j: 0 is the requested solver at dt; then
-    ETDRK4 (exact on the stiff decays) at dt (after RK4), dt/2, dt/4, ..."""
+def refinement_level(j: int, solver: Solver | None = None) -> tuple[Solver, int]:
+    """(solver, halvings of dt) of refinement level j: 0 is the requested solver (default
+    RK4) at dt; then ETDRK4 (exact on the stiff decays) at dt (unless the run was ETDRK4's),
+    dt/2, dt/4, ..."""
     if j == 0:
-        return solver, 0
-    return "etdrk4", (j - 1 if solver == "rk4" else j)
+        return solver or RK4(), 0
+    return ETDRK4(), (j if isinstance(solver, ETDRK4) else j - 1)
 
 
 def counted_levels(spec: RunSpec) -> int:
@@ -40,7 +41,7 @@ def counted_levels(spec: RunSpec) -> int:
     at most one for a sampled loop (its held input makes the plant non-stiff: a sampled loop
     that diverges again once refined is unstable, `sampled_unstable`)."""
     refine = min(spec.refine, SAMPLED_REFINE) if spec.sampled else spec.refine
-    while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver.name)[1]
+    while refine and (spec.n_steps * 2 ** refinement_level(refine, spec.solver)[1]
                       > validation.MAX_STEPS):
         refine -= 1
     return refine
@@ -69,8 +70,8 @@ def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
 
 def level_spec(spec: RunSpec, j: int) -> RunSpec:
     """The spec of refinement level j (`refinement_level`) of a run."""
-    name, halvings = refinement_level(j, spec.solver.name)
-    return spec.refined(halvings, name) if j else spec
+    solver, halvings = refinement_level(j, spec.solver)
+    return spec.refined(halvings, solver) if j else spec
 
 
 def refuse_traced_refinement(spec: RunSpec, where: str) -> None:

@@ -14,7 +14,7 @@ import dataclasses
 import math
 import re
 from collections.abc import Mapping, Sequence
-from typing import Any, Literal, get_args
+from typing import Any, ClassVar
 
 import jax
 import jax.numpy as jnp
@@ -224,8 +224,6 @@ def cast(setup, dtype):
 # -- ranges of parameters and the tables drawn from them ----------------------------------------
 
 
-Method = Literal["uniform", "lhs", "grid"]
-METHODS: tuple[str, ...] = get_args(Method)
 DEFAULT_PATHS = ("hysteresis.alpha", "hysteresis.lam", "hysteresis.psi")
 DEFAULT_REL = 0.30
 
@@ -438,41 +436,64 @@ def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep
 # -- sampling -----------------------------------------------------------------------------------
 
 
-def sample_table(ranges: Sequence[Range], method: str, n: int, seed: int) -> np.ndarray:
-    """(N, d) float64 values, column j = ranges[j] (resolved), a function of (ranges, method,
-    n, seed) only: "uniform" i.i.d. in the box; "lhs" a Latin hypercube (each column visits
-    each of N strata once); "grid" the full factorial of linspace(low, high, num), C order
-    (n unused)."""
-    low = np.array([r.low for r in ranges], dtype=np.float64)
-    high = np.array([r.high for r in ranges], dtype=np.float64)
-    if method == "grid":
-        axes = [np.linspace(r.low, r.high, r.num) for r in ranges]
-        mesh = np.meshgrid(*axes, indexing="ij")
-        return np.stack([m.ravel() for m in mesh], axis=1)
-    rng = np.random.default_rng(seed)
-    d = len(ranges)
-    if method == "uniform":
-        u = rng.random((n, d))
-    elif method == "lhs":
-        u = np.empty((n, d))
-        for j in range(d):
+@dataclasses.dataclass(frozen=True)
+class Uniform:
+    """Samples i.i.d. uniform in the box."""
+
+    name: ClassVar[str] = "uniform"
+    grid: ClassVar[bool] = False  # the ranges are axes of a full factorial (each with a num)
+
+    def draw(self, ranges: Sequence[Range], n: int, seed: int) -> np.ndarray:
+        """(n, d) float64 values, column j = ranges[j] (resolved), a function of (ranges, n,
+        seed) only."""
+        return self.scaled(ranges, np.random.default_rng(seed).random((n, len(ranges))))
+
+    @staticmethod
+    def scaled(ranges: Sequence[Range], u: np.ndarray) -> np.ndarray:
+        low = np.array([r.low for r in ranges], dtype=np.float64)
+        return low + u * (np.array([r.high for r in ranges], dtype=np.float64) - low)
+
+
+@dataclasses.dataclass(frozen=True)
+class LatinHypercube(Uniform):
+    """A Latin hypercube: each column visits each of its n strata once."""
+
+    name: ClassVar[str] = "lhs"
+
+    def draw(self, ranges: Sequence[Range], n: int, seed: int) -> np.ndarray:
+        rng, u = np.random.default_rng(seed), np.empty((n, len(ranges)))
+        for j in range(len(ranges)):
             u[:, j] = (rng.permutation(n) + rng.random(n)) / n
-    else:
-        validation.one_of(method, "method", METHODS)
-    return low + u * (high - low)
+        return self.scaled(ranges, u)
+
+
+@dataclasses.dataclass(frozen=True)
+class Grid:
+    """The full factorial of linspace(low, high, num), C order (the first range slowest; n and
+    the seed unused)."""
+
+    name: ClassVar[str] = "grid"
+    grid: ClassVar[bool] = True
+
+    def draw(self, ranges: Sequence[Range], n: int, seed: int) -> np.ndarray:
+        mesh = np.meshgrid(*[np.linspace(r.low, r.high, r.num) for r in ranges], indexing="ij")
+        return np.stack([m.ravel() for m in mesh], axis=1)
+
+
+METHODS = {c.name: c() for c in (Uniform, LatinHypercube, Grid)}  # by the name a config gives
 
 
 def sample_overrides(setup, ranges: Sequence[Range], n: int, seed: int,
-                     method: str = "uniform") -> dict[str, np.ndarray]:
-    """{path: (n, ...)} plants drawn from `ranges` with a seed: `sample_table` put into the
-    setup's leaves by `params.overrides` (other elements of a vector leaf keep their values)."""
+                     method: Uniform | LatinHypercube = Uniform()) -> dict[str, np.ndarray]:
+    """{path: (n, ...)} plants drawn from `ranges` with a seed by `method` (`Uniform`,
+    `LatinHypercube`), put into the setup's leaves by `params.overrides` (other elements of a
+    vector leaf keep their values)."""
     ranges = [r.resolve(setup) for r in ranges]
-    table = sample_table(ranges, method, n, seed)
-    return overrides(setup, [r.param for r in ranges], table)
+    return overrides(setup, [r.param for r in ranges], method.draw(ranges, n, seed))
 
 
 __all__ = [
     "assumption_warnings", "check", "check_box", "DEFAULT_PATHS", "default_ranges", "DEFAULT_REL",
-    "flatten", "from_table", "from_value", "Method", "METHODS", "Param", "parse_range", "Range",
-    "sample_overrides", "sample_table"
+    "flatten", "from_table", "from_value", "Grid", "LatinHypercube", "METHODS", "Param",
+    "parse_range", "Range", "sample_overrides", "Uniform"
 ]

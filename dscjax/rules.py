@@ -114,6 +114,9 @@ class Choice(Rule):
         return "{" + ",".join(self.options) + "}"
 
     def parse(self, value):
+        if not isinstance(value, str) and isinstance(self.options, Mapping) and any(
+                type(value) is type(o) for o in self.options.values()):
+            return value  # a strategy built in code (`settings.checked`)
         if not isinstance(value, str) or value not in self.options:
             raise Invalid(self.text, value)
         return self.options[value] if isinstance(self.options, Mapping) else value

@@ -237,7 +237,7 @@ class RunSpec(eqx.Module):
         out.update(save_every=self.save_every,
                    window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
-        if self.discretisation.name == OPTIONS["discretisation"][0]:
+        if isinstance(self.discretisation, ExponentialEuler):  # the default
             out.pop("discretisation")  # the fingerprints of runs made before the key existed
         if not isinstance(self.gradient, TimeParallel) or self.gradient.every != 100:
             out["gradient"] = [self.gradient.name, self.gradient.every]
@@ -262,13 +262,13 @@ class RunSpec(eqx.Module):
         hit the same compiled program."""
         return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
 
-    def refined(self, halvings: int, solver_name: str) -> RunSpec:
+    def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
         the same controller sample time (a refinement level of `simulate`)."""
         m = 2 ** halvings
         return dataclasses.replace(
             self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m, solver=as_solver(solver_name))
+            sample_every=self.sample_every * m, solver=solver)
 
 
 def step_for(sample_time: float, dt: float) -> float:

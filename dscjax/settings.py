@@ -140,6 +140,14 @@ def to_table(obj) -> dict[str, Any]:
     return out
 
 
+def plain(obj) -> dict[str, Any]:
+    """`dataclasses.asdict` of a group with each strategy by its name, as files write it (what
+    a fingerprint hashes)."""
+    return dataclasses.asdict(obj) | {k: s.rule.dump(getattr(obj, k))
+                                      for k, s in declared(type(obj)).items()
+                                      if isinstance(s.rule, Choice)}
+
+
 def shown(s: Setting, value) -> str:
     """A value as a person reads it in a help text or a docs table."""
     v = s.rule.dump(value)
@@ -237,5 +245,5 @@ def _md(text: str) -> str:
 
 
 __all__ = ["Setting", "add_arguments", "checked", "declared", "dest", "doc_rows", "from_table",
-           "given", "group", "groups", "meanings", "parse_field", "setting", "shown", "to_table",
-           "walk"]
+           "given", "group", "groups", "meanings", "parse_field", "plain", "setting", "shown",
+           "to_table", "walk"]

@@ -47,6 +47,7 @@ from dscjax.divergence import refine_rows as refine_rows  # callers import these
 from dscjax.divergence import refinement_level as refinement_level
 from dscjax.integrate import (
     DEFAULT_CHECKPOINT_EVERY,
+    RK4,
     STATUS_OK,
     Status,
     TimeParallel,
@@ -388,7 +389,7 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
                                      f"of the plant, {setup.order} numbers "
                                      f"(got {int(np.prod(noise))})")
-    if not spec.sampled and spec.solver.name == "rk4":
+    if not spec.sampled and isinstance(spec.solver, RK4):
         validation.check_filters(setup, float(spec.dt))
 
 

@@ -32,7 +32,7 @@ import dscjax  # noqa: E402
 import tuning  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
 from tuning import search  # noqa: E402
-from tuning.config import DSC_GAINS  # noqa: E402
+from tuning.config import DSC_GAINS, GRADIENTS  # noqa: E402
 
 SIZES = (2, 6, 8, 13)  # tuned numbers: the first DSC_GAINS paths that hold this many
 
@@ -55,7 +55,8 @@ def measure(argv) -> int:
     """--child MODE P T REPEATS: compile the gradient cold, time it; print JSON."""
     mode, p, t_final, repeats = argv[0], int(argv[1]), float(argv[2]), int(argv[3])
     cfg = tuning.TuningConfig(params=paths(p), heldout=tuning.BatchSpec(batch=0),
-                              optimizer=tuning.OptimizerSpec(name="adam", gradient=mode,
+                              optimizer=tuning.OptimizerSpec(name=tuning.Adam(),
+                                                             gradient=GRADIENTS[mode],
                                                              time_limit=None))
     problem = tuning.build_problem(dscjax.paper_example(),
                                    RunSpec.make(t_final=t_final, sample_time=1e-3), cfg)

@@ -141,7 +141,7 @@ def diffrax_solver(n_steps: int, dtype):
 
 def plants(setup, b: int):
     ranges = [r.resolve(setup) for r in params.default_ranges(setup)]
-    table = params.sample_table(ranges, "uniform", b, 0).astype(np.float32).astype(np.float64)
+    table = params.Uniform().draw(ranges, b, 0).astype(np.float32).astype(np.float64)
     return ranges, table
 
 

@@ -56,8 +56,8 @@ def scipy_seconds(n_plants: int, t_final: float) -> float:
 
     ref = reference_loop()
     setup = example("paper")
-    table = params.sample_table([r.resolve(setup) for r in params.default_ranges(setup)], "uniform",
-                            n_plants, 1)
+    table = params.Uniform().draw([r.resolve(setup) for r in params.default_ranges(setup)],
+                                  n_plants, 1)
     times = []
     for alpha, lam, psi in table:
         p = dict(ref.P, alpha=alpha, lam=lam, psi=psi)
@@ -72,7 +72,7 @@ def runner(name: str, dtype, plants: int, t_final: float, seed: int = 0):
     """The sweep's block program for one example (its default ranges), and its table."""
     setup = example(name, dtype=dtype)
     ranges = [r.resolve(setup) for r in params.default_ranges(setup)]
-    table = params.sample_table(ranges, "uniform", plants, seed).astype(np.float32)
+    table = params.Uniform().draw(ranges, plants, seed).astype(np.float32)
     run = Runner(setup, [r.param for r in ranges], RunSpec.make(t_final, DT), plants,
                  devices=jax.devices()[:1], tile=tile_rows(jax.devices()[0].platform, plants))
     return lambda: run(table, 1)

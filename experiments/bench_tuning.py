@@ -48,13 +48,13 @@ from tuning.config import DSC_GAINS  # noqa: E402
 from tuning.runner import heldout_ranges  # noqa: E402
 
 # name -> [tuning.optimizer] settings; the first is the default, BASELINE the comparison's
-METHODS = {"cma": {}, "previous": {"stall": 0}, "adam": {"name": "adam"}}
+METHODS = {"cma": {}, "previous": {"stall": 0}, "adam": {"name": tuning.Adam()}}
 BASELINE = "previous"
 PLANTS, SEED = 32, 777  # the held-out blow-up check
 
 
 def build(problem: str, t_final: float):
-    robust = (tuning.BatchSpec(batch=8, seed=0, aggregate="cvar", cvar_level=0.25)
+    robust = (tuning.BatchSpec(batch=8, seed=0, aggregate=tuning.CVaR(), cvar_level=0.25)
               if problem == "robust" else tuning.BatchSpec(batch=0))
     cfg = tuning.TuningConfig(robust=robust, heldout=tuning.BatchSpec(batch=0))
     return tuning.build_problem(dscjax.paper_example(),
@@ -92,7 +92,7 @@ def judge(problem, setup, t_final: float) -> dict:
     d["delay_ok"] = bool(d["linf"] <= 2 * out["exponential-euler"]["linf"]
                          and d["tv_u"] <= 1.5 * sc.tv_max)
     ranges = params.check(heldout_ranges(start), start, "heldout")
-    held = params.sample_overrides(setup, ranges, PLANTS, SEED, "uniform")
+    held = params.sample_overrides(setup, ranges, PLANTS, SEED)
     for ts in (1e-3, 5e-4):
         sp = RunSpec.make(t_final, ts, sample_time=ts, refine=1)
         out[f"heldout_blowups_{1e3 * ts:g}ms"] = int(

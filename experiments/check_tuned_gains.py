@@ -38,7 +38,7 @@ def check(run_dir: str, paper) -> dict:
     ov = {p: np.stack([np.asarray(params.get(s, p)) for s in (paper, tuned)])
           for p in DSC_GAINS}
     ranges = params.check(heldout_ranges(paper), paper, "heldout")
-    held = params.sample_overrides(tuned, ranges, PLANTS, SEED, "uniform")
+    held = params.sample_overrides(tuned, ranges, PLANTS, SEED)
     bounds = None
     for disc in ("exponential-euler", "euler"):
         spec = RunSpec.make(20.0, 1e-3, sample_time=1e-3, discretisation=disc, refine=0)

@@ -192,8 +192,8 @@ def search_problem():
     import tuning
     from dscjax.runspec import RunSpec
 
-    spec = tuning.OptimizerSpec(name="cma", steps=4, save_interval=1, popsize=10, growth=1,
-                                time_limit=None, gradient="forward")
+    spec = tuning.OptimizerSpec(name=tuning.CMAES(), steps=4, save_interval=1, popsize=10, growth=1,
+                                time_limit=None, gradient=tuning.Forward())
     cfg = tuning.TuningConfig(params=("controller.k",), optimizer=spec,
                               objective=tuning.ObjectiveSpec(window_start=0.5),
                               heldout=tuning.BatchSpec(batch=0))

@@ -232,7 +232,8 @@ def pi_sweep():
     setup = example("pi")
     ranges = (parse_range("hysteresis.p*=0.7:1.3:2", grid=True),
               parse_range("hysteresis.r[3]=0.7:0.9:2", grid=True))
-    settings = SweepSettings(method="grid", ranges=ranges, dtype="float64", worst=0, random=0)
+    settings = SweepSettings(method=params.Grid(), ranges=ranges, dtype="float64", worst=0,
+                             random=0)
     return setup, run_sweep(setup, settings, t_final=0.4, dt=DT, window_start=0.1)
 
 

@@ -380,7 +380,7 @@ def test_adam_finishes_its_iteration_and_checkpoint_on_ctrl_c(search_problem, tm
                                                               monkeypatch):
     cfg = search_problem.cfg  # its objective, by adam (forward-mode gradients)
     problem = dataclasses.replace(search_problem, cfg=dataclasses.replace(
-        cfg, optimizer=dataclasses.replace(cfg.optimizer, name="adam", steps=4,
+        cfg, optimizer=dataclasses.replace(cfg.optimizer, name=tuning.Adam(), steps=4,
                                            learning_rate=0.1, save_interval=10)))
     run(problem, tmp_path / "full")
     counting = _in_generation(monkeypatch, "gradient", generation=1)  # inside iteration 1

@@ -51,7 +51,7 @@ def test_refinement_leaves_healthy_members_bitwise_and_matches_a_finer_run(paper
         np.testing.assert_array_equal(np.asarray(a)[[0, 2]], np.asarray(b)[[0, 2]])
     # the refined member is exactly the exponential step's run at its level, same save times
     solver, m = dscjax.refinement_level(j)
-    assert solver == "etdrk4"
+    assert isinstance(solver, dscjax.ETDRK4)
     one = dscjax.simulate(dscjax.params.set_many(paper_setup, {
         "hysteresis.alpha": 10.0, "hysteresis.lam": 0.15}), 2.0, 1e-3 / 2**m,
         save_every=100 * 2**m, refine=0, solver=solver)

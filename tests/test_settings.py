@@ -81,6 +81,7 @@ def test_a_strategy_is_read_as_its_object_and_written_as_its_name():
 
     rule = rules.Choice({"mean": "MEAN", "cvar": CVaR})
     assert rule.parse("cvar") is CVaR and rule.dump(CVaR) == "cvar"
+    assert rule.parse(CVaR) is CVaR  # built in code
 
 
 def test_from_table_parses_nests_validates_and_names_the_path():

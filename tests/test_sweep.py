@@ -19,7 +19,7 @@ import pytest
 import dscjax
 from dscjax import sweep
 from dscjax.cli.main import main as cli
-from dscjax.params import Param, Range, sample_table
+from dscjax.params import Grid, LatinHypercube, Param, Range
 from dscjax.reproduce.sampling import TUNED
 from dscjax.sweep import SweepSettings, run_sweep
 from dscjax.sweep import device as sweep_device
@@ -43,7 +43,8 @@ def test_sweep_equals_single_simulations(paper_setup):
     ranges = (Range(Param("hysteresis.alpha"), rel=0.3), Range(Param("plant.g", 1), 0.8, 1.2),
               Range(Param("plant.theta", 0), 0.0, 0.2), Range(Param("plant.x0", 0), 0.05, 0.1),
               Range(Param("plant.dbar_amp"), 0.0, 0.5))
-    settings = SweepSettings(samples=12, chunk=8, dtype="float64", method="lhs", ranges=ranges)
+    settings = SweepSettings(samples=12, chunk=8, dtype="float64", method=LatinHypercube(),
+                             ranges=ranges)
     res = run_sweep(paper_setup, settings, t_final=T, dt=DT)
     rows = [0, 5, 11]
     trajs = sweep.simulate_rows(paper_setup, res, rows, save_every=1)
@@ -245,16 +246,16 @@ def test_two_processes_write_the_same_file(tmp_path, capsys):
 
 def test_sample_tables():
     ranges = (Range(Param("a"), 0.0, 1.0, num=3), Range(Param("b"), 10.0, 20.0, num=2))
-    grid = sample_table(ranges, "grid", 0, 0)
+    grid = Grid().draw(ranges, 0, 0)
     np.testing.assert_array_equal(grid, [[0, 10], [0, 20], [0.5, 10], [0.5, 20], [1, 10],
                                          [1, 20]])
     r2 = (Range(Param("a"), 0.0, 1.0), Range(Param("b"), -2.0, 2.0))
-    lhs = sample_table(r2, "lhs", 50, 3)
+    lhs = LatinHypercube().draw(r2, 50, 3)
     for j, (lo, hi) in enumerate([(0, 1), (-2, 2)]):  # one sample in each of the 50 strata
         strata = np.floor((lhs[:, j] - lo) / (hi - lo) * 50).astype(int)
         assert sorted(strata) == list(range(50))
-    np.testing.assert_array_equal(lhs, sample_table(r2, "lhs", 50, 3))  # seeded
-    assert not np.array_equal(lhs, sample_table(r2, "lhs", 50, 4))
+    np.testing.assert_array_equal(lhs, LatinHypercube().draw(r2, 50, 3))  # seeded
+    assert not np.array_equal(lhs, LatinHypercube().draw(r2, 50, 4))
     assert sweep.auto_chunk(100_000) == 14336 and sweep.auto_chunk(24) == 24
 
 
@@ -374,7 +375,7 @@ def test_config_sweep_table_and_gains_file(tmp_path, capsys):
     args = build_parser(_available_commands()).parse_args(
         ["sweep", "--config", str(cfg), "--gains", str(gains)])
     setup, options, settings = load(args)
-    assert options.t_final == 0.5 and settings.seed == 3 and settings.method == "lhs"
+    assert options.t_final == 0.5 and settings.seed == 3 and settings.method.name == "lhs"
     np.testing.assert_array_equal(setup.controller.k, [8.0, 0.5])
     assert options.dt == 1e-3 and float(setup.hysteresis.alpha) == 1.0
     gains.write_text(json.dumps({"plant": {"g": [1.0, 1.0]}}))

@@ -217,7 +217,7 @@ def _per_plant_problem(out):
     round added, waveforms included) with effort_bounds = "per_plant"."""
     setup, options, cfg = _inputs()
     cfg = dataclasses.replace(cfg, objective=dataclasses.replace(
-        cfg.objective, effort_bounds="per_plant"))
+        cfg.objective, effort_bounds=tuning.optimize.PerPlant()))
     setup = adversarial.search_problem(setup, options, cfg).setup
     plants = files.read_npz(out / "round_1" / "plants.npz")
     return setup, runner.build_problem(setup, options, cfg, extra_plants=plants)
@@ -272,7 +272,7 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
 
     setup = dscjax.paper_example()
     cfg = tuning.TuningConfig(params=("controller.k",),
-                              objective=tuning.ObjectiveSpec(effort_bounds="per_plant"),
+                              objective=tuning.ObjectiveSpec(effort_bounds=tuning.optimize.PerPlant()),
                               robust=tuning.BatchSpec(batch=0),
                               heldout=tuning.BatchSpec(batch=0))
     theta = np.array([[0.2, 0.0], [1000.0, 0.0], [0.05, 0.0]])
@@ -316,7 +316,7 @@ def test_effort_bounds_are_part_of_the_fingerprint(adv_run):
     assert per.describe()["objective"]["effort_bounds"] == "per_plant"
     assert 'effort_bounds = "nominal"' in tuning.config.to_toml(cfg)
     again = tuning.config_from_dict(tomllib.loads(tuning.config.to_toml(per.cfg))["tuning"])
-    assert again.objective.effort_bounds == "per_plant"
+    assert again.objective.effort_bounds.per_plant
 
 
 def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config):

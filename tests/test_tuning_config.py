@@ -98,7 +98,7 @@ def test_steps_default_to_300_for_adam_and_no_limit_for_searches():
 
     assert OPTAX_STEPS == 300
     search, adam = from_dict({}).optimizer, from_dict({"optimizer": {"name": "adam"}}).optimizer
-    assert search.name == "cma" and search.steps is None and search.max_steps is None
+    assert search.name == tuning.CMAES() and search.steps is None and search.max_steps is None
     assert (search.popsize, search.growth) == (0, 2)
     # 64 trajectories a generation: 64 candidates on one plant, 8 on 8 plants, but never
     # below cma's 4 + floor(3 ln 13) = 11 for the 13 numbers of the default tune

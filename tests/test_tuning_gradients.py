@@ -19,7 +19,7 @@ import dscjax
 import tuning
 from dscjax.runspec import RunSpec
 from dscjax.selection import run_at
-from tuning.optimize import CVaR, Forward, Max, Mean, Plants, choose_gradient
+from tuning.optimize import Auto, CVaR, Forward, Max, Mean, Plants
 
 T_FINAL = 2.0
 SPEC = RunSpec.make(t_final=T_FINAL, sample_time=1e-3)  # the loop tuned: sampled at 1 ms
@@ -142,9 +142,9 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     cfg = tuning.TuningConfig(params=PARAMS,
                               objective=tuning.ObjectiveSpec(u_max=None, sampled_weight=0.0,
                                                              delay_weight=0.0),
-                              robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
+                              robust=tuning.BatchSpec(batch=4, seed=3, aggregate=tuning.CVaR(),
                                                       cvar_level=0.5),
-                              optimizer=tuning.OptimizerSpec(gradient="plants"))
+                              optimizer=tuning.OptimizerSpec(gradient=Plants()))
     prob = tuning.build_problem(dscjax.paper_example(), SPEC, cfg)
     assert prob.mode == Plants()
     assert prob.describe()["mode"] == "plants"  # asked for by name
@@ -153,8 +153,8 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     auto = tuning.build_problem(dscjax.paper_example(), SPEC,
                                 tuning.TuningConfig(
                                     params=PARAMS, objective=tuning.ObjectiveSpec(u_max=None),
-                                    robust=tuning.BatchSpec(batch=4, seed=3, aggregate="cvar",
-                                                            cvar_level=0.25)))
+                                    robust=tuning.BatchSpec(batch=4, seed=3, cvar_level=0.25,
+                                                            aggregate=tuning.CVaR())))
     assert auto.mode == Plants() and auto.describe()["mode"] == "plants"
     rng = np.random.default_rng(5)
     z = jax.tree.map(lambda v: v + rng.uniform(-0.15, 0.15, np.shape(v)), prob.z0)
@@ -181,5 +181,5 @@ def test_plant_by_plant_gradient_of_a_cvar_equals_forward_mode_of_the_batch():
     (3, Max(), 13, "forward"),        # 1 > 3 / 4
 ])
 def test_auto_gradient_mode(batch, aggregate, n_params, expected):
-    mode = choose_gradient("auto", n_params, batch, aggregate, every=50)
+    mode = Auto().chosen(n_params, batch, aggregate, every=50)
     assert mode.name == expected and mode.every == (50 if expected == "reverse" else None)

@@ -315,8 +315,8 @@ def test_existing_run_needs_resume_or_overwrite(cli_run, capsys):
 def small_problem():
     cfg = tuning.TuningConfig(
         params=("controller.k",),
-        optimizer=tuning.OptimizerSpec(name="adam", steps=4, learning_rate=0.1, save_interval=2,
-                                       time_limit=None),
+        optimizer=tuning.OptimizerSpec(name=tuning.Adam(), steps=4, learning_rate=0.1,
+                                       save_interval=2, time_limit=None),
         heldout=tuning.BatchSpec(batch=0))
     return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=2.0), cfg)
 

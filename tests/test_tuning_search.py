@@ -126,7 +126,7 @@ def problems(search_problem):
     # conftest's, saved every 2 iterations here
     assert search_problem.cfg.optimizer.steps == STEPS
     p = _with(search_problem, save_interval=2)
-    return {"cma": p, "adam": _with(p, name="adam")}
+    return {"cma": p, "adam": _with(p, name=tuning.Adam())}
 
 
 @pytest.fixture(scope="module")
@@ -217,7 +217,7 @@ def test_a_nan_is_never_the_best_point_nor_told_to_cma_es(problems):
             return ev
 
     sp = Nan(problems["cma"])
-    res = box.run(sp, search.method_of(problems["cma"].cfg.optimizer), x0=sp.x0,
+    res = box.run(sp, problems["cma"].cfg.optimizer.method(), x0=sp.x0,
                   max_iterations=2)
     assert np.isnan(res.trace.start_loss)
     assert np.isfinite(res.trace.best_loss) and np.all(np.isfinite(res.trace.best_z))
@@ -242,7 +242,7 @@ def test_cma_es_asks_as_a_plain_cma_es(problems):
     p = problems["cma"]
     sp = Seen(p)
     spec = p.cfg.optimizer
-    res = box.run(sp, search.method_of(spec), x0=sp.x0, max_iterations=4)
+    res = box.run(sp, spec.method(), x0=sp.x0, max_iterations=4)
     fitness = res.state.es.arrays()["fitness"]
     plain = cma.CMAEvolutionStrategy(
         sp.x0, spec.sigma0, {"seed": spec.seed + 1, "verbose": -9, "popsize": len(fitness[0]),
@@ -308,7 +308,7 @@ def test_a_search_without_a_step_limit_runs_until_its_own_criteria(problems, tmp
     res = run(p, tmp_path / "open")
     assert res.trace.iterations == 9 and res.trace.restarts == 2
     assert res.stop_reason.startswith("CMA-ES stopped")
-    assert _with(p, name="adam").cfg.optimizer.max_steps == 5
+    assert _with(p, name=tuning.Adam()).cfg.optimizer.max_steps == 5
 
 
 def test_a_run_started_from_z_init_resumes_without_it(problems, tmp_path):

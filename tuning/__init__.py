@@ -14,13 +14,13 @@ from dscjax.selection import Selection, Tuned
 from tuning.config import AdversarialSpec, BatchSpec, ObjectiveSpec, OptimizerSpec, TuningConfig
 from tuning.config import from_dict as config_from_dict
 from tuning.objective import Objective
-from tuning.optimize import CVaR, Forward, Max, Mean, Plants, Reverse, loss_function
+from tuning.optimize import CMAES, Adam, CVaR, Forward, Max, Mean, Plants, Reverse, loss_function
 from tuning.reductions import tuning_metrics
 from tuning.requirements import Envelope, StepResponse, UBound, URate
 from tuning.runner import Problem, Result, build_problem, run
 from tuning.scales import Scales
 
-__all__ = ["AdversarialSpec", "BatchSpec", "CVaR", "Envelope", "Forward", "Max", "Mean",
-           "Objective", "ObjectiveSpec", "OptimizerSpec", "Plants", "Problem", "Result",
+__all__ = ["CMAES", "Adam", "AdversarialSpec", "BatchSpec", "CVaR", "Envelope", "Forward", "Max",
+           "Mean", "Objective", "ObjectiveSpec", "OptimizerSpec", "Plants", "Problem", "Result",
            "Reverse", "Scales", "Selection", "StepResponse", "Tuned", "TuningConfig", "UBound",
            "URate", "build_problem", "config_from_dict", "loss_function", "run", "tuning_metrics"]

@@ -21,12 +21,14 @@ import dataclasses
 from collections.abc import Mapping
 from typing import Any
 
-from dscjax import settings, validation, worst
+from dscjax import params, settings, validation, worst
 from dscjax.params import default_ranges, flatten, from_table
 from dscjax.rules import AtLeast, Choice, Custom, Either, Maybe, Number, Positive, Strings
 from dscjax.search.methods import cma_population
 from dscjax.settings import group, setting
 from dscjax.validation import ConfigError
+from tuning import optimize
+from tuning.optimize import AGGREGATES, EFFORT_BOUNDS, GRADIENTS, OPTIMIZERS
 from tuning.requirements import KINDS
 
 # the design parameters of the DSC (Section 2 of the paper), tuned by default
@@ -35,16 +37,11 @@ DSC_GAINS = ("controller.k", "controller.tau", "controller.gamma_g", "controller
              "controller.eta_zeta", "controller.eta_d", "controller.eps", "controller.sat_width")
 # tuned in linear coordinates by default (`dscjax.selection.Linear`): signed numbers
 SIGNED = ("controller.theta_hat0", "controller.c", "plant.x0", "hysteresis.w0")
-AGGREGATES = ("mean", "cvar", "max")
-EFFORT_BOUNDS = ("nominal", "per_plant")
 # the trajectories a CMA-ES generation runs by default: a batched simulation costs far less per
 # trajectory in a batch of this size than in one of the 11 of cma's own population
 ROWS = 64
-OPTIMIZERS = ("cma", "adam")
-SEARCHES = ("cma",)  # the population methods
-GRADIENTS = ("auto", "forward", "reverse", "plants")
 OPTAX_STEPS = 300  # adam's iterations when `steps` is not given
-METHODS = ("uniform", "lhs")  # a batch of plants is sampled, never a grid
+METHODS = {k: v for k, v in params.METHODS.items() if not v.grid}  # plants are drawn
 # `dscjax tune`'s own defaults of [simulation]: the controller that runs, sampled at 1 kHz
 SIMULATION = {"sample_time": 1e-3}
 WEIGHT = Number(ge=0)
@@ -108,8 +105,8 @@ class ObjectiveSpec:
                                      "bound", Positive())
     delay_weight: float = setting(100.0, "weight of the delayed loop's penalty; 0: no delayed "
                                   "loop", WEIGHT)
-    effort_bounds: str = setting(
-        "nominal", "the start bounds measured on the nominal plant, or per_plant: on each "
+    effort_bounds: optimize.Nominal | optimize.PerPlant = setting(
+        optimize.Nominal(), "the start bounds measured on the nominal plant, or per_plant: on each "
         "training plant its own", Choice(EFFORT_BOUNDS), flag="--effort-bounds")
     sharpness: float = setting(
         1000.0, "s x L-inf(start) of the smooth L-inf: large, so that it stays close to the max "
@@ -131,8 +128,8 @@ class OptimizerSpec:
     """[tuning.optimizer]: the search method, its settings and limits. An iteration of the
     CMA-ES methods is a generation: one batched simulation."""
 
-    name: str = setting(
-        "cma", "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
+    name: optimize.CMAES | optimize.Adam = setting(
+        optimize.CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
         "gradients)", Choice(OPTIMIZERS),
         flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
@@ -145,10 +142,10 @@ class OptimizerSpec:
     time_limit: float | None = setting(200.0, "seconds of search in this invocation, "
                                        "compilation included; none: no limit",
                                        Maybe(Positive()), flag="--time-limit")
-    gradient: str = setting(
-        "auto", "adam's AD mode: forward, reverse, plants (a batch's weighed plants one by one) "
-        "or auto (for one plant forward up to 6 tuned numbers, else reverse; plants where the "
-        "aggregate weighs at most a quarter of a batch; else forward up to 64 tuned numbers)",
+    gradient: optimize.Auto | optimize.Forward = setting(
+        optimize.Auto(), "adam's AD mode: forward, reverse, plants (a batch's weighed plants one "
+        "by one) or auto (for one plant forward up to 6 tuned numbers, else reverse; plants where "
+        "the aggregate weighs at most a quarter of a batch; else forward up to 64 tuned numbers)",
         Choice(GRADIENTS), flag="--gradient")
     checkpoint_every: int = setting(100, "reverse mode's jax.checkpoint segment in steps",
                                     AtLeast(1))
@@ -180,7 +177,11 @@ class OptimizerSpec:
         for the CMA-ES methods."""
         if self.steps is not None:
             return self.steps
-        return None if self.name in SEARCHES else OPTAX_STEPS
+        return None if self.name.generations else OPTAX_STEPS
+
+    def method(self, plants: int = 1, n: int = 1):
+        """The `dscjax.search` method for `plants` training plants and n tuned numbers."""
+        return self.name.method(self, plants, n)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,13 +191,20 @@ class BatchSpec:
 
     batch: int = setting(0, "plants drawn (0: the nominal plant only)", AtLeast(0))
     seed: int = setting(0, "seed of the plants", AtLeast(0))
-    method: str = setting("uniform", "uniform or lhs (Latin hypercube)", Choice(METHODS))
+    method: params.Uniform | params.LatinHypercube = setting(
+        params.Uniform(), "uniform or lhs (Latin hypercube)", Choice(METHODS))
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
-    aggregate: str = setting("mean", "over the plants: mean, cvar (the mean of the worst "
-                             "cvar_level share) or max", Choice(AGGREGATES))
+    aggregate: optimize.CVaR = setting(optimize.Mean(), "over the plants: mean, cvar (the mean "
+                                       "of the worst cvar_level share) or max",
+                                       Choice(AGGREGATES))
     cvar_level: float = setting(0.2, "CVaR's share of the worst plants: 1 is the mean",
                                 Number(gt=0, le=1))
+
+    @property
+    def over(self) -> optimize.CVaR:
+        """The aggregate over the plants, CVaR at cvar_level."""
+        return self.aggregate.at(self.cvar_level)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -335,5 +343,5 @@ def to_toml(cfg: TuningConfig, setup=None) -> str:
 
 
 __all__ = ["AGGREGATES", "AdversarialSpec", "BatchSpec", "EFFORT_BOUNDS", "GRADIENTS",
-           "ObjectiveSpec", "OptimizerSpec", "SEARCHES", "SIMULATION", "TuningConfig", "from_dict",
-           "to_table", "to_toml"]
+           "OPTIMIZERS", "ObjectiveSpec", "OptimizerSpec", "SIMULATION", "TuningConfig",
+           "from_dict", "to_table", "to_toml"]

@@ -76,7 +76,7 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
         tr = simulate(problem.setup_at(z), spec=spec, throw=False)
         j = int(tr.refinements)
         out[tag] = {"diverged": bool(tr.diverged), "refinements": j,
-                    "solver": refinement_level(j, spec.solver.name)[0], "dt_used": float(tr.dt),
+                    "solver": refinement_level(j, spec.solver)[0].name, "dt_used": float(tr.dt),
                     **_row(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
     return out
 

@@ -1,7 +1,8 @@
-"""The tuner's strategies, each an object chosen once from the name a config gives: the
-aggregate over the plants (`Mean`, `CVaR`, `Max`; `aggregate_of`) and the AD mode of the exact
-gradient (`Forward`, `Reverse`, `Plants`; `choose_gradient`); and the loss as one pure function
-(`loss_function`)."""
+"""The tuner's strategies, each an object a config's name reads to (`tuning.config`): the
+aggregate over the plants (`Mean`, `CVaR`, `Max`), the search method (`CMAES`, `Adam`), where
+"start" effort bounds are measured (`Nominal`, `PerPlant`) and the AD mode of the exact gradient
+(`Forward`, `Reverse`, `Plants`, or `Auto`: each `chosen` for a problem); and the loss as one
+pure function (`loss_function`)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,8 @@ from typing import ClassVar
 
 import jax
 import jax.numpy as jnp
+
+from dscjax.search.methods import CMA, Gradient
 
 FORWARD_MAX_PARAMS = 64  # "auto" over a batch: forward mode up to this many tuned scalars
 # "auto" for one plant: forward mode up to this many tuned scalars, where its gradient costs no
@@ -24,6 +27,7 @@ class CVaR:
 
     level: float = 1.0
     name: ClassVar[str] = "cvar"
+    leveled: ClassVar[bool] = True  # the share `level` is its own (Mean and Max have none)
 
     def weighs(self, n):
         """How many of n plants the aggregate weighs (n may be traced: the real plants of a
@@ -50,12 +54,20 @@ class CVaR:
         k = self.weighs(n if mask is None else jnp.sum(mask))
         return idx, jnp.where(jnp.arange(idx.shape[0]) < k, 1.0 / k, 0.0)
 
+    def at(self, level: float) -> CVaR:
+        """This aggregate at the share `level` ([tuning.robust] cvar_level) if it has one."""
+        return dataclasses.replace(self, level=level) if self.leveled else self
+
+    def __str__(self) -> str:  # as the report says it
+        return f"{self.name} at level {self.level:g}" if self.leveled else self.name
+
 
 @dataclasses.dataclass(frozen=True)
 class Mean(CVaR):
     """The mean over the plants (CVaR at level 1, summed in the plants' order)."""
 
     name: ClassVar[str] = "mean"
+    leveled: ClassVar[bool] = False
 
     def weighs(self, n):
         return n
@@ -71,6 +83,7 @@ class Max(CVaR):
     """The worst plant."""
 
     name: ClassVar[str] = "max"
+    leveled: ClassVar[bool] = False
 
     def weighs(self, n):
         return 1
@@ -81,9 +94,45 @@ class Max(CVaR):
         return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
 
 
-def aggregate_of(batch) -> CVaR:
-    """The aggregate a `BatchSpec` ([tuning.robust]) names (`aggregate`, `cvar_level`)."""
-    return {"mean": Mean(), "cvar": CVaR(batch.cvar_level), "max": Max()}[batch.aggregate]
+@dataclasses.dataclass(frozen=True)
+class CMAES:
+    """CMA-ES with IPOP restarts: an iteration is a generation, one batched simulation."""
+
+    name: ClassVar[str] = "cma"
+    generations: ClassVar[bool] = True
+
+    def method(self, spec, plants: int, n: int) -> CMA:
+        """The `dscjax.search` method of an `OptimizerSpec`."""
+        return CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
+                   restarts=spec.restarts, growth=spec.growth, stall=spec.stall,
+                   stall_gain=spec.stall_gain)
+
+
+@dataclasses.dataclass(frozen=True)
+class Adam:
+    """Projected descent on exact gradients (optax's Adam scaling): one point an iteration."""
+
+    name: ClassVar[str] = "adam"
+    generations: ClassVar[bool] = False
+
+    def method(self, spec, plants: int, n: int) -> Gradient:
+        return Gradient(lr=spec.learning_rate)
+
+
+@dataclasses.dataclass(frozen=True)
+class Nominal:
+    """Effort bounds "start" measured on the nominal plant, for every plant."""
+
+    name: ClassVar[str] = "nominal"
+    per_plant: ClassVar[bool] = False
+
+
+@dataclasses.dataclass(frozen=True)
+class PerPlant:
+    """Effort bounds "start" measured on each training plant, its own."""
+
+    name: ClassVar[str] = "per_plant"
+    per_plant: ClassVar[bool] = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,6 +151,12 @@ class Forward:
         grads, (loss, aux) = jax.jacfwd(f, has_aux=True)(z)
         return (loss, aux), grads
 
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
+        """The mode run for n_params tuned scalars and `batch` plants weighed by `aggregate`,
+        a reverse pass checkpointed in segments of `every` steps: this one."""
+        return self
+
 
 @dataclasses.dataclass(frozen=True)
 class Reverse(Forward):
@@ -114,6 +169,10 @@ class Reverse(Forward):
     def value_and_grad(self, objective, z):
         return jax.value_and_grad(objective.evaluate, has_aux=True)(z)
 
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
+        return Reverse(every)
+
 
 @dataclasses.dataclass(frozen=True)
 class Plants(Forward):
@@ -125,22 +184,31 @@ class Plants(Forward):
         return objective.value_and_grad_plants(z)
 
 
-def choose_gradient(mode: str, n_params: int, batch: int = 1, aggregate=None,
-                    every: int | None = None) -> Forward:
-    """The AD mode a config names (`Reverse` with the checkpoint segment `every`); "auto":
-    for one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
-    (time-parallel); for a batch whose `aggregate` weighs at most a quarter of its plants
-    (max, CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned
-    scalars (docs/benchmarks.md)."""
-    if mode == "auto":
+@dataclasses.dataclass(frozen=True)
+class Auto:
+    """For one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
+    (time-parallel); for a batch whose aggregate weighs at most a quarter of its plants (max,
+    CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned scalars
+    (docs/benchmarks.md)."""
+
+    name: ClassVar[str] = "auto"
+
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
+               ) -> Forward:
         if batch <= 1:
-            mode = "forward" if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else "reverse"
+            mode = Forward() if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else Reverse()
         elif aggregate is not None and aggregate.weighs(batch) <= batch / 4:
-            mode = "plants"
+            mode = Plants()
         else:
-            mode = "forward" if n_params <= FORWARD_MAX_PARAMS else "reverse"
-    return Reverse(every) if mode == "reverse" else {"forward": Forward(),
-                                                     "plants": Plants()}[mode]
+            mode = Forward() if n_params <= FORWARD_MAX_PARAMS else Reverse()
+        return mode.chosen(n_params, batch, aggregate, every)
+
+
+# the strategies by the names a config gives (`tuning.config`, `rules.Choice`)
+AGGREGATES = {c.name: c() for c in (Mean, CVaR, Max)}
+OPTIMIZERS = {c.name: c() for c in (CMAES, Adam)}
+EFFORT_BOUNDS = {c.name: c() for c in (Nominal, PerPlant)}
+GRADIENTS = {c.name: c() for c in (Auto, Forward, Reverse, Plants)}
 
 
 def loss_function(problem):

@@ -215,9 +215,7 @@ def problem_sentence(problem) -> str:
             what[k] += "initialisation to start at x_1(0))"
     terms = [what[k] for k in what if getattr(cfg.objective, k)]
     where = ("the nominal plant" if not cfg.robust.batch else
-             f"the {cfg.robust.aggregate}"
-             + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
-             + f" over {cfg.robust.batch} training plants")
+             f"the {cfg.robust.over} over {cfg.robust.batch} training plants")
     cons = []
     for name, per, bound, key, factor in (
             ("max|u|", sc.u_max_train, sc.u_max, "u_max", ""),
@@ -256,7 +254,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
-        "effort_bounds": problem.cfg.objective.effort_bounds,
+        "effort_bounds": problem.cfg.objective.effort_bounds.name,
         "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
         "constraints": both(lambda m: constraint_checks(sc, m, checks), ev["nominal"]),
         "sample_time": problem.objective.sim.sample_time,
@@ -269,7 +267,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             "restarts": tr.restarts, "best_iteration": tr.best_iteration,
             "best_loss": tr.best_loss, "best_feasible": tr.best_feasible,
             "wall_s": result.wall_s, "compile_s": result.compile_s, "wall_total_s": None,
-            "gradient": problem.mode.name, "method": problem.cfg.optimizer.name,
+            "gradient": problem.mode.name, "method": problem.cfg.optimizer.name.name,
             "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
             "n_params": problem.n_params},
         "gains": both(problem.values_at, {"start": z0, "tuned": z1}),

@@ -137,9 +137,8 @@ def text(s: dict, problem, figures) -> str:
             f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
         + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
            f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
-        + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate}"
-           + (f" at level {cfg.robust.cvar_level:g}" if cfg.robust.aggregate == "cvar" else "")
-           + ")" if cfg.robust.batch else "; nominal plant only") + ".",
+        + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.over})"
+           if cfg.robust.batch else "; nominal plant only") + ".",
         "",
         f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
         f"of which {run['gradient_evaluations']} with an exact gradient"
@@ -227,7 +226,7 @@ def text(s: dict, problem, figures) -> str:
         b = cfg.robust if key == "train" else cfg.heldout
         rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
         st, tu = s[key]["start"], s[key]["tuned"]
-        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method}, seed {b.seed})", "",
+        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method.name}, seed {b.seed})", "",
                   "| | start median | tuned median | start p95 | tuned p95 | start max | "
                   "tuned max |", "|---|---|---|---|---|---|---|"]
         for m in STATS_METRICS:
@@ -318,7 +317,7 @@ def sensitivity_section(sens: dict) -> list[str]:
 
 
 def method_sentence(opt, mode: str) -> str:
-    if opt.name == "adam":
+    if not opt.name.generations:
         words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
                  f"{mode}-mode")
         return (f"{words} exact gradients: projected gradient descent with "
@@ -333,7 +332,7 @@ def method_sentence(opt, mode: str) -> str:
     restarts = (f" When CMA-ES's own criteria stop it before the budget ends{stalls}, a fresh "
                 f"CMA-ES starts from the start point{grows} (at most {opt.restarts} times; the "
                 f"best point is kept)." if opt.restarts else "")
-    return (f"{opt.name}: {cma}; one batched simulation per generation, no gradient."
+    return (f"{opt.name.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)
 
 

@@ -21,7 +21,7 @@ import jax
 import numpy as np
 
 from dscjax import config as dconfig
-from dscjax import files, params, search
+from dscjax import files, params, search, settings
 from dscjax.integrate import TimeParallel
 from dscjax.params import default_ranges
 from dscjax.plant import PaperPlant
@@ -32,10 +32,10 @@ from dscjax.validation import ConfigError, shortest, validate_setup
 from tuning import checkpoint as ck
 from tuning.config import SIGNED, TuningConfig
 from tuning.objective import Objective, check_loops
-from tuning.optimize import Forward, Mean, aggregate_of, choose_gradient
+from tuning.optimize import Forward, Mean
 from tuning.requirements import build_requirements
 from tuning.scales import start_scales
-from tuning.search import STATE_FILE, TuneProblem, method_of
+from tuning.search import STATE_FILE, TuneProblem
 
 # no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
 PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
@@ -96,15 +96,15 @@ class Problem:
 
 def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants) -> dict:
     """`Problem.describe` of these parts (the start gains' evaluation plays no part)."""
-    opt = dataclasses.asdict(cfg.optimizer)
+    opt = settings.plain(cfg.optimizer)
     for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
         opt.pop(k)  # where to stop: a resumed run may change it
     return {
         "setup": dconfig.to_dict(setup, options),
         "params": [t.describe() for t in selection.items],
-        "objective": dataclasses.asdict(cfg.objective),
+        "objective": settings.plain(cfg.objective),
         "optimizer": opt,
-        "robust": dataclasses.asdict(cfg.robust) | {
+        "robust": settings.plain(cfg.robust) | {
             "ranges": [r.resolve(setup).spec() for r in cfg.robust.ranges]},
         "requirements": dict(cfg.requirements),
         "sim": sim.describe(),
@@ -183,7 +183,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train, mask=mask,
-                          aggregate=aggregate_of(cfg.robust) if train else Mean(),
+                          aggregate=cfg.robust.over if train else Mean(),
                           checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
@@ -262,9 +262,9 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     n_params = selection.size(setup)
     n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
     # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
-    mode = choose_gradient(cfg.optimizer.gradient, n_params, max(
+    mode = cfg.optimizer.gradient.chosen(n_params, max(
         (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
-        aggregate_of(cfg.robust), cfg.optimizer.checkpoint_every)
+        cfg.robust.over, cfg.optimizer.checkpoint_every)
     sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
@@ -391,7 +391,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
 
     try:
         res = search.run(
-            sp, method_of(spec, problem.objective.batch_size, sp.x0.size),
+            sp, spec.method(problem.objective.batch_size, sp.x0.size),
             x0=sp.x0 if z_init is None else sp.flat(z_init),
             seed=spec.seed, max_iterations=spec.max_steps, patience=spec.patience,
             time_limit=None if spec.time_limit is None else before + spec.time_limit,
@@ -434,7 +434,7 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
         "best_iteration": trace.best_iteration, "best_feasible": trace.best_feasible,
         "evaluations": trace.evaluations, "gradient_evaluations": trace.gradients,
         "elapsed_total_s": trace.seconds, "stop_reason": stop_reason,
-        "state": {"kind": problem.cfg.optimizer.name, "file": STATE_FILE}, "problem": desc})
+        "state": {"kind": problem.cfg.optimizer.name.name, "file": STATE_FILE}, "problem": desc})
 
 
 def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:

@@ -72,7 +72,7 @@ def per_plant_bounds(setup: Setup, sim: RunSpec, spec: ObjectiveSpec, train, u_m
     "per_plant", each training plant's "start" bounds are its own figures (a plant on which the
     start gains diverge keeps the nominal ones); else none (the nominal ones hold for every
     plant)."""
-    if spec.effort_bounds != "per_plant" or not train or "start" not in (spec.u_max, spec.tv_max):
+    if not spec.effort_bounds.per_plant or not train or "start" not in (spec.u_max, spec.tv_max):
         return {}
     mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
     div = np.asarray(status.code) != 0

@@ -1,9 +1,8 @@
 """The tuning objective as a `dscjax.search` problem over the flat z (`TuneProblem`: the
-batched program `batch_fn`; the exact gradient `grad_fn` in the problem's AD mode), and the
-method of an `OptimizerSpec` (`method_of`).
+batched program `batch_fn`; the exact gradient `grad_fn` in the problem's AD mode).
 
     sp = TuneProblem(problem)                  # problem: tuning.build_problem(...)
-    method = method_of(problem.cfg.optimizer, problem.objective.batch_size, sp.x0.size)
+    method = problem.cfg.optimizer.method(problem.objective.batch_size, sp.x0.size)
     res = dscjax.search.run(sp, method, x0=sp.x0)
 
 Its candidates never count as diverged: the loss itself penalises a plant that diverges.
@@ -142,13 +141,3 @@ class TuneProblem(search.Problem):
     def point(self, flat) -> dict:
         """The {name: value} point of a flat z."""
         return jax.tree.map(np.asarray, self.unravel(jnp.asarray(flat)))
-
-
-def method_of(spec, plants: int = 1, n: int = 1) -> search.CMA | search.Gradient:
-    """The search method of an `OptimizerSpec` for `plants` training plants and n tuned
-    numbers."""
-    if spec.name == "adam":
-        return search.Gradient(lr=spec.learning_rate)
-    return search.CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
-                      restarts=spec.restarts, growth=spec.growth,
-                      stall=spec.stall, stall_gain=spec.stall_gain)

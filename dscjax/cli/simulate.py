@@ -134,7 +134,7 @@ def run(args) -> int:
         "save_every": every, "sample_time": options.sample_time,
         "solver": options.solver.name,
         "refinements": int(traj.refinements),
-        "solver_used": refinement_level(int(traj.refinements), options.solver.name)[0],
+        "solver_used": refinement_level(int(traj.refinements), options.solver)[0].name,
         "dt_used": float(traj.dt),
         "window_start": float(options.window_start),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
@@ -149,7 +149,7 @@ def run(args) -> int:
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
-        used, _ = refinement_level(int(traj.refinements), options.solver.name)
+        used = refinement_level(int(traj.refinements), options.solver)[0].name
         what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
                 if diverged is not None else
                 f"the reported run is {used} at dt = {float(traj.dt):g} s")

@@ -39,7 +39,7 @@ def add_parser(sub):
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
         description=f"Simulate many plants with the gains fixed and report how well they track. "
-        f"Default: the paper's example and gains, {names} each {d.method} within "
+        f"Default: the paper's example and gains, {names} each {d.method.name} within "
         f"+-{100 * DEFAULT_REL:g} % of the paper's values, {d.samples:,} samples, "
         f"{OPTIONS['t_final'][0]:g} s at dt = {OPTIONS['dt'][0]:g}, {d.dtype}, seed {d.seed}. "
         f"Settings may also "
@@ -102,11 +102,11 @@ def load(args):
         if args.ranges:
             raise ConfigError("--range is for sampled sweeps; a grid takes its ranges from "
                               "--grid")
-        changes |= dict(method="grid", ranges=tuple(parse_range(g, grid=True)
+        changes |= dict(method=params.Grid(), ranges=tuple(parse_range(g, grid=True)
                                                     for g in args.grid))
-    elif (args.samples is not None or args.ranges or args.method) and settings.method == "grid" \
+    elif (args.samples is not None or args.ranges or args.method) and settings.method.grid \
             and "method" not in given:
-        changes |= dict(method="uniform", ranges=())
+        changes |= dict(method=params.Uniform(), ranges=())
     if args.ranges:
         changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
     if args.float64 or args.float32:
@@ -211,14 +211,14 @@ def run(args) -> int:
     # the directory and applies the rule of --out; process i > 0 takes a lock of its own
     out = prepare_out(args, OUTPUTS, resumable=True, check=main,
                       lock=files.LOCK if main else f"{files.LOCK}.{jax.process_index()}")
-    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method == "grid"
+    warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method.grid
                                    else "sweep.ranges")
     if main:
         desc = ", ".join(
             f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
             for r in ranges)
-        print(f"dscjax sweep: {n:,} {'grid points' if settings.method == 'grid' else 'samples'}"
-              f" ({settings.method}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
+        print(f"dscjax sweep: {n:,} {'grid points' if settings.method.grid else 'samples'}"
+              f" ({settings.method.name}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
               f"dt={dt:g} s, {settings.dtype}, {sweep.loop_text(options.to_table())}; on "
               f"{len(choice.devices)} device(s) "
               f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
@@ -393,7 +393,7 @@ def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, n
     from dscjax.sweep import plots as sp
 
     c = result.columns
-    title = (f"{result.n:,} {'grid points' if settings.method == 'grid' else 'samples'}, "
+    title = (f"{result.n:,} {'grid points' if settings.method.grid else 'samples'}, "
              f"T = {t_final:g} s, dt = {result.info['dt']:g} s, {settings.dtype}")
     figures = ["hist_linf_window.png"]
     sp.plot_histogram(c["linf_error_window"], c["diverged"], out / figures[0], t0=t0,
@@ -403,7 +403,7 @@ def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, n
     if len(names) >= 2:
         pair = settings.heatmap or (names[0], names[1])
         grid = {}
-        if settings.method == "grid":
+        if settings.method.grid:
             grid = dict(grid_x=c[pair[0]], grid_y=c[pair[1]])
         figures.append("heatmap_linf_window.png")
         summary["heatmap"] = sp.plot_heatmap(

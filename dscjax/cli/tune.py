@@ -22,7 +22,7 @@ from dscjax.progress import Phase, Progress
 from dscjax.runspec import RunSpec
 from dscjax.settings import add_arguments
 from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
-from tuning.config import SEARCHES, SIMULATION, TuningConfig, to_table
+from tuning.config import SIMULATION, TuningConfig, to_table
 from tuning.config import from_dict as tuning_from_dict
 
 OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
@@ -148,16 +148,16 @@ def run(args) -> int:
         problem = build_problem(setup, options, cfg,
                                 ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
     oc = cfg.optimizer
-    how = (f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}" if oc.name == "adam"
-           else f"{oc.name} (sigma0 {oc.sigma0:g})")
-    unit = "generation" if oc.name in SEARCHES else "iteration"
+    how = (f"{oc.name.name} (sigma0 {oc.sigma0:g})" if oc.name.generations else
+           f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}")
+    unit = "generation" if oc.name.generations else "iteration"
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
           f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
           f"dt={options.dt:g} s, window "
           f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
-          + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate})"
+          + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate.name})"
              if cfg.robust.batch else "nominal plant")
           + "; " + ("at most " + " or ".join(limits) if limits
                     else "no iteration or time limit")
@@ -185,14 +185,13 @@ def run(args) -> int:
           + f"; over [0, T] max|u| {sc.max_u:.4g}"
           + (f" (bound {sc.u_max:.4g})" if sc.u_max else "") + f", TV(u) {sc.tv_u:.4g}"
           + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else "")
-          + ("; bounds per training plant" if cfg.objective.effort_bounds == "per_plant"
-             else "")
+          + ("; bounds per training plant" if cfg.objective.effort_bounds.per_plant else "")
           + (f"; on the window max|u| {sc.start['max_abs_u_window']:.4g}, TV(u) "
              f"{sc.start['tv_u_window']:.4g}" if "tv_u_window" in sc.start else ""),
           file=sys.stderr)
     bar, bar_round = None, None
     # until the first generation (or iteration) ends: its compilation and run
-    first = Phase(f"  compiling the {'search' if oc.name in SEARCHES else 'gradient'} and "
+    first = Phase(f"  compiling the {'search' if oc.name.generations else 'gradient'} and "
                   f"running its first {unit}", enabled=not args.quiet).start()
 
     def progress(row):
@@ -208,7 +207,7 @@ def run(args) -> int:
                            f"  round {bar_round} tune", unit=unit,
                            initial=row["iteration"] + 1, enabled=not args.quiet)
         bar.update_to(row["iteration"] + 1, format_progress(
-            row, "sigma" if oc.name in SEARCHES else "lr"))
+            row, "sigma" if oc.name.generations else "lr"))
 
     def say(text):
         nonlocal bar
@@ -269,7 +268,7 @@ def run(args) -> int:
                  f"{elasticity.text(top['elasticity'])})"))
     if summary.get("sensitivity_warning"):
         common.say(args, "WARNING", summary["sensitivity_warning"])
-    if summary["effort_bounds"] == "per_plant":
+    if cfg.objective.effort_bounds.per_plant:
         for c in summary.get("train_constraints", {}).get("tuned", []):
             worst = ("diverged" if c["worst_margin"] is None else
                      f"margin {c['worst_margin']:.4g} ({100 * c['worst_relative_margin']:.2f} %)")
@@ -374,7 +373,7 @@ def generation_rows(cfg) -> int:
     """Trajectories of one generation (a search method: its first population, at least, times
     the training plants) or iteration (adam: the plants), run together."""
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
-    if oc.name not in SEARCHES:
+    if not oc.name.generations:
         return plants
     return plants * oc.population(plants, 1)
 
@@ -383,20 +382,20 @@ def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
     figures) within the rest of a day. Lower bounds: a default population of at least 4."""
-    from tuning.optimize import aggregate_of, choose_gradient
+    from tuning.optimize import Plants
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = common.horizon_text(options.t_final, options.dt, steps)
-    if oc.name in SEARCHES:
+    if oc.name.generations:
         width = generation_rows(cfg) // plants
         one = Work(steps=steps, member_steps=width * plants * steps)
         unit = f"generation ({width} candidates x {plants} plant(s))"
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
-    mode = choose_gradient(oc.gradient, 0, plants, aggregate_of(cfg.robust)).name
-    if oc.name not in SEARCHES and (mode == "plants" or plants == 1):  # time-parallel
+    mode = oc.gradient.chosen(0, plants, cfg.robust.over)
+    if not oc.name.generations and (isinstance(mode, Plants) or plants == 1):  # time-parallel
         one = one + common.gradient_work(setup, steps)
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"

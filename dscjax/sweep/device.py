@@ -191,7 +191,7 @@ class Runner:
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
         halvings = np.zeros(level_of.shape, np.int64)
         for j in np.unique(level_of):
-            halvings[level_of == j] = refinement_level(int(j), self.spec.solver.name)[1]
+            halvings[level_of == j] = refinement_level(int(j), self.spec.solver)[1]
         out["refinements"] = level_of.astype(np.int8)
         out["dt_used"] = dt / 2.0**halvings
         return out

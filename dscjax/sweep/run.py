@@ -14,7 +14,6 @@ import jax
 import numpy as np
 
 from dscjax import config, device, files, params, validation, xla
-from dscjax.params import sample_table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.simulate import check, counted_levels
@@ -64,7 +63,7 @@ def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
     return {
         "format": FORMAT_VERSION, "setup": setup_dict,
         "ranges": [[r.name, r.low, r.high, r.num] for r in ranges],
-        "method": settings.method, "samples": settings.n_samples(), "seed": settings.seed,
+        "method": settings.method.name, "samples": settings.n_samples(), "seed": settings.seed,
         "dtype": settings.dtype, "run": run, "chunk": int(chunk),
         "tile": tile,  # the compiled width decides the last bits (dscjax.sweep.device)
     }
@@ -140,7 +139,7 @@ def run_sweep(
         whole = -(-chunk // tile) * tile
         chunk = whole if -(-n // whole) == -(-n // chunk) else chunk
     names = tuple(r.name for r in ranges)
-    table = sample_table(ranges, settings.method, n, settings.seed)
+    table = settings.method.draw(ranges, n, settings.seed)
     # the values actually simulated: rounded to the sweep's dtype
     table = table.astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
@@ -216,7 +215,7 @@ def run_sweep(
                 parallel=settings.parallel,
                 n_steps=n_steps, dtype=settings.dtype, t_final=t_final, dt=dt,
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
-                method=settings.method, seed=settings.seed, solver=spec.solver.name,
+                method=settings.method.name, seed=settings.seed, solver=spec.solver.name,
                 refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
                 noise=None if spec.noise is None else np.asarray(spec.noise, float).tolist(),
                 noise_seed=int(spec.noise_seed), discretisation=spec.discretisation.name,

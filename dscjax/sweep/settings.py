@@ -31,9 +31,10 @@ class SweepSettings:
 
     samples: int = setting(10_000, "number of sampled plants (not for a grid)", AtLeast(1),
                            flag="--samples")
-    method: params.Method = setting(
-        "uniform", "sampling: uniform (i.i.d.), lhs (Latin hypercube) or grid (full factorial, "
-        "first range slowest; [sweep.grid] or --grid)", Choice(params.METHODS), flag="--method")
+    method: params.Uniform | params.LatinHypercube | params.Grid = setting(
+        params.Uniform(), "sampling: uniform (i.i.d.), lhs (Latin hypercube) or grid (full "
+        "factorial, first range slowest; [sweep.grid] or --grid)", Choice(params.METHODS),
+        flag="--method")
     ranges: tuple[Range, ...] = ()
     seed: int = setting(0, "seed of the samples (and of the random handful of traces)",
                         AtLeast(0), flag="--seed")
@@ -64,7 +65,7 @@ class SweepSettings:
         return tuple(r.resolve(setup) for r in (self.ranges or default_ranges(setup)))
 
     def n_samples(self) -> int:
-        if self.method == "grid":
+        if self.method.grid:
             return int(np.prod([r.num for r in self.ranges], dtype=np.int64))
         return int(self.samples)
 
@@ -91,7 +92,7 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
         if table.get("method", "grid") != "grid":
             raise ConfigError(f"sweep.method must be 'grid' with [sweep.grid] "
                               f"(got {table['method']!r})")
-        s = dataclasses.replace(s, method="grid")
+        s = dataclasses.replace(s, method=params.Grid())
     return s
 
 
@@ -99,8 +100,8 @@ def to_table(s: SweepSettings, setup) -> dict[str, Any]:
     """The effective [sweep] table (ranges resolved to absolute bounds, each the shortest
     decimal that gives the bound in the sweep's dtype), as data for the TOML writer."""
     table = {k: v for k, v in schema.to_table(s).items() if v != "none"
-             and not (k == "samples" and s.method == "grid")}
-    table["grid" if s.method == "grid" else "ranges"] = {
+             and not (k == "samples" and s.method.grid)}
+    table["grid" if s.method.grid else "ranges"] = {
         r.name: [validation.shortest(r.low, s.dtype), validation.shortest(r.high, s.dtype)]
         + ([r.num] if r.num is not None else []) for r in s.resolved_ranges(setup)}
     return table
@@ -114,12 +115,12 @@ def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)
     s = schema.checked(s, lambda key: f"sweep.{key}")  # (built in code: read by the rules)
-    if s.method == "grid" and not s.ranges:
+    if s.method.grid and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
-    field = "sweep.grid" if s.method == "grid" else "sweep.ranges"
-    ranges = params.check(s.ranges or default_ranges(setup), setup, field, grid=s.method == "grid",
-                      t_final=t_final, dt=dt, window_start=window_start)
-    if s.method != "grid" and len(ranges) == 0:
+    field = "sweep.grid" if s.method.grid else "sweep.ranges"
+    ranges = params.check(s.ranges or default_ranges(setup), setup, field, grid=s.method.grid,
+                          t_final=t_final, dt=dt, window_start=window_start)
+    if not s.method.grid and len(ranges) == 0:
         raise ConfigError("sweep.ranges is empty")
     if s.heatmap is not None:
         names = [r.name for r in ranges]
