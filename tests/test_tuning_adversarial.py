@@ -271,8 +271,8 @@ def test_per_plant_bounds_keep_the_nominal_ones_where_the_start_diverges():
     from dscjax.runspec import RunSpec
 
     setup = dscjax.paper_example()
-    cfg = tuning.TuningConfig(params=("controller.k",),
-                              objective=tuning.ObjectiveSpec(effort_bounds=tuning.optimize.PerPlant()),
+    per_plant = tuning.ObjectiveSpec(effort_bounds=tuning.optimize.PerPlant())
+    cfg = tuning.TuningConfig(params=("controller.k",), objective=per_plant,
                               robust=tuning.BatchSpec(batch=0),
                               heldout=tuning.BatchSpec(batch=0))
     theta = np.array([[0.2, 0.0], [1000.0, 0.0], [0.05, 0.0]])
