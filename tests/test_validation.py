@@ -9,6 +9,7 @@ import pytest
 
 import dscjax
 from dscjax import config
+from dscjax.cli.main import main
 from dscjax.validation import ConfigError
 
 
@@ -92,8 +93,20 @@ def test_bad_config_keys(d, pattern):
 
 
 def _cli(*args, cwd):
+    """`python -m dscjax.cli.main ARGS` in a process of its own: the exit code and stderr a
+    user's shell sees."""
     return subprocess.run([sys.executable, "-m", "dscjax.cli.main", *args], cwd=cwd,
                           capture_output=True, text=True, timeout=300)
+
+
+def _main(capsys, *args) -> tuple[int, str]:
+    """(exit code, stderr) of `dscjax ARGS` run through `main` in this process (argparse's
+    refusals exit by SystemExit)."""
+    try:
+        code = main(list(args))
+    except SystemExit as stop:
+        code = stop.code
+    return code, capsys.readouterr().err
 
 
 def test_cli_bad_config_exits_2_without_traceback(tmp_path):
@@ -105,23 +118,24 @@ def test_cli_bad_config_exits_2_without_traceback(tmp_path):
     assert "hysteresis.lam must be > hysteresis.psi (got lam=0.1, psi=0.5)" in r.stderr
 
 
-def test_cli_unreadable_config_and_bad_dt(tmp_path):
-    r = _cli("simulate", "--config", str(tmp_path / "missing.toml"), cwd=tmp_path)
-    assert r.returncode == 2 and "cannot read config file" in r.stderr
-    assert "Traceback" not in r.stderr
-    r = _cli("simulate", "--dt", "-1", cwd=tmp_path)
-    assert r.returncode == 2 and "argument --dt: must be a finite number > 0 (got '-1')" in \
-        r.stderr
+def test_cli_unreadable_config_and_bad_dt(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    code, err = _main(capsys, "simulate", "--config", str(tmp_path / "missing.toml"))
+    assert code == 2 and "cannot read config file" in err
+    assert "Traceback" not in err
+    code, err = _main(capsys, "simulate", "--dt", "-1")
+    assert code == 2 and "argument --dt: must be a finite number > 0 (got '-1')" in err
+    assert not (tmp_path / "results").exists()
 
 
-def test_cli_divergence_exits_3_with_time(tmp_path):
+def test_cli_divergence_exits_3_with_time(tmp_path, capsys):
     # dt = 0.02 passes the filter check (dt/tau = 2 < 2.785) but not the loop's initial
     # transient (local spectral radius ~490 at t = 0): RK4 diverges at t = 0.04 s
     # --refine 0: no ETDRK4 re-run at smaller steps (which would track)
-    r = _cli("simulate", "--dt", "0.02", "--t-final", "4", "--out", str(tmp_path / "o"),
-             "--no-plot", "--refine", "0", cwd=tmp_path)
-    assert r.returncode == 3, r.stderr
-    assert "diverged at t = " in r.stderr and "Traceback" not in r.stderr
+    code, err = _main(capsys, "simulate", "--dt", "0.02", "--t-final", "4", "--out",
+                      str(tmp_path / "o"), "--no-plot", "--refine", "0")
+    assert code == 3, err
+    assert "diverged at t = " in err and "Traceback" not in err
     import json
 
     m = json.loads((tmp_path / "o" / "metrics.json").read_text())
