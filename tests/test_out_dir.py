@@ -494,14 +494,6 @@ def test_a_sweep_cut_while_writing_a_chunk_keeps_it_whole(tmp_path, capsys, monk
     capsys.readouterr()
 
 
-def test_importing_the_library_and_the_cli_installs_no_signal_handler():
-    code = ("import signal, dscjax, tuning, tuning.search, dscjax.progress, dscjax.cli.main\n"
-            "print(signal.getsignal(signal.SIGINT) is signal.default_int_handler)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                         check=True)
-    assert out.stdout.strip() == "True"
-
-
 def test_nested_critical_sections_raise_once_at_the_outermost_end():
     done = []
     with handle_interrupts(), pytest.raises(KeyboardInterrupt):

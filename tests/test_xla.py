@@ -141,14 +141,14 @@ def test_vector_widths_change_no_result(paper_setup):
 
 
 _IMPORT_ALL = """
-import json, os, sys
+import json, os, signal, sys
 import matplotlib
 env = dict(os.environ)
 # read without resolving: rcParams["backend"] would import pyplot and pick a backend
 backend = repr(dict.__getitem__(matplotlib.rcParams, "backend"))
 rc = {k: repr(v) for k, v in dict.items(matplotlib.rcParams)}
 import dscjax, dscjax.cli.main, dscjax.reproduce.complexity, dscjax.plotting, dscjax.reproduce
-import dscjax.sweep, dscjax.sweep.plots, tuning, tuning.report
+import dscjax.sweep, dscjax.sweep.plots, tuning, tuning.report, tuning.search, dscjax.progress
 fig, ax = dscjax.plotting.subplots(figsize=(2, 2))
 fig.savefig(os.devnull, format="png")
 print(json.dumps({
@@ -156,14 +156,16 @@ print(json.dumps({
     "backend": repr(dict.__getitem__(matplotlib.rcParams, "backend")) == backend,
     "rc": {k: repr(v) for k, v in dict.items(matplotlib.rcParams)} == rc,
     "pyplot": "matplotlib.pyplot" in sys.modules,
+    "sigint": signal.getsignal(signal.SIGINT) is signal.default_int_handler,
 }))
 """
 
 
 def test_import_changes_nothing_global():
-    """`import dscjax` (and every module that plots) leaves the environment (XLA_FLAGS
-    included), matplotlib's backend and its rcParams as they were, and never loads pyplot."""
+    """`import dscjax` (and every module that plots, the CLI and the tuner) leaves the
+    environment (XLA_FLAGS included), matplotlib's backend and its rcParams as they were, never
+    loads pyplot and installs no signal handler (issue 25: only a command's run does)."""
     out = subprocess.run([sys.executable, "-c", _IMPORT_ALL], capture_output=True, text=True,
                          check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == {
-        "env": True, "backend": True, "rc": True, "pyplot": False}
+        "env": True, "backend": True, "rc": True, "pyplot": False, "sigint": True}
