@@ -2,7 +2,8 @@
 
 `stability_map` runs the loop over a grid of steps and filter constants and bisects the largest
 stable step; the linear guide 2.785 / max rho(t) of `closed_loop.spectrum_along` is reported
-beside it.
+beside it. A run may take more steps than its horizon needs, so that steps share a compiled
+program (`map_steps`): it is judged by its first bad step, which the later steps cannot change.
 """
 
 from __future__ import annotations
@@ -49,30 +50,35 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
     tau0 = np.asarray(setup.controller.tau, float) if has_tau else None
     dts = np.sort(np.asarray([dt * f for f in factors], float))
 
-    def runs(step):
-        n = max(int(round(t_final / step)), 1)
+    def runs(step, n):
+        """(finite over t_final, divergence time) at each tau scale: `n` steps of `step`, each
+        run judged by its first bad step against its own horizon's count."""
         if has_tau:
             ov = {"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])}
         else:
             ov = {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]}
         b = simulate_batch(setup, ov, n * step, step, refine=0)
-        return ~np.asarray(b.diverged), np.asarray(b.t_diverged)
+        first = np.asarray(b.status.step)
+        stable = (first < 0) | (first > _count(t_final, step))
+        return stable, np.where(stable, np.inf, first * step)
 
+    counts = map_steps(t_final, dt, dts)
     stable = np.zeros((scales.size, dts.size), bool)
     t_div = np.full((scales.size, dts.size), np.inf)
     for j, step in enumerate(dts):
         log(f"  dt = {step:.4g} s ...")
-        stable[:, j], t_div[:, j] = runs(step)
+        stable[:, j], t_div[:, j] = runs(step, counts[j])
     own = int(np.argmin(np.abs(scales - 1.0)))
     ok = np.flatnonzero(stable[own])
     bad = np.flatnonzero(~stable[own])
     lo = dts[ok[-1]] if ok.size else None
     hi = next((dts[b] for b in bad if lo is None or dts[b] > lo), None)
     if lo is not None and hi is not None:
+        n_lo = counts[ok[-1]]  # every step between lo and hi: lo's program, a longer horizon
         for _ in range(bisections):
             mid = math.sqrt(lo * hi)
             log(f"  bisecting: dt = {mid:.4g} s ...")
-            if runs(mid)[0][own]:
+            if runs(mid, n_lo)[0][own]:
                 lo = mid
             else:
                 hi = mid
@@ -88,4 +94,15 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
         t_peak=float(prof.t_peak) if prof is not None else float("nan"), requested_dt=dt)
 
 
-__all__ = ["DT_FACTORS", "StabilityMap", "stability_map"]
+def _count(t_final: float, step: float) -> int:
+    """The steps of `step` that cover the horizon (at least one)."""
+    return max(int(round(t_final / step)), 1)
+
+
+def map_steps(t_final: float, dt: float, dts) -> list[int]:
+    """How many steps the map runs at each of `dts`: the horizon's own count below dt, and
+    dt's count at dt and above (those runs last longer than t_final and share one program)."""
+    return [_count(t_final, step if step < dt else dt) for step in dts]
+
+
+__all__ = ["DT_FACTORS", "StabilityMap", "map_steps", "stability_map"]

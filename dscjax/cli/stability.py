@@ -36,7 +36,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    from dscjax.step_size import DT_FACTORS, stability_map
+    from dscjax.step_size import DT_FACTORS, map_steps, stability_map
 
     setup, options = load_setup(args)
     scales = sorted(common.positive_numbers(args.tau_scales, "--tau-scales"))
@@ -52,7 +52,9 @@ def run(args) -> int:
             f"{what}: the map's finest step, dt * {min(DT_FACTORS):g}, needs {finest:,} steps, "
             f"more than the {validation.MAX_STEPS:,} the integrator's step counter holds; use "
             f"a shorter --t-final or a larger --dt")
-    each = sum(steps / f for f in DT_FACTORS)  # one batch over the tau scales per step size
+    # one batch over the tau scales per step size (`map_steps`)
+    each = sum(map_steps(options.t_final, float(options.dt),
+                         [float(options.dt) * f for f in DT_FACTORS]))
     validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
                           what=what, fix=common.SHORTER)
     choice = common.use_device(args, options.device, len(scales))
