@@ -56,9 +56,11 @@ LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_tuning_adversarial.py"
 # Files whose parametrized tests xdist may hand to different workers, one group a parameter
 # (each test runs alone, whatever is shared comes from `once`); every other file is one group.
 SPLIT = ("test_docs.py",)
-# Files that share a session fixture's compiled programs run on one worker, in one group:
-# `search_problem` (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc).
-TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py"}
+# Files that share compiled programs run on one worker, in one group: `search_problem`
+# (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc), the tuning
+# report's elasticities of test_tuning_loop's run (test_tuning_report).
+TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py",
+            "test_tuning_report.py": "test_tuning_loop.py"}
 
 
 def group(nodeid: str) -> str:
