@@ -58,9 +58,11 @@ LONGEST_FIRST = ("test_docs.py", "test_out_dir.py", "test_tuning_adversarial.py"
 SPLIT = ("test_docs.py",)
 # Files that share compiled programs run on one worker, in one group: `search_problem`
 # (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc), the tuning
-# report's elasticities of test_tuning_loop's run (test_tuning_report).
+# report's elasticities of test_tuning_loop's run (test_tuning_report), the reverse-mode
+# Jacobian of the README's `dscjax sensitivity` example (test_sensitivity).
+README_DOC = "tests/test_docs.py::test_shell_examples_of_the_document_run[README.md]"
 TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py",
-            "test_tuning_report.py": "test_tuning_loop.py"}
+            "test_tuning_report.py": "test_tuning_loop.py", "test_sensitivity.py": README_DOC}
 
 
 def group(nodeid: str) -> str:
