@@ -11,7 +11,7 @@ def escape(text) -> str:
     return str(text).replace("|", "\\|")
 
 
-def row(cells: Iterable[str]) -> str:
+def _row(cells: Iterable[str]) -> str:
     """One line of a table: `| a | b |`."""
     return "| " + " | ".join(cells) + " |"
 
@@ -20,7 +20,7 @@ def table(head: Sequence[str], rows: Iterable[Sequence[Any]],
           cell: Callable[[Any], str] = str) -> list[str]:
     """The lines of a markdown table: the header's cells, the rule, then each row's cells,
     each written by `cell`."""
-    return [row(head), "|---" * len(head) + "|", *(row(map(cell, r)) for r in rows)]
+    return [_row(head), "|---" * len(head) + "|", *(_row(map(cell, r)) for r in rows)]
 
 
-__all__ = ["escape", "row", "table"]
+__all__ = ["escape", "table"]

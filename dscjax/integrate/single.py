@@ -196,7 +196,7 @@ def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, stat
 
     primal = prob.forward
     if isinstance(gradient, TimeParallel):
-        primal = jax.custom_jvp(prob.forward)
+        primal = jax.custom_jvp(primal)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
     acc0c = prob.accp.pack(acc0 if reduction is not None else ())
