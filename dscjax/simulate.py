@@ -378,10 +378,10 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, dtype_of(setup))
 
 
-def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
+def check(setup: Setup, spec: RunSpec, batched: bool = False, step: bool = True) -> None:
     """Host-side checks of a setup against a run (ConfigError naming the field): the setup's
     models (unless `batched`: their rows are checked by the caller) and, for a continuous loop
-    integrated by RK4, the fastest filter against the step."""
+    integrated by RK4, the fastest filter against the step (unless not `step`)."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
     noise = None if spec.noise is None else np.shape(spec.noise)
@@ -389,7 +389,7 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
                                      f"of the plant, {setup.order} numbers "
                                      f"(got {int(np.prod(noise))})")
-    if not spec.sampled and isinstance(spec.solver, RK4):
+    if step and not spec.sampled and isinstance(spec.solver, RK4):
         validation.check_filters(setup, float(spec.dt))
 
 
@@ -408,6 +408,7 @@ def simulate_batch(
     solver: str = "rk4",
     sample_time: float | None = None,
     device=None,
+    check_step: bool = True,
 ) -> Trajectory:
     """Simulate `setup` with the parameters at the paths of `overrides` replaced by the rows
     of its arrays (leading axis B) in one jitted call; only those leaves are batched. Never
@@ -421,6 +422,8 @@ def simulate_batch(
         save_every: default t_final/dt: only the first and last points.
         checkpoint_every: reverse mode keeps the state every this many steps and recomputes
             the rest.
+        check_step: False runs a step that RK4's bound on the fastest filter refuses (the
+            stability map's grid explores where RK4 diverges).
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -450,7 +453,7 @@ def simulate_batch(
             validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
-    check(setup, spec, batched=True)
+    check(setup, spec, batched=True, step=check_step)
     overrides = dict(overrides)
 
     def level(j, ov):
