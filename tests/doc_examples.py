@@ -12,12 +12,13 @@ documents in order would type it (so the docs may use what the README's examples
 - sizes: 200 RK4 steps (--t-final 200 dt: at dt = 1 ms the 0.2 s of the suite's other
   command-line tests, whose compiled programs the persistent cache then shares), --samples
   8, grid axes of 2 points, --steps 1 (2 to resume), --batch 2, --heldout 0, --adversarial 1
-  with searches by random sampling for 0.2 s, --dpi 30, --complexity for n = 2..3 with 1
+  with searches by random sampling for 0.2 s, --complexity for n = 2..3 with 1
   build, --theory-orders without the orders above 3 and the alpha_0 study at alpha_0 = 1 only
   (--alpha0 1),
   sweeps re-simulate 1 worst sample, worst-case searches by random sampling only for 0.2 s
-  (--methods random, --batch 2), no figures for tune, sweep and worst-case (--no-plot; their
-  figures are tested in test_tuning_loop.py, test_sweep.py and by the benchmark);
+  (--methods random, --batch 2), no figures for tune, sweep, worst-case and reproduce
+  (--no-plot; their figures are tested in test_tuning_loop.py, test_sweep.py,
+  test_reproduce.py and by the benchmark) but where a --format is asked for (--dpi 30);
 - export (no horizon) as printed; identify on the whole record, with 3 Marquardt steps and no
   figures (--max-steps 3 --no-plot);
 - `> FILE` redirects stdout to FILE; the example records dscjax/data/*.csv are where they are
@@ -130,7 +131,10 @@ def shrink(argv: list[str]) -> list[str]:
         _set(a, "--batch", "2")
         a.append("--no-plot")
     elif command == "reproduce":
-        _set(a, "--dpi", "30")
+        if "--format" in a:  # the figures in that format, small
+            _set(a, "--dpi", "30")
+        else:
+            a.append("--no-plot")
         if "--complexity" in a:
             _set(a, "--orders", "2-3")
             _set(a, "--repeats", "1")

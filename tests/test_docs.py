@@ -49,6 +49,10 @@ def test_shell_examples_of_the_document_run(doc, tmp_path, request):
     if doc in doc_examples.READS_SHARED:
         shutil.copytree(request.getfixturevalue("shared_docs"), work)
     _run(doc, work)
+    if doc == "README.md":  # `dscjax reproduce --no-plot`: the summaries, no figure
+        paper = work / "results" / "paper"
+        assert (paper / "summary.md").is_file() and not list(paper.glob("fig*"))
+        assert "Figures:" not in (paper / "summary.md").read_text()
 
 
 def test_every_document_with_examples_is_run_and_the_key_examples_are_among_them():

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
-from dscjax.reproduce import claim_lines, reproduce, sampling, setups
+from dscjax.reproduce import claim_lines, reproduce, sampling, setups, written
 from dscjax.reproduce.figures import FIGURES
 from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
@@ -66,7 +66,8 @@ def add_parser(sub):
                    "%(default)s)")
     add_overwrite_arg(p, resume="with --complexity: keep the control-law measurements an "
                       "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
-                      "measure only the rest")
+                      "measure only the rest",
+                      plot="write no figures: summary.json, summary.md and the claims only")
     p.add_argument("--theory", action="store_true",
                    help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
                    "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
@@ -106,17 +107,16 @@ def run(args) -> int:
     choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
     print(f"dscjax reproduce: on {choice}", file=sys.stderr)
-    summary = reproduce(args.out, fmt=args.fmt, t_final=args.t_final, dt=args.dt,
-                        dpi=args.dpi, complexity=args.complexity, complexity_orders=orders,
-                        complexity_repeats=args.repeats, resume=args.resume,
-                        theory=args.theory, theory_orders=theory_orders,
+    summary = reproduce(args.out, fmt=None if args.no_plot else args.fmt, t_final=args.t_final,
+                        dt=args.dt, dpi=args.dpi, complexity=args.complexity,
+                        complexity_orders=orders, complexity_repeats=args.repeats,
+                        resume=args.resume, theory=args.theory, theory_orders=theory_orders,
                         theory_alpha0=alpha0, theory_mu=args.mu)
     # the results on stdout (progress went to stderr)
     for line in claim_lines(summary):
         print(line)
     print(sampling.line(summary["sampling"]))
-    print(f"wrote {len(summary['figures'])} figures, summary.json and summary.md to "
-          f"{args.out}/")
+    print(f"wrote {written(summary)} to {args.out}/")
     return 0
 
 

@@ -55,8 +55,8 @@ COMPLEXITY_ORDERS = tuple(range(2, 9))
 COMPLEXITY_REPEATS = 3
 
 
-def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, dt: float = DT,
-              dpi: int = DPI, complexity: bool = False,
+def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_FINAL,
+              dt: float = DT, dpi: int = DPI, complexity: bool = False,
               complexity_orders: Sequence[int] = COMPLEXITY_ORDERS,
               complexity_repeats: int = COMPLEXITY_REPEATS,
               log: Callable[[str], None] | None = None, resume: bool = False,
@@ -67,7 +67,7 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
 
     Args:
         out: output directory (created).
-        fmt: "png" or "pdf".
+        fmt: "png" or "pdf"; None writes no figures (the summaries only).
         t_final, dt: horizon and RK4 step of the closed-loop runs.
         dpi: resolution of raster figures.
         complexity: also measure the control laws for n in complexity_orders
@@ -84,8 +84,8 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
         The summary (as written to summary.json); `claim_lines(summary)` states each claim's
         verdict in one line.
     """
-    if fmt not in ("png", "pdf"):
-        raise ValueError(f"fmt must be 'png' or 'pdf' (got {fmt!r})")
+    if fmt not in ("png", "pdf", None):
+        raise ValueError(f"fmt must be 'png', 'pdf' or None (got {fmt!r})")
     t_start = time.perf_counter()
     if log is None:
         def log(msg):
@@ -98,23 +98,27 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     log(f"Fig. 1 hysteresis loops integrated (and for {', '.join(family)})")
     trajs = run_all(t_final, dt, log)
     summary = summarize(trajs, t_final, dt)
-    log("writing figures")
-    paths = figures(trajs, loops, out, fmt, dpi, family)
+    paths = {}
+    if fmt:
+        log("writing figures")
+        paths = figures(trajs, loops, out, fmt, dpi, family)
     log("the controller sampled at Ts = 0.1-20 ms: paper's and default-tuned gains")
     summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt,
                                          window_start=summary["window_start"])
-    paths["sampling"] = out / f"{FIGURES['sampling']}.{fmt}"
-    ts_sweep.plot(summary["sampling"], paths["sampling"],
-                  {"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"}, dpi, sampling.LABELS)
+    if fmt:
+        paths["sampling"] = out / f"{FIGURES['sampling']}.{fmt}"
+        ts_sweep.plot(summary["sampling"], paths["sampling"],
+                      {"paper": STYLE["dsc"]["color"], "tuned": "#2ca02c"}, dpi, sampling.LABELS)
     if complexity:
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
                           rows_path=out / "complexity_rows.json", resume=resume)
         files.write_json(out / "complexity.json", result)
-        paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
-        cx.plot(result, paths["complexity"],
-                colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")}, dpi=dpi)
+        if fmt:
+            paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
+            cx.plot(result, paths["complexity"],
+                    colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")}, dpi=dpi)
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
     if theory:
@@ -126,12 +130,17 @@ def reproduce(out="results/paper", fmt: str = "png", t_final: float = T_FINAL, d
     summary["wall_time_s"] = time.perf_counter() - t_start
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", summary_markdown(summary))
-    log(f"wrote {len(paths)} figures, summary.json and summary.md to {out}/ "
-        f"({summary['wall_time_s']:.1f} s)")
+    log(f"wrote {written(summary)} to {out}/ ({summary['wall_time_s']:.1f} s)")
     return summary
+
+
+def written(summary: dict) -> str:
+    """What `reproduce` wrote, in words: "9 figures, summary.json and summary.md"."""
+    n = len(summary["figures"])
+    return (f"{n} figures, " if n else "") + "summary.json and summary.md"
 
 
 __all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "FAMILY", "FIG1_AMPLITUDES",
            "FIGURES", "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "by_amplitude",
            "check_claims", "claim_lines", "family_loops", "figures", "hysteresis_loops",
-           "reproduce", "run_all", "setups", "summarize", "summary_markdown"]
+           "reproduce", "run_all", "setups", "summarize", "summary_markdown", "written"]

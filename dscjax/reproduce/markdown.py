@@ -60,8 +60,9 @@ def summary_markdown(summary: dict) -> str:
     if "theory" in summary:
         lines += ["", theory_markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
-    lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
-                                          for p in summary["figures"].values()), ""]
+    if summary["figures"]:
+        lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
+                                              for p in summary["figures"].values()), ""]
     return "\n".join(lines)
 
 
@@ -141,8 +142,9 @@ def theory_markdown(summary: dict) -> str:
             lines += [f"‖S_1‖∞ falls like alpha_0^{slope_m:.2f} and the bound (72) like "
                       f"alpha_0^{slope_b:.2f}; the bound is {min(cons):.3g} to {max(cons):.3g} "
                       "times the measured error.", ""]
-    lines += [f"Figures: `theory/{Path(summary['figures']['lyapunov']).name}`, "
-              f"`theory/{Path(summary['figures']['alpha0']).name}`.", ""]
+    if summary["figures"]:
+        lines += ["Figures: " + ", ".join(f"`theory/{Path(p).name}`"
+                                          for p in summary["figures"].values()) + ".", ""]
     return "\n".join(lines)
 
 

@@ -137,16 +137,18 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
 
 
 def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] | None = None,
-        mu: float | None = None, t_final: float = 20.0, fmt: str = "png", dpi: int = 150,
+        mu: float | None = None, t_final: float = 20.0, fmt: str | None = "png", dpi: int = 150,
         log: Callable[[str], None] = print) -> dict:
     """Theorem 1 on the paper's run `traj` (saved at every step) of `setup`, and the alpha_0
     study for each order (`alpha0.default_options(n)` unless `alpha0`, `mu` are given; the
-    horizon at most `t_final`), written into `out`. Returns theory.json's summary."""
+    horizon at most `t_final`), written into `out` (no figures if `fmt` is None). Returns
+    theory.json's summary."""
     t0 = time.perf_counter()
     out = files.mkdir(out)
     paper, arrays = paper_check(setup, traj)
     files.write_npz(out / "lyapunov.npz", {k: np.asarray(v) for k, v in arrays.items()})
-    figs = {"lyapunov": str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))}
+    figs = {"lyapunov": str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))
+            } if fmt else {}
     log(f"theory: V(t) of (44) on the paper's example: V(0) = {paper['V0']:.4g}, max "
         f"{paper['V_max']:.4g}; certified alpha_0 = {paper['alpha0']:.3g} (bound by "
         f"{paper['binding_gain']}), ||S_1|| = {paper['S1_inf']:.3g} <= {paper['bound_72']:.3g}")
@@ -159,7 +161,8 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
         res = alpha0_study.study(alpha0_study.base_setup(n), opts, log=log)
         files.write_json(out / f"alpha0_n{n}.json", res)
         studies.append(res)
-    figs["alpha0"] = str(alpha0_study.plot(studies, out / f"fig_alpha0.{fmt}", dpi))
+    if fmt:
+        figs["alpha0"] = str(alpha0_study.plot(studies, out / f"fig_alpha0.{fmt}", dpi))
     summary = dict(paper=paper, studies=studies, figures=figs,
                    wall_s=time.perf_counter() - t0)
     files.write_json(out / "theory.json", summary)
