@@ -21,6 +21,7 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
 
+from dscjax.markdown import escape
 from dscjax.rules import Choice, Custom, Invalid, Maybe, Rule
 from dscjax.validation import ConfigError, got
 
@@ -235,13 +236,9 @@ def doc_rows(obj, prefix: str) -> list[str]:
     obj = obj() if isinstance(obj, type) else obj
     rows = ["| key | default | allowed | meaning | option |", "|---|---|---|---|---|"]
     for path, _, s, value, flag in walk(obj, prefix):
-        rows.append(f"| `{path}` | `{shown(s, value)}` | {_md(s.rule.text)} | {_md(s.doc)} | "
+        rows.append(f"| `{path}` | `{shown(s, value)}` | {escape(s.rule.text)} | {escape(s.doc)} | "
                     f"{f'`{flag}`' if flag else ''} |")
     return rows
-
-
-def _md(text: str) -> str:
-    return text.replace("|", "\\|")
 
 
 __all__ = ["Setting", "add_arguments", "checked", "declared", "dest", "doc_rows", "from_table",

@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from dscjax import metrics
+from dscjax.markdown import escape
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 
@@ -37,11 +38,6 @@ SHIFTED = " against the shifted y_r the controller tracks"
 
 ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window",
           "delayed_linf_window")
-
-
-def _md(text: str) -> str:
-    """A label for a markdown table cell (a bare | would split the cell)."""
-    return text.replace("|", "\\|")
 
 
 def heldout_warning(summary: dict, cfg) -> str | None:
@@ -167,7 +163,7 @@ def text(s: dict, problem, figures) -> str:
     for key in LABELS:
         if key in nom["start"]:
             a, b = nom["start"][key], nom["tuned"][key]
-            lines.append(f"| {_md(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
+            lines.append(f"| {escape(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
     for key, label in (("diverged", "diverged"),
                        ("sampled_diverged", "diverged, the other discretisation"),
                        ("delayed_diverged", "diverged, the input delayed")):
@@ -179,7 +175,7 @@ def text(s: dict, problem, figures) -> str:
                   "| constraint | bound (tuned) | start | tuned | margin (bound - tuned) | tuned |",
                   "|---|---|---|---|---|---|"]
         for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"], strict=True):
-            lines.append(f"| {_md(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
+            lines.append(f"| {escape(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
                          f"{b['value']:.6g} | {b['margin']:.4g} "
                          f"({100 * b['relative_margin']:.2f} %) | "
                          f"**{'met' if b['met'] else 'violated'}** |")
@@ -204,7 +200,7 @@ def text(s: dict, problem, figures) -> str:
                      f"{b['worst_value']:.6g} / {b['worst_bound']:.6g}")
             margin = ("-" if b["worst_margin"] is None else
                       f"{b['worst_margin']:.4g} ({100 * b['worst_relative_margin']:.2f} %)")
-            lines.append(f"| {_md(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
+            lines.append(f"| {escape(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
                          f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
                          f"{margin} |")
     if s.get("margins"):
@@ -233,7 +229,7 @@ def text(s: dict, problem, figures) -> str:
             a, c = st.get(m), tu.get(m)
             if a is None or c is None:
                 continue
-            lines.append(f"| {_md(_label(m, s))} | {_f(a['median'])} | {_f(c['median'])} | "
+            lines.append(f"| {escape(_label(m, s))} | {_f(a['median'])} | {_f(c['median'])} | "
                          f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
         lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
                   f"(tuned); tracked after refinement (a numerically "
@@ -305,7 +301,7 @@ def sensitivity_section(sens: dict) -> list[str]:
              f"over the run (the loop depends sensitively on its gains: chaotic or "
              f"chattering); any change may break the constraint.", "",
              "| tuned number | " + " | ".join(
-                 f"{_md(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
+                 f"{escape(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
              + " |", "|---|" + "---|" * len(rows)]
     for name in rows[0]["elasticity"]:
         cells = []
