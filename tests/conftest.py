@@ -59,13 +59,15 @@ SPLIT = ("test_docs.py",)
 # Files that share compiled programs run on one worker, in one group: `search_problem`
 # (test_out_dir, test_tuning_search), `traj20` (test_paper_reference, test_dsc), the tuning
 # report's elasticities of test_tuning_loop's run (test_tuning_report), the reverse-mode
-# Jacobian of the README's `dscjax sensitivity` example (test_sensitivity), the runs of
+# Jacobian of the README's `dscjax sensitivity` example (test_sensitivity) and the stability
+# map of its `dscjax stability` example (test_validation), the runs of
 # reproduction.md's `dscjax reproduce --theory` and `--complexity` (test_lyapunov,
 # test_reproduce).
 DOC = "tests/test_docs.py::test_shell_examples_of_the_document_run[{}]"
 TOGETHER = {"test_tuning_search.py": "test_out_dir.py", "test_dsc.py": "test_paper_reference.py",
             "test_tuning_report.py": "test_tuning_loop.py",
             "test_sensitivity.py": DOC.format("README.md"),
+            "test_validation.py": DOC.format("README.md"),
             "test_lyapunov.py": DOC.format("reproduction.md"),
             "test_reproduce.py": DOC.format("reproduction.md")}
 

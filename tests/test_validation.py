@@ -165,23 +165,26 @@ def test_the_stability_map_judges_each_step_over_its_own_horizon(paper_setup):
     # `dscjax stability` runs the steps at and above dt, and the bisection, for dt's count of
     # steps (a longer horizon, one program): each verdict must be that of a run of the step's
     # own count alone. alpha = 10: RK4 at 1 ms diverges within milliseconds. 32 ms is past
-    # RK4's bound on the fastest filter, which a run refuses and the map must report on.
+    # RK4's bound on the fastest filter, which a run refuses and the map must report on. The
+    # README's horizon, dt and tau scales: the programs of its `dscjax stability` example.
     from dscjax.step_size import stability_map
 
     setup = _set(paper_setup, "hysteresis.alpha", 10.0)
-    t_final, dt = 0.02, 1e-3
+    t_final, dt = 0.2, 1e-3
     assert 0.032 / np.min(setup.controller.tau) > validation.RK4_REAL_STABILITY
-    m = stability_map(setup, t_final, dt, tau_scales=(1.0,), factors=(0.5, 1.0, 2.0, 32.0),
-                      bisections=2)
-    assert m.stable[0].tolist() == [True, False, False, False]  # bisected in (0.5, 1) ms
+    m = stability_map(setup, t_final, dt, factors=(0.5, 1.0, 2.0, 32.0), bisections=2)
+    own = m.tau_scale.tolist().index(1.0)
+    assert m.stable[own].tolist() == [True, False, False, False]  # bisected in (0.5, 1) ms
     assert 5e-4 < m.largest_stable_dt < 1e-3 and not m.beyond_grid
 
     def alone(step):  # the step's own count of steps, nothing after the horizon
         n = max(round(t_final / step), 1)
-        tau = {"controller.tau": np.asarray(setup.controller.tau)[None]}  # the map's batch
+        tau = {"controller.tau": np.asarray(setup.controller.tau)[None] * m.tau_scale[:, None]}
         run = dscjax.simulate_batch(setup, tau, n * step, step, refine=0, check_step=False)
-        return bool(run.diverged[0]), float(run.t_diverged[0])
+        return np.asarray(run.diverged), np.asarray(run.t_diverged)
 
-    for step, ok, t_div in zip(m.dt, m.stable[0], m.t_diverged[0], strict=True):
-        assert alone(step) == (not ok, pytest.approx(t_div))
-    assert alone(m.largest_stable_dt) == (False, np.inf)
+    for j, step in enumerate(m.dt):  # every tau scale's verdict
+        diverged, t_div = alone(step)
+        assert diverged.tolist() == (~m.stable[:, j]).tolist()
+        np.testing.assert_allclose(t_div, m.t_diverged[:, j], rtol=1e-12)
+    assert not alone(m.largest_stable_dt)[0][own]
