@@ -147,8 +147,9 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
     out = files.mkdir(out)
     paper, arrays = paper_check(setup, traj)
     files.write_npz(out / "lyapunov.npz", {k: np.asarray(v) for k, v in arrays.items()})
-    figs = {"lyapunov": str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))
-            } if fmt else {}
+    figs = {}
+    if fmt:
+        figs["lyapunov"] = str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))
     log(f"theory: V(t) of (44) on the paper's example: V(0) = {paper['V0']:.4g}, max "
         f"{paper['V_max']:.4g}; certified alpha_0 = {paper['alpha0']:.3g} (bound by "
         f"{paper['binding_gain']}), ||S_1|| = {paper['S1_inf']:.3g} <= {paper['bound_72']:.3g}")
