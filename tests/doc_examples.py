@@ -156,14 +156,11 @@ def redirect(argv: list[str]) -> tuple[list[str], str | None]:
 
 def run_one(argv: list[str], target: str | None) -> tuple[int, str]:
     """(exit code, the last lines of stderr) of one command; its stdout to `target`."""
-    from dscjax.cli.main import main
+    from commands import exit_code
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
-        try:
-            code = main(argv)
-        except SystemExit as stop:
-            code = stop.code
+        code = exit_code(argv)
     if target is not None:
         Path(target).write_text(out.getvalue())
     return int(code or 0), "\n".join(err.getvalue().strip().splitlines()[-3:])

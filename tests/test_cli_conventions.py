@@ -7,6 +7,7 @@ import signal
 import threading
 
 import pytest
+from commands import exit_code
 
 from dscjax.cli.main import main
 
@@ -358,11 +359,7 @@ def test_noise_takes_one_number_or_one_per_state_as_its_help_says(capsys):
      "--disturbance must be fourier:K:D or spline:K:D (got 'sine')"),
 ])
 def test_an_error_names_the_option_as_typed(argv, wanted, tmp_path, capsys):
-    try:
-        code = main([*argv, "--out", str(tmp_path / "o")])
-    except SystemExit as exit_:  # argparse's refusal of an option's value
-        code = exit_.code
-    line = _one_line_error(capsys, code)
+    line = _one_line_error(capsys, exit_code([*argv, "--out", str(tmp_path / "o")]))
     assert line.startswith(f"dscjax {argv[0]}: error: {wanted}"), line
 
 

@@ -8,6 +8,7 @@ import tomllib
 
 import numpy as np
 import pytest
+from commands import exit_code
 
 from dscjax import config, validation
 from dscjax.cli.main import main
@@ -21,10 +22,7 @@ EXTRA = {"worst-case": ["--range", "plant.g[1]=30%"]}
 def _refused(capsys, argv, out):
     """Run argv (with --out `out`); the one stderr line of a refusal, after checking that the
     exit code is 2 and that nothing was created."""
-    try:
-        code = main([*argv, "--out", str(out)])
-    except SystemExit as stop:  # argparse's own refusals
-        code = stop.code
+    code = exit_code([*argv, "--out", str(out)])
     err = capsys.readouterr().err.strip()
     assert code == 2, err
     assert len(err.splitlines()) == 1 and "Traceback" not in err, err

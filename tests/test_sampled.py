@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from commands import exit_code
 from compilations import lean
 
 from dscjax.hysteresis import Backlash, BoucWen, GeneralizedPI, PrandtlIshlinskii
@@ -187,14 +188,8 @@ def test_noise_of_the_wrong_length_is_one_config_error_before_any_run(paper_setu
                                   "'exponential-euler', 'euler' (got 'rk4')"),
 ])
 def test_bad_sample_times_are_one_line_and_exit_2(tmp_path, capsys, argv, line):
-    from dscjax.cli.main import main
-
     out = tmp_path / "o"
-    try:
-        code = main(["simulate", *argv, "--out", str(out)])
-    except SystemExit as stop:  # argparse's own refusal
-        code = stop.code
-    assert code == 2
+    assert exit_code(["simulate", *argv, "--out", str(out)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and line in err[0], err
     assert not out.exists()

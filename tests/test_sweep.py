@@ -15,6 +15,7 @@ import textwrap
 
 import numpy as np
 import pytest
+from commands import exit_code
 
 import dscjax
 from dscjax import sweep
@@ -295,10 +296,7 @@ def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
 
 
 def _cli_error(args, capsys, tmp_path):
-    try:
-        code = cli(["sweep", "--out", str(tmp_path / "never"), *args])
-    except SystemExit as stop:  # argparse's own refusals (the count options)
-        code = stop.code
+    code = exit_code(["sweep", "--out", str(tmp_path / "never"), *args])
     err = capsys.readouterr().err
     assert code == 2, err
     assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err

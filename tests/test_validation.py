@@ -6,10 +6,10 @@ import sys
 
 import numpy as np
 import pytest
+from commands import exit_code
 
 import dscjax
 from dscjax import config, validation
-from dscjax.cli.main import main
 from dscjax.validation import ConfigError
 
 
@@ -102,11 +102,7 @@ def _cli(*args, cwd):
 def _main(capsys, *args) -> tuple[int, str]:
     """(exit code, stderr) of `dscjax ARGS` run through `main` in this process (argparse's
     refusals exit by SystemExit)."""
-    try:
-        code = main(list(args))
-    except SystemExit as stop:
-        code = stop.code
-    return code, capsys.readouterr().err
+    return exit_code(args), capsys.readouterr().err
 
 
 def test_cli_bad_config_exits_2_without_traceback(tmp_path):

@@ -12,6 +12,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from commands import exit_code
 
 import dscjax
 from dscjax import config, search
@@ -337,10 +338,7 @@ def test_max_evals_option_caps_each_method(tmp_path):
                            "'0')"),
 ])
 def test_bad_boxes_give_one_line_and_exit_2(extra, field, tmp_path, capsys):
-    try:
-        code = main(["worst-case", "--t-final", "1", "--out", str(tmp_path / "o"), *extra])
-    except SystemExit as stop:  # argparse's own refusals
-        code = stop.code
+    code = exit_code(["worst-case", "--t-final", "1", "--out", str(tmp_path / "o"), *extra])
     assert code == 2 and not (tmp_path / "o").exists()
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and field in err and "Traceback" not in err
