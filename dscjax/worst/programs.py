@@ -21,8 +21,6 @@ from dscjax.simulate import dtype_of, run
 from dscjax.validation import ConfigError
 from dscjax.worst.problem import Problem, Static, box_overrides
 
-GRADIENTS = ("time_parallel", "batch")
-
 
 def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
     traj = run(setup, spec, overrides=box_overrides(setup, st, z, lo, hi, bound), extra=extra)
@@ -35,10 +33,10 @@ def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
     return traj.metrics[st.metric], traj.diverged
 
 
-def _value_and_grad(values, single, gradient, z):
-    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0: the
-    gradient of the batch's total, or ("time_parallel" with `single`) each start's own
-    time-parallel gradient, vmapped over the starts."""
+def _value_and_grad(values, single, z):
+    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0: with
+    `single`, each start's own time-parallel gradient, vmapped over the starts; without, the
+    gradient of the batch's total."""
     def masked(f):
         def total(z_):
             v, bad = f(z_)
@@ -46,7 +44,7 @@ def _value_and_grad(values, single, gradient, z):
 
         return total
 
-    if gradient == "batch" or single is None:
+    if single is None:
         (_, (v, bad)), g = jax.value_and_grad(masked(values), has_aux=True)(z)
     else:
         (_, (v, bad)), g = jax.vmap(jax.value_and_grad(masked(single), has_aux=True))(z)
@@ -57,22 +55,19 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=("st",))
 
 
 # the gradients compile lean, as every gradient of dscjax does (dscjax.xla)
-@functools.partial(xla.jit, lean=True, static_argnames=("st", "gradient"))
-def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static,
-                            gradient: str):
+@functools.partial(xla.jit, lean=True, static_argnames=("st",))
+def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static):
     args = (lo, hi, bound, spec, extra)
     return _value_and_grad(lambda z_: _problem_values(setup, z_, *args, st=st),
-                           lambda z1: _problem_single(setup, z1, *args, st=st), gradient, z)
+                           lambda z1: _problem_single(setup, z1, *args, st=st), z)
 
 
-@functools.partial(xla.jit, lean=True, static_argnames=("st", "gradient"))
-def _problem_coarse(setup, z, lo, hi, bound, spec, extra, spec_g, extra_g, *, st: Static,
-                    gradient: str):
+@functools.partial(xla.jit, lean=True, static_argnames=("st",))
+def _problem_coarse(setup, z, lo, hi, bound, spec, extra, spec_g, extra_g, *, st: Static):
     """Values of the loop of `spec`, gradients of the loop of `spec_g` (a coarser step; zero
     where that run diverged)."""
     v, bad = _problem_values(setup, z, lo, hi, bound, spec, extra, st=st)
-    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, spec_g, extra_g, st=st,
-                                          gradient=gradient)
+    _, bad_g, g = _problem_value_and_grad(setup, z, lo, hi, bound, spec_g, extra_g, st=st)
     return v, bad, jnp.where(bad_g[:, None], 0.0, g)
 
 
@@ -158,20 +153,16 @@ class Programs(search.Problem):
 
     @classmethod
     def from_functions(cls, d: int, m: int, basis, project_coef, values: Callable,
-                       single: Callable | None = None, gradient: str = "time_parallel",
-                       nominal_u=None) -> Programs:
+                       single: Callable | None = None, nominal_u=None) -> Programs:
         """From a batch objective `values(z) -> (v, diverged)` and optionally its one-point
-        version `single(z1)` (differentiated per start when gradient = "time_parallel")."""
-        validation.one_of(gradient, "gradient", GRADIENTS)
-        vg = jax.jit(lambda z: _value_and_grad(values, single, gradient, z))
+        version `single(z1)` (then differentiated per start)."""
+        vg = jax.jit(lambda z: _value_and_grad(values, single, z))
         return cls(d, m, basis, project_coef, jax.jit(values), vg, nominal_u)
 
     @classmethod
-    def for_problem(cls, problem: Problem, gradient: str = "time_parallel",
-                    coarsening: int = 1) -> Programs:
+    def for_problem(cls, problem: Problem, coarsening: int = 1) -> Programs:
         """The programs of `problem`; with `coarsening` F > 1 the gradients are the loop's at
         F dt (a search direction only), the values always at dt."""
-        validation.one_of(gradient, "gradient", GRADIENTS)
         p = problem
         check_coarsening(coarsening, p.spec)
         basis, project_coef = np.zeros((1, 0)), None
@@ -188,7 +179,7 @@ class Programs(search.Problem):
         st = p.static()
         values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
-            vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st, gradient=gradient)
+            vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st)
         else:
             f = coarsening
             spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
@@ -197,8 +188,7 @@ class Programs(search.Problem):
             extra_g = p.requirement
             if extra_g is not None and hasattr(extra_g, "n_steps"):
                 extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
-            vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st,
-                        gradient=gradient)
+            vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
         nominal_u = None
         if p.d:
             nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])

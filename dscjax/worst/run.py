@@ -137,9 +137,9 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
                disturbance: DisturbanceSpec | str | None = None, *,
                time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
-               lr: float = DEFAULT_LR, gradient: str = "time_parallel",
-               coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
-               resume: bool = False, max_evals: int | None = None,
+               lr: float = DEFAULT_LR, coarsening: int = DEFAULT_COARSENING,
+               out_dir: str | Path | None = None, resume: bool = False,
+               max_evals: int | None = None,
                progress: Callable[[str, search.Trace, float], None] | None = None,
                say: Callable[[str], None] | None = None, **problem_options) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds (or
@@ -154,7 +154,6 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
         seed: every random draw is a function of (seed, method, iteration).
         batch: candidates per batch of random and CMA-ES.
         lr: the gradient method's initial step (box widths, units of D).
-        gradient: "time_parallel" (per start, vmapped) or "batch" (through the batch's scan).
         coarsening: F, gradients of the loop at F dt (1: exact gradients of the values).
         out_dir: where each method's state is saved after every iteration (for `resume`).
         max_evals: stop a method after this many candidates (its last batch finished); a
@@ -180,9 +179,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
                           "make_problem, not with a Problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
-    fp = {"problem": files.digest(problem.fingerprint()), "gradient": gradient,
-          "coarsening": coarsening}
-    prog = Programs.for_problem(problem, gradient, coarsening)
+    fp = {"problem": files.digest(problem.fingerprint()), "coarsening": coarsening}
+    prog = Programs.for_problem(problem, coarsening)
     traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
                          seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
                          fingerprint=fp, progress=progress, max_evals=max_evals, say=say)
