@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
+import functools
 import math
 import sys
 
@@ -278,15 +279,25 @@ def untrusted_text(untrusted, rel_diff: dict, rtol: float, fix: str, on: str = "
 def loop_sizes(setup) -> tuple[int, int, int]:
     """(m, k, itemsize): the floats of the closed loop's state (what the time-parallel
     gradient's Jacobians are square in), of one saved point of a Trajectory (state and
-    observations, k >= m), and the bytes of one float. Shapes only: nothing is run."""
-    import functools
+    observations, k >= m), and the bytes of one float. Shapes only: nothing is run, and a
+    setup of a structure already sized is not traced again."""
+    import jax
 
+    leaves, tree = jax.tree.flatten(setup)
+    return _loop_sizes(tree, tuple(map(jax.typeof, leaves)))
+
+
+@functools.cache
+def _loop_sizes(tree, leaves) -> tuple[int, int, int]:
     import jax
 
     from dscjax.simulate import run
 
     spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
+    setup = jax.tree.unflatten(tree, [jax.ShapeDtypeStruct(a.shape, a.dtype, weak_type=a.weak_type)
+                                      for a in leaves])
     shapes = jax.eval_shape(functools.partial(run, spec=spec), setup)
+
     def floats(tree):
         return sum(math.prod(a.shape[1:]) for a in jax.tree.leaves(tree))
 
