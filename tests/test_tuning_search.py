@@ -97,7 +97,7 @@ def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option(
 
 def test_the_box_follows_the_order_of_the_flat_z():
     # ravel_pytree orders z by name, not in the order the parameters were listed: the box of
-    # CMA-ES and of the line search must bound tau where tau sits in the flat vector
+    # CMA-ES and of the projected gradient steps must bound tau where tau sits in the flat vector
     from dscjax.selection import Selection
 
     setup = dscjax.paper_example()

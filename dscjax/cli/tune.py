@@ -37,9 +37,10 @@ def add_parser(sub):
         description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
         "starting from the paper's gains, the controller sampled at 1 kHz) to minimise the "
         "L-inf tracking error on [t0, T] with max|u| kept at or below the start gains' max|u| "
-        "and TV(u) at or below 1.5x the start gains' TV(u), by CMA-ES with a line search "
-        "(default) or exact gradients through the closed loop. Settings come from a [tuning] "
-        "table in the config (docs/tuning.md lists them all); the command line wins.")
+        "and TV(u) at or below 1.5x the start gains' TV(u), by CMA-ES restarted with a larger "
+        "population when it stalls (default) or exact gradients through the closed loop. "
+        "Settings come from a [tuning] table in the config (docs/tuning.md lists them all); "
+        "the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
