@@ -90,10 +90,9 @@ def run(args) -> int:
 
 
 def _plot(m, path):
-    from matplotlib.figure import Figure
+    from dscjax.plotting import subplots
 
-    fig = Figure(figsize=(6.4, 5.0))
-    ax = fig.subplots()
+    fig, ax = subplots(figsize=(6.4, 5.0), layout=None)
     has_tau = np.isfinite(m.tau).any()
     y = m.tau if has_tau else np.ones(1)
     for i in range(len(y)):
