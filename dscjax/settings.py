@@ -21,7 +21,7 @@ import dataclasses
 from collections.abc import Callable, Mapping
 from typing import Any
 
-from dscjax.markdown import escape
+from dscjax.markdown import escape, table
 from dscjax.rules import Choice, Custom, Invalid, Maybe, Rule
 from dscjax.validation import ConfigError, got
 
@@ -234,11 +234,9 @@ def doc_rows(obj, prefix: str) -> list[str]:
     """The docs' table of a group (an instance or a class: its defaults) and its nested
     groups: key, default, allowed values, meaning, option (markdown rows, with the header)."""
     obj = obj() if isinstance(obj, type) else obj
-    rows = ["| key | default | allowed | meaning | option |", "|---|---|---|---|---|"]
-    for path, _, s, value, flag in walk(obj, prefix):
-        rows.append(f"| `{path}` | `{shown(s, value)}` | {escape(s.rule.text)} | {escape(s.doc)} | "
-                    f"{f'`{flag}`' if flag else ''} |")
-    return rows
+    return table(("key", "default", "allowed", "meaning", "option"),
+                 [(f"`{path}`", f"`{shown(s, value)}`", escape(s.rule.text), escape(s.doc),
+                   f"`{flag}`" if flag else "") for path, _, s, value, flag in walk(obj, prefix)])
 
 
 __all__ = ["Setting", "add_arguments", "checked", "declared", "dest", "doc_rows", "from_table",
