@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dscjax import files, metrics
+from dscjax import files, markdown, metrics
 from dscjax.plotting import subplots
 from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import simulate_batch
@@ -189,33 +189,29 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
     ...] per Ts}), its p95 of TV(u) and its chattering plants."""
     t0 = f"{result['window_start']:g}"
     batch = result.get("batch")
-    head = (f"| Ts [ms] | gains | L∞ e on [{t0} s, T] | TV(u) on [{t0} s, T] | chattering "
-            f"index | tracks |")
+    head = ("Ts [ms]", "gains", f"L∞ e on [{t0} s, T]", f"TV(u) on [{t0} s, T]",
+            "chattering index", "tracks")
     if batch:
-        head += f" {batch['label']}: p95 of TV(u) | {batch['label']}: chattering plants |"
-    lines = [head, "|---" * (head.count("|") - 1) + "|"]
+        head += (f"{batch['label']}: p95 of TV(u)", f"{batch['label']}: chattering plants")
 
     def cell(v, digits=4):
         return "diverged" if v is None else f"{v:.{digits}g}"
 
-    for i, ts in enumerate(result["sample_times"]):
-        for n in names:
-            r = result[n]
-            why = r["why_not"][i]
-            row = (f"| {1e3 * ts:g} | {(labels or {}).get(n, n)} | {cell(r['sampled'][i])} | "
-                   f"{cell(r['tv_u_window'][i])} | {cell(r['chattering_index'][i], 3)} | "
-                   + ("yes" if why is None else f"**no**: {why}") + " |")
-            if batch:
-                b = batch[n][i]
-                row += (" - | - |" if b is None else
-                        f" {cell(b['p95_tv_u_window'])} | {b['n_chattering']} of "
-                        f"{b['n_measured']}" + (f" ({b['n_diverged']} diverged)"
-                                                if b["n_diverged"] else "") + " |")
-            lines.append(row)
-    for n in names:
-        r = result[n]
-        lines.append(f"| continuous | {(labels or {}).get(n, n)} | {cell(r['continuous'])} | "
-                     f"{cell(r['continuous_tv_u_window'])} | "
-                     f"{cell(r['continuous_chattering_index'], 3)} | |"
-                     + (" | |" if batch else ""))
-    return lines
+    def row(i, ts, n):
+        r, why = result[n], result[n]["why_not"][i]
+        cells = (f"{1e3 * ts:g}", (labels or {}).get(n, n), cell(r["sampled"][i]),
+                 cell(r["tv_u_window"][i]), cell(r["chattering_index"][i], 3),
+                 "yes" if why is None else f"**no**: {why}")
+        if not batch:
+            return cells
+        b = batch[n][i]
+        return cells + (("-", "-") if b is None else (
+            cell(b["p95_tv_u_window"]), f"{b['n_chattering']} of {b['n_measured']}"
+            + (f" ({b['n_diverged']} diverged)" if b["n_diverged"] else "")))
+
+    return markdown.table(head, [
+        *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in names),
+        *(("continuous", (labels or {}).get(n, n), cell(result[n]["continuous"]),
+           cell(result[n]["continuous_tv_u_window"]),
+           cell(result[n]["continuous_chattering_index"], 3), "") + ("", "") * bool(batch)
+          for n in names)])

@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 from dscjax import files, worst
+from dscjax.markdown import table
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
@@ -229,20 +230,18 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
 def markdown(summary: dict) -> str:
     """The report.md section of an adversarial run."""
     f = summary["fresh"]
-    lines = ["", "## Adversarial rounds (min-max)", "",
-             "| round | worst case of the current gains | method | added | training plants "
-             "| iterations | stopped |", "|---|---|---|---|---|---|---|"]
-    for r in summary["rounds"]:
-        s = r["search"]
-        lines.append(f"| {r['round']} | {worst_text(s)} | {s['method']} | {r['added']} | "
-                     f"{r['train_size']} | {r['iterations']} | {r['stop_reason']} |")
+    lines = ["", "## Adversarial rounds (min-max)", "", *table(
+        ("round", "worst case of the current gains", "method", "added", "training plants",
+         "iterations", "stopped"),
+        [(r["round"], worst_text(r["search"]), r["search"]["method"], r["added"],
+          r["train_size"], r["iterations"], r["stop_reason"]) for r in summary["rounds"]])]
     a, b = f["start"], f["tuned"]
     lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
-              "| | start gains | tuned gains |", "|---|---|---|",
-              f"| worst {a['metric']} | {worst_text(a)} | {worst_text(b)} |",
-              f"| nominal {a['metric']} | {a['nominal_value']:.6g} | "
-              f"{b['nominal_value']:.6g} |",
-              f"| evaluations | {a['evaluations']} | {b['evaluations']} |", "",
+              *table(("", "start gains", "tuned gains"), [
+                  (f"worst {a['metric']}", worst_text(a), worst_text(b)),
+                  (f"nominal {a['metric']}", f"{a['nominal_value']:.6g}",
+                   f"{b['nominal_value']:.6g}"),
+                  ("evaluations", a["evaluations"], b["evaluations"])]), "",
               "Worst values are re-checked by `simulate` on the worst setup (see "
               "docs/worst-case.md); the worst parameters and waveforms are in report.json "
               "(`adversarial.fresh`).", ""]

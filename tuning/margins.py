@@ -28,6 +28,7 @@ import jax
 import numpy as np
 
 from dscjax import metrics, params, ts_sweep
+from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
 
@@ -300,14 +301,14 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
     if c is not None:
         lines += ["", f"**The continuous loop** (a check, not tuned: RK4 at dt = "
                   f"{c['dt']:g} s, refined where stiff; a stiff continuous loop is not a "
-                  f"failure):", "", "| | L∞ e on [t0, T] | max\\|u\\| | TV(u) | chattering index "
-                  "on [t0, T] | simulated by |", "|---|---|---|---|---|---|"]
-        for tag in NAMES:
-            r = c[tag]
-            how = (f"{r['solver']} at dt = {r['dt_used']:g} s"
-                   + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
-            lines.append(f"| {tag} | {_f(r['linf_error_window'])} | {_f(r['max_abs_u'])} | "
-                         f"{_f(r['tv_u'])} | {_f(r.get('chattering_index'), 3)} | {how} |")
+                  f"failure):", "", *table(
+                      ("", "L∞ e on [t0, T]", "max\\|u\\|", "TV(u)",
+                       "chattering index on [t0, T]", "simulated by"),
+                      [(tag, _f(r["linf_error_window"]), _f(r["max_abs_u"]), _f(r["tv_u"]),
+                        _f(r.get("chattering_index"), 3),
+                        f"{r['solver']} at dt = {r['dt_used']:g} s"
+                        + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
+                       for tag, r in ((tag, c[tag]) for tag in NAMES)])]
     st = margins.get("sample_time")
     if st is not None:
         lines += ["", f"**Sample time.** The loop tuned with the controller sampled at each Ts "
@@ -337,16 +338,13 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   f"search judges its delayed loop: windowed L-inf at most "
                   f"{dl['linf_factor']:g} x the same gains' at the loop's own delay" + tv
                   + ("" if dl["tv_limit"] is not None else " and no chattering") + ":", "",
-                  "| delay d [samples] | gains | L∞ e on [t0, T] | TV(u) | "
-                  "chattering index | holds |", "|---|---|---|---|---|---|"]
-        for i, d in enumerate(dl["delays"]):
-            for tag in NAMES:
-                r = dl[tag]
-                why = r["why_not"][i]
-                lines.append(f"| {d} | {tag} | {_f(r['linf_error_window'][i])} | "
-                             f"{_f(r['tv_u'][i])} | {_f(r['chattering_index'][i], 3)} | "
-                             + ("yes" if why is None else f"**no**: {why}") + " |")
-        lines.append("")
+                  *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
+                          "chattering index", "holds"),
+                         [(d, tag, _f(r["linf_error_window"][i]), _f(r["tv_u"][i]),
+                           _f(r["chattering_index"][i], 3),
+                           "yes" if r["why_not"][i] is None else f"**no**: {r['why_not'][i]}")
+                          for i, d in enumerate(dl["delays"])
+                          for tag, r in ((tag, dl[tag]) for tag in NAMES)]), ""]
         lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
     lr = margins["long_run"]
     what = " and ".join(x for x in (
@@ -357,19 +355,17 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
               + f"; an estimate counts as bounded when its peak |.| on the second half is at "
               f"most {DRIFT_RATIO:g} x its peak on the second quarter (the first, the "
               f"transient, left out; not judged below {DRIFT_MIN_S:g} s):", "",
-              f"| | L∞ e on [{lr['window_start']:g}, {lr['t_final']:g}] s | L∞ e over the "
-              f"tuning's horizon (no noise, no disturbance) | chattering index | "
-              + " | ".join(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
-                           if e in lr["tuned"]["estimates"]) + " | bounded |",
-              "|---|---|---|---|" + "---|" * len(lr["tuned"]["estimates"]) + "---|"]
-    for tag in NAMES:
-        r = lr[tag]
-        cells = [f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
-                 for e in r["estimates"].values()]
-        lines.append(f"| {tag} | {_f(r['linf_error_window'])} | {_f(short_linf[tag])} | "
-                     f"{_f(r.get('chattering_index'), 3)} | "
-                     + " | ".join(cells) + " | " + {True: "yes", False: "**no**", None:
-                                                   "not judged"}[r["bounded"]] + " |")
+              *table(("", f"L∞ e on [{lr['window_start']:g}, {lr['t_final']:g}] s",
+                      "L∞ e over the tuning's horizon (no noise, no disturbance)",
+                      "chattering index",
+                      *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
+                        if e in lr["tuned"]["estimates"]), "bounded"),
+                     [(tag, _f(r["linf_error_window"]), _f(short_linf[tag]),
+                       _f(r.get("chattering_index"), 3),
+                       *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
+                         for e in r["estimates"].values()),
+                       {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
+                      for tag, r in ((tag, lr[tag]) for tag in NAMES)])]
     return lines
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 
 from dscjax import metrics
-from dscjax.markdown import escape
+from dscjax.markdown import escape, table
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 
@@ -159,26 +159,23 @@ def text(s: dict, problem, figures) -> str:
                   "to x_1(0), the offset decaying): the error tuned and every error figure "
                   "below is measured against it unless it says \"against the config's "
                   "y_r\".", ""]
-    lines += ["| | start gains | tuned gains | tuned / start |", "|---|---|---|---|"]
-    for key in LABELS:
-        if key in nom["start"]:
-            a, b = nom["start"][key], nom["tuned"][key]
-            lines.append(f"| {escape(_label(key, s))} | {_f(a)} | {_f(b)} | {_ratio(b, a)} |")
-    for key, label in (("diverged", "diverged"),
-                       ("sampled_diverged", "diverged, the other discretisation"),
-                       ("delayed_diverged", "diverged, the input delayed")):
-        if key in nom["start"]:
-            lines.append(f"| {label} | {bool(nom['start'][key])} | {bool(nom['tuned'][key])} "
-                         f"| |")
+    a, b = nom["start"], nom["tuned"]
+    lines += table(("", "start gains", "tuned gains", "tuned / start"), [
+        *((escape(_label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
+          if k in a),
+        *((label, bool(a[k]), bool(b[k]), "") for k, label in (
+            ("diverged", "diverged"), ("sampled_diverged", "diverged, the other discretisation"),
+            ("delayed_diverged", "diverged, the input delayed")) if k in a)])
     if s["constraints"]["tuned"]:
         lines += ["", "## Constraints (nominal plant, checked exactly on every RK4 step)", "",
-                  "| constraint | bound (tuned) | start | tuned | margin (bound - tuned) | tuned |",
-                  "|---|---|---|---|---|---|"]
-        for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"], strict=True):
-            lines.append(f"| {escape(b['name'])} | {b['bound']:.6g} | {a['value']:.6g} | "
-                         f"{b['value']:.6g} | {b['margin']:.4g} "
-                         f"({100 * b['relative_margin']:.2f} %) | "
-                         f"**{'met' if b['met'] else 'violated'}** |")
+                  *table(("constraint", "bound (tuned)", "start", "tuned",
+                          "margin (bound - tuned)", "tuned"), [
+                      (escape(b["name"]), f"{b['bound']:.6g}", f"{a['value']:.6g}",
+                       f"{b['value']:.6g}",
+                       f"{b['margin']:.4g} ({100 * b['relative_margin']:.2f} %)",
+                       f"**{'met' if b['met'] else 'violated'}**")
+                      for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"],
+                                      strict=True)])]
         if s["bound_max_abs_u"] or s["bound_tv_u"]:
             lines += ["", effort_span(s)]
     if s.get("sensitivity"):
@@ -190,32 +187,25 @@ def text(s: dict, problem, figures) -> str:
                        "(`effort_bounds = \"per_plant\"`)." if per else
                        "Bounds: the nominal plant's, for every training plant "
                        "(`effort_bounds = \"nominal\"`)."), "",
-                  "| constraint | bounds | met (start) | met (tuned) | worst plant (tuned) | "
-                  "its value / bound | margin (bound - value) |", "|---|---|---|---|---|---|---|"]
-        for a, b in zip(s["train_constraints"]["start"], s["train_constraints"]["tuned"],
-                        strict=True):
-            rng = (f"{b['bound_min']:.4g} to {b['bound_max']:.4g}" if b["bounds"] == "per_plant"
-                   else f"{b['bound_min']:.4g}")
-            worst = ("diverged" if b["worst_value"] is None else
-                     f"{b['worst_value']:.6g} / {b['worst_bound']:.6g}")
-            margin = ("-" if b["worst_margin"] is None else
-                      f"{b['worst_margin']:.4g} ({100 * b['worst_relative_margin']:.2f} %)")
-            lines.append(f"| {escape(b['name'])} | {rng} | {a['n_met']} of {a['n']} | "
-                         f"**{b['n_met']} of {b['n']}** | {b['worst_plant']} | {worst} | "
-                         f"{margin} |")
+                  *table(("constraint", "bounds", "met (start)", "met (tuned)",
+                          "worst plant (tuned)", "its value / bound", "margin (bound - value)"),
+                         [_train_row(a, b) for a, b in zip(s["train_constraints"]["start"],
+                                                           s["train_constraints"]["tuned"],
+                                                           strict=True)])]
     if s.get("margins"):
         short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
         lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
                                                  for k, v in short.items()})
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
-                  "| requirement | start | tuned | worst margin (tuned) |", "|---|---|---|---|"]
-        for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"], strict=True):
-            extra = "".join(f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
-                            if k in b)
-            lines.append(f"| {b['name']} | {'met' if a['met_fraction'] == 1 else 'violated'} | "
-                         f"{'met' if b['met_fraction'] == 1 else 'violated'} | "
-                         f"{b['worst_margin']:.4g}{extra} |")
+                  *table(("requirement", "start", "tuned", "worst margin (tuned)"), [
+                      (b["name"], *("met" if r["met_fraction"] == 1 else "violated"
+                                    for r in (a, b)),
+                       f"{b['worst_margin']:.4g}" + "".join(
+                           f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
+                           if k in b))
+                      for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"],
+                                      strict=True)])]
     for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
         if key not in s:
             continue
@@ -223,14 +213,11 @@ def text(s: dict, problem, figures) -> str:
         rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
         st, tu = s[key]["start"], s[key]["tuned"]
         lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method.name}, seed {b.seed})", "",
-                  "| | start median | tuned median | start p95 | tuned p95 | start max | "
-                  "tuned max |", "|---|---|---|---|---|---|---|"]
-        for m in STATS_METRICS:
-            a, c = st.get(m), tu.get(m)
-            if a is None or c is None:
-                continue
-            lines.append(f"| {escape(_label(m, s))} | {_f(a['median'])} | {_f(c['median'])} | "
-                         f"{_f(a['p95'])} | {_f(c['p95'])} | {_f(a['max'])} | {_f(c['max'])} |")
+                  *table(("", "start median", "tuned median", "start p95", "tuned p95",
+                          "start max", "tuned max"), [
+                      (escape(_label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
+                                               for d in (st[m], tu[m])))
+                      for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
         lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
                   f"(tuned); tracked after refinement (a numerically "
                   f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
@@ -253,14 +240,26 @@ def text(s: dict, problem, figures) -> str:
                              f"plants with the tuned gains (start: "
                              f"{100 * a['met_fraction']:.1f} %)"
                              for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
-    lines += ["", "## Gains", "", "| parameter | start | tuned |", "|---|---|---|"]
-    lines += [f"| `{name}` | {_fmt_val(a)} | {_fmt_val(s['gains']['tuned'][name])} |"
-              for name, a in s["gains"]["start"].items()]
+    lines += ["", "## Gains", "", *table(("parameter", "start", "tuned"), [
+        (f"`{name}`", _fmt_val(a), _fmt_val(s["gains"]["tuned"][name]))
+        for name, a in s["gains"]["start"].items()])]
     # the command that runs the loop tuned
     lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def _train_row(a: dict, b: dict) -> tuple:
+    """A row of the per-training-plant constraints table: start (a) against tuned (b)."""
+    rng = (f"{b['bound_min']:.4g} to {b['bound_max']:.4g}" if b["bounds"] == "per_plant"
+           else f"{b['bound_min']:.4g}")
+    worst = ("diverged" if b["worst_value"] is None else
+             f"{b['worst_value']:.6g} / {b['worst_bound']:.6g}")
+    margin = ("-" if b["worst_margin"] is None else
+              f"{b['worst_margin']:.4g} ({100 * b['worst_relative_margin']:.2f} %)")
+    return (escape(b["name"]), rng, f"{a['n_met']} of {a['n']}", f"**{b['n_met']} of {b['n']}**",
+            b["worst_plant"], worst, margin)
 
 
 def _label(key: str, s: dict) -> str:
@@ -300,15 +299,11 @@ def sensitivity_section(sens: dict) -> list[str]:
              f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
              f"over the run (the loop depends sensitively on its gains: chaotic or "
              f"chattering); any change may break the constraint.", "",
-             "| tuned number | " + " | ".join(
-                 f"{escape(r['name'])} (margin {100 * r['relative_margin']:.3g} %)" for r in rows)
-             + " |", "|---|" + "---|" * len(rows)]
-    for name in rows[0]["elasticity"]:
-        cells = []
-        for r in rows:
-            v = elasticity.text(r["elasticity"][name])
-            cells.append(f"**{v}**" if name in r["fragile"] else v)
-        lines.append(f"| `{name}` | " + " | ".join(cells) + " |")
+             *table(("tuned number", *(f"{escape(r['name'])} (margin "
+                                       f"{100 * r['relative_margin']:.3g} %)" for r in rows)),
+                    [(f"`{name}`", *(f"**{v}**" if name in r["fragile"] else v for r, v in (
+                        (r, elasticity.text(r["elasticity"][name])) for r in rows)))
+                     for name in rows[0]["elasticity"]])]
     return lines
 
 

@@ -209,10 +209,9 @@ def markdown(s: dict) -> str:
                   "experiment that excites them."]
     names = [e["name"] for e in s["parameters"]]
     lines += ["", "Correlation of the estimates:", "",
-              "| | " + " | ".join(f"`{n}`" for n in names) + " |",
-              "|---|" + "---|" * len(names)]
-    lines += [f"| `{n}` | " + " | ".join(f"{v:.3f}" for v in row) + " |"
-              for n, row in zip(names, s["correlation"], strict=True)]
+              *table(("", *(f"`{n}`" for n in names)),
+                     [(f"`{n}`", *(f"{v:.3f}" for v in row))
+                      for n, row in zip(names, s["correlation"], strict=True)])]
     sv = s["singular_values"]
     lines += ["", f"Singular values of the weighted Jacobian: {sv[0]:.4g} ... {sv[-1]:.4g} "
               f"(ratio {sv[-1] / sv[0]:.3g}); noise std "
