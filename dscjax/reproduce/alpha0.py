@@ -27,6 +27,7 @@ import numpy as np
 from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example, paper_example
+from dscjax.markdown import table
 from dscjax.plotting import subplots
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
@@ -256,26 +257,26 @@ def study(base, opts: StudyOptions | None = None,
 
 def table_markdown(result: dict) -> str:
     """The study as a markdown table, one row per alpha_0."""
-    lines = ["| alpha_0 | k | tau | M used (measured) | dt [s] | ‖S_1‖∞ | (72) bound | bound / "
-             "measured | max V | (71) bound | V(0) | C | max abs d_n / d | (63), (65), (70)-(72) "
-             "hold |", "|---|" + "---|" * 13]
-    for r in result["rows"]:
-        if r.get("skipped"):
-            lines.append(f"| {r['alpha0']:g} | skipped: needs dt <= {r['dt_needed']:.3g} s, "
-                         f"{r['steps']} steps (more than max_steps) |" + " |" * 12)
-            continue
-        fmt = ", ".join
-        failed = [k for k, v in r["holds"].items() if not v]
-        lines.append(
-            f"| {r['alpha0']:g} | {fmt(f'{k:.4g}' for k in r['k'])} | "
-            f"{fmt(f'{t:.3g}' for t in r['tau'])} | "
-            f"{fmt(f'{m:.4g} ({mm:.4g})' for m, mm in zip(r['M'], r['M_measured'], strict=True))}"
-            + ("" if r["converged"] else " not converged")
-            + f" | {r['dt']:.3g} | {r['S1_inf']:.4g} | {r['bound_72']:.4g} | "
-            f"{r['conservatism']:.3g} | {r['V_max']:.4g} | {r['bound_71']:.4g} | "
-            f"{r['V0']:.4g} | {r['C']:.4g} | {r['d_n_max'] / r['d']:.4f} | "
-            + ("yes" if r["all_hold"] else "**no**: " + ", ".join(failed)) + " |")
-    return "\n".join(lines)
+    return "\n".join(table(
+        ("alpha_0", "k", "tau", "M used (measured)", "dt [s]", "‖S_1‖∞", "(72) bound",
+         "bound / measured", "max V", "(71) bound", "V(0)", "C", "max abs d_n / d",
+         "(63), (65), (70)-(72) hold"), map(_cells, result["rows"])))
+
+
+def _cells(r: dict) -> tuple:
+    """A row of the table: its cells."""
+    if r.get("skipped"):
+        return (f"{r['alpha0']:g}", f"skipped: needs dt <= {r['dt_needed']:.3g} s, "
+                f"{r['steps']} steps (more than max_steps)", *[""] * 12)
+    fmt = ", ".join
+    failed = [k for k, v in r["holds"].items() if not v]
+    return (f"{r['alpha0']:g}", fmt(f"{k:.4g}" for k in r["k"]), fmt(f"{t:.3g}" for t in r["tau"]),
+            fmt(f"{m:.4g} ({mm:.4g})" for m, mm in zip(r["M"], r["M_measured"], strict=True))
+            + ("" if r["converged"] else " not converged"),
+            f"{r['dt']:.3g}", f"{r['S1_inf']:.4g}", f"{r['bound_72']:.4g}",
+            f"{r['conservatism']:.3g}", f"{r['V_max']:.4g}", f"{r['bound_71']:.4g}",
+            f"{r['V0']:.4g}", f"{r['C']:.4g}", f"{r['d_n_max'] / r['d']:.4f}",
+            "yes" if r["all_hold"] else "**no**: " + ", ".join(failed))
 
 
 COLORS = {2: "#1f77b4", 3: "#ff7f0e", 4: "#2ca02c", 5: "#d62728"}
