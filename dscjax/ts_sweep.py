@@ -48,6 +48,11 @@ def judge(linf: float | None, index: float | None, reference: float | None) -> s
     return None
 
 
+def cell(v: float | None, digits: int = 4) -> str:
+    """A figure of a table, "diverged" where the run diverged (None)."""
+    return "diverged" if v is None else f"{v:.{digits}g}"
+
+
 def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
     """The plant's step for each Ts: dt where Ts is a whole multiple of dt, else one fine step
     (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so that the
@@ -193,9 +198,6 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
             "chattering index", "tracks")
     if batch:
         head += (f"{batch['label']}: p95 of TV(u)", f"{batch['label']}: chattering plants")
-
-    def cell(v, digits=4):
-        return "diverged" if v is None else f"{v:.{digits}g}"
 
     def row(i, ts, n):
         r, why = result[n], result[n]["why_not"][i]

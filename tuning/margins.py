@@ -31,6 +31,7 @@ from dscjax import metrics, params, ts_sweep
 from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
+from dscjax.ts_sweep import cell
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
 TS_FACTOR = 2.0  # the sweep ends at this many times the tuned loop's Ts
@@ -289,10 +290,6 @@ def failures(margins: dict[str, Any]) -> list[str]:
     return out
 
 
-def _f(v, digits=4):
-    return "diverged" if v is None else f"{v:.{digits}g}"
-
-
 def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> list[str]:
     """report.md's "Margins" section; `short_linf`: each gain set's windowed L-inf over the
     tuning's horizon (nominal plant), beside the long run's."""
@@ -304,8 +301,8 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   f"failure):", "", *table(
                       ("", "L∞ e on [t0, T]", "max\\|u\\|", "TV(u)",
                        "chattering index on [t0, T]", "simulated by"),
-                      [(tag, _f(r["linf_error_window"]), _f(r["max_abs_u"]), _f(r["tv_u"]),
-                        _f(r.get("chattering_index"), 3),
+                      [(tag, cell(r["linf_error_window"]), cell(r["max_abs_u"]), cell(r["tv_u"]),
+                        cell(r.get("chattering_index"), 3),
                         f"{r['solver']} at dt = {r['dt_used']:g} s"
                         + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
                        for tag, r in ((tag, c[tag]) for tag in NAMES)])]
@@ -340,8 +337,8 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   + ("" if dl["tv_limit"] is not None else " and no chattering") + ":", "",
                   *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
                           "chattering index", "holds"),
-                         [(d, tag, _f(r["linf_error_window"][i]), _f(r["tv_u"][i]),
-                           _f(r["chattering_index"][i], 3),
+                         [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),
+                           cell(r["chattering_index"][i], 3),
                            "yes" if r["why_not"][i] is None else f"**no**: {r['why_not'][i]}")
                           for i, d in enumerate(dl["delays"])
                           for tag, r in ((tag, dl[tag]) for tag in NAMES)]), ""]
@@ -360,8 +357,8 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                       "chattering index",
                       *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
                         if e in lr["tuned"]["estimates"]), "bounded"),
-                     [(tag, _f(r["linf_error_window"]), _f(short_linf[tag]),
-                       _f(r.get("chattering_index"), 3),
+                     [(tag, cell(r["linf_error_window"]), cell(short_linf[tag]),
+                       cell(r.get("chattering_index"), 3),
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),
                        {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
