@@ -164,6 +164,32 @@ def test_check_work_passes_work_that_can_finish(two_cores, monkeypatch):
                               fix="y")
 
 
+def test_loop_sizes_are_each_setups_own_whatever_was_sized_before():
+    # the floats of the loop's state (m) and of a saved point (k) and a float's bytes, which
+    # the memory estimates are made of, counted from the initial state and the observation of
+    # one vector-field call; setups of another dtype and order sized in turn (the sizes are
+    # kept per structure and leaf type)
+    import math
+
+    import jax
+
+    import dscjax
+    from dscjax.cli.common import loop_sizes
+    from dscjax.closed_loop import initial_state, prepared, vector_field
+
+    def floats(tree):
+        return sum(math.prod(np.shape(a)) for a in jax.tree.leaves(tree))
+
+    paper = dscjax.paper_example()
+    for setup in (paper, dscjax.cast(paper, np.float32), dscjax.order_n_example(4), paper):
+        ready = prepared(setup)
+        state = initial_state(ready)
+        _, observation = jax.eval_shape(lambda s=state, r=ready: vector_field(0.0, s, r))
+        m = floats(state)
+        assert loop_sizes(setup) == (m, m + floats(observation),
+                                     jax.tree.leaves(state)[0].dtype.itemsize)
+
+
 # -- defect class 5: duplicate keys ----------------------------------------------------------------
 
 
