@@ -378,10 +378,11 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, dtype_of(setup))
 
 
-def check(setup: Setup, spec: RunSpec, batched: bool = False, step: bool = True) -> None:
+def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
     """Host-side checks of a setup against a run (ConfigError naming the field): the setup's
-    models (unless `batched`: their rows are checked by the caller) and, for a continuous loop
-    integrated by RK4, the fastest filter against the step (unless not `step`)."""
+    models and, for a continuous loop integrated by RK4, the fastest filter against the step;
+    with `batched`, neither (the rows, which may override the filters, are the caller's to
+    check, and a batch reports a diverged row in its status)."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
     noise = None if spec.noise is None else np.shape(spec.noise)
@@ -389,7 +390,7 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False, step: bool = True)
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
                                      f"of the plant, {setup.order} numbers "
                                      f"(got {int(np.prod(noise))})")
-    if step and not spec.sampled and isinstance(spec.solver, RK4):
+    if not batched and not spec.sampled and isinstance(spec.solver, RK4):
         validation.check_filters(setup, float(spec.dt))
 
 
@@ -408,7 +409,6 @@ def simulate_batch(
     solver: str = "rk4",
     sample_time: float | None = None,
     device=None,
-    check_step: bool = True,
 ) -> Trajectory:
     """Simulate `setup` with the parameters at the paths of `overrides` replaced by the rows
     of its arrays (leading axis B) in one jitted call; only those leaves are batched. Never
@@ -422,8 +422,6 @@ def simulate_batch(
         save_every: default t_final/dt: only the first and last points.
         checkpoint_every: reverse mode keeps the state every this many steps and recomputes
             the rest.
-        check_step: False runs a step that RK4's bound on the fastest filter refuses (the
-            stability map's grid explores where RK4 diverges).
 
     Example:
         >>> import dscjax, jax.numpy as jnp
@@ -453,7 +451,7 @@ def simulate_batch(
             validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
-    check(setup, spec, batched=True, step=check_step)
+    check(setup, spec, batched=True)
     overrides = dict(overrides)
 
     def level(j, ov):

@@ -57,7 +57,7 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
             ov = {"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])}
         else:
             ov = {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]}
-        b = simulate_batch(setup, ov, n * step, step, refine=0, check_step=False)
+        b = simulate_batch(setup, ov, n * step, step, refine=0)
         first = np.asarray(b.status.step)
         stable = (first < 0) | (first > _count(t_final, step))
         return stable, np.where(stable, np.inf, first * step)

@@ -176,7 +176,7 @@ def test_the_stability_map_judges_each_step_over_its_own_horizon(paper_setup):
     def alone(step):  # the step's own count of steps, nothing after the horizon
         n = max(round(t_final / step), 1)
         tau = {"controller.tau": np.asarray(setup.controller.tau)[None] * m.tau_scale[:, None]}
-        run = dscjax.simulate_batch(setup, tau, n * step, step, refine=0, check_step=False)
+        run = dscjax.simulate_batch(setup, tau, n * step, step, refine=0)
         return np.asarray(run.diverged), np.asarray(run.t_diverged)
 
     for j, step in enumerate(m.dt):  # every tau scale's verdict
