@@ -161,7 +161,8 @@ def test_the_stability_map_judges_each_step_over_its_own_horizon(paper_setup):
     # `dscjax stability` runs the steps at and above dt, and the bisection, for dt's count of
     # steps (a longer horizon, one program): each verdict must be that of a run of the step's
     # own count alone. alpha = 10: RK4 at 1 ms diverges within milliseconds. 32 ms is past
-    # RK4's bound on the fastest filter, which a run refuses and the map must report on. The
+    # RK4's bound on the fastest filter, which `simulate` refuses and the map must report on
+    # (as the batches below do: a batch reports a diverged row in its status). The
     # README's horizon, dt and tau scales: the programs of its `dscjax stability` example.
     from dscjax.step_size import stability_map
 
