@@ -215,5 +215,5 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
         *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in names),
         *(("continuous", (labels or {}).get(n, n), cell(result[n]["continuous"]),
            cell(result[n]["continuous_tv_u_window"]),
-           cell(result[n]["continuous_chattering_index"], 3), "") + ("", "") * bool(batch)
+           cell(result[n]["continuous_chattering_index"], 3), "") + (("", "") if batch else ())
           for n in names)])

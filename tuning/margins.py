@@ -305,7 +305,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                         cell(r.get("chattering_index"), 3),
                         f"{r['solver']} at dt = {r['dt_used']:g} s"
                         + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
-                       for tag, r in ((tag, c[tag]) for tag in NAMES)])]
+                       for tag, r in zip(NAMES, map(c.get, NAMES), strict=True)])]
     st = margins.get("sample_time")
     if st is not None:
         lines += ["", f"**Sample time.** The loop tuned with the controller sampled at each Ts "
@@ -341,7 +341,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                            cell(r["chattering_index"][i], 3),
                            "yes" if r["why_not"][i] is None else f"**no**: {r['why_not'][i]}")
                           for i, d in enumerate(dl["delays"])
-                          for tag, r in ((tag, dl[tag]) for tag in NAMES)]), ""]
+                          for tag, r in zip(NAMES, map(dl.get, NAMES), strict=True)]), ""]
         lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
     lr = margins["long_run"]
     what = " and ".join(x for x in (
@@ -362,7 +362,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),
                        {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
-                      for tag, r in ((tag, lr[tag]) for tag in NAMES)])]
+                      for tag, r in zip(NAMES, map(lr.get, NAMES), strict=True)])]
     return lines
 
 
