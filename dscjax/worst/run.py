@@ -179,8 +179,9 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
                           "make_problem, not with a Problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
+    # "gradient": the one kind there is, kept so that a search saved with it resumes
     fp = {"problem": files.digest(problem.fingerprint()), "gradient": "time_parallel",
-          "coarsening": coarsening}  # (the gradient's key: searches saved before resume)
+          "coarsening": coarsening}
     prog = Programs.for_problem(problem, coarsening)
     traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
                          seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
