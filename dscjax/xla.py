@@ -2,7 +2,8 @@
 persistent cache.
 
 - `compiler_options()`: 512-bit vectors for the batched programs on CPUs with AVX-512.
-- `lean_options()`: XLA:CPU's loop fusion emitters instead of its MLIR ones, for the programs
+- `lean_options()`: XLA:CPU's loop fusion emitters instead of its MLIR ones (where jaxlib
+  still offers the choice: `emitter_choice`), for the programs
   that run once or a few times (one trajectory, a gradient, a report's check, a batch of at
   most `LEAN_ROWS` rows): they compile in about half the time and run as fast; a larger
   batch runs faster with the MLIR emitters (docs/benchmarks.md, "Compilation"). A batched
@@ -68,10 +69,18 @@ def compiler_options(environ: Mapping[str, str] = os.environ,
     return dict(WIDE)
 
 
+def emitter_choice(jaxlib_version: str = jax.lib.__version__) -> bool:
+    """True if this jaxlib's XLA:CPU offers a choice of fusion emitters: jaxlib 0.11 has the
+    MLIR ones only and refuses the option that chose them."""
+    return tuple(int(p) for p in jaxlib_version.split(".")[:2]) < (0, 11)
+
+
 def lean_options(environ: Mapping[str, str] = os.environ) -> dict[str, bool]:
     """The compiler options of dscjax's run-once programs: `LEAN`, unless `XLA_FLAGS` already
-    chooses the fusion emitters (the user's choice wins). Other backends ignore the option."""
-    return {} if EMITTERS in environ.get("XLA_FLAGS", "") else dict(LEAN)
+    chooses the fusion emitters (the user's choice wins) or this jaxlib has no choice of them
+    (`emitter_choice`). Other backends ignore the option."""
+    chosen = EMITTERS in environ.get("XLA_FLAGS", "")
+    return dict(LEAN) if emitter_choice() and not chosen else {}
 
 
 def lean_work(member_steps: float | None) -> bool:
@@ -165,5 +174,5 @@ def enable_compilation_cache(directory: str | Path | None = None,
 
 __all__ = ["CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "LEAN_WORK", "MIN_COMPILE_TIME_S",
            "OPTION", "WIDE", "barrier", "barriers", "cache_opted_out", "compiler_options",
-           "cpu_has_avx512", "default_cache_dir", "enable_compilation_cache", "jit",
-           "lean_options", "lean_work"]
+           "cpu_has_avx512", "default_cache_dir", "emitter_choice", "enable_compilation_cache",
+           "jit", "lean_options", "lean_work"]

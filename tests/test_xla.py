@@ -34,7 +34,13 @@ def test_wide_vectors_only_when_wanted(env, avx512, wide):
     ({"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}, True),
 ])
 def test_lean_emitters_unless_the_user_chose(env, lean):
-    assert xla.lean_options(env) == (xla.LEAN if lean else {})
+    assert xla.lean_options(env) == (xla.LEAN if lean and xla.emitter_choice() else {})
+
+
+@pytest.mark.parametrize("version,choice", [("0.10.2", True), ("0.10.0.dev20260101", True),
+                                            ("0.9.2", True), ("0.11.2", False), ("1.0.0", False)])
+def test_no_emitter_option_where_jaxlib_has_no_choice(version, choice):
+    assert xla.emitter_choice(version) is choice
 
 
 @pytest.mark.parametrize("member_steps,lean", [
