@@ -25,10 +25,6 @@ EXIT_NO_SPACE = 4
 EXIT_INTERRUPTED = 130  # Ctrl-C; SIGTERM 143, SIGHUP 129: 128 + the signal's number
 
 
-class CLIError(Exception):
-    """A user-fixable problem: printed as one line, exit code 2."""
-
-
 class _Parser(argparse.ArgumentParser):
     """argparse's own errors (an unknown choice, a missing or malformed value) as one line
     and exit 2, like every other bad input, instead of a usage block first; `--help` still
@@ -149,7 +145,7 @@ def main(argv=None) -> int:
             if not getattr(args, "print_config", False):
                 check_out(args)  # an --out the system refuses: one line, before any work
             return int(module.run(args) or 0)
-    except (ConfigError, CLIError) as err:
+    except ConfigError as err:
         print(f"dscjax {args.command}: error: {err}", file=sys.stderr)
         return EXIT_USAGE
     except DivergenceError as err:
