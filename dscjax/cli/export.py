@@ -42,15 +42,12 @@ def add_parser(sub):
 def load(args):
     """(setup, spec, source) of --example, --config, --gains and the options, float64, the
     spec sampled (a config without a sample time and no --sample-time: one line)."""
-    import numpy as np
-
     setup = common.example_setup(args)
     spec = None
     source = [f"--example {args.example}"]
     for option, path in (("--config", args.config), ("--gains", args.gains)):
         if path:
-            raw = config.read(path)
-            setup, spec = config.from_dict(raw, base=setup, base_spec=spec)
+            setup, spec = config.from_dict(config.read(path), base=setup, base_spec=spec)
             source.append(f"{option} {path}")
     if spec is None:
         spec = config.from_dict({}, base=setup)[1]
@@ -66,7 +63,7 @@ def load(args):
     names |= {"dt": "the config's simulation.dt", "t_final": "the config's simulation.t_final"}
     spec = spec.replace(names=names, **overrides)
     validate_setup(setup)
-    return cast(setup, np.dtype("float64")), spec, " ".join(source)
+    return cast(setup, "float64"), spec, " ".join(source)
 
 
 def run(args) -> int:

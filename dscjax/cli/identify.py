@@ -38,8 +38,6 @@ def add_parser(sub):
 def load(args):
     """(setup, spec, settings, source) from --config (its [identify] table), --example and the
     options."""
-    import numpy as np
-
     setup, spec = common.config_setup(args)
     table = common.config_data(args).get("identify", {})
     s = settings.from_table(ident.IdentifySettings, table, "identify.")
@@ -50,7 +48,7 @@ def load(args):
     spec = common.apply_run_options(args, spec)
     validate_setup(setup)
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
-    return cast(setup, np.dtype("float64")), spec, s, source
+    return cast(setup, "float64"), spec, s, source
 
 
 def run(args) -> int:

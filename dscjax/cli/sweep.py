@@ -63,10 +63,9 @@ def add_parser(sub):
     common.add_run_args(p, SWEEP_KEYS)
     common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
-    prec.add_argument("--float64", action="store_true", help=f"run in float64 (default "
-                      f"{d.dtype})")
-    prec.add_argument("--float32", action="store_true", help=f"run in float32 (default "
-                      f"{d.dtype})")
+    for dtype in ("float64", "float32"):
+        prec.add_argument(f"--{dtype}", action="store_true",
+                          help=f"run in {dtype} (default {d.dtype})")
     add_out_arg(p, "results/sweep",
                 resume="continue a sweep in DIR: skip the blocks already written",
                 overwrite="discard a sweep in DIR and start afresh")
