@@ -180,6 +180,12 @@ def resume_command(args) -> str:
     return shlex.join([*args.prog, *argv])
 
 
+def resume_text(args, kept: str) -> str:
+    """What an interrupted command that can resume keeps (`kept`), and the command that
+    continues it (`resume_command`)."""
+    return f"{kept}; continue with: {resume_command(args)}"
+
+
 def rerun_command(args) -> str:
     """The command line that runs a command again from the start: the program as typed, the
     same arguments without --resume, and --overwrite where --out holds files the command

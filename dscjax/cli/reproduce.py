@@ -126,9 +126,9 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import resume_command
+    from dscjax.cli.out import resume_text
 
     if resumable(args):
-        return (f"the finished control-law measurements are kept in {Path(args.out) / ROWS}; "
-                f"continue with: {resume_command(args)}")
+        return resume_text(args, "the finished control-law measurements are kept in "
+                           f"{Path(args.out) / ROWS}")
     return kept_text(args, OUTPUTS)

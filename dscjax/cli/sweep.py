@@ -18,7 +18,7 @@ import numpy as np
 from dscjax import config, files, params, sweep
 from dscjax import settings as schema
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_command
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_text
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import OPTIONS, RunSpec
@@ -345,8 +345,7 @@ def interrupt_hint(args) -> str | None:
     if not resumable(args):
         return nothing_kept(args)
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
-    return (f"{n_done} finished block(s) are kept in {out}/chunks; continue with: "
-            f"{resume_command(args)}")
+    return resume_text(args, f"{n_done} finished block(s) are kept in {out}/chunks")
 
 
 def _traces_title(kinds, dtype) -> str:

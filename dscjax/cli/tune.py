@@ -66,19 +66,17 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import resume_command
+    from dscjax.cli.out import resume_text
 
     if (Path(args.out) / "adversarial.json").exists():
-        return (f"the finished rounds and searches are kept in {args.out}; continue with: "
-                f"{resume_command(args)}")
+        return resume_text(args, f"the finished rounds and searches are kept in {args.out}")
     path = Path(args.out) / "checkpoint.json"
     try:
         meta = json.loads(path.read_text())
     except (OSError, ValueError):
         return kept_text(args, OUTPUTS)
-    return (f"the checkpoint (iteration {meta.get('iteration')}, best loss "
-            f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}; continue with: "
-            f"{resume_command(args)}")
+    return resume_text(args, f"the checkpoint (iteration {meta.get('iteration')}, best loss "
+                       f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}")
 
 
 def load(args):
@@ -97,7 +95,7 @@ def load(args):
         setup, options = config.from_dict(gains, base=setup, base_spec=options)
     cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
-              if k not in ("rounds",)]
+              if k != "rounds"]
     if search and not cfg.adversarial.rounds:
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")

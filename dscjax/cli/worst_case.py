@@ -13,7 +13,7 @@ from pathlib import Path
 
 from dscjax import files, settings, worst
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_command
+from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_text
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.validation import ConfigError, Work, check_work
@@ -215,5 +215,5 @@ def interrupt_hint(args) -> str | None:
     states = sorted(out.glob("state_*.npz"))
     if not states or not resumable(args):
         return kept_text(args, OUTPUTS)
-    return (f"the finished iterations are kept in {out} ({', '.join(s.name for s in states)}); "
-            f"continue with: {resume_command(args)}")
+    return resume_text(args, f"the finished iterations are kept in {out} "
+                             f"({', '.join(s.name for s in states)})")
