@@ -228,6 +228,12 @@ def say(args, kind: str, *texts) -> None:
         print(f"dscjax {args.command}: {kind}: {text}", file=sys.stderr)
 
 
+def banner(args, text: str, warnings=()) -> None:
+    """A command's start line on stderr, "dscjax COMMAND: TEXT", then its `warnings` (`say`)."""
+    print(f"dscjax {args.command}: {text}", file=sys.stderr)
+    say(args, "warning", *warnings)
+
+
 def listed(names, most: int = 6) -> str:
     """names joined, at most `most` of them and how many more."""
     shown = ", ".join(names[:most])

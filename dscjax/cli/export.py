@@ -3,8 +3,6 @@ DIR/dsc_controller.h and DIR/dsc_controller.c (`dscjax.export`)."""
 
 from __future__ import annotations
 
-import sys
-
 from dscjax import config, export
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
@@ -74,9 +72,9 @@ def run(args) -> int:
     # every input checked before --out
     files = export.c_files(setup, spec, source=source, precision=args.precision)
     out = prepare_out(args, OUTPUTS)
-    print(f"dscjax export: order n={setup.order}, {setup.controller.kind}, sampled every "
-          f"{spec.sample_time:g} s, {spec.discretisation.name}, delay {spec.delay}, "
-          f"{args.precision}; from {source}", file=sys.stderr)
+    common.banner(args, f"order n={setup.order}, {setup.controller.kind}, sampled every "
+                  f"{spec.sample_time:g} s, {spec.discretisation.name}, delay {spec.delay}, "
+                  f"{args.precision}; from {source}")
     for name, text in files.items():
         write_text(out / name, text)
     header = files[export.HEADER]

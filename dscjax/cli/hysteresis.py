@@ -9,7 +9,6 @@ amplitudes 3.5 and 6.5, omega = 2.3, three periods).
 from __future__ import annotations
 
 import math
-import sys
 
 import numpy as np
 
@@ -82,9 +81,9 @@ def run(args) -> int:
     kind = args.device or validation.string(sim.get("device", "auto"), "simulation.device")
     choice = common.use_device(args, kind, k)
     out = prepare_out(args, OUTPUTS)
-    print(f"dscjax hysteresis: {hyst.kind}, u = A sin({args.omega:g} t), A = "
-          f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "
-          f"on {choice}", file=sys.stderr)
+    common.banner(args, f"{hyst.kind}, u = A sin({args.omega:g} t), A = "
+                  f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "
+                  f"on {choice}")
     t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, dt)
     write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
                                      omega=np.asarray(args.omega, float),

@@ -5,8 +5,6 @@ record (`dscjax.identify`). Writes into DIR identified.toml (a whole config, the
 
 from __future__ import annotations
 
-import sys
-
 from dscjax import settings
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
@@ -60,9 +58,9 @@ def run(args) -> int:
     out = prepare_out(args, OUTPUTS)
     kind = "the plant with its actuator" if any(c != "w" for c in record.y) else \
         "the actuator alone"
-    print(f"dscjax identify: {len(record)} samples of {', '.join(record.y)} over "
-          f"t = {record.t[0]:g}..{record.t[-1]:g} s, {kind}; free: {', '.join(s.free)}; "
-          f"{s.segments} segment(s), {s.starts} start(s); fitting ...", file=sys.stderr)
+    common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over "
+                  f"t = {record.t[0]:g}..{record.t[-1]:g} s, {kind}; free: {', '.join(s.free)}; "
+                  f"{s.segments} segment(s), {s.starts} start(s); fitting ...")
     res = ident.identify(setup, spec, record, s, val)
     written = ident.write(out, res, spec, source, plot=not args.no_plot)
     for c, f in res.figures.items():

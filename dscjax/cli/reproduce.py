@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 from dscjax.cli import common
@@ -106,7 +105,7 @@ def run(args) -> int:
                           f"run without --resume to start afresh")
     choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
-    print(f"dscjax reproduce: on {choice}", file=sys.stderr)
+    common.banner(args, f"on {choice}")
     summary = reproduce(args.out, fmt=None if args.no_plot else args.fmt, t_final=args.t_final,
                         dt=args.dt, dpi=args.dpi, complexity=args.complexity,
                         complexity_orders=orders, complexity_repeats=args.repeats,

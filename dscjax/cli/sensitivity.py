@@ -87,13 +87,12 @@ def run(args) -> int:
     choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
-    print(f"dscjax sensitivity: {len(metrics)} metric(s) x {d} numbers, "
-          + (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
-             else "the nominal plant")
-          + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
-                           if spec.sampled else ", continuous loop") + f"; on {choice}",
-          file=sys.stderr)
-    common.say(args, "warning", *warnings)
+    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, "
+                  + (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
+                     else "the nominal plant")
+                  + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
+                                   if spec.sampled else ", continuous loop") + f"; on {choice}",
+                  warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "

@@ -70,15 +70,15 @@ def run(args) -> int:
     choice = common.choose_device(args, options.device)  # simulate() places the run alike
 
     out = prepare_out(args, OUTPUTS)
-    n = setup.order
-    print(f"dscjax simulate: order n={n}, {setup.controller.kind} "
-          f"(variant {getattr(setup.controller, 'variant', '-')}), T={options.t_final:g} s, "
-          f"dt={options.dt:g} s ({n_steps:,} steps), {options.dtype}"
-          + (f", the controller sampled every {options.sample_time:g} s (zero-order hold"
-             + (f", input delay {options.delay} sample(s)" if options.delay else "")
-             + (", measurement noise" if options.noise is not None else "") + ")"
-             if options.sampled else "") + f"; on {choice}", file=sys.stderr)
-    common.say(args, "warning", *warnings)
+    common.banner(args, f"order n={setup.order}, {setup.controller.kind} "
+                  f"(variant {getattr(setup.controller, 'variant', '-')}), "
+                  f"T={options.t_final:g} s, dt={options.dt:g} s ({n_steps:,} steps), "
+                  f"{options.dtype}"
+                  + (f", the controller sampled every {options.sample_time:g} s "
+                     "(zero-order hold"
+                     + (f", input delay {options.delay} sample(s)" if options.delay else "")
+                     + (", measurement noise" if options.noise is not None else "") + ")"
+                     if options.sampled else "") + f"; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
         print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
               f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "

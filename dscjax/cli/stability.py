@@ -59,8 +59,8 @@ def run(args) -> int:
                           what=what, fix=common.SHORTER)
     choice = common.use_device(args, options.device, len(scales))
     out = prepare_out(args, OUTPUTS)
-    print(f"dscjax stability: {options.t_final:g} s, dt = {options.dt:g} s, tau x "
-          f"{', '.join(f'{s:g}' for s in scales)}; on {choice}", file=sys.stderr)
+    common.banner(args, f"{options.t_final:g} s, dt = {options.dt:g} s, tau x "
+                  f"{', '.join(f'{s:g}' for s in scales)}; on {choice}")
     m = stability_map(setup, options.t_final, float(options.dt), tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
     bound = ">= " if m.beyond_grid else ""

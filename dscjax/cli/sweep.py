@@ -216,13 +216,12 @@ def run(args) -> int:
         desc = ", ".join(
             f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
             for r in ranges)
-        print(f"dscjax sweep: {n:,} {'grid points' if settings.method.grid else 'samples'}"
-              f" ({settings.method.name}, seed {settings.seed}) of {desc}; T={t_final:g} s, "
-              f"dt={dt:g} s, {settings.dtype}, {sweep.loop_text(options.to_table())}; on "
-              f"{len(choice.devices)} device(s) "
-              f"({choice.platform}), {jax.process_count()} process(es) ({choice.reason})",
-              file=sys.stderr)
-        common.say(args, "warning", *warnings)
+        common.banner(args, f"{n:,} {'grid points' if settings.method.grid else 'samples'}"
+                      f" ({settings.method.name}, seed {settings.seed}) of {desc}; "
+                      f"T={t_final:g} s, dt={dt:g} s, {settings.dtype}, "
+                      f"{sweep.loop_text(options.to_table())}; on {len(choice.devices)} "
+                      f"device(s) ({choice.platform}), {jax.process_count()} process(es) "
+                      f"({choice.reason})", warnings)
     bar = None
 
     def progress(p):

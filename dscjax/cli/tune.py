@@ -152,19 +152,19 @@ def run(args) -> int:
     unit = "generation" if oc.name.generations else "iteration"
     limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
-    print(f"dscjax tune: {problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-          f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
-          f"dt={options.dt:g} s, window "
-          f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
-          + (f"training batch of {cfg.robust.batch} plants ({cfg.robust.aggregate.name})"
-             if cfg.robust.batch else "nominal plant")
-          + "; " + ("at most " + " or ".join(limits) if limits
-                    else "no iteration or time limit")
-          + (f" per round; {adv.rounds} adversarial rounds over "
-             + ", ".join(r.spec() for r in searched.ranges)
-             + (f" and {adv.disturbance}" if adv.disturbance else "")
-             + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds else "")
-          + f"; on {choice}", file=sys.stderr)
+    common.banner(args, f"{problem.n_params} numbers ({', '.join(problem.selection.names)}); "
+                  f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
+                  f"dt={options.dt:g} s, window "
+                  f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
+                  + (f"training batch of {cfg.robust.batch} plants "
+                     f"({cfg.robust.aggregate.name})" if cfg.robust.batch else "nominal plant")
+                  + "; " + ("at most " + " or ".join(limits) if limits
+                            else "no iteration or time limit")
+                  + (f" per round; {adv.rounds} adversarial rounds over "
+                     + ", ".join(r.spec() for r in searched.ranges)
+                     + (f" and {adv.disturbance}" if adv.disturbance else "")
+                     + f" ({adv.method} search, {adv.search_time:g} s each)" if adv.rounds
+                     else "") + f"; on {choice}")
     parts = ([f"the held-out check ({cfg.heldout.batch} plants, start and tuned gains)",
               "the margins", "the constraints' sensitivities"] if cfg.heldout.batch else [])
     parts += [] if args.no_plot else ["the figures"]

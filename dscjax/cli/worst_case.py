@@ -82,13 +82,13 @@ def run(args) -> int:
                          "--overwrite to start afresh")
     out = prepare_out(args, OUTPUTS, resumable=True)
     files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
-    print(f"dscjax worst-case: {problem.metric} over "
-          + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
-          + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
-          + f"; {', '.join(methods)}, {s.time_limit:g} s each"
-          + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
-          + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}", file=sys.stderr)
-    common.say(args, "warning", *worst.assumption_warnings(problem))
+    common.banner(args, f"{problem.metric} over "
+                  + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
+                  + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
+                  + f"; {', '.join(methods)}, {s.time_limit:g} s each"
+                  + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
+                  + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}",
+                  worst.assumption_warnings(problem))
     if not args.quiet:
         print("  each method compiles its programs first (a minute or two on a small CPU; not "
               "counted in --time-limit)", file=sys.stderr)
