@@ -179,8 +179,7 @@ def _order(result) -> np.ndarray:
     """Columns by their largest |d ln m / d ln p| over the metrics, largest first (those
     without one, p = 0, last)."""
     n = np.abs(result.normalised)
-    key = np.where(np.all(np.isnan(n), axis=0), -1.0, np.nanmax(np.where(np.isnan(n), -1.0, n),
-                                                                 axis=0))
+    key = np.max(np.where(np.isnan(n), -1.0, n), axis=0)
     return np.argsort(-key, kind="stable")
 
 
