@@ -184,9 +184,8 @@ def run(args) -> int:
     setup, options, settings = load(args)
     t_final, dt = options.t_final, float(options.dt)
     window_start = float(options.window_start)
-    dtype = np.dtype(settings.dtype)
     printed = setup
-    setup = params.cast(setup, dtype)
+    setup = params.cast(setup, settings.dtype)
     with common.blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
     if args.print_config:
