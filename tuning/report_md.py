@@ -110,10 +110,8 @@ def _own(s: dict, key: str) -> str:
 
 
 def text(s: dict, problem, figures) -> str:
-    sim = problem.objective.sim
-    run = s["run"]
-    nom = s["nominal"]
-    cfg = problem.cfg
+    sim, cfg = problem.objective.sim, problem.cfg
+    run, nom = s["run"], s["nominal"]
     lines = ["# dscjax tune: report", ""]
     for key, warning in (("heldout", "{}"), ("margins", "a margin fails: {}"), (
             "sensitivity", '{} ("Sensitivity of the constraints" below)')):
@@ -174,8 +172,7 @@ def text(s: dict, problem, figures) -> str:
                        f"{b['value']:.6g}",
                        f"{b['margin']:.4g} ({100 * b['relative_margin']:.2f} %)",
                        f"**{'met' if b['met'] else 'violated'}**")
-                      for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"],
-                                      strict=True)])]
+                      for a, b in _pairs(s["constraints"])])]
         if s["bound_max_abs_u"] or s["bound_tv_u"]:
             lines += ["", effort_span(s)]
     if s.get("sensitivity"):
@@ -189,9 +186,7 @@ def text(s: dict, problem, figures) -> str:
                        "(`effort_bounds = \"nominal\"`)."), "",
                   *table(("constraint", "bounds", "met (start)", "met (tuned)",
                           "worst plant (tuned)", "its value / bound", "margin (bound - value)"),
-                         [_train_row(a, b) for a, b in zip(s["train_constraints"]["start"],
-                                                           s["train_constraints"]["tuned"],
-                                                           strict=True)])]
+                         [_train_row(a, b) for a, b in _pairs(s["train_constraints"])])]
     if s.get("margins"):
         short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
         lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
@@ -204,8 +199,7 @@ def text(s: dict, problem, figures) -> str:
                        f"{b['worst_margin']:.4g}" + "".join(
                            f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
                            if k in b))
-                      for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"],
-                                      strict=True)])]
+                      for a, b in _pairs(s["requirements"])])]
     for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
         if key not in s:
             continue
@@ -234,12 +228,10 @@ def text(s: dict, problem, figures) -> str:
                          f"and {c['n_diverged']}.")
         lines.append("The figures above are over the plants that did not diverge (in the "
                      "loop they name).")
-        reqs = s[key]["requirements"]["tuned"]
-        if reqs:
+        if s[key]["requirements"]["tuned"]:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
-                             f"plants with the tuned gains (start: "
-                             f"{100 * a['met_fraction']:.1f} %)"
-                             for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
+                             f"plants with the tuned gains (start: {100 * a['met_fraction']:.1f} %)"
+                             for a, r in _pairs(s[key]["requirements"])]
     lines += ["", "## Gains", "", *table(("parameter", "start", "tuned"), [
         (f"`{name}`", _fmt_val(a), _fmt_val(s["gains"]["tuned"][name]))
         for name, a in s["gains"]["start"].items()])]
@@ -248,6 +240,11 @@ def text(s: dict, problem, figures) -> str:
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def _pairs(d: dict):
+    """The rows of `d`'s start and tuned gains side by side."""
+    return zip(d["start"], d["tuned"], strict=True)
 
 
 def _train_row(a: dict, b: dict) -> tuple:
