@@ -48,7 +48,7 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
-    fig, ax = subplots(4, 1, figsize=(10, 11), layout="constrained")
+    fig, ax = subplots(4, 1, figsize=(10, 11))
     for tag, color in COLORS.items():
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
@@ -82,7 +82,7 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     figures.append("before_after.png")
 
     if ev["heldout"] is not None:
-        fig, ax = subplots(1, 2, figsize=(11, 4), layout="constrained")
+        fig, ax = subplots(1, 2, figsize=(11, 4))
         for i, key in enumerate(("linf_error_window", "max_abs_u")):
             for tag, color in COLORS.items():
                 m = ev["heldout"][tag]
