@@ -52,10 +52,9 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     for tag, color in COLORS.items():
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
-        label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
-                              else f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}"
-                              ) + ")"
-        ax[0].plot(t, e, color=color, lw=0.9, label=label)
+        how = (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged) else
+               f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}")
+        ax[0].plot(t, e, color=color, lw=0.9, label=f"{tag} ({how})")
         win = t >= sim.window_start
         ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
         tv = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(u)))])
