@@ -325,5 +325,4 @@ def method_sentence(opt, mode: str) -> str:
 
 
 def _fmt_val(v):
-    a = np.atleast_1d(np.asarray(v, dtype=float))
-    return ", ".join(f"{x:.5g}" for x in a)
+    return ", ".join(f"{x:.5g}" for x in np.atleast_1d(np.asarray(v, dtype=float)))
