@@ -140,8 +140,7 @@ def text(s: dict, problem, figures) -> str:
         + f", {run['rejected']} rejected"
         + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
            f"its own criteria stopped it or it stalled; adam from a random point after its step "
-           f"collapsed)"
-           if run.get("restarts") else "")
+           f"collapsed)" if run.get("restarts") else "")
         + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
@@ -212,20 +211,18 @@ def text(s: dict, problem, figures) -> str:
                       (escape(_label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
-        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
-                  f"(tuned); tracked after refinement (a numerically "
-                  f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
-                  f"{st['n_refined']} and {tu['n_refined']}; diverged at every step tried "
-                  f"{st['n_diverged']} and {tu['n_diverged']}"
+        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} (tuned); "
+                  f"tracked after refinement (a numerically stiff run re-done with ETDRK4 at a "
+                  f"smaller step, as sweeps do) {st['n_refined']} and {tu['n_refined']}; "
+                  f"diverged at every step tried {st['n_diverged']} and {tu['n_diverged']}"
                   + (f"; of the plants that did not diverge, chattering (chattering index "
                      f"above {metrics.CHATTER_RATIO:g}) {st['n_chattering']} and "
                      f"{tu['n_chattering']}" if "n_chattering" in tu else "") + "."]
         if "sampled" in tu:
             a, c = st["sampled"], tu["sampled"]
-            lines.append(f"With {s['second_loop']}: tracked "
-                         f"{a['n_tracked']} and {c['n_tracked']}; tracked after refinement "
-                         f"{a['n_refined']} and {c['n_refined']}; diverged {a['n_diverged']} "
-                         f"and {c['n_diverged']}.")
+            lines.append(f"With {s['second_loop']}: tracked {a['n_tracked']} and {c['n_tracked']}; "
+                         f"tracked after refinement {a['n_refined']} and {c['n_refined']}; "
+                         f"diverged {a['n_diverged']} and {c['n_diverged']}.")
         lines.append("The figures above are over the plants that did not diverge (in the "
                      "loop they name).")
         if s[key]["requirements"]["tuned"]:
