@@ -300,8 +300,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     summary["margins_warning"] = (None if summary["margins"] is None else
                                   "; ".join(margins.failures(summary["margins"])) or None)
     out = Path(out)
-    figures = (draw(out, result, ev, trajectories(problem, z0, z1), problem.objective.sim,
-                      problem) if plots else [])
+    figures = draw(out, result, ev, trajectories(problem, z0, z1), problem) if plots else []
     st = (summary["margins"] or {}).get("sample_time")
     if plots and st is not None:
         ts_sweep.plot(st, out / "sampling.png", COLORS, 110,

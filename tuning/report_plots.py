@@ -41,8 +41,8 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     return fig
 
 
-def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
-    figures, sc = [], problem.scales
+def draw(out: Path, result, ev, trajs, problem) -> list[str]:
+    figures, sc, sim = [], problem.scales, problem.objective.sim
     if result.history:
         plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,
                         batch=bool(problem.objective.overrides))
