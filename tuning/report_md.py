@@ -152,10 +152,9 @@ def text(s: dict, problem, figures) -> str:
     lines += [f"**Warning:** {w}." for w in s["warnings"]]
     lines += ["", "## Nominal plant", ""]
     if s.get("shifted_reference"):
-        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) "
-                  "to x_1(0), the offset decaying): the error tuned and every error figure "
-                  "below is measured against it unless it says \"against the config's "
-                  "y_r\".", ""]
+        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) to "
+                  "x_1(0), the offset decaying): the error tuned and every error figure below is "
+                  "measured against it unless it says \"against the config's y_r\".", ""]
     a, b = nom["start"], nom["tuned"]
     lines += table(("", "start gains", "tuned gains", "tuned / start"), [
         *((escape(_label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
