@@ -46,9 +46,9 @@ def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, floa
     the mu at which the tau rule stops binding."""
     _, allows = theory.certified_alpha0(controller, M, 1.0)
     others = min(v for k, v in allows.items() if not k.startswith("tau_"))
-    c = controller
-    candidates = [float(np.asarray(M)[i]) ** 2 / (2 * (1 / float(c.tau[i]) - 0.25 - others))
-                  for i in range(n - 1) if 1 / float(c.tau[i]) - 0.25 - others > 0]
+    room = [1 / float(tau) - 0.25 - others for tau in controller.tau]  # for M^2/(2 mu) in (60)
+    candidates = [float(m) ** 2 / (2 * r) for m, r in zip(np.asarray(M), room, strict=True)
+                  if r > 0]
 
     def bound(mu):
         a0 = theory.certified_alpha0(controller, M, mu)[0]
