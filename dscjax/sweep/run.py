@@ -139,9 +139,8 @@ def run_sweep(
         whole = -(-chunk // tile) * tile
         chunk = whole if -(-n // whole) == -(-n // chunk) else chunk
     names = tuple(r.name for r in ranges)
-    table = settings.method.draw(ranges, n, settings.seed)
     # the values actually simulated: rounded to the sweep's dtype
-    table = table.astype(dtype).astype(np.float64)
+    table = settings.method.draw(ranges, n, settings.seed).astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
     tile = tile if settings.parallel == "per_device" else None
     fp = fingerprint(setup, settings, ranges, spec, chunk, tile)
@@ -149,9 +148,8 @@ def run_sweep(
 
     out = Path(out_dir) if out_dir is not None else None
     main = jax.process_index() == 0
-    done = np.zeros(n_blocks, dtype=bool)
-    if out is not None:
-        done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
+    done = (np.zeros(n_blocks, dtype=bool) if out is None
+            else _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main))
     kept: dict[int, dict[str, np.ndarray]] = {}
 
     runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile,
@@ -171,15 +169,12 @@ def run_sweep(
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
             part = runner.refine(table[lo:lo + m], part, counted_levels(spec))
-            data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
-                            table[lo:lo + m], part)
-            if out is not None:
-                if main:
-                    with critical():  # a Ctrl-C waits for the chunk file (dscjax.progress)
-                        files.write_npz(_chunk_path(out, b),
-                                        {**data, "_fingerprint": np.array(digest)})
-            else:
+            data = _columns(np.arange(lo, lo + m, dtype=np.int64), names, table[lo:lo + m], part)
+            if out is None:
                 kept[b] = data
+            elif main:
+                with critical():  # a Ctrl-C waits for the chunk file (dscjax.progress)
+                    files.write_npz(_chunk_path(out, b), {**data, "_fingerprint": np.array(digest)})
             n_run += m
         now = time.perf_counter()
         t_first_round = t_first_round or (now, n_run)
