@@ -146,8 +146,7 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     info = result.info
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
-    n_steps = info["n_steps"]
-    every = max(1, min(save_every, n_steps))
+    every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
                         **{k: info[k] for k in RUN_KEYS})
     out = []
