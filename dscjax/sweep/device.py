@@ -72,8 +72,7 @@ def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int) -> float | N
     does not say."""
     dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
     spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype).program()
-    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,
-                                 sharding=SingleDeviceSharding(device))
+    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype, sharding=SingleDeviceSharding(device))
     compiled = _block.top.lower(jax.device_put(setup, device), spec, table,
                                 columns=tuple(columns)).compile()
     return dscjax_device.per_row_bytes(compiled, rows)
@@ -103,8 +102,7 @@ class Runner:
         self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
         self.parallel = parallel
         self._compiled = False
-        me = jax.process_index()
-        self.local = [d for d in self.devices if d.process_index == me]
+        self.local = [d for d in self.devices if d.process_index == jax.process_index()]
         if parallel == "spmd":
             body = jax.shard_map(
                 lambda s, sp, t: _block_body(s, sp, t, columns=self.columns),
@@ -125,8 +123,7 @@ class Runner:
         run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
         if self.parallel == "spmd":
-            arr = jax.make_array_from_callback(table.shape, self.in_sharding,
-                                               lambda i: table[i])
+            arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
             out = self._spmd(self.setup, self.spec.program(), arr)
             return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1

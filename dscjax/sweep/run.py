@@ -240,8 +240,7 @@ def _default_chunk(setup, columns, spec: RunSpec, n: int, devices, tile: int) ->
         return device.auto_chunk(n)
     mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
     chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
-                              bytes_per_row(setup, columns, spec, mine[0], tile),
-                              len(devices))
+                              bytes_per_row(setup, columns, spec, mine[0], tile), len(devices))
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
@@ -261,8 +260,7 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     if chunk is None or setup is None or spec is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
-    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt),
-                            float(spec.window_start))
+    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt), float(spec.window_start))
     manifest = Path(out) / "sweep.json"
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again
@@ -294,8 +292,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
                 f.unlink()
             (out / "results.npz").unlink(missing_ok=True)
         with critical():
-            files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest})
-                             + "\n")
+            files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
