@@ -90,6 +90,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
 
 def report_md(result: Result) -> str:
     p = result.problem
+    warnings = assumption_warnings(p)
     lines = [f"# Worst case of {p.metric}", ""]
     verdict = (f"the loop DIVERGES (at t = {result.t_diverged:.6g} s, at every refinement "
                f"level)" if result.diverged else f"{result.value:.6g}")
@@ -99,8 +100,7 @@ def report_md(result: Result) -> str:
               f"{p.t_final:g}] s. Searched: "
               + (", ".join(r.spec() for r in p.ranges) or "no parameter")
               + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
-              *(f"Warning: {w}." for w in assumption_warnings(p)),
-              *([""] if assumption_warnings(p) else []),
+              *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
               "## Methods (equal search time; compilation apart)", "",
               *table(("method", "best value", "evaluations", "iterations", "search s", "compile s"),
                      [(m, f"{best_value(tr):.6g}", tr.evaluations, tr.iterations,
