@@ -176,7 +176,6 @@ class Runner:
         """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
         first local device, and the columns "refinements" and "dt_used" added (every process
         computes the same rows: no gather)."""
-        dt = float(self.spec.dt)
         device = self.local[0] if self.local else self.devices[0]
         setup = jax.device_put(self._setup, device)
         rows = np.asarray(table, self.dtype)
@@ -190,7 +189,7 @@ class Runner:
         for j in np.unique(level_of):
             halvings[level_of == j] = refinement_level(int(j), self.spec.solver)[1]
         out["refinements"] = level_of.astype(np.int8)
-        out["dt_used"] = dt / 2.0**halvings
+        out["dt_used"] = float(self.spec.dt) / 2.0**halvings
         return out
 
 

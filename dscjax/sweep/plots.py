@@ -123,11 +123,10 @@ def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
     ix = np.clip(np.searchsorted(ex, x, side="right") - 1, 0, nx - 1)
     iy = np.clip(np.searchsorted(ey, y, side="right") - 1, 0, ny - 1)
     flat = ix * ny + iy
-    order = np.argsort(flat, kind="stable")
     med = np.full(nx * ny, np.nan)
     count = np.bincount(flat, minlength=nx * ny)
     starts = np.concatenate([[0], np.cumsum(count)])
-    es = e[order]
+    es = e[np.argsort(flat, kind="stable")]  # the errors cell by cell
     for c in np.flatnonzero(count):
         med[c] = np.median(es[starts[c]:starts[c + 1]])
     div_cells = np.bincount(flat[div], minlength=nx * ny) > 0
