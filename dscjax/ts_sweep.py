@@ -123,12 +123,11 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
     keep = np.arange(y.size) * dt >= window_start
     fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
             zip(sample_times, sampled, strict=True) if ts <= dt * (1 + 1e-9)]
-    if len(fine) < 2 or not all(np.isfinite(e) and e > 0 for _, e in fine):
-        out["order"] = None
-        return out
-    ts, err = np.asarray(fine).T
-    out["order"] = {"sample_times": ts.tolist(), "max_abs_dy": err.tolist(),
-                    "order": float(np.polyfit(np.log(ts), np.log(err), 1)[0])}
+    out["order"] = None
+    if len(fine) >= 2 and all(np.isfinite(e) and e > 0 for _, e in fine):
+        ts, err = np.asarray(fine).T
+        out["order"] = {"sample_times": ts.tolist(), "max_abs_dy": err.tolist(),
+                        "order": float(np.polyfit(np.log(ts), np.log(err), 1)[0])}
     return out
 
 

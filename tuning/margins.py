@@ -91,10 +91,10 @@ def sweep_times(ts: float) -> list[float]:
     return out + [top]
 
 
-def sample_times(problem, z0, z1, nominal: dict, heldout: dict | None) -> dict[str, Any] | None:
+def sample_times(problem, z0, z1, reference: dict, heldout: dict | None) -> dict[str, Any] | None:
     """`ts_sweep.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
     Ts (its discretisation, delay and noise kept), each Ts judged against the gains' windowed
-    L-inf in the loop tuned (`nominal`: {tag: the nominal plant's figures there}); the largest
+    L-inf in the loop tuned (`reference`, {tag: that figure on the nominal plant}); the largest
     Ts up to which each tracks, and whether the tuned gains track at every Ts of the range.
     With `heldout` ({tag: the held-out plants' figures in the loop tuned}, `report.evaluate`;
     None: no held-out batch), the held-out batch's p95 of TV(u) on the window and its
@@ -104,7 +104,6 @@ def sample_times(problem, z0, z1, nominal: dict, heldout: dict | None) -> dict[s
     if not sim.sampled:
         return None
     dt = float(problem.options.dt)
-    reference = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     result = ts_sweep.study(problem.setup, gain_rows(problem, z0, z1), NAMES, sim.t_final, dt,
                             float(sim.window_start), sweep_times(sim.sample_time), base=sim,
                             reference=reference)
@@ -179,20 +178,19 @@ def delay_judge(problem, linf, tv, index, reference) -> str | None:
     return None
 
 
-def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
+def delays(problem, z0, z1, nominal: dict, reference: dict) -> dict[str, Any] | None:
     """The delay margin: the loop tuned with an input delay of d samples, d from its own delay
     up to DELAY_MAX, each gain set judged by `delay_judge` against its windowed L-inf in the
-    loop tuned (`nominal`, {tag: the nominal plant's figures}, which are the row of its own
-    delay); the largest d up to which each holds (None: not even at its own delay). The
-    delay fixes the program's shape, so each d compiles one program: the sweep stops at the
-    first d at which neither gain set holds. None for a continuous tuned loop."""
+    loop tuned (`reference`, {tag: that figure}; `nominal`, {tag: the nominal plant's figures},
+    are the row of its own delay); the largest d up to which each holds (None: not even at its
+    own delay). The delay fixes the program's shape, so each d compiles one program: the sweep
+    stops at the first d at which neither gain set holds. None for a continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None
     gains = gain_rows(problem, z0, z1)
     own = int(sim.delay)
     figures = (*ts_sweep.FIGURES, "tv_u")
-    ref = {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
     out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
                            "linf_factor": problem.cfg.objective.delay_factor,
                            "tv_limit": None if problem.scales.tv_max is None else
@@ -205,7 +203,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
             for k in figures:
                 out[tag][k].append(r[k])
             out[tag]["why_not"].append(delay_judge(problem, r["linf_error_window"], r["tv_u"],
-                                                   r["chattering_index"], ref[tag]))
+                                                   r["chattering_index"], reference[tag]))
 
     add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
                for k in figures} for tag in NAMES])
@@ -267,9 +265,10 @@ def evaluate(problem, z0, z1, ev: dict) -> dict[str, Any]:
     per-plant figures (`report.evaluate`), against which the Ts sweep and the delays are
     judged (the nominal plant in the loop tuned) and from which the held-out batch's figures
     at the tuned Ts come."""
+    reference = {tag: _finite(ev["nominal"][tag].get("linf_error_window")) for tag in NAMES}
     return {"continuous": continuous(problem, z0, z1),
-            "sample_time": sample_times(problem, z0, z1, ev["nominal"], ev["heldout"]),
-            "delay": delays(problem, z0, z1, ev["nominal"]),
+            "sample_time": sample_times(problem, z0, z1, reference, ev["heldout"]),
+            "delay": delays(problem, z0, z1, ev["nominal"], reference),
             "long_run": long_run(problem, z0, z1)}
 
 

@@ -126,8 +126,7 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
         if key not in m:
             continue
         mask = next((masks[c] for c in masks if key.startswith(f"{c}_")), ok)
-        v = m[key] if key == "loss" else m[key][mask]
-        v = np.asarray(v, float)
+        v = np.asarray(m[key] if key == "loss" else m[key][mask], float)
         v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
         out[key] = None if v.size == 0 else {
             "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
@@ -301,8 +300,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     summary["margins_warning"] = (None if summary["margins"] is None else
                                   "; ".join(margins.failures(summary["margins"])) or None)
     out = Path(out)
-    figures = (draw(out, result, ev, trajectories(problem, z0, z1), problem.objective.sim,
-                      problem) if plots else [])
+    figures = draw(out, result, ev, trajectories(problem, z0, z1), problem) if plots else []
     st = (summary["margins"] or {}).get("sample_time")
     if plots and st is not None:
         ts_sweep.plot(st, out / "sampling.png", COLORS, 110,
@@ -335,10 +333,8 @@ def _measured(m: dict[str, float]) -> dict[str, float]:
 def assumption_warnings(problem) -> list[str]:
     """The paper's assumptions the start setup violates, at the nominal plant or at an end of
     the training or held-out ranges."""
-    out, cfg = [], problem.cfg
+    found, cfg = [], problem.cfg
     for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)):
         ranges = [r.resolve(problem.setup) for r in b.ranges] if b.batch else []
-        for w in with_ranges(problem.setup, ranges, f"tuning.{key}.ranges"):
-            if w not in out:
-                out.append(w)
-    return out
+        found += with_ranges(problem.setup, ranges, f"tuning.{key}.ranges")
+    return list(dict.fromkeys(found))  # each once, in the order first found

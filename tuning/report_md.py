@@ -110,10 +110,8 @@ def _own(s: dict, key: str) -> str:
 
 
 def text(s: dict, problem, figures) -> str:
-    sim = problem.objective.sim
-    run = s["run"]
-    nom = s["nominal"]
-    cfg = problem.cfg
+    sim, cfg = problem.objective.sim, problem.cfg
+    run, nom = s["run"], s["nominal"]
     lines = ["# dscjax tune: report", ""]
     for key, warning in (("heldout", "{}"), ("margins", "a margin fails: {}"), (
             "sensitivity", '{} ("Sensitivity of the constraints" below)')):
@@ -142,8 +140,7 @@ def text(s: dict, problem, figures) -> str:
         + f", {run['rejected']} rejected"
         + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
            f"its own criteria stopped it or it stalled; adam from a random point after its step "
-           f"collapsed)"
-           if run.get("restarts") else "")
+           f"collapsed)" if run.get("restarts") else "")
         + f"; stopped: {run['stop_reason']}. Best at iteration "
         f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
         f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
@@ -155,10 +152,9 @@ def text(s: dict, problem, figures) -> str:
     lines += [f"**Warning:** {w}." for w in s["warnings"]]
     lines += ["", "## Nominal plant", ""]
     if s.get("shifted_reference"):
-        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) "
-                  "to x_1(0), the offset decaying): the error tuned and every error figure "
-                  "below is measured against it unless it says \"against the config's "
-                  "y_r\".", ""]
+        lines += ["The controller tracks a shifted reference (its initialisation moves y_r(0) to "
+                  "x_1(0), the offset decaying): the error tuned and every error figure below is "
+                  "measured against it unless it says \"against the config's y_r\".", ""]
     a, b = nom["start"], nom["tuned"]
     lines += table(("", "start gains", "tuned gains", "tuned / start"), [
         *((escape(_label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
@@ -174,8 +170,7 @@ def text(s: dict, problem, figures) -> str:
                        f"{b['value']:.6g}",
                        f"{b['margin']:.4g} ({100 * b['relative_margin']:.2f} %)",
                        f"**{'met' if b['met'] else 'violated'}**")
-                      for a, b in zip(s["constraints"]["start"], s["constraints"]["tuned"],
-                                      strict=True)])]
+                      for a, b in _pairs(s["constraints"])])]
         if s["bound_max_abs_u"] or s["bound_tv_u"]:
             lines += ["", effort_span(s)]
     if s.get("sensitivity"):
@@ -189,9 +184,7 @@ def text(s: dict, problem, figures) -> str:
                        "(`effort_bounds = \"nominal\"`)."), "",
                   *table(("constraint", "bounds", "met (start)", "met (tuned)",
                           "worst plant (tuned)", "its value / bound", "margin (bound - value)"),
-                         [_train_row(a, b) for a, b in zip(s["train_constraints"]["start"],
-                                                           s["train_constraints"]["tuned"],
-                                                           strict=True)])]
+                         [_train_row(a, b) for a, b in _pairs(s["train_constraints"])])]
     if s.get("margins"):
         short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
         lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
@@ -204,8 +197,7 @@ def text(s: dict, problem, figures) -> str:
                        f"{b['worst_margin']:.4g}" + "".join(
                            f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
                            if k in b))
-                      for a, b in zip(s["requirements"]["start"], s["requirements"]["tuned"],
-                                      strict=True)])]
+                      for a, b in _pairs(s["requirements"])])]
     for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
         if key not in s:
             continue
@@ -218,28 +210,24 @@ def text(s: dict, problem, figures) -> str:
                       (escape(_label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
-        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} "
-                  f"(tuned); tracked after refinement (a numerically "
-                  f"stiff run re-done with ETDRK4 at a smaller step, as sweeps do) "
-                  f"{st['n_refined']} and {tu['n_refined']}; diverged at every step tried "
-                  f"{st['n_diverged']} and {tu['n_diverged']}"
+        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} (tuned); "
+                  f"tracked after refinement (a numerically stiff run re-done with ETDRK4 at a "
+                  f"smaller step, as sweeps do) {st['n_refined']} and {tu['n_refined']}; "
+                  f"diverged at every step tried {st['n_diverged']} and {tu['n_diverged']}"
                   + (f"; of the plants that did not diverge, chattering (chattering index "
                      f"above {metrics.CHATTER_RATIO:g}) {st['n_chattering']} and "
                      f"{tu['n_chattering']}" if "n_chattering" in tu else "") + "."]
         if "sampled" in tu:
             a, c = st["sampled"], tu["sampled"]
-            lines.append(f"With {s['second_loop']}: tracked "
-                         f"{a['n_tracked']} and {c['n_tracked']}; tracked after refinement "
-                         f"{a['n_refined']} and {c['n_refined']}; diverged {a['n_diverged']} "
-                         f"and {c['n_diverged']}.")
+            lines.append(f"With {s['second_loop']}: tracked {a['n_tracked']} and {c['n_tracked']}; "
+                         f"tracked after refinement {a['n_refined']} and {c['n_refined']}; "
+                         f"diverged {a['n_diverged']} and {c['n_diverged']}.")
         lines.append("The figures above are over the plants that did not diverge (in the "
                      "loop they name).")
-        reqs = s[key]["requirements"]["tuned"]
-        if reqs:
+        if s[key]["requirements"]["tuned"]:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
-                             f"plants with the tuned gains (start: "
-                             f"{100 * a['met_fraction']:.1f} %)"
-                             for r, a in zip(reqs, s[key]["requirements"]["start"], strict=True)]
+                             f"plants with the tuned gains (start: {100 * a['met_fraction']:.1f} %)"
+                             for a, r in _pairs(s[key]["requirements"])]
     lines += ["", "## Gains", "", *table(("parameter", "start", "tuned"), [
         (f"`{name}`", _fmt_val(a), _fmt_val(s["gains"]["tuned"][name]))
         for name, a in s["gains"]["start"].items()])]
@@ -248,6 +236,11 @@ def text(s: dict, problem, figures) -> str:
     if figures:
         lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
     return "\n".join(lines)
+
+
+def _pairs(d: dict):
+    """The rows of `d`'s start and tuned gains side by side."""
+    return zip(d["start"], d["tuned"], strict=True)
 
 
 def _train_row(a: dict, b: dict) -> tuple:
@@ -328,5 +321,4 @@ def method_sentence(opt, mode: str) -> str:
 
 
 def _fmt_val(v):
-    a = np.atleast_1d(np.asarray(v, dtype=float))
-    return ", ".join(f"{x:.5g}" for x in a)
+    return ", ".join(f"{x:.5g}" for x in np.atleast_1d(np.asarray(v, dtype=float)))

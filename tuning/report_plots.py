@@ -41,21 +41,20 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     return fig
 
 
-def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
-    figures, sc = [], problem.scales
+def draw(out: Path, result, ev, trajs, problem) -> list[str]:
+    figures, sc, sim = [], problem.scales, problem.objective.sim
     if result.history:
         plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
-    fig, ax = subplots(4, 1, figsize=(10, 11), layout="constrained")
+    fig, ax = subplots(4, 1, figsize=(10, 11))
     for tag, color in COLORS.items():
         tr = trajs[tag]
         t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
-        label = f"{tag} (" + (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged)
-                              else f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}"
-                              ) + ")"
-        ax[0].plot(t, e, color=color, lw=0.9, label=label)
+        how = (f"diverged at {float(tr.t_diverged):.3g} s" if bool(tr.diverged) else
+               f"L-inf on [t0,T] {float(tr.metrics['linf_error_window']):.3g}")
+        ax[0].plot(t, e, color=color, lw=0.9, label=f"{tag} ({how})")
         win = t >= sim.window_start
         ax[1].plot(t[win], e[win], color=color, lw=0.9, label=tag)
         tv = np.concatenate([[0.0], np.cumsum(np.abs(np.diff(u)))])
@@ -82,7 +81,7 @@ def draw(out: Path, result, ev, trajs, sim, problem) -> list[str]:
     figures.append("before_after.png")
 
     if ev["heldout"] is not None:
-        fig, ax = subplots(1, 2, figsize=(11, 4), layout="constrained")
+        fig, ax = subplots(1, 2, figsize=(11, 4))
         for i, key in enumerate(("linf_error_window", "max_abs_u")):
             for tag, color in COLORS.items():
                 m = ev["heldout"][tag]

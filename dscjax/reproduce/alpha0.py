@@ -199,7 +199,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     setup, dt, res = last
     row = _row(alpha0, setup, dt, res, converged, history)
     if opts.verify_dt and opts.t_final / (dt / 2) <= opts.max_steps:
-        traj2 = simulate(setup, opts.t_final, dt / 2, save_every=1, throw=False, refine=0)
+        traj2 = _simulate(setup, opts.t_final, dt / 2, opts)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
         v_max = float(np.max(theory.lyapunov(setup, traj2).V))
         row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=v_max,

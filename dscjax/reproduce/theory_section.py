@@ -40,15 +40,16 @@ GROUPS = (  # (term of (44), label, colour) in stacking order
 ALPHA0_PAPER = 0.2  # what k_2 = 0.45 = 1/4 + alpha_0 suggests (docs/paper-readings.md)
 
 
-def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, float]:
-    """(mu, certified alpha_0) with the smallest (72) for fixed gains: alpha_0(mu) grows with
-    mu (the tau rule (60)), C(mu) = C0 + (n-1) mu/2; over a log grid of mu in [1e-4, 1e4] and
-    the mu at which the tau rule stops binding."""
+def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, float, dict]:
+    """(mu, certified alpha_0, {gain: the alpha_0 it allows}) with the smallest (72) for fixed
+    gains (`theory.certified_alpha0` at that mu): alpha_0(mu) grows with mu (the tau rule (60)),
+    C(mu) = C0 + (n-1) mu/2; over a log grid of mu in [1e-4, 1e4] and the mu at which the tau
+    rule stops binding."""
     _, allows = theory.certified_alpha0(controller, M, 1.0)
     others = min(v for k, v in allows.items() if not k.startswith("tau_"))
-    c = controller
-    candidates = [float(np.asarray(M)[i]) ** 2 / (2 * (1 / float(c.tau[i]) - 0.25 - others))
-                  for i in range(n - 1) if 1 / float(c.tau[i]) - 0.25 - others > 0]
+    room = [1 / float(tau) - 0.25 - others for tau in controller.tau]  # for M^2/(2 mu) in (60)
+    candidates = [float(m) ** 2 / (2 * r) for m, r in zip(np.asarray(M), room, strict=True)
+                  if r > 0]
 
     def bound(mu):
         a0 = theory.certified_alpha0(controller, M, mu)[0]
@@ -58,7 +59,7 @@ def best_mu(controller, M, C0: float, g_max: float, n: int) -> tuple[float, floa
                                     *(m * (1 + 1e-12) for m in candidates))), key=bound)
     if bound(mu) == math.inf:
         raise ValueError("no mu > 0 certifies a positive alpha_0 for these gains")
-    return mu, theory.certified_alpha0(controller, M, mu)[0]
+    return mu, *theory.certified_alpha0(controller, M, mu)
 
 
 def paper_check(setup, traj) -> tuple[dict, dict]:
@@ -69,9 +70,8 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     n = setup.order
     C0 = probe["e_M"] + probe["slack"]
     g_max = float(lv.truth.g_max)
-    mu, a0 = best_mu(setup.controller, M, C0, g_max, n)
+    mu, a0, allows = best_mu(setup.controller, M, C0, g_max, n)
     res = theory.check(setup, traj, a0, mu)
-    _, allows = theory.certified_alpha0(setup.controller, M, mu)
     c = setup.controller
     gains = [dict(gain=g, paper=float(v), rule=r, at_0_2=float(sum(base) + ALPHA0_PAPER / s))
              for g, v, r, base, s in theory.gain_rules(c, M, mu)]

@@ -110,8 +110,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
     if saved is not None:
         files.check_same(saved.fingerprint, fp, where=f"--resume: {path}",
                          fix="use the same settings, or --overwrite to start afresh")
-        trace = saved.trace
-        state = method.restore(problem, trace.start_z, seed, saved.arrays)
+        trace, state = saved.trace, method.restore(problem, saved.trace.start_z, seed, saved.arrays)
     else:
         x0 = np.array(x0, dtype=np.float64).reshape(-1)
         trace, state = Trace(method.name, x0), method.init(problem, x0, seed)

@@ -87,9 +87,8 @@ class CMA:
         ev = problem.evaluate(z)
         first, start = 0, None
         if ctx.iteration == 0:  # the start point (evaluated after: padded to this batch)
-            ev0 = problem.evaluate(ctx.x0[None, :])
-            z, ev, first, start = np.concatenate([ctx.x0[None, :], z]), Evaluation.join(
-                [ev0, ev]), 1, 0
+            ev = Evaluation.join([problem.evaluate(ctx.x0[None, :]), ev])
+            z, first, start = np.concatenate([ctx.x0[None, :], z]), 1, 0
         loss = ev.loss[first:]
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
         sigma, stop = es.sigma, es.stop() or self._stalled(es)

@@ -215,10 +215,8 @@ def load(path: str | Path) -> Saved | None:
                      bool(ints.pop("best_feasible")), ints.pop("best_iteration"))
     trace = Trace(meta["method"], a["t_start_z"], best=best, done=meta["done"],
                   history=history, top_z=a["t_top_z"], top_loss=a["t_top_loss"],
-                  top_feasible=a["t_top_feasible"], diverged_z=a["t_diverged_z"],
-                  **floats, **ints)
-    return Saved(trace, {k[2:]: v for k, v in a.items() if k.startswith("m_")},
-                 meta["fingerprint"])
+                  top_feasible=a["t_top_feasible"], diverged_z=a["t_diverged_z"], **floats, **ints)
+    return Saved(trace, {k[2:]: v for k, v in a.items() if k.startswith("m_")}, meta["fingerprint"])
 
 
 __all__ = ["DIVERGED", "TOP", "Evaluation", "Incumbent", "Saved", "Trace", "load", "order",

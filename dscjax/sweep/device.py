@@ -72,8 +72,7 @@ def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int) -> float | N
     does not say."""
     dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
     spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype).program()
-    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype,
-                                 sharding=SingleDeviceSharding(device))
+    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype, sharding=SingleDeviceSharding(device))
     compiled = _block.top.lower(jax.device_put(setup, device), spec, table,
                                 columns=tuple(columns)).compile()
     return dscjax_device.per_row_bytes(compiled, rows)
@@ -103,8 +102,7 @@ class Runner:
         self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
         self.parallel = parallel
         self._compiled = False
-        me = jax.process_index()
-        self.local = [d for d in self.devices if d.process_index == me]
+        self.local = [d for d in self.devices if d.process_index == jax.process_index()]
         if parallel == "spmd":
             body = jax.shard_map(
                 lambda s, sp, t: _block_body(s, sp, t, columns=self.columns),
@@ -125,8 +123,7 @@ class Runner:
         run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
         if self.parallel == "spmd":
-            arr = jax.make_array_from_callback(table.shape, self.in_sharding,
-                                               lambda i: table[i])
+            arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
             out = self._spmd(self.setup, self.spec.program(), arr)
             return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1
@@ -179,7 +176,6 @@ class Runner:
         """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
         first local device, and the columns "refinements" and "dt_used" added (every process
         computes the same rows: no gather)."""
-        dt = float(self.spec.dt)
         device = self.local[0] if self.local else self.devices[0]
         setup = jax.device_put(self._setup, device)
         rows = np.asarray(table, self.dtype)
@@ -193,7 +189,7 @@ class Runner:
         for j in np.unique(level_of):
             halvings[level_of == j] = refinement_level(int(j), self.spec.solver)[1]
         out["refinements"] = level_of.astype(np.int8)
-        out["dt_used"] = dt / 2.0**halvings
+        out["dt_used"] = float(self.spec.dt) / 2.0**halvings
         return out
 
 

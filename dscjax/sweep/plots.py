@@ -23,8 +23,7 @@ _SYMBOLS = {
     "plant.dbar_bias": "disturbance bias", "plant.dbar_freq": "disturbance frequency [rad/s]",
     "plant.delta_freq": "Δ frequency [rad/s]",
 }
-_VECTOR = {"plant.g": "g_{}", "plant.theta": "θ_{}", "plant.x0": "x_{}(0)",
-           "controller.k": "k_{}"}
+_VECTOR = {"plant.g": "g_{}", "plant.theta": "θ_{}", "plant.x0": "x_{}(0)", "controller.k": "k_{}"}
 
 
 def param_label(name: str) -> str:
@@ -70,7 +69,8 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     err = np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
-    v = err[~div & np.isfinite(err)]
+    keep = ~div & np.isfinite(err)
+    v = err[keep]
     fig, ax = subplots(figsize=(8, 5.4), layout="constrained")
     if v.size:
         log = _use_log(v)
@@ -78,7 +78,6 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
         if hi <= lo:
             hi = lo * 1.01 + 1e-12
         bins = (np.geomspace(lo, hi, 61) if log else np.linspace(lo, hi, 61))
-        keep = ~div & np.isfinite(err)
         plain, after = err[keep & ~ref], err[keep & ref]
         ax.hist([plain, after], bins=bins, color=["#1f77b4", "#ff7f0e"], alpha=0.85,
                 stacked=True, label=[f"samples that track ({plain.size:,})",
@@ -101,11 +100,9 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
     ax.set_ylabel("number of samples")
     ax.set_title((title + "\n" if title else "")
                  + f"{int(div.sum()):,} diverged at every step tried ({100 * div.mean():.2f} %,"
-                 " not shown)",
-                 fontsize=10)
+                 " not shown)", fontsize=10)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
-              frameon=False)
+    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     files.save_figure(fig, path, dpi=110)
 
 
@@ -126,11 +123,10 @@ def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
     ix = np.clip(np.searchsorted(ex, x, side="right") - 1, 0, nx - 1)
     iy = np.clip(np.searchsorted(ey, y, side="right") - 1, 0, ny - 1)
     flat = ix * ny + iy
-    order = np.argsort(flat, kind="stable")
     med = np.full(nx * ny, np.nan)
     count = np.bincount(flat, minlength=nx * ny)
     starts = np.concatenate([[0], np.cumsum(count)])
-    es = e[order]
+    es = e[np.argsort(flat, kind="stable")]  # the errors cell by cell
     for c in np.flatnonzero(count):
         med[c] = np.median(es[starts[c]:starts[c + 1]])
     div_cells = np.bincount(flat[div], minlength=nx * ny) > 0
@@ -150,8 +146,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     """Heatmap of the median windowed L-inf error over two parameters (hatched: a sample
     diverged at every step tried; red: median above `threshold`; x diverged, o `refined`
     samples); returns the cell statistics."""
-    med, ex, ey, count, div_cells = heatmap_grid(x, y, err, diverged, grid_x=grid_x,
-                                                 grid_y=grid_y)
+    med, ex, ey, count, div_cells = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]

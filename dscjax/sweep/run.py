@@ -139,9 +139,8 @@ def run_sweep(
         whole = -(-chunk // tile) * tile
         chunk = whole if -(-n // whole) == -(-n // chunk) else chunk
     names = tuple(r.name for r in ranges)
-    table = settings.method.draw(ranges, n, settings.seed)
     # the values actually simulated: rounded to the sweep's dtype
-    table = table.astype(dtype).astype(np.float64)
+    table = settings.method.draw(ranges, n, settings.seed).astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
     tile = tile if settings.parallel == "per_device" else None
     fp = fingerprint(setup, settings, ranges, spec, chunk, tile)
@@ -149,9 +148,8 @@ def run_sweep(
 
     out = Path(out_dir) if out_dir is not None else None
     main = jax.process_index() == 0
-    done = np.zeros(n_blocks, dtype=bool)
-    if out is not None:
-        done = _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main)
+    done = (np.zeros(n_blocks, dtype=bool) if out is None
+            else _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main))
     kept: dict[int, dict[str, np.ndarray]] = {}
 
     runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile,
@@ -171,15 +169,12 @@ def run_sweep(
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
             part = runner.refine(table[lo:lo + m], part, counted_levels(spec))
-            data = _columns(np.arange(lo, lo + m, dtype=np.int64), names,
-                            table[lo:lo + m], part)
-            if out is not None:
-                if main:
-                    with critical():  # a Ctrl-C waits for the chunk file (dscjax.progress)
-                        files.write_npz(_chunk_path(out, b),
-                                        {**data, "_fingerprint": np.array(digest)})
-            else:
+            data = _columns(np.arange(lo, lo + m, dtype=np.int64), names, table[lo:lo + m], part)
+            if out is None:
                 kept[b] = data
+            elif main:
+                with critical():  # a Ctrl-C waits for the chunk file (dscjax.progress)
+                    files.write_npz(_chunk_path(out, b), {**data, "_fingerprint": np.array(digest)})
             n_run += m
         now = time.perf_counter()
         t_first_round = t_first_round or (now, n_run)
@@ -245,8 +240,7 @@ def _default_chunk(setup, columns, spec: RunSpec, n: int, devices, tile: int) ->
         return device.auto_chunk(n)
     mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
     chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
-                              bytes_per_row(setup, columns, spec, mine[0], tile),
-                              len(devices))
+                              bytes_per_row(setup, columns, spec, mine[0], tile), len(devices))
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 
@@ -266,8 +260,7 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     if chunk is None or setup is None or spec is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
-    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt),
-                            float(spec.window_start))
+    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt), float(spec.window_start))
     manifest = Path(out) / "sweep.json"
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again
@@ -299,8 +292,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
                 f.unlink()
             (out / "results.npz").unlink(missing_ok=True)
         with critical():
-            files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest})
-                             + "\n")
+            files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
     if jax.process_count() > 1:
         from jax.experimental import multihost_utils
 

@@ -81,11 +81,10 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
                                                  for h in s.heatmap))
     if "ranges" in table and "grid" in table:
         raise ConfigError("give either [sweep.ranges] or [sweep.grid], not both")
-    for key, grid in (("ranges", False), ("grid", True)):
-        if key in table:
-            s = dataclasses.replace(s, ranges=params.from_table(table[key], f"sweep.{key}",
-                                                                grid))
+    if "ranges" in table:
+        s = dataclasses.replace(s, ranges=params.from_table(table["ranges"], "sweep.ranges"))
     if "grid" in table:
+        s = dataclasses.replace(s, ranges=params.from_table(table["grid"], "sweep.grid", True))
         if "samples" in table:
             raise ConfigError("sweep.samples cannot be used with [sweep.grid] (a grid's size "
                               "is the product of its numbers of points)")

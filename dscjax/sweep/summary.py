@@ -146,8 +146,7 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     info = result.info
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = ranges_params or [Param.parse(p) for p in result.param_names]
-    n_steps = info["n_steps"]
-    every = max(1, min(save_every, n_steps))
+    every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
                         **{k: info[k] for k in RUN_KEYS})
     out = []
@@ -242,8 +241,7 @@ def markdown(summary: Mapping[str, Any]) -> str:
              f"{n:,} {what} ({run.get('method')}, seed {run.get('seed')}) of {ranges}; "
              f"T = {run.get('t_final', float('nan')):g} s, dt = {run.get('dt', float('nan')):g} s, "
              f"{run.get('dtype')}, solver {run.get('solver')}, {loop_text(run)}; windowed "
-             f"metrics on t >= "
-             f"{run.get('window_start', float('nan')):g} s. Wall time "
+             f"metrics on t >= {run.get('window_start', float('nan')):g} s. Wall time "
              f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
              f"({run.get('platform')}).", ""]
     warnings = summary.get("warnings", [])
@@ -268,10 +266,9 @@ def markdown(summary: Mapping[str, Any]) -> str:
                      + f"; diverged included): {deg['count']:,} ({100 * deg['rate']:.2f} %)")
     nominal = summary.get("nominal")
     if nominal:
+        shown = ("linf_error_window", "tv_u_window", "chattering_index")
         lines.append("- nominal setup: " + ("diverged" if nominal.get("diverged") else
-                     f"linf_error_window {nominal['linf_error_window']:.4g}, tv_u_window "
-                     f"{nominal['tv_u_window']:.4g}, chattering_index "
-                     f"{nominal['chattering_index']:.4g}"))
+                     ", ".join(f"{m} {nominal[m]:.4g}" for m in shown)))
     check = summary.get("float32_check")
     lines += ["", "## float32 trust", ""]
     if check is None and run.get("dtype") == "float32":

@@ -37,6 +37,5 @@ from dscjax.worst.run import (
 
 __all__ = ["DEFAULT_BATCH", "DEFAULT_COARSENING", "DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS",
            "METRICS", "REQUIREMENT", "DisturbanceSpec", "Problem", "Programs", "Result",
-           "WorstSettings",
-           "assumption_warnings", "best_value", "check_search", "make_problem", "run_methods",
-           "search_method", "worst_case"]
+           "WorstSettings", "assumption_warnings", "best_value", "check_search", "make_problem",
+           "run_methods", "search_method", "worst_case"]

@@ -237,10 +237,9 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
     elif run:
         raise TypeError("make_problem: give spec or its fields, not both")
     options, spec = spec, spec.replace(save_every=spec.n_steps)
-    t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     setup = params.cast(setup, dtype_of(setup))
     if disturbance is not None:
-        zero = disturbance.model(np.zeros(disturbance.size), t_final)
+        zero = disturbance.model(np.zeros(disturbance.size), spec.t_final)
         setup = setup.replace(plant=dataclasses.replace(
             setup.plant, disturbance=params.cast(zero, dtype_of(setup))))
     validation.validate_setup(setup)
@@ -248,8 +247,8 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance, "
                           f"not by a range")
-    resolved = params.check(list(ranges), setup, field, t_final=t_final, dt=dt,
-                                window_start=window_start)
+    resolved = params.check(list(ranges), setup, field, t_final=spec.t_final, dt=float(spec.dt),
+                            window_start=float(spec.window_start))
     if requirement is not None and hasattr(requirement, "n_steps"):
         requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
     return Problem(setup, resolved, disturbance, metric, spec, requirement, options)

@@ -117,11 +117,10 @@ class Programs(search.Problem):
                  nominal_u: np.ndarray | None = None):
         self.d, self.m, self.nominal_u = d, m, nominal_u
         self.basis = jnp.asarray(basis)
-        pc = project_coef if m else None
         self.values = search.Batched(values)
         self._value_and_grad = search.Batched(value_and_grad)
         self.project = search.Batched(_Fixed(_project, after=(self.basis,), d=d,
-                                             project_coef=pc))
+                                             project_coef=project_coef if m else None))
         self.rescale = search.Batched(_Fixed(_rescale, after=(self.basis,), d=d))
         self.lower = np.concatenate([np.zeros(d), -np.ones(m)])
         self.upper = np.ones(d + m)

@@ -90,6 +90,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
 
 def report_md(result: Result) -> str:
     p = result.problem
+    warnings = assumption_warnings(p)
     lines = [f"# Worst case of {p.metric}", ""]
     verdict = (f"the loop DIVERGES (at t = {result.t_diverged:.6g} s, at every refinement "
                f"level)" if result.diverged else f"{result.value:.6g}")
@@ -99,11 +100,9 @@ def report_md(result: Result) -> str:
               f"{p.t_final:g}] s. Searched: "
               + (", ".join(r.spec() for r in p.ranges) or "no parameter")
               + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
-              *(f"Warning: {w}." for w in assumption_warnings(p)),
-              *([""] if assumption_warnings(p) else []),
+              *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
               "## Methods (equal search time; compilation apart)", "",
-              *table(("method", "best value", "evaluations", "iterations", "search s",
-                      "compile s"),
+              *table(("method", "best value", "evaluations", "iterations", "search s", "compile s"),
                      [(m, f"{best_value(tr):.6g}", tr.evaluations, tr.iterations,
                        f"{tr.seconds:.1f}", f"{tr.compile_seconds:.1f}")
                       for m, tr in result.traces.items()]),
@@ -137,8 +136,7 @@ def _plot_worst(path, worst, nominal, result):
     for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
         t = np.asarray(traj.t)
         for a, signal in zip(ax, (traj.e, traj.u), strict=True):
-            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name,
-                   color=CASE_COLORS[name])
+            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=CASE_COLORS[name])
     ax[0].set_ylabel("tracking error e [-]")
     ax[1].set_ylabel("control u [-]")
     ax[1].set_xlabel("t [s]")

@@ -227,8 +227,7 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
         res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
                          x0=prog.x0, seed=seed, time_limit=time_limit, max_evals=max_evals,
                          path=None if out is None else out / f"state_{name}.npz",
-                         resume=resume, fingerprint=fingerprint, progress=each,
-                         count_compile=False)
+                         resume=resume, fingerprint=fingerprint, progress=each, count_compile=False)
         traces[name] = res.trace
     return traces
 
