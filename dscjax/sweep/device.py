@@ -41,7 +41,7 @@ PROBE_ROWS = 1 << 20  # a sweep of this size runs the widest tile
 # the last bits of some rows), so the width never follows the chunk. It is a multiple of 64, so
 # every row sits in a full vector (no scalar remainder loop with code of its own).
 CPU_TILE_ROWS = 1024
-ACCELERATOR_TILE_ROWS = 65536  # a GPU needs wide batches: a narrow tile idles most of it
+ACCELERATOR_TILE_ROWS = 262144  # a GPU needs wide batches: a narrow tile idles most of it
 
 
 def tile_rows(platform: str, n: int) -> int:
