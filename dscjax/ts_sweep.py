@@ -53,6 +53,11 @@ def cell(v: float | None, digits: int = 4) -> str:
     return "diverged" if v is None else f"{v:.{digits}g}"
 
 
+def verdict(why: str | None) -> str:
+    """A table's verdict of a judge (`judge`): "yes", or "**no**: " and why not."""
+    return "yes" if why is None else f"**no**: {why}"
+
+
 def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
     """The plant's step for each Ts: dt where Ts is a whole multiple of dt, else one fine step
     (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so that the
@@ -199,10 +204,10 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
         head += (f"{batch['label']}: p95 of TV(u)", f"{batch['label']}: chattering plants")
 
     def row(i, ts, n):
-        r, why = result[n], result[n]["why_not"][i]
+        r = result[n]
         cells = (f"{1e3 * ts:g}", (labels or {}).get(n, n), cell(r["sampled"][i]),
                  cell(r["tv_u_window"][i]), cell(r["chattering_index"][i], 3),
-                 "yes" if why is None else f"**no**: {why}")
+                 verdict(r["why_not"][i]))
         if not batch:
             return cells
         b = batch[n][i]

@@ -31,7 +31,7 @@ from dscjax import metrics, params, ts_sweep
 from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
-from dscjax.ts_sweep import cell
+from dscjax.ts_sweep import cell, verdict
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
 TS_FACTOR = 2.0  # the sweep ends at this many times the tuned loop's Ts
@@ -91,10 +91,11 @@ def sweep_times(ts: float) -> list[float]:
     return out + [top]
 
 
-def sample_times(problem, z0, z1, reference: dict, heldout: dict | None) -> dict[str, Any] | None:
+def sample_times(problem, z0, z1, nominal: dict, heldout: dict | None) -> dict[str, Any] | None:
     """`ts_sweep.study` of start and tuned gains from TS_MIN to TS_FACTOR x the tuned loop's
     Ts (its discretisation, delay and noise kept), each Ts judged against the gains' windowed
-    L-inf in the loop tuned (`reference`, {tag: that figure on the nominal plant}); the largest
+    L-inf in the loop tuned (`reference_linf` of `nominal`, {tag: the nominal plant's figures
+    there}); the largest
     Ts up to which each tracks, and whether the tuned gains track at every Ts of the range.
     With `heldout` ({tag: the held-out plants' figures in the loop tuned}, `report.evaluate`;
     None: no held-out batch), the held-out batch's p95 of TV(u) on the window and its
@@ -106,7 +107,7 @@ def sample_times(problem, z0, z1, reference: dict, heldout: dict | None) -> dict
     dt = float(problem.options.dt)
     result = ts_sweep.study(problem.setup, gain_rows(problem, z0, z1), NAMES, sim.t_final, dt,
                             float(sim.window_start), sweep_times(sim.sample_time), base=sim,
-                            reference=reference)
+                            reference=reference_linf(nominal))
     result["reference"] = "the loop tuned"
     result["largest"] = {n: ts_sweep.largest_tracking(result, n) for n in NAMES}
     result["tuned_tracks_all"] = all(result["tuned"]["tracks"])
@@ -117,6 +118,12 @@ def sample_times(problem, z0, z1, reference: dict, heldout: dict | None) -> dict
 
 def _finite(v):
     return None if v is None or not np.isfinite(v) else float(v)
+
+
+def reference_linf(nominal: dict) -> dict[str, float | None]:
+    """{tag: the gain set's windowed L-inf on the nominal plant in the loop tuned}, against
+    which the Ts sweep and the delays judge it (None where it did not track)."""
+    return {tag: _finite(nominal[tag].get("linf_error_window")) for tag in NAMES}
 
 
 def batch_figures(m: dict[str, np.ndarray]) -> dict[str, Any]:
@@ -178,17 +185,17 @@ def delay_judge(problem, linf, tv, index, reference) -> str | None:
     return None
 
 
-def delays(problem, z0, z1, nominal: dict, reference: dict) -> dict[str, Any] | None:
+def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     """The delay margin: the loop tuned with an input delay of d samples, d from its own delay
     up to DELAY_MAX, each gain set judged by `delay_judge` against its windowed L-inf in the
-    loop tuned (`reference`, {tag: that figure}; `nominal`, {tag: the nominal plant's figures},
-    are the row of its own delay); the largest d up to which each holds (None: not even at its
+    loop tuned (`reference_linf` of `nominal`, {tag: the nominal plant's figures}, which are the
+    row of its own delay); the largest d up to which each holds (None: not even at its
     own delay). The delay fixes the program's shape, so each d compiles one program: the sweep
     stops at the first d at which neither gain set holds. None for a continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None
-    gains = gain_rows(problem, z0, z1)
+    gains, ref = gain_rows(problem, z0, z1), reference_linf(nominal)
     own = int(sim.delay)
     figures = (*ts_sweep.FIGURES, "tv_u")
     out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
@@ -203,7 +210,7 @@ def delays(problem, z0, z1, nominal: dict, reference: dict) -> dict[str, Any] | 
             for k in figures:
                 out[tag][k].append(r[k])
             out[tag]["why_not"].append(delay_judge(problem, r["linf_error_window"], r["tv_u"],
-                                                   r["chattering_index"], reference[tag]))
+                                                   r["chattering_index"], ref[tag]))
 
     add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
                for k in figures} for tag in NAMES])
@@ -265,10 +272,9 @@ def evaluate(problem, z0, z1, ev: dict) -> dict[str, Any]:
     per-plant figures (`report.evaluate`), against which the Ts sweep and the delays are
     judged (the nominal plant in the loop tuned) and from which the held-out batch's figures
     at the tuned Ts come."""
-    reference = {tag: _finite(ev["nominal"][tag].get("linf_error_window")) for tag in NAMES}
     return {"continuous": continuous(problem, z0, z1),
-            "sample_time": sample_times(problem, z0, z1, reference, ev["heldout"]),
-            "delay": delays(problem, z0, z1, ev["nominal"], reference),
+            "sample_time": sample_times(problem, z0, z1, ev["nominal"], ev["heldout"]),
+            "delay": delays(problem, z0, z1, ev["nominal"]),
             "long_run": long_run(problem, z0, z1)}
 
 
@@ -338,7 +344,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                           "chattering index", "holds"),
                          [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),
                            cell(r["chattering_index"][i], 3),
-                           "yes" if r["why_not"][i] is None else f"**no**: {r['why_not'][i]}")
+                           verdict(r["why_not"][i]))
                           for i, d in enumerate(dl["delays"])
                           for tag, r in zip(NAMES, map(dl.get, NAMES), strict=True)]), ""]
         lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
