@@ -53,6 +53,7 @@ def main(argv=None) -> int:
                            t_final=t_final, dt=1e-3)
     results = [worst_case(problem, time_limit=limit, seed=seed) for seed in range(seeds)]
     worst = {m: [best_value(r.traces[m]) for r in results] for m in LABELS}
+
     def ratio(base):  # the gradient method's worst over the baseline's, median over seeds
         return f"{median([g / v for g, v in zip(worst['gradient'], worst[base], strict=True)]):.4f}"
 
