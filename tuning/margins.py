@@ -320,16 +320,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                   + ts_sweep.criterion(st, "the same gains in the loop tuned")
                   + (" The held-out columns: the held-out batch at the tuned Ts and above, "
                      "over the plants that did not diverge." if st.get("batch") else ""), "",
-                  *ts_sweep.table(st, NAMES), ""]
-        for tag in NAMES:
-            last = st["largest"][tag]
-            lines.append(f"- {tag} gains: " + (
-                f"track up to Ts = {1e3 * last[0]:g} ms (at every Ts of the sweep up to it)"
-                if last else f"do not track at Ts = {1e3 * st['sample_times'][0]:g} ms "
-                f"({st[tag]['why_not'][0]})"))
-        lines.append("- the tuned gains " + ("track at every Ts of the range" if
-                                            st["tuned_tracks_all"] else
-                                            "do NOT track at every Ts of the range"))
+                  *ts_sweep.table(st, NAMES)]
     dl = margins.get("delay")
     if dl is not None:
         tv = ("" if dl["tv_limit"] is None else
@@ -346,8 +337,7 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                            cell(r["chattering_index"][i], 3),
                            verdict(r["why_not"][i]))
                           for i, d in enumerate(dl["delays"])
-                          for tag, r in zip(NAMES, map(dl.get, NAMES), strict=True)]), ""]
-        lines += [f"- {tag} gains: {delay_words(dl, tag)}" for tag in NAMES]
+                          for tag, r in zip(NAMES, map(dl.get, NAMES), strict=True)])]
     lr = margins["long_run"]
     what = " and ".join(x for x in (
         f"measurement noise of std {lr['noise']:g} on every state" if lr["noise"] else "",
@@ -368,7 +358,32 @@ def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> li
                          for e in r["estimates"].values()),
                        {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
                       for tag, r in zip(NAMES, map(lr.get, NAMES), strict=True)])]
-    return lines
+    return lines + ["", *(f"- {v}" for v in verdicts(margins))]
+
+
+def verdicts(margins: dict[str, Any]) -> list[str]:
+    """Each margin's verdict on each gain set, in words: report.md's list closing "Margins",
+    and the console's lines."""
+    out = []
+    st = margins.get("sample_time")
+    if st is not None:
+        for tag in NAMES:
+            last = st["largest"][tag]
+            out.append(f"sample time: {tag} gains " + (
+                f"track up to Ts = {1e3 * last[0]:g} ms (at every Ts of the sweep up to it)"
+                if last else f"do not track at Ts = {1e3 * st['sample_times'][0]:g} ms "
+                f"({st[tag]['why_not'][0]})"))
+        out.append(f"sample time: the tuned gains {'' if st['tuned_tracks_all'] else 'do NOT '}"
+                   f"track at every Ts from {1e3 * st['sample_times'][0]:g} to "
+                   f"{1e3 * st['sample_times'][-1]:g} ms")
+    dl = margins.get("delay")
+    if dl is not None:
+        out += [f"delay at Ts = {1e3 * dl['sample_time']:g} ms: {tag} gains "
+                f"{delay_words(dl, tag)}" for tag in NAMES]
+    lr = margins["long_run"]
+    judged = {True: "bounded", False: "NOT bounded",
+              None: f"not judged (a run under {DRIFT_MIN_S:g} s)"}[lr["tuned"]["bounded"]]
+    return out + [f"long run ({lr['t_final']:g} s): the tuned gains' adaptive estimates {judged}"]
 
 
 def delay_words(dl: dict[str, Any], tag: str) -> str:

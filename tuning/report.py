@@ -241,10 +241,24 @@ def trajectories(problem, z0, z1, save_every: int = 10):
                 {"start": z0, "tuned": z1})
 
 
+def run_record(result) -> dict[str, Any]:
+    """How the search went (report.json's "run"; the whole command's wall time, None here, is
+    set once the report is done)."""
+    problem, tr = result.problem, result.trace
+    return {"iterations": tr.iterations, "resumed_from": result.resumed_from,
+            "rejected": result.rejected, "stop_reason": result.stop_reason,
+            "restarts": tr.restarts, "best_iteration": tr.best_iteration,
+            "best_loss": tr.best_loss, "best_feasible": tr.best_feasible,
+            "wall_s": result.wall_s, "compile_s": result.compile_s, "wall_total_s": None,
+            "gradient": problem.mode.name, "method": problem.cfg.optimizer.name.name,
+            "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
+            "n_params": problem.n_params}
+
+
 def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
     PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
-    problem, tr = result.problem, result.trace
+    problem = result.problem
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
@@ -260,15 +274,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         # the second loop in words ("the states by forward Euler"), None without one
         "second_loop": next((c.label for c in checks if c.name == "sampled"), None),
         "requirements": both(functools.partial(requirement_checks, problem), ev["nominal"]),
-        "run": {
-            "iterations": tr.iterations, "resumed_from": result.resumed_from,
-            "rejected": result.rejected, "stop_reason": result.stop_reason,
-            "restarts": tr.restarts, "best_iteration": tr.best_iteration,
-            "best_loss": tr.best_loss, "best_feasible": tr.best_feasible,
-            "wall_s": result.wall_s, "compile_s": result.compile_s, "wall_total_s": None,
-            "gradient": problem.mode.name, "method": problem.cfg.optimizer.name.name,
-            "evaluations": tr.evaluations, "gradient_evaluations": tr.gradients,
-            "n_params": problem.n_params},
+        "run": run_record(result),
         "gains": both(problem.values_at, {"start": z0, "tuned": z1}),
         "settings": problem.describe(),
         "notes": list(problem.notes),

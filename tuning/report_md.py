@@ -75,9 +75,13 @@ def heldout_warning(summary: dict, cfg) -> str | None:
             f"them as they are; {fix}")
 
 
-def heldout_counts(summary: dict) -> str | None:
-    """The held-out outcomes, start -> tuned gains, as sweeps report theirs (None: no batch)."""
-    h = summary.get("heldout")
+BATCHES = {"train": "training batch", "heldout": "held-out batch"}
+
+
+def heldout_counts(summary: dict, key: str = "heldout") -> str | None:
+    """A batch's outcomes, start -> tuned gains, as sweeps report theirs (None: no batch):
+    the line of report.md and of the console."""
+    h = summary.get(key)
     if not h:
         return None
     a, b = h["start"], h["tuned"]
@@ -88,11 +92,39 @@ def heldout_counts(summary: dict) -> str | None:
                 f"-> {b['n_refined']}; diverged at every step tried {a['n_diverged']} -> "
                 f"{b['n_diverged']}")
 
-    text = f"held-out batch ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
+    text = f"{BATCHES[key]} ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
+    if "n_chattering" in b:
+        text += (f"; of the plants that did not diverge, chattering (chattering index above "
+                 f"{metrics.CHATTER_RATIO:g}) {a['n_chattering']} -> {b['n_chattering']}")
     if "sampled" in b:
-        text += (f". With {summary['second_loop']}: "
-                 f"{counts(a['sampled'], b['sampled'])}")
+        text += f". With {summary['second_loop']}: {counts(a['sampled'], b['sampled'])}"
     return text
+
+
+def warnings(s: dict) -> list[str]:
+    """The warnings report.md opens with and the console ends with."""
+    return [f"{lead}{s[key]}{tail}" for key, lead, tail in (
+        ("heldout_warning", "", ""), ("margins_warning", "a margin fails: ", ""),
+        ("sensitivity_warning", "", ' (report.md, "Sensitivity of the constraints")'))
+        if s.get(key)]
+
+
+def run_sentence(run: dict) -> str:
+    """How the search went (report.json's "run"), in one line of report.md and the console."""
+    return (f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
+            f"of which {run['gradient_evaluations']} with an exact gradient"
+            + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
+            + f", {run['rejected']} rejected"
+            + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
+               f"its own criteria stopped it or it stalled; adam from a random point after its "
+               f"step collapsed)" if run.get("restarts") else "")
+            + f"; stopped: {run['stop_reason']}. Best at iteration "
+            f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
+            f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
+            f"{run['wall_s']:.1f} s in this invocation, of which compilation "
+            f"{run['compile_s']:.1f} s"
+            + (f"; the whole command up to this report {run['wall_total_s']:.1f} s"
+               if run["wall_total_s"] else "") + ".")
 
 
 def _f(v, digits=4):
@@ -103,20 +135,12 @@ def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
 
-def _own(s: dict, key: str) -> str:
-    """" on the nominal plant, each training plant its own" where that bound is per plant."""
-    per = s.get("bounds_train") or {}
-    return " on the nominal plant, each training plant its own" if per.get(key) else ""
-
-
 def text(s: dict, problem, figures) -> str:
     sim, cfg = problem.objective.sim, problem.cfg
-    run, nom = s["run"], s["nominal"]
+    nom = s["nominal"]
     lines = ["# dscjax tune: report", ""]
-    for key, warning in (("heldout", "{}"), ("margins", "a margin fails: {}"), (
-            "sensitivity", '{} ("Sensitivity of the constraints" below)')):
-        if s.get(f"{key}_warning"):
-            lines += [f"> **Warning: {warning.format(s[f'{key}_warning'])}.**", ""]
+    for w in warnings(s):
+        lines += [f"> **Warning: {w}.**", ""]
     lines += [f"**Problem.** {s['problem']}", ""]
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
@@ -124,29 +148,14 @@ def text(s: dict, problem, figures) -> str:
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
         f"Loop tuned: {s['loop']}.",
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
-        f"Method: {method_sentence(cfg.optimizer, run['gradient'])}",
+        f"Method: {method_sentence(cfg.optimizer, s['run']['gradient'])}",
         "Objective per plant: " + ", ".join(
-            f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k)) + (
-            f"; max|u| <= {s['bound_max_abs_u']:.4g}{_own(s, 'max_abs_u')} (penalty weight "
-            f"{cfg.objective.u_max_weight:g})" if s["bound_max_abs_u"] else "")
-        + (f"; TV(u) <= {s['bound_tv_u']:.4g}{_own(s, 'tv_u')} (penalty weight "
-           f"{cfg.objective.tv_max_weight:g})" if s["bound_tv_u"] else "")
-        + (f"; over a training batch of {cfg.robust.batch} plants ({cfg.robust.over})"
-           if cfg.robust.batch else "; nominal plant only") + ".",
+            f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k))
+        + "".join(f"; penalty weight of the {name} bound {weight:g}" for name, bound, weight in (
+            ("max|u|", s["bound_max_abs_u"], cfg.objective.u_max_weight),
+            ("TV(u)", s["bound_tv_u"], cfg.objective.tv_max_weight)) if bound) + ".",
         "",
-        f"Run: {run['iterations']} iterations, {run['evaluations']} evaluations of the loss "
-        f"of which {run['gradient_evaluations']} with an exact gradient"
-        + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
-        + f", {run['rejected']} rejected"
-        + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
-           f"its own criteria stopped it or it stalled; adam from a random point after its step "
-           f"collapsed)" if run.get("restarts") else "")
-        + f"; stopped: {run['stop_reason']}. Best at iteration "
-        f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
-        f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
-        f"{run['wall_s']:.1f} s in this invocation, of which compilation {run['compile_s']:.1f} s"
-        + (f"; the whole command up to this report {run['wall_total_s']:.1f} s"
-           if run["wall_total_s"] else "") + ".",
+        run_sentence(s["run"]),
     ]
     lines += [f"Note: {note}." for note in s["notes"]]
     lines += [f"**Warning:** {w}." for w in s["warnings"]]
@@ -210,20 +219,8 @@ def text(s: dict, problem, figures) -> str:
                       (escape(_label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
-        lines += ["", f"Plants: tracked {st['n_tracked']} (start) and {tu['n_tracked']} (tuned); "
-                  f"tracked after refinement (a numerically stiff run re-done with ETDRK4 at a "
-                  f"smaller step, as sweeps do) {st['n_refined']} and {tu['n_refined']}; "
-                  f"diverged at every step tried {st['n_diverged']} and {tu['n_diverged']}"
-                  + (f"; of the plants that did not diverge, chattering (chattering index "
-                     f"above {metrics.CHATTER_RATIO:g}) {st['n_chattering']} and "
-                     f"{tu['n_chattering']}" if "n_chattering" in tu else "") + "."]
-        if "sampled" in tu:
-            a, c = st["sampled"], tu["sampled"]
-            lines.append(f"With {s['second_loop']}: tracked {a['n_tracked']} and {c['n_tracked']}; "
-                         f"tracked after refinement {a['n_refined']} and {c['n_refined']}; "
-                         f"diverged {a['n_diverged']} and {c['n_diverged']}.")
-        lines.append("The figures above are over the plants that did not diverge (in the "
-                     "loop they name).")
+        lines += ["", f"{heldout_counts(s, key)}. The figures above are over the plants that "
+                  f"did not diverge (in the loop they name)."]
         if s[key]["requirements"]["tuned"]:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
                              f"plants with the tuned gains (start: {100 * a['met_fraction']:.1f} %)"
@@ -269,14 +266,11 @@ def effort_span(s: dict) -> str:
     transient can set a bound that the steady state never needs."""
     a, b = s["nominal"]["start"], s["nominal"]["tuned"]
     return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
-            f"transient included (the actuator must survive it, and a bound on the window "
-            f"alone would let the search buy its error with an unbounded transient). On the "
-            f"window [t0, T], where the error is measured, the start gains use max|u| "
-            f"{_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the "
-            f"tuned gains {_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: a "
-            f"bound over [0, T] does not hold the window's effort to the start's figure there "
-            f"(numbers for tuning.objective.u_max and tv_max bound it by your actuator's "
-            f"limits).")
+            f"transient included (a bound on the window alone would let the search buy its "
+            f"error with an unbounded transient). On the window [t0, T] the start gains use "
+            f"max|u| {_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the "
+            f"tuned gains {_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: "
+            f"numbers for tuning.objective.u_max and tv_max bound them by your actuator.")
 
 
 def sensitivity_section(sens: dict) -> list[str]:

@@ -16,10 +16,9 @@ import numpy as np
 from dscjax import config, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
-from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import cast
 from dscjax.progress import Phase, Progress
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, loop_words
 from dscjax.settings import add_arguments
 from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
 from tuning.config import SIMULATION, TuningConfig, to_table
@@ -34,13 +33,11 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 def add_parser(sub):
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
-        description="Tune the DSC gains of a config (default: the paper's Section 4 example, "
-        "starting from the paper's gains, the controller sampled at 1 kHz) to minimise the "
-        "L-inf tracking error on [t0, T] with max|u| kept at or below the start gains' max|u| "
-        "and TV(u) at or below 1.5x the start gains' TV(u), by CMA-ES restarted with a larger "
-        "population when it stalls (default) or exact gradients through the closed loop. "
-        "Settings come from a [tuning] table in the config (docs/tuning.md lists them all); "
-        "the command line wins.")
+        description="Tune the DSC gains of a config (default: the paper's Section 4 example "
+        "sampled at 1 kHz, from its gains) to minimise the windowed L-inf tracking error with "
+        "max|u| and TV(u) bounded by the start gains' (TV(u) x 1.5), by CMA-ES (default) or "
+        "exact gradients. Settings: a [tuning] table in the config (docs/tuning.md); the "
+        "command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
@@ -110,7 +107,7 @@ def load(args):
 
 def run(args) -> int:
     t_start = time.perf_counter()
-    from tuning import elasticity, report, report_md
+    from tuning import elasticity, margins, report, report_md
     from tuning.checkpoint import format_progress
     from tuning.runner import build_problem, check_resume, model_default_ranges, simulate_command
     from tuning.runner import run as run_tuning
@@ -150,11 +147,11 @@ def run(args) -> int:
     how = (f"{oc.name.name} (sigma0 {oc.sigma0:g})" if oc.name.generations else
            f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}")
     unit = "generation" if oc.name.generations else "iteration"
-    limits = ([_count(oc.max_steps, unit)] if oc.max_steps is not None else []) + (
+    limits = ([f"{oc.max_steps} {unit}" + ("" if oc.max_steps == 1 else "s")]
+              if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
     common.banner(args, f"{problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-                  f"{how}; {loop_banner(problem.objective.sim)}; T={options.t_final:g} s, "
-                  f"dt={options.dt:g} s, window "
+                  f"{how}; {loop_words(problem.objective.sim)}; T={options.t_final:g} s, window "
                   f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
                   + (f"training batch of {cfg.robust.batch} plants "
                      f"({cfg.robust.aggregate.name})" if cfg.robust.batch else "nominal plant")
@@ -229,11 +226,7 @@ def run(args) -> int:
         first.stop()
         if bar is not None:
             bar.close()
-    print(f"  stopped: {result.stop_reason}; {_count(result.trace.iterations, unit)}"
-          + (f" (resumed at {result.resumed_from})" if result.resumed_from else "")
-          + f", {result.rejected} rejected, best at iteration "
-          f"{result.trace.best_iteration}; {result.wall_s:.1f} s (compilation "
-          f"{result.compile_s:.1f} s)")
+    print(f"  {report_md.run_sentence(report.run_record(result))}")
     with Phase(f"  {after}" if after else "  the report", enabled=not args.quiet):
         summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     if outcome is not None:
@@ -243,20 +236,15 @@ def run(args) -> int:
               f"{adversarial.worst_text(f0, 4)} (start gains) -> "
               f"{adversarial.worst_text(f1, 4)} (tuned gains); training set "
               f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
+    # the headlines of report.md, which has every figure
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     a, b = n0["linf_error_window"], n1["linf_error_window"]
-    window = f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s"
-    shifted = " against the shifted reference the controller tracks" if "user_linf_error_window" \
-        in n0 else ""
-    print(f"  nominal plant: L-inf error on {window}{shifted} {a:.4g} -> {b:.4g} "
-          f"({a / max(b, 1e-300):.3g}x lower)"
+    user = "user_linf_error_window" in n0
+    print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
+          f"{options.t_final:g}] s" + (report_md.SHIFTED if user else "")
+          + f" {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower)"
           + (f", against the config's y_r {n0['user_linf_error_window']:.4g} -> "
-             f"{n1['user_linf_error_window']:.4g}" if shifted else "")
-          + f"; over [0, T] max|u| {n0['max_abs_u']:.4g} -> {n1['max_abs_u']:.4g}, TV(u) "
-          f"{n0['tv_u']:.4g} -> {n1['tv_u']:.4g}; on the window max|u| "
-          f"{n0['max_abs_u_window']:.4g} -> {n1['max_abs_u_window']:.4g}, TV(u) "
-          f"{n0['tv_u_window']:.4g} -> {n1['tv_u_window']:.4g}, chattering index "
-          f"{n0['chattering_index']:.3g} -> {n1['chattering_index']:.3g}")
+             f"{n1['user_linf_error_window']:.4g}" if user else ""))
     sens = {r["name"]: r for r in (summary.get("sensitivity") or {}).get("rows", [])}
     for c in summary["constraints"]["tuned"]:
         top = sens.get(c["name"], {}).get("largest")
@@ -265,37 +253,11 @@ def run(args) -> int:
               f"{100 * c['relative_margin']:.3g} %)"
               + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
                  f"{elasticity.text(top['elasticity'])})"))
-    if summary.get("sensitivity_warning"):
-        common.say(args, "WARNING", summary["sensitivity_warning"])
-    if cfg.objective.effort_bounds.per_plant:
-        for c in summary.get("train_constraints", {}).get("tuned", []):
-            worst = ("diverged" if c["worst_margin"] is None else
-                     f"margin {c['worst_margin']:.4g} ({100 * c['worst_relative_margin']:.2f} %)")
-            factor = f"{cfg.objective.tv_max_factor:g} x " if c["name"] == "TV(u)" else ""
-            print(f"  constraint {c['name']} <= {factor}the start gains' own, per training "
-                  f"plant: met on {c['n_met']} of {c['n']}; worst plant {c['worst_plant']}: "
-                  f"{worst}")
     if "heldout" in summary:
-        h0, h1 = summary["heldout"]["start"], summary["heldout"]["tuned"]
         print(f"  {report_md.heldout_counts(summary)}")
-        rows = {"linf_error_window": (f"L-inf error on the window{shifted}, plants that did "
-                                      f"not diverge", ""),
-                "tv_u_window": ("TV(u) on the window, plants that did not diverge",
-                                f"; chattering (chattering index above {CHATTER_RATIO:g}) on "
-                                f"{h0.get('n_chattering')} -> {h1.get('n_chattering')}"),
-                "sampled_linf_window": (f"L-inf error on the window with "
-                                        f"{summary.get('second_loop')}", "")}
-        for key, (what, then) in rows.items():
-            a, b = h0.get(key), h1.get(key)
-            if a and b:
-                print(f"  held-out {what}: median {a['median']:.4g} -> {b['median']:.4g}, "
-                      f"p95 {a['p95']:.4g} -> {b['p95']:.4g}{then}")
-    if summary.get("heldout_warning"):
-        common.say(args, "WARNING", summary["heldout_warning"])
-    for line in margin_lines(summary.get("margins"), summary["nominal"]):
+    for line in margins.verdicts(summary["margins"]) if summary["margins"] else []:
         print(f"  {line}")
-    if summary.get("margins_warning"):
-        common.say(args, "WARNING", f"a margin fails: {summary['margins_warning']}")
+    common.say(args, "WARNING", *report_md.warnings(summary))
     print(f"  run the loop tuned: {simulate_command(result.problem, str(out / 'gains.json'))}")
     print(f"  wrote {out}/gains.json, "
           + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
@@ -309,63 +271,6 @@ def run(args) -> int:
 # continuous run and three sample times at dt/10 and two at dt, the long run of 10 x T, the
 # delays (tuning.margins.DELAY_MAX runs)
 MARGIN_STEPS = 4 * 10 + 2 + 10 + 4
-
-
-def margin_lines(margins, nominal) -> list[str]:
-    """The margins in the console's last lines: the largest Ts each gain set tracks, the long
-    run's error beside the figure over T and whether the estimates stay bounded."""
-    if not margins:
-        return []
-    out = []
-    st = margins.get("sample_time")
-    if st is not None:
-        def upto(tag):
-            last = st["largest"][tag]
-            return f"up to Ts = {1e3 * last[0]:g} ms" if last else "at no Ts"
-
-        out.append(f"sample-time margin ({1e3 * st['sample_times'][0]:g} to "
-                   f"{1e3 * st['sample_times'][-1]:g} ms; tracking: error within "
-                   f"{st['track_factor']:g} x the loop tuned's, no chattering): start gains "
-                   f"track {upto('start')}, tuned gains {upto('tuned')}")
-    dl = margins.get("delay")
-    if dl is not None:
-        from tuning.margins import delay_words
-
-        tv = ("no chattering" if dl["tv_limit"] is None else
-              f"TV(u) within {dl['tv_limit']:.4g}")
-        out.append(f"delay margin at Ts = {1e3 * dl['sample_time']:g} ms (the search's delayed "
-                   f"check: error within {dl['linf_factor']:g} x the loop tuned's, {tv}): "
-                   f"start gains {delay_words(dl, 'start')}; tuned gains "
-                   f"{delay_words(dl, 'tuned')}")
-    lr = margins["long_run"]
-
-    def fig(v):
-        return "diverged" if v is None else f"{v:.4g}"
-
-    out.append(f"{lr['t_final']:g} s run with noise and a disturbance: L-inf error "
-               f"{fig(lr['start']['linf_error_window'])} -> "
-               f"{fig(lr['tuned']['linf_error_window'])} (over T, neither: "
-               f"{fig(nominal['start'].get('linf_error_window'))} -> "
-               f"{fig(nominal['tuned'].get('linf_error_window'))}); adaptive estimates "
-               + {True: "bounded", False: "NOT bounded",
-                  None: "not judged (a run under 100 s)"}[lr["tuned"]["bounded"]]
-               + " (tuned gains)")
-    return out
-
-
-def loop_banner(sim) -> str:
-    """The loop tuned, for the start line: Ts, discretisation, delay and noise."""
-    if not sim.sampled:
-        return "the continuous loop"
-    noise = ("no noise" if sim.noise is None else "noise std "
-             + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float))))
-    return (f"the sampled loop (Ts={sim.sample_time:g} s, ZOH, {sim.discretisation.words}, "
-            f"delay {sim.delay}, {noise})")
-
-
-def _count(n: int, unit: str) -> str:
-    """"1 generation", "2 generations"."""
-    return f"{n} {unit}" + ("" if n == 1 else "s")
 
 
 def generation_rows(cfg) -> int:
