@@ -149,8 +149,8 @@ def test_report_states_the_loop_and_its_margins(cli_run, paper_setup):
     assert long["t_final"] == 20.0 and long["noise"] == 1e-4
     assert set(long["start"]["estimates"]) == {"theta_hat", "phi_hat", "zeta_hat", "d_hat"}
     md = (out / "report.md").read_text()
-    assert ("Loop tuned: the controller sampled every Ts = 0.001 s with a zero-order hold, its "
-            "states advanced by exponential Euler") in md
+    assert ("Note: the loop tuned: the controller sampled every Ts = 0.001 s with a zero-order "
+            "hold, its states advanced by exponential Euler") in md
     assert "**Sample time.**" in md and "**Long run.** 20 s" in md
     assert "sampling.png" in rep["figures"] and (out / "sampling.png").stat().st_size > 0
     assert rep["heldout_box"][3:] == ["plant.g*=1:1.2", "plant.theta*=0.7:1.3",

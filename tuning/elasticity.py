@@ -113,10 +113,9 @@ def constraints(problem, z, checks: list[dict[str, Any]]) -> dict[str, Any] | No
         top = max(e, key=lambda n: np.inf if e[n] is None else abs(e[n]))
         fragile = ([n for n, v in e.items() if v is None or ratio * (1 + STEP * abs(v)) > 1]
                    if c["met"] else [])
-        rows.append({"name": c["name"], "key": c["key"], "value": c["value"],
-                     "bound": c["bound"], "relative_margin": c["relative_margin"],
-                     "elasticity": e, "largest": {"number": top, "elasticity": e[top]},
-                     "fragile": fragile})
+        rows.append({k: c[k] for k in ("name", "key", "value", "bound", "relative_margin")}
+                    | {"elasticity": e, "largest": {"number": top, "elasticity": e[top]},
+                       "fragile": fragile})
     return {"step": STEP, "rows": rows}
 
 
@@ -136,11 +135,11 @@ def warning(sens: dict[str, Any] | None) -> str | None:
 
     def which(r):
         e = r["elasticity"]
-        unbounded = [n for n in r["fragile"] if e[n] is None]
-        finite = sorted((n for n in r["fragile"] if e[n] is not None), key=lambda n: -abs(e[n]))
-        if unbounded and len(unbounded) == len(e):
+        if len(r["fragile"]) == len(e) and all(v is None for v in e.values()):
             return "every tuned number (elasticity not finite)"
-        named = [f"{n} (elasticity {text(e[n])})" for n in (unbounded + finite)[:NAMED]]
+        # those not finite first, then the largest
+        first = sorted(r["fragile"], key=lambda n: (e[n] is not None, -abs(e[n] or 0.0)))
+        named = [f"{n} (elasticity {text(e[n])})" for n in first[:NAMED]]
         more = len(r["fragile"]) - len(named)
         return ", ".join(named) + (f" and {more} more" if more else "")
 

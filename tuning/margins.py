@@ -295,9 +295,10 @@ def failures(margins: dict[str, Any]) -> list[str]:
     return out
 
 
-def markdown(margins: dict[str, Any], short_linf: dict[str, float | None]) -> list[str]:
-    """report.md's "Margins" section; `short_linf`: each gain set's windowed L-inf over the
-    tuning's horizon (nominal plant), beside the long run's."""
+def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
+    """report.md's "Margins" section; `nominal`: {tag: the nominal plant's figures over the
+    tuning's horizon}, whose windowed L-inf stands beside the long run's."""
+    short_linf = reference_linf(nominal)
     lines = ["", "## Margins (nominal plant)"]
     c = margins.get("continuous")
     if c is not None:
@@ -378,18 +379,13 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
                    f"{1e3 * st['sample_times'][-1]:g} ms")
     dl = margins.get("delay")
     if dl is not None:
-        out += [f"delay at Ts = {1e3 * dl['sample_time']:g} ms: {tag} gains "
-                f"{delay_words(dl, tag)}" for tag in NAMES]
+        for tag in NAMES:
+            last, own = dl["largest"][tag], dl["delays"][0]
+            more = " (the largest tried)" if last == dl["delays"][-1] and last >= dl["max"] else ""
+            out.append(f"delay at Ts = {1e3 * dl['sample_time']:g} ms: {tag} gains " + (
+                f"do not hold even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
+                if last is None else f"hold up to an input delay of {last} sample(s){more}"))
     lr = margins["long_run"]
     judged = {True: "bounded", False: "NOT bounded",
               None: f"not judged (a run under {DRIFT_MIN_S:g} s)"}[lr["tuned"]["bounded"]]
     return out + [f"long run ({lr['t_final']:g} s): the tuned gains' adaptive estimates {judged}"]
-
-
-def delay_words(dl: dict[str, Any], tag: str) -> str:
-    """The delay margin of one gain set in words."""
-    last, own = dl["largest"][tag], dl["delays"][0]
-    if last is None:
-        return f"do not hold even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
-    more = " (the largest tried)" if last == dl["delays"][-1] and last >= dl["max"] else ""
-    return f"hold up to an input delay of {last} sample(s){more}"

@@ -47,19 +47,19 @@ def heldout_warning(summary: dict, cfg) -> str | None:
     h = summary.get("heldout")
     if not h:
         return None
-    lost = {"diverged": (h["tuned"]["n_diverged"], h["start"]["n_diverged"]),
-            "RK4 diverged at dt (the loop stiff there; tracked only once refined)":
-            (h["tuned"]["n_refined"], h["start"]["n_refined"])}
-    if "sampled" in h["tuned"]:
-        lost[f"diverged with {summary['second_loop']}"] = (h["tuned"]["sampled"]["n_diverged"],
-                                                 h["start"]["sampled"]["n_diverged"])
+    a, b = h["start"], h["tuned"]
     chatter = f"chatter (chattering index above {metrics.CHATTER_RATIO:g})"
-    lost[chatter] = (h["tuned"].get("n_chattering", 0), h["start"].get("n_chattering", 0))
+    lost = {"diverged": (b["n_diverged"], a["n_diverged"]),
+            "RK4 diverged at dt (the loop stiff there; tracked only once refined)":
+            (b["n_refined"], a["n_refined"])}
+    if "sampled" in b:
+        lost[f"diverged with {summary['second_loop']}"] = (b["sampled"]["n_diverged"],
+                                                           a["sampled"]["n_diverged"])
+    lost[chatter] = (b.get("n_chattering", 0), a.get("n_chattering", 0))
     lost = {how: kk for how, kk in lost.items() if kk[0]}
     if not lost:
         return None
-    n = h["tuned"]["n"]
-    what = "; ".join(f"{how} on {k} of {n} held-out plants (start gains: {k0})"
+    what = "; ".join(f"{how} on {k} of {b['n']} held-out plants (start gains: {k0})"
                      for how, (k, k0) in lost.items())
     verb = " and ".join(w for w, on in (("DIVERGE", set(lost) - {chatter}),
                                         ("CHATTER", chatter in lost)) if on)
@@ -76,6 +76,10 @@ def heldout_warning(summary: dict, cfg) -> str | None:
 
 
 BATCHES = {"train": "training batch", "heldout": "held-out batch"}
+OUTCOMES = {"n_tracked": "tracked",
+            "n_refined": "tracked after refinement (a numerically stiff run re-done with ETDRK4 "
+                         "at a smaller step)",
+            "n_diverged": "diverged at every step tried"}
 
 
 def heldout_counts(summary: dict, key: str = "heldout") -> str | None:
@@ -87,10 +91,7 @@ def heldout_counts(summary: dict, key: str = "heldout") -> str | None:
     a, b = h["start"], h["tuned"]
 
     def counts(a, b):
-        return (f"tracked {a['n_tracked']} -> {b['n_tracked']}; tracked after refinement (a "
-                f"numerically stiff run re-done with ETDRK4 at a smaller step) {a['n_refined']} "
-                f"-> {b['n_refined']}; diverged at every step tried {a['n_diverged']} -> "
-                f"{b['n_diverged']}")
+        return "; ".join(f"{words} {a[k]} -> {b[k]}" for k, words in OUTCOMES.items())
 
     text = f"{BATCHES[key]} ({a['n']} plants, start -> tuned gains): {counts(a, b)}"
     if "n_chattering" in b:
@@ -146,7 +147,6 @@ def text(s: dict, problem, figures) -> str:
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
-        f"Loop tuned: {s['loop']}.",
         f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
         f"Method: {method_sentence(cfg.optimizer, s['run']['gradient'])}",
         "Objective per plant: " + ", ".join(
@@ -185,19 +185,15 @@ def text(s: dict, problem, figures) -> str:
     if s.get("sensitivity"):
         lines += sensitivity_section(s["sensitivity"])
     if s.get("train_constraints"):
-        per = s["effort_bounds"] == "per_plant"
+        whose = ("per plant, the start gains' own figures on each training plant"
+                 if s["effort_bounds"] == "per_plant" else "the nominal plant's, for every plant")
         lines += ["", "## Constraints per training plant (checked exactly on every RK4 step)",
-                  "", ("Bounds: per plant, the start gains' own figures on each training plant "
-                       "(`effort_bounds = \"per_plant\"`)." if per else
-                       "Bounds: the nominal plant's, for every training plant "
-                       "(`effort_bounds = \"nominal\"`)."), "",
+                  "", f"Bounds: {whose} (`effort_bounds = \"{s['effort_bounds']}\"`).", "",
                   *table(("constraint", "bounds", "met (start)", "met (tuned)",
                           "worst plant (tuned)", "its value / bound", "margin (bound - value)"),
                          [_train_row(a, b) for a, b in _pairs(s["train_constraints"])])]
     if s.get("margins"):
-        short = {tag: nom[tag].get("linf_error_window") for tag in ("start", "tuned")}
-        lines += margins.markdown(s["margins"], {k: None if v is None or v != v else v
-                                                 for k, v in short.items()})
+        lines += margins.markdown(s["margins"], nom)
     if s["requirements"]["tuned"]:
         lines += ["", "## Requirements (nominal plant)", "",
                   *table(("requirement", "start", "tuned", "worst margin (tuned)"), [
@@ -226,7 +222,8 @@ def text(s: dict, problem, figures) -> str:
                              f"plants with the tuned gains (start: {100 * a['met_fraction']:.1f} %)"
                              for a, r in _pairs(s[key]["requirements"])]
     lines += ["", "## Gains", "", *table(("parameter", "start", "tuned"), [
-        (f"`{name}`", _fmt_val(a), _fmt_val(s["gains"]["tuned"][name]))
+        (f"`{name}`", *(", ".join(f"{x:.5g}" for x in np.atleast_1d(np.asarray(v, float)))
+                        for v in (a, s["gains"]["tuned"][name])))
         for name, a in s["gains"]["start"].items()])]
     # the command that runs the loop tuned
     lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
@@ -279,13 +276,11 @@ def sensitivity_section(sens: dict) -> list[str]:
     rows = sens["rows"]
     step = 100 * sens["step"]
     lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
-             f"d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned number "
-             f"g, by forward mode through the loop tuned (one tangent per tuned number): "
-             f"a {step:g} % change of g moves r by about |d ln r / d ln g| x {step:g} %. "
-             f"**Bold**: that change breaks the constraint to first order (r (1 + "
-             f"{sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew without bound "
-             f"over the run (the loop depends sensitively on its gains: chaotic or "
-             f"chattering); any change may break the constraint.", "",
+             f"e = d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned "
+             f"number g (forward mode through the loop tuned): a {step:g} % change of g moves r "
+             f"by about |e| x {step:g} %. **Bold**: that change breaks the constraint to first "
+             f"order (r (1 + {sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew "
+             f"without bound (a chaotic or chattering loop); any change may break it.", "",
              *table(("tuned number", *(f"{escape(r['name'])} (margin "
                                        f"{100 * r['relative_margin']:.3g} %)" for r in rows)),
                     [(f"`{name}`", *(f"**{v}**" if name in r["fragile"] else v for r, v in (
@@ -312,7 +307,3 @@ def method_sentence(opt, mode: str) -> str:
                 f"best point is kept)." if opt.restarts else "")
     return (f"{opt.name.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)
-
-
-def _fmt_val(v):
-    return ", ".join(f"{x:.5g}" for x in np.atleast_1d(np.asarray(v, dtype=float)))

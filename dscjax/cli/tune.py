@@ -18,7 +18,7 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.params import cast
 from dscjax.progress import Phase, Progress
-from dscjax.runspec import RunSpec, loop_words
+from dscjax.runspec import RunSpec
 from dscjax.settings import add_arguments
 from dscjax.validation import TIME_LIMIT_S, ConfigError, Work, check_work, fmt_seconds
 from tuning.config import SIMULATION, TuningConfig, to_table
@@ -150,13 +150,9 @@ def run(args) -> int:
     limits = ([f"{oc.max_steps} {unit}" + ("" if oc.max_steps == 1 else "s")]
               if oc.max_steps is not None else []) + (
         [f"{oc.time_limit:g} s"] if oc.time_limit else [])
-    common.banner(args, f"{problem.n_params} numbers ({', '.join(problem.selection.names)}); "
-                  f"{how}; {loop_words(problem.objective.sim)}; T={options.t_final:g} s, window "
-                  f"[{problem.objective.sim.window_start:g}, {options.t_final:g}] s; "
-                  + (f"training batch of {cfg.robust.batch} plants "
-                     f"({cfg.robust.aggregate.name})" if cfg.robust.batch else "nominal plant")
-                  + "; " + ("at most " + " or ".join(limits) if limits
-                            else "no iteration or time limit")
+    # (the loop tuned is one of the notes below)
+    common.banner(args, f"{report.problem_sentence(problem)} Method: {how}; "
+                  + ("at most " + " or ".join(limits) if limits else "no iteration or time limit")
                   + (f" per round; {adv.rounds} adversarial rounds over "
                      + ", ".join(r.spec() for r in searched.ranges)
                      + (f" and {adv.disturbance}" if adv.disturbance else "")
@@ -190,13 +186,17 @@ def run(args) -> int:
     first = Phase(f"  compiling the {'search' if oc.name.generations else 'gradient'} and "
                   f"running its first {unit}", enabled=not args.quiet).start()
 
-    def progress(row):
-        nonlocal bar, bar_round
+    def close():  # the first unit's phase, then the bar of the round done
+        nonlocal bar
         first.stop()
-        if bar is not None and row.get("round") != bar_round:
+        if bar is not None:
             bar.close()
             bar = None
-        if bar is None:
+
+    def progress(row):
+        nonlocal bar, bar_round
+        if bar is None or row.get("round") != bar_round:
+            close()
             bar_round = row.get("round")
             # the unit just done counts as done before the clock (its time was compilation)
             bar = Progress(row["steps"], desc="  tune" if bar_round is None else
@@ -206,11 +206,7 @@ def run(args) -> int:
             row, "sigma" if oc.name.generations else "lr"))
 
     def say(text):
-        nonlocal bar
-        first.stop()  # a round's search says what it does itself
-        if bar is not None:
-            bar.close()
-            bar = None
+        close()  # a round's search says what it does itself
         print(f"  {text}", file=sys.stderr)
 
     outcome = None
@@ -223,9 +219,7 @@ def run(args) -> int:
             result = run_tuning(problem, out, resume=args.resume, overwrite=args.overwrite,
                                 progress=progress)
     finally:
-        first.stop()
-        if bar is not None:
-            bar.close()
+        close()
     print(f"  {report_md.run_sentence(report.run_record(result))}")
     with Phase(f"  {after}" if after else "  the report", enabled=not args.quiet):
         summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
