@@ -302,9 +302,8 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
     lines = ["", "## Margins (nominal plant)"]
     c = margins.get("continuous")
     if c is not None:
-        lines += ["", f"**The continuous loop** (a check, not tuned: RK4 at dt = "
-                  f"{c['dt']:g} s, refined where stiff; a stiff continuous loop is not a "
-                  f"failure):", "", *table(
+        lines += ["", f"**The continuous loop** (a check, not tuned: RK4 at dt = {c['dt']:g} s, "
+                  f"refined where stiff, which is no failure):", "", *table(
                       ("", "L∞ e on [t0, T]", "max\\|u\\|", "TV(u)",
                        "chattering index on [t0, T]", "simulated by"),
                       [(tag, cell(r["linf_error_window"]), cell(r["max_abs_u"]), cell(r["tv_u"]),
@@ -324,14 +323,13 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                   *ts_sweep.table(st, NAMES)]
     dl = margins.get("delay")
     if dl is not None:
-        tv = ("" if dl["tv_limit"] is None else
+        tv = (" and no chattering" if dl["tv_limit"] is None else
               f" and TV(u) at most {dl['tv_limit']:.4g} (`delay_tv_factor` x its bound)")
         lines += ["", f"**Delay margin.** The loop tuned (Ts = {1e3 * dl['sample_time']:g} ms) "
-                  f"with the input applied d samples after it was computed, d from the loop's "
-                  f"own delay up to {dl['max']}, until neither gain set holds, judged as the "
-                  f"search judges its delayed loop: windowed L-inf at most "
-                  f"{dl['linf_factor']:g} x the same gains' at the loop's own delay" + tv
-                  + ("" if dl["tv_limit"] is not None else " and no chattering") + ":", "",
+                  f"with the input d samples late, d from its own delay up to {dl['max']} until "
+                  f"neither gain set holds, judged as the search's delayed check: windowed "
+                  f"L-inf at most {dl['linf_factor']:g} x the same gains' at the loop's own "
+                  f"delay{tv}:", "",
                   *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
                           "chattering index", "holds"),
                          [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),

@@ -174,10 +174,7 @@ def run(args) -> int:
     print(f"  start: L-inf error on the window {sc.linf:.4g}"
           + ("" if user is None else f" against the shifted reference the controller tracks "
              f"(tuned), {user:.4g} against the config's y_r")
-          + f"; over [0, T] max|u| {sc.max_u:.4g}"
-          + (f" (bound {sc.u_max:.4g})" if sc.u_max else "") + f", TV(u) {sc.tv_u:.4g}"
-          + (f" (bound {sc.tv_max:.4g})" if sc.tv_max else "")
-          + ("; bounds per training plant" if cfg.objective.effort_bounds.per_plant else "")
+          + f"; over [0, T] max|u| {sc.max_u:.4g}, TV(u) {sc.tv_u:.4g}"
           + (f"; on the window max|u| {sc.start['max_abs_u_window']:.4g}, TV(u) "
              f"{sc.start['tv_u_window']:.4g}" if "tv_u_window" in sc.start else ""),
           file=sys.stderr)
