@@ -166,7 +166,7 @@ def text(s: dict, problem, figures) -> str:
                   "measured against it unless it says \"against the config's y_r\".", ""]
     a, b = nom["start"], nom["tuned"]
     lines += table(("", "start gains", "tuned gains", "tuned / start"), [
-        *((escape(_label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
+        *((escape(label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
           if k in a),
         *((label, bool(a[k]), bool(b[k]), "") for k, label in (
             ("diverged", "diverged"), ("sampled_diverged", "diverged, the other discretisation"),
@@ -212,7 +212,7 @@ def text(s: dict, problem, figures) -> str:
         lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method.name}, seed {b.seed})", "",
                   *table(("", "start median", "tuned median", "start p95", "tuned p95",
                           "start max", "tuned max"), [
-                      (escape(_label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
+                      (escape(label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
         lines += ["", f"{heldout_counts(s, key)}. The figures above are over the plants that "
@@ -249,13 +249,12 @@ def _train_row(a: dict, b: dict) -> tuple:
             b["worst_plant"], worst, margin)
 
 
-def _label(key: str, s: dict) -> str:
+def label(key: str, s: dict) -> str:
     """A nominal row's label; the error figures say which reference they are against where
     the controller tracks a shifted one."""
-    label = LABELS[key]
     if s.get("shifted_reference") and key in ERRORS:
-        label += SHIFTED + (" (tuned)" if key == "linf_error_window" else "")
-    return label
+        return LABELS[key] + SHIFTED + (" (tuned)" if key == "linf_error_window" else "")
+    return LABELS[key]
 
 
 def effort_span(s: dict) -> str:

@@ -172,8 +172,8 @@ def run(args) -> int:
     sc = problem.scales
     user = sc.start.get("user_linf_error_window")
     print(f"  start: L-inf error on the window {sc.linf:.4g}"
-          + ("" if user is None else f" against the shifted reference the controller tracks "
-             f"(tuned), {user:.4g} against the config's y_r")
+          + ("" if user is None else f"{report_md.SHIFTED} (tuned), {user:.4g} against the "
+             f"config's y_r")
           + f"; over [0, T] max|u| {sc.max_u:.4g}, TV(u) {sc.tv_u:.4g}"
           + (f"; on the window max|u| {sc.start['max_abs_u_window']:.4g}, TV(u) "
              f"{sc.start['tv_u_window']:.4g}" if "tv_u_window" in sc.start else ""),
@@ -229,13 +229,10 @@ def run(args) -> int:
               f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
     # the headlines of report.md, which has every figure
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
-    a, b = n0["linf_error_window"], n1["linf_error_window"]
-    user = "user_linf_error_window" in n0
-    print(f"  nominal plant: L-inf error on [{problem.objective.sim.window_start:g}, "
-          f"{options.t_final:g}] s" + (report_md.SHIFTED if user else "")
-          + f" {a:.4g} -> {b:.4g} ({a / max(b, 1e-300):.3g}x lower)"
-          + (f", against the config's y_r {n0['user_linf_error_window']:.4g} -> "
-             f"{n1['user_linf_error_window']:.4g}" if user else ""))
+    for key in [k for k in ("linf_error_window", "user_linf_error_window") if k in n0]:
+        a, b = n0[key], n1[key]
+        print(f"  nominal plant, {report_md.label(key, summary)}: {a:.4g} -> {b:.4g} "
+              f"({a / max(b, 1e-300):.3g}x lower)")
     sens = {r["name"]: r for r in (summary.get("sensitivity") or {}).get("rows", [])}
     for c in summary["constraints"]["tuned"]:
         top = sens.get(c["name"], {}).get("largest")
