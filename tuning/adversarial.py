@@ -124,26 +124,22 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
         return  # (run says what is missing)
     searched = search_problem(setup, options, cfg)
     desc = runner.describe(searched.setup, options, cfg)
-    files.check_same(files.read_json(path).get("fingerprint"),
-                     run_fingerprint(cfg.adversarial, searched, desc), where=f"--resume: {path}",
-                     fix="use the same settings, or --overwrite to start afresh")
+    runner.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),
+                        f"--resume: {path}")
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
+    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     if out is None:
-        return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+        return meta
     path = out / MANIFEST
     runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
-        meta = files.read_json(path)
-        files.check_same(meta.get("fingerprint"), fingerprint, where=f"--resume: {path}",
-                         fix="use the same settings, or --overwrite to start afresh")
-        return meta
+        return runner.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
     for name in ck.FILES:
         (out / name).unlink(missing_ok=True)
-    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     files.write_json(path, meta)  # at once: a run killed in its first round resumes
     return meta
 

@@ -114,12 +114,6 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
          if extra_plants else {})
 
 
-def default_freeze(setup, tune) -> tuple[str, ...]:
-    if isinstance(setup.plant, PaperPlant) and "controller.gamma_g" in tune:
-        return tuple(p for p in PAPER_PLANT_FREEZE if p.split("[")[0] in tune)
-    return ()
-
-
 # the held-out batch's default box beyond the hysteresis: the plant's g and theta (one factor
 # scaling each vector: g within -+20 %, but not below the controller's g_min, Assumption 4)
 # and the amplitude of a disturbance dbar_amp sin(dbar_freq t)
@@ -187,12 +181,10 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                           checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
-        effort = " and ".join(f"{what} within {f:g} x its bound"
-                              for what, _, _, f in c.bounded((1.0, 1.0)))
+        kept = [f"windowed L-inf within {c.linf_factor:g} x the loop tuned's",
+                *(f"{what} within {f:g} x its bound" for what, _, _, f in c.bounded((1, 1)))]
         notes.append(f"checked too, in the search: the same loop with {c.label} must keep its "
-                     f"windowed L-inf within {c.linf_factor:g} x the loop tuned's"
-                     + (f" and {effort}" if effort else "")
-                     + f" (penalty weight tuning.objective.{c.weight_key} = "
+                     f"{' and '.join(kept)} (penalty weight tuning.objective.{c.weight_key} = "
                      f"{c.weight:g}; 0 turns this check off)")
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
@@ -207,21 +199,26 @@ def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | No
              ) -> dict:
     """`build_problem(...).describe()` without building the objective (nothing is run): what
     a resumed run is checked against before it starts."""
-    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg,
-                                                             extra_plants)
+    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg, extra_plants)
     return _description(setup, options, cfg, selection, sim, checks, mode, extra_plants)
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line, the old and new values of what differs) unless the run in
     `out` was made with these settings; checked before anything runs or is printed."""
-    out = Path(out)
-    if not (out / "checkpoint.json").exists():
-        return  # (run says what is missing)
-    meta = files.read_json(out / "checkpoint.json")
-    files.check_same(meta.get("problem"), describe(setup, options, cfg),
-                     where=f"--resume: the checkpoint in {out}",
-                     fix="use the same settings, or --overwrite to start afresh")
+    path = Path(out) / "checkpoint.json"
+    if path.exists():  # (else run says what is missing)
+        check_record(path, "problem", describe(setup, options, cfg),
+                     f"--resume: the checkpoint in {out}")
+
+
+def check_record(path: Path, key: str, new: dict, where: str,
+                 fix: str = "use the same settings, or --overwrite to start afresh") -> dict:
+    """The JSON record at `path`; ConfigError (one line, the old and new values of what
+    differs) unless its `key` is `new`."""
+    meta = files.read_json(path)
+    files.check_same(meta.get(key), new, where=where, fix=fix)
+    return meta
 
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
@@ -241,8 +238,10 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         names={"window_start": "tuning.objective.window_start"})
     continuous = sim.replace(sample_time=None, delay=0, noise=None) if options.sampled else None
     check(setup, options)
-    freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
-    if cfg.freeze is None and freeze:
+    freeze = cfg.freeze or ()
+    if cfg.freeze is None and isinstance(setup.plant, PaperPlant) and (
+            "controller.gamma_g" in cfg.params):
+        freeze = tuple(p for p in PAPER_PLANT_FREEZE if p.split("[")[0] in cfg.params)
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
                      f"{', '.join(freeze)}")
     bounds = dict(cfg.bounds)
@@ -254,9 +253,8 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         if options.sampled and options.sample_time > dt:
             dt, what = options.sample_time, "Ts"
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
-        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
-                     f"s by default (the filters stable with RK4 at dt and forward Euler "
-                     f"at Ts)")
+        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} s "
+                     f"by default (stable filters: RK4 at dt, forward Euler at Ts)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
                                 signed=SIGNED)
     n_params = selection.size(setup)
@@ -354,9 +352,8 @@ def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpo
 def _saved(out: Path, problem: Problem) -> search.Saved:
     """The checkpoint of the run in `out` (the problem must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    meta = files.read_json(out / "checkpoint.json")
-    files.check_same(meta.get("problem"), problem.describe(),
-                     where=f"the checkpoint in {out}", fix=fix)
+    check_record(out / "checkpoint.json", "problem", problem.describe(),
+                 f"the checkpoint in {out}", fix)
     saved = search.load(out / STATE_FILE)
     if saved is None:
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
