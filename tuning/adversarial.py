@@ -162,8 +162,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
-    desc = base.describe()
-    meta = _manifest(out, run_fingerprint(spec, searched, desc), resume, overwrite)
+    meta = _manifest(out, run_fingerprint(spec, searched, base.describe()), resume, overwrite)
 
     def save():
         if out is not None:
@@ -225,22 +224,20 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
 
 def markdown(summary: dict) -> str:
     """The report.md section of an adversarial run."""
-    f = summary["fresh"]
     lines = ["", "## Adversarial rounds (min-max)", "", *table(
         ("round", "worst case of the current gains", "method", "added", "training plants",
          "iterations", "stopped"),
         [(r["round"], worst_text(r["search"]), r["search"]["method"], r["added"],
           r["train_size"], r["iterations"], r["stop_reason"]) for r in summary["rounds"]])]
-    a, b = f["start"], f["tuned"]
+    a, b = summary["fresh"]["start"], summary["fresh"]["tuned"]
     lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
               *table(("", "start gains", "tuned gains"), [
                   (f"worst {a['metric']}", worst_text(a), worst_text(b)),
                   (f"nominal {a['metric']}", f"{a['nominal_value']:.6g}",
                    f"{b['nominal_value']:.6g}"),
                   ("evaluations", a["evaluations"], b["evaluations"])]), "",
-              "Worst values are re-checked by `simulate` on the worst setup (see "
-              "docs/worst-case.md); the worst parameters and waveforms are in report.json "
-              "(`adversarial.fresh`).", ""]
+              "Worst values re-checked by `simulate` on the worst setup (docs/worst-case.md); "
+              "the worst parameters and waveforms: report.json `adversarial.fresh`.", ""]
     return "\n".join(lines)
 
 
