@@ -162,7 +162,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     if ready is not None:
         ready()
     requirements = build_requirements(setup, cfg.requirements)
-    n = len(next(iter(train.values()))) if train else 1
+    n = plant_count(train)
     mask = None
     if train and capacity:  # (a mask even where none is padding: one structure)
         train = join_plants(setup, train, {p: np.repeat(np.asarray(params.get(setup, p))[None],
@@ -257,17 +257,14 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
                      f"by default (stable filters: RK4 at dt, forward Euler at Ts)")
     selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
                                 signed=SIGNED)
-    n_params = selection.size(setup)
-    n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
-    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
-    mode = cfg.optimizer.gradient.chosen(n_params, max(
-        (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
-        cfg.robust.over, cfg.optimizer.checkpoint_every)
-    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
+    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
+    mode = cfg.optimizer.gradient.chosen(selection.size(setup), max(plant_count(train), capacity),
+                                         cfg.robust.over, cfg.optimizer.checkpoint_every)
+    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     return (cfg, notes, selection, mode, sim, check_loops(sim, cfg.objective), train, heldout,
             continuous)
 
@@ -284,16 +281,18 @@ def simulate_command(problem: Problem, config: str = "gains.json") -> str:
 def join_plants(setup, first: dict | None, then: dict) -> dict:
     """{path: (n1 + n2, ...)}: the plants of `first` (None: the nominal plant alone), then
     those of `then`; where one side does not vary a leaf, its plants keep the setup's value."""
-    def size(d):
-        return len(next(iter(d.values()))) if d else 1
-
     out = {}
     for path in dict.fromkeys([*(first or {}), *then]):
         leaf = np.asarray(params.get(setup, path))
         cols = [np.asarray(d[path]) if d and path in d
-                else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
+                else np.broadcast_to(leaf, (plant_count(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
+
+
+def plant_count(plants: dict | None) -> int:
+    """The plants of {path: (n, ...)} (None or empty: the nominal plant alone, 1)."""
+    return len(next(iter(plants.values()))) if plants else 1
 
 
 def _sample(setup, b, field, options) -> dict:
