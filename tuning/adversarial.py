@@ -61,11 +61,9 @@ def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
     spec = cfg.adversarial
     ranges = (spec.ranges if spec.ranges is not None
               else runner.model_default_ranges(cfg, setup).robust.ranges)
-    tuned = set(cfg.params)
-    for r in ranges:
-        if r.param.path in tuned:
-            raise ConfigError(f"tuning.adversarial.ranges: {r.param.path} is tuned, it cannot "
-                              f"be searched too")
+    tuned = [r.param.path for r in ranges if r.param.path in cfg.params]
+    if tuned:
+        raise ConfigError(f"tuning.adversarial.ranges: {tuned[0]} is tuned; it cannot be searched")
     return worst.make_problem(setup, list(ranges), spec.disturbance, metric=spec.metric,
                               spec=options, field="tuning.adversarial.ranges")
 

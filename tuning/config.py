@@ -118,8 +118,7 @@ class ObjectiveSpec:
 
     def validate(self, prefix: str = "tuning.objective") -> None:
         if sum(getattr(self, k) for k in TERMS) == 0:
-            raise ConfigError(f"{prefix}: every weight is 0 (set linf, l2, effort_l2, "
-                              f"effort_max or effort_tv > 0)")
+            raise ConfigError(f"{prefix}: every weight is 0 (set one of {', '.join(TERMS)} > 0)")
 
 
 @dataclasses.dataclass(frozen=True)
