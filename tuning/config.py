@@ -280,9 +280,8 @@ class TuningConfig:
         Custom(_paths_table, "a table of \"PATH\" = \"log\" or \"linear\""), factory=dict)
     objective: ObjectiveSpec = group(ObjectiveSpec)
     optimizer: OptimizerSpec = group(OptimizerSpec)
-    robust: BatchSpec = group(BatchSpec, flags={
-        "batch": "--batch", "aggregate": "--aggregate", "cvar_level": "--cvar-level",
-        "seed": "--seed"})
+    robust: BatchSpec = group(BatchSpec, flags={"batch": "--batch", "aggregate": "--aggregate",
+                                                "cvar_level": "--cvar-level", "seed": "--seed"})
     heldout: BatchSpec = group(
         BatchSpec, factory=lambda: BatchSpec(batch=256, seed=12345), flags={"batch": "--heldout"},
         docs={"batch": "held-out plants that check the tuned gains (0: skip the check, the "

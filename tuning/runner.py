@@ -90,8 +90,7 @@ class Problem:
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         return _description(self.setup, self.options, self.cfg, self.selection,
-                            self.objective.sim, self.objective.checks, self.mode,
-                            self.extra_plants)
+                            self.objective.sim, self.objective.checks, self.mode, self.extra_plants)
 
 
 def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants) -> dict:
@@ -147,9 +146,8 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     return cfg
 
 
-def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None,
-                  capacity: int = 0) -> Problem:
+def build_problem(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None,
+                  ready: Callable[[], None] | None = None, capacity: int = 0) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
     cases) join the training batch (or the nominal plant), padded to `capacity` plants with
@@ -177,8 +175,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train, mask=mask,
-                          aggregate=cfg.robust.over if train else Mean(),
-                          checks=checks)
+                          aggregate=cfg.robust.over if train else Mean(), checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
         kept = [f"windowed L-inf within {c.linf_factor:g} x the loop tuned's",
@@ -189,14 +186,12 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
                      f"where stiff) is a check in the report, not part of the objective")
-    return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
-                   objective=objective, heldout=heldout, mode=mode,
-                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants,
-                   continuous=continuous)
+    return Problem(setup=setup, options=options, cfg=cfg, selection=selection, objective=objective,
+                   heldout=heldout, mode=mode, z0=selection.init(setup), notes=tuple(notes),
+                   extra_plants=extra_plants, continuous=continuous)
 
 
-def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None
-             ) -> dict:
+def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None) -> dict:
     """`build_problem(...).describe()` without building the objective (nothing is run): what
     a resumed run is checked against before it starts."""
     cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg, extra_plants)
@@ -245,8 +240,7 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
                      f"{', '.join(freeze)}")
     bounds = dict(cfg.bounds)
-    if "controller.tau" in cfg.params and not any(k.startswith("controller.tau")
-                                                   for k in bounds):
+    if "controller.tau" in cfg.params and not any(k.startswith("controller.tau") for k in bounds):
         # RK4 at dt in the continuous loop; forward Euler at Ts in a sampled one (an
         # embedded controller may advance its filters so: stable for Ts/tau < 2)
         dt, what = float(options.dt), "dt"
@@ -255,8 +249,7 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
         notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} s "
                      f"by default (stable filters: RK4 at dt, forward Euler at Ts)")
-    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
-                                signed=SIGNED)
+    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms, signed=SIGNED)
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
@@ -331,8 +324,7 @@ class Result:
         return sum(not r.get("accepted", True) for r in self.trace.history)
 
 
-def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json"
-                ) -> None:
+def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
     --overwrite replaces a run there (a tuning run's files removed)."""
     has = (out / marker).exists()
