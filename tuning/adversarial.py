@@ -61,11 +61,9 @@ def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
     spec = cfg.adversarial
     ranges = (spec.ranges if spec.ranges is not None
               else runner.model_default_ranges(cfg, setup).robust.ranges)
-    tuned = set(cfg.params)
-    for r in ranges:
-        if r.param.path in tuned:
-            raise ConfigError(f"tuning.adversarial.ranges: {r.param.path} is tuned, it cannot "
-                              f"be searched too")
+    tuned = [r.param.path for r in ranges if r.param.path in cfg.params]
+    if tuned:
+        raise ConfigError(f"tuning.adversarial.ranges: {tuned[0]} is tuned; it cannot be searched")
     return worst.make_problem(setup, list(ranges), spec.disturbance, metric=spec.metric,
                               spec=options, field="tuning.adversarial.ranges")
 
@@ -124,26 +122,22 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
         return  # (run says what is missing)
     searched = search_problem(setup, options, cfg)
     desc = runner.describe(searched.setup, options, cfg)
-    files.check_same(files.read_json(path).get("fingerprint"),
-                     run_fingerprint(cfg.adversarial, searched, desc), where=f"--resume: {path}",
-                     fix="use the same settings, or --overwrite to start afresh")
+    runner.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),
+                        f"--resume: {path}")
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
+    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     if out is None:
-        return {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
+        return meta
     path = out / MANIFEST
     runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
-        meta = files.read_json(path)
-        files.check_same(meta.get("fingerprint"), fingerprint, where=f"--resume: {path}",
-                         fix="use the same settings, or --overwrite to start afresh")
-        return meta
+        return runner.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
     for name in ck.FILES:
         (out / name).unlink(missing_ok=True)
-    meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     files.write_json(path, meta)  # at once: a run killed in its first round resumes
     return meta
 
@@ -166,8 +160,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
-    desc = base.describe()
-    meta = _manifest(out, run_fingerprint(spec, searched, desc), resume, overwrite)
+    meta = _manifest(out, run_fingerprint(spec, searched, base.describe()), resume, overwrite)
 
     def save():
         if out is not None:
@@ -229,22 +222,20 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
 
 def markdown(summary: dict) -> str:
     """The report.md section of an adversarial run."""
-    f = summary["fresh"]
     lines = ["", "## Adversarial rounds (min-max)", "", *table(
         ("round", "worst case of the current gains", "method", "added", "training plants",
          "iterations", "stopped"),
         [(r["round"], worst_text(r["search"]), r["search"]["method"], r["added"],
           r["train_size"], r["iterations"], r["stop_reason"]) for r in summary["rounds"]])]
-    a, b = f["start"], f["tuned"]
+    a, b = summary["fresh"]["start"], summary["fresh"]["tuned"]
     lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
               *table(("", "start gains", "tuned gains"), [
                   (f"worst {a['metric']}", worst_text(a), worst_text(b)),
                   (f"nominal {a['metric']}", f"{a['nominal_value']:.6g}",
                    f"{b['nominal_value']:.6g}"),
                   ("evaluations", a["evaluations"], b["evaluations"])]), "",
-              "Worst values are re-checked by `simulate` on the worst setup (see "
-              "docs/worst-case.md); the worst parameters and waveforms are in report.json "
-              "(`adversarial.fresh`).", ""]
+              "Worst values re-checked by `simulate` on the worst setup (docs/worst-case.md); "
+              "the worst parameters and waveforms: report.json `adversarial.fresh`.", ""]
     return "\n".join(lines)
 
 

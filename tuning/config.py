@@ -68,6 +68,8 @@ def _ranges_table(ranges) -> dict:
 
 
 RANGES = Custom(_ranges, "a table of ranges, \"PATH\" = [low, high] or \"P%\"", _ranges_table)
+# the rules of a [tuning.requirements.NAME] table's keys but its bounds and times (> 0)
+REQUIREMENT_RULES = {"final": Number(), "height": Number(), "weight": WEIGHT, "overshoot": WEIGHT}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,13 +83,11 @@ class ObjectiveSpec:
     effort_l2: float = setting(0.0, "weight of L2(u) (over the start's)", WEIGHT)
     effort_max: float = setting(0.0, "weight of the smooth max|u| (over the start's)", WEIGHT)
     effort_tv: float = setting(0.0, "weight of TV(u) (over the start's)", WEIGHT)
-    u_max: float | str | None = setting(
-        "start", "bound on max|u|: a number, start (the start gains' on the nominal plant) or "
-        "none", BOUND)
+    u_max: float | str | None = setting("start", "bound on max|u|: a number, start (the start "
+                                        "gains' on the nominal plant) or none", BOUND)
     u_max_weight: float = setting(100.0, "weight of the max|u| bound's penalty", WEIGHT)
-    tv_max: float | str | None = setting(
-        "start", "bound on TV(u): a number, start (tv_max_factor x the start gains' on the "
-        "nominal plant) or none", BOUND)
+    tv_max: float | str | None = setting("start", "bound on TV(u): a number, start (tv_max_factor "
+                                         "x the start gains' on the nominal plant) or none", BOUND)
     tv_max_factor: float = setting(1.5, "the TV(u) bound \"start\" over the start's TV(u)",
                                    Positive())
     tv_max_weight: float = setting(100.0, "weight of the TV(u) bound's penalty", WEIGHT)
@@ -112,15 +112,13 @@ class ObjectiveSpec:
         1000.0, "s x L-inf(start) of the smooth L-inf: large, so that it stays close to the max "
         "where the tuned error is 20-50 times smaller", Positive())
     u_sharpness: float = setting(300.0, "r x max|u|(start) of the smooth max|u|", Positive())
-    divergence_penalty: float = setting(1000.0, "the loss of a plant that diverges",
-                                        Positive())
+    divergence_penalty: float = setting(1000.0, "the loss of a plant that diverges", Positive())
     window_start: float | None = setting(None, "t0 [s] of the window; none: the run's",
                                          Maybe(Number(ge=0)))
 
     def validate(self, prefix: str = "tuning.objective") -> None:
         if sum(getattr(self, k) for k in TERMS) == 0:
-            raise ConfigError(f"{prefix}: every weight is 0 (set linf, l2, effort_l2, "
-                              f"effort_max or effort_tv > 0)")
+            raise ConfigError(f"{prefix}: every weight is 0 (set one of {', '.join(TERMS)} > 0)")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -130,8 +128,7 @@ class OptimizerSpec:
 
     name: optimize.CMAES | optimize.Adam = setting(
         optimize.CMAES(), "cma (CMA-ES with IPOP restarts) or adam (projected descent on exact "
-        "gradients)", Choice(OPTIMIZERS),
-        flag="--method")
+        "gradients)", Choice(OPTIMIZERS), flag="--method")
     learning_rate: float = setting(0.1, "adam's initial step in z; x1.2 after a gain, /2 "
                                    "after a loss", Positive(), flag="--lr")
     patience: int = setting(60, "stop after this many iterations without a min_delta "
@@ -157,13 +154,11 @@ class OptimizerSpec:
                            f"the training plants), at least cma's 4 + 3 ln n)", AtLeast(0))
     growth: int = setting(2, "the population's factor at each restart (IPOP-CMA-ES; 1: the "
                           "same)", AtLeast(1))
-    seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)",
-                        AtLeast(0))
+    seed: int = setting(0, "CMA-ES's seed (adam: a restarted start's random point)", AtLeast(0))
     restarts: int = setting(9, "fresh CMA-ES runs from the start point after CMA-ES's own "
                             "stop or a stall", AtLeast(0))
     stall: int = setting(20, "CMA-ES has stalled when its best loss fell by less than the share "
-                         "stall_gain over this many generations (0: only its own stop)",
-                         AtLeast(0))
+                         "stall_gain over this many generations (0: only its own stop)", AtLeast(0))
     stall_gain: float = setting(0.1, "the share of the best loss that counts as progress over "
                                 "stall generations", Number(gt=0, lt=1))
 
@@ -196,8 +191,7 @@ class BatchSpec:
     ranges: tuple = setting((), "what varies; empty: the hysteresis model's defaults, +-30 %",
                             RANGES, factory=default_ranges)
     aggregate: optimize.CVaR = setting(optimize.Mean(), "over the plants: mean, cvar (the mean "
-                                       "of the worst cvar_level share) or max",
-                                       Choice(AGGREGATES))
+                                       "of the worst cvar_level share) or max", Choice(AGGREGATES))
     cvar_level: float = setting(0.2, "CVaR's share of the worst plants: 1 is the mean",
                                 Number(gt=0, le=1))
 
@@ -238,28 +232,19 @@ class AdversarialSpec:
 
 
 def _requirements(table, field) -> dict[str, dict[str, float]]:
-    if not isinstance(table, Mapping):
-        raise ConfigError(f"{field} must be a table ([{field}])")
-    _known(table, tuple(KINDS), field)
+    _known(_table(table, field), tuple(KINDS), field)
     out = {}
     for name, sub in table.items():
         where = f"{field}.{name}"
-        if not isinstance(sub, Mapping):
-            raise ConfigError(f"{where} must be a table ([{where}])")
         # a requirement's keys are its fields, weight last; those without a default are required
         keys = sorted((f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"),
                       key=lambda f: f.name == "weight")
-        _known(sub, tuple(f.name for f in keys), where)
+        _known(_table(sub, where), tuple(f.name for f in keys), where)
         for f in keys:
             if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:
                 raise ConfigError(f"{where}.{f.name} is required")
-        values = {k: validation.number(v, f"{where}.{k}") for k, v in sub.items()}
-        for k, v in values.items():
-            if k in ("b0", "b_inf", "decay", "max", "band", "settling_time") and not v > 0:
-                raise ConfigError(f"{where}.{k} must be > 0 (got {v:g})")
-            if k in ("weight", "overshoot") and v < 0:
-                raise ConfigError(f"{where}.{k} must be >= 0 (got {v:g})")
-        out[name] = values
+        rules = {k: settings.Setting("", REQUIREMENT_RULES.get(k, Positive())) for k in sub}
+        out[name] = {k: settings.parse_field(rules[k], v, f"{where}.{k}") for k, v in sub.items()}
     return out
 
 
@@ -269,10 +254,14 @@ def _known(table, allowed, field):
             raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
 
 
-def _paths_table(value, field) -> dict:
+def _table(value, field) -> Mapping:
     if not isinstance(value, Mapping):
         raise ConfigError(f"{field} must be a table ([{field}])")
-    return dict(flatten(value))
+    return value
+
+
+def _paths_table(value, field) -> dict:
+    return dict(flatten(_table(value, field)))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -291,9 +280,8 @@ class TuningConfig:
         Custom(_paths_table, "a table of \"PATH\" = \"log\" or \"linear\""), factory=dict)
     objective: ObjectiveSpec = group(ObjectiveSpec)
     optimizer: OptimizerSpec = group(OptimizerSpec)
-    robust: BatchSpec = group(BatchSpec, flags={
-        "batch": "--batch", "aggregate": "--aggregate", "cvar_level": "--cvar-level",
-        "seed": "--seed"})
+    robust: BatchSpec = group(BatchSpec, flags={"batch": "--batch", "aggregate": "--aggregate",
+                                                "cvar_level": "--cvar-level", "seed": "--seed"})
     heldout: BatchSpec = group(
         BatchSpec, factory=lambda: BatchSpec(batch=256, seed=12345), flags={"batch": "--heldout"},
         docs={"batch": "held-out plants that check the tuned gains (0: skip the check, the "

@@ -119,15 +119,13 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
         # the scheme the loop tuned does not use
         other = dataclasses.replace(
             sim, discretisation=next(s for s in SCHEME.values() if s != sim.discretisation))
-        out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0,
-                             spec.sampled_weight, "sampled_weight",
-                             f"the states by {discretisation(other)}"))
+        out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0, spec.sampled_weight,
+                             "sampled_weight", f"the states by {discretisation(other)}"))
     if spec.delay_samples and spec.delay_weight:
         d = sim.delay + spec.delay_samples
         out.append(CheckLoop("delayed", dataclasses.replace(sim, delay=d), spec.delay_factor,
                              None, spec.delay_tv_factor, spec.delay_weight, "delay_weight",
-                             f"the input delayed {d} sample{'s' if d != 1 else ''}",
-                             smooth=False))
+                             f"the input delayed {d} sample{'s' if d != 1 else ''}", smooth=False))
     return tuple(out)
 
 
@@ -144,8 +142,7 @@ def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=No
     for c in objective.checks:
         tc = run_at(objective.selection, setup, z, c.sim, overrides=overrides,
                     extra=objective.extra(loop=c.sim), points=points)
-        mc = tc.metrics | {"linf_window": tc.metrics["linf_error_window"],
-                           "diverged": tc.diverged}
+        mc = tc.metrics | {"linf_window": tc.metrics["linf_error_window"], "diverged": tc.diverged}
         m = m | {f"{c.name}_{k}": mc[k] for k in ("linf_window", "smooth_linf_window",
                                                  "max_abs_u", "smooth_max_abs_u", "tv_u",
                                                  "diverged")}
@@ -219,8 +216,7 @@ class Objective(eqx.Module):
     def evaluate(self, z, overrides=None):
         """(loss, aux) at z; aux has the terms (aggregated as the loss is), the exact metrics
         and the feasibility of the bounds (all plants)."""
-        loss, aux, _ = self._evaluate(z, overrides)
-        return loss, aux
+        return self._evaluate(z, overrides)[:2]
 
     def judged(self, metrics, diverged, bounds: tuple):
         """(J, its weighted terms (0 where a loop diverged), exact feasibility) of each plant of

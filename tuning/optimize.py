@@ -103,9 +103,8 @@ class CMAES:
 
     def method(self, spec, plants: int, n: int) -> CMA:
         """The `dscjax.search` method of an `OptimizerSpec`."""
-        return CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n),
-                   restarts=spec.restarts, growth=spec.growth, stall=spec.stall,
-                   stall_gain=spec.stall_gain)
+        return CMA(sigma0=spec.sigma0, popsize=spec.population(plants, n), restarts=spec.restarts,
+                   growth=spec.growth, stall=spec.stall, stall_gain=spec.stall_gain)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -43,8 +43,7 @@ def tuning_metrics(window_start, e_sharpness, u_sharpness, requirements: tuple =
     of e on [t0, T] (smooth_linf_window, sharpness `e_sharpness` in 1/units of e) and max~|u|
     over every step (smooth_max_abs_u, `u_sharpness`), every requirement (req0_penalty,
     req0_met, ...) and, with a `reference`, `UserError` (user_linf_error_window, ...)."""
-    parts = [SmoothMax(LogSumExp(e_sharpness), window_start, "smooth_linf_window",
-                       n_steps=n_steps),
+    parts = [SmoothMax(LogSumExp(e_sharpness), window_start, "smooth_linf_window", n_steps=n_steps),
              SmoothMax(LogSumExp(u_sharpness), name="smooth_max_abs_u", of_u=True)]
     parts += [dataclasses.replace(r, n_steps=n_steps) for r in requirements]
     parts += [] if reference is None else [UserError(window_start, n_steps, reference)]

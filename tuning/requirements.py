@@ -75,14 +75,11 @@ class Envelope(Requirement):
     decay: jax.Array
     name: ClassVar[str] = "envelope"
 
-    def bound(self, t):
-        return self.b_inf + (self.b0 - self.b_inf) * jnp.exp(-t / self.decay)
-
     def init(self, dtype):
         return _zeros(dtype, "viol") | {"margin": jnp.asarray(-jnp.inf, dtype)}
 
     def sample(self, acc, k, t, e, y, obs, w):
-        b = self.bound(t)
+        b = self.b_inf + (self.b0 - self.b_inf) * jnp.exp(-t / self.decay)
         a = jnp.abs(e)
         return {"viol": acc["viol"] + w * _relu(a / b - 1.0) ** 2,
                 "margin": jnp.maximum(acc["margin"], a - b)}
@@ -133,15 +130,13 @@ class UBound(Requirement):
 
     max: jax.Array
     name: ClassVar[str] = "u_bound"
-
-    def _signal(self, obs):
-        return obs.u
+    signal: ClassVar[str] = "u"  # the observation bounded
 
     def init(self, dtype):
         return _zeros(dtype, "viol", "peak")
 
     def sample(self, acc, k, t, e, y, obs, w):
-        a = jnp.abs(self._signal(obs))
+        a = jnp.abs(getattr(obs, self.signal))
         return {"viol": acc["viol"] + w * _relu(a / self.max - 1.0) ** 2,
                 "peak": jnp.maximum(acc["peak"], a)}
 
@@ -153,9 +148,7 @@ class URate(UBound):
     """|u'(t)| <= max at every step (u' exact: the loop's forward-mode derivative of the law)."""
 
     name: ClassVar[str] = "u_rate"
-
-    def _signal(self, obs):
-        return obs.u_dot
+    signal: ClassVar[str] = "u_dot"
 
 
 KINDS = {cls.name: cls for cls in (Envelope, StepResponse, UBound, URate)}
@@ -170,9 +163,8 @@ def build_requirements(setup, table) -> tuple:
             ref = setup.reference
             if "final" not in values or "height" not in values:
                 if not isinstance(ref, SmoothStep):
-                    raise ConfigError("tuning.requirements.step needs a step reference "
-                                      "(reference.kind = \"smooth_step\") or both 'final' and "
-                                      "'height'")
+                    raise ConfigError("tuning.requirements.step needs 'final' and 'height', "
+                                      "or a step reference (reference.kind = \"smooth_step\")")
                 values.setdefault("height", float(ref.height))
                 values.setdefault("final", float(ref.initial) + float(ref.height))
             if values["height"] == 0:

@@ -90,8 +90,7 @@ class Problem:
     def describe(self) -> dict:
         """JSON-able description; its fingerprint must match to resume."""
         return _description(self.setup, self.options, self.cfg, self.selection,
-                            self.objective.sim, self.objective.checks, self.mode,
-                            self.extra_plants)
+                            self.objective.sim, self.objective.checks, self.mode, self.extra_plants)
 
 
 def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants) -> dict:
@@ -112,12 +111,6 @@ def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants
         "mode": mode.name,
     } | ({"extra_plants": {k: np.asarray(v).tolist() for k, v in extra_plants.items()}}
          if extra_plants else {})
-
-
-def default_freeze(setup, tune) -> tuple[str, ...]:
-    if isinstance(setup.plant, PaperPlant) and "controller.gamma_g" in tune:
-        return tuple(p for p in PAPER_PLANT_FREEZE if p.split("[")[0] in tune)
-    return ()
 
 
 # the held-out batch's default box beyond the hysteresis: the plant's g and theta (one factor
@@ -153,9 +146,8 @@ def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     return cfg
 
 
-def build_problem(setup, options: RunSpec, cfg: TuningConfig,
-                  extra_plants: dict | None = None, ready: Callable[[], None] | None = None,
-                  capacity: int = 0) -> Problem:
+def build_problem(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None,
+                  ready: Callable[[], None] | None = None, capacity: int = 0) -> Problem:
     """Validate the tuning settings against the setup (ConfigError naming the field) and
     build the objective; `extra_plants` ({path: (k, ...)}, e.g. `tuning.adversarial`'s worst
     cases) join the training batch (or the nominal plant), padded to `capacity` plants with
@@ -168,7 +160,7 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
     if ready is not None:
         ready()
     requirements = build_requirements(setup, cfg.requirements)
-    n = len(next(iter(train.values()))) if train else 1
+    n = plant_count(train)
     mask = None
     if train and capacity:  # (a mask even where none is padding: one structure)
         train = join_plants(setup, train, {p: np.repeat(np.asarray(params.get(setup, p))[None],
@@ -183,45 +175,45 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig,
                         f"the nominal plant's)" if scales.n_train_fallback else ""))
     objective = Objective(setup=setup, selection=selection, spec=cfg.objective, sim=sim,
                           scales=scales, requirements=requirements, overrides=train, mask=mask,
-                          aggregate=cfg.robust.over if train else Mean(),
-                          checks=checks)
+                          aggregate=cfg.robust.over if train else Mean(), checks=checks)
     notes.append(f"the loop tuned: {loop_words(sim)}")
     for c in checks:
-        effort = " and ".join(f"{what} within {f:g} x its bound"
-                              for what, _, _, f in c.bounded((1.0, 1.0)))
+        kept = [f"windowed L-inf within {c.linf_factor:g} x the loop tuned's",
+                *(f"{what} within {f:g} x its bound" for what, _, _, f in c.bounded((1, 1)))]
         notes.append(f"checked too, in the search: the same loop with {c.label} must keep its "
-                     f"windowed L-inf within {c.linf_factor:g} x the loop tuned's"
-                     + (f" and {effort}" if effort else "")
-                     + f" (penalty weight tuning.objective.{c.weight_key} = "
+                     f"{' and '.join(kept)} (penalty weight tuning.objective.{c.weight_key} = "
                      f"{c.weight:g}; 0 turns this check off)")
     if continuous is not None:
         notes.append(f"the continuous loop (RK4 at dt = {float(continuous.dt):g} s, refined "
                      f"where stiff) is a check in the report, not part of the objective")
-    return Problem(setup=setup, options=options, cfg=cfg, selection=selection,
-                   objective=objective, heldout=heldout, mode=mode,
-                   z0=selection.init(setup), notes=tuple(notes), extra_plants=extra_plants,
-                   continuous=continuous)
+    return Problem(setup=setup, options=options, cfg=cfg, selection=selection, objective=objective,
+                   heldout=heldout, mode=mode, z0=selection.init(setup), notes=tuple(notes),
+                   extra_plants=extra_plants, continuous=continuous)
 
 
-def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None
-             ) -> dict:
+def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None) -> dict:
     """`build_problem(...).describe()` without building the objective (nothing is run): what
     a resumed run is checked against before it starts."""
-    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg,
-                                                             extra_plants)
+    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg, extra_plants)
     return _description(setup, options, cfg, selection, sim, checks, mode, extra_plants)
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line, the old and new values of what differs) unless the run in
     `out` was made with these settings; checked before anything runs or is printed."""
-    out = Path(out)
-    if not (out / "checkpoint.json").exists():
-        return  # (run says what is missing)
-    meta = files.read_json(out / "checkpoint.json")
-    files.check_same(meta.get("problem"), describe(setup, options, cfg),
-                     where=f"--resume: the checkpoint in {out}",
-                     fix="use the same settings, or --overwrite to start afresh")
+    path = Path(out) / "checkpoint.json"
+    if path.exists():  # (else run says what is missing)
+        check_record(path, "problem", describe(setup, options, cfg),
+                     f"--resume: the checkpoint in {out}")
+
+
+def check_record(path: Path, key: str, new: dict, where: str,
+                 fix: str = "use the same settings, or --overwrite to start afresh") -> dict:
+    """The JSON record at `path`; ConfigError (one line, the old and new values of what
+    differs) unless its `key` is `new`."""
+    meta = files.read_json(path)
+    files.check_same(meta.get(key), new, where=where, fix=fix)
+    return meta
 
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
@@ -241,35 +233,31 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         names={"window_start": "tuning.objective.window_start"})
     continuous = sim.replace(sample_time=None, delay=0, noise=None) if options.sampled else None
     check(setup, options)
-    freeze = cfg.freeze if cfg.freeze is not None else default_freeze(setup, cfg.params)
-    if cfg.freeze is None and freeze:
+    freeze = cfg.freeze or ()
+    if cfg.freeze is None and isinstance(setup.plant, PaperPlant) and (
+            "controller.gamma_g" in cfg.params):
+        freeze = tuple(p for p in PAPER_PLANT_FREEZE if p.split("[")[0] in cfg.params)
         notes.append(f"frozen by default on the paper's plant (no effect, f_2 = 0): "
                      f"{', '.join(freeze)}")
     bounds = dict(cfg.bounds)
-    if "controller.tau" in cfg.params and not any(k.startswith("controller.tau")
-                                                   for k in bounds):
+    if "controller.tau" in cfg.params and not any(k.startswith("controller.tau") for k in bounds):
         # RK4 at dt in the continuous loop; forward Euler at Ts in a sampled one (an
         # embedded controller may advance its filters so: stable for Ts/tau < 2)
         dt, what = float(options.dt), "dt"
         if options.sampled and options.sample_time > dt:
             dt, what = options.sample_time, "Ts"
         bounds["controller.tau"] = (TAU_MIN_STEPS * dt, None)
-        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} "
-                     f"s by default (the filters stable with RK4 at dt and forward Euler "
-                     f"at Ts)")
-    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms,
-                                signed=SIGNED)
-    n_params = selection.size(setup)
-    n_extra = len(next(iter(extra_plants.values()))) if extra_plants else 0
-    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
-    mode = cfg.optimizer.gradient.chosen(n_params, max(
-        (cfg.robust.batch if cfg.robust.batch > 0 else 1) + n_extra, capacity),
-        cfg.robust.over, cfg.optimizer.checkpoint_every)
-    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
+        notes.append(f"controller.tau >= {TAU_MIN_STEPS:g} {what} = {TAU_MIN_STEPS * dt:g} s "
+                     f"by default (stable filters: RK4 at dt, forward Euler at Ts)")
+    selection = Selection.build(setup, cfg.params, freeze, bounds, cfg.transforms, signed=SIGNED)
     train, heldout = (_sample(setup, b, f"tuning.{key}.ranges", options) if b.batch > 0 else None
                       for key, b in (("robust", cfg.robust), ("heldout", cfg.heldout)))
     if extra_plants:
         train = join_plants(setup, train, extra_plants)
+    # by the plants simulated: a padded batch's capacity (its rounds share one gradient)
+    mode = cfg.optimizer.gradient.chosen(selection.size(setup), max(plant_count(train), capacity),
+                                         cfg.robust.over, cfg.optimizer.checkpoint_every)
+    sim = dataclasses.replace(sim, gradient=TimeParallel(every=mode.every))
     return (cfg, notes, selection, mode, sim, check_loops(sim, cfg.objective), train, heldout,
             continuous)
 
@@ -286,16 +274,18 @@ def simulate_command(problem: Problem, config: str = "gains.json") -> str:
 def join_plants(setup, first: dict | None, then: dict) -> dict:
     """{path: (n1 + n2, ...)}: the plants of `first` (None: the nominal plant alone), then
     those of `then`; where one side does not vary a leaf, its plants keep the setup's value."""
-    def size(d):
-        return len(next(iter(d.values()))) if d else 1
-
     out = {}
     for path in dict.fromkeys([*(first or {}), *then]):
         leaf = np.asarray(params.get(setup, path))
         cols = [np.asarray(d[path]) if d and path in d
-                else np.broadcast_to(leaf, (size(d), *leaf.shape)) for d in (first, then)]
+                else np.broadcast_to(leaf, (plant_count(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
+
+
+def plant_count(plants: dict | None) -> int:
+    """The plants of {path: (n, ...)} (None or empty: the nominal plant alone, 1)."""
+    return len(next(iter(plants.values()))) if plants else 1
 
 
 def _sample(setup, b, field, options) -> dict:
@@ -334,8 +324,7 @@ class Result:
         return sum(not r.get("accepted", True) for r in self.trace.history)
 
 
-def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json"
-                ) -> None:
+def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
     --overwrite replaces a run there (a tuning run's files removed)."""
     has = (out / marker).exists()
@@ -354,9 +343,8 @@ def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpo
 def _saved(out: Path, problem: Problem) -> search.Saved:
     """The checkpoint of the run in `out` (the problem must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    meta = files.read_json(out / "checkpoint.json")
-    files.check_same(meta.get("problem"), problem.describe(),
-                     where=f"the checkpoint in {out}", fix=fix)
+    check_record(out / "checkpoint.json", "problem", problem.describe(),
+                 f"the checkpoint in {out}", fix)
     saved = search.load(out / STATE_FILE)
     if saved is None:
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
