@@ -212,14 +212,11 @@ def run(args) -> int:
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method.grid
                                    else "sweep.ranges")
     if main:
-        desc = ", ".join(
-            f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
-            for r in ranges)
-        common.banner(args, f"{n:,} {'grid points' if settings.method.grid else 'samples'}"
-                      f" ({settings.method.name}, seed {settings.seed}) of {desc}; "
-                      f"T={t_final:g} s, dt={dt:g} s, {settings.dtype}, "
-                      f"{sweep.loop_text(options.to_table())}; on {len(choice.devices)} "
-                      f"device(s) ({choice.platform}), {jax.process_count()} process(es) "
+        scope = options.to_table() | dict(
+            n_samples=n, method=settings.method.name, seed=settings.seed, dtype=settings.dtype,
+            ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
+        common.banner(args, f"{sweep.scope_text(scope)}; on {len(choice.devices)} device(s) "
+                      f"({choice.platform}), {jax.process_count()} process(es) "
                       f"({choice.reason})", warnings)
     bar = None
 
@@ -290,37 +287,12 @@ def run(args) -> int:
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
-    q = summary["quantiles"]["linf_error_window"]
     print(f"  wrote {out}/results.npz, summary.json, summary.md, traces.npz"
           + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
              else "nothing left to run)"))
-    if q is not None:
-        nom = ("the nominal setup diverged" if bool(nominal.diverged)
-               else f"nominal {nominal_metrics['linf_error_window']:.4g}")
-        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
-              f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
-              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
-    tv = summary["quantiles"]["tv_u_window"]
-    chat = summary["chattering"]
-    if tv is not None:
-        nom = ("" if bool(nominal.diverged) else
-               f"; nominal TV(u) {common.figure(nominal_metrics['tv_u_window'])}, "
-               + common.chattering_text(nominal_metrics["chattering_index"]))
-        print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
-              f"median {common.figure(tv['p50'])}, p95 {common.figure(tv['p95'])}, max "
-              f"{common.figure(tv['max'])}; max|u| max "
-              f"{common.figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
-    print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
-          f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
-    smallest = summary["smallest_dt_tried"]
-    print(f"  tracked: {summary['n_tracked']:,}; tracked after refinement (a numerically stiff "
-          f"run re-done with ETDRK4 at a smaller step): {summary['n_refined']:,}; diverged "
-          f"at every step tried: {summary['n_diverged']:,} of {result.n:,} "
-          f"({100 * summary['divergence_rate']:.2f} %"
-          + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")")
-    print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
-          f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
+    for line in sweep.outcome(summary):
+        print(f"  {line}")
     if f32 is not None and f32["untrusted"]:
         print("  warning: " + common.untrusted_text(
             f32["untrusted"], f32["max_rel_diff"], f32["rtol"], "rerun with --float64",
