@@ -38,21 +38,16 @@ def add_parser(sub):
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description=f"Simulate many plants with the gains fixed and report how well they track. "
-        f"Default: the paper's example and gains, {names} each {d.method.name} within "
-        f"+-{100 * DEFAULT_REL:g} % of the paper's values, {d.samples:,} samples, "
-        f"{OPTIONS['t_final'][0]:g} s at dt = {OPTIONS['dt'][0]:g}, {d.dtype}, seed {d.seed}. "
-        f"Settings may also "
-        f"come from a [sweep] table in the config (see docs/sweeps.md); the command line "
-        f"wins.")
+        description=f"Simulate many plants with the gains fixed and report how well they track "
+        f"(default: the paper's example, {names} each {d.method.name} within "
+        f"+-{100 * DEFAULT_REL:g} %, {d.samples:,} samples). A [sweep] table of the config "
+        f"may hold the settings (docs/sweeps.md); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [sweep] table")
-    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
-                   "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
-                   "tune`, with the loop they were tuned as: its [simulation] keys of the "
-                   "sampled controller (sample_time, delay, noise, noise_seed, "
-                   "discretisation), which the options of the same names override; its other "
-                   "sections and keys are ignored")
+    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config, e.g. the gains.json "
+                   "of `dscjax tune`, whose [controller] table and sampled-controller "
+                   "[simulation] keys (sample_time, delay, noise, ...) are laid over --config; "
+                   "the rest is ignored")
     p.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                    help="full-factorial grid axis (repeat for more axes), e.g. "
                    "hysteresis.alpha=0.7:1.3:41")
@@ -71,8 +66,7 @@ def add_parser(sub):
                 overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
-                      "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
-                      "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
+                      "jax.distributed.initialize() first (SLURM, Open MPI, ... auto-detected)")
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
                       "(implies --distributed)")
     dist.add_argument("--num-processes", type=common.count(1), metavar="N",
@@ -182,27 +176,23 @@ def run(args) -> int:
     from dscjax.simulate import check, simulate
 
     setup, options, settings = load(args)
-    t_final, dt = options.t_final, float(options.dt)
-    window_start = float(options.window_start)
+    t_final, dt, n = options.t_final, float(options.dt), settings.n_samples()
     printed = setup
     setup = params.cast(setup, settings.dtype)
     with common.blame_options(typed_settings(args)):
-        ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
+        ranges = sweep.check_settings(settings, setup, t_final, dt, float(options.window_start))
     if args.print_config:
         common.print_config(printed, options,
                             {"sweep": sweep.settings.to_table(settings, setup)},
                             groups={"sweep": settings})
         return 0
     check(setup, options)
-    steps = options.n_steps
-    check_work(work(setup, settings, steps, ranges),
-               what=f"{settings.n_samples():,} samples of "
-               f"{common.horizon_text(t_final, dt, steps)}",
+    check_work(work(setup, settings, options.n_steps, ranges),
+               what=f"{n:,} samples of {common.horizon_text(t_final, dt, options.n_steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run
         sweep.check_resumable(args.out, setup, settings, options)
-    n = settings.n_samples()
     choice = common.choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0
     # several processes share --out: process 0 (which writes every file) takes the lock of
@@ -257,9 +247,8 @@ def run(args) -> int:
     summary = sweep.summarize(result, nominal_metrics, threshold, worst=max(settings.worst, 1))
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
-    nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
-    summary |= {"nominal_params": nominal_params, "run": info | {"loop": sweep.loop_text(info)},
-                "warnings": warnings}
+    summary |= {"nominal_params": {r.name: r.param.nominal(setup) for r in ranges},
+                "run": info | {"loop": sweep.loop_text(info)}, "warnings": warnings}
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
@@ -282,8 +271,7 @@ def run(args) -> int:
 
     figures = []
     if not args.no_plot:
-        figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
-                         nominal_params, trajs, records, kinds, window_start, t_final, summary)
+        figures = _plots(out, result, settings, summary, trajs, records, kinds, nominal)
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
@@ -294,10 +282,9 @@ def run(args) -> int:
     for line in sweep.outcome(summary):
         print(f"  {line}")
     if f32 is not None and f32["untrusted"]:
-        print("  warning: " + common.untrusted_text(
+        common.say(args, "warning", common.untrusted_text(
             f32["untrusted"], f32["max_rel_diff"], f32["rtol"], "rerun with --float64",
-            on=f" on {len(f32['rows'])} re-checked rows"),
-              file=sys.stderr)
+            on=f" on {len(f32['rows'])} re-checked rows"))
     return 0
 
 
@@ -316,13 +303,6 @@ def interrupt_hint(args) -> str | None:
         return nothing_kept(args)
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
     return resume_text(args, f"{n_done} finished block(s) are kept in {out}/chunks")
-
-
-def _traces_title(kinds, dtype) -> str:
-    parts = [f"{kinds.count(k)} {name}" for k, name in (
-        ("worst", "worst tracking"), ("diverged", "first diverged"), ("random", "random"))
-        if kinds.count(k)]
-    return ", ".join(parts) + f" samples of the sweep, re-simulated ({dtype})"
 
 
 def _save_every(n_steps: int) -> int:
@@ -356,38 +336,38 @@ def _write_traces(path, trajs, records, kinds, nominal):
     files.write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 
-def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,
-           trajs, records, kinds, t0, t_final, summary):
+def _plots(out, result, settings, summary, trajs, records, kinds, nominal) -> list[str]:
+    """The sweep's figures (their file names); the heatmap's cell statistics into `summary`."""
     from dscjax.sweep import plots as sp
 
-    c = result.columns
-    title = (f"{result.n:,} {'grid points' if settings.method.grid else 'samples'}, "
-             f"T = {t_final:g} s, dt = {result.info['dt']:g} s, {settings.dtype}")
+    c, run, at = result.columns, summary["run"], summary["nominal_params"]
+    err, div, refined = c["linf_error_window"], c["diverged"], c["refinements"] > 0
+    shared = dict(t0=run["window_start"], t_final=run["t_final"],
+                  threshold=summary["degraded"]["threshold"],
+                  title=f"{result.n:,} {'grid points' if settings.method.grid else 'samples'}, "
+                  f"T = {run['t_final']:g} s, dt = {run['dt']:g} s, {settings.dtype}")
     figures = ["hist_linf_window.png"]
-    sp.plot_histogram(c["linf_error_window"], c["diverged"], out / figures[0], t0=t0,
-                      t_final=t_final, nominal=nominal_metrics["linf_error_window"],
-                      threshold=threshold, title=title, refined=c["refinements"] > 0)
-    names = [r.name for r in ranges]
+    sp.plot_histogram(err, div, out / figures[0], nominal=summary["nominal"]["linf_error_window"],
+                      refined=refined, **shared)
+    names = result.param_names
     if len(names) >= 2:
-        pair = settings.heatmap or (names[0], names[1])
-        grid = {}
-        if settings.method.grid:
-            grid = dict(grid_x=c[pair[0]], grid_y=c[pair[1]])
+        x, y = settings.heatmap or names[:2]
+        grid = dict(grid_x=c[x], grid_y=c[y]) if settings.method.grid else {}
         figures.append("heatmap_linf_window.png")
-        summary["heatmap"] = sp.plot_heatmap(
-            c[pair[0]], c[pair[1]], c["linf_error_window"], c["diverged"], out / figures[-1],
-            names=pair, t0=t0, t_final=t_final, threshold=threshold,
-            nominal_xy=(nominal_params[pair[0]], nominal_params[pair[1]]), title=title,
-            refined=c["refinements"] > 0, **grid)
+        summary["heatmap"] = sp.plot_heatmap(c[x], c[y], err, div, out / figures[-1],
+                                             names=(x, y), nominal_xy=(at[x], at[y]),
+                                             refined=refined, **grid, **shared)
     else:
         figures.append("scan_linf_window.png")
-        sp.plot_scan(c[names[0]], c["linf_error_window"], c["diverged"], out / figures[-1],
-                     name=names[0], t0=t0, t_final=t_final, threshold=threshold,
-                     nominal_x=nominal_params[names[0]], title=title)
+        sp.plot_scan(c[names[0]], err, div, out / figures[-1], name=names[0],
+                     nominal_x=at[names[0]], **shared)
     if trajs:
         figures.append("traces.png")
-        labels = [sp.trace_label(r, result.param_names, k) for r, k in zip(records, kinds,
-                                                                           strict=True)]
-        sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal, t0=t0,
-                       title=_traces_title(kinds, settings.dtype))
+        labels = [sp.trace_label(r, names, k) for r, k in zip(records, kinds, strict=True)]
+        counts = [f"{kinds.count(k)} {name}" for k, name in (
+            ("worst", "worst tracking"), ("diverged", "first diverged"), ("random", "random"))
+            if k in kinds]
+        sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal,
+                       t0=shared["t0"], title=", ".join(counts)
+                       + f" samples of the sweep, re-simulated ({settings.dtype})")
     return figures
