@@ -70,12 +70,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     """Quantiles of every metric (over the samples that did not diverge), the divergence and
     degradation rates, the worst samples that track and the first to diverge, with their
     parameters."""
-    c = result.columns
+    c, n = result.columns, result.n
     div = np.asarray(c["diverged"], bool)
     ok = ~div
-    n = result.n
-    quant = {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS}
-    lw = np.asarray(c["linf_error_window"], np.float64)
     refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
         "n_samples": n,
@@ -86,7 +83,7 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         "smallest_dt_tried": (float(np.min(c["dt_used"][div])) if div.any() and "dt_used" in c
                               else None),
         "quantiles_over": "samples that did not diverge",
-        "quantiles": quant,
+        "quantiles": {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS},
     }
     if nominal is not None:
         out["nominal"] = {k: float(v) for k, v in nominal.items()}
@@ -97,7 +94,7 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
                          "rate": float(chatter.mean()) if n else 0.0,
                          "definition": "docs/numerics.md"}
     if threshold is not None:
-        degraded = div | (lw > threshold)
+        degraded = div | (np.asarray(c["linf_error_window"], np.float64) > threshold)
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
