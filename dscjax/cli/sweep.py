@@ -230,7 +230,7 @@ def run(args) -> int:
         print(f"  resumed: {info['samples_resumed']:,} samples were already done",
               file=sys.stderr)
     c = result.columns
-    every = _save_every(info["n_steps"])
+    every = max(1, -(-info["n_steps"] // 2000))  # at most 2001 saved points per trace
     nominal = simulate(setup, spec=options.replace(save_every=every), throw=False)
     nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
     threshold, rule = settings.threshold, "given"
@@ -301,11 +301,6 @@ def interrupt_hint(args) -> str | None:
         return nothing_kept(args)
     n_done = len(list((out / "chunks").glob("chunk_*.npz")))
     return resume_text(args, f"{n_done} finished block(s) are kept in {out}/chunks")
-
-
-def _save_every(n_steps: int) -> int:
-    """At most 2001 saved points per trace (the last one at T whatever the stride)."""
-    return max(1, -(-n_steps // 2000))
 
 
 def _recheck(trajs, records) -> dict[str, float] | None:
