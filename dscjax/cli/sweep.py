@@ -38,27 +38,24 @@ def add_parser(sub):
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description=f"Simulate many plants with the gains fixed and report how well they track. "
-        f"Default: the paper's example and gains, {names} each {d.method.name} within "
-        f"+-{100 * DEFAULT_REL:g} % of the paper's values, {d.samples:,} samples, "
-        f"{OPTIONS['t_final'][0]:g} s at dt = {OPTIONS['dt'][0]:g}, {d.dtype}, seed {d.seed}. "
-        f"Settings may also "
-        f"come from a [sweep] table in the config (see docs/sweeps.md); the command line "
-        f"wins.")
+        description=f"Simulate many plants with the gains fixed and report how well they track "
+        f"(default: the paper's example, {names} each {d.method.name} within "
+        f"+-{100 * DEFAULT_REL:g} %, {d.samples:,} samples). A [sweep] table of the config "
+        f"may hold the settings (docs/sweeps.md); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [sweep] table")
-    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config whose [controller] "
-                   "table (the gains) is laid over --config, e.g. the gains.json of `dscjax "
-                   "tune`, with the loop they were tuned as: its [simulation] keys of the "
-                   "sampled controller (sample_time, delay, noise, noise_seed, "
-                   "discretisation), which the options of the same names override; its other "
-                   "sections and keys are ignored")
-    p.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
-                   help="full-factorial grid axis (repeat for more axes), e.g. "
-                   "hysteresis.alpha=0.7:1.3:41")
-    p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
-                   help=f"a sampled parameter (repeat; replaces the default {names}), "
-                   "e.g. plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
+    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config, e.g. the gains.json "
+                   "of `dscjax tune`, whose [controller] table and sampled-controller "
+                   "[simulation] keys (sample_time, delay, noise, ...) are laid over --config; "
+                   "the rest is ignored")
+    axes = p.add_mutually_exclusive_group()
+    axes.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
+                      help="full-factorial grid axis (repeat for more axes), e.g. "
+                      "hysteresis.alpha=0.7:1.3:41")
+    axes.add_argument("--range", action="append", dest="ranges",
+                      metavar="PATH=LOW:HIGH|PATH=P%", help=f"a sampled parameter (repeat; "
+                      f"replaces the default {names}), e.g. plant.g[1]=0.8:1.2 or "
+                      "hysteresis.alpha=30%%")
     schema.add_arguments(p, sweep.SweepSettings, "sweep.")
     common.add_run_args(p, SWEEP_KEYS)
     common.add_example_arg(p)
@@ -71,8 +68,7 @@ def add_parser(sub):
                 overwrite="discard a sweep in DIR and start afresh")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
-                      "jax.distributed.initialize() first (cluster auto-detection: SLURM, Open "
-                      "MPI, ...; or JAX_COORDINATOR_ADDRESS and the two flags below)")
+                      "jax.distributed.initialize() first (SLURM, Open MPI, ... auto-detected)")
     dist.add_argument("--coordinator", metavar="HOST:PORT", help="address of process 0 "
                       "(implies --distributed)")
     dist.add_argument("--num-processes", type=common.count(1), metavar="N",
@@ -98,9 +94,6 @@ def load(args):
     settings, given, _ = common.own_settings(args, sweep.SweepSettings, "sweep.", settings)
     changes = {}
     if args.grid:
-        if args.ranges:
-            raise ConfigError("--range is for sampled sweeps; a grid takes its ranges from "
-                              "--grid")
         changes |= dict(method=params.Grid(), ranges=tuple(parse_range(g, grid=True)
                                                     for g in args.grid))
     elif (args.samples is not None or args.ranges or args.method) and settings.method.grid \
@@ -182,27 +175,23 @@ def run(args) -> int:
     from dscjax.simulate import check, simulate
 
     setup, options, settings = load(args)
-    t_final, dt = options.t_final, float(options.dt)
-    window_start = float(options.window_start)
+    t_final, dt, n = options.t_final, float(options.dt), settings.n_samples()
     printed = setup
     setup = params.cast(setup, settings.dtype)
     with common.blame_options(typed_settings(args)):
-        ranges = sweep.check_settings(settings, setup, t_final, dt, window_start)
+        ranges = sweep.check_settings(settings, setup, t_final, dt, float(options.window_start))
     if args.print_config:
         common.print_config(printed, options,
                             {"sweep": sweep.settings.to_table(settings, setup)},
                             groups={"sweep": settings})
         return 0
     check(setup, options)
-    steps = options.n_steps
-    check_work(work(setup, settings, steps, ranges),
-               what=f"{settings.n_samples():,} samples of "
-               f"{common.horizon_text(t_final, dt, steps)}",
+    check_work(work(setup, settings, options.n_steps, ranges),
+               what=f"{n:,} samples of {common.horizon_text(t_final, dt, options.n_steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run
         sweep.check_resumable(args.out, setup, settings, options)
-    n = settings.n_samples()
     choice = common.choose_device(args, options.device, n)  # run_sweep places the blocks alike
     main = jax.process_index() == 0
     # several processes share --out: process 0 (which writes every file) takes the lock of
@@ -212,14 +201,11 @@ def run(args) -> int:
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method.grid
                                    else "sweep.ranges")
     if main:
-        desc = ", ".join(
-            f"{r.name} in [{r.low:.4g}, {r.high:.4g}]" + (f" x{r.num}" if r.num else "")
-            for r in ranges)
-        common.banner(args, f"{n:,} {'grid points' if settings.method.grid else 'samples'}"
-                      f" ({settings.method.name}, seed {settings.seed}) of {desc}; "
-                      f"T={t_final:g} s, dt={dt:g} s, {settings.dtype}, "
-                      f"{sweep.loop_text(options.to_table())}; on {len(choice.devices)} "
-                      f"device(s) ({choice.platform}), {jax.process_count()} process(es) "
+        scope = options.to_table() | dict(
+            n_samples=n, method=settings.method.name, seed=settings.seed, dtype=settings.dtype,
+            ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
+        common.banner(args, f"{sweep.scope_text(scope)}; on {len(choice.devices)} device(s) "
+                      f"({choice.platform}), {jax.process_count()} process(es) "
                       f"({choice.reason})", warnings)
     bar = None
 
@@ -244,7 +230,7 @@ def run(args) -> int:
         print(f"  resumed: {info['samples_resumed']:,} samples were already done",
               file=sys.stderr)
     c = result.columns
-    every = _save_every(info["n_steps"])
+    every = max(1, -(-info["n_steps"] // 2000))  # at most 2001 saved points per trace
     nominal = simulate(setup, spec=options.replace(save_every=every), throw=False)
     nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
     threshold, rule = settings.threshold, "given"
@@ -260,16 +246,15 @@ def run(args) -> int:
     summary = sweep.summarize(result, nominal_metrics, threshold, worst=max(settings.worst, 1))
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
-    nominal_params = {r.name: r.param.nominal(setup) for r in ranges}
-    summary |= {"nominal_params": nominal_params, "run": info | {"loop": sweep.loop_text(info)},
-                "warnings": warnings}
+    summary |= {"nominal_params": {r.name: r.param.nominal(setup) for r in ranges},
+                "run": info | {"loop": sweep.loop_text(info)}, "warnings": warnings}
 
     worst_rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
     rows = list(worst_rows) + list(rand_rows)
     kinds = kinds + ["random"] * len(rand_rows)
-    trajs = sweep.simulate_rows(setup, result, rows, save_every=every,
-                                ranges_params=[r.param for r in ranges])
+    columns = [r.param for r in ranges]
+    trajs = sweep.simulate_rows(setup, result, rows, save_every=every, ranges_params=columns)
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
                          "max_rel_diff_resimulated_vs_sweep": _recheck(trajs, records)}
@@ -279,53 +264,25 @@ def run(args) -> int:
         rechecked = sweep.check_rows(result, rows, settings.seed)
         print(f"  re-checking {len(rechecked)} rows in float64 (which metrics float32 can be "
               f"trusted with) ...", file=sys.stderr)
-        f32 = sweep.float64_check(setup, result, rechecked,
-                                  ranges_params=[r.param for r in ranges])
+        f32 = sweep.float64_check(setup, result, rechecked, ranges_params=columns)
     summary["float32_check"] = f32
 
     figures = []
     if not args.no_plot:
-        figures = _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold,
-                         nominal_params, trajs, records, kinds, window_start, t_final, summary)
+        figures = _plots(out, result, settings, summary, trajs, records, kinds, nominal)
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
-    q = summary["quantiles"]["linf_error_window"]
     print(f"  wrote {out}/results.npz, summary.json, summary.md, traces.npz"
           + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
           + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
              else "nothing left to run)"))
-    if q is not None:
-        nom = ("the nominal setup diverged" if bool(nominal.diverged)
-               else f"nominal {nominal_metrics['linf_error_window']:.4g}")
-        print(f"  windowed L-inf error on [{window_start:g}, {t_final:g}] s over the "
-              f"{result.n - summary['n_diverged']:,} samples that did not diverge: median "
-              f"{q['p50']:.4g}, p95 {q['p95']:.4g}, max {q['max']:.4g} ({nom})")
-    tv = summary["quantiles"]["tv_u_window"]
-    chat = summary["chattering"]
-    if tv is not None:
-        nom = ("" if bool(nominal.diverged) else
-               f"; nominal TV(u) {common.figure(nominal_metrics['tv_u_window'])}, "
-               + common.chattering_text(nominal_metrics["chattering_index"]))
-        print(f"  effort on [{window_start:g}, {t_final:g}] s over the same samples: TV(u) "
-              f"median {common.figure(tv['p50'])}, p95 {common.figure(tv['p95'])}, max "
-              f"{common.figure(tv['max'])}; max|u| max "
-              f"{common.figure(summary['quantiles']['max_abs_u_window']['max'])}{nom}")
-    print(f"  chattering (chattering index above {chat['above']:g}; docs/numerics.md): "
-          f"{chat['count']:,} of {result.n:,} ({100 * chat['rate']:.2f} %)")
-    smallest = summary["smallest_dt_tried"]
-    print(f"  tracked: {summary['n_tracked']:,}; tracked after refinement (a numerically stiff "
-          f"run re-done with ETDRK4 at a smaller step): {summary['n_refined']:,}; diverged "
-          f"at every step tried: {summary['n_diverged']:,} of {result.n:,} "
-          f"({100 * summary['divergence_rate']:.2f} %"
-          + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")")
-    print(f"  degraded (above {threshold:.4g}, {rule}; diverged included): "
-          f"{summary['degraded']['count']:,} ({100 * summary['degraded']['rate']:.2f} %)")
+    for line in sweep.outcome(summary):
+        print(f"  {line}")
     if f32 is not None and f32["untrusted"]:
-        print("  warning: " + common.untrusted_text(
+        common.say(args, "warning", common.untrusted_text(
             f32["untrusted"], f32["max_rel_diff"], f32["rtol"], "rerun with --float64",
-            on=f" on {len(f32['rows'])} re-checked rows"),
-              file=sys.stderr)
+            on=f" on {len(f32['rows'])} re-checked rows"))
     return 0
 
 
@@ -346,18 +303,6 @@ def interrupt_hint(args) -> str | None:
     return resume_text(args, f"{n_done} finished block(s) are kept in {out}/chunks")
 
 
-def _traces_title(kinds, dtype) -> str:
-    parts = [f"{kinds.count(k)} {name}" for k, name in (
-        ("worst", "worst tracking"), ("diverged", "first diverged"), ("random", "random"))
-        if kinds.count(k)]
-    return ", ".join(parts) + f" samples of the sweep, re-simulated ({dtype})"
-
-
-def _save_every(n_steps: int) -> int:
-    """At most 2001 saved points per trace (the last one at T whatever the stride)."""
-    return max(1, -(-n_steps // 2000))
-
-
 def _recheck(trajs, records) -> dict[str, float] | None:
     """Per metric, the largest relative difference between the re-simulated and the swept
     values (float64: round-off; float32: a few sensitive plants amplify rounding)."""
@@ -365,12 +310,10 @@ def _recheck(trajs, records) -> dict[str, float] | None:
         return None
     out = {}
     for m in records[0]["metrics"]:
-        worst = 0.0
-        for tr, rec in zip(trajs, records, strict=True):
-            a, v = float(tr.metrics[m]), rec["metrics"][m]
-            if np.isfinite(a) and np.isfinite(v):
-                worst = max(worst, abs(a - v) / max(abs(v), 1e-30))
-        out[m] = worst
+        a = np.array([float(tr.metrics[m]) for tr in trajs])
+        v = np.array([rec["metrics"][m] for rec in records])
+        ok = np.isfinite(a) & np.isfinite(v)
+        out[m] = float(np.max(np.abs(a - v)[ok] / np.maximum(np.abs(v[ok]), 1e-30), initial=0.0))
     return out
 
 
@@ -384,38 +327,38 @@ def _write_traces(path, trajs, records, kinds, nominal):
     files.write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
 
 
-def _plots(out, result, ranges, settings, nominal, nominal_metrics, threshold, nominal_params,
-           trajs, records, kinds, t0, t_final, summary):
+def _plots(out, result, settings, summary, trajs, records, kinds, nominal) -> list[str]:
+    """The sweep's figures (their file names); the heatmap's cell statistics into `summary`."""
     from dscjax.sweep import plots as sp
 
-    c = result.columns
-    title = (f"{result.n:,} {'grid points' if settings.method.grid else 'samples'}, "
-             f"T = {t_final:g} s, dt = {result.info['dt']:g} s, {settings.dtype}")
+    c, run, at = result.columns, summary["run"], summary["nominal_params"]
+    err, div, refined = c["linf_error_window"], c["diverged"], c["refinements"] > 0
+    shared = dict(t0=run["window_start"], t_final=run["t_final"],
+                  threshold=summary["degraded"]["threshold"],
+                  title=f"{result.n:,} {'grid points' if settings.method.grid else 'samples'}, "
+                  f"T = {run['t_final']:g} s, dt = {run['dt']:g} s, {settings.dtype}")
     figures = ["hist_linf_window.png"]
-    sp.plot_histogram(c["linf_error_window"], c["diverged"], out / figures[0], t0=t0,
-                      t_final=t_final, nominal=nominal_metrics["linf_error_window"],
-                      threshold=threshold, title=title, refined=c["refinements"] > 0)
-    names = [r.name for r in ranges]
+    sp.plot_histogram(err, div, out / figures[0], nominal=summary["nominal"]["linf_error_window"],
+                      refined=refined, **shared)
+    names = result.param_names
     if len(names) >= 2:
-        pair = settings.heatmap or (names[0], names[1])
-        grid = {}
-        if settings.method.grid:
-            grid = dict(grid_x=c[pair[0]], grid_y=c[pair[1]])
+        x, y = settings.heatmap or names[:2]
+        grid = dict(grid_x=c[x], grid_y=c[y]) if settings.method.grid else {}
         figures.append("heatmap_linf_window.png")
-        summary["heatmap"] = sp.plot_heatmap(
-            c[pair[0]], c[pair[1]], c["linf_error_window"], c["diverged"], out / figures[-1],
-            names=pair, t0=t0, t_final=t_final, threshold=threshold,
-            nominal_xy=(nominal_params[pair[0]], nominal_params[pair[1]]), title=title,
-            refined=c["refinements"] > 0, **grid)
+        summary["heatmap"] = sp.plot_heatmap(c[x], c[y], err, div, out / figures[-1],
+                                             names=(x, y), nominal_xy=(at[x], at[y]),
+                                             refined=refined, **grid, **shared)
     else:
         figures.append("scan_linf_window.png")
-        sp.plot_scan(c[names[0]], c["linf_error_window"], c["diverged"], out / figures[-1],
-                     name=names[0], t0=t0, t_final=t_final, threshold=threshold,
-                     nominal_x=nominal_params[names[0]], title=title)
+        sp.plot_scan(c[names[0]], err, div, out / figures[-1], name=names[0],
+                     nominal_x=at[names[0]], **shared)
     if trajs:
         figures.append("traces.png")
-        labels = [sp.trace_label(r, result.param_names, k) for r, k in zip(records, kinds,
-                                                                           strict=True)]
-        sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal, t0=t0,
-                       title=_traces_title(kinds, settings.dtype))
+        labels = [sp.trace_label(r, names, k) for r, k in zip(records, kinds, strict=True)]
+        counts = [f"{kinds.count(k)} {name}" for k, name in (
+            ("worst", "worst tracking"), ("diverged", "first diverged"), ("random", "random"))
+            if k in kinds]
+        sp.plot_traces(trajs, labels, kinds, out / figures[-1], nominal=nominal,
+                       t0=shared["t0"], title=", ".join(counts)
+                       + f" samples of the sweep, re-simulated ({settings.dtype})")
     return figures

@@ -36,9 +36,11 @@ from dscjax.sweep.summary import (
     float64_check,
     loop_text,
     markdown,
+    outcome,
     random_rows,
     rank_rows,
     sample_record,
+    scope_text,
     simulate_rows,
     summarize,
     trace_rows,
@@ -46,5 +48,6 @@ from dscjax.sweep.summary import (
 
 __all__ = ["AUTO_BLOCK", "FLOAT32_RTOL", "METRICS", "PARALLEL", "SweepResult", "SweepSettings",
            "auto_chunk", "check_resumable", "check_rows", "check_settings", "float32_trust",
-           "float64_check", "loop_text", "markdown", "random_rows", "rank_rows", "run_sweep",
-           "sample_record", "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]
+           "float64_check", "loop_text", "markdown", "outcome", "random_rows", "rank_rows",
+           "run_sweep", "sample_record", "scope_text", "settings_from_dict", "simulate_rows",
+           "summarize", "trace_rows"]

@@ -150,6 +150,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]
+    spread = spread_text(finite) if finite.size else None
     fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
         norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
@@ -162,7 +163,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
     cb = fig.colorbar(mesh, ax=ax, pad=0.02)
     cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
-                 + ("\n" + spread_text(finite) if finite.size else ""), fontsize=9)
+                 + ("\n" + spread if spread else ""), fontsize=9)
     handles = []
     hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
     xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
@@ -224,7 +225,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
             "median": np.where(np.isfinite(med), med, None).tolist(),
             "count": count.tolist(), "degraded_cells": int(bad.sum()),
             "diverged_cells": int(div_cells.sum()), "refined_samples": int(ref.sum()),
-            "colour_scale": spread_text(finite) if finite.size else None}
+            "colour_scale": spread}
 
 
 def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nominal_x=None,

@@ -69,19 +69,10 @@ def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
     }
 
 
-def run_sweep(
-    setup,
-    settings: SweepSettings | None = None,
-    spec: RunSpec | None = None,
-    *,
-    out_dir: str | Path | None = None,
-    resume: bool = False,
-    overwrite: bool = False,
-    progress: Callable[[dict[str, Any]], None] | None = None,
-    devices=None,
-    tile: int | None = None,
-    **run,
-) -> SweepResult:
+def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None = None, *,
+              out_dir: str | Path | None = None, resume: bool = False, overwrite: bool = False,
+              progress: Callable[[dict[str, Any]], None] | None = None, devices=None,
+              tile: int | None = None, **run) -> SweepResult:
     """Run a sweep of `setup` (gains fixed) over `settings`; see the module docstring.
 
     Args:
@@ -207,8 +198,8 @@ def run_sweep(
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, placement=placement,
-                parallel=settings.parallel,
-                n_steps=n_steps, dtype=settings.dtype, t_final=t_final, dt=dt,
+                parallel=settings.parallel, n_steps=n_steps, dtype=settings.dtype,
+                t_final=t_final, dt=dt,
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method.name, seed=settings.seed, solver=spec.solver.name,
                 refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
@@ -241,11 +232,16 @@ def _default_chunk(setup, columns, spec: RunSpec, n: int, devices, tile: int) ->
     mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
     chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
                               bytes_per_row(setup, columns, spec, mine[0], tile), len(devices))
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
+    return int(_from_process_0(np.int64(chunk)))
 
-        chunk = int(multihost_utils.broadcast_one_to_all(np.int64(chunk)))
-    return chunk
+
+def _from_process_0(x):
+    """x as process 0 has it, on every process (x itself with one process)."""
+    if jax.process_count() == 1:
+        return x
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.broadcast_one_to_all(x)
 
 
 def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None = None,
@@ -265,8 +261,11 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again
     tile = old.get("tile") if isinstance(old, dict) else None
-    files.check_same(old, fingerprint(setup, settings, ranges, spec, chunk, tile),
-                     where=f"--resume: {manifest}",
+    _check_same(manifest, old, fingerprint(setup, settings, ranges, spec, chunk, tile))
+
+
+def _check_same(manifest: Path, old, new) -> None:
+    files.check_same(old, new, where=f"--resume: {manifest}",
                      fix="use the same settings, or --overwrite to start afresh")
 
 
@@ -279,9 +278,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
-            files.check_same(files.read_json(manifest).get("fingerprint"), fp,
-                             where=f"--resume: {manifest}",
-                             fix="use the same settings, or --overwrite to start afresh")
+            _check_same(manifest, files.read_json(manifest).get("fingerprint"), fp)
             for b in range(n_blocks):
                 done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
         elif existing and not overwrite:
@@ -293,11 +290,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
             (out / "results.npz").unlink(missing_ok=True)
         with critical():
             files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
-    if jax.process_count() > 1:
-        from jax.experimental import multihost_utils
-
-        done = np.asarray(multihost_utils.broadcast_one_to_all(done))
-    return done
+    return np.asarray(_from_process_0(done))
 
 
 def _block_len(b, chunk, n):

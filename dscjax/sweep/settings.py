@@ -84,14 +84,14 @@ def settings_from_dict(table: Mapping[str, Any], base: SweepSettings | None = No
     if "ranges" in table:
         s = dataclasses.replace(s, ranges=params.from_table(table["ranges"], "sweep.ranges"))
     if "grid" in table:
-        s = dataclasses.replace(s, ranges=params.from_table(table["grid"], "sweep.grid", True))
         if "samples" in table:
             raise ConfigError("sweep.samples cannot be used with [sweep.grid] (a grid's size "
                               "is the product of its numbers of points)")
         if table.get("method", "grid") != "grid":
             raise ConfigError(f"sweep.method must be 'grid' with [sweep.grid] "
                               f"(got {table['method']!r})")
-        s = dataclasses.replace(s, method=params.Grid())
+        s = dataclasses.replace(s, method=params.Grid(),
+                                ranges=params.from_table(table["grid"], "sweep.grid", True))
     return s
 
 

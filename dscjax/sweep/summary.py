@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
+from dscjax.cli.common import figure
 from dscjax.markdown import escape, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
@@ -69,12 +70,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     """Quantiles of every metric (over the samples that did not diverge), the divergence and
     degradation rates, the worst samples that track and the first to diverge, with their
     parameters."""
-    c = result.columns
+    c, n = result.columns, result.n
     div = np.asarray(c["diverged"], bool)
     ok = ~div
-    n = result.n
-    quant = {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS}
-    lw = np.asarray(c["linf_error_window"], np.float64)
     refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
     out = {
         "n_samples": n,
@@ -85,7 +83,7 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         "smallest_dt_tried": (float(np.min(c["dt_used"][div])) if div.any() and "dt_used" in c
                               else None),
         "quantiles_over": "samples that did not diverge",
-        "quantiles": quant,
+        "quantiles": {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS},
     }
     if nominal is not None:
         out["nominal"] = {k: float(v) for k, v in nominal.items()}
@@ -96,7 +94,7 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
                          "rate": float(chatter.mean()) if n else 0.0,
                          "definition": "docs/numerics.md"}
     if threshold is not None:
-        degraded = div | (lw > threshold)
+        degraded = div | (np.asarray(c["linf_error_window"], np.float64) > threshold)
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
@@ -228,55 +226,78 @@ def _cell(x) -> str:
     return escape(x)
 
 
-def markdown(summary: Mapping[str, Any]) -> str:
-    """summary.md: what summary.json says, for a person: the run, the three kinds of rows,
-    the degraded rate, the float32 trust flags, the quantiles, the worst and first diverged
-    samples."""
-    run = summary.get("run", {})
-    n = summary["n_samples"]
-    what = "grid points" if run.get("method") == "grid" else "samples"
+def scope_text(run: Mapping[str, Any]) -> str:
+    """What a sweep runs, in words, from its "run" (`run_sweep`'s info, or the same keys
+    before the run): "10,000 samples (uniform, seed 0) of hysteresis.alpha in [0.7, 1.3], ...;
+    T = 20 s, dt = 0.001 s, float64, solver rk4, continuous controller"."""
+    what = "grid points" if run["method"] == "grid" else "samples"
     ranges = ", ".join(f"{k} in [{v[0]:.4g}, {v[1]:.4g}]" + (f" x{v[2]}" if len(v) > 2 else "")
-                       for k, v in run.get("ranges", {}).items())
-    lines = ["# Robustness sweep", "",
-             f"{n:,} {what} ({run.get('method')}, seed {run.get('seed')}) of {ranges}; "
-             f"T = {run.get('t_final', float('nan')):g} s, dt = {run.get('dt', float('nan')):g} s, "
-             f"{run.get('dtype')}, solver {run.get('solver')}, {loop_text(run)}; windowed "
-             f"metrics on t >= {run.get('window_start', float('nan')):g} s. Wall time "
-             f"{run.get('wall_s', float('nan')):.1f} s on {run.get('devices')} device(s) "
-             f"({run.get('platform')}).", ""]
-    warnings = summary.get("warnings", [])
-    lines += [f"**Warning:** {w}" for w in warnings] + ([""] if warnings else [])
-    smallest = summary.get("smallest_dt_tried")
-    lines += ["## Outcome", "",
-              f"- tracked: {summary['n_tracked']:,}",
-              f"- tracked after refinement (a stiff run re-done with ETDRK4 at a smaller step): "
-              f"{summary['n_refined']:,}",
-              f"- diverged at every step tried: {summary['n_diverged']:,} "
+                       for k, v in run["ranges"].items())
+    return (f"{run['n_samples']:,} {what} ({run['method']}, seed {run['seed']}) of {ranges}; "
+            f"T = {run['t_final']:g} s, dt = {run['dt']:g} s, {run['dtype']}, solver "
+            f"{run['solver']}, {loop_text(run)}")
+
+
+def outcome(summary: Mapping[str, Any]) -> list[str]:
+    """The outcome of a sweep in lines, summary.md's "Outcome" and the console's: the windowed
+    error and effort of the samples that did not diverge, the three kinds of rows, the
+    chattering and degraded counts, the nominal setup."""
+    run, q, n = summary["run"], summary["quantiles"], summary["n_samples"]
+    window = f"[{run['window_start']:g}, {run['t_final']:g}] s"
+    lines = []
+    if q["linf_error_window"] is not None:
+        e = q["linf_error_window"]
+        lines.append(f"windowed L-inf error on {window} over the {n - summary['n_diverged']:,} "
+                     f"samples that did not diverge: median {e['p50']:.4g}, p95 {e['p95']:.4g}, "
+                     f"max {e['max']:.4g}")
+    if q["tv_u_window"] is not None:
+        tv = q["tv_u_window"]
+        lines.append(f"effort on {window} over the same samples: TV(u) median "
+                     f"{figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
+                     f"max|u| max {figure(q['max_abs_u_window']['max'])}")
+    smallest = summary["smallest_dt_tried"]
+    chat = summary["chattering"]
+    lines += [f"tracked: {summary['n_tracked']:,}",
+              f"tracked after refinement (a numerically stiff run re-done with ETDRK4 at a "
+              f"smaller step): {summary['n_refined']:,}",
+              f"diverged at every step tried: {summary['n_diverged']:,} of {n:,} "
               f"({100 * summary['divergence_rate']:.2f} %"
-              + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")"]
-    chat = summary.get("chattering")
-    if chat:
-        lines.append(f"- chattering (chattering index above {chat['above']:g}, "
-                     f"docs/numerics.md; diverged samples not counted): {chat['count']:,} "
-                     f"({100 * chat['rate']:.2f} %)")
+              + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")",
+              f"chattering (chattering index above {chat['above']:g}, docs/numerics.md; "
+              f"diverged samples not counted): {chat['count']:,} of {n:,} "
+              f"({100 * chat['rate']:.2f} %)"]
     deg = summary.get("degraded")
     if deg:
-        lines.append(f"- degraded ({deg['metric']} above {deg['threshold']:.4g}"
+        lines.append(f"degraded ({deg['metric']} above {deg['threshold']:.4g}"
                      + (f", {deg['rule']}" if deg.get("rule") else "")
                      + f"; diverged included): {deg['count']:,} ({100 * deg['rate']:.2f} %)")
     nominal = summary.get("nominal")
     if nominal:
         shown = ("linf_error_window", "tv_u_window", "chattering_index")
-        lines.append("- nominal setup: " + ("diverged" if nominal.get("diverged") else
+        lines.append("nominal setup: " + ("diverged" if nominal.get("diverged") else
                      ", ".join(f"{m} {nominal[m]:.4g}" for m in shown)))
+    return lines
+
+
+def markdown(summary: Mapping[str, Any]) -> str:
+    """summary.md: what summary.json says, for a person: the run, its outcome, the float32
+    trust flags, the quantiles, the worst and first diverged samples."""
+    run = summary["run"]
+    lines = ["# Robustness sweep", "",
+             f"{scope_text(run)}; windowed metrics on t >= {run['window_start']:g} s. Wall "
+             f"time {run['wall_s']:.1f} s on {run['devices']} device(s) ({run['platform']}).",
+             ""]
+    warnings = summary.get("warnings", [])
+    lines += [f"**Warning:** {w}" for w in warnings] + ([""] if warnings else [])
+    lines += ["## Outcome", "", *(f"- {line}" for line in outcome(summary))]
     check = summary.get("float32_check")
     lines += ["", "## float32 trust", ""]
-    if check is None and run.get("dtype") == "float32":
+    if check is None and run["dtype"] == "float32":
         lines.append("The sweep ran in float32 and was **not re-checked** in float64 "
                      "(`dscjax.sweep.float64_check`): its metrics may differ from float64 by "
                      "far more than round-off.")
     elif check is None:
-        lines.append(f"The sweep ran in {run.get('dtype')}: nothing to re-check.")
+        lines.append(f"The sweep ran in {run['dtype']}: nothing to re-check.")
     else:
         bad = check["untrusted"]
         lines += [f"{len(check['rows'])} rows (samples {', '.join(map(str, check['rows']))}) "
