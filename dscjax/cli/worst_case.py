@@ -94,8 +94,7 @@ def run(args) -> int:
         if not args.quiet:
             print(f"  {text}", file=sys.stderr)
 
-    say("each method compiles its programs first (a minute or two on a small CPU; not counted "
-        "in --time-limit)")
+    say("each method compiles its programs first (not counted in --time-limit)")
 
     def progress(method, tr, limit):
         # the bar (and its ETA) counts search seconds: it starts after an iteration that
