@@ -73,7 +73,8 @@ class DisturbanceSpec:
             raise ConfigError(f"{field}: K must be an integer >= {low} for {self.kind} (got "
                               f"{self.k!r})")
         if not (math.isfinite(self.bound) and self.bound > 0):
-            raise ConfigError(f"{field}: D must be a finite number > 0 (got {self.bound!r})")
+            raise ConfigError(f"{field}: the bound D must be a finite number > 0 (max|dbar| "
+                              f"<= D; D = 0 leaves nothing to search) (got {self.bound!r})")
         if self.period is not None and not (math.isfinite(self.period) and self.period > 0):
             raise ConfigError(f"--period must be > 0 (got {self.period!r})")
         if self.period is not None and self.kind != "fourier":

@@ -14,7 +14,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from dscjax import files, params, search, validation
+from dscjax import files, params, search, settings, validation
 from dscjax.closed_loop import Setup
 from dscjax.rules import AtLeast, Custom, Maybe, Positive, Strings
 from dscjax.settings import setting
@@ -181,18 +181,14 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
 def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
                  time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
-    """The search settings of `worst_case`, checked before anything runs (ConfigError naming
-    the option)."""
-    if not methods:
-        raise ConfigError(f"--methods must name at least one of {', '.join(METHODS)}")
-    for mth in methods:
-        validation.one_of(mth, "--methods", METHODS)
-    validation.integer(starts, "--starts", 1)
-    validation.integer(batch, "batch", 1)
+    """The search settings of `worst_case`, checked before anything runs by the rules of
+    `WorstSettings` (ConfigError naming the option; an infinite time_limit is allowed here)."""
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
-    if max_evals is not None:
-        validation.integer(max_evals, "--max-evals", 1)
+    flags = {key: s.flag for key, s in settings.declared(WorstSettings).items()}
+    settings.checked(WorstSettings(methods=tuple(methods), starts=starts, batch=batch,
+                                   max_evals=max_evals, gradient_coarsening=coarsening),
+                     flags.get).validate("worst")
     check_coarsening(coarsening, problem.spec)
 
 
