@@ -57,9 +57,9 @@ def run(args) -> int:
                                  requirement=requirement_of(args, setup, s),
                                  spec=options, period=s.period)
     methods = list(s.methods)
-    worst.check_search(problem, methods, starts=s.starts, batch=s.batch,
-                       time_limit=s.time_limit, max_evals=s.max_evals,
-                       coarsening=s.gradient_coarsening)
+    search = {"starts": s.starts, "batch": s.batch, "time_limit": s.time_limit,
+              "max_evals": s.max_evals, "coarsening": s.gradient_coarsening}
+    worst.check_search(problem, methods, **search)
     what = common.horizon_text(problem.t_final, problem.dt, problem.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
@@ -111,11 +111,8 @@ def run(args) -> int:
                           f"best {worst.best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
-        result = worst.worst_case(problem, time_limit=s.time_limit, starts=s.starts,
-                                  methods=methods, seed=s.seed, batch=s.batch,
-                                  coarsening=s.gradient_coarsening, out_dir=out,
-                                  resume=args.resume, max_evals=s.max_evals,
-                                  progress=progress, say=say)
+        result = worst.worst_case(problem, methods=methods, seed=s.seed, out_dir=out,
+                                  resume=args.resume, progress=progress, say=say, **search)
     finally:
         for bar in bars.values():
             bar.close()
