@@ -158,15 +158,16 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
     Example:
         >>> import dscjax
-        >>> res = dscjax.worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"],
-        ...                         "fourier:2:0.5", t_final=2.0, time_limit=5.0)  # doctest: +SKIP
+        >>> from dscjax.worst import worst_case
+        >>> res = worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"], "fourier:2:0.5",
+        ...                  t_final=2.0, time_limit=5.0)  # doctest: +SKIP
         >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
     """
     if not isinstance(problem, Problem):
         problem = make_problem(problem, [params.parse_range(r) if isinstance(r, str) else r
                                          for r in ranges], disturbance, **problem_options)
     elif ranges or disturbance is not None or problem_options:
-        raise ConfigError("worst_case: a Problem has its ranges, disturbance and options")
+        raise ConfigError("worst_case: give ranges, disturbance and options to make_problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
     # "gradient": the one kind there is, kept so that a search saved with it resumes
