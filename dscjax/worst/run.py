@@ -90,10 +90,9 @@ def best_value(trace: search.Trace) -> float:
 def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
                   lr: float = DEFAULT_LR, m: int = 0):
     """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
-    return {"gradient": lambda: search.Gradient(lr=lr, starts=starts, screen=max(batch, starts),
-                                                coupled=m),
-            "random": lambda: search.Random(batch=batch),
-            "cma": lambda: search.CMA(popsize=batch)}[name]()
+    if name == "gradient":
+        return search.Gradient(lr=lr, starts=starts, screen=max(batch, starts), coupled=m)
+    return {"random": search.Random(batch=batch), "cma": search.CMA(popsize=batch)}[name]
 
 
 @dataclasses.dataclass
