@@ -1,5 +1,10 @@
-"""`dscjax worst-case`: the worst plant and disturbance waveform in a box, by projected
-gradient ascent from many starts, against random sampling and CMA-ES at equal search time.
+"""Maximise a metric of the closed loop (default: the windowed L-inf of the tracking error)
+over boxes of parameters (--range, as in sweeps) and a bounded disturbance waveform
+(--disturbance), by projected gradient ascent from M starts advanced together, with random
+sampling and CMA-ES given the same search time as baselines. A candidate that diverges is
+re-simulated at smaller steps (ETDRK4) before it is reported; a divergence of the loop itself is
+reported with its time. Settings may also come from a [worst] table of the config; the command
+line wins.
 
 Writes into DIR: worst.json, worst_config.toml, worst_trajectory.npz, report.md, the figures
 worst_vs_nominal.png, worst_disturbance.png, search_progress.png, and each method's state
@@ -17,7 +22,7 @@ from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.validation import ConfigError, Work, check_work
-from dscjax.worst.report import FIGURES, write
+from dscjax.worst.report import FIGURES, methods_table, searched, verdict, write
 
 MANIFEST = "worst_case.json"
 OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
@@ -27,13 +32,7 @@ OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajector
 def add_parser(sub):
     p = sub.add_parser(
         "worst-case", help="worst-case search over parameter boxes and disturbance waveforms",
-        description="Maximise a metric of the closed loop (default: the windowed L-inf of the "
-        "tracking error) over boxes of parameters (--range, as in sweeps) and a bounded "
-        "disturbance waveform (--disturbance), by projected gradient ascent from M starts "
-        "advanced together, with random sampling and CMA-ES given the same search time as "
-        "baselines. A candidate that diverges is re-simulated at smaller steps (ETDRK4) "
-        "before it is reported; a divergence of the loop itself is reported with its time. "
-        "Settings may also come from a [worst] table of the config; the command line wins.")
+        description=__doc__)
     common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
@@ -58,9 +57,9 @@ def run(args) -> int:
                                  requirement=requirement_of(args, setup, s),
                                  spec=options, period=s.period)
     methods = list(s.methods)
-    worst.check_search(problem, methods, starts=s.starts, batch=s.batch,
-                       time_limit=s.time_limit, max_evals=s.max_evals,
-                       coarsening=s.gradient_coarsening)
+    search = {"starts": s.starts, "batch": s.batch, "time_limit": s.time_limit,
+              "max_evals": s.max_evals, "coarsening": s.gradient_coarsening}
+    worst.check_search(problem, methods, **search)
     what = common.horizon_text(problem.t_final, problem.dt, problem.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
@@ -82,16 +81,11 @@ def run(args) -> int:
                          "--overwrite to start afresh")
     out = prepare_out(args, OUTPUTS, resumable=True)
     files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
-    common.banner(args, f"{problem.metric} over "
-                  + (", ".join(r.spec() for r in problem.ranges) or "no parameter")
-                  + (f" and {problem.disturbance.spec()}" if problem.disturbance else "")
-                  + f"; {', '.join(methods)}, {s.time_limit:g} s each"
+    common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "
+                  f"{s.time_limit:g} s each"
                   + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
                   + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}",
                   worst.assumption_warnings(problem))
-    if not args.quiet:
-        print("  each method compiles its programs first (a minute or two on a small CPU; not "
-              "counted in --time-limit)", file=sys.stderr)
     bars, compiled = {}, {}
 
     def say(text):
@@ -99,6 +93,8 @@ def run(args) -> int:
             bar.close()
         if not args.quiet:
             print(f"  {text}", file=sys.stderr)
+
+    say("each method compiles its programs first (not counted in --time-limit)")
 
     def progress(method, tr, limit):
         # the bar (and its ETA) counts search seconds: it starts after an iteration that
@@ -115,24 +111,17 @@ def run(args) -> int:
                           f"best {worst.best_value(tr):.5g}, {tr.evaluations} evaluations")
 
     try:
-        result = worst.worst_case(problem, time_limit=s.time_limit, starts=s.starts,
-                                  methods=methods, seed=s.seed, batch=s.batch,
-                                  coarsening=s.gradient_coarsening, out_dir=out,
-                                  resume=args.resume, max_evals=s.max_evals,
-                                  progress=progress, say=say)
+        result = worst.worst_case(problem, methods=methods, seed=s.seed, out_dir=out,
+                                  resume=args.resume, progress=progress, say=say, **search)
     finally:
         for bar in bars.values():
             bar.close()
     if not args.no_plot:
         say("writing worst_trajectory.npz, report.md and the figures")
     names = write(result, out, plots=not args.no_plot)
-    what = (f"the loop diverges (t = {result.t_diverged:.6g} s at every refinement level)"
-            if result.diverged else f"{result.value:.6g}")
-    print(f"  worst {problem.metric}: {what} by {result.method} (nominal "
+    print(f"  worst {problem.metric}: {verdict(result)} by {result.method} (nominal "
           f"{result.nominal_value:.6g})")
-    for m, tr in result.traces.items():
-        print(f"  {m:8s} best {worst.best_value(tr):.6g} in {tr.seconds:.1f} s ({tr.evaluations} "
-              f"evaluations, compile {tr.compile_seconds:.1f} s)")
+    print("\n".join(f"  {line}" for line in methods_table(result)))
     print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
     return 0
 

@@ -71,8 +71,8 @@ class CMA:
         seed = (seed + 1 if not restart else
                 int(np.random.SeedSequence([seed, restart]).generate_state(1)[0]))
         opts = {"seed": seed, "verbose": -9, "randn": np.random.RandomState(seed).randn,
-                "bounds": [[x if np.isfinite(x) else None for x in problem.lower],
-                           [x if np.isfinite(x) else None for x in problem.upper]]}
+                "bounds": [[x if np.isfinite(x) else None for x in bound]
+                           for bound in (problem.lower, problem.upper)]}
         if self.popsize or restart:
             opts["popsize"] = self.population(len(x0), restart)
         return ReplayCMA(np.asarray(x0, dtype=np.float64), self.sigma0, opts)

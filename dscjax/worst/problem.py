@@ -181,6 +181,15 @@ class Problem:
                 "requirement": _describe(self.requirement)}
 
 
+def check_metric(value, field: str = "--metric") -> str:
+    """A metric's name, one of METRICS or requirement:NAME (else ConfigError naming `field`)."""
+    text = validation.string(value, field)
+    if text not in METRICS and not text.startswith(REQUIREMENT):
+        raise ConfigError(f"{field} must be one of {', '.join(METRICS)}, or {REQUIREMENT}NAME "
+                          f"(got {text!r})")
+    return text
+
+
 def assumption_warnings(problem: Problem) -> list[str]:
     """The paper's assumptions (`validation.assumption_warnings`) that the base setup, or an
     end of a searched box, violates: a box on plant.g[i] reaching below controller.g_min is
@@ -214,15 +223,13 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         requirement: a `metrics.Running` whose results include "margin" (<= 0 when met),
             e.g. `tuning.Envelope`.
     """
-    if str(metric).startswith(REQUIREMENT):
-        if requirement is None:
-            raise ConfigError(f"--metric {metric}: no requirement given (the [tuning."
-                              f"requirements.{metric[len(REQUIREMENT):]}] table of --config)")
-    else:
-        validation.one_of(metric, "--metric", METRICS + (REQUIREMENT + "NAME",))
-        if requirement is not None:
-            raise ConfigError(f"a requirement is maximised with --metric {REQUIREMENT}NAME "
-                              f"(got --metric {metric})")
+    maximises_requirement = check_metric(metric).startswith(REQUIREMENT)
+    if maximises_requirement and requirement is None:
+        raise ConfigError(f"--metric {metric}: no requirement given (the [tuning."
+                          f"requirements.{metric[len(REQUIREMENT):]}] table of --config)")
+    if requirement is not None and not maximises_requirement:
+        raise ConfigError(f"a requirement is maximised with --metric {REQUIREMENT}NAME "
+                          f"(got --metric {metric})")
     if isinstance(disturbance, str):
         disturbance = DisturbanceSpec.parse(disturbance, period)
     elif disturbance is not None:
@@ -245,8 +252,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
     validation.validate_setup(setup)
     check(setup, spec)
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
-        raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance, "
-                          f"not by a range")
+        raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance")
     resolved = params.check(list(ranges), setup, field, t_final=spec.t_final, dt=float(spec.dt),
                             window_start=float(spec.window_start))
     if requirement is not None and hasattr(requirement, "n_steps"):

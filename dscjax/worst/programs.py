@@ -188,11 +188,9 @@ class Programs(search.Problem):
             if extra_g is not None and hasattr(extra_g, "n_steps"):
                 extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
             vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
-        nominal_u = None
-        if p.d:
-            nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])
-            nominal_u = np.clip((nominal - lo) / (hi - lo), 0.0, 1.0)
-        return cls(p.d, p.m, basis, project_coef, values, vg, nominal_u)
+        nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])  # (d,) float64 if d = 0
+        return cls(p.d, p.m, basis, project_coef, values, vg,
+                   np.clip((nominal - lo) / (hi - lo), 0.0, 1.0))
 
 
 def check_coarsening(coarsening: int, spec: RunSpec) -> None:

@@ -65,8 +65,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     out = Path(out)
     p = result.problem
     files.write_json(out / "worst.json", summary(result))
-    found = (f"the loop diverges at t = {result.t_diverged:.6g} s" if result.diverged
-             else repr(result.value))
+    found = verdict(result) if result.diverged else repr(result.value)
     header = (f"dscjax worst-case: the worst case of {p.metric} found: {found}\n"
               f"Reproduce: dscjax simulate --config worst_config.toml")
     files.write_text(out / "worst_config.toml",
@@ -88,25 +87,38 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     return names
 
 
+def verdict(result: Result) -> str:
+    """The worst value found (6 digits), or when the loop diverges."""
+    return (f"the loop diverges at t = {result.t_diverged:.6g} s (at every refinement level)"
+            if result.diverged else f"{result.value:.6g}")
+
+
+def searched(problem) -> str:
+    """The box and the waveform searched, e.g. "plant.g[1]=0.7:1.3 and fourier:2:0.5"."""
+    return ((", ".join(r.spec() for r in problem.ranges) or "no parameter")
+            + (f" and {problem.disturbance.spec()}" if problem.disturbance else ""))
+
+
+def methods_table(result: Result) -> list[str]:
+    """Each method's best value, evaluations, iterations and seconds (report.md and the
+    console)."""
+    return table(("method", "best value", "evaluations", "iterations", "search s", "compile s"),
+                 [(m, f"{best_value(tr):.6g}", tr.evaluations, tr.iterations,
+                   f"{tr.seconds:.1f}", f"{tr.compile_seconds:.1f}")
+                  for m, tr in result.traces.items()])
+
+
 def report_md(result: Result) -> str:
     p = result.problem
     warnings = assumption_warnings(p)
-    lines = [f"# Worst case of {p.metric}", ""]
-    verdict = (f"the loop DIVERGES (at t = {result.t_diverged:.6g} s, at every refinement "
-               f"level)" if result.diverged else f"{result.value:.6g}")
-    lines += [f"Worst value: **{verdict}**, found by {result.method}; nominal: "
-              f"{result.nominal_value:.6g}.", "",
-              f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{float(p.spec.window_start):g}, "
-              f"{p.t_final:g}] s. Searched: "
-              + (", ".join(r.spec() for r in p.ranges) or "no parameter")
-              + (f"; disturbance {p.disturbance.spec()}" if p.disturbance else "") + ".", "",
-              *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
-              "## Methods (equal search time; compilation apart)", "",
-              *table(("method", "best value", "evaluations", "iterations", "search s", "compile s"),
-                     [(m, f"{best_value(tr):.6g}", tr.evaluations, tr.iterations,
-                       f"{tr.seconds:.1f}", f"{tr.compile_seconds:.1f}")
-                      for m, tr in result.traces.items()]),
-              "", "## Best value against search time", ""]
+    lines = [f"# Worst case of {p.metric}", "",
+             f"Worst value: **{verdict(result)}**, found by {result.method}; nominal: "
+             f"{result.nominal_value:.6g}.", "",
+             f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{float(p.spec.window_start):g}, "
+             f"{p.t_final:g}] s. Searched: {searched(p)}.", "",
+             *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
+             "## Methods (equal search time; compilation apart)", "", *methods_table(result),
+             "", "## Best value against search time", ""]
     rows = []
     for m, tr in result.traces.items():
         t, best = _curve(tr)
@@ -171,4 +183,5 @@ def _plot_progress(path, result):
     files.save_figure(fig, path, dpi=110)
 
 
-__all__ = ["FIGURES", "options_of", "report_md", "summary", "write"]
+__all__ = ["FIGURES", "methods_table", "options_of", "report_md", "searched", "summary",
+           "verdict", "write"]

@@ -14,7 +14,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from dscjax import files, params, search, validation
+from dscjax import files, params, search, settings, validation
 from dscjax.closed_loop import Setup
 from dscjax.rules import AtLeast, Custom, Maybe, Positive, Strings
 from dscjax.settings import setting
@@ -26,6 +26,7 @@ from dscjax.worst.problem import (
     REQUIREMENT,
     DisturbanceSpec,
     Problem,
+    check_metric,
     make_problem,
 )
 from dscjax.worst.programs import Programs, check_coarsening
@@ -36,14 +37,6 @@ DEFAULT_STARTS = 4  # docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
-
-
-def _metric(value, field: str) -> str:
-    text = validation.string(value, field)
-    if text not in METRICS and not text.startswith(REQUIREMENT):
-        raise ConfigError(f"{field} must be one of {', '.join(METRICS)}, or {REQUIREMENT}NAME "
-                          f"(got {text!r})")
-    return text
 
 
 def _disturbance(value, field: str) -> str:
@@ -58,7 +51,7 @@ class WorstSettings:
     metric: str = setting(
         DEFAULT_METRIC, f"the metric maximised: one of {', '.join(METRICS)}, or "
         f"{REQUIREMENT}NAME, the violation margin of [tuning.requirements.NAME] of the config "
-        f"(> 0: violated)", Custom(_metric, "a metric's name"), flag="--metric")
+        f"(> 0: violated)", Custom(check_metric, "a metric's name"), flag="--metric")
     disturbance: str | None = setting(
         None, "a searched waveform added to dbar with max|dbar| <= D: fourier:K:D (K "
         "harmonics) or spline:K:D (K knots over the horizon); none",
@@ -69,17 +62,15 @@ class WorstSettings:
     time_limit: float = setting(60.0, "search seconds per method, compilation excluded",
                                 Positive(), flag="--time-limit")
     max_evals: int | None = setting(
-        None, "each method ends after this many evaluations (its last batch finished), or at "
-        "time_limit, whichever comes first: a count makes searches under different loads "
-        "comparable; none: the time alone", Maybe(AtLeast(1)), flag="--max-evals")
+        None, "evaluations after which a method ends (its last batch finished), unless "
+        "time_limit comes first; none: the time alone", Maybe(AtLeast(1)), flag="--max-evals")
     starts: int = setting(DEFAULT_STARTS, "starts of the gradient search, one batch",
                           AtLeast(1), flag="--starts")
     batch: int = setting(DEFAULT_BATCH, "candidates per batch of random sampling and CMA-ES",
                          AtLeast(1), flag="--batch")
     gradient_coarsening: int = setting(
-        DEFAULT_COARSENING, "the gradient method's gradients on the loop simulated at this x dt "
-        "(that many times cheaper; every value is still simulated at dt; 1: exact)",
-        AtLeast(1), flag="--gradient-coarsening")
+        DEFAULT_COARSENING, "the gradient method's gradients are the loop's at this x dt, its "
+        "values at dt (1: exact gradients)", AtLeast(1), flag="--gradient-coarsening")
     methods: tuple[str, ...] = setting(METHODS, f"the methods run, of {', '.join(METHODS)}",
                                        Strings(), flag="--methods")
     seed: int = setting(0, "seed of every random draw", AtLeast(0), flag="--seed")
@@ -99,10 +90,9 @@ def best_value(trace: search.Trace) -> float:
 def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
                   lr: float = DEFAULT_LR, m: int = 0):
     """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
-    return {"gradient": lambda: search.Gradient(lr=lr, starts=starts, screen=max(batch, starts),
-                                                coupled=m),
-            "random": lambda: search.Random(batch=batch),
-            "cma": lambda: search.CMA(popsize=batch)}[name]()
+    if name == "gradient":
+        return search.Gradient(lr=lr, starts=starts, screen=max(batch, starts), coupled=m)
+    return {"random": search.Random(batch=batch), "cma": search.CMA(popsize=batch)}[name]
 
 
 @dataclasses.dataclass
@@ -167,16 +157,16 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
     Example:
         >>> import dscjax
-        >>> res = dscjax.worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"],
-        ...                         "fourier:2:0.5", t_final=2.0, time_limit=5.0)  # doctest: +SKIP
+        >>> from dscjax.worst import worst_case
+        >>> res = worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"], "fourier:2:0.5",
+        ...                  t_final=2.0, time_limit=5.0)  # doctest: +SKIP
         >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
     """
     if not isinstance(problem, Problem):
         problem = make_problem(problem, [params.parse_range(r) if isinstance(r, str) else r
                                          for r in ranges], disturbance, **problem_options)
     elif ranges or disturbance is not None or problem_options:
-        raise ConfigError("worst_case: give ranges, disturbance and simulation options to "
-                          "make_problem, not with a Problem")
+        raise ConfigError("worst_case: give ranges, disturbance and options to make_problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
     # "gradient": the one kind there is, kept so that a search saved with it resumes
@@ -191,18 +181,14 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
 def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
                  time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
-    """The search settings of `worst_case`, checked before anything runs (ConfigError naming
-    the option)."""
-    if not methods:
-        raise ConfigError(f"--methods must name at least one of {', '.join(METHODS)}")
-    for mth in methods:
-        validation.one_of(mth, "--methods", METHODS)
-    validation.integer(starts, "--starts", 1)
-    validation.integer(batch, "batch", 1)
+    """The search settings of `worst_case`, checked before anything runs by the rules of
+    `WorstSettings` (ConfigError naming the option; an infinite time_limit is allowed here)."""
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
-    if max_evals is not None:
-        validation.integer(max_evals, "--max-evals", 1)
+    flags = {key: s.flag for key, s in settings.declared(WorstSettings).items()}
+    settings.checked(WorstSettings(methods=tuple(methods), starts=starts, batch=batch,
+                                   max_evals=max_evals, gradient_coarsening=coarsening),
+                     flags.get).validate("worst")
     check_coarsening(coarsening, problem.spec)
 
 
@@ -216,17 +202,15 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
     """Run each method on the programs for `time_limit` search seconds (compilation apart)
     or `max_evals` evaluations, whichever comes first, each from its `state_<method>.npz` in
     out_dir with `resume`; {method: Trace}. `say` gets a line as each method begins."""
-    out = Path(out_dir) if out_dir is not None else None
     traces = {}
     for name in methods:
         if say is not None:
-            say(f"{name}: compiling its programs (not counted in the time limit), then "
-                f"searching")
+            say(f"{name}: compiling its programs, then searching")
         each = None if progress is None else (
             lambda tr, row, name=name: progress(name, tr, time_limit))
         res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
                          x0=prog.x0, seed=seed, time_limit=time_limit, max_evals=max_evals,
-                         path=None if out is None else out / f"state_{name}.npz",
+                         path=None if out_dir is None else Path(out_dir) / f"state_{name}.npz",
                          resume=resume, fingerprint=fingerprint, progress=each, count_compile=False)
         traces[name] = res.trace
     return traces
@@ -243,8 +227,7 @@ def _finish(problem: Problem, traces: dict[str, search.Trace],
     if not candidates:
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
     if say is not None:
-        say(f"re-checking {len(candidates)} candidate(s) and the nominal point with simulate "
-            f"(every step, refined if they diverge)")
+        say(f"re-checking {len(candidates)} candidate(s) and the nominal point by simulate")
     best = None
     for mth, z in candidates.values():
         setup = problem.setup_at(z)
