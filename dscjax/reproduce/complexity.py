@@ -205,16 +205,13 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
             if path is not None and not kept:
                 saved[(c, int(n))] = row
                 files.write_json(path, dict(settings=settings, rows=list(saved.values())))
-            if log:
-                log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, {row['flops']:>9.0f} "
-                    f"flops, trace {row['trace_s']:.3g} s, compile {row['compile_s']:.3g} s, "
-                    f"eval {row['eval_s'] * 1e6:.3g} us (call {row['call_s'] * 1e6:.3g} us)  "
-                    + ("[kept from the interrupted run]" if kept else
-                       f"[{time.perf_counter() - t_start:.0f} s]"))
-    fits = {}
-    for c in controllers:
-        mine = [r for r in rows if r["controller"] == c]
-        fits[c] = {m: fit_growth([r["n"] for r in mine], [r[m] for r in mine]) for m in METRICS}
+            if log:  # every figure is in complexity.json and summary.md
+                log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, build "
+                    f"{row['build_s']:.3g} s, eval {row['eval_s'] * 1e6:.3g} us  " + (
+                        "[kept]" if kept else f"[{time.perf_counter() - t_start:.0f} s]"))
+    mine = {c: [r for r in rows if r["controller"] == c] for c in controllers}
+    fits = {c: {m: fit_growth([r["n"] for r in mine[c]], [r[m] for r in mine[c]]) for m in METRICS}
+            for c in controllers}
     return dict(rows=rows, fits=fits, orders=list(orders), repeats=repeats, evals=evals,
                 plant="dscjax.order_n_example(n): f_i = 0.2 x_i^2 + 0.2 sin x_i + 0.05 x_(i-1) "
                       "x_i, rho_i = 0.05 + 0.02 (x_1^2 + ... + x_i^2)",
@@ -244,19 +241,19 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
     panels = ("eqns", "flops", "build_s", "eval_s")
     fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
     for ax, metric in zip(axes.ravel(), panels, strict=True):
-        for c in result["fits"]:
+        for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
-            ys = [r[metric] for r in rows]
-            fit = result["fits"][c][metric]
-            label = names.get(c, c) + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
-                                       if fit.get("ratio_per_order") else "")
+            name, fit = names.get(c, c), fits[metric]
+            label = name + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+                            if fit.get("ratio_per_order") else "")
             if metric == "eval_s":
-                label = names.get(c, c) + ", in a compiled loop"
-            ax.semilogy(ns, ys, "o-", color=colors.get(c), lw=1.5, ms=4, label=label)
+                label = name + ", in a compiled loop"
+            ax.semilogy(ns, [r[metric] for r in rows], "o-", color=colors.get(c), lw=1.5, ms=4,
+                        label=label)
             if metric == "eval_s":
                 ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=colors.get(c), lw=1.0,
-                            ms=3, alpha=0.6, label=names.get(c, c) + ", one call from Python")
+                            ms=3, alpha=0.6, label=name + ", one call from Python")
         ax.set_xlabel("plant order $n$")
         ax.set_ylabel(LABELS[metric])
         ax.set_xticks(result["orders"])
