@@ -227,20 +227,17 @@ def growth_text(fit: dict, power: str = "~ n^{:.2f}") -> str:
     return power.format(fit["exponent"])
 
 
+# the panels of `plot` and their axis labels
 LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)",
-          "trace_s": "trace time [s]", "compile_s": "XLA compile time [s]",
-          "build_s": "JIT time: trace + compile [s]",
-          "eval_s": "time per evaluation [s]",
-          "call_s": "time per call from Python [s]"}
+          "build_s": "JIT time: trace + compile [s]", "eval_s": "time per evaluation [s]"}
 
 
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
     """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    panels = ("eqns", "flops", "build_s", "eval_s")
     fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
-    for ax, metric in zip(axes.ravel(), panels, strict=True):
+    for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
         for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
@@ -255,7 +252,7 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
                 ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=colors.get(c), lw=1.0,
                             ms=3, alpha=0.6, label=name + ", one call from Python")
         ax.set_xlabel("plant order $n$")
-        ax.set_ylabel(LABELS[metric])
+        ax.set_ylabel(ylabel)
         ax.set_xticks(result["orders"])
         ax.grid(alpha=0.3, which="both")
         # headroom above the data so that the legend never hides a point
