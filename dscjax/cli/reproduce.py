@@ -119,5 +119,5 @@ def resumable(args) -> bool:
 def interrupt_hint(args) -> str:
     if resumable(args):
         return out.resume_text(args, "the finished control-law measurements are kept in "
-                           f"{Path(args.out) / ROWS}")
+                               f"{Path(args.out) / ROWS}")
     return out.kept_text(args, OUTPUTS)

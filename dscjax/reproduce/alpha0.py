@@ -285,14 +285,12 @@ def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
     with matplotlib.rc_context(RC):
         fig, ax = subplots(figsize=(8.6, 4.4))
         for res in results:
-            n = res["n"]
+            n, mu = res["n"], res["options"]["mu"]
             rows = [r for r in res["rows"] if not r.get("skipped")]
             a = [r["alpha0"] for r in rows]
-            color = COLORS.get(n)
-            mu = res["options"]["mu"]
-            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=color, marker="^",
+            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=COLORS.get(n), marker="^",
                       ms=4, label=f"n = {n}: bound (72), data-driven M, $\\mu$ = {mu:g}")
-            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=color, marker="o",
+            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=COLORS.get(n), marker="o",
                       ms=4, label=f"n = {n}: measured $\\|S_1\\|_\\infty$")
         ax.set(xlabel=r"$\alpha_0$ (gains by (55), $\tau$ by (60))", ylabel=r"$\|S_1\|_\infty$ [-]")
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
