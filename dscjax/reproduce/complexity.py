@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -57,18 +58,9 @@ def count_eqns(jaxpr) -> int:
     """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
     total = 0
     for eqn in jaxpr.eqns:
-        subs = [_as_jaxpr(p) for value in eqn.params.values()
-                for p in (value if isinstance(value, list | tuple) else (value,))]
-        subs = [s for s in subs if s is not None]
+        subs = list(jax.extend.core.jaxprs_in_params(eqn.params))
         total += sum(count_eqns(s) for s in subs) if subs else 1
     return total
-
-
-def _as_jaxpr(p):
-    if hasattr(p, "eqns"):
-        return p
-    inner = getattr(p, "jaxpr", None)
-    return inner if hasattr(inner, "eqns") else None
 
 
 def _flops(compiled) -> float:
