@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.cli import common, out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.reproduce import claim_lines, reproduce, sampling, setups, written
 from dscjax.reproduce.figures import FIGURES
 from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
@@ -44,11 +44,9 @@ def add_parser(sub):
     orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
         "reproduce", help="reproduce the paper's simulation study (Figs. 1-6, claims)",
-        description="Simulate the paper's Section 4 example with the DSC (with and without "
-        "hysteresis compensation, both readings) and adaptive backstepping, and write Figs. 1-6, "
-        "the adaptive estimates, summary.json and summary.md (each claim of the paper checked). "
-        f"With --complexity also measure the size and cost of both control laws for orders "
-        f"n = {orders.replace('-', '..')} (takes minutes).")
+        description="Simulate the paper's Section 4 example (the DSC, both readings without "
+        "compensation, adaptive backstepping); write Figs. 1-6, the adaptive estimates, "
+        "summary.json and summary.md, each claim of the paper checked.")
     add_out_arg(p, "results/paper", later=True)
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")
@@ -63,15 +61,12 @@ def add_parser(sub):
     p.add_argument("--repeats", type=common.count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
                    help="builds per law for --complexity; timings are medians (default "
                    "%(default)s)")
-    add_overwrite_arg(p, resume="with --complexity: keep the control-law measurements an "
-                      "interrupted run saved in DIR/complexity_rows.json (same --repeats) and "
-                      "measure only the rest",
+    add_overwrite_arg(p, resume="with --complexity: keep the measurements an interrupted run "
+                      f"saved in DIR/{ROWS} (same --repeats), measure the rest",
                       plot="write no figures: summary.json, summary.md and the claims only")
     p.add_argument("--theory", action="store_true",
-                   help="also check Theorem 1: V(t) of eq. (44) on the DSC run "
-                   "(DIR/theory/lyapunov.npz and its figure) and the alpha_0 study (gains by "
-                   "(55), tau by (60), L-inf initialisation (67)-(68)); about a minute for n = 2, "
-                   "several for n = 3 and 4")
+                   help="also check Theorem 1 on the DSC run (DIR/theory/) and run the alpha_0 "
+                   "study (gains (55), tau (60), init (67)-(68)); minutes for n >= 3")
     p.add_argument("--theory-orders", default="2", metavar="N,M",
                    help="orders of the alpha_0 study for --theory, e.g. 2,3,4 (default 2)")
     p.add_argument("--alpha0", metavar="A,B,...",
@@ -99,8 +94,7 @@ def run(args) -> int:
     if args.resume and not args.complexity:
         raise ConfigError("--resume continues an interrupted --complexity study (the "
                           "closed-loop runs take seconds and are not kept); add --complexity")
-    rows = Path(args.out) / ROWS
-    if args.resume and not rows.exists():
+    if args.resume and not resumable(args):
         raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
                           f"run without --resume to start afresh")
     choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
@@ -112,10 +106,8 @@ def run(args) -> int:
                         resume=args.resume, theory=args.theory, theory_orders=theory_orders,
                         theory_alpha0=alpha0, theory_mu=args.mu)
     # the results on stdout (progress went to stderr)
-    for line in claim_lines(summary):
-        print(line)
-    print(sampling.line(summary["sampling"]))
-    print(f"wrote {written(summary)} to {args.out}/")
+    print("\n".join([*claim_lines(summary), sampling.line(summary["sampling"]),
+                     f"wrote {written(summary)} to {args.out}/"]))
     return 0
 
 
@@ -125,9 +117,7 @@ def resumable(args) -> bool:
 
 
 def interrupt_hint(args) -> str:
-    from dscjax.cli.out import resume_text
-
     if resumable(args):
-        return resume_text(args, "the finished control-law measurements are kept in "
-                           f"{Path(args.out) / ROWS}")
-    return kept_text(args, OUTPUTS)
+        return out.resume_text(args, "the finished control-law measurements are kept in "
+                               f"{Path(args.out) / ROWS}")
+    return out.kept_text(args, OUTPUTS)

@@ -1,8 +1,10 @@
 """`dscjax stability`: which dt does classical RK4 need for a config, before a run.
 
-Writes DIR/stability.json and DIR/stability.png (the (tau, dt) region where RK4 stays finite,
-the config's point, and the linear guide 2.785 / max rho along the nominal run) and prints the
-table.
+Runs the loop at steps dt * 2^k (k = -4..4) for filter constants tau * scale, reports where
+classical RK4 stays finite, bisects the largest stable dt at the config's tau, and compares it
+with the linear guide 2.785 / max spectral radius of the closed loop's Jacobian along the
+nominal run. Writes DIR/stability.json and DIR/stability.png (the (tau, dt) region, the
+config's point, both steps) and prints the table.
 """
 
 from __future__ import annotations
@@ -22,15 +24,11 @@ OUTPUTS = Outputs(("stability.json", "stability.png"))
 def add_parser(sub):
     p = sub.add_parser(
         "stability", help="the largest stable RK4 step of a config and its (tau, dt) region",
-        description="Run the loop at steps dt * 2^k (k = -4..4) for filter constants tau * "
-        "scale, report where classical RK4 stays finite, bisect the largest stable dt at the "
-        "config's tau, and compare with the linear guide 2.785 / max spectral radius of the "
-        "closed loop's Jacobian along the nominal run.")
+        description=__doc__)
     common.add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
                    help="factors applied to every filter constant tau_i, separated by commas "
-                   "(default "
-                   "0.25,0.5,1,2,4)")
+                   "(default 0.25,0.5,1,2,4)")
     add_out_arg(p, "results/stability", plot="skip stability.png")
     return p
 
@@ -77,12 +75,9 @@ def run(args) -> int:
     for i in range(len(m.tau_scale)):
         label = f"{m.tau[i]:.4g}" if np.isfinite(m.tau[i]) else "-"
         print(f"{label:>14} " + " ".join(f"{'ok' if ok else 'div':>9}" for ok in m.stable[i]))
-    files.write_json(out / "stability.json", {
-        "t_final": options.t_final, "requested_dt": m.requested_dt,
-        "largest_stable_dt": m.largest_stable_dt, "beyond_grid": m.beyond_grid,
-        "linear_dt": m.linear_dt,
-        "t_peak": m.t_peak, "dt": m.dt, "tau_scale": m.tau_scale, "tau_min": m.tau,
-        "stable": m.stable, "t_diverged": m.t_diverged})
+    data = m._asdict()
+    data["tau_min"] = data.pop("tau")
+    files.write_json(out / "stability.json", {"t_final": options.t_final, **data})
     if not args.no_plot:
         _plot(m, out / "stability.png")
     print(f"wrote {out}/stability.json" + ("" if args.no_plot else ", stability.png"))
@@ -95,11 +90,9 @@ def _plot(m, path):
     fig, ax = subplots(figsize=(6.4, 5.0), layout=None)
     has_tau = np.isfinite(m.tau).any()
     y = m.tau if has_tau else np.ones(1)
-    for i in range(len(y)):
-        ax.scatter(m.dt[m.stable[i]], np.full(m.stable[i].sum(), y[i]), marker="o",
-                   color="tab:green", label="RK4 stays finite" if i == 0 else None)
-        ax.scatter(m.dt[~m.stable[i]], np.full((~m.stable[i]).sum(), y[i]), marker="x",
-                   color="tab:red", label="RK4 diverges" if i == 0 else None)
+    dts, ys = np.meshgrid(m.dt, y)
+    ax.scatter(dts[m.stable], ys[m.stable], marker="o", color="tab:green", label="RK4 stays finite")
+    ax.scatter(dts[~m.stable], ys[~m.stable], marker="x", color="tab:red", label="RK4 diverges")
     own = y[int(np.argmin(np.abs(m.tau_scale - 1.0)))]
     ax.scatter([m.requested_dt], [own], s=140, facecolors="none", edgecolors="k",
                label=f"this config (dt = {m.requested_dt:g} s)")

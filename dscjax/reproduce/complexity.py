@@ -17,6 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import jax
+import jax.extend
 import jax.numpy as jnp
 import numpy as np
 
@@ -57,18 +58,9 @@ def count_eqns(jaxpr) -> int:
     """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
     total = 0
     for eqn in jaxpr.eqns:
-        subs = [_as_jaxpr(p) for value in eqn.params.values()
-                for p in (value if isinstance(value, list | tuple) else (value,))]
-        subs = [s for s in subs if s is not None]
+        subs = list(jax.extend.core.jaxprs_in_params(eqn.params))
         total += sum(count_eqns(s) for s in subs) if subs else 1
     return total
-
-
-def _as_jaxpr(p):
-    if hasattr(p, "eqns"):
-        return p
-    inner = getattr(p, "jaxpr", None)
-    return inner if hasattr(inner, "eqns") else None
 
 
 def _flops(compiled) -> float:
@@ -205,16 +197,13 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
             if path is not None and not kept:
                 saved[(c, int(n))] = row
                 files.write_json(path, dict(settings=settings, rows=list(saved.values())))
-            if log:
-                log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, {row['flops']:>9.0f} "
-                    f"flops, trace {row['trace_s']:.3g} s, compile {row['compile_s']:.3g} s, "
-                    f"eval {row['eval_s'] * 1e6:.3g} us (call {row['call_s'] * 1e6:.3g} us)  "
-                    + ("[kept from the interrupted run]" if kept else
-                       f"[{time.perf_counter() - t_start:.0f} s]"))
-    fits = {}
-    for c in controllers:
-        mine = [r for r in rows if r["controller"] == c]
-        fits[c] = {m: fit_growth([r["n"] for r in mine], [r[m] for r in mine]) for m in METRICS}
+            if log:  # every figure is in complexity.json and summary.md
+                log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, build "
+                    f"{row['build_s']:.3g} s, eval {row['eval_s'] * 1e6:.3g} us  " + (
+                        "[kept]" if kept else f"[{time.perf_counter() - t_start:.0f} s]"))
+    mine = {c: [r for r in rows if r["controller"] == c] for c in controllers}
+    fits = {c: {m: fit_growth([r["n"] for r in mine[c]], [r[m] for r in mine[c]]) for m in METRICS}
+            for c in controllers}
     return dict(rows=rows, fits=fits, orders=list(orders), repeats=repeats, evals=evals,
                 plant="dscjax.order_n_example(n): f_i = 0.2 x_i^2 + 0.2 sin x_i + 0.05 x_(i-1) "
                       "x_i, rho_i = 0.05 + 0.02 (x_1^2 + ... + x_i^2)",
@@ -230,35 +219,32 @@ def growth_text(fit: dict, power: str = "~ n^{:.2f}") -> str:
     return power.format(fit["exponent"])
 
 
+# the panels of `plot` and their axis labels
 LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)",
-          "trace_s": "trace time [s]", "compile_s": "XLA compile time [s]",
-          "build_s": "JIT time: trace + compile [s]",
-          "eval_s": "time per evaluation [s]",
-          "call_s": "time per call from Python [s]"}
+          "build_s": "JIT time: trace + compile [s]", "eval_s": "time per evaluation [s]"}
 
 
 def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
     """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    panels = ("eqns", "flops", "build_s", "eval_s")
     fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
-    for ax, metric in zip(axes.ravel(), panels, strict=True):
-        for c in result["fits"]:
+    for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
+        for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
-            ys = [r[metric] for r in rows]
-            fit = result["fits"][c][metric]
-            label = names.get(c, c) + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
-                                       if fit.get("ratio_per_order") else "")
+            name, fit = names.get(c, c), fits[metric]
+            label = name + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+                            if fit.get("ratio_per_order") else "")
             if metric == "eval_s":
-                label = names.get(c, c) + ", in a compiled loop"
-            ax.semilogy(ns, ys, "o-", color=colors.get(c), lw=1.5, ms=4, label=label)
+                label = name + ", in a compiled loop"
+            ax.semilogy(ns, [r[metric] for r in rows], "o-", color=colors.get(c), lw=1.5, ms=4,
+                        label=label)
             if metric == "eval_s":
                 ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=colors.get(c), lw=1.0,
-                            ms=3, alpha=0.6, label=names.get(c, c) + ", one call from Python")
+                            ms=3, alpha=0.6, label=name + ", one call from Python")
         ax.set_xlabel("plant order $n$")
-        ax.set_ylabel(LABELS[metric])
+        ax.set_ylabel(ylabel)
         ax.set_xticks(result["orders"])
         ax.grid(alpha=0.3, which="both")
         # headroom above the data so that the legend never hides a point

@@ -108,24 +108,16 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
 def _figures(trajs, loops, out, fmt, dpi):
     paths = {}
     hyst = paper_example().hysteresis
-    lam, psi, alpha = (float(hyst.lam), float(hyst.psi), float(hyst.alpha))
-
     fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
     axes = np.atleast_1d(axes)
-    umax = max(float(np.max(np.abs(u))) for _, u, _ in loops.values())
-    ug = np.linspace(-umax, umax, 2)
-    b = (lam - psi) / alpha
     for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), LOOP_COLORS, strict=False):
-        ax.plot(ug, lam * ug + b, color="#999999", lw=0.8, ls=":",
-                label=r"asymptotes $w = \lambda u \pm (\lambda-\psi)/\alpha$")
-        ax.plot(ug, lam * ug - b, color="#999999", lw=0.8, ls=":")
-        ax.plot(u, w, color=color, lw=1.4, label=f"$w(u)$, $u = {k:g}\\,\\sin(2.3t)$")
-        ax.set_xlabel("control input $u$ [-]")
+        hysteresis_loop(ax, hyst, u, w, f"$w(u)$, $u = {k:g}\\,\\sin(2.3t)$", color)
         ax.set_title(f"$k$ = {k:g}")
         ax.legend(loc="upper left", framealpha=0.95)
     axes[0].set_ylabel("hysteresis output $w$ [-]")
-    fig.suptitle(f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = {alpha:g}, "
-                 f"$\\lambda$ = {lam:g}, $\\psi$ = {psi:g}")
+    fig.suptitle(f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
+                 f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
+                 f"{float(hyst.psi):g}")
     paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
 
     t_end = float(np.asarray(trajs["dsc"].t)[-1])

@@ -72,20 +72,17 @@ def theory_markdown(summary: dict) -> str:
     ini = p["init"]
     lines = [
         "## Theorem 1 along trajectories (`--theory`)", "",
-        "V(t) of eq. (44) with the TRUE plant parameters (theta_g = theta/g, phi = 1/g, "
-        "zeta = 1/(lam g_n), d = g_n (lam - psi)/alpha + max |dbar|); data in "
-        "`theory/lyapunov.npz`, figure `theory/fig_lyapunov`. M_(i+1) of (59)-(60) is the "
-        "maximum of |B_(i+1)| measured along the run: every bound below is a **data-driven "
-        "estimate**, not the theorem's constant. With sat(S_n/w) in place of sgn(S_n), the "
-        "proof's step (48) leaves a slack (at most w d_hat/4) that is added to the constant "
-        "C = e_M + (n-1) mu/2 + slack. See docs/theory.md.", "",
+        "V(t) of (44) with the true plant parameters (`theory/lyapunov.npz`, "
+        "`theory/fig_lyapunov`). M_(i+1) of (59)-(60) is max |B_(i+1)| measured on the run, so "
+        "every bound below is a **data-driven estimate**; C = e_M + (n-1) mu/2 + the slack that "
+        "sat(S_n/w) leaves in (48). See docs/theory.md.", "",
         "### The paper's example does not satisfy the theorem's assumptions", "",
-        f"- Its gains do not follow (55) for any single alpha_0. As inequalities (all the proof "
-        f"uses) they allow alpha_0 <= {p['alpha0']:.3g}, bound by {p['binding_gain']}; k_2 = "
-        f"0.45 alone would allow {p['allows'].get('k_2', float('nan')):.3g}:", "",
+        f"- Its gains follow (55) for no single alpha_0; as inequalities they allow alpha_0 <= "
+        f"{p['alpha0']:.3g}, bound by {p['binding_gain']} (k_2 = 0.45 alone: "
+        f"{p['allows'].get('k_2', float('nan')):.3g}):", "",
         *table(("gain", "paper", "rule (55)/(60)", "rule at alpha_0 = 0.2", "alpha_0 it allows"),
-                [(g["gain"], f"{g['paper']:.4g}", g["rule"], f"{g['at_0_2']:.4g}", f"{a:.4g}")
-                 for g, a in zip(p["gains"], p["allows"].values(), strict=True)])]
+               [(g["gain"], f"{g['paper']:.4g}", g["rule"], f"{g['at_0_2']:.4g}", f"{a:.4g}")
+                for g, a in zip(p["gains"], p["allows"].values(), strict=True)])]
     est = ini["estimates"]
     h, ratio = p["holds"], p["bound_72"] / p["S1_inf"]
     after = "-" if p["S1_inf_after_1s"] is None else f"{p['S1_inf_after_1s']:.3g}"
@@ -98,12 +95,10 @@ def theory_markdown(summary: dict) -> str:
     ]
     lines += [
         "",
-        f"- It does not use the L-inf initialisation (67)-(68): initial estimates "
-        f"theta_hat = {est['theta_hat']}, phi_hat = {est['phi_hat']}, zeta_hat = "
-        f"{est['zeta_hat']:g}, d_hat = {est['d_hat']:g} (67 wants 0); y_r(0) = "
-        f"{ini['yr0']:g} != x_1(0) = {ini['x1_0']:g} (68), though c_2 = {ini['c']} = x_2(0). "
-        f"So S(0) = {np.round(ini['S0'], 5).tolist()}, and (70)-(72) are not licensed; (65) "
-        "is the statement that applies.", "",
+        f"- Nor the L-inf initialisation (67)-(68): theta_hat = {est['theta_hat']}, phi_hat = "
+        f"{est['phi_hat']}, zeta_hat = {est['zeta_hat']:g}, d_hat = {est['d_hat']:g} (67: 0); "
+        f"y_r(0) = {ini['yr0']:g} != x_1(0) = {ini['x1_0']:g} (68; c_2 = {ini['c']} = x_2(0)). "
+        f"So S(0) = {np.round(ini['S0'], 5).tolist()}; only (65) applies.", "",
         f"### Statements on the example (alpha_0 = {p['alpha0']:.3g}, mu = {p['mu']:.3g}, "
         f"M = {np.round(p['M_measured'], 4).tolist()} measured, C = {p['C']:.4g})", "",
         *table(("statement", "measured", "bound", "holds"), [
@@ -112,11 +107,9 @@ def theory_markdown(summary: dict) -> str:
             (f"(12) {escape(theory.ASSUMPTIONS['(12)'])} (assumption)", f"{p['d_n_max']:.4g}",
              f"{p['d']:.4g}", _yes(p["assumptions"]["(12)"]))]),
         "",
-        f"V decreases at {100 * p['frac_V_decreasing']:.1f} % of the steps; V(0) = "
-        f"{p['V0']:.4g}, V(end) = {p['V_end']:.4g}. Taking alpha_0 = 0.2 (what k_2 suggests, "
-        "not licensed by the other gains) would give the bound "
-        f"{p['bound_72_at_alpha0_paper']:.3g}.",
-        "",
+        f"V decreases at {100 * p['frac_V_decreasing']:.1f} % of the steps; V(end) = "
+        f"{p['V_end']:.4g}. alpha_0 = 0.2 (k_2's, unlicensed) would give the bound "
+        f"{p['bound_72_at_alpha0_paper']:.3g}.", "",
     ]
     for res in summary["studies"]:
         o = res["options"]
@@ -127,11 +120,10 @@ def theory_markdown(summary: dict) -> str:
         lines += [
             f"### alpha_0 study, n = {res['n']} (gains (55) holding eta, tau (60), L-inf "
             f"initialisation (67)-(68), mu = {o['mu']:g}, T = {o['t_final']:g} s)", "",
-            f"RK4 steps used: {', '.join(f'{d:g}' for d in dts)} s (each the largest "
-            f"{o['dt_max']:g}/2^j with dt <= {o['dt_safety']:g} x 2.785 x min(tau, "
-            "1/(alpha max|u'|))). The conclusions (63), (65), (70)-(72) hold for "
-            f"{n_hold} of {len(rows)} values of alpha_0"
-            + (f" ({len(skipped)} more skipped: too stiff for max_steps = {o['max_steps']})"
+            f"RK4 steps: {', '.join(f'{d:g}' for d in dts)} s (the largest {o['dt_max']:g}/2^j "
+            f"<= {o['dt_safety']:g} x 2.785 x min(tau, 1/(alpha max|u'|))). (63), (65), "
+            f"(70)-(72) hold for {n_hold} of {len(rows)} values of alpha_0"
+            + (f" ({len(skipped)} skipped: too stiff for max_steps = {o['max_steps']})"
                if skipped else "") + f". Wall time {res['wall_s']:.0f} s.", "",
             table_markdown(res), ""]
         if len(rows) > 1:

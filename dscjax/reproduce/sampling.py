@@ -45,32 +45,36 @@ def study(setup, t_final: float, dt: float, window_start: float = 1.0,
     return ts_sweep.study(setup, batch, GAINS, t_final, dt, window_start, sample_times)
 
 
-def line(result: dict) -> str:
-    """One line for stdout: the windowed L-inf of both gain sets at the largest Ts each tracks
-    and the fitted order."""
-    def last(name):
-        ok = largest_tracking(result, name)
-        return (f"{name} gains track without chattering up to Ts = {1e3 * ok[0]:g} ms (L-inf "
-                f"{ok[1]:.3g})" if ok else f"{name} gains do not track at Ts = "
-                f"{1e3 * result['sample_times'][0]:g} ms ({result[name]['why_not'][0]})")
+def reach(result: dict, name: str) -> str:
+    """How far gain set `name` tracks: up to which Ts (its windowed L-inf there), or why not at
+    the smallest Ts."""
+    ok = largest_tracking(result, name)
+    if ok:
+        return f"track without chattering up to Ts = {1e3 * ok[0]:g} ms (L-inf {ok[1]:.3g})"
+    return (f"do not track at Ts = {1e3 * result['sample_times'][0]:g} ms "
+            f"({result[name]['why_not'][0]})")
 
-    return (f"sampled controller: {last('paper')}; {last('tuned')}; the sampled loop tends to "
-            f"the continuous one at order {result['order']['order']:.2f} in Ts")
+
+def _order(o: dict) -> str:
+    return f"sampled loop tends to the continuous one at order {o['order']:.2f} in Ts"
+
+
+def line(result: dict) -> str:
+    """One line for stdout: how far both gain sets track and the fitted order."""
+    texts = [f"{LABELS[name]} {reach(result, name)}" for name in GAINS]
+    if result["order"] is not None:
+        texts.append("the " + _order(result["order"]))
+    return "sampled controller: " + "; ".join(texts)
 
 
 def markdown(result: dict) -> str:
-    names = result.get("names", GAINS)
+    names = result["names"]
     lines = ["## The controller sampled at Ts (zero-order hold)", "", *table(result, names),
              "", criterion(result)]
-    for name in names:
-        last = largest_tracking(result, name)
-        lines.append(f"- {LABELS.get(name, name)}: " + (
-            f"track up to Ts = {1e3 * last[0]:g} ms" if last else
-            f"do not track at Ts = {1e3 * result['sample_times'][0]:g} ms"))
+    lines += [f"- {LABELS[name]}: {reach(result, name)}" for name in names]
     o = result["order"]
     if o is not None:
-        lines += ["", f"The sampled loop tends to the continuous one at order "
-                  f"{o['order']:.2f} in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
+        lines += ["", f"The {_order(o)} (max |y_Ts - y| on t >= 1 s, Ts = "
                   f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's "
                   f"gains; one exponential-Euler step of the controller per sample: first "
                   f"order)."]
