@@ -102,17 +102,15 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
         raise ConfigError("the fit diverged from every start (the model left the finite "
                           "numbers): give starts closer to the data, more --segments, or more "
                           "--starts")
-    est, corr, sv, s2 = fitting.estimates(problem, fit)
-    figures = fitting.fit_figures(problem, fit)
     h0 = None
     if validation is None:  # the actuator goes on into the tail from where the fit left it
         head = record.part(0, cut)
         h0 = simulate(problem.setup_at(jnp.asarray(fit.theta["z"])), Experiment.make(
             head.t, head.u, plant=False, dt=float(spec.dt), hold=s.hold), final=True)
     val_problem, val_fit = fitting.validation_fit(problem, fit, val, h0)
-    return Identified(problem, fit, est, corr, sv, s2, figures,
-                      fitting.fit_figures(val_problem, val_fit), where, val_problem, val_fit,
-                      costs, time.perf_counter() - t0)
+    return Identified(problem, fit, *fitting.estimates(problem, fit),
+                      fitting.fit_figures(problem, fit), fitting.fit_figures(val_problem, val_fit),
+                      where, val_problem, val_fit, costs, time.perf_counter() - t0)
 
 
 def read_records(s: IdentifySettings, data: str, order: int | None
