@@ -201,10 +201,9 @@ def markdown(s: dict) -> str:
                        "yes" if e["identifiable"] else f"**no**: {e['why']}")
                       for e in s["parameters"]])]
     if s["not_identifiable"]:
-        lines += ["", f"**Not identifiable from this record**: "
-                  f"{', '.join(s['not_identifiable'])}. Their numbers above are one of many "
-                  "that fit equally well: fix them (leave them out of --free) or record an "
-                  "experiment that excites them."]
+        lines += ["", f"**Not identifiable from this record**: {', '.join(s['not_identifiable'])}"
+                  " (other values fit as well): fix them (leave them out of --free) or record "
+                  "an experiment that excites them."]
     names = [e["name"] for e in s["parameters"]]
     lines += ["", "Correlation of the estimates:", "",
               *table(("", *(f"`{n}`" for n in names)),
@@ -216,9 +215,8 @@ def markdown(s: dict) -> str:
               + ", ".join(f"{c} {v:.3g}" for c, v in s["noise_std"].items())
               + f"; residual variance factor {s['residual_variance_factor']:.3g}.", ""]
     if s["robust_box"]:
-        lines += ["identified.toml holds the identified config and, as [tuning.robust.ranges], "
-                  "the 95 % intervals above: `dscjax tune --config DIR/identified.toml "
-                  "--batch B` tunes for the plants the data allow.", ""]
+        lines += ["identified.toml: the identified config, the 95 % intervals above its "
+                  "[tuning.robust.ranges] (`dscjax tune --batch B` tunes for them).", ""]
     return "\n".join(lines)
 
 
