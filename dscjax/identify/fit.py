@@ -299,9 +299,7 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
     inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]  # the pseudo-inverse of J^T J
     cov = s2 * inv[:k, :k]
     se_z = np.sqrt(np.clip(np.diag(cov), 0, None))
-    weak = np.zeros(k, bool)
-    for j in np.flatnonzero(~keep):
-        weak |= np.abs(vt[j, :k]) > 0.3
+    weak = np.any(np.abs(vt[~keep, :k]) > 0.3, axis=0)  # loads on an undetermined direction
     z = np.asarray(fit.theta["z"], float)
     out = []
     for i, f in enumerate(problem.free):
