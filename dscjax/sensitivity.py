@@ -94,9 +94,9 @@ def default_paths(setup) -> list[str]:
 
 def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
             ) -> tuple[Param, ...]:
-    """One `Param` per scalar differentiated: `paths` (default `default_paths`) checked
-    against the setup (ConfigError naming `field`), a vector leaf given whole split into its
-    elements; a number given twice is refused."""
+    """One `Param` per scalar differentiated (or fitted, `dscjax.identify`): `paths` (default
+    `default_paths`) checked against the setup (ConfigError naming `field`), a vector leaf given
+    whole split into its elements; a number given twice is refused."""
     given = [Param.parse(text, field) for text in (default_paths(setup) if paths is None
                                                    else paths)]
     for p in given:
@@ -107,7 +107,7 @@ def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
     if twice:
         raise ConfigError(f"{field}: {twice[0]!r} is given twice")
     if not out:
-        raise ConfigError(f"{field}: no parameter to differentiate")
+        raise ConfigError(f"{field}: no number given")
     return tuple(out)
 
 
@@ -161,8 +161,7 @@ class Problem:
         cols = columns(setup, paths)
         ov = None
         if overrides is not None:
-            dtype = np.dtype(spec.dtype)
-            ov = {p: np.asarray(v, dtype) for p, v in overrides.items()}
+            ov = {p: np.asarray(v, np.dtype(spec.dtype)) for p, v in overrides.items()}
             validation.validate_setup(params.set_many(setup, ov), check_shapes=False)
         zero = tuple(bool(p.nominal(setup) == 0.0) and (ov is None or p.path not in ov)
                      for p in cols)
@@ -203,13 +202,12 @@ class Problem:
     def result(self, out) -> Sensitivity:
         """The `Sensitivity` of `jacobian`'s output; DivergenceError if the loop diverged."""
         k, grad, status = out
-        code = np.atleast_1d(np.asarray(status.code))
-        if np.any(code != 0):
+        if np.any(np.asarray(status.code) != 0):
             step = np.asarray(status.step)  # what divergence_report reads of a Trajectory
             seen = SimpleNamespace(status=status, t_diverged=np.where(
                 step >= 0, step * float(self.spec.dt), np.inf))
-            lines = divergence_report(seen, float(self.spec.state_bound))
-            lines = [line.split(";")[0] for line in lines]  # not the trajectory's advice
+            lines = [line.split(";")[0]  # not the trajectory's advice
+                     for line in divergence_report(seen, float(self.spec.state_bound))]
             raise DivergenceError("no sensitivity: " + ", ".join(lines[:3])
                                   + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else "")
                                   + "; reduce dt, use the etdrk4 solver or revise the gains",

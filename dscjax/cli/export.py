@@ -1,5 +1,10 @@
-"""`dscjax export`: the digital controller of a config (e.g. a tune's gains.json) as C99,
-DIR/dsc_controller.h and DIR/dsc_controller.c (`dscjax.export`)."""
+"""`dscjax export`: the controller of a config (e.g. a tune's gains.json) sampled every TS
+seconds, as C99 with no dependency beyond <math.h> (`dscjax.export`), in DIR/dsc_controller.h
+and DIR/dsc_controller.c: exactly the initialisation and the update law of dscjax's sampled
+loop (the law, its hysteresis compensation, the discretisation of its states, the input
+delay). dsc_init starts it from the measured x(0), dsc_step runs one sample. The plant, the
+actuator (and its limits: u is returned unbounded) and the measurement noise are not part of
+it."""
 
 from __future__ import annotations
 
@@ -19,13 +24,7 @@ interrupt_hint = nothing_kept
 def add_parser(sub):
     p = sub.add_parser(
         "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
-        description="Write DIR/dsc_controller.h and DIR/dsc_controller.c: the controller of "
-        "a config sampled every TS seconds, in C99 with no dependency beyond <math.h>, "
-        "exactly the initialisation and the update law of dscjax's sampled loop (the law, "
-        "its hysteresis compensation, the discretisation of its states, the input delay): "
-        "dsc_init starts it from the measured x(0), dsc_step runs one sample. The plant, the "
-        "actuator (and its limits: u is returned unbounded) and the measurement noise are "
-        "not part of it.")
+        description=__doc__)
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
                    "tune`) laid over --config: its gains, plant model, reference and "
                    "[simulation] sample time, delay and discretisation")

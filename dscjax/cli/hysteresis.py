@@ -1,4 +1,6 @@
-"""`dscjax hysteresis`: a hysteresis model alone, driven open-loop by u = A sin(omega t).
+"""`dscjax hysteresis`: the config's hysteresis model alone (hysteresis.kind: backlash, pi, gpi,
+bouc_wen), driven open-loop by u(t) = A sin(omega t) with the closed loop's RK4 (and the play
+operators' exact clamp).
 
 Writes DIR/loop.npz (t (N+1,), u and w (K, N+1) on the step grid, one row per amplitude, and
 `amplitude` (K,), `omega`, `kind`) and DIR/loop.png (w against u, one panel per amplitude, with
@@ -12,7 +14,7 @@ import math
 
 import numpy as np
 
-from dscjax import config, files, validation
+from dscjax import files, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.files import write_npz
@@ -30,10 +32,7 @@ OUTPUTS = Outputs(("loop.npz", "loop.png"))
 def add_parser(sub):
     p = sub.add_parser(
         "hysteresis", help="a hysteresis model alone: w(t) and its loop for u = A sin(omega t)",
-        description="Drive the config's hysteresis model (hysteresis.kind: backlash, pi, gpi, "
-        "bouc_wen) open-loop by u(t) = amplitude sin(omega t) with the closed loop's RK4 (and "
-        "the play operators' exact clamp); write DIR/loop.npz (t, u, w on the step grid) and "
-        "DIR/loop.png (w against u). Default: the paper's Fig. 1.")
+        description=__doc__)
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config; only its "
                    "[hysteresis] table is used, and simulation.t_final, simulation.dt and "
                    "simulation.device where --t-final, --dt and --device are not given "
@@ -54,13 +53,11 @@ def add_parser(sub):
 
 def run(args) -> int:
     amplitudes = tuple(args.amplitude or DEFAULT_AMPLITUDES)
-    base = common.example_setup(args)
-    raw = config.read(args.config) if args.config else {}
-    setup = config.from_dict(raw, base=base)[0] if args.config else base
+    raw, setup = common.config_data(args), common.config_setup(args)[0]
     hyst = setup.hysteresis
     hyst.validate("hysteresis")
     validation.finite_tree(hyst, "hysteresis")
-    sim = raw.get("simulation", {}) if isinstance(raw.get("simulation"), dict) else {}
+    sim = raw.get("simulation", {})  # a table: `config.from_dict` checked it
     dt, dt_field = ((args.dt, "--dt") if args.dt is not None else
                     (sim["dt"], "simulation.dt") if "dt" in sim else (DEFAULT_DT, "--dt"))
     if args.t_final is not None or "t_final" in sim:

@@ -1,6 +1,11 @@
-"""`dscjax identify`: grey-box identification of the plant and the actuator from a measured
-record (`dscjax.identify`). Writes into DIR identified.toml (a whole config, the parameters'
-95 % intervals as the robust tuning box), report.md, report.json, fit.png and residuals.png.
+"""`dscjax identify`: fit the free numbers of a config (--free) to a measured record (--data:
+CSV with a header row, or NPZ, columns t, u and any of x1..xn, w) by Levenberg-Marquardt on
+exact Jacobians through the simulator (`dscjax.identify`): the actuator alone where the record
+measures w only, the plant with its actuator where it measures a state. Reports the fit (NRMSE,
+MSE, FPE), each number's standard error and 95 % interval, which numbers the data cannot
+identify, and a validation fit (docs/identification.md). Writes into DIR identified.toml (a
+whole config, the numbers' 95 % intervals as the robust tuning box), report.md (which it also
+prints), report.json, fit.png and residuals.png.
 """
 
 from __future__ import annotations
@@ -19,13 +24,7 @@ interrupt_hint = nothing_kept
 def add_parser(sub):
     p = sub.add_parser(
         "identify", help="identify plant and actuator numbers from a measured record",
-        description="Fit the free numbers of a config (--free) to a measured record (--data: "
-        "CSV with a header row, or NPZ, columns t, u and any of x1..xn, w) by "
-        "Levenberg-Marquardt on exact Jacobians through the simulator: the actuator alone "
-        "where the record measures w only, the plant with its actuator where it measures a "
-        "state. Reports the fit (NRMSE, MSE, FPE), each number's standard error and 95 % "
-        "interval, which numbers the data cannot identify, and a validation fit "
-        "(docs/identification.md).")
+        description=__doc__)
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
     common.add_config_args(p, run_keys=("dt",), float32=False)
     settings.add_arguments(p, ident.IdentifySettings, "identify.")
@@ -63,14 +62,7 @@ def run(args) -> int:
                   f"{s.segments} segment(s), {s.starts} start(s); fitting ...")
     res = ident.identify(setup, spec, record, s, val)
     written = ident.write(out, res, spec, source, plot=not args.no_plot)
-    for c, f in res.figures.items():
-        if c != "all":
-            print(f"  fit to estimation data, {c}: {f['nrmse_fit_percent']:.2f} % (NRMSE), "
-                  f"validation {res.validation[c]['nrmse_fit_percent']:.2f} %")
-    for e in res.estimates:
-        flag = "" if e.identifiable else f"  NOT IDENTIFIABLE: {e.why}"
-        print(f"  {e.name} = {e.value:.6g} +- {e.se:.3g} (95 %: [{e.low:.6g}, {e.high:.6g}])"
-              f"{flag}")
+    print((out / "report.md").read_text())
     print(f"  wrote {out}: {', '.join(written)}; tune for it: dscjax tune --config "
           f"{out}/identified.toml --batch 8")
     return 0

@@ -1,13 +1,18 @@
-"""`dscjax sensitivity`: d ln m / d ln p of a loop's metrics to every number of its controller,
-plant and hysteresis model, by reverse mode (`dscjax.sensitivity`).
+"""`dscjax sensitivity`: the normalised sensitivity d ln m / d ln p = (p / m) dm/dp of each
+metric m to every number p of the controller, the plant and the hysteresis model (or those given
+by --param), on the nominal plant or as the mean over --batch plants, by one reverse pass per
+metric (`dscjax.sensitivity`). lp_error_window is the windowed L_p norm of e, p =
+`dscjax.sensitivity.LP_ORDER` = 16 (a smooth L-inf). The loop is piecewise smooth: these are
+exact local derivatives (docs/sensitivity.md).
 
-Writes DIR/sensitivity.json ({metric: {path: value}}, null where the number is 0; with
---float32 also "float32_check", the float64 re-check) and DIR/sensitivity.png (a tornado chart
-per metric), and prints the table sorted by magnitude.
+Writes DIR/sensitivity.json ({metric: {path: value}}, null where the number is 0 and has no
+d ln p; with --float32 also "float32_check", the float64 re-check) and DIR/sensitivity.png (a
+tornado chart per metric), and prints the table sorted by magnitude.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 import time
 
@@ -18,8 +23,9 @@ from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
-from dscjax.sensitivity import LP_ORDER, METRICS, Problem, check_metrics
+from dscjax.sensitivity import METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
+from dscjax.sweep.summary import float32_trust, loop_text
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "device")
@@ -28,15 +34,8 @@ TOP = 15  # bars per metric in the tornado chart
 
 def add_parser(sub):
     p = sub.add_parser(
-        "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse "
-        "mode",
-        description="The normalised sensitivity d ln m / d ln p = (p / m) dm/dp of each metric "
-        "m to every number p of the controller, the plant and the hysteresis model (or those "
-        "given by --param), on the nominal plant or as the mean over --batch plants, by one "
-        "reverse pass per metric. A number whose value is 0 has no d ln p: null in "
-        f"sensitivity.json. lp_error_window is the windowed L_p norm of e, p = {LP_ORDER:g} (a "
-        "smooth L-inf). The loop is piecewise smooth: these are exact local derivatives "
-        "(docs/sensitivity.md). Writes DIR/sensitivity.json and DIR/sensitivity.png.")
+        "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse mode",
+        description=__doc__)
     common.add_config_args(p, run_keys=RUN_KEYS)
     p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
@@ -87,12 +86,10 @@ def run(args) -> int:
     choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
-    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, "
-                  + (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
-                     else "the nominal plant")
-                  + f", {what}" + (f", the controller sampled every {spec.sample_time:g} s"
-                                   if spec.sampled else ", continuous loop") + f"; on {choice}",
-                  warnings)
+    plants = f"mean over {args.batch} plants" if args.batch else "the nominal plant"
+    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}"
+                  + (f" (seed {args.seed})" if args.batch else "")
+                  + f", {what}, {loop_text(spec.to_table())}; on {choice}", warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "
@@ -119,7 +116,9 @@ def run(args) -> int:
                      values if f32 is None else values | {"float32_check": f32})
     _print_table(result)
     if not args.no_plot:
-        _plot(result, out / "sensitivity.png", title=_title(setup, spec, args))
+        sampled = f", sampled every {spec.sample_time:g} s" if spec.sampled else ""
+        _plot(result, out / "sensitivity.png", f"sensitivity of "
+              f"{setup.controller.kind.upper()}, n={setup.order}, {what}{sampled}, {plants}")
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
     if f32 is not None and untrusted:
@@ -132,24 +131,22 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     `dscjax.sweep.float32_trust`, the check of a float32 sweep, on the metrics' values
     ("tv_u") and every d ln m / d ln p ("tv_u / controller.tau[0]"). Returns what
     sensitivity.json records and the warning (None if every value is trusted)."""
-    from dscjax.sweep.summary import float32_trust
-
     f64 = Problem.make(params.cast(problem.setup, np.float64),
                        problem.spec.replace(dtype="float64"), paths, problem.metrics,
                        problem.overrides, problem.lp_order)
     try:
         ref = f64.result(f64.jacobian())
-        value, normalised = ref.value, ref.normalised
     except DivergenceError:  # no float64 reference: nothing of float32's can be trusted
-        value = np.full(len(result.metrics), np.nan)
-        normalised = np.full(result.normalised.shape, np.nan)
+        ref = dataclasses.replace(result, value=np.full_like(result.value, np.nan),
+                                  gradient=np.full_like(result.gradient, np.nan))
 
-    def named(v, n):
-        out = {m: float(v[i]) for i, m in enumerate(result.metrics)}
-        return out | {f"{m} / {p}": float(n[i, j]) for i, m in enumerate(result.metrics)
-                      for j, p in enumerate(result.names)}
+    def named(res):
+        n = res.normalised
+        return {m: float(v) for m, v in zip(res.metrics, res.value, strict=True)} | {
+            f"{m} / {p}": float(n[i, j]) for i, m in enumerate(res.metrics)
+            for j, p in enumerate(res.names)}
 
-    got, want = named(result.value, result.normalised), named(value, normalised)
+    got, want = named(result), named(ref)
     trust = float32_trust({k: [v] for k, v in got.items()}, {k: [v] for k, v in want.items()})
     check = {"rtol": trust["rtol"],
              "float64": {k: (None if np.isnan(v) else v) for k, v in want.items()},
@@ -175,14 +172,6 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
                    f"without --float32")
 
 
-def _order(result) -> np.ndarray:
-    """Columns by their largest |d ln m / d ln p| over the metrics, largest first (those
-    without one, p = 0, last)."""
-    n = np.abs(result.normalised)
-    key = np.max(np.where(np.isnan(n), -1.0, n), axis=0)
-    return np.argsort(-key, kind="stable")
-
-
 def _print_table(result) -> None:
     names = result.names
     width = max(len("parameter"), *(len(n) for n in names))
@@ -193,7 +182,9 @@ def _print_table(result) -> None:
     print(f"{'value of m':<{width}}  " + "  ".join(f"{v:>{c}.4g}" for v, c in
                                                   zip(result.value, cols, strict=True)))
     n = result.normalised
-    for j in _order(result):
+    # by the largest |d ln m / d ln p| over the metrics, those without one (p = 0) last
+    largest = np.max(np.where(np.isnan(n), -1.0, np.abs(n)), axis=0)
+    for j in np.argsort(-largest, kind="stable"):
         print(f"{names[j]:<{width}}  " + "  ".join(
             f"{'-':>{c}}" if np.isnan(n[i, j]) else f"{n[i, j]:>+{c}.3e}"
             for i, c in enumerate(cols)))
@@ -215,13 +206,6 @@ def _plot(result, path, title: str) -> None:
         ax.set_xlabel("d ln m / d ln p")
     fig.suptitle(title, fontsize=9)
     files.save_figure(fig, path, dpi=120)
-
-
-def _title(setup, spec, args) -> str:
-    return (f"sensitivity of {setup.controller.kind.upper()}, n={setup.order}, "
-            f"T={spec.t_final:g} s, dt={float(spec.dt):g} s"
-            + (f", sampled every {spec.sample_time:g} s" if spec.sampled else "")
-            + (f", mean over {args.batch} plants" if args.batch else ", nominal plant"))
 
 
 def interrupt_hint(args) -> str:

@@ -1,4 +1,8 @@
-"""`dscjax simulate`: run one closed loop, write trajectory.npz, metrics.json, trajectory.png."""
+"""`dscjax simulate`: simulate the closed loop of a config (default: the paper's Section 4
+example) by fixed-step RK4 and write DIR/trajectory.npz, DIR/metrics.json and
+DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function (44) of the
+paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, V_zeta, V_d, V_y (the
+filter errors)."""
 
 from __future__ import annotations
 
@@ -19,6 +23,7 @@ from dscjax.progress import Progress
 from dscjax.reproduce.theory import lyapunov
 from dscjax.runspec import MAX_SAVED_POINTS
 from dscjax.simulate import DivergenceError, check, divergence_report, refinement_level
+from dscjax.sweep.summary import float32_trust, loop_text
 from dscjax.validation import fmt_bytes
 
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
@@ -30,11 +35,7 @@ SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refin
 def add_parser(sub):
     p = sub.add_parser(
         "simulate", help="simulate one closed loop (default: the paper's example)",
-        description="Simulate the closed loop of a config (default: the paper's Section 4 "
-        "example) by fixed-step RK4 and write DIR/trajectory.npz, DIR/metrics.json and "
-        "DIR/trajectory.png. For the DSC, trajectory.npz also holds V, the Lyapunov function "
-        "(44) of the paper's Theorem 1, and its terms V_surface, V_filter, V_theta, V_phi, "
-        "V_zeta, V_d, V_y (the filter errors).")
+        description=__doc__)
     common.add_config_args(p, run_keys=SIMULATE_KEYS)
     add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,
@@ -70,15 +71,11 @@ def run(args) -> int:
     choice = common.choose_device(args, options.device)  # simulate() places the run alike
 
     out = prepare_out(args, OUTPUTS)
-    common.banner(args, f"order n={setup.order}, {setup.controller.kind} "
-                  f"(variant {getattr(setup.controller, 'variant', '-')}), "
-                  f"T={options.t_final:g} s, dt={options.dt:g} s ({n_steps:,} steps), "
-                  f"{options.dtype}"
-                  + (f", the controller sampled every {options.sample_time:g} s "
-                     "(zero-order hold"
-                     + (f", input delay {options.delay} sample(s)" if options.delay else "")
-                     + (", measurement noise" if options.noise is not None else "") + ")"
-                     if options.sampled else "") + f"; on {choice}", warnings)
+    c = setup.controller
+    loop = (f"{c.kind.upper()} ({getattr(c, 'variant', '-')}), n={setup.order}, "
+            f"dt={options.dt:g} s, {options.dtype}")
+    common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
+                  f"{loop_text(options.to_table())}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
         print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
               f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
@@ -125,6 +122,7 @@ def run(args) -> int:
             warnings = [*warnings, common.untrusted_text(
                 f32["untrusted"], f32["rel_diff"], f32["rtol"], "rerun without --float32")]
     report = divergence_report(traj, float(options.state_bound))
+    used = refinement_level(int(traj.refinements), options.solver)[0].name
     write_json(out / "metrics.json", {
         **metrics,
         "diverged": bool(traj.diverged),
@@ -134,7 +132,7 @@ def run(args) -> int:
         "save_every": every, "sample_time": options.sample_time,
         "solver": options.solver.name,
         "refinements": int(traj.refinements),
-        "solver_used": refinement_level(int(traj.refinements), options.solver)[0].name,
+        "solver_used": used,
         "dt_used": float(traj.dt),
         "window_start": float(options.window_start),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
@@ -144,12 +142,12 @@ def run(args) -> int:
         "float32_check": f32,
     })
     if not args.no_plot:
-        plot_trajectory(traj, out / "trajectory.png", title=_title(setup, options))
+        sampled = f", sampled every {options.sample_time:g} s" if options.sampled else ""
+        plot_trajectory(traj, out / "trajectory.png", title=loop + sampled)
     print(f"  wrote {out}/trajectory.npz, metrics.json"
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
-        used = refinement_level(int(traj.refinements), options.solver)[0].name
         what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
                 if diverged is not None else
                 f"the reported run is {used} at dt = {float(traj.dt):g} s")
@@ -177,7 +175,6 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
     arithmetic in float64): `dscjax.sweep.float32_trust`, the check of a float32 sweep, with
     the float64 values."""
     from dscjax.simulate import simulate
-    from dscjax.sweep.summary import float32_trust
 
     ref = simulate(cast(setup, np.float64), throw=False,
                    spec=options.replace(dtype="float64", save_every=options.n_steps))
@@ -203,9 +200,3 @@ def _ordinal(k: int) -> str:
 def interrupt_hint(args) -> str:
     return kept_text(args, OUTPUTS, AT_END)
 
-
-def _title(setup, options):
-    c = setup.controller
-    return (f"{c.kind.upper()} ({getattr(c, 'variant', '')}), n={setup.order}, "
-            f"dt={options.dt:g} s, {options.dtype}"
-            + (f", sampled every {options.sample_time:g} s" if options.sampled else ""))

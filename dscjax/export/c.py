@@ -10,7 +10,7 @@ from fractions import Fraction
 import numpy as np
 
 from dscjax.export.law import ExportError, Law, Op, Program, trace
-from dscjax.validation import ConfigError
+from dscjax.validation import one_of
 
 HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
 PRECISIONS = ("double", "float")
@@ -283,9 +283,7 @@ def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict
     header, which lists the gains."""
     from dscjax import config
 
-    if precision not in PRECISIONS:
-        raise ConfigError(f"precision must be one of {', '.join(PRECISIONS)} (got "
-                          f"{precision!r})")
+    one_of(precision, "precision", PRECISIONS)
     law, gains = trace(setup, spec), config.model_to_dict("controller", setup.controller)
     real = _Real(precision)
     try:

@@ -118,26 +118,24 @@ def trace(setup, spec) -> Law:
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
     ctrl_names = [_name(p) for p, _ in leaves]
     value_names = [_name(paths[i][0]) for i in which]
-    past0 = jnp.zeros((spec.delay,), dtype)
     values0 = [base[i] for i in which]
     ref_in = [("ref", j) for j in range(n_d)]
     # the step's inputs: the state's leaves, the delay line (a (0,) array nothing reads if no
     # delay), the derived values, x, t and the reference's derivatives
     kinds = ([("state", nm) for nm in ctrl_names] + [("state", "past" if spec.delay else None)]
              + [("state", nm) for nm in value_names] + [("x",), ("t",)] + ref_in)
+    past0 = jnp.zeros((spec.delay,), dtype)
     closed = jax.make_jaxpr(step)(X0.ctrl, past0, values0, X0.x, zero, d_any)
-    n_out = 1 + len(ctrl_names) + (1 if spec.delay else 0)
-    step_prog = _program(closed, kinds, n_out)
+    step_prog = _program(closed, kinds, 1 + len(ctrl_names) + bool(spec.delay))  # u, states
     read = {a[1] for a in _atoms(step_prog) if a[0] == "in"}
     kept = [k for k, nm in enumerate(value_names) if ("state", nm) in read]
     state = ([(nm, tuple(v.shape), True) for nm, (_, v) in zip(ctrl_names, leaves, strict=True)]
              + ([("past", (spec.delay,), True)] if spec.delay else [])
              + [(value_names[k], np.shape(values0[k]), False) for k in kept])
-    closed_init = jax.make_jaxpr(init)(X0.x, d_any)
-    init_all = _program(closed_init, [("x",)] + ref_in, None)
+    init_all = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in, None)
     outs = init_all.outputs
-    picked = (outs[:len(ctrl_names)] + (outs[len(ctrl_names):len(ctrl_names) + 1]
-                                        if spec.delay else [])
+    # the controller's state, the delay line if any, the derived values the step reads
+    picked = (outs[:len(ctrl_names) + bool(spec.delay)]
               + [outs[len(ctrl_names) + 1 + k] for k in kept])
     init_prog = Program(_live(init_all.ops, picked), picked)
     used = {a[1][1] for prog in (step_prog, init_prog) for a in _atoms(prog)
@@ -145,9 +143,8 @@ def trace(setup, spec) -> Law:
     n_ref = max(used, default=1) + 1
     if n_ref >= n_d:
         raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
-    reads_t = ("t",) in read  # the step's inputs it reads (above)
     return Law(init=init_prog, step=step_prog, state=state, n_ref=max(n_ref, 2), order=n,
-               sample_time=every * dt, reads_t=reads_t)
+               sample_time=every * dt, reads_t=("t",) in read)
 
 
 def _atoms(prog: Program) -> list:

@@ -65,6 +65,10 @@ def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
         raise ConfigError(f"{option}: cannot read {path}: {err.strerror}") from None
     # where a value sits: the line of a CSV (the first sample's after the header), or the index
     where, first = ("line", 2) if suffix == ".csv" else ("index", 0)
+
+    def at(i: int, column: str) -> str:
+        return f"{path}, {where} {first + i}, column {column!r}"
+
     allowed = columns_of(order)
     for name in ("t", "u"):
         if name not in raw:
@@ -88,11 +92,9 @@ def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
             try:
                 out[i] = float(v)
             except (TypeError, ValueError):
-                raise ConfigError(f"{path}, {where} {first + i}, column {name!r}: not a number "
-                                  f"({str(v)!r})") from None
+                raise ConfigError(f"{at(i, name)}: not a number ({str(v)!r})") from None
             if not math.isfinite(out[i]):
-                raise ConfigError(f"{path}, {where} {first + i}, column {name!r}: {v} (every "
-                                  f"value must be a finite number)")
+                raise ConfigError(f"{at(i, name)}: {v} (every value must be a finite number)")
         values[name] = out
     n = values["t"].size
     if n < MIN_SAMPLES:
@@ -100,9 +102,8 @@ def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
     bad = np.flatnonzero(np.diff(values["t"]) <= 0)
     if bad.size:
         i = int(bad[0]) + 1
-        raise ConfigError(f"{path}, {where} {first + i}, column 't': {values['t'][i]:g} is not "
-                          f"after the time before it, {values['t'][i - 1]:g} (times must "
-                          f"increase)")
+        raise ConfigError(f"{at(i, 't')}: {values['t'][i]:g} is not after the time before "
+                          f"it, {values['t'][i - 1]:g} (times must increase)")
     return Record(values["t"], values["u"], {c: values[c] for c in measured}, str(path))
 
 

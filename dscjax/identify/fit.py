@@ -30,6 +30,7 @@ from dscjax import params, validation, xla
 from dscjax.closed_loop import Setup
 from dscjax.identify.data import Record
 from dscjax.identify.experiment import Experiment, simulate
+from dscjax.sensitivity import columns
 from dscjax.validation import ConfigError
 
 LAMBDA0 = 1e-3  # the first damping, relative to each coordinate's curvature
@@ -75,22 +76,8 @@ class Problem(eqx.Module):
              dt: float, segments: int = 1, hold: str = "zoh",
              sigma: Mapping[str, float] | None = None, fit_index=None,
              field: str = "--free") -> Problem:
-        free = []
-        for text in paths:
-            p = params.Param.parse(text, field)
-            p.check(setup, field)
-            value = np.asarray(p.value(setup), float)
-            elements = ([p] if p.index is not None or p.scale or value.ndim == 0 else
-                        [params.Param(p.path, i) for i in range(value.size)])
-            for q in elements:
-                v = float(np.asarray(q.value(setup), float))
-                free.append(Free(q, log=q.scale or _positive(setup, q) and v > 0))
-        names = [f.name for f in free]
-        twice = {n for n in names if names.count(n) > 1}
-        if twice:
-            raise ConfigError(f"{field}: {sorted(twice)[0]!r} is given twice")
-        if not free:
-            raise ConfigError(f"{field}: no number to fit")
+        free = [Free(q, log=q.scale or _positive(setup, q) and float(q.value(setup)) > 0)
+                for q in columns(setup, paths, field)]
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
         sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
@@ -172,12 +159,9 @@ def noise_level(y) -> float:
 
 def _positive(setup, p: params.Param) -> bool:
     """Whether the field of p must be > 0 (its range rule), so that log coordinates fit it."""
-    model = getattr(setup, p.path.split(".")[0])
-    name = p.path.split(".")[1]
-    for f in dataclasses.fields(model):
-        if f.name == name:
-            return f.metadata.get("check") == "positive"
-    return False
+    part, name = p.path.split(".")[:2]  # (a path the setup has: `Param.check`)
+    fields = {f.name: f for f in dataclasses.fields(getattr(setup, part))}
+    return fields[name].metadata.get("check") == "positive"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -315,9 +299,7 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
     inv = (vt[keep].T / sv[keep] ** 2) @ vt[keep]  # the pseudo-inverse of J^T J
     cov = s2 * inv[:k, :k]
     se_z = np.sqrt(np.clip(np.diag(cov), 0, None))
-    weak = np.zeros(k, bool)
-    for j in np.flatnonzero(~keep):
-        weak |= np.abs(vt[j, :k]) > 0.3
+    weak = np.any(np.abs(vt[~keep, :k]) > 0.3, axis=0)  # loads on an undetermined direction
     z = np.asarray(fit.theta["z"], float)
     out = []
     for i, f in enumerate(problem.free):
@@ -376,11 +358,9 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
                   {c: jnp.asarray(v) for c, v in record.y.items()},
                   {c: problem.sigma[c] for c in record.y}, jnp.arange(len(record)), (), h0,
                   record.source)
-    if not val.exp.plant:  # nothing to fit: the residuals (and their empty Jacobian) alone
-        r, jac = (np.asarray(a, float) for a in _rj(val, jnp.zeros((0,))))
-        theta = {"z": jnp.zeros((0,)), "x": jnp.zeros((1, 0))}
-        return val, Fit(theta, 0.5 * float(r @ r), 0, "no state to fit", jac, r)
-    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
+    # the actuator alone has no state to fit: no step, the residuals (and their empty Jacobian)
+    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)},
+                      max_steps=200 if val.exp.plant else 0)
 
 
 def check_segments(segments: int, n: int, field: str = "--segments") -> int:

@@ -13,22 +13,16 @@ from dscjax import files
 from dscjax.plotting import subplots
 
 
-def _curves(res) -> dict:
-    """{column: [(tag, t, y measured, y model)] on the fitted samples} of the fit and of the
-    validation."""
-    out = {c: [] for c in res.problem.record.y}
+def write(out: Path, res) -> None:
+    # {column: [(tag, t, y measured, y model) on the fitted samples]} of the fit and validation
+    curves = {c: [] for c in res.problem.record.y}
     for tag, problem, fit in (("fit", res.problem, res.fit),
                               ("validation", res.val_problem, res.val_fit)):
         pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
         idx = np.asarray(problem.fit_index)
         for c, y in problem.record.y.items():
-            out[c].append((tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
-                           np.asarray(pred[c])[idx]))
-    return out
-
-
-def write(out: Path, res) -> None:
-    curves = _curves(res)
+            curves[c].append((tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
+                              np.asarray(pred[c])[idx]))
     columns = list(curves)
     for name, residual in (("fit.png", False), ("residuals.png", True)):
         fig, axes = subplots(len(columns), 1, figsize=(8, 2.4 * len(columns)), squeeze=False)

@@ -102,17 +102,15 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
         raise ConfigError("the fit diverged from every start (the model left the finite "
                           "numbers): give starts closer to the data, more --segments, or more "
                           "--starts")
-    est, corr, sv, s2 = fitting.estimates(problem, fit)
-    figures = fitting.fit_figures(problem, fit)
     h0 = None
     if validation is None:  # the actuator goes on into the tail from where the fit left it
         head = record.part(0, cut)
         h0 = simulate(problem.setup_at(jnp.asarray(fit.theta["z"])), Experiment.make(
             head.t, head.u, plant=False, dt=float(spec.dt), hold=s.hold), final=True)
     val_problem, val_fit = fitting.validation_fit(problem, fit, val, h0)
-    return Identified(problem, fit, est, corr, sv, s2, figures,
-                      fitting.fit_figures(val_problem, val_fit), where, val_problem, val_fit,
-                      costs, time.perf_counter() - t0)
+    return Identified(problem, fit, *fitting.estimates(problem, fit),
+                      fitting.fit_figures(problem, fit), fitting.fit_figures(val_problem, val_fit),
+                      where, val_problem, val_fit, costs, time.perf_counter() - t0)
 
 
 def read_records(s: IdentifySettings, data: str, order: int | None
@@ -203,10 +201,9 @@ def markdown(s: dict) -> str:
                        "yes" if e["identifiable"] else f"**no**: {e['why']}")
                       for e in s["parameters"]])]
     if s["not_identifiable"]:
-        lines += ["", f"**Not identifiable from this record**: "
-                  f"{', '.join(s['not_identifiable'])}. Their numbers above are one of many "
-                  "that fit equally well: fix them (leave them out of --free) or record an "
-                  "experiment that excites them."]
+        lines += ["", f"**Not identifiable from this record**: {', '.join(s['not_identifiable'])}"
+                  " (other values fit as well): fix them (leave them out of --free) or record "
+                  "an experiment that excites them."]
     names = [e["name"] for e in s["parameters"]]
     lines += ["", "Correlation of the estimates:", "",
               *table(("", *(f"`{n}`" for n in names)),
@@ -218,9 +215,8 @@ def markdown(s: dict) -> str:
               + ", ".join(f"{c} {v:.3g}" for c, v in s["noise_std"].items())
               + f"; residual variance factor {s['residual_variance_factor']:.3g}.", ""]
     if s["robust_box"]:
-        lines += ["identified.toml holds the identified config and, as [tuning.robust.ranges], "
-                  "the 95 % intervals above: `dscjax tune --config DIR/identified.toml "
-                  "--batch B` tunes for the plants the data allow.", ""]
+        lines += ["identified.toml: the identified config, the 95 % intervals above its "
+                  "[tuning.robust.ranges] (`dscjax tune --batch B` tunes for them).", ""]
     return "\n".join(lines)
 
 
