@@ -54,16 +54,18 @@ def is_concrete(tree) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
 
 
+def _every(value, field: str, ok, must: str) -> None:
+    """ConfigError "FIELD must be MUST (got VALUE)" unless `ok` holds for every element."""
+    if not np.all(ok(np.asarray(value, dtype=float))):
+        raise ConfigError(f"{field} must be {must} (got {fmt(value)})")
+
+
 def positive(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(a > 0):
-        raise ConfigError(f"{field} must be > 0 (got {fmt(value)})")
+    _every(value, field, lambda a: a > 0, "> 0")
 
 
 def nonnegative(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(a >= 0):
-        raise ConfigError(f"{field} must be >= 0 (got {fmt(value)})")
+    _every(value, field, lambda a: a >= 0, ">= 0")
 
 
 def finite_positive(value, field: str) -> float:
@@ -78,9 +80,7 @@ def finite_positive(value, field: str) -> float:
 
 
 def finite(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(np.isfinite(a)):
-        raise ConfigError(f"{field} must be finite (got {fmt(value)})")
+    _every(value, field, np.isfinite, "finite")
 
 
 def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
@@ -300,9 +300,9 @@ def batch_speed() -> float:
     """The optimistic throughput of a batch (member-steps per second) on JAX's devices."""
     devices = jax.devices()
     if devices[0].platform == "cpu":
-        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                 else os.cpu_count())
-        return MEMBER_STEPS_PER_S_CORE * (cores or 1)
+        from dscjax.device import cores  # (device imports this module)
+
+        return MEMBER_STEPS_PER_S_CORE * cores()
     return MEMBER_STEPS_PER_S_DEVICE * len(devices)
 
 

@@ -12,6 +12,7 @@ import sys
 import numpy as np
 
 from dscjax import config, device, settings
+from dscjax.rules import AtLeast, Number, Positive
 from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError, Work, validate_setup
 
@@ -59,42 +60,16 @@ def settings_docs(text: str) -> str:
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
 
 
-def _float(text: str) -> float:
-    """`text` as a float, nan where it is not a number."""
-    try:
-        return float(text)
-    except ValueError:
-        return math.nan
-
-
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
-    anything else is refused with the allowed range and the value."""
-
-    def parse(text: str) -> int:
-        value = None
-        try:
-            value = int(text)
-        except ValueError:
-            x = _float(text)
-            if math.isfinite(x) and x == int(x):
-                value = int(x)
-        if value is None or value < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low} (got {text!r})")
-        return value
-
-    parse.__name__ = "count"
-    return parse
+    anything else is refused with the allowed range and the value (`rules.AtLeast`)."""
+    return settings.argtype(AtLeast(low))
 
 
 def finite_float(text: str, positive: bool = False) -> float:
     """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
     where `positive`."""
-    x = _float(text)
-    if not (math.isfinite(x) and (x > 0 or not positive)):
-        raise argparse.ArgumentTypeError(
-            f"must be a finite number{' > 0' if positive else ''} (got {text!r})")
-    return x
+    return settings.argtype(Positive() if positive else Number())(text)
 
 
 def positive_float(text: str) -> float:
@@ -182,11 +157,11 @@ def apply_run_options(args, spec):
 def check_noise(args, setup, spec) -> None:
     """simulation.noise (--noise) as one number or one per state of the plant (n), refused
     in one line naming how it was given otherwise (before anything traces the loop)."""
-    noise = None if spec.noise is None else np.asarray(spec.noise)
-    if noise is not None and noise.ndim == 1 and noise.size != setup.order:
-        name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
-        raise ConfigError(f"{name} must be one number or one per state of the plant, "
-                          f"{setup.order} numbers (got {noise.size})")
+    from dscjax.simulate import check
+
+    given = getattr(args, "noise", None) is not None
+    with blame_options({"simulation.noise": "--noise"} if given else {}):
+        check(setup, spec, batched=True)  # batched: the noise alone is checked
 
 
 def portable_device(args, spec):
