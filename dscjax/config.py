@@ -82,10 +82,8 @@ def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
     """The config of a setup and run as plain data (keys left to a rule or absent omitted)."""
     spec = spec or RunSpec.make()
     sim = {k: v for k, v in spec.to_table().items() if v is not None}
-    d = {"simulation": sim}
-    for section in ("plant", "hysteresis", "controller", "reference"):
-        d[section] = model_to_dict(section, getattr(setup, section))
-    return d
+    return {"simulation": sim} | {section: model_to_dict(section, getattr(setup, section))
+                                  for section in validation.SECTIONS}
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
@@ -353,7 +351,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     is left to its command."""
     if base is None:
         base = paper_example(dtype=np.float64)
-    allowed = ("simulation", "plant", "hysteresis", "controller", "reference")
+    allowed = ("simulation", *validation.SECTIONS)
     for key, value in d.items():
         if key in COMMAND_TABLES:
             continue

@@ -448,11 +448,10 @@ def simulate_batch(
     if validation.is_concrete(setup):
         validation.validate_setup(setup)
         if validation.is_concrete(overrides):
-            validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
+            validation.validate_setup(params.set_many(setup, overrides), check_shapes=False)
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     check(setup, spec, batched=True)
-    overrides = dict(overrides)
 
     def level(j, ov):
         return _batch_program(ov)(setup, level_spec(spec, j).program(), ov)

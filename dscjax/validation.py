@@ -19,6 +19,7 @@ import numpy as np
 RK4_REAL_STABILITY = 2.785
 # The integrator counts steps in an int32 (t_k = k dt): no run may have more.
 MAX_STEPS = 2**31 - 1
+SECTIONS = ("plant", "hysteresis", "controller", "reference")  # the models of a Setup
 
 
 class ConfigError(ValueError):
@@ -145,10 +146,8 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         validate_shapes(setup)
     for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
         finite_tree(getattr(setup, f.name), f.name)
-    setup.plant.validate("plant")
-    setup.hysteresis.validate("hysteresis")
-    setup.controller.validate("controller")
-    setup.reference.validate("reference")
+    for section in SECTIONS:
+        getattr(setup, section).validate(section)
 
 
 def assumption_warnings(setup) -> list[str]:
@@ -171,7 +170,7 @@ def assumption_warnings(setup) -> list[str]:
 def validate_shapes(setup) -> None:
     """Every array field has the shape its model expects for the plant's order n."""
     n = setup.plant.order
-    for section in ("plant", "hysteresis", "controller", "reference"):
+    for section in SECTIONS:
         model = getattr(setup, section)
         why = f"for a plant of order n={n}" if section == "controller" else ""
         for name, expected in model.expected_shapes(n).items():
@@ -327,7 +326,6 @@ def fmt_bytes(nbytes: float) -> str:
         if nbytes < 1024 or unit == "TiB":
             return f"{nbytes:.3g} {unit}" if unit != "B" else f"{int(nbytes)} B"
         nbytes /= 1024
-    raise AssertionError
 
 
 def fmt_seconds(seconds: float) -> str:
