@@ -286,9 +286,7 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     (then `got` is the text as the user wrote it, which messages quote)."""
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
     got = got or repr(value)
-    if isinstance(value, str):
-        if grid:
-            raise ConfigError(f"{field} must be {form} (got {got})")
+    if isinstance(value, str) and not grid:  # (a grid's text is refused below)
         text = value.strip().lstrip("±+")
         try:
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan

@@ -9,9 +9,12 @@ import functools
 import math
 import sys
 
+import jax
 import numpy as np
 
 from dscjax import config, device, settings
+from dscjax.metrics import CHATTER_RATIO, RunningMetrics, chatters
+from dscjax.params import cast
 from dscjax.rules import AtLeast, Number, Positive
 from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError, Work, validate_setup
@@ -233,8 +236,6 @@ def chattering_text(index: float) -> str:
     """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
     docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
     (index 1.04 <= 1.5)"."""
-    from dscjax.metrics import CHATTER_RATIO, chatters
-
     if chatters(index):
         return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
     return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
@@ -262,16 +263,12 @@ def loop_sizes(setup) -> tuple[int, int, int]:
     gradient's Jacobians are square in), of one saved point of a Trajectory (state and
     observations, k >= m), and the bytes of one float. Shapes only: nothing is run, and a
     setup of a structure already sized is not traced again."""
-    import jax
-
     leaves, tree = jax.tree.flatten(setup)
     return _loop_sizes(tree, tuple(map(jax.typeof, leaves)))
 
 
 @functools.cache
 def _loop_sizes(tree, leaves) -> tuple[int, int, int]:
-    import jax
-
     from dscjax.simulate import run
 
     spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
@@ -291,8 +288,6 @@ def gradient_work(setup, steps: int, copies: int = 1):
     """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
     Jacobians of every step, of the state (m x k) and of the running metrics (r x r)
     (`integrate.gradients.time_parallel_jvp`)."""
-    from dscjax.metrics import RunningMetrics
-
     m, per_point, size = loop_sizes(setup)
     r = len(RunningMetrics._fields)
     return Work(memory=copies * steps * (m * per_point + r * r) * size,
@@ -324,9 +319,7 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
 
 def example_setup(args):
     """The Setup of --example (float64), the base every config is laid over."""
-    from dscjax.config import example
-
-    return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
+    return config.example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 
 
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
@@ -366,8 +359,6 @@ def own_settings(args, group, prefix: str, base):
 def load_setup(args):
     """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
     (a command's own table in the file, e.g. [tuning], is left to that command)."""
-    from dscjax.params import cast
-
     setup, spec = config_setup(args)
     spec = apply_run_options(args, spec)
     check_noise(args, setup, spec)
