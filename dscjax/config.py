@@ -82,10 +82,8 @@ def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
     """The config of a setup and run as plain data (keys left to a rule or absent omitted)."""
     spec = spec or RunSpec.make()
     sim = {k: v for k, v in spec.to_table().items() if v is not None}
-    d = {"simulation": sim}
-    for section in ("plant", "hysteresis", "controller", "reference"):
-        d[section] = model_to_dict(section, getattr(setup, section))
-    return d
+    return {"simulation": sim} | {section: model_to_dict(section, getattr(setup, section))
+                                  for section in validation.SECTIONS}
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
@@ -249,14 +247,12 @@ def _coerce(section: str, name: str, value, static: bool, default):
             if not isinstance(value, bool):
                 raise ConfigError(f"{field} must be true or false (got {value!r})")
             return value
-        if not isinstance(value, str):
-            raise ConfigError(f"{field} must be a string (got {value!r})")
-        return value
-    where = find_bool(value)
+        return validation.string(value, field)
+    where = _find(value, bool | np.bool_)
     if where is not None:
         raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
                           f"{'true' if _at(value, where) else 'false'})")
-    where = _find_text(value)
+    where = _find(value, str | dict)
     if where is not None:  # NumPy would read "10" as the number 10
         detail = validation.got(_at(value, where))
         if where:  # "controller.k[1] is a string, 'a'"
@@ -268,29 +264,18 @@ def _coerce(section: str, name: str, value, static: bool, default):
     except (TypeError, ValueError):
         raise ConfigError(
             f"{field} must be a number or a list of numbers (got {value!r})") from None
-    if a.dtype == object:
-        raise ConfigError(f"{field} must be a number or a list of numbers (got {value!r})")
     return float(a) if a.ndim == 0 else a
 
 
-def find_bool(value, where: str = "") -> str | None:
-    """The index ("" for the value itself, "[1]", "[0][2]") of the first boolean in a value
-    read from TOML or JSON, or None. NumPy would read `true` as the number 1.0: a config that
-    says `k = [10.0, true]` is a mistake, not k_2 = 1."""
-    return _find(value, lambda v: isinstance(v, bool | np.bool_), where)
-
-
-def _find_text(value) -> str | None:
-    """The index of the first string or table in a value read from TOML or JSON, or None."""
-    return _find(value, lambda v: isinstance(v, str | dict), "")
-
-
-def _find(value, hit, where: str) -> str | None:
-    if hit(value):
+def _find(value, kinds, where: str = "") -> str | None:
+    """The index ("" for the value itself, "[1]", "[0][2]") of the first item of a value read
+    from TOML or JSON that is one of `kinds`, or None. NumPy would read `true` as the number
+    1.0 and "10" as 10: a config that says `k = [10.0, true]` is a mistake, not k_2 = 1."""
+    if isinstance(value, kinds):
         return where
     if isinstance(value, list | tuple):
         for i, item in enumerate(value):
-            found = _find(item, hit, f"{where}[{i}]")
+            found = _find(item, kinds, f"{where}[{i}]")
             if found is not None:
                 return found
     return None
@@ -305,7 +290,6 @@ def _at(value, where: str):
 
 def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     """Build one model from its table, over `base` (a model of the same kind) if given."""
-    kinds = REGISTRY[section]
     kind_key = KIND_KEY[section]
     old = OLD_KIND_KEY.get(section)
     if old in table:
@@ -315,8 +299,15 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
         warnings.warn(f"{section}.{old} is deprecated: write {section}.{kind_key}",
                       FutureWarning, stacklevel=2)
         table = {(kind_key if k == old else k): val for k, val in table.items()}
+    return _model(section, table, REGISTRY[section], kind_key, base)
+
+
+def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind_key: str,
+           base):
+    """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
+    `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
     kind = table.get(kind_key, type(base).kind if base is not None else None)
-    validation.one_of(kind, f"{section}.{kind_key}", tuple(kinds))
+    validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
         # a controller of another kind lends the gains the two share (the DSC's k, gamma_*,
@@ -327,48 +318,24 @@ def model_from_dict(section: str, table: Mapping[str, Any], base=None):
     fields = {f.name: f for f in dataclasses.fields(cls)}
     for key in table:
         if key != kind_key and key not in fields:
-            raise ConfigError(f"unknown key '{section}.{key}' (allowed: {kind_key}, "
+            raise ConfigError(f"unknown key '{field}.{key}' (allowed: {kind_key}, "
                               f"{', '.join(fields)})")
     values = {}
     for name, f in fields.items():
-        static = bool(f.metadata.get("static"))
         default = getattr(base, name) if base is not None else f.default
-        if (section, name) in SUBMODELS:
-            values[name] = default
-            if name in table:
-                values[name] = _submodel(f"{section}.{name}", table[name],
-                                         SUBMODELS[section, name], default)
+        if name in table and (field, name) in SUBMODELS:
+            sub = f"{field}.{name}"
+            if not isinstance(table[name], Mapping):
+                raise ConfigError(f"'{sub}' must be a table ([{sub}]) with a 'kind' key")
+            values[name] = _model(sub, table[name], SUBMODELS[field, name], "kind", default)
         elif name in table:
-            values[name] = _coerce(section, name, table[name], static, default)
+            value = _coerce(field, name, table[name], bool(f.metadata.get("static")), default)
+            coefficients = getattr(cls, "coefficients_name", None)
+            values[name] = np.atleast_1d(value) if name == coefficients else value
         elif base is not None:
             values[name] = default
         elif f.default is dataclasses.MISSING and f.default_factory is dataclasses.MISSING:
-            raise ConfigError(f"{section}.{name} is required for {section}.{kind_key} = {kind!r}")
-    return cls(**values)
-
-
-def _submodel(field: str, table, kinds: Mapping[str, type], base):
-    """A model held by a field (`SUBMODELS`) from its sub-table, over `base` if the same kind."""
-    if not isinstance(table, Mapping):
-        raise ConfigError(f"'{field}' must be a table ([{field}]) with a 'kind' key")
-    kind = table.get("kind", type(base).kind if base is not None else None)
-    validation.one_of(kind, f"{field}.kind", tuple(kinds))
-    cls = kinds[kind]
-    base = base if type(base) is cls else None
-    fields = {f.name: f for f in dataclasses.fields(cls)}
-    for key in table:
-        if key != "kind" and key not in fields:
-            raise ConfigError(f"unknown key '{field}.{key}' (allowed: kind, "
-                              f"{', '.join(fields)})")
-    values = {}
-    for name, f in fields.items():
-        if name in table:
-            value = _coerce(field, name, table[name], False, None)
-            values[name] = np.atleast_1d(value) if name == cls.coefficients_name else value
-        elif base is not None:
-            values[name] = getattr(base, name)
-        elif f.default is dataclasses.MISSING:
-            raise ConfigError(f"{field}.{name} is required for {field}.kind = {kind!r}")
+            raise ConfigError(f"{field}.{name} is required for {field}.{kind_key} = {kind!r}")
     return cls(**values)
 
 
@@ -384,7 +351,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     is left to its command."""
     if base is None:
         base = paper_example(dtype=np.float64)
-    allowed = ("simulation", "plant", "hysteresis", "controller", "reference")
+    allowed = ("simulation", *validation.SECTIONS)
     for key, value in d.items():
         if key in COMMAND_TABLES:
             continue
@@ -410,16 +377,8 @@ def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=N
     `extra`: further tables ({name: table}, e.g. a command's [sweep]) printed after these."""
     spec = spec or RunSpec.make()
     d = to_dict(setup, spec)
-    table = spec.to_table()
-    sim = {}
-    for key in OPTIONS:
-        value = table[key]
-        if key in spec.rules:
-            sim[key] = Omitted(getattr(spec, key) if key == "save_every"
-                               else float(spec.window_start))
-        elif value is None:
-            sim[key] = Omitted(None)
-        else:
-            sim[key] = value
+    sim = {k: Omitted(None) if v is None else v for k, v in spec.to_table().items()}
+    for key in spec.rules:  # the value the rule gives, commented out
+        sim[key] = Omitted(spec.save_every if key == "save_every" else float(spec.window_start))
     d["simulation"] = sim
     return dumps_toml({**d, **(extra or {})}, header=header, docs=docs)

@@ -12,6 +12,7 @@ hand. A user's `jax.default_device` is honoured. Nothing here changes JAX's glob
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import os
 from collections.abc import Sequence
@@ -19,7 +20,7 @@ from typing import Any, NamedTuple
 
 import jax
 
-from dscjax.validation import ConfigError
+from dscjax.validation import ConfigError, one_of
 
 KINDS = ("auto", "cpu", "gpu")
 # Estimates behind the crossover (docs/sweeps.md): batched rows x steps per second of one CPU
@@ -80,9 +81,7 @@ def crossover(n_cores: int | None = None) -> int:
 
 
 def _seen(devices: Sequence) -> str:
-    count: dict[str, int] = {}
-    for d in devices:
-        count[d.platform] = count.get(d.platform, 0) + 1
+    count = collections.Counter(d.platform for d in devices)
     return ", ".join(f"{p} x{n}" for p, n in count.items()) or "none"
 
 
@@ -116,9 +115,7 @@ def choose(kind, rows: int = 1, devices: Sequence | None = None, *, preferred=No
 
     if not isinstance(kind, str):  # a Device
         return pick(kind.platform, "as given", kind)
-    if kind not in KINDS:
-        raise ConfigError(f"{field} must be one of {', '.join(map(repr, KINDS))} (got "
-                          f"{kind!r})")
+    one_of(kind, field, KINDS)
     accelerators = [d for d in devices if d.platform != "cpu"]
     has_cpu = any(d.platform == "cpu" for d in devices)
     if kind == "gpu":

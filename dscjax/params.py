@@ -147,16 +147,14 @@ def set_row(setup, columns: Sequence[Param], row):
 
 
 def _child(obj, name: str, path: str):
-    if dataclasses.is_dataclass(obj) and name in {f.name for f in dataclasses.fields(obj)}:
-        return getattr(obj, name)
-    if isinstance(obj, Mapping) and name in obj:
-        return obj[name]
     if dataclasses.is_dataclass(obj):
         allowed = [f.name for f in dataclasses.fields(obj)]
-    elif isinstance(obj, Mapping):
-        allowed = list(obj)
+        if name in allowed:
+            return getattr(obj, name)
     else:
-        allowed = []
+        allowed = list(obj) if isinstance(obj, Mapping) else []
+        if name in allowed:
+            return obj[name]
     raise UnknownParameter(
         f"no parameter '{path}': '{name}' is not a field of {type(obj).__name__}"
         + (f" (allowed: {', '.join(allowed)})" if allowed else " (a number has no fields)"))
@@ -288,9 +286,7 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     (then `got` is the text as the user wrote it, which messages quote)."""
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
     got = got or repr(value)
-    if isinstance(value, str):
-        if grid:
-            raise ConfigError(f"{field} must be {form} (got {got})")
+    if isinstance(value, str) and not grid:  # (a grid's text is refused below)
         text = value.strip().lstrip("±+")
         try:
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan

@@ -179,23 +179,23 @@ class Phase:
 # -- Ctrl-C, SIGTERM, SIGHUP -------------------------------------------------------------------
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, handled as Ctrl-C is: `signum` is the signal's number (the CLI exits
-    128 + signum, as a shell reports a process the signal ended)."""
-
-    def __init__(self, signum: int):
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-class Abort(BaseException):
-    """A second Ctrl-C (or SIGTERM, SIGHUP) while the first was deferred: stop at once, without
-    saving. Not a KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass.
-    `signum`: the signal that asked to stop."""
+class _Signalled:
+    """An exception raised by a signal: `signum` is the signal's number, its name the text."""
 
     def __init__(self, signum: int = signal.SIGINT):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+
+
+class Terminated(_Signalled, KeyboardInterrupt):
+    """SIGTERM or SIGHUP, handled as Ctrl-C is: `signum` is the signal's number (the CLI exits
+    128 + signum, as a shell reports a process the signal ended)."""
+
+
+class Abort(_Signalled, BaseException):
+    """A second Ctrl-C (or SIGTERM, SIGHUP) while the first was deferred: stop at once, without
+    saving. Not a KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass.
+    `signum`: the signal that asked to stop."""
 
 
 # the signals handled as Ctrl-C, where the process does not ignore them (`nohup` ignores SIGHUP)

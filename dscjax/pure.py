@@ -26,7 +26,7 @@ from dscjax.integrate import Status
 from dscjax.runspec import RunSpec
 from dscjax.selection import Linear, Log, Selection, run_at
 from dscjax.simulate import canonical, check
-from dscjax.validation import ConfigError
+from dscjax.validation import ConfigError, one_of
 
 
 def objective(setup: Setup, spec: RunSpec | None = None,
@@ -59,9 +59,8 @@ def objective(setup: Setup, spec: RunSpec | None = None,
         ((2,), 0)
     """
     spec = RunSpec.make() if spec is None else spec
-    if isinstance(metric, str) and metric not in metric_names():
-        raise ConfigError(f"metric must be one of {', '.join(metric_names())} (got "
-                          f"{metric!r})")
+    if isinstance(metric, str):
+        one_of(metric, "metric", metric_names())
     if not callable(metric) and not isinstance(metric, str):
         raise ConfigError(f"metric must be a name or a function of the metrics (got "
                           f"{metric!r})")

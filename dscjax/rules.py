@@ -228,12 +228,9 @@ class Numbers(Rule):
     def parse(self, value):
         if isinstance(value, np.ndarray) and value.ndim <= 1:
             value = value.tolist()
-        if isinstance(value, list | tuple):
-            try:
-                return tuple(self.each.parse(v) for v in value)
-            except Invalid:
-                raise Invalid(self.text, value) from None
         try:
+            if isinstance(value, list | tuple):
+                return tuple(self.each.parse(v) for v in value)
             return self.each.parse(value)
         except Invalid:
             raise Invalid(self.text, value) from None

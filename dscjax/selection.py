@@ -161,7 +161,7 @@ class Selection:
         for text in tune:
             p = Param.parse(text, f"{field}.params")
             p.check(setup, f"{field}.params")
-            if any((q.path, q.index, q.scale) == (p.path, p.index, p.scale) for q in order):
+            if p in order:
                 raise ConfigError(f"{field}.params lists {text!r} twice")
             order.append(p)
         params.check_columns(order, f"{field}.params")

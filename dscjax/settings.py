@@ -183,7 +183,7 @@ def add_arguments(parser, obj, prefix: str, *, keys: tuple[str, ...] | None = No
         allowed = "" if isinstance(s.rule, Choice) else f"; {s.rule.text}"  # (the metavar)
         allowed += f"; {s.rule.hint}" if s.rule.hint else ""
         text = f"{s.doc} (default {shown(s, default)}, or the config's {path}){allowed}"
-        parser.add_argument(flag, dest=dest(flag), type=_argtype(s.rule), metavar=s.rule.metavar,
+        parser.add_argument(flag, dest=dest(flag), type=argtype(s.rule), metavar=s.rule.metavar,
                             help=text.replace("%", "%%"))
 
 
@@ -212,7 +212,10 @@ def given(args, obj, prefix: str, *, keys: tuple[str, ...] | None = None
 NONE = object()  # an option typed as "none": given, unlike one left out (None in argparse)
 
 
-def _argtype(rule: Rule):
+def argtype(rule: Rule):
+    """An argparse type reading an option's text by `rule`; a refusal: "must be ... (got
+    TEXT)"."""
+
     def parse(text: str):
         try:
             value = rule.from_text(text)
@@ -239,6 +242,6 @@ def doc_rows(obj, prefix: str) -> list[str]:
                    f"`{flag}`" if flag else "") for path, _, s, value, flag in walk(obj, prefix)])
 
 
-__all__ = ["Setting", "add_arguments", "checked", "declared", "dest", "doc_rows", "from_table",
-           "given", "group", "groups", "meanings", "parse_field", "plain", "setting", "shown",
-           "to_table", "walk"]
+__all__ = ["Setting", "add_arguments", "argtype", "checked", "declared", "dest", "doc_rows",
+           "from_table", "given", "group", "groups", "meanings", "parse_field", "plain", "setting",
+           "shown", "to_table", "walk"]

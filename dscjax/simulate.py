@@ -167,31 +167,33 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
                   solver=spec.solver, gradient=spec.gradient, frozen=loop.frozen)
     if overrides is None:
         setup = prepared(setup)
-        proj = None
-        if loop.project is not None:
-            def proj(k, t, y, args):
-                return loop.project(k, t, y, *args)
+        y0, args, batch = loop.init(setup, samp), (setup, samp), None
 
-        res = integrate(lambda t, y, args: loop.field(t, y, *args), loop.init(setup, samp),
-                        spec.dt, spec.n_steps, (setup, samp),
-                        rates=lambda t, y, args, obs: loop.rates(t, y, *args, obs),
-                        project=proj, **common)
+        def field(t, y, args):
+            return loop.field(t, y, *args)
+
+        def member(args):  # (setup, sampling) from the args of the rates and the projection
+            return args
     else:
-        shared, batched, rebuild = _split_members(setup, overrides)
-        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b), samp))(batched)
-        proj = None
-        if loop.project is not None:
-            def proj(k, t, y, args):
-                (sh, sa), b = args
-                return loop.project(k, t, y, rebuild(sh, b), sa)
+        shared, batch, rebuild = _split_members(setup, overrides)
+        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b), samp))(batch)
+        args = (shared, samp)
 
-        def rates(t, y, args, obs):
+        def field(t, y, a, b):
+            return loop.field(t, y, rebuild(a[0], b), a[1])
+
+        def member(args):
             (sh, sa), b = args
-            return loop.rates(t, y, rebuild(sh, b), sa, obs)
+            return rebuild(sh, b), sa
 
-        res = integrate(lambda t, y, a, b: loop.field(t, y, rebuild(a[0], b), a[1]), y0,
-                        spec.dt, spec.n_steps, (shared, samp), batch=batched, rates=rates,
-                        project=proj, **common)
+    proj = None
+    if loop.project is not None:
+        def proj(k, t, y, args):
+            return loop.project(k, t, y, *member(args))
+
+    res = integrate(field, y0, spec.dt, spec.n_steps, args, batch=batch,
+                    rates=lambda t, y, args, obs: loop.rates(t, y, *member(args), obs),
+                    project=proj, **common)
     t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
     t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
     finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
@@ -448,11 +450,10 @@ def simulate_batch(
     if validation.is_concrete(setup):
         validation.validate_setup(setup)
         if validation.is_concrete(overrides):
-            validation.validate_setup(params.set_many(setup, dict(overrides)), check_shapes=False)
+            validation.validate_setup(params.set_many(setup, overrides), check_shapes=False)
             for p, val in overrides.items():
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     check(setup, spec, batched=True)
-    overrides = dict(overrides)
 
     def level(j, ov):
         return _batch_program(ov)(setup, level_spec(spec, j).program(), ov)

@@ -19,6 +19,7 @@ import numpy as np
 RK4_REAL_STABILITY = 2.785
 # The integrator counts steps in an int32 (t_k = k dt): no run may have more.
 MAX_STEPS = 2**31 - 1
+SECTIONS = ("plant", "hysteresis", "controller", "reference")  # the models of a Setup
 
 
 class ConfigError(ValueError):
@@ -54,16 +55,18 @@ def is_concrete(tree) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
 
 
+def _every(value, field: str, ok, must: str) -> None:
+    """ConfigError "FIELD must be MUST (got VALUE)" unless `ok` holds for every element."""
+    if not np.all(ok(np.asarray(value, dtype=float))):
+        raise ConfigError(f"{field} must be {must} (got {fmt(value)})")
+
+
 def positive(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(a > 0):
-        raise ConfigError(f"{field} must be > 0 (got {fmt(value)})")
+    _every(value, field, lambda a: a > 0, "> 0")
 
 
 def nonnegative(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(a >= 0):
-        raise ConfigError(f"{field} must be >= 0 (got {fmt(value)})")
+    _every(value, field, lambda a: a >= 0, ">= 0")
 
 
 def finite_positive(value, field: str) -> float:
@@ -78,9 +81,7 @@ def finite_positive(value, field: str) -> float:
 
 
 def finite(value, field: str) -> None:
-    a = np.asarray(value, dtype=float)
-    if not np.all(np.isfinite(a)):
-        raise ConfigError(f"{field} must be finite (got {fmt(value)})")
+    _every(value, field, np.isfinite, "finite")
 
 
 def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
@@ -145,10 +146,8 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         validate_shapes(setup)
     for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
         finite_tree(getattr(setup, f.name), f.name)
-    setup.plant.validate("plant")
-    setup.hysteresis.validate("hysteresis")
-    setup.controller.validate("controller")
-    setup.reference.validate("reference")
+    for section in SECTIONS:
+        getattr(setup, section).validate(section)
 
 
 def assumption_warnings(setup) -> list[str]:
@@ -171,7 +170,7 @@ def assumption_warnings(setup) -> list[str]:
 def validate_shapes(setup) -> None:
     """Every array field has the shape its model expects for the plant's order n."""
     n = setup.plant.order
-    for section in ("plant", "hysteresis", "controller", "reference"):
+    for section in SECTIONS:
         model = getattr(setup, section)
         why = f"for a plant of order n={n}" if section == "controller" else ""
         for name, expected in model.expected_shapes(n).items():
@@ -300,9 +299,9 @@ def batch_speed() -> float:
     """The optimistic throughput of a batch (member-steps per second) on JAX's devices."""
     devices = jax.devices()
     if devices[0].platform == "cpu":
-        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
-                 else os.cpu_count())
-        return MEMBER_STEPS_PER_S_CORE * (cores or 1)
+        from dscjax.device import cores  # (device imports this module)
+
+        return MEMBER_STEPS_PER_S_CORE * cores()
     return MEMBER_STEPS_PER_S_DEVICE * len(devices)
 
 
@@ -327,7 +326,6 @@ def fmt_bytes(nbytes: float) -> str:
         if nbytes < 1024 or unit == "TiB":
             return f"{nbytes:.3g} {unit}" if unit != "B" else f"{int(nbytes)} B"
         nbytes /= 1024
-    raise AssertionError
 
 
 def fmt_seconds(seconds: float) -> str:

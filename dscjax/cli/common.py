@@ -9,9 +9,13 @@ import functools
 import math
 import sys
 
+import jax
 import numpy as np
 
 from dscjax import config, device, settings
+from dscjax.metrics import CHATTER_RATIO, RunningMetrics, chatters
+from dscjax.params import cast
+from dscjax.rules import AtLeast, Number, Positive
 from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError, Work, validate_setup
 
@@ -59,42 +63,16 @@ def settings_docs(text: str) -> str:
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
 
 
-def _float(text: str) -> float:
-    """`text` as a float, nan where it is not a number."""
-    try:
-        return float(text)
-    except ValueError:
-        return math.nan
-
-
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
-    anything else is refused with the allowed range and the value."""
-
-    def parse(text: str) -> int:
-        value = None
-        try:
-            value = int(text)
-        except ValueError:
-            x = _float(text)
-            if math.isfinite(x) and x == int(x):
-                value = int(x)
-        if value is None or value < low:
-            raise argparse.ArgumentTypeError(f"must be an integer >= {low} (got {text!r})")
-        return value
-
-    parse.__name__ = "count"
-    return parse
+    anything else is refused with the allowed range and the value (`rules.AtLeast`)."""
+    return settings.argtype(AtLeast(low))
 
 
 def finite_float(text: str, positive: bool = False) -> float:
     """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
     where `positive`."""
-    x = _float(text)
-    if not (math.isfinite(x) and (x > 0 or not positive)):
-        raise argparse.ArgumentTypeError(
-            f"must be a finite number{' > 0' if positive else ''} (got {text!r})")
-    return x
+    return settings.argtype(Positive() if positive else Number())(text)
 
 
 def positive_float(text: str) -> float:
@@ -182,11 +160,11 @@ def apply_run_options(args, spec):
 def check_noise(args, setup, spec) -> None:
     """simulation.noise (--noise) as one number or one per state of the plant (n), refused
     in one line naming how it was given otherwise (before anything traces the loop)."""
-    noise = None if spec.noise is None else np.asarray(spec.noise)
-    if noise is not None and noise.ndim == 1 and noise.size != setup.order:
-        name = "--noise" if getattr(args, "noise", None) is not None else "simulation.noise"
-        raise ConfigError(f"{name} must be one number or one per state of the plant, "
-                          f"{setup.order} numbers (got {noise.size})")
+    from dscjax.simulate import check
+
+    given = getattr(args, "noise", None) is not None
+    with blame_options({"simulation.noise": "--noise"} if given else {}):
+        check(setup, spec, batched=True)  # batched: the noise alone is checked
 
 
 def portable_device(args, spec):
@@ -258,8 +236,6 @@ def chattering_text(index: float) -> str:
     """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
     docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
     (index 1.04 <= 1.5)"."""
-    from dscjax.metrics import CHATTER_RATIO, chatters
-
     if chatters(index):
         return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
     return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
@@ -287,16 +263,12 @@ def loop_sizes(setup) -> tuple[int, int, int]:
     gradient's Jacobians are square in), of one saved point of a Trajectory (state and
     observations, k >= m), and the bytes of one float. Shapes only: nothing is run, and a
     setup of a structure already sized is not traced again."""
-    import jax
-
     leaves, tree = jax.tree.flatten(setup)
     return _loop_sizes(tree, tuple(map(jax.typeof, leaves)))
 
 
 @functools.cache
 def _loop_sizes(tree, leaves) -> tuple[int, int, int]:
-    import jax
-
     from dscjax.simulate import run
 
     spec = RunSpec.make(1e-3, 1e-3, save_every=1, window_start=0.0)
@@ -316,8 +288,6 @@ def gradient_work(setup, steps: int, copies: int = 1):
     """The memory of `copies` time-parallel gradients of one trajectory of `steps` steps: the
     Jacobians of every step, of the state (m x k) and of the running metrics (r x r)
     (`integrate.gradients.time_parallel_jvp`)."""
-    from dscjax.metrics import RunningMetrics
-
     m, per_point, size = loop_sizes(setup)
     r = len(RunningMetrics._fields)
     return Work(memory=copies * steps * (m * per_point + r * r) * size,
@@ -349,9 +319,7 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
 
 def example_setup(args):
     """The Setup of --example (float64), the base every config is laid over."""
-    from dscjax.config import example
-
-    return example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
+    return config.example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 
 
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
@@ -391,8 +359,6 @@ def own_settings(args, group, prefix: str, base):
 def load_setup(args):
     """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
     (a command's own table in the file, e.g. [tuning], is left to that command)."""
-    from dscjax.params import cast
-
     setup, spec = config_setup(args)
     spec = apply_run_options(args, spec)
     check_noise(args, setup, spec)

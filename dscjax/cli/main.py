@@ -43,10 +43,6 @@ class _Parser(argparse.ArgumentParser):
 class _Version(argparse.Action):
     """--version: the version, then what JAX sees (`dscjax.device.describe`), one line each."""
 
-    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS,
-                 help=None):
-        super().__init__(option_strings, dest, nargs=0, default=default, help=help)
-
     def __call__(self, parser, namespace, values, option_string=None):
         from dscjax import __version__, device
 
@@ -69,12 +65,11 @@ def build_parser(commands) -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
-        epilog="Results go to stdout; the start banner, progress, notes, warnings and errors to "
-        "stderr. Exit codes: 0 ok, 2 bad input (or --out in use by another process), 3 a "
-        "simulation diverged, 4 no space left on the device, 130 interrupted (Ctrl-C), 143 "
-        "SIGTERM, 129 SIGHUP (each keeps what is whole and prints the command that continues).",
+        epilog="Results go to stdout; the banner, progress, notes, warnings and errors to "
+        "stderr. Exit codes: 0 ok, 2 bad input or --out in use, 3 diverged, 4 disk full, 128 + "
+        "the signal's number if interrupted (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP).",
     )
-    parser.add_argument("--version", action=_Version,
+    parser.add_argument("--version", action=_Version, nargs=0, default=argparse.SUPPRESS,
                         help="show the version, then the JAX backends and devices, and exit")
     parser.add_argument("--no-compilation-cache", action="store_true",
                         help="do not keep compiled programs in JAX's persistent cache "
