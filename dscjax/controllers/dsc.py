@@ -173,12 +173,10 @@ class DSC(AdaptiveLaws):
 
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
-        e = info.extra
-        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info.S, e.f, e.phi_signal,
-                                                          e.ubar)
+        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info)
         if not self.adapts_zeta:
             zeta_dot = jnp.zeros_like(zeta_dot)
         if not self.compensates:
             d_dot = jnp.zeros_like(d_dot)
-        return DSCState(z=e.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
+        return DSCState(z=info.extra.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
                         d_hat=d_dot)
