@@ -193,10 +193,9 @@ def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
     jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
     radius = np.abs(ev).max(axis=1)
-    max_real = ev.real.max(axis=1)
     i = int(np.argmax(radius))
     t = np.asarray(ts)
-    return SpectrumProfile(t=t, radius=radius, max_real=max_real, t_peak=float(t[i]),
+    return SpectrumProfile(t=t, radius=radius, max_real=ev.real.max(axis=1), t_peak=float(t[i]),
                            suggested_dt=float(RK4_REAL_STABILITY / radius[i]))
 
 

@@ -102,9 +102,8 @@ class DSC(AdaptiveLaws):
             estimates = ("theta_hat0", "phi_hat0", "zeta_hat0", "d_hat0")
             ctrl = dataclasses.replace(
                 self, c=x0[1:], **{k: jnp.zeros_like(getattr(self, k)) for k in estimates})
-            ref = InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
-                                self.linf_decay_time)
-            return ctrl, ref
+            return ctrl, InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
+                                       self.linf_decay_time)
         if self.init == "zero_surfaces":
             _, x_d0 = self._initial_filters(plant, reference, choose_c=True)
             return dataclasses.replace(self, c=x0[1:] - x_d0), reference
