@@ -179,10 +179,14 @@ def half_step_grid(t_final: float, dt: float, dtype=np.float64) -> np.ndarray:
 
 
 @jax.jit
+def _sample(dist, t):
+    return jax.vmap(dist)(t)
+
+
 def sample(dist: Disturbance, t) -> jax.Array:
     """dbar on an array of times (the same code the simulation runs, vmapped; compiled once
     per waveform structure)."""
-    return jax.vmap(dist)(t)
+    return _sample(dist, jnp.asarray(t))
 
 
 def project(dist: Disturbance, bound: float, t_grid) -> Disturbance:
