@@ -100,8 +100,7 @@ def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
     plant, ctrl, hyst, ref = setup.plant, setup.controller, setup.hysteresis, setup.reference
 
     def control(c_state, x, tt):
-        u, info = ctrl.law(c_state, x, tt, plant, ref)
-        return u, info
+        return ctrl.law(c_state, x, tt, plant, ref)
 
     # The law is evaluated once; its linearisation gives u' = du/dX . X' + du/dt below.
     u, u_lin, info = jax.linearize(control, X.ctrl, X.x, t, has_aux=True)
@@ -154,19 +153,15 @@ class SpectrumProfile(NamedTuple):
     suggested_dt: float  # 2.785 / max radius
 
 
-def _flat_field(setup):
+def _flat_jacobian(setup, y, t):
+    """dF/dX of the closed loop's flat field at (t, y)."""
     s = prepared(setup)
     _, unravel = ravel_pytree(initial_state(s))
 
-    def field(y, t):
-        return ravel_pytree(vector_field(t, unravel(y), s)[0])[0]
+    def field(yy, tt):
+        return ravel_pytree(vector_field(tt, unravel(yy), s)[0])[0]
 
-    return field
-
-
-def _flat_jacobian(setup, y, t):
-    """dF/dX of the closed loop's flat field at (t, y)."""
-    return jax.jacfwd(_flat_field(setup))(y, t)
+    return jax.jacfwd(field)(y, t)
 
 
 # compiled once per structure (the setup an argument): a diagnosis does not recompile
@@ -198,10 +193,9 @@ def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
     jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
     radius = np.abs(ev).max(axis=1)
-    max_real = ev.real.max(axis=1)
     i = int(np.argmax(radius))
     t = np.asarray(ts)
-    return SpectrumProfile(t=t, radius=radius, max_real=max_real, t_peak=float(t[i]),
+    return SpectrumProfile(t=t, radius=radius, max_real=ev.real.max(axis=1), t_peak=float(t[i]),
                            suggested_dt=float(RK4_REAL_STABILITY / radius[i]))
 
 
@@ -319,10 +313,9 @@ def sampled_initial_state(setup: Setup, sampling: Sampling, dt) -> SampledState:
 def sampled_vector_field(t, X: SampledState, setup: Setup) -> tuple[SampledState, Observation]:
     """The plant alone between samples (the input held, the rest frozen), and the
     observation at (t, X): the held u, u' = 0, and y_r and the surfaces the law would see."""
-    plant, ctrl, hyst = setup.plant, setup.controller, setup.hysteresis
-    w = hyst.output(X.u, X.h)
-    dx = plant.rhs(X.x, w, t)
-    _, info = ctrl.law(X.ctrl, X.x, t, plant, setup.reference)
+    w = setup.hysteresis.output(X.u, X.h)
+    dx = setup.plant.rhs(X.x, w, t)
+    _, info = setup.controller.law(X.ctrl, X.x, t, setup.plant, setup.reference)
     zero = jax.tree.map(jnp.zeros_like, X)
     return zero._replace(x=dx), Observation(u=X.u, u_dot=jnp.zeros_like(X.u), yr=info.yr,
                                             S=info.S, w=w)

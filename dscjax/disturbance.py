@@ -17,6 +17,7 @@ t_k = k dt/2 on which RK4 evaluates it. Config: a table [plant.disturbance] with
 from __future__ import annotations
 
 import abc
+import dataclasses
 from typing import ClassVar
 
 import jax
@@ -40,6 +41,11 @@ class Disturbance(Model):
     def coefficient_values(self):
         """The leaf a search varies (Fourier: coefficients; spline: knots)."""
         return getattr(self, self.coefficients_name)
+
+    def expected_shapes(self, n):
+        """The coefficients (m,) as they are, the time scale a scalar."""
+        return super().expected_shapes(n) | {
+            self.coefficients_name: np.shape(self.coefficient_values())}
 
     @property
     @abc.abstractmethod
@@ -84,9 +90,6 @@ class Fourier(Disturbance):
 
     kind: ClassVar[str] = "fourier"
     coefficients_name: ClassVar[str] = "coefficients"
-
-    def expected_shapes(self, n):
-        return dict(coefficients=np.shape(self.coefficients), period=())
 
     @property
     def size(self) -> int:
@@ -147,9 +150,6 @@ class Spline(Disturbance):
     kind: ClassVar[str] = "spline"
     coefficients_name: ClassVar[str] = "knots"
 
-    def expected_shapes(self, n):
-        return dict(knots=np.shape(self.knots), horizon=())
-
     @property
     def size(self) -> int:
         return int(np.shape(self.knots)[-1])
@@ -191,8 +191,6 @@ def sample(dist: Disturbance, t) -> jax.Array:
 
 def project(dist: Disturbance, bound: float, t_grid) -> Disturbance:
     """`dist` with its coefficients brought within max |dbar| <= bound on t_grid."""
-    import dataclasses
-
     values = sample(dist, t_grid)
     coef = type(dist).project_coefficients(jnp.asarray(dist.coefficient_values()), bound,
                                            values)

@@ -70,24 +70,27 @@ class Plant(Model):
         return jnp.stack(dx)
 
 
-def _dbar(plant, t):
-    """dbar_amp sin(dbar_freq t) + dbar_bias, plus the plant's waveform if it has one
-    (`dscjax.disturbance`); without one the sinusoid is computed exactly as it always was."""
-    d = plant.dbar_amp * jnp.sin(plant.dbar_freq * t) + plant.dbar_bias
-    if plant.disturbance is not None:
-        d = d + plant.disturbance(t)
-    return time_signal(d)
+class _SineDbar(Plant):
+    """The config plants' dbar(t) = dbar_amp sin(dbar_freq t) + dbar_bias, plus an optional
+    waveform `disturbance` (`dscjax.disturbance`); without one the sinusoid is computed exactly
+    as it always was."""
 
+    def validate(self, prefix):
+        super().validate(prefix)
+        if self.disturbance is None:
+            return
+        if not isinstance(self.disturbance, Disturbance):
+            raise v.ConfigError(f"{prefix}.disturbance must be a dscjax.disturbance waveform "
+                                f"(got {type(self.disturbance).__name__})")
+        self.disturbance.validate(f"{prefix}.disturbance")
+        for name, expected in self.disturbance.expected_shapes(self.order).items():
+            v.shape(getattr(self.disturbance, name), f"{prefix}.disturbance.{name}", expected)
 
-def _validate_disturbance(plant, prefix):
-    if plant.disturbance is None:
-        return
-    if not isinstance(plant.disturbance, Disturbance):
-        raise v.ConfigError(f"{prefix}.disturbance must be a dscjax.disturbance waveform (got "
-                            f"{type(plant.disturbance).__name__})")
-    plant.disturbance.validate(f"{prefix}.disturbance")
-    for name, expected in plant.disturbance.expected_shapes(plant.order).items():
-        v.shape(getattr(plant.disturbance, name), f"{prefix}.disturbance.{name}", expected)
+    def dbar(self, t):
+        d = self.dbar_amp * jnp.sin(self.dbar_freq * t) + self.dbar_bias
+        if self.disturbance is not None:
+            d = d + self.disturbance(t)
+        return time_signal(d)
 
 
 def _cumulative_sq(x):
@@ -100,7 +103,7 @@ def _cumulative_sq(x):
     return out
 
 
-class StrictFeedback(Plant):
+class StrictFeedback(_SineDbar):
     """A family of strict-feedback plants of any order whose coefficients a config file can set.
 
     With x_0 = 0, x_{n+1} = x_n and q_i = sum_{j<=i} x_j^2:
@@ -139,10 +142,6 @@ class StrictFeedback(Plant):
         shapes = {name: (n,) for name in self.vector_fields}
         return shapes | dict(delta_freq=(), dbar_amp=(), dbar_freq=(), dbar_bias=())
 
-    def validate(self, prefix):
-        super().validate(prefix)
-        _validate_disturbance(self, prefix)
-
     def f(self, x):
         n = x.shape[0]
         return jnp.stack([
@@ -163,9 +162,6 @@ class StrictFeedback(Plant):
             self.delta_sin[i] * jnp.sin(x[min(i + 1, n - 1)]) + self.delta_quad[i] * q[i] * s3
             for i in range(n)])
 
-    def dbar(self, t):
-        return _dbar(self, t)
-
     @classmethod
     def zeros(cls, n: int, **values: Any) -> "StrictFeedback":
         """A plant of order n with g = 1 and every other coefficient 0, then `values` applied."""
@@ -175,7 +171,7 @@ class StrictFeedback(Plant):
         return cls(**base)
 
 
-class PaperPlant(Plant):
+class PaperPlant(_SineDbar):
     """The second-order plant of the paper's simulation, eq. (73), with exactly its terms:
 
         f_1 = x_1^2, f_2 = 0, rho_1 = rho1, rho_2 = rho2 (x_1^2 + x_2^2),
@@ -205,10 +201,6 @@ class PaperPlant(Plant):
         shapes = {f.name: () for f in dataclasses.fields(self) if f.name != "disturbance"}
         return shapes | dict(g=(2,), theta=(2,), x0=(2,))
 
-    def validate(self, prefix):
-        super().validate(prefix)
-        _validate_disturbance(self, prefix)
-
     def f(self, x):
         return jnp.stack([x[0] * x[0], 0.0 * x[1]])
 
@@ -220,9 +212,6 @@ class PaperPlant(Plant):
         s3 = time_signal(s * s * s)
         return jnp.stack([self.delta1 * jnp.sin(x[1]),
                           self.delta2 * (x[0] * x[0] + x[1] * x[1]) * s3])
-
-    def dbar(self, t):
-        return _dbar(self, t)
 
 
 class CustomPlant(Plant):

@@ -96,10 +96,11 @@ class AdaptiveLaws(Controller):
         """phi_hat_i' of (17), (23); i = ALL gives every stage."""
         return -self.gamma_phi[i] * (v_i * s_i + self.sigma[i] * phi_hat_i)
 
-    def _rates(self, state, s, f, phi_signal, ubar):
-        """(theta_hat', phi_hat', zeta_hat', d_hat') of every stage."""
+    def _rates(self, state, info):
+        """(theta_hat', phi_hat', zeta_hat', d_hat') of every stage, from the law's `info`."""
+        s, e = info.S, info.extra
         s_n = s[-1]
-        return (self._theta_rate(ALL, f, s, state.theta_hat),
-                self._phi_rate(ALL, phi_signal, s[:-1], state.phi_hat),
-                -self.gamma_zeta * (ubar * s_n + self.eta_zeta * state.zeta_hat),  # (29)
+        return (self._theta_rate(ALL, e.f, s, state.theta_hat),
+                self._phi_rate(ALL, e.phi_signal, s[:-1], state.phi_hat),
+                -self.gamma_zeta * (e.ubar * s_n + self.eta_zeta * state.zeta_hat),  # (29)
                 self.gamma_d * (self._abs_surface(s_n) - self.eta_d * state.d_hat))  # (32)

@@ -197,8 +197,7 @@ class Backstepping(AdaptiveLaws):
 
     def state_rate(self, state, x, t, info, plant, reference):
         """Adaptive laws (17), (23), (29), (31), (32) with z_i for S_i, alpha_(i-1)' for z_i'."""
-        e = info.extra
-        return BacksteppingState(*self._rates(state, info.S, e.f, e.phi_signal, e.ubar))
+        return BacksteppingState(*self._rates(state, info))
 
 
 def law_order2_by_hand(ctrl: Backstepping, state, x, t, plant, reference):

@@ -102,9 +102,8 @@ class DSC(AdaptiveLaws):
             estimates = ("theta_hat0", "phi_hat0", "zeta_hat0", "d_hat0")
             ctrl = dataclasses.replace(
                 self, c=x0[1:], **{k: jnp.zeros_like(getattr(self, k)) for k in estimates})
-            ref = InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
-                                self.linf_decay_time)
-            return ctrl, ref
+            return ctrl, InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
+                                       self.linf_decay_time)
         if self.init == "zero_surfaces":
             _, x_d0 = self._initial_filters(plant, reference, choose_c=True)
             return dataclasses.replace(self, c=x0[1:] - x_d0), reference
@@ -173,12 +172,10 @@ class DSC(AdaptiveLaws):
 
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
-        e = info.extra
-        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info.S, e.f, e.phi_signal,
-                                                          e.ubar)
+        theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info)
         if not self.adapts_zeta:
             zeta_dot = jnp.zeros_like(zeta_dot)
         if not self.compensates:
             d_dot = jnp.zeros_like(d_dot)
-        return DSCState(z=e.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
+        return DSCState(z=info.extra.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
                         d_hat=d_dot)

@@ -14,7 +14,13 @@ import numpy as np
 
 from dscjax import validation as v
 from dscjax.hysteresis.base import Hysteresis
+from dscjax.integrate.solvers import rk4_step
 from dscjax.model import option, positive, smooth_abs
+
+
+def _abs_du(model, du):
+    """|u'|, or sqrt(u'^2 + delta^2) - delta when the model is `smooth`."""
+    return smooth_abs(du, model.smooth_delta) if model.smooth else jnp.abs(du)
 
 
 class Backlash(Hysteresis):
@@ -57,13 +63,12 @@ class Backlash(Hysteresis):
 
     def rate(self, u, du, w):
         """w' of eq. (4) given u, u' and w."""
-        abs_du = smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
-        return self.alpha * abs_du * (self.lam * u - w) + self.psi * du
+        return self.alpha * _abs_du(self, du) * (self.lam * u - w) + self.psi * du
 
     def decay_rate(self, u, du, w):
         """The rate a >= 0 of the linear decay -a w in eq. (4): alpha |u'|. It makes the loop
         stiff where |u'| is large; the exponential step integrates it exactly."""
-        return self.alpha * (smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du))
+        return self.alpha * _abs_du(self, du)
 
     def jump(self, u_from, u_to, w):
         """w after u steps from u_from to u_to: the closed form (5)-(6) along the step (the
@@ -147,9 +152,6 @@ class BoucWen(Hysteresis):
             raise v.ConfigError(f"{prefix}.n must be >= 1 (got {v.fmt(self.n)}): below 1, "
                                 f"|h|^(n-1) h is not Lipschitz at h = 0")
 
-    def _abs_du(self, du):
-        return smooth_abs(du, self.smooth_delta) if self.smooth else jnp.abs(du)
-
     def init_state(self, u0=None):
         return self.h0
 
@@ -158,12 +160,12 @@ class BoucWen(Hysteresis):
 
     def rate(self, u, du, h):
         hn = _pow_abs(h, self.n)
-        return self.A * du - self.beta * self._abs_du(du) * jnp.sign(h) * hn \
+        return self.A * du - self.beta * _abs_du(self, du) * jnp.sign(h) * hn \
             - self.gamma * du * hn
 
     def decay_rate(self, u, du, h):
         """(beta |u'| + gamma u' sgn h) |h|^(n-1) where >= 0: the decay -(...) h in `rate`."""
-        k = (self.beta * self._abs_du(du) + self.gamma * du * jnp.sign(h)) \
+        k = (self.beta * _abs_du(self, du) + self.gamma * du * jnp.sign(h)) \
             * _pow_abs(h, self.n - 1.0, jnp.where(self.n == 1, 1.0, 0.0))
         return jnp.maximum(k, 0.0)
 
@@ -173,16 +175,12 @@ class BoucWen(Hysteresis):
         s = jnp.where(u_to >= u_from, 1.0, -1.0)
         du = (u_to - u_from) / JUMP_SUBSTEPS
 
-        def slope(hh):
+        def slope(_u, hh, _args):
             hn = _pow_abs(hh, self.n)
             return self.A - self.beta * s * jnp.sign(hh) * hn - self.gamma * hn
 
         for _ in range(JUMP_SUBSTEPS):
-            k1 = slope(h)
-            k2 = slope(h + 0.5 * du * k1)
-            k3 = slope(h + 0.5 * du * k2)
-            k4 = slope(h + du * k3)
-            h = h + du / 6.0 * (k1 + 2.0 * (k2 + k3) + k4)
+            h = rk4_step(slope, 0.0, h, du, None)
         return h
 
     def h_max(self):

@@ -81,17 +81,18 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
     def f_obs(t, y):
         return f_rows(t, y, args_flat, b_flat)
 
+    def member_args(b_col):  # (shared arguments, the member's), as rates and project take them
+        return unravel_args(args_flat), unravel_b(b_col)
+
     def rates_member(t, y_row, obs_row, b_col):
-        return _scalars(rates(t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
-                                                          unravel_b(b_col)),
+        return _scalars(rates(t, ys_c.unpack_one(y_row), member_args(b_col),
                               obs_c.unpack_one(obs_row)))
 
     def rates_rows(t, y, obs):
         return jax.vmap(rates_member, in_axes=(None, 0, 0, -1), out_axes=0)(t, y, obs, b_flat)
 
     def project_member(k, t, y_row, b_col):
-        return _scalars(project(k, t, ys_c.unpack_one(y_row), (unravel_args(args_flat),
-                                                               unravel_b(b_col))))
+        return _scalars(project(k, t, ys_c.unpack_one(y_row), member_args(b_col)))
 
     def project_rows(k, t, y):
         return jax.vmap(project_member, in_axes=(None, None, 0, -1), out_axes=0)(k, t, y, b_flat)

@@ -71,12 +71,6 @@ class _Packer:
         return tuple(parts)
 
 
-def _all_finite_small(chunks, bound):
-    ok_finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(c)) for c in chunks]))
-    ok_small = jnp.all(jnp.stack([jnp.all(jnp.abs(c) <= bound) for c in chunks]))
-    return ok_finite, ok_small
-
-
 class Carry(NamedTuple):
     """What the time loop carries from step k to k + 1 (one trajectory)."""
 
@@ -150,7 +144,8 @@ class _Problem:
         ok_now = c.code == scan.STATUS_OK
         acc = jax.tree.map(lambda old, new: jnp.where(ok_now, new, old), c.acc,
                            self.update(red, c.acc, c.k, t, c.y, obs, dt))
-        finite, small = _all_finite_small(y_next, bound)
+        finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in y_next]))
+        small = jnp.all(jnp.stack([jnp.all(jnp.abs(v) <= bound) for v in y_next]))
         code, bad, keep = scan.guard(ok_now, finite, small, c.k, c.code, c.bad)
         y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y_next, c.y)
         return Carry(c.k + 1, y, acc, code, bad), obs
