@@ -99,8 +99,8 @@ def test_the_console_says_what_follows_the_search_and_counts_the_heldout_plants(
     assert "  sample time: the tuned gains track at every Ts from 0.1 to 2 ms\n" in stdout
     # the criteria, in report.md: error within 2 x the loop tuned's, no chattering; delayed,
     # TV(u) within 1.4 x its bound
-    assert ("is at most 2 x that of the same gains in the loop tuned, and it does not chatter"
-            in md)
+    assert ("is at most 2 x that of the same gains in the loop tuned, and its chattering index "
+            "on the window is at most 1.5" in md)
     rep = json.loads((out / "report.json").read_text())
     limit = 1.4 * rep["bound_tv_u"]
     assert (f"windowed L-inf at most 2 x the same gains' at the loop's own delay and TV(u) at "
