@@ -254,8 +254,8 @@ def test_results_on_stdout_diagnostics_on_stderr(tmp_path, capsys):
     assert main(["simulate", "--t-final", "2", "--no-plot", "--out", str(tmp_path)]) == 0
     captured = capsys.readouterr()
     assert "wrote" in captured.out and "L-inf error" in captured.out
-    assert "dscjax simulate: order n=2" in captured.err
-    assert "wrote" not in captured.err and "order n=2" not in captured.out
+    assert "dscjax simulate: DSC (full), n=2," in captured.err
+    assert "wrote" not in captured.err and "n=2" not in captured.out
     # the headline leads with the windowed error and says the window (issue 32): over the
     # whole run it is the initial error |x1(0) - yr(0)| = 0.08 of the paper's example
     with np.load(tmp_path / "trajectory.npz") as z:
