@@ -14,13 +14,12 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import os
 from collections.abc import Sequence
 from typing import Any, NamedTuple
 
 import jax
 
-from dscjax.validation import ConfigError, one_of
+from dscjax.validation import ConfigError, cores, one_of
 
 KINDS = ("auto", "cpu", "gpu")
 # Estimates behind the crossover (docs/sweeps.md): batched rows x steps per second of one CPU
@@ -64,13 +63,6 @@ def visible() -> list:
         with contextlib.suppress(RuntimeError):
             devices += jax.devices("cpu")
     return devices
-
-
-def cores() -> int:
-    """The CPU cores this process may run on."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0)) or 1
-    return os.cpu_count() or 1
 
 
 def crossover(n_cores: int | None = None) -> int:

@@ -295,12 +295,17 @@ class Work:
         return max(self.steps / STEPS_PER_S, self.member_steps / batch_speed())
 
 
+def cores() -> int:
+    """The CPU cores this process may run on."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0)) or 1
+    return os.cpu_count() or 1
+
+
 def batch_speed() -> float:
     """The optimistic throughput of a batch (member-steps per second) on JAX's devices."""
     devices = jax.devices()
     if devices[0].platform == "cpu":
-        from dscjax.device import cores  # (device imports this module)
-
         return MEMBER_STEPS_PER_S_CORE * cores()
     return MEMBER_STEPS_PER_S_DEVICE * len(devices)
 

@@ -13,6 +13,7 @@ import jax
 import numpy as np
 
 from dscjax import config, device, settings
+from dscjax.markdown import figure
 from dscjax.metrics import CHATTER_RATIO, RunningMetrics, chatters
 from dscjax.params import cast
 from dscjax.rules import AtLeast, Number, Positive
@@ -224,12 +225,6 @@ SHORTER = "use a shorter --t-final or a larger --dt"
 
 def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
-
-
-def figure(x: float) -> str:
-    """A measured number for a results line: 4 significant digits, whole numbers with
-    thousands separators from 10,000 on (a TV(u) of 19,408, not 1.941e+04)."""
-    return f"{x:,.0f}" if abs(x) >= 1e4 else f"{x:.4g}"
 
 
 def chattering_text(index: float) -> str:

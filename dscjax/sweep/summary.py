@@ -10,8 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
-from dscjax.cli.common import figure
-from dscjax.markdown import escape, table
+from dscjax.markdown import escape, figure, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
