@@ -114,12 +114,8 @@ def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
-    """ConfigError (one line, the old and new values of what differs) unless the run in `out`
-    was made with these settings (`run`'s arguments); nothing is run: checked before any
-    work or output."""
-    path = Path(out) / MANIFEST
-    if not path.exists():
-        return  # (run says what is missing)
+    """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
+    path = runner.resume_file(out, MANIFEST)
     searched = search_problem(setup, options, cfg)
     desc = runner.describe(searched.setup, options, cfg)
     runner.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),

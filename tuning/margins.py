@@ -302,50 +302,44 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
     lines = ["", "## Margins (nominal plant)"]
     c = margins.get("continuous")
     if c is not None:
-        lines += ["", f"**The continuous loop** (a check, not tuned: RK4 at dt = {c['dt']:g} s, "
-                  f"refined where stiff, which is no failure):", "", *table(
+        lines += ["", f"**The continuous loop** (RK4 at dt = {c['dt']:g} s, refined where "
+                  f"stiff):", "", *table(
                       ("", "L∞ e on [t0, T]", "max\\|u\\|", "TV(u)",
                        "chattering index on [t0, T]", "simulated by"),
                       [(tag, cell(r["linf_error_window"]), cell(r["max_abs_u"]), cell(r["tv_u"]),
                         cell(r.get("chattering_index"), 3),
                         f"{r['solver']} at dt = {r['dt_used']:g} s"
                         + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
-                       for tag, r in zip(NAMES, map(c.get, NAMES), strict=True)])]
+                       for tag, r in _rows(c)])]
     st = margins.get("sample_time")
     if st is not None:
         lines += ["", f"**Sample time.** The loop tuned with the controller sampled at each Ts "
                   f"from {1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms "
-                  f"(its discretisation, delay and noise kept; the continuous loop at the "
-                  f"finest plant step as Ts -> 0; figure `sampling.png`). "
-                  + ts_sweep.criterion(st, "the same gains in the loop tuned")
-                  + (" The held-out columns: the held-out batch at the tuned Ts and above, "
-                     "over the plants that did not diverge." if st.get("batch") else ""), "",
+                  f"(`sampling.png`). " + ts_sweep.criterion(st, "the same gains in the loop tuned")
+                  + (" Held-out: at the tuned Ts and above." if st.get("batch") else ""), "",
                   *ts_sweep.table(st, NAMES)]
     dl = margins.get("delay")
     if dl is not None:
         tv = (" and no chattering" if dl["tv_limit"] is None else
               f" and TV(u) at most {dl['tv_limit']:.4g} (`delay_tv_factor` x its bound)")
         lines += ["", f"**Delay margin.** The loop tuned (Ts = {1e3 * dl['sample_time']:g} ms) "
-                  f"with the input d samples late, d from its own delay up to {dl['max']} until "
-                  f"neither gain set holds, judged as the search's delayed check: windowed "
-                  f"L-inf at most {dl['linf_factor']:g} x the same gains' at the loop's own "
-                  f"delay{tv}:", "",
+                  f"with the input d samples late, up to {dl['max']}: windowed L-inf at most "
+                  f"{dl['linf_factor']:g} x the same gains' at the loop's own delay{tv}:", "",
                   *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
                           "chattering index", "holds"),
                          [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),
                            cell(r["chattering_index"][i], 3),
                            verdict(r["why_not"][i]))
-                          for i, d in enumerate(dl["delays"])
-                          for tag, r in zip(NAMES, map(dl.get, NAMES), strict=True)])]
+                          for i, d in enumerate(dl["delays"]) for tag, r in _rows(dl)])]
     lr = margins["long_run"]
     what = " and ".join(x for x in (
         f"measurement noise of std {lr['noise']:g} on every state" if lr["noise"] else "",
         f"a bounded disturbance dbar = {lr['disturbance']}" if lr["disturbance"] else "") if x)
     lines += ["", f"**Long run.** {lr['t_final']:g} s in the loop tuned"
               + (f", with {what}" if what else "")
-              + f"; an estimate counts as bounded when its peak |.| on the second half is at "
-              f"most {DRIFT_RATIO:g} x its peak on the second quarter (the first, the "
-              f"transient, left out; not judged below {DRIFT_MIN_S:g} s):", "",
+              + f"; an estimate is bounded when its peak |.| on the second half is at most "
+              f"{DRIFT_RATIO:g} x that on the second quarter (not judged below "
+              f"{DRIFT_MIN_S:g} s):", "",
               *table(("", f"L∞ e on [{lr['window_start']:g}, {lr['t_final']:g}] s",
                       "L∞ e over the tuning's horizon (no noise, no disturbance)",
                       "chattering index",
@@ -356,8 +350,13 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),
                        {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
-                      for tag, r in zip(NAMES, map(lr.get, NAMES), strict=True)])]
+                      for tag, r in _rows(lr)])]
     return lines + ["", *(f"- {v}" for v in verdicts(margins))]
+
+
+def _rows(margin: dict):
+    """(tag, the gain set's figures) of a margin, start then tuned."""
+    return [(tag, margin[tag]) for tag in NAMES]
 
 
 def verdicts(margins: dict[str, Any]) -> list[str]:

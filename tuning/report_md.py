@@ -116,9 +116,7 @@ def run_sentence(run: dict) -> str:
             f"of which {run['gradient_evaluations']} with an exact gradient"
             + (f" (resumed at {run['resumed_from']})" if run["resumed_from"] else "")
             + f", {run['rejected']} rejected"
-            + (f"; restarted afresh {run['restarts']} time(s) (CMA-ES from the start point after "
-               f"its own criteria stopped it or it stalled; adam from a random point after its "
-               f"step collapsed)" if run.get("restarts") else "")
+            + (f"; restarted afresh {run['restarts']} time(s)" if run.get("restarts") else "")
             + f"; stopped: {run['stop_reason']}. Best at iteration "
             f"{run['best_iteration']} (loss {run['best_loss']:.5g}, "
             f"{'feasible' if run['best_feasible'] else 'NOT feasible'}). Wall time "
@@ -262,11 +260,10 @@ def effort_span(s: dict) -> str:
     transient can set a bound that the steady state never needs."""
     a, b = s["nominal"]["start"], s["nominal"]["tuned"]
     return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
-            f"transient included (a bound on the window alone would let the search buy its "
-            f"error with an unbounded transient). On the window [t0, T] the start gains use "
-            f"max|u| {_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the "
-            f"tuned gains {_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: "
-            f"numbers for tuning.objective.u_max and tv_max bound them by your actuator.")
+            f"transient included. On [t0, T] the start gains use max|u| "
+            f"{_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the tuned "
+            f"{_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: numbers for "
+            f"tuning.objective.u_max and tv_max bound them by your actuator.")
 
 
 def sensitivity_section(sens: dict) -> list[str]:
@@ -276,10 +273,8 @@ def sensitivity_section(sens: dict) -> list[str]:
     step = 100 * sens["step"]
     lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
              f"e = d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned "
-             f"number g (forward mode through the loop tuned): a {step:g} % change of g moves r "
-             f"by about |e| x {step:g} %. **Bold**: that change breaks the constraint to first "
-             f"order (r (1 + {sens['step']:g} |e|) > 1). Not finite: the loop's tangent grew "
-             f"without bound (a chaotic or chattering loop); any change may break it.", "",
+             f"number g: a {step:g} % change of g moves r by about |e| x {step:g} %. **Bold**: "
+             f"that change breaks it to first order. Not finite: any change may break it.", "",
              *table(("tuned number", *(f"{escape(r['name'])} (margin "
                                        f"{100 * r['relative_margin']:.3g} %)" for r in rows)),
                     [(f"`{name}`", *(f"**{v}**" if name in r["fragile"] else v for r, v in (
@@ -292,17 +287,14 @@ def method_sentence(opt, mode: str) -> str:
     if not opt.name.generations:
         words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
                  f"{mode}-mode")
-        return (f"{words} exact gradients: projected gradient descent with "
-                f"optax's Adam scaling, initial step {opt.learning_rate:g} in log-space, x1.2 "
-                f"after an improvement, halved (from the last good point) after a worse one.")
+        return (f"{words} exact gradients: projected descent with optax's Adam scaling, "
+                f"initial step {opt.learning_rate:g} in log-space.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
            f"{opt.popsize or f'sized to about {ROWS} trajectories a generation'}, seed "
            f"{opt.seed})")
-    grows = f" and {opt.growth} times the population" if opt.growth > 1 else ""
-    stalls = (f" or it stalls (its best loss falls by less than {100 * opt.stall_gain:g} % over "
-              f"{opt.stall} generations)" if opt.stall else "")
-    restarts = (f" When CMA-ES's own criteria stop it before the budget ends{stalls}, a fresh "
-                f"CMA-ES starts from the start point{grows} (at most {opt.restarts} times; the "
-                f"best point is kept)." if opt.restarts else "")
+    stalls = (f" or on a stall ({100 * opt.stall_gain:g} % over {opt.stall} generations)"
+              if opt.stall else "")
+    restarts = (f" Restarted from the start point at its own stop{stalls}, the population x "
+                f"{opt.growth}, at most {opt.restarts} times." if opt.restarts else "")
     return (f"{opt.name.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)

@@ -33,11 +33,9 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
 def add_parser(sub):
     p = sub.add_parser(
         "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
-        description="Tune the DSC gains of a config (default: the paper's Section 4 example "
-        "sampled at 1 kHz, from its gains) to minimise the windowed L-inf tracking error with "
-        "max|u| and TV(u) bounded by the start gains' (TV(u) x 1.5), by CMA-ES (default) or "
-        "exact gradients. Settings: a [tuning] table in the config (docs/tuning.md); the "
-        "command line wins.")
+        description="Tune the DSC gains of a config (default: the paper's example sampled at "
+        "1 kHz) to minimise the windowed L-inf error, max|u| and TV(u) bounded by the start "
+        "gains' (TV(u) x 1.5). Settings: [tuning] (docs/tuning.md); the command line wins.")
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
@@ -128,13 +126,8 @@ def run(args) -> int:
         # the zero waveform the training plants' disturbances replace (one compiled structure)
         searched = adversarial.search_problem(setup, options, cfg)
         setup = searched.setup
-    if args.resume and not resumable(args):
-        missing = "adversarial.json" if adv.rounds else "checkpoint.json"
-        raise ConfigError(f"--resume: nothing to resume in {out} ({missing} is missing); run "
-                          f"without --resume to start afresh")
-    if args.resume:  # a changed config is refused before anything runs or is printed
-        same_run = adversarial.check_resume if adv.rounds else check_resume
-        same_run(out, setup, options, cfg)
+    if args.resume:  # nothing to resume or a changed config: refused before anything runs
+        (adversarial.check_resume if adv.rounds else check_resume)(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     choice = common.use_device(args, options.device, generation_rows(cfg))
     plants = max(cfg.robust.batch, 1)
@@ -147,9 +140,8 @@ def run(args) -> int:
     how = (f"{oc.name.name} (sigma0 {oc.sigma0:g})" if oc.name.generations else
            f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}")
     unit = "generation" if oc.name.generations else "iteration"
-    limits = ([f"{oc.max_steps} {unit}" + ("" if oc.max_steps == 1 else "s")]
-              if oc.max_steps is not None else []) + (
-        [f"{oc.time_limit:g} s"] if oc.time_limit else [])
+    limits = [f"{oc.max_steps} {unit}(s)"] if oc.max_steps is not None else []
+    limits += [f"{oc.time_limit:g} s"] if oc.time_limit else []
     # (the loop tuned is one of the notes below)
     common.banner(args, f"{report.problem_sentence(problem)} Method: {how}; "
                   + ("at most " + " or ".join(limits) if limits else "no iteration or time limit")
