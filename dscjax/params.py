@@ -10,6 +10,7 @@ Tuning, sweeps and the worst-case search all name the numbers they vary this way
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -123,11 +124,8 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
         leaf = get(setup, p.path)
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         col = table[:, j].astype(dtype)
-        if p.scale:
-            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
-            continue
-        if p.index is None:
-            out[p.path] = col
+        if p.scale or p.index is None:  # the whole leaf: s times the vector, or the column
+            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :] if p.scale else col
             continue
         if p.path not in out:
             leaf = xp.asarray(leaf, dtype)
@@ -310,11 +308,8 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     num = None
     if grid:
         num = value[2]
-        if isinstance(num, str):
-            try:
-                num = int(num)
-            except ValueError:
-                pass
+        with contextlib.suppress(ValueError):  # split CLI text: "LOW:HIGH:NUM"
+            num = int(num) if isinstance(num, str) else num
         if isinstance(num, bool) or not isinstance(num, int):
             raise ConfigError(f"{field}: the number of grid points must be an integer "
                               f"(got {value[2]!r})")
@@ -397,12 +392,10 @@ def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     if "hysteresis.lam" not in by and "hysteresis.psi" not in by:
         return
     try:
-        lam_nom = Param("hysteresis.lam").nominal(setup)
-        psi_nom = Param("hysteresis.psi").nominal(setup)
+        lam_nom, psi_nom = (Param(f"hysteresis.{k}").nominal(setup) for k in ("lam", "psi"))
     except KeyError:
         return
-    lam = by.get("hysteresis.lam")
-    psi = by.get("hysteresis.psi")
+    lam, psi = by.get("hysteresis.lam"), by.get("hysteresis.psi")
     lam_lo = lam.low if lam else lam_nom
     psi_hi = psi.high if psi else psi_nom
     if not lam_lo > psi_hi:
