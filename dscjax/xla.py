@@ -62,11 +62,8 @@ def compiler_options(environ: Mapping[str, str] = os.environ,
     """The compiler options of dscjax's batched programs: `WIDE` on a CPU with AVX-512,
     unless `XLA_FLAGS` already sets the vector width (the user's choice wins); else {}.
     Other backends ignore the option."""
-    if OPTION in environ.get("XLA_FLAGS", ""):
-        return {}
-    if not (cpu_has_avx512() if has_avx512 is None else has_avx512):
-        return {}
-    return dict(WIDE)
+    wide = cpu_has_avx512() if has_avx512 is None else has_avx512
+    return dict(WIDE) if wide and OPTION not in environ.get("XLA_FLAGS", "") else {}
 
 
 def emitter_choice(jaxlib_version: str = jax.lib.__version__) -> bool:
