@@ -245,9 +245,7 @@ def _coerce(section: str, name: str, value, static: bool, default):
             return value
         return validation.string(value, field)
     where, item = _find(value, bool | np.bool_)
-    if where is not None:
-        raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
-                          f"{'true' if item else 'false'})")
+    validation.not_boolean(item, f"{field}{where}")
     where, item = _find(value, str | dict)
     if where is not None:  # NumPy would read "10" as the number 10
         detail = validation.got(item)

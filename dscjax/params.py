@@ -298,9 +298,7 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     if not isinstance(value, list | tuple) or len(value) != (3 if grid else 2):
         raise ConfigError(f"{field} must be {form} (got {got})")
     for i, v in enumerate(value[:2]):
-        if isinstance(v, bool):
-            raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
-                              f"{'true' if v else 'false'})")
+        validation.not_boolean(v, f"{field}[{i}]")
     try:
         low, high = (float(v) for v in value[:2])
     except (TypeError, ValueError):

@@ -104,6 +104,13 @@ def got(value) -> str:
     return f"got {value!r}"
 
 
+def not_boolean(value, field: str) -> None:
+    """ConfigError "FIELD must be a number, not a boolean (got true)" if `value` is one: NumPy
+    would read `true` as the number 1.0."""
+    if isinstance(value, bool | np.bool_):
+        raise ConfigError(f"{field} must be a number, not a boolean (got {str(value).lower()})")
+
+
 def integer(value, field: str, low: int | None = None) -> int:
     """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
     if (isinstance(value, bool) or not isinstance(value, int | np.integer)
