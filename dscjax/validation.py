@@ -184,31 +184,30 @@ def validate_shapes(setup) -> None:
             shape(getattr(model, name), f"{section}.{name}", expected, why)
 
 
+def _leaves(obj, prefix: str = "") -> list[tuple[str, object]]:
+    """(path, value) of every traced leaf (array or float) below obj, in field order (an absent
+    optional model, None, has none)."""
+    if obj is None:
+        return []
+    if dataclasses.is_dataclass(obj):
+        items = [(f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                 if not f.metadata.get("static")]
+    elif isinstance(obj, Mapping):
+        items = obj.items()
+    else:
+        return [(prefix[:-1], obj)]
+    return [leaf for k, v in items for leaf in _leaves(v, f"{prefix}{k}.")]
+
+
 def numeric_paths(obj, prefix: str = "") -> list[str]:
     """Every path to a traced leaf (array or float) below obj, in field order (an absent
     optional model, None, has none)."""
-    out = []
-    if obj is None:
-        return out
-    if dataclasses.is_dataclass(obj):
-        for f in dataclasses.fields(obj):
-            if f.metadata.get("static"):
-                continue
-            out += numeric_paths(getattr(obj, f.name), f"{prefix}{f.name}.")
-    elif isinstance(obj, Mapping):
-        for k, v in obj.items():
-            out += numeric_paths(v, f"{prefix}{k}.")
-    else:
-        out.append(prefix[:-1])
-    return out
+    return [path for path, _ in _leaves(obj, prefix)]
 
 
 def finite_tree(obj, prefix: str) -> None:
     """Every traced number below obj (a model) finite; ConfigError naming its config path."""
-    for path in numeric_paths(obj):
-        value = obj
-        for name in path.split("."):
-            value = value[name] if isinstance(value, Mapping) else getattr(value, name)
+    for path, value in _leaves(obj):
         finite(value, f"{prefix}.{path}")
 
 
