@@ -226,9 +226,7 @@ class RunSpec(eqx.Module):
                "sample_time": None if not self.sampled else short(self.sample_time),
                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
                "discretisation": self.discretisation.name, "device": self.device}
-        for key in self.rules:
-            out[key] = None
-        return out
+        return out | dict.fromkeys(self.rules)
 
     def describe(self) -> dict[str, Any]:
         """What determines a run's numbers (a resumable run's fingerprint): the table with
