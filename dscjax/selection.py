@@ -185,9 +185,8 @@ class Selection:
         tuned = {p.path for p in order}
         for path, index in frozen:
             if path not in tuned:
-                name = path if index is None else f"{path}[{index}]"
-                raise ConfigError(f"{field}.freeze: {name!r} is not among the tuned parameters "
-                                  f"({', '.join(p.name for p in order)})")
+                raise ConfigError(f"{field}.freeze: {Param(path, index).name!r} is not among the "
+                                  f"tuned parameters ({', '.join(p.name for p in order)})")
         if not expanded:
             raise ConfigError(f"{field}: nothing left to tune (every parameter is frozen)")
         for text in list(bounds) + list(transforms):
