@@ -173,15 +173,13 @@ class RunSpec(eqx.Module):
             which = "delay" if delay else "noise"
             raise ConfigError(f"{f(which)} applies to a sampled controller: give "
                               f"{f('sample_time')} too")
-        if noise is not None:
-            noise = np.asarray(noise, dtype=float)
         return cls(dt=dt, window_start=float(window_start), state_bound=keys.state_bound,
-                   noise=noise, noise_seed=int(noise_seed), n_steps=n_steps,
-                   save_every=int(save_every), solver=as_solver(solver),
-                   gradient=gradient if gradient is not None else TimeParallel(),
+                   noise=None if noise is None else np.asarray(noise, dtype=float),
+                   noise_seed=int(noise_seed), n_steps=n_steps, save_every=int(save_every),
+                   solver=as_solver(solver), gradient=gradient or TimeParallel(),
                    sample_every=every, sampled=every > 0, delay=int(delay),
-                   discretisation=SCHEME[keys.discretisation],
-                   refine=int(refine), dtype=dtype, device=device, rules=tuple(rules))
+                   discretisation=SCHEME[keys.discretisation], refine=int(refine), dtype=dtype,
+                   device=device, rules=tuple(rules))
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
