@@ -121,12 +121,10 @@ class Choice(Rule):
         return self.parse(text)
 
     def dump(self, value):
-        if isinstance(self.options, Mapping):
-            for name, obj in self.options.items():
-                if obj is value or obj == value:
-                    return name
-            return getattr(value, "name", value)
-        return value
+        if not isinstance(self.options, Mapping):
+            return value
+        return next((name for name, obj in self.options.items() if obj is value or obj == value),
+                    getattr(value, "name", value))
 
 
 @dataclasses.dataclass(frozen=True)
