@@ -345,12 +345,11 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
     any), bounds not finite or reversed, lam <= psi allowed, or either end outside a model's
     range (or, with t_final and dt, outside what RK4 can integrate)."""
     check_columns([r.param for r in ranges], field)
-    seen: dict[str, None] = {}
-    for r in ranges:
+    names = [r.name for r in ranges]
+    for i, r in enumerate(ranges):
         f = f"{field}.{r.name}"
-        if r.name in seen:
+        if r.name in names[:i]:
             raise ConfigError(f"{f} is given twice")
-        seen[r.name] = None
         value = r.param.check(setup, field)
         if r.param.index is None and np.shape(value) != ():
             raise ConfigError(f"{f}: {r.param.path} has shape {np.shape(value)}; vary one "
