@@ -155,9 +155,7 @@ class RunSpec(eqx.Module):
         if window_start is None:
             rules.append("window_start")
             window_start = default_window(t_final)
-        if not window_start < t_final:
-            raise ConfigError(f"{f('window_start')} must be in [0, t_final) = [0, "
-                              f"{t_final:.6g}) (got {window_start:.6g})")
+        validation.in_horizon(window_start, t_final, f("window_start"))
         every = 0
         sample_time = keys.sample_time
         if sample_time is not None:

@@ -252,13 +252,17 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
     The save stride need not divide N (the last saved point is always t_final)."""
     n_steps = whole_steps(t_final, dt)
     integer(save_every, "simulation.save_every", 1)
-    if window_start is not None and not (0 <= float(window_start) < float(t_final)):
-        raise ConfigError(
-            f"simulation.window_start must be in [0, t_final) = [0, {float(t_final):.6g}) "
-            f"(got {float(window_start):.6g})"
-        )
+    if window_start is not None:
+        in_horizon(window_start, t_final, "simulation.window_start")
     check_filters(setup, dt)
     return n_steps
+
+
+def in_horizon(t, t_final, field: str) -> None:
+    """ConfigError unless 0 <= t < t_final (the start of the metrics' window)."""
+    if not 0 <= float(t) < float(t_final):
+        raise ConfigError(f"{field} must be in [0, t_final) = [0, {float(t_final):.6g}) "
+                          f"(got {float(t):.6g})")
 
 
 # -- what a command's work needs, checked before any of it runs -----------------------------------
