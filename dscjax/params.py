@@ -285,11 +285,9 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
     got = got or repr(value)
     if isinstance(value, str) and not grid:  # (a grid's text is refused below)
-        text = value.strip().lstrip("±+")
-        try:
+        text, rel = value.strip().lstrip("±+"), math.nan
+        with contextlib.suppress(ValueError):
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan
-        except ValueError:
-            rel = math.nan
         if not math.isfinite(rel):
             raise ConfigError(f"{field} must be {form} (got {got})")
         if rel <= 0:
