@@ -47,13 +47,10 @@ def cpu_has_avx512(cpuinfo: str = "/proc/cpuinfo") -> bool:
     """True if the CPU reports AVX-512 (Linux `/proc/cpuinfo`); False elsewhere or unknown."""
     if not sys.platform.startswith("linux"):
         return False
-    try:
-        with open(cpuinfo) as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return "avx512f" in line.split()
-    except OSError:
-        return False
+    with contextlib.suppress(OSError), open(cpuinfo) as f:
+        for line in f:
+            if line.startswith("flags"):
+                return "avx512f" in line.split()
     return False
 
 
