@@ -206,8 +206,7 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
             continue
         text = docs.get(f"{path}.{key}")
         if isinstance(value, Omitted):
-            line = key if value.value is None else tomlkit.dumps({key: _data(value.value)})
-            line = line.strip()
+            line = key if value.value is None else tomlkit.dumps({key: _data(value.value)}).strip()
             out.add(tomlkit.comment(f"{line:<{DOC_COLUMN - 2}s}# {text}" if text else line))
             continue
         out.add(key, _data(value))
