@@ -56,14 +56,10 @@ SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): d
 
 def _plain(value):
     a = np.asarray(value)
-    if a.dtype == bool:
-        return bool(a) if a.ndim == 0 else a.tolist()
-    if a.ndim == 0:
-        return validation.shortest(a, a.dtype) if a.dtype.kind == "f" else float(a)
     if a.dtype.kind == "f":
-        out = np.vectorize(lambda x: validation.shortest(x, a.dtype), otypes=[object])(a)
-        return out.ravel().tolist() if a.ndim == 1 else out.tolist()
-    return [float(x) for x in a.ravel()] if a.ndim == 1 else a.tolist()
+        shortest = np.vectorize(lambda x: validation.shortest(x, a.dtype), otypes=[object])
+        return shortest(a).tolist()
+    return a.tolist() if a.dtype == bool or a.ndim > 1 else a.astype(float).tolist()
 
 
 def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str, Any]:
@@ -210,8 +206,7 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
             continue
         text = docs.get(f"{path}.{key}")
         if isinstance(value, Omitted):
-            line = key if value.value is None else tomlkit.dumps({key: _data(value.value)})
-            line = line.strip()
+            line = key if value.value is None else tomlkit.dumps({key: _data(value.value)}).strip()
             out.add(tomlkit.comment(f"{line:<{DOC_COLUMN - 2}s}# {text}" if text else line))
             continue
         out.add(key, _data(value))
@@ -248,13 +243,11 @@ def _coerce(section: str, name: str, value, static: bool, default):
                 raise ConfigError(f"{field} must be true or false (got {value!r})")
             return value
         return validation.string(value, field)
-    where = _find(value, bool | np.bool_)
-    if where is not None:
-        raise ConfigError(f"{field}{where} must be a number, not a boolean (got "
-                          f"{'true' if _at(value, where) else 'false'})")
-    where = _find(value, str | dict)
+    where, item = _find(value, bool | np.bool_)
+    validation.not_boolean(item, f"{field}{where}")
+    where, item = _find(value, str | dict)
     if where is not None:  # NumPy would read "10" as the number 10
-        detail = validation.got(_at(value, where))
+        detail = validation.got(item)
         if where:  # "controller.k[1] is a string, 'a'"
             detail = f"{field}{where} is {detail.removeprefix('got ')}"
         raise ConfigError(f"{field} must be a number or a list of numbers, not text in quotes "
@@ -267,25 +260,18 @@ def _coerce(section: str, name: str, value, static: bool, default):
     return float(a) if a.ndim == 0 else a
 
 
-def _find(value, kinds, where: str = "") -> str | None:
-    """The index ("" for the value itself, "[1]", "[0][2]") of the first item of a value read
-    from TOML or JSON that is one of `kinds`, or None. NumPy would read `true` as the number
-    1.0 and "10" as 10: a config that says `k = [10.0, true]` is a mistake, not k_2 = 1."""
+def _find(value, kinds, where: str = "") -> tuple[str | None, Any]:
+    """(index, item) of the first item of a value read from TOML or JSON that is one of
+    `kinds` (index "" for the value itself, "[1]", "[0][2]"), or (None, None). NumPy would read
+    `true` as the number 1.0 and "10" as 10: a config that says `k = [10.0, true]` is a
+    mistake, not k_2 = 1."""
     if isinstance(value, kinds):
-        return where
-    if isinstance(value, list | tuple):
-        for i, item in enumerate(value):
-            found = _find(item, kinds, f"{where}[{i}]")
-            if found is not None:
-                return found
-    return None
-
-
-def _at(value, where: str):
-    for i in where.strip("[]").split("]["):
-        if i:
-            value = value[int(i)]
-    return value
+        return where, value
+    for i, item in enumerate(value if isinstance(value, list | tuple) else ()):
+        found = _find(item, kinds, f"{where}[{i}]")
+        if found[0] is not None:
+            return found
+    return None, None
 
 
 def model_from_dict(section: str, table: Mapping[str, Any], base=None):

@@ -6,7 +6,9 @@ mistake), a TOML syntax error named by its line and column. Nothing is interpret
 
 from __future__ import annotations
 
+import ast
 import json
+import re
 import tomllib
 from pathlib import Path
 
@@ -34,10 +36,8 @@ def read(path: str | Path, option: str | None = None) -> dict:
         raise ConfigError(f"cannot read config file {str(path)!r}: {err.strerror}") from None
     is_json = suffix == ".json"
     try:
-        if is_json:
-            d = _unique(json.loads(text, object_pairs_hook=_Pairs), path)
-        else:
-            d = tomllib.loads(text)
+        d = (_unique(json.loads(text, object_pairs_hook=_Pairs), path) if is_json
+             else tomllib.loads(text))
     except (tomllib.TOMLDecodeError, json.JSONDecodeError) as err:
         dup = None if is_json else _toml_duplicate(text, str(err))
         if dup is not None:
@@ -53,8 +53,6 @@ def read(path: str | Path, option: str | None = None) -> dict:
 def _toml_where(text: str, message: str) -> str:
     """A TOML parser's message as "line L, column C: not valid TOML: REASON" (the line of the
     end of the file where the parser ran out of text, e.g. an unclosed array)."""
-    import re
-
     found = re.search(r"\s*\(at line (\d+), column (\d+)\)$", message)
     if found is not None:
         return (f"line {found[1]}, column {found[2]}: not valid TOML: "
@@ -89,9 +87,6 @@ def _unique(value, path: Path, where: str = ""):
 def _toml_duplicate(text: str, message: str) -> str | None:
     """The dotted path of the key (or table) a TOMLDecodeError says is given twice, or None
     if the error is of another kind. tomllib's own message names no key for a value."""
-    import ast
-    import re
-
     declared = re.match(r"Cannot (?:declare|redefine namespace) \(([^()]*)\)", message)
     if declared:
         try:

@@ -71,13 +71,14 @@ def paper_example(variant: str = "full", robust_term: str = "sat", init: str = "
     """
     setup = Setup(plant=paper_plant(), hysteresis=paper_hysteresis(),
                   controller=paper_controller(variant, robust_term, init), reference=Sine())
-    return cast(setup, dtype if dtype is not None else _default_float())
+    return _cast(setup, dtype)
 
 
-def _default_float():
+def _cast(setup: Setup, dtype) -> Setup:
+    """`cast` to `dtype`, default JAX's default float (float64 when x64 is on)."""
     import jax.numpy as jnp
 
-    return jnp.zeros(()).dtype
+    return cast(setup, dtype if dtype is not None else jnp.zeros(()).dtype)
 
 
 def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
@@ -110,7 +111,7 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
     if controller_changes:
         ctrl = dataclasses.replace(ctrl, **controller_changes)
     setup = Setup(plant=plant, hysteresis=paper_hysteresis(), controller=ctrl, reference=Sine())
-    return cast(setup, dtype if dtype is not None else _default_float())
+    return _cast(setup, dtype)
 
 
 def hysteresis_example(kind: str, dtype=None) -> Setup:
@@ -120,7 +121,7 @@ def hysteresis_example(kind: str, dtype=None) -> Setup:
     setup = paper_example(dtype=np.float64)
     if kind != "backlash":
         setup = setup.replace(hysteresis={c.kind: c for c in MODELS}[kind]())
-    return cast(setup, dtype if dtype is not None else _default_float())
+    return _cast(setup, dtype)
 
 
 def example(name: str, dtype=None) -> Setup:

@@ -10,6 +10,7 @@ Tuning, sweeps and the worst-case search all name the numbers they vary this way
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import re
@@ -123,11 +124,8 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
         leaf = get(setup, p.path)
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         col = table[:, j].astype(dtype)
-        if p.scale:
-            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
-            continue
-        if p.index is None:
-            out[p.path] = col
+        if p.scale or p.index is None:  # the whole leaf: s times the vector, or the column
+            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :] if p.scale else col
             continue
         if p.path not in out:
             leaf = xp.asarray(leaf, dtype)
@@ -287,11 +285,9 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     form = form or ("[low, high, num]" if grid else "[low, high] or \"P%\"")
     got = got or repr(value)
     if isinstance(value, str) and not grid:  # (a grid's text is refused below)
-        text = value.strip().lstrip("±+")
-        try:
+        text, rel = value.strip().lstrip("±+"), math.nan
+        with contextlib.suppress(ValueError):
             rel = float(text[:-1]) / 100.0 if text.endswith("%") else math.nan
-        except ValueError:
-            rel = math.nan
         if not math.isfinite(rel):
             raise ConfigError(f"{field} must be {form} (got {got})")
         if rel <= 0:
@@ -300,9 +296,7 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     if not isinstance(value, list | tuple) or len(value) != (3 if grid else 2):
         raise ConfigError(f"{field} must be {form} (got {got})")
     for i, v in enumerate(value[:2]):
-        if isinstance(v, bool):
-            raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
-                              f"{'true' if v else 'false'})")
+        validation.not_boolean(v, f"{field}[{i}]")
     try:
         low, high = (float(v) for v in value[:2])
     except (TypeError, ValueError):
@@ -310,11 +304,8 @@ def from_value(param: Param, value, grid: bool, field: str, form: str | None = N
     num = None
     if grid:
         num = value[2]
-        if isinstance(num, str):
-            try:
-                num = int(num)
-            except ValueError:
-                pass
+        with contextlib.suppress(ValueError):  # split CLI text: "LOW:HIGH:NUM"
+            num = int(num) if isinstance(num, str) else num
         if isinstance(num, bool) or not isinstance(num, int):
             raise ConfigError(f"{field}: the number of grid points must be an integer "
                               f"(got {value[2]!r})")
@@ -352,12 +343,11 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
     any), bounds not finite or reversed, lam <= psi allowed, or either end outside a model's
     range (or, with t_final and dt, outside what RK4 can integrate)."""
     check_columns([r.param for r in ranges], field)
-    seen: dict[str, None] = {}
-    for r in ranges:
+    names = [r.name for r in ranges]
+    for i, r in enumerate(ranges):
         f = f"{field}.{r.name}"
-        if r.name in seen:
+        if r.name in names[:i]:
             raise ConfigError(f"{f} is given twice")
-        seen[r.name] = None
         value = r.param.check(setup, field)
         if r.param.index is None and np.shape(value) != ():
             raise ConfigError(f"{f}: {r.param.path} has shape {np.shape(value)}; vary one "
@@ -397,12 +387,10 @@ def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     if "hysteresis.lam" not in by and "hysteresis.psi" not in by:
         return
     try:
-        lam_nom = Param("hysteresis.lam").nominal(setup)
-        psi_nom = Param("hysteresis.psi").nominal(setup)
+        lam_nom, psi_nom = (Param(f"hysteresis.{k}").nominal(setup) for k in ("lam", "psi"))
     except KeyError:
         return
-    lam = by.get("hysteresis.lam")
-    psi = by.get("hysteresis.psi")
+    lam, psi = by.get("hysteresis.lam"), by.get("hysteresis.psi")
     lam_lo = lam.low if lam else lam_nom
     psi_hi = psi.high if psi else psi_nom
     if not lam_lo > psi_hi:

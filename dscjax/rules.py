@@ -55,16 +55,12 @@ class Number(Rule):
     @property
     def text(self) -> str:
         kind = "an integer" if self.integer else "a finite number"
-        lo = f"> {self.gt:g}" if self.gt is not None else (
-            f">= {self.ge:g}" if self.ge is not None else None)
-        hi = f"< {self.lt:g}" if self.lt is not None else (
-            f"<= {self.le:g}" if self.le is not None else None)
-        if lo and hi:
-            left = "(" if self.gt is not None else "["
-            right = ")" if self.lt is not None else "]"
-            return f"{kind} in {left}{self.gt if self.gt is not None else self.ge:g}, " \
-                   f"{self.lt if self.lt is not None else self.le:g}{right}"
-        return " ".join(x for x in (kind, lo or hi) if x)
+        lo = ("(", ">", self.gt) if self.gt is not None else ("[", ">=", self.ge)
+        hi = (")", "<", self.lt) if self.lt is not None else ("]", "<=", self.le)
+        if lo[2] is not None and hi[2] is not None:
+            return f"{kind} in {lo[0]}{lo[2]:g}, {hi[2]:g}{hi[0]}"
+        bound = lo if lo[2] is not None else hi if hi[2] is not None else None
+        return kind if bound is None else f"{kind} {bound[1]} {bound[2]:g}"
 
     @property
     def metavar(self) -> str:
@@ -125,12 +121,10 @@ class Choice(Rule):
         return self.parse(text)
 
     def dump(self, value):
-        if isinstance(self.options, Mapping):
-            for name, obj in self.options.items():
-                if obj is value or obj == value:
-                    return name
-            return getattr(value, "name", value)
-        return value
+        if not isinstance(self.options, Mapping):
+            return value
+        return next((name for name, obj in self.options.items() if obj is value or obj == value),
+                    getattr(value, "name", value))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -155,9 +155,7 @@ class RunSpec(eqx.Module):
         if window_start is None:
             rules.append("window_start")
             window_start = default_window(t_final)
-        if not window_start < t_final:
-            raise ConfigError(f"{f('window_start')} must be in [0, t_final) = [0, "
-                              f"{t_final:.6g}) (got {window_start:.6g})")
+        validation.in_horizon(window_start, t_final, f("window_start"))
         every = 0
         sample_time = keys.sample_time
         if sample_time is not None:
@@ -173,15 +171,13 @@ class RunSpec(eqx.Module):
             which = "delay" if delay else "noise"
             raise ConfigError(f"{f(which)} applies to a sampled controller: give "
                               f"{f('sample_time')} too")
-        if noise is not None:
-            noise = np.asarray(noise, dtype=float)
         return cls(dt=dt, window_start=float(window_start), state_bound=keys.state_bound,
-                   noise=noise, noise_seed=int(noise_seed), n_steps=n_steps,
-                   save_every=int(save_every), solver=as_solver(solver),
-                   gradient=gradient if gradient is not None else TimeParallel(),
+                   noise=None if noise is None else np.asarray(noise, dtype=float),
+                   noise_seed=int(noise_seed), n_steps=n_steps, save_every=int(save_every),
+                   solver=as_solver(solver), gradient=gradient or TimeParallel(),
                    sample_every=every, sampled=every > 0, delay=int(delay),
-                   discretisation=SCHEME[keys.discretisation],
-                   refine=int(refine), dtype=dtype, device=device, rules=tuple(rules))
+                   discretisation=SCHEME[keys.discretisation], refine=int(refine), dtype=dtype,
+                   device=device, rules=tuple(rules))
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
@@ -226,9 +222,7 @@ class RunSpec(eqx.Module):
                "sample_time": None if not self.sampled else short(self.sample_time),
                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
                "discretisation": self.discretisation.name, "device": self.device}
-        for key in self.rules:
-            out[key] = None
-        return out
+        return out | dict.fromkeys(self.rules)
 
     def describe(self) -> dict[str, Any]:
         """What determines a run's numbers (a resumable run's fingerprint): the table with

@@ -185,9 +185,8 @@ class Selection:
         tuned = {p.path for p in order}
         for path, index in frozen:
             if path not in tuned:
-                name = path if index is None else f"{path}[{index}]"
-                raise ConfigError(f"{field}.freeze: {name!r} is not among the tuned parameters "
-                                  f"({', '.join(p.name for p in order)})")
+                raise ConfigError(f"{field}.freeze: {Param(path, index).name!r} is not among the "
+                                  f"tuned parameters ({', '.join(p.name for p in order)})")
         if not expanded:
             raise ConfigError(f"{field}: nothing left to tune (every parameter is frozen)")
         for text in list(bounds) + list(transforms):
@@ -281,9 +280,7 @@ def _bound_pair(b, field) -> tuple[float | None, float | None]:
         if x is None or (isinstance(x, str) and x.lower() in ("none", "")):
             out.append(None)
             continue
-        if isinstance(x, bool):
-            raise ConfigError(f"{field}[{i}] must be a number, not a boolean (got "
-                              f"{'true' if x else 'false'})")
+        validation.not_boolean(x, f"{field}[{i}]")
         if not isinstance(x, int | float):
             raise ConfigError(f"{field} must be [lower, upper] with numbers (got {b!r})")
         out.append(float(x))
@@ -305,9 +302,8 @@ def _check_item(t: Tuned, setup, field):
             if b is not None and not b > 0:
                 raise ConfigError(f"{where}: the {side} bound of a log-space (positive) "
                                   f"parameter must be > 0 (got {b:g})")
-    for side, b, bad in (("lower", t.lower, lambda b: np.any(v < b)),
-                         ("upper", t.upper, lambda b: np.any(v > b))):
-        if b is not None and bad(b):
+    for side, b, sign in (("lower", t.lower, 1), ("upper", t.upper, -1)):
+        if b is not None and np.any(sign * (v - b) < 0):  # below lower, above upper
             raise ConfigError(f"{where}: the start value {np.array2string(v, precision=6)} is "
                               f"outside the bounds ({side} bound {b:g})")
 

@@ -71,7 +71,8 @@ def walk(obj, prefix: str, flags: Mapping[str, str | None] | None = None,
          docs: Mapping[str, str] | None = None):
     """(config path, key, Setting, value, option or None) of every declared setting of a group
     instance and of its nested groups, depth first; an option and a meaning are the
-    occurrence's (`group`), else the class's."""
+    occurrence's (`group`), else the class's. `obj` may be a class: its defaults."""
+    obj = obj() if isinstance(obj, type) else obj
     for key, s in declared(type(obj)).items():
         if docs and key in docs:
             s = dataclasses.replace(s, doc=docs[key])
@@ -163,7 +164,6 @@ def _options(obj, prefix: str, keys):
     """(path, key, Setting, value, option) of the settings with an option: every one of the
     group and its nested groups that declares one, or with `keys` those keys of the group
     itself (by their option or --key-with-dashes)."""
-    obj = obj() if isinstance(obj, type) else obj
     for path, key, s, value, flag in walk(obj, prefix):
         if keys is not None and (path != prefix + key or key not in keys):
             continue
@@ -229,14 +229,12 @@ def argtype(rule: Rule):
 
 def meanings(obj, prefix: str) -> dict[str, str]:
     """{config path: meaning} of a group's settings (the comments of a printed config)."""
-    obj = obj() if isinstance(obj, type) else obj
     return {path: s.doc for path, _, s, _, _ in walk(obj, prefix)}
 
 
 def doc_rows(obj, prefix: str) -> list[str]:
     """The docs' table of a group (an instance or a class: its defaults) and its nested
     groups: key, default, allowed values, meaning, option (markdown rows, with the header)."""
-    obj = obj() if isinstance(obj, type) else obj
     return table(("key", "default", "allowed", "meaning", "option"),
                  [(f"`{path}`", f"`{shown(s, value)}`", escape(s.rule.text), escape(s.doc),
                    f"`{flag}`" if flag else "") for path, _, s, value, flag in walk(obj, prefix)])

@@ -7,6 +7,7 @@ with a leading batch axis are checked elementwise.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import os
@@ -104,6 +105,13 @@ def got(value) -> str:
     return f"got {value!r}"
 
 
+def not_boolean(value, field: str) -> None:
+    """ConfigError "FIELD must be a number, not a boolean (got true)" if `value` is one: NumPy
+    would read `true` as the number 1.0."""
+    if isinstance(value, bool | np.bool_):
+        raise ConfigError(f"{field} must be a number, not a boolean (got {str(value).lower()})")
+
+
 def integer(value, field: str, low: int | None = None) -> int:
     """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
     if (isinstance(value, bool) or not isinstance(value, int | np.integer)
@@ -177,31 +185,30 @@ def validate_shapes(setup) -> None:
             shape(getattr(model, name), f"{section}.{name}", expected, why)
 
 
+def _leaves(obj, prefix: str = "") -> list[tuple[str, object]]:
+    """(path, value) of every traced leaf (array or float) below obj, in field order (an absent
+    optional model, None, has none)."""
+    if obj is None:
+        return []
+    if dataclasses.is_dataclass(obj):
+        items = [(f.name, getattr(obj, f.name)) for f in dataclasses.fields(obj)
+                 if not f.metadata.get("static")]
+    elif isinstance(obj, Mapping):
+        items = obj.items()
+    else:
+        return [(prefix[:-1], obj)]
+    return [leaf for k, v in items for leaf in _leaves(v, f"{prefix}{k}.")]
+
+
 def numeric_paths(obj, prefix: str = "") -> list[str]:
     """Every path to a traced leaf (array or float) below obj, in field order (an absent
     optional model, None, has none)."""
-    out = []
-    if obj is None:
-        return out
-    if dataclasses.is_dataclass(obj):
-        for f in dataclasses.fields(obj):
-            if f.metadata.get("static"):
-                continue
-            out += numeric_paths(getattr(obj, f.name), f"{prefix}{f.name}.")
-    elif isinstance(obj, Mapping):
-        for k, v in obj.items():
-            out += numeric_paths(v, f"{prefix}{k}.")
-    else:
-        out.append(prefix[:-1])
-    return out
+    return [path for path, _ in _leaves(obj, prefix)]
 
 
 def finite_tree(obj, prefix: str) -> None:
     """Every traced number below obj (a model) finite; ConfigError naming its config path."""
-    for path in numeric_paths(obj):
-        value = obj
-        for name in path.split("."):
-            value = value[name] if isinstance(value, Mapping) else getattr(value, name)
+    for path, value in _leaves(obj):
         finite(value, f"{prefix}.{path}")
 
 
@@ -246,13 +253,17 @@ def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
     The save stride need not divide N (the last saved point is always t_final)."""
     n_steps = whole_steps(t_final, dt)
     integer(save_every, "simulation.save_every", 1)
-    if window_start is not None and not (0 <= float(window_start) < float(t_final)):
-        raise ConfigError(
-            f"simulation.window_start must be in [0, t_final) = [0, {float(t_final):.6g}) "
-            f"(got {float(window_start):.6g})"
-        )
+    if window_start is not None:
+        in_horizon(window_start, t_final, "simulation.window_start")
     check_filters(setup, dt)
     return n_steps
+
+
+def in_horizon(t, t_final, field: str) -> None:
+    """ConfigError unless 0 <= t < t_final (the start of the metrics' window)."""
+    if not 0 <= float(t) < float(t_final):
+        raise ConfigError(f"{field} must be in [0, t_final) = [0, {float(t_final):.6g}) "
+                          f"(got {float(t):.6g})")
 
 
 # -- what a command's work needs, checked before any of it runs -----------------------------------
@@ -312,13 +323,10 @@ def batch_speed() -> float:
 
 def available_memory() -> int | None:
     """Bytes of memory available to a new allocation (Linux MemAvailable), None if unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
+    with contextlib.suppress(OSError, ValueError, IndexError), open("/proc/meminfo") as f:
+        for line in f:
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
     try:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):

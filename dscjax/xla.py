@@ -47,13 +47,10 @@ def cpu_has_avx512(cpuinfo: str = "/proc/cpuinfo") -> bool:
     """True if the CPU reports AVX-512 (Linux `/proc/cpuinfo`); False elsewhere or unknown."""
     if not sys.platform.startswith("linux"):
         return False
-    try:
-        with open(cpuinfo) as f:
-            for line in f:
-                if line.startswith("flags"):
-                    return "avx512f" in line.split()
-    except OSError:
-        return False
+    with contextlib.suppress(OSError), open(cpuinfo) as f:
+        for line in f:
+            if line.startswith("flags"):
+                return "avx512f" in line.split()
     return False
 
 
@@ -62,11 +59,8 @@ def compiler_options(environ: Mapping[str, str] = os.environ,
     """The compiler options of dscjax's batched programs: `WIDE` on a CPU with AVX-512,
     unless `XLA_FLAGS` already sets the vector width (the user's choice wins); else {}.
     Other backends ignore the option."""
-    if OPTION in environ.get("XLA_FLAGS", ""):
-        return {}
-    if not (cpu_has_avx512() if has_avx512 is None else has_avx512):
-        return {}
-    return dict(WIDE)
+    wide = cpu_has_avx512() if has_avx512 is None else has_avx512
+    return dict(WIDE) if wide and OPTION not in environ.get("XLA_FLAGS", "") else {}
 
 
 def emitter_choice(jaxlib_version: str = jax.lib.__version__) -> bool:
