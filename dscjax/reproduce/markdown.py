@@ -17,6 +17,11 @@ def _yes(b: bool) -> str:
     return "yes" if b else "**no**"
 
 
+def _figures(summary: dict, folder: str) -> str:
+    """"Figures: `a.png`, ...": the figures of a summary, by file name in `folder`."""
+    return "Figures: " + ", ".join(f"`{folder}{Path(p).name}`" for p in summary["figures"].values())
+
+
 def summary_markdown(summary: dict) -> str:
     lines = ["# Reproduction of the paper's Section 4", "",
              f"Horizon {summary['t_final']:g} s, RK4 step {summary['dt']:g} s; 'after 1 s' is the "
@@ -61,8 +66,7 @@ def summary_markdown(summary: dict) -> str:
         lines += ["", theory_markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
     if summary["figures"]:
-        lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
-                                              for p in summary["figures"].values()), ""]
+        lines += ["", _figures(summary, ""), ""]
     return "\n".join(lines)
 
 
@@ -135,8 +139,7 @@ def theory_markdown(summary: dict) -> str:
                       f"alpha_0^{slope_b:.2f}; the bound is {min(cons):.3g} to {max(cons):.3g} "
                       "times the measured error.", ""]
     if summary["figures"]:
-        lines += ["Figures: " + ", ".join(f"`theory/{Path(p).name}`"
-                                          for p in summary["figures"].values()) + ".", ""]
+        lines += [_figures(summary, "theory/") + ".", ""]
     return "\n".join(lines)
 
 
