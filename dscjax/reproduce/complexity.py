@@ -234,10 +234,9 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
             name, fit = names.get(c, c), fits[metric]
-            label = name + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+            label = name + (", in a compiled loop" if metric == "eval_s" else
+                            ": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
                             if fit.get("ratio_per_order") else "")
-            if metric == "eval_s":
-                label = name + ", in a compiled loop"
             ax.semilogy(ns, [r[metric] for r in rows], "o-", color=colors.get(c), lw=1.5, ms=4,
                         label=label)
             if metric == "eval_s":

@@ -150,18 +150,17 @@ def _figures(trajs, loops, out, fmt, dpi):
 
 def _estimates_figure(trajs, out, fmt, dpi):
     tr = theory.truth(paper_example())  # what the estimates estimate
-    true = {"theta_hat_g1": (float(tr.theta[0]), r"$\theta_1/g_1$"),
-            "phi_hat_1": (float(tr.phi[0]), r"$1/g_1$"),
-            "zeta_hat": (float(tr.zeta), r"$1/(\lambda g_2)$")}
-    panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]"), ("phi_hat_1", r"$\hat\phi_1$ [-]"),
-              ("zeta_hat", r"$\hat\zeta$ [-]"), ("d_hat", r"$\hat d$ [-]"))
+    panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]", tr.theta[0], r"$\theta_1/g_1$"),
+              ("phi_hat_1", r"$\hat\phi_1$ [-]", tr.phi[0], r"$1/g_1$"),
+              ("zeta_hat", r"$\hat\zeta$ [-]", tr.zeta, r"$1/(\lambda g_2)$"),
+              ("d_hat", r"$\hat d$ [-]", None, None))  # (estimate, axis label, true value)
     fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")
-    for ax, (key, ylabel) in zip(axes.ravel(), panels, strict=True):
+    for ax, (key, ylabel, value, sym) in zip(axes.ravel(), panels, strict=True):
         for name in ("dsc", "backstepping"):
             traj = trajs[name]
             ax.plot(np.asarray(traj.t), estimates(traj)[key], label=LABELS[name], **STYLE[name])
-        if key in true:
-            value, sym = true[key]
+        if value is not None:
+            value = float(value)
             ax.axhline(value, color="#444444", lw=0.9, ls=":", label="true value")
             ax.annotate(f"{sym} = {value:.3g}", xy=(1.0, value), xycoords=("axes fraction", "data"),
                         xytext=(-4, 3), textcoords="offset points", ha="right", va="bottom",
