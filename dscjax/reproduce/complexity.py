@@ -228,7 +228,7 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
     """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
+    fig, axes = subplots(2, 2, figsize=(9, 6.4))
     for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
         for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
