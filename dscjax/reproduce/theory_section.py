@@ -146,7 +146,7 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
     t0 = time.perf_counter()
     out = files.mkdir(out)
     paper, arrays = paper_check(setup, traj)
-    files.write_npz(out / "lyapunov.npz", {k: np.asarray(v) for k, v in arrays.items()})
+    files.write_npz(out / "lyapunov.npz", arrays)  # each value as np.asarray
     figs = {}
     if fmt:
         figs["lyapunov"] = str(plot_lyapunov(arrays, paper, out / f"fig_lyapunov.{fmt}", dpi))
@@ -157,7 +157,7 @@ def run(out, setup, traj, orders: Sequence[int] = (2,), alpha0: Sequence[float] 
         opts = alpha0_study.default_options(n, alpha0=alpha0, mu=mu)
         opts = dataclasses.replace(opts, t_final=min(t_final, opts.t_final))
         log(f"theory: alpha_0 study, n = {n}, {len(opts.alpha0)} values of alpha_0, "
-            f"mu = {opts.mu:g}, T = {t_final:g} s")
+            f"mu = {opts.mu:g}, T = {opts.t_final:g} s")
         res = alpha0_study.study(alpha0_study.base_setup(n), opts, log=log)
         files.write_json(out / f"alpha0_n{n}.json", res)
         studies.append(res)
