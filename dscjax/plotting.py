@@ -48,8 +48,7 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
     """The Figure (saved to `path`) of four panels: states against the reference, tracking
     error, u, w; a diverged run drawn up to its marked divergence."""
     t = np.asarray(traj.t)
-    signals = {k: np.array(v, dtype=float) for k, v in (
-        ("x", traj.x), ("yr", traj.yr), ("e", traj.e), ("u", traj.u), ("w", traj.w))}
+    signals = {k: np.array(getattr(traj, k), dtype=float) for k in ("x", "yr", "e", "u", "w")}
     diverged = bool(np.asarray(traj.diverged))
     if diverged:  # after the divergence the state is frozen: nothing to show
         t_bad = float(np.asarray(traj.t_diverged))

@@ -149,7 +149,7 @@ def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
 
 def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
     """The windowed L-inf of each gain set against Ts (`labels`: {name: its words})."""
-    fig, ax = subplots(figsize=(6.4, 4.0), layout="constrained")
+    fig, ax = subplots(figsize=(6.4, 4.0))
     ts_ms = 1e3 * np.asarray(result["sample_times"])
     for name in result["names"]:
         r, c = result[name], colors[name]

@@ -228,16 +228,15 @@ def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 15
     """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
     colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    fig, axes = subplots(2, 2, figsize=(9, 6.4), layout="constrained")
+    fig, axes = subplots(2, 2, figsize=(9, 6.4))
     for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
         for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
             name, fit = names.get(c, c), fits[metric]
-            label = name + (": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+            label = name + (", in a compiled loop" if metric == "eval_s" else
+                            ": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
                             if fit.get("ratio_per_order") else "")
-            if metric == "eval_s":
-                label = name + ", in a compiled loop"
             ax.semilogy(ns, [r[metric] for r in rows], "o-", color=colors.get(c), lw=1.5, ms=4,
                         label=label)
             if metric == "eval_s":

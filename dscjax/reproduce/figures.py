@@ -42,8 +42,7 @@ def _time_axes(title: str, ylabel: str, t_after: float | None = None):
     """(fig, axes): one panel against time, and with `t_after` a second one, t >= t_after,
     where the first second's peak no longer sets the scale."""
     rows = 1 if t_after is None else 2
-    fig, axes = subplots(rows, 1, figsize=(6.4, (3.8, 5.6)[rows - 1]), layout="constrained",
-                         squeeze=False)
+    fig, axes = subplots(rows, 1, figsize=(6.4, (3.8, 5.6)[rows - 1]), squeeze=False)
     axes = axes[:, 0]
     axes[0].set_title(title)
     for ax in axes:
@@ -89,8 +88,7 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
     """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
     both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
     hysteresis` draws one model)."""
-    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
-                         layout="constrained")
+    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True)
     for ax, (model, _, u, w) in zip(np.atleast_1d(axes), family.values(), strict=True):
         big = int(np.argmax(np.max(np.abs(u), axis=1)))
         for i in range(len(u)):
@@ -108,7 +106,7 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
 def _figures(trajs, loops, out, fmt, dpi):
     paths = {}
     hyst = paper_example().hysteresis
-    fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True, layout="constrained")
+    fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True)
     axes = np.atleast_1d(axes)
     for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), LOOP_COLORS, strict=False):
         hysteresis_loop(ax, hyst, u, w, f"$w(u)$, $u = {k:g}\\,\\sin(2.3t)$", color)
@@ -150,18 +148,17 @@ def _figures(trajs, loops, out, fmt, dpi):
 
 def _estimates_figure(trajs, out, fmt, dpi):
     tr = theory.truth(paper_example())  # what the estimates estimate
-    true = {"theta_hat_g1": (float(tr.theta[0]), r"$\theta_1/g_1$"),
-            "phi_hat_1": (float(tr.phi[0]), r"$1/g_1$"),
-            "zeta_hat": (float(tr.zeta), r"$1/(\lambda g_2)$")}
-    panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]"), ("phi_hat_1", r"$\hat\phi_1$ [-]"),
-              ("zeta_hat", r"$\hat\zeta$ [-]"), ("d_hat", r"$\hat d$ [-]"))
-    fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True, layout="constrained")
-    for ax, (key, ylabel) in zip(axes.ravel(), panels, strict=True):
+    panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]", tr.theta[0], r"$\theta_1/g_1$"),
+              ("phi_hat_1", r"$\hat\phi_1$ [-]", tr.phi[0], r"$1/g_1$"),
+              ("zeta_hat", r"$\hat\zeta$ [-]", tr.zeta, r"$1/(\lambda g_2)$"),
+              ("d_hat", r"$\hat d$ [-]", None, None))  # (estimate, axis label, true value)
+    fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True)
+    for ax, (key, ylabel, value, sym) in zip(axes.ravel(), panels, strict=True):
         for name in ("dsc", "backstepping"):
             traj = trajs[name]
             ax.plot(np.asarray(traj.t), estimates(traj)[key], label=LABELS[name], **STYLE[name])
-        if key in true:
-            value, sym = true[key]
+        if value is not None:
+            value = float(value)
             ax.axhline(value, color="#444444", lw=0.9, ls=":", label="true value")
             ax.annotate(f"{sym} = {value:.3g}", xy=(1.0, value), xycoords=("axes fraction", "data"),
                         xytext=(-4, 3), textcoords="offset points", ha="right", va="bottom",

@@ -17,6 +17,11 @@ def _yes(b: bool) -> str:
     return "yes" if b else "**no**"
 
 
+def _figures(summary: dict, folder: str) -> str:
+    """"Figures: `a.png`, ...": the figures of a summary, by file name in `folder`."""
+    return "Figures: " + ", ".join(f"`{folder}{Path(p).name}`" for p in summary["figures"].values())
+
+
 def summary_markdown(summary: dict) -> str:
     lines = ["# Reproduction of the paper's Section 4", "",
              f"Horizon {summary['t_final']:g} s, RK4 step {summary['dt']:g} s; 'after 1 s' is the "
@@ -61,8 +66,7 @@ def summary_markdown(summary: dict) -> str:
         lines += ["", theory_markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
     if summary["figures"]:
-        lines += ["", "Figures: " + ", ".join(f"`{Path(p).name}`"
-                                              for p in summary["figures"].values()), ""]
+        lines += ["", _figures(summary, ""), ""]
     return "\n".join(lines)
 
 
@@ -72,10 +76,9 @@ def theory_markdown(summary: dict) -> str:
     ini = p["init"]
     lines = [
         "## Theorem 1 along trajectories (`--theory`)", "",
-        "V(t) of (44) with the true plant parameters (`theory/lyapunov.npz`, "
-        "`theory/fig_lyapunov`). M_(i+1) of (59)-(60) is max |B_(i+1)| measured on the run, so "
-        "every bound below is a **data-driven estimate**; C = e_M + (n-1) mu/2 + the slack that "
-        "sat(S_n/w) leaves in (48). See docs/theory.md.", "",
+        "V(t) of (44) with the true plant parameters (`theory/lyapunov.npz`, `fig_lyapunov`). "
+        "M_(i+1) of (59)-(60) is max |B_(i+1)| on the run: every bound is a **data-driven "
+        "estimate**; C = e_M + (n-1) mu/2 + sat(S_n/w)'s slack in (48) (docs/theory.md).", "",
         "### The paper's example does not satisfy the theorem's assumptions", "",
         f"- Its gains follow (55) for no single alpha_0; as inequalities they allow alpha_0 <= "
         f"{p['alpha0']:.3g}, bound by {p['binding_gain']} (k_2 = 0.45 alone: "
@@ -135,8 +138,7 @@ def theory_markdown(summary: dict) -> str:
                       f"alpha_0^{slope_b:.2f}; the bound is {min(cons):.3g} to {max(cons):.3g} "
                       "times the measured error.", ""]
     if summary["figures"]:
-        lines += ["Figures: " + ", ".join(f"`theory/{Path(p).name}`"
-                                          for p in summary["figures"].values()) + ".", ""]
+        lines += [_figures(summary, "theory/") + ".", ""]
     return "\n".join(lines)
 
 

@@ -55,27 +55,25 @@ def reach(result: dict, name: str) -> str:
             f"({result[name]['why_not'][0]})")
 
 
-def _order(o: dict) -> str:
-    return f"sampled loop tends to the continuous one at order {o['order']:.2f} in Ts"
+def findings(result: dict) -> list[str]:
+    """How far each gain set tracks and the fitted order: summary.md's list, stdout's line."""
+    texts = [f"{LABELS[name]}: {reach(result, name)}" for name in result["names"]]
+    o = result["order"]
+    if o is not None:
+        texts.append(f"the sampled loop tends to the continuous one at order {o['order']:.2f} "
+                     f"in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
+                     f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's "
+                     "gains; one exponential-Euler step of the controller per sample: first "
+                     "order)")
+    return texts
 
 
 def line(result: dict) -> str:
-    """One line for stdout: how far both gain sets track and the fitted order."""
-    texts = [f"{LABELS[name]} {reach(result, name)}" for name in GAINS]
-    if result["order"] is not None:
-        texts.append("the " + _order(result["order"]))
-    return "sampled controller: " + "; ".join(texts)
+    """One line for stdout: summary.md's findings (`findings`)."""
+    return "sampled controller: " + "; ".join(findings(result))
 
 
 def markdown(result: dict) -> str:
-    names = result["names"]
-    lines = ["## The controller sampled at Ts (zero-order hold)", "", *table(result, names),
-             "", criterion(result)]
-    lines += [f"- {LABELS[name]}: {reach(result, name)}" for name in names]
-    o = result["order"]
-    if o is not None:
-        lines += ["", f"The {_order(o)} (max |y_Ts - y| on t >= 1 s, Ts = "
-                  f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's "
-                  f"gains; one exponential-Euler step of the controller per sample: first "
-                  f"order)."]
-    return "\n".join(lines)
+    return "\n".join(["## The controller sampled at Ts (zero-order hold)", "",
+                      *table(result, result["names"]), "", criterion(result),
+                      *(f"- {s}" for s in findings(result))])
