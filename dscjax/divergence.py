@@ -50,9 +50,8 @@ def counted_levels(spec: RunSpec) -> int:
 def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
     """A sampled loop that diverged at its step and again, refined, within one sample period
     of the same time: the loop (Ts, delay, noise) is unstable, not the integrator."""
-    if not spec.sampled:
-        return False
-    return bool(abs(float(t_first) - float(t_refined)) <= float(spec.sample_time) * (1 + 1e-9))
+    return spec.sampled and bool(abs(float(t_first) - float(t_refined))
+                                 <= float(spec.sample_time) * (1 + 1e-9))
 
 
 def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:

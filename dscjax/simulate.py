@@ -130,16 +130,13 @@ class _Loop(NamedTuple):
     frozen: Any
 
 
-def _continuous_project(k, t, y, s, samp):
-    return project(t, y, s)
-
-
 def _loop(setup: Setup, spec: RunSpec) -> _Loop:
     if not spec.sampled:
         return _Loop(lambda t, y, s, samp: vector_field(t, y, s),
                      lambda s, samp: initial_state(s),
                      lambda t, y, s, samp, obs: decay_rates(t, y, s, obs),
-                     _continuous_project if type(setup.hysteresis).projects else None,
+                     (lambda k, t, y, s, samp: project(t, y, s))
+                     if type(setup.hysteresis).projects else None,
                      frozen(setup))
     return _Loop(lambda t, y, s, samp: sampled_vector_field(t, y, s),
                  lambda s, samp: sampled_initial_state(s, samp[0], samp[1]),
@@ -221,9 +218,7 @@ def _split_members(setup, overrides):
     closed = jax.make_jaxpr(member)(one)
     depends = depends_on_inputs(closed.jaxpr)
     full = jax.vmap(member)(overrides)
-    leaves, treedef = jax.tree.flatten(full)
-    if len(leaves) != len(depends):
-        raise AssertionError("setup leaves and jaxpr outputs disagree")
+    leaves, treedef = jax.tree.flatten(full)  # one leaf per output of the jaxpr
     shared = [None if d else leaf[0] for leaf, d in zip(leaves, depends, strict=True)]
     batched = [leaf if d else None for leaf, d in zip(leaves, depends, strict=True)]
 
