@@ -73,10 +73,11 @@ def level_spec(spec: RunSpec, j: int) -> RunSpec:
     return spec.refined(halvings, solver) if j else spec
 
 
-def refuse_traced_refinement(spec: RunSpec, where: str) -> None:
-    """ValueError if `spec` would refine a diverged run: refinement re-runs it on the host,
-    which a traced call cannot do (a silent skip would make the traced function another one)."""
-    if counted_levels(spec):
+def refuse_traced_refinement(spec: RunSpec, where: str, values) -> None:
+    """ValueError if `values` are traced (jit, grad, vmap) and `spec` would refine a diverged
+    run: refinement re-runs it on the host, which a traced call cannot do (a silent skip would
+    make the traced function another one)."""
+    if not validation.is_concrete(values) and counted_levels(spec):
         raise ValueError(
             f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
             f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "
@@ -140,8 +141,6 @@ def divergence_report(traj, state_bound: float | None = None) -> list[str]:
         how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
                STATUS_BOUND: "a state exceeded the state bound"
                + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
-        lines.append(
-            f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time hold the "
-            f"last good state. Reduce dt (RK4 stability) or revise the gains."
-        )
+        lines.append(f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time "
+                     f"hold the last good state. Reduce dt (RK4 stability) or revise the gains.")
     return lines
