@@ -98,12 +98,8 @@ def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refi
         size = 1 << int(np.ceil(np.log2(todo.size)))
         idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
         sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
-
-        def put(dst, src, todo=todo):
-            dst[todo] = src
-            return dst
-
-        out = jax.tree.map(put, out, sub)
+        for dst, src in zip(jax.tree.leaves(out), jax.tree.leaves(sub), strict=True):
+            dst[todo] = src  # out's leaves are its own NumPy arrays: written in place
         levels[todo] = j
         todo = todo[failed(sub)]
     return out, levels
