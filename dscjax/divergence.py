@@ -50,9 +50,8 @@ def counted_levels(spec: RunSpec) -> int:
 def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
     """A sampled loop that diverged at its step and again, refined, within one sample period
     of the same time: the loop (Ts, delay, noise) is unstable, not the integrator."""
-    if not spec.sampled:
-        return False
-    return bool(abs(float(t_first) - float(t_refined)) <= float(spec.sample_time) * (1 + 1e-9))
+    return spec.sampled and bool(abs(float(t_first) - float(t_refined))
+                                 <= float(spec.sample_time) * (1 + 1e-9))
 
 
 def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
@@ -74,10 +73,11 @@ def level_spec(spec: RunSpec, j: int) -> RunSpec:
     return spec.refined(halvings, solver) if j else spec
 
 
-def refuse_traced_refinement(spec: RunSpec, where: str) -> None:
-    """ValueError if `spec` would refine a diverged run: refinement re-runs it on the host,
-    which a traced call cannot do (a silent skip would make the traced function another one)."""
-    if counted_levels(spec):
+def refuse_traced_refinement(spec: RunSpec, where: str, values) -> None:
+    """ValueError if `values` are traced (jit, grad, vmap) and `spec` would refine a diverged
+    run: refinement re-runs it on the host, which a traced call cannot do (a silent skip would
+    make the traced function another one)."""
+    if not validation.is_concrete(values) and counted_levels(spec):
         raise ValueError(
             f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
             f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "
@@ -98,12 +98,8 @@ def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refi
         size = 1 << int(np.ceil(np.log2(todo.size)))
         idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
         sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
-
-        def put(dst, src, todo=todo):
-            dst[todo] = src
-            return dst
-
-        out = jax.tree.map(put, out, sub)
+        for dst, src in zip(jax.tree.leaves(out), jax.tree.leaves(sub), strict=True):
+            dst[todo] = src  # out's leaves are its own NumPy arrays: written in place
         levels[todo] = j
         todo = todo[failed(sub)]
     return out, levels
@@ -141,8 +137,6 @@ def divergence_report(traj, state_bound: float | None = None) -> list[str]:
         how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
                STATUS_BOUND: "a state exceeded the state bound"
                + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
-        lines.append(
-            f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time hold the "
-            f"last good state. Reduce dt (RK4 stability) or revise the gains."
-        )
+        lines.append(f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time "
+                     f"hold the last good state. Reduce dt (RK4 stability) or revise the gains.")
     return lines

@@ -62,10 +62,6 @@ def default_window(t_final, window_start=None):
 # -- on arrays -------------------------------------------------------------------------------
 
 
-def _window(t, t0):
-    return t >= t0
-
-
 def _trapezoid_weights(t, mask):
     """Trapezoid weights over the samples selected by mask (a contiguous tail of t)."""
     dt = jnp.diff(t)
@@ -82,18 +78,18 @@ def linf(e, t=None, t0=None):
     a = jnp.abs(e)
     if t0 is None:
         return jnp.max(a)
-    return jnp.max(jnp.where(_window(t, t0), a, 0.0))
+    return jnp.max(jnp.where(t >= t0, a, 0.0))
 
 
 def l2(e, t, t0=None):
     """sqrt of the trapezoid integral of e^2 over [t0, T] (whole horizon if t0 is None)."""
-    mask = jnp.ones_like(t, dtype=bool) if t0 is None else _window(t, t0)
+    mask = jnp.ones_like(t, dtype=bool) if t0 is None else t >= t0
     return jnp.sqrt(jnp.sum(_trapezoid_weights(t, mask) * e * e))
 
 
 def rms(e, t, t0=None):
     """L2 / sqrt(length of the window)."""
-    mask = jnp.ones_like(t, dtype=bool) if t0 is None else _window(t, t0)
+    mask = jnp.ones_like(t, dtype=bool) if t0 is None else t >= t0
     t_first = jnp.min(jnp.where(mask, t, jnp.inf))
     return l2(e, t, t0) / jnp.sqrt(t[-1] - t_first)
 
@@ -103,7 +99,7 @@ def total_variation(u, t=None, t0=None):
     d = jnp.abs(jnp.diff(u))
     if t0 is None:
         return jnp.sum(d)
-    return jnp.sum(jnp.where(_window(t[:-1], t0), d, 0.0))
+    return jnp.sum(jnp.where(t[:-1] >= t0, d, 0.0))
 
 
 def low_pass(u, t):
@@ -238,11 +234,9 @@ class Combined(eqx.Module):
                      for r, a in zip(self.reductions, acc, strict=True))
 
     def finalize(self, acc, t_final) -> dict[str, Any]:
-        out = {}
         prefixes = self.prefixes or ("",) * len(self.reductions)
-        for prefix, r, a in zip(prefixes, self.reductions, acc, strict=True):
-            out |= {prefix + k: v for k, v in r.finalize(a, t_final).items()}
-        return out
+        return {prefix + k: v for prefix, r, a in zip(prefixes, self.reductions, acc, strict=True)
+                for k, v in r.finalize(a, t_final).items()}
 
 
 class LogSumExp(eqx.Module):

@@ -61,7 +61,7 @@ def objective(setup: Setup, spec: RunSpec | None = None,
     spec = RunSpec.make() if spec is None else spec
     if isinstance(metric, str):
         one_of(metric, "metric", metric_names())
-    if not callable(metric) and not isinstance(metric, str):
+    elif not callable(metric):
         raise ConfigError(f"metric must be a name or a function of the metrics (got "
                           f"{metric!r})")
     if isinstance(paths, str) or not paths:

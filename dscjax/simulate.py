@@ -24,24 +24,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax import closed_loop, divergence, params, validation, xla
 from dscjax import device as dscjax_device
-from dscjax import divergence, params, validation, xla
 from dscjax import metrics as m
-from dscjax.closed_loop import (
-    Sampling,
-    Setup,
-    decay_rates,
-    diagnose,
-    frozen,
-    initial_state,
-    prepared,
-    project,
-    sample_after_step,
-    sampled_frozen,
-    sampled_initial_state,
-    sampled_vector_field,
-    vector_field,
-)
+from dscjax.closed_loop import Sampling, Setup
 from dscjax.divergence import DivergenceError, counted_levels, divergence_report, level_spec
 from dscjax.divergence import refine_rows as refine_rows  # callers import these from here
 from dscjax.divergence import refinement_level as refinement_level
@@ -130,22 +116,19 @@ class _Loop(NamedTuple):
     frozen: Any
 
 
-def _continuous_project(k, t, y, s, samp):
-    return project(t, y, s)
-
-
 def _loop(setup: Setup, spec: RunSpec) -> _Loop:
     if not spec.sampled:
-        return _Loop(lambda t, y, s, samp: vector_field(t, y, s),
-                     lambda s, samp: initial_state(s),
-                     lambda t, y, s, samp, obs: decay_rates(t, y, s, obs),
-                     _continuous_project if type(setup.hysteresis).projects else None,
-                     frozen(setup))
-    return _Loop(lambda t, y, s, samp: sampled_vector_field(t, y, s),
-                 lambda s, samp: sampled_initial_state(s, samp[0], samp[1]),
+        return _Loop(lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
+                     lambda s, samp: closed_loop.initial_state(s),
+                     lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
+                     (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
+                     if type(setup.hysteresis).projects else None,
+                     closed_loop.frozen(setup))
+    return _Loop(lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
+                 lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
                  lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
-                 lambda k, t, y, s, samp: sample_after_step(k, t, y, s, samp[0], samp[1]),
-                 sampled_frozen(setup))
+                 lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
+                 closed_loop.sampled_frozen(setup))
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
@@ -166,7 +149,7 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     common = dict(save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
                   solver=spec.solver, gradient=spec.gradient, frozen=loop.frozen)
     if overrides is None:
-        setup = prepared(setup)
+        setup = closed_loop.prepared(setup)
         y0, args, batch = loop.init(setup, samp), (setup, samp), None
 
         def field(t, y, args):
@@ -202,11 +185,10 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
         n_batch = jax.tree.leaves(overrides)[0].shape[0]
         t = jnp.broadcast_to(t, (n_batch, t.shape[0]))
         dt = jnp.broadcast_to(dt, (n_batch,))
-    return Trajectory(
-        t=t, x=res.ys.x, w=res.obs.w, h=res.ys.h, u=res.obs.u, u_dot=res.obs.u_dot, yr=res.obs.yr,
-        S=res.obs.S, ctrl=res.ys.ctrl, metrics=finalize(res.acc, t_final), status=res.status,
-        dt=dt, refinements=jnp.zeros_like(res.status.code),
-    )
+    return Trajectory(t=t, x=res.ys.x, w=res.obs.w, h=res.ys.h, u=res.obs.u, u_dot=res.obs.u_dot,
+                      yr=res.obs.yr, S=res.obs.S, ctrl=res.ys.ctrl,
+                      metrics=finalize(res.acc, t_final), status=res.status, dt=dt,
+                      refinements=jnp.zeros_like(res.status.code))
 
 
 def _split_members(setup, overrides):
@@ -215,15 +197,13 @@ def _split_members(setup, overrides):
     e.g., the reference's sin(omega t) once per step, not once per member."""
 
     def member(values):
-        return prepared(params.set_many(setup, values))
+        return closed_loop.prepared(params.set_many(setup, values))
 
     one = jax.tree.map(lambda v: v[0], overrides)
     closed = jax.make_jaxpr(member)(one)
     depends = depends_on_inputs(closed.jaxpr)
     full = jax.vmap(member)(overrides)
-    leaves, treedef = jax.tree.flatten(full)
-    if len(leaves) != len(depends):
-        raise AssertionError("setup leaves and jaxpr outputs disagree")
+    leaves, treedef = jax.tree.flatten(full)  # one leaf per output of the jaxpr
     shared = [None if d else leaf[0] for leaf, d in zip(leaves, depends, strict=True)]
     batched = [leaf if d else None for leaf, d in zip(leaves, depends, strict=True)]
 
@@ -271,23 +251,12 @@ def _batch_program(overrides):
     return _simulate if rows <= xla.LEAN_ROWS else _simulate_batch
 
 
-def simulate(
-    setup: Setup,
-    t_final: float = 20.0,
-    dt: float = 1e-3,
-    *,
-    spec: RunSpec | None = None,
-    save_every: int = 1,
-    window_start: float | None = None,
-    state_bound: float = 1e6,
-    solver: str = "rk4",
-    refine: int = DEFAULT_REFINE,
-    sample_time: float | None = None,
-    throw: bool = True,
-    progress: Callable[[float], None] | None = None,
-    extra=None,
-    device=None,
-) -> Trajectory:
+def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
+             spec: RunSpec | None = None, save_every: int = 1,
+             window_start: float | None = None, state_bound: float = 1e6, solver: str = "rk4",
+             refine: int = DEFAULT_REFINE, sample_time: float | None = None, throw: bool = True,
+             progress: Callable[[float], None] | None = None, extra=None,
+             device=None) -> Trajectory:
     """Simulate the closed loop on t_k = k dt, k = 0..t_final/dt.
 
     Args:
@@ -324,13 +293,11 @@ def simulate(
         if extra is not None:
             raise ValueError("simulate: give progress or extra, not both")
         extra = _Progress(spec.n_steps, progress)
-    if not validation.is_concrete((setup, spec)):
-        divergence.refuse_traced_refinement(spec, "simulate")
+    divergence.refuse_traced_refinement(spec, "simulate", (setup, spec))
     with _placed(spec, device, 1, setup):
         traj = _simulate(setup, spec.program(), None, extra)
-        concrete = validation.is_concrete(traj.status)
-        if not concrete:  # inside jit with concrete inputs
-            divergence.refuse_traced_refinement(spec, "simulate")
+        concrete = validation.is_concrete(traj.status)  # not: inside jit, the inputs concrete
+        divergence.refuse_traced_refinement(spec, "simulate", traj.status)
         t_first = traj.t_diverged
         for j in range(1, counted_levels(spec) + 1):
             if not (concrete and bool(traj.diverged)):
@@ -343,7 +310,7 @@ def simulate(
     if throw and bool(traj.diverged):
         if int(traj.refinements) and divergence.sampled_unstable(spec, t_first, traj.t_diverged):
             raise DivergenceError(divergence.sampled_unstable_line(spec, traj.t_diverged), traj)
-        why = "" if spec.sampled else diagnose(setup, traj)
+        why = "" if spec.sampled else closed_loop.diagnose(setup, traj)
         raise DivergenceError(divergence_report(traj, float(spec.state_bound))[0] + why, traj)
     return traj
 
@@ -396,22 +363,13 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
         validation.check_filters(setup, float(spec.dt))
 
 
-def simulate_batch(
-    setup: Setup,
-    overrides: Mapping[str, Any],
-    t_final: float = 20.0,
-    dt: float = 1e-3,
-    *,
-    spec: RunSpec | None = None,
-    save_every: int | None = None,
-    window_start: float | None = None,
-    state_bound: float = 1e6,
-    checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
-    refine: int = DEFAULT_REFINE,
-    solver: str = "rk4",
-    sample_time: float | None = None,
-    device=None,
-) -> Trajectory:
+def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 20.0,
+                   dt: float = 1e-3, *, spec: RunSpec | None = None,
+                   save_every: int | None = None, window_start: float | None = None,
+                   state_bound: float = 1e6,
+                   checkpoint_every: int | None = DEFAULT_CHECKPOINT_EVERY,
+                   refine: int = DEFAULT_REFINE, solver: str = "rk4",
+                   sample_time: float | None = None, device=None) -> Trajectory:
     """Simulate `setup` with the parameters at the paths of `overrides` replaced by the rows
     of its arrays (leading axis B) in one jitted call; only those leaves are batched. Never
     raises on divergence (`traj.status`, `divergence_report`); diverged rows' metrics are NaN.
@@ -458,13 +416,11 @@ def simulate_batch(
     def level(j, ov):
         return _batch_program(ov)(setup, level_spec(spec, j).program(), ov)
 
-    if not validation.is_concrete((setup, spec, overrides)):
-        divergence.refuse_traced_refinement(spec, "simulate_batch")
+    divergence.refuse_traced_refinement(spec, "simulate_batch", (setup, spec, overrides))
     with _placed(spec, device, next(iter(sizes.values()), 1), (setup, overrides)):
         traj = level(0, overrides)
-        if not validation.is_concrete(traj.status):
-            divergence.refuse_traced_refinement(spec, "simulate_batch")
-        elif counted_levels(spec):  # host-side
+        divergence.refuse_traced_refinement(spec, "simulate_batch", traj.status)
+        if counted_levels(spec):  # host-side
             traj = divergence.refine_diverged(traj, overrides, level, counted_levels(spec))
     return traj
 

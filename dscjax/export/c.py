@@ -42,7 +42,10 @@ class _Real:
 
 
 class _OutOfRange(ValueError):
-    pass
+    def error(self, precision: str, where: str = "") -> ExportError:
+        """The ExportError of this constant (`where`: the operation it is an operand of)."""
+        return ExportError(f"controller: the constant {self.args[0]:g}{where} is beyond the "
+                           f"range of C {precision}; export it in double (--precision double)")
 
 
 def _float_literal(f: float) -> str:
@@ -110,9 +113,7 @@ class _Emitter:
             try:
                 self.op(op)
             except _OutOfRange as e:
-                raise ExportError(f"controller: the constant {e.args[0]:g} ({op.where}) is "
-                                  f"beyond the range of C {self.real.name}; export it in "
-                                  f"double (--precision double)") from None
+                raise e.error(self.real.name, f" ({op.where})") from None
 
     def op(self, op: Op):
         out = op.outs[0]
@@ -289,8 +290,7 @@ def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict
     try:
         return {HEADER: _header(law, spec, source, gains, real), SOURCE: _source(law, real)}
     except _OutOfRange as e:  # outside an operation: an initial value, the sample time
-        raise ExportError(f"controller: the constant {e.args[0]:g} is beyond the range of C "
-                          f"{precision}; export it in double (--precision double)") from None
+        raise e.error(precision) from None
 
 
 def _header(law, spec, source, gains, real) -> str:

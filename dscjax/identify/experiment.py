@@ -66,11 +66,9 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     dtype = t.dtype
     h0 = hyst.init_state(u[0]) if h0 is None else h0
     h0 = jax.tree.map(lambda a: jnp.asarray(a, dtype), h0)
-    n_int = t.size - 1
-    restart = np.zeros(n_int, bool)
-    which = np.zeros(n_int, np.int32)
+    which = np.zeros(t.size - 1, np.int32)  # > 0: the segment the interval's end sample starts
     for s, k in enumerate(exp.starts[1:], start=1):
-        restart[k - 1], which[k - 1] = True, s  # after interval k-1, sample k starts segment s
+        which[k - 1] = s  # after interval k-1, sample k starts segment s
     x0 = x_init[0] if exp.plant else jnp.zeros((0,), dtype)
     x_inits = x_init if exp.plant else jnp.zeros((1, 0), dtype)
 
@@ -106,7 +104,7 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
         x = jnp.where(again, x_inits[s], x)
         return (x, h), (x, hyst.output(u1, h), end)
 
-    xs = (t[:-1], t[1:], u[:-1], u[1:], jnp.asarray(restart), jnp.asarray(which))
+    xs = (t[:-1], t[1:], u[:-1], u[1:], jnp.asarray(which > 0), jnp.asarray(which))
     (_, h_last), (x, w, ends) = jax.lax.scan(interval, (x0, h0), xs)
     if final:
         return h_last

@@ -116,9 +116,8 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
 def read_records(s: IdentifySettings, data: str, order: int | None
                  ) -> tuple[Record, Record | None]:
     """The record and the validation record (None: the record's tail) of the settings."""
-    record = read(data, order)
-    val = None if s.validate is None else read(s.validate, order, "--validate")
-    return record, val
+    return read(data, order), (None if s.validate is None
+                               else read(s.validate, order, "--validate"))
 
 
 def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> list[str]:
@@ -129,10 +128,9 @@ def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> 
     box = {e.name: [e.low, e.high] for e in res.estimates if e.identifiable}
     if box:
         table["tuning"] = {"robust": {"ranges": box}}
-    header = (f"dscjax identify: {source['data']} fitted to {source['model']}; the free numbers "
-              f"{', '.join(e.name for e in res.estimates)} identified,\n"
-              f"[tuning.robust.ranges]: their 95 % intervals (dscjax tune --batch B tunes for "
-              f"them)")
+    header = (f"dscjax identify: {', '.join(e.name for e in res.estimates)} of "
+              f"{source['model']} fitted to {source['data']};\n[tuning.robust.ranges]: their "
+              f"95 % intervals, the box `dscjax tune --batch B` tunes for")
     files.write_text(out / "identified.toml", config.dumps_toml(table, header=header))
     summary = summary_of(res, source, box)
     files.write_json(out / "report.json", summary)
@@ -180,11 +178,9 @@ def markdown(s: dict) -> str:
     lines = [
         "# Identification", "",
         f"{s['data']['data']}: {s['samples']} samples ({s['fitted_samples']} fitted), measured "
-        f"{', '.join(s['columns'])}; the {s['experiment']} experiment ("
-        + ("u in, the plant's states out" if s["experiment"] == "plant" else
-           "u in, the actuator's output w out")
-        + f"), u {'held' if s['hold'] == 'zoh' else 'linear'} between samples, "
-        f"{s['segments']} segment(s). Model: {s['data']['model']}.", "",
+        f"{', '.join(s['columns'])}; the {s['experiment']} experiment, u "
+        f"{'held' if s['hold'] == 'zoh' else 'linear'} between samples, {s['segments']} "
+        f"segment(s). Model: {s['data']['model']}.", "",
         f"Levenberg-Marquardt on exact Jacobians: {s['solver']['steps']} steps "
         f"({s['solver']['status']}), {len(s['solver']['starts'])} start(s), "
         f"{s['solver']['seconds']:.1f} s.", "",
@@ -202,8 +198,7 @@ def markdown(s: dict) -> str:
                       for e in s["parameters"]])]
     if s["not_identifiable"]:
         lines += ["", f"**Not identifiable from this record**: {', '.join(s['not_identifiable'])}"
-                  " (other values fit as well): fix them (leave them out of --free) or record "
-                  "an experiment that excites them."]
+                  " (other values fit as well): leave them out of --free, or excite them."]
     names = [e["name"] for e in s["parameters"]]
     lines += ["", "Correlation of the estimates:", "",
               *table(("", *(f"`{n}`" for n in names)),
