@@ -1,4 +1,6 @@
-"""`dscjax sweep`: Monte-Carlo or grid robustness sweep with fixed gains.
+"""`dscjax sweep`: Monte-Carlo or grid robustness sweep: many plants simulated with the gains
+fixed, and how well they track. A [sweep] table of --config may hold the settings
+(docs/sweeps.md); the command line wins.
 
 Writes into DIR: sweep.json (what was run), chunks/chunk_*.npz (one per finished block),
 results.npz (one row per sample: parameters and metrics), summary.json, summary.md (the same for a
@@ -34,14 +36,10 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    d = sweep.SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description=f"Simulate many plants with the gains fixed and report how well they track "
-        f"(default: the paper's example, {names} each {d.method.name} within "
-        f"+-{100 * DEFAULT_REL:g} %, {d.samples:,} samples). A [sweep] table of the config "
-        f"may hold the settings (docs/sweeps.md); the command line wins.")
+        description=__doc__)
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [sweep] table")
     p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config, e.g. the gains.json "
@@ -54,15 +52,15 @@ def add_parser(sub):
                       "hysteresis.alpha=0.7:1.3:41")
     axes.add_argument("--range", action="append", dest="ranges",
                       metavar="PATH=LOW:HIGH|PATH=P%", help=f"a sampled parameter (repeat; "
-                      f"replaces the default {names}), e.g. plant.g[1]=0.8:1.2 or "
-                      "hysteresis.alpha=30%%")
+                      f"replaces the default: {names} each +-{100 * DEFAULT_REL:g}%%), e.g. "
+                      "plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
     schema.add_arguments(p, sweep.SweepSettings, "sweep.")
     common.add_run_args(p, SWEEP_KEYS)
     common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
     for dtype in ("float64", "float32"):
         prec.add_argument(f"--{dtype}", action="store_true",
-                          help=f"run in {dtype} (default {d.dtype})")
+                          help=f"run in {dtype} (default {sweep.SweepSettings.dtype})")
     add_out_arg(p, "results/sweep",
                 resume="continue a sweep in DIR: skip the blocks already written",
                 overwrite="discard a sweep in DIR and start afresh")

@@ -72,15 +72,14 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     c, n = result.columns, result.n
     div = np.asarray(c["diverged"], bool)
     ok = ~div
-    refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
+    refined = np.asarray(c["refinements"], np.int64) > 0
     out = {
         "n_samples": n,
         "n_tracked": int((~div & ~refined).sum()),
         "n_refined": int((~div & refined).sum()),
         "n_diverged": int(div.sum()),
         "divergence_rate": float(div.mean()) if n else 0.0,
-        "smallest_dt_tried": (float(np.min(c["dt_used"][div])) if div.any() and "dt_used" in c
-                              else None),
+        "smallest_dt_tried": float(np.min(c["dt_used"][div])) if div.any() else None,
         "quantiles_over": "samples that did not diverge",
         "quantiles": {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS},
     }
@@ -119,8 +118,8 @@ def sample_record(columns, param_names, i) -> dict[str, Any]:
         "metrics": {m: float(columns[m][i]) for m in METRICS},
         "diverged": bool(columns["diverged"][i]),
         "t_diverged": (float(columns["t_diverged"][i]) if columns["diverged"][i] else None),
-        "refinements": int(columns["refinements"][i]) if "refinements" in columns else 0,
-        "dt_used": float(columns["dt_used"][i]) if "dt_used" in columns else None,
+        "refinements": int(columns["refinements"][i]),
+        "dt_used": float(columns["dt_used"][i]),
     }
 
 
@@ -146,12 +145,9 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
                         **{k: info[k] for k in RUN_KEYS})
-    out = []
-    for i in rows:
-        row = np.array([result.columns[p][i] for p in result.param_names])
-        s = params.set_row(setup, cols, row)
-        out.append(simulate(s, spec=spec, throw=False))
-    return out
+    index = np.asarray(rows, np.int64)
+    table = np.stack([result.columns[p][index] for p in result.param_names], axis=1)
+    return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
 
 
 def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
