@@ -247,10 +247,9 @@ def run(args) -> int:
     summary |= {"nominal_params": {r.name: r.param.nominal(setup) for r in ranges},
                 "run": info | {"loop": sweep.loop_text(info)}, "warnings": warnings}
 
-    worst_rows, kinds = sweep.trace_rows(c, settings.worst)
-    rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
-    rows = list(worst_rows) + list(rand_rows)
-    kinds = kinds + ["random"] * len(rand_rows)
+    rows, kinds = sweep.trace_rows(c, settings.worst)
+    rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=rows)
+    rows, kinds = [*rows, *rand_rows], kinds + ["random"] * len(rand_rows)
     columns = [r.param for r in ranges]
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every, ranges_params=columns)
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]

@@ -308,17 +308,14 @@ def markdown(summary: Mapping[str, Any]) -> str:
     keys = [*QUANTILES, "mean"]
     lines += table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
                                                ["-"] * len(keys))) for m in q], _cell)
-    for title, recs, extra in (("Worst samples that track", summary.get("worst", []), False),
-                               ("First samples to diverge", summary.get("first_diverged", []),
-                                True)):
-        if not recs:
-            continue
-        names = list(recs[0]["params"])
-        head = ["sample", *names] + (["t_diverged", "dt_used"] if extra else
-                                     [*WORST_COLUMNS, "refinements"])
-        body = [(r["sample"], *[r["params"][p] for p in names])
-                + ((r["t_diverged"], r["dt_used"]) if extra else
-                   (*[r["metrics"][m] for m in WORST_COLUMNS], r["refinements"]))
-                for r in recs]
-        lines += ["", f"## {title}", ""] + table(head, body, _cell)
+    for title, key, columns in (
+            ("Worst samples that track", "worst", [*WORST_COLUMNS, "refinements"]),
+            ("First samples to diverge", "first_diverged", ["t_diverged", "dt_used"])):
+        recs = summary.get(key, [])
+        # each column a field of the record (`sample_record`) or one of its metrics
+        body = [(r["sample"], *r["params"].values(),
+                 *(r[k] if k in r else r["metrics"][k] for k in columns)) for r in recs]
+        if recs:
+            head = ["sample", *recs[0]["params"], *columns]
+            lines += ["", f"## {title}", ""] + table(head, body, _cell)
     return "\n".join(lines) + "\n"
