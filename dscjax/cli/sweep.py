@@ -40,12 +40,10 @@ def add_parser(sub):
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
         description=__doc__)
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
-                   "example; may hold a [sweep] table")
-    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config, e.g. the gains.json "
-                   "of `dscjax tune`, whose [controller] table and sampled-controller "
-                   "[simulation] keys (sample_time, delay, noise, ...) are laid over --config; "
-                   "the rest is ignored")
+    common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
+    p.add_argument("--gains", metavar="FILE", help="a config (e.g. `dscjax tune`'s gains.json) "
+                   "whose [controller] and sampled-controller [simulation] keys (sample_time, "
+                   "delay, noise, ...) are laid over --config; the rest is ignored")
     axes = p.add_mutually_exclusive_group()
     axes.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "
@@ -55,8 +53,6 @@ def add_parser(sub):
                       f"replaces the default: {names} each +-{100 * DEFAULT_REL:g}%%), e.g. "
                       "plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
     schema.add_arguments(p, sweep.SweepSettings, "sweep.")
-    common.add_run_args(p, SWEEP_KEYS)
-    common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
     for dtype in ("float64", "float32"):
         prec.add_argument(f"--{dtype}", action="store_true",

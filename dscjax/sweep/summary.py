@@ -289,8 +289,7 @@ def markdown(summary: Mapping[str, Any]) -> str:
     lines += ["", "## float32 trust", ""]
     if check is None and run["dtype"] == "float32":
         lines.append("The sweep ran in float32 and was **not re-checked** in float64 "
-                     "(`dscjax.sweep.float64_check`): its metrics may differ from float64 by "
-                     "far more than round-off.")
+                     "(`float64_check`): its metrics may be far from float64's.")
     elif check is None:
         lines.append(f"The sweep ran in {run['dtype']}: nothing to re-check.")
     else:
