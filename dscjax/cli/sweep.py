@@ -1,4 +1,6 @@
-"""`dscjax sweep`: Monte-Carlo or grid robustness sweep with fixed gains.
+"""`dscjax sweep`: Monte-Carlo or grid robustness sweep: many plants simulated with the gains
+fixed, and how well they track. A [sweep] table of --config may hold the settings
+(docs/sweeps.md); the command line wins.
 
 Writes into DIR: sweep.json (what was run), chunks/chunk_*.npz (one per finished block),
 results.npz (one row per sample: parameters and metrics), summary.json, summary.md (the same for a
@@ -34,35 +36,27 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
 
 
 def add_parser(sub):
-    d = sweep.SweepSettings()
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
     p = sub.add_parser(
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description=f"Simulate many plants with the gains fixed and report how well they track "
-        f"(default: the paper's example, {names} each {d.method.name} within "
-        f"+-{100 * DEFAULT_REL:g} %, {d.samples:,} samples). A [sweep] table of the config "
-        f"may hold the settings (docs/sweeps.md); the command line wins.")
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
-                   "example; may hold a [sweep] table")
-    p.add_argument("--gains", metavar="FILE", help="JSON (or TOML) config, e.g. the gains.json "
-                   "of `dscjax tune`, whose [controller] table and sampled-controller "
-                   "[simulation] keys (sample_time, delay, noise, ...) are laid over --config; "
-                   "the rest is ignored")
+        description=__doc__)
+    common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
+    p.add_argument("--gains", metavar="FILE", help="a config (e.g. `dscjax tune`'s gains.json) "
+                   "whose [controller] and sampled-controller [simulation] keys (sample_time, "
+                   "delay, noise, ...) are laid over --config; the rest is ignored")
     axes = p.add_mutually_exclusive_group()
     axes.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "
                       "hysteresis.alpha=0.7:1.3:41")
     axes.add_argument("--range", action="append", dest="ranges",
                       metavar="PATH=LOW:HIGH|PATH=P%", help=f"a sampled parameter (repeat; "
-                      f"replaces the default {names}), e.g. plant.g[1]=0.8:1.2 or "
-                      "hysteresis.alpha=30%%")
+                      f"replaces the default: {names} each +-{100 * DEFAULT_REL:g}%%), e.g. "
+                      "plant.g[1]=0.8:1.2 or hysteresis.alpha=30%%")
     schema.add_arguments(p, sweep.SweepSettings, "sweep.")
-    common.add_run_args(p, SWEEP_KEYS)
-    common.add_example_arg(p)
     prec = p.add_mutually_exclusive_group()
     for dtype in ("float64", "float32"):
         prec.add_argument(f"--{dtype}", action="store_true",
-                          help=f"run in {dtype} (default {d.dtype})")
+                          help=f"run in {dtype} (default {sweep.SweepSettings.dtype})")
     add_out_arg(p, "results/sweep",
                 resume="continue a sweep in DIR: skip the blocks already written",
                 overwrite="discard a sweep in DIR and start afresh")
@@ -249,10 +243,9 @@ def run(args) -> int:
     summary |= {"nominal_params": {r.name: r.param.nominal(setup) for r in ranges},
                 "run": info | {"loop": sweep.loop_text(info)}, "warnings": warnings}
 
-    worst_rows, kinds = sweep.trace_rows(c, settings.worst)
-    rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=worst_rows)
-    rows = list(worst_rows) + list(rand_rows)
-    kinds = kinds + ["random"] * len(rand_rows)
+    rows, kinds = sweep.trace_rows(c, settings.worst)
+    rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=rows)
+    rows, kinds = [*rows, *rand_rows], kinds + ["random"] * len(rand_rows)
     columns = [r.param for r in ranges]
     trajs = sweep.simulate_rows(setup, result, rows, save_every=every, ranges_params=columns)
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]

@@ -20,6 +20,7 @@ VERSION = 1
 TOP = 8  # best distinct points a trace keeps
 DIVERGED = 8  # diverged candidates a trace keeps (for a re-check)
 _FLOATS = ("best_loss", "start_loss", "seconds", "compile_seconds")
+_ARRAYS = ("top_z", "top_loss", "top_feasible", "diverged_z")  # saved as "t_<name>"
 _INTS = ("iterations", "evaluations", "gradients", "best_iteration", "best_feasible", "stall",
          "restarts")
 
@@ -189,8 +190,7 @@ def save(path: str | Path, trace: Trace, arrays: dict, fingerprint: Any) -> None
            "t_best_z": trace.best_z if trace.best_z is not None else np.zeros(0),
            "t_floats": np.array([getattr(trace, k) for k in _FLOATS], dtype=np.float64),
            "t_ints": np.array([int(getattr(trace, k)) for k in _INTS], dtype=np.int64),
-           "t_top_z": trace.top_z, "t_top_loss": trace.top_loss,
-           "t_top_feasible": trace.top_feasible, "t_diverged_z": trace.diverged_z}
+           **{f"t_{k}": getattr(trace, k) for k in _ARRAYS}}
     out |= {f"h_{c}": np.asarray([row[c] for row in trace.history]) for c in columns}
     out |= {f"m_{k}": np.asarray(v) for k, v in arrays.items()}
     files.write_npz(path, out)
@@ -214,8 +214,7 @@ def load(path: str | Path) -> Saved | None:
     best = Incumbent(a["t_best_z"] if a["t_best_z"].size else None, floats.pop("best_loss"),
                      bool(ints.pop("best_feasible")), ints.pop("best_iteration"))
     trace = Trace(meta["method"], a["t_start_z"], best=best, done=meta["done"],
-                  history=history, top_z=a["t_top_z"], top_loss=a["t_top_loss"],
-                  top_feasible=a["t_top_feasible"], diverged_z=a["t_diverged_z"], **floats, **ints)
+                  history=history, **{k: a[f"t_{k}"] for k in _ARRAYS}, **floats, **ints)
     return Saved(trace, {k[2:]: v for k, v in a.items() if k.startswith("m_")}, meta["fingerprint"])
 
 

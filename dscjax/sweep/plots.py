@@ -44,15 +44,21 @@ def error_label(t0: float, t_final: float) -> str:
 NARROW = 0.1
 
 
-def spread_text(v) -> str:
-    """How wide the colour scale is, relative to the values' median: a narrow scale (say
-    0.0221-0.0226) paints 2 % differences as the whole colour range."""
+def _span(v) -> tuple[float, float, float | None]:
+    """The least and the largest finite value of v, and their difference relative to the
+    median (None unless the median is > 0)."""
     v = np.asarray(v, np.float64)
     v = v[np.isfinite(v)]
     lo, hi, med = v.min(), v.max(), np.median(v)
-    if med <= 0 or hi <= lo:
+    return lo, hi, ((hi - lo) / med if med > 0 else None)
+
+
+def spread_text(v) -> str:
+    """How wide the colour scale is, relative to the values' median: a narrow scale (say
+    0.0221-0.0226) paints 2 % differences as the whole colour range."""
+    lo, hi, rel = _span(v)
+    if rel is None or hi <= lo:
         return f"colours span {lo:.3g} to {hi:.3g}"
-    rel = (hi - lo) / med
     return (f"colours span {lo:.3g} to {hi:.3g} = "
             + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"))
 
@@ -209,12 +215,9 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     ax.set_xlabel(param_label(names[0]))
     ax.set_ylabel(param_label(names[1]))
     kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
-    narrow = ""
-    if finite.size and np.median(finite) > 0:
-        rel = (finite.max() - finite.min()) / np.median(finite)
-        if rel < NARROW:
-            narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: "
-                      f"the cells differ little")
+    rel = _span(finite)[2] if finite.size else None
+    narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
+              "cells differ little") if rel is not None and rel < NARROW else ""
     ax.set_title((title + "\n" if title else "") + f"windowed L∞ error over {kind}; other "
                  "swept parameters pooled" + narrow, fontsize=10)
     if handles:

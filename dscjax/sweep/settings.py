@@ -61,9 +61,6 @@ class SweepSettings:
             raise ConfigError(f"{prefix}.heatmap must be two parameter names (got "
                               f"{list(self.heatmap)!r})")
 
-    def resolved_ranges(self, setup) -> tuple[Range, ...]:
-        return tuple(r.resolve(setup) for r in (self.ranges or default_ranges(setup)))
-
     def n_samples(self) -> int:
         if self.method.grid:
             return int(np.prod([r.num for r in self.ranges], dtype=np.int64))
@@ -100,9 +97,10 @@ def to_table(s: SweepSettings, setup) -> dict[str, Any]:
     decimal that gives the bound in the sweep's dtype), as data for the TOML writer."""
     table = {k: v for k, v in schema.to_table(s).items() if v != "none"
              and not (k == "samples" and s.method.grid)}
+    resolved = (r.resolve(setup) for r in s.ranges or default_ranges(setup))
     table["grid" if s.method.grid else "ranges"] = {
         r.name: [validation.shortest(r.low, s.dtype), validation.shortest(r.high, s.dtype)]
-        + ([r.num] if r.num is not None else []) for r in s.resolved_ranges(setup)}
+        + ([r.num] if r.num is not None else []) for r in resolved}
     return table
 
 

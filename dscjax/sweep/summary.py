@@ -72,15 +72,14 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     c, n = result.columns, result.n
     div = np.asarray(c["diverged"], bool)
     ok = ~div
-    refined = np.asarray(c.get("refinements", np.zeros(n)), np.int64) > 0
+    refined = np.asarray(c["refinements"], np.int64) > 0
     out = {
         "n_samples": n,
         "n_tracked": int((~div & ~refined).sum()),
         "n_refined": int((~div & refined).sum()),
         "n_diverged": int(div.sum()),
         "divergence_rate": float(div.mean()) if n else 0.0,
-        "smallest_dt_tried": (float(np.min(c["dt_used"][div])) if div.any() and "dt_used" in c
-                              else None),
+        "smallest_dt_tried": float(np.min(c["dt_used"][div])) if div.any() else None,
         "quantiles_over": "samples that did not diverge",
         "quantiles": {m: _quantiles(np.asarray(c[m], np.float64)[ok]) for m in METRICS},
     }
@@ -119,8 +118,8 @@ def sample_record(columns, param_names, i) -> dict[str, Any]:
         "metrics": {m: float(columns[m][i]) for m in METRICS},
         "diverged": bool(columns["diverged"][i]),
         "t_diverged": (float(columns["t_diverged"][i]) if columns["diverged"][i] else None),
-        "refinements": int(columns["refinements"][i]) if "refinements" in columns else 0,
-        "dt_used": float(columns["dt_used"][i]) if "dt_used" in columns else None,
+        "refinements": int(columns["refinements"][i]),
+        "dt_used": float(columns["dt_used"][i]),
     }
 
 
@@ -146,12 +145,9 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
                         **{k: info[k] for k in RUN_KEYS})
-    out = []
-    for i in rows:
-        row = np.array([result.columns[p][i] for p in result.param_names])
-        s = params.set_row(setup, cols, row)
-        out.append(simulate(s, spec=spec, throw=False))
-    return out
+    index = np.asarray(rows, np.int64)
+    table = np.stack([result.columns[p][index] for p in result.param_names], axis=1)
+    return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
 
 
 def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
@@ -293,8 +289,7 @@ def markdown(summary: Mapping[str, Any]) -> str:
     lines += ["", "## float32 trust", ""]
     if check is None and run["dtype"] == "float32":
         lines.append("The sweep ran in float32 and was **not re-checked** in float64 "
-                     "(`dscjax.sweep.float64_check`): its metrics may differ from float64 by "
-                     "far more than round-off.")
+                     "(`float64_check`): its metrics may be far from float64's.")
     elif check is None:
         lines.append(f"The sweep ran in {run['dtype']}: nothing to re-check.")
     else:
@@ -312,17 +307,14 @@ def markdown(summary: Mapping[str, Any]) -> str:
     keys = [*QUANTILES, "mean"]
     lines += table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
                                                ["-"] * len(keys))) for m in q], _cell)
-    for title, recs, extra in (("Worst samples that track", summary.get("worst", []), False),
-                               ("First samples to diverge", summary.get("first_diverged", []),
-                                True)):
-        if not recs:
-            continue
-        names = list(recs[0]["params"])
-        head = ["sample", *names] + (["t_diverged", "dt_used"] if extra else
-                                     [*WORST_COLUMNS, "refinements"])
-        body = [(r["sample"], *[r["params"][p] for p in names])
-                + ((r["t_diverged"], r["dt_used"]) if extra else
-                   (*[r["metrics"][m] for m in WORST_COLUMNS], r["refinements"]))
-                for r in recs]
-        lines += ["", f"## {title}", ""] + table(head, body, _cell)
+    for title, key, columns in (
+            ("Worst samples that track", "worst", [*WORST_COLUMNS, "refinements"]),
+            ("First samples to diverge", "first_diverged", ["t_diverged", "dt_used"])):
+        recs = summary.get(key, [])
+        # each column a field of the record (`sample_record`) or one of its metrics
+        body = [(r["sample"], *r["params"].values(),
+                 *(r[k] if k in r else r["metrics"][k] for k in columns)) for r in recs]
+        if recs:
+            head = ["sample", *recs[0]["params"], *columns]
+            lines += ["", f"## {title}", ""] + table(head, body, _cell)
     return "\n".join(lines) + "\n"

@@ -163,13 +163,11 @@ class Problem:
         values = {r.name: float(lo[j] + z[j] * (hi[j] - lo[j])) for j, r in enumerate(self.ranges)}
         if self.disturbance is None:
             return values, None
-        model = self.setup_at(z).plant.disturbance
-        spec = self.disturbance
-        record = {"kind": spec.kind, "K": spec.k, "bound": spec.bound,
-                  "period": float(model.period) if spec.kind == "fourier" else None,
-                  "horizon": float(model.horizon) if spec.kind == "spline" else None,
-                  "coefficients": np.asarray(model.coefficient_values()).tolist()}
-        return values, record
+        model, spec = self.setup_at(z).plant.disturbance, self.disturbance
+        return values, {"kind": spec.kind, "K": spec.k, "bound": spec.bound,
+                        "period": float(model.period) if spec.kind == "fourier" else None,
+                        "horizon": float(model.horizon) if spec.kind == "spline" else None,
+                        "coefficients": np.asarray(model.coefficient_values()).tolist()}
 
     def fingerprint(self) -> dict[str, Any]:
         from dscjax import config
