@@ -129,7 +129,8 @@ def from_table(cls, table: Mapping[str, Any], prefix: str, base=None, *,
     changes |= {k: from_table(subs[k], v, f"{prefix}{k}.", getattr(obj, k))
                 for k, v in table.items() if k in subs}
     obj = dataclasses.replace(obj, **changes)
-    check = getattr(obj, "validate", None)
+    # a group's cross-field check, unless `validate` is one of its settings (identify's)
+    check = None if "validate" in keys else getattr(obj, "validate", None)
     if check is not None:
         check(field_name)
     return obj

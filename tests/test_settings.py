@@ -162,3 +162,11 @@ def test_docs_settings_md_holds_the_declarations_tables():
     for name in settings_groups():
         assert f"<!-- settings {name} -->" in text
     assert "| `tuning.optimizer.time_limit` | `200` |" in text
+
+
+def test_a_setting_named_validate_is_read_not_called():
+    # identify's --validate FILE is a setting named like a group's cross-field check
+    from dscjax.identify.run import IdentifySettings
+
+    s = st.from_table(IdentifySettings, {"validate": "other.csv"}, "identify.")
+    assert s.validate == "other.csv"
