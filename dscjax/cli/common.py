@@ -46,8 +46,6 @@ def settings_groups() -> dict:
             "worst": WorstSettings, "identify": IdentifySettings}
 
 
-BLOCK = "<!-- settings {} -->", "<!-- end settings -->"
-
 
 def settings_docs(text: str) -> str:
     """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
@@ -59,7 +57,7 @@ def settings_docs(text: str) -> str:
 
     def table(match):
         rows = settings.doc_rows(groups[match[1]], f"{match[1]}.")
-        return "\n".join([BLOCK[0].format(match[1]), *rows, BLOCK[1]])
+        return "\n".join([f"<!-- settings {match[1]} -->", *rows, "<!-- end settings -->"])
 
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
 
@@ -70,15 +68,9 @@ def count(low: int = 0):
     return settings.argtype(AtLeast(low))
 
 
-def finite_float(text: str, positive: bool = False) -> float:
-    """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
-    where `positive`."""
-    return settings.argtype(Positive() if positive else Number())(text)
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    return finite_float(text, positive=True)
+# argparse types: a finite number (inf and nan are refused, naming the option), and one > 0
+finite_float = settings.argtype(Number())
+positive_float = settings.argtype(Positive())
 
 
 def positive_numbers(text: str | None, option: str) -> list[float] | None:
@@ -227,21 +219,16 @@ def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
 
 
-def chattering_text(index: float) -> str:
-    """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
-    docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
-    (index 1.04 <= 1.5)"."""
-    if chatters(index):
-        return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
-    return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
-
-
 def effort_text(metrics, window: str) -> str:
-    """The effort part of a run's verdict: "effort on [t0, T] s: max|u| 6.29, TV(u) 19,408,
-    CHATTERING (...)", from its metrics (`max_abs_u_window`, `tv_u_window`,
-    `chattering_index`)."""
+    """The effort part of a run's verdict, from its metrics: "effort on [t0, T] s: max|u| 6.29,
+    TV(u) 19,408, CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "..., no chattering (index
+    1.04 <= 1.5)" (`dscjax.metrics.chatters`; the definition is docs/numerics.md's)."""
+    index = metrics["chattering_index"]
+    verdict = (f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
+               if chatters(index) else
+               f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})")
     return (f"effort on {window}: max|u| {figure(metrics['max_abs_u_window'])}, TV(u) "
-            f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
+            f"{figure(metrics['tv_u_window'])}, {verdict}")
 
 
 def untrusted_text(untrusted, rel_diff: dict, rtol: float, fix: str, on: str = "") -> str:

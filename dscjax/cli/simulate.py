@@ -77,9 +77,9 @@ def run(args) -> int:
     common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
                   f"{loop_text(options.to_table())}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
-        print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
-              f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
-              f"says otherwise); the metrics use every step", file=sys.stderr)
+        print(f"  saving one step in {every:,} and the last: {n_points:,} points (at most "
+              f"{MAX_SAVED_POINTS:,} unless --save-every says otherwise); the metrics use "
+              f"every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
@@ -190,11 +190,6 @@ BIG_FILE = 256 * 2**20  # a trajectory.npz above this size is announced before t
 # Peak memory of a saved trajectory in multiples of its size: the result, its host copy and the
 # npz being written
 MEMORY_FACTOR = 3
-
-
-def _ordinal(k: int) -> str:
-    suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
-    return f"{k:,}{suffix}"
 
 
 def interrupt_hint(args) -> str:
