@@ -280,10 +280,9 @@ def gradient_work(setup, steps: int, copies: int = 1):
 def add_example_arg(p):
     """--example, and --print-config, which prints the whole effective config (`print_config`)."""
     p.add_argument("--example", default="paper", metavar="NAME",
-                   help="the built-in closed loop a --config is laid over: paper (default), "
-                   "backstepping (the paper's plant, backstepping baseline), order-N (the "
-                   "order-n family, N >= 2, e.g. order-4), or pi, gpi, bouc_wen (the paper's "
-                   "loop behind that hysteresis model); --print-config shows it whole")
+                   help="the built-in loop a --config is laid over: paper (default), "
+                   "backstepping (its baseline), order-N (N >= 2, e.g. order-4), or pi, gpi, "
+                   "bouc_wen (the paper's loop, that hysteresis); --print-config shows it whole")
     p.add_argument("--print-config", action="store_true",
                    help="print the whole effective config as TOML ([simulation], the model "
                    "tables and this command's own settings) and exit; --config loads it back")
@@ -297,11 +296,6 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
     for name, group in (groups or {}).items():
         docs |= settings.meanings(group, f"{name}.")
     sys.stdout.write(config.to_toml(setup, spec, extra=extra, docs=docs))
-
-
-def example_setup(args):
-    """The Setup of --example (float64), the base every config is laid over."""
-    return config.example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 
 
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
@@ -324,9 +318,10 @@ def config_data(args) -> dict:
 
 
 def config_setup(args, base_spec=None):
-    """(Setup, RunSpec) of --config laid over --example (and `base_spec`), before the
+    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), before the
     command line's options."""
-    return config.from_dict(config_data(args), base=example_setup(args), base_spec=base_spec)
+    base = config.example(args.example or "paper", dtype=np.float64)
+    return config.from_dict(config_data(args), base=base, base_spec=base_spec)
 
 
 def own_settings(args, group, prefix: str, base):
