@@ -40,9 +40,8 @@ def add_parser(sub):
     p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
     p.add_argument("--param", action="append", dest="paths", metavar="PATH",
-                   help="a number by its config path, a vector whole (controller.k) or one "
-                   "element (plant.g[1]) (repeat; default every number of the controller, "
-                   "plant and hysteresis model)")
+                   help="a number by its config path, a vector (controller.k) or an element "
+                   "(plant.g[1]) (repeat; default every number of the loop's models)")
     p.add_argument("--batch", type=common.count(0), default=0, metavar="B",
                    help="the mean over B plants drawn uniformly from --range, as tune's "
                    "training batch (default 0: the nominal plant)")
@@ -86,10 +85,10 @@ def run(args) -> int:
     choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
-    plants = f"mean over {args.batch} plants" if args.batch else "the nominal plant"
-    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}"
-                  + (f" (seed {args.seed})" if args.batch else "")
-                  + f", {what}, {loop_text(spec.to_table())}; on {choice}", warnings)
+    plants = (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
+              else "the nominal plant")
+    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}, {what}, "
+                  f"{loop_text(spec.to_table())}; on {choice}", warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "
@@ -155,11 +154,9 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     if not trust["untrusted"]:
         return check, None
 
-    def why(name):
-        if name in trust["sign_flips"]:
+    def why(name):  # the other sign, or one has no value (nan): both values
+        if name in trust["sign_flips"] or np.isnan(got[name]) or np.isnan(want[name]):
             return f"{got[name]:+.3g} against {want[name]:+.3g}"
-        if np.isnan(got[name]) or np.isnan(want[name]):
-            return f"{got[name]:.3g} against {want[name]:.3g}"  # one has no value (nan)
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences

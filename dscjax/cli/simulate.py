@@ -39,9 +39,8 @@ def add_parser(sub):
     common.add_config_args(p, run_keys=SIMULATE_KEYS)
     add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,
-                   help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
-                   f"also zeta_hat = 1) (default: the config's controller.variant, "
-                   f"{DSC.variant})")
+                   help="DSC variant: full, or without hysteresis compensation (d_hat = 0, or "
+                   f"also zeta_hat = 1) (default controller.variant, {DSC.variant})")
     add_overwrite_arg(p, plot="skip trajectory.png")
     return p
 
@@ -129,17 +128,12 @@ def run(args) -> int:
         "t_diverged": float(traj.t_diverged) if bool(traj.diverged) else None,
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": float(options.dt), "dtype": options.dtype,
-        "save_every": every, "sample_time": options.sample_time,
-        "solver": options.solver.name,
-        "refinements": int(traj.refinements),
-        "solver_used": used,
-        "dt_used": float(traj.dt),
+        "save_every": every, "sample_time": options.sample_time, "solver": options.solver.name,
+        "refinements": int(traj.refinements), "solver_used": used, "dt_used": float(traj.dt),
         "window_start": float(options.window_start),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
            if "V" in arrays else {}),
-        "wall_time_s": elapsed,
-        "warnings": warnings,
-        "float32_check": f32,
+        "wall_time_s": elapsed, "warnings": warnings, "float32_check": f32,
     })
     if not args.no_plot:
         sampled = f", sampled every {options.sample_time:g} s" if options.sampled else ""
@@ -148,9 +142,8 @@ def run(args) -> int:
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
-        what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
-                if diverged is not None else
-                f"the reported run is {used} at dt = {float(traj.dt):g} s")
+        what = ("diverged at every level down to" if diverged is not None else
+                "the reported run is") + f" {used} at dt = {float(traj.dt):g} s"
         print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop: the "
               f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
               file=sys.stderr)
