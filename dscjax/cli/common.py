@@ -166,9 +166,8 @@ def portable_device(args, spec):
     of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
     note on stderr. A device typed on the command line is left to `choose_device`, which
     refuses one that is not here."""
-    if getattr(args, "device", None) or spec.device != "gpu":
-        return spec
-    if any(d.platform != "cpu" for d in device.visible()):
+    if (getattr(args, "device", None) or spec.device != "gpu"
+            or any(d.platform != "cpu" for d in device.visible())):
         return spec
     say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
         f"the CPU")

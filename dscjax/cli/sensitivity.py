@@ -41,7 +41,7 @@ def add_parser(sub):
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
     p.add_argument("--param", action="append", dest="paths", metavar="PATH",
                    help="a number by its config path, a vector (controller.k) or an element "
-                   "(plant.g[1]) (repeat; default every number of the loop's models)")
+                   "(plant.g[1]) (repeat; default every number of controller, plant, hysteresis)")
     p.add_argument("--batch", type=common.count(0), default=0, metavar="B",
                    help="the mean over B plants drawn uniformly from --range, as tune's "
                    "training batch (default 0: the nominal plant)")

@@ -114,8 +114,8 @@ def run(args) -> int:
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     f32 = None
     if options.dtype == "float32" and diverged is None:
-        print("  re-checking the run in float64 (which metrics float32 can be trusted with) "
-              "...", file=sys.stderr)
+        print("  re-checking in float64 (which metrics float32 can be trusted with) ...",
+              file=sys.stderr)
         f32 = _float64_check(setup, options, metrics)
         if f32["untrusted"]:
             warnings = [*warnings, common.untrusted_text(
