@@ -170,21 +170,21 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
 
 
 def _print_table(result) -> None:
-    names = result.names
-    width = max(len("parameter"), *(len(n) for n in names))
+    width = max(len("parameter"), *(len(n) for n in result.names))
     cols = [max(len(m), 10) for m in result.metrics]
+
+    def row(label, cells):
+        print(f"{label:<{width}}  " + "  ".join(f"{x:>{c}}" for x, c in
+                                                zip(cells, cols, strict=True)))
+
     print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
-    print(f"{'parameter':<{width}}  " + "  ".join(f"{m:>{c}}" for m, c in
-                                                 zip(result.metrics, cols, strict=True)))
-    print(f"{'value of m':<{width}}  " + "  ".join(f"{v:>{c}.4g}" for v, c in
-                                                  zip(result.value, cols, strict=True)))
+    row("parameter", result.metrics)
+    row("value of m", [f"{v:.4g}" for v in result.value])
     n = result.normalised
     # by the largest |d ln m / d ln p| over the metrics, those without one (p = 0) last
     largest = np.max(np.where(np.isnan(n), -1.0, np.abs(n)), axis=0)
     for j in np.argsort(-largest, kind="stable"):
-        print(f"{names[j]:<{width}}  " + "  ".join(
-            f"{'-':>{c}}" if np.isnan(n[i, j]) else f"{n[i, j]:>+{c}.3e}"
-            for i, c in enumerate(cols)))
+        row(result.names[j], ["-" if np.isnan(x) else f"{x:+.3e}" for x in n[:, j]])
 
 
 def _plot(result, path, title: str) -> None:
