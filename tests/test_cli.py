@@ -61,7 +61,7 @@ def test_tiny_dt_saves_a_bounded_trajectory_and_says_so(tmp_path, capsys):
     assert main(["simulate", "--t-final", "0.1", "--dt", "1e-6", "--no-plot",
                  "--out", str(out)]) == 0
     err = capsys.readouterr().err
-    assert "saving every 5th step and the last: 20,001 points" in err
+    assert "saving one step in 5 and the last: 20,001 points" in err
     data = np.load(out / "trajectory.npz")
     assert data["t"].shape == (20_001,) and data["t"][1] == pytest.approx(5e-6)
     assert json.loads((out / "metrics.json").read_text())["save_every"] == 5
@@ -71,7 +71,7 @@ def test_a_prime_step_count_keeps_about_the_documented_number_of_points(tmp_path
     out = tmp_path / "prime"
     assert main(["simulate", "--t-final", "0.20011", "--dt", "1e-5", "--no-plot",
                  "--out", str(out)]) == 0  # 20,011 steps, a prime
-    assert "saving every 2nd step and the last: 10,007 points" in capsys.readouterr().err
+    assert "saving one step in 2 and the last: 10,007 points" in capsys.readouterr().err
     t = np.load(out / "trajectory.npz")["t"]
     assert t.shape == (10_007,) and t[-2] == pytest.approx(0.2001) and t[-1] == 0.20011
     assert json.loads((out / "metrics.json").read_text())["save_every"] == 2

@@ -46,8 +46,6 @@ def settings_groups() -> dict:
             "worst": WorstSettings, "identify": IdentifySettings}
 
 
-BLOCK = "<!-- settings {} -->", "<!-- end settings -->"
-
 
 def settings_docs(text: str) -> str:
     """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
@@ -59,7 +57,7 @@ def settings_docs(text: str) -> str:
 
     def table(match):
         rows = settings.doc_rows(groups[match[1]], f"{match[1]}.")
-        return "\n".join([BLOCK[0].format(match[1]), *rows, BLOCK[1]])
+        return "\n".join([f"<!-- settings {match[1]} -->", *rows, "<!-- end settings -->"])
 
     return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
 
@@ -70,15 +68,9 @@ def count(low: int = 0):
     return settings.argtype(AtLeast(low))
 
 
-def finite_float(text: str, positive: bool = False) -> float:
-    """An argparse type: a finite number (inf and nan are refused, naming the option), > 0
-    where `positive`."""
-    return settings.argtype(Positive() if positive else Number())(text)
-
-
-def positive_float(text: str) -> float:
-    """An argparse type: a finite number > 0."""
-    return finite_float(text, positive=True)
+# argparse types: a finite number (inf and nan are refused, naming the option), and one > 0
+finite_float = settings.argtype(Number())
+positive_float = settings.argtype(Positive())
 
 
 def positive_numbers(text: str | None, option: str) -> list[float] | None:
@@ -174,9 +166,8 @@ def portable_device(args, spec):
     of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
     note on stderr. A device typed on the command line is left to `choose_device`, which
     refuses one that is not here."""
-    if getattr(args, "device", None) or spec.device != "gpu":
-        return spec
-    if any(d.platform != "cpu" for d in device.visible()):
+    if (getattr(args, "device", None) or spec.device != "gpu"
+            or any(d.platform != "cpu" for d in device.visible())):
         return spec
     say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
         f"the CPU")
@@ -227,21 +218,16 @@ def horizon_text(t_final: float, dt: float, steps: int) -> str:
     return f"T = {t_final:g} s at dt = {dt:g} s ({steps:,} steps)"
 
 
-def chattering_text(index: float) -> str:
-    """The chattering verdict of a run (`dscjax.metrics.chatters`; the definition is
-    docs/numerics.md's): "CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "no chattering
-    (index 1.04 <= 1.5)"."""
-    if chatters(index):
-        return f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
-    return f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})"
-
-
 def effort_text(metrics, window: str) -> str:
-    """The effort part of a run's verdict: "effort on [t0, T] s: max|u| 6.29, TV(u) 19,408,
-    CHATTERING (...)", from its metrics (`max_abs_u_window`, `tv_u_window`,
-    `chattering_index`)."""
+    """The effort part of a run's verdict, from its metrics: "effort on [t0, T] s: max|u| 6.29,
+    TV(u) 19,408, CHATTERING (index 29.3 > 1.5; docs/numerics.md)" or "..., no chattering (index
+    1.04 <= 1.5)" (`dscjax.metrics.chatters`; the definition is docs/numerics.md's)."""
+    index = metrics["chattering_index"]
+    verdict = (f"CHATTERING (index {figure(index)} > {CHATTER_RATIO:g}; docs/numerics.md)"
+               if chatters(index) else
+               f"no chattering (index {figure(index)} <= {CHATTER_RATIO:g})")
     return (f"effort on {window}: max|u| {figure(metrics['max_abs_u_window'])}, TV(u) "
-            f"{figure(metrics['tv_u_window'])}, {chattering_text(metrics['chattering_index'])}")
+            f"{figure(metrics['tv_u_window'])}, {verdict}")
 
 
 def untrusted_text(untrusted, rel_diff: dict, rtol: float, fix: str, on: str = "") -> str:
@@ -293,10 +279,9 @@ def gradient_work(setup, steps: int, copies: int = 1):
 def add_example_arg(p):
     """--example, and --print-config, which prints the whole effective config (`print_config`)."""
     p.add_argument("--example", default="paper", metavar="NAME",
-                   help="the built-in closed loop a --config is laid over: paper (default), "
-                   "backstepping (the paper's plant, backstepping baseline), order-N (the "
-                   "order-n family, N >= 2, e.g. order-4), or pi, gpi, bouc_wen (the paper's "
-                   "loop behind that hysteresis model); --print-config shows it whole")
+                   help="the built-in loop a --config is laid over: paper (default), "
+                   "backstepping (its baseline), order-N (N >= 2, e.g. order-4), or pi, gpi, "
+                   "bouc_wen (the paper's loop, that hysteresis); --print-config shows it whole")
     p.add_argument("--print-config", action="store_true",
                    help="print the whole effective config as TOML ([simulation], the model "
                    "tables and this command's own settings) and exit; --config loads it back")
@@ -310,11 +295,6 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
     for name, group in (groups or {}).items():
         docs |= settings.meanings(group, f"{name}.")
     sys.stdout.write(config.to_toml(setup, spec, extra=extra, docs=docs))
-
-
-def example_setup(args):
-    """The Setup of --example (float64), the base every config is laid over."""
-    return config.example(getattr(args, "example", "paper") or "paper", dtype=np.float64)
 
 
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
@@ -337,9 +317,10 @@ def config_data(args) -> dict:
 
 
 def config_setup(args, base_spec=None):
-    """(Setup, RunSpec) of --config laid over --example (and `base_spec`), before the
+    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), before the
     command line's options."""
-    return config.from_dict(config_data(args), base=example_setup(args), base_spec=base_spec)
+    base = config.example(args.example or "paper", dtype=np.float64)
+    return config.from_dict(config_data(args), base=base, base_spec=base_spec)
 
 
 def own_settings(args, group, prefix: str, base):

@@ -25,13 +25,11 @@ def add_parser(sub):
     p = sub.add_parser(
         "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
         description=__doc__)
-    p.add_argument("--gains", metavar="FILE", help="a config (e.g. the gains.json of `dscjax "
-                   "tune`) laid over --config: its gains, plant model, reference and "
-                   "[simulation] sample time, delay and discretisation")
+    p.add_argument("--gains", metavar="FILE", help="a config laid over --config (e.g. the "
+                   "gains.json of `dscjax tune`)")
     common.add_config_args(p, run_keys=EXPORT_KEYS, float32=False)
     p.add_argument("--precision", choices=PRECISIONS, default="double", help="the C's real "
-                   "type throughout, double (default: the simulated loop to round-off) or "
-                   "float (for a single-precision FPU; docs/export.md: how closely it agrees)")
+                   "type: double (default; the simulated loop to round-off) or float")
     add_out_arg(p, "results/export")
     return p
 
@@ -39,15 +37,12 @@ def add_parser(sub):
 def load(args):
     """(setup, spec, source) of --example, --config, --gains and the options, float64, the
     spec sampled (a config without a sample time and no --sample-time: one line)."""
-    setup = common.example_setup(args)
-    spec = None
-    source = [f"--example {args.example}"]
-    for option, path in (("--config", args.config), ("--gains", args.gains)):
-        if path:
-            setup, spec = config.from_dict(config.read(path), base=setup, base_spec=spec)
-            source.append(f"{option} {path}")
-    if spec is None:
-        spec = config.from_dict({}, base=setup)[1]
+    setup, spec = common.config_setup(args)
+    source = [f"--example {args.example}", *([f"--config {args.config}"] if args.config else [])]
+    if args.gains:
+        setup, spec = config.from_dict(config.read(args.gains, "--gains"), base=setup,
+                                       base_spec=spec)
+        source.append(f"--gains {args.gains}")
     overrides, names = common.run_overrides(args)
     ts = overrides.get("sample_time", spec.sample_time)
     if ts is None:

@@ -17,7 +17,6 @@ import numpy as np
 from dscjax import files, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, prepare_out
-from dscjax.files import write_npz
 from dscjax.hysteresis import sine_loops
 from dscjax.plotting import hysteresis_loop, subplots
 from dscjax.reproduce import RC
@@ -33,10 +32,8 @@ def add_parser(sub):
     p = sub.add_parser(
         "hysteresis", help="a hysteresis model alone: w(t) and its loop for u = A sin(omega t)",
         description=__doc__)
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config; only its "
-                   "[hysteresis] table is used, and simulation.t_final, simulation.dt and "
-                   "simulation.device where --t-final, --dt and --device are not given "
-                   "(default: the --example's)")
+    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config: only its "
+                   "[hysteresis] and simulation.t_final, dt, device (options win) are used")
     common.add_example_arg(p)
     p.add_argument("--amplitude", type=common.finite_float, action="append", metavar="A",
                    help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
@@ -82,9 +79,9 @@ def run(args) -> int:
                   f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "
                   f"on {choice}")
     t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, dt)
-    write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
-                                     omega=np.asarray(args.omega, float),
-                                     kind=np.asarray(hyst.kind)))
+    files.write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
+                                           omega=np.asarray(args.omega, float),
+                                           kind=np.asarray(hyst.kind)))
     _plot(hyst, amplitudes, args.omega, u, w, out / "loop.png")
     for a, wk in zip(amplitudes, w, strict=True):
         print(f"A = {a:g}: max|w| = {np.max(np.abs(wk)):.6g}, w(T) = {wk[-1]:.6g}")

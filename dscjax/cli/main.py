@@ -1,10 +1,7 @@
-"""Entry point of the `dscjax` command.
-
-Errors a user can fix print one line and exit 2 (no traceback); a diverged simulation exits 3;
-a full disk exits 4, naming the file and the command that continues; Ctrl-C exits 130, SIGTERM
-143 and SIGHUP 129 (128 + the signal's number, as a shell reports it), each saying what was kept
-and how to continue (a subcommand's `interrupt_hint(args)`).
-"""
+"""Results go to stdout; the banner, progress, notes, warnings and errors to stderr. Exit
+codes: 0 ok; 2 bad input (one line, no traceback) or --out in use; 3 diverged; 4 disk full
+(naming the file and the command that continues); 128 + the signal's number if interrupted (130
+Ctrl-C, 143 SIGTERM, 129 SIGHUP), saying what was kept and how to continue."""
 
 from __future__ import annotations
 
@@ -65,9 +62,7 @@ def build_parser(commands) -> argparse.ArgumentParser:
     parser = _Parser(
         prog="dscjax",
         description="Differentiable simulator of adaptive dynamic surface control with hysteresis.",
-        epilog="Results go to stdout; the banner, progress, notes, warnings and errors to "
-        "stderr. Exit codes: 0 ok, 2 bad input or --out in use, 3 diverged, 4 disk full, 128 + "
-        "the signal's number if interrupted (130 Ctrl-C, 143 SIGTERM, 129 SIGHUP).",
+        epilog=__doc__,
     )
     parser.add_argument("--version", action=_Version, nargs=0, default=argparse.SUPPRESS,
                         help="show the version, then the JAX backends and devices, and exit")
@@ -98,15 +93,6 @@ def typed_program() -> list[str]:
     if prog and os.path.abspath(prog) == os.path.abspath(__file__):
         return [sys.executable, "-m", "dscjax.cli.main"]
     return [prog if prog not in ("", "-c") else "dscjax"]
-
-
-def _continue(args, module) -> str:
-    """After a full disk: the command that continues (--resume, where something is kept to
-    continue) or that runs the command again."""
-    resumable = getattr(module, "resumable", None)
-    if resumable is not None and resumable(args):
-        return f"rerun with: {resume_command(args)}"
-    return f"run the same command again: {rerun_command(args)}"
 
 
 def main(argv=None) -> int:
@@ -148,9 +134,12 @@ def main(argv=None) -> int:
         return EXIT_DIVERGED
     except NoSpace as err:
         why = "" if err.errno == errno.ENOSPC else f" ({err.strerror})"
+        # the command that continues (--resume, where something is kept) or runs it again
+        resumable = getattr(module, "resumable", None)
+        how = (f"rerun with: {resume_command(args)}" if resumable and resumable(args) else
+               f"run the same command again: {rerun_command(args)}")
         print(f"dscjax {args.command}: error: no space left on the device writing "
-              f"{err.filename}{why}; free space and {_continue(args, module)}",
-              file=sys.stderr)
+              f"{err.filename}{why}; free space and {how}", file=sys.stderr)
         return EXIT_NO_SPACE
     except (KeyboardInterrupt, Abort) as stop:
         # a command without its own hint: the files it finished (or nothing), and the

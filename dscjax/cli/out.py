@@ -113,8 +113,8 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     file, cannot be written or is held by another process (one line, exit 2); create it if new
     (removed again if the command leaves it empty); lock it (`files.lock_out`, file `lock`) for
     the command (`args.exit_stack`); refuse a DIR holding `outputs` unless --resume
-    (`resumable`) or --overwrite (deletes them, nothing else)."""
-    check_out(args)
+    (`resumable`) or --overwrite (deletes them, nothing else). `cli.main` ran `check_out`
+    before the command: what the system refuses here all the same is refused below."""
     out = Path(args.out)
     try:
         new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first

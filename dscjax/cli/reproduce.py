@@ -1,4 +1,6 @@
-"""`dscjax reproduce`: the paper's Section 4 in one command (figures, summary, claims)."""
+"""`dscjax reproduce`: the paper's Section 4 in one command. Simulates its example (the DSC,
+both readings without compensation, adaptive backstepping); writes Figs. 1-6, the adaptive
+estimates, summary.json and summary.md, each claim of the paper checked."""
 
 from __future__ import annotations
 
@@ -44,9 +46,7 @@ def add_parser(sub):
     orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
     p = sub.add_parser(
         "reproduce", help="reproduce the paper's simulation study (Figs. 1-6, claims)",
-        description="Simulate the paper's Section 4 example (the DSC, both readings without "
-        "compensation, adaptive backstepping); write Figs. 1-6, the adaptive estimates, "
-        "summary.json and summary.md, each claim of the paper checked.")
+        description=__doc__)
     add_out_arg(p, "results/paper", later=True)
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")

@@ -40,9 +40,8 @@ def add_parser(sub):
     p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")
     p.add_argument("--param", action="append", dest="paths", metavar="PATH",
-                   help="a number by its config path, a vector whole (controller.k) or one "
-                   "element (plant.g[1]) (repeat; default every number of the controller, "
-                   "plant and hysteresis model)")
+                   help="a number by its config path, a vector (controller.k) or an element "
+                   "(plant.g[1]) (repeat; default every number of controller, plant, hysteresis)")
     p.add_argument("--batch", type=common.count(0), default=0, metavar="B",
                    help="the mean over B plants drawn uniformly from --range, as tune's "
                    "training batch (default 0: the nominal plant)")
@@ -86,10 +85,10 @@ def run(args) -> int:
     choice = common.use_device(args, spec.device, rows)
     out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
-    plants = f"mean over {args.batch} plants" if args.batch else "the nominal plant"
-    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}"
-                  + (f" (seed {args.seed})" if args.batch else "")
-                  + f", {what}, {loop_text(spec.to_table())}; on {choice}", warnings)
+    plants = (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
+              else "the nominal plant")
+    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}, {what}, "
+                  f"{loop_text(spec.to_table())}; on {choice}", warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "
@@ -155,11 +154,9 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     if not trust["untrusted"]:
         return check, None
 
-    def why(name):
-        if name in trust["sign_flips"]:
+    def why(name):  # the other sign, or one has no value (nan): both values
+        if name in trust["sign_flips"] or np.isnan(got[name]) or np.isnan(want[name]):
             return f"{got[name]:+.3g} against {want[name]:+.3g}"
-        if np.isnan(got[name]) or np.isnan(want[name]):
-            return f"{got[name]:.3g} against {want[name]:.3g}"  # one has no value (nan)
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences
@@ -173,21 +170,21 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
 
 
 def _print_table(result) -> None:
-    names = result.names
-    width = max(len("parameter"), *(len(n) for n in names))
+    width = max(len("parameter"), *(len(n) for n in result.names))
     cols = [max(len(m), 10) for m in result.metrics]
+
+    def row(label, cells):
+        print(f"{label:<{width}}  " + "  ".join(f"{x:>{c}}" for x, c in
+                                                zip(cells, cols, strict=True)))
+
     print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
-    print(f"{'parameter':<{width}}  " + "  ".join(f"{m:>{c}}" for m, c in
-                                                 zip(result.metrics, cols, strict=True)))
-    print(f"{'value of m':<{width}}  " + "  ".join(f"{v:>{c}.4g}" for v, c in
-                                                  zip(result.value, cols, strict=True)))
+    row("parameter", result.metrics)
+    row("value of m", [f"{v:.4g}" for v in result.value])
     n = result.normalised
     # by the largest |d ln m / d ln p| over the metrics, those without one (p = 0) last
     largest = np.max(np.where(np.isnan(n), -1.0, np.abs(n)), axis=0)
     for j in np.argsort(-largest, kind="stable"):
-        print(f"{names[j]:<{width}}  " + "  ".join(
-            f"{'-':>{c}}" if np.isnan(n[i, j]) else f"{n[i, j]:>+{c}.3e}"
-            for i, c in enumerate(cols)))
+        row(result.names[j], ["-" if np.isnan(x) else f"{x:+.3e}" for x in n[:, j]])
 
 
 def _plot(result, path, title: str) -> None:

@@ -39,9 +39,8 @@ def add_parser(sub):
     common.add_config_args(p, run_keys=SIMULATE_KEYS)
     add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,
-                   help="DSC variant: full, or without hysteresis compensation (d_hat = 0; or "
-                   f"also zeta_hat = 1) (default: the config's controller.variant, "
-                   f"{DSC.variant})")
+                   help="DSC variant: full, or without hysteresis compensation (d_hat = 0, or "
+                   f"also zeta_hat = 1) (default controller.variant, {DSC.variant})")
     add_overwrite_arg(p, plot="skip trajectory.png")
     return p
 
@@ -77,9 +76,9 @@ def run(args) -> int:
     common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
                   f"{loop_text(options.to_table())}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
-        print(f"  saving every {_ordinal(every)} step and the last: {n_points:,} points (at "
-              f"most {MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every "
-              f"says otherwise); the metrics use every step", file=sys.stderr)
+        print(f"  saving one step in {every:,} and the last: {n_points:,} points (at most "
+              f"{MAX_SAVED_POINTS:,} unless --save-every says otherwise); the metrics use "
+              f"every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
@@ -115,8 +114,8 @@ def run(args) -> int:
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     f32 = None
     if options.dtype == "float32" and diverged is None:
-        print("  re-checking the run in float64 (which metrics float32 can be trusted with) "
-              "...", file=sys.stderr)
+        print("  re-checking in float64 (which metrics float32 can be trusted with) ...",
+              file=sys.stderr)
         f32 = _float64_check(setup, options, metrics)
         if f32["untrusted"]:
             warnings = [*warnings, common.untrusted_text(
@@ -129,17 +128,12 @@ def run(args) -> int:
         "t_diverged": float(traj.t_diverged) if bool(traj.diverged) else None,
         "divergence": report[0] if report else None,
         "t_final": options.t_final, "dt": float(options.dt), "dtype": options.dtype,
-        "save_every": every, "sample_time": options.sample_time,
-        "solver": options.solver.name,
-        "refinements": int(traj.refinements),
-        "solver_used": used,
-        "dt_used": float(traj.dt),
+        "save_every": every, "sample_time": options.sample_time, "solver": options.solver.name,
+        "refinements": int(traj.refinements), "solver_used": used, "dt_used": float(traj.dt),
         "window_start": float(options.window_start),
         **({"V_max": float(np.max(arrays["V"])), "V_final": float(np.asarray(arrays["V"])[-1])}
            if "V" in arrays else {}),
-        "wall_time_s": elapsed,
-        "warnings": warnings,
-        "float32_check": f32,
+        "wall_time_s": elapsed, "warnings": warnings, "float32_check": f32,
     })
     if not args.no_plot:
         sampled = f", sampled every {options.sample_time:g} s" if options.sampled else ""
@@ -148,9 +142,8 @@ def run(args) -> int:
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
-        what = (f"diverged at every level down to {used} at dt = {float(traj.dt):g} s"
-                if diverged is not None else
-                f"the reported run is {used} at dt = {float(traj.dt):g} s")
+        what = ("diverged at every level down to" if diverged is not None else
+                "the reported run is") + f" {used} at dt = {float(traj.dt):g} s"
         print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop: the "
               f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
               file=sys.stderr)
@@ -190,11 +183,6 @@ BIG_FILE = 256 * 2**20  # a trajectory.npz above this size is announced before t
 # Peak memory of a saved trajectory in multiples of its size: the result, its host copy and the
 # npz being written
 MEMORY_FACTOR = 3
-
-
-def _ordinal(k: int) -> str:
-    suffix = "th" if 10 <= k % 100 <= 20 else {1: "st", 2: "nd", 3: "rd"}.get(k % 10, "th")
-    return f"{k:,}{suffix}"
 
 
 def interrupt_hint(args) -> str:
