@@ -167,6 +167,16 @@ def differences(old: Any, new: Mapping[str, Any], prefix: str = "") -> list[str]
     return out
 
 
+def resume_file(out: str | Path, marker: str) -> Path:
+    """out/marker, the record of a run that `--resume` continues; ConfigError where it is
+    missing."""
+    path = Path(out) / marker
+    if not path.exists():
+        raise ConfigError(f"--resume: nothing to resume in {out} ({marker} is missing); "
+                          f"run without --resume to start afresh")
+    return path
+
+
 def check_same(old: Any, new: Mapping[str, Any], *, where: str, fix: str) -> None:
     """The one resume-by-fingerprint check: ConfigError unless the stored fingerprint `old`
     (as read back from a file) equals `new`, naming what differs, e.g.
@@ -340,4 +350,5 @@ def _holder(fd: int) -> str:
 
 __all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "atomic_write", "canonical", "check_same",
            "differences", "digest", "dumps", "jsonable", "lock_out", "mkdir", "read_json",
-           "out_problem", "read_npz", "save_figure", "write_json", "write_npz", "write_text"]
+           "out_problem", "read_npz", "resume_file", "save_figure", "write_json", "write_npz",
+           "write_text"]

@@ -115,7 +115,7 @@ def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
-    path = runner.resume_file(out, MANIFEST)
+    path = files.resume_file(out, MANIFEST)
     searched = search_problem(setup, options, cfg)
     desc = runner.describe(searched.setup, options, cfg)
     runner.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),

@@ -201,17 +201,8 @@ def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | No
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line: what is missing, or the old and new values of what differs)
     unless `out` holds a run made with these settings; checked before anything runs."""
-    check_record(resume_file(out, "checkpoint.json"), "problem", describe(setup, options, cfg),
-                 f"--resume: the checkpoint in {out}")
-
-
-def resume_file(out: str | Path, marker: str) -> Path:
-    """out/marker, the record of a run; ConfigError where --resume finds none."""
-    path = Path(out) / marker
-    if not path.exists():
-        raise ConfigError(f"--resume: nothing to resume in {out} ({marker} is missing); "
-                          f"run without --resume to start afresh")
-    return path
+    check_record(files.resume_file(out, "checkpoint.json"), "problem",
+                 describe(setup, options, cfg), f"--resume: the checkpoint in {out}")
 
 
 def check_record(path: Path, key: str, new: dict, where: str,
@@ -335,7 +326,7 @@ def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpo
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
     --overwrite replaces a run there (a tuning run's files removed)."""
     if resume:
-        resume_file(out, marker)
+        files.resume_file(out, marker)
     elif not overwrite and ((out / marker).exists() or (out / "checkpoint.json").exists()):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")

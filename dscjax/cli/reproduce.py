@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from dscjax import files
 from dscjax.cli import common, out
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.reproduce import claim_lines, reproduce, sampling, setups, written
@@ -94,9 +95,8 @@ def run(args) -> int:
     if args.resume and not args.complexity:
         raise ConfigError("--resume continues an interrupted --complexity study (the "
                           "closed-loop runs take seconds and are not kept); add --complexity")
-    if args.resume and not resumable(args):
-        raise ConfigError(f"--resume: nothing to resume in {args.out} ({ROWS} is missing); "
-                          f"run without --resume to start afresh")
+    if args.resume:
+        files.resume_file(args.out, ROWS)
     choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
     prepare_out(args, OUTPUTS, resumable=args.complexity)
     common.banner(args, f"on {choice}")

@@ -73,12 +73,9 @@ def run(args) -> int:
     fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
                    "batch": s.batch, "methods": methods, "coarsening": s.gradient_coarsening}
     if args.resume:
-        if not manifest.exists():
-            raise ConfigError(f"--resume: nothing to resume in {out} ({MANIFEST} is "
-                              f"missing); run without --resume to start afresh")
-        files.check_same(files.read_json(manifest).get("fingerprint"), fingerprint,
-                         where=f"--resume: {manifest}", fix="use the same settings, or "
-                         "--overwrite to start afresh")
+        saved = files.read_json(files.resume_file(out, MANIFEST))
+        files.check_same(saved.get("fingerprint"), fingerprint, where=f"--resume: {manifest}",
+                         fix="use the same settings, or --overwrite to start afresh")
     out = prepare_out(args, OUTPUTS, resumable=True)
     files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
     common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "

@@ -158,9 +158,7 @@ METRICS = ("eqns", "flops", "trace_s", "compile_s", "build_s", "eval_s", "call_s
 def _load_rows(path: Path, settings: dict, log) -> dict:
     """The saved measurements; ConfigError if missing, unreadable or made with other
     settings (resuming them would mix two studies)."""
-    if not path.exists():
-        raise ConfigError(f"--resume: nothing to resume in {path.parent} ({path.name} is "
-                          f"missing); run without --resume to start afresh")
+    files.resume_file(path.parent, path.name)
     try:
         saved = json.loads(path.read_text())
         old = saved.get("settings")

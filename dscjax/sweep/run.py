@@ -249,9 +249,7 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     """ConfigError unless `out` holds a sweep to resume (its sweep.json); given the sweep's
     setup, settings and run, also unless it was made with them (naming the old and new
     values), so that a command refuses before it prints or runs anything."""
-    if not (Path(out) / "sweep.json").exists():
-        raise ConfigError(f"--resume: nothing to resume in {out} (sweep.json is missing); run "
-                          f"without --resume to start afresh")
+    files.resume_file(out, "sweep.json")
     chunk = None if settings is None else settings.chunk or _started_chunk(out)
     if chunk is None or setup is None or spec is None:
         return
