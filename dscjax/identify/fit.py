@@ -191,7 +191,9 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
     cost, lam, nu, steps, status = 0.5 * float(r @ r), LAMBDA0, 2.0, 0, "stopped at max_steps"
     if not math.isfinite(cost):
         status = "the start's residuals are not finite"
-    while math.isfinite(cost) and steps < max_steps:
+    elif theta.size == 0:  # e.g. the actuator alone validated: no state to fit
+        status = "nothing to fit"
+    while math.isfinite(cost) and theta.size and steps < max_steps:
         a, g = jac.T @ jac, jac.T @ r
         d = np.diag(a).copy()
         d[d <= 0] = 1.0
@@ -358,9 +360,7 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
                   {c: jnp.asarray(v) for c, v in record.y.items()},
                   {c: problem.sigma[c] for c in record.y}, jnp.arange(len(record)), (), h0,
                   record.source)
-    # the actuator alone has no state to fit: no step, the residuals (and their empty Jacobian)
-    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)},
-                      max_steps=200 if val.exp.plant else 0)
+    return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
 
 
 def check_segments(segments: int, n: int, field: str = "--segments") -> int:

@@ -130,7 +130,7 @@ def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> 
         table["tuning"] = {"robust": {"ranges": box}}
     header = (f"dscjax identify: {', '.join(e.name for e in res.estimates)} of "
               f"{source['model']} fitted to {source['data']};\n[tuning.robust.ranges]: their "
-              f"95 % intervals, the box `dscjax tune --batch B` tunes for")
+              f"95 % intervals, the box `dscjax tune --config identified.toml --batch B` tunes for")
     files.write_text(out / "identified.toml", config.dumps_toml(table, header=header))
     summary = summary_of(res, source, box)
     files.write_json(out / "report.json", summary)
@@ -210,8 +210,9 @@ def markdown(s: dict) -> str:
               + ", ".join(f"{c} {v:.3g}" for c, v in s["noise_std"].items())
               + f"; residual variance factor {s['residual_variance_factor']:.3g}.", ""]
     if s["robust_box"]:
-        lines += ["identified.toml: the identified config, the 95 % intervals above its "
-                  "[tuning.robust.ranges] (`dscjax tune --batch B` tunes for them).", ""]
+        lines += ["identified.toml: the identified config, with the 95 % intervals above as "
+                  "[tuning.robust.ranges]; `dscjax tune --config DIR/identified.toml --batch B` "
+                  "tunes for them.", ""]
     return "\n".join(lines)
 
 
