@@ -129,7 +129,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     # reported as sweeps report their rows
     summary = {"heldout": {"start": report.batch_stats(before | {"refined": np.zeros(3)}),
                            "tuned": stats}}
-    assert report_md.heldout_counts(summary) == (
+    assert report_md.batch_counts(summary) == (
         "held-out batch (3 plants, start -> tuned gains): tracked 2 -> 2; tracked after "
         "refinement (a numerically stiff run re-done with ETDRK4 at a smaller step) 0 -> 1; "
         "diverged at every step tried 1 -> 0; of the plants that did not diverge, chattering "

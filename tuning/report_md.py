@@ -82,7 +82,7 @@ OUTCOMES = {"n_tracked": "tracked",
             "n_diverged": "diverged at every step tried"}
 
 
-def heldout_counts(summary: dict, key: str = "heldout") -> str | None:
+def batch_counts(summary: dict, key: str = "heldout") -> str | None:
     """A batch's outcomes, start -> tuned gains, as sweeps report theirs (None: no batch):
     the line of report.md and of the console."""
     h = summary.get(key)
@@ -106,7 +106,7 @@ def warnings(s: dict) -> list[str]:
     """The warnings report.md opens with and the console ends with."""
     return [f"{lead}{s[key]}{tail}" for key, lead, tail in (
         ("heldout_warning", "", ""), ("margins_warning", "a margin fails: ", ""),
-        ("sensitivity_warning", "", ' (report.md, "Sensitivity of the constraints")'))
+        ("sensitivity_warning", "", ' (see "Sensitivity of the constraints" in report.md)'))
         if s.get(key)]
 
 
@@ -145,8 +145,7 @@ def text(s: dict, problem, figures) -> str:
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
-        f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). "
-        f"Method: {method_sentence(cfg.optimizer, s['run']['gradient'])}",
+        f"{tuned_text(problem)} Method: {method_sentence(cfg.optimizer, s['run']['gradient'])}",
         "Objective per plant: " + ", ".join(
             f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k))
         + "".join(f"; penalty weight of the {name} bound {weight:g}" for name, bound, weight in (
@@ -213,7 +212,7 @@ def text(s: dict, problem, figures) -> str:
                       (escape(label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
-        lines += ["", f"{heldout_counts(s, key)}. The figures above are over the plants that "
+        lines += ["", f"{batch_counts(s, key)}. The figures above are over the plants that "
                   f"did not diverge (in the loop they name)."]
         if s[key]["requirements"]["tuned"]:
             lines += [""] + [f"- {r['name']}: met on {100 * r['met_fraction']:.1f} % of the "
@@ -283,6 +282,11 @@ def sensitivity_section(sens: dict) -> list[str]:
     return lines
 
 
+def tuned_text(problem) -> str:
+    """What is tuned, for report.md and the console's start line."""
+    return f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)})."
+
+
 def method_sentence(opt, mode: str) -> str:
     if not opt.name.generations:
         words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
@@ -292,9 +296,10 @@ def method_sentence(opt, mode: str) -> str:
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
            f"{opt.popsize or f'sized to about {ROWS} trajectories a generation'}, seed "
            f"{opt.seed})")
-    stalls = (f" or on a stall ({100 * opt.stall_gain:g} % over {opt.stall} generations)"
-              if opt.stall else "")
-    restarts = (f" Restarted from the start point at its own stop{stalls}, the population x "
-                f"{opt.growth}, at most {opt.restarts} times." if opt.restarts else "")
+    stalls = (f" or on a stall (its best loss falling by less than {100 * opt.stall_gain:g} % "
+              f"over {opt.stall} generations)" if opt.stall else "")
+    grows = f", the population x {opt.growth}" if opt.growth > 1 else ""
+    restarts = (f" Restarted from the start point at its own stop{stalls}{grows}, at most "
+                f"{opt.restarts} times." if opt.restarts else "")
     return (f"{opt.name.name}: {cma}; one batched simulation per generation, no gradient."
             + restarts)

@@ -143,7 +143,8 @@ def run(args) -> int:
     limits = [f"{oc.max_steps} {unit}(s)"] if oc.max_steps is not None else []
     limits += [f"{oc.time_limit:g} s"] if oc.time_limit else []
     # (the loop tuned is one of the notes below)
-    common.banner(args, f"{report.problem_sentence(problem)} Method: {how}; "
+    common.banner(args, f"{report.problem_sentence(problem)} {report_md.tuned_text(problem)} "
+                  f"Method: {how}; "
                   + ("at most " + " or ".join(limits) if limits else "no iteration or time limit")
                   + (f" per round; {adv.rounds} adversarial rounds over "
                      + ", ".join(r.spec() for r in searched.ranges)
@@ -234,7 +235,7 @@ def run(args) -> int:
               + ("" if top is None else f"; most sensitive to {top['number']} (elasticity "
                  f"{elasticity.text(top['elasticity'])})"))
     if "heldout" in summary:
-        print(f"  {report_md.heldout_counts(summary)}")
+        print(f"  {report_md.batch_counts(summary)}")
     for line in margins.verdicts(summary["margins"]) if summary["margins"] else []:
         print(f"  {line}")
     common.say(args, "WARNING", *report_md.warnings(summary))
