@@ -3,8 +3,7 @@ whether a directory holds the same run (so that `--resume` never mixes two runs)
 
     write_json(out / "summary.json", summary)        # arrays, NaN, Paths: all handled
     fp = {...}                                        # what determines a run's results
-    check_same(read_json(manifest)["fingerprint"], fp, where=f"--resume: {manifest}",
-               fix="use the same settings, or --overwrite to start afresh")
+    check_record(manifest, "fingerprint", fp, where=f"--resume: {manifest}")
 
 Every write (figures too: `save_figure`) goes to a temporary file beside the target, fsynced
 and renamed over it, so a killed run leaves the previous whole file; a failed write removes its
@@ -167,6 +166,9 @@ def differences(old: Any, new: Mapping[str, Any], prefix: str = "") -> list[str]
     return out
 
 
+SAME_SETTINGS = "use the same settings, or --overwrite to start afresh"  # a resume's fix
+
+
 def resume_file(out: str | Path, marker: str) -> Path:
     """out/marker, the record of a run that `--resume` continues; ConfigError where it is
     missing."""
@@ -177,7 +179,17 @@ def resume_file(out: str | Path, marker: str) -> Path:
     return path
 
 
-def check_same(old: Any, new: Mapping[str, Any], *, where: str, fix: str) -> None:
+def check_record(path: Path, key: str, new: Mapping[str, Any], where: str,
+                 fix: str = SAME_SETTINGS) -> dict:
+    """The JSON record at `path`; ConfigError (one line, the old and new values of what
+    differs) unless its `key` is `new`."""
+    meta = read_json(path)
+    check_same(meta.get(key), new, where=where, fix=fix)
+    return meta
+
+
+def check_same(old: Any, new: Mapping[str, Any], *, where: str,
+               fix: str = SAME_SETTINGS) -> None:
     """The one resume-by-fingerprint check: ConfigError unless the stored fingerprint `old`
     (as read back from a file) equals `new`, naming what differs, e.g.
     ``--resume: DIR/sweep.json was made with other settings (seed 0 (now 1)); FIX``."""
@@ -348,7 +360,7 @@ def _holder(fd: int) -> str:
         return "its details are not written yet"
 
 
-__all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "atomic_write", "canonical", "check_same",
-           "differences", "digest", "dumps", "jsonable", "lock_out", "mkdir", "read_json",
-           "out_problem", "read_npz", "resume_file", "save_figure", "write_json", "write_npz",
-           "write_text"]
+__all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "SAME_SETTINGS", "atomic_write", "canonical",
+           "check_record", "check_same", "differences", "digest", "dumps", "jsonable",
+           "lock_out", "mkdir", "out_problem", "read_json", "read_npz", "resume_file",
+           "save_figure", "write_json", "write_npz", "write_text"]

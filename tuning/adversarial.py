@@ -118,7 +118,7 @@ def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) ->
     path = files.resume_file(out, MANIFEST)
     searched = search_problem(setup, options, cfg)
     desc = runner.describe(searched.setup, options, cfg)
-    runner.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),
+    files.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),
                         f"--resume: {path}")
 
 
@@ -129,7 +129,7 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
     path = out / MANIFEST
     runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
-        return runner.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
+        return files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
     for name in ck.FILES:

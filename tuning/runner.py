@@ -201,17 +201,8 @@ def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | No
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line: what is missing, or the old and new values of what differs)
     unless `out` holds a run made with these settings; checked before anything runs."""
-    check_record(files.resume_file(out, "checkpoint.json"), "problem",
+    files.check_record(files.resume_file(out, "checkpoint.json"), "problem",
                  describe(setup, options, cfg), f"--resume: the checkpoint in {out}")
-
-
-def check_record(path: Path, key: str, new: dict, where: str,
-                 fix: str = "use the same settings, or --overwrite to start afresh") -> dict:
-    """The JSON record at `path`; ConfigError (one line, the old and new values of what
-    differs) unless its `key` is `new`."""
-    meta = files.read_json(path)
-    files.check_same(meta.get(key), new, where=where, fix=fix)
-    return meta
 
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
@@ -339,7 +330,7 @@ def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpo
 def _saved(out: Path, problem: Problem) -> search.Saved:
     """The checkpoint of the run in `out` (the problem must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    check_record(out / "checkpoint.json", "problem", problem.describe(),
+    files.check_record(out / "checkpoint.json", "problem", problem.describe(),
                  f"the checkpoint in {out}", fix)
     saved = search.load(out / STATE_FILE)
     if saved is None:

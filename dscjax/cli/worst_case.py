@@ -73,9 +73,8 @@ def run(args) -> int:
     fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
                    "batch": s.batch, "methods": methods, "coarsening": s.gradient_coarsening}
     if args.resume:
-        saved = files.read_json(files.resume_file(out, MANIFEST))
-        files.check_same(saved.get("fingerprint"), fingerprint, where=f"--resume: {manifest}",
-                         fix="use the same settings, or --overwrite to start afresh")
+        files.check_record(files.resume_file(out, MANIFEST), "fingerprint", fingerprint,
+                           f"--resume: {manifest}")
     out = prepare_out(args, OUTPUTS, resumable=True)
     files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
     common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "

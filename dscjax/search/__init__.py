@@ -108,8 +108,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
           "seed": seed}
     saved = load(path) if resume and path is not None else None
     if saved is not None:
-        files.check_same(saved.fingerprint, fp, where=f"--resume: {path}",
-                         fix="use the same settings, or --overwrite to start afresh")
+        files.check_same(saved.fingerprint, fp, where=f"--resume: {path}")
         trace, state = saved.trace, method.restore(problem, saved.trace.start_z, seed, saved.arrays)
     else:
         x0 = np.array(x0, dtype=np.float64).reshape(-1)

@@ -259,12 +259,8 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again
     tile = old.get("tile") if isinstance(old, dict) else None
-    _check_same(manifest, old, fingerprint(setup, settings, ranges, spec, chunk, tile))
-
-
-def _check_same(manifest: Path, old, new) -> None:
-    files.check_same(old, new, where=f"--resume: {manifest}",
-                     fix="use the same settings, or --overwrite to start afresh")
+    files.check_same(old, fingerprint(setup, settings, ranges, spec, chunk, tile),
+                     where=f"--resume: {manifest}")
 
 
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
@@ -276,7 +272,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
-            _check_same(manifest, files.read_json(manifest).get("fingerprint"), fp)
+            files.check_record(manifest, "fingerprint", fp, f"--resume: {manifest}")
             for b in range(n_blocks):
                 done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
         elif existing and not overwrite:
