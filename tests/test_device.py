@@ -205,7 +205,8 @@ def test_the_banner_says_where_the_run_went_and_why(tmp_path, capsys):
                  str(tmp_path / "o")])
     err = capsys.readouterr().err
     assert code == 0, err
-    assert err.splitlines()[0].endswith("continuous controller; on cpu (as asked)"), err
+    assert err.splitlines()[0].endswith("the continuous loop (RK4 at dt = 0.001 s); on cpu "
+                                        "(as asked)"), err
 
 
 def test_version_lists_the_backends_and_devices(capsys):

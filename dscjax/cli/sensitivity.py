@@ -23,9 +23,10 @@ from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
+from dscjax.runspec import loop_words
 from dscjax.sensitivity import METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
-from dscjax.sweep.summary import float32_trust, loop_text
+from dscjax.sweep.summary import float32_trust
 
 OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "device")
@@ -88,7 +89,7 @@ def run(args) -> int:
     plants = (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
               else "the nominal plant")
     common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}, {what}, "
-                  f"{loop_text(spec.to_table())}; on {choice}", warnings)
+                  f"{loop_words(spec)}; on {choice}", warnings)
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "

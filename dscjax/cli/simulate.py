@@ -21,9 +21,9 @@ from dscjax.params import cast
 from dscjax.plotting import plot_trajectory
 from dscjax.progress import Progress
 from dscjax.reproduce.theory import lyapunov
-from dscjax.runspec import MAX_SAVED_POINTS
+from dscjax.runspec import MAX_SAVED_POINTS, loop_words
 from dscjax.simulate import DivergenceError, check, divergence_report, refinement_level
-from dscjax.sweep.summary import float32_trust, loop_text
+from dscjax.sweep.summary import float32_trust
 from dscjax.validation import fmt_bytes
 
 OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
@@ -74,11 +74,11 @@ def run(args) -> int:
     loop = (f"{c.kind.upper()} ({getattr(c, 'variant', '-')}), n={setup.order}, "
             f"dt={options.dt:g} s, {options.dtype}")
     common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
-                  f"{loop_text(options.to_table())}; on {choice}", warnings)
+                  f"{loop_words(options)}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
         print(f"  saving one step in {every:,} and the last: {n_points:,} points (at most "
-              f"{MAX_SAVED_POINTS:,} unless --save-every says otherwise); the metrics use "
-              f"every step", file=sys.stderr)
+              f"{MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
+              f"otherwise); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
