@@ -79,7 +79,7 @@ def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
     spec = spec or RunSpec.make()
     sim = {k: v for k, v in spec.to_table().items() if v is not None}
     return {"simulation": sim} | {section: model_to_dict(section, getattr(setup, section))
-                                  for section in validation.SECTIONS}
+                                  for section in REGISTRY}
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
@@ -244,7 +244,8 @@ def _coerce(section: str, name: str, value, static: bool, default):
             return value
         return validation.string(value, field)
     where, item = _find(value, bool | np.bool_)
-    validation.not_boolean(item, f"{field}{where}")
+    if where is not None:
+        validation.not_boolean(item, f"{field}{where}")
     where, item = _find(value, str | dict)
     if where is not None:  # NumPy would read "10" as the number 10
         detail = validation.got(item)
@@ -337,7 +338,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     is left to its command."""
     if base is None:
         base = paper_example(dtype=np.float64)
-    allowed = ("simulation", *validation.SECTIONS)
+    allowed = ("simulation", *REGISTRY)
     for key, value in d.items():
         if key in COMMAND_TABLES:
             continue

@@ -77,7 +77,7 @@ def refuse_traced_refinement(spec: RunSpec, where: str, values) -> None:
     """ValueError if `values` are traced (jit, grad, vmap) and `spec` would refine a diverged
     run: refinement re-runs it on the host, which a traced call cannot do (a silent skip would
     make the traced function another one)."""
-    if not validation.is_concrete(values) and counted_levels(spec):
+    if counted_levels(spec) and not validation.is_concrete(values):
         raise ValueError(
             f"{where}: refine={spec.refine} re-runs a diverged run on the host, which a traced "
             f"call (jit, grad, vmap) cannot do; pass refine=0 (the same single run traced or "

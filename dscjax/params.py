@@ -124,8 +124,11 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
         leaf = get(setup, p.path)
         dtype = leaf.dtype if hasattr(leaf, "dtype") else np.asarray(leaf).dtype
         col = table[:, j].astype(dtype)
-        if p.scale or p.index is None:  # the whole leaf: s times the vector, or the column
-            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :] if p.scale else col
+        if p.scale:  # s times the whole vector
+            out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
+            continue
+        if p.index is None:  # the whole leaf
+            out[p.path] = col
             continue
         if p.path not in out:
             leaf = xp.asarray(leaf, dtype)

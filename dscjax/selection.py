@@ -302,8 +302,8 @@ def _check_item(t: Tuned, setup, field):
             if b is not None and not b > 0:
                 raise ConfigError(f"{where}: the {side} bound of a log-space (positive) "
                                   f"parameter must be > 0 (got {b:g})")
-    for side, b, sign in (("lower", t.lower, 1), ("upper", t.upper, -1)):
-        if b is not None and np.any(sign * (v - b) < 0):  # below lower, above upper
+    for side, b, outside in (("lower", t.lower, np.less), ("upper", t.upper, np.greater)):
+        if b is not None and np.any(outside(v, b)):
             raise ConfigError(f"{where}: the start value {np.array2string(v, precision=6)} is "
                               f"outside the bounds ({side} bound {b:g})")
 

@@ -296,7 +296,8 @@ def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
     divergence.refuse_traced_refinement(spec, "simulate", (setup, spec))
     with _placed(spec, device, 1, setup):
         traj = _simulate(setup, spec.program(), None, extra)
-        concrete = validation.is_concrete(traj.status)  # not: inside jit, the inputs concrete
+        # traced inside a user's jit even where the inputs are concrete
+        concrete = validation.is_concrete(traj.status)
         divergence.refuse_traced_refinement(spec, "simulate", traj.status)
         t_first = traj.t_diverged
         for j in range(1, counted_levels(spec) + 1):

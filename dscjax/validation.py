@@ -20,7 +20,6 @@ import numpy as np
 RK4_REAL_STABILITY = 2.785
 # The integrator counts steps in an int32 (t_k = k dt): no run may have more.
 MAX_STEPS = 2**31 - 1
-SECTIONS = ("plant", "hysteresis", "controller", "reference")  # the models of a Setup
 
 
 class ConfigError(ValueError):
@@ -154,8 +153,8 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
         validate_shapes(setup)
     for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
         finite_tree(getattr(setup, f.name), f.name)
-    for section in SECTIONS:
-        getattr(setup, section).validate(section)
+    for f in dataclasses.fields(setup):
+        getattr(setup, f.name).validate(f.name)
 
 
 def assumption_warnings(setup) -> list[str]:
@@ -178,7 +177,7 @@ def assumption_warnings(setup) -> list[str]:
 def validate_shapes(setup) -> None:
     """Every array field has the shape its model expects for the plant's order n."""
     n = setup.plant.order
-    for section in SECTIONS:
+    for section in (f.name for f in dataclasses.fields(setup)):
         model = getattr(setup, section)
         why = f"for a plant of order n={n}" if section == "controller" else ""
         for name, expected in model.expected_shapes(n).items():
