@@ -61,10 +61,10 @@ def run(args) -> int:
                   f"{', '.join(f'{s:g}' for s in scales)}; on {choice}")
     m = stability_map(setup, options.t_final, float(options.dt), tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
-    bound = ">= " if m.beyond_grid else ""  # every step tried was stable
+    bound, tried = (">= ", " (every step tried was stable)") if m.beyond_grid else ("", "")
     verdict = "stable" if m.requested_dt <= m.largest_stable_dt else "UNSTABLE"
     print(f"largest stable dt for classical RK4 at this config's tau: {bound}"
-          f"{m.largest_stable_dt:.4g} s (requested {m.requested_dt:g} s: {verdict})")
+          f"{m.largest_stable_dt:.4g} s{tried} (requested {m.requested_dt:g} s: {verdict})")
     print(f"linear guide 2.785 / max spectral radius along the nominal run: {m.linear_dt:.4g} s "
           f"(the radius peaks at t = {m.t_peak:.4g} s; conservative: short bursts beyond it "
           f"are often survived)")

@@ -146,7 +146,7 @@ def typed_settings(args) -> dict[str, str]:
         if getattr(args, dest, None)}
 
 
-def work(setup, settings, steps: int, ranges):
+def work(settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
     from dscjax.sweep.run import STATUS_COLUMNS
@@ -180,7 +180,7 @@ def run(args) -> int:
                             groups={"sweep": settings})
         return 0
     check(setup, options)
-    check_work(work(setup, settings, options.n_steps, ranges),
+    check_work(work(settings, options.n_steps, ranges),
                what=f"{n:,} samples of {common.horizon_text(t_final, dt, options.n_steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:

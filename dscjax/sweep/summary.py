@@ -270,7 +270,7 @@ def outcome(summary: Mapping[str, Any]) -> list[str]:
     if nominal:
         shown = ("linf_error_window", "tv_u_window", "chattering_index")
         lines.append("nominal setup: " + ("diverged" if nominal.get("diverged") else
-                     ", ".join(f"{m} {nominal[m]:.4g}" for m in shown)))
+                     ", ".join(f"{m} {figure(nominal[m])}" for m in shown)))
     return lines
 
 

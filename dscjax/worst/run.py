@@ -182,7 +182,8 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch: int,
                  time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
     """The search settings of `worst_case`, checked before anything runs by the rules of
-    `WorstSettings` (ConfigError naming the option; an infinite time_limit is allowed here)."""
+    `WorstSettings` (ConfigError naming the option, or `worst.methods`: the command refuses
+    bad methods earlier, naming the option typed; an infinite time_limit is allowed here)."""
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
     flags = {key: s.flag for key, s in settings.declared(WorstSettings).items()}
