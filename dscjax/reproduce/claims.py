@@ -19,7 +19,8 @@ INTERPRETATIONS = [
     "with alpha_0 = 0.2, eq. 55).",
     "Not given and irrelevant because f_2 = 0: gamma_g2 = 8, eta_2 = 0.01, theta_hat_2(0) = 0.",
     "Not given: w(0) = 0, the horizon 20 s, the solver (RK4 with dt = 1e-3 s).",
-    "sgn(S_2) is replaced by sat(S_2/0.01), as the paper's simulation says; |S_2| in (32) is kept.",
+    "sgn(S_2) is replaced by sat(S_2/0.01), as the paper's simulation says; |S_2| in (32) is "
+    "kept exact.",
     "In the rho_n term of (30) there is no 1/g_min (as printed).",
     "No L-infinity initialisation (67)-(68): Section 4's initial estimates, S_1(0) = x_1(0) - "
     "y_r(0) = 0.08.",

@@ -195,7 +195,7 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
             if path is not None and not kept:
                 saved[(c, int(n))] = row
                 files.write_json(path, dict(settings=settings, rows=list(saved.values())))
-            if log:  # every figure is in complexity.json and summary.md
+            if log:  # every figure is in complexity.json
                 log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, build "
                     f"{row['build_s']:.3g} s, eval {row['eval_s'] * 1e6:.3g} us  " + (
                         "[kept]" if kept else f"[{time.perf_counter() - t_start:.0f} s]"))

@@ -76,9 +76,10 @@ def theory_markdown(summary: dict) -> str:
     ini = p["init"]
     lines = [
         "## Theorem 1 along trajectories (`--theory`)", "",
-        "V(t) of (44) with the true plant parameters (`theory/lyapunov.npz`, `fig_lyapunov`). "
-        "M_(i+1) of (59)-(60) is max |B_(i+1)| on the run: every bound is a **data-driven "
-        "estimate**; C = e_M + (n-1) mu/2 + sat(S_n/w)'s slack in (48) (docs/theory.md).", "",
+        "V(t) of (44) with the true plant parameters (`theory/lyapunov.npz`, "
+        "`theory/fig_lyapunov`). M_(i+1) of (59)-(60) is max |B_(i+1)| on the run: every "
+        "bound is a **data-driven estimate**; C = e_M + (n-1) mu/2 + sat(S_n/w)'s slack in (48) "
+        "(docs/theory.md).", "",
         "### The paper's example does not satisfy the theorem's assumptions", "",
         f"- Its gains follow (55) for no single alpha_0; as inequalities they allow alpha_0 <= "
         f"{p['alpha0']:.3g}, bound by {p['binding_gain']} (k_2 = 0.45 alone: "
