@@ -55,14 +55,18 @@ class Param:
         return self.path if self.index is None else f"{self.path}[{self.index}]"
 
     @classmethod
-    def parse(cls, text: str, field: str = "parameter") -> Param:
-        """`Param` from its name, e.g. "hysteresis.alpha", "plant.g[1]" or "hysteresis.p*"."""
+    def parse(cls, text: str, field: str = "parameter", setup=None) -> Param:
+        """`Param` from its name, e.g. "hysteresis.alpha", "plant.g[1]" or "hysteresis.p*";
+        with a `setup`, `check`ed against it."""
         m = _PARAM_RE.match(str(text).strip())
         if not m:
             raise ConfigError(f"{field}: {text!r} is not a parameter path (e.g. "
                               f"'hysteresis.alpha', 'plant.g[1]' or 'hysteresis.p*')")
-        return cls(m.group(1), None if m.group(2) is None else int(m.group(2)),
-                   m.group(3) is not None)
+        p = cls(m.group(1), None if m.group(2) is None else int(m.group(2)),
+                m.group(3) is not None)
+        if setup is not None:
+            p.check(setup, field)
+        return p
 
     def value(self, setup):
         """The leaf, its element, or the scale (1 in the leaf's dtype: the setup as it is)."""
@@ -103,10 +107,12 @@ class Param:
 
 
 def check_columns(columns: Sequence[Param], field: str) -> None:
-    """ConfigError naming `field` if a vector is both scaled and set (by leaf or element):
-    which would win depends on the order of the columns."""
+    """ConfigError naming `field` if a number is given twice, or a vector is both scaled and
+    set (by leaf or element): which would win depends on the order of the columns."""
     scaled = {p.path for p in columns if p.scale}
-    for p in columns:
+    for i, p in enumerate(columns):
+        if p in columns[:i]:
+            raise ConfigError(f"{field}: {p.name!r} is given twice")
         if p.path in scaled and not p.scale:
             raise ConfigError(f"{field}: {p.name!r} and {p.path + '*'!r} both change "
                               f"{p.path!r}; give one of them")
@@ -346,11 +352,8 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
     any), bounds not finite or reversed, lam <= psi allowed, or either end outside a model's
     range (or, with t_final and dt, outside what RK4 can integrate)."""
     check_columns([r.param for r in ranges], field)
-    names = [r.name for r in ranges]
-    for i, r in enumerate(ranges):
+    for r in ranges:
         f = f"{field}.{r.name}"
-        if r.name in names[:i]:
-            raise ConfigError(f"{f} is given twice")
         value = r.param.check(setup, field)
         if r.param.index is None and np.shape(value) != ():
             raise ConfigError(f"{f}: {r.param.path} has shape {np.shape(value)}; vary one "

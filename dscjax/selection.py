@@ -157,19 +157,10 @@ class Selection:
         "log" | "linear"}, default "log" except for the leaves `signed` (a scale is a factor:
         "log")."""
         bounds, transforms = dict(bounds or {}), dict(transforms or {})
-        order: list[Param] = []
-        for text in tune:
-            p = Param.parse(text, f"{field}.params")
-            p.check(setup, f"{field}.params")
-            if p in order:
-                raise ConfigError(f"{field}.params lists {text!r} twice")
-            order.append(p)
+        order = [Param.parse(text, f"{field}.params", setup) for text in tune]
         params.check_columns(order, f"{field}.params")
-        frozen = set()
-        for text in freeze:
-            p = Param.parse(text, f"{field}.freeze")
-            p.check(setup, f"{field}.freeze")
-            frozen.add((p.path, p.index))
+        frozen = {(p.path, p.index) for p in
+                  (Param.parse(text, f"{field}.freeze", setup) for text in freeze)}
         expanded: list[Param] = []
         for p in order:
             if p.scale and any(q == p.path for q, _ in frozen):
