@@ -123,28 +123,22 @@ class RunSpec(eqx.Module):
 
     # -- building ---------------------------------------------------------------------------
     @classmethod
-    def make(cls, t_final: float = 20.0, dt: float = 1e-3, *, save_every: int | None = None,
-             window_start: float | None = None, state_bound: float = 1e6,
-             dtype: str = "float64", solver: str | Solver = "rk4", refine: int = DEFAULT_REFINE,
-             sample_time: float | None = None, delay: int = 0, noise=None, noise_seed: int = 0,
-             discretisation: str | ExponentialEuler | ForwardEuler = "exponential-euler",
-             device: str = "auto",
-             gradient: Gradient | None = None,
-             prefix: str = "simulation.", names: Mapping[str, str] | None = None) -> RunSpec:
-        """A checked RunSpec: each key checked by its rule (`Simulation`), then the rules
-        between keys. Messages name a field `prefix` + key, or `names[key]` (the command-line
-        option that gave it)."""
+    def make(cls, t_final: float = 20.0, dt: float = 1e-3, *, gradient: Gradient | None = None,
+             prefix: str = "simulation.", names: Mapping[str, str] | None = None,
+             **table) -> RunSpec:
+        """A checked RunSpec of the [simulation] keys (`Simulation`, whose defaults apply;
+        `solver` and `discretisation` also as objects): each key checked by its rule, then the
+        rules between keys. Messages name a field `prefix` + key, or `names[key]` (the
+        command-line option that gave it)."""
         names = names or {}
 
         def f(key):
             return names.get(key, prefix + key)
 
-        keys = settings.checked(Simulation(
-            t_final=t_final, dt=dt, save_every=save_every, window_start=window_start,
-            state_bound=state_bound, dtype=dtype, solver=getattr(solver, "name", solver),
-            refine=refine, sample_time=sample_time, delay=delay, noise=noise,
-            noise_seed=noise_seed, discretisation=getattr(discretisation, "name", discretisation),
-            device=device), f)
+        solver = table.get("solver", "rk4")
+        named = {k: getattr(table[k], "name", table[k]) for k in ("solver", "discretisation")
+                 if k in table}
+        keys = settings.checked(Simulation(t_final=t_final, dt=dt, **(table | named)), f)
         t_final, dt, save_every, window_start = (keys.t_final, keys.dt, keys.save_every,
                                                  keys.window_start)
         n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))
@@ -167,17 +161,17 @@ class RunSpec(eqx.Module):
             if every > n_steps:
                 raise ConfigError(f"{f('sample_time')} must be <= {f('t_final')} = "
                                   f"{t_final:.6g} (got {sample_time:.6g})")
-        elif delay or noise is not None:
-            which = "delay" if delay else "noise"
+        elif keys.delay or keys.noise is not None:
+            which = "delay" if keys.delay else "noise"
             raise ConfigError(f"{f(which)} applies to a sampled controller: give "
                               f"{f('sample_time')} too")
+        noise = None if keys.noise is None else np.asarray(keys.noise, dtype=float)
         return cls(dt=dt, window_start=float(window_start), state_bound=keys.state_bound,
-                   noise=None if noise is None else np.asarray(noise, dtype=float),
-                   noise_seed=int(noise_seed), n_steps=n_steps, save_every=int(save_every),
-                   solver=as_solver(solver), gradient=gradient or TimeParallel(),
-                   sample_every=every, sampled=every > 0, delay=int(delay),
-                   discretisation=SCHEME[keys.discretisation], refine=int(refine), dtype=dtype,
-                   device=device, rules=tuple(rules))
+                   noise=noise, noise_seed=keys.noise_seed, n_steps=n_steps,
+                   save_every=int(save_every), solver=as_solver(solver),
+                   gradient=gradient or TimeParallel(), sample_every=every, sampled=every > 0,
+                   delay=keys.delay, discretisation=SCHEME[keys.discretisation],
+                   refine=keys.refine, dtype=keys.dtype, device=keys.device, rules=tuple(rules))
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
@@ -295,6 +289,5 @@ def loop_words(sim: RunSpec) -> str:
 
 
 def discretisation(sim: RunSpec) -> str:
-    """How a sampled loop advances the controller's states (`simulation.discretisation` where
-    the RunSpec has it)."""
-    return getattr(sim, "discretisation", ExponentialEuler()).words
+    """How a sampled loop advances the controller's states (`simulation.discretisation`)."""
+    return sim.discretisation.words
