@@ -15,14 +15,13 @@ from __future__ import annotations
 import dataclasses
 import warnings
 from collections.abc import Mapping
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from dscjax import disturbance, validation
 from dscjax.closed_loop import Setup
-from dscjax.configfile import read
+from dscjax.configfile import read as read  # re-exported (config.read)
 from dscjax.controllers.backstepping import Backstepping
 from dscjax.controllers.dsc import DSC
 from dscjax.examples import example as example  # re-exported (the module docstring)
@@ -303,10 +302,7 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
         base = convert(base) if convert is not None and getattr(base, "kind", "") == "dsc" \
             else None
     fields = {f.name: f for f in dataclasses.fields(cls)}
-    for key in table:
-        if key != kind_key and key not in fields:
-            raise ConfigError(f"unknown key '{field}.{key}' (allowed: {kind_key}, "
-                              f"{', '.join(fields)})")
+    validation.known_keys(table, field, [kind_key, *fields])
     values = {}
     for name, f in fields.items():
         default = getattr(base, name) if base is not None else f.default
@@ -349,11 +345,6 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
             raise ConfigError(f"'{key}' must be a table ([{key}])")
     models = {s: model_from_dict(s, d.get(s, {}), getattr(base, s)) for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
-
-
-def load(path: str | Path, base: Setup | None = None) -> tuple[Setup, RunSpec]:
-    """Read a .toml (or .json) config file laid over the default; ConfigError if it is bad."""
-    return from_dict(read(path), base)
 
 
 def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=None,

@@ -23,7 +23,7 @@ from typing import Any
 
 from dscjax.markdown import escape, table
 from dscjax.rules import Choice, Custom, Invalid, Maybe, Rule
-from dscjax.validation import ConfigError, got
+from dscjax.validation import by_rule, known_keys
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,10 +96,7 @@ def parse_field(s: Setting, value, field: str):
         if s.rule is not custom and (value is None or str(value).lower() == "none"):
             return None
         return custom.read(value, field)
-    try:
-        return s.rule.parse(value)
-    except Invalid as err:
-        raise ConfigError(f"{field} must be {err.must} ({got(err.value)})") from None
+    return by_rule(s.rule, value, field)
 
 
 def checked(obj, name: Callable[[str], str]):
@@ -117,13 +114,8 @@ def from_table(cls, table: Mapping[str, Any], prefix: str, base=None, *,
     refused, each value parsed and checked by its rule, nested groups read recursively, then
     the group's own `validate(prefix)` if it has one. `skip`: keys a caller reads itself."""
     field_name = prefix.rstrip(".")
-    if not isinstance(table, Mapping):
-        raise ConfigError(f"'{field_name}' must be a table ([{field_name}])")
     keys, subs = declared(cls), groups(cls)
-    allowed = [*keys, *subs, *skip]
-    for key in table:
-        if key not in allowed:
-            raise ConfigError(f"unknown key '{prefix}{key}' (allowed: {', '.join(allowed)})")
+    known_keys(table, field_name, [*keys, *subs, *skip])
     obj = base if base is not None else cls()
     changes = {k: parse_field(keys[k], v, prefix + k) for k, v in table.items() if k in keys}
     changes |= {k: from_table(subs[k], v, f"{prefix}{k}.", getattr(obj, k))

@@ -16,6 +16,8 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
+from dscjax.rules import Invalid, Number, Rule
+
 # RK4's stability interval on the negative real axis is about [-2.785, 0].
 RK4_REAL_STABILITY = 2.785
 # The integrator counts steps in an int32 (t_k = k dt): no run may have more.
@@ -80,10 +82,6 @@ def finite_positive(value, field: str) -> float:
     return x
 
 
-def finite(value, field: str) -> None:
-    _every(value, field, np.isfinite, "finite")
-
-
 def shape(value, field: str, expected: tuple[int, ...], why: str = "") -> None:
     got = tuple(np.shape(value))
     if got != tuple(expected):
@@ -111,21 +109,17 @@ def not_boolean(value, field: str) -> None:
         raise ConfigError(f"{field} must be a number, not a boolean (got {str(value).lower()})")
 
 
+def by_rule(rule: Rule, value, field: str):
+    """`value` read by a rule (`dscjax.rules`); ConfigError "FIELD must be RANGE (got VALUE)"."""
+    try:
+        return rule.parse(value)
+    except Invalid as err:
+        raise ConfigError(f"{field} must be {err.must} ({got(err.value)})") from None
+
+
 def integer(value, field: str, low: int | None = None) -> int:
     """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
-    if (isinstance(value, bool) or not isinstance(value, int | np.integer)
-            or (low is not None and value < low)):
-        bound = "" if low is None else f" >= {low}"
-        raise ConfigError(f"{field} must be an integer{bound} ({got(value)})")
-    return int(value)
-
-
-def number(value, field: str) -> float:
-    """`value` as a float if it is a finite number (not a bool, not a string); else ConfigError."""
-    if (isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating)
-            or not np.isfinite(value)):
-        raise ConfigError(f"{field} must be a number ({got(value)})")
-    return float(value)
+    return by_rule(Number(ge=low, integer=True), value, field)
 
 
 def string(value, field: str) -> str:
@@ -133,6 +127,15 @@ def string(value, field: str) -> str:
     if not isinstance(value, str):
         raise ConfigError(f"{field} must be a string (got {value!r})")
     return value
+
+
+def known_keys(table, field: str, allowed) -> None:
+    """ConfigError unless `table` is a table ([field]) of keys among `allowed`."""
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"'{field}' must be a table ([{field}])")
+    for key in table:
+        if key not in allowed:
+            raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
 
 
 def one_of(value, field: str, allowed) -> None:
@@ -208,7 +211,7 @@ def numeric_paths(obj, prefix: str = "") -> list[str]:
 def finite_tree(obj, prefix: str) -> None:
     """Every traced number below obj (a model) finite; ConfigError naming its config path."""
     for path, value in _leaves(obj):
-        finite(value, f"{prefix}.{path}")
+        _every(value, f"{prefix}.{path}", np.isfinite, "finite")
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:

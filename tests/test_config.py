@@ -59,7 +59,7 @@ def test_json_config_loads(tmp_path):
     d["controller"]["k"] = [7.0, 0.5]
     path = tmp_path / "gains.json"
     path.write_text(json.dumps({"controller": {"k": [7.0, 0.5]}}))
-    setup, _ = config.load(path)
+    setup, _ = config.from_dict(config.read(path))
     np.testing.assert_array_equal(setup.controller.k, [7.0, 0.5])
 
 

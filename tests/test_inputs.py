@@ -348,7 +348,7 @@ def test_the_cma_progress_line_shows_sigma_not_lr():
 def test_a_json_config_with_every_key_once_still_loads(tmp_path):
     cfg = tmp_path / "c.json"
     cfg.write_text(json.dumps({"controller": {"k": [7.0, 0.5]}, "plant": {"g": [1.0, 1.0]}}))
-    setup, _ = config.load(cfg)
+    setup, _ = config.from_dict(config.read(cfg))
     assert np.asarray(setup.controller.k).tolist() == [7.0, 0.5]
 
 

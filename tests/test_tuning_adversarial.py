@@ -65,7 +65,7 @@ def test_one_round_writes_fresh_worst_cases_of_start_and_tuned_gains(adv_run):
         f = fresh[tag]
         setup = dscjax.paper_example()
         if gains is not None:
-            setup, _ = config.load(gains)
+            setup, _ = config.from_dict(config.read(gains))
         spec = worst.DisturbanceSpec.parse("fourier:2:0.3")
         setup = setup.replace(plant=dataclasses.replace(
             setup.plant, disturbance=spec.model(f["disturbance"]["coefficients"], 0.4)))

@@ -64,7 +64,7 @@ def test_disturbance_config_round_trip(tmp_path):
     setup = setup.replace(plant=plant)
     path = tmp_path / "c.toml"
     path.write_text(config.to_toml(setup))
-    back, _ = config.load(path)
+    back, _ = config.from_dict(config.read(path))
     np.testing.assert_array_equal(back.plant.disturbance.knots, [0.1, -0.2, 0.3])
     assert float(back.plant.disturbance.horizon) == 20.0
     # no waveform: none written, none read
@@ -251,7 +251,7 @@ def test_worst_case_outputs_and_exact_reproduction(searched, tmp_path):
     # metrics-only points (its save_every = 1500 stays out of the config)
     with np.load(out / "trajectory.npz") as z:
         np.testing.assert_allclose(z["t"], np.arange(1501) * 1e-3, rtol=0, atol=1e-12)
-    assert config.load(searched / "worst_config.toml")[1].save_every == 1
+    assert config.from_dict(config.read(searched / "worst_config.toml"))[1].save_every == 1
     # plant.g[1] = 0.7:1.3 reaches below controller.g_min = 1 (Assumption 4), as simulate warns
     assert worst["warnings"] == [
         "Assumption 4 (g_min <= |g_i|) does not hold: controller.g_min = 1 but plant.g has "
@@ -356,7 +356,7 @@ def test_requirement_margin_metric_matches_a_hand_computed_margin(tmp_path):
                  "--quiet", "--out", str(out)]) == 0
     worst = json.loads((out / "worst.json").read_text())
     assert worst["metric"] == "requirement:envelope"
-    setup, options = config.load(out / "worst_config.toml")
+    setup, options = config.from_dict(config.read(out / "worst_config.toml"))
     traj = dscjax.simulate(setup, options.t_final, options.dt)
     t, e = np.asarray(traj.t), np.asarray(traj.e)
     b = 0.01 + (0.05 - 0.01) * np.exp(-t / 0.3)
