@@ -279,12 +279,11 @@ def gradient_work(setup, steps: int, copies: int = 1):
 def add_example_arg(p):
     """--example, and --print-config, which prints the whole effective config (`print_config`)."""
     p.add_argument("--example", default="paper", metavar="NAME",
-                   help="the built-in loop a --config is laid over: paper (default), "
-                   "backstepping (its baseline), order-N (N >= 2, e.g. order-4), or pi, gpi, "
-                   "bouc_wen (the paper's loop, that hysteresis); --print-config shows it whole")
-    p.add_argument("--print-config", action="store_true",
-                   help="print the whole effective config as TOML ([simulation], the model "
-                   "tables and this command's own settings) and exit; --config loads it back")
+                   help="the built-in loop under --config (--print-config shows it whole): "
+                   "paper (default), backstepping, order-N (N >= 2), or the paper's loop with "
+                   "pi, gpi or bouc_wen hysteresis")
+    p.add_argument("--print-config", action="store_true", help="print the whole effective "
+                   "config as TOML (--config loads it back) and exit")
 
 
 def print_config(setup, spec, extra: dict | None = None, groups: dict | None = None) -> None:
@@ -300,7 +299,7 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
     """--config, --example and --print-config, the given [simulation] options, --float32."""
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the "
-                   "--example (default: the paper's); see `dscjax simulate --print-config`")
+                   "--example; see --print-config")
     add_example_arg(p)
     add_run_args(p, run_keys)
     if float32:
