@@ -28,7 +28,6 @@ from dscjax.examples import example as example  # re-exported (the module docstr
 from dscjax.examples import hysteresis_example as hysteresis_example
 from dscjax.examples import order_n_example as order_n_example
 from dscjax.examples import paper_example
-from dscjax.examples import paper_family_plant as paper_family_plant
 from dscjax.hysteresis import MODELS
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep

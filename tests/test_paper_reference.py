@@ -79,7 +79,7 @@ def test_scipy_reference_over_20s(traj20):
 
 
 def test_paper_plant_equals_the_family_member(paper_setup):
-    family = paper_setup.replace(plant=dscjax.config.paper_family_plant())
+    family = paper_setup.replace(plant=dscjax.examples.paper_family_plant())
     family = dscjax.cast(family, np.float64)
     a = dscjax.simulate(paper_setup, 5.0, 1e-3, save_every=50)
     b = dscjax.simulate(family, 5.0, 1e-3, save_every=50)
