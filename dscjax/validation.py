@@ -152,8 +152,12 @@ def validate_setup(setup, check_shapes: bool = True) -> None:
     n = setup.plant.order
     if n < 2:
         raise ConfigError(f"plant.g must have length n >= 2 (the order; got n={n})")
-    if check_shapes:
-        validate_shapes(setup)
+    if check_shapes:  # every array field has the shape its model expects for the order n
+        for f in dataclasses.fields(setup):
+            model = getattr(setup, f.name)
+            why = f"for a plant of order n={n}" if f.name == "controller" else ""
+            for name, expected in model.expected_shapes(n).items():
+                shape(getattr(model, name), f"{f.name}.{name}", expected, why)
     for f in dataclasses.fields(setup):  # first: inf or nan is named as such, not as a range
         finite_tree(getattr(setup, f.name), f.name)
     for f in dataclasses.fields(setup):
@@ -175,16 +179,6 @@ def assumption_warnings(setup) -> list[str]:
     which = ", ".join(f"|g_{i + 1}| = {g_abs[i]:.6g}" for i in below)
     return [f"Assumption 4 (g_min <= |g_i|) does not hold: controller.g_min = {g_min:.6g} but "
             f"plant.g has {which}; the design's guarantees (Theorem 1) do not apply"]
-
-
-def validate_shapes(setup) -> None:
-    """Every array field has the shape its model expects for the plant's order n."""
-    n = setup.plant.order
-    for section in (f.name for f in dataclasses.fields(setup)):
-        model = getattr(setup, section)
-        why = f"for a plant of order n={n}" if section == "controller" else ""
-        for name, expected in model.expected_shapes(n).items():
-            shape(getattr(model, name), f"{section}.{name}", expected, why)
 
 
 def _leaves(obj, prefix: str = "") -> list[tuple[str, object]]:
