@@ -14,24 +14,19 @@ alpha_(i-1)' is taken by the chain rule along the NOMINAL closed loop (the adapt
 y_r^(k+1), and x_j' = g_nom_j (x_(j+1) + theta_hat_gj f_j)), by n-1 nested forward-mode
 derivatives (`jax.linearize`), never written out: the "explosion of complexity" the DSC avoids.
 As in (79), no cross term -z_(i-1) in alpha_i and no damping of the nominal model's mismatch.
-`derivative="hand"` (order 2) uses `law_order2_by_hand`, the tests' oracle.
 """
 
 from __future__ import annotations
 
-from typing import ClassVar, Literal, NamedTuple
+from typing import ClassVar, NamedTuple
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation as v
 from dscjax.controllers.adaptive import AdaptiveLaws, RobustTerm
 from dscjax.controllers.base import ControlInfo
 from dscjax.model import option, positive
-
-# alpha_(n-1)' by nested forward-mode derivatives (any n), or written out (n = 2 only)
-Derivative = Literal["autodiff", "hand"]
 
 
 class BacksteppingState(NamedTuple):
@@ -71,8 +66,6 @@ class Backstepping(AdaptiveLaws):
     Static choices:
         robust_term: "sat" (sat(z_n/sat_width), as the paper's simulation), "sgn" or "smooth"
             (as `DSC.robust_term`).
-        derivative: "autodiff" (alpha_i' by nested forward-mode derivatives, any n) or "hand"
-            (n = 2 only: `law_order2_by_hand`).
 
     Example:
         >>> import dscjax
@@ -87,7 +80,6 @@ class Backstepping(AdaptiveLaws):
     sat_width: jax.Array = positive(default=0.01)
     smooth_delta: jax.Array = positive(default=0.1)
     robust_term: RobustTerm = option("sat")
-    derivative: Derivative = option("autodiff")
 
     kind: ClassVar[str] = "backstepping"
 
@@ -106,14 +98,6 @@ class Backstepping(AdaptiveLaws):
 
     def expected_shapes(self, n):
         return self.law_shapes(n) | dict(g_nom=(n - 1,))
-
-    def validate(self, prefix):
-        super().validate(prefix)
-        n = int(np.shape(self.k)[-1]) if np.ndim(self.k) else 0
-        if self.derivative == "hand" and n != 2:
-            raise v.ConfigError(
-                f"{prefix}.derivative = 'hand' is written for order n = 2 only (got n={n}); "
-                f"use 'autodiff'")
 
     def init_state(self, plant, reference):
         return BacksteppingState(self.theta_hat0, self.phi_hat0, self.zeta_hat0, self.d_hat0)
@@ -170,8 +154,6 @@ class Backstepping(AdaptiveLaws):
         The automatic law is an inner `jax.jit`: the loop traces the law at every RK4 stage,
         and JAX then traces the n-1 nested linearisations once; XLA inlines it (same results).
         """
-        if self.derivative == "hand":
-            return law_order2_by_hand(self, state, x, t, plant, reference)
         return _law_jit(self, state, x, t, plant, reference)
 
     def plain_law(self, state, x, t, plant, reference):
@@ -198,49 +180,6 @@ class Backstepping(AdaptiveLaws):
     def state_rate(self, state, x, t, info, plant, reference):
         """Adaptive laws (17), (23), (29), (31), (32) with z_i for S_i, alpha_(i-1)' for z_i'."""
         return BacksteppingState(*self._rates(state, info))
-
-
-def law_order2_by_hand(ctrl: Backstepping, state, x, t, plant, reference):
-    """The order-2 backstepping law with alpha_1' written out by the chain rule.
-
-    alpha_1 = -theta_hat_g1 f_1 - z_1 rho_1^2 / (2 eps g_min) - k_1 z_1 + phi_hat_1 y_r',
-    z_1 = x_1 - y_r. Its derivative along the nominal closed loop is
-
-        alpha_1' = dalpha_1/dx_1 * g_nom_1 (x_2 + theta_hat_g1 f_1)     (nominal x_1')
-                 - f_1 * theta_hat_g1' + y_r' * phi_hat_1'              (adaptive laws)
-                 + (k_1 + rho_1^2 / (2 eps g_min)) y_r' + phi_hat_1 y_r''  (reference)
-        dalpha_1/dx_1 = -theta_hat_g1 f_1' - (rho_1^2 + 2 z_1 rho_1 rho_1') / (2 eps g_min) - k_1
-        theta_hat_g1' = gamma_g1 (f_1 z_1 - eta_1 theta_hat_g1)               (17)
-        phi_hat_1' = -gamma_phi1 (y_r' z_1 + sigma_1 phi_hat_1)               (17)
-
-    with f_1', rho_1' (d/dx_1) by `jax.grad` of the plant's functions.
-    """
-    if x.shape[0] != 2:
-        raise ValueError(f"law_order2_by_hand is for order n = 2 (got n={x.shape[0]})")
-    eps_g = ctrl.eps * ctrl.g_min
-    yr, yr_dot, yr_ddot = reference.derivatives(t, 2)
-    f, rho = plant.f(x), plant.rho(x)
-    f1, rho1 = f[0], rho[0]
-
-    def stage1(name):
-        return lambda x1: getattr(plant, name)(jnp.stack([x1, x[1]]))[0]
-
-    df1 = jax.grad(stage1("f"))(x[0])
-    drho1 = jax.grad(stage1("rho"))(x[0])
-    th1, ph1 = state.theta_hat[0], state.phi_hat[0]
-    k1 = ctrl.k[0]
-
-    z1 = x[0] - yr
-    alpha1 = -th1 * f1 - z1 * rho1**2 / (2.0 * eps_g) - k1 * z1 + ph1 * yr_dot
-    dalpha_dx1 = -th1 * df1 - (rho1**2 + 2.0 * z1 * rho1 * drho1) / (2.0 * eps_g) - k1
-    x1_dot_nominal = ctrl.g_nom[0] * (x[1] + th1 * f1)
-    th1_dot = ctrl.gamma_g[0] * (f1 * z1 - ctrl.eta[0] * th1)
-    ph1_dot = -ctrl.gamma_phi[0] * (yr_dot * z1 + ctrl.sigma[0] * ph1)
-    alpha1_dot = (dalpha_dx1 * x1_dot_nominal - f1 * th1_dot + yr_dot * ph1_dot
-                  + (k1 + rho1**2 / (2.0 * eps_g)) * yr_dot + ph1 * yr_ddot)
-    z2 = x[1] - alpha1
-    chain = _Chain(z=[z1], alpha=[alpha1], alpha_dot=[yr_dot], f=f, rho=rho, yr=yr)
-    return ctrl._last_stage(state, z2, alpha1_dot, chain)
 
 
 def with_backstepping(setup, **changes):

@@ -167,8 +167,7 @@ class DSC(AdaptiveLaws):
 
     def decay_rates(self, state):
         """The filters (18), (24) decay at 1/tau_i."""
-        zero = jax.tree.map(jnp.zeros_like, state)
-        return zero._replace(z=jnp.ones_like(state.z) / self.tau)
+        return super().decay_rates(state)._replace(z=jnp.ones_like(state.z) / self.tau)
 
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
