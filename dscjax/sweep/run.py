@@ -133,7 +133,6 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     # the values actually simulated: rounded to the sweep's dtype
     table = settings.method.draw(ranges, n, settings.seed).astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
-    tile = tile if settings.parallel == "per_device" else None
     fp = fingerprint(setup, settings, ranges, spec, chunk, tile)
     digest = files.digest(fp)
 
@@ -143,7 +142,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
             else _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main))
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile,
+    runner = Runner(setup, columns, spec, chunk, devices, tile,
                     lean=xla.lean_work(n * spec.n_steps))
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
@@ -198,7 +197,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, placement=placement,
-                parallel=settings.parallel, n_steps=n_steps, dtype=settings.dtype,
+                n_steps=n_steps, dtype=settings.dtype,
                 t_final=t_final, dt=dt,
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method.name, seed=settings.seed, solver=spec.solver.name,
