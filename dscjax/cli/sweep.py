@@ -246,8 +246,7 @@ def run(args) -> int:
     rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=rows)
     rows, kinds = [*rows, *rand_rows], kinds + ["random"] * len(rand_rows)
-    columns = [r.param for r in ranges]
-    trajs = sweep.simulate_rows(setup, result, rows, save_every=every, ranges_params=columns)
+    trajs = sweep.simulate_rows(setup, result, rows, save_every=every)
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
                          "max_rel_diff_resimulated_vs_sweep": _recheck(trajs, records)}
@@ -257,7 +256,7 @@ def run(args) -> int:
         rechecked = sweep.check_rows(result, rows, settings.seed)
         print(f"  re-checking {len(rechecked)} rows in float64 (which metrics float32 can be "
               f"trusted with) ...", file=sys.stderr)
-        f32 = sweep.float64_check(setup, result, rechecked, ranges_params=columns)
+        f32 = sweep.float64_check(setup, result, rechecked)
     summary["float32_check"] = f32
 
     figures = []
@@ -298,16 +297,18 @@ def interrupt_hint(args) -> str | None:
 
 def _recheck(trajs, records) -> dict[str, float] | None:
     """Per metric, the largest relative difference between the re-simulated and the swept
-    values (float64: round-off; float32: a few sensitive plants amplify rounding)."""
+    values (float64: round-off; float32: a few sensitive plants amplify rounding):
+    `float32_trust`'s, over the pairs where both are finite (the others count as NaN in both,
+    a difference of 0, where `float32_trust` would give inf for one non-finite value)."""
     if not trajs:
         return None
-    out = {}
-    for m in records[0]["metrics"]:
+    again, swept = {}, {}
+    for m in sweep.METRICS:
         a = np.array([float(tr.metrics[m]) for tr in trajs])
         v = np.array([rec["metrics"][m] for rec in records])
-        ok = np.isfinite(a) & np.isfinite(v)
-        out[m] = float(np.max(np.abs(a - v)[ok] / np.maximum(np.abs(v[ok]), 1e-30), initial=0.0))
-    return out
+        both = np.isfinite(a) & np.isfinite(v)
+        again[m], swept[m] = np.where(both, a, np.nan), np.where(both, v, np.nan)
+    return sweep.float32_trust(again, swept)["max_rel_diff"]
 
 
 def _write_traces(path, trajs, records, kinds, nominal):

@@ -44,23 +44,17 @@ def error_label(t0: float, t_final: float) -> str:
 NARROW = 0.1
 
 
-def _span(v) -> tuple[float, float, float | None]:
-    """The least and the largest finite value of v, and their difference relative to the
-    median (None unless the median is > 0)."""
-    v = np.asarray(v, np.float64)
-    v = v[np.isfinite(v)]
+def _spread(v: np.ndarray) -> tuple[str, float | None]:
+    """How wide the colour scale of the finite values v is, in words, and that span relative
+    to their median (None unless the median is > 0): a narrow scale (say 0.0221-0.0226)
+    paints 2 % differences as the whole colour range."""
     lo, hi, med = v.min(), v.max(), np.median(v)
-    return lo, hi, ((hi - lo) / med if med > 0 else None)
-
-
-def spread_text(v) -> str:
-    """How wide the colour scale is, relative to the values' median: a narrow scale (say
-    0.0221-0.0226) paints 2 % differences as the whole colour range."""
-    lo, hi, rel = _span(v)
+    rel = (hi - lo) / med if med > 0 else None
     if rel is None or hi <= lo:
-        return f"colours span {lo:.3g} to {hi:.3g}"
+        return f"colours span {lo:.3g} to {hi:.3g}", rel
     return (f"colours span {lo:.3g} to {hi:.3g} = "
-            + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"))
+            + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"),
+            rel)
 
 
 def _use_log(v) -> bool:
@@ -156,7 +150,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     div = np.asarray(diverged, bool)
     ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]
-    spread = spread_text(finite) if finite.size else None
+    spread, rel = _spread(finite) if finite.size else (None, None)
     fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
         norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
@@ -215,7 +209,6 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     ax.set_xlabel(param_label(names[0]))
     ax.set_ylabel(param_label(names[1]))
     kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
-    rel = _span(finite)[2] if finite.size else None
     narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
               "cells differ little") if rel is not None and rel < NARROW else ""
     ax.set_title((title + "\n" if title else "") + f"windowed L∞ error over {kind}; other "
@@ -308,4 +301,4 @@ def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
 
 
 __all__ = ["heatmap_grid", "param_label", "plot_heatmap", "plot_histogram", "plot_scan",
-           "plot_traces", "spread_text", "trace_label"]
+           "plot_traces", "trace_label"]
