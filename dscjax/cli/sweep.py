@@ -195,9 +195,7 @@ def run(args) -> int:
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method.grid
                                    else "sweep.ranges")
     if main:
-        scope = options.to_table() | dict(
-            n_samples=n, method=settings.method.name, seed=settings.seed, dtype=settings.dtype,
-            ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
+        scope = {"n_samples": n} | sweep.run.scope(settings, options, ranges)
         common.banner(args, f"{sweep.scope_text(scope)}; on {len(choice.devices)} device(s) "
                       f"({choice.platform}), {jax.process_count()} process(es) "
                       f"({choice.reason})", warnings)
@@ -253,7 +251,7 @@ def run(args) -> int:
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
     f32 = None
     if settings.dtype == "float32":
-        rechecked = sweep.check_rows(result, rows, settings.seed)
+        rechecked = sweep.check_rows(result, rows)
         print(f"  re-checking {len(rechecked)} rows in float64 (which metrics float32 can be "
               f"trusted with) ...", file=sys.stderr)
         f32 = sweep.float64_check(setup, result, rechecked)

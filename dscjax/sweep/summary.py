@@ -149,15 +149,14 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
 
 
-def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
-               least: int = MIN_CHECK_ROWS) -> np.ndarray:
+def check_rows(result: SweepResult, rows: Iterable[int], least: int = MIN_CHECK_ROWS
+               ) -> np.ndarray:
     """The rows a float32 sweep re-checks in float64: `rows` (the traced ones) that did not
-    diverge, topped up with random rows that did not diverge to at least `least`."""
+    diverge, topped up to at least `least` with the first other rows that did not diverge."""
     ok = ~np.asarray(result.columns["diverged"], bool)
     mine = [int(i) for i in rows if ok[i]]
     if len(mine) < least:
-        pool = random_rows(result.n, result.n, seed, exclude=np.flatnonzero(~ok).tolist() + mine)
-        mine += [int(i) for i in pool[:least - len(mine)]]
+        mine += np.setdiff1d(np.flatnonzero(ok), mine)[:least - len(mine)].tolist()
     return np.asarray(sorted(set(mine)), np.int64)
 
 
