@@ -169,11 +169,11 @@ def run(args) -> int:
     from dscjax.simulate import check, simulate
 
     setup, options, settings = load(args)
-    t_final, dt, n = options.t_final, float(options.dt), settings.n_samples()
+    n = settings.n_samples()
     printed = setup
     setup = params.cast(setup, settings.dtype)
     with common.blame_options(typed_settings(args)):
-        ranges = sweep.check_settings(settings, setup, t_final, dt, float(options.window_start))
+        ranges = sweep.check_settings(settings, setup, options)
     if args.print_config:
         common.print_config(printed, options,
                             {"sweep": sweep.settings.to_table(settings, setup)},
@@ -181,7 +181,8 @@ def run(args) -> int:
         return 0
     check(setup, options)
     check_work(work(settings, options.n_steps, ranges),
-               what=f"{n:,} samples of {common.horizon_text(t_final, dt, options.n_steps)}",
+               what=f"{n:,} samples of "
+               f"{common.horizon_text(options.t_final, float(options.dt), options.n_steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run

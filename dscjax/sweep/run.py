@@ -110,8 +110,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         raise ConfigError("sweep.dtype = 'float64' needs JAX's x64 mode: "
                           "jax.config.update('jax_enable_x64', True) before anything else")
     setup = params.cast(setup, dtype)
-    t_final, dt, n_steps = spec.t_final, float(spec.dt), spec.n_steps
-    ranges = check_settings(settings, setup, t_final, dt, float(spec.window_start))
+    ranges = check_settings(settings, setup, spec)
     check(setup, spec)
     n = settings.n_samples()
     columns = tuple(r.param for r in ranges)
@@ -174,7 +173,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
                 rate = (n_run - n_first) / (now - t_first)
             else:
                 rate = n_run / (now - t_start) if now > t_start else 0.0
-            progress(dict(done=n_done_before + n_run, total=n, steps_per_s=rate * n_steps))
+            progress(dict(done=n_done_before + n_run, total=n, steps_per_s=rate * spec.n_steps))
     elapsed = time.perf_counter() - t_start
 
     if out is not None and main:  # every block from its file (the resumed ones too)
@@ -190,10 +189,10 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
             files.write_npz(out / "results.npz", columns_out)
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
-                platform=runner.devices[0].platform, placement=placement, n_steps=n_steps,
-                **scope(settings, spec, ranges), samples_run=n_run,
+                platform=runner.devices[0].platform, placement=placement,
+                n_steps=spec.n_steps, **scope(settings, spec, ranges), samples_run=n_run,
                 samples_resumed=n_done_before, wall_s=elapsed,
-                steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)
+                steps_per_s=(n_run * spec.n_steps / elapsed) if n_run and elapsed > 0 else None)
     return SweepResult(columns=columns_out, param_names=names, info=info)
 
 
@@ -252,7 +251,7 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     if chunk is None or setup is None or spec is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
-    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt), float(spec.window_start))
+    ranges = check_settings(settings, setup, spec)
     manifest = Path(out) / "sweep.json"
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again

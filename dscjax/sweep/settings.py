@@ -12,6 +12,7 @@ from dscjax import device, params, validation
 from dscjax import settings as schema
 from dscjax.params import Param, Range, default_ranges
 from dscjax.rules import AtLeast, Choice, Maybe, Positive, Strings
+from dscjax.runspec import RunSpec
 from dscjax.settings import setting
 from dscjax.validation import ConfigError
 
@@ -98,14 +99,13 @@ def to_table(s: SweepSettings, setup) -> dict[str, Any]:
     return table
 
 
-def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
-                   window_start: float | None = None) -> tuple[Range, ...]:
-    """The resolved ranges, after checking the settings against the setup (ConfigError
-    naming the field; the ranges as `params.check`)."""
-    s = settings
+def check_settings(settings: SweepSettings, setup, spec: RunSpec) -> tuple[Range, ...]:
+    """The resolved ranges, after checking the settings against the setup and the run of
+    `spec` (ConfigError naming the field; the ranges as `params.check`)."""
+    t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)
-    s = schema.checked(s, lambda key: f"sweep.{key}")  # (built in code: read by the rules)
+    s = schema.checked(settings, lambda key: f"sweep.{key}")  # (built in code: read by rules)
     if s.method.grid and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method.grid else "sweep.ranges"
