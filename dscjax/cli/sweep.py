@@ -120,21 +120,18 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
-    for key in common.SAMPLED_KEYS:
-        value = loop.get(key, OPTIONS[key][0])
+    continuous = {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}
+    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
+    for key, value in (continuous | given).items():
         if key in config_loop and config_loop[key] != value:
             common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
                        f"{args.config} gives way to the gains file's {value!r} ({args.gains}: "
                        f"the loop the gains were tuned as; --{key.replace('_', '-')} overrides "
                        f"both)")
     # the config's run with a continuous controller, then the gains file's keys (checked)
-    continuous = RunSpec.make(**(options.to_table()
-                                 | {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}),
-                              gradient=options.gradient)
-    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
-    options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
-                                        for k in given}, **given)
-    return setup, options
+    options = RunSpec.make(**(options.to_table() | continuous), gradient=options.gradient)
+    return setup, options.replace(names={k: f"simulation.{k} of --gains {args.gains}"
+                                         for k in given}, **given)
 
 
 def typed_settings(args) -> dict[str, str]:
