@@ -164,8 +164,7 @@ def float64_check(setup, result: SweepResult, rows: Sequence[int]) -> dict[str, 
     """Which metrics a float32 sweep can be trusted with: `rows` re-run in float64
     (`simulate_rows`), and per metric the largest relative difference of the swept float32
     value from the float64 one. A metric above `FLOAT32_RTOL` on any row is listed in
-    "untrusted".
-    None for a float64 sweep (nothing to check) or without rows.
+    "untrusted". None for a float64 sweep (nothing to check) or without rows.
 
     The float32 loop itself can differ from the float64 one (high gains amplify its rounding
     into chattering of u), so no float64 accumulation of the float32 run would repair it.
