@@ -124,10 +124,9 @@ def sample_record(columns, param_names, i) -> dict[str, Any]:
 
 
 def random_rows(n: int, k: int, seed: int, exclude: Iterable[int] = ()) -> np.ndarray:
-    """k distinct rows drawn with the sweep's seed (a stream separate from the samples)."""
+    """k >= 0 distinct rows (fewer where fewer are left) drawn with the sweep's seed (a stream
+    separate from the samples)."""
     pool = np.setdiff1d(np.arange(n, dtype=np.int64), np.asarray(list(exclude), np.int64))
-    if k <= 0 or pool.size == 0:
-        return np.zeros(0, dtype=np.int64)
     rng = np.random.default_rng([seed, 1])
     return np.sort(rng.choice(pool, size=min(k, pool.size), replace=False))
 
