@@ -161,7 +161,9 @@ def test_heatmap_states_how_narrow_its_colour_scale_is(tmp_path):
     x, y = rng.uniform(0.7, 1.3, 400), rng.uniform(1.0, 1.8, 400)
     err = 0.0221 + 0.0005 * (x - 0.7) / 0.6  # a 2 % spread
     stats = plot_heatmap(x, y, err, np.zeros(400, bool), tmp_path / "h.png",
-                         names=("hysteresis.alpha", "hysteresis.lam"), t0=1.0, t_final=20.0)
+                         names=("hysteresis.alpha", "hysteresis.lam"), t0=1.0, t_final=20.0,
+                         threshold=1.0, nominal_xy=(1.0, 1.4), title="",
+                         refined=np.zeros(400, bool))
     assert re.fullmatch(r"colours span 0\.022\d* to 0\.022\d* = 2(\.\d)? % of the median",
                         stats["colour_scale"]), stats["colour_scale"]
 

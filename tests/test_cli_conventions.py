@@ -66,7 +66,7 @@ def _expected_defaults():
             "--gradient": tu.optimizer.gradient.name},
         "sweep": horizon | {
             "--samples": str(sw.samples), "--seed": str(sw.seed), "--worst": str(sw.worst),
-            "--random": str(sw.random), "--method": sw.method.name, "--parallel": sw.parallel,
+            "--random": str(sw.random), "--method": sw.method.name,
             "--float64": sw.dtype},
         "reproduce": {"--t-final": f"{reproduce.T_FINAL:g}", "--dt": f"{reproduce.DT:g}",
                       "--dpi": str(reproduce.DPI),

@@ -120,21 +120,18 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
-    for key in common.SAMPLED_KEYS:
-        value = loop.get(key, OPTIONS[key][0])
+    continuous = {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}
+    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
+    for key, value in (continuous | given).items():
         if key in config_loop and config_loop[key] != value:
             common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
                        f"{args.config} gives way to the gains file's {value!r} ({args.gains}: "
                        f"the loop the gains were tuned as; --{key.replace('_', '-')} overrides "
                        f"both)")
     # the config's run with a continuous controller, then the gains file's keys (checked)
-    continuous = RunSpec.make(**(options.to_table()
-                                 | {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}),
-                              gradient=options.gradient)
-    given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
-    options = continuous.replace(names={k: f"simulation.{k} of --gains {args.gains}"
-                                        for k in given}, **given)
-    return setup, options
+    options = RunSpec.make(**(options.to_table() | continuous), gradient=options.gradient)
+    return setup, options.replace(names={k: f"simulation.{k} of --gains {args.gains}"
+                                         for k in given}, **given)
 
 
 def typed_settings(args) -> dict[str, str]:
@@ -169,11 +166,11 @@ def run(args) -> int:
     from dscjax.simulate import check, simulate
 
     setup, options, settings = load(args)
-    t_final, dt, n = options.t_final, float(options.dt), settings.n_samples()
+    n = settings.n_samples()
     printed = setup
     setup = params.cast(setup, settings.dtype)
     with common.blame_options(typed_settings(args)):
-        ranges = sweep.check_settings(settings, setup, t_final, dt, float(options.window_start))
+        ranges = sweep.check_settings(settings, setup, options)
     if args.print_config:
         common.print_config(printed, options,
                             {"sweep": sweep.settings.to_table(settings, setup)},
@@ -181,7 +178,8 @@ def run(args) -> int:
         return 0
     check(setup, options)
     check_work(work(settings, options.n_steps, ranges),
-               what=f"{n:,} samples of {common.horizon_text(t_final, dt, options.n_steps)}",
+               what=f"{n:,} samples of "
+               f"{common.horizon_text(options.t_final, float(options.dt), options.n_steps)}",
                fix="use fewer --samples, a shorter --t-final or a larger --dt")
     if args.resume:
         # a changed config: refused before anything is printed or run
@@ -195,9 +193,7 @@ def run(args) -> int:
     warnings = assumption_warnings(setup, ranges, "sweep.grid" if settings.method.grid
                                    else "sweep.ranges")
     if main:
-        scope = options.to_table() | dict(
-            n_samples=n, method=settings.method.name, seed=settings.seed, dtype=settings.dtype,
-            ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
+        scope = {"n_samples": n} | sweep.run.scope(settings, options, ranges)
         common.banner(args, f"{sweep.scope_text(scope)}; on {len(choice.devices)} device(s) "
                       f"({choice.platform}), {jax.process_count()} process(es) "
                       f"({choice.reason})", warnings)
@@ -246,18 +242,17 @@ def run(args) -> int:
     rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=rows)
     rows, kinds = [*rows, *rand_rows], kinds + ["random"] * len(rand_rows)
-    columns = [r.param for r in ranges]
-    trajs = sweep.simulate_rows(setup, result, rows, save_every=every, ranges_params=columns)
+    trajs = sweep.simulate_rows(setup, result, rows, save_every=every)
     records = [sweep.sample_record(c, result.param_names, i) for i in rows]
     summary["traces"] = {"rows": [int(c["sample"][i]) for i in rows], "kinds": kinds,
                          "max_rel_diff_resimulated_vs_sweep": _recheck(trajs, records)}
     _write_traces(out / "traces.npz", trajs, records, kinds, nominal)
     f32 = None
     if settings.dtype == "float32":
-        rechecked = sweep.check_rows(result, rows, settings.seed)
+        rechecked = sweep.check_rows(result, rows)
         print(f"  re-checking {len(rechecked)} rows in float64 (which metrics float32 can be "
               f"trusted with) ...", file=sys.stderr)
-        f32 = sweep.float64_check(setup, result, rechecked, ranges_params=columns)
+        f32 = sweep.float64_check(setup, result, rechecked)
     summary["float32_check"] = f32
 
     figures = []
@@ -298,16 +293,18 @@ def interrupt_hint(args) -> str | None:
 
 def _recheck(trajs, records) -> dict[str, float] | None:
     """Per metric, the largest relative difference between the re-simulated and the swept
-    values (float64: round-off; float32: a few sensitive plants amplify rounding)."""
+    values (float64: round-off; float32: a few sensitive plants amplify rounding):
+    `float32_trust`'s, over the pairs where both are finite (the others count as NaN in both,
+    a difference of 0, where `float32_trust` would give inf for one non-finite value)."""
     if not trajs:
         return None
-    out = {}
-    for m in records[0]["metrics"]:
+    again, swept = {}, {}
+    for m in sweep.METRICS:
         a = np.array([float(tr.metrics[m]) for tr in trajs])
         v = np.array([rec["metrics"][m] for rec in records])
-        ok = np.isfinite(a) & np.isfinite(v)
-        out[m] = float(np.max(np.abs(a - v)[ok] / np.maximum(np.abs(v[ok]), 1e-30), initial=0.0))
-    return out
+        both = np.isfinite(a) & np.isfinite(v)
+        again[m], swept[m] = np.where(both, a, np.nan), np.where(both, v, np.nan)
+    return sweep.float32_trust(again, swept)["max_rel_diff"]
 
 
 def _write_traces(path, trajs, records, kinds, nominal):

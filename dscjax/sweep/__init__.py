@@ -12,23 +12,15 @@ program whatever the chunk, so results are bitwise independent of it; the last t
 only the metrics and divergence status coming back. The blocks of a round are laid
 over every device of `spec.device`'s platform (all hosts after `jax.distributed.initialize()`),
 each device running the SAME single-device program, so results are bitwise independent of the
-device count (a partitioned program compiles differently); `parallel="spmd"` runs one
-shard_map program instead (agrees to round-off). With `out_dir` each finished block is written
-atomically as ``chunks/chunk_000123.npz``; `resume=True` skips those and the final
-``results.npz`` is byte-identical. A diverged sample is a row (`diverged`, `t_diverged`, NaN
+device count (a partitioned program compiles differently). With `out_dir` each finished
+block is written atomically as ``chunks/chunk_000123.npz``; `resume=True` skips those and the
+final ``results.npz`` is byte-identical. A diverged sample is a row (`diverged`, `t_diverged`, NaN
 metrics), never an error.
 """
 
-from dscjax.device import auto_chunk
 from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import SweepResult, check_resumable, run_sweep
-from dscjax.sweep.settings import (
-    AUTO_BLOCK,
-    PARALLEL,
-    SweepSettings,
-    check_settings,
-    settings_from_dict,
-)
+from dscjax.sweep.settings import SweepSettings, check_settings, settings_from_dict
 from dscjax.sweep.summary import (
     FLOAT32_RTOL,
     check_rows,
@@ -38,7 +30,6 @@ from dscjax.sweep.summary import (
     markdown,
     outcome,
     random_rows,
-    rank_rows,
     sample_record,
     scope_text,
     simulate_rows,
@@ -46,8 +37,7 @@ from dscjax.sweep.summary import (
     trace_rows,
 )
 
-__all__ = ["AUTO_BLOCK", "FLOAT32_RTOL", "METRICS", "PARALLEL", "SweepResult", "SweepSettings",
-           "auto_chunk", "check_resumable", "check_rows", "check_settings", "float32_trust",
-           "float64_check", "loop_text", "markdown", "outcome", "random_rows", "rank_rows",
-           "run_sweep", "sample_record", "scope_text", "settings_from_dict", "simulate_rows",
-           "summarize", "trace_rows"]
+__all__ = ["FLOAT32_RTOL", "METRICS", "SweepResult", "SweepSettings", "check_resumable",
+           "check_rows", "check_settings", "float32_trust", "float64_check", "loop_text",
+           "markdown", "outcome", "random_rows", "run_sweep", "sample_record", "scope_text",
+           "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]

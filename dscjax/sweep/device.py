@@ -36,7 +36,6 @@ def _block_body(setup, spec, table, *, columns):
 # whole work is small (dscjax.xla.lean_work).
 _block = xla.jit(_block_body, static_argnames=("columns",))
 _block_lean = xla.jit(_block_body, lean=True, static_argnames=("columns",))
-PROBE_ROWS = 1 << 20  # a sweep of this size runs the widest tile
 # Rows per tile: XLA compiles each width differently (the fused loop of two widths can differ in
 # the last bits of some rows), so the width never follows the chunk. It is a multiple of 64, so
 # every row sits in a full vector (no scalar remainder loop with code of its own).
@@ -79,18 +78,17 @@ def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int) -> float | N
 
 
 class Runner:
-    """Runs rounds of blocks, one block per device of the mesh, and returns host arrays."""
+    """Runs rounds of blocks, one block per device of the mesh, and returns host arrays;
+    `tile`: rows per compiled tile (a sweep passes its `tile_rows`)."""
 
     AXIS = "batch"
 
-    def __init__(self, setup, columns, spec: RunSpec, chunk, parallel="per_device",
-                 devices=None, tile: int | None = None, lean: bool = False):
-        self.devices = list(devices if devices is not None else jax.devices())
-        # the whole sweep's compiled programs alike: the tiles, the refinements, spmd's
+    def __init__(self, setup, columns, spec: RunSpec, chunk, devices, tile: int,
+                 lean: bool = False):
+        self.devices = list(devices)
+        # the whole sweep's compiled programs alike: the tiles and the refinements
         self.block = _block_lean if lean else _block
-        # rows per compiled tile (per_device only: the spmd program runs whole blocks);
-        # default: the widest tile (callers pass the sweep's `tile_rows`)
-        self.tile = tile or tile_rows(self.devices[0].platform, PROBE_ROWS)
+        self.tile = tile
         self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
         self.n_dev = len(self.devices)
         self.chunk = chunk
@@ -100,19 +98,9 @@ class Runner:
         self.spec = spec.replace(save_every=spec.n_steps).for_dtype(self.dtype)
         self.in_sharding = NamedSharding(self.mesh, P(self.AXIS, None))
         self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
-        self.parallel = parallel
         self._compiled = False
         self.local = [d for d in self.devices if d.process_index == jax.process_index()]
-        if parallel == "spmd":
-            body = jax.shard_map(
-                lambda s, sp, t: _block_body(s, sp, t, columns=self.columns),
-                mesh=self.mesh, in_specs=(P(), P(), P(self.AXIS, None)),
-                out_specs=P(self.AXIS), check_vma=False)
-            self._spmd = jax.jit(body, compiler_options=xla.lean_options() if lean
-                                 else xla.compiler_options())
-            self.setup = jax.device_put(setup, NamedSharding(self.mesh, P()))
-        else:
-            self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
+        self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
         self._setup = setup
 
     def __call__(self, table: np.ndarray, n_real: int, last_rows: int | None = None
@@ -122,10 +110,6 @@ class Runner:
         last of them with `last_rows` real rows (default chunk: the tiles past them need not
         run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
-        if self.parallel == "spmd":
-            arr = jax.make_array_from_callback(table.shape, self.in_sharding, lambda i: table[i])
-            out = self._spmd(self.setup, self.spec.program(), arr)
-            return {k: _to_host(v) for k, v in out.items()}
         single = jax.process_count() == 1
         jobs = {}
         for dev, index in self.in_sharding.addressable_devices_indices_map(

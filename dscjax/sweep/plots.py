@@ -44,23 +44,17 @@ def error_label(t0: float, t_final: float) -> str:
 NARROW = 0.1
 
 
-def _span(v) -> tuple[float, float, float | None]:
-    """The least and the largest finite value of v, and their difference relative to the
-    median (None unless the median is > 0)."""
-    v = np.asarray(v, np.float64)
-    v = v[np.isfinite(v)]
+def _spread(v: np.ndarray) -> tuple[str, float | None]:
+    """How wide the colour scale of the finite values v is, in words, and that span relative
+    to their median (None unless the median is > 0): a narrow scale (say 0.0221-0.0226)
+    paints 2 % differences as the whole colour range."""
     lo, hi, med = v.min(), v.max(), np.median(v)
-    return lo, hi, ((hi - lo) / med if med > 0 else None)
-
-
-def spread_text(v) -> str:
-    """How wide the colour scale is, relative to the values' median: a narrow scale (say
-    0.0221-0.0226) paints 2 % differences as the whole colour range."""
-    lo, hi, rel = _span(v)
+    rel = (hi - lo) / med if med > 0 else None
     if rel is None or hi <= lo:
-        return f"colours span {lo:.3g} to {hi:.3g}"
+        return f"colours span {lo:.3g} to {hi:.3g}", rel
     return (f"colours span {lo:.3g} to {hi:.3g} = "
-            + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"))
+            + (f"{100 * rel:.2g} % of the median" if rel < 10 else f"a factor {hi / lo:.3g}"),
+            rel)
 
 
 def _use_log(v) -> bool:
@@ -68,13 +62,13 @@ def _use_log(v) -> bool:
     return v.size > 1 and v.max() / v.min() > 20
 
 
-def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=None,
-                   title="", refined=None) -> None:
+def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, title,
+                   refined) -> None:
     """Histogram of the windowed L-inf error of the samples that did not diverge; those that
     tracked only after refinement (`refined`: a smaller step / ETDRK4) stacked in orange."""
     err = np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
-    ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
+    ref = np.asarray(refined, bool) & ~div
     keep = ~div & np.isfinite(err)
     v = err[keep]
     fig, ax = subplots(figsize=(8, 5.4), layout="constrained")
@@ -92,21 +86,18 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal=None, threshold=
             ax.set_xscale("log")
         ax.axvline(np.median(v), color="#444444", lw=1.2, ls="-",
                    label=f"median {np.median(v):.3g}")
-    if nominal is not None and np.isfinite(nominal):
+    if np.isfinite(nominal):
         ax.axvline(nominal, color="black", lw=1.5, ls="--", label=f"nominal setup {nominal:.3g}")
-    if threshold is not None:
-        n_deg = int(np.sum(v > threshold))
-        label = f"degraded above {threshold:.3g} ({n_deg:,} samples)"
-        if v.size and threshold > v.max() + 0.5 * (v.max() - v.min()):
-            # far to the right of every sample: say so instead of squashing the histogram
-            ax.plot([], [], color="#d62728", lw=1.5, ls=":", label=label + ", off the axis")
-        else:
-            ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
+    label = f"degraded above {threshold:.3g} ({int(np.sum(v > threshold)):,} samples)"
+    if v.size and threshold > v.max() + 0.5 * (v.max() - v.min()):
+        # far to the right of every sample: say so instead of squashing the histogram
+        ax.plot([], [], color="#d62728", lw=1.5, ls=":", label=label + ", off the axis")
+    else:
+        ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
     ax.set_xlabel(error_label(t0, t_final))
     ax.set_ylabel("number of samples")
-    ax.set_title((title + "\n" if title else "")
-                 + f"{int(div.sum()):,} diverged at every step tried ({100 * div.mean():.2f} %,"
-                 " not shown)", fontsize=10)
+    ax.set_title(title + f"\n{int(div.sum()):,} diverged at every step tried "
+                 f"({100 * div.mean():.2f} %, not shown)", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     files.save_figure(fig, path, dpi=110)
@@ -147,16 +138,16 @@ def _edges_of(values):
     return np.concatenate([[v[0] - (mid[0] - v[0])], mid, [v[-1] + (v[-1] - mid[-1])]])
 
 
-def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=None,
-                 nominal_xy=None, grid_x=None, grid_y=None, title="", refined=None) -> dict:
+def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, nominal_xy,
+                 title, refined, grid_x=None, grid_y=None) -> dict:
     """Heatmap of the median windowed L-inf error over two parameters (hatched: a sample
     diverged at every step tried; red: median above `threshold`; x diverged, o `refined`
     samples); returns the cell statistics."""
     med, ex, ey, count, div_cells = heatmap_grid(x, y, err, diverged, grid_x=grid_x, grid_y=grid_y)
     div = np.asarray(diverged, bool)
-    ref = np.zeros_like(div) if refined is None else np.asarray(refined, bool) & ~div
+    ref = np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]
-    spread = spread_text(finite) if finite.size else None
+    spread, rel = _spread(finite) if finite.size else (None, None)
     fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
     if finite.size:
         norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
@@ -173,15 +164,12 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
     handles = []
     hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
     xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
-    bad = np.zeros(med.shape, bool)
-    if threshold is not None:
-        bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
-        if bad.any() and len(xc) > 1 and len(yc) > 1:
-            ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728",
-                       linewidths=1.8)
-        handles.append(Line2D([], [], color="#d62728", lw=1.8,
-                              label=f"tracking degraded: cell median > {threshold:.3g}"
-                              f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+    bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
+    if bad.any() and len(xc) > 1 and len(yc) > 1:
+        ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728", linewidths=1.8)
+    handles.append(Line2D([], [], color="#d62728", lw=1.8,
+                          label=f"tracking degraded: cell median > {threshold:.3g}"
+                          f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
     if div_cells.any():
         # hatch exactly the cells where a sample diverged at every step tried
         z = np.repeat(np.repeat(div_cells.astype(float), 2, axis=0), 2, axis=1)
@@ -206,23 +194,20 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
         if idx.size:
             ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], **style)
             handles.append(handle)
-    if nominal_xy is not None:
-        ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
-        handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",
-                              label="nominal setup"))
+    ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
+    handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",
+                          label="nominal setup"))
     ax.set_xlim(ex[0], ex[-1])
     ax.set_ylim(ey[0], ey[-1])
     ax.set_xlabel(param_label(names[0]))
     ax.set_ylabel(param_label(names[1]))
     kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
-    rel = _span(finite)[2] if finite.size else None
     narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
               "cells differ little") if rel is not None and rel < NARROW else ""
-    ax.set_title((title + "\n" if title else "") + f"windowed L∞ error over {kind}; other "
+    ax.set_title(title + f"\nwindowed L∞ error over {kind}; other "
                  "swept parameters pooled" + narrow, fontsize=10)
-    if handles:
-        ax.legend(handles=handles, fontsize=8, loc="upper center",
-                  bbox_to_anchor=(0.5, -0.12), ncol=1, frameon=False)
+    ax.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12),
+              ncol=1, frameon=False)
     files.save_figure(fig, path, dpi=110)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
@@ -231,8 +216,8 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold=Non
             "colour_scale": spread}
 
 
-def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nominal_x=None,
-              title="") -> None:
+def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold, nominal_x,
+              title) -> None:
     """One swept parameter: the windowed L-inf error against it (the 1-D 'heatmap')."""
     x, err = np.asarray(x), np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
@@ -242,10 +227,8 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
         top = np.nanmax(err[~div]) if (~div).any() else 1.0
         ax.plot(x[div], np.full(div.sum(), top), "x", color="#d62728",
                 label=f"diverged ({int(div.sum())}), drawn at the top")
-    if threshold is not None:
-        ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
-    if nominal_x is not None:
-        ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
+    ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
+    ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
     if _use_log(err[~div]):
         ax.set_yscale("log")
     ax.set_xlabel(param_label(name))
@@ -257,7 +240,7 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold=None, nomi
 
 
 def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
-                nominal=None, t0=None, title="") -> None:
+                nominal, t0, title) -> None:
     """Tracking error e(t) and control u(t) of the worst samples (colour; dotted and ending
     in x where they diverged) and a random handful (grey), with the nominal setup (black
     dashed)."""
@@ -279,23 +262,19 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
         ax[1].plot(t, u, **style)
         if bool(tr.diverged):
             ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
-    if nominal is not None:
-        ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2,
-                   label="nominal setup")
-        ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
-    if t0 is not None:
-        for a in ax:
-            a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
-        ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
-                       xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
+    ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2, label="nominal setup")
+    ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
+    for a in ax:
+        a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
+    ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
+                   xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
     ax[0].set_ylabel("tracking error  e = y − y_r")
     ax[1].set_ylabel("control input  u")
     ax[1].set_xlabel("time  t [s]")
     for a in ax:
         a.grid(alpha=0.3)
     ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    if title:
-        fig.suptitle(title, fontsize=11)
+    fig.suptitle(title, fontsize=11)
     files.save_figure(fig, path, dpi=110)
 
 
@@ -308,4 +287,4 @@ def trace_label(record: dict, names: Sequence[str], kind: str) -> str:
 
 
 __all__ = ["heatmap_grid", "param_label", "plot_heatmap", "plot_histogram", "plot_scan",
-           "plot_traces", "spread_text", "trace_label"]
+           "plot_traces", "trace_label"]

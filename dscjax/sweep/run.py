@@ -4,7 +4,6 @@ written as blocks finish, resume, and the columns of the result."""
 from __future__ import annotations
 
 import dataclasses
-import math
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -82,8 +81,8 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         out_dir: write chunk files and results.npz there (None: in memory only).
         resume: skip the blocks already in out_dir (written by the same settings).
         overwrite: start afresh even if out_dir holds a sweep's chunk files.
-        progress: called after every round with a dict: done, total, resumed, elapsed_s,
-            samples_per_s, steps_per_s (without compilation), eta_s, round, rounds.
+        progress: called after every round with a dict: done (samples, the resumed ones
+            too), total and steps_per_s (without compilation, once a round was timed alone).
         devices: default those of `device.choose(spec.device, n)`.
         tile: rows of the one compiled block program (a multiple of 64); default
             `dscjax.sweep.device.tile_rows(platform, n)`. Blocks of any chunk run as tiles of
@@ -111,8 +110,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         raise ConfigError("sweep.dtype = 'float64' needs JAX's x64 mode: "
                           "jax.config.update('jax_enable_x64', True) before anything else")
     setup = params.cast(setup, dtype)
-    t_final, dt, n_steps = spec.t_final, float(spec.dt), spec.n_steps
-    ranges = check_settings(settings, setup, t_final, dt, float(spec.window_start))
+    ranges = check_settings(settings, setup, spec)
     check(setup, spec)
     n = settings.n_samples()
     columns = tuple(r.param for r in ranges)
@@ -133,7 +131,6 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     # the values actually simulated: rounded to the sweep's dtype
     table = settings.method.draw(ranges, n, settings.seed).astype(dtype).astype(np.float64)
     n_blocks = -(-n // chunk)
-    tile = tile if settings.parallel == "per_device" else None
     fp = fingerprint(setup, settings, ranges, spec, chunk, tile)
     digest = files.digest(fp)
 
@@ -143,7 +140,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
             else _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main))
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, spec, chunk, settings.parallel, devices, tile,
+    runner = Runner(setup, columns, spec, chunk, devices, tile,
                     lean=xla.lean_work(n * spec.n_steps))
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
@@ -171,17 +168,12 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         t_first_round = t_first_round or (now, n_run)
         if progress is not None:
             t_first, n_first = t_first_round
-            # the rate after the first round excludes compilation; the ETA uses it once known
+            # the rate after the first round excludes compilation
             if n_run > n_first and now > t_first:
                 rate = (n_run - n_first) / (now - t_first)
             else:
                 rate = n_run / (now - t_start) if now > t_start else 0.0
-            done = n_done_before + n_run
-            progress(dict(done=done, total=n, elapsed_s=now - t_start, samples_per_s=rate,
-                          steps_per_s=rate * n_steps,
-                          eta_s=(n - done) / rate if rate > 0 else math.inf,
-                          round=r // runner.n_dev + 1, rounds=-(-len(todo) // runner.n_dev),
-                          resumed=n_done_before))
+            progress(dict(done=n_done_before + n_run, total=n, steps_per_s=rate * spec.n_steps))
     elapsed = time.perf_counter() - t_start
 
     if out is not None and main:  # every block from its file (the resumed ones too)
@@ -198,17 +190,22 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     info = dict(n_samples=n, n_params=len(names), n_blocks=n_blocks, chunk=chunk,
                 devices=runner.n_dev, processes=jax.process_count(),
                 platform=runner.devices[0].platform, placement=placement,
-                parallel=settings.parallel, n_steps=n_steps, dtype=settings.dtype,
-                t_final=t_final, dt=dt,
+                n_steps=spec.n_steps, **scope(settings, spec, ranges), samples_run=n_run,
+                samples_resumed=n_done_before, wall_s=elapsed,
+                steps_per_s=(n_run * spec.n_steps / elapsed) if n_run and elapsed > 0 else None)
+    return SweepResult(columns=columns_out, param_names=names, info=info)
+
+
+def scope(settings: SweepSettings, spec: RunSpec, ranges) -> dict[str, Any]:
+    """What a sweep runs, as its result's info says it (`summary.scope_text` words it, given
+    "n_samples" too)."""
+    return dict(dtype=settings.dtype, t_final=spec.t_final, dt=float(spec.dt),
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method.name, seed=settings.seed, solver=spec.solver.name,
                 refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
                 noise=None if spec.noise is None else np.asarray(spec.noise, float).tolist(),
                 noise_seed=int(spec.noise_seed), discretisation=spec.discretisation.name,
-                ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
-                samples_run=n_run, samples_resumed=n_done_before, wall_s=elapsed,
-                steps_per_s=(n_run * n_steps / elapsed) if n_run and elapsed > 0 else None)
-    return SweepResult(columns=columns_out, param_names=names, info=info)
+                ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
 
 
 def _started_chunk(out_dir) -> int | None:
@@ -254,7 +251,7 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     if chunk is None or setup is None or spec is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
-    ranges = check_settings(settings, setup, spec.t_final, float(spec.dt), float(spec.window_start))
+    ranges = check_settings(settings, setup, spec)
     manifest = Path(out) / "sweep.json"
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again

@@ -12,14 +12,12 @@ from dscjax import device, params, validation
 from dscjax import settings as schema
 from dscjax.params import Param, Range, default_ranges
 from dscjax.rules import AtLeast, Choice, Maybe, Positive, Strings
+from dscjax.runspec import RunSpec
 from dscjax.settings import setting
 from dscjax.validation import ConfigError
 
-Parallel = Literal["per_device", "spmd"]
-PARALLEL: tuple[str, ...] = get_args(Parallel)
 Dtype = Literal["float32", "float64"]
 DTYPES: tuple[str, ...] = get_args(Dtype)
-AUTO_BLOCK = device.CPU_BLOCK  # about this many samples per block on the CPU (chunk = None)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -39,8 +37,8 @@ class SweepSettings:
     seed: int = setting(0, "seed of the samples (and of the random handful of traces)",
                         AtLeast(0), flag="--seed")
     chunk: int | None = setting(
-        None, f"samples per block and device; none: about {AUTO_BLOCK} on the CPU, on a GPU "
-        f"from its free memory up to {device.MAX_BLOCK:,} (a --resume keeps the sweep's own)",
+        None, f"samples per block and device; none: about {device.CPU_BLOCK} on the CPU, on a "
+        f"GPU from its free memory up to {device.MAX_BLOCK:,} (a --resume keeps the sweep's own)",
         Maybe(AtLeast(1)), flag="--chunk")
     dtype: Dtype = setting("float64", "float64, or float32 (faster; its metrics re-checked in "
                            "float64 on a few rows)", Choice(DTYPES))
@@ -52,9 +50,6 @@ class SweepSettings:
     threshold: float | None = setting(
         None, "windowed L-inf error above which tracking counts as degraded; none: 2 x the "
         "nominal setup's", Maybe(Positive()), flag="--threshold")
-    parallel: Parallel = setting(
-        "per_device", "per_device (results bitwise independent of the device count) or spmd "
-        "(one shard_map program)", Choice(PARALLEL), flag="--parallel")
 
     def validate(self, prefix: str = "sweep") -> None:
         if self.heatmap is not None and len(self.heatmap) != 2:
@@ -104,14 +99,13 @@ def to_table(s: SweepSettings, setup) -> dict[str, Any]:
     return table
 
 
-def check_settings(settings: SweepSettings, setup, t_final: float, dt: float,
-                   window_start: float | None = None) -> tuple[Range, ...]:
-    """The resolved ranges, after checking the settings against the setup (ConfigError
-    naming the field; the ranges as `params.check`)."""
-    s = settings
+def check_settings(settings: SweepSettings, setup, spec: RunSpec) -> tuple[Range, ...]:
+    """The resolved ranges, after checking the settings against the setup and the run of
+    `spec` (ConfigError naming the field; the ranges as `params.check`)."""
+    t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     # the run settings first: a bad window or dt is not the fault of a range
     validation.validate_run(setup, t_final, dt, 1, window_start)
-    s = schema.checked(s, lambda key: f"sweep.{key}")  # (built in code: read by the rules)
+    s = schema.checked(settings, lambda key: f"sweep.{key}")  # (built in code: read by rules)
     if s.method.grid and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method.grid else "sweep.ranges"

@@ -124,24 +124,22 @@ def sample_record(columns, param_names, i) -> dict[str, Any]:
 
 
 def random_rows(n: int, k: int, seed: int, exclude: Iterable[int] = ()) -> np.ndarray:
-    """k distinct rows drawn with the sweep's seed (a stream separate from the samples)."""
+    """k >= 0 distinct rows (fewer where fewer are left) drawn with the sweep's seed (a stream
+    separate from the samples)."""
     pool = np.setdiff1d(np.arange(n, dtype=np.int64), np.asarray(list(exclude), np.int64))
-    if k <= 0 or pool.size == 0:
-        return np.zeros(0, dtype=np.int64)
     rng = np.random.default_rng([seed, 1])
     return np.sort(rng.choice(pool, size=min(k, pool.size), replace=False))
 
 
 def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every: int = 10,
-                  ranges_params: Sequence[Param] | None = None, dtype: str | None = None
-                  ) -> list:
+                  dtype: str | None = None) -> list:
     """Full trajectories of chosen rows, re-simulated one at a time with `dscjax.simulate`
     with the sweep's run (solver, refinement, the sampled controller's Ts, delay and noise;
     throw=False: diverged ones come back frozen at their last good state), in `dtype`
     (default the sweep's)."""
     info = result.info
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
-    cols = ranges_params or [Param.parse(p) for p in result.param_names]
+    cols = [Param.parse(p) for p in result.param_names]
     every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
                         **{k: info[k] for k in RUN_KEYS})
@@ -150,36 +148,32 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
 
 
-def check_rows(result: SweepResult, rows: Iterable[int], seed: int,
-               least: int = MIN_CHECK_ROWS) -> np.ndarray:
+def check_rows(result: SweepResult, rows: Iterable[int], least: int = MIN_CHECK_ROWS
+               ) -> np.ndarray:
     """The rows a float32 sweep re-checks in float64: `rows` (the traced ones) that did not
-    diverge, topped up with random rows that did not diverge to at least `least`."""
+    diverge, topped up to at least `least` with the first other rows that did not diverge."""
     ok = ~np.asarray(result.columns["diverged"], bool)
     mine = [int(i) for i in rows if ok[i]]
     if len(mine) < least:
-        pool = random_rows(result.n, result.n, seed, exclude=np.flatnonzero(~ok).tolist() + mine)
-        mine += [int(i) for i in pool[:least - len(mine)]]
+        mine += np.setdiff1d(np.flatnonzero(ok), mine)[:least - len(mine)].tolist()
     return np.asarray(sorted(set(mine)), np.int64)
 
 
-def float64_check(setup, result: SweepResult, rows: Sequence[int], *,
-                  ranges_params: Sequence[Param] | None = None,
-                  rtol: float | None = None) -> dict[str, Any] | None:
+def float64_check(setup, result: SweepResult, rows: Sequence[int]) -> dict[str, Any] | None:
     """Which metrics a float32 sweep can be trusted with: `rows` re-run in float64
     (`simulate_rows`), and per metric the largest relative difference of the swept float32
-    value from the float64 one. A metric above `rtol` on any row is listed in "untrusted".
-    None for a float64 sweep (nothing to check) or without rows.
+    value from the float64 one. A metric above `FLOAT32_RTOL` on any row is listed in
+    "untrusted". None for a float64 sweep (nothing to check) or without rows.
 
     The float32 loop itself can differ from the float64 one (high gains amplify its rounding
     into chattering of u), so no float64 accumulation of the float32 run would repair it.
     """
     if result.info["dtype"] != "float32" or len(rows) == 0:
         return None
-    runs = simulate_rows(setup, result, rows, save_every=result.info["n_steps"],
-                         ranges_params=ranges_params, dtype="float64")
+    runs = simulate_rows(setup, result, rows, save_every=result.info["n_steps"], dtype="float64")
     c = result.columns
     trust = float32_trust({m: [c[m][i] for i in rows] for m in METRICS},
-                          {m: [tr.metrics[m] for tr in runs] for m in METRICS}, rtol)
+                          {m: [tr.metrics[m] for tr in runs] for m in METRICS})
     return {"rows": [int(c["sample"][i]) for i in rows], "rtol": trust["rtol"],
             "max_rel_diff": trust["max_rel_diff"],
             "at_sample": {m: int(c["sample"][rows[j]]) for m, j in trust["at"].items()},
