@@ -22,11 +22,10 @@ from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.validation import ConfigError, Work, check_work
-from dscjax.worst.report import FIGURES, methods_table, searched, verdict, write
+from dscjax.worst.report import FIGURES, FILES, methods_table, searched, verdict, write
 
 MANIFEST = "worst_case.json"
-OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
-                   "report.md", "state_*.npz", *FIGURES))
+OUTPUTS = Outputs((MANIFEST, *FILES, "state_*.npz", *FIGURES))
 
 
 def add_parser(sub):
