@@ -15,10 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import disturbance as dist_mod
-from dscjax import params, search, validation, xla
-from dscjax.runspec import RunSpec
+from dscjax import params, search, xla
 from dscjax.simulate import dtype_of, run
-from dscjax.validation import ConfigError
 from dscjax.worst.problem import Problem, Static, box_overrides
 
 
@@ -183,12 +181,3 @@ class Programs(search.Problem):
         return cls(p.d, p.m, basis, project_coef, values, vg,
                    np.clip((nominal - lo) / (hi - lo), 0.0, 1.0))
 
-
-def check_coarsening(coarsening: int, spec: RunSpec) -> None:
-    validation.integer(coarsening, "--gradient-coarsening", 1)
-    if spec.n_steps % coarsening:
-        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
-                          f"steps t_final/dt = {spec.n_steps}")
-    if spec.sampled and spec.sample_every % coarsening:
-        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
-                          f"controller sample, sample_time/dt = {spec.sample_every}")

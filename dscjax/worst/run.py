@@ -28,7 +28,7 @@ from dscjax.worst.problem import (
     Problem,
     check_metric,
 )
-from dscjax.worst.programs import Programs, check_coarsening
+from dscjax.worst.programs import Programs
 
 Method = Literal["gradient", "random", "cma"]
 METHODS: tuple[str, ...] = get_args(Method)
@@ -173,14 +173,21 @@ def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch
                  time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
     """The search settings of `worst_case`, checked before anything runs by the rules of
     `WorstSettings` (ConfigError naming the option, or `worst.methods`: the command refuses
-    bad methods earlier, naming the option typed; an infinite time_limit is allowed here)."""
+    bad methods earlier, naming the option typed; an infinite time_limit is allowed here), and
+    the coarsening against the problem's steps."""
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
     flags = {key: s.flag for key, s in settings.declared(WorstSettings).items()}
     settings.checked(WorstSettings(methods=tuple(methods), starts=starts, batch=batch,
                                    max_evals=max_evals, gradient_coarsening=coarsening),
                      flags.get).validate("worst")
-    check_coarsening(coarsening, problem.spec)
+    spec = problem.spec
+    if spec.n_steps % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                          f"steps t_final/dt = {spec.n_steps}")
+    if spec.sampled and spec.sample_every % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
+                          f"controller sample, sample_time/dt = {spec.sample_every}")
 
 
 def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
