@@ -155,9 +155,12 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     if not trust["untrusted"]:
         return check, None
 
+    def signed(x):
+        return "n/a" if np.isnan(x) else f"{x:+.3g}"
+
     def why(name):  # the other sign, or one has no value (nan): both values
         if name in trust["sign_flips"] or np.isnan(got[name]) or np.isnan(want[name]):
-            return f"{got[name]:+.3g} against {want[name]:+.3g}"
+            return f"{signed(got[name])} against {signed(want[name])}"
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences
