@@ -107,14 +107,12 @@ def run(args) -> int:
         result = problem.result(jacobian())
         t2 = time.perf_counter()
         bar.update_to(2, f"forward and {len(metrics)} reverse pass(es) in {t2 - t1:.2f} s")
-    values = result.values
-    f32 = None
+    values, untrusted = result.values, None  # (a new dict)
     if spec.dtype == "float32":
         print("  re-checking in float64 (which values float32 can be trusted with) ...",
               file=sys.stderr)
-        f32, untrusted = _float64_check(problem, result, args.paths)
-    files.write_json(out / "sensitivity.json",
-                     values if f32 is None else values | {"float32_check": f32})
+        values["float32_check"], untrusted = _float64_check(problem, result, args.paths)
+    files.write_json(out / "sensitivity.json", values)
     _print_table(result)
     if not args.no_plot:
         sampled = f", sampled every {spec.sample_time:g} s" if spec.sampled else ""
@@ -122,7 +120,7 @@ def run(args) -> int:
               f"{setup.controller.kind.upper()}, n={setup.order}, {what}{sampled}, {plants}")
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
-    if f32 is not None and untrusted:
+    if untrusted:
         common.say(args, "warning", untrusted)
     return 0
 
