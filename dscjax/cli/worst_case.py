@@ -84,7 +84,7 @@ def run(args) -> int:
     common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "
                   f"{s.time_limit:g} s each"
                   + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
-                  + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}",
+                  + f"; {what}; on {choice}",
                   worst.assumption_warnings(problem))
     bars, compiled = {}, {}
 
