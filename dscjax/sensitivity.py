@@ -85,20 +85,16 @@ class Sensitivity:
                 for i, m in enumerate(self.metrics)}
 
 
-def default_paths(setup) -> list[str]:
-    """The numbers of the controller, the plant and the hysteresis model (their config paths,
-    vectors whole)."""
-    return [f"{part}.{p}" for part in PARTS
-            for p in validation.numeric_paths(getattr(setup, part))]
-
-
 def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
             ) -> tuple[Param, ...]:
     """One `Param` per scalar differentiated (or fitted, `dscjax.identify`): `paths` (default
-    `default_paths`) checked against the setup (ConfigError naming `field`), a vector leaf given
-    whole split into its elements; a number given twice is refused."""
-    given = [Param.parse(text, field) for text in (default_paths(setup) if paths is None
-                                                   else paths)]
+    every number of the controller, the plant and the hysteresis model) checked against the
+    setup (ConfigError naming `field`), a vector leaf given whole split into its elements; a
+    number given twice is refused."""
+    if paths is None:
+        paths = [f"{part}.{p}" for part in PARTS
+                 for p in validation.numeric_paths(getattr(setup, part))]
+    given = [Param.parse(text, field) for text in paths]
     for p in given:
         p.check(setup, field)
     out = Selection.of(given).columns(setup)
@@ -241,5 +237,5 @@ def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
     return problem.result(problem.jacobian())
 
 
-__all__ = ["LP_ORDER", "METRICS", "Problem", "Sensitivity", "columns",
-           "check_metrics", "default_paths", "lp_window", "sensitivity"]
+__all__ = ["LP_ORDER", "METRICS", "Problem", "Sensitivity", "columns", "check_metrics",
+           "lp_window", "sensitivity"]

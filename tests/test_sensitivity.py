@@ -127,8 +127,9 @@ def test_the_command_writes_the_json_the_table_and_the_chart(tmp_path, capsys, n
         for name in res.names[:5]:
             assert data[m][name] == pytest.approx(res.values[m][name], rel=1e-9)
     assert (out / "sensitivity.png").stat().st_size > 0
-    rows = [line.split()[0] for line in captured.out.splitlines()
-            if line.split() and line.split()[0] in res.names]
+    firsts = [line.split("|")[1].strip() for line in captured.out.splitlines()
+              if line.startswith("|")]
+    rows = [name for name in firsts if name in res.names]
     largest = np.nanmax(np.abs(res.normalised[:, :5]), axis=0)
     assert rows == [res.names[j] for j in np.argsort(-largest)] + ["hysteresis.w0"]
     assert "compiling" in captured.err

@@ -21,6 +21,7 @@ import numpy as np
 from dscjax import files, params, validation
 from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.markdown import table
 from dscjax.plotting import subplots
 from dscjax.progress import Progress
 from dscjax.runspec import loop_words
@@ -106,14 +107,12 @@ def run(args) -> int:
         result = problem.result(jacobian())
         t2 = time.perf_counter()
         bar.update_to(2, f"forward and {len(metrics)} reverse pass(es) in {t2 - t1:.2f} s")
-    values = result.values
-    f32 = None
+    values, untrusted = result.values, None  # (a new dict)
     if spec.dtype == "float32":
         print("  re-checking in float64 (which values float32 can be trusted with) ...",
               file=sys.stderr)
-        f32, untrusted = _float64_check(problem, result, args.paths)
-    files.write_json(out / "sensitivity.json",
-                     values if f32 is None else values | {"float32_check": f32})
+        values["float32_check"], untrusted = _float64_check(problem, result, args.paths)
+    files.write_json(out / "sensitivity.json", values)
     _print_table(result)
     if not args.no_plot:
         sampled = f", sampled every {spec.sample_time:g} s" if spec.sampled else ""
@@ -121,7 +120,7 @@ def run(args) -> int:
               f"{setup.controller.kind.upper()}, n={setup.order}, {what}{sampled}, {plants}")
     print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
           + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
-    if f32 is not None and untrusted:
+    if untrusted:
         common.say(args, "warning", untrusted)
     return 0
 
@@ -155,9 +154,12 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     if not trust["untrusted"]:
         return check, None
 
+    def signed(x):
+        return "n/a" if np.isnan(x) else f"{x:+.3g}"
+
     def why(name):  # the other sign, or one has no value (nan): both values
         if name in trust["sign_flips"] or np.isnan(got[name]) or np.isnan(want[name]):
-            return f"{got[name]:+.3g} against {want[name]:+.3g}"
+            return f"{signed(got[name])} against {signed(want[name])}"
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences
@@ -171,21 +173,14 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
 
 
 def _print_table(result) -> None:
-    width = max(len("parameter"), *(len(n) for n in result.names))
-    cols = [max(len(m), 10) for m in result.metrics]
-
-    def row(label, cells):
-        print(f"{label:<{width}}  " + "  ".join(f"{x:>{c}}" for x, c in
-                                                zip(cells, cols, strict=True)))
-
-    print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
-    row("parameter", result.metrics)
-    row("value of m", [f"{v:.4g}" for v in result.value])
     n = result.normalised
     # by the largest |d ln m / d ln p| over the metrics, those without one (p = 0) last
     largest = np.max(np.where(np.isnan(n), -1.0, np.abs(n)), axis=0)
-    for j in np.argsort(-largest, kind="stable"):
-        row(result.names[j], ["-" if np.isnan(x) else f"{x:+.3e}" for x in n[:, j]])
+    rows = [("value of m", *(f"{v:.4g}" for v in result.value))]
+    rows += [(result.names[j], *("-" if np.isnan(x) else f"{x:+.3e}" for x in n[:, j]))
+             for j in np.argsort(-largest, kind="stable")]
+    print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
+    print("\n".join(table(("parameter", *result.metrics), rows)))
 
 
 def _plot(result, path, title: str) -> None:

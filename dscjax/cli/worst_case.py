@@ -22,11 +22,10 @@ from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.validation import ConfigError, Work, check_work
-from dscjax.worst.report import FIGURES, methods_table, searched, verdict, write
+from dscjax.worst.report import FIGURES, FILES, methods_table, searched, verdict, write
 
 MANIFEST = "worst_case.json"
-OUTPUTS = Outputs((MANIFEST, "worst.json", "worst_config.toml", "worst_trajectory.npz",
-                   "report.md", "state_*.npz", *FIGURES))
+OUTPUTS = Outputs((MANIFEST, *FILES, "state_*.npz", *FIGURES))
 
 
 def add_parser(sub):
@@ -47,15 +46,20 @@ def add_parser(sub):
 def run(args) -> int:
     setup, options = common.load_setup(args)
     s, ranges = worst_settings(args)
+    requirements = requirement_table(args, s)
     if args.print_config:
         table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
                                                     for r in ranges}} if ranges else {})
-        common.print_config(setup, options, {"worst": table} | requirement_table(args, s),
-                            groups={"worst": s})
+        tuning = {"tuning": {"requirements": requirements}} if requirements else {}
+        common.print_config(setup, options, {"worst": table} | tuning, groups={"worst": s})
         return 0
+    requirement = None
+    if requirements:  # built as the tuner builds it
+        from tuning.requirements import build_requirements
+
+        requirement = build_requirements(setup, requirements)[0]
     problem = worst.make_problem(setup, ranges, s.disturbance, metric=s.metric,
-                                 requirement=requirement_of(args, setup, s),
-                                 spec=options, period=s.period)
+                                 requirement=requirement, spec=options, period=s.period)
     methods = list(s.methods)
     search = {"starts": s.starts, "batch": s.batch, "time_limit": s.time_limit,
               "max_evals": s.max_evals, "coarsening": s.gradient_coarsening}
@@ -80,7 +84,7 @@ def run(args) -> int:
     common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "
                   f"{s.time_limit:g} s each"
                   + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
-                  + f"; T={problem.t_final:g} s, dt={problem.dt:g} s; on {choice}",
+                  + f"; {what}; on {choice}",
                   worst.assumption_warnings(problem))
     bars, compiled = {}, {}
 
@@ -160,34 +164,18 @@ def worst_settings(args):
 
 
 def requirement_table(args, s) -> dict:
-    """The [tuning.requirements.NAME] table of `--metric requirement:NAME` ({} for any other
-    metric): the rest of the config --print-config shows."""
-    if not s.metric.startswith(worst.REQUIREMENT) or not args.config:
+    """{NAME: [tuning.requirements.NAME] of --config, read and checked as the tuner reads it}
+    of `--metric requirement:NAME` ({} for any other metric)."""
+    if not s.metric.startswith(worst.REQUIREMENT):
         return {}
-    name = s.metric[len(worst.REQUIREMENT):]
-    return {"tuning": {"requirements": {name: _requirements(args).get(name, {})}}}
-
-
-def _requirements(args) -> dict:
-    """[tuning.requirements] of --config, read and checked as the tuner reads it."""
     from tuning.config import from_dict
 
-    return from_dict(common.config_data(args).get("tuning", {})).requirements
-
-
-def requirement_of(args, setup, s):
-    """The requirement of `--metric requirement:NAME`: [tuning.requirements.NAME] of --config
-    (built as the tuner builds it), or None for any other metric."""
-    if not s.metric.startswith(worst.REQUIREMENT):
-        return None
     name = s.metric[len(worst.REQUIREMENT):]
-    from tuning.requirements import build_requirements
-
-    table = _requirements(args)
-    if name not in table:
+    tables = from_dict(common.config_data(args).get("tuning", {})).requirements
+    if name not in tables:
         raise ConfigError(f"--metric {s.metric}: --config has no [tuning.requirements."
-                          f"{name}] table (has: {', '.join(table) or 'none'})")
-    return build_requirements(setup, {name: table[name]})[0]
+                          f"{name}] table (has: {', '.join(tables) or 'none'})")
+    return {name: tables[name]}
 
 
 def resumable(args) -> bool:

@@ -25,7 +25,7 @@ import numpy as np
 
 from dscjax import files
 from dscjax.progress import critical
-from dscjax.search.cma import ReplayCMA, require_cma
+from dscjax.search.cma import ReplayCMA
 from dscjax.search.methods import CMA, Context, Gradient, Random, generator
 from dscjax.search.trace import Evaluation, Incumbent, Saved, Step, Trace, load, order, save, take
 
@@ -158,5 +158,5 @@ def _limit(trace: Trace, last: float, time_limit, max_evals, max_iterations) -> 
 
 
 __all__ = ["Batched", "CMA", "Context", "Evaluation", "Gradient", "Incumbent", "Problem", "Random",
-           "ReplayCMA", "Result", "Saved", "Step", "Trace", "generator", "load", "order",
-           "require_cma", "run", "save", "take"]
+           "ReplayCMA", "Result", "Saved", "Step", "Trace", "generator", "load", "order", "run",
+           "save", "take"]

@@ -10,17 +10,6 @@ import copy
 import numpy as np
 
 
-def require_cma():
-    """The `cma` module, or ModuleNotFoundError saying how to install it (it is a dependency
-    of dscjax, but an environment may lack it)."""
-    try:
-        import cma
-    except ModuleNotFoundError:
-        raise ModuleNotFoundError("CMA-ES needs the `cma` package, a dependency of dscjax: "
-                                  "pip install 'cma>=3.4'") from None
-    return cma
-
-
 class ReplayCMA:
     """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
 
@@ -35,7 +24,11 @@ class ReplayCMA:
     """
 
     def __init__(self, x0, sigma0: float, opts: dict):
-        cma = require_cma()
+        try:  # a dependency of dscjax, but an environment may lack it
+            import cma
+        except ModuleNotFoundError:
+            raise ModuleNotFoundError("CMA-ES needs the `cma` package, a dependency of dscjax: "
+                                      "pip install 'cma>=3.4'") from None
         x0 = np.asarray(x0, dtype=float).reshape(-1)
         self.n = x0.size  # the search's dimension
         if self.n == 1:  # pycma 4.5 cannot bound one dimension: a neutral copy of it
@@ -113,4 +106,4 @@ class ReplayCMA:
             raise ValueError("CMA-ES could not replay its stored generations")
 
 
-__all__ = ["ReplayCMA", "require_cma"]
+__all__ = ["ReplayCMA"]

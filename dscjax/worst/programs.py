@@ -15,10 +15,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import disturbance as dist_mod
-from dscjax import params, search, validation, xla
-from dscjax.runspec import RunSpec
+from dscjax import params, search, xla
 from dscjax.simulate import dtype_of, run
-from dscjax.validation import ConfigError
 from dscjax.worst.problem import Problem, Static, box_overrides
 
 
@@ -33,21 +31,14 @@ def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
     return traj.metrics[st.metric], traj.diverged
 
 
-def _value_and_grad(values, single, z):
-    """(values, diverged, d values / d z) of a batch; a diverged member's gradient is 0: with
-    `single`, each start's own time-parallel gradient, vmapped over the starts; without, the
-    gradient of the batch's total."""
-    def masked(f):
-        def total(z_):
-            v, bad = f(z_)
-            return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
+def _value_and_grad(single, z):
+    """(values, diverged, d values / d z) of a batch, each start's own time-parallel gradient
+    of `single` vmapped over the starts; a diverged member's gradient is 0."""
+    def masked(z_):
+        v, bad = single(z_)
+        return jnp.sum(jnp.where(bad, 0.0, v)), (v, bad)
 
-        return total
-
-    if single is None:
-        (_, (v, bad)), g = jax.value_and_grad(masked(values), has_aux=True)(z)
-    else:
-        (_, (v, bad)), g = jax.vmap(jax.value_and_grad(masked(single), has_aux=True))(z)
+    (_, (v, bad)), g = jax.vmap(jax.value_and_grad(masked, has_aux=True))(z)
     return v, bad, g
 
 
@@ -57,9 +48,8 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=("st",))
 # the gradients compile lean, as every gradient of dscjax does (dscjax.xla)
 @functools.partial(xla.jit, lean=True, static_argnames=("st",))
 def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static):
-    args = (lo, hi, bound, spec, extra)
-    return _value_and_grad(lambda z_: _problem_values(setup, z_, *args, st=st),
-                           lambda z1: _problem_single(setup, z1, *args, st=st), z)
+    return _value_and_grad(lambda z1: _problem_single(setup, z1, lo, hi, bound, spec, extra,
+                                                      st=st), z)
 
 
 @functools.partial(xla.jit, lean=True, static_argnames=("st",))
@@ -115,7 +105,7 @@ class Programs(search.Problem):
 
     def __init__(self, d: int, m: int, basis, project_coef, values, value_and_grad,
                  nominal_u: np.ndarray | None = None):
-        self.d, self.m, self.nominal_u = d, m, nominal_u
+        self.d, self.m = d, m
         self.basis = jnp.asarray(basis)
         self.values = search.Batched(values)
         self._value_and_grad = search.Batched(value_and_grad)
@@ -152,18 +142,17 @@ class Programs(search.Problem):
 
     @classmethod
     def from_functions(cls, d: int, m: int, basis, project_coef, values: Callable,
-                       single: Callable | None = None, nominal_u=None) -> Programs:
-        """From a batch objective `values(z) -> (v, diverged)` and optionally its one-point
-        version `single(z1)` (then differentiated per start)."""
-        vg = jax.jit(lambda z: _value_and_grad(values, single, z))
+                       single: Callable, nominal_u=None) -> Programs:
+        """From a batch objective `values(z) -> (v, diverged)` and its one-point version
+        `single(z1)` (differentiated per start)."""
+        vg = jax.jit(functools.partial(_value_and_grad, single))
         return cls(d, m, basis, project_coef, jax.jit(values), vg, nominal_u)
 
     @classmethod
     def for_problem(cls, problem: Problem, coarsening: int = 1) -> Programs:
         """The programs of `problem`; with `coarsening` F > 1 the gradients are the loop's at
         F dt (a search direction only), the values always at dt."""
-        p = problem
-        check_coarsening(coarsening, p.spec)
+        p = problem  # (checked by `worst_case`, coarsening included)
         basis, project_coef = np.zeros((1, 0)), None
         if p.m:
             grid = dist_mod.half_step_grid(p.t_final, p.dt)
@@ -192,12 +181,3 @@ class Programs(search.Problem):
         return cls(p.d, p.m, basis, project_coef, values, vg,
                    np.clip((nominal - lo) / (hi - lo), 0.0, 1.0))
 
-
-def check_coarsening(coarsening: int, spec: RunSpec) -> None:
-    validation.integer(coarsening, "--gradient-coarsening", 1)
-    if spec.n_steps % coarsening:
-        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
-                          f"steps t_final/dt = {spec.n_steps}")
-    if spec.sampled and spec.sample_every % coarsening:
-        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
-                          f"controller sample, sample_time/dt = {spec.sample_every}")

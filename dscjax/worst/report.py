@@ -18,19 +18,11 @@ from dscjax import config, files
 from dscjax.disturbance import half_step_grid
 from dscjax.markdown import table
 from dscjax.plotting import subplots
-from dscjax.runspec import RunSpec
 from dscjax.worst import Result, assumption_warnings, best_value
 
+FILES = ("worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md")
 FIGURES = ("worst_vs_nominal.png", "worst_disturbance.png", "search_progress.png")
 SHARES = (0.1, 0.25, 0.5, 1.0)  # report.md's best values at these shares of the search time
-
-
-def options_of(result: Result) -> RunSpec:
-    """The [simulation] table of the worst case's config: the run the user gave (not the
-    search's metrics-only settings: it replays as a whole trajectory), its dtype."""
-    p = result.problem
-    dtype = str(np.result_type(np.asarray(result.setup.plant.x0)))
-    return (p.options if p.options is not None else p.spec).replace(dtype=dtype)
 
 
 def summary(result: Result) -> dict:
@@ -68,8 +60,12 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
     found = verdict(result) if result.diverged else repr(result.value)
     header = (f"dscjax worst-case: the worst case of {p.metric} found: {found}\n"
               f"Reproduce: dscjax simulate --config worst_config.toml")
+    # [simulation]: the run the user gave (not the search's metrics-only settings: it replays
+    # as a whole trajectory), in the worst setup's dtype
+    dtype = str(np.result_type(np.asarray(result.setup.plant.x0)))
+    options = (p.options if p.options is not None else p.spec).replace(dtype=dtype)
     files.write_text(out / "worst_config.toml",
-                     config.to_toml(result.setup, options_of(result), header=header))
+                     config.to_toml(result.setup, options, header=header))
     worst = result.trajectory
     dt_used = float(np.asarray(worst.dt))
     t_half = half_step_grid(p.t_final, dt_used)
@@ -78,7 +74,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
         **{k: getattr(worst, k) for k in ("t", "x", "u", "w", "e")}, "t_half": t_half,
         "dbar": dbar, "dt": dt_used})
     files.write_text(out / "report.md", report_md(result))
-    names = ["worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md"]
+    names = list(FILES)
     if plots:
         _plot_worst(out / FIGURES[0], worst, result.nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
@@ -125,14 +121,10 @@ def report_md(result: Result) -> str:
         at = np.searchsorted(t, np.array(SHARES) * (t[-1] if t.size else 0.0), side="right") - 1
         rows.append((m, *(f"{best[i]:.6g}" if i >= 0 else "-" for i in at)))
     lines += table(("method", *(f"{f:.0%} of time" for f in SHARES)), rows)
-    lines += ["", "Values in the tables are those of the search's batch runs; the worst value "
-              "above is re-checked by `simulate` (with refinement) on the worst setup and is "
-              "what `dscjax simulate --config worst_config.toml` reproduces.", ""]
+    lines += ["", "The tables hold the search's batch values; the worst value above is "
+              "`simulate`'s (with refinement), as `dscjax simulate --config worst_config.toml` "
+              "reproduces it.", ""]
     return "\n".join(lines)
-
-
-# One colour per case, the same in every panel.
-CASE_COLORS = {"nominal": "#444444", "worst case": "#d62728"}
 
 
 def _curve(trace) -> tuple[np.ndarray, np.ndarray]:
@@ -145,10 +137,11 @@ def _plot_worst(path, worst, nominal, result):
     """worst_vs_nominal.png: e and u of the nominal and the worst case, one colour and line
     style per case in both panels, each panel with its legend. Returns the Figure."""
     fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
-    for traj, name, style in ((nominal, "nominal", "--"), (worst, "worst case", "-")):
+    for traj, name, style, color in ((nominal, "nominal", "--", "#444444"),
+                                     (worst, "worst case", "-", "#d62728")):
         t = np.asarray(traj.t)
         for a, signal in zip(ax, (traj.e, traj.u), strict=True):
-            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=CASE_COLORS[name])
+            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=color)
     ax[0].set_ylabel("tracking error e [-]")
     ax[1].set_ylabel("control u [-]")
     ax[1].set_xlabel("t [s]")
@@ -183,5 +176,5 @@ def _plot_progress(path, result):
     files.save_figure(fig, path, dpi=110)
 
 
-__all__ = ["FIGURES", "methods_table", "options_of", "report_md", "searched", "summary",
+__all__ = ["FILES", "FIGURES", "methods_table", "report_md", "searched", "summary",
            "verdict", "write"]

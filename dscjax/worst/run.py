@@ -14,7 +14,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
-from dscjax import files, params, search, settings, validation
+from dscjax import files, search, settings, validation
 from dscjax.closed_loop import Setup
 from dscjax.rules import AtLeast, Custom, Maybe, Positive, Strings
 from dscjax.settings import setting
@@ -27,15 +27,13 @@ from dscjax.worst.problem import (
     DisturbanceSpec,
     Problem,
     check_metric,
-    make_problem,
 )
-from dscjax.worst.programs import Programs, check_coarsening
+from dscjax.worst.programs import Programs
 
 Method = Literal["gradient", "random", "cma"]
 METHODS: tuple[str, ...] = get_args(Method)
 DEFAULT_STARTS = 4  # docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
-DEFAULT_LR = 0.1
 DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
 
 
@@ -88,10 +86,10 @@ def best_value(trace: search.Trace) -> float:
 
 
 def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
-                  lr: float = DEFAULT_LR, m: int = 0):
+                  m: int = 0):
     """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
     if name == "gradient":
-        return search.Gradient(lr=lr, starts=starts, screen=max(batch, starts), coupled=m)
+        return search.Gradient(starts=starts, screen=max(batch, starts), coupled=m)
     return {"random": search.Random(batch=batch), "cma": search.CMA(popsize=batch)}[name]
 
 
@@ -123,27 +121,22 @@ def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int,
     return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
 
 
-def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = (),
-               disturbance: DisturbanceSpec | str | None = None, *,
-               time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
+def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
                methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
-               lr: float = DEFAULT_LR, coarsening: int = DEFAULT_COARSENING,
-               out_dir: str | Path | None = None, resume: bool = False,
-               max_evals: int | None = None,
+               coarsening: int = DEFAULT_COARSENING, out_dir: str | Path | None = None,
+               resume: bool = False, max_evals: int | None = None,
                progress: Callable[[str, search.Trace, float], None] | None = None,
-               say: Callable[[str], None] | None = None, **problem_options) -> Result:
+               say: Callable[[str], None] | None = None) -> Result:
     """Search the worst case of `problem` with each method for `time_limit` seconds (or
     `max_evals` evaluations, whichever comes first).
 
     Args:
-        problem: from `make_problem`; or a Setup, then `make_problem(problem, ranges,
-            disturbance, **problem_options)` (ranges may be text, "PATH=30%").
+        problem: from `make_problem`.
         time_limit: search seconds per method (compilation excluded).
         starts: M, the gradient method's starts, advanced as one batch.
         methods: any of "gradient", "random", "cma".
         seed: every random draw is a function of (seed, method, iteration).
         batch: candidates per batch of random and CMA-ES.
-        lr: the gradient method's initial step (box widths, units of D).
         coarsening: F, gradients of the loop at F dt (1: exact gradients of the values).
         out_dir: where each method's state is saved after every iteration (for `resume`).
         max_evals: stop a method after this many candidates (its last batch finished); a
@@ -157,16 +150,13 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
 
     Example:
         >>> import dscjax
-        >>> from dscjax.worst import worst_case
-        >>> res = worst_case(dscjax.paper_example(), ["hysteresis.alpha=30%"], "fourier:2:0.5",
-        ...                  t_final=2.0, time_limit=5.0)  # doctest: +SKIP
+        >>> from dscjax.params import parse_range
+        >>> from dscjax.worst import make_problem, worst_case
+        >>> problem = make_problem(dscjax.paper_example(), [parse_range("hysteresis.alpha=30%")],
+        ...                        "fourier:2:0.5", t_final=2.0)  # doctest: +SKIP
+        >>> res = worst_case(problem, time_limit=5.0)  # doctest: +SKIP
         >>> res.value, res.problem.values_at(res.z)  # doctest: +SKIP
     """
-    if not isinstance(problem, Problem):
-        problem = make_problem(problem, [params.parse_range(r) if isinstance(r, str) else r
-                                         for r in ranges], disturbance, **problem_options)
-    elif ranges or disturbance is not None or problem_options:
-        raise ConfigError("worst_case: give ranges, disturbance and options to make_problem")
     check_search(problem, methods, starts=starts, batch=batch, time_limit=time_limit,
                  max_evals=max_evals, coarsening=coarsening)
     # "gradient": the one kind there is, kept so that a search saved with it resumes
@@ -174,7 +164,7 @@ def worst_case(problem: Problem | Setup, ranges: Sequence[params.Range | str] = 
           "coarsening": coarsening}
     prog = Programs.for_problem(problem, coarsening)
     traces = run_methods(prog, time_limit=time_limit, starts=starts, methods=methods,
-                         seed=seed, batch=batch, lr=lr, out_dir=out_dir, resume=resume,
+                         seed=seed, batch=batch, out_dir=out_dir, resume=resume,
                          fingerprint=fp, progress=progress, max_evals=max_evals, say=say)
     return _finish(problem, traces, say)
 
@@ -183,19 +173,26 @@ def check_search(problem: Problem, methods: Sequence[str], *, starts: int, batch
                  time_limit: float, max_evals: int | None = None, coarsening: int = 1) -> None:
     """The search settings of `worst_case`, checked before anything runs by the rules of
     `WorstSettings` (ConfigError naming the option, or `worst.methods`: the command refuses
-    bad methods earlier, naming the option typed; an infinite time_limit is allowed here)."""
+    bad methods earlier, naming the option typed; an infinite time_limit is allowed here), and
+    the coarsening against the problem's steps."""
     if not (time_limit > 0):
         raise ConfigError(f"--time-limit must be > 0 (got {time_limit!r})")
     flags = {key: s.flag for key, s in settings.declared(WorstSettings).items()}
     settings.checked(WorstSettings(methods=tuple(methods), starts=starts, batch=batch,
                                    max_evals=max_evals, gradient_coarsening=coarsening),
                      flags.get).validate("worst")
-    check_coarsening(coarsening, problem.spec)
+    spec = problem.spec
+    if spec.n_steps % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the number of "
+                          f"steps t_final/dt = {spec.n_steps}")
+    if spec.sampled and spec.sample_every % coarsening:
+        raise ConfigError(f"--gradient-coarsening {coarsening} must divide the steps per "
+                          f"controller sample, sample_time/dt = {spec.sample_every}")
 
 
 def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STARTS,
                 methods: Sequence[str] = METHODS, seed: int = 0, batch: int = DEFAULT_BATCH,
-                lr: float = DEFAULT_LR, out_dir: str | Path | None = None,
+                out_dir: str | Path | None = None,
                 resume: bool = False, fingerprint: Any = None,
                 progress: Callable | None = None,
                 max_evals: int | None = None,
@@ -209,7 +206,7 @@ def run_methods(prog: Programs, *, time_limit: float, starts: int = DEFAULT_STAR
             say(f"{name}: compiling its programs, then searching")
         each = None if progress is None else (
             lambda tr, row, name=name: progress(name, tr, time_limit))
-        res = search.run(prog, search_method(name, starts=starts, batch=batch, lr=lr, m=prog.m),
+        res = search.run(prog, search_method(name, starts=starts, batch=batch, m=prog.m),
                          x0=prog.x0, seed=seed, time_limit=time_limit, max_evals=max_evals,
                          path=None if out_dir is None else Path(out_dir) / f"state_{name}.npz",
                          resume=resume, fingerprint=fingerprint, progress=each, count_compile=False)
