@@ -10,11 +10,10 @@ from pathlib import Path
 from dscjax import files
 from dscjax.cli import common, out
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
-from dscjax.reproduce import claim_lines, reproduce, sampling, setups, written
+from dscjax.reproduce import ROWS, claim_lines, reproduce, sampling, setups, written
 from dscjax.reproduce.figures import FIGURES
 from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
-ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
 OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
                    *(f"{stem}.{fmt}" for stem in FIGURES.values() for fmt in ("png", "pdf"))),
                   folders=("theory",))
@@ -106,8 +105,9 @@ def run(args) -> int:
                         complexity_orders=orders, complexity_repeats=args.repeats,
                         resume=args.resume, theory=args.theory, theory_orders=theory_orders,
                         theory_alpha0=alpha0, theory_mu=args.mu)
-    # the results on stdout (progress went to stderr)
-    print("\n".join([*claim_lines(summary), sampling.line(summary["sampling"]),
+    # the results on stdout (progress went to stderr); the sampling study's as in summary.md
+    print("\n".join([*claim_lines(summary),
+                     "sampled controller: " + "; ".join(sampling.findings(summary["sampling"])),
                      f"wrote {written(summary)} to {args.out}/"]))
     return 0
 

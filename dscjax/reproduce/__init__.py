@@ -51,6 +51,7 @@ DT = 1e-3
 DPI = 150
 COMPLEXITY_ORDERS = tuple(range(2, 9))
 COMPLEXITY_REPEATS = 3
+ROWS = "complexity_rows.json"  # where each control law's measurement is saved at once
 
 
 def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_FINAL,
@@ -109,7 +110,7 @@ def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_F
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
-                          rows_path=out / "complexity_rows.json", resume=resume)
+                          rows_path=out / ROWS, resume=resume)
         files.write_json(out / "complexity.json", result)
         if fmt:
             paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
@@ -137,6 +138,6 @@ def written(summary: dict) -> str:
 
 
 __all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "FAMILY", "FIG1_AMPLITUDES",
-           "FIGURES", "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "check_claims",
+           "FIGURES", "METRIC_FIELDS", "RC", "ROWS", "RUNS", "STYLE", "T_FINAL", "check_claims",
            "claim_lines", "family_loops", "figures", "reproduce", "run_all", "setups",
            "summarize", "summary_markdown", "written"]
