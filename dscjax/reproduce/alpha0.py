@@ -96,14 +96,6 @@ def base_setup(n: int = 2):
     return paper_example(init="linf") if n == 2 else order_n_example(n, init="linf")
 
 
-def _initial_M(setup):
-    """|B_(i+1)(0)| at the initial state: the fixed point's starting guess."""
-    s = prepared(canonical(setup))
-    X = initial_state(s)
-    b = jax.jit(theory.b_at)(s, X.x[0] * 0.0, X)
-    return np.abs(np.asarray(b))
-
-
 def _dt_for(tau, opts: StudyOptions) -> float:
     limit = opts.dt_safety * RK4_REAL_STABILITY * float(np.min(tau))
     j = max(0, math.ceil(math.log2(opts.dt_max / limit))) if limit < opts.dt_max else 0
@@ -153,10 +145,12 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
     t0 = time.perf_counter()
     n = base.order
-    s0 = _with(base, alpha0, np.ones(n - 1), opts)
+    s0 = prepared(canonical(_with(base, alpha0, np.ones(n - 1), opts)))
+    X0 = initial_state(s0)
+    b0 = np.abs(np.asarray(jax.jit(theory.b_at)(s0, X0.x[0] * 0.0, X0)))  # |B_(i+1)(0)|
     # from fast filters (tau_start where (60) allows it): a slow filter can diverge
     fast = math.sqrt(2 * opts.mu * max(1.0 / opts.tau_start - 0.25 - alpha0, 0.0))
-    M = np.maximum((1 + opts.margin) * _initial_M(s0), fast)
+    M = np.maximum((1 + opts.margin) * b0, fast)
     history, converged, last = [], False, None
     for it in range(opts.max_iter):
         setup = _with(base, alpha0, M, opts)

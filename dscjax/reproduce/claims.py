@@ -110,28 +110,22 @@ def check_claims(runs: dict, complexity: dict | None = None) -> list[dict]:
         measured=f"no run diverged: {bounded}; largest estimate in magnitude {est_max:.3g}",
         holds=bool(bounded)))
     if complexity is not None:
-        claims.append(complexity_claim(complexity))
+        fd, fb = (complexity["fits"][c]["eqns"] for c in ("dsc", "backstepping"))
+        n_max = max(complexity["orders"])
+        eq = {r["controller"]: r["eqns"] for r in complexity["rows"] if r["n"] == n_max}
+        claims.append(dict(
+            id="dsc_removes_explosion_of_complexity",
+            claim="The DSC eliminates backstepping's explosion of complexity",
+            paper="Asserted (Introduction, Remarks 4 and 6), never measured",
+            measured=f"jaxpr equations of the law, n = {min(complexity['orders'])}..{n_max}: "
+                     f"DSC {growth_text(fd)}, backstepping {growth_text(fb)}; at n = {n_max}: "
+                     f"{eq.get('dsc')} vs {eq.get('backstepping')}",
+            dsc_eqns_exponent=fd["exponent"], backstepping_eqns_ratio=fb["ratio_per_order"],
+            holds=bool(fb["ratio_per_order"] >= 2.0 and fb["r2_geometric"] >= fb["r2_power"]
+                       and fd["exponent"] <= 1.5)))
     for c in claims:
         c.setdefault("verdict", "yes" if c["holds"] else "no")
     return claims
-
-
-def complexity_claim(result: dict) -> dict:
-    fd, fb = result["fits"]["dsc"]["eqns"], result["fits"]["backstepping"]["eqns"]
-    holds = (fb["ratio_per_order"] >= 2.0 and fb["r2_geometric"] >= fb["r2_power"]
-             and fd["exponent"] <= 1.5)
-    rows = result["rows"]
-    n_max = max(result["orders"])
-    eq = {r["controller"]: r["eqns"] for r in rows if r["n"] == n_max}
-    return dict(
-        id="dsc_removes_explosion_of_complexity",
-        claim="The DSC eliminates backstepping's explosion of complexity",
-        paper="Asserted (Introduction, Remarks 4 and 6), never measured",
-        measured=f"jaxpr equations of the law, n = {min(result['orders'])}..{n_max}: "
-                 f"DSC {growth_text(fd)}, backstepping {growth_text(fb)}; at n = {n_max}: "
-                 f"{eq.get('dsc')} vs {eq.get('backstepping')}",
-        dsc_eqns_exponent=fd["exponent"], backstepping_eqns_ratio=fb["ratio_per_order"],
-        holds=bool(holds))
 
 
 def claim_lines(summary: dict) -> list[str]:

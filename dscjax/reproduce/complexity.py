@@ -31,16 +31,6 @@ from dscjax.validation import ConfigError
 CONTROLLERS = ("dsc", "backstepping")
 
 
-def law_setup(controller: str, n: int):
-    """The prepared order-n example with the given controller ("dsc" or "backstepping")."""
-    setup = order_n_example(n, dtype=jnp.float64)
-    if controller == "backstepping":
-        setup = with_backstepping(setup)
-    elif controller != "dsc":
-        raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
-    return prepared(setup)
-
-
 def law_function(setup) -> tuple[Callable, tuple]:
     """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it
     at; backstepping's without its inner jit (`plain_law`), so tracing is measured in full."""
@@ -99,7 +89,10 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
     """Size and cost of one control law (the module docstring's fields): `repeats` builds
     (fewer, counted in the result, after one slower than `slow_build_s`); `evals` evaluations
     per timing loop, fewer (at least 10) to keep a loop near `eval_budget_s`."""
-    setup = law_setup(controller, n)
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
+    setup = order_n_example(n, dtype=jnp.float64)
+    setup = prepared(with_backstepping(setup) if controller == "backstepping" else setup)
     trace_s, compile_s, eqns, flops = [], [], None, None
     for _ in range(repeats):
         law, args = law_function(setup)  # a new function object: nothing cached
