@@ -76,9 +76,8 @@ def run(args) -> int:
     common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
                   f"{loop_words(options)}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
-        print(f"  saving one step in {every:,} and the last: {n_points:,} points (at most "
-              f"{MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
-              f"otherwise); the metrics use every step", file=sys.stderr)
+        print(f"  saving one step in {every:,} and the last: {n_points:,} points (the automatic "
+              f"stride, at most {MAX_SAVED_POINTS:,}); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
