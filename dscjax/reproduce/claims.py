@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+from dscjax.metrics import default_window
 from dscjax.reproduce.complexity import growth_text
 from dscjax.reproduce.runs import LABELS, estimates, run_metrics
 
@@ -43,7 +44,7 @@ INTERPRETATIONS = [
 
 def summarize(trajs: dict, t_final: float, dt: float) -> dict:
     """Metrics of every run, the estimates' ranges and the check of every claim."""
-    window = 1.0 if t_final > 1.0 else 0.0
+    window = default_window(t_final)
     runs = {name: dict(
         label=LABELS[name], **run_metrics(traj, window), diverged=bool(traj.diverged),
         t_diverged=float(traj.t_diverged) if bool(traj.diverged) else None,

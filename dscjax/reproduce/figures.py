@@ -9,6 +9,7 @@ import numpy as np
 
 from dscjax import files
 from dscjax.config import paper_example
+from dscjax.metrics import default_window
 from dscjax.plotting import COLORS, hysteresis_loop, subplots
 from dscjax.reproduce import theory
 from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA, LABELS, STYLE, estimates
@@ -131,7 +132,7 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
 def _figures(trajs, out, fmt, dpi):
     paths = {}
     t_end = float(np.asarray(trajs["dsc"].t)[-1])
-    t_after = 1.0 if t_end > 1.0 else 0.0  # Figs. 3 and 4 add a panel after it
+    t_after = default_window(t_end)  # Figs. 3 and 4 add a panel after it
     error, u = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
     dsc = (("dsc", {}),)
     without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
