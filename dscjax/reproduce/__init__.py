@@ -114,8 +114,7 @@ def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_F
         files.write_json(out / "complexity.json", result)
         if fmt:
             paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
-            cx.plot(result, paths["complexity"],
-                    colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")}, dpi=dpi)
+            cx.plot(result, paths["complexity"], dpi=dpi)
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
     if theory:

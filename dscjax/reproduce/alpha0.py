@@ -67,10 +67,6 @@ class StudyOptions:
                 raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
 
 
-ALPHA0_HIGH_ORDER = (0.1, 0.3, 1.0)
-T_HIGH_ORDER = 10.0
-
-
 def default_options(n: int, **changes) -> StudyOptions:
     """The study's settings for order n, with `changes` (None values ignored) applied.
 
@@ -82,9 +78,9 @@ def default_options(n: int, **changes) -> StudyOptions:
     if n == 2:
         base = StudyOptions()
     elif n == 3:
-        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER, mu=10.0, t_final=T_HIGH_ORDER)
+        base = StudyOptions(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0)
     else:
-        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER[:2], mu=50.0, t_final=T_HIGH_ORDER / 2)
+        base = StudyOptions(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)
     changes = {k: (tuple(float(a) for a in v) if k == "alpha0" else v) for k, v in changes.items()
                if v is not None}
     return dataclasses.replace(base, **changes)
