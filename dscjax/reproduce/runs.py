@@ -37,13 +37,13 @@ FAMILY = ("backlash", "pi", "gpi", "bouc_wen")  # the hysteresis models of the F
 ESTIMATES = ("theta_hat_g1", "theta_hat_2", "phi_hat_1", "zeta_hat", "d_hat")
 
 
-def setups(dtype=None) -> dict:
+def setups() -> dict:
     """The four closed loops of the study, by run name."""
     return {
-        "dsc": paper_example(dtype=dtype),
-        "dsc_no_dhat": paper_example(variant="no_dhat", dtype=dtype),
-        "dsc_no_dhat_no_zeta": paper_example(variant="no_dhat_no_zeta", dtype=dtype),
-        "backstepping": with_backstepping(paper_example(dtype=dtype)),
+        "dsc": paper_example(),
+        "dsc_no_dhat": paper_example(variant="no_dhat"),
+        "dsc_no_dhat_no_zeta": paper_example(variant="no_dhat_no_zeta"),
+        "backstepping": with_backstepping(paper_example()),
     }
 
 
