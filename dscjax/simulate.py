@@ -79,10 +79,6 @@ class Trajectory(eqx.Module):
         return jnp.asarray(self.refinements) > 0
 
     @property
-    def y(self):
-        return self.x[..., 0]
-
-    @property
     def e(self):
         """Tracking error e = y - y_r."""
         return self.x[..., 0] - self.yr

@@ -24,7 +24,6 @@ from dscjax.reproduce import (
     RUNS,
     complexity,
     family_loops,
-    hysteresis_loops,
     sampling,
 )
 
@@ -162,10 +161,10 @@ def test_complexity_rows(reproduced):
     assert growth_b > 2.0 > 1.6 > growth_d
 
 
-def test_hysteresis_loops_match_the_closed_form():
+def test_fig1_loops_match_the_closed_form():
     """Fig. 1's RK4 loops equal the solution (5)-(6) on the first rising segment of u."""
-    loops = hysteresis_loops(amplitudes=(3.5,), dt=1e-3)
-    t, u, w = loops[3.5]
+    _, t, u, w = family_loops(amplitudes=(3.5,), dt=1e-3)["backlash"]
+    u, w = u[0], w[0]
     rising = t <= (math.pi / 2) / 2.3
     ref = closed_form(jnp.asarray(u[rising]), 0.0, 0.0, 1.0, 1.432, 0.105, +1)
     np.testing.assert_allclose(w[rising], np.asarray(ref), atol=1e-9)

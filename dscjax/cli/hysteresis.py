@@ -18,12 +18,10 @@ from dscjax import files, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 from dscjax.hysteresis import sine_loops
-from dscjax.plotting import hysteresis_loop, subplots
-from dscjax.reproduce import RC
+from dscjax.reproduce.figures import loop_figure
+from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA
 from dscjax.runspec import RunSpec
 
-DEFAULT_AMPLITUDES = (3.5, 6.5)  # the paper's Fig. 1
-DEFAULT_OMEGA = 2.3
 DEFAULT_DT = 1e-3
 OUTPUTS = Outputs(("loop.npz", "loop.png"))
 
@@ -37,8 +35,8 @@ def add_parser(sub):
     common.add_example_arg(p)
     p.add_argument("--amplitude", type=common.finite_float, action="append", metavar="A",
                    help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
-    p.add_argument("--omega", type=common.positive_float, default=DEFAULT_OMEGA, metavar="W",
-                   help=f"input frequency [rad/s] (default {DEFAULT_OMEGA:g})")
+    p.add_argument("--omega", type=common.positive_float, default=FIG1_OMEGA, metavar="W",
+                   help=f"input frequency [rad/s] (default {FIG1_OMEGA:g})")
     p.add_argument("--t-final", type=common.positive_float, metavar="T",
                    help="horizon [s] (default three periods 6 pi / omega, on the dt grid)")
     p.add_argument("--dt", type=common.positive_float, metavar="DT", help=f"RK4 step [s] "
@@ -49,7 +47,7 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    amplitudes = tuple(args.amplitude or DEFAULT_AMPLITUDES)
+    amplitudes = tuple(args.amplitude or FIG1_AMPLITUDES)
     raw, setup = common.config_data(args), common.config_setup(args)[0]
     hyst = setup.hysteresis
     hyst.validate("hysteresis")
@@ -82,24 +80,9 @@ def run(args) -> int:
     files.write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
                                            omega=np.asarray(args.omega, float),
                                            kind=np.asarray(hyst.kind)))
-    _plot(hyst, amplitudes, args.omega, u, w, out / "loop.png")
+    loop_figure(hyst, amplitudes, args.omega, u, w, hyst.title, out / "loop.png", 120)
     for a, wk in zip(amplitudes, w, strict=True):
         print(f"A = {a:g}: max|w| = {np.max(np.abs(wk)):.6g}, w(T) = {wk[-1]:.6g}")
     print(f"wrote {out}/loop.npz, loop.png")
     return 0
 
-
-def _plot(hyst, amplitudes, omega, u, w, path):
-    import matplotlib
-
-    with matplotlib.rc_context(RC):
-        fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),
-                             sharey=True)
-        axes = np.atleast_1d(axes)
-        for ax, a, uk, wk in zip(axes, amplitudes, u, w, strict=True):
-            hysteresis_loop(ax, hyst, uk, wk, f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$")
-            ax.set_title(f"amplitude {a:g}")
-            ax.legend(loc="upper left", framealpha=0.95, fontsize=8)
-        axes[0].set_ylabel("hysteresis output $w$ [-]")
-        fig.suptitle(hyst.title)
-        files.save_figure(fig, path, dpi=120)

@@ -10,11 +10,10 @@ from pathlib import Path
 from dscjax import files
 from dscjax.cli import common, out
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
-from dscjax.reproduce import claim_lines, reproduce, sampling, setups, written
+from dscjax.reproduce import ROWS, claim_lines, reproduce, sampling, setups, written
 from dscjax.reproduce.figures import FIGURES
 from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
 
-ROWS = "complexity_rows.json"  # where reproduce() saves each control law's measurement
 OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
                    *(f"{stem}.{fmt}" for stem in FIGURES.values() for fmt in ("png", "pdf"))),
                   folders=("theory",))
@@ -61,8 +60,7 @@ def add_parser(sub):
     p.add_argument("--orders", default=orders, metavar="N-M",
                    help="orders for --complexity, e.g. 2-8 or 2,4,6 (default %(default)s)")
     p.add_argument("--repeats", type=common.count(1), default=r.COMPLEXITY_REPEATS, metavar="R",
-                   help="builds per law for --complexity; timings are medians (default "
-                   "%(default)s)")
+                   help="builds per law for --complexity, timed by median (default %(default)s)")
     add_overwrite_arg(p, resume="with --complexity: keep the measurements an interrupted run "
                       f"saved in DIR/{ROWS} (same --repeats), measure the rest",
                       plot="write no figures: summary.json, summary.md and the claims only")
@@ -71,11 +69,10 @@ def add_parser(sub):
                    "study (gains (55), tau (60), init (67)-(68)); minutes for n >= 3")
     p.add_argument("--theory-orders", default="2", metavar="N,M",
                    help="orders of the alpha_0 study for --theory, e.g. 2,3,4 (default 2)")
-    p.add_argument("--alpha0", metavar="A,B,...",
-                   help="alpha_0 values of the study, separated by commas (default: 10 values "
-                   "from 0.1 to 10, log-spaced, for n = 2; 0.1,0.3,1 for n >= 3)")
+    p.add_argument("--alpha0", metavar="A,B,...", help="alpha_0 values of the study (default "
+                   "by order: docs/theory.md)")
     p.add_argument("--mu", type=common.positive_float, metavar="MU",
-                   help="mu of (59)-(60) for the study (default 0.1 for n = 2, 10 for n >= 3)")
+                   help="mu of (59)-(60) for the study (default by order: docs/theory.md)")
     return p
 
 
@@ -106,8 +103,9 @@ def run(args) -> int:
                         complexity_orders=orders, complexity_repeats=args.repeats,
                         resume=args.resume, theory=args.theory, theory_orders=theory_orders,
                         theory_alpha0=alpha0, theory_mu=args.mu)
-    # the results on stdout (progress went to stderr)
-    print("\n".join([*claim_lines(summary), sampling.line(summary["sampling"]),
+    # the results on stdout (progress went to stderr); the sampling study's as in summary.md
+    print("\n".join([*claim_lines(summary),
+                     "sampled controller: " + "; ".join(sampling.findings(summary["sampling"])),
                      f"wrote {written(summary)} to {args.out}/"]))
     return 0
 

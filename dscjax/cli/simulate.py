@@ -61,11 +61,9 @@ def run(args) -> int:
     validation.check_work(validation.Work(
         steps=n_steps, member_steps=n_steps, memory=MEMORY_FACTOR * nbytes,
         memory_what=f"the saved trajectory (simulation.save_every = {every} keeps "
-        f"{n_points:,} points, {fmt_bytes(nbytes)}; about {MEMORY_FACTOR}x that while "
-        f"trajectory.npz is written)"),
+        f"{n_points:,} points, {fmt_bytes(nbytes)}; {MEMORY_FACTOR}x that while written)"),
         what=common.horizon_text(options.t_final, options.dt, n_steps),
-        fix=f"use a larger --save-every, or omit it for the automatic stride (at most "
-        f"{MAX_SAVED_POINTS:,} points), or a shorter --t-final")
+        fix="use a larger --save-every (or omit it: the automatic stride), or a shorter --t-final")
     warnings = validation.assumption_warnings(setup)
     choice = common.choose_device(args, options.device)  # simulate() places the run alike
 
@@ -76,9 +74,8 @@ def run(args) -> int:
     common.banner(args, f"{loop}, T={options.t_final:g} s ({n_steps:,} steps), "
                   f"{loop_words(options)}; on {choice}", warnings)
     if "save_every" in options.rules and every > 1:
-        print(f"  saving one step in {every:,} and the last: {n_points:,} points (at most "
-              f"{MAX_SAVED_POINTS:,} unless --save-every or simulation.save_every says "
-              f"otherwise); the metrics use every step", file=sys.stderr)
+        print(f"  saving one step in {every:,} and the last: {n_points:,} points (the automatic "
+              f"stride, at most {MAX_SAVED_POINTS:,}); the metrics use every step", file=sys.stderr)
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)

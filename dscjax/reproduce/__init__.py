@@ -39,9 +39,7 @@ from dscjax.reproduce.runs import (
     METRIC_FIELDS,
     RUNS,
     STYLE,
-    by_amplitude,
     family_loops,
-    hysteresis_loops,
     run_all,
     setups,
 )
@@ -53,6 +51,7 @@ DT = 1e-3
 DPI = 150
 COMPLEXITY_ORDERS = tuple(range(2, 9))
 COMPLEXITY_REPEATS = 3
+ROWS = "complexity_rows.json"  # where each control law's measurement is saved at once
 
 
 def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_FINAL,
@@ -92,16 +91,14 @@ def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_F
             print(f"[{time.perf_counter() - t_start:6.1f} s] {msg}", file=sys.stderr, flush=True)
     out = files.mkdir(out)
     log(f"reproducing Section 4 of the paper: T = {t_final:g} s, dt = {dt:g} s -> {out}/")
-    family = family_loops()
-    # Fig. 1 is the family's backlash entry: hysteresis_example("backlash") is the paper's (4)
-    loops = by_amplitude(FIG1_AMPLITUDES, *family["backlash"][1:])
+    family = family_loops()  # its backlash entry is the paper's (4), Fig. 1
     log(f"Fig. 1 hysteresis loops integrated (and for {', '.join(family)})")
     trajs = run_all(t_final, dt, log)
     summary = summarize(trajs, t_final, dt)
     paths = {}
     if fmt:
         log("writing figures")
-        paths = figures(trajs, loops, out, fmt, dpi, family)
+        paths = figures(trajs, family, out, fmt, dpi)
     log("the controller sampled at Ts = 0.1-20 ms: paper's and default-tuned gains")
     summary["sampling"] = sampling.study(setups()["dsc"], t_final, dt,
                                          window_start=summary["window_start"])
@@ -113,12 +110,11 @@ def reproduce(out="results/paper", fmt: str | None = "png", t_final: float = T_F
         log(f"measuring the control laws for n = {', '.join(map(str, complexity_orders))} "
             f"({complexity_repeats} builds each; this takes minutes)")
         result = cx.study(complexity_orders, repeats=complexity_repeats, log=log,
-                          rows_path=out / "complexity_rows.json", resume=resume)
+                          rows_path=out / ROWS, resume=resume)
         files.write_json(out / "complexity.json", result)
         if fmt:
             paths["complexity"] = out / f"{FIGURES['complexity']}.{fmt}"
-            cx.plot(result, paths["complexity"],
-                    colors={k: STYLE[k]["color"] for k in ("dsc", "backstepping")}, dpi=dpi)
+            cx.plot(result, paths["complexity"], dpi=dpi)
         summary["complexity"] = result
         summary["claims"] = check_claims(summary["runs"], result)
     if theory:
@@ -141,6 +137,6 @@ def written(summary: dict) -> str:
 
 
 __all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "FAMILY", "FIG1_AMPLITUDES",
-           "FIGURES", "METRIC_FIELDS", "RC", "RUNS", "STYLE", "T_FINAL", "by_amplitude",
-           "check_claims", "claim_lines", "family_loops", "figures", "hysteresis_loops",
-           "reproduce", "run_all", "setups", "summarize", "summary_markdown", "written"]
+           "FIGURES", "METRIC_FIELDS", "RC", "ROWS", "RUNS", "STYLE", "T_FINAL", "check_claims",
+           "claim_lines", "family_loops", "figures", "reproduce", "run_all", "setups",
+           "summarize", "summary_markdown", "written"]

@@ -67,10 +67,6 @@ class StudyOptions:
                 raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
 
 
-ALPHA0_HIGH_ORDER = (0.1, 0.3, 1.0)
-T_HIGH_ORDER = 10.0
-
-
 def default_options(n: int, **changes) -> StudyOptions:
     """The study's settings for order n, with `changes` (None values ignored) applied.
 
@@ -82,9 +78,9 @@ def default_options(n: int, **changes) -> StudyOptions:
     if n == 2:
         base = StudyOptions()
     elif n == 3:
-        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER, mu=10.0, t_final=T_HIGH_ORDER)
+        base = StudyOptions(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0)
     else:
-        base = StudyOptions(alpha0=ALPHA0_HIGH_ORDER[:2], mu=50.0, t_final=T_HIGH_ORDER / 2)
+        base = StudyOptions(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)
     changes = {k: (tuple(float(a) for a in v) if k == "alpha0" else v) for k, v in changes.items()
                if v is not None}
     return dataclasses.replace(base, **changes)
@@ -94,14 +90,6 @@ def base_setup(n: int = 2):
     """The setup the study starts from, with the L-inf initialisation (67)-(68): the paper's
     example for n = 2, `order_n_example(n)` (its plant and small gains) for n >= 3."""
     return paper_example(init="linf") if n == 2 else order_n_example(n, init="linf")
-
-
-def _initial_M(setup):
-    """|B_(i+1)(0)| at the initial state: the fixed point's starting guess."""
-    s = prepared(canonical(setup))
-    X = initial_state(s)
-    b = jax.jit(theory.b_at)(s, X.x[0] * 0.0, X)
-    return np.abs(np.asarray(b))
 
 
 def _dt_for(tau, opts: StudyOptions) -> float:
@@ -153,10 +141,12 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
     t0 = time.perf_counter()
     n = base.order
-    s0 = _with(base, alpha0, np.ones(n - 1), opts)
+    s0 = prepared(canonical(_with(base, alpha0, np.ones(n - 1), opts)))
+    X0 = initial_state(s0)
+    b0 = np.abs(np.asarray(jax.jit(theory.b_at)(s0, X0.x[0] * 0.0, X0)))  # |B_(i+1)(0)|
     # from fast filters (tau_start where (60) allows it): a slow filter can diverge
     fast = math.sqrt(2 * opts.mu * max(1.0 / opts.tau_start - 0.25 - alpha0, 0.0))
-    M = np.maximum((1 + opts.margin) * _initial_M(s0), fast)
+    M = np.maximum((1 + opts.margin) * b0, fast)
     history, converged, last = [], False, None
     for it in range(opts.max_iter):
         setup = _with(base, alpha0, M, opts)

@@ -26,19 +26,10 @@ from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example
 from dscjax.controllers.backstepping import with_backstepping
 from dscjax.plotting import subplots
+from dscjax.reproduce.runs import STYLE
 from dscjax.validation import ConfigError
 
 CONTROLLERS = ("dsc", "backstepping")
-
-
-def law_setup(controller: str, n: int):
-    """The prepared order-n example with the given controller ("dsc" or "backstepping")."""
-    setup = order_n_example(n, dtype=jnp.float64)
-    if controller == "backstepping":
-        setup = with_backstepping(setup)
-    elif controller != "dsc":
-        raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
-    return prepared(setup)
 
 
 def law_function(setup) -> tuple[Callable, tuple]:
@@ -99,7 +90,10 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
     """Size and cost of one control law (the module docstring's fields): `repeats` builds
     (fewer, counted in the result, after one slower than `slow_build_s`); `evals` evaluations
     per timing loop, fewer (at least 10) to keep a loop near `eval_budget_s`."""
-    setup = law_setup(controller, n)
+    if controller not in CONTROLLERS:
+        raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
+    setup = order_n_example(n, dtype=jnp.float64)
+    setup = prepared(with_backstepping(setup) if controller == "backstepping" else setup)
     trace_s, compile_s, eqns, flops = [], [], None, None
     for _ in range(repeats):
         law, args = law_function(setup)  # a new function object: nothing cached
@@ -222,23 +216,23 @@ LABELS = {"eqns": "equations in the jaxpr", "flops": "FLOPs (XLA cost analysis)"
           "build_s": "JIT time: trace + compile [s]", "eval_s": "time per evaluation [s]"}
 
 
-def plot(result: dict, path, colors: dict[str, str] | None = None, dpi: int = 150) -> None:
-    """Log-scale panels of the metrics against n, one line per controller (growth in legend)."""
-    colors = colors or {"dsc": "#1f77b4", "backstepping": "#d62728"}
+def plot(result: dict, path, dpi: int = 150) -> None:
+    """Log-scale panels of the metrics against n, one line per controller (growth in legend),
+    in the colours of its run (`runs.STYLE`)."""
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
     fig, axes = subplots(2, 2, figsize=(9, 6.4))
     for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
         for c, fits in result["fits"].items():
             rows = [r for r in result["rows"] if r["controller"] == c]
             ns = [r["n"] for r in rows]
-            name, fit = names.get(c, c), fits[metric]
+            name, fit, color = names.get(c, c), fits[metric], STYLE[c]["color"]
             label = name + (", in a compiled loop" if metric == "eval_s" else
                             ": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
                             if fit.get("ratio_per_order") else "")
-            ax.semilogy(ns, [r[metric] for r in rows], "o-", color=colors.get(c), lw=1.5, ms=4,
+            ax.semilogy(ns, [r[metric] for r in rows], "o-", color=color, lw=1.5, ms=4,
                         label=label)
             if metric == "eval_s":
-                ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=colors.get(c), lw=1.0,
+                ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=color, lw=1.0,
                             ms=3, alpha=0.6, label=name + ", one call from Python")
         ax.set_xlabel("plant order $n$")
         ax.set_ylabel(ylabel)

@@ -9,9 +9,10 @@ import numpy as np
 
 from dscjax import files
 from dscjax.config import paper_example
+from dscjax.metrics import default_window
 from dscjax.plotting import COLORS, hysteresis_loop, subplots
 from dscjax.reproduce import theory
-from dscjax.reproduce.runs import LABELS, STYLE, estimates
+from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA, LABELS, STYLE, estimates
 
 FIGURES = {
     "fig1": "fig1_hysteresis",
@@ -71,17 +72,42 @@ def _legend_below(fig, ax, ncol=1):
     fig.legend(handles, labels, loc="outside lower center", ncol=ncol, frameon=False)
 
 
-def figures(trajs: dict, loops: dict, out: Path, fmt: str = "png", dpi: int = 150,
-            family: dict | None = None) -> dict:
-    """Write Figs. 1-6 and the estimates figure, and with `family` (`runs.family_loops`) Fig.
-    1 of every hysteresis model; returns {figure id: path}."""
+def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 150) -> dict:
+    """Write Figs. 1-6, the estimates figure and Fig. 1 of every hysteresis model (`family`,
+    `runs.family_loops`; Fig. 1 is its backlash entry, the paper's (4)); returns {figure id:
+    path}."""
     import matplotlib
 
     with matplotlib.rc_context(RC):
-        paths = _figures(trajs, loops, out, fmt, dpi)
-        if family is not None:
-            paths["fig1_family"] = _family_figure(family, out, fmt, dpi)
+        hyst, _, u, w = family["backlash"]
+        title = (f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
+                 f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
+                 f"{float(hyst.psi):g}")
+        path = out / f"{FIGURES['fig1']}.{fmt}"
+        paths = {"fig1": loop_figure(hyst, FIG1_AMPLITUDES, FIG1_OMEGA, u, w, title, path, dpi)}
+        paths |= _figures(trajs, out, fmt, dpi)
+        paths["fig1_family"] = _family_figure(family, out, fmt, dpi)
         return paths
+
+
+def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dpi: int) -> Path:
+    """w against u of one hysteresis model, one panel per amplitude A of u = A sin(omega t)
+    (u, w of shape (K, N+1)): Fig. 1, and `dscjax hysteresis`'s loop.png."""
+    import matplotlib
+
+    with matplotlib.rc_context(RC):
+        fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),
+                             sharey=True)
+        axes = np.atleast_1d(axes)
+        for i, (ax, a) in enumerate(zip(axes, amplitudes, strict=True)):
+            hysteresis_loop(ax, hyst, u[i], w[i], f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$",
+                            LOOP_COLORS[i % 2])
+            ax.set_title(f"amplitude {a:g}")
+            ax.legend(loc="upper left", framealpha=0.95)
+        axes[0].set_ylabel("hysteresis output $w$ [-]")
+        fig.suptitle(title)
+        files.save_figure(fig, path, dpi=dpi)
+    return path
 
 
 def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
@@ -103,23 +129,10 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
     return _finish(fig, out, FIGURES["fig1_family"], fmt, dpi)
 
 
-def _figures(trajs, loops, out, fmt, dpi):
+def _figures(trajs, out, fmt, dpi):
     paths = {}
-    hyst = paper_example().hysteresis
-    fig, axes = subplots(1, len(loops), figsize=(8.4, 3.9), sharey=True)
-    axes = np.atleast_1d(axes)
-    for ax, (k, (_, u, w)), color in zip(axes, sorted(loops.items()), LOOP_COLORS, strict=False):
-        hysteresis_loop(ax, hyst, u, w, f"$w(u)$, $u = {k:g}\\,\\sin(2.3t)$", color)
-        ax.set_title(f"$k$ = {k:g}")
-        ax.legend(loc="upper left", framealpha=0.95)
-    axes[0].set_ylabel("hysteresis output $w$ [-]")
-    fig.suptitle(f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
-                 f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
-                 f"{float(hyst.psi):g}")
-    paths["fig1"] = _finish(fig, out, FIGURES["fig1"], fmt, dpi)
-
     t_end = float(np.asarray(trajs["dsc"].t)[-1])
-    t_after = 1.0 if t_end > 1.0 else 0.0  # Figs. 3 and 4 add a panel after it
+    t_after = default_window(t_end)  # Figs. 3 and 4 add a panel after it
     error, u = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
     dsc = (("dsc", {}),)
     without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
@@ -173,4 +186,4 @@ def _estimates_figure(trajs, out, fmt, dpi):
     return _finish(fig, out, FIGURES["estimates"], fmt, dpi)
 
 
-__all__ = ["FIGURES", "RC", "figures"]
+__all__ = ["FIGURES", "RC", "figures", "loop_figure"]

@@ -31,36 +31,24 @@ STYLE = {
 }
 METRIC_FIELDS = ("linf_error", "linf_error_after_1s", "l2_error", "l2_error_after_1s",
                  "max_abs_u", "max_abs_u_after_1s", "max_abs_w", "tv_u")
-FIG1_AMPLITUDES = (3.5, 6.5)  # Fig. 1's two loops: u = k sin(2.3 t) for these k
+FIG1_AMPLITUDES = (3.5, 6.5)  # Fig. 1's two loops: u = k sin(FIG1_OMEGA t) for these k
+FIG1_OMEGA = 2.3
 FAMILY = ("backlash", "pi", "gpi", "bouc_wen")  # the hysteresis models of the Fig. 1 family
 ESTIMATES = ("theta_hat_g1", "theta_hat_2", "phi_hat_1", "zeta_hat", "d_hat")
 
 
-def setups(dtype=None) -> dict:
+def setups() -> dict:
     """The four closed loops of the study, by run name."""
     return {
-        "dsc": paper_example(dtype=dtype),
-        "dsc_no_dhat": paper_example(variant="no_dhat", dtype=dtype),
-        "dsc_no_dhat_no_zeta": paper_example(variant="no_dhat_no_zeta", dtype=dtype),
-        "backstepping": with_backstepping(paper_example(dtype=dtype)),
+        "dsc": paper_example(),
+        "dsc_no_dhat": paper_example(variant="no_dhat"),
+        "dsc_no_dhat_no_zeta": paper_example(variant="no_dhat_no_zeta"),
+        "backstepping": with_backstepping(paper_example()),
     }
 
 
-def hysteresis_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
-                     t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
-    """{k: (t, u, w)}: w(t) of eq. (4) for u = k sin(omega t), by RK4 from w(0) = 0 (Fig. 1)."""
-    return by_amplitude(amplitudes, *sine_loops(paper_example().hysteresis, amplitudes, omega,
-                                                t_final, dt))
-
-
-def by_amplitude(amplitudes: Sequence[float], t, u, w) -> dict:
-    """{k: (t, u, w)} of one model's loops (u, w of shape (K, N+1)), as `hysteresis_loops`
-    returns them."""
-    return {k: (t, u[i], w[i]) for i, k in enumerate(amplitudes)}
-
-
-def family_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = 2.3,
-                 t_final: float = 3 * 2 * math.pi / 2.3, dt: float = 1e-3) -> dict:
+def family_loops(amplitudes: Sequence[float] = FIG1_AMPLITUDES, omega: float = FIG1_OMEGA,
+                 t_final: float = 3 * 2 * math.pi / FIG1_OMEGA, dt: float = 1e-3) -> dict:
     """{kind: (model, t (N+1,), u (K, N+1), w (K, N+1))}: Fig. 1's input applied to every
     hysteresis model at its example's values (`hysteresis_example`), K = len(amplitudes)."""
     models = {kind: hysteresis_example(kind).hysteresis for kind in FAMILY}

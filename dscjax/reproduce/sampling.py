@@ -1,6 +1,6 @@
 """How slowly the paper's gains and `dscjax tune`'s default gains may be sampled: the Ts sweep
 of `dscjax.ts_sweep` on the two, as `dscjax reproduce` draws it (`fig_sampling`), with its
-line for stdout and its section of summary.md.
+findings (for stdout too) and its section of summary.md.
 
 `TUNED` is the controller of one `dscjax tune` run with its defaults (`tuning.sample_time`
 1 ms, seed 0, 200 s; its figures are in docs/benchmarks.md)."""
@@ -66,11 +66,6 @@ def findings(result: dict) -> list[str]:
                      "gains; one exponential-Euler step of the controller per sample: first "
                      "order)")
     return texts
-
-
-def line(result: dict) -> str:
-    """One line for stdout: summary.md's findings (`findings`)."""
-    return "sampled controller: " + "; ".join(findings(result))
 
 
 def markdown(result: dict) -> str:

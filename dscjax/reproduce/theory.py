@@ -57,25 +57,22 @@ def hysteresis_slope(hysteresis) -> jax.Array:
     return jnp.asarray(hysteresis.effective_slope())
 
 
-def max_abs_dbar(plant, t=None) -> jax.Array:
-    """max_t |dbar(t)|: |dbar_amp| + |dbar_bias| (+ the waveform's `max_abs`) for the built-in
-    plants; for other plants the maximum over the times `t`."""
-    if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
-        out = jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
-        if getattr(plant, "disturbance", None) is not None:
-            out = out + plant.disturbance.max_abs()
-        return out
-    if t is None:
-        raise ConfigError(f"{type(plant).__name__}: max |dbar| is not known in closed form; pass "
-                          "the times to take it over, or give d explicitly")
-    return jnp.max(jnp.abs(jax.vmap(plant.dbar)(jnp.asarray(t))))
-
-
 def default_d(setup, t=None) -> jax.Array:
     """The default bound of |d_n| (11)-(12): g_n (lam - psi)/alpha + max |dbar|, from the limits
-    (7)-(8) of d_1. An early d_1 outside its asymptotes can exceed it: `check` tests (12)."""
-    g_n = jnp.asarray(setup.plant.g)[-1]
-    return g_n * setup.hysteresis.d1_bound() + max_abs_dbar(setup.plant, t)
+    (7)-(8) of d_1. An early d_1 outside its asymptotes can exceed it: `check` tests (12).
+    max_t |dbar(t)| is |dbar_amp| + |dbar_bias| (+ the waveform's `max_abs`) for the built-in
+    plants; for other plants the maximum over the times `t`."""
+    plant = setup.plant
+    if hasattr(plant, "dbar_amp") and hasattr(plant, "dbar_bias"):
+        dbar = jnp.abs(jnp.asarray(plant.dbar_amp)) + jnp.abs(jnp.asarray(plant.dbar_bias))
+        if getattr(plant, "disturbance", None) is not None:
+            dbar = dbar + plant.disturbance.max_abs()
+    elif t is None:
+        raise ConfigError(f"{type(plant).__name__}: max |dbar| is not known in closed form; pass "
+                          "the times to take it over, or give d explicitly")
+    else:
+        dbar = jnp.max(jnp.abs(jax.vmap(plant.dbar)(jnp.asarray(t))))
+    return jnp.asarray(plant.g)[-1] * setup.hysteresis.d1_bound() + dbar
 
 
 def truth(setup, d=None, t=None) -> Truth:
@@ -171,13 +168,6 @@ def _slack(ctrl, tr, s_n, d_hat):
     # the controller's own switching function and |.| (one copy of the formulas)
     a = ctrl._abs_surface(s_n)
     return tr.d * (jnp.abs(s_n) - a) + d_hat * (a - s_n * ctrl._robust(s_n))
-
-
-def disturbance_at(setup, t, X: State, u):
-    """d_n = g_n d_1(u) + dbar(t) = g_n (w - lam u) + dbar(t) (5), (11) at one state."""
-    g_n = jnp.asarray(setup.plant.g)[-1]
-    lam = hysteresis_slope(setup.hysteresis)
-    return g_n * (setup.hysteresis.output(u, X.h) - lam * u) + setup.plant.dbar(t)
 
 
 class LyapunovTerms(NamedTuple):
@@ -352,10 +342,11 @@ def _point_checks(setup, tr, t, X):
         return terms.total(), y, s
 
     (v, y, s), (v_dot, y_dot, _) = jax.jvp(v_y_s, (t, X), (jnp.ones_like(t), dX))
-    ctrl = setup.controller
+    ctrl, hyst, u = setup.controller, setup.hysteresis, obs.u
+    # d_n = g_n d_1(u) + dbar(t) = g_n (w - lam u) + dbar(t) (5), (11)
+    d_n = tr.g[-1] * (hyst.output(u, X.h) - hysteresis_slope(hyst) * u) + setup.plant.dbar(t)
     return dict(V=v, V_dot=v_dot, B=y_dot + y / ctrl.tau,
-                slack=_slack(ctrl, tr, s[-1], X.ctrl.d_hat),
-                d_n=disturbance_at(setup, t, X, obs.u))
+                slack=_slack(ctrl, tr, s[-1], X.ctrl.d_hat), d_n=d_n)
 
 
 # the conclusions of Theorem 1 that `check` tests, and the hypotheses of the proof it tests on
