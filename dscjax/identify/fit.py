@@ -315,17 +315,23 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
     return out, corr, sv, s2
 
 
+def fitted(problem: Problem, fit: Fit) -> dict[str, tuple]:
+    """{column: (t, y measured, y of the model) on the fitted samples} (the figures' and the
+    plots' data)."""
+    index = np.asarray(problem.fit_index)
+    pred, _ = _predict(problem, jax.tree.map(jnp.asarray, fit.theta))
+    return {c: (np.asarray(problem.record.t)[index], np.asarray(y)[index],
+                np.asarray(pred[c])[index]) for c, y in problem.record.y.items()}
+
+
 def fit_figures(problem: Problem, fit: Fit) -> dict[str, dict[str, float]]:
     """Per measured column on the fitted samples: NRMSE fit in
     percent, 100 (1 - |y - y_hat| / |y - mean y|), and MSE; over all columns, FPE =
     det(E^T E / N) (1 + d/N) / (1 - d/N) (E the residuals, d the free numbers and start
     states, N the samples)."""
-    index = np.asarray(problem.fit_index)
-    pred, _ = _predict(problem, jax.tree.map(jnp.asarray, fit.theta))
     out, errs = {}, []
-    for c, y in problem.record.y.items():
-        y = np.asarray(y)[index]
-        e = y - np.asarray(pred[c])[index]
+    for c, (_, y, y_hat) in fitted(problem, fit).items():
+        e = y - y_hat
         errs.append(e)
         out[c] = {"nrmse_fit_percent": float(100 * (1 - np.linalg.norm(e)
                                                     / max(np.linalg.norm(y - y.mean()),
@@ -353,5 +359,5 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
     return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
 
 
-__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures",
+__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures", "fitted",
            "noise_level", "solve", "solve_starts", "validation_fit"]

@@ -141,11 +141,9 @@ def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> 
 
 def summary_of(res: Identified, source: dict, box: dict) -> dict:
     p, fit = res.problem, res.fit
-    states = None
-    if p.exp.plant:
-        x = np.asarray(fit.theta["x"])
-        states = [{"t": float(p.record.t[k]), "x": x[i].tolist()}
-                  for i, k in enumerate(p.exp.starts)]
+    x = np.asarray(fit.theta["x"])
+    states = ([{"t": float(p.record.t[k]), "x": x[i].tolist()}
+               for i, k in enumerate(p.exp.starts)] if p.exp.plant else None)
     return {
         "data": source, "samples": len(p.record), "fitted_samples": int(len(p.fit_index)),
         "experiment": "plant" if p.exp.plant else "actuator",
