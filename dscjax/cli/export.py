@@ -37,12 +37,11 @@ def load(args):
     """(setup, spec, source) of --example, --config, --gains and the options, float64, the
     spec sampled (a config without a sample time and no --sample-time: one line)."""
     setup, spec = common.config_setup(args)
-    source = " ".join([f"--example {args.example}", *(
-        f"--{option} {value}" for option, value in (("config", args.config),
-                                                    ("gains", args.gains)) if value)])
+    source = [f"--example {args.example}", *([f"--config {args.config}"] if args.config else [])]
     if args.gains:
         setup, spec = config.from_dict(config.read(args.gains, "--gains"), base=setup,
                                        base_spec=spec)
+        source.append(f"--gains {args.gains}")
     overrides, names = common.run_overrides(args)
     ts = overrides.get("sample_time", spec.sample_time)
     if ts is None:
@@ -55,7 +54,7 @@ def load(args):
     names |= {"dt": "the config's simulation.dt", "t_final": "the config's simulation.t_final"}
     spec = spec.replace(names=names, **overrides)
     validate_setup(setup)
-    return cast(setup, "float64"), spec, source
+    return cast(setup, "float64"), spec, " ".join(source)
 
 
 def run(args) -> int:
