@@ -53,10 +53,8 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
     def runs(step, n):
         """(finite over t_final, divergence time) at each tau scale: `n` steps of `step`, each
         run judged by its first bad step against its own horizon's count."""
-        if has_tau:
-            ov = {"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])}
-        else:
-            ov = {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]}
+        ov = ({"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])} if has_tau
+              else {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]})
         b = simulate_batch(setup, ov, n * step, step, refine=0)
         first = np.asarray(b.status.step)
         stable = (first < 0) | (first > _count(t_final, step))

@@ -558,10 +558,12 @@ def test_export_reads_the_gains_file_and_its_sample_time(tmp_path, capsys):
                  "loop applies it;", "dsc_init starts the controller from the measured plant "
                  "state x0 at time t0"):
         assert text in header, text
-    assert capsys.readouterr().out.endswith(
-        ": void dsc_init(void *state, double t0, const double *x0, double yr, double "
-        "yr_dot); double dsc_step(void *state, double t, const double *x, double yr, double "
-        "yr_dot)\n")
+    assert capsys.readouterr().out.endswith(f"wrote {out}/dsc_controller.h (dsc_init and "
+                                            "dsc_step declared), dsc_controller.c\n")
+    for text in ("void dsc_init(void *state, double t0, const double *x0, double yr, double "
+                 "yr_dot);", "double dsc_step(void *state, double t, const double *x, double "
+                 "yr, double yr_dot);"):
+        assert text in header, text
     if CC is not None:  # a C99 compiler takes it without a warning
         subprocess.run([CC, "-std=c99", "-Wall", "-Wextra", "-Werror", "-pedantic",
                         "-fsyntax-only", str(out / "dsc_controller.c")], check=True)
@@ -579,9 +581,10 @@ def test_export_precision_float_is_c_float_throughout(tmp_path, capsys):
     out = tmp_path / "c"
     assert main(["export", "--sample-time", "0.001", "--precision", "float", "--out",
                  str(out)]) == 0
-    assert capsys.readouterr().out.endswith(
-        ": void dsc_init(void *state, float t0, const float *x0, float yr, float yr_dot); "
-        "float dsc_step(void *state, float t, const float *x, float yr, float yr_dot)\n")
+    assert capsys.readouterr().out.endswith("declared), dsc_controller.c\n")
+    for text in ("void dsc_init(void *state, float t0, const float *x0, float yr, float yr_dot);",
+                 "float dsc_step(void *state, float t, const float *x, float yr, float yr_dot);"):
+        assert text in (out / "dsc_controller.h").read_text(), text
     source = (out / "dsc_controller.c").read_text()
     assert "double" not in source and "expm1f(" in source and "(-0.45f)" in source
     assert "C99, single precision: C float throughout" in (out / "dsc_controller.h").read_text()

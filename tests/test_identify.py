@@ -43,6 +43,13 @@ def _actuator_record(setup, noise, seed, t=T_ACT, hold="zoh"):
     return Record(t, u, {"w": np.asarray(w) + noise * rng.standard_normal(t.size)})
 
 
+def _record_csv(path, rec):
+    """`rec` as CSV: t, u, then its measured columns."""
+    data = np.column_stack([rec.t, rec.u, *rec.y.values()])
+    np.savetxt(path, data, delimiter=",", header=",".join(["t", "u", *rec.y]), comments="",
+               fmt="%.10g")
+
+
 def _write_csv(path, header, rows):
     path.write_text(",".join(header) + "\n" + "\n".join(",".join(r) for r in rows) + "\n")
     return path
@@ -213,9 +220,7 @@ def test_the_command_writes_a_config_that_simulate_and_tune_load(tmp_path, capsy
     true = params.set_many(dscjax.paper_example(), {"hysteresis.alpha": 0.8,
                                                     "hysteresis.lam": 1.6})
     rec = _actuator_record(true, 1e-3, 5)
-    from dscjax.identify.data import write_csv
-
-    write_csv(tmp_path / "act.csv", rec)
+    _record_csv(tmp_path / "act.csv", rec)
     out = tmp_path / "id"
     code = main(["identify", "--data", str(tmp_path / "act.csv"), "--free",
                  "hysteresis.alpha,hysteresis.lam", "--dt", "0.01", "--out", str(out),

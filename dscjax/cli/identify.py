@@ -13,6 +13,7 @@ from __future__ import annotations
 from dscjax import settings
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
 from dscjax.validation import ConfigError, validate_setup
@@ -53,16 +54,14 @@ def run(args) -> int:
     if args.print_config:
         common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
-    record, val = ident.read_records(s, args.data, setup.order)
+    record = read(args.data, setup.order)
+    val = None if s.validate is None else read(s.validate, setup.order, "--validate")
     out = prepare_out(args, OUTPUTS)
-    kind = "the plant with its actuator" if any(c != "w" for c in record.y) else \
-        "the actuator alone"
-    common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over "
-                  f"t = {record.t[0]:g}..{record.t[-1]:g} s, {kind}; free: {', '.join(s.free)}; "
-                  f"{s.segments} segment(s), {s.starts} start(s); fitting ...")
+    # the report (printed below) says which experiment, the segments and the starts
+    common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over t = "
+                  f"{record.t[0]:g}..{record.t[-1]:g} s; free: {', '.join(s.free)}; fitting ...")
     res = ident.identify(setup, spec, record, s, val)
     written = ident.write(out, res, spec, source, plot=not args.no_plot)
     print((out / "report.md").read_text())
-    print(f"  wrote {out}: {', '.join(written)}; tune for it: dscjax tune --config "
-          f"{out}/identified.toml --batch 8")
+    print(f"  wrote {out}: {', '.join(written)}")
     return 0

@@ -18,8 +18,7 @@ actuator: neither is part of the controller (u is returned unbounded, as the sim
 applies it).
 """
 
-from dscjax.export.c import HEADER, PRECISIONS, SOURCE, c_files, init_signature, step_signature
+from dscjax.export.c import HEADER, PRECISIONS, SOURCE, c_files
 from dscjax.export.law import ExportError, Law, Program, trace
 
-__all__ = ["HEADER", "PRECISIONS", "SOURCE", "ExportError", "Law", "Program", "c_files",
-           "init_signature", "step_signature", "trace"]
+__all__ = ["HEADER", "PRECISIONS", "SOURCE", "ExportError", "Law", "Program", "c_files", "trace"]

@@ -263,19 +263,12 @@ _STRUCTURAL = {**dict.fromkeys(("broadcast_in_dim", "slice", "transpose", "rev",
                **dict.fromkeys(("reduce_sum", "reduce_max", "reduce_min"), _reduce)}
 
 
-def _reference_args(law: Law, r: str) -> str:
-    extra = f",\n                const {r} *yr_higher" if law.n_ref > 2 else ""
-    return f"{r} yr, {r} yr_dot{extra}"
-
-
-def step_signature(law: Law, precision: str = "double") -> str:
-    r = precision
-    return f"{r} dsc_step(void *state, {r} t, const {r} *x, {_reference_args(law, r)})"
-
-
-def init_signature(law: Law, precision: str = "double") -> str:
-    r = precision
-    return f"void dsc_init(void *state, {r} t0, const {r} *x0, {_reference_args(law, r)})"
+def _signatures(law: Law, r: str) -> tuple[str, str]:
+    """The C declarations of dsc_init and dsc_step in real type r (no semicolon)."""
+    ref = f"{r} yr, {r} yr_dot" + (f",\n                const {r} *yr_higher"
+                                  if law.n_ref > 2 else "")
+    return (f"void dsc_init(void *state, {r} t0, const {r} *x0, {ref})",
+            f"{r} dsc_step(void *state, {r} t, const {r} *x, {ref})")
 
 
 def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict[str, str]:
@@ -295,6 +288,7 @@ def c_files(setup, spec, *, source: str = "", precision: str = "double") -> dict
 
 def _header(law, spec, source, gains, real) -> str:
     r = real.name
+    init, step = _signatures(law, r)
     n_hi = law.n_ref - 2
     ref_doc = ("yr, yr_dot: the reference y_r(t) and its derivative"
                + (f";\n *   yr_higher[j] = the derivative j + 2 of y_r(t), j = 0..{n_hi - 1} "
@@ -339,10 +333,10 @@ def _header(law, spec, source, gains, real) -> str:
 #define DSC_REFERENCE_DERIVATIVES {law.n_ref - 1}  /* y_r' .. y_r^({law.n_ref - 1}) */
 
 size_t dsc_state_size(void);          /* bytes of the controller's state */
-{init_signature(law, r)};
+{init};
 /* the controller's state at t0 from the measured plant state x0 ({law.order} values) and the
    reference at t0 */
-{step_signature(law, r)};
+{step};
 /* one sample: x = the plant state ({law.order} values) at time t; returns u to hold until t + Ts,
    and advances the controller's states by one sample */
 {r} dsc_sample_time(void);
@@ -370,6 +364,7 @@ def _assign(atoms, em, fields, *, stage: bool) -> list[str]:
 
 def _source(law: Law, real: _Real) -> str:
     r = real.name
+    init, step = _signatures(law, r)
     fields = "\n".join(f"    {r} {nm}{'' if shp == () else f'[{_size(shp)}]'};"
                        for nm, shp, _ in law.state)
     ref_names = ["yr", "yr_dot"] + (["yr_higher"] if law.n_ref > 2 else [])
@@ -415,12 +410,12 @@ static inline {r} dsc_min_({r} a, {r} b) {{
 }}
 static inline {r} dsc_sign_({r} a) {{ return a > 0 ? {real.one} : (a < 0 ? -{real.one} : a); }}
 
-{init_signature(law, r)} {{
+{init} {{
     dsc_state *s = (dsc_state *)state;
 {init_body}
 }}
 
-{step_signature(law, r)} {{
+{step} {{
     dsc_state *s = (dsc_state *)state;
 {step_body}
     return u_out;

@@ -212,8 +212,7 @@ class _Flattener:
                               else (a[0], np.reshape(a[1], shape)))
                 continue
             if sub is not None:
-                inner = sub.jaxpr if hasattr(sub, "consts") else sub
-                consts = sub.consts if hasattr(sub, "consts") else []
+                inner, consts = (sub.jaxpr, sub.consts) if hasattr(sub, "consts") else (sub, [])
                 ienv = {v: ("const", np.asarray(c)) for v, c in zip(inner.constvars, consts,
                                                                      strict=True)}
                 n_in = len(inner.invars)

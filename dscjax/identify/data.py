@@ -42,16 +42,11 @@ class Record:
                       self.source)
 
 
-def columns_of(order: int | None) -> tuple[str, ...]:
-    """The measured columns a model of plant order n has: x1..xn and w (order None: the
-    actuator alone, w only)."""
-    return ("w",) if order is None else (*(f"x{i + 1}" for i in range(order)), "w")
-
-
 def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
     """The record in `path` (.csv with a header row, or .npz), checked: columns t and u, at
-    least one measured column the model has (`columns_of(order)`), no other column, numbers
-    only, no NaN, increasing times, at least MIN_SAMPLES samples."""
+    least one measured column the model has, no other column, numbers
+    only, no NaN, increasing times, at least MIN_SAMPLES samples. The columns a model of
+    plant order n has: x1..xn and w (order None: the actuator alone, w only)."""
     path = Path(path)
     suffix = path.suffix.lower()
     if path.is_dir():
@@ -69,7 +64,7 @@ def read(path: str | Path, order: int | None, option: str = "--data") -> Record:
     def at(i: int, column: str) -> str:
         return f"{path}, {where} {first + i}, column {column!r}"
 
-    allowed = columns_of(order)
+    allowed = ("w",) if order is None else (*(f"x{i + 1}" for i in range(order)), "w")
     for name in ("t", "u"):
         if name not in raw:
             raise ConfigError(f"{path}: no column {name!r} (the columns are: "
@@ -136,11 +131,4 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
         raise ConfigError(f"{path}: not a plain NPZ of arrays ({err})") from None
 
 
-def write_csv(path: str | Path, rec: Record) -> None:
-    """`rec` as CSV: t, u, then its measured columns."""
-    names = ["t", "u", *rec.y]
-    data = np.column_stack([rec.t, rec.u, *rec.y.values()])
-    np.savetxt(path, data, delimiter=",", header=",".join(names), comments="", fmt="%.10g")
-
-
-__all__ = ["MIN_SAMPLES", "Record", "columns_of", "read", "write_csv"]
+__all__ = ["MIN_SAMPLES", "Record", "read"]

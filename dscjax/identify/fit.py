@@ -3,8 +3,9 @@ state) that minimise the simulation error of the measured columns, by Levenberg-
 exact Jacobians through the simulator, with the Gauss-Newton covariance.
 
     problem = Problem.make(setup, record, ["plant.g", "hysteresis.alpha"], plant=True, dt=1e-3)
-    fit = solve(problem)                       # fit.values, fit.cov, fit.cost
-    report = assess(problem, fit)              # standard errors, intervals, NRMSE, FPE, ...
+    fit = solve(problem)                       # fit.theta, fit.cost
+    est, corr, sv, s2 = estimates(problem, fit)  # standard errors, intervals, ...
+    figures = fit_figures(problem, fit)        # NRMSE, MSE, FPE
 
 Residuals are (y - y_hat) / sigma per measured column (sigma given, or estimated from the
 record's second differences), plus each segment's continuity (its end state against the next
@@ -26,12 +27,11 @@ import jax.numpy as jnp
 import numpy as np
 from jax.flatten_util import ravel_pytree
 
-from dscjax import params, validation, xla
+from dscjax import params, xla
 from dscjax.closed_loop import Setup
 from dscjax.identify.data import Record
 from dscjax.identify.experiment import Experiment, simulate
 from dscjax.sensitivity import columns
-from dscjax.validation import ConfigError
 
 LAMBDA0 = 1e-3  # the first damping, relative to each coordinate's curvature
 CONTINUITY = 10.0  # a segment's end state against the next's start, in units of its sigma
@@ -46,10 +46,6 @@ class Free:
 
     param: params.Param
     log: bool
-
-    @property
-    def name(self) -> str:
-        return self.param.name
 
 
 class Problem(eqx.Module):
@@ -74,10 +70,9 @@ class Problem(eqx.Module):
     @classmethod
     def make(cls, setup: Setup, record: Record, paths: Sequence[str], *, plant: bool,
              dt: float, segments: int = 1, hold: str = "zoh",
-             sigma: Mapping[str, float] | None = None, fit_index=None,
-             field: str = "--free") -> Problem:
+             sigma: Mapping[str, float] | None = None, fit_index=None) -> Problem:
         free = [Free(q, log=q.scale or _positive(setup, q) and float(q.value(setup)) > 0)
-                for q in columns(setup, paths, field)]
+                for q in columns(setup, paths, "--free")]
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
         sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
@@ -102,11 +97,6 @@ class Problem(eqx.Module):
             values[f.param.path] = (v * leaf if f.param.scale else v if f.param.index is None
                                     else leaf.at[f.param.index].set(v))
         return params.set_many(self.setup, values)
-
-    def values(self, z) -> np.ndarray:
-        z = np.asarray(z, float)
-        return np.array([math.exp(v) if f.log else v for v, f in zip(z, self.free,
-                                                                       strict=True)])
 
     def initial_states(self, setup) -> jnp.ndarray:
         """(S, n) each segment's start state: measured columns from the record, the others
@@ -319,23 +309,29 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
                   f"{RANK_TOL:g} x the largest)"
         elif not rel <= LOOSE:
             why = f"its relative standard error is {100 * rel:.3g} % (> {100 * LOOSE:g} %)"
-        out.append(Estimate(f.name, value, float(se), low, high, not why, why))
+        out.append(Estimate(f.param.name, value, float(se), low, high, not why, why))
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
     corr = cov / np.outer(d, d)
     return out, corr, sv, s2
 
 
-def fit_figures(problem: Problem, fit: Fit, index=None) -> dict[str, dict[str, float]]:
-    """Per measured column on the samples `index` (default the fitted ones): NRMSE fit in
+def fitted(problem: Problem, fit: Fit) -> dict[str, tuple]:
+    """{column: (t, y measured, y of the model) on the fitted samples} (the figures' and the
+    plots' data)."""
+    index = np.asarray(problem.fit_index)
+    pred, _ = _predict(problem, jax.tree.map(jnp.asarray, fit.theta))
+    return {c: (np.asarray(problem.record.t)[index], np.asarray(y)[index],
+                np.asarray(pred[c])[index]) for c, y in problem.record.y.items()}
+
+
+def fit_figures(problem: Problem, fit: Fit) -> dict[str, dict[str, float]]:
+    """Per measured column on the fitted samples: NRMSE fit in
     percent, 100 (1 - |y - y_hat| / |y - mean y|), and MSE; over all columns, FPE =
     det(E^T E / N) (1 + d/N) / (1 - d/N) (E the residuals, d the free numbers and start
     states, N the samples)."""
-    index = np.asarray(problem.fit_index if index is None else index)
-    pred, _ = _predict(problem, jax.tree.map(jnp.asarray, fit.theta))
     out, errs = {}, []
-    for c, y in problem.record.y.items():
-        y = np.asarray(y)[index]
-        e = y - np.asarray(pred[c])[index]
+    for c, (_, y, y_hat) in fitted(problem, fit).items():
+        e = y - y_hat
         errs.append(e)
         out[c] = {"nrmse_fit_percent": float(100 * (1 - np.linalg.norm(e)
                                                     / max(np.linalg.norm(y - y.mean()),
@@ -363,13 +359,5 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
     return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
 
 
-def check_segments(segments: int, n: int, field: str = "--segments") -> int:
-    validation.integer(segments, field, 1)
-    if segments > n // 10:
-        raise ConfigError(f"{field} must be at most {n // 10} for {n} samples (10 a segment; "
-                          f"got {segments})")
-    return segments
-
-
-__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures",
+__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures", "fitted",
            "noise_level", "solve", "solve_starts", "validation_fit"]

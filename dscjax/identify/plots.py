@@ -5,11 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import jax
-import jax.numpy as jnp
-import numpy as np
-
 from dscjax import files
+from dscjax.identify.fit import fitted
 from dscjax.plotting import subplots
 
 
@@ -18,11 +15,8 @@ def write(out: Path, res) -> None:
     curves = {c: [] for c in res.problem.record.y}
     for tag, problem, fit in (("fit", res.problem, res.fit),
                               ("validation", res.val_problem, res.val_fit)):
-        pred, _ = problem.predict(jax.tree.map(jnp.asarray, fit.theta))
-        idx = np.asarray(problem.fit_index)
-        for c, y in problem.record.y.items():
-            curves[c].append((tag, np.asarray(problem.record.t)[idx], np.asarray(y)[idx],
-                              np.asarray(pred[c])[idx]))
+        for c, curve in fitted(problem, fit).items():
+            curves[c].append((tag, *curve))
     columns = list(curves)
     for name, residual in (("fit.png", False), ("residuals.png", True)):
         fig, axes = subplots(len(columns), 1, figsize=(8, 2.4 * len(columns)), squeeze=False)

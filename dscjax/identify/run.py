@@ -17,13 +17,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config, files
+from dscjax.closed_loop import Setup
 from dscjax.identify import fit as fitting
-from dscjax.identify.data import Record, columns_of, read
+from dscjax.identify.data import Record
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
 from dscjax.markdown import table
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
 from dscjax.settings import setting
-from dscjax.validation import ConfigError
+from dscjax.validation import ConfigError, integer
 
 FIGURES = ("fit.png", "residuals.png")
 VALIDATION_SHARE = 0.25  # without --validate, the record's last quarter validates
@@ -55,11 +56,12 @@ class IdentifySettings:
 
 @dataclasses.dataclass(frozen=True)
 class Identified:
-    """What `identify` found: the fit's problem and solution, the estimates, the figures of
-    the fit and of the validation, and how long it took."""
+    """What `identify` found: the fit's problem and solution, the identified setup, the
+    estimates, the figures of the fit and of the validation, and how long it took."""
 
     problem: fitting.Problem
     fit: fitting.Fit
+    setup: Setup
     estimates: list
     corr: np.ndarray
     singular_values: np.ndarray
@@ -72,10 +74,6 @@ class Identified:
     start_costs: list
     seconds: float
 
-    @property
-    def setup(self):
-        return self.problem.setup_at(jnp.asarray(self.fit.theta["z"]))
-
 
 def identify(setup, spec, record: Record, s: IdentifySettings, validation: Record | None
              = None) -> Identified:
@@ -83,15 +81,18 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
     plant state, the actuator alone where it measures w only), then validate on `validation`
     (default: the record's last quarter, which the fit then leaves out)."""
     plant = any(c != "w" for c in record.y)
-    n = len(record)
+    fitted = len(record)  # the samples the fit reads
     if validation is None:
-        cut = int(round(n * (1 - VALIDATION_SHARE)))
-        fit_index, val = np.arange(cut), record.part(cut - 1)
+        fitted = int(round(fitted * (1 - VALIDATION_SHARE)))
+        fit_index, val = np.arange(fitted), record.part(fitted - 1)
         where = (f"the last {100 * VALIDATION_SHARE:g} % of the record (t >= "
-                 f"{record.t[cut - 1]:g} s)")
+                 f"{record.t[fitted - 1]:g} s)")
     else:
         fit_index, val, where = None, validation, validation.source
-    fitting.check_segments(s.segments, n if fit_index is None else len(fit_index))
+    integer(s.segments, "--segments", 1)
+    if s.segments > fitted // 10:
+        raise ConfigError(f"--segments must be at most {fitted // 10} for {fitted} samples (10 "
+                          f"a segment; got {s.segments})")
     sigma = None if s.noise is None else {c: s.noise for c in record.y}
     t0 = time.perf_counter()
     problem = fitting.Problem.make(setup, record, s.free, plant=plant, dt=float(spec.dt),
@@ -103,21 +104,15 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
                           "numbers): give starts closer to the data, more --segments, or more "
                           "--starts")
     h0 = None
+    identified = problem.setup_at(jnp.asarray(fit.theta["z"]))
     if validation is None:  # the actuator goes on into the tail from where the fit left it
-        head = record.part(0, cut)
-        h0 = simulate(problem.setup_at(jnp.asarray(fit.theta["z"])), Experiment.make(
-            head.t, head.u, plant=False, dt=float(spec.dt), hold=s.hold), final=True)
+        head = record.part(0, fitted)
+        h0 = simulate(identified, Experiment.make(head.t, head.u, plant=False,
+                                                  dt=float(spec.dt), hold=s.hold), final=True)
     val_problem, val_fit = fitting.validation_fit(problem, fit, val, h0)
-    return Identified(problem, fit, *fitting.estimates(problem, fit),
+    return Identified(problem, fit, identified, *fitting.estimates(problem, fit),
                       fitting.fit_figures(problem, fit), fitting.fit_figures(val_problem, val_fit),
                       where, val_problem, val_fit, costs, time.perf_counter() - t0)
-
-
-def read_records(s: IdentifySettings, data: str, order: int | None
-                 ) -> tuple[Record, Record | None]:
-    """The record and the validation record (None: the record's tail) of the settings."""
-    return read(data, order), (None if s.validate is None
-                               else read(s.validate, order, "--validate"))
 
 
 def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> list[str]:
@@ -146,11 +141,9 @@ def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> 
 
 def summary_of(res: Identified, source: dict, box: dict) -> dict:
     p, fit = res.problem, res.fit
-    states = None
-    if p.exp.plant:
-        x = np.asarray(fit.theta["x"])
-        states = [{"t": float(p.record.t[k]), "x": x[i].tolist()}
-                  for i, k in enumerate(p.exp.starts)]
+    x = np.asarray(fit.theta["x"])
+    states = ([{"t": float(p.record.t[k]), "x": x[i].tolist()}
+               for i, k in enumerate(p.exp.starts)] if p.exp.plant else None)
     return {
         "data": source, "samples": len(p.record), "fitted_samples": int(len(p.fit_index)),
         "experiment": "plant" if p.exp.plant else "actuator",
@@ -216,5 +209,5 @@ def markdown(s: dict) -> str:
     return "\n".join(lines)
 
 
-__all__ = ["FIGURES", "IdentifySettings", "Identified", "columns_of", "identify", "markdown",
-           "read_records", "summary_of", "write"]
+__all__ = ["FIGURES", "IdentifySettings", "Identified", "identify", "markdown", "summary_of",
+           "write"]
