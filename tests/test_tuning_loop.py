@@ -200,7 +200,7 @@ def test_report_judges_every_sample_time_and_delay_by_its_effort(cli_run):
     setup, options = dscjax.config.from_dict(
         {k: v for k, v in dscjax.config.read(config_path).items() if k != "tuning"},
         base=dscjax.paper_example())
-    problem = tuning.build_problem(setup, options, tuning.config_from_dict(
+    problem = tuning.build_problem(setup, options, tuning.config.from_dict(
         dscjax.config.read(config_path)["tuning"], tuning.TuningConfig()))
     ov = {k: np.asarray(v) for k, v in problem.heldout.items()}
     n = len(next(iter(ov.values())))
