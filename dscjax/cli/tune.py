@@ -266,9 +266,8 @@ def check_work_of(args, setup, options, cfg) -> None:
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
-    mode = oc.gradient.chosen(0, plants, cfg.robust.over)
-    if not oc.name.generations and (isinstance(mode, Plants) or plants == 1):  # time-parallel
-        one = one + common.gradient_work(setup, steps)
+        if plants == 1 or isinstance(oc.gradient.chosen(0, plants, cfg.robust.over), Plants):
+            one = one + common.gradient_work(setup, steps)  # time-parallel
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
         check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
