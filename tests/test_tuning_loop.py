@@ -6,6 +6,7 @@ Small problems (2 s horizon, k_1 and k_2 tuned, 4 held-out plants) keep this fil
 problem objects are shared so that each jitted function compiles once.
 """
 
+import csv
 import dataclasses
 import json
 import re
@@ -17,7 +18,6 @@ import dscjax
 import tuning
 from dscjax.cli.main import main
 from dscjax.runspec import RunSpec
-from tuning import checkpoint as ck
 from tuning.runner import run
 
 TINY = """
@@ -41,6 +41,13 @@ batch = 4
 FILES = ("gains.json", "history.csv", "report.md", "report.json", "loss_curve.png",
          "before_after.png", "heldout.png", "sampling.png", "search.npz", "checkpoint.json",
          "best.json")
+
+
+def _history(path) -> list[dict]:
+    """history.csv's iteration and loss columns, as numbers."""
+    with open(path, newline="") as f:
+        return [{"iteration": int(r["iteration"]), "loss": float(r["loss"])}
+                for r in csv.DictReader(f)]
 
 
 @pytest.fixture(scope="module")
@@ -121,7 +128,7 @@ def test_short_run_lowers_the_objective_and_writes_every_file(cli_run):
     assert code == 0
     for name in FILES:
         assert (out / name).stat().st_size > 0, name
-    hist = ck.read_history(out / "history.csv")
+    hist = _history(out / "history.csv")
     assert [r["iteration"] for r in hist] == list(range(5))
     assert min(r["loss"] for r in hist) < hist[0]["loss"]
     report = json.loads((out / "report.json").read_text())
@@ -344,7 +351,7 @@ def test_resume_continues_iterations_and_best(small_problem, tmp_path):
     assert again.resumed_from == 4
     assert again.trace.iterations == 7
     assert again.trace.best_loss <= best_first
-    hist = ck.read_history(tmp_path / "history.csv")
+    hist = _history(tmp_path / "history.csv")
     assert [r["iteration"] for r in hist] == list(range(7))
     # the uninterrupted run takes the very same steps
     straight = run(_with_steps(small_problem, 7), tmp_path / "straight")

@@ -73,14 +73,6 @@ def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequen
     files.write_text(path, buf.getvalue())
 
 
-def read_history(path: Path) -> list[dict[str, Any]]:
-    """history.csv's rows, numbers parsed ([] if there is no file)."""
-    if not Path(path).exists():
-        return []
-    with open(path, newline="") as f:
-        return [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
-
-
 def _fmt(v):
     if v is None:
         return ""
@@ -89,13 +81,3 @@ def _fmt(v):
     if isinstance(v, float | np.floating):
         return repr(float(v))
     return v
-
-
-def _parse(v: str):
-    if v == "":
-        return None
-    try:
-        f = float(v)
-    except ValueError:
-        return v
-    return int(f) if f.is_integer() and "." not in v and "e" not in v.lower() else f
