@@ -131,9 +131,8 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
                            "tuned": stats}}
     assert report_md.batch_counts(summary) == (
         "held-out batch (3 plants, start -> tuned gains): tracked 2 -> 2; tracked after "
-        "refinement (a numerically stiff run re-done with ETDRK4 at a smaller step) 0 -> 1; "
-        "diverged at every step tried 1 -> 0; of the plants that did not diverge, chattering "
-        "(chattering index above 1.5) 0 -> 0")
+        "refinement 0 -> 1; diverged at every step tried 1 -> 0; of the plants that did not "
+        "diverge, chattering (chattering index above 1.5) 0 -> 0")
     # a plant the tuned gains track only once refined is named in the warning (the loop is
     # stiff at the tuning's step: a digital controller at that rate could not run the gains),
     # not counted as diverged

@@ -94,9 +94,14 @@ def _inputs():
     raw = tomllib.loads(TOML)
     table = raw.pop("tuning")
     setup, options = config.from_dict(raw, base_spec=RunSpec.make(**tuning.config.SIMULATION))
-    cfg = tuning.config_from_dict(table)
+    cfg = tuning.config.from_dict(table)
     return setup, options, dataclasses.replace(
         cfg, adversarial=dataclasses.replace(cfg.adversarial, rounds=1))
+
+
+def _printed(cfg) -> str:
+    """The [tuning] table of `cfg` as `dscjax tune --print-config` writes it."""
+    return config.dumps_toml({"tuning": tuning.config.to_table(cfg)})
 
 
 def never(*a, **k):
@@ -206,7 +211,7 @@ def test_search_evals_ends_each_search_at_that_count(adv_run):
             for _ in range(2)]
     assert runs[0]["evaluations"] == 8  # two batches of 4
     assert runs[0] == runs[1]
-    assert "search_evals = \"none\"" in tuning.config.to_toml(_inputs()[2])
+    assert "search_evals = \"none\"" in _printed(_inputs()[2])
 
 
 # -- effort bounds per training plant (tuning.objective.effort_bounds = "per_plant") ----------
@@ -314,8 +319,8 @@ def test_effort_bounds_are_part_of_the_fingerprint(adv_run):
     assert nominal["objective"]["effort_bounds"] == "nominal"
     _, per = _per_plant_problem(out)
     assert per.describe()["objective"]["effort_bounds"] == "per_plant"
-    assert 'effort_bounds = "nominal"' in tuning.config.to_toml(cfg)
-    again = tuning.config_from_dict(tomllib.loads(tuning.config.to_toml(per.cfg))["tuning"])
+    assert 'effort_bounds = "nominal"' in _printed(cfg)
+    again = tuning.config.from_dict(tomllib.loads(_printed(per.cfg))["tuning"])
     assert again.objective.effort_bounds.per_plant
 
 

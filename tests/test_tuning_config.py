@@ -141,7 +141,12 @@ def test_tuning_table_parses_nested_ranges_and_bounds():
 def test_printed_config_reads_back():
     import tomllib
 
-    from tuning.config import to_toml
+    from dscjax.config import dumps_toml
+    from dscjax.settings import meanings
+    from tuning.config import to_table
+
+    def to_toml(cfg):  # as `dscjax tune --print-config` writes [tuning]
+        return dumps_toml({"tuning": to_table(cfg)}, docs=meanings(cfg, "tuning."))
 
     cfg = from_dict({"params": ["controller.k"], "freeze": ["controller.k[1]"],
                      "bounds": {"controller.k": [1.0, 100.0]},

@@ -97,8 +97,9 @@ def test_errors_are_reported_against_the_config_reference_beside_the_shifted_one
     assert rep["nominal"]["start"]["user_linf_error"] == pytest.approx(
         2.0 - float(setup.reference(0.0)), rel=1e-12)
     (w0, s0), (w1, s1) = figures["start"], figures["tuned"]
-    assert (f"start: L-inf error on the window {s0:.4g} against the shifted y_r the controller "
-            f"tracks (tuned), {w0:.4g} against the config's y_r") in stderr
+    assert (f"start gains: L-inf error on [t0, T] against the shifted y_r the controller tracks "
+            f"(tuned) {s0:.4g}, L-inf error on [t0, T] against the config's y_r {w0:.4g}, "
+            ) in stderr
     assert (f"nominal plant, L-inf error on [t0, T] against the shifted y_r the controller "
             f"tracks (tuned): {s0:.4g} -> {s1:.4g}") in stdout
     assert f"nominal plant, L-inf error on [t0, T] against the config's y_r: {w0:.4g} -> " \

@@ -12,7 +12,6 @@ docs/tuning.md describes the objective and the settings.
 
 from dscjax.selection import Selection, Tuned
 from tuning.config import AdversarialSpec, BatchSpec, ObjectiveSpec, OptimizerSpec, TuningConfig
-from tuning.config import from_dict as config_from_dict
 from tuning.objective import Objective
 from tuning.optimize import CMAES, Adam, CVaR, Forward, Max, Mean, Plants, Reverse, loss_function
 from tuning.reductions import tuning_metrics
@@ -23,4 +22,4 @@ from tuning.scales import Scales
 __all__ = ["CMAES", "Adam", "AdversarialSpec", "BatchSpec", "CVaR", "Envelope", "Forward", "Max",
            "Mean", "Objective", "ObjectiveSpec", "OptimizerSpec", "Plants", "Problem", "Result",
            "Reverse", "Scales", "Selection", "StepResponse", "Tuned", "TuningConfig", "UBound",
-           "URate", "build_problem", "config_from_dict", "loss_function", "run", "tuning_metrics"]
+           "URate", "build_problem", "loss_function", "run", "tuning_metrics"]

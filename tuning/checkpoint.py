@@ -27,24 +27,16 @@ FORMAT_VERSION = 2
 FILES = ("search.npz", "checkpoint.json", "best.json", "gains.json", "history.csv")
 
 
-def fingerprint(desc) -> str:
-    """Short digest of the problem's description (stored in checkpoint.json beside it)."""
-    return files.digest(desc)[:16]
+# the search's names of history.csv's columns lr and wall_s
+RENAMED = {"scale": "lr", "seconds": "wall_s"}
 
 
 def history_row(row: dict) -> dict:
-    """A search trace's history row as history.csv and the progress display give it."""
-    return {"iteration": row["iteration"], "loss": row["loss"],
-            "accepted": bool(row.get("accepted", True)), "feasible": row["feasible"],
-            "best_loss": row["best_loss"], "lr": row["scale"],
-            "grad_norm": row.get("grad_norm", float("nan")),
-            **{k: v for k, v in row.items() if k not in _SEARCH_KEYS},  # figures and terms
-            "wall_s": row["seconds"], "best_iteration": row["best_iteration"],
-            "best_feasible": row["best_feasible"]}
-
-
-_SEARCH_KEYS = ("iteration", "loss", "feasible", "best_loss", "scale", "grad_norm", "accepted",
-                "seconds", "best_iteration", "best_feasible")
+    """A search trace's history row as history.csv and the progress display give it: the
+    search's keys (two renamed), its figures and terms."""
+    out = {"grad_norm": float("nan")} | {RENAMED.get(k, k): v for k, v in row.items()}
+    out["accepted"] = bool(row.get("accepted", True))
+    return out
 
 
 def history_columns(problem) -> list[str]:
@@ -81,14 +73,6 @@ def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequen
     files.write_text(path, buf.getvalue())
 
 
-def read_history(path: Path) -> list[dict[str, Any]]:
-    """history.csv's rows, numbers parsed ([] if there is no file)."""
-    if not Path(path).exists():
-        return []
-    with open(path, newline="") as f:
-        return [{k: _parse(v) for k, v in r.items()} for r in csv.DictReader(f)]
-
-
 def _fmt(v):
     if v is None:
         return ""
@@ -97,13 +81,3 @@ def _fmt(v):
     if isinstance(v, float | np.floating):
         return repr(float(v))
     return v
-
-
-def _parse(v: str):
-    if v == "":
-        return None
-    try:
-        f = float(v)
-    except ValueError:
-        return v
-    return int(f) if f.is_integer() and "." not in v and "e" not in v.lower() else f

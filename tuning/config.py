@@ -323,13 +323,6 @@ def to_table(cfg: TuningConfig, setup=None) -> dict[str, Any]:
     return table
 
 
-def to_toml(cfg: TuningConfig, setup=None) -> str:
-    """The effective [tuning] table as TOML, each key with its meaning."""
-    from dscjax.config import dumps_toml
-
-    return dumps_toml({"tuning": to_table(cfg, setup)}, docs=settings.meanings(cfg, "tuning."))
-
-
 __all__ = ["AGGREGATES", "AdversarialSpec", "BatchSpec", "EFFORT_BOUNDS", "GRADIENTS",
            "OPTIMIZERS", "ObjectiveSpec", "OptimizerSpec", "SIMULATION", "TuningConfig",
-           "from_dict", "to_table", "to_toml"]
+           "from_dict", "to_table"]

@@ -32,10 +32,6 @@ LABELS = {"linf_error_window": "L-inf error on [t0, T]",
           "delayed_tv_u": "TV(u) on [0, T], the input delayed"}
 
 
-# where the controller tracks a shifted reference, the error figures measured against it
-SHIFTED = " against the shifted y_r the controller tracks"
-
-
 ERRORS = ("linf_error_window", "l2_error_window", "linf_error", "sampled_linf_window",
           "delayed_linf_window")
 
@@ -76,19 +72,15 @@ def heldout_warning(summary: dict, cfg) -> str | None:
 
 
 BATCHES = {"train": "training batch", "heldout": "held-out batch"}
-OUTCOMES = {"n_tracked": "tracked",
-            "n_refined": "tracked after refinement (a numerically stiff run re-done with ETDRK4 "
-                         "at a smaller step)",
+# (docs/tuning.md, "The held-out check", says what each means)
+OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
             "n_diverged": "diverged at every step tried"}
 
 
-def batch_counts(summary: dict, key: str = "heldout") -> str | None:
-    """A batch's outcomes, start -> tuned gains, as sweeps report theirs (None: no batch):
-    the line of report.md and of the console."""
-    h = summary.get(key)
-    if not h:
-        return None
-    a, b = h["start"], h["tuned"]
+def batch_counts(summary: dict, key: str = "heldout") -> str:
+    """A batch's outcomes (summary[key]), start -> tuned gains, as sweeps report theirs: the
+    line of report.md and of the console."""
+    a, b = summary[key]["start"], summary[key]["tuned"]
 
     def counts(a, b):
         return "; ".join(f"{words} {a[k]} -> {b[k]}" for k, words in OUTCOMES.items())
@@ -145,7 +137,7 @@ def text(s: dict, problem, figures) -> str:
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
         f"[{sim.window_start:g}, {sim.t_final:g}] s.",
-        f"{tuned_text(problem)} Method: {method_sentence(cfg.optimizer, s['run']['gradient'])}",
+        method_text(problem),
         "Objective per plant: " + ", ".join(
             f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k))
         + "".join(f"; penalty weight of the {name} bound {weight:g}" for name, bound, weight in (
@@ -200,13 +192,12 @@ def text(s: dict, problem, figures) -> str:
                            f", {k} {b[k]:.4g}" for k in ("overshoot", "settling_time", "peak")
                            if k in b))
                       for a, b in _pairs(s["requirements"])])]
-    for key, title in (("train", "Training batch"), ("heldout", "Held-out batch")):
-        if key not in s:
-            continue
+    for key in [k for k in BATCHES if k in s]:
         b = cfg.robust if key == "train" else cfg.heldout
         rng = ", ".join(r.resolve(problem.setup).spec() for r in b.ranges)
         st, tu = s[key]["start"], s[key]["tuned"]
-        lines += ["", f"## {title}: {st['n']} plants ({rng}; {b.method.name}, seed {b.seed})", "",
+        title = f"{BATCHES[key].capitalize()}: {st['n']} plants"
+        lines += ["", f"## {title} ({rng}; {b.method.name}, seed {b.seed})", "",
                   *table(("", "start median", "tuned median", "start p95", "tuned p95",
                           "start max", "tuned max"), [
                       (escape(label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
@@ -250,7 +241,8 @@ def label(key: str, s: dict) -> str:
     """A nominal row's label; the error figures say which reference they are against where
     the controller tracks a shifted one."""
     if s.get("shifted_reference") and key in ERRORS:
-        return LABELS[key] + SHIFTED + (" (tuned)" if key == "linf_error_window" else "")
+        return (LABELS[key] + " against the shifted y_r the controller tracks"
+                + (" (tuned)" if key == "linf_error_window" else ""))
     return LABELS[key]
 
 
@@ -282,16 +274,14 @@ def sensitivity_section(sens: dict) -> list[str]:
     return lines
 
 
-def tuned_text(problem) -> str:
-    """What is tuned, for report.md and the console's start line."""
-    return f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)})."
-
-
-def method_sentence(opt, mode: str) -> str:
+def method_text(problem) -> str:
+    """What is tuned and how, for report.md and the console's start line."""
+    opt, mode = problem.cfg.optimizer, problem.mode.name
+    tuned = f"Tuned: {problem.n_params} numbers ({', '.join(problem.selection.names)}). Method:"
     if not opt.name.generations:
         words = ("plant-by-plant (the aggregate's worst plants)" if mode == "plants" else
                  f"{mode}-mode")
-        return (f"{words} exact gradients: projected descent with optax's Adam scaling, "
+        return (f"{tuned} {words} exact gradients: projected descent with optax's Adam scaling, "
                 f"initial step {opt.learning_rate:g} in log-space.")
     cma = (f"CMA-ES (sigma0 {opt.sigma0:g} in log-space, population "
            f"{opt.popsize or f'sized to about {ROWS} trajectories a generation'}, seed "
@@ -301,5 +291,5 @@ def method_sentence(opt, mode: str) -> str:
     grows = f", the population x {opt.growth}" if opt.growth > 1 else ""
     restarts = (f" Restarted from the start point at its own stop{stalls}{grows}, at most "
                 f"{opt.restarts} times." if opt.restarts else "")
-    return (f"{opt.name.name}: {cma}; one batched simulation per generation, no gradient."
-            + restarts)
+    return (f"{tuned} {opt.name.name}: {cma}; one batched simulation per generation, no "
+            f"gradient." + restarts)

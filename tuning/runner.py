@@ -404,7 +404,7 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
     ck.write_history(out / "history.csv", [ck.history_row(r) for r in trace.history],
                      ck.history_columns(problem))
     files.write_json(out / "checkpoint.json", {
-        "version": ck.FORMAT_VERSION, "fingerprint": ck.fingerprint(desc),
+        "version": ck.FORMAT_VERSION, "fingerprint": files.digest(desc)[:16],
         "iteration": trace.iterations, "best_loss": trace.best_loss,
         "best_iteration": trace.best_iteration, "best_feasible": trace.best_feasible,
         "evaluations": trace.evaluations, "gradient_evaluations": trace.gradients,

@@ -129,23 +129,21 @@ def run(args) -> int:
     if args.resume:  # nothing to resume or a changed config: refused before anything runs
         (adversarial.check_resume if adv.rounds else check_resume)(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
-    choice = common.use_device(args, options.device, generation_rows(cfg))
-    plants = max(cfg.robust.batch, 1)
+    oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
+    # the trajectories of one generation (its first population) or iteration, run together
+    rows = plants * (oc.population(plants, 1) if oc.name.generations else 1)
+    choice = common.use_device(args, options.device, rows)
     # --out once every setting is validated, before the start scales compile and run the loop
     with Phase(f"  compiling the closed loop and measuring the start gains ({plants} "
                f"plant{'s' if plants > 1 else ''})", enabled=not args.quiet):
         problem = build_problem(setup, options, cfg,
                                 ready=lambda: prepare_out(args, OUTPUTS, resumable=True))
-    oc = cfg.optimizer
-    how = (f"{oc.name.name} (sigma0 {oc.sigma0:g})" if oc.name.generations else
-           f"{problem.mode.name}-mode gradients; adam, lr {oc.learning_rate:g}")
     unit = "generation" if oc.name.generations else "iteration"
     limits = [f"{oc.max_steps} {unit}(s)"] if oc.max_steps is not None else []
     limits += [f"{oc.time_limit:g} s"] if oc.time_limit else []
     # (the loop tuned is one of the notes below)
-    common.banner(args, f"{report.problem_sentence(problem)} {report_md.tuned_text(problem)} "
-                  f"Method: {how}; "
-                  + ("at most " + " or ".join(limits) if limits else "no iteration or time limit")
+    common.banner(args, f"{report.problem_sentence(problem)} {report_md.method_text(problem)} "
+                  + ("At most " + " or ".join(limits) if limits else "No iteration or time limit")
                   + (f" per round; {adv.rounds} adversarial rounds over "
                      + ", ".join(r.spec() for r in searched.ranges)
                      + (f" and {adv.disturbance}" if adv.disturbance else "")
@@ -162,15 +160,13 @@ def run(args) -> int:
     for note in problem.notes:
         print(f"  note: {note}", file=sys.stderr)
     common.say(args, "warning", *report.assumption_warnings(problem))
-    sc = problem.scales
-    user = sc.start.get("user_linf_error_window")
-    print(f"  start: L-inf error on the window {sc.linf:.4g}"
-          + ("" if user is None else f"{report_md.SHIFTED} (tuned), {user:.4g} against the "
-             f"config's y_r")
-          + f"; over [0, T] max|u| {sc.max_u:.4g}, TV(u) {sc.tv_u:.4g}"
-          + (f"; on the window max|u| {sc.start['max_abs_u_window']:.4g}, TV(u) "
-             f"{sc.start['tv_u_window']:.4g}" if "tv_u_window" in sc.start else ""),
-          file=sys.stderr)
+    start = problem.scales.start
+    shown = [k for k in ("linf_error_window", "user_linf_error_window", "max_abs_u", "tv_u",
+                         "max_abs_u_window", "tv_u_window") if k in start]
+    # labelled as report.md's nominal table labels them
+    shifted = {"shifted_reference": "user_linf_error_window" in start}
+    print("  start gains: " + ", ".join(f"{report_md.label(k, shifted)} {start[k]:.4g}"
+                                        for k in shown), file=sys.stderr)
     bar, bar_round = None, None
     # until the first generation (or iteration) ends: its compilation and run
     first = Phase(f"  compiling the {'search' if oc.name.generations else 'gradient'} and "
@@ -254,15 +250,6 @@ def run(args) -> int:
 MARGIN_STEPS = 4 * 10 + 2 + 10 + 4
 
 
-def generation_rows(cfg) -> int:
-    """Trajectories of one generation (a search method: its first population, at least, times
-    the training plants) or iteration (adam: the plants), run together."""
-    oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
-    if not oc.name.generations:
-        return plants
-    return plants * oc.population(plants, 1)
-
-
 def check_work_of(args, setup, options, cfg) -> None:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
@@ -273,15 +260,14 @@ def check_work_of(args, setup, options, cfg) -> None:
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = common.horizon_text(options.t_final, options.dt, steps)
     if oc.name.generations:
-        width = generation_rows(cfg) // plants
+        width = oc.population(plants, 1)
         one = Work(steps=steps, member_steps=width * plants * steps)
         unit = f"generation ({width} candidates x {plants} plant(s))"
     else:
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
-    mode = oc.gradient.chosen(0, plants, cfg.robust.over)
-    if not oc.name.generations and (isinstance(mode, Plants) or plants == 1):  # time-parallel
-        one = one + common.gradient_work(setup, steps)
+        if plants == 1 or isinstance(oc.gradient.chosen(0, plants, cfg.robust.over), Plants):
+            one = one + common.gradient_work(setup, steps)  # time-parallel
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
         check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
