@@ -50,11 +50,6 @@ class Outcome:
     rounds: list[dict]
     fresh: dict[str, dict]
 
-    def summary(self) -> dict:
-        """The "adversarial" section of report.json."""
-        return {"rounds": self.rounds, "fresh": self.fresh,
-                "train_sizes": [r["train_size"] for r in self.rounds]}
-
 
 def search_problem(setup, options: RunSpec, cfg: TuningConfig) -> worst.Problem:
     """The worst-case problem of [tuning.adversarial] at the gains of `setup`."""
@@ -179,8 +174,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
             zw = _worst_points(res, spec.add)
             new = {k: np.asarray(v) for k, v in res.problem.overrides(zw).items()}
             plants = new if plants is None else runner.join_plants(setup, plants, new)
-            if rdir is not None:
-                files.mkdir(rdir)
+            if rdir is not None:  # made by the round's search (its out_dir, rdir/search)
                 files.write_npz(rdir / "plants.npz", plants)
             say(f"round {r}/{spec.rounds}: worst {spec.metric} {res.value:.6g} for the current "
                 f"gains; {len(zw)} worst cases join the training set")
@@ -245,7 +239,8 @@ def worst_text(s: dict, digits: int = 6) -> str:
 def add_to_report(out: str | Path, summary: dict, outcome: Outcome) -> dict:
     """Add the adversarial section to report.json and report.md (`tuning.report.write`'s)."""
     out = Path(out)
-    summary["adversarial"] = outcome.summary()
+    summary["adversarial"] = {"rounds": outcome.rounds, "fresh": outcome.fresh,
+                              "train_sizes": [r["train_size"] for r in outcome.rounds]}
     files.write_json(out / "report.json", summary)
     md = (out / "report.md").read_text()
     files.write_text(out / "report.md", md.rstrip("\n") + "\n" + markdown(summary["adversarial"]))

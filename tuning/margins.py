@@ -144,12 +144,11 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
     refinement: a sampled loop that diverges is unstable, not stiff)."""
     sim = problem.objective.sim
     own = sim.sample_time
-    ho = {k: np.asarray(v) for k, v in problem.heldout.items()}
-    n = len(next(iter(ho.values())))
+    n = len(next(iter(problem.heldout.values())))
     gains = gain_rows(problem, z0, z1)
     # rows: every held-out plant with the start gains, then with the tuned
     ov = ({p: np.repeat(v, n, axis=0) for p, v in gains.items()}
-          | {p: np.concatenate([v, v]) for p, v in ho.items() if p not in gains})
+          | {p: np.concatenate([v, v]) for p, v in problem.heldout.items() if p not in gains})
     out: dict[str, Any] = {"label": f"held-out ({n} plants)", "n": n,
                            **{tag: [] for tag in NAMES}}
     for ts in sample_times:

@@ -194,13 +194,10 @@ class Auto:
 
     def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
                ) -> Forward:
-        if batch <= 1:
-            mode = Forward() if n_params <= FORWARD_MAX_PARAMS_ONE_PLANT else Reverse()
-        elif aggregate is not None and aggregate.weighs(batch) <= batch / 4:
-            mode = Plants()
-        else:
-            mode = Forward() if n_params <= FORWARD_MAX_PARAMS else Reverse()
-        return mode.chosen(n_params, batch, aggregate, every)
+        if batch > 1 and aggregate is not None and aggregate.weighs(batch) <= batch / 4:
+            return Plants()
+        most = FORWARD_MAX_PARAMS_ONE_PLANT if batch <= 1 else FORWARD_MAX_PARAMS
+        return Forward() if n_params <= most else Reverse(every)
 
 
 # the strategies by the names a config gives (`tuning.config`, `rules.Choice`)
