@@ -278,14 +278,15 @@ __all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "HOST_FIELDS", "M
 def loop_words(sim: RunSpec) -> str:
     """The loop of a RunSpec in words: continuous, or sampled (Ts, ZOH, discretisation of the
     controller's states, the plant's step, delay and noise)."""
+    plant = f"{sim.solver.name.upper()} at dt = {float(sim.dt):g} s"
     if not sim.sampled:
-        return f"the continuous loop (RK4 at dt = {float(sim.dt):g} s)"
+        return f"the continuous loop ({plant})"
     noise = ("no measurement noise" if sim.noise is None else "measurement noise std "
              + ", ".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float)))
              + f" (seed {int(sim.noise_seed)})")
     return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
-            f"its states advanced by {discretisation(sim)}, the plant by RK4 at dt = "
-            f"{float(sim.dt):g} s; input delay {sim.delay} sample(s); {noise}")
+            f"its states advanced by {discretisation(sim)}, the plant by {plant}; "
+            f"input delay {sim.delay} sample(s); {noise}")
 
 
 def discretisation(sim: RunSpec) -> str:

@@ -209,6 +209,15 @@ def test_the_banner_says_where_the_run_went_and_why(tmp_path, capsys):
                                         "(as asked)"), err
 
 
+def test_the_loop_words_name_the_plant_solver():
+    from dscjax.runspec import RunSpec, loop_words
+
+    continuous = RunSpec.make(t_final=1.0, dt=1e-3, solver="etdrk4")
+    assert loop_words(continuous) == "the continuous loop (ETDRK4 at dt = 0.001 s)"
+    sampled = RunSpec.make(t_final=1.0, dt=1e-3, solver="etdrk4", sample_time=2e-3)
+    assert "the plant by ETDRK4 at dt = 0.001 s; input delay 0" in loop_words(sampled)
+
+
 def test_version_lists_the_backends_and_devices(capsys):
     with pytest.raises(SystemExit) as stop:
         main(["--version"])
