@@ -153,7 +153,6 @@ DOCS: dict[str, str] = {f"simulation.{k}": doc for k, (_, doc) in OPTIONS.items(
     "controller.robust_term": "sat | sgn | smooth",
     "controller.init": "paper | linf (eqs. 67-68) | zero_surfaces",
     "controller.g_nom": "backstepping: nominal g_j of the chain rule for alpha_i' (> 0)",
-    "controller.derivative": "backstepping: autodiff (any n) | hand (n = 2 only)",
     "reference.kind": "sine | smooth_step | multisine",
     "reference.amplitude": "y_r = amplitude sin(frequency t + phase) + offset",
     "reference.frequency": "[rad/s]",

@@ -94,14 +94,9 @@ def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
     if paths is None:
         paths = [f"{part}.{p}" for part in PARTS
                  for p in validation.numeric_paths(getattr(setup, part))]
-    given = [Param.parse(text, field) for text in paths]
-    for p in given:
-        p.check(setup, field)
+    given = [Param.parse(text, field, setup) for text in paths]
     out = Selection.of(given).columns(setup)
     params.check_columns(out, field)
-    twice = [p.name for i, p in enumerate(out) if p.name in {q.name for q in out[:i]}]
-    if twice:
-        raise ConfigError(f"{field}: {twice[0]!r} is given twice")
     if not out:
         raise ConfigError(f"{field}: no number given")
     return tuple(out)
