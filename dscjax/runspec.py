@@ -135,10 +135,10 @@ class RunSpec(eqx.Module):
         def f(key):
             return names.get(key, prefix + key)
 
-        solver = table.get("solver", "rk4")
         named = {k: getattr(table[k], "name", table[k]) for k in ("solver", "discretisation")
                  if k in table}
         keys = settings.checked(Simulation(t_final=t_final, dt=dt, **(table | named)), f)
+        solver = table.get("solver", keys.solver)
         t_final, dt, save_every, window_start = (keys.t_final, keys.dt, keys.save_every,
                                                  keys.window_start)
         n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))

@@ -1,10 +1,7 @@
 """The metrics of dscjax/metrics.py on saved arrays (t, e, u): a second implementation, the
 tests' oracle for the running reductions (`metrics.Tracking`) that every run computes."""
 
-import jax
 import jax.numpy as jnp
-
-from dscjax.metrics import CHATTER_TIME_CONSTANT
 
 
 def _trapezoid_weights(t, mask):
@@ -45,22 +42,3 @@ def total_variation(u, t=None, t0=None):
     if t0 is None:
         return jnp.sum(d)
     return jnp.sum(jnp.where(t[:-1] >= t0, d, 0.0))
-
-
-def low_pass(u, t):
-    """u through the chattering index's first-order low pass (exact for u held over a step)."""
-    a = -jnp.expm1(-jnp.diff(t) / CHATTER_TIME_CONSTANT)
-
-    def step(v, x):
-        ai, ui = x
-        v = v + ai * (ui - v)
-        return v, v
-
-    _, rest = jax.lax.scan(step, u[0], (a, u[1:]))
-    return jnp.concatenate([u[:1], rest])
-
-
-def chattering_index(u, t, t0=None):
-    """TV(u) / TV(low_pass(u)) over the window (dscjax/metrics.py's docstring)."""
-    tv = total_variation(u, t, t0)
-    return tv / jnp.maximum(total_variation(low_pass(u, t), t, t0), jnp.finfo(tv.dtype).tiny)

@@ -163,7 +163,7 @@ def test_complexity_rows(reproduced):
 
 def test_fig1_loops_match_the_closed_form():
     """Fig. 1's RK4 loops equal the solution (5)-(6) on the first rising segment of u."""
-    _, t, u, w = family_loops(amplitudes=(3.5,), dt=1e-3)["backlash"]
+    _, t, u, w = family_loops(amplitudes=(3.5,), t_final=1.0)["backlash"]
     u, w = u[0], w[0]
     rising = t <= (math.pi / 2) / 2.3
     ref = closed_form(jnp.asarray(u[rising]), 0.0, 0.0, 1.0, 1.432, 0.105, +1)

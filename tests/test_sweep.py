@@ -245,7 +245,6 @@ def test_sample_tables():
         assert sorted(strata) == list(range(50))
     np.testing.assert_array_equal(lhs, LatinHypercube().draw(r2, 50, 3))  # seeded
     assert not np.array_equal(lhs, LatinHypercube().draw(r2, 50, 4))
-    assert dscjax.device.auto_chunk(100_000) == 14336 and dscjax.device.auto_chunk(24) == 24
 
 
 def test_cli_writes_results_summary_and_figures(tmp_path, capsys):

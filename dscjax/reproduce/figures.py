@@ -101,7 +101,7 @@ def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dp
         axes = np.atleast_1d(axes)
         for i, (ax, a) in enumerate(zip(axes, amplitudes, strict=True)):
             hysteresis_loop(ax, hyst, u[i], w[i], f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$",
-                            LOOP_COLORS[i % 2])
+                            LOOP_COLORS[i % len(LOOP_COLORS)])
             ax.set_title(f"amplitude {a:g}")
             ax.legend(loc="upper left", framealpha=0.95)
         axes[0].set_ylabel("hysteresis output $w$ [-]")
@@ -119,8 +119,8 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
         big = int(np.argmax(np.max(np.abs(u), axis=1)))
         for i in range(len(u)):
             k = float(np.max(np.abs(u[i])))
-            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}", LOOP_COLORS[i % 2],
-                            lines=i == big)
+            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}",
+                            LOOP_COLORS[i % len(LOOP_COLORS)], lines=i == big)
         ax.set_title(model.title, fontsize=9)
         ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
     np.atleast_1d(axes)[0].set_ylabel("hysteresis output $w$ [-]")
