@@ -34,7 +34,8 @@ def add_parser(sub):
                    "[hysteresis] and simulation.t_final, dt, device (options win) are used")
     common.add_example_arg(p)
     p.add_argument("--amplitude", type=common.finite_float, action="append", metavar="A",
-                   help="input amplitude; repeat for several loops (default 3.5 and 6.5)")
+                   help="input amplitude; repeat for several loops (default "
+                   f"{' and '.join(f'{a:g}' for a in FIG1_AMPLITUDES)})")
     p.add_argument("--omega", type=common.positive_float, default=FIG1_OMEGA, metavar="W",
                    help=f"input frequency [rad/s] (default {FIG1_OMEGA:g})")
     p.add_argument("--t-final", type=common.positive_float, metavar="T",

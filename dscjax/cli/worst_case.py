@@ -165,7 +165,8 @@ def worst_settings(args):
 
 def requirement_table(args, s) -> dict:
     """{NAME: [tuning.requirements.NAME] of --config, read and checked as the tuner reads it}
-    of `--metric requirement:NAME` ({} for any other metric)."""
+    of `--metric requirement:NAME` ({} for any other metric); ConfigError where --config has
+    no such table (also under --print-config: the run could not start)."""
     if not s.metric.startswith(worst.REQUIREMENT):
         return {}
     from tuning.config import from_dict
