@@ -85,6 +85,25 @@ def test_a_bad_record_is_one_line_naming_file_column_and_line(tmp_path, capsys, 
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("fitted, validated", [
+    (["x1", "x2"], ["w"]),  # plant data validated on an actuator record
+    (["x1", "x2"], ["x1"]),  # a column of the fit not measured
+    (["w"], ["x1", "w"]),  # the actuator alone validated with a plant state
+])
+def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fitted, validated):
+    data = _write_csv(tmp_path / "a.csv", ["t", "u", *fitted],
+                      [r[:2] + r[2:] * len(fitted) for r in GOOD])
+    val = _write_csv(tmp_path / "b.csv", ["t", "u", *validated],
+                     [r[:2] + r[2:] * len(validated) for r in GOOD])
+    code = main(["identify", "--data", str(data), "--validate", str(val), "--free", "plant.g",
+                 "--out", str(tmp_path / "o")])
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err_lines == [
+        f"dscjax identify: error: --validate: {val} measures {', '.join(validated)}; it must "
+        f"measure the columns of --data {data}: {', '.join(fitted)}"]
+    assert not (tmp_path / "o").exists()
+
+
 def test_an_npz_record_reads_as_a_csv_one(tmp_path):
     t = np.arange(25) * 0.01
     np.savez(tmp_path / "r.npz", t=t, u=np.sin(t), w=np.cos(t))

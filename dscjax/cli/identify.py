@@ -55,7 +55,7 @@ def run(args) -> int:
         common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
     record = read(args.data, setup.order)
-    val = None if s.validate is None else read(s.validate, setup.order, "--validate")
+    val = None if s.validate is None else ident.validation_record(s.validate, record, setup.order)
     out = prepare_out(args, OUTPUTS)
     # the report (printed below) says which experiment, the segments and the starts
     common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over t = "
