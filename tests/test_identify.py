@@ -104,6 +104,23 @@ def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fit
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("good_data", [False, True])
+def test_a_bad_free_path_is_refused_before_the_data_and_the_out_directory(tmp_path, capsys,
+                                                                          good_data):
+    data = tmp_path / "r.csv"
+    if good_data:  # then --out, which holds an earlier run's file, would refuse next
+        _write_csv(data, ["t", "u", "x1"], GOOD)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "identified.toml").write_text("kept")  # refused without --overwrite
+    code = main(["identify", "--data", str(data), "--free", "plant.nope", "--out", str(out)])
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err_lines) == 1
+    assert err_lines[0].startswith("dscjax identify: error: --free: unknown parameter "
+                                   "'plant.nope' (the numbers of the setup are: ")
+    assert (out / "identified.toml").read_text() == "kept"
+
+
 def test_an_npz_record_reads_as_a_csv_one(tmp_path):
     t = np.arange(25) * 0.01
     np.savez(tmp_path / "r.npz", t=t, u=np.sin(t), w=np.cos(t))
