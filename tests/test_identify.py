@@ -85,6 +85,42 @@ def test_a_bad_record_is_one_line_naming_file_column_and_line(tmp_path, capsys, 
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("fitted, validated", [
+    (["x1", "x2"], ["w"]),  # plant data validated on an actuator record
+    (["x1", "x2"], ["x1"]),  # a column of the fit not measured
+    (["w"], ["x1", "w"]),  # the actuator alone validated with a plant state
+])
+def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fitted, validated):
+    data = _write_csv(tmp_path / "a.csv", ["t", "u", *fitted],
+                      [r[:2] + r[2:] * len(fitted) for r in GOOD])
+    val = _write_csv(tmp_path / "b.csv", ["t", "u", *validated],
+                     [r[:2] + r[2:] * len(validated) for r in GOOD])
+    code = main(["identify", "--data", str(data), "--validate", str(val), "--free", "plant.g",
+                 "--out", str(tmp_path / "o")])
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and err_lines == [
+        f"dscjax identify: error: --validate: {val} measures {', '.join(validated)}; it must "
+        f"measure the columns of --data {data}: {', '.join(fitted)}"]
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("good_data", [False, True])
+def test_a_bad_free_path_is_refused_before_the_data_and_the_out_directory(tmp_path, capsys,
+                                                                          good_data):
+    data = tmp_path / "r.csv"
+    if good_data:  # then --out, which holds an earlier run's file, would refuse next
+        _write_csv(data, ["t", "u", "x1"], GOOD)
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "identified.toml").write_text("kept")  # refused without --overwrite
+    code = main(["identify", "--data", str(data), "--free", "plant.nope", "--out", str(out)])
+    err_lines = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err_lines) == 1
+    assert err_lines[0].startswith("dscjax identify: error: --free: unknown parameter "
+                                   "'plant.nope' (the numbers of the setup are: ")
+    assert (out / "identified.toml").read_text() == "kept"
+
+
 def test_an_npz_record_reads_as_a_csv_one(tmp_path):
     t = np.arange(25) * 0.01
     np.savez(tmp_path / "r.npz", t=t, u=np.sin(t), w=np.cos(t))

@@ -16,6 +16,7 @@ from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
+from dscjax.sensitivity import columns
 from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
@@ -45,6 +46,7 @@ def load(args):
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
     spec = common.apply_run_options(args, spec)
     validate_setup(setup)
+    columns(setup, s.free, "--free")  # each path against the setup, before the data and --out
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, "float64"), spec, s, source
 
@@ -55,7 +57,7 @@ def run(args) -> int:
         common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
         return 0
     record = read(args.data, setup.order)
-    val = None if s.validate is None else read(s.validate, setup.order, "--validate")
+    val = None if s.validate is None else ident.validation_record(s.validate, record, setup.order)
     out = prepare_out(args, OUTPUTS)
     # the report (printed below) says which experiment, the segments and the starts
     common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over t = "

@@ -19,7 +19,7 @@ import numpy as np
 from dscjax import config, files
 from dscjax.closed_loop import Setup
 from dscjax.identify import fit as fitting
-from dscjax.identify.data import Record
+from dscjax.identify.data import Record, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
 from dscjax.markdown import table
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
@@ -73,6 +73,18 @@ class Identified:
     val_fit: fitting.Fit
     start_costs: list
     seconds: float
+
+
+def validation_record(path: str, record: Record, order: int) -> Record:
+    """The record of --validate (`read`), refused in one line unless it measures the columns
+    of the fitted `record`: the report sets each column's fit beside its validation fit, a
+    column's noise std is the fit's, and the fit's columns chose the experiment (the plant, or
+    the actuator alone)."""
+    val = read(path, order, "--validate")
+    if list(val.y) != list(record.y):
+        raise ConfigError(f"--validate: {path} measures {', '.join(val.y)}; it must measure "
+                          f"the columns of --data {record.source}: {', '.join(record.y)}")
+    return val
 
 
 def identify(setup, spec, record: Record, s: IdentifySettings, validation: Record | None
@@ -210,4 +222,4 @@ def markdown(s: dict) -> str:
 
 
 __all__ = ["FIGURES", "IdentifySettings", "Identified", "identify", "markdown", "summary_of",
-           "write"]
+           "validation_record", "write"]
