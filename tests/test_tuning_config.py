@@ -85,6 +85,8 @@ def test_bad_selection_is_a_clear_error(setup, kwargs, match):
                                                   "required"),
     ({"requirements": {"u_bound": {"max": -1.0}}}, "tuning.requirements.u_bound.max must be"),
     ({"requirements": {"tube": {}}}, "unknown key 'tuning.requirements.tube'"),
+    ({"requirements": {"step": 3}}, r"^'tuning.requirements.step' must be a table "
+                                    r"\(\[tuning.requirements.step\]\)$"),
 ])
 def test_bad_tuning_table_is_a_clear_error(table, match):
     with pytest.raises(ConfigError, match=match):
