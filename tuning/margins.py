@@ -128,7 +128,8 @@ def reference_linf(nominal: dict) -> dict[str, float | None]:
 
 def batch_figures(m: dict[str, np.ndarray]) -> dict[str, Any]:
     """A batch's effort verdict from its per-plant metrics: p95 of TV(u) on the window and the
-    plants that chatter (`metrics.chatters`), over the plants that did not diverge."""
+    plants that chatter (`metrics.chatters`), over the plants that did not diverge; the
+    report's batch figures count their chattering plants by it (`report.batch_stats`)."""
     ok = ~np.asarray(m["diverged"]).astype(bool)
     tv = np.asarray(m["tv_u_window"], float)[ok]
     index = np.asarray(m["chattering_index"], float)[ok]
