@@ -85,6 +85,8 @@ def test_bad_selection_is_a_clear_error(setup, kwargs, match):
                                                   "required"),
     ({"requirements": {"u_bound": {"max": -1.0}}}, "tuning.requirements.u_bound.max must be"),
     ({"requirements": {"tube": {}}}, "unknown key 'tuning.requirements.tube'"),
+    ({"requirements": {"step": 3}}, r"^'tuning.requirements.step' must be a table "
+                                    r"\(\[tuning.requirements.step\]\)$"),
 ])
 def test_bad_tuning_table_is_a_clear_error(table, match):
     with pytest.raises(ConfigError, match=match):
@@ -368,9 +370,14 @@ def test_margin_sweep_times_and_failures():
     unjudged = {"t_final": 20.0, "tuned": {"bounded": None, "diverged": False}}
     assert margins.failures({"sample_time": None, "long_run": unjudged}) == []
     assert margins.failures({"sample_time": st, "long_run": long}) == [
-        "the tuned gains do not track with the controller sampled at 2 ms (chatters (index "
-        "16.2)), 4 ms (diverged)",
+        "the tuned gains do not track at every Ts from 1 to 4 ms: not with the controller "
+        "sampled at 2 ms (chatters (index 16.2)), 4 ms (diverged)",
         "the tuned gains let an adaptive estimate grow over the 200 s run"]
+    # a failure is said once, by `failures` (the warning): the verdicts leave it out
+    st |= {"largest": {"start": [4e-3], "tuned": [1e-3]}, "start": {"why_not": [None] * 3}}
+    assert margins.verdicts({"sample_time": st, "long_run": long}) == [
+        "sample time: start gains track up to Ts = 4 ms (at every Ts of the sweep up to it)",
+        "sample time: tuned gains track up to Ts = 1 ms (at every Ts of the sweep up to it)"]
     ok = {"sample_time": st | {"tuned_tracks_all": True},
           "long_run": {"tuned": {"bounded": True}}}
     assert margins.failures(ok) == []

@@ -218,9 +218,8 @@ def markdown(summary: dict) -> str:
         [(r["round"], worst_text(r["search"]), r["search"]["method"], r["added"],
           r["train_size"], r["iterations"], r["stop_reason"]) for r in summary["rounds"]])]
     a, b = summary["fresh"]["start"], summary["fresh"]["tuned"]
-    lines += ["", f"## Fresh worst-case search (seed {a['seed']}, never trained on)", "",
+    lines += ["", "## Fresh worst-case search", "", fresh_sentence(summary), "",
               *table(("", "start gains", "tuned gains"), [
-                  (f"worst {a['metric']}", worst_text(a), worst_text(b)),
                   (f"nominal {a['metric']}", f"{a['nominal_value']:.6g}",
                    f"{b['nominal_value']:.6g}"),
                   ("evaluations", a["evaluations"], b["evaluations"])]), "",
@@ -229,11 +228,20 @@ def markdown(summary: dict) -> str:
     return "\n".join(lines)
 
 
-def worst_text(s: dict, digits: int = 6) -> str:
+def fresh_sentence(summary: dict) -> str:
+    """The fresh searches' worst cases and the training set's growth (report.json's
+    "adversarial"): a line of report.md and the console's."""
+    a, b = summary["fresh"]["start"], summary["fresh"]["tuned"]
+    return (f"Fresh worst-case search (seed {a['seed']}, never trained on): worst {a['metric']} "
+            f"{worst_text(a)} (start gains) -> {worst_text(b)} (tuned gains); training set "
+            f"{' -> '.join(str(n) for n in summary['train_sizes'])} plants.")
+
+
+def worst_text(s: dict) -> str:
     """A search's worst value, or when its worst case diverges."""
     if s["diverged"]:
         return f"diverges at t = {s['t_diverged']:.4g} s"
-    return f"{s['value']:.{digits}g}"
+    return f"{s['value']:.6g}"
 
 
 def add_to_report(out: str | Path, summary: dict, outcome: Outcome) -> dict:

@@ -232,14 +232,14 @@ class AdversarialSpec:
 
 
 def _requirements(table, field) -> dict[str, dict[str, float]]:
-    _known(_table(table, field), tuple(KINDS), field)
+    validation.known_keys(table, field, tuple(KINDS))
     out = {}
     for name, sub in table.items():
         where = f"{field}.{name}"
         # a requirement's keys are its fields, weight last; those without a default are required
         keys = sorted((f for f in dataclasses.fields(KINDS[name]) if f.name != "n_steps"),
                       key=lambda f: f.name == "weight")
-        _known(_table(sub, where), tuple(f.name for f in keys), where)
+        validation.known_keys(sub, where, tuple(f.name for f in keys))
         for f in keys:
             if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:
                 raise ConfigError(f"{where}.{f.name} is required")
@@ -248,20 +248,10 @@ def _requirements(table, field) -> dict[str, dict[str, float]]:
     return out
 
 
-def _known(table, allowed, field):
-    for key in table:
-        if key not in allowed:
-            raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
-
-
-def _table(value, field) -> Mapping:
+def _paths_table(value, field) -> dict:
     if not isinstance(value, Mapping):
         raise ConfigError(f"{field} must be a table ([{field}])")
-    return value
-
-
-def _paths_table(value, field) -> dict:
-    return dict(flatten(_table(value, field)))
+    return dict(flatten(value))
 
 
 @dataclasses.dataclass(frozen=True)

@@ -128,7 +128,8 @@ def reference_linf(nominal: dict) -> dict[str, float | None]:
 
 def batch_figures(m: dict[str, np.ndarray]) -> dict[str, Any]:
     """A batch's effort verdict from its per-plant metrics: p95 of TV(u) on the window and the
-    plants that chatter (`metrics.chatters`), over the plants that did not diverge."""
+    plants that chatter (`metrics.chatters`), over the plants that did not diverge; the
+    report's batch figures count their chattering plants by it (`report.batch_stats`)."""
     ok = ~np.asarray(m["diverged"]).astype(bool)
     tv = np.asarray(m["tv_u_window"], float)[ok]
     index = np.asarray(m["chattering_index"], float)[ok]
@@ -284,14 +285,19 @@ def failures(margins: dict[str, Any]) -> list[str]:
     if st is not None and not st["tuned_tracks_all"]:
         lost = [f"{1e3 * ts:g} ms ({why})" for ts, why in zip(
             st["sample_times"], st["tuned"]["why_not"], strict=True) if why is not None]
-        out.append(f"the tuned gains do not track with the controller sampled at "
-                   f"{', '.join(lost)}")
+        out.append(f"the tuned gains do not track at every Ts from {_ms_range(st)}: not with "
+                   f"the controller sampled at {', '.join(lost)}")
     lr = margins.get("long_run")
     if lr is not None and lr["tuned"]["bounded"] is False:
         out.append("the tuned gains " + ("diverge" if lr["tuned"]["diverged"] else
                                          "let an adaptive estimate grow")
                    + f" over the {lr['t_final']:g} s run")
     return out
+
+
+def _ms_range(st: dict) -> str:
+    """The Ts sweep's range, "0.1 to 2 ms"."""
+    return f"{1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms"
 
 
 def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
@@ -313,8 +319,8 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
     st = margins.get("sample_time")
     if st is not None:
         lines += ["", f"**Sample time.** The loop tuned with the controller sampled at each Ts "
-                  f"from {1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms "
-                  f"(`sampling.png`). " + ts_sweep.criterion(st, "the same gains in the loop tuned")
+                  f"from {_ms_range(st)} (`sampling.png`). "
+                  + ts_sweep.criterion(st, "the same gains in the loop tuned")
                   + (" Held-out: at the tuned Ts and above." if st.get("batch") else ""), "",
                   *ts_sweep.table(st, NAMES)]
     dl = margins.get("delay")
@@ -360,7 +366,8 @@ def _rows(margin: dict):
 
 def verdicts(margins: dict[str, Any]) -> list[str]:
     """Each margin's verdict on each gain set, in words: report.md's list closing "Margins",
-    and the console's lines."""
+    and the console's lines; a margin the tuned gains miss is said by `failures` alone (the
+    warning report.md opens with and the console ends with)."""
     out = []
     st = margins.get("sample_time")
     if st is not None:
@@ -370,9 +377,8 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
                 f"track up to Ts = {1e3 * last[0]:g} ms (at every Ts of the sweep up to it)"
                 if last else f"do not track at Ts = {1e3 * st['sample_times'][0]:g} ms "
                 f"({st[tag]['why_not'][0]})"))
-        out.append(f"sample time: the tuned gains {'' if st['tuned_tracks_all'] else 'do NOT '}"
-                   f"track at every Ts from {1e3 * st['sample_times'][0]:g} to "
-                   f"{1e3 * st['sample_times'][-1]:g} ms")
+        if st["tuned_tracks_all"]:
+            out.append(f"sample time: the tuned gains track at every Ts from {_ms_range(st)}")
     dl = margins.get("delay")
     if dl is not None:
         for tag in NAMES:
@@ -382,6 +388,7 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
                 f"do not hold even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
                 if last is None else f"hold up to an input delay of {last} sample(s){more}"))
     lr = margins["long_run"]
-    judged = {True: "bounded", False: "NOT bounded",
-              None: f"not judged (a run under {DRIFT_MIN_S:g} s)"}[lr["tuned"]["bounded"]]
+    if lr["tuned"]["bounded"] is False:
+        return out
+    judged = "bounded" if lr["tuned"]["bounded"] else f"not judged (a run under {DRIFT_MIN_S:g} s)"
     return out + [f"long run ({lr['t_final']:g} s): the tuned gains' adaptive estimates {judged}"]

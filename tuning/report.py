@@ -132,8 +132,7 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
             "median": float(np.median(v)), "p95": float(np.percentile(v, 95)),
             "max": float(np.max(v)), "mean": float(np.mean(v))}
     if "chattering_index" in m:  # the plants that track in the loop tuned but chatter
-        out["n_chattering"] = int(sum(metrics.chatters(v) for v in
-                                      np.asarray(m["chattering_index"], float)[ok]))
+        out["n_chattering"] = margins.batch_figures(m)["n_chattering"]
     return out
 
 

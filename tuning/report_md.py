@@ -8,6 +8,7 @@ import numpy as np
 
 from dscjax import metrics
 from dscjax.markdown import escape, table
+from dscjax.sweep.summary import OUTCOMES  # (docs/tuning.md, "The held-out check")
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 
@@ -72,9 +73,6 @@ def heldout_warning(summary: dict, cfg) -> str | None:
 
 
 BATCHES = {"train": "training batch", "heldout": "held-out batch"}
-# (docs/tuning.md, "The held-out check", says what each means)
-OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
-            "n_diverged": "diverged at every step tried"}
 
 
 def batch_counts(summary: dict, key: str = "heldout") -> str:

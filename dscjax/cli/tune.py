@@ -211,11 +211,7 @@ def run(args) -> int:
         summary = report.write(out, result, plots=not args.no_plot, t_start=t_start)
     if outcome is not None:
         adversarial.add_to_report(out, summary, outcome)
-        f0, f1 = outcome.fresh["start"], outcome.fresh["tuned"]
-        print(f"  fresh worst-case search (seed {f0['seed']}): worst {f0['metric']} "
-              f"{adversarial.worst_text(f0, 4)} (start gains) -> "
-              f"{adversarial.worst_text(f1, 4)} (tuned gains); training set "
-              f"{' -> '.join(str(r['train_size']) for r in outcome.rounds)} plants")
+        print(f"  {adversarial.fresh_sentence(summary['adversarial'])}")
     # the headlines of report.md, which has every figure
     n0, n1 = summary["nominal"]["start"], summary["nominal"]["tuned"]
     for key in [k for k in ("linf_error_window", "user_linf_error_window") if k in n0]:

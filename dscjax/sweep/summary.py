@@ -27,6 +27,9 @@ QUANTILES = {"min": 0.0, "p01": 0.01, "p05": 0.05, "p25": 0.25, "p50": 0.5, "p75
 # float64 to this relative difference (`float64_check`).
 FLOAT32_RTOL = 1e-3
 MIN_CHECK_ROWS = 3  # a float32 sweep re-checks at least this many rows in float64
+# a row's outcome by its count's key, in summary.md and tune's batch counts (docs/sweeps.md)
+OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
+            "n_diverged": "diverged at every step tried"}
 
 
 def loop_text(run: Mapping[str, Any]) -> str:
@@ -246,10 +249,10 @@ def outcome(summary: Mapping[str, Any]) -> list[str]:
                      f"max|u| max {figure(q['max_abs_u_window']['max'])}")
     smallest = summary["smallest_dt_tried"]
     chat = summary["chattering"]
-    lines += [f"tracked: {summary['n_tracked']:,}",
-              f"tracked after refinement (a numerically stiff run re-done with ETDRK4 at a "
+    lines += [f"{OUTCOMES['n_tracked']}: {summary['n_tracked']:,}",
+              f"{OUTCOMES['n_refined']} (a numerically stiff run re-done with ETDRK4 at a "
               f"smaller step): {summary['n_refined']:,}",
-              f"diverged at every step tried: {summary['n_diverged']:,} of {n:,} "
+              f"{OUTCOMES['n_diverged']}: {summary['n_diverged']:,} of {n:,} "
               f"({100 * summary['divergence_rate']:.2f} %"
               + (f", down to dt = {smallest:.3g} s" if smallest is not None else "") + ")",
               f"chattering (chattering index above {chat['above']:g}, docs/numerics.md; "
