@@ -248,6 +248,21 @@ def test_sample_tables():
     assert dscjax.device.auto_chunk(100_000) == 14336 and dscjax.device.auto_chunk(24) == 24
 
 
+def test_the_default_threshold_rule_says_why_it_left_the_nominal_error():
+    from dscjax.cli.sweep import default_threshold
+
+    cols = {"diverged": np.array([False, False, True, False]),
+            "linf_error_window": np.array([0.1, 0.3, np.nan, 0.2])}  # median of the tracked: 0.2
+    assert default_threshold(False, 0.05, cols) == (0.1, "2 x nominal")
+    assert default_threshold(False, 0.0, cols) == (
+        0.4, "2 x median (the nominal setup's windowed error is 0)")
+    assert default_threshold(True, np.nan, cols) == (
+        0.4, "2 x median (the nominal setup diverged)")
+    all_diverged = {"diverged": np.ones(2, bool), "linf_error_window": np.full(2, np.nan)}
+    assert default_threshold(False, 0.0, all_diverged) == (
+        1.0, "1 (the nominal setup's windowed error is 0; every sample diverged)")
+
+
 def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
     out = tmp_path / "cli"
     code = cli(["sweep", "--samples", "24", "--chunk", "8", "--t-final", str(T),
