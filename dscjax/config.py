@@ -13,7 +13,6 @@ built-in loops are `dscjax.examples`' (their callers import them from here too).
 from __future__ import annotations
 
 import dataclasses
-import warnings
 from collections.abc import Mapping
 from typing import Any
 
@@ -42,8 +41,6 @@ REGISTRY: dict[str, dict[str, type]] = {
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
 KIND_KEY = {"plant": "family", "hysteresis": "kind", "controller": "kind", "reference": "kind"}
-# The kind key's earlier spelling, still read (with a FutureWarning), never written.
-OLD_KIND_KEY = {"hysteresis": "model"}
 # Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
 # "kind" key; absent (None) unless the config gives the table.
 SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
@@ -272,20 +269,6 @@ def _find(value, kinds, where: str = "") -> tuple[str | None, Any]:
     return None, None
 
 
-def model_from_dict(section: str, table: Mapping[str, Any], base=None):
-    """Build one model from its table, over `base` (a model of the same kind) if given."""
-    kind_key = KIND_KEY[section]
-    old = OLD_KIND_KEY.get(section)
-    if old in table:
-        if kind_key in table:
-            raise ConfigError(f"{section}.{old} is the old name of {section}.{kind_key}: give "
-                              f"only {section}.{kind_key}")
-        warnings.warn(f"{section}.{old} is deprecated: write {section}.{kind_key}",
-                      FutureWarning, stacklevel=2)
-        table = {(kind_key if k == old else k): val for k, val in table.items()}
-    return _model(section, table, REGISTRY[section], kind_key, base)
-
-
 def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind_key: str,
            base):
     """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
@@ -341,7 +324,8 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
                               f"{', '.join(allowed + COMMAND_TABLES)})")
         if not isinstance(value, Mapping):
             raise ConfigError(f"'{key}' must be a table ([{key}])")
-    models = {s: model_from_dict(s, d.get(s, {}), getattr(base, s)) for s in allowed[1:]}
+    models = {s: _model(s, d.get(s, {}), REGISTRY[s], KIND_KEY[s], getattr(base, s))
+              for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
 
 

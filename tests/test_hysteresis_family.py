@@ -196,10 +196,15 @@ def test_toml_round_trip_of_every_kind(kind):
                                           getattr(setup.hysteresis, f))
 
 
-def test_old_kind_key_still_reads_with_a_warning():
-    with pytest.warns(FutureWarning, match="hysteresis.model is deprecated"):
-        setup, _ = config.from_dict({"hysteresis": {"model": "bouc_wen"}})
-    assert setup.hysteresis.kind == "bouc_wen"
+def test_old_kind_key_is_refused_as_an_unknown_key(tmp_path, capsys):
+    # hysteresis.model, the kind key's spelling before hysteresis.kind, is no longer read
+    cfg = tmp_path / "old.toml"
+    cfg.write_text('[hysteresis]\nmodel = "bouc_wen"\n')
+    assert main(["hysteresis", "--config", str(cfg), "--out", str(tmp_path / "loop")]) == 2
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert "unknown key 'hysteresis.model' (allowed: kind," in err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_hysteresis_command_writes_the_loop_and_refuses_bad_input(tmp_path, capsys):

@@ -238,6 +238,13 @@ def test_bad_orders_is_a_usage_error(tmp_path, capsys):
     assert "--orders" in capsys.readouterr().err
 
 
+def test_bad_theory_orders_name_the_option_typed(tmp_path, capsys):
+    assert main(["reproduce", "--out", str(tmp_path), "--theory-orders", "1,3"]) == 2
+    err = capsys.readouterr().err
+    assert "error: --theory-orders must be orders n >= 2 (got '1,3', which includes n = 1)" in err
+    assert "--orders" not in err
+
+
 def test_complexity_study_resumes_after_interruption(tmp_path, monkeypatch):
     """Each finished measurement is saved at once; a resumed study measures only the rest."""
     calls = []

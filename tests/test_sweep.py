@@ -247,6 +247,21 @@ def test_sample_tables():
     assert not np.array_equal(lhs, LatinHypercube().draw(r2, 50, 4))
 
 
+def test_the_default_threshold_rule_says_why_it_left_the_nominal_error():
+    from dscjax.cli.sweep import default_threshold
+
+    cols = {"diverged": np.array([False, False, True, False]),
+            "linf_error_window": np.array([0.1, 0.3, np.nan, 0.2])}  # median of the tracked: 0.2
+    assert default_threshold(False, 0.05, cols) == (0.1, "2 x nominal")
+    assert default_threshold(False, 0.0, cols) == (
+        0.4, "2 x median (the nominal setup's windowed error is 0)")
+    assert default_threshold(True, np.nan, cols) == (
+        0.4, "2 x median (the nominal setup diverged)")
+    all_diverged = {"diverged": np.ones(2, bool), "linf_error_window": np.full(2, np.nan)}
+    assert default_threshold(False, 0.0, all_diverged) == (
+        1.0, "1 (the nominal setup's windowed error is 0; every sample diverged)")
+
+
 def test_cli_writes_results_summary_and_figures(tmp_path, capsys):
     out = tmp_path / "cli"
     code = cli(["sweep", "--samples", "24", "--chunk", "8", "--t-final", str(T),
@@ -441,8 +456,9 @@ def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsy
     assert cli(["sweep", "--config", str(cfg), "--grid", "controller.k[0]=10:30:3", *DELAYED,
                 "--worst", "3", "--random", "0", "--out", str(out)]) == 0
     captured = capsys.readouterr()
-    assert ("controller sampled every Ts = 0.001 s (zero-order hold, states advanced by "
-            "exponential-euler, input delay 1 sample(s))") in captured.err
+    assert ("the controller sampled every Ts = 0.001 s with a zero-order hold, its states "
+            "advanced by exponential Euler, the plant by RK4 at dt = 0.001 s; input delay 1 "
+            "sample(s); no measurement noise") in captured.err
     with np.load(out / "results.npz") as z:
         cols = {k: z[k] for k in z.files}
     with np.load(out / "traces.npz") as z:
@@ -466,7 +482,7 @@ def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsy
     tv = summary["quantiles"]["tv_u_window"]
     np.testing.assert_allclose([tv["p50"], tv["p95"], tv["max"]],
                                np.quantile(cols["tv_u_window"], [0.5, 0.95, 1.0]), rtol=1e-12)
-    assert summary["run"]["loop"].startswith("controller sampled every Ts = 0.001 s")
+    assert summary["run"]["loop"].startswith("the controller sampled every Ts = 0.001 s")
     line = next(x for x in captured.out.splitlines() if x.startswith("  effort on [1, 2] s"))
     shown = [float(x.replace(",", "")) for x in re.findall(
         r"median ([\d.,]+), p95 ([\d.,]+), max ([\d.,]+);", line)[0]]

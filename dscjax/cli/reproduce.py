@@ -19,8 +19,8 @@ OUTPUTS = Outputs(("summary.json", "summary.md", "complexity.json", ROWS,
                   folders=("theory",))
 
 
-def parse_orders(text: str) -> list[int]:
-    """"2-8" or "2,3,5" -> list of orders >= 2."""
+def parse_orders(text: str, option: str) -> list[int]:
+    """"2-8" or "2,3,5" -> list of orders >= 2; errors name `option`, the option that gave it."""
     try:
         if "-" in text.strip().lstrip("-"):
             lo, hi = (int(p) for p in text.split("-", 1))
@@ -29,14 +29,14 @@ def parse_orders(text: str) -> list[int]:
             lo = hi = None
             orders = [int(p) for p in text.split(",") if p.strip()]
     except ValueError:
-        raise ConfigError(f"--orders must look like '2-8' or '2,3,4' (got {text!r})") from None
+        raise ConfigError(f"{option} must look like '2-8' or '2,3,4' (got {text!r})") from None
     if lo is not None and lo > hi:
-        raise ConfigError(f"--orders: a range N-M needs N <= M (got {text!r}; did you mean "
+        raise ConfigError(f"{option}: a range N-M needs N <= M (got {text!r}; did you mean "
                           f"{hi}-{lo}?)")
     if not orders:
-        raise ConfigError(f"--orders must name at least one order n >= 2 (got {text!r})")
+        raise ConfigError(f"{option} must name at least one order n >= 2 (got {text!r})")
     if min(orders) < 2:
-        raise ConfigError(f"--orders must be orders n >= 2 (got {text!r}, which includes "
+        raise ConfigError(f"{option} must be orders n >= 2 (got {text!r}, which includes "
                           f"n = {min(orders)})")
     return orders
 
@@ -77,8 +77,8 @@ def add_parser(sub):
 
 
 def run(args) -> int:
-    orders = parse_orders(args.orders)
-    theory_orders = parse_orders(args.theory_orders)
+    orders = parse_orders(args.orders, "--orders")
+    theory_orders = parse_orders(args.theory_orders, "--theory-orders")
     alpha0 = common.positive_numbers(args.alpha0, "--alpha0")
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
     validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)

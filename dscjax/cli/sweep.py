@@ -225,14 +225,8 @@ def run(args) -> int:
     nominal_metrics = {k: float(v) for k, v in nominal.metrics.items()}
     threshold, rule = settings.threshold, "given"
     if threshold is None:
-        if not bool(nominal.diverged) and nominal_metrics["linf_error_window"] > 0:
-            threshold = DEGRADED_FACTOR * nominal_metrics["linf_error_window"]
-            rule = f"{DEGRADED_FACTOR:g} x nominal"
-        else:
-            ok = ~c["diverged"]
-            threshold = (DEGRADED_FACTOR * float(np.median(c["linf_error_window"][ok]))
-                         if ok.any() else 1.0)
-            rule = f"{DEGRADED_FACTOR:g} x median (the nominal setup diverged)"
+        threshold, rule = default_threshold(bool(nominal.diverged),
+                                            nominal_metrics["linf_error_window"], c)
     summary = sweep.summarize(result, nominal_metrics, threshold, worst=max(settings.worst, 1))
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
@@ -305,6 +299,23 @@ def _recheck(trajs, records) -> dict[str, float] | None:
         both = np.isfinite(a) & np.isfinite(v)
         again[m], swept[m] = np.where(both, a, np.nan), np.where(both, v, np.nan)
     return sweep.float32_trust(again, swept)["max_rel_diff"]
+
+
+def default_threshold(nominal_diverged: bool, nominal_error: float,
+                      columns) -> tuple[float, str]:
+    """The threshold of "degraded" tracking when none is given, and its rule in words:
+    DEGRADED_FACTOR x the nominal setup's windowed L-inf error; where the nominal setup
+    diverged or its windowed error is 0, DEGRADED_FACTOR x the median over the samples that
+    did not diverge (1 where none did)."""
+    if not nominal_diverged and nominal_error > 0:
+        return DEGRADED_FACTOR * nominal_error, f"{DEGRADED_FACTOR:g} x nominal"
+    why = ("the nominal setup diverged" if nominal_diverged
+           else "the nominal setup's windowed error is 0")
+    ok = ~np.asarray(columns["diverged"], bool)
+    if not ok.any():
+        return 1.0, f"1 ({why}; every sample diverged)"
+    median = float(np.median(columns["linf_error_window"][ok]))
+    return DEGRADED_FACTOR * median, f"{DEGRADED_FACTOR:g} x median ({why})"
 
 
 def _write_traces(path, trajs, records, kinds, nominal):

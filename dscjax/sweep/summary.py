@@ -13,7 +13,7 @@ from dscjax import params
 from dscjax.markdown import escape, figure, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import simulate
 from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import RUN_KEYS, SweepResult
@@ -32,19 +32,16 @@ OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
             "n_diverged": "diverged at every step tried"}
 
 
+def run_spec(run: Mapping[str, Any], **table) -> RunSpec:
+    """The RunSpec of a sweep's "run" (`run_sweep`'s info, or `run.scope`), `table` over it."""
+    return RunSpec.make(run["t_final"], run["dt"], **({k: run[k] for k in RUN_KEYS} | table))
+
+
 def loop_text(run: Mapping[str, Any]) -> str:
-    """The controller's loop in words, from a sweep's "run" (or a RunSpec's `to_table()`):
-    "continuous controller" or "controller sampled every Ts = 0.002 s (zero-order hold, ...)"."""
-    ts = run.get("sample_time")
-    if ts is None:
-        return "continuous controller"
-    parts = ["zero-order hold", f"states advanced by {run.get('discretisation')}"]
-    if run.get("delay"):
-        parts.append(f"input delay {run['delay']} sample(s)")
-    if run.get("noise") is not None:
-        std = ", ".join(f"{x:g}" for x in np.atleast_1d(run["noise"]))
-        parts.append(f"measurement noise std {std}, seed {run.get('noise_seed')}")
-    return f"controller sampled every Ts = {ts:g} s ({', '.join(parts)})"
+    """The loop of a sweep's "run" in words (`runspec.loop_words`): "the continuous loop (RK4
+    at dt = 0.001 s)" or "the controller sampled every Ts = 0.002 s with a zero-order hold,
+    ..."."""
+    return loop_words(run_spec(run))
 
 
 def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False) -> np.ndarray:
@@ -144,8 +141,7 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = [Param.parse(p) for p in result.param_names]
     every = max(1, min(save_every, info["n_steps"]))
-    spec = RunSpec.make(info["t_final"], info["dt"], save_every=every,
-                        **{k: info[k] for k in RUN_KEYS})
+    spec = run_spec(info, save_every=every)
     index = np.asarray(rows, np.int64)
     table = np.stack([result.columns[p][index] for p in result.param_names], axis=1)
     return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
@@ -221,13 +217,12 @@ def _cell(x) -> str:
 def scope_text(run: Mapping[str, Any]) -> str:
     """What a sweep runs, in words, from its "run" (`run_sweep`'s info, or the same keys
     before the run): "10,000 samples (uniform, seed 0) of hysteresis.alpha in [0.7, 1.3], ...;
-    T = 20 s, dt = 0.001 s, float64, solver rk4, continuous controller"."""
+    T = 20 s, float64, the continuous loop (RK4 at dt = 0.001 s)"."""
     what = "grid points" if run["method"] == "grid" else "samples"
     ranges = ", ".join(f"{k} in [{v[0]:.4g}, {v[1]:.4g}]" + (f" x{v[2]}" if len(v) > 2 else "")
                        for k, v in run["ranges"].items())
     return (f"{run['n_samples']:,} {what} ({run['method']}, seed {run['seed']}) of {ranges}; "
-            f"T = {run['t_final']:g} s, dt = {run['dt']:g} s, {run['dtype']}, solver "
-            f"{run['solver']}, {loop_text(run)}")
+            f"T = {run['t_final']:g} s, {run['dtype']}, {loop_text(run)}")
 
 
 def outcome(summary: Mapping[str, Any]) -> list[str]:
