@@ -100,7 +100,8 @@ def _inputs():
 
 
 def _printed(cfg) -> str:
-    """The [tuning] table of `cfg` as `dscjax tune --print-config` writes it."""
+    """The [tuning] table of `cfg` by the library's writer (test_inputs reads back what
+    `dscjax tune --print-config` prints)."""
     return config.dumps_toml({"tuning": tuning.config.to_table(cfg)})
 
 

@@ -147,7 +147,7 @@ def test_printed_config_reads_back():
     from dscjax.settings import meanings
     from tuning.config import to_table
 
-    def to_toml(cfg):  # as `dscjax tune --print-config` writes [tuning]
+    def to_toml(cfg):  # the library's writer (test_inputs reads back the command's own)
         return dumps_toml({"tuning": to_table(cfg)}, docs=meanings(cfg, "tuning."))
 
     cfg = from_dict({"params": ["controller.k"], "freeze": ["controller.k[1]"],

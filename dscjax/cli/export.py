@@ -70,5 +70,5 @@ def run(args) -> int:
                   f"{args.precision}; from {source}")
     for name, text in files.items():
         write_text(out / name, text)
-    print(f"  wrote {out}/{export.HEADER} (dsc_init and dsc_step declared), {export.SOURCE}")
+    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}")
     return 0

@@ -117,7 +117,8 @@ def run(args) -> int:
                             {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
                             groups={"tuning": cfg})
         return 0
-    check_work_of(args, setup, options, cfg)
+    # the trajectories of one generation (its first population) or iteration, run together
+    rows = check_work_of(args, setup, options, cfg)
     out = Path(args.out)
     adv = cfg.adversarial
     if adv.rounds:
@@ -130,8 +131,6 @@ def run(args) -> int:
         (adversarial.check_resume if adv.rounds else check_resume)(out, setup, options, cfg)
     # before build_problem, whose start scales run the loop; a refusal writes nothing
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
-    # the trajectories of one generation (its first population) or iteration, run together
-    rows = plants * (oc.population(plants, 1) if oc.name.generations else 1)
     choice = common.use_device(args, options.device, rows)
     # --out once every setting is validated, before the start scales compile and run the loop
     with Phase(f"  compiling the closed loop and measuring the start gains ({plants} "
@@ -246,20 +245,22 @@ def run(args) -> int:
 MARGIN_STEPS = 4 * 10 + 2 + 10 + 4
 
 
-def check_work_of(args, setup, options, cfg) -> None:
+def check_work_of(args, setup, options, cfg) -> int:
     """`validation.check_work` for a tuning run, before any of it: one generation (or
     iteration) within the time limit, and what follows the search (the held-out check, the
-    figures) within the rest of a day. Lower bounds: a default population of at least 4."""
+    figures) within the rest of a day. Lower bounds: a default population of at least 4.
+    Returns the trajectories one generation (its first population) or iteration runs."""
     from tuning.optimize import Plants
 
     steps = options.n_steps
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = common.horizon_text(options.t_final, options.dt, steps)
     if oc.name.generations:
-        width = oc.population(plants, 1)
-        one = Work(steps=steps, member_steps=width * plants * steps)
-        unit = f"generation ({width} candidates x {plants} plant(s))"
+        rows = oc.population(plants, 1) * plants
+        one = Work(steps=steps, member_steps=rows * steps)
+        unit = f"generation ({rows // plants} candidates x {plants} plant(s))"
     else:
+        rows = plants
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
         if plants == 1 or isinstance(oc.gradient.chosen(0, plants, cfg.robust.over), Plants):
@@ -283,3 +284,4 @@ def check_work_of(args, setup, options, cfg) -> None:
     check_work(after, what=f"the held-out check and figures after the search ({what})",
                fix=common.SHORTER, limit_s=left,
                limit=f"the {fmt_seconds(left)} a day leaves after the search")
+    return rows
