@@ -7,7 +7,6 @@ parameter in its box, c (m coefficients) is the waveform in units of the bound D
 from __future__ import annotations
 
 import dataclasses
-import math
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -33,6 +32,14 @@ DEFAULT_METRIC = "linf_error_window"
 REQUIREMENT = "requirement:"
 
 
+def _number(text: str, cast):
+    """`text` as a number, else as it is: `DisturbanceSpec.checked` names it in its message."""
+    try:
+        return cast(text)
+    except ValueError:
+        return text
+
+
 @dataclasses.dataclass(frozen=True)
 class DisturbanceSpec:
     """The searched waveform: `kind` ("fourier" | "spline"), K harmonics or knots, the bound D
@@ -47,21 +54,11 @@ class DisturbanceSpec:
     def parse(cls, text: str, period: float | None = None,
               field: str = "--disturbance") -> DisturbanceSpec:
         """`fourier:K:D` or `spline:K:D`."""
-        parts = str(text).split(":")
+        parts = [p.strip() for p in str(text).split(":")]
         if len(parts) != 3:
             raise ConfigError(f"{field} must be fourier:K:D or spline:K:D (got {text!r})")
-        kind, k_text, d_text = (p.strip() for p in parts)
-        validation.one_of(kind, f"{field} kind", tuple(dist_mod.KINDS))
-
-        def read(text, cast, what):
-            try:
-                return cast(text)
-            except ValueError:
-                raise ConfigError(f"{field}: {what} (got {text!r})") from None
-
-        k = read(k_text, int, f"K must be an integer >= {cls.MIN_K[kind]}")
-        bound = read(d_text, float, "D must be a finite number > 0")
-        return cls(kind, k, bound, period).checked(field)
+        kind, k, bound = parts
+        return cls(kind, _number(k, int), _number(bound, float), period).checked(field)
 
     # K below which a waveform is not one: a spline needs two knots to have a knot spacing
     MIN_K: ClassVar[dict[str, int]] = {"fourier": 1, "spline": 2}
@@ -72,13 +69,11 @@ class DisturbanceSpec:
         if isinstance(self.k, bool) or not isinstance(self.k, int) or self.k < low:
             raise ConfigError(f"{field}: K must be an integer >= {low} for {self.kind} (got "
                               f"{self.k!r})")
-        if not (math.isfinite(self.bound) and self.bound > 0):
-            raise ConfigError(f"{field}: the bound D must be a finite number > 0 (max|dbar| "
-                              f"<= D; D = 0 leaves nothing to search) (got {self.bound!r})")
-        if self.period is not None and not (math.isfinite(self.period) and self.period > 0):
-            raise ConfigError(f"--period must be > 0 (got {self.period!r})")
-        if self.period is not None and self.kind != "fourier":
-            raise ConfigError("--period applies to a fourier disturbance only")
+        validation.finite_positive(self.bound, f"{field}: the bound D")
+        if self.period is not None:
+            validation.finite_positive(self.period, "--period")
+            if self.kind != "fourier":
+                raise ConfigError("--period applies to a fourier disturbance only")
         return self
 
     @property
@@ -149,7 +144,7 @@ class Problem:
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
         lo, hi = self.lows_highs()
         return box_overrides(self.setup, self.static(), z, lo, hi,
-                          self.disturbance.bound if self.m else 0.0)
+                            self.disturbance.bound if self.m else 0.0)
 
     def setup_at(self, z) -> Setup:
         """The concrete setup of one normalised point."""
@@ -172,11 +167,14 @@ class Problem:
     def fingerprint(self) -> dict[str, Any]:
         from dscjax import config
 
+        req = self.requirement  # a requirement by its kind and numbers
         return {"setup": config.to_dict(self.setup), "ranges": [r.spec() for r in self.ranges],
                 "disturbance": None if self.disturbance is None else
                 dataclasses.asdict(self.disturbance),
                 "metric": self.metric, "run": self.spec.describe(),
-                "requirement": _describe(self.requirement)}
+                "requirement": None if req is None else {"kind": type(req).__name__, **{
+                    f.name: np.asarray(getattr(req, f.name)).tolist()
+                    for f in dataclasses.fields(req)}}}
 
 
 def check_metric(value, field: str = "--metric") -> str:
@@ -194,15 +192,6 @@ def assumption_warnings(problem: Problem) -> list[str]:
     named with its --range."""
     return [w.replace("--range.", "--range ") for w in
             params.assumption_warnings(problem.setup, problem.ranges, "--range")]
-
-
-def _describe(reduction) -> dict | None:
-    """The kind and numbers of a requirement (for fingerprints)."""
-    if reduction is None:
-        return None
-    return {"kind": type(reduction).__name__,
-            **{f.name: np.asarray(getattr(reduction, f.name)).tolist()
-               for f in dataclasses.fields(reduction)}}
 
 
 def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
