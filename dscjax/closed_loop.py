@@ -181,15 +181,14 @@ def states_of(traj) -> State:
     return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
 
 
-def spectrum_along(setup: Setup, traj, every: int = 1) -> SpectrumProfile:
-    """The local spectrum at every `every`-th saved point of a single trajectory.
+def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
+    """The local spectrum at every saved point of a single trajectory.
 
         traj = dscjax.simulate(setup, 20.0, 1e-3)
         prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
     """
-    states = jax.tree.map(lambda a: a[::every], states_of(traj))
-    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states)
-    ts = jnp.asarray(traj.t)[::every]
+    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states_of(traj))
+    ts = jnp.asarray(traj.t)
     jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
     radius = np.abs(ev).max(axis=1)
