@@ -261,9 +261,7 @@ def box_overrides(setup, st: Static, z, lo, hi, bound):
     """{path: (B, ...)} of a (B, d + m) batch of normalised points in the box [lo, hi] and the
     waveform's bound (traced or NumPy)."""
     d = len(st.columns)
-    out = {}
-    if d:
-        out = params.overrides(setup, list(st.columns), lo + z[:, :d] * (hi - lo))
+    out = params.overrides(setup, list(st.columns), lo + z[:, :d] * (hi - lo)) if d else {}
     if st.coef_path is not None:
         xp = np if isinstance(z, np.ndarray) else jnp
         out[st.coef_path] = xp.asarray(bound * z[:, d:], dtype=dtype_of(setup))
