@@ -255,8 +255,7 @@ class critical:
     nothing."""
 
     def __enter__(self) -> critical:
-        self.active = (_DEFERRAL.installed
-                       and threading.current_thread() is threading.main_thread())
+        self.active = _DEFERRAL.installed and threading.current_thread() is threading.main_thread()
         if self.active:
             _DEFERRAL.depth += 1
         return self
