@@ -28,7 +28,7 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
 from types import SimpleNamespace
 from typing import TextIO
 
@@ -42,7 +42,7 @@ START_LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} 
 OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 
 
-class Progress:
+class Progress(AbstractContextManager):
     """A progress display of `total` units of work (see the module docstring).
 
     Args:
@@ -104,9 +104,6 @@ class Progress:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
-
-    def __enter__(self) -> Progress:
-        return self
 
     def __exit__(self, *exc) -> None:
         self.close()
