@@ -28,7 +28,8 @@ import sys
 import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import AbstractContextManager, contextmanager
+from types import SimpleNamespace
 from typing import TextIO
 
 from tqdm import tqdm
@@ -41,7 +42,7 @@ START_LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} 
 OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 
 
-class Progress:
+class Progress(AbstractContextManager):
     """A progress display of `total` units of work (see the module docstring).
 
     Args:
@@ -59,15 +60,12 @@ class Progress:
                  enabled: bool = True):
         self.file = file if file is not None else sys.stderr
         self.total, self.desc, self.unit = total, desc, unit
-        self.enabled = enabled
-        self.tty = enabled and hasattr(self.file, "isatty") and self.file.isatty()
-        self.every_s = every_s
+        self.enabled, self.every_s = enabled, every_s
         self.n, self.initial = initial, initial
-        self.postfix = ""
         self.start = time.perf_counter() - elapsed
         self.last = -float("inf")
         self.bar = None
-        if self.tty:
+        if enabled and self.file.isatty():
             self.bar = tqdm(total=total, initial=initial, desc=desc, unit=unit, file=self.file,
                             dynamic_ncols=True, leave=True)
             self.bar.start_t -= elapsed
@@ -82,7 +80,7 @@ class Progress:
 
     def update_to(self, n: int, postfix: str = "") -> None:
         """n units are done now; `postfix` is shown after the figures."""
-        self.n, self.postfix = n, postfix
+        self.n = n
         if not self.enabled:
             return
         if self.bar is not None:
@@ -90,29 +88,22 @@ class Progress:
             self.bar.update(n - self.bar.n)
             return
         now = time.perf_counter()
-        if (self.total is not None and n >= self.total) or now - self.last >= self.every_s:
-            self._line(now)
-
-    def _line(self, now: float) -> None:
-        self.last = now
-        elapsed = now - self.start
-        done = self.n - self.initial
+        if (self.total is None or n < self.total) and now - self.last < self.every_s:
+            return  # a plain line at most every every_s seconds, and the last
+        self.last, elapsed = now, now - self.start
+        done = n - self.initial
         rate = done / elapsed if elapsed > 0 and done > 0 else None
-        count = self.total if self.total is not None else self.n
+        count = self.total if self.total is not None else n
         unit = self.unit + ("" if count == 1 else "s")  # "1 generation", "2 generations"
         form = OPEN_LINE if self.total is None else LINE if rate is not None else START_LINE
-        text = tqdm.format_meter(self.n, self.total, elapsed, prefix=self.desc, unit=unit,
+        text = tqdm.format_meter(n, self.total, elapsed, prefix=self.desc, unit=unit,
                                  rate=rate, initial=self.initial, bar_format=form)
-        print(text + (f"; {self.postfix}" if self.postfix else ""), file=self.file,
-              flush=True)
+        print(text + (f"; {postfix}" if postfix else ""), file=self.file, flush=True)
 
     def close(self) -> None:
         if self.bar is not None:
             self.bar.close()
             self.bar = None
-
-    def __enter__(self) -> Progress:
-        return self
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -128,7 +119,7 @@ class Phase:
                  file: TextIO | None = None, enabled: bool = True):
         self.desc, self.after_s, self.every_s, self.enabled = desc, after_s, every_s, enabled
         self.file = file if file is not None else sys.stderr
-        self.tty = hasattr(self.file, "isatty") and self.file.isatty()
+        self.tty = self.file.isatty()
         self.shown = False
         self._stop = threading.Event()
         self._thread = None
@@ -140,18 +131,16 @@ class Phase:
             self._thread.start()
         return self
 
-    def _elapsed(self) -> str:
-        return tqdm.format_interval(time.perf_counter() - self.t0)
-
     def _show(self) -> None:
         if self._stop.wait(self.after_s):
             return
         self.shown = True
         while True:
+            elapsed = tqdm.format_interval(time.perf_counter() - self.t0)
             if self.tty:
-                self.file.write(f"\r{self.desc} ... {self._elapsed()} elapsed")
+                self.file.write(f"\r{self.desc} ... {elapsed} elapsed")
             else:
-                self.file.write(f"{self.desc} ... ({self._elapsed()} elapsed)\n")
+                self.file.write(f"{self.desc} ... ({elapsed} elapsed)\n")
             self.file.flush()
             if self._stop.wait(1.0 if self.tty else self.every_s):
                 return
@@ -182,7 +171,7 @@ class Phase:
 class _Signalled:
     """An exception raised by a signal: `signum` is the signal's number, its name the text."""
 
-    def __init__(self, signum: int = signal.SIGINT):
+    def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
 
@@ -198,10 +187,6 @@ class Abort(_Signalled, BaseException):
     `signum`: the signal that asked to stop."""
 
 
-# the signals handled as Ctrl-C, where the process does not ignore them (`nohup` ignores SIGHUP)
-SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
-
-
 def signal_number(stop: BaseException) -> int:
     """The signal behind an interrupt (SIGINT for a plain KeyboardInterrupt)."""
     return int(getattr(stop, "signum", signal.SIGINT))
@@ -212,15 +197,9 @@ def signal_name(signum: int) -> str:
     return "Ctrl-C" if signum == signal.SIGINT else signal.Signals(signum).name
 
 
-class _Deferral:
-    """The state of `handle_interrupts` (main thread only)."""
-
-    installed = False
-    depth = 0  # nested critical sections now open
-    pending = None  # the signal number of an interrupt that arrived inside one, or None
-
-
-_DEFERRAL = _Deferral()
+# the state of `handle_interrupts` (main thread only): the critical sections now open (depth)
+# and the signal number of an interrupt that arrived inside one (pending, or None)
+_DEFERRAL = SimpleNamespace(installed=False, depth=0, pending=None)
 DEFERRED = ("\n  {name}: finishing the current step to save a whole state ({again} stops "
             "at once, without saving)\n")
 
@@ -254,7 +233,7 @@ def handle_interrupts() -> Iterator[None]:
         yield
         return
     previous = {}
-    for signum in SIGNALS:
+    for signum in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):  # where not ignored (nohup)
         if signal.getsignal(signum) is not signal.SIG_IGN:
             previous[signum] = signal.signal(signum, _on_signal)
     _DEFERRAL.installed, _DEFERRAL.depth, _DEFERRAL.pending = True, 0, None
@@ -273,8 +252,7 @@ class critical:
     nothing."""
 
     def __enter__(self) -> critical:
-        self.active = (_DEFERRAL.installed
-                       and threading.current_thread() is threading.main_thread())
+        self.active = _DEFERRAL.installed and threading.current_thread() is threading.main_thread()
         if self.active:
             _DEFERRAL.depth += 1
         return self
@@ -290,5 +268,5 @@ class critical:
         return False
 
 
-__all__ = ["SIGNALS", "Abort", "Phase", "Progress", "Terminated", "critical", "handle_interrupts",
+__all__ = ["Abort", "Phase", "Progress", "Terminated", "critical", "handle_interrupts",
            "signal_name", "signal_number"]

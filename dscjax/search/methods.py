@@ -63,10 +63,6 @@ class CMA:
     stall_gain: float = 0.1
     name: ClassVar[str] = "cma"
 
-    def population(self, n: int, restart: int = 0) -> int:
-        """The population of restart `restart` in n dimensions."""
-        return (self.popsize or cma_population(n)) * self.growth ** restart
-
     def _new(self, problem, x0, seed: int, restart: int = 0) -> ReplayCMA:
         seed = (seed + 1 if not restart else
                 int(np.random.SeedSequence([seed, restart]).generate_state(1)[0]))
@@ -74,7 +70,7 @@ class CMA:
                 "bounds": [[x if np.isfinite(x) else None for x in bound]
                            for bound in (problem.lower, problem.upper)]}
         if self.popsize or restart:
-            opts["popsize"] = self.population(len(x0), restart)
+            opts["popsize"] = (self.popsize or cma_population(len(x0))) * self.growth ** restart
         return ReplayCMA(np.asarray(x0, dtype=np.float64), self.sigma0, opts)
 
     def init(self, problem, x0, seed: int) -> CMAState:
@@ -150,10 +146,9 @@ class Random(_BuiltByStep):
 
     def step(self, problem, state: None, ctx: Context) -> Step:
         z = np.array(problem.sample(generator(ctx.seed, self.name, ctx.iteration), self.batch))
-        start = 0 if ctx.iteration == 0 else None
-        if start == 0:
+        if ctx.iteration == 0:
             z[0] = ctx.x0
-        return Step(z, problem.evaluate(z), None, start)
+        return Step(z, problem.evaluate(z), None, 0 if ctx.iteration == 0 else None)
 
 
 class GradientState(NamedTuple):

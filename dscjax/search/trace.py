@@ -87,11 +87,9 @@ def order(ev: Evaluation) -> np.ndarray:
 
 def take(best: Incumbent, z: np.ndarray, ev: Evaluation, iteration: int,
          min_delta: float) -> tuple[Incumbent, int | None]:
-    """The incumbent after the candidates z: the best of them if it ranks above `best`; and
-    the index of that candidate if it improved on `best` by more than `min_delta` (relative),
-    else None (a new incumbent that improved by less still replaces it)."""
-    if not len(ev.loss):
-        return best, None
+    """The incumbent after the candidates z (one or more): the best of them if it ranks above
+    `best`; and the index of that candidate if it improved on `best` by more than `min_delta`
+    (relative), else None (a new incumbent that improved by less still replaces it)."""
     i = int(order(ev)[0])
     loss, feas = float(ev.loss[i]), bool(ev.feasible[i])
     if not math.isfinite(loss) or not ((feas and not best.feasible) or (
@@ -143,9 +141,8 @@ class Trace:
                min_delta: float) -> Trace:
         """The trace after one iteration (`Step`) of `seconds` search seconds."""
         z, ev, it, k = step.z, step.ev, self.iterations, step.first
-        best, start_loss = self.best, self.start_loss
-        if step.start is not None:
-            start_loss = float(ev.loss[step.start])
+        best = self.best
+        start_loss = self.start_loss if step.start is None else float(ev.loss[step.start])
         if k:  # the start point, evaluated before the iteration's own candidates
             best, _ = take(best, z[:k], ev.rows(slice(0, k)), it, min_delta)
         own = ev.rows(slice(k, None))
