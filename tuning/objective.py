@@ -149,13 +149,19 @@ def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=No
     return m, traj.diverged
 
 
+def plant_count(plants: Mapping[str, Any] | None) -> int:
+    """The plants of {path: (n, ...)} (None or empty: the nominal plant alone, 1)."""
+    return len(next(iter(plants.values()))) if plants else 1
+
+
 def within(value, bound):
     """value <= bound, up to BOUND_RTOL (relative)."""
     return value <= bound * (1.0 + BOUND_RTOL)
 
 
 def _like(bound, x):
-    """A per-plant bound (float64) in the dtype of the figures `x`: float32 runs stay float32."""
+    """A per-plant bound (float64) in the dtype of the figures `x` (or dtype `x`): float32 runs
+    stay float32."""
     if bound is None or np.ndim(bound) == 0:
         return bound
     return jnp.asarray(bound, jnp.result_type(x))
@@ -188,7 +194,7 @@ class Objective(eqx.Module):
     @property
     def batch_size(self) -> int:
         """Rows of the training batch, padding included (1: the nominal plant alone)."""
-        return 1 if not self.overrides else int(np.shape(next(iter(self.overrides.values())))[0])
+        return plant_count(self.overrides)
 
     def program(self) -> Objective:
         """The objective a jitted program takes: its loops' host-side settings out
@@ -285,13 +291,12 @@ class Objective(eqx.Module):
                   else (jnp.zeros(1, int), jnp.ones(1)))
         train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
         bounds = self.bounds()
-        dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `_like` casts them
+        dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `judged` casts them
 
         def one(z_, i):
             setup = params.set_many(self.setup, {p: v[i] for p, v in train.items()})
             metrics, diverged = loop_metrics(self, z_, setup=setup)
-            b = tuple(None if v is None else jnp.asarray(v, dtype)[i] if np.ndim(v) else v
-                      for v in bounds)
+            b = tuple(_like(v, dtype)[i] if np.ndim(v) else v for v in bounds)
             return self.judged(metrics, diverged, b)[0]
 
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)

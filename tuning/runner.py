@@ -28,10 +28,10 @@ from dscjax.plant import PaperPlant
 from dscjax.runspec import RunSpec, loop_words
 from dscjax.selection import Selection
 from dscjax.simulate import check
-from dscjax.validation import ConfigError, shortest, validate_setup
+from dscjax.validation import ConfigError, shortest
 from tuning import checkpoint as ck
 from tuning.config import SIGNED, TuningConfig
-from tuning.objective import Objective, check_loops
+from tuning.objective import Objective, check_loops, plant_count
 from tuning.optimize import Forward, Mean
 from tuning.requirements import build_requirements
 from tuning.scales import start_scales
@@ -138,11 +138,10 @@ def heldout_ranges(setup) -> tuple:
 def model_default_ranges(cfg: TuningConfig, setup) -> TuningConfig:
     """Batches left at the default ranges vary the setup's own hysteresis model's numbers;
     the held-out batch also the plant (`heldout_ranges`)."""
-    for key in ("robust", "heldout"):
+    for key, ranges in (("robust", default_ranges), ("heldout", heldout_ranges)):
         b = getattr(cfg, key)
         if b.ranges == default_ranges():
-            ranges = heldout_ranges(setup) if key == "heldout" else default_ranges(setup)
-            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(b, ranges=ranges)})
+            cfg = dataclasses.replace(cfg, **{key: dataclasses.replace(b, ranges=ranges(setup))})
     return cfg
 
 
@@ -211,7 +210,7 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
     (cfg, notes, selection, mode, sim, checks, train, heldout, continuous): `checks` the
     `CheckLoop`s of the search, `continuous` the report's check loop."""
     cfg.validate()
-    validate_setup(setup)
+    check(setup, options)  # the setup's models, and the filters against a continuous loop's dt
     cfg = model_default_ranges(cfg, setup)
     notes = []
     window = cfg.objective.window_start
@@ -221,7 +220,6 @@ def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None
         options.window_start if window is None else window),
         names={"window_start": "tuning.objective.window_start"})
     continuous = sim.replace(sample_time=None, delay=0, noise=None) if options.sampled else None
-    check(setup, options)
     freeze = cfg.freeze or ()
     if cfg.freeze is None and isinstance(setup.plant, PaperPlant) and (
             "controller.gamma_g" in cfg.params):
@@ -270,11 +268,6 @@ def join_plants(setup, first: dict | None, then: dict) -> dict:
                 else np.broadcast_to(leaf, (plant_count(d), *leaf.shape)) for d in (first, then)]
         out[path] = np.concatenate(cols).astype(leaf.dtype)
     return out
-
-
-def plant_count(plants: dict | None) -> int:
-    """The plants of {path: (n, ...)} (None or empty: the nominal plant alone, 1)."""
-    return len(next(iter(plants.values()))) if plants else 1
 
 
 def _sample(setup, b, field, options) -> dict:
