@@ -23,7 +23,6 @@ import json
 import math
 import os
 import shlex
-import shutil
 import socket
 import tempfile
 import zipfile
@@ -35,9 +34,6 @@ import numpy as np
 
 from dscjax.validation import ConfigError
 
-# errno of a write that failed for want of space: the device, the quota, the file size limit
-NO_SPACE_ERRNOS = (errno.ENOSPC, errno.EDQUOT, errno.EFBIG)
-
 
 class NoSpace(OSError):
     """A write failed for want of space (errno ENOSPC, EDQUOT or EFBIG); `filename` is the
@@ -45,8 +41,9 @@ class NoSpace(OSError):
 
 
 def _no_space(err: OSError, path: str | Path) -> OSError:
-    """`err` as NoSpace naming `path` if it is one of NO_SPACE_ERRNOS, else `err`."""
-    if err.errno in NO_SPACE_ERRNOS:
+    """`err` as NoSpace naming `path` if it failed for want of space (the device, the quota,
+    the file size limit), else `err`."""
+    if err.errno in (errno.ENOSPC, errno.EDQUOT, errno.EFBIG):
         return NoSpace(err.errno, err.strerror, str(path))
     return err
 
@@ -142,16 +139,11 @@ def digest(obj: Any) -> str:
     return hashlib.sha256(dumps(obj, sort_keys=True).encode()).hexdigest()
 
 
-def canonical(obj: Any) -> Any:
-    """`obj` as it reads back from a JSON file (what a stored fingerprint is compared with)."""
-    return json.loads(dumps(obj))
-
-
 def differences(old: Any, new: Mapping[str, Any], prefix: str = "") -> list[str]:
     """The keys of the fingerprint `new` whose values differ in `old`, each as `key OLD (now
     NEW)` for single values (a key missing on one side reads None), `key` for lists; nested
     tables are compared key by key (`adversarial.search_evals None (now 8)`)."""
-    new = canonical(new)
+    new = json.loads(dumps(new))  # as it reads back from a JSON file, as `old` was
     old = old if isinstance(old, Mapping) else {}
     out = []
     for k in sorted(set(new) | set(old)):
@@ -227,31 +219,22 @@ def out_problem(path: str | Path) -> str | None:
     """Why the system would refuse `path` as an output directory, in its own words (strerror:
     "File name too long", "Not a directory", "Permission denied", "Read-only file system"),
     or None if it may be used. Asked of the system itself, without touching `path` (several
-    processes may share it): a file is written in `path` if it exists, else the missing
-    directories are made and a file written under a fresh temporary directory beside them,
-    which is removed again."""
+    processes may share it): in a fresh temporary directory made in its deepest existing
+    directory, the missing directories are made and a file written; it is removed again."""
     path = Path(os.path.abspath(path))
     problem = _path_problem(path)
     if problem is not None:
         return problem
     base = next(p for p in (path, *path.parents) if os.path.lexists(p))
-    probe_dir = None
     try:
-        if base == path:
-            fd, probe = tempfile.mkstemp(dir=path, prefix=".dscjax-write-test-")
+        with tempfile.TemporaryDirectory(dir=base, prefix=".dscjax-write-test-",
+                                         ignore_cleanup_errors=True) as probe_dir:
+            leaf = Path(probe_dir, path.relative_to(base))
+            leaf.mkdir(parents=True, exist_ok=True)
+            fd, _ = tempfile.mkstemp(dir=leaf)
             os.close(fd)
-            os.unlink(probe)
-            return None
-        probe_dir = tempfile.mkdtemp(dir=base, prefix=".dscjax-write-test-")
-        leaf = Path(probe_dir, path.relative_to(base))
-        leaf.mkdir(parents=True)
-        fd, _ = tempfile.mkstemp(dir=leaf)
-        os.close(fd)
     except OSError as err:
         return err.strerror or str(err)
-    finally:
-        if probe_dir is not None:
-            shutil.rmtree(probe_dir, ignore_errors=True)
     return None
 
 
@@ -288,15 +271,14 @@ LOCK = ".dscjax.lock"
 
 
 @contextlib.contextmanager
-def lock_out(out: str | Path, *, name: str = LOCK, argv: Sequence[str] = (),
-             option: str = "--out") -> Iterator[None]:
+def lock_out(out: str | Path, *, name: str = LOCK, argv: Sequence[str] = ()) -> Iterator[None]:
     """Hold an exclusive lock on the directory `out` (which must exist) while the block runs.
 
     An flock on `out/name`, a file naming the holder (pid, host, argv, start), removed on
     release; another process gets a ConfigError at once naming the holder. A dead holder never
     blocks (the kernel releases its lock)."""
     path = Path(out) / name
-    fd = _acquire(path, out, option)
+    fd = _acquire(path, out)
     try:
         info = {"pid": os.getpid(), "host": socket.gethostname(), "command": shlex.join(argv),
                 "started": datetime.datetime.now().astimezone().isoformat(timespec="seconds")}
@@ -313,23 +295,22 @@ def lock_out(out: str | Path, *, name: str = LOCK, argv: Sequence[str] = (),
         os.close(fd)
 
 
-def _acquire(path: Path, out, option: str) -> int:
+def _acquire(path: Path, out) -> int:
     """A descriptor of `path` holding its flock; ConfigError naming the holder if another
     process has it."""
     for _ in range(100):
         try:
             fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o644)
         except OSError as err:
-            raise ConfigError(f"{option} {str(out)!r}: cannot create the lock file {path.name} "
+            raise ConfigError(f"--out {str(out)!r}: cannot create the lock file {path.name} "
                               f"({err.strerror or err}); give a writable directory") from None
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             holder = _holder(fd)
             os.close(fd)
-            raise ConfigError(f"{option} {str(out)!r} is in use by another dscjax process "
-                              f"({holder}); wait for it to end, or give another {option}") \
-                from None
+            raise ConfigError(f"--out {str(out)!r} is in use by another dscjax process "
+                              f"({holder}); wait for it to end, or give another --out") from None
         except OSError as err:
             if err.errno not in (errno.ENOLCK, errno.EOPNOTSUPP):
                 os.close(fd)
@@ -339,7 +320,7 @@ def _acquire(path: Path, out, option: str) -> int:
         if _same_file(path, fd):
             return fd
         os.close(fd)
-    raise ConfigError(f"{option} {str(out)!r}: cannot lock {path.name}; try again")
+    raise ConfigError(f"--out {str(out)!r}: cannot lock {path.name}; try again")
 
 
 def _same_file(path: Path, fd: int) -> bool:
@@ -360,7 +341,7 @@ def _holder(fd: int) -> str:
         return "its details are not written yet"
 
 
-__all__ = ["LOCK", "NO_SPACE_ERRNOS", "NoSpace", "SAME_SETTINGS", "atomic_write", "canonical",
+__all__ = ["LOCK", "NoSpace", "SAME_SETTINGS", "atomic_write",
            "check_record", "check_same", "differences", "digest", "dumps", "jsonable",
            "lock_out", "mkdir", "out_problem", "read_json", "read_npz", "resume_file",
            "save_figure", "write_json", "write_npz", "write_text"]

@@ -91,19 +91,15 @@ class Param:
         if len(leaves) != 1 or not np.issubdtype(np.asarray(leaves[0]).dtype, np.floating):
             raise ConfigError(f"{field}: {self.path!r} is not a number or vector of numbers")
         shape = np.shape(leaf)
-        if self.scale:
-            if len(shape) != 1:
-                raise ConfigError(f"{field}: {self.name!r} scales a vector, but {self.path!r} "
-                                  f"is a scalar; vary it directly (e.g. {self.path}=30%)")
-            return self.value(setup)
-        if self.index is None:
-            return leaf
-        if len(shape) != 1:
+        if self.scale and len(shape) != 1:
+            raise ConfigError(f"{field}: {self.name!r} scales a vector, but {self.path!r} "
+                              f"is a scalar; vary it directly (e.g. {self.path}=30%)")
+        if self.index is not None and len(shape) != 1:
             raise ConfigError(f"{field}: {self.path!r} is a scalar; write it without an index")
-        if not 0 <= self.index < shape[0]:
+        if self.index is not None and not 0 <= self.index < shape[0]:
             raise ConfigError(f"{field}: index {self.index} of {self.path!r} is out of range (it "
                               f"has {shape[0]} elements, indices 0..{shape[0] - 1})")
-        return leaf[self.index]
+        return self.value(setup)
 
 
 def check_columns(columns: Sequence[Param], field: str) -> None:
@@ -132,18 +128,17 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
         col = table[:, j].astype(dtype)
         if p.scale:  # s times the whole vector
             out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
-            continue
-        if p.index is None:  # the whole leaf
+        elif p.index is None:  # the whole leaf
             out[p.path] = col
-            continue
-        if p.path not in out:
-            leaf = xp.asarray(leaf, dtype)
-            out[p.path] = xp.broadcast_to(leaf, (b, *leaf.shape))
-        if host:
-            out[p.path] = np.array(out[p.path])
-            out[p.path][:, p.index] = col
-        else:
-            out[p.path] = out[p.path].at[:, p.index].set(col)
+        else:  # one element: the others keep the setup's values
+            if p.path not in out:
+                leaf = xp.asarray(leaf, dtype)
+                out[p.path] = xp.broadcast_to(leaf, (b, *leaf.shape))
+            if host:
+                out[p.path] = np.array(out[p.path])
+                out[p.path][:, p.index] = col
+            else:
+                out[p.path] = out[p.path].at[:, p.index].set(col)
     return out
 
 
@@ -156,12 +151,10 @@ def set_row(setup, columns: Sequence[Param], row):
 def _child(obj, name: str, path: str):
     if dataclasses.is_dataclass(obj):
         allowed = [f.name for f in dataclasses.fields(obj)]
-        if name in allowed:
-            return getattr(obj, name)
     else:
         allowed = list(obj) if isinstance(obj, Mapping) else []
-        if name in allowed:
-            return obj[name]
+    if name in allowed:
+        return getattr(obj, name) if dataclasses.is_dataclass(obj) else obj[name]
     raise UnknownParameter(
         f"no parameter '{path}': '{name}' is not a field of {type(obj).__name__}"
         + (f" (allowed: {', '.join(allowed)})" if allowed else " (a number has no fields)"))
@@ -219,9 +212,7 @@ def cast(setup, dtype):
         if isinstance(x, jax.core.Tracer):
             return x.astype(dtype) if jnp.issubdtype(x.dtype, jnp.floating) else x
         a = np.asarray(x)
-        if np.issubdtype(a.dtype, np.floating) or np.issubdtype(a.dtype, np.integer):
-            return a.astype(dtype)
-        return a
+        return a.astype(dtype) if a.dtype.kind in "fiu" else a  # floats and integers
 
     return jax.tree.map(conv, setup)
 
@@ -273,10 +264,10 @@ def default_ranges(setup=None) -> tuple[Range, ...]:
 # -- the syntax ---------------------------------------------------------------------------------
 
 
-def parse_range(text: str, grid: bool = False, field: str | None = None) -> Range:
+def parse_range(text: str, grid: bool = False) -> Range:
     """A range from the command line: ``PATH=LOW:HIGH``, ``PATH=30%`` (+-30 % of the nominal
     value) or, for a grid, ``PATH=LOW:HIGH:NUM``."""
-    field = field or ("--grid" if grid else "--range")
+    field = "--grid" if grid else "--range"
     form = "PATH=LOW:HIGH:NUM" if grid else "PATH=LOW:HIGH or PATH=P%"
     path, eq, body = text.partition("=")
     if not eq:
@@ -389,26 +380,23 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
 def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     """lam > psi must hold on the whole box: lam's lower end above psi's upper end (the
     ends of a single range are checked by `check`; this is the one check of two)."""
-    by = {r.param.path: r for r in ranges if r.param.index is None and not r.param.scale}
-    if "hysteresis.lam" not in by and "hysteresis.psi" not in by:
+    by = {r.name: r for r in ranges if r.param.index is None and not r.param.scale}
+    paths = ("hysteresis.lam", "hysteresis.psi")
+    if not any(p in by for p in paths):
         return
-    try:
-        lam_nom, psi_nom = (Param(f"hysteresis.{k}").nominal(setup) for k in ("lam", "psi"))
+    try:  # a number not varied is the range [nominal, nominal]
+        lam, psi = (by.get(p) or Range(Param(p), rel=0.0).resolve(setup) for p in paths)
     except KeyError:
         return
-    lam, psi = by.get("hysteresis.lam"), by.get("hysteresis.psi")
-    lam_lo = lam.low if lam else lam_nom
-    psi_hi = psi.high if psi else psi_nom
-    if not lam_lo > psi_hi:
-        lam_txt = f"[{lam.low:g}, {lam.high:g}]" if lam else f"{lam_nom:g} (fixed)"
-        psi_txt = f"[{psi.low:g}, {psi.high:g}]" if psi else f"{psi_nom:g} (fixed)"
+    if not lam.low > psi.high:
+        lam_txt, psi_txt = (f"[{r.low:g}, {r.high:g}]" if r.name in by else f"{r.low:g} (fixed)"
+                            for r in (lam, psi))
         raise ConfigError(
             f"{field}: hysteresis.lam must stay > hysteresis.psi over the ranges (got lam in "
             f"{lam_txt}, psi in {psi_txt}); make lam's lower bound exceed psi's upper bound")
 
 
-def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep.ranges"
-                        ) -> list[str]:
+def assumption_warnings(setup, ranges: Sequence[Range], field: str) -> list[str]:
     """`validation.assumption_warnings` of the setup and of every end of every (resolved)
     range: a violation only some samples see is reported with the range that reaches it."""
     out = list(validation.assumption_warnings(setup))
@@ -418,7 +406,7 @@ def assumption_warnings(setup, ranges: Sequence[Range] = (), field: str = "sweep
                 w = w.split(";")[0] + (f" for part of {field}.{r.name} = [{r.low:.6g}, "
                                        f"{r.high:.6g}]; the design's guarantees (Theorem 1) "
                                        f"do not apply there")
-                if not any(o.split(":")[0] == w.split(":")[0] for o in out) and w not in out:
+                if not any(o.split(":")[0] == w.split(":")[0] for o in out):
                     out.append(w)
     return out
 
