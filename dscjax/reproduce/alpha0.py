@@ -140,8 +140,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
               log: Callable[[str], None] = lambda s: None) -> dict:
     """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
     t0 = time.perf_counter()
-    n = base.order
-    s0 = prepared(canonical(_with(base, alpha0, np.ones(n - 1), opts)))
+    s0 = prepared(canonical(_with(base, alpha0, np.ones(base.order - 1), opts)))
     X0 = initial_state(s0)
     b0 = np.abs(np.asarray(jax.jit(theory.b_at)(s0, X0.x[0] * 0.0, X0)))  # |B_(i+1)(0)|
     # from fast filters (tau_start where (60) allows it): a slow filter can diverge
@@ -232,10 +231,10 @@ def study(base, opts: StudyOptions | None = None,
                              wall_s=time.perf_counter() - t1))
             log(f"n = {base.order}, alpha_0 = {a:g}: skipped, {err} > max_steps = "
                 f"{opts.max_steps} ({rows[-1]['wall_s']:.1f} s)")
-            continue
-        r = rows[-1]
-        log(f"n = {base.order}, alpha_0 = {a:g}: ||S_1|| = {r['S1_inf']:.4g} <= (72) "
-            f"{r['bound_72']:.4g}; conclusions hold: {r['all_hold']} ({r['wall_s']:.1f} s)")
+        else:
+            r = rows[-1]
+            log(f"n = {base.order}, alpha_0 = {a:g}: ||S_1|| = {r['S1_inf']:.4g} <= (72) "
+                f"{r['bound_72']:.4g}; conclusions hold: {r['all_hold']} ({r['wall_s']:.1f} s)")
     return dict(n=base.order, options=dataclasses.asdict(opts), rows=rows,
                 wall_s=time.perf_counter() - t0)
 
@@ -264,23 +263,20 @@ def _cells(r: dict) -> tuple:
             "yes" if r["all_hold"] else "**no**: " + ", ".join(failed))
 
 
-COLORS = {2: "#1f77b4", 3: "#ff7f0e", 4: "#2ca02c", 5: "#d62728"}
-
-
-def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
-    """||S_1||_inf measured and the bound (72) against alpha_0, log axes, one colour per n."""
+def plot(results: Sequence[dict], path: Path, dpi: int = 150) -> Path:
+    """||S_1||_inf measured and the bound (72) against alpha_0, log axes, one colour per n
+    (matplotlib's C0 for n = 2, C1 for n = 3, ...)."""
     import matplotlib
 
-    path = Path(path)
     with matplotlib.rc_context(RC):
         fig, ax = subplots(figsize=(8.6, 4.4))
         for res in results:
             n, mu = res["n"], res["options"]["mu"]
             rows = [r for r in res["rows"] if not r.get("skipped")]
             a = [r["alpha0"] for r in rows]
-            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=COLORS.get(n), marker="^",
+            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=f"C{n - 2}", marker="^",
                       ms=4, label=f"n = {n}: bound (72), data-driven M, $\\mu$ = {mu:g}")
-            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=COLORS.get(n), marker="o",
+            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=f"C{n - 2}", marker="o",
                       ms=4, label=f"n = {n}: measured $\\|S_1\\|_\\infty$")
         ax.set(xlabel=r"$\alpha_0$ (gains by (55), $\tau$ by (60))", ylabel=r"$\|S_1\|_\infty$ [-]")
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
