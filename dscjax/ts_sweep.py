@@ -119,11 +119,9 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
             ref = next((r["linf_error_window"] for r in rows if r["linf_error_window"]), None)
         why = [judge(r["linf_error_window"], r["chattering_index"], ref) for r in rows]
         out[name] = {"continuous": cont[i]["linf_error_window"],
-                     "continuous_tv_u_window": cont[i]["tv_u_window"],
-                     "continuous_chattering_index": cont[i]["chattering_index"],
+                     **{f"continuous_{k}": cont[i][k] for k in FIGURES[1:]},
                      "sampled": [r["linf_error_window"] for r in rows],
-                     "tv_u_window": [r["tv_u_window"] for r in rows],
-                     "chattering_index": [r["chattering_index"] for r in rows],
+                     **{k: [r[k] for r in rows] for k in FIGURES[1:]},
                      "reference": ref, "tracks": [w is None for w in why], "why_not": why}
     keep = np.arange(y.size) * dt >= window_start
     fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
@@ -162,7 +160,7 @@ def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
         if (ok & ~tracks).any():
             ax.plot(ts_ms[ok & ~tracks], v[ok & ~tracks], "o", mfc="none", color=c, ms=8,
                     ls="none", label=f"{label}, sampled: chatters or error > "
-                    f"{result.get('track_factor', TRACK_FACTOR):g} x")
+                    f"{result['track_factor']:g} x")
         if r["continuous"] is not None:
             ax.axhline(r["continuous"], color=c, ls="--", lw=1,
                        label=f"{label}, continuous (Ts -> 0)")
@@ -184,7 +182,7 @@ def criterion(result: dict, reference: str = "the same gains' continuous loop") 
     """The tracking criterion of a study in one sentence."""
     return (f"A Ts tracks when the loop did not diverge, its L∞ error on "
             f"[{result['window_start']:g} s, T] is at most "
-            f"{result.get('track_factor', TRACK_FACTOR):g} x that of {reference}, and its "
+            f"{result['track_factor']:g} x that of {reference}, and its "
             f"chattering index on the window is at most {metrics.CHATTER_RATIO:g} "
             f"(docs/numerics.md, \"Chattering\").")
 
