@@ -67,23 +67,23 @@ class StudyOptions:
                 raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
 
 
+# what `default_options` changes by order n (n >= 4: as for 4)
+BY_ORDER = {2: {}, 3: dict(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0),
+            4: dict(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)}
+
+
 def default_options(n: int, **changes) -> StudyOptions:
-    """The study's settings for order n, with `changes` (None values ignored) applied.
+    """The study's settings for order n (`BY_ORDER`), with `changes` (None values ignored)
+    applied.
 
     n = 2: `DEFAULT_ALPHA0`, mu = 0.1, 20 s; n = 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s;
     n >= 4: alpha_0 in (0.1, 0.3), mu = 50, 5 s. Order n >= 3 is much stiffer (u' carries
     z_n'' and the hysteresis rate alpha |u'| needs tiny steps); a larger mu keeps tau_start
     consistent with (60), at the price of (n-1) mu/2 in the bound.
     """
-    if n == 2:
-        base = StudyOptions()
-    elif n == 3:
-        base = StudyOptions(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0)
-    else:
-        base = StudyOptions(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)
     changes = {k: (tuple(float(a) for a in v) if k == "alpha0" else v) for k, v in changes.items()
                if v is not None}
-    return dataclasses.replace(base, **changes)
+    return StudyOptions(**BY_ORDER[min(n, 4)] | changes)
 
 
 def base_setup(n: int = 2):
