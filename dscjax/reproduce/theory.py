@@ -276,7 +276,7 @@ def v0_69(controller, tr: Truth):
 def bound_65(t, V0, C, alpha0):
     """Eq. (65): V(t) <= C/(2 alpha_0) + (V(0) - C/(2 alpha_0)) exp(-2 alpha_0 t),
     C = e_M + (n-1) mu/2 (+ the data-driven slacks of `check`)."""
-    ss = C / (2.0 * alpha0)
+    ss = bound_71(C, alpha0)
     return ss + (V0 - ss) * np.exp(-2.0 * alpha0 * np.asarray(t))
 
 
