@@ -58,23 +58,25 @@ def verdict(why: str | None) -> str:
     return "yes" if why is None else f"**no**: {why}"
 
 
-def plant_steps(sample_times: Sequence[float], dt: float) -> list[float]:
-    """The plant's step for each Ts: dt where Ts is a whole multiple of dt, else one fine step
-    (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so that the
-    runs of the figure share two compiled programs (the sample period is traced)."""
+def plant_steps(sample_times: Sequence[float], t_final: float,
+                dt: float) -> tuple[list[float], list[float]]:
+    """(the sample times up to t_final, the plant's step of each run of `study`: the continuous
+    one's, the finest, then one for each Ts): dt where Ts is a whole multiple of dt, else one
+    fine step (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so
+    that the runs of the figure share two compiled programs (the sample period is traced)."""
     def whole(ts, h):
         return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
 
-    fine = step_for(min(sample_times), dt)
-    return [dt if whole(ts, dt) else fine if whole(ts, fine) else step_for(ts, dt)
-            for ts in sample_times]
+    kept = [ts for ts in sample_times if ts <= t_final]
+    fine = step_for(min(kept), dt)
+    steps = [dt if whole(ts, dt) else fine if whole(ts, fine) else step_for(ts, dt)
+             for ts in kept]
+    return kept, [min(steps, default=dt), *steps]
 
 
 def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPLE_TIMES) -> int:
     """The consecutive steps `study` integrates (each a batch of both gain sets)."""
-    kept = [ts for ts in sample_times if ts <= t_final]
-    steps = plant_steps(kept, dt)
-    return sum(round(t_final / h) for h in [min(steps, default=dt), *steps])
+    return sum(round(t_final / h) for h in plant_steps(sample_times, t_final, dt)[1])
 
 
 def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
@@ -96,7 +98,6 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
                             save_every=1, sample_time="none", delay=0, noise=None)
     keep = {} if base is None or not base.sampled else {"delay": base.delay,
                                                          "noise": base.to_table()["noise"]}
-    sample_times = [ts for ts in sample_times if ts <= t_final]
 
     def run(ts=None, h=dt):
         sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
@@ -107,8 +108,8 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
                 for i, d in enumerate(diverged)]
         return rows, np.asarray(tr.x)[0, :, 0]
 
-    steps = plant_steps(sample_times, dt)
-    cont, y = run(h=min(steps, default=dt))
+    sample_times, (h_continuous, *steps) = plant_steps(sample_times, t_final, dt)
+    cont, y = run(h=h_continuous)
     sampled = [run(ts, h) for ts, h in zip(sample_times, steps, strict=True)]
     out = {"sample_times": list(sample_times), "window_start": window_start,
            "names": list(names), "track_factor": TRACK_FACTOR}
@@ -119,11 +120,9 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
             ref = next((r["linf_error_window"] for r in rows if r["linf_error_window"]), None)
         why = [judge(r["linf_error_window"], r["chattering_index"], ref) for r in rows]
         out[name] = {"continuous": cont[i]["linf_error_window"],
-                     "continuous_tv_u_window": cont[i]["tv_u_window"],
-                     "continuous_chattering_index": cont[i]["chattering_index"],
+                     **{f"continuous_{k}": cont[i][k] for k in FIGURES[1:]},
                      "sampled": [r["linf_error_window"] for r in rows],
-                     "tv_u_window": [r["tv_u_window"] for r in rows],
-                     "chattering_index": [r["chattering_index"] for r in rows],
+                     **{k: [r[k] for r in rows] for k in FIGURES[1:]},
                      "reference": ref, "tracks": [w is None for w in why], "why_not": why}
     keep = np.arange(y.size) * dt >= window_start
     fine = [(ts, float(np.max(np.abs(ys - y)[keep]))) for ts, (_, ys) in
@@ -162,7 +161,7 @@ def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
         if (ok & ~tracks).any():
             ax.plot(ts_ms[ok & ~tracks], v[ok & ~tracks], "o", mfc="none", color=c, ms=8,
                     ls="none", label=f"{label}, sampled: chatters or error > "
-                    f"{result.get('track_factor', TRACK_FACTOR):g} x")
+                    f"{result['track_factor']:g} x")
         if r["continuous"] is not None:
             ax.axhline(r["continuous"], color=c, ls="--", lw=1,
                        label=f"{label}, continuous (Ts -> 0)")
@@ -184,7 +183,7 @@ def criterion(result: dict, reference: str = "the same gains' continuous loop") 
     """The tracking criterion of a study in one sentence."""
     return (f"A Ts tracks when the loop did not diverge, its L∞ error on "
             f"[{result['window_start']:g} s, T] is at most "
-            f"{result.get('track_factor', TRACK_FACTOR):g} x that of {reference}, and its "
+            f"{result['track_factor']:g} x that of {reference}, and its "
             f"chattering index on the window is at most {metrics.CHATTER_RATIO:g} "
             f"(docs/numerics.md, \"Chattering\").")
 

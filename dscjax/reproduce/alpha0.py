@@ -67,23 +67,23 @@ class StudyOptions:
                 raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
 
 
+# what `default_options` changes by order n (n >= 4: as for 4)
+BY_ORDER = {2: {}, 3: dict(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0),
+            4: dict(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)}
+
+
 def default_options(n: int, **changes) -> StudyOptions:
-    """The study's settings for order n, with `changes` (None values ignored) applied.
+    """The study's settings for order n (`BY_ORDER`), with `changes` (None values ignored)
+    applied.
 
     n = 2: `DEFAULT_ALPHA0`, mu = 0.1, 20 s; n = 3: alpha_0 in (0.1, 0.3, 1), mu = 10, 10 s;
     n >= 4: alpha_0 in (0.1, 0.3), mu = 50, 5 s. Order n >= 3 is much stiffer (u' carries
     z_n'' and the hysteresis rate alpha |u'| needs tiny steps); a larger mu keeps tau_start
     consistent with (60), at the price of (n-1) mu/2 in the bound.
     """
-    if n == 2:
-        base = StudyOptions()
-    elif n == 3:
-        base = StudyOptions(alpha0=(0.1, 0.3, 1.0), mu=10.0, t_final=10.0)
-    else:
-        base = StudyOptions(alpha0=(0.1, 0.3), mu=50.0, t_final=5.0)
     changes = {k: (tuple(float(a) for a in v) if k == "alpha0" else v) for k, v in changes.items()
                if v is not None}
-    return dataclasses.replace(base, **changes)
+    return StudyOptions(**BY_ORDER[min(n, 4)] | changes)
 
 
 def base_setup(n: int = 2):
@@ -140,8 +140,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
               log: Callable[[str], None] = lambda s: None) -> dict:
     """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
     t0 = time.perf_counter()
-    n = base.order
-    s0 = prepared(canonical(_with(base, alpha0, np.ones(n - 1), opts)))
+    s0 = prepared(canonical(_with(base, alpha0, np.ones(base.order - 1), opts)))
     X0 = initial_state(s0)
     b0 = np.abs(np.asarray(jax.jit(theory.b_at)(s0, X0.x[0] * 0.0, X0)))  # |B_(i+1)(0)|
     # from fast filters (tau_start where (60) allows it): a slow filter can diverge
@@ -232,10 +231,10 @@ def study(base, opts: StudyOptions | None = None,
                              wall_s=time.perf_counter() - t1))
             log(f"n = {base.order}, alpha_0 = {a:g}: skipped, {err} > max_steps = "
                 f"{opts.max_steps} ({rows[-1]['wall_s']:.1f} s)")
-            continue
-        r = rows[-1]
-        log(f"n = {base.order}, alpha_0 = {a:g}: ||S_1|| = {r['S1_inf']:.4g} <= (72) "
-            f"{r['bound_72']:.4g}; conclusions hold: {r['all_hold']} ({r['wall_s']:.1f} s)")
+        else:
+            r = rows[-1]
+            log(f"n = {base.order}, alpha_0 = {a:g}: ||S_1|| = {r['S1_inf']:.4g} <= (72) "
+                f"{r['bound_72']:.4g}; conclusions hold: {r['all_hold']} ({r['wall_s']:.1f} s)")
     return dict(n=base.order, options=dataclasses.asdict(opts), rows=rows,
                 wall_s=time.perf_counter() - t0)
 
@@ -264,23 +263,20 @@ def _cells(r: dict) -> tuple:
             "yes" if r["all_hold"] else "**no**: " + ", ".join(failed))
 
 
-COLORS = {2: "#1f77b4", 3: "#ff7f0e", 4: "#2ca02c", 5: "#d62728"}
-
-
-def plot(results: Sequence[dict], path, dpi: int = 150) -> Path:
-    """||S_1||_inf measured and the bound (72) against alpha_0, log axes, one colour per n."""
+def plot(results: Sequence[dict], path: Path, dpi: int = 150) -> Path:
+    """||S_1||_inf measured and the bound (72) against alpha_0, log axes, one colour per n
+    (matplotlib's C0 for n = 2, C1 for n = 3, ...)."""
     import matplotlib
 
-    path = Path(path)
     with matplotlib.rc_context(RC):
         fig, ax = subplots(figsize=(8.6, 4.4))
         for res in results:
             n, mu = res["n"], res["options"]["mu"]
             rows = [r for r in res["rows"] if not r.get("skipped")]
             a = [r["alpha0"] for r in rows]
-            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=COLORS.get(n), marker="^",
+            ax.loglog(a, [r["bound_72"] for r in rows], "--", color=f"C{n - 2}", marker="^",
                       ms=4, label=f"n = {n}: bound (72), data-driven M, $\\mu$ = {mu:g}")
-            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=COLORS.get(n), marker="o",
+            ax.loglog(a, [r["S1_inf"] for r in rows], "-", color=f"C{n - 2}", marker="o",
                       ms=4, label=f"n = {n}: measured $\\|S_1\\|_\\infty$")
         ax.set(xlabel=r"$\alpha_0$ (gains by (55), $\tau$ by (60))", ylabel=r"$\|S_1\|_\infty$ [-]")
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "

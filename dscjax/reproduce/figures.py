@@ -78,16 +78,41 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
     path}."""
     import matplotlib
 
+    hyst, _, u, w = family["backlash"]
+    title = (f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
+             f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
+             f"{float(hyst.psi):g}")
+    paths = {"fig1": loop_figure(hyst, FIG1_AMPLITUDES, FIG1_OMEGA, u, w, title,
+                                 out / f"{FIGURES['fig1']}.{fmt}", dpi)}
+    t_end = float(np.asarray(trajs["dsc"].t)[-1])
+    t_after = default_window(t_end)  # Figs. 3 and 4 add a panel after it
+    error, control = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
+    dsc = (("dsc", {}),)
+    without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
+    against = (("dsc", dict(lw=0.9, alpha=0.55)), ("backstepping", {}))  # the DSC faint
     with matplotlib.rc_context(RC):
-        hyst, _, u, w = family["backlash"]
-        title = (f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
-                 f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
-                 f"{float(hyst.psi):g}")
-        path = out / f"{FIGURES['fig1']}.{fmt}"
-        paths = {"fig1": loop_figure(hyst, FIG1_AMPLITUDES, FIG1_OMEGA, u, w, title, path, dpi)}
-        paths |= _figures(trajs, out, fmt, dpi)
+        for key, signal, title, ylabel, runs, zoom in (
+                ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
+                 "compensation", error, without, False),
+                ("fig3", "u", "Fig. 3  Control signal of the DSC", control, dsc, True),
+                ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
+                 "hysteresis output $w$ [-]", dsc, True),
+                ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against,
+                 False),
+                ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", control, against,
+                 False)):
+            fig, axes = _time_axes(title, ylabel, t_after if zoom else None)
+            for name, over in runs:
+                _line(axes[0], trajs[name], signal, name, **over)
+            if zoom:
+                axes[0].axvspan(t_after, t_end, color="#999999", alpha=0.08, lw=0,
+                                label=f"shown below: $t \\geq$ {t_after:g} s")
+                _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
+            _legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels: long
+            paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
+        paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
         paths["fig1_family"] = _family_figure(family, out, fmt, dpi)
-        return paths
+    return paths
 
 
 def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dpi: int) -> Path:
@@ -97,14 +122,13 @@ def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dp
 
     with matplotlib.rc_context(RC):
         fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),
-                             sharey=True)
-        axes = np.atleast_1d(axes)
-        for i, (ax, a) in enumerate(zip(axes, amplitudes, strict=True)):
+                             sharey=True, squeeze=False)
+        for i, (ax, a) in enumerate(zip(axes[0], amplitudes, strict=True)):
             hysteresis_loop(ax, hyst, u[i], w[i], f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$",
                             LOOP_COLORS[i % len(LOOP_COLORS)])
             ax.set_title(f"amplitude {a:g}")
             ax.legend(loc="upper left", framealpha=0.95)
-        axes[0].set_ylabel("hysteresis output $w$ [-]")
+        axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
         fig.suptitle(title)
         files.save_figure(fig, path, dpi=dpi)
     return path
@@ -114,8 +138,9 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
     """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
     both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
     hysteresis` draws one model)."""
-    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True)
-    for ax, (model, _, u, w) in zip(np.atleast_1d(axes), family.values(), strict=True):
+    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
+                         squeeze=False)
+    for ax, (model, _, u, w) in zip(axes[0], family.values(), strict=True):
         big = int(np.argmax(np.max(np.abs(u), axis=1)))
         for i in range(len(u)):
             k = float(np.max(np.abs(u[i])))
@@ -123,40 +148,10 @@ def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
                             LOOP_COLORS[i % len(LOOP_COLORS)], lines=i == big)
         ax.set_title(model.title, fontsize=9)
         ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
-    np.atleast_1d(axes)[0].set_ylabel("hysteresis output $w$ [-]")
+    axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
     fig.suptitle(r"Fig. 1 for every actuator model: $w(u)$ for $u = k\,\sin(2.3t)$, "
                  r"examples' parameters (docs/hysteresis.md)")
     return _finish(fig, out, FIGURES["fig1_family"], fmt, dpi)
-
-
-def _figures(trajs, out, fmt, dpi):
-    paths = {}
-    t_end = float(np.asarray(trajs["dsc"].t)[-1])
-    t_after = default_window(t_end)  # Figs. 3 and 4 add a panel after it
-    error, u = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
-    dsc = (("dsc", {}),)
-    without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
-    against = (("dsc", dict(lw=0.9, alpha=0.55)), ("backstepping", {}))  # the DSC faint
-    for key, signal, title, ylabel, runs, zoom in (
-            ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
-             "compensation", error, without, False),
-            ("fig3", "u", "Fig. 3  Control signal of the DSC", u, dsc, True),
-            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
-             "hysteresis output $w$ [-]", dsc, True),
-            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against, False),
-            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", u, against, False)):
-        fig, axes = _time_axes(title, ylabel, t_after if zoom else None)
-        for name, over in runs:
-            _line(axes[0], trajs[name], signal, name, **over)
-        if zoom:
-            axes[0].axvspan(t_after, t_end, color="#999999", alpha=0.08, lw=0,
-                            label=f"shown below: $t \\geq$ {t_after:g} s")
-            _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
-        _legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels are long
-        paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
-
-    paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
-    return paths
 
 
 def _estimates_figure(trajs, out, fmt, dpi):

@@ -29,9 +29,6 @@ from dscjax.closed_loop import State, prepared, vector_field
 from dscjax.simulate import canonical
 from dscjax.validation import ConfigError
 
-# what (55) keeps fixed when alpha_0 changes: the leakages (gamma = 2 alpha_0/eta, the paper's
-# remark after (72): e_M then does not depend on alpha_0) or the rates (eta = 2 alpha_0/gamma)
-HOLD = ("eta", "gamma")
 # the (rate, leakage) pairs whose products (55) sets to 2 alpha_0, and their names in reports
 PAIRS = (("gamma_g", "eta", "eta_{i} gamma_g{i}"), ("gamma_phi", "sigma", "sigma_{i} gamma_phi{i}"),
          ("gamma_zeta", "eta_zeta", "eta_zeta gamma_zeta"), ("gamma_d", "eta_d", "eta_d gamma_d"))
@@ -50,11 +47,6 @@ class Truth(NamedTuple):
     g: jax.Array  # (n,) the true g_i
     g_min: jax.Array  # () as the designer set it in the controller
     g_max: jax.Array  # () max g_i
-
-
-def hysteresis_slope(hysteresis) -> jax.Array:
-    """The slope lam of w = lam u + d_1(u) (5) (`Hysteresis.effective_slope`), in beta (10)."""
-    return jnp.asarray(hysteresis.effective_slope())
 
 
 def default_d(setup, t=None) -> jax.Array:
@@ -79,15 +71,14 @@ def truth(setup, d=None, t=None) -> Truth:
     """The true parameters of `setup`'s plant and hysteresis, in the controller's
     parameterisation (15), (21), (27), with d = `default_d` unless given."""
     plant = setup.plant
-    g = jnp.asarray(plant.g)
-    theta = jnp.asarray(plant.theta)
+    g, theta = jnp.asarray(plant.g), jnp.asarray(plant.theta)
     theta_g = jnp.concatenate([theta[:-1] / g[:-1], theta[-1:]])
-    beta = hysteresis_slope(setup.hysteresis) * g[-1]
-    d = default_d(setup, t) if d is None else jnp.asarray(d, g.dtype)
-    g_min = getattr(setup.controller, "g_min", jnp.min(g))
+    # lam of w = lam u + d_1(u) (5), in beta (10)
+    beta = setup.hysteresis.effective_slope() * g[-1]
+    d = default_d(setup, t) if d is None else d
     return Truth(theta=theta_g, phi=1.0 / g[:-1], beta=beta, zeta=1.0 / beta,
-                 d=jnp.asarray(d, g.dtype), g=g, g_min=jnp.asarray(g_min, g.dtype),
-                 g_max=jnp.max(g))
+                 d=jnp.asarray(d, g.dtype), g=g,
+                 g_min=jnp.asarray(setup.controller.g_min, g.dtype), g_max=jnp.max(g))
 
 
 class Terms(NamedTuple):
@@ -156,16 +147,10 @@ def b_at(setup, t, X: State):
     return y_dot + y / setup.controller.tau
 
 
-def robust_slack_at(setup, tr: Truth, t, X: State):
+def robust_slack(ctrl, tr: Truth, s_n, d_hat):
     """What the robust term in use leaves over in the proof's step (48)-(49): with the
-    controller's switching function r and |.| surrogate a, d (|S_n| - a(S_n)) + d_hat (a(S_n)
-    - S_n r(S_n)) (0 for sgn(S_n), the proof's term; <= d_hat w/4 for sat(S_n/w))."""
-    _, s = filter_errors_at(setup, t, X)
-    return _slack(setup.controller, tr, s[-1], X.ctrl.d_hat)
-
-
-def _slack(ctrl, tr, s_n, d_hat):
-    # the controller's own switching function and |.| (one copy of the formulas)
+    controller's own switching function r and |.| surrogate a, d (|S_n| - a(S_n)) + d_hat
+    (a(S_n) - S_n r(S_n)) (0 for sgn(S_n), the proof's term; <= d_hat w/4 for sat(S_n/w))."""
     a = ctrl._abs_surface(s_n)
     return tr.d * (jnp.abs(s_n) - a) + d_hat * (a - s_n * ctrl._robust(s_n))
 
@@ -248,9 +233,10 @@ def lyapunov_rate(setup, traj, d=None):
 def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
     """The controller with the gains of eq. (55) for alpha_0: k_1 = 3 + alpha_0/g_min, k_i =
     3 1/4 + alpha_0/g_min, k_n = 1/4 + alpha_0, every eta gamma pair = 2 alpha_0, keeping the
-    leakages (hold="eta") or the rates (hold="gamma"); tau is left alone (`tau_60`)."""
-    if hold not in HOLD:
-        raise ConfigError(f"hold must be one of {HOLD} (got {hold!r})")
+    leakages (hold="eta": e_M then does not depend on alpha_0, the paper's remark after (72))
+    or the rates (hold="gamma"); tau is left alone (`tau_60`)."""
+    if hold not in ("eta", "gamma"):
+        raise ConfigError(f"hold must be 'eta' or 'gamma' (got {hold!r})")
     _require_dsc(controller)
     n = np.shape(controller.k)[0]
     a = jnp.asarray(alpha0, jnp.result_type(controller.k))
@@ -290,7 +276,7 @@ def v0_69(controller, tr: Truth):
 def bound_65(t, V0, C, alpha0):
     """Eq. (65): V(t) <= C/(2 alpha_0) + (V(0) - C/(2 alpha_0)) exp(-2 alpha_0 t),
     C = e_M + (n-1) mu/2 (+ the data-driven slacks of `check`)."""
-    ss = C / (2.0 * alpha0)
+    ss = bound_71(C, alpha0)
     return ss + (V0 - ss) * np.exp(-2.0 * alpha0 * np.asarray(t))
 
 
@@ -344,9 +330,9 @@ def _point_checks(setup, tr, t, X):
     (v, y, s), (v_dot, y_dot, _) = jax.jvp(v_y_s, (t, X), (jnp.ones_like(t), dX))
     ctrl, hyst, u = setup.controller, setup.hysteresis, obs.u
     # d_n = g_n d_1(u) + dbar(t) = g_n (w - lam u) + dbar(t) (5), (11)
-    d_n = tr.g[-1] * (hyst.output(u, X.h) - hysteresis_slope(hyst) * u) + setup.plant.dbar(t)
+    d_n = tr.g[-1] * (hyst.output(u, X.h) - hyst.effective_slope() * u) + setup.plant.dbar(t)
     return dict(V=v, V_dot=v_dot, B=y_dot + y / ctrl.tau,
-                slack=_slack(ctrl, tr, s[-1], X.ctrl.d_hat), d_n=d_n)
+                slack=robust_slack(ctrl, tr, s[-1], X.ctrl.d_hat), d_n=d_n)
 
 
 # the conclusions of Theorem 1 that `check` tests, and the hypotheses of the proof it tests on
@@ -376,38 +362,31 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
     key: bool}) and `assumptions` ({`ASSUMPTIONS` key: bool}).
     """
     s, tr, pts = _along(_point_checks, setup, traj, d)
-    n = setup.order
+    V, V_dot = pts["V"], pts["V_dot"]
     M_meas = np.max(np.abs(pts["B"]), axis=0)
     M_used = M_meas if M is None else np.asarray(M, float)
     slack = float(np.max(pts["slack"]))
     eM = float(e_M(s.controller, tr))
-    C = eM + (n - 1) * mu / 2 + slack
-    V = pts["V"]
-    V0 = float(V[0])
+    C = eM + (setup.order - 1) * mu / 2 + slack
+    V0, V_max = float(V[0]), float(V.max())
     S1 = float(np.max(np.abs(np.asarray(traj.S)[:, 0])))
-    b65 = bound_65(traj.t, V0, C, alpha0)
-    b71 = bound_71(C, alpha0)
+    b65, b71 = bound_65(traj.t, V0, C, alpha0), bound_71(C, alpha0)
     b72 = bound_72(C, alpha0, float(tr.g_max))
     # (63): V' <= -2 alpha_0 V + C; relative to the size of the terms compared
-    r63 = pts["V_dot"] + 2 * alpha0 * V - C
-    scale63 = np.abs(pts["V_dot"]) + 2 * alpha0 * V + C
-    d_n_max = float(np.max(np.abs(pts["d_n"])))
-    dval = float(tr.d)
-    assumptions = {
-        "(12)": d_n_max <= dval,
-        "(59)": bool(np.all(M_meas <= M_used * (1 + 1e-12))),
-    }
+    r63 = V_dot + 2 * alpha0 * V - C
+    d_n_max, dval = float(np.max(np.abs(pts["d_n"]))), float(tr.d)
+    assumptions = {"(12)": d_n_max <= dval, "(59)": bool(np.all(M_meas <= M_used * (1 + 1e-12)))}
     holds = {
-        "(63)": bool(np.all(r63 <= 1e-9 * scale63)),
+        "(63)": bool(np.all(r63 <= 1e-9 * (np.abs(V_dot) + 2 * alpha0 * V + C))),
         "(65)": bool(np.all(V <= b65 * (1 + 1e-9))),
         "(70)": V0 < b71,
-        "(71)": float(V.max()) <= b71,
+        "(71)": V_max <= b71,
         "(72)": S1 <= b72,
     }
     return dict(
-        alpha0=float(alpha0), mu=float(mu), V0=V0, V_max=float(V.max()), S1_inf=S1, e_M=eM,
+        alpha0=float(alpha0), mu=float(mu), V0=V0, V_max=V_max, S1_inf=S1, e_M=eM,
         C=C, slack=slack, M=M_used, M_measured=M_meas, d=dval, d_n_max=d_n_max,
-        bound_71=b71, bound_72=b72, bound_65=b65, V=V, V_dot=pts["V_dot"], B=pts["B"],
+        bound_71=b71, bound_72=b72, bound_65=b65, V=V, V_dot=V_dot, B=pts["B"],
         margin_63=float(np.max(r63)), margin_65=float(np.max(V - b65)),
         v0_69=float(v0_69(s.controller, tr)), holds=holds, assumptions=assumptions,
     )
