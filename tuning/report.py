@@ -251,8 +251,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
-    nom = both(lambda m: _measured({k: float(np.asarray(v)) for k, v in m.items()
-                                    if np.ndim(v) == 0}), ev["nominal"])
+    nom = both(_measured, ev["nominal"])
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
@@ -309,11 +308,12 @@ def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
     return summary
 
 
-def _measured(m: dict[str, float]) -> dict[str, float]:
-    """A diverged plant's metrics as NaN (null in report.json: not measured); its loss stays."""
-    if not m.get("diverged"):
-        return m
-    return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
+def _measured(m: dict[str, np.ndarray]) -> dict[str, float]:
+    """One plant's scalar figures, a diverged plant's as NaN (null in report.json: not
+    measured) but its loss."""
+    gone = bool(np.asarray(m["diverged"]))
+    return {k: float("nan") if gone and k not in ("loss", "diverged") else float(np.asarray(v))
+            for k, v in m.items() if np.ndim(v) == 0}
 
 
 def assumption_warnings(problem) -> list[str]:
