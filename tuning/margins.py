@@ -253,9 +253,7 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
         row: dict[str, Any] = {"diverged": bool(np.asarray(tr.diverged)[i]),
                                **_row(tr, ("linf_error_window", "chattering_index"), i)}
         est = {}
-        for name in ESTIMATES:
-            if not hasattr(tr.ctrl, name):
-                continue
+        for name in (e for e in ESTIMATES if hasattr(tr.ctrl, e)):
             v = np.abs(np.asarray(getattr(tr.ctrl, name))[i]).reshape(t.size, -1)
             a, b = float(np.max(v[quarter])), float(np.max(v[half]))
             est[name] = {"second_quarter": a, "second_half": b,
@@ -287,8 +285,8 @@ def failures(margins: dict[str, Any]) -> list[str]:
             st["sample_times"], st["tuned"]["why_not"], strict=True) if why is not None]
         out.append(f"the tuned gains do not track at every Ts from {_ms_range(st)}: not with "
                    f"the controller sampled at {', '.join(lost)}")
-    lr = margins.get("long_run")
-    if lr is not None and lr["tuned"]["bounded"] is False:
+    lr = margins["long_run"]
+    if lr["tuned"]["bounded"] is False:
         out.append("the tuned gains " + ("diverge" if lr["tuned"]["diverged"] else
                                          "let an adaptive estimate grow")
                    + f" over the {lr['t_final']:g} s run")
@@ -303,7 +301,6 @@ def _ms_range(st: dict) -> str:
 def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
     """report.md's "Margins" section; `nominal`: {tag: the nominal plant's figures over the
     tuning's horizon}, whose windowed L-inf stands beside the long run's."""
-    short_linf = reference_linf(nominal)
     lines = ["", "## Margins (nominal plant)"]
     c = margins.get("continuous")
     if c is not None:
@@ -333,15 +330,13 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                   *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
                           "chattering index", "holds"),
                          [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),
-                           cell(r["chattering_index"][i], 3),
-                           verdict(r["why_not"][i]))
+                           cell(r["chattering_index"][i], 3), verdict(r["why_not"][i]))
                           for i, d in enumerate(dl["delays"]) for tag, r in _rows(dl)])]
     lr = margins["long_run"]
-    what = " and ".join(x for x in (
-        f"measurement noise of std {lr['noise']:g} on every state" if lr["noise"] else "",
-        f"a bounded disturbance dbar = {lr['disturbance']}" if lr["disturbance"] else "") if x)
+    what = [f"measurement noise of std {lr['noise']:g} on every state"] if lr["noise"] else []
+    what += [f"a bounded disturbance dbar = {lr['disturbance']}"] if lr["disturbance"] else []
     lines += ["", f"**Long run.** {lr['t_final']:g} s in the loop tuned"
-              + (f", with {what}" if what else "")
+              + (f", with {' and '.join(what)}" if what else "")
               + f"; an estimate is bounded when its peak |.| on the second half is at most "
               f"{DRIFT_RATIO:g} x that on the second quarter (not judged below "
               f"{DRIFT_MIN_S:g} s):", "",
@@ -350,7 +345,7 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                       "chattering index",
                       *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
                         if e in lr["tuned"]["estimates"]), "bounded"),
-                     [(tag, cell(r["linf_error_window"]), cell(short_linf[tag]),
+                     [(tag, cell(r["linf_error_window"]), cell(reference_linf(nominal)[tag]),
                        cell(r.get("chattering_index"), 3),
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),

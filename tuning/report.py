@@ -70,7 +70,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     setup = problem.setup_at(z)
     ov = {k: np.asarray(v) for k, v in overrides.items()}
     names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
-    keys = sorted(names.keys() & m.keys())
+    keys = sorted((names.keys() | {"diverged"}) & m.keys())
     m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
     for k in [k for k in m if k.startswith("user_")]:  # the refined runs do not measure them
         m[k] = np.where(m["refined"] > 0, np.nan, np.asarray(m[k], float))
@@ -85,7 +85,6 @@ def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
     """Re-run the rows of `m` diverged at the refinement levels of `sim`, updating `m`'s
     `keys` (simulate's name -> m's) in place; returns the level that tracked per row (0: the
     tuning's step, or none)."""
-    keys = {"diverged": keys.pop("diverged", "diverged"), **keys}
     diverged = np.asarray(m[keys["diverged"]]).astype(bool)
     if not diverged.any() or not sim.refine:
         return np.zeros(diverged.shape, np.int32)
@@ -98,8 +97,7 @@ def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
     rows = {k: np.asarray(m[mk], dtype=bool if k == "diverged" else float)
             for k, mk in keys.items()}
     rows, levels = refine_rows(rows, lambda r: r["diverged"], level, counted_levels(sim))
-    for k, mk in keys.items():
-        m[mk] = rows[k]
+    m.update({mk: rows[k] for k, mk in keys.items()})
     return np.where(rows["diverged"], 0, levels).astype(np.int32)
 
 
@@ -122,9 +120,7 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     masks = {}  # the same three outcomes in each check loop c (its metrics c_...)
     for c in (k.removesuffix("_diverged") for k in m if k.endswith("_diverged")):
         masks[c], out[c] = _outcomes(m, f"{c}_")
-    for key in STATS_METRICS + ("loss",):
-        if key not in m:
-            continue
+    for key in (k for k in STATS_METRICS + ("loss",) if k in m):
         mask = next((masks[c] for c in masks if key.startswith(f"{c}_")), ok)
         v = np.asarray(m[key] if key == "loss" else m[key][mask], float)
         v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
@@ -137,15 +133,11 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
 
 
 def requirement_checks(problem, m: dict[str, np.ndarray]) -> list[dict[str, Any]]:
-    rows = []
-    for i, r in enumerate(problem.objective.requirements):
-        met = np.asarray(m[f"req{i}_met"]) > 0
-        row = {"name": r.name, "met_fraction": float(np.mean(met)),
-               "worst_margin": float(np.max(m[f"req{i}_margin"]))}
-        row |= {k: float(np.max(m[f"req{i}_{k}"])) for k in ("overshoot", "settling_time", "peak")
-                if f"req{i}_{k}" in m}
-        rows.append(row)
-    return rows
+    return [{"name": r.name, "met_fraction": float(np.mean(np.asarray(m[f"req{i}_met"]) > 0)),
+             "worst_margin": float(np.max(m[f"req{i}_margin"])),
+             **{k: float(np.max(m[f"req{i}_{k}"])) for k in ("overshoot", "settling_time", "peak")
+                if f"req{i}_{k}" in m}}
+            for i, r in enumerate(problem.objective.requirements)]
 
 
 def constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, Any]]:
@@ -206,12 +198,10 @@ def train_constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[s
 def problem_sentence(problem) -> str:
     """The problem in one sentence (report.md's first line)."""
     cfg, sc, sim = problem.cfg, problem.scales, problem.objective.sim
-    what = {k: t[3] for k, t in TERMS.items()}
-    if shifted_reference(problem.setup) is not None:
-        for k in ("linf", "l2"):
-            what[k] += " (against the reference the controller tracks: y_r shifted by its "
-            what[k] += "initialisation to start at x_1(0))"
-    terms = [what[k] for k in what if getattr(cfg.objective, k)]
+    shifted = ("" if shifted_reference(problem.setup) is None else " (against the reference "
+               "the controller tracks: y_r shifted by its initialisation to start at x_1(0))")
+    terms = [t[3] + (shifted if k in ("linf", "l2") else "") for k, t in TERMS.items()
+             if getattr(cfg.objective, k)]
     where = ("the nominal plant" if not cfg.robust.batch else
              f"the {cfg.robust.over} over {cfg.robust.batch} training plants")
     cons = []
@@ -231,11 +221,11 @@ def problem_sentence(problem) -> str:
             + (f", subject to {' and '.join(cons)}{on}" if cons else ", unconstrained") + ".")
 
 
-def trajectories(problem, z0, z1, save_every: int = 10):
-    """The start and tuned loops on the nominal plant for the figures, saved every
-    `save_every` steps or more (`runspec.auto_stride`)."""
+def trajectories(problem, z0, z1):
+    """The start and tuned loops on the nominal plant for the figures, saved every 10 steps
+    or more (`runspec.auto_stride`)."""
     sim = problem.objective.sim
-    spec = sim.replace(save_every=max(save_every, auto_stride(sim.n_steps)), refine=0)
+    spec = sim.replace(save_every=max(10, auto_stride(sim.n_steps)), refine=0)
     return both(lambda z: simulate(problem.setup_at(z), spec=spec, throw=False),
                 {"start": z0, "tuned": z1})
 
@@ -254,20 +244,23 @@ def run_record(result) -> dict[str, Any]:
             "n_params": problem.n_params}
 
 
-def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
+def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
     PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
     problem = result.problem
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
-    nom = both(lambda m: _measured({k: float(np.asarray(v)) for k, v in m.items()
-                                    if np.ndim(v) == 0}), ev["nominal"])
+    nom = both(_measured, ev["nominal"])
     summary: dict[str, Any] = {
         "nominal": nom,
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
         "effort_bounds": problem.cfg.objective.effort_bounds.name,
-        "bounds_train": _bounds_train(sc), "problem": problem_sentence(problem),
+        # the per-plant bounds of the training batch (None: the nominal ones for every plant)
+        "bounds_train": None if not sc.per_plant else {
+            "max_abs_u": sc.u_max_train, "tv_u": sc.tv_max_train,
+            "n_start_diverged": sc.n_train_fallback},
+        "problem": problem_sentence(problem),
         "constraints": both(lambda m: constraint_checks(sc, m, checks), ev["nominal"]),
         "sample_time": problem.objective.sim.sample_time,
         # the second loop in words ("the states by forward Euler"), None without one
@@ -284,55 +277,43 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     if ev["train"] is not None and (sc.u_max is not None or sc.tv_max is not None or checks):
         summary["train_constraints"] = both(lambda m: train_constraint_checks(sc, m, checks),
                                             ev["train"])
-    for key in ("train", "heldout"):
-        if ev[key] is not None:
-            summary[key] = both(batch_stats, ev[key])
-            summary[key]["requirements"] = both(functools.partial(requirement_checks, problem),
-                                                ev[key])
-    summary["heldout_warning"] = heldout_warning(summary, problem.cfg)
-    summary["shifted_reference"] = shifted_reference(problem.setup) is not None
-    # with the held-out check and the margins: `--heldout 0`, a quick run, skips all three
-    summary["sensitivity"] = (None if not (problem.heldout and summary["constraints"]["tuned"])
-                              else elasticity.constraints(problem, z1,
-                                                          summary["constraints"]["tuned"]))
-    summary["sensitivity_warning"] = elasticity.warning(summary["sensitivity"])
-    summary["simulate_command"] = simulate_command(problem)
-    summary["loop"] = loop_words(problem.objective.sim)
-    summary["heldout_box"] = ([r.resolve(problem.setup).spec() for r in problem.cfg.heldout.ranges]
-                              if problem.heldout else None)
-    # the margins come with the held-out check (`--heldout 0` skips them)
-    summary["margins"] = margins.evaluate(problem, z0, z1, ev) if problem.heldout else None
-    summary["margins_warning"] = (None if summary["margins"] is None else
-                                  "; ".join(margins.failures(summary["margins"])) or None)
+    for key in (k for k in ("train", "heldout") if ev[k] is not None):
+        summary[key] = both(batch_stats, ev[key])
+        summary[key]["requirements"] = both(functools.partial(requirement_checks, problem), ev[key])
+    # the sensitivities and the margins come with the held-out check (`--heldout 0` skips all
+    # three: a quick run)
+    tuned = summary["constraints"]["tuned"]
+    sens = elasticity.constraints(problem, z1, tuned) if problem.heldout and tuned else None
+    mg = margins.evaluate(problem, z0, z1, ev) if problem.heldout else None
+    summary |= {
+        "heldout_warning": heldout_warning(summary, problem.cfg),
+        "shifted_reference": shifted_reference(problem.setup) is not None,
+        "sensitivity": sens, "sensitivity_warning": elasticity.warning(sens),
+        "simulate_command": simulate_command(problem), "loop": loop_words(problem.objective.sim),
+        "heldout_box": ([r.resolve(problem.setup).spec() for r in problem.cfg.heldout.ranges]
+                        if problem.heldout else None),
+        "margins": mg,
+        "margins_warning": None if mg is None else "; ".join(margins.failures(mg)) or None}
     out = Path(out)
     figures = draw(out, result, ev, trajectories(problem, z0, z1), problem) if plots else []
-    st = (summary["margins"] or {}).get("sample_time")
+    st = (mg or {}).get("sample_time")
     if plots and st is not None:
         ts_sweep.plot(st, out / "sampling.png", COLORS, 110,
                       {"start": "start gains", "tuned": "tuned gains"})
         figures.append("sampling.png")
     summary["figures"] = figures
-    if t_start is not None:
-        summary["run"]["wall_total_s"] = time.perf_counter() - t_start
+    summary["run"]["wall_total_s"] = time.perf_counter() - t_start
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", markdown(summary, problem, figures))
     return summary
 
 
-def _bounds_train(sc) -> dict[str, Any] | None:
-    """The per-plant bounds of the training batch (None: the nominal ones for every plant)."""
-    if not sc.per_plant:
-        return None
-    return {"max_abs_u": None if sc.u_max_train is None else sc.u_max_train.tolist(),
-            "tv_u": None if sc.tv_max_train is None else sc.tv_max_train.tolist(),
-            "n_start_diverged": sc.n_train_fallback}
-
-
-def _measured(m: dict[str, float]) -> dict[str, float]:
-    """A diverged plant's metrics as NaN (null in report.json: not measured); its loss stays."""
-    if not m.get("diverged"):
-        return m
-    return {k: v if k in ("loss", "diverged") else float("nan") for k, v in m.items()}
+def _measured(m: dict[str, np.ndarray]) -> dict[str, float]:
+    """One plant's scalar figures, a diverged plant's as NaN (null in report.json: not
+    measured) but its loss."""
+    gone = bool(np.asarray(m["diverged"]))
+    return {k: float("nan") if gone and k not in ("loss", "diverged") else float(np.asarray(v))
+            for k, v in m.items() if np.ndim(v) == 0}
 
 
 def assumption_warnings(problem) -> list[str]:
