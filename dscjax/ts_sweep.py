@@ -68,7 +68,7 @@ def plant_steps(sample_times: Sequence[float], t_final: float,
         return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
 
     kept = [ts for ts in sample_times if ts <= t_final]
-    fine = step_for(min(kept), dt)
+    fine = step_for(min(kept, default=dt), dt)
     steps = [dt if whole(ts, dt) else fine if whole(ts, fine) else step_for(ts, dt)
              for ts in kept]
     return kept, [min(steps, default=dt), *steps]

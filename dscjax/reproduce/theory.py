@@ -7,7 +7,7 @@ V of (44) is 1/2 sum_(i<n) (S_i^2/g_i + theta~_gi^2/gamma_gi + phi~_i^2/gamma_ph
 + 1/2 (beta zeta~^2/gamma_zeta + theta~_n^2/gamma_gn + d~^2/gamma_d + S_n^2), with the
 estimation errors (34)-(38) against the TRUE plant (`Truth`) and the filter errors (33);
 docs/theory.md lists every reading of the garbled text. Functions of one state (`b_at`,
-`robust_slack_at`, ...) are pure in (setup, truth, t, X) and compose with vmap and jvp; the host
+`filter_errors_at`, ...) are pure in (setup, truth, t, X) and compose with vmap and jvp; the host
 functions (`lyapunov`, `check`, ...) evaluate them at a `Trajectory`'s saved points in
 fixed-size chunks (one compilation whatever the length). M_(i+1) of (59) has no closed form:
 `check` uses the maximum measured on the run, so its bounds are data-driven estimates.
@@ -354,7 +354,7 @@ def check(setup, traj, alpha0, mu, M=None, d=None) -> dict:
     """Every statement of Theorem 1 along one DSC trajectory (saved at every step for the
     maxima to be over every step) of the unprepared `setup`, for `alpha0` and `mu` of (59)-(60).
 
-    C = e_M (61) + (n-1) mu/2 + the maximum of `robust_slack_at` on the run. M (n-1,) of (59)
+    C = e_M (61) + (n-1) mu/2 + the maximum of `robust_slack` on the run. M (n-1,) of (59)
     defaults to max_t |B_(i+1)| measured on the run (the bounds are then data-driven
     estimates); d to `default_d`. Returns plain floats/arrays: V0, V_max, S1_inf, e_M, C,
     slack, M, M_measured, d, d_n_max, the bounds (65) (T,), (71), (72), V, V' (T,), B (T, n-1)
