@@ -119,7 +119,7 @@ class Phase:
                  file: TextIO | None = None, enabled: bool = True):
         self.desc, self.after_s, self.every_s, self.enabled = desc, after_s, every_s, enabled
         self.file = file if file is not None else sys.stderr
-        self.tty = self.file.isatty()
+        self.tty = enabled and self.file.isatty()
         self.shown = False
         self._stop = threading.Event()
         self._thread = None

@@ -2,6 +2,7 @@
 tests' oracle for the running reductions (`metrics.Tracking`) that every run computes."""
 
 import jax.numpy as jnp
+import numpy as np
 
 
 def _trapezoid_weights(t, mask):
@@ -42,3 +43,18 @@ def total_variation(u, t=None, t0=None):
     if t0 is None:
         return jnp.sum(d)
     return jnp.sum(jnp.where(t[:-1] >= t0, d, 0.0))
+
+
+def chattering_numpy(t, u, t0, tau=0.02):
+    """(TV(u), the chattering index) on t >= t0 from saved samples, in numpy: TV(u) over that
+    of u low-passed (v_k = v_(k-1) + (1 - e^(-dt/tau)) (u_k - v_(k-1)), v_0 = u_0), tau = 20 ms
+    as docs/numerics.md states it."""
+    t, u = np.asarray(t), np.asarray(u)
+    v = np.empty_like(u)
+    v[0] = u[0]
+    a = -np.expm1(-np.diff(t) / tau)
+    for k in range(1, len(u)):
+        v[k] = v[k - 1] + a[k - 1] * (u[k] - v[k - 1])
+    steps = t[:-1] >= t0
+    tv = np.abs(np.diff(u))[steps].sum()
+    return tv, tv / np.abs(np.diff(v))[steps].sum()

@@ -102,6 +102,13 @@ def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fit
         f"dscjax identify: error: --validate: {val} measures {', '.join(validated)}; it must "
         f"measure the columns of --data {data}: {', '.join(fitted)}"]
     assert not (tmp_path / "o").exists()
+    # the library's identify() refuses it alike, before its fit
+    from dscjax.identify.run import IdentifySettings, identify
+    from dscjax.runspec import RunSpec
+
+    with pytest.raises(ConfigError, match="^--validate: .* it must measure the columns"):
+        identify(example("paper"), RunSpec.make(1.0, 1e-3), read(data, 2), IdentifySettings(
+            free=("plant.g",)), validation=read(val, 2))
 
 
 @pytest.mark.parametrize("good_data", [False, True])

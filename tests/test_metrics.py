@@ -1,9 +1,11 @@
 """Running metrics (inside the scan) against the same definitions on saved arrays and numpy."""
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from compilations import lean
-from reference_metrics import l2, linf, rms, total_variation
+from reference_metrics import chattering_numpy, l2, linf, rms, total_variation
 from scipy.integrate import trapezoid
 
 import dscjax
@@ -44,8 +46,6 @@ def test_metrics_use_every_step_not_only_saved_ones(paper_setup, full):
 
 
 def test_metric_gradients_are_finite(paper_setup):
-    import jax
-
     def loss(k):
         s = dscjax.params.set(paper_setup, "controller.k", k)
         m = dscjax.simulate(s, 1.0, 1e-3, save_every=100, throw=False, refine=0).metrics
@@ -55,39 +55,39 @@ def test_metric_gradients_are_finite(paper_setup):
     assert np.all(np.isfinite(np.asarray(g))) and np.any(np.asarray(g) != 0)
 
 
-def _np_low_pass(u, t, tc):
-    v = np.empty_like(u)
-    v[0] = u[0]
-    for k in range(1, len(u)):
-        v[k] = v[k - 1] + (1 - np.exp(-(t[k] - t[k - 1]) / tc)) * (u[k] - v[k - 1])
-    return v
-
-
 def test_window_effort_and_chattering_index_equal_numpy(full):
     t, u = np.asarray(full.t), np.asarray(full.u)
     m = {k: float(v) for k, v in full.metrics.items()}
-    win = t >= 1.0
-    steps = win[:-1]  # the steps k -> k+1 that start (and so end) in the window
-    tv_win = np.abs(np.diff(u))[steps].sum()
-    lp = _np_low_pass(u, t, metrics.CHATTER_TIME_CONSTANT)
-    assert m["max_abs_u_window"] == pytest.approx(np.abs(u[win]).max(), rel=1e-12)
+    tv_win, index = chattering_numpy(t, u, 1.0)
+    assert m["max_abs_u_window"] == pytest.approx(np.abs(u[t >= 1.0]).max(), rel=1e-12)
     assert m["tv_u_window"] == pytest.approx(tv_win, rel=1e-10)
-    index = tv_win / np.abs(np.diff(lp))[steps].sum()
     assert m["chattering_index"] == pytest.approx(index, rel=1e-9)
     assert 1.0 <= index < metrics.CHATTER_RATIO and not metrics.chatters(m["chattering_index"])
+
+
+def _running_index(t, u, t0):
+    """The chattering index of the running metrics every run folds, over the samples (t, u)."""
+    dt, n = t[1] - t[0], len(t) - 1
+
+    def step(acc, x):
+        k, tk, uk = x
+        return metrics.running_update(acc, k, tk, 0.0, uk, 0.0, dt, t0, n), None
+
+    acc, _ = jax.lax.scan(step, metrics.running_init(jnp.float64),
+                          (jnp.arange(n + 1), jnp.asarray(t), jnp.asarray(u)))
+    return float(metrics.finalize(acc, t[-1])["chattering_index"])
 
 
 def test_a_limit_cycle_chatters_and_a_smooth_signal_does_not():
     # u = sin t plus a +-a square wave at the sample rate of 1 kHz: TV grows by 2a per sample,
     # the low pass keeps about 1/(pi tau / Ts) of it
     t = np.arange(0, 5.0 + 5e-4, 1e-3)
-    steps = t[:-1] >= 1.0
-
-    def index(u):
-        lp = _np_low_pass(u, t, metrics.CHATTER_TIME_CONSTANT)
-        return np.abs(np.diff(u))[steps].sum() / np.abs(np.diff(lp))[steps].sum()
-
     smooth = np.sin(t)
-    assert index(smooth) == pytest.approx(1.0, abs=5e-3) and not metrics.chatters(index(smooth))
-    cycle = index(smooth + 0.05 * (-1.0) ** np.arange(t.size))
-    assert cycle > 10 and metrics.chatters(cycle)
+    cycle = smooth + 0.05 * (-1.0) ** np.arange(t.size)
+    for u in (smooth, cycle):  # the running index is the numpy one
+        assert _running_index(t, u, 1.0) == pytest.approx(chattering_numpy(t, u, 1.0)[1],
+                                                          rel=1e-9)
+    assert chattering_numpy(t, smooth, 1.0)[1] == pytest.approx(1.0, abs=5e-3)
+    assert not metrics.chatters(_running_index(t, smooth, 1.0))
+    assert chattering_numpy(t, cycle, 1.0)[1] > 10
+    assert metrics.chatters(_running_index(t, cycle, 1.0))

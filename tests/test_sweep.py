@@ -16,6 +16,7 @@ import textwrap
 import numpy as np
 import pytest
 from commands import exit_code
+from reference_metrics import chattering_numpy
 
 import dscjax
 from dscjax import sweep
@@ -436,19 +437,6 @@ def test_diverged_rows_have_nan_metrics_and_are_counted_apart(tmp_path, capsys):
 DELAYED = ["--sample-time", "0.001", "--delay", "1", "--t-final", "2", "--no-plot"]
 
 
-def _chattering_numpy(t, u, t0, tau=0.02):
-    """TV(u) on t >= t0 over that of u low-passed (v_k = v_(k-1) + (1 - e^(-dt/tau))
-    (u_k - v_(k-1)), v_0 = u_0): the index of docs/numerics.md, from saved samples."""
-    v = np.empty_like(u)
-    v[0] = u[0]
-    a = -np.expm1(-np.diff(t) / tau)
-    for k in range(1, len(u)):
-        v[k] = v[k - 1] + a[k - 1] * (u[k] - v[k - 1])
-    steps = t[:-1] >= t0
-    tv = np.abs(np.diff(u))[steps].sum()
-    return tv, tv / np.abs(np.diff(v))[steps].sum()
-
-
 def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsys):
     cfg = tmp_path / "k.toml"
     cfg.write_text("[controller]\nk = [10.0, 5.0]\n")
@@ -468,7 +456,7 @@ def test_a_sweep_counts_the_chattering_runs_and_gives_the_effort(tmp_path, capsy
     # limit cycle amplifies the round-off by which one run differs from a batch's row (XLA
     # fuses them differently) into the third digit, the smooth rows agree to round-off
     for j, sample in enumerate(traces["sample"]):
-        tv, index = _chattering_numpy(traces["t"][j], traces["u"][j], 1.0)
+        tv, index = chattering_numpy(traces["t"][j], traces["u"][j], 1.0)
         rel = 1e-9 if index < 1.5 else 1e-2
         assert cols["tv_u_window"][sample] == pytest.approx(tv, rel=rel)
         assert cols["chattering_index"][sample] == pytest.approx(index, rel=rel)

@@ -46,7 +46,8 @@ def load(args):
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
     spec = common.apply_run_options(args, spec)
     validate_setup(setup)
-    columns(setup, s.free, "--free")  # each path against the setup, before the data and --out
+    # each path against the setup, before the data and --out (Problem.make reads them again)
+    columns(setup, s.free, "--free")
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, "float64"), spec, s, source
 

@@ -231,7 +231,7 @@ def run(args) -> int:
     summary["degraded"]["rule"] = rule
     summary["nominal"]["diverged"] = bool(nominal.diverged)
     summary |= {"nominal_params": {r.name: r.param.nominal(setup) for r in ranges},
-                "run": info | {"loop": sweep.loop_text(info)}, "warnings": warnings}
+                "run": info, "warnings": warnings}
 
     rows, kinds = sweep.trace_rows(c, settings.worst)
     rand_rows = sweep.random_rows(result.n, settings.random, settings.seed, exclude=rows)

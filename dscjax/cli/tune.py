@@ -256,9 +256,10 @@ def check_work_of(args, setup, options, cfg) -> int:
     oc, plants = cfg.optimizer, max(cfg.robust.batch, 1)
     what = common.horizon_text(options.t_final, options.dt, steps)
     if oc.name.generations:
-        rows = oc.population(plants, 1) * plants
+        width = oc.population(plants, 1)
+        rows = width * plants
         one = Work(steps=steps, member_steps=rows * steps)
-        unit = f"generation ({rows // plants} candidates x {plants} plant(s))"
+        unit = f"generation ({width} candidates x {plants} plant(s))"
     else:
         rows = plants
         one = Work(steps=2 * steps, member_steps=2 * plants * steps)

@@ -75,16 +75,20 @@ class Identified:
     seconds: float
 
 
-def validation_record(path: str, record: Record, order: int) -> Record:
-    """The record of --validate (`read`), refused in one line unless it measures the columns
-    of the fitted `record`: the report sets each column's fit beside its validation fit, a
-    column's noise std is the fit's, and the fit's columns chose the experiment (the plant, or
-    the actuator alone)."""
-    val = read(path, order, "--validate")
+def check_validation(val: Record, record: Record) -> Record:
+    """`val`, refused in one line unless it measures the columns of the fitted `record`: the
+    report sets each column's fit beside its validation fit, a column's noise std is the
+    fit's, and the fit's columns chose the experiment (the plant, or the actuator alone)."""
     if list(val.y) != list(record.y):
-        raise ConfigError(f"--validate: {path} measures {', '.join(val.y)}; it must measure "
-                          f"the columns of --data {record.source}: {', '.join(record.y)}")
+        raise ConfigError(f"--validate: {val.source} measures {', '.join(val.y)}; it must "
+                          f"measure the columns of --data {record.source}: "
+                          f"{', '.join(record.y)}")
     return val
+
+
+def validation_record(path: str, record: Record, order: int) -> Record:
+    """The record of --validate (`read`), checked before any fit (`check_validation`)."""
+    return check_validation(read(path, order, "--validate"), record)
 
 
 def identify(setup, spec, record: Record, s: IdentifySettings, validation: Record | None
@@ -100,7 +104,7 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
         where = (f"the last {100 * VALIDATION_SHARE:g} % of the record (t >= "
                  f"{record.t[fitted - 1]:g} s)")
     else:
-        fit_index, val, where = None, validation, validation.source
+        fit_index, val, where = None, check_validation(validation, record), validation.source
     integer(s.segments, "--segments", 1)
     if s.segments > fitted // 10:
         raise ConfigError(f"--segments must be at most {fitted // 10} for {fitted} samples (10 "
@@ -222,4 +226,4 @@ def markdown(s: dict) -> str:
 
 
 __all__ = ["FIGURES", "IdentifySettings", "Identified", "identify", "markdown", "summary_of",
-           "validation_record", "write"]
+           "check_validation", "validation_record", "write"]

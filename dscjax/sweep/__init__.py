@@ -26,7 +26,6 @@ from dscjax.sweep.summary import (
     check_rows,
     float32_trust,
     float64_check,
-    loop_text,
     markdown,
     outcome,
     random_rows,
@@ -38,6 +37,6 @@ from dscjax.sweep.summary import (
 )
 
 __all__ = ["FLOAT32_RTOL", "METRICS", "SweepResult", "SweepSettings", "check_resumable",
-           "check_rows", "check_settings", "float32_trust", "float64_check", "loop_text",
+           "check_rows", "check_settings", "float32_trust", "float64_check",
            "markdown", "outcome", "random_rows", "run_sweep", "sample_record", "scope_text",
            "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]

@@ -14,7 +14,7 @@ import numpy as np
 
 from dscjax import config, device, files, params, validation, xla
 from dscjax.progress import critical
-from dscjax.runspec import RunSpec
+from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import check, counted_levels
 from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows, tiles
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
@@ -197,15 +197,16 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
 
 
 def scope(settings: SweepSettings, spec: RunSpec, ranges) -> dict[str, Any]:
-    """What a sweep runs, as its result's info says it (`summary.scope_text` words it, given
-    "n_samples" too)."""
+    """What a sweep runs, as its result's info says it, the loop in words too
+    (`runspec.loop_words`; `summary.scope_text` words the whole, given "n_samples" too)."""
     return dict(dtype=settings.dtype, t_final=spec.t_final, dt=float(spec.dt),
                 window_start=float(spec.window_start), state_bound=float(spec.state_bound),
                 method=settings.method.name, seed=settings.seed, solver=spec.solver.name,
                 refine=spec.refine, sample_time=spec.sample_time, delay=spec.delay,
                 noise=None if spec.noise is None else np.asarray(spec.noise, float).tolist(),
                 noise_seed=int(spec.noise_seed), discretisation=spec.discretisation.name,
-                ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges})
+                ranges={r.name: [r.low, r.high] + ([r.num] if r.num else []) for r in ranges},
+                loop=loop_words(spec))
 
 
 def _started_chunk(out_dir) -> int | None:

@@ -13,7 +13,7 @@ from dscjax import params
 from dscjax.markdown import escape, figure, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
-from dscjax.runspec import RunSpec, loop_words
+from dscjax.runspec import RunSpec
 from dscjax.simulate import simulate
 from dscjax.sweep.device import METRICS
 from dscjax.sweep.run import RUN_KEYS, SweepResult
@@ -35,13 +35,6 @@ OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
 def run_spec(run: Mapping[str, Any], **table) -> RunSpec:
     """The RunSpec of a sweep's "run" (`run_sweep`'s info, or `run.scope`), `table` over it."""
     return RunSpec.make(run["t_final"], run["dt"], **({k: run[k] for k in RUN_KEYS} | table))
-
-
-def loop_text(run: Mapping[str, Any]) -> str:
-    """The loop of a sweep's "run" in words (`runspec.loop_words`): "the continuous loop (RK4
-    at dt = 0.001 s)" or "the controller sampled every Ts = 0.002 s with a zero-order hold,
-    ..."."""
-    return loop_words(run_spec(run))
 
 
 def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False) -> np.ndarray:
@@ -222,7 +215,7 @@ def scope_text(run: Mapping[str, Any]) -> str:
     ranges = ", ".join(f"{k} in [{v[0]:.4g}, {v[1]:.4g}]" + (f" x{v[2]}" if len(v) > 2 else "")
                        for k, v in run["ranges"].items())
     return (f"{run['n_samples']:,} {what} ({run['method']}, seed {run['seed']}) of {ranges}; "
-            f"T = {run['t_final']:g} s, {run['dtype']}, {loop_text(run)}")
+            f"T = {run['t_final']:g} s, {run['dtype']}, {run['loop']}")
 
 
 def outcome(summary: Mapping[str, Any]) -> list[str]:
