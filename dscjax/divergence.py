@@ -25,6 +25,10 @@ from dscjax.runspec import RunSpec
 
 # refinement levels of a sampled loop: one, to tell an unstable loop from a numerical accident
 SAMPLED_REFINE = 1
+# a run's outcome by the key that counts it, in a sweep's summary and tune's batch counts
+# (docs/sweeps.md)
+OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
+            "n_diverged": "diverged at every step tried"}
 
 
 def refinement_level(j: int, solver: Solver | None = None) -> tuple[Solver, int]:

@@ -25,3 +25,37 @@ def test_ruff_check_is_clean():
     proc = subprocess.run([*ruff, "check", "--no-cache", "."], cwd=ROOT, capture_output=True,
                           text=True, timeout=120)
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+
+
+APPLICATIONS = ("dscjax.sweep", "dscjax.worst", "dscjax.reproduce", "dscjax.identify",
+                "dscjax.export", "dscjax.cli", "tuning")
+
+
+def _imports(path: Path) -> set[str]:
+    """Every module a file imports, at any depth (a function's lazy imports too)."""
+    import ast
+
+    names = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names |= {a.name for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+def _within(name: str, packages) -> bool:
+    return any(name == p or name.startswith(p + ".") for p in packages)
+
+
+def test_the_layers_of_docs_architecture():
+    """The core (the search too) imports no application, and tuning none but dscjax.worst
+    (min-max tuning) (docs/architecture.md, "Modules")."""
+    core = [p for p in (ROOT / "dscjax").rglob("*.py")
+            if not _within(".".join(p.relative_to(ROOT).with_suffix("").parts), APPLICATIONS)]
+    wrong = {f"{p.relative_to(ROOT)} imports {n}" for p in core for n in _imports(p)
+             if _within(n, APPLICATIONS)}
+    allowed = [a for a in APPLICATIONS if a not in ("dscjax.worst", "tuning")]
+    wrong |= {f"{p.relative_to(ROOT)} imports {n}" for p in (ROOT / "tuning").rglob("*.py")
+              for n in _imports(p) if _within(n, allowed)}
+    assert not wrong, sorted(wrong)

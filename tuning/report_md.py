@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from dscjax import metrics
+from dscjax.divergence import OUTCOMES  # (docs/tuning.md, "The held-out check")
 from dscjax.markdown import escape, table
-from dscjax.sweep.summary import OUTCOMES  # (docs/tuning.md, "The held-out check")
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 

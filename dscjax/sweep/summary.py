@@ -10,6 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
+from dscjax.divergence import OUTCOMES
 from dscjax.markdown import escape, figure, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
@@ -27,9 +28,6 @@ QUANTILES = {"min": 0.0, "p01": 0.01, "p05": 0.05, "p25": 0.25, "p50": 0.5, "p75
 # float64 to this relative difference (`float64_check`).
 FLOAT32_RTOL = 1e-3
 MIN_CHECK_ROWS = 3  # a float32 sweep re-checks at least this many rows in float64
-# a row's outcome by its count's key, in summary.md and tune's batch counts (docs/sweeps.md)
-OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
-            "n_diverged": "diverged at every step tried"}
 
 
 def run_spec(run: Mapping[str, Any], **table) -> RunSpec:
