@@ -64,7 +64,8 @@ def run(args) -> int:
     search = {"starts": s.starts, "batch": s.batch, "time_limit": s.time_limit,
               "max_evals": s.max_evals, "coarsening": s.gradient_coarsening}
     worst.check_search(problem, methods, **search)
-    what = common.horizon_text(problem.t_final, problem.dt, problem.n_steps)
+    what = common.horizon_text(problem.spec.t_final, float(problem.spec.dt),
+                              problem.spec.n_steps)
     fix = ("use a shorter --t-final, a larger --dt, or fewer --starts or a smaller --batch "
            "(or a larger --time-limit)")
     each = iteration_work(problem, methods, s.starts, s.batch, s.gradient_coarsening)
@@ -130,7 +131,7 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
     """One iteration of the slowest of `methods` (`validation.Work`): the gradient method
     simulates its M starts and differentiates them on the loop at F dt; random sampling and
     CMA-ES simulate one batch."""
-    n = problem.n_steps
+    n = problem.spec.n_steps
     works = [Work(steps=n + n // coarsening, member_steps=starts * (n + n // coarsening))
              if m == "gradient" else Work(steps=n, member_steps=batch * n) for m in methods]
     slowest = max(works, key=lambda w: w.seconds())
@@ -142,7 +143,7 @@ def iteration_work(problem, methods, starts: int, batch: int, coarsening: int):
 def stored_work(problem):
     """What the search keeps besides its iterations: the waveform's basis on the half-step
     grid, and the worst case re-simulated at every step (worst_trajectory.npz, figures)."""
-    n = problem.n_steps
+    n = problem.spec.n_steps
     _, per_point, size = common.loop_sizes(problem.setup)
     saved = Work(steps=2 * n, member_steps=2 * n, memory=3.0 * (n + 1) * per_point * size,
                  memory_what=f"the worst case's trajectory at every step ({n + 1:,} points)")

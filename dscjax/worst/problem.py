@@ -112,18 +112,6 @@ class Problem:
         return "margin" if self.requirement is not None else self.metric
 
     @property
-    def n_steps(self) -> int:
-        return self.spec.n_steps
-
-    @property
-    def t_final(self) -> float:
-        return self.spec.t_final
-
-    @property
-    def dt(self) -> float:
-        return float(self.spec.dt)
-
-    @property
     def d(self) -> int:
         return len(self.ranges)
 

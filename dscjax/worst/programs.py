@@ -155,7 +155,7 @@ class Programs(search.Problem):
         p = problem  # (checked by `worst_case`, coarsening included)
         basis, project_coef = np.zeros((1, 0)), None
         if p.m:
-            grid = dist_mod.half_step_grid(p.t_final, p.dt)
+            grid = dist_mod.half_step_grid(p.spec.t_final, float(p.spec.dt))
             model = p.setup.plant.disturbance
             basis = np.stack([np.asarray(dist_mod.sample(
                 dataclasses.replace(model, **{model.coefficients_name: e}), grid))

@@ -68,7 +68,7 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
                      config.to_toml(result.setup, options, header=header))
     worst = result.trajectory
     dt_used = float(np.asarray(worst.dt))
-    t_half = half_step_grid(p.t_final, dt_used)
+    t_half = half_step_grid(p.spec.t_final, dt_used)
     dbar = np.asarray(jax.vmap(result.setup.plant.dbar)(t_half))
     files.write_npz(out / "worst_trajectory.npz", {
         **{k: getattr(worst, k) for k in ("t", "x", "u", "w", "e")}, "t_half": t_half,
@@ -110,8 +110,9 @@ def report_md(result: Result) -> str:
     lines = [f"# Worst case of {p.metric}", "",
              f"Worst value: **{verdict(result)}**, found by {result.method}; nominal: "
              f"{result.nominal_value:.6g}.", "",
-             f"Horizon {p.t_final:g} s, dt {p.dt:g} s, window [{float(p.spec.window_start):g}, "
-             f"{p.t_final:g}] s. Searched: {searched(p)}.", "",
+             f"Horizon {p.spec.t_final:g} s, dt {float(p.spec.dt):g} s, window "
+             f"[{float(p.spec.window_start):g}, {p.spec.t_final:g}] s. "
+             f"Searched: {searched(p)}.", "",
              *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
              "## Methods (equal search time; compilation apart)", "", *methods_table(result),
              "", "## Best value against search time", ""]
