@@ -322,8 +322,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
         if key not in allowed:
             raise ConfigError(f"unknown section '{key}' (allowed: "
                               f"{', '.join(allowed + COMMAND_TABLES)})")
-        if not isinstance(value, Mapping):
-            raise ConfigError(f"'{key}' must be a table ([{key}])")
+        validation.table(value, key)
     models = {s: _model(s, d.get(s, {}), REGISTRY[s], KIND_KEY[s], getattr(base, s))
               for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)

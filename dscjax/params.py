@@ -316,10 +316,8 @@ def from_table(table: Mapping[str, Any], field: str, grid: bool = False) -> tupl
     """The ranges of a TOML table such as [sweep.ranges] or [tuning.robust.ranges]:
     ``"plant.g[1]" = [0.8, 1.2]``, ``"hysteresis.alpha" = "30%"``, or dotted keys
     (``hysteresis.alpha = [..]``, which TOML reads as nested tables)."""
-    if not isinstance(table, Mapping):
-        raise ConfigError(f"{field} must be a table ([{field}])")
     return tuple(from_value(Param.parse(name, field), value, grid, f"{field}.{name}")
-                 for name, value in flatten(table).items())
+                 for name, value in flatten(validation.table(table, field)).items())
 
 
 def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:

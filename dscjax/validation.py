@@ -129,11 +129,16 @@ def string(value, field: str) -> str:
     return value
 
 
-def known_keys(table, field: str, allowed) -> None:
-    """ConfigError unless `table` is a table ([field]) of keys among `allowed`."""
-    if not isinstance(table, Mapping):
+def table(value, field: str) -> Mapping:
+    """`value` if it is a table ([field]); else ConfigError."""
+    if not isinstance(value, Mapping):
         raise ConfigError(f"'{field}' must be a table ([{field}])")
-    for key in table:
+    return value
+
+
+def known_keys(value, field: str, allowed) -> None:
+    """ConfigError unless `value` is a table ([field]) of keys among `allowed`."""
+    for key in table(value, field):
         if key not in allowed:
             raise ConfigError(f"unknown key '{field}.{key}' (allowed: {', '.join(allowed)})")
 

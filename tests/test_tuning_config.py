@@ -87,6 +87,8 @@ def test_bad_selection_is_a_clear_error(setup, kwargs, match):
     ({"requirements": {"tube": {}}}, "unknown key 'tuning.requirements.tube'"),
     ({"requirements": {"step": 3}}, r"^'tuning.requirements.step' must be a table "
                                     r"\(\[tuning.requirements.step\]\)$"),
+    ({"robust": {"ranges": 3}}, r"^'tuning.robust.ranges' must be a table "
+                                r"\(\[tuning.robust.ranges\]\)$"),
 ])
 def test_bad_tuning_table_is_a_clear_error(table, match):
     with pytest.raises(ConfigError, match=match):

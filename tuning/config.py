@@ -249,9 +249,7 @@ def _requirements(table, field) -> dict[str, dict[str, float]]:
 
 
 def _paths_table(value, field) -> dict:
-    if not isinstance(value, Mapping):
-        raise ConfigError(f"{field} must be a table ([{field}])")
-    return dict(flatten(value))
+    return dict(flatten(validation.table(value, field)))
 
 
 @dataclasses.dataclass(frozen=True)
