@@ -396,3 +396,15 @@ def test_tracking_is_a_small_error_without_chattering():
     assert judge(0.001, 1.5001, 0.01) == "chatters (index 1.5)"
     assert judge(None, None, 0.01) == "diverged"
     assert judge(5.0, 1.0, None) is None  # no reference: the error is not judged
+
+
+def test_the_ts_sweeps_plant_steps_by_hand():
+    """dt where Ts is a whole multiple of it, else the largest step <= dt dividing Ts; the
+    continuous run takes the finest; no Ts within the horizon: the continuous run alone."""
+    from dscjax.ts_sweep import plant_steps
+
+    kept, steps = plant_steps((0.002, 0.003, 0.05), 0.01, 0.002)
+    assert kept == [0.002, 0.003]  # 0.05 s is past the horizon
+    assert steps == pytest.approx([0.0015, 0.002, 0.0015], rel=1e-12)
+    assert plant_steps((1e-3,), 1e-5, 1e-6) == ([], [1e-6])
+
