@@ -69,8 +69,8 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     which = np.zeros(t.size - 1, np.int32)  # > 0: the segment the interval's end sample starts
     for s, k in enumerate(exp.starts[1:], start=1):
         which[k - 1] = s  # after interval k-1, sample k starts segment s
-    x0 = x_init[0] if exp.plant else jnp.zeros((0,), dtype)
     x_inits = x_init if exp.plant else jnp.zeros((1, 0), dtype)
+    x0 = x_inits[0]
 
     def interval(carry, xs):
         x, h = carry

@@ -17,7 +17,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import config, files
-from dscjax.closed_loop import Setup
 from dscjax.identify import fit as fitting
 from dscjax.identify.data import Record, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
@@ -56,12 +55,11 @@ class IdentifySettings:
 
 @dataclasses.dataclass(frozen=True)
 class Identified:
-    """What `identify` found: the fit's problem and solution, the identified setup, the
-    estimates, the figures of the fit and of the validation, and how long it took."""
+    """What `identify` found: the fit's problem and solution, the estimates, the figures of
+    the fit and of the validation, and how long it took."""
 
     problem: fitting.Problem
     fit: fitting.Fit
-    setup: Setup
     estimates: list
     corr: np.ndarray
     singular_values: np.ndarray
@@ -120,20 +118,20 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
                           "numbers): give starts closer to the data, more --segments, or more "
                           "--starts")
     h0 = None
-    identified = problem.setup_at(jnp.asarray(fit.theta["z"]))
     if validation is None:  # the actuator goes on into the tail from where the fit left it
         head = record.part(0, fitted)
-        h0 = simulate(identified, Experiment.make(head.t, head.u, plant=False,
-                                                  dt=float(spec.dt), hold=s.hold), final=True)
+        h0 = simulate(problem.setup_at(jnp.asarray(fit.theta["z"])),
+                      Experiment.make(head.t, head.u, plant=False, dt=float(spec.dt),
+                                      hold=s.hold), final=True)
     val_problem, val_fit = fitting.validation_fit(problem, fit, val, h0)
-    return Identified(problem, fit, identified, *fitting.estimates(problem, fit),
+    return Identified(problem, fit, *fitting.estimates(problem, fit),
                       fitting.fit_figures(problem, fit), fitting.fit_figures(val_problem, val_fit),
                       where, val_problem, val_fit, costs, time.perf_counter() - t0)
 
 
 def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> list[str]:
     """identified.toml, report.json, report.md (and the figures): the names written."""
-    table = config.to_dict(res.setup, spec)
+    table = config.to_dict(res.val_problem.setup, spec)  # the identified setup, validated
     # the robust tuning box: the 95 % interval of each identifiable number (the report names
     # the others)
     box = {e.name: [e.low, e.high] for e in res.estimates if e.identifiable}

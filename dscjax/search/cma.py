@@ -24,11 +24,7 @@ class ReplayCMA:
     """
 
     def __init__(self, x0, sigma0: float, opts: dict):
-        try:  # a dependency of dscjax, but an environment may lack it
-            import cma
-        except ModuleNotFoundError:
-            raise ModuleNotFoundError("CMA-ES needs the `cma` package, a dependency of dscjax: "
-                                      "pip install 'cma>=3.4'") from None
+        import cma  # (imported on use: only CMA-ES needs it)
         x0 = np.asarray(x0, dtype=float).reshape(-1)
         self.n = x0.size  # the search's dimension
         if self.n == 1:  # pycma 4.5 cannot bound one dimension: a neutral copy of it
