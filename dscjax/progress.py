@@ -34,10 +34,10 @@ from typing import TextIO
 
 from tqdm import tqdm
 
-# A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s"
-LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed, ETA {remaining}"
-# ... before a unit was timed (no rate yet, so no ETA)
+# A plain line: "  sweep  40 % (4000/10000 samples) 00:12 elapsed, ETA 00:18; 2.1e7 steps/s",
+# without the ETA before a unit was timed (no rate yet)
 START_LINE = "{desc} {percentage:3.0f} % ({n_fmt}/{total_fmt} {unit}) {elapsed} elapsed"
+LINE = START_LINE + ", ETA {remaining}"
 # ... and without a total (work that stops on a time limit or a criterion, not a count)
 OPEN_LINE = "{desc} {n_fmt} {unit}, {elapsed} elapsed"
 

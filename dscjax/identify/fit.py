@@ -70,16 +70,18 @@ class Problem(eqx.Module):
     @classmethod
     def make(cls, setup: Setup, record: Record, paths: Sequence[str], *, plant: bool,
              dt: float, segments: int = 1, hold: str = "zoh",
-             sigma: Mapping[str, float] | None = None, fit_index=None) -> Problem:
+             sigma: Mapping[str, float] | None = None, fit_index=None, h0=None) -> Problem:
+        """The problem of fitting `paths` (none: only the start state) of `setup` to
+        `record`."""
         free = [Free(q, log=q.scale or _positive(setup, q) and float(q.value(setup)) > 0)
-                for q in columns(setup, paths, "--free")]
+                for q in (columns(setup, paths, "--free") if paths else ())]
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
         sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
         index = np.arange(len(record)) if fit_index is None else np.asarray(fit_index)
         return cls(setup, exp, {c: jnp.asarray(v) for c, v in record.y.items()},
                    {c: jnp.asarray(v) for c, v in sigma.items()}, jnp.asarray(index),
-                   tuple(free), None, record.source)
+                   tuple(free), h0, record.source)
 
     # -- coordinates ------------------------------------------------------------------------
     def z0(self) -> dict:
@@ -351,11 +353,8 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
     grey-box user compares."""
     setup = problem.setup_at(jnp.asarray(fit.theta["z"]))
     dt = float(np.max(np.diff(np.asarray(problem.exp.t)))) / problem.exp.substeps
-    val = Problem(setup, Experiment.make(record.t, record.u, plant=problem.exp.plant, dt=dt,
-                                         hold=problem.exp.hold),
-                  {c: jnp.asarray(v) for c, v in record.y.items()},
-                  {c: problem.sigma[c] for c in record.y}, jnp.arange(len(record)), (), h0,
-                  record.source)
+    val = Problem.make(setup, record, (), plant=problem.exp.plant, dt=dt, hold=problem.exp.hold,
+                       sigma={c: problem.sigma[c] for c in record.y}, h0=h0)
     return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
 
 
