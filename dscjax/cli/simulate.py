@@ -167,8 +167,7 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
     ref = simulate(cast(setup, np.float64), throw=False,
                    spec=options.replace(dtype="float64", save_every=options.n_steps))
     float64 = {m: float(ref.metrics[m]) for m in metrics}
-    trust = float32_trust({m: [v] for m, v in metrics.items()},
-                          {m: [v] for m, v in float64.items()})
+    trust = float32_trust(metrics, float64)
     return {"rtol": trust["rtol"], "float64": float64, "rel_diff": trust["max_rel_diff"],
             "untrusted": trust["untrusted"]}
 
