@@ -519,9 +519,9 @@ def test_a_gains_file_is_swept_in_the_loop_it_was_tuned_as(tmp_path, capsys):
     parse = build_parser(_available_commands()).parse_args
     _, options, _ = load(parse(["sweep", "--config", str(cfg), "--gains", str(gains)]))
     assert (options.sample_time, options.delay, options.dt) == (0.002, 1, 1e-3)
-    assert (f"dscjax sweep: note: simulation.sample_time = 0.001 in {cfg} gives way to the gains "
-            f"file's 0.002 ({gains}: the loop the gains were tuned as; --sample-time overrides "
-            f"both)") in capsys.readouterr().err
+    assert (f"dscjax sweep: note: simulation.sample_time = 0.001 in {cfg} gives way to {gains}'s "
+            f"0.002 (the loop the gains were tuned as; --sample-time overrides both)"
+            ) in capsys.readouterr().err
     _, options, _ = load(parse(["sweep", "--gains", str(gains), "--sample-time", "0.003"]))
     assert (options.sample_time, options.delay) == (0.003, 1)
 

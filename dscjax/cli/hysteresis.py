@@ -49,19 +49,19 @@ def add_parser(sub):
 
 def run(args) -> int:
     amplitudes = tuple(args.amplitude or FIG1_AMPLITUDES)
-    raw, setup = common.config_data(args), common.config_setup(args)[0]
+    setup, spec = common.config_setup(args)  # spec: [simulation] checked (t_final, dt, device)
     hyst = setup.hysteresis
     hyst.validate("hysteresis")
     validation.finite_tree(hyst, "hysteresis")
-    sim = raw.get("simulation", {})  # a table: `config.from_dict` checked it
-    dt, dt_field = ((args.dt, "--dt") if args.dt is not None else
-                    (sim["dt"], "simulation.dt") if "dt" in sim else (DEFAULT_DT, "--dt"))
-    if args.t_final is not None or "t_final" in sim:
-        t_final, t_field = ((args.t_final, "--t-final") if args.t_final is not None else
-                            (sim["t_final"], "simulation.t_final"))
-    else:
+    sim = common.config_data(args).get("simulation", {})  # which keys the config gave
+    # an option, else the config's key, else the default (named as the option)
+    dt_field = "simulation.dt" if args.dt is None and "dt" in sim else "--dt"
+    dt = sim["dt"] if dt_field == "simulation.dt" else args.dt or DEFAULT_DT
+    t_field = "simulation.t_final" if args.t_final is None and "t_final" in sim else "--t-final"
+    t_final = sim["t_final"] if t_field == "simulation.t_final" else args.t_final
+    if t_final is None:  # three periods on the dt grid
         dt = validation.finite_positive(dt, dt_field)
-        t_final, t_field = max(round(6 * math.pi / args.omega / dt), 1) * dt, "--t-final"
+        t_final = max(round(6 * math.pi / args.omega / dt), 1) * dt
     steps = validation.whole_steps(t_final, dt, t_field, dt_field)
     if args.print_config:
         common.print_config(setup, RunSpec.make(float(t_final), float(dt)))
@@ -71,8 +71,7 @@ def run(args) -> int:
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
         memory_what=f"t, u and w at every step ({k} amplitude(s))"),
         what=common.horizon_text(t_final, dt, steps), fix=common.SHORTER)
-    kind = args.device or validation.string(sim.get("device", "auto"), "simulation.device")
-    choice = common.use_device(args, kind, k)
+    choice = common.use_device(args, args.device or spec.device, k)
     out = prepare_out(args, OUTPUTS)
     common.banner(args, f"{hyst.kind}, u = A sin({args.omega:g} t), A = "
                   f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "

@@ -146,7 +146,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
             for j, p in enumerate(res.names)}
 
     got, want = named(result), named(ref)
-    trust = float32_trust({k: [v] for k, v in got.items()}, {k: [v] for k, v in want.items()})
+    trust = float32_trust(got, want)
     check = {"rtol": trust["rtol"],
              "float64": {k: (None if np.isnan(v) else v) for k, v in want.items()},
              "rel_diff": trust["max_rel_diff"], "sign_flips": trust["sign_flips"],
@@ -154,12 +154,10 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     if not trust["untrusted"]:
         return check, None
 
-    def signed(x):
-        return "n/a" if np.isnan(x) else f"{x:+.3g}"
-
     def why(name):  # the other sign, or one has no value (nan): both values
-        if name in trust["sign_flips"] or np.isnan(got[name]) or np.isnan(want[name]):
-            return f"{signed(got[name])} against {signed(want[name])}"
+        pair = (got[name], want[name])
+        if name in trust["sign_flips"] or np.isnan(pair).any():
+            return " against ".join("n/a" if np.isnan(x) else f"{x:+.3g}" for x in pair)
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences

@@ -139,11 +139,9 @@ def run(args) -> int:
           + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
-        what = ("diverged at every level down to" if diverged is not None else
-                "the reported run is") + f" {used} at dt = {float(traj.dt):g} s"
-        print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop: the "
-              f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what}",
-              file=sys.stderr)
+        what = "diverged at every level down to" if diverged else "the reported run is"
+        print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop); "
+              f"refined: {what} {used} at dt = {float(traj.dt):g} s", file=sys.stderr)
     if diverged is None:
         window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
@@ -169,8 +167,7 @@ def _float64_check(setup, options, metrics: dict[str, float]) -> dict:
     ref = simulate(cast(setup, np.float64), throw=False,
                    spec=options.replace(dtype="float64", save_every=options.n_steps))
     float64 = {m: float(ref.metrics[m]) for m in metrics}
-    trust = float32_trust({m: [v] for m, v in metrics.items()},
-                          {m: [v] for m, v in float64.items()})
+    trust = float32_trust(metrics, float64)
     return {"rtol": trust["rtol"], "float64": float64, "rel_diff": trust["max_rel_diff"],
             "untrusted": trust["untrusted"]}
 

@@ -27,8 +27,7 @@ def add_parser(sub):
         description=__doc__)
     common.add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
-                   help="factors applied to every filter constant tau_i, separated by commas "
-                   "(default 0.25,0.5,1,2,4)")
+                   help="factors applied to every filter constant tau_i (default %(default)s)")
     add_out_arg(p, "results/stability", plot="skip stability.png")
     return p
 
@@ -44,17 +43,16 @@ def run(args) -> int:
         return 0
     steps = options.n_steps
     what = common.horizon_text(options.t_final, options.dt, steps)
-    finest = round(steps / min(DT_FACTORS))
-    if finest > validation.MAX_STEPS:
-        raise validation.ConfigError(
-            f"{what}: the map's finest step, dt * {min(DT_FACTORS):g}, needs {finest:,} steps, "
-            f"more than the {validation.MAX_STEPS:,} the integrator's step counter holds; use "
-            f"a shorter --t-final or a larger --dt")
     # one batch over the tau scales per step size (`map_steps`)
-    each = sum(map_steps(options.t_final, float(options.dt),
-                         [float(options.dt) * f for f in DT_FACTORS]))
-    validation.check_work(validation.Work(steps=each, member_steps=len(scales) * each),
-                          what=what, fix=common.SHORTER)
+    counts = map_steps(options.t_final, float(options.dt),
+                       [float(options.dt) * f for f in DT_FACTORS])
+    if max(counts) > validation.MAX_STEPS:
+        raise validation.ConfigError(
+            f"{what}: the map's finest step, dt * {min(DT_FACTORS):g}, needs {max(counts):,} "
+            f"steps, more than the {validation.MAX_STEPS:,} the integrator's step counter "
+            f"holds; {common.SHORTER}")
+    validation.check_work(validation.Work(steps=sum(counts), member_steps=len(scales)
+                                          * sum(counts)), what=what, fix=common.SHORTER)
     choice = common.use_device(args, options.device, len(scales))
     out = prepare_out(args, OUTPUTS)
     common.banner(args, f"{options.t_final:g} s, dt = {options.dt:g} s, tau x "

@@ -41,9 +41,8 @@ def add_parser(sub):
         "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
         description=__doc__)
     common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
-    p.add_argument("--gains", metavar="FILE", help="a config (e.g. `dscjax tune`'s gains.json) "
-                   "whose [controller] and sampled-controller [simulation] keys (sample_time, "
-                   "delay, noise, ...) are laid over --config; the rest is ignored")
+    p.add_argument("--gains", metavar="FILE", help="a config (e.g. tune's gains.json) whose "
+                   "[controller] and sample_time, delay, noise, ... are laid over --config")
     axes = p.add_mutually_exclusive_group()
     axes.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "
@@ -125,9 +124,8 @@ def _gains(args, setup, options, config_loop: dict):
     for key, value in (continuous | given).items():
         if key in config_loop and config_loop[key] != value:
             common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
-                       f"{args.config} gives way to the gains file's {value!r} ({args.gains}: "
-                       f"the loop the gains were tuned as; --{key.replace('_', '-')} overrides "
-                       f"both)")
+                       f"{args.config} gives way to {args.gains}'s {value!r} (the loop the "
+                       f"gains were tuned as; --{key.replace('_', '-')} overrides both)")
     # the config's run with a continuous controller, then the gains file's keys (checked)
     options = RunSpec.make(**(options.to_table() | continuous), gradient=options.gradient)
     return setup, options.replace(names={k: f"simulation.{k} of --gains {args.gains}"
@@ -146,10 +144,9 @@ def typed_settings(args) -> dict[str, str]:
 def work(settings, steps: int, ranges):
     """The sweep's work (`validation.check_work`): every sample over the horizon, the
     nominal setup and the re-simulated traces; its largest allocation, the results table."""
-    from dscjax.sweep.run import STATUS_COLUMNS
-
     # the sample's number, its parameters, metrics and status
-    n, columns = settings.n_samples(), 1 + len(ranges) + len(sweep.METRICS) + len(STATUS_COLUMNS)
+    n = settings.n_samples()
+    columns = 1 + len(ranges) + len(sweep.METRICS) + len(sweep.run.STATUS_COLUMNS)
     traces = 1 + settings.worst + settings.random  # re-simulated one after another
     return Work(steps=(1 + traces) * steps, member_steps=(n + traces) * steps,
                 memory=8.0 * n * columns,
@@ -255,10 +252,10 @@ def run(args) -> int:
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
+    took = (f"{info['steps_per_s']:.3g} steps/s incl. compilation" if info["steps_per_s"]
+            else "nothing left to run")
     print(f"  wrote {out}/results.npz, summary.json, summary.md, traces.npz"
-          + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, "
-          + (f"{info['steps_per_s']:.3g} steps/s incl. compilation)" if info["steps_per_s"]
-             else "nothing left to run)"))
+          + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, {took})")
     for line in sweep.outcome(summary):
         print(f"  {line}")
     if f32 is not None and f32["untrusted"]:
