@@ -32,19 +32,6 @@ from dscjax.validation import ConfigError
 CONTROLLERS = ("dsc", "backstepping")
 
 
-def law_function(setup) -> tuple[Callable, tuple]:
-    """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it
-    at; backstepping's without its inner jit (`plain_law`), so tracing is measured in full."""
-    ctrl, plant, ref = setup.controller, setup.plant, setup.reference
-    impl = getattr(ctrl, "plain_law", ctrl.law)
-
-    def law(state, x, t):
-        return impl(state, x, t, plant, ref)
-
-    X = initial_state(setup)
-    return law, (X.ctrl, X.x, jnp.zeros((), X.x.dtype))
-
-
 def count_eqns(jaxpr) -> int:
     """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
     total = 0
@@ -94,9 +81,15 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
         raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
     setup = order_n_example(n, dtype=jnp.float64)
     setup = prepared(with_backstepping(setup) if controller == "backstepping" else setup)
+    # backstepping's law without its inner jit (`plain_law`), so tracing is measured in full
+    impl = getattr(setup.controller, "plain_law", setup.controller.law)
+    X = initial_state(setup)
+    args = (X.ctrl, X.x, jnp.zeros((), X.x.dtype))
     trace_s, compile_s = [], []
     for _ in range(repeats):
-        law, args = law_function(setup)  # a new function object: nothing cached
+        def law(state, x, t):  # a new function object for each build: nothing cached
+            return impl(state, x, t, setup.plant, setup.reference)
+
         jitted = jax.jit(law)
         t0 = time.perf_counter()
         closed = jax.make_jaxpr(law)(*args)
