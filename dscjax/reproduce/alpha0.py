@@ -106,18 +106,19 @@ class TooStiff(Exception):
         self.dt, self.steps = dt, steps
 
 
-def _simulate(setup, t_final, dt, opts: StudyOptions):
-    steps = int(round(t_final / dt))
-    if steps > opts.max_steps:
-        raise TooStiff(dt, steps)
-    return simulate(setup, t_final, dt, save_every=1, throw=False, refine=0)
+def _simulate(setup, dt, opts: StudyOptions):
+    return simulate(setup, opts.t_final, dt, save_every=1, throw=False, refine=0)
 
 
-def _run(setup, t_final, dt, opts: StudyOptions):
+def _run(setup, dt, opts: StudyOptions):
     """(trajectory, dt): dt halved (at most `max_halvings` times) while the run diverges or
-    alpha max |u'| puts dt beyond dt_safety x RK4's limit; it may still have diverged."""
+    alpha max |u'| puts dt beyond dt_safety x RK4's limit; it may still have diverged.
+    TooStiff where a run would need more than `max_steps` steps."""
     for _ in range(opts.max_halvings + 1):
-        traj = _simulate(setup, t_final, dt, opts)
+        steps = int(round(opts.t_final / dt))
+        if steps > opts.max_steps:
+            raise TooStiff(dt, steps)
+        traj = _simulate(setup, dt, opts)
         if bool(traj.diverged):
             dt /= 2
             continue
@@ -146,7 +147,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     history, converged, last = [], False, None
     for it in range(opts.max_iter):
         setup = _with(base, alpha0, M, opts)
-        traj, dt = _run(setup, opts.t_final, _dt_for(setup.controller.tau, opts), opts)
+        traj, dt = _run(setup, _dt_for(setup.controller.tau, opts), opts)
         if bool(traj.diverged):
             history.append(dict(M=M.tolist(), dt=dt, diverged=True))
             M = 2 * M
@@ -167,7 +168,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
         # the first consistent M may be far above what the run needs (the start is fast)
         setup = _with(base, alpha0, M_tight, opts)
         dt = min(_dt_for(setup.controller.tau, opts), last[1])
-        traj, dt_needed = _run(setup, opts.t_final, dt, dataclasses.replace(opts, max_halvings=0))
+        traj, dt_needed = _run(setup, dt, dataclasses.replace(opts, max_halvings=0))
         why = ("diverged" if bool(traj.diverged) else
                "needs a smaller dt" if dt_needed < dt else None)
         res = None if why else theory.check(setup, traj, alpha0, opts.mu, M=M_tight)
@@ -182,7 +183,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     setup, dt, res = last
     row = _row(alpha0, setup, dt, res, converged, history)
     if opts.t_final / (dt / 2) <= opts.max_steps:
-        traj2 = _simulate(setup, opts.t_final, dt / 2, opts)
+        traj2 = _simulate(setup, dt / 2, opts)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
         v_max = float(np.max(theory.lyapunov(setup, traj2).V))
         row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=v_max,
