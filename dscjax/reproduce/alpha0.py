@@ -32,7 +32,7 @@ from dscjax.plotting import subplots
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
 from dscjax.simulate import canonical, simulate
-from dscjax.validation import RK4_REAL_STABILITY, ConfigError
+from dscjax.validation import RK4_REAL_STABILITY, ConfigError, positive
 
 DEFAULT_ALPHA0 = tuple(float(a) for a in np.round(np.geomspace(0.1, 10.0, 10), 4))
 
@@ -56,11 +56,10 @@ class StudyOptions:
     max_steps: int = 2_000_000  # a run needing more steps is skipped, with the dt it needed
 
     def validate(self):
-        if not self.alpha0 or min(self.alpha0) <= 0:
-            raise ConfigError(f"alpha0 must be positive values (got {self.alpha0})")
-        for name in ("mu", "t_final", "dt_max", "dt_safety"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
+        if not self.alpha0:
+            raise ConfigError("alpha0 must be one value > 0 or more (got none)")
+        for name in ("alpha0", "mu", "t_final", "dt_max", "dt_safety"):
+            positive(getattr(self, name), name)
 
 
 # what `default_options` changes by order n (n >= 4: as for 4)
