@@ -188,7 +188,7 @@ def criterion(result: dict, reference: str = "the same gains' continuous loop") 
             f"(docs/numerics.md, \"Chattering\").")
 
 
-def table(result: dict, names: Sequence[str], labels: dict | None = None) -> list[str]:
+def table(result: dict, names: Sequence[str]) -> list[str]:
     """The markdown table against Ts, a row per Ts and gain set: windowed L-inf, TV(u) and
     chattering index on the window, the verdict (`judge`); with `result["batch"]` (a batch
     of plants at some Ts, {name: [None or {"p95_tv_u_window", "n_chattering", "n_measured"},
@@ -202,9 +202,8 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
 
     def row(i, ts, n):
         r = result[n]
-        cells = (f"{1e3 * ts:g}", (labels or {}).get(n, n), cell(r["sampled"][i]),
-                 cell(r["tv_u_window"][i]), cell(r["chattering_index"][i], 3),
-                 verdict(r["why_not"][i]))
+        cells = (f"{1e3 * ts:g}", n, cell(r["sampled"][i]), cell(r["tv_u_window"][i]),
+                 cell(r["chattering_index"][i], 3), verdict(r["why_not"][i]))
         if not batch:
             return cells
         b = batch[n][i]
@@ -214,7 +213,7 @@ def table(result: dict, names: Sequence[str], labels: dict | None = None) -> lis
 
     return markdown.table(head, [
         *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in names),
-        *(("continuous", (labels or {}).get(n, n), cell(result[n]["continuous"]),
+        *(("continuous", n, cell(result[n]["continuous"]),
            cell(result[n]["continuous_tv_u_window"]),
            cell(result[n]["continuous_chattering_index"], 3), "") + (("", "") if batch else ())
           for n in names)])

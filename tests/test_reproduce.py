@@ -17,15 +17,9 @@ import dscjax
 from dscjax.cli.main import main
 from dscjax.config import hysteresis_example
 from dscjax.hysteresis import closed_form
-from dscjax.reproduce import (
-    FAMILY,
-    FIGURES,
-    METRIC_FIELDS,
-    RUNS,
-    complexity,
-    family_loops,
-    sampling,
-)
+from dscjax.reproduce import complexity, sampling
+from dscjax.reproduce.figures import FIGURES
+from dscjax.reproduce.runs import FAMILY, METRIC_FIELDS, RUNS, family_loops
 
 T_SHORT = 2.0
 

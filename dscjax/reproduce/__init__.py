@@ -31,18 +31,9 @@ from dscjax import files, ts_sweep
 from dscjax.reproduce import complexity as cx
 from dscjax.reproduce import sampling, theory_section
 from dscjax.reproduce.claims import check_claims, claim_lines, summarize
-from dscjax.reproduce.figures import FIGURES, RC, figures
+from dscjax.reproduce.figures import FIGURES, figures
 from dscjax.reproduce.markdown import summary_markdown
-from dscjax.reproduce.runs import (
-    FAMILY,
-    FIG1_AMPLITUDES,
-    METRIC_FIELDS,
-    RUNS,
-    STYLE,
-    family_loops,
-    run_all,
-    setups,
-)
+from dscjax.reproduce.runs import STYLE, family_loops, run_all, setups
 
 # Defaults of `reproduce` (and of `dscjax reproduce`): 20 s horizon, RK4 step 1 ms (the paper
 # gives neither), PNG figures at 150 dpi, complexity study n = 2..8 with 3 builds per law.
@@ -136,7 +127,5 @@ def written(summary: dict) -> str:
     return (f"{n} figures, " if n else "") + "summary.json and summary.md"
 
 
-__all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "FAMILY", "FIG1_AMPLITUDES",
-           "FIGURES", "METRIC_FIELDS", "RC", "ROWS", "RUNS", "STYLE", "T_FINAL", "check_claims",
-           "claim_lines", "family_loops", "figures", "reproduce", "run_all", "setups",
-           "summarize", "summary_markdown", "written"]
+__all__ = ["COMPLEXITY_ORDERS", "COMPLEXITY_REPEATS", "DPI", "DT", "ROWS", "T_FINAL",
+           "claim_lines", "reproduce", "setups", "written"]

@@ -32,7 +32,7 @@ from dscjax.plotting import subplots
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
 from dscjax.simulate import canonical, simulate
-from dscjax.validation import RK4_REAL_STABILITY, ConfigError
+from dscjax.validation import RK4_REAL_STABILITY, ConfigError, positive
 
 DEFAULT_ALPHA0 = tuple(float(a) for a in np.round(np.geomspace(0.1, 10.0, 10), 4))
 
@@ -51,20 +51,15 @@ class StudyOptions:
     dt_safety: float = 0.5
     margin: float = 0.05  # M = (1 + margin) x the measured max |B| in the fixed point
     max_iter: int = 8  # fixed-point iterations before giving up (reported: not converged)
-    verify_dt: bool = True  # re-run the final gains at dt/2 and report the change
     tau_start: float = 1e-3  # the filter constant the fixed point starts from
     max_halvings: int = 6  # halvings of a run's dt before M is doubled instead
-    # a first consistent run: try once more at M = (1 + margin) x measured, kept if it does
-    # not diverge, needs no smaller dt and still satisfies (59)
-    tighten: bool = True
     max_steps: int = 2_000_000  # a run needing more steps is skipped, with the dt it needed
 
     def validate(self):
-        if not self.alpha0 or min(self.alpha0) <= 0:
-            raise ConfigError(f"alpha0 must be positive values (got {self.alpha0})")
-        for name in ("mu", "t_final", "dt_max", "dt_safety"):
-            if not getattr(self, name) > 0:
-                raise ConfigError(f"{name} must be > 0 (got {getattr(self, name)})")
+        if not self.alpha0:
+            raise ConfigError("alpha0 must be one value > 0 or more (got none)")
+        for name in ("alpha0", "mu", "t_final", "dt_max", "dt_safety"):
+            positive(getattr(self, name), name)
 
 
 # what `default_options` changes by order n (n >= 4: as for 4)
@@ -110,18 +105,19 @@ class TooStiff(Exception):
         self.dt, self.steps = dt, steps
 
 
-def _simulate(setup, t_final, dt, opts: StudyOptions):
-    steps = int(round(t_final / dt))
-    if steps > opts.max_steps:
-        raise TooStiff(dt, steps)
-    return simulate(setup, t_final, dt, save_every=1, throw=False, refine=0)
+def _simulate(setup, dt, opts: StudyOptions):
+    return simulate(setup, opts.t_final, dt, save_every=1, throw=False, refine=0)
 
 
-def _run(setup, t_final, dt, opts: StudyOptions):
+def _run(setup, dt, opts: StudyOptions):
     """(trajectory, dt): dt halved (at most `max_halvings` times) while the run diverges or
-    alpha max |u'| puts dt beyond dt_safety x RK4's limit; it may still have diverged."""
+    alpha max |u'| puts dt beyond dt_safety x RK4's limit; it may still have diverged.
+    TooStiff where a run would need more than `max_steps` steps."""
     for _ in range(opts.max_halvings + 1):
-        traj = _simulate(setup, t_final, dt, opts)
+        steps = int(round(opts.t_final / dt))
+        if steps > opts.max_steps:
+            raise TooStiff(dt, steps)
+        traj = _simulate(setup, dt, opts)
         if bool(traj.diverged):
             dt /= 2
             continue
@@ -136,7 +132,10 @@ def _run(setup, t_final, dt, opts: StudyOptions):
 
 def study_one(base, alpha0: float, opts: StudyOptions,
               log: Callable[[str], None] = lambda s: None) -> dict:
-    """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked."""
+    """One alpha_0: gains (55), fixed point of tau (60) and M, the theorem checked. A first
+    consistent run is tightened once: M = (1 + margin) x measured, kept if it does not diverge,
+    needs no smaller dt and still satisfies (59). The final gains are re-run at dt/2 (when
+    within max_steps) and the change reported (`dt_check`)."""
     t0 = time.perf_counter()
     s0 = prepared(canonical(_with(base, alpha0, np.ones(base.order - 1), opts)))
     X0 = initial_state(s0)
@@ -147,7 +146,7 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     history, converged, last = [], False, None
     for it in range(opts.max_iter):
         setup = _with(base, alpha0, M, opts)
-        traj, dt = _run(setup, opts.t_final, _dt_for(setup.controller.tau, opts), opts)
+        traj, dt = _run(setup, _dt_for(setup.controller.tau, opts), opts)
         if bool(traj.diverged):
             history.append(dict(M=M.tolist(), dt=dt, diverged=True))
             M = 2 * M
@@ -164,11 +163,11 @@ def study_one(base, alpha0: float, opts: StudyOptions,
     if last is None:
         raise RuntimeError(f"alpha_0 = {alpha0}: every run diverged ({history})")
     M_tight = (1 + opts.margin) * last[2]["M_measured"]
-    if opts.tighten and converged and np.any(M_tight < M):
+    if converged and np.any(M_tight < M):
         # the first consistent M may be far above what the run needs (the start is fast)
         setup = _with(base, alpha0, M_tight, opts)
         dt = min(_dt_for(setup.controller.tau, opts), last[1])
-        traj, dt_needed = _run(setup, opts.t_final, dt, dataclasses.replace(opts, max_halvings=0))
+        traj, dt_needed = _run(setup, dt, dataclasses.replace(opts, max_halvings=0))
         why = ("diverged" if bool(traj.diverged) else
                "needs a smaller dt" if dt_needed < dt else None)
         res = None if why else theory.check(setup, traj, alpha0, opts.mu, M=M_tight)
@@ -182,8 +181,8 @@ def study_one(base, alpha0: float, opts: StudyOptions,
             last = (setup, dt, res)
     setup, dt, res = last
     row = _row(alpha0, setup, dt, res, converged, history)
-    if opts.verify_dt and opts.t_final / (dt / 2) <= opts.max_steps:
-        traj2 = _simulate(setup, opts.t_final, dt / 2, opts)
+    if opts.t_final / (dt / 2) <= opts.max_steps:
+        traj2 = _simulate(setup, dt / 2, opts)
         s1 = float(np.max(np.abs(np.asarray(traj2.S)[:, 0])))
         v_max = float(np.max(theory.lyapunov(setup, traj2).V))
         row["dt_check"] = dict(dt=dt / 2, S1_inf=s1, V_max=v_max,

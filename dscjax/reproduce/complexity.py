@@ -32,19 +32,6 @@ from dscjax.validation import ConfigError
 CONTROLLERS = ("dsc", "backstepping")
 
 
-def law_function(setup) -> tuple[Callable, tuple]:
-    """(law, args): a fresh plain function (state, x, t) -> (u, info) and a point to call it
-    at; backstepping's without its inner jit (`plain_law`), so tracing is measured in full."""
-    ctrl, plant, ref = setup.controller, setup.plant, setup.reference
-    impl = getattr(ctrl, "plain_law", ctrl.law)
-
-    def law(state, x, t):
-        return impl(state, x, t, plant, ref)
-
-    X = initial_state(setup)
-    return law, (X.ctrl, X.x, jnp.zeros((), X.x.dtype))
-
-
 def count_eqns(jaxpr) -> int:
     """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
     total = 0
@@ -94,17 +81,21 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
         raise ValueError(f"controller must be one of {CONTROLLERS} (got {controller!r})")
     setup = order_n_example(n, dtype=jnp.float64)
     setup = prepared(with_backstepping(setup) if controller == "backstepping" else setup)
-    trace_s, compile_s, eqns, flops = [], [], None, None
+    # backstepping's law without its inner jit (`plain_law`), so tracing is measured in full
+    impl = getattr(setup.controller, "plain_law", setup.controller.law)
+    X = initial_state(setup)
+    args = (X.ctrl, X.x, jnp.zeros((), X.x.dtype))
+    trace_s, compile_s = [], []
     for _ in range(repeats):
-        law, args = law_function(setup)  # a new function object: nothing cached
+        def law(state, x, t):  # a new function object for each build: nothing cached
+            return impl(state, x, t, setup.plant, setup.reference)
+
         jitted = jax.jit(law)
         t0 = time.perf_counter()
         closed = jax.make_jaxpr(law)(*args)
         t1 = time.perf_counter()
         compiled = jitted.trace(*args).lower().compile()
         t2 = time.perf_counter()
-        eqns = count_eqns(closed.jaxpr)
-        flops = _flops(compiled)
         trace_s.append(t1 - t0)
         compile_s.append(t2 - t1)
         if t2 - t0 > slow_build_s:
@@ -119,7 +110,7 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
     count = jnp.asarray(k)
     eval_s = _median_time(lambda: loop(*args, count), max(repeats, 5)) / k
     build_s = [a + b for a, b in zip(trace_s, compile_s, strict=True)]
-    return dict(controller=controller, n=n, eqns=eqns, flops=flops,
+    return dict(controller=controller, n=n, eqns=count_eqns(closed.jaxpr), flops=_flops(compiled),
                 trace_s=statistics.median(trace_s), compile_s=statistics.median(compile_s),
                 build_s=statistics.median(build_s), eval_s=eval_s, call_s=call_s,
                 repeats=len(trace_s), evals=k)
@@ -168,7 +159,6 @@ def _load_rows(path: Path, settings: dict, log) -> dict:
 
 
 def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: int = 2000,
-          controllers: Sequence[str] = CONTROLLERS,
           log: Callable[[str], None] | None = print, rows_path=None,
           resume: bool = False) -> dict:
     """Rows, fits and the machine context of every controller at every order. Each finished
@@ -182,7 +172,7 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
     rows = []
     t_start = time.perf_counter()
     for n in orders:
-        for c in controllers:
+        for c in CONTROLLERS:
             kept = (c, int(n)) in saved
             row = saved[(c, int(n))] if kept else measure(c, n, repeats=repeats, evals=evals)
             rows.append(row)
@@ -193,9 +183,9 @@ def study(orders: Sequence[int] = tuple(range(2, 9)), repeats: int = 3, evals: i
                 log(f"  complexity n={n} {c:>12}: {row['eqns']:>7} eqns, build "
                     f"{row['build_s']:.3g} s, eval {row['eval_s'] * 1e6:.3g} us  " + (
                         "[kept]" if kept else f"[{time.perf_counter() - t_start:.0f} s]"))
-    mine = {c: [r for r in rows if r["controller"] == c] for c in controllers}
+    mine = {c: [r for r in rows if r["controller"] == c] for c in CONTROLLERS}
     fits = {c: {m: fit_growth([r["n"] for r in mine[c]], [r[m] for r in mine[c]]) for m in METRICS}
-            for c in controllers}
+            for c in CONTROLLERS}
     return dict(rows=rows, fits=fits, orders=list(orders), repeats=repeats, evals=evals,
                 plant="dscjax.order_n_example(n): f_i = 0.2 x_i^2 + 0.2 sin x_i + 0.05 x_(i-1) "
                       "x_i, rho_i = 0.05 + 0.02 (x_1^2 + ... + x_i^2)",

@@ -45,7 +45,6 @@ class Truth(NamedTuple):
     zeta: jax.Array  # () 1/beta (27)
     d: jax.Array  # () the bound d of |d_n| (12)
     g: jax.Array  # (n,) the true g_i
-    g_min: jax.Array  # () as the designer set it in the controller
     g_max: jax.Array  # () max g_i
 
 
@@ -77,8 +76,7 @@ def truth(setup, d=None, t=None) -> Truth:
     beta = setup.hysteresis.effective_slope() * g[-1]
     d = default_d(setup, t) if d is None else d
     return Truth(theta=theta_g, phi=1.0 / g[:-1], beta=beta, zeta=1.0 / beta,
-                 d=jnp.asarray(d, g.dtype), g=g,
-                 g_min=jnp.asarray(setup.controller.g_min, g.dtype), g_max=jnp.max(g))
+                 d=jnp.asarray(d, g.dtype), g=g, g_max=jnp.max(g))
 
 
 class Terms(NamedTuple):

@@ -87,7 +87,7 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     )
     b72_paper = theory.bound_72(C0 + (n - 1) * mu / 2, ALPHA0_PAPER, g_max)
     V = np.asarray(lv.V)
-    sums = {k: np.sum(np.reshape(getattr(lv, k), (len(V), -1)), axis=1) for k, _, _ in GROUPS}
+    sums = term_sums(lv.arrays())
     s1_after = np.asarray(traj.S)[np.asarray(traj.t) >= 1.0, 0]  # none if T < 1 s
     summary = dict(
         alpha0=a0, mu=mu, binding_gain=min(allows, key=allows.get), allows=allows, gains=gains,
@@ -108,15 +108,19 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     return summary, arrays
 
 
-def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
+def term_sums(arrays: dict) -> dict:
+    """{group of `GROUPS`: its terms of (44) summed over i, (T,)} of lyapunov.npz's arrays."""
+    return {k: np.sum(np.reshape(arrays[k], (len(arrays["t"]), -1)), axis=1) for k, _, _ in GROUPS}
+
+
+def plot_lyapunov(arrays: dict, summary: dict, path: Path, dpi: int = 150) -> Path:
     """Top: V(t) of (44) with its terms stacked. Bottom: V against (65) and (71), log axis."""
     t = arrays["t"]
-    parts = [np.sum(np.reshape(arrays[k], (len(t), -1)), axis=1) for k, _, _ in GROUPS]
     import matplotlib
 
     with matplotlib.rc_context(RC):
         fig, (top, bottom) = subplots(2, 1, figsize=(8.8, 6.4), sharex=True, height_ratios=(3, 2))
-        top.stackplot(t, *parts, labels=[lab for _, lab, _ in GROUPS],
+        top.stackplot(t, *term_sums(arrays).values(), labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
         top.plot(t, arrays["V"], color="k", lw=0.8, label="$V$ (44)")
         top.set(ylabel="$V$ and its terms [-]", title="Lyapunov function (44) along the paper's "
@@ -131,7 +135,6 @@ def plot_lyapunov(arrays: dict, summary: dict, path, dpi: int = 150) -> Path:
                    "(data-driven $M$)")
         for ax in (top, bottom):
             ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        path = Path(path)
         files.save_figure(fig, path, dpi=dpi)
     return path
 
