@@ -19,7 +19,6 @@ from dscjax.cli.out import check_out, kept_text, rerun_command, resume_command
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
 EXIT_NO_SPACE = 4
-EXIT_INTERRUPTED = 130  # Ctrl-C; SIGTERM 143, SIGHUP 129: 128 + the signal's number
 
 
 class _Parser(argparse.ArgumentParser):
@@ -48,14 +47,7 @@ class _Version(argparse.Action):
 
 
 def _available_commands():
-    out = {}
-    for name, module in COMMANDS.items():
-        try:
-            out[name] = importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name != module:
-                raise
-    return out
+    return {name: importlib.import_module(module) for name, module in COMMANDS.items()}
 
 
 def build_parser(commands) -> argparse.ArgumentParser:
@@ -152,7 +144,7 @@ def main(argv=None) -> int:
                 if isinstance(stop, Abort) else f"interrupted{by}")
         print(f"\ndscjax {args.command}: {what}" + (f"; {note}" if note else ""),
               file=sys.stderr)
-        return 128 + signum  # EXIT_INTERRUPTED for Ctrl-C
+        return 128 + signum  # 130 for Ctrl-C, 143 SIGTERM, 129 SIGHUP
 
 
 if __name__ == "__main__":

@@ -119,8 +119,6 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     try:
         new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
         args.exit_stack.callback(_remove_if_empty, new)
-        if out.exists() and not out.is_dir():
-            raise NotADirectoryError(0, "it is a file, not a directory")
         out.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=out, prefix=".dscjax-write-test-")
         os.close(fd)
