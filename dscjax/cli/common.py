@@ -35,33 +35,6 @@ COMMANDS = {
 }
 
 
-def settings_groups() -> dict:
-    """{table: the settings group declaring it}: the tables of docs/settings.md."""
-    from dscjax.identify.run import IdentifySettings
-    from dscjax.sweep import SweepSettings
-    from dscjax.worst import WorstSettings
-    from tuning.config import TuningConfig
-
-    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig,
-            "worst": WorstSettings, "identify": IdentifySettings}
-
-
-
-def settings_docs(text: str) -> str:
-    """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
-    settings -->` replaced by the key table of the group NAME, generated from its declarations
-    (`dscjax.settings.doc_rows`); tests/test_settings.py checks docs/settings.md is current."""
-    import re
-
-    groups = settings_groups()
-
-    def table(match):
-        rows = settings.doc_rows(groups[match[1]], f"{match[1]}.")
-        return "\n".join([f"<!-- settings {match[1]} -->", *rows, "<!-- end settings -->"])
-
-    return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
-
-
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
     anything else is refused with the allowed range and the value (`rules.AtLeast`)."""
