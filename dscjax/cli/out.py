@@ -94,11 +94,8 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
     ours = set(outputs.found(out))
     if not ours:
         return {}
-    found = {}
-    for name, module in COMMANDS.items():
-        theirs = importlib.import_module(module).OUTPUTS
-        if name != args.command and theirs != outputs:
-            found[name] = set(theirs.found(out))
+    found = {name: set(importlib.import_module(module).OUTPUTS.found(out))
+             for name, module in COMMANDS.items() if name != args.command}
     clash = {}
     for name, theirs in found.items():
         others = set().union(ours, *(f for n, f in found.items() if n != name))

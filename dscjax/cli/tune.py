@@ -11,8 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from dscjax import config, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
@@ -65,9 +63,8 @@ def interrupt_hint(args) -> str:
 
     if (Path(args.out) / "adversarial.json").exists():
         return resume_text(args, f"the finished rounds and searches are kept in {args.out}")
-    path = Path(args.out) / "checkpoint.json"
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads((Path(args.out) / "checkpoint.json").read_text())
     except (OSError, ValueError):
         return kept_text(args, OUTPUTS)
     return resume_text(args, f"the checkpoint (iteration {meta.get('iteration')}, best loss "
@@ -86,8 +83,8 @@ def load(args):
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
     if args.gains:
-        gains = config.read(args.gains, "--gains")
-        setup, options = config.from_dict(gains, base=setup, base_spec=options)
+        setup, options = config.from_dict(config.read(args.gains, "--gains"), base=setup,
+                                          base_spec=options)
     cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
               if k != "rounds"]
@@ -100,7 +97,7 @@ def load(args):
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
-    return setup, options, cfg
+    return cast(setup, "float64"), options, cfg
 
 
 def run(args) -> int:
@@ -111,7 +108,6 @@ def run(args) -> int:
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
-    setup = cast(setup, np.float64)
     if args.print_config:
         common.print_config(setup, options,
                             {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
