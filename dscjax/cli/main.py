@@ -65,17 +65,8 @@ def build_parser(commands) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in commands.values():
         module.add_parser(sub)
-    parser.subcommands = sub.choices  # name -> its parser (`parse`)
+    parser.subcommands = sub.choices  # name -> its parser (`main`)
     return parser
-
-
-def parse(parser, argv):
-    """The arguments, an unknown one reported by the subcommand it was given to
-    (`dscjax hysteresis: error: unrecognized arguments: ...`, one line, exit 2)."""
-    args, unknown = parser.parse_known_args(argv)
-    if unknown:
-        parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
-    return args
 
 
 def typed_program() -> list[str]:
@@ -93,7 +84,9 @@ def main(argv=None) -> int:
     # the program as typed (hints repeat it); "dscjax" when called with arguments (tests)
     prog = typed_program() if argv is None else ["dscjax"]
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parse(parser, argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # reported by the subcommand it was given to ("dscjax hysteresis: error: ...")
+        parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv, args.prog = argv, prog
     # Float64 is the default everywhere in the CLI; --float32 casts the setup instead.
     os.environ.setdefault("JAX_ENABLE_X64", "1")

@@ -54,8 +54,7 @@ def add_parser(sub):
 def resumable(args) -> bool:
     """Does --out hold a run that `--resume` continues (its checkpoint, or the record of the
     adversarial rounds)?"""
-    out = Path(args.out)
-    return (out / "checkpoint.json").exists() or (out / "adversarial.json").exists()
+    return any((Path(args.out) / name).exists() for name in ("checkpoint.json", "adversarial.json"))
 
 
 def interrupt_hint(args) -> str:
@@ -262,12 +261,12 @@ def check_work_of(args, setup, options, cfg) -> int:
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
         if plants == 1 or isinstance(oc.gradient.chosen(0, plants, cfg.robust.over), Plants):
             one = one + common.gradient_work(setup, steps)  # time-parallel
+    fix, limit = common.SHORTER, {}
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
-        check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
-                   limit_s=oc.time_limit, limit=f"{name} {oc.time_limit:g} s")
-    else:
-        check_work(one, what=f"one {unit} of {what}", fix=common.SHORTER)
+        fix += f", or a larger {name}"
+        limit = {"limit_s": oc.time_limit, "limit": f"{name} {oc.time_limit:g} s"}
+    check_work(one, what=f"one {unit} of {what}", fix=fix, **limit)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
     if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
