@@ -149,12 +149,37 @@ def test_doc_rows_list_every_key_with_default_range_and_option():
     assert len(rows) == 2 + 6
 
 
+def settings_groups() -> dict:
+    """{table: the settings group declaring it}: the tables of docs/settings.md."""
+    from dscjax.identify.run import IdentifySettings
+    from dscjax.runspec import Simulation
+    from dscjax.sweep import SweepSettings
+    from dscjax.worst import WorstSettings
+    from tuning.config import TuningConfig
+
+    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig,
+            "worst": WorstSettings, "identify": IdentifySettings}
+
+
+def settings_docs(text: str) -> str:
+    """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
+    settings -->` replaced by the key table of the group NAME, generated from its declarations
+    (`dscjax.settings.doc_rows`)."""
+    import re
+
+    groups = settings_groups()
+
+    def table(match):
+        rows = st.doc_rows(groups[match[1]], f"{match[1]}.")
+        return "\n".join([f"<!-- settings {match[1]} -->", *rows, "<!-- end settings -->"])
+
+    return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
+
+
 def test_docs_settings_md_holds_the_declarations_tables():
     """docs/settings.md's key tables are generated from the declarations: regenerated, the
-    page is unchanged (regenerate it with cli.common.settings_docs)."""
+    page is unchanged (regenerate it with settings_docs above)."""
     from pathlib import Path
-
-    from dscjax.cli.common import settings_docs, settings_groups
 
     page = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
     text = page.read_text()

@@ -35,33 +35,6 @@ COMMANDS = {
 }
 
 
-def settings_groups() -> dict:
-    """{table: the settings group declaring it}: the tables of docs/settings.md."""
-    from dscjax.identify.run import IdentifySettings
-    from dscjax.sweep import SweepSettings
-    from dscjax.worst import WorstSettings
-    from tuning.config import TuningConfig
-
-    return {"simulation": Simulation, "sweep": SweepSettings, "tuning": TuningConfig,
-            "worst": WorstSettings, "identify": IdentifySettings}
-
-
-
-def settings_docs(text: str) -> str:
-    """`text` (a docs page) with each marked block `<!-- settings NAME -->` ... `<!-- end
-    settings -->` replaced by the key table of the group NAME, generated from its declarations
-    (`dscjax.settings.doc_rows`); tests/test_settings.py checks docs/settings.md is current."""
-    import re
-
-    groups = settings_groups()
-
-    def table(match):
-        rows = settings.doc_rows(groups[match[1]], f"{match[1]}.")
-        return "\n".join([f"<!-- settings {match[1]} -->", *rows, "<!-- end settings -->"])
-
-    return re.sub(r"<!-- settings (\w+) -->.*?<!-- end settings -->", table, text, flags=re.S)
-
-
 def count(low: int = 0):
     """An argparse type: an integer >= low, also written as an integral float (1e5, 100000.0);
     anything else is refused with the allowed range and the value (`rules.AtLeast`)."""
@@ -143,11 +116,19 @@ def run_overrides(args) -> tuple[dict, dict]:
 
 def apply_run_options(args, spec):
     """`spec` with the command line's [simulation] options laid over it (checked; a message
-    names the option), and for a command with --device, its device one that may run here
-    (`portable_device`)."""
+    names the option). For a command with --device, its device one that may run here: a config
+    file's `simulation.device = "gpu"` on a machine without an accelerator is a preference of
+    the run it was written for (a gains.json of `tune --device gpu`), not of the file, so it
+    runs on the CPU ("auto") after a one-line note on stderr. A device typed on the command
+    line is left to `choose_device`, which refuses one that is not here."""
     overrides, names = run_overrides(args)
     spec = spec.replace(names=names, **overrides) if overrides else spec
-    return portable_device(args, spec) if hasattr(args, "device") else spec
+    if (not hasattr(args, "device") or args.device or spec.device != "gpu"
+            or any(d.platform != "cpu" for d in device.visible())):
+        return spec
+    say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
+        f"the CPU")
+    return spec.replace(device="auto")
 
 
 def check_noise(args, setup, spec) -> None:
@@ -158,20 +139,6 @@ def check_noise(args, setup, spec) -> None:
     given = getattr(args, "noise", None) is not None
     with blame_options({"simulation.noise": "--noise"} if given else {}):
         check(setup, spec, batched=True)  # batched: the noise alone is checked
-
-
-def portable_device(args, spec):
-    """`spec` where its device may run here: a config file's `simulation.device = "gpu"` on a
-    machine without an accelerator is a preference of the run it was written for (a gains.json
-    of `tune --device gpu`), not of the file, so it runs on the CPU ("auto") after a one-line
-    note on stderr. A device typed on the command line is left to `choose_device`, which
-    refuses one that is not here."""
-    if (getattr(args, "device", None) or spec.device != "gpu"
-            or any(d.platform != "cpu" for d in device.visible())):
-        return spec
-    say(args, "note", f"simulation.device = 'gpu' in {args.config}: no GPU here; running on "
-        f"the CPU")
-    return spec.replace(device="auto")
 
 
 def choose_device(args, kind: str, rows: int = 1):

@@ -19,7 +19,6 @@ from dscjax.cli.out import check_out, kept_text, rerun_command, resume_command
 EXIT_USAGE = 2
 EXIT_DIVERGED = 3
 EXIT_NO_SPACE = 4
-EXIT_INTERRUPTED = 130  # Ctrl-C; SIGTERM 143, SIGHUP 129: 128 + the signal's number
 
 
 class _Parser(argparse.ArgumentParser):
@@ -48,14 +47,7 @@ class _Version(argparse.Action):
 
 
 def _available_commands():
-    out = {}
-    for name, module in COMMANDS.items():
-        try:
-            out[name] = importlib.import_module(module)
-        except ModuleNotFoundError as err:
-            if err.name != module:
-                raise
-    return out
+    return {name: importlib.import_module(module) for name, module in COMMANDS.items()}
 
 
 def build_parser(commands) -> argparse.ArgumentParser:
@@ -73,17 +65,8 @@ def build_parser(commands) -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for module in commands.values():
         module.add_parser(sub)
-    parser.subcommands = sub.choices  # name -> its parser (`parse`)
+    parser.subcommands = sub.choices  # name -> its parser (`main`)
     return parser
-
-
-def parse(parser, argv):
-    """The arguments, an unknown one reported by the subcommand it was given to
-    (`dscjax hysteresis: error: unrecognized arguments: ...`, one line, exit 2)."""
-    args, unknown = parser.parse_known_args(argv)
-    if unknown:
-        parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
-    return args
 
 
 def typed_program() -> list[str]:
@@ -101,7 +84,9 @@ def main(argv=None) -> int:
     # the program as typed (hints repeat it); "dscjax" when called with arguments (tests)
     prog = typed_program() if argv is None else ["dscjax"]
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = parse(parser, argv)
+    args, unknown = parser.parse_known_args(argv)
+    if unknown:  # reported by the subcommand it was given to ("dscjax hysteresis: error: ...")
+        parser.subcommands[args.command].error(f"unrecognized arguments: {' '.join(unknown)}")
     args.argv, args.prog = argv, prog
     # Float64 is the default everywhere in the CLI; --float32 casts the setup instead.
     os.environ.setdefault("JAX_ENABLE_X64", "1")
@@ -152,7 +137,7 @@ def main(argv=None) -> int:
                 if isinstance(stop, Abort) else f"interrupted{by}")
         print(f"\ndscjax {args.command}: {what}" + (f"; {note}" if note else ""),
               file=sys.stderr)
-        return 128 + signum  # EXIT_INTERRUPTED for Ctrl-C
+        return 128 + signum  # 130 for Ctrl-C, 143 SIGTERM, 129 SIGHUP
 
 
 if __name__ == "__main__":

@@ -94,11 +94,8 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
     ours = set(outputs.found(out))
     if not ours:
         return {}
-    found = {}
-    for name, module in COMMANDS.items():
-        theirs = importlib.import_module(module).OUTPUTS
-        if name != args.command and theirs != outputs:
-            found[name] = set(theirs.found(out))
+    found = {name: set(importlib.import_module(module).OUTPUTS.found(out))
+             for name, module in COMMANDS.items() if name != args.command}
     clash = {}
     for name, theirs in found.items():
         others = set().union(ours, *(f for n, f in found.items() if n != name))
@@ -119,8 +116,6 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
     try:
         new = [p for p in (out, *out.parents) if not p.exists()]  # created here, leaf first
         args.exit_stack.callback(_remove_if_empty, new)
-        if out.exists() and not out.is_dir():
-            raise NotADirectoryError(0, "it is a file, not a directory")
         out.mkdir(parents=True, exist_ok=True)
         fd, probe = tempfile.mkstemp(dir=out, prefix=".dscjax-write-test-")
         os.close(fd)

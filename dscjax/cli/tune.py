@@ -11,8 +11,6 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 from dscjax import config, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
@@ -56,8 +54,7 @@ def add_parser(sub):
 def resumable(args) -> bool:
     """Does --out hold a run that `--resume` continues (its checkpoint, or the record of the
     adversarial rounds)?"""
-    out = Path(args.out)
-    return (out / "checkpoint.json").exists() or (out / "adversarial.json").exists()
+    return any((Path(args.out) / name).exists() for name in ("checkpoint.json", "adversarial.json"))
 
 
 def interrupt_hint(args) -> str:
@@ -65,9 +62,8 @@ def interrupt_hint(args) -> str:
 
     if (Path(args.out) / "adversarial.json").exists():
         return resume_text(args, f"the finished rounds and searches are kept in {args.out}")
-    path = Path(args.out) / "checkpoint.json"
     try:
-        meta = json.loads(path.read_text())
+        meta = json.loads((Path(args.out) / "checkpoint.json").read_text())
     except (OSError, ValueError):
         return kept_text(args, OUTPUTS)
     return resume_text(args, f"the checkpoint (iteration {meta.get('iteration')}, best loss "
@@ -86,8 +82,8 @@ def load(args):
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
     if args.gains:
-        gains = config.read(args.gains, "--gains")
-        setup, options = config.from_dict(gains, base=setup, base_spec=options)
+        setup, options = config.from_dict(config.read(args.gains, "--gains"), base=setup,
+                                          base_spec=options)
     cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
               if k != "rounds"]
@@ -100,7 +96,7 @@ def load(args):
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
-    return setup, options, cfg
+    return cast(setup, "float64"), options, cfg
 
 
 def run(args) -> int:
@@ -111,7 +107,6 @@ def run(args) -> int:
     from tuning.runner import run as run_tuning
 
     setup, options, cfg = load(args)
-    setup = cast(setup, np.float64)
     if args.print_config:
         common.print_config(setup, options,
                             {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
@@ -266,12 +261,12 @@ def check_work_of(args, setup, options, cfg) -> int:
         unit = f"iteration ({plants} plant(s), a value and a gradient)"
         if plants == 1 or isinstance(oc.gradient.chosen(0, plants, cfg.robust.over), Plants):
             one = one + common.gradient_work(setup, steps)  # time-parallel
+    fix, limit = common.SHORTER, {}
     if oc.time_limit:
         name = "--time-limit" if args.time_limit is not None else "tuning.optimizer.time_limit"
-        check_work(one, what=f"one {unit} of {what}", fix=f"{common.SHORTER}, or a larger {name}",
-                   limit_s=oc.time_limit, limit=f"{name} {oc.time_limit:g} s")
-    else:
-        check_work(one, what=f"one {unit} of {what}", fix=common.SHORTER)
+        fix += f", or a larger {name}"
+        limit = {"limit_s": oc.time_limit, "limit": f"{name} {oc.time_limit:g} s"}
+    check_work(one, what=f"one {unit} of {what}", fix=fix, **limit)
     # after the search: start and tuned gains on the training and held-out batches, figures
     after = Work(steps=6 * steps, member_steps=2 * (plants + cfg.heldout.batch + 2) * steps)
     if cfg.heldout.batch:  # the margins (tuning.margins), each a batch of the two gain sets
