@@ -51,10 +51,8 @@ SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): d
 
 def _plain(value):
     a = np.asarray(value)
-    if a.dtype.kind == "f":
-        shortest = np.vectorize(lambda x: validation.shortest(x, a.dtype), otypes=[object])
-        return shortest(a).tolist()
-    return a.tolist() if a.dtype == bool or a.ndim > 1 else a.astype(float).tolist()
+    dtype = a.dtype if a.dtype.kind == "f" else np.float64
+    return np.vectorize(lambda x: validation.shortest(x, dtype), otypes=[object])(a).tolist()
 
 
 def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str, Any]:
@@ -273,7 +271,8 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
            base):
     """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
     `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
-    kind = table.get(kind_key, type(base).kind if base is not None else None)
+    default_kind = type(base).kind if base is not None else None
+    kind = validation.table(table, field).get(kind_key, default_kind)
     validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
@@ -288,10 +287,8 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
     for name, f in fields.items():
         default = getattr(base, name) if base is not None else f.default
         if name in table and (field, name) in SUBMODELS:
-            sub = f"{field}.{name}"
-            if not isinstance(table[name], Mapping):
-                raise ConfigError(f"'{sub}' must be a table ([{sub}]) with a 'kind' key")
-            values[name] = _model(sub, table[name], SUBMODELS[field, name], "kind", default)
+            values[name] = _model(f"{field}.{name}", table[name], SUBMODELS[field, name], "kind",
+                                  default)
         elif name in table:
             value = _coerce(field, name, table[name], bool(f.metadata.get("static")), default)
             coefficients = getattr(cls, "coefficients_name", None)

@@ -382,10 +382,9 @@ def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     paths = ("hysteresis.lam", "hysteresis.psi")
     if not any(p in by for p in paths):
         return
-    try:  # a number not varied is the range [nominal, nominal]
-        lam, psi = (by.get(p) or Range(Param(p), rel=0.0).resolve(setup) for p in paths)
-    except KeyError:
-        return
+    # a number not varied is the range [nominal, nominal]; lam and psi are both the
+    # backlash model's, whose other one `check` has found
+    lam, psi = (by.get(p) or Range(Param(p), rel=0.0).resolve(setup) for p in paths)
     if not lam.low > psi.high:
         lam_txt, psi_txt = (f"[{r.low:g}, {r.high:g}]" if r.name in by else f"{r.low:g} (fixed)"
                             for r in (lam, psi))

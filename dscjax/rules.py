@@ -32,11 +32,8 @@ class Rule:
     metavar = "VALUE"
     hint = ""  # how a value is typed on the command line, where it differs from a file
 
-    def parse(self, value):
-        return value
-
     def from_text(self, text: str):
-        return self.parse(_literal(text))
+        return self.parse(_literal(text))  # each rule has its `parse`
 
     def dump(self, value):
         return value

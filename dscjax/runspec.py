@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import settings, validation
-from dscjax.closed_loop import SCHEME, SCHEMES, ExponentialEuler, ForwardEuler
+from dscjax.closed_loop import SCHEME, ExponentialEuler, ForwardEuler
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
@@ -87,7 +87,7 @@ class Simulation:
     discretisation: str = setting(
         "exponential-euler", "sampled controller: how its states advance over a sample, "
         "exponential-euler (c += Ts phi(-Ts/tau) c', exact for the filters) or euler (forward "
-        "Euler, c += Ts c')", Choice(SCHEMES), flag="--discretisation")
+        "Euler, c += Ts c')", Choice(tuple(SCHEME)), flag="--discretisation")
     device: str = setting("auto", "auto (one trajectory and small batches on the CPU, large "
                           "batches on an accelerator), cpu or gpu", Choice(DEVICES),
                           flag="--device")

@@ -297,11 +297,6 @@ class Work:
         return Work(self.steps + other.steps, self.member_steps + other.member_steps,
                     big.memory, big.memory_what)
 
-    def __mul__(self, k: float) -> Work:
-        """The same work done k times over (the memory is reused)."""
-        return dataclasses.replace(self, steps=k * self.steps,
-                                   member_steps=k * self.member_steps)
-
     def seconds(self) -> float:
         """A lower bound on its time at the optimistic speeds of this machine's devices."""
         return max(self.steps / STEPS_PER_S, self.member_steps / batch_speed())
