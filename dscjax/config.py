@@ -192,9 +192,9 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
     import tomlkit
 
     out = tomlkit.table()
-    subtables = {k: v for k, v in table.items() if isinstance(v, Mapping)}
-    for key, value in table.items():
-        if key in subtables:
+    for key, value in sorted(table.items(), key=lambda item: isinstance(item[1], Mapping)):
+        if isinstance(value, Mapping):  # (sub-tables last: TOML reads a key after one into it)
+            out.add(key, _toml_table(f"{path}.{key}", value, docs))
             continue
         text = docs.get(f"{path}.{key}")
         if isinstance(value, Omitted):
@@ -207,8 +207,6 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
             width = len(tomlkit.dumps({key: item}).strip())
             item.comment(text)
             item.trivia.comment_ws = " " * max(1, DOC_COLUMN - width)
-    for key, value in subtables.items():
-        out.add(key, _toml_table(f"{path}.{key}", value, docs))
     return out
 
 
@@ -235,11 +233,9 @@ def _coerce(section: str, name: str, value, static: bool, default):
                 raise ConfigError(f"{field} must be true or false (got {value!r})")
             return value
         return validation.string(value, field)
-    where, item = _find(value, bool | np.bool_)
-    if where is not None:
+    where, item = _find(value, bool | np.bool_ | str | dict)
+    if where is not None:  # NumPy would read true as 1.0 and "10" as the number 10
         validation.not_boolean(item, f"{field}{where}")
-    where, item = _find(value, str | dict)
-    if where is not None:  # NumPy would read "10" as the number 10
         detail = validation.got(item)
         if where:  # "controller.k[1] is a string, 'a'"
             detail = f"{field}{where} is {detail.removeprefix('got ')}"
@@ -313,13 +309,10 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     if base is None:
         base = paper_example(dtype=np.float64)
     allowed = ("simulation", *REGISTRY)
-    for key, value in d.items():
-        if key in COMMAND_TABLES:
-            continue
-        if key not in allowed:
+    for key in d:  # each section is checked a table where it is read
+        if key not in allowed + COMMAND_TABLES:
             raise ConfigError(f"unknown section '{key}' (allowed: "
                               f"{', '.join(allowed + COMMAND_TABLES)})")
-        validation.table(value, key)
     models = {s: _model(s, d.get(s, {}), REGISTRY[s], KIND_KEY[s], getattr(base, s))
               for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
@@ -332,9 +325,7 @@ def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=N
     value the rule gives for this horizon and step; optional keys left out, commented out.
     `extra`: further tables ({name: table}, e.g. a command's [sweep]) printed after these."""
     spec = spec or RunSpec.make()
-    d = to_dict(setup, spec)
-    sim = {k: Omitted(None) if v is None else v for k, v in spec.to_table().items()}
-    for key in spec.rules:  # the value the rule gives, commented out
-        sim[key] = Omitted(spec.save_every if key == "save_every" else float(spec.window_start))
-    d["simulation"] = sim
-    return dumps_toml({**d, **(extra or {})}, header=header, docs=docs)
+    applied = spec.describe()  # a key left to a rule: the value the rule gives, commented out
+    sim = {k: Omitted(applied.get(k)) if v is None else v for k, v in spec.to_table().items()}
+    return dumps_toml({**to_dict(setup, spec), "simulation": sim, **(extra or {})},
+                      header=header, docs=docs)

@@ -53,16 +53,13 @@ def read(path: str | Path, option: str | None = None) -> dict:
 def _toml_where(text: str, message: str) -> str:
     """A TOML parser's message as "line L, column C: not valid TOML: REASON" (the line of the
     end of the file where the parser ran out of text, e.g. an unclosed array)."""
-    found = re.search(r"\s*\(at line (\d+), column (\d+)\)$", message)
-    if found is not None:
-        return (f"line {found[1]}, column {found[2]}: not valid TOML: "
-                f"{message[:found.start()]}")
-    end = re.search(r"\s*\(at end of document\)$", message)
-    if end is not None:
-        last = max(len(text.rstrip("\n").splitlines()), 1)
-        return (f"line {last} (the end of the file): not valid TOML: "
-                f"{message[:end.start()]} (opened and never closed)")
-    return f"not valid TOML: {message}"
+    # tomllib ends every message so (`tomllib._parser.suffixed_err`)
+    found = re.search(r"\s*\(at (?:line (\d+), column (\d+)|end of document)\)$", message)
+    reason = message[:found.start()]
+    if found[1]:
+        return f"line {found[1]}, column {found[2]}: not valid TOML: {reason}"
+    last = max(len(text.rstrip("\n").splitlines()), 1)
+    return f"line {last} (the end of the file): not valid TOML: {reason} (opened and never closed)"
 
 
 class _Pairs(list):

@@ -149,15 +149,13 @@ def set_row(setup, columns: Sequence[Param], row):
 
 
 def _child(obj, name: str, path: str):
-    if dataclasses.is_dataclass(obj):
-        allowed = [f.name for f in dataclasses.fields(obj)]
-    else:
-        allowed = list(obj) if isinstance(obj, Mapping) else []
-    if name in allowed:
-        return getattr(obj, name) if dataclasses.is_dataclass(obj) else obj[name]
+    children = ({f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+                if dataclasses.is_dataclass(obj) else obj if isinstance(obj, Mapping) else {})
+    if name in children:
+        return children[name]
     raise UnknownParameter(
         f"no parameter '{path}': '{name}' is not a field of {type(obj).__name__}"
-        + (f" (allowed: {', '.join(allowed)})" if allowed else " (a number has no fields)"))
+        + (f" (allowed: {', '.join(children)})" if children else " (a number has no fields)"))
 
 
 def get(setup, path: str) -> Any:
