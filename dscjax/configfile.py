@@ -92,10 +92,8 @@ def _toml_duplicate(text: str, message: str) -> str | None:
     if not value:
         return None
     lines = text.splitlines()
-    if value.group(3):
-        n = int(value.group(3)) - 1
-    else:
-        n = max((i for i, ln in enumerate(lines) if ln.strip()), default=0)
+    n = (int(value[3]) - 1 if value[3]  # at the end of the document: its last line
+         else max((i for i, ln in enumerate(lines) if ln.strip()), default=0))
     table = next((_toml_path(ln.strip()) for ln in reversed(lines[:n])
                   if ln.strip().startswith("[")), [])
     key = _toml_path(lines[n].partition("=")[0] + "= 0") if n < len(lines) else []

@@ -77,8 +77,7 @@ class Number(Rule):
 
     def from_text(self, text: str):
         value = _literal(text)
-        if self.integer and isinstance(value, float) and math.isfinite(value) \
-                and value == int(value):
+        if self.integer and isinstance(value, float) and value.is_integer():
             value = int(value)  # 1e5 typed for a count
         return self.parse(value)
 
