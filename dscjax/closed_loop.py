@@ -242,7 +242,6 @@ class ForwardEuler(eqx.Module):
 
 # How a sampled controller may advance its states over one sample, by the name a config gives
 SCHEME = {s.name: s for s in (ExponentialEuler(), ForwardEuler())}
-SCHEMES = tuple(SCHEME)
 
 
 class Sampling(eqx.Module):
@@ -320,9 +319,8 @@ def sampled_vector_field(t, X: SampledState, setup: Setup) -> tuple[SampledState
                                             S=info.S, w=w)
 
 
-def sampled_frozen(setup: Setup) -> SampledState:
-    """Everything but the plant is held inside a step (a prefix of SampledState's tree)."""
-    return SampledState(x=False, h=True, ctrl=True, u=True, past=True)
+# Everything but the plant is held inside a step (a prefix of SampledState's tree)
+SAMPLED_FROZEN = SampledState(x=False, h=True, ctrl=True, u=True, past=True)
 
 
 def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampling, dt):
@@ -334,8 +332,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["SCHEME", "SCHEMES", "Controller", "ExponentialEuler", "ForwardEuler", "Observation",
+__all__ = ["SCHEME", "Controller", "ExponentialEuler", "ForwardEuler", "Observation",
            "SampledState", "Sampling", "Setup", "SpectrumProfile", "State", "decay_rates",
            "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared", "project",
-           "sample_after_step", "sample_update", "sampled_frozen", "sampled_initial_state",
+           "sample_after_step", "sample_update", "sampled_initial_state",
            "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]

@@ -51,10 +51,8 @@ SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): d
 
 def _plain(value):
     a = np.asarray(value)
-    if a.dtype.kind == "f":
-        shortest = np.vectorize(lambda x: validation.shortest(x, a.dtype), otypes=[object])
-        return shortest(a).tolist()
-    return a.tolist() if a.dtype == bool or a.ndim > 1 else a.astype(float).tolist()
+    dtype = a.dtype if a.dtype.kind == "f" else np.float64
+    return np.vectorize(lambda x: validation.shortest(x, dtype), otypes=[object])(a).tolist()
 
 
 def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str, Any]:
@@ -194,9 +192,9 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
     import tomlkit
 
     out = tomlkit.table()
-    subtables = {k: v for k, v in table.items() if isinstance(v, Mapping)}
-    for key, value in table.items():
-        if key in subtables:
+    for key, value in sorted(table.items(), key=lambda item: isinstance(item[1], Mapping)):
+        if isinstance(value, Mapping):  # (sub-tables last: TOML reads a key after one into it)
+            out.add(key, _toml_table(f"{path}.{key}", value, docs))
             continue
         text = docs.get(f"{path}.{key}")
         if isinstance(value, Omitted):
@@ -209,8 +207,6 @@ def _toml_table(path: str, table: Mapping[str, Any], docs: Mapping[str, str]):
             width = len(tomlkit.dumps({key: item}).strip())
             item.comment(text)
             item.trivia.comment_ws = " " * max(1, DOC_COLUMN - width)
-    for key, value in subtables.items():
-        out.add(key, _toml_table(f"{path}.{key}", value, docs))
     return out
 
 
@@ -237,11 +233,9 @@ def _coerce(section: str, name: str, value, static: bool, default):
                 raise ConfigError(f"{field} must be true or false (got {value!r})")
             return value
         return validation.string(value, field)
-    where, item = _find(value, bool | np.bool_)
-    if where is not None:
+    where, item = _find(value, bool | np.bool_ | str | dict)
+    if where is not None:  # NumPy would read true as 1.0 and "10" as the number 10
         validation.not_boolean(item, f"{field}{where}")
-    where, item = _find(value, str | dict)
-    if where is not None:  # NumPy would read "10" as the number 10
         detail = validation.got(item)
         if where:  # "controller.k[1] is a string, 'a'"
             detail = f"{field}{where} is {detail.removeprefix('got ')}"
@@ -273,7 +267,8 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
            base):
     """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
     `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
-    kind = table.get(kind_key, type(base).kind if base is not None else None)
+    default_kind = type(base).kind if base is not None else None
+    kind = validation.table(table, field).get(kind_key, default_kind)
     validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
@@ -288,10 +283,8 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
     for name, f in fields.items():
         default = getattr(base, name) if base is not None else f.default
         if name in table and (field, name) in SUBMODELS:
-            sub = f"{field}.{name}"
-            if not isinstance(table[name], Mapping):
-                raise ConfigError(f"'{sub}' must be a table ([{sub}]) with a 'kind' key")
-            values[name] = _model(sub, table[name], SUBMODELS[field, name], "kind", default)
+            values[name] = _model(f"{field}.{name}", table[name], SUBMODELS[field, name], "kind",
+                                  default)
         elif name in table:
             value = _coerce(field, name, table[name], bool(f.metadata.get("static")), default)
             coefficients = getattr(cls, "coefficients_name", None)
@@ -316,13 +309,10 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
     if base is None:
         base = paper_example(dtype=np.float64)
     allowed = ("simulation", *REGISTRY)
-    for key, value in d.items():
-        if key in COMMAND_TABLES:
-            continue
-        if key not in allowed:
+    for key in d:  # each section is checked a table where it is read
+        if key not in allowed + COMMAND_TABLES:
             raise ConfigError(f"unknown section '{key}' (allowed: "
                               f"{', '.join(allowed + COMMAND_TABLES)})")
-        validation.table(value, key)
     models = {s: _model(s, d.get(s, {}), REGISTRY[s], KIND_KEY[s], getattr(base, s))
               for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
@@ -335,9 +325,7 @@ def to_toml(setup: Setup, spec: RunSpec | None = None, header: str = "", extra=N
     value the rule gives for this horizon and step; optional keys left out, commented out.
     `extra`: further tables ({name: table}, e.g. a command's [sweep]) printed after these."""
     spec = spec or RunSpec.make()
-    d = to_dict(setup, spec)
-    sim = {k: Omitted(None) if v is None else v for k, v in spec.to_table().items()}
-    for key in spec.rules:  # the value the rule gives, commented out
-        sim[key] = Omitted(spec.save_every if key == "save_every" else float(spec.window_start))
-    d["simulation"] = sim
-    return dumps_toml({**d, **(extra or {})}, header=header, docs=docs)
+    applied = spec.describe()  # a key left to a rule: the value the rule gives, commented out
+    sim = {k: Omitted(applied.get(k)) if v is None else v for k, v in spec.to_table().items()}
+    return dumps_toml({**to_dict(setup, spec), "simulation": sim, **(extra or {})},
+                      header=header, docs=docs)

@@ -53,16 +53,13 @@ def read(path: str | Path, option: str | None = None) -> dict:
 def _toml_where(text: str, message: str) -> str:
     """A TOML parser's message as "line L, column C: not valid TOML: REASON" (the line of the
     end of the file where the parser ran out of text, e.g. an unclosed array)."""
-    found = re.search(r"\s*\(at line (\d+), column (\d+)\)$", message)
-    if found is not None:
-        return (f"line {found[1]}, column {found[2]}: not valid TOML: "
-                f"{message[:found.start()]}")
-    end = re.search(r"\s*\(at end of document\)$", message)
-    if end is not None:
-        last = max(len(text.rstrip("\n").splitlines()), 1)
-        return (f"line {last} (the end of the file): not valid TOML: "
-                f"{message[:end.start()]} (opened and never closed)")
-    return f"not valid TOML: {message}"
+    # tomllib ends every message so (`tomllib._parser.suffixed_err`)
+    found = re.search(r"\s*\(at (?:line (\d+), column (\d+)|end of document)\)$", message)
+    reason = message[:found.start()]
+    if found[1]:
+        return f"line {found[1]}, column {found[2]}: not valid TOML: {reason}"
+    last = max(len(text.rstrip("\n").splitlines()), 1)
+    return f"line {last} (the end of the file): not valid TOML: {reason} (opened and never closed)"
 
 
 class _Pairs(list):
@@ -88,20 +85,15 @@ def _toml_duplicate(text: str, message: str) -> str | None:
     """The dotted path of the key (or table) a TOMLDecodeError says is given twice, or None
     if the error is of another kind. tomllib's own message names no key for a value."""
     declared = re.match(r"Cannot (?:declare|redefine namespace) \(([^()]*)\)", message)
-    if declared:
-        try:
-            return ".".join(ast.literal_eval(f"({declared.group(1)})"))
-        except (ValueError, SyntaxError, TypeError):
-            return None
+    if declared:  # tomllib writes the key as a tuple of strings: literal_eval reads it back
+        return ".".join(ast.literal_eval(f"({declared.group(1)})"))
     value = re.match(r"(Cannot overwrite a value|Duplicate inline table key '(.*)') "
                      r"\((?:at line (\d+)|at end of document)", message)
     if not value:
         return None
     lines = text.splitlines()
-    if value.group(3):
-        n = int(value.group(3)) - 1
-    else:
-        n = max((i for i, ln in enumerate(lines) if ln.strip()), default=0)
+    n = (int(value[3]) - 1 if value[3]  # at the end of the document: its last line
+         else max((i for i, ln in enumerate(lines) if ln.strip()), default=0))
     table = next((_toml_path(ln.strip()) for ln in reversed(lines[:n])
                   if ln.strip().startswith("[")), [])
     key = _toml_path(lines[n].partition("=")[0] + "= 0") if n < len(lines) else []

@@ -149,15 +149,13 @@ def set_row(setup, columns: Sequence[Param], row):
 
 
 def _child(obj, name: str, path: str):
-    if dataclasses.is_dataclass(obj):
-        allowed = [f.name for f in dataclasses.fields(obj)]
-    else:
-        allowed = list(obj) if isinstance(obj, Mapping) else []
-    if name in allowed:
-        return getattr(obj, name) if dataclasses.is_dataclass(obj) else obj[name]
+    children = ({f.name: getattr(obj, f.name) for f in dataclasses.fields(obj)}
+                if dataclasses.is_dataclass(obj) else obj if isinstance(obj, Mapping) else {})
+    if name in children:
+        return children[name]
     raise UnknownParameter(
         f"no parameter '{path}': '{name}' is not a field of {type(obj).__name__}"
-        + (f" (allowed: {', '.join(allowed)})" if allowed else " (a number has no fields)"))
+        + (f" (allowed: {', '.join(children)})" if children else " (a number has no fields)"))
 
 
 def get(setup, path: str) -> Any:
@@ -382,10 +380,9 @@ def check_box(ranges: Sequence[Range], setup, field: str) -> None:
     paths = ("hysteresis.lam", "hysteresis.psi")
     if not any(p in by for p in paths):
         return
-    try:  # a number not varied is the range [nominal, nominal]
-        lam, psi = (by.get(p) or Range(Param(p), rel=0.0).resolve(setup) for p in paths)
-    except KeyError:
-        return
+    # a number not varied is the range [nominal, nominal]; lam and psi are both the
+    # backlash model's, whose other one `check` has found
+    lam, psi = (by.get(p) or Range(Param(p), rel=0.0).resolve(setup) for p in paths)
     if not lam.low > psi.high:
         lam_txt, psi_txt = (f"[{r.low:g}, {r.high:g}]" if r.name in by else f"{r.low:g} (fixed)"
                             for r in (lam, psi))

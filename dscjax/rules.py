@@ -32,11 +32,8 @@ class Rule:
     metavar = "VALUE"
     hint = ""  # how a value is typed on the command line, where it differs from a file
 
-    def parse(self, value):
-        return value
-
     def from_text(self, text: str):
-        return self.parse(_literal(text))
+        return self.parse(_literal(text))  # each rule has its `parse`
 
     def dump(self, value):
         return value
@@ -80,8 +77,7 @@ class Number(Rule):
 
     def from_text(self, text: str):
         value = _literal(text)
-        if self.integer and isinstance(value, float) and math.isfinite(value) \
-                and value == int(value):
+        if self.integer and isinstance(value, float) and value.is_integer():
             value = int(value)  # 1e5 typed for a count
         return self.parse(value)
 

@@ -8,9 +8,9 @@ Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gr
 `sampled` (the controller sampled, or continuous), `delay` and `discretisation` (how the
 sampled controller advances its states). Traced fields change without
 recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
-sample), `noise` and `noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side
-(`HOST_FIELDS`): `program()` sets them to fixed values before a spec enters a jitted
-function, so specs differing only there share one compiled program. The [simulation] table,
+sample), `noise` and `noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side,
+never part of a compiled program: `program()` sets them to fixed values before a spec enters a
+jitted function, so specs differing only there share one compiled program. The [simulation] table,
 the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`) all derive from it.
 """
 
@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import settings, validation
-from dscjax.closed_loop import SCHEME, SCHEMES, ExponentialEuler, ForwardEuler
+from dscjax.closed_loop import SCHEME, ExponentialEuler, ForwardEuler
 from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
@@ -37,13 +37,7 @@ from dscjax.validation import ConfigError
 # A saved trajectory keeps at most this many points unless save_every says otherwise (20 s at
 # the default dt = 1e-3 is 20,001 points: every step).
 MAX_SAVED_POINTS = 20_001
-DTYPES = ("float64", "float32")
-DEVICES = ("auto", "cpu", "gpu")
 DEFAULT_REFINE = 6  # halvings of dt tried before a run counts as diverged: down to dt/64
-# settings read on the host only (refinement, the setup's cast, placement, which keys a
-# default rule set): never part of a compiled program
-HOST_FIELDS = ("refine", "dtype", "device", "rules")
-
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,7 +60,7 @@ class Simulation:
     state_bound: float = setting(1e6, "a state beyond this magnitude counts as divergence",
                                  Positive(), flag="--state-bound")
     dtype: str = setting("float64", "the precision of the run (float32: --float32)",
-                         Choice(DTYPES))
+                         Choice(("float64", "float32")))
     solver: str = setting("rk4", "rk4 (classical RK4, the paper's method) or etdrk4 "
                           "(exponential RK4: integrates the stiff decays alpha |u'| and 1/tau "
                           "exactly)", Choice(("rk4", "etdrk4")), flag="--solver")
@@ -87,9 +81,9 @@ class Simulation:
     discretisation: str = setting(
         "exponential-euler", "sampled controller: how its states advance over a sample, "
         "exponential-euler (c += Ts phi(-Ts/tau) c', exact for the filters) or euler (forward "
-        "Euler, c += Ts c')", Choice(SCHEMES), flag="--discretisation")
+        "Euler, c += Ts c')", Choice(tuple(SCHEME)), flag="--discretisation")
     device: str = setting("auto", "auto (one trajectory and small batches on the CPU, large "
-                          "batches on an accelerator), cpu or gpu", Choice(DEVICES),
+                          "batches on an accelerator), cpu or gpu", Choice(("auto", "cpu", "gpu")),
                           flag="--device")
 
 
@@ -138,17 +132,11 @@ class RunSpec(eqx.Module):
         named = {k: getattr(table[k], "name", table[k]) for k in ("solver", "discretisation")
                  if k in table}
         keys = settings.checked(Simulation(t_final=t_final, dt=dt, **(table | named)), f)
-        solver = table.get("solver", keys.solver)
-        t_final, dt, save_every, window_start = (keys.t_final, keys.dt, keys.save_every,
-                                                 keys.window_start)
+        t_final, dt = keys.t_final, keys.dt
         n_steps = validation.whole_steps(t_final, dt, f("t_final"), f("dt"))
-        rules = []
-        if save_every is None:
-            rules.append("save_every")
-            save_every = auto_stride(n_steps)
-        if window_start is None:
-            rules.append("window_start")
-            window_start = default_window(t_final)
+        rules = tuple(k for k in ("save_every", "window_start") if getattr(keys, k) is None)
+        save_every = auto_stride(n_steps) if keys.save_every is None else keys.save_every
+        window_start = default_window(t_final) if keys.window_start is None else keys.window_start
         validation.in_horizon(window_start, t_final, f("window_start"))
         every = 0
         sample_time = keys.sample_time
@@ -168,10 +156,10 @@ class RunSpec(eqx.Module):
         noise = None if keys.noise is None else np.asarray(keys.noise, dtype=float)
         return cls(dt=dt, window_start=float(window_start), state_bound=keys.state_bound,
                    noise=noise, noise_seed=keys.noise_seed, n_steps=n_steps,
-                   save_every=int(save_every), solver=as_solver(solver),
+                   save_every=int(save_every), solver=as_solver(table.get("solver", keys.solver)),
                    gradient=gradient or TimeParallel(), sample_every=every, sampled=every > 0,
                    delay=keys.delay, discretisation=SCHEME[keys.discretisation],
-                   refine=keys.refine, dtype=keys.dtype, device=keys.device, rules=tuple(rules))
+                   refine=keys.refine, dtype=keys.dtype, device=keys.device, rules=rules)
 
     @classmethod
     def from_table(cls, table: Mapping[str, Any], base: RunSpec | None = None,
@@ -245,7 +233,7 @@ class RunSpec(eqx.Module):
             sample_every=jnp.asarray(self.sample_every, dtype))
 
     def program(self) -> RunSpec:
-        """This spec with its host-side fields (`HOST_FIELDS`) at fixed values: what a jitted
+        """This spec with its host-side fields at fixed values: what a jitted
         function takes, so that specs differing only in refinement, dtype, device or rules
         hit the same compiled program."""
         return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
@@ -271,8 +259,8 @@ def auto_stride(n_steps: int) -> int:
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
-__all__ = ["DEFAULT_REFINE", "DEVICES", "DTYPES", "GRADIENTS", "HOST_FIELDS", "MAX_SAVED_POINTS",
-           "OPTIONS", "RunSpec", "Simulation", "auto_stride"]
+__all__ = ["DEFAULT_REFINE", "GRADIENTS", "MAX_SAVED_POINTS", "OPTIONS", "RunSpec", "Simulation",
+           "auto_stride"]
 
 
 def loop_words(sim: RunSpec) -> str:

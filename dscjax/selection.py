@@ -66,16 +66,14 @@ class Linear:
 
 
 @dataclasses.dataclass(frozen=True)
-class Relative(Linear):
-    """value = p exp(z), p the number as it is (each plant's own in a batch): z = 0 there."""
+class Relative:
+    """value = p exp(z), p the number as it is (each plant's own in a batch): z = 0 there
+    (`dscjax.sensitivity`'s, which starts from z = 0 and bounds nothing)."""
 
     name: ClassVar[str] = "relative"
 
     def value(self, z, p):
         return p * jnp.exp(z).astype(p.dtype)
-
-    def z(self, value):
-        return jnp.zeros_like(value)
 
 
 @dataclasses.dataclass(frozen=True)

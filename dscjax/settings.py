@@ -36,11 +36,9 @@ class Setting:
 
 
 def setting(default, doc: str, rule: Rule, *, flag: str | None = None,
-            static: bool = False, factory: Callable[[], Any] | None = None):
-    """A dataclass (or `eqx.Module`) field declared with its `Setting`."""
-    meta: dict[str, Any] = {"setting": Setting(doc, rule, flag)}
-    if static:
-        meta["static"] = True
+            factory: Callable[[], Any] | None = None):
+    """A dataclass field declared with its `Setting`."""
+    meta = {"setting": Setting(doc, rule, flag)}
     if factory is not None:
         return dataclasses.field(default_factory=factory, metadata=meta)
     return dataclasses.field(default=default, metadata=meta)
@@ -185,14 +183,13 @@ def dest(flag: str) -> str:
     return flag.lstrip("-").replace("-", "_")
 
 
-def given(args, obj, prefix: str, *, keys: tuple[str, ...] | None = None
-          ) -> tuple[dict[str, Any], dict[str, str]]:
-    """(table, names): the options of `add_arguments(obj, prefix, keys=keys)` given on the
+def given(args, obj, prefix: str) -> tuple[dict[str, Any], dict[str, str]]:
+    """(table, names): the options of `add_arguments(obj, prefix)` given on the
     command line, as a table for `from_table` (nested groups as sub-tables; "none" typed as
     None), and {config path: option typed} for `cli.common.blame_options`."""
     table: dict[str, Any] = {}
     names: dict[str, str] = {}
-    for path, key, _, _, flag in _options(obj, prefix, keys):
+    for path, key, _, _, flag in _options(obj, prefix, None):
         value = getattr(args, dest(flag), None)
         if value is not None:
             where = table

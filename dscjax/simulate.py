@@ -124,7 +124,7 @@ def _loop(setup: Setup, spec: RunSpec) -> _Loop:
                  lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
                  lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
                  lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
-                 closed_loop.sampled_frozen(setup))
+                 closed_loop.SAMPLED_FROZEN)
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:

@@ -270,7 +270,6 @@ def in_horizon(t, t_final, field: str) -> None:
 # -- what a command's work needs, checked before any of it runs -----------------------------------
 
 TIME_LIMIT_S = 86_400.0  # work that cannot end within a day is refused before it starts
-TIME_LIMIT_TEXT = "the limit of 24 h"
 # The speeds the time check assumes are above any dscjax reaches, so an estimate is a lower
 # bound on the time and a run that could finish is never refused.
 STEPS_PER_S = 5e6  # consecutive steps of one loop (a scan runs its steps one after another)
@@ -296,11 +295,6 @@ class Work:
         big = self if self.memory >= other.memory else other
         return Work(self.steps + other.steps, self.member_steps + other.member_steps,
                     big.memory, big.memory_what)
-
-    def __mul__(self, k: float) -> Work:
-        """The same work done k times over (the memory is reused)."""
-        return dataclasses.replace(self, steps=k * self.steps,
-                                   member_steps=k * self.member_steps)
 
     def seconds(self) -> float:
         """A lower bound on its time at the optimistic speeds of this machine's devices."""
@@ -351,7 +345,7 @@ def fmt_seconds(seconds: float) -> str:
 
 
 def check_work(work: Work, *, what: str, fix: str, limit_s: float = TIME_LIMIT_S,
-               limit: str = TIME_LIMIT_TEXT) -> None:
+               limit: str = "the limit of 24 h") -> None:
     """Refuse, before any of it runs, work that cannot finish on this machine: its largest
     allocation above the memory available, or its time at optimistic speeds (a lower bound)
     above `limit_s` (default a day; a command's own time limit where one piece of its work
