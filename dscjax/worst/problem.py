@@ -230,9 +230,16 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance")
     resolved = params.check(list(ranges), setup, field, t_final=spec.t_final, dt=float(spec.dt),
                             window_start=float(spec.window_start))
-    if requirement is not None and hasattr(requirement, "n_steps"):
-        requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
-    return Problem(setup, resolved, disturbance, metric, spec, requirement, options)
+    return Problem(setup, resolved, disturbance, metric, spec,
+                   with_steps(requirement, spec.n_steps), options)
+
+
+def with_steps(requirement, n_steps: int):
+    """`requirement` measured over a run of `n_steps` (one that counts its steps), else as
+    it is (None included)."""
+    if hasattr(requirement, "n_steps"):
+        return dataclasses.replace(requirement, n_steps=n_steps)
+    return requirement
 
 
 @dataclasses.dataclass(frozen=True)

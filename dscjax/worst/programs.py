@@ -17,7 +17,7 @@ import numpy as np
 from dscjax import disturbance as dist_mod
 from dscjax import params, search, xla
 from dscjax.simulate import dtype_of, run
-from dscjax.worst.problem import Problem, Static, box_overrides
+from dscjax.worst.problem import Problem, Static, box_overrides, with_steps
 
 
 def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
@@ -173,9 +173,7 @@ class Programs(search.Problem):
             spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
                                          save_every=spec.n_steps // f,
                                          sample_every=spec.sample_every // f)
-            extra_g = p.requirement
-            if extra_g is not None and hasattr(extra_g, "n_steps"):
-                extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
+            extra_g = with_steps(p.requirement, spec_g.n_steps)
             vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
         nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])  # (d,) float64 if d = 0
         return cls(p.d, p.m, basis, project_coef, values, vg,
