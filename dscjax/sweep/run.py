@@ -259,17 +259,15 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
 
 
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
-    manifest = out / "sweep.json"
+    manifest = files.resume_file(out, "sweep.json") if resume else out / "sweep.json"
     done = np.zeros(n_blocks, dtype=bool)
-    if resume:
-        check_resumable(out)
     if main:
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
             files.check_record(manifest, "fingerprint", fp, f"--resume: {manifest}")
-            for b in range(n_blocks):
-                done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
+            done = np.array([_read_chunk(_chunk_path(out, b), digest) is not None
+                             for b in range(n_blocks)])
         elif existing and not overwrite:
             raise ConfigError(f"{out} already holds a sweep ({len(existing)} chunk files); "
                               f"use --resume to continue it or --overwrite to start afresh")

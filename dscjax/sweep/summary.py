@@ -42,8 +42,7 @@ def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False)
 def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, list[str]]:
     """k rows worth a full trace: about a third the earliest diverged (if any), the rest
     the worst that track; either kind fills in for the other if there are too few."""
-    n_div = int(np.sum(columns["diverged"]))
-    want_div = min(n_div, -(-k // 3)) if n_div else 0
+    want_div = min(int(np.sum(columns["diverged"])), -(-k // 3))
     worst = rank_rows(columns, k - want_div)
     div = rank_rows(columns, k - len(worst), diverged=True)
     return (np.concatenate([worst, div]).astype(np.int64),

@@ -161,9 +161,9 @@ class Programs(search.Problem):
                 dataclasses.replace(model, **{model.coefficients_name: e}), grid))
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
-        lo, hi = p.lows_highs()
+        lo, hi, bound = p.box()
         spec = p.spec.for_dtype(dtype_of(p.setup)).program()  # (refinement is simulate's)
-        args = (lo, hi, p.disturbance.bound if p.m else 0.0, spec, p.requirement)
+        args = (lo, hi, bound, spec, p.requirement)
         st = p.static()
         values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
