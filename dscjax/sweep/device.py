@@ -81,23 +81,20 @@ class Runner:
     """Runs rounds of blocks, one block per device of the mesh, and returns host arrays;
     `tile`: rows per compiled tile (a sweep passes its `tile_rows`)."""
 
-    AXIS = "batch"
-
     def __init__(self, setup, columns, spec: RunSpec, chunk, devices, tile: int,
                  lean: bool = False):
         self.devices = list(devices)
         # the whole sweep's compiled programs alike: the tiles and the refinements
         self.block = _block_lean if lean else _block
         self.tile = tile
-        self.mesh = Mesh(np.array(self.devices), (self.AXIS,))
         self.n_dev = len(self.devices)
         self.chunk = chunk
         self.columns = tuple(columns)
         self.dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
         # metrics only: the first and last points saved
         self.spec = spec.replace(save_every=spec.n_steps).for_dtype(self.dtype)
-        self.in_sharding = NamedSharding(self.mesh, P(self.AXIS, None))
-        self.out_sharding = NamedSharding(self.mesh, P(self.AXIS))
+        # block b of a round on devices[b]
+        self.out_sharding = NamedSharding(Mesh(np.array(self.devices), ("batch",)), P("batch"))
         self._compiled = False
         self.local = [d for d in self.devices if d.process_index == jax.process_index()]
         self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
@@ -111,12 +108,9 @@ class Runner:
         run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
         single = jax.process_count() == 1
-        jobs = {}
-        for dev, index in self.in_sharding.addressable_devices_indices_map(
-                table.shape).items():
-            block = (index[0].start or 0) // self.chunk
-            if not (single and block >= n_real):  # one process: padding blocks need not run
-                jobs[block] = dev
+        # one process: padding blocks need not run
+        jobs = {b: dev for b, dev in enumerate(self.devices)
+                if dev in self.local and not (single and b >= n_real)}
 
         def dispatch(block_dev):
             block, dev = block_dev

@@ -103,17 +103,17 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
     files.save_figure(fig, path, dpi=110)
 
 
-def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None, bins=None):
+def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None):
     """Median windowed error per cell (diverged: +inf), the edges, the samples per cell and
-    the cells where a sample diverged: one cell per grid point with grid_x/grid_y, else bins x
-    bins cells."""
+    the cells where a sample diverged: one cell per grid point with grid_x/grid_y, else b x b
+    cells (4 <= b <= 40, about 8 samples a cell)."""
     x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
     div = np.asarray(diverged, bool)
     e = np.where(div, np.inf, np.asarray(err, np.float64))
     if grid_x is not None and grid_y is not None:
         ex, ey = _edges_of(grid_x), _edges_of(grid_y)
     else:
-        b = bins or int(np.clip(np.sqrt(x.size / 8.0), 4, 40))
+        b = int(np.clip(np.sqrt(x.size / 8.0), 4, 40))
         ex = np.linspace(x.min(), x.max(), b + 1)
         ey = np.linspace(y.min(), y.max(), b + 1)
     nx, ny = len(ex) - 1, len(ey) - 1
@@ -266,13 +266,12 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
     for a in ax:
         a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
+        a.grid(alpha=0.3)
     ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
                    xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
     ax[0].set_ylabel("tracking error  e = y − y_r")
     ax[1].set_ylabel("control input  u")
     ax[1].set_xlabel("time  t [s]")
-    for a in ax:
-        a.grid(alpha=0.3)
     ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
     fig.suptitle(title, fontsize=11)
     files.save_figure(fig, path, dpi=110)

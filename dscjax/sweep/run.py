@@ -52,7 +52,7 @@ class SweepResult:
 
 
 def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
-                chunk: int, tile: int | None = None) -> dict[str, Any]:
+                chunk: int, tile: int | None) -> dict[str, Any]:
     """Everything that determines the rows of a sweep (and how they are split into files)."""
     setup_dict = config.to_dict(setup)
     setup_dict.pop("simulation", None)
@@ -122,7 +122,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     if tile is not None and (not isinstance(tile, int) or tile < 1):
         raise ConfigError(f"tile must be an integer >= 1 (got {tile!r})")
     tile = tile or tile_rows(devices[0].platform, n)
-    chunk = settings.chunk or (_started_chunk(out_dir) if resume else None)
+    chunk = settings.chunk or (_started_chunk(out_dir) if resume and out_dir is not None else None)
     if not chunk:  # the default, in whole tiles where that keeps the number of blocks
         chunk = _default_chunk(setup, columns, spec, n, devices, tile)
         whole = -(-chunk // tile) * tile
@@ -212,8 +212,6 @@ def scope(settings: SweepSettings, spec: RunSpec, ranges) -> dict[str, Any]:
 def _started_chunk(out_dir) -> int | None:
     """The chunk of the sweep in `out_dir` (its sweep.json), which a resume without a chunk of
     its own continues with; None if there is none."""
-    if out_dir is None:
-        return None
     try:
         chunk = files.read_json(Path(out_dir) / "sweep.json")["fingerprint"]["chunk"]
     except (OSError, ValueError, KeyError, TypeError):
@@ -247,13 +245,12 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
     """ConfigError unless `out` holds a sweep to resume (its sweep.json); given the sweep's
     setup, settings and run, also unless it was made with them (naming the old and new
     values), so that a command refuses before it prints or runs anything."""
-    files.resume_file(out, "sweep.json")
+    manifest = files.resume_file(out, "sweep.json")
     chunk = None if settings is None else settings.chunk or _started_chunk(out)
     if chunk is None or setup is None or spec is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
     ranges = check_settings(settings, setup, spec)
-    manifest = Path(out) / "sweep.json"
     old = files.read_json(manifest).get("fingerprint")
     # the tile follows the devices, known only once placed: run_sweep checks it again
     tile = old.get("tile") if isinstance(old, dict) else None
@@ -262,17 +259,15 @@ def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None 
 
 
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
-    manifest = out / "sweep.json"
+    manifest = files.resume_file(out, "sweep.json") if resume else out / "sweep.json"
     done = np.zeros(n_blocks, dtype=bool)
-    if resume:
-        check_resumable(out)
     if main:
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
             files.check_record(manifest, "fingerprint", fp, f"--resume: {manifest}")
-            for b in range(n_blocks):
-                done[b] = _read_chunk(_chunk_path(out, b), digest) is not None
+            done = np.array([_read_chunk(_chunk_path(out, b), digest) is not None
+                             for b in range(n_blocks)])
         elif existing and not overwrite:
             raise ConfigError(f"{out} already holds a sweep ({len(existing)} chunk files); "
                               f"use --resume to continue it or --overwrite to start afresh")

@@ -30,11 +30,6 @@ FLOAT32_RTOL = 1e-3
 MIN_CHECK_ROWS = 3  # a float32 sweep re-checks at least this many rows in float64
 
 
-def run_spec(run: Mapping[str, Any], **table) -> RunSpec:
-    """The RunSpec of a sweep's "run" (`run_sweep`'s info, or `run.scope`), `table` over it."""
-    return RunSpec.make(run["t_final"], run["dt"], **({k: run[k] for k in RUN_KEYS} | table))
-
-
 def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False) -> np.ndarray:
     """Rows of the k worst samples that did not diverge, largest windowed L-inf error first;
     with `diverged`, of the first k samples to diverge (earliest divergence time first)."""
@@ -47,8 +42,7 @@ def rank_rows(columns: Mapping[str, np.ndarray], k: int, diverged: bool = False)
 def trace_rows(columns: Mapping[str, np.ndarray], k: int) -> tuple[np.ndarray, list[str]]:
     """k rows worth a full trace: about a third the earliest diverged (if any), the rest
     the worst that track; either kind fills in for the other if there are too few."""
-    n_div = int(np.sum(columns["diverged"]))
-    want_div = min(n_div, -(-k // 3)) if n_div else 0
+    want_div = min(int(np.sum(columns["diverged"])), -(-k // 3))
     worst = rank_rows(columns, k - want_div)
     div = rank_rows(columns, k - len(worst), diverged=True)
     return (np.concatenate([worst, div]).astype(np.int64),
@@ -132,7 +126,8 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = [Param.parse(p) for p in result.param_names]
     every = max(1, min(save_every, info["n_steps"]))
-    spec = run_spec(info, save_every=every)
+    spec = RunSpec.make(info["t_final"], info["dt"], **{k: info[k] for k in RUN_KEYS},
+                        save_every=every)
     index = np.asarray(rows, np.int64)
     table = np.stack([result.columns[p][index] for p in result.param_names], axis=1)
     return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]

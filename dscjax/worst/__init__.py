@@ -12,7 +12,6 @@ reports `simulate`'s value (with refinement) on the worst setup (+inf if it dive
 """
 
 from dscjax.worst.problem import (
-    DEFAULT_METRIC,
     METRICS,
     REQUIREMENT,
     DisturbanceSpec,
@@ -22,7 +21,6 @@ from dscjax.worst.problem import (
 )
 from dscjax.worst.programs import Programs
 from dscjax.worst.run import (
-    DEFAULT_BATCH,
     DEFAULT_COARSENING,
     DEFAULT_STARTS,
     METHODS,
@@ -35,7 +33,7 @@ from dscjax.worst.run import (
     worst_case,
 )
 
-__all__ = ["DEFAULT_BATCH", "DEFAULT_COARSENING", "DEFAULT_METRIC", "DEFAULT_STARTS", "METHODS",
-           "METRICS", "REQUIREMENT", "DisturbanceSpec", "Problem", "Programs", "Result",
-           "WorstSettings", "assumption_warnings", "best_value", "check_search", "make_problem",
-           "run_methods", "search_method", "worst_case"]
+__all__ = ["DEFAULT_COARSENING", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
+           "DisturbanceSpec", "Problem", "Programs", "Result", "WorstSettings",
+           "assumption_warnings", "best_value", "check_search", "make_problem", "run_methods",
+           "search_method", "worst_case"]

@@ -119,9 +119,11 @@ class Problem:
     def m(self) -> int:
         return 0 if self.disturbance is None else self.disturbance.size
 
-    def lows_highs(self) -> tuple[np.ndarray, np.ndarray]:
+    def box(self) -> tuple[np.ndarray, np.ndarray, float]:
+        """The traced numbers of the box: its lows, its highs and the waveform's bound."""
         return (np.array([r.low for r in self.ranges], dtype=np.float64),
-                np.array([r.high for r in self.ranges], dtype=np.float64))
+                np.array([r.high for r in self.ranges], dtype=np.float64),
+                self.disturbance.bound if self.m else 0.0)
 
     def static(self) -> Static:
         coef = (f"plant.disturbance.{self.setup.plant.disturbance.coefficients_name}"
@@ -130,9 +132,7 @@ class Problem:
 
     def overrides(self, z):
         """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
-        lo, hi = self.lows_highs()
-        return box_overrides(self.setup, self.static(), z, lo, hi,
-                            self.disturbance.bound if self.m else 0.0)
+        return box_overrides(self.setup, self.static(), z, *self.box())
 
     def setup_at(self, z) -> Setup:
         """The concrete setup of one normalised point."""
@@ -141,7 +141,7 @@ class Problem:
 
     def values_at(self, z) -> tuple[dict[str, float], dict | None]:
         """The searched parameters by config path and the disturbance record of a point."""
-        lo, hi = self.lows_highs()
+        lo, hi, _ = self.box()
         z = np.asarray(z, dtype=np.float64)
         values = {r.name: float(lo[j] + z[j] * (hi[j] - lo[j])) for j, r in enumerate(self.ranges)}
         if self.disturbance is None:
@@ -230,9 +230,16 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance")
     resolved = params.check(list(ranges), setup, field, t_final=spec.t_final, dt=float(spec.dt),
                             window_start=float(spec.window_start))
-    if requirement is not None and hasattr(requirement, "n_steps"):
-        requirement = dataclasses.replace(requirement, n_steps=spec.n_steps)
-    return Problem(setup, resolved, disturbance, metric, spec, requirement, options)
+    return Problem(setup, resolved, disturbance, metric, spec,
+                   with_steps(requirement, spec.n_steps), options)
+
+
+def with_steps(requirement, n_steps: int):
+    """`requirement` measured over a run of `n_steps` (one that counts its steps), else as
+    it is (None included)."""
+    if hasattr(requirement, "n_steps"):
+        return dataclasses.replace(requirement, n_steps=n_steps)
+    return requirement
 
 
 @dataclasses.dataclass(frozen=True)

@@ -17,7 +17,7 @@ import numpy as np
 from dscjax import disturbance as dist_mod
 from dscjax import params, search, xla
 from dscjax.simulate import dtype_of, run
-from dscjax.worst.problem import Problem, Static, box_overrides
+from dscjax.worst.problem import Problem, Static, box_overrides, with_steps
 
 
 def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
@@ -161,9 +161,9 @@ class Programs(search.Problem):
                 dataclasses.replace(model, **{model.coefficients_name: e}), grid))
                 for e in np.eye(p.m)], axis=1)  # (G, m): each unit coefficient on the grid
             project_coef = type(model).project_coefficients
-        lo, hi = p.lows_highs()
+        lo, hi, bound = p.box()
         spec = p.spec.for_dtype(dtype_of(p.setup)).program()  # (refinement is simulate's)
-        args = (lo, hi, p.disturbance.bound if p.m else 0.0, spec, p.requirement)
+        args = (lo, hi, bound, spec, p.requirement)
         st = p.static()
         values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
@@ -173,9 +173,7 @@ class Programs(search.Problem):
             spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
                                          save_every=spec.n_steps // f,
                                          sample_every=spec.sample_every // f)
-            extra_g = p.requirement
-            if extra_g is not None and hasattr(extra_g, "n_steps"):
-                extra_g = dataclasses.replace(extra_g, n_steps=spec_g.n_steps)
+            extra_g = with_steps(p.requirement, spec_g.n_steps)
             vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
         nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])  # (d,) float64 if d = 0
         return cls(p.d, p.m, basis, project_coef, values, vg,

@@ -112,13 +112,14 @@ class Result:
     nominal: Any  # and of the nominal point (zero waveform: the same values exactly)
 
 
-def _check_run(problem: Problem, setup) -> tuple[float, bool, float | None, int, Any]:
-    """`simulate` of one candidate with refinement: (value, diverged, t_diverged, level, traj)."""
+def _check_run(problem: Problem, setup) -> dict[str, Any]:
+    """`simulate` of one candidate with refinement: the fields of a `Result` that it gives."""
     traj = simulate(setup, spec=problem.spec.replace(save_every=1), throw=False,
                     extra=problem.requirement)
     bad = bool(traj.diverged)
-    value = math.inf if bad else float(traj.metrics[problem.metric_key])
-    return value, bad, (float(traj.t_diverged) if bad else None), int(traj.refinements), traj
+    return dict(value=math.inf if bad else float(traj.metrics[problem.metric_key]), setup=setup,
+                diverged=bad, t_diverged=float(traj.t_diverged) if bad else None,
+                refinements=int(traj.refinements), trajectory=traj)
 
 
 def worst_case(problem: Problem, *, time_limit: float = 60.0, starts: int = DEFAULT_STARTS,
@@ -226,16 +227,12 @@ def _finish(problem: Problem, traces: dict[str, search.Trace],
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
     if say is not None:
         say(f"re-checking {len(candidates)} candidate(s) and the nominal point by simulate")
-    best = None
-    for mth, z in candidates.values():
-        setup = problem.setup_at(z)
-        value, bad, t_bad, level, traj = _check_run(problem, setup)
-        score = (math.inf, -t_bad) if bad else (value, 0.0)
-        if best is None or score > best[0]:
-            best = (score, mth, z, setup, value, bad, t_bad, level, traj)
-    _, mth, z, setup, value, bad, t_bad, level, traj = best
+    runs = [(mth, z, _check_run(problem, problem.setup_at(z))) for mth, z in candidates.values()]
+    # the largest value, the first found of equals; of diverged ones (+inf) the earliest
+    mth, z, worst = max(runs, key=lambda r: (r[2]["value"], -(r[2]["t_diverged"] or 0.0)))
     # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
     # the program of the candidates' re-check serves it
-    nominal_value, *_, nominal = _check_run(problem, problem.setup)
-    return Result(problem, value, np.asarray(z), mth, setup, bad, t_bad, level, traces,
-                  nominal_value, {"rechecked": len(candidates)}, traj, nominal)
+    nominal = _check_run(problem, problem.setup)
+    return Result(problem, z=np.asarray(z), method=mth, traces=traces,
+                  nominal_value=nominal["value"], info={"rechecked": len(runs)},
+                  nominal=nominal["trajectory"], **worst)
