@@ -250,18 +250,16 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
            "disturbance": f"{LONG_DBAR:g} sin(t)" if dbar else None,
            "window_start": float(sim.window_start)}
     for i, tag in enumerate(NAMES):
-        row: dict[str, Any] = {"diverged": bool(np.asarray(tr.diverged)[i]),
-                               **_row(tr, ("linf_error_window", "chattering_index"), i)}
         est = {}
         for name in (e for e in ESTIMATES if hasattr(tr.ctrl, e)):
             v = np.abs(np.asarray(getattr(tr.ctrl, name))[i]).reshape(t.size, -1)
             a, b = float(np.max(v[quarter])), float(np.max(v[half]))
             est[name] = {"second_quarter": a, "second_half": b,
                          "bounded": bool(np.isfinite(b) and b <= DRIFT_RATIO * max(a, 1e-12))}
-        row["estimates"] = est
-        row["bounded"] = (not row["diverged"] and all(e["bounded"] for e in est.values())
-                          if t_long >= DRIFT_MIN_S or row["diverged"] else None)
-        out[tag] = row
+        gone = bool(np.asarray(tr.diverged)[i])
+        bounded = not gone and all(e["bounded"] for e in est.values())
+        out[tag] = {"diverged": gone, **_row(tr, ("linf_error_window", "chattering_index"), i),
+                    "estimates": est, "bounded": bounded if t_long >= DRIFT_MIN_S or gone else None}
     return out
 
 

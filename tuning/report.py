@@ -144,13 +144,10 @@ def constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, An
     """The bounds checked exactly on one plant's metrics `m` (every RK4 step): name, value,
     bound, margin and met (within `BOUND_RTOL`; never for a diverged plant). Each check loop
     (`CheckLoop`) adds its rows: its windowed L-inf and effort bounds."""
-    rows = []
-    for name, key, _, v, b, _, met in _exact((scales.u_max, scales.tv_max), m, checks, 1):
-        value, bound = float(v[0]), float(b[0])
-        rows.append({"name": name, "key": key, "value": value, "bound": bound,
-                     "margin": bound - value, "relative_margin": (bound - value) / bound,
-                     "met": bool(met[0])})
-    return rows
+    return [{"name": name, "key": key, "value": float(v[0]), "bound": float(b[0]),
+             "margin": float(b[0] - v[0]), "relative_margin": float((b[0] - v[0]) / b[0]),
+             "met": bool(met[0])}
+            for name, key, _, v, b, _, met in _exact((scales.u_max, scales.tv_max), m, checks, 1)]
 
 
 def _exact(bounds, m, checks, n: int):
@@ -282,8 +279,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
         summary[key]["requirements"] = both(functools.partial(requirement_checks, problem), ev[key])
     # the sensitivities and the margins come with the held-out check (`--heldout 0` skips all
     # three: a quick run)
-    tuned = summary["constraints"]["tuned"]
-    sens = elasticity.constraints(problem, z1, tuned) if problem.heldout and tuned else None
+    sens = (elasticity.constraints(problem, z1, summary["constraints"]["tuned"])
+            if problem.heldout else None)
     mg = margins.evaluate(problem, z0, z1, ev) if problem.heldout else None
     summary |= {
         "heldout_warning": heldout_warning(summary, problem.cfg),
@@ -295,7 +292,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
         "margins": mg,
         "margins_warning": None if mg is None else "; ".join(margins.failures(mg)) or None}
     out = Path(out)
-    figures = draw(out, result, ev, trajectories(problem, z0, z1), problem) if plots else []
+    figures = draw(out, result, ev, trajectories(problem, z0, z1)) if plots else []
     st = (mg or {}).get("sample_time")
     if plots and st is not None:
         ts_sweep.plot(st, out / "sampling.png", COLORS, 110,

@@ -116,8 +116,8 @@ def run_sentence(run: dict) -> str:
                if run["wall_total_s"] else "") + ".")
 
 
-def _f(v, digits=4):
-    return "-" if v is None or v != v else f"{v:.{digits}g}"  # None or NaN: not measured
+def _f(v):
+    return "-" if v is None or v != v else f"{v:.4g}"  # None or NaN: not measured
 
 
 def _ratio(a, b):
@@ -260,7 +260,7 @@ def sensitivity_section(sens: dict) -> list[str]:
     constraint."""
     rows = sens["rows"]
     step = 100 * sens["step"]
-    lines = ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
+    return ["", "## Sensitivity of the constraints (nominal plant, tuned gains)", "",
              f"e = d ln r / d ln g of each constraint r = value / bound <= 1 to each tuned "
              f"number g: a {step:g} % change of g moves r by about |e| x {step:g} %. **Bold**: "
              f"that change breaks it to first order. Not finite: any change may break it.", "",
@@ -269,7 +269,6 @@ def sensitivity_section(sens: dict) -> list[str]:
                     [(f"`{name}`", *(f"**{v}**" if name in r["fragile"] else v for r, v in (
                         (r, elasticity.text(r["elasticity"][name])) for r in rows)))
                      for name in rows[0]["elasticity"]])]
-    return lines
 
 
 def method_text(problem) -> str:

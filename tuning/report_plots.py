@@ -41,7 +41,10 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     return fig
 
 
-def draw(out: Path, result, ev, trajs, problem) -> list[str]:
+def draw(out: Path, result, ev, trajs) -> list[str]:
+    """The figures of `result` (`ev`: `report.evaluate`'s figures, `trajs`: the start and
+    tuned loops on the nominal plant) written to `out`; returns their file names."""
+    problem = result.problem
     figures, sc, sim = [], problem.scales, problem.objective.sim
     if result.history:
         plot_loss_curve(result.history, out / "loss_curve.png", u_max=sc.u_max,

@@ -276,7 +276,6 @@ def _sample(setup, b, field, options) -> dict:
     return params.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
 
-
 @dataclasses.dataclass
 class Result:
     """A tuning run: its problem and the search's record (`dscjax.search.Trace`)."""
@@ -290,7 +289,7 @@ class Result:
 
     @property
     def history(self) -> list[dict]:
-        return [ck.history_row(r) for r in self.trace.history]
+        return history(self.trace)
 
     @property
     def best_z(self) -> dict:
@@ -394,8 +393,7 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
     """best.json, gains.json, history.csv and checkpoint.json of a search's trace."""
     desc = problem.describe()
     write_best(out, problem, trace)
-    ck.write_history(out / "history.csv", [ck.history_row(r) for r in trace.history],
-                     ck.history_columns(problem))
+    ck.write_history(out / "history.csv", history(trace), ck.history_columns(problem))
     files.write_json(out / "checkpoint.json", {
         "version": ck.FORMAT_VERSION, "fingerprint": files.digest(desc)[:16],
         "iteration": trace.iterations, "best_loss": trace.best_loss,
@@ -403,6 +401,11 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
         "evaluations": trace.evaluations, "gradient_evaluations": trace.gradients,
         "elapsed_total_s": trace.seconds, "stop_reason": stop_reason,
         "state": {"kind": problem.cfg.optimizer.name.name, "file": STATE_FILE}, "problem": desc})
+
+
+def history(trace: search.Trace) -> list[dict]:
+    """history.csv's rows of a search's trace (`checkpoint.history_row`)."""
+    return [ck.history_row(r) for r in trace.history]
 
 
 def write_best(out: Path, problem: Problem, trace: search.Trace) -> None:
