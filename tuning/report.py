@@ -241,9 +241,10 @@ def run_record(result) -> dict[str, Any]:
             "n_params": problem.n_params}
 
 
-def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
+def write(out: Path, result, *, plots: bool = True, t_start: float | None = None) -> dict:
     """Evaluate, then write report.json (the summary returned), report.md and (with plots) the
-    PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time."""
+    PNGs; `t_start` (perf_counter at the command's start) gives the whole wall time (None: not
+    reported)."""
     problem = result.problem
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
@@ -299,7 +300,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float) -> dict:
                       {"start": "start gains", "tuned": "tuned gains"})
         figures.append("sampling.png")
     summary["figures"] = figures
-    summary["run"]["wall_total_s"] = time.perf_counter() - t_start
+    if t_start is not None:
+        summary["run"]["wall_total_s"] = time.perf_counter() - t_start
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", markdown(summary, problem, figures))
     return summary
