@@ -104,8 +104,8 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
 def start_divergence(sim: RunSpec, status) -> DivergenceError:
     """The error of start gains that diverge on the nominal plant (their run's `Status`):
     which run, when and how, as `divergence_report` says it."""
-    step = int(status.step)
-    seen = SimpleNamespace(status=status, t_diverged=step * float(sim.dt) if step >= 0 else np.inf)
+    # a run that diverged has the first bad step's index (`Status`)
+    seen = SimpleNamespace(status=status, t_diverged=int(status.step) * float(sim.dt))
     how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
     return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
                            f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
