@@ -33,7 +33,6 @@ from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from dscjax.worst.report import summary as worst_summary
-from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
 
@@ -125,10 +124,8 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
     runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
         return files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
-    for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
+    for old in [*out.glob("round_*"), *out.glob("fresh_*")]:  # (prepare_dir: the run's files)
         shutil.rmtree(old)
-    for name in ck.FILES:
-        (out / name).unlink(missing_ok=True)
     files.write_json(path, meta)  # at once: a run killed in its first round resumes
     return meta
 

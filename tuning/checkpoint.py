@@ -11,8 +11,6 @@ Each is written atomically (`dscjax.files`): a run killed mid-write leaves the p
 
 from __future__ import annotations
 
-import csv
-import io
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -65,19 +63,16 @@ def format_progress(row: dict, step: str = "lr") -> str:
 
 
 def write_history(path: Path, rows: Sequence[Mapping[str, Any]], columns: Sequence[str]) -> None:
-    buf = io.StringIO()
-    w = csv.DictWriter(buf, fieldnames=list(columns), extrasaction="ignore", lineterminator="\n")
-    w.writeheader()
-    for r in rows:
-        w.writerow({k: _fmt(r.get(k)) for k in columns})
-    files.write_text(path, buf.getvalue())
+    """history.csv: the header `columns`, then a line per row (a figure it lacks left empty)."""
+    lines = [",".join(columns), *(",".join(_fmt(r.get(k)) for k in columns) for r in rows)]
+    files.write_text(path, "\n".join(lines) + "\n")
 
 
-def _fmt(v):
+def _fmt(v) -> str:
     if v is None:
         return ""
     if isinstance(v, bool | np.bool_):
-        return int(v)
+        return str(int(v))
     if isinstance(v, float | np.floating):
         return repr(float(v))
-    return v
+    return str(v)

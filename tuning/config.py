@@ -243,8 +243,8 @@ def _requirements(table, field) -> dict[str, dict[str, float]]:
         for f in keys:
             if f.default is dataclasses.MISSING and not f.kw_only and f.name not in sub:
                 raise ConfigError(f"{where}.{f.name} is required")
-        rules = {k: settings.Setting("", REQUIREMENT_RULES.get(k, Positive())) for k in sub}
-        out[name] = {k: settings.parse_field(rules[k], v, f"{where}.{k}") for k, v in sub.items()}
+        out[name] = {k: validation.by_rule(REQUIREMENT_RULES.get(k, Positive()), v, f"{where}.{k}")
+                     for k, v in sub.items()}
     return out
 
 

@@ -214,11 +214,6 @@ class Objective(eqx.Module):
                               tuple(self.requirements) if loop is None else (),
                               (self.sim if loop is None else loop).n_steps, reference)
 
-    def bounds(self, overrides=None) -> tuple:
-        """(bound on max|u|, bound on TV(u)) of the plants of `overrides` (None: the training
-        batch, with its per-plant bounds if it has them)."""
-        return self.scales.bounds(train=overrides is None and bool(self.overrides))
-
     def evaluate(self, z, overrides=None):
         """(loss, aux) at z; aux has the terms (aggregated as the loss is), the exact metrics
         and the feasibility of the bounds (all plants)."""
@@ -277,7 +272,9 @@ class Objective(eqx.Module):
         """(loss, aux, `per_plant`)."""
         ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
         metrics, diverged = loop_metrics(self, z, ov)
-        per_plant, terms, feasible = self.judged(metrics, diverged, self.bounds(overrides))
+        # the training batch's own (per-plant) bounds, or the nominal ones
+        bounds = self.scales.bounds(train=overrides is None and bool(self.overrides))
+        per_plant, terms, feasible = self.judged(metrics, diverged, bounds)
         loss, aux = self.summary(per_plant, terms, metrics, diverged, feasible, mask)
         return loss, aux, {"loss": per_plant, "diverged": diverged, **metrics}
 
@@ -290,7 +287,7 @@ class Objective(eqx.Module):
         idx, w = (self.aggregate.weights(per["loss"], self.mask) if self.overrides
                   else (jnp.zeros(1, int), jnp.ones(1)))
         train = {p: jnp.asarray(v) for p, v in (self.overrides or {}).items()}
-        bounds = self.bounds()
+        bounds = self.scales.bounds(train=bool(self.overrides))
         dtype = jnp.result_type(self.setup.plant.x0)  # per-plant bounds as `judged` casts them
 
         def one(z_, i):

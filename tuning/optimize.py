@@ -150,8 +150,7 @@ class Forward:
         grads, (loss, aux) = jax.jacfwd(f, has_aux=True)(z)
         return (loss, aux), grads
 
-    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
-               ) -> Forward:
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every=None) -> Forward:
         """The mode run for n_params tuned scalars and `batch` plants weighed by `aggregate`,
         a reverse pass checkpointed in segments of `every` steps: this one."""
         return self
@@ -168,8 +167,7 @@ class Reverse(Forward):
     def value_and_grad(self, objective, z):
         return jax.value_and_grad(objective.evaluate, has_aux=True)(z)
 
-    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
-               ) -> Forward:
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every=None) -> Forward:
         return Reverse(every)
 
 
@@ -192,8 +190,7 @@ class Auto:
 
     name: ClassVar[str] = "auto"
 
-    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every: int | None = None
-               ) -> Forward:
+    def chosen(self, n_params: int, batch: int = 1, aggregate=None, every=None) -> Forward:
         if batch > 1 and aggregate is not None and aggregate.weighs(batch) <= batch / 4:
             return Plants()
         most = FORWARD_MAX_PARAMS_ONE_PLANT if batch <= 1 else FORWARD_MAX_PARAMS

@@ -1,7 +1,7 @@
 """The start gains' figures on the nominal plant (`start_scales`): the normalisation of the
 objective's terms and its effort bounds, "start" bounds being the start's own figures over the
 whole horizon [0, T] (the transient included), on the nominal plant for every plant or on
-each training plant its own (`per_plant_bounds`); `Scales` holds them."""
+each training plant its own; `Scales` holds them."""
 
 from __future__ import annotations
 
@@ -25,8 +25,8 @@ from tuning.reductions import UserError, shifted_reference
 
 class Scales(eqx.Module):
     """The start gains' figures on the nominal plant (the terms' normalisation) and the bounds,
-    with per-plant bounds also per training plant (u_max_train, tv_max_train,
-    `per_plant_bounds`); a pytree, so that a compiled objective takes them as numbers."""
+    with per-plant bounds also per training plant (u_max_train, tv_max_train); a pytree, so
+    that a compiled objective takes them as numbers."""
 
     linf: Any
     l2: Any
@@ -66,31 +66,12 @@ def _start_run(setup: Setup, sim: RunSpec, extra=None, overrides=None):
 _start_metrics = xla.jit(_start_run, lean=True)
 
 
-def per_plant_bounds(setup: Setup, sim: RunSpec, spec: ObjectiveSpec, train, u_max,
-                     tv_max) -> dict[str, Any]:
-    """`Scales`' per-plant fields of the training batch `train`: with effort_bounds =
-    "per_plant", each training plant's "start" bounds are its own figures (a plant on which the
-    start gains diverge keeps the nominal ones); else none (the nominal ones hold for every
-    plant)."""
-    if not spec.effort_bounds.per_plant or not train or "start" not in (spec.u_max, spec.tv_max):
-        return {}
-    mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
-    div = np.asarray(status.code) != 0
-    per: dict[str, Any] = {"n_train_fallback": int(div.sum())}
-    for key, name, factor, nominal in (("max_abs_u", "u_max", 1.0, u_max),
-                                       ("tv_u", "tv_max", spec.tv_max_factor, tv_max)):
-        if getattr(spec, name) == "start":
-            v = factor * np.asarray(mb[key], np.float64)
-            # a figure of 0 (no effort at all on that plant) would leave no room at all
-            per[f"{name}_train"] = np.where(div | ~(v > 0), nominal, v)
-    return per
-
-
 def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
                  train: Mapping[str, Any] | None = None) -> Scales:
     """The start gains' `Scales` (DivergenceError, which run and when, if they diverge on the
-    nominal plant); with effort_bounds = "per_plant" and a batch `train`, each training
-    plant's "start" bounds (`per_plant_bounds`)."""
+    nominal plant). With effort_bounds = "per_plant" and a batch `train`, each training plant's
+    "start" bounds are its own figures (a plant on which the start gains diverge, or show no
+    effort at all, keeps the nominal ones); else the nominal ones hold for every plant."""
     reference = shifted_reference(setup)
     user = None if reference is None else UserError(  # reported beside, not tuned
         jnp.asarray(sim.window_start, jnp.result_type(setup.plant.x0)), sim.n_steps, reference)
@@ -98,26 +79,33 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
     if int(status.code) != 0:
         raise start_divergence(sim, status)
     m = {k: float(v) for k, v in metrics.items()}
-
-    def bound(v, start):  # "start", a number or None
-        return start if v == "start" else None if v is None else float(v)
-
-    u_max = bound(spec.u_max, m["max_abs_u"])
-    tv_max = bound(spec.tv_max, spec.tv_max_factor * m["tv_u"])
     for name, (_, key, _, _) in TERMS.items():
         if getattr(spec, name) and not m[key] > 0:
             raise ConfigError(f"tuning.objective.{name}: the start gains give {key} = "
                               f"{m[key]:g}, which cannot normalise the term")
-    per = per_plant_bounds(setup, sim, spec, train, u_max, tv_max)
+    # each bound: a number, None (none) or "start" (factor x the start gains' figure)
+    efforts = (("max_abs_u", "u_max", 1.0), ("tv_u", "tv_max", spec.tv_max_factor))
+    given = {name: getattr(spec, name) for _, name, _ in efforts}
+    bounds = {name: factor * m[key] if given[name] == "start"
+              else None if given[name] is None else float(given[name])
+              for key, name, factor in efforts}
+    if spec.effort_bounds.per_plant and train and "start" in given.values():
+        mb, status = jax.device_get(_start_metrics(setup, sim.program(), overrides=dict(train)))
+        div = np.asarray(status.code) != 0
+        bounds["n_train_fallback"] = int(div.sum())
+        for key, name, factor in efforts:
+            if given[name] == "start":
+                v = factor * np.asarray(mb[key], np.float64)
+                bounds[f"{name}_train"] = np.where(div | ~(v > 0), bounds[name], v)
     return Scales(**{scale: max(m[key], 1e-300) for _, key, scale, _ in TERMS.values()},
-                  u_max=u_max, tv_max=tv_max, start=m, **per)
+                  start=m, **bounds)
 
 
 def start_divergence(sim: RunSpec, status) -> DivergenceError:
     """The error of start gains that diverge on the nominal plant (their run's `Status`):
     which run, when and how, as `divergence_report` says it."""
-    step = int(status.step)
-    seen = SimpleNamespace(status=status, t_diverged=step * float(sim.dt) if step >= 0 else np.inf)
+    # a run that diverged has the first bad step's index (`Status`)
+    seen = SimpleNamespace(status=status, t_diverged=int(status.step) * float(sim.dt))
     how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
     return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
                            f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
