@@ -332,8 +332,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["SCHEME", "Controller", "ExponentialEuler", "ForwardEuler", "Observation",
-           "SampledState", "Sampling", "Setup", "SpectrumProfile", "State", "decay_rates",
-           "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared", "project",
-           "sample_after_step", "sample_update", "sampled_initial_state",
+__all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler", "ForwardEuler",
+           "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile", "State",
+           "decay_rates", "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared",
+           "project", "sample_after_step", "sample_update", "sampled_initial_state",
            "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]

@@ -95,7 +95,7 @@ class Tuned:
     """One number of a `Selection`: its `Param`, transform and bounds on its VALUE."""
 
     param: Param
-    transform: Log | Linear = Log()
+    transform: Log | Linear | Relative = Log()
     lower: float | None = None  # None: none
     upper: float | None = None
 

@@ -109,6 +109,9 @@ def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fit
     with pytest.raises(ConfigError, match="^--validate: .* it must measure the columns"):
         identify(example("paper"), RunSpec.make(1.0, 1e-3), read(data, 2), IdentifySettings(
             free=("plant.g",)), validation=read(val, 2))
+    # and a fit of nothing (the command's --free is required; the library refused it too)
+    with pytest.raises(ConfigError, match="^--free: give the numbers to fit"):
+        identify(example("paper"), RunSpec.make(1.0, 1e-3), read(data, 2), IdentifySettings())
 
 
 @pytest.mark.parametrize("good_data", [False, True])

@@ -184,6 +184,10 @@ def test_docs_settings_md_holds_the_declarations_tables():
     page = Path(__file__).resolve().parents[1] / "docs" / "settings.md"
     text = page.read_text()
     assert settings_docs(text) == text
+    # every table a config may hold has its block (a new command's table must be added above)
+    from dscjax.config import COMMAND_TABLES
+
+    assert set(settings_groups()) == {"simulation", *COMMAND_TABLES}
     for name in settings_groups():
         assert f"<!-- settings {name} -->" in text
     assert "| `tuning.optimizer.time_limit` | `200` |" in text

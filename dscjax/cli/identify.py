@@ -16,8 +16,7 @@ from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
-from dscjax.sensitivity import columns
-from dscjax.validation import ConfigError, validate_setup
+from dscjax.validation import validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
 interrupt_hint = nothing_kept
@@ -41,13 +40,9 @@ def load(args):
     table = common.config_data(args).get("identify", {})
     s = settings.from_table(ident.IdentifySettings, table, "identify.")
     s = common.own_settings(args, ident.IdentifySettings, "identify.", s)[0]
-    if not s.free:
-        raise ConfigError("--free: give the numbers to fit, e.g. --free "
-                          "plant.g,hysteresis.alpha (or [identify] free in the config)")
     spec = common.apply_run_options(args, spec)
     validate_setup(setup)
-    # each path against the setup, before the data and --out (Problem.make reads them again)
-    columns(setup, s.free, "--free")
+    ident.check_free(setup, s.free)  # before the data and --out
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, "float64"), spec, s, source
 

@@ -140,8 +140,9 @@ def run(args) -> int:
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
         what = "diverged at every level down to" if diverged else "the reported run is"
-        print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop); "
-              f"refined: {what} {used} at dt = {float(traj.dt):g} s", file=sys.stderr)
+        print(f"  {options.solver.name} at dt = {options.dt:g} s diverged (a stiff loop: the "
+              f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what} {used} at "
+              f"dt = {float(traj.dt):g} s", file=sys.stderr)
     if diverged is None:
         window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "

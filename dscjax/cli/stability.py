@@ -27,7 +27,8 @@ def add_parser(sub):
         description=__doc__)
     common.add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
-                   help="factors applied to every filter constant tau_i (default %(default)s)")
+                   help="factors applied to every filter constant tau_i, separated by commas "
+                   "(default %(default)s)")
     add_out_arg(p, "results/stability", plot="skip stability.png")
     return p
 

@@ -42,7 +42,8 @@ def add_parser(sub):
         description=__doc__)
     common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. tune's gains.json) whose "
-                   "[controller] and sample_time, delay, noise, ... are laid over --config")
+                   "[controller] and sampled-controller [simulation] keys (sample_time, delay, "
+                   "noise, ...) are laid over --config; the rest is ignored")
     axes = p.add_mutually_exclusive_group()
     axes.add_argument("--grid", action="append", metavar="PATH=LOW:HIGH:NUM",
                       help="full-factorial grid axis (repeat for more axes), e.g. "

@@ -22,6 +22,7 @@ from dscjax.identify.data import Record, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
 from dscjax.markdown import table
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
+from dscjax.sensitivity import columns
 from dscjax.settings import setting
 from dscjax.validation import ConfigError, integer
 
@@ -73,6 +74,14 @@ class Identified:
     seconds: float
 
 
+def check_free(setup, free) -> None:
+    """Refuse an empty `free` and each path the setup lacks (ConfigError), before any data."""
+    if not free:
+        raise ConfigError("--free: give the numbers to fit, e.g. --free "
+                          "plant.g,hysteresis.alpha (or [identify] free in the config)")
+    columns(setup, free, "--free")
+
+
 def check_validation(val: Record, record: Record) -> Record:
     """`val`, refused in one line unless it measures the columns of the fitted `record`: the
     report sets each column's fit beside its validation fit, a column's noise std is the
@@ -94,6 +103,7 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
     """Fit `s.free` of `setup` to `record` (the plant experiment where the record measures a
     plant state, the actuator alone where it measures w only), then validate on `validation`
     (default: the record's last quarter, which the fit then leaves out)."""
+    check_free(setup, s.free)
     plant = any(c != "w" for c in record.y)
     fitted = len(record)  # the samples the fit reads
     if validation is None:

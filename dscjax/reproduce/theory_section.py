@@ -87,7 +87,8 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
     )
     b72_paper = theory.bound_72(C0 + (n - 1) * mu / 2, ALPHA0_PAPER, g_max)
     V = np.asarray(lv.V)
-    sums = term_sums(lv.arrays())
+    terms = lv.arrays()
+    sums = term_sums(terms)
     s1_after = np.asarray(traj.S)[np.asarray(traj.t) >= 1.0, 0]  # none if T < 1 s
     summary = dict(
         alpha0=a0, mu=mu, binding_gain=min(allows, key=allows.get), allows=allows, gains=gains,
@@ -103,8 +104,8 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
         terms_at_t0={k: float(v[0]) for k, v in sums.items()},
         terms_max={k: float(np.max(v)) for k, v in sums.items()},
     )
-    arrays = lv.arrays() | dict(V_dot=res["V_dot"], bound_65=res["bound_65"], B=res["B"],
-                                alpha0=np.asarray(a0), mu=np.asarray(mu), C=np.asarray(res["C"]))
+    arrays = terms | dict(V_dot=res["V_dot"], bound_65=res["bound_65"], B=res["B"],
+                          alpha0=np.asarray(a0), mu=np.asarray(mu), C=np.asarray(res["C"]))
     return summary, arrays
 
 

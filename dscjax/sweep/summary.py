@@ -165,14 +165,16 @@ def float64_check(setup, result: SweepResult, rows: Sequence[int]) -> dict[str, 
             "untrusted": trust["untrusted"]}
 
 
-def float32_trust(got: Mapping[str, Sequence[float]], reference: Mapping[str, Sequence[float]],
+def float32_trust(got: Mapping[str, float | Sequence[float]],
+                  reference: Mapping[str, float | Sequence[float]],
                   rtol: float | None = None) -> dict[str, Any]:
     """The one float32 check (sweeps, `simulate --float32`, `sensitivity --float32`): per
     name, the largest relative difference |a - r| / |r| of the float32 values `got` from
     their float64 `reference` (0 where both are NaN, no value: a diverged run, a null
     sensitivity; inf where only one is), the index where it is largest ("at"), and the names
     whose sign flips on some index (a r < 0). A name above `rtol` or whose sign flips is
-    "untrusted"; the order is `got`'s. `rtol` default: FLOAT32_RTOL."""
+    "untrusted"; the order is `got`'s; a single number counts as one value. `rtol` default:
+    FLOAT32_RTOL."""
     rtol = FLOAT32_RTOL if rtol is None else rtol
     diff, at, flips = {}, {}, []
     for name, values in got.items():
