@@ -74,3 +74,57 @@ def test_every_document_with_examples_is_run_and_the_key_examples_are_among_them
         text = " ".join(" ".join(map(str, s[2])) for s in PLAN[name] if s[0] == "run")
         if "my.toml" in text or "results/tune/" in text:
             assert name in doc_examples.READS_SHARED, name
+
+
+def _python_blocks():
+    """(document, block) for every ```python block of README.md and docs/*.md."""
+    import re
+
+    for doc in doc_examples.documents():
+        for block in re.findall(r"```python\n(.*?)```", doc.read_text(), flags=re.S):
+            yield doc.name, block
+
+
+def test_every_call_of_the_python_examples_binds_to_the_api_it_names():
+    """Each call in the documents' Python blocks to a function or class of dscjax, tuning or
+    their modules (by the names the block imports) passes arguments its signature accepts:
+    none missing, no unknown keyword. Checked without running the blocks (the README's optax
+    loop runs in test_objective)."""
+    import ast
+    import importlib
+    import inspect
+
+    checked, bad = 0, []
+    for doc, block in _python_blocks():
+        tree = ast.parse(block)
+        names = {}
+        for node in ast.walk(tree):
+            if isinstance(node, ast.Import):
+                names |= {a.asname or a.name: importlib.import_module(a.name) for a in node.names}
+            elif isinstance(node, ast.ImportFrom) and node.module.split(".")[0] in ("dscjax",
+                                                                                     "tuning"):
+                for a in node.names:  # a name of the module, or a submodule
+                    module = importlib.import_module(node.module)
+                    names[a.asname or a.name] = (getattr(module, a.name) if hasattr(
+                        module, a.name) else importlib.import_module(f"{node.module}.{a.name}"))
+        for call in (n for n in ast.walk(tree) if isinstance(n, ast.Call)):
+            chain, f = [], call.func
+            while isinstance(f, ast.Attribute):
+                chain, f = [f.attr, *chain], f.value
+            if not isinstance(f, ast.Name) or f.id not in names:
+                continue  # a call on a value the block computed
+            target = names[f.id]
+            for attr in chain:
+                target = getattr(target, attr)
+            root = getattr(inspect.getmodule(target), "__name__", "").split(".")[0]
+            if root not in ("dscjax", "tuning") or any(
+                    isinstance(a, ast.Starred) for a in call.args) or any(
+                    k.arg is None for k in call.keywords):
+                continue
+            try:
+                inspect.signature(target).bind(*call.args, **{k.arg: k for k in call.keywords})
+            except TypeError as err:
+                bad.append(f"{doc}: {ast.unparse(call)}: {err}")
+            checked += 1
+    assert not bad, "\n".join(bad)
+    assert checked >= 20, checked  # the blocks' calls were found (26 now)
