@@ -127,4 +127,4 @@ def test_every_call_of_the_python_examples_binds_to_the_api_it_names():
                 bad.append(f"{doc}: {ast.unparse(call)}: {err}")
             checked += 1
     assert not bad, "\n".join(bad)
-    assert checked >= 20, checked  # the blocks' calls were found (26 now)
+    assert checked >= 20, checked  # the blocks' calls were found
