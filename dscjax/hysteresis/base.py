@@ -4,8 +4,9 @@ static):
     init_state(u0) -> h(0)                 output(u, h) -> w, which drives the plant
     rate(u, du, h) -> h' given u' = du     decay_rate(u, du, h) -> rates >= 0 (like h) of the
                                            stiff linear decays in `rate` (ETDRK4's exact part)
-    project(u, h) -> h after a step        jump(u_from, u_to, h) -> h after u steps (a held
-                                           input of a sampled controller), along the model's curve
+    jump(u_from, u_to, h) -> h after u steps (a held input of a sampled controller), along
+                             the model's curve
+    project(u, h) -> h after a step (only a model that `projects`: its callers check)
     effective_slope() -> lam of w = lam u + d_1(u), eq. (5); d1_limits() -> limits of d_1, (7)-(8)
 """
 
@@ -20,7 +21,8 @@ from dscjax.model import Model
 
 
 class Hysteresis(Model):
-    """The interface every hysteresis model provides (the module docstring)."""
+    """The interface every hysteresis model provides (the module docstring): each model defines
+    its methods, this class only the defaults and `d1_bound`."""
 
     kind: ClassVar[str]
     title: ClassVar[str]  # the model's name in figures
@@ -29,29 +31,8 @@ class Hysteresis(Model):
     # what `dscjax sweep` varies by default (each +-30 %): paths under [hysteresis]
     default_sweep: ClassVar[tuple[str, ...]] = ()
 
-    def init_state(self, u0):
-        raise NotImplementedError
-
-    def output(self, u, h):
-        raise NotImplementedError
-
-    def rate(self, u, du, h):
-        raise NotImplementedError
-
     def decay_rate(self, u, du, h):
         return jax.tree.map(jnp.zeros_like, h)
-
-    def project(self, u, h):
-        return h
-
-    def jump(self, u_from, u_to, h):
-        raise NotImplementedError
-
-    def effective_slope(self):
-        raise NotImplementedError
-
-    def d1_limits(self):
-        raise NotImplementedError
 
     def d1_bound(self):
         """A bound of |d_1| once it has settled: the larger limit (7)-(8) in magnitude."""

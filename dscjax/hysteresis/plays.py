@@ -37,24 +37,17 @@ def _pi_r():
     return np.arange(1, 11) / 5.0  # 0.2, 0.4, ..., 2.0, each the nearest float
 
 
-def _pi_p():
-    return 0.137 * np.exp(-0.3 * _pi_r())
-
-
 class _Plays(Hysteresis):
     """w = p0 u + sum_j p_j z_j, each z_j a play between g_lo(u) - r_j and g_hi(u) + r_j
-    (`envelopes`): the fields P-I and generalized P-I share; a subclass adds its envelopes."""
+    (`envelopes(u)`, shaped like u): the fields P-I and generalized P-I share; a subclass adds
+    its envelopes."""
 
     p0: jax.Array = nonnegative(default=0.432)
     r: jax.Array = eqx.field(default_factory=_pi_r)
-    p: jax.Array = nonnegative(default_factory=_pi_p)
+    p: jax.Array = nonnegative(default_factory=lambda: 0.137 * np.exp(-0.3 * _pi_r()))
     z0: jax.Array = 0.0
 
     projects: ClassVar[bool] = True
-
-    def envelopes(self, u):
-        """(g_lo, g_hi) at input u, shaped like u."""
-        raise NotImplementedError
 
     def expected_shapes(self, n):
         # r, p (N,) and z0 (() or (N,)) are checked against each other in `validate`
@@ -146,12 +139,6 @@ class PrandtlIshlinskii(_Plays):
         return bound, -bound
 
 
-_GPI_LEFT = (8.0, 0.125, -0.02, 0.0)
-
-
-_GPI_RIGHT = (8.0, 0.125, 0.02, 0.0)
-
-
 class GeneralizedPI(_Plays):
     """Generalized Prandtl-Ishlinskii hysteresis w = p0 u + sum_j p_j G_(r_j)[u], each play
     clamped between gamma_l(u) - r_j and gamma_r(u) + r_j, gamma(u) = a tanh(b u + c) + d.
@@ -164,8 +151,8 @@ class GeneralizedPI(_Plays):
         p0, r, p, z0: as for `PrandtlIshlinskii`.
     """
 
-    envelope_left: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_LEFT))
-    envelope_right: jax.Array = eqx.field(default_factory=lambda: np.array(_GPI_RIGHT))
+    envelope_left: jax.Array = eqx.field(default_factory=lambda: np.array([8.0, 0.125, -0.02, 0.0]))
+    envelope_right: jax.Array = eqx.field(default_factory=lambda: np.array([8.0, 0.125, 0.02, 0.0]))
 
     kind: ClassVar[str] = "gpi"
     title: ClassVar[str] = "Generalized Prandtl-Ishlinskii"
