@@ -4,7 +4,6 @@ u(t)) and `sine_loops` (u = A sin(omega t) for several A, one vmapped program).
 
 from __future__ import annotations
 
-import dataclasses
 import functools
 from collections.abc import Callable
 
@@ -28,23 +27,12 @@ def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: floa
         (1001,)
     """
     n_steps = max(int(round(t_final / dt)), 1)
-    u, w = _open_loop_jit(_as_float(hysteresis), _OfT(u_of_t), (), n_steps,
+    u, w = _open_loop_jit(_as_float(hysteresis), u_of_t, (), n_steps,
                           jnp.asarray(dt, jnp.result_type(float)))
     return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
 
 
-@dataclasses.dataclass(frozen=True)
-class _OfT:
-    """u_of_t as a (t, args) function, equal for the same u_of_t (its program is reused)."""
-
-    u_of_t: Callable
-
-    def __call__(self, t, _):
-        return self.u_of_t(t)
-
-
-def _sine(t, amp_omega):
-    amplitude, om = amp_omega
+def _sine(t, amplitude, om):
     return amplitude * jnp.sin(om * t)
 
 
@@ -68,16 +56,16 @@ def _as_float(model):
 
 
 def _open_loop(model, u_of_t, args, n_steps, dt):
-    """(u, w) on the step grid for u = u_of_t(t, args), by `integrate` (and its clamp hook)."""
+    """(u, w) on the step grid for u = u_of_t(t, *args), by `integrate` (and its clamp hook)."""
     def field(t, h, a):
-        u, du = jax.jvp(lambda tt: u_of_t(tt, a), (t,), (jnp.ones_like(t),))
+        u, du = jax.jvp(lambda tt: u_of_t(tt, *a), (t,), (jnp.ones_like(t),))
         return model.rate(u, du, h), (u, model.output(u, h))
 
     def project(k, t, h, a):
-        return model.project(u_of_t(t, a), h)
+        return model.project(u_of_t(t, *a), h)
 
     h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
-                      model.init_state(u_of_t(jnp.zeros((), dt.dtype), args)))
+                      model.init_state(u_of_t(jnp.zeros((), dt.dtype), *args)))
     res = integrate(field, h0, dt, n_steps, args, gradient=Checkpointed(),
                     project=project if model.projects else None, frozen=model.projects)
     return res.obs
