@@ -16,7 +16,6 @@ t_k = k dt/2 on which RK4 evaluates it. Config: a table [plant.disturbance] with
 
 from __future__ import annotations
 
-import abc
 import dataclasses
 from typing import ClassVar
 
@@ -30,13 +29,12 @@ from dscjax.model import Model, positive
 
 class Disturbance(Model):
     """Interface: `__call__(t)` gives dbar(t) for a scalar t; `coefficients_name` names the
-    leaf a search varies; `project(bound, t_grid)` returns the waveform within the bound."""
+    leaf a search varies; the static `project_coefficients(coef, bound, values_on_grid)` gives
+    the coefficients (..., m) within the bound from the waveform's values on the half-step grid
+    (..., G) (traceable, for the search); `project` below applies it."""
 
     kind: ClassVar[str]
     coefficients_name: ClassVar[str]
-
-    @abc.abstractmethod
-    def __call__(self, t): ...
 
     def coefficient_values(self):
         """The leaf a search varies (Fourier: coefficients; spline: knots)."""
@@ -46,17 +44,6 @@ class Disturbance(Model):
         """The coefficients (m,) as they are, the time scale a scalar."""
         return super().expected_shapes(n) | {
             self.coefficients_name: np.shape(self.coefficient_values())}
-
-    @property
-    @abc.abstractmethod
-    def size(self) -> int:
-        """K of the config's spec (harmonics, or knots)."""
-
-    @staticmethod
-    @abc.abstractmethod
-    def project_coefficients(coef, bound, values_on_grid):
-        """Coefficients (..., m) within the bound given the waveform's values on the half-step
-        grid (..., G) (traceable, for the search)."""
 
     def max_abs(self) -> float:
         """An upper bound of max_t |dbar(t)| (exact for a spline)."""
@@ -90,10 +77,6 @@ class Fourier(Disturbance):
 
     kind: ClassVar[str] = "fourier"
     coefficients_name: ClassVar[str] = "coefficients"
-
-    @property
-    def size(self) -> int:
-        return (int(np.shape(self.coefficients)[-1]) - 1) // 2
 
     def validate(self, prefix):
         super().validate(prefix)
@@ -150,10 +133,6 @@ class Spline(Disturbance):
     kind: ClassVar[str] = "spline"
     coefficients_name: ClassVar[str] = "knots"
 
-    @property
-    def size(self) -> int:
-        return int(np.shape(self.knots)[-1])
-
     def validate(self, prefix):
         super().validate(prefix)
         m = np.shape(self.knots)
@@ -172,28 +151,23 @@ class Spline(Disturbance):
         return jnp.clip(coef, -bound, bound)
 
 
-def half_step_grid(t_final: float, dt: float, dtype=np.float64) -> np.ndarray:
+def half_step_grid(t_final: float, dt: float) -> np.ndarray:
     """t_k = k dt/2, k = 0..2N: every time at which RK4 evaluates a time signal."""
     n = int(round(t_final / dt))
-    return (np.arange(2 * n + 1) * (dt / 2)).astype(dtype)
+    return np.arange(2 * n + 1) * (dt / 2)
 
 
 @jax.jit
-def _sample(dist, t):
-    return jax.vmap(dist)(t)
-
-
 def sample(dist: Disturbance, t) -> jax.Array:
     """dbar on an array of times (the same code the simulation runs, vmapped; compiled once
     per waveform structure)."""
-    return _sample(dist, jnp.asarray(t))
+    return jax.vmap(dist)(t)
 
 
 def project(dist: Disturbance, bound: float, t_grid) -> Disturbance:
     """`dist` with its coefficients brought within max |dbar| <= bound on t_grid."""
     values = sample(dist, t_grid)
-    coef = type(dist).project_coefficients(jnp.asarray(dist.coefficient_values()), bound,
-                                           values)
+    coef = dist.project_coefficients(jnp.asarray(dist.coefficient_values()), bound, values)
     return dataclasses.replace(dist, **{dist.coefficients_name: np.asarray(coef)})
 
 
