@@ -95,22 +95,20 @@ def order_n_example(n: int, tau: float = 0.05, k: float = 4.0, dtype=None,
     if n < 2:
         raise ValueError(f"order n must be >= 2 (got {n})")
     m = n - 1
-    cross = np.full(n, 0.05)
-    cross[0] = 0.0
     x0 = np.round(np.sin(0.5 * np.pi * np.arange(n)), 12)  # 0, 1, 0, -1, ...
     plant = StrictFeedback.zeros(
         n, g=np.ones(n), theta=np.full(n, 0.1), x0=x0, f_quad=np.full(n, 0.2),
-        f_sin=np.full(n, 0.2), f_cross=cross, rho_const=np.full(n, 0.05),
-        rho_quad=np.full(n, 0.02), delta_sin=np.full(n, 0.05), delta_quad=np.full(n, 0.02))
+        f_sin=np.full(n, 0.2), f_cross=np.concatenate([[0.0], np.full(m, 0.05)]),
+        rho_const=np.full(n, 0.05), rho_quad=np.full(n, 0.02), delta_sin=np.full(n, 0.05),
+        delta_quad=np.full(n, 0.02))
     ctrl = DSC(
         k=np.full(n, k), tau=np.full(m, tau), c=np.zeros(m), gamma_g=np.full(n, 1.0),
         eta=np.full(n, 0.01), gamma_phi=np.full(m, 1.0), sigma=np.full(m, 0.01),
         gamma_zeta=1.0, eta_zeta=0.01, gamma_d=1.0, eta_d=0.01, eps=0.5, g_min=1.0,
         theta_hat0=np.zeros(n), phi_hat0=np.ones(m), zeta_hat0=1.0 / 1.432, d_hat0=0.0,
         sat_width=0.05, init="zero_surfaces")
-    if controller_changes:
-        ctrl = dataclasses.replace(ctrl, **controller_changes)
-    setup = Setup(plant=plant, hysteresis=paper_hysteresis(), controller=ctrl, reference=Sine())
+    setup = Setup(plant=plant, hysteresis=paper_hysteresis(),
+                  controller=dataclasses.replace(ctrl, **controller_changes), reference=Sine())
     return _cast(setup, dtype)
 
 
