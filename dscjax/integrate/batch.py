@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -38,17 +39,9 @@ class _Rows:
 
 def _ravel_floats(tree):
     """ravel_pytree over the floating leaves only (other leaves are kept as they are)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    is_float = [jnp.issubdtype(jnp.result_type(x), jnp.floating) for x in leaves]
-    floats = [x for x, fl in zip(leaves, is_float, strict=True) if fl]
-    flat, unravel_floats = ravel_pytree(floats)
-
-    def unravel(v):
-        it = iter(unravel_floats(v))
-        return jax.tree.unflatten(treedef, [next(it) if fl else x
-                                            for x, fl in zip(leaves, is_float, strict=True)])
-
-    return flat, unravel
+    floats, rest = eqx.partition(tree, lambda x: jnp.issubdtype(jnp.result_type(x), jnp.floating))
+    flat, unravel = ravel_pytree(floats)
+    return flat, lambda v: eqx.combine(unravel(v), rest)
 
 
 def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
@@ -63,15 +56,14 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
     obs_one = jax.eval_shape(lambda: f(dt, y_one, unravel_args(args_flat), b_one)[1])
     ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc0)
 
-    def rows(t, y, a_flat, b):
+    # one trace of the field for every call with the same shapes (RK4's four stages, the
+    # last observation): an inner jit, inlined by XLA
+    @jax.jit
+    def f_rows(t, y, a_flat, b):
         def one(y_row, b_col):
             dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(a_flat), unravel_b(b_col))
             return _scalars(dy), _scalars(obs)
         return jax.vmap(one, in_axes=(0, -1), out_axes=0)(y, b)
-
-    # one trace of the field for every call with the same shapes (RK4's four stages, the
-    # last observation): an inner jit, inlined by XLA
-    f_rows = jax.jit(rows)
 
     def f_obs(t, y):
         return f_rows(t, y, args_flat, b_flat)
@@ -93,9 +85,8 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         return jax.vmap(project_member, in_axes=(None, None, 0, -1), out_axes=0)(k, t, y, b_flat)
 
     def acc_member(acc_row, k, t, y_row, obs_row):
-        new = reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
-                               obs_c.unpack_one(obs_row), dt)
-        return _scalars(new)
+        return _scalars(reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
+                                         obs_c.unpack_one(obs_row), dt))
 
     acc_fn = jax.vmap(acc_member, in_axes=(0, None, None, 0, 0), out_axes=0)
     y_init = tuple(jnp.moveaxis(jax.vmap(lambda y: ravel_pytree(y)[0])(y0), 0, -1))

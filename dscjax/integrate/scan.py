@@ -168,15 +168,14 @@ def _largest_divisor(n: int, cap: int) -> int:
     return max(d for d in range(1, min(cap, n) + 1) if n % d == 0)
 
 
-def blocked_scan(body, carry, xs, n: int, width: int):
-    """lax.scan over n steps in blocks of L: the inner scan touches only small buffers (run
-    sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a plain scan."""
+def blocked_scan(body, carry, n: int, width: int):
+    """lax.scan of body(c, None) over n steps in blocks of L: the inner scan touches only small
+    buffers (run sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a
+    plain scan."""
     L = _largest_divisor(n, max(1, SMALL // max(width, 1)))
 
-    def outer(c, block):
-        return jax.lax.scan(body, c, block, length=L)
+    def outer(c, _):
+        return jax.lax.scan(body, c, None, length=L)
 
-    blocks = None if xs is None else jax.tree.map(lambda a: a.reshape(n // L, L, *a.shape[1:]),
-                                                  xs)
-    carry, ys = jax.lax.scan(outer, carry, blocks, length=n // L)
+    carry, ys = jax.lax.scan(outer, carry, None, length=n // L)
     return carry, jax.tree.map(lambda a: a.reshape(n, *a.shape[2:]), ys)

@@ -24,13 +24,12 @@ class _Packer:
 
     def __init__(self, proto):
         leaves, self.treedef = jax.tree.flatten(proto)
-        self.fixed = []  # (index, value) of non-float leaves
+        self.fixed = {}  # index: value of the non-float leaves
         self.slots = []  # (index, chunk, offset, size, shape)
         sizes: list[int] = []
         for i, leaf in enumerate(leaves):
-            dtype = jnp.result_type(leaf)
-            if not jnp.issubdtype(dtype, jnp.floating):
-                self.fixed.append((i, leaf))
+            if not jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+                self.fixed[i] = leaf
                 continue
             shape = np.shape(leaf)
             size = int(np.prod(shape, dtype=int))
@@ -39,7 +38,6 @@ class _Packer:
             self.slots.append((i, len(sizes) - 1, sizes[-1], size, shape))
             sizes[-1] += size
         self.sizes = tuple(sizes)
-        self.n_leaves = len(leaves)
 
     def pack(self, tree, xp=jnp) -> tuple:
         """The float leaves in chunks; with xp=np a static tree (`frozen`'s NumPy bools)."""
@@ -50,9 +48,7 @@ class _Packer:
         return tuple(p[0] if len(p) == 1 else xp.concatenate(p) for p in parts)
 
     def unpack(self, chunks) -> Pytree:
-        leaves: list = [None] * self.n_leaves
-        for i, value in self.fixed:
-            leaves[i] = value
+        leaves = [self.fixed.get(i) for i in range(self.treedef.num_leaves)]
         for i, chunk, off, size, shape in self.slots:
             c = chunks[chunk]
             leaves[i] = (c if size == c.shape[-1] and off == 0 else c[off:off + size]).reshape(
@@ -68,21 +64,18 @@ class _Problem:
         self.f, self.reduction_is_none = f, reduction is None
         self.solver, self.rates, self.project = solver, rates, project
         self.n, self.s = n_steps, save_every
-        self.yp = _Packer(y0)
+        self.yp, self.ap, self.accp = _Packer(y0), _Packer(args), _Packer(acc0)
         mask = scan.frozen_mask(frozen, y0)  # components held inside a step, per packed chunk
         self.frozen = None if mask is None else self.yp.pack(mask, np)
-        self.ap = _Packer(args)
-        self.accp = _Packer(acc0)
-        dtype = jnp.result_type(*jax.tree.leaves(y0))
+        self.dtype = jnp.result_type(*jax.tree.leaves(y0))
         # one trace of the field for every call with the same shapes (RK4's four stages, the
         # last observation, the linearisation, and the shapes of the observations here): an
         # inner jit, inlined by XLA
         self._unpacked_field = jax.jit(
             lambda t, y, a: f(t, self.yp.unpack(y), self.ap.unpack(a)))
-        obs_proto = jax.eval_shape(self._unpacked_field, jnp.zeros((), dtype),
+        obs_proto = jax.eval_shape(self._unpacked_field, jnp.zeros((), self.dtype),
                                    self.yp.pack(y0), self.ap.pack(args))[1]
         self.op = _Packer(scan.zeros(obs_proto))
-        self.dtype = dtype
 
     def field(self, t, y, a, packed=True):
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
@@ -151,7 +144,7 @@ class _Problem:
             return c_new, (c.y, c.acc, obs)
 
         width = max(self.yp.sizes + self.accp.sizes + self.op.sizes, default=1)
-        c, (Y, A, O) = scan.blocked_scan(step, scan.start(y0, acc0), None, self.n, width)
+        c, (Y, A, O) = scan.blocked_scan(step, scan.start(y0, acc0), self.n, width)
         acc, obs_end = self.finish(c, a, red, dt)
         return c, Y, A, O, acc, obs_end
 
@@ -166,16 +159,12 @@ def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, stat
         primal = jax.custom_jvp(primal)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
-    acc0c = prob.accp.pack(acc0)
-    ys, obs, acc, code, bad = primal(prob.yp.pack(y0), prob.ap.pack(args), red, acc0c, dt,
-                                     state_bound)
+    ys, obs, acc, code, bad = primal(prob.yp.pack(y0), prob.ap.pack(args), red,
+                                     prob.accp.pack(acc0), dt, state_bound)
 
     def unstack(packer, chunks):
         return jax.vmap(packer.unpack)(chunks) if packer.sizes else packer.unpack(())
 
-    return scan.Integration(
-        ys=unstack(prob.yp, ys),
-        obs=unstack(prob.op, obs),
-        acc=prob.accp.unpack(acc) if reduction is not None else None,
-        status=scan.Status(code=code, step=bad),
-    )
+    acc = prob.accp.unpack(acc) if reduction is not None else None
+    return scan.Integration(unstack(prob.yp, ys), unstack(prob.op, obs), acc,
+                            scan.Status(code, bad))
