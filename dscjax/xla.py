@@ -119,9 +119,9 @@ def barrier(tree):
 
 
 @contextlib.contextmanager
-def barriers(enabled: bool = True):
+def barriers():
     """Within this block (a trace-time context), `barrier` is active."""
-    token = _BARRIERS.set(enabled)
+    token = _BARRIERS.set(True)
     try:
         yield
     finally:
@@ -136,37 +136,32 @@ CACHE_OPT_OUT = "DSCJAX_NO_COMPILATION_CACHE"
 MIN_COMPILE_TIME_S = 0.3
 
 
-def default_cache_dir(environ: Mapping[str, str] = os.environ) -> Path:
-    """$XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax."""
-    base = environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    return Path(base) / "dscjax" / "jax"
-
-
 def cache_opted_out(environ: Mapping[str, str] = os.environ) -> bool:
     """True if DSCJAX_NO_COMPILATION_CACHE is set to anything but "", 0, false or no."""
     return environ.get(CACHE_OPT_OUT, "").strip().lower() not in ("", "0", "false", "no")
 
 
-def enable_compilation_cache(directory: str | Path | None = None,
-                             min_compile_time_s: float = MIN_COMPILE_TIME_S) -> Path | None:
+def enable_compilation_cache(directory: str | Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in `directory` (default
-    `default_cache_dir()`) and return it. A cache directory already configured
-    (JAX_COMPILATION_CACHE_DIR) is kept and returned. None if the directory cannot be created
-    (nothing is changed then). This sets JAX's global configuration for the whole process."""
+    $XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax) and return it. A cache directory
+    already configured (JAX_COMPILATION_CACHE_DIR) is kept and returned. None if the directory
+    cannot be created (nothing is changed then). This sets JAX's global configuration for the
+    whole process."""
     current = jax.config.jax_compilation_cache_dir
     if current:
         return Path(current)
-    path = Path(directory) if directory is not None else default_cache_dir()
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    path = Path(directory) if directory is not None else Path(base) / "dscjax" / "jax"
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
-    jax.config.update("jax_persistent_cache_min_compile_time_secs", float(min_compile_time_s))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
     return path
 
 
 __all__ = ["CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "LEAN_WORK", "MIN_COMPILE_TIME_S",
            "OPTION", "WIDE", "barrier", "barriers", "cache_opted_out", "compiler_options",
-           "cpu_has_avx512", "default_cache_dir", "emitter_choice", "enable_compilation_cache",
-           "jit", "lean_options", "lean_work"]
+           "cpu_has_avx512", "emitter_choice", "enable_compilation_cache", "jit", "lean_options",
+           "lean_work"]

@@ -24,7 +24,6 @@ from dscjax.integrate.gradients import (
     TimeParallel,
 )
 from dscjax.integrate.scan import (
-    SMALL,
     STATUS_BOUND,
     STATUS_NONFINITE,
     STATUS_OK,
@@ -34,7 +33,7 @@ from dscjax.integrate.scan import (
     Status,
     saved_steps,
 )
-from dscjax.integrate.single import Carry, integrate_single
+from dscjax.integrate.single import integrate_single
 from dscjax.integrate.solvers import ETDRK4, RK4, SOLVERS, Solver, rk4_step, solver
 
 
@@ -87,12 +86,7 @@ def integrate(
     if not jnp.issubdtype(dt.dtype, jnp.floating):
         dt = dt.astype(jnp.result_type(*jax.tree.leaves(y0)))
     state_bound = jnp.asarray(state_bound, dt.dtype)
-    acc0 = None
-    if reduction is not None:
-        acc0 = reduction.init(dt.dtype)
-        if batch is not None:
-            n_batch = jax.tree.leaves(y0)[0].shape[0]
-            acc0 = jax.tree.map(lambda a: jnp.broadcast_to(a, (n_batch, *jnp.shape(a))), acc0)
+    acc0 = () if reduction is None else reduction.init(dt.dtype)  # one member's
     if batch is None:
         return integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
                                 state_bound, solver, gradient, rates, project, frozen)
@@ -101,6 +95,5 @@ def integrate(
 
 
 __all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "GRADIENTS", "RK4", "SOLVERS", "STATUS_BOUND",
-           "STATUS_NONFINITE", "STATUS_OK", "Carry", "Checkpointed", "Gradient", "Integration",
-           "Running", "SMALL", "Solver", "Status", "TimeParallel", "integrate", "rk4_step",
-           "saved_steps", "solver"]
+           "STATUS_NONFINITE", "STATUS_OK", "Checkpointed", "Gradient", "Integration", "Running",
+           "Solver", "Status", "TimeParallel", "integrate", "rk4_step", "saved_steps", "solver"]

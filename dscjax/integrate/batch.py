@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -13,10 +14,6 @@ from jax.flatten_util import ravel_pytree
 
 from dscjax.integrate import scan
 from dscjax.xla import barriers
-
-
-def _first(tree):
-    return jax.tree.map(lambda x: x[0], tree)
 
 
 def _scalars(tree) -> tuple:
@@ -42,41 +39,31 @@ class _Rows:
 
 def _ravel_floats(tree):
     """ravel_pytree over the floating leaves only (other leaves are kept as they are)."""
-    leaves, treedef = jax.tree.flatten(tree)
-    is_float = [jnp.issubdtype(jnp.result_type(x), jnp.floating) for x in leaves]
-    floats = [x for x, fl in zip(leaves, is_float, strict=True) if fl]
-    flat, unravel_floats = ravel_pytree(floats)
-
-    def unravel(v):
-        it = iter(unravel_floats(v))
-        return jax.tree.unflatten(treedef, [next(it) if fl else x
-                                            for x, fl in zip(leaves, is_float, strict=True)])
-
-    return flat, unravel
+    floats, rest = eqx.partition(tree, lambda x: jnp.issubdtype(jnp.result_type(x), jnp.floating))
+    flat, unravel = ravel_pytree(floats)
+    return flat, lambda v: eqx.combine(unravel(v), rest)
 
 
 def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
                     state_bound, solver, gradient, rates=None, project=None, frozen=None):
     args_flat, unravel_args = _ravel_floats(args)
-    y_one, b_one = _first(y0), _first(batch)
+    y_one, b_one = jax.tree.map(lambda x: x[0], (y0, batch))
     mask = scan.frozen_mask(frozen, y_one)  # one Python bool per row: held inside a step
     frozen_rows = (None if mask is None else
                    tuple(bool(m) for leaf in jax.tree.leaves(mask) for m in np.ravel(leaf)))
-    acc_one = _first(acc0) if reduction is not None else ()
     _, unravel_b = _ravel_floats(b_one)
     b_flat = jax.vmap(lambda b: _ravel_floats(b)[0], out_axes=-1)(batch)  # (p, B)
     obs_one = jax.eval_shape(lambda: f(dt, y_one, unravel_args(args_flat), b_one)[1])
-    ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc_one)
+    ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc0)
 
-    def rows(t, y, a_flat, b):
+    # one trace of the field for every call with the same shapes (RK4's four stages, the
+    # last observation): an inner jit, inlined by XLA
+    @jax.jit
+    def f_rows(t, y, a_flat, b):
         def one(y_row, b_col):
             dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(a_flat), unravel_b(b_col))
             return _scalars(dy), _scalars(obs)
         return jax.vmap(one, in_axes=(0, -1), out_axes=0)(y, b)
-
-    # one trace of the field for every call with the same shapes (RK4's four stages, the
-    # last observation): an inner jit, inlined by XLA
-    f_rows = jax.jit(rows)
 
     def f_obs(t, y):
         return f_rows(t, y, args_flat, b_flat)
@@ -98,48 +85,37 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         return jax.vmap(project_member, in_axes=(None, None, 0, -1), out_axes=0)(k, t, y, b_flat)
 
     def acc_member(acc_row, k, t, y_row, obs_row):
-        new = reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
-                               obs_c.unpack_one(obs_row), dt)
-        return _scalars(new)
+        return _scalars(reduction.update(acc_c.unpack_one(acc_row), k, t, ys_c.unpack_one(y_row),
+                                         obs_c.unpack_one(obs_row), dt))
 
     acc_fn = jax.vmap(acc_member, in_axes=(0, None, None, 0, 0), out_axes=0)
     y_init = tuple(jnp.moveaxis(jax.vmap(lambda y: ravel_pytree(y)[0])(y0), 0, -1))
-    acc_init = (tuple(jnp.moveaxis(jax.vmap(lambda a: ravel_pytree(a)[0])(acc0), 0, -1))
-                if reduction is not None else ())
     n_batch = jax.tree.leaves(y0)[0].shape[0]
+    acc_init = tuple(jnp.broadcast_to(a, (n_batch,)) for a in ravel_pytree(acc0)[0])
 
-    def acc_update(acc, k, t, y, obs, ok):
-        if reduction is None:
-            return acc
-        new = acc_fn(acc, k, t, y, obs)
-        return jax.tree.map(lambda a, b: jnp.where(ok, b, a), acc, new)
+    def acc_update(acc, k, t, y, obs):
+        return acc if reduction is None else acc_fn(acc, k, t, y, obs)
 
-    def step(carry):
-        k, y, acc, code, bad = carry
-        t = k.astype(dt.dtype) * dt
-        y_next, obs = solver.step(f_obs, rates_rows if rates is not None else None, t, y, dt,
+    def step(c):
+        t = c.k.astype(dt.dtype) * dt
+        y_next, obs = solver.step(f_obs, rates_rows if rates is not None else None, t, c.y, dt,
                                   frozen=frozen_rows)
         if project is not None:
-            y_next = project_rows(k + 1, t + dt, y_next)
-        ok_now = code == scan.STATUS_OK
-        acc = acc_update(acc, k, t, y, obs, ok_now)
+            y_next = project_rows(c.k + 1, t + dt, y_next)
+        acc = acc_update(c.acc, c.k, t, c.y, obs)
         finite = functools.reduce(jnp.logical_and, [jnp.isfinite(v) for v in y_next])
         small = functools.reduce(jnp.logical_and, [jnp.abs(v) <= state_bound for v in y_next])
-        code, bad, keep = scan.guard(ok_now, finite, small, k, code, bad)
-        y_next = tuple(jnp.where(keep, a, b) for a, b in zip(y_next, y, strict=True))
-        return (k + 1, y_next, acc, code, bad), obs
+        return scan.advance(c, y_next, acc, finite, small), obs
 
-    init = (jnp.zeros((), jnp.int32), y_init, acc_init,
-            jnp.full((n_batch,), scan.STATUS_OK, jnp.int32), jnp.full((n_batch,), -1, jnp.int32))
-    with barriers(True):  # (f_rows is traced once, here: with its barriers)
+    with barriers():  # (f_rows is traced once, here: with its barriers)
         obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
         carry, (ys, obs) = scan.saving_scan(
-            step, init, obs_zero, n_steps, save_every,
-            lambda c, o: (jnp.stack(c[1]), jnp.stack(o)), gradient.every)
+            step, scan.start(y_init, acc_init, (n_batch,)), obs_zero, n_steps, save_every,
+            lambda c, o: (jnp.stack(c.y), jnp.stack(o)), gradient.every)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         _, obs_end = f_obs(t_end, y_end)
-        acc = acc_update(acc, k, t_end, y_end, obs_end, code == scan.STATUS_OK)
+        acc = scan.kept(code == scan.STATUS_OK, acc_update(acc, k, t_end, y_end, obs_end), acc)
     ys = ys_c.unstack(jnp.concatenate([ys, jnp.stack(y_end)[None]]))  # rows (m, B) per step
     obs = obs_c.unstack(jnp.concatenate([obs, jnp.stack(obs_end)[None]]))
     acc = (jax.vmap(acc_c.unravel, in_axes=-1)(jnp.stack(acc)) if reduction is not None

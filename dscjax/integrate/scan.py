@@ -80,12 +80,36 @@ def frozen_mask(frozen, y):
     return mask if any(np.any(m) for m in jax.tree.leaves(mask)) else None
 
 
-def guard(ok_now, finite, small, k, code, bad):
-    """(code, first bad step, keep) after step k: a state that left the bound or went
-    non-finite freezes the run at its last good state."""
+class Carry(NamedTuple):
+    """What the time loop carries from step k to k + 1 (code and bad: one per batch member)."""
+
+    k: jax.Array  # () int32: the step index
+    y: tuple  # state y_k (packed chunks, or a batch's rows)
+    acc: tuple  # running reductions over samples 0..k-1, likewise
+    code: jax.Array  # int32 status code
+    bad: jax.Array  # int32: first bad step, -1 if none
+
+
+def start(y0, acc0, members=()) -> Carry:
+    """The carry at step 0; `members`: the shape of the status, (B,) for a batch."""
+    return Carry(jnp.zeros((), jnp.int32), y0, acc0, jnp.full(members, STATUS_OK, jnp.int32),
+                 jnp.full(members, -1, jnp.int32))
+
+
+def kept(ok, new, old):
+    """`new` where ok, else `old` (pytrees alike)."""
+    return jax.tree.map(lambda n, o: jnp.where(ok, n, o), new, old)
+
+
+def advance(c: Carry, y_next, acc, finite, small) -> Carry:
+    """The carry after step k: `acc` (sample k folded in) kept while the run is healthy, and
+    y_next unless it left the bound or went non-finite: that freezes the run at its last
+    good state."""
+    ok_now = c.code == STATUS_OK
     bad_now = ok_now & ~(finite & small)
-    code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), code)
-    return code, jnp.where(bad_now, k + 1, bad), code == STATUS_OK
+    code = jnp.where(bad_now, jnp.where(finite, STATUS_BOUND, STATUS_NONFINITE), c.code)
+    return Carry(c.k + 1, kept(code == STATUS_OK, y_next, c.y), kept(ok_now, acc, c.acc), code,
+                 jnp.where(bad_now, c.k + 1, c.bad))
 
 
 def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None):
@@ -144,15 +168,14 @@ def _largest_divisor(n: int, cap: int) -> int:
     return max(d for d in range(1, min(cap, n) + 1) if n % d == 0)
 
 
-def blocked_scan(body, carry, xs, n: int, width: int):
-    """lax.scan over n steps in blocks of L: the inner scan touches only small buffers (run
-    sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a plain scan."""
+def blocked_scan(body, carry, n: int, width: int):
+    """lax.scan of body(c, None) over n steps in blocks of L: the inner scan touches only small
+    buffers (run sequentially by XLA:CPU), the outer one moves whole blocks. Same results as a
+    plain scan."""
     L = _largest_divisor(n, max(1, SMALL // max(width, 1)))
 
-    def outer(c, block):
-        return jax.lax.scan(body, c, block, length=L)
+    def outer(c, _):
+        return jax.lax.scan(body, c, None, length=L)
 
-    blocks = None if xs is None else jax.tree.map(lambda a: a.reshape(n // L, L, *a.shape[1:]),
-                                                  xs)
-    carry, ys = jax.lax.scan(outer, carry, blocks, length=n // L)
+    carry, ys = jax.lax.scan(outer, carry, None, length=n // L)
     return carry, jax.tree.map(lambda a: a.reshape(n, *a.shape[2:]), ys)

@@ -1,13 +1,12 @@
 """One trajectory: its state, arguments, observations and reductions packed into a few flat
 arrays (`_Packer`: XLA:CPU then moves a couple of buffers per kernel, not dozens of scalars),
-stepped by the solver under the divergence guard (`Carry`), and differentiated by its
+stepped by the solver under the divergence guard (`scan.advance`), and differentiated by its
 gradient mode (`gradients`).
 """
 
 from __future__ import annotations
 
-import functools
-from typing import Any, NamedTuple
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -25,13 +24,12 @@ class _Packer:
 
     def __init__(self, proto):
         leaves, self.treedef = jax.tree.flatten(proto)
-        self.fixed = []  # (index, value) of non-float leaves
+        self.fixed = {}  # index: value of the non-float leaves
         self.slots = []  # (index, chunk, offset, size, shape)
         sizes: list[int] = []
         for i, leaf in enumerate(leaves):
-            dtype = jnp.result_type(leaf)
-            if not jnp.issubdtype(dtype, jnp.floating):
-                self.fixed.append((i, leaf))
+            if not jnp.issubdtype(jnp.result_type(leaf), jnp.floating):
+                self.fixed[i] = leaf
                 continue
             shape = np.shape(leaf)
             size = int(np.prod(shape, dtype=int))
@@ -40,45 +38,22 @@ class _Packer:
             self.slots.append((i, len(sizes) - 1, sizes[-1], size, shape))
             sizes[-1] += size
         self.sizes = tuple(sizes)
-        self.n_leaves = len(leaves)
 
-    def pack(self, tree) -> tuple:
+    def pack(self, tree, xp=jnp) -> tuple:
+        """The float leaves in chunks; with xp=np a static tree (`frozen`'s NumPy bools)."""
         leaves = jax.tree.leaves(tree)
         parts: list[list] = [[] for _ in self.sizes]
         for i, chunk, _, _, _ in self.slots:
-            parts[chunk].append(jnp.ravel(leaves[i]))
-        return tuple(p[0] if len(p) == 1 else jnp.concatenate(p) for p in parts)
+            parts[chunk].append(xp.ravel(leaves[i]))
+        return tuple(p[0] if len(p) == 1 else xp.concatenate(p) for p in parts)
 
     def unpack(self, chunks) -> Pytree:
-        leaves: list = [None] * self.n_leaves
-        for i, value in self.fixed:
-            leaves[i] = value
+        leaves = [self.fixed.get(i) for i in range(self.treedef.num_leaves)]
         for i, chunk, off, size, shape in self.slots:
             c = chunks[chunk]
             leaves[i] = (c if size == c.shape[-1] and off == 0 else c[off:off + size]).reshape(
                 shape)
         return jax.tree.unflatten(self.treedef, leaves)
-
-    def zeros(self, dtype) -> tuple:
-        return tuple(jnp.zeros((s,), dtype) for s in self.sizes)
-
-    def pack_mask(self, mask) -> tuple:
-        """A static tree of bool arrays like the packed tree -> one NumPy bool array per chunk."""
-        leaves = jax.tree.leaves(mask)
-        parts = [np.zeros((s,), bool) for s in self.sizes]
-        for i, chunk, off, size, _ in self.slots:
-            parts[chunk][off:off + size] = np.ravel(leaves[i])
-        return tuple(parts)
-
-
-class Carry(NamedTuple):
-    """What the time loop carries from step k to k + 1 (one trajectory)."""
-
-    k: jax.Array  # () int32: the step index
-    y: tuple  # state y_k, packed
-    acc: tuple  # running reductions over samples 0..k-1, packed
-    code: jax.Array  # () int32 status code
-    bad: jax.Array  # () int32: first bad step, -1 if none
 
 
 class _Problem:
@@ -89,21 +64,18 @@ class _Problem:
         self.f, self.reduction_is_none = f, reduction is None
         self.solver, self.rates, self.project = solver, rates, project
         self.n, self.s = n_steps, save_every
-        self.yp = _Packer(y0)
+        self.yp, self.ap, self.accp = _Packer(y0), _Packer(args), _Packer(acc0)
         mask = scan.frozen_mask(frozen, y0)  # components held inside a step, per packed chunk
-        self.frozen = None if mask is None else self.yp.pack_mask(mask)
-        self.ap = _Packer(args)
-        self.accp = _Packer(acc0 if reduction is not None else ())
-        dtype = jnp.result_type(*jax.tree.leaves(y0))
+        self.frozen = None if mask is None else self.yp.pack(mask, np)
+        self.dtype = jnp.result_type(*jax.tree.leaves(y0))
         # one trace of the field for every call with the same shapes (RK4's four stages, the
         # last observation, the linearisation, and the shapes of the observations here): an
         # inner jit, inlined by XLA
         self._unpacked_field = jax.jit(
             lambda t, y, a: f(t, self.yp.unpack(y), self.ap.unpack(a)))
-        obs_proto = jax.eval_shape(self._unpacked_field, jnp.zeros((), dtype),
+        obs_proto = jax.eval_shape(self._unpacked_field, jnp.zeros((), self.dtype),
                                    self.yp.pack(y0), self.ap.pack(args))[1]
         self.op = _Packer(scan.zeros(obs_proto))
-        self.dtype = dtype
 
     def field(self, t, y, a, packed=True):
         """(y', obs) at (t, y); `a` packed (chunks), or the args pytree itself."""
@@ -137,39 +109,32 @@ class _Problem:
                          dt)
         return self.accp.pack(new)
 
-    def guarded(self, c: Carry, a, red, dt, bound):
+    def guarded(self, c: scan.Carry, a, red, dt, bound):
         """One RK4 step with the divergence guard; returns (carry, obs_k)."""
         t = c.k.astype(dt.dtype) * dt
         y_next, obs = self.step(c.k, c.y, a, dt)
-        ok_now = c.code == scan.STATUS_OK
-        acc = jax.tree.map(lambda old, new: jnp.where(ok_now, new, old), c.acc,
-                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
+        acc = self.update(red, c.acc, c.k, t, c.y, obs, dt)
         finite = jnp.all(jnp.stack([jnp.all(jnp.isfinite(v)) for v in y_next]))
         small = jnp.all(jnp.stack([jnp.all(jnp.abs(v) <= bound) for v in y_next]))
-        code, bad, keep = scan.guard(ok_now, finite, small, c.k, c.code, c.bad)
-        y = jax.tree.map(lambda new, old: jnp.where(keep, new, old), y_next, c.y)
-        return Carry(c.k + 1, y, acc, code, bad), obs
+        return scan.advance(c, y_next, acc, finite, small), obs
 
-    def init(self, y0, acc0):
-        i32 = functools.partial(jnp.asarray, dtype=jnp.int32)
-        return Carry(i32(0), y0, acc0, i32(scan.STATUS_OK), i32(-1))
-
-    def finish(self, c: Carry, a, red, dt):
+    def finish(self, c: scan.Carry, a, red, dt):
         """Observation at t_N and the last sample folded into the reductions."""
         t = c.k.astype(dt.dtype) * dt
         _, obs = self.field(t, c.y, a)
-        acc = jax.tree.map(lambda old, new: jnp.where(c.code == scan.STATUS_OK, new, old), c.acc,
-                           self.update(red, c.acc, c.k, t, c.y, obs, dt))
+        acc = scan.kept(c.code == scan.STATUS_OK, self.update(red, c.acc, c.k, t, c.y, obs, dt),
+                        c.acc)
         return acc, obs
 
     # the primal loop: saves every s-th state, never stores the others
     def forward(self, y0, a, red, acc0, dt, bound):
+        obs_zero = tuple(jnp.zeros((size,), self.dtype) for size in self.op.sizes)
         c, (ys, obs) = scan.saving_scan(lambda c: self.guarded(c, a, red, dt, bound),
-                                        self.init(y0, acc0), self.op.zeros(self.dtype), self.n,
-                                        self.s, lambda c, obs: (c.y, obs))
+                                        scan.start(y0, acc0), obs_zero, self.n, self.s,
+                                        lambda c, obs: (c.y, obs))
         acc, obs_end = self.finish(c, a, red, dt)
-        ys = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), ys, c.y)
-        obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), obs, obs_end)
+        ys, obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), (ys, obs),
+                               (c.y, obs_end))
         return ys, obs, acc, c.code, c.bad
 
     # the same loop, keeping every state, sample and observation (for the linearisation)
@@ -179,7 +144,7 @@ class _Problem:
             return c_new, (c.y, c.acc, obs)
 
         width = max(self.yp.sizes + self.accp.sizes + self.op.sizes, default=1)
-        c, (Y, A, O) = scan.blocked_scan(step, self.init(y0, acc0), None, self.n, width)
+        c, (Y, A, O) = scan.blocked_scan(step, scan.start(y0, acc0), self.n, width)
         acc, obs_end = self.finish(c, a, red, dt)
         return c, Y, A, O, acc, obs_end
 
@@ -194,16 +159,12 @@ def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, stat
         primal = jax.custom_jvp(primal)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
-    acc0c = prob.accp.pack(acc0 if reduction is not None else ())
-    ys, obs, acc, code, bad = primal(prob.yp.pack(y0), prob.ap.pack(args), red, acc0c, dt,
-                                     state_bound)
+    ys, obs, acc, code, bad = primal(prob.yp.pack(y0), prob.ap.pack(args), red,
+                                     prob.accp.pack(acc0), dt, state_bound)
 
     def unstack(packer, chunks):
         return jax.vmap(packer.unpack)(chunks) if packer.sizes else packer.unpack(())
 
-    return scan.Integration(
-        ys=unstack(prob.yp, ys),
-        obs=unstack(prob.op, obs),
-        acc=prob.accp.unpack(acc) if reduction is not None else None,
-        status=scan.Status(code=code, step=bad),
-    )
+    acc = prob.accp.unpack(acc) if reduction is not None else None
+    return scan.Integration(unstack(prob.yp, ys), unstack(prob.op, obs), acc,
+                            scan.Status(code, bad))
