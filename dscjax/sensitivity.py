@@ -40,12 +40,6 @@ LP_ORDER = 16.0  # p of lp_error_window
 PARTS = ("controller", "plant", "hysteresis")  # whose numbers are differentiated by default
 
 
-def lp_window(window_start, order, n_steps: int) -> SmoothMax:
-    """lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], p =
-    `order`: between the mean and the max of |e| on W (a running reduction)."""
-    return SmoothMax(Power(order), window_start, "lp_error_window", n_steps=n_steps)
-
-
 @dataclasses.dataclass(frozen=True)
 class Sensitivity:
     """The result of `sensitivity`.
@@ -112,9 +106,12 @@ def check_metrics(metrics: Sequence[str], field: str = "--metric") -> tuple[str,
 
 
 def _metrics(z, selection, setup, spec, overrides, lp_order, metrics):
-    """(the metrics (k,), the run's status): the loop at the numbers moved by z."""
+    """(the metrics (k,), the run's status): the loop at the numbers moved by z, with
+    lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], p =
+    `lp_order`."""
+    lp = SmoothMax(Power(lp_order), spec.window_start, "lp_error_window", n_steps=spec.n_steps)
     traj = run_at(selection, setup, dict(zip(selection.names, z, strict=True)), spec,
-                  overrides=overrides, extra=lp_window(spec.window_start, lp_order, spec.n_steps))
+                  overrides=overrides, extra=lp)
     return jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics]), traj.status
 
 
@@ -233,4 +230,4 @@ def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
 
 
 __all__ = ["LP_ORDER", "METRICS", "Problem", "Sensitivity", "columns", "check_metrics",
-           "lp_window", "sensitivity"]
+           "sensitivity"]
