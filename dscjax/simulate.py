@@ -277,8 +277,8 @@ def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
         concrete = validation.is_concrete(traj.status)
         divergence.refuse_traced_refinement(spec, "simulate", traj.status)
         t_first = traj.t_diverged
-        for j in range(1, counted_levels(spec) + 1):
-            if not (concrete and bool(traj.diverged)):
+        for j in range(1, counted_levels(spec) + 1):  # none where traced (refused above)
+            if not bool(traj.diverged):
                 break
             finer = _simulate(setup, level_spec(spec, j).program(), None, extra)
             traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
@@ -332,11 +332,11 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
     check, and a batch reports a diverged row in its status)."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
-    noise = None if spec.noise is None else np.shape(spec.noise)
+    noise = np.shape(spec.noise)  # () for one number or None
     if noise and noise != (setup.order,):
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
                                      f"of the plant, {setup.order} numbers "
-                                     f"(got {int(np.prod(noise))})")
+                                     f"(got {np.size(spec.noise)})")
     if not batched and not spec.sampled and isinstance(spec.solver, RK4):
         validation.check_filters(setup, float(spec.dt))
 
