@@ -34,13 +34,13 @@ from dscjax.validation import ConfigError, validate_setup
 __version__ = "0.1.0"  # the only place: pyproject.toml reads it (dynamic version)
 
 __all__ = [
-    "Backlash", "Backstepping", "BacksteppingState", "canonical", "cast",
-    "check_strict_feedback", "Checkpointed", "closed_form", "closed_loop", "ConfigError",
-    "Controller", "CustomPlant", "default_window", "device", "disturbance",
-    "divergence_report", "DivergenceError", "DSC", "DSCState", "ETDRK4", "initial_state",
-    "InitialOffset", "integrate", "metrics", "MultiSine", "nan_if_diverged", "Observation",
-    "order_n_example", "paper_example", "PaperPlant", "params", "Plant", "prepared",
-    "Reference", "refinement_level", "RK4", "rk4_step", "run", "RunSpec", "objective", "Setup",
-    "simulate", "simulate_batch", "Sine", "SmoothStep", "State", "Status", "StrictFeedback",
-    "TimeParallel", "Trajectory", "validate_setup", "vector_field", "xla"
+    "Backlash", "Backstepping", "BacksteppingState", "canonical", "cast", "check_strict_feedback",
+    "Checkpointed", "closed_form", "closed_loop", "ConfigError", "Controller", "CustomPlant",
+    "default_window", "device", "disturbance", "divergence_report", "DivergenceError", "DSC",
+    "DSCState",
+    "ETDRK4", "initial_state", "InitialOffset", "integrate", "metrics", "MultiSine",
+    "nan_if_diverged", "Observation", "order_n_example", "paper_example", "PaperPlant", "params",
+    "Plant", "prepared", "Reference", "refinement_level", "RK4", "rk4_step", "run", "RunSpec",
+    "objective", "Setup", "simulate", "simulate_batch", "Sine", "SmoothStep", "State", "Status",
+    "StrictFeedback", "TimeParallel", "Trajectory", "validate_setup", "vector_field", "xla"
 ]

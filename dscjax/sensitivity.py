@@ -30,7 +30,7 @@ from dscjax.metrics import Power, SmoothMax
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
 from dscjax.selection import Relative, Selection, Shift, Tuned, run_at
-from dscjax.simulate import DivergenceError, canonical, check, divergence_report
+from dscjax.simulate import DivergenceError, canonical, check, divergence_report, dtype_of
 from dscjax.validation import ConfigError
 
 # l2_error_window, max_abs_u and tv_u as `dscjax.metrics` defines them; lp_error_window the
@@ -166,7 +166,7 @@ class Problem:
         numbers traced, the structure static, the spec's host-side settings out
         (`RunSpec.program`)."""
         z = self.z0() if z is None else z
-        dtype = jnp.result_type(self.setup.plant.x0)
+        dtype = dtype_of(self.setup)
         return (jnp.asarray(z, dtype), self.selection, self.setup, self.spec.program(),
                 self.overrides, jnp.asarray(self.lp_order, dtype), self.metrics)
 

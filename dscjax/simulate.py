@@ -131,32 +131,28 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
                          seed=spec.noise_seed, scheme=spec.discretisation), spec.dt)
     loop_field, init, rates, project, frozen = _loop(setup, spec)
     if overrides is None:
-        setup = closed_loop.prepared(setup)
-        y0, args, batch = init(setup, samp), (setup, samp), None
-
-        def field(t, y, args):
-            return loop_field(t, y, *args)
+        shared, batch = closed_loop.prepared(setup), None
+        y0 = init(shared, samp)
 
         def member(args):  # (setup, sampling) from the args of the rates and the projection
             return args
     else:
         shared, batch, rebuild = _split_members(setup, overrides)
         y0 = jax.vmap(lambda b: init(rebuild(shared, b), samp))(batch)
-        args = (shared, samp)
-
-        def field(t, y, a, b):
-            return loop_field(t, y, rebuild(a[0], b), a[1])
 
         def member(args):
             (sh, sa), b = args
             return rebuild(sh, b), sa
+
+    def field(t, y, *args):  # integrate's (args), or with a batch (args, b)
+        return loop_field(t, y, *member(args[0] if batch is None else args))
 
     proj = None
     if project is not None:
         def proj(k, t, y, args):
             return project(k, t, y, *member(args))
 
-    res = integrate(field, y0, spec.dt, spec.n_steps, args, batch=batch,
+    res = integrate(field, y0, spec.dt, spec.n_steps, (shared, samp), batch=batch,
                     rates=lambda t, y, args, obs: rates(t, y, *member(args), obs), project=proj,
                     save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
                     solver=spec.solver, gradient=spec.gradient, frozen=frozen)
