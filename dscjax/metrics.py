@@ -49,14 +49,12 @@ CHATTER_RATIO = 1.5  # a run whose chattering index exceeds this chatters
 DEFAULT_WINDOW_START = 1.0  # [s]; the paper's example's transient is over by then
 
 
-def default_window(t_final, window_start=None):
-    """The metric window's start: as given, or 1 s (0 s if the horizon is 1 s or less).
+def default_window(t_final):
+    """The metric window's default start: 1 s (0 s if the horizon is 1 s or less).
 
     Every feature takes its default window from here (simulate, sweeps, tuning, reproduce).
     """
-    if window_start is None:
-        return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
-    return window_start
+    return DEFAULT_WINDOW_START if t_final > DEFAULT_WINDOW_START else 0.0
 
 
 # -- running, inside the scan -----------------------------------------------------------------
@@ -140,18 +138,16 @@ def chatters(chattering_index) -> bool:
 class Tracking(eqx.Module):
     """The metrics of every run as a running reduction (`integrate.Running`): it reads
     e = x_1 - y_r, u and w off a closed-loop state y (`y.x`) and its observation; y_r is the
-    reference the controller tracks, or `reference(t)` where given."""
+    reference the controller tracks."""
 
     window_start: jax.Array  # () t0 of the window [t0, T]
     n_steps: int = eqx.field(static=True, default=1)
-    reference: Any = None
 
     def init(self, dtype) -> RunningMetrics:
         return running_init(dtype)
 
     def update(self, acc, k, t, y, obs, dt):
-        yr = obs.yr if self.reference is None else self.reference(t)
-        return running_update(acc, k, t, y.x[0] - yr, obs.u, obs.w, dt, self.window_start,
+        return running_update(acc, k, t, y.x[0] - obs.yr, obs.u, obs.w, dt, self.window_start,
                               self.n_steps)
 
     def finalize(self, acc, t_final):

@@ -54,29 +54,26 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
         t_bad = float(np.asarray(traj.t_diverged))
         for v in signals.values():
             v[t > t_bad] = np.nan
-    x = signals["x"]
     fig, ax = subplots(2, 2, figsize=(10, 7), sharex=True)
-    a = ax[0, 0]
-    a.plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--", label="reference $y_r$")
-    for i in range(x.shape[1]):
-        a.plot(t, x[:, i], color=COLORS["x"][i % len(COLORS["x"])], lw=1.0,
-               label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
-    a.set_ylabel("state $x_i$, reference $y_r$ [-]")
-    a.set_title("states against the reference")
-    for a, key, label, panel in (
-            (ax[0, 1], "e", "tracking error $e = y - y_r$ [-]", "tracking error"),
-            (ax[1, 0], "u", "control input $u$ [-]", "control input"),
-            (ax[1, 1], "w", "hysteresis output $w$ [-]", "hysteresis output")):
+    ax[0, 0].plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--", label="reference $y_r$")
+    for i, xi in enumerate(signals["x"].T):
+        ax[0, 0].plot(t, xi, color=COLORS["x"][i % len(COLORS["x"])], lw=1.0,
+                      label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
+    for a, key in zip(ax.ravel()[1:], "euw", strict=True):
         a.plot(t, signals[key], color=COLORS[key], lw=1.0)
+    for a, label, panel in (
+            (ax[0, 0], "state $x_i$, reference $y_r$ [-]", "states against the reference"),
+            (ax[0, 1], "tracking error $e = y - y_r$ [-]", "tracking error"),
+            (ax[1, 0], "control input $u$ [-]", "control input"),
+            (ax[1, 1], "hysteresis output $w$ [-]", "hysteresis output")):
         a.set_ylabel(label)
         a.set_title(panel)
-    for a in ax[1]:
-        a.set_xlabel("time $t$ [s]")
-    for a in ax.ravel():
         a.grid(alpha=0.3)
         a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
         if diverged:
             a.axvline(t_bad, color="#d62728", lw=1.0, ls=":")
+    for a in ax[1]:
+        a.set_xlabel("time $t$ [s]")
     handles, labels = ax[0, 0].get_legend_handles_labels()
     if diverged:
         handles.append(ax[0, 1].lines[-1])

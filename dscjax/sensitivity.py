@@ -30,7 +30,7 @@ from dscjax.metrics import Power, SmoothMax
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
 from dscjax.selection import Relative, Selection, Shift, Tuned, run_at
-from dscjax.simulate import DivergenceError, canonical, check, divergence_report
+from dscjax.simulate import DivergenceError, canonical, check, divergence_report, dtype_of
 from dscjax.validation import ConfigError
 
 # l2_error_window, max_abs_u and tv_u as `dscjax.metrics` defines them; lp_error_window the
@@ -38,12 +38,6 @@ from dscjax.validation import ConfigError
 METRICS = ("l2_error_window", "lp_error_window", "max_abs_u", "tv_u")
 LP_ORDER = 16.0  # p of lp_error_window
 PARTS = ("controller", "plant", "hysteresis")  # whose numbers are differentiated by default
-
-
-def lp_window(window_start, order, n_steps: int) -> SmoothMax:
-    """lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], p =
-    `order`: between the mean and the max of |e| on W (a running reduction)."""
-    return SmoothMax(Power(order), window_start, "lp_error_window", n_steps=n_steps)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -112,9 +106,12 @@ def check_metrics(metrics: Sequence[str], field: str = "--metric") -> tuple[str,
 
 
 def _metrics(z, selection, setup, spec, overrides, lp_order, metrics):
-    """(the metrics (k,), the run's status): the loop at the numbers moved by z."""
+    """(the metrics (k,), the run's status): the loop at the numbers moved by z, with
+    lp_error_window = ((1/|W|) trapezoid_W(|e|^p))^(1/p) on the window W = [t0, T], p =
+    `lp_order`."""
+    lp = SmoothMax(Power(lp_order), spec.window_start, "lp_error_window", n_steps=spec.n_steps)
     traj = run_at(selection, setup, dict(zip(selection.names, z, strict=True)), spec,
-                  overrides=overrides, extra=lp_window(spec.window_start, lp_order, spec.n_steps))
+                  overrides=overrides, extra=lp)
     return jnp.stack([jnp.mean(traj.metrics[m]) for m in metrics]), traj.status
 
 
@@ -169,7 +166,7 @@ class Problem:
         numbers traced, the structure static, the spec's host-side settings out
         (`RunSpec.program`)."""
         z = self.z0() if z is None else z
-        dtype = jnp.result_type(self.setup.plant.x0)
+        dtype = dtype_of(self.setup)
         return (jnp.asarray(z, dtype), self.selection, self.setup, self.spec.program(),
                 self.overrides, jnp.asarray(self.lp_order, dtype), self.metrics)
 
@@ -233,4 +230,4 @@ def sensitivity(setup: Setup, spec: RunSpec, paths: Sequence[str] | None = None,
 
 
 __all__ = ["LP_ORDER", "METRICS", "Problem", "Sensitivity", "columns", "check_metrics",
-           "lp_window", "sensitivity"]
+           "sensitivity"]

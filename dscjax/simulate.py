@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -74,11 +74,6 @@ class Trajectory(eqx.Module):
     refinements: jax.Array = 0
 
     @property
-    def refined(self):
-        """True where the run needed a smaller step than requested to stay finite."""
-        return jnp.asarray(self.refinements) > 0
-
-    @property
     def e(self):
         """Tracking error e = y - y_r."""
         return self.x[..., 0] - self.yr
@@ -101,30 +96,23 @@ class Trajectory(eqx.Module):
         raise AttributeError(name)
 
 
-class _Loop(NamedTuple):
-    """What `integrate` needs for one kind of loop, each function taking the setup and the
-    sampling ((`Sampling`, dt) or None) as arguments, never closing over traced values."""
-
-    field: Callable  # (t, y, setup, samp) -> (dy, obs)
-    init: Callable  # (setup, samp) -> y0
-    rates: Callable  # (t, y, setup, samp, obs) -> decay rates like y
-    project: Callable | None  # (k, t, y, setup, samp) -> y after a step
-    frozen: Any
-
-
-def _loop(setup: Setup, spec: RunSpec) -> _Loop:
+def _loop(setup: Setup, spec: RunSpec):
+    """What `integrate` needs for one kind of loop: (field (t, y, setup, samp) -> (dy, obs),
+    init (setup, samp) -> y0, rates (t, y, setup, samp, obs) -> decay rates like y, project
+    (k, t, y, setup, samp) -> y after a step, or None, frozen); each function takes the setup
+    and the sampling ((`Sampling`, dt) or None), never closing over traced values."""
     if not spec.sampled:
-        return _Loop(lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
-                     lambda s, samp: closed_loop.initial_state(s),
-                     lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
-                     (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
-                     if type(setup.hysteresis).projects else None,
-                     closed_loop.frozen(setup))
-    return _Loop(lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
-                 lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
-                 lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
-                 lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
-                 closed_loop.SAMPLED_FROZEN)
+        return (lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
+                lambda s, samp: closed_loop.initial_state(s),
+                lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
+                (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
+                if type(setup.hysteresis).projects else None,
+                closed_loop.frozen(setup))
+    return (lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
+            lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
+            lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
+            lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
+            closed_loop.SAMPLED_FROZEN)
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
@@ -141,43 +129,38 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     if spec.sampled:
         samp = (Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
                          seed=spec.noise_seed, scheme=spec.discretisation), spec.dt)
-    loop = _loop(setup, spec)
-    common = dict(save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
-                  solver=spec.solver, gradient=spec.gradient, frozen=loop.frozen)
+    loop_field, init, rates, project, frozen = _loop(setup, spec)
     if overrides is None:
-        setup = closed_loop.prepared(setup)
-        y0, args, batch = loop.init(setup, samp), (setup, samp), None
-
-        def field(t, y, args):
-            return loop.field(t, y, *args)
+        shared, batch = closed_loop.prepared(setup), None
+        y0 = init(shared, samp)
 
         def member(args):  # (setup, sampling) from the args of the rates and the projection
             return args
     else:
         shared, batch, rebuild = _split_members(setup, overrides)
-        y0 = jax.vmap(lambda b: loop.init(rebuild(shared, b), samp))(batch)
-        args = (shared, samp)
-
-        def field(t, y, a, b):
-            return loop.field(t, y, rebuild(a[0], b), a[1])
+        y0 = jax.vmap(lambda b: init(rebuild(shared, b), samp))(batch)
 
         def member(args):
             (sh, sa), b = args
             return rebuild(sh, b), sa
 
-    proj = None
-    if loop.project is not None:
-        def proj(k, t, y, args):
-            return loop.project(k, t, y, *member(args))
+    def field(t, y, *args):  # integrate's (args), or with a batch (args, b)
+        return loop_field(t, y, *member(args[0] if batch is None else args))
 
-    res = integrate(field, y0, spec.dt, spec.n_steps, args, batch=batch,
-                    rates=lambda t, y, args, obs: loop.rates(t, y, *member(args), obs),
-                    project=proj, **common)
+    proj = None
+    if project is not None:
+        def proj(k, t, y, args):
+            return project(k, t, y, *member(args))
+
+    res = integrate(field, y0, spec.dt, spec.n_steps, (shared, samp), batch=batch,
+                    rates=lambda t, y, args, obs: rates(t, y, *member(args), obs), project=proj,
+                    save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
+                    solver=spec.solver, gradient=spec.gradient, frozen=frozen)
     t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
     t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
-    finalize = red.finalize if overrides is None else jax.vmap(red.finalize, in_axes=(0, None))
-    dt = spec.dt
+    finalize, dt = red.finalize, spec.dt
     if overrides is not None:
+        finalize = jax.vmap(red.finalize, in_axes=(0, None))
         n_batch = jax.tree.leaves(overrides)[0].shape[0]
         t = jnp.broadcast_to(t, (n_batch, t.shape[0]))
         dt = jnp.broadcast_to(dt, (n_batch,))
@@ -241,12 +224,6 @@ _simulate = xla.jit(_run_reported, lean=True)
 _simulate_batch = xla.jit(_run_reported)
 
 
-def _batch_program(overrides):
-    """The compiled batch for these overrides' rows (`xla.LEAN_ROWS`)."""
-    rows = np.shape(next(iter(jax.tree.leaves(overrides)), np.zeros(1)))[0]
-    return _simulate if rows <= xla.LEAN_ROWS else _simulate_batch
-
-
 def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
              spec: RunSpec | None = None, save_every: int = 1,
              window_start: float | None = None, state_bound: float = 1e6, solver: str = "rk4",
@@ -296,8 +273,8 @@ def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
         concrete = validation.is_concrete(traj.status)
         divergence.refuse_traced_refinement(spec, "simulate", traj.status)
         t_first = traj.t_diverged
-        for j in range(1, counted_levels(spec) + 1):
-            if not (concrete and bool(traj.diverged)):
+        for j in range(1, counted_levels(spec) + 1):  # none where traced (refused above)
+            if not bool(traj.diverged):
                 break
             finer = _simulate(setup, level_spec(spec, j).program(), None, extra)
             traj = dataclasses.replace(finer, refinements=jnp.asarray(j, jnp.int32))
@@ -351,11 +328,11 @@ def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
     check, and a batch reports a diverged row in its status)."""
     if validation.is_concrete(setup) and not batched:
         validation.validate_setup(setup)
-    noise = None if spec.noise is None else np.shape(spec.noise)
+    noise = np.shape(spec.noise)  # () for one number or None
     if noise and noise != (setup.order,):
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
                                      f"of the plant, {setup.order} numbers "
-                                     f"(got {int(np.prod(noise))})")
+                                     f"(got {np.size(spec.noise)})")
     if not batched and not spec.sampled and isinstance(spec.solver, RK4):
         validation.check_filters(setup, float(spec.dt))
 
@@ -410,11 +387,12 @@ def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 
                 validation.shape(val[0], p, np.shape(params.get(setup, p)))
     check(setup, spec, batched=True)
 
-    def level(j, ov):
-        return _batch_program(ov)(setup, level_spec(spec, j).program(), ov)
+    def level(j, ov):  # the compiled batch for the rows of ov (`xla.LEAN_ROWS`)
+        lean = np.shape(next(iter(ov.values())))[0] <= xla.LEAN_ROWS
+        return (_simulate if lean else _simulate_batch)(setup, level_spec(spec, j).program(), ov)
 
     divergence.refuse_traced_refinement(spec, "simulate_batch", (setup, spec, overrides))
-    with _placed(spec, device, next(iter(sizes.values()), 1), (setup, overrides)):
+    with _placed(spec, device, next(iter(sizes.values())), (setup, overrides)):
         traj = level(0, overrides)
         divergence.refuse_traced_refinement(spec, "simulate_batch", traj.status)
         if counted_levels(spec):  # host-side
