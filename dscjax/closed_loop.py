@@ -76,7 +76,7 @@ class Observation(NamedTuple):
 def prepared(setup: Setup) -> Setup:
     """Apply the controller's initialisation rule (e.g. eqs. 67-68) to the setup."""
     controller, reference = setup.controller.prepare(setup.plant, setup.reference)
-    return dataclasses.replace(setup, controller=controller, reference=reference)
+    return setup.replace(controller=controller, reference=reference)
 
 
 def initial_state(setup: Setup) -> State:
@@ -169,25 +169,13 @@ _jacobian_at = xla.jit(_flat_jacobian, lean=True)
 _jacobians_along = xla.jit(jax.vmap(_flat_jacobian, in_axes=(None, 0, 0)), lean=True)
 
 
-def local_eigenvalues(setup: Setup, t, state: State) -> np.ndarray:
-    """Eigenvalues of the closed loop's Jacobian dF/dX at one time and state."""
-    y = ravel_pytree(state)[0]
-    jac = _jacobian_at(setup, y, jnp.asarray(t, y.dtype))
-    return np.linalg.eigvals(np.asarray(jac))
-
-
-def states_of(traj) -> State:
-    """The saved closed-loop states of a trajectory (`simulate.Trajectory`) as a `State`."""
-    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
-
-
 def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
-    """The local spectrum at every saved point of a single trajectory.
+    """The local spectrum at every saved point of a single trajectory (`simulate.Trajectory`).
 
         traj = dscjax.simulate(setup, 20.0, 1e-3)
         prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
     """
-    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states_of(traj))
+    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
     ts = jnp.asarray(traj.t)
     jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
@@ -199,13 +187,16 @@ def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
 
 
 def diagnose(setup: Setup, traj) -> str:
-    """One sentence on the local stiffness at the last good state of a diverged single run
-    ("" if it cannot be computed: a diagnosis never hides the divergence report itself)."""
+    """One sentence on the local stiffness (the eigenvalues of dF/dX) at the last good state
+    of a diverged single run ("" if it cannot be computed: a diagnosis never hides the
+    divergence report itself)."""
     try:
         # after divergence the state is frozen at its last good value: the last saved point
         t_last = float(traj.t_diverged) - float(traj.dt)
-        last = jax.tree.map(lambda a: a[-1], states_of(traj))
-        ev = local_eigenvalues(setup, t_last, last)
+        last = jax.tree.map(lambda a: a[-1], State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
+        y = ravel_pytree(last)[0]
+        jac = _jacobian_at(setup, y, jnp.asarray(t_last, y.dtype))
+        ev = np.linalg.eigvals(np.asarray(jac))
     except Exception:
         return ""
     rho = float(np.abs(ev).max())
@@ -299,13 +290,12 @@ def sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
 def sampled_initial_state(setup: Setup, sampling: Sampling, dt) -> SampledState:
     """X(0) of the sampled loop (setup `prepared`): the first sample taken at t = 0."""
     X0 = initial_state(setup)
-    u0, _ = setup.controller.law(X0.ctrl, X0.x, jnp.zeros((), X0.x.dtype), setup.plant,
-                                 setup.reference)
-    u0 = jnp.asarray(u0, X0.x.dtype)
-    start = SampledState(x=X0.x, h=X0.h, ctrl=X0.ctrl, u=u0,
-                         past=jnp.full((sampling.delay,), u0, X0.x.dtype))
-    return sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), X0.x.dtype), start, setup,
-                          sampling, jnp.asarray(dt, X0.x.dtype))
+    dtype = X0.x.dtype
+    u0, _ = setup.controller.law(X0.ctrl, X0.x, jnp.zeros((), dtype), setup.plant, setup.reference)
+    u0 = jnp.asarray(u0, dtype)
+    start = SampledState(*X0, u=u0, past=jnp.full((sampling.delay,), u0, dtype))
+    return sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), dtype), start, setup, sampling,
+                         jnp.asarray(dt, dtype))
 
 
 def sampled_vector_field(t, X: SampledState, setup: Setup) -> tuple[SampledState, Observation]:
@@ -334,6 +324,6 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
 
 __all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler", "ForwardEuler",
            "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile", "State",
-           "decay_rates", "diagnose", "frozen", "initial_state", "local_eigenvalues", "prepared",
-           "project", "sample_after_step", "sample_update", "sampled_initial_state",
-           "sampled_vector_field", "spectrum_along", "states_of", "vector_field"]
+           "decay_rates", "diagnose", "frozen", "initial_state", "prepared", "project",
+           "sample_after_step", "sample_update", "sampled_initial_state", "sampled_vector_field",
+           "spectrum_along", "vector_field"]

@@ -19,7 +19,6 @@ and only the Setup knows the config path a message must name.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import typing
 
 import equinox as eqx
@@ -45,26 +44,17 @@ def option(default):
     return eqx.field(default=default, static=True)
 
 
-def is_static(f: dataclasses.Field) -> bool:
-    """True for a static (structural) field, False for a traced number."""
-    return bool(f.metadata.get("static"))
-
-
-@functools.cache
-def options_of(cls: type) -> dict[str, tuple]:
-    """{field: allowed values} of the `Literal`-typed fields of a model class."""
-    hints = typing.get_type_hints(cls)
-    return {f.name: typing.get_args(hints[f.name]) for f in dataclasses.fields(cls)
-            if typing.get_origin(hints.get(f.name)) is typing.Literal}
-
-
 class Model(eqx.Module):
     """Base of every model: see the module docstring."""
 
     def validate(self, prefix: str) -> None:
-        """Check every option and every field's range rule; ConfigError names the field."""
-        for name, allowed in options_of(type(self)).items():
-            v.one_of(getattr(self, name), f"{prefix}.{name}", allowed)
+        """Check every option (a `Literal` field) and every field's range rule; ConfigError
+        names the field."""
+        hints = typing.get_type_hints(type(self))
+        for f in dataclasses.fields(self):
+            hint = hints[f.name]
+            if typing.get_origin(hint) is typing.Literal:
+                v.one_of(getattr(self, f.name), f"{prefix}.{f.name}", typing.get_args(hint))
         for f in dataclasses.fields(self):
             check = f.metadata.get("check")
             if check is not None:
@@ -72,7 +62,7 @@ class Model(eqx.Module):
 
     def expected_shapes(self, n: int) -> dict[str, tuple[int, ...]]:
         """Shape of every number field for a plant of order n; default: all scalars."""
-        return {f.name: () for f in dataclasses.fields(self) if not is_static(f)}
+        return {f.name: () for f in dataclasses.fields(self) if not f.metadata.get("static")}
 
 
 # -- the loop's kinks, exact and smooth ------------------------------------------------------------
@@ -105,5 +95,4 @@ def smooth_sat(s, delta):
     return 0.5 * (jnp.sqrt((s + 1.0) ** 2 + d2) - jnp.sqrt((s - 1.0) ** 2 + d2))
 
 
-__all__ = ["Model", "is_static", "nonnegative", "option", "options_of", "positive", "sat",
-           "smooth_abs", "smooth_sat"]
+__all__ = ["Model", "nonnegative", "option", "positive", "sat", "smooth_abs", "smooth_sat"]

@@ -143,11 +143,10 @@ class StrictFeedback(_SineDbar):
         return shapes | dict(delta_freq=(), dbar_amp=(), dbar_freq=(), dbar_bias=())
 
     def f(self, x):
-        n = x.shape[0]
         return jnp.stack([
             self.f_quad[i] * x[i] * x[i] + self.f_sin[i] * jnp.sin(x[i])
             + (self.f_cross[i] * x[i - 1] * x[i] if i > 0 else 0.0 * x[i])
-            for i in range(n)])
+            for i in range(x.shape[0])])
 
     def rho(self, x):
         q = _cumulative_sq(x)
@@ -165,10 +164,8 @@ class StrictFeedback(_SineDbar):
     @classmethod
     def zeros(cls, n: int, **values: Any) -> "StrictFeedback":
         """A plant of order n with g = 1 and every other coefficient 0, then `values` applied."""
-        base = {name: np.zeros(n) for name in cls.vector_fields}
-        base["g"] = np.ones(n)
-        base.update({k: np.asarray(v, dtype=float) for k, v in values.items()})
-        return cls(**base)
+        base = {name: np.zeros(n) for name in cls.vector_fields} | {"g": np.ones(n)}
+        return cls(**base | {k: np.asarray(v, dtype=float) for k, v in values.items()})
 
 
 class PaperPlant(_SineDbar):

@@ -158,15 +158,13 @@ class Backstepping(AdaptiveLaws):
 
     def plain_law(self, state, x, t, plant, reference):
         """The automatic law without the inner jit (same values as `law`)."""
-        n = x.shape[0]
-        m = n - 1
+        m = x.shape[0] - 1
         th = tuple(state.theta_hat[i] for i in range(m))
         ph = tuple(state.phi_hat[i] for i in range(m))
-        xs = tuple(x[i] for i in range(n))
+        xs = tuple(x[i] for i in range(m + 1))
         a_prev, a_dot, chain = self._alpha_and_rate(m, th, ph, xs[:m], t, xs[m:], plant,
                                                     reference)
-        z_n = x[n - 1] - a_prev
-        return self._last_stage(state, z_n, a_dot, chain)
+        return self._last_stage(state, x[m] - a_prev, a_dot, chain)  # z_n = x_n - alpha_(n-1)
 
     def _last_stage(self, state, z_n, a_dot, chain):
         f, rho = chain.f, chain.rho

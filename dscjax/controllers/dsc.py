@@ -105,39 +105,33 @@ class DSC(AdaptiveLaws):
             return ctrl, InitialOffset(reference, x0[0] - reference(jnp.zeros_like(x0[0])),
                                        self.linf_decay_time)
         if self.init == "zero_surfaces":
-            _, x_d0 = self._initial_filters(plant, reference, choose_c=True)
+            x_d0 = self._initial_filters(plant, reference, zero_surfaces=True)
             return dataclasses.replace(self, c=x0[1:] - x_d0), reference
         return self, reference
 
-    def _initial_filters(self, plant, reference, choose_c=False):
-        """z(0) = x_d(0) of (18), (24), computed stage by stage; returns (S(0), x_d(0)).
+    def _initial_filters(self, plant, reference, zero_surfaces=False):
+        """z(0) = x_d(0) of (18), (24), computed stage by stage.
 
         With z_i(0) = x_id(0) the filter derivatives are zero at t = 0, so x_(i+1)d(0) needs
-        only S_i(0). With choose_c, c_i is taken so that S_i(0) = 0 for i >= 2.
+        only S_i(0). With zero_surfaces, c_i is taken so that S_i(0) = 0 for i >= 2.
         """
         x = jnp.asarray(plant.x0)
-        n = x.shape[0]
-        t0 = jnp.zeros_like(x[0])
-        yr, yr_dot = reference.derivatives(t0, 1)
+        yr, yr_dot = reference.derivatives(jnp.zeros_like(x[0]), 1)
         f, rho = plant.f(x), plant.rho(x)
-        theta_hat, phi_hat = self._initial_estimates()[:2]
-        s = [x[0] - yr]
-        x_d = [self._virtual(0, s[0], f, rho, theta_hat, phi_hat, yr_dot)]
-        for i in range(1, n - 1):
-            s_i = jnp.zeros_like(x[0]) if choose_c else x[i] - x_d[i - 1] - self.c[i - 1]
-            s.append(s_i)
-            x_d.append(self._virtual(i, s_i, f, rho, theta_hat, phi_hat, jnp.zeros_like(s_i)))
-        return jnp.stack(s), jnp.stack(x_d)
-
-    def _initial_estimates(self):
-        """(theta_hat, phi_hat, zeta_hat, d_hat) at t = 0, as the variant fixes them."""
-        zeta0 = self.zeta_hat0 if self.adapts_zeta else jnp.ones_like(self.zeta_hat0)
-        d0 = self.d_hat0 if self.compensates else jnp.zeros_like(self.d_hat0)
-        return self.theta_hat0, self.phi_hat0, zeta0, d0
+        th, ph = self.theta_hat0, self.phi_hat0
+        x_d = [self._virtual(0, x[0] - yr, f, rho, th, ph, yr_dot)]
+        for i in range(1, x.shape[0] - 1):
+            s_i = jnp.zeros_like(x[0]) if zero_surfaces else x[i] - x_d[i - 1] - self.c[i - 1]
+            x_d.append(self._virtual(i, s_i, f, rho, th, ph, jnp.zeros_like(s_i)))
+        return jnp.stack(x_d)
 
     def init_state(self, plant, reference):
-        _, x_d0 = self._initial_filters(plant, reference)
-        return DSCState(x_d0, *self._initial_estimates())
+        """z(0) = x_d(0); the estimates as given, but zeta_hat = 1 and d_hat = 0 where the
+        variant does not adapt them."""
+        zeta0 = self.zeta_hat0 if self.adapts_zeta else jnp.ones_like(self.zeta_hat0)
+        d0 = self.d_hat0 if self.compensates else jnp.zeros_like(self.d_hat0)
+        return DSCState(self._initial_filters(plant, reference), self.theta_hat0, self.phi_hat0,
+                        zeta0, d0)
 
     # -- the law -----------------------------------------------------------------------------
     def law(self, state, x, t, plant, reference):
@@ -148,21 +142,20 @@ class DSC(AdaptiveLaws):
         theta_hat, phi_hat = state.theta_hat, state.phi_hat
 
         s = [x[0] - yr]  # (13)
-        v = [yr_dot]  # signals multiplying phi_hat in (16), (22)
         z_dot = []
         x_d = self._virtual(0, s[0], f, rho, theta_hat, phi_hat, yr_dot)  # (16)
         for i in range(1, n):
             z_dot.append((x_d - state.z[i - 1]) / self.tau[i - 1])  # (18), (24), (42)
             s.append(x[i] - state.z[i - 1] - self.c[i - 1])  # (19), (25)
             if i < n - 1:
-                v.append(z_dot[-1])
                 x_d = self._virtual(i, s[i], f, rho, theta_hat, phi_hat, z_dot[-1])  # (22)
 
-        s_n = s[-1]
         d_hat = state.d_hat if self.compensates else jnp.zeros_like(state.d_hat)
-        ubar = self._ubar(s_n, theta_hat, f, rho, z_dot[-1], d_hat)  # (30)
+        ubar = self._ubar(s[-1], theta_hat, f, rho, z_dot[-1], d_hat)  # (30)
         u = state.zeta_hat * ubar  # (28)
-        extra = DSCExtra(ubar=ubar, f=f, phi_signal=jnp.stack(v), z_dot=jnp.stack(z_dot))
+        # phi_hat multiplies y_r' in (16), then z_2'..z_(n-1)' in (22)
+        extra = DSCExtra(ubar=ubar, f=f, phi_signal=jnp.stack([yr_dot] + z_dot[:-1]),
+                         z_dot=jnp.stack(z_dot))
         return u, ControlInfo(yr=yr, S=jnp.stack(s), extra=extra)
 
     def decay_rates(self, state):
@@ -172,9 +165,6 @@ class DSC(AdaptiveLaws):
     def state_rate(self, state, x, t, info, plant, reference):
         """Filters (18), (24) and adaptive laws (17), (23), (29), (31), (32)."""
         theta_dot, phi_dot, zeta_dot, d_dot = self._rates(state, info)
-        if not self.adapts_zeta:
-            zeta_dot = jnp.zeros_like(zeta_dot)
-        if not self.compensates:
-            d_dot = jnp.zeros_like(d_dot)
-        return DSCState(z=info.extra.z_dot, theta_hat=theta_dot, phi_hat=phi_dot, zeta_hat=zeta_dot,
-                        d_hat=d_dot)
+        return DSCState(z=info.extra.z_dot, theta_hat=theta_dot, phi_hat=phi_dot,
+                        zeta_hat=zeta_dot if self.adapts_zeta else jnp.zeros_like(zeta_dot),
+                        d_hat=d_dot if self.compensates else jnp.zeros_like(d_dot))
