@@ -138,16 +138,18 @@ def chatters(chattering_index) -> bool:
 class Tracking(eqx.Module):
     """The metrics of every run as a running reduction (`integrate.Running`): it reads
     e = x_1 - y_r, u and w off a closed-loop state y (`y.x`) and its observation; y_r is the
-    reference the controller tracks."""
+    reference the controller tracks, or `reference(t)` where given (tuning's `UserError`)."""
 
     window_start: jax.Array  # () t0 of the window [t0, T]
     n_steps: int = eqx.field(static=True, default=1)
+    reference: Any = None
 
     def init(self, dtype) -> RunningMetrics:
         return running_init(dtype)
 
     def update(self, acc, k, t, y, obs, dt):
-        return running_update(acc, k, t, y.x[0] - obs.yr, obs.u, obs.w, dt, self.window_start,
+        yr = obs.yr if self.reference is None else self.reference(t)
+        return running_update(acc, k, t, y.x[0] - yr, obs.u, obs.w, dt, self.window_start,
                               self.n_steps)
 
     def finalize(self, acc, t_final):
