@@ -169,13 +169,18 @@ _jacobian_at = xla.jit(_flat_jacobian, lean=True)
 _jacobians_along = xla.jit(jax.vmap(_flat_jacobian, in_axes=(None, 0, 0)), lean=True)
 
 
+def _states(traj) -> State:
+    """The saved closed-loop states of a trajectory (`simulate.Trajectory`) as a `State`."""
+    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
+
+
 def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
     """The local spectrum at every saved point of a single trajectory (`simulate.Trajectory`).
 
         traj = dscjax.simulate(setup, 20.0, 1e-3)
         prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
     """
-    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
+    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(_states(traj))
     ts = jnp.asarray(traj.t)
     jacs = _jacobians_along(setup, ys, ts)
     ev = np.linalg.eigvals(np.asarray(jacs))
@@ -193,7 +198,7 @@ def diagnose(setup: Setup, traj) -> str:
     try:
         # after divergence the state is frozen at its last good value: the last saved point
         t_last = float(traj.t_diverged) - float(traj.dt)
-        last = jax.tree.map(lambda a: a[-1], State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
+        last = jax.tree.map(lambda a: a[-1], _states(traj))
         y = ravel_pytree(last)[0]
         jac = _jacobian_at(setup, y, jnp.asarray(t_last, y.dtype))
         ev = np.linalg.eigvals(np.asarray(jac))

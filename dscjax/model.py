@@ -19,6 +19,7 @@ and only the Setup knows the config path a message must name.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import typing
 
 import equinox as eqx
@@ -44,17 +45,22 @@ def option(default):
     return eqx.field(default=default, static=True)
 
 
+@functools.cache  # a model class's hints, read once (validate runs on every simulate)
+def _options(cls: type) -> dict[str, tuple]:
+    """{field: allowed values} of the `Literal`-typed fields of a model class."""
+    hints = typing.get_type_hints(cls)
+    return {f.name: typing.get_args(hints[f.name]) for f in dataclasses.fields(cls)
+            if typing.get_origin(hints[f.name]) is typing.Literal}
+
+
 class Model(eqx.Module):
     """Base of every model: see the module docstring."""
 
     def validate(self, prefix: str) -> None:
         """Check every option (a `Literal` field) and every field's range rule; ConfigError
         names the field."""
-        hints = typing.get_type_hints(type(self))
-        for f in dataclasses.fields(self):
-            hint = hints[f.name]
-            if typing.get_origin(hint) is typing.Literal:
-                v.one_of(getattr(self, f.name), f"{prefix}.{f.name}", typing.get_args(hint))
+        for name, allowed in _options(type(self)).items():
+            v.one_of(getattr(self, name), f"{prefix}.{name}", allowed)
         for f in dataclasses.fields(self):
             check = f.metadata.get("check")
             if check is not None:

@@ -4,7 +4,7 @@
 and for the running reductions (`Running`). Strategies are objects, as in diffrax: the solver
 (`RK4()`, `ETDRK4()`: `solvers`) and the gradient (`TimeParallel()`, `Checkpointed(every)`:
 `gradients`). Layouts suit XLA:CPU (docs/architecture.md): one trajectory as flat vectors of
-at most `SMALL` floats (`single`), a batch batch-last, one (B,) row per state component
+at most `scan.SMALL` floats (`single`), a batch batch-last, one (B,) row per state component
 (`batch`); the time loop, its save stride and divergence `Status` are `scan`'s.
 """
 

@@ -134,7 +134,7 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
         def inner(st, _):
             c, obs_f, first = st
             c, obs = step(c)
-            obs_f = jax.tree.map(lambda o, of: jnp.where(first, o, of), obs, obs_f)
+            obs_f = kept(first, obs, obs_f)
             return (c, obs_f, jnp.zeros_like(first)), None
 
         return jax.lax.scan(inner, state, None, length=length)[0]

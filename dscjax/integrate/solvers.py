@@ -192,6 +192,10 @@ SOLVERS: dict[str, type[Solver]] = {c.name: c for c in (RK4, ETDRK4)}
 
 
 def solver(spec: str | Solver) -> Solver:
-    """A Solver from its name ("rk4", "etdrk4": checked by the config's rule) or itself."""
-    return spec if isinstance(spec, Solver) else SOLVERS[spec]()
+    """A Solver from its name ("rk4", "etdrk4") or itself."""
+    if isinstance(spec, Solver):
+        return spec
+    if spec not in SOLVERS:
+        raise ValueError(f"solver must be one of {', '.join(SOLVERS)} (got {spec!r})")
+    return SOLVERS[spec]()
 
