@@ -27,7 +27,7 @@ import numpy as np
 
 from dscjax import settings, validation
 from dscjax.closed_loop import SCHEME, ExponentialEuler, ForwardEuler
-from dscjax.integrate import GRADIENTS, SOLVERS, Gradient, Solver, TimeParallel
+from dscjax.integrate import SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Numbers, Positive
@@ -259,7 +259,7 @@ def auto_stride(n_steps: int) -> int:
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
-__all__ = ["DEFAULT_REFINE", "GRADIENTS", "MAX_SAVED_POINTS", "OPTIONS", "RunSpec", "Simulation",
+__all__ = ["DEFAULT_REFINE", "MAX_SAVED_POINTS", "OPTIONS", "RunSpec", "Simulation",
            "auto_stride"]
 
 

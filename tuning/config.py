@@ -211,9 +211,8 @@ class AdversarialSpec:
                           flag="--adversarial")
     disturbance: str | None = setting(
         None, "a searched waveform KIND:K:D (fourier or spline, K, max|dbar| <= D); none",
-        Maybe(Custom(lambda v, f: worst.DisturbanceSpec.parse(validation.string(v, f),
-                                                              field=f).spec(),
-                     "fourier:K:D or spline:K:D", metavar="KIND:K:D")), flag="--disturbance")
+        Maybe(Custom(worst.check_disturbance, "fourier:K:D or spline:K:D", metavar="KIND:K:D")),
+        flag="--disturbance")
     ranges: tuple | None = setting(None, "the searched box; none: [tuning.robust]'s ranges",
                                    Maybe(RANGES))
     method: str = setting("gradient", "each round's search method", Choice(worst.METHODS),

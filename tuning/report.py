@@ -14,8 +14,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, metrics, ts_sweep, validation, xla
+from dscjax import files, ts_sweep, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
+from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins
@@ -69,8 +70,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     m = dict(m)
     setup = problem.setup_at(z)
     ov = {k: np.asarray(v) for k, v in overrides.items()}
-    names = jax.eval_shape(metrics.finalize, metrics.running_init(np.float64), 1.0)
-    keys = sorted((names.keys() | {"diverged"}) & m.keys())
+    keys = sorted(({*metric_names(), "diverged"}) & m.keys())
     m["refined"] = _refine(setup, ov, problem.objective.sim, m, {k: k for k in keys})
     for k in [k for k in m if k.startswith("user_")]:  # the refined runs do not measure them
         m[k] = np.where(m["refined"] > 0, np.nan, np.asarray(m[k], float))

@@ -18,7 +18,6 @@ import jax.numpy as jnp
 from dscjax.integrate.batch import integrate_batch
 from dscjax.integrate.gradients import (
     DEFAULT_CHECKPOINT_EVERY,
-    GRADIENTS,
     Checkpointed,
     Gradient,
     TimeParallel,
@@ -94,6 +93,6 @@ def integrate(
                            state_bound, solver, gradient, rates, project, frozen)
 
 
-__all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "GRADIENTS", "RK4", "SOLVERS", "STATUS_BOUND",
+__all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "RK4", "SOLVERS", "STATUS_BOUND",
            "STATUS_NONFINITE", "STATUS_OK", "Checkpointed", "Gradient", "Integration", "Running",
            "Solver", "Status", "TimeParallel", "integrate", "rk4_step", "saved_steps", "solver"]

@@ -40,9 +40,6 @@ class Checkpointed(Gradient):
     name: ClassVar[str] = "checkpointed"
 
 
-GRADIENTS: dict[str, type[Gradient]] = {c.name: c for c in (TimeParallel, Checkpointed)}
-
-
 def _saved(all_k, end, s):
     """Every s-th row of a per-step record (k = 0..N-1) and the end value (k = N)."""
     return jax.tree.map(lambda v, e: jnp.concatenate([v[::s], e[None]]), all_k, end)

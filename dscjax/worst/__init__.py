@@ -17,6 +17,7 @@ from dscjax.worst.problem import (
     DisturbanceSpec,
     Problem,
     assumption_warnings,
+    check_disturbance,
     make_problem,
 )
 from dscjax.worst.programs import Programs
@@ -35,5 +36,5 @@ from dscjax.worst.run import (
 
 __all__ = ["DEFAULT_COARSENING", "DEFAULT_STARTS", "METHODS", "METRICS", "REQUIREMENT",
            "DisturbanceSpec", "Problem", "Programs", "Result", "WorstSettings",
-           "assumption_warnings", "best_value", "check_search", "make_problem", "run_methods",
-           "search_method", "worst_case"]
+           "assumption_warnings", "best_value", "check_disturbance", "check_search",
+           "make_problem", "run_methods", "search_method", "worst_case"]

@@ -165,6 +165,12 @@ class Problem:
                     for f in dataclasses.fields(req)}}}
 
 
+def check_disturbance(value, field: str) -> str:
+    """A searched waveform's text, KIND:K:D, in its canonical form (else ConfigError naming
+    `field`)."""
+    return DisturbanceSpec.parse(validation.string(value, field), field=field).spec()
+
+
 def check_metric(value, field: str = "--metric") -> str:
     """A metric's name, one of METRICS or requirement:NAME (else ConfigError naming `field`)."""
     text = validation.string(value, field)

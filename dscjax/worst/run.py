@@ -24,8 +24,8 @@ from dscjax.worst.problem import (
     DEFAULT_METRIC,
     METRICS,
     REQUIREMENT,
-    DisturbanceSpec,
     Problem,
+    check_disturbance,
     check_metric,
 )
 from dscjax.worst.programs import Programs
@@ -35,10 +35,6 @@ METHODS: tuple[str, ...] = get_args(Method)
 DEFAULT_STARTS = 4  # docs/worst-case.md
 DEFAULT_BATCH = 32  # random and CMA-ES candidates per batched simulation
 DEFAULT_COARSENING = 4  # gradients at 4 dt (docs/worst-case.md)
-
-
-def _disturbance(value, field: str) -> str:
-    return DisturbanceSpec.parse(validation.string(value, field), field=field).spec()
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +49,7 @@ class WorstSettings:
     disturbance: str | None = setting(
         None, "a searched waveform added to dbar with max|dbar| <= D: fourier:K:D (K "
         "harmonics) or spline:K:D (K knots over the horizon); none",
-        Maybe(Custom(_disturbance, "fourier:K:D or spline:K:D", metavar="KIND:K:D")),
+        Maybe(Custom(check_disturbance, "fourier:K:D or spline:K:D", metavar="KIND:K:D")),
         flag="--disturbance")
     period: float | None = setting(None, "period [s] of a fourier waveform; none: the horizon",
                                    Maybe(Positive()), flag="--period")
