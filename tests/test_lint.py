@@ -40,7 +40,9 @@ def _imports(path: Path) -> set[str]:
         if isinstance(node, ast.Import):
             names |= {a.name for a in node.names}
         elif isinstance(node, ast.ImportFrom) and node.level == 0:
-            names.add(node.module)
+            # `from dscjax import sweep` imports dscjax.sweep (a name that is not a module
+            # counts too: harmless, no application is named like a function)
+            names |= {node.module, *(f"{node.module}.{a.name}" for a in node.names)}
     return names
 
 
