@@ -334,7 +334,7 @@ def _in_generation(monkeypatch, where: str, generation: int, times: int = 1):
         wrap(tuning.search.TuneProblem, "evaluate")
     elif where == "gradient":  # adam's exact gradient
         wrap(tuning.search.TuneProblem, "value_and_grad")
-    elif where == "tell":  # told, before the injection, the incumbent and the counters
+    elif where == "tell":  # told, before the incumbent and the counters
         wrap(ReplayCMA, "tell", before=False)
     elif where == "checkpoint":  # inside the write of the state file
         wrap(files, "atomic_write", when=lambda path, data: Path(path).name == "search.npz")

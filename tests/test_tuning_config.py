@@ -407,4 +407,3 @@ def test_the_ts_sweeps_plant_steps_by_hand():
     assert kept == [0.002, 0.003]  # 0.05 s is past the horizon
     assert steps == pytest.approx([0.0015, 0.002, 0.0015], rel=1e-12)
     assert plant_steps((1e-3,), 1e-5, 1e-6) == ([], [1e-6])
-

@@ -96,7 +96,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
         ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
     ax.set_xlabel(error_label(t0, t_final))
     ax.set_ylabel("number of samples")
-    ax.set_title(title + f"\n{int(div.sum()):,} diverged at every step tried "
+    ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step tried "
                  f"({100 * div.mean():.2f} %, not shown)", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
@@ -204,7 +204,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, no
     kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
     narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
               "cells differ little") if rel is not None and rel < NARROW else ""
-    ax.set_title(title + f"\nwindowed L∞ error over {kind}; other "
+    ax.set_title((f"{title}\n" if title else "") + f"windowed L∞ error over {kind}; other "
                  "swept parameters pooled" + narrow, fontsize=10)
     ax.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12),
               ncol=1, frameon=False)
