@@ -96,8 +96,8 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
         ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
     ax.set_xlabel(error_label(t0, t_final))
     ax.set_ylabel("number of samples")
-    ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step tried "
-                 f"({100 * div.mean():.2f} %, not shown)", fontsize=10)
+    ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step "
+                 f"tried ({100 * div.mean():.2f} %, not shown)", fontsize=10)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
     files.save_figure(fig, path, dpi=110)
