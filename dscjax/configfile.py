@@ -84,9 +84,10 @@ def _unique(value, path: Path, where: str = ""):
 def _toml_duplicate(text: str, message: str) -> str | None:
     """The dotted path of the key (or table) a TOMLDecodeError says is given twice, or None
     if the error is of another kind. tomllib's own message names no key for a value."""
-    declared = re.match(r"Cannot (?:declare|redefine namespace) \(([^()]*)\)", message)
-    if declared:  # tomllib writes the key as a tuple of strings: literal_eval reads it back
-        return ".".join(ast.literal_eval(f"({declared.group(1)})"))
+    declared = re.match(r"Cannot (?:declare (\(.*\)) twice|redefine namespace (\(.*\))) \(at ",
+                        message)
+    if declared:  # tomllib writes the key as a tuple of strings (a key may hold parentheses)
+        return ".".join(ast.literal_eval(declared[1] or declared[2]))
     value = re.match(r"(Cannot overwrite a value|Duplicate inline table key '(.*)') "
                      r"\((?:at line (\d+)|at end of document)", message)
     if not value:

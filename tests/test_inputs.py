@@ -199,6 +199,7 @@ def test_loop_sizes_are_each_setups_own_whatever_was_sized_before():
     ("c.toml", '[sweep.ranges]\n"hysteresis.alpha" = "30%"\n"hysteresis.alpha" = "20%"\n',
      "sweep.ranges.hysteresis.alpha"),
     ("c.toml", "[tuning]\noptimizer.steps = 3\noptimizer.steps = 4\n", "tuning.optimizer.steps"),
+    ("c.toml", '["a)b"]\nx = 1\n\n["a)b"]\ny = 2\n', "a)b"),  # a key with a parenthesis
     ("c.json", '{"controller": {"k": [1.0, 2.0], "k": [3.0, 1.0]}}', "controller.k"),
     ("c.json", '{"plant": {"g": [1.0, 1.0]}, "plant": {"x0": [0.0, 0.0]}}', "plant"),
 ])
