@@ -273,10 +273,5 @@ def loop_words(sim: RunSpec) -> str:
              + ", ".join(f"{v:g}" for v in np.atleast_1d(np.asarray(sim.noise, float)))
              + f" (seed {int(sim.noise_seed)})")
     return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
-            f"its states advanced by {discretisation(sim)}, the plant by {plant}; "
+            f"its states advanced by {sim.discretisation.words}, the plant by {plant}; "
             f"input delay {sim.delay} sample(s); {noise}")
-
-
-def discretisation(sim: RunSpec) -> str:
-    """How a sampled loop advances the controller's states (`simulation.discretisation`)."""
-    return sim.discretisation.words

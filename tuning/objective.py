@@ -41,7 +41,7 @@ import numpy as np
 
 from dscjax import params
 from dscjax.closed_loop import SCHEME, Setup
-from dscjax.runspec import RunSpec, discretisation
+from dscjax.runspec import RunSpec
 from dscjax.selection import Selection, run_at
 from tuning.config import TERMS, ObjectiveSpec
 from tuning.optimize import CVaR, Mean
@@ -120,7 +120,7 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
         other = dataclasses.replace(
             sim, discretisation=next(s for s in SCHEME.values() if s != sim.discretisation))
         out.append(CheckLoop("sampled", other, spec.sampled_factor, 1.0, 1.0, spec.sampled_weight,
-                             "sampled_weight", f"the states by {discretisation(other)}"))
+                             "sampled_weight", f"the states by {other.discretisation.words}"))
     if spec.delay_samples and spec.delay_weight:
         d = sim.delay + spec.delay_samples
         out.append(CheckLoop("delayed", dataclasses.replace(sim, delay=d), spec.delay_factor,

@@ -13,6 +13,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from dscjax.integrate.scan import kept
+
 # Members per chunk of the time-parallel Jacobians (bounds their memory, not their result).
 _PARALLEL_CHUNK = 4096
 DEFAULT_CHECKPOINT_EVERY = 100
@@ -118,7 +120,7 @@ def time_parallel_jvp(prob, primals, tangents):
         def acc_step(dacc, inp):
             Mk, rk, live = inp
             new = tuple(_matvec(rows, dacc) + rr for rows, rr in zip(Mk, rk, strict=True))
-            return tuple(jnp.where(live, n_, o_) for n_, o_ in zip(new, dacc, strict=True)), None
+            return kept(live, new, dacc), None
 
         M = _parallel(acc_jac, (ks, A, Y, O))
         R = _parallel(jax.checkpoint(acc_along), (ks, A, Y, O, dY, dO))
@@ -127,7 +129,7 @@ def time_parallel_jvp(prob, primals, tangents):
         _, dacc_last = jax.jvp(lambda r, ac, y_, o_, h: update_at(c.k, r, ac, y_, o_, h),
                                (red, c.acc, c.y, obs_end, dt),
                                (dred, dacc_n, dy_end, dobs_end, ddt))
-        dacc_end = jax.tree.map(lambda new, old: jnp.where(no_bad, new, old), dacc_last, dacc_n)
+        dacc_end = kept(no_bad, dacc_last, dacc_n)
 
     out = (_saved(Y, c.y, s), _saved(O, obs_end, s), acc_end, c.code, c.bad)
     f0 = np.zeros((), dtype=jax.dtypes.float0)
