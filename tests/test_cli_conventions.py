@@ -38,7 +38,8 @@ def _help(command) -> dict[str, str]:
     import importlib
 
     sub = argparse.ArgumentParser(prog="dscjax").add_subparsers()
-    p = importlib.import_module(f"dscjax.cli.{command}").add_parser(sub)
+    importlib.import_module(f"dscjax.cli.{command}").add_parser(sub)
+    (p,) = sub.choices.values()
     fmt = p._get_formatter()
     return {a.option_strings[-1]: " ".join(fmt._expand_help(a).split())
             for a in p._actions if a.option_strings and a.help}

@@ -30,7 +30,6 @@ def add_parser(sub):
     p.add_argument("--precision", choices=PRECISIONS, default="double", help="the C's real "
                    "type: double (default; the simulated loop to round-off) or float")
     add_out_arg(p, "results/export")
-    return p
 
 
 def load(args):

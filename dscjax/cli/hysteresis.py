@@ -44,7 +44,6 @@ def add_parser(sub):
                    f"(default {DEFAULT_DT:g})")
     common.add_run_args(p, ("device",))
     add_out_arg(p, "results/hysteresis")
-    return p
 
 
 def run(args) -> int:

@@ -30,7 +30,6 @@ def add_parser(sub):
     common.add_config_args(p, run_keys=("dt",), float32=False)
     settings.add_arguments(p, ident.IdentifySettings, "identify.")
     add_out_arg(p, "results/identify", plot="skip the figures")
-    return p
 
 
 def load(args):

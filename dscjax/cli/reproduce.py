@@ -73,7 +73,6 @@ def add_parser(sub):
                    "by order: docs/theory.md)")
     p.add_argument("--mu", type=common.positive_float, metavar="MU",
                    help="mu of (59)-(60) for the study (default by order: docs/theory.md)")
-    return p
 
 
 def run(args) -> int:

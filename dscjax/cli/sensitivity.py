@@ -53,7 +53,6 @@ def add_parser(sub):
     p.add_argument("--seed", type=common.count(0), default=0, help="seed of the --batch plants "
                    "(default 0)")
     add_out_arg(p, "results/sensitivity", plot="skip sensitivity.png")
-    return p
 
 
 def run(args) -> int:

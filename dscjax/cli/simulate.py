@@ -42,7 +42,6 @@ def add_parser(sub):
                    help="DSC variant: full, or without hysteresis compensation (d_hat = 0, or "
                    f"also zeta_hat = 1) (default controller.variant, {DSC.variant})")
     add_overwrite_arg(p, plot="skip trajectory.png")
-    return p
 
 
 def run(args) -> int:

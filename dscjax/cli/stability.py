@@ -30,7 +30,6 @@ def add_parser(sub):
                    help="factors applied to every filter constant tau_i, separated by commas "
                    "(default %(default)s)")
     add_out_arg(p, "results/stability", plot="skip stability.png")
-    return p
 
 
 def run(args) -> int:

@@ -71,7 +71,6 @@ def add_parser(sub):
                       help="this process's index")
     p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
     p.add_argument("--quiet", action="store_true", help="no progress line")
-    return p
 
 
 def load(args):

@@ -48,7 +48,6 @@ def add_parser(sub):
                       "count, optimiser state and best point)",
                       overwrite="discard a run in DIR and start afresh",
                       plot="skip the PNG figures", quiet="no progress line")
-    return p
 
 
 def resumable(args) -> bool:

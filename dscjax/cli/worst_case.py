@@ -40,7 +40,6 @@ def add_parser(sub):
     add_out_arg(p, "results/worst-case", resume="continue a search in DIR (each method from "
                 "its last finished iteration)", overwrite="discard a search in DIR",
                 plot="skip the figures", quiet="no progress display")
-    return p
 
 
 def run(args) -> int:
