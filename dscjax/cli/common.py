@@ -253,14 +253,15 @@ def add_example_arg(p):
                    "config as TOML (--config loads it back) and exit")
 
 
-def print_config(setup, spec, extra: dict | None = None, groups: dict | None = None) -> None:
+def print_config(setup, spec, extra: dict | None = None, groups: dict | None = None) -> int:
     """`--print-config`: [simulation] and the model tables of (setup, spec), then a command's
     own tables ({name: table}), as TOML on stdout, each key with its meaning (`groups`:
-    {name: the settings group declaring a table})."""
+    {name: the settings group declaring a table}). Returns 0, the command's exit status."""
     docs = dict(config.DOCS)
     for name, group in (groups or {}).items():
         docs |= settings.meanings(group, f"{name}.")
     sys.stdout.write(config.to_toml(setup, spec, extra=extra, docs=docs))
+    return 0
 
 
 def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):

@@ -59,8 +59,7 @@ def load(args):
 def run(args) -> int:
     setup, spec, source = load(args)
     if args.print_config:
-        common.print_config(setup, spec)
-        return 0
+        return common.print_config(setup, spec)
     # every input checked before --out
     files = export.c_files(setup, spec, source=source, precision=args.precision)
     out = prepare_out(args, OUTPUTS)

@@ -63,8 +63,7 @@ def run(args) -> int:
         t_final = max(round(6 * math.pi / args.omega / dt), 1) * dt
     steps = validation.whole_steps(t_final, dt, t_field, dt_field)
     if args.print_config:
-        common.print_config(setup, RunSpec.make(float(t_final), float(dt)))
-        return 0
+        return common.print_config(setup, RunSpec.make(float(t_final), float(dt)))
     k = len(amplitudes)
     validation.check_work(validation.Work(
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),

@@ -49,8 +49,8 @@ def load(args):
 def run(args) -> int:
     setup, spec, s, source = load(args)
     if args.print_config:
-        common.print_config(setup, spec, {"identify": settings.to_table(s)}, groups={"identify": s})
-        return 0
+        return common.print_config(setup, spec, {"identify": settings.to_table(s)},
+                                   groups={"identify": s})
     record = read(args.data, setup.order)
     val = None if s.validate is None else ident.validation_record(s.validate, record, setup.order)
     out = prepare_out(args, OUTPUTS)

@@ -68,8 +68,7 @@ def run(args) -> int:
         overrides = params.sample_overrides(setup, ranges, args.batch, args.seed)
     problem = Problem.make(setup, spec, args.paths, metrics, overrides)
     if args.print_config:
-        common.print_config(setup, spec)
-        return 0
+        return common.print_config(setup, spec)
     # a number that is 0 has no d ln p (null): known before anything compiles
     zero = [p.name for p, z in zip(problem.columns, problem.zero, strict=True) if z]
     if len(zero) == len(problem.columns):

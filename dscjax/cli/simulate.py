@@ -50,8 +50,7 @@ def run(args) -> int:
     # another command's own table (a printed config of tune or sweep) is that command's
     setup, options = load_setup(args)
     if args.print_config:
-        common.print_config(setup, options)
-        return 0
+        return common.print_config(setup, options)
 
     check(setup, options)
     n_steps, every, n_points = options.n_steps, options.save_every, options.n_saved

@@ -39,8 +39,7 @@ def run(args) -> int:
     scales = sorted(common.positive_numbers(args.tau_scales, "--tau-scales"))
     validation.check_filters(setup, float(options.dt))
     if args.print_config:
-        common.print_config(setup, options)
-        return 0
+        return common.print_config(setup, options)
     steps = options.n_steps
     what = common.horizon_text(options.t_final, options.dt, steps)
     # one batch over the tau scales per step size (`map_steps`)

@@ -169,10 +169,9 @@ def run(args) -> int:
     with common.blame_options(typed_settings(args)):
         ranges = sweep.check_settings(settings, setup, options)
     if args.print_config:
-        common.print_config(printed, options,
-                            {"sweep": sweep.settings.to_table(settings, setup)},
-                            groups={"sweep": settings})
-        return 0
+        return common.print_config(printed, options,
+                                   {"sweep": sweep.settings.to_table(settings, setup)},
+                                   groups={"sweep": settings})
     check(setup, options)
     check_work(work(settings, options.n_steps, ranges),
                what=f"{n:,} samples of "

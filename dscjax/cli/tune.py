@@ -107,10 +107,9 @@ def run(args) -> int:
 
     setup, options, cfg = load(args)
     if args.print_config:
-        common.print_config(setup, options,
-                            {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
-                            groups={"tuning": cfg})
-        return 0
+        return common.print_config(setup, options,
+                                   {"tuning": to_table(model_default_ranges(cfg, setup), setup)},
+                                   groups={"tuning": cfg})
     # the trajectories of one generation (its first population) or iteration, run together
     rows = check_work_of(args, setup, options, cfg)
     out = Path(args.out)

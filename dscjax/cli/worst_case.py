@@ -50,8 +50,8 @@ def run(args) -> int:
         table = settings.to_table(s) | ({"ranges": {r.name: r.spec().split("=", 1)[1]
                                                     for r in ranges}} if ranges else {})
         tuning = {"tuning": {"requirements": requirements}} if requirements else {}
-        common.print_config(setup, options, {"worst": table} | tuning, groups={"worst": s})
-        return 0
+        return common.print_config(setup, options, {"worst": table} | tuning,
+                                   groups={"worst": s})
     requirement = None
     if requirements:  # built as the tuner builds it
         from tuning.requirements import build_requirements
