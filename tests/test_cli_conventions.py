@@ -34,12 +34,9 @@ def test_unwritable_out_is_one_line_and_exit_2(command, where, tmp_path, capsys)
 
 def _help(command) -> dict[str, str]:
     """{option: its help text, whitespace collapsed, %-formatted as --help prints it}."""
-    import argparse
-    import importlib
+    from dscjax.cli.main import _available_commands, build_parser
 
-    sub = argparse.ArgumentParser(prog="dscjax").add_subparsers()
-    importlib.import_module(f"dscjax.cli.{command}").add_parser(sub)
-    (p,) = sub.choices.values()
+    p = build_parser(_available_commands()).subcommands[command]
     fmt = p._get_formatter()
     return {a.option_strings[-1]: " ".join(fmt._expand_help(a).split())
             for a in p._actions if a.option_strings and a.help}

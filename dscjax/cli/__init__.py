@@ -1,1 +1,2 @@
-"""The `dscjax` command line: one module per subcommand, each with `add_parser` and `run`."""
+"""The `dscjax` command line: one module per subcommand, each with `HELP`, `add_options` and
+`run`."""

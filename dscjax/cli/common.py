@@ -20,7 +20,8 @@ from dscjax.rules import AtLeast, Number, Positive
 from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError, Work, validate_setup
 
-# Subcommand name -> module under dscjax.cli exposing add_parser(subparsers) and run(args).
+# Subcommand name -> module under dscjax.cli exposing HELP (its line in `dscjax --help`; its
+# docstring, or DESCRIPTION, is its own --help's), add_options(parser) and run(args).
 COMMANDS = {
     "simulate": "dscjax.cli.simulate",
     "reproduce": "dscjax.cli.reproduce",

@@ -20,10 +20,10 @@ OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
 interrupt_hint = nothing_kept
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "export", help="the sampled controller of a config as C99 (dsc_controller.h, .c)",
-        description=__doc__)
+HELP = "the sampled controller of a config as C99 (dsc_controller.h, .c)"
+
+
+def add_options(p):
     p.add_argument("--gains", metavar="FILE", help="a config laid over --config (e.g. the "
                    "gains.json of `dscjax tune`)")
     common.add_config_args(p, run_keys=("sample_time", "delay", "discretisation"), float32=False)

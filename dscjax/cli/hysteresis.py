@@ -26,10 +26,10 @@ DEFAULT_DT = 1e-3
 OUTPUTS = Outputs(("loop.npz", "loop.png"))
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "hysteresis", help="a hysteresis model alone: w(t) and its loop for u = A sin(omega t)",
-        description=__doc__)
+HELP = "a hysteresis model alone: w(t) and its loop for u = A sin(omega t)"
+
+
+def add_options(p):
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config: only its "
                    "[hysteresis] and simulation.t_final, dt, device (options win) are used")
     common.add_example_arg(p)

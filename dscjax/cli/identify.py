@@ -22,10 +22,10 @@ OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "re
 interrupt_hint = nothing_kept
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "identify", help="identify plant and actuator numbers from a measured record",
-        description=__doc__)
+HELP = "identify plant and actuator numbers from a measured record"
+
+
+def add_options(p):
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
     common.add_config_args(p, run_keys=("dt",), float32=False)
     settings.add_arguments(p, ident.IdentifySettings, "identify.")

@@ -63,8 +63,9 @@ def build_parser(commands) -> argparse.ArgumentParser:
                         "($XDG_CACHE_HOME/dscjax/jax or ~/.cache/dscjax/jax; also "
                         "DSCJAX_NO_COMPILATION_CACHE=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
-    for module in commands.values():
-        module.add_parser(sub)
+    for name, module in commands.items():
+        description = getattr(module, "DESCRIPTION", module.__doc__)
+        module.add_options(sub.add_parser(name, help=module.HELP, description=description))
     parser.subcommands = sub.choices  # name -> its parser (`main`)
     return parser
 

@@ -41,13 +41,13 @@ def parse_orders(text: str, option: str) -> list[int]:
     return orders
 
 
-def add_parser(sub):
+HELP = "reproduce the paper's simulation study (Figs. 1-6, claims)"
+
+
+def add_options(p):
     from dscjax import reproduce as r
 
     orders = f"{min(r.COMPLEXITY_ORDERS)}-{max(r.COMPLEXITY_ORDERS)}"
-    p = sub.add_parser(
-        "reproduce", help="reproduce the paper's simulation study (Figs. 1-6, claims)",
-        description=__doc__)
     add_out_arg(p, "results/paper", later=True)
     p.add_argument("--format", choices=("png", "pdf"), default="png", dest="fmt",
                    help="figure format (default: png)")

@@ -34,10 +34,10 @@ RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "de
 TOP = 15  # bars per metric in the tornado chart
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "sensitivity", help="d ln(metric) / d ln(p) for every number of the loop, by reverse mode",
-        description=__doc__)
+HELP = "d ln(metric) / d ln(p) for every number of the loop, by reverse mode"
+
+
+def add_options(p):
     common.add_config_args(p, run_keys=RUN_KEYS)
     p.add_argument("--metric", action="append", dest="metrics", metavar="NAME",
                    help=f"a metric (repeat for several): {', '.join(METRICS)} (default all)")

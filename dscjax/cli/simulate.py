@@ -32,10 +32,10 @@ SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refin
                  *common.SAMPLED_KEYS, "device")
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "simulate", help="simulate one closed loop (default: the paper's example)",
-        description=__doc__)
+HELP = "simulate one closed loop (default: the paper's example)"
+
+
+def add_options(p):
     common.add_config_args(p, run_keys=SIMULATE_KEYS)
     add_out_arg(p, "results/simulate", later=True)
     p.add_argument("--variant", choices=VARIANTS,

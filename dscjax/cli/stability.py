@@ -21,10 +21,10 @@ from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 OUTPUTS = Outputs(("stability.json", "stability.png"))
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "stability", help="the largest stable RK4 step of a config and its (tau, dt) region",
-        description=__doc__)
+HELP = "the largest stable RK4 step of a config and its (tau, dt) region"
+
+
+def add_options(p):
     common.add_config_args(p, run_keys=("t_final", "dt", "device"))
     p.add_argument("--tau-scales", default="0.25,0.5,1,2,4", metavar="A,B,...",
                    help="factors applied to every filter constant tau_i, separated by commas "

@@ -35,11 +35,11 @@ OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "t
                    "traces.png"), folders=("chunks",))
 
 
-def add_parser(sub):
+HELP = "Monte-Carlo / grid robustness sweep over plant and hysteresis parameters"
+
+
+def add_options(p):
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
-    p = sub.add_parser(
-        "sweep", help="Monte-Carlo / grid robustness sweep over plant and hysteresis parameters",
-        description=__doc__)
     common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. tune's gains.json) whose "
                    "[controller] and sampled-controller [simulation] keys (sample_time, delay, "

@@ -28,12 +28,15 @@ OUTPUTS = Outputs(("gains.json", "history.csv", "report.md", "report.json", "los
                   folders=("round_*", "fresh_*"))
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "tune", help="tune the controller gains (CMA-ES by default; exact-gradient methods)",
-        description="Tune the DSC gains of a config (default: the paper's example sampled at "
-        "1 kHz) to minimise the windowed L-inf error, max|u| and TV(u) bounded by the start "
-        "gains' (TV(u) x 1.5). Settings: [tuning] (docs/tuning.md); the command line wins.")
+HELP = "tune the controller gains (CMA-ES by default; exact-gradient methods)"
+# --help's description, shorter than the module's docstring
+DESCRIPTION = ("Tune the DSC gains of a config (default: the paper's example sampled at 1 kHz) "
+               "to minimise the windowed L-inf error, max|u| and TV(u) bounded by the start "
+               "gains' (TV(u) x 1.5). Settings: [tuning] (docs/tuning.md); the command line "
+               "wins.")
+
+
+def add_options(p):
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
                    "example; may hold a [tuning] table")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "

@@ -28,10 +28,10 @@ MANIFEST = "worst_case.json"
 OUTPUTS = Outputs((MANIFEST, *FILES, "state_*.npz", *FIGURES))
 
 
-def add_parser(sub):
-    p = sub.add_parser(
-        "worst-case", help="worst-case search over parameter boxes and disturbance waveforms",
-        description=__doc__)
+HELP = "worst-case search over parameter boxes and disturbance waveforms"
+
+
+def add_options(p):
     common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"))
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
