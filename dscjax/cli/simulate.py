@@ -13,7 +13,6 @@ import numpy as np
 
 from dscjax import validation
 from dscjax.cli import common
-from dscjax.cli.common import load_setup
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.controllers.dsc import DSC, VARIANTS
 from dscjax.files import write_json, write_npz
@@ -48,7 +47,7 @@ def run(args) -> int:
     from dscjax.simulate import simulate
 
     # another command's own table (a printed config of tune or sweep) is that command's
-    setup, options = load_setup(args)
+    setup, options = common.load_setup(args)
     if args.print_config:
         return common.print_config(setup, options)
 
@@ -105,7 +104,7 @@ def run(args) -> int:
         lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
         arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()
                                  if k not in ("t", "V")}
-    write_npz(out / "trajectory.npz", {k: np.asarray(v) for k, v in arrays.items()})
+    write_npz(out / "trajectory.npz", arrays)
     metrics = {k: float(v) for k, v in traj.metrics.items()}
     f32 = None
     if options.dtype == "float32" and diverged is None:

@@ -15,7 +15,6 @@ import numpy as np
 
 from dscjax import files, validation
 from dscjax.cli import common
-from dscjax.cli.common import load_setup
 from dscjax.cli.out import Outputs, add_out_arg, prepare_out
 
 OUTPUTS = Outputs(("stability.json", "stability.png"))
@@ -35,7 +34,7 @@ def add_options(p):
 def run(args) -> int:
     from dscjax.step_size import DT_FACTORS, map_steps, stability_map
 
-    setup, options = load_setup(args)
+    setup, options = common.load_setup(args)
     scales = sorted(common.positive_numbers(args.tau_scales, "--tau-scales"))
     validation.check_filters(setup, float(options.dt))
     if args.print_config:

@@ -321,7 +321,7 @@ def _write_traces(path, trajs, records, kinds, nominal):
                    "kind": np.array(kinds)}
         arrays |= {k: np.stack([np.asarray(getattr(t, k)) for t in trajs]) for k in "txeuw"}
         arrays["diverged"] = np.array([bool(t.diverged) for t in trajs])
-    files.write_npz(path, {k: np.asarray(v) for k, v in arrays.items()})
+    files.write_npz(path, arrays)
 
 
 def _plots(out, result, settings, summary, trajs, records, kinds, nominal) -> list[str]:
