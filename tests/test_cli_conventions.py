@@ -501,12 +501,12 @@ def test_a_phase_that_lasts_says_what_it_does_and_a_short_one_says_nothing():
 
 def test_a_command_without_a_hint_of_its_own_says_what_to_run_again(tmp_path, capsys,
                                                                     monkeypatch):
-    import dscjax.cli.stability
+    import dscjax.cli.common
 
     def stop(args):
         signal.pthread_kill(threading.main_thread().ident, signal.SIGTERM)
 
-    monkeypatch.setattr(dscjax.cli.stability, "load_setup", stop)
+    monkeypatch.setattr(dscjax.cli.common, "load_setup", stop)
     out = tmp_path / "st"
     assert main(["stability", "--out", str(out)]) == 143
     last = capsys.readouterr().err.strip().splitlines()[-1]
