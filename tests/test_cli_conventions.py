@@ -411,7 +411,7 @@ def test_an_interrupted_reproduce_names_the_figures_it_kept(tmp_path, capsys, mo
                                                        (signal.SIGHUP, 129, "SIGHUP")])
 def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, capsys,
                                                   monkeypatch, request):
-    import dscjax.cli.simulate
+    import dscjax.cli.common
     from dscjax.progress import Abort, Terminated, critical, handle_interrupts
 
     def send():
@@ -436,7 +436,7 @@ def test_sigterm_and_sighup_are_handled_as_ctrl_c(signum, code, name, tmp_path, 
     def stop(args, **_):
         send()
 
-    monkeypatch.setattr(dscjax.cli.simulate, "load_setup", stop)
+    monkeypatch.setattr(dscjax.cli.common, "load_setup", stop)
     out = tmp_path / "s"
     assert main(["simulate", "--out", str(out)]) == code
     last = capsys.readouterr().err.strip().splitlines()[-1]
