@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from dscjax import disturbance, validation
+from dscjax import disturbance, settings, validation
 from dscjax.closed_loop import Setup
 from dscjax.configfile import read as read  # re-exported (config.read)
 from dscjax.controllers.backstepping import Backstepping
@@ -30,7 +30,7 @@ from dscjax.examples import paper_example
 from dscjax.hysteresis import MODELS
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
-from dscjax.runspec import OPTIONS, RunSpec
+from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError
 
 # kind name -> class, per section; the key that selects the kind.
@@ -76,7 +76,7 @@ def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
-DOCS: dict[str, str] = {f"simulation.{k}": doc for k, (_, doc) in OPTIONS.items()} | {
+DOCS: dict[str, str] = settings.meanings(Simulation, "simulation.") | {
     "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
     "plant.g": "g_i > 0, eq. (1) (unknown to the controller)",
     "plant.theta": "theta_i, eq. (1) (unknown to the controller)",
