@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from dscjax import disturbance, validation
+from dscjax import disturbance, settings, validation
 from dscjax.closed_loop import Setup
 from dscjax.configfile import read as read  # re-exported (config.read)
 from dscjax.controllers.backstepping import Backstepping
@@ -30,7 +30,7 @@ from dscjax.examples import paper_example
 from dscjax.hysteresis import MODELS
 from dscjax.plant import PaperPlant, StrictFeedback
 from dscjax.reference import MultiSine, Sine, SmoothStep
-from dscjax.runspec import OPTIONS, RunSpec
+from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError
 
 # kind name -> class, per section; the key that selects the kind.
@@ -40,10 +40,10 @@ REGISTRY: dict[str, dict[str, type]] = {
     "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
-KIND_KEY = {"plant": "family", "hysteresis": "kind", "controller": "kind", "reference": "kind"}
-# Fields that hold a model of their own, written as a sub-table ([plant.disturbance]) with a
-# "kind" key; absent (None) unless the config gives the table.
-SUBMODELS: dict[tuple[str, str], dict[str, type]] = {("plant", "disturbance"): disturbance.KINDS}
+KIND_KEY = {"plant": "family"}  # ("kind" elsewhere)
+# Fields that hold a model of their own, by config path, written as a sub-table
+# ([plant.disturbance]); absent (None) unless the config gives the table.
+SUBMODELS: dict[str, dict[str, type]] = {"plant.disturbance": disturbance.KINDS}
 
 
 # -- Setup -> dict -> TOML ----------------------------------------------------------------------
@@ -55,13 +55,13 @@ def _plain(value):
     return np.vectorize(lambda x: validation.shortest(x, dtype), otypes=[object])(a).tolist()
 
 
-def model_to_dict(section: str, model, kind_key: str | None = None) -> dict[str, Any]:
-    out: dict[str, Any] = {kind_key or KIND_KEY[section]: type(model).kind}
+def model_to_dict(section: str, model) -> dict[str, Any]:
+    out: dict[str, Any] = {KIND_KEY.get(section, "kind"): type(model).kind}
     for f in dataclasses.fields(model):
         value = getattr(model, f.name)
-        if (section, f.name) in SUBMODELS:
+        if f"{section}.{f.name}" in SUBMODELS:
             if value is not None:  # a sub-table; TOML has no null, so None is left out
-                out[f.name] = model_to_dict(f"{section}.{f.name}", value, "kind")
+                out[f.name] = model_to_dict(f"{section}.{f.name}", value)
             continue
         out[f.name] = value if f.metadata.get("static") else _plain(value)
     return out
@@ -76,7 +76,7 @@ def to_dict(setup: Setup, spec: RunSpec | None = None) -> dict[str, Any]:
 
 
 # One line per key of the printed config: meaning, equation, allowed range.
-DOCS: dict[str, str] = {f"simulation.{k}": doc for k, (_, doc) in OPTIONS.items()} | {
+DOCS: dict[str, str] = settings.meanings(Simulation, "simulation.") | {
     "plant.family": "paper (eq. 73) or strict_feedback (order-n family)",
     "plant.g": "g_i > 0, eq. (1) (unknown to the controller)",
     "plant.theta": "theta_i, eq. (1) (unknown to the controller)",
@@ -263,10 +263,10 @@ def _find(value, kinds, where: str = "") -> tuple[str | None, Any]:
     return None, None
 
 
-def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind_key: str,
-           base):
+def _model(field: str, table: Mapping[str, Any], base):
     """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
     `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
+    kinds, kind_key = REGISTRY.get(field) or SUBMODELS[field], KIND_KEY.get(field, "kind")
     default_kind = type(base).kind if base is not None else None
     kind = validation.table(table, field).get(kind_key, default_kind)
     validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))
@@ -282,9 +282,8 @@ def _model(field: str, table: Mapping[str, Any], kinds: Mapping[str, type], kind
     values = {}
     for name, f in fields.items():
         default = getattr(base, name) if base is not None else f.default
-        if name in table and (field, name) in SUBMODELS:
-            values[name] = _model(f"{field}.{name}", table[name], SUBMODELS[field, name], "kind",
-                                  default)
+        if name in table and f"{field}.{name}" in SUBMODELS:
+            values[name] = _model(f"{field}.{name}", table[name], default)
         elif name in table:
             value = _coerce(field, name, table[name], bool(f.metadata.get("static")), default)
             coefficients = getattr(cls, "coefficients_name", None)
@@ -313,8 +312,7 @@ def from_dict(d: Mapping[str, Any], base: Setup | None = None,
         if key not in allowed + COMMAND_TABLES:
             raise ConfigError(f"unknown section '{key}' (allowed: "
                               f"{', '.join(allowed + COMMAND_TABLES)})")
-    models = {s: _model(s, d.get(s, {}), REGISTRY[s], KIND_KEY[s], getattr(base, s))
-              for s in allowed[1:]}
+    models = {s: _model(s, d.get(s, {}), getattr(base, s)) for s in allowed[1:]}
     return Setup(**models), RunSpec.from_table(d.get("simulation", {}), base=base_spec)
 
 

@@ -367,7 +367,7 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
             try:
                 validation.validate_setup(one)
                 if t_final is not None and dt is not None:
-                    validation.validate_run(one, t_final, dt, 1, window_start)
+                    validation.validate_run(one, t_final, dt, window_start)
             except ConfigError as err:
                 raise ConfigError(f"{field}.{r.name} = [{r.low:g}, {r.high:g}]: {err}") from None
     return resolved

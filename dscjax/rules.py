@@ -36,7 +36,9 @@ class Rule:
         return self.parse(_literal(text))  # each rule has its `parse`
 
     def dump(self, value):
-        return value
+        """The value as plain data; a tuple (of `Numbers`, `Strings`) as a list: TOML and JSON
+        have no tuples."""
+        return list(value) if isinstance(value, tuple) else value
 
 
 @dataclasses.dataclass(frozen=True)
@@ -233,9 +235,6 @@ class Numbers(Rule):
             raise Invalid(self.text + ", separated by commas", text) from None
         return values[0] if len(parts) == 1 else tuple(values)
 
-    def dump(self, value):
-        return list(value) if isinstance(value, tuple) else value
-
 
 @dataclasses.dataclass(frozen=True)
 class Strings(Rule):
@@ -251,9 +250,6 @@ class Strings(Rule):
 
     def from_text(self, text: str):
         return tuple(p.strip() for p in text.split(",") if p.strip())
-
-    def dump(self, value):
-        return list(value)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -10,8 +10,9 @@ sampled controller advances its states). Traced fields change without
 recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps per controller
 sample), `noise` and `noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side,
 never part of a compiled program: `program()` sets them to fixed values before a spec enters a
-jitted function, so specs differing only there share one compiled program. The [simulation] table,
-the command-line flags (`OPTIONS`) and a run's fingerprint (`describe`) all derive from it.
+jitted function, so specs differing only there share one compiled program. The [simulation] table
+and its command-line flags (both from `Simulation`'s declarations) and a run's fingerprint
+(`describe`) all derive from it.
 """
 
 from __future__ import annotations
@@ -85,11 +86,6 @@ class Simulation:
     device: str = setting("auto", "auto (one trajectory and small batches on the CPU, large "
                           "batches on an accelerator), cpu or gpu", Choice(("auto", "cpu", "gpu")),
                           flag="--device")
-
-
-# key -> (default, meaning) of the [simulation] table, read off `Simulation`
-OPTIONS: dict[str, tuple[Any, str]] = {
-    k: (getattr(Simulation(), k), s.doc) for k, s in settings.declared(Simulation).items()}
 
 
 class RunSpec(eqx.Module):
@@ -259,8 +255,7 @@ def auto_stride(n_steps: int) -> int:
     return max(-(-n_steps // (MAX_SAVED_POINTS - 1)), 1)
 
 
-__all__ = ["DEFAULT_REFINE", "MAX_SAVED_POINTS", "OPTIONS", "RunSpec", "Simulation",
-           "auto_stride"]
+__all__ = ["DEFAULT_REFINE", "MAX_SAVED_POINTS", "RunSpec", "Simulation", "auto_stride"]
 
 
 def loop_words(sim: RunSpec) -> str:

@@ -204,20 +204,19 @@ class Selection:
         return {t.name: t.transform.value(z[t.name], None) for t in self.items}
 
     def apply(self, setup, z: Mapping[str, Any]):
-        """The setup with the selected numbers at z (traceable)."""
-        new: dict[str, Any] = {}
-        for t in self.items:
-            path = t.param.path
-            new[path] = _moved(new.get(path, params.get(setup, path)), t, z[t.name], False)
-        return params.set_many(setup, new)
+        """The setup with the selected numbers at z (traceable): its own leaves `move`d."""
+        leaves = {t.param.path: params.get(setup, t.param.path) for t in self.items}
+        return params.set_many(setup, self.move(leaves, z, batched=False))
 
-    def move(self, overrides: Mapping[str, Any], z: Mapping[str, Any]) -> dict[str, Any]:
-        """A batch of plants ({path: (B, ...)}) with the selected numbers it overrides moved
-        alike, each plant from its own value (traceable)."""
+    def move(self, overrides: Mapping[str, Any], z: Mapping[str, Any],
+             batched: bool = True) -> dict[str, Any]:
+        """A batch of plants ({path: (B, ...)}; without `batched`, one plant's leaves) with
+        the selected numbers it overrides moved alike, each plant from its own value
+        (traceable)."""
         out = dict(overrides)
         for t in self.items:
             if t.param.path in out:
-                out[t.param.path] = _moved(out[t.param.path], t, z[t.name], True)
+                out[t.param.path] = _moved(out[t.param.path], t, z[t.name], batched)
         return out
 
     def overrides(self, setup, zs: Mapping[str, Any]) -> dict[str, Any]:

@@ -40,6 +40,7 @@ from dscjax.integrate import (
     integrate,
     saved_steps,
 )
+from dscjax.rules import AtLeast
 from dscjax.runspec import DEFAULT_REFINE, RunSpec
 
 
@@ -367,7 +368,7 @@ def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 
     """
     if spec is None:
         if checkpoint_every is not None:
-            validation.integer(checkpoint_every, "checkpoint_every", 1)
+            validation.by_rule(AtLeast(1), checkpoint_every, "checkpoint_every")
         n_total = validation.whole_steps(t_final, dt)
         spec = RunSpec.make(t_final, dt, save_every=n_total if save_every is None else save_every,
                             window_start=window_start, state_bound=state_bound, solver=solver,

@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import jax
 import numpy as np
 
-from dscjax.rules import Invalid, Number, Rule
+from dscjax.rules import Invalid, Rule
 
 # RK4's stability interval on the negative real axis is about [-2.785, 0].
 RK4_REAL_STABILITY = 2.785
@@ -115,11 +115,6 @@ def by_rule(rule: Rule, value, field: str):
         return rule.parse(value)
     except Invalid as err:
         raise ConfigError(f"{field} must be {err.must} ({got(err.value)})") from None
-
-
-def integer(value, field: str, low: int | None = None) -> int:
-    """`value` if it is an int (not a bool, not a float) >= low; else ConfigError."""
-    return by_rule(Number(ge=low, integer=True), value, field)
 
 
 def string(value, field: str) -> str:
@@ -249,11 +244,9 @@ def check_filters(setup, dt) -> None:
             )
 
 
-def validate_run(setup, t_final, dt, save_every: int, window_start) -> int:
-    """Check the run settings against the setup; returns the number of steps N = t_final/dt.
-    The save stride need not divide N (the last saved point is always t_final)."""
+def validate_run(setup, t_final, dt, window_start) -> int:
+    """Check the run settings against the setup; returns the number of steps N = t_final/dt."""
     n_steps = whole_steps(t_final, dt)
-    integer(save_every, "simulation.save_every", 1)
     if window_start is not None:
         in_horizon(window_start, t_final, "simulation.window_start")
     check_filters(setup, dt)

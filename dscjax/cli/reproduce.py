@@ -80,7 +80,7 @@ def run(args) -> int:
     theory_orders = parse_orders(args.theory_orders, "--theory-orders")
     alpha0 = common.positive_numbers(args.alpha0, "--alpha0")
     steps = whole_steps(args.t_final, args.dt, "--t-final", "--dt")
-    validate_run(setups()["dsc"], args.t_final, args.dt, 1, None)
+    validate_run(setups()["dsc"], args.t_final, args.dt, None)
     runs = len(setups())  # each saved at every step and kept for the figures
     point = common.loop_sizes(setups()["dsc"])
     extra = sampling.total_steps(args.t_final, args.dt)

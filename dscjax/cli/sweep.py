@@ -23,7 +23,7 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_text
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
-from dscjax.runspec import OPTIONS, RunSpec
+from dscjax.runspec import RunSpec, Simulation
 from dscjax.validation import ConfigError, Work, check_work, validate_setup
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
@@ -119,7 +119,7 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
-    continuous = {k: OPTIONS[k][0] for k in common.SAMPLED_KEYS}
+    continuous = {k: getattr(Simulation(), k) for k in common.SAMPLED_KEYS}
     given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
     for key, value in (continuous | given).items():
         if key in config_loop and config_loop[key] != value:

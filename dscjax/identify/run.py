@@ -24,7 +24,7 @@ from dscjax.markdown import table
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
 from dscjax.sensitivity import columns
 from dscjax.settings import setting
-from dscjax.validation import ConfigError, integer
+from dscjax.validation import ConfigError, by_rule
 
 FIGURES = ("fit.png", "residuals.png")
 VALIDATION_SHARE = 0.25  # without --validate, the record's last quarter validates
@@ -113,7 +113,7 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
                  f"{record.t[fitted - 1]:g} s)")
     else:
         fit_index, val, where = None, check_validation(validation, record), validation.source
-    integer(s.segments, "--segments", 1)
+    by_rule(AtLeast(1), s.segments, "--segments")
     if s.segments > fitted // 10:
         raise ConfigError(f"--segments must be at most {fitted // 10} for {fitted} samples (10 "
                           f"a segment; got {s.segments})")

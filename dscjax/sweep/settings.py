@@ -104,7 +104,7 @@ def check_settings(settings: SweepSettings, setup, spec: RunSpec) -> tuple[Range
     `spec` (ConfigError naming the field; the ranges as `params.check`)."""
     t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     # the run settings first: a bad window or dt is not the fault of a range
-    validation.validate_run(setup, t_final, dt, 1, window_start)
+    validation.validate_run(setup, t_final, dt, window_start)
     s = schema.checked(settings, lambda key: f"sweep.{key}")  # (built in code: read by rules)
     if s.method.grid and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
