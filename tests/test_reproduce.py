@@ -101,6 +101,8 @@ def test_summary_numbers_match_an_independent_computation(reproduced):
     np.testing.assert_allclose(row["l2_error_after_1s"], float(l2(e, t, 1.0)),
                                rtol=1e-10)
     np.testing.assert_allclose(row["max_abs_u"], np.max(np.abs(u)), rtol=1e-12)
+    np.testing.assert_allclose(row["max_abs_u_after_1s"], np.max(np.abs(u[t >= 1.0])),
+                               rtol=1e-12)
     np.testing.assert_allclose(row["max_abs_w"], np.max(np.abs(w)), rtol=1e-12)
     np.testing.assert_allclose(row["tv_u"], np.sum(np.abs(np.diff(u))), rtol=1e-10)
     # The claims are consistent with the rows they are computed from.
