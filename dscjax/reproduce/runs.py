@@ -15,7 +15,6 @@ from dscjax.controllers.backstepping import with_backstepping
 from dscjax.hysteresis import sine_loops
 from dscjax.simulate import divergence_report, simulate
 
-RUNS = ("dsc", "dsc_no_dhat", "dsc_no_dhat_no_zeta", "backstepping")
 LABELS = {
     "dsc": "DSC with hysteresis compensation",
     "dsc_no_dhat": r"DSC without compensation, reading A: $\hat d \equiv 0$",
