@@ -2,11 +2,13 @@
 
 Every figure of the project is a `matplotlib.figure.Figure` made by `subplots` below: the
 object API, never pyplot, so no backend is chosen or changed and no global state (a notebook's
-display backend, its rcParams) is touched; styles apply through `matplotlib.rc_context`.
+display backend, its rcParams) is touched; styles apply through `matplotlib.rc_context`
+(`saved`: a figure made, styled and saved in one `with` block).
 """
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +28,18 @@ def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", *
 
     fig = Figure(figsize=figsize, layout=layout)
     return fig, fig.subplots(nrows, ncols, **kwargs)
+
+
+@contextlib.contextmanager
+def saved(path: Path | str, dpi: int, nrows: int = 1, ncols: int = 1, *, rc=None, **kwargs):
+    """`subplots`' (Figure, axes) for the block, saved to `path` at `dpi` when it ends; the
+    block and the saving under the style `rc` (`matplotlib.rc_context`), where given."""
+    import matplotlib
+
+    with matplotlib.rc_context(rc):
+        fig, axes = subplots(nrows, ncols, **kwargs)
+        yield fig, axes
+        files.save_figure(fig, path, dpi=dpi)
 
 
 def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],

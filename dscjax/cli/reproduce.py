@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dscjax import files
+from dscjax import files, ts_sweep
 from dscjax.cli import common, out
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.reproduce import ROWS, claim_lines, reproduce, sampling, setups, written
@@ -83,7 +83,7 @@ def run(args) -> int:
     validate_run(setups()["dsc"], args.t_final, args.dt, None)
     runs = len(setups())  # each saved at every step and kept for the figures
     point = common.loop_sizes(setups()["dsc"])
-    extra = sampling.total_steps(args.t_final, args.dt)
+    extra = ts_sweep.total_steps(args.t_final, args.dt)
     check_work(Work(steps=runs * steps + extra,
                     member_steps=runs * steps + len(sampling.GAINS) * extra,
                     memory=runs * (steps + 1) * point[1] * point[2],

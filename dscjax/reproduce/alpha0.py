@@ -24,11 +24,10 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example, paper_example
 from dscjax.markdown import table
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
 from dscjax.simulate import canonical, simulate
@@ -265,8 +264,7 @@ def plot(results: Sequence[dict], path: Path, dpi: int = 150) -> Path:
     (tab10's first for n = 2, its second for n = 3, ...)."""
     import matplotlib
 
-    with matplotlib.rc_context(RC):
-        fig, ax = subplots(figsize=(8.6, 4.4))
+    with saved(path, dpi, rc=RC, figsize=(8.6, 4.4)) as (fig, ax):
         for res in results:
             n, mu = res["n"], res["options"]["mu"]
             color = matplotlib.colormaps["tab10"](n - 2)  # not the user's global cycle
@@ -280,7 +278,6 @@ def plot(results: Sequence[dict], path: Path, dpi: int = 150) -> Path:
         ax.set_title("Theorem 1, L-inf initialisation (67)-(68): bound (72) against the "
                      "measured error", fontsize=9.5)
         ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        files.save_figure(fig, path, dpi=dpi)
     return path
 
 

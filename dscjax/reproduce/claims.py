@@ -46,7 +46,7 @@ def summarize(trajs: dict, t_final: float, dt: float) -> dict:
     """Metrics of every run, the estimates' ranges and the check of every claim."""
     window = default_window(t_final)
     runs = {name: dict(
-        label=LABELS[name], **run_metrics(traj, window), diverged=bool(traj.diverged),
+        label=LABELS[name], **run_metrics(traj), diverged=bool(traj.diverged),
         t_diverged=float(traj.t_diverged) if bool(traj.diverged) else None,
         estimates={k: dict(min=float(v.min()), max=float(v.max()), final=float(v[-1]))
                    for k, v in estimates(traj).items()},

@@ -25,7 +25,7 @@ from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example
 from dscjax.controllers.backstepping import with_backstepping
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 from dscjax.reproduce.runs import STYLE
 from dscjax.validation import ConfigError
 
@@ -210,29 +210,28 @@ def plot(result: dict, path, dpi: int = 150) -> None:
     """Log-scale panels of the metrics against n, one line per controller (growth in legend),
     in the colours of its run (`runs.STYLE`)."""
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    fig, axes = subplots(2, 2, figsize=(9, 6.4))
-    for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
-        for c, fits in result["fits"].items():
-            rows = [r for r in result["rows"] if r["controller"] == c]
-            ns = [r["n"] for r in rows]
-            name, fit, color = names.get(c, c), fits[metric], STYLE[c]["color"]
-            label = name + (", in a compiled loop" if metric == "eval_s" else
-                            ": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
-                            if fit.get("ratio_per_order") else "")
-            ax.semilogy(ns, [r[metric] for r in rows], "o-", color=color, lw=1.5, ms=4,
-                        label=label)
-            if metric == "eval_s":
-                ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=color, lw=1.0,
-                            ms=3, alpha=0.6, label=name + ", one call from Python")
-        ax.set_xlabel("plant order $n$")
-        ax.set_ylabel(ylabel)
-        ax.set_xticks(result["orders"])
-        ax.grid(alpha=0.3, which="both")
-        # headroom above the data so that the legend never hides a point
-        lo, hi = ax.get_ylim()
-        decades = np.log10(hi / lo)
-        share = 0.45 if metric == "eval_s" else 0.3
-        ax.set_ylim(lo, hi * 10 ** (decades * share / (1 - share)))
-        ax.legend(fontsize=8, loc="upper left")
-    fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)
-    files.save_figure(fig, path, dpi=dpi)
+    with saved(path, dpi, 2, 2, figsize=(9, 6.4)) as (fig, axes):
+        for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
+            for c, fits in result["fits"].items():
+                rows = [r for r in result["rows"] if r["controller"] == c]
+                ns = [r["n"] for r in rows]
+                name, fit, color = names.get(c, c), fits[metric], STYLE[c]["color"]
+                label = name + (", in a compiled loop" if metric == "eval_s" else
+                                ": " + growth_text(fit, "~ $n^{{{:.2f}}}$")
+                                if fit.get("ratio_per_order") else "")
+                ax.semilogy(ns, [r[metric] for r in rows], "o-", color=color, lw=1.5, ms=4,
+                            label=label)
+                if metric == "eval_s":
+                    ax.semilogy(ns, [r["call_s"] for r in rows], "s--", color=color, lw=1.0,
+                                ms=3, alpha=0.6, label=name + ", one call from Python")
+            ax.set_xlabel("plant order $n$")
+            ax.set_ylabel(ylabel)
+            ax.set_xticks(result["orders"])
+            ax.grid(alpha=0.3, which="both")
+            # headroom above the data so that the legend never hides a point
+            lo, hi = ax.get_ylim()
+            decades = np.log10(hi / lo)
+            share = 0.45 if metric == "eval_s" else 0.3
+            ax.set_ylim(lo, hi * 10 ** (decades * share / (1 - share)))
+            ax.legend(fontsize=8, loc="upper left")
+        fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)

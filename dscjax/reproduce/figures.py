@@ -10,7 +10,7 @@ import numpy as np
 from dscjax import files
 from dscjax.config import paper_example
 from dscjax.metrics import default_window
-from dscjax.plotting import COLORS, hysteresis_loop, subplots
+from dscjax.plotting import COLORS, hysteresis_loop, saved, subplots
 from dscjax.reproduce import theory
 from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA, LABELS, STYLE, estimates
 
@@ -31,12 +31,6 @@ FIGURES = {
 RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid": True,
       "grid.alpha": 0.3}
 LOOP_COLORS = ("#8c564b", COLORS["w"])  # Fig. 1's loops: the small one brown, the large one w's
-
-
-def _finish(fig, out: Path, stem: str, fmt: str, dpi: int) -> Path:
-    path = out / f"{stem}.{fmt}"
-    files.save_figure(fig, path, dpi=dpi)
-    return path
 
 
 def _time_axes(title: str, ylabel: str, t_after: float | None = None):
@@ -109,20 +103,18 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
                                 label=f"shown below: $t \\geq$ {t_after:g} s")
                 _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
             _legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels: long
-            paths[key] = _finish(fig, out, FIGURES[key], fmt, dpi)
-        paths["estimates"] = _estimates_figure(trajs, out, fmt, dpi)
-        paths["fig1_family"] = _family_figure(family, out, fmt, dpi)
+            paths[key] = out / f"{FIGURES[key]}.{fmt}"
+            files.save_figure(fig, paths[key], dpi=dpi)
+        paths["estimates"] = _estimates_figure(trajs, out / f"{FIGURES['estimates']}.{fmt}", dpi)
+        paths["fig1_family"] = _family_figure(family, out / f"{FIGURES['fig1_family']}.{fmt}", dpi)
     return paths
 
 
 def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dpi: int) -> Path:
     """w against u of one hysteresis model, one panel per amplitude A of u = A sin(omega t)
     (u, w of shape (K, N+1)): Fig. 1, and `dscjax hysteresis`'s loop.png."""
-    import matplotlib
-
-    with matplotlib.rc_context(RC):
-        fig, axes = subplots(1, len(amplitudes), figsize=(4.2 * len(amplitudes), 3.9),
-                             sharey=True, squeeze=False)
+    with saved(path, dpi, 1, len(amplitudes), rc=RC, figsize=(4.2 * len(amplitudes), 3.9),
+               sharey=True, squeeze=False) as (fig, axes):
         for i, (ax, a) in enumerate(zip(axes[0], amplitudes, strict=True)):
             hysteresis_loop(ax, hyst, u[i], w[i], f"$w(u)$, $u = {a:g}\\,\\sin({omega:g}t)$",
                             LOOP_COLORS[i % len(LOOP_COLORS)])
@@ -130,55 +122,55 @@ def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dp
             ax.legend(loc="upper left", framealpha=0.95)
         axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
         fig.suptitle(title)
-        files.save_figure(fig, path, dpi=dpi)
     return path
 
 
-def _family_figure(family: dict, out: Path, fmt: str, dpi: int) -> Path:
+def _family_figure(family: dict, path: Path, dpi: int) -> Path:
     """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
     both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
     hysteresis` draws one model)."""
-    fig, axes = subplots(1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
-                         squeeze=False)
-    for ax, (model, _, u, w) in zip(axes[0], family.values(), strict=True):
-        big = int(np.argmax(np.max(np.abs(u), axis=1)))
-        for i in range(len(u)):
-            k = float(np.max(np.abs(u[i])))
-            hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}",
-                            LOOP_COLORS[i % len(LOOP_COLORS)], lines=i == big)
-        ax.set_title(model.title, fontsize=9)
-        ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
-    axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
-    fig.suptitle(r"Fig. 1 for every actuator model: $w(u)$ for $u = k\,\sin(2.3t)$, "
-                 r"examples' parameters (docs/hysteresis.md)")
-    return _finish(fig, out, FIGURES["fig1_family"], fmt, dpi)
+    with saved(path, dpi, 1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
+               squeeze=False) as (fig, axes):
+        for ax, (model, _, u, w) in zip(axes[0], family.values(), strict=True):
+            big = int(np.argmax(np.max(np.abs(u), axis=1)))
+            for i in range(len(u)):
+                k = float(np.max(np.abs(u[i])))
+                hysteresis_loop(ax, model, u[i], w[i], f"$k$ = {k:.3g}",
+                                LOOP_COLORS[i % len(LOOP_COLORS)], lines=i == big)
+            ax.set_title(model.title, fontsize=9)
+            ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
+        axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
+        fig.suptitle(r"Fig. 1 for every actuator model: $w(u)$ for $u = k\,\sin(2.3t)$, "
+                     r"examples' parameters (docs/hysteresis.md)")
+    return path
 
 
-def _estimates_figure(trajs, out, fmt, dpi):
+def _estimates_figure(trajs, path: Path, dpi: int) -> Path:
     tr = theory.truth(paper_example())  # what the estimates estimate
     panels = (("theta_hat_g1", r"$\hat\theta_{g1}$ [-]", tr.theta[0], r"$\theta_1/g_1$"),
               ("phi_hat_1", r"$\hat\phi_1$ [-]", tr.phi[0], r"$1/g_1$"),
               ("zeta_hat", r"$\hat\zeta$ [-]", tr.zeta, r"$1/(\lambda g_2)$"),
               ("d_hat", r"$\hat d$ [-]", None, None))  # (estimate, axis label, true value)
-    fig, axes = subplots(2, 2, figsize=(8.4, 5.6), sharex=True)
-    for ax, (key, ylabel, value, sym) in zip(axes.ravel(), panels, strict=True):
-        for name in ("dsc", "backstepping"):
-            traj = trajs[name]
-            ax.plot(np.asarray(traj.t), estimates(traj)[key], label=LABELS[name], **STYLE[name])
-        if value is not None:
-            value = float(value)
-            ax.axhline(value, color="#444444", lw=0.9, ls=":", label="true value")
-            ax.annotate(f"{sym} = {value:.3g}", xy=(1.0, value), xycoords=("axes fraction", "data"),
-                        xytext=(-4, 3), textcoords="offset points", ha="right", va="bottom",
-                        fontsize=8, color="#444444")
-        ax.set_ylabel(ylabel)
-        ax.margins(y=0.12)
-    for ax in axes[1]:
-        ax.set_xlabel("time $t$ [s]")
-    _legend_below(fig, axes[0, 0], ncol=3)
-    fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
-                 r"because $f_2 = 0$; not shown)")
-    return _finish(fig, out, FIGURES["estimates"], fmt, dpi)
+    with saved(path, dpi, 2, 2, figsize=(8.4, 5.6), sharex=True) as (fig, axes):
+        for ax, (key, ylabel, value, sym) in zip(axes.ravel(), panels, strict=True):
+            for name in ("dsc", "backstepping"):
+                traj = trajs[name]
+                ax.plot(np.asarray(traj.t), estimates(traj)[key], label=LABELS[name], **STYLE[name])
+            if value is not None:
+                value = float(value)
+                ax.axhline(value, color="#444444", lw=0.9, ls=":", label="true value")
+                ax.annotate(f"{sym} = {value:.3g}", xy=(1.0, value),
+                            xycoords=("axes fraction", "data"), xytext=(-4, 3),
+                            textcoords="offset points", ha="right", va="bottom", fontsize=8,
+                            color="#444444")
+            ax.set_ylabel(ylabel)
+            ax.margins(y=0.12)
+        for ax in axes[1]:
+            ax.set_xlabel("time $t$ [s]")
+        _legend_below(fig, axes[0, 0], ncol=3)
+        fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
+                     r"because $f_2 = 0$; not shown)")
+    return path
 
 
 __all__ = ["FIGURES", "RC", "figures", "loop_figure"]

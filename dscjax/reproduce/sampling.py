@@ -14,7 +14,6 @@ import numpy as np
 from dscjax import ts_sweep
 from dscjax.config import from_dict
 from dscjax.ts_sweep import SAMPLE_TIMES, criterion, largest_tracking, table
-from dscjax.ts_sweep import total_steps as total_steps  # the command sizes its work by it
 
 # the controller of that run (its gains.json, the [controller] keys tuned)
 TUNED = {

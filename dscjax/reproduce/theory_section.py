@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import files
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 from dscjax.reproduce import alpha0 as alpha0_study
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
@@ -117,10 +117,8 @@ def term_sums(arrays: dict) -> dict:
 def plot_lyapunov(arrays: dict, summary: dict, path: Path, dpi: int = 150) -> Path:
     """Top: V(t) of (44) with its terms stacked. Bottom: V against (65) and (71), log axis."""
     t = arrays["t"]
-    import matplotlib
-
-    with matplotlib.rc_context(RC):
-        fig, (top, bottom) = subplots(2, 1, figsize=(8.8, 6.4), sharex=True, height_ratios=(3, 2))
+    with saved(path, dpi, 2, 1, rc=RC, figsize=(8.8, 6.4), sharex=True,
+               height_ratios=(3, 2)) as (fig, (top, bottom)):
         top.stackplot(t, *term_sums(arrays).values(), labels=[lab for _, lab, _ in GROUPS],
                       colors=[c for _, _, c in GROUPS], alpha=0.85, lw=0)
         top.plot(t, arrays["V"], color="k", lw=0.8, label="$V$ (44)")
@@ -136,7 +134,6 @@ def plot_lyapunov(arrays: dict, summary: dict, path: Path, dpi: int = 150) -> Pa
                    "(data-driven $M$)")
         for ax in (top, bottom):
             ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-        files.save_figure(fig, path, dpi=dpi)
     return path
 
 
