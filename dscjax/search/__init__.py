@@ -55,13 +55,15 @@ Method = CMA | Random | Gradient
 
 
 class Batched:
-    """A batched program `fn(z (w, n)) -> arrays (w, ...)` (a `jax.jit` function) compiled
-    ahead of time once per width, its compilation timed (`seconds`): a batch of B points runs
-    at width B, except a single point, which runs padded to the narrowest width compiled
-    (the start point's evaluation compiles nothing)."""
+    """A batched program `fn(*before, z (w, n), *after, **static) -> arrays (w, ...)` (a
+    `jax.jit` function; its other arguments fixed, so that problems of one structure share its
+    compilations) compiled ahead of time once per width, its compilation timed (`seconds`): a
+    batch of B points runs at width B, except a single point, which runs padded to the
+    narrowest width compiled (the start point's evaluation compiles nothing)."""
 
-    def __init__(self, fn):
+    def __init__(self, fn, before: tuple = (), after: tuple = (), **static):
         self.fn, self.widths, self.seconds = fn, set(), 0.0
+        self.before, self.after, self.static = before, after, static
 
     def __call__(self, z) -> Any:
         import jax
@@ -70,12 +72,14 @@ class Batched:
         b = len(z)
         w = min(self.widths) if b == 1 and self.widths and 1 not in self.widths else b
         x = np.concatenate([z, np.repeat(z[-1:], w - b, axis=0)]) if w > b else z
+        args = (*self.before, x, *self.after)
         if w not in self.widths:
             t0 = time.perf_counter()
-            self.fn.lower(x).compile()  # (the jit's own cache keeps it)
+            self.fn.lower(*args, **self.static).compile()  # (the jit's own cache keeps it)
             self.seconds += time.perf_counter() - t0
             self.widths.add(w)
-        return jax.tree.map(lambda a: np.asarray(a)[:b], jax.device_get(self.fn(x)))
+        out = self.fn(*args, **self.static)
+        return jax.tree.map(lambda a: np.asarray(a)[:b], jax.device_get(out))
 
 
 class Result(NamedTuple):
