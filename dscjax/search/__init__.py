@@ -87,7 +87,6 @@ class Result(NamedTuple):
     state: Any  # the method's last state
     stop_reason: str
     resumed_from: int  # iterations done before this call (0: a fresh search)
-    seconds: float  # search seconds of this call
     compile_seconds: float  # compilation seconds of this call
 
 
@@ -121,7 +120,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
     # the last iteration's seconds: where the next would pass time_limit, none is begun
     last = float(np.diff([0.0] + [r["seconds"] for r in trace.history[-2:]])[-1]
                  if trace.history else 0.0)
-    seconds0, mark = trace.seconds, time.perf_counter()
+    mark = time.perf_counter()
     while (reason := _limit(trace, last, time_limit, max_evals, max_iterations)) is None:
         # a Ctrl-C waits for the iteration, its commit, its file and the caller's files
         # (dscjax.progress.critical): whatever was saved is a whole state
@@ -143,8 +142,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
             reason = (f"no improvement of the best loss by more than {min_delta:g} (relative) "
                       f"in {patience} iterations")
             break
-    return Result(trace, state, reason, begun, trace.seconds - seconds0,
-                  trace.compile_seconds - compiled)
+    return Result(trace, state, reason, begun, trace.compile_seconds - compiled)
 
 
 def _limit(trace: Trace, last: float, time_limit, max_evals, max_iterations) -> str | None:
