@@ -218,14 +218,13 @@ def _started_chunk(out_dir) -> int | None:
     return int(chunk) if isinstance(chunk, int) and chunk > 0 else None
 
 
-def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None = None,
-                    spec: RunSpec | None = None) -> None:
-    """ConfigError unless `out` holds a sweep to resume (its sweep.json); given the sweep's
-    setup, settings and run, also unless it was made with them (naming the old and new
-    values), so that a command refuses before it prints or runs anything."""
+def check_resumable(out: str | Path, setup, settings: SweepSettings, spec: RunSpec) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json) made with the sweep's
+    setup, settings and run (naming the old and new values), so that a command refuses before
+    it prints or runs anything."""
     manifest = files.resume_file(out, "sweep.json")
-    chunk = None if settings is None else settings.chunk or _started_chunk(out)
-    if chunk is None or setup is None or spec is None:
+    chunk = settings.chunk or _started_chunk(out)
+    if chunk is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
     ranges = check_settings(settings, setup, spec)
