@@ -8,15 +8,14 @@ a plant's own term (`plant.disturbance`); what a worst-case search varies.
         the monotone cubic Hermite spline (PCHIP) through `knots` at K equally spaced times on
         [0, horizon] (constant after it); max_t |dbar| = max |knots| exactly.
 
-The bound max_t |dbar(t)| <= D is enforced by `project`: a spline's knots are clipped to
-[-D, D]; a Fourier series is scaled by min(1, D / max_k |dbar(t_k)|) on the half-step grid
-t_k = k dt/2 on which RK4 evaluates it. Config: a table [plant.disturbance] with `kind`
-("fourier" | "spline") and the fields above.
+The bound max_t |dbar(t)| <= D is enforced by `project_coefficients` (a worst-case search's
+projection): a spline's knots are clipped to [-D, D]; a Fourier series is scaled by
+min(1, D / max_k |dbar(t_k)|) on the half-step grid t_k = k dt/2 on which RK4 evaluates it.
+Config: a table [plant.disturbance] with `kind` ("fourier" | "spline") and the fields above.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from typing import ClassVar
 
 import jax
@@ -31,7 +30,7 @@ class Disturbance(Model):
     """Interface: `__call__(t)` gives dbar(t) for a scalar t; `coefficients_name` names the
     leaf a search varies; the static `project_coefficients(coef, bound, values_on_grid)` gives
     the coefficients (..., m) within the bound from the waveform's values on the half-step grid
-    (..., G) (traceable, for the search); `project` below applies it."""
+    (..., G) (traceable, for the search)."""
 
     kind: ClassVar[str]
     coefficients_name: ClassVar[str]
@@ -164,13 +163,6 @@ def sample(dist: Disturbance, t) -> jax.Array:
     return jax.vmap(dist)(t)
 
 
-def project(dist: Disturbance, bound: float, t_grid) -> Disturbance:
-    """`dist` with its coefficients brought within max |dbar| <= bound on t_grid."""
-    values = sample(dist, t_grid)
-    coef = dist.project_coefficients(jnp.asarray(dist.coefficient_values()), bound, values)
-    return dataclasses.replace(dist, **{dist.coefficients_name: np.asarray(coef)})
-
-
 KINDS: dict[str, type[Disturbance]] = {Fourier.kind: Fourier, Spline.kind: Spline}
 
-__all__ = ["KINDS", "Disturbance", "Fourier", "Spline", "half_step_grid", "project", "sample"]
+__all__ = ["KINDS", "Disturbance", "Fourier", "Spline", "half_step_grid", "sample"]

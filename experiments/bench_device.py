@@ -152,7 +152,7 @@ def throughput(bench: Bench, device, sizes, t_final: float, dtype, repeats: int)
     window = float(spec.window_start)
     for b in sizes:
         ranges, table = plants(setup, b)
-        runner = Runner(setup, [r.param for r in ranges], spec, b, devices=[device],
+        runner = Runner(setup, [r.param for r in ranges], spec, devices=[device],
                         tile=b)  # one program of b rows: the batch-size curve
         hyst = tuple(jax.device_put(jnp.asarray(table[:, j], dtype), device) for j in range(3))
         plain = jax.jit(jax.vmap(lambda a, lam, psi: plain_linf((a, lam, psi), n, window,

@@ -281,14 +281,12 @@ def test_a_replayed_cma_es_continues_exactly_even_from_between_ask_and_tell():
                                                   "randn": np.random.RandomState(3).randn})
 
     a = make()
-    for g in range(4):
+    for _ in range(4):
         x = a.ask()
         a.tell(x, (x ** 2).sum(axis=1))
-        if g % 2:
-            a.inject(0.5 * x[0])
     pending = a.ask()  # asked, never told: the record holds the 4 told generations
     saved = {k: np.array(v) for k, v in a.arrays().items()}
-    assert saved["fitness"].shape == (4, 5) and np.isnan(saved["injected"][0]).all()
+    assert saved["fitness"].shape == (4, 5)
     b = make()
     b.replay(saved)
     np.testing.assert_array_equal(b.ask(), pending)

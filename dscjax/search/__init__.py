@@ -55,13 +55,15 @@ Method = CMA | Random | Gradient
 
 
 class Batched:
-    """A batched program `fn(z (w, n)) -> arrays (w, ...)` (a `jax.jit` function) compiled
-    ahead of time once per width, its compilation timed (`seconds`): a batch of B points runs
-    at width B, except a single point, which runs padded to the narrowest width compiled
-    (the start point's evaluation compiles nothing)."""
+    """A batched program `fn(*before, z (w, n), *after, **static) -> arrays (w, ...)` (a
+    `jax.jit` function; its other arguments fixed, so that problems of one structure share its
+    compilations) compiled ahead of time once per width, its compilation timed (`seconds`): a
+    batch of B points runs at width B, except a single point, which runs padded to the
+    narrowest width compiled (the start point's evaluation compiles nothing)."""
 
-    def __init__(self, fn):
+    def __init__(self, fn, before: tuple = (), after: tuple = (), **static):
         self.fn, self.widths, self.seconds = fn, set(), 0.0
+        self.before, self.after, self.static = before, after, static
 
     def __call__(self, z) -> Any:
         import jax
@@ -70,12 +72,14 @@ class Batched:
         b = len(z)
         w = min(self.widths) if b == 1 and self.widths and 1 not in self.widths else b
         x = np.concatenate([z, np.repeat(z[-1:], w - b, axis=0)]) if w > b else z
+        args = (*self.before, x, *self.after)
         if w not in self.widths:
             t0 = time.perf_counter()
-            self.fn.lower(x).compile()  # (the jit's own cache keeps it)
+            self.fn.lower(*args, **self.static).compile()  # (the jit's own cache keeps it)
             self.seconds += time.perf_counter() - t0
             self.widths.add(w)
-        return jax.tree.map(lambda a: np.asarray(a)[:b], jax.device_get(self.fn(x)))
+        out = self.fn(*args, **self.static)
+        return jax.tree.map(lambda a: np.asarray(a)[:b], jax.device_get(out))
 
 
 class Result(NamedTuple):
@@ -83,7 +87,6 @@ class Result(NamedTuple):
     state: Any  # the method's last state
     stop_reason: str
     resumed_from: int  # iterations done before this call (0: a fresh search)
-    seconds: float  # search seconds of this call
     compile_seconds: float  # compilation seconds of this call
 
 
@@ -117,7 +120,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
     # the last iteration's seconds: where the next would pass time_limit, none is begun
     last = float(np.diff([0.0] + [r["seconds"] for r in trace.history[-2:]])[-1]
                  if trace.history else 0.0)
-    seconds0, mark = trace.seconds, time.perf_counter()
+    mark = time.perf_counter()
     while (reason := _limit(trace, last, time_limit, max_evals, max_iterations)) is None:
         # a Ctrl-C waits for the iteration, its commit, its file and the caller's files
         # (dscjax.progress.critical): whatever was saved is a whole state
@@ -139,8 +142,7 @@ def run(problem: Problem, method: Method, *, x0, seed: int = 0,
             reason = (f"no improvement of the best loss by more than {min_delta:g} (relative) "
                       f"in {patience} iterations")
             break
-    return Result(trace, state, reason, begun, trace.seconds - seconds0,
-                  trace.compile_seconds - compiled)
+    return Result(trace, state, reason, begun, trace.compile_seconds - compiled)
 
 
 def _limit(trace: Trace, last: float, time_limit, max_evals, max_iterations) -> str | None:

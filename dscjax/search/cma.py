@@ -1,5 +1,5 @@
 """CMA-ES of the `cma` package with a state of plain arrays: `ReplayCMA` records what it was
-told and rebuilds the same strategy by replaying ask/tell/inject, so a search resumes
+told and rebuilds the same strategy by replaying ask/tell, so a search resumes
 exactly without pickles. A search of one dimension runs CMA-ES in two, the second a copy of
 the first's box that no loss depends on (pycma fails on a bounded box of one dimension)."""
 
@@ -13,12 +13,12 @@ import numpy as np
 class ReplayCMA:
     """A `cma.CMAEvolutionStrategy` that can be rebuilt exactly without pickles.
 
-    It records every told generation's fitness, the point injected after it and the last
-    population; `replay` repeats ask/tell/inject on a fresh one with the same x0, sigma0 and
-    options (no simulation) and checks the last population against the stored one.
+    It records every told generation's fitness and the last population; `replay` repeats
+    ask/tell on a fresh one with the same x0, sigma0 and options (no simulation) and checks
+    the last population against the stored one.
 
         es = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9})
-        x = es.ask(); es.tell(x, f(x)); es.inject(best)     # as with cma
+        x = es.ask(); es.tell(x, f(x))                      # as with cma
         saved = es.arrays()                                 # plain float arrays (npz)
         again = ReplayCMA(x0, 0.3, {"seed": 1, "verbose": -9}); again.replay(saved)
     """
@@ -36,7 +36,6 @@ class ReplayCMA:
         self.dim = x0.size  # CMA-ES's dimension (n, or 2 when n = 1)
         self.es = cma.CMAEvolutionStrategy(x0, sigma0, opts)
         self.fitness: list[np.ndarray] = []  # (popsize,) per told generation
-        self.injected: list[np.ndarray] = []  # (dim,) per told generation, NaN: none
         self.told = np.zeros((0, self.dim))  # (popsize, dim) the last told population
         self.asked = np.zeros((0, self.dim))  # (popsize, dim) the last asked population
 
@@ -53,19 +52,7 @@ class ReplayCMA:
             x = np.concatenate([x, self.asked[:len(x), self.n:]], axis=1)
         self.es.tell(list(x), list(f))
         self.fitness.append(f)
-        self.injected.append(np.full(self.dim, np.nan))
         self.told = np.array(x, dtype=float)
-
-    def inject(self, x) -> None:
-        """Inject x (n,) into the next generation (after this generation's tell)."""
-        x = np.asarray(x, dtype=float).reshape(-1)
-        if self.dim > self.n:  # the neutral coordinate at the mean's
-            x = np.concatenate([x, np.asarray(self.es.mean, float)[self.n:]])
-        self._inject(x)
-
-    def _inject(self, x: np.ndarray) -> None:
-        self.es.inject([x])
-        self.injected[-1] = x
 
     # what a method reads of the strategy, in the search's n dimensions
     @property
@@ -79,25 +66,20 @@ class ReplayCMA:
         """An independent copy (its own strategy and random stream), for a step that computes
         a new state without changing this one."""
         new = copy.copy(self)  # (the populations are replaced, never changed in place)
-        new.es, new.fitness, new.injected = (copy.deepcopy(self.es), list(self.fitness),
-                                             list(self.injected))
+        new.es, new.fitness = copy.deepcopy(self.es), list(self.fitness)
         return new
 
     def arrays(self) -> dict[str, np.ndarray]:
-        """{"fitness": (G, popsize), "injected": (G, dim), "told": (popsize, dim)}."""
-        pop = self.es.popsize
-        return {"fitness": np.asarray(self.fitness).reshape(-1, pop),
-                "injected": np.asarray(self.injected).reshape(-1, self.dim),
+        """{"fitness": (G, popsize), "told": (popsize, dim)}."""
+        return {"fitness": np.asarray(self.fitness).reshape(-1, self.es.popsize),
                 "told": self.told}
 
     def replay(self, arrays: dict[str, np.ndarray]) -> None:
         """Repeat the stored generations (`arrays()`). ValueError if the replay does not meet
         the stored last population (another cma version or other options)."""
         fitness = np.asarray(arrays["fitness"])
-        for f, x in zip(fitness, np.asarray(arrays["injected"]), strict=True):
+        for f in fitness:
             self.tell(self.ask(), f)
-            if np.all(np.isfinite(x)):
-                self._inject(x)
         if len(fitness) and not np.array_equal(self.told, arrays["told"]):
             raise ValueError("CMA-ES could not replay its stored generations")
 

@@ -81,10 +81,10 @@ class CMA:
         pop = es.ask()
         z = problem.project(pop)
         ev = problem.evaluate(z)
-        first, start = 0, None
+        first = 0
         if ctx.iteration == 0:  # the start point (evaluated after: padded to this batch)
             ev = Evaluation.join([problem.evaluate(ctx.x0[None, :]), ev])
-            z, first, start = np.concatenate([ctx.x0[None, :], z]), 1, 0
+            z, first = np.concatenate([ctx.x0[None, :], z]), 1
         loss = ev.loss[first:]
         es.tell(pop, np.where(np.isfinite(loss), loss, BAD))
         sigma, stop = es.sigma, es.stop() or self._stalled(es)
@@ -94,7 +94,7 @@ class CMA:
             es = self._new(problem, ctx.x0, ctx.seed, restarts)
         elif stop:
             done = f"CMA-ES stopped: {dict(stop)}"
-        return Step(z, ev, CMAState(es, restarts), start, first, sigma,
+        return Step(z, ev, CMAState(es, restarts), first, sigma,
                     restarts=restarts - state.restarts, done=done)
 
     def _stalled(self, es: ReplayCMA) -> dict:
@@ -148,7 +148,7 @@ class Random(_BuiltByStep):
         z = np.array(problem.sample(generator(ctx.seed, self.name, ctx.iteration), self.batch))
         if ctx.iteration == 0:
             z[0] = ctx.x0
-        return Step(z, problem.evaluate(z), None, 0 if ctx.iteration == 0 else None)
+        return Step(z, problem.evaluate(z), None)
 
 
 class GradientState(NamedTuple):
@@ -208,16 +208,15 @@ class Gradient(_BuiltByStep):
                              np.zeros((m, a)), np.zeros((m, a)))
 
     def step(self, problem, state: GradientState | None, ctx: Context) -> Step:
-        start = None
         if state is None:
             size = max(self.screen, self.starts)
             pts = np.concatenate([ctx.x0[None, :], problem.sample(
                 generator(ctx.seed, self.name, 0), size - 1)]) if size > 1 else ctx.x0[None, :]
             if self.screen:
                 ev = problem.evaluate(pts)
-                return Step(pts, ev, self._fresh(pts[order(ev)[:self.starts]]), 0,
-                            scale=self.lr, notes={"grad_norm": math.nan, "accepted": True})
-            state, start = self._fresh(pts), 0
+                return Step(pts, ev, self._fresh(pts[order(ev)[:self.starts]]), scale=self.lr,
+                            notes={"grad_norm": math.nan, "accepted": True})
+            state = self._fresh(pts)
         z, a = state.z, state.z.shape[1] - self.coupled
         ev, g = problem.value_and_grad(z)
         g = np.where(np.isfinite(g), g, 0.0)
@@ -247,7 +246,7 @@ class Gradient(_BuiltByStep):
             nxt = GradientState(*(np.where(again.reshape((-1,) + (1,) * (np.ndim(x) - 1)), y, x)
                                   for x, y in zip(nxt, fresh, strict=True)))
         i = int(order(ev)[0])
-        return Step(z, ev, nxt, start, scale=float(lr[i]), gradients=len(z),
+        return Step(z, ev, nxt, scale=float(lr[i]), gradients=len(z),
                     notes={"grad_norm": float(np.linalg.norm(g[i])), "accepted": bool(better[i])},
                     restarts=int(again.sum()))
 

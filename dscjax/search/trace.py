@@ -64,12 +64,12 @@ class Incumbent(NamedTuple):
 
 
 class Step(NamedTuple):
-    """One iteration's outcome: the candidates evaluated and the method's next state."""
+    """One iteration's outcome: the candidates evaluated (the first iteration's first: the
+    start point) and the method's next state."""
 
     z: np.ndarray  # (B, n) every candidate evaluated, in order
     ev: Evaluation
     state: Any
-    start: int | None = None  # the row of the start point's evaluation (first iteration)
     first: int = 0  # the first row of the iteration's own candidates (rows before: the start)
     scale: float = math.nan  # CMA-ES's sigma, the gradient's step
     notes: dict | None = None  # per-iteration figures for the history row
@@ -142,7 +142,7 @@ class Trace:
         """The trace after one iteration (`Step`) of `seconds` search seconds."""
         z, ev, it, k = step.z, step.ev, self.iterations, step.first
         best = self.best
-        start_loss = self.start_loss if step.start is None else float(ev.loss[step.start])
+        start_loss = self.start_loss if it else float(ev.loss[0])
         if k:  # the start point, evaluated before the iteration's own candidates
             best, _ = take(best, z[:k], ev.rows(slice(0, k)), it, min_delta)
         own = ev.rows(slice(k, None))

@@ -65,30 +65,16 @@ def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
     return out
 
 
-def bytes_per_row(setup, columns, spec: RunSpec, device, rows: int) -> float | None:
-    """The memory of one row of the block program on `device` (`dscjax.device.per_row_bytes`
-    of the program compiled for `rows` rows, the sweep's tile; nothing is run). None where JAX
-    does not say."""
-    dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
-    spec = spec.replace(save_every=spec.n_steps).for_dtype(dtype).program()
-    table = jax.ShapeDtypeStruct((rows, len(columns)), dtype, sharding=SingleDeviceSharding(device))
-    compiled = _block.top.lower(jax.device_put(setup, device), spec, table,
-                                columns=tuple(columns)).compile()
-    return dscjax_device.per_row_bytes(compiled, rows)
-
-
 class Runner:
     """Runs rounds of blocks, one block per device of the mesh, and returns host arrays;
     `tile`: rows per compiled tile (a sweep passes its `tile_rows`)."""
 
-    def __init__(self, setup, columns, spec: RunSpec, chunk, devices, tile: int,
-                 lean: bool = False):
+    def __init__(self, setup, columns, spec: RunSpec, devices, tile: int, lean: bool = False):
         self.devices = list(devices)
         # the whole sweep's compiled programs alike: the tiles and the refinements
         self.block = _block_lean if lean else _block
         self.tile = tile
         self.n_dev = len(self.devices)
-        self.chunk = chunk
         self.columns = tuple(columns)
         self.dtype = np.dtype(np.asarray(setup.plant.x0).dtype)
         # metrics only: the first and last points saved
@@ -98,15 +84,32 @@ class Runner:
         self._compiled = False
         self.local = [d for d in self.devices if d.process_index == jax.process_index()]
         self.setup_on = {d: jax.device_put(setup, d) for d in self.local}
-        self._setup = setup
+
+    def default_chunk(self, n: int) -> int:
+        """Rows per block of a sweep of `n` rows (`dscjax.device.auto_chunk`): on an
+        accelerator from the first local device's free memory and the tile program's memory
+        per row (`per_row_bytes`, compiled, nothing run; process 0's, so that every host
+        agrees)."""
+        first = self.local[0]
+        if first.platform == "cpu":
+            return dscjax_device.auto_chunk(n)
+        table = jax.ShapeDtypeStruct((self.tile, len(self.columns)), self.dtype,
+                                     sharding=SingleDeviceSharding(first))
+        compiled = _block.top.lower(self.setup_on[first], self.spec.program(), table,
+                                    columns=self.columns).compile()
+        chunk = dscjax_device.auto_chunk(n, first, dscjax_device.free_bytes(first),
+                                         dscjax_device.per_row_bytes(compiled, self.tile),
+                                         self.n_dev)
+        return int(from_process_0(np.int64(chunk)))
 
     def __call__(self, table: np.ndarray, n_real: int, last_rows: int | None = None
                  ) -> dict[str, np.ndarray]:
         """table: (n_dev * chunk, d) host array, identical on every process; its first
-        `n_real` blocks are real (the others pad the round and their rows are garbage), the
-        last of them with `last_rows` real rows (default chunk: the tiles past them need not
-        run, and their rows are garbage too)."""
+        `n_real` blocks are real (the others pad the round and their rows are garbage, or
+        absent with one process), the last of them with `last_rows` real rows (default
+        chunk: the tiles past them need not run, and their rows are garbage too)."""
         table = np.asarray(table, self.dtype)
+        chunk = table.shape[0] // self.n_dev
         single = jax.process_count() == 1
         # one process: padding blocks need not run
         jobs = {b: dev for b, dev in enumerate(self.devices)
@@ -114,7 +117,7 @@ class Runner:
 
         def dispatch(block_dev):
             block, dev = block_dev
-            rows = table[block * self.chunk:(block + 1) * self.chunk]
+            rows = table[block * chunk:(block + 1) * chunk]
             if block == n_real - 1 and last_rows is not None:
                 rows = rows[:last_rows]
             return dev, self._tiles_on(dev, self.setup_on[dev], self.spec, rows)
@@ -128,13 +131,9 @@ class Runner:
                 per_dev = dict(zip(jobs, pool.map(dispatch, jobs.items()), strict=True))
         self._compiled = True
         if single:
-            first = per_dev[min(per_dev)][1][0]
-            return {k: np.concatenate([_join(per_dev[b][1], k, self.chunk)
-                                       for b in sorted(per_dev)]
-                                      + [np.zeros(self.chunk * (self.n_dev - len(per_dev)),
-                                                  first[k].dtype)])
-                    for k in first}
-        by_device = {dev: [_join(res, k, self.chunk, jax.numpy) for k in res[0]]
+            return {k: np.concatenate([_join(per_dev[b][1], k, chunk) for b in sorted(per_dev)])
+                    for k in per_dev[min(per_dev)][1][0]}
+        by_device = {dev: [_join(res, k, chunk, jax.numpy) for k in res[0]]
                      for dev, res in per_dev.values()}
         keys = list(next(iter(per_dev.values()))[1][0])
         out = {k: jax.make_array_from_single_device_arrays(
@@ -154,8 +153,8 @@ class Runner:
         """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
         first local device, and the columns "refinements" and "dt_used" added (every process
         computes the same rows: no gather)."""
-        device = self.local[0] if self.local else self.devices[0]
-        setup = jax.device_put(self._setup, device)
+        device = self.local[0]
+        setup = self.setup_on[device]
         rows = np.asarray(table, self.dtype)
 
         def level(j, idx):  # the same tile program as the blocks: independent of the chunk
@@ -177,6 +176,15 @@ def _join(outputs: list[dict], key: str, n: int, xp=np):
     computed)."""
     a = xp.concatenate([xp.asarray(o[key]) for o in outputs])[:n]
     return xp.concatenate([a, xp.zeros(n - a.shape[0], a.dtype)])
+
+
+def from_process_0(x):
+    """x as process 0 has it, on every process (x itself with one process)."""
+    if jax.process_count() == 1:
+        return x
+    from jax.experimental import multihost_utils
+
+    return multihost_utils.broadcast_one_to_all(x)
 
 
 def _to_host(a) -> np.ndarray:

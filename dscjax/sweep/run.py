@@ -16,7 +16,7 @@ from dscjax import config, device, files, params, validation, xla
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner, bytes_per_row, tile_rows, tiles
+from dscjax.sweep.device import METRICS, Runner, from_process_0, tile_rows, tiles
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
 
@@ -122,9 +122,10 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     if tile is not None and (not isinstance(tile, int) or tile < 1):
         raise ConfigError(f"tile must be an integer >= 1 (got {tile!r})")
     tile = tile or tile_rows(devices[0].platform, n)
+    runner = Runner(setup, columns, spec, devices, tile, lean=xla.lean_work(n * spec.n_steps))
     chunk = settings.chunk or (_started_chunk(out_dir) if resume and out_dir is not None else None)
     if not chunk:  # the default, in whole tiles where that keeps the number of blocks
-        chunk = _default_chunk(setup, columns, spec, n, devices, tile)
+        chunk = runner.default_chunk(n)
         whole = -(-chunk // tile) * tile
         chunk = whole if -(-n // whole) == -(-n // chunk) else chunk
     names = tuple(r.name for r in ranges)
@@ -140,8 +141,6 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
             else _prepare_dir(out, fp, digest, n_blocks, resume, overwrite, main))
     kept: dict[int, dict[str, np.ndarray]] = {}
 
-    runner = Runner(setup, columns, spec, chunk, devices, tile,
-                    lean=xla.lean_work(n * spec.n_steps))
     todo = [b for b in range(n_blocks) if not done[b]]
     t_start = time.perf_counter()
     n_done_before = int(sum(_block_len(b, chunk, n) for b in range(n_blocks) if done[b]))
@@ -219,35 +218,13 @@ def _started_chunk(out_dir) -> int | None:
     return int(chunk) if isinstance(chunk, int) and chunk > 0 else None
 
 
-def _default_chunk(setup, columns, spec: RunSpec, n: int, devices, tile: int) -> int:
-    """`device.auto_chunk` for the first of `devices`: on an accelerator from its free memory
-    and the tile program's footprint per row (process 0's, so that every host agrees)."""
-    first = devices[0]
-    if first.platform == "cpu":
-        return device.auto_chunk(n)
-    mine = [d for d in devices if d.process_index == jax.process_index()] or [first]
-    chunk = device.auto_chunk(n, mine[0], device.free_bytes(mine[0]),
-                              bytes_per_row(setup, columns, spec, mine[0], tile), len(devices))
-    return int(_from_process_0(np.int64(chunk)))
-
-
-def _from_process_0(x):
-    """x as process 0 has it, on every process (x itself with one process)."""
-    if jax.process_count() == 1:
-        return x
-    from jax.experimental import multihost_utils
-
-    return multihost_utils.broadcast_one_to_all(x)
-
-
-def check_resumable(out: str | Path, setup=None, settings: SweepSettings | None = None,
-                    spec: RunSpec | None = None) -> None:
-    """ConfigError unless `out` holds a sweep to resume (its sweep.json); given the sweep's
-    setup, settings and run, also unless it was made with them (naming the old and new
-    values), so that a command refuses before it prints or runs anything."""
+def check_resumable(out: str | Path, setup, settings: SweepSettings, spec: RunSpec) -> None:
+    """ConfigError unless `out` holds a sweep to resume (its sweep.json) made with the sweep's
+    setup, settings and run (naming the old and new values), so that a command refuses before
+    it prints or runs anything."""
     manifest = files.resume_file(out, "sweep.json")
-    chunk = None if settings is None else settings.chunk or _started_chunk(out)
-    if chunk is None or setup is None or spec is None:
+    chunk = settings.chunk or _started_chunk(out)
+    if chunk is None:
         return
     setup = params.cast(setup, np.dtype(settings.dtype))
     ranges = check_settings(settings, setup, spec)
@@ -277,7 +254,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
             (out / "results.npz").unlink(missing_ok=True)
         with critical():
             files.write_text(manifest, files.dumps({"fingerprint": fp, "digest": digest}) + "\n")
-    return np.asarray(_from_process_0(done))
+    return np.asarray(from_process_0(done))
 
 
 def _block_len(b, chunk, n):

@@ -81,20 +81,6 @@ def _rescale(z, basis, *, d):
     return jnp.concatenate([z[:, :d], c], axis=1)
 
 
-class _Fixed:
-    """A module-level jitted function with every argument but the points z fixed, so that
-    problems of one structure share its compilations: call it on z, or `lower` it for z."""
-
-    def __init__(self, fn, before=(), after=(), **kwargs):
-        self.fn, self.before, self.after, self.kwargs = fn, before, after, kwargs
-
-    def __call__(self, z):
-        return self.fn(*self.before, z, *self.after, **self.kwargs)
-
-    def lower(self, z):
-        return self.fn.lower(*self.before, z, *self.after, **self.kwargs)
-
-
 class Programs(search.Problem):
     """The compiled programs of a search on (B, d + m) batches of normalised points, as the
     `dscjax.search` problem: minimise -metric over [0, 1]^d x [-1, 1]^m, projected onto the
@@ -103,15 +89,14 @@ class Programs(search.Problem):
     them for a `Problem` (shared by problems of one structure), `from_functions` for any
     objective (a search checked on a known answer)."""
 
-    def __init__(self, d: int, m: int, basis, project_coef, values, value_and_grad,
-                 nominal_u: np.ndarray | None = None):
+    def __init__(self, d: int, m: int, basis, project_coef, values: search.Batched,
+                 value_and_grad: search.Batched, nominal_u: np.ndarray | None = None):
         self.d, self.m = d, m
         self.basis = jnp.asarray(basis)
-        self.values = search.Batched(values)
-        self._value_and_grad = search.Batched(value_and_grad)
-        self.project = search.Batched(_Fixed(_project, after=(self.basis,), d=d,
-                                             project_coef=project_coef if m else None))
-        self.rescale = search.Batched(_Fixed(_rescale, after=(self.basis,), d=d))
+        self.values, self._value_and_grad = values, value_and_grad
+        self.project = search.Batched(_project, after=(self.basis,), d=d,
+                                      project_coef=project_coef if m else None)
+        self.rescale = search.Batched(_rescale, after=(self.basis,), d=d)
         self.lower = np.concatenate([np.zeros(d), -np.ones(m)])
         self.upper = np.ones(d + m)
         self.x0 = np.concatenate([nominal_u if nominal_u is not None else np.full(d, 0.5),
@@ -146,7 +131,8 @@ class Programs(search.Problem):
         """From a batch objective `values(z) -> (v, diverged)` and its one-point version
         `single(z1)` (differentiated per start)."""
         vg = jax.jit(functools.partial(_value_and_grad, single))
-        return cls(d, m, basis, project_coef, jax.jit(values), vg, nominal_u)
+        return cls(d, m, basis, project_coef, search.Batched(jax.jit(values)),
+                   search.Batched(vg), nominal_u)
 
     @classmethod
     def for_problem(cls, problem: Problem, coarsening: int = 1) -> Programs:
@@ -165,16 +151,16 @@ class Programs(search.Problem):
         spec = p.spec.for_dtype(dtype_of(p.setup)).program()  # (refinement is simulate's)
         args = (lo, hi, bound, spec, p.requirement)
         st = p.static()
-        values = _Fixed(_problem_values_jit, (p.setup,), args, st=st)
+        values = search.Batched(_problem_values_jit, (p.setup,), args, st=st)
         if coarsening == 1:
-            vg = _Fixed(_problem_value_and_grad, (p.setup,), args, st=st)
+            vg = search.Batched(_problem_value_and_grad, (p.setup,), args, st=st)
         else:
             f = coarsening
             spec_g = dataclasses.replace(spec, dt=spec.dt * f, n_steps=spec.n_steps // f,
                                          save_every=spec.n_steps // f,
                                          sample_every=spec.sample_every // f)
             extra_g = with_steps(p.requirement, spec_g.n_steps)
-            vg = _Fixed(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
+            vg = search.Batched(_problem_coarse, (p.setup,), args + (spec_g, extra_g), st=st)
         nominal = np.array([r.param.nominal(p.setup) for r in p.ranges])  # (d,) float64 if d = 0
         return cls(p.d, p.m, basis, project_coef, values, vg,
                    np.clip((nominal - lo) / (hi - lo), 0.0, 1.0))
