@@ -31,7 +31,7 @@ from dscjax import metrics, params, ts_sweep
 from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
-from dscjax.ts_sweep import cell, verdict
+from dscjax.ts_sweep import cell, measured, verdict
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
 TS_FACTOR = 2.0  # the sweep ends at this many times the tuned loop's Ts
@@ -60,12 +60,6 @@ def _run(problem, overrides: dict, **change):
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
-def _row(tr, keys, i=()) -> dict[str, float | None]:
-    """The figures `keys` of row i of a run (a single run: no i), None where it diverged."""
-    diverged = bool(np.asarray(tr.diverged)[i])
-    return {k: None if diverged else float(np.asarray(tr.metrics[k])[i]) for k in keys}
-
-
 def continuous(problem, z0, z1) -> dict[str, Any] | None:
     """The continuous loop (the config's [simulation]) on the nominal plant, each gain set
     refined where RK4 at dt diverges (a stiff loop, not a failure); None where the continuous
@@ -79,7 +73,7 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
         j = int(tr.refinements)
         out[tag] = {"diverged": bool(tr.diverged), "refinements": j,
                     "solver": refinement_level(j, spec.solver)[0].name, "dt_used": float(tr.dt),
-                    **_row(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
+                    **measured(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
     return out
 
 
@@ -150,22 +144,21 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
     # rows: every held-out plant with the start gains, then with the tuned
     ov = ({p: np.repeat(v, n, axis=0) for p, v in gains.items()}
           | {p: np.concatenate([v, v]) for p, v in problem.heldout.items() if p not in gains})
-    out: dict[str, Any] = {"label": f"held-out ({n} plants)", "n": n,
-                           **{tag: [] for tag in NAMES}}
-    for ts in sample_times:
+
+    def at(ts) -> list:  # the figures of each gain set at ts
         if ts < own * (1 - 1e-9):
-            rows = [None] * len(NAMES)
-        elif ts <= own * (1 + 1e-9):
-            rows = [batch_figures(heldout[tag]) for tag in NAMES]
-        else:
-            h = step_for(ts, float(sim.dt))
-            tr = _run(problem, ov, sample_time=ts, dt=h, save_every=int(round(sim.t_final / h)))
-            m = {"diverged": tr.diverged, **tr.metrics}
-            rows = [batch_figures({k: np.asarray(v)[i * n:(i + 1) * n] for k, v in m.items()})
-                    for i in range(len(NAMES))]
-        for tag, row in zip(NAMES, rows, strict=True):
-            out[tag].append(row)
-    return out
+            return [None] * len(NAMES)
+        if ts <= own * (1 + 1e-9):
+            return [batch_figures(heldout[tag]) for tag in NAMES]
+        h = step_for(ts, float(sim.dt))
+        tr = _run(problem, ov, sample_time=ts, dt=h, save_every=int(round(sim.t_final / h)))
+        m = {"diverged": tr.diverged, **tr.metrics}
+        return [batch_figures({k: np.asarray(v)[i * n:(i + 1) * n] for k, v in m.items()})
+                for i in range(len(NAMES))]
+
+    rows = [at(ts) for ts in sample_times]
+    return {"label": f"held-out ({n} plants)", "n": n,
+            **{tag: [r[i] for r in rows] for i, tag in enumerate(NAMES)}}
 
 
 def delay_judge(problem, linf, tv, index, reference) -> str | None:
@@ -218,7 +211,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
         tr = _run(problem, gains, delay=d)
-        add(d, [_row(tr, figures, i) for i in range(len(NAMES))])
+        add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
     out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
@@ -258,7 +251,7 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
                          "bounded": bool(np.isfinite(b) and b <= DRIFT_RATIO * max(a, 1e-12))}
         gone = bool(np.asarray(tr.diverged)[i])
         bounded = not gone and all(e["bounded"] for e in est.values())
-        out[tag] = {"diverged": gone, **_row(tr, ("linf_error_window", "chattering_index"), i),
+        out[tag] = {"diverged": gone, **measured(tr, ("linf_error_window", "chattering_index"), i),
                     "estimates": est, "bounded": bounded if t_long >= DRIFT_MIN_S or gone else None}
     return out
 

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, ts_sweep, validation, xla
+from dscjax import files, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
@@ -26,7 +26,7 @@ from tuning.objective import within
 from tuning.reductions import shifted_reference
 from tuning.report_md import STATS_METRICS, heldout_warning
 from tuning.report_md import text as markdown
-from tuning.report_plots import COLORS, draw
+from tuning.report_plots import draw
 from tuning.runner import simulate_command
 
 
@@ -42,7 +42,7 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     obj, n = problem.objective.program(), problem.n_train
 
     def per_plant(z, overrides=None):
-        return _host(_per_plant(obj, z, overrides))
+        return {k: np.asarray(v) for k, v in jax.device_get(_per_plant(obj, z, overrides)).items()}
 
     zs = {"start": z0, "tuned": z1}
     out = {"nominal": both(lambda z: per_plant(z, {}), zs), "train": None, "heldout": None}
@@ -99,10 +99,6 @@ def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
     rows, levels = refine_rows(rows, lambda r: r["diverged"], level, counted_levels(sim))
     m.update({mk: rows[k] for k, mk in keys.items()})
     return np.where(rows["diverged"], 0, levels).astype(np.int32)
-
-
-def _host(d):
-    return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
 
 
 def _outcomes(m: dict[str, np.ndarray], loop: str = "") -> tuple[np.ndarray, dict[str, int]]:
@@ -293,17 +289,12 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "margins": mg,
         "margins_warning": None if mg is None else "; ".join(margins.failures(mg)) or None}
     out = Path(out)
-    figures = draw(out, result, ev, trajectories(problem, z0, z1)) if plots else []
-    st = (mg or {}).get("sample_time")
-    if plots and st is not None:
-        ts_sweep.plot(st, out / "sampling.png", COLORS, 110,
-                      {"start": "start gains", "tuned": "tuned gains"})
-        figures.append("sampling.png")
-    summary["figures"] = figures
+    summary["figures"] = draw(out, result, ev, trajectories(problem, z0, z1),
+                              (mg or {}).get("sample_time")) if plots else []
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
     files.write_json(out / "report.json", summary)
-    files.write_text(out / "report.md", markdown(summary, problem, figures))
+    files.write_text(out / "report.md", markdown(summary, problem))
     return summary
 
 
