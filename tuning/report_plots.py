@@ -1,5 +1,5 @@
-"""The figures of a tuning run: the loss curve, start against tuned trajectories and the
-held-out distributions (PNG)."""
+"""The figures of a tuning run: the loss curve, start against tuned trajectories, the
+held-out distributions and the margins' Ts sweep (PNG)."""
 
 from __future__ import annotations
 
