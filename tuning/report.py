@@ -42,7 +42,7 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     obj, n = problem.objective.program(), problem.n_train
 
     def per_plant(z, overrides=None):
-        return {k: np.asarray(v) for k, v in jax.device_get(_per_plant(obj, z, overrides)).items()}
+        return _host(_per_plant(obj, z, overrides))
 
     zs = {"start": z0, "tuned": z1}
     out = {"nominal": both(lambda z: per_plant(z, {}), zs), "train": None, "heldout": None}
@@ -99,6 +99,10 @@ def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
     rows, levels = refine_rows(rows, lambda r: r["diverged"], level, counted_levels(sim))
     m.update({mk: rows[k] for k, mk in keys.items()})
     return np.where(rows["diverged"], 0, levels).astype(np.int32)
+
+
+def _host(d):
+    return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
 
 
 def _outcomes(m: dict[str, np.ndarray], loop: str = "") -> tuple[np.ndarray, dict[str, int]]:
