@@ -188,11 +188,12 @@ def criterion(result: dict, reference: str = "the same gains' continuous loop") 
             f"(docs/numerics.md, \"Chattering\").")
 
 
-def table(result: dict, names: Sequence[str]) -> list[str]:
-    """The markdown table against Ts, a row per Ts and gain set: windowed L-inf, TV(u) and
-    chattering index on the window, the verdict (`judge`); with `result["batch"]` (a batch
-    of plants at some Ts, {name: [None or {"p95_tv_u_window", "n_chattering", "n_measured"},
-    ...] per Ts}), its p95 of TV(u) and its chattering plants."""
+def table(result: dict) -> list[str]:
+    """The markdown table against Ts, a row per Ts and gain set (`result["names"]`): windowed
+    L-inf, TV(u) and chattering index on the window, the verdict (`judge`); with
+    `result["batch"]` (a batch of plants at some Ts, {name: [None or {"p95_tv_u_window",
+    "n_chattering", "n_measured"}, ...] per Ts}), its p95 of TV(u) and its chattering
+    plants."""
     t0 = f"{result['window_start']:g}"
     batch = result.get("batch")
     head = ("Ts [ms]", "gains", f"L∞ e on [{t0} s, T]", f"TV(u) on [{t0} s, T]",
@@ -212,8 +213,8 @@ def table(result: dict, names: Sequence[str]) -> list[str]:
             + (f" ({b['n_diverged']} diverged)" if b["n_diverged"] else "")))
 
     return markdown.table(head, [
-        *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in names),
+        *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in result["names"]),
         *(("continuous", n, cell(result[n]["continuous"]),
            cell(result[n]["continuous_tv_u_window"]),
            cell(result[n]["continuous_chattering_index"], 3), "") + (("", "") if batch else ())
-          for n in names)])
+          for n in result["names"])])

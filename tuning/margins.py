@@ -307,7 +307,7 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                   f"from {_ms_range(st)} (`sampling.png`). "
                   + ts_sweep.criterion(st, "the same gains in the loop tuned")
                   + (" Held-out: at the tuned Ts and above." if st.get("batch") else ""), "",
-                  *ts_sweep.table(st, NAMES)]
+                  *ts_sweep.table(st)]
     dl = margins.get("delay")
     if dl is not None:
         tv = (" and no chattering" if dl["tv_limit"] is None else
