@@ -48,6 +48,12 @@ def judge(linf: float | None, index: float | None, reference: float | None) -> s
     return None
 
 
+def measured(tr, keys: Sequence[str], i=()) -> dict[str, float | None]:
+    """The figures `keys` of row i of a run (a single run: no i), None where it diverged."""
+    diverged = bool(np.asarray(tr.diverged)[i])
+    return {k: None if diverged else float(np.asarray(tr.metrics[k])[i]) for k in keys}
+
+
 def cell(v: float | None, digits: int = 4) -> str:
     """A figure of a table, "diverged" where the run diverged (None)."""
     return "diverged" if v is None else f"{v:.{digits}g}"
@@ -103,10 +109,7 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
         sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
                           **({} if ts is None else {"sample_time": ts} | keep))
         tr = simulate_batch(setup, gains, spec=sp)
-        diverged = np.asarray(tr.diverged)
-        rows = [{k: None if d else float(np.asarray(tr.metrics[k])[i]) for k in FIGURES}
-                for i, d in enumerate(diverged)]
-        return rows, np.asarray(tr.x)[0, :, 0]
+        return [measured(tr, FIGURES, i) for i in range(len(names))], np.asarray(tr.x)[0, :, 0]
 
     sample_times, (h_continuous, *steps) = plant_steps(sample_times, t_final, dt)
     cont, y = run(h=h_continuous)
@@ -138,12 +141,9 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
 def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
     """(Ts, windowed L-inf) at the largest Ts of the study up to which gain set `name` tracks
     at every Ts (`judge`; None: it does not track at the smallest)."""
-    r, last = result[name], None
-    for ts, v, ok in zip(result["sample_times"], r["sampled"], r["tracks"], strict=True):
-        if not ok:
-            break
-        last = (ts, v)
-    return last
+    r = result[name]
+    n = [*r["tracks"], False].index(False)  # the Ts tracked from the smallest on
+    return (result["sample_times"][n - 1], r["sampled"][n - 1]) if n else None
 
 
 def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
@@ -188,11 +188,12 @@ def criterion(result: dict, reference: str = "the same gains' continuous loop") 
             f"(docs/numerics.md, \"Chattering\").")
 
 
-def table(result: dict, names: Sequence[str]) -> list[str]:
-    """The markdown table against Ts, a row per Ts and gain set: windowed L-inf, TV(u) and
-    chattering index on the window, the verdict (`judge`); with `result["batch"]` (a batch
-    of plants at some Ts, {name: [None or {"p95_tv_u_window", "n_chattering", "n_measured"},
-    ...] per Ts}), its p95 of TV(u) and its chattering plants."""
+def table(result: dict) -> list[str]:
+    """The markdown table against Ts, a row per Ts and gain set (`result["names"]`): windowed
+    L-inf, TV(u) and chattering index on the window, the verdict (`judge`); with
+    `result["batch"]` (a batch of plants at some Ts, {name: [None or {"p95_tv_u_window",
+    "n_chattering", "n_measured"}, ...] per Ts}), its p95 of TV(u) and its chattering
+    plants."""
     t0 = f"{result['window_start']:g}"
     batch = result.get("batch")
     head = ("Ts [ms]", "gains", f"L∞ e on [{t0} s, T]", f"TV(u) on [{t0} s, T]",
@@ -212,8 +213,8 @@ def table(result: dict, names: Sequence[str]) -> list[str]:
             + (f" ({b['n_diverged']} diverged)" if b["n_diverged"] else "")))
 
     return markdown.table(head, [
-        *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in names),
+        *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in result["names"]),
         *(("continuous", n, cell(result[n]["continuous"]),
            cell(result[n]["continuous_tv_u_window"]),
            cell(result[n]["continuous_chattering_index"], 3), "") + (("", "") if batch else ())
-          for n in names)])
+          for n in result["names"])])

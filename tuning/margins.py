@@ -31,7 +31,7 @@ from dscjax import metrics, params, ts_sweep
 from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
-from dscjax.ts_sweep import cell, verdict
+from dscjax.ts_sweep import cell, measured, verdict
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
 TS_FACTOR = 2.0  # the sweep ends at this many times the tuned loop's Ts
@@ -60,12 +60,6 @@ def _run(problem, overrides: dict, **change):
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
-def _row(tr, keys, i=()) -> dict[str, float | None]:
-    """The figures `keys` of row i of a run (a single run: no i), None where it diverged."""
-    diverged = bool(np.asarray(tr.diverged)[i])
-    return {k: None if diverged else float(np.asarray(tr.metrics[k])[i]) for k in keys}
-
-
 def continuous(problem, z0, z1) -> dict[str, Any] | None:
     """The continuous loop (the config's [simulation]) on the nominal plant, each gain set
     refined where RK4 at dt diverges (a stiff loop, not a failure); None where the continuous
@@ -79,7 +73,7 @@ def continuous(problem, z0, z1) -> dict[str, Any] | None:
         j = int(tr.refinements)
         out[tag] = {"diverged": bool(tr.diverged), "refinements": j,
                     "solver": refinement_level(j, spec.solver)[0].name, "dt_used": float(tr.dt),
-                    **_row(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
+                    **measured(tr, ("linf_error_window", "max_abs_u", "tv_u", "chattering_index"))}
     return out
 
 
@@ -150,22 +144,21 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
     # rows: every held-out plant with the start gains, then with the tuned
     ov = ({p: np.repeat(v, n, axis=0) for p, v in gains.items()}
           | {p: np.concatenate([v, v]) for p, v in problem.heldout.items() if p not in gains})
-    out: dict[str, Any] = {"label": f"held-out ({n} plants)", "n": n,
-                           **{tag: [] for tag in NAMES}}
-    for ts in sample_times:
+
+    def at(ts) -> list:  # the figures of each gain set at ts
         if ts < own * (1 - 1e-9):
-            rows = [None] * len(NAMES)
-        elif ts <= own * (1 + 1e-9):
-            rows = [batch_figures(heldout[tag]) for tag in NAMES]
-        else:
-            h = step_for(ts, float(sim.dt))
-            tr = _run(problem, ov, sample_time=ts, dt=h, save_every=int(round(sim.t_final / h)))
-            m = {"diverged": tr.diverged, **tr.metrics}
-            rows = [batch_figures({k: np.asarray(v)[i * n:(i + 1) * n] for k, v in m.items()})
-                    for i in range(len(NAMES))]
-        for tag, row in zip(NAMES, rows, strict=True):
-            out[tag].append(row)
-    return out
+            return [None] * len(NAMES)
+        if ts <= own * (1 + 1e-9):
+            return [batch_figures(heldout[tag]) for tag in NAMES]
+        h = step_for(ts, float(sim.dt))
+        tr = _run(problem, ov, sample_time=ts, dt=h, save_every=int(round(sim.t_final / h)))
+        m = {"diverged": tr.diverged, **tr.metrics}
+        return [batch_figures({k: np.asarray(v)[i * n:(i + 1) * n] for k, v in m.items()})
+                for i in range(len(NAMES))]
+
+    rows = [at(ts) for ts in sample_times]
+    return {"label": f"held-out ({n} plants)", "n": n,
+            **{tag: [r[i] for r in rows] for i, tag in enumerate(NAMES)}}
 
 
 def delay_judge(problem, linf, tv, index, reference) -> str | None:
@@ -198,31 +191,28 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     gains, ref = gain_rows(problem, z0, z1), reference_linf(nominal)
     own = int(sim.delay)
     figures = (*ts_sweep.FIGURES, "tv_u")
-    out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
-                           "linf_factor": problem.cfg.objective.delay_factor,
-                           "tv_limit": None if problem.scales.tv_max is None else
-                           problem.cfg.objective.delay_tv_factor * problem.scales.tv_max,
-                           **{tag: {k: [] for k in (*figures, "why_not")} for tag in NAMES}}
 
-    def add(d, rows):
-        out["delays"].append(d)
-        for tag, r in zip(NAMES, rows, strict=True):
-            for k in figures:
-                out[tag][k].append(r[k])
-            out[tag]["why_not"].append(delay_judge(problem, r["linf_error_window"], r["tv_u"],
-                                                   r["chattering_index"], ref[tag]))
+    def judged(rows) -> list[dict]:  # each gain set's figures and why it fails (None: holds)
+        return [r | {"why_not": delay_judge(problem, r["linf_error_window"], r["tv_u"],
+                                            r["chattering_index"], ref[tag])}
+                for tag, r in zip(NAMES, rows, strict=True)]
 
-    add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
-               for k in figures} for tag in NAMES])
+    runs = {own: judged([{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
+                          for k in figures} for tag in NAMES])}
     for d in range(own + 1, DELAY_MAX + 1):
-        if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
+        if all(r["why_not"] is not None for r in runs[d - 1]):
             break
         tr = _run(problem, gains, delay=d)
-        add(d, [_row(tr, figures, i) for i in range(len(NAMES))])
+        runs[d] = judged([measured(tr, figures, i) for i in range(len(NAMES))])
+    per_tag = {tag: {k: [r[i][k] for r in runs.values()] for k in (*figures, "why_not")}
+               for i, tag in enumerate(NAMES)}
     # each gain set's last d before the first at which it fails
-    held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
-    out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
-    return out
+    held = {tag: [why is None for why in per_tag[tag]["why_not"]] + [False] for tag in NAMES}
+    return {"sample_time": sim.sample_time, "delays": list(runs), "max": DELAY_MAX,
+            "linf_factor": problem.cfg.objective.delay_factor,
+            "tv_limit": None if problem.scales.tv_max is None else
+            problem.cfg.objective.delay_tv_factor * problem.scales.tv_max,
+            **per_tag, "largest": {tag: [None, *runs][h.index(False)] for tag, h in held.items()}}
 
 
 def long_run(problem, z0, z1) -> dict[str, Any]:
@@ -258,7 +248,7 @@ def long_run(problem, z0, z1) -> dict[str, Any]:
                          "bounded": bool(np.isfinite(b) and b <= DRIFT_RATIO * max(a, 1e-12))}
         gone = bool(np.asarray(tr.diverged)[i])
         bounded = not gone and all(e["bounded"] for e in est.values())
-        out[tag] = {"diverged": gone, **_row(tr, ("linf_error_window", "chattering_index"), i),
+        out[tag] = {"diverged": gone, **measured(tr, ("linf_error_window", "chattering_index"), i),
                     "estimates": est, "bounded": bounded if t_long >= DRIFT_MIN_S or gone else None}
     return out
 
@@ -317,7 +307,7 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                   f"from {_ms_range(st)} (`sampling.png`). "
                   + ts_sweep.criterion(st, "the same gains in the loop tuned")
                   + (" Held-out: at the tuned Ts and above." if st.get("batch") else ""), "",
-                  *ts_sweep.table(st, NAMES)]
+                  *ts_sweep.table(st)]
     dl = margins.get("delay")
     if dl is not None:
         tv = (" and no chattering" if dl["tv_limit"] is None else

@@ -14,19 +14,16 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, ts_sweep, validation, xla
+from dscjax import files, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
-from tuning import elasticity, margins
+from tuning import elasticity, margins, report_md
 from tuning.config import TERMS
-from tuning.margins import NAMES
 from tuning.objective import within
 from tuning.reductions import shifted_reference
-from tuning.report_md import STATS_METRICS, heldout_warning
-from tuning.report_md import text as markdown
-from tuning.report_plots import COLORS, draw
+from tuning.report_plots import draw
 from tuning.runner import simulate_command
 
 
@@ -58,7 +55,7 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
 
 def both(f, pair: dict) -> dict:
     """f of the start and of the tuned gains' entry of `pair`."""
-    return {tag: f(pair[tag]) for tag in NAMES}
+    return {tag: f(pair[tag]) for tag in margins.NAMES}
 
 
 def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -120,7 +117,7 @@ def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
     masks = {}  # the same three outcomes in each check loop c (its metrics c_...)
     for c in (k.removesuffix("_diverged") for k in m if k.endswith("_diverged")):
         masks[c], out[c] = _outcomes(m, f"{c}_")
-    for key in (k for k in STATS_METRICS + ("loss",) if k in m):
+    for key in (k for k in report_md.STATS_METRICS + ("loss",) if k in m):
         mask = next((masks[c] for c in masks if key.startswith(f"{c}_")), ok)
         v = np.asarray(m[key] if key == "loss" else m[key][mask], float)
         v = v[np.isfinite(v)] if key.startswith("user_") else v  # (not measured once refined)
@@ -284,7 +281,7 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
             if problem.heldout else None)
     mg = margins.evaluate(problem, z0, z1, ev) if problem.heldout else None
     summary |= {
-        "heldout_warning": heldout_warning(summary, problem.cfg),
+        "heldout_warning": report_md.heldout_warning(summary, problem.cfg),
         "shifted_reference": shifted_reference(problem.setup) is not None,
         "sensitivity": sens, "sensitivity_warning": elasticity.warning(sens),
         "simulate_command": simulate_command(problem), "loop": loop_words(problem.objective.sim),
@@ -293,17 +290,12 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
         "margins": mg,
         "margins_warning": None if mg is None else "; ".join(margins.failures(mg)) or None}
     out = Path(out)
-    figures = draw(out, result, ev, trajectories(problem, z0, z1)) if plots else []
-    st = (mg or {}).get("sample_time")
-    if plots and st is not None:
-        ts_sweep.plot(st, out / "sampling.png", COLORS, 110,
-                      {"start": "start gains", "tuned": "tuned gains"})
-        figures.append("sampling.png")
-    summary["figures"] = figures
+    summary["figures"] = draw(out, result, ev, trajectories(problem, z0, z1),
+                              (mg or {}).get("sample_time")) if plots else []
     if t_start is not None:
         summary["run"]["wall_total_s"] = time.perf_counter() - t_start
     files.write_json(out / "report.json", summary)
-    files.write_text(out / "report.md", markdown(summary, problem, figures))
+    files.write_text(out / "report.md", report_md.text(summary, problem))
     return summary
 
 

@@ -124,7 +124,7 @@ def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
 
-def text(s: dict, problem, figures) -> str:
+def text(s: dict, problem) -> str:
     sim, cfg = problem.objective.sim, problem.cfg
     nom = s["nominal"]
     lines = ["# dscjax tune: report", ""]
@@ -213,8 +213,8 @@ def text(s: dict, problem, figures) -> str:
         for name, a in s["gains"]["start"].items()])]
     # the command that runs the loop tuned
     lines += ["", f"Run the loop tuned ({s['loop']}) with `{s['simulate_command']}`.", ""]
-    if figures:
-        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in figures] + [""]
+    if s["figures"]:
+        lines += ["## Figures", ""] + [f"![{f}]({f})" for f in s["figures"]] + [""]
     return "\n".join(lines)
 
 

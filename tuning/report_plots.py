@@ -1,5 +1,5 @@
-"""The figures of a tuning run: the loss curve, start against tuned trajectories and the
-held-out distributions (PNG)."""
+"""The figures of a tuning run: the loss curve, start against tuned trajectories, the
+held-out distributions and the margins' Ts sweep (PNG)."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax import files
+from dscjax import files, ts_sweep
 from dscjax.plotting import subplots
 from tuning.report_md import LABELS
 
@@ -41,9 +41,10 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     return fig
 
 
-def draw(out: Path, result, ev, trajs) -> list[str]:
+def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
     """The figures of `result` (`ev`: `report.evaluate`'s figures, `trajs`: the start and
-    tuned loops on the nominal plant) written to `out`; returns their file names."""
+    tuned loops on the nominal plant, `sampling`: the margins' Ts sweep, None without one)
+    written to `out`; returns their file names."""
     problem = result.problem
     figures, sc, sim = [], problem.scales, problem.objective.sim
     if result.history:
@@ -109,4 +110,8 @@ def draw(out: Path, result, ev, trajs) -> list[str]:
                      f"tuned gains (solid: median, dashed: p95)")
         files.save_figure(fig, out / "heldout.png", dpi=110)
         figures.append("heldout.png")
+    if sampling is not None:
+        ts_sweep.plot(sampling, out / "sampling.png", COLORS, 110,
+                      {"start": "start gains", "tuned": "tuned gains"})
+        figures.append("sampling.png")
     return figures

@@ -69,5 +69,5 @@ def findings(result: dict) -> list[str]:
 
 def markdown(result: dict) -> str:
     return "\n".join(["## The controller sampled at Ts (zero-order hold)", "",
-                      *table(result, result["names"]), "", criterion(result),
+                      *table(result), "", criterion(result),
                       *(f"- {s}" for s in findings(result))])
