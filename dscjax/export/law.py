@@ -156,11 +156,8 @@ def _program(closed, kinds, n_out) -> Program:
     shape); the first `n_out` outputs (all if None) are kept."""
     jx = closed.jaxpr
     flat = _Flattener()
-    env = {v: ("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)}
-    env |= {v: ("const", np.asarray(c)) for v, c in zip(jx.constvars, closed.consts,
-                                                         strict=True)}
-    flat.inline(jx, env)
-    outs = [flat.atom(env, v) for v in jx.outvars][:n_out]
+    ins = [("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)]
+    outs = flat.call(jx, closed.consts, ins)[:n_out]
     return Program(_live(flat.ops, outs), outs)
 
 
@@ -192,6 +189,14 @@ class _Flattener:
     def atom(self, env, v):
         return ("lit", np.asarray(v.val)) if isinstance(v, Literal) else env[v]
 
+    def call(self, jaxpr, consts, ins, outer: str = "") -> list:
+        """The atoms of the outputs of `jaxpr` (its constants `consts`) on the input atoms
+        `ins`, its operations appended (`inline`)."""
+        env = {v: ("const", np.asarray(c)) for v, c in zip(jaxpr.constvars, consts, strict=True)}
+        env |= dict(zip(jaxpr.invars, ins, strict=True))
+        self.inline(jaxpr, env, outer)
+        return [self.atom(env, v) for v in jaxpr.outvars]
+
     def inline(self, jaxpr, env, outer: str = ""):
         """Append the operations of `jaxpr` (inputs and constants in `env`); `outer`: the
         Python line of the call it is inlined at (for a library's own nested calls)."""
@@ -213,13 +218,8 @@ class _Flattener:
                 continue
             if sub is not None:
                 inner, consts = (sub.jaxpr, sub.consts) if hasattr(sub, "consts") else (sub, [])
-                ienv = {v: ("const", np.asarray(c)) for v, c in zip(inner.constvars, consts,
-                                                                     strict=True)}
-                n_in = len(inner.invars)
-                ienv |= dict(zip(inner.invars, ins[len(ins) - n_in:], strict=True))
-                self.inline(inner, ienv, where)
-                for o, v in zip(eqn.outvars, inner.outvars, strict=True):
-                    env[o] = self.atom(ienv, v)
+                outs = self.call(inner, consts, ins[len(ins) - len(inner.invars):], where)
+                env.update(zip(eqn.outvars, outs, strict=True))
                 continue
             outs = []
             for o in eqn.outvars:
