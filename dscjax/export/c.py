@@ -203,10 +203,8 @@ def _index_map(op):
     tagged = [k * MAX_ELEMENTS + np.arange(_size(s)).reshape(s) for k, s in enumerate(shapes)]
     ids, p = tagged[0], op.params
     if op.prim == "broadcast_in_dim":
-        keep = [1] * len(p["shape"])
-        for d, s in zip(p["broadcast_dimensions"], shapes[0], strict=True):
-            keep[d] = s
-        got = np.broadcast_to(ids.reshape(keep), p["shape"])
+        new = [d for d in range(len(p["shape"])) if d not in p["broadcast_dimensions"]]
+        got = np.broadcast_to(np.expand_dims(ids, new), p["shape"])
     elif op.prim == "slice":
         strides = p.get("strides") or (1,) * len(shapes[0])
         bounds = zip(p["start_indices"], p["limit_indices"], strides, strict=True)
