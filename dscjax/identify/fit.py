@@ -123,8 +123,7 @@ class Problem(eqx.Module):
             median = jnp.median(jnp.stack([self.sigma[c] for c in self.y]))
             scale = jnp.asarray([self.sigma.get(f"x{i + 1}", median)
                                  for i in range(ends.shape[1])])
-            parts.append(CONTINUITY * (ends - theta["x"][1:]).ravel()
-                         / jnp.tile(scale, ends.shape[0]))
+            parts.append((CONTINUITY * (ends - theta["x"][1:]) / scale).ravel())
         return jnp.concatenate(parts)
 
 
