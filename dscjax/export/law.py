@@ -112,8 +112,8 @@ def trace(setup, spec) -> Law:
         X = initial_state(loop)  # the simulation's own X(0) of this x(0)
         u0, _ = loop.controller.law(X.ctrl, X.x, zero, loop.plant, loop.reference)
         past = jnp.full((spec.delay,), u0, dtype)  # as closed_loop.sampled_initial_state
-        flat = jax.tree.leaves(p)
-        return X.ctrl, past, [flat[i] for i in which]
+        flat = jax.tree.leaves(p)  # below: the derived values the step reads (`kept`)
+        return X.ctrl, [past] if spec.delay else [], [flat[which[k]] for k in kept]
 
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
     ctrl_names = [_name(p) for p, _ in leaves]
@@ -132,12 +132,8 @@ def trace(setup, spec) -> Law:
     state = ([(nm, tuple(v.shape), True) for nm, (_, v) in zip(ctrl_names, leaves, strict=True)]
              + ([("past", (spec.delay,), True)] if spec.delay else [])
              + [(value_names[k], np.shape(values0[k]), False) for k in kept])
-    init_all = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in, None)
-    outs = init_all.outputs
-    # the controller's state, the delay line if any, the derived values the step reads
-    picked = (outs[:len(ctrl_names) + bool(spec.delay)]
-              + [outs[len(ctrl_names) + 1 + k] for k in kept])
-    init_prog = Program(_live(init_all.ops, picked), picked)
+    # every field of `state`: the controller's state, the delay line if any, the derived values
+    init_prog = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in, None)
     used = {a[1][1] for prog in (step_prog, init_prog) for a in _atoms(prog)
             if a[0] == "in" and a[1][0] == "ref"}
     n_ref = max(used, default=1) + 1
