@@ -104,7 +104,7 @@ def trace(setup, spec) -> Law:
         loop = loop.replace(reference=_with_given(loop.reference, d))
         X = SampledState(x=x, h=h0, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
         new = sample_update(jnp.zeros((), jnp.int32), t, X, loop, sampling, dt)
-        return new.u, new.ctrl, new.past
+        return new.u, new.ctrl, [new.past] if spec.delay else []
 
     def init(x0, d0):
         p = prepare_at(x0, d0)
@@ -126,14 +126,14 @@ def trace(setup, spec) -> Law:
              + [("state", nm) for nm in value_names] + [("x",), ("t",)] + ref_in)
     past0 = jnp.zeros((spec.delay,), dtype)
     closed = jax.make_jaxpr(step)(X0.ctrl, past0, values0, X0.x, zero, d_any)
-    step_prog = _program(closed, kinds, 1 + len(ctrl_names) + bool(spec.delay))  # u, states
+    step_prog = _program(closed, kinds)  # u, the state that advances
     read = {a[1] for a in _atoms(step_prog) if a[0] == "in"}
     kept = [k for k, nm in enumerate(value_names) if ("state", nm) in read]
     state = ([(nm, tuple(v.shape), True) for nm, (_, v) in zip(ctrl_names, leaves, strict=True)]
              + ([("past", (spec.delay,), True)] if spec.delay else [])
              + [(value_names[k], np.shape(values0[k]), False) for k in kept])
     # every field of `state`: the controller's state, the delay line if any, the derived values
-    init_prog = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in, None)
+    init_prog = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in)
     used = {a[1][1] for prog in (step_prog, init_prog) for a in _atoms(prog)
             if a[0] == "in" and a[1][0] == "ref"}
     n_ref = max(used, default=1) + 1
@@ -147,13 +147,13 @@ def _atoms(prog: Program) -> list:
     return [*prog.outputs, *(a for op in prog.ops for a in op.ins)]
 
 
-def _program(closed, kinds, n_out) -> Program:
+def _program(closed, kinds) -> Program:
     """The closed jaxpr inlined into live operations; its inputs are the atoms ("in", kind,
-    shape); the first `n_out` outputs (all if None) are kept."""
+    shape)."""
     jx = closed.jaxpr
     flat = _Flattener()
     ins = [("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)]
-    outs = flat.call(jx, closed.consts, ins)[:n_out]
+    outs = flat.call(jx, closed.consts, ins)
     return Program(_live(flat.ops, outs), outs)
 
 
