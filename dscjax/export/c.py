@@ -5,6 +5,7 @@ around the programs of `law.trace`, the gains listed in the header.
 
 from __future__ import annotations
 
+import functools
 from fractions import Fraction
 
 import numpy as np
@@ -179,20 +180,18 @@ def _select(a, p, r):
 
 
 _ELEMENTWISE = {
-    "add": _bin("({} + {})"), "add_any": _bin("({} + {})"), "sub": _bin("({} - {})"),
-    "mul": _bin("({} * {})"), "div": _bin("({} / {})"), "neg": _bin("(-{})"),
-    "max": _bin("dsc_max_({}, {})"), "min": _bin("dsc_min_({}, {})"),
+    **{prim: _bin("({} " + op + " {})") for prim, op in (
+        ("add", "+"), ("add_any", "+"), ("sub", "-"), ("mul", "*"), ("div", "/"), ("lt", "<"),
+        ("le", "<="), ("gt", ">"), ("ge", ">="), ("eq", "=="), ("ne", "!="), ("and", "&"),
+        ("or", "|"))},
+    # the <math.h> function of the primitive's name (expf, sinf, ... in float)
+    **{prim: _bin(prim + "{f}({})") for prim in ("exp", "expm1", "log", "log1p", "sqrt", "sin",
+                                                 "cos", "tan", "tanh", "atan", "floor", "ceil")},
     "pow": _bin("pow{f}({}, {})"), "atan2": _bin("atan2{f}({}, {})"),
-    "rem": _bin("fmod{f}({}, {})"), "abs": _bin("fabs{f}({})"), "exp": _bin("exp{f}({})"),
-    "expm1": _bin("expm1{f}({})"), "log": _bin("log{f}({})"), "log1p": _bin("log1p{f}({})"),
-    "sqrt": _bin("sqrt{f}({})"), "rsqrt": _bin("({one} / sqrt{f}({}))"),
-    "sin": _bin("sin{f}({})"), "cos": _bin("cos{f}({})"), "tan": _bin("tan{f}({})"),
-    "tanh": _bin("tanh{f}({})"), "atan": _bin("atan{f}({})"),
+    "rem": _bin("fmod{f}({}, {})"), "abs": _bin("fabs{f}({})"), "neg": _bin("(-{})"),
+    "not": _bin("(!{})"), "max": _bin("dsc_max_({}, {})"), "min": _bin("dsc_min_({}, {})"),
+    "sign": _bin("dsc_sign_({})"), "rsqrt": _bin("({one} / sqrt{f}({}))"),
     "logistic": _bin("({one} / ({one} + exp{f}(-{})))"), "square": _bin("({0} * {0})"),
-    "sign": _bin("dsc_sign_({})"), "floor": _bin("floor{f}({})"), "ceil": _bin("ceil{f}({})"),
-    "lt": _bin("({} < {})"), "le": _bin("({} <= {})"), "gt": _bin("({} > {})"),
-    "ge": _bin("({} >= {})"), "eq": _bin("({} == {})"), "ne": _bin("({} != {})"),
-    "and": _bin("({} & {})"), "or": _bin("({} | {})"), "not": _bin("(!{})"),
     "integer_pow": _integer_pow, "convert_element_type": _convert, "select_n": _select,
 }
 
@@ -204,10 +203,8 @@ def _index_map(op):
     tagged = [k * MAX_ELEMENTS + np.arange(_size(s)).reshape(s) for k, s in enumerate(shapes)]
     ids, p = tagged[0], op.params
     if op.prim == "broadcast_in_dim":
-        keep = [1] * len(p["shape"])
-        for d, s in zip(p["broadcast_dimensions"], shapes[0], strict=True):
-            keep[d] = s
-        got = np.broadcast_to(ids.reshape(keep), p["shape"])
+        new = [d for d in range(len(p["shape"])) if d not in p["broadcast_dimensions"]]
+        got = np.broadcast_to(np.expand_dims(ids, new), p["shape"])
     elif op.prim == "slice":
         strides = p.get("strides") or (1,) * len(shapes[0])
         bounds = zip(p["start_indices"], p["limit_indices"], strides, strict=True)
@@ -242,15 +239,11 @@ def _dot(em, op):
 
 
 def _reduce(em, op):
+    """Each group's elements folded left to right by the primitive's elementwise form."""
     a = op.ins[0]
     f = _ELEMENTWISE[{"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min"}[op.prim]]
-    out = []
-    for g in _groups(_shape(a), tuple(op.params["axes"])):
-        expr = em.el(a, int(g[0]))
-        for j in g[1:]:
-            expr = f([expr, em.el(a, int(j))], {}, em.real)
-        out.append(expr)
-    return out
+    return [functools.reduce(lambda x, y: f([x, y], {}, em.real), (em.el(a, int(j)) for j in g))
+            for g in _groups(_shape(a), tuple(op.params["axes"]))]
 
 
 def _move(em, op):
@@ -356,9 +349,8 @@ def _assign(atoms, em, fields, *, stage: bool) -> list[str]:
         idx = ["" if shp == () else f"[{i}]" for i in range(len(vals))]
         if stage:
             lines.append(f"    {r} next_{nm}[{len(vals)}] = {{{', '.join(vals)}}};")
-            writes += [f"    s->{nm}{k} = next_{nm}[{i}];" for i, k in enumerate(idx)]
-        else:
-            writes += [f"    s->{nm}{k} = {v};" for k, v in zip(idx, vals, strict=True)]
+            vals = [f"next_{nm}[{i}]" for i in range(len(vals))]
+        writes += [f"    s->{nm}{k} = {v};" for k, v in zip(idx, vals, strict=True)]
     return lines + writes
 
 

@@ -104,7 +104,7 @@ def trace(setup, spec) -> Law:
         loop = loop.replace(reference=_with_given(loop.reference, d))
         X = SampledState(x=x, h=h0, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
         new = sample_update(jnp.zeros((), jnp.int32), t, X, loop, sampling, dt)
-        return new.u, new.ctrl, new.past
+        return new.u, new.ctrl, [new.past] if spec.delay else []
 
     def init(x0, d0):
         p = prepare_at(x0, d0)
@@ -112,8 +112,8 @@ def trace(setup, spec) -> Law:
         X = initial_state(loop)  # the simulation's own X(0) of this x(0)
         u0, _ = loop.controller.law(X.ctrl, X.x, zero, loop.plant, loop.reference)
         past = jnp.full((spec.delay,), u0, dtype)  # as closed_loop.sampled_initial_state
-        flat = jax.tree.leaves(p)
-        return X.ctrl, past, [flat[i] for i in which]
+        flat = jax.tree.leaves(p)  # below: the derived values the step reads (`kept`)
+        return X.ctrl, [past] if spec.delay else [], [flat[which[k]] for k in kept]
 
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]
     ctrl_names = [_name(p) for p, _ in leaves]
@@ -126,18 +126,14 @@ def trace(setup, spec) -> Law:
              + [("state", nm) for nm in value_names] + [("x",), ("t",)] + ref_in)
     past0 = jnp.zeros((spec.delay,), dtype)
     closed = jax.make_jaxpr(step)(X0.ctrl, past0, values0, X0.x, zero, d_any)
-    step_prog = _program(closed, kinds, 1 + len(ctrl_names) + bool(spec.delay))  # u, states
+    step_prog = _program(closed, kinds)  # u, the state that advances
     read = {a[1] for a in _atoms(step_prog) if a[0] == "in"}
     kept = [k for k, nm in enumerate(value_names) if ("state", nm) in read]
     state = ([(nm, tuple(v.shape), True) for nm, (_, v) in zip(ctrl_names, leaves, strict=True)]
              + ([("past", (spec.delay,), True)] if spec.delay else [])
              + [(value_names[k], np.shape(values0[k]), False) for k in kept])
-    init_all = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in, None)
-    outs = init_all.outputs
-    # the controller's state, the delay line if any, the derived values the step reads
-    picked = (outs[:len(ctrl_names) + bool(spec.delay)]
-              + [outs[len(ctrl_names) + 1 + k] for k in kept])
-    init_prog = Program(_live(init_all.ops, picked), picked)
+    # every field of `state`: the controller's state, the delay line if any, the derived values
+    init_prog = _program(jax.make_jaxpr(init)(X0.x, d_any), [("x",)] + ref_in)
     used = {a[1][1] for prog in (step_prog, init_prog) for a in _atoms(prog)
             if a[0] == "in" and a[1][0] == "ref"}
     n_ref = max(used, default=1) + 1
@@ -151,16 +147,13 @@ def _atoms(prog: Program) -> list:
     return [*prog.outputs, *(a for op in prog.ops for a in op.ins)]
 
 
-def _program(closed, kinds, n_out) -> Program:
+def _program(closed, kinds) -> Program:
     """The closed jaxpr inlined into live operations; its inputs are the atoms ("in", kind,
-    shape); the first `n_out` outputs (all if None) are kept."""
+    shape)."""
     jx = closed.jaxpr
     flat = _Flattener()
-    env = {v: ("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)}
-    env |= {v: ("const", np.asarray(c)) for v, c in zip(jx.constvars, closed.consts,
-                                                         strict=True)}
-    flat.inline(jx, env)
-    outs = [flat.atom(env, v) for v in jx.outvars][:n_out]
+    ins = [("in", kind, v.aval.shape) for v, kind in zip(jx.invars, kinds, strict=True)]
+    outs = flat.call(jx, closed.consts, ins)
     return Program(_live(flat.ops, outs), outs)
 
 
@@ -192,6 +185,14 @@ class _Flattener:
     def atom(self, env, v):
         return ("lit", np.asarray(v.val)) if isinstance(v, Literal) else env[v]
 
+    def call(self, jaxpr, consts, ins, outer: str = "") -> list:
+        """The atoms of the outputs of `jaxpr` (its constants `consts`) on the input atoms
+        `ins`, its operations appended (`inline`)."""
+        env = {v: ("const", np.asarray(c)) for v, c in zip(jaxpr.constvars, consts, strict=True)}
+        env |= dict(zip(jaxpr.invars, ins, strict=True))
+        self.inline(jaxpr, env, outer)
+        return [self.atom(env, v) for v in jaxpr.outvars]
+
     def inline(self, jaxpr, env, outer: str = ""):
         """Append the operations of `jaxpr` (inputs and constants in `env`); `outer`: the
         Python line of the call it is inlined at (for a library's own nested calls)."""
@@ -213,13 +214,8 @@ class _Flattener:
                 continue
             if sub is not None:
                 inner, consts = (sub.jaxpr, sub.consts) if hasattr(sub, "consts") else (sub, [])
-                ienv = {v: ("const", np.asarray(c)) for v, c in zip(inner.constvars, consts,
-                                                                     strict=True)}
-                n_in = len(inner.invars)
-                ienv |= dict(zip(inner.invars, ins[len(ins) - n_in:], strict=True))
-                self.inline(inner, ienv, where)
-                for o, v in zip(eqn.outvars, inner.outvars, strict=True):
-                    env[o] = self.atom(ienv, v)
+                outs = self.call(inner, consts, ins[len(ins) - len(inner.invars):], where)
+                env.update(zip(eqn.outvars, outs, strict=True))
                 continue
             outs = []
             for o in eqn.outvars:

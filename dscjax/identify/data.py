@@ -111,16 +111,11 @@ def _read_csv(path: Path) -> dict[str, list]:
     if len(set(header)) != len(header):
         twice = next(h for h in header if header.count(h) > 1)
         raise ConfigError(f"{path}, line 1: column {twice!r} is given twice")
-    out: dict[str, list] = {h: [] for h in header}
     for line, row in enumerate(rows[1:], start=2):
-        if not row:
-            continue
-        if len(row) != len(header):
+        if row and len(row) != len(header):  # (an empty line is skipped)
             raise ConfigError(f"{path}, line {line}: {len(row)} values for {len(header)} "
                               f"columns ({', '.join(header)})")
-        for h, v in zip(header, row, strict=True):
-            out[h].append(v.strip())
-    return out
+    return {h: [row[j].strip() for row in rows[1:] if row] for j, h in enumerate(header)}
 
 
 def _read_npz(path: Path) -> dict[str, np.ndarray]:

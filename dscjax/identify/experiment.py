@@ -66,9 +66,9 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     dtype = t.dtype
     h0 = hyst.init_state(u[0]) if h0 is None else h0
     h0 = jax.tree.map(lambda a: jnp.asarray(a, dtype), h0)
+    restart = np.asarray(exp.starts[1:], int) - 1  # after interval k-1, sample k starts one
     which = np.zeros(t.size - 1, np.int32)  # > 0: the segment the interval's end sample starts
-    for s, k in enumerate(exp.starts[1:], start=1):
-        which[k - 1] = s  # after interval k-1, sample k starts segment s
+    which[restart] = np.arange(1, exp.segments)
     x_inits = x_init if exp.plant else jnp.zeros((1, 0), dtype)
     x0 = x_inits[0]
 
@@ -112,7 +112,7 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     if not exp.plant:
         return None, w, None
     x = jnp.concatenate([x0[None], x])
-    return x, w, ends[np.asarray(exp.starts[1:], int) - 1]
+    return x, w, ends[restart]
 
 
 __all__ = ["HOLDS", "Experiment", "Hold", "simulate"]

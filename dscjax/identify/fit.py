@@ -31,6 +31,7 @@ from dscjax import params, xla
 from dscjax.closed_loop import Setup
 from dscjax.identify.data import Record
 from dscjax.identify.experiment import Experiment, simulate
+from dscjax.selection import Linear, Log, Selection, Tuned
 from dscjax.sensitivity import columns
 
 LAMBDA0 = 1e-3  # the first damping, relative to each coordinate's curvature
@@ -38,14 +39,6 @@ CONTINUITY = 10.0  # a segment's end state against the next's start, in units of
 RANK_TOL = 1e-8  # singular values below this x the largest: directions the data do not fix
 LOOSE = 1.0  # a relative standard error above this (100 %): not identified
 Z95 = 1.959963984540054  # the 97.5 % quantile of the standard normal
-
-
-@dataclasses.dataclass(frozen=True)
-class Free:
-    """One free number (a leaf or one element): its path, and log coordinates if positive."""
-
-    param: params.Param
-    log: bool
 
 
 class Problem(eqx.Module):
@@ -58,7 +51,7 @@ class Problem(eqx.Module):
     y: dict  # {column: (N,)} the measured columns
     sigma: dict  # {column: ()} their noise std
     fit_index: jax.Array  # (M,) sample indices fitted
-    free: tuple[Free, ...] = eqx.field(static=True)
+    free: tuple[Tuned, ...] = eqx.field(static=True)  # Log where positive, else Linear
     h0: Any = None  # the actuator's state at the first sample (None: at rest)
     source: str = eqx.field(static=True, default="")
 
@@ -73,8 +66,8 @@ class Problem(eqx.Module):
              sigma: Mapping[str, float] | None = None, fit_index=None, h0=None) -> Problem:
         """The problem of fitting `paths` (none: only the start state) of `setup` to
         `record`."""
-        free = [Free(q, log=q.scale or _positive(setup, q) and float(q.value(setup)) > 0)
-                for q in (columns(setup, paths, "--free") if paths else ())]
+        free = [Tuned(q, Log() if q.scale or _positive(setup, q) and float(q.value(setup)) > 0
+                      else Linear()) for q in (columns(setup, paths, "--free") if paths else ())]
         exp = Experiment.make(record.t, record.u, plant=plant, dt=dt, segments=segments,
                               hold=hold)
         sigma = {c: float((sigma or {}).get(c, noise_level(y))) for c, y in record.y.items()}
@@ -87,18 +80,13 @@ class Problem(eqx.Module):
     def z0(self) -> dict:
         """The start: the setup's numbers (logs where positive) and each segment's start
         state (the measured states there, the setup's x0 or a simulation elsewhere)."""
-        z = jnp.asarray([math.log(float(f.param.value(self.setup))) if f.log else
+        z = jnp.asarray([math.log(float(f.param.value(self.setup))) if _log(f) else
                          float(f.param.value(self.setup)) for f in self.free])
         return {"z": z, "x": self.initial_states(self.setup)}
 
     def setup_at(self, z) -> Setup:
-        values: dict = {}
-        for i, f in enumerate(self.free):
-            v = jnp.exp(z[i]) if f.log else z[i]
-            leaf = values.get(f.param.path, jnp.asarray(params.get(self.setup, f.param.path)))
-            values[f.param.path] = (v * leaf if f.param.scale else v if f.param.index is None
-                                    else leaf.at[f.param.index].set(v))
-        return params.set_many(self.setup, values)
+        free = Selection(self.free)
+        return free.apply(self.setup, dict(zip(free.names, z, strict=True)))
 
     def initial_states(self, setup) -> jnp.ndarray:
         """(S, n) each segment's start state: measured columns from the record, the others
@@ -135,8 +123,7 @@ class Problem(eqx.Module):
             median = jnp.median(jnp.stack([self.sigma[c] for c in self.y]))
             scale = jnp.asarray([self.sigma.get(f"x{i + 1}", median)
                                  for i in range(ends.shape[1])])
-            parts.append(CONTINUITY * (ends - theta["x"][1:]).ravel()
-                         / jnp.tile(scale, ends.shape[0]))
+            parts.append((CONTINUITY * (ends - theta["x"][1:]) / scale).ravel())
         return jnp.concatenate(parts)
 
 
@@ -147,6 +134,11 @@ def noise_level(y) -> float:
     d2 = np.diff(y, 2)
     level = float(np.std(d2) / math.sqrt(6.0)) if d2.size > 2 else 0.0
     return max(level, 1e-9 * float(np.ptp(y)), 1e-12)
+
+
+def _log(f: Tuned) -> bool:
+    """Whether the free number f is fitted in log coordinates."""
+    return isinstance(f.transform, Log)
 
 
 def _positive(setup, p: params.Param) -> bool:
@@ -187,8 +179,7 @@ def solve(problem: Problem, theta0: dict | None = None, max_steps: int = 200,
         status = "nothing to fit"
     while math.isfinite(cost) and theta.size and steps < max_steps:
         a, g = jac.T @ jac, jac.T @ r
-        d = np.diag(a).copy()
-        d[d <= 0] = 1.0
+        d = np.where(np.diag(a) <= 0, 1.0, np.diag(a))
         if float(np.max(np.abs(g))) <= tol * max(1.0, cost):
             status = "converged"
             break
@@ -232,12 +223,9 @@ def _flat(problem: Problem, v):
 
 @functools.partial(xla.jit, lean=True)
 def _rj(problem: Problem, v):
-    """(r, dr/dv): one JVP a column, vectorised over the columns (a program run at each
-    Marquardt step: lean, `dscjax.xla`)."""
-    r = _flat(problem, v)
-    cols = jax.vmap(lambda e: jax.jvp(lambda w: _flat(problem, w), (v,), (e,))[1])(
-        jnp.eye(v.size, dtype=v.dtype))
-    return r, cols.T
+    """(r, dr/dv): `jax.jacfwd`, one JVP a column, vectorised over the columns (a program run
+    at each Marquardt step: lean, `dscjax.xla`)."""
+    return _flat(problem, v), jax.jacfwd(lambda w: _flat(problem, w))(v)
 
 
 _simulate = eqx.filter_jit(simulate)
@@ -255,7 +243,7 @@ def solve_starts(problem: Problem, starts: int = 1, seed: int = 0, spread: float
     for k in range(1, starts):
         z = np.asarray(base["z"], float).copy()
         for i, f in enumerate(problem.free):
-            z[i] += rng.uniform(-spread, spread) * (1.0 if f.log else max(abs(z[i]), 1.0))
+            z[i] += rng.uniform(-spread, spread) * (1.0 if _log(f) else max(abs(z[i]), 1.0))
         theta = {"z": jnp.asarray(z), "x": problem.initial_states(problem.setup_at(z))}
         fits.append(dataclasses.replace(solve(problem, theta, **kw), start=k))
     costs = [f.cost if math.isfinite(f.cost) else math.inf for f in fits]
@@ -297,7 +285,7 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
     z = np.asarray(fit.theta["z"], float)
     out = []
     for i, f in enumerate(problem.free):
-        if f.log:
+        if _log(f):
             value, se = math.exp(z[i]), math.exp(z[i]) * se_z[i]
             low, high = math.exp(z[i] - Z95 * se_z[i]), math.exp(z[i] + Z95 * se_z[i])
             rel = se_z[i]
@@ -358,5 +346,5 @@ def validation_fit(problem: Problem, fit: Fit, record: Record, h0=None
     return val, solve(val, {"z": jnp.zeros((0,)), "x": val.initial_states(setup)})
 
 
-__all__ = ["CONTINUITY", "Estimate", "Fit", "Free", "Problem", "estimates", "fit_figures", "fitted",
+__all__ = ["CONTINUITY", "Estimate", "Fit", "Problem", "estimates", "fit_figures", "fitted",
            "noise_level", "solve", "solve_starts", "validation_fit"]
