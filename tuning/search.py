@@ -47,8 +47,7 @@ def _batch(obj, flat_pts):
 
 # one top-level batched program: 512-bit vectors where the CPU has them, or lean for a search
 # whose whole work is small (dscjax.xla.lean_work)
-_BATCH = {False: jax.jit(_batch, compiler_options=xla.compiler_options()),
-          True: jax.jit(_batch, compiler_options=xla.lean_options())}
+_BATCH = {lean: xla.jit(_batch, lean=lean).top for lean in (False, True)}
 
 
 @functools.partial(xla.jit, lean=True, static_argnums=0)
