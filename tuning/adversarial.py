@@ -33,7 +33,6 @@ from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from dscjax.worst.report import summary as worst_summary
-from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
 
@@ -127,8 +126,6 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
         return files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
-    for name in ck.FILES:  # (prepare_dir removes them only with --overwrite)
-        (out / name).unlink(missing_ok=True)
     files.write_json(path, meta)  # at once: a run killed in its first round resumes
     return meta
 
