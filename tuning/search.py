@@ -113,8 +113,7 @@ class TuneProblem(search.Problem):
 
     @property
     def compile_seconds(self) -> float:
-        cache = self.problem.programs
-        return sum(cache[k][1].seconds for k in ("batch", "gradient") if k in cache)
+        return sum(program.seconds for _, program in self.problem.programs.values())
 
     @staticmethod
     def _evaluation(r) -> search.Evaluation:
