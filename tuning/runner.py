@@ -308,8 +308,8 @@ class Result:
 
 def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
-    --overwrite replaces a run there. A fresh start removes a tuning run's files (those a
-    killed run left beside no record too)."""
+    --overwrite replaces a run there. A fresh start (no --resume) removes a tuning run's files:
+    --overwrite's, and any a killed run left without its record."""
     if resume:
         files.resume_file(out, marker)
     elif not overwrite and ((out / marker).exists() or (out / "checkpoint.json").exists()):
