@@ -33,7 +33,6 @@ from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from dscjax.worst.report import summary as worst_summary
-from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
 
@@ -99,22 +98,20 @@ def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     return np.stack(out)
 
 
-def run_fingerprint(spec, searched: worst.Problem, desc: dict) -> dict:
-    """What adversarial.json stores to resume: `desc` (whole, so that a refusal names the old
-    and new values) and the [tuning.adversarial] settings (the rounds apart, the box as
-    searched)."""
-    adv = dataclasses.asdict(dataclasses.replace(spec, rounds=0,
+def run_fingerprint(searched: worst.Problem, options: RunSpec, cfg: TuningConfig) -> dict:
+    """What adversarial.json stores to resume: the tuning problem's description at the
+    searched setup (`runner.describe`, whole, so that a refusal names the old and new values)
+    and the [tuning.adversarial] settings (the rounds apart, the box as searched)."""
+    adv = dataclasses.asdict(dataclasses.replace(cfg.adversarial, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
-    return {"problem": desc, "adversarial": adv}
+    return {"problem": runner.describe(searched.setup, options, cfg), "adversarial": adv}
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
     path = files.resume_file(out, MANIFEST)
-    searched = search_problem(setup, options, cfg)
-    desc = runner.describe(searched.setup, options, cfg)
-    files.check_record(path, "fingerprint", run_fingerprint(cfg.adversarial, searched, desc),
-                        f"--resume: {path}")
+    fingerprint = run_fingerprint(search_problem(setup, options, cfg), options, cfg)
+    files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
@@ -127,8 +124,6 @@ def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool
         return files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
-    for name in ck.FILES:  # (prepare_dir removes them only with --overwrite)
-        (out / name).unlink(missing_ok=True)
     files.write_json(path, meta)  # at once: a run killed in its first round resumes
     return meta
 
@@ -151,7 +146,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
-    meta = _manifest(out, run_fingerprint(spec, searched, base.describe()), resume, overwrite)
+    meta = _manifest(out, run_fingerprint(searched, options, cfg), resume, overwrite)
 
     def save():
         if out is not None:

@@ -237,10 +237,8 @@ class Objective(eqx.Module):
             bad = bad | metrics[f"{c.name}_diverged"]
         m = {k: jnp.where(bad, 1.0, v) for k, v in metrics.items()}
         u_bound, tv_bound = _like(bounds[0], m["max_abs_u"]), _like(bounds[1], m["tv_u"])
-        terms = {}
-        for name, (figure, _, scale, _) in TERMS.items():
-            if getattr(spec, name):
-                terms[name] = getattr(spec, name) * m[figure] / getattr(self.scales, scale)
+        terms = {name: getattr(spec, name) * m[figure] / getattr(self.scales, scale)
+                 for name, (figure, _, scale, _) in TERMS.items() if getattr(spec, name)}
         for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
             terms[name] = weight * jnp.maximum(m[figure] / bound - 1.0, 0.0) ** 2
         for i in range(n_req):

@@ -1,14 +1,14 @@
 """The tuner's strategies, each an object a config's name reads to (`tuning.config`): the
 aggregate over the plants (`Mean`, `CVaR`, `Max`), the search method (`CMAES`, `Adam`), where
 "start" effort bounds are measured (`Nominal`, `PerPlant`) and the AD mode of the exact gradient
-(`Forward`, `Reverse`, `Plants`, or `Auto`: each `chosen` for a problem); and the loss as one
-pure function (`loss_function`)."""
+(`Forward`, `Reverse`, `Plants`, or `Auto`: each `chosen` for a problem), each a `Strategy`;
+and the loss as one pure function (`loss_function`)."""
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from typing import ClassVar
+from typing import ClassVar, dataclass_transform
 
 import jax
 import jax.numpy as jnp
@@ -21,12 +21,23 @@ FORWARD_MAX_PARAMS = 64  # "auto" over a batch: forward mode up to this many tun
 FORWARD_MAX_PARAMS_ONE_PLANT = 6
 
 
-@dataclasses.dataclass(frozen=True)
-class CVaR:
+@dataclass_transform(frozen_default=True)
+class Strategy:
+    """What every strategy is: a frozen dataclass (each subclass is made one) whose `name`, the
+    one a config gives it, is its class keyword: ``class Mean(CVaR, name="mean")``."""
+
+    name: ClassVar[str]
+
+    def __init_subclass__(cls, name: str, **kwargs):
+        super().__init_subclass__(**kwargs)
+        cls.name = name
+        dataclasses.dataclass(frozen=True)(cls)
+
+
+class CVaR(Strategy, name="cvar"):
     """The mean of the worst ceil(level B) of B plants."""
 
     level: float = 1.0
-    name: ClassVar[str] = "cvar"
     leveled: ClassVar[bool] = True  # the share `level` is its own (Mean and Max have none)
 
     def weighs(self, n):
@@ -62,11 +73,9 @@ class CVaR:
         return f"{self.name} at level {self.level:g}" if self.leveled else self.name
 
 
-@dataclasses.dataclass(frozen=True)
-class Mean(CVaR):
+class Mean(CVaR, name="mean"):
     """The mean over the plants (CVaR at level 1, summed in the plants' order)."""
 
-    name: ClassVar[str] = "mean"
     leveled: ClassVar[bool] = False
 
     def weighs(self, n):
@@ -78,11 +87,9 @@ class Mean(CVaR):
         return jnp.mean(values)
 
 
-@dataclasses.dataclass(frozen=True)
-class Max(CVaR):
+class Max(CVaR, name="max"):
     """The worst plant."""
 
-    name: ClassVar[str] = "max"
     leveled: ClassVar[bool] = False
 
     def weighs(self, n):
@@ -94,11 +101,9 @@ class Max(CVaR):
         return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
 
 
-@dataclasses.dataclass(frozen=True)
-class CMAES:
+class CMAES(Strategy, name="cma"):
     """CMA-ES with IPOP restarts: an iteration is a generation, one batched simulation."""
 
-    name: ClassVar[str] = "cma"
     generations: ClassVar[bool] = True
 
     def method(self, spec, plants: int, n: int) -> CMA:
@@ -107,38 +112,30 @@ class CMAES:
                    growth=spec.growth, stall=spec.stall, stall_gain=spec.stall_gain)
 
 
-@dataclasses.dataclass(frozen=True)
-class Adam:
+class Adam(Strategy, name="adam"):
     """Projected descent on exact gradients (optax's Adam scaling): one point an iteration."""
 
-    name: ClassVar[str] = "adam"
     generations: ClassVar[bool] = False
 
     def method(self, spec, plants: int, n: int) -> Gradient:
         return Gradient(lr=spec.learning_rate)
 
 
-@dataclasses.dataclass(frozen=True)
-class Nominal:
+class Nominal(Strategy, name="nominal"):
     """Effort bounds "start" measured on the nominal plant, for every plant."""
 
-    name: ClassVar[str] = "nominal"
     per_plant: ClassVar[bool] = False
 
 
-@dataclasses.dataclass(frozen=True)
-class PerPlant:
+class PerPlant(Strategy, name="per_plant"):
     """Effort bounds "start" measured on each training plant, its own."""
 
-    name: ClassVar[str] = "per_plant"
     per_plant: ClassVar[bool] = True
 
 
-@dataclasses.dataclass(frozen=True)
-class Forward:
+class Forward(Strategy, name="forward"):
     """One jvp per tuned scalar, vmapped."""
 
-    name: ClassVar[str] = "forward"
     every: ClassVar[int | None] = None  # the reverse pass's checkpoint segment (none)
 
     def value_and_grad(self, objective, z):
@@ -156,13 +153,11 @@ class Forward:
         return self
 
 
-@dataclasses.dataclass(frozen=True)
-class Reverse(Forward):
+class Reverse(Forward, name="reverse"):
     """One vjp through the scan, `jax.checkpoint` segments of `every` steps (the loop's
     `TimeParallel` gradient carries it)."""
 
     every: int | None = None
-    name: ClassVar[str] = "reverse"
 
     def value_and_grad(self, objective, z):
         return jax.value_and_grad(objective.evaluate, has_aux=True)(z)
@@ -171,24 +166,18 @@ class Reverse(Forward):
         return Reverse(every)
 
 
-@dataclasses.dataclass(frozen=True)
-class Plants(Forward):
+class Plants(Forward, name="plants"):
     """The plants the aggregate weighs, one by one (`Objective.value_and_grad_plants`)."""
-
-    name: ClassVar[str] = "plants"
 
     def value_and_grad(self, objective, z):
         return objective.value_and_grad_plants(z)
 
 
-@dataclasses.dataclass(frozen=True)
-class Auto:
+class Auto(Strategy, name="auto"):
     """For one plant forward up to FORWARD_MAX_PARAMS_ONE_PLANT tuned scalars, else reverse
     (time-parallel); for a batch whose aggregate weighs at most a quarter of its plants (max,
     CVaR <= 0.25) the plants one by one; else forward up to FORWARD_MAX_PARAMS tuned scalars
     (docs/benchmarks.md)."""
-
-    name: ClassVar[str] = "auto"
 
     def chosen(self, n_params: int, batch: int = 1, aggregate=None, every=None) -> Forward:
         if batch > 1 and aggregate is not None and aggregate.weighs(batch) <= batch / 4:

@@ -39,6 +39,9 @@ from tuning.search import STATE_FILE, TuneProblem
 
 # no effect on the paper's plant (f_2 = 0 in eq. 73: they act on theta_hat_2 only): frozen
 PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
+# [tuning.optimizer]'s keys of where to stop, no part of a run's fingerprint: a resumed run
+# may change them
+STOPPING = ("steps", "time_limit", "patience", "save_interval", "min_delta")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
 
 
@@ -95,14 +98,12 @@ class Problem:
 
 def _description(setup, options, cfg, selection, sim, checks, mode, extra_plants) -> dict:
     """`Problem.describe` of these parts (the start gains' evaluation plays no part)."""
-    opt = settings.plain(cfg.optimizer)
-    for k in ("steps", "time_limit", "patience", "save_interval", "min_delta"):
-        opt.pop(k)  # where to stop: a resumed run may change it
     return {
         "setup": dconfig.to_dict(setup, options),
         "params": [t.describe() for t in selection.items],
         "objective": settings.plain(cfg.objective),
-        "optimizer": opt,
+        "optimizer": {k: v for k, v in settings.plain(cfg.optimizer).items()
+                      if k not in STOPPING},
         "robust": settings.plain(cfg.robust) | {
             "ranges": [r.resolve(setup).spec() for r in cfg.robust.ranges]},
         "requirements": dict(cfg.requirements),
@@ -190,11 +191,11 @@ def build_problem(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict
                    extra_plants=extra_plants, continuous=continuous)
 
 
-def describe(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None = None) -> dict:
-    """`build_problem(...).describe()` without building the objective (nothing is run): what
-    a resumed run is checked against before it starts."""
-    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg, extra_plants)
-    return _description(setup, options, cfg, selection, sim, checks, mode, extra_plants)
+def describe(setup, options: RunSpec, cfg: TuningConfig) -> dict:
+    """`build_problem(setup, options, cfg).describe()` without building the objective (nothing
+    is run): what a resumed run is checked against before it starts."""
+    cfg, _, selection, mode, sim, checks, _, _, _ = _parts(setup, options, cfg, None)
+    return _description(setup, options, cfg, selection, sim, checks, mode, None)
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
@@ -307,27 +308,29 @@ class Result:
 
 def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
-    --overwrite replaces a run there (a tuning run's files removed)."""
+    --overwrite replaces a run there. A fresh start (no --resume) removes a tuning run's files:
+    --overwrite's, and any a killed run left without its record."""
     if resume:
         files.resume_file(out, marker)
     elif not overwrite and ((out / marker).exists() or (out / "checkpoint.json").exists()):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
     files.mkdir(out)
-    if overwrite:
+    if not resume:
         for name in ck.FILES:
             (out / name).unlink(missing_ok=True)
 
 
-def _saved(out: Path, problem: Problem) -> search.Saved:
-    """The checkpoint of the run in `out` (the problem must be the same)."""
+def _saved(out: Path, problem: Problem) -> tuple[dict, search.Saved]:
+    """The record (checkpoint.json) and the search state of the run in `out` (the problem
+    must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    files.check_record(out / "checkpoint.json", "problem", problem.describe(),
-                 f"the checkpoint in {out}", fix)
+    record = files.check_record(out / "checkpoint.json", "problem", problem.describe(),
+                                f"the checkpoint in {out}", fix)
     saved = search.load(out / STATE_FILE)
     if saved is None:
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
-    return saved
+    return record, saved
 
 
 def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = False,
@@ -344,7 +347,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         prepare_dir(out, resume, overwrite)
         if resume:
-            saved = _saved(out, problem).trace
+            saved = _saved(out, problem)[1].trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     terms = ck.term_names(problem)
@@ -381,11 +384,9 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
 
 def finished(problem: Problem, out_dir: str | Path) -> Result:
     """The `Result` of the finished run whose checkpoint is in `out_dir`, without iterating."""
-    out = Path(out_dir)
-    trace = _saved(out, problem).trace
-    meta = files.read_json(out / "checkpoint.json")
-    return Result(problem=problem, trace=trace, stop_reason=meta.get("stop_reason") or
-                  "finished", wall_s=0.0, compile_s=0.0, resumed_from=trace.iterations)
+    record, saved = _saved(Path(out_dir), problem)
+    return Result(problem=problem, trace=saved.trace, stop_reason=record.get("stop_reason") or
+                  "finished", wall_s=0.0, compile_s=0.0, resumed_from=saved.trace.iterations)
 
 
 def write_files(out: Path, problem: Problem, trace: search.Trace,

@@ -47,8 +47,7 @@ def _batch(obj, flat_pts):
 
 # one top-level batched program: 512-bit vectors where the CPU has them, or lean for a search
 # whose whole work is small (dscjax.xla.lean_work)
-_BATCH = {False: jax.jit(_batch, compiler_options=xla.compiler_options()),
-          True: jax.jit(_batch, compiler_options=xla.lean_options())}
+_BATCH = {lean: xla.jit(_batch, lean=lean).top for lean in (False, True)}
 
 
 @functools.partial(xla.jit, lean=True, static_argnums=0)
@@ -114,8 +113,7 @@ class TuneProblem(search.Problem):
 
     @property
     def compile_seconds(self) -> float:
-        cache = self.problem.programs
-        return sum(cache[k][1].seconds for k in ("batch", "gradient") if k in cache)
+        return sum(program.seconds for _, program in self.problem.programs.values())
 
     @staticmethod
     def _evaluation(r) -> search.Evaluation:
