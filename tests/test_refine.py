@@ -136,7 +136,7 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     # a plant the tuned gains track only once refined is named in the warning (the loop is
     # stiff at the tuning's step: a digital controller at that rate could not run the gains),
     # not counted as diverged
-    warning = report.heldout_warning(summary, problem.cfg)
+    warning = report_md.heldout_warning(summary, problem.cfg)
     assert ("RK4 diverged at dt (the loop stiff there; tracked only once refined) on 1 of 3 "
             "held-out plants (start gains: 0)") in warning and "diverged on" not in warning
 

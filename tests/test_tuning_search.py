@@ -24,7 +24,7 @@ import tuning.runner
 from dscjax import metrics
 from dscjax import search as box
 from dscjax.search import methods
-from tuning import report, search
+from tuning import report, report_md, search
 from tuning.runner import run
 from tuning.scales import Scales
 
@@ -73,24 +73,24 @@ def test_heldout_divergence_is_a_warning_naming_the_count_and_the_robust_option(
     cfg = tuning.TuningConfig()
     stats = {"start": {"n": 256, "n_diverged": 0, "n_refined": 0},
              "tuned": {"n": 256, "n_diverged": 38, "n_refined": 0}}
-    w = report.heldout_warning({"heldout": stats}, cfg)
+    w = report_md.heldout_warning({"heldout": stats}, cfg)
     assert "38 of 256 held-out plants" in w and "--batch" in w and "nominal plant only" in w
     robust = dataclasses.replace(cfg, robust=tuning.BatchSpec(batch=8))
-    w = report.heldout_warning({"heldout": stats}, robust)
+    w = report_md.heldout_warning({"heldout": stats}, robust)
     assert "38 of 256" in w and "training batch of 8 plants" in w and "--batch 32" in w
     ok = {"start": stats["start"], "tuned": {"n": 256, "n_diverged": 0, "n_refined": 0}}
-    assert report.heldout_warning({"heldout": ok}, cfg) is None
-    assert report.heldout_warning({}, cfg) is None
+    assert report_md.heldout_warning({"heldout": ok}, cfg) is None
+    assert report_md.heldout_warning({}, cfg) is None
     # plants that track with a small error but chatter are lost too (issue 38 item 2)
     chatter = {"start": stats["start"] | {"n_chattering": 0},
                "tuned": stats["tuned"] | {"n_chattering": 200}}
-    w = report.heldout_warning({"heldout": chatter}, cfg)
+    w = report_md.heldout_warning({"heldout": chatter}, cfg)
     assert w.startswith("the tuned gains DIVERGE and CHATTER: diverged on 38 of 256 held-out "
                         "plants (start gains: 0); chatter (chattering index above 1.5) on 200 "
                         "of 256 held-out plants (start gains: 0); they were tuned on ")
     only = {"start": ok["start"] | {"n_chattering": 1},
             "tuned": ok["tuned"] | {"n_chattering": 3}}
-    assert report.heldout_warning({"heldout": only}, cfg).startswith(
+    assert report_md.heldout_warning({"heldout": only}, cfg).startswith(
         "the tuned gains CHATTER: chatter (chattering index above 1.5) on 3 of 256 held-out "
         "plants (start gains: 1);")
 
