@@ -40,7 +40,9 @@ REGISTRY: dict[str, dict[str, type]] = {
     "controller": {DSC.kind: DSC, Backstepping.kind: Backstepping},
     "reference": {Sine.kind: Sine, SmoothStep.kind: SmoothStep, MultiSine.kind: MultiSine},
 }
-KIND_KEY = {"plant": "family"}  # ("kind" elsewhere)
+# the key that selects a section's kind: "family" for the plant, "kind" for every other section
+# and sub-model
+KIND_KEY = {"plant": "family"}
 # Fields that hold a model of their own, by config path, written as a sub-table
 # ([plant.disturbance]); absent (None) unless the config gives the table.
 SUBMODELS: dict[str, dict[str, type]] = {"plant.disturbance": disturbance.KINDS}
@@ -266,7 +268,8 @@ def _find(value, kinds, where: str = "") -> tuple[str | None, Any]:
 def _model(field: str, table: Mapping[str, Any], base):
     """The model of kind `table[kind_key]` (default: `base`'s) at `field`, its keys read over
     `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
-    kinds, kind_key = REGISTRY.get(field) or SUBMODELS[field], KIND_KEY.get(field, "kind")
+    kinds = REGISTRY.get(field) or SUBMODELS[field]
+    kind_key = KIND_KEY.get(field, "kind")
     default_kind = type(base).kind if base is not None else None
     kind = validation.table(table, field).get(kind_key, default_kind)
     validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))

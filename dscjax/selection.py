@@ -210,9 +210,9 @@ class Selection:
 
     def move(self, overrides: Mapping[str, Any], z: Mapping[str, Any],
              batched: bool = True) -> dict[str, Any]:
-        """A batch of plants ({path: (B, ...)}; without `batched`, one plant's leaves) with
-        the selected numbers it overrides moved alike, each plant from its own value
-        (traceable)."""
+        """A batch of plants ({path: (B, ...)}; with `batched=False`, one plant's leaves
+        {path: leaf}) with the selected numbers it overrides moved alike, each plant from its
+        own value (traceable)."""
         out = dict(overrides)
         for t in self.items:
             if t.param.path in out:
