@@ -141,9 +141,12 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
 def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
     """(Ts, windowed L-inf) at the largest Ts of the study up to which gain set `name` tracks
     at every Ts (`judge`; None: it does not track at the smallest)."""
-    r = result[name]
-    n = [*r["tracks"], False].index(False)  # the Ts tracked from the smallest on
-    return (result["sample_times"][n - 1], r["sampled"][n - 1]) if n else None
+    r, last = result[name], None
+    for ts, v, ok in zip(result["sample_times"], r["sampled"], r["tracks"], strict=True):
+        if not ok:
+            break
+        last = (ts, v)
+    return last
 
 
 def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:

@@ -317,6 +317,8 @@ def test_effort_bounds_are_part_of_the_fingerprint(adv_run):
     _, out = adv_run
     setup, options, cfg = _inputs()
     nominal = runner.build_problem(setup, options, cfg).describe()
+    # what a resume is checked against is the built problem's description, built or not
+    assert runner.describe(setup, options, cfg) == nominal
     assert nominal["objective"]["effort_bounds"] == "nominal"
     _, per = _per_plant_problem(out)
     assert per.describe()["objective"]["effort_bounds"] == "per_plant"

@@ -434,6 +434,29 @@ def test_fingerprints_carry_every_setting_of_the_search(small_problem):
         assert fp["adversarial"]["search_evals"] == evals
 
 
+def test_a_fresh_start_refuses_a_run_record_and_clears_what_a_killed_run_left(tmp_path):
+    """A run's record (plain or adversarial) protects its finished files from a fresh start;
+    the files of a run killed before it wrote one are cleared; what is not a tuning file
+    stays."""
+    from tuning.runner import RECORDS, prepare_dir
+
+    for record in ("checkpoint.json", "adversarial.json"):
+        assert record in RECORDS
+        d = tmp_path / record.removesuffix(".json")
+        d.mkdir()
+        (d / record).write_text("{}")
+        (d / "best.json").write_text("{}")
+        with pytest.raises(dscjax.ConfigError, match="already holds a tuning run"):
+            prepare_dir(d, resume=False, overwrite=False)
+        assert (d / "best.json").exists()
+    killed = tmp_path / "killed"
+    killed.mkdir()
+    (killed / "search.npz").write_bytes(b"")
+    (killed / "notes.txt").write_text("mine")
+    prepare_dir(killed, resume=False, overwrite=False)
+    assert not (killed / "search.npz").exists() and (killed / "notes.txt").exists()
+
+
 def test_a_state_file_of_an_older_version_is_refused_in_one_line(small_problem, tmp_path):
     run(_with_steps(small_problem, 1), tmp_path)
     np.savez(tmp_path / "search.npz", leaf_0000=np.zeros(2))  # as checkpoint.npz held them

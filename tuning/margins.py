@@ -191,28 +191,31 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     gains, ref = gain_rows(problem, z0, z1), reference_linf(nominal)
     own = int(sim.delay)
     figures = (*ts_sweep.FIGURES, "tv_u")
+    out: dict[str, Any] = {"sample_time": sim.sample_time, "delays": [], "max": DELAY_MAX,
+                           "linf_factor": problem.cfg.objective.delay_factor,
+                           "tv_limit": None if problem.scales.tv_max is None else
+                           problem.cfg.objective.delay_tv_factor * problem.scales.tv_max,
+                           **{tag: {k: [] for k in (*figures, "why_not")} for tag in NAMES}}
 
-    def judged(rows) -> list[dict]:  # each gain set's figures and why it fails (None: holds)
-        return [r | {"why_not": delay_judge(problem, r["linf_error_window"], r["tv_u"],
-                                            r["chattering_index"], ref[tag])}
-                for tag, r in zip(NAMES, rows, strict=True)]
+    def add(d, rows):
+        out["delays"].append(d)
+        for tag, r in zip(NAMES, rows, strict=True):
+            for k in figures:
+                out[tag][k].append(r[k])
+            out[tag]["why_not"].append(delay_judge(problem, r["linf_error_window"], r["tv_u"],
+                                                   r["chattering_index"], ref[tag]))
 
-    runs = {own: judged([{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
-                          for k in figures} for tag in NAMES])}
+    add(own, [{k: None if nominal[tag].get("diverged") else _finite(nominal[tag].get(k))
+               for k in figures} for tag in NAMES])
     for d in range(own + 1, DELAY_MAX + 1):
-        if all(r["why_not"] is not None for r in runs[d - 1]):
+        if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
         tr = _run(problem, gains, delay=d)
-        runs[d] = judged([measured(tr, figures, i) for i in range(len(NAMES))])
-    per_tag = {tag: {k: [r[i][k] for r in runs.values()] for k in (*figures, "why_not")}
-               for i, tag in enumerate(NAMES)}
+        add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
-    held = {tag: [why is None for why in per_tag[tag]["why_not"]] + [False] for tag in NAMES}
-    return {"sample_time": sim.sample_time, "delays": list(runs), "max": DELAY_MAX,
-            "linf_factor": problem.cfg.objective.delay_factor,
-            "tv_limit": None if problem.scales.tv_max is None else
-            problem.cfg.objective.delay_tv_factor * problem.scales.tv_max,
-            **per_tag, "largest": {tag: [None, *runs][h.index(False)] for tag, h in held.items()}}
+    held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
+    out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
+    return out
 
 
 def long_run(problem, z0, z1) -> dict[str, Any]:

@@ -24,13 +24,15 @@ FORWARD_MAX_PARAMS_ONE_PLANT = 6
 @dataclass_transform(frozen_default=True)
 class Strategy:
     """What every strategy is: a frozen dataclass (each subclass is made one) whose `name`, the
-    one a config gives it, is its class keyword: ``class Mean(CVaR, name="mean")``."""
+    one a config gives it, is its class keyword: ``class Mean(CVaR, name="mean")`` (a subclass
+    without one keeps its parent's)."""
 
     name: ClassVar[str]
 
-    def __init_subclass__(cls, name: str, **kwargs):
+    def __init_subclass__(cls, name: str | None = None, **kwargs):
         super().__init_subclass__(**kwargs)
-        cls.name = name
+        if name is not None:
+            cls.name = name
         dataclasses.dataclass(frozen=True)(cls)
 
 

@@ -42,6 +42,8 @@ PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 # [tuning.optimizer]'s keys of where to stop, no part of a run's fingerprint: a resumed run
 # may change them
 STOPPING = ("steps", "time_limit", "patience", "save_interval", "min_delta")
+# the record of a tuning run in its directory: a plain run's, an adversarial run's
+RECORDS = ("checkpoint.json", "adversarial.json")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
 
 
@@ -308,11 +310,12 @@ class Result:
 
 def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
     """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
-    --overwrite replaces a run there. A fresh start (no --resume) removes a tuning run's files:
-    --overwrite's, and any a killed run left without its record."""
+    --overwrite replaces a run there (a record of either kind, `RECORDS`). A fresh start (no
+    --resume) removes a tuning run's files: --overwrite's, and any a killed run left without
+    its record. --resume wins over --overwrite."""
     if resume:
         files.resume_file(out, marker)
-    elif not overwrite and ((out / marker).exists() or (out / "checkpoint.json").exists()):
+    elif not overwrite and any((out / name).exists() for name in RECORDS):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
     files.mkdir(out)
@@ -347,7 +350,8 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         prepare_dir(out, resume, overwrite)
         if resume:
-            saved = _saved(out, problem)[1].trace
+            _, state = _saved(out, problem)
+            saved = state.trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     terms = ck.term_names(problem)
