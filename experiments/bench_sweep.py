@@ -73,7 +73,7 @@ def runner(name: str, dtype, plants: int, t_final: float, seed: int = 0):
     setup = example(name, dtype=dtype)
     ranges = [r.resolve(setup) for r in params.default_ranges(setup)]
     table = params.Uniform().draw(ranges, plants, seed).astype(np.float32)
-    run = Runner(setup, [r.param for r in ranges], RunSpec.make(t_final, DT), plants,
+    run = Runner(setup, [r.param for r in ranges], RunSpec.make(t_final, DT),
                  devices=jax.devices()[:1], tile=tile_rows(jax.devices()[0].platform, plants))
     return lambda: run(table, 1)
 

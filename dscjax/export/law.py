@@ -112,7 +112,7 @@ def trace(setup, spec) -> Law:
         X = initial_state(loop)  # the simulation's own X(0) of this x(0)
         u0, _ = loop.controller.law(X.ctrl, X.x, zero, loop.plant, loop.reference)
         past = jnp.full((spec.delay,), u0, dtype)  # as closed_loop.sampled_initial_state
-        flat = jax.tree.leaves(p)  # below: the derived values the step reads (`kept`)
+        flat = jax.tree.leaves(p)  # `kept`: set below, before init is traced
         return X.ctrl, [past] if spec.delay else [], [flat[which[k]] for k in kept]
 
     leaves = jax.tree_util.tree_flatten_with_path(X0.ctrl)[0]

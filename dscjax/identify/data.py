@@ -112,7 +112,7 @@ def _read_csv(path: Path) -> dict[str, list]:
         twice = next(h for h in header if header.count(h) > 1)
         raise ConfigError(f"{path}, line 1: column {twice!r} is given twice")
     for line, row in enumerate(rows[1:], start=2):
-        if row and len(row) != len(header):  # (an empty line is skipped)
+        if row and len(row) != len(header):  # (an empty line is skipped, here and below)
             raise ConfigError(f"{path}, line {line}: {len(row)} values for {len(header)} "
                               f"columns ({', '.join(header)})")
     return {h: [row[j].strip() for row in rows[1:] if row] for j, h in enumerate(header)}

@@ -66,7 +66,7 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     dtype = t.dtype
     h0 = hyst.init_state(u[0]) if h0 is None else h0
     h0 = jax.tree.map(lambda a: jnp.asarray(a, dtype), h0)
-    restart = np.asarray(exp.starts[1:], int) - 1  # after interval k-1, sample k starts one
+    restart = np.asarray(exp.starts[1:], int) - 1  # after interval k-1, sample k starts a segment
     which = np.zeros(t.size - 1, np.int32)  # > 0: the segment the interval's end sample starts
     which[restart] = np.arange(1, exp.segments)
     x_inits = x_init if exp.plant else jnp.zeros((1, 0), dtype)

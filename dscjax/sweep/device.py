@@ -104,10 +104,12 @@ class Runner:
 
     def __call__(self, table: np.ndarray, n_real: int, last_rows: int | None = None
                  ) -> dict[str, np.ndarray]:
-        """table: (n_dev * chunk, d) host array, identical on every process; its first
-        `n_real` blocks are real (the others pad the round and their rows are garbage, or
-        absent with one process), the last of them with `last_rows` real rows (default
-        chunk: the tiles past them need not run, and their rows are garbage too)."""
+        """table: (n_dev * chunk, d) host array, identical on every process, every block
+        present (the chunk is read from it); its first `n_real` blocks are real (the others
+        pad the round), the last of them with `last_rows` real rows (default chunk: the tiles
+        past them need not run, and their rows are garbage). Returns each metric's rows of the
+        real blocks (n_real * chunk) with one process, of every block with several (the
+        padding's garbage)."""
         table = np.asarray(table, self.dtype)
         chunk = table.shape[0] // self.n_dev
         single = jax.process_count() == 1
