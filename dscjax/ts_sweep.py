@@ -17,8 +17,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dscjax import files, markdown, metrics
-from dscjax.plotting import subplots
+from dscjax import markdown, metrics
+from dscjax.plotting import saved
 from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import simulate_batch
 
@@ -151,35 +151,34 @@ def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
 
 def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
     """The windowed L-inf of each gain set against Ts (`labels`: {name: its words})."""
-    fig, ax = subplots(figsize=(6.4, 4.0))
-    ts_ms = 1e3 * np.asarray(result["sample_times"])
-    for name in result["names"]:
-        r, c = result[name], colors[name]
-        v = np.array(r["sampled"], float)  # nan where the run diverged (None)
-        ok, tracks = ~np.isnan(v), np.array(r["tracks"], bool)
-        label = labels[name]
-        ax.plot(ts_ms[ok], v[ok], "-", color=c, lw=1)
-        ax.plot(ts_ms[tracks], v[tracks], "o", color=c, ls="none",
-                label=f"{label}, sampled: tracks")
-        if (ok & ~tracks).any():
-            ax.plot(ts_ms[ok & ~tracks], v[ok & ~tracks], "o", mfc="none", color=c, ms=8,
-                    ls="none", label=f"{label}, sampled: chatters or error > "
-                    f"{result['track_factor']:g} x")
-        if r["continuous"] is not None:
-            ax.axhline(r["continuous"], color=c, ls="--", lw=1,
-                       label=f"{label}, continuous (Ts -> 0)")
-        if (~ok).any():
-            ax.plot(ts_ms[~ok], np.full((~ok).sum(), np.nanmax(v) if ok.any() else 1.0), "x",
-                    color=c, ms=9, mew=2, ls="none", label=f"{label}: diverged")
-    ax.set_xscale("log")
-    ax.set_yscale("log")
-    ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
-    ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
-    order = result["order"]
-    ax.set_title("Sampled controller" + ("" if order is None else
-                                         f" (fitted order {order['order']:.2f} in Ts)"))
-    ax.legend(fontsize=8)
-    files.save_figure(fig, path, dpi=dpi)
+    with saved(path, dpi, figsize=(6.4, 4.0)) as (fig, ax):
+        ts_ms = 1e3 * np.asarray(result["sample_times"])
+        for name in result["names"]:
+            r, c = result[name], colors[name]
+            v = np.array(r["sampled"], float)  # nan where the run diverged (None)
+            ok, tracks = ~np.isnan(v), np.array(r["tracks"], bool)
+            label = labels[name]
+            ax.plot(ts_ms[ok], v[ok], "-", color=c, lw=1)
+            ax.plot(ts_ms[tracks], v[tracks], "o", color=c, ls="none",
+                    label=f"{label}, sampled: tracks")
+            if (ok & ~tracks).any():
+                ax.plot(ts_ms[ok & ~tracks], v[ok & ~tracks], "o", mfc="none", color=c, ms=8,
+                        ls="none", label=f"{label}, sampled: chatters or error > "
+                        f"{result['track_factor']:g} x")
+            if r["continuous"] is not None:
+                ax.axhline(r["continuous"], color=c, ls="--", lw=1,
+                           label=f"{label}, continuous (Ts -> 0)")
+            if (~ok).any():
+                ax.plot(ts_ms[~ok], np.full((~ok).sum(), np.nanmax(v) if ok.any() else 1.0), "x",
+                        color=c, ms=9, mew=2, ls="none", label=f"{label}: diverged")
+        ax.set_xscale("log")
+        ax.set_yscale("log")
+        ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
+        ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
+        order = result["order"]
+        ax.set_title("Sampled controller" + ("" if order is None else
+                                             f" (fitted order {order['order']:.2f} in Ts)"))
+        ax.legend(fontsize=8)
 
 
 def criterion(result: dict, reference: str = "the same gains' continuous loop") -> str:

@@ -1,6 +1,6 @@
 """Figures of a sweep: histogram and heatmap of the windowed L-inf error, worst-case traces.
 
-Every function writes one PNG (`dscjax.plotting.subplots`: no backend is chosen or changed).
+Every function writes one PNG (`dscjax.plotting.saved`: no backend is chosen or changed).
 """
 
 from __future__ import annotations
@@ -14,8 +14,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from dscjax import files
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -71,36 +70,37 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
     ref = np.asarray(refined, bool) & ~div
     keep = ~div & np.isfinite(err)
     v = err[keep]
-    fig, ax = subplots(figsize=(8, 5.4), layout="constrained")
-    if v.size:
-        log = _use_log(v)
-        lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
-        if hi <= lo:
-            hi = lo * 1.01 + 1e-12
-        bins = (np.geomspace(lo, hi, 61) if log else np.linspace(lo, hi, 61))
-        plain, after = err[keep & ~ref], err[keep & ref]
-        ax.hist([plain, after], bins=bins, color=["#1f77b4", "#ff7f0e"], alpha=0.85,
-                stacked=True, label=[f"samples that track ({plain.size:,})",
-                                     f"tracked after refinement ({after.size:,})"])
-        if log:
-            ax.set_xscale("log")
-        ax.axvline(np.median(v), color="#444444", lw=1.2, ls="-",
-                   label=f"median {np.median(v):.3g}")
-    if np.isfinite(nominal):
-        ax.axvline(nominal, color="black", lw=1.5, ls="--", label=f"nominal setup {nominal:.3g}")
-    label = f"degraded above {threshold:.3g} ({int(np.sum(v > threshold)):,} samples)"
-    if v.size and threshold > v.max() + 0.5 * (v.max() - v.min()):
-        # far to the right of every sample: say so instead of squashing the histogram
-        ax.plot([], [], color="#d62728", lw=1.5, ls=":", label=label + ", off the axis")
-    else:
-        ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
-    ax.set_xlabel(error_label(t0, t_final))
-    ax.set_ylabel("number of samples")
-    ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step "
-                 f"tried ({100 * div.mean():.2f} %, not shown)", fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2, frameon=False)
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, figsize=(8, 5.4), layout="constrained") as (fig, ax):
+        if v.size:
+            log = _use_log(v)
+            lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
+            if hi <= lo:
+                hi = lo * 1.01 + 1e-12
+            bins = (np.geomspace(lo, hi, 61) if log else np.linspace(lo, hi, 61))
+            plain, after = err[keep & ~ref], err[keep & ref]
+            ax.hist([plain, after], bins=bins, color=["#1f77b4", "#ff7f0e"], alpha=0.85,
+                    stacked=True, label=[f"samples that track ({plain.size:,})",
+                                         f"tracked after refinement ({after.size:,})"])
+            if log:
+                ax.set_xscale("log")
+            ax.axvline(np.median(v), color="#444444", lw=1.2, ls="-",
+                       label=f"median {np.median(v):.3g}")
+        if np.isfinite(nominal):
+            ax.axvline(nominal, color="black", lw=1.5, ls="--",
+                       label=f"nominal setup {nominal:.3g}")
+        label = f"degraded above {threshold:.3g} ({int(np.sum(v > threshold)):,} samples)"
+        if v.size and threshold > v.max() + 0.5 * (v.max() - v.min()):
+            # far to the right of every sample: say so instead of squashing the histogram
+            ax.plot([], [], color="#d62728", lw=1.5, ls=":", label=label + ", off the axis")
+        else:
+            ax.axvline(threshold, color="#d62728", lw=1.5, ls=":", label=label)
+        ax.set_xlabel(error_label(t0, t_final))
+        ax.set_ylabel("number of samples")
+        ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step "
+                     f"tried ({100 * div.mean():.2f} %, not shown)", fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
+                  frameon=False)
 
 
 def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None):
@@ -148,67 +148,66 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, no
     ref = np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]
     spread, rel = _spread(finite) if finite.size else (None, None)
-    fig, ax = subplots(figsize=(8, 6.6), layout="constrained")
-    if finite.size:
-        norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
-                else Normalize(finite.min(), finite.max() if finite.max() > finite.min()
-                               else finite.min() + 1e-12))
-    else:
-        norm = Normalize(0, 1)
-    shown = np.where(np.isfinite(med), med, np.nan)
-    cmap = matplotlib.colormaps["viridis"].with_extremes(bad="#dddddd")
-    mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
-    cb = fig.colorbar(mesh, ax=ax, pad=0.02)
-    cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
-                 + ("\n" + spread if spread else ""), fontsize=9)
-    handles = []
-    hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
-    xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
-    bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
-    if bad.any() and len(xc) > 1 and len(yc) > 1:
-        ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728", linewidths=1.8)
-    handles.append(Line2D([], [], color="#d62728", lw=1.8,
-                          label=f"tracking degraded: cell median > {threshold:.3g}"
-                          f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
-    if div_cells.any():
-        # hatch exactly the cells where a sample diverged at every step tried
-        z = np.repeat(np.repeat(div_cells.astype(float), 2, axis=0), 2, axis=1)
-        hatch = ax.contourf(hx, hy, z.T, levels=[0.5, 1.5], colors="none", hatches=["////"])
-        hatch.set_edgecolor("#7f0000")
-        hatch.set_linewidth(0.0)
-        handles.append(Patch(facecolor="none", edgecolor="#7f0000", hatch="///",
-                             label=f"diverged at every step tried ({int(div_cells.sum())} "
-                             f"cells)"))
-    # the refined and the diverged samples (at most 2000 of each, a seeded draw)
-    for mask, style, handle in (
-            (ref, dict(marker="o", s=10, facecolors="none", edgecolors="#ff7f0e", lw=0.7),
-             Line2D([], [], marker="o", ls="", mfc="none", color="#ff7f0e",
-                    label=f"tracked after refinement ({int(ref.sum()):,} samples: stiff at "
-                    "dt, re-run with ETDRK4)")),
-            (div, dict(marker="x", s=14, c="#d62728", lw=0.8),
-             Line2D([], [], marker="x", ls="", color="#d62728",
-                    label=f"diverged sample ({int(div.sum()):,})"))):
-        idx = np.flatnonzero(mask)
-        if idx.size > 2000:
-            idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
-        if idx.size:
-            ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], **style)
-            handles.append(handle)
-    ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
-    handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",
-                          label="nominal setup"))
-    ax.set_xlim(ex[0], ex[-1])
-    ax.set_ylim(ey[0], ey[-1])
-    ax.set_xlabel(param_label(names[0]))
-    ax.set_ylabel(param_label(names[1]))
-    kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
-    narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
-              "cells differ little") if rel is not None and rel < NARROW else ""
-    ax.set_title((f"{title}\n" if title else "") + f"windowed L∞ error over {kind}; other "
-                 "swept parameters pooled" + narrow, fontsize=10)
-    ax.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12),
-              ncol=1, frameon=False)
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, figsize=(8, 6.6), layout="constrained") as (fig, ax):
+        if finite.size:
+            norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
+                    else Normalize(finite.min(), finite.max() if finite.max() > finite.min()
+                                   else finite.min() + 1e-12))
+        else:
+            norm = Normalize(0, 1)
+        shown = np.where(np.isfinite(med), med, np.nan)
+        cmap = matplotlib.colormaps["viridis"].with_extremes(bad="#dddddd")
+        mesh = ax.pcolormesh(ex, ey, shown.T, cmap=cmap, norm=norm, shading="flat")
+        cb = fig.colorbar(mesh, ax=ax, pad=0.02)
+        cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
+                     + ("\n" + spread if spread else ""), fontsize=9)
+        handles = []
+        hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
+        xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
+        bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
+        if bad.any() and len(xc) > 1 and len(yc) > 1:
+            ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728", linewidths=1.8)
+        handles.append(Line2D([], [], color="#d62728", lw=1.8,
+                              label=f"tracking degraded: cell median > {threshold:.3g}"
+                              f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+        if div_cells.any():
+            # hatch exactly the cells where a sample diverged at every step tried
+            z = np.repeat(np.repeat(div_cells.astype(float), 2, axis=0), 2, axis=1)
+            hatch = ax.contourf(hx, hy, z.T, levels=[0.5, 1.5], colors="none", hatches=["////"])
+            hatch.set_edgecolor("#7f0000")
+            hatch.set_linewidth(0.0)
+            handles.append(Patch(facecolor="none", edgecolor="#7f0000", hatch="///",
+                                 label=f"diverged at every step tried ({int(div_cells.sum())} "
+                                 f"cells)"))
+        # the refined and the diverged samples (at most 2000 of each, a seeded draw)
+        for mask, style, handle in (
+                (ref, dict(marker="o", s=10, facecolors="none", edgecolors="#ff7f0e", lw=0.7),
+                 Line2D([], [], marker="o", ls="", mfc="none", color="#ff7f0e",
+                        label=f"tracked after refinement ({int(ref.sum()):,} samples: stiff at "
+                        "dt, re-run with ETDRK4)")),
+                (div, dict(marker="x", s=14, c="#d62728", lw=0.8),
+                 Line2D([], [], marker="x", ls="", color="#d62728",
+                        label=f"diverged sample ({int(div.sum()):,})"))):
+            idx = np.flatnonzero(mask)
+            if idx.size > 2000:
+                idx = np.random.default_rng(0).choice(idx, 2000, replace=False)
+            if idx.size:
+                ax.scatter(np.asarray(x)[idx], np.asarray(y)[idx], **style)
+                handles.append(handle)
+        ax.plot(*nominal_xy, marker="*", ms=15, mfc="white", mec="black", ls="")
+        handles.append(Line2D([], [], marker="*", ms=12, mfc="white", mec="black", ls="",
+                              label="nominal setup"))
+        ax.set_xlim(ex[0], ex[-1])
+        ax.set_ylim(ey[0], ey[-1])
+        ax.set_xlabel(param_label(names[0]))
+        ax.set_ylabel(param_label(names[1]))
+        kind = "grid points" if grid_x is not None else f"{len(ex) - 1} x {len(ey) - 1} bins"
+        narrow = (f"\nnote: the colour scale spans only {100 * rel:.2g} % of the median: the "
+                  "cells differ little") if rel is not None and rel < NARROW else ""
+        ax.set_title((f"{title}\n" if title else "") + f"windowed L∞ error over {kind}; other "
+                     "swept parameters pooled" + narrow, fontsize=10)
+        ax.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12),
+                  ncol=1, frameon=False)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
             "count": count.tolist(), "degraded_cells": int(bad.sum()),
@@ -221,22 +220,21 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold, nominal_x
     """One swept parameter: the windowed L-inf error against it (the 1-D 'heatmap')."""
     x, err = np.asarray(x), np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
-    fig, ax = subplots(figsize=(8, 4.8), layout="constrained")
-    ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
-    if div.any():
-        top = np.nanmax(err[~div]) if (~div).any() else 1.0
-        ax.plot(x[div], np.full(div.sum(), top), "x", color="#d62728",
-                label=f"diverged ({int(div.sum())}), drawn at the top")
-    ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
-    ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
-    if _use_log(err[~div]):
-        ax.set_yscale("log")
-    ax.set_xlabel(param_label(name))
-    ax.set_ylabel(error_label(t0, t_final).replace("windowed L∞ error  ", "L∞ error "))
-    ax.set_title(title, fontsize=10)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, figsize=(8, 4.8), layout="constrained") as (fig, ax):
+        ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
+        if div.any():
+            top = np.nanmax(err[~div]) if (~div).any() else 1.0
+            ax.plot(x[div], np.full(div.sum(), top), "x", color="#d62728",
+                    label=f"diverged ({int(div.sum())}), drawn at the top")
+        ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
+        ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
+        if _use_log(err[~div]):
+            ax.set_yscale("log")
+        ax.set_xlabel(param_label(name))
+        ax.set_ylabel(error_label(t0, t_final).replace("windowed L∞ error  ", "L∞ error "))
+        ax.set_title(title, fontsize=10)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
 
 
 def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], path, *,
@@ -244,37 +242,37 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     """Tracking error e(t) and control u(t) of the worst samples (colour; dotted and ending
     in x where they diverged) and a random handful (grey), with the nominal setup (black
     dashed)."""
-    fig, ax = subplots(2, 1, figsize=(11, 7), sharex=True, layout="constrained")
-    colors = matplotlib.colormaps["tab10"].colors
-    k = 0
-    for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
-        t = np.asarray(tr.t)
-        e, u = np.array(tr.e, np.float64), np.array(tr.u, np.float64)
-        if bool(tr.diverged):  # after divergence the state is frozen: nothing to show
-            after = t > float(tr.t_diverged)
-            e[after], u[after] = np.nan, np.nan
-        if kind == "random":
-            style = dict(color="#999999", lw=0.8, alpha=0.8)
-        else:
-            style = dict(color=colors[k % 10], lw=1.1, ls="-" if kind == "worst" else ":")
-            k += 1
-        ax[0].plot(t, e, label=lab, **style)
-        ax[1].plot(t, u, **style)
-        if bool(tr.diverged):
-            ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
-    ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2, label="nominal setup")
-    ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
-    for a in ax:
-        a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
-        a.grid(alpha=0.3)
-    ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
-                   xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
-    ax[0].set_ylabel("tracking error  e = y − y_r")
-    ax[1].set_ylabel("control input  u")
-    ax[1].set_xlabel("time  t [s]")
-    ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
-    fig.suptitle(title, fontsize=11)
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, 2, 1, figsize=(11, 7), sharex=True, layout="constrained") as (fig, ax):
+        colors = matplotlib.colormaps["tab10"].colors
+        k = 0
+        for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
+            t = np.asarray(tr.t)
+            e, u = np.array(tr.e, np.float64), np.array(tr.u, np.float64)
+            if bool(tr.diverged):  # after divergence the state is frozen: nothing to show
+                after = t > float(tr.t_diverged)
+                e[after], u[after] = np.nan, np.nan
+            if kind == "random":
+                style = dict(color="#999999", lw=0.8, alpha=0.8)
+            else:
+                style = dict(color=colors[k % 10], lw=1.1, ls="-" if kind == "worst" else ":")
+                k += 1
+            ax[0].plot(t, e, label=lab, **style)
+            ax[1].plot(t, u, **style)
+            if bool(tr.diverged):
+                ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
+        ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2,
+                   label="nominal setup")
+        ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
+        for a in ax:
+            a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
+            a.grid(alpha=0.3)
+        ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
+                       xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
+        ax[0].set_ylabel("tracking error  e = y − y_r")
+        ax[1].set_ylabel("control input  u")
+        ax[1].set_xlabel("time  t [s]")
+        ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
+        fig.suptitle(title, fontsize=11)
 
 
 def trace_label(record: dict, names: Sequence[str], kind: str) -> str:

@@ -17,7 +17,7 @@ import numpy as np
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
 from dscjax.markdown import table
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 from dscjax.worst import Result, assumption_warnings, best_value
 
 FILES = ("worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md")
@@ -137,44 +137,41 @@ def _curve(trace) -> tuple[np.ndarray, np.ndarray]:
 def _plot_worst(path, worst, nominal, result):
     """worst_vs_nominal.png: e and u of the nominal and the worst case, one colour and line
     style per case in both panels, each panel with its legend. Returns the Figure."""
-    fig, ax = subplots(2, 1, figsize=(9, 6), sharex=True)
-    for traj, name, style, color in ((nominal, "nominal", "--", "#444444"),
-                                     (worst, "worst case", "-", "#d62728")):
-        t = np.asarray(traj.t)
-        for a, signal in zip(ax, (traj.e, traj.u), strict=True):
-            a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=color)
-    ax[0].set_ylabel("tracking error e [-]")
-    ax[1].set_ylabel("control u [-]")
-    ax[1].set_xlabel("t [s]")
-    for a in ax:
-        a.legend(loc="upper right")
-    ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
-                    f"(nominal {result.nominal_value:.4g})")
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, 2, 1, figsize=(9, 6), sharex=True) as (fig, ax):
+        for traj, name, style, color in ((nominal, "nominal", "--", "#444444"),
+                                         (worst, "worst case", "-", "#d62728")):
+            t = np.asarray(traj.t)
+            for a, signal in zip(ax, (traj.e, traj.u), strict=True):
+                a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=color)
+        ax[0].set_ylabel("tracking error e [-]")
+        ax[1].set_ylabel("control u [-]")
+        ax[1].set_xlabel("t [s]")
+        for a in ax:
+            a.legend(loc="upper right")
+        ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
+                        f"(nominal {result.nominal_value:.4g})")
     return fig
 
 
 def _plot_disturbance(path, t_half, dbar, result):
-    fig, ax = subplots(figsize=(9, 3.2))
-    ax.plot(t_half, dbar, lw=1.0, color="#d62728")
-    spec = result.problem.disturbance
-    if spec is not None:
-        for s in (-1, 1):
-            ax.axhline(s * spec.bound, color="#444444", ls=":", lw=0.8)
-    ax.set_xlabel("t [s]")
-    ax.set_ylabel(r"$\bar d(t)$ [-]")
-    ax.set_title("worst disturbance" + (f" ({spec.spec()})" if spec else ""))
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, figsize=(9, 3.2)) as (fig, ax):
+        ax.plot(t_half, dbar, lw=1.0, color="#d62728")
+        spec = result.problem.disturbance
+        if spec is not None:
+            for s in (-1, 1):
+                ax.axhline(s * spec.bound, color="#444444", ls=":", lw=0.8)
+        ax.set_xlabel("t [s]")
+        ax.set_ylabel(r"$\bar d(t)$ [-]")
+        ax.set_title("worst disturbance" + (f" ({spec.spec()})" if spec else ""))
 
 
 def _plot_progress(path, result):
-    fig, ax = subplots(figsize=(7, 4))
-    for m, tr in result.traces.items():
-        ax.step(*_curve(tr), where="post", label=m)
-    ax.set_xlabel("search time [s]")
-    ax.set_ylabel(f"best {result.problem.metric}")
-    ax.legend()
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, figsize=(7, 4)) as (fig, ax):
+        for m, tr in result.traces.items():
+            ax.step(*_curve(tr), where="post", label=m)
+        ax.set_xlabel("search time [s]")
+        ax.set_ylabel(f"best {result.problem.metric}")
+        ax.legend()
 
 
 __all__ = ["FILES", "FIGURES", "methods_table", "report_md", "searched", "summary",
