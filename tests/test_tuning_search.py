@@ -165,7 +165,7 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
     flat = jnp.asarray(ravel_pytree(q.z0)[0])[None]
     for program in (search.batch_fn(q), search.grad_fn(q)):
         with pytest.raises(Seen):
-            program.lower(flat)
+            program(flat)
     assert seen == [("etdrk4", "time_parallel")] * 2
 
 

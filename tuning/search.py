@@ -61,18 +61,11 @@ def _gradient(mode, obj, flat_pts):
     return jax.lax.map(one, flat_pts)
 
 
-def _bound(fn, *before):
-    """`fn` with its leading arguments bound, called and lowered (compiled ahead of time)
-    with the points alone, as `search.Batched` does."""
-    call = functools.partial(fn, *before)
-    call.lower = functools.partial(fn.lower, *before)
-    return call
-
-
 def batch_fn(problem):
-    """The batched program of the problem's objective: every candidate x training plant;
-    lean where an iteration limit bounds the search's work (`search_work`)."""
-    return _bound(_BATCH[xla.lean_work(search_work(problem))], problem.objective.program())
+    """The batched program (`search.Batched`) of the problem's objective: every candidate x
+    training plant; lean where an iteration limit bounds the search's work (`search_work`)."""
+    return search.Batched(_BATCH[xla.lean_work(search_work(problem))],
+                          (problem.objective.program(),))
 
 
 def search_work(problem) -> float | None:
@@ -88,8 +81,9 @@ def search_work(problem) -> float | None:
 
 
 def grad_fn(problem):
-    """The exact gradient program of the problem's objective in its AD mode."""
-    return _bound(_gradient, problem.mode, problem.objective.program())
+    """The exact gradient program (`search.Batched`) of the problem's objective in its AD
+    mode."""
+    return search.Batched(_gradient, (problem.mode, problem.objective.program()))
 
 
 class TuneProblem(search.Problem):
@@ -108,7 +102,7 @@ class TuneProblem(search.Problem):
         kept with the problem for this objective: every program compiles once per structure."""
         obj, cache = self.problem.objective, self.problem.programs
         if name not in cache or cache[name][0] is not obj:
-            cache[name] = (obj, search.Batched(build(self.problem)))
+            cache[name] = (obj, build(self.problem))
         return cache[name][1]
 
     @property
