@@ -37,7 +37,7 @@ from tuning import runner
 from tuning.config import TuningConfig
 
 FRESH_SEED = 10_000  # added to the seed of the fresh searches: never a round's seed
-MANIFEST = "adversarial.json"
+MANIFEST = runner.RECORDS[1]  # adversarial.json
 
 
 @dataclasses.dataclass

@@ -42,7 +42,7 @@ PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 # [tuning.optimizer]'s keys of where to stop, no part of a run's fingerprint: a resumed run
 # may change them
 STOPPING = ("steps", "time_limit", "patience", "save_interval", "min_delta")
-# the record of a tuning run in its directory: a plain run's, an adversarial run's
+# the record of a tuning run in its directory: a plain run's, an adversarial run's (its MANIFEST)
 RECORDS = ("checkpoint.json", "adversarial.json")
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
 

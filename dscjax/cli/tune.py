@@ -56,7 +56,9 @@ def add_options(p):
 def resumable(args) -> bool:
     """Does --out hold a run that `--resume` continues (its checkpoint, or the record of the
     adversarial rounds)?"""
-    return any((Path(args.out) / name).exists() for name in ("checkpoint.json", "adversarial.json"))
+    from tuning.runner import RECORDS
+
+    return any((Path(args.out) / name).exists() for name in RECORDS)
 
 
 def interrupt_hint(args) -> str:
