@@ -427,7 +427,7 @@ def test_fingerprints_carry_every_setting_of_the_search(small_problem):
         spec = dataclasses.replace(cfg.adversarial, rounds=3, search_evals=evals)
         adv_cfg = dataclasses.replace(cfg, adversarial=spec)
         searched = adversarial.search_problem(p.setup, p.options, adv_cfg)
-        fp = adversarial.run_fingerprint(searched, p.options, adv_cfg)
+        fp = adversarial.run_fingerprint(searched, {}, adv_cfg)
         assert set(fp) == {"problem", "adversarial"}
         assert set(fp["adversarial"]) == ADVERSARIAL_KEYS
         assert fp["adversarial"]["rounds"] == 0  # more rounds continue the same run

@@ -98,19 +98,20 @@ def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     return np.stack(out)
 
 
-def run_fingerprint(searched: worst.Problem, options: RunSpec, cfg: TuningConfig) -> dict:
-    """What adversarial.json stores to resume: the tuning problem's description at the
-    searched setup (`runner.describe`, whole, so that a refusal names the old and new values)
-    and the [tuning.adversarial] settings (the rounds apart, the box as searched)."""
+def run_fingerprint(searched: worst.Problem, problem: dict, cfg: TuningConfig) -> dict:
+    """What adversarial.json stores to resume: `problem`, the tuning problem's description at
+    the searched setup (whole, so that a refusal names the old and new values), and the
+    [tuning.adversarial] settings (the rounds apart, the box as searched)."""
     adv = dataclasses.asdict(dataclasses.replace(cfg.adversarial, rounds=0,
                                                  ranges=[r.spec() for r in searched.ranges]))
-    return {"problem": runner.describe(searched.setup, options, cfg), "adversarial": adv}
+    return {"problem": problem, "adversarial": adv}
 
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
     path = files.resume_file(out, MANIFEST)
-    fingerprint = run_fingerprint(search_problem(setup, options, cfg), options, cfg)
+    searched = search_problem(setup, options, cfg)
+    fingerprint = run_fingerprint(searched, runner.describe(searched.setup, options, cfg), cfg)
     files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
 
 
@@ -146,7 +147,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
     searched = search_problem(setup, options, cfg)
     setup = searched.setup
     base = runner.build_problem(setup, options, cfg)
-    meta = _manifest(out, run_fingerprint(searched, options, cfg), resume, overwrite)
+    meta = _manifest(out, run_fingerprint(searched, base.describe(), cfg), resume, overwrite)
 
     def save():
         if out is not None:
