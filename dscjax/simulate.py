@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import equinox as eqx
 import jax
@@ -97,23 +97,30 @@ class Trajectory(eqx.Module):
         raise AttributeError(name)
 
 
-def _loop(setup: Setup, spec: RunSpec):
-    """What `integrate` needs for one kind of loop: (field (t, y, setup, samp) -> (dy, obs),
-    init (setup, samp) -> y0, rates (t, y, setup, samp, obs) -> decay rates like y, project
-    (k, t, y, setup, samp) -> y after a step, or None, frozen); each function takes the setup
-    and the sampling ((`Sampling`, dt) or None), never closing over traced values."""
+class _Loop(NamedTuple):
+    """What `integrate` needs for one kind of loop, each function taking the setup and the
+    sampling ((`Sampling`, dt) or None) as arguments, never closing over traced values."""
+
+    field: Callable  # (t, y, setup, samp) -> (dy, obs)
+    init: Callable  # (setup, samp) -> y0
+    rates: Callable  # (t, y, setup, samp, obs) -> decay rates like y
+    project: Callable | None  # (k, t, y, setup, samp) -> y after a step
+    frozen: Any
+
+
+def _loop(setup: Setup, spec: RunSpec) -> _Loop:
     if not spec.sampled:
-        return (lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
-                lambda s, samp: closed_loop.initial_state(s),
-                lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
-                (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
-                if type(setup.hysteresis).projects else None,
-                closed_loop.frozen(setup))
-    return (lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
-            lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
-            lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
-            lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
-            closed_loop.SAMPLED_FROZEN)
+        return _Loop(lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
+                     lambda s, samp: closed_loop.initial_state(s),
+                     lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
+                     (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
+                     if type(setup.hysteresis).projects else None,
+                     closed_loop.frozen(setup))
+    return _Loop(lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
+                 lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
+                 lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
+                 lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
+                 closed_loop.SAMPLED_FROZEN)
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
@@ -145,8 +152,8 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
             (sh, sa), b = args
             return rebuild(sh, b), sa
 
-    def field(t, y, *args):  # integrate's (args), or with a batch (args, b)
-        return loop_field(t, y, *member(args[0] if batch is None else args))
+    def field(t, y, args):
+        return loop_field(t, y, *member(args))
 
     proj = None
     if project is not None:

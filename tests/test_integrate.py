@@ -81,8 +81,8 @@ def test_a_stride_that_does_not_divide_the_steps_keeps_every_s_th_step_and_the_l
                         (jnp.array(3.0),), (jnp.array(1.0),))
     np.testing.assert_allclose(np.asarray(primal), np.asarray(strided.ys["p"]), rtol=1e-14)
 
-    def f(t, y, args, w):
-        return _oscillator(t, y, w)
+    def f(t, y, args):  # with a batch: (shared args, the member's w)
+        return _oscillator(t, y, args[1])
 
     for checkpoint_every in (None, 7):
         batch = integrate(f, {"p": jnp.array([1.0, 0.5]), "q": jnp.zeros(2)}, dt, n, (),
@@ -109,8 +109,8 @@ def test_gradient_through_a_stride_that_does_not_divide_the_steps():
     assert float(g_tp) == pytest.approx(float(fd), rel=1e-6)
 
     def batch_loss(ws, checkpoint_every):
-        def f(t, y, args, w):
-            return _oscillator(t, y, w)
+        def f(t, y, args):
+            return _oscillator(t, y, args[1])
 
         res = integrate(f, {"p": jnp.ones(2), "q": jnp.zeros(2)}, 0.005, 397, (), batch=ws,
                         save_every=10, gradient=TimeParallel(every=checkpoint_every))
@@ -184,8 +184,8 @@ def test_time_parallel_gradient_equals_autodiff_and_finite_differences():
 
 def test_checkpointed_batch_gradient_equals_plain():
     def loss(ws, ck):
-        def f(t, y, args, w):
-            return _oscillator(t, y, w)
+        def f(t, y, args):
+            return _oscillator(t, y, args[1])
 
         y0 = {"p": jnp.ones(2), "q": jnp.zeros(2)}
         res = integrate(f, y0, 0.005, 400, (), batch=ws, save_every=400,
@@ -202,8 +202,8 @@ def test_batched_layout_equals_single_runs():
     y0 = {"p": jnp.array([1.0, 0.5, -0.2]), "q": jnp.zeros(3)}
     ws = jnp.array([2.0, 3.0, 4.0])
 
-    def f(t, y, args, w):
-        return _oscillator(t, y, w)
+    def f(t, y, args):  # with a batch: (shared args, the member's w)
+        return _oscillator(t, y, args[1])
 
     batched = integrate(f, y0, 0.01, 100, (), batch=ws, save_every=10)
     for i in range(3):
@@ -269,8 +269,8 @@ def test_held_components_follow_the_reference_recursion():
     np.testing.assert_allclose(np.asarray(single.ys["x"]), x_ref, rtol=0, atol=1e-14)
     np.testing.assert_allclose(np.asarray(single.ys["z"]), z_ref, rtol=0, atol=1e-14)
 
-    def f(t, y, args, a):
-        return _held_field(t, y, a)
+    def f(t, y, args):
+        return _held_field(t, y, args[1])
 
     def proj(k, t, y, args):
         return _held_project(k, t, y, args[1])

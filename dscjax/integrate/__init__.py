@@ -57,7 +57,7 @@ def integrate(
 
     Args:
         f: f(t, y, args) -> (dy, obs), obs an observation at (t, y); with `batch`, called as
-            f(t, y, args, b) for one member b (without the batch axis).
+            f(t, y, (args, b)) for one member b (without the batch axis), as `rates` and `project`.
         y0: initial state pytree (with `batch`: every leaf has a leading batch axis B).
         dt: step (traced). n_steps: N (static).
         args: shared arguments of f (traced, one copy for the whole batch).

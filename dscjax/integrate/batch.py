@@ -53,7 +53,7 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
                    tuple(bool(m) for leaf in jax.tree.leaves(mask) for m in np.ravel(leaf)))
     _, unravel_b = _ravel_floats(b_one)
     b_flat = jax.vmap(lambda b: _ravel_floats(b)[0], out_axes=-1)(batch)  # (p, B)
-    obs_one = jax.eval_shape(lambda: f(dt, y_one, unravel_args(args_flat), b_one)[1])
+    obs_one = jax.eval_shape(lambda: f(dt, y_one, (unravel_args(args_flat), b_one))[1])
     ys_c, obs_c, acc_c = _Rows(y_one), _Rows(scan.zeros(obs_one)), _Rows(acc0)
 
     # one trace of the field for every call with the same shapes (RK4's four stages, the
@@ -61,7 +61,7 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
     @jax.jit
     def f_rows(t, y, a_flat, b):
         def one(y_row, b_col):
-            dy, obs = f(t, ys_c.unpack_one(y_row), unravel_args(a_flat), unravel_b(b_col))
+            dy, obs = f(t, ys_c.unpack_one(y_row), (unravel_args(a_flat), unravel_b(b_col)))
             return _scalars(dy), _scalars(obs)
         return jax.vmap(one, in_axes=(0, -1), out_axes=0)(y, b)
 
