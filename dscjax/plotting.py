@@ -3,7 +3,8 @@
 Every figure of the project is a `matplotlib.figure.Figure` made by `subplots` below: the
 object API, never pyplot, so no backend is chosen or changed and no global state (a notebook's
 display backend, its rcParams) is touched; styles apply through `matplotlib.rc_context`
-(`saved`: a figure made, styled and saved in one `with` block).
+(`saved`: a figure made, styled and saved in one `with` block; `GRID`, the light grid of
+the figures that have one).
 """
 
 from __future__ import annotations
@@ -19,6 +20,9 @@ from dscjax import files
 COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": "#9467bd",
           "x": ("#1f77b4", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f",
                 "#aec7e8")}
+# The light grid of every figure that has one: a style for `saved`'s rc.
+GRID = {"axes.grid": True, "grid.alpha": 0.3}
+LOG_GRID = GRID | {"axes.grid.which": "both"}  # lines at the minor ticks too (log axes)
 
 
 def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", **kwargs):
@@ -31,9 +35,10 @@ def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", *
 
 
 @contextlib.contextmanager
-def saved(path: Path | str, dpi: int, nrows: int = 1, ncols: int = 1, *, rc=None, **kwargs):
+def saved(path: Path | str, dpi: int | None, nrows: int = 1, ncols: int = 1, *, rc=None, **kwargs):
     """`subplots`' (Figure, axes) for the block, saved to `path` at `dpi` when it ends; the
-    block and the saving under the style `rc` (`matplotlib.rc_context`), where given."""
+    block and the saving under the style `rc` (`matplotlib.rc_context`), where given; `dpi`
+    None: the figure's own (matplotlib's default)."""
     import matplotlib
 
     with matplotlib.rc_context(rc):
@@ -58,6 +63,14 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
     ax.set_xlabel("control input $u$ [-]")
 
 
+def legend_below(fig, ax, ncol: int | None = None, **kwargs) -> None:
+    """The legend of `ax`'s curves outside the axes, under them (it can never hide a curve),
+    in `ncol` columns (None: all in one row)."""
+    handles, labels = ax.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=ncol or len(labels),
+               frameon=False, **kwargs)
+
+
 def plot_trajectory(traj, path: Path | str, title: str = ""):
     """The Figure (saved to `path`) of four panels: states against the reference, tracking
     error, u, w; a diverged run drawn up to its marked divergence."""
@@ -68,33 +81,28 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
         t_bad = float(np.asarray(traj.t_diverged))
         for v in signals.values():
             v[t > t_bad] = np.nan
-    fig, ax = subplots(2, 2, figsize=(10, 7), sharex=True)
-    ax[0, 0].plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--", label="reference $y_r$")
-    for i, xi in enumerate(signals["x"].T):
-        ax[0, 0].plot(t, xi, color=COLORS["x"][i % len(COLORS["x"])], lw=1.0,
-                      label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
-    for a, key in zip(ax.ravel()[1:], "euw", strict=True):
-        a.plot(t, signals[key], color=COLORS[key], lw=1.0)
-    for a, label, panel in (
-            (ax[0, 0], "state $x_i$, reference $y_r$ [-]", "states against the reference"),
-            (ax[0, 1], "tracking error $e = y - y_r$ [-]", "tracking error"),
-            (ax[1, 0], "control input $u$ [-]", "control input"),
-            (ax[1, 1], "hysteresis output $w$ [-]", "hysteresis output")):
-        a.set_ylabel(label)
-        a.set_title(panel)
-        a.grid(alpha=0.3)
-        a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
-        if diverged:
-            a.axvline(t_bad, color="#d62728", lw=1.0, ls=":")
-    for a in ax[1]:
-        a.set_xlabel("time $t$ [s]")
-    handles, labels = ax[0, 0].get_legend_handles_labels()
-    if diverged:
-        handles.append(ax[0, 1].lines[-1])
-        labels.append(f"diverged at t = {t_bad:.4g} s (frozen afterwards, not drawn)")
-    fig.legend(handles, labels, loc="outside lower center", ncol=len(labels), frameon=False,
-               fontsize=9)
-    if title:
-        fig.suptitle(title)
-    files.save_figure(fig, path, dpi=110)
+    with saved(path, 110, 2, 2, rc=GRID, figsize=(10, 7), sharex=True) as (fig, ax):
+        ax[0, 0].plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--",
+                      label="reference $y_r$")
+        for i, xi in enumerate(signals["x"].T):
+            ax[0, 0].plot(t, xi, color=COLORS["x"][i % len(COLORS["x"])], lw=1.0,
+                          label=f"$x_{i + 1}$" + (" = output y" if i == 0 else ""))
+        for a, key in zip(ax.ravel()[1:], "euw", strict=True):
+            a.plot(t, signals[key], color=COLORS[key], lw=1.0)
+        for a, label, panel in (
+                (ax[0, 0], "state $x_i$, reference $y_r$ [-]", "states against the reference"),
+                (ax[0, 1], "tracking error $e = y - y_r$ [-]", "tracking error"),
+                (ax[1, 0], "control input $u$ [-]", "control input"),
+                (ax[1, 1], "hysteresis output $w$ [-]", "hysteresis output")):
+            a.set_ylabel(label)
+            a.set_title(panel)
+            a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
+            if diverged:
+                a.axvline(t_bad, color="#d62728", lw=1.0, ls=":",
+                          label=f"diverged at t = {t_bad:.4g} s (frozen afterwards, not drawn)")
+        for a in ax[1]:
+            a.set_xlabel("time $t$ [s]")
+        legend_below(fig, ax[0, 0], fontsize=9)
+        if title:
+            fig.suptitle(title)
     return fig

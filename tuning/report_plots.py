@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import ts_sweep
-from dscjax.plotting import saved
+from dscjax.plotting import GRID, LOG_GRID, saved
 from tuning.report_md import LABELS
 
 COLORS = {"start": "#7f7f7f", "tuned": "#d62728"}  # of the start and the tuned gains
@@ -20,7 +20,7 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
     it, loss, best, linf, umax = (np.array([r[k] for r in history], dtype=float) for k in (
         "iteration", "loss", "best_loss", "linf_window", "max_abs_u"))
     acc = np.array([bool(r["accepted"]) for r in history])
-    with saved(path, 110, 1, 3, figsize=(14, 4)) as (fig, ax):
+    with saved(path, 110, 1, 3, rc=LOG_GRID, figsize=(14, 4)) as (fig, ax):
         ax[0].semilogy(it, loss, lw=1, label="loss of the iteration")
         ax[0].semilogy(it, best, lw=1.5, label="best loss so far")
         if (~acc).any():
@@ -35,7 +35,6 @@ def plot_loss_curve(history, path, *, u_max: float | None = None, batch: bool = 
         ax[2].set(ylabel="max|u| [-]", title="control amplitude")
         for a in ax:
             a.set_xlabel("iteration")
-            a.grid(alpha=0.3, which="both")
             a.legend(fontsize=8)
     return fig
 
@@ -51,7 +50,7 @@ def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
                         batch=bool(problem.objective.overrides))
         figures.append("loss_curve.png")
 
-    with saved(out / "before_after.png", 110, 4, 1, figsize=(10, 11)) as (fig, ax):
+    with saved(out / "before_after.png", 110, 4, 1, rc=GRID, figsize=(10, 11)) as (fig, ax):
         for tag, color in COLORS.items():
             tr = trajs[tag]
             t, e, u = np.asarray(tr.t), np.asarray(tr.e), np.asarray(tr.u)
@@ -78,12 +77,11 @@ def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
         ax[3].set(ylabel="sum |du| [-]", xlabel="time t [s]", title="total variation of u up to t "
                   "(curves: on the saved grid, a lower bound; labels: exact)")
         for a in ax:
-            a.grid(alpha=0.3)
             a.legend(loc="upper right", fontsize=8)
     figures.append("before_after.png")
 
     if ev["heldout"] is not None:
-        with saved(out / "heldout.png", 110, 1, 2, figsize=(11, 4)) as (fig, ax):
+        with saved(out / "heldout.png", 110, 1, 2, rc=LOG_GRID, figsize=(11, 4)) as (fig, ax):
             for i, key in enumerate(("linf_error_window", "max_abs_u")):
                 for tag, color in COLORS.items():
                     m = ev["heldout"][tag]
@@ -102,7 +100,6 @@ def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
                     ax[i].axvline(sc.u_max, color="k", ls=":", lw=1, label="bound (nominal plant)")
                 ax[i].set(xlabel=LABELS[key], ylabel="fraction of plants")
                 ax[i].legend(fontsize=8, loc="lower right")
-                ax[i].grid(alpha=0.3, which="both")
             n = ev["heldout"]["start"]["diverged"].size
             fig.suptitle(f"held-out batch of {n} plants: distribution (ECDF) with the start "
                          f"and the tuned gains (solid: median, dashed: p95)")

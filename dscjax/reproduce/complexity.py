@@ -25,7 +25,7 @@ from dscjax import files
 from dscjax.closed_loop import initial_state, prepared
 from dscjax.config import order_n_example
 from dscjax.controllers.backstepping import with_backstepping
-from dscjax.plotting import saved
+from dscjax.plotting import LOG_GRID, saved
 from dscjax.reproduce.runs import STYLE
 from dscjax.validation import ConfigError
 
@@ -210,7 +210,7 @@ def plot(result: dict, path, dpi: int = 150) -> None:
     """Log-scale panels of the metrics against n, one line per controller (growth in legend),
     in the colours of its run (`runs.STYLE`)."""
     names = {"dsc": "DSC", "backstepping": "backstepping (autodiff)"}
-    with saved(path, dpi, 2, 2, figsize=(9, 6.4)) as (fig, axes):
+    with saved(path, dpi, 2, 2, rc=LOG_GRID, figsize=(9, 6.4)) as (fig, axes):
         for ax, (metric, ylabel) in zip(axes.ravel(), LABELS.items(), strict=True):
             for c, fits in result["fits"].items():
                 rows = [r for r in result["rows"] if r["controller"] == c]
@@ -227,7 +227,6 @@ def plot(result: dict, path, dpi: int = 150) -> None:
             ax.set_xlabel("plant order $n$")
             ax.set_ylabel(ylabel)
             ax.set_xticks(result["orders"])
-            ax.grid(alpha=0.3, which="both")
             # headroom above the data so that the legend never hides a point
             lo, hi = ax.get_ylim()
             decades = np.log10(hi / lo)

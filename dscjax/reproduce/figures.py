@@ -3,14 +3,14 @@
 
 from __future__ import annotations
 
+import contextlib
 from pathlib import Path
 
 import numpy as np
 
-from dscjax import files
 from dscjax.config import paper_example
 from dscjax.metrics import default_window
-from dscjax.plotting import COLORS, hysteresis_loop, saved, subplots
+from dscjax.plotting import COLORS, GRID, hysteresis_loop, legend_below, saved
 from dscjax.reproduce import theory
 from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA, LABELS, STYLE, estimates
 
@@ -28,25 +28,26 @@ FIGURES = {
 }
 
 # The style of the paper's figures, applied with matplotlib.rc_context (never globally).
-RC = {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5, "axes.grid": True,
-      "grid.alpha": 0.3}
+RC = GRID | {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5}
 LOOP_COLORS = ("#8c564b", COLORS["w"])  # Fig. 1's loops: the small one brown, the large one w's
 
 
-def _time_axes(title: str, ylabel: str, t_after: float | None = None):
-    """(fig, axes): one panel against time, and with `t_after` a second one, t >= t_after,
-    where the first second's peak no longer sets the scale."""
+@contextlib.contextmanager
+def _time_axes(path: Path, dpi: int, title: str, ylabel: str, t_after: float | None = None):
+    """`saved`'s (fig, axes) in the paper's style: one panel against time, and with `t_after`
+    a second one, t >= t_after, where the first second's peak no longer sets the scale."""
     rows = 1 if t_after is None else 2
-    fig, axes = subplots(rows, 1, figsize=(6.4, (3.8, 5.6)[rows - 1]), squeeze=False)
-    axes = axes[:, 0]
-    axes[0].set_title(title)
-    for ax in axes:
-        ax.set_ylabel(ylabel)
-    axes[-1].set_xlabel("time $t$ [s]")
-    if t_after is not None:
-        axes[1].set_title(f"after the first {t_after:g} s (the initial peak left out)",
-                          fontsize=9)
-    return fig, axes
+    with saved(path, dpi, rows, 1, rc=RC, figsize=(6.4, (3.8, 5.6)[rows - 1]),
+               squeeze=False) as (fig, axes):
+        axes = axes[:, 0]
+        axes[0].set_title(title)
+        for ax in axes:
+            ax.set_ylabel(ylabel)
+        axes[-1].set_xlabel("time $t$ [s]")
+        if t_after is not None:
+            axes[1].set_title(f"after the first {t_after:g} s (the initial peak left out)",
+                              fontsize=9)
+        yield fig, axes
 
 
 def _line(ax, traj, signal, name, t_after=None, **over):
@@ -60,18 +61,10 @@ def _line(ax, traj, signal, name, t_after=None, **over):
     ax.set_xlim(t_after, t[-1])
 
 
-def _legend_below(fig, ax, ncol=1):
-    """Legend outside the axes, under them: it can never hide a curve."""
-    handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=ncol, frameon=False)
-
-
 def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 150) -> dict:
     """Write Figs. 1-6, the estimates figure and Fig. 1 of every hysteresis model (`family`,
     `runs.family_loops`; Fig. 1 is its backlash entry, the paper's (4)); returns {figure id:
     path}."""
-    import matplotlib
-
     hyst, _, u, w = family["backlash"]
     title = (f"Fig. 1  Backlash-like hysteresis (4), $w(0) = 0$: $\\alpha$ = "
              f"{float(hyst.alpha):g}, $\\lambda$ = {float(hyst.lam):g}, $\\psi$ = "
@@ -84,29 +77,27 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
     dsc = (("dsc", {}),)
     without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
     against = (("dsc", dict(lw=0.9, alpha=0.55)), ("backstepping", {}))  # the DSC faint
-    with matplotlib.rc_context(RC):
-        for key, signal, title, ylabel, runs, zoom in (
-                ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
-                 "compensation", error, without, False),
-                ("fig3", "u", "Fig. 3  Control signal of the DSC", control, dsc, True),
-                ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
-                 "hysteresis output $w$ [-]", dsc, True),
-                ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against,
-                 False),
-                ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", control, against,
-                 False)):
-            fig, axes = _time_axes(title, ylabel, t_after if zoom else None)
+    for key, signal, title, ylabel, runs, zoom in (
+            ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
+             "compensation", error, without, False),
+            ("fig3", "u", "Fig. 3  Control signal of the DSC", control, dsc, True),
+            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
+             "hysteresis output $w$ [-]", dsc, True),
+            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against,
+             False),
+            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", control, against,
+             False)):
+        paths[key] = out / f"{FIGURES[key]}.{fmt}"
+        with _time_axes(paths[key], dpi, title, ylabel, t_after if zoom else None) as (fig, axes):
             for name, over in runs:
                 _line(axes[0], trajs[name], signal, name, **over)
             if zoom:
                 axes[0].axvspan(t_after, t_end, color="#999999", alpha=0.08, lw=0,
                                 label=f"shown below: $t \\geq$ {t_after:g} s")
                 _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
-            _legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels: long
-            paths[key] = out / f"{FIGURES[key]}.{fmt}"
-            files.save_figure(fig, paths[key], dpi=dpi)
-        paths["estimates"] = _estimates_figure(trajs, out / f"{FIGURES['estimates']}.{fmt}", dpi)
-        paths["fig1_family"] = _family_figure(family, out / f"{FIGURES['fig1_family']}.{fmt}", dpi)
+            legend_below(fig, axes[0], ncol=1 if key == "fig2" else 2)  # Fig. 2's labels: long
+    paths["estimates"] = _estimates_figure(trajs, out / f"{FIGURES['estimates']}.{fmt}", dpi)
+    paths["fig1_family"] = _family_figure(family, out / f"{FIGURES['fig1_family']}.{fmt}", dpi)
     return paths
 
 
@@ -129,8 +120,8 @@ def _family_figure(family: dict, path: Path, dpi: int) -> Path:
     """Fig. 1's input, u = k sin(2.3 t), into every hysteresis model: one panel per model,
     both amplitudes, the lines lam_eff u + d_1 limits (`plotting.hysteresis_loop`, as `dscjax
     hysteresis` draws one model)."""
-    with saved(path, dpi, 1, len(family), figsize=(3.2 * len(family), 3.6), sharey=True,
-               squeeze=False) as (fig, axes):
+    with saved(path, dpi, 1, len(family), rc=RC, figsize=(3.2 * len(family), 3.6),
+               sharey=True, squeeze=False) as (fig, axes):
         for ax, (model, _, u, w) in zip(axes[0], family.values(), strict=True):
             big = int(np.argmax(np.max(np.abs(u), axis=1)))
             for i in range(len(u)):
@@ -151,7 +142,7 @@ def _estimates_figure(trajs, path: Path, dpi: int) -> Path:
               ("phi_hat_1", r"$\hat\phi_1$ [-]", tr.phi[0], r"$1/g_1$"),
               ("zeta_hat", r"$\hat\zeta$ [-]", tr.zeta, r"$1/(\lambda g_2)$"),
               ("d_hat", r"$\hat d$ [-]", None, None))  # (estimate, axis label, true value)
-    with saved(path, dpi, 2, 2, figsize=(8.4, 5.6), sharex=True) as (fig, axes):
+    with saved(path, dpi, 2, 2, rc=RC, figsize=(8.4, 5.6), sharex=True) as (fig, axes):
         for ax, (key, ylabel, value, sym) in zip(axes.ravel(), panels, strict=True):
             for name in ("dsc", "backstepping"):
                 traj = trajs[name]
@@ -167,7 +158,7 @@ def _estimates_figure(trajs, path: Path, dpi: int) -> Path:
             ax.margins(y=0.12)
         for ax in axes[1]:
             ax.set_xlabel("time $t$ [s]")
-        _legend_below(fig, axes[0, 0], ncol=3)
+        legend_below(fig, axes[0, 0], ncol=3)
         fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
                      r"because $f_2 = 0$; not shown)")
     return path

@@ -14,7 +14,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
-from dscjax.plotting import saved
+from dscjax.plotting import GRID, saved
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -70,7 +70,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
     ref = np.asarray(refined, bool) & ~div
     keep = ~div & np.isfinite(err)
     v = err[keep]
-    with saved(path, 110, figsize=(8, 5.4), layout="constrained") as (fig, ax):
+    with saved(path, 110, rc=GRID, figsize=(8, 5.4)) as (fig, ax):
         if v.size:
             log = _use_log(v)
             lo, hi = (v[v > 0].min(), v.max()) if log else (v.min(), v.max())
@@ -98,7 +98,6 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
         ax.set_ylabel("number of samples")
         ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step "
                      f"tried ({100 * div.mean():.2f} %, not shown)", fontsize=10)
-        ax.grid(alpha=0.3)
         ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
                   frameon=False)
 
@@ -148,7 +147,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, no
     ref = np.asarray(refined, bool) & ~div
     finite = med[np.isfinite(med)]
     spread, rel = _spread(finite) if finite.size else (None, None)
-    with saved(path, 110, figsize=(8, 6.6), layout="constrained") as (fig, ax):
+    with saved(path, 110, figsize=(8, 6.6)) as (fig, ax):
         if finite.size:
             norm = (LogNorm(finite[finite > 0].min(), finite.max()) if _use_log(finite)
                     else Normalize(finite.min(), finite.max() if finite.max() > finite.min()
@@ -220,7 +219,7 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold, nominal_x
     """One swept parameter: the windowed L-inf error against it (the 1-D 'heatmap')."""
     x, err = np.asarray(x), np.asarray(err, np.float64)
     div = np.asarray(diverged, bool)
-    with saved(path, 110, figsize=(8, 4.8), layout="constrained") as (fig, ax):
+    with saved(path, 110, rc=GRID, figsize=(8, 4.8)) as (fig, ax):
         ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
         if div.any():
             top = np.nanmax(err[~div]) if (~div).any() else 1.0
@@ -233,7 +232,6 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold, nominal_x
         ax.set_xlabel(param_label(name))
         ax.set_ylabel(error_label(t0, t_final).replace("windowed L∞ error  ", "L∞ error "))
         ax.set_title(title, fontsize=10)
-        ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
 
 
@@ -242,7 +240,7 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
     """Tracking error e(t) and control u(t) of the worst samples (colour; dotted and ending
     in x where they diverged) and a random handful (grey), with the nominal setup (black
     dashed)."""
-    with saved(path, 110, 2, 1, figsize=(11, 7), sharex=True, layout="constrained") as (fig, ax):
+    with saved(path, 110, 2, 1, rc=GRID, figsize=(11, 7), sharex=True) as (fig, ax):
         colors = matplotlib.colormaps["tab10"].colors
         k = 0
         for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
@@ -265,7 +263,6 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
         ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
         for a in ax:
             a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
-            a.grid(alpha=0.3)
         ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
                        xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
         ax[0].set_ylabel("tracking error  e = y − y_r")
