@@ -22,7 +22,7 @@ from dscjax import files, params, validation
 from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.markdown import table
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 from dscjax.progress import Progress
 from dscjax.runspec import loop_words
 from dscjax.sensitivity import METRICS, Problem, check_metrics
@@ -183,18 +183,18 @@ def _plot(result, path, title: str) -> None:
     k = len(result.metrics)
     n = result.normalised
     shown = min(TOP, len(result.names))
-    fig, axes = subplots(1, k, figsize=(3.6 * k + 1.6, 0.28 * shown + 1.6), squeeze=False)
-    for i, ax in enumerate(axes[0]):
-        row = np.where(np.isnan(n[i]), 0.0, n[i])
-        order = np.argsort(-np.abs(row), kind="stable")[:shown][::-1]
-        ax.barh(np.arange(shown), row[order],
-                color=["#d62728" if v > 0 else "#1f77b4" for v in row[order]])
-        ax.set_yticks(np.arange(shown), [result.names[j] for j in order], fontsize=7)
-        ax.axvline(0.0, color="k", lw=0.6)
-        ax.set_title(f"{result.metrics[i]} = {result.value[i]:.3g}", fontsize=9)
-        ax.set_xlabel("d ln m / d ln p")
-    fig.suptitle(title, fontsize=9)
-    files.save_figure(fig, path, dpi=120)
+    with saved(path, 120, 1, k, figsize=(3.6 * k + 1.6, 0.28 * shown + 1.6),
+               squeeze=False) as (fig, axes):
+        for i, ax in enumerate(axes[0]):
+            row = np.where(np.isnan(n[i]), 0.0, n[i])
+            order = np.argsort(-np.abs(row), kind="stable")[:shown][::-1]
+            ax.barh(np.arange(shown), row[order],
+                    color=["#d62728" if v > 0 else "#1f77b4" for v in row[order]])
+            ax.set_yticks(np.arange(shown), [result.names[j] for j in order], fontsize=7)
+            ax.axvline(0.0, color="k", lw=0.6)
+            ax.set_title(f"{result.metrics[i]} = {result.value[i]:.3g}", fontsize=9)
+            ax.set_xlabel("d ln m / d ln p")
+        fig.suptitle(title, fontsize=9)
 
 
 def interrupt_hint(args) -> str:

@@ -5,9 +5,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from dscjax import files
 from dscjax.identify.fit import fitted
-from dscjax.plotting import subplots
+from dscjax.plotting import saved
 
 
 def write(out: Path, res) -> None:
@@ -19,17 +18,17 @@ def write(out: Path, res) -> None:
             curves[c].append((tag, *curve))
     columns = list(curves)
     for name, residual in (("fit.png", False), ("residuals.png", True)):
-        fig, axes = subplots(len(columns), 1, figsize=(8, 2.4 * len(columns)), squeeze=False)
-        for ax, c in zip(axes[:, 0], columns, strict=True):
-            for tag, t, y, yh in curves[c]:
-                colour = "#1f77b4" if tag == "fit" else "#d62728"
-                if residual:
-                    ax.plot(t, y - yh, color=colour, lw=0.8, label=f"{tag}: measured - model")
-                else:
-                    ax.plot(t, y, color="#999999", lw=0.8, label=f"{tag}: measured")
-                    ax.plot(t, yh, color=colour, lw=1.2, label=f"{tag}: model")
-            ax.set_ylabel(c)
-            ax.legend(fontsize=7, loc="upper right")
-        axes[-1, 0].set_xlabel("t [s]")
-        fig.suptitle("residuals" if residual else "measured and identified model")
-        files.save_figure(fig, out / name)
+        with saved(out / name, None, len(columns), 1, figsize=(8, 2.4 * len(columns)),
+                   squeeze=False) as (fig, axes):
+            for ax, c in zip(axes[:, 0], columns, strict=True):
+                for tag, t, y, yh in curves[c]:
+                    colour = "#1f77b4" if tag == "fit" else "#d62728"
+                    if residual:
+                        ax.plot(t, y - yh, color=colour, lw=0.8, label=f"{tag}: measured - model")
+                    else:
+                        ax.plot(t, y, color="#999999", lw=0.8, label=f"{tag}: measured")
+                        ax.plot(t, yh, color=colour, lw=1.2, label=f"{tag}: model")
+                ax.set_ylabel(c)
+                ax.legend(fontsize=7, loc="upper right")
+            axes[-1, 0].set_xlabel("t [s]")
+            fig.suptitle("residuals" if residual else "measured and identified model")
