@@ -1,10 +1,9 @@
 """Plots of trajectories, and the one way dscjax makes a figure.
 
-Every figure of the project is a `matplotlib.figure.Figure` made by `subplots` below: the
-object API, never pyplot, so no backend is chosen or changed and no global state (a notebook's
-display backend, its rcParams) is touched; styles apply through `matplotlib.rc_context`
-(`saved`: a figure made, styled and saved in one `with` block; `GRID`, the light grid of
-the figures that have one).
+Every figure of the project is a `matplotlib.figure.Figure` made by `saved` below (made,
+styled and saved in one `with` block): the object API, never pyplot, so no backend is chosen or
+changed and no global state (a notebook's display backend, its rcParams) is touched; styles
+apply through `matplotlib.rc_context` (`GRID`, the light grid of the figures that have one).
 """
 
 from __future__ import annotations
@@ -25,25 +24,19 @@ GRID = {"axes.grid": True, "grid.alpha": 0.3}
 LOG_GRID = GRID | {"axes.grid.which": "both"}  # lines at the minor ticks too (log axes)
 
 
-def subplots(nrows: int = 1, ncols: int = 1, *, figsize, layout="constrained", **kwargs):
-    """(Figure, axes) like `pyplot.subplots`, but a Figure no pyplot state knows about: it is
-    saved with `files.save_figure` and freed with it, and needs no backend."""
+@contextlib.contextmanager
+def saved(path: Path | str, dpi: int | None, nrows: int = 1, ncols: int = 1, *, figsize,
+          layout="constrained", rc=None, **kwargs):
+    """(Figure, axes) like `pyplot.subplots` for the block, but a Figure no pyplot state knows
+    about (it needs no backend), saved to `path` at `dpi` (None: the figure's own, matplotlib's
+    default) when the block ends; the block and the saving under the style `rc`
+    (`matplotlib.rc_context`), where given."""
+    import matplotlib
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=figsize, layout=layout)
-    return fig, fig.subplots(nrows, ncols, **kwargs)
-
-
-@contextlib.contextmanager
-def saved(path: Path | str, dpi: int | None, nrows: int = 1, ncols: int = 1, *, rc=None, **kwargs):
-    """`subplots`' (Figure, axes) for the block, saved to `path` at `dpi` when it ends; the
-    block and the saving under the style `rc` (`matplotlib.rc_context`), where given; `dpi`
-    None: the figure's own (matplotlib's default)."""
-    import matplotlib
-
     with matplotlib.rc_context(rc):
-        fig, axes = subplots(nrows, ncols, **kwargs)
-        yield fig, axes
+        fig = Figure(figsize=figsize, layout=layout)
+        yield fig, fig.subplots(nrows, ncols, **kwargs)
         files.save_figure(fig, path, dpi=dpi)
 
 

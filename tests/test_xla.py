@@ -147,7 +147,7 @@ def test_vector_widths_change_no_result(paper_setup):
 
 
 _IMPORT_ALL = """
-import json, os, signal, sys
+import json, os, signal, sys, tempfile
 import matplotlib
 env = dict(os.environ)
 # read without resolving: rcParams["backend"] would import pyplot and pick a backend
@@ -155,8 +155,9 @@ backend = repr(dict.__getitem__(matplotlib.rcParams, "backend"))
 rc = {k: repr(v) for k, v in dict.items(matplotlib.rcParams)}
 import dscjax, dscjax.cli.main, dscjax.reproduce.complexity, dscjax.plotting, dscjax.reproduce
 import dscjax.sweep, dscjax.sweep.plots, tuning, tuning.report, tuning.search, dscjax.progress
-fig, ax = dscjax.plotting.subplots(figsize=(2, 2))
-fig.savefig(os.devnull, format="png")
+with tempfile.TemporaryDirectory() as d, dscjax.plotting.saved(os.path.join(d, "f.png"), 100,
+                                                                figsize=(2, 2)):
+    pass
 print(json.dumps({
     "env": dict(os.environ) == env,
     "backend": repr(dict.__getitem__(matplotlib.rcParams, "backend")) == backend,

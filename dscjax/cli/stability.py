@@ -79,32 +79,32 @@ def run(args) -> int:
 
 
 def _plot(m, path):
-    from dscjax.plotting import subplots
+    from dscjax.plotting import saved
 
-    fig, ax = subplots(figsize=(6.4, 5.0), layout=None)
     has_tau = np.isfinite(m.tau).any()
     y = m.tau if has_tau else np.ones(1)
     dts, ys = np.meshgrid(m.dt, y)
-    ax.scatter(dts[m.stable], ys[m.stable], marker="o", color="tab:green", label="RK4 stays finite")
-    ax.scatter(dts[~m.stable], ys[~m.stable], marker="x", color="tab:red", label="RK4 diverges")
     own = y[int(np.argmin(np.abs(m.tau_scale - 1.0)))]
-    ax.scatter([m.requested_dt], [own], s=140, facecolors="none", edgecolors="k",
-               label=f"this config (dt = {m.requested_dt:g} s)")
-    if np.isfinite(m.largest_stable_dt):
-        ax.axvline(m.largest_stable_dt, color="tab:green", ls="--", lw=1,
-                   label=f"largest stable dt {'>= ' if m.beyond_grid else ''}"
-                   f"{m.largest_stable_dt:.3g} s" + ("" if m.beyond_grid else " (bisected)"))
-    if np.isfinite(m.linear_dt):
-        ax.axvline(m.linear_dt, color="tab:blue", ls=":", lw=1,
-                   label=f"linear guide 2.785/max rho = {m.linear_dt:.3g} s")
-    ax.set_xscale("log")
-    if has_tau:
-        ax.set_yscale("log")
-        ax.set_ylabel("smallest filter constant tau [s]")
-    else:
-        ax.set_yticks([])
-    ax.set_xlabel("RK4 step dt [s]")
-    ax.set_title("Where classical RK4 stays finite over the horizon")
-    ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
-    fig.tight_layout()
-    files.save_figure(fig, path, dpi=120)
+    with saved(path, 120, figsize=(6.4, 5.0), layout=None) as (fig, ax):
+        ax.scatter(dts[m.stable], ys[m.stable], marker="o", color="tab:green",
+                   label="RK4 stays finite")
+        ax.scatter(dts[~m.stable], ys[~m.stable], marker="x", color="tab:red", label="RK4 diverges")
+        ax.scatter([m.requested_dt], [own], s=140, facecolors="none", edgecolors="k",
+                   label=f"this config (dt = {m.requested_dt:g} s)")
+        if np.isfinite(m.largest_stable_dt):
+            ax.axvline(m.largest_stable_dt, color="tab:green", ls="--", lw=1,
+                       label=f"largest stable dt {'>= ' if m.beyond_grid else ''}"
+                       f"{m.largest_stable_dt:.3g} s" + ("" if m.beyond_grid else " (bisected)"))
+        if np.isfinite(m.linear_dt):
+            ax.axvline(m.linear_dt, color="tab:blue", ls=":", lw=1,
+                       label=f"linear guide 2.785/max rho = {m.linear_dt:.3g} s")
+        ax.set_xscale("log")
+        if has_tau:
+            ax.set_yscale("log")
+            ax.set_ylabel("smallest filter constant tau [s]")
+        else:
+            ax.set_yticks([])
+        ax.set_xlabel("RK4 step dt [s]")
+        ax.set_title("Where classical RK4 stays finite over the horizon")
+        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
+        fig.tight_layout()
