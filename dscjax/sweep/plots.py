@@ -258,9 +258,8 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
             ax[1].plot(t, u, **style)
             if bool(tr.diverged):
                 ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
-        ax[0].plot(np.asarray(nominal.t), np.asarray(nominal.e), "k--", lw=1.2,
-                   label="nominal setup")
-        ax[1].plot(np.asarray(nominal.t), np.asarray(nominal.u), "k--", lw=1.2)
+        for a, signal in zip(ax, (nominal.e, nominal.u), strict=True):
+            a.plot(np.asarray(nominal.t), np.asarray(signal), "k--", lw=1.2, label="nominal setup")
         for a in ax:
             a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
         ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
