@@ -49,9 +49,8 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
         lam = float(hysteresis.effective_slope())
         lo, hi = (float(x) for x in hysteresis.d1_limits())
         ug = np.linspace(-np.max(np.abs(u)), np.max(np.abs(u)), 2)
-        ax.plot(ug, lam * ug + lo, color="#999999", lw=0.8, ls=":",
-                label=f"$w = {lam:.3g}\\,u + d_1$ limits")
-        ax.plot(ug, lam * ug + hi, color="#999999", lw=0.8, ls=":")
+        for d1, name in ((lo, f"$w = {lam:.3g}\\,u + d_1$ limits"), (hi, None)):
+            ax.plot(ug, lam * ug + d1, color="#999999", lw=0.8, ls=":", label=name)
     ax.plot(u, w, color=color, lw=1.4, label=label)
     ax.set_xlabel("control input $u$ [-]")
 
