@@ -6,7 +6,8 @@ Refinement runs ETDRK4 (exact on the stiff decays) at dt, dt/2, dt/4, ... (`refi
 `refine_diverged`), and a traced call refuses a spec that would refine
 (`refuse_traced_refinement`). A sampled loop refines once: diverging again within a sample
 period means the loop is unstable, not the integrator (`sampled_unstable`). What still
-diverges is a `DivergenceError` or a line of `divergence_report`.
+diverges is a `DivergenceError` or a line of `divergence_report` (`diverged_lines` of a
+run's `Status` alone).
 """
 
 from __future__ import annotations
@@ -130,17 +131,21 @@ def refine_diverged(traj, overrides: Mapping[str, Any], level: Callable, refine:
     return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
 
 
+def diverged_lines(status, t_diverged, state_bound: float | None = None) -> list[str]:
+    """One line per diverged run of a `Status` (a batch's or one run's): which one (batch
+    index), when (`t_diverged`, per run or one time) and how."""
+    code = np.atleast_1d(np.asarray(status.code))
+    t_bad = np.broadcast_to(np.asarray(t_diverged), code.shape)
+    batched = np.ndim(status.code) > 0
+    how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
+           STATUS_BOUND: "a state exceeded the state bound"
+           + (f" {state_bound:g}" if state_bound is not None else "")}
+    return [f"{f'trajectory {i}' if batched else 'the trajectory'} diverged at t = "
+            f"{t_bad[i]:.6g} s: {how[int(code[i])]}" for i in np.flatnonzero(code != STATUS_OK)]
+
+
 def divergence_report(traj, state_bound: float | None = None) -> list[str]:
     """One line per diverged trajectory: which one (batch index), when, and how."""
-    code = np.atleast_1d(np.asarray(traj.status.code))
-    t_bad = np.atleast_1d(np.asarray(traj.t_diverged))
-    lines = []
-    batched = np.ndim(traj.status.code) > 0
-    for i in np.flatnonzero(code != STATUS_OK):
-        who = f"trajectory {i}" if batched else "the trajectory"
-        how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
-               STATUS_BOUND: "a state exceeded the state bound"
-               + (f" {state_bound:g}" if state_bound is not None else "")}[int(code[i])]
-        lines.append(f"{who} diverged at t = {t_bad[i]:.6g} s: {how}; outputs after that time "
-                     f"hold the last good state. Reduce dt (RK4 stability) or revise the gains.")
-    return lines
+    advice = ("; outputs after that time hold the last good state. Reduce dt (RK4 stability) "
+              "or revise the gains.")
+    return [line + advice for line in diverged_lines(traj.status, traj.t_diverged, state_bound)]

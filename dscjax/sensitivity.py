@@ -17,7 +17,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 from collections.abc import Mapping, Sequence
-from types import SimpleNamespace
 from typing import Any
 
 import jax
@@ -26,11 +25,12 @@ import numpy as np
 
 from dscjax import params, validation, xla
 from dscjax.closed_loop import Setup
+from dscjax.divergence import DivergenceError, diverged_lines
 from dscjax.metrics import Power, SmoothMax
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
 from dscjax.selection import Relative, Selection, Shift, Tuned, run_at
-from dscjax.simulate import DivergenceError, canonical, check, divergence_report, dtype_of
+from dscjax.simulate import canonical, check, dtype_of
 from dscjax.validation import ConfigError
 
 # l2_error_window, max_abs_u and tv_u as `dscjax.metrics` defines them; lp_error_window the
@@ -191,11 +191,8 @@ class Problem:
         """The `Sensitivity` of `jacobian`'s output; DivergenceError if the loop diverged."""
         k, grad, status = out
         if np.any(np.asarray(status.code) != 0):
-            step = np.asarray(status.step)  # what divergence_report reads of a Trajectory
-            seen = SimpleNamespace(status=status, t_diverged=np.where(
-                step >= 0, step * float(self.spec.dt), np.inf))
-            lines = [line.split(";")[0]  # not the trajectory's advice
-                     for line in divergence_report(seen, float(self.spec.state_bound))]
+            lines = diverged_lines(status, np.asarray(status.step) * float(self.spec.dt),
+                                   float(self.spec.state_bound))
             raise DivergenceError("no sensitivity: " + ", ".join(lines[:3])
                                   + (f" (and {len(lines) - 3} more)" if len(lines) > 3 else "")
                                   + "; reduce dt, use the etdrk4 solver or revise the gains",

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from dscjax import markdown, metrics
+from dscjax import markdown, metrics, params
 from dscjax.plotting import saved
 from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import simulate_batch
@@ -46,6 +46,12 @@ def judge(linf: float | None, index: float | None, reference: float | None) -> s
     if reference is not None and not linf <= TRACK_FACTOR * reference:
         return f"error {linf / reference:.3g} x the reference loop's"
     return None
+
+
+def gain_sets(setups: Sequence, paths) -> dict[str, np.ndarray]:
+    """{path: (len(setups), ...)}: the leaves at `paths` of each setup stacked, one row per
+    gain set (`study`'s `gains`, a batch of the loop with each set)."""
+    return {p: np.stack([np.asarray(params.get(s, p)) for s in setups]) for p in paths}
 
 
 def measured(tr, keys: Sequence[str], i=()) -> dict[str, float | None]:
@@ -89,7 +95,8 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
           window_start: float = 1.0, sample_times: Sequence[float] = SAMPLE_TIMES,
           base: RunSpec | None = None, reference: dict | None = None) -> dict:
     """Windowed L-inf, TV(u) and chattering index on [window_start, T] (`FIGURES`) of each
-    gain set (`names`; `gains` {path: (len(names), ...)}: the batch of their leaves),
+    gain set (`names`; `gains` {path: (len(names), ...)}: the batch of their leaves,
+    `gain_sets`),
     continuous (RK4 at the finest plant step of `plant_steps`: the Ts -> 0 limit, which RK4 at
     dt may miss for stiff gains) and sampled at each Ts, None where a run
     diverged; whether each Ts tracks (`judge` against `reference` {name: windowed L-inf},

@@ -27,7 +27,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import metrics, params, ts_sweep
+from dscjax import metrics, ts_sweep
 from dscjax.markdown import table
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
@@ -49,9 +49,8 @@ NAMES = ("start", "tuned")
 
 def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     """{leaf path: (2, ...)}: every leaf the selection tunes, at the start and tuned points."""
-    setups = [problem.setup_at(z) for z in (z0, z1)]
     paths = dict.fromkeys(n.split("[")[0].rstrip("*") for n in problem.selection.names)
-    return {p: np.stack([np.asarray(params.get(s, p)) for s in setups]) for p in paths}
+    return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
 def _run(problem, overrides: dict, **change):

@@ -99,14 +99,6 @@ class CheckLoop(eqx.Module):
             out = out + jnp.maximum(m[smooth[key]] / (f * b) - 1.0, 0.0) ** 2
         return self.weight * out
 
-    def met(self, m: Mapping[str, jax.Array], bounds: tuple) -> jax.Array:
-        p = self.name
-        ok = ~m[f"{p}_diverged"] & within(m[f"{p}_linf_window"],
-                                          self.linf_factor * m["linf_error_window"])
-        for _, key, b, f in self.bounded(bounds):
-            ok = ok & within(m[f"{p}_{key}"], f * _like(b, m[f"{p}_{key}"]))
-        return ok
-
 
 def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
     """The loops a sampled loop's gains must also hold in: the other discretisation of the
@@ -147,6 +139,20 @@ def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=No
                                                  "max_abs_u", "smooth_max_abs_u", "tv_u",
                                                  "diverged")}
     return m, traj.diverged
+
+
+def exact_constraints(bounds: tuple, linf, checks=()) -> list[tuple[str, str, Any]]:
+    """(name, metric key, bound) of each constraint checked exactly, against the effort
+    `bounds` (`Scales.bounds`; None: none): max|u|, TV(u) and each check loop's windowed L-inf
+    (at most its factor x `linf`, the loop tuned's) and effort bounds. `Objective.judged`'s
+    feasibility and the report's rows (`report.constraint_checks`)."""
+    out = [(name, key, b) for name, key, b in
+           zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True) if b is not None]
+    for c in checks:
+        out.append((f"L-inf on [t0,T], {c.label}", f"{c.name}_linf_window", c.linf_factor * linf))
+        out += [(f"{what}, {c.label}", f"{c.name}_{key}", f * b)
+                for what, key, b, f in c.bounded(bounds)]
+    return out
 
 
 def plant_count(plants: Mapping[str, Any] | None) -> int:
@@ -225,18 +231,18 @@ class Objective(eqx.Module):
         diverged and the effort bounds, the requirements and each check loop's constraints are
         met."""
         spec, n_req = self.spec, len(self.requirements)
-        ok = ~diverged
-        for key, bound in zip(("max_abs_u", "tv_u"), bounds, strict=True):
-            if bound is not None:
-                ok = ok & within(metrics[key], _like(bound, metrics[key]))
         # a plant diverged in any loop costs a finite constant, so that means and CVaRs stay
         # usable; its metrics (NaN) are replaced first, or their 0 x NaN would reach the
         # gradient. Any other non-finite J stays so, and the search ranks it last.
         bad = diverged
         for c in self.checks:
             bad = bad | metrics[f"{c.name}_diverged"]
+        u_bound, tv_bound = (_like(b, metrics["max_abs_u"]) for b in bounds)
+        ok = ~bad
+        for _, key, bound in exact_constraints((u_bound, tv_bound),
+                                               metrics["linf_error_window"], self.checks):
+            ok = ok & within(metrics[key], bound)
         m = {k: jnp.where(bad, 1.0, v) for k, v in metrics.items()}
-        u_bound, tv_bound = _like(bounds[0], m["max_abs_u"]), _like(bounds[1], m["tv_u"])
         terms = {name: getattr(spec, name) * m[figure] / getattr(self.scales, scale)
                  for name, (figure, _, scale, _) in TERMS.items() if getattr(spec, name)}
         for name, figure, bound, weight in bound_terms(spec, u_bound, tv_bound):
@@ -246,7 +252,6 @@ class Objective(eqx.Module):
             ok = ok & (metrics[f"req{i}_met"] > 0)
         for c in self.checks:
             terms[c.name] = c.penalty(m, u_bound, tv_bound)
-            ok = ok & c.met(metrics, bounds)
         total = jnp.where(bad, spec.divergence_penalty, sum(terms.values()))
         return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}, ok
 

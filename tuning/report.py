@@ -21,7 +21,7 @@ from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins, report_md
 from tuning.config import TERMS
-from tuning.objective import within
+from tuning.objective import exact_constraints, within
 from tuning.reductions import shifted_reference
 from tuning.report_plots import draw
 from tuning.runner import simulate_command
@@ -149,19 +149,13 @@ def constraint_checks(scales, m: dict[str, Any], checks=()) -> list[dict[str, An
 
 def _exact(bounds, m, checks, n: int):
     """(name, metric, bound, values (n,), bounds (n,), unmeasured (n,), met (n,)) of each bound
-    there is (max|u|, TV(u), the check loops') on the n plants of `m`: unmeasured where a loop
-    diverged or the value is not finite, met within `BOUND_RTOL` where measured."""
+    there is (`exact_constraints`) on the n plants of `m`: unmeasured where a loop diverged or
+    the value is not finite, met within `BOUND_RTOL` where measured."""
     diverged = np.broadcast_to(np.asarray(m.get("diverged", False)), (n,)).astype(bool)
     for c in checks:
         diverged = diverged | np.asarray(m[f"{c.name}_diverged"]).astype(bool)
-    out = list(zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True))
-    for c in checks:
-        out.append((f"L-inf on [t0,T], {c.label}", f"{c.name}_linf_window",
-                    c.linf_factor * np.asarray(m["linf_error_window"], float)))
-        out += [(f"{what}, {c.label}", f"{c.name}_{key}",
-                 b if f == 1 else f * np.asarray(b, float))
-                for what, key, b, f in c.bounded(bounds)]
-    for name, key, bound in (t for t in out if t[2] is not None):
+    linf = np.asarray(m.get("linf_error_window", np.nan), float)
+    for name, key, bound in exact_constraints(bounds, linf, checks):
         b = np.broadcast_to(np.asarray(bound, float), (n,))
         v = np.asarray(m[key], float).reshape(n)
         bad = diverged | ~np.isfinite(v)

@@ -6,7 +6,6 @@ each training plant its own; `Scales` holds them."""
 from __future__ import annotations
 
 from collections.abc import Mapping
-from types import SimpleNamespace
 from typing import Any
 
 import equinox as eqx
@@ -16,8 +15,9 @@ import numpy as np
 
 from dscjax import xla
 from dscjax.closed_loop import Setup
+from dscjax.divergence import DivergenceError, diverged_lines
 from dscjax.runspec import RunSpec, loop_words
-from dscjax.simulate import DivergenceError, divergence_report, run
+from dscjax.simulate import run
 from dscjax.validation import ConfigError
 from tuning.config import TERMS, ObjectiveSpec
 from tuning.reductions import UserError, shifted_reference
@@ -103,10 +103,9 @@ def start_scales(setup: Setup, sim: RunSpec, spec: ObjectiveSpec,
 
 def start_divergence(sim: RunSpec, status) -> DivergenceError:
     """The error of start gains that diverge on the nominal plant (their run's `Status`):
-    which run, when and how, as `divergence_report` says it."""
+    which run, when and how (`divergence.diverged_lines`)."""
     # a run that diverged has the first bad step's index (`Status`)
-    seen = SimpleNamespace(status=status, t_diverged=int(status.step) * float(sim.dt))
-    how = divergence_report(seen, float(sim.state_bound))[0].split(";")[0]
+    how = diverged_lines(status, int(status.step) * float(sim.dt), float(sim.state_bound))[0]
     return DivergenceError(f"the start gains diverge on the nominal plant in the loop tuned "
                            f"({loop_words(sim)}): the run {how.removeprefix('the trajectory ')}; "
                            f"tuning needs a stable start (revise the gains, dt or tau)", None)

@@ -9,8 +9,6 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
 from dscjax import ts_sweep
 from dscjax.config import from_dict
 from dscjax.ts_sweep import SAMPLE_TIMES, criterion, largest_tracking, table
@@ -39,8 +37,7 @@ def study(setup, t_final: float, dt: float, window_start: float = 1.0,
     """`ts_sweep.study` of the paper's gains and `TUNED`, as a batch of the controller's
     leaves; `ts_sweep.plot` draws it with `LABELS`."""
     tuned = from_dict({"controller": TUNED}, base=setup)[0]
-    batch = {f"controller.{k}": np.stack([np.asarray(getattr(s.controller, k), float)
-                                          for s in (setup, tuned)]) for k in TUNED}
+    batch = ts_sweep.gain_sets((setup, tuned), [f"controller.{k}" for k in TUNED])
     return ts_sweep.study(setup, batch, GAINS, t_final, dt, window_start, sample_times)
 
 

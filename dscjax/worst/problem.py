@@ -130,14 +130,9 @@ class Problem:
                 if self.m else None)
         return Static(tuple(r.param for r in self.ranges), coef, self.metric_key)
 
-    def overrides(self, z):
-        """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
-        return box_overrides(self.setup, self.static(), z, *self.box())
-
     def setup_at(self, z) -> Setup:
         """The concrete setup of one normalised point."""
-        ov = self.overrides(np.asarray(z, dtype=np.float64)[None, :])
-        return params.set_many(self.setup, {p: np.asarray(v)[0] for p, v in ov.items()})
+        return box_setup(self.setup, self.static(), np.asarray(z, dtype=np.float64), *self.box())
 
     def values_at(self, z) -> tuple[dict[str, float], dict | None]:
         """The searched parameters by config path and the disturbance record of a point."""
@@ -267,3 +262,9 @@ def box_overrides(setup, st: Static, z, lo, hi, bound):
         xp = np if isinstance(z, np.ndarray) else jnp
         out[st.coef_path] = xp.asarray(bound * z[:, d:], dtype=dtype_of(setup))
     return out
+
+
+def box_setup(setup, st: Static, z1, lo, hi, bound):
+    """`setup` at one normalised point z1 (d + m,) of the box (traced or NumPy)."""
+    one = {p: v[0] for p, v in box_overrides(setup, st, z1[None, :], lo, hi, bound).items()}
+    return params.set_many(setup, one)

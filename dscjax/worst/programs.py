@@ -15,9 +15,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import disturbance as dist_mod
-from dscjax import params, search, xla
+from dscjax import search, xla
 from dscjax.simulate import dtype_of, run
-from dscjax.worst.problem import Problem, Static, box_overrides, with_steps
+from dscjax.worst.problem import Problem, Static, box_overrides, box_setup, with_steps
 
 
 def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
@@ -26,8 +26,7 @@ def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
 
 
 def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
-    one = {p: v[0] for p, v in box_overrides(setup, st, z1[None, :], lo, hi, bound).items()}
-    traj = run(params.set_many(setup, one), spec, extra=extra)
+    traj = run(box_setup(setup, st, z1, lo, hi, bound), spec, extra=extra)
     return traj.metrics[st.metric], traj.diverged
 
 
