@@ -1,5 +1,6 @@
-"""Markdown tables: the lines of one from its header and rows (`table`); a cell's text; a
-measured number as results lines write it (`figure`)."""
+"""Markdown tables and the words of results: the lines of a table from its header and rows
+(`table`); a cell's text; a measured number as results lines write it (`figure`), one that may
+be missing (`number`), a sample time in ms (`ms`); a verdict cell (`verdict`, `yes`)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,27 @@ def figure(x: float) -> str:
     return f"{x:,.0f}" if abs(x) >= 1e4 else f"{x:.4g}"
 
 
+def number(x: float | None, spec: str = ".4g", missing: str = "-") -> str:
+    """A figure of a table or sentence written by `spec`, or `missing` where there is none
+    (None or NaN: not measured, or the run diverged)."""
+    return missing if x is None or x != x else format(x, spec)
+
+
+def ms(seconds: float) -> str:
+    """A sample time in milliseconds, as every Ts is written: "0.1" for 1e-4 s."""
+    return f"{1e3 * seconds:g}"
+
+
+def yes(holds: bool) -> str:
+    """A verdict cell: "yes", or a bold "**no**"."""
+    return "yes" if holds else "**no**"
+
+
+def verdict(why: str | None) -> str:
+    """A verdict cell with its reason: "yes" (`why` None), or "**no**: " and why not."""
+    return yes(why is None) + ("" if why is None else f": {why}")
+
+
 def _row(cells: Iterable[str]) -> str:
     """One line of a table: `| a | b |`."""
     return "| " + " | ".join(cells) + " |"
@@ -30,4 +52,4 @@ def table(head: Sequence[str], rows: Iterable[Sequence[Any]],
     return [_row(head), "|---" * len(head) + "|", *(_row(map(cell, r)) for r in rows)]
 
 
-__all__ = ["escape", "figure", "table"]
+__all__ = ["escape", "figure", "ms", "number", "table", "verdict", "yes"]

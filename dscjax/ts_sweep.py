@@ -34,17 +34,20 @@ TRACK_FACTOR = 2.0
 FIGURES = ("linf_error_window", "tv_u_window", "chattering_index")
 
 
-def judge(linf: float | None, index: float | None, reference: float | None) -> str | None:
+def judge(linf: float | None, index: float | None, reference: float | None,
+          factor: float = TRACK_FACTOR, whose: str = "the reference loop's",
+          chatters: bool = True) -> str | None:
     """Why a run does not track, in words, or None where it tracks (module docstring):
     "diverged", "chatters (index 3.2)" or "error 2.6 x the reference loop's"; `reference`
     (the same gains' windowed L-inf in the loop they are judged against) None: the error is
-    not judged."""
+    not judged. The delay margin judges with its own `factor`, the loop it names (`whose`)
+    and, where a TV(u) bound judges the effort, no chattering check (`chatters` False)."""
     if linf is None or index is None:
         return "diverged"
-    if metrics.chatters(index):
+    if chatters and metrics.chatters(index):
         return f"chatters (index {index:.3g})"
-    if reference is not None and not linf <= TRACK_FACTOR * reference:
-        return f"error {linf / reference:.3g} x the reference loop's"
+    if reference is not None and not linf <= factor * reference:
+        return f"error {linf / reference:.3g} x {whose}"
     return None
 
 
@@ -60,14 +63,12 @@ def measured(tr, keys: Sequence[str], i=()) -> dict[str, float | None]:
     return {k: None if diverged else float(np.asarray(tr.metrics[k])[i]) for k in keys}
 
 
-def cell(v: float | None, digits: int = 4) -> str:
-    """A figure of a table, "diverged" where the run diverged (None)."""
-    return "diverged" if v is None else f"{v:.{digits}g}"
-
-
-def verdict(why: str | None) -> str:
-    """A table's verdict of a judge (`judge`): "yes", or "**no**: " and why not."""
-    return "yes" if why is None else f"**no**: {why}"
+def cells(r: dict, keys: Sequence[str], i=None) -> tuple[str, ...]:
+    """The figures `keys` of a gain set's results `r` (of each, the value at i where given)
+    as table cells: 4 digits, a chattering index 3, "diverged" where the run diverged (None)."""
+    return tuple(markdown.number(r[k] if i is None else r[k][i],
+                                 ".3g" if k.endswith("chattering_index") else ".4g", "diverged")
+                 for k in keys)
 
 
 def plant_steps(sample_times: Sequence[float], t_final: float,
@@ -156,6 +157,16 @@ def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
     return last
 
 
+def reach(result: dict, name: str, last, tracks: str) -> str:
+    """How far gain set `name` tracks, in words: where it tracks at the smallest Ts, `tracks`
+    formatted with `last` (`largest_tracking`'s (Ts, windowed L-inf): the Ts in ms, then the
+    rest), else that it does not track at the smallest Ts, and why."""
+    if last:
+        return tracks.format(markdown.ms(last[0]), *last[1:])
+    return (f"do not track at Ts = {markdown.ms(result['sample_times'][0])} ms "
+            f"({result[name]['why_not'][0]})")
+
+
 def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
     """The windowed L-inf of each gain set against Ts (`labels`: {name: its words})."""
     with saved(path, dpi, figsize=(6.4, 4.0)) as (fig, ax):
@@ -212,18 +223,17 @@ def table(result: dict) -> list[str]:
 
     def row(i, ts, n):
         r = result[n]
-        cells = (f"{1e3 * ts:g}", n, cell(r["sampled"][i]), cell(r["tv_u_window"][i]),
-                 cell(r["chattering_index"][i], 3), verdict(r["why_not"][i]))
+        own = (markdown.ms(ts), n, *cells(r, ("sampled", "tv_u_window", "chattering_index"), i),
+               markdown.verdict(r["why_not"][i]))
         if not batch:
-            return cells
+            return own
         b = batch[n][i]
-        return cells + (("-", "-") if b is None else (
-            cell(b["p95_tv_u_window"]), f"{b['n_chattering']} of {b['n_measured']}"
+        return own + (("-", "-") if b is None else (
+            *cells(b, ("p95_tv_u_window",)), f"{b['n_chattering']} of {b['n_measured']}"
             + (f" ({b['n_diverged']} diverged)" if b["n_diverged"] else "")))
 
+    continuous = ("continuous", "continuous_tv_u_window", "continuous_chattering_index")
     return markdown.table(head, [
         *(row(i, ts, n) for i, ts in enumerate(result["sample_times"]) for n in result["names"]),
-        *(("continuous", n, cell(result[n]["continuous"]),
-           cell(result[n]["continuous_tv_u_window"]),
-           cell(result[n]["continuous_chattering_index"], 3), "") + (("", "") if batch else ())
+        *(("continuous", n, *cells(result[n], continuous), "") + (("", "") if batch else ())
           for n in result["names"])])

@@ -28,10 +28,10 @@ import jax
 import numpy as np
 
 from dscjax import metrics, ts_sweep
-from dscjax.markdown import table
+from dscjax.markdown import ms, table, verdict, yes
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
-from dscjax.ts_sweep import cell, measured, verdict
+from dscjax.ts_sweep import cells, measured
 
 TS_MIN = 1e-4  # the smallest Ts of the sweep [s]
 TS_FACTOR = 2.0  # the sweep ends at this many times the tuned loop's Ts
@@ -162,19 +162,14 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
 
 def delay_judge(problem, linf, tv, index, reference) -> str | None:
     """Why a delayed loop fails the search's delayed check, in words, or None where it holds:
-    diverged, TV(u) over `delay_tv_factor` x the TV(u) bound (without a bound: chattering,
-    `ts_sweep.judge`), or a windowed L-inf over `delay_factor` x `reference` (the same gains'
-    in the loop tuned)."""
+    TV(u) over `delay_tv_factor` x the TV(u) bound, else `ts_sweep.judge` with `delay_factor`
+    (diverged, chattering where there is no bound, or a windowed L-inf over `delay_factor` x
+    `reference`, the same gains' in the loop tuned)."""
     spec, bound = problem.cfg.objective, problem.scales.tv_max
-    if linf is None or tv is None or index is None:
-        return "diverged"
-    if bound is None and metrics.chatters(index):
-        return f"chatters (index {index:.3g})"
-    if bound is not None and not tv <= spec.delay_tv_factor * bound:
+    if bound is not None and tv is not None and not tv <= spec.delay_tv_factor * bound:
         return f"TV(u) {tv / bound:.3g} x its bound"
-    if reference is not None and not linf <= spec.delay_factor * reference:
-        return f"error {linf / reference:.3g} x the loop tuned's"
-    return None
+    return ts_sweep.judge(linf, index, reference, spec.delay_factor, "the loop tuned's",
+                          chatters=bound is None)
 
 
 def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
@@ -271,7 +266,7 @@ def failures(margins: dict[str, Any]) -> list[str]:
     out = []
     st = margins.get("sample_time")
     if st is not None and not st["tuned_tracks_all"]:
-        lost = [f"{1e3 * ts:g} ms ({why})" for ts, why in zip(
+        lost = [f"{ms(ts)} ms ({why})" for ts, why in zip(
             st["sample_times"], st["tuned"]["why_not"], strict=True) if why is not None]
         out.append(f"the tuned gains do not track at every Ts from {_ms_range(st)}: not with "
                    f"the controller sampled at {', '.join(lost)}")
@@ -285,7 +280,7 @@ def failures(margins: dict[str, Any]) -> list[str]:
 
 def _ms_range(st: dict) -> str:
     """The Ts sweep's range, "0.1 to 2 ms"."""
-    return f"{1e3 * st['sample_times'][0]:g} to {1e3 * st['sample_times'][-1]:g} ms"
+    return f"{ms(st['sample_times'][0])} to {ms(st['sample_times'][-1])} ms"
 
 
 def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
@@ -298,8 +293,8 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                   f"stiff):", "", *table(
                       ("", "L∞ e on [t0, T]", "max\\|u\\|", "TV(u)",
                        "chattering index on [t0, T]", "simulated by"),
-                      [(tag, cell(r["linf_error_window"]), cell(r["max_abs_u"]), cell(r["tv_u"]),
-                        cell(r.get("chattering_index"), 3),
+                      [(tag, *cells(r, ("linf_error_window", "max_abs_u", "tv_u",
+                                        "chattering_index")),
                         f"{r['solver']} at dt = {r['dt_used']:g} s"
                         + (" (RK4 at dt diverged: stiff)" if r["refinements"] else ""))
                        for tag, r in _rows(c)])]
@@ -314,13 +309,13 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
     if dl is not None:
         tv = (" and no chattering" if dl["tv_limit"] is None else
               f" and TV(u) at most {dl['tv_limit']:.4g} (`delay_tv_factor` x its bound)")
-        lines += ["", f"**Delay margin.** The loop tuned (Ts = {1e3 * dl['sample_time']:g} ms) "
+        lines += ["", f"**Delay margin.** The loop tuned (Ts = {ms(dl['sample_time'])} ms) "
                   f"with the input d samples late, up to {dl['max']}: windowed L-inf at most "
                   f"{dl['linf_factor']:g} x the same gains' at the loop's own delay{tv}:", "",
                   *table(("delay d [samples]", "gains", "L∞ e on [t0, T]", "TV(u)",
                           "chattering index", "holds"),
-                         [(d, tag, cell(r["linf_error_window"][i]), cell(r["tv_u"][i]),
-                           cell(r["chattering_index"][i], 3), verdict(r["why_not"][i]))
+                         [(d, tag, *cells(r, ("linf_error_window", "tv_u", "chattering_index"), i),
+                           verdict(r["why_not"][i]))
                           for i, d in enumerate(dl["delays"]) for tag, r in _rows(dl)])]
     lr = margins["long_run"]
     what = [f"measurement noise of std {lr['noise']:g} on every state"] if lr["noise"] else []
@@ -335,11 +330,11 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                       "chattering index",
                       *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
                         if e in lr["tuned"]["estimates"]), "bounded"),
-                     [(tag, cell(r["linf_error_window"]), cell(reference_linf(nominal)[tag]),
-                       cell(r.get("chattering_index"), 3),
+                     [(tag, *cells(r | {"nominal": reference_linf(nominal)[tag]},
+                                   ("linf_error_window", "nominal", "chattering_index")),
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),
-                       {True: "yes", False: "**no**", None: "not judged"}[r["bounded"]])
+                       "not judged" if r["bounded"] is None else yes(r["bounded"]))
                       for tag, r in _rows(lr)])]
     return lines + ["", *(f"- {v}" for v in verdicts(margins))]
 
@@ -356,12 +351,9 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
     out = []
     st = margins.get("sample_time")
     if st is not None:
-        for tag in NAMES:
-            last = st["largest"][tag]
-            out.append(f"sample time: {tag} gains " + (
-                f"track up to Ts = {1e3 * last[0]:g} ms (at every Ts of the sweep up to it)"
-                if last else f"do not track at Ts = {1e3 * st['sample_times'][0]:g} ms "
-                f"({st[tag]['why_not'][0]})"))
+        out += [f"sample time: {tag} gains " + ts_sweep.reach(
+            st, tag, st["largest"][tag], "track up to Ts = {} ms (at every Ts of the sweep up to "
+            "it)") for tag in NAMES]
         if st["tuned_tracks_all"]:
             out.append(f"sample time: the tuned gains track at every Ts from {_ms_range(st)}")
     dl = margins.get("delay")
@@ -369,7 +361,7 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
         for tag in NAMES:
             last, own = dl["largest"][tag], dl["delays"][0]
             more = " (the largest tried)" if last == dl["delays"][-1] and last >= dl["max"] else ""
-            out.append(f"delay at Ts = {1e3 * dl['sample_time']:g} ms: {tag} gains " + (
+            out.append(f"delay at Ts = {ms(dl['sample_time'])} ms: {tag} gains " + (
                 f"do not hold even at the loop's own delay ({own}: {dl[tag]['why_not'][0]})"
                 if last is None else f"hold up to an input delay of {last} sample(s){more}"))
     lr = margins["long_run"]

@@ -8,7 +8,7 @@ import numpy as np
 
 from dscjax import metrics
 from dscjax.divergence import OUTCOMES  # (docs/tuning.md, "The held-out check")
-from dscjax.markdown import escape, table
+from dscjax.markdown import escape, number, table
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 
@@ -116,10 +116,6 @@ def run_sentence(run: dict) -> str:
                if run["wall_total_s"] else "") + ".")
 
 
-def _f(v):
-    return "-" if v is None or v != v else f"{v:.4g}"  # None or NaN: not measured
-
-
 def _ratio(a, b):
     return "-" if a is None or b is None or b == 0 else f"{a / b:.3g}x"
 
@@ -153,7 +149,7 @@ def text(s: dict, problem) -> str:
                   "measured against it unless it says \"against the config's y_r\".", ""]
     a, b = nom["start"], nom["tuned"]
     lines += table(("", "start gains", "tuned gains", "tuned / start"), [
-        *((escape(label(k, s)), _f(a[k]), _f(b[k]), _ratio(b[k], a[k])) for k in LABELS
+        *((escape(label(k, s)), number(a[k]), number(b[k]), _ratio(b[k], a[k])) for k in LABELS
           if k in a),
         *((label, bool(a[k]), bool(b[k]), "") for k, label in (
             ("diverged", "diverged"), ("sampled_diverged", "diverged, the other discretisation"),
@@ -198,7 +194,7 @@ def text(s: dict, problem) -> str:
         lines += ["", f"## {title} ({rng}; {b.method.name}, seed {b.seed})", "",
                   *table(("", "start median", "tuned median", "start p95", "tuned p95",
                           "start max", "tuned max"), [
-                      (escape(label(m, s)), *(_f(d[q]) for q in ("median", "p95", "max")
+                      (escape(label(m, s)), *(number(d[q]) for q in ("median", "p95", "max")
                                                for d in (st[m], tu[m])))
                       for m in STATS_METRICS if st.get(m) is not None and tu.get(m) is not None])]
         lines += ["", f"{batch_counts(s, key)}. The figures above are over the plants that "
@@ -247,12 +243,12 @@ def label(key: str, s: dict) -> str:
 def effort_span(s: dict) -> str:
     """Where the effort bounds are measured, and the effort on the window beside them: a start
     transient can set a bound that the steady state never needs."""
-    a, b = s["nominal"]["start"], s["nominal"]["tuned"]
+    (u0, tv0), (u1, tv1) = ((number(d.get("max_abs_u_window")), number(d.get("tv_u_window")))
+                            for d in (s["nominal"]["start"], s["nominal"]["tuned"]))
     return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
-            f"transient included. On [t0, T] the start gains use max|u| "
-            f"{_f(a.get('max_abs_u_window'))} and TV(u) {_f(a.get('tv_u_window'))}, the tuned "
-            f"{_f(b.get('max_abs_u_window'))} and {_f(b.get('tv_u_window'))}: numbers for "
-            f"tuning.objective.u_max and tv_max bound them by your actuator.")
+            f"transient included. On [t0, T] the start gains use max|u| {u0} and TV(u) {tv0}, "
+            f"the tuned {u1} and {tv1}: numbers for tuning.objective.u_max and tv_max bound them "
+            f"by your actuator.")
 
 
 def sensitivity_section(sens: dict) -> list[str]:

@@ -21,7 +21,7 @@ import numpy as np
 from dscjax import files, params, validation
 from dscjax.cli import common
 from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
-from dscjax.markdown import table
+from dscjax.markdown import number, table
 from dscjax.plotting import saved
 from dscjax.progress import Progress
 from dscjax.runspec import loop_words
@@ -173,7 +173,7 @@ def _print_table(result) -> None:
     # by the largest |d ln m / d ln p| over the metrics, those without one (p = 0) last
     largest = np.max(np.where(np.isnan(n), -1.0, np.abs(n)), axis=0)
     rows = [("value of m", *(f"{v:.4g}" for v in result.value))]
-    rows += [(result.names[j], *("-" if np.isnan(x) else f"{x:+.3e}" for x in n[:, j]))
+    rows += [(result.names[j], *(number(x, "+.3e") for x in n[:, j]))
              for j in np.argsort(-largest, kind="stable")]
     print("d ln m / d ln p (sorted by the largest magnitude; '-': p = 0, no d ln p)")
     print("\n".join(table(("parameter", *result.metrics), rows)))

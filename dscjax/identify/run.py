@@ -20,7 +20,7 @@ from dscjax import config, files
 from dscjax.identify import fit as fitting
 from dscjax.identify.data import Record, read
 from dscjax.identify.experiment import HOLDS, Experiment, simulate
-from dscjax.markdown import table
+from dscjax.markdown import table, verdict
 from dscjax.rules import AtLeast, Choice, Maybe, Number, Strings, Text
 from dscjax.sensitivity import columns
 from dscjax.settings import setting
@@ -211,7 +211,7 @@ def markdown(s: dict) -> str:
               *table(("parameter", "value", "standard error", "95 % interval", "identified"),
                      [(f"`{e['name']}`", f"{e['value']:.6g}", f"{e['se']:.3g}",
                        f"[{e['low']:.6g}, {e['high']:.6g}]",
-                       "yes" if e["identifiable"] else f"**no**: {e['why']}")
+                       verdict(None if e["identifiable"] else e["why"]))
                       for e in s["parameters"]])]
     if s["not_identifiable"]:
         lines += ["", f"**Not identifiable from this record**: {', '.join(s['not_identifiable'])}"

@@ -6,15 +6,11 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.markdown import escape, table
+from dscjax.markdown import escape, number, table, yes
 from dscjax.reproduce import theory
 from dscjax.reproduce.alpha0 import table_markdown
 from dscjax.reproduce.runs import ESTIMATES
 from dscjax.reproduce.sampling import markdown as sampling_markdown
-
-
-def _yes(b: bool) -> str:
-    return "yes" if b else "**no**"
 
 
 def _figures(summary: dict, folder: str) -> str:
@@ -89,13 +85,13 @@ def theory_markdown(summary: dict) -> str:
                 for g, a in zip(p["gains"], p["allows"].values(), strict=True)])]
     est = ini["estimates"]
     h, ratio = p["holds"], p["bound_72"] / p["S1_inf"]
-    after = "-" if p["S1_inf_after_1s"] is None else f"{p['S1_inf_after_1s']:.3g}"
     rows = [
         ("(63)", f"max(V' + 2 alpha_0 V - C) = {p['margin_63']:.3g}", "0"),
         ("(65)", f"max(V - bound) = {p['margin_65']:.3g}", "0"),
         ("(70)", f"V(0) = {p['V0']:.4g}", f"{p['bound_71']:.4g}"),
         ("(71)", f"max V = {p['V_max']:.4g} (t = {p['t_V_max']:.3g} s)", f"{p['bound_71']:.4g}"),
-        ("(72)", f"{p['S1_inf']:.4g} (after 1 s: {after})", f"{p['bound_72']:.4g} (x{ratio:.3g})"),
+        ("(72)", f"{p['S1_inf']:.4g} (after 1 s: {number(p['S1_inf_after_1s'], '.3g')})",
+         f"{p['bound_72']:.4g} (x{ratio:.3g})"),
     ]
     lines += [
         "",
@@ -106,10 +102,10 @@ def theory_markdown(summary: dict) -> str:
         f"### Statements on the example (alpha_0 = {p['alpha0']:.3g}, mu = {p['mu']:.3g}, "
         f"M = {np.round(p['M_measured'], 4).tolist()} measured, C = {p['C']:.4g})", "",
         *table(("statement", "measured", "bound", "holds"), [
-            *((f"{key} {escape(theory.STATEMENTS[key])}", measured, bound, _yes(h[key]))
+            *((f"{key} {escape(theory.STATEMENTS[key])}", measured, bound, yes(h[key]))
               for key, measured, bound in rows),
             (f"(12) {escape(theory.ASSUMPTIONS['(12)'])} (assumption)", f"{p['d_n_max']:.4g}",
-             f"{p['d']:.4g}", _yes(p["assumptions"]["(12)"]))]),
+             f"{p['d']:.4g}", yes(p["assumptions"]["(12)"]))]),
         "",
         f"V decreases at {100 * p['frac_V_decreasing']:.1f} % of the steps; V(end) = "
         f"{p['V_end']:.4g}. alpha_0 = 0.2 (k_2's, unlicensed) would give the bound "

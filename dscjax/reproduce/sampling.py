@@ -11,7 +11,8 @@ from collections.abc import Sequence
 
 from dscjax import ts_sweep
 from dscjax.config import from_dict
-from dscjax.ts_sweep import SAMPLE_TIMES, criterion, largest_tracking, table
+from dscjax.markdown import ms
+from dscjax.ts_sweep import SAMPLE_TIMES, criterion, largest_tracking, reach, table
 
 # the controller of that run (its gains.json, the [controller] keys tuned)
 TUNED = {
@@ -41,24 +42,16 @@ def study(setup, t_final: float, dt: float, window_start: float = 1.0,
     return ts_sweep.study(setup, batch, GAINS, t_final, dt, window_start, sample_times)
 
 
-def reach(result: dict, name: str) -> str:
-    """How far gain set `name` tracks: up to which Ts (its windowed L-inf there), or why not at
-    the smallest Ts."""
-    ok = largest_tracking(result, name)
-    if ok:
-        return f"track without chattering up to Ts = {1e3 * ok[0]:g} ms (L-inf {ok[1]:.3g})"
-    return (f"do not track at Ts = {1e3 * result['sample_times'][0]:g} ms "
-            f"({result[name]['why_not'][0]})")
-
-
 def findings(result: dict) -> list[str]:
     """How far each gain set tracks and the fitted order: summary.md's list, stdout's line."""
-    texts = [f"{LABELS[name]}: {reach(result, name)}" for name in result["names"]]
+    texts = [f"{LABELS[name]}: " + reach(result, name, largest_tracking(result, name),
+                                         "track without chattering up to Ts = {} ms (L-inf "
+                                         "{:.3g})") for name in result["names"]]
     o = result["order"]
     if o is not None:
         texts.append(f"the sampled loop tends to the continuous one at order {o['order']:.2f} "
                      f"in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
-                     f"{', '.join(f'{1e3 * t:g}' for t in o['sample_times'])} ms, the paper's "
+                     f"{', '.join(ms(t) for t in o['sample_times'])} ms, the paper's "
                      "gains; one exponential-Euler step of the controller per sample: first "
                      "order)")
     return texts

@@ -11,7 +11,7 @@ import numpy as np
 
 from dscjax import params
 from dscjax.divergence import OUTCOMES
-from dscjax.markdown import escape, figure, table
+from dscjax.markdown import escape, figure, number, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
@@ -193,13 +193,13 @@ def float32_trust(got: Mapping[str, float | Sequence[float]],
 
 
 def _cell(x) -> str:
-    if isinstance(x, bool) or x is None:
-        return {True: "yes", False: "no", None: "-"}[x]
+    """A cell of summary.md: yes or no, a count with thousands separators, a figure (`number`)
+    or text."""
+    if isinstance(x, bool):
+        return "yes" if x else "no"
     if isinstance(x, (int, np.integer)):
         return f"{int(x):,}"
-    if isinstance(x, float):
-        return f"{x:.4g}"
-    return escape(x)
+    return number(x) if x is None or isinstance(x, float) else escape(x)
 
 
 def scope_text(run: Mapping[str, Any]) -> str:
@@ -285,8 +285,8 @@ def markdown(summary: Mapping[str, Any]) -> str:
     q = summary["quantiles"]
     lines += ["", f"## Quantiles over the {summary['quantiles_over']}", ""]
     keys = [*QUANTILES, "mean"]
-    lines += table(["metric", *keys], [(m, *([q[m][k] for k in keys] if q[m] else
-                                               ["-"] * len(keys))) for m in q], _cell)
+    lines += table(["metric", *keys], [(m, *((q[m] or {}).get(k) for k in keys)) for m in q],
+                   _cell)
     for title, key, columns in (
             ("Worst samples that track", "worst", [*WORST_COLUMNS, "refinements"]),
             ("First samples to diverge", "first_diverged", ["t_diverged", "dt_used"])):
