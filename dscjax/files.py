@@ -3,7 +3,7 @@ whether a directory holds the same run (so that `--resume` never mixes two runs)
 
     write_json(out / "summary.json", summary)        # arrays, NaN, Paths: all handled
     fp = {...}                                        # what determines a run's results
-    check_record(manifest, "fingerprint", fp, where=f"--resume: {manifest}")
+    check_record(out, "sweep.json", fp)               # --resume: the same run, or refused
 
 Every write (figures too: `save_figure`) goes to a temporary file beside the target, fsynced
 and renamed over it, so a killed run leaves the previous whole file; a failed write removes its
@@ -171,12 +171,15 @@ def resume_file(out: str | Path, marker: str) -> Path:
     return path
 
 
-def check_record(path: Path, key: str, new: Mapping[str, Any], where: str,
+def check_record(out: str | Path, marker: str, new: Mapping[str, Any], *,
+                 key: str = "fingerprint", where: str | None = None,
                  fix: str = SAME_SETTINGS) -> dict:
-    """The JSON record at `path`; ConfigError (one line, the old and new values of what
-    differs) unless its `key` is `new`."""
+    """The JSON record out/marker of the run that `--resume` continues: ConfigError where it
+    is missing (`resume_file`), or (one line, the old and new values of what differs, `where`
+    by default "--resume: PATH") unless its `key` is `new`."""
+    path = resume_file(out, marker)
     meta = read_json(path)
-    check_same(meta.get(key), new, where=where, fix=fix)
+    check_same(meta.get(key), new, where=where or f"--resume: {path}", fix=fix)
     return meta
 
 

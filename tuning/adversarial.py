@@ -109,23 +109,21 @@ def run_fingerprint(searched: worst.Problem, problem: dict, cfg: TuningConfig) -
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
-    path = files.resume_file(out, MANIFEST)
     searched = search_problem(setup, options, cfg)
-    fingerprint = run_fingerprint(searched, runner.describe(searched.setup, options, cfg), cfg)
-    files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
+    files.check_record(out, MANIFEST, run_fingerprint(
+        searched, runner.describe(searched.setup, options, cfg), cfg))
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:
     meta = {"fingerprint": fingerprint, "rounds": [], "fresh": {}}
     if out is None:
         return meta
-    path = out / MANIFEST
-    runner.prepare_dir(out, resume, overwrite, MANIFEST)
     if resume:
-        return files.check_record(path, "fingerprint", fingerprint, f"--resume: {path}")
+        return files.check_record(out, MANIFEST, fingerprint)
+    runner.prepare_dir(out, False, overwrite)
     for old in [*out.glob("round_*"), *out.glob("fresh_*")]:
         shutil.rmtree(old)
-    files.write_json(path, meta)  # at once: a run killed in its first round resumes
+    files.write_json(out / MANIFEST, meta)  # at once: a run killed in its first round resumes
     return meta
 
 

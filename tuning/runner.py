@@ -203,8 +203,8 @@ def describe(setup, options: RunSpec, cfg: TuningConfig) -> dict:
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line: what is missing, or the old and new values of what differs)
     unless `out` holds a run made with these settings; checked before anything runs."""
-    files.check_record(files.resume_file(out, "checkpoint.json"), "problem",
-                 describe(setup, options, cfg), f"--resume: the checkpoint in {out}")
+    files.check_record(out, "checkpoint.json", describe(setup, options, cfg), key="problem",
+                       where=f"--resume: the checkpoint in {out}")
 
 
 def _parts(setup, options: RunSpec, cfg: TuningConfig, extra_plants: dict | None,
@@ -308,13 +308,13 @@ class Result:
         return sum(not r.get("accepted", True) for r in self.trace.history)
 
 
-def prepare_dir(out: Path, resume: bool, overwrite: bool, marker: str = "checkpoint.json") -> None:
-    """ConfigError unless --resume finds `marker` (the run's record) in `out`; only
+def prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
+    """ConfigError unless --resume finds the run's record (checkpoint.json) in `out`; only
     --overwrite replaces a run there (a record of either kind, `RECORDS`). A fresh start (no
     --resume) removes a tuning run's files: --overwrite's, and any a killed run left without
     its record. --resume wins over --overwrite."""
     if resume:
-        files.resume_file(out, marker)
+        files.resume_file(out, "checkpoint.json")
     elif not overwrite and any((out / name).exists() for name in RECORDS):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
@@ -328,8 +328,9 @@ def _saved(out: Path, problem: Problem) -> tuple[dict, search.Saved]:
     """The record (checkpoint.json) and the search state of the run in `out` (the problem
     must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    record = files.check_record(out / "checkpoint.json", "problem", problem.describe(),
-                                f"the checkpoint in {out}", fix)
+    record = files.read_json(out / "checkpoint.json")
+    files.check_same(record.get("problem"), problem.describe(), where=f"the checkpoint in {out}",
+                     fix=fix)
     saved = search.load(out / STATE_FILE)
     if saved is None:
         raise ConfigError(f"--resume: {out / STATE_FILE} is missing or unreadable; {fix}")
@@ -350,8 +351,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         prepare_dir(out, resume, overwrite)
         if resume:
-            _, state = _saved(out, problem)
-            saved = state.trace
+            saved = _saved(out, problem)[1].trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     terms = ck.term_names(problem)

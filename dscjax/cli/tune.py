@@ -6,12 +6,11 @@ history.csv, report.md, report.json, the figures and the checkpoint files `--res
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
 
-from dscjax import config, validation
+from dscjax import config, files, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.params import cast
@@ -67,8 +66,8 @@ def interrupt_hint(args) -> str:
     if (Path(args.out) / "adversarial.json").exists():
         return resume_text(args, f"the finished rounds and searches are kept in {args.out}")
     try:
-        meta = json.loads((Path(args.out) / "checkpoint.json").read_text())
-    except (OSError, ValueError):
+        meta = files.read_json(Path(args.out) / "checkpoint.json")
+    except ValueError:  # missing or unreadable (a ConfigError)
         return kept_text(args, OUTPUTS)
     return resume_text(args, f"the checkpoint (iteration {meta.get('iteration')}, best loss "
                        f"{meta.get('best_loss', float('nan')):.4g}) is kept in {args.out}")

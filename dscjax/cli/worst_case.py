@@ -72,15 +72,13 @@ def run(args) -> int:
                limit_s=s.time_limit, limit=f"--time-limit {s.time_limit:g} s")
     check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
     choice = common.use_device(args, options.device, max(s.starts, s.batch))
-    out = Path(args.out)
-    manifest = out / MANIFEST
     fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
                    "batch": s.batch, "methods": methods, "coarsening": s.gradient_coarsening}
     if args.resume:
-        files.check_record(files.resume_file(out, MANIFEST), "fingerprint", fingerprint,
-                           f"--resume: {manifest}")
+        files.check_record(args.out, MANIFEST, fingerprint)
     out = prepare_out(args, OUTPUTS, resumable=True)
-    files.write_json(manifest, {"fingerprint": fingerprint, "argv": getattr(args, "argv", [])})
+    files.write_json(out / MANIFEST, {"fingerprint": fingerprint,
+                                      "argv": getattr(args, "argv", [])})
     common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "
                   f"{s.time_limit:g} s each"
                   + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")

@@ -242,7 +242,7 @@ def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
-            files.check_record(manifest, "fingerprint", fp, f"--resume: {manifest}")
+            files.check_record(out, "sweep.json", fp)
             done = np.array([_read_chunk(_chunk_path(out, b), digest) is not None
                              for b in range(n_blocks)])
         elif existing and not overwrite:
