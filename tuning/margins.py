@@ -162,11 +162,13 @@ def heldout_at(problem, z0, z1, sample_times, heldout: dict) -> dict[str, Any]:
 
 def delay_judge(problem, linf, tv, index, reference) -> str | None:
     """Why a delayed loop fails the search's delayed check, in words, or None where it holds:
-    TV(u) over `delay_tv_factor` x the TV(u) bound, else `ts_sweep.judge` with `delay_factor`
-    (diverged, chattering where there is no bound, or a windowed L-inf over `delay_factor` x
-    `reference`, the same gains' in the loop tuned)."""
+    diverged (a figure missing), TV(u) over `delay_tv_factor` x the TV(u) bound, else
+    `ts_sweep.judge` with `delay_factor` (chattering where there is no bound, or a windowed
+    L-inf over `delay_factor` x `reference`, the same gains' in the loop tuned)."""
     spec, bound = problem.cfg.objective, problem.scales.tv_max
-    if bound is not None and tv is not None and not tv <= spec.delay_tv_factor * bound:
+    if linf is None or tv is None or index is None:
+        return "diverged"
+    if bound is not None and not tv <= spec.delay_tv_factor * bound:
         return f"TV(u) {tv / bound:.3g} x its bound"
     return ts_sweep.judge(linf, index, reference, spec.delay_factor, "the loop tuned's",
                           chatters=bound is None)
