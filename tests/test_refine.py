@@ -2,6 +2,8 @@
 per-trajectory refinement (a divergence of RK4 that a stiffness-aware or smaller step removes is
 not reported)."""
 
+from types import SimpleNamespace
+
 import jax.numpy as jnp
 import numpy as np
 import pytest
@@ -124,6 +126,18 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     for key in ("linf_error_window", "l2_error_window", "max_abs_u", "l2_u", "tv_u"):
         # a sum over 2**m * 2000 steps, batched or not: round-off of the summation order
         assert after[key][1] == pytest.approx(float(one.metrics[key]), rel=1e-9), key
+    # a check loop's figures are refined alike, each exact constraint's among them (here a
+    # check loop that is the loop tuned again: the same programs, nothing compiled anew)
+    keys = {"diverged": "diverged", "linf_window": "linf_error_window",
+            "max_abs_u": "max_abs_u", "tv_u": "tv_u"}
+    again = SimpleNamespace(name="again", sim=problem.objective.sim)
+    twice = SimpleNamespace(setup_at=problem.setup_at, objective=SimpleNamespace(
+        sim=problem.objective.sim, checks=(again,)))
+    checked = report.refined(twice, z, ov, before | {f"again_{k}": before[v]
+                                                     for k, v in keys.items()})
+    assert checked["again_refined"].tolist() == [0, j, 0]
+    for k, v in keys.items():
+        np.testing.assert_array_equal(checked[f"again_{k}"], after[v])
     stats = report.batch_stats(after)
     assert (stats["n_tracked"], stats["n_refined"], stats["n_diverged"]) == (2, 1, 0)
     # reported as sweeps report their rows

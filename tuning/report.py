@@ -74,7 +74,7 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     for c in problem.objective.checks:
         m[f"{c.name}_refined"] = _refine(setup, ov, c.sim, m, {
             "diverged": f"{c.name}_diverged", "linf_error_window": f"{c.name}_linf_window",
-            "tv_u": f"{c.name}_tv_u"})
+            "max_abs_u": f"{c.name}_max_abs_u", "tv_u": f"{c.name}_tv_u"})
     return m
 
 
