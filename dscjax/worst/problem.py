@@ -130,6 +130,10 @@ class Problem:
                 if self.m else None)
         return Static(tuple(r.param for r in self.ranges), coef, self.metric_key)
 
+    def overrides(self, z):
+        """{path: (B, ...)} of a (B, dim) batch of normalised points (traced or NumPy)."""
+        return box_overrides(self.setup, self.static(), z, *self.box())
+
     def setup_at(self, z) -> Setup:
         """The concrete setup of one normalised point."""
         return box_setup(self.setup, self.static(), np.asarray(z, dtype=np.float64), *self.box())
