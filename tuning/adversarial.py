@@ -109,9 +109,10 @@ def run_fingerprint(searched: worst.Problem, problem: dict, cfg: TuningConfig) -
 
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """`runner.check_resume` of an adversarial run (`run`'s arguments): nothing is run."""
+    files.resume_file(out, MANIFEST)  # a missing run first, then the settings
     searched = search_problem(setup, options, cfg)
-    files.check_record(out, MANIFEST, run_fingerprint(
-        searched, runner.describe(searched.setup, options, cfg), cfg))
+    fingerprint = run_fingerprint(searched, runner.describe(searched.setup, options, cfg), cfg)
+    files.check_record(out, MANIFEST, fingerprint)
 
 
 def _manifest(out: Path | None, fingerprint: dict, resume: bool, overwrite: bool) -> dict:

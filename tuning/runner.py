@@ -203,6 +203,7 @@ def describe(setup, options: RunSpec, cfg: TuningConfig) -> dict:
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line: what is missing, or the old and new values of what differs)
     unless `out` holds a run made with these settings; checked before anything runs."""
+    files.resume_file(out, "checkpoint.json")  # a missing run first, then the settings
     files.check_record(out, "checkpoint.json", describe(setup, options, cfg), key="problem",
                        where=f"--resume: the checkpoint in {out}")
 
@@ -351,7 +352,8 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         prepare_dir(out, resume, overwrite)
         if resume:
-            saved = _saved(out, problem)[1].trace
+            _, state = _saved(out, problem)
+            saved = state.trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     terms = ck.term_names(problem)
