@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 from dscjax import metrics, ts_sweep
-from dscjax.markdown import ms, table, verdict, yes
+from dscjax.markdown import ms, number, table, verdict, yes
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
 from dscjax.ts_sweep import cells, measured
@@ -332,8 +332,9 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
                       "chattering index",
                       *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES
                         if e in lr["tuned"]["estimates"]), "bounded"),
-                     [(tag, *cells(r | {"nominal": reference_linf(nominal)[tag]},
-                                   ("linf_error_window", "nominal", "chattering_index")),
+                     [(tag, *cells(r, ("linf_error_window",)),
+                       number(reference_linf(nominal)[tag], missing="diverged"),
+                       *cells(r, ("chattering_index",)),
                        *(f"{e['second_quarter']:.4g} / {e['second_half']:.4g}"
                          for e in r["estimates"].values()),
                        "not judged" if r["bounded"] is None else yes(r["bounded"]))
@@ -353,9 +354,9 @@ def verdicts(margins: dict[str, Any]) -> list[str]:
     out = []
     st = margins.get("sample_time")
     if st is not None:
-        out += [f"sample time: {tag} gains " + ts_sweep.reach(
-            st, tag, st["largest"][tag], "track up to Ts = {} ms (at every Ts of the sweep up to "
-            "it)") for tag in NAMES]
+        tracks = "track up to Ts = {} ms (at every Ts of the sweep up to it)"
+        out += [f"sample time: {tag} gains " + ts_sweep.reach(st, tag, st["largest"][tag], tracks)
+                for tag in NAMES]
         if st["tuned_tracks_all"]:
             out.append(f"sample time: the tuned gains track at every Ts from {_ms_range(st)}")
     dl = margins.get("delay")

@@ -243,12 +243,12 @@ def label(key: str, s: dict) -> str:
 def effort_span(s: dict) -> str:
     """Where the effort bounds are measured, and the effort on the window beside them: a start
     transient can set a bound that the steady state never needs."""
-    (u0, tv0), (u1, tv1) = ((number(d.get("max_abs_u_window")), number(d.get("tv_u_window")))
-                            for d in (s["nominal"]["start"], s["nominal"]["tuned"]))
+    a, b = s["nominal"]["start"], s["nominal"]["tuned"]
     return (f"The effort bounds are measured over the whole horizon [0, T], the start-up "
-            f"transient included. On [t0, T] the start gains use max|u| {u0} and TV(u) {tv0}, "
-            f"the tuned {u1} and {tv1}: numbers for tuning.objective.u_max and tv_max bound them "
-            f"by your actuator.")
+            f"transient included. On [t0, T] the start gains use max|u| "
+            f"{number(a.get('max_abs_u_window'))} and TV(u) {number(a.get('tv_u_window'))}, the "
+            f"tuned {number(b.get('max_abs_u_window'))} and {number(b.get('tv_u_window'))}: "
+            f"numbers for tuning.objective.u_max and tv_max bound them by your actuator.")
 
 
 def sensitivity_section(sens: dict) -> list[str]:

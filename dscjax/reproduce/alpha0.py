@@ -249,13 +249,14 @@ def _cells(r: dict) -> tuple:
         return (f"{r['alpha0']:g}", f"skipped: needs dt <= {r['dt_needed']:.3g} s, "
                 f"{r['steps']} steps (more than max_steps)", *[""] * 12)
     fmt = ", ".join
+    failed = [k for k, v in r["holds"].items() if not v]
     return (f"{r['alpha0']:g}", fmt(f"{k:.4g}" for k in r["k"]), fmt(f"{t:.3g}" for t in r["tau"]),
             fmt(f"{m:.4g} ({mm:.4g})" for m, mm in zip(r["M"], r["M_measured"], strict=True))
             + ("" if r["converged"] else " not converged"),
             f"{r['dt']:.3g}", f"{r['S1_inf']:.4g}", f"{r['bound_72']:.4g}",
             f"{r['conservatism']:.3g}", f"{r['V_max']:.4g}", f"{r['bound_71']:.4g}",
             f"{r['V0']:.4g}", f"{r['C']:.4g}", f"{r['d_n_max'] / r['d']:.4f}",
-            verdict(None if r["all_hold"] else fmt(k for k, v in r["holds"].items() if not v)))
+            verdict(None if r["all_hold"] else fmt(failed)))
 
 
 def plot(results: Sequence[dict], path: Path, dpi: int = 150) -> Path:

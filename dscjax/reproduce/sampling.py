@@ -44,9 +44,9 @@ def study(setup, t_final: float, dt: float, window_start: float = 1.0,
 
 def findings(result: dict) -> list[str]:
     """How far each gain set tracks and the fitted order: summary.md's list, stdout's line."""
-    texts = [f"{LABELS[name]}: " + reach(result, name, largest_tracking(result, name),
-                                         "track without chattering up to Ts = {} ms (L-inf "
-                                         "{:.3g})") for name in result["names"]]
+    tracks = "track without chattering up to Ts = {} ms (L-inf {:.3g})"
+    texts = [f"{LABELS[name]}: " + reach(result, name, largest_tracking(result, name), tracks)
+             for name in result["names"]]
     o = result["order"]
     if o is not None:
         texts.append(f"the sampled loop tends to the continuous one at order {o['order']:.2f} "
