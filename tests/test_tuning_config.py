@@ -350,6 +350,10 @@ def test_the_delay_margin_judges_as_the_search_judges_its_delayed_loop():
     assert judge(1e-3, 70.5, 1.0, 5e-4) == "TV(u) 1.41 x its bound"
     assert judge(1.1e-3, 60.0, 1.0, 5e-4) == "error 2.2 x the loop tuned's"
     assert judge(None, None, None, 5e-4) == "diverged"
+    # a row with one figure missing (an infinite figure read as None) is diverged, whatever
+    # the others say: TV(u) over its bound with the error missing, or no TV(u) at all
+    assert judge(None, 70.5, 1.0, 5e-4) == "diverged"
+    assert judge(1e-3, None, 1.0, 5e-4) == "diverged"
     free = SimpleNamespace(cfg=cfg, scales=SimpleNamespace(tv_max=None))
     assert margins.delay_judge(free, 1e-3, 1e4, 1.2, 5e-4) is None
     assert margins.delay_judge(free, 1e-3, 1e4, 1.6, 5e-4) == "chatters (index 1.6)"
