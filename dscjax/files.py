@@ -172,14 +172,13 @@ def resume_file(out: str | Path, marker: str) -> Path:
 
 
 def check_record(out: str | Path, marker: str, new: Mapping[str, Any], *,
-                 key: str = "fingerprint", where: str | None = None,
-                 fix: str = SAME_SETTINGS) -> dict:
+                 key: str = "fingerprint", where: str | None = None) -> dict:
     """The JSON record out/marker of the run that `--resume` continues: ConfigError where it
     is missing (`resume_file`), or (one line, the old and new values of what differs, `where`
     by default "--resume: PATH") unless its `key` is `new`."""
     path = resume_file(out, marker)
     meta = read_json(path)
-    check_same(meta.get(key), new, where=where or f"--resume: {path}", fix=fix)
+    check_same(meta.get(key), new, where=where or f"--resume: {path}")
     return meta
 
 

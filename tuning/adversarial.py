@@ -33,11 +33,12 @@ from dscjax.progress import critical
 from dscjax.runspec import RunSpec
 from dscjax.validation import ConfigError
 from dscjax.worst.report import summary as worst_summary
+from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
 
 FRESH_SEED = 10_000  # added to the seed of the fresh searches: never a round's seed
-MANIFEST = runner.RECORDS[1]  # adversarial.json
+MANIFEST = runner.MANIFEST
 
 
 @dataclasses.dataclass
@@ -182,7 +183,7 @@ def run(setup, options: RunSpec, cfg: TuningConfig, out_dir: str | Path | None =
             say(f"round {r}/{spec.rounds}: tuning on {problem.n_train} plants")
             row_cb = None if progress is None else (lambda row, r=r: progress(row | {"round": r}))
             result = runner.run(problem, rdir, z_init=z, progress=row_cb,
-                                resume=rdir is not None and (rdir / "checkpoint.json").exists())
+                                resume=rdir is not None and (rdir / ck.RECORD).exists())
             with critical():  # the round's record and its file (dscjax.progress)
                 meta["rounds"].append({
                     "round": r, "search": record(res), "added": len(zw),

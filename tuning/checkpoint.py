@@ -22,7 +22,8 @@ from tuning.config import TERMS
 from tuning.objective import bound_terms
 
 FORMAT_VERSION = 2
-FILES = ("search.npz", "checkpoint.json", "best.json", "gains.json", "history.csv")
+RECORD = "checkpoint.json"  # what the run is and where it is (the record --resume needs)
+FILES = ("search.npz", RECORD, "best.json", "gains.json", "history.csv")
 
 
 # the search's names of history.csv's columns lr and wall_s

@@ -43,7 +43,8 @@ PAPER_PLANT_FREEZE = ("controller.gamma_g[1]", "controller.eta[1]")
 # may change them
 STOPPING = ("steps", "time_limit", "patience", "save_interval", "min_delta")
 # the record of a tuning run in its directory: a plain run's, an adversarial run's (its MANIFEST)
-RECORDS = ("checkpoint.json", "adversarial.json")
+MANIFEST = "adversarial.json"
+RECORDS = (ck.RECORD, MANIFEST)
 TAU_MIN_STEPS = 2.0  # default lower bound of tau: 2 dt (RK4 is stable for dt/tau <= 2.785)
 
 
@@ -203,8 +204,8 @@ def describe(setup, options: RunSpec, cfg: TuningConfig) -> dict:
 def check_resume(out: str | Path, setup, options: RunSpec, cfg: TuningConfig) -> None:
     """ConfigError (one line: what is missing, or the old and new values of what differs)
     unless `out` holds a run made with these settings; checked before anything runs."""
-    files.resume_file(out, "checkpoint.json")  # a missing run first, then the settings
-    files.check_record(out, "checkpoint.json", describe(setup, options, cfg), key="problem",
+    files.resume_file(out, ck.RECORD)  # a missing run first, then the settings
+    files.check_record(out, ck.RECORD, describe(setup, options, cfg), key="problem",
                        where=f"--resume: the checkpoint in {out}")
 
 
@@ -315,7 +316,7 @@ def prepare_dir(out: Path, resume: bool, overwrite: bool) -> None:
     --resume) removes a tuning run's files: --overwrite's, and any a killed run left without
     its record. --resume wins over --overwrite."""
     if resume:
-        files.resume_file(out, "checkpoint.json")
+        files.resume_file(out, ck.RECORD)
     elif not overwrite and any((out / name).exists() for name in RECORDS):
         raise ConfigError(f"{out} already holds a tuning run; use --resume to continue it or "
                           f"--overwrite to start afresh")
@@ -329,7 +330,7 @@ def _saved(out: Path, problem: Problem) -> tuple[dict, search.Saved]:
     """The record (checkpoint.json) and the search state of the run in `out` (the problem
     must be the same)."""
     fix = "start afresh with --overwrite or another --out"
-    record = files.read_json(out / "checkpoint.json")
+    record = files.read_json(out / ck.RECORD)
     files.check_same(record.get("problem"), problem.describe(), where=f"the checkpoint in {out}",
                      fix=fix)
     saved = search.load(out / STATE_FILE)
@@ -401,7 +402,7 @@ def write_files(out: Path, problem: Problem, trace: search.Trace,
     desc = problem.describe()
     write_best(out, problem, trace)
     ck.write_history(out / "history.csv", history(trace), ck.history_columns(problem))
-    files.write_json(out / "checkpoint.json", {
+    files.write_json(out / ck.RECORD, {
         "version": ck.FORMAT_VERSION, "fingerprint": files.digest(desc)[:16],
         "iteration": trace.iterations, "best_loss": trace.best_loss,
         "best_iteration": trace.best_iteration, "best_feasible": trace.best_feasible,

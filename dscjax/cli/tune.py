@@ -62,11 +62,13 @@ def resumable(args) -> bool:
 
 def interrupt_hint(args) -> str:
     from dscjax.cli.out import resume_text
+    from tuning.checkpoint import RECORD
+    from tuning.runner import MANIFEST
 
-    if (Path(args.out) / "adversarial.json").exists():
+    if (Path(args.out) / MANIFEST).exists():
         return resume_text(args, f"the finished rounds and searches are kept in {args.out}")
     try:
-        meta = files.read_json(Path(args.out) / "checkpoint.json")
+        meta = files.read_json(Path(args.out) / RECORD)
     except ValueError:  # missing or unreadable (a ConfigError)
         return kept_text(args, OUTPUTS)
     return resume_text(args, f"the checkpoint (iteration {meta.get('iteration')}, best loss "
