@@ -121,6 +121,11 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
     return tuple(out)
 
 
+# a check loop's exact figures as `loop_metrics` names them (c_NAME) and the run's metric each
+# is; with c_smooth_linf_window, c_smooth_max_abs_u and c_diverged beside them
+CHECK_FIGURES = {"linf_window": "linf_error_window", "max_abs_u": "max_abs_u", "tv_u": "tv_u"}
+
+
 def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=None
                  ) -> tuple[dict, jax.Array]:
     """(metrics, diverged) of the objective's loop at z on `setup` (default its own; a batch
@@ -134,10 +139,10 @@ def loop_metrics(objective, z, overrides=None, *, points: bool = False, setup=No
     for c in objective.checks:
         tc = run_at(objective.selection, setup, z, c.sim, overrides=overrides,
                     extra=objective.extra(loop=c.sim), points=points)
-        mc = tc.metrics | {"linf_window": tc.metrics["linf_error_window"], "diverged": tc.diverged}
-        m = m | {f"{c.name}_{k}": mc[k] for k in ("linf_window", "smooth_linf_window",
-                                                 "max_abs_u", "smooth_max_abs_u", "tv_u",
-                                                 "diverged")}
+        figures = {k: tc.metrics[key] for k, key in CHECK_FIGURES.items()}
+        smooth = {k: tc.metrics[k] for k in ("smooth_linf_window", "smooth_max_abs_u")}
+        m = m | {f"{c.name}_{k}": v
+                 for k, v in (figures | smooth | {"diverged": tc.diverged}).items()}
     return m, traj.diverged
 
 

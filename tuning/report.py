@@ -21,7 +21,7 @@ from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins, report_md
 from tuning.config import TERMS
-from tuning.objective import exact_constraints, within
+from tuning.objective import CHECK_FIGURES, exact_constraints, within
 from tuning.reductions import shifted_reference
 from tuning.report_plots import draw
 from tuning.runner import simulate_command
@@ -72,9 +72,9 @@ def refined(problem, z, overrides, m: dict[str, np.ndarray]) -> dict[str, np.nda
     for k in [k for k in m if k.startswith("user_")]:  # the refined runs do not measure them
         m[k] = np.where(m["refined"] > 0, np.nan, np.asarray(m[k], float))
     for c in problem.objective.checks:
+        figures = {"diverged": "diverged"} | {key: k for k, key in CHECK_FIGURES.items()}
         m[f"{c.name}_refined"] = _refine(setup, ov, c.sim, m, {
-            "diverged": f"{c.name}_diverged", "linf_error_window": f"{c.name}_linf_window",
-            "max_abs_u": f"{c.name}_max_abs_u", "tv_u": f"{c.name}_tv_u"})
+            key: f"{c.name}_{k}" for key, k in figures.items()})
     return m
 
 
