@@ -108,9 +108,14 @@ def test_params_set_with_an_unknown_path_raises_config_error():
     (["tune", "--resume"], "checkpoint.json"),
     (["reproduce", "--complexity", "--resume"], "complexity_rows.json"),
     (["worst-case", "--range", "hysteresis.alpha=30%", "--resume"], "worst_case.json"),
+    # the missing run is named first, even where the settings given are refused too
+    (["tune", "--tuning", "BAD", "--resume"], "checkpoint.json"),
+    (["tune", "--tuning", "BAD", "--adversarial", "1", "--resume"], "adversarial.json"),
 ])
 def test_resuming_nothing_is_an_error_naming_the_directory(argv, missing, tmp_path, capsys):
-    out = tmp_path / "new"
+    out, bad = tmp_path / "new", tmp_path / "bad.toml"
+    bad.write_text('[tuning]\nparams = ["controller.nope"]\n')  # an unknown parameter
+    argv = [str(bad) if a == "BAD" else a for a in argv]
     line = _one_line_error(capsys, main([*argv, "--out", str(out)]))
     assert f"nothing to resume in {out} ({missing} is missing)" in line, line
 

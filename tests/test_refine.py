@@ -133,8 +133,9 @@ def test_tuning_report_refines_a_plant_that_diverges_only_numerically(paper_setu
     again = SimpleNamespace(name="again", sim=problem.objective.sim)
     twice = SimpleNamespace(setup_at=problem.setup_at, objective=SimpleNamespace(
         sim=problem.objective.sim, checks=(again,)))
-    checked = report.refined(twice, z, ov, before | {f"again_{k}": before[v]
-                                                     for k, v in keys.items()})
+    # (the loop tuned already refined: `after`'s rows; only the check loop's are re-run)
+    checked = report.refined(twice, z, ov, after | {f"again_{k}": before[v]
+                                                    for k, v in keys.items()})
     assert checked["again_refined"].tolist() == [0, j, 0]
     for k, v in keys.items():
         np.testing.assert_array_equal(checked[f"again_{k}"], after[v])

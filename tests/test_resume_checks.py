@@ -20,16 +20,3 @@ def test_sweep_resume_with_a_changed_config_is_refused_before_anything(tmp_path,
         f"(seed 0 (now 1)); use the same settings, or --overwrite to start afresh"]
     assert {f: f.read_bytes() for f in out.rglob("*") if f.is_file()} == before
 
-
-def test_a_resume_with_nothing_to_resume_says_so_before_judging_the_settings(tmp_path, capsys):
-    """--resume into a directory without the run's record names the missing record first,
-    even where the settings given would be refused too (nothing is compiled)."""
-    bad = tmp_path / "bad.toml"
-    bad.write_text('[tuning]\nparams = ["controller.nope"]\n')
-    for extra, record in (((), "checkpoint.json"), (("--adversarial", "1"), "adversarial.json")):
-        out = tmp_path / f"empty-{record}"
-        out.mkdir()
-        assert main(["tune", "--tuning", str(bad), "--resume", "--out", str(out), *extra]) == 2
-        assert capsys.readouterr().err.splitlines() == [
-            f"dscjax tune: error: --resume: nothing to resume in {out} ({record} is missing); "
-            f"run without --resume to start afresh"]
