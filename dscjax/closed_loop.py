@@ -240,20 +240,42 @@ class ForwardEuler(eqx.Module):
 SCHEME = {s.name: s for s in (ExponentialEuler(), ForwardEuler())}
 
 
+# A delayed loop's delay line holds at least this many inputs: every delay up to it runs the
+# same compiled program (a tuning report's delay margin tries them in turn)
+DELAY_LINE = 4
+
+
+def delay_line(delay: int) -> int:
+    """The delay line's length for an input delay of `delay` samples: none without delay."""
+    return max(delay, DELAY_LINE) if delay else 0
+
+
+def check_delay(delay, line: int, owner: str) -> None:
+    """A concrete delay must fit its line (a longer one would be clamped to it silently)."""
+    if isinstance(delay, int) and not 0 <= delay <= line:
+        raise ValueError(f"{owner}.delay must be within 0..{line}, its delay line's length "
+                         f"(got {delay}; `delay_line` gives the line a delay needs)")
+
+
 class Sampling(eqx.Module):
     """A controller that runs at the sample times t_k = k Ts, Ts = `every` dt.
 
     At t_k it reads x(t_k) (plus seeded Gaussian noise of std `noise`), computes u_k and
     advances its states once by the `scheme` (`ExponentialEuler` or `ForwardEuler`). The
     actuator holds u_(k-delay) until t_(k+1) (the first input for the first `delay`
-    samples); a change of the held input moves the hysteresis along its curve (`jump`).
+    samples); a change of the held input moves the hysteresis along its curve (`jump`). The
+    delay line keeps the last `line` inputs: one program serves every delay up to `line`.
     """
 
     every: Any  # dt steps per sample, Ts = every dt (a number: one program serves every Ts)
-    delay: int = eqx.field(static=True, default=0)  # input delay in whole samples
+    delay: Any = 0  # input delay in whole samples, at most `line` (a number, as `every`)
+    line: int = eqx.field(static=True, default=0)  # the delay line's length
     noise: Any = None  # std of the measurement noise on x: () or (n,); None: no noise
     seed: Any = 0  # seed of the noise (a float holding an integer: no integer leaf is traced)
     scheme: ExponentialEuler | ForwardEuler = eqx.field(static=True, default=ExponentialEuler())
+
+    def __check_init__(self):
+        check_delay(self.delay, self.line, "Sampling")
 
 
 class SampledState(NamedTuple):
@@ -263,7 +285,7 @@ class SampledState(NamedTuple):
     h: Any  # hysteresis state
     ctrl: Any  # controller state after the last sample
     u: jax.Array  # () the input the actuator holds
-    past: jax.Array  # (delay,) inputs computed but not applied yet, the newest first
+    past: jax.Array  # (line,) the last inputs computed, the newest first
 
 
 def _phi(z):
@@ -284,10 +306,12 @@ def sample_update(k, t, X, setup: Setup, sampling: Sampling, dt):
     u_new, info = ctrl.law(X.ctrl, x, t, plant, ref)
     rate = ctrl.state_rate(X.ctrl, x, t, info, plant, ref)
     c_next = sampling.scheme.advance(ctrl, X.ctrl, rate, sampling.every * dt)
-    if sampling.delay:
-        applied, past = X.past[-1], jnp.concatenate([u_new[None], X.past[:-1]])
-    else:
-        applied, past = u_new, X.past
+    applied, past = u_new, X.past
+    if sampling.line:
+        d = sampling.delay  # a Python int indexes statically (the exported law's C)
+        newest = jnp.concatenate([u_new[None], X.past])
+        applied = newest[d if isinstance(d, int) else jnp.round(d).astype(jnp.int32)]
+        past = newest[:-1]
     h = setup.hysteresis.jump(X.u, applied, X.h)
     return SampledState(x=X.x, h=h, ctrl=c_next, u=applied, past=past)
 
@@ -298,7 +322,7 @@ def sampled_initial_state(setup: Setup, sampling: Sampling, dt) -> SampledState:
     dtype = X0.x.dtype
     u0, _ = setup.controller.law(X0.ctrl, X0.x, jnp.zeros((), dtype), setup.plant, setup.reference)
     u0 = jnp.asarray(u0, dtype)
-    start = SampledState(*X0, u=u0, past=jnp.full((sampling.delay,), u0, dtype))
+    start = SampledState(*X0, u=u0, past=jnp.full((sampling.line,), u0, dtype))
     return sample_update(jnp.zeros((), jnp.int32), jnp.zeros((), dtype), start, setup, sampling,
                          jnp.asarray(dt, dtype))
 
@@ -327,8 +351,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler", "ForwardEuler",
-           "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile", "State",
-           "decay_rates", "diagnose", "frozen", "initial_state", "prepared", "project",
-           "sample_after_step", "sample_update", "sampled_initial_state", "sampled_vector_field",
-           "spectrum_along", "vector_field"]
+__all__ = ["DELAY_LINE", "SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler",
+           "ForwardEuler", "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile",
+           "State", "check_delay", "decay_rates", "delay_line", "diagnose", "frozen",
+           "initial_state", "prepared", "project", "sample_after_step", "sample_update",
+           "sampled_initial_state", "sampled_vector_field", "spectrum_along", "vector_field"]

@@ -135,8 +135,9 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
         red = m.Combined((red, extra))
     samp = None
     if spec.sampled:
-        samp = (Sampling(every=spec.sample_every, delay=spec.delay, noise=spec.noise,
-                         seed=spec.noise_seed, scheme=spec.discretisation), spec.dt)
+        samp = (Sampling(every=spec.sample_every, delay=spec.delay, line=spec.line,
+                         noise=spec.noise, seed=spec.noise_seed, scheme=spec.discretisation),
+                spec.dt)
     loop_field, init, rates, project, frozen = _loop(setup, spec)
     if overrides is None:
         shared, batch = closed_loop.prepared(setup), None

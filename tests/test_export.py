@@ -281,7 +281,7 @@ def test_one_sample_of_the_c_equals_the_sample_update(tmp_path, build, delay, sc
         x, t = X0.x + 0.5 * rng.standard_normal(n), 0.37 * k
         new = jax.jit(sample_update)(jnp.asarray(k), t, SampledState(
             x=x, h=X0.h, ctrl=ctrl, u=jnp.zeros(()), past=jnp.asarray(past)), s,
-            Sampling(every=2.0, delay=delay, scheme=spec.discretisation), DT)
+            Sampling(every=2.0, delay=delay, line=delay, scheme=spec.discretisation), DT)
         # the state starts with the leaves, in order, then the delay line
         flat = np.concatenate([np.ravel(a) for a in jax.tree.leaves(ctrl)] + [past])
         buf[:flat.size] = flat.tolist()

@@ -353,5 +353,5 @@ def test_a_noisy_first_sample_moves_the_backlash_along_its_curve():
     d1 = (w0 - lam * u0) * decay + (psi - lam) / (alpha * s) * (1 - decay)
     assert w_held == pytest.approx(lam * u_held + d1, rel=1e-12)
     # with a one-sample delay the actuator holds the noise-free u(0) for the first sample
-    _, _, _, u_late, w_late = _start("paper", noise=0.05, seed=3.0, delay=1)
+    _, _, _, u_late, w_late = _start("paper", noise=0.05, seed=3.0, delay=1, line=1)
     assert u_late == u0 and w_late == pytest.approx(w0, rel=1e-13)

@@ -79,6 +79,31 @@ def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, eve
     batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": np.array([0.8, 1.0])},
                                   spec=spec)
     np.testing.assert_allclose(np.asarray(batch.x[1]), want[:, :2], rtol=0, atol=1e-11)
+    if delay:  # one sample later: the same compiled program (the delay line's), its own input
+        from dscjax.simulate import _simulate
+
+        before = _simulate.top._cache_size()
+        _, u_late = ref.sampled_rk4(ref.initial_state(), 1e-3, n, every, delay=delay + 1)
+        late = dscjax.simulate(paper_setup, spec=spec.replace(delay=delay + 1))
+        np.testing.assert_allclose(np.asarray(late.u), u_late, rtol=0, atol=1e-10)
+        assert _simulate.top._cache_size() == before
+
+
+def test_a_delay_longer_than_its_delay_line_is_refused():
+    """The delay line holds max(delay, 4) inputs (the delays up to 4 share a program); a delay
+    beyond its line, which indexing would clamp silently, is refused where it is set."""
+    import dataclasses
+
+    import dscjax
+    from dscjax.closed_loop import Sampling
+
+    spec = dscjax.RunSpec.make(1.0, 1e-3, sample_time=1e-3)
+    assert (spec.line, spec.delayed(1).line, spec.delayed(4).line, spec.delayed(6).line) == (
+        0, 4, 4, 6)
+    with pytest.raises(ValueError, match=r"RunSpec\.delay must be within 0\.\.0, .*got 2"):
+        dataclasses.replace(spec, delay=2)
+    with pytest.raises(ValueError, match=r"Sampling\.delay must be within 0\.\.1, .*got 2"):
+        Sampling(every=1.0, delay=2, line=1)
 
 
 @pytest.mark.parametrize("every, delay", [(5, 0), (2, 1)])

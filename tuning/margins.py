@@ -27,7 +27,7 @@ from typing import Any
 import jax
 import numpy as np
 
-from dscjax import metrics, ts_sweep
+from dscjax import closed_loop, metrics, ts_sweep
 from dscjax.markdown import ms, number, table, verdict, yes
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
@@ -42,7 +42,9 @@ LONG_DBAR = 0.2  # amplitude of the long run's disturbance dbar = LONG_DBAR sin(
 # the quarter before (the first quarter, the transient, left out)
 DRIFT_RATIO = 1.1
 DRIFT_MIN_S = 100.0  # a shorter long run is reported, its drift not judged (still settling)
-DELAY_MAX = 4  # the largest input delay [samples] the delay margin tries (a program each)
+# the largest input delay [samples] the delay margin tries: those past the loop's own run
+# one compiled program (its delay line's length)
+DELAY_MAX = closed_loop.DELAY_LINE
 ESTIMATES = ("theta_hat", "phi_hat", "zeta_hat", "d_hat")
 NAMES = ("start", "tuned")
 
@@ -179,8 +181,8 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     up to DELAY_MAX, each gain set judged by `delay_judge` against its windowed L-inf in the
     loop tuned (`reference_linf` of `nominal`, {tag: the nominal plant's figures}, which are the
     row of its own delay); the largest d up to which each holds (None: not even at its
-    own delay). The delay fixes the program's shape, so each d compiles one program: the sweep
-    stops at the first d at which neither gain set holds. None for a continuous tuned loop."""
+    own delay). The sweep stops at the first d at which neither gain set holds. None for a
+    continuous tuned loop."""
     sim = problem.objective.sim
     if not sim.sampled:
         return None

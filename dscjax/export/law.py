@@ -75,7 +75,8 @@ def trace(setup, spec) -> Law:
     n = setup.order
     n_d = n + 2  # more reference derivatives than any law of order n reads
     every, dt = float(spec.sample_every), float(spec.dt)
-    sampling = Sampling(every=every, delay=spec.delay, scheme=spec.discretisation)
+    sampling = Sampling(every=every, delay=spec.delay, line=spec.delay,
+                        scheme=spec.discretisation)
     zero = jnp.zeros((), dtype)
 
     def prepare_at(x0, d0):
