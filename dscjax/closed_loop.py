@@ -25,7 +25,8 @@ from dscjax.controllers.base import Controller
 from dscjax.hysteresis import Hysteresis
 from dscjax.plant import Plant
 from dscjax.reference import Reference
-from dscjax.validation import RK4_REAL_STABILITY, floor_sig
+from dscjax.rules import Number
+from dscjax.validation import RK4_REAL_STABILITY, by_rule, floor_sig
 from dscjax.xla import barrier
 
 
@@ -251,10 +252,11 @@ def delay_line(delay: int) -> int:
 
 
 def check_delay(delay, line: int, owner: str) -> None:
-    """A concrete delay must fit its line (a longer one would be clamped to it silently)."""
-    if isinstance(delay, int) and not 0 <= delay <= line:
-        raise ValueError(f"{owner}.delay must be within 0..{line}, its delay line's length "
-                         f"(got {delay}; `delay_line` gives the line a delay needs)")
+    """A delay given as a number must be a whole number of samples within its line (indexing
+    would clamp a longer one silently); ConfigError otherwise. Arrays and tracers are a
+    compiled program's own (set from a checked spec)."""
+    if not isinstance(delay, jax.Array | np.ndarray):
+        by_rule(Number(ge=0, le=line, integer=True), delay, f"{owner}.delay")
 
 
 class Sampling(eqx.Module):

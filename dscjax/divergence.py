@@ -62,8 +62,9 @@ def sampled_unstable(spec: RunSpec, t_first, t_refined) -> bool:
 def sampled_unstable_line(spec: RunSpec, t_diverged: float) -> str:
     """One line naming what makes a sampled loop unstable: its sample time, delay and noise."""
     what = [f"sample time {spec.sample_time:g} s"]
-    if spec.delay:
-        what.append(f"input delay {spec.delay} sample{'s' if spec.delay > 1 else ''}")
+    delay = int(spec.delay)  # (a number of samples; an array after RunSpec.for_dtype)
+    if delay:
+        what.append(f"input delay {delay} sample{'s' if delay > 1 else ''}")
     if spec.noise is not None and np.any(np.asarray(spec.noise) > 0):
         what.append("measurement noise std "
                     + ",".join(f"{v:g}" for v in np.atleast_1d(np.asarray(spec.noise, float))))

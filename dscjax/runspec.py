@@ -280,4 +280,4 @@ def loop_words(sim: RunSpec) -> str:
              + f" (seed {int(sim.noise_seed)})")
     return (f"the controller sampled every Ts = {sim.sample_time:g} s with a zero-order hold, "
             f"its states advanced by {sim.discretisation.words}, the plant by {plant}; "
-            f"input delay {sim.delay} sample(s); {noise}")
+            f"input delay {int(sim.delay)} sample(s); {noise}")
