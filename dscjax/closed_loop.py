@@ -241,16 +241,6 @@ class ForwardEuler(eqx.Module):
 SCHEME = {s.name: s for s in (ExponentialEuler(), ForwardEuler())}
 
 
-# A delayed loop's delay line holds at least this many inputs: every delay up to it runs the
-# same compiled program (a tuning report's delay margin tries them in turn)
-DELAY_LINE = 4
-
-
-def delay_line(delay: int) -> int:
-    """The delay line's length for an input delay of `delay` samples: none without delay."""
-    return max(delay, DELAY_LINE) if delay else 0
-
-
 def check_delay(delay, line: int, owner: str) -> None:
     """A delay given as a number must be a whole number of samples within its line (indexing
     would clamp a longer one silently); ConfigError otherwise. Arrays and tracers are a
@@ -353,8 +343,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["DELAY_LINE", "SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler",
+__all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler",
            "ForwardEuler", "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile",
-           "State", "check_delay", "decay_rates", "delay_line", "diagnose", "frozen",
+           "State", "check_delay", "decay_rates", "diagnose", "frozen",
            "initial_state", "prepared", "project", "sample_after_step", "sample_update",
            "sampled_initial_state", "sampled_vector_field", "spectrum_along", "vector_field"]

@@ -6,14 +6,14 @@
 
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
 `sampled` (the controller sampled, or continuous), `line` (the input delay line's length:
-`closed_loop.delay_line`) and `discretisation` (how the sampled controller advances its
-states). Traced fields change without recompiling: `dt`, `window_start`, `state_bound`,
-`sample_every` (steps per controller sample), `delay` (input delay in samples, up to `line`),
-`noise` and `noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side,
-never part of a compiled program: `program()` sets them to fixed values before a spec enters a
-jitted function, so specs differing only there share one compiled program. The [simulation] table
-and its command-line flags (both from `Simulation`'s declarations) and a run's fingerprint
-(`describe`) all derive from it.
+the delay, or longer where several delays are to share a program) and `discretisation` (how
+the sampled controller advances its states). Traced fields change without recompiling: `dt`,
+`window_start`, `state_bound`, `sample_every` (steps per controller sample), `delay` (input
+delay in samples, up to `line`), `noise` and `noise_seed`; `refine`, `dtype`, `device` and
+`rules` are host-side, never part of a compiled program: `program()` sets them to fixed values
+before a spec enters a jitted function, so specs differing only there share one compiled
+program. The [simulation] table and its command-line flags (both from `Simulation`'s
+declarations) and a run's fingerprint (`describe`) all derive from it.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import settings, validation
-from dscjax.closed_loop import SCHEME, ExponentialEuler, ForwardEuler, check_delay, delay_line
+from dscjax.closed_loop import SCHEME, ExponentialEuler, ForwardEuler, check_delay
 from dscjax.integrate import SOLVERS, Gradient, Solver, TimeParallel
 from dscjax.integrate import solver as as_solver
 from dscjax.metrics import default_window
@@ -105,7 +105,7 @@ class RunSpec(eqx.Module):
     sample_every: Any = 0  # steps per controller sample (0: continuous); traced
     sampled: bool = eqx.field(static=True, default=False)
     delay: Any = 0  # input delay in whole samples; traced, at most `line`
-    line: int = eqx.field(static=True, default=0)  # the delay line (`delay_line(delay)`)
+    line: int = eqx.field(static=True, default=0)  # the delay line's length: the delay's
     discretisation: ExponentialEuler | ForwardEuler = eqx.field(  # closed_loop.SCHEME
         static=True, default=ExponentialEuler())
     refine: int = eqx.field(static=True, default=DEFAULT_REFINE)
@@ -159,7 +159,7 @@ class RunSpec(eqx.Module):
                    noise=noise, noise_seed=keys.noise_seed, n_steps=n_steps,
                    save_every=int(save_every), solver=as_solver(table.get("solver", keys.solver)),
                    gradient=gradient or TimeParallel(), sample_every=every, sampled=every > 0,
-                   delay=keys.delay, line=delay_line(keys.delay),
+                   delay=keys.delay, line=keys.delay,
                    discretisation=SCHEME[keys.discretisation],
                    refine=keys.refine, dtype=keys.dtype, device=keys.device, rules=rules)
 
@@ -240,10 +240,6 @@ class RunSpec(eqx.Module):
         function takes, so that specs differing only in refinement, dtype, device or rules
         hit the same compiled program."""
         return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
-
-    def delayed(self, delay: int) -> RunSpec:
-        """This spec with an input delay of `delay` samples, its delay line to match."""
-        return dataclasses.replace(self, delay=delay, line=delay_line(delay))
 
     def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and

@@ -1,6 +1,7 @@
 """The digital controller (issue 27): a held input moves each hysteresis model along its own
 curve (`Hysteresis.jump`), checked against closed forms written here from the models' equations."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -70,6 +71,8 @@ def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, eve
     want, u_want = ref.sampled_rk4(ref.initial_state(), 1e-3, n, every, delay=delay)
     spec = dscjax.RunSpec.make(T_SHORT, 1e-3, save_every=1, sample_time=every * 1e-3,
                                delay=delay)
+    if delay:  # a delay line one longer than the delay: the next delay runs on it below
+        spec = dataclasses.replace(spec, line=delay + 1)
     traj = dscjax.simulate(paper_setup, spec=spec)
     # round-off of 2,000 steps of arithmetic done in another order: |x|, |u| ~ 1
     np.testing.assert_allclose(np.asarray(traj.x), want[:, :2], rtol=0, atol=1e-11)
@@ -79,7 +82,7 @@ def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, eve
     batch = dscjax.simulate_batch(paper_setup, {"hysteresis.alpha": np.array([0.8, 1.0])},
                                   spec=spec)
     np.testing.assert_allclose(np.asarray(batch.x[1]), want[:, :2], rtol=0, atol=1e-11)
-    if delay:  # one sample later: the same compiled program (the delay line's), its own input
+    if delay:  # one sample later, on the same line: the same compiled program, its own input
         from dscjax.simulate import _simulate
 
         before = _simulate.top._cache_size()
@@ -90,17 +93,13 @@ def test_the_sampled_loop_equals_a_hand_written_per_sample_loop(paper_setup, eve
 
 
 def test_a_delay_longer_than_its_delay_line_is_refused():
-    """The delay line holds max(delay, 4) inputs (the delays up to 4 share a program); a delay
-    beyond its line, which indexing would clamp silently, or not a whole number of samples, is
-    refused where it is set."""
-    import dataclasses
-
+    """A spec's delay line is as long as its delay; a delay beyond its line, which indexing
+    would clamp silently, or not a whole number of samples, is refused where it is set."""
     import dscjax
     from dscjax.closed_loop import Sampling
 
     spec = dscjax.RunSpec.make(1.0, 1e-3, sample_time=1e-3)
-    assert (spec.line, spec.delayed(1).line, spec.delayed(4).line, spec.delayed(6).line) == (
-        0, 4, 4, 6)
+    assert (spec.line, spec.replace(delay=3).line) == (0, 3)
     must = r"\.delay must be an integer in \[0, {}\] \(got {}\)$"
     with pytest.raises(ValueError, match="^RunSpec" + must.format(0, 2)):
         dataclasses.replace(spec, delay=2)

@@ -22,12 +22,13 @@ returns a JSON-able dict; `markdown(margins)` is report.md's section.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import jax
 import numpy as np
 
-from dscjax import closed_loop, metrics, ts_sweep
+from dscjax import metrics, ts_sweep
 from dscjax.markdown import ms, number, table, verdict, yes
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
@@ -42,9 +43,9 @@ LONG_DBAR = 0.2  # amplitude of the long run's disturbance dbar = LONG_DBAR sin(
 # the quarter before (the first quarter, the transient, left out)
 DRIFT_RATIO = 1.1
 DRIFT_MIN_S = 100.0  # a shorter long run is reported, its drift not judged (still settling)
-# the largest input delay [samples] the delay margin tries: those past the loop's own run
-# one compiled program (its delay line's length)
-DELAY_MAX = closed_loop.DELAY_LINE
+# the largest input delay [samples] the delay margin tries, and the length of the delay line
+# on which it tries them all (one compiled program)
+DELAY_MAX = 4
 ESTIMATES = ("theta_hat", "phi_hat", "zeta_hat", "d_hat")
 NAMES = ("start", "tuned")
 
@@ -55,9 +56,12 @@ def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
-def _run(problem, overrides: dict, **change):
-    """A batched run of the loop tuned with `change` (no refinement), on the host."""
+def _run(problem, overrides: dict, line: int | None = None, **change):
+    """A batched run of the loop tuned with `change` (no refinement), on the host; `line`: its
+    input delay line's length, if longer than the delay."""
     spec = problem.objective.sim.replace(refine=0, **change)
+    if line is not None:
+        spec = dataclasses.replace(spec, line=line)
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
@@ -208,7 +212,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
-        tr = _run(problem, gains, delay=d)
+        tr = _run(problem, gains, line=DELAY_MAX, delay=d)
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}

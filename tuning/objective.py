@@ -115,7 +115,7 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
                              "sampled_weight", f"the states by {other.discretisation.words}"))
     if spec.delay_samples and spec.delay_weight:
         d = sim.delay + spec.delay_samples
-        out.append(CheckLoop("delayed", sim.delayed(d), spec.delay_factor,
+        out.append(CheckLoop("delayed", sim.replace(delay=d), spec.delay_factor,
                              None, spec.delay_tv_factor, spec.delay_weight, "delay_weight",
                              f"the input delayed {d} sample{'s' if d != 1 else ''}", smooth=False))
     return tuple(out)
