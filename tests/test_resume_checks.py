@@ -19,4 +19,3 @@ def test_sweep_resume_with_a_changed_config_is_refused_before_anything(tmp_path,
         f"dscjax sweep: error: --resume: {out / 'sweep.json'} was made with other settings "
         f"(seed 0 (now 1)); use the same settings, or --overwrite to start afresh"]
     assert {f: f.read_bytes() for f in out.rglob("*") if f.is_file()} == before
-

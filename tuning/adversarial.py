@@ -36,9 +36,9 @@ from dscjax.worst.report import summary as worst_summary
 from tuning import checkpoint as ck
 from tuning import runner
 from tuning.config import TuningConfig
+from tuning.runner import MANIFEST
 
 FRESH_SEED = 10_000  # added to the seed of the fresh searches: never a round's seed
-MANIFEST = runner.MANIFEST
 
 
 @dataclasses.dataclass

@@ -155,7 +155,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
     def why(name):  # the other sign, or one has no value (nan): both values
         pair = (got[name], want[name])
         if name in trust["sign_flips"] or np.isnan(pair).any():
-            return " against ".join("n/a" if np.isnan(x) else f"{x:+.3g}" for x in pair)
+            return " against ".join(number(x, "+.3g", "n/a") for x in pair)
         return f"off by {100 * trust['max_rel_diff'][name]:.3g} %"
 
     # sign flips first, then the largest differences

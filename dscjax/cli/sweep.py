@@ -30,7 +30,7 @@ from dscjax.validation import ConfigError, Work, check_work, validate_setup
 DEGRADED_FACTOR = 2.0
 # the [simulation] keys this command takes as options
 SWEEP_KEYS = ("t_final", "dt", "window_start", "solver", "refine", *common.SAMPLED_KEYS, "device")
-OUTPUTS = Outputs(("sweep.json", "results.npz", "summary.json", "summary.md", "traces.npz",
+OUTPUTS = Outputs((sweep.MANIFEST, "results.npz", "summary.json", "summary.md", "traces.npz",
                    "hist_linf_window.png", "heatmap_linf_window.png", "scan_linf_window.png",
                    "traces.png"), folders=("chunks",))
 
@@ -266,7 +266,7 @@ def run(args) -> int:
 
 def resumable(args) -> bool:
     """Does --out hold a sweep that `--resume` continues (its sweep.json)?"""
-    return (Path(args.out) / "sweep.json").exists()
+    return (Path(args.out) / sweep.MANIFEST).exists()
 
 
 def interrupt_hint(args) -> str | None:

@@ -19,7 +19,7 @@ metrics), never an error.
 """
 
 from dscjax.sweep.device import METRICS
-from dscjax.sweep.run import SweepResult, check_resumable, run_sweep
+from dscjax.sweep.run import MANIFEST, SweepResult, check_resumable, run_sweep
 from dscjax.sweep.settings import SweepSettings, check_settings, settings_from_dict
 from dscjax.sweep.summary import (
     FLOAT32_RTOL,
@@ -36,7 +36,7 @@ from dscjax.sweep.summary import (
     trace_rows,
 )
 
-__all__ = ["FLOAT32_RTOL", "METRICS", "SweepResult", "SweepSettings", "check_resumable",
+__all__ = ["FLOAT32_RTOL", "MANIFEST", "METRICS", "SweepResult", "SweepSettings", "check_resumable",
            "check_rows", "check_settings", "float32_trust", "float64_check",
            "markdown", "outcome", "random_rows", "run_sweep", "sample_record", "scope_text",
            "settings_from_dict", "simulate_rows", "summarize", "trace_rows"]

@@ -24,6 +24,7 @@ from dscjax.validation import ConfigError
 # re-run with ETDRK4 at smaller steps ("refinements", "dt_used"); 4: the effort on the window
 # and the chattering index are columns (a chunk of 3 lacks them)
 FORMAT_VERSION = 4
+MANIFEST = "sweep.json"  # the record of a sweep: what was run, what --resume continues
 STATUS_COLUMNS = ("diverged", "t_diverged", "status", "refinements", "dt_used")
 # the run's settings in a result's info besides t_final and dt (a row re-simulated reads them)
 RUN_KEYS = ("window_start", "state_bound", "solver", "refine", "sample_time", "delay", "noise",
@@ -212,7 +213,7 @@ def _started_chunk(out_dir) -> int | None:
     """The chunk of the sweep in `out_dir` (its sweep.json), which a resume without a chunk of
     its own continues with; None if there is none."""
     try:
-        chunk = files.read_json(Path(out_dir) / "sweep.json")["fingerprint"]["chunk"]
+        chunk = files.read_json(Path(out_dir) / MANIFEST)["fingerprint"]["chunk"]
     except (OSError, ValueError, KeyError, TypeError):
         return None
     return int(chunk) if isinstance(chunk, int) and chunk > 0 else None
@@ -222,7 +223,7 @@ def check_resumable(out: str | Path, setup, settings: SweepSettings, spec: RunSp
     """ConfigError unless `out` holds a sweep to resume (its sweep.json) made with the sweep's
     setup, settings and run (naming the old and new values), so that a command refuses before
     it prints or runs anything."""
-    manifest = files.resume_file(out, "sweep.json")
+    manifest = files.resume_file(out, MANIFEST)
     chunk = settings.chunk or _started_chunk(out)
     if chunk is None:
         return
@@ -236,13 +237,13 @@ def check_resumable(out: str | Path, setup, settings: SweepSettings, spec: RunSp
 
 
 def _prepare_dir(out: Path, fp, digest, n_blocks, resume, overwrite, main) -> np.ndarray:
-    manifest = files.resume_file(out, "sweep.json") if resume else out / "sweep.json"
+    manifest = files.resume_file(out, MANIFEST) if resume else out / MANIFEST
     done = np.zeros(n_blocks, dtype=bool)
     if main:
         files.mkdir(out / "chunks")
         existing = sorted((out / "chunks").glob("chunk_*.npz"))
         if resume:
-            files.check_record(out, "sweep.json", fp)
+            files.check_record(out, MANIFEST, fp)
             done = np.array([_read_chunk(_chunk_path(out, b), digest) is not None
                              for b in range(n_blocks)])
         elif existing and not overwrite:
