@@ -181,16 +181,19 @@ def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(
             "             ['simulate', '--print-config']):\n"
             "    with contextlib.redirect_stdout(io.StringIO()):\n"
             "        assert main(argv) == 0\n"
-            "    print(repr(jax.config.jax_compilation_cache_dir))\n")
-    env = {k: v for k, v in os.environ.items()
-           if k not in ("DSCJAX_NO_COMPILATION_CACHE", "JAX_COMPILATION_CACHE_DIR")}
+            "    print(repr(jax.config.jax_compilation_cache_dir),\n"
+            "          jax.config.jax_compilation_cache_max_size)\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("DSCJAX_NO_COMPILATION_CACHE",
+           "JAX_COMPILATION_CACHE_DIR", "JAX_COMPILATION_CACHE_MAX_SIZE")}
     env["XDG_CACHE_HOME"] = str(tmp_path)
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    off, on = out.stdout.split()
-    assert off in ("None", "''") and on == repr(str(tmp_path / "dscjax" / "jax"))
-    assert (tmp_path / "dscjax" / "jax").is_dir()
+    (off, off_size), (on, on_size) = (line.split() for line in out.stdout.splitlines())
+    assert off in ("None", "''") and off_size == "-1"  # JAX's defaults: no cache, no limit
+    # 2**30 bytes (1 GiB, the README's figure): a cache with a size is one JAX locks
+    assert on == repr(str(tmp_path / "dscjax" / "compiled")) and on_size == str(2**30)
+    assert (tmp_path / "dscjax" / "compiled").is_dir()
 
 
 # -- issue 38 item 2: effort in simulate's verdict --------------------------------------------
