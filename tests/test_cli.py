@@ -182,7 +182,9 @@ def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(
             "    with contextlib.redirect_stdout(io.StringIO()):\n"
             "        assert main(argv) == 0\n"
             "    print(repr(jax.config.jax_compilation_cache_dir),\n"
-            "          jax.config.jax_compilation_cache_max_size)\n")
+            "          jax.config.jax_compilation_cache_max_size)\n"
+            "jax.config.update('jax_persistent_cache_min_compile_time_secs', 0)\n"
+            "jax.jit(lambda x: x + 1)(1.0)  # written to the cache, under its lock\n")
     env = {k: v for k, v in os.environ.items() if k not in ("DSCJAX_NO_COMPILATION_CACHE",
            "JAX_COMPILATION_CACHE_DIR", "JAX_COMPILATION_CACHE_MAX_SIZE")}
     env["XDG_CACHE_HOME"] = str(tmp_path)
@@ -193,7 +195,9 @@ def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(
     assert off in ("None", "''") and off_size == "-1"  # JAX's defaults: no cache, no limit
     # 2**30 bytes (1 GiB, the README's figure): a cache with a size is one JAX locks
     assert on == repr(str(tmp_path / "dscjax" / "compiled")) and on_size == str(2**30)
-    assert (tmp_path / "dscjax" / "compiled").is_dir()
+    # JAX's own marks of a locked cache with a size: its lock file, an access time per entry
+    written = {p.name.rsplit("-", 1)[-1] for p in (tmp_path / "dscjax" / "compiled").iterdir()}
+    assert written == {".lockfile", "cache", "atime"}, written
 
 
 # -- issue 38 item 2: effort in simulate's verdict --------------------------------------------
