@@ -15,10 +15,10 @@ persistent cache.
 - `barrier` / `barriers`: optimisation barriers, active only while the batched layout is
   traced, so that XLA:CPU computes a shared intermediate once instead of re-fusing it into
   every consumer (docs/architecture.md).
-- `enable_compilation_cache()`: JAX's persistent cache in $XDG_CACHE_HOME/dscjax/compiled
-  (else ~/.cache/dscjax/compiled), at most `CACHE_MAX_BYTES`, its reads and writes locked; the
-  `dscjax` command calls it, the library never does (opt out: DSCJAX_NO_COMPILATION_CACHE=1,
-  --no-compilation-cache; JAX_COMPILATION_CACHE_DIR wins).
+- `enable_compilation_cache()`: JAX's persistent cache in $XDG_CACHE_HOME/dscjax/jax (else
+  ~/.cache/dscjax/jax), at most `CACHE_MAX_BYTES`, its reads and writes locked; the `dscjax`
+  command calls it, the library never does (opt out: DSCJAX_NO_COMPILATION_CACHE=1,
+  --no-compilation-cache; JAX_COMPILATION_CACHE_DIR wins, as configured).
 """
 
 from __future__ import annotations
@@ -139,9 +139,10 @@ MIN_COMPILE_TIME_S = 0.3
 # size is one whose reads and writes JAX locks (filelock), so that processes sharing it (a
 # sweep's, the tests' workers) never read a program another is still writing
 CACHE_MAX_BYTES = 1 << 30
-# the cache's directory under $XDG_CACHE_HOME (else ~/.cache); a new name for the bounded cache:
-# JAX cannot bound a directory whose entries were written without a size (no access times)
-CACHE_SUBDIR = ("dscjax", "compiled")
+# JAX's files of a sized cache: each program (NAME-cache) beside its last use (NAME-atime, 8
+# bytes); a program without its last use (written before the cache had a size, or cut off
+# between the two files) makes JAX fail every later write
+_PROGRAM, _LAST_USE = "-cache", "-atime"
 
 
 def cache_opted_out(environ: Mapping[str, str] = os.environ) -> bool:
@@ -151,28 +152,34 @@ def cache_opted_out(environ: Mapping[str, str] = os.environ) -> bool:
 
 def enable_compilation_cache(directory: str | Path | None = None) -> Path | None:
     """Turn on JAX's persistent compilation cache in `directory` (default
-    $XDG_CACHE_HOME/dscjax/compiled, else ~/.cache/dscjax/compiled), at most `CACHE_MAX_BYTES`
-    unless a size is configured, and return it. A cache directory already configured
-    (JAX_COMPILATION_CACHE_DIR) is kept as it is and returned. None if the directory cannot be
-    created (nothing is changed then). This sets JAX's global configuration for the whole
-    process."""
+    $XDG_CACHE_HOME/dscjax/jax, else ~/.cache/dscjax/jax), at most `CACHE_MAX_BYTES` unless a
+    size is configured (JAX_COMPILATION_CACHE_MAX_SIZE), and return it; a program there
+    without its last use is given the oldest. A cache directory already configured
+    (JAX_COMPILATION_CACHE_DIR) is kept as it is, sized and locked only if configured so, and
+    returned. None if the directory cannot be created (nothing is changed then). This sets
+    JAX's global configuration for the whole process."""
     current = jax.config.jax_compilation_cache_dir
     if current:
         return Path(current)
     base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-    path = Path(directory) if directory is not None else Path(base).joinpath(*CACHE_SUBDIR)
+    path = Path(directory) if directory is not None else Path(base) / "dscjax" / "jax"
     try:
         path.mkdir(parents=True, exist_ok=True)
     except OSError:
         return None
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", MIN_COMPILE_TIME_S)
-    if jax.config.jax_compilation_cache_max_size == -1:  # (JAX's "no limit")
+    if "JAX_COMPILATION_CACHE_MAX_SIZE" not in os.environ:
         jax.config.update("jax_compilation_cache_max_size", CACHE_MAX_BYTES)
+    with contextlib.suppress(OSError):  # (a cache that cannot be mended is still read)
+        for program in path.glob(f"*{_PROGRAM}"):
+            last_use = program.with_name(program.name.removesuffix(_PROGRAM) + _LAST_USE)
+            if not last_use.exists():
+                last_use.write_bytes(bytes(8))
     return path
 
 
-__all__ = ["CACHE_MAX_BYTES", "CACHE_OPT_OUT", "CACHE_SUBDIR", "EMITTERS", "LEAN", "LEAN_ROWS",
-           "LEAN_WORK", "MIN_COMPILE_TIME_S", "OPTION", "WIDE", "barrier", "barriers",
-           "cache_opted_out", "compiler_options", "cpu_has_avx512", "emitter_choice",
-           "enable_compilation_cache", "jit", "lean_options", "lean_work"]
+__all__ = ["CACHE_MAX_BYTES", "CACHE_OPT_OUT", "EMITTERS", "LEAN", "LEAN_ROWS", "LEAN_WORK",
+           "MIN_COMPILE_TIME_S", "OPTION", "WIDE", "barrier", "barriers", "cache_opted_out",
+           "compiler_options", "cpu_has_avx512", "emitter_choice", "enable_compilation_cache",
+           "jit", "lean_options", "lean_work"]

@@ -36,17 +36,20 @@ def pytest_configure(config):
     Python then installs no handler, and the Ctrl-C tests (test_out_dir) would see nothing.
 
     JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
-    workers and, through JAX_COMPILATION_CACHE_DIR and its size, by the processes tests
-    start): a program that several tests or files compile, in whatever process, is compiled
-    once. Without pytest's cache: a directory of this process."""
+    workers and, through JAX's variables, by the processes tests start): a program that
+    several tests or files compile, in whatever process, is compiled once. Without pytest's
+    cache: a directory of this process."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     cache = getattr(config, "cache", None)
-    path = xla.enable_compilation_cache(cache.mkdir("jax-compiled") if cache is not None
+    path = xla.enable_compilation_cache(cache.mkdir("jax-compilation-cache") if cache is not None
                                         else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
     if path is not None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
-        os.environ["JAX_COMPILATION_CACHE_MAX_SIZE"] = str(xla.CACHE_MAX_BYTES)  # (locked)
+        # the processes tests start: the same cache, size (locked) and least compile time
+        for name in ("jax_compilation_cache_max_size",
+                     "jax_persistent_cache_min_compile_time_secs"):
+            os.environ[name.upper()] = str(getattr(jax.config, name))
 
 
 # The longest files first (the scheduler below hands the groups out in this order,

@@ -188,16 +188,23 @@ def test_the_command_keeps_compiled_programs_in_a_user_cache_unless_told_not_to(
     env = {k: v for k, v in os.environ.items() if k not in ("DSCJAX_NO_COMPILATION_CACHE",
            "JAX_COMPILATION_CACHE_DIR", "JAX_COMPILATION_CACHE_MAX_SIZE")}
     env["XDG_CACHE_HOME"] = str(tmp_path)
+    cache = tmp_path / "dscjax" / "jax"
+    cache.mkdir(parents=True)
+    (cache / "old-cache").write_bytes(b"a program written without a size")
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     (off, off_size), (on, on_size) = (line.split() for line in out.stdout.splitlines())
     assert off in ("None", "''") and off_size == "-1"  # JAX's defaults: no cache, no limit
     # 2**30 bytes (1 GiB, the README's figure): a cache with a size is one JAX locks
-    assert on == repr(str(tmp_path / "dscjax" / "compiled")) and on_size == str(2**30)
-    # JAX's own marks of a locked cache with a size: its lock file, an access time per entry
-    written = {p.name.rsplit("-", 1)[-1] for p in (tmp_path / "dscjax" / "compiled").iterdir()}
+    assert on == repr(str(cache)) and on_size == str(2**30)
+    # JAX's own marks of a locked cache with a size: its lock file, an access time per entry;
+    # the program found there without one got the oldest (8 zero bytes), or the write of the
+    # new one would have failed
+    written = {p.name.rsplit("-", 1)[-1] for p in cache.iterdir()}
     assert written == {".lockfile", "cache", "atime"}, written
+    assert len(list(cache.glob("*-atime"))) == 2 and (cache / "old-atime").read_bytes() == bytes(8)
+    assert "Error writing" not in out.stderr, out.stderr
 
 
 # -- issue 38 item 2: effort in simulate's verdict --------------------------------------------

@@ -60,7 +60,7 @@ def build_parser(commands) -> argparse.ArgumentParser:
                         help="show the version, then the JAX backends and devices, and exit")
     parser.add_argument("--no-compilation-cache", action="store_true",
                         help="do not keep compiled programs in JAX's persistent cache "
-                        "($XDG_CACHE_HOME/dscjax/compiled or ~/.cache/dscjax/compiled; also "
+                        "($XDG_CACHE_HOME/dscjax/jax or ~/.cache/dscjax/jax; also "
                         "DSCJAX_NO_COMPILATION_CACHE=1)")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     for name, module in commands.items():
