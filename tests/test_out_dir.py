@@ -231,8 +231,12 @@ def _full_disk_then_resume(argv, out: Path, limit: int, written: str, kept) -> N
     """Run `dscjax ARGV` with files limited to `limit` bytes: exit 4, one line naming
     `written` and the command to continue, no temporary file, `kept(out)` holds; then that
     command, unlimited, finishes."""
+    # without the suite's compilation cache: JAX's write of a program past the limit would
+    # leave it there cut short, for every later process to read
+    env = {k: v for k, v in os.environ.items() if not k.startswith("JAX_COMPILATION_CACHE")}
     proc = subprocess.run([sys.executable, "-c", LIMITED, str(limit), DSCJAX, *argv],
-                          capture_output=True, text=True)
+                          capture_output=True, text=True,
+                          env=env | {"DSCJAX_NO_COMPILATION_CACHE": "1"})
     err = proc.stderr.strip().splitlines()
     assert proc.returncode == 4, proc.stderr[-3000:]
     command = shlex.join([DSCJAX, *argv, "--resume"])
