@@ -343,8 +343,8 @@ def sample_after_step(k_next, t, X: SampledState, setup: Setup, sampling: Sampli
     return jax.tree.map(lambda a, b: jnp.where(due, a, b), new, X)
 
 
-__all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler",
-           "ForwardEuler", "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile",
-           "State", "check_delay", "decay_rates", "diagnose", "frozen",
-           "initial_state", "prepared", "project", "sample_after_step", "sample_update",
-           "sampled_initial_state", "sampled_vector_field", "spectrum_along", "vector_field"]
+__all__ = ["SAMPLED_FROZEN", "SCHEME", "Controller", "ExponentialEuler", "ForwardEuler",
+           "Observation", "SampledState", "Sampling", "Setup", "SpectrumProfile", "State",
+           "check_delay", "decay_rates", "diagnose", "frozen", "initial_state", "prepared",
+           "project", "sample_after_step", "sample_update", "sampled_initial_state",
+           "sampled_vector_field", "spectrum_along", "vector_field"]
