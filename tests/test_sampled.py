@@ -103,8 +103,8 @@ def test_a_delay_longer_than_its_delay_line_is_refused():
     must = r"\.delay must be an integer in \[0, {}\] \(got {}\)$"
     with pytest.raises(ValueError, match="^RunSpec" + must.format(0, 2)):
         dataclasses.replace(spec, delay=2)
-    with pytest.raises(ValueError, match="^Sampling" + must.format(1, r"2\.0")):
-        Sampling(every=1.0, delay=2.0, line=1)  # a float: not a whole number of samples
+    with pytest.raises(ValueError, match="^Sampling" + must.format(1, r"1\.0")):
+        Sampling(every=1.0, delay=1.0, line=1)  # within its line, but a float
 
 
 @pytest.mark.parametrize("every, delay", [(5, 0), (2, 1)])
