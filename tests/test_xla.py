@@ -147,9 +147,9 @@ def test_vector_widths_change_no_result(paper_setup):
 
 
 _IMPORT_ALL = """
-import json, os, signal, sys, tempfile
+import gc, json, os, signal, sys, tempfile
 import matplotlib
-env = dict(os.environ)
+env, thresholds = dict(os.environ), gc.get_threshold()
 # read without resolving: rcParams["backend"] would import pyplot and pick a backend
 backend = repr(dict.__getitem__(matplotlib.rcParams, "backend"))
 rc = {k: repr(v) for k, v in dict.items(matplotlib.rcParams)}
@@ -164,6 +164,7 @@ print(json.dumps({
     "rc": {k: repr(v) for k, v in dict.items(matplotlib.rcParams)} == rc,
     "pyplot": "matplotlib.pyplot" in sys.modules,
     "sigint": signal.getsignal(signal.SIGINT) is signal.default_int_handler,
+    "gc": gc.get_threshold() == thresholds,
 }))
 """
 
@@ -171,8 +172,9 @@ print(json.dumps({
 def test_import_changes_nothing_global():
     """`import dscjax` (and every module that plots, the CLI and the tuner) leaves the
     environment (XLA_FLAGS included), matplotlib's backend and its rcParams as they were, never
-    loads pyplot and installs no signal handler (issue 25: only a command's run does)."""
+    loads pyplot, installs no signal handler (issue 25: only a command's run does) and leaves
+    the garbage collector's thresholds as they were."""
     out = subprocess.run([sys.executable, "-c", _IMPORT_ALL], capture_output=True, text=True,
                          check=True)
     assert json.loads(out.stdout.strip().splitlines()[-1]) == {
-        "env": True, "backend": True, "rc": True, "pyplot": False, "sigint": True}
+        "env": True, "backend": True, "rc": True, "pyplot": False, "sigint": True, "gc": True}
