@@ -13,10 +13,10 @@ import tempfile
 # allows: the suite's time is compiling programs that each run a few short horizons once. No
 # backend optimisation, and every program with the loop emitters that dscjax gives its
 # run-once programs (`xla.LEAN`; test_xla compares both emitters explicitly).
-# Python's cyclic garbage collector seldom: a worker traces thousands of programs, each trace
-# allocating millions of short-lived objects that reference counting frees, and at CPython's
-# thresholds the collector re-walks the worker's whole heap (every jaxpr and program it keeps)
-# dozens of times, reclaiming little (docs/benchmarks.md, "The test suite").
+# Python's cyclic garbage collector seldom: a worker traces thousands of programs, tracing
+# allocates short-lived objects by the million, and at CPython's thresholds the collector
+# re-walks the worker's whole heap (every jaxpr and program it keeps) again and again
+# (docs/benchmarks.md, "The test suite").
 gc.set_threshold(50_000, 20, 100)
 os.environ["XLA_FLAGS"] = " ".join(
     [os.environ.get("XLA_FLAGS", ""), "--xla_backend_optimization_level=0",
