@@ -179,9 +179,10 @@ class BoucWen(Hysteresis):
             hn = _pow_abs(hh, self.n)
             return self.A - self.beta * s * jnp.sign(hh) * hn - self.gamma * hn
 
-        for _ in range(JUMP_SUBSTEPS):
-            h = rk4_step(slope, 0.0, h, du, None)
-        return h
+        def substep(_, hh):
+            return rk4_step(slope, 0.0, hh, du, None)
+
+        return jax.lax.fori_loop(0, JUMP_SUBSTEPS, substep, h)  # a loop in the program
 
     def h_max(self):
         """(A / (beta + gamma))^(1/n): the bound of |h| for beta >= |gamma|."""

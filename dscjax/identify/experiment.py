@@ -6,10 +6,11 @@ by the measured input u(t), simulated on the record's own time stamps.
 
 Between two samples u is held (`hold = "zoh"`: the actuator steps along its own curve at each
 sample, `Hysteresis.jump`) or linear (`"linear"`: u' constant, the hysteresis rate integrated
-with the plant). Each interval is integrated by `substeps` RK4 steps of at most dt. With
-segments (multiple shooting) the plant restarts at each segment's first sample from a state
-of its own, `x_init[s]`; the actuator, driven by u alone, runs through the whole record. A
-plain `lax.scan`: differentiable in both modes, so Jacobians come by forward mode.
+with the plant). Each interval is integrated by `substeps` RK4 steps of at most dt, a loop in
+the program (compiled once, whatever their number). With segments (multiple shooting) the
+plant restarts at each segment's first sample from a state of its own, `x_init[s]`; the
+actuator, driven by u alone, runs through the whole record. A plain `lax.scan`:
+differentiable in both modes, so Jacobians come by forward mode.
 """
 
 from __future__ import annotations
@@ -82,8 +83,9 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
             def fx(tt, xx, _):
                 return plant.rhs(xx, w, tt)
 
-            for i in range(exp.substeps):
-                x = rk4_step(fx, t0 + i * step, x, step, None) if exp.plant else x
+            if exp.plant:
+                x = jax.lax.fori_loop(
+                    0, exp.substeps, lambda i, xx: rk4_step(fx, t0 + i * step, xx, step, None), x)
             h = hyst.jump(u0, u1, h)
         else:
             slope = (u1 - u0) / (t1 - t0)
@@ -95,11 +97,14 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
                 dx = plant.rhs(xx, hyst.output(uu, hh), tt) if exp.plant else jnp.zeros_like(xx)
                 return dx, dh
 
-            for i in range(exp.substeps):
+            def substep(i, y):
                 ti = t0 + i * step
-                x, h = rk4_step(f, ti, (x, h), step, None)
+                xx, hh = rk4_step(f, ti, y, step, None)
                 if hyst.projects:
-                    h = hyst.project(u0 + slope * (ti + step - t0), h)
+                    hh = hyst.project(u0 + slope * (ti + step - t0), hh)
+                return xx, hh
+
+            x, h = jax.lax.fori_loop(0, exp.substeps, substep, (x, h))
         end = x
         x = jnp.where(again, x_inits[s], x)
         return (x, h), (x, hyst.output(u1, h), end)
