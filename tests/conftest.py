@@ -6,6 +6,7 @@ need float32 say so and cast their setups (dscjax.cast) instead of flipping the 
 
 import gc
 import os
+import shutil
 import signal
 import tempfile
 
@@ -44,18 +45,31 @@ def pytest_configure(config):
     JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
     workers and, through JAX's variables, by the processes tests start): a program that
     several tests or files compile, in whatever process, is compiled once. Without pytest's
-    cache: a directory of this process."""
+    cache (`-p no:cacheprovider`): a temporary directory of the session, removed at its end
+    (the workers inherit the one the main process configured)."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     cache = getattr(config, "cache", None)
-    path = xla.enable_compilation_cache(cache.mkdir("jax-compilation-cache") if cache is not None
-                                        else tempfile.mkdtemp(prefix="dscjax-jax-cache-"))
+    if cache is not None:
+        directory = cache.mkdir("jax-compilation-cache")
+    elif jax.config.jax_compilation_cache_dir:
+        directory = None  # configured already (a worker: the main process's)
+    else:
+        directory = config._dscjax_temporary_cache = tempfile.mkdtemp(prefix="dscjax-jax-cache-")
+    path = xla.enable_compilation_cache(directory)
     if path is not None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
         # the processes tests start: the same cache, size (locked) and least compile time
         for name in ("jax_compilation_cache_max_size",
                      "jax_persistent_cache_min_compile_time_secs"):
             os.environ[name.upper()] = str(getattr(jax.config, name))
+
+
+def pytest_unconfigure(config):
+    """The session's temporary cache directory, if it made one, removed."""
+    directory = getattr(config, "_dscjax_temporary_cache", None)
+    if directory is not None:
+        shutil.rmtree(directory, ignore_errors=True)
 
 
 # The longest files first (the scheduler below hands the groups out in this order,
