@@ -13,6 +13,7 @@ from dscjax.integrate import (
     TimeParallel,
     integrate,
     rk4_step,
+    rk4_steps,
     saved_steps,
 )
 
@@ -53,6 +54,19 @@ def test_rk4_step_matches_exponential():
     y1 = rk4_step(lambda t, y, a: -a * y, 0.0, jnp.array(1.0), 0.1, 2.0)
     # local error of RK4 on y' = -2y is (0.2)^5/120 ~ 2.7e-6
     assert abs(float(y1) - np.exp(-0.2)) < 3e-6
+
+
+def test_rk4_steps_are_the_amplification_factor_to_the_nth_and_end_at_each_step():
+    # on y' = -a y every RK4 step multiplies y by R(z) = 1 + z + z^2/2 + z^3/6 + z^4/24,
+    # z = -a dt, so n steps give R(z)^n; `after` sees each step's end time t0 + k dt
+    a, dt, n = 2.0, 0.1, 7
+    z = -a * dt
+    r = 1 + z + z * z / 2 + z**3 / 6 + z**4 / 24
+    y = rk4_steps(lambda t, y, a_: -a_ * y, 0.5, jnp.array(1.0), dt, n, a)
+    assert abs(float(y) - r**n) < 1e-15
+    ends = rk4_steps(lambda t, y, _: jnp.zeros_like(y), 0.5, jnp.array(0.0), dt, n, None,
+                     after=lambda t, y: y + t)
+    assert abs(float(ends) - sum(0.5 + k * dt for k in range(1, n + 1))) < 1e-12
 
 
 def test_save_stride_and_times():

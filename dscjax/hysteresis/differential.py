@@ -14,7 +14,7 @@ import numpy as np
 
 from dscjax import validation as v
 from dscjax.hysteresis.base import Hysteresis
-from dscjax.integrate.solvers import rk4_step
+from dscjax.integrate.solvers import rk4_steps
 from dscjax.model import option, positive, smooth_abs
 
 
@@ -179,10 +179,7 @@ class BoucWen(Hysteresis):
             hn = _pow_abs(hh, self.n)
             return self.A - self.beta * s * jnp.sign(hh) * hn - self.gamma * hn
 
-        def substep(_, hh):
-            return rk4_step(slope, 0.0, hh, du, None)
-
-        return jax.lax.fori_loop(0, JUMP_SUBSTEPS, substep, h)  # a loop in the program
+        return rk4_steps(slope, 0.0, h, du, JUMP_SUBSTEPS, None)
 
     def h_max(self):
         """(A / (beta + gamma))^(1/n): the bound of |h| for beta >= |gamma|."""

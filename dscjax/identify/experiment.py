@@ -6,11 +6,11 @@ by the measured input u(t), simulated on the record's own time stamps.
 
 Between two samples u is held (`hold = "zoh"`: the actuator steps along its own curve at each
 sample, `Hysteresis.jump`) or linear (`"linear"`: u' constant, the hysteresis rate integrated
-with the plant). Each interval is integrated by `substeps` RK4 steps of at most dt, a loop in
-the program (compiled once, whatever their number). With segments (multiple shooting) the
-plant restarts at each segment's first sample from a state of its own, `x_init[s]`; the
-actuator, driven by u alone, runs through the whole record. A plain `lax.scan`:
-differentiable in both modes, so Jacobians come by forward mode.
+with the plant). Each interval is integrated by `substeps` RK4 steps of at most dt
+(`integrate.rk4_steps`). With segments (multiple shooting) the plant restarts at each
+segment's first sample from a state of its own, `x_init[s]`; the actuator, driven by u alone,
+runs through the whole record. A plain `lax.scan`: differentiable in both modes, so Jacobians
+come by forward mode.
 """
 
 from __future__ import annotations
@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax.closed_loop import Setup
-from dscjax.integrate import rk4_step
+from dscjax.integrate import rk4_steps
 
 Hold = Literal["linear", "zoh"]
 HOLDS: tuple[str, ...] = ("linear", "zoh")
@@ -84,8 +84,7 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
                 return plant.rhs(xx, w, tt)
 
             if exp.plant:
-                x = jax.lax.fori_loop(
-                    0, exp.substeps, lambda i, xx: rk4_step(fx, t0 + i * step, xx, step, None), x)
+                x = rk4_steps(fx, t0, x, step, exp.substeps, None)
             h = hyst.jump(u0, u1, h)
         else:
             slope = (u1 - u0) / (t1 - t0)
@@ -97,14 +96,11 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
                 dx = plant.rhs(xx, hyst.output(uu, hh), tt) if exp.plant else jnp.zeros_like(xx)
                 return dx, dh
 
-            def substep(i, y):
-                ti = t0 + i * step
-                xx, hh = rk4_step(f, ti, y, step, None)
-                if hyst.projects:
-                    hh = hyst.project(u0 + slope * (ti + step - t0), hh)
-                return xx, hh
+            def project(tt, y):  # the plays' exact clamp at the step's end
+                return y[0], hyst.project(u0 + slope * (tt - t0), y[1])
 
-            x, h = jax.lax.fori_loop(0, exp.substeps, substep, (x, h))
+            x, h = rk4_steps(f, t0, (x, h), step, exp.substeps, None,
+                             project if hyst.projects else None)
         end = x
         x = jnp.where(again, x_inits[s], x)
         return (x, h), (x, hyst.output(u1, h), end)

@@ -33,7 +33,7 @@ from dscjax.integrate.scan import (
     saved_steps,
 )
 from dscjax.integrate.single import integrate_single
-from dscjax.integrate.solvers import ETDRK4, RK4, SOLVERS, Solver, rk4_step, solver
+from dscjax.integrate.solvers import ETDRK4, RK4, SOLVERS, Solver, rk4_step, rk4_steps, solver
 
 
 def integrate(
@@ -95,4 +95,5 @@ def integrate(
 
 __all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "RK4", "SOLVERS", "STATUS_BOUND",
            "STATUS_NONFINITE", "STATUS_OK", "Checkpointed", "Gradient", "Integration", "Running",
-           "Solver", "Status", "TimeParallel", "integrate", "rk4_step", "saved_steps", "solver"]
+           "Solver", "Status", "TimeParallel", "integrate", "rk4_step", "rk4_steps", "saved_steps",
+           "solver"]

@@ -50,6 +50,19 @@ def rk4_step(f: Callable, t, y: Pytree, dt, args) -> Pytree:
     return _rk4(lambda tt, yy: (f(tt, yy, args), None), t, y, dt)[0]
 
 
+def rk4_steps(f: Callable, t0, y: Pytree, dt, n: int, args, after=None) -> Pytree:
+    """`n` classical RK4 steps of y' = f(t, y, args) from t0, one loop in the program (compiled
+    once, whatever n; a Python loop would copy the step n times into every program and its
+    derivatives). `after(t, y)`, if given, maps the state at the end of each step (t: its end).
+    """
+    def step(i, yy):
+        t = t0 + i * dt
+        y_next = rk4_step(f, t, yy, dt, args)
+        return y_next if after is None else after(t + dt, y_next)
+
+    return jax.lax.fori_loop(0, n, step, y)
+
+
 def _rk4(f_obs, t, y, dt, h=None, frozen=None):
     """RK4 step for f_obs(t, y) -> (dy, obs); returns (y_next, obs at (t, y)). `h` (default
     dt) scales the increments only: h = 0 gives y_next = y with the stages at finite points
