@@ -36,6 +36,8 @@ import pytest  # noqa: E402
 import dscjax  # noqa: E402
 from dscjax import xla  # noqa: E402
 
+_TEMPORARY_CACHE = pytest.StashKey[str]()
+
 
 def pytest_configure(config):
     """SIGINT delivered as KeyboardInterrupt, as in a user's terminal: a pytest started in the
@@ -55,7 +57,7 @@ def pytest_configure(config):
     elif jax.config.jax_compilation_cache_dir:
         directory = None  # configured already (a worker: the main process's)
     else:
-        directory = config._dscjax_temporary_cache = tempfile.mkdtemp(prefix="dscjax-jax-cache-")
+        directory = config.stash[_TEMPORARY_CACHE] = tempfile.mkdtemp(prefix="dscjax-jax-cache-")
     path = xla.enable_compilation_cache(directory)
     if path is not None:
         os.environ["JAX_COMPILATION_CACHE_DIR"] = str(path)
@@ -67,7 +69,7 @@ def pytest_configure(config):
 
 def pytest_unconfigure(config):
     """The session's temporary cache directory, if it made one, removed."""
-    directory = getattr(config, "_dscjax_temporary_cache", None)
+    directory = config.stash.get(_TEMPORARY_CACHE, None)
     if directory is not None:
         shutil.rmtree(directory, ignore_errors=True)
 
