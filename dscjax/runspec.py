@@ -5,15 +5,16 @@
     traj = dscjax.simulate(setup, spec=spec)
 
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
-`sampled` (the controller sampled, or continuous), `line` (the input delay line's length:
-the delay, or longer where several delays are to share a program) and `discretisation` (how
-the sampled controller advances its states). Traced fields change without recompiling: `dt`,
-`window_start`, `state_bound`, `sample_every` (steps per controller sample), `delay` (input
-delay in samples, up to `line`), `noise` and `noise_seed`; `refine`, `dtype`, `device` and
-`rules` are host-side, never part of a compiled program: `program()` sets them to fixed values
-before a spec enters a jitted function, so specs differing only there share one compiled
-program. The [simulation] table and its command-line flags (both from `Simulation`'s
-declarations) and a run's fingerprint (`describe`) all derive from it.
+`sampled` (the controller sampled, or continuous), `line` (the input delay line's length: the
+delay, or longer where several delays are to share a program), `discretisation` (how the
+sampled controller advances its states) and `skip_diverged` (a refinement level's). Traced
+fields change without recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps
+per controller sample), `delay` (input delay in samples, up to `line`), `noise` and
+`noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side, never part of a compiled
+program: `program()` sets them to fixed values before a spec enters a jitted function, so specs
+differing only there share one compiled program. The [simulation] table and its command-line
+flags (both from `Simulation`'s declarations) and a run's fingerprint (`describe`) all derive
+from it.
 """
 
 from __future__ import annotations
@@ -112,6 +113,8 @@ class RunSpec(eqx.Module):
     dtype: str = eqx.field(static=True, default="float64")
     device: str = eqx.field(static=True, default="auto")
     rules: tuple[str, ...] = eqx.field(static=True, default=())  # fields set by a default rule
+    # a refinement level's (`refined`): no more steps once every member has diverged
+    skip_diverged: bool = eqx.field(static=True, default=False)
 
     def __check_init__(self):
         check_delay(self.delay, self.line, "RunSpec")
@@ -243,11 +246,13 @@ class RunSpec(eqx.Module):
 
     def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
-        the same controller sample time (a refinement level of `simulate`)."""
+        the same controller sample time (a refinement level of `simulate`); it steps no more
+        once every member has diverged (`skip_diverged`: it re-runs runs that diverged, most
+        of which diverge again)."""
         m = 2 ** halvings
         return dataclasses.replace(
             self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m, solver=solver)
+            sample_every=self.sample_every * m, solver=solver, skip_diverged=True)
 
 
 def step_for(sample_time: float, dt: float) -> float:

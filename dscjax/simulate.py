@@ -164,7 +164,8 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     res = integrate(field, y0, spec.dt, spec.n_steps, (shared, samp), batch=batch,
                     rates=lambda t, y, args, obs: rates(t, y, *member(args), obs), project=proj,
                     save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
-                    solver=spec.solver, gradient=spec.gradient, frozen=frozen)
+                    solver=spec.solver, gradient=spec.gradient, frozen=frozen,
+                    skip_diverged=spec.skip_diverged)
     t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
     t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
     finalize, dt = red.finalize, spec.dt

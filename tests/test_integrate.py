@@ -173,6 +173,39 @@ def test_divergence_is_reported_not_returned_as_nan(bound, code):
     assert np.all(np.isfinite(np.asarray(res.obs)))
 
 
+def test_a_run_that_skips_once_diverged_gives_the_same_numbers_for_fewer_evaluations():
+    # y' = y^2 from 1 leaves the bound 1e3 at t = 0.999 (dt = 1e-3), in the fourth part of
+    # 256 steps; the last four parts (steps 1024..2047) are not stepped. Saved every 4th step
+    # (a part is 64 blocks) f is evaluated once a block (4 x 64), saved at the end alone (one
+    # block of 8 parts) once a part (4), instead of four times a step (RK4's stages, 4 x 1024).
+    # Every output is the same (the observation y + t reads the time), for one run and for a
+    # batch that diverges.
+    calls = []
+
+    def blowup(t, y, args):
+        return y * y, y + t
+
+    def f(t, y, args):
+        jax.debug.callback(lambda: calls.append(1))
+        return blowup(t, y, args)
+
+    def run(skip, every, y0=1.0, batch=None):
+        calls.clear()
+        res = jax.block_until_ready(integrate(
+            f if batch is None else blowup, jnp.asarray(y0), 1e-3, 2048, (), batch=batch,
+            save_every=every, state_bound=1e3, reduction=_Count(), skip_diverged=skip))
+        return res, len(calls)
+
+    two = ([1.0, 2.0], jnp.zeros(2))
+    for every, observed in ((4, 4 * 64), (2048, 4)):
+        (full, n_full), (skipped, n_skipped) = run(False, every), run(True, every)
+        assert int(full.status.code) == 2 and 999 <= int(full.status.step) < 1024
+        assert (n_full, n_skipped) == (4 * 2048 + 1, 4 * 1024 + observed + 1)
+        for a, b in ((full, skipped), (run(False, every, *two)[0], run(True, every, *two)[0])):
+            for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+                np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 def test_healthy_run_has_ok_status():
     res = _run(0.01)
     assert int(res.status.code) == STATUS_OK and int(res.status.step) == -1

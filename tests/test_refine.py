@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 import dscjax
+from dscjax.divergence import level_spec
 from dscjax.hysteresis import closed_form
 from dscjax.integrate import ETDRK4, STATUS_OK, integrate
 
@@ -78,6 +79,9 @@ def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_set
     assert np.asarray(batch.refinements).tolist() == [0, 2]
     assert float(batch.dt[1]) == pytest.approx(1e-3)  # level 2: ETDRK4 at dt / 2
     assert np.isnan(float(batch.metrics["linf_error"][1]))
+    # the levels (not the run asked for) step no more once all they re-run has diverged
+    spec = dscjax.RunSpec.make(2.0, 2e-3)
+    assert [level_spec(spec, j).skip_diverged for j in range(3)] == [False, True, True]
 
 
 def test_single_run_is_refined_and_says_so(paper_setup):

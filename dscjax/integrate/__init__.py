@@ -52,6 +52,7 @@ def integrate(
     rates: Callable | None = None,
     project: Callable | None = None,
     frozen: Pytree = None,
+    skip_diverged: bool = False,
 ) -> Integration:
     """Integrate y' = f(t, y, args) on t_k = k dt, k = 0..n_steps.
 
@@ -75,6 +76,10 @@ def integrate(
             (step k, time t): a discrete update (the plays' clamp, a sampled controller).
         frozen: None, or a static tree of Python bools, a prefix of y's (one member's):
             components held inside a step, changed only by `project`, still bound-checked.
+        skip_diverged: with save_every > 1, step no more once every member has diverged
+            (static): the same results, for one more observation in the program
+            (`scan.saving_scan`); for runs likely to diverge, such as a refinement of a
+            diverged run.
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
@@ -88,9 +93,10 @@ def integrate(
     acc0 = () if reduction is None else reduction.init(dt.dtype)  # one member's
     if batch is None:
         return integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
-                                state_bound, solver, gradient, rates, project, frozen)
+                                state_bound, solver, gradient, rates, project, frozen,
+                                skip_diverged)
     return integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                           state_bound, solver, gradient, rates, project, frozen)
+                           state_bound, solver, gradient, rates, project, frozen, skip_diverged)
 
 
 __all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "RK4", "SOLVERS", "STATUS_BOUND",

@@ -45,7 +45,8 @@ def _ravel_floats(tree):
 
 
 def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                    state_bound, solver, gradient, rates=None, project=None, frozen=None):
+                    state_bound, solver, gradient, rates=None, project=None, frozen=None,
+                    skip_diverged=False):
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = jax.tree.map(lambda x: x[0], (y0, batch))
     mask = scan.frozen_mask(frozen, y_one)  # one Python bool per row: held inside a step
@@ -111,7 +112,8 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
         carry, (ys, obs) = scan.saving_scan(
             step, scan.start(y_init, acc_init, (n_batch,)), obs_zero, n_steps, save_every,
-            lambda c, o: (jnp.stack(c.y), jnp.stack(o)), gradient.every)
+            lambda c, o: (jnp.stack(c.y), jnp.stack(o)), gradient.every,
+            (lambda c: f_obs(c.k.astype(dt.dtype) * dt, c.y)[1]) if skip_diverged else None)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         _, obs_end = f_obs(t_end, y_end)

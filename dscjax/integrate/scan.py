@@ -19,6 +19,10 @@ STATUS_BOUND = 2
 
 SMALL = 64  # floats per buffer for XLA:CPU's sequential loop-body executor (512 bytes f64)
 
+# `saving_scan` with `observe` tests whether every member has diverged once every this many
+# steps (at most, in groups of whole save blocks; exactly, in parts of a longer block).
+SKIP_STEPS = 256
+
 # Rows are written from an inner scan over this many steps when every step is saved: one scan
 # that both steps and writes rows is slower on XLA:CPU.
 _ROW_CHUNKS = (4, 2)
@@ -112,10 +116,17 @@ def advance(c: Carry, y_next, acc, finite, small) -> Carry:
                  jnp.where(bad_now, c.k + 1, c.bad))
 
 
-def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None):
+def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None,
+                observe=None):
     """n steps of `step(c) -> (c, obs)` from c0, keeping record(c, obs) of the steps 0, s, 2s,
     ... (c the carry before the step; a last, shorter block's first step too); a batch's
-    steps are checkpointed in segments of `every` (None: not checkpointed)."""
+    steps are checkpointed in segments of `every` (None: not checkpointed).
+
+    With `observe(c) -> obs` (the observation at c, without a step) and s > 1, the steps run
+    in parts of up to `SKIP_STEPS` steps (groups of blocks, or parts of a long block), and a
+    part that starts with every member diverged is not stepped: a diverged run is frozen, so
+    it keeps c (k advanced) and records observe(c) for a block that starts there, which is
+    what the steps would have given."""
     if s == 1:
         chunk = next((q for q in _ROW_CHUNKS if n % q == 0), 1)
 
@@ -139,23 +150,59 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
 
         return jax.lax.scan(inner, state, None, length=length)[0]
 
-    def block(c, length):
-        state = (c, obs_zero, jnp.array(True))
+    def run(state, length):
+        """`length` steps from state, checkpointed in segments of `every`."""
         seg = None if every is None else _largest_divisor(length, every)
         if seg is None or seg == length:
             def body(st):
                 return steps(st, length)
 
-            state = (jax.checkpoint(body) if seg else body)(state)
-        else:
-            @jax.checkpoint
-            def segment(st, _):
-                return steps(st, seg), None
+            return (jax.checkpoint(body) if seg else body)(state)
 
-            state, _ = jax.lax.scan(segment, state, None, length=length // seg)
+        @jax.checkpoint
+        def segment(st, _):
+            return steps(st, seg), None
+
+        return jax.lax.scan(segment, state, None, length=length // seg)[0]
+
+    def diverged(c):
+        return jnp.all(c.code != STATUS_OK)
+
+    def block(c, length):
+        state = (c, obs_zero, jnp.array(True))
+        if observe is None or length <= SKIP_STEPS:
+            state = run(state, length)
+        else:  # a long block: its parts of SKIP_STEPS steps, each skipped once all diverged
+            def skip(st):
+                cc, obs_f, first = st
+                return (cc._replace(k=cc.k + SKIP_STEPS), kept(first, observe(cc), obs_f),
+                        jnp.zeros_like(first))
+
+            def part(st, _):
+                return jax.lax.cond(diverged(st[0]), skip, lambda st: run(st, SKIP_STEPS),
+                                    st), None
+
+            state = jax.lax.scan(part, state, None, length=length // SKIP_STEPS)[0]
+            if length % SKIP_STEPS:
+                state = run(state, length % SKIP_STEPS)
         return state[0], record(c, state[1])
 
-    c, recs = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=n // s)
+    count = n // s
+    if observe is None or s > SKIP_STEPS:
+        c, recs = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=count)
+    else:  # short blocks: in groups of up to SKIP_STEPS steps, each skipped once all diverged
+        group = _largest_divisor(count, SKIP_STEPS // s)
+
+        def stepped(c):
+            return jax.lax.scan(lambda cc, _: block(cc, s), c, None, length=group)
+
+        def skipped(c):
+            return jax.lax.scan(lambda cc, _: (cc._replace(k=cc.k + s),
+                                               record(cc, observe(cc))), c, None, length=group)
+
+        c, recs = jax.lax.scan(lambda cc, _: jax.lax.cond(diverged(cc), skipped, stepped, cc),
+                               c0, None, length=count // group)
+        recs = jax.tree.map(lambda v: v.reshape(count, *v.shape[2:]), recs)
     if n % s:
         c, last = block(c, n % s)
         recs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), recs, last)

@@ -60,8 +60,9 @@ class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
     def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
-                 project=None, frozen=None):
+                 project=None, frozen=None, skip_diverged=False):
         self.f, self.reduction_is_none = f, reduction is None
+        self.skip_diverged = skip_diverged
         self.solver, self.rates, self.project = solver, rates, project
         self.n, self.s = n_steps, save_every
         self.yp, self.ap, self.accp = _Packer(y0), _Packer(args), _Packer(acc0)
@@ -129,9 +130,14 @@ class _Problem:
     # the primal loop: saves every s-th state, never stores the others
     def forward(self, y0, a, red, acc0, dt, bound):
         obs_zero = tuple(jnp.zeros((size,), self.dtype) for size in self.op.sizes)
+        observe = None
+        if self.skip_diverged:
+            def observe(c):
+                return self.field(c.k.astype(dt.dtype) * dt, c.y, a)[1]
+
         c, (ys, obs) = scan.saving_scan(lambda c: self.guarded(c, a, red, dt, bound),
                                         scan.start(y0, acc0), obs_zero, self.n, self.s,
-                                        lambda c, obs: (c.y, obs))
+                                        lambda c, obs: (c.y, obs), observe=observe)
         acc, obs_end = self.finish(c, a, red, dt)
         ys, obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), (ys, obs),
                                (c.y, obs_end))
@@ -150,9 +156,10 @@ class _Problem:
 
 
 def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
-                     solver, gradient, rates=None, project=None, frozen=None):
+                     solver, gradient, rates=None, project=None, frozen=None,
+                     skip_diverged=False):
     prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
-                    frozen)
+                    frozen, skip_diverged)
 
     primal = prob.forward
     if isinstance(gradient, TimeParallel):
