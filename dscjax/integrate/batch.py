@@ -108,15 +108,18 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         small = functools.reduce(jnp.logical_and, [jnp.abs(v) <= state_bound for v in y_next])
         return scan.advance(c, y_next, acc, finite, small), obs
 
+    def observe(c):  # the observation at the carry's step and state, without a step
+        return f_obs(c.k.astype(dt.dtype) * dt, c.y)[1]
+
     with barriers():  # (f_rows is traced once, here: with its barriers)
         obs_zero = scan.zeros(jax.eval_shape(lambda y: f_obs(dt, y)[1], y_init))
         carry, (ys, obs) = scan.saving_scan(
             step, scan.start(y_init, acc_init, (n_batch,)), obs_zero, n_steps, save_every,
             lambda c, o: (jnp.stack(c.y), jnp.stack(o)), gradient.every,
-            (lambda c: f_obs(c.k.astype(dt.dtype) * dt, c.y)[1]) if skip_diverged else None)
+            observe if skip_diverged else None)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
-        _, obs_end = f_obs(t_end, y_end)
+        obs_end = observe(carry)
         acc = scan.kept(code == scan.STATUS_OK, acc_update(acc, k, t_end, y_end, obs_end), acc)
     ys = ys_c.unstack(jnp.concatenate([ys, jnp.stack(y_end)[None]]))  # rows (m, B) per step
     obs = obs_c.unstack(jnp.concatenate([obs, jnp.stack(obs_end)[None]]))

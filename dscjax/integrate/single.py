@@ -119,10 +119,14 @@ class _Problem:
         small = jnp.all(jnp.stack([jnp.all(jnp.abs(v) <= bound) for v in y_next]))
         return scan.advance(c, y_next, acc, finite, small), obs
 
+    def observe(self, c: scan.Carry, a, dt):
+        """The observation at the carry's step and state, without a step."""
+        return self.field(c.k.astype(dt.dtype) * dt, c.y, a)[1]
+
     def finish(self, c: scan.Carry, a, red, dt):
         """Observation at t_N and the last sample folded into the reductions."""
         t = c.k.astype(dt.dtype) * dt
-        _, obs = self.field(t, c.y, a)
+        obs = self.observe(c, a, dt)
         acc = scan.kept(c.code == scan.STATUS_OK, self.update(red, c.acc, c.k, t, c.y, obs, dt),
                         c.acc)
         return acc, obs
@@ -130,14 +134,10 @@ class _Problem:
     # the primal loop: saves every s-th state, never stores the others
     def forward(self, y0, a, red, acc0, dt, bound):
         obs_zero = tuple(jnp.zeros((size,), self.dtype) for size in self.op.sizes)
-        observe = None
-        if self.skip_diverged:
-            def observe(c):
-                return self.field(c.k.astype(dt.dtype) * dt, c.y, a)[1]
-
-        c, (ys, obs) = scan.saving_scan(lambda c: self.guarded(c, a, red, dt, bound),
-                                        scan.start(y0, acc0), obs_zero, self.n, self.s,
-                                        lambda c, obs: (c.y, obs), observe=observe)
+        c, (ys, obs) = scan.saving_scan(
+            lambda c: self.guarded(c, a, red, dt, bound), scan.start(y0, acc0), obs_zero,
+            self.n, self.s, lambda c, obs: (c.y, obs),
+            observe=(lambda c: self.observe(c, a, dt)) if self.skip_diverged else None)
         acc, obs_end = self.finish(c, a, red, dt)
         ys, obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), (ys, obs),
                                (c.y, obs_end))
