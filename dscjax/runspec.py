@@ -173,11 +173,13 @@ class RunSpec(eqx.Module):
         """The [simulation] table laid over `base` (default: the defaults), each key read by
         its rule (`Simulation`). A key of the table replaces the base's value; a rule-derived
         value of the base (save_every, window_start) is derived again from the new horizon and
-        step."""
+        step; the base's `gradient` and `skip_diverged`, which no table holds, are kept."""
         values = Simulation(**base.to_table()) if base is not None else Simulation()
         values = settings.from_table(Simulation, table, prefix, base=values)
-        return cls.make(**dataclasses.asdict(values), prefix=prefix, names=names,
+        spec = cls.make(**dataclasses.asdict(values), prefix=prefix, names=names,
                         gradient=base.gradient if base is not None else None)
+        return spec if base is None else dataclasses.replace(spec,
+                                                             skip_diverged=base.skip_diverged)
 
     def replace(self, names: Mapping[str, str] | None = None, **table) -> RunSpec:
         """This spec with some [simulation] keys changed (checked again; `names`: how the

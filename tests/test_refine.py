@@ -82,6 +82,7 @@ def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_set
     # the levels (not the run asked for) step no more once all they re-run has diverged
     spec = dscjax.RunSpec.make(2.0, 2e-3)
     assert [level_spec(spec, j).skip_diverged for j in range(3)] == [False, True, True]
+    assert level_spec(spec, 1).replace(refine=0).skip_diverged  # (the tuning report's levels)
 
 
 def test_single_run_is_refined_and_says_so(paper_setup):
