@@ -187,21 +187,23 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
                 state = run(state, length % SKIP_STEPS)
         return state[0], record(c, state[1])
 
+    def blocks(c, count):
+        return jax.lax.scan(lambda cc, _: block(cc, s), c, None, length=count)
+
     count = n // s
     if observe is None or s > SKIP_STEPS:
-        c, recs = jax.lax.scan(lambda cc, _: block(cc, s), c0, None, length=count)
+        c, recs = blocks(c0, count)
     else:  # short blocks: in groups of up to SKIP_STEPS steps, each skipped once all diverged
         group = _largest_divisor(count, SKIP_STEPS // s)
-
-        def stepped(c):
-            return jax.lax.scan(lambda cc, _: block(cc, s), c, None, length=group)
 
         def skipped(c):
             return jax.lax.scan(lambda cc, _: (cc._replace(k=cc.k + s),
                                                record(cc, observe(cc))), c, None, length=group)
 
-        c, recs = jax.lax.scan(lambda cc, _: jax.lax.cond(diverged(cc), skipped, stepped, cc),
-                               c0, None, length=count // group)
+        def part(c, _):
+            return jax.lax.cond(diverged(c), skipped, lambda cc: blocks(cc, group), c)
+
+        c, recs = jax.lax.scan(part, c0, None, length=count // group)
         recs = jax.tree.map(lambda v: v.reshape(count, *v.shape[2:]), recs)
     if n % s:
         c, last = block(c, n % s)
