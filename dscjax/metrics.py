@@ -143,14 +143,15 @@ class Tracking(eqx.Module):
     window_start: jax.Array  # () t0 of the window [t0, T]
     n_steps: int = eqx.field(static=True, default=1)
     reference: Any = None
+    substeps: Any = None  # a refinement level's steps per step (`RunSpec.substeps`): N m steps
 
     def init(self, dtype) -> RunningMetrics:
         return running_init(dtype)
 
     def update(self, acc, k, t, y, obs, dt):
         yr = obs.yr if self.reference is None else self.reference(t)
-        return running_update(acc, k, t, y.x[0] - yr, obs.u, obs.w, dt, self.window_start,
-                              self.n_steps)
+        n = self.n_steps if self.substeps is None else self.n_steps * self.substeps
+        return running_update(acc, k, t, y.x[0] - yr, obs.u, obs.w, dt, self.window_start, n)
 
     def finalize(self, acc, t_final):
         return finalize(acc, t_final)

@@ -7,10 +7,11 @@
 Static fields shape the compiled program: `n_steps`, `save_every`, `solver`, `gradient`,
 `sampled` (the controller sampled, or continuous), `line` (the input delay line's length: the
 delay, or longer where several delays are to share a program), `discretisation` (how the
-sampled controller advances its states) and `skip_diverged` (a refinement level's). Traced
-fields change without recompiling: `dt`, `window_start`, `state_bound`, `sample_every` (steps
-per controller sample), `delay` (input delay in samples, up to `line`), `noise` and
-`noise_seed`; `refine`, `dtype`, `device` and `rules` are host-side, never part of a compiled
+sampled controller advances its states), `skip_diverged` and whether `substeps` is given (a
+refinement level's). Traced fields change without recompiling: `dt`, `window_start`,
+`state_bound`, `sample_every` (steps per controller sample), `delay` (input delay in samples,
+up to `line`), `noise`, `noise_seed` and `substeps` (so that one program serves every
+refinement level); `refine`, `dtype`, `device` and `rules` are host-side, never part of a compiled
 program: `program()` sets them to fixed values before a spec enters a jitted function, so specs
 differing only there share one compiled program. The [simulation] table and its command-line
 flags (both from `Simulation`'s declarations) and a run's fingerprint (`describe`) all derive
@@ -115,6 +116,8 @@ class RunSpec(eqx.Module):
     rules: tuple[str, ...] = eqx.field(static=True, default=())  # fields set by a default rule
     # a refinement level's (`refined`): no more steps once every member has diverged
     skip_diverged: bool = eqx.field(static=True, default=False)
+    # a refinement level's: each of the n_steps steps is this many steps of dt (traced)
+    substeps: Any = None
 
     def __check_init__(self):
         check_delay(self.delay, self.line, "RunSpec")
@@ -189,7 +192,11 @@ class RunSpec(eqx.Module):
     # -- reading --------------------------------------------------------------------------------
     @property
     def t_final(self) -> float:
-        return self.n_steps * float(self.dt)
+        return self.n_steps * self._substeps * float(self.dt)
+
+    @property
+    def _substeps(self) -> int:
+        return 1 if self.substeps is None else int(self.substeps)
 
     @property
     def sample_time(self) -> float | None:
@@ -205,7 +212,8 @@ class RunSpec(eqx.Module):
         noise = None if self.noise is None else np.asarray(self.noise, float).tolist()
         short = validation.shortest
         out = {"t_final": short(self.t_final), "dt": short(float(self.dt)),
-               "save_every": self.save_every, "window_start": short(float(self.window_start)),
+               "save_every": self.save_every * self._substeps,
+               "window_start": short(float(self.window_start)),
                "state_bound": short(float(self.state_bound)), "dtype": self.dtype,
                "solver": self.solver.name, "refine": self.refine,
                "sample_time": None if not self.sampled else short(self.sample_time),
@@ -217,7 +225,7 @@ class RunSpec(eqx.Module):
         """What determines a run's numbers (a resumable run's fingerprint): the table with
         every rule applied, without the host-side device."""
         out = self.to_table()
-        out.update(save_every=self.save_every,
+        out.update(save_every=self.save_every * self._substeps,
                    window_start=validation.shortest(float(self.window_start)))
         out.pop("device")
         if isinstance(self.discretisation, ExponentialEuler):  # the default
@@ -238,7 +246,8 @@ class RunSpec(eqx.Module):
             state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
             noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype),
             sample_every=jnp.asarray(self.sample_every, dtype),
-            delay=jnp.asarray(self.delay, dtype))
+            delay=jnp.asarray(self.delay, dtype),
+            substeps=None if self.substeps is None else jnp.asarray(self.substeps, jnp.int32))
 
     def program(self) -> RunSpec:
         """This spec with its host-side fields at fixed values: what a jitted
@@ -248,13 +257,13 @@ class RunSpec(eqx.Module):
 
     def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
-        the same controller sample time (a refinement level of `simulate`); it steps no more
-        once every member has diverged (`skip_diverged`: it re-runs runs that diverged, most
-        of which diverge again)."""
+        the same controller sample time (a refinement level of `simulate`): each of its
+        n_steps steps is 2^halvings `substeps`, a traced count, so that every level of a run
+        is one compiled program; it steps no more once every member has diverged
+        (`skip_diverged`: it re-runs runs that diverged, most of which diverge again)."""
         m = 2 ** halvings
-        return dataclasses.replace(
-            self, dt=self.dt / m, n_steps=self.n_steps * m, save_every=self.save_every * m,
-            sample_every=self.sample_every * m, solver=solver, skip_diverged=True)
+        return dataclasses.replace(self, dt=self.dt / m, sample_every=self.sample_every * m,
+                                   solver=solver, skip_diverged=True, substeps=m)
 
 
 def step_for(sample_time: float, dt: float) -> float:

@@ -130,7 +130,8 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     caller's running reductions to `metrics`."""
     dtype = dtype_of(setup)
     spec = spec.for_dtype(dtype)
-    red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps)
+    sub = spec.substeps  # (a refinement level's: steps of dt per step; None: one)
+    red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps, substeps=sub)
     if extra is not None:
         red = m.Combined((red, extra))
     samp = None
@@ -165,9 +166,10 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
                     rates=lambda t, y, args, obs: rates(t, y, *member(args), obs), project=proj,
                     save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
                     solver=spec.solver, gradient=spec.gradient, frozen=frozen,
-                    skip_diverged=spec.skip_diverged)
-    t = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32).astype(dtype) * spec.dt
-    t_final = jnp.asarray(spec.n_steps, dtype) * spec.dt
+                    skip_diverged=spec.skip_diverged, substeps=sub)
+    k = jnp.asarray(saved_steps(spec.n_steps, spec.save_every), jnp.int32)
+    t = (k if sub is None else k * sub).astype(dtype) * spec.dt
+    t_final = jnp.asarray(spec.n_steps if sub is None else spec.n_steps * sub, dtype) * spec.dt
     finalize, dt = red.finalize, spec.dt
     if overrides is not None:
         finalize = jax.vmap(red.finalize, in_axes=(0, None))

@@ -7,6 +7,7 @@ from types import SimpleNamespace
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from compilations import counted
 
 import dscjax
 from dscjax.divergence import level_spec
@@ -72,9 +73,12 @@ def test_refinement_leaves_healthy_members_bitwise_and_matches_a_finer_run(paper
 
 def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_setup):
     # x1' = x2 + 50 x1^2 from x1(0) = 3 blows up within ~7 ms, whatever the step
-    batch = dscjax.simulate_batch(paper_setup, {
-        "plant.theta": jnp.array([[0.1, 0.0], [50.0, 0.0]]),
-        "plant.x0": jnp.array([[0.08, 0.1], [3.0, 0.1]])}, 2.0, 2e-3, refine=2)
+    with counted() as traced:
+        batch = dscjax.simulate_batch(paper_setup, {
+            "plant.theta": jnp.array([[0.1, 0.0], [50.0, 0.0]]),
+            "plant.x0": jnp.array([[0.08, 0.1], [3.0, 0.1]])}, 2.0, 2e-3, refine=2)
+    # the run asked for and one program for both levels (their step count is traced)
+    assert traced["_run_reported"] == 2
     assert np.asarray(batch.diverged).tolist() == [False, True]
     assert np.asarray(batch.refinements).tolist() == [0, 2]
     assert float(batch.dt[1]) == pytest.approx(1e-3)  # level 2: ETDRK4 at dt / 2
@@ -82,7 +86,12 @@ def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_set
     # the levels (not the run asked for) step no more once all they re-run has diverged
     spec = dscjax.RunSpec.make(2.0, 2e-3)
     assert [level_spec(spec, j).skip_diverged for j in range(3)] == [False, True, True]
-    assert level_spec(spec, 1).replace(refine=0).skip_diverged  # (the tuning report's levels)
+    # a level's spec rebuilt from its table is the same run: its steps, saved times and levels
+    spec = dscjax.RunSpec.make(2.0, 2e-3, save_every=10)
+    for j in (1, 2):
+        again, m = level_spec(spec, j).replace(refine=0), 2 ** (j - 1)
+        assert again.skip_diverged and again.dt == spec.dt / m and again.t_final == spec.t_final
+        assert (again.n_steps, again.save_every) == (spec.n_steps * m, spec.save_every * m)
 
 
 def test_single_run_is_refined_and_says_so(paper_setup):

@@ -87,7 +87,7 @@ def _refine(setup, ov, sim, m, keys: dict[str, str]) -> np.ndarray:
         return np.zeros(diverged.shape, np.int32)
 
     def level(j, idx):  # rows idx at refinement level j (level 0, the tuning's step, is m)
-        spec = level_spec(sim, j).replace(refine=0)
+        spec = level_spec(sim.replace(refine=0), j)
         traj = simulate_batch(setup, {k: v[idx] for k, v in ov.items()}, spec=spec)
         return {"diverged": traj.diverged, **{k: traj.metrics[k] for k in keys if k != "diverged"}}
 

@@ -53,6 +53,7 @@ def integrate(
     project: Callable | None = None,
     frozen: Pytree = None,
     skip_diverged: bool = False,
+    substeps=None,
 ) -> Integration:
     """Integrate y' = f(t, y, args) on t_k = k dt, k = 0..n_steps.
 
@@ -76,10 +77,15 @@ def integrate(
             (step k, time t): a discrete update (the plays' clamp, a sampled controller).
         frozen: None, or a static tree of Python bools, a prefix of y's (one member's):
             components held inside a step, changed only by `project`, still bound-checked.
-        skip_diverged: with save_every > 1, step no more once every member has diverged
+        skip_diverged: step no more once every member has diverged
             (static): the same results, for one more observation in the program
             (`scan.saving_scan`); for runs likely to diverge, such as a refinement of a
             diverged run.
+        substeps: None, or m (traced): each of the n_steps steps is m steps of dt, the
+            reductions updated at each, saving every s-th of the n_steps (n_steps m steps of
+            dt in all): one program for every m, as a refinement's levels need. Not for
+            gradients (`TimeParallel` does not apply; a loop of traced length has no reverse
+            mode).
 
     Returns:
         Integration(ys, obs, acc, status); with `batch` every leaf has a leading batch axis.
@@ -94,9 +100,10 @@ def integrate(
     if batch is None:
         return integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
                                 state_bound, solver, gradient, rates, project, frozen,
-                                skip_diverged)
+                                skip_diverged, substeps)
     return integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                           state_bound, solver, gradient, rates, project, frozen, skip_diverged)
+                           state_bound, solver, gradient, rates, project, frozen, skip_diverged,
+                           substeps)
 
 
 __all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "RK4", "SOLVERS", "STATUS_BOUND",

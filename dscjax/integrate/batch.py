@@ -46,7 +46,7 @@ def _ravel_floats(tree):
 
 def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
                     state_bound, solver, gradient, rates=None, project=None, frozen=None,
-                    skip_diverged=False):
+                    skip_diverged=False, substeps=None):
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = jax.tree.map(lambda x: x[0], (y0, batch))
     mask = scan.frozen_mask(frozen, y_one)  # one Python bool per row: held inside a step
@@ -116,7 +116,7 @@ def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every
         carry, (ys, obs) = scan.saving_scan(
             step, scan.start(y_init, acc_init, (n_batch,)), obs_zero, n_steps, save_every,
             lambda c, o: (jnp.stack(c.y), jnp.stack(o)), gradient.every,
-            observe if skip_diverged else None)
+            observe if skip_diverged else None, substeps)
         k, y_end, acc, code, bad = carry
         t_end = k.astype(dt.dtype) * dt
         obs_end = observe(carry)

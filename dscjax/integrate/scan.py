@@ -116,18 +116,41 @@ def advance(c: Carry, y_next, acc, finite, small) -> Carry:
                  jnp.where(bad_now, c.k + 1, c.bad))
 
 
+def substepped(step, m, obs_zero):
+    """`step` (c -> (c, obs)) taken m times (m traced) as one step, with the observation of
+    the first; a step that starts with every member diverged takes one (a diverged run is
+    frozen: only its k advances)."""
+    def body(i, state):
+        c, obs_first = state
+        c, obs = step(c)
+        return c, kept(i == 0, obs, obs_first)
+
+    def steps(c):
+        more = jnp.where(jnp.all(c.code != STATUS_OK), 1, m)
+        c_new, obs = jax.lax.fori_loop(0, more, body, (c, obs_zero))
+        return c_new._replace(k=c.k + m), obs
+
+    return steps
+
+
 def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = None,
-                observe=None):
+                observe=None, substeps=None):
     """n steps of `step(c) -> (c, obs)` from c0, keeping record(c, obs) of the steps 0, s, 2s,
     ... (c the carry before the step; a last, shorter block's first step too); a batch's
     steps are checkpointed in segments of `every` (None: not checkpointed).
 
-    With `observe(c) -> obs` (the observation at c, without a step) and s > 1, the steps run
-    in parts of up to `SKIP_STEPS` steps (groups of blocks, or parts of a long block), and a
+    With `observe(c) -> obs` (the observation at c, without a step) the steps run in parts
+    of up to `SKIP_STEPS` steps (groups of blocks, or parts of a long block), and a
     part that starts with every member diverged is not stepped: a diverged run is frozen, so
     it keeps c (k advanced) and records observe(c) for a block that starts there, which is
-    what the steps would have given."""
-    if s == 1:
+    what the steps would have given.
+
+    With `substeps` m (traced), each of the n steps is m steps (`substepped`), k advancing by
+    m: one program for every m."""
+    stride = 1
+    if substeps is not None:
+        step, stride = substepped(step, substeps, obs_zero), substeps
+    if s == 1 and observe is None:
         chunk = next((q for q in _ROW_CHUNKS if n % q == 0), 1)
 
         def save_step(c, _):
@@ -175,7 +198,7 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
         else:  # a long block: its parts of SKIP_STEPS steps, each skipped once all diverged
             def skip(st):
                 cc, obs_f, first = st
-                return (cc._replace(k=cc.k + SKIP_STEPS), kept(first, observe(cc), obs_f),
+                return (cc._replace(k=cc.k + SKIP_STEPS * stride), kept(first, observe(cc), obs_f),
                         jnp.zeros_like(first))
 
             def part(st, _):
@@ -197,7 +220,7 @@ def saving_scan(step, c0, obs_zero, n: int, s: int, record, every: int | None = 
         group = _largest_divisor(count, SKIP_STEPS // s)
 
         def skipped(c):
-            return jax.lax.scan(lambda cc, _: (cc._replace(k=cc.k + s),
+            return jax.lax.scan(lambda cc, _: (cc._replace(k=cc.k + s * stride),
                                                record(cc, observe(cc))), c, None, length=group)
 
         def part(c, _):

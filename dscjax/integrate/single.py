@@ -60,9 +60,9 @@ class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
     def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
-                 project=None, frozen=None, skip_diverged=False):
+                 project=None, frozen=None, skip_diverged=False, substeps=None):
         self.f, self.reduction_is_none = f, reduction is None
-        self.skip_diverged = skip_diverged
+        self.skip_diverged, self.substeps = skip_diverged, substeps
         self.solver, self.rates, self.project = solver, rates, project
         self.n, self.s = n_steps, save_every
         self.yp, self.ap, self.accp = _Packer(y0), _Packer(args), _Packer(acc0)
@@ -137,7 +137,8 @@ class _Problem:
         c, (ys, obs) = scan.saving_scan(
             lambda c: self.guarded(c, a, red, dt, bound), scan.start(y0, acc0), obs_zero,
             self.n, self.s, lambda c, obs: (c.y, obs),
-            observe=(lambda c: self.observe(c, a, dt)) if self.skip_diverged else None)
+            observe=(lambda c: self.observe(c, a, dt)) if self.skip_diverged else None,
+            substeps=self.substeps)
         acc, obs_end = self.finish(c, a, red, dt)
         ys, obs = jax.tree.map(lambda v, e: jnp.concatenate([v, e[None]]), (ys, obs),
                                (c.y, obs_end))
@@ -157,12 +158,12 @@ class _Problem:
 
 def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
                      solver, gradient, rates=None, project=None, frozen=None,
-                     skip_diverged=False):
+                     skip_diverged=False, substeps=None):
     prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
-                    frozen, skip_diverged)
+                    frozen, skip_diverged, substeps)
 
     primal = prob.forward
-    if isinstance(gradient, TimeParallel):
+    if isinstance(gradient, TimeParallel) and substeps is None:
         primal = jax.custom_jvp(primal)
         primal.defjvp(lambda p, t: time_parallel_jvp(prob, p, t))
     red = reduction if reduction is not None else ()
