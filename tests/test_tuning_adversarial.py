@@ -329,11 +329,14 @@ def test_effort_bounds_are_part_of_the_fingerprint(adv_run):
 
 def test_per_plant_report_checks_every_training_plant(tmp_path, run_with_config):
     """report.json and report.md state the bounds used and check them on each training
-    plant: the start gains meet their own bounds on every plant."""
+    plant: the start gains meet their own bounds on every plant. The nominal plant and the
+    training batch are evaluated in one program (no other test here has its structure)."""
     toml = TOML.split("[tuning.adversarial]")[0]
-    code, out = run_with_config(tmp_path, toml, "tune", "--effort-bounds", "per_plant",
-                                "--quiet", "--no-plot")
+    with counted() as seen:
+        code, out = run_with_config(tmp_path, toml, "tune", "--effort-bounds", "per_plant",
+                                    "--quiet", "--no-plot")
     assert code == 0
+    assert seen["_per_plant"] == 1
     rep = json.loads((out / "report.json").read_text())
     assert rep["effort_bounds"] == "per_plant"
     assert len(rep["bounds_train"]["max_abs_u"]) == len(rep["bounds_train"]["tv_u"]) == 2

@@ -276,12 +276,12 @@ class Objective(eqx.Module):
             "feasible": jnp.all(feasible | ~real),
         }
 
-    def _evaluate(self, z, overrides=None):
+    def _evaluate(self, z, overrides=None, bounds=None):
         """(loss, aux, `per_plant`)."""
         ov, mask = (self.overrides, self.mask) if overrides is None else (overrides, None)
         metrics, diverged = loop_metrics(self, z, ov)
-        # the training batch's own (per-plant) bounds, or the nominal ones
-        bounds = self.scales.bounds(train=overrides is None and bool(self.overrides))
+        if bounds is None:  # the training batch's own (per-plant) bounds, or the nominal ones
+            bounds = self.scales.bounds(train=overrides is None and bool(self.overrides))
         per_plant, terms, feasible = self.judged(metrics, diverged, bounds)
         loss, aux = self.summary(per_plant, terms, metrics, diverged, feasible, mask)
         return loss, aux, {"loss": per_plant, "diverged": diverged, **metrics}
@@ -307,7 +307,9 @@ class Objective(eqx.Module):
         grads = jax.vmap(jax.grad(one), in_axes=(None, 0))(z, idx)
         return (loss, aux), jax.tree.map(lambda g: jnp.tensordot(w, g, 1), grads)
 
-    def per_plant(self, z, overrides=None):
+    def per_plant(self, z, overrides=None, bounds=None):
         """Every plant's J, divergence flag and metrics (exact and smooth; NaN where a loop
-        diverged) at z: leaves of shape (B,) with a batch (padding included), () without."""
-        return self._evaluate(z, overrides)[2]
+        diverged) at z: leaves of shape (B,) with a batch (padding included), () without;
+        `bounds` each plant's effort bounds (`Scales.bounds`' layout; None: the training
+        batch's own for the training batch, else the nominal ones)."""
+        return self._evaluate(z, overrides, bounds)[2]

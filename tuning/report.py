@@ -14,43 +14,69 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, validation, xla
+from dscjax import files, params, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
 from dscjax.simulate import counted_levels, level_spec, refine_rows, simulate, simulate_batch
 from tuning import elasticity, margins, report_md
 from tuning.config import TERMS
-from tuning.objective import CHECK_FIGURES, exact_constraints, within
+from tuning.objective import CHECK_FIGURES, exact_constraints, plant_count, within
 from tuning.reductions import shifted_reference
 from tuning.report_plots import draw
 from tuning.runner import simulate_command
 
 
 @functools.partial(xla.jit, lean=True)
-def _per_plant(objective, z, overrides):
+def _per_plant(objective, z, overrides, bounds=None):
     """`Objective.per_plant`, compiled once per structure (the objective an argument)."""
-    return objective.per_plant(z, overrides)
+    return objective.per_plant(z, overrides, bounds)
 
 
 def evaluate(problem, z0, z1) -> dict[str, Any]:
     """Per-plant figures for the start (z0) and tuned (z1) points: nominal, train (its real
-    plants), held-out."""
-    obj, n = problem.objective.program(), problem.n_train
-
-    def per_plant(z, overrides=None):
-        return _host(_per_plant(obj, z, overrides))
-
-    zs = {"start": z0, "tuned": z1}
-    out = {"nominal": both(lambda z: per_plant(z, {}), zs), "train": None, "heldout": None}
-    if obj.overrides:
-        train = {k: np.asarray(v)[:n] for k, v in obj.overrides.items()}
-        out["train"] = both(lambda z: refined(problem, z, train, {
-            k: v[:n] for k, v in per_plant(z).items()}), zs)
-    if problem.heldout:
-        ov = {k: jnp.asarray(v) for k, v in problem.heldout.items()}
-        out["heldout"] = both(lambda z: refined(problem, z, ov, per_plant(z, ov)), zs)
+    plants), held-out; every plant in one batched program (`plant_table`)."""
+    obj, zs = problem.objective.program(), {"start": z0, "tuned": z1}
+    groups = {"nominal": {}, "train": obj.overrides, "heldout": problem.heldout}
+    groups = {tag: dict(g) for tag, g in groups.items() if g is not None}
+    table, bounds, rows = plant_table(obj, groups)
+    per = {t: _host(_per_plant(obj, z, table, bounds)) for t, z in zs.items()}
+    if not table:  # the nominal plant alone
+        return {"nominal": per, "train": None, "heldout": None}
+    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()},
+           "train": None, "heldout": None}
+    for tag, real in (("train", problem.n_train), ("heldout", None)):
+        if tag in groups:
+            ov = {k: np.asarray(v)[:real] for k, v in groups[tag].items()}
+            out[tag] = {t: refined(problem, zs[t], ov, {
+                k: v[rows[tag]][:real] for k, v in per[t].items()}) for t in zs}
     return out
+
+
+def plant_table(obj, groups: dict) -> tuple[dict, tuple, dict[str, slice]]:
+    """({path: (N, ...)}, each row's effort bounds, {group: its rows}) of the batches of
+    `groups` ({group: {path: (n, ...)}}; "nominal" first, its batch empty: the nominal plant)
+    stacked, each path a batch does not vary at its nominal value: one program for them all.
+    The training batch ("train", padding included) keeps its own bounds, the other rows the
+    nominal ones. Without any batch: ({}, the nominal bounds, {}), the nominal plant alone."""
+    sc = obj.scales
+    paths = sorted({p for g in groups.values() for p in g})
+    if not paths:
+        return {}, sc.bounds(train=False), {}
+    sizes = {tag: plant_count(g) for tag, g in groups.items()}
+    ends = np.cumsum(list(sizes.values())).tolist()
+    rows = {tag: slice(end - n, end) for (tag, n), end in zip(sizes.items(), ends, strict=True)}
+    table = {}
+    for p in paths:
+        value = np.asarray(params.get(obj.setup, p))
+        table[p] = jnp.asarray(np.concatenate([
+            np.asarray(g[p]) if p in g else np.broadcast_to(value, (sizes[tag], *value.shape))
+            for tag, g in groups.items()]), value.dtype)
+    bounds = tuple(b if per is None or "train" not in groups else np.concatenate([
+        np.asarray(per, float) if tag == "train" else np.full(n, b) for tag, n in sizes.items()])
+        for b, per in zip(sc.bounds(train=False), (sc.u_max_train, sc.tv_max_train),
+                          strict=True))
+    return table, bounds, rows
 
 
 def both(f, pair: dict) -> dict:
