@@ -134,10 +134,10 @@ def test_tiles_pad_with_a_valid_row():
 def test_float32_metrics_are_rechecked_in_float64(paper_setup):
     """tune's gains (high k, small tau) make the float32 loop chatter: within 2 s (the
     horizon of test_float32_results_are_bitwise_independent_of_chunk, whose programs it
-    shares) its TV(u) and L2 metrics differ from
-    float64 by far more than round-off, and no float64 sum of the float32 run would repair
-    that. The re-check measures the difference on a few rows (against an
-    independent float64 batch here) and flags exactly the metrics beyond its tolerance."""
+    shares) its TV(u) and L2 metrics differ from float64 by far more than round-off, and no
+    float64 sum of the float32 run would repair that. The re-check measures the difference on
+    a few rows (against an independent float64 batch here) and flags exactly the metrics
+    beyond its tolerance."""
     tuned = dscjax.config.from_dict({"controller": TUNED}, base=paper_setup)[0]
     t = 2.0
     s32 = run_sweep(tuned, SweepSettings(samples=8, chunk=8, dtype="float32"), t_final=t, dt=DT)

@@ -72,7 +72,7 @@ def plant_table(obj, groups: dict) -> tuple[dict, tuple, dict[str, slice]]:
         table[p] = jnp.asarray(np.concatenate([
             np.asarray(g[p]) if p in g else np.broadcast_to(value, (sizes[tag], *value.shape))
             for tag, g in groups.items()]), value.dtype)
-    bounds = tuple(b if per is None or "train" not in groups else np.concatenate([
+    bounds = tuple(b if per is None else np.concatenate([
         np.asarray(per, float) if tag == "train" else np.full(n, b) for tag, n in sizes.items()])
         for b, per in zip(sc.bounds(train=False), (sc.u_max_train, sc.tv_max_train),
                           strict=True))
