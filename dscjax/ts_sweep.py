@@ -13,6 +13,7 @@ input that switches at the sample rate is not tracking.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
@@ -76,7 +77,8 @@ def plant_steps(sample_times: Sequence[float], t_final: float,
     """(the sample times up to t_final, the plant's step of each run of `study`: the continuous
     one's, the finest, then one for each Ts): dt where Ts is a whole multiple of dt, else one
     fine step (the largest <= dt dividing the smallest Ts) shared by every Ts it divides, so
-    that the runs of the figure share two compiled programs (the sample period is traced)."""
+    that the sampled runs of the figure share one compiled program (`study` runs dt / h steps
+    of h as one step of dt, a traced count, as the sample period is traced)."""
     def whole(ts, h):
         return abs(ts / h - round(ts / h)) <= 1e-9 * ts / h
 
@@ -114,8 +116,10 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
                                                          "noise": base.to_table()["noise"]}
 
     def run(ts=None, h=dt):
-        sp = spec.replace(dt=h, save_every=max(int(round(dt / h)), 1),
-                          **({} if ts is None else {"sample_time": ts} | keep))
+        m = max(int(round(dt / h)), 1)
+        sp = spec.replace(dt=h, save_every=m, **({} if ts is None else {"sample_time": ts} | keep))
+        if sp.n_steps % m == 0:  # m steps of h as one step of dt (a traced count)
+            sp = dataclasses.replace(sp, n_steps=sp.n_steps // m, save_every=1, substeps=m)
         tr = simulate_batch(setup, gains, spec=sp)
         return [measured(tr, FIGURES, i) for i in range(len(names))], np.asarray(tr.x)[0, :, 0]
 

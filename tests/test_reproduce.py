@@ -120,7 +120,8 @@ def test_sampling_study(reproduced):
     loop (at the finest plant step, 0.1 ms) equal to one `simulate` at that step, first-order
     convergence as Ts -> 0 (one exponential-Euler step of the controller per sample, a
     zero-order hold on u), and the sampled loop at Ts = 2 ms equal to one `simulate` with
-    that sample time."""
+    that sample time; at Ts = 0.5 ms (ten plant steps of 0.1 ms to a step of dt, one program
+    for every Ts) equal to one `simulate` at dt = 0.1 ms."""
     _, summary = reproduced
     s = summary["sampling"]
     assert s["sample_times"] == list(sampling.SAMPLE_TIMES)
@@ -136,6 +137,10 @@ def test_sampling_study(reproduced):
     i = s["sample_times"].index(2e-3)
     np.testing.assert_allclose(s["paper"]["sampled"][i],
                                float(traj.metrics["linf_error_window"]), rtol=1e-10)
+    fine = dscjax.simulate(dscjax.paper_example(), T_SHORT, 1e-4, sample_time=5e-4,
+                           save_every=10)
+    np.testing.assert_allclose(s["paper"]["sampled"][s["sample_times"].index(5e-4)],
+                               float(fine.metrics["linf_error_window"]), rtol=1e-10)
     assert all(isinstance(v, float) for v in s["paper"]["sampled"])
     assert "## The controller sampled at Ts" in (reproduced[0] / "summary.md").read_text()
 
