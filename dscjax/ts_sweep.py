@@ -96,7 +96,7 @@ def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPL
 
 def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
           window_start: float = 1.0, sample_times: Sequence[float] = SAMPLE_TIMES,
-          base: RunSpec | None = None, reference: dict | None = None) -> dict:
+          base: RunSpec | None = None, reference: dict | None = None, line: int = 0) -> dict:
     """Windowed L-inf, TV(u) and chattering index on [window_start, T] (`FIGURES`) of each
     gain set (`names`; `gains` {path: (len(names), ...)}: the batch of their leaves,
     `gain_sets`),
@@ -106,7 +106,9 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
     default each set's continuous figure, else its figure at the smallest Ts); and the order at
     which y_Ts tends to y (the first gain set: max |y_Ts - y| on t >= window_start over the
     sample times <= dt, the outputs compared every dt; None with fewer than two). `base`: a
-    sampled loop whose other settings (discretisation, delay, noise) the sampled runs keep."""
+    sampled loop whose other settings (discretisation, delay, noise) the sampled runs keep;
+    `line`: the sampled runs' input delay line, if longer than the delay (a caller that runs
+    longer delays in the same compiled program)."""
     # no refinement: a sampled loop that diverges does so at any plant step
     spec = RunSpec.make(t_final, dt, window_start=window_start, refine=0)
     if base is not None:
@@ -120,6 +122,8 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
         sp = spec.replace(dt=h, save_every=m, **({} if ts is None else {"sample_time": ts} | keep))
         if sp.n_steps % m == 0:  # m steps of h as one step of dt (a traced count)
             sp = dataclasses.replace(sp, n_steps=sp.n_steps // m, save_every=1, substeps=m)
+        if ts is not None:
+            sp = dataclasses.replace(sp, line=max(sp.line, line))
         tr = simulate_batch(setup, gains, spec=sp)
         return [measured(tr, FIGURES, i) for i in range(len(names))], np.asarray(tr.x)[0, :, 0]
 

@@ -44,7 +44,7 @@ LONG_DBAR = 0.2  # amplitude of the long run's disturbance dbar = LONG_DBAR sin(
 DRIFT_RATIO = 1.1
 DRIFT_MIN_S = 100.0  # a shorter long run is reported, its drift not judged (still settling)
 # the largest input delay [samples] the delay margin tries, and the length of the delay line
-# on which it tries them all (one compiled program)
+# on which it tries them all and the Ts sweep runs (one compiled program for them all)
 DELAY_MAX = 4
 ESTIMATES = ("theta_hat", "phi_hat", "zeta_hat", "d_hat")
 NAMES = ("start", "tuned")
@@ -56,12 +56,15 @@ def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
-def _run(problem, overrides: dict, line: int | None = None, **change):
+def _run(problem, overrides: dict, line: int | None = None, substeps=None, **change):
     """A batched run of the loop tuned with `change` (no refinement), on the host; `line`: its
-    input delay line's length, if longer than the delay."""
+    input delay line's length, if longer than the delay; `substeps`: steps of dt per step
+    (`RunSpec.substeps`)."""
     spec = problem.objective.sim.replace(refine=0, **change)
     if line is not None:
         spec = dataclasses.replace(spec, line=line)
+    if substeps is not None:
+        spec = dataclasses.replace(spec, substeps=substeps)
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
@@ -106,7 +109,7 @@ def sample_times(problem, z0, z1, nominal: dict, heldout: dict | None) -> dict[s
     dt = float(problem.options.dt)
     result = ts_sweep.study(problem.setup, gain_rows(problem, z0, z1), NAMES, sim.t_final, dt,
                             float(sim.window_start), sweep_times(sim.sample_time), base=sim,
-                            reference=reference_linf(nominal))
+                            reference=reference_linf(nominal), line=DELAY_MAX)
     result["reference"] = "the loop tuned"
     result["largest"] = {n: ts_sweep.largest_tracking(result, n) for n in NAMES}
     result["tuned_tracks_all"] = all(result["tuned"]["tracks"])
@@ -212,7 +215,8 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
-        tr = _run(problem, gains, line=DELAY_MAX, delay=d)
+        # every step saved, one step of dt a step: the program of the Ts sweep's runs
+        tr = _run(problem, gains, line=DELAY_MAX, substeps=1, delay=d, save_every=1)
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
