@@ -2,12 +2,14 @@
 
 `stability_map` runs the loop over a grid of steps and filter constants and bisects the largest
 stable step; the linear guide 2.785 / max rho(t) of `closed_loop.spectrum_along` is reported
-beside it. A run may take more steps than its horizon needs, so that steps share a compiled
-program (`map_steps`): it is judged by its first bad step, which the later steps cannot change.
+beside it. Every run of a map is one compiled program (`map_steps`): N steps, each dt / step
+steps of a step below dt (a traced count); a run may so take more steps than its horizon needs,
+and is judged by its first bad step, which the later steps cannot change.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import NamedTuple
 
@@ -15,6 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax.closed_loop import spectrum_along
+from dscjax.runspec import RunSpec
 from dscjax.simulate import simulate, simulate_batch
 
 
@@ -50,33 +53,36 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
     tau0 = np.asarray(setup.controller.tau, float) if has_tau else None
     dts = np.sort(np.asarray([dt * f for f in factors], float))
 
-    def runs(step, n):
-        """(finite over t_final, divergence time) at each tau scale: `n` steps of `step`, each
-        run judged by its first bad step against its own horizon's count."""
+    n, subs = _plan(t_final, dt, dts)
+
+    def runs(step, m):
+        """(finite over t_final, divergence time) at each tau scale: n steps of m steps of
+        `step`, each run judged by its first bad step against its own horizon's count."""
         ov = ({"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])} if has_tau
               else {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]})
-        b = simulate_batch(setup, ov, n * step, step, refine=0)
+        spec = RunSpec.make(n * m * step, step, save_every=n * m, refine=0)
+        b = simulate_batch(setup, ov, spec=dataclasses.replace(spec, n_steps=n, save_every=n,
+                                                               substeps=m))
         first = np.asarray(b.status.step)
         stable = (first < 0) | (first > _count(t_final, step))
         return stable, np.where(stable, np.inf, first * step)
 
-    counts = map_steps(t_final, dt, dts)
     stable = np.zeros((scales.size, dts.size), bool)
     t_div = np.full((scales.size, dts.size), np.inf)
     for j, step in enumerate(dts):
         log(f"  dt = {step:.4g} s ...")
-        stable[:, j], t_div[:, j] = runs(step, counts[j])
+        stable[:, j], t_div[:, j] = runs(step, subs[j])
     own = int(np.argmin(np.abs(scales - 1.0)))
     ok = np.flatnonzero(stable[own])
     bad = np.flatnonzero(~stable[own])
     lo = dts[ok[-1]] if ok.size else None
     hi = next((dts[b] for b in bad if lo is None or dts[b] > lo), None)
     if lo is not None and hi is not None:
-        n_lo = counts[ok[-1]]  # every step between lo and hi: lo's program, a longer horizon
+        m_lo = subs[ok[-1]]  # every step between lo and hi: as many as lo's, a longer horizon
         for _ in range(bisections):
             mid = math.sqrt(lo * hi)
             log(f"  bisecting: dt = {mid:.4g} s ...")
-            if runs(mid, n_lo)[0][own]:
+            if runs(mid, m_lo)[0][own]:
                 lo = mid
             else:
                 hi = mid
@@ -97,10 +103,18 @@ def _count(t_final: float, step: float) -> int:
     return max(int(round(t_final / step)), 1)
 
 
+def _plan(t_final: float, dt: float, dts) -> tuple[int, list[int]]:
+    """(N, [m]): the map runs N steps of m steps of each of `dts`, m = dt / step below dt (a
+    whole number for the map's steps dt * 2^k), 1 at dt and above, N the fewest that cover
+    the horizon at every step (the runs at and above dt last longer than t_final)."""
+    subs = [max(int(round(dt / step)), 1) for step in dts]
+    return max(-(-_count(t_final, s) // m) for s, m in zip(dts, subs, strict=True)), subs
+
+
 def map_steps(t_final: float, dt: float, dts) -> list[int]:
-    """How many steps the map runs at each of `dts`: the horizon's own count below dt, and
-    dt's count at dt and above (those runs last longer than t_final and share one program)."""
-    return [_count(t_final, step if step < dt else dt) for step in dts]
+    """How many steps the map runs at each of `dts` (`_plan`'s N x m)."""
+    n, subs = _plan(t_final, dt, dts)
+    return [n * m for m in subs]
 
 
 __all__ = ["DT_FACTORS", "StabilityMap", "map_steps", "stability_map"]
