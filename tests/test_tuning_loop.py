@@ -328,12 +328,15 @@ def test_existing_run_needs_resume_or_overwrite(cli_run, capsys):
 
 @pytest.fixture(scope="module")
 def small_problem():
+    """TINY's problem (the loop `dscjax tune` tunes by default), whose gradient program
+    `cli_run` compiles."""
     cfg = tuning.TuningConfig(
         params=("controller.k",),
         optimizer=tuning.OptimizerSpec(name=tuning.Adam(), steps=4, learning_rate=0.1,
                                        save_interval=2, time_limit=None),
         heldout=tuning.BatchSpec(batch=0))
-    return tuning.build_problem(dscjax.paper_example(), RunSpec.make(t_final=2.0), cfg)
+    return tuning.build_problem(dscjax.paper_example(),
+                                RunSpec.make(t_final=2.0, **tuning.config.SIMULATION), cfg)
 
 
 def _with_steps(problem, steps):
