@@ -255,15 +255,26 @@ class RunSpec(eqx.Module):
         hit the same compiled program."""
         return dataclasses.replace(self, refine=0, dtype="float64", device="auto", rules=())
 
+    def grouped(self, m: int) -> RunSpec:
+        """The same run with every m of its steps taken as one (`substeps` m, a traced count),
+        so that runs of one horizon at steps dt / m share one compiled program whatever m: the
+        same steps, states and saved points (n_steps and save_every must be multiples of m)."""
+        if self.n_steps % m or self.save_every % m:
+            raise ValueError(f"RunSpec.grouped: m = {m} must divide n_steps = {self.n_steps} "
+                             f"and save_every = {self.save_every}")
+        return dataclasses.replace(self, n_steps=self.n_steps // m,
+                                   save_every=self.save_every // m, substeps=m)
+
     def refined(self, halvings: int, solver: Solver) -> RunSpec:
         """The same run at dt / 2^halvings with another solver, on the same saved times and
         the same controller sample time (a refinement level of `simulate`): each of its
-        n_steps steps is 2^halvings `substeps`, a traced count, so that every level of a run
-        is one compiled program; it steps no more once every member has diverged
+        n_steps steps is 2^halvings times its `substeps`, a traced count, so that every level
+        of a run is one compiled program; it steps no more once every member has diverged
         (`skip_diverged`: it re-runs runs that diverged, most of which diverge again)."""
         m = 2 ** halvings
         return dataclasses.replace(self, dt=self.dt / m, sample_every=self.sample_every * m,
-                                   solver=solver, skip_diverged=True, substeps=m)
+                                   solver=solver, skip_diverged=True,
+                                   substeps=self._substeps * m)
 
 
 def step_for(sample_time: float, dt: float) -> float:

@@ -9,7 +9,6 @@ and is judged by its first bad step, which the later steps cannot change.
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from typing import NamedTuple
 
@@ -60,9 +59,8 @@ def stability_map(setup, t_final: float, dt: float, tau_scales=(0.25, 0.5, 1.0, 
         `step`, each run judged by its first bad step against its own horizon's count."""
         ov = ({"controller.tau": jnp.asarray(tau0[None, :] * scales[:, None])} if has_tau
               else {"plant.x0": jnp.asarray(np.asarray(setup.plant.x0, float))[None]})
-        spec = RunSpec.make(n * m * step, step, save_every=n * m, refine=0)
-        b = simulate_batch(setup, ov, spec=dataclasses.replace(spec, n_steps=n, save_every=n,
-                                                               substeps=m))
+        spec = RunSpec.make(n * m * step, step, save_every=n * m, refine=0).grouped(m)
+        b = simulate_batch(setup, ov, spec=spec)
         first = np.asarray(b.status.step)
         stable = (first < 0) | (first > _count(t_final, step))
         return stable, np.where(stable, np.inf, first * step)

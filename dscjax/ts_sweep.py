@@ -120,8 +120,8 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
     def run(ts=None, h=dt):
         m = max(int(round(dt / h)), 1)
         sp = spec.replace(dt=h, save_every=m, **({} if ts is None else {"sample_time": ts} | keep))
-        if sp.n_steps % m == 0:  # m steps of h as one step of dt (a traced count)
-            sp = dataclasses.replace(sp, n_steps=sp.n_steps // m, save_every=1, substeps=m)
+        if sp.n_steps % m == 0:  # m steps of h as one step of dt: one program for every h
+            sp = sp.grouped(m)
         if ts is not None:
             sp = dataclasses.replace(sp, line=max(sp.line, line))
         tr = simulate_batch(setup, gains, spec=sp)

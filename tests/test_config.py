@@ -141,3 +141,19 @@ def test_a_prime_step_count_saves_the_strided_steps_and_t_final(paper_setup):
     np.testing.assert_allclose(np.asarray(batch.x[0]), np.asarray(strided.x), rtol=1e-12,
                                atol=1e-15)
     assert float(batch.t[0, -1]) == pytest.approx(0.211, rel=1e-15)
+
+
+def test_grouped_steps_keep_the_run_and_its_saved_points():
+    # 2,000 steps of 0.1 ms saving every 10th, taken 10 at a time: 200 steps of 10 substeps,
+    # every step saved; the same horizon, saved times and table; refining it halves the
+    # substep (2^2 x 10 of dt/4 to a step); a group that does not divide the steps is refused
+    spec = RunSpec.make(0.2, 1e-4, save_every=10, sample_time=5e-4)
+    g = spec.grouped(10)
+    assert (g.n_steps, g.save_every, int(g.substeps)) == (200, 1, 10)
+    assert g.t_final == pytest.approx(0.2) and g.n_saved == spec.n_saved == 201
+    assert g.to_table() == spec.to_table() and g.sample_every == spec.sample_every == 5
+    r = g.refined(2, g.solver)
+    assert (r.n_steps, int(r.substeps), r.sample_every) == (200, 40, 20)
+    assert r.t_final == pytest.approx(0.2)
+    with pytest.raises(ValueError, match="m = 3 must divide n_steps = 2000 and save_every"):
+        spec.grouped(3)

@@ -56,15 +56,15 @@ def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
-def _run(problem, overrides: dict, line: int | None = None, substeps=None, **change):
+def _run(problem, overrides: dict, line: int | None = None, grouped: bool = False, **change):
     """A batched run of the loop tuned with `change` (no refinement), on the host; `line`: its
-    input delay line's length, if longer than the delay; `substeps`: steps of dt per step
-    (`RunSpec.substeps`)."""
+    input delay line's length, if longer than the delay; `grouped`: as the Ts sweep's runs
+    (`RunSpec.grouped`, one step of dt a step), whose compiled program it then shares."""
     spec = problem.objective.sim.replace(refine=0, **change)
     if line is not None:
         spec = dataclasses.replace(spec, line=line)
-    if substeps is not None:
-        spec = dataclasses.replace(spec, substeps=substeps)
+    if grouped:
+        spec = spec.grouped(1)
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
@@ -215,8 +215,8 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
-        # every step saved, one step of dt a step: the program of the Ts sweep's runs
-        tr = _run(problem, gains, line=DELAY_MAX, substeps=1, delay=d, save_every=1)
+        # every step saved, as the Ts sweep's runs: their program
+        tr = _run(problem, gains, line=DELAY_MAX, grouped=True, delay=d, save_every=1)
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
