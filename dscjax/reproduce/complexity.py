@@ -13,6 +13,7 @@ from __future__ import annotations
 import json
 import statistics
 import time
+import timeit
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -42,10 +43,8 @@ def count_eqns(jaxpr) -> int:
 
 
 def _flops(compiled) -> float:
-    cost = compiled.cost_analysis()
-    if isinstance(cost, list | tuple):
-        cost = cost[0] if cost else {}
-    return float(cost.get("flops", float("nan"))) if cost else float("nan")
+    """XLA's count of a compiled program's FLOPs (its cost analysis: a dict), NaN if none."""
+    return float((compiled.cost_analysis() or {}).get("flops", float("nan")))
 
 
 def _eval_loop(law):
@@ -64,12 +63,9 @@ def _eval_loop(law):
 
 
 def _median_time(fn, runs: int) -> float:
-    times = []
-    for _ in range(runs):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn())
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+    """The median of `runs` timings of fn() to its results' readiness."""
+    return statistics.median(timeit.repeat(lambda: jax.block_until_ready(fn()), repeat=runs,
+                                           number=1))
 
 
 def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
