@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import operator
 from typing import Literal, NamedTuple
 
 import jax
@@ -90,8 +91,8 @@ class Terms(NamedTuple):
     d: jax.Array  # () d~^2/(2 gamma_d)
 
     def total(self):
-        return (jnp.sum(self.surface, -1) + jnp.sum(self.filter, -1) + jnp.sum(self.theta, -1)
-                + jnp.sum(self.phi, -1) + self.zeta + self.d)
+        # the vectors (surface, filter, theta, phi) summed over i, then the scalars
+        return sum(jnp.sum(v, -1) for v in self[:4]) + self.zeta + self.d
 
 
 TERM_NAMES = Terms._fields
@@ -309,11 +310,8 @@ def gain_rules(controller, M, mu) -> list[tuple]:
 def certified_alpha0(controller, M, mu) -> tuple[float, dict]:
     """(alpha_0, {gain: the alpha_0 it allows}): the largest alpha_0 for which the gains
     satisfy (55) and (60) (`gain_rules`); 1/tau_(i+1) is named tau_(i+1)."""
-    allows = {}
-    for gain, value, _, base, scale in gain_rules(controller, M, mu):
-        for b in base:
-            value = value - b
-        allows[gain.removeprefix("1/")] = float(value * scale)
+    allows = {gain.removeprefix("1/"): float(functools.reduce(operator.sub, base, value) * scale)
+              for gain, value, _, base, scale in gain_rules(controller, M, mu)}
     return min(allows.values()), allows
 
 
