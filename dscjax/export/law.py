@@ -7,6 +7,7 @@ reference becomes state, everything else a constant of the concrete config.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 
 import jax
 import jax.numpy as jnp
@@ -181,7 +182,7 @@ class _Flattener:
 
     def __init__(self):
         self.ops: list[Op] = []
-        self.count = 0
+        self.ids = itertools.count(1)  # of the operations' outputs
 
     def atom(self, env, v):
         return ("lit", np.asarray(v.val)) if isinstance(v, Literal) else env[v]
@@ -218,11 +219,9 @@ class _Flattener:
                 outs = self.call(inner, consts, ins[len(ins) - len(inner.invars):], where)
                 env.update(zip(eqn.outvars, outs, strict=True))
                 continue
-            outs = []
-            for o in eqn.outvars:
-                self.count += 1
-                outs.append(("v", self.count, tuple(o.aval.shape), np.dtype(o.aval.dtype)))
-                env[o] = outs[-1]
+            outs = [("v", next(self.ids), tuple(o.aval.shape), np.dtype(o.aval.dtype))
+                    for o in eqn.outvars]
+            env.update(zip(eqn.outvars, outs, strict=True))
             self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
 
 
