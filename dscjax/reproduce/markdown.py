@@ -53,11 +53,11 @@ def summary_markdown(summary: dict) -> str:
                          [(r["n"], r["controller"], r["eqns"], f"{r['flops']:.0f}",
                            f"{r['trace_s']:.3g}", f"{r['compile_s']:.3g}",
                            f"{r['eval_s'] * 1e6:.3g}") for r in cx["rows"]]),
-                  "", "Fitted growth (ratio per order; power-law exponent):", ""]
-        for c, fits in cx["fits"].items():
-            parts = [f"{m}: x{f['ratio_per_order']:.2f}/order, n^{f['exponent']:.2f}"
-                     for m, f in fits.items() if f["ratio_per_order"]]
-            lines.append(f"- {c}: " + "; ".join(parts))
+                  "", "Fitted growth (ratio per order; power-law exponent):", "",
+                  *(f"- {c}: " + "; ".join(f"{m}: x{f['ratio_per_order']:.2f}/order, "
+                                           f"n^{f['exponent']:.2f}"
+                                           for m, f in fits.items() if f["ratio_per_order"])
+                    for c, fits in cx["fits"].items())]
     if "theory" in summary:
         lines += ["", theory_markdown(summary["theory"])]
     lines += ["", "## Interpretations", ""] + [f"- {s}" for s in summary["interpretations"]]
@@ -128,8 +128,8 @@ def theory_markdown(summary: dict) -> str:
             table_markdown(res), ""]
         if len(rows) > 1:
             a = np.log([r["alpha0"] for r in rows])
-            slope_m = np.polyfit(a, np.log([r["S1_inf"] for r in rows]), 1)[0]
-            slope_b = np.polyfit(a, np.log([r["bound_72"] for r in rows]), 1)[0]
+            slope_m, slope_b = (np.polyfit(a, np.log([r[k] for r in rows]), 1)[0]
+                                for k in ("S1_inf", "bound_72"))
             cons = [r["conservatism"] for r in rows]
             lines += [f"‖S_1‖∞ falls like alpha_0^{slope_m:.2f} and the bound (72) like "
                       f"alpha_0^{slope_b:.2f}; the bound is {min(cons):.3g} to {max(cons):.3g} "
