@@ -206,9 +206,8 @@ def _index_map(op):
         new = [d for d in range(len(p["shape"])) if d not in p["broadcast_dimensions"]]
         got = np.broadcast_to(np.expand_dims(ids, new), p["shape"])
     elif op.prim == "slice":
-        strides = p.get("strides") or (1,) * len(shapes[0])
-        bounds = zip(p["start_indices"], p["limit_indices"], strides, strict=True)
-        got = ids[tuple(slice(*b) for b in bounds)]
+        got = ids[tuple(map(slice, p["start_indices"], p["limit_indices"],
+                            p.get("strides") or (None,) * ids.ndim))]
     elif op.prim == "transpose":
         got = np.transpose(ids, p["permutation"])
     elif op.prim == "rev":
