@@ -179,8 +179,8 @@ def _chunked(fn, args, t, X, chunk=_CHUNK):
     padded): one compilation per chunk size, whatever the trajectory's length."""
     n_pts = int(np.shape(t)[0])
     pad = (-n_pts) % chunk
-    t, X = jax.tree.map(lambda a: np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:],
-                                                                            pad, 0)]), (t, X))
+    t, X = jax.tree.map(lambda a: np.pad(a, [(0, pad)] + [(0, 0)] * (np.ndim(a) - 1), "edge"),
+                        (t, X))
     outs = [_chunk_eval(fn, args, *jax.tree.map(lambda a, j=j: a[j:j + chunk], (t, X)))
             for j in range(0, n_pts + pad, chunk)]
     return jax.tree.map(lambda *a: np.concatenate(a)[:n_pts], *outs)
