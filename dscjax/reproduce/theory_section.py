@@ -86,9 +86,8 @@ def paper_check(setup, traj) -> tuple[dict, dict]:
         uses_68=bool(yr0 == float(x0[0]) and np.allclose(np.asarray(c.c), x0[1:])),
     )
     b72_paper = theory.bound_72(C0 + (n - 1) * mu / 2, ALPHA0_PAPER, g_max)
-    V = np.asarray(lv.V)
     terms = lv.arrays()
-    sums = term_sums(terms)
+    V, sums = terms["V"], term_sums(terms)
     s1_after = np.asarray(traj.S)[np.asarray(traj.t) >= 1.0, 0]  # none if T < 1 s
     summary = dict(
         alpha0=a0, mu=mu, binding_gain=min(allows, key=allows.get), allows=allows, gains=gains,
