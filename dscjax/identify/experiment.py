@@ -79,12 +79,9 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
         step = (t1 - t0) / exp.substeps
         if exp.hold == "zoh":
             w = hyst.output(u0, h)
-
-            def fx(tt, xx, _):
-                return plant.rhs(xx, w, tt)
-
             if exp.plant:
-                x = rk4_steps(fx, t0, x, step, exp.substeps, None)
+                x = rk4_steps(lambda tt, xx, _: plant.rhs(xx, w, tt), t0, x, step, exp.substeps,
+                              None)
             h = hyst.jump(u0, u1, h)
         else:
             slope = (u1 - u0) / (t1 - t0)
