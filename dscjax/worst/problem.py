@@ -140,9 +140,8 @@ class Problem:
 
     def values_at(self, z) -> tuple[dict[str, float], dict | None]:
         """The searched parameters by config path and the disturbance record of a point."""
-        lo, hi, _ = self.box()
         z = np.asarray(z, dtype=np.float64)
-        values = {r.name: float(lo[j] + z[j] * (hi[j] - lo[j])) for j, r in enumerate(self.ranges)}
+        values = {r.name: float(r.low + z[j] * (r.high - r.low)) for j, r in enumerate(self.ranges)}
         if self.disturbance is None:
             return values, None
         model, spec = self.setup_at(z).plant.disturbance, self.disturbance

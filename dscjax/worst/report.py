@@ -74,13 +74,11 @@ def write(result: Result, out: Path, plots: bool = True) -> list[str]:
         **{k: getattr(worst, k) for k in ("t", "x", "u", "w", "e")}, "t_half": t_half,
         "dbar": dbar, "dt": dt_used})
     files.write_text(out / "report.md", report_md(result))
-    names = list(FILES)
     if plots:
         _plot_worst(out / FIGURES[0], worst, result.nominal, result)
         _plot_disturbance(out / FIGURES[1], t_half, dbar, result)
         _plot_progress(out / FIGURES[2], result)
-        names += list(FIGURES)
-    return names
+    return [*FILES, *(FIGURES if plots else ())]
 
 
 def verdict(result: Result) -> str:

@@ -223,14 +223,11 @@ def _finish(problem: Problem, traces: dict[str, search.Trace],
         raise ConfigError("no candidate was evaluated: give a larger --time-limit")
     if say is not None:
         say(f"re-checking {len(candidates)} candidate(s) and the nominal point by simulate")
-    def rank(run):  # the largest value; of diverged ones (+inf) the earliest
-        return run[2]["value"], -(run[2]["t_diverged"] or 0.0)
-
-    best = None  # one trajectory held at a time beside the best (the memory check's count)
-    for mth, z in candidates.values():
-        run = (mth, z, _check_run(problem, problem.setup_at(z)))
-        best = run if best is None else max(best, run, key=rank)  # the first found of equals
-    mth, z, worst = best
+    # the largest value, of diverged ones (+inf) the earliest, the first found of equals; one
+    # trajectory held at a time beside the best (the memory check's count)
+    mth, z, worst = max(((mth, z, _check_run(problem, problem.setup_at(z)))
+                         for mth, z in candidates.values()),
+                        key=lambda run: (run[2]["value"], -(run[2]["t_diverged"] or 0.0)))
     # the nominal point with the zero waveform: the value without one exactly (dbar + 0), and
     # the program of the candidates' re-check serves it
     nominal = _check_run(problem, problem.setup)
