@@ -65,9 +65,7 @@ class ReplayCMA:
     def copy(self) -> ReplayCMA:
         """An independent copy (its own strategy and random stream), for a step that computes
         a new state without changing this one."""
-        new = copy.copy(self)  # (the populations are replaced, never changed in place)
-        new.es, new.fitness = copy.deepcopy(self.es), list(self.fitness)
-        return new
+        return copy.deepcopy(self)
 
     def arrays(self) -> dict[str, np.ndarray]:
         """{"fitness": (G, popsize), "told": (popsize, dim)}."""
