@@ -56,12 +56,9 @@ def tile_rows(platform: str, n: int) -> int:
 def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
     """`rows` split into tiles of `width` rows, the last padded with copies of its own first
     row (a valid sample)."""
-    out = []
-    for lo in range(0, max(rows.shape[0], 1), width):
-        t = rows[lo:lo + width]
-        if t.shape[0] < width:
-            t = np.concatenate([t, np.repeat(t[:1], width - t.shape[0], axis=0)])
-        out.append(t)
+    out = [rows[lo:lo + width] for lo in range(0, max(rows.shape[0], 1), width)]
+    last = out[-1]  # the only tile that can be short
+    out[-1] = np.concatenate([last, np.repeat(last[:1], width - last.shape[0], axis=0)])
     return out
 
 
@@ -117,31 +114,26 @@ class Runner:
         jobs = {b: dev for b, dev in enumerate(self.devices)
                 if dev in self.local and not (single and b >= n_real)}
 
-        def dispatch(block_dev):
-            block, dev = block_dev
+        def dispatch(block):
             rows = table[block * chunk:(block + 1) * chunk]
             if block == n_real - 1 and last_rows is not None:
                 rows = rows[:last_rows]
-            return dev, self._tiles_on(dev, self.setup_on[dev], self.spec, rows)
+            return self._tiles_on(jobs[block], self.setup_on[jobs[block]], self.spec, rows)
 
         if self._compiled or len(jobs) == 1:
             # asynchronous: the devices overlap
-            per_dev = {b: dispatch((b, dev)) for b, dev in jobs.items()}
+            outs = [dispatch(b) for b in jobs]
         else:
             # The first call compiles the program once per device: do that concurrently.
             with ThreadPoolExecutor(len(jobs)) as pool:
-                per_dev = dict(zip(jobs, pool.map(dispatch, jobs.items()), strict=True))
+                outs = list(pool.map(dispatch, jobs))
         self._compiled = True
+        # each job's tile outputs, in block order (that of the local devices)
         if single:
-            return {k: np.concatenate([_join(per_dev[b][1], k, chunk) for b in sorted(per_dev)])
-                    for k in per_dev[min(per_dev)][1][0]}
-        by_device = {dev: [_join(res, k, chunk, jax.numpy) for k in res[0]]
-                     for dev, res in per_dev.values()}
-        keys = list(next(iter(per_dev.values()))[1][0])
-        out = {k: jax.make_array_from_single_device_arrays(
-            (table.shape[0],), self.out_sharding, [by_device[d][i] for d in self.local])
-            for i, k in enumerate(keys)}
-        return {k: _to_host(v) for k, v in out.items()}
+            return {k: np.concatenate([_join(o, k, chunk) for o in outs]) for k in outs[0][0]}
+        return {k: _to_host(jax.make_array_from_single_device_arrays(
+            (table.shape[0],), self.out_sharding, [_join(o, k, chunk, jax.numpy) for o in outs]))
+            for k in outs[0][0]}
 
     def _tiles_on(self, device, setup, spec, rows) -> list[dict]:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
@@ -164,11 +156,9 @@ class Runner:
             return {k: _join(out, k, len(idx)) for k in out[0]}
 
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
-        halvings = np.zeros(level_of.shape, np.int64)
-        for j in np.unique(level_of):
-            halvings[level_of == j] = refinement_level(int(j), self.spec.solver)[1]
+        halvings = np.array([refinement_level(j, self.spec.solver)[1] for j in range(levels + 1)])
         out["refinements"] = level_of.astype(np.int8)
-        out["dt_used"] = float(self.spec.dt) / 2.0**halvings
+        out["dt_used"] = float(self.spec.dt) / 2.0**halvings[level_of]
         return out
 
 
