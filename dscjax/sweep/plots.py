@@ -119,12 +119,9 @@ def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None):
     ix = np.clip(np.searchsorted(ex, x, side="right") - 1, 0, nx - 1)
     iy = np.clip(np.searchsorted(ey, y, side="right") - 1, 0, ny - 1)
     flat = ix * ny + iy
-    med = np.full(nx * ny, np.nan)
     count = np.bincount(flat, minlength=nx * ny)
-    starts = np.concatenate([[0], np.cumsum(count)])
-    es = e[np.argsort(flat, kind="stable")]  # the errors cell by cell
-    for c in np.flatnonzero(count):
-        med[c] = np.median(es[starts[c]:starts[c + 1]])
+    cells = np.split(e[np.argsort(flat, kind="stable")], np.cumsum(count)[:-1])  # cell by cell
+    med = np.array([np.median(v) if v.size else np.nan for v in cells])
     div_cells = np.bincount(flat[div], minlength=nx * ny) > 0
     return med.reshape(nx, ny), ex, ey, count.reshape(nx, ny), div_cells.reshape(nx, ny)
 
@@ -160,15 +157,14 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, no
         cb = fig.colorbar(mesh, ax=ax, pad=0.02)
         cb.set_label(f"cell median of max |y − y_r| on [{t0:g} s, {t_final:g} s]"
                      + ("\n" + spread if spread else ""), fontsize=9)
-        handles = []
         hx, hy = np.repeat(ex, 2)[1:-1], np.repeat(ey, 2)[1:-1]
         xc, yc = 0.5 * (ex[1:] + ex[:-1]), 0.5 * (ey[1:] + ey[:-1])
         bad = ~(med <= threshold) & (count > 0)  # NaN-safe: diverged medians are inf
         if bad.any() and len(xc) > 1 and len(yc) > 1:
             ax.contour(xc, yc, bad.T.astype(float), levels=[0.5], colors="#d62728", linewidths=1.8)
-        handles.append(Line2D([], [], color="#d62728", lw=1.8,
-                              label=f"tracking degraded: cell median > {threshold:.3g}"
-                              f" ({int(bad.sum())} of {int((count > 0).sum())} cells)"))
+        handles = [Line2D([], [], color="#d62728", lw=1.8,
+                          label=f"tracking degraded: cell median > {threshold:.3g}"
+                          f" ({int(bad.sum())} of {int((count > 0).sum())} cells)")]
         if div_cells.any():
             # hatch exactly the cells where a sample diverged at every step tried
             z = np.repeat(np.repeat(div_cells.astype(float), 2, axis=0), 2, axis=1)
@@ -260,7 +256,6 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
                 ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
         for a, signal in zip(ax, (nominal.e, nominal.u), strict=True):
             a.plot(np.asarray(nominal.t), np.asarray(signal), "k--", lw=1.2, label="nominal setup")
-        for a in ax:
             a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
         ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
                        xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
