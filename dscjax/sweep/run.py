@@ -55,11 +55,9 @@ class SweepResult:
 def fingerprint(setup, settings: SweepSettings, ranges, spec: RunSpec,
                 chunk: int, tile: int | None) -> dict[str, Any]:
     """Everything that determines the rows of a sweep (and how they are split into files)."""
-    setup_dict = config.to_dict(setup)
-    setup_dict.pop("simulation", None)
-    run = spec.describe()
-    run.pop("dtype")  # the sweep's own
-    run.pop("save_every")  # metrics only
+    setup_dict = {k: v for k, v in config.to_dict(setup).items() if k != "simulation"}
+    # the run without its dtype (the sweep's own) and save_every (metrics only)
+    run = {k: v for k, v in spec.describe().items() if k not in ("dtype", "save_every")}
     return {
         "format": FORMAT_VERSION, "setup": setup_dict,
         "ranges": [[r.name, r.low, r.high, r.num] for r in ranges],
@@ -169,17 +167,14 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         if progress is not None:
             t_first, n_first = t_first_round
             # the rate after the first round excludes compilation
-            if n_run > n_first and now > t_first:
-                rate = (n_run - n_first) / (now - t_first)
-            else:
-                rate = n_run / (now - t_start) if now > t_start else 0.0
+            t0, n0 = (t_first, n_first) if n_run > n_first and now > t_first else (t_start, 0)
+            rate = (n_run - n0) / (now - t0) if now > t0 else 0.0
             progress(dict(done=n_done_before + n_run, total=n, steps_per_s=rate * spec.n_steps))
     elapsed = time.perf_counter() - t_start
 
     if out is not None and main:  # every block from its file (the resumed ones too)
         kept = {b: _read_chunk(_chunk_path(out, b), digest) for b in range(n_blocks)}
-        missing = [b for b, data in kept.items() if data is None]
-        if missing:
+        if missing := [b for b, data in kept.items() if data is None]:
             raise ConfigError(f"{_chunk_path(out, missing[0])} is missing or unreadable after "
                               f"the sweep; run again with --resume")
     columns_out = ({k: np.concatenate([kept[b][k] for b in range(n_blocks)]) for k in kept[0]}

@@ -81,9 +81,8 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
         out["degraded"] = {"metric": "linf_error_window", "threshold": float(threshold),
                            "rate": float(degraded.mean()) if n else 0.0,
                            "count": int(degraded.sum())}
-    out["worst"] = [sample_record(c, result.param_names, i) for i in rank_rows(c, worst)]
-    out["first_diverged"] = [sample_record(c, result.param_names, i)
-                             for i in rank_rows(c, worst, diverged=True)]
+    for key, diverged in (("worst", False), ("first_diverged", True)):
+        out[key] = [sample_record(c, result.param_names, i) for i in rank_rows(c, worst, diverged)]
     return out
 
 
@@ -139,8 +138,7 @@ def check_rows(result: SweepResult, rows: Iterable[int], least: int = MIN_CHECK_
     diverge, topped up to at least `least` with the first other rows that did not diverge."""
     ok = ~np.asarray(result.columns["diverged"], bool)
     mine = [int(i) for i in rows if ok[i]]
-    if len(mine) < least:
-        mine += np.setdiff1d(np.flatnonzero(ok), mine)[:least - len(mine)].tolist()
+    mine += np.setdiff1d(np.flatnonzero(ok), mine)[:max(least - len(mine), 0)].tolist()
     return np.asarray(sorted(set(mine)), np.int64)
 
 
@@ -220,13 +218,11 @@ def outcome(summary: Mapping[str, Any]) -> list[str]:
     run, q, n = summary["run"], summary["quantiles"], summary["n_samples"]
     window = f"[{run['window_start']:g}, {run['t_final']:g}] s"
     lines = []
-    if q["linf_error_window"] is not None:
-        e = q["linf_error_window"]
+    if (e := q["linf_error_window"]) is not None:
         lines.append(f"windowed L-inf error on {window} over the {n - summary['n_diverged']:,} "
                      f"samples that did not diverge: median {e['p50']:.4g}, p95 {e['p95']:.4g}, "
                      f"max {e['max']:.4g}")
-    if q["tv_u_window"] is not None:
-        tv = q["tv_u_window"]
+    if (tv := q["tv_u_window"]) is not None:
         lines.append(f"effort on {window} over the same samples: TV(u) median "
                      f"{figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
                      f"max|u| max {figure(q['max_abs_u_window']['max'])}")
@@ -241,13 +237,11 @@ def outcome(summary: Mapping[str, Any]) -> list[str]:
               f"chattering (chattering index above {chat['above']:g}, docs/numerics.md; "
               f"diverged samples not counted): {chat['count']:,} of {n:,} "
               f"({100 * chat['rate']:.2f} %)"]
-    deg = summary.get("degraded")
-    if deg:
+    if deg := summary.get("degraded"):
         lines.append(f"degraded ({deg['metric']} above {deg['threshold']:.4g}"
                      + (f", {deg['rule']}" if deg.get("rule") else "")
                      + f"; diverged included): {deg['count']:,} ({100 * deg['rate']:.2f} %)")
-    nominal = summary.get("nominal")
-    if nominal:
+    if nominal := summary.get("nominal"):
         shown = ("linf_error_window", "tv_u_window", "chattering_index")
         lines.append("nominal setup: " + ("diverged" if nominal.get("diverged") else
                      ", ".join(f"{m} {figure(nominal[m])}" for m in shown)))
