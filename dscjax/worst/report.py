@@ -141,11 +141,10 @@ def _plot_worst(path, worst, nominal, result):
             t = np.asarray(traj.t)
             for a, signal in zip(ax, (traj.e, traj.u), strict=True):
                 a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=color)
-        ax[0].set_ylabel("tracking error e [-]")
-        ax[1].set_ylabel("control u [-]")
-        ax[1].set_xlabel("t [s]")
-        for a in ax:
+        for a, label in zip(ax, ("tracking error e [-]", "control u [-]"), strict=True):
+            a.set_ylabel(label)
             a.legend(loc="upper right")
+        ax[1].set_xlabel("t [s]")
         ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
                         f"(nominal {result.nominal_value:.4g})")
     return fig

@@ -84,9 +84,8 @@ def best_value(trace: search.Trace) -> float:
 def search_method(name: str, *, starts: int = DEFAULT_STARTS, batch: int = DEFAULT_BATCH,
                   m: int = 0):
     """The `dscjax.search` method of a worst-case method name (m: waveform coefficients)."""
-    if name == "gradient":
-        return search.Gradient(starts=starts, screen=max(batch, starts), coupled=m)
-    return {"random": search.Random(batch=batch), "cma": search.CMA(popsize=batch)}[name]
+    return {"gradient": search.Gradient(starts=starts, screen=max(batch, starts), coupled=m),
+            "random": search.Random(batch=batch), "cma": search.CMA(popsize=batch)}[name]
 
 
 @dataclasses.dataclass
