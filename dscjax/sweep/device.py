@@ -118,7 +118,7 @@ class Runner:
             rows = table[block * chunk:(block + 1) * chunk]
             if block == n_real - 1 and last_rows is not None:
                 rows = rows[:last_rows]
-            return self._tiles_on(jobs[block], self.setup_on[jobs[block]], self.spec, rows)
+            return self._tiles_on(jobs[block], self.spec, rows)
 
         if self._compiled or len(jobs) == 1:
             # asynchronous: the devices overlap
@@ -135,10 +135,11 @@ class Runner:
             (table.shape[0],), self.out_sharding, [_join(o, k, chunk, jax.numpy) for o in outs]))
             for k in outs[0][0]}
 
-    def _tiles_on(self, device, setup, spec, rows) -> list[dict]:
+    def _tiles_on(self, device, spec, rows) -> list[dict]:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
-        split into tiles (`tiles`) on `device`."""
-        program = spec.program()  # (host-side fields never recompile the tile program)
+        split into tiles (`tiles`) on `device`, with the setup placed there."""
+        # (host-side fields of the spec never recompile the tile program)
+        setup, program = self.setup_on[device], spec.program()
         return [self.block(setup, program, jax.device_put(t, device), columns=self.columns)
                 for t in tiles(rows, self.tile)]
 
@@ -148,11 +149,10 @@ class Runner:
         first local device, and the columns "refinements" and "dt_used" added (every process
         computes the same rows: no gather)."""
         device = self.local[0]
-        setup = self.setup_on[device]
         rows = np.asarray(table, self.dtype)
 
         def level(j, idx):  # the same tile program as the blocks: independent of the chunk
-            out = self._tiles_on(device, setup, level_spec(self.spec, j), rows[idx])
+            out = self._tiles_on(device, level_spec(self.spec, j), rows[idx])
             return {k: _join(out, k, len(idx)) for k in out[0]}
 
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
