@@ -5,7 +5,6 @@ Every function writes one PNG (`dscjax.plotting.saved`: no backend is chosen or 
 
 from __future__ import annotations
 
-import re
 from collections.abc import Sequence
 
 import matplotlib
@@ -14,6 +13,7 @@ from matplotlib.colors import LogNorm, Normalize
 from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
+from dscjax.params import Param
 from dscjax.plotting import GRID, saved
 
 _SYMBOLS = {
@@ -27,11 +27,9 @@ _VECTOR = {"plant.g": "g_{}", "plant.theta": "θ_{}", "plant.x0": "x_{}(0)", "co
 
 def param_label(name: str) -> str:
     """'α (hysteresis.alpha)', 'g_2 (plant.g[1])', ..."""
-    m = re.match(r"^(.*)\[(\d+)\]$", name)
-    if m and m.group(1) in _VECTOR:
-        sym = _VECTOR[m.group(1)].format(int(m.group(2)) + 1)
-    else:
-        sym = _SYMBOLS.get(name)
+    p = Param.parse(name)
+    sym = (_VECTOR[p.path].format(p.index + 1) if p.path in _VECTOR and p.index is not None
+           else _SYMBOLS.get(name))
     return f"{sym}  ({name})" if sym else name
 
 
