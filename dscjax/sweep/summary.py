@@ -284,11 +284,10 @@ def markdown(summary: Mapping[str, Any]) -> str:
     for title, key, columns in (
             ("Worst samples that track", "worst", [*WORST_COLUMNS, "refinements"]),
             ("First samples to diverge", "first_diverged", ["t_diverged", "dt_used"])):
-        recs = summary.get(key, [])
-        # each column a field of the record (`sample_record`) or one of its metrics
-        body = [(r["sample"], *r["params"].values(),
-                 *(r[k] if k in r else r["metrics"][k] for k in columns)) for r in recs]
-        if recs:
+        if recs := summary.get(key):
+            # each column a field of the record (`sample_record`) or one of its metrics
+            body = [(r["sample"], *r["params"].values(),
+                     *(r[k] if k in r else r["metrics"][k] for k in columns)) for r in recs]
             head = ["sample", *recs[0]["params"], *columns]
             lines += ["", f"## {title}", ""] + table(head, body, _cell)
     return "\n".join(lines) + "\n"
