@@ -29,7 +29,7 @@ from jax.flatten_util import ravel_pytree
 
 from dscjax import params, validation
 from dscjax.params import Param
-from dscjax.simulate import Trajectory, nan_if_diverged, run
+from dscjax.simulate import Trajectory, run_reported
 from dscjax.validation import ConfigError
 
 
@@ -254,8 +254,7 @@ def run_at(selection: Selection, setup, z: Mapping[str, Any], spec, *, overrides
         ov = dict(overrides or {}) | selection.overrides(setup, z)
     else:
         setup, ov = selection.apply(setup, z), overrides and selection.move(overrides, z)
-    traj = run(setup, spec, overrides=ov or None, extra=extra)
-    return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
+    return run_reported(setup, spec, overrides=ov or None, extra=extra)
 
 
 def _bound_pair(b, field) -> tuple[float | None, float | None]:

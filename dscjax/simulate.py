@@ -17,7 +17,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 from collections.abc import Callable, Mapping
-from typing import Any, NamedTuple
+from typing import Any
 
 import equinox as eqx
 import jax
@@ -97,30 +97,24 @@ class Trajectory(eqx.Module):
         raise AttributeError(name)
 
 
-class _Loop(NamedTuple):
-    """What `integrate` needs for one kind of loop, each function taking the setup and the
-    sampling ((`Sampling`, dt) or None) as arguments, never closing over traced values."""
-
-    field: Callable  # (t, y, setup, samp) -> (dy, obs)
-    init: Callable  # (setup, samp) -> y0
-    rates: Callable  # (t, y, setup, samp, obs) -> decay rates like y
-    project: Callable | None  # (k, t, y, setup, samp) -> y after a step
-    frozen: Any
-
-
-def _loop(setup: Setup, spec: RunSpec) -> _Loop:
+def _loop(setup: Setup, spec: RunSpec):
+    """(field, init, rates, project, frozen): what `integrate` needs for the continuous or the
+    sampled loop, each function taking the setup and the sampling ((`Sampling`, dt) or None) as
+    arguments, never closing over traced values: field(t, y, setup, samp) -> (dy, obs),
+    init(setup, samp) -> y0, rates(t, y, setup, samp, obs) -> decay rates like y, project(k, t,
+    y, setup, samp) -> y after a step (or None), and the static tree of held parts."""
     if not spec.sampled:
-        return _Loop(lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
-                     lambda s, samp: closed_loop.initial_state(s),
-                     lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
-                     (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
-                     if type(setup.hysteresis).projects else None,
-                     closed_loop.frozen(setup))
-    return _Loop(lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
-                 lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
-                 lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
-                 lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
-                 closed_loop.SAMPLED_FROZEN)
+        return (lambda t, y, s, samp: closed_loop.vector_field(t, y, s),
+                lambda s, samp: closed_loop.initial_state(s),
+                lambda t, y, s, samp, obs: closed_loop.decay_rates(t, y, s, obs),
+                (lambda k, t, y, s, samp: closed_loop.project(t, y, s))
+                if type(setup.hysteresis).projects else None,
+                closed_loop.frozen(setup))
+    return (lambda t, y, s, samp: closed_loop.sampled_vector_field(t, y, s),
+            lambda s, samp: closed_loop.sampled_initial_state(s, *samp),
+            lambda t, y, s, samp, obs: jax.tree.map(jnp.zeros_like, y),
+            lambda k, t, y, s, samp: closed_loop.sample_after_step(k, t, y, s, *samp),
+            closed_loop.SAMPLED_FROZEN)
 
 
 def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajectory:
@@ -224,7 +218,7 @@ def nan_if_diverged(metrics: Mapping[str, Any], diverged) -> dict:
     return {k: jnp.where(diverged, jnp.nan, v) for k, v in metrics.items()}
 
 
-def _run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
+def run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
     """`run` with the metrics of diverged trajectories replaced by NaN (`nan_if_diverged`)."""
     traj = run(setup, spec, overrides=overrides, extra=extra)
     return dataclasses.replace(traj, metrics=nan_if_diverged(traj.metrics, traj.diverged))
@@ -232,8 +226,8 @@ def _run_reported(setup, spec, overrides=None, extra=None) -> Trajectory:
 
 # at the top level (dscjax.xla.jit): one trajectory and a small batch compile lean, a larger
 # batch with 512-bit vectors on AVX-512 CPUs
-_simulate = xla.jit(_run_reported, lean=True)
-_simulate_batch = xla.jit(_run_reported)
+_simulate = xla.jit(run_reported, lean=True)
+_simulate_batch = xla.jit(run_reported)
 
 
 def simulate(setup: Setup, t_final: float = 20.0, dt: float = 1e-3, *,
