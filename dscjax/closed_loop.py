@@ -166,13 +166,16 @@ def _flat_jacobian(setup, y, t):
 
 
 # compiled once per structure (the setup an argument): a diagnosis does not recompile
-_jacobian_at = xla.jit(_flat_jacobian, lean=True)
 _jacobians_along = xla.jit(jax.vmap(_flat_jacobian, in_axes=(None, 0, 0)), lean=True)
 
 
-def _states(traj) -> State:
-    """The saved closed-loop states of a trajectory (`simulate.Trajectory`) as a `State`."""
-    return State(x=traj.x, h=traj.h, ctrl=traj.ctrl)
+def _eigenvalues(setup: Setup, traj, at=slice(None), t=None) -> np.ndarray:
+    """The eigenvalues of dF/dX at the saved closed-loop states `at` of a trajectory
+    (`simulate.Trajectory`), each at its saved time or at the times `t`."""
+    states = jax.tree.map(lambda a: a[at], State(x=traj.x, h=traj.h, ctrl=traj.ctrl))
+    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(states)
+    ts = jnp.asarray(traj.t[at] if t is None else t, ys.dtype)
+    return np.linalg.eigvals(np.asarray(_jacobians_along(setup, ys, ts)))
 
 
 def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
@@ -181,13 +184,10 @@ def spectrum_along(setup: Setup, traj) -> SpectrumProfile:
         traj = dscjax.simulate(setup, 20.0, 1e-3)
         prof = dscjax.closed_loop.spectrum_along(setup, traj)   # prof.suggested_dt
     """
-    ys = jax.vmap(lambda s: ravel_pytree(s)[0])(_states(traj))
-    ts = jnp.asarray(traj.t)
-    jacs = _jacobians_along(setup, ys, ts)
-    ev = np.linalg.eigvals(np.asarray(jacs))
+    ev = _eigenvalues(setup, traj)
     radius = np.abs(ev).max(axis=1)
     i = int(np.argmax(radius))
-    t = np.asarray(ts)
+    t = np.asarray(traj.t)
     return SpectrumProfile(t=t, radius=radius, max_real=ev.real.max(axis=1), t_peak=float(t[i]),
                            suggested_dt=float(RK4_REAL_STABILITY / radius[i]))
 
@@ -198,11 +198,8 @@ def diagnose(setup: Setup, traj) -> str:
     divergence report itself)."""
     try:
         # after divergence the state is frozen at its last good value: the last saved point
-        t_last = float(traj.t_diverged) - float(traj.dt)
-        last = jax.tree.map(lambda a: a[-1], _states(traj))
-        y = ravel_pytree(last)[0]
-        jac = _jacobian_at(setup, y, jnp.asarray(t_last, y.dtype))
-        ev = np.linalg.eigvals(np.asarray(jac))
+        ev = _eigenvalues(setup, traj, slice(-1, None),
+                          [float(traj.t_diverged) - float(traj.dt)])
     except Exception:
         return ""
     rho = float(np.abs(ev).max())

@@ -141,11 +141,8 @@ def diverged_lines(status, t_diverged, state_bound: float | None = None) -> list
     how = {STATUS_NONFINITE: "a state became non-finite (inf/NaN)",
            STATUS_BOUND: "a state exceeded the state bound"
            + (f" {state_bound:g}" if state_bound is not None else "")}
-    lines = []
-    for i in np.flatnonzero(code != STATUS_OK):
-        who = f"trajectory {i}" if batched else "the trajectory"
-        lines.append(f"{who} diverged at t = {t_bad[i]:.6g} s: {how[int(code[i])]}")
-    return lines
+    return [f"{f'trajectory {i}' if batched else 'the trajectory'} diverged at t = "
+            f"{t_bad[i]:.6g} s: {how[int(code[i])]}" for i in np.flatnonzero(code != STATUS_OK)]
 
 
 def divergence_report(traj, state_bound: float | None = None) -> list[str]:

@@ -118,9 +118,7 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
     """{path: (B, ...)} for `simulate_batch`/`run` from a (B, d) table, column j the values of
     columns[j]; unnamed elements of a vector leaf keep `setup`'s values, a scale column s gives
     s * the vector, dtypes are kept. NumPy in, NumPy out; traced in, traced out."""
-    host = isinstance(table, np.ndarray)
-    xp = np if host else jnp
-    b = table.shape[0]
+    xp = np if isinstance(table, np.ndarray) else jnp
     out: dict[str, Any] = {}
     for j, p in enumerate(columns):
         leaf = get(setup, p.path)
@@ -130,15 +128,9 @@ def overrides(setup, columns: Sequence[Param], table) -> dict[str, Any]:
             out[p.path] = col[:, None] * xp.asarray(leaf, dtype)[None, :]
         elif p.index is None:  # the whole leaf
             out[p.path] = col
-        else:  # one element: the others keep the setup's values
-            if p.path not in out:
-                leaf = xp.asarray(leaf, dtype)
-                out[p.path] = xp.broadcast_to(leaf, (b, *leaf.shape))
-            if host:
-                out[p.path] = np.array(out[p.path])
-                out[p.path][:, p.index] = col
-            else:
-                out[p.path] = out[p.path].at[:, p.index].set(col)
+        else:  # one element: the others keep the setup's values (or an earlier column's)
+            rows = out.get(p.path, xp.asarray(leaf, dtype)[None, :])
+            out[p.path] = xp.where(xp.arange(rows.shape[-1]) == p.index, col[:, None], rows)
     return out
 
 

@@ -224,9 +224,7 @@ class RunSpec(eqx.Module):
     def describe(self) -> dict[str, Any]:
         """What determines a run's numbers (a resumable run's fingerprint): the table with
         every rule applied, without the host-side device."""
-        out = self.to_table()
-        out.update(save_every=self.save_every * self._substeps,
-                   window_start=validation.shortest(float(self.window_start)))
+        out = dataclasses.replace(self, rules=()).to_table()
         out.pop("device")
         if isinstance(self.discretisation, ExponentialEuler):  # the default
             out.pop("discretisation")  # the fingerprints of runs made before the key existed

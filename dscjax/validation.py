@@ -57,18 +57,18 @@ def is_concrete(tree) -> bool:
     return not any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree.leaves(tree))
 
 
-def _every(value, field: str, ok, must: str) -> None:
+def every(value, field: str, ok, must: str) -> None:
     """ConfigError "FIELD must be MUST (got VALUE)" unless `ok` holds for every element."""
     if not np.all(ok(np.asarray(value, dtype=float))):
         raise ConfigError(f"{field} must be {must} (got {fmt(value)})")
 
 
 def positive(value, field: str) -> None:
-    _every(value, field, lambda a: a > 0, "> 0")
+    every(value, field, lambda a: a > 0, "> 0")
 
 
 def nonnegative(value, field: str) -> None:
-    _every(value, field, lambda a: a >= 0, ">= 0")
+    every(value, field, lambda a: a >= 0, ">= 0")
 
 
 def finite_positive(value, field: str) -> float:
@@ -205,7 +205,7 @@ def numeric_paths(obj, prefix: str = "") -> list[str]:
 def finite_tree(obj, prefix: str) -> None:
     """Every traced number below obj (a model) finite; ConfigError naming its config path."""
     for path, value in _leaves(obj):
-        _every(value, f"{prefix}.{path}", np.isfinite, "finite")
+        every(value, f"{prefix}.{path}", np.isfinite, "finite")
 
 
 def whole_steps(t_final, dt, t_field="simulation.t_final", dt_field="simulation.dt") -> int:

@@ -78,7 +78,7 @@ def test_a_trajectory_that_diverges_at_every_step_reports_the_smallest(paper_set
             "plant.theta": jnp.array([[0.1, 0.0], [50.0, 0.0]]),
             "plant.x0": jnp.array([[0.08, 0.1], [3.0, 0.1]])}, 2.0, 2e-3, refine=2)
     # the run asked for and one program for both levels (their step count is traced)
-    assert traced["_run_reported"] == 2
+    assert traced["run_reported"] == 2
     assert np.asarray(batch.diverged).tolist() == [False, True]
     assert np.asarray(batch.refinements).tolist() == [0, 2]
     assert float(batch.dt[1]) == pytest.approx(1e-3)  # level 2: ETDRK4 at dt / 2

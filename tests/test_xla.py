@@ -15,7 +15,7 @@ import pytest
 import dscjax
 from dscjax import xla
 from dscjax.runspec import RunSpec
-from dscjax.simulate import _run_reported
+from dscjax.simulate import run_reported
 
 
 @pytest.mark.parametrize("env,avx512,wide", [
@@ -69,7 +69,7 @@ def test_lean_emitters_change_no_result_beyond_rounding(paper_setup):
     for sample_time in (None, 2e-3):
         spec = RunSpec.make(0.5, 1e-3, save_every=50, window_start=0.25,
                             sample_time=sample_time).program()
-        runs = [jax.jit(_run_reported, compiler_options=o)(setup, spec, None, None)
+        runs = [jax.jit(run_reported, compiler_options=o)(setup, spec, None, None)
                 for o in (xla.LEAN, {xla.EMITTERS: True})]
         for a, b in zip(*(jax.tree.leaves(r) for r in runs), strict=True):
             a, b = np.asarray(a), np.asarray(b)
@@ -133,14 +133,14 @@ def test_vector_widths_change_no_result(paper_setup):
     overrides = {"hysteresis.alpha": jnp.linspace(0.7, 1.3, 64),
                  "hysteresis.lam": jnp.linspace(1.0, 1.8, 64)}
     spec = RunSpec.make(0.5, 1e-3, save_every=50, window_start=0.25)
-    runs = [jax.jit(_run_reported, compiler_options={xla.OPTION: w})(setup, spec, overrides)
+    runs = [jax.jit(run_reported, compiler_options={xla.OPTION: w})(setup, spec, overrides)
             for w in WIDTHS]
     # what simulate_batch and sweeps run: the 512-bit program above on AVX-512, else JAX's own
     assert xla.compiler_options() in ({}, xla.WIDE)
     if xla.compiler_options() == xla.WIDE:
         assert 512 in WIDTHS
     else:
-        runs.append(xla.jit(_run_reported)(setup, spec, overrides))
+        runs.append(xla.jit(run_reported)(setup, spec, overrides))
     for other in runs[1:]:
         for a, b in zip(jax.tree.leaves(runs[0]), jax.tree.leaves(other), strict=True):
             np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -67,10 +67,8 @@ class _Plays(Hysteresis):
         if z0.ndim > 0 and z0.shape[-1] != n:
             raise v.ConfigError(f"{prefix}.z0 must be one number or one per threshold of "
                                 f"{prefix}.r: length {n} (got length {z0.shape[-1]})")
-        if np.any(r < 0):
-            raise v.ConfigError(f"{prefix}.r must be >= 0: play thresholds (got {v.fmt(r)})")
-        if n > 1 and not np.all(np.diff(r, axis=-1) > 0):
-            raise v.ConfigError(f"{prefix}.r must be strictly increasing (got {v.fmt(r)})")
+        v.every(r, f"{prefix}.r", lambda a: a >= 0, ">= 0: play thresholds")
+        v.every(r, f"{prefix}.r", lambda a: np.diff(a, axis=-1) > 0, "strictly increasing")
 
     def init_state(self, u0):
         """z(0) = max(lo(u0), min(hi(u0), z0)): the plays' outputs at t = 0 (N,)."""

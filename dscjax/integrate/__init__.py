@@ -97,13 +97,11 @@ def integrate(
         dt = dt.astype(jnp.result_type(*jax.tree.leaves(y0)))
     state_bound = jnp.asarray(state_bound, dt.dtype)
     acc0 = () if reduction is None else reduction.init(dt.dtype)  # one member's
+    options = (reduction, acc0, dt, n_steps, save_every, state_bound, solver, gradient, rates,
+               project, frozen, skip_diverged, substeps)  # both layouts take them alike
     if batch is None:
-        return integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every,
-                                state_bound, solver, gradient, rates, project, frozen,
-                                skip_diverged, substeps)
-    return integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                           state_bound, solver, gradient, rates, project, frozen, skip_diverged,
-                           substeps)
+        return integrate_single(f, y0, args, *options)
+    return integrate_batch(f, y0, args, batch, *options)
 
 
 __all__ = ["DEFAULT_CHECKPOINT_EVERY", "ETDRK4", "RK4", "SOLVERS", "STATUS_BOUND",
