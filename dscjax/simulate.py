@@ -148,16 +148,11 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
             (sh, sa), b = args
             return rebuild(sh, b), sa
 
-    def field(t, y, args):
-        return loop_field(t, y, *member(args))
-
-    proj = None
-    if project is not None:
-        def proj(k, t, y, args):
-            return project(k, t, y, *member(args))
-
-    res = integrate(field, y0, spec.dt, spec.n_steps, (shared, samp), batch=batch,
-                    rates=lambda t, y, args, obs: rates(t, y, *member(args), obs), project=proj,
+    res = integrate(lambda t, y, args: loop_field(t, y, *member(args)), y0, spec.dt,
+                    spec.n_steps, (shared, samp), batch=batch,
+                    rates=lambda t, y, args, obs: rates(t, y, *member(args), obs),
+                    project=None if project is None else
+                    (lambda k, t, y, args: project(k, t, y, *member(args))),
                     save_every=spec.save_every, reduction=red, state_bound=spec.state_bound,
                     solver=spec.solver, gradient=spec.gradient, frozen=frozen,
                     skip_diverged=spec.skip_diverged, substeps=sub)

@@ -27,8 +27,7 @@ def open_loop(hysteresis: Hysteresis, u_of_t: Callable, t_final: float, dt: floa
         (1001,)
     """
     n_steps = max(int(round(t_final / dt)), 1)
-    u, w = _open_loop_jit(_as_float(hysteresis), u_of_t, (), n_steps,
-                          jnp.asarray(dt, jnp.result_type(float)))
+    u, w = _open_loop_jit(_as_float(hysteresis), u_of_t, (), n_steps, _as_float(dt))
     return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
 
 
@@ -45,14 +44,14 @@ def sine_loops(hysteresis: Hysteresis, amplitudes, omega: float, t_final: float,
     """(t (N+1,), u (K, N+1), w (K, N+1)): the model driven by u = A sin(omega t) for each of
     the K amplitudes (one vmapped program)."""
     n_steps = max(int(round(t_final / dt)), 1)
-    dtype = jnp.result_type(float)
-    u, w = _sine_loops(_as_float(hysteresis), jnp.asarray(amplitudes, dtype),
-                       jnp.asarray(omega, dtype), jnp.asarray(dt, dtype), n_steps=n_steps)
+    u, w = _sine_loops(*_as_float((hysteresis, jnp.asarray(amplitudes), omega, dt)),
+                       n_steps=n_steps)
     return np.arange(n_steps + 1) * float(dt), np.asarray(u), np.asarray(w)
 
 
-def _as_float(model):
-    return jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(float)), model)
+def _as_float(tree):
+    """Every number of `tree` (a model, an array, a number) in JAX's default float."""
+    return jax.tree.map(lambda x: jnp.asarray(x, jnp.result_type(float)), tree)
 
 
 def _open_loop(model, u_of_t, args, n_steps, dt):
