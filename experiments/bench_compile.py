@@ -34,7 +34,7 @@ import tuning  # noqa: E402
 from dscjax import xla  # noqa: E402
 from dscjax.integrate import Checkpointed, TimeParallel  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
-from dscjax.simulate import _run_reported, canonical  # noqa: E402
+from dscjax.simulate import canonical, run_reported  # noqa: E402
 from tuning.runner import PAPER_PLANT_FREEZE  # noqa: E402
 
 DT = 1e-3
@@ -50,14 +50,14 @@ def program(case: str, t_final: float):
     if kind == "one":
         spec = RunSpec.make(t_final, DT, save_every=n, sample_time=None if what == "continuous"
                             else DT).program()
-        return _run_reported, (setup, spec, None, None)
+        return run_reported, (setup, spec, None, None)
     if kind == "batch":
         b = int(what)
         rng = np.random.default_rng(0)
         h = setup.hysteresis
         over = {f"hysteresis.{k}": jnp.asarray(float(getattr(h, k)) * rng.uniform(0.7, 1.3, b))
                 for k in ("alpha", "lam", "psi")}
-        return _run_reported, (setup, RunSpec.make(t_final, DT, save_every=n).program(), over)
+        return run_reported, (setup, RunSpec.make(t_final, DT, save_every=n).program(), over)
     sel = tuning.Selection.build(setup, tuning.config.DSC_GAINS, freeze=PAPER_PLANT_FREEZE)
     gradient = Checkpointed(None) if what == "scan" else TimeParallel()
     spec = RunSpec.make(t_final, DT, save_every=n, refine=0, gradient=gradient,

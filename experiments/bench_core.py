@@ -27,7 +27,7 @@ from harness import Bench, diffrax_rk4, median, parser, reference_loop  # noqa: 
 import dscjax  # noqa: E402
 from dscjax import params, xla  # noqa: E402
 from dscjax.runspec import RunSpec  # noqa: E402
-from dscjax.simulate import _run_reported, _simulate, _simulate_batch, canonical  # noqa: E402
+from dscjax.simulate import _simulate, _simulate_batch, canonical, run_reported  # noqa: E402
 
 DT = 1e-3
 
@@ -111,10 +111,10 @@ def batched(bench: Bench, dtype, b: int, horizon: float, reps: int, wide: bool, 
     over = hysteresis_batch(b, dtype)
     runs = {"dscjax": lambda: _simulate_batch(setup, sp, over).metrics}
     if wide:
-        narrow = jax.jit(_run_reported)
+        narrow = jax.jit(run_reported)
         runs["256-bit"] = lambda: narrow(setup, sp, over).metrics
     if vmap:
-        plain = jax.jit(jax.vmap(lambda a: _run_reported(
+        plain = jax.jit(jax.vmap(lambda a: run_reported(
             params.set(setup, "hysteresis.alpha", a), sp).metrics))
         runs["vmap"] = lambda: plain(over["hysteresis.alpha"])
     steps = b * sp.n_steps
