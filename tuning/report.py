@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import files, params, validation, xla
+from dscjax import files, validation, xla
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
@@ -24,7 +24,7 @@ from tuning.config import TERMS
 from tuning.objective import CHECK_FIGURES, exact_constraints, plant_count, within
 from tuning.reductions import shifted_reference
 from tuning.report_plots import draw
-from tuning.runner import simulate_command
+from tuning.runner import join_plants, simulate_command
 
 
 @functools.partial(xla.jit, lean=True)
@@ -41,10 +41,9 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     groups = {tag: dict(g) for tag, g in groups.items() if g is not None}
     table, bounds, rows = plant_table(obj, groups)
     per = {t: _host(_per_plant(obj, z, table, bounds)) for t, z in zs.items()}
-    if not table:  # the nominal plant alone
-        return {"nominal": per, "train": None, "heldout": None}
-    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()},
-           "train": None, "heldout": None}
+    # (without a batch, the nominal plant alone: its figures unbatched)
+    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()} if table
+           else per, "train": None, "heldout": None}
     for tag, real in (("train", problem.n_train), ("heldout", None)):
         if tag in groups:
             ov = {k: np.asarray(v)[:real] for k, v in groups[tag].items()}
@@ -60,18 +59,13 @@ def plant_table(obj, groups: dict) -> tuple[dict, tuple, dict[str, slice]]:
     The training batch ("train", padding included) keeps its own bounds, the other rows the
     nominal ones. Without any batch: ({}, the nominal bounds, {}), the nominal plant alone."""
     sc = obj.scales
-    paths = sorted({p for g in groups.values() for p in g})
-    if not paths:
+    if not any(groups.values()):
         return {}, sc.bounds(train=False), {}
     sizes = {tag: plant_count(g) for tag, g in groups.items()}
     ends = np.cumsum(list(sizes.values())).tolist()
     rows = {tag: slice(end - n, end) for (tag, n), end in zip(sizes.items(), ends, strict=True)}
-    table = {}
-    for p in paths:
-        value = np.asarray(params.get(obj.setup, p))
-        table[p] = jnp.asarray(np.concatenate([
-            np.asarray(g[p]) if p in g else np.broadcast_to(value, (sizes[tag], *value.shape))
-            for tag, g in groups.items()]), value.dtype)
+    joined = functools.reduce(functools.partial(join_plants, obj.setup), groups.values())
+    table = {p: jnp.asarray(v) for p, v in joined.items()}
     bounds = tuple(b if per is None else np.concatenate([
         np.asarray(per, float) if tag == "train" else np.full(n, b) for tag, n in sizes.items()])
         for b, per in zip(sc.bounds(train=False), (sc.u_max_train, sc.tv_max_train),
