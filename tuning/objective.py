@@ -51,6 +51,8 @@ from tuning.scales import Scales
 # a bound "start" is the start's own figure from another compiled program: rounding may put
 # the start a few ulps over it
 BOUND_RTOL = 1e-9
+# the effort bounds in words and by their metric, in `Scales.bounds`' order
+EFFORTS = (("max|u|", "max_abs_u"), ("TV(u)", "tv_u"))
 
 
 def bound_terms(spec: ObjectiveSpec, u_bound, tv_bound) -> list[tuple]:
@@ -85,9 +87,8 @@ class CheckLoop(eqx.Module):
 
     def bounded(self, bounds: tuple) -> list[tuple[str, str, Any, float]]:
         """(what, metric key, bound, factor) of each effort bound checked in this loop."""
-        return [(what, key, b, f) for what, key, b, f in
-                zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds,
-                    (self.u_factor, self.tv_factor), strict=True)
+        return [(what, key, b, f) for (what, key), b, f in
+                zip(EFFORTS, bounds, (self.u_factor, self.tv_factor), strict=True)
                 if b is not None and f is not None]
 
     def penalty(self, m: Mapping[str, jax.Array], u_bound, tv_bound) -> jax.Array:
@@ -121,8 +122,9 @@ def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
     return tuple(out)
 
 
-# a check loop's exact figures as `loop_metrics` names them (c_NAME) and the run's metric each
-# is; with c_smooth_linf_window, c_smooth_max_abs_u and c_diverged beside them
+# the exact figures as `loop_metrics` names a check loop's (c_NAME) and `Objective.summary`
+# reports them, and the run's metric each is; with c_smooth_linf_window, c_smooth_max_abs_u
+# and c_diverged beside a check loop's
 CHECK_FIGURES = {"linf_window": "linf_error_window", "max_abs_u": "max_abs_u", "tv_u": "tv_u"}
 
 
@@ -151,8 +153,7 @@ def exact_constraints(bounds: tuple, linf, checks=()) -> list[tuple[str, str, An
     `bounds` (`Scales.bounds`; None: none): max|u|, TV(u) and each check loop's windowed L-inf
     (at most its factor x `linf`, the loop tuned's) and effort bounds. `Objective.judged`'s
     feasibility and the report's rows (`report.constraint_checks`)."""
-    out = [(name, key, b) for name, key, b in
-           zip(("max|u|", "TV(u)"), ("max_abs_u", "tv_u"), bounds, strict=True) if b is not None]
+    out = [(name, key, b) for (name, key), b in zip(EFFORTS, bounds, strict=True) if b is not None]
     for c in checks:
         out.append((f"L-inf on [t0,T], {c.label}", f"{c.name}_linf_window", c.linf_factor * linf))
         out += [(f"{what}, {c.label}", f"{c.name}_{key}", f * b)
@@ -269,9 +270,7 @@ class Objective(eqx.Module):
             "terms": {k: self.aggregate(v, mask) for k, v in terms.items()},
             # reported, not differentiated: over the plants that did not diverge (a diverged
             # plant's metrics were not measured), NaN if none did
-            "linf_window": _max_measured(metrics["linf_error_window"], ignored),
-            "max_abs_u": _max_measured(metrics["max_abs_u"], ignored),
-            "tv_u": _max_measured(metrics["tv_u"], ignored),
+            **{k: _max_measured(metrics[key], ignored) for k, key in CHECK_FIGURES.items()},
             "n_diverged": jnp.sum(jnp.asarray(diverged & real, jnp.int32)),
             "feasible": jnp.all(feasible | ~real),
         }
