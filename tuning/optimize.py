@@ -90,17 +90,12 @@ class Mean(CVaR, name="mean"):
 
 
 class Max(CVaR, name="max"):
-    """The worst plant."""
+    """The worst plant (the mean of the worst one)."""
 
     leveled: ClassVar[bool] = False
 
     def weighs(self, n):
         return 1
-
-    def __call__(self, values, mask=None):
-        if values.ndim == 0:
-            return values
-        return jnp.max(values if mask is None else jnp.where(mask, values, -jnp.inf))
 
 
 class CMAES(Strategy, name="cma"):
