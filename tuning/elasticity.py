@@ -80,11 +80,10 @@ def elasticities(problem, z, figures: list[tuple[int, str]]) -> dict[str, Any] |
     if np.any(diverged) or not np.all(np.asarray(y) > 0):  # no d ln of a figure of 0
         return None
     columns = [p.name for p in sel.columns(obj.setup)]
-    rows = []
-    for t in sel.items:
-        g = np.asarray(grad[t.name], float).reshape(len(y), -1)
-        scale = 1.0 if isinstance(t.transform, Log) else np.ravel(np.asarray(z[t.name], float))
-        rows.append(g * scale)  # d figure / d ln g
+    # d figure / d ln g of each tuned item's numbers
+    rows = [np.asarray(grad[t.name], float).reshape(len(y), -1)
+            * (1.0 if isinstance(t.transform, Log) else np.ravel(np.asarray(z[t.name], float)))
+            for t in sel.items]
     d = np.concatenate(rows, axis=1) / np.asarray(y, float)[:, None]
     flat = [(i, m) for i in used for m in keys[i]]
     return {f: dict(zip(columns, map(float, d[j]), strict=True)) for j, f in enumerate(flat)}
