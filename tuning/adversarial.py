@@ -89,12 +89,9 @@ def _worst_points(res: worst.Result, add: int) -> np.ndarray:
     """Up to `add` distinct worst points of a search, worst first: the re-checked worst case,
     then the best points each method kept (`Trace`'s top points, loss = -metric)."""
     cands = [c for tr in res.traces.values() for c in zip(tr.top_loss, tr.top_z, strict=True)]
-    cands.sort(key=lambda c: c[0])
     out: list[np.ndarray] = [np.asarray(res.z)]
-    for _, z in cands:
-        if len(out) >= add:
-            break
-        if not any(np.array_equal(z, o) for o in out):
+    for _, z in sorted(cands, key=lambda c: c[0]):
+        if len(out) < add and not any(np.array_equal(z, o) for o in out):
             out.append(np.asarray(z))
     return np.stack(out)
 

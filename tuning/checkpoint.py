@@ -33,9 +33,8 @@ RENAMED = {"scale": "lr", "seconds": "wall_s"}
 def history_row(row: dict) -> dict:
     """A search trace's history row as history.csv and the progress display give it: the
     search's keys (two renamed), its figures and terms."""
-    out = {"grad_norm": float("nan")} | {RENAMED.get(k, k): v for k, v in row.items()}
-    out["accepted"] = bool(row.get("accepted", True))
-    return out
+    return ({"grad_norm": float("nan")} | {RENAMED.get(k, k): v for k, v in row.items()}
+            | {"accepted": bool(row.get("accepted", True))})
 
 
 def history_columns(problem) -> list[str]:

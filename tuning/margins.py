@@ -56,15 +56,13 @@ def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
-def _run(problem, overrides: dict, line: int | None = None, grouped: bool = False, **change):
-    """A batched run of the loop tuned with `change` (no refinement), on the host; `line`: its
-    input delay line's length, if longer than the delay; `grouped`: as the Ts sweep's runs
-    (`RunSpec.grouped`, one step of dt a step), whose compiled program it then shares."""
+def _run(problem, overrides: dict, as_sweep: bool = False, **change):
+    """A batched run of the loop tuned with `change` (no refinement), on the host; `as_sweep`:
+    as the Ts sweep's runs (its input delay line DELAY_MAX long, `RunSpec.grouped`, one step
+    of dt a step), whose compiled program it then shares."""
     spec = problem.objective.sim.replace(refine=0, **change)
-    if line is not None:
-        spec = dataclasses.replace(spec, line=line)
-    if grouped:
-        spec = spec.grouped(1)
+    if as_sweep:
+        spec = dataclasses.replace(spec, line=DELAY_MAX).grouped(1)
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
@@ -216,7 +214,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
         # every step saved, as the Ts sweep's runs: their program
-        tr = _run(problem, gains, line=DELAY_MAX, grouped=True, delay=d, save_every=1)
+        tr = _run(problem, gains, as_sweep=True, delay=d, save_every=1)
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}

@@ -353,8 +353,7 @@ def run(problem: Problem, out_dir: str | Path | None = None, *, resume: bool = F
     if out is not None:
         prepare_dir(out, resume, overwrite)
         if resume:
-            _, state = _saved(out, problem)
-            saved = state.trace
+            saved = _saved(out, problem)[1].trace
             before, begun = saved.seconds, saved.iterations
     sp = TuneProblem(problem)
     terms = ck.term_names(problem)
