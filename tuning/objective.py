@@ -92,13 +92,13 @@ class CheckLoop(eqx.Module):
                 if b is not None and f is not None]
 
     def penalty(self, m: Mapping[str, jax.Array], u_bound, tv_bound) -> jax.Array:
-        p = self.name
-        ratio = m[f"{p}_smooth_linf_window"] / (self.linf_factor * m["smooth_linf_window"])
-        out = jnp.maximum(ratio - 1.0, 0.0) ** 2
-        smooth = {"max_abs_u": f"{p}_smooth_max_abs_u", "tv_u": f"{p}_tv_u"}
-        for _, key, b, f in self.bounded((u_bound, tv_bound)):
-            out = out + jnp.maximum(m[smooth[key]] / (f * b) - 1.0, 0.0) ** 2
-        return self.weight * out
+        """weight x the sum of relu(r - 1)^2 over the ratios r of its smooth figures to their
+        bounds (L-inf~ to linf_factor x the loop tuned's, each effort bound checked)."""
+        p, smooth = self.name, {"max_abs_u": "smooth_max_abs_u", "tv_u": "tv_u"}
+        ratios = [m[f"{p}_smooth_linf_window"] / (self.linf_factor * m["smooth_linf_window"])]
+        ratios += [m[f"{p}_{smooth[key]}"] / (f * b)
+                   for _, key, b, f in self.bounded((u_bound, tv_bound))]
+        return self.weight * sum(jnp.maximum(r - 1.0, 0.0) ** 2 for r in ratios)
 
 
 def check_loops(sim: RunSpec, spec) -> tuple[CheckLoop, ...]:
@@ -256,8 +256,7 @@ class Objective(eqx.Module):
         for i in range(n_req):
             terms[f"req{i}"] = m[f"req{i}_penalty"]
             ok = ok & (metrics[f"req{i}_met"] > 0)
-        for c in self.checks:
-            terms[c.name] = c.penalty(m, u_bound, tv_bound)
+        terms |= {c.name: c.penalty(m, u_bound, tv_bound) for c in self.checks}
         total = jnp.where(bad, spec.divergence_penalty, sum(terms.values()))
         return total, {k: jnp.where(bad, 0.0, v) for k, v in terms.items()}, ok
 
