@@ -158,7 +158,7 @@ def test_search_programs_simulate_with_the_problems_solver_and_gradient(problems
         seen.append((spec.solver.name, spec.gradient.name))
         raise Seen
 
-    monkeypatch.setattr(dscjax.selection, "run", spy)
+    monkeypatch.setattr(dscjax.selection, "run_reported", spy)
     p = problems["cma"]
     sim = p.objective.sim.replace(solver="etdrk4")
     q = dataclasses.replace(p, objective=dataclasses.replace(p.objective, sim=sim))
