@@ -132,16 +132,6 @@ def apply_run_options(args, spec):
     return spec.replace(device="auto")
 
 
-def check_noise(args, setup, spec) -> None:
-    """simulation.noise (--noise) as one number or one per state of the plant (n), refused
-    in one line naming how it was given otherwise (before anything traces the loop)."""
-    from dscjax.simulate import check
-
-    given = getattr(args, "noise", None) is not None
-    with blame_options({"simulation.noise": "--noise"} if given else {}):
-        check(setup, spec, batched=True)  # batched: the noise alone is checked
-
-
 def choose_device(args, kind: str, rows: int = 1):
     """Where a command's work runs (`dscjax.device.choose` of `kind`, --device or
     simulation.device, for `rows` trajectories run together): a `Choice`, whose str is the
@@ -284,11 +274,15 @@ def config_data(args) -> dict:
     return args.config_data
 
 
-def config_setup(args, base_spec=None):
-    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), before the
-    command line's options."""
+def config_setup(args, base_spec=None, gains: bool = False):
+    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), then with
+    `gains` the whole config of --gains (e.g. the gains.json of `dscjax tune`) over that,
+    before the command line's options."""
     base = config.example(args.example or "paper", dtype=np.float64)
-    return config.from_dict(config_data(args), base=base, base_spec=base_spec)
+    setup, spec = config.from_dict(config_data(args), base=base, base_spec=base_spec)
+    if gains and args.gains:
+        return config.from_dict(config.read(args.gains, "--gains"), base=setup, base_spec=spec)
+    return setup, spec
 
 
 def own_settings(args, group, prefix: str, base):
@@ -300,16 +294,29 @@ def own_settings(args, group, prefix: str, base):
         return settings.from_table(group, given, prefix, base), given, names
 
 
-def load_setup(args):
-    """(Setup, RunSpec) from --config plus command-line options, the setup cast to the dtype
-    (a command's own table in the file, e.g. [tuning], is left to that command)."""
-    setup, spec = config_setup(args)
+def checked_setup(args, setup, spec):
+    """(setup, spec): the command line's [simulation] options laid over `spec`
+    (`apply_run_options`), then the setup validated and simulation.noise (--noise) checked as
+    one number or one per state of the plant (n), each refused in one line naming how it was
+    given, before anything traces the loop (a shape mismatch would otherwise surface as a JAX
+    broadcasting error from inside an eval_shape)."""
+    from dscjax.simulate import check
+
     spec = apply_run_options(args, spec)
-    check_noise(args, setup, spec)
+    validate_setup(setup)
+    given = getattr(args, "noise", None) is not None
+    with blame_options({"simulation.noise": "--noise"} if given else {}):
+        check(setup, spec, batched=True)  # batched: the noise alone is checked
+    return setup, spec
+
+
+def load_setup(args):
+    """(Setup, RunSpec) from --config plus command-line options (`checked_setup`), the setup
+    cast to the dtype (a command's own table in the file, e.g. [tuning], is left to that
+    command)."""
+    setup, spec = config_setup(args)
     if getattr(args, "variant", None):
         setup = setup.replace(
             controller=dataclasses.replace(setup.controller, variant=args.variant))
-    # before anything traces the setup (a shape mismatch would otherwise surface as a JAX
-    # broadcasting error from inside an eval_shape)
-    validate_setup(setup)
+    setup, spec = checked_setup(args, setup, spec)
     return cast(setup, np.dtype(spec.dtype)), spec

@@ -8,7 +8,7 @@ it."""
 
 from __future__ import annotations
 
-from dscjax import config, export
+from dscjax import export
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.export import PRECISIONS
@@ -35,12 +35,9 @@ def add_options(p):
 def load(args):
     """(setup, spec, source) of --example, --config, --gains and the options, float64, the
     spec sampled (a config without a sample time and no --sample-time: one line)."""
-    setup, spec = common.config_setup(args)
-    source = [f"--example {args.example}", *([f"--config {args.config}"] if args.config else [])]
-    if args.gains:
-        setup, spec = config.from_dict(config.read(args.gains, "--gains"), base=setup,
-                                       base_spec=spec)
-        source.append(f"--gains {args.gains}")
+    setup, spec = common.config_setup(args, gains=True)
+    source = " ".join(f"{flag} {value}" for flag, value in (
+        ("--example", args.example), ("--config", args.config), ("--gains", args.gains)) if value)
     overrides, names = common.run_overrides(args)
     ts = overrides.get("sample_time", spec.sample_time)
     if ts is None:
@@ -53,7 +50,7 @@ def load(args):
     names |= {"dt": "the config's simulation.dt", "t_final": "the config's simulation.t_final"}
     spec = spec.replace(names=names, **overrides)
     validate_setup(setup)
-    return cast(setup, "float64"), spec, " ".join(source)
+    return cast(setup, "float64"), spec, source
 
 
 def run(args) -> int:

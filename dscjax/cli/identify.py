@@ -16,7 +16,6 @@ from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
 from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
-from dscjax.validation import validate_setup
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
 interrupt_hint = nothing_kept
@@ -39,8 +38,7 @@ def load(args):
     table = common.config_data(args).get("identify", {})
     s = settings.from_table(ident.IdentifySettings, table, "identify.")
     s = common.own_settings(args, ident.IdentifySettings, "identify.", s)[0]
-    spec = common.apply_run_options(args, spec)
-    validate_setup(setup)
+    setup, spec = common.checked_setup(args, setup, spec)
     ident.check_free(setup, s.free)  # before the data and --out
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
     return cast(setup, "float64"), spec, s, source

@@ -10,7 +10,7 @@ import sys
 import time
 from pathlib import Path
 
-from dscjax import config, files, validation
+from dscjax import config, files
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
 from dscjax.params import cast
@@ -77,7 +77,7 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    setup, options = common.config_setup(args, base_spec=RunSpec.make(**SIMULATION))
+    setup, options = common.config_setup(args, RunSpec.make(**SIMULATION), gains=True)
     cfg = tuning_from_dict(common.config_data(args).get("tuning", {}), TuningConfig())
     if args.tuning:
         extra = config.read(args.tuning, "--tuning")
@@ -86,18 +86,13 @@ def load(args):
             raise ConfigError(f"{args.tuning}: a --tuning file holds only a [tuning] table "
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
-    if args.gains:
-        setup, options = config.from_dict(config.read(args.gains, "--gains"), base=setup,
-                                          base_spec=options)
     cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
               if k != "rounds"]
     if search and not cfg.adversarial.rounds:
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")
-    options = common.apply_run_options(args, options)
-    validation.validate_setup(setup)
-    common.check_noise(args, setup, options)
+    setup, options = common.checked_setup(args, setup, options)
     if options.dtype != "float64":
         raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
                           "sweeps)")
