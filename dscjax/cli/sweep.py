@@ -24,7 +24,7 @@ from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resu
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
 from dscjax.runspec import RunSpec, Simulation
-from dscjax.validation import ConfigError, Work, check_work, validate_setup
+from dscjax.validation import ConfigError, Work, check_work
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
 DEGRADED_FACTOR = 2.0
@@ -79,7 +79,7 @@ def load(args):
     setup, options = common.config_setup(args)
     if args.gains:
         setup, options = _gains(args, setup, options, raw.get("simulation", {}))
-    options = common.apply_run_options(args, options)
+    setup, options = common.checked_setup(args, setup, options)
     settings = sweep.settings_from_dict(raw.get("sweep", {}), sweep.SweepSettings())
     if args.grid and args.samples is not None:
         raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
@@ -96,10 +96,7 @@ def load(args):
         changes["ranges"] = tuple(parse_range(r) for r in args.ranges)
     if args.float64 or args.float32:
         changes["dtype"] = "float64" if args.float64 else "float32"
-    settings = dataclasses.replace(settings, **changes)
-    validate_setup(setup)
-    common.check_noise(args, setup, options)
-    return setup, options, settings
+    return setup, options, dataclasses.replace(settings, **changes)
 
 
 def _gains(args, setup, options, config_loop: dict):
@@ -288,13 +285,12 @@ def _recheck(trajs, records) -> dict[str, float] | None:
     a difference of 0, where `float32_trust` would give inf for one non-finite value)."""
     if not trajs:
         return None
-    again, swept = {}, {}
-    for m in sweep.METRICS:
-        a = np.array([float(tr.metrics[m]) for tr in trajs])
-        v = np.array([rec["metrics"][m] for rec in records])
-        both = np.isfinite(a) & np.isfinite(v)
-        again[m], swept[m] = np.where(both, a, np.nan), np.where(both, v, np.nan)
-    return sweep.float32_trust(again, swept)["max_rel_diff"]
+    again = np.array([[float(tr.metrics[m]) for m in sweep.METRICS] for tr in trajs])
+    swept = np.array([[rec["metrics"][m] for m in sweep.METRICS] for rec in records], float)
+    both = np.isfinite(again) & np.isfinite(swept)
+    pair = [dict(zip(sweep.METRICS, np.where(both, v, np.nan).T, strict=True))
+            for v in (again, swept)]
+    return sweep.float32_trust(*pair)["max_rel_diff"]
 
 
 def default_threshold(nominal_diverged: bool, nominal_error: float,
