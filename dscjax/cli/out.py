@@ -62,11 +62,7 @@ class Outputs:
 
     def remove(self, out: Path) -> None:
         for name in self.found(out):
-            path = out / name.rstrip("/")
-            if name.endswith("/"):
-                shutil.rmtree(path)
-            else:
-                path.unlink()
+            (shutil.rmtree if name.endswith("/") else Path.unlink)(out / name.rstrip("/"))
 
 
 def check_out(args) -> None:
@@ -96,12 +92,9 @@ def _other_commands(args, outputs: Outputs, out: Path) -> dict[str, list[str]]:
         return {}
     found = {name: set(importlib.import_module(module).OUTPUTS.found(out))
              for name, module in COMMANDS.items() if name != args.command}
-    clash = {}
-    for name, theirs in found.items():
-        others = set().union(ours, *(f for n, f in found.items() if n != name))
-        if theirs - others and theirs & ours:  # its own files are there, and shared names
-            clash[name] = sorted(theirs & ours)
-    return clash
+    # its own files are there (named by neither this command nor another), and shared names
+    return {name: sorted(theirs & ours) for name, theirs in found.items() if theirs & ours
+            and theirs - ours.union(*(f for n, f in found.items() if n != name))}
 
 
 def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | None = None,
@@ -169,10 +162,7 @@ def kept_text(args, outputs: Outputs, why: str = "") -> str:
 def resume_command(args) -> str:
     """The command line that continues an interrupted run: the program as typed, the same
     arguments, --resume instead of --overwrite."""
-    argv = [a for a in args.argv if a != "--overwrite"]
-    if "--resume" not in argv:
-        argv.append("--resume")
-    return shlex.join([*args.prog, *argv])
+    return _typed_again(args, "--overwrite", "--resume")
 
 
 def resume_text(args, kept: str) -> str:
@@ -185,11 +175,16 @@ def rerun_command(args) -> str:
     """The command line that runs a command again from the start: the program as typed, the
     same arguments without --resume, and --overwrite where --out holds files the command
     writes (the one rule of --out would refuse the run otherwise)."""
-    argv = [a for a in args.argv if a != "--resume"]
     outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
-    if "--overwrite" not in argv and os.path.isdir(args.out) and outputs.found(Path(args.out)):
-        argv.append("--overwrite")
-    return shlex.join([*args.prog, *argv])
+    return _typed_again(args, "--resume", "--overwrite",
+                        os.path.isdir(args.out) and outputs.found(Path(args.out)))
+
+
+def _typed_again(args, drop: str, add: str, needed=True) -> str:
+    """The command line as typed (the program, the same arguments) without the flag `drop`,
+    with the flag `add` where `needed` and not already there."""
+    argv = [a for a in args.argv if a != drop]
+    return shlex.join([*args.prog, *argv, *([add] if needed and add not in argv else [])])
 
 
 def _remove_if_empty(created: list[Path]) -> None:

@@ -96,10 +96,8 @@ def run(args) -> int:
             bar.close()
     elapsed = time.perf_counter() - t0
 
-    arrays = {"t": traj.t, "x": traj.x, "u": traj.u, "w": traj.w, "yr": traj.yr, "e": traj.e,
-              "S": traj.S, "u_dot": traj.u_dot}
-    if hasattr(traj.ctrl, "_fields"):
-        arrays |= {name: getattr(traj.ctrl, name) for name in traj.ctrl._fields}
+    arrays = {k: getattr(traj, k) for k in ("t", "x", "u", "w", "yr", "e", "S", "u_dot")}
+    arrays |= traj.ctrl._asdict() if hasattr(traj.ctrl, "_fields") else {}
     if setup.controller.kind == "dsc":
         lv = lyapunov(setup, traj)  # V of eq. (44) and its terms, true plant parameters
         arrays |= {"V": lv.V} | {f"V_{k}": v for k, v in lv.arrays().items()
