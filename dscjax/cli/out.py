@@ -151,7 +151,7 @@ def kept_text(args, outputs: Outputs, why: str = "") -> str:
     (`outputs` found in --out: the rule of --out let it start only where none was), or
     nothing (`nothing_kept`); then the command that makes them all."""
     out = Path(args.out)
-    found = outputs.found(out) if out.is_dir() else []
+    found = outputs.found(out)  # none where --out is not a directory
     if not found:
         return nothing_kept(args, why)
     return (f"the {len(found)} file(s) finished before it are kept in {out} "
@@ -176,8 +176,7 @@ def rerun_command(args) -> str:
     same arguments without --resume, and --overwrite where --out holds files the command
     writes (the one rule of --out would refuse the run otherwise)."""
     outputs = importlib.import_module(COMMANDS[args.command]).OUTPUTS
-    return _typed_again(args, "--resume", "--overwrite",
-                        os.path.isdir(args.out) and outputs.found(Path(args.out)))
+    return _typed_again(args, "--resume", "--overwrite", outputs.found(Path(args.out)))
 
 
 def _typed_again(args, drop: str, add: str, needed=True) -> str:

@@ -76,24 +76,22 @@ def run(args) -> int:
     if nbytes > BIG_FILE:
         print(f"  trajectory.npz will take about {fmt_bytes(nbytes)} ({n_points:,} points)",
               file=sys.stderr)
-    bar, progress = None, None
-    if n_steps >= PROGRESS_MIN_STEPS:
-        bar = Progress(n_steps, desc="  simulated", unit="step")
+    bar = Progress(n_steps, desc="  simulated", unit="step",
+                   enabled=n_steps >= PROGRESS_MIN_STEPS)
 
-        def progress(frac: float) -> None:
-            if frac == 0.0:
-                bar.restart_clock()  # the loop starts now: compilation is over
-            bar.update_to(round(frac * n_steps),
-                          f"t = {frac * options.t_final:.4g} of {options.t_final:g} s")
+    def progress(frac: float) -> None:
+        if frac == 0.0:
+            bar.restart_clock()  # the loop starts now: compilation is over
+        bar.update_to(round(frac * n_steps),
+                      f"t = {frac * options.t_final:.4g} of {options.t_final:g} s")
+
     t0 = time.perf_counter()
     diverged = None
-    try:
-        traj = simulate(setup, spec=options, progress=progress)
-    except DivergenceError as err:
-        traj, diverged = err.trajectory, err
-    finally:
-        if bar is not None:
-            bar.close()
+    with bar:  # progress (a callback from the loop) for a long run only
+        try:
+            traj = simulate(setup, spec=options, progress=progress if bar.enabled else None)
+        except DivergenceError as err:
+            traj, diverged = err.trajectory, err
     elapsed = time.perf_counter() - t0
 
     arrays = {k: getattr(traj, k) for k in ("t", "x", "u", "w", "yr", "e", "S", "u_dot")}

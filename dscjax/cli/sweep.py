@@ -242,9 +242,8 @@ def run(args) -> int:
         f32 = sweep.float64_check(setup, result, rechecked)
     summary["float32_check"] = f32
 
-    figures = []
-    if not args.no_plot:
-        figures = _plots(out, result, settings, summary, trajs, records, kinds, nominal)
+    figures = [] if args.no_plot else _plots(out, result, settings, summary, trajs, records,
+                                             kinds, nominal)
     files.write_json(out / "summary.json", summary)
     files.write_text(out / "summary.md", sweep.markdown(summary))
 
