@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dscjax import export
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, start
 from dscjax.export import PRECISIONS
 from dscjax.files import write_text
 from dscjax.params import cast
@@ -59,10 +59,9 @@ def run(args) -> int:
         return common.print_config(setup, spec)
     # every input checked before --out
     files = export.c_files(setup, spec, source=source, precision=args.precision)
-    out = prepare_out(args, OUTPUTS)
-    common.banner(args, f"order n={setup.order}, {setup.controller.kind}, sampled every "
-                  f"{spec.sample_time:g} s, {spec.discretisation.name}, delay {spec.delay}, "
-                  f"{args.precision}; from {source}")
+    out = start(args, OUTPUTS, f"order n={setup.order}, {setup.controller.kind}, sampled "
+                f"every {spec.sample_time:g} s, {spec.discretisation.name}, delay {spec.delay}, "
+                f"{args.precision}; from {source}")
     for name, text in files.items():
         write_text(out / name, text)
     print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}")

@@ -16,7 +16,7 @@ import numpy as np
 
 from dscjax import files, validation
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, start
 from dscjax.hysteresis import sine_loops
 from dscjax.reproduce.figures import loop_figure
 from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA
@@ -69,11 +69,9 @@ def run(args) -> int:
         steps=steps, member_steps=k * steps, memory=8.0 * (2 * k + 1) * (steps + 1),
         memory_what=f"t, u and w at every step ({k} amplitude(s))"),
         what=common.horizon_text(t_final, dt, steps), fix=common.SHORTER)
-    choice = common.use_device(args, args.device or spec.device, k)
-    out = prepare_out(args, OUTPUTS)
-    common.banner(args, f"{hyst.kind}, u = A sin({args.omega:g} t), A = "
-                  f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s; "
-                  f"on {choice}")
+    out = start(args, OUTPUTS, f"{hyst.kind}, u = A sin({args.omega:g} t), A = "
+                f"{', '.join(f'{a:g}' for a in amplitudes)}, T = {t_final:g} s, dt = {dt:g} s",
+                args.device or spec.device, k)
     t, u, w = sine_loops(hyst, amplitudes, args.omega, t_final, dt)
     files.write_npz(out / "loop.npz", dict(t=t, u=u, w=w, amplitude=np.asarray(amplitudes, float),
                                            omega=np.asarray(args.omega, float),

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 from dscjax import settings
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, start
 from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
@@ -51,10 +51,9 @@ def run(args) -> int:
                                    groups={"identify": s})
     record = read(args.data, setup.order)
     val = None if s.validate is None else ident.validation_record(s.validate, record, setup.order)
-    out = prepare_out(args, OUTPUTS)
     # the report (printed below) says which experiment, the segments and the starts
-    common.banner(args, f"{len(record)} samples of {', '.join(record.y)} over t = "
-                  f"{record.t[0]:g}..{record.t[-1]:g} s; free: {', '.join(s.free)}; fitting ...")
+    out = start(args, OUTPUTS, f"{len(record)} samples of {', '.join(record.y)} over t = "
+                f"{record.t[0]:g}..{record.t[-1]:g} s; free: {', '.join(s.free)}; fitting ...")
     res = ident.identify(setup, spec, record, s, val)
     written = ident.write(out, res, spec, source, plot=not args.no_plot)
     print((out / "report.md").read_text())

@@ -1,8 +1,9 @@
 """--out, the one rule of every command's output directory: what a command writes
 (`Outputs`), the checks before any work (`check_out`), the directory made ready and locked
 (`prepare_out`: refused when it holds another run's or another command's files, unless
---overwrite or --resume), what an interrupted command keeps (`kept_text`), and the command
-that continues it or runs it again (`resume_command`, `rerun_command`)."""
+--overwrite or --resume), a command's start in its order (`start`: the device, --out, the
+start line), what an interrupted command keeps (`kept_text`), and the command that continues
+it or runs it again (`resume_command`, `rerun_command`)."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ import tempfile
 from pathlib import Path
 
 from dscjax import files
-from dscjax.cli.common import COMMANDS, listed
+from dscjax.cli.common import COMMANDS, banner, listed, use_device
 from dscjax.validation import ConfigError
 
 
@@ -133,6 +134,20 @@ def prepare_out(args, outputs: Outputs, *, resumable: bool = False, lock: str | 
                               f"writes ({listed(found, 4)}); {how}, or give another --out")
         if getattr(args, "overwrite", False):
             outputs.remove(out)
+    return out
+
+
+def start(args, outputs: Outputs, text: str, device: str | None = None, rows: int = 1,
+          warnings=(), **prepare) -> Path:
+    """A command's work begins, in this order: its device (`common.use_device` of `device`
+    for `rows` trajectories run together, named at the end of the start line, "; on ...", or
+    alone where `text` is empty), so that one not here is refused before --out is touched;
+    --out made ready for `outputs` (`prepare_out`, with `prepare`); the start line `text` and
+    its `warnings` (`common.banner`). Returns --out."""
+    if device is not None:
+        text = "; ".join(filter(None, [text, f"on {use_device(args, device, rows)}"]))
+    out = prepare_out(args, outputs, **prepare)
+    banner(args, text, warnings)
     return out
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 
 from dscjax import files, ts_sweep
 from dscjax.cli import common, out
-from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, start
 from dscjax.reproduce import ROWS, claim_lines, reproduce, sampling, setups, written
 from dscjax.reproduce.figures import FIGURES
 from dscjax.validation import ConfigError, Work, check_work, validate_run, whole_steps
@@ -94,9 +94,8 @@ def run(args) -> int:
                           "closed-loop runs take seconds and are not kept); add --complexity")
     if args.resume:
         files.resume_file(args.out, ROWS)
-    choice = common.use_device(args, args.device or "auto")  # one trajectory at a time
-    prepare_out(args, OUTPUTS, resumable=args.complexity)
-    common.banner(args, f"on {choice}")
+    # one trajectory at a time
+    start(args, OUTPUTS, "", args.device or "auto", resumable=args.complexity)
     summary = reproduce(args.out, fmt=None if args.no_plot else args.fmt, t_final=args.t_final,
                         dt=args.dt, dpi=args.dpi, complexity=args.complexity,
                         complexity_orders=orders, complexity_repeats=args.repeats,

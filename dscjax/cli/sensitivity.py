@@ -20,7 +20,7 @@ import numpy as np
 
 from dscjax import files, params, validation
 from dscjax.cli import common
-from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, prepare_out
+from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, start
 from dscjax.markdown import number, table
 from dscjax.plotting import saved
 from dscjax.progress import Progress
@@ -81,14 +81,11 @@ def run(args) -> int:
     if not args.batch:
         work = work + common.gradient_work(setup, steps)
     validation.check_work(work, what=what, fix=common.SHORTER)
-    warnings = validation.assumption_warnings(setup)
-    choice = common.use_device(args, spec.device, rows)
-    out = prepare_out(args, OUTPUTS)
     d = len(problem.columns)
     plants = (f"mean over {args.batch} plants (seed {args.seed})" if args.batch
               else "the nominal plant")
-    common.banner(args, f"{len(metrics)} metric(s) x {d} numbers, {plants}, {what}, "
-                  f"{loop_words(spec)}; on {choice}", warnings)
+    out = start(args, OUTPUTS, f"{len(metrics)} metric(s) x {d} numbers, {plants}, {what}, "
+                f"{loop_words(spec)}", spec.device, rows, validation.assumption_warnings(setup))
     if zero:
         are = "is 0 and has" if len(zero) == 1 else "are 0 and have"
         common.say(args, "note", f"{len(zero)} of the {d} numbers {are} no d ln p (null in "

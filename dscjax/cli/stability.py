@@ -15,7 +15,7 @@ import numpy as np
 
 from dscjax import files, validation
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, start
 
 OUTPUTS = Outputs(("stability.json", "stability.png"))
 
@@ -51,10 +51,8 @@ def run(args) -> int:
             f"holds; {common.SHORTER}")
     validation.check_work(validation.Work(steps=sum(counts), member_steps=len(scales)
                                           * sum(counts)), what=what, fix=common.SHORTER)
-    choice = common.use_device(args, options.device, len(scales))
-    out = prepare_out(args, OUTPUTS)
-    common.banner(args, f"{options.t_final:g} s, dt = {options.dt:g} s, tau x "
-                  f"{', '.join(f'{s:g}' for s in scales)}; on {choice}")
+    out = start(args, OUTPUTS, f"{options.t_final:g} s, dt = {options.dt:g} s, tau x "
+                f"{', '.join(f'{s:g}' for s in scales)}", options.device, len(scales))
     m = stability_map(setup, options.t_final, float(options.dt), tau_scales=scales,
                       log=lambda s: print(s, file=sys.stderr))
     bound, tried = (">= ", " (every step tried was stable)") if m.beyond_grid else ("", "")

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from dscjax import files, settings, worst
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, kept_text, prepare_out, resume_text
+from dscjax.cli.out import Outputs, add_out_arg, kept_text, resume_text, start
 from dscjax.params import from_table, parse_range
 from dscjax.progress import Progress
 from dscjax.validation import ConfigError, Work, check_work
@@ -71,19 +71,17 @@ def run(args) -> int:
     check_work(each, what=f"one search iteration of {what}", fix=fix,
                limit_s=s.time_limit, limit=f"--time-limit {s.time_limit:g} s")
     check_work(stored_work(problem), what=f"the worst case's re-simulation of {what}", fix=fix)
-    choice = common.use_device(args, options.device, max(s.starts, s.batch))
     fingerprint = {"problem": problem.fingerprint(), "seed": s.seed, "starts": s.starts,
                    "batch": s.batch, "methods": methods, "coarsening": s.gradient_coarsening}
     if args.resume:
         files.check_record(args.out, MANIFEST, fingerprint)
-    out = prepare_out(args, OUTPUTS, resumable=True)
+    out = start(args, OUTPUTS, f"{problem.metric} over {searched(problem)}; "
+                f"{', '.join(methods)}, {s.time_limit:g} s each"
+                + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
+                + f"; {what}", options.device, max(s.starts, s.batch),
+                worst.assumption_warnings(problem), resumable=True)
     files.write_json(out / MANIFEST, {"fingerprint": fingerprint,
                                       "argv": getattr(args, "argv", [])})
-    common.banner(args, f"{problem.metric} over {searched(problem)}; {', '.join(methods)}, "
-                  f"{s.time_limit:g} s each"
-                  + (f" (at most {s.max_evals} evaluations)" if s.max_evals else "")
-                  + f"; {what}; on {choice}",
-                  worst.assumption_warnings(problem))
     bars, compiled = {}, {}
 
     def say(text):
