@@ -39,8 +39,7 @@ def run(args) -> int:
     validation.check_filters(setup, float(options.dt))
     if args.print_config:
         return common.print_config(setup, options)
-    steps = options.n_steps
-    what = common.horizon_text(options.t_final, options.dt, steps)
+    what = common.horizon_text(options.t_final, options.dt, options.n_steps)
     # one batch over the tau scales per step size (`map_steps`)
     counts = map_steps(options.t_final, float(options.dt),
                        [float(options.dt) * f for f in DT_FACTORS])
