@@ -41,9 +41,10 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     groups = {tag: dict(g) for tag, g in groups.items() if g is not None}
     table, bounds, rows = plant_table(obj, groups)
     per = {t: _host(_per_plant(obj, z, table, bounds)) for t, z in zs.items()}
-    # (without a batch, the nominal plant alone: its figures unbatched)
-    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()} if table
-           else per, "train": None, "heldout": None}
+    if not table:  # the nominal plant alone
+        return {"nominal": per, "train": None, "heldout": None}
+    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()},
+           "train": None, "heldout": None}
     for tag, real in (("train", problem.n_train), ("heldout", None)):
         if tag in groups:
             ov = {k: np.asarray(v)[:real] for k, v in groups[tag].items()}
