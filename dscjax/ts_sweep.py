@@ -94,6 +94,19 @@ def total_steps(t_final: float, dt: float, sample_times: Sequence[float] = SAMPL
     return sum(round(t_final / h) for h in plant_steps(sample_times, t_final, dt)[1])
 
 
+def run_spec(spec: RunSpec, h: float, dt: float, line: int = 0, **change) -> RunSpec:
+    """A run of the Ts sweep: `spec` with `change` at the plant step h <= dt, saved every dt,
+    its m = dt / h steps of h taken as one (`RunSpec.grouped`, where m divides the steps), so
+    that the sweep's runs share one compiled program whatever h; a sampled run's input delay
+    line at least `line` long, so that a caller's runs at longer delays share it too (the
+    tuning margins' delay runs: h = dt, line = the longest delay)."""
+    m = max(int(round(dt / h)), 1)
+    sp = spec.replace(dt=h, save_every=m, **change)
+    if sp.n_steps % m == 0:
+        sp = sp.grouped(m)
+    return dataclasses.replace(sp, line=max(sp.line, line)) if sp.sampled else sp
+
+
 def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
           window_start: float = 1.0, sample_times: Sequence[float] = SAMPLE_TIMES,
           base: RunSpec | None = None, reference: dict | None = None, line: int = 0) -> dict:
@@ -107,8 +120,7 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
     which y_Ts tends to y (the first gain set: max |y_Ts - y| on t >= window_start over the
     sample times <= dt, the outputs compared every dt; None with fewer than two). `base`: a
     sampled loop whose other settings (discretisation, delay, noise) the sampled runs keep;
-    `line`: the sampled runs' input delay line, if longer than the delay (a caller that runs
-    longer delays in the same compiled program)."""
+    `line`: the sampled runs' input delay line, if longer than the delay (`run_spec`)."""
     # no refinement: a sampled loop that diverges does so at any plant step
     spec = RunSpec.make(t_final, dt, window_start=window_start, refine=0)
     if base is not None:
@@ -118,12 +130,7 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
                                                          "noise": base.to_table()["noise"]}
 
     def run(ts=None, h=dt):
-        m = max(int(round(dt / h)), 1)
-        sp = spec.replace(dt=h, save_every=m, **({} if ts is None else {"sample_time": ts} | keep))
-        if sp.n_steps % m == 0:  # m steps of h as one step of dt: one program for every h
-            sp = sp.grouped(m)
-        if ts is not None:
-            sp = dataclasses.replace(sp, line=max(sp.line, line))
+        sp = run_spec(spec, h, dt, line, **({} if ts is None else {"sample_time": ts} | keep))
         tr = simulate_batch(setup, gains, spec=sp)
         return [measured(tr, FIGURES, i) for i in range(len(names))], np.asarray(tr.x)[0, :, 0]
 

@@ -22,7 +22,6 @@ returns a JSON-able dict; `markdown(margins)` is report.md's section.
 
 from __future__ import annotations
 
-import dataclasses
 from typing import Any
 
 import jax
@@ -56,13 +55,11 @@ def gain_rows(problem, z0, z1) -> dict[str, np.ndarray]:
     return ts_sweep.gain_sets([problem.setup_at(z) for z in (z0, z1)], paths)
 
 
-def _run(problem, overrides: dict, as_sweep: bool = False, **change):
-    """A batched run of the loop tuned with `change` (no refinement), on the host; `as_sweep`:
-    as the Ts sweep's runs (its input delay line DELAY_MAX long, `RunSpec.grouped`, one step
-    of dt a step), whose compiled program it then shares."""
-    spec = problem.objective.sim.replace(refine=0, **change)
-    if as_sweep:
-        spec = dataclasses.replace(spec, line=DELAY_MAX).grouped(1)
+def _run(problem, overrides: dict, spec=None, **change):
+    """A batched run of the loop tuned with `change` (no refinement), or of `spec`, on the
+    host."""
+    if spec is None:
+        spec = problem.objective.sim.replace(refine=0, **change)
     return jax.device_get(simulate_batch(problem.setup, overrides, spec=spec))
 
 
@@ -213,8 +210,9 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
     for d in range(own + 1, DELAY_MAX + 1):
         if all(out[tag]["why_not"][-1] is not None for tag in NAMES):
             break
-        # every step saved, as the Ts sweep's runs: their program
-        tr = _run(problem, gains, as_sweep=True, delay=d, save_every=1)
+        # as a run of the Ts sweep (`sample_times`) at h = dt: its compiled program
+        tr = _run(problem, gains, ts_sweep.run_spec(sim.replace(refine=0), float(sim.dt),
+                                                    float(sim.dt), DELAY_MAX, delay=d))
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
     held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}

@@ -142,7 +142,7 @@ def _float64_check(problem, result, paths) -> tuple[dict, str | None]:
 
     got, want = named(result), named(ref)
     trust = float32_trust(got, want)
-    # (a float64 value that is nan, none, is written null: `files.write_json`)
+    # (a float64 value that is NaN is written null by `files.write_json`)
     check = {"rtol": trust["rtol"], "float64": want, "rel_diff": trust["max_rel_diff"],
              "sign_flips": trust["sign_flips"], "untrusted": trust["untrusted"]}
     if not trust["untrusted"]:
