@@ -44,11 +44,14 @@ def pytest_configure(config):
     background of a non-interactive shell (`pytest &` in a script) inherits SIGINT ignored,
     Python then installs no handler, and the Ctrl-C tests (test_out_dir) would see nothing.
 
-    JAX's persistent compilation cache in pytest's cache directory (shared by the xdist
-    workers and, through JAX's variables, by the processes tests start): a program that
-    several tests or files compile, in whatever process, is compiled once. Without pytest's
-    cache (`-p no:cacheprovider`): a temporary directory of the session, removed at its end
-    (the workers inherit the one the main process configured)."""
+    JAX's persistent compilation cache in pytest's cache directory, for the processes tests
+    start (through JAX's variables): a command a test interrupts and resumes, or two
+    processes of one sweep, compile each program once. Without pytest's cache
+    (`-p no:cacheprovider`): a temporary directory of the session, removed at its end (the
+    workers inherit the one the main process configured). The workers themselves compile
+    without it: what they share is shared in memory (the groups below), and over a whole
+    suite their reads and writes cost more CPU than their hits spared (docs/benchmarks.md,
+    "The test suite")."""
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
     cache = getattr(config, "cache", None)
@@ -65,6 +68,7 @@ def pytest_configure(config):
         for name in ("jax_compilation_cache_max_size",
                      "jax_persistent_cache_min_compile_time_secs"):
             os.environ[name.upper()] = str(getattr(jax.config, name))
+    jax.config.update("jax_enable_compilation_cache", False)
 
 
 def pytest_unconfigure(config):
@@ -179,8 +183,9 @@ def four_devices(once):
 
 # The size policy of the tests that run a command: the horizon SHORT (200 RK4 steps at the
 # default dt = 1 ms) unless the test is about a longer one, the same in every file, so that
-# the program one test compiles serves the others (in this process, or through the
-# persistent cache); the documents' examples run as many steps (tests/doc_examples.py).
+# the program one test compiles serves the others of its worker (and, through the persistent
+# cache, the processes tests start); the documents' examples run as many steps
+# (tests/doc_examples.py).
 SHORT = "0.2"
 
 

@@ -10,7 +10,7 @@ documents in order would type it (so the docs may use what the README's examples
 `my.toml`, `results/tune/gains.json`), with these changes only:
 
 - sizes: 200 RK4 steps (--t-final 200 dt: at dt = 1 ms the 0.2 s of the suite's other
-  command-line tests, whose compiled programs the persistent cache then shares), --samples
+  command-line tests, whose compiled programs the worker then shares), --samples
   8, grid axes of 2 points, --steps 1 (2 to resume), --batch 2, --heldout 0, --adversarial 1
   with searches by random sampling for 0.2 s, --complexity for n = 2..3 with 1
   build, --theory-orders without the orders above 3 and the alpha_0 study at alpha_0 = 1 only

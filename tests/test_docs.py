@@ -2,9 +2,9 @@
 tests/doc_examples.py for exactly what changes). Each document's commands run through
 `dscjax.cli.main.main` in the test's process (xdist spreads the documents), in its own
 directory; the outputs that several documents read (my.toml, the README's tune run) are made
-once per session (`shared_docs`) and copied in. A program that the worker has traced already,
-for another document or another test, is not traced again; JAX's persistent compilation
-cache (conftest) spares the compiles that another worker did."""
+once per session (`shared_docs`) and copied in. A program that the worker has compiled already,
+for another document or another test, is not compiled again (the tests that share a
+document's programs run on its worker: conftest's groups)."""
 
 import os
 import shutil

@@ -262,7 +262,7 @@ def test_reproduce_theory_writes_lyapunov_npz_and_summary(tmp_path):
 
     out = tmp_path / "paper"
     # the horizon and alpha_0 of docs/reproduction.md's example as tests/doc_examples.py runs
-    # it: the persistent cache shares their compiled programs
+    # it, on the same worker (conftest): the compiled programs are shared
     assert main(["reproduce", "--out", str(out), "--t-final", "0.2", "--dpi", "40", "--theory",
                  "--alpha0", "1"]) == 0
     data = np.load(out / "theory" / "lyapunov.npz")

@@ -15,7 +15,7 @@ from dscjax.cli.main import main
 from dscjax.sensitivity import METRICS, Problem, sensitivity
 
 # the programs of the README's and docs/sensitivity.md's examples as tests/doc_examples.py runs
-# them (200 steps), so that one compilation serves both through the persistent cache
+# them (200 steps), so that one compilation serves both (one worker: conftest)
 T_FINAL = 0.2
 # hysteresis.w0 is 0: differentiated additively, no d ln p
 PATHS = ("controller.k", "controller.tau", "hysteresis.alpha", "plant.g[1]", "hysteresis.w0")
