@@ -184,6 +184,14 @@ class RunSpec(eqx.Module):
         return spec if base is None else dataclasses.replace(spec,
                                                              skip_diverged=base.skip_diverged)
 
+    @classmethod
+    def given(cls, spec: RunSpec | None, fields: Mapping[str, Any], caller: str) -> RunSpec:
+        """The spec of a function that takes a spec or its fields as keywords: `spec`, else one
+        made of `fields` (`make`); both given is refused (TypeError naming `caller`)."""
+        if spec is not None and fields:
+            raise TypeError(f"{caller}: give spec or its fields, not both")
+        return cls.make(**fields) if spec is None else spec
+
     def replace(self, names: Mapping[str, str] | None = None, **table) -> RunSpec:
         """This spec with some [simulation] keys changed (checked again; `names`: how the
         changed keys are named in messages, e.g. by their command-line options)."""

@@ -99,10 +99,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         (8,)
     """
     settings = settings or SweepSettings()
-    if spec is None:
-        spec = RunSpec.make(**run)
-    elif run:
-        raise TypeError("run_sweep: give spec or its fields, not both")
+    spec = RunSpec.given(spec, run, "run_sweep")
     validation.one_of(settings.dtype, "sweep.dtype", DTYPES)
     dtype = np.dtype(settings.dtype)
     if dtype == np.float64 and not jax.config.jax_enable_x64:

@@ -218,10 +218,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
     if disturbance is not None and getattr(setup.plant, "disturbance", "absent") == "absent":
         raise ConfigError(f"--disturbance: plant.family {type(setup.plant).kind!r} takes no "
                           f"waveform (use paper or strict_feedback)")
-    if spec is None:
-        spec = RunSpec.make(**run)
-    elif run:
-        raise TypeError("make_problem: give spec or its fields, not both")
+    spec = RunSpec.given(spec, run, "make_problem")
     options, spec = spec, spec.replace(save_every=spec.n_steps)
     setup = params.cast(setup, dtype_of(setup))
     if disturbance is not None:
