@@ -145,12 +145,10 @@ class Problem:
              metrics: Sequence[str] = METRICS, overrides: Mapping[str, Any] | None = None,
              lp_order: float = LP_ORDER) -> Problem:
         setup = canonical(setup)
-        check(setup, spec)  # the setup's models, the filters against an RK4 step
+        ov = None if overrides is None else {p: np.asarray(v, np.dtype(spec.dtype))
+                                             for p, v in overrides.items()}
+        check(setup, spec, ov)  # the setup's models (each plant's), the filters against RK4
         cols = columns(setup, paths)
-        ov = None
-        if overrides is not None:
-            ov = {p: np.asarray(v, np.dtype(spec.dtype)) for p, v in overrides.items()}
-            validation.validate_setup(params.set_many(setup, ov), check_shapes=False)
         zero = tuple(bool(p.nominal(setup) == 0.0) and (ov is None or p.path not in ov)
                      for p in cols)
         return cls(setup, spec, ov, cols, zero, check_metrics(metrics), float(lp_order))

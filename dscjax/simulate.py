@@ -322,13 +322,19 @@ def canonical(setup: Setup) -> Setup:
     return params.cast(setup, dtype_of(setup))
 
 
-def check(setup: Setup, spec: RunSpec, batched: bool = False) -> None:
+def check(setup: Setup, spec: RunSpec, overrides: Mapping[str, Any] | None = None,
+          batched: bool = False) -> None:
     """Host-side checks of a setup against a run (ConfigError naming the field): the setup's
-    models and, for a continuous loop integrated by RK4, the fastest filter against the step;
-    with `batched`, neither (the rows, which may override the filters, are the caller's to
-    check, and a batch reports a diverged row in its status)."""
-    if validation.is_concrete(setup) and not batched:
+    models, with `overrides` ({path: (B, ...)}) every row's too and each path's shape, the
+    measurement noise against the plant's order and, for a continuous loop integrated by RK4,
+    the fastest filter against the step; with `batched`, not the filters (the rows may
+    override them, and a batch reports a diverged row in its status)."""
+    if validation.is_concrete(setup):
         validation.validate_setup(setup)
+        if overrides is not None and validation.is_concrete(overrides):
+            validation.validate_setup(params.set_many(setup, overrides), check_shapes=False)
+            for p, val in overrides.items():
+                validation.shape(val[0], p, np.shape(params.get(setup, p)))
     noise = np.shape(spec.noise)  # () for one number or None
     if noise and noise != (setup.order,):
         raise validation.ConfigError(f"simulation.noise must be one number or one per state "
@@ -380,13 +386,7 @@ def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
-    if validation.is_concrete(setup):
-        validation.validate_setup(setup)
-        if validation.is_concrete(overrides):
-            validation.validate_setup(params.set_many(setup, overrides), check_shapes=False)
-            for p, val in overrides.items():
-                validation.shape(val[0], p, np.shape(params.get(setup, p)))
-    check(setup, spec, batched=True)
+    check(setup, spec, overrides, batched=True)
 
     def level(j, ov):  # the compiled batch for the rows of ov (`xla.LEAN_ROWS`)
         lean = np.shape(next(iter(ov.values())))[0] <= xla.LEAN_ROWS

@@ -18,7 +18,7 @@ from dscjax.metrics import CHATTER_RATIO, RunningMetrics, chatters
 from dscjax.params import cast
 from dscjax.rules import AtLeast, Number, Positive
 from dscjax.runspec import RunSpec, Simulation
-from dscjax.validation import ConfigError, Work, validate_setup
+from dscjax.validation import ConfigError, Work
 
 # Subcommand name -> module under dscjax.cli exposing HELP (its line in `dscjax --help`; its
 # docstring, or DESCRIPTION, is its own --help's), add_options(parser) and run(args).
@@ -303,10 +303,9 @@ def checked_setup(args, setup, spec):
     from dscjax.simulate import check
 
     spec = apply_run_options(args, spec)
-    validate_setup(setup)
     given = getattr(args, "noise", None) is not None
     with blame_options({"simulation.noise": "--noise"} if given else {}):
-        check(setup, spec, batched=True)  # batched: the noise alone is checked
+        check(setup, spec, batched=True)  # batched: the setup and the noise, not the filters
     return setup, spec
 
 

@@ -225,7 +225,6 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
         zero = disturbance.model(np.zeros(disturbance.size), spec.t_final)
         setup = setup.replace(plant=dataclasses.replace(
             setup.plant, disturbance=params.cast(zero, dtype_of(setup))))
-    validation.validate_setup(setup)
     check(setup, spec)
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance")
