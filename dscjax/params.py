@@ -324,12 +324,12 @@ def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
 # -- the checks against a setup -----------------------------------------------------------------
 
 
-def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_final=None,
-          dt=None, window_start=None) -> tuple[Range, ...]:
+def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False,
+          spec=None) -> tuple[Range, ...]:
     """The ranges resolved (absolute bounds), or a ConfigError naming `field`: a parameter
     given twice, an unknown path or index, a grid axis with < 2 points (a sampled one with
     any), bounds not finite or reversed, lam <= psi allowed, or either end outside a model's
-    range (or, with t_final and dt, outside what RK4 can integrate)."""
+    range (or, with a `RunSpec`, outside what RK4 can integrate at its step)."""
     check_columns([r.param for r in ranges], field)
     for r in ranges:
         f = f"{field}.{r.name}"
@@ -358,8 +358,8 @@ def check(ranges: Sequence[Range], setup, field: str, *, grid: bool = False, t_f
             one = set_row(setup, [r.param], [end])
             try:
                 validation.validate_setup(one)
-                if t_final is not None and dt is not None:
-                    validation.validate_run(one, t_final, dt, window_start)
+                if spec is not None:
+                    validation.check_filters(one, float(spec.dt))
             except ConfigError as err:
                 raise ConfigError(f"{field}.{r.name} = [{r.low:g}, {r.high:g}]: {err}") from None
     return resolved

@@ -277,7 +277,7 @@ def join_plants(setup, first: dict | None, then: dict) -> dict:
 
 def _sample(setup, b, field, options) -> dict:
     """{path: (batch, ...)}: the plants of a [tuning.robust] or [tuning.heldout] table."""
-    ranges = params.check(b.ranges, setup, field, t_final=options.t_final, dt=float(options.dt))
+    ranges = params.check(b.ranges, setup, field, spec=options)
     return params.sample_overrides(setup, ranges, b.batch, b.seed, b.method)
 
 

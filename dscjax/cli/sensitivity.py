@@ -64,7 +64,7 @@ def run(args) -> int:
     if args.batch:
         ranges = (tuple(params.parse_range(r) for r in args.ranges) if args.ranges
                   else params.default_ranges(setup))
-        ranges = params.check(ranges, setup, "--range", t_final=spec.t_final, dt=float(spec.dt))
+        ranges = params.check(ranges, setup, "--range", spec=spec)
         overrides = params.sample_overrides(setup, ranges, args.batch, args.seed)
     problem = Problem.make(setup, spec, args.paths, metrics, overrides)
     if args.print_config:

@@ -102,15 +102,14 @@ def to_table(s: SweepSettings, setup) -> dict[str, Any]:
 def check_settings(settings: SweepSettings, setup, spec: RunSpec) -> tuple[Range, ...]:
     """The resolved ranges, after checking the settings against the setup and the run of
     `spec` (ConfigError naming the field; the ranges as `params.check`)."""
-    t_final, dt, window_start = spec.t_final, float(spec.dt), float(spec.window_start)
     # the run settings first: a bad window or dt is not the fault of a range
-    validation.validate_run(setup, t_final, dt, window_start)
+    validation.validate_run(setup, spec.t_final, float(spec.dt), float(spec.window_start))
     s = schema.checked(settings, lambda key: f"sweep.{key}")  # (built in code: read by rules)
     if s.method.grid and not s.ranges:
         raise ConfigError("a grid sweep needs at least one axis (--grid PATH=LOW:HIGH:NUM)")
     field = "sweep.grid" if s.method.grid else "sweep.ranges"
     ranges = params.check(s.ranges or default_ranges(setup), setup, field, grid=s.method.grid,
-                          t_final=t_final, dt=dt, window_start=window_start)
+                          spec=spec)
     if not s.method.grid and len(ranges) == 0:
         raise ConfigError("sweep.ranges is empty")
     if s.heatmap is not None:

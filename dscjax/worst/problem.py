@@ -228,8 +228,7 @@ def make_problem(setup: Setup, ranges: Sequence[params.Range] = (),
     check(setup, spec)
     if any(r.param.path.startswith("plant.disturbance") for r in ranges):
         raise ConfigError(f"{field}: the disturbance waveform is searched by --disturbance")
-    resolved = params.check(list(ranges), setup, field, t_final=spec.t_final, dt=float(spec.dt),
-                            window_start=float(spec.window_start))
+    resolved = params.check(list(ranges), setup, field, spec=spec)
     return Problem(setup, resolved, disturbance, metric, spec,
                    with_steps(requirement, spec.n_steps), options)
 
