@@ -32,6 +32,15 @@ OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
             "n_diverged": "diverged at every step tried"}
 
 
+def outcome_counts(diverged, refinements) -> dict[str, int]:
+    """How many runs of a batch had each outcome of `OUTCOMES`: tracked at the step asked,
+    tracked once refined (`refinements` > 0), diverged (`diverged`) at every step tried."""
+    div = np.asarray(diverged).astype(bool)
+    refined = ~div & (np.asarray(refinements) > 0)
+    return {"n_tracked": int((~div & ~refined).sum()), "n_refined": int(refined.sum()),
+            "n_diverged": int(div.sum())}
+
+
 def refinement_level(j: int, solver: Solver | None = None) -> tuple[Solver, int]:
     """(solver, halvings of dt) of refinement level j: 0 is the requested solver (default
     RK4) at dt; then ETDRK4 (exact on the stiff decays) at dt (unless the run was ETDRK4's),

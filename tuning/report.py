@@ -15,6 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from dscjax import files, validation, xla
+from dscjax.divergence import outcome_counts
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
@@ -126,10 +127,8 @@ def _host(d):
 def _outcomes(m: dict[str, np.ndarray], loop: str = "") -> tuple[np.ndarray, dict[str, int]]:
     """(the plants that did not diverge in the loop whose metrics are prefixed `loop`, how many
     tracked at the tuning's step, after refinement, or diverged: as a sweep's rows)."""
-    ok = ~np.asarray(m[f"{loop}diverged"]).astype(bool)
-    ref = ok & (np.asarray(m.get(f"{loop}refined", 0)) > 0)
-    return ok, {"n_tracked": int((ok & ~ref).sum()), "n_refined": int(ref.sum()),
-                "n_diverged": int((~ok).sum())}
+    diverged = m[f"{loop}diverged"]
+    return ~np.asarray(diverged).astype(bool), outcome_counts(diverged, m.get(f"{loop}refined", 0))
 
 
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:

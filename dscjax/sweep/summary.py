@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from dscjax import params
-from dscjax.divergence import OUTCOMES
+from dscjax.divergence import OUTCOMES, outcome_counts
 from dscjax.markdown import escape, figure, number, table
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
@@ -57,12 +57,9 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     c, n = result.columns, result.n
     div = np.asarray(c["diverged"], bool)
     ok = ~div
-    refined = np.asarray(c["refinements"], np.int64) > 0
     out = {
         "n_samples": n,
-        "n_tracked": int((~div & ~refined).sum()),
-        "n_refined": int((~div & refined).sum()),
-        "n_diverged": int(div.sum()),
+        **outcome_counts(div, c["refinements"]),
         "divergence_rate": float(div.mean()) if n else 0.0,
         "smallest_dt_tried": float(np.min(c["dt_used"][div])) if div.any() else None,
         "quantiles_over": "samples that did not diverge",
