@@ -32,13 +32,14 @@ OUTCOMES = {"n_tracked": "tracked", "n_refined": "tracked after refinement",
             "n_diverged": "diverged at every step tried"}
 
 
-def outcome_counts(diverged, refinements) -> dict[str, int]:
-    """How many runs of a batch had each outcome of `OUTCOMES`: tracked at the step asked,
-    tracked once refined (`refinements` > 0), diverged (`diverged`) at every step tried."""
-    div = np.asarray(diverged).astype(bool)
-    refined = ~div & (np.asarray(refinements) > 0)
-    return {"n_tracked": int((~div & ~refined).sum()), "n_refined": int(refined.sum()),
-            "n_diverged": int(div.sum())}
+def outcome_counts(diverged, refinements) -> tuple[np.ndarray, dict[str, int]]:
+    """(the runs of a batch that did not diverge, how many had each outcome of `OUTCOMES`:
+    tracked at the step asked, tracked once refined (`refinements` > 0), diverged at every
+    step tried)."""
+    ok = ~np.asarray(diverged).astype(bool)
+    refined = ok & (np.asarray(refinements) > 0)
+    return ok, {"n_tracked": int((ok & ~refined).sum()), "n_refined": int(refined.sum()),
+                "n_diverged": int((~ok).sum())}
 
 
 def refinement_level(j: int, solver: Solver | None = None) -> tuple[Solver, int]:

@@ -124,19 +124,12 @@ def _host(d):
     return {k: np.asarray(v) for k, v in jax.device_get(d).items()}
 
 
-def _outcomes(m: dict[str, np.ndarray], loop: str = "") -> tuple[np.ndarray, dict[str, int]]:
-    """(the plants that did not diverge in the loop whose metrics are prefixed `loop`, how many
-    tracked at the tuning's step, after refinement, or diverged: as a sweep's rows)."""
-    diverged = m[f"{loop}diverged"]
-    return ~np.asarray(diverged).astype(bool), outcome_counts(diverged, m.get(f"{loop}refined", 0))
-
-
 def batch_stats(m: dict[str, np.ndarray]) -> dict[str, Any]:
-    ok, counts = _outcomes(m)
+    ok, counts = outcome_counts(m["diverged"], m.get("refined", 0))
     out: dict[str, Any] = {"n": int(ok.size), **counts}
     masks = {}  # the same three outcomes in each check loop c (its metrics c_...)
     for c in (k.removesuffix("_diverged") for k in m if k.endswith("_diverged")):
-        masks[c], out[c] = _outcomes(m, f"{c}_")
+        masks[c], out[c] = outcome_counts(m[f"{c}_diverged"], m.get(f"{c}_refined", 0))
     for key in (k for k in report_md.STATS_METRICS + ("loss",) if k in m):
         mask = next((masks[c] for c in masks if key.startswith(f"{c}_")), ok)
         v = np.asarray(m[key] if key == "loss" else m[key][mask], float)

@@ -55,11 +55,11 @@ def summarize(result: SweepResult, nominal: Mapping[str, float] | None = None,
     degradation rates, the worst samples that track and the first to diverge, with their
     parameters."""
     c, n = result.columns, result.n
-    div = np.asarray(c["diverged"], bool)
-    ok = ~div
+    ok, counts = outcome_counts(c["diverged"], c["refinements"])
+    div = ~ok
     out = {
         "n_samples": n,
-        **outcome_counts(div, c["refinements"]),
+        **counts,
         "divergence_rate": float(div.mean()) if n else 0.0,
         "smallest_dt_tried": float(np.min(c["dt_used"][div])) if div.any() else None,
         "quantiles_over": "samples that did not diverge",
