@@ -63,16 +63,32 @@ def legend_below(fig, ax, ncol: int | None = None, **kwargs) -> None:
                frameon=False, **kwargs)
 
 
+def until_divergence(traj, keys) -> tuple[np.ndarray, dict, float | None]:
+    """(t, {key: the signal `traj.key` as floats}, the divergence time, None if none) of a
+    run, a diverged run's signals NaN after its divergence (the state is frozen afterwards:
+    nothing to show)."""
+    t = np.asarray(traj.t)
+    signals = {k: np.array(getattr(traj, k), dtype=float) for k in keys}
+    if not bool(np.asarray(traj.diverged)):
+        return t, signals, None
+    t_bad = float(np.asarray(traj.t_diverged))
+    for v in signals.values():
+        v[t > t_bad] = np.nan
+    return t, signals, t_bad
+
+
+def diverged_at_top(ax, x, v, diverged, **style) -> None:
+    """The points x[diverged] (they have no value) as crosses at the top of the others' values
+    v (at 1.0 where every point diverged), in `style`."""
+    if diverged.any():
+        top = np.nanmax(v[~diverged]) if (~diverged).any() else 1.0
+        ax.plot(x[diverged], np.full(diverged.sum(), top), "x", **style)
+
+
 def plot_trajectory(traj, path: Path | str, title: str = ""):
     """The Figure (saved to `path`) of four panels: states against the reference, tracking
     error, u, w; a diverged run drawn up to its marked divergence."""
-    t = np.asarray(traj.t)
-    signals = {k: np.array(getattr(traj, k), dtype=float) for k in ("x", "yr", "e", "u", "w")}
-    diverged = bool(np.asarray(traj.diverged))
-    if diverged:  # after the divergence the state is frozen: nothing to show
-        t_bad = float(np.asarray(traj.t_diverged))
-        for v in signals.values():
-            v[t > t_bad] = np.nan
+    t, signals, t_bad = until_divergence(traj, ("x", "yr", "e", "u", "w"))
     with saved(path, 110, 2, 2, rc=GRID, figsize=(10, 7), sharex=True) as (fig, ax):
         ax[0, 0].plot(t, signals["yr"], color=COLORS["yr"], lw=1.2, ls="--",
                       label="reference $y_r$")
@@ -89,7 +105,7 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
             a.set_ylabel(label)
             a.set_title(panel)
             a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
-            if diverged:
+            if t_bad is not None:
                 a.axvline(t_bad, color="#d62728", lw=1.0, ls=":",
                           label=f"diverged at t = {t_bad:.4g} s (frozen afterwards, not drawn)")
         for a in ax[1]:

@@ -19,7 +19,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from dscjax import markdown, metrics, params
-from dscjax.plotting import saved
+from dscjax.plotting import diverged_at_top, saved
 from dscjax.runspec import RunSpec, step_for
 from dscjax.simulate import simulate_batch
 
@@ -201,9 +201,8 @@ def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
             if r["continuous"] is not None:
                 ax.axhline(r["continuous"], color=c, ls="--", lw=1,
                            label=f"{label}, continuous (Ts -> 0)")
-            if (~ok).any():
-                ax.plot(ts_ms[~ok], np.full((~ok).sum(), np.nanmax(v) if ok.any() else 1.0), "x",
-                        color=c, ms=9, mew=2, ls="none", label=f"{label}: diverged")
+            diverged_at_top(ax, ts_ms, v, ~ok, color=c, ms=9, mew=2, ls="none",
+                            label=f"{label}: diverged")
         ax.set_xscale("log")
         ax.set_yscale("log")
         ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")

@@ -14,7 +14,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from dscjax.params import Param
-from dscjax.plotting import GRID, saved
+from dscjax.plotting import GRID, diverged_at_top, saved, until_divergence
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -215,10 +215,8 @@ def plot_scan(x, err, diverged, path, *, name, t0, t_final, threshold, nominal_x
     div = np.asarray(diverged, bool)
     with saved(path, 110, rc=GRID, figsize=(8, 4.8)) as (fig, ax):
         ax.plot(x[~div], err[~div], ".", ms=3, color="#1f77b4", label="sample")
-        if div.any():
-            top = np.nanmax(err[~div]) if (~div).any() else 1.0
-            ax.plot(x[div], np.full(div.sum(), top), "x", color="#d62728",
-                    label=f"diverged ({int(div.sum())}), drawn at the top")
+        diverged_at_top(ax, x, err, div, color="#d62728",
+                        label=f"diverged ({int(div.sum())}), drawn at the top")
         ax.axhline(threshold, color="#d62728", ls=":", label=f"degraded above {threshold:.3g}")
         ax.axvline(nominal_x, color="black", ls="--", lw=1, label="nominal value")
         if _use_log(err[~div]):
@@ -238,20 +236,17 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
         colors = matplotlib.colormaps["tab10"].colors
         k = 0
         for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
-            t = np.asarray(tr.t)
-            e, u = np.array(tr.e, np.float64), np.array(tr.u, np.float64)
-            if bool(tr.diverged):  # after divergence the state is frozen: nothing to show
-                after = t > float(tr.t_diverged)
-                e[after], u[after] = np.nan, np.nan
+            t, signals, t_bad = until_divergence(tr, "eu")
             if kind == "random":
                 style = dict(color="#999999", lw=0.8, alpha=0.8)
             else:
                 style = dict(color=colors[k % 10], lw=1.1, ls="-" if kind == "worst" else ":")
                 k += 1
-            ax[0].plot(t, e, label=lab, **style)
-            ax[1].plot(t, u, **style)
-            if bool(tr.diverged):
-                ax[0].plot(t[~after][-1:], e[~after][-1:], "x", ms=8, color=style["color"])
+            ax[0].plot(t, signals["e"], label=lab, **style)
+            ax[1].plot(t, signals["u"], **style)
+            if t_bad is not None:
+                drawn = t <= t_bad
+                ax[0].plot(t[drawn][-1:], signals["e"][drawn][-1:], "x", ms=8, color=style["color"])
         for a, signal in zip(ax, (nominal.e, nominal.u), strict=True):
             a.plot(np.asarray(nominal.t), np.asarray(signal), "k--", lw=1.2, label="nominal setup")
             a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
