@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from dscjax import validation
+from dscjax import validation, xla
 from dscjax.integrate import ETDRK4, RK4, STATUS_BOUND, STATUS_NONFINITE, STATUS_OK, Solver
 from dscjax.runspec import RunSpec
 
@@ -112,7 +112,7 @@ def refine_rows(rows, failed: Callable[[Any], np.ndarray], level: Callable, refi
         if todo.size == 0:
             break
         size = 1 << int(np.ceil(np.log2(todo.size)))
-        idx = np.concatenate([todo, np.full(size - todo.size, todo[0])])
+        idx = xla.tiles(todo, size)[0]
         sub = jax.tree.map(lambda a, n=todo.size: np.asarray(a)[:n], level(j, idx))
         for dst, src in zip(jax.tree.leaves(out), jax.tree.leaves(sub), strict=True):
             dst[todo] = src  # out's leaves are its own NumPy arrays: written in place

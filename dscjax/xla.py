@@ -12,6 +12,9 @@ persistent cache.
 - Both are given per compiled function (`jax.jit(f, compiler_options=...)`), never through the
   environment; an option the user sets in `XLA_FLAGS` wins. `jit` carries them at the top
   level.
+- `tiles`: rows in tiles of a compiled width, the last padded with copies of a valid row, so
+  that a batch of any size runs one program (a sweep's blocks, a refinement level's rows, a
+  search's single point, the points of a trajectory's checks).
 - `barrier` / `barriers`: optimisation barriers, active only while the batched layout is
   traced, so that XLA:CPU computes a shared intermediate once instead of re-fusing it into
   every consumer (docs/architecture.md).
@@ -32,6 +35,7 @@ from collections.abc import Callable, Mapping
 from pathlib import Path
 
 import jax
+import numpy as np
 
 OPTION = "xla_cpu_prefer_vector_width"
 WIDE = {OPTION: 512}
@@ -107,6 +111,15 @@ def jit(fn: Callable, lean: bool = False, **kwargs) -> Callable:
 
     call.top, call.lower = top, top.lower
     return call
+
+
+def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
+    """`rows` split into tiles of `width` rows, the last padded with copies of its own first
+    row (a valid sample)."""
+    out = [rows[lo:lo + width] for lo in range(0, max(rows.shape[0], 1), width)]
+    last = out[-1]  # the only tile that can be short
+    out[-1] = np.concatenate([last, np.repeat(last[:1], width - last.shape[0], axis=0)])
+    return out
 
 
 # -- fusion barriers ------------------------------------------------------------------------------

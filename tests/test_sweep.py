@@ -125,7 +125,7 @@ def test_float32_results_are_bitwise_independent_of_chunk(paper_setup):
 
 def test_tiles_pad_with_a_valid_row():
     rows = np.arange(10.0).reshape(5, 2)
-    t = sweep_device.tiles(rows, 2)
+    t = dscjax.xla.tiles(rows, 2)
     assert len(t) == 3 and all(x.shape == (2, 2) for x in t)
     np.testing.assert_array_equal(np.concatenate(t)[:5], rows)
     np.testing.assert_array_equal(t[2], [[8.0, 9.0], [8.0, 9.0]])

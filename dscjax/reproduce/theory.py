@@ -176,13 +176,11 @@ class LyapunovTerms(NamedTuple):
 
 def _chunked(fn, args, t, X, chunk=_CHUNK):
     """fn(*args, t_j, X_j) at every point j, vmapped over fixed-size chunks (the last one
-    padded): one compilation per chunk size, whatever the trajectory's length."""
+    padded: `xla.tiles`): one compilation per chunk size, whatever the trajectory's length."""
     n_pts = int(np.shape(t)[0])
-    pad = (-n_pts) % chunk
-    t, X = jax.tree.map(lambda a: np.pad(a, [(0, pad)] + [(0, 0)] * (np.ndim(a) - 1), "edge"),
-                        (t, X))
-    outs = [_chunk_eval(fn, args, *jax.tree.map(lambda a, j=j: a[j:j + chunk], (t, X)))
-            for j in range(0, n_pts + pad, chunk)]
+    leaves, tree = jax.tree.flatten((t, X))
+    outs = [_chunk_eval(fn, args, *jax.tree.unflatten(tree, part))
+            for part in zip(*(xla.tiles(np.asarray(a), chunk) for a in leaves), strict=True)]
     return jax.tree.map(lambda *a: np.concatenate(a)[:n_pts], *outs)
 
 

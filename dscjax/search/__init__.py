@@ -23,7 +23,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from dscjax import files
+from dscjax import files, xla
 from dscjax.progress import critical
 from dscjax.search.cma import ReplayCMA
 from dscjax.search.methods import CMA, Context, Gradient, Random, generator
@@ -71,7 +71,7 @@ class Batched:
         z = np.asarray(z, dtype=np.float64)
         b = len(z)
         w = min(self.widths) if b == 1 and self.widths and 1 not in self.widths else b
-        x = np.concatenate([z, np.repeat(z[-1:], w - b, axis=0)]) if w > b else z
+        x = xla.tiles(z, w)[0] if w > b else z
         args = (*self.before, x, *self.after)
         if w not in self.widths:
             t0 = time.perf_counter()

@@ -1,6 +1,7 @@
 """Running blocks of a sweep on the devices: one compiled single-device program of a fixed
-tile width (`tile_rows`) per device; a block of any size runs as tiles of that width (the last
-padded with copies of a valid row), so a row's result does not depend on the block size."""
+tile width (`tile_rows`) per device; a block of any size runs as tiles of that width
+(`xla.tiles`: the last padded with copies of a valid row), so a row's result does not depend
+on the block size."""
 
 from __future__ import annotations
 
@@ -14,7 +15,7 @@ from jax.sharding import PartitionSpec as P
 from dscjax import device as dscjax_device
 from dscjax import params, xla
 from dscjax.runspec import RunSpec
-from dscjax.simulate import level_spec, nan_if_diverged, refine_rows, refinement_level, run
+from dscjax.simulate import level_spec, refine_rows, refinement_level, run_reported
 
 # the tracking error, and the effort with the chattering index (docs/numerics.md): every
 # verdict of a sweep says both
@@ -25,9 +26,8 @@ METRICS = ("linf_error", "linf_error_window", "l2_error", "l2_error_window", "rm
 
 def _block_body(setup, spec, table, *, columns):
     """The metrics and status of every row of a (chunk, d) table of parameter values."""
-    traj = run(setup, spec, overrides=params.overrides(setup, columns, table))
-    metrics = nan_if_diverged(traj.metrics, traj.diverged)
-    return {**{k: metrics[k] for k in METRICS}, "status": traj.status.code,
+    traj = run_reported(setup, spec, overrides=params.overrides(setup, columns, table))
+    return {**{k: traj.metrics[k] for k in METRICS}, "status": traj.status.code,
             "bad_step": traj.status.step}
 
 
@@ -51,15 +51,6 @@ def tile_rows(platform: str, n: int) -> int:
     most = CPU_TILE_ROWS if platform == "cpu" else ACCELERATOR_TILE_ROWS
     align = 256 if n > 256 else 64
     return min(most, -(-max(n, 1) // align) * align)
-
-
-def tiles(rows: np.ndarray, width: int) -> list[np.ndarray]:
-    """`rows` split into tiles of `width` rows, the last padded with copies of its own first
-    row (a valid sample)."""
-    out = [rows[lo:lo + width] for lo in range(0, max(rows.shape[0], 1), width)]
-    last = out[-1]  # the only tile that can be short
-    out[-1] = np.concatenate([last, np.repeat(last[:1], width - last.shape[0], axis=0)])
-    return out
 
 
 class Runner:
@@ -137,11 +128,11 @@ class Runner:
 
     def _tiles_on(self, device, spec, rows) -> list[dict]:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`
-        split into tiles (`tiles`) on `device`, with the setup placed there."""
+        split into tiles (`xla.tiles`) on `device`, with the setup placed there."""
         # (host-side fields of the spec never recompile the tile program)
         setup, program = self.setup_on[device], spec.program()
         return [self.block(setup, program, jax.device_put(t, device), columns=self.columns)
-                for t in tiles(rows, self.tile)]
+                for t in xla.tiles(rows, self.tile)]
 
     def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
                ) -> dict[str, np.ndarray]:

@@ -16,9 +16,10 @@ from dscjax import config, device, files, params, validation, xla
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec, loop_words
 from dscjax.simulate import check, counted_levels
-from dscjax.sweep.device import METRICS, Runner, from_process_0, tile_rows, tiles
+from dscjax.sweep.device import METRICS, Runner, from_process_0, tile_rows
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
+from dscjax.xla import tiles
 
 # 2: the metrics of diverged rows are NaN (were the frozen values); 3: rows that diverged are
 # re-run with ETDRK4 at smaller steps ("refinements", "dt_used"); 4: the effort on the window
