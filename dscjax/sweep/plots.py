@@ -236,7 +236,7 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
         colors = matplotlib.colormaps["tab10"].colors
         k = 0
         for tr, lab, kind in zip(trajs, labels, kinds, strict=True):
-            t, signals, t_bad = until_divergence(tr, "eu")
+            t, signals, t_bad = until_divergence(tr, ("e", "u"))
             if kind == "random":
                 style = dict(color="#999999", lw=0.8, alpha=0.8)
             else:
