@@ -17,7 +17,7 @@ HEADER, SOURCE = "dsc_controller.h", "dsc_controller.c"
 PRECISIONS = ("double", "float")
 SCHEME_DOC = {"exponential-euler": "c += Ts phi(-lam Ts) c', phi(z) = (e^z - 1)/z, lam = 1/tau "
               "for a filter, 0 for an estimate", "euler": "forward Euler, c += Ts c'"}
-# the most elements of an array export writes (a C initialiser; `_index_map`'s operand tags)
+# the most elements of an array export writes (a C initialiser; `_move`'s operand tags)
 MAX_ELEMENTS = 1_000_000
 
 
@@ -196,8 +196,8 @@ _ELEMENTWISE = {
 }
 
 
-def _index_map(op):
-    """(operand, flat index) of every flat output element of a data-movement primitive."""
+def _move(em, op):
+    """The C expression of every flat output element of a data-movement primitive."""
     shapes = [_shape(a) for a in op.ins]
     # every operand's flat indices, tagged with the operand's number
     tagged = [k * MAX_ELEMENTS + np.arange(_size(s)).reshape(s) for k, s in enumerate(shapes)]
@@ -216,7 +216,7 @@ def _index_map(op):
         got = np.concatenate(tagged, axis=p["dimension"])
     else:  # stack
         got = np.stack(tagged, axis=p["axis"])
-    return [(int(g) // MAX_ELEMENTS, int(g) % MAX_ELEMENTS) for g in got.ravel()]
+    return [em.el(op.ins[int(g) // MAX_ELEMENTS], int(g) % MAX_ELEMENTS) for g in got.ravel()]
 
 
 def _groups(shape, axes) -> np.ndarray:
@@ -243,10 +243,6 @@ def _reduce(em, op):
     f = _ELEMENTWISE[{"reduce_sum": "add", "reduce_max": "max", "reduce_min": "min"}[op.prim]]
     return [functools.reduce(lambda x, y: f([x, y], {}, em.real), (em.el(a, int(j)) for j in g))
             for g in _groups(_shape(a), tuple(op.params["axes"]))]
-
-
-def _move(em, op):
-    return [em.el(op.ins[k], j) for k, j in _index_map(op)]
 
 
 # the primitives that are not elementwise: data movement, dot_general and reductions
@@ -345,11 +341,10 @@ def _assign(atoms, em, fields, *, stage: bool) -> list[str]:
     lines, writes = [], []
     for (nm, shp, _), a in zip(fields, atoms, strict=True):
         vals = [em.el(a, i) for i in range(_size(shp))]
-        idx = ["" if shp == () else f"[{i}]" for i in range(len(vals))]
         if stage:
             lines.append(f"    {r} next_{nm}[{len(vals)}] = {{{', '.join(vals)}}};")
             vals = [f"next_{nm}[{i}]" for i in range(len(vals))]
-        writes += [f"    s->{nm}{k} = {v};" for k, v in zip(idx, vals, strict=True)]
+        writes += [f"    s->{nm}{'' if shp == () else f'[{i}]'} = {v};" for i, v in enumerate(vals)]
     return lines + writes
 
 
