@@ -73,8 +73,7 @@ def trace(setup, spec) -> Law:
     if dtype != np.float64:
         raise ConfigError(f"simulation.dtype: export writes the controller from its float64 "
                           f"trace (got a {dtype} setup; turn jax_enable_x64 on)")
-    n = setup.order
-    n_d = n + 2  # more reference derivatives than any law of order n reads
+    n_d = setup.order + 2  # more reference derivatives than any law of this order reads
     every, dt = float(spec.sample_every), float(spec.dt)
     sampling = Sampling(every=every, delay=spec.delay, line=spec.delay,
                         scheme=spec.discretisation)
@@ -99,9 +98,8 @@ def trace(setup, spec) -> Law:
     h0 = jax.tree.map(lambda a: jnp.zeros(a.shape, a.dtype), X0.h)
 
     def step(ctrl, past, values, x, t, d):
-        leaves = list(base)
-        for i, v in zip(which, values, strict=True):
-            leaves[i] = v
+        given = dict(zip(which, values, strict=True))
+        leaves = [given.get(i, v) for i, v in enumerate(base)]
         loop = setup.replace(**jax.tree.unflatten(treedef, leaves))
         loop = loop.replace(reference=_with_given(loop.reference, d))
         X = SampledState(x=x, h=h0, ctrl=ctrl, u=jnp.zeros_like(t), past=past)
@@ -141,7 +139,7 @@ def trace(setup, spec) -> Law:
     n_ref = max(used, default=1) + 1
     if n_ref >= n_d:
         raise ExportError(f"reference: the law reads more than {n_d - 1} derivatives of y_r")
-    return Law(init=init_prog, step=step_prog, state=state, n_ref=max(n_ref, 2), order=n,
+    return Law(init=init_prog, step=step_prog, state=state, n_ref=max(n_ref, 2), order=setup.order,
                sample_time=every * dt, reads_t=("t",) in read)
 
 
@@ -189,15 +187,10 @@ class _Flattener:
 
     def call(self, jaxpr, consts, ins, outer: str = "") -> list:
         """The atoms of the outputs of `jaxpr` (its constants `consts`) on the input atoms
-        `ins`, its operations appended (`inline`)."""
+        `ins`, its operations appended; `outer`: the Python line of the call it is inlined at
+        (for a library's own nested calls)."""
         env = {v: ("const", np.asarray(c)) for v, c in zip(jaxpr.constvars, consts, strict=True)}
         env |= dict(zip(jaxpr.invars, ins, strict=True))
-        self.inline(jaxpr, env, outer)
-        return [self.atom(env, v) for v in jaxpr.outvars]
-
-    def inline(self, jaxpr, env, outer: str = ""):
-        """Append the operations of `jaxpr` (inputs and constants in `env`); `outer`: the
-        Python line of the call it is inlined at (for a library's own nested calls)."""
         for eqn in jaxpr.eqns:
             try:
                 where = _short(source_info_util.summarize(eqn.source_info)) or outer
@@ -223,6 +216,7 @@ class _Flattener:
                     for o in eqn.outvars]
             env.update(zip(eqn.outvars, outs, strict=True))
             self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
+        return [self.atom(env, v) for v in jaxpr.outvars]
 
 
 def _short(where: str) -> str:
