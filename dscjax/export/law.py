@@ -210,12 +210,11 @@ class _Flattener:
             if sub is not None:
                 inner, consts = (sub.jaxpr, sub.consts) if hasattr(sub, "consts") else (sub, [])
                 outs = self.call(inner, consts, ins[len(ins) - len(inner.invars):], where)
-                env.update(zip(eqn.outvars, outs, strict=True))
-                continue
-            outs = [("v", next(self.ids), tuple(o.aval.shape), np.dtype(o.aval.dtype))
-                    for o in eqn.outvars]
+            else:
+                outs = [("v", next(self.ids), tuple(o.aval.shape), np.dtype(o.aval.dtype))
+                        for o in eqn.outvars]
+                self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
             env.update(zip(eqn.outvars, outs, strict=True))
-            self.ops.append(Op(name, ins, outs, dict(eqn.params), where))
         return [self.atom(env, v) for v in jaxpr.outvars]
 
 
