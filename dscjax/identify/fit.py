@@ -94,8 +94,7 @@ class Problem(eqx.Module):
         if not self.exp.plant:
             return jnp.zeros((1, 0))
         x0 = jnp.asarray(setup.plant.x0, float)
-        one = dataclasses.replace(self.exp, starts=(0,))
-        x, _, _ = _simulate(setup, one, x0[None], self.h0)
+        x, _, _ = _simulate(setup, dataclasses.replace(self.exp, starts=(0,)), x0[None], self.h0)
         x = np.where(np.isfinite(np.asarray(x)), np.asarray(x), 0.0)
         out = x[list(self.exp.starts)]
         for i in range(setup.order):
@@ -106,8 +105,7 @@ class Problem(eqx.Module):
     # -- residuals --------------------------------------------------------------------------
     def predict(self, theta):
         """{column: (N,) the model's value at every sample}, and the segment ends."""
-        setup = self.setup_at(theta["z"])
-        x, w, ends = simulate(setup, self.exp, theta["x"], self.h0)
+        x, w, ends = simulate(self.setup_at(theta["z"]), self.exp, theta["x"], self.h0)
         out = {"w": w}
         if x is not None:
             out |= {f"x{i + 1}": x[:, i] for i in range(x.shape[1])}
@@ -301,8 +299,7 @@ def estimates(problem: Problem, fit: Fit) -> tuple[list[Estimate], np.ndarray, n
             why = f"its relative standard error is {100 * rel:.3g} % (> {100 * LOOSE:g} %)"
         out.append(Estimate(f.param.name, value, float(se), low, high, not why, why))
     d = np.sqrt(np.clip(np.diag(cov), 1e-300, None))
-    corr = cov / np.outer(d, d)
-    return out, corr, sv, s2
+    return out, cov / np.outer(d, d), sv, s2
 
 
 def fitted(problem: Problem, fit: Fit) -> dict[str, tuple]:
@@ -323,10 +320,8 @@ def fit_figures(problem: Problem, fit: Fit) -> dict[str, dict[str, float]]:
     for c, (_, y, y_hat) in fitted(problem, fit).items():
         e = y - y_hat
         errs.append(e)
-        out[c] = {"nrmse_fit_percent": float(100 * (1 - np.linalg.norm(e)
-                                                    / max(np.linalg.norm(y - y.mean()),
-                                                          1e-300))),
-                  "mse": float(np.mean(e * e))}
+        nrmse = 100 * (1 - np.linalg.norm(e) / max(np.linalg.norm(y - y.mean()), 1e-300))
+        out[c] = {"nrmse_fit_percent": float(nrmse), "mse": float(np.mean(e * e))}
     e = np.column_stack(errs)
     n, d = e.shape[0], fit.jacobian.shape[1]
     det = float(np.linalg.det(e.T @ e / n))
