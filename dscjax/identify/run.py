@@ -154,13 +154,11 @@ def write(out: Path, res: Identified, spec, source: dict, plot: bool = True) -> 
     summary = summary_of(res, source, box)
     files.write_json(out / "report.json", summary)
     files.write_text(out / "report.md", markdown(summary))
-    written = ["identified.toml", "report.json", "report.md"]
     if plot:
         from dscjax.identify import plots
 
         plots.write(out, res)
-        written += list(FIGURES)
-    return written
+    return ["identified.toml", "report.json", "report.md", *(FIGURES if plot else ())]
 
 
 def summary_of(res: Identified, source: dict, box: dict) -> dict:
