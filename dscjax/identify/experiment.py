@@ -44,8 +44,7 @@ class Experiment(eqx.Module):
     def make(cls, t, u, *, plant: bool, dt: float, segments: int = 1,
              hold: Hold = "zoh") -> Experiment:
         t, u = np.asarray(t, np.float64), np.asarray(u, np.float64)
-        n = t.size
-        starts = tuple(int(round(i * (n - 1) / segments)) for i in range(segments))
+        starts = tuple(int(round(i * (t.size - 1) / segments)) for i in range(segments))
         substeps = max(1, math.ceil(float(np.max(np.diff(t))) / dt * (1 - 1e-12)))
         if not plant and hold == "zoh":
             substeps = 1  # the actuator alone steps along its curve: nothing to integrate
@@ -109,8 +108,7 @@ def simulate(setup: Setup, exp: Experiment, x_init=None, h0=None, final: bool = 
     w = jnp.concatenate([hyst.output(u[0], h0)[None], w])
     if not exp.plant:
         return None, w, None
-    x = jnp.concatenate([x0[None], x])
-    return x, w, ends[restart]
+    return jnp.concatenate([x0[None], x]), w, ends[restart]
 
 
 __all__ = ["HOLDS", "Experiment", "Hold", "simulate"]
