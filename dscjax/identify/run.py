@@ -129,10 +129,9 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
                           "--starts")
     h0 = None
     if validation is None:  # the actuator goes on into the tail from where the fit left it
-        head = record.part(0, fitted)
         h0 = simulate(problem.setup_at(jnp.asarray(fit.theta["z"])),
-                      Experiment.make(head.t, head.u, plant=False, dt=float(spec.dt),
-                                      hold=s.hold), final=True)
+                      Experiment.make(record.t[:fitted], record.u[:fitted], plant=False,
+                                      dt=float(spec.dt), hold=s.hold), final=True)
     val_problem, val_fit = fitting.validation_fit(problem, fit, val, h0)
     return Identified(problem, fit, *fitting.estimates(problem, fit),
                       fitting.fit_figures(problem, fit), fitting.fit_figures(val_problem, val_fit),
