@@ -85,7 +85,7 @@ class _Emitter:
     dsc_init); the time it reads is `t_s`, the time since dsc_init."""
 
     def __init__(self, law: Law, real: _Real, x: str = "x"):
-        self.law, self.real, self.x = law, real, x
+        self.real, self.x = real, x
         self.shapes = {nm: shp for nm, shp, _ in law.state}
         self.lines: list[str] = []
         self.declared: dict[int, tuple] = {}  # op output id -> the shape it is declared with
