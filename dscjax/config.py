@@ -270,16 +270,14 @@ def _model(field: str, table: Mapping[str, Any], base):
     `base`; a model held by a field (`SUBMODELS`) from its sub-table, the same way."""
     kinds = REGISTRY.get(field) or SUBMODELS[field]
     kind_key = KIND_KEY.get(field, "kind")
-    default_kind = type(base).kind if base is not None else None
-    kind = validation.table(table, field).get(kind_key, default_kind)
+    kind = validation.table(table, field).get(kind_key, getattr(base, "kind", None))
     validation.one_of(kind, f"{field}.{kind_key}", tuple(kinds))
     cls = kinds[kind]
     if base is not None and type(base) is not cls:
         # a controller of another kind lends the gains the two share (the DSC's k, gamma_*,
         # eta, ... for backstepping); a model with nothing in common starts from nothing
         convert = getattr(cls, "from_dsc", None)
-        base = convert(base) if convert is not None and getattr(base, "kind", "") == "dsc" \
-            else None
+        base = convert(base) if convert is not None and base.kind == "dsc" else None
     fields = {f.name: f for f in dataclasses.fields(cls)}
     validation.known_keys(table, field, [kind_key, *fields])
     values = {}
