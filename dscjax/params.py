@@ -158,16 +158,6 @@ def get(setup, path: str) -> Any:
     return obj
 
 
-def _as_leaf(value):
-    """Lists and tuples of numbers become one array leaf (not a pytree of scalars)."""
-    if isinstance(value, list | tuple):
-        try:
-            return np.asarray(value, dtype=float)
-        except (TypeError, ValueError):
-            return jnp.asarray(value)  # numbers mixed with tracers
-    return value
-
-
 def set(setup, path: str, value) -> Any:  # noqa: A001 - mirrors `get`
     """A copy of setup with the value at `path` replaced (shape and static fields untouched).
 
@@ -177,7 +167,12 @@ def set(setup, path: str, value) -> Any:  # noqa: A001 - mirrors `get`
         >>> get(s, "controller.k").tolist()
         [12.0, 0.5]
     """
-    return _set(setup, path.split("."), _as_leaf(value), path)
+    if isinstance(value, list | tuple):  # numbers: one array leaf, not a pytree of scalars
+        try:
+            value = np.asarray(value, dtype=float)
+        except (TypeError, ValueError):
+            value = jnp.asarray(value)  # numbers mixed with tracers
+    return _set(setup, path.split("."), value, path)
 
 
 def _set(obj, names, value, path):
@@ -314,10 +309,7 @@ def flatten(table: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     """{"hysteresis": {"alpha": [..]}} -> {"hysteresis.alpha": [..]} (TOML dotted keys)."""
     out = {}
     for k, v in table.items():
-        if isinstance(v, Mapping):
-            out |= flatten(v, f"{prefix}{k}.")
-        else:
-            out[f"{prefix}{k}"] = v
+        out |= flatten(v, f"{prefix}{k}.") if isinstance(v, Mapping) else {f"{prefix}{k}": v}
     return out
 
 
