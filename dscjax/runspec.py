@@ -219,15 +219,15 @@ class RunSpec(eqx.Module):
         """The [simulation] table of this spec (rule-derived keys given as None)."""
         noise = None if self.noise is None else np.asarray(self.noise, float).tolist()
         short = validation.shortest
-        out = {"t_final": short(self.t_final), "dt": short(float(self.dt)),
-               "save_every": self.save_every * self._substeps,
-               "window_start": short(float(self.window_start)),
-               "state_bound": short(float(self.state_bound)), "dtype": self.dtype,
-               "solver": self.solver.name, "refine": self.refine,
-               "sample_time": None if not self.sampled else short(self.sample_time),
-               "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
-               "discretisation": self.discretisation.name, "device": self.device}
-        return out | dict.fromkeys(self.rules)
+        return {"t_final": short(self.t_final), "dt": short(float(self.dt)),
+                "save_every": self.save_every * self._substeps,
+                "window_start": short(float(self.window_start)),
+                "state_bound": short(float(self.state_bound)), "dtype": self.dtype,
+                "solver": self.solver.name, "refine": self.refine,
+                "sample_time": None if not self.sampled else short(self.sample_time),
+                "delay": self.delay, "noise": noise, "noise_seed": int(self.noise_seed),
+                "discretisation": self.discretisation.name,
+                "device": self.device} | dict.fromkeys(self.rules)
 
     def describe(self) -> dict[str, Any]:
         """What determines a run's numbers (a resumable run's fingerprint): the table with
@@ -245,14 +245,11 @@ class RunSpec(eqx.Module):
         jit's cache does not depend on how they were written (the noise seed and the sample
         period too: an integer leaf would be a constant of the time-parallel derivative's
         trace; the noise None without noise)."""
-        noise = None if self.noise is None else jnp.asarray(self.noise, dtype)
+        traced = ("dt", "window_start", "state_bound", "sample_every", "delay")
         return dataclasses.replace(
-            self, dt=jnp.asarray(self.dt, dtype), window_start=jnp.asarray(self.window_start,
-                                                                           dtype),
-            state_bound=jnp.asarray(self.state_bound, dtype), noise=noise,
+            self, **{k: jnp.asarray(getattr(self, k), dtype) for k in traced},
+            noise=None if self.noise is None else jnp.asarray(self.noise, dtype),
             noise_seed=None if self.noise is None else jnp.asarray(self.noise_seed, dtype),
-            sample_every=jnp.asarray(self.sample_every, dtype),
-            delay=jnp.asarray(self.delay, dtype),
             substeps=None if self.substeps is None else jnp.asarray(self.substeps, jnp.int32))
 
     def program(self) -> RunSpec:
