@@ -38,10 +38,8 @@ class Setting:
 def setting(default, doc: str, rule: Rule, *, flag: str | None = None,
             factory: Callable[[], Any] | None = None):
     """A dataclass field declared with its `Setting`."""
-    meta = {"setting": Setting(doc, rule, flag)}
-    if factory is not None:
-        return dataclasses.field(default_factory=factory, metadata=meta)
-    return dataclasses.field(default=default, metadata=meta)
+    given = {"default": default} if factory is None else {"default_factory": factory}
+    return dataclasses.field(**given, metadata={"setting": Setting(doc, rule, flag)})
 
 
 def group(cls: type, factory: Callable[[], Any] | None = None,
@@ -120,9 +118,8 @@ def from_table(cls, table: Mapping[str, Any], prefix: str, base=None, *,
                 for k, v in table.items() if k in subs}
     obj = dataclasses.replace(obj, **changes)
     # a group's cross-field check, unless `validate` is one of its settings (identify's)
-    check = None if "validate" in keys else getattr(obj, "validate", None)
-    if check is not None:
-        check(field_name)
+    if "validate" not in keys and hasattr(obj, "validate"):
+        obj.validate(field_name)
     return obj
 
 
