@@ -238,8 +238,7 @@ def gains_55(controller, alpha0, hold: Literal["eta", "gamma"] = "eta"):
     n = np.shape(controller.k)[0]
     a = jnp.asarray(alpha0, jnp.result_type(controller.k))
     g_min = controller.g_min
-    k = jnp.stack([3.0 + a / g_min] + [3.25 + a / g_min] * (n - 2) + [0.25 + a])
-    changes = {"k": k}
+    changes = {"k": jnp.stack([3.0 + a / g_min] + [3.25 + a / g_min] * (n - 2) + [0.25 + a])}
     for rate, leakage, _ in PAIRS:
         held, changed = (leakage, rate) if hold == "eta" else (rate, leakage)
         changes[changed] = 2.0 * a / jnp.asarray(getattr(controller, held))
