@@ -42,11 +42,6 @@ def count_eqns(jaxpr) -> int:
     return total
 
 
-def _flops(compiled) -> float:
-    """XLA's count of a compiled program's FLOPs (its cost analysis: a dict), NaN if none."""
-    return float((compiled.cost_analysis() or {}).get("flops", float("nan")))
-
-
 def _eval_loop(law):
     """A jitted loop of k (traced) law evaluations at moving (x, t) -> a checksum of every
     output leaf behind an optimisation barrier, as in the closed loop: XLA drops nothing."""
@@ -106,7 +101,9 @@ def measure(controller: str, n: int, repeats: int = 3, evals: int = 2000,
     count = jnp.asarray(k)
     eval_s = _median_time(lambda: loop(*args, count), max(repeats, 5)) / k
     build_s = [a + b for a, b in zip(trace_s, compile_s, strict=True)]
-    return dict(controller=controller, n=n, eqns=count_eqns(closed.jaxpr), flops=_flops(compiled),
+    # flops: XLA's count in its cost analysis of the compiled program (a dict), NaN if none
+    return dict(controller=controller, n=n, eqns=count_eqns(closed.jaxpr),
+                flops=float((compiled.cost_analysis() or {}).get("flops", float("nan"))),
                 trace_s=statistics.median(trace_s), compile_s=statistics.median(compile_s),
                 build_s=statistics.median(build_s), eval_s=eval_s, call_s=call_s,
                 repeats=len(trace_s), evals=k)
@@ -225,8 +222,7 @@ def plot(result: dict, path, dpi: int = 150) -> None:
             ax.set_xticks(result["orders"])
             # headroom above the data so that the legend never hides a point
             lo, hi = ax.get_ylim()
-            decades = np.log10(hi / lo)
             share = 0.45 if metric == "eval_s" else 0.3
-            ax.set_ylim(lo, hi * 10 ** (decades * share / (1 - share)))
+            ax.set_ylim(lo, hi * 10 ** (np.log10(hi / lo) * share / (1 - share)))
             ax.legend(fontsize=8, loc="upper left")
         fig.suptitle("Size and cost of the control law against the plant order", fontsize=11)
