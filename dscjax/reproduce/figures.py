@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import contextlib
 from pathlib import Path
 
 import numpy as np
@@ -30,24 +29,6 @@ FIGURES = {
 # The style of the paper's figures, applied with matplotlib.rc_context (never globally).
 RC = GRID | {"font.size": 10, "axes.titlesize": 10, "legend.fontsize": 8.5}
 LOOP_COLORS = ("#8c564b", COLORS["w"])  # Fig. 1's loops: the small one brown, the large one w's
-
-
-@contextlib.contextmanager
-def _time_axes(path: Path, dpi: int, title: str, ylabel: str, t_after: float | None = None):
-    """`saved`'s (fig, axes) in the paper's style: one panel against time, and with `t_after`
-    a second one, t >= t_after, where the first second's peak no longer sets the scale."""
-    rows = 1 if t_after is None else 2
-    with saved(path, dpi, rows, 1, rc=RC, figsize=(6.4, (3.8, 5.6)[rows - 1]),
-               squeeze=False) as (fig, axes):
-        axes = axes[:, 0]
-        axes[0].set_title(title)
-        for ax in axes:
-            ax.set_ylabel(ylabel)
-        axes[-1].set_xlabel("time $t$ [s]")
-        if t_after is not None:
-            axes[1].set_title(f"after the first {t_after:g} s (the initial peak left out)",
-                              fontsize=9)
-        yield fig, axes
 
 
 def _line(ax, traj, signal, name, t_after=None, **over):
@@ -88,10 +69,20 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
             ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", control, against,
              False)):
         paths[key] = out / f"{FIGURES[key]}.{fmt}"
-        with _time_axes(paths[key], dpi, title, ylabel, t_after if zoom else None) as (fig, axes):
+        # one panel against time; with zoom a second one, t >= t_after, where the first
+        # second's peak no longer sets the scale
+        with saved(paths[key], dpi, 2 if zoom else 1, 1, rc=RC,
+                   figsize=(6.4, 5.6 if zoom else 3.8), squeeze=False) as (fig, axes):
+            axes = axes[:, 0]
+            axes[0].set_title(title)
+            for ax in axes:
+                ax.set_ylabel(ylabel)
+            axes[-1].set_xlabel("time $t$ [s]")
             for name, over in runs:
                 _line(axes[0], trajs[name], signal, name, **over)
             if zoom:
+                axes[1].set_title(f"after the first {t_after:g} s (the initial peak left out)",
+                                  fontsize=9)
                 axes[0].axvspan(t_after, t_end, color="#999999", alpha=0.08, lw=0,
                                 label=f"shown below: $t \\geq$ {t_after:g} s")
                 _line(axes[1], trajs["dsc"], signal, "dsc", t_after)
