@@ -203,10 +203,9 @@ def plot(result: dict, path, colors: dict, dpi: int, labels: dict) -> None:
                            label=f"{label}, continuous (Ts -> 0)")
             diverged_at_top(ax, ts_ms, v, ~ok, color=c, ms=9, mew=2, ls="none",
                             label=f"{label}: diverged")
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-        ax.set_xlabel("sample time Ts of the controller [ms] (zero-order hold)")
-        ax.set_ylabel(f"L-inf error on [{result['window_start']:g} s, T]")
+        ax.set(xscale="log", yscale="log",
+               xlabel="sample time Ts of the controller [ms] (zero-order hold)",
+               ylabel=f"L-inf error on [{result['window_start']:g} s, T]")
         order = result["order"]
         ax.set_title("Sampled controller" + ("" if order is None else
                                              f" (fitted order {order['order']:.2f} in Ts)"))
