@@ -86,7 +86,7 @@ def base_setup(n: int = 2):
 
 def _dt_for(tau, opts: StudyOptions) -> float:
     limit = opts.dt_safety * RK4_REAL_STABILITY * float(np.min(tau))
-    j = max(0, math.ceil(math.log2(opts.dt_max / limit))) if limit < opts.dt_max else 0
+    j = math.ceil(math.log2(opts.dt_max / limit)) if limit < opts.dt_max else 0
     return opts.dt_max / 2 ** j
 
 
