@@ -35,11 +35,8 @@ CONTROLLERS = ("dsc", "backstepping")
 
 def count_eqns(jaxpr) -> int:
     """Equations of a jaxpr, with every sub-jaxpr (jit, custom derivatives, ...) inlined."""
-    total = 0
-    for eqn in jaxpr.eqns:
-        subs = list(jax.extend.core.jaxprs_in_params(eqn.params))
-        total += sum(count_eqns(s) for s in subs) if subs else 1
-    return total
+    subs = (list(jax.extend.core.jaxprs_in_params(eqn.params)) for eqn in jaxpr.eqns)
+    return sum(sum(map(count_eqns, s)) if s else 1 for s in subs)
 
 
 def _eval_loop(law):
