@@ -25,11 +25,6 @@ def _problem_values(setup, z, lo, hi, bound, spec, extra=None, *, st: Static):
     return traj.metrics[st.metric], traj.diverged
 
 
-def _problem_single(setup, z1, lo, hi, bound, spec, extra=None, *, st: Static):
-    traj = run(box_setup(setup, st, z1, lo, hi, bound), spec, extra=extra)
-    return traj.metrics[st.metric], traj.diverged
-
-
 def _value_and_grad(single, z):
     """(values, diverged, d values / d z) of a batch, each start's own time-parallel gradient
     of `single` vmapped over the starts; a diverged member's gradient is 0."""
@@ -47,8 +42,11 @@ _problem_values_jit = jax.jit(_problem_values, static_argnames=("st",))
 # the gradients compile lean, as every gradient of dscjax does (dscjax.xla)
 @functools.partial(xla.jit, lean=True, static_argnames=("st",))
 def _problem_value_and_grad(setup, z, lo, hi, bound, spec, extra, *, st: Static):
-    return _value_and_grad(lambda z1: _problem_single(setup, z1, lo, hi, bound, spec, extra,
-                                                      st=st), z)
+    def single(z1):  # one point, as a setup of its own
+        traj = run(box_setup(setup, st, z1, lo, hi, bound), spec, extra=extra)
+        return traj.metrics[st.metric], traj.diverged
+
+    return _value_and_grad(single, z)
 
 
 @functools.partial(xla.jit, lean=True, static_argnames=("st",))
