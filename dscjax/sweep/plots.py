@@ -111,8 +111,7 @@ def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None):
         ex, ey = _edges_of(grid_x), _edges_of(grid_y)
     else:
         b = int(np.clip(np.sqrt(x.size / 8.0), 4, 40))
-        ex = np.linspace(x.min(), x.max(), b + 1)
-        ey = np.linspace(y.min(), y.max(), b + 1)
+        ex, ey = (np.linspace(v.min(), v.max(), b + 1) for v in (x, y))
     nx, ny = len(ex) - 1, len(ey) - 1
     ix = np.clip(np.searchsorted(ex, x, side="right") - 1, 0, nx - 1)
     iy = np.clip(np.searchsorted(ey, y, side="right") - 1, 0, ny - 1)
