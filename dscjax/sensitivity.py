@@ -88,8 +88,7 @@ def columns(setup, paths: Sequence[str] | None = None, field: str = "--param"
     if paths is None:
         paths = [f"{part}.{p}" for part in PARTS
                  for p in validation.numeric_paths(getattr(setup, part))]
-    given = [Param.parse(text, field, setup) for text in paths]
-    out = Selection.of(given).columns(setup)
+    out = Selection.of([Param.parse(text, field, setup) for text in paths]).columns(setup)
     params.check_columns(out, field)
     if not out:
         raise ConfigError(f"{field}: no number given")
