@@ -157,8 +157,8 @@ class Trace:
         zs = np.concatenate([self.top_z, z[finite]])
         ls = np.concatenate([self.top_loss, ev.loss[finite]])
         fs = np.concatenate([self.top_feasible, ev.feasible[finite]])
-        _, first = np.unique(zs, axis=0, return_index=True)  # a point kept keeps its entry
-        first = np.sort(first)
+        # a point kept keeps its entry (its first)
+        first = np.sort(np.unique(zs, axis=0, return_index=True)[1])
         keep = first[order(Evaluation.of(ls[first], fs[first]))[:TOP]]
         diverged = np.concatenate([self.diverged_z, z[ev.diverged]])[:DIVERGED]
         return dataclasses.replace(
