@@ -139,11 +139,10 @@ class Runner:
         """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
         first local device, and the columns "refinements" and "dt_used" added (every process
         computes the same rows: no gather)."""
-        device = self.local[0]
         rows = np.asarray(table, self.dtype)
 
         def level(j, idx):  # the same tile program as the blocks: independent of the chunk
-            out = self._tiles_on(device, level_spec(self.spec, j), rows[idx])
+            out = self._tiles_on(self.local[0], level_spec(self.spec, j), rows[idx])
             return {k: _join(out, k, len(idx)) for k in out[0]}
 
         out, level_of = refine_rows(part, lambda p: np.asarray(p["status"]) != 0, level, levels)
