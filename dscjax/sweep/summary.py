@@ -121,9 +121,8 @@ def simulate_rows(setup, result: SweepResult, rows: Sequence[int], *, save_every
     info = result.info
     setup = params.cast(setup, np.dtype(dtype or info["dtype"]))
     cols = [Param.parse(p) for p in result.param_names]
-    every = max(1, min(save_every, info["n_steps"]))
     spec = RunSpec.make(info["t_final"], info["dt"], **{k: info[k] for k in RUN_KEYS},
-                        save_every=every)
+                        save_every=max(1, min(save_every, info["n_steps"])))
     index = np.asarray(rows, np.int64)
     table = np.stack([result.columns[p][index] for p in result.param_names], axis=1)
     return [simulate(params.set_row(setup, cols, row), spec=spec, throw=False) for row in table]
