@@ -46,11 +46,9 @@ def history_columns(problem) -> list[str]:
 def term_names(problem) -> list[str]:
     """The names of the problem's loss terms (its aux terms' keys), in their order."""
     spec, obj = problem.cfg.objective, problem.objective
-    names = [n for n in TERMS if getattr(spec, n)]
-    names += [t[0] for t in bound_terms(spec, obj.scales.u_max, obj.scales.tv_max)]
-    names += [f"req{i}" for i in range(len(obj.requirements))]
-    names += [c.name for c in obj.checks]
-    return names
+    return ([n for n in TERMS if getattr(spec, n)]
+            + [t[0] for t in bound_terms(spec, obj.scales.u_max, obj.scales.tv_max)]
+            + [f"req{i}" for i in range(len(obj.requirements))] + [c.name for c in obj.checks])
 
 
 def format_progress(row: dict, step: str = "lr") -> str:
