@@ -253,9 +253,8 @@ def write(out: Path, result, *, plots: bool = True, t_start: float | None = None
     sc, checks = problem.scales, problem.objective.checks
     z0, z1 = problem.z0, jax.device_get(result.best_z)
     ev = evaluate(problem, z0, z1)
-    nom = both(_measured, ev["nominal"])
     summary: dict[str, Any] = {
-        "nominal": nom,
+        "nominal": both(_measured, ev["nominal"]),
         "bound_max_abs_u": sc.u_max, "bound_tv_u": sc.tv_max,
         "effort_bounds": problem.cfg.objective.effort_bounds.name,
         # the per-plant bounds of the training batch (None: the nominal ones for every plant)
