@@ -44,8 +44,7 @@ def evaluate(problem, z0, z1) -> dict[str, Any]:
     per = {t: _host(_per_plant(obj, z, table, bounds)) for t, z in zs.items()}
     if not table:  # the nominal plant alone
         return {"nominal": per, "train": None, "heldout": None}
-    out = {"nominal": {t: {k: v[0] for k, v in m.items()} for t, m in per.items()},
-           "train": None, "heldout": None}
+    out = {"nominal": jax.tree.map(lambda v: v[0], per), "train": None, "heldout": None}
     for tag, real in (("train", problem.n_train), ("heldout", None)):
         if tag in groups:
             ov = {k: np.asarray(v)[:real] for k, v in groups[tag].items()}
