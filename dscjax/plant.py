@@ -16,6 +16,7 @@ f_i and rho_i must depend on x_1..x_i only (strict feedback); `check_strict_feed
 
 import abc
 import dataclasses
+import itertools
 from collections.abc import Callable
 from typing import Any, ClassVar
 
@@ -96,11 +97,7 @@ class _SineDbar(Plant):
 def _cumulative_sq(x):
     """[q_1, ..., q_n], q_i = sum_{j<=i} x_j^2, as per-stage scalars: whole-array ops (cumsum,
     concatenate) make vmap transpose the batch axis once per op."""
-    q, out = 0.0, []
-    for i in range(x.shape[0]):
-        q = q + x[i] * x[i]
-        out.append(q)
-    return out
+    return list(itertools.accumulate(x[i] * x[i] for i in range(x.shape[0])))
 
 
 class StrictFeedback(_SineDbar):
