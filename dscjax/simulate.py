@@ -86,8 +86,7 @@ class Trajectory(eqx.Module):
     @property
     def t_diverged(self):
         """Time at which the state first went bad, +inf if it never did."""
-        step = self.status.step
-        return jnp.where(step >= 0, step * self.dt, jnp.inf)
+        return jnp.where(self.status.step >= 0, self.status.step * self.dt, jnp.inf)
 
     def __getattr__(self, name):
         # Controller states by name: traj.z, traj.theta_hat, traj.zeta_hat, ...
@@ -128,11 +127,9 @@ def run(setup: Setup, spec: RunSpec, *, overrides=None, extra=None) -> Trajector
     red = m.Tracking(window_start=spec.window_start, n_steps=spec.n_steps, substeps=sub)
     if extra is not None:
         red = m.Combined((red, extra))
-    samp = None
-    if spec.sampled:
-        samp = (Sampling(every=spec.sample_every, delay=spec.delay, line=spec.line,
-                         noise=spec.noise, seed=spec.noise_seed, scheme=spec.discretisation),
-                spec.dt)
+    samp = ((Sampling(every=spec.sample_every, delay=spec.delay, line=spec.line,
+                      noise=spec.noise, seed=spec.noise_seed, scheme=spec.discretisation),
+             spec.dt) if spec.sampled else None)
     loop_field, init, rates, project, frozen = _loop(setup, spec)
     if overrides is None:
         shared, batch = closed_loop.prepared(setup), None
@@ -180,8 +177,7 @@ def _split_members(setup, overrides):
         return closed_loop.prepared(params.set_many(setup, values))
 
     one = jax.tree.map(lambda v: v[0], overrides)
-    closed = jax.make_jaxpr(member)(one)
-    depends = depends_on_inputs(closed.jaxpr)
+    depends = depends_on_inputs(jax.make_jaxpr(member)(one).jaxpr)
     full = jax.vmap(member)(overrides)
     leaves, treedef = jax.tree.flatten(full)  # one leaf per output of the jaxpr
     shared = [None if d else leaf[0] for leaf, d in zip(leaves, depends, strict=True)]
@@ -381,8 +377,7 @@ def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 
                             refine=refine, sample_time=sample_time,
                             gradient=TimeParallel(every=checkpoint_every))
     setup = canonical(setup)
-    dtype = dtype_of(setup)
-    overrides = {p: params.cast(v, dtype) for p, v in overrides.items()}
+    overrides = {p: params.cast(v, dtype_of(setup)) for p, v in overrides.items()}
     sizes = {p: np.shape(v)[0] for p, v in overrides.items()}
     if len(set(sizes.values())) != 1:
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
