@@ -45,8 +45,7 @@ def _ravel_floats(tree):
 
 
 def integrate_batch(f, y0, args, batch, reduction, acc0, dt, n_steps, save_every,
-                    state_bound, solver, gradient, rates=None, project=None, frozen=None,
-                    skip_diverged=False, substeps=None):
+                    state_bound, solver, gradient, rates, project, frozen, skip_diverged, substeps):
     args_flat, unravel_args = _ravel_floats(args)
     y_one, b_one = jax.tree.map(lambda x: x[0], (y0, batch))
     mask = scan.frozen_mask(frozen, y_one)  # one Python bool per row: held inside a step

@@ -59,8 +59,8 @@ class _Packer:
 class _Problem:
     """The static structure of a single-trajectory integration and its step functions."""
 
-    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates=None,
-                 project=None, frozen=None, skip_diverged=False, substeps=None):
+    def __init__(self, f, y0, args, reduction, acc0, n_steps, save_every, solver, rates,
+                 project, frozen, skip_diverged, substeps):
         self.f, self.reduction_is_none = f, reduction is None
         self.skip_diverged, self.substeps = skip_diverged, substeps
         self.solver, self.rates, self.project = solver, rates, project
@@ -106,9 +106,8 @@ class _Problem:
     def update(self, red, acc, k, t, y, obs, dt):
         if self.reduction_is_none:
             return acc
-        new = red.update(self.accp.unpack(acc), k, t, self.yp.unpack(y), self.op.unpack(obs),
-                         dt)
-        return self.accp.pack(new)
+        return self.accp.pack(red.update(self.accp.unpack(acc), k, t, self.yp.unpack(y),
+                                         self.op.unpack(obs), dt))
 
     def guarded(self, c: scan.Carry, a, red, dt, bound):
         """One RK4 step with the divergence guard; returns (carry, obs_k)."""
@@ -157,8 +156,7 @@ class _Problem:
 
 
 def integrate_single(f, y0, args, reduction, acc0, dt, n_steps, save_every, state_bound,
-                     solver, gradient, rates=None, project=None, frozen=None,
-                     skip_diverged=False, substeps=None):
+                     solver, gradient, rates, project, frozen, skip_diverged, substeps):
     prob = _Problem(f, y0, args, reduction, acc0, n_steps, save_every, solver, rates, project,
                     frozen, skip_diverged, substeps)
 
