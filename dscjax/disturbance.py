@@ -53,8 +53,7 @@ def _harmonics(coef, period, t):
     """c_0 + sum a_j cos(j w t) + b_j sin(j w t) with cos/sin of the harmonics by the angle
     addition recurrence (two trig calls per evaluation whatever K)."""
     coef = jnp.asarray(coef)
-    m = coef.shape[-1]
-    k = (m - 1) // 2
+    k = (coef.shape[-1] - 1) // 2
     w = 2.0 * jnp.pi / period
     c1, s1 = jnp.cos(w * t), jnp.sin(w * t)
     c, s = c1, s1
@@ -152,8 +151,7 @@ class Spline(Disturbance):
 
 def half_step_grid(t_final: float, dt: float) -> np.ndarray:
     """t_k = k dt/2, k = 0..2N: every time at which RK4 evaluates a time signal."""
-    n = int(round(t_final / dt))
-    return np.arange(2 * n + 1) * (dt / 2)
+    return np.arange(2 * int(round(t_final / dt)) + 1) * (dt / 2)
 
 
 @jax.jit

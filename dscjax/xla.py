@@ -78,8 +78,7 @@ def lean_options(environ: Mapping[str, str] = os.environ) -> dict[str, bool]:
     """The compiler options of dscjax's run-once programs: `LEAN`, unless `XLA_FLAGS` already
     chooses the fusion emitters (the user's choice wins) or this jaxlib has no choice of them
     (`emitter_choice`). Other backends ignore the option."""
-    chosen = EMITTERS in environ.get("XLA_FLAGS", "")
-    return dict(LEAN) if emitter_choice() and not chosen else {}
+    return dict(LEAN) if emitter_choice() and EMITTERS not in environ.get("XLA_FLAGS", "") else {}
 
 
 def lean_work(member_steps: float | None) -> bool:

@@ -144,8 +144,7 @@ class Backstepping(AdaptiveLaws):
         ph_dot = tuple(self._phi_rate(i, v[i], z[i], ph[i]) for i in range(m))
         x_next = tuple(xs[1:]) + (x_rest[0],)
         xs_dot = tuple(self.g_nom[j] * (x_next[j] + th[j] * f[j]) for j in range(m))
-        a_dot = lin(th_dot, ph_dot, xs_dot, jnp.ones_like(t))
-        return a_m, a_dot, chain
+        return a_m, lin(th_dot, ph_dot, xs_dot, jnp.ones_like(t)), chain
 
     # -- the law ------------------------------------------------------------------------------
     def law(self, state, x, t, plant, reference):

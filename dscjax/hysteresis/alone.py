@@ -65,9 +65,8 @@ def _open_loop(model, u_of_t, args, n_steps, dt):
 
     h0 = jax.tree.map(lambda x: jnp.asarray(x, dt.dtype),
                       model.init_state(u_of_t(jnp.zeros((), dt.dtype), *args)))
-    res = integrate(field, h0, dt, n_steps, args, gradient=Checkpointed(),
-                    project=project if model.projects else None, frozen=model.projects)
-    return res.obs
+    return integrate(field, h0, dt, n_steps, args, gradient=Checkpointed(),
+                     project=project if model.projects else None, frozen=model.projects).obs
 
 
 _open_loop_jit = xla.jit(_open_loop, lean=True, static_argnums=(1, 3))
