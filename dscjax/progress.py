@@ -137,10 +137,8 @@ class Phase:
         self.shown = True
         while True:
             elapsed = tqdm.format_interval(time.perf_counter() - self.t0)
-            if self.tty:
-                self.file.write(f"\r{self.desc} ... {elapsed} elapsed")
-            else:
-                self.file.write(f"{self.desc} ... ({elapsed} elapsed)\n")
+            self.file.write(f"\r{self.desc} ... {elapsed} elapsed" if self.tty
+                            else f"{self.desc} ... ({elapsed} elapsed)\n")
             self.file.flush()
             if self._stop.wait(1.0 if self.tty else self.every_s):
                 return
@@ -185,11 +183,6 @@ class Abort(_Signalled, BaseException):
     """A second Ctrl-C (or SIGTERM, SIGHUP) while the first was deferred: stop at once, without
     saving. Not a KeyboardInterrupt, so that the handlers that save on Ctrl-C let it pass.
     `signum`: the signal that asked to stop."""
-
-
-def signal_number(stop: BaseException) -> int:
-    """The signal behind an interrupt (SIGINT for a plain KeyboardInterrupt)."""
-    return int(getattr(stop, "signum", signal.SIGINT))
 
 
 def signal_name(signum: int) -> str:
@@ -258,15 +251,14 @@ class critical:
         return self
 
     def __exit__(self, kind, value, tb) -> bool:
-        if not self.active:
-            return False
-        _DEFERRAL.depth -= 1
-        if _DEFERRAL.depth == 0 and _DEFERRAL.pending is not None:
-            signum, _DEFERRAL.pending = _DEFERRAL.pending, None
-            if kind is None:
-                raise _interrupt(signum)
+        if self.active:
+            _DEFERRAL.depth -= 1
+            if _DEFERRAL.depth == 0 and _DEFERRAL.pending is not None:
+                signum, _DEFERRAL.pending = _DEFERRAL.pending, None
+                if kind is None:
+                    raise _interrupt(signum)
         return False
 
 
 __all__ = ["Abort", "Phase", "Progress", "Terminated", "critical", "handle_interrupts",
-           "signal_name", "signal_number"]
+           "signal_name"]

@@ -100,7 +100,7 @@ def main(argv=None) -> int:
         xla.enable_compilation_cache()  # compiled programs survive the process (an entry
         # point's choice: the library never changes JAX's configuration by itself)
     from dscjax.files import NoSpace
-    from dscjax.progress import Abort, handle_interrupts, signal_name, signal_number
+    from dscjax.progress import Abort, handle_interrupts, signal_name
     from dscjax.simulate import DivergenceError
     from dscjax.validation import ConfigError
 
@@ -132,7 +132,7 @@ def main(argv=None) -> int:
         # command that runs it again
         hint = getattr(module, "interrupt_hint", None)
         note = hint(args) if hint is not None else kept_text(args, module.OUTPUTS)
-        signum = signal_number(stop)
+        signum = int(getattr(stop, "signum", signal.SIGINT))  # SIGINT: a plain KeyboardInterrupt
         by = "" if signum == signal.SIGINT else f" by {signal_name(signum)}"
         what = (f"interrupted again{by}: stopped at once without saving the step under way"
                 if isinstance(stop, Abort) else f"interrupted{by}")
