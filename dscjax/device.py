@@ -139,7 +139,7 @@ def _default_device():
     """The caller's `jax.default_device` (a Device; a platform name gives its first device),
     or None."""
     value = jax.config.jax_default_device
-    if value is None or not isinstance(value, str):
+    if not isinstance(value, str):  # a Device, or None
         return value
     try:
         return jax.devices(value)[0]
