@@ -99,17 +99,21 @@ def vector_field(t, X: State, setup: Setup) -> tuple[State, Observation]:
     vmap, jvp, grad and checkpoint.
     """
     plant, ctrl, hyst, ref = setup.plant, setup.controller, setup.hysteresis, setup.reference
+
+    def control(c_state, x, tt):
+        return ctrl.law(c_state, x, tt, plant, ref)
+
     # The law is evaluated once; its linearisation gives u' = du/dX . X' + du/dt below.
-    u, u_lin, info = jax.linearize(lambda c, x, tt: ctrl.law(c, x, tt, plant, ref), X.ctrl, X.x,
-                                   t, has_aux=True)
+    u, u_lin, info = jax.linearize(control, X.ctrl, X.x, t, has_aux=True)
     u, info = barrier((u, info))
     w = hyst.output(u, X.h)  # the actuator's output drives the plant
     dx = plant.rhs(X.x, w, t)
     dctrl = ctrl.state_rate(X.ctrl, X.x, t, info, plant, ref)
     dx, dctrl = barrier((dx, dctrl))
     du = barrier(u_lin(dctrl, dx, jnp.ones_like(t)))  # u' exactly, along the vector field
-    return State(x=dx, h=hyst.rate(u, du, X.h), ctrl=dctrl), Observation(u=u, u_dot=du,
-                                                                         yr=info.yr, S=info.S, w=w)
+    dh = hyst.rate(u, du, X.h)
+    return State(x=dx, h=dh, ctrl=dctrl), Observation(u=u, u_dot=du, yr=info.yr, S=info.S,
+                                                       w=w)
 
 
 def decay_rates(t, X: State, setup: Setup, obs: Observation) -> State:

@@ -131,9 +131,10 @@ def time_parallel_jvp(prob, primals, tangents):
                                (dred, dacc_n, dy_end, dobs_end, ddt))
         dacc_end = kept(no_bad, dacc_last, dacc_n)
 
+    out = (_saved(Y, c.y, s), _saved(O, obs_end, s), acc_end, c.code, c.bad)
     f0 = np.zeros((), dtype=jax.dtypes.float0)
-    return ((_saved(Y, c.y, s), _saved(O, obs_end, s), acc_end, c.code, c.bad),
-            (_saved(dY, dy_end, s), _saved(dO, dobs_end, s), dacc_end, f0, f0))
+    dout = (_saved(dY, dy_end, s), _saved(dO, dobs_end, s), dacc_end, f0, f0)
+    return out, dout
 
 
 def _parallel(fn, xs):
