@@ -251,12 +251,13 @@ class critical:
         return self
 
     def __exit__(self, kind, value, tb) -> bool:
-        if self.active:
-            _DEFERRAL.depth -= 1
-            if _DEFERRAL.depth == 0 and _DEFERRAL.pending is not None:
-                signum, _DEFERRAL.pending = _DEFERRAL.pending, None
-                if kind is None:
-                    raise _interrupt(signum)
+        if not self.active:
+            return False
+        _DEFERRAL.depth -= 1
+        if _DEFERRAL.depth == 0 and _DEFERRAL.pending is not None:
+            signum, _DEFERRAL.pending = _DEFERRAL.pending, None
+            if kind is None:
+                raise _interrupt(signum)
         return False
 
 
