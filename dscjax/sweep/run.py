@@ -19,7 +19,6 @@ from dscjax.simulate import check, counted_levels
 from dscjax.sweep.device import METRICS, Runner, from_process_0, tile_rows
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
-from dscjax.xla import tiles
 
 # 2: the metrics of diverged rows are NaN (were the frozen values); 3: rows that diverged are
 # re-run with ETDRK4 at smaller steps ("refinements", "dt_used"); 4: the effort on the window
@@ -146,7 +145,8 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
         group = todo[r:r + runner.n_dev]
         padded = group + [group[-1]] * (runner.n_dev - len(group))
         # the last block padded with its first row (a valid sample)
-        rows = np.concatenate([tiles(table[b * chunk:(b + 1) * chunk], chunk)[0] for b in padded])
+        rows = np.concatenate([xla.tiles(table[b * chunk:(b + 1) * chunk], chunk)[0]
+                               for b in padded])
         host = runner(rows, len(group), _block_len(group[-1], chunk, n))
         for k, b in enumerate(group):
             lo = b * chunk
