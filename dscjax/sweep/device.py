@@ -90,25 +90,18 @@ class Runner:
                                          self.n_dev)
         return int(from_process_0(np.int64(chunk)))
 
-    def __call__(self, table: np.ndarray, n_real: int, last_rows: int | None = None
-                 ) -> dict[str, np.ndarray]:
-        """table: (n_dev * chunk, d) host array, identical on every process, every block
-        present (the chunk is read from it); its first `n_real` blocks are real (the others
-        pad the round), the last of them with `last_rows` real rows (default chunk: the tiles
-        past them need not run, and their rows are garbage). Returns each metric's rows of the
-        real blocks (n_real * chunk) with one process, of every block with several (the
-        padding's garbage)."""
-        table = np.asarray(table, self.dtype)
-        chunk = table.shape[0] // self.n_dev
+    def __call__(self, blocks: list[np.ndarray], chunk: int) -> dict[str, np.ndarray]:
+        """blocks: a round's blocks of rows, at most one per device and at most `chunk` rows
+        each, identical on every process. Returns each metric's rows, `chunk` per block (past
+        a short block's rows: zeros): of the blocks given with one process; of one block per
+        device with several (the devices past the blocks run the last one again: garbage)."""
         single = jax.process_count() == 1
         # one process: padding blocks need not run
         jobs = {b: dev for b, dev in enumerate(self.devices)
-                if dev in self.local and not (single and b >= n_real)}
+                if dev in self.local and not (single and b >= len(blocks))}
 
         def dispatch(block):
-            rows = table[block * chunk:(block + 1) * chunk]
-            if block == n_real - 1 and last_rows is not None:
-                rows = rows[:last_rows]
+            rows = np.asarray(blocks[min(block, len(blocks) - 1)], self.dtype)
             return self._tiles_on(jobs[block], self.spec, rows)
 
         if self._compiled or len(jobs) == 1:
@@ -123,8 +116,8 @@ class Runner:
         if single:
             return {k: np.concatenate([_join(o, k, chunk) for o in outs]) for k in outs[0][0]}
         return {k: _to_host(jax.make_array_from_single_device_arrays(
-            (table.shape[0],), self.out_sharding, [_join(o, k, chunk, jax.numpy) for o in outs]))
-            for k in outs[0][0]}
+            (self.n_dev * chunk,), self.out_sharding,
+            [_join(o, k, chunk, jax.numpy) for o in outs])) for k in outs[0][0]}
 
     def _tiles_on(self, device, spec, rows) -> list[dict]:
         """The tile program's outputs (device arrays, dispatched asynchronously) for `rows`

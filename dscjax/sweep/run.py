@@ -143,11 +143,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
     n_run, t_first_round = 0, None
     for r in range(0, len(todo), runner.n_dev):
         group = todo[r:r + runner.n_dev]
-        padded = group + [group[-1]] * (runner.n_dev - len(group))
-        # the last block padded with its first row (a valid sample)
-        rows = np.concatenate([xla.tiles(table[b * chunk:(b + 1) * chunk], chunk)[0]
-                               for b in padded])
-        host = runner(rows, len(group), _block_len(group[-1], chunk, n))
+        host = runner([table[b * chunk:(b + 1) * chunk] for b in group], chunk)
         for k, b in enumerate(group):
             lo = b * chunk
             m = _block_len(b, chunk, n)
