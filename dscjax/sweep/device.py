@@ -15,7 +15,7 @@ from jax.sharding import PartitionSpec as P
 from dscjax import device as dscjax_device
 from dscjax import params, xla
 from dscjax.runspec import RunSpec
-from dscjax.simulate import level_spec, refine_rows, refinement_level, run_reported
+from dscjax.simulate import counted_levels, level_spec, refine_rows, refinement_level, run_reported
 
 # the tracking error, and the effort with the chattering index (docs/numerics.md): every
 # verdict of a sweep says both
@@ -127,12 +127,12 @@ class Runner:
         return [self.block(setup, program, jax.device_put(t, device), columns=self.columns)
                 for t in xla.tiles(rows, self.tile)]
 
-    def refine(self, table: np.ndarray, part: dict[str, np.ndarray], levels: int
-               ) -> dict[str, np.ndarray]:
-        """`part` with its diverged rows re-run at levels 1..levels (`refine_rows`) on the
-        first local device, and the columns "refinements" and "dt_used" added (every process
-        computes the same rows: no gather)."""
+    def refine(self, table: np.ndarray, part: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """`part` with its diverged rows re-run at the spec's refinement levels
+        (`counted_levels`, `refine_rows`) on the first local device, and the columns
+        "refinements" and "dt_used" added (every process computes the same rows: no gather)."""
         rows = np.asarray(table, self.dtype)
+        levels = counted_levels(self.spec)
 
         def level(j, idx):  # the same tile program as the blocks: independent of the chunk
             out = self._tiles_on(self.local[0], level_spec(self.spec, j), rows[idx])

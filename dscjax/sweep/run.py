@@ -15,7 +15,7 @@ import numpy as np
 from dscjax import config, device, files, params, validation, xla
 from dscjax.progress import critical
 from dscjax.runspec import RunSpec, loop_words
-from dscjax.simulate import check, counted_levels
+from dscjax.simulate import check
 from dscjax.sweep.device import METRICS, Runner, from_process_0, tile_rows
 from dscjax.sweep.settings import DTYPES, SweepSettings, check_settings
 from dscjax.validation import ConfigError
@@ -148,7 +148,7 @@ def run_sweep(setup, settings: SweepSettings | None = None, spec: RunSpec | None
             lo = b * chunk
             m = _block_len(b, chunk, n)
             part = {key: v[k * chunk:k * chunk + m] for key, v in host.items()}
-            part = runner.refine(table[lo:lo + m], part, counted_levels(spec))
+            part = runner.refine(table[lo:lo + m], part)
             data = _columns(np.arange(lo, lo + m, dtype=np.int64), names, table[lo:lo + m], part)
             if out is None:
                 kept[b] = data
