@@ -2,8 +2,8 @@
 
 Refinement runs ETDRK4 (exact on the stiff decays) at dt, dt/2, dt/4, ... (`refinement_level`,
 `level_spec`), up to `RunSpec.refine` levels that fit `validation.MAX_STEPS`
-(`counted_levels`). It runs on the host: a batch re-runs only its diverged rows (`refine_rows`,
-`refine_diverged`), and a traced call refuses a spec that would refine
+(`counted_levels`). It runs on the host: a batch re-runs only its diverged rows
+(`refine_rows`), and a traced call refuses a spec that would refine
 (`refuse_traced_refinement`). A sampled loop refines once: diverging again within a sample
 period means the loop is unstable, not the integrator (`sampled_unstable`). What still
 diverges is a `DivergenceError` or a line of `divergence_report` (`diverged_lines` of a
@@ -12,12 +12,10 @@ run's `Status` alone).
 
 from __future__ import annotations
 
-import dataclasses
-from collections.abc import Callable, Mapping
+from collections.abc import Callable
 from typing import Any
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from dscjax import validation, xla
@@ -128,18 +126,6 @@ class DivergenceError(RuntimeError):
     def __init__(self, message: str, trajectory):
         super().__init__(message)
         self.trajectory = trajectory
-
-
-def refine_diverged(traj, overrides: Mapping[str, Any], level: Callable, refine: int):
-    """`refine_rows` for a batch Trajectory: `level(j, overrides_subset)` simulates a
-    sub-batch at level j with the same save times; `refinements` says each member's level."""
-    def rows(j, idx):
-        sub = level(j, {p: np.asarray(v)[idx] for p, v in overrides.items()})
-        return dataclasses.replace(sub, refinements=None)
-
-    out, levels = refine_rows(dataclasses.replace(traj, refinements=None),
-                              lambda t: np.asarray(t.status.code) != STATUS_OK, rows, refine)
-    return jax.tree.map(jnp.asarray, dataclasses.replace(out, refinements=levels))
 
 
 def diverged_lines(status, t_diverged, state_bound: float | None = None) -> list[str]:

@@ -383,16 +383,19 @@ def simulate_batch(setup: Setup, overrides: Mapping[str, Any], t_final: float = 
         raise validation.ConfigError(f"overrides must share one batch size (got {sizes})")
     check(setup, spec, overrides, batched=True)
 
-    def level(j, ov):  # the compiled batch for the rows of ov (`xla.LEAN_ROWS`)
+    def level(j, idx=None):  # the compiled batch for rows idx (default all: `xla.LEAN_ROWS`)
+        ov = overrides if idx is None else {p: np.asarray(v)[idx] for p, v in overrides.items()}
         lean = np.shape(next(iter(ov.values())))[0] <= xla.LEAN_ROWS
         return (_simulate if lean else _simulate_batch)(setup, level_spec(spec, j).program(), ov)
 
     divergence.refuse_traced_refinement(spec, "simulate_batch", (setup, spec, overrides))
     with _placed(spec, device, next(iter(sizes.values())), (setup, overrides)):
-        traj = level(0, overrides)
+        traj = level(0)
         divergence.refuse_traced_refinement(spec, "simulate_batch", traj.status)
-        if counted_levels(spec):  # host-side
-            traj = divergence.refine_diverged(traj, overrides, level, counted_levels(spec))
+        if counted_levels(spec):  # host-side: the diverged rows again, with the same save times
+            traj, levels = refine_rows(traj, lambda tr: tr.diverged, level,
+                                       counted_levels(spec))
+            traj = jax.tree.map(jnp.asarray, dataclasses.replace(traj, refinements=levels))
     return traj
 
 
