@@ -185,6 +185,12 @@ def _adam():
     return update
 
 
+def _rows(take, new: GradientState, old: GradientState) -> GradientState:
+    """Per start, its rows of `new` where `take` (M,), else of `old`."""
+    return GradientState(*(np.where(take.reshape((-1,) + (1,) * (np.ndim(x) - 1)), x, y)
+                           for x, y in zip(new, old, strict=True)))
+
+
 @dataclasses.dataclass(frozen=True)
 class Gradient(_BuiltByStep):
     """Projected gradient descent from `starts` points as one batch: Adam's scaling of the
@@ -228,23 +234,17 @@ class Gradient(_BuiltByStep):
         coupled = gc / np.where(peak > 0, peak, 1.0)
         step = -np.concatenate([u, coupled], axis=1)
         scaled = g[:, :a] / (np.sqrt(nu / (1 - B2 ** count[:, None])) + EPS)
-        b = better[:, None]
         lr = np.where(better, np.minimum(state.lr * 1.2, 8 * self.lr), state.lr * 0.5)
-        nxt = GradientState(
-            z=np.asarray(problem.project(np.where(b, z + lr[:, None] * step, state.good_z
-                                                  + lr[:, None] * state.good_dir)),
-                         dtype=np.float64),
-            good_z=np.where(b, z, state.good_z),
-            good_loss=np.where(better, ev.loss, state.good_loss),
-            good_dir=np.where(b, -np.concatenate([scaled, coupled], axis=1), state.good_dir),
-            lr=lr, count=np.where(better, count, state.count), mu=np.where(b, mu, state.mu),
-            nu=np.where(b, nu, state.nu))
+        # a start that improved steps from its point, the others again from their last good one
+        nxt = _rows(better, GradientState(z, z, ev.loss, -np.concatenate([scaled, coupled], axis=1),
+                                          lr, count, mu, nu), state._replace(lr=lr))
+        nxt = nxt._replace(z=np.asarray(problem.project(np.where(
+            better[:, None], z + lr[:, None] * step, state.good_z + lr[:, None] * state.good_dir)),
+            dtype=np.float64))
         again = ev.diverged | (lr < self.lr / 64)
         if again.any():  # a fresh start from a random point
-            fresh = self._fresh(np.asarray(problem.sample(
-                generator(ctx.seed, self.name, ctx.iteration + 1), len(z)), dtype=np.float64))
-            nxt = GradientState(*(np.where(again.reshape((-1,) + (1,) * (np.ndim(x) - 1)), y, x)
-                                  for x, y in zip(nxt, fresh, strict=True)))
+            nxt = _rows(again, self._fresh(np.asarray(problem.sample(
+                generator(ctx.seed, self.name, ctx.iteration + 1), len(z)), dtype=np.float64)), nxt)
         i = int(order(ev)[0])
         return Step(z, ev, nxt, scale=float(lr[i]), gradients=len(z),
                     notes={"grad_norm": float(np.linalg.norm(g[i])), "accepted": bool(better[i])},
