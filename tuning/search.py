@@ -122,8 +122,7 @@ class TuneProblem(search.Problem):
         return self._evaluation(r), np.asarray(r["grad"], dtype=np.float64)
 
     def sample(self, rng: np.random.Generator, b: int) -> np.ndarray:
-        return np.clip(self.x0 + rng.uniform(-SPREAD, SPREAD, (b, self.x0.size)), self.lower,
-                       self.upper)
+        return self.project(self.x0 + rng.uniform(-SPREAD, SPREAD, (b, self.x0.size)))
 
     def flat(self, z: dict) -> np.ndarray:
         """The flat z of a {name: value} point."""
