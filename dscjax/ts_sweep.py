@@ -161,15 +161,18 @@ def study(setup, gains: dict, names: Sequence[str], t_final: float, dt: float,
     return out
 
 
+def last_held(values: Sequence, why_not: Sequence[str | None]):
+    """The last of `values` before the first that does not hold (`why_not`: None where one
+    holds, else why not, as `judge` says); None where the first does not."""
+    n = next((i for i, why in enumerate(why_not) if why is not None), len(why_not))
+    return values[n - 1] if n else None
+
+
 def largest_tracking(result: dict, name: str) -> tuple[float, float] | None:
     """(Ts, windowed L-inf) at the largest Ts of the study up to which gain set `name` tracks
     at every Ts (`judge`; None: it does not track at the smallest)."""
-    r, last = result[name], None
-    for ts, v, ok in zip(result["sample_times"], r["sampled"], r["tracks"], strict=True):
-        if not ok:
-            break
-        last = (ts, v)
-    return last
+    r = result[name]
+    return last_held(list(zip(result["sample_times"], r["sampled"], strict=True)), r["why_not"])
 
 
 def reach(result: dict, name: str, last, tracks: str) -> str:

@@ -215,8 +215,7 @@ def delays(problem, z0, z1, nominal: dict) -> dict[str, Any] | None:
                                                     float(sim.dt), DELAY_MAX, delay=d))
         add(d, [measured(tr, figures, i) for i in range(len(NAMES))])
     # each gain set's last d before the first at which it fails
-    held = {tag: [why is None for why in out[tag]["why_not"]] + [False] for tag in NAMES}
-    out["largest"] = {tag: ([None] + out["delays"])[h.index(False)] for tag, h in held.items()}
+    out["largest"] = {tag: ts_sweep.last_held(out["delays"], out[tag]["why_not"]) for tag in NAMES}
     return out
 
 
