@@ -235,9 +235,10 @@ class Gradient(_BuiltByStep):
         step = -np.concatenate([u, coupled], axis=1)
         scaled = g[:, :a] / (np.sqrt(nu / (1 - B2 ** count[:, None])) + EPS)
         lr = np.where(better, np.minimum(state.lr * 1.2, 8 * self.lr), state.lr * 0.5)
-        # a start that improved steps from its point, the others again from their last good one
+        # a start that improved: its point is the last good one, with Adam's state there
         nxt = _rows(better, GradientState(z, z, ev.loss, -np.concatenate([scaled, coupled], axis=1),
                                           lr, count, mu, nu), state._replace(lr=lr))
+        # it steps from its point; the others step again from their last good one
         nxt = nxt._replace(z=np.asarray(problem.project(np.where(
             better[:, None], z + lr[:, None] * step, state.good_z + lr[:, None] * state.good_dir)),
             dtype=np.float64))
