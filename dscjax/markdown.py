@@ -1,6 +1,7 @@
 """Markdown tables and the words of results: the lines of a table from its header and rows
 (`table`); a cell's text; a measured number as results lines write it (`figure`), one that may
-be missing (`number`), a sample time in ms (`ms`); a verdict cell (`verdict`, `yes`)."""
+be missing (`number`), a sample time in ms (`ms`), the metric window (`window`); a verdict cell
+(`verdict`, `yes`)."""
 
 from __future__ import annotations
 
@@ -30,6 +31,11 @@ def ms(seconds: float) -> str:
     return f"{1e3 * seconds:g}"
 
 
+def window(t0: float, t_final: float) -> str:
+    """The metric window [t0, T] as every report writes it: "[1, 20] s"."""
+    return f"[{float(t0):g}, {float(t_final):g}] s"
+
+
 def yes(holds: bool) -> str:
     """A verdict cell: "yes", or a bold "**no**"."""
     return "yes" if holds else "**no**"
@@ -52,4 +58,4 @@ def table(head: Sequence[str], rows: Iterable[Sequence[Any]],
     return [_row(head), "|---" * len(head) + "|", *(_row(map(cell, r)) for r in rows)]
 
 
-__all__ = ["escape", "figure", "ms", "number", "table", "verdict", "yes"]
+__all__ = ["escape", "figure", "ms", "number", "table", "verdict", "window", "yes"]

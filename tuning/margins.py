@@ -28,7 +28,7 @@ import jax
 import numpy as np
 
 from dscjax import metrics, ts_sweep
-from dscjax.markdown import ms, number, table, verdict, yes
+from dscjax.markdown import ms, number, table, verdict, window, yes
 from dscjax.runspec import step_for
 from dscjax.simulate import refinement_level, simulate, simulate_batch
 from dscjax.ts_sweep import cells, measured
@@ -332,7 +332,7 @@ def markdown(margins: dict[str, Any], nominal: dict) -> list[str]:
               + f"; an estimate is bounded when its peak |.| on the second half is at most "
               f"{DRIFT_RATIO:g} x that on the second quarter (not judged below "
               f"{DRIFT_MIN_S:g} s):", "",
-              *table(("", f"L∞ e on [{lr['window_start']:g}, {lr['t_final']:g}] s",
+              *table(("", f"L∞ e on {window(lr['window_start'], lr['t_final'])}",
                       "L∞ e over the tuning's horizon (no noise, no disturbance)",
                       "chattering index",
                       *(f"peak \\|{e}\\| 2nd quarter / 2nd half" for e in ESTIMATES

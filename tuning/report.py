@@ -16,6 +16,7 @@ import numpy as np
 
 from dscjax import files, validation, xla
 from dscjax.divergence import outcome_counts
+from dscjax.markdown import window
 from dscjax.params import assumption_warnings as with_ranges
 from dscjax.pure import metric_names
 from dscjax.runspec import auto_stride, loop_words
@@ -216,7 +217,7 @@ def problem_sentence(problem) -> str:
                         f"plant)" if getattr(cfg.objective, key) == "start" else ""))
     on = "" if sc.per_plant else " on " + (
         "the nominal plant" if not cfg.robust.batch else "every training plant")
-    return (f"Minimise {' + '.join(terms)} on [{sim.window_start:g}, {sim.t_final:g}] s over "
+    return (f"Minimise {' + '.join(terms)} on {window(sim.window_start, sim.t_final)} over "
             f"{problem.n_params} design numbers on {where}"
             + (f", subject to {' and '.join(cons)}{on}" if cons else ", unconstrained") + ".")
 

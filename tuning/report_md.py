@@ -8,7 +8,7 @@ import numpy as np
 
 from dscjax import metrics
 from dscjax.divergence import OUTCOMES  # (docs/tuning.md, "The held-out check")
-from dscjax.markdown import escape, number, table
+from dscjax.markdown import escape, number, table, window
 from tuning import elasticity, margins
 from tuning.config import ROWS, TERMS
 
@@ -130,7 +130,7 @@ def text(s: dict, problem) -> str:
     lines += [
         f"Plant: `{type(problem.setup.plant).__name__}`, order n = {problem.setup.order}; "
         f"T = {sim.t_final:g} s, dt = {sim.dt:g} s, metric window [t0, T] = "
-        f"[{sim.window_start:g}, {sim.t_final:g}] s.",
+        f"{window(sim.window_start, sim.t_final)}.",
         method_text(problem),
         "Objective per plant: " + ", ".join(
             f"{k} {getattr(cfg.objective, k):g}" for k in TERMS if getattr(cfg.objective, k))

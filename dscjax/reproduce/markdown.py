@@ -6,7 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
-from dscjax.markdown import escape, number, table, yes
+from dscjax.markdown import escape, number, table, window, yes
 from dscjax.reproduce import theory
 from dscjax.reproduce.alpha0 import table_markdown
 from dscjax.reproduce.runs import ESTIMATES
@@ -29,10 +29,10 @@ def summary_markdown(summary: dict) -> str:
                       c.get("verdict", "yes") if c["holds"] else yes(False))
                      for c in summary["claims"]])]
     # the windowed figures lead: over the whole run, L∞ e is the initial error x1(0) - yr(0)
-    window = f"on [{summary['window_start']:g}, {summary['t_final']:g}] s"
-    heads = {"linf_error_after_1s": f"L∞ e {window}", "linf_error": "L∞ e on [0, T] (the "
-             "initial error)", "l2_error_after_1s": f"L2 e {window}", "l2_error": "L2 e on [0, T]",
-             "max_abs_u_after_1s": f"max abs u {window}", "max_abs_u": "max abs u on [0, T]",
+    on = f"on {window(summary['window_start'], summary['t_final'])}"
+    heads = {"linf_error_after_1s": f"L∞ e {on}", "linf_error": "L∞ e on [0, T] (the "
+             "initial error)", "l2_error_after_1s": f"L2 e {on}", "l2_error": "L2 e on [0, T]",
+             "max_abs_u_after_1s": f"max abs u {on}", "max_abs_u": "max abs u on [0, T]",
              "max_abs_w": "max abs w", "tv_u": "TV(u)"}
     runs = summary["runs"].items()
     lines += ["", "## Runs", "",

@@ -11,7 +11,7 @@ import numpy as np
 
 from dscjax import params
 from dscjax.divergence import OUTCOMES, outcome_counts
-from dscjax.markdown import escape, figure, number, table
+from dscjax.markdown import escape, figure, number, table, window
 from dscjax.metrics import CHATTER_RATIO
 from dscjax.params import Param
 from dscjax.runspec import RunSpec
@@ -212,14 +212,14 @@ def outcome(summary: Mapping[str, Any]) -> list[str]:
     error and effort of the samples that did not diverge, the three kinds of rows, the
     chattering and degraded counts, the nominal setup."""
     run, q, n = summary["run"], summary["quantiles"], summary["n_samples"]
-    window = f"[{run['window_start']:g}, {run['t_final']:g}] s"
+    span = window(run["window_start"], run["t_final"])
     lines = []
     if (e := q["linf_error_window"]) is not None:
-        lines.append(f"windowed L-inf error on {window} over the {n - summary['n_diverged']:,} "
+        lines.append(f"windowed L-inf error on {span} over the {n - summary['n_diverged']:,} "
                      f"samples that did not diverge: median {e['p50']:.4g}, p95 {e['p95']:.4g}, "
                      f"max {e['max']:.4g}")
     if (tv := q["tv_u_window"]) is not None:
-        lines.append(f"effort on {window} over the same samples: TV(u) median "
+        lines.append(f"effort on {span} over the same samples: TV(u) median "
                      f"{figure(tv['p50'])}, p95 {figure(tv['p95'])}, max {figure(tv['max'])}; "
                      f"max|u| max {figure(q['max_abs_u_window']['max'])}")
     smallest = summary["smallest_dt_tried"]

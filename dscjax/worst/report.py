@@ -16,7 +16,7 @@ import numpy as np
 
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
-from dscjax.markdown import table
+from dscjax.markdown import table, window
 from dscjax.plotting import saved
 from dscjax.worst import Result, assumption_warnings, best_value
 
@@ -109,8 +109,7 @@ def report_md(result: Result) -> str:
              f"Worst value: **{verdict(result)}**, found by {result.method}; nominal: "
              f"{result.nominal_value:.6g}.", "",
              f"Horizon {p.spec.t_final:g} s, dt {float(p.spec.dt):g} s, window "
-             f"[{float(p.spec.window_start):g}, {p.spec.t_final:g}] s. "
-             f"Searched: {searched(p)}.", "",
+             f"{window(p.spec.window_start, p.spec.t_final)}. Searched: {searched(p)}.", "",
              *(f"Warning: {w}." for w in warnings), *([""] if warnings else []),
              "## Methods (equal search time; compilation apart)", "", *methods_table(result),
              "", "## Best value against search time", ""]
