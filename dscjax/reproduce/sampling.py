@@ -50,7 +50,7 @@ def findings(result: dict) -> list[str]:
     o = result["order"]
     if o is not None:
         texts.append(f"the sampled loop tends to the continuous one at order {o['order']:.2f} "
-                     f"in Ts (max |y_Ts - y| on t >= 1 s, Ts = "
+                     f"in Ts (max |y_Ts - y| on t >= {result['window_start']:g} s, Ts = "
                      f"{', '.join(ms(t) for t in o['sample_times'])} ms, the paper's "
                      "gains; one exponential-Euler step of the controller per sample: first "
                      "order)")
