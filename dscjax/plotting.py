@@ -25,17 +25,17 @@ LOG_GRID = GRID | {"axes.grid.which": "both"}  # lines at the minor ticks too (l
 
 
 @contextlib.contextmanager
-def saved(path: Path | str, dpi: int | None, nrows: int = 1, ncols: int = 1, *, figsize,
-          layout="constrained", rc=None, **kwargs):
+def saved(path: Path | str, dpi: int | None, nrows: int = 1, ncols: int = 1, *, figsize, rc=None,
+          **kwargs):
     """(Figure, axes) like `pyplot.subplots` for the block, but a Figure no pyplot state knows
-    about (it needs no backend), saved to `path` at `dpi` (None: the figure's own, matplotlib's
-    default) when the block ends; the block and the saving under the style `rc`
-    (`matplotlib.rc_context`), where given."""
+    about (it needs no backend), in the constrained layout, saved to `path` at `dpi` (None: the
+    figure's own, matplotlib's default) when the block ends; the block and the saving under the
+    style `rc` (`matplotlib.rc_context`), where given."""
     import matplotlib
     from matplotlib.figure import Figure
 
     with matplotlib.rc_context(rc):
-        fig = Figure(figsize=figsize, layout=layout)
+        fig = Figure(figsize=figsize, layout="constrained")
         yield fig, fig.subplots(nrows, ncols, **kwargs)
         files.save_figure(fig, path, dpi=dpi)
 
@@ -55,11 +55,11 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
     ax.set_xlabel("control input $u$ [-]")
 
 
-def legend_below(fig, ax, ncol: int | None = None, **kwargs) -> None:
-    """The legend of `ax`'s curves outside the axes, under them (it can never hide a curve),
-    in `ncol` columns (None: all in one row)."""
-    handles, labels = ax.get_legend_handles_labels()
-    fig.legend(handles, labels, loc="outside lower center", ncol=ncol or len(labels),
+def legend_below(fig, ax, ncol: int | None = None, handles=None, **kwargs) -> None:
+    """The legend of `ax`'s curves (or of `handles`, the artists to list) outside the axes,
+    under them (it can never hide a curve), in `ncol` columns (None: all in one row)."""
+    handles = handles or ax.get_legend_handles_labels()[0]
+    fig.legend(handles=handles, loc="outside lower center", ncol=ncol or len(handles),
                frameon=False, **kwargs)
 
 

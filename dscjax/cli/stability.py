@@ -76,13 +76,13 @@ def run(args) -> int:
 
 
 def _plot(m, path):
-    from dscjax.plotting import saved
+    from dscjax.plotting import legend_below, saved
 
     has_tau = np.isfinite(m.tau).any()
     y = m.tau if has_tau else np.ones(1)
     dts, ys = np.meshgrid(m.dt, y)
     own = y[int(np.argmin(np.abs(m.tau_scale - 1.0)))]
-    with saved(path, 120, figsize=(6.4, 5.0), layout=None) as (fig, ax):
+    with saved(path, 120, figsize=(6.4, 5.0)) as (fig, ax):
         ax.scatter(dts[m.stable], ys[m.stable], marker="o", color="tab:green",
                    label="RK4 stays finite")
         ax.scatter(dts[~m.stable], ys[~m.stable], marker="x", color="tab:red", label="RK4 diverges")
@@ -103,5 +103,4 @@ def _plot(m, path):
             ax.set_yticks([])
         ax.set_xlabel("RK4 step dt [s]")
         ax.set_title("Where classical RK4 stays finite over the horizon")
-        ax.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.16), ncol=2)
-        fig.tight_layout()
+        legend_below(fig, ax, 2, fontsize=7)

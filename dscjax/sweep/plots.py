@@ -14,7 +14,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from dscjax.params import Param
-from dscjax.plotting import GRID, diverged_at_top, saved, until_divergence
+from dscjax.plotting import GRID, diverged_at_top, legend_below, saved, until_divergence
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -96,8 +96,7 @@ def plot_histogram(err, diverged, path, *, t0, t_final, nominal, threshold, titl
         ax.set_ylabel("number of samples")
         ax.set_title((f"{title}\n" if title else "") + f"{int(div.sum()):,} diverged at every step "
                      f"tried ({100 * div.mean():.2f} %, not shown)", fontsize=10)
-        ax.legend(fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.13), ncol=2,
-                  frameon=False)
+        legend_below(fig, ax, 2, fontsize=8)
 
 
 def heatmap_grid(x, y, err, diverged, *, grid_x=None, grid_y=None):
@@ -198,8 +197,7 @@ def plot_heatmap(x, y, err, diverged, path, *, names, t0, t_final, threshold, no
                   "cells differ little") if rel is not None and rel < NARROW else ""
         ax.set_title((f"{title}\n" if title else "") + f"windowed L∞ error over {kind}; other "
                      "swept parameters pooled" + narrow, fontsize=10)
-        ax.legend(handles=handles, fontsize=8, loc="upper center", bbox_to_anchor=(0.5, -0.12),
-                  ncol=1, frameon=False)
+        legend_below(fig, ax, 1, handles, fontsize=8)
     return {"x": names[0], "y": names[1], "x_edges": ex.tolist(), "y_edges": ey.tolist(),
             "median": np.where(np.isfinite(med), med, None).tolist(),
             "count": count.tolist(), "degraded_cells": int(bad.sum()),
