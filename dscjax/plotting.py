@@ -19,6 +19,9 @@ from dscjax import files
 COLORS = {"y": "#1f77b4", "yr": "#444444", "e": "#d62728", "u": "#2ca02c", "w": "#9467bd",
           "x": ("#1f77b4", "#ff7f0e", "#8c564b", "#e377c2", "#17becf", "#bcbd22", "#7f7f7f",
                 "#aec7e8")}
+# The axis label of each signal, and of time, in every figure that draws it.
+AXIS_LABEL = {"t": "time $t$ [s]", "e": "tracking error $e = y - y_r$ [-]",
+              "u": "control input $u$ [-]", "w": "hysteresis output $w$ [-]"}
 # The light grid of every figure that has one: a style for `saved`'s rc.
 GRID = {"axes.grid": True, "grid.alpha": 0.3}
 LOG_GRID = GRID | {"axes.grid.which": "both"}  # lines at the minor ticks too (log axes)
@@ -52,7 +55,7 @@ def hysteresis_loop(ax, hysteresis, u, w, label: str, color: str = COLORS["w"],
         for d1, name in ((lo, f"$w = {lam:.3g}\\,u + d_1$ limits"), (hi, None)):
             ax.plot(ug, lam * ug + d1, color="#999999", lw=0.8, ls=":", label=name)
     ax.plot(u, w, color=color, lw=1.4, label=label)
-    ax.set_xlabel("control input $u$ [-]")
+    ax.set_xlabel(AXIS_LABEL["u"])
 
 
 def legend_below(fig, ax, ncol: int | None = None, handles=None, **kwargs) -> None:
@@ -99,9 +102,9 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
             a.plot(t, signals[key], color=COLORS[key], lw=1.0)
         for a, label, panel in (
                 (ax[0, 0], "state $x_i$, reference $y_r$ [-]", "states against the reference"),
-                (ax[0, 1], "tracking error $e = y - y_r$ [-]", "tracking error"),
-                (ax[1, 0], "control input $u$ [-]", "control input"),
-                (ax[1, 1], "hysteresis output $w$ [-]", "hysteresis output")):
+                (ax[0, 1], AXIS_LABEL["e"], "tracking error"),
+                (ax[1, 0], AXIS_LABEL["u"], "control input"),
+                (ax[1, 1], AXIS_LABEL["w"], "hysteresis output")):
             a.set_ylabel(label)
             a.set_title(panel)
             a.set_xlim(t[0], t[-1])  # the whole horizon, also where a diverged run is not drawn
@@ -109,7 +112,7 @@ def plot_trajectory(traj, path: Path | str, title: str = ""):
                 a.axvline(t_bad, color="#d62728", lw=1.0, ls=":",
                           label=f"diverged at t = {t_bad:.4g} s (frozen afterwards, not drawn)")
         for a in ax[1]:
-            a.set_xlabel("time $t$ [s]")
+            a.set_xlabel(AXIS_LABEL["t"])
         legend_below(fig, ax[0, 0], fontsize=9)
         if title:
             fig.suptitle(title)

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import ts_sweep
-from dscjax.plotting import GRID, LOG_GRID, saved
+from dscjax.plotting import AXIS_LABEL, GRID, LOG_GRID, saved
 from tuning.report_md import LABELS
 
 COLORS = {"start": "#7f7f7f", "tuned": "#d62728"}  # of the start and the tuned gains
@@ -67,15 +67,15 @@ def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
         if sc.u_max:
             for sgn in (1, -1):
                 ax[2].axhline(sgn * sc.u_max, color="k", ls=":", lw=0.8)
-        ax[0].set(ylabel="e = y - y_r [-]", title="tracking error, whole horizon")
+        ax[0].set(ylabel=AXIS_LABEL["e"], title="tracking error, whole horizon")
         ax[1].set(ylabel="e on [t0, T] [-]",
                   title=f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
-        ax[2].set(ylabel="u [-]", title="control input (dotted: the bound on max|u|)")
+        ax[2].set(ylabel=AXIS_LABEL["u"], title="control input (dotted: the bound on max|u|)")
         if sc.tv_max:
             ax[3].axhline(sc.tv_max, color="k", ls=":", lw=0.8,
                           label=f"bound on TV(u) ({sc.tv_max:.4g})")
-        ax[3].set(ylabel="sum |du| [-]", xlabel="time t [s]", title="total variation of u up to t "
-                  "(curves: on the saved grid, a lower bound; labels: exact)")
+        ax[3].set(ylabel="sum |du| [-]", xlabel=AXIS_LABEL["t"], title="total variation of u up "
+                  "to t (curves: on the saved grid, a lower bound; labels: exact)")
         for a in ax:
             a.legend(loc="upper right", fontsize=8)
     figures.append("before_after.png")

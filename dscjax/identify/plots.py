@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from dscjax.identify.fit import fitted
-from dscjax.plotting import saved
+from dscjax.plotting import AXIS_LABEL, saved
 
 
 def write(out: Path, res) -> None:
@@ -30,5 +30,5 @@ def write(out: Path, res) -> None:
                         ax.plot(t, yh, color=colour, lw=1.2, label=f"{tag}: model")
                 ax.set_ylabel(c)
                 ax.legend(fontsize=7, loc="upper right")
-            axes[-1, 0].set_xlabel("t [s]")
+            axes[-1, 0].set_xlabel(AXIS_LABEL["t"])
             fig.suptitle("residuals" if residual else "measured and identified model")

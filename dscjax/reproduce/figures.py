@@ -9,7 +9,7 @@ import numpy as np
 
 from dscjax.config import paper_example
 from dscjax.metrics import default_window
-from dscjax.plotting import COLORS, GRID, hysteresis_loop, legend_below, saved
+from dscjax.plotting import AXIS_LABEL, COLORS, GRID, hysteresis_loop, legend_below, saved
 from dscjax.reproduce import theory
 from dscjax.reproduce.runs import FIG1_AMPLITUDES, FIG1_OMEGA, LABELS, STYLE, estimates
 
@@ -54,20 +54,16 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
                                  out / f"{FIGURES['fig1']}.{fmt}", dpi)}
     t_end = float(np.asarray(trajs["dsc"].t)[-1])
     t_after = default_window(t_end)  # Figs. 3 and 4 add a panel after it
-    error, control = "tracking error $e = y - y_r$ [-]", "control input $u$ [-]"
     dsc = (("dsc", {}),)
     without = [(name, {}) for name in ("dsc_no_dhat_no_zeta", "dsc_no_dhat", "dsc")]
     against = (("dsc", dict(lw=0.9, alpha=0.55)), ("backstepping", {}))  # the DSC faint
-    for key, signal, title, ylabel, runs, zoom in (
+    for key, signal, title, runs, zoom in (
             ("fig2", "e", "Fig. 2  Tracking error of the DSC with and without hysteresis "
-             "compensation", error, without, False),
-            ("fig3", "u", "Fig. 3  Control signal of the DSC", control, dsc, True),
-            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop",
-             "hysteresis output $w$ [-]", dsc, True),
-            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", error, against,
-             False),
-            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", control, against,
-             False)):
+             "compensation", without, False),
+            ("fig3", "u", "Fig. 3  Control signal of the DSC", dsc, True),
+            ("fig4", "w", "Fig. 4  Hysteresis output of the DSC loop", dsc, True),
+            ("fig5", "e", "Fig. 5  Tracking error of adaptive backstepping", against, False),
+            ("fig6", "u", "Fig. 6  Control signal of adaptive backstepping", against, False)):
         paths[key] = out / f"{FIGURES[key]}.{fmt}"
         # one panel against time; with zoom a second one, t >= t_after, where the first
         # second's peak no longer sets the scale
@@ -76,8 +72,8 @@ def figures(trajs: dict, family: dict, out: Path, fmt: str = "png", dpi: int = 1
             axes = axes[:, 0]
             axes[0].set_title(title)
             for ax in axes:
-                ax.set_ylabel(ylabel)
-            axes[-1].set_xlabel("time $t$ [s]")
+                ax.set_ylabel(AXIS_LABEL[signal])
+            axes[-1].set_xlabel(AXIS_LABEL["t"])
             for name, over in runs:
                 _line(axes[0], trajs[name], signal, name, **over)
             if zoom:
@@ -102,7 +98,7 @@ def loop_figure(hyst, amplitudes, omega: float, u, w, title: str, path: Path, dp
                             LOOP_COLORS[i % len(LOOP_COLORS)])
             ax.set_title(f"amplitude {a:g}")
             ax.legend(loc="upper left", framealpha=0.95)
-        axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
+        axes[0, 0].set_ylabel(AXIS_LABEL["w"])
         fig.suptitle(title)
     return path
 
@@ -121,7 +117,7 @@ def _family_figure(family: dict, path: Path, dpi: int) -> Path:
                                 LOOP_COLORS[i % len(LOOP_COLORS)], lines=i == big)
             ax.set_title(model.title, fontsize=9)
             ax.legend(loc="upper left", framealpha=0.95, fontsize=7)
-        axes[0, 0].set_ylabel("hysteresis output $w$ [-]")
+        axes[0, 0].set_ylabel(AXIS_LABEL["w"])
         fig.suptitle(r"Fig. 1 for every actuator model: $w(u)$ for $u = k\,\sin(2.3t)$, "
                      r"examples' parameters (docs/hysteresis.md)")
     return path
@@ -148,7 +144,7 @@ def _estimates_figure(trajs, path: Path, dpi: int) -> Path:
             ax.set_ylabel(ylabel)
             ax.margins(y=0.12)
         for ax in axes[1]:
-            ax.set_xlabel("time $t$ [s]")
+            ax.set_xlabel(AXIS_LABEL["t"])
         legend_below(fig, axes[0, 0], ncol=3)
         fig.suptitle(r"Adaptive estimates of the DSC and of backstepping ($\hat\theta_2 \equiv 0$ "
                      r"because $f_2 = 0$; not shown)")

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import files
-from dscjax.plotting import saved
+from dscjax.plotting import AXIS_LABEL, saved
 from dscjax.reproduce import alpha0 as alpha0_study
 from dscjax.reproduce import theory
 from dscjax.reproduce.figures import RC
@@ -128,7 +128,7 @@ def plot_lyapunov(arrays: dict, summary: dict, path: Path, dpi: int = 150) -> Pa
                         label="bound (65)")
         bottom.axhline(summary["bound_71"], color="#7f7f7f", ls=":", lw=1.0,
                        label="$C/(2\\alpha_0)$ (71)")
-        bottom.set(xlabel="time $t$ [s]", ylabel="[-]", title=f"against Theorem 1 with the "
+        bottom.set(xlabel=AXIS_LABEL["t"], ylabel="[-]", title=f"against Theorem 1 with the "
                    f"certified $\\alpha_0$ = {summary['alpha0']:.3g}, $\\mu$ = {summary['mu']:.3g} "
                    "(data-driven $M$)")
         for ax in (top, bottom):

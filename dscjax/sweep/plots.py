@@ -14,7 +14,7 @@ from matplotlib.lines import Line2D
 from matplotlib.patches import Patch
 
 from dscjax.params import Param
-from dscjax.plotting import GRID, diverged_at_top, legend_below, saved, until_divergence
+from dscjax.plotting import AXIS_LABEL, GRID, diverged_at_top, legend_below, saved, until_divergence
 
 _SYMBOLS = {
     "hysteresis.alpha": "α", "hysteresis.lam": "λ", "hysteresis.psi": "ψ",
@@ -249,9 +249,9 @@ def plot_traces(trajs: Sequence, labels: Sequence[str], kinds: Sequence[str], pa
             a.axvline(t0, color="#bbbbbb", lw=0.8, ls=":")
         ax[0].annotate("window starts", (t0, 1.0), xycoords=("data", "axes fraction"),
                        xytext=(3, -12), textcoords="offset points", fontsize=8, color="#777777")
-        ax[0].set_ylabel("tracking error  e = y − y_r")
-        ax[1].set_ylabel("control input  u")
-        ax[1].set_xlabel("time  t [s]")
+        ax[0].set_ylabel(AXIS_LABEL["e"])
+        ax[1].set_ylabel(AXIS_LABEL["u"])
+        ax[1].set_xlabel(AXIS_LABEL["t"])
         ax[0].legend(fontsize=7, loc="upper left", bbox_to_anchor=(1.01, 1.0), frameon=False)
         fig.suptitle(title, fontsize=11)
 

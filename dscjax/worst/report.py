@@ -17,7 +17,7 @@ import numpy as np
 from dscjax import config, files
 from dscjax.disturbance import half_step_grid
 from dscjax.markdown import table, window
-from dscjax.plotting import saved
+from dscjax.plotting import AXIS_LABEL, saved
 from dscjax.worst import Result, assumption_warnings, best_value
 
 FILES = ("worst.json", "worst_config.toml", "worst_trajectory.npz", "report.md")
@@ -140,10 +140,10 @@ def _plot_worst(path, worst, nominal, result):
             t = np.asarray(traj.t)
             for a, signal in zip(ax, (traj.e, traj.u), strict=True):
                 a.plot(t, np.asarray(signal), ls=style, lw=1.0, label=name, color=color)
-        for a, label in zip(ax, ("tracking error e [-]", "control u [-]"), strict=True):
-            a.set_ylabel(label)
+        for a, signal in zip(ax, "eu", strict=True):
+            a.set_ylabel(AXIS_LABEL[signal])
             a.legend(loc="upper right")
-        ax[1].set_xlabel("t [s]")
+        ax[1].set_xlabel(AXIS_LABEL["t"])
         ax[0].set_title(f"worst case of {result.problem.metric}: {result.value:.4g} "
                         f"(nominal {result.nominal_value:.4g})")
     return fig
@@ -156,7 +156,7 @@ def _plot_disturbance(path, t_half, dbar, result):
         if spec is not None:
             for s in (-1, 1):
                 ax.axhline(s * spec.bound, color="#444444", ls=":", lw=0.8)
-        ax.set_xlabel("t [s]")
+        ax.set_xlabel(AXIS_LABEL["t"])
         ax.set_ylabel(r"$\bar d(t)$ [-]")
         ax.set_title("worst disturbance" + (f" ({spec.spec()})" if spec else ""))
 
