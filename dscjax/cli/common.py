@@ -162,6 +162,13 @@ def banner(args, text: str, warnings=()) -> None:
     say(args, "warning", *warnings)
 
 
+def wrote(out, *names: str | None, took: str = "") -> None:
+    """A command's line of the files it wrote into its --out `out`, on stdout with its
+    results: "  wrote DIR/a, b, c (TOOK)"; a name that is None (a figure not drawn) is left
+    out."""
+    print(f"  wrote {out}/{', '.join(filter(None, names))}" + (f" ({took})" if took else ""))
+
+
 def listed(names, most: int = 6) -> str:
     """names joined, at most `most` of them and how many more."""
     shown = ", ".join(names[:most])

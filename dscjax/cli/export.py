@@ -64,5 +64,5 @@ def run(args) -> int:
                 f"{args.precision}; from {source}")
     for name, text in files.items():
         write_text(out / name, text)
-    print(f"  wrote {out}/{export.HEADER}, {export.SOURCE}")
+    common.wrote(out, *files)
     return 0

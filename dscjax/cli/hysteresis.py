@@ -79,6 +79,6 @@ def run(args) -> int:
     loop_figure(hyst, amplitudes, args.omega, u, w, hyst.title, out / "loop.png", 120)
     for a, wk in zip(amplitudes, w, strict=True):
         print(f"A = {a:g}: max|w| = {np.max(np.abs(wk)):.6g}, w(T) = {wk[-1]:.6g}")
-    print(f"wrote {out}/loop.npz, loop.png")
+    common.wrote(out, "loop.npz", "loop.png")
     return 0
 

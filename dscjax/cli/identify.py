@@ -57,5 +57,5 @@ def run(args) -> int:
     res = ident.identify(setup, spec, record, s, val)
     written = ident.write(out, res, spec, source, plot=not args.no_plot)
     print((out / "report.md").read_text())
-    print(f"  wrote {out}: {', '.join(written)}")
+    common.wrote(out, *written)
     return 0

@@ -113,8 +113,8 @@ def run(args) -> int:
         sampled = f", sampled every {spec.sample_time:g} s" if spec.sampled else ""
         _plot(result, out / "sensitivity.png", f"sensitivity of "
               f"{setup.controller.kind.upper()}, n={setup.order}, {what}{sampled}, {plants}")
-    print(f"  wrote {out}/sensitivity.json" + ("" if args.no_plot else ", sensitivity.png")
-          + f" ({t2 - t0:.1f} s, compilation {t1 - t0:.1f} s)")
+    common.wrote(out, "sensitivity.json", None if args.no_plot else "sensitivity.png",
+                 took=f"{t2 - t0:.1f} s, compilation {t1 - t0:.1f} s")
     if untrusted:
         common.say(args, "warning", untrusted)
     return 0

@@ -128,8 +128,8 @@ def run(args) -> int:
     if not args.no_plot:
         sampled = f", sampled every {options.sample_time:g} s" if options.sampled else ""
         plot_trajectory(traj, out / "trajectory.png", title=loop + sampled)
-    print(f"  wrote {out}/trajectory.npz, metrics.json"
-          + ("" if args.no_plot else ", trajectory.png") + f" ({elapsed:.2f} s)")
+    common.wrote(out, "trajectory.npz", "metrics.json",
+                 None if args.no_plot else "trajectory.png", took=f"{elapsed:.2f} s")
     if int(traj.refinements) and not (options.sampled and diverged is not None):
         # (a sampled loop refined and still diverged: the error's line says why)
         what = "diverged at every level down to" if diverged else "the reported run is"

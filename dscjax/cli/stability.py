@@ -71,7 +71,7 @@ def run(args) -> int:
     files.write_json(out / "stability.json", {"t_final": options.t_final, **data})
     if not args.no_plot:
         _plot(m, out / "stability.png")
-    print(f"wrote {out}/stability.json" + ("" if args.no_plot else ", stability.png"))
+    common.wrote(out, "stability.json", None if args.no_plot else "stability.png")
     return 0
 
 

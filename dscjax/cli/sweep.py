@@ -249,8 +249,8 @@ def run(args) -> int:
 
     took = (f"{info['steps_per_s']:.3g} steps/s incl. compilation" if info["steps_per_s"]
             else "nothing left to run")
-    print(f"  wrote {out}/results.npz, summary.json, summary.md, traces.npz"
-          + "".join(f", {f}" for f in figures) + f" ({info['wall_s']:.1f} s, {took})")
+    common.wrote(out, "results.npz", "summary.json", "summary.md", "traces.npz", *figures,
+                 took=f"{info['wall_s']:.1f} s, {took}")
     for line in sweep.outcome(summary):
         print(f"  {line}")
     if f32 is not None and f32["untrusted"]:

@@ -225,11 +225,10 @@ def run(args) -> int:
         print(f"  {line}")
     common.say(args, "WARNING", *report_md.warnings(summary))
     print(f"  run the loop tuned: {simulate_command(result.problem, str(out / 'gains.json'))}")
-    print(f"  wrote {out}/gains.json, "
-          + ("adversarial.json, round_*/ (each round's tuning run and search), fresh_*/, "
-             if outcome is not None else "history.csv, ") + "report.md, report.json"
-          + "".join(f", {f}" for f in summary["figures"])
-          + f" ({time.perf_counter() - t_start:.1f} s in all)")
+    rounds = ("adversarial.json", "round_*/ (each round's tuning run and search)", "fresh_*/")
+    common.wrote(out, "gains.json", *(rounds if outcome is not None else ["history.csv"]),
+                 "report.md", "report.json", *summary["figures"],
+                 took=f"{time.perf_counter() - t_start:.1f} s in all")
     return 0
 
 

@@ -118,7 +118,7 @@ def run(args) -> int:
     print(f"  worst {problem.metric}: {verdict(result)} by {result.method} (nominal "
           f"{result.nominal_value:.6g})")
     print("\n".join(f"  {line}" for line in methods_table(result)))
-    print(f"  wrote {out}/" + ", ".join(names), file=sys.stderr)
+    common.wrote(out, *names)
     return 0
 
 
