@@ -10,14 +10,13 @@ from __future__ import annotations
 
 from dscjax import export
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, start
+from dscjax.cli.out import Outputs, add_out_arg, start
 from dscjax.export import PRECISIONS
 from dscjax.files import write_text
 from dscjax.params import cast
 from dscjax.validation import ConfigError, validate_setup
 
 OUTPUTS = Outputs(("dsc_controller.h", "dsc_controller.c"))
-interrupt_hint = nothing_kept
 
 
 HELP = "the sampled controller of a config as C99 (dsc_controller.h, .c)"

@@ -12,13 +12,12 @@ from __future__ import annotations
 
 from dscjax import settings
 from dscjax.cli import common
-from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, start
+from dscjax.cli.out import Outputs, add_out_arg, start
 from dscjax.identify import read
 from dscjax.identify import run as ident
 from dscjax.params import cast
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
-interrupt_hint = nothing_kept
 
 
 HELP = "identify plant and actuator numbers from a measured record"
