@@ -49,10 +49,12 @@ def add_overwrite_arg(p, resume: str | None = None, overwrite: str | None = None
 class Outputs:
     """What a command writes into its --out, declared once per command: file names or glob
     patterns, and folders. The one rule of an existing --out checks them and --overwrite
-    deletes them, never anything else."""
+    deletes them, never anything else. `at_end`: they are written when the run ends, which an
+    interrupted run says where it kept none (`kept_text`)."""
 
     files: tuple[str, ...]
     folders: tuple[str, ...] = ()
+    at_end: bool = False
 
     def found(self, out: Path) -> list[str]:
         """The outputs present in `out` (folders with a trailing /), sorted."""
@@ -151,24 +153,22 @@ def start(args, outputs: Outputs, text: str, device: str | None = None, rows: in
     return out
 
 
-# what a command that writes its files when it ends says it keeps when interrupted
-AT_END = " (the files are written when the run ends)"
-
-
 def nothing_kept(args, why: str = "") -> str:
-    """The hint of an interrupted command that keeps nothing (`why`, e.g. `AT_END`), and the
-    command that runs it again (`rerun_command`)."""
+    """The hint of an interrupted command that keeps nothing (`why`, e.g. that it writes its
+    files when it ends), and the command that runs it again (`rerun_command`)."""
     return f"nothing is kept{why}; run the same command again: {rerun_command(args)}"
 
 
-def kept_text(args, outputs: Outputs, why: str = "") -> str:
+def kept_text(args, outputs: Outputs) -> str:
     """What an interrupted command that cannot resume says it keeps: the files it finished
     (`outputs` found in --out: the rule of --out let it start only where none was), or
-    nothing (`nothing_kept`); then the command that makes them all."""
+    nothing (`nothing_kept`, saying why where `outputs.at_end`); then the command that makes
+    them all."""
     out = Path(args.out)
     found = outputs.found(out)  # none where --out is not a directory
     if not found:
-        return nothing_kept(args, why)
+        return nothing_kept(args, " (the files are written when the run ends)"
+                            if outputs.at_end else "")
     return (f"the {len(found)} file(s) finished before it are kept in {out} "
             f"({listed(found, 4)}), the rest is not written; run the same command again: "
             f"{rerun_command(args)}")

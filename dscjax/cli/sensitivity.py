@@ -20,7 +20,7 @@ import numpy as np
 
 from dscjax import files, params, validation
 from dscjax.cli import common
-from dscjax.cli.out import AT_END, Outputs, add_out_arg, nothing_kept, start
+from dscjax.cli.out import Outputs, add_out_arg, start
 from dscjax.markdown import number, table
 from dscjax.plotting import saved
 from dscjax.progress import Progress
@@ -29,7 +29,7 @@ from dscjax.sensitivity import METRICS, Problem, check_metrics
 from dscjax.simulate import DivergenceError
 from dscjax.sweep.summary import float32_trust
 
-OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"))
+OUTPUTS = Outputs(("sensitivity.json", "sensitivity.png"), at_end=True)
 RUN_KEYS = ("t_final", "dt", "window_start", "solver", *common.SAMPLED_KEYS, "device")
 TOP = 15  # bars per metric in the tornado chart
 
@@ -191,7 +191,3 @@ def _plot(result, path, title: str) -> None:
             ax.set_title(f"{result.metrics[i]} = {result.value[i]:.3g}", fontsize=9)
             ax.set_xlabel("d ln m / d ln p")
         fig.suptitle(title, fontsize=9)
-
-
-def interrupt_hint(args) -> str:
-    return nothing_kept(args, AT_END)

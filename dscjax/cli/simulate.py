@@ -13,7 +13,7 @@ import numpy as np
 
 from dscjax import validation
 from dscjax.cli import common
-from dscjax.cli.out import AT_END, Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
+from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.controllers.dsc import DSC, VARIANTS
 from dscjax.files import write_json, write_npz
 from dscjax.params import cast
@@ -25,7 +25,7 @@ from dscjax.simulate import DivergenceError, check, divergence_report, refinemen
 from dscjax.sweep.summary import float32_trust
 from dscjax.validation import fmt_bytes
 
-OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"))
+OUTPUTS = Outputs(("trajectory.npz", "metrics.json", "trajectory.png"), at_end=True)
 # the [simulation] keys this command takes as options
 SIMULATE_KEYS = ("t_final", "dt", "save_every", "window_start", "solver", "refine",
                  *common.SAMPLED_KEYS, "device")
@@ -171,8 +171,3 @@ BIG_FILE = 256 * 2**20  # a trajectory.npz above this size is announced before t
 # Peak memory of a saved trajectory in multiples of its size: the result, its host copy and the
 # npz being written
 MEMORY_FACTOR = 3
-
-
-def interrupt_hint(args) -> str:
-    return kept_text(args, OUTPUTS, AT_END)
-
