@@ -281,21 +281,32 @@ def config_data(args) -> dict:
     return args.config_data
 
 
-def config_setup(args, base_spec=None, gains: bool = False):
-    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), then with
-    `gains` the whole config of --gains (e.g. the gains.json of `dscjax tune`) over that,
-    before the command line's options."""
+def config_setup(args, base_spec=None, gains=None):
+    """(Setup, RunSpec) of --config laid over --example (float64; and `base_spec`), then the
+    file of --gains, where one is given, laid over that by `gains` (a command's way: e.g.
+    `whole_config`), before the command line's options."""
     base = config.example(args.example or "paper", dtype=np.float64)
     setup, spec = config.from_dict(config_data(args), base=base, base_spec=base_spec)
     if gains and args.gains:
-        return config.from_dict(config.read(args.gains, "--gains"), base=setup, base_spec=spec)
+        return gains(args, setup, spec)
     return setup, spec
 
 
-def own_settings(args, group, prefix: str, base):
-    """(settings, given, names): `base` (a command's settings group, its config table read)
-    with the group's options given on the command line laid over it, a refusal naming the
-    option typed (`blame_options`); `given` and `names` as `dscjax.settings.given`'s."""
+def whole_config(args, setup, spec):
+    """--gains of `export` and `tune`: the whole config of the file (e.g. the gains.json of
+    `dscjax tune`: the gains, the plant and the loop they were tuned on) laid over (setup,
+    spec)."""
+    return config.from_dict(config.read(args.gains, "--gains"), base=setup, base_spec=spec)
+
+
+def own_settings(args, group, name: str, base=None, skip: tuple[str, ...] = ()):
+    """(settings, given, names): a command's settings group `group`, `base` (by default the
+    [NAME] table of --config laid over the group's defaults, `skip` its keys the command reads
+    itself) with the group's options given on the command line laid over it, a refusal naming
+    the option typed (`blame_options`); `given` and `names` as `dscjax.settings.given`'s."""
+    prefix = f"{name}."
+    if base is None:
+        base = settings.from_table(group, config_data(args).get(name, {}), prefix, skip=skip)
     given, names = settings.given(args, group, prefix)
     with blame_options(names):
         return settings.from_table(group, given, prefix, base), given, names
@@ -316,13 +327,13 @@ def checked_setup(args, setup, spec):
     return setup, spec
 
 
-def load_setup(args):
-    """(Setup, RunSpec) from --config plus command-line options (`checked_setup`), the setup
-    cast to the dtype (a command's own table in the file, e.g. [tuning], is left to that
-    command)."""
-    setup, spec = config_setup(args)
+def load_setup(args, base_spec=None, gains=None, dtype=None):
+    """(Setup, RunSpec) from --config (and --gains: `config_setup`) plus command-line options
+    (`checked_setup`), the setup cast to `dtype` (default the spec's; a command's own table
+    in the file, e.g. [tuning], is left to that command)."""
+    setup, spec = config_setup(args, base_spec, gains)
     if getattr(args, "variant", None):
         setup = setup.replace(
             controller=dataclasses.replace(setup.controller, variant=args.variant))
     setup, spec = checked_setup(args, setup, spec)
-    return cast(setup, np.dtype(spec.dtype)), spec
+    return cast(setup, np.dtype(dtype or spec.dtype)), spec

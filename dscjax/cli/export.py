@@ -34,7 +34,7 @@ def add_options(p):
 def load(args):
     """(setup, spec, source) of --example, --config, --gains and the options, float64, the
     spec sampled (a config without a sample time and no --sample-time: one line)."""
-    setup, spec = common.config_setup(args, gains=True)
+    setup, spec = common.config_setup(args, gains=common.whole_config)
     source = " ".join(f"{flag} {value}" for flag, value in (
         ("--example", args.example), ("--config", args.config), ("--gains", args.gains)) if value)
     overrides, names = common.run_overrides(args)

@@ -15,7 +15,6 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, start
 from dscjax.identify import read
 from dscjax.identify import run as ident
-from dscjax.params import cast
 
 OUTPUTS = Outputs(("identified.toml", "report.md", "report.json", "fit.png", "residuals.png"))
 
@@ -33,14 +32,11 @@ def add_options(p):
 def load(args):
     """(setup, spec, settings, source) from --config (its [identify] table), --example and the
     options."""
-    setup, spec = common.config_setup(args)
-    table = common.config_data(args).get("identify", {})
-    s = settings.from_table(ident.IdentifySettings, table, "identify.")
-    s = common.own_settings(args, ident.IdentifySettings, "identify.", s)[0]
-    setup, spec = common.checked_setup(args, setup, spec)
+    setup, spec = common.load_setup(args, dtype="float64")
+    s = common.own_settings(args, ident.IdentifySettings, "identify")[0]
     ident.check_free(setup, s.free)  # before the data and --out
     source = {"data": args.data, "model": args.config or f"--example {args.example}"}
-    return cast(setup, "float64"), spec, s, source
+    return setup, spec, s, source
 
 
 def run(args) -> int:

@@ -23,7 +23,7 @@ from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, nothing_kept, prepare_out, resume_text
 from dscjax.params import DEFAULT_PATHS, DEFAULT_REL, assumption_warnings, parse_range
 from dscjax.progress import Progress
-from dscjax.runspec import RunSpec, Simulation
+from dscjax.runspec import Simulation
 from dscjax.validation import ConfigError, Work, check_work
 
 # Default threshold of "degraded" tracking: this many times the nominal setup's windowed error.
@@ -75,16 +75,12 @@ def add_options(p):
 
 def load(args):
     """(setup, options, settings) from --config, --gains and the command line."""
-    raw = common.config_data(args)
-    setup, options = common.config_setup(args)
-    if args.gains:
-        setup, options = _gains(args, setup, options, raw.get("simulation", {}))
-    setup, options = common.checked_setup(args, setup, options)
-    settings = sweep.settings_from_dict(raw.get("sweep", {}), sweep.SweepSettings())
+    setup, options = common.checked_setup(args, *common.config_setup(args, gains=_gains))
+    settings = sweep.settings_from_dict(common.config_data(args).get("sweep", {}))
     if args.grid and args.samples is not None:
         raise ConfigError("--samples cannot be used with --grid (a grid's size is the product "
                           "of its numbers of points)")
-    settings, given, _ = common.own_settings(args, sweep.SweepSettings, "sweep.", settings)
+    settings, given, _ = common.own_settings(args, sweep.SweepSettings, "sweep", settings)
     changes = {}
     if args.grid:
         changes |= dict(method=params.Grid(), ranges=tuple(parse_range(g, grid=True)
@@ -99,7 +95,7 @@ def load(args):
     return setup, options, dataclasses.replace(settings, **changes)
 
 
-def _gains(args, setup, options, config_loop: dict):
+def _gains(args, setup, options):
     """(setup, options) with the gains file's gains and the loop they were tuned as laid
     over the config's: a gains.json of `dscjax tune` is a whole config, of which the sweep
     takes the [controller] table and the sampled controller's [simulation] keys
@@ -116,17 +112,18 @@ def _gains(args, setup, options, config_loop: dict):
         return setup, options
     if not isinstance(loop, dict):
         raise ConfigError(f"{args.gains}: 'simulation' must be a table ([simulation])")
+    config_loop = common.config_data(args).get("simulation", {})
     continuous = {k: getattr(Simulation(), k) for k in common.SAMPLED_KEYS}
     given = {k: loop[k] for k in common.SAMPLED_KEYS if k in loop}
-    for key, value in (continuous | given).items():
+    tuned = continuous | given  # the loop the gains were tuned as
+    for key, value in tuned.items():
         if key in config_loop and config_loop[key] != value:
             common.say(args, "note", f"simulation.{key} = {config_loop[key]!r} in "
                        f"{args.config} gives way to {args.gains}'s {value!r} (the loop the "
                        f"gains were tuned as; --{key.replace('_', '-')} overrides both)")
-    # the config's run with a continuous controller, then the gains file's keys (checked)
-    options = RunSpec.make(**(options.to_table() | continuous), gradient=options.gradient)
+    # the config's run with the sampled controller's keys the gains file's (checked)
     return setup, options.replace(names={k: f"simulation.{k} of --gains {args.gains}"
-                                         for k in given}, **given)
+                                         for k in given}, **tuned)
 
 
 def typed_settings(args) -> dict[str, str]:

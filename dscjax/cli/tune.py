@@ -13,7 +13,6 @@ from pathlib import Path
 from dscjax import config, files
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, kept_text, prepare_out
-from dscjax.params import cast
 from dscjax.progress import Phase, Progress
 from dscjax.runspec import RunSpec
 from dscjax.settings import add_arguments
@@ -77,8 +76,11 @@ def interrupt_hint(args) -> str:
 
 def load(args):
     """(setup, options, TuningConfig) from --config, --tuning, --gains and the command line."""
-    setup, options = common.config_setup(args, RunSpec.make(**SIMULATION), gains=True)
-    cfg = tuning_from_dict(common.config_data(args).get("tuning", {}), TuningConfig())
+    setup, options = common.load_setup(args, RunSpec.make(**SIMULATION), common.whole_config)
+    if options.dtype != "float64":
+        raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
+                          "sweeps)")
+    cfg = tuning_from_dict(common.config_data(args).get("tuning", {}))
     if args.tuning:
         extra = config.read(args.tuning, "--tuning")
         unknown = set(extra) - {"tuning"}
@@ -86,17 +88,13 @@ def load(args):
             raise ConfigError(f"{args.tuning}: a --tuning file holds only a [tuning] table "
                               f"(got {', '.join(sorted(unknown))})")
         cfg = tuning_from_dict(extra.get("tuning", {}), cfg)
-    cfg, given, names = common.own_settings(args, TuningConfig, "tuning.", cfg)
+    cfg, given, names = common.own_settings(args, TuningConfig, "tuning", cfg)
     search = [names[f"tuning.adversarial.{k}"] for k in given.get("adversarial", {})
               if k != "rounds"]
     if search and not cfg.adversarial.rounds:
         raise ConfigError(f"{search[0]} applies to adversarial tuning: give --adversarial R "
                           f"with R >= 1 (or [tuning.adversarial] rounds)")
-    setup, options = common.checked_setup(args, setup, options)
-    if options.dtype != "float64":
-        raise ConfigError("dscjax tune runs in float64 (simulation.dtype = \"float32\" is for "
-                          "sweeps)")
-    return cast(setup, "float64"), options, cfg
+    return setup, options, cfg
 
 
 def run(args) -> int:

@@ -150,10 +150,9 @@ def stored_work(problem):
 def worst_settings(args):
     """(WorstSettings, ranges): the config's [worst] table (and [worst.ranges]) laid over the
     defaults, then the options given (a refusal names the option)."""
+    s = common.own_settings(args, worst.WorstSettings, "worst", skip=("ranges",))[0]
     table = common.config_data(args).get("worst", {})
-    s = settings.from_table(worst.WorstSettings, table, "worst.", skip=("ranges",))
     ranges = tuple(from_table(table["ranges"], "worst.ranges")) if "ranges" in table else ()
-    s = common.own_settings(args, worst.WorstSettings, "worst.", s)[0]
     if args.ranges:
         ranges = tuple(parse_range(text) for text in args.ranges)
     return s, ranges
