@@ -262,12 +262,14 @@ def print_config(setup, spec, extra: dict | None = None, groups: dict | None = N
     return 0
 
 
-def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True):
-    """--config, --example and --print-config, the given [simulation] options, --float32."""
+def add_config_args(p, *, run_keys=("t_final", "dt"), float32=True, defaults=None, table=None):
+    """--config (which may hold the command's own `table`), --example and --print-config, the
+    given [simulation] options (`defaults`: a command's own), --float32."""
+    own = f"; may hold a [{table}] table" if table else ""
     p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the "
-                   "--example; see --print-config")
+                   f"--example{own}; see --print-config")
     add_example_arg(p)
-    add_run_args(p, run_keys)
+    add_run_args(p, run_keys, defaults)
     if float32:
         p.add_argument("--float32", action="store_true", help="run in float32 (default "
                        "float64, or the config's simulation.dtype)")

@@ -24,7 +24,7 @@ HELP = "identify plant and actuator numbers from a measured record"
 
 def add_options(p):
     p.add_argument("--data", required=True, metavar="FILE", help="the measured record")
-    common.add_config_args(p, run_keys=("dt",), float32=False)
+    common.add_config_args(p, run_keys=("dt",), float32=False, table="identify")
     settings.add_arguments(p, ident.IdentifySettings, "identify.")
     add_out_arg(p, "results/identify", plot="skip the figures")
 

@@ -40,7 +40,7 @@ HELP = "Monte-Carlo / grid robustness sweep over plant and hysteresis parameters
 
 def add_options(p):
     names = ", ".join(path.split(".")[-1] for path in DEFAULT_PATHS)
-    common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False)
+    common.add_config_args(p, run_keys=SWEEP_KEYS, float32=False, table="sweep")
     p.add_argument("--gains", metavar="FILE", help="a config (e.g. tune's gains.json) whose "
                    "[controller] and sampled-controller [simulation] keys (sample_time, delay, "
                    "noise, ...) are laid over --config; the rest is ignored")
@@ -59,7 +59,8 @@ def add_options(p):
                           help=f"run in {dtype} (default {sweep.SweepSettings.dtype})")
     add_out_arg(p, "results/sweep",
                 resume="continue a sweep in DIR: skip the blocks already written",
-                overwrite="discard a sweep in DIR and start afresh")
+                overwrite="discard a sweep in DIR and start afresh", plot="skip the PNG figures",
+                quiet="no progress line")
     dist = p.add_argument_group("several hosts (run the same command on every host)")
     dist.add_argument("--distributed", action="store_true", help="call "
                       "jax.distributed.initialize() first (SLURM, Open MPI, ... auto-detected)")
@@ -69,8 +70,6 @@ def add_options(p):
                       help="number of processes")
     dist.add_argument("--process-id", type=common.count(0), metavar="I",
                       help="this process's index")
-    p.add_argument("--no-plot", action="store_true", help="skip the PNG figures")
-    p.add_argument("--quiet", action="store_true", help="no progress line")
 
 
 def load(args):

@@ -35,16 +35,14 @@ DESCRIPTION = ("Tune the DSC gains of a config (default: the paper's example sam
 
 
 def add_options(p):
-    p.add_argument("--config", metavar="FILE", help="TOML (or JSON) config laid over the paper's "
-                   "example; may hold a [tuning] table")
+    common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"),
+                           float32=False, defaults=SIMULATION, table="tuning")
     p.add_argument("--tuning", metavar="FILE", help="TOML (or JSON) file with a [tuning] table "
                    "(laid over the one in --config)")
     p.add_argument("--gains", metavar="FILE", help="start from the gains of this config, e.g. "
-                   "the gains.json of an earlier run (laid over --config)")
+                   "the gains.json of an earlier run (laid over --config, its plant and loop too)")
     add_out_arg(p, "results/tune", later=True)
     add_arguments(p, TuningConfig, "tuning.")
-    common.add_run_args(p, ("t_final", "dt", *common.SAMPLED_KEYS, "device"), defaults=SIMULATION)
-    common.add_example_arg(p)
     add_overwrite_arg(p, resume="continue the run in DIR from its checkpoint (iteration "
                       "count, optimiser state and best point)",
                       overwrite="discard a run in DIR and start afresh",

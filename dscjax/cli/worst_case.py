@@ -32,7 +32,8 @@ HELP = "worst-case search over parameter boxes and disturbance waveforms"
 
 
 def add_options(p):
-    common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"))
+    common.add_config_args(p, run_keys=("t_final", "dt", *common.SAMPLED_KEYS, "device"),
+                           table="worst")
     p.add_argument("--range", action="append", dest="ranges", metavar="PATH=LOW:HIGH|PATH=P%",
                    help="a searched parameter (repeat), e.g. plant.g[1]=0.7:1.3 or "
                    "hysteresis.alpha=30%%")
