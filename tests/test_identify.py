@@ -112,6 +112,12 @@ def test_a_validation_record_must_measure_the_fits_columns(tmp_path, capsys, fit
     # and a fit of nothing (the command's --free is required; the library refused it too)
     with pytest.raises(ConfigError, match="^--free: give the numbers to fit"):
         identify(example("paper"), RunSpec.make(1.0, 1e-3), read(data, 2), IdentifySettings())
+    # numbers the experiment does not depend on: the measured u drives it, so the controller
+    # never acts, and an actuator record (u, w) sees no plant number
+    idle = ("hysteresis.alpha", "controller.k") if "x1" in fitted else ("plant.g",)
+    with pytest.raises(ConfigError, match=f"^--free must name .* \\(got {idle[-1]}\\)$"):
+        identify(example("paper"), RunSpec.make(1.0, 1e-3), read(data, 2), IdentifySettings(
+            free=idle))
 
 
 @pytest.mark.parametrize("good_data", [False, True])

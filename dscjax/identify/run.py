@@ -74,12 +74,21 @@ class Identified:
     seconds: float
 
 
-def check_free(setup, free) -> None:
-    """Refuse an empty `free` and each path the setup lacks (ConfigError), before any data."""
+def check_free(setup, free, plant: bool = True) -> None:
+    """Refuse an empty `free`, each path the setup lacks and each number that does not act on
+    the experiment (ConfigError): the plant's and the actuator's numbers act on a plant
+    record, the actuator's alone on an actuator record (u and w); the controller and the
+    reference never act (the measured u drives the experiment)."""
     if not free:
         raise ConfigError("--free: give the numbers to fit, e.g. --free "
                           "plant.g,hysteresis.alpha (or [identify] free in the config)")
     columns(setup, free, "--free")
+    acting = ("plant.", "hysteresis.") if plant else ("hysteresis.",)
+    idle = [p for p in free if not p.startswith(acting)]
+    if idle:
+        raise ConfigError(f"--free must name {' or '.join(a + '*' for a in acting)} numbers, "
+                          f"which act on {'a plant' if plant else 'an actuator (u, w)'} record "
+                          f"(got {', '.join(idle)})")
 
 
 def check_validation(val: Record, record: Record) -> Record:
@@ -103,7 +112,6 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
     """Fit `s.free` of `setup` to `record` (the plant experiment where the record measures a
     plant state, the actuator alone where it measures w only), then validate on `validation`
     (default: the record's last quarter, which the fit then leaves out)."""
-    check_free(setup, s.free)
     plant = any(c != "w" for c in record.y)
     fitted = len(record)  # the samples the fit reads
     if validation is None:
@@ -113,6 +121,7 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
                  f"{record.t[fitted - 1]:g} s)")
     else:
         fit_index, val, where = None, check_validation(validation, record), validation.source
+    check_free(setup, s.free, plant)
     by_rule(AtLeast(1), s.segments, "--segments")
     if s.segments > fitted // 10:
         raise ConfigError(f"--segments must be at most {fitted // 10} for {fitted} samples (10 "
@@ -220,7 +229,7 @@ def markdown(s: dict) -> str:
                       for n, row in zip(names, s["correlation"], strict=True)])]
     sv = s["singular_values"]
     lines += ["", f"Singular values of the weighted Jacobian: {sv[0]:.4g} ... {sv[-1]:.4g} "
-              f"(ratio {sv[-1] / sv[0]:.3g}); noise std "
+              f"(ratio {sv[-1] / sv[0] if sv[0] > 0 else math.nan:.3g}); noise std "
               + ", ".join(f"{c} {v:.3g}" for c, v in s["noise_std"].items())
               + f"; residual variance factor {s['residual_variance_factor']:.3g}.", ""]
     if s["robust_box"]:
