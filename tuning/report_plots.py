@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from dscjax import ts_sweep
+from dscjax.markdown import window
 from dscjax.plotting import AXIS_LABEL, GRID, LOG_GRID, saved
 from tuning.report_md import LABELS
 
@@ -69,7 +70,7 @@ def draw(out: Path, result, ev, trajs, sampling: dict | None) -> list[str]:
                 ax[2].axhline(sgn * sc.u_max, color="k", ls=":", lw=0.8)
         ax[0].set(ylabel=AXIS_LABEL["e"], title="tracking error, whole horizon")
         ax[1].set(ylabel="e on [t0, T] [-]",
-                  title=f"tracking error on the window [{sim.window_start:g}, {sim.t_final:g}] s")
+                  title=f"tracking error on the window {window(sim.window_start, sim.t_final)}")
         ax[2].set(ylabel=AXIS_LABEL["u"], title="control input (dotted: the bound on max|u|)")
         if sc.tv_max:
             ax[3].axhline(sc.tv_max, color="k", ls=":", lw=0.8,

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from dscjax import validation
+from dscjax import markdown, validation
 from dscjax.cli import common
 from dscjax.cli.out import Outputs, add_out_arg, add_overwrite_arg, prepare_out
 from dscjax.controllers.dsc import DSC, VARIANTS
@@ -137,7 +137,7 @@ def run(args) -> int:
               f"hysteresis rate alpha |u'| or the filters 1/tau); refined: {what} {used} at "
               f"dt = {float(traj.dt):g} s", file=sys.stderr)
     if diverged is None:
-        window = f"[{float(options.window_start):g}, {options.t_final:g}] s"
+        window = markdown.window(options.window_start, options.t_final)
         print(f"  L-inf error on {window} {metrics['linf_error_window']:.4g} (over the whole "
               f"run {metrics['linf_error']:.4g}, from the initial error), L2 error "
               f"{metrics['l2_error']:.4g}, max|u| {metrics['max_abs_u']:.4g}; "
