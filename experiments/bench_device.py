@@ -157,13 +157,13 @@ def throughput(bench: Bench, device, sizes, t_final: float, dtype, repeats: int)
         hyst = tuple(jax.device_put(jnp.asarray(table[:, j], dtype), device) for j in range(3))
         plain = jax.jit(jax.vmap(lambda a, lam, psi: plain_linf((a, lam, psi), n, window,
                                                                 dtype)))
-        cases = {"dscjax": lambda runner=runner, table=table: runner(table, 1),
+        cases = {"dscjax": lambda runner=runner, table=table: runner([table], len(table)),
                  "vmap+scan": lambda plain=plain, hyst=hyst: plain(*hyst)}
         solve = diffrax_solver(n, dtype)
         if solve is not None:
             cases["diffrax"] = lambda solve=solve, hyst=hyst: solve(hyst)
         times = bench.interleaved(cases, repeats=repeats)
-        ours = runner(table, 1)["linf_error_window"]
+        ours = runner([table], len(table))["linf_error_window"]
         theirs = np.asarray(plain(*hyst))
         rel = np.abs(ours - theirs) / np.maximum(np.abs(ours), 1e-30)
         row = {"case": "batch throughput", "device": device.platform, "rows": b}

@@ -75,7 +75,7 @@ def runner(name: str, dtype, plants: int, t_final: float, seed: int = 0):
     table = params.Uniform().draw(ranges, plants, seed).astype(np.float32)
     run = Runner(setup, [r.param for r in ranges], RunSpec.make(t_final, DT),
                  devices=jax.devices()[:1], tile=tile_rows(jax.devices()[0].platform, plants))
-    return lambda: run(table, 1)
+    return lambda: run([table], plants)
 
 
 def main(argv=None) -> int:
