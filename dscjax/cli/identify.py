@@ -46,6 +46,7 @@ def run(args) -> int:
                                    groups={"identify": s})
     record = read(args.data, setup.order)
     val = None if s.validate is None else ident.validation_record(s.validate, record, setup.order)
+    ident.check_free(setup, s.free, record.plant)  # the numbers this record can fix
     # the report (printed below) says which experiment, the segments and the starts
     out = start(args, OUTPUTS, f"{len(record)} samples of {', '.join(record.y)} over t = "
                 f"{record.t[0]:g}..{record.t[-1]:g} s; free: {', '.join(s.free)}; fitting ...")

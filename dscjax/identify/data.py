@@ -35,6 +35,12 @@ class Record:
     def __len__(self) -> int:
         return int(self.t.size)
 
+    @property
+    def plant(self) -> bool:
+        """Whether it measures a plant state (the plant experiment), not w alone (the actuator
+        alone)."""
+        return any(c != "w" for c in self.y)
+
     def part(self, start: int, stop: int | None = None) -> Record:
         """The samples start..stop-1 (a validation tail, a segment)."""
         sl = slice(start, stop)

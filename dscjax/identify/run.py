@@ -112,7 +112,7 @@ def identify(setup, spec, record: Record, s: IdentifySettings, validation: Recor
     """Fit `s.free` of `setup` to `record` (the plant experiment where the record measures a
     plant state, the actuator alone where it measures w only), then validate on `validation`
     (default: the record's last quarter, which the fit then leaves out)."""
-    plant = any(c != "w" for c in record.y)
+    plant = record.plant
     fitted = len(record)  # the samples the fit reads
     if validation is None:
         fitted = int(round(fitted * (1 - VALIDATION_SHARE)))
